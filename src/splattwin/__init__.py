@@ -1,0 +1,8 @@
+"""splattwin: a few RGB photos of a tabletop -> a planning-ready 3D Gaussian Splatting digital twin.
+
+Stages (one subpackage each): capture, poses, splat, semantics, geometry, twin, robot, report, viewer;
+`scene` generates the embedded benchmark scene and `pipeline` ties the stages together.
+Units are metres and radians; cameras follow the OpenCV convention (x right, y down, z forward).
+"""
+
+__version__ = "0.1.0"

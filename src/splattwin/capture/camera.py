@@ -1,0 +1,206 @@
+"""The one camera type used everywhere.
+
+Convention: OpenCV. Camera frame x right, y down, z forward (viewing direction). `T_world_cam` maps
+camera-frame points to the world frame (camera-to-world). Pixel (u, v) = (0, 0) is the centre of the
+top-left pixel's top-left corner... precisely: a pixel index (i, j) covers [i, i+1) x [j, j+1) and its
+centre is (i + 0.5, j + 0.5), the COLMAP/OpenCV continuous convention used by K. Units: metres, pixels.
+
+OpenGL / nerfstudio / Blender cameras look down -z with y up; `T_world_cam_gl` converts by flipping the
+camera's y and z axes (`opencv_from_opengl`, `opengl_from_opencv`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from splattwin.errors import InputError
+
+# Flip of camera y and z axes: OpenCV <-> OpenGL (its own inverse).
+_FLIP_YZ = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def opencv_from_opengl(T_world_cam_gl: np.ndarray) -> np.ndarray:
+    """Camera-to-world in the OpenGL convention (y up, looking down -z) -> OpenCV convention. [4,4]"""
+    return np.asarray(T_world_cam_gl, dtype=np.float64) @ _FLIP_YZ
+
+
+def opengl_from_opencv(T_world_cam: np.ndarray) -> np.ndarray:
+    """Camera-to-world in the OpenCV convention -> OpenGL/nerfstudio convention. [4,4]"""
+    return np.asarray(T_world_cam, dtype=np.float64) @ _FLIP_YZ
+
+
+def invert_se3(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform [4,4] (or batch [...,4,4])."""
+    T = np.asarray(T, dtype=np.float64)
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(R, -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -(Rt @ t[..., None])[..., 0]
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
+    """OpenCV camera-to-world pose at `eye` looking at `target`, with image 'up' towards world `up`. [4,4]"""
+    eye = np.asarray(eye, dtype=np.float64)
+    z = np.asarray(target, dtype=np.float64) - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    if np.linalg.norm(x) < 1e-9:  # looking along `up`: pick any perpendicular x
+        x = np.cross(z, np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0]))
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, eye
+    return T
+
+
+@dataclass
+class Camera:
+    """A pinhole camera with optional OpenCV radial/tangential distortion.
+
+    Attributes:
+        K: [3,3] intrinsics (fx, fy, cx, cy in pixels).
+        width, height: image size in pixels.
+        T_world_cam: [4,4] camera-to-world, OpenCV convention, metres. Identity if unknown.
+        dist: distortion (k1, k2, p1, p2[, k3]) or None for an ideal pinhole.
+        name: image name / id (free text, e.g. the file stem).
+    """
+
+    K: np.ndarray
+    width: int
+    height: int
+    T_world_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
+    dist: np.ndarray | None = None
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        self.K = np.asarray(self.K, dtype=np.float64).reshape(3, 3)
+        self.T_world_cam = np.asarray(self.T_world_cam, dtype=np.float64).reshape(4, 4)
+        self.width, self.height = int(self.width), int(self.height)
+        if self.dist is not None:
+            self.dist = np.asarray(self.dist, dtype=np.float64).ravel()
+            if self.dist.size not in (4, 5):
+                raise InputError(f"camera {self.name!r}: distortion must have 4 or 5 coefficients, got {self.dist.size}")
+            if not np.any(self.dist):
+                self.dist = None
+        self.validate()
+
+    # -- checks -------------------------------------------------------------------------------
+    def validate(self) -> None:
+        where = f"camera {self.name!r}" if self.name else "camera"
+        if self.width <= 0 or self.height <= 0:
+            raise InputError(f"{where}: image size must be positive, got {self.width}x{self.height}")
+        if not np.all(np.isfinite(self.K)) or self.K[0, 0] <= 0 or self.K[1, 1] <= 0:
+            raise InputError(f"{where}: intrinsics must be finite with positive focal lengths")
+        if not np.all(np.isfinite(self.T_world_cam)):
+            raise InputError(f"{where}: pose T_world_cam is not finite")
+        R = self.T_world_cam[:3, :3]
+        if not np.allclose(R.T @ R, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
+            raise InputError(f"{where}: pose rotation is not a proper rotation matrix")
+
+    # -- derived ------------------------------------------------------------------------------
+    @property
+    def fx(self) -> float:
+        return float(self.K[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.K[1, 1])
+
+    @property
+    def cx(self) -> float:
+        return float(self.K[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.K[1, 2])
+
+    @property
+    def T_cam_world(self) -> np.ndarray:
+        """World-to-camera [4,4] (the 'viewmat' of gsplat)."""
+        return invert_se3(self.T_world_cam)
+
+    @property
+    def center(self) -> np.ndarray:
+        """Camera centre in world coordinates [3]."""
+        return self.T_world_cam[:3, 3].copy()
+
+    @property
+    def T_world_cam_gl(self) -> np.ndarray:
+        """Camera-to-world in the OpenGL/nerfstudio convention [4,4]."""
+        return opengl_from_opencv(self.T_world_cam)
+
+    @classmethod
+    def from_fov(cls, fov_x: float, width: int, height: int, T_world_cam: np.ndarray | None = None,
+                 name: str = "") -> "Camera":
+        """Pinhole camera with horizontal field of view `fov_x` (radians), principal point at the centre."""
+        f = 0.5 * width / np.tan(0.5 * fov_x)
+        K = np.array([[f, 0, width / 2.0], [0, f, height / 2.0], [0, 0, 1.0]])
+        return cls(K=K, width=width, height=height,
+                   T_world_cam=np.eye(4) if T_world_cam is None else T_world_cam, name=name)
+
+    def scaled(self, factor: float) -> "Camera":
+        """The same camera for an image resized by `factor` (e.g. 0.5 halves width and height)."""
+        w, h = int(round(self.width * factor)), int(round(self.height * factor))
+        sx, sy = w / self.width, h / self.height
+        K = self.K.copy()
+        K[0, :] *= sx
+        K[1, :] *= sy
+        return replace(self, K=K, width=w, height=h)
+
+    # -- projection ---------------------------------------------------------------------------
+    def world_to_cam(self, p_world: np.ndarray) -> np.ndarray:
+        """[N,3] world points -> [N,3] camera-frame points."""
+        T = self.T_cam_world
+        return np.asarray(p_world, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
+
+    def project(self, p_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Project world points. Returns (uv [N,2] pixels with distortion applied, depth z [N] metres).
+
+        Points with z <= 0 get uv = nan.
+        """
+        p = self.world_to_cam(p_world)
+        z = p[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = p[:, 0] / z
+            y = p[:, 1] / z
+        if self.dist is not None:
+            x, y = distort(x, y, self.dist)
+        uv = np.stack([self.fx * x + self.cx, self.fy * y + self.cy], axis=1)
+        uv[z <= 0] = np.nan
+        return uv, z
+
+    def in_image(self, uv: np.ndarray) -> np.ndarray:
+        """[N] bool: pixel coordinates inside the sensor (finite and within [0, W) x [0, H))."""
+        u, v = uv[:, 0], uv[:, 1]
+        with np.errstate(invalid="ignore"):
+            return np.isfinite(u) & np.isfinite(v) & (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height)
+
+    def to_dict(self) -> dict:
+        d = {"name": self.name, "width": self.width, "height": self.height, "K": self.K.tolist(),
+             "T_world_cam": self.T_world_cam.tolist()}
+        if self.dist is not None:
+            d["dist"] = self.dist.tolist()
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Camera":
+        return cls(K=np.array(d["K"]), width=d["width"], height=d["height"],
+                   T_world_cam=np.array(d.get("T_world_cam", np.eye(4))), dist=d.get("dist"),
+                   name=d.get("name", ""))
+
+
+def distort(x: np.ndarray, y: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Apply OpenCV radial/tangential distortion (k1, k2, p1, p2[, k3]) to normalised coordinates."""
+    k1, k2, p1, p2 = dist[:4]
+    k3 = dist[4] if dist.size > 4 else 0.0
+    r2 = x * x + y * y
+    radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return xd, yd
