@@ -1,9 +1,70 @@
-"""Sub-commands of the capture stage."""
+"""Sub-commands of the capture stage: `capture info`, `capture convert`, `capture frames`."""
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+
+from splattwin.errors import InputError
+
+FORMATS = ("nerfstudio", "colmap", "cameras-json")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add this stage's sub-commands to the `splattwin` parser."""
+    p = sub.add_parser("capture", help="inspect, convert and extract capture datasets")
+    csub = p.add_subparsers(dest="capture_command", metavar="ACTION", required=True)
+
+    info = csub.add_parser("info", help="summarise a dataset (any supported layout)")
+    info.add_argument("path", type=Path, help="transforms.json, COLMAP folder, cameras.json, image folder or video")
+    info.add_argument("--max-frames", type=int, default=None, help="video: number of frames to extract")
+    info.set_defaults(func=_info)
+
+    conv = csub.add_parser("convert", help="write a dataset's cameras in another format")
+    conv.add_argument("path", type=Path, help="input dataset")
+    conv.add_argument("out", type=Path, help="output file (transforms.json / cameras.json) or COLMAP sparse folder")
+    conv.add_argument("--format", choices=FORMATS, required=True)
+    conv.set_defaults(func=_convert)
+
+    fr = csub.add_parser("frames", help="extract sharp, evenly spaced frames from a video")
+    fr.add_argument("video", type=Path)
+    fr.add_argument("out", type=Path, help="output folder for PNG frames")
+    fr.add_argument("--max-frames", type=int, default=30)
+    fr.set_defaults(func=_frames)
+
+
+def _info(args: argparse.Namespace) -> int:
+    from splattwin.capture.dataset import load_dataset
+
+    ds = load_dataset(args.path, max_frames=args.max_frames)
+    c = ds.frames[0].camera
+    print(f"{args.path}: {ds.meta.get('format')} dataset, {len(ds.frames)} frames "
+          f"({len(ds.train())} train, {len(ds.heldout())} held-out), {c.width}x{c.height}, "
+          f"poses: {'yes' if ds.has_poses else 'no'}, points: {0 if ds.points_xyz is None else len(ds.points_xyz)}")
+    return 0
+
+
+def _convert(args: argparse.Namespace) -> int:
+    from splattwin.capture import cameras_json, colmap, nerfstudio
+    from splattwin.capture.dataset import load_dataset
+
+    ds = load_dataset(args.path)
+    if not ds.has_poses:
+        raise InputError("dataset has no camera poses to convert (estimate them first: splattwin poses)", args.path)
+    if args.format == "nerfstudio":
+        out = args.out if args.out.suffix == ".json" else args.out / "transforms.json"
+        nerfstudio.write(ds, out)
+    elif args.format == "colmap":
+        out = colmap.write_text(ds, args.out)
+    else:
+        out = args.out if args.out.suffix == ".json" else args.out / "cameras.json"
+        cameras_json.write(ds, out)
+    print(f"wrote {out}")
+    return 0
+
+
+def _frames(args: argparse.Namespace) -> int:
+    from splattwin.capture.video import extract_frames
+
+    paths = extract_frames(args.video, args.out, max_frames=args.max_frames)
+    print(f"wrote {len(paths)} frames to {args.out}")
+    return 0

@@ -1,0 +1,81 @@
+"""The 3DGS / InstantSplat `cameras.json` layout: read and write.
+
+A JSON list of `{id, img_name, width, height, position [3], rotation [3][3], fx, fy}` where `position`
+is the camera centre and `rotation` the camera-to-world rotation, OpenCV/COLMAP convention, principal
+point at the image centre (as the reference 3DGS code writes it). Images are looked up by name (with
+any image extension) in `images/` beside the file, or beside the file itself.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from splattwin import io
+from splattwin.capture.camera import Camera
+from splattwin.capture.dataset import IMAGE_SUFFIXES, Dataset, Frame
+from splattwin.errors import InputError
+
+_REQUIRED = ("img_name", "width", "height", "position", "rotation", "fx", "fy")
+
+
+def _find_image(root: Path, name: str) -> Path | None:
+    for folder in (root / "images", root / "input", root):
+        p = folder / name
+        if p.is_file():
+            return p
+        for ext in IMAGE_SUFFIXES:
+            q = folder / f"{name}{ext}"
+            if q.is_file():
+                return q
+    return None
+
+
+def read(path: str | Path, image_dir: str | Path | None = None) -> Dataset:
+    path = Path(path)
+    try:
+        entries = json.loads(path.read_text())
+    except FileNotFoundError as e:
+        raise InputError("file does not exist", path) from e
+    except json.JSONDecodeError as e:
+        raise InputError(f"not valid JSON: {e}", path) from e
+    if not isinstance(entries, list) or not entries:
+        raise InputError("expected a non-empty JSON list of cameras (3DGS cameras.json)", path)
+    root = Path(image_dir) if image_dir is not None else path.parent
+    frames = []
+    for i, e in enumerate(sorted(entries, key=lambda e: e.get("id", 0))):
+        missing = [k for k in _REQUIRED if k not in e]
+        if missing:
+            raise InputError(f"camera entry {i} lacks {', '.join(missing)}", path)
+        T = np.eye(4)
+        T[:3, :3] = np.asarray(e["rotation"], dtype=np.float64)
+        T[:3, 3] = np.asarray(e["position"], dtype=np.float64)
+        if not np.all(np.isfinite(T)):
+            raise InputError(f"camera {e['img_name']!r}: pose is not finite", path)
+        w, h = int(e["width"]), int(e["height"])
+        K = np.array([[float(e["fx"]), 0, w / 2.0], [0, float(e["fy"]), h / 2.0], [0, 0, 1.0]])
+        img = _find_image(root, e["img_name"])
+        if img is None:
+            raise InputError(f"image for camera {e['img_name']!r} not found under {root}", path)
+        try:
+            cam = Camera(K=K, width=w, height=h, T_world_cam=T, name=Path(e["img_name"]).stem)
+        except InputError as err:
+            raise InputError(f"camera {e['img_name']!r}: {err.problem}", path) from err
+        frames.append(Frame(image_path=img, camera=cam))
+    return Dataset(root=path.parent, frames=frames, has_poses=True, meta={"format": "cameras.json", "path": str(path)})
+
+
+def write(dataset: Dataset, path: str | Path) -> Path:
+    """Write the 3DGS layout. Cameras whose principal point is off-centre cannot be represented exactly
+    in this format; they raise InputError rather than being silently shifted."""
+    out = []
+    for i, f in enumerate(dataset.frames):
+        c = f.camera
+        if abs(c.cx - c.width / 2.0) > 1e-6 or abs(c.cy - c.height / 2.0) > 1e-6 or c.dist is not None:
+            raise InputError(f"camera {c.name!r}: cameras.json stores only centred, undistorted pinhole cameras", path)
+        out.append({"id": i, "img_name": f.image_path.stem, "width": c.width, "height": c.height,
+                    "position": c.T_world_cam[:3, 3].tolist(), "rotation": c.T_world_cam[:3, :3].tolist(),
+                    "fy": c.fy, "fx": c.fx})
+    return io.write_json(path, out)

@@ -1,0 +1,180 @@
+"""Datasets: posed (or unposed) images with optional depth, masks and an initial point cloud.
+
+`load_dataset(path)` detects the layout:
+- a nerfstudio `transforms.json` (or a folder containing one),
+- a COLMAP sparse model folder (`cameras.bin|txt`, `images.bin|txt`, `points3D.*`; or a folder with
+  `sparse/0/` and `images/`),
+- a 3DGS / InstantSplat `cameras.json` (or a folder containing one),
+- a plain image folder (no poses),
+- a video file (frames extracted with PyAV into a cache folder beside it).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from splattwin.capture.camera import Camera
+from splattwin.errors import InputError
+
+log = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG", ".bmp", ".tif", ".tiff", ".webp")
+VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".MP4", ".MOV", ".m4v")
+
+
+@dataclass
+class Frame:
+    """One view: an image file and its camera (identity pose when unknown)."""
+
+    image_path: Path
+    camera: Camera
+    depth_path: Path | None = None
+    mask_path: Path | None = None
+    split: str = "train"  # "train" | "heldout"
+
+    @property
+    def name(self) -> str:
+        return self.camera.name or self.image_path.stem
+
+
+@dataclass
+class Dataset:
+    """Frames plus an optional initial point cloud (world frame, metres when the poses are metric)."""
+
+    root: Path
+    frames: list[Frame]
+    has_poses: bool
+    points_xyz: np.ndarray | None = None  # [N,3] float64
+    points_rgb: np.ndarray | None = None  # [N,3] uint8
+    depth_scale: float = 1.0  # multiply raw depth-file values by this to get metres (PNG depth in mm: 1e-3)
+    meta: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def train(self) -> list[Frame]:
+        return [f for f in self.frames if f.split == "train"]
+
+    def heldout(self) -> list[Frame]:
+        return [f for f in self.frames if f.split == "heldout"]
+
+    @property
+    def cameras(self) -> list[Camera]:
+        return [f.camera for f in self.frames]
+
+    def validate(self) -> None:
+        """Check that files exist and that images match their cameras' sizes (reads image headers only)."""
+        if not self.frames:
+            raise InputError("dataset has no frames", self.root)
+        for f in self.frames:
+            w, h = image_size(f.image_path)
+            if (w, h) != (f.camera.width, f.camera.height):
+                raise InputError(f"image is {w}x{h} but its camera says {f.camera.width}x{f.camera.height}", f.image_path)
+            for extra in (f.depth_path, f.mask_path):
+                if extra is not None and not extra.is_file():
+                    raise InputError("file listed in the dataset does not exist", extra)
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) from the image header; InputError if missing or unreadable."""
+    from PIL import Image, UnidentifiedImageError
+
+    if not Path(path).is_file():
+        raise InputError("image file does not exist", path)
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except (UnidentifiedImageError, OSError) as e:
+        raise InputError(f"unreadable image ({e.__class__.__name__})", path) from e
+
+
+def load_image(path: str | Path) -> np.ndarray:
+    """RGB image as float32 HxWx3 in [0, 1] (alpha dropped, greyscale expanded)."""
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("image file does not exist", path)
+    try:
+        with Image.open(path) as im:
+            im.load()
+            rgb = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+    except (UnidentifiedImageError, OSError) as e:
+        raise InputError(f"unreadable image ({e.__class__.__name__}: {e})", path) from e
+    return rgb
+
+
+def load_mask(path: str | Path) -> np.ndarray:
+    """Mask or label image as uint8/uint16 HxW (first channel if it has several)."""
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("mask file does not exist", path)
+    try:
+        with Image.open(path) as im:
+            m = np.asarray(im)
+    except (UnidentifiedImageError, OSError) as e:
+        raise InputError(f"unreadable mask ({e.__class__.__name__})", path) from e
+    return m[..., 0] if m.ndim == 3 else m
+
+
+def load_depth(path: str | Path, scale: float = 1.0) -> np.ndarray:
+    """Depth map as float32 HxW metres: `.npy` (float, metres unless `scale` says otherwise) or a
+    16-bit PNG (raw units × scale; nerfstudio's convention is millimetres, scale 1e-3)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("depth file does not exist", path)
+    if path.suffix == ".npy":
+        try:
+            d = np.load(path)
+        except (ValueError, OSError) as e:
+            raise InputError(f"unreadable depth array: {e}", path) from e
+    else:
+        d = load_mask(path)
+        if scale == 1.0:
+            scale = 1e-3  # integer depth images are millimetres by convention
+    if d.ndim != 2:
+        raise InputError(f"depth must be a 2-D array, got shape {d.shape}", path)
+    return d.astype(np.float32) * np.float32(scale)
+
+
+def find_images(folder: Path) -> list[Path]:
+    return sorted(p for p in Path(folder).iterdir() if p.is_file() and p.suffix in IMAGE_SUFFIXES)
+
+
+def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool = True) -> Dataset:
+    """Load any supported dataset layout (see module docstring)."""
+    from splattwin.capture import cameras_json, colmap, images, nerfstudio, video
+
+    path = Path(path)
+    if not path.exists():
+        raise InputError("dataset path does not exist", path)
+    if path.is_file():
+        if path.name.endswith(".json"):
+            text_head = path.read_text(errors="replace")[:4096]
+            ds = cameras_json.read(path) if text_head.lstrip().startswith("[") else nerfstudio.read(path)
+        elif path.suffix in VIDEO_SUFFIXES:
+            ds = video.read(path, max_frames=max_frames)
+        else:
+            raise InputError("not a dataset: expected transforms.json, cameras.json, a video, or a folder", path)
+    elif (path / "transforms.json").is_file():
+        ds = nerfstudio.read(path / "transforms.json")
+    elif colmap.find_sparse_dir(path) is not None:
+        ds = colmap.read(path)
+    elif (path / "cameras.json").is_file():
+        ds = cameras_json.read(path / "cameras.json")
+    elif find_images(path) or (path / "images").is_dir():
+        ds = images.read(path)
+    else:
+        raise InputError("no dataset found here (no transforms.json, COLMAP model, cameras.json or images)", path)
+    if max_frames is not None and len(ds.frames) > max_frames and not (path.is_file() and path.suffix in VIDEO_SUFFIXES):
+        idx = np.linspace(0, len(ds.frames) - 1, max_frames).round().astype(int)
+        ds.frames = [ds.frames[i] for i in idx]
+    if validate:
+        ds.validate()
+    return ds

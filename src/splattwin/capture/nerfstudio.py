@@ -1,0 +1,192 @@
+"""nerfstudio `transforms.json`: read and write.
+
+Supports global or per-frame intrinsics (fl_x, fl_y, cx, cy, w, h), camera models PINHOLE and OPENCV
+(k1 k2 p1 p2 [k3]), `depth_file_path`, `mask_path`, `ply_file_path`, and the split lists
+`train_filenames` / `val_filenames` / `test_filenames` (val and test become our "heldout" split); a
+per-frame `"split"` key is also honoured. Poses are OpenGL camera-to-world (`transform_matrix`); we
+convert to OpenCV on read and back on write. Frames whose image is missing are skipped with a warning.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from splattwin import io
+from splattwin.capture.camera import Camera, opencv_from_opengl, opengl_from_opencv
+from splattwin.capture.dataset import Dataset, Frame
+from splattwin.errors import InputError
+
+log = logging.getLogger(__name__)
+
+SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV", "SIMPLE_RADIAL", "RADIAL")
+_INTR_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
+_DIST_KEYS = ("k1", "k2", "p1", "p2", "k3")
+
+
+def _intrinsics(src: dict, fallback: dict, where: Path, frame_name: str) -> tuple[np.ndarray, int, int, np.ndarray | None]:
+    def get(key: str):
+        return src.get(key, fallback.get(key))
+
+    fl_x, fl_y = get("fl_x"), get("fl_y")
+    w, h = get("w"), get("h")
+    if fl_x is None and get("camera_angle_x") is not None and w is not None:  # Blender/NeRF-synthetic style
+        fl_x = 0.5 * float(w) / math.tan(0.5 * float(get("camera_angle_x")))
+    if fl_y is None:
+        fl_y = fl_x
+    missing = [k for k, v in (("fl_x", fl_x), ("w", w), ("h", h)) if v is None]
+    if missing:
+        raise InputError(f"frame {frame_name!r}: missing intrinsics {', '.join(missing)}", where)
+    cx = get("cx") if get("cx") is not None else float(w) / 2.0
+    cy = get("cy") if get("cy") is not None else float(h) / 2.0
+    K = np.array([[float(fl_x), 0.0, float(cx)], [0.0, float(fl_y), float(cy)], [0.0, 0.0, 1.0]])
+    dist = np.array([float(get(k) or 0.0) for k in _DIST_KEYS])
+    return K, int(w), int(h), (dist if np.any(dist) else None)
+
+
+def read(path: str | Path) -> Dataset:
+    path = Path(path)
+    try:
+        meta = json.loads(path.read_text())
+    except FileNotFoundError as e:
+        raise InputError("file does not exist", path) from e
+    except json.JSONDecodeError as e:
+        raise InputError(f"not valid JSON: {e}", path) from e
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list):
+        raise InputError("not a nerfstudio transforms.json (no 'frames' list)", path)
+    model = meta.get("camera_model", "OPENCV")
+    if model not in SUPPORTED_MODELS:
+        raise InputError(f"unsupported camera_model {model!r} (supported: {', '.join(SUPPORTED_MODELS)})", path)
+    root = path.parent
+    heldout_names = set(meta.get("test_filenames", [])) | set(meta.get("val_filenames", []))
+    frames: list[Frame] = []
+    for i, fr in enumerate(meta["frames"]):
+        if "file_path" not in fr:
+            raise InputError(f"frame {i} has no file_path", path)
+        rel = fr["file_path"]
+        img = root / rel
+        if not img.suffix and not img.exists():  # NeRF-synthetic omits the extension
+            img = img.with_suffix(".png")
+        if not img.is_file():
+            log.warning("%s: frame %d image %s is missing; skipping it", path, i, img)
+            continue
+        fr_model = fr.get("camera_model", model)
+        if fr_model not in SUPPORTED_MODELS:
+            raise InputError(f"frame {rel!r}: unsupported camera_model {fr_model!r}", path)
+        K, w, h, dist = _intrinsics(fr, meta, path, rel)
+        T_gl = np.asarray(fr.get("transform_matrix"), dtype=np.float64)
+        if T_gl.shape == (3, 4):
+            T_gl = np.vstack([T_gl, [0, 0, 0, 1]])
+        if T_gl.shape != (4, 4):
+            raise InputError(f"frame {rel!r}: transform_matrix must be 4x4, got shape {T_gl.shape}", path)
+        if not np.all(np.isfinite(T_gl)):
+            raise InputError(f"frame {rel!r}: transform_matrix is not finite", path)
+        split = fr.get("split")
+        if split is None:
+            split = "heldout" if (rel in heldout_names or img.name in heldout_names) else "train"
+        elif split in ("test", "val", "heldout"):
+            split = "heldout"
+        else:
+            split = "train"
+        try:
+            cam = Camera(K=K, width=w, height=h, T_world_cam=opencv_from_opengl(T_gl), dist=dist, name=Path(rel).stem)
+        except InputError as e:
+            raise InputError(f"frame {rel!r}: {e.problem}", path) from e
+        frames.append(Frame(
+            image_path=img,
+            camera=cam,
+            depth_path=root / fr["depth_file_path"] if fr.get("depth_file_path") else None,
+            mask_path=root / fr["mask_path"] if fr.get("mask_path") else None,
+            split=split,
+        ))
+    if not frames:
+        raise InputError("no frame has an existing image", path)
+    xyz = rgb = None
+    if meta.get("ply_file_path"):
+        ply = root / meta["ply_file_path"]
+        if ply.is_file():
+            xyz, rgb = read_points_ply(ply)
+        else:
+            log.warning("%s: ply_file_path %s is missing; no initial point cloud", path, ply)
+    return Dataset(root=root, frames=frames, has_poses=True, points_xyz=xyz, points_rgb=rgb,
+                   depth_scale=float(meta.get("depth_unit_scale_factor", 1.0)),
+                   meta={"format": "nerfstudio", "path": str(path)})
+
+
+def write(dataset: Dataset, path: str | Path, ply_name: str = "sparse_pc.ply") -> Path:
+    """Write `dataset` as `path` (a transforms.json). File paths are written relative to its folder.
+
+    Shared intrinsics go top-level, differing ones per frame. Points (if any) go to `ply_name`.
+    """
+    path = Path(path)
+    root = path.parent
+    cams = [f.camera for f in dataset.frames]
+    first = cams[0]
+
+    def intr(c: Camera) -> dict:
+        d = {"fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy, "w": c.width, "h": c.height}
+        if c.dist is not None:
+            d.update({k: float(v) for k, v in zip(_DIST_KEYS, c.dist)})
+        return d
+
+    shared = all(intr(c) == intr(first) for c in cams)
+    meta: dict = {"camera_model": "OPENCV" if any(c.dist is not None for c in cams) else "PINHOLE"}
+    if shared:
+        meta.update(intr(first))
+    frames = []
+    for f in dataset.frames:
+        d = {"file_path": _rel(f.image_path, root), "transform_matrix": opengl_from_opencv(f.camera.T_world_cam).tolist()}
+        if not shared:
+            d.update(intr(f.camera))
+        if f.depth_path is not None:
+            d["depth_file_path"] = _rel(f.depth_path, root)
+        if f.mask_path is not None:
+            d["mask_path"] = _rel(f.mask_path, root)
+        d["split"] = f.split
+        frames.append(d)
+    meta["frames"] = frames
+    meta["train_filenames"] = [fr["file_path"] for fr in frames if fr["split"] == "train"]
+    meta["test_filenames"] = [fr["file_path"] for fr in frames if fr["split"] == "heldout"]
+    if dataset.depth_scale != 1.0:
+        meta["depth_unit_scale_factor"] = dataset.depth_scale
+    if dataset.points_xyz is not None:
+        write_points_ply(root / ply_name, dataset.points_xyz, dataset.points_rgb)
+        meta["ply_file_path"] = ply_name
+    return io.write_json(path, meta)
+
+
+def _rel(p: Path, root: Path) -> str:
+    return Path(os.path.relpath(Path(p).resolve(), root.resolve())).as_posix()
+
+
+def read_points_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Point cloud (xyz [N,3] float64, rgb [N,3] uint8 or None) from a PLY via Open3D-free trimesh."""
+    import trimesh
+
+    try:
+        pc = trimesh.load(path, process=False)
+    except Exception as e:  # trimesh raises many types on malformed files
+        raise InputError(f"unreadable point cloud PLY: {e}", path) from e
+    xyz = np.asarray(getattr(pc, "vertices", np.zeros((0, 3))), dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3 or not np.all(np.isfinite(xyz)):
+        raise InputError("point cloud PLY must hold finite xyz vertices", path)
+    colors = getattr(pc, "colors", None)
+    rgb = None
+    if colors is not None and len(colors) == len(xyz):
+        rgb = np.asarray(colors)[:, :3].astype(np.uint8)
+    return xyz, rgb
+
+
+def write_points_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray | None = None) -> Path:
+    import trimesh
+
+    colors = None if rgb is None else np.hstack([np.asarray(rgb, np.uint8), np.full((len(rgb), 1), 255, np.uint8)])
+    pc = trimesh.PointCloud(np.asarray(xyz, dtype=np.float64), colors=colors)
+    with io.atomic_path(path) as tmp:
+        pc.export(tmp, file_type="ply")
+    return Path(path)

@@ -1,0 +1,84 @@
+import numpy as np
+import pytest
+
+from splattwin.capture import Camera, invert_se3, look_at, opencv_from_opengl, opengl_from_opencv
+from splattwin.errors import InputError
+
+
+def test_opencv_opengl_roundtrip_and_axes():
+    T = look_at(np.array([0.3, -0.4, 0.5]), np.zeros(3))
+    T_gl = opengl_from_opencv(T)
+    np.testing.assert_allclose(opencv_from_opengl(T_gl), T, atol=1e-12)
+    # OpenGL camera looks down -z: its -z axis is OpenCV's +z (viewing direction).
+    np.testing.assert_allclose(-T_gl[:3, 2], T[:3, 2], atol=1e-12)
+    # y flips (OpenCV y down, OpenGL y up); position unchanged
+    np.testing.assert_allclose(-T_gl[:3, 1], T[:3, 1], atol=1e-12)
+    np.testing.assert_allclose(T_gl[:3, 3], T[:3, 3])
+
+
+def test_look_at_projects_target_to_principal_point():
+    cam = Camera.from_fov(np.deg2rad(60), 320, 240, look_at(np.array([0.5, 0.2, 0.6]), np.array([0.05, -0.02, 0.0])))
+    uv, z = cam.project(np.array([[0.05, -0.02, 0.0]]))
+    np.testing.assert_allclose(uv[0], [160, 120], atol=1e-9)
+    assert z[0] == pytest.approx(np.linalg.norm([0.45, 0.22, 0.6]))
+    # world up (+z) points up in the image (smaller v)
+    uv2, _ = cam.project(np.array([[0.05, -0.02, 0.05]]))
+    assert uv2[0, 1] < 120
+
+
+def test_invert_se3_matches_numpy():
+    T = look_at(np.array([1.0, 2.0, 3.0]), np.array([0.1, 0.2, 0.0]))
+    np.testing.assert_allclose(invert_se3(T), np.linalg.inv(T), atol=1e-12)
+    np.testing.assert_allclose(invert_se3(np.stack([T, T]))[1], np.linalg.inv(T), atol=1e-12)
+
+
+def test_projection_with_distortion_matches_opencv():
+    import cv2
+
+    K = np.array([[200.0, 0, 160], [0, 210.0, 120], [0, 0, 1]])
+    dist = np.array([-0.1, 0.02, 0.001, -0.002, 0.003])
+    T = look_at(np.array([0.0, -0.5, 0.5]), np.zeros(3))
+    cam = Camera(K=K, width=320, height=240, T_world_cam=T, dist=dist)
+    pts = np.random.default_rng(1).uniform(-0.1, 0.1, (50, 3))
+    uv, _ = cam.project(pts)
+    Tcw = cam.T_cam_world
+    ref, _ = cv2.projectPoints(pts, cv2.Rodrigues(Tcw[:3, :3])[0], Tcw[:3, 3], K, dist)
+    np.testing.assert_allclose(uv, ref[:, 0, :], atol=1e-6)
+
+
+def test_points_behind_camera_are_nan_and_outside():
+    cam = Camera.from_fov(1.0, 64, 48)
+    uv, z = cam.project(np.array([[0, 0, -1.0], [0, 0, 1.0]]))
+    assert np.isnan(uv[0]).all() and z[0] < 0
+    assert cam.in_image(uv).tolist() == [False, True]
+
+
+def test_scaled_camera():
+    cam = Camera.from_fov(1.0, 320, 240)
+    half = cam.scaled(0.5)
+    assert (half.width, half.height) == (160, 120)
+    assert half.fx == pytest.approx(cam.fx / 2) and half.cx == pytest.approx(80)
+
+
+@pytest.mark.parametrize("bad", [
+    dict(T_world_cam=np.full((4, 4), np.nan)),
+    dict(T_world_cam=np.diag([1.0, 1.0, -1.0, 1.0])),  # reflection
+    dict(K=np.diag([0.0, 1.0, 1.0])),
+    dict(width=0),
+    dict(dist=[0.1, 0.2, 0.3]),
+])
+def test_camera_rejects_bad_values(bad):
+    kw = dict(K=np.diag([100.0, 100.0, 1.0]), width=64, height=48, T_world_cam=np.eye(4), name="c0")
+    kw.update(bad)
+    with pytest.raises(InputError):
+        Camera(**kw)
+
+
+def test_dict_roundtrip():
+    cam = Camera(K=np.diag([100.0, 90.0, 1.0]), width=64, height=48, dist=[0.1, 0, 0, 0], name="x",
+                 T_world_cam=look_at(np.ones(3), np.zeros(3)))
+    back = Camera.from_dict(cam.to_dict())
+    np.testing.assert_allclose(back.K, cam.K)
+    np.testing.assert_allclose(back.T_world_cam, cam.T_world_cam)
+    np.testing.assert_allclose(back.dist, cam.dist)
+    assert back.name == "x"

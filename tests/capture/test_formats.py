@@ -1,0 +1,177 @@
+import json
+import logging
+
+import numpy as np
+import pytest
+
+from splattwin import io
+from splattwin.capture import cameras_json, colmap, images, nerfstudio
+from splattwin.capture.dataset import Dataset, load_dataset, load_depth, load_image
+from splattwin.errors import InputError
+
+
+
+def assert_same_cameras(a: Dataset, b: Dataset, check_split: bool = True, atol: float = 1e-9):
+    assert len(a.frames) == len(b.frames)
+    by_name = {f.image_path.name: f for f in b.frames}
+    for fa in a.frames:
+        fb = by_name[fa.image_path.name]
+        np.testing.assert_allclose(fb.camera.K, fa.camera.K, atol=atol)
+        np.testing.assert_allclose(fb.camera.T_world_cam, fa.camera.T_world_cam, atol=atol)
+        assert (fb.camera.width, fb.camera.height) == (fa.camera.width, fa.camera.height)
+        if fa.camera.dist is None:
+            assert fb.camera.dist is None
+        else:
+            np.testing.assert_allclose(fb.camera.dist[:4], fa.camera.dist[:4], atol=atol)
+        if check_split:
+            assert fb.split == fa.split
+
+
+def test_nerfstudio_roundtrip(tmp_path, make_dataset):
+    ds = make_dataset(tmp_path, dist=np.array([0.01, -0.002, 0.0005, 0.0001]), with_depth=True)
+    out = nerfstudio.write(ds, tmp_path / "transforms.json")
+    back = load_dataset(out)
+    assert_same_cameras(ds, back)
+    assert [f.depth_path.name for f in back.frames] == [f.depth_path.name for f in ds.frames]
+    np.testing.assert_allclose(back.points_xyz, ds.points_xyz, atol=1e-6)
+    np.testing.assert_array_equal(back.points_rgb, ds.points_rgb)
+    meta = json.loads(out.read_text())
+    assert meta["camera_model"] == "OPENCV" and "k1" in meta
+    assert meta["test_filenames"] == ["images/img_003.png"]
+    # the folder is detected too
+    assert len(load_dataset(tmp_path).frames) == 4
+    d = load_depth(back.frames[0].depth_path)
+    assert d.dtype == np.float32 and d.shape == (48, 64)
+
+
+def test_nerfstudio_per_frame_intrinsics(tmp_path, make_dataset):
+    ds = make_dataset(tmp_path, per_frame_K=True, with_points=False)
+    out = nerfstudio.write(ds, tmp_path / "transforms.json")
+    meta = json.loads(out.read_text())
+    assert "fl_x" not in meta and "fl_x" in meta["frames"][0]
+    assert_same_cameras(ds, load_dataset(out))
+
+
+def test_nerfstudio_split_lists_and_missing_image(tmp_path, caplog, make_dataset):
+    ds = make_dataset(tmp_path, with_points=False)
+    out = nerfstudio.write(ds, tmp_path / "transforms.json")
+    meta = json.loads(out.read_text())
+    for fr in meta["frames"]:
+        del fr["split"]  # only the nerfstudio split lists remain
+    meta["frames"].append({"file_path": "images/gone.png", "transform_matrix": np.eye(4).tolist()})
+    io.write_json(out, meta)
+    with caplog.at_level(logging.WARNING):
+        back = load_dataset(out)
+    assert "gone.png" in caplog.text
+    assert [f.split for f in back.frames] == ["train", "train", "train", "heldout"]
+
+
+@pytest.mark.parametrize("mutate, msg", [
+    (lambda m: m.update(camera_model="EQUIRECTANGULAR"), "unsupported camera_model"),
+    (lambda m: m["frames"][0].update(transform_matrix=[[float("nan")] * 4] * 4), "not finite"),
+    (lambda m: m["frames"][0].update(transform_matrix=[[1, 0], [0, 1]]), "4x4"),
+    (lambda m: m.pop("fl_x"), "missing intrinsics"),
+    (lambda m: m.pop("frames"), "no 'frames'"),
+])
+def test_nerfstudio_bad_input(tmp_path, mutate, msg, make_dataset):
+    ds = make_dataset(tmp_path, with_points=False)
+    out = nerfstudio.write(ds, tmp_path / "transforms.json")
+    meta = json.loads(out.read_text())
+    mutate(meta)
+    io.write_json(out, meta)
+    with pytest.raises(InputError, match=msg) as e:
+        load_dataset(out)
+    assert e.value.path == out
+
+
+def test_invalid_json_names_file(tmp_path):
+    p = tmp_path / "transforms.json"
+    p.write_text("{not json")
+    with pytest.raises(InputError, match="not valid JSON") as e:
+        load_dataset(p)
+    assert e.value.path == p
+
+
+def test_image_size_mismatch_is_reported(tmp_path, make_dataset):
+    ds = make_dataset(tmp_path, with_points=False)
+    io.write_image(ds.frames[1].image_path, np.zeros((10, 10, 3), np.uint8))
+    out = nerfstudio.write(ds, tmp_path / "transforms.json")
+    with pytest.raises(InputError, match="10x10") as e:
+        load_dataset(out)
+    assert e.value.path == ds.frames[1].image_path
+
+
+def test_unreadable_image(tmp_path, make_dataset):
+    ds = make_dataset(tmp_path, with_points=False)
+    ds.frames[0].image_path.write_bytes(b"not a png")
+    with pytest.raises(InputError, match="unreadable image"):
+        load_image(ds.frames[0].image_path)
+    with pytest.raises(InputError, match="does not exist"):
+        load_image(tmp_path / "nope.png")
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_colmap_roundtrip(tmp_path, binary, make_dataset):
+    import pycolmap
+
+    ds = make_dataset(tmp_path, dist=np.array([0.02, -0.01, 0.001, 0.002]))
+    sparse = tmp_path / "sparse" / "0"
+    colmap.write_text(ds, sparse)
+    if binary:
+        rec = pycolmap.Reconstruction(str(sparse))
+        for f in sparse.glob("*.txt"):
+            f.unlink()
+        rec.write_binary(str(sparse))
+        assert (sparse / "images.bin").is_file()
+    back = load_dataset(tmp_path)
+    assert back.meta["format"] == "colmap"
+    assert_same_cameras(ds, back, check_split=False, atol=1e-7)
+    np.testing.assert_allclose(np.sort(back.points_xyz, axis=0), np.sort(ds.points_xyz, axis=0), atol=1e-9)
+
+
+def test_colmap_unknown_model(tmp_path, make_dataset):
+    ds = make_dataset(tmp_path, with_points=False)
+    sparse = tmp_path / "sparse" / "0"
+    colmap.write_text(ds, sparse)
+    lines = (sparse / "cameras.txt").read_text().splitlines()
+    lines[1] = "1 FOV 64 48 50.0 50.5 32.5 23.75 0.1"  # a valid COLMAP model we cannot represent
+    (sparse / "cameras.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match="unsupported COLMAP camera model FOV"):
+        load_dataset(tmp_path)
+
+
+def test_cameras_json_roundtrip(tmp_path, make_dataset):
+    ds = make_dataset(tmp_path, with_points=False)
+    for f in ds.frames:  # cameras.json stores centred principal points only
+        f.camera.K[0, 2], f.camera.K[1, 2] = 32.0, 24.0
+    out = cameras_json.write(ds, tmp_path / "cameras.json")
+    back = load_dataset(out)
+    assert back.meta["format"] == "cameras.json"
+    assert_same_cameras(ds, back, check_split=False)
+
+
+def test_cameras_json_rejects_offcentre(tmp_path, make_dataset):
+    ds = make_dataset(tmp_path, with_points=False)
+    with pytest.raises(InputError, match="centred"):
+        cameras_json.write(ds, tmp_path / "cameras.json")
+
+
+def test_image_folder(tmp_path, make_dataset):
+    ds = make_dataset(tmp_path, with_points=False)
+    back = load_dataset(tmp_path / "images")
+    assert not back.has_poses and len(back.frames) == 4
+    assert back.frames[0].camera.width == 64
+    io.write_image(ds.frames[2].image_path, np.zeros((20, 30, 3), np.uint8))
+    with pytest.raises(InputError, match="share a size"):
+        images.read(tmp_path / "images")
+
+
+def test_empty_folder(tmp_path):
+    with pytest.raises(InputError, match="no dataset found"):
+        load_dataset(tmp_path)
+
+
+def test_max_frames_subsamples(tmp_path, make_dataset):
+    ds = make_dataset(tmp_path, n=6, with_points=False)
+    nerfstudio.write(ds, tmp_path / "transforms.json")
+    assert len(load_dataset(tmp_path, max_frames=3).frames) == 3
