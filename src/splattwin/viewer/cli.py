@@ -1,9 +1,21 @@
-"""Sub-commands of the viewer stage."""
+"""`splattwin view TWIN`: the web viewer."""
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add this stage's sub-commands to the `splattwin` parser."""
+    p = sub.add_parser("view", help="web viewer (viser): splats, labels, collision meshes, robot trajectory")
+    p.add_argument("twin", type=Path, help="twin folder (with twin.json)")
+    p.add_argument("--host", default="127.0.0.1", help="interface to serve on (default loopback only)")
+    p.add_argument("--port", type=int, default=8080)
+    p.set_defaults(func=_view)
+
+
+def _view(args: argparse.Namespace) -> int:
+    from splattwin.viewer.app import serve
+
+    serve(args.twin, host=args.host, port=args.port, block=True)
+    return 0

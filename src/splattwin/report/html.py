@@ -1,0 +1,142 @@
+"""A self-contained HTML report: every image is embedded (base64 PNG), no external CSS/JS/fonts, so the
+file opens offline and can be mailed around as one file.
+
+    rep = Report("splattwin twin: tabletop")
+    sec = rep.section("Reconstruction")
+    sec.text("15 training views, 3000 iterations.")
+    sec.table(["view", "PSNR", "SSIM"], rows)
+    sec.image(array_or_png_path, caption="ground truth | render | error")
+    rep.save(twin / "report" / "index.html")
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io as _io
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from splattwin import io
+
+_CSS = """
+body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:0;background:#f6f7f9;color:#1d2330}
+header{background:#1d2330;color:#fff;padding:18px 32px}header h1{margin:0;font-size:22px}
+header p{margin:4px 0 0;color:#b9c0cc;font-size:13px}
+main{max-width:1200px;margin:0 auto;padding:16px 32px 48px}
+section{background:#fff;border-radius:8px;box-shadow:0 1px 3px rgba(0,0,0,.08);margin:18px 0;padding:16px 22px}
+h2{font-size:18px;margin:0 0 10px;border-bottom:1px solid #e3e6eb;padding-bottom:6px}
+table{border-collapse:collapse;margin:8px 0 12px;font-size:13px}
+th,td{border:1px solid #e3e6eb;padding:4px 10px;text-align:right}th{background:#f0f2f5}
+td:first-child,th:first-child{text-align:left}
+figure{display:inline-block;margin:6px 10px 10px 0;vertical-align:top}
+figure img{max-width:100%;border:1px solid #e3e6eb;border-radius:4px;image-rendering:auto}
+figcaption{font-size:12px;color:#5b6475;margin-top:2px}
+.kpis{display:flex;flex-wrap:wrap;gap:12px}.kpi{background:#f0f4ff;border-radius:6px;padding:8px 14px}
+.kpi b{display:block;font-size:20px}.kpi span{font-size:12px;color:#5b6475}
+.ok{color:#137333;font-weight:600}.bad{color:#b3261e;font-weight:600}pre{background:#f0f2f5;padding:8px;overflow:auto;font-size:12px}
+"""
+
+
+def png_bytes(image: np.ndarray | str | Path) -> bytes:
+    """PNG bytes of an HxW(x3|4) array (uint8, or float in [0,1]) or of an existing image file."""
+    from PIL import Image
+
+    if isinstance(image, (str, Path)):
+        data = Path(image).read_bytes()
+        if data[:8] == b"\x89PNG\r\n\x1a\n":
+            return data
+        image = np.asarray(Image.open(_io.BytesIO(data)).convert("RGB"))
+    arr = np.asarray(image)
+    if arr.dtype != np.uint8:
+        arr = (np.clip(arr, 0, 1) * 255 + 0.5).astype(np.uint8)
+    buf = _io.BytesIO()
+    Image.fromarray(arr).save(buf, format="PNG", optimize=True)
+    return buf.getvalue()
+
+
+def data_uri(image: np.ndarray | str | Path) -> str:
+    return "data:image/png;base64," + base64.b64encode(png_bytes(image)).decode("ascii")
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, bool):
+        return '<span class="ok">yes</span>' if v else '<span class="bad">no</span>'
+    if isinstance(v, (float, np.floating)):
+        return f"{v:.4g}" if abs(v) < 1e4 else f"{v:.3e}"
+    return html.escape(str(v))
+
+
+@dataclass
+class Section:
+    title: str
+    parts: list[str] = field(default_factory=list)
+
+    def text(self, s: str) -> "Section":
+        self.parts.append(f"<p>{html.escape(s)}</p>")
+        return self
+
+    def pre(self, s: str) -> "Section":
+        self.parts.append(f"<pre>{html.escape(s)}</pre>")
+        return self
+
+    def kpis(self, items: dict[str, Any]) -> "Section":
+        cells = "".join(f'<div class="kpi"><b>{_fmt(v)}</b><span>{html.escape(k)}</span></div>' for k, v in items.items())
+        self.parts.append(f'<div class="kpis">{cells}</div>')
+        return self
+
+    def table(self, header: Sequence[str], rows: Sequence[Sequence[Any]]) -> "Section":
+        head = "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
+        body = "".join("<tr>" + "".join(f"<td>{_fmt(c)}</td>" for c in r) + "</tr>" for r in rows)
+        self.parts.append(f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>")
+        return self
+
+    def image(self, image: np.ndarray | str | Path, caption: str = "", width: int | None = None) -> "Section":
+        w = f' style="width:{int(width)}px"' if width else ""
+        cap = f"<figcaption>{html.escape(caption)}</figcaption>" if caption else ""
+        self.parts.append(f'<figure><img{w} src="{data_uri(image)}" alt="{html.escape(caption)}">{cap}</figure>')
+        return self
+
+
+@dataclass
+class Report:
+    title: str
+    subtitle: str = ""
+    sections: list[Section] = field(default_factory=list)
+
+    def section(self, title: str) -> Section:
+        s = Section(title)
+        self.sections.append(s)
+        return s
+
+    def to_html(self) -> str:
+        body = "".join(f"<section><h2>{html.escape(s.title)}</h2>{''.join(s.parts)}</section>" for s in self.sections)
+        return (f'<!DOCTYPE html><html lang="en"><head><meta charset="utf-8"><title>{html.escape(self.title)}</title>'
+                f"<style>{_CSS}</style></head><body><header><h1>{html.escape(self.title)}</h1>"
+                f"<p>{html.escape(self.subtitle)}</p></header><main>{body}</main></body></html>")
+
+    def save(self, path: str | Path) -> Path:
+        return io.write_text(path, self.to_html())
+
+
+def side_by_side(images: Sequence[np.ndarray], gap: int = 4) -> np.ndarray:
+    """Concatenate HxWx3 float/uint8 images horizontally (heights must match) with a white gap."""
+    ims = [np.asarray(im, dtype=np.float32) / (255.0 if np.asarray(im).dtype == np.uint8 else 1.0) for im in images]
+    h = ims[0].shape[0]
+    out = []
+    for i, im in enumerate(ims):
+        if im.ndim == 2:
+            im = np.repeat(im[..., None], 3, axis=2)
+        out.append(im[..., :3])
+        if i < len(ims) - 1:
+            out.append(np.ones((h, gap, 3), np.float32))
+    return np.concatenate(out, axis=1)
+
+
+def error_heatmap(a: np.ndarray, b: np.ndarray, vmax: float = 0.25) -> np.ndarray:
+    """Per-pixel mean absolute RGB error of two HxWx3 [0,1] images, coloured (black → red → yellow)."""
+    err = np.clip(np.abs(np.asarray(a, np.float32) - np.asarray(b, np.float32)).mean(axis=2) / vmax, 0, 1)
+    return np.stack([np.clip(2 * err, 0, 1), np.clip(2 * err - 1, 0, 1), np.zeros_like(err)], axis=2)

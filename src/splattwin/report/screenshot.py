@@ -1,0 +1,41 @@
+"""Headless Chromium screenshots of the report and the viewer (Debian `chromium`).
+
+Background networking is switched off: the machines have no network beyond package registries, and
+Chromium's own update/sync connections would otherwise hang or fail at start-up.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+from splattwin.errors import InputError
+
+CHROMIUM_CANDIDATES = ("chromium", "chromium-browser", "google-chrome")
+
+
+def find_chromium() -> str:
+    for name in CHROMIUM_CANDIDATES:
+        p = shutil.which(name)
+        if p:
+            return p
+    raise InputError("no Chromium found on PATH (Debian: apt-get install chromium)")
+
+
+def screenshot(url: str, out_png: str | Path, width: int = 1280, height: int = 900, budget_ms: int = 15000,
+               timeout_s: float = 120.0) -> Path:
+    """Load `url` (http:// or file://) in headless Chromium and save a PNG screenshot."""
+    out_png = Path(out_png).resolve()
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="splattwin-chromium-") as profile:
+        cmd = [find_chromium(), "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+               "--disable-background-networking", "--disable-component-update", "--disable-sync",
+               "--disable-quic", "--no-first-run", "--hide-scrollbars", "--enable-unsafe-swiftshader",
+               f"--user-data-dir={profile}", f"--window-size={width},{height}",
+               f"--virtual-time-budget={budget_ms}", f"--screenshot={out_png}", url]
+        subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=timeout_s, check=False)
+    if not out_png.is_file():
+        raise RuntimeError(f"chromium produced no screenshot for {url}")
+    return out_png

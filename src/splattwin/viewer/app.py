@@ -1,0 +1,261 @@
+"""Web viewer (viser) for a twin: splats, semantic labels in colour, collision meshes, the robot and
+its planned trajectory played back.
+
+`splattwin view TWIN [--host 127.0.0.1 --port 8080]` serves on loopback by default; open the printed
+URL in a browser. Everything is built from the twin folder's manifest.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from splattwin.errors import InputError
+from splattwin.twin.manifest import Manifest
+
+log = logging.getLogger(__name__)
+
+# Label colours (0 = background grey), RGB uint8.
+PALETTE = np.array([
+    [150, 150, 150], [31, 119, 180], [255, 187, 0], [214, 39, 40], [44, 160, 44], [148, 103, 189],
+    [140, 86, 75], [227, 119, 194], [23, 190, 207], [188, 189, 34],
+], dtype=np.uint8)
+
+
+def label_colors(labels: np.ndarray) -> np.ndarray:
+    """[N] int labels -> [N,3] uint8 colours (cycling the palette for labels beyond it)."""
+    labels = np.asarray(labels, dtype=np.int64)
+    idx = np.where(labels <= 0, 0, 1 + (labels - 1) % (len(PALETTE) - 1))
+    return PALETTE[idx]
+
+
+def quat_wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    return np.array([w, x, y, z])
+
+
+@dataclass
+class RobotTrack:
+    """A robot to draw: per-geom meshes in geom frames and their world poses over time."""
+
+    names: list[str]
+    vertices: list[np.ndarray]
+    faces: list[np.ndarray]
+    colors: list[tuple[int, int, int]]
+    positions: np.ndarray  # [T, G, 3]
+    rotations: np.ndarray  # [T, G, 3, 3]
+    times: np.ndarray = field(default_factory=lambda: np.zeros(1))
+
+
+def robot_track_from_mujoco(model, qpos: np.ndarray, times: np.ndarray | None = None, body_prefix: str = "") -> RobotTrack:
+    """Visual geoms of bodies whose name starts with `body_prefix` (all non-world bodies if empty),
+    posed for each row of `qpos` [T, nq] by forward kinematics."""
+    import mujoco
+    import trimesh
+
+    data = mujoco.MjData(model)
+    geoms = []
+    for g in range(model.ngeom):
+        body = model.geom_bodyid[g]
+        bname = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, body) or ""
+        if body == 0 or (body_prefix and not bname.startswith(body_prefix)):
+            continue
+        if model.geom_group[g] > 2:  # collision-only groups in menagerie models
+            continue
+        gt = model.geom_type[g]
+        size = model.geom_size[g]
+        if gt == mujoco.mjtGeom.mjGEOM_MESH:
+            m = model.geom_dataid[g]
+            va, vn = model.mesh_vertadr[m], model.mesh_vertnum[m]
+            fa, fn = model.mesh_faceadr[m], model.mesh_facenum[m]
+            V, F = model.mesh_vert[va:va + vn].copy(), model.mesh_face[fa:fa + fn].copy()
+        elif gt == mujoco.mjtGeom.mjGEOM_BOX:
+            tm = trimesh.creation.box(extents=2 * size)
+            V, F = tm.vertices, tm.faces
+        elif gt == mujoco.mjtGeom.mjGEOM_CAPSULE:
+            tm = trimesh.creation.capsule(height=2 * size[1], radius=size[0])
+            V, F = tm.vertices, tm.faces
+        elif gt == mujoco.mjtGeom.mjGEOM_CYLINDER:
+            tm = trimesh.creation.cylinder(radius=size[0], height=2 * size[1])
+            V, F = tm.vertices, tm.faces
+        elif gt == mujoco.mjtGeom.mjGEOM_SPHERE:
+            tm = trimesh.creation.icosphere(radius=size[0], subdivisions=2)
+            V, F = tm.vertices, tm.faces
+        else:
+            continue
+        rgba = model.geom_rgba[g]
+        geoms.append((g, V.astype(np.float32), F.astype(np.uint32), tuple(int(255 * c) for c in rgba[:3])))
+    qpos = np.atleast_2d(qpos)
+    P = np.zeros((len(qpos), len(geoms), 3))
+    R = np.zeros((len(qpos), len(geoms), 3, 3))
+    for t, q in enumerate(qpos):
+        data.qpos[:] = q
+        mujoco.mj_kinematics(model, data)
+        for k, (g, *_rest) in enumerate(geoms):
+            P[t, k] = data.geom_xpos[g]
+            R[t, k] = data.geom_xmat[g].reshape(3, 3)
+    return RobotTrack(names=[f"g{g}" for g, *_ in geoms], vertices=[v for _, v, _, _ in geoms],
+                      faces=[f for _, _, f, _ in geoms], colors=[c for *_, c in geoms], positions=P, rotations=R,
+                      times=np.arange(len(qpos), dtype=float) if times is None else np.asarray(times))
+
+
+def _frame_camera(server, points: np.ndarray) -> None:
+    """Initial view: from the -x/-y side, above, at a distance that frames the robust extent of `points`."""
+    lo, hi = np.percentile(points, 2, axis=0), np.percentile(points, 98, axis=0)
+    centre, radius = (lo + hi) / 2, max(float(np.linalg.norm(hi - lo)) / 2, 0.05)
+    server.initial_camera.look_at = centre
+    server.initial_camera.position = centre + radius * 2.2 * np.array([-0.7, -0.5, 0.6])
+    server.initial_camera.up = (0.0, 0.0, 1.0)
+
+
+def _load_mesh(path: Path):
+    import trimesh
+
+    m = trimesh.load(path, force="mesh", process=False)
+    return np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.uint32)
+
+
+def build_scene(server, twin_dir: Path, robot: RobotTrack | None = None) -> dict:
+    """Populate a viser server with the twin. Returns the scene handles by name."""
+    from splattwin.splat.gaussians import Gaussians
+
+    twin_dir = Path(twin_dir)
+    man = Manifest.load(twin_dir)
+    handles: dict = {}
+    gui = server.gui
+    server.scene.set_up_direction("+z")
+    server.scene.add_frame("/twin_frame", axes_length=0.1, axes_radius=0.003)
+
+    splats_path = twin_dir / man.splats if man.splats else None
+    if splats_path is not None and splats_path.is_file():
+        g = Gaussians.load_ply(splats_path)
+        covs = g.covariances()
+        _frame_camera(server, g.means[g.opacities > 0.5] if (g.opacities > 0.5).sum() > 10 else g.means)
+        rgb = np.clip(g.colors, 0, 1)
+        handles["splats"] = server.scene.add_gaussian_splats("/splats", centers=g.means, covariances=covs,
+                                                             rgbs=rgb, opacities=g.opacities[:, None])
+        if man.labels and (twin_dir / man.labels).is_file():
+            labels = np.load(twin_dir / man.labels)
+            lab_rgb = label_colors(labels).astype(np.float32) / 255.0
+            handles["labels"] = server.scene.add_gaussian_splats("/labels", centers=g.means, covariances=covs,
+                                                                 rgbs=lab_rgb, opacities=g.opacities[:, None], visible=False)
+    for obj in man.objects:
+        if not obj.usable:
+            continue
+        T = obj.pose
+        col = tuple(int(c) for c in label_colors(np.array([obj.label]))[0])
+        parts = obj.convex_parts or ([obj.collision_mesh] if obj.collision_mesh else [])
+        for i, rel in enumerate(parts):
+            V, F = _load_mesh(twin_dir / rel)
+            handles[f"col/{obj.name}/{i}"] = server.scene.add_mesh_simple(
+                f"/collision/{obj.name}/part{i}", V, F, color=col, opacity=0.6, wxyz=quat_wxyz_from_matrix(T[:3, :3]),
+                position=T[:3, 3], visible=False)
+    bg = man.background
+    for i, rel in enumerate(bg.convex_parts or ([bg.collision_mesh] if bg.collision_mesh else [])):
+        V, F = _load_mesh(twin_dir / rel)
+        handles[f"col/background/{i}"] = server.scene.add_mesh_simple(f"/collision/background/part{i}", V, F,
+                                                                      color=(160, 160, 160), opacity=0.5, visible=False)
+
+    with gui.add_folder("Layers"):
+        show_splats = gui.add_checkbox("Splats", True)
+        show_labels = gui.add_checkbox("Labels (colour)", False)
+        show_coll = gui.add_checkbox("Collision meshes", False)
+
+    @show_splats.on_update
+    def _(_e) -> None:
+        if "splats" in handles:
+            handles["splats"].visible = show_splats.value
+
+    @show_labels.on_update
+    def _(_e) -> None:
+        if "labels" in handles:
+            handles["labels"].visible = show_labels.value
+            if "splats" in handles:
+                handles["splats"].visible = show_splats.value and not show_labels.value
+
+    @show_coll.on_update
+    def _(_e) -> None:
+        for k, h in handles.items():
+            if k.startswith("col/"):
+                h.visible = show_coll.value
+
+    if robot is not None and len(robot.names):
+        for k, name in enumerate(robot.names):
+            handles[f"robot/{name}"] = server.scene.add_mesh_simple(
+                f"/robot/{name}", robot.vertices[k], robot.faces[k], color=robot.colors[k],
+                wxyz=quat_wxyz_from_matrix(robot.rotations[0, k]), position=robot.positions[0, k])
+        with gui.add_folder("Trajectory"):
+            slider = gui.add_slider("Step", min=0, max=max(len(robot.positions) - 1, 1), step=1, initial_value=0)
+            playing = gui.add_checkbox("Play", False)
+
+        def show(t: int) -> None:
+            for k, name in enumerate(robot.names):
+                h = handles[f"robot/{name}"]
+                h.position = robot.positions[t, k]
+                h.wxyz = quat_wxyz_from_matrix(robot.rotations[t, k])
+
+        @slider.on_update
+        def _(_e) -> None:
+            show(int(slider.value))
+
+        def player() -> None:
+            while True:
+                time.sleep(0.05)
+                if playing.value and len(robot.positions) > 1:
+                    slider.value = (int(slider.value) + 1) % len(robot.positions)
+
+        threading.Thread(target=player, daemon=True).start()
+        handles["_slider"] = slider
+    return handles
+
+
+def load_robot_track(twin_dir: Path) -> RobotTrack | None:
+    """The robot and its executed trajectory recorded by `splattwin plan` (robot/playback.npz), if any."""
+    p = Path(twin_dir) / "robot" / "playback.npz"
+    if not p.is_file():
+        return None
+    d = np.load(p, allow_pickle=False)
+    return RobotTrack(names=[str(n) for n in d["names"]],
+                      vertices=[d[f"v{k}"] for k in range(len(d["names"]))],
+                      faces=[d[f"f{k}"] for k in range(len(d["names"]))],
+                      colors=[tuple(int(c) for c in col) for col in d["colors"]],
+                      positions=d["positions"], rotations=d["rotations"], times=d["times"])
+
+
+def save_robot_track(track: RobotTrack, path: Path) -> Path:
+    from splattwin import io
+
+    arrays = {"names": np.array(track.names), "colors": np.array(track.colors, np.uint8),
+              "positions": track.positions.astype(np.float32), "rotations": track.rotations.astype(np.float32),
+              "times": np.asarray(track.times, np.float64)}
+    for k in range(len(track.names)):
+        arrays[f"v{k}"] = track.vertices[k]
+        arrays[f"f{k}"] = track.faces[k]
+    return io.write_npz(path, **arrays)
+
+
+def serve(twin_dir: str | Path, host: str = "127.0.0.1", port: int = 8080, block: bool = True):
+    import viser
+
+    twin_dir = Path(twin_dir)
+    if not (twin_dir / "twin.json").is_file():
+        raise InputError("not a twin folder (no twin.json)", twin_dir)
+    server = viser.ViserServer(host=host, port=port, verbose=False)
+    build_scene(server, twin_dir, load_robot_track(twin_dir))
+    print(f"splattwin viewer: http://{host}:{server.get_port()}  (Ctrl+C to stop)")
+    if not block:
+        return server
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        server.stop()
+    return server

@@ -1,0 +1,42 @@
+import numpy as np
+from PIL import Image
+
+from splattwin.report.html import Report, error_heatmap, png_bytes, side_by_side
+from splattwin.report.screenshot import screenshot
+
+
+def _report(tmp_path):
+    rep = Report("test report", "subtitle")
+    sec = rep.section("Reconstruction")
+    sec.kpis({"PSNR (dB)": 31.2, "success": True})
+    sec.table(["view", "PSNR"], [["v0", 30.1234567], ["v1", 29.0]])
+    img = np.zeros((60, 80, 3), np.float32)
+    img[:, :40, 0] = 1.0  # left half red
+    sec.image(img, caption="red | black")
+    return rep.save(tmp_path / "report" / "index.html")
+
+
+def test_report_is_self_contained(tmp_path):
+    html = _report(tmp_path).read_text()
+    assert "data:image/png;base64," in html
+    assert "http://" not in html and "https://" not in html  # opens offline
+    assert "30.12" in html and "<th>PSNR</th>" in html
+
+
+def test_report_renders_in_chromium(tmp_path):
+    path = _report(tmp_path)
+    png = screenshot(path.as_uri(), tmp_path / "shot.png", width=900, height=700, budget_ms=2000)
+    shot = np.asarray(Image.open(png).convert("RGB")).astype(int)
+    # the page is not blank: the dark header and the red embedded image are drawn
+    assert (shot.sum(axis=2) < 150).mean() > 0.01
+    red = (shot[..., 0] > 200) & (shot[..., 1] < 60) & (shot[..., 2] < 60)
+    assert red.sum() > 500
+
+
+def test_side_by_side_and_heatmap():
+    a = np.zeros((10, 12, 3), np.float32)
+    b = np.ones((10, 12, 3), np.float32)
+    sbs = side_by_side([a, b, error_heatmap(a, b)], gap=2)
+    assert sbs.shape == (10, 12 * 3 + 4, 3)
+    assert error_heatmap(a, a).max() == 0 and error_heatmap(a, b)[..., 0].min() == 1.0
+    assert png_bytes(a)[:4] == b"\x89PNG"
