@@ -34,7 +34,8 @@ $(STAMP): pyproject.toml Makefile
 	# torch would pull a multi-GB CUDA build. Never install torchvision (PyPI's build breaks CPU torch).
 	$(PIP) install -q torch==2.13.0
 	$(PIP) install -q -e ".[test]"
-	# (robot assets step added by the robot stage)
+	# Franka Panda (MuJoCo Menagerie files, Apache-2.0) from a PyPI wheel: works offline after set-up.
+	$(PY) -m splattwin.robot.assets --ensure
 	@touch $(STAMP)
 
 venv: syscheck $(STAMP)

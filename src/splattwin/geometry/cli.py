@@ -1,9 +1,92 @@
-"""Sub-commands of the geometry stage."""
+"""Sub-commands of the geometry stage: `splattwin geometry SPLAT.ply ...` cleans, meshes and writes a twin."""
 
 from __future__ import annotations
 
 import argparse
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from splattwin.errors import InputError
+
+log = logging.getLogger(__name__)
+
+
+def _parse_object(text: str) -> tuple[str, int, str]:
+    """NAME=LABEL[:PROMPT]"""
+    name, sep, rest = text.partition("=")
+    label, _, prompt = rest.partition(":")
+    try:
+        lab = int(label)
+    except ValueError:
+        lab = -1
+    if not sep or not name or lab <= 0:
+        raise InputError(f"object must be NAME=LABEL[:PROMPT] with LABEL a positive integer, got {text!r}", "--object")
+    return name, lab, prompt
+
+
+def _run(args: argparse.Namespace) -> int:
+    from splattwin.geometry.options import GeometryOptions
+    from splattwin.splat.gaussians import Gaussians
+    from splattwin.twin.build import build_twin
+    from splattwin.twin.cli import _formats
+    from splattwin.twin.manifest import FRAME_SOURCES, Frame
+
+    ply = Path(args.splat)
+    if not ply.is_file():
+        raise InputError("no such splat PLY", ply)
+    g = Gaussians.load_ply(ply)
+    g.validate(ply)
+    if args.labels:
+        lp = Path(args.labels)
+        if not lp.is_file():
+            raise InputError("no such label file", lp)
+        try:
+            labels = np.load(lp).astype(np.int64).reshape(-1)
+        except ValueError as e:
+            raise InputError(f"not a .npy label array: {e}", lp) from e
+        if len(labels) != len(g):
+            raise InputError(f"{len(labels)} labels for {len(g)} Gaussians in {ply.name}", lp)
+        objects = [_parse_object(o) for o in args.object] or [(f"object_{k}", int(k), "") for k in np.unique(labels) if k > 0]
+    else:  # the whole splat is one object
+        labels = np.ones(len(g), dtype=np.int64)
+        objects = [(ply.stem if not args.object else _parse_object(args.object[0])[0], 1, "")]
+    opts = GeometryOptions(min_opacity=args.min_opacity, max_scale=args.max_scale, dbscan_eps=args.eps,
+                           dbscan_min_samples=args.min_samples, alpha=args.alpha, densify=args.densify,
+                           collision_faces=args.faces, density=args.density)
+    if args.frame not in FRAME_SOURCES:
+        raise InputError(f"unknown frame source {args.frame!r} (choose from {', '.join(FRAME_SOURCES)})", "--frame")
+    frame = Frame(source=args.frame, scaled=args.frame != "unscaled")
+    m = build_twin(g, labels, objects, args.out, frame, cameras_path=args.cameras, options=opts,
+                   formats=_formats(args.formats) if args.formats else (), progress=True)
+    for o in m.objects:
+        state = f"mass {o.mass:.3f} kg, {len(o.convex_parts)} convex part(s)" if o.usable else f"UNUSABLE: {o.problem}"
+        print(f"{o.name:16s} {state}")
+    print(f"twin written to {args.out}")
+    return 0
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add this stage's sub-commands to the `splattwin` parser."""
+    p = sub.add_parser("geometry", help="clean a labelled splat and build collision geometry + twin folder",
+                       description="Attribute filtering, DBSCAN connectivity pruning, alpha-shape meshing, convex "
+                                   "decomposition and mass per object; table plane + obstacles for the background "
+                                   "(label 0). Writes a twin folder (twin.json, meshes, splats, exports).")
+    p.add_argument("splat", metavar="SPLAT.ply", help="3DGS PLY (twin frame, metres)")
+    p.add_argument("--labels", help="per-Gaussian int label array (.npy, 0 = background); omit: one object")
+    p.add_argument("--object", action="append", default=[], metavar="NAME=LABEL[:PROMPT]",
+                   help="object to build (repeatable); default: every label > 0")
+    p.add_argument("--out", required=True, help="twin folder to write")
+    p.add_argument("--cameras", help="cameras file to reference in the manifest (transforms.json)")
+    p.add_argument("--frame", default="unscaled", help="twin frame source recorded in the manifest")
+    p.add_argument("--formats", default="mjcf,urdf,moveit,gltf", help="exports to write ('' for none)")
+    p.add_argument("--min-opacity", type=float, default=0.1)
+    p.add_argument("--max-scale", type=float, default=None, help="m; default 1.5%% of the scene size")
+    p.add_argument("--eps", type=float, default=0.02, help="DBSCAN eps (m)")
+    p.add_argument("--min-samples", type=int, default=10, help="DBSCAN min_samples")
+    p.add_argument("--alpha", type=float, default=None, help="alpha-shape radius (m); default from point spacing")
+    p.add_argument("--densify", action="store_true", help="sample inside each Gaussian's ellipsoid (thin objects)")
+    p.add_argument("--faces", type=int, default=1500, help="collision mesh face budget")
+    p.add_argument("--density", type=float, default=500.0, help="kg/m^3 for mass = volume x density")
+    p.set_defaults(func=_run)

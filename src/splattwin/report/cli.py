@@ -1,9 +1,22 @@
-"""Sub-commands of the report stage."""
+"""`splattwin report TWIN`: (re)write the twin's HTML report."""
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add this stage's sub-commands to the `splattwin` parser."""
+    p = sub.add_parser("report", help="write the twin's self-contained HTML report (TWIN/report/index.html)")
+    p.add_argument("twin", type=Path, help="twin folder")
+    p.set_defaults(func=_report)
+
+
+def _report(args: argparse.Namespace) -> int:
+    from splattwin.errors import InputError
+    from splattwin.report.build import build_report
+
+    if not args.twin.is_dir():
+        raise InputError("twin folder does not exist", args.twin)
+    print(f"report: {build_report(args.twin)}")
+    return 0

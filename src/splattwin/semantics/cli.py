@@ -1,9 +1,102 @@
-"""Sub-commands of the semantics stage."""
+"""Sub-commands of the semantics stage: `segment` (2D masks) and `fuse` (masks -> per-Gaussian labels)."""
 
 from __future__ import annotations
 
 import argparse
+import logging
+from pathlib import Path
+
+log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add this stage's sub-commands to the `splattwin` parser."""
+    p = sub.add_parser("segment", help="2D object masks per view from text prompts (Grounding DINO + SAM) or mask files",
+                       description="Make a mask set (<out>/masks.json + <view>/<object>.png) for a dataset, either "
+                                   "from text prompts (open-vocabulary, weights from the local Hugging Face cache) "
+                                   "or by importing masks (PNG folders, label images, COCO RLE JSON, polygon JSON).")
+    p.add_argument("dataset", type=Path, help="dataset folder (transforms.json, COLMAP, images...)")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--prompt", help='objects as phrases separated by ".", e.g. "blue box. yellow cube. toy hammer"')
+    src.add_argument("--masks", type=Path, help="existing masks to import and check against the dataset images")
+    p.add_argument("--out", type=Path, default=None, help="output mask folder (default DATASET/masks/segment)")
+    p.add_argument("--detector", default=None, help="Grounding DINO hub id or folder (default IDEA-Research/grounding-dino-tiny)")
+    p.add_argument("--segmenter", default=None, help="SAM / SAM 2 / SAM 3 hub id or folder (default facebook/sam-vit-base)")
+    p.add_argument("--segmenter-kind", default="auto", choices=["auto", "sam", "sam2", "sam3"])
+    p.add_argument("--box-threshold", type=float, default=0.30, help="minimum phrase score of a box (0-1)")
+    p.add_argument("--working-size", type=int, default=640, help="longest image edge fed to the detector (px)")
+    p.add_argument("--split", default="all", choices=["all", "train", "heldout"], help="which views to segment")
+    p.set_defaults(func=_segment)
+
+    f = sub.add_parser("fuse", help="lift 2D masks onto the Gaussians (visibility-aware fusion)",
+                       description="Visibility-aware semantic fusion (depth agreement, DBSCAN depth isolation, "
+                                   "weighted consensus tau = N/kappa, refinement with KNN smoothing). Writes "
+                                   "labels.npy, fusion.json, objects/<name>.ply and label_maps/.")
+    f.add_argument("--splats", type=Path, required=True, help="3DGS PLY of the scene")
+    f.add_argument("--dataset", type=Path, required=True, help="dataset with the cameras of the masks")
+    f.add_argument("--masks", type=Path, required=True, help="mask folder / COCO JSON (see `splattwin segment`)")
+    f.add_argument("--out", type=Path, required=True, help="output folder")
+    f.add_argument("--kappa", type=float, default=1.5, help="consensus strictness: tau = N / kappa (default 1.5)")
+    f.add_argument("--iters", type=int, default=3, help="refinement rounds (default 3)")
+    f.add_argument("--depth-tol", type=float, default=0.02, help="visibility depth tolerance, m (default 0.02)")
+    f.add_argument("--eps", type=float, default=0.02, help="DBSCAN eps on depth, m (default 0.02)")
+    f.add_argument("--min-samples", type=int, default=10, help="DBSCAN min_samples (default 10)")
+    f.add_argument("--renderer", default="auto", choices=["auto", "splat", "points"],
+                   help="depth for the visibility test: centre z-buffer (points, fast; = auto) or the rasterizer (splat)")
+    f.add_argument("--maps-renderer", default="auto", choices=["auto", "splat", "points"],
+                   help="label maps: rasterized one-hot labels (splat; auto when available) or centre z-buffer")
+    f.add_argument("--naive", action="store_true", help="use the naive voting baseline instead (for comparison)")
+    f.add_argument("--no-maps", action="store_true", help="skip rendering label maps")
+    f.set_defaults(func=_fuse)
+
+
+def _segment(args: argparse.Namespace) -> int:
+    from splattwin.capture import load_dataset
+    from splattwin.semantics.lift import dataset_objects
+    from splattwin.semantics.masks import load_masks
+    from splattwin.semantics.segment import DEFAULT_DETECTOR, DEFAULT_SEGMENTER, SegmentOptions, segment_images
+
+    ds = load_dataset(args.dataset)
+    frames = ds.frames if args.split == "all" else [f for f in ds.frames if f.split == args.split]
+    out = args.out or Path(args.dataset) / "masks" / "segment"
+    objs = dataset_objects(Path(args.dataset))
+    if args.masks is not None:
+        ms = load_masks(args.masks, objects=objs)
+        ms.validate({f.name: (f.camera.height, f.camera.width) for f in frames}, args.masks)
+    else:
+        opts = SegmentOptions(detector=args.detector or DEFAULT_DETECTOR, segmenter=args.segmenter or DEFAULT_SEGMENTER,
+                              segmenter_kind=args.segmenter_kind, box_threshold=args.box_threshold,
+                              working_size=args.working_size)
+        labels = None
+        if objs:  # map prompt phrases to the scene's labels when the dataset is a generated scene
+            import json
+
+            meta = json.loads((Path(args.dataset) / "scene.json").read_text())
+            labels = {o.get("prompt", o["name"]).lower(): int(o["label"]) for o in meta["objects"] if o["name"] in objs}
+            from splattwin.semantics.segment import parse_prompt
+
+            if not all(ph in labels for ph in parse_prompt(args.prompt)):
+                labels = None
+        ms = segment_images({f.name: f.image_path for f in frames}, args.prompt, opts, labels=labels, out_dir=out)
+    ms.save(out)
+    print(f"{len(ms.views)} views, objects: " + ", ".join(
+        f"{n} ({ms.n_views_with(k)} views)" for k, n in sorted(ms.objects.items())) + f" -> {out}")
+    return 0
+
+
+def _fuse(args: argparse.Namespace) -> int:
+    from splattwin.semantics.fusion import FusionOptions
+    from splattwin.semantics.lift import fuse_to_dir
+
+    opts = FusionOptions(kappa=args.kappa, iters=args.iters, depth_tol=args.depth_tol, eps=args.eps,
+                         min_samples=args.min_samples)
+    res = fuse_to_dir(args.splats, args.dataset, args.masks, args.out, opts, renderer=args.renderer,
+                      label_maps=not args.no_maps, naive=args.naive, maps_renderer=args.maps_renderer)
+    import json
+
+    meta = json.loads((Path(args.out) / "fusion.json").read_text())
+    counts = ", ".join(f"{n}: {c}" for n, c in res.counts().items())
+    extra = "".join(f", {k} {meta[k]:.3f}" for k in ("miou_train", "miou_heldout") if k in meta)
+    print(f"labelled {int((res.labels > 0).sum())} of {len(res.labels)} Gaussians ({counts}) in "
+          f"{res.seconds:.1f} s{extra} -> {args.out}")
+    return 0

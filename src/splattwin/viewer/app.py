@@ -55,9 +55,10 @@ class RobotTrack:
     times: np.ndarray = field(default_factory=lambda: np.zeros(1))
 
 
-def robot_track_from_mujoco(model, qpos: np.ndarray, times: np.ndarray | None = None, body_prefix: str = "") -> RobotTrack:
-    """Visual geoms of bodies whose name starts with `body_prefix` (all non-world bodies if empty),
-    posed for each row of `qpos` [T, nq] by forward kinematics."""
+def robot_track_from_mujoco(model, qpos: np.ndarray, times: np.ndarray | None = None,
+                            bodies: set[int] | None = None) -> RobotTrack:
+    """Visual geoms of the given bodies (all non-world bodies if None), posed for each row of
+    `qpos` [T, nq] by forward kinematics."""
     import mujoco
     import trimesh
 
@@ -65,8 +66,7 @@ def robot_track_from_mujoco(model, qpos: np.ndarray, times: np.ndarray | None = 
     geoms = []
     for g in range(model.ngeom):
         body = model.geom_bodyid[g]
-        bname = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, body) or ""
-        if body == 0 or (body_prefix and not bname.startswith(body_prefix)):
+        if body == 0 or (bodies is not None and body not in bodies):
             continue
         if model.geom_group[g] > 2:  # collision-only groups in menagerie models
             continue

@@ -1,0 +1,117 @@
+"""Benchmark: train 3D Gaussians on the embedded tabletop scene and evaluate held-out views.
+
+Default: 15 training views at 320x240, 3000 iterations (targets on 2 cores: <= 4 min wall, held-out PSNR
+>= 30 dB, SSIM >= 0.95, peak RSS <= 3 GiB). The scene is generated in a child process (so its memory
+does not count) and cached under --scene-cache. Prints a table, then as the LAST line one JSON object:
+wall_s, psnr, ssim, peak_rss_gib, iters, gaussians, ms_per_iter, views, resolution.
+
+    python bench/train.py                 # full benchmark
+    python bench/train.py --iters 500     # shorter run
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import resource
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def _generate(out: str, views: int, heldout: int, width: int, height: int, seed: int) -> None:
+    from splattwin.scene import SceneOptions, generate
+
+    generate(out, SceneOptions(seed=seed, views=views, heldout=heldout, width=width, height=height), progress=False)
+
+
+def ensure_scene(cache: Path, views: int, heldout: int, width: int, height: int, seed: int) -> Path:
+    out = cache / f"tabletop_s{seed}_v{views}_h{heldout}_{width}x{height}"
+    if not (out / "scene.json").is_file():  # scene.json is written last: present = complete
+        p = mp.get_context("spawn").Process(target=_generate, args=(str(out), views, heldout, width, height, seed))
+        p.start()
+        p.join()
+        if p.exitcode != 0:
+            sys.exit(f"scene generation failed (exit {p.exitcode})")
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--iters", type=int, default=3000)
+    ap.add_argument("--views", type=int, default=15)
+    ap.add_argument("--heldout", type=int, default=5)
+    ap.add_argument("--width", type=int, default=320)
+    ap.add_argument("--height", type=int, default=240)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--init", default="auto", choices=["auto", "sfm", "depth", "random"])
+    ap.add_argument("--max-gaussians", type=int, default=None)
+    ap.add_argument("--scene-cache", type=Path, default=Path(tempfile.gettempdir()) / "splattwin_bench")
+    ap.add_argument("--out", type=Path, default=None, help="training output folder (default: a temp dir)")
+    ap.add_argument("--progress", action="store_true")
+    args = ap.parse_args(argv)
+
+    t = time.perf_counter()
+    scene = ensure_scene(args.scene_cache, args.views, args.heldout, args.width, args.height, args.seed)
+    t_scene = time.perf_counter() - t
+
+    from splattwin.capture import load_dataset
+    from splattwin.splat.eval import evaluate
+    from splattwin.splat.trainer import TrainConfig, Trainer
+
+    out = args.out or Path(tempfile.mkdtemp(prefix="splattwin_train_"))
+    ds = load_dataset(scene)
+    kw = {} if args.max_gaussians is None else {"max_gaussians": args.max_gaussians}
+    cfg = TrainConfig(iters=args.iters, init=args.init, checkpoint_every=0, progress=args.progress, **kw)
+
+    t0 = time.perf_counter()
+    tr = Trainer(ds, out, cfg)
+    step_ms: list[float] = []
+    last = [time.perf_counter()]
+
+    def tick(_info: dict) -> None:
+        now = time.perf_counter()
+        step_ms.append((now - last[0]) * 1000)
+        last[0] = now
+
+    res = tr.run(callback=tick)
+    wall = time.perf_counter() - t0
+    t = time.perf_counter()
+    ev = evaluate(res.gaussians, ds, out / "eval", progress=False)
+    t_eval = time.perf_counter() - t
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB -> GiB
+
+    q = len(step_ms) // 4
+    rows = [
+        ("scene generation (cached)", f"{t_scene:.1f} s"),
+        ("training views / held-out", f"{len(tr.views)} / {len(ev.views)} at {args.width}x{args.height}"),
+        ("init method / backend", f"{res.init_method} / {tr.backend}"),
+        ("iterations", f"{res.steps}"),
+        ("train wall (incl. init, JIT)", f"{wall:.1f} s   (target <= 240 s for 3000 it)"),
+        ("ms/iter median, 1st / last quarter", f"{statistics.median(step_ms):.1f}   "
+                                               f"{statistics.median(step_ms[:q] or step_ms):.1f} / "
+                                               f"{statistics.median(step_ms[-q:] or step_ms):.1f}"),
+        ("Gaussians (final)", f"{len(res.gaussians)}"),
+        ("train PSNR (EMA)", f"{res.final_psnr:.2f} dB"),
+        ("held-out PSNR", f"{ev.mean_psnr:.2f} dB   (target >= 30)"),
+        ("held-out SSIM", f"{ev.mean_ssim:.4f}   (target >= 0.95)"),
+        ("eval wall", f"{t_eval:.1f} s"),
+        ("peak RSS", f"{peak:.2f} GiB   (target <= 3)"),
+        ("side-by-side images", str(out / "eval")),
+    ]
+    w = max(len(r[0]) for r in rows)
+    print("bench/train.py: 3DGS training on the embedded tabletop scene")
+    for k, v in rows:
+        print(f"  {k:<{w}}  {v}")
+    print(json.dumps({"wall_s": round(wall, 2), "psnr": round(ev.mean_psnr, 3), "ssim": round(ev.mean_ssim, 4),
+                      "peak_rss_gib": round(peak, 3), "iters": res.steps, "gaussians": len(res.gaussians),
+                      "ms_per_iter": round(statistics.median(step_ms), 2), "views": len(tr.views),
+                      "resolution": f"{args.width}x{args.height}"}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,260 @@
+"""Labelled Gaussians -> clean, planning-ready geometry per object and for the background.
+
+The functional core of the geometry stage: `clean_indices` (stages 1-2 for one configuration, also used
+by the ablation), `object_geometry` (stages 3-4 for one object) and `convert` (everything, with
+per-stage timings). Object results are in the object frame (centre of the yaw-only OBB, z up);
+background results in the twin frame. Nothing is written here (see `splattwin.twin.build`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import warnings
+from collections import defaultdict
+from dataclasses import dataclass, field
+
+import numpy as np
+import trimesh
+
+from splattwin.geometry.clustering import Plane, largest_cluster, split_background
+from splattwin.geometry.filtering import FilterStats, attribute_mask
+from splattwin.geometry.meshing import (add_bottom, densify_gaussians, downsample, point_spacing, simplify, smooth,
+                                        solid_mesh)
+from splattwin.geometry.metrics import Fidelity, fidelity, sample_surface
+from splattwin.geometry.options import GeometryOptions, scene_scale
+from splattwin.geometry.physics import convex_parts, convexity, mass_properties, yaw_obb
+
+log = logging.getLogger(__name__)
+
+CONFIGS = ("raw", "attribute", "cluster", "full")  # the four ablation configurations (paper Table 5)
+
+
+class ObjectUnusableWarning(UserWarning):
+    """An object's geometry could not be built; the twin marks it usable=False with the problem."""
+
+
+@dataclass
+class ObjectGeometry:
+    """Geometry of one object. Meshes in the object frame; T_world_obj [4,4] places them in the twin frame."""
+
+    name: str
+    label: int
+    prompt: str = ""
+    usable: bool = True
+    problem: str | None = None
+    indices: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # kept Gaussians
+    T_world_obj: np.ndarray = field(default_factory=lambda: np.eye(4))
+    extent: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    visual: trimesh.Trimesh | None = None
+    collision: trimesh.Trimesh | None = None
+    parts: list = field(default_factory=list)
+    volume: float | None = None
+    mass: float | None = None
+    convexity: float | None = None
+    mesh_method: str | None = None
+    alpha: float | None = None
+
+
+@dataclass
+class BackgroundGeometry:
+    """Static environment in the twin frame: table box + obstacles."""
+
+    indices: np.ndarray
+    plane: Plane | None
+    table_height: float
+    table_extent: list
+    table_thickness: float
+    collision: trimesh.Trimesh | None
+    parts: list
+    n_obstacles: int = 0
+
+
+@dataclass
+class Conversion:
+    objects: list[ObjectGeometry]
+    background: BackgroundGeometry | None
+    filter_stats: FilterStats
+    options: GeometryOptions
+    timings: dict
+
+
+def clean_indices(g, labels: np.ndarray, label: int, opts: GeometryOptions, attribute: bool = True,
+                  cluster: bool = True, attr_keep: np.ndarray | None = None) -> np.ndarray:
+    """Indices of the Gaussians of `label` that survive the chosen cleaning (opts must be resolved)."""
+    idx = np.flatnonzero(labels == label)
+    if attribute:
+        keep = attr_keep if attr_keep is not None else attribute_mask(g.opacities, g.scales, opts)[0]
+        idx = idx[keep[idx]]
+    if cluster and len(idx):
+        idx = idx[largest_cluster(g.means[idx], opts.dbscan_eps, opts.dbscan_min_samples, opts.dbscan_voxel)]
+    return idx
+
+
+def _problem(points: np.ndarray, opts: GeometryOptions) -> str | None:
+    if len(points) < opts.min_points:
+        return f"too few points after cleaning ({len(points)} < {opts.min_points})"
+    c = points - points.mean(axis=0)
+    sv = np.linalg.svd(c, compute_uv=False) / np.sqrt(len(points))  # std along principal axes
+    if 4 * sv[0] < opts.min_thickness:
+        return f"degenerate cluster: all points within {4 * sv[0] * 1000:.1f} mm (single point)"
+    if 4 * sv[2] < opts.min_thickness:
+        return f"degenerate cluster: flat (thickness {4 * sv[2] * 1000:.1f} mm < {opts.min_thickness * 1000:.1f} mm)"
+    return None
+
+
+def _vertex_colors(vertices_world: np.ndarray, means: np.ndarray, colors: np.ndarray) -> np.ndarray:
+    from scipy.spatial import cKDTree
+
+    _, nn = cKDTree(means).query(vertices_world, workers=-1)
+    rgb = np.clip(colors[nn] * 255.0, 0, 255).astype(np.uint8)
+    return np.concatenate([rgb, np.full((len(rgb), 1), 255, np.uint8)], axis=1)
+
+
+def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: GeometryOptions, prompt: str = "",
+                    timings: dict | None = None) -> ObjectGeometry:
+    """Stages 3-4 for one object from its cleaned Gaussians `g[indices]`. Never raises on bad data:
+    returns usable=False with `problem` and emits ObjectUnusableWarning."""
+    timings = timings if timings is not None else defaultdict(float)
+    out = ObjectGeometry(name=name, label=int(label), prompt=prompt, indices=np.asarray(indices, dtype=np.int64))
+    pts = g.means[indices]
+    problem = _problem(pts, opts)
+    if problem is None:
+        t0 = time.perf_counter()
+        pitch = max(opts.mesh_voxel, opts.mesh_voxel_rel * point_spacing(pts, k=4))
+        if opts.densify:
+            pts = np.concatenate([pts, densify_gaussians(pts, g.subset(indices).rotation_matrices(), g.scales[indices],
+                                                         opts.densify_samples, opts.densify_sigma, seed=opts.seed)])
+        mpts = downsample(pts, pitch / 2)
+        if opts.close_bottom:
+            mpts = add_bottom(mpts, pitch / 2)
+        box = yaw_obb(mpts)
+        T_obj_world = np.linalg.inv(box.T_world_box)
+        local = mpts @ T_obj_world[:3, :3].T + T_obj_world[:3, 3]
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            res = solid_mesh(local, pitch, opts.alpha, opts.alpha_factors, opts.close_iterations,
+                             opts.use_alpha, name=name)
+        for w in caught:
+            warnings.warn(w.message, stacklevel=2)
+        mesh = smooth(res.mesh, opts.smooth_iterations)
+        visual = simplify(mesh, opts.visual_faces)
+        vw = visual.vertices @ box.T_world_box[:3, :3].T + box.T_world_box[:3, 3]
+        visual = trimesh.Trimesh(visual.vertices, visual.faces, vertex_colors=_vertex_colors(vw, g.means[indices], g.colors[indices]),
+                                 process=False)
+        collision = simplify(mesh, opts.collision_faces)
+        timings["mesh"] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        if not collision.is_watertight:  # simplify() guarantees this; keep the invariant explicit
+            problem = "collision mesh is not watertight"
+        else:
+            out.parts = convex_parts(simplify(collision, opts.coacd_faces), opts.convex_ratio, opts.coacd_threshold,
+                                     opts.max_convex_parts, opts.seed)
+            out.volume, out.mass = mass_properties(collision, opts.density)
+            out.convexity = convexity(collision)
+        timings["decompose"] += time.perf_counter() - t0
+        out.T_world_obj, out.extent = box.T_world_box, box.extent
+        out.visual, out.collision, out.mesh_method, out.alpha = visual, collision, res.method, res.alpha
+    if problem is not None:
+        out.usable, out.problem = False, problem
+        out.visual = out.collision = None
+        out.parts = []
+        warnings.warn(ObjectUnusableWarning(f"object {name!r} (label {label}): {problem}"), stacklevel=2)
+    return out
+
+
+def background_geometry(g, indices: np.ndarray, opts: GeometryOptions, table_thickness: float = 0.03) -> BackgroundGeometry:
+    """Table plane + obstacles from the (attribute-filtered) background Gaussians `g[indices]` (twin frame)."""
+    pts = g.means[indices]
+    if len(pts) < max(opts.min_points, 3):
+        return BackgroundGeometry(indices=np.zeros(0, np.int64), plane=None, table_height=0.0,
+                                  table_extent=[-0.5, 0.5, -0.4, 0.4], table_thickness=table_thickness,
+                                  collision=None, parts=[])
+    split = split_background(pts, opts.dbscan_eps, opts.dbscan_min_samples, opts.dbscan_voxel, opts.plane_distance,
+                             opts.plane_iterations, opts.support_gap, opts.obstacle_min_points, opts.seed)
+    tp = pts[split.table]
+    h = float(np.median(tp[:, 2])) if len(tp) else 0.0
+    x0, x1 = np.percentile(tp[:, 0], [0.2, 99.8]) if len(tp) else (-0.5, 0.5)
+    y0, y1 = np.percentile(tp[:, 1], [0.2, 99.8]) if len(tp) else (-0.4, 0.4)
+    table = trimesh.creation.box(extents=[x1 - x0, y1 - y0, table_thickness])
+    table.apply_translation([(x0 + x1) / 2, (y0 + y1) / 2, h - table_thickness / 2])
+    parts = [table]
+    meshes = [table]
+    n_obs = int(split.obstacle_ids.max() + 1) if split.obstacles.any() else 0
+    for k in range(n_obs):
+        op = downsample(pts[split.obstacle_ids == k], opts.mesh_voxel)
+        op = add_bottom(op, opts.mesh_voxel, z_floor=h) if opts.close_bottom else op
+        res = solid_mesh(op, opts.mesh_voxel, opts.alpha, opts.alpha_factors, opts.close_iterations, opts.use_alpha,
+                         name=f"background obstacle {k}")
+        m = simplify(smooth(res.mesh, opts.smooth_iterations), opts.collision_faces)
+        meshes.append(m)
+        parts.extend(convex_parts(simplify(m, opts.coacd_faces), opts.convex_ratio, opts.coacd_threshold,
+                                  opts.max_convex_parts, opts.seed))
+    return BackgroundGeometry(indices=np.asarray(indices)[split.keep], plane=split.plane, table_height=h,
+                              table_extent=[float(x0), float(x1), float(y0), float(y1)],
+                              table_thickness=table_thickness, collision=trimesh.util.concatenate(meshes),
+                              parts=parts, n_obstacles=n_obs)
+
+
+def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None = None, background: bool = True,
+            table_thickness: float = 0.03, progress: bool = True) -> Conversion:
+    """Full conversion. g: Gaussians [N]; labels [N] int (0 = background); objects: [(name, label, prompt)]."""
+    from rich.progress import Progress
+
+    opts = opts or GeometryOptions()
+    labels = np.asarray(labels).reshape(-1)
+    if len(labels) != len(g):
+        from splattwin.errors import InputError
+
+        raise InputError(f"labels has {len(labels)} entries for {len(g)} Gaussians")
+    timings: dict = defaultdict(float)
+    t0 = time.perf_counter()
+    opts = opts.resolved(scene_scale(g.means))
+    keep, stats = attribute_mask(g.opacities, g.scales, opts)
+    timings["filter"] = time.perf_counter() - t0
+    results = []
+    with Progress(disable=not progress, transient=True) as bar:
+        task = bar.add_task("geometry", total=len(objects) + int(background))
+        for obj in objects:
+            name, label, prompt = (tuple(obj) + ("",))[:3]
+            bar.update(task, description=f"geometry: {name}")
+            t1 = time.perf_counter()
+            idx = clean_indices(g, labels, label, opts, attr_keep=keep)
+            timings["cluster"] += time.perf_counter() - t1
+            if not np.any(labels == label):
+                r = ObjectGeometry(name=name, label=int(label), prompt=prompt, usable=False,
+                                   problem=f"missing label: no Gaussian carries label {label}")
+                warnings.warn(ObjectUnusableWarning(f"object {name!r}: {r.problem}"), stacklevel=2)
+            else:
+                r = object_geometry(g, idx, name, label, opts, prompt, timings)
+            results.append(r)
+            bar.advance(task)
+        bg = None
+        if background:
+            bar.update(task, description="geometry: background")
+            t1 = time.perf_counter()
+            bidx = np.flatnonzero((labels == 0) & keep)
+            bg = background_geometry(g, bidx, opts, table_thickness)
+            timings["background"] = time.perf_counter() - t1
+            bar.advance(task)
+    timings["total"] = time.perf_counter() - t0
+    return Conversion(objects=results, background=bg, filter_stats=stats, options=opts, timings=dict(timings))
+
+
+def ablation(g, labels: np.ndarray, objects: list, gt_meshes: dict, opts: GeometryOptions | None = None,
+             table_height: float | None = 0.0, spacing: float = 0.002) -> dict[str, dict[str, Fidelity]]:
+    """Paper Table 5: {config: {object name: Fidelity}} of the cleaned Gaussian centres vs GT meshes
+    (world frame) for the configurations raw, attribute, cluster, full."""
+    opts = (opts or GeometryOptions()).resolved(scene_scale(g.means))
+    keep = attribute_mask(g.opacities, g.scales, opts)[0]
+    out: dict[str, dict[str, Fidelity]] = {c: {} for c in CONFIGS}
+    for obj in objects:
+        name, label = obj[0], obj[1]
+        if name not in gt_meshes:
+            continue
+        gt = sample_surface(gt_meshes[name], spacing, seed=opts.seed, drop_supported=table_height)
+        for c in CONFIGS:
+            idx = clean_indices(g, labels, label, opts, attribute=c in ("attribute", "full"),
+                                cluster=c in ("cluster", "full"), attr_keep=keep)
+            out[c][name] = fidelity(g.means[idx], gt, opts.f1_threshold)
+    return out

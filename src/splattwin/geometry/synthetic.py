@@ -1,0 +1,131 @@
+"""Synthetic labelled Gaussians with a known answer, for tests and the benchmark of the geometry stage.
+
+A 1 x 0.8 m table top (z = 0), a box, a cube and a T-shaped hammer resting on it; Gaussians on the seen
+surfaces (no bottoms) plus the 3DGS artefacts the cleaning must remove: low-opacity haze off the surface,
+needles and oversized splats, and detached floaters carrying the object's label.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from splattwin.splat.gaussians import Gaussians, rgb_to_sh0
+
+
+def _yaw(mesh: trimesh.Trimesh, yaw: float, xy) -> trimesh.Trimesh:
+    T = trimesh.transformations.rotation_matrix(yaw, [0, 0, 1])
+    T[:2, 3] = xy
+    m = mesh.copy()
+    m.apply_transform(T)
+    return m
+
+
+def scene_meshes() -> dict[str, trimesh.Trimesh]:
+    box = trimesh.creation.box([0.12, 0.07, 0.05])
+    box.apply_translation([0, 0, 0.025])
+    cube = trimesh.creation.box([0.05, 0.05, 0.05])
+    cube.apply_translation([0, 0, 0.025])
+    handle = trimesh.creation.box([0.20, 0.03, 0.03])
+    head = trimesh.creation.box([0.04, 0.12, 0.04])
+    head.apply_translation([0.10, 0, 0.005])
+    handle.apply_translation([-0.02, 0, 0])
+    hammer = trimesh.boolean.union([handle, head])
+    hammer.apply_translation([0, 0, -hammer.bounds[0, 2]])
+    return {"box": _yaw(box, 0.4, [0.15, 0.15]), "cube": _yaw(cube, -0.3, [0.2, -0.15]),
+            "hammer": _yaw(hammer, 1.1, [-0.15, 0.0])}
+
+
+def _surface(mesh: trimesh.Trimesh, n: int, rng) -> np.ndarray:
+    pts, fid = trimesh.sample.sample_surface(mesh, n * 2, seed=int(rng.integers(1 << 30)))
+    seen = mesh.face_normals[fid][:, 2] > -0.9  # bottoms rest on the table
+    return pts[seen][:n]
+
+
+def _gaussians(means, rng, rgb, scale=0.0015, opacity=(0.5, 1.0)) -> dict:
+    n = len(means)
+    q = rng.standard_normal((n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    s = rng.uniform(0.5, 1.0, (n, 3)) * scale
+    s[:, 0] *= 0.2  # flat discs
+    return dict(means=means, quats=q, scales=s, opacities=rng.uniform(*opacity, n),
+                sh=np.repeat(rgb_to_sh0(np.asarray(rgb))[None, None], n, axis=0))
+
+
+def synthetic_scene(n_total: int = 40000, seed: int = 0, artefacts: bool = True):
+    """(Gaussians, labels [N], objects [(name, label, prompt)], gt meshes {name: mesh})."""
+    rng = np.random.default_rng(seed)
+    meshes = scene_meshes()
+    objects = [("box", 1, "blue box"), ("cube", 2, "yellow cube"), ("hammer", 3, "toy hammer")]
+    colours = {"box": (0.1, 0.2, 0.8), "cube": (0.9, 0.8, 0.1), "hammer": (0.8, 0.2, 0.1)}
+    parts, labels = [], []
+    n_table = n_total // 2
+    n_obj = (n_total - n_table) // 3
+    table = np.stack([rng.uniform(-0.5, 0.5, n_table), rng.uniform(-0.4, 0.4, n_table), rng.normal(0, 0.0005, n_table)], 1)
+    inside = np.zeros(n_table, bool)
+    for m in meshes.values():  # no table points under objects
+        inside |= m.contains(table + [0, 0, 0.001])
+    table = table[~inside]
+    parts.append(_gaussians(table, rng, (0.6, 0.5, 0.4)))
+    labels.append(np.zeros(len(table), np.int32))
+    for name, label, _ in objects:
+        m = meshes[name]
+        pts = _surface(m, n_obj, rng) + rng.normal(0, 0.0005, (n_obj, 3))
+        parts.append(_gaussians(pts, rng, colours[name]))
+        labels.append(np.full(len(pts), label, np.int32))
+        if artefacts:
+            k = n_obj // 10
+            # haze: low opacity, up to 2 cm off the surface
+            base = _surface(m, k, rng)
+            haze = base + rng.normal(0, 0.01, (len(base), 3)) + [0, 0, 0.01]
+            parts.append(_gaussians(haze, rng, colours[name], opacity=(0.01, 0.08)))
+            labels.append(np.full(len(haze), label, np.int32))
+            # needles touching the surface, sticking out
+            nb = _surface(m, k // 2, rng)
+            d = rng.standard_normal((len(nb), 3))
+            d /= np.linalg.norm(d, axis=1, keepdims=True)
+            g = _gaussians(nb + 0.02 * d, rng, colours[name])
+            g["scales"][:, 2] = rng.uniform(0.02, 0.05, len(nb))
+            g["scales"][:, 1] = g["scales"][:, 0] * 2
+            parts.append(g)
+            labels.append(np.full(len(nb), label, np.int32))
+            # floaters: a detached opaque blob 6-10 cm above the object (mislabelled by segmentation)
+            c = m.bounds.mean(axis=0) + [rng.uniform(-0.03, 0.03), 0, m.bounds[1, 2] - m.bounds.mean(axis=0)[2] + 0.08]
+            fl = c + rng.normal(0, 0.006, (k // 2, 3))
+            parts.append(_gaussians(fl, rng, colours[name]))
+            labels.append(np.full(len(fl), label, np.int32))
+    if artefacts:  # background floaters and haze
+        fl = np.array([0.0, 0.3, 0.25]) + rng.normal(0, 0.01, (300, 3))
+        parts.append(_gaussians(fl, rng, (0.5, 0.5, 0.5)))
+        labels.append(np.zeros(len(fl), np.int32))
+    cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    return Gaussians(**cat), np.concatenate(labels), objects, meshes
+
+
+def leak_labels(g: Gaussians, labels: np.ndarray, boxes: dict, margin_xy: float = 0.03,
+                margin_up: float = 0.08) -> np.ndarray:
+    """Labels as a mask-lifting semantic stage gives them: background artefacts (label 0) inside an
+    object's world box grown by `margin_xy` sideways and `margin_up` above (but above the table) take
+    that object's label — haze, needles and floaters in front of an object fall inside its 2D masks.
+
+    boxes: {label: (lo [3], hi [3])} world-frame bounds. Returns a new label array [N]."""
+    out = np.asarray(labels).copy()
+    p = g.means
+    for label, (lo, hi) in boxes.items():
+        m = ((out == 0) & np.all(p[:, :2] > np.asarray(lo)[:2] - margin_xy, axis=1)
+             & np.all(p[:, :2] < np.asarray(hi)[:2] + margin_xy, axis=1)
+             & (p[:, 2] > lo[2] + 0.003) & (p[:, 2] < hi[2] + margin_up))
+        out[m] = label
+    return out
+
+
+def load_scene_gt(scene_dir) -> tuple[list, dict]:
+    """(objects [(name, label, prompt)], GT world meshes {name: Trimesh}) of a generated scene folder."""
+    import json
+    from pathlib import Path
+
+    scene_dir = Path(scene_dir)
+    sc = json.loads((scene_dir / "scene.json").read_text())
+    objects = [(o["name"], int(o["label"]), o.get("prompt", "")) for o in sc["objects"]]
+    meshes = {o["name"]: trimesh.load(scene_dir / o["mesh"], force="mesh") for o in sc["objects"]}
+    return objects, meshes

@@ -1,0 +1,396 @@
+"""`estimate_poses(dataset, PoseOptions) -> PoseResult`: camera poses plus the frame they live in.
+
+Pose sources (in `PoseOptions.method` "auto" order): robot poses + hand-eye (exact, robot base frame),
+poses already in the dataset ("known"), or structure from motion. The frame is then defined by the first
+that applies:
+
+1. SfM + robot poses: Umeyama Sim(3) from SfM centres to robot-derived centres → robot base frame.
+2. ArUco marker of known size → marker frame (origin at its centre, z = its normal, metres).
+3. RANSAC table plane + a known length → table frame (z up, table top z = 0), metric.
+4. Robot poses alone → robot base frame; known dataset poses → kept as they are (assumed metric).
+5. Otherwise RANSAC table plane without scale → table frame marked "unscaled" (robot stages refuse it).
+
+Every result carries a `splattwin.twin.manifest.Frame` naming the method and the 1-sigma relative scale
+uncertainty.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from splattwin import io
+from splattwin.capture.camera import Camera
+from splattwin.capture.dataset import Dataset, Frame as DataFrame, load_image
+from splattwin.errors import InputError
+from splattwin.poses import align
+from splattwin.poses.table import KnownLength
+from splattwin.twin.manifest import Frame
+
+log = logging.getLogger(__name__)
+
+FRAME_FILE = "frame.json"
+REPORT_FILE = "poses_report.json"
+
+
+@dataclass
+class PoseOptions:
+    """Options of `estimate_poses`.
+
+    method: "auto" | "sfm" | "known" | "robot".
+    robot_poses / hand_eye: files (see `splattwin.poses.robot`); hand_eye may also be inline in robot_poses.
+    marker_size: ArUco side in metres (enables the marker frame); marker_dict, marker_id: which marker.
+    known_length: scale for the table-plane frame (see `splattwin.poses.table.KnownLength`).
+    intrinsics: None = estimate (SfM) / take the dataset's; "dataset" = the dataset's K, kept fixed;
+      (fx, fy, cx, cy) pixels = known, kept fixed.
+    min_registered: SfM must register at least this many images (None: all but 3, at least 3).
+    work_dir: SfM scratch folder (database, model) for resuming; None = a temp folder.
+    depth_points: also back-project depth images (RGB-D) into a point cloud when the frame is metric.
+    """
+
+    method: str = "auto"
+    robot_poses: Path | None = None
+    hand_eye: Path | None = None
+    marker_size: float | None = None
+    marker_dict: str = "DICT_4X4_50"
+    marker_id: int = 0
+    known_length: KnownLength | None = None
+    intrinsics: str | tuple[float, float, float, float] | None = None
+    camera_model: str = "SIMPLE_RADIAL"
+    shared_intrinsics: bool = True
+    matcher: str = "auto"
+    min_registered: int | None = None
+    work_dir: Path | None = None
+    depth_points: bool = True
+    depth_stride: int = 4
+    progress: bool = True
+    seed: int = 0
+
+
+@dataclass
+class PoseResult:
+    """Posed frames in the output frame.
+
+    frames: registered frames with their cameras (T_world_cam in the output frame, metres if frame.scaled).
+    unregistered: image names that got no pose. frame: the frame definition (source, scaled, uncertainty).
+    points_xyz [N,3] / points_rgb [N,3] uint8: initial cloud (SfM points or back-projected depth).
+    depth_xyz / depth_rgb: back-projected depth cloud (RGB-D), if any.
+    T_out_in: [4,4] similarity from the input frame (SfM model or dataset/robot frame) to the output frame.
+    stats: registered, total, mean_reproj_error (px), method details, timings.
+    """
+
+    frames: list[DataFrame]
+    unregistered: list[str]
+    frame: Frame
+    points_xyz: np.ndarray | None = None
+    points_rgb: np.ndarray | None = None
+    depth_xyz: np.ndarray | None = None
+    depth_rgb: np.ndarray | None = None
+    T_out_in: np.ndarray = field(default_factory=lambda: np.eye(4))
+    stats: dict = field(default_factory=dict)
+    depth_scale: float = 1.0
+
+    @property
+    def cameras(self) -> list[Camera]:
+        return [f.camera for f in self.frames]
+
+    def to_dataset(self, root: Path | None = None) -> Dataset:
+        return Dataset(root=root or Path("."), frames=self.frames, has_poses=True, points_xyz=self.points_xyz,
+                       points_rgb=self.points_rgb, depth_scale=self.depth_scale, meta={"frame": dataclasses.asdict(self.frame)})
+
+    def save(self, out_dir: str | Path) -> Path:
+        """Write OUT/transforms.json (+ points3D.ply), OUT/frame.json, OUT/poses_report.json, OUT/cameras.png.
+
+        Image/depth/mask paths in transforms.json point at the input files (relative paths).
+        Returns the transforms.json path.
+        """
+        from splattwin.capture import nerfstudio
+
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        if self.depth_xyz is not None and len(self.depth_xyz):
+            nerfstudio.write_points_ply(out / "points3D_depth.ply", self.depth_xyz, self.depth_rgb)
+        io.write_json(out / FRAME_FILE, dataclasses.asdict(self.frame))
+        io.write_json(out / REPORT_FILE, {**self.stats, "frame": dataclasses.asdict(self.frame),
+                                          "T_out_in": self.T_out_in, "unregistered": self.unregistered})
+        try:
+            plot_cameras(self, out / "cameras.png")
+        except Exception as e:  # a picture must never fail the run
+            log.warning("could not draw cameras.png: %s", e)
+        # transforms.json last: its presence marks a finished output.
+        return nerfstudio.write(self.to_dataset(out), out / "transforms.json", ply_name="points3D.ply")
+
+
+def load_frame(path: str | Path) -> Frame:
+    """Frame definition from a frame.json (or the folder holding it)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / FRAME_FILE
+    if not path.is_file():
+        raise InputError("no frame definition here (expected frame.json)", path)
+    try:
+        return Frame(**json.loads(path.read_text()))
+    except (json.JSONDecodeError, TypeError) as e:
+        raise InputError(f"malformed frame definition: {e}", path) from e
+
+
+# ------------------------------------------------------------------------------------------------
+def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> PoseResult:
+    """Camera poses for `dataset` and the frame they are expressed in (see module docstring)."""
+    opts = options or PoseOptions()
+    if opts.known_length is not None:
+        opts.known_length.validate()
+    if not dataset.frames:
+        raise InputError("dataset has no frames", dataset.root)
+    method = opts.method
+    if method == "auto":
+        method = "robot" if opts.robot_poses is not None else ("known" if dataset.has_poses else "sfm")
+    if method not in ("sfm", "known", "robot"):
+        raise InputError(f"unknown pose method {opts.method!r} (auto, sfm, known, robot)")
+    if method == "known" and not dataset.has_poses:
+        raise InputError("--known: this dataset has no camera poses (use --sfm or --robot-poses)", dataset.root)
+
+    frames = list(dataset.frames)
+    names = [_frame_key(f) for f in frames]
+    robot_T = _robot_cameras(opts, frames, names, dataset) if opts.robot_poses is not None else None
+    stats: dict = {"method": method, "total": len(frames)}
+    pts_xyz = pts_rgb = None
+    T_out_in = np.eye(4)
+    frame: Frame | None = None
+    in_cams: dict[str, Camera]
+
+    if method == "sfm":
+        from splattwin.poses.sfm import SfmOptions, run_sfm
+
+        sopts = SfmOptions(intrinsics=_intrinsics_tuple(opts, frames), camera_model=opts.camera_model,
+                           shared_intrinsics=opts.shared_intrinsics, matcher=_matcher(opts, dataset),
+                           min_registered=opts.min_registered, seed=opts.seed)
+        work = Path(opts.work_dir) if opts.work_dir is not None else None
+        if work is None:
+            import tempfile
+
+            tmp = tempfile.TemporaryDirectory(prefix="splattwin_sfm_")
+            work = Path(tmp.name)
+        sfm = run_sfm([f.image_path for f in frames], work, sopts, progress=opts.progress)
+        key_of = _sfm_keys(frames)
+        in_cams = {}
+        for k, cam in sfm.cameras.items():
+            n = key_of[k]
+            in_cams[n] = dataclasses.replace(cam, name=frames[names.index(n)].camera.name or Path(k).stem)
+        pts_xyz, pts_rgb = sfm.points_xyz, sfm.points_rgb
+        stats.update(registered=sfm.num_registered, mean_reproj_error=sfm.mean_reproj_error,
+                     num_points=int(len(pts_xyz)), timings=sfm.timings)
+        log.info("SfM registered %d/%d images, mean reprojection error %.3f px, %d points",
+                 sfm.num_registered, sfm.num_total, sfm.mean_reproj_error, len(pts_xyz))
+        input_scaled = False
+    elif method == "robot":
+        assert robot_T is not None
+        in_cams = {n: _with_pose(f.camera, robot_T[n], opts) for f, n in zip(frames, names) if n in robot_T}
+        stats.update(registered=len(in_cams))
+        frame = Frame(source="robot", scaled=True, scale_uncertainty_rel=0.0,
+                      description="robot base frame: T_base_cam = T_base_ee @ T_ee_cam (metres)")
+        input_scaled = True
+    else:
+        in_cams = {n: _with_pose(f.camera, f.camera.T_world_cam, opts) for f, n in zip(frames, names)}
+        pts_xyz, pts_rgb = dataset.points_xyz, dataset.points_rgb
+        stats.update(registered=len(in_cams))
+        prior = dataset.meta.get("frame") if isinstance(dataset.meta.get("frame"), dict) else _frame_beside(dataset)
+        # A COLMAP model is SfM output: arbitrary scale unless a frame.json beside it says otherwise.
+        input_scaled = prior is not None or dataset.meta.get("format") != "colmap"
+        frame = prior or (Frame(source="known_poses", scaled=True, scale_uncertainty_rel=None,
+                                description="camera poses given with the dataset, assumed metric")
+                          if input_scaled else None)
+
+    # -- frame definition ----------------------------------------------------------------------
+    order = [n for n in names if n in in_cams]
+    centres = np.array([in_cams[n].center for n in order])
+    if method == "sfm" and robot_T is not None:
+        tgt = np.array([robot_T[n][:3, 3] for n in order if n in robot_T])
+        src = np.array([in_cams[n].center for n in order if n in robot_T])
+        if len(src) < 3:
+            raise InputError(f"only {len(src)} registered images have robot poses; need >= 3 to align SfM to the robot",
+                             opts.robot_poses)
+        try:
+            fit = align.umeyama(src, tgt)
+        except ValueError as e:
+            raise InputError(f"cannot align SfM to the robot poses: {e}", opts.robot_poses) from e
+        T_out_in = fit.S
+        frame = Frame(source="sfm+robot", scaled=True, scale_uncertainty_rel=fit.scale_uncertainty_rel,
+                      description=f"robot base frame via Umeyama Sim(3) of {len(src)} SfM camera centres to robot "
+                                  f"camera centres; residual RMS {fit.rms * 1000:.2f} mm")
+        stats["umeyama"] = {"residual_rms_m": fit.rms, "residual_max_m": float(fit.residuals.max()),
+                            "scale": fit.scale, "n": len(src)}
+        log.info("SfM -> robot: residual RMS %.2f mm, max %.2f mm", fit.rms * 1000, fit.residuals.max() * 1000)
+    elif opts.marker_size is not None:
+        from splattwin.poses.marker import fit_marker
+
+        cams = [in_cams[n] for n in order]
+        imgs = [load_image(frames[names.index(n)].image_path) for n in order]
+        mf = fit_marker(cams, imgs, opts.marker_size, opts.marker_dict, opts.marker_id, where=dataset.root)
+        T_out_in = align.sim3_inverse(mf.S_sfm_marker)
+        frame = Frame(source="marker", scaled=True, scale_uncertainty_rel=mf.scale_uncertainty_rel,
+                      description=f"ArUco {opts.marker_dict} id {opts.marker_id} ({opts.marker_size * 1000:.1f} mm) frame: "
+                                  f"origin at its centre, z = its normal; seen in {len(mf.views)} views, "
+                                  f"corner reprojection RMS {mf.reproj_rms:.2f} px")
+        stats["marker"] = {"views": mf.views, "reproj_rms_px": mf.reproj_rms,
+                           "side_lengths_m": (mf.side_lengths * 1.0).tolist()}
+    elif opts.known_length is not None or not input_scaled:
+        from splattwin.poses.table import fit_table_plane, scale_from_known_length, table_frame
+
+        if pts_xyz is None or len(pts_xyz) < 20:
+            raise InputError("the table frame needs sparse points (SfM or the dataset's point cloud); none available",
+                             dataset.root)
+        plane = fit_table_plane(pts_xyz, centres, seed=opts.seed)
+        T_tab_in = table_frame(plane, pts_xyz, in_cams[order[0]])
+        stats["table_plane"] = {"inliers": int(plane.inliers.sum()), "rms": plane.rms}
+        if opts.known_length is not None:
+            tab_cams = {n: align.transform_camera(T_tab_in, c) for n, c in in_cams.items()}
+            s, unc, note = scale_from_known_length(opts.known_length, tab_cams, plane.rms,
+                                                   stats.get("mean_reproj_error", 0.5))
+            S = np.diag([s, s, s, 1.0])
+            T_out_in = S @ T_tab_in
+            frame = Frame(source="table_plane+known_length", scaled=True, scale_uncertainty_rel=unc,
+                          description=f"table frame (RANSAC plane, z up, table top z = 0, origin near the table "
+                                      f"centre); scale from {note} = {opts.known_length.value} m")
+        else:
+            T_out_in = T_tab_in
+            frame = Frame(source="unscaled", scaled=False, scale_uncertainty_rel=None,
+                          description="table frame (RANSAC plane, z up, table top z = 0) in arbitrary SfM units: "
+                                      "NOT metric. Give --marker-size, --known-length or --robot-poses for a metric twin")
+            log.warning("no metric scale: the frame is marked 'unscaled' and robot stages will refuse it")
+    assert frame is not None
+
+    out_cams = {n: align.transform_camera(T_out_in, c) for n, c in in_cams.items()}
+    if frame.source == "sfm+robot" and opts.shared_intrinsics:
+        # Images SfM could not register still have exact robot poses: pose them with the shared SfM camera.
+        ref = in_cams[order[0]]
+        filled = [n for n in names if n not in out_cams and n in robot_T]
+        for n in filled:
+            out_cams[n] = Camera(K=ref.K, width=ref.width, height=ref.height, T_world_cam=robot_T[n], dist=ref.dist,
+                                 name=frames[names.index(n)].camera.name)
+        if filled:
+            stats["posed_from_robot_only"] = filled
+            log.info("%d image(s) not registered by SfM posed from their robot poses", len(filled))
+    if pts_xyz is not None:
+        pts_xyz = align.transform_points(T_out_in, pts_xyz)
+    out_frames = [dataclasses.replace(f, camera=out_cams[n]) for f, n in zip(frames, names) if n in out_cams]
+    unregistered = [n for n in names if n not in out_cams]
+    stats["registered"] = len(out_frames)
+    stats["unregistered"] = unregistered
+
+    depth_xyz = depth_rgb = None
+    if opts.depth_points and any(f.depth_path is not None for f in out_frames):
+        if frame.scaled:
+            from splattwin.poses.depth import backproject_frames
+
+            depth_xyz, depth_rgb = backproject_frames(out_frames, stride=opts.depth_stride,
+                                                      depth_scale=dataset.depth_scale, seed=opts.seed)
+            stats["depth_points"] = int(len(depth_xyz))
+            if pts_xyz is None or len(pts_xyz) == 0:
+                pts_xyz, pts_rgb = depth_xyz, depth_rgb
+        else:
+            log.warning("depth images ignored for the point cloud: the frame is unscaled")
+    return PoseResult(frames=out_frames, unregistered=unregistered, frame=frame, points_xyz=pts_xyz,
+                      points_rgb=pts_rgb, depth_xyz=depth_xyz, depth_rgb=depth_rgb, T_out_in=T_out_in,
+                      stats=stats, depth_scale=dataset.depth_scale)
+
+
+# ------------------------------------------------------------------------------------------------
+def _frame_key(f: DataFrame) -> str:
+    return str(Path(f.image_path).resolve())
+
+
+def _sfm_keys(frames: list[DataFrame]) -> dict[str, str]:
+    """SfM image name (relative to the common folder) -> our frame key."""
+    from splattwin.poses.sfm import _image_layout
+
+    _, rel = _image_layout([f.image_path for f in frames])
+    return {r: _frame_key(f) for r, f in zip(rel, frames)}
+
+
+def _frame_beside(dataset: Dataset) -> Frame | None:
+    """A frame.json written by this stage next to the dataset's transforms.json (chained runs)."""
+    p = Path(dataset.meta.get("path", dataset.root))
+    cand = (p.parent if p.is_file() else p) / FRAME_FILE
+    return load_frame(cand) if cand.is_file() else None
+
+
+def _matcher(opts: PoseOptions, dataset: Dataset) -> str:
+    if opts.matcher != "auto":
+        return opts.matcher
+    return "sequential" if dataset.meta.get("sequential") or len(dataset.frames) > 50 else "exhaustive"
+
+
+def _intrinsics_tuple(opts: PoseOptions, frames: list[DataFrame]) -> tuple[float, float, float, float] | None:
+    if opts.intrinsics is None:
+        return None
+    if opts.intrinsics == "dataset":
+        c = frames[0].camera
+        return (c.fx, c.fy, c.cx, c.cy)
+    fx, fy, cx, cy = (float(v) for v in opts.intrinsics)
+    return (fx, fy, cx, cy)
+
+
+def _with_pose(cam: Camera, T_world_cam: np.ndarray, opts: PoseOptions) -> Camera:
+    K = cam.K
+    if isinstance(opts.intrinsics, tuple):
+        fx, fy, cx, cy = opts.intrinsics
+        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    return Camera(K=K, width=cam.width, height=cam.height, T_world_cam=T_world_cam, dist=cam.dist, name=cam.name)
+
+
+def _robot_cameras(opts: PoseOptions, frames: list[DataFrame], names: list[str], dataset: Dataset) -> dict[str, np.ndarray]:
+    from splattwin.poses.robot import load_hand_eye, load_robot_poses, match_to_images
+
+    poses, inline = load_robot_poses(opts.robot_poses)
+    if opts.hand_eye is not None:
+        T_ee_cam = load_hand_eye(opts.hand_eye)
+    elif inline is not None:
+        T_ee_cam = inline
+    else:
+        raise InputError("robot poses need a hand-eye transform T_ee_cam (--hand-eye FILE, or 'T_ee_cam' in the "
+                         "pose file)", opts.robot_poses)
+    if opts.intrinsics is None and dataset.meta.get("format") in ("images", "video"):
+        log.warning("robot poses with intrinsics guessed from a field-of-view prior; pass --intrinsics for "
+                    "accurate cameras")
+    image_names = [Path(f.image_path).name for f in frames]
+    by_name = match_to_images(poses, image_names, Path(opts.robot_poses))
+    return {names[image_names.index(n)]: T @ T_ee_cam for n, T in by_name.items()}
+
+
+def plot_cameras(result: PoseResult, path: str | Path) -> Path:
+    """PNG: top view (x-y) and side view (x-z) of the points and camera centres with viewing directions."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 5))
+    C = np.array([c.center for c in result.cameras]).reshape(-1, 3)
+    D = np.array([c.T_world_cam[:3, 2] for c in result.cameras]).reshape(-1, 3)
+    span = float(np.ptp(C, axis=0).max()) if len(C) > 1 else 1.0
+    for ax, (i, j), title in ((axes[0], (0, 1), "top view (x, y)"), (axes[1], (0, 2), "side view (x, z)")):
+        if result.points_xyz is not None and len(result.points_xyz):
+            P = result.points_xyz
+            keep = np.random.default_rng(0).choice(len(P), min(len(P), 20000), replace=False)
+            col = None if result.points_rgb is None else result.points_rgb[keep] / 255.0
+            ax.scatter(P[keep, i], P[keep, j], s=1, c=col if col is not None else "grey")
+        ax.scatter(C[:, i], C[:, j], c="red", s=12, label="cameras")
+        ax.quiver(C[:, i], C[:, j], D[:, i], D[:, j], color="red", angles="xy", scale_units="xy", scale=8 / span)
+        ax.set_title(title)
+        ax.set_aspect("equal", adjustable="datalim")
+        unit = "m" if result.frame.scaled else "units"
+        ax.set_xlabel(f"{'xyz'[i]} [{unit}]")
+        ax.set_ylabel(f"{'xyz'[j]} [{unit}]")
+    fig.suptitle(f"{len(result.frames)} cameras, frame: {result.frame.source}"
+                 + ("" if result.frame.scaled else " (UNSCALED)"))
+    fig.tight_layout()
+    with io.atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=80)
+    plt.close(fig)
+    return Path(path)

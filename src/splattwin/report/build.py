@@ -1,0 +1,253 @@
+"""The twin's HTML report: inputs, reconstruction quality, semantics, geometry, robot task, timings,
+versions — with pictures, in one self-contained file (TWIN/report/index.html).
+
+Every section reads the artifacts its stage wrote; a stage that did not run gets a one-line note
+instead of a section full of holes.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from splattwin.report.html import Report, Section
+
+log = logging.getLogger(__name__)
+
+
+def _json(path: Path):
+    try:
+        return json.loads(path.read_text()) if path.is_file() else None
+    except json.JSONDecodeError:
+        return None
+
+
+def render_meshes(meshes: list, T_world_cam: np.ndarray, K: np.ndarray, width: int, height: int,
+                  light_dir=(0.3, -0.4, 0.85)) -> np.ndarray:
+    """Ray-cast Lambertian render of world-frame meshes [(V [n,3], F [m,3], rgb [3] in 0..1)] → HxWx3.
+
+    Open3D's RaycastingScene needs no OpenGL context, so this works on headless CI machines.
+    """
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    colors = []
+    for V, F, rgb in meshes:
+        m = o3d.t.geometry.TriangleMesh()
+        m.vertex.positions = o3d.core.Tensor(np.asarray(V, np.float32))
+        m.triangle.indices = o3d.core.Tensor(np.asarray(F, np.int32))
+        scene.add_triangles(m)
+        colors.append(rgb)
+    rays = scene.create_rays_pinhole(o3d.core.Tensor(K), o3d.core.Tensor(np.linalg.inv(T_world_cam)), width, height)
+    hit = scene.cast_rays(rays)
+    gid = hit["geometry_ids"].numpy()
+    n = hit["primitive_normals"].numpy()
+    miss = ~np.isfinite(hit["t_hit"].numpy())
+    d = np.asarray(light_dir, np.float32)
+    d /= np.linalg.norm(d)
+    ray_dir = rays.numpy()[..., 3:]
+    n = np.where((np.sum(n * ray_dir, axis=-1) > 0)[..., None], -n, n)  # face the camera
+    shade = 0.35 + 0.65 * np.clip(np.sum(n * d, axis=-1), 0, 1)
+    pal = np.asarray(colors + [(1, 1, 1)], np.float32)
+    img = pal[np.where(miss, len(colors), gid)] * shade[..., None]
+    img[miss] = 1.0
+    return img
+
+
+def _twin_meshes(twin_dir: Path, man) -> list:
+    import trimesh
+
+    from splattwin.viewer.app import label_colors
+
+    out = []
+    for obj in man.objects:
+        if not obj.usable:
+            continue
+        parts = obj.convex_parts or ([obj.collision_mesh] if obj.collision_mesh else [])
+        col = label_colors(np.array([obj.label]))[0] / 255.0
+        for rel in parts:
+            m = trimesh.load(twin_dir / rel, force="mesh", process=False)
+            m.apply_transform(obj.pose)
+            out.append((m.vertices, m.faces, tuple(col)))
+    bg = man.background
+    for rel in bg.convex_parts or ([bg.collision_mesh] if bg.collision_mesh else []):
+        m = trimesh.load(twin_dir / rel, force="mesh", process=False)
+        out.append((m.vertices, m.faces, (0.75, 0.72, 0.66)))
+    return out
+
+
+def _mesh_views(meshes: list, cameras: list) -> list[np.ndarray]:
+    imgs = []
+    for cam in cameras:
+        try:
+            imgs.append(render_meshes(meshes, cam.T_world_cam, cam.K, cam.width, cam.height))
+        except Exception as e:  # a picture must never fail the report
+            log.warning("mesh render failed: %s", e)
+    return imgs
+
+
+def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib: dict | None = None) -> Path:
+    from splattwin.twin.manifest import Manifest
+
+    twin = Path(twin_dir)
+    man = Manifest.load(twin) if (twin / "twin.json").is_file() else None
+    rep = Report(f"splattwin twin — {twin.resolve().name}",
+                 f"generated {_dt.datetime.now().strftime('%Y-%m-%d %H:%M')} · frame: "
+                 + (f"{man.frame.source} ({'metric' if man.frame.scaled else 'UNSCALED'}, {man.frame.units}, z {man.frame.up})" if man else "n/a"))
+    poses = _json(twin / "poses" / "poses_report.json")
+    ev = _json(twin / "splat" / "eval" / "metrics.json")
+    fusion = _json(twin / "semantics" / "fusion.json")
+    geo = _json(twin / "geometry_metrics.json")
+    robot = _json(twin / "robot" / "results.json")
+    state = _json(twin / "pipeline.json") or {}
+
+    head = rep.section("Summary")
+    kpis = {}
+    if ev:
+        kpis[f"PSNR {ev['split']} (dB)"] = round(ev["mean_psnr"], 2)
+        kpis[f"SSIM {ev['split']}"] = round(ev["mean_ssim"], 4)
+    if fusion and fusion.get("miou_heldout") is not None:
+        kpis["mIoU held-out"] = round(fusion["miou_heldout"], 3)
+    if geo:
+        kpis["F1 @5 mm (min)"] = round(min(v["f1"] for v in geo.values()), 3)
+    if robot:
+        kpis["task success"] = bool(robot["nominal"]["success"])
+        if robot.get("trials"):
+            kpis["trials"] = f"{robot['trials']['successes']}/{robot['trials']['trials']}"
+    tt = timings or {k: v.get("seconds", 0.0) for k, v in state.items()}
+    if tt:
+        kpis["pipeline time (s)"] = round(sum(tt.values()), 1)
+    head.kpis(kpis)
+
+    _inputs_section(rep.section("Inputs and camera poses"), twin, poses, man)
+    _recon_section(rep.section("Reconstruction (3D Gaussian Splatting)"), twin, ev)
+    _semantics_section(rep.section("Semantic objects (visibility-aware fusion)"), twin, fusion)
+    _geometry_section(rep.section("Collision geometry"), twin, man, geo)
+    _robot_section(rep.section("Robot task in physics (Franka Panda, MuJoCo)"), twin, robot)
+
+    t = rep.section("Timings and memory per stage")
+    rows = []
+    for name, rec in state.items():
+        rows.append([name, (timings or {}).get(name, rec.get("seconds", 0.0)),
+                     (peak_rss_gib or {}).get(name, rec.get("peak_rss_gib", 0.0))])
+    t.table(["stage", "seconds", "peak RSS (GiB)"], rows) if rows else t.text("no pipeline record (stages run by hand)")
+    if man and man.timings:
+        t.table(["geometry step", "seconds"], [[k, v] for k, v in man.timings.items()])
+
+    v = rep.section("Versions and options")
+    if man:
+        v.table(["package", "version"], sorted(man.versions.items()))
+        v.pre(json.dumps(man.config, indent=2, default=str)[:20000])
+    return rep.save(twin / "report" / "index.html")
+
+
+def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
+    from splattwin.capture import load_dataset, load_image
+    from splattwin.report.html import side_by_side
+
+    tj = twin / "poses" / "transforms.json"
+    if not tj.is_file():
+        sec.text("poses stage not run")
+        return
+    ds = load_dataset(tj, validate=False)
+    c = ds.frames[0].camera
+    sec.text(f"{len(ds.train())} training views and {len(ds.heldout())} held-out views at {c.width}×{c.height}.")
+    if poses:
+        rows = [[k, poses[k]] for k in ("method", "registered", "total", "mean_reproj_error_px", "sfm_s") if k in poses]
+        if rows:
+            sec.table(["pose estimation", "value"], rows)
+    if man:
+        f = man.frame
+        sec.table(["twin frame", "value"], [["source", f.source], ["metric", f.scaled], ["units", f.units],
+                                            ["scale uncertainty (rel.)", f.scale_uncertainty_rel if f.scale_uncertainty_rel is not None else "n/a"]])
+    thumbs = [load_image(fr.image_path) for fr in ds.train()[:: max(1, len(ds.train()) // 4)][:4]]
+    if thumbs:
+        sec.image(side_by_side(thumbs), caption="a few input views")
+    if (twin / "poses" / "cameras.png").is_file():
+        sec.image(twin / "poses" / "cameras.png", caption="camera poses and sparse points", width=520)
+
+
+def _recon_section(sec: Section, twin: Path, ev: dict | None) -> None:
+    if not ev:
+        sec.text("splat stage not run")
+        return
+    sec.text(f"{ev['gaussians']} Gaussians; {ev['split']} views: mean PSNR {ev['mean_psnr']:.2f} dB, "
+             f"SSIM {ev['mean_ssim']:.4f}. Images: {ev.get('legend', 'ground truth | render | error')}.")
+    sec.table(["view", "PSNR (dB)", "SSIM"], [[r["name"], r["psnr"], r["ssim"]] for r in ev["views"]])
+    for r in ev["views"][:5]:
+        p = twin / "splat" / "eval" / r.get("image", "")
+        if p.is_file():
+            sec.image(p, caption=f"{r['name']}: ground truth | render | error")
+
+
+def _semantics_section(sec: Section, twin: Path, fusion: dict | None) -> None:
+    if not fusion:
+        sec.text("semantics stage not run")
+        return
+    sec.text(f"method: {fusion.get('method', 'visibility-aware')}; κ = {fusion['options']['kappa']}, "
+             f"{fusion['options']['iters']} refinement rounds; {fusion.get('n_views_fused', '?')} views fused.")
+    sec.table(["object", "label", "Gaussians"], [[o["name"], o["label"], o["n_gaussians"]] for o in fusion["objects"]])
+    m = [[k.replace("miou_", "mIoU "), fusion[k]] for k in sorted(fusion) if k.startswith("miou")]
+    for k in ("consistency", "ghost_index"):
+        if k in fusion:
+            m.append([k, fusion[k]])
+    if m:
+        sec.table(["metric", "value"], m)
+    if fusion.get("kappa_sweep"):
+        sec.table(["κ", "consistency", "ghost index"], [[r["kappa"], r["consistency"], r["ghost_index"]] for r in fusion["kappa_sweep"]])
+    maps = sorted((twin / "semantics" / "label_maps").glob("*.png"))
+    held = [p for p in maps if "heldout" in p.stem] or maps
+    for p in held[:4]:
+        sec.image(p, caption=f"{p.stem}: fused labels rendered")
+
+
+def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
+    if man is None:
+        sec.text("twin stage not run")
+        return
+    rows = []
+    for o in man.objects:
+        rows.append([o.name, o.usable, len(o.convex_parts), o.mass if o.mass is not None else "n/a",
+                     " × ".join(f"{x * 100:.1f}" for x in o.bbox_extent) + " cm", o.problem or ""])
+    sec.table(["object", "usable", "convex parts", "mass (kg)", "box", "problem"], rows)
+    if geo:
+        sec.table(["object", "Chamfer (m)", "precision", "recall", "F1 @5 mm"],
+                  [[k, v.get("chamfer"), v.get("precision"), v.get("recall"), v.get("f1")] for k, v in geo.items()])
+    tj = twin / "poses" / "transforms.json"
+    if tj.is_file():
+        from splattwin.capture import load_dataset
+
+        ds = load_dataset(tj, validate=False)
+        cams = [f.camera for f in ds.frames[:: max(1, len(ds.frames) // 3)][:3]]
+        for img in _mesh_views(_twin_meshes(twin, man), cams):
+            sec.image(img, caption="collision geometry (convex parts), object colours = labels")
+    if man.exports:
+        sec.table(["export", "path"], [[k, v] for k, v in man.exports.items()])
+
+
+def _robot_section(sec: Section, twin: Path, robot: dict | None) -> None:
+    if not robot:
+        sec.text("no robot task run (splattwin plan TWIN, or build with --task)")
+        return
+    nom = robot["nominal"]
+    sec.text(f"task: {robot['task']}; planner {robot['planner']}; overall: {'SUCCESS' if nom['success'] else 'FAILURE'}.")
+    rows = []
+    for s in nom["steps"]:
+        rows.append([s["index"], s["pick"], s["goal"], s["grasped"], s["placed"], s["at_rest"],
+                     s["robot_collisions"] + s["object_collisions"], s["success"], s.get("failure") or ""])
+    sec.table(["step", "pick", "goal", "grasped", "placed", "at rest", "collisions", "success", "note"], rows)
+    tr = robot.get("trials")
+    if tr:
+        sec.text(f"robustness: {tr['successes']}/{tr['trials']} trials at σ = {tr['sigma'] * 1000:.1f} mm "
+                 f"(95 % CI {tr['ci95'][0]:.2f}–{tr['ci95'][1]:.2f}), {tr['collisions']} collisions.")
+    ov = twin / "robot" / "overview.png"
+    if not ov.is_file():
+        ov = twin / "robot" / "frames" / "overview.png"
+    if ov.is_file():
+        sec.image(ov, caption="execution in MuJoCo")
+    for n in robot.get("notes", []):
+        sec.text(f"note: {n}")

@@ -1,0 +1,521 @@
+"""Plan a pick-and-place task against the twin and execute it in MuJoCo physics.
+
+Planning uses the robot's *belief* of the object poses (the twin's poses, then the commanded place poses);
+the simulated world may differ (perturbed trials model reconstruction error). Per step:
+
+  transit (OMPL, gripper open) -> approach (Cartesian, target contact allowed) -> close the real gripper
+  (actuator 8, friction only, no weld) -> lift (Cartesian) -> transfer (OMPL, object attached to the
+  hand in the collision checker) -> descent (Cartesian) -> open -> retreat (Cartesian).
+
+Execution drives the arm's position servos (actuators 1-7) along time-parameterised trajectories with
+gravity/Coriolis compensation added as applied joint forces (as the Franka controller does), and
+monitors every contact. Per-step success as in the paper: the right object grasped and lifted; placed
+inside the goal region and at rest after settling; no contact of the robot with anything but the target
+and no contact of the carried object with anything during transfer.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from splattwin.robot import grasp as grasp_mod
+from splattwin.robot.ik import ArmIK
+from splattwin.robot.task import Region, Step, Task
+from splattwin.robot.trajectory import Trajectory
+from splattwin.robot.world import World, qpos_from_pose
+
+log = logging.getLogger(__name__)
+
+PREGRASP = 0.08          # m back along the approach before grasping
+LIFT = 0.10              # m straight up after closing
+PLACE_CLEARANCE = 0.004  # m released above the support
+SPEED = 0.5              # fraction of the joint velocity/acceleration limits for free motions
+SLOW = 0.15              # ... for Cartesian approach/descent
+CLOSE_TIME = 0.6         # s for the gripper to close and the grasp to settle
+OPEN_TIME = 0.4
+SETTLE_TIME = 0.6        # s after the retreat before judging the placement
+TILT_MAX = math.radians(10)
+
+
+@dataclass
+class StepResult:
+    index: int
+    pick: str
+    goal: str
+    success: bool = False
+    grasped: bool = False
+    lifted_m: float = 0.0
+    placed: bool = False
+    at_rest: bool = False
+    robot_collisions: int = 0
+    object_collisions: int = 0
+    collision_pairs: list = field(default_factory=list)
+    plan_ms: list = field(default_factory=list)
+    grasp: dict = field(default_factory=dict)
+    failure: str | None = None
+    final_xyz: list = field(default_factory=list)
+
+
+@dataclass
+class RunResult:
+    success: bool
+    steps: list[StepResult]
+    collisions: int
+    plan_ms: list[float]
+    sim_time: float
+    wall_s: float
+    trajectories: list[tuple[str, Trajectory]] = field(default_factory=list, repr=False)
+
+    def to_dict(self) -> dict:
+        return {"success": self.success, "collisions": self.collisions, "plan_ms": self.plan_ms,
+                "sim_time": self.sim_time, "wall_s": self.wall_s, "steps": [asdict(s) for s in self.steps],
+                "trajectories": [name for name, _ in self.trajectories]}
+
+
+class StepFailed(Exception):
+    pass
+
+
+# -- time parameterisation -------------------------------------------------------------------------
+
+def time_path(path: np.ndarray, vel: np.ndarray, acc: np.ndarray, joint_names: list[str], dt: float = 0.01,
+              checker=None) -> Trajectory:
+    """Joint path [M,n] -> Trajectory within vel/acc limits (TOPP-RA via planning's timing module); with a
+    checker, the sampled trajectory (spline corners included) is re-checked for collisions."""
+    try:
+        from splattwin.robot.timing import time_parameterize
+    except ImportError:  # the timing module is written in parallel; keep a simple fallback meanwhile
+        time_parameterize = None
+    path = np.asarray(path, float)
+    if time_parameterize is not None:
+        return time_parameterize(path, vel, acc, dt=dt, checker=checker, joint_names=list(joint_names))
+    seg = np.diff(path, axis=0)
+    # per segment: trapezoid-free conservative timing (rest to rest), bounded by vel and acc
+    durs = [max(float(np.max(np.abs(s) / vel)) * 1.5, float(np.max(np.sqrt(6 * np.abs(s) / acc)))) for s in seg]
+    t_knots = np.concatenate([[0.0], np.cumsum(durs)])
+    t = np.arange(0.0, t_knots[-1] + dt, dt)
+    t[-1] = min(t[-1], t_knots[-1]) if len(t) > 1 else t[-1]
+    k = np.clip(np.searchsorted(t_knots, t, side="right") - 1, 0, len(seg) - 1)
+    s = np.clip((t - t_knots[k]) / np.maximum(np.asarray(durs)[k], 1e-9), 0, 1)
+    s = 10 * s ** 3 - 15 * s ** 4 + 6 * s ** 5   # quintic: zero velocity/acceleration at each knot
+    q = path[k] + seg[k] * s[:, None]
+    t = np.maximum.accumulate(t + np.arange(len(t)) * 1e-12)
+    qd = np.gradient(q, t, axis=0)
+    return Trajectory(t, q, qd, np.gradient(qd, t, axis=0), list(joint_names))
+
+
+# -- the executor ----------------------------------------------------------------------------------
+
+class Executor:
+    """Runs a task on a World. `belief`: T_world_obj per object used for planning (default: the twin's)."""
+
+    def __init__(self, world: World, belief: dict[str, np.ndarray] | None = None, seed: int = 0,
+                 planner: str = "RRTConnect", plan_time: float = 1.0, margin: float = 0.005,
+                 frame_cb: Callable[[str, World], None] | None = None):
+        from splattwin.robot.planning import CollisionChecker
+
+        self.w = world
+        self.m, self.d = world.model, world.data
+        self.robot = world.robot
+        self.belief = {o: (np.asarray(belief[o]) if belief and o in belief else world.manifest.object(o).pose)
+                       for o in world.objects}
+        self.seed, self.planner, self.plan_time = seed, planner, plan_time
+        self.ik = ArmIK(self.robot, world.base.matrix())
+        self.checker = CollisionChecker(self.m, self.d, world.arm_qpos_adr, margin=margin,
+                                        tcp_site=self.robot.tcp_site)
+        self.frame_cb = frame_cb
+        self.plan_ms: list[float] = []
+        self.trajs: list[tuple[str, Trajectory]] = []
+        self._grasp_cache: dict[str, list[grasp_mod.Grasp]] = {}
+        self.is_robot = np.zeros(self.m.nbody, bool)
+        self.is_robot[list(world.robot_bodies)] = True
+        self.hand_bodies = list(self.robot.hand_bodies)
+        self.grip_dofs = [int(self.m.joint(n).qposadr[0]) for n in self.robot.gripper_joints]
+        self.arm_dofs = world.arm_dof_adr
+        self.q = world.arm_q()
+        self.sim_t0 = float(self.d.time)
+
+    # ---- planning world state ----------------------------------------------------------------------
+    def _plan_state(self, gripper_half: float) -> None:
+        """Freeze belief poses, current arm and the given finger opening (m) into the checker (detached)."""
+        import mujoco
+
+        d = mujoco.MjData(self.m)
+        d.qpos[:] = self.d.qpos
+        for o, T in self.belief.items():
+            a = self.w.obj_qpos_adr[o]
+            d.qpos[a:a + 7] = qpos_from_pose(T)
+        d.qpos[self.w.arm_qpos_adr] = self.q
+        for a in self.grip_dofs:
+            d.qpos[a] = gripper_half
+        self.checker.detach()
+        self.checker.set_world_state(d)
+
+    def _allow(self, obj: str, others: list[str]) -> list[tuple[str, str]]:
+        pairs = [(obj, b) for b in others]
+        for a, b in pairs:
+            self.checker.allow(a, b)
+        return pairs
+
+    def _disallow(self, pairs) -> None:
+        for a, b in pairs:
+            self.checker.disallow(a, b)
+
+    def _cartesian(self, q0: np.ndarray, T0: np.ndarray, T1: np.ndarray, n: int = 6) -> np.ndarray | None:
+        """Joint path [n+1,7] following the straight TCP segment T0 -> T1 (same orientation)."""
+        path = [q0]
+        q = q0
+        for s in np.linspace(0, 1, n + 1)[1:]:
+            T = T1.copy()
+            T[:3, 3] = (1 - s) * T0[:3, 3] + s * T1[:3, 3]
+            q = self.ik.solve(T, q, q_posture=q)
+            if q is None or np.max(np.abs(q - path[-1])) > 0.5:
+                return None
+            path.append(q)
+        return np.array(path)
+
+    def _plan(self, q_goal: np.ndarray, label: str) -> np.ndarray:
+        from splattwin.robot.planning import plan_path
+
+        t0 = time.perf_counter()
+        path = plan_path(self.checker, self.q, q_goal, time_limit=self.plan_time, planner=self.planner,
+                         seed=self.seed + len(self.plan_ms))
+        self.plan_ms.append((time.perf_counter() - t0) * 1e3)
+        return path
+
+    def _grasps(self, obj: str) -> list[grasp_mod.Grasp]:
+        if obj not in self._grasp_cache:
+            import trimesh
+
+            entry = self.w.manifest.object(obj)
+            mesh = trimesh.load(self.w.twin_dir / entry.collision_mesh, force="mesh")
+            self._grasp_cache[obj] = grasp_mod.synthesize(mesh.vertices, mesh.faces, max_width=self.robot.max_opening)
+        return self._grasp_cache[obj]
+
+    def _support_of(self, obj: str) -> list[str]:
+        """Bodies the object rests on / touches now (for allowed contacts when it leaves them)."""
+        names = {"world"}
+        b = self.w.obj_body[obj]
+        for k in range(self.d.ncon):
+            g1, g2 = self.d.contact.geom[k]
+            b1, b2 = int(self.m.geom_bodyid[g1]), int(self.m.geom_bodyid[g2])
+            if b in (b1, b2):
+                other = b2 if b1 == b else b1
+                if not self.is_robot[other]:
+                    names.add(self.w.body_name(other))
+        return sorted(names)
+
+    def _place_targets(self, step: Step, obj: str) -> list[np.ndarray]:
+        """Candidate T_world_obj at the goal (upright, yaw variants), best first."""
+        T_now = self.belief[obj]
+        ext = np.asarray(self.w.manifest.object(obj).bbox_extent, float)
+        yaw_now = math.atan2(T_now[1, 0], T_now[0, 0])
+        if step.place_on is not None:
+            T_sup = self.belief[step.place_on]
+            sup_ext = np.asarray(self.w.manifest.object(step.place_on).bbox_extent, float)
+            xyz = T_sup[:3, 3] + T_sup[:3, 2] * sup_ext[2] / 2
+            z = xyz[2] + ext[2] / 2 + PLACE_CLEARANCE
+            yaw_sup = math.atan2(T_sup[1, 0], T_sup[0, 0])
+            yaws = [yaw_sup + k * math.pi / 2 for k in range(4)]
+        else:
+            reg = step.place_in
+            xyz = reg.center.copy()
+            z = self.w.manifest.background.table_height + ext[2] / 2 + PLACE_CLEARANCE
+            yaws = [k * math.pi / 4 for k in range(8)]
+            # keep only yaws whose footprint fits inside the region
+            fits = []
+            for y in yaws:
+                c, s = abs(math.cos(y)), abs(math.sin(y))
+                fx, fy = c * ext[0] + s * ext[1], s * ext[0] + c * ext[1]
+                if fx <= reg.size[0] - 0.02 and fy <= reg.size[1] - 0.02:
+                    fits.append(y)
+            yaws = fits or yaws
+        wrap = lambda a: (a + math.pi) % (2 * math.pi) - math.pi  # noqa: E731
+        yaws.sort(key=lambda y: abs(wrap(y - yaw_now)))
+        out = []
+        for y in yaws:
+            T = np.eye(4)
+            c, s = math.cos(y), math.sin(y)
+            T[:2, :2] = [[c, -s], [s, c]]
+            T[:3, 3] = [xyz[0], xyz[1], z]
+            out.append(T)
+        return out
+
+    # ---- step planning -------------------------------------------------------------------------------
+    def plan_step(self, step: Step, res: StepResult) -> dict:
+        """Choose a grasp + place pose with IK solutions and collision-free straight segments."""
+        obj = step.pick
+        T_obj = self.belief[obj]
+        T_base = self.w.base.matrix()
+        cands = grasp_mod.rank_grasps(self._grasps(obj), T_obj, T_base)
+        if not cands:
+            raise StepFailed(f"no antipodal grasp fits the gripper on {obj!r}")
+        support = self._support_of(obj)
+        places = self._place_targets(step, obj)
+        half_open = self.robot.max_opening / 2
+        tried = 0
+        why: dict[str, int] = {}
+        for g in cands[:16]:
+            tried += 1
+            T_grasp = T_obj @ g.T_obj_tcp
+            T_pre = T_grasp.copy()
+            T_pre[:3, 3] -= T_grasp[:3, 2] * PREGRASP
+            q_pre = self.ik.solve(T_pre, self.q, q_posture=self.robot.home)
+            if q_pre is None:
+                why["pregrasp IK"] = why.get("pregrasp IK", 0) + 1
+                continue
+            approach = self._cartesian(q_pre, T_pre, T_grasp)
+            if approach is None:
+                why["approach IK"] = why.get("approach IK", 0) + 1
+                continue
+            q_grasp = approach[-1]
+            self._plan_state(half_open)
+            allowed = self._allow(obj, self.hand_bodies)
+            ok = self.checker.is_valid(q_pre) and self.checker.path_is_valid(approach, 0.002)
+            self._disallow(allowed)
+            if not ok:
+                why["approach collision"] = why.get("approach collision", 0) + 1
+                log.debug("approach collision %s", self.checker.first_collision(q_grasp))
+                continue
+            T_lift = T_grasp.copy()
+            T_lift[:3, 3] += [0, 0, LIFT]
+            lift = self._cartesian(q_grasp, T_grasp, T_lift)
+            if lift is None:
+                why["lift IK"] = why.get("lift IK", 0) + 1
+                continue
+            T_tcp_obj = np.linalg.inv(g.T_obj_tcp)
+            self._plan_state(g.width / 2)
+            self.checker.attach(obj, T_tcp_obj)
+            allowed = self._allow(obj, support)
+            ok = self.checker.path_is_valid(lift[1:], 0.002) if len(lift) > 2 else True
+            self._disallow(allowed)
+            if not ok:
+                why["lift collision"] = why.get("lift collision", 0) + 1
+                self.checker.detach()
+                continue
+            for T_place_obj in places:
+                T_place = T_place_obj @ g.T_obj_tcp
+                T_pp = T_place.copy()
+                T_pp[:3, 3] += [0, 0, LIFT]
+                q_pp = self.ik.solve(T_pp, lift[-1], q_posture=self.robot.home)
+                if q_pp is None or not self.checker.is_valid(q_pp):
+                    why["pre-place IK/collision"] = why.get("pre-place IK/collision", 0) + 1
+                    continue
+                descent = self._cartesian(q_pp, T_pp, T_place)
+                if descent is None:
+                    why["descent IK"] = why.get("descent IK", 0) + 1
+                    continue
+                goal_support = [step.place_on] if step.place_on else ["world"]
+                allowed = self._allow(obj, goal_support)
+                ok = self.checker.path_is_valid(descent[:-1], 0.002)
+                self._disallow(allowed)
+                if not ok:
+                    why["descent collision"] = why.get("descent collision", 0) + 1
+                    continue
+                T_ret = T_place.copy()
+                T_ret[:3, 3] -= T_place[:3, 2] * PREGRASP
+                retreat = self._cartesian(descent[-1], T_place, T_ret)
+                if retreat is None:
+                    why["retreat IK"] = why.get("retreat IK", 0) + 1
+                    continue
+                self.checker.detach()
+                res.grasp = {"kind": g.kind, "width": g.width, "score": g.score, "candidates": len(cands),
+                             "tried": tried}
+                return {"grasp": g, "q_pre": q_pre, "approach": approach, "lift": lift, "q_pp": q_pp,
+                        "descent": descent, "retreat": retreat, "T_place_obj": T_place_obj,
+                        "T_tcp_obj": T_tcp_obj, "support": support}
+            self.checker.detach()
+        raise StepFailed(f"none of {tried} grasp candidates on {obj!r} has a reachable, collision-free "
+                         f"approach, lift and place (rejections: {why})")
+
+    # ---- physics -------------------------------------------------------------------------------------
+    def _track(self, traj: Trajectory | None, grip: float, duration: float | None, monitor: dict) -> None:
+        """Drive the servos along traj (or hold) with gripper ctrl `grip`; record contacts in monitor."""
+        import mujoco
+
+        m, d = self.m, self.d
+        dt = m.opt.timestep
+        T = traj.duration if traj is not None else 0.0
+        total = T + (duration or 0.0)
+        n = int(math.ceil(total / dt))
+        q_hold = traj.q[-1] if traj is not None else self.q
+        d.ctrl[self.w.grip_act] = grip
+        geom_body = m.geom_bodyid
+        # servo targets for every physics step at once (linear interpolation of the 100 Hz samples)
+        ts = np.arange(n) * dt
+        Q = traj.sample(np.minimum(ts, T)) if traj is not None else np.broadcast_to(q_hold, (n, len(q_hold)))
+        for i in range(n):
+            d.ctrl[self.w.arm_act] = Q[i]
+            d.qfrc_applied[:] = 0.0
+            d.qfrc_applied[self.arm_dofs] = d.qfrc_bias[self.arm_dofs]
+            mujoco.mj_step(m, d)
+            if i % 2 == 0 and d.ncon:
+                self._scan(geom_body[d.contact.geom[: d.ncon]], d.contact.dist[: d.ncon], monitor)
+        self.q = q_hold.copy()
+
+    def _scan(self, bodies: np.ndarray, dist: np.ndarray, mon: dict) -> None:
+        touching = dist < 0.0
+        b = bodies[touching]
+        if not len(b):
+            mon["active"] = set()
+            return
+        rob = self.is_robot[b]
+        active = set()
+        target = mon["target"]
+        for (b1, b2), (r1, r2) in zip(b.tolist(), rob.tolist()):
+            if r1 and r2:
+                continue
+            if r1 or r2:
+                other = b2 if r1 else b1
+                if other == target:
+                    continue
+                active.add(("robot", min(b1, b2), max(b1, b2)))
+            elif mon.get("carrying") and target in (b1, b2):
+                other = b2 if b1 == target else b1
+                if other in mon.get("allowed_obj", ()):
+                    continue
+                active.add(("object", min(b1, b2), max(b1, b2)))
+        for key in active - mon["active"]:
+            mon["events"].append(key)
+        mon["active"] = active
+
+    def _traj(self, path: np.ndarray, speed: float, label: str, checked: bool = False) -> Trajectory:
+        tr = time_path(path, self.robot.vel_limits * speed, self.robot.acc_limits * speed, self.robot.arm_joints,
+                       checker=self.checker if checked else None)
+        self.trajs.append((label, tr))
+        return tr
+
+    def _hold(self, label: str, duration: float) -> None:
+        """Record a stand-still (gripper action) in the exported trajectory."""
+        self.trajs.append((label, Trajectory.hold(self.q, duration, joint_names=self.robot.arm_joints)))
+
+    def _snap(self, label: str) -> None:
+        if self.frame_cb is not None:
+            self.frame_cb(label, self.w)
+
+    # ---- one step -------------------------------------------------------------------------------------
+    def run_step(self, k: int, step: Step) -> StepResult:
+        obj = step.pick
+        res = StepResult(index=k, pick=obj, goal=step.goal_name)
+        n_plan = len(self.plan_ms)
+        mon = {"target": self.w.obj_body[obj], "active": set(), "events": [], "carrying": False}
+        open_c, closed_c = self.robot.gripper_open, self.robot.gripper_closed
+        try:
+            plan = self.plan_step(step, res)
+            g = plan["grasp"]
+            self._plan_state(self.robot.max_opening / 2)
+            transit = self._plan(plan["q_pre"], f"step{k}_transit")
+            self._track(self._traj(transit, SPEED, f"step{k}_transit", checked=True), open_c, 0.1, mon)
+            self._track(self._traj(plan["approach"], SLOW, f"step{k}_approach"), open_c, 0.1, mon)
+            z0 = self.w.object_pose(obj)[2, 3]
+            self._hold(f"step{k}_close", CLOSE_TIME)
+            self._track(None, closed_c, CLOSE_TIME, mon)
+            self._snap(f"step{k}_grasp")
+            mon["carrying"] = True
+            mon["allowed_obj"] = {self.w.model.body(s).id for s in plan["support"]}
+            self._track(self._traj(plan["lift"], SLOW, f"step{k}_lift"), closed_c, 0.2, mon)
+            res.lifted_m = float(self.w.object_pose(obj)[2, 3] - z0)
+            res.grasped = bool(res.lifted_m > 0.6 * LIFT and self._held(obj))
+            if not res.grasped:
+                raise StepFailed(f"{obj!r} not lifted with the gripper (rose {res.lifted_m * 100:.1f} cm)")
+            # transfer: plan with the object attached where it actually sits in the hand now
+            T_tcp_obj = np.linalg.inv(self.w.tcp_pose()) @ self.w.object_pose(obj)
+            self.belief[obj] = self.ik.fk(self.q) @ T_tcp_obj
+            self._plan_state(g.width / 2)
+            self.checker.attach(obj, T_tcp_obj)
+            mon["allowed_obj"] = set()
+            try:
+                transfer = self._plan(plan["q_pp"], f"step{k}_transfer")
+                transfer_traj = self._traj(transfer, SPEED, f"step{k}_transfer", checked=True)
+            finally:
+                self.checker.detach()
+            self._track(transfer_traj, closed_c, 0.1, mon)
+            goal_body = self.w.model.body(step.place_on).id if step.place_on else 0
+            mon["allowed_obj"] = {goal_body, 0}
+            self._track(self._traj(plan["descent"], SLOW, f"step{k}_descent"), closed_c, 0.1, mon)
+            mon["carrying"] = False
+            self._hold(f"step{k}_open", OPEN_TIME)
+            self._track(None, open_c, OPEN_TIME, mon)
+            self._snap(f"step{k}_release")
+            self._track(self._traj(plan["retreat"], SLOW, f"step{k}_retreat"), open_c, SETTLE_TIME, mon)
+            self.belief[obj] = plan["T_place_obj"]
+            self._judge_place(step, obj, res)
+        except StepFailed as e:
+            res.failure = str(e)
+        except Exception as e:  # PlanningError and friends: report, do not crash the trial
+            from splattwin.robot.planning import PlanningError
+
+            if not isinstance(e, PlanningError):
+                raise
+            res.failure = f"planning: {e}"
+        res.plan_ms = self.plan_ms[n_plan:]
+        events = mon["events"]
+        res.robot_collisions = sum(1 for e in events if e[0] == "robot")
+        res.object_collisions = sum(1 for e in events if e[0] == "object")
+        res.collision_pairs = sorted({f"{e[0]}: {self.w.body_name(e[1])} - {self.w.body_name(e[2])}" for e in events})
+        res.final_xyz = self.w.object_pose(obj)[:3, 3].round(4).tolist()
+        res.success = bool(res.failure is None and res.grasped and res.placed and res.at_rest
+                           and res.robot_collisions == 0 and res.object_collisions == 0)
+        if res.failure is None and not res.success:
+            res.failure = ("collision: " + "; ".join(res.collision_pairs)) if res.collision_pairs else \
+                "not placed inside the goal region at rest"
+        return res
+
+    def _held(self, obj: str) -> bool:
+        """Both fingers touch the object."""
+        b = self.w.obj_body[obj]
+        fingers = {self.m.body(n).id for n in self.robot.hand_bodies if n != self.m.body(self.m.site_bodyid[self.w.tcp_site]).name}
+        touched = set()
+        for k in range(self.d.ncon):
+            g1, g2 = self.d.contact.geom[k]
+            b1, b2 = int(self.m.geom_bodyid[g1]), int(self.m.geom_bodyid[g2])
+            if b in (b1, b2):
+                touched.add(b2 if b1 == b else b1)
+        return len(fingers & touched) >= min(2, len(fingers))
+
+    def _judge_place(self, step: Step, obj: str, res: StepResult) -> None:
+        T = self.w.object_pose(obj)
+        dof = int(self.m.jnt_dofadr[self.m.joint(f"{obj}/free").id])
+        speed = float(np.linalg.norm(self.d.qvel[dof:dof + 3]))
+        tilt = math.acos(float(np.clip(T[2, 2], -1, 1)))
+        ext = np.asarray(self.w.manifest.object(obj).bbox_extent, float)
+        res.at_rest = bool(speed < 0.01 and tilt < TILT_MAX)
+        if step.place_on is not None:
+            Ts = self.w.object_pose(step.place_on)
+            sup_ext = np.asarray(self.w.manifest.object(step.place_on).bbox_extent, float)
+            p = np.linalg.inv(Ts) @ np.append(T[:3, 3], 1.0)
+            inside = abs(p[0]) <= sup_ext[0] / 2 and abs(p[1]) <= sup_ext[1] / 2
+            on_top = abs(p[2] - (sup_ext[2] / 2 + ext[2] / 2)) < 0.015
+            res.placed = bool(inside and on_top)
+        else:
+            reg: Region = step.place_in
+            # every bounding-box corner of the object inside the region, resting on the table
+            corners = np.array([[sx * ext[0] / 2, sy * ext[1] / 2, 0, 1] for sx in (-1, 1) for sy in (-1, 1)])
+            xy = (T @ corners.T).T[:, :2]
+            inside = all(reg.contains_xy(c) for c in xy)
+            on_table = abs(T[2, 3] - ext[2] / 2 - self.w.manifest.background.table_height) < 0.015
+            res.placed = bool(inside and on_table)
+
+    # ---- whole task -----------------------------------------------------------------------------------
+    def run(self, task: Task, stop_on_failure: bool = True) -> RunResult:
+        t0 = time.perf_counter()
+        self._snap("start")
+        steps = []
+        for k, step in enumerate(task.steps, start=1):
+            r = self.run_step(k, step)
+            steps.append(r)
+            log.info("step %d %s -> %s: %s%s", k, step.pick, step.goal_name, "ok" if r.success else "FAILED",
+                     "" if r.success else f" ({r.failure})")
+            if not r.success and stop_on_failure:
+                break
+        self._snap("end")
+        ok = len(steps) == len(task.steps) and all(s.success for s in steps)
+        return RunResult(success=ok, steps=steps, collisions=sum(s.robot_collisions + s.object_collisions for s in steps),
+                         plan_ms=list(self.plan_ms), sim_time=float(self.d.time - self.sim_t0),
+                         wall_s=time.perf_counter() - t0, trajectories=self.trajs)

@@ -1,0 +1,78 @@
+"""Artifacts of a validation run, written atomically under OUT (default TWIN/robot):
+
+    results.json                 task, base pose, per-step results, trials summary, notes
+    trajectory.json / .csv       the whole executed arm trajectory (segments + gripper holds), 100 Hz
+    trajectory.ros2.yaml         the same as trajectory_msgs/JointTrajectory
+    segments/<label>.json        each motion separately (transit, approach, lift, transfer, ...)
+    frames/frame_*.png           rendered frames (when an offscreen GL context exists)
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from pathlib import Path
+
+from splattwin import io
+
+
+def write_outputs(out: str | Path, spec, result, trials: dict | None, render_note: str = "",
+                  frames: list[Path] | None = None, wall_s: float | None = None) -> dict[str, Path]:
+    from splattwin.robot.trajectory import concatenate
+
+    out = Path(out)
+    paths: dict[str, Path] = {}
+    segs = []
+    for label, tr in result.trajectories:
+        paths[f"segment:{label}"] = tr.save_json(out / "segments" / f"{label}.json")
+        segs.append(tr)
+    notes = []
+    if segs:
+        try:
+            full = concatenate(segs)
+            paths["trajectory_json"] = full.save_json(out / "trajectory.json")
+            paths["trajectory_csv"] = full.save_csv(out / "trajectory.csv")
+            paths["trajectory_ros2"] = full.save_ros2_yaml(out / "trajectory.ros2.yaml")
+        except ValueError as e:  # a failed step can leave a gap: keep the segments only
+            notes.append(f"no single trajectory file: {e}")
+    if render_note:
+        notes.append(render_note)
+    doc = {
+        "twin": str(spec.twin_dir), "task": spec.task_path or "default (paper three-step rearrangement)",
+        "base_pose": asdict(spec.base), "robot_mjcf": spec.robot_mjcf or "MuJoCo Menagerie franka_emika_panda",
+        "planner": spec.planner, "seed": spec.seed,
+        "nominal": result.to_dict(),
+        "trials": trials,
+        "frames": [str(Path(f).relative_to(out)) for f in (frames or [])],
+        "notes": notes, "wall_s": wall_s,
+    }
+    paths["results"] = io.write_json(out / "results.json", doc)
+    return paths
+
+
+def print_summary(result, trials: dict | None, paths: dict[str, Path]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    con = Console()
+    t = Table(title="task validation in MuJoCo")
+    for c in ("step", "pick", "goal", "grasped", "lift cm", "placed", "at rest", "collisions", "plan ms", "result"):
+        t.add_column(c)
+    for s in result.steps:
+        t.add_row(str(s.index), s.pick, s.goal, _yn(s.grasped), f"{s.lifted_m * 100:.1f}", _yn(s.placed), _yn(s.at_rest),
+                  str(s.robot_collisions + s.object_collisions), " ".join(f"{p:.0f}" for p in s.plan_ms),
+                  "[green]ok[/]" if s.success else "[red]FAILED[/]")
+    con.print(t)
+    for s in result.steps:
+        if not s.success:
+            con.print(f"step {s.index} failed: {s.failure}")
+    con.print(f"overall: {'[green]success[/]' if result.success else '[red]failure[/]'}; "
+              f"{result.sim_time:.1f} s simulated in {result.wall_s:.1f} s")
+    if trials:
+        lo, hi = trials["ci95"]
+        con.print(f"trials: {trials['successes']}/{trials['trials']} at sigma {trials['sigma'] * 1000:.1f} mm "
+                  f"(95 % CI {lo:.2f}-{hi:.2f}), collisions {trials['collisions']}")
+    con.print(f"results: {paths['results']}")
+
+
+def _yn(b: bool) -> str:
+    return "yes" if b else "no"

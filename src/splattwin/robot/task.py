@@ -1,0 +1,175 @@
+"""Pick-and-place task files (YAML) and their validation against a twin, before any planning.
+
+Format: a list of steps (or a mapping with `steps:` and an optional `name:`). A `pick` is followed by a
+place, either in the same item or the next one:
+
+    - pick: blue_box
+    - place_on: cardboard_box             # on top of another object (goal: its top face)
+    - pick: toy_hammer
+    - place_in: {center: [0.05, 0.03, 0.0], size: 0.24}    # square region on the table (m, twin frame)
+    - place_in: target_frame              # the named region from the twin (config.target_frame)
+
+Validation raises InputError naming the task file for: unknown or unusable objects, a place without a
+pick, an unscaled twin, a goal off the table or out of the robot's reach.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from splattwin.errors import InputError
+from splattwin.twin.manifest import Manifest
+from splattwin.twin.mjcf import check_scaled
+
+REACH_MAX = 0.80     # m, horizontal distance from the base the Panda reaches top-down with margin
+REACH_MIN = 0.20     # m, closer than this the arm folds into itself
+
+
+@dataclass
+class Region:
+    """Axis-aligned square/rectangle on a support surface: center [3] (m, twin frame), size [2] (m)."""
+
+    center: np.ndarray
+    size: np.ndarray
+    name: str = "region"
+
+    def contains_xy(self, xy: np.ndarray, margin: float = 0.0) -> bool:
+        d = np.abs(np.asarray(xy)[:2] - self.center[:2])
+        return bool(np.all(d <= self.size / 2 - margin))
+
+
+@dataclass
+class Step:
+    """pick: object name. Exactly one goal: place_on (object name) or place_in (Region)."""
+
+    pick: str
+    place_on: str | None = None
+    place_in: Region | None = None
+
+    @property
+    def goal_name(self) -> str:
+        return self.place_on if self.place_on else (self.place_in.name if self.place_in else "?")
+
+
+@dataclass
+class Task:
+    steps: list[Step]
+    name: str = "task"
+    path: Path | None = None
+    extra: dict = field(default_factory=dict)
+
+
+def default_task_path() -> Path:
+    return Path(str(resources.files("splattwin.robot") / "tasks" / "default.yaml"))
+
+
+def _region(v, where: Path, manifest: Manifest | None) -> Region:
+    if isinstance(v, str):
+        cfg = (manifest.config.get(v) if manifest is not None else None) or None
+        if not isinstance(cfg, dict):
+            raise InputError(f"place_in: the twin defines no region named {v!r} (its twin.json config has no {v!r})", where)
+        v, name = cfg, v
+    else:
+        name = "region"
+    if not isinstance(v, dict) or "center" not in v or "size" not in v:
+        raise InputError("place_in needs {center: [x, y, z], size: s or [sx, sy]} (metres) or a region name", where)
+    try:
+        c = np.asarray(v["center"], dtype=float).reshape(-1)
+        s = np.asarray(v["size"], dtype=float).reshape(-1)
+    except (TypeError, ValueError) as e:
+        raise InputError(f"place_in: bad numbers: {e}", where) from e
+    if len(c) == 2:
+        c = np.array([c[0], c[1], 0.0])
+    if len(c) != 3 or len(s) not in (1, 2) or np.any(s <= 0) or not np.all(np.isfinite(c)):
+        raise InputError(f"place_in: center must be [x, y(, z)] and size > 0, got {v}", where)
+    return Region(center=c, size=np.broadcast_to(s, (2,)).astype(float).copy(), name=name)
+
+
+def parse_task(data, where: Path, manifest: Manifest | None = None) -> Task:
+    name = "task"
+    if isinstance(data, dict):
+        name = str(data.get("name", name))
+        data = data.get("steps")
+    if not isinstance(data, list) or not data:
+        raise InputError("a task is a non-empty list of steps (pick / place_on / place_in)", where)
+    steps: list[Step] = []
+    pending: str | None = None
+    for k, item in enumerate(data):
+        if not isinstance(item, dict) or not item:
+            raise InputError(f"step {k + 1}: expected a mapping like 'pick: blue_box', got {item!r}", where)
+        unknown = set(item) - {"pick", "place_on", "place_in"}
+        if unknown:
+            raise InputError(f"step {k + 1}: unknown key(s) {sorted(unknown)} (use pick, place_on, place_in)", where)
+        if "pick" in item:
+            if pending is not None:
+                raise InputError(f"step {k + 1}: pick of {item['pick']!r} while still holding {pending!r}", where)
+            pending = str(item["pick"])
+        if "place_on" in item or "place_in" in item:
+            if pending is None:
+                raise InputError(f"step {k + 1}: place without a pick before it", where)
+            if "place_on" in item and "place_in" in item:
+                raise InputError(f"step {k + 1}: give either place_on or place_in, not both", where)
+            if "place_on" in item:
+                steps.append(Step(pending, place_on=str(item["place_on"])))
+            else:
+                steps.append(Step(pending, place_in=_region(item["place_in"], where, manifest)))
+            pending = None
+    if pending is not None:
+        raise InputError(f"the task ends while holding {pending!r}: add place_on / place_in", where)
+    return Task(steps=steps, name=name, path=where)
+
+
+def load_task(path: str | Path | None, manifest: Manifest | None = None) -> Task:
+    """Load a task YAML (default: the paper's three-step task)."""
+    path = Path(path) if path is not None else default_task_path()
+    if not path.is_file():
+        raise InputError("task file not found", path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise InputError(f"not valid YAML: {e}", path) from e
+    return parse_task(data, path, manifest)
+
+
+def validate_task(task: Task, manifest: Manifest, twin_dir: str | Path, T_world_base: np.ndarray) -> None:
+    """Everything that can be checked without planning; raises InputError naming the task file."""
+    where = task.path or Path(twin_dir) / "twin.json"
+    check_scaled(manifest, Path(twin_dir) / "twin.json")
+    names = {o.name: o for o in manifest.objects}
+    base_xy = np.asarray(T_world_base)[:2, 3]
+    x0, x1, y0, y1 = manifest.background.table_extent
+
+    def reach(xy, what: str) -> None:
+        d = float(np.linalg.norm(np.asarray(xy)[:2] - base_xy))
+        if not REACH_MIN <= d <= REACH_MAX:
+            raise InputError(f"{what} is {d:.2f} m from the robot base, outside its reach "
+                             f"[{REACH_MIN:.2f}, {REACH_MAX:.2f}] m (move the base with --base-pose)", where)
+
+    for k, s in enumerate(task.steps, start=1):
+        for role, n in (("pick", s.pick), ("place_on", s.place_on)):
+            if n is None:
+                continue
+            if n not in names:
+                raise InputError(f"step {k}: {role} names {n!r}, which is not in the twin "
+                                 f"(objects: {', '.join(sorted(names))})", where)
+            if not names[n].usable:
+                raise InputError(f"step {k}: object {n!r} is not usable ({names[n].problem})", where)
+        if s.place_on == s.pick:
+            raise InputError(f"step {k}: cannot place {s.pick!r} on itself", where)
+        reach(names[s.pick].pose[:3, 3], f"step {k}: object {s.pick!r}")
+        if s.place_in is not None:
+            c = s.place_in.center
+            if not (x0 <= c[0] <= x1 and y0 <= c[1] <= y1):
+                raise InputError(f"step {k}: goal region centre {np.round(c, 3).tolist()} is off the table "
+                                 f"(extent {manifest.background.table_extent})", where)
+            reach(c, f"step {k}: goal region {s.place_in.name!r}")
+        elif s.place_on is not None:
+            reach(names[s.place_on].pose[:3, 3], f"step {k}: goal object {s.place_on!r}")
+    if not all(math.isfinite(v) for v in np.asarray(T_world_base).ravel()):
+        raise InputError("robot base pose is not finite", where)

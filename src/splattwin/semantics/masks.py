@@ -1,0 +1,440 @@
+"""`MaskSet`: 2D object masks per view and object label, from any source, behind one interface.
+
+A MaskSet holds, for each view (image stem, e.g. "train_003") and each object label (int >= 1, 0 is
+background), a boolean mask [H,W] in that view's image pixels plus a detector/segmenter score in [0,1].
+Object names and prompts are kept per label. It loads and saves itself (`save(dir)` / `MaskSet.load(dir)`).
+
+Accepted sources (`load_masks` picks by what it finds):
+- MaskSet folders written by `save`: `masks.json` index + `<view>/<object>.png`.
+- PNG per view and object: `<dir>/<view>/<object>.png` (non-zero = inside), e.g. the embedded scene's
+  `masks/noisy`; labels come from `objects` (name -> label) or are assigned 1..K by sorted name.
+- Label images: `<dir>/<view>.png`, uint8/uint16 pixel = object label (0 background), e.g. `masks/gt`.
+- COCO JSON (one file): `images[{id, file_name, height, width}]`, `categories[{id, name}]`,
+  `annotations[{image_id, category_id, segmentation, score?}]` where segmentation is RLE
+  (compressed string or list counts, see `splattwin.semantics.rle`) or polygons `[[x1, y1, x2, y2, ...]]`.
+  Several annotations of one category in one image are merged (union, max score).
+- Polygon JSON of the paper's published code (github.com/535A59/3DGS-Digital-Twin,
+  `src/semantic_segmentation/sam_segmentation.py`): one file per image named `<stem>_mask.json` with
+  `{"image_filename", "image_height", "image_width", "input_points", "input_labels",
+  "segmentation_polygons": [[[x, y], ...], ...]}` (OpenCV contours, pixel coordinates), one object per
+  folder: either `<dir>/<object>/<stem>_mask.json` or `<dir>/<stem>_mask.json` for a single object
+  (named after the folder, or an optional `"object"` key). Rasterised with `cv2.fillPoly` like the
+  published loader.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from splattwin import io
+from splattwin.errors import InputError
+from splattwin.semantics import rle as rle_codec
+
+log = logging.getLogger(__name__)
+
+INDEX_NAME = "masks.json"
+_IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+class MaskWarning(UserWarning):
+    """A mask problem that does not stop the run (e.g. an object missing from some views)."""
+
+
+@dataclass
+class MaskSet:
+    """Per view, per object label: bool mask [H,W] (image pixels) + score in [0,1].
+
+    objects: label -> object name (labels >= 1). prompts: label -> text prompt (optional).
+    masks[view][label] -> bool [H,W]; scores[view][label] -> float. sizes[view] = (H, W) of the view's
+    image (also for views where no object was found, so "seen in no view" can be told from "no view").
+    source: free text saying where the masks came from.
+    """
+
+    objects: dict[int, str] = field(default_factory=dict)
+    masks: dict[str, dict[int, np.ndarray]] = field(default_factory=dict)
+    scores: dict[str, dict[int, float]] = field(default_factory=dict)
+    sizes: dict[str, tuple[int, int]] = field(default_factory=dict)
+    prompts: dict[int, str] = field(default_factory=dict)
+    source: str = ""
+
+    # -- access -------------------------------------------------------------------------------
+    @property
+    def views(self) -> list[str]:
+        return sorted(set(self.sizes) | set(self.masks))
+
+    @property
+    def labels(self) -> list[int]:
+        return sorted(self.objects)
+
+    def label_of(self, name: str) -> int:
+        for k, v in self.objects.items():
+            if v == name:
+                return k
+        raise InputError(f"no object named {name!r} in the mask set (have: {', '.join(self.objects.values())})")
+
+    def get(self, view: str, label: int) -> np.ndarray | None:
+        """bool [H,W] mask of `label` in `view`, or None when the object was not found there."""
+        return self.masks.get(view, {}).get(label)
+
+    def add(self, view: str, label: int, mask: np.ndarray, score: float = 1.0, name: str | None = None) -> None:
+        """Add (or merge by union) a mask. `name` registers the object if the label is new."""
+        mask = np.asarray(mask, dtype=bool)
+        if mask.ndim != 2:
+            raise InputError(f"mask for view {view!r}, label {label} must be 2D, got shape {mask.shape}")
+        if label < 1:
+            raise InputError(f"object labels start at 1 (0 is background), got {label} for view {view!r}")
+        if name is not None:
+            self.objects.setdefault(label, name)
+        elif label not in self.objects:
+            self.objects[label] = f"object_{label}"
+        size = self.sizes.setdefault(view, mask.shape)
+        if tuple(size) != mask.shape:
+            raise InputError(f"mask of {self.objects[label]!r} in view {view!r} is {mask.shape[1]}x{mask.shape[0]} "
+                             f"but other masks of that view are {size[1]}x{size[0]}")
+        per_view = self.masks.setdefault(view, {})
+        if label in per_view:
+            per_view[label] = per_view[label] | mask
+            self.scores[view][label] = max(self.scores[view][label], float(score))
+        else:
+            per_view[label] = mask
+            self.scores.setdefault(view, {})[label] = float(score)
+
+    def n_views_with(self, label: int) -> int:
+        return sum(1 for v in self.masks.values() if label in v and v[label].any())
+
+    # -- checks -------------------------------------------------------------------------------
+    def validate(self, image_sizes: dict[str, tuple[int, int]] | None = None, where: str | Path | None = None) -> None:
+        """Raise InputError for an empty set or masks whose size differs from their image.
+
+        image_sizes: view -> (H, W) of the images the masks belong to. Views without an image raise too.
+        Objects found in no view raise (never a silently empty object).
+        """
+        if not self.objects or not any(m.any() for v in self.masks.values() for m in v.values()):
+            raise InputError("empty mask set: no object mask with any pixel", where)
+        for label, name in self.objects.items():
+            if self.n_views_with(label) == 0:
+                raise InputError(f"object {name!r} (label {label}) is seen in no view: its masks are all empty", where)
+        if image_sizes is None:
+            return
+        for view, hw in self.sizes.items():
+            if view not in image_sizes:
+                raise InputError(f"masks for view {view!r} but the dataset has no image of that name "
+                                 f"(have: {', '.join(sorted(image_sizes)[:6])}...)", where)
+            if tuple(hw) != tuple(image_sizes[view]):
+                H, W = image_sizes[view]
+                raise InputError(f"masks of view {view!r} are {hw[1]}x{hw[0]} but its image is {W}x{H}", where)
+
+    # -- load / save --------------------------------------------------------------------------
+    def save(self, out_dir: str | Path) -> Path:
+        """Write `<out_dir>/<view>/<object>.png` (0/255) and the `masks.json` index (atomically)."""
+        out_dir = Path(out_dir)
+        index: dict = {"source": self.source,
+                       "objects": [{"name": n, "label": int(k), "prompt": self.prompts.get(k, "")}
+                                   for k, n in sorted(self.objects.items())],
+                       "views": {}}
+        for view in self.views:
+            entry = {"size": list(self.sizes.get(view, ())), "masks": {}}
+            for label, m in sorted(self.masks.get(view, {}).items()):
+                rel = f"{view}/{_safe_name(self.objects[label])}.png"
+                io.write_image(out_dir / rel, (m.astype(np.uint8) * 255))
+                entry["masks"][self.objects[label]] = {"file": rel, "score": self.scores[view][label]}
+            index["views"][view] = entry
+        io.write_json(out_dir / INDEX_NAME, index)
+        return out_dir
+
+    @classmethod
+    def load(cls, path: str | Path, objects: dict[str, int] | None = None) -> "MaskSet":
+        """Load any supported layout (see module docstring). objects: name -> label to use."""
+        return load_masks(path, objects=objects)
+
+
+# -- loaders ----------------------------------------------------------------------------------
+
+def load_masks(path: str | Path, objects: dict[str, int] | None = None, object_name: str | None = None) -> MaskSet:
+    """Load masks from a MaskSet folder, PNG folder, label-image folder, COCO JSON or polygon JSON.
+
+    objects: name -> label (e.g. from the scene's scene.json); unknown names get fresh labels.
+    object_name: object name for a flat polygon-JSON folder (default: the folder name).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError("mask path does not exist", path)
+    if path.is_file():
+        if path.suffix.lower() != ".json":
+            raise InputError("a mask file must be COCO JSON (or give a folder of PNG / polygon JSON masks)", path)
+        data = _read_json(path)
+        if isinstance(data, dict) and "annotations" in data:
+            return load_coco(path, objects)
+        if isinstance(data, dict) and "segmentation_polygons" in data:
+            return load_polygon_dir(path.parent, objects, object_name)
+        raise InputError("JSON is neither COCO (annotations) nor polygon masks (segmentation_polygons)", path)
+    if (path / INDEX_NAME).is_file():
+        return load_maskset_dir(path)
+    coco = [p for p in path.glob("*.json") if p.name != INDEX_NAME and "annotations" in p.read_text()[:100000]]
+    if len(coco) == 1 and not list(path.glob("*_mask.json")):
+        return load_coco(coco[0], objects)
+    if list(path.glob("*_mask.json")) or list(path.glob("*/*_mask.json")):
+        return load_polygon_dir(path, objects, object_name)
+    if any(p.suffix.lower() in _IMAGE_EXTS for p in path.iterdir() if p.is_file()):
+        return load_label_images(path, objects)
+    if any(p.is_dir() for p in path.iterdir()):
+        return load_png_dir(path, objects)
+    raise InputError("no masks found (expected <view>/<object>.png, <view>.png label images, COCO JSON or "
+                     "<image>_mask.json polygon files)", path)
+
+
+def load_maskset_dir(path: Path) -> MaskSet:
+    index = _read_json(path / INDEX_NAME)
+    ms = MaskSet(source=index.get("source", str(path)))
+    try:
+        by_name = {}
+        for o in index["objects"]:
+            ms.objects[int(o["label"])] = o["name"]
+            if o.get("prompt"):
+                ms.prompts[int(o["label"])] = o["prompt"]
+            by_name[o["name"]] = int(o["label"])
+        for view, entry in index["views"].items():
+            if entry.get("size"):
+                ms.sizes[view] = tuple(int(v) for v in entry["size"])
+            for name, m in entry["masks"].items():
+                if name not in by_name:
+                    raise InputError(f"view {view!r} names object {name!r} missing from the objects list", path / INDEX_NAME)
+                mask = _read_binary_png(path / m["file"])
+                _check_size(ms, view, mask, path / m["file"])
+                ms.add(view, by_name[name], mask, float(m.get("score", 1.0)))
+    except (KeyError, TypeError, ValueError) as e:
+        raise InputError(f"malformed mask index: {e}", path / INDEX_NAME) from e
+    return ms
+
+
+def load_png_dir(path: Path, objects: dict[str, int] | None = None) -> MaskSet:
+    """`<path>/<view>/<object>.png` -> MaskSet (non-zero pixels inside)."""
+    labels = dict(objects or {})
+    ms = MaskSet(source=f"png:{path}")
+    files = sorted(p for p in path.glob("*/*") if p.suffix.lower() in _IMAGE_EXTS)
+    if not files:
+        raise InputError("no <view>/<object>.png masks in this folder", path)
+    for name in sorted({p.stem for p in files}):
+        if name not in labels:
+            labels[name] = max(labels.values(), default=0) + 1
+    for name in {p.stem for p in files}:  # only objects that have mask files
+        ms.objects[labels[name]] = name
+    for p in files:
+        view = p.parent.name
+        mask = _read_binary_png(p)
+        ms.add(view, labels[p.stem], mask, 1.0)
+    return ms
+
+
+def load_label_images(path: Path, objects: dict[str, int] | None = None) -> MaskSet:
+    """`<path>/<view>.png` label images (pixel = label, 0 background) -> MaskSet.
+
+    objects: name -> label. Without it every non-zero value becomes `object_<value>`.
+    """
+    ms = MaskSet(source=f"labels:{path}")
+    files = sorted(p for p in path.iterdir() if p.suffix.lower() in _IMAGE_EXTS)
+    if objects:
+        for name, label in objects.items():
+            ms.objects[int(label)] = name
+    for p in files:
+        img = _read_image(p)
+        if img.ndim != 2:
+            raise InputError(f"label image must be single-channel, got shape {img.shape}", p)
+        ms.sizes[p.stem] = img.shape
+        present = [int(v) for v in np.unique(img) if v != 0]
+        for label in present:
+            if objects and label not in ms.objects:
+                continue
+            ms.add(p.stem, label, img == label, 1.0)
+    return ms
+
+
+def load_coco(path: Path, objects: dict[str, int] | None = None) -> MaskSet:
+    """COCO JSON (RLE or polygon segmentations) -> MaskSet; views are the image file stems."""
+    data = _read_json(path)
+    ms = MaskSet(source=f"coco:{path}")
+    labels = dict(objects or {})
+    try:
+        cat_name = {int(c["id"]): c["name"] for c in data.get("categories", [])}
+        images = {int(im["id"]): im for im in data["images"]}
+        for im in images.values():
+            ms.sizes[Path(im["file_name"]).stem] = (int(im["height"]), int(im["width"]))
+        for name in sorted(set(cat_name.values())):
+            if name not in labels:
+                labels[name] = max(labels.values(), default=0) + 1
+        for name, label in labels.items():
+            if name in cat_name.values():
+                ms.objects[label] = name
+        for i, ann in enumerate(data["annotations"]):
+            im = images.get(int(ann["image_id"]))
+            if im is None:
+                raise InputError(f"annotation {i} refers to unknown image_id {ann['image_id']}", path)
+            cid = int(ann["category_id"])
+            if cid not in cat_name:
+                raise InputError(f"annotation {i} refers to unknown category_id {cid}", path)
+            H, W = int(im["height"]), int(im["width"])
+            seg = ann["segmentation"]
+            if isinstance(seg, dict):
+                mask = rle_codec.decode(seg)
+                if mask.shape != (H, W):
+                    raise InputError(f"annotation {i}: RLE size {mask.shape[1]}x{mask.shape[0]} differs from its image "
+                                     f"{im['file_name']} ({W}x{H})", path)
+            elif isinstance(seg, list):
+                mask = polygons_to_mask([np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in seg], H, W)
+            else:
+                raise InputError(f"annotation {i}: segmentation must be RLE or polygons", path)
+            ms.add(Path(im["file_name"]).stem, labels[cat_name[cid]], mask, float(ann.get("score", 1.0)))
+    except (KeyError, TypeError, ValueError) as e:
+        raise InputError(f"malformed COCO JSON: {e}", path) from e
+    return ms
+
+
+def save_coco(ms: MaskSet, path: str | Path, compressed: bool = True) -> Path:
+    """Write a MaskSet as COCO JSON with RLE segmentations (file_name = `<view>.png`)."""
+    images, anns = [], []
+    for i, view in enumerate(ms.views, start=1):
+        H, W = ms.sizes[view]
+        images.append({"id": i, "file_name": f"{view}.png", "height": H, "width": W})
+        for label, m in sorted(ms.masks.get(view, {}).items()):
+            ys, xs = np.nonzero(m)
+            bbox = [0, 0, 0, 0] if xs.size == 0 else [int(xs.min()), int(ys.min()),
+                                                      int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1)]
+            anns.append({"id": len(anns) + 1, "image_id": i, "category_id": int(label),
+                         "segmentation": rle_codec.encode(m, compressed), "area": int(m.sum()), "bbox": bbox,
+                         "iscrowd": 0, "score": ms.scores[view][label]})
+    cats = [{"id": int(k), "name": n} for k, n in sorted(ms.objects.items())]
+    return io.write_json(path, {"images": images, "annotations": anns, "categories": cats}, indent=None)
+
+
+def load_polygon_dir(path: Path, objects: dict[str, int] | None = None, object_name: str | None = None) -> MaskSet:
+    """Polygon JSON masks of the paper's published code -> MaskSet (layout in the module docstring)."""
+    ms = MaskSet(source=f"polygons:{path}")
+    labels = dict(objects or {})
+    flat = sorted(path.glob("*_mask.json"))
+    groups: list[tuple[str | None, list[Path]]] = []
+    if flat:
+        groups.append((object_name, flat))
+    for sub in sorted(p for p in path.iterdir() if p.is_dir()):
+        files = sorted(sub.glob("*_mask.json"))
+        if files:
+            groups.append((sub.name, files))
+    for default_name, files in groups:
+        for f in files:
+            d = _read_json(f)
+            try:
+                name = d.get("object") or default_name or path.name
+                H, W = int(d["image_height"]), int(d["image_width"])
+                polys = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in d["segmentation_polygons"] if len(p)]
+            except (KeyError, TypeError, ValueError) as e:
+                raise InputError(f"malformed polygon mask JSON: {e}", f) from e
+            if name not in labels:
+                labels[name] = max(labels.values(), default=0) + 1
+            ms.objects[labels[name]] = name
+            view = Path(d.get("image_filename") or f.name[: -len("_mask.json")]).stem
+            ms.add(view, labels[name], polygons_to_mask(polys, H, W), float(d.get("score", 1.0)))
+    return ms
+
+
+def save_polygon_dir(ms: MaskSet, out_dir: str | Path) -> Path:
+    """Write the paper-code polygon layout: `<out_dir>/<object>/<view>_mask.json` (OpenCV contours)."""
+    import cv2
+
+    out_dir = Path(out_dir)
+    for view in ms.views:
+        H, W = ms.sizes[view]
+        for label, m in ms.masks.get(view, {}).items():
+            contours, _ = cv2.findContours(m.astype(np.uint8) * 255, cv2.RETR_TREE, cv2.CHAIN_APPROX_SIMPLE)
+            polys = [c.reshape(-1, 2).tolist() for c in contours if len(c)]
+            io.write_json(out_dir / _safe_name(ms.objects[label]) / f"{view}_mask.json",
+                          {"image_filename": f"{view}.png", "image_height": H, "image_width": W,
+                           "input_points": [], "input_labels": [], "segmentation_polygons": polys,
+                           "object": ms.objects[label], "score": ms.scores[view][label]})
+    return out_dir
+
+
+def polygons_to_mask(polygons: list[np.ndarray], height: int, width: int) -> np.ndarray:
+    """Fill polygons ([M,2] pixel x,y each) into a bool [H,W] mask with OpenCV (as the published code)."""
+    import cv2
+
+    img = np.zeros((height, width), dtype=np.uint8)
+    pts = [np.round(p).astype(np.int32).reshape(-1, 1, 2) for p in polygons if len(p) >= 1]
+    if pts:
+        cv2.fillPoly(img, pts, 255)
+    return img > 0
+
+
+def scene_masks(scene_dir: str | Path, kind: str = "noisy") -> MaskSet:
+    """The embedded scene's masks: kind "noisy" (`masks/noisy/<view>/<object>.png`) or "gt" (label images).
+
+    Object names, labels and prompts come from `scene.json` (the table is background).
+    """
+    scene_dir = Path(scene_dir)
+    objs = scene_objects(scene_dir)
+    sub = scene_dir / "masks" / kind
+    if not sub.is_dir():
+        raise InputError(f"no {kind} masks in the scene folder", sub)
+    ms = load_png_dir(sub, objs) if kind != "gt" else load_label_images(sub, objs)
+    # views where an object was not found still count as views (sizes from the images)
+    for img in sorted((scene_dir / "images").glob("*.png")):
+        if img.stem not in ms.sizes and (kind == "gt" or (sub / img.stem).is_dir()):
+            ms.sizes[img.stem] = _read_image(img).shape[:2]
+    meta = _read_json(scene_dir / "scene.json")
+    for o in meta.get("objects", []):
+        if o.get("prompt") and int(o["label"]) in ms.objects:
+            ms.prompts[int(o["label"])] = o["prompt"]
+    ms.objects = {k: v for k, v in ms.objects.items() if v in objs}
+    ms.source = f"scene:{kind}:{scene_dir}"
+    return ms
+
+
+def scene_objects(scene_dir: str | Path) -> dict[str, int]:
+    """name -> label of the embedded scene's objects (from scene.json; label 0 / "table" excluded)."""
+    meta = _read_json(Path(scene_dir) / "scene.json")
+    try:
+        return {o["name"]: int(o["label"]) for o in meta["objects"] if int(o["label"]) > 0 and o["name"] != "table"}
+    except (KeyError, TypeError, ValueError) as e:
+        raise InputError(f"malformed scene.json objects: {e}", Path(scene_dir) / "scene.json") from e
+
+
+# -- helpers ----------------------------------------------------------------------------------
+
+def _safe_name(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_") or "object"
+
+
+def _read_json(path: Path):
+    try:
+        return json.loads(Path(path).read_text())
+    except FileNotFoundError as e:
+        raise InputError("file not found", path) from e
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise InputError(f"not valid JSON: {e}", path) from e
+
+
+def _read_image(path: Path) -> np.ndarray:
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            return np.asarray(im)
+    except (UnidentifiedImageError, OSError) as e:
+        raise InputError(f"cannot read image: {e}", path) from e
+
+
+def _read_binary_png(path: Path) -> np.ndarray:
+    img = _read_image(path)
+    if img.ndim == 3:  # RGB(A) mask: any non-zero colour channel is inside
+        img = img[..., :3].max(axis=2)
+    return img > 0
+
+
+def _check_size(ms: MaskSet, view: str, mask: np.ndarray, path: Path) -> None:
+    hw = ms.sizes.get(view)
+    if hw is not None and tuple(hw) != mask.shape:
+        raise InputError(f"mask is {mask.shape[1]}x{mask.shape[0]} but view {view!r} is {hw[1]}x{hw[0]}", path)

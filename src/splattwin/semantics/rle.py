@@ -1,0 +1,105 @@
+"""COCO run-length encoding of binary masks (the `{"size": [h, w], "counts": ...}` objects of COCO JSON).
+
+pycocotools is not a dependency (it needs a C build and pulls matplotlib), so the two small codecs are
+written here, following the COCO mask API format exactly:
+- runs are taken over the mask flattened in column-major (Fortran) order, starting with a run of zeros
+  (possibly of length 0), alternating 0/1;
+- "uncompressed" RLE stores the run lengths as a list of ints;
+- "compressed" RLE stores them as an ASCII string: each count (from the third on, the difference to the
+  count two places earlier) is written as a little-endian sequence of 5-bit groups, char = group + 48,
+  with bit 0x20 set on every group but the last and the sign carried in bit 0x10 of the last group.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from splattwin.errors import InputError
+
+
+def mask_to_counts(mask: np.ndarray) -> list[int]:
+    """Binary mask [H,W] -> run lengths (column-major, starting with zeros)."""
+    flat = np.asarray(mask, dtype=bool).ravel(order="F")
+    if flat.size == 0:
+        return [0]
+    change = np.flatnonzero(flat[1:] != flat[:-1]) + 1
+    bounds = np.concatenate([[0], change, [flat.size]])
+    runs = np.diff(bounds).tolist()
+    if flat[0]:  # COCO runs always start with a (possibly empty) zero run
+        runs = [0] + runs
+    return [int(r) for r in runs]
+
+
+def counts_to_mask(counts: list[int], height: int, width: int) -> np.ndarray:
+    """Run lengths -> bool mask [H,W]. Raises InputError when the runs do not cover H*W pixels."""
+    counts = np.asarray(counts, dtype=np.int64)
+    if np.any(counts < 0) or int(counts.sum()) != height * width:
+        raise InputError(f"RLE counts sum to {int(counts.sum())} but the mask has {height}x{width}={height * width} pixels")
+    values = (np.arange(counts.size) % 2).astype(bool)
+    flat = np.repeat(values, counts)
+    return flat.reshape((height, width), order="F")
+
+
+def counts_to_string(counts: list[int]) -> str:
+    """Run lengths -> COCO compressed RLE string (LEB128-like 5-bit groups, delta from two runs back)."""
+    out: list[str] = []
+    for i, c in enumerate(counts):
+        x = int(c) - (int(counts[i - 2]) if i > 2 else 0)
+        more = True
+        while more:
+            g = x & 0x1F
+            x >>= 5  # arithmetic shift: negative deltas end at -1
+            more = (x != -1) if (g & 0x10) else (x != 0)
+            if more:
+                g |= 0x20
+            out.append(chr(g + 48))
+    return "".join(out)
+
+
+def string_to_counts(s: str) -> list[int]:
+    """COCO compressed RLE string -> run lengths."""
+    counts: list[int] = []
+    p = 0
+    n = len(s)
+    while p < n:
+        x = 0
+        k = 0
+        more = True
+        while more:
+            if p >= n:
+                raise InputError(f"truncated COCO RLE string {s[:40]!r}")
+            g = ord(s[p]) - 48
+            if g < 0 or g > 63:
+                raise InputError(f"invalid character {s[p]!r} in COCO RLE string")
+            x |= (g & 0x1F) << (5 * k)
+            more = bool(g & 0x20)
+            p += 1
+            k += 1
+            if not more and (g & 0x10):
+                x |= -1 << (5 * k)
+        if len(counts) > 2:
+            x += counts[-2]
+        counts.append(x)
+    return counts
+
+
+def encode(mask: np.ndarray, compressed: bool = True) -> dict:
+    """Bool mask [H,W] -> COCO RLE dict {"size": [H, W], "counts": str | list[int]}."""
+    mask = np.asarray(mask)
+    counts = mask_to_counts(mask)
+    return {"size": [int(mask.shape[0]), int(mask.shape[1])],
+            "counts": counts_to_string(counts) if compressed else counts}
+
+
+def decode(rle: dict) -> np.ndarray:
+    """COCO RLE dict (compressed string or uncompressed list counts) -> bool mask [H,W]."""
+    try:
+        h, w = (int(v) for v in rle["size"])
+        counts = rle["counts"]
+    except (KeyError, TypeError, ValueError) as e:
+        raise InputError(f"malformed COCO RLE (need size [h, w] and counts): {e}") from e
+    if isinstance(counts, bytes):
+        counts = counts.decode("ascii")
+    if isinstance(counts, str):
+        counts = string_to_counts(counts)
+    return counts_to_mask(list(counts), h, w)

@@ -1,0 +1,298 @@
+"""Open-vocabulary 2D masks from text prompts: Grounding DINO boxes + SAM masks (Hugging Face transformers).
+
+Prompt: "blue box. yellow cube. toy hammer" -> one phrase per object (split on '.', lower-cased), in
+order; object labels are 1..K in that order unless given. Per view:
+1. Grounding DINO (`GroundingDinoForObjectDetection`) on the image resized to a working resolution
+   (`working_size` = longest edge, px). Each query's per-phrase score is the max sigmoid logit over the
+   phrase's tokens (phrases are delimited by the '.' tokens, as Grounding DINO's own phrase grounding);
+   queries are assigned greedily to phrases by score, at most `max_per_object` boxes per phrase, kept
+   when the score >= `box_threshold`. Boxes come back in original image pixels (xyxy).
+2. SAM turns each box into a mask at the original image size: "sam" (`SamModel`, image embedding once
+   per view, then all boxes in one prompt batch), "sam2" (`Sam2Model`, preprocessed by hand: its image
+   processor needs torchvision), or "sam3" (`Sam3Model`, text-prompted: it segments the phrases
+   directly and Grounding DINO is not used). Mask score = box score x predicted IoU.
+Weights load only from the local Hugging Face cache (`local_files_only=True`); a missing model raises an
+InputError that says how to download it. Runs on the CPU (`device`), with a progress bar over views.
+Finished views are saved to `out_dir` as they complete, so a killed run resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from splattwin.errors import InputError
+from splattwin.semantics.masks import MaskSet
+
+log = logging.getLogger(__name__)
+
+DEFAULT_DETECTOR = "IDEA-Research/grounding-dino-tiny"
+DEFAULT_SEGMENTER = "facebook/sam-vit-base"
+SEGMENTER_KINDS = ("auto", "sam", "sam2", "sam3")
+_IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
+_IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
+
+
+@dataclass
+class SegmentOptions:
+    """Open-vocabulary segmentation settings. Sizes in pixels, thresholds in [0,1]."""
+
+    detector: str = DEFAULT_DETECTOR          # hub id or local folder
+    segmenter: str = DEFAULT_SEGMENTER        # hub id or local folder (facebook/sam2.1-hiera-tiny, facebook/sam3)
+    segmenter_kind: str = "auto"              # auto: from the model config's model_type
+    box_threshold: float = 0.30
+    working_size: int = 640                   # longest image edge fed to Grounding DINO
+    max_per_object: int = 1                   # twin objects are single instances
+    device: str = "cpu"
+    extra: dict = field(default_factory=dict)
+
+
+def parse_prompt(prompt: str) -> list[str]:
+    """'Blue box. yellow cube.toy hammer' -> ['blue box', 'yellow cube', 'toy hammer'] (InputError if empty)."""
+    phrases = [" ".join(p.strip().lower().split()) for p in prompt.split(".")]
+    phrases = [p for p in phrases if p]
+    if not phrases:
+        raise InputError(f"empty text prompt {prompt!r}: give phrases separated by '.', e.g. \"blue box. yellow cube\"")
+    if len(set(phrases)) != len(phrases):
+        raise InputError(f"prompt {prompt!r} repeats a phrase; each object needs its own phrase")
+    return phrases
+
+
+def load_pretrained(cls, model_id: str, what: str, **kwargs):
+    """`cls.from_pretrained(model_id, local_files_only=True)` with a clear InputError when absent."""
+    try:
+        return cls.from_pretrained(model_id, local_files_only=True, **kwargs)
+    except (OSError, ValueError, EnvironmentError) as e:
+        raise InputError(
+            f"{what} {model_id!r} is not available offline ({type(e).__name__}). Download it once with "
+            f"`huggingface-cli download {model_id}` (or `hf download {model_id}`) on a machine with network, "
+            f"or pass a local folder holding config.json + weights; splattwin never downloads at run time") from e
+
+
+def _model_type(model_id: str) -> str:
+    from transformers import AutoConfig
+
+    return load_pretrained(AutoConfig, model_id, "segmenter config").model_type
+
+
+def phrase_token_spans(tokens: Sequence[str], n_phrases: int) -> list[list[int]]:
+    """Token positions of each '.'-delimited phrase (special tokens skipped). -> n_phrases lists."""
+    spans: list[list[int]] = [[]]
+    for i, t in enumerate(tokens):
+        if t in ("[CLS]", "[SEP]", "[PAD]", "<s>", "</s>", "<pad>"):
+            continue
+        if t == ".":
+            if spans[-1]:
+                spans.append([])
+            continue
+        spans[-1].append(i)
+    spans = [s for s in spans if s]
+    if len(spans) < n_phrases:
+        raise InputError(f"the detector's tokenizer kept {len(spans)} of the {n_phrases} prompt phrases "
+                         f"(text too long for the model?)")
+    return spans[:n_phrases]
+
+
+def assign_queries(scores: np.ndarray, threshold: float, max_per_object: int = 1) -> list[tuple[int, int, float]]:
+    """Greedy query -> phrase assignment. scores [Q,P] -> [(query, phrase, score)] best first.
+
+    Each query is used once; each phrase gets at most max_per_object queries with score >= threshold.
+    """
+    Q, P = scores.shape
+    order = np.argsort(-scores, axis=None)
+    used_q: set[int] = set()
+    per_p = np.zeros(P, dtype=int)
+    out = []
+    for flat in order:
+        q, p = divmod(int(flat), P)
+        s = float(scores[q, p])
+        if s < threshold:
+            break
+        if q in used_q or per_p[p] >= max_per_object:
+            continue
+        used_q.add(q)
+        per_p[p] += 1
+        out.append((q, p, s))
+    return out
+
+
+class OpenVocabSegmenter:
+    """Grounding DINO + SAM / SAM 2, or SAM 3 alone, loaded once; call on an image per view."""
+
+    def __init__(self, options: SegmentOptions | None = None):
+        import torch  # noqa: F401
+        import transformers as tf
+
+        self.opts = opts = options or SegmentOptions()
+        kind = opts.segmenter_kind
+        if kind not in SEGMENTER_KINDS:
+            raise InputError(f"unknown segmenter kind {kind!r}; choose one of {', '.join(SEGMENTER_KINDS)}")
+        if kind == "auto":
+            mt = _model_type(opts.segmenter)
+            kind = {"sam": "sam", "sam2": "sam2", "sam3": "sam3", "sam3_video": "sam3"}.get(mt)
+            if kind is None:
+                raise InputError(f"segmenter {opts.segmenter!r} has model_type {mt!r}; expected a SAM, SAM 2 or SAM 3 model")
+        self.kind = kind
+        if kind == "sam3":
+            if not hasattr(tf, "Sam3Model"):
+                raise InputError(f"SAM 3 needs a transformers with Sam3Model (installed: {tf.__version__})")
+            self.seg_model = load_pretrained(tf.Sam3Model, opts.segmenter, "SAM 3 model").eval()
+            self.seg_proc = load_pretrained(tf.Sam3Processor, opts.segmenter, "SAM 3 processor")
+            return
+        self.det_model = load_pretrained(tf.GroundingDinoForObjectDetection, opts.detector, "Grounding DINO model").eval()
+        self.det_proc = load_pretrained(tf.GroundingDinoProcessor, opts.detector, "Grounding DINO processor")
+        if kind == "sam":
+            self.seg_model = load_pretrained(tf.SamModel, opts.segmenter, "SAM model").eval()
+            self.seg_proc = load_pretrained(tf.SamProcessor, opts.segmenter, "SAM processor")
+        else:
+            self.seg_model = load_pretrained(tf.Sam2Model, opts.segmenter, "SAM 2 model").eval()
+            self.seg_proc = None  # Sam2ImageProcessor needs torchvision: preprocess by hand
+
+    # -- detection -----------------------------------------------------------------------------
+    def detect(self, image: np.ndarray, phrases: Sequence[str]) -> list[tuple[int, np.ndarray, float]]:
+        """image uint8 [H,W,3] -> [(phrase index, box xyxy [4] original pixels, score)]."""
+        import torch
+        from PIL import Image
+
+        H, W = image.shape[:2]
+        s = min(1.0, self.opts.working_size / max(H, W))
+        pil = Image.fromarray(image)
+        if s < 1.0:
+            pil = pil.resize((max(1, round(W * s)), max(1, round(H * s))), Image.BILINEAR)
+        ip = self.det_proc.image_processor
+        short = max(1, round(min(pil.size) * 1.0))
+        ip.size = {"shortest_edge": short, "longest_edge": max(pil.size)}  # no upscaling to 800 px
+        text = ". ".join(phrases) + "."
+        inputs = self.det_proc(images=pil, text=text, return_tensors="pt")
+        with torch.no_grad():
+            out = self.det_model(**inputs)
+        ids = inputs["input_ids"][0].tolist()
+        tokens = self.det_proc.tokenizer.convert_ids_to_tokens(ids)
+        spans = phrase_token_spans(tokens, len(phrases))
+        prob = out.logits[0].sigmoid().numpy()  # [Q, max_text_len]
+        scores = np.stack([prob[:, sp].max(axis=1) for sp in spans], axis=1)  # [Q,P]
+        boxes = out.pred_boxes[0].numpy().astype(np.float64)  # cx, cy, w, h normalised
+        xyxy = np.stack([boxes[:, 0] - boxes[:, 2] / 2, boxes[:, 1] - boxes[:, 3] / 2,
+                         boxes[:, 0] + boxes[:, 2] / 2, boxes[:, 1] + boxes[:, 3] / 2], 1) * [W, H, W, H]
+        xyxy = np.clip(xyxy, 0, [W, H, W, H])
+        return [(p, xyxy[q], sc) for q, p, sc in assign_queries(scores, self.opts.box_threshold, self.opts.max_per_object)]
+
+    # -- masks -----------------------------------------------------------------------------------
+    def masks_from_boxes(self, image: np.ndarray, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """boxes [B,4] xyxy pixels -> (masks [B,H,W] bool at image size, predicted IoU [B])."""
+        import torch
+        import torch.nn.functional as F
+        from PIL import Image
+
+        H, W = image.shape[:2]
+        B = len(boxes)
+        if B == 0:
+            return np.zeros((0, H, W), dtype=bool), np.zeros(0)
+        with torch.no_grad():
+            if self.kind == "sam":
+                inp = self.seg_proc(images=Image.fromarray(image), input_boxes=[[list(map(float, b)) for b in boxes]],
+                                    return_tensors="pt")
+                emb = self.seg_model.get_image_embeddings(inp["pixel_values"])
+                out = self.seg_model(image_embeddings=emb, input_boxes=inp["input_boxes"], multimask_output=False)
+                masks = self.seg_proc.post_process_masks(out.pred_masks, inp["original_sizes"],
+                                                          inp["reshaped_input_sizes"])[0][:, 0]
+                return masks.numpy().astype(bool), out.iou_scores[0, :, 0].numpy()
+            # SAM 2: square resize to the model's input size, ImageNet normalisation
+            size = self.seg_model.config.prompt_encoder_config.image_size  # box coordinate frame = input size
+            S = int(size[0] if isinstance(size, (list, tuple)) else size)
+            x = np.asarray(Image.fromarray(image).resize((S, S), Image.BILINEAR), dtype=np.float32) / 255.0
+            x = (x - _IMAGENET_MEAN) / _IMAGENET_STD
+            pv = torch.from_numpy(x).permute(2, 0, 1)[None]
+            b = torch.as_tensor(np.asarray(boxes, dtype=np.float32) * np.array([S / W, S / H, S / W, S / H], np.float32))
+            out = self.seg_model(pixel_values=pv, input_boxes=b[None], multimask_output=False)
+            logits = out.pred_masks[0, :, 0]  # [B,h,w]
+            masks = F.interpolate(logits[:, None], size=(H, W), mode="bilinear", align_corners=False)[:, 0] > 0
+            return masks.numpy(), out.iou_scores[0, :, 0].numpy()
+
+    def __call__(self, image: np.ndarray, phrases: Sequence[str]) -> dict[int, tuple[np.ndarray, float]]:
+        """image uint8 [H,W,3] -> {phrase index: (mask bool [H,W], score)} for the phrases found."""
+        if self.kind == "sam3":
+            return self._sam3(image, phrases)
+        dets = self.detect(image, phrases)
+        masks, ious = self.masks_from_boxes(image, np.array([d[1] for d in dets]).reshape(-1, 4))
+        found: dict[int, tuple[np.ndarray, float]] = {}
+        for (p, _, s), m, iou in zip(dets, masks, ious):
+            score = float(s * np.clip(iou, 0.0, 1.0))
+            if p in found:  # several instances of one phrase: union
+                found[p] = (found[p][0] | m, max(found[p][1], score))
+            else:
+                found[p] = (m, score)
+        return found
+
+    def _sam3(self, image: np.ndarray, phrases: Sequence[str]) -> dict[int, tuple[np.ndarray, float]]:
+        import torch
+        from PIL import Image
+
+        H, W = image.shape[:2]
+        found = {}
+        pil = Image.fromarray(image)
+        for p, phrase in enumerate(phrases):
+            inputs = self.seg_proc(images=pil, text=phrase, return_tensors="pt")
+            with torch.no_grad():
+                out = self.seg_model(**inputs)
+            res = self.seg_proc.post_process_instance_segmentation(
+                out, threshold=self.opts.box_threshold, mask_threshold=0.5, target_sizes=[(H, W)])[0]
+            if len(res["scores"]):
+                k = int(np.argmax(res["scores"].numpy()))
+                found[p] = (res["masks"][k].numpy().astype(bool), float(res["scores"][k]))
+        return found
+
+
+def segment_images(images: dict[str, Path], prompt: str, options: SegmentOptions | None = None,
+                   labels: dict[str, int] | None = None, out_dir: str | Path | None = None,
+                   progress: bool = True, segmenter: OpenVocabSegmenter | None = None) -> MaskSet:
+    """Run the open-vocabulary segmenter over views {view name: image path} -> MaskSet.
+
+    labels: phrase -> object label (default 1..K in prompt order). out_dir: save after every view and
+    skip views already saved there (resume). Objects found in no view raise InputError.
+    """
+    from splattwin.capture import load_image
+
+    phrases = parse_prompt(prompt)
+    labels = {p: i + 1 for i, p in enumerate(phrases)} if labels is None else {k.lower(): v for k, v in labels.items()}
+    missing = [p for p in phrases if p not in labels]
+    if missing:
+        raise InputError(f"prompt phrases {missing} have no object label (known: {sorted(labels)})")
+    ms = MaskSet(objects={labels[p]: p.replace(" ", "_") for p in phrases},
+                 prompts={labels[p]: p for p in phrases}, source=f"open-vocab:{prompt}")
+    done: set[str] = set()
+    if out_dir is not None and (Path(out_dir) / "masks.json").is_file():
+        prev = MaskSet.load(out_dir)
+        if prev.prompts == ms.prompts:
+            ms, done = prev, set(prev.sizes)
+            log.info("resuming: %d of %d views already segmented in %s", len(done), len(images), out_dir)
+    todo = [v for v in sorted(images) if v not in done]
+    seg = segmenter
+    if todo and seg is None:
+        seg = OpenVocabSegmenter(options)
+    bar = _bar(progress, len(todo))
+    for view in todo:
+        img = (np.clip(load_image(images[view]), 0, 1) * 255 + 0.5).astype(np.uint8)
+        ms.sizes[view] = img.shape[:2]
+        for p, (mask, score) in seg(img, phrases).items():
+            if mask.any():
+                ms.add(view, labels[phrases[p]], mask, score)
+        if out_dir is not None:
+            ms.save(out_dir)
+        bar.update(1)
+    bar.close()
+    for lab, name in ms.objects.items():
+        if ms.n_views_with(lab) == 0:
+            raise InputError(f"prompt phrase {ms.prompts[lab]!r} was found in no view (box threshold "
+                             f"{(options or SegmentOptions()).box_threshold}); rephrase it or lower --box-threshold")
+    return ms
+
+
+def _bar(enabled: bool, total: int):
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc="segmenting views", unit="view", disable=not enabled)

@@ -1,0 +1,192 @@
+"""Initial Gaussians from a point cloud: SfM points, back-projected depth maps, or random in a box.
+
+Scales start isotropic at the mean distance to the 3 nearest neighbours (scipy cKDTree), opacities at 0.1,
+rotations at identity, DC colour from the point colour, higher SH at zero (as 3DGS does).
+
+Depth back-projection also places pixels whose depth is missing (inf/0: the ray hits nothing, e.g. the
+room behind a tabletop) on a far sphere around the scene, with the pixel's colour, so the background
+is represented from the start instead of being faked by floaters near the cameras.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from splattwin.capture import Camera, Frame, load_depth, load_image
+from splattwin.errors import InputError
+from splattwin.splat.gaussians import Gaussians, num_sh_bases, rgb_to_sh0
+
+log = logging.getLogger(__name__)
+
+
+def scene_center_and_scale(cameras: Sequence[Camera]) -> tuple[np.ndarray, float]:
+    """Centre of the camera centres and 1.1 x their largest distance from it (3DGS 'cameras_extent'), m.
+    A single camera (or coincident ones) gets scale 1."""
+    c = np.array([cam.center for cam in cameras])
+    center = c.mean(axis=0)
+    radius = float(np.linalg.norm(c - center, axis=1).max()) * 1.1 if len(c) > 1 else 0.0
+    return center, radius if radius > 1e-6 else 1.0
+
+
+def knn_scales(xyz: np.ndarray, k: int = 3) -> np.ndarray:
+    """[N] mean distance of each point to its k nearest neighbours (m), floored at 1e-7."""
+    n = len(xyz)
+    if n < 2:
+        return np.full(n, 0.01)
+    k = min(k, n - 1)
+    d, _ = cKDTree(xyz).query(xyz, k=k + 1)
+    return np.maximum(d[:, 1:].mean(axis=1), 1e-7)
+
+
+def gaussians_from_points(xyz: np.ndarray, rgb: np.ndarray, sh_degree: int = 3, opacity: float = 0.1,
+                          scale_factor: float = 1.0) -> Gaussians:
+    """Isotropic Gaussians on points [N,3] with colours [N,3] in [0,1]."""
+    xyz = np.asarray(xyz, dtype=np.float64)
+    n = len(xyz)
+    s = knn_scales(xyz) * scale_factor
+    sh = np.zeros((n, num_sh_bases(sh_degree), 3))
+    sh[:, 0] = rgb_to_sh0(np.clip(rgb, 0, 1))
+    quats = np.zeros((n, 4))
+    quats[:, 0] = 1.0
+    return Gaussians(means=xyz, quats=quats, scales=np.repeat(s[:, None], 3, axis=1),
+                     opacities=np.full(n, opacity), sh=sh)
+
+
+def backproject_depth(depth: np.ndarray, camera: Camera, image: np.ndarray | None = None, stride: int = 1,
+                      far_depth: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """World points [M,3] (and colours [M,3] in [0,1], grey without an image) of the pixels of a z-depth
+    map [H,W] (m), every `stride`-th pixel through its centre. Pixels with depth inf/nan/<=0 are
+    dropped, or placed at `far_depth` along their ray when it is given. Ignores lens distortion."""
+    h, w = depth.shape
+    if (w, h) != (camera.width, camera.height):
+        camera = camera.scaled(w / camera.width)
+    v, u = np.mgrid[0:h:stride, 0:w:stride]
+    z = depth[v, u].astype(np.float64)
+    ok = np.isfinite(z) & (z > 0)
+    if far_depth is not None:
+        z = np.where(ok, z, far_depth)
+        ok = np.ones_like(ok)
+    u, v, z = u[ok], v[ok], z[ok]
+    x = (u + 0.5 - camera.cx) / camera.fx * z
+    y = (v + 0.5 - camera.cy) / camera.fy * z
+    p_cam = np.stack([x, y, z], axis=1)
+    T = camera.T_world_cam
+    p_world = p_cam @ T[:3, :3].T + T[:3, 3]
+    if image is None:
+        rgb = np.full((len(p_world), 3), 0.5)
+    else:
+        if image.shape[:2] != (h, w):
+            raise InputError(f"image is {image.shape[1]}x{image.shape[0]} but its depth map is {w}x{h}")
+        rgb = image[v, u].astype(np.float64)
+    return p_world, rgb
+
+
+def points_from_depth(frames: Sequence[Frame], depth_scale: float = 1.0, max_points: int = 30_000,
+                      background_fraction: float = 0.1, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Fused back-projection of the frames' depth maps, randomly subsampled to `max_points`, of which at
+    most `background_fraction` are far-sphere background points. Raises InputError without depth maps."""
+    with_depth = [f for f in frames if f.depth_path is not None]
+    if not with_depth:
+        raise InputError("--init depth needs depth maps, but no training frame has one")
+    center, scale = scene_center_and_scale([f.camera for f in frames])
+    fg_xyz, fg_rgb, bg_xyz, bg_rgb = [], [], [], []
+    for f in with_depth:
+        depth = load_depth(f.depth_path, depth_scale)
+        img = load_image(f.image_path)
+        if img.shape[:2] != depth.shape:
+            raise InputError(f"depth map is {depth.shape[1]}x{depth.shape[0]} but its image is "
+                             f"{img.shape[1]}x{img.shape[0]}", f.depth_path)
+        stride = max(1, int(np.sqrt(depth.size * len(with_depth) / (4 * max_points))))
+        xyz, rgb = backproject_depth(depth, f.camera, img, stride)
+        fg_xyz.append(xyz)
+        fg_rgb.append(rgb)
+        if background_fraction > 0:
+            miss = ~(np.isfinite(depth) & (depth > 0))
+            sel = miss[::stride, ::stride].ravel()
+            if sel.any():  # rays that hit nothing: on a sphere of 3 x the scene scale around the centre
+                xyz_b, rgb_b = _rays_to_sphere(f.camera, img, stride, sel, center, 3.0 * scale)
+                bg_xyz.append(xyz_b)
+                bg_rgb.append(rgb_b)
+    rng = np.random.default_rng(seed)
+    xyz, rgb = np.concatenate(fg_xyz), np.concatenate(fg_rgb)
+    n_bg_max = int(max_points * background_fraction)
+    if bg_xyz and n_bg_max > 0:
+        bxyz, brgb = np.concatenate(bg_xyz), np.concatenate(bg_rgb)
+        if len(bxyz) > n_bg_max:
+            keep = rng.choice(len(bxyz), n_bg_max, replace=False)
+            bxyz, brgb = bxyz[keep], brgb[keep]
+    else:
+        bxyz, brgb = np.zeros((0, 3)), np.zeros((0, 3))
+    n_fg = max_points - len(bxyz)
+    if len(xyz) > n_fg:
+        keep = np.sort(rng.choice(len(xyz), n_fg, replace=False))
+        xyz, rgb = xyz[keep], rgb[keep]
+    return np.concatenate([xyz, bxyz]), np.concatenate([rgb, brgb])
+
+
+def _rays_to_sphere(camera: Camera, image: np.ndarray, stride: int, sel: np.ndarray, center: np.ndarray,
+                    radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points where the rays of the selected strided pixels leave a sphere (centre, radius)."""
+    h, w = image.shape[:2]
+    if (w, h) != (camera.width, camera.height):
+        camera = camera.scaled(w / camera.width)
+    v, u = np.mgrid[0:h:stride, 0:w:stride]
+    u, v = u.ravel()[sel], v.ravel()[sel]
+    d_cam = np.stack([(u + 0.5 - camera.cx) / camera.fx, (v + 0.5 - camera.cy) / camera.fy, np.ones(len(u))], 1)
+    R, o = camera.T_world_cam[:3, :3], camera.T_world_cam[:3, 3]
+    d = d_cam @ R.T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    oc = o - center
+    b = d @ oc
+    c = oc @ oc - radius**2
+    t = -b + np.sqrt(np.maximum(b * b - c, 0.0))  # camera inside the sphere: the far root is positive
+    return o + t[:, None] * d, image[v, u].astype(np.float64)
+
+
+def random_points(n: int, center: np.ndarray, half_extent: float | np.ndarray, seed: int = 0
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """n points uniform in the box centre +- half_extent (m) with uniform random colours."""
+    rng = np.random.default_rng(seed)
+    xyz = np.asarray(center) + rng.uniform(-1, 1, size=(n, 3)) * np.asarray(half_extent)
+    return xyz, rng.uniform(0, 1, size=(n, 3))
+
+
+def initial_gaussians(method: str, train_frames: Sequence[Frame], points_xyz: np.ndarray | None = None,
+                      points_rgb: np.ndarray | None = None, depth_scale: float = 1.0, sh_degree: int = 3,
+                      max_points: int = 30_000, seed: int = 0) -> tuple[Gaussians, str]:
+    """Initial Gaussians by `method` ("auto" | "sfm" | "depth" | "random"); returns (gaussians, method used).
+    "auto" takes the SfM/dataset points if present, else depth maps if present, else random."""
+    if method == "auto":
+        if points_xyz is not None and len(points_xyz) >= 4:
+            method = "sfm"
+        elif any(f.depth_path is not None for f in train_frames):
+            method = "depth"
+        else:
+            method = "random"
+    if method == "sfm":
+        if points_xyz is None or len(points_xyz) < 4:
+            raise InputError("--init sfm needs a point cloud in the dataset (SfM points / ply_file_path); "
+                             "none was found")
+        xyz = np.asarray(points_xyz, np.float64)
+        rgb = np.full((len(xyz), 3), 0.5) if points_rgb is None else np.asarray(points_rgb, np.float64) / 255.0
+        if len(xyz) > max_points:
+            keep = np.sort(np.random.default_rng(seed).choice(len(xyz), max_points, replace=False))
+            xyz, rgb = xyz[keep], rgb[keep]
+    elif method == "depth":
+        xyz, rgb = points_from_depth(train_frames, depth_scale, max_points=max_points, seed=seed)
+    elif method == "random":
+        # 3DGS/gsplat random init: a cube around the cameras' centre, as large as the camera spread
+        center, scale = scene_center_and_scale([f.camera for f in train_frames])
+        xyz, rgb = random_points(min(max_points, 20_000), center, scale, seed)
+    else:
+        raise InputError(f"unknown --init method {method!r}; choose auto, sfm, depth or random")
+    ok = np.all(np.isfinite(xyz), axis=1)
+    if not ok.all():
+        log.warning("dropping %d non-finite initial points", int((~ok).sum()))
+        xyz, rgb = xyz[ok], rgb[ok]
+    log.info("initialised %d Gaussians from %s", len(xyz), method)
+    return gaussians_from_points(xyz, rgb, sh_degree=sh_degree), method

@@ -1,0 +1,41 @@
+"""Image-quality metrics for evaluation: PSNR and SSIM, computed in float64 on [0,1] images.
+
+SSIM uses the standard 11x11 Gaussian window (sigma 1.5, K1 0.01, K2 0.03) over full windows only
+("valid", as scikit-image with `gaussian_weights=True` and torchmetrics), averaged over channels.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from splattwin.splat.losses import psnr_from_mse, ssim_map
+
+
+def _as64(a: np.ndarray | torch.Tensor) -> torch.Tensor:
+    t = a.detach() if isinstance(a, torch.Tensor) else torch.from_numpy(np.asarray(a))
+    return t.to(torch.float64).cpu()
+
+
+def psnr(img: np.ndarray | torch.Tensor, ref: np.ndarray | torch.Tensor, max_val: float = 1.0) -> float:
+    """Peak signal-to-noise ratio in dB of HxWxC images (inf when identical)."""
+    x, y = _as64(img), _as64(ref)
+    if x.shape != y.shape:
+        raise ValueError(f"image shapes differ: {tuple(x.shape)} vs {tuple(y.shape)}")
+    mse = float(((x - y) ** 2).mean()) / max_val**2
+    return psnr_from_mse(mse)
+
+
+def ssim(img: np.ndarray | torch.Tensor, ref: np.ndarray | torch.Tensor) -> float:
+    """Mean structural similarity of HxWxC images in [0,1] (1 when identical)."""
+    x, y = _as64(img), _as64(ref)
+    if min(x.shape[-3], x.shape[-2]) < 11:
+        raise ValueError(f"SSIM needs images of at least 11x11 pixels, got {tuple(x.shape)}")
+    return float(ssim_map(x, y, padding="valid").mean())
+
+
+def error_heatmap(img: np.ndarray, ref: np.ndarray, vmax: float = 0.25) -> np.ndarray:
+    """HxWx3 uint8 colour map (black -> red -> yellow -> white) of the per-pixel mean absolute error."""
+    err = np.clip(np.abs(np.asarray(img, np.float64) - np.asarray(ref, np.float64)).mean(axis=-1) / vmax, 0, 1)
+    rgb = np.stack([np.clip(3 * err, 0, 1), np.clip(3 * err - 1, 0, 1), np.clip(3 * err - 2, 0, 1)], axis=-1)
+    return (rgb * 255 + 0.5).astype(np.uint8)

@@ -1,0 +1,179 @@
+"""`rasterization()`: the one entry point for rendering 3D Gaussians (gsplat-like API), several backends.
+
+Backends:
+    "cpu"        our numba kernels (tile-based, hand-written backward) - `splattwin.splat._cpu`.
+    "cuda"       gsplat's `rasterization()` (needs a CUDA device and an importable gsplat).
+    "reference"  plain PyTorch + autograd, dense (small sizes only) - `splattwin.splat.reference`.
+    "auto"       "cuda" when CUDA and gsplat are available and the inputs are on a CUDA device, else "cpu".
+
+The "cpu" and "reference" backends share this module's pipeline: (1) colours (SH evaluated per camera
+from the view direction camera-centre -> mean when `sh_degree` is given), (2) EWA projection, (3) tile
+compositing, with the depth appended as an extra colour channel for the depth render modes (as gsplat).
+All semantics (culling, 3-sigma extents, alpha thresholds, early stop) are documented in
+`splattwin.splat.reference`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from splattwin.errors import InputError
+from splattwin.splat import reference as _ref
+
+RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
+BACKENDS = ("auto", "cpu", "cuda", "reference")
+
+
+def cuda_available() -> bool:
+    """True when a CUDA device is present and gsplat imports (the "cuda" backend can run)."""
+    if not torch.cuda.is_available():
+        return False
+    try:
+        import gsplat  # noqa: F401
+    except Exception:
+        return False
+    return True
+
+
+def resolve_backend(backend: str, device: torch.device | None = None) -> str:
+    """Map "auto" to a concrete backend; raise InputError for an unknown or unavailable one."""
+    if backend not in BACKENDS:
+        raise InputError(f"unknown rasterizer backend {backend!r}; choose one of {', '.join(BACKENDS)}")
+    if backend == "auto":
+        if cuda_available() and (device is None or device.type == "cuda"):
+            return "cuda"
+        return "cpu"
+    if backend == "cuda" and not cuda_available():
+        why = "no CUDA device is available (torch.cuda.is_available() is False)" if not torch.cuda.is_available() \
+            else "gsplat is not installed or fails to import (pip install gsplat)"
+        raise InputError(f"rasterizer backend 'cuda' requested but {why}; use backend 'cpu' (--device cpu)")
+    return backend
+
+
+def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree,
+                  backgrounds, render_mode) -> None:
+    N = means.shape[0]
+    if means.ndim != 2 or means.shape[1] != 3:
+        raise ValueError(f"means must be [N,3], got {tuple(means.shape)}")
+    if tuple(quats.shape) != (N, 4):
+        raise ValueError(f"quats must be [N,4] (wxyz) with N={N}, got {tuple(quats.shape)}")
+    if tuple(scales.shape) != (N, 3):
+        raise ValueError(f"scales must be [N,3] with N={N}, got {tuple(scales.shape)}")
+    if tuple(opacities.shape) != (N,):
+        raise ValueError(f"opacities must be [N] with N={N}, got {tuple(opacities.shape)}")
+    if viewmats.ndim != 3 or viewmats.shape[1:] != (4, 4):
+        raise ValueError(f"viewmats must be [C,4,4], got {tuple(viewmats.shape)}")
+    C = viewmats.shape[0]
+    if tuple(Ks.shape) != (C, 3, 3):
+        raise ValueError(f"Ks must be [C,3,3] with C={C}, got {tuple(Ks.shape)}")
+    if int(width) <= 0 or int(height) <= 0:
+        raise ValueError(f"image size must be positive, got {width}x{height}")
+    if render_mode not in RENDER_MODES:
+        raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
+    if sh_degree is not None:
+        if colors.ndim != 3 or colors.shape[0] != N or colors.shape[2] != 3:
+            raise ValueError(f"with sh_degree, colors must be SH coefficients [N,K,3], got {tuple(colors.shape)}")
+        if not 0 <= sh_degree <= 3 or colors.shape[1] < (sh_degree + 1) ** 2:
+            raise ValueError(f"sh_degree {sh_degree} needs 0..3 and K >= {(sh_degree + 1) ** 2}, "
+                             f"got K={colors.shape[1]}")
+    else:
+        ok = (colors.ndim == 2 and colors.shape[0] == N) or (colors.ndim == 3 and colors.shape[:2] == (C, N))
+        if not ok:
+            raise ValueError(f"colors must be [N,D] or [C,N,D] (or SH [N,K,3] with sh_degree), "
+                             f"got {tuple(colors.shape)}")
+
+
+def _backend_module(name: str) -> Any:
+    if name == "reference":
+        return _ref
+    from splattwin.splat import _cpu
+    return _cpu
+
+
+def rasterization(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    viewmats: torch.Tensor,
+    Ks: torch.Tensor,
+    width: int,
+    height: int,
+    sh_degree: int | None = None,
+    backgrounds: torch.Tensor | None = None,
+    render_mode: str = "RGB",
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    eps2d: float = 0.3,
+    backend: str = "auto",
+) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
+    """Render N Gaussians into C cameras (differentiable w.r.t. every tensor input but Ks).
+
+    Args:
+        means: [N,3] world frame, m.  quats: [N,4] wxyz (normalised internally).  scales: [N,3] m.
+        opacities: [N] in [0,1].
+        colors: [N,D] or [C,N,D] any number of channels D (sh_degree None), or SH [N,K,3] (sh_degree 0..3).
+        viewmats: [C,4,4] world->camera (T_cam_world, OpenCV).  Ks: [C,3,3] pixel intrinsics.
+        width, height: image size (pixels).
+        backgrounds: [C,D] colour behind the Gaussians (colour channels only), or None (black).
+        render_mode: "RGB" colours; "D" accumulated depth sum w_i z_i; "ED" expected depth D / alpha;
+            "RGB+D" / "RGB+ED" colours with the depth as the last channel.
+        near_plane, far_plane: cull Gaussians whose camera z is outside (near, far), m.
+        eps2d: low-pass filter added to the 2D covariance diagonal (px^2).
+        backend: "auto" | "cpu" | "cuda" | "reference".
+    Returns:
+        render_colors [C,H,W,ch], render_alphas [C,H,W,1], meta dict with
+        means2d [C,N,2] (pixels; its .grad is filled by backward, for densification), radii [C,N] int32,
+        depths [C,N] (camera z, m), conics [C,N,3], visibility [C,N] bool, width, height, backend.
+    """
+    width, height = int(width), int(height)
+    _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree,
+                  backgrounds, render_mode)
+    name = resolve_backend(backend, means.device)
+    if name == "cuda":
+        from splattwin.splat.cuda_backend import rasterization_cuda
+        return rasterization_cuda(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+                                  sh_degree=sh_degree, backgrounds=backgrounds, render_mode=render_mode,
+                                  near_plane=near_plane, far_plane=far_plane, eps2d=eps2d)
+    B = _backend_module(name)
+    C = viewmats.shape[0]
+    proj = B.project(means, quats, scales, viewmats, Ks, width, height, eps2d=eps2d, near_plane=near_plane,
+                     far_plane=far_plane)
+    means2d, conics, depths = proj["means2d"], proj["conics"], proj["depths"]
+
+    chans: list[torch.Tensor] = []
+    bgs: list[torch.Tensor] = []
+    if render_mode in ("RGB", "RGB+D", "RGB+ED"):
+        if sh_degree is not None:
+            cols = B.sh_colors(means, colors, viewmats, sh_degree)  # [C,N,3]
+        else:
+            cols = colors if colors.ndim == 3 else colors[None].expand(C, -1, -1)
+        chans.append(cols)
+        D = cols.shape[-1]
+        if backgrounds is not None:
+            if tuple(backgrounds.shape) != (C, D):
+                raise ValueError(f"backgrounds must be [C,D]=({C},{D}), got {tuple(backgrounds.shape)}")
+            bgs.append(backgrounds.to(means.dtype))
+        else:
+            bgs.append(torch.zeros(C, D, dtype=means.dtype, device=means.device))
+    if render_mode != "RGB":
+        chans.append(depths[..., None])
+        bgs.append(torch.zeros(C, 1, dtype=means.dtype, device=means.device))
+    feats = chans[0] if len(chans) == 1 else torch.cat(chans, dim=-1)
+    bg = bgs[0] if len(bgs) == 1 else torch.cat(bgs, dim=-1)
+    use_bg = backgrounds is not None and render_mode in ("RGB", "RGB+D", "RGB+ED")
+
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    render, alphas = B.rasterize(means2d, conics, feats.contiguous(), opacities, depths, proj["extents"],
+                                 width, height, backgrounds=bg if use_bg else None)
+    if render_mode in ("ED", "RGB+ED"):
+        ed = render[..., -1:] / torch.clamp_min(alphas, 1e-10)
+        render = torch.cat([render[..., :-1], ed], dim=-1)
+    radii = proj["radii"]
+    meta = {"means2d": means2d, "radii": radii, "depths": depths, "conics": conics, "visibility": radii > 0,
+            "width": width, "height": height, "backend": name, "n_cameras": C}
+    return render, alphas, meta

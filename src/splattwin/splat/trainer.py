@@ -1,0 +1,349 @@
+"""3DGS training loop: one view per step, Adam, (1-l) L1 + l D-SSIM, SH warm-up, adaptive density
+control, optional pose refinement, atomic checkpoints and exact resume.
+
+Determinism: every random choice comes from seeded generators (view order, split samples, init), whose
+states are checkpointed together with parameters, Adam moments, densification statistics and the step,
+so a run resumed from a checkpoint reproduces the uninterrupted run (on the CPU backend).
+
+Outputs in OUT: point_cloud.ply (standard 3DGS), train.json (config, statistics), refined_poses.json
+(with --refine-poses), checkpoints/ckpt_XXXXXX.pt (the two newest are kept).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from splattwin.capture import Camera, Dataset, Frame, load_image
+from splattwin.errors import InputError
+from splattwin.io import atomic_path, write_json
+from splattwin.splat.densify import DensifyConfig, DensifyState, refine, reset_opacity
+from splattwin.splat.gaussians import Gaussians
+from splattwin.splat.init import initial_gaussians, scene_center_and_scale
+from splattwin.splat.losses import photometric_loss, psnr_from_mse
+from splattwin.splat.model import GaussianModel, LearningRates
+from splattwin.splat.pose_refine import PoseCorrection
+from splattwin.splat.rasterization import rasterization, resolve_backend
+
+log = logging.getLogger(__name__)
+
+CKPT_DIR = "checkpoints"
+
+
+@dataclass
+class TrainConfig:
+    """Training options. Defaults suit sparse tabletop captures (~15 views, 320x240) on a CPU.
+
+    resolution: as 3DGS `-r`: 1, 2, 4, 8 divide the image size; a larger value is a target width in
+        pixels; -1 downsizes only images wider than 1600 px.
+    device: "auto" | "cpu" | "cuda" (picks the rasterizer backend); backend overrides it (e.g. "reference").
+    sh_interval: raise the SH degree every this many steps (0: iters // 10).
+    checkpoint_every: steps between checkpoints (0: none).
+    """
+
+    iters: int = 3000
+    resolution: int = 1
+    device: str = "auto"
+    backend: str | None = None
+    init: str = "auto"
+    init_points: int = 30_000
+    sh_degree: int = 3
+    sh_interval: int = 0
+    seed: int = 0
+    checkpoint_every: int = 500
+    refine_poses: bool = False
+    pose_lr: float = 1e-3
+    ssim_lambda: float = 0.2
+    max_gaussians: int = 60_000
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    densify: bool = True
+    lrs: LearningRates = field(default_factory=LearningRates)
+    densify_cfg: DensifyConfig | None = None
+    progress: bool = True
+
+    def densify_config(self) -> DensifyConfig:
+        return self.densify_cfg or DensifyConfig.for_iterations(self.iters, self.max_gaussians)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["densify_cfg"] = asdict(self.densify_config())
+        return d
+
+
+@dataclass
+class TrainView:
+    """A training image in memory and its camera at training resolution."""
+
+    name: str
+    image: torch.Tensor  # [H,W,3] float32 in [0,1]
+    camera: Camera
+
+
+@dataclass
+class TrainResult:
+    gaussians: Gaussians
+    ply_path: Path
+    steps: int
+    wall_s: float
+    final_loss: float
+    final_psnr: float
+    init_method: str
+    history: list[dict]
+    refined_T_world_cam: dict[str, list] | None = None
+
+
+def training_scale(width: int, resolution: int) -> float:
+    """Scale factor applied to an image of `width` px for the 3DGS `-r` convention (see TrainConfig)."""
+    if resolution in (1, 2, 4, 8):
+        return 1.0 / resolution
+    if resolution == -1:
+        return min(1.0, 1600.0 / width)
+    if resolution < 16:
+        raise InputError(f"--resolution must be 1, 2, 4, 8, a target width of at least 16 pixels, or -1; "
+                         f"got {resolution}")
+    return resolution / width
+
+
+def load_views(frames: list[Frame], resolution: int = 1) -> list[TrainView]:
+    """Images of `frames` as tensors, resized (PIL area filter) to the training resolution."""
+    from PIL import Image
+
+    views = []
+    for f in frames:
+        img = load_image(f.image_path)
+        if img.shape[:2] != (f.camera.height, f.camera.width):
+            raise InputError(f"image is {img.shape[1]}x{img.shape[0]} but its camera says "
+                             f"{f.camera.width}x{f.camera.height}", f.image_path)
+        s = training_scale(f.camera.width, resolution)
+        cam = f.camera
+        if abs(s - 1.0) > 1e-9:
+            cam = f.camera.scaled(s)
+            pil = Image.fromarray((img * 255 + 0.5).astype(np.uint8)).resize((cam.width, cam.height), Image.BOX)
+            img = np.asarray(pil, dtype=np.float32) / 255.0
+        views.append(TrainView(f.name, torch.from_numpy(np.ascontiguousarray(img)), cam))
+    return views
+
+
+def _latest_checkpoint(out_dir: Path) -> Path | None:
+    ckpts = sorted((out_dir / CKPT_DIR).glob("ckpt_*.pt"))
+    return ckpts[-1] if ckpts else None
+
+
+class Trainer:
+    """Holds the state of one training run; `run()` trains (or resumes) to `cfg.iters`."""
+
+    def __init__(self, dataset: Dataset, out_dir: str | Path, cfg: TrainConfig | None = None):
+        self.cfg = cfg or TrainConfig()
+        self.dataset = dataset
+        self.out_dir = Path(out_dir)
+        if self.cfg.iters <= 0:
+            raise InputError(f"--iters must be positive, got {self.cfg.iters}")
+        if not 0 <= self.cfg.sh_degree <= 3:
+            raise InputError(f"--sh-degree must be 0..3, got {self.cfg.sh_degree}")
+        if self.cfg.device not in ("auto", "cpu", "cuda"):
+            raise InputError(f"--device must be auto, cpu or cuda, got {self.cfg.device!r}")
+        self.frames = dataset.train()
+        if not self.frames:
+            raise InputError("dataset has no training frames", dataset.root)
+        if not dataset.has_poses:
+            raise InputError("dataset has no camera poses; estimate them first (splattwin poses)", dataset.root)
+        self.backend = resolve_backend(self.cfg.backend or self.cfg.device)
+        self.device = torch.device("cuda" if self.backend == "cuda" else "cpu")
+        self.views = load_views(self.frames, self.cfg.resolution)
+        self.scene_center, self.scene_scale = scene_center_and_scale([v.camera for v in self.views])
+        self.dcfg = self.cfg.densify_config()
+        self.sh_interval = self.cfg.sh_interval or max(1, self.cfg.iters // 10)
+        dev = self.device
+        for v in self.views:
+            v.image = v.image.to(dev)
+        self.viewmats = torch.tensor(np.stack([v.camera.T_cam_world for v in self.views]), dtype=torch.float32,
+                                     device=dev)
+        self.Ks = torch.tensor(np.stack([v.camera.K for v in self.views]), dtype=torch.float32, device=dev)
+        self.bg = torch.tensor([self.cfg.background], dtype=torch.float32, device=dev)
+        self.step = 0
+        self.history: list[dict] = []
+        self.init_method = ""
+
+    # -- state ------------------------------------------------------------------------------------
+    def _fresh_state(self) -> None:
+        cfg = self.cfg
+        g, self.init_method = initial_gaussians(
+            cfg.init, self.frames, self.dataset.points_xyz, self.dataset.points_rgb,
+            depth_scale=self.dataset.depth_scale, sh_degree=cfg.sh_degree, max_points=cfg.init_points,
+            seed=cfg.seed)
+        torch.manual_seed(cfg.seed)
+        self.model = GaussianModel.from_gaussians(g, max_sh_degree=cfg.sh_degree, lrs=cfg.lrs,
+                                                  scene_scale=self.scene_scale, device=self.device)
+        self.dstate = DensifyState(len(self.model), self.device)
+        self.split_gen = torch.Generator().manual_seed(cfg.seed)
+        self.view_gen = torch.Generator().manual_seed(cfg.seed + 1)
+        self.order: list[int] = []
+        self.poses = PoseCorrection(len(self.views), cfg.pose_lr, self.device) if cfg.refine_poses else None
+        self.step = 0
+        self.history = []
+
+    def state_dict(self) -> dict:
+        return {"step": self.step, "model": self.model.state_dict(), "densify": self.dstate.state_dict(),
+                "split_gen": self.split_gen.get_state(), "view_gen": self.view_gen.get_state(),
+                "order": list(self.order), "poses": self.poses.state_dict() if self.poses else None,
+                "history": list(self.history), "init_method": self.init_method,
+                "torch_rng": torch.get_rng_state(), "config": self.cfg.to_dict(),
+                "view_names": [v.name for v in self.views]}
+
+    def load_state_dict(self, sd: dict) -> None:
+        if sd["view_names"] != [v.name for v in self.views]:
+            raise InputError("checkpoint was made with different training views; start a new run "
+                             "(without --resume) or use the original dataset", self.out_dir)
+        self.model = GaussianModel.from_state_dict(sd["model"], self.device)
+        self.dstate = DensifyState(0, self.device)
+        self.dstate.load_state_dict(sd["densify"])
+        self.split_gen = torch.Generator()
+        self.split_gen.set_state(sd["split_gen"])
+        self.view_gen = torch.Generator()
+        self.view_gen.set_state(sd["view_gen"])
+        self.order = list(sd["order"])
+        self.poses = None
+        if sd["poses"] is not None:
+            self.poses = PoseCorrection(len(self.views), self.cfg.pose_lr, self.device)
+            self.poses.load_state_dict(sd["poses"])
+        elif self.cfg.refine_poses:
+            raise InputError("--refine-poses differs from the checkpointed run; start a new run", self.out_dir)
+        self.history = list(sd["history"])
+        self.init_method = sd["init_method"]
+        torch.set_rng_state(sd["torch_rng"])
+        self.step = int(sd["step"])
+        old = sd["config"]
+        for key in ("iters", "seed", "sh_degree", "resolution", "max_gaussians"):
+            if old.get(key) != getattr(self.cfg, key):
+                log.warning("resuming with %s=%s although the checkpoint used %s", key, getattr(self.cfg, key),
+                            old.get(key))
+
+    def save_checkpoint(self) -> Path:
+        path = self.out_dir / CKPT_DIR / f"ckpt_{self.step:06d}.pt"
+        with atomic_path(path) as tmp:
+            torch.save(self.state_dict(), tmp)
+        for old in sorted((self.out_dir / CKPT_DIR).glob("ckpt_*.pt"))[:-2]:
+            old.unlink()
+        return path
+
+    def load_checkpoint(self, path: Path) -> None:
+        try:
+            sd = torch.load(path, map_location="cpu", weights_only=False)
+        except Exception as e:  # a truncated file can only come from outside our atomic writes
+            raise InputError(f"unreadable checkpoint ({e.__class__.__name__})", path) from e
+        self.load_state_dict(sd)
+
+    # -- one step ---------------------------------------------------------------------------------
+    def _next_view(self) -> int:
+        if not self.order:
+            self.order = torch.randperm(len(self.views), generator=self.view_gen).tolist()
+        return self.order.pop(0)
+
+    def sh_degree_at(self, step: int) -> int:
+        return min(step // self.sh_interval, self.cfg.sh_degree)
+
+    def render(self, idx: int, sh_degree: int | None = None) -> tuple[torch.Tensor, torch.Tensor, dict]:
+        """Render training view `idx` with the current model: ([H,W,3], [H,W,1], meta)."""
+        v = self.views[idx]
+        act = self.model.activated()
+        viewmat = self.viewmats[idx:idx + 1]
+        if self.poses is not None:
+            viewmat = self.poses.apply(viewmat, [idx])
+        colors, alphas, meta = rasterization(
+            act["means"], act["quats"], act["scales"], act["opacities"], act["sh"], viewmat,
+            self.Ks[idx:idx + 1], v.camera.width, v.camera.height,
+            sh_degree=self.sh_degree_at(self.step) if sh_degree is None else sh_degree,
+            backgrounds=self.bg, backend=self.backend)
+        return colors[0], alphas[0], meta
+
+    def train_step(self) -> dict:
+        cfg = self.cfg
+        self.model.set_step(self.step, cfg.iters)
+        idx = self._next_view()
+        gt = self.views[idx].image
+        img, _, meta = self.render(idx)
+        loss = photometric_loss(img, gt, cfg.ssim_lambda)
+        loss.backward()
+        s = self.step + 1
+        densifying = cfg.densify and s <= self.dcfg.refine_stop
+        if densifying and meta["means2d"].grad is not None:
+            self.dstate.accumulate(meta["means2d"].grad, meta["radii"], self.views[idx].camera.width,
+                                   self.views[idx].camera.height)
+        self.model.step()
+        self.model.zero_grad()
+        if self.poses is not None:
+            self.poses.step()
+        info = {"step": s, "loss": float(loss.detach()), "psnr": psnr_from_mse(float(((img.detach() - gt) ** 2).mean())),
+                "n": len(self.model)}
+        if densifying and s > self.dcfg.refine_start and s % self.dcfg.refine_every == 0:
+            r = refine(self.model, self.dstate, self.dcfg, s, self.split_gen)
+            info.update(cloned=r.cloned, split=r.split, pruned=r.pruned, n=len(self.model))
+        if densifying and s % self.dcfg.reset_every == 0:
+            reset_opacity(self.model, 2.0 * self.dcfg.prune_opacity)
+        self.step = s
+        return info
+
+    # -- the loop ---------------------------------------------------------------------------------
+    def run(self, resume: bool = False, callback: Callable[[dict], None] | None = None) -> TrainResult:
+        """Train to `cfg.iters` steps (continuing from the newest checkpoint with resume=True)."""
+        from tqdm.auto import tqdm
+
+        ckpt = _latest_checkpoint(self.out_dir) if resume else None
+        if ckpt is not None:
+            self.load_checkpoint(ckpt)
+            log.info("resumed from %s (step %d)", ckpt, self.step)
+        else:
+            if resume:
+                log.info("no checkpoint in %s: starting from scratch", self.out_dir / CKPT_DIR)
+            self._fresh_state()
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        ema_loss, ema_psnr = math.nan, math.nan
+        with tqdm(total=cfg.iters, initial=self.step, disable=not cfg.progress, desc="train", unit="it",
+                  dynamic_ncols=True) as bar:
+            while self.step < cfg.iters:
+                info = self.train_step()
+                ema_loss = info["loss"] if math.isnan(ema_loss) else 0.9 * ema_loss + 0.1 * info["loss"]
+                ema_psnr = info["psnr"] if math.isnan(ema_psnr) else 0.9 * ema_psnr + 0.1 * info["psnr"]
+                if self.step % 10 == 0 or self.step == cfg.iters or "cloned" in info:
+                    self.history.append({"step": self.step, "loss": round(ema_loss, 6),
+                                         "psnr": round(ema_psnr, 3), "n": info["n"]})
+                    bar.set_postfix(loss=f"{ema_loss:.4f}", psnr=f"{ema_psnr:.2f}", gaussians=info["n"],
+                                    refresh=False)
+                bar.update(1)
+                if cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0:
+                    self.save_checkpoint()
+                if callback is not None:
+                    callback(info)
+        wall = time.perf_counter() - t0
+        return self._write_outputs(wall, ema_loss, ema_psnr)
+
+    def _write_outputs(self, wall: float, loss: float, psnr: float) -> TrainResult:
+        g = self.model.to_gaussians()
+        ply = g.save_ply(self.out_dir / "point_cloud.ply")
+        refined = None
+        if self.poses is not None:
+            from splattwin.capture import invert_se3
+            T_cw = self.poses.corrected(np.stack([v.camera.T_cam_world for v in self.views]))
+            refined = {v.name: invert_se3(T).tolist() for v, T in zip(self.views, T_cw)}
+            write_json(self.out_dir / "refined_poses.json", {"convention": "T_world_cam, OpenCV", "poses": refined})
+        write_json(self.out_dir / "train.json", {
+            "dataset": str(self.dataset.root), "config": self.cfg.to_dict(), "backend": self.backend,
+            "init_method": self.init_method, "steps": self.step, "gaussians": len(g), "wall_s": round(wall, 3),
+            "train_loss": loss, "train_psnr": psnr, "scene_scale": self.scene_scale,
+            "views": [{"name": v.name, "width": v.camera.width, "height": v.camera.height} for v in self.views],
+            "history": self.history})
+        return TrainResult(g, ply, self.step, wall, loss, psnr, self.init_method, self.history, refined)
+
+
+def train(dataset: Dataset, out_dir: str | Path, cfg: TrainConfig | None = None, resume: bool = False,
+          callback: Callable[[dict], None] | None = None) -> TrainResult:
+    """Train 3D Gaussians on `dataset`'s training frames; writes OUT/point_cloud.ply (see module doc)."""
+    return Trainer(dataset, out_dir, cfg).run(resume=resume, callback=callback)

@@ -1,0 +1,161 @@
+"""Build the twin folder from labelled Gaussians: geometry per object + background, then exporters.
+
+Layout (docs/CONTRACTS.md): splat/point_cloud.ply, semantics/labels.npy, objects/<name>/{splats.ply,
+visual.obj, collision.obj, parts/part_XXX.obj} (object frame), background/{splats.ply, collision.obj,
+parts/} (twin frame), export/..., twin.json. Every file is written atomically; the manifest is written
+last, so a killed build never leaves a manifest pointing at missing files. Objects whose geometry failed
+are listed with usable=False and a `problem`, and get no geometry files.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.metadata
+import logging
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from splattwin import io
+from splattwin.geometry.convert import Conversion, convert
+from splattwin.geometry.options import GeometryOptions
+from splattwin.twin.manifest import Background, Frame, Manifest, ObjectEntry
+from splattwin.twin.splats import write_object_splats
+
+log = logging.getLogger(__name__)
+
+FORMATS = ("mjcf", "urdf", "moveit", "gltf")
+_VERSIONED = ("splattwin", "numpy", "scipy", "scikit-learn", "open3d-cpu", "trimesh", "coacd", "scikit-image", "mujoco",
+              "torch")
+
+
+def package_versions() -> dict[str, str]:
+    out = {}
+    for p in _VERSIONED:
+        try:
+            out[p] = importlib.metadata.version(p)
+        except importlib.metadata.PackageNotFoundError:
+            pass
+    return out
+
+
+def write_mesh(path: Path, mesh: trimesh.Trimesh) -> Path:
+    """Atomic mesh write; format from the suffix (.obj keeps vertex colours)."""
+    with io.atomic_path(path) as tmp:
+        mesh.export(tmp, file_type=path.suffix.lstrip("."))
+    return path
+
+
+def _write_parts(folder: Path, parts: list, twin_dir: Path) -> list[str]:
+    if folder.exists():  # stale parts of an earlier build must not survive
+        shutil.rmtree(folder)
+    rels = []
+    for i, p in enumerate(parts):
+        path = folder / f"part_{i:03d}.obj"
+        write_mesh(path, p)
+        rels.append(path.relative_to(twin_dir).as_posix())
+    return rels
+
+
+def write_geometry(conv: Conversion, g, labels: np.ndarray, out_dir: Path, frame: Frame,
+                   cameras_path: str | Path | None = None) -> Manifest:
+    """Write splats, meshes and parts of a Conversion into the twin folder; return the manifest (not saved)."""
+    out_dir = Path(out_dir)
+    g.save_ply(out_dir / "splat" / "point_cloud.ply")
+    io.write_npy(out_dir / "semantics" / "labels.npy", np.asarray(labels, dtype=np.int32))
+    entries = []
+    for r in conv.objects:
+        e = ObjectEntry(name=r.name, label=r.label, prompt=r.prompt, usable=r.usable, problem=r.problem)
+        odir = out_dir / "objects" / r.name
+        if r.usable:
+            write_object_splats(odir / "splats.ply", g.subset(r.indices), r.T_world_obj)
+            write_mesh(odir / "visual.obj", r.visual)
+            write_mesh(odir / "collision.obj", r.collision)
+            e.T_world_obj = np.asarray(r.T_world_obj).tolist()
+            e.bbox_extent = np.asarray(r.extent).tolist()
+            e.mass, e.volume = r.mass, r.volume
+            e.splat_ply = f"objects/{r.name}/splats.ply"
+            e.visual_mesh = f"objects/{r.name}/visual.obj"
+            e.collision_mesh = f"objects/{r.name}/collision.obj"
+            e.convex_parts = _write_parts(odir / "parts", r.parts, out_dir)
+        elif odir.exists():  # never leave geometry of an earlier build behind for an unusable object
+            shutil.rmtree(odir)
+        entries.append(e)
+    bg = Background()
+    b = conv.background
+    if b is not None:
+        bg = Background(table_height=b.table_height, table_extent=list(b.table_extent), table_thickness=b.table_thickness)
+        if len(b.indices):
+            g.subset(b.indices).save_ply(out_dir / "background" / "splats.ply")
+            bg.splat_ply = "background/splats.ply"
+        if b.collision is not None:
+            write_mesh(out_dir / "background" / "collision.obj", b.collision)
+            bg.collision_mesh = "background/collision.obj"
+            bg.convex_parts = _write_parts(out_dir / "background" / "parts", b.parts, out_dir)
+    cams = None
+    if cameras_path is not None:
+        cp = Path(cameras_path)  # referenced, not copied: relative when inside the twin folder
+        try:
+            cams = cp.resolve().relative_to(out_dir.resolve()).as_posix()
+        except ValueError:
+            cams = str(cp.resolve())
+    return Manifest(frame=frame, objects=entries, background=bg, cameras=cams, splats="splat/point_cloud.ply",
+                    labels="semantics/labels.npy", config={"geometry": conv.options.to_dict()},
+                    versions=package_versions(), timings={f"geometry.{k}": round(float(v), 4) for k, v in conv.timings.items()})
+
+
+def _exporter(fmt: str):
+    if fmt == "mjcf":
+        try:
+            return importlib.import_module("splattwin.twin.mjcf").export_mjcf
+        except (ImportError, AttributeError):
+            return None
+    mod = importlib.import_module(f"splattwin.twin.{fmt}")
+    return getattr(mod, f"export_{fmt}")
+
+
+def export_twin(twin_dir: str | Path, manifest: Manifest | None = None, formats=FORMATS) -> Manifest:
+    """Run the exporters on a twin folder and record their outputs and timings in the manifest (saved).
+
+    Each exporter writes its files atomically (temporary name, then rename), so a re-export replaces
+    files whole or not at all. Unknown formats raise InputError."""
+    from splattwin.errors import InputError
+
+    twin_dir = Path(twin_dir)
+    manifest = manifest or Manifest.load(twin_dir)
+    for fmt in formats:
+        if fmt not in FORMATS:
+            raise InputError(f"unknown export format {fmt!r} (choose from {', '.join(FORMATS)})")
+        fn = _exporter(fmt)
+        if fn is None:
+            log.warning("export format %s not available yet (splattwin.twin.%s missing); skipped", fmt, fmt)
+            continue
+        t0 = time.perf_counter()
+        path = Path(fn(twin_dir, manifest))
+        manifest.exports[fmt] = path.relative_to(twin_dir).as_posix()
+        manifest.timings[f"export.{fmt}"] = round(time.perf_counter() - t0, 4)
+    manifest.save(twin_dir)
+    return manifest
+
+
+def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path, frame: Frame | None = None,
+               cameras_path: str | Path | None = None, options: GeometryOptions | None = None,
+               formats=FORMATS, progress: bool = True) -> Manifest:
+    """Labelled Gaussians -> twin folder with manifest and exports.
+
+    gaussians: splattwin.splat.Gaussians [N] (twin frame, m); labels [N] int (0 = background);
+    objects: [(name, label, prompt)]. Returns the saved Manifest."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    frame = frame or Frame()
+    t0 = time.perf_counter()
+    conv = convert(gaussians, labels, objects, options, progress=progress)
+    t1 = time.perf_counter()
+    manifest = write_geometry(conv, gaussians, labels, out_dir, frame, cameras_path)
+    manifest.timings["write"] = round(time.perf_counter() - t1, 4)
+    manifest.timings["geometry"] = round(t1 - t0, 4)
+    manifest.save(out_dir)
+    return export_twin(out_dir, manifest, formats)

@@ -1,0 +1,45 @@
+"""glTF binary (GLB) of the twin's visual meshes (Unity, Blender, three.js), via trimesh.
+
+One node per object (named after it, transform = T_world_obj, mesh in the object frame, vertex colours
+from the splats) plus the table box. glTF is y-up by convention; we keep the twin's z-up frame and put
+the conversion on a root node `twin_z_up` so importers show the table horizontal.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from splattwin import io
+from splattwin.twin.manifest import Manifest
+
+# z-up twin -> y-up glTF: rotate -90 degrees about x
+Y_UP_FROM_Z_UP = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], dtype=float)
+
+
+def twin_scene(twin_dir: Path, manifest: Manifest, y_up: bool = True) -> trimesh.Scene:
+    scene = trimesh.Scene()
+    root = "twin_z_up"
+    scene.graph.update(frame_to=root, frame_from=scene.graph.base_frame, matrix=Y_UP_FROM_Z_UP if y_up else np.eye(4))
+    bg = manifest.background
+    x0, x1, y0, y1 = bg.table_extent
+    table = trimesh.creation.box(extents=[x1 - x0, y1 - y0, bg.table_thickness])
+    table.visual.vertex_colors = [153, 128, 102, 255]
+    T = np.eye(4)
+    T[:3, 3] = [(x0 + x1) / 2, (y0 + y1) / 2, bg.table_height - bg.table_thickness / 2]
+    scene.add_geometry(table, node_name="table", geom_name="table", parent_node_name=root, transform=T)
+    for o in manifest.objects:
+        if o.usable and o.visual_mesh:
+            m = trimesh.load(twin_dir / o.visual_mesh, force="mesh")
+            scene.add_geometry(m, node_name=o.name, geom_name=o.name, parent_node_name=root, transform=o.pose)
+    return scene
+
+
+def export_gltf(twin_dir: str | Path, manifest: Manifest) -> Path:
+    """Write export/scene.glb (atomically)."""
+    twin_dir = Path(twin_dir)
+    path = twin_dir / "export" / "scene.glb"
+    data = twin_scene(twin_dir, manifest).export(file_type="glb")
+    return io.write_bytes(path, data)

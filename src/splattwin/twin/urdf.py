@@ -1,0 +1,100 @@
+"""URDF export: one URDF per object and one for the scene (meshes referenced relatively).
+
+Files go to TWIN/export/; mesh paths are relative to that folder ("../objects/box/visual.obj"), so the
+twin folder can be moved as a whole. The scene URDF roots at link `world` (the twin frame); the table,
+background obstacles and every usable object hang from it on fixed joints at their poses (a URDF
+cannot express free bodies; simulators free them, planners treat them as a snapshot).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+import trimesh
+
+from splattwin import io
+from splattwin.twin.manifest import Manifest, ObjectEntry
+
+
+def _origin(T: np.ndarray) -> str:
+    rpy = trimesh.transformations.euler_from_matrix(T, "sxyz")  # URDF rpy: fixed-axis x, y, z
+    xyz = " ".join(f"{v:.6g}" for v in T[:3, 3])
+    return f'<origin xyz="{xyz}" rpy="{" ".join(f"{v:.6g}" for v in rpy)}"/>'
+
+
+def _rel(twin_dir: Path, rel_path: str, from_dir: Path) -> str:
+    return Path(os.path.relpath(twin_dir / rel_path, from_dir)).as_posix()
+
+
+def _inertial(twin_dir: Path, o: ObjectEntry) -> str:
+    mass = float(o.mass or 0.1)
+    m = trimesh.load(twin_dir / o.collision_mesh, force="mesh") if o.collision_mesh else None
+    if m is not None and m.is_volume:
+        m.density = mass / m.volume
+        com, I = m.center_mass, m.moment_inertia
+    else:  # a solid box of the bbox extent
+        e = np.asarray(o.bbox_extent, dtype=float)
+        com = np.zeros(3)
+        I = np.diag(mass / 12.0 * np.array([e[1]**2 + e[2]**2, e[0]**2 + e[2]**2, e[0]**2 + e[1]**2]))
+    T = np.eye(4)
+    T[:3, 3] = com
+    return (f'<inertial>{_origin(T)}<mass value="{mass:.6g}"/>'
+            f'<inertia ixx="{I[0,0]:.6g}" ixy="{I[0,1]:.6g}" ixz="{I[0,2]:.6g}" iyy="{I[1,1]:.6g}" '
+            f'iyz="{I[1,2]:.6g}" izz="{I[2,2]:.6g}"/></inertial>')
+
+
+def object_link(twin_dir: Path, o: ObjectEntry, from_dir: Path) -> str:
+    """<link> of an object in its own frame: inertial, visual mesh, one collision per convex part."""
+    parts = [f"<link name={quoteattr(o.name)}>", _inertial(twin_dir, o)]
+    if o.visual_mesh:
+        parts.append(f'<visual><geometry><mesh filename={quoteattr(_rel(twin_dir, o.visual_mesh, from_dir))}/>'
+                     f"</geometry></visual>")
+    for p in (o.convex_parts or ([o.collision_mesh] if o.collision_mesh else [])):
+        parts.append(f'<collision><geometry><mesh filename={quoteattr(_rel(twin_dir, p, from_dir))}/>'
+                     f"</geometry></collision>")
+    parts.append("</link>")
+    return "\n  ".join(parts)
+
+
+def object_urdf(twin_dir: Path, o: ObjectEntry, out_dir: Path) -> str:
+    return f'<?xml version="1.0"?>\n<robot name={quoteattr(o.name)}>\n  {object_link(twin_dir, o, out_dir)}\n</robot>\n'
+
+
+def scene_urdf(twin_dir: Path, manifest: Manifest, out_dir: Path) -> str:
+    bg = manifest.background
+    x0, x1, y0, y1 = bg.table_extent
+    box = f"{x1 - x0:.6g} {y1 - y0:.6g} {bg.table_thickness:.6g}"
+    T_table = np.eye(4)
+    T_table[:3, 3] = [(x0 + x1) / 2, (y0 + y1) / 2, bg.table_height - bg.table_thickness / 2]
+    lines = ['<?xml version="1.0"?>', '<robot name="splattwin_scene">', '  <link name="world"/>',
+             f'  <link name="table"><visual><geometry><box size="{box}"/></geometry></visual>'
+             f'<collision><geometry><box size="{box}"/></geometry></collision></link>',
+             f'  <joint name="world_to_table" type="fixed"><parent link="world"/><child link="table"/>{_origin(T_table)}</joint>']
+    obstacles = [p for p in bg.convex_parts[1:]]  # part 0 is the table box itself
+    if obstacles:
+        coll = "".join(f'<collision><geometry><mesh filename={quoteattr(_rel(twin_dir, p, out_dir))}/></geometry></collision>'
+                       for p in obstacles)
+        lines += [f'  <link name="background_obstacles">{coll}</link>',
+                  '  <joint name="world_to_background_obstacles" type="fixed"><parent link="world"/>'
+                  '<child link="background_obstacles"/><origin xyz="0 0 0" rpy="0 0 0"/></joint>']
+    for o in manifest.objects:
+        if not o.usable:
+            continue
+        lines.append("  " + object_link(twin_dir, o, out_dir))
+        lines.append(f'  <joint name={quoteattr("world_to_" + o.name)} type="fixed"><parent link="world"/>'
+                     f'<child link={quoteattr(o.name)}/>{_origin(o.pose)}</joint>')
+    lines.append("</robot>\n")
+    return "\n".join(lines)
+
+
+def export_urdf(twin_dir: str | Path, manifest: Manifest) -> Path:
+    """Write export/scene.urdf and export/<name>.urdf for every usable object (atomically). Returns scene.urdf."""
+    twin_dir = Path(twin_dir)
+    out = twin_dir / "export"
+    for o in manifest.objects:
+        if o.usable:
+            io.write_text(out / f"{o.name}.urdf", object_urdf(twin_dir, o, out))
+    return io.write_text(out / "scene.urdf", scene_urdf(twin_dir, manifest, out))

@@ -1,0 +1,41 @@
+"""Shared pytest fixtures for every stage.
+
+Scene fixtures (session-scoped, generated lazily on first use into a temporary folder, return the scene
+directory `Path`; layout in docs/CONTRACTS.md "Embedded scene"):
+- `scene_small`:   160x120, 8 training + 3 held-out views, no marker (fast: use it unless you need more)
+- `scene_default`: 320x240, 15 + 5 views, no marker (the default `splattwin scene generate`)
+- `scene_marker`:  320x240, 15 + 5 views, ArUco marker (DICT_4X4_50 id 0, 0.08 m) on the table
+All use seed 0. Treat them as read-only: they are shared by every test of the session.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+
+def _make_scene(tmp_path_factory: pytest.TempPathFactory, name: str, **kw) -> Path:
+    from splattwin.scene import SceneOptions, generate
+
+    out = tmp_path_factory.mktemp(name)
+    return generate(out, SceneOptions(seed=0, **kw), progress=False)
+
+
+@pytest.fixture(scope="session")
+def scene_small(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """160x120, 8 training + 3 held-out views, seed 0, no marker."""
+    return _make_scene(tmp_path_factory, "scene_small", width=160, height=120, views=8, heldout=3)
+
+
+@pytest.fixture(scope="session")
+def scene_default(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """320x240, 15 training + 5 held-out views, seed 0, no marker."""
+    return _make_scene(tmp_path_factory, "scene_default", width=320, height=240, views=15, heldout=5)
+
+
+@pytest.fixture(scope="session")
+def scene_marker(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """320x240, 15 training + 5 held-out views, seed 0, ArUco marker id 0 (0.08 m) on the table."""
+    return _make_scene(tmp_path_factory, "scene_marker", width=320, height=240, views=15, heldout=5,
+                       marker=True)

@@ -1,0 +1,41 @@
+import warnings
+
+import numpy as np
+import pytest
+
+from splattwin.cli import build_parser, main
+from splattwin.geometry.synthetic import synthetic_scene
+from splattwin.twin.manifest import Manifest
+
+
+@pytest.mark.parametrize("cmd", [["geometry", "--help"], ["export", "--help"]])
+def test_help(cmd, capsys):
+    with pytest.raises(SystemExit) as e:
+        build_parser().parse_args(cmd)
+    assert e.value.code == 0 and "usage" in capsys.readouterr().out
+
+
+def test_geometry_cli_builds_twin(tmp_path):
+    g, labels, objects, _ = synthetic_scene(8000, seed=2)
+    ply = g.save_ply(tmp_path / "scene.ply")
+    np.save(tmp_path / "labels.npy", labels)
+    out = tmp_path / "twin"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rc = main(["geometry", str(ply), "--labels", str(tmp_path / "labels.npy"), "--object", "box=1:blue box",
+                   "--object", "hammer=3", "--out", str(out), "--frame", "ground_truth", "--formats", "urdf"])
+    assert rc == 0
+    m = Manifest.load(out)
+    assert [o.name for o in m.objects] == ["box", "hammer"] and all(o.usable for o in m.objects)
+    assert m.object("box").prompt == "blue box" and m.frame.scaled
+    assert (out / "export" / "scene.urdf").is_file() and "urdf" in m.exports and "mjcf" not in m.exports
+
+
+def test_geometry_cli_bad_input(tmp_path):
+    g, labels, _, _ = synthetic_scene(4000, seed=3)
+    ply = g.save_ply(tmp_path / "scene.ply")
+    np.save(tmp_path / "short.npy", labels[:10])
+    assert main(["geometry", str(tmp_path / "nope.ply"), "--out", str(tmp_path / "t")]) == 2
+    assert main(["geometry", str(ply), "--labels", str(tmp_path / "short.npy"), "--out", str(tmp_path / "t")]) == 2
+    assert main(["geometry", str(ply), "--object", "bad", "--labels", str(tmp_path / "short.npy"),
+                 "--out", str(tmp_path / "t")]) == 2

@@ -1,0 +1,61 @@
+import numpy as np
+
+from splattwin.geometry.clustering import dbscan_labels, fit_plane, largest_cluster, split_background
+
+
+def _blob(rng, c, n, s=0.005):
+    return np.asarray(c) + rng.normal(0, s, (n, 3))
+
+
+def test_largest_cluster_keeps_main_body():
+    rng = np.random.default_rng(0)
+    main = _blob(rng, [0, 0, 0], 3000, 0.02)
+    small = _blob(rng, [0.3, 0, 0], 300)
+    noise = rng.uniform(-1, 1, (20, 3)) + [0, 0, 2]
+    pts = np.concatenate([main, small, noise])
+    for voxel in (0.0, 0.0025):
+        keep = largest_cluster(pts, 0.02, 10, voxel)
+        assert keep[:3000].mean() > 0.99 and not keep[3000:].any()
+
+
+def test_voxel_dbscan_matches_exact_partition():
+    rng = np.random.default_rng(1)
+    pts = np.concatenate([_blob(rng, [0, 0, 0], 2000, 0.01), _blob(rng, [0.2, 0, 0], 1500, 0.01)])
+    a = dbscan_labels(pts, 0.02, 10, 0.0)
+    b = dbscan_labels(pts, 0.02, 10, 0.0025)
+    # same partition of the two blobs (ids may differ)
+    for blob in (slice(0, 2000), slice(2000, 3500)):
+        assert len(set(a[blob][a[blob] >= 0])) == 1 and len(set(b[blob][b[blob] >= 0])) == 1
+    assert a[0] != a[2000] and b[0] != b[2000]
+
+
+def test_all_noise_gives_empty_mask():
+    pts = np.random.default_rng(2).uniform(-1, 1, (30, 3))
+    assert not largest_cluster(pts, 0.02, 10).any()
+
+
+def test_fit_plane_recovers_tilted_plane():
+    rng = np.random.default_rng(3)
+    n = np.array([0.05, -0.03, 1.0])
+    n /= np.linalg.norm(n)
+    xy = rng.uniform(-0.5, 0.5, (5000, 2))
+    z = -(n[0] * xy[:, 0] + n[1] * xy[:, 1] + 0.1) / n[2]
+    pts = np.c_[xy, z] + rng.normal(0, 0.001, (5000, 3))
+    pts = np.concatenate([pts, rng.uniform(-0.5, 0.5, (1000, 3))])  # outliers
+    pl = fit_plane(pts, 0.004)
+    assert np.degrees(np.arccos(abs(pl.normal @ n))) < 0.5
+    assert abs(pl.d - 0.1) < 0.002 and pl.normal[2] > 0
+
+
+def test_split_background_keeps_table_and_standing_obstacle_drops_floaters():
+    rng = np.random.default_rng(4)
+    table = np.c_[rng.uniform(-0.5, 0.5, (20000, 2)), rng.normal(0, 0.0005, 20000)]
+    post = np.c_[rng.uniform(0.3, 0.34, (1500, 2)), rng.uniform(0.0, 0.2, 1500)]   # stands on the table
+    floater = _blob(rng, [-0.2, 0.1, 0.3], 500, 0.01)                                 # hovers
+    under = np.c_[rng.uniform(-0.1, 0.1, (300, 2)), rng.uniform(-0.2, -0.1, 300)]     # below the top
+    pts = np.concatenate([table, post, floater, under])
+    sp = split_background(pts, voxel=0.0025)
+    assert sp.table[:20000].mean() > 0.99
+    assert sp.obstacles[20000:21500].mean() > 0.95
+    assert not sp.keep[21500:].any()
+    assert sp.obstacle_ids.max() == 0

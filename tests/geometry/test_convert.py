@@ -1,0 +1,89 @@
+"""End-to-end geometry on synthetic labelled Gaussians with 3DGS artefacts (known GT meshes)."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+from splattwin.geometry.convert import ObjectUnusableWarning, ablation, convert
+from splattwin.geometry.options import GeometryOptions
+from splattwin.splat.gaussians import Gaussians
+
+from splattwin.geometry.synthetic import synthetic_scene
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return synthetic_scene(24000, seed=0)
+
+
+@pytest.fixture(scope="module")
+def conversion(scene):
+    g, labels, objects, _ = scene
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return convert(g, labels, objects, progress=False)
+
+
+def test_full_cleaning_f1_and_synergy(scene):
+    g, labels, objects, meshes = scene
+    ab = ablation(g, labels, objects, meshes)
+    for name in meshes:
+        full, attr, clus, raw = (ab[c][name] for c in ("full", "attribute", "cluster", "raw"))
+        assert full.f1 >= 0.95, (name, full)
+        assert full.chamfer < attr.chamfer and full.chamfer < clus.chamfer and full.chamfer < raw.chamfer
+        assert raw.precision < full.precision
+
+
+def test_objects_are_watertight_and_posed(scene, conversion):
+    _, _, _, meshes = scene
+    for o in conversion.objects:
+        assert o.usable, o.problem
+        assert o.collision.is_watertight and o.collision.is_volume
+        assert len(o.collision.faces) <= GeometryOptions().collision_faces
+        gt = meshes[o.name]
+        assert abs(o.volume / gt.volume - 1) < 0.25
+        assert np.isclose(o.mass, o.volume * GeometryOptions().density)
+        # object frame = centre of the yaw box, z up; GT mesh bottom on the table
+        assert np.allclose(o.T_world_obj[:3, 2], [0, 0, 1])
+        assert abs(o.T_world_obj[2, 3] - o.extent[2] / 2) < 0.004
+        world = o.collision.vertices @ o.T_world_obj[:3, :3].T + o.T_world_obj[:3, 3]
+        assert np.allclose(world.min(axis=0), gt.bounds[0], atol=0.006)
+        assert np.allclose(world.max(axis=0), gt.bounds[1], atol=0.006)
+    parts = {o.name: len(o.parts) for o in conversion.objects}
+    assert parts["hammer"] >= 2 and parts["box"] == 1 and parts["cube"] == 1
+
+
+def test_background_table_and_no_floaters(conversion):
+    bg = conversion.background
+    assert abs(bg.table_height) < 0.002
+    assert np.allclose(bg.table_extent, [-0.5, 0.5, -0.4, 0.4], atol=0.01)
+    assert bg.n_obstacles == 0  # the background floater blob is gone
+    assert bg.collision.is_watertight
+
+
+def _blob_gaussians(pts):
+    n = len(pts)
+    return dict(means=pts, quats=np.tile([1.0, 0, 0, 0], (n, 1)), scales=np.full((n, 3), 0.001),
+                opacities=np.full(n, 0.9), sh=np.zeros((n, 1, 3)))
+
+
+def test_bad_inputs_mark_objects_unusable():
+    rng = np.random.default_rng(0)
+    table = np.c_[rng.uniform(-0.3, 0.3, (6000, 2)), np.zeros(6000)]
+    few = np.array([0.1, 0.1, 0.02]) + rng.normal(0, 0.003, (20, 3))              # too few points
+    flat = np.c_[rng.uniform(-0.05, 0.05, (600, 2)) + [-0.1, 0.1], np.full(600, 0.05)]  # flat sheet
+    point = np.tile([[0.0, -0.1, 0.03]], (300, 1))                                     # single point
+    parts = [table, few, flat, point]
+    g = Gaussians(**{k: np.concatenate([_blob_gaussians(p)[k] for p in parts]) for k in _blob_gaussians(table)})
+    labels = np.concatenate([np.full(len(p), i, np.int32) for i, p in enumerate(parts)])
+    objects = [("few", 1, ""), ("flat", 2, ""), ("point", 3, ""), ("missing", 7, "")]
+    with pytest.warns(ObjectUnusableWarning) as rec:
+        conv = convert(g, labels, objects, GeometryOptions(dbscan_voxel=0.0), progress=False)
+    assert len(rec) == 4
+    probs = {o.name: o.problem for o in conv.objects}
+    assert all(not o.usable and o.collision is None and not o.parts for o in conv.objects)
+    assert "too few points" in probs["few"]
+    assert "flat" in probs["flat"]
+    assert "single point" in probs["point"] or "too few" in probs["point"]
+    assert "missing label" in probs["missing"]

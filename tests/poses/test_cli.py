@@ -1,0 +1,66 @@
+"""`splattwin poses` command line: help, known poses, robot poses, outputs, bad input exit code."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from splattwin.capture import load_dataset
+from splattwin.cli import main
+from splattwin.poses import load_frame
+
+
+def test_help_works(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["poses", "--help"])
+    assert e.value.code == 0
+    assert "--robot-poses" in capsys.readouterr().out
+
+
+def test_known_poses_round_trip(scene_small: Path, tmp_path: Path):
+    out = tmp_path / "out"
+    assert main(["poses", str(scene_small), str(out), "--known"]) == 0
+    frame = load_frame(out)
+    assert frame.source == "known_poses" and frame.scaled
+    assert (out / "cameras.png").stat().st_size > 1000
+    report = json.loads((out / "poses_report.json").read_text())
+    assert report["registered"] == report["total"] == 11
+    ds = load_dataset(out)
+    gt = load_dataset(scene_small)
+    assert ds.has_poses and len(ds.frames) == len(gt.frames)
+    for a, b in zip(ds.frames, gt.frames):
+        assert a.image_path.resolve() == b.image_path.resolve() and a.split == b.split
+        np.testing.assert_allclose(a.camera.T_world_cam, b.camera.T_world_cam, atol=1e-9)
+        assert a.depth_path is not None
+    assert ds.points_xyz is not None and len(ds.points_xyz) > 1000  # depth back-projection as the initial cloud
+    # chained run keeps the frame definition written beside the dataset
+    out2 = tmp_path / "out2"
+    (out / "frame.json").write_text(json.dumps({**json.loads((out / "frame.json").read_text()), "source": "marker"}))
+    assert main(["poses", str(out), str(out2), "--known", "--no-depth-points"]) == 0
+    assert load_frame(out2).source == "marker"
+
+
+def test_robot_cli_and_bad_input(scene_small: Path, tmp_path: Path, capsys):
+    gt = load_dataset(scene_small)
+    T_ee_cam = np.eye(4)
+    T_ee_cam[:3, 3] = [0, 0, 0.1]
+    poses = [{"image": f.image_path.name, "T_base_ee": (f.camera.T_world_cam @ np.linalg.inv(T_ee_cam)).tolist()}
+             for f in gt.frames]
+    (tmp_path / "poses.json").write_text(json.dumps({"poses": poses, "T_ee_cam": T_ee_cam.tolist()}))
+    out = tmp_path / "out"
+    assert main(["poses", str(scene_small), str(out), "--robot-poses", str(tmp_path / "poses.json"),
+                 "--no-depth-points"]) == 0
+    assert load_frame(out).source == "robot"
+    ds = load_dataset(out)
+    np.testing.assert_allclose(ds.frames[3].camera.T_world_cam, gt.frames[3].camera.T_world_cam, atol=1e-9)
+    # malformed pose file -> exit code 2 with the file named
+    (tmp_path / "bad.yaml").write_text("- {image: a.png, position: [0, 0, 0], orientation: [0, 0, 0, 1]}\n")
+    capsys.readouterr()
+    assert main(["poses", str(scene_small), str(tmp_path / "o2"), "--robot-poses", str(tmp_path / "bad.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert "bad.yaml" in err and "quat_xyzw" in err
+    assert main(["poses", str(scene_small), str(tmp_path / "o3"), "--intrinsics", "1,2,3"]) == 2
+    assert main(["poses", str(tmp_path / "missing"), str(tmp_path / "o4")]) == 2

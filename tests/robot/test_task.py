@@ -1,0 +1,68 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from splattwin.errors import InputError
+from splattwin.robot.task import default_task_path, load_task, parse_task, validate_task
+from splattwin.robot.world import BasePose
+from splattwin.twin.manifest import Manifest
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "task.yaml"
+    p.write_text(text)
+    return p
+
+
+def test_default_task_is_the_paper_rearrangement(gt_twin_small: Path):
+    m = Manifest.load(gt_twin_small)
+    t = load_task(None, m)
+    assert default_task_path().is_file()
+    assert [(s.pick, s.goal_name) for s in t.steps] == [
+        ("blue_box", "cardboard_box"), ("yellow_cube", "blue_box"), ("toy_hammer", "target_frame")]
+    np.testing.assert_allclose(t.steps[2].place_in.center, m.config["target_frame"]["center"])
+    assert t.steps[2].place_in.size.tolist() == [0.24, 0.24]
+    validate_task(t, m, gt_twin_small, BasePose().matrix())
+
+
+def test_forms_of_steps(tmp_path: Path):
+    t = parse_task([{"pick": "a", "place_on": "b"}, {"pick": "c"},
+                    {"place_in": {"center": [0.1, 0.2], "size": [0.1, 0.2]}}], tmp_path)
+    assert t.steps[0].place_on == "b" and t.steps[1].place_in.size.tolist() == [0.1, 0.2]
+    assert t.steps[1].place_in.contains_xy([0.14, 0.29]) and not t.steps[1].place_in.contains_xy([0.16, 0.2])
+
+
+@pytest.mark.parametrize("text,match", [
+    ("- place_on: blue_box\n", "without a pick"),
+    ("- pick: blue_box\n", "holding"),
+    ("- pick: blue_box\n- pick: yellow_cube\n", "still holding"),
+    ("- pick: blue_box\n- put: x\n", "unknown key"),
+    ("- pick: blue_box\n- place_in: {center: [0, 0]}\n", "size"),
+    ("- pick: blue_box\n- place_in: nowhere\n", "no region named"),
+    ("[unclosed", "YAML"),
+])
+def test_malformed_tasks(tmp_path: Path, gt_twin_small: Path, text, match):
+    with pytest.raises(InputError, match=match) as e:
+        load_task(_write(tmp_path, text), Manifest.load(gt_twin_small))
+    assert e.value.path == tmp_path / "task.yaml"
+
+
+def test_validation_errors_before_planning(tmp_path: Path, gt_twin_small: Path):
+    m = Manifest.load(gt_twin_small)
+    base = BasePose().matrix()
+    t = load_task(_write(tmp_path, "- pick: purple_unicorn\n- place_on: blue_box\n"), m)
+    with pytest.raises(InputError, match="purple_unicorn"):
+        validate_task(t, m, gt_twin_small, base)
+    t = load_task(_write(tmp_path, "- pick: blue_box\n- place_in: {center: [0.4, 0.5, 0], size: 0.1}\n"), m)
+    with pytest.raises(InputError, match="reach"):
+        validate_task(t, m, gt_twin_small, base)
+    t = load_task(_write(tmp_path, "- pick: blue_box\n- place_in: {center: [0.9, 0, 0], size: 0.1}\n"), m)
+    with pytest.raises(InputError, match="off the table"):
+        validate_task(t, m, gt_twin_small, base)
+    t = load_task(None, m)
+    m.frame.scaled, m.frame.source = False, "unscaled"
+    with pytest.raises(InputError, match="not metrically scaled"):
+        validate_task(t, m, gt_twin_small, base)

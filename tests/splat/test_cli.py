@@ -1,0 +1,51 @@
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+from splattwin.cli import main
+from splattwin.splat.gaussians import Gaussians
+
+_spec = importlib.util.spec_from_file_location("_splat_trainer_helpers", Path(__file__).with_name("test_trainer.py"))
+helpers = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(helpers)
+
+
+@pytest.mark.parametrize("cmd", ["train", "eval"])
+def test_help(cmd, capsys):
+    with pytest.raises(SystemExit) as e:
+        main([cmd, "--help"])
+    assert e.value.code == 0
+    assert "usage" in capsys.readouterr().out
+
+
+def test_train_and_eval_cli(tmp_path, capsys):
+    ds = helpers.make_dataset(tmp_path / "ds", n_train=4, n_heldout=1)
+    out = tmp_path / "out"
+    rc = main(["train", str(ds), str(out), "--iters", "30", "--sh-degree", "0", "--checkpoint-every", "10",
+               "--no-progress", "--device", "cpu"])
+    assert rc == 0
+    g = Gaussians.load_ply(out / "point_cloud.ply")
+    assert len(g) > 0 and g.sh_degree == 0
+    assert json.loads((out / "train.json").read_text())["steps"] == 30
+    # resuming a finished run does no more steps and rewrites the same result
+    assert main(["train", str(ds), str(out), "--iters", "30", "--sh-degree", "0", "--resume", "--no-progress",
+                 "--device", "cpu"]) == 0
+    assert (Gaussians.load_ply(out / "point_cloud.ply").means == g.means).all()
+    assert main(["eval", str(out), "--dataset", str(ds), "--no-progress", "--device", "cpu"]) == 0
+    m = json.loads((out / "eval" / "metrics.json").read_text())
+    assert m["n_views"] == 1 and m["mean_psnr"] > 10
+    assert "PSNR" in capsys.readouterr().out
+
+
+def test_bad_inputs_exit_2(tmp_path):
+    assert main(["train", str(tmp_path / "missing"), str(tmp_path / "o"), "--no-progress"]) == 2
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "transforms.json").write_text("{not json")
+    assert main(["train", str(tmp_path / "junk"), str(tmp_path / "o"), "--no-progress"]) == 2
+    assert main(["eval", str(tmp_path / "missing.ply"), "--dataset", str(tmp_path), "--no-progress"]) == 2
+    (tmp_path / "bad.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1\n")
+    assert main(["eval", str(tmp_path / "bad.ply"), "--dataset", str(tmp_path), "--no-progress"]) == 2

@@ -1,0 +1,73 @@
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from splattwin.capture import Camera, Frame, look_at
+from splattwin.errors import InputError
+from splattwin.io import write_image, write_npy
+from splattwin.splat.init import (backproject_depth, initial_gaussians, knn_scales, points_from_depth,
+                                  scene_center_and_scale)
+
+
+def test_knn_scales_on_grid():
+    g = np.stack(np.meshgrid(np.arange(5), np.arange(5), [0.0]), -1).reshape(-1, 3) * 0.1
+    s = knn_scales(g)
+    # interior points: 4 neighbours at 0.1 -> the 3 nearest average 0.1
+    assert s[12] == pytest.approx(0.1)
+    assert np.all(s >= 0.1 - 1e-12)
+
+
+def _cam(w=40, h=30):
+    T = look_at(np.array([0.0, 0.0, 1.0]), np.zeros(3), up=np.array([0.0, 1.0, 0.0]))
+    return Camera.from_fov(math.radians(60), w, h, T, name="c")
+
+
+def test_backproject_plane_and_missing_pixels():
+    cam = _cam()
+    depth = np.full((30, 40), 1.0, np.float32)
+    depth[0, :] = np.inf
+    xyz, rgb = backproject_depth(depth, cam, stride=1)
+    assert len(xyz) == 40 * 29 and np.allclose(xyz[:, 2], 0.0, atol=1e-9)  # the z=0 plane 1 m ahead
+    uv, z = cam.project(xyz)
+    assert np.allclose(z, 1.0)
+    v, u = np.mgrid[1:30, 0:40]
+    np.testing.assert_allclose(uv, np.stack([u.ravel() + 0.5, v.ravel() + 0.5], 1), atol=1e-9)
+    assert np.allclose(rgb, 0.5)
+
+
+def test_points_from_depth_with_background(tmp_path):
+    cam = _cam()
+    depth = np.full((30, 40), 1.0, np.float32)
+    depth[:5] = np.inf  # rays that miss: become far-sphere background points
+    img = np.zeros((30, 40, 3), np.uint8)
+    img[:5] = 200
+    f = Frame(image_path=write_image(tmp_path / "i.png", img), camera=cam,
+              depth_path=write_npy(tmp_path / "d.npy", depth))
+    xyz, rgb = points_from_depth([f], max_points=500, background_fraction=0.2)
+    assert len(xyz) <= 500
+    far = np.linalg.norm(xyz - cam.center, axis=1) > 1.5
+    assert 0 < far.sum() <= 100 and np.allclose(rgb[far], 200 / 255, atol=1e-6)
+    assert np.allclose(xyz[~far, 2], 0.0, atol=1e-6)
+    with pytest.raises(InputError, match="depth"):
+        points_from_depth([Frame(image_path=tmp_path / "i.png", camera=cam)])
+
+
+def test_initial_gaussians_methods():
+    cams = [_cam(), Camera.from_fov(1.0, 40, 30, look_at(np.array([1.0, 0, 1]), np.zeros(3)))]
+    frames = [Frame(image_path=None, camera=c) for c in cams]  # type: ignore[arg-type]
+    c, s = scene_center_and_scale(cams)
+    assert s == pytest.approx(1.1 * 0.5)
+    pts = np.random.default_rng(0).normal(size=(50, 3))
+    g, m = initial_gaussians("auto", frames, pts, None, sh_degree=2)
+    assert m == "sfm" and len(g) == 50 and g.sh_degree == 2
+    np.testing.assert_allclose(g.opacities, 0.1)
+    np.testing.assert_allclose(g.colors, 0.5)
+    g, m = initial_gaussians("auto", frames, None, None, max_points=100)
+    assert m == "random" and len(g) == 100 and np.all(np.abs(g.means - c) <= s + 1e-9)
+    with pytest.raises(InputError, match="sfm"):
+        initial_gaussians("sfm", frames, None, None)
+    with pytest.raises(InputError, match="unknown"):
+        initial_gaussians("magic", frames, pts, None)

@@ -1,0 +1,140 @@
+"""Twin folder build + exporters, each checked by loading the result with the tool that consumes it."""
+
+import warnings
+
+import numpy as np
+import pytest
+import trimesh
+import yaml
+
+from splattwin.cli import main
+from splattwin.geometry.synthetic import synthetic_scene
+from splattwin.twin.build import build_twin, export_twin
+from splattwin.twin.manifest import Frame, Manifest
+from splattwin.twin.moveit import parse_scene, pose_from_msg
+
+
+@pytest.fixture(scope="module")
+def twin(tmp_path_factory):
+    g, labels, objects, meshes = synthetic_scene(16000, seed=1)
+    out = tmp_path_factory.mktemp("twin")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        m = build_twin(g, labels, objects + [("ghost", 9, "a ghost")], out, Frame("ground_truth", scaled=True),
+                       formats=("urdf", "moveit", "gltf"), progress=False)
+    return out, m, g, labels
+
+
+def test_manifest_round_trip_and_layout(twin):
+    out, m, g, labels = twin
+    m2 = Manifest.load(out)
+    assert m2.to_dict() == m.to_dict()
+    assert m2.frame.source == "ground_truth" and m2.frame.scaled
+    assert {"numpy", "trimesh", "open3d-cpu"} <= set(m2.versions)
+    assert {"geometry.filter", "geometry.cluster", "geometry.mesh", "write"} <= set(m2.timings)
+    assert m2.config["geometry"]["dbscan_eps"] == 0.02
+    assert np.array_equal(np.load(out / m2.labels), labels)
+    ghost = m2.object("ghost")
+    assert not ghost.usable and "missing label" in ghost.problem and ghost.collision_mesh is None
+    assert not (out / "objects" / "ghost").exists()
+    for o in m2.objects:
+        if not o.usable:
+            continue
+        for rel in [o.splat_ply, o.visual_mesh, o.collision_mesh, *o.convex_parts]:
+            assert (out / rel).is_file(), rel
+        col = trimesh.load(out / o.collision_mesh, force="mesh")
+        assert col.is_watertight
+        assert np.allclose(col.bounds[1] - col.bounds[0], o.bbox_extent, atol=0.004)
+        assert np.isclose(abs(col.volume), o.volume, rtol=1e-3)
+    assert len(m2.object("hammer").convex_parts) >= 2
+    assert (out / m2.background.collision_mesh).is_file()
+    assert not list(out.rglob(".*.tmp*")) and not [p for p in out.rglob("*") if p.name.startswith(".")]
+
+
+def test_object_splats_in_object_frame(twin):
+    from splattwin.splat.gaussians import Gaussians
+
+    out, m, g, labels = twin
+    o = m.object("box")
+    s = Gaussians.load_ply(out / o.splat_ply)
+    world = s.means @ o.pose[:3, :3].T + o.pose[:3, 3]
+    box_world = g.means[labels == o.label]
+    # every written splat is one of the box's Gaussians, moved back to the world
+    from scipy.spatial import cKDTree
+    d, _ = cKDTree(box_world).query(world)
+    assert d.max() < 1e-5
+    assert np.abs(s.means.mean(axis=0)).max() < 0.03  # centred on the object frame
+
+
+def test_urdf_loads_with_yourdfpy(twin):
+    import yourdfpy
+
+    out, m, *_ = twin
+    u = yourdfpy.URDF.load(str(out / "export" / "scene.urdf"), build_collision_scene_graph=True, load_collision_meshes=True)
+    assert {"world", "table", "box", "cube", "hammer"} <= set(u.link_map)
+    assert "ghost" not in u.link_map
+    T = u.get_transform("hammer", "world")
+    assert np.allclose(T, m.object("hammer").pose, atol=1e-5)
+    assert len(u.link_map["hammer"].collisions) == len(m.object("hammer").convex_parts)
+    assert np.isclose(u.link_map["box"].inertial.mass, m.object("box").mass, rtol=1e-4)
+    one = yourdfpy.URDF.load(str(out / "export" / "box.urdf"), load_meshes=True)
+    assert list(one.link_map) == ["box"]
+    mesh_path = one.link_map["box"].visuals[0].geometry.mesh.filename
+    assert mesh_path.startswith("../objects/box/")
+
+
+def test_moveit_scene_text_parses_back(twin):
+    out, m, *_ = twin
+    name, objs = parse_scene((out / "export" / "moveit" / "scene.scene").read_text())
+    by_id = {o.id: o for o in objs}
+    assert name == "splattwin" and {"table", "box", "cube", "hammer"} == set(by_id)
+    table = by_id["table"].shapes[0]
+    x0, x1, y0, y1 = m.background.table_extent
+    assert table.kind == "box" and np.allclose(table.size, [x1 - x0, y1 - y0, m.background.table_thickness], atol=1e-6)
+    for n in ("box", "cube", "hammer"):
+        o = m.object(n)
+        col = trimesh.load(out / o.collision_mesh, force="mesh")
+        assert np.allclose(by_id[n].T_world_obj, o.pose, atol=1e-6)
+        s = by_id[n].shapes[0]
+        assert s.kind == "mesh" and len(s.vertices) == len(col.vertices) and len(s.faces) == len(col.faces)
+        assert np.allclose(s.vertices, col.vertices, atol=1e-6)
+
+
+def test_moveit_yaml_collision_objects(twin):
+    out, m, *_ = twin
+    msgs = yaml.safe_load((out / "export" / "moveit" / "collision_objects.yaml").read_text())
+    assert isinstance(msgs, list)
+    by_id = {c["id"]: c for c in msgs}
+    assert by_id["table"]["primitives"][0]["type"] == 1 and by_id["table"]["operation"] == 0
+    h = by_id["hammer"]
+    assert h["header"]["frame_id"] == "world"
+    assert np.allclose(pose_from_msg(h["pose"]), m.object("hammer").pose, atol=1e-6)
+    col = trimesh.load(out / m.object("hammer").collision_mesh, force="mesh")
+    assert len(h["meshes"][0]["vertices"]) == len(col.vertices)
+    assert len(h["meshes"][0]["triangles"]) == len(col.faces) and len(h["mesh_poses"]) == 1
+
+
+def test_glb_reloads_with_trimesh(twin):
+    out, m, *_ = twin
+    sc = trimesh.load(out / "export" / "scene.glb")
+    assert {"table", "box", "cube", "hammer"} <= set(sc.graph.nodes)
+    for n in ("box", "hammer"):
+        vis = trimesh.load(out / m.object(n).visual_mesh, force="mesh")
+        T, geom = sc.graph[n]
+        g = sc.geometry[geom]
+        assert len(g.faces) == len(vis.faces)
+        # glb is y-up: undo the root rotation to get back the twin pose
+        from splattwin.twin.gltf import Y_UP_FROM_Z_UP
+        assert np.allclose(np.linalg.inv(Y_UP_FROM_Z_UP) @ T, m.object(n).pose, atol=1e-5)
+
+
+def test_reexport_via_cli_replaces_files_whole(twin):
+    out, m, *_ = twin
+    p = out / "export" / "scene.urdf"
+    before = p.read_text()
+    p.write_text("garbage")
+    assert main(["export", str(out), "--formats", "urdf,moveit"]) == 0
+    assert p.read_text() == before
+    assert Manifest.load(out).exports["urdf"] == "export/scene.urdf"
+    assert main(["export", str(out), "--formats", "nope"]) == 2
+    assert main(["export", str(out / "missing")]) == 2
