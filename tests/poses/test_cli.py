@@ -64,3 +64,23 @@ def test_robot_cli_and_bad_input(scene_small: Path, tmp_path: Path, capsys):
     assert "bad.yaml" in err and "quat_xyzw" in err
     assert main(["poses", str(scene_small), str(tmp_path / "o3"), "--intrinsics", "1,2,3"]) == 2
     assert main(["poses", str(tmp_path / "missing"), str(tmp_path / "o4")]) == 2
+
+
+def test_sfm_cli_with_known_length_writes_depth_cloud(default_unscaled, sfm_default_dir: Path, tmp_path: Path):
+    """CLI on an image folder: SfM (re-using the session's model) + camera height -> metric frame + RGB-D cloud."""
+    import shutil
+
+    gt, _ = default_unscaled
+    imgs = tmp_path / "in"
+    shutil.copytree(gt.root / "images", imgs / "images")
+    h = float(np.mean([f.camera.center[2] for f in gt.frames]))
+    out = tmp_path / "out"
+    shutil.copytree(sfm_default_dir, out / "sfm")  # resume: same images by name, same options
+    assert main(["poses", str(imgs), str(out), "--known-length", f"camera_height={h}"]) == 0
+    frame = load_frame(out)
+    assert frame.source == "table_plane+known_length" and frame.scaled
+    report = json.loads((out / "poses_report.json").read_text())
+    assert report["timings"] == {}  # the finished model was re-used
+    assert report["registered"] == 20 and "depth_ply" not in report  # an image folder has no depth
+    ds = load_dataset(out)
+    assert len(ds.points_xyz) == report["num_points"]

@@ -142,3 +142,22 @@ def test_missing_weights_clear_error(tmp_path, monkeypatch):
     with pytest.raises(InputError, match="huggingface-cli download"):
         OpenVocabSegmenter(SegmentOptions(detector="IDEA-Research/grounding-dino-tiny",
                                           segmenter="facebook/sam-vit-base", segmenter_kind="sam"))
+
+
+def test_cli_prompt_maps_phrases_to_scene_labels(tiny_models, scene_small, tmp_path):
+    """`splattwin segment DATASET --prompt ...` end to end with the tiny models on the embedded scene."""
+    import json
+
+    from splattwin.cli import main
+    from splattwin.semantics.masks import MaskSet
+
+    out = tmp_path / "masks"
+    rc = main(["segment", str(scene_small), "--prompt", "Blue box. yellow cube", "--detector", str(tiny_models / "gdino"),
+               "--segmenter", str(tiny_models / "sam"), "--box-threshold", "0", "--working-size", "64",
+               "--split", "heldout", "--out", str(out)])
+    assert rc == 0
+    ms = MaskSet.load(out)
+    scene = {o["name"]: o["label"] for o in json.loads((scene_small / "scene.json").read_text())["objects"]}
+    assert ms.objects == {scene["blue_box"]: "blue_box", scene["yellow_cube"]: "yellow_cube"}
+    assert sorted(ms.sizes) == ["heldout_000", "heldout_001", "heldout_002"]
+    assert all(hw == (120, 160) for hw in ms.sizes.values())

@@ -129,3 +129,20 @@ def test_densification_runs_in_training(synth, tmp_path):
     counts = [e["n"] for e in res.history]
     assert max(counts) > 300 or min(counts) < 300  # the Gaussian set changed
     assert len(res.gaussians) <= cfg.max_gaussians
+
+
+def test_refine_poses_pulls_back_a_perturbed_camera(synth, tmp_path):
+    from splattwin.splat.pose_refine import se3_exp
+
+    ds = load_dataset(synth)
+    cam = ds.train()[3].camera
+    T_true = cam.T_cam_world
+    xi = torch.tensor([[0.01, -0.01, 0.008, 0.012, -0.01, 0.008]], dtype=torch.float64)
+    T_pert = se3_exp(xi)[0].numpy() @ T_true
+    cam.T_world_cam = np.linalg.inv(T_pert)
+    res = train(ds, tmp_path / "p", tiny_config(iters=150, refine_poses=True, pose_lr=2e-3, densify=False))
+    T_ref = np.linalg.inv(np.array(res.refined_T_world_cam[ds.train()[3].name]))
+    err0 = np.linalg.norm(T_pert[:3, 3] - T_true[:3, 3]) + np.linalg.norm(T_pert[:3, :3] - T_true[:3, :3])
+    err1 = np.linalg.norm(T_ref[:3, 3] - T_true[:3, 3]) + np.linalg.norm(T_ref[:3, :3] - T_true[:3, :3])
+    assert err1 < 0.5 * err0, (err0, err1)
+    assert (tmp_path / "p" / "refined_poses.json").is_file()

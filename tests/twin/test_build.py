@@ -100,9 +100,24 @@ def test_moveit_scene_text_parses_back(twin):
         assert np.allclose(s.vertices, col.vertices, atol=1e-6)
 
 
+def test_moveit_box_proxies(twin):
+    out, m, *_ = twin
+    name, objs = parse_scene((out / "export" / "moveit" / "scene_boxes.scene").read_text())
+    by_id = {o.id: o for o in objs}
+    assert name == "splattwin_boxes"
+    for n in ("box", "cube", "hammer"):
+        s = by_id[n].shapes[0]
+        assert s.kind == "box" and np.allclose(s.size, m.object(n).bbox_extent, atol=1e-6)
+        assert np.allclose(by_id[n].T_world_obj, m.object(n).pose, atol=1e-6)
+    msgs = yaml.load((out / "export" / "moveit" / "collision_objects_boxes.yaml").read_text(),
+                     Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
+    assert all(len(c["primitives"]) == 1 and not c["meshes"] for c in msgs if c["id"] != "background_obstacles")
+
+
 def test_moveit_yaml_collision_objects(twin):
     out, m, *_ = twin
-    msgs = yaml.safe_load((out / "export" / "moveit" / "collision_objects.yaml").read_text())
+    loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+    msgs = yaml.load((out / "export" / "moveit" / "collision_objects.yaml").read_text(), Loader=loader)
     assert isinstance(msgs, list)
     by_id = {c["id"]: c for c in msgs}
     assert by_id["table"]["primitives"][0]["type"] == 1 and by_id["table"]["operation"] == 0

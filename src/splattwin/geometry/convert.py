@@ -134,7 +134,7 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             res = solid_mesh(local, pitch, opts.alpha, opts.alpha_factors, opts.close_iterations,
-                             opts.use_alpha, name=name)
+                             opts.use_alpha, name=name, max_points=opts.alpha_max_points)
         for w in caught:
             warnings.warn(w.message, stacklevel=2)
         mesh = smooth(res.mesh, opts.smooth_iterations)
@@ -185,7 +185,7 @@ def background_geometry(g, indices: np.ndarray, opts: GeometryOptions, table_thi
         op = downsample(pts[split.obstacle_ids == k], opts.mesh_voxel)
         op = add_bottom(op, opts.mesh_voxel, z_floor=h) if opts.close_bottom else op
         res = solid_mesh(op, opts.mesh_voxel, opts.alpha, opts.alpha_factors, opts.close_iterations, opts.use_alpha,
-                         name=f"background obstacle {k}")
+                         name=f"background obstacle {k}", max_points=opts.alpha_max_points)
         m = simplify(smooth(res.mesh, opts.smooth_iterations), opts.collision_faces)
         meshes.append(m)
         parts.extend(convex_parts(simplify(m, opts.coacd_faces), opts.convex_ratio, opts.coacd_threshold,

@@ -35,7 +35,8 @@ class GeometryOptions:
     close_iterations: int = 2           # morphological closing (voxels) sealing gaps between samples
     alpha: float | None = None          # alpha-shape radius (m); None: alpha_factors * point spacing
     alpha_factors: tuple = (1.5, 2.0, 3.0)   # tried in order until the outer shell is watertight
-    use_alpha: bool = True              # False: voxel remesh (marching cubes) directly, faster
+    use_alpha: bool = True              # False: voxel remesh (marching cubes) directly
+    alpha_max_points: int = 8000        # coarser voxel for bigger objects (Delaunay cost ~ points)
     close_bottom: bool = True           # add the unseen footprint under an object resting on the table
     densify: bool = True                # sample points inside each Gaussian's ellipsoid (covers gaps)
     densify_samples: int = 4

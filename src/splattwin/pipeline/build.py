@@ -57,6 +57,7 @@ class BuildOptions:
     device: str = "auto"
     seed: int = 0
     max_gaussians: int = 60_000
+    checkpoint_every: int = 500
     kappa: float = 1.5
     fusion_iters: int = 3
     task: str | None = None
@@ -108,7 +109,8 @@ def _splat_stage(ctx: Context) -> dict:
     o = ctx.options
     ds = load_dataset(ctx.path("poses/transforms.json"))
     cfg = TrainConfig(iters=o["iters"], resolution=o["resolution"], device=o["device"], seed=o["seed"],
-                      max_gaussians=o["max_gaussians"], progress=o["progress"])
+                      max_gaussians=o["max_gaussians"], checkpoint_every=o["checkpoint_every"],
+                      progress=o["progress"])
     # resume=True: a killed run continues from its last checkpoint inside this stage.
     res = train(ds, ctx.path("splat"), cfg, resume=True)
     ev = evaluate(res.ply_path, ds, out_dir=ctx.path("splat/eval"), progress=o["progress"])
@@ -214,7 +216,14 @@ def _robot_stage(ctx: Context) -> dict:
 
     out = ctx.path("robot")
     spec = TrialSpec(twin_dir=str(ctx.out), task_path=None if o["task"] == "default" else o["task"], seed=o["seed"])
-    result, note, frames = run_once(spec, frame_dir=out / "frames" if o["render_frames"] else None, keep_trajectories=True)
+    try:
+        result, note, frames = run_once(spec, frame_dir=out / "frames" if o["render_frames"] else None,
+                                        keep_trajectories=True)
+    except InputError as e:
+        # The task cannot run on this twin (e.g. an object whose geometry failed): record why, so the
+        # report still gets written and says it, and let the command exit 2 at the end.
+        io.write_json(out / "results.json", {"error": str(e), "task": o["task"]})
+        return {"results": "@robot/results.json", "success": False, "error": str(e)}
     trials = run_trials(spec, o["trials"], o["sigma"]) if o["trials"] > 0 else None
     write_outputs(out, spec, result, trials, render_note=note or "", frames=frames, wall_s=result.wall_s)
     _write_playback(ctx, spec)

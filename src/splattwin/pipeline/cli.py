@@ -64,7 +64,15 @@ def _build(args: argparse.Namespace) -> int:
                     masks=str(args.masks) if args.masks else None, prompt=args.prompt, task=args.task)
     ctx = build(args.out, opts, from_stage=args.from_stage, until=args.until)
     _print_headline(ctx)
-    return 0
+    return _exit_code(ctx)
+
+
+def _exit_code(ctx) -> int:
+    """2 when the robot task could not run (bad input), 1 when it ran and failed, else 0."""
+    robot = ctx.results.get("robot") or {}
+    if robot.get("error"):
+        return 2
+    return 0 if robot.get("success", True) else 1
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -74,8 +82,7 @@ def _demo(args: argparse.Namespace) -> int:
     opts = _options(args, scene=scene, poses="known", task="default")
     ctx = build(args.out, opts, from_stage=args.from_stage, until=args.until)
     _print_headline(ctx)
-    robot = ctx.results.get("robot") or {}
-    return 0 if robot.get("success", True) else 1
+    return _exit_code(ctx)
 
 
 def _print_headline(ctx) -> None:
@@ -98,7 +105,9 @@ def _print_headline(ctx) -> None:
         g = json.loads(gj.read_text())
         if g:
             con.print("geometry: F1@5mm " + ", ".join(f"{k} {v['f1']:.3f}" for k, v in g.items()))
-    if r.get("robot"):
+    if r.get("robot", {}).get("error"):
+        con.print(f"[red]robot task not run: {r['robot']['error']}[/]")
+    elif r.get("robot"):
         con.print(f"robot task: {'[green]success[/]' if r['robot']['success'] else '[red]failure[/]'}")
     con.print(f"total {sum(ctx.timings.values()):.0f} s; twin: {ctx.out / 'twin.json'}")
     if r.get("report"):

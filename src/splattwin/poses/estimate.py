@@ -36,6 +36,7 @@ log = logging.getLogger(__name__)
 
 FRAME_FILE = "frame.json"
 REPORT_FILE = "poses_report.json"
+DEPTH_PLY = "points3D_depth.ply"
 
 
 @dataclass
@@ -104,7 +105,8 @@ class PoseResult:
                        points_rgb=self.points_rgb, depth_scale=self.depth_scale, meta={"frame": dataclasses.asdict(self.frame)})
 
     def save(self, out_dir: str | Path) -> Path:
-        """Write OUT/transforms.json (+ points3D.ply), OUT/frame.json, OUT/poses_report.json, OUT/cameras.png.
+        """Write OUT/transforms.json (+ points3D.ply), OUT/frame.json, OUT/poses_report.json, OUT/cameras.png,
+        and OUT/points3D_depth.ply (back-projected RGB-D cloud) when there is one.
 
         Image/depth/mask paths in transforms.json point at the input files (relative paths).
         Returns the transforms.json path.
@@ -113,10 +115,12 @@ class PoseResult:
 
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
+        extra: dict = {}
         if self.depth_xyz is not None and len(self.depth_xyz):
-            nerfstudio.write_points_ply(out / "points3D_depth.ply", self.depth_xyz, self.depth_rgb)
+            nerfstudio.write_points_ply(out / DEPTH_PLY, self.depth_xyz, self.depth_rgb)
+            extra["depth_ply"] = DEPTH_PLY  # the RGB-D initialiser, beside the SfM points (ply_file_path)
         io.write_json(out / FRAME_FILE, dataclasses.asdict(self.frame))
-        io.write_json(out / REPORT_FILE, {**self.stats, "frame": dataclasses.asdict(self.frame),
+        io.write_json(out / REPORT_FILE, {**self.stats, **extra, "frame": dataclasses.asdict(self.frame),
                                           "T_out_in": self.T_out_in, "unregistered": self.unregistered})
         try:
             plot_cameras(self, out / "cameras.png")

@@ -149,6 +149,7 @@ def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | No
     work = Path(work_dir)
     work.mkdir(parents=True, exist_ok=True)
     image_root, names = _image_layout(image_paths)
+    names = sorted(names)  # COLMAP ids follow this order: same images in any order -> same model (and resume)
     key = _config_key(opts, names)
     key_path, db, model_dir = work / "sfm_config.json", work / "database.db", work / "sparse"
     if key_path.is_file() and json.loads(key_path.read_text()) != json.loads(json.dumps(key)):

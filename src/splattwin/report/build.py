@@ -114,7 +114,9 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
         kpis["mIoU held-out"] = round(fusion["miou_heldout"], 3)
     if geo:
         kpis["F1 @5 mm (min)"] = round(min(v["f1"] for v in geo.values()), 3)
-    if robot:
+    if robot and "error" in robot:
+        kpis["task success"] = False
+    elif robot:
         kpis["task success"] = bool(robot["nominal"]["success"])
         if robot.get("trials"):
             kpis["trials"] = f"{robot['trials']['successes']}/{robot['trials']['trials']}"
@@ -232,6 +234,9 @@ def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
 def _robot_section(sec: Section, twin: Path, robot: dict | None) -> None:
     if not robot:
         sec.text("no robot task run (splattwin plan TWIN, or build with --task)")
+        return
+    if "error" in robot:
+        sec.text(f"the task could not run on this twin: {robot['error']}")
         return
     nom = robot["nominal"]
     sec.text(f"task: {robot['task']}; planner {robot['planner']}; overall: {'SUCCESS' if nom['success'] else 'FAILURE'}.")

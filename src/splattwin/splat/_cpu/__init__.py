@@ -174,10 +174,11 @@ class _Rasterize(torch.autograd.Function):
             isect_gauss = np.empty(M, np.int32)
             gauss_isect = np.empty(M, np.int64)
             K_.bin_tiles(order, boxes, ntiles, W, H, tile_start, isect_gauss, gauss_isect, gauss_off)
-            K_.raster_fwd(m2[c], co[c], cl[c], op, boxes, tile_start, isect_gauss, _tile_perm(tw * th), W, H,
-                          render[c], final_T[c], last[c])
-            saved.append((boxes, tile_start, isect_gauss, gauss_isect, gauss_off))
-        ctx.np = (m2, co, cl, op, final_T, last, saved)
+            # depth-sorted copies: tile lists hold depth ranks, so the kernels stream through these
+            srt = (m2[c][order], co[c][order], cl[c][order], op[order], boxes[order])
+            K_.raster_fwd(*srt, tile_start, isect_gauss, _tile_perm(tw * th), W, H, render[c], final_T[c], last[c])
+            saved.append((srt, tile_start, isect_gauss, gauss_isect, gauss_off))
+        ctx.np = (cl.shape, final_T, last, saved)
         ctx.cfg = (W, H)
         ctx.dtype = means2d.dtype
         dt = means2d.dtype
@@ -185,9 +186,8 @@ class _Rasterize(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, v_render, v_alphas):
-        m2, co, cl, op, final_T, last, saved = ctx.np
+        (C, N, D), final_T, last, saved = ctx.np
         W, H = ctx.cfg
-        C, N, D = cl.shape
         vr = np.zeros((C, H, W, D), np.float32) if v_render is None else _np32(v_render)
         va = np.zeros((C, H, W), np.float32) if v_alphas is None else _np32(v_alphas[..., 0])
         v_m2 = np.empty((C, N, 2), np.float32)
@@ -196,10 +196,10 @@ class _Rasterize(torch.autograd.Function):
         v_op = np.zeros(N, np.float32)
         out = np.empty((N, 6 + D), np.float32)
         for c in range(C):
-            boxes, tile_start, isect_gauss, gauss_isect, gauss_off = saved[c]
+            srt, tile_start, isect_gauss, gauss_isect, gauss_off = saved[c]
             isect_grad = np.empty((isect_gauss.shape[0], 6 + D), np.float64)
-            K_.raster_bwd(m2[c], co[c], cl[c], op, boxes, tile_start, isect_gauss, _tile_perm(len(tile_start) - 1),
-                          W, H, final_T[c], last[c], vr[c], va[c], isect_grad)
+            K_.raster_bwd(*srt, tile_start, isect_gauss, _tile_perm(len(tile_start) - 1), W, H, final_T[c], last[c],
+                          vr[c], va[c], isect_grad)
             K_.reduce_isect_grads(isect_grad, gauss_isect, gauss_off, out)
             v_m2[c] = out[:, 0:2]
             v_co[c] = out[:, 2:5]

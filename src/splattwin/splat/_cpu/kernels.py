@@ -435,7 +435,9 @@ def pixel_boxes(means2d, extents, width, height, boxes, ntiles):
 def bin_tiles(order, boxes, ntiles, width, height, tile_start, isect_gauss, gauss_isect, gauss_off):
     """Counting sort of (tile, Gaussian) pairs by tile, Gaussians taken in depth `order`.
 
-    tile_start [T+1] (out): tile t's list is isect_gauss[tile_start[t]:tile_start[t+1]], depth-sorted.
+    tile_start [T+1] (out): tile t's list is isect_gauss[tile_start[t]:tile_start[t+1]]: ascending depth
+    ranks j (Gaussian order[j]), so the compositing kernels, given per-Gaussian arrays gathered in depth
+    order, read memory almost sequentially instead of at random.
     gauss_off [N+1] (in): prefix sum of ntiles. gauss_isect [M] (out): the list positions of Gaussian g's
     intersections are gauss_isect[gauss_off[g]:gauss_off[g+1]] (used to reduce gradients per Gaussian).
     """
@@ -462,7 +464,7 @@ def bin_tiles(order, boxes, ntiles, width, height, tile_start, isect_gauss, gaus
                 t = ty * tw + tx
                 pos = cursor[t]
                 cursor[t] = pos + 1
-                isect_gauss[pos] = g
+                isect_gauss[pos] = j  # depth rank: the compositing kernels read depth-sorted copies
                 gauss_isect[k] = pos
                 k += 1
 

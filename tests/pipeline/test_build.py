@@ -1,0 +1,108 @@
+"""End to end on a reduced embedded scene: build, report and viewer in headless Chromium, and a
+killed-and-resumed build that gives the same twin as an uninterrupted one."""
+
+import hashlib
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from splattwin.pipeline.build import BuildOptions, build
+from splattwin.report.screenshot import screenshot
+
+SCENE = {"seed": 0, "width": 96, "height": 72, "views": 6, "heldout": 2}
+FAST = dict(iters=80, max_gaussians=8000, checkpoint_every=20, progress=False, render_frames=False)
+
+
+def _digest(twin: Path) -> dict:
+    """Content hashes of the twin's results (timings and absolute paths excluded)."""
+    out = {}
+    man = json.loads((twin / "twin.json").read_text())
+    out["objects"] = [{k: v for k, v in o.items()} for o in man["objects"]]
+    out["background"] = man["background"]
+    for rel in ["semantics/labels.npy", "splat/point_cloud.ply"] + sorted(
+            str(p.relative_to(twin)) for p in (twin / "objects").rglob("*.obj")):
+        out[rel] = hashlib.sha256((twin / rel).read_bytes()).hexdigest()
+    return out
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("e2e") / "twin"
+    build(out, BuildOptions(scene=SCENE, poses="known", **FAST))
+    return out
+
+
+def test_build_writes_every_stage(built):
+    state = json.loads((built / "pipeline.json").read_text())
+    assert list(state) == ["scene", "poses", "splats", "semantics", "twin", "robot", "report"]
+    assert (built / "splat" / "point_cloud.ply").is_file()
+    assert (built / "splat" / "eval" / "metrics.json").is_file()
+    labels = np.load(built / "semantics" / "labels.npy")
+    assert labels.max() >= 1, "no Gaussian was labelled as an object"
+    man = json.loads((built / "twin.json").read_text())
+    assert man["frame"]["scaled"] and man["frame"]["source"] == "known_poses"
+    assert (built / "export" / "scene.xml").is_file()
+    assert man["config"].get("target_frame"), "the scene's goal region must travel into the twin"
+
+
+def test_rerun_skips_everything(built, capsys):
+    t0 = time.perf_counter()
+    ctx = build(built, BuildOptions(scene=SCENE, poses="known", **FAST))
+    assert time.perf_counter() - t0 < 5.0
+    assert set(ctx.results) == {"scene", "poses", "splats", "semantics", "twin", "robot", "report"}
+
+
+def test_report_in_chromium(built, tmp_path):
+    html = (built / "report" / "index.html").read_text()
+    for title in ("Reconstruction", "Semantic objects", "Collision geometry", "Timings"):
+        assert title in html
+    png = screenshot((built / "report" / "index.html").as_uri(), tmp_path / "report.png", 1200, 2400, budget_ms=3000)
+    img = np.asarray(Image.open(png).convert("RGB")).astype(int)
+    # content, not an empty page: many colours (the embedded pictures) over a large part of the page
+    assert len(np.unique(img.reshape(-1, 3) // 16, axis=0)) > 100
+    assert (img.sum(axis=2) < 600).mean() > 0.05
+
+
+def test_viewer_in_chromium(built, tmp_path):
+    from splattwin.viewer.app import serve
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    server = serve(built, host="127.0.0.1", port=port, block=False)
+    try:
+        png = screenshot(f"http://127.0.0.1:{port}/", tmp_path / "viewer.png", 1000, 700, budget_ms=12000)
+    finally:
+        server.stop()
+    img = np.asarray(Image.open(png).convert("RGB")).astype(int)
+    centre = img[150:600, 100:650]  # the 3D canvas, left of the GUI panel
+    assert centre.std() > 20, "the 3D view is empty"
+
+
+def test_killed_build_resumes_to_the_same_twin(built, tmp_path):
+    out = tmp_path / "twin"
+    code = ("import sys; from splattwin.pipeline.build import BuildOptions, build; "
+            f"build(sys.argv[1], BuildOptions(scene={SCENE!r}, poses='known', **{FAST!r}))")
+    proc = subprocess.Popen([sys.executable, "-c", code, str(out)], start_new_session=True)
+    ckpt_dir = out / "splat" / "checkpoints"
+    deadline = time.time() + 600
+    while time.time() < deadline and proc.poll() is None:
+        if ckpt_dir.is_dir() and any(ckpt_dir.iterdir()):
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the build finished before it could be killed"
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    state = json.loads((out / "pipeline.json").read_text())
+    assert "splats" not in state  # killed inside training
+    build(out, BuildOptions(scene=SCENE, poses="known", **FAST))
+    assert _digest(out) == _digest(built)
