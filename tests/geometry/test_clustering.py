@@ -59,3 +59,13 @@ def test_split_background_keeps_table_and_standing_obstacle_drops_floaters():
     assert sp.obstacles[20000:21500].mean() > 0.95
     assert not sp.keep[21500:].any()
     assert sp.obstacle_ids.max() == 0
+
+
+def test_fit_plane_prefers_the_horizontal_table_over_a_bigger_wall():
+    rng = np.random.default_rng(5)
+    table = np.c_[rng.uniform(-0.5, 0.5, (4000, 2)), rng.normal(0, 0.0005, 4000)]
+    wall = np.c_[rng.uniform(-0.5, 0.5, 8000), np.full(8000, 0.5), rng.uniform(0, 1.0, 8000)]
+    pl = fit_plane(np.concatenate([table, wall]), 0.004)
+    assert pl.normal[2] > 0.999 and abs(pl.d) < 0.001
+    pl_any = fit_plane(np.concatenate([table, wall]), 0.004, max_tilt_deg=None)
+    assert abs(pl_any.normal[1]) > 0.999

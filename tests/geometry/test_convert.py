@@ -62,6 +62,16 @@ def test_background_table_and_no_floaters(conversion):
     assert bg.collision.is_watertight
 
 
+def test_background_keeps_a_standing_obstacle():
+    g, labels, objects, _ = synthetic_scene(12000, seed=4, obstacle=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        bg = convert(g, labels, objects[:1], progress=False).background
+    assert bg.n_obstacles == 1 and len(bg.parts) == 2 and bg.collision.is_watertight
+    post = bg.parts[1]
+    assert np.allclose(post.bounds, [[-0.37, 0.28, 0.0], [-0.33, 0.32, 0.2]], atol=0.008)
+
+
 def _blob_gaussians(pts):
     n = len(pts)
     return dict(means=pts, quats=np.tile([1.0, 0, 0, 0], (n, 1)), scales=np.full((n, 3), 0.001),

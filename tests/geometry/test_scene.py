@@ -5,7 +5,6 @@ import warnings
 
 import numpy as np
 import pytest
-import trimesh
 
 from splattwin.geometry.convert import ablation, convert
 from splattwin.geometry.synthetic import leak_labels, load_scene_gt

@@ -84,3 +84,16 @@ def test_sfm_cli_with_known_length_writes_depth_cloud(default_unscaled, sfm_defa
     assert report["registered"] == 20 and "depth_ply" not in report  # an image folder has no depth
     ds = load_dataset(out)
     assert len(ds.points_xyz) == report["num_points"]
+
+
+def test_result_round_trips_through_its_dataset(scene_small: Path):
+    """PoseResult.to_dataset() carries the frame; estimating again with --known keeps it."""
+    from splattwin.poses import PoseOptions, estimate_poses
+    from splattwin.twin.manifest import Frame
+
+    gt = load_dataset(scene_small)
+    res = estimate_poses(gt, PoseOptions(method="known", depth_points=False, progress=False))
+    ds = res.to_dataset(scene_small)
+    ds.meta["frame"]["source"] = "marker"
+    again = estimate_poses(ds, PoseOptions(method="known", depth_points=False, progress=False))
+    assert isinstance(again.frame, Frame) and again.frame.source == "marker"

@@ -7,7 +7,7 @@ import pytest
 
 from splattwin.errors import InputError
 from splattwin.poses.align import umeyama
-from splattwin.poses.marker import detect_marker, marker_corners, refine_corners_edges
+from splattwin.poses.marker import detect_marker, refine_corners_edges
 
 
 def _render_square(corners: np.ndarray, H: int = 80, W: int = 100, ss: int = 8) -> np.ndarray:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import warnings
 
 import numpy as np
 import pytest
@@ -13,7 +12,7 @@ from splattwin.semantics.fusion import (FusionOptions, KnnCache, View, consensus
                                         naive_fusion, soft_gate, visible_mask)
 from splattwin.semantics.masks import MaskSet, MaskWarning
 from splattwin.semantics.metrics import ghost_index, iou_table, miou, projection_consistency
-from splattwin.semantics.render import PointDepth, project_to_pixels, render_label_maps, zbuffer
+from splattwin.semantics.render import project_to_pixels, render_label_maps, zbuffer
 
 from splattwin.semantics.synthetic import make_synth, raycast_labels
 

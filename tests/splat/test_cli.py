@@ -41,11 +41,17 @@ def test_train_and_eval_cli(tmp_path, capsys):
     assert "PSNR" in capsys.readouterr().out
 
 
-def test_bad_inputs_exit_2(tmp_path):
+def test_bad_inputs_exit_2(tmp_path, capsys):
     assert main(["train", str(tmp_path / "missing"), str(tmp_path / "o"), "--no-progress"]) == 2
     (tmp_path / "junk").mkdir()
     (tmp_path / "junk" / "transforms.json").write_text("{not json")
     assert main(["train", str(tmp_path / "junk"), str(tmp_path / "o"), "--no-progress"]) == 2
     assert main(["eval", str(tmp_path / "missing.ply"), "--dataset", str(tmp_path), "--no-progress"]) == 2
+    # images without poses
+    import numpy as np
+    from splattwin.io import write_image
+    write_image(tmp_path / "unposed" / "a.png", np.zeros((20, 30, 3), np.uint8))
+    assert main(["train", str(tmp_path / "unposed"), str(tmp_path / "o"), "--no-progress"]) == 2
+    assert "poses" in capsys.readouterr().err
     (tmp_path / "bad.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1\n")
     assert main(["eval", str(tmp_path / "bad.ply"), "--dataset", str(tmp_path), "--no-progress"]) == 2

@@ -99,3 +99,18 @@ def test_schedule_scales_with_iterations():
     assert c.refine_start < c.reset_every < c.refine_stop < 3000 and c.refine_every == 100
     c = densify.DensifyConfig.for_iterations(200)
     assert 0 < c.refine_start < c.refine_stop < 200
+
+
+def test_size_prune_spares_far_background():
+    m = make_model()
+    with torch.no_grad():
+        m.params["scales"][:] = np.log(0.005)
+        m.params["scales"][0] = np.log(0.5)    # big and near the centre: pruned
+        m.params["means"][0] = 0.0
+        m.params["scales"][1] = np.log(0.5)    # equally big but 20 scene radii away: background, kept
+        m.params["means"][1] = torch.tensor([20.0, 0.0, 0.0])
+    st = densify.DensifyState(6)
+    cfg = densify.DensifyConfig(reset_every=10, prune_scale3d=0.1)
+    res = densify.refine(m, st, cfg, step=100)
+    assert res.pruned == 1 and len(m) == 5
+    assert torch.any((m.params["means"].detach() - torch.tensor([20.0, 0, 0])).norm(dim=1) < 1e-6)

@@ -49,6 +49,25 @@ def test_pose_refinement_recovers_perturbation():
                                   sh_degree=0, backend="cpu")
         loss = ((img[0] - target) ** 2).mean()
         loss.backward()
-        pc.step()
+        pc.step([0])
     ang1, tr1 = _pose_error(pc.corrected(T_pert[None])[0], T_true)
     assert ang1 < 0.3 * ang0 and tr1 < 0.3 * tr0, (ang0, ang1, tr0, tr1)
+
+
+def test_remove_common_motion_cancels_a_shared_world_motion():
+    from splattwin.splat.pose_refine import adjoint
+
+    cams = helpers.ring_cameras(4)
+    T_cw = torch.tensor(np.stack([c.T_cam_world for c in cams]), dtype=torch.float64)
+    w = torch.tensor([0.01, -0.02, 0.005, 0.01, 0.0, -0.01], dtype=torch.float64)  # one world-frame motion
+    xi = (adjoint(T_cw) @ w[None, :, None])[..., 0]  # as seen from each camera
+    # the camera-frame twists really are the same world motion: exp(xi_c) T_cw = T_cw exp(w)
+    torch.testing.assert_close(se3_exp(xi) @ T_cw, T_cw @ se3_exp(w)[None].expand(4, 4, 4))
+    pc = PoseCorrection(4)
+    with torch.no_grad():
+        for p, v in zip(pc.params, xi):
+            p.copy_(v)
+        pc.params[0].add_(torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, 0.004]))  # plus one individual correction
+    pc.remove_common_motion(T_cw.float())
+    left = pc.xi.detach()
+    assert left[1:].abs().max() < 2e-3 and left[0, 5].abs() > 2e-3

@@ -9,14 +9,14 @@ import yaml
 
 from splattwin.cli import main
 from splattwin.geometry.synthetic import synthetic_scene
-from splattwin.twin.build import build_twin, export_twin
+from splattwin.twin.build import build_twin
 from splattwin.twin.manifest import Frame, Manifest
 from splattwin.twin.moveit import parse_scene, pose_from_msg
 
 
 @pytest.fixture(scope="module")
 def twin(tmp_path_factory):
-    g, labels, objects, meshes = synthetic_scene(16000, seed=1)
+    g, labels, objects, meshes = synthetic_scene(16000, seed=1, obstacle=True)
     out = tmp_path_factory.mktemp("twin")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -44,7 +44,9 @@ def test_manifest_round_trip_and_layout(twin):
             assert (out / rel).is_file(), rel
         col = trimesh.load(out / o.collision_mesh, force="mesh")
         assert col.is_watertight
-        assert np.allclose(col.bounds[1] - col.bounds[0], o.bbox_extent, atol=0.004)
+        # object frame = centre of the box proxy, which encloses the collision mesh exactly
+        assert np.allclose(col.bounds[1] - col.bounds[0], o.bbox_extent, atol=1e-6)
+        assert np.allclose(col.bounds.mean(axis=0), 0.0, atol=1e-6)
         assert np.isclose(abs(col.volume), o.volume, rtol=1e-3)
     assert len(m2.object("hammer").convex_parts) >= 2
     assert (out / m2.background.collision_mesh).is_file()
@@ -71,7 +73,8 @@ def test_urdf_loads_with_yourdfpy(twin):
 
     out, m, *_ = twin
     u = yourdfpy.URDF.load(str(out / "export" / "scene.urdf"), build_collision_scene_graph=True, load_collision_meshes=True)
-    assert {"world", "table", "box", "cube", "hammer"} <= set(u.link_map)
+    assert {"world", "table", "box", "cube", "hammer", "background_obstacles"} <= set(u.link_map)
+    assert len(u.link_map["background_obstacles"].collisions) == len(m.background.convex_parts) - 1 >= 1
     assert "ghost" not in u.link_map
     T = u.get_transform("hammer", "world")
     assert np.allclose(T, m.object("hammer").pose, atol=1e-5)
@@ -87,7 +90,8 @@ def test_moveit_scene_text_parses_back(twin):
     out, m, *_ = twin
     name, objs = parse_scene((out / "export" / "moveit" / "scene.scene").read_text())
     by_id = {o.id: o for o in objs}
-    assert name == "splattwin" and {"table", "box", "cube", "hammer"} == set(by_id)
+    assert name == "splattwin" and {"table", "box", "cube", "hammer", "background_obstacles"} == set(by_id)
+    assert len(by_id["background_obstacles"].shapes) == len(m.background.convex_parts) - 1
     table = by_id["table"].shapes[0]
     x0, x1, y0, y1 = m.background.table_extent
     assert table.kind == "box" and np.allclose(table.size, [x1 - x0, y1 - y0, m.background.table_thickness], atol=1e-6)

@@ -48,12 +48,18 @@ def _run(args: argparse.Namespace) -> int:
             raise InputError(f"not a .npy label array: {e}", lp) from e
         if len(labels) != len(g):
             raise InputError(f"{len(labels)} labels for {len(g)} Gaussians in {ply.name}", lp)
-        objects = [_parse_object(o) for o in args.object] or [(f"object_{k}", int(k), "") for k in np.unique(labels) if k > 0]
+        objects = [_parse_object(o) for o in args.object]
+        if not objects and args.gt_scene and (Path(args.gt_scene) / "scene.json").is_file():
+            from splattwin.geometry.synthetic import load_scene_gt
+
+            objects = list(load_scene_gt(args.gt_scene)[0])  # the scene's names, prompts and labels
+        objects = objects or [(f"object_{k}", int(k), "") for k in np.unique(labels) if k > 0]
     else:  # the whole splat is one object
         labels = np.ones(len(g), dtype=np.int64)
         objects = [(ply.stem if not args.object else _parse_object(args.object[0])[0], 1, "")]
     opts = GeometryOptions(min_opacity=args.min_opacity, max_scale=args.max_scale, dbscan_eps=args.eps,
                            dbscan_min_samples=args.min_samples, alpha=args.alpha, densify=args.densify,
+                           use_alpha=not args.voxel_remesh,
                            collision_faces=args.faces, density=args.density)
     if args.frame not in FRAME_SOURCES:
         raise InputError(f"unknown frame source {args.frame!r} (choose from {', '.join(FRAME_SOURCES)})", "--frame")
@@ -63,8 +69,36 @@ def _run(args: argparse.Namespace) -> int:
     for o in m.objects:
         state = f"mass {o.mass:.3f} kg, {len(o.convex_parts)} convex part(s)" if o.usable else f"UNUSABLE: {o.problem}"
         print(f"{o.name:16s} {state}")
+    if args.gt_scene:
+        evaluate(g, labels, objects, Path(args.gt_scene), opts, Path(args.out))
     print(f"twin written to {args.out}")
     return 0
+
+
+def evaluate(g, labels, objects, scene_dir: Path, opts, out_dir: Path) -> dict:
+    """Print the four-configuration ablation (paper Table 5) against a generated scene's GT meshes and
+    write it to OUT/geometry_ablation.json."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from splattwin import io
+    from splattwin.geometry.convert import CONFIGS, ablation
+    from splattwin.geometry.synthetic import load_scene_gt
+
+    if not (scene_dir / "scene.json").is_file():
+        raise InputError("not a generated scene (no scene.json)", scene_dir)
+    _, meshes = load_scene_gt(scene_dir)
+    ab = ablation(g, labels, objects, meshes, opts)
+    t = Table(title=f"Fidelity vs ground truth (F1 threshold {opts.f1_threshold * 1000:.0f} mm)")
+    t.add_column("object")
+    for c in CONFIGS:
+        t.add_column(f"{c}: CD mm / F1", justify="right")
+    for name in ab["full"]:
+        t.add_row(name, *[f"{ab[c][name].chamfer * 1e3:.2f} / {ab[c][name].f1:.3f}" for c in CONFIGS])
+    Console().print(t)
+    result = {c: {n: f.to_dict() for n, f in v.items()} for c, v in ab.items()}
+    io.write_json(out_dir / "geometry_ablation.json", result)
+    return result
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -81,12 +115,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cameras", help="cameras file to reference in the manifest (transforms.json)")
     p.add_argument("--frame", default="unscaled", help="twin frame source recorded in the manifest")
     p.add_argument("--formats", default="mjcf,urdf,moveit,gltf", help="exports to write ('' for none)")
+    p.add_argument("--gt-scene", help="generated scene folder: print + save the raw/attribute/cluster/full "
+                                      "fidelity table against its GT meshes")
     p.add_argument("--min-opacity", type=float, default=0.1)
     p.add_argument("--max-scale", type=float, default=None, help="m; default 1.5%% of the scene size")
     p.add_argument("--eps", type=float, default=0.02, help="DBSCAN eps (m)")
     p.add_argument("--min-samples", type=int, default=10, help="DBSCAN min_samples")
     p.add_argument("--alpha", type=float, default=None, help="alpha-shape radius (m); default from point spacing")
-    p.add_argument("--densify", action="store_true", help="sample inside each Gaussian's ellipsoid (thin objects)")
+    p.add_argument("--no-densify", dest="densify", action="store_false",
+                   help="mesh the Gaussian centres only (default: also points sampled inside each ellipsoid)")
+    p.add_argument("--voxel-remesh", action="store_true", help="marching cubes instead of alpha shapes (faster)")
     p.add_argument("--faces", type=int, default=1500, help="collision mesh face budget")
     p.add_argument("--density", type=float, default=500.0, help="kg/m^3 for mass = volume x density")
     p.set_defaults(func=_run)

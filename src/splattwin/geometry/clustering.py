@@ -63,16 +63,33 @@ class Plane:
 
 
 def fit_plane(points: np.ndarray, distance: float = 0.004, iterations: int = 500, max_samples: int = 30000,
-              seed: int = 0) -> Plane:
-    """Dominant plane of points [N,3] by RANSAC (Open3D), refined by least squares on its inliers."""
+              seed: int = 0, max_tilt_deg: float | None = 30.0, tries: int = 4) -> Plane:
+    """Dominant (near-horizontal) plane of points [N,3] by RANSAC (Open3D), refined by least squares.
+
+    max_tilt_deg: planes tilted more than this from the xy plane (walls, box sides) are set aside and the
+    search repeats on the remaining points, up to `tries` planes; None accepts any plane."""
     import open3d as o3d
 
     rng = np.random.default_rng(seed)
     pts = points if len(points) <= max_samples else points[rng.choice(len(points), max_samples, replace=False)]
     o3d.utility.random.seed(seed)
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-    (a, b, c, d), inl = pc.segment_plane(distance_threshold=distance, ransac_n=3, num_iterations=iterations)
-    n = np.array([a, b, c], dtype=np.float64)
+    first = None
+    for _ in range(max(1, tries)):
+        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+        (a, b, c, d), inl = pc.segment_plane(distance_threshold=distance, ransac_n=3, num_iterations=iterations)
+        n = np.array([a, b, c], dtype=np.float64)
+        first = first or (n, pts, inl)
+        if max_tilt_deg is None or abs(n[2]) >= np.cos(np.radians(max_tilt_deg)):
+            break
+        keep = np.ones(len(pts), dtype=bool)
+        keep[np.asarray(inl)] = False
+        if keep.sum() < 3:
+            break
+        pts = pts[keep]
+    else:
+        n, pts, inl = first  # no horizontal plane found: the dominant one
+    if max_tilt_deg is not None and abs(n[2]) < np.cos(np.radians(max_tilt_deg)):
+        n, pts, inl = first
     # least-squares refinement (SVD of the inliers) for an unbiased height
     q = pts[np.asarray(inl)]
     centre = q.mean(axis=0)

@@ -143,6 +143,13 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
         visual = trimesh.Trimesh(visual.vertices, visual.faces, vertex_colors=_vertex_colors(vw, g.means[indices], g.colors[indices]),
                                  process=False)
         collision = simplify(mesh, opts.collision_faces)
+        # re-centre on the collision mesh's own box (same yaw), so the box proxy encloses it exactly
+        lo, hi = collision.bounds
+        c = (lo + hi) / 2
+        collision.apply_translation(-c)
+        visual.apply_translation(-c)
+        T_world_obj = box.T_world_box.copy()
+        T_world_obj[:3, 3] += box.T_world_box[:3, :3] @ c
         timings["mesh"] += time.perf_counter() - t0
         t0 = time.perf_counter()
         if not collision.is_watertight:  # simplify() guarantees this; keep the invariant explicit
@@ -153,7 +160,7 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
             out.volume, out.mass = mass_properties(collision, opts.density)
             out.convexity = convexity(collision)
         timings["decompose"] += time.perf_counter() - t0
-        out.T_world_obj, out.extent = box.T_world_box, box.extent
+        out.T_world_obj, out.extent = T_world_obj, hi - lo
         out.visual, out.collision, out.mesh_method, out.alpha = visual, collision, res.method, res.alpha
     if problem is not None:
         out.usable, out.problem = False, problem

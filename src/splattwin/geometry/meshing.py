@@ -250,7 +250,7 @@ def solid_mesh(points: np.ndarray, pitch: float, alpha: float | None = None, alp
                               stacklevel=2)
             return MeshResult(m, "voxel_remesh", spacing=pitch, notes=notes)
         notes.append("voxel remesh not a single closed volume")
-    except (ValueError, RuntimeError) as e:
+    except (ValueError, RuntimeError, ImportError) as e:  # ImportError: scikit-image missing
         notes.append(f"voxel remesh failed: {e}")
     warnings.warn(MeshRepairWarning(f"{name}: {'; '.join(notes)}; using the convex hull"), stacklevel=2)
     return MeshResult(trimesh.convex.convex_hull(points), "convex_hull", spacing=pitch, notes=notes)

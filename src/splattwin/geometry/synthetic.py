@@ -52,8 +52,10 @@ def _gaussians(means, rng, rgb, scale=0.0015, opacity=(0.5, 1.0)) -> dict:
                 sh=np.repeat(rgb_to_sh0(np.asarray(rgb))[None, None], n, axis=0))
 
 
-def synthetic_scene(n_total: int = 40000, seed: int = 0, artefacts: bool = True):
-    """(Gaussians, labels [N], objects [(name, label, prompt)], gt meshes {name: mesh})."""
+def synthetic_scene(n_total: int = 40000, seed: int = 0, artefacts: bool = True, obstacle: bool = False):
+    """(Gaussians, labels [N], objects [(name, label, prompt)], gt meshes {name: mesh}).
+
+    obstacle: add an unlabelled 4 x 4 x 20 cm post standing on the table (background, label 0)."""
     rng = np.random.default_rng(seed)
     meshes = scene_meshes()
     objects = [("box", 1, "blue box"), ("cube", 2, "yellow cube"), ("hammer", 3, "toy hammer")]
@@ -94,6 +96,12 @@ def synthetic_scene(n_total: int = 40000, seed: int = 0, artefacts: bool = True)
             fl = c + rng.normal(0, 0.006, (k // 2, 3))
             parts.append(_gaussians(fl, rng, colours[name]))
             labels.append(np.full(len(fl), label, np.int32))
+    if obstacle:
+        post = trimesh.creation.box([0.04, 0.04, 0.2])
+        post.apply_translation([-0.35, 0.3, 0.1])
+        pts = _surface(post, 3000, rng) + rng.normal(0, 0.0005, (3000, 3))
+        parts.append(_gaussians(pts, rng, (0.3, 0.3, 0.3)))
+        labels.append(np.zeros(len(pts), np.int32))
     if artefacts:  # background floaters and haze
         fl = np.array([0.0, 0.3, 0.25]) + rng.normal(0, 0.01, (300, 3))
         parts.append(_gaussians(fl, rng, (0.5, 0.5, 0.5)))

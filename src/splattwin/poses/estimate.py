@@ -203,7 +203,8 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         in_cams = {n: _with_pose(f.camera, f.camera.T_world_cam, opts) for f, n in zip(frames, names)}
         pts_xyz, pts_rgb = dataset.points_xyz, dataset.points_rgb
         stats.update(registered=len(in_cams))
-        prior = dataset.meta.get("frame") if isinstance(dataset.meta.get("frame"), dict) else _frame_beside(dataset)
+        meta_frame = dataset.meta.get("frame")
+        prior = Frame(**meta_frame) if isinstance(meta_frame, dict) else _frame_beside(dataset)
         # A COLMAP model is SfM output: arbitrary scale unless a frame.json beside it says otherwise.
         input_scaled = prior is not None or dataset.meta.get("format") != "colmap"
         frame = prior or (Frame(source="known_poses", scaled=True, scale_uncertainty_rel=None,
@@ -235,7 +236,8 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
 
         cams = [in_cams[n] for n in order]
         imgs = [load_image(frames[names.index(n)].image_path) for n in order]
-        mf = fit_marker(cams, imgs, opts.marker_size, opts.marker_dict, opts.marker_id, where=dataset.root)
+        mf = fit_marker(cams, imgs, opts.marker_size, opts.marker_dict, opts.marker_id, where=dataset.root,
+                        pixel_sigma_floor=float(stats.get("mean_reproj_error", 0.0)))
         T_out_in = align.sim3_inverse(mf.S_sfm_marker)
         frame = Frame(source="marker", scaled=True, scale_uncertainty_rel=mf.scale_uncertainty_rel,
                       description=f"ArUco {opts.marker_dict} id {opts.marker_id} ({opts.marker_size * 1000:.1f} mm) frame: "
@@ -349,7 +351,8 @@ def _with_pose(cam: Camera, T_world_cam: np.ndarray, opts: PoseOptions) -> Camer
 
 
 def _robot_cameras(opts: PoseOptions, frames: list[DataFrame], names: list[str], dataset: Dataset) -> dict[str, np.ndarray]:
-    from splattwin.poses.robot import load_hand_eye, load_robot_poses, match_to_images
+    from splattwin.poses.robot import (RobotPose, camera_poses_in_base, load_hand_eye, load_robot_poses,
+                                       match_to_images)
 
     poses, inline = load_robot_poses(opts.robot_poses)
     if opts.hand_eye is not None:
@@ -364,7 +367,9 @@ def _robot_cameras(opts: PoseOptions, frames: list[DataFrame], names: list[str],
                     "accurate cameras")
     image_names = [Path(f.image_path).name for f in frames]
     by_name = match_to_images(poses, image_names, Path(opts.robot_poses))
-    return {names[image_names.index(n)]: T @ T_ee_cam for n, T in by_name.items()}
+    keys = list(by_name)
+    T_base_cam = camera_poses_in_base([RobotPose(by_name[k], k) for k in keys], T_ee_cam)
+    return {names[image_names.index(k)]: T for k, T in zip(keys, T_base_cam)}
 
 
 def plot_cameras(result: PoseResult, path: str | Path) -> Path:

@@ -61,15 +61,6 @@ def quat_to_matrix(q_wxyz: np.ndarray) -> np.ndarray:
     ])
 
 
-def matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    """Rotation matrix [3,3] -> unit quaternion (w, x, y, z) with w >= 0."""
-    from scipy.spatial.transform import Rotation
-
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
-    q = np.array([w, x, y, z])
-    return q if q[0] >= 0 else -q
-
-
 def parse_transform(obj: Any, where: Path, what: str, matrix_key: str) -> np.ndarray:
     """A rigid transform [4,4] from a 4x4 (or 3x4) nested list, {matrix_key: 4x4}, or position + quaternion."""
     if isinstance(obj, dict):

@@ -154,7 +154,9 @@ def scale_from_known_length(known: KnownLength, cameras: dict[str, Camera], plan
         if np.any(h <= 0):
             raise InputError("a camera lies below the table plane; camera_height cannot be used")
         measured = float(h.mean())
-        unc = plane_rms / measured / np.sqrt(max(len(h), 1))
+        # Plane-fit scatter plus SfM centre noise (~ reprojection error x depth / f per camera).
+        f = float(np.mean([c.fx for c in cams]))
+        unc = np.hypot(plane_rms / measured, max(mean_reproj_px, 0.1) / f) / np.sqrt(len(h))
         note = f"mean camera height above the table over {len(h)} camera(s)"
     else:
         a, b = find(known.images[0]), find(known.images[1])

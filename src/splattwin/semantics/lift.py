@@ -118,7 +118,7 @@ def fuse_to_dir(splats: str | Path, dataset: str | Path, masks: str | Path | Mas
         if maps_renderer not in RENDERERS:
             raise InputError(f"unknown label-map renderer {maps_renderer!r}; choose one of {', '.join(RENDERERS)}")
         mr = maps_renderer if maps_renderer != "auto" else ("splat" if rasterizer_usable() else "points")
-        summary.update(write_label_maps(g, labels, ds.frames, res.names, out_dir, renderer=mr))
+        summary.update(write_label_maps(g, labels, ds.frames, res.names, out_dir, renderer=mr, progress=progress))
     summary["seconds_total"] = time.perf_counter() - t0
     meta = json.loads((out_dir / "fusion.json").read_text())
     meta.update(summary)
@@ -128,15 +128,17 @@ def fuse_to_dir(splats: str | Path, dataset: str | Path, masks: str | Path | Mas
 
 
 def write_label_maps(g, labels: np.ndarray, frames: Sequence, names: dict[int, str], out_dir: Path,
-                     renderer: str = "points") -> dict:
+                     renderer: str = "points", progress: bool = False) -> dict:
     """Render and save label maps for all frames; mIoU per split when the frames carry GT label images."""
     from splattwin.capture import load_image
     from splattwin.semantics.metrics import miou
 
+    from tqdm import tqdm
+
     n = max(names, default=0)
-    maps = render_label_maps(g, labels, [f.camera for f in frames], n, renderer=renderer)
     scores: dict[str, list] = {}
-    for f, lab in zip(frames, maps):
+    for f in tqdm(frames, desc="label maps", unit="view", disable=not progress):
+        lab = render_label_maps(g, labels, [f.camera], n, renderer=renderer)[0]
         img = None
         try:
             img = load_image(f.image_path)

@@ -148,6 +148,14 @@ class RefineResult:
     pruned: int = 0
 
 
+def size_limit(model: GaussianModel) -> torch.Tensor:
+    """[N] scene scale, growing linearly with the distance from the scene centre beyond the scene radius:
+    background Gaussians far away (e.g. on the far sphere of the depth init) are large in metres but not
+    on screen, and must not be pruned as 'too big'."""
+    d = (model.params["means"].detach() - model.scene_center.to(model.device)).norm(dim=1)
+    return torch.clamp_min(d, model.scene_scale)
+
+
 def refine(model: GaussianModel, state: DensifyState, cfg: DensifyConfig, step: int,
            generator: torch.Generator | None = None) -> RefineResult:
     """One densification round (clone, split, prune); resets the statistics."""
@@ -169,7 +177,7 @@ def refine(model: GaussianModel, state: DensifyState, cfg: DensifyConfig, step: 
         split(model, split_sel, generator, cfg.split_factor)
         prune = torch.sigmoid(model.params["opacities"].detach()) < cfg.prune_opacity
         if step > cfg.reset_every:
-            prune |= model.params["scales"].detach().exp().max(dim=1).values > cfg.prune_scale3d * model.scene_scale
+            prune |= model.params["scales"].detach().exp().max(dim=1).values > cfg.prune_scale3d * size_limit(model)
         res.pruned = int(prune.sum())
         if res.pruned:
             remove(model, ~prune)

@@ -42,9 +42,12 @@ class GaussianModel:
     """Raw parameters + their Adam optimizers. `params[name]` is a leaf `torch.nn.Parameter`."""
 
     def __init__(self, params: dict[str, torch.Tensor], lrs: LearningRates | None = None,
-                 scene_scale: float = 1.0, device: str | torch.device = "cpu"):
+                 scene_scale: float = 1.0, device: str | torch.device = "cpu",
+                 scene_center: torch.Tensor | None = None):
         self.lrs = lrs or LearningRates()
         self.scene_scale = float(scene_scale)
+        self.scene_center = torch.zeros(3) if scene_center is None else torch.as_tensor(scene_center,
+                                                                                         dtype=torch.float32)
         self.params: dict[str, torch.nn.Parameter] = {
             k: torch.nn.Parameter(params[k].detach().to(device=device, dtype=torch.float32).contiguous())
             for k in PARAM_NAMES}
@@ -114,7 +117,8 @@ class GaussianModel:
     def state_dict(self) -> dict:
         return {"params": {k: v.detach().clone() for k, v in self.params.items()},
                 "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
-                "scene_scale": self.scene_scale, "lrs": vars(self.lrs).copy()}
+                "scene_scale": self.scene_scale, "scene_center": self.scene_center.clone(),
+                "lrs": vars(self.lrs).copy()}
 
     @property
     def device(self) -> torch.device:
@@ -122,7 +126,8 @@ class GaussianModel:
 
     @classmethod
     def from_state_dict(cls, sd: dict, device: str | torch.device = "cpu") -> GaussianModel:
-        m = cls(sd["params"], lrs=LearningRates(**sd["lrs"]), scene_scale=sd["scene_scale"], device=device)
+        m = cls(sd["params"], lrs=LearningRates(**sd["lrs"]), scene_scale=sd["scene_scale"], device=device,
+                scene_center=sd.get("scene_center"))
         for k, o in m.optimizers.items():
             o.load_state_dict(sd["optimizers"][k])
         return m

@@ -25,25 +25,65 @@ def hat(xi: torch.Tensor) -> torch.Tensor:
     return torch.cat([top, bottom], dim=-2)
 
 
+def adjoint(T: torch.Tensor) -> torch.Tensor:
+    """[..., 4, 4] rigid transforms -> [..., 6, 6] adjoints: T exp(xi^) T^-1 = exp((Ad_T xi)^), xi = (rho, phi)."""
+    R, t = T[..., :3, :3], T[..., :3, 3]
+    tx = hat(torch.cat([torch.zeros_like(t), t], dim=-1))[..., :3, :3]
+    top = torch.cat([R, tx @ R], dim=-1)
+    bottom = torch.cat([torch.zeros_like(R), R], dim=-1)
+    return torch.cat([top, bottom], dim=-2)
+
+
 def se3_exp(xi: torch.Tensor) -> torch.Tensor:
     """[..., 6] twists -> [..., 4, 4] rigid transforms."""
     return torch.linalg.matrix_exp(hat(xi))
 
 
 class PoseCorrection:
-    """Learnable corrections for C cameras with their own Adam optimizer (small learning rate)."""
+    """Learnable corrections for C cameras, each with its own Adam optimizer (small learning rate).
+
+    Per-camera optimizers because a training step renders one camera: with one shared Adam, the
+    momentum of cameras not seen in this step would keep moving them (about 10x their last step over
+    the following steps), and all cameras drift together with the scene. `step(idx)` updates only the
+    cameras that were rendered.
+    """
 
     def __init__(self, n_cameras: int, lr: float = 1e-3, device: str | torch.device = "cpu"):
-        self.xi = torch.nn.Parameter(torch.zeros(n_cameras, 6, device=device))
-        self.optimizer = torch.optim.Adam([self.xi], lr=lr)
+        self.params = [torch.nn.Parameter(torch.zeros(6, device=device)) for _ in range(n_cameras)]
+        self.optimizers = [torch.optim.Adam([p], lr=lr) for p in self.params]
 
-    def apply(self, viewmats: torch.Tensor, idx: torch.Tensor | list[int]) -> torch.Tensor:
+    @property
+    def xi(self) -> torch.Tensor:
+        """[C,6] current twists (a differentiable stack)."""
+        return torch.stack(self.params)
+
+    def apply(self, viewmats: torch.Tensor, idx: list[int]) -> torch.Tensor:
         """Corrected world->camera matrices for cameras `idx`: exp(xi[idx]) @ viewmats [C,4,4]."""
-        return se3_exp(self.xi[idx]) @ viewmats
+        return se3_exp(torch.stack([self.params[i] for i in idx])) @ viewmats
 
-    def step(self) -> None:
-        self.optimizer.step()
-        self.optimizer.zero_grad(set_to_none=True)
+    def step(self, idx: list[int]) -> None:
+        for i in idx:
+            self.optimizers[i].step()
+            self.optimizers[i].zero_grad(set_to_none=True)
+
+    def remove_common_motion(self, T_cam_world: torch.Tensor) -> None:
+        """Remove the rigid motion shared by all cameras (the gauge freedom: moving every camera and the
+        scene together changes no image), so the refined rig stays in the input world frame.
+
+        Camera c's correction is the world-frame motion exp(w_c^), w_c = Ad(T_world_cam_c) xi_c; the mean
+        w over cameras is subtracted: xi_c -= Ad(T_cam_world_c) mean(w) (first order in the mean)."""
+        if len(self.params) < 2:
+            return
+        with torch.no_grad():
+            T = T_cam_world.to(torch.float64)
+            Rt = T[:, :3, :3].transpose(1, 2)
+            T_wc = torch.zeros_like(T)
+            T_wc[:, :3, :3], T_wc[:, :3, 3], T_wc[:, 3, 3] = Rt, -(Rt @ T[:, :3, 3:])[..., 0], 1.0
+            xi = self.xi.detach().to(torch.float64)
+            w = (adjoint(T_wc) @ xi[..., None])[..., 0]
+            fix = (adjoint(T) @ w.mean(0)[None, :, None])[..., 0]
+            for p, d in zip(self.params, fix):
+                p.sub_(d.to(p.dtype))
 
     def corrected(self, T_cam_world: np.ndarray) -> np.ndarray:
         """Corrected world->camera matrices [C,4,4] (numpy float64) for all cameras."""
@@ -52,9 +92,11 @@ class PoseCorrection:
         return E @ np.asarray(T_cam_world, dtype=np.float64)
 
     def state_dict(self) -> dict:
-        return {"xi": self.xi.detach().clone(), "optimizer": self.optimizer.state_dict()}
+        return {"xi": self.xi.detach().cpu().clone(), "optimizers": [o.state_dict() for o in self.optimizers]}
 
     def load_state_dict(self, sd: dict) -> None:
         with torch.no_grad():
-            self.xi.copy_(sd["xi"].to(self.xi.device))
-        self.optimizer.load_state_dict(sd["optimizer"])
+            for p, v in zip(self.params, sd["xi"]):
+                p.copy_(v.to(p.device))
+        for o, s in zip(self.optimizers, sd["optimizers"]):
+            o.load_state_dict(s)

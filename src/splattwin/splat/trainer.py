@@ -60,6 +60,7 @@ class TrainConfig:
     checkpoint_every: int = 500
     refine_poses: bool = False
     pose_lr: float = 1e-3
+    pose_start: float = 0.2
     ssim_lambda: float = 0.2
     max_gaussians: int = 60_000
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -180,7 +181,8 @@ class Trainer:
             seed=cfg.seed)
         torch.manual_seed(cfg.seed)
         self.model = GaussianModel.from_gaussians(g, max_sh_degree=cfg.sh_degree, lrs=cfg.lrs,
-                                                  scene_scale=self.scene_scale, device=self.device)
+                                                  scene_scale=self.scene_scale, device=self.device,
+                                                  scene_center=torch.tensor(self.scene_center))
         self.dstate = DensifyState(len(self.model), self.device)
         self.split_gen = torch.Generator().manual_seed(cfg.seed)
         self.view_gen = torch.Generator().manual_seed(cfg.seed + 1)
@@ -254,7 +256,7 @@ class Trainer:
         v = self.views[idx]
         act = self.model.activated()
         viewmat = self.viewmats[idx:idx + 1]
-        if self.poses is not None:
+        if self.poses is not None and self.step >= self.cfg.pose_start * self.cfg.iters:
             viewmat = self.poses.apply(viewmat, [idx])
         colors, alphas, meta = rasterization(
             act["means"], act["quats"], act["scales"], act["opacities"], act["sh"], viewmat,
@@ -278,8 +280,9 @@ class Trainer:
                                    self.views[idx].camera.height)
         self.model.step()
         self.model.zero_grad()
-        if self.poses is not None:
-            self.poses.step()
+        if self.poses is not None and s > self.cfg.pose_start * cfg.iters:  # after a warm-up of the scene
+            self.poses.step([idx])
+            self.poses.remove_common_motion(self.viewmats)
         info = {"step": s, "loss": float(loss.detach()), "psnr": psnr_from_mse(float(((img.detach() - gt) ** 2).mean())),
                 "n": len(self.model)}
         if densifying and s > self.dcfg.refine_start and s % self.dcfg.refine_every == 0:
@@ -322,6 +325,8 @@ class Trainer:
                     self.save_checkpoint()
                 if callback is not None:
                     callback(info)
+        if cfg.checkpoint_every and self.step % cfg.checkpoint_every != 0:
+            self.save_checkpoint()  # so that --resume on a finished run does no work
         wall = time.perf_counter() - t0
         return self._write_outputs(wall, ema_loss, ema_psnr)
 

@@ -50,14 +50,27 @@ def write_mesh(path: Path, mesh: trimesh.Trimesh) -> Path:
 
 
 def _write_parts(folder: Path, parts: list, twin_dir: Path) -> list[str]:
-    if folder.exists():  # stale parts of an earlier build must not survive
-        shutil.rmtree(folder)
-    rels = []
-    for i, p in enumerate(parts):
-        path = folder / f"part_{i:03d}.obj"
-        write_mesh(path, p)
-        rels.append(path.relative_to(twin_dir).as_posix())
-    return rels
+    """Write part_XXX.obj into a fresh temporary folder, then swap it in: stale parts of an earlier build
+    never survive and a killed build leaves the old complete set."""
+    import tempfile
+
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
+    try:
+        for i, p in enumerate(parts):
+            p.export(tmp / f"part_{i:03d}.obj", file_type="obj")
+        old = folder.with_name(f".{folder.name}.old")
+        if old.exists():
+            shutil.rmtree(old)
+        if folder.exists():
+            folder.rename(old)
+        tmp.rename(folder)
+        if old.exists():
+            shutil.rmtree(old)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+    return [(folder / f"part_{i:03d}.obj").relative_to(twin_dir).as_posix() for i in range(len(parts))]
 
 
 def write_geometry(conv: Conversion, g, labels: np.ndarray, out_dir: Path, frame: Frame,
@@ -97,11 +110,16 @@ def write_geometry(conv: Conversion, g, labels: np.ndarray, out_dir: Path, frame
             bg.convex_parts = _write_parts(out_dir / "background" / "parts", b.parts, out_dir)
     cams = None
     if cameras_path is not None:
-        cp = Path(cameras_path)  # referenced, not copied: relative when inside the twin folder
-        try:
-            cams = cp.resolve().relative_to(out_dir.resolve()).as_posix()
-        except ValueError:
-            cams = str(cp.resolve())
+        # referenced, not copied: relative when inside the twin folder (a relative path that exists
+        # inside the twin folder is taken as relative to it)
+        cp = Path(cameras_path)
+        if not cp.is_absolute() and (out_dir / cp).exists():
+            cams = cp.as_posix()
+        else:
+            try:
+                cams = cp.resolve().relative_to(out_dir.resolve()).as_posix()
+            except ValueError:
+                cams = str(cp.resolve())
     return Manifest(frame=frame, objects=entries, background=bg, cameras=cams, splats="splat/point_cloud.ply",
                     labels="semantics/labels.npy", config={"geometry": conv.options.to_dict()},
                     versions=package_versions(), timings={f"geometry.{k}": round(float(v), 4) for k, v in conv.timings.items()})

@@ -92,7 +92,7 @@ def scene_objects(twin_dir: Path, manifest: Manifest, boxes: bool = False) -> li
         else:
             m = trimesh.load(twin_dir / o.collision_mesh, force="mesh")
             shape = Shape("mesh", np.eye(4), vertices=np.asarray(m.vertices), faces=np.asarray(m.faces), color=color)
-        objs.append(SceneObject(o.name, o.pose, [shape]))
+        objs.append(SceneObject("_".join(o.name.split()), o.pose, [shape]))  # ids are whitespace-free tokens
     return objs
 
 

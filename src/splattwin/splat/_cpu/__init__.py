@@ -197,7 +197,7 @@ class _Rasterize(torch.autograd.Function):
         out = np.empty((N, 6 + D), np.float32)
         for c in range(C):
             srt, tile_start, isect_gauss, gauss_isect, gauss_off = saved[c]
-            isect_grad = np.empty((isect_gauss.shape[0], 6 + D), np.float64)
+            isect_grad = np.empty((isect_gauss.shape[0], 6 + D), np.float32)  # summed in float64
             K_.raster_bwd(*srt, tile_start, isect_gauss, _tile_perm(len(tile_start) - 1), W, H, final_T[c], last[c],
                           vr[c], va[c], isect_grad)
             K_.reduce_isect_grads(isect_grad, gauss_isect, gauss_off, out)
