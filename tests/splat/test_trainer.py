@@ -95,6 +95,8 @@ def test_training_reduces_loss_and_writes_ply(synth, tmp_path):
     g = Gaussians.load_ply(tmp_path / "out" / "point_cloud.ply")
     assert len(g) == len(res.gaussians) and g.sh_degree == 1
     assert (tmp_path / "out" / "train.json").is_file()
+    from PIL import Image
+    assert Image.open(tmp_path / "out" / "train_curves.png").size == (640, 240)
 
 
 def test_deterministic_and_resume_equivalent(synth, tmp_path):

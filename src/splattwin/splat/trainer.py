@@ -6,7 +6,8 @@ states are checkpointed together with parameters, Adam moments, densification st
 so a run resumed from a checkpoint reproduces the uninterrupted run (on the CPU backend).
 
 Outputs in OUT: point_cloud.ply (standard 3DGS), train.json (config, statistics), refined_poses.json
-(with --refine-poses), checkpoints/ckpt_XXXXXX.pt (the two newest are kept).
+(with --refine-poses), train_curves.png (PSNR and Gaussian count), checkpoints/ckpt_XXXXXX.pt (the two
+newest are kept).
 """
 
 from __future__ import annotations
@@ -130,6 +131,34 @@ def load_views(frames: list[Frame], resolution: int = 1) -> list[TrainView]:
             img = np.asarray(pil, dtype=np.float32) / 255.0
         views.append(TrainView(f.name, torch.from_numpy(np.ascontiguousarray(img)), cam))
     return views
+
+
+def plot_history(history: list[dict], path: str | Path, width: int = 640, height: int = 240) -> Path:
+    """PNG of the training curves: PSNR (blue, left half) and Gaussian count (green, right half) vs step."""
+    from PIL import Image, ImageDraw
+
+    from splattwin.io import write_image
+
+    img = Image.new("RGB", (width, height), "white")
+    d = ImageDraw.Draw(img)
+    half = width // 2
+    steps = [h["step"] for h in history] or [0]
+    for k, (key, colour, x0) in enumerate((("psnr", (30, 90, 200), 0), ("n", (30, 150, 60), half))):
+        vals = [float(h[key]) for h in history if math.isfinite(float(h[key]))]
+        d.rectangle([x0 + 40, 20, x0 + half - 10, height - 30], outline=(160, 160, 160))
+        d.text((x0 + 45, 4), "train PSNR (dB)" if key == "psnr" else "Gaussians", fill=colour)
+        if len(vals) < 2:
+            continue
+        lo, hi = min(vals), max(vals)
+        hi = hi if hi > lo else lo + 1
+        d.text((x0 + 2, 20), f"{hi:.0f}", fill=(0, 0, 0))
+        d.text((x0 + 2, height - 40), f"{lo:.0f}", fill=(0, 0, 0))
+        d.text((x0 + half - 60, height - 25), f"step {steps[-1]}", fill=(0, 0, 0))
+        pts = [(x0 + 40 + (half - 50) * (h["step"] - steps[0]) / max(steps[-1] - steps[0], 1),
+                height - 30 - (height - 50) * (float(h[key]) - lo) / (hi - lo))
+               for h in history if math.isfinite(float(h[key]))]
+        d.line(pts, fill=colour, width=2)
+    return write_image(path, np.asarray(img))
 
 
 def _latest_checkpoint(out_dir: Path) -> Path | None:
@@ -339,6 +368,7 @@ class Trainer:
             T_cw = self.poses.corrected(np.stack([v.camera.T_cam_world for v in self.views]))
             refined = {v.name: invert_se3(T).tolist() for v, T in zip(self.views, T_cw)}
             write_json(self.out_dir / "refined_poses.json", {"convention": "T_world_cam, OpenCV", "poses": refined})
+        plot_history(self.history, self.out_dir / "train_curves.png")
         write_json(self.out_dir / "train.json", {
             "dataset": str(self.dataset.root), "config": self.cfg.to_dict(), "backend": self.backend,
             "init_method": self.init_method, "steps": self.step, "gaussians": len(g), "wall_s": round(wall, 3),
