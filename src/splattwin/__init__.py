@@ -11,4 +11,9 @@ import os as _os
 # in between (measured: ~2x slower training steps on 2 cores). Must be set before torch loads.
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+# MuJoCo picks its GL backend when first imported: without a display, use EGL (headless Mesa works)
+# so the robot stage can render frames whichever stage imported mujoco first.
+if "MUJOCO_GL" not in _os.environ and not _os.environ.get("DISPLAY"):
+    _os.environ["MUJOCO_GL"] = "egl"
+
 __version__ = "0.1.0"

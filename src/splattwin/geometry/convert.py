@@ -112,9 +112,14 @@ def _vertex_colors(vertices_world: np.ndarray, means: np.ndarray, colors: np.nda
 
 
 def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: GeometryOptions, prompt: str = "",
-                    timings: dict | None = None) -> ObjectGeometry:
+                    timings: dict | None = None, support_z: float | None = None) -> ObjectGeometry:
     """Stages 3-4 for one object from its cleaned Gaussians `g[indices]`. Never raises on bad data:
-    returns usable=False with `problem` and emits ObjectUnusableWarning."""
+    returns usable=False with `problem` and emits ObjectUnusableWarning.
+
+    support_z: height of the table top (twin frame). Nothing physical lies below it, so points under it
+    (reconstruction noise) are dropped, and an object resting on it gets its unseen bottom closed
+    exactly at the table instead of a few millimetres inside it (which would make a gripper reaching
+    for a small object graze the table, and make the object pop up in physics)."""
     timings = timings if timings is not None else defaultdict(float)
     out = ObjectGeometry(name=name, label=int(label), prompt=prompt, indices=np.asarray(indices, dtype=np.int64))
     pts = g.means[indices]
@@ -126,8 +131,14 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
             pts = np.concatenate([pts, densify_gaussians(pts, g.subset(indices).rotation_matrices(), g.scales[indices],
                                                          opts.densify_samples, opts.densify_sigma, seed=opts.seed)])
         mpts = downsample(pts, pitch / 2)
+        z_floor = None
+        if support_z is not None:
+            above = mpts[mpts[:, 2] >= support_z]
+            mpts = above if len(above) >= 4 else mpts
+            if mpts[:, 2].min() - support_z < opts.rest_gap:
+                z_floor = support_z
         if opts.close_bottom:
-            mpts = add_bottom(mpts, pitch / 2)
+            mpts = add_bottom(mpts, pitch / 2, z_floor=z_floor)
         box = yaw_obb(mpts)
         T_obj_world = np.linalg.inv(box.T_world_box)
         local = mpts @ T_obj_world[:3, :3].T + T_obj_world[:3, 3]
@@ -222,6 +233,16 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
     results = []
     with Progress(disable=not progress, transient=True) as bar:
         task = bar.add_task("geometry", total=len(objects) + int(background))
+        # Background first: its table height is the support plane the objects are clipped to.
+        bg = None
+        if background:
+            bar.update(task, description="geometry: background")
+            t1 = time.perf_counter()
+            bidx = np.flatnonzero((labels == 0) & keep)
+            bg = background_geometry(g, bidx, opts, table_thickness)
+            timings["background"] = time.perf_counter() - t1
+            bar.advance(task)
+        support_z = bg.table_height if bg is not None and bg.plane is not None else None
         for obj in objects:
             name, label, prompt = (tuple(obj) + ("",))[:3]
             bar.update(task, description=f"geometry: {name}")
@@ -233,16 +254,8 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
                                    problem=f"missing label: no Gaussian carries label {label}")
                 warnings.warn(ObjectUnusableWarning(f"object {name!r}: {r.problem}"), stacklevel=2)
             else:
-                r = object_geometry(g, idx, name, label, opts, prompt, timings)
+                r = object_geometry(g, idx, name, label, opts, prompt, timings, support_z=support_z)
             results.append(r)
-            bar.advance(task)
-        bg = None
-        if background:
-            bar.update(task, description="geometry: background")
-            t1 = time.perf_counter()
-            bidx = np.flatnonzero((labels == 0) & keep)
-            bg = background_geometry(g, bidx, opts, table_thickness)
-            timings["background"] = time.perf_counter() - t1
             bar.advance(task)
     timings["total"] = time.perf_counter() - t0
     return Conversion(objects=results, background=bg, filter_stats=stats, options=opts, timings=dict(timings))

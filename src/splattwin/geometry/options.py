@@ -38,6 +38,7 @@ class GeometryOptions:
     use_alpha: bool = True              # False: voxel remesh (marching cubes) directly
     alpha_max_points: int = 8000        # coarser voxel for bigger objects (Delaunay cost ~ points)
     close_bottom: bool = True           # add the unseen footprint under an object resting on the table
+    rest_gap: float = 0.01              # an object whose lowest point is within this of the table rests on it (m)
     densify: bool = True                # sample points inside each Gaussian's ellipsoid (covers gaps)
     densify_samples: int = 4
     densify_sigma: float = 1.0          # samples clipped at this many standard deviations

@@ -1,14 +1,19 @@
 """Parallel-jaw grasp synthesis on an object's collision mesh.
 
 Candidates (object frame, metres):
-* top-down: approach along -z_obj, closing axis along one of the two horizontal principal axes, grasp
-  centres spaced along the other axis, the pads `depth` below the local top surface;
+* top-down: approach along -z_obj, closing axis along one of the two horizontal principal axes. Grasp
+  stations are spaced along the other axis; at each station a row of downward rays across the closing
+  axis finds the runs of material (a handle off the box's centre line, a hammer head) and the jaws are
+  centred on each run that fits the gripper. The pads go `depth` below the run's top, but never so low
+  that the fingertips (which reach `tip_depth` beyond the TCP) come closer than `floor_clearance` to the
+  support surface `floor` (the planner's margin must hold against the table in the closed pose);
 * side: approach horizontally along a principal axis, closing along the other, at mid-height.
 
-Each candidate is checked by ray casting onto the mesh (trimesh/embree): the two jaw rays along the
-closing axis must hit surfaces whose normals lie within the friction cone of the closing direction
-(antipodal), the width between the contacts must fit the opened gripper with clearance, and extra rays
-over the pad area must find the same surface (no grasping a corner or an edge in mid-air).
+Each candidate is checked by ray casting onto the mesh (trimesh): the two jaw rays start where the opened
+pads are (±max_width/2 along the closing axis) and must hit surfaces facing them whose normals lie within
+the friction cone of the closing direction (antipodal; a pad that would land on material finds a back
+face and is rejected), the width between the contacts must fit the opened gripper with clearance, and
+extra rays over the pad area must find the same surface (no grasping a corner or an edge in mid-air).
 
 Frames: T_obj_tcp maps TCP-frame points to the object frame. TCP frame: z = approach direction (out of
 the hand, towards the object), y = closing axis (finger motion), x = y × z — the Panda hand's convention.
@@ -24,7 +29,10 @@ import numpy as np
 
 FRICTION_CONE = math.atan(0.6)     # rad: half-angle accepted between contact normal and closing axis
 PAD_HALF = 0.008                   # m, half-size of a Panda fingertip pad (rays over the pad area)
-MIN_TCP_ABOVE_BOTTOM = 0.0145      # m: pads (±8.5 mm) stay >= 6 mm above the support surface
+TIP_DEPTH = 0.009                  # m: Panda finger geometry beyond the TCP along the approach (8.9 mm)
+FLOOR_CLEARANCE = 0.0065           # m: fingertips above the support: 5 mm planning margin + 1.5 mm
+MIN_GRIP_DEPTH = 0.004             # m: the TCP (pad centre) at least this far below the local top
+SCAN_STEP = 0.003                  # m between the downward rays that find material runs at a station
 CLEARANCE = 0.008                  # m, opened jaw minus object width, per side total
 
 
@@ -82,11 +90,16 @@ def _cast(intersector, origins: np.ndarray, dirs: np.ndarray, mesh) -> tuple[np.
 
 
 def synthesize(vertices: np.ndarray, faces: np.ndarray, max_width: float = 0.08, spacing: float = 0.01,
-               depth: float = 0.02, side: bool = True) -> list[Grasp]:
+               depth: float = 0.02, side: bool = True, floor: float | None = None, tip_depth: float = TIP_DEPTH,
+               floor_clearance: float = FLOOR_CLEARANCE, com: np.ndarray | None = None) -> list[Grasp]:
     """Antipodal parallel-jaw grasp candidates on a mesh (object frame), unranked except by geometry score.
 
     vertices [N,3], faces [M,3]: the collision mesh in the object frame (z up when resting).
     max_width: gripper opening (m); depth: how far the pad centres go below the local top (m).
+    floor: z (object frame, m) of the surface the object rests on; default the mesh's bottom.
+    tip_depth: how far the finger geometry reaches beyond the TCP along the approach (m).
+    floor_clearance: fingertips of top grasps stay this far above `floor` (m).
+    com: centre of mass [3] for scoring (default: the mesh's, or its bounding-box centre if not watertight).
     """
     import trimesh
 
@@ -95,19 +108,22 @@ def synthesize(vertices: np.ndarray, faces: np.ndarray, max_width: float = 0.08,
     V = np.asarray(mesh.vertices)
     lo, hi = V.min(axis=0), V.max(axis=0)
     centre = (lo + hi) / 2
-    com = mesh.center_mass if mesh.is_watertight else centre
+    if com is None:
+        com = mesh.center_mass if mesh.is_watertight else centre
+    com = np.asarray(com, float)
+    floor = float(lo[2]) if floor is None else max(float(floor), float(lo[2]))
     a1, a2 = principal_axes_xy(mesh.convex_hull.vertices)
-    reach = float(np.linalg.norm(hi - lo)) + 0.05
     out: list[Grasp] = []
     z_dn = np.array([0.0, 0.0, -1.0])
 
     def try_grasp(p: np.ndarray, approach: np.ndarray, closing: np.ndarray, kind: str) -> None:
         c = closing / np.linalg.norm(closing)
-        origins = np.stack([p + c * reach, p - c * reach])
+        # the jaw rays start at the opened pads: material between them is grasped, material under a pad
+        # makes the ray start inside and hit a back face (rejected by the friction-cone test below)
+        origins = np.stack([p + c * max_width / 2, p - c * max_width / 2])
         hit, pts, nrm = _cast(inter, origins, np.stack([-c, c]), mesh)
         if not hit.all():
             return
-        # contacts are the outermost surfaces along the closing axis (jaws come from outside)
         width = float((pts[0] - pts[1]) @ c)
         if not (0.004 < width <= max_width - CLEARANCE):
             return
@@ -131,29 +147,46 @@ def synthesize(vertices: np.ndarray, faces: np.ndarray, max_width: float = 0.08,
         score = (1.0 if kind == "top" else 0.6) - 2.0 * off_com - 0.5 * width / max_width
         out.append(Grasp(T, width, kind, score, pts.copy()))
 
-    # top-down grasps
+    # top-down grasps: stations along one axis, jaws centred on each material run across the other
+    z_min = floor + tip_depth + floor_clearance
     for closing, along in ((a2, a1), (a1, a2)):
-        ext = np.ptp(V @ along)
+        u, v = V @ along, V @ closing
+        ext = float(np.ptp(u))
+        inset = PAD_HALF + 0.004
         n = max(1, int(ext / spacing))
-        for s in np.linspace(-ext / 2 + 0.012, ext / 2 - 0.012, n) if ext > 0.03 else [0.0]:
-            q = centre + along * s
-            # local top: ray down at this xy
-            hit, top, _ = _cast(inter, np.array([[q[0], q[1], hi[2] + 0.05]]), z_dn[None], mesh)
-            if not hit[0]:
-                continue
-            z = max(top[0, 2] - depth, lo[2] + MIN_TCP_ABOVE_BOTTOM, (top[0, 2] + lo[2]) / 2)
-            z = min(z, top[0, 2] - 0.004)
-            p = np.array([q[0], q[1], z])
-            for sign in (1, -1):
-                try_grasp(p, z_dn, sign * closing, "top")
+        stations = np.linspace(u.min() + inset, u.max() - inset, n) if ext > 0.03 else [float(u.mean())]
+        ts = np.arange(v.min() + SCAN_STEP / 2, v.max(), SCAN_STEP)
+        for s in stations:
+            xy = along[None, :2] * s + closing[None, :2] * ts[:, None]
+            origins = np.column_stack([xy, np.full(len(ts), hi[2] + 0.05)])
+            hit, top, _ = _cast(inter, origins, np.broadcast_to(z_dn, origins.shape), mesh)
+            for r0, r1 in _runs(hit):
+                if (r1 - r0 - 1) * SCAN_STEP > max_width - CLEARANCE:
+                    continue            # wider than the opened gripper at this station
+                t_mid = (ts[r0] + ts[r1 - 1]) / 2
+                z_top = float(top[r0:r1, 2].max())
+                z = max(z_top - depth, (z_top + floor) / 2, z_min)
+                if z > z_top - MIN_GRIP_DEPTH:
+                    continue            # too flat to grip above the support with the fingertips clear
+                q = along * s + closing * t_mid
+                p = np.array([q[0], q[1], z])
+                for sign in (1, -1):
+                    try_grasp(p, z_dn, sign * closing, "top")
     if side:
-        zc = max((lo[2] + hi[2]) / 2, lo[2] + 0.04)   # hand body needs room above the support
+        zc = max((lo[2] + hi[2]) / 2, floor + 0.04)   # hand body needs room above the support
         if zc < hi[2] - 0.005:
             for approach_axis, closing in ((a1, a2), (a2, a1)):
                 for sa in (1, -1):
                     for sc in (1, -1):
                         try_grasp(np.array([centre[0], centre[1], zc]), sa * approach_axis, sc * closing, "side")
     return out
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """Half-open index ranges [i, j) of consecutive True entries of a 1-D bool array."""
+    m = np.concatenate([[False], np.asarray(mask, bool), [False]])
+    edges = np.flatnonzero(m[1:] != m[:-1])
+    return list(zip(edges[::2].tolist(), edges[1::2].tolist()))
 
 
 def rank_grasps(grasps: list[Grasp], T_world_obj: np.ndarray, T_world_base: np.ndarray) -> list[Grasp]:

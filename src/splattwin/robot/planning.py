@@ -23,7 +23,9 @@ per-model list, and still checks link-link self collisions and robot-world conta
 contype/conaffinity bits are rewritten (for geoms that collide at all in the source model) so MuJoCo
 skips those constant pairs in the broad phase instead of computing and discarding them. A held object
 (`attach`) moves with the TCP and takes the hand's joint set: its contacts with link7/hand/fingers are
-ignored, with everything else checked. `allow(a, b)` / `ignore_pairs` add exceptions by body name.
+ignored, with everything else checked. `allow(a, b)` / `ignore_pairs` add exceptions by body name;
+`allow(a, b, penetration=p)` is the narrower exception for intended contact (fingers closing around the
+target): the pair may come closer than the margin and touch, but penetrating deeper than p still counts.
 
 Dense checks with a certificate: `path_is_valid(..., max_sweep=s)` samples each segment so no robot or
 held-object point moves more than s metres between samples (a configuration-independent bound
@@ -139,6 +141,7 @@ class CollisionChecker:
             if body_mask[b] and not body_mask[p] and p != 0:
                 self._static_robot[p] = True
         self._ignored: set[frozenset[int]] = set()
+        self._touching: dict[frozenset[int], float] = {}   # pair -> allowed penetration depth (m)
         for a, b in ignore_pairs:
             self._ignored.add(frozenset((self._body_id(a), self._body_id(b))))
         self._attached: tuple[int, int, np.ndarray] | None = None  # (body id, qpos adr, T_tcp_obj)
@@ -211,6 +214,11 @@ class CollisionChecker:
             sel_b = gb == ids[1]
             check[np.ix_(sel_a, sel_b)] = False
             check[np.ix_(sel_b, sel_a)] = False
+        for pair, depth in self._touching.items():
+            ids = tuple(pair) if len(pair) == 2 else (next(iter(pair)),) * 2
+            sel = np.ix_(gb == ids[0], gb == ids[1])
+            self._thr[sel] = -depth
+            self._thr[sel[::-1]] = -depth
         self._check = check
         self.sweep_radii = self._compute_sweep_radii(mask)
 
@@ -260,14 +268,27 @@ class CollisionChecker:
             r[i] = float(np.linalg.norm(m.jnt_pos[j])) + best
         return r
 
-    def allow(self, body_a: str, body_b: str) -> None:
-        """Ignore contacts between two bodies from now on (e.g. fingers–target during the final approach)."""
-        self._ignored.add(frozenset((self._body_id(body_a), self._body_id(body_b))))
+    def allow(self, body_a: str, body_b: str, penetration: float | None = None) -> None:
+        """Exempt contacts between two bodies from now on.
+
+        penetration: None ignores the pair entirely (e.g. the held object and the surface it leaves);
+        a depth p >= 0 (m) only waives the margin: the bodies may touch, but a contact penetrating deeper
+        than p still counts (fingers closing around the target must not land on it).
+        """
+        pair = frozenset((self._body_id(body_a), self._body_id(body_b)))
+        if penetration is None:
+            self._ignored.add(pair)
+        else:
+            if not penetration >= 0:
+                raise ValueError(f"penetration must be >= 0, got {penetration}")
+            self._touching[pair] = float(penetration)
         self._rebuild_pair_mask()
 
     def disallow(self, body_a: str, body_b: str) -> None:
-        """Undo `allow` (contacts between the two bodies count again)."""
-        self._ignored.discard(frozenset((self._body_id(body_a), self._body_id(body_b))))
+        """Undo `allow` (contacts between the two bodies count again with the full margin)."""
+        pair = frozenset((self._body_id(body_a), self._body_id(body_b)))
+        self._ignored.discard(pair)
+        self._touching.pop(pair, None)
         self._rebuild_pair_mask()
 
     def attach(self, body_name: str, T_tcp_obj: np.ndarray) -> None:

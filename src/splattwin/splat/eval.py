@@ -85,6 +85,9 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
     else:
         ply, info = resolve_ply(splat)
         g = Gaussians.load_ply(ply)
+    if g.sh_degree > 3:
+        log.warning("SH degree %d: rendering with the first 3 degrees", g.sh_degree)
+        g = g.with_sh_degree(3)
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
     if not ds.has_poses:
         raise InputError("dataset has no camera poses to render from", ds.root)

@@ -116,9 +116,15 @@ def points_from_depth(frames: Sequence[Frame], depth_scale: float = 1.0, max_poi
     n_bg_max = int(max_points * background_fraction)
     if bg_xyz and n_bg_max > 0:
         bxyz, brgb = np.concatenate(bg_xyz), np.concatenate(bg_rgb)
-        if len(bxyz) > n_bg_max:
-            keep = rng.choice(len(bxyz), n_bg_max, replace=False)
+        # the whole far sphere, evenly, in the mean background colour: directions no training view saw
+        # (but a new view may) render as plausible background instead of the black void
+        n_fill = n_bg_max // 2
+        fill = center + 3.0 * scale * fibonacci_sphere(n_fill)
+        if len(bxyz) > n_bg_max - n_fill:
+            keep = rng.choice(len(bxyz), n_bg_max - n_fill, replace=False)
             bxyz, brgb = bxyz[keep], brgb[keep]
+        bxyz = np.concatenate([bxyz, fill])
+        brgb = np.concatenate([brgb, np.repeat(brgb.mean(axis=0, keepdims=True), n_fill, axis=0)])
     else:
         bxyz, brgb = np.zeros((0, 3)), np.zeros((0, 3))
     n_fg = max_points - len(bxyz)
@@ -126,6 +132,15 @@ def points_from_depth(frames: Sequence[Frame], depth_scale: float = 1.0, max_poi
         keep = np.sort(rng.choice(len(xyz), n_fg, replace=False))
         xyz, rgb = xyz[keep], rgb[keep]
     return np.concatenate([xyz, bxyz]), np.concatenate([rgb, brgb])
+
+
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """[n,3] nearly uniform unit vectors (Fibonacci lattice)."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = np.sqrt(np.maximum(1.0 - z * z, 0.0))
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * i
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
 def _rays_to_sphere(camera: Camera, image: np.ndarray, stride: int, sel: np.ndarray, center: np.ndarray,
