@@ -88,3 +88,16 @@ def _json_default(o: Any) -> Any:
     if isinstance(o, Path):
         return str(o)
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def read_json(path: str | Path, missing: str = "file not found") -> Any:
+    """Parse a JSON file; InputError naming the file when it is missing or not valid JSON."""
+    from splattwin.errors import InputError
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(missing, path)
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise InputError(f"not valid JSON: {e}", path) from e

@@ -28,7 +28,7 @@ from splattwin.robot import grasp as grasp_mod
 from splattwin.robot.ik import ArmIK
 from splattwin.robot.task import Region, Step, Task
 from splattwin.robot.trajectory import Trajectory
-from splattwin.robot.world import World, qpos_from_pose
+from splattwin.robot.world import World, hand_points_tcp, qpos_from_pose
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +41,8 @@ CLOSE_TIME = 0.6         # s for the gripper to close and the grasp to settle
 OPEN_TIME = 0.4
 SETTLE_TIME = 0.6        # s after the retreat before judging the placement
 TILT_MAX = math.radians(10)
+TOUCH_DEPTH = 0.001      # m: fingers may touch the target on the approach, not penetrate it deeper than this
+FLOOR_TOLERANCE = 0.0015  # m: fingertips above the support by the planning margin plus this (IK, sampling)
 
 
 @dataclass
@@ -132,7 +134,10 @@ class Executor:
         self.frame_cb = frame_cb
         self.plan_ms: list[float] = []
         self.trajs: list[tuple[str, Trajectory]] = []
-        self._grasp_cache: dict[str, list[grasp_mod.Grasp]] = {}
+        self._grasp_cache: dict[tuple[str, float], list[grasp_mod.Grasp]] = {}
+        # how far the opened fingers reach beyond the TCP along the approach (m): grasp heights keep the
+        # fingertips the planning margin above the support surface
+        self.tip_depth = float(hand_points_tcp(world)[:, 2].max(initial=grasp_mod.TIP_DEPTH))
         self.is_robot = np.zeros(self.m.nbody, bool)
         self.is_robot[list(world.robot_bodies)] = True
         self.hand_bodies = list(self.robot.hand_bodies)
@@ -157,10 +162,10 @@ class Executor:
         self.checker.detach()
         self.checker.set_world_state(d)
 
-    def _allow(self, obj: str, others: list[str]) -> list[tuple[str, str]]:
+    def _allow(self, obj: str, others: list[str], penetration: float | None = None) -> list[tuple[str, str]]:
         pairs = [(obj, b) for b in others]
         for a, b in pairs:
-            self.checker.allow(a, b)
+            self.checker.allow(a, b, penetration=penetration)
         return pairs
 
     def _disallow(self, pairs) -> None:
@@ -190,13 +195,35 @@ class Executor:
         return path
 
     def _grasps(self, obj: str) -> list[grasp_mod.Grasp]:
-        if obj not in self._grasp_cache:
-            import trimesh
+        """Candidates on the object's collision mesh, for the support surface it rests on (belief)."""
+        import trimesh
 
+        T_obj = self.belief[obj]
+        floor_obj = round(self._support_height(obj) - float(T_obj[2, 3]), 4)   # object frame (upright)
+        key = (obj, floor_obj)
+        if key not in self._grasp_cache:
             entry = self.w.manifest.object(obj)
             mesh = trimesh.load(self.w.twin_dir / entry.collision_mesh, force="mesh")
-            self._grasp_cache[obj] = grasp_mod.synthesize(mesh.vertices, mesh.faces, max_width=self.robot.max_opening)
-        return self._grasp_cache[obj]
+            self._grasp_cache[key] = grasp_mod.synthesize(
+                mesh.vertices, mesh.faces, max_width=self.robot.max_opening, floor=floor_obj,
+                tip_depth=self.tip_depth, floor_clearance=self.checker.margin + FLOOR_TOLERANCE)
+        return self._grasp_cache[key]
+
+    def _support_height(self, obj: str) -> float:
+        """World z (m) of the surface under `obj` in the belief: the table top, or the top of another
+        object whose footprint holds obj's centre and whose top is below obj's centre. Reconstructed
+        objects can sink a few mm into their support; the grasp must clear the surface, not the mesh."""
+        T = self.belief[obj]
+        z = float(self.w.manifest.background.table_height)
+        for o, T_o in self.belief.items():
+            if o == obj:
+                continue
+            ext = np.asarray(self.w.manifest.object(o).bbox_extent, float)
+            p = np.linalg.inv(T_o) @ np.append(T[:3, 3], 1.0)
+            top = float((T_o[:3, 3] + T_o[:3, 2] * ext[2] / 2)[2])
+            if abs(p[0]) <= ext[0] / 2 and abs(p[1]) <= ext[1] / 2 and top < T[2, 3]:
+                z = max(z, top)
+        return z
 
     def _support_of(self, obj: str) -> list[str]:
         """Bodies the object rests on / touches now (for allowed contacts when it leaves them)."""
@@ -276,12 +303,21 @@ class Executor:
                 continue
             q_grasp = approach[-1]
             self._plan_state(half_open)
-            allowed = self._allow(obj, self.hand_bodies)
-            ok = self.checker.is_valid(q_pre) and self.checker.path_is_valid(approach, 0.002)
-            self._disallow(allowed)
+            # the open fingers straddle the target: they may touch it, not land on it or push into it
+            allowed = self._allow(obj, self.hand_bodies, penetration=TOUCH_DEPTH)
+            ok = self.checker.is_valid(q_pre)
+            bad = None if ok else q_pre
+            if ok:
+                i = self.checker.first_invalid_segment(approach, 0.002)
+                ok = i is None
+                if not ok:
+                    bad = next((q for q in (approach[max(i, 0)], approach[max(i, 0) + 1])
+                                if self.checker.first_collision(q)), approach[-1])
             if not ok:
                 why["approach collision"] = why.get("approach collision", 0) + 1
-                log.debug("approach collision %s", self.checker.first_collision(q_grasp))
+                log.debug("approach collision %s", self.checker.first_collision(bad))
+            self._disallow(allowed)
+            if not ok:
                 continue
             T_lift = T_grasp.copy()
             T_lift[:3, 3] += [0, 0, LIFT]

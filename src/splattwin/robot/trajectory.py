@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import csv
 import io as _io
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,7 +19,7 @@ from typing import Sequence
 import numpy as np
 
 from splattwin.errors import InputError
-from splattwin.io import write_json, write_text
+from splattwin.io import read_json, write_json, write_text
 
 __all__ = ["Trajectory", "concatenate"]
 
@@ -102,14 +101,7 @@ class Trajectory:
 
     @classmethod
     def load_json(cls, path: str | Path) -> "Trajectory":
-        path = Path(path)
-        if not path.is_file():
-            raise InputError("trajectory file not found", path)
-        try:
-            d = json.loads(path.read_text())
-        except json.JSONDecodeError as e:
-            raise InputError(f"invalid JSON: {e}", path) from e
-        return cls.from_dict(d, path)
+        return cls.from_dict(read_json(path, missing="trajectory file not found"), Path(path))
 
     # ---- CSV ----------------------------------------------------------------------------------------
     def save_csv(self, path: str | Path) -> Path:

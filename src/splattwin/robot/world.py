@@ -176,6 +176,33 @@ def build_world(twin_dir: str | Path, manifest: Manifest | None = None, robot: R
 GRIP_STIFFNESS = 1000.0   # N/m of the gripper's position servo (Menagerie: 100)
 
 
+def hand_points_tcp(world: World) -> np.ndarray:
+    """Points [K,3] (m, TCP frame) of the hand's and fingers' collision geometry at the current gripper
+    opening: mesh vertices and box/other-primitive bounding-box corners. Max of [:, 2] is how far the
+    fingers reach beyond the TCP along the approach (the fingertips, 8.9 mm on the Menagerie Panda)."""
+    import mujoco
+
+    m, d = world.model, world.data
+    mujoco.mj_kinematics(m, d)
+    T = world.tcp_pose()
+    hand = {m.body(b).id for b in world.robot.hand_bodies}
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+    pts = []
+    for g in range(m.ngeom):
+        if int(m.geom_bodyid[g]) not in hand or not (m.geom_contype[g] or m.geom_conaffinity[g]):
+            continue
+        if int(m.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_MESH):
+            mid = int(m.geom_dataid[g])
+            a = int(m.mesh_vertadr[mid])
+            v = np.asarray(m.mesh_vert[a:a + int(m.mesh_vertnum[mid])], float)
+        else:  # primitives: corners of their local bounding box (geom_aabb: centre, half-sizes)
+            aabb = np.asarray(m.geom_aabb[g], float)
+            v = aabb[:3] + corners * aabb[3:]
+        p_world = d.geom_xpos[g] + v @ d.geom_xmat[g].reshape(3, 3).T
+        pts.append((p_world - T[:3, 3]) @ T[:3, :3])
+    return np.concatenate(pts) if pts else np.zeros((0, 3))
+
+
 def _stiffen_gripper(spec, robot: RobotModel) -> None:
     """Raise the gripper servo's stiffness so that closing on an object squeezes it with a realistic force.
 

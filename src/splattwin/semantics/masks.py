@@ -24,7 +24,6 @@ Accepted sources (`load_masks` picks by what it finds):
 
 from __future__ import annotations
 
-import json
 import logging
 import re
 from dataclasses import dataclass, field
@@ -409,12 +408,7 @@ def _safe_name(name: str) -> str:
 
 
 def _read_json(path: Path):
-    try:
-        return json.loads(Path(path).read_text())
-    except FileNotFoundError as e:
-        raise InputError("file not found", path) from e
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"not valid JSON: {e}", path) from e
+    return io.read_json(path)
 
 
 def _read_image(path: Path) -> np.ndarray:

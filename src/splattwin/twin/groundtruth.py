@@ -13,7 +13,6 @@ Frame: the scene's world frame = table frame (z up, table top at z = 0), metric 
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 from pathlib import Path
 
@@ -33,12 +32,7 @@ MAX_PARTS = 12
 
 def _load_scene(scene_dir: Path) -> dict:
     path = scene_dir / "scene.json"
-    if not path.is_file():
-        raise InputError("no scene.json here: not an embedded scene folder", path)
-    try:
-        scene = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise InputError(f"not valid JSON: {e}", path) from e
+    scene = io.read_json(path, missing="no scene.json here: not an embedded scene folder")
     if not isinstance(scene.get("objects"), list) or not scene["objects"]:
         raise InputError("scene.json lists no objects", path)
     return scene

@@ -7,7 +7,6 @@ stored in the object's own frame; `T_world_obj` places them in the twin frame.
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -128,10 +127,4 @@ class Manifest:
     @classmethod
     def load(cls, twin_dir: str | Path) -> "Manifest":
         path = Path(twin_dir) / MANIFEST_NAME
-        if not path.is_file():
-            raise InputError("no twin manifest here (expected twin.json)", path)
-        try:
-            d = json.loads(path.read_text())
-        except json.JSONDecodeError as e:
-            raise InputError(f"not valid JSON: {e}", path) from e
-        return cls.from_dict(d, where=path)
+        return cls.from_dict(io.read_json(path, missing="no twin manifest here (expected twin.json)"), where=path)

@@ -7,7 +7,6 @@ URL in a browser. Everything is built from the twin folder's manifest.
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 import time
