@@ -20,18 +20,13 @@ from splattwin.twin.manifest import Manifest
 
 log = logging.getLogger(__name__)
 
-# Label colours (0 = background grey), RGB uint8.
-PALETTE = np.array([
-    [150, 150, 150], [31, 119, 180], [255, 187, 0], [214, 39, 40], [44, 160, 44], [148, 103, 189],
-    [140, 86, 75], [227, 119, 194], [23, 190, 207], [188, 189, 34],
-], dtype=np.uint8)
-
-
 def label_colors(labels: np.ndarray) -> np.ndarray:
-    """[N] int labels -> [N,3] uint8 colours (cycling the palette for labels beyond it)."""
-    labels = np.asarray(labels, dtype=np.int64)
-    idx = np.where(labels <= 0, 0, 1 + (labels - 1) % (len(PALETTE) - 1))
-    return PALETTE[idx]
+    """[N] int labels -> [N,3] uint8 colours, the same palette as the semantic label maps
+    (negative labels count as background)."""
+    from splattwin.semantics.render import palette
+
+    labels = np.maximum(np.asarray(labels, dtype=np.int64), 0)
+    return palette(int(labels.max(initial=0)))[labels]
 
 
 def quat_wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
