@@ -29,9 +29,14 @@ def assert_same_cameras(a: Dataset, b: Dataset, check_split: bool = True, atol: 
 
 def test_nerfstudio_roundtrip(tmp_path, make_dataset):
     ds = make_dataset(tmp_path, dist=np.array([0.01, -0.002, 0.0005, 0.0001]), with_depth=True)
+    labels = tmp_path / "labels" / "img_000.png"
+    io.write_image(labels, np.zeros((48, 64), np.uint8))
+    ds.frames[0].label_path = labels
     out = nerfstudio.write(ds, tmp_path / "transforms.json")
     back = load_dataset(out)
     assert_same_cameras(ds, back)
+    assert back.frames[0].label_path == labels and back.frames[0].mask_path is None
+    assert back.frames[1].label_path is None
     assert [f.depth_path.name for f in back.frames] == [f.depth_path.name for f in ds.frames]
     np.testing.assert_allclose(back.points_xyz, ds.points_xyz, atol=1e-6)
     np.testing.assert_array_equal(back.points_rgb, ds.points_rgb)

@@ -53,3 +53,40 @@ def test_collision_monitor_counts_robot_hitting_the_table(gt_twin_small: Path):
     mon2 = {"target": w2.obj_body["blue_box"], "active": set(), "events": [], "carrying": False}
     ex2._track(ex2._traj(np.stack([w2.robot.home, q2]), 0.3, "ok"), w2.robot.gripper_open, 0.2, mon2)
     assert mon2["events"] == []
+
+
+def test_hammer_sunk_into_the_table_is_still_graspable(gt_twin_default: Path):
+    """A reconstructed object sits a few mm into the table (bottom below the table top): the grasp height
+    follows the support surface, so the fingertips keep the planning margin above the table in the closed
+    pose and the approach is collision-free (the finger-table contact was the reconstructed twin's step-3
+    failure). Planning only, on the belief poses."""
+    import mujoco
+
+    from splattwin.robot.execute import StepResult
+    from splattwin.robot.world import hand_points_tcp
+
+    w = build_world(gt_twin_default, visual=False)
+    T = w.manifest.object("toy_hammer").pose.copy()
+    T[2, 3] -= 0.003                                    # 3 mm into the table
+    ex = Executor(w, belief={"toy_hammer": T})
+    assert 0.0085 < ex.tip_depth < 0.0095               # Menagerie Panda fingertips beyond the TCP
+    task = load_task(None, w.manifest)
+    step = task.steps[2]
+    assert step.pick == "toy_hammer"
+    res = StepResult(index=3, pick="toy_hammer", goal=step.goal_name)
+    plan = ex.plan_step(step, res)
+    q = plan["approach"][-1]
+    # independent check on the world model: the lowest finger point at the grasp is above the table
+    # by the planning margin
+    d = mujoco.MjData(w.model)
+    d.qpos[:] = w.data.qpos
+    d.qpos[w.arm_qpos_adr] = q
+    mujoco.mj_kinematics(w.model, d)
+    T_tcp = np.eye(4)
+    T_tcp[:3, :3] = d.site_xmat[w.tcp_site].reshape(3, 3)
+    T_tcp[:3, 3] = d.site_xpos[w.tcp_site]
+    lowest = float(((T_tcp[:3, :3] @ hand_points_tcp(w).T).T + T_tcp[:3, 3])[:, 2].min())
+    assert lowest >= w.manifest.background.table_height + ex.checker.margin
+    # the pads still hold the handle: the TCP is below the hammer's top
+    ext = w.manifest.object("toy_hammer").bbox_extent
+    assert T_tcp[2, 3] < T[2, 3] + ext[2] / 2 - 0.004

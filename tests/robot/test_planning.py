@@ -180,6 +180,25 @@ def test_margin_counts_near_contacts(world):
     for b in bodies:
         tight.disallow(b, "probe")
     assert not tight.is_valid(q)
+    # allow(..., penetration=p): the pair may touch (3 mm < margin is fine) but not penetrate deeper than p
+    for b in bodies:
+        tight.allow(b, "probe", penetration=0.001)
+    assert tight.is_valid(q)
+    qpos_in, dist_in = _place_probe_at_distance(world, -0.003)
+    assert abs(dist_in + 0.003) < 5e-4
+    d.qpos[:] = qpos_in
+    tight.set_world_state(d)
+    assert not tight.is_valid(q)        # 3 mm deep > 1 mm allowed
+    assert any("probe" in p for p in tight.first_collision(q))
+    for b in bodies:
+        tight.allow(b, "probe")         # ignored entirely: even the penetration does not count
+    assert tight.is_valid(q)
+    for b in bodies:
+        tight.disallow(b, "probe")
+        tight.allow(b, "probe", penetration=0.005)
+    assert tight.is_valid(q)            # 3 mm deep < 5 mm allowed
+    with pytest.raises(ValueError):
+        tight.allow("hand", "probe", penetration=-0.001)
 
 
 def test_attach_held_box(world):

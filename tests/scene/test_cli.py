@@ -19,7 +19,7 @@ def test_cli_generate_writes_the_layout(tmp_path, capsys):
     assert scene["seed"] == 2 and scene["marker"]["id"] == 0
     for f in tj["frames"]:
         assert (out / f["file_path"]).is_file() and (out / f["depth_file_path"]).is_file()
-        assert (out / f["mask_path"]).is_file()
+        assert (out / f["label_path"]).is_file() and "mask_path" not in f  # not a nerfstudio loss mask
     assert len(list((out / "masks" / "noisy").iterdir())) == 4
     assert len(list((out / "meshes").glob("*.ply"))) == 6
 

@@ -36,7 +36,7 @@ def test_layout_on_disk(scene_small):
         depth = np.load(d / f["depth_file_path"])
         assert depth.shape == (120, 160) and depth.dtype == np.float32
         assert np.all((depth > 0.1) | np.isinf(depth))
-        lab = np.array(Image.open(d / f["mask_path"]))
+        lab = np.array(Image.open(d / f["label_path"]))
         assert lab.shape == (120, 160) and lab.dtype == np.uint8 and lab.max() <= 5
         for obj in OBJECTS:
             m = np.array(Image.open(d / "masks" / "noisy" / view / f"{obj}.png"))

@@ -32,7 +32,7 @@ def test_fusion_beats_naive_on_scene(small):
     naive = naive_fusion(g.means, tr, ms)
     labs = sorted(ms.objects)
     ho = ds.heldout()
-    gts = [_read_image(f.mask_path) for f in ho]
+    gts = [_read_image(f.label_path) for f in ho]
     score = {name: miou(render_label_maps(g, lab, [f.camera for f in ho], max(labs), renderer="points"), gts, labs)
              for name, lab in [("fusion", res.labels), ("naive", naive), ("oracle", gt)]}
     # rendering at 160x120 caps what any labelling can reach: compare with GT labels rendered the same way

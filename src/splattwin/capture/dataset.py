@@ -33,8 +33,9 @@ class Frame:
     image_path: Path
     camera: Camera
     depth_path: Path | None = None
-    mask_path: Path | None = None
+    mask_path: Path | None = None   # nerfstudio loss mask: 0 = ignore this pixel
     split: str = "train"  # "train" | "heldout"
+    label_path: Path | None = None  # ground-truth instance label image (0 = background), for metrics
 
     @property
     def name(self) -> str:
@@ -74,7 +75,7 @@ class Dataset:
             w, h = image_size(f.image_path)
             if (w, h) != (f.camera.width, f.camera.height):
                 raise InputError(f"image is {w}x{h} but its camera says {f.camera.width}x{f.camera.height}", f.image_path)
-            for extra in (f.depth_path, f.mask_path):
+            for extra in (f.depth_path, f.mask_path, f.label_path):
                 if extra is not None and not extra.is_file():
                     raise InputError("file listed in the dataset does not exist", extra)
 

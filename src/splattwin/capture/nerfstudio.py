@@ -1,7 +1,8 @@
 """nerfstudio `transforms.json`: read and write.
 
 Supports global or per-frame intrinsics (fl_x, fl_y, cx, cy, w, h), camera models PINHOLE and OPENCV
-(k1 k2 p1 p2 [k3]), `depth_file_path`, `mask_path`, `ply_file_path`, and the split lists
+(k1 k2 p1 p2 [k3]), `depth_file_path`, `mask_path` (nerfstudio's loss mask), our `label_path` (ground-truth
+instance labels, ignored by nerfstudio), `ply_file_path`, and the split lists
 `train_filenames` / `val_filenames` / `test_filenames` (val and test become our "heldout" split); a
 per-frame `"split"` key is also honoured. Poses are OpenGL camera-to-world (`transform_matrix`); we
 convert to OpenCV on read and back on write. Frames whose image is missing are skipped with a warning.
@@ -102,6 +103,7 @@ def read(path: str | Path) -> Dataset:
             camera=cam,
             depth_path=root / fr["depth_file_path"] if fr.get("depth_file_path") else None,
             mask_path=root / fr["mask_path"] if fr.get("mask_path") else None,
+            label_path=root / fr["label_path"] if fr.get("label_path") else None,
             split=split,
         ))
     if not frames:
@@ -147,6 +149,8 @@ def write(dataset: Dataset, path: str | Path, ply_name: str = "sparse_pc.ply") -
             d["depth_file_path"] = _rel(f.depth_path, root)
         if f.mask_path is not None:
             d["mask_path"] = _rel(f.mask_path, root)
+        if f.label_path is not None:
+            d["label_path"] = _rel(f.label_path, root)
         d["split"] = f.split
         frames.append(d)
     meta["frames"] = frames

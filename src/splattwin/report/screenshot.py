@@ -6,7 +6,9 @@ Chromium's own update/sync connections would otherwise hang or fail at start-up.
 
 from __future__ import annotations
 
+import os
 import shutil
+import signal
 import subprocess
 import tempfile
 from pathlib import Path
@@ -29,13 +31,23 @@ def screenshot(url: str, out_png: str | Path, width: int = 1280, height: int = 9
     """Load `url` (http:// or file://) in headless Chromium and save a PNG screenshot."""
     out_png = Path(out_png).resolve()
     out_png.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix="splattwin-chromium-") as profile:
-        cmd = [find_chromium(), "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-               "--disable-background-networking", "--disable-component-update", "--disable-sync",
-               "--disable-quic", "--no-first-run", "--hide-scrollbars", "--enable-unsafe-swiftshader",
-               f"--user-data-dir={profile}", f"--window-size={width},{height}",
-               f"--virtual-time-budget={budget_ms}", f"--screenshot={out_png}", url]
-        subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=timeout_s, check=False)
+    # A page that animates (the viewer's WebGL canvas) can keep a loaded machine from ever reaching the
+    # virtual-time budget; on a time-out try once more with a smaller budget.
+    for budget in (budget_ms, max(budget_ms // 4, 1000)):
+        with tempfile.TemporaryDirectory(prefix="splattwin-chromium-") as profile:
+            cmd = [find_chromium(), "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                   "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                   "--disable-quic", "--no-first-run", "--hide-scrollbars", "--enable-unsafe-swiftshader",
+                   f"--user-data-dir={profile}", f"--window-size={width},{height}",
+                   f"--virtual-time-budget={budget}", f"--screenshot={out_png}", url]
+            proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+            try:
+                proc.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+        if out_png.is_file():
+            break
     if not out_png.is_file():
         raise RuntimeError(f"chromium produced no screenshot for {url}")
     return out_png

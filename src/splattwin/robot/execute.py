@@ -185,6 +185,16 @@ class Executor:
             path.append(q)
         return np.array(path)
 
+    def _first_pair(self, path: np.ndarray, step: float = 0.002) -> tuple[str, str] | None:
+        """The first colliding geom pair along a joint path (for messages), or None."""
+        for a, b in zip(path[:-1], path[1:]):
+            k = max(1, int(math.ceil(float(np.max(np.abs(b - a))) / step)))
+            for j in range(k + 1):
+                pair = self.checker.first_collision(a + (j / k) * (b - a))
+                if pair is not None:
+                    return pair
+        return self.checker.first_collision(path[0])
+
     def _plan(self, q_goal: np.ndarray, label: str) -> np.ndarray:
         from splattwin.robot.planning import plan_path
 
@@ -305,17 +315,11 @@ class Executor:
             self._plan_state(half_open)
             # the open fingers straddle the target: they may touch it, not land on it or push into it
             allowed = self._allow(obj, self.hand_bodies, penetration=TOUCH_DEPTH)
-            ok = self.checker.is_valid(q_pre)
-            bad = None if ok else q_pre
-            if ok:
-                i = self.checker.first_invalid_segment(approach, 0.002)
-                ok = i is None
-                if not ok:
-                    bad = next((q for q in (approach[max(i, 0)], approach[max(i, 0) + 1])
-                                if self.checker.first_collision(q)), approach[-1])
+            ok = self.checker.is_valid(q_pre) and self.checker.path_is_valid(approach, 0.002)
             if not ok:
                 why["approach collision"] = why.get("approach collision", 0) + 1
-                log.debug("approach collision %s", self.checker.first_collision(bad))
+                if log.isEnabledFor(logging.DEBUG):    # name the pair while the exceptions still apply
+                    log.debug("approach collision %s", self._first_pair(approach))
             self._disallow(allowed)
             if not ok:
                 continue

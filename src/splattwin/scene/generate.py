@@ -101,7 +101,7 @@ def transforms_json(cameras: list[Camera]) -> dict:
     for cam in cameras:
         split = "heldout" if cam.name.startswith("heldout") else "train"
         frames.append({"file_path": f"images/{cam.name}.png", "transform_matrix": cam.T_world_cam_gl.tolist(),
-                       "depth_file_path": f"depth/{cam.name}.npy", "mask_path": f"masks/gt/{cam.name}.png",
+                       "depth_file_path": f"depth/{cam.name}.npy", "label_path": f"masks/gt/{cam.name}.png",
                        "split": split})
     return {
         "camera_model": "OPENCV", "fl_x": c0.fx, "fl_y": c0.fy, "cx": c0.cx, "cy": c0.cy,

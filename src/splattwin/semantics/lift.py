@@ -146,10 +146,10 @@ def write_label_maps(g, labels: np.ndarray, frames: Sequence, names: dict[int, s
             pass
         io.write_image(out_dir / "label_maps" / f"{f.name}.png", colorize(lab, names, img))
         io.write_image(out_dir / "label_maps" / "raw" / f"{f.name}.png", lab.astype(np.uint8))
-        if f.mask_path is not None and Path(f.mask_path).is_file():
+        if f.label_path is not None and Path(f.label_path).is_file():
             from splattwin.semantics.masks import _read_image
 
-            gt = _read_image(Path(f.mask_path))
+            gt = _read_image(Path(f.label_path))
             if gt.ndim == 2 and gt.shape == lab.shape:
                 scores.setdefault(f.split, []).append((lab, gt))
     out: dict = {"label_map_renderer": renderer}
