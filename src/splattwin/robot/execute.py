@@ -3,9 +3,15 @@
 Planning uses the robot's *belief* of the object poses (the twin's poses, then the commanded place poses);
 the simulated world may differ (perturbed trials model reconstruction error). Per step:
 
-  transit (OMPL, gripper open) -> approach (Cartesian, target contact allowed) -> close the real gripper
-  (actuator 8, friction only, no weld) -> lift (Cartesian) -> transfer (OMPL, object attached to the
-  hand in the collision checker) -> descent (Cartesian) -> open -> retreat (Cartesian).
+  transit (OMPL, gripper open) -> approach (Cartesian; the fingers may touch the target but not penetrate
+  it, everything else keeps the margin) -> close the real gripper (actuator 8, friction only, no weld) ->
+  lift (Cartesian) -> transfer (OMPL, object attached to the hand in the collision checker) -> descent
+  (Cartesian) -> open -> retreat (Cartesian, checked like the approach against the released object).
+
+Grasp heights follow the support surface under the object (table or the object below it, from the
+belief), not the object mesh's bottom: reconstructed objects sink a few mm into the table, and the
+fingertips (which reach 8.9 mm beyond the Panda's TCP, measured from the model) must keep the planning
+margin above the surface in the closed pose.
 
 Execution drives the arm's position servos (actuators 1-7) along time-parameterised trajectories with
 gravity/Coriolis compensation added as applied joint forces (as the Franka controller does), and
@@ -364,6 +370,11 @@ class Executor:
                 if retreat is None:
                     why["retreat IK"] = why.get("retreat IK", 0) + 1
                     continue
+                if not self._retreat_clear(obj, T_place_obj, retreat):
+                    why["retreat collision"] = why.get("retreat collision", 0) + 1
+                    self._plan_state(g.width / 2)          # back to carrying for the next place pose
+                    self.checker.attach(obj, T_tcp_obj)
+                    continue
                 self.checker.detach()
                 res.grasp = {"kind": g.kind, "width": g.width, "score": g.score, "candidates": len(cands),
                              "tried": tried}
@@ -373,6 +384,22 @@ class Executor:
             self.checker.detach()
         raise StepFailed(f"none of {tried} grasp candidates on {obj!r} has a reachable, collision-free "
                          f"approach, lift and place (rejections: {why})")
+
+    def _retreat_clear(self, obj: str, T_place_obj: np.ndarray, retreat: np.ndarray) -> bool:
+        """The opened hand backs off the released object (at its place pose) without landing on it or
+        touching anything else within the margin."""
+        saved = self.belief[obj]
+        self.belief[obj] = T_place_obj
+        try:
+            self._plan_state(self.robot.max_opening / 2)
+        finally:
+            self.belief[obj] = saved
+        allowed = self._allow(obj, self.hand_bodies, penetration=TOUCH_DEPTH)
+        ok = self.checker.path_is_valid(retreat, 0.002)
+        if not ok and log.isEnabledFor(logging.DEBUG):
+            log.debug("retreat collision %s", self._first_pair(retreat))
+        self._disallow(allowed)
+        return ok
 
     # ---- physics -------------------------------------------------------------------------------------
     def _track(self, traj: Trajectory | None, grip: float, duration: float | None, monitor: dict) -> None:
