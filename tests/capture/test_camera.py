@@ -82,3 +82,4 @@ def test_dict_roundtrip():
     np.testing.assert_allclose(back.T_world_cam, cam.T_world_cam)
     np.testing.assert_allclose(back.dist, cam.dist)
     assert back.name == "x"
+

@@ -1,0 +1,36 @@
+"""splattwin.io: atomic writes."""
+
+import os
+
+import pytest
+
+from splattwin import io
+from splattwin.errors import InputError
+
+
+def test_atomic_writes_have_normal_permissions(tmp_path):
+    umask = os.umask(0o022)
+    try:
+        p = io.write_text(tmp_path / "a.txt", "x")
+    finally:
+        os.umask(umask)
+    assert p.read_text() == "x" and (p.stat().st_mode & 0o777) == 0o644
+    assert [f.name for f in tmp_path.iterdir()] == ["a.txt"]  # no temporary left behind
+
+
+def test_failed_write_leaves_target_untouched(tmp_path):
+    target = io.write_text(tmp_path / "b.json", "old")
+    with pytest.raises(RuntimeError):
+        with io.atomic_path(target) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("killed")
+    assert target.read_text() == "old" and len(list(tmp_path.iterdir())) == 1
+
+
+def test_read_json_errors_name_the_file(tmp_path):
+    with pytest.raises(InputError, match="file not found") as e:
+        io.read_json(tmp_path / "none.json")
+    assert e.value.path == tmp_path / "none.json"
+    (tmp_path / "bad.json").write_text("{")
+    with pytest.raises(InputError, match="not valid JSON"):
+        io.read_json(tmp_path / "bad.json")
