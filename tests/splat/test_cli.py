@@ -55,3 +55,12 @@ def test_bad_inputs_exit_2(tmp_path, capsys):
     assert "poses" in capsys.readouterr().err
     (tmp_path / "bad.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1\n")
     assert main(["eval", str(tmp_path / "bad.ply"), "--dataset", str(tmp_path), "--no-progress"]) == 2
+
+
+def test_cli_defaults_match_train_config():
+    from splattwin.splat.cli import TRAIN_DEFAULTS
+    from splattwin.splat.trainer import TrainConfig
+
+    cfg = TrainConfig()
+    for k, v in vars(TRAIN_DEFAULTS).items():
+        assert getattr(cfg, k) == v, k

@@ -62,3 +62,24 @@ def test_viewer_page_shows_content(tmp_path):
     assert len(np.unique(img.reshape(-1, 3) // 8, axis=0)) > 20
     reddish = (img[..., 0] > 120) & (img[..., 0] > img[..., 1] + 50) & (img[..., 0] > img[..., 2] + 50)
     assert reddish.sum() > 200, "splats not visible in the viewer screenshot"
+
+
+def test_far_and_huge_splats_get_their_own_hidden_layer(tmp_path):
+    import viser
+
+    twin = _twin(tmp_path, n=500)
+    g = Gaussians.load_ply(twin / "splat" / "point_cloud.ply")
+    g.means[:10] = [5.0, 0.0, 0.0]      # far outside the table
+    g.scales[10:20] = 0.2                # huge haze
+    g.save_ply(twin / "splat" / "point_cloud.ply")
+    server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
+    try:
+        h = build_scene(server, twin)
+        assert not h["far"].visible and h["splats"].visible
+    finally:
+        server.stop()
+    from splattwin.twin.manifest import Background
+    from splattwin.viewer.app import workspace_mask
+
+    near = workspace_mask(g.means, Background())
+    assert not near[:10].any() and near[10:].all()

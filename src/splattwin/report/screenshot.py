@@ -31,6 +31,7 @@ def screenshot(url: str, out_png: str | Path, width: int = 1280, height: int = 9
     """Load `url` (http:// or file://) in headless Chromium and save a PNG screenshot."""
     out_png = Path(out_png).resolve()
     out_png.parent.mkdir(parents=True, exist_ok=True)
+    out_png.unlink(missing_ok=True)  # an old picture must not pass for a new one
     # A page that animates (the viewer's WebGL canvas) can keep a loaded machine from ever reaching the
     # virtual-time budget; on a time-out try once more with a smaller budget.
     for budget in (budget_ms, max(budget_ms // 4, 1000)):

@@ -4,17 +4,23 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from types import SimpleNamespace
+
+# Mirrors splattwin.splat.trainer.TrainConfig (not imported here: it pulls in torch, and every
+# `splattwin --help` builds this parser); a test checks they agree.
+TRAIN_DEFAULTS = SimpleNamespace(iters=3000, init_points=30_000, max_gaussians=40_000, checkpoint_every=500)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add this stage's sub-commands to the `splattwin` parser."""
+    d = TRAIN_DEFAULTS
     p = sub.add_parser("train", help="train 3D Gaussians on a posed dataset (writes OUT/point_cloud.ply)",
                        description="Train a 3D Gaussian Splatting model on DATASET (transforms.json, COLMAP, "
                                    "cameras.json, ...) and write OUT/point_cloud.ply (standard 3DGS PLY), "
                                    "OUT/train.json and checkpoints.")
     p.add_argument("dataset", type=Path, help="dataset folder or file (any format `splattwin` reads)")
     p.add_argument("out", type=Path, help="output folder")
-    p.add_argument("--iters", type=int, default=3000, help="training steps (default 3000)")
+    p.add_argument("--iters", type=int, default=d.iters, help=f"training steps (default {d.iters})")
     p.add_argument("--resolution", type=int, default=1,
                    help="1/2/4/8 divide the image size, larger values are a target width in px, "
                         "-1 caps the width at 1600 (default 1)")
@@ -23,11 +29,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--init", choices=["auto", "sfm", "depth", "random"], default="auto",
                    help="initial point cloud: dataset/SfM points, back-projected depth maps, or random "
                         "(default auto: the first available in that order)")
-    p.add_argument("--init-points", type=int, default=30_000, help="at most this many initial Gaussians")
+    p.add_argument("--init-points", type=int, default=d.init_points,
+                   help=f"at most this many initial Gaussians (default {d.init_points})")
     p.add_argument("--sh-degree", type=int, default=3, choices=[0, 1, 2, 3], help="maximum SH degree")
-    p.add_argument("--max-gaussians", type=int, default=60_000, help="cap on the Gaussian count")
+    p.add_argument("--max-gaussians", type=int, default=d.max_gaussians,
+                   help=f"cap on the Gaussian count (default {d.max_gaussians})")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--checkpoint-every", type=int, default=500, help="steps between checkpoints (0: none)")
+    p.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every,
+                   help=f"steps between checkpoints (0: none; default {d.checkpoint_every})")
     p.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in OUT")
     p.add_argument("--refine-poses", action="store_true",
                    help="learn a per-camera SE(3) pose correction jointly (writes OUT/refined_poses.json)")

@@ -37,7 +37,7 @@ class DensifyConfig:
     max_gaussians: int = 1_000_000
 
     @classmethod
-    def for_iterations(cls, iters: int, max_gaussians: int = 60_000) -> DensifyConfig:
+    def for_iterations(cls, iters: int, max_gaussians: int = 40_000) -> DensifyConfig:
         """A schedule scaled to a short run (the 3DGS defaults assume 30k iterations): densify from 10 %
         to 60 % of the run every ~3 %, reset opacities every third of the run (before the stop)."""
         every = max(10, iters // 30)

@@ -63,7 +63,7 @@ class TrainConfig:
     pose_lr: float = 1e-3
     pose_start: float = 0.2
     ssim_lambda: float = 0.2
-    max_gaussians: int = 60_000
+    max_gaussians: int = 40_000
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     densify: bool = True
     lrs: LearningRates = field(default_factory=LearningRates)

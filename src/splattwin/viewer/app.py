@@ -101,6 +101,15 @@ def robot_track_from_mujoco(model, qpos: np.ndarray, times: np.ndarray | None = 
                       times=np.arange(len(qpos), dtype=float) if times is None else np.asarray(times))
 
 
+def workspace_mask(means: np.ndarray, background, margin: float = 0.3, height: float = 1.0) -> np.ndarray:
+    """[N] bool: Gaussians within the table's footprint (+ margin) from below the table to `height` above."""
+    xmin, xmax, ymin, ymax = background.table_extent
+    z0 = background.table_height
+    x, y, z = means[:, 0], means[:, 1], means[:, 2]
+    return ((x > xmin - margin) & (x < xmax + margin) & (y > ymin - margin) & (y < ymax + margin)
+            & (z > z0 - margin) & (z < z0 + height))
+
+
 def _frame_camera(server, points: np.ndarray) -> None:
     """Initial view: from the -x/-y side, above, at a distance that frames the robust extent of `points`."""
     lo, hi = np.percentile(points, 2, axis=0), np.percentile(points, 98, axis=0)
@@ -131,14 +140,22 @@ def build_scene(server, twin_dir: Path, robot: RobotTrack | None = None) -> dict
     splats_path = twin_dir / man.splats if man.splats else None
     if splats_path is not None and splats_path.is_file():
         g = Gaussians.load_ply(splats_path)
+        labels = np.load(twin_dir / man.labels) if man.labels and (twin_dir / man.labels).is_file() else None
+        # Splats far outside the table's workspace (the room, a far background shell) and huge haze
+        # splats (> 5 cm) hide the scene from most viewpoints: they get their own layer, off by default.
+        near = workspace_mask(g.means, man.background) & (g.scales.max(axis=1) < 0.05)
+        g_far = g.subset(~near)
+        g = g.subset(near)
         covs = g.covariances()
         _frame_camera(server, g.means[g.opacities > 0.5] if (g.opacities > 0.5).sum() > 10 else g.means)
-        rgb = np.clip(g.colors, 0, 1)
         handles["splats"] = server.scene.add_gaussian_splats("/splats", centers=g.means, covariances=covs,
-                                                             rgbs=rgb, opacities=g.opacities[:, None])
-        if man.labels and (twin_dir / man.labels).is_file():
-            labels = np.load(twin_dir / man.labels)
-            lab_rgb = label_colors(labels).astype(np.float32) / 255.0
+                                                             rgbs=np.clip(g.colors, 0, 1), opacities=g.opacities[:, None])
+        if len(g_far):
+            handles["far"] = server.scene.add_gaussian_splats(
+                "/splats_far", centers=g_far.means, covariances=g_far.covariances(), rgbs=np.clip(g_far.colors, 0, 1),
+                opacities=g_far.opacities[:, None], visible=False)
+        if labels is not None and len(labels) == len(near):
+            lab_rgb = label_colors(labels[near]).astype(np.float32) / 255.0
             handles["labels"] = server.scene.add_gaussian_splats("/labels", centers=g.means, covariances=covs,
                                                                  rgbs=lab_rgb, opacities=g.opacities[:, None], visible=False)
     for obj in man.objects:
@@ -162,6 +179,12 @@ def build_scene(server, twin_dir: Path, robot: RobotTrack | None = None) -> dict
         show_splats = gui.add_checkbox("Splats", True)
         show_labels = gui.add_checkbox("Labels (colour)", False)
         show_coll = gui.add_checkbox("Collision meshes", False)
+        show_far = gui.add_checkbox("Far / large background splats", False)
+
+    @show_far.on_update
+    def _(_e) -> None:
+        if "far" in handles:
+            handles["far"].visible = show_far.value
 
     @show_splats.on_update
     def _(_e) -> None:
