@@ -48,6 +48,13 @@ def test_build_writes_every_stage(built):
     assert (built / "splat" / "eval" / "metrics.json").is_file()
     labels = np.load(built / "semantics" / "labels.npy")
     assert labels.max() >= 1, "no Gaussian was labelled as an object"
+    fusion = json.loads((built / "semantics" / "fusion.json").read_text())
+    assert [r["kappa"] for r in fusion["kappa_sweep"]] == [2.0, 1.8, 1.5, 1.2, 1.0]
+    assert all(0.0 <= r["consistency"] <= 100.0 and 0.0 <= r["ghost_index"] <= 100.0 for r in fusion["kappa_sweep"])
+    # τ = N/κ: κ = 2 needs fewer votes than κ = 1, so it leaves fewer voted points unlabelled
+    assert fusion["kappa_sweep"][0]["ghost_index"] <= fusion["kappa_sweep"][-1]["ghost_index"] + 1e-9
+    assert fusion["miou_heldout"] > 0.2 and 0.0 <= fusion["consistency"] <= 100.0
+    assert len(list((built / "semantics" / "masks_vs_labels").glob("*.png"))) >= 1
     man = json.loads((built / "twin.json").read_text())
     assert man["frame"]["scaled"] and man["frame"]["source"] == "known_poses"
     assert (built / "export" / "scene.xml").is_file()

@@ -40,3 +40,5 @@ def test_side_by_side_and_heatmap():
     assert sbs.shape == (10, 12 * 3 + 4, 3)
     assert error_heatmap(a, a).max() == 0 and error_heatmap(a, b)[..., 0].min() == 1.0
     assert png_bytes(a)[:4] == b"\x89PNG"
+    tall = side_by_side([a, np.zeros((14, 5, 3), np.float32)], gap=1)
+    assert tall.shape == (14, 18, 3) and tall[10:, :12].min() == 1.0  # short image padded white

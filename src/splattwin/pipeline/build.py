@@ -55,7 +55,7 @@ class BuildOptions:
     resolution: int = 1
     device: str = "auto"
     seed: int = 0
-    max_gaussians: int = 60_000
+    max_gaussians: int = 40_000
     checkpoint_every: int = 500
     kappa: float = 1.5
     fusion_iters: int = 3
@@ -134,7 +134,13 @@ def _load_masks(ctx: Context):
         return segment_images({f.name: f.image_path for f in ds.train()}, o["prompt"],
                               out_dir=ctx.path("semantics/masks2d"))
     if scene_json.is_file():  # the embedded scene: its simulated open-vocabulary segmenter
-        return scene_masks(scene_json.parent, kind="noisy")
+        ms = scene_masks(scene_json.parent, kind="noisy")
+        # Only training views are fused: held-out views stay unseen for the metrics.
+        train = {f.name for f in load_dataset(ctx.path("poses/transforms.json"), validate=False).train()}
+        for d in (ms.masks, ms.scores, ms.sizes):
+            for view in [v for v in d if v not in train]:
+                del d[view]
+        return ms
     raise InputError("no 2D masks: pass --masks DIR or --prompt 'blue box. yellow cube'")
 
 
@@ -150,7 +156,44 @@ def _semantics_stage(ctx: Context) -> dict:
     prompts = ms.prompts or {}
     objects = [[res.names[k], int(k), prompts.get(k, res.names[k].replace("_", " "))] for k in res.label_ids]
     io.write_json(ctx.path("semantics/objects.json"), objects)
+    _semantic_metrics(ctx, res, ms)
     return {"labels": "@semantics/labels.npy", "objects": "@semantics/objects.json"}
+
+
+KAPPA_SWEEP = (2.0, 1.8, 1.5, 1.2, 1.0)
+
+
+def _semantic_metrics(ctx: Context, res, ms) -> None:
+    """The paper's 3D projection consistency and ghost index, the κ sweep, and 2D masks | fused labels
+    pictures, added to semantics/fusion.json and semantics/masks_vs_labels/."""
+    from splattwin.capture import load_dataset, load_image
+    from splattwin.report.html import side_by_side
+    from splattwin.semantics.lift import views_for
+    from splattwin.semantics.metrics import ghost_index, projection_consistency
+    from splattwin.semantics.render import colorize
+    from splattwin.splat.gaussians import Gaussians
+
+    g = Gaussians.load_ply(ctx.path("splat/point_cloud.ply"))
+    ds = load_dataset(ctx.path("poses/transforms.json"), validate=False)
+    views = views_for(ds.train() or ds.frames, ms)
+    sweep = [{"kappa": k, "consistency": projection_consistency(g.means, res.relabel(k), views, ms),
+              "ghost_index": ghost_index(res, k)} for k in KAPPA_SWEEP]
+    meta = io.read_json(ctx.path("semantics/fusion.json"))
+    meta["consistency"] = projection_consistency(g.means, res.labels, views, ms)
+    meta["ghost_index"] = ghost_index(res)
+    meta["kappa_sweep"] = sweep
+    io.write_json(ctx.path("semantics/fusion.json"), meta)
+    for f in [fr for fr in ds.train() if fr.name in ms.sizes][:3]:
+        h, w = ms.sizes[f.name]
+        mask_map = np.zeros((h, w), np.int32)
+        for k in sorted(ms.masks.get(f.name, {})):
+            mask_map[ms.masks[f.name][k]] = k
+        img = load_image(f.image_path)
+        from splattwin.capture import load_mask
+
+        fused = load_mask(ctx.path(f"semantics/label_maps/raw/{f.name}.png")).astype(np.int32)
+        pic = side_by_side([colorize(mask_map, res.names, img, legend=False), colorize(fused, res.names, img)])
+        io.write_image(ctx.path(f"semantics/masks_vs_labels/{f.name}.png"), (pic * 255 + 0.5).astype(np.uint8))
 
 
 def _twin_stage(ctx: Context) -> dict:

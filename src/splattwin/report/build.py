@@ -200,7 +200,11 @@ def _semantics_section(sec: Section, twin: Path, fusion: dict | None) -> None:
     if m:
         sec.table(["metric", "value"], m)
     if fusion.get("kappa_sweep"):
-        sec.table(["κ", "consistency", "ghost index"], [[r["kappa"], r["consistency"], r["ghost_index"]] for r in fusion["kappa_sweep"]])
+        sec.text("κ sweep (τ = N/κ): 3D projection consistency (% of labelled points with N_fg/N ≥ 0.8) and ghost index (%).")
+        sec.table(["κ", "consistency (%)", "ghost index (%)"],
+                  [[r["kappa"], r["consistency"], r["ghost_index"]] for r in fusion["kappa_sweep"]])
+    for p in sorted((twin / "semantics" / "masks_vs_labels").glob("*.png")):
+        sec.image(p, caption=f"{p.stem}: 2D segmenter masks (input) | fused 3D labels rendered")
     maps = sorted((twin / "semantics" / "label_maps").glob("*.png"))
     held = [p for p in maps if "heldout" in p.stem] or maps
     for p in held[:4]:
