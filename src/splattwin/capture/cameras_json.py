@@ -8,7 +8,6 @@ any image extension) in `images/` beside the file, or beside the file itself.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -35,12 +34,7 @@ def _find_image(root: Path, name: str) -> Path | None:
 
 def read(path: str | Path, image_dir: str | Path | None = None) -> Dataset:
     path = Path(path)
-    try:
-        entries = json.loads(path.read_text())
-    except FileNotFoundError as e:
-        raise InputError("file does not exist", path) from e
-    except json.JSONDecodeError as e:
-        raise InputError(f"not valid JSON: {e}", path) from e
+    entries = io.read_json(path, missing="file does not exist")
     if not isinstance(entries, list) or not entries:
         raise InputError("expected a non-empty JSON list of cameras (3DGS cameras.json)", path)
     root = Path(image_dir) if image_dir is not None else path.parent

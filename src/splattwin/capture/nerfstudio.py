@@ -10,7 +10,6 @@ convert to OpenCV on read and back on write. Frames whose image is missing are s
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -52,12 +51,7 @@ def _intrinsics(src: dict, fallback: dict, where: Path, frame_name: str) -> tupl
 
 def read(path: str | Path) -> Dataset:
     path = Path(path)
-    try:
-        meta = json.loads(path.read_text())
-    except FileNotFoundError as e:
-        raise InputError("file does not exist", path) from e
-    except json.JSONDecodeError as e:
-        raise InputError(f"not valid JSON: {e}", path) from e
+    meta = io.read_json(path, missing="file does not exist")
     if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list):
         raise InputError("not a nerfstudio transforms.json (no 'frames' list)", path)
     model = meta.get("camera_model", "OPENCV")
