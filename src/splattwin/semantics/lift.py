@@ -67,15 +67,18 @@ def rasterizer_usable() -> bool:
 
 
 def make_depth_renderer(gaussians, renderer: str = "auto"):
-    """Depth for the visibility test: "points" (centre z-buffer, ~30 ms per 200k-Gaussian view) or
-    "splat" (the rasterizer's expected depth, ~1 s per view on 2 CPU cores). "auto" = "points": the fusion
-    re-renders every view up to `iters` times, and the two agree on ~96 % of the labels (bench/semantics.py)."""
+    """Depth for the visibility test: "splat" (the rasterizer's expected depth of the trained splats, as
+    the method prescribes; 200k Gaussians x 15 views x 3 rounds in ~7 s on 2 cores) or "points" (a
+    z-buffer of the Gaussian centres, ~5x faster, agreeing on >99 % of the labels of trained splats).
+    "auto" = "splat" when the rasterizer is usable here, else "points"."""
     if renderer not in RENDERERS:
         raise InputError(f"unknown renderer {renderer!r}; choose one of {', '.join(RENDERERS)}")
-    if renderer == "splat":
-        if not rasterizer_usable():
+    if renderer in ("splat", "auto"):
+        if rasterizer_usable():
+            return SplatDepth(gaussians)
+        if renderer == "splat":
             raise InputError("the splat rasterizer is not usable here; use --renderer points")
-        return SplatDepth(gaussians)
+        log.info("rasterizer unavailable: using the point z-buffer depth")
     return PointDepth(gaussians.means)
 
 
