@@ -141,7 +141,8 @@ class OpenVocabSegmenter:
             if not hasattr(tf, "Sam3Model"):
                 raise InputError(f"SAM 3 needs a transformers with Sam3Model (installed: {tf.__version__})")
             self.seg_model = load_pretrained(tf.Sam3Model, opts.segmenter, "SAM 3 model").eval()
-            self.seg_proc = load_pretrained(tf.Sam3Processor, opts.segmenter, "SAM 3 processor")
+            # Sam3Processor's image processor needs torchvision: tokenizer only, images by hand (as SAM 2)
+            self.seg_proc = load_pretrained(tf.AutoTokenizer, opts.segmenter, "SAM 3 tokenizer")
             return
         self.det_model = load_pretrained(tf.GroundingDinoForObjectDetection, opts.detector, "Grounding DINO model").eval()
         self.det_proc = load_pretrained(tf.GroundingDinoProcessor, opts.detector, "Grounding DINO processor")
@@ -229,21 +230,33 @@ class OpenVocabSegmenter:
         return found
 
     def _sam3(self, image: np.ndarray, phrases: Sequence[str]) -> dict[int, tuple[np.ndarray, float]]:
+        """SAM 3 text prompts, one phrase at a time: best query (score = sigmoid(logit) x presence) kept
+        when its score > box_threshold, its mask = sigmoid(mask logit) > 0.5 at the image size."""
         import torch
+        import torch.nn.functional as F
         from PIL import Image
 
         H, W = image.shape[:2]
+        size = self.seg_model.config.vision_config.image_size
+        S = int(size[0] if isinstance(size, (list, tuple)) else size)
+        x = np.asarray(Image.fromarray(image).resize((S, S), Image.BILINEAR), dtype=np.float32) / 255.0
+        pv = torch.from_numpy((x - 0.5) / 0.5).permute(2, 0, 1)[None]  # Sam3ImageProcessor: mean = std = 0.5
         found = {}
-        pil = Image.fromarray(image)
-        for p, phrase in enumerate(phrases):
-            inputs = self.seg_proc(images=pil, text=phrase, return_tensors="pt")
-            with torch.no_grad():
-                out = self.seg_model(**inputs)
-            res = self.seg_proc.post_process_instance_segmentation(
-                out, threshold=self.opts.box_threshold, mask_threshold=0.5, target_sizes=[(H, W)])[0]
-            if len(res["scores"]):
-                k = int(np.argmax(res["scores"].numpy()))
-                found[p] = (res["masks"][k].numpy().astype(bool), float(res["scores"][k]))
+        with torch.no_grad():
+            vision = self.seg_model.get_vision_features(pixel_values=pv)
+            for p, phrase in enumerate(phrases):
+                txt = self.seg_proc(phrase, padding="max_length", max_length=32, truncation=True, return_tensors="pt")
+                out = self.seg_model(vision_embeds=vision, input_ids=txt["input_ids"],
+                                     attention_mask=txt["attention_mask"])
+                scores = out.pred_logits[0].sigmoid()
+                if out.presence_logits is not None:
+                    scores = scores * out.presence_logits[0].sigmoid()
+                k = int(scores.argmax())
+                score = float(scores[k])
+                if score > self.opts.box_threshold:
+                    m = F.interpolate(out.pred_masks[0, k][None, None], size=(H, W), mode="bilinear",
+                                      align_corners=False)[0, 0]
+                    found[p] = (m.sigmoid().numpy() > 0.5, score)
         return found
 
 
