@@ -1,7 +1,8 @@
 import numpy as np
 from PIL import Image
 
-from splattwin.report.html import Report, error_heatmap, png_bytes, side_by_side
+from splattwin.report.html import Report, png_bytes, side_by_side
+from splattwin.splat.metrics import error_heatmap
 from splattwin.report.screenshot import screenshot
 
 
@@ -38,7 +39,7 @@ def test_side_by_side_and_heatmap():
     b = np.ones((10, 12, 3), np.float32)
     sbs = side_by_side([a, b, error_heatmap(a, b)], gap=2)
     assert sbs.shape == (10, 12 * 3 + 4, 3)
-    assert error_heatmap(a, a).max() == 0 and error_heatmap(a, b)[..., 0].min() == 1.0
+    assert error_heatmap(a, a).max() == 0 and error_heatmap(a, b)[..., 0].min() == 255
     assert png_bytes(a)[:4] == b"\x89PNG"
     tall = side_by_side([a, np.zeros((14, 5, 3), np.float32)], gap=1)
     assert tall.shape == (14, 18, 3) and tall[10:, :12].min() == 1.0  # short image padded white

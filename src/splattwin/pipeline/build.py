@@ -14,7 +14,6 @@ Layout of the output folder TWIN (the twin folder itself):
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -85,6 +84,12 @@ def _input_path(ctx: Context) -> Path:
     return Path(ctx.options["input"])
 
 
+def _scene_json(ctx: Context) -> Path:
+    """Where an embedded scene's scene.json would be for this input (it may not exist)."""
+    src = _input_path(ctx)
+    return (src if src.is_dir() else src.parent) / "scene.json"
+
+
 def _poses_stage(ctx: Context) -> dict:
     from splattwin.capture import load_dataset
     from splattwin.poses.estimate import PoseOptions, estimate_poses
@@ -122,8 +127,7 @@ def _load_masks(ctx: Context):
     from splattwin.semantics.masks import load_masks, scene_masks, scene_objects
 
     o = ctx.options
-    src = _input_path(ctx)
-    scene_json = (src if src.is_dir() else src.parent) / "scene.json"
+    scene_json = _scene_json(ctx)
     objs = scene_objects(scene_json.parent) if scene_json.is_file() else None
     if o["masks"]:
         return load_masks(o["masks"], objects=objs)
@@ -204,15 +208,14 @@ def _twin_stage(ctx: Context) -> dict:
     o = ctx.options
     g = Gaussians.load_ply(ctx.path("splat/point_cloud.ply"))
     labels = np.load(ctx.path("semantics/labels.npy"))
-    objects = [tuple(x) for x in json.loads(ctx.path("semantics/objects.json").read_text())]
+    objects = [tuple(x) for x in io.read_json(ctx.path("semantics/objects.json"))]
     frame = load_frame(ctx.path("poses/frame.json"))
     man = build_twin(g, labels, objects, ctx.out, frame=frame, cameras_path="poses/transforms.json",
                      progress=o["progress"])
     # Scene facts the robot task needs (goal regions) travel in the manifest's config.
-    src = _input_path(ctx)
-    scene_json = (src if src.is_dir() else src.parent) / "scene.json"
+    scene_json = _scene_json(ctx)
     if scene_json.is_file():
-        scene = json.loads(scene_json.read_text())
+        scene = io.read_json(scene_json)
         if scene.get("target_frame"):
             man.config["target_frame"] = scene["target_frame"]
     man.config["build"] = {k: v for k, v in o.items() if k != "progress"}

@@ -14,15 +14,18 @@ from pathlib import Path
 
 import numpy as np
 
+from splattwin import io
+from splattwin.errors import InputError
 from splattwin.report.html import Report, Section
 
 log = logging.getLogger(__name__)
 
 
 def _json(path: Path):
+    """A stage's JSON artifact, or None when that stage did not run (or left nothing readable)."""
     try:
-        return json.loads(path.read_text()) if path.is_file() else None
-    except json.JSONDecodeError:
+        return io.read_json(path)
+    except InputError:
         return None
 
 

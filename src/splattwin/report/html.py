@@ -139,8 +139,3 @@ def side_by_side(images: Sequence[np.ndarray], gap: int = 4) -> np.ndarray:
             out.append(np.ones((h, gap, 3), np.float32))
     return np.concatenate(out, axis=1)
 
-
-def error_heatmap(a: np.ndarray, b: np.ndarray, vmax: float = 0.25) -> np.ndarray:
-    """Per-pixel mean absolute RGB error of two HxWx3 [0,1] images, coloured (black → red → yellow)."""
-    err = np.clip(np.abs(np.asarray(a, np.float32) - np.asarray(b, np.float32)).mean(axis=2) / vmax, 0, 1)
-    return np.stack([np.clip(2 * err, 0, 1), np.clip(2 * err - 1, 0, 1), np.zeros_like(err)], axis=2)
