@@ -152,33 +152,35 @@ def _semantics_stage(ctx: Context) -> dict:
     from splattwin.semantics.fusion import FusionOptions
     from splattwin.semantics.lift import fuse_to_dir
 
+    from splattwin.capture import load_dataset
+    from splattwin.splat.gaussians import Gaussians
+
     o = ctx.options
     ms = _load_masks(ctx)
-    res = fuse_to_dir(ctx.path("splat/point_cloud.ply"), ctx.path("poses/transforms.json"), ms,
+    g = Gaussians.load_ply(ctx.path("splat/point_cloud.ply"))
+    ds = load_dataset(ctx.path("poses/transforms.json"))
+    res = fuse_to_dir(g, ds, ms,
                       ctx.path("semantics"), FusionOptions(kappa=o["kappa"], iters=o["fusion_iters"]),
                       progress=o["progress"])
     prompts = ms.prompts or {}
     objects = [[res.names[k], int(k), prompts.get(k, res.names[k].replace("_", " "))] for k in res.label_ids]
     io.write_json(ctx.path("semantics/objects.json"), objects)
-    _semantic_metrics(ctx, res, ms)
+    _semantic_metrics(ctx, res, ms, g, ds)
     return {"labels": "@semantics/labels.npy", "objects": "@semantics/objects.json"}
 
 
 KAPPA_SWEEP = (2.0, 1.8, 1.5, 1.2, 1.0)
 
 
-def _semantic_metrics(ctx: Context, res, ms) -> None:
+def _semantic_metrics(ctx: Context, res, ms, g, ds) -> None:
     """The paper's 3D projection consistency and ghost index, the κ sweep, and 2D masks | fused labels
     pictures, added to semantics/fusion.json and semantics/masks_vs_labels/."""
-    from splattwin.capture import load_dataset, load_image
+    from splattwin.capture import load_image, load_mask
     from splattwin.report.html import side_by_side
     from splattwin.semantics.lift import views_for
     from splattwin.semantics.metrics import ghost_index, projection_consistency
     from splattwin.semantics.render import colorize
-    from splattwin.splat.gaussians import Gaussians
 
-    g = Gaussians.load_ply(ctx.path("splat/point_cloud.ply"))
-    ds = load_dataset(ctx.path("poses/transforms.json"), validate=False)
     views = views_for(ds.train() or ds.frames, ms)
     sweep = [{"kappa": k, "consistency": projection_consistency(g.means, res.relabel(k), views, ms),
               "ghost_index": ghost_index(res, k)} for k in KAPPA_SWEEP]
@@ -193,8 +195,6 @@ def _semantic_metrics(ctx: Context, res, ms) -> None:
         for k in sorted(ms.masks.get(f.name, {})):
             mask_map[ms.masks[f.name][k]] = k
         img = load_image(f.image_path)
-        from splattwin.capture import load_mask
-
         fused = load_mask(ctx.path(f"semantics/label_maps/raw/{f.name}.png")).astype(np.int32)
         pic = side_by_side([colorize(mask_map, res.names, img, legend=False), colorize(fused, res.names, img)])
         io.write_image(ctx.path(f"semantics/masks_vs_labels/{f.name}.png"), (pic * 255 + 0.5).astype(np.uint8))

@@ -82,24 +82,25 @@ def make_depth_renderer(gaussians, renderer: str = "auto"):
     return PointDepth(gaussians.means)
 
 
-def fuse_to_dir(splats: str | Path, dataset: str | Path, masks: str | Path | MaskSet, out_dir: str | Path,
+def fuse_to_dir(splats: "str | Path | Gaussians", dataset: "str | Path | Dataset", masks: str | Path | MaskSet, out_dir: str | Path,
                 options: FusionOptions | None = None, renderer: str = "auto", label_maps: bool = True,
                 naive: bool = False, progress: bool = True, maps_renderer: str = "auto") -> FusionResult:
     """Run the fusion on files and write the output folder (layout in the module docstring).
 
+    splats / dataset: paths, or already loaded objects (the pipeline passes those it also uses afterwards).
     renderer: depth for the visibility test (`make_depth_renderer`). maps_renderer: label maps through
     the rasterizer ("splat"), the centre z-buffer ("points"), or "auto" (splat when usable).
     """
-    from splattwin.capture import load_dataset
+    from splattwin.capture import Dataset, load_dataset
     from splattwin.splat.gaussians import Gaussians
 
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
-    g = Gaussians.load_ply(splats)
+    g = splats if isinstance(splats, Gaussians) else Gaussians.load_ply(splats)
     if len(g.means) == 0:
-        raise InputError("the splat file has no Gaussians", splats)
-    ds = load_dataset(dataset)
-    objs = dataset_objects(Path(dataset))
+        raise InputError("the splat file has no Gaussians", None if isinstance(splats, Gaussians) else splats)
+    ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
+    objs = dataset_objects(ds.root)
     ms = masks if isinstance(masks, MaskSet) else load_masks(masks, objects=objs)
     where = None if isinstance(masks, MaskSet) else Path(masks)
     views = views_for(ds.train() or ds.frames, ms, where, all_frames=ds.frames)

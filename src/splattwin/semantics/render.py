@@ -163,17 +163,10 @@ class SplatDepth:
 
 
 def _rasterize(g, colors: np.ndarray, cam: Camera, mode: str, backend: str) -> tuple[np.ndarray, np.ndarray]:
-    """One camera through `rasterization`. colors [N,C] -> (render [H,W,ch], alpha [H,W])."""
-    import torch
+    """One camera through the splat stage's `render()`. colors [N,C] -> (render [H,W,ch], alpha [H,W])."""
+    from splattwin.splat.render import render
 
-    from splattwin.splat.rasterization import rasterization
-
-    t = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float32)  # noqa: E731
-    with torch.no_grad():
-        rc, ra, _ = rasterization(t(g.means), t(g.quats), t(g.scales), t(g.opacities), t(colors),
-                                  t(cam.T_cam_world[None]), t(cam.K[None]), cam.width, cam.height,
-                                  sh_degree=None, render_mode=mode, backend=backend)
-    return rc[0].cpu().numpy(), ra[0, ..., 0].cpu().numpy()
+    return render(g, cam, mode=mode, colors=colors, backend=backend)
 
 
 def default_depth_renderer(gaussians, prefer: str = "splat") -> DepthRenderer:

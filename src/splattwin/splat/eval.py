@@ -14,14 +14,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from splattwin.capture import Camera, Dataset, load_dataset
+from splattwin.capture import Dataset, load_dataset
 from splattwin.errors import InputError
 from splattwin.io import write_image, write_json
 from splattwin.splat import metrics
 from splattwin.splat.gaussians import Gaussians
-from splattwin.splat.rasterization import rasterization, resolve_backend
+from splattwin.splat.render import render_rgb
 from splattwin.splat.trainer import load_views
 
 log = logging.getLogger(__name__)
@@ -34,20 +33,6 @@ class EvalResult:
     mean_ssim: float
     split: str                 # "heldout" | "train"
     metrics_path: Path | None = None
-
-
-def render_rgb(g: Gaussians, camera: Camera, background=(0.0, 0.0, 0.0), backend: str = "auto",
-               T_cam_world: np.ndarray | None = None) -> np.ndarray:
-    """Render `g` from `camera`: HxWx3 float32 in [0, 1]."""
-    name = resolve_backend(backend)
-    dev = "cuda" if name == "cuda" else "cpu"
-    t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32, device=dev)  # noqa: E731
-    with torch.no_grad():
-        img, _, _ = rasterization(
-            t(g.means), t(g.quats), t(g.scales), t(g.opacities), t(g.sh),
-            t(camera.T_cam_world if T_cam_world is None else T_cam_world)[None], t(camera.K)[None],
-            camera.width, camera.height, sh_degree=g.sh_degree, backgrounds=t(background)[None], backend=name)
-    return img[0].clamp(0, 1).cpu().numpy()
 
 
 def side_by_side(gt: np.ndarray, render: np.ndarray) -> np.ndarray:

@@ -1,8 +1,14 @@
 """Convenience renders of a `Gaussians` set from a `Camera`, as numpy images, for the later stages.
 
-No gradients (torch.no_grad); float32 in [0,1] for colours, metres for depth. The camera is treated as an
-ideal pinhole: distortion coefficients, if any, are ignored (render undistorted images, or undistort the
-photos, before comparing). Frames: `camera.T_cam_world` is the view matrix (OpenCV convention).
+One function, `render()`, wraps `rasterization()` for every consumer (evaluation, semantic fusion,
+geometry, report): it moves the arrays to the backend's device (CPU, or CUDA when gsplat is used),
+renders without gradients and returns numpy. The thin helpers below (`render_rgb`, `render_rgbd`,
+`render_depth`, `render_features`) pick its mode.
+
+Float32 in [0,1] for colours, metres for depth. The camera is treated as an ideal pinhole: distortion
+coefficients, if any, are ignored (render undistorted images, or undistort the photos, before comparing).
+Frames: `camera.T_cam_world` is the view matrix (OpenCV convention); `T_cam_world=` overrides it (e.g. a
+refined pose from training).
 """
 
 from __future__ import annotations
@@ -12,21 +18,60 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from splattwin.splat.rasterization import rasterization
+from splattwin.splat.rasterization import rasterization, resolve_backend
 
 if TYPE_CHECKING:  # pragma: no cover
     from splattwin.capture.camera import Camera
     from splattwin.splat.gaussians import Gaussians
 
-
-def _tensors(g: "Gaussians", camera: "Camera"):
-    f = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float32)  # noqa: E731
-    return (f(g.means), f(g.quats), f(g.scales), f(g.opacities), f(camera.T_cam_world)[None], f(camera.K)[None])
+RenderMode = str  # "RGB" | "ED" | "RGB+ED"
 
 
 @torch.no_grad()
+def render(gaussians: "Gaussians", camera: "Camera", *, mode: RenderMode = "RGB",
+           colors: np.ndarray | None = None, background: tuple[float, ...] | None = None,
+           backend: str = "auto", sh_degree: int | None = None, T_cam_world: np.ndarray | None = None
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """Render one camera.
+
+    Args:
+        mode: "RGB" (colour channels), "ED" (expected depth only), "RGB+ED" (channels then depth).
+        colors: [N,D] float per-Gaussian features to composite instead of the SH colours (no view
+            dependence, no clamping); None = the Gaussians' SH evaluated up to `sh_degree`.
+        background: [D] values behind the Gaussians (channel modes only); None = zeros.
+        sh_degree: cap on the SH degree used (None = the model's degree).
+        T_cam_world: [4,4] view matrix overriding `camera.T_cam_world`.
+    Returns:
+        image [H,W,C] float32 (C = D for "RGB", 1 for "ED", D+1 for "RGB+ED"), alpha [H,W] float32.
+    """
+    h, w = camera.height, camera.width
+    d = 3 if colors is None else np.asarray(colors).shape[-1]
+    c = {"RGB": d, "ED": 1, "RGB+ED": d + 1}[mode]
+    if colors is not None and (np.ndim(colors) != 2 or len(colors) != len(gaussians)):
+        raise ValueError(f"colors must be [N,D] with N={len(gaussians)}, got {np.shape(colors)}")
+    if len(gaussians) == 0:
+        img = np.zeros((h, w, c), np.float32)
+        if background is not None and mode != "ED":
+            img[..., :d] = np.asarray(background, np.float32)
+        return img, np.zeros((h, w), np.float32)
+    name = resolve_backend(backend)
+    dev = "cuda" if name == "cuda" else "cpu"
+    t = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float32, device=dev)  # noqa: E731
+    if colors is None:
+        deg = gaussians.sh_degree if sh_degree is None else min(int(sh_degree), gaussians.sh_degree)
+        feats, deg_arg = t(gaussians.sh), deg
+    else:
+        feats, deg_arg = t(colors), None
+    bg = None if background is None or mode == "ED" else t(background)[None]
+    vm = camera.T_cam_world if T_cam_world is None else T_cam_world
+    img, alpha, _ = rasterization(t(gaussians.means), t(gaussians.quats), t(gaussians.scales),
+                                  t(gaussians.opacities), feats, t(vm)[None], t(camera.K)[None], w, h,
+                                  sh_degree=deg_arg, backgrounds=bg, render_mode=mode, backend=name)
+    return img[0].cpu().numpy().copy(), alpha[0, ..., 0].cpu().numpy().copy()
+
+
 def render_rgbd(gaussians: "Gaussians", camera: "Camera", background: tuple[float, float, float] | None = None,
-                backend: str = "auto", sh_degree: int | None = None
+                backend: str = "auto", sh_degree: int | None = None, T_cam_world: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Colour, expected depth and alpha in one pass.
 
@@ -34,37 +79,28 @@ def render_rgbd(gaussians: "Gaussians", camera: "Camera", background: tuple[floa
         rgb [H,W,3] float32 (over `background`, black by default), depth [H,W] float32 expected depth
         (m, camera z; NaN-free, 0 where nothing was drawn), alpha [H,W] float32 accumulated opacity.
     """
-    means, quats, scales, opac, vm, K = _tensors(gaussians, camera)
-    if len(gaussians) == 0:
-        h, w = camera.height, camera.width
-        rgb = np.zeros((h, w, 3), np.float32)
-        if background is not None:
-            rgb[:] = np.asarray(background, np.float32)
-        return rgb, np.zeros((h, w), np.float32), np.zeros((h, w), np.float32)
-    deg = gaussians.sh_degree if sh_degree is None else min(int(sh_degree), gaussians.sh_degree)
-    sh = torch.as_tensor(gaussians.sh, dtype=torch.float32)
-    bg = None if background is None else torch.tensor([background], dtype=torch.float32)
-    img, alpha, _ = rasterization(means, quats, scales, opac, sh, vm, K, camera.width, camera.height,
-                                  sh_degree=deg, backgrounds=bg, render_mode="RGB+ED", backend=backend)
-    img = img[0].numpy()
-    return img[..., :3].copy(), img[..., 3].copy(), alpha[0, ..., 0].numpy().copy()
+    img, alpha = render(gaussians, camera, mode="RGB+ED", background=background, backend=backend,
+                        sh_degree=sh_degree, T_cam_world=T_cam_world)
+    return img[..., :3].copy(), img[..., 3].copy(), alpha
 
 
 def render_rgb(gaussians: "Gaussians", camera: "Camera", background: tuple[float, float, float] | None = None,
-               backend: str = "auto") -> np.ndarray:
-    """[H,W,3] float32 colour image (over `background`, black by default)."""
-    return render_rgbd(gaussians, camera, background=background, backend=backend)[0]
+               backend: str = "auto", T_cam_world: np.ndarray | None = None) -> np.ndarray:
+    """[H,W,3] float32 colour image in [0,1] (over `background`, black by default)."""
+    img, _ = render(gaussians, camera, mode="RGB", background=background, backend=backend,
+                    T_cam_world=T_cam_world)
+    return np.clip(img, 0.0, 1.0)
 
 
 def render_depth(gaussians: "Gaussians", camera: "Camera", min_alpha: float = 0.5, backend: str = "auto"
                  ) -> np.ndarray:
     """[H,W] float32 expected depth (camera z, metres) = sum w_i z_i / alpha; inf where alpha < `min_alpha`
     (too little surface there to trust a depth)."""
-    _, depth, alpha = render_rgbd(gaussians, camera, backend=backend, sh_degree=0)
-    return np.where(alpha >= min_alpha, depth, np.inf).astype(np.float32)
+    img, alpha = render(gaussians, camera, mode="ED", colors=np.zeros((len(gaussians), 1), np.float32),
+                        backend=backend)
+    return np.where(alpha >= min_alpha, img[..., -1], np.inf).astype(np.float32)
 
 
-@torch.no_grad()
 def render_features(gaussians: "Gaussians", camera: "Camera", features: np.ndarray, backend: str = "auto"
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Composite arbitrary per-Gaussian features (e.g. one-hot labels) into the image.
@@ -74,13 +110,4 @@ def render_features(gaussians: "Gaussians", camera: "Camera", features: np.ndarr
     Returns:
         image [H,W,D] float32 (sum_i w_i f_i, no background), alpha [H,W] float32.
     """
-    feats = np.asarray(features, dtype=np.float32)
-    if feats.ndim != 2 or feats.shape[0] != len(gaussians):
-        raise ValueError(f"features must be [N,D] with N={len(gaussians)}, got {feats.shape}")
-    h, w = camera.height, camera.width
-    if len(gaussians) == 0:
-        return np.zeros((h, w, feats.shape[1]), np.float32), np.zeros((h, w), np.float32)
-    means, quats, scales, opac, vm, K = _tensors(gaussians, camera)
-    img, alpha, _ = rasterization(means, quats, scales, opac, torch.from_numpy(feats), vm, K, w, h,
-                                  backend=backend)
-    return img[0].numpy().copy(), alpha[0, ..., 0].numpy().copy()
+    return render(gaussians, camera, mode="RGB", colors=np.asarray(features, dtype=np.float32), backend=backend)
