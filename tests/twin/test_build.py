@@ -157,3 +157,14 @@ def test_reexport_via_cli_replaces_files_whole(twin):
     assert Manifest.load(out).exports["urdf"] == "export/scene.urdf"
     assert main(["export", str(out), "--formats", "nope"]) == 2
     assert main(["export", str(out / "missing")]) == 2
+
+
+def test_export_from_relative_folder_records_relative_paths(twin, monkeypatch):
+    # `splattwin demo --out demo_out` hands the exporters a relative folder; the MJCF exporter resolves
+    # paths itself, and the manifest must still record paths relative to the twin folder.
+    out, *_ = twin
+    monkeypatch.chdir(out.parent)
+    assert main(["export", out.name, "--formats", "mjcf,urdf"]) == 0
+    m = Manifest.load(out)
+    assert m.exports["mjcf"] == "export/scene.xml"
+    assert m.exports["urdf"] == "export/scene.urdf"

@@ -153,7 +153,7 @@ def export_twin(twin_dir: str | Path, manifest: Manifest | None = None, formats=
             continue
         t0 = time.perf_counter()
         path = Path(fn(twin_dir, manifest))
-        manifest.exports[fmt] = path.relative_to(twin_dir).as_posix()
+        manifest.exports[fmt] = path.resolve().relative_to(twin_dir.resolve()).as_posix()
         manifest.timings[f"export.{fmt}"] = round(time.perf_counter() - t0, 4)
     manifest.save(twin_dir)
     return manifest
