@@ -13,7 +13,8 @@ from splattwin.robot.trajectory import Trajectory
 def test_plan_help(capsys):
     with pytest.raises(SystemExit) as e:
         main(["plan", "--help"])
-    assert e.value.code == 0 and "--trials" in capsys.readouterr().out
+    out = " ".join(capsys.readouterr().out.split())
+    assert e.value.code == 0 and "--trials" in out and "per-axis standard deviation" in out and "--sigma-yaw" in out
 
 
 def test_plan_writes_trajectories_and_results(gt_twin_default: Path, tmp_path: Path):
@@ -43,6 +44,55 @@ def test_plan_missing_object_is_input_error(gt_twin_small: Path, tmp_path: Path,
     assert not (tmp_path / "o" / "results.json").exists()     # refused before planning anything
 
 
+def test_plan_unreachable_goal_is_input_error_before_planning(gt_twin_small: Path, tmp_path: Path, capsys):
+    task = tmp_path / "far.yaml"
+    task.write_text("- pick: yellow_cube\n- place_in: {center: [0.28, 0.0, 0.0], size: 0.1}\n")
+    rc = main(["plan", str(gt_twin_small), "--task", str(task), "--base-pose=-0.5,0,-0.3,0",
+               "--out", str(tmp_path / "o"), "--no-render"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "step 1: goal region" in err and "no IK solution" in err and str(task) in err
+    assert not (tmp_path / "o" / "results.json").exists()
+
+
 def test_plan_bad_options(gt_twin_small: Path, tmp_path: Path):
     assert main(["plan", str(gt_twin_small), "--base-pose", "1,2", "--out", str(tmp_path)]) == 2
     assert main(["plan", str(tmp_path / "nope"), "--out", str(tmp_path)]) == 2
+
+
+def _renamed_panda(tmp_path: Path) -> Path:
+    """The Menagerie Panda MJCF with every body, joint, site, tendon and actuator renamed (prefix 'arm_'),
+    meshes referenced from the original folder: a user arm that only works through the robot options."""
+    import re
+
+    from splattwin.robot.assets import panda_model_path
+
+    src = panda_model_path()
+    xml = src.read_text()
+    xml = re.sub(r'(<(?:body|joint|site|general|position|fixed)\b[^>]*?\bname=")([^"]+)"', r'\1arm_\2"', xml)
+    xml = re.sub(r'\b(joint|joint1|joint2|tendon)="([^"]+)"', r'\1="arm_\2"', xml)
+    xml = xml.replace('meshdir="assets"', f'meshdir="{src.parent / "assets"}"')
+    assert 'name="tcp"' not in xml and 'name="arm_tcp"' in xml and 'name="hand"' not in xml
+    out = tmp_path / "my_arm.xml"
+    out.write_text(xml)
+    return out
+
+
+def test_user_robot_mjcf_runs_a_pick_and_place(gt_twin_default: Path, tmp_path: Path):
+    """A user-supplied arm MJCF (the Panda with renamed bodies/joints/site, TCP site 'arm_tcp') on another
+    base pose runs one pick-and-place step through the CLI: grasped, placed, no collisions."""
+    arm = _renamed_panda(tmp_path)
+    task = tmp_path / "one_step.yaml"
+    task.write_text("- pick: blue_box\n- place_on: cardboard_box\n")
+    out = tmp_path / "robot"
+    rc = main(["plan", str(gt_twin_default), "--task", str(task), "--robot-mjcf", str(arm), "--tcp-site", "arm_tcp",
+               "--base-pose=-0.55,0.02,0,0.05", "--out", str(out), "--no-render"])
+    res = json.loads((out / "results.json").read_text())
+    step = res["nominal"]["steps"][0]
+    assert rc == 0, step["failure"]
+    assert step["success"] and step["grasped"] and step["placed"] and res["nominal"]["collisions"] == 0
+    assert res["robot_mjcf"] == str(arm) and res["base_pose"]["x"] == -0.55
+    tj = Trajectory.load_json(out / "trajectory.json")
+    assert tj.joint_names == [f"arm_joint{i}" for i in range(1, 8)]
+    # a wrong TCP site name is bad input
+    assert main(["plan", str(gt_twin_default), "--task", str(task), "--robot-mjcf", str(arm),
+                 "--out", str(tmp_path / "o2"), "--no-render"]) == 2

@@ -5,6 +5,7 @@ from pathlib import Path
 import numpy as np
 
 from splattwin.robot.execute import Executor
+from splattwin.robot.trajectory import concatenate
 from splattwin.robot.task import load_task, validate_task
 from splattwin.robot.world import build_world
 
@@ -90,3 +91,121 @@ def test_hammer_sunk_into_the_table_is_still_graspable(gt_twin_default: Path):
     # the pads still hold the handle: the TCP is below the hammer's top
     ext = w.manifest.object("toy_hammer").bbox_extent
     assert T_tcp[2, 3] < T[2, 3] + ext[2] / 2 - 0.004
+
+
+def _shifted(T: np.ndarray, d_obj: np.ndarray) -> np.ndarray:
+    T = np.array(T, float)
+    T[:3, 3] += T[:3, :3] @ np.asarray(d_obj, float)
+    return T
+
+
+def test_finger_landing_on_the_box_is_corrected_by_touch(gt_twin_default: Path):
+    """The blue box (6 cm across the grasp, 8 cm gripper: 1 cm clearance per side) lies 15 mm off its
+    twin pose along the closing axis: the first approach lands a finger on its top. The guarded approach
+    stops, backs off, shifts the believed pose towards that finger and grasps it; no collisions."""
+    w0 = build_world(gt_twin_default, visual=False)
+    nominal = {o: w0.manifest.object(o).pose for o in w0.objects}
+    task = load_task(None, w0.manifest)
+    for sign in (1, -1):
+        poses = dict(nominal)
+        poses["blue_box"] = _shifted(nominal["blue_box"], [0.0, sign * 0.015, 0.0])   # box y: its 6 cm side
+        w = build_world(gt_twin_default, poses=poses, visual=False)
+        ex = Executor(w, belief=nominal, seed=0)
+        r = ex.run_step(1, task.steps[0])
+        assert r.success and r.robot_collisions == 0 and r.object_collisions == 0, r.failure
+        assert r.grasp["touch_corrections"] == 1
+        # the corrected belief is closer to the true pose than the twin's
+        true_offset = poses["blue_box"][:3, 3] - nominal["blue_box"][:3, 3]
+        assert np.linalg.norm(np.array(r.grasp["belief_correction_m"]) - true_offset) < 0.008
+        names = [n for n, _ in ex.trajs]
+        assert names[:6] == ["step1_transit", "step1_approach_stopped", "step1_touch1", "step1_backoff1",
+                             "step1_transit_retry1", "step1_approach_retry1"], names
+        full = concatenate([t for _, t in ex.trajs])            # one continuous exported trajectory
+        assert full.duration > 5.0
+
+
+def test_blocked_best_grasp_falls_back_to_the_next_ranked(gt_twin_default: Path):
+    """An obstacle (the yellow cube, 8 mm beside the blue box's long face, off-centre) blocks the best
+    (central) grasp's finger: the step uses a lower-ranked grasp and still succeeds without collisions."""
+    w0 = build_world(gt_twin_default, visual=False)
+    poses = {o: w0.manifest.object(o).pose for o in w0.objects}
+    cube = _shifted(poses["blue_box"], [0.015, 0.03 + 0.008 + 0.0125, 0.0])
+    cube[2, 3] = poses["yellow_cube"][2, 3]
+    poses["yellow_cube"] = cube
+    w = build_world(gt_twin_default, poses=poses, visual=False)
+    ex = Executor(w, belief=poses, seed=0)
+    step = load_task(None, w.manifest).steps[0]
+    from splattwin.robot import grasp as grasp_mod
+
+    best = grasp_mod.rank_grasps(ex._grasps("blue_box"), poses["blue_box"], w.base.matrix())[0]
+    r = ex.run_step(1, step)
+    assert r.success and r.robot_collisions == 0 and r.object_collisions == 0, r.failure
+    assert r.grasp["tried"] > 1 and r.grasp["rejections"].get("approach collision", 0) >= 1
+    assert r.grasp["score"] < best.score
+    # the cube was not pushed
+    assert np.linalg.norm(w.object_pose("yellow_cube")[:2, 3] - cube[:2, 3]) < 0.002
+
+
+def test_failed_motion_plans_fall_back_to_next_grasp_and_place(gt_twin_default: Path, monkeypatch):
+    """No transit path to the best grasp and no transfer path to the first place pose (the planner is
+    made to fail once each): the step falls back to the next grasp and the next place pose."""
+    from splattwin.robot.planning import PlanningError
+
+    w = build_world(gt_twin_default, visual=False)
+    ex = Executor(w, seed=0)
+    step = load_task(None, w.manifest).steps[0]
+    real_plan = ex._plan
+    failed = []
+
+    def flaky(q_goal, label):
+        kind = label.split("_")[-1]
+        if kind not in failed:
+            failed.append(kind)
+            raise PlanningError(f"injected: no {kind} path")
+        return real_plan(q_goal, label)
+
+    monkeypatch.setattr(ex, "_plan", flaky)
+    first_place = ex._place_targets(step, "blue_box")[0]
+    r = ex.run_step(1, step)
+    assert failed == ["transit", "transfer"]
+    assert r.success and r.robot_collisions == 0 and r.object_collisions == 0, r.failure
+    assert r.grasp["tried"] >= 2
+    assert [f.split(":")[0] for f in r.grasp["fallbacks"]] == ["transit", "transfer"]
+    # placed with another yaw than the first place option (the options differ in yaw)
+    T = w.object_pose("blue_box")
+    dyaw = np.arctan2(T[1, 0], T[0, 0]) - np.arctan2(first_place[1, 0], first_place[0, 0])
+    assert np.cos(dyaw) < np.cos(np.radians(45))
+
+
+def test_all_motion_plans_failing_fails_the_step_with_reasons(gt_twin_default: Path, monkeypatch):
+    from splattwin.robot.planning import PlanningError
+
+    w = build_world(gt_twin_default, visual=False)
+    ex = Executor(w, seed=0)
+    step = load_task(None, w.manifest).steps[0]
+
+    def never(q_goal, label):
+        raise PlanningError("injected: blocked")
+
+    monkeypatch.setattr(ex, "_plan", never)
+    r = ex.run_step(1, step)
+    assert not r.success and "no transit to any of" in r.failure and "blocked" in r.failure
+    assert len(r.grasp["fallbacks"]) == r.grasp["tried"] - sum(r.grasp["rejections"].values()) > 1
+
+
+def test_transfer_without_in_hand_sensing(gt_twin_default: Path):
+    """in_hand="planned": the transfer assumes the object sits in the hand as grasped on the perceived
+    pose (no in-hand estimate). With the box 4 mm off its twin pose the step still places it."""
+    import pytest
+
+    w0 = build_world(gt_twin_default, visual=False)
+    nominal = {o: w0.manifest.object(o).pose for o in w0.objects}
+    task = load_task(None, w0.manifest)
+    with pytest.raises(ValueError, match="in_hand"):
+        Executor(w0, in_hand="oracle")
+    poses = dict(nominal)
+    poses["blue_box"] = _shifted(nominal["blue_box"], [0.004, 0.0, 0.0])
+    w = build_world(gt_twin_default, poses=poses, visual=False)
+    ex = Executor(w, belief=nominal, seed=0, in_hand="planned")
+    r = ex.run_step(1, task.steps[0])
+    assert r.success and r.robot_collisions == 0 and r.object_collisions == 0, r.failure

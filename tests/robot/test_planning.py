@@ -201,6 +201,38 @@ def test_margin_counts_near_contacts(world):
         tight.allow("hand", "probe", penetration=-0.001)
 
 
+def test_object_clearance_widens_the_margin_for_named_bodies(world):
+    """set_clearance: the probe 10 mm from the hand is clear with the 5 mm margin, not with a 15 mm
+    clearance around the probe; other bodies keep the margin; allow() still wins; {} restores."""
+    m, _ = world
+    qpos, dist = _place_probe_at_distance(world, 0.010)
+    assert abs(dist - 0.010) < 3e-4
+    d = mujoco.MjData(m)
+    d.qpos[:] = qpos
+    c = CollisionChecker(m, d, list(range(7)), margin=0.005)
+    q = qpos[:7]
+    assert c.is_valid(q)
+    c.set_clearance({"probe": 0.015})
+    assert not c.is_valid(q) and any("probe" in p for p in c.first_collision(q))
+    c.set_clearance({"probe": 0.008})
+    assert c.is_valid(q)                 # 10 mm > 8 mm
+    c.set_clearance({"box": 0.015})      # another body: the probe keeps the plain margin
+    assert c.is_valid(q)
+    c.set_clearance({"probe": 0.015})
+    bodies = {m.body(int(m.geom_bodyid[g])).name for g in range(m.ngeom) if m.geom_contype[g]
+              and m.geom_bodyid[g] >= m.body("hand").id and m.geom_bodyid[g] < m.body("box").id}
+    for b in bodies:
+        c.allow(b, "probe", penetration=0.001)
+    assert c.is_valid(q)
+    for b in bodies:
+        c.disallow(b, "probe")
+    assert not c.is_valid(q)
+    c.set_clearance({})
+    assert c.is_valid(q)
+    with pytest.raises(ValueError):
+        c.set_clearance({"probe": -0.01})
+
+
 def test_attach_held_box(world):
     m, d = world
     checker = CollisionChecker(m, d, list(range(7)), margin=0.005)

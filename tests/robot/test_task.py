@@ -66,3 +66,25 @@ def test_validation_errors_before_planning(tmp_path: Path, gt_twin_small: Path):
     m.frame.scaled, m.frame.source = False, "unscaled"
     with pytest.raises(InputError, match="not metrically scaled"):
         validate_task(t, m, gt_twin_small, base)
+
+
+def test_unreachable_place_pose_found_by_ik_before_planning(tmp_path: Path, gt_twin_small: Path, panda):
+    """A goal region 0.78 m from a base mounted 30 cm below the table passes the distance check but has
+    no IK solution: a clear InputError naming the step, the goal and the task file."""
+    m = Manifest.load(gt_twin_small)
+    path = _write(tmp_path, "- pick: yellow_cube\n- place_in: {center: [0.28, 0.0, 0.0], size: 0.1}\n")
+    t = load_task(path, m)
+    low = BasePose(z=-0.3).matrix()
+    validate_task(t, m, gt_twin_small, low)                       # reach distance alone lets it through
+    with pytest.raises(InputError, match=r"step 1: goal region 'region'.*no IK solution") as e:
+        validate_task(t, m, gt_twin_small, low, robot=panda)
+    assert e.value.path == path and "yellow_cube" in str(e.value)
+    validate_task(t, m, gt_twin_small, BasePose().matrix(), robot=panda)   # reachable from the default base
+    validate_task(load_task(None, m), m, gt_twin_small, BasePose().matrix(), robot=panda)
+
+
+def test_unreachable_pick_found_by_ik(tmp_path: Path, gt_twin_small: Path, panda):
+    m = Manifest.load(gt_twin_small)
+    t = load_task(None, m)
+    with pytest.raises(InputError, match=r"step 1: object 'blue_box'.*no IK solution"):
+        validate_task(t, m, gt_twin_small, BasePose(z=-1.0).matrix(), robot=panda)

@@ -1,12 +1,15 @@
 from __future__ import annotations
 
+import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from splattwin.robot.trials import TrialSpec, YAW_LEVER, perturb_poses, run_trials, wilson_interval
+from splattwin.robot.trials import (TrialSpec, YAW_LEVER, default_sigma_yaw, load_finished, perturb_poses, run_trials,
+                                    wilson_interval)
 
 
 def test_wilson_interval_reference_values():
@@ -20,6 +23,7 @@ def test_wilson_interval_reference_values():
 
 
 def test_perturbation_statistics():
+    """sigma is the per-axis standard deviation of x and y; yaw has sigma_yaw (default sigma / YAW_LEVER)."""
     T = np.eye(4)
     T[:3, 3] = [0.1, 0.2, 0.025]
     rng = np.random.default_rng(0)
@@ -27,15 +31,48 @@ def test_perturbation_statistics():
     samples = [perturb_poses({"o": T}, sigma, rng)["o"] for _ in range(4000)]
     dxy = np.array([s[:2, 3] - T[:2, 3] for s in samples])
     yaw = np.array([math.atan2(s[1, 0], s[0, 0]) for s in samples])
-    assert math.sqrt(np.mean(np.sum(dxy ** 2, axis=1))) == pytest.approx(sigma, rel=0.05)   # RMS planar error
-    assert np.std(yaw) == pytest.approx(sigma / YAW_LEVER, rel=0.05)
+    np.testing.assert_allclose(dxy.std(axis=0), [sigma, sigma], rtol=0.05)                     # per axis
+    assert abs(np.corrcoef(dxy.T)[0, 1]) < 0.05 and np.all(np.abs(dxy.mean(axis=0)) < 3 * sigma / 60)
+    assert np.std(yaw) == pytest.approx(default_sigma_yaw(sigma), rel=0.05)
+    assert default_sigma_yaw(sigma) == pytest.approx(sigma / YAW_LEVER)
     assert all(s[2, 3] == T[2, 3] and abs(s[2, 2] - 1) < 1e-12 for s in samples)               # still on the table
+    yaw2 = [math.atan2(s[1, 0], s[0, 0]) for s in (perturb_poses({"o": T}, sigma, rng, sigma_yaw=0.2)["o"]
+                                                   for _ in range(2000))]
+    assert np.std(yaw2) == pytest.approx(0.2, rel=0.06)
 
 
-def test_two_perturbed_trials_in_process_pool(gt_twin_default: Path):
-    summary = run_trials(TrialSpec(str(gt_twin_default), None), n=2, sigma=0.005, workers=2, progress=False)
-    assert summary["trials"] == 2 and summary["workers"] == 2
+def test_trials_in_process_pool_resume_after_kill(gt_twin_default: Path, tmp_path: Path):
+    """Each finished trial is written atomically to trials/<i>.json; a re-run with the same seed, sigma
+    and N reuses them and runs only the missing ones (as after a killed run)."""
+    spec = TrialSpec(str(gt_twin_default), None)
+    summary = run_trials(spec, n=2, sigma=0.005, workers=2, progress=False, out_dir=tmp_path)
+    assert summary["trials"] == 2 and summary["workers"] == 2 and summary["resumed"] == 0
     assert summary["successes"] == 2, [r.get("error") or [s["failure"] for s in r["steps"]] for r in summary["results"]]
     assert summary["collisions"] == 0
     assert summary["ci95"][0] == pytest.approx(wilson_interval(2, 2)[0])
     assert {r["seed"] for r in summary["results"]} == {1, 2}
+    assert summary["sigma"] == 0.005 and "per-axis" in summary["sigma_definition"]
+    files = [tmp_path / "trials" / f"{i}.json" for i in (1, 2)]
+    assert all(f.is_file() for f in files)
+    stored = json.loads(files[0].read_text())
+    assert stored["key"]["seed"] == 1 and stored["key"]["sigma"] == 0.005
+    mtime = files[0].stat().st_mtime_ns
+    again = run_trials(spec, n=2, sigma=0.005, workers=2, progress=False, out_dir=tmp_path)
+    assert again["resumed"] == 2 and again["wall_s"] < 1.0
+    assert [r["success"] for r in again["results"]] == [r["success"] for r in summary["results"]]
+    files[1].unlink()                          # trial 2 "killed" before it finished
+    third = run_trials(spec, n=2, sigma=0.005, workers=2, progress=False, out_dir=tmp_path)
+    assert third["resumed"] == 1 and third["successes"] == 2 and files[1].is_file()
+    assert files[0].stat().st_mtime_ns == mtime
+    # another sigma, seed or twin is another trial: a stored result is not reused for it
+    assert load_finished(files[0], replace(spec, sigma=0.005, seed=1)) is not None
+    assert load_finished(files[0], replace(spec, sigma=0.004, seed=1)) is None
+    assert load_finished(files[0], replace(spec, sigma=0.005, seed=2)) is None
+    assert load_finished(files[0], replace(spec, sigma=0.005, seed=1, sigma_yaw=0.1)) is None
+    # a rebuilt twin (same folder, other twin.json) invalidates the stored trials
+    other = tmp_path / "other_twin"
+    other.mkdir()
+    (other / "twin.json").write_text((gt_twin_default / "twin.json").read_text() + " ")
+    moved = {**stored, "key": {**stored["key"], "twin": str(other.resolve())}}
+    (tmp_path / "moved.json").write_text(json.dumps(moved))
+    assert load_finished(tmp_path / "moved.json", replace(spec, twin_dir=str(other), sigma=0.005, seed=1)) is None

@@ -269,7 +269,8 @@ def _robot_stage(ctx: Context) -> dict:
         # report still gets written and says it, and let the command exit 2 at the end.
         io.write_json(out / "results.json", {"error": str(e), "task": o["task"]})
         return {"results": "@robot/results.json", "success": False, "error": str(e)}
-    trials = run_trials(spec, o["trials"], o["sigma"]) if o["trials"] > 0 else None
+    # trials land in robot/trials/<i>.json: a killed build resumes them
+    trials = run_trials(spec, o["trials"], o["sigma"], out_dir=out) if o["trials"] > 0 else None
     write_outputs(out, spec, result, trials, render_note=note or "", frames=frames, wall_s=result.wall_s)
     _write_playback(ctx, spec)
     return {"results": "@robot/results.json", "success": bool(result.success)}

@@ -17,7 +17,8 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--from", dest="from_stage", choices=STAGES, default=None, help="redo from this stage on")
     p.add_argument("--until", choices=STAGES, default=None, help="stop after this stage")
     p.add_argument("--trials", type=int, default=0, help="extra robot trials with perturbed object poses")
-    p.add_argument("--sigma", type=float, default=0.005, help="pose perturbation of the trials (m)")
+    p.add_argument("--sigma", type=float, default=0.005, help="object pose error of the trials: per-axis standard deviation of x and y (m); yaw "
+                        "sigma / 0.1 m rad")
     p.add_argument("--no-frames", action="store_true", help="do not render robot execution frames")
 
 

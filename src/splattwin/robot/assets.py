@@ -204,7 +204,8 @@ class RobotModel:
     xml_path: the MJCF. root_body: top body of the arm (its pose is the robot base). tcp_site: tool centre
     point between the fingertips, z = approach direction, y = finger closing axis. arm_joints /
     arm_actuators: position servos, same order. gripper_actuator: ctrl gripper_open opens, gripper_closed
-    closes. max_opening: full finger gap (m). home: arm joint angles (rad) for a neutral pose.
+    closes. max_opening: full finger gap (m). home: arm joint angles (rad) for a neutral pose (a user
+    MJCF's keyframe named "home", else the middle of the joint ranges).
     vel_limits / acc_limits: per arm joint (rad/s, rad/s^2) for time parameterisation.
     """
 
@@ -276,6 +277,10 @@ class RobotModel:
         opening = sum(float(model.jnt_range[j, 1]) for j in grip_j
                       if int(model.jnt_type[j]) == int(mujoco.mjtJoint.mjJNT_SLIDE)) or 0.08
         rng = model.jnt_range[arm_j]
+        home = rng.mean(axis=1)
+        key = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, "home")
+        if key >= 0:   # the model's own neutral pose (Menagerie models have one)
+            home = np.asarray(model.key_qpos[key])[model.jnt_qposadr[arm_j]].astype(float)
         return cls(
             xml_path=path, root_body=name(mujoco.mjtObj.mjOBJ_BODY, root), tcp_site=tcp_site,
             arm_joints=[name(mujoco.mjtObj.mjOBJ_JOINT, j) for j in arm_j],
@@ -283,7 +288,7 @@ class RobotModel:
             gripper_joints=[name(mujoco.mjtObj.mjOBJ_JOINT, j) for j in grip_j],
             gripper_actuator=name(mujoco.mjtObj.mjOBJ_ACTUATOR, g),
             gripper_open=float(hi), gripper_closed=float(lo), max_opening=float(opening),
-            home=rng.mean(axis=1), vel_limits=np.full(len(arm_j), 2.0), acc_limits=np.full(len(arm_j), 5.0),
+            home=home, vel_limits=np.full(len(arm_j), 2.0), acc_limits=np.full(len(arm_j), 5.0),
             hand_bodies=[name(mujoco.mjtObj.mjOBJ_BODY, bb) for bb in below],
         )
 

@@ -25,10 +25,27 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="task YAML (default: the paper's three steps: blue box onto the cardboard box, yellow "
                         "cube onto the blue box, toy hammer into the target frame)")
     p.add_argument("--trials", type=int, default=0, help="extra trials with perturbed object poses (default 0)")
-    p.add_argument("--sigma", type=float, default=0.005, help="pose perturbation of the trials, metres (default 0.005)")
-    p.add_argument("--base-pose", default="-0.5,0,0,0", help="robot base in the twin frame: x,y,z,yaw (m, rad)")
+    p.add_argument("--sigma", type=float, default=0.005,
+                   help="object pose error of the trials: per-axis standard deviation of the x and y position "
+                        "error, metres (default 0.005); the robot plans with the twin's poses")
+    p.add_argument("--sigma-yaw", type=float, default=None,
+                   help="standard deviation of the objects' yaw error in the trials, radians "
+                        "(default sigma / 0.1 m: 0.05 rad = 2.9 deg at sigma 5 mm)")
+    p.add_argument("--no-resume", action="store_true",
+                   help="re-run every trial (default: reuse finished trials in OUT/trials/ with the same "
+                        "twin, task, robot, seed and sigmas, so a killed run continues)")
+    p.add_argument("--base-pose", default="-0.5,0,0,0",
+                   help="robot base in the twin frame: x,y,z,yaw (m, rad); write --base-pose=-0.5,0,0,0 "
+                        "when x is negative")
     p.add_argument("--robot-mjcf", type=Path, default=None,
-                   help="your own arm+gripper MJCF with a 'tcp' site (default: Menagerie Franka Panda)")
+                   help="your own arm+gripper MJCF with a TCP site (z = approach, y = finger closing axis), one "
+                        "position actuator per arm joint and one gripper actuator (default: Menagerie Franka "
+                        "Panda); a keyframe named 'home' gives the neutral arm pose")
+    p.add_argument("--tcp-site", default="tcp", help="name of the TCP site in --robot-mjcf (default tcp)")
+    p.add_argument("--in-hand", choices=("sensed", "planned"), default="sensed",
+                   help="where the transfer assumes the held object sits: 'sensed' (default; read in the "
+                        "simulation, as an in-hand estimate such as a wrist camera gives) or 'planned' (as "
+                        "grasped on the twin pose; no in-hand sensing on the real cell)")
     p.add_argument("--planner", default="RRTConnect", help="OMPL planner (default RRTConnect)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--workers", type=int, default=None, help="processes for the trials (default: CPU count)")
@@ -50,15 +67,18 @@ def run_plan(args: argparse.Namespace) -> int:
         raise InputError(f"--trials must be >= 0, got {args.trials}")
     if not 0 <= args.sigma <= 0.05:
         raise InputError(f"--sigma must be in [0, 0.05] metres, got {args.sigma}")
+    if args.sigma_yaw is not None and not 0 <= args.sigma_yaw <= 0.5:
+        raise InputError(f"--sigma-yaw must be in [0, 0.5] radians, got {args.sigma_yaw}")
     if args.robot_mjcf is not None and not args.robot_mjcf.is_file():
         raise InputError("robot MJCF not found", args.robot_mjcf)
     out = args.out or args.twin / "robot"
     spec = TrialSpec(twin_dir=str(args.twin), task_path=str(args.task) if args.task else None,
                      base=BasePose.parse(args.base_pose), robot_mjcf=str(args.robot_mjcf) if args.robot_mjcf else None,
-                     seed=args.seed, planner=args.planner)
+                     seed=args.seed, planner=args.planner, tcp_site=args.tcp_site, in_hand=args.in_hand)
     t0 = time.perf_counter()
     result, note, frames = run_once(spec, frame_dir=None if args.no_render else out / "frames", keep_trajectories=True)
-    trials = run_trials(spec, args.trials, args.sigma, workers=args.workers) if args.trials > 0 else None
+    trials = run_trials(spec, args.trials, args.sigma, workers=args.workers, out_dir=out, resume=not args.no_resume,
+                        sigma_yaw=args.sigma_yaw) if args.trials > 0 else None
     paths = write_outputs(out, spec, result, trials, render_note=note if not args.no_render else "rendering disabled (--no-render)",
                           frames=frames, wall_s=time.perf_counter() - t0)
     print_summary(result, trials, paths)

@@ -8,6 +8,19 @@ the simulated world may differ (perturbed trials model reconstruction error). Pe
   lift (Cartesian) -> transfer (OMPL, object attached to the hand in the collision checker) -> descent
   (Cartesian) -> open -> retreat (Cartesian, checked like the approach against the released object).
 
+Robustness to the twin's pose error (the world may differ from the belief):
+* guarded approach: when a finger lands on the target instead of straddling it (the object lies further
+  off its twin pose along the closing axis than the gripper's clearance), the arm stops, backs off to the
+  pre-grasp, shifts its belief of the object towards that finger by the clearance plus half a finger pad
+  and re-plans (at most MAX_TOUCHES times per step);
+* free motions (transit, transfer) keep OBJECT_CLEARANCE (15 mm, ~3 sigma at 5 mm per axis) from the
+  twin's objects, the short Cartesian segments near the target the planning margin (5 mm);
+* the place pose is computed for the object where it sits in the hand after the grasp: `in_hand="sensed"`
+  (default) reads it from the simulation, standing in for an in-hand estimate on the real cell (a wrist
+  camera); `in_hand="planned"` assumes it sits as planned on the perceived pose (no in-hand sensing);
+* fallbacks: a grasp whose transit finds no path (or no verified timing) gives way to the next ranked
+  grasp, a place pose whose transfer finds no path to the grasp's next place pose, before the step fails.
+
 Grasp heights follow the support surface under the object (table or the object below it, from the
 belief), not the object mesh's bottom: reconstructed objects sink a few mm into the table, and the
 fingertips (which reach 8.9 mm beyond the Panda's TCP, measured from the model) must keep the planning
@@ -49,6 +62,10 @@ SETTLE_TIME = 0.6        # s after the retreat before judging the placement
 TILT_MAX = math.radians(10)
 TOUCH_DEPTH = 0.001      # m: fingers may touch the target on the approach, not penetrate it deeper than this
 FLOOR_TOLERANCE = 0.0015  # m: fingertips above the support by the planning margin plus this (IK, sampling)
+GUARD_HOLD = 0.15        # s the arm holds still after a guarded approach stopped
+LANDING_COS = math.cos(math.radians(45))  # hand-target contact normal this close to the approach axis = landing
+MAX_TOUCHES = 2          # touch-based corrections of the believed object pose per step
+OBJECT_CLEARANCE = 0.015  # m kept from the twin's objects on free motions: ~3x the per-axis pose error
 
 
 @dataclass
@@ -86,6 +103,9 @@ class RunResult:
                 "trajectories": [name for name, _ in self.trajectories]}
 
 
+IN_HAND = ("sensed", "planned")  # where the transfer assumes the held object sits (module docstring)
+
+
 class StepFailed(Exception):
     pass
 
@@ -118,6 +138,24 @@ def time_path(path: np.ndarray, vel: np.ndarray, acc: np.ndarray, joint_names: l
     return Trajectory(t, q, qd, np.gradient(qd, t, axis=0), list(joint_names))
 
 
+def _truncate(tr: Trajectory, t_stop: float) -> Trajectory:
+    """The executed part of a trajectory stopped at t_stop (s from its start); ends at rest."""
+    t_stop = float(np.clip(t_stop, 0.0, tr.duration))
+    keep = tr.t - tr.t[0] < t_stop - 1e-9
+    keep[0] = True
+    # end exactly at the commanded configuration of the stop (what the servos held)
+    t = np.append(tr.t[keep], tr.t[0] + t_stop) if t_stop > 1e-9 else tr.t[keep]
+    q = np.vstack([tr.q[keep], tr.sample(tr.t[0] + t_stop)]) if t_stop > 1e-9 else tr.q[keep]
+    qd = np.vstack([tr.qd[keep], np.zeros(tr.dof)]) if t_stop > 1e-9 else np.zeros_like(tr.qd[keep])
+    qdd = np.vstack([tr.qdd[keep], np.zeros(tr.dof)]) if t_stop > 1e-9 else np.zeros_like(tr.qdd[keep])
+    return Trajectory(t, q, qd, qdd, list(tr.joint_names))
+
+
+def _chain(*its):
+    for it in its:
+        yield from it
+
+
 # -- the executor ----------------------------------------------------------------------------------
 
 class Executor:
@@ -125,8 +163,13 @@ class Executor:
 
     def __init__(self, world: World, belief: dict[str, np.ndarray] | None = None, seed: int = 0,
                  planner: str = "RRTConnect", plan_time: float = 1.0, margin: float = 0.005,
-                 frame_cb: Callable[[str, World], None] | None = None):
+                 frame_cb: Callable[[str, World], None] | None = None, object_clearance: float = OBJECT_CLEARANCE,
+                 in_hand: str = "sensed"):
         from splattwin.robot.planning import CollisionChecker
+
+        if in_hand not in IN_HAND:
+            raise ValueError(f"in_hand must be one of {IN_HAND}, got {in_hand!r}")
+        self.in_hand = in_hand
 
         self.w = world
         self.m, self.d = world.model, world.data
@@ -134,6 +177,7 @@ class Executor:
         self.belief = {o: (np.asarray(belief[o]) if belief and o in belief else world.manifest.object(o).pose)
                        for o in world.objects}
         self.seed, self.planner, self.plan_time = seed, planner, plan_time
+        self.object_clearance = float(object_clearance)
         self.ik = ArmIK(self.robot, world.base.matrix())
         self.checker = CollisionChecker(self.m, self.d, world.arm_qpos_adr, margin=margin,
                                         tcp_site=self.robot.tcp_site)
@@ -204,10 +248,24 @@ class Executor:
     def _plan(self, q_goal: np.ndarray, label: str) -> np.ndarray:
         from splattwin.robot.planning import plan_path
 
+        from splattwin.robot.planning import PlanningError
+
         t0 = time.perf_counter()
-        path = plan_path(self.checker, self.q, q_goal, time_limit=self.plan_time, planner=self.planner,
-                         seed=self.seed + len(self.plan_ms))
-        self.plan_ms.append((time.perf_counter() - t0) * 1e3)
+        seed = self.seed + len(self.plan_ms)
+        held = self.checker.attached_body
+        # free motions keep object_clearance from the twin's objects (their poses carry the reconstruction
+        # error); if that leaves no path (objects close together), the plain margin still holds
+        self.checker.set_clearance({o: self.object_clearance for o in self.w.objects if o != held})
+        try:
+            path = plan_path(self.checker, self.q, q_goal, time_limit=self.plan_time, planner=self.planner, seed=seed)
+        except PlanningError as e:
+            log.debug("%s: no path with %.0f mm object clearance (%s); planning with the margin", label,
+                      self.object_clearance * 1e3, e)
+            self.checker.set_clearance({})
+            path = plan_path(self.checker, self.q, q_goal, time_limit=self.plan_time, planner=self.planner, seed=seed)
+        finally:
+            self.checker.set_clearance({})
+            self.plan_ms.append((time.perf_counter() - t0) * 1e3)
         return path
 
     def _grasps(self, obj: str) -> list[grasp_mod.Grasp]:
@@ -292,48 +350,64 @@ class Executor:
 
     # ---- step planning -------------------------------------------------------------------------------
     def plan_step(self, step: Step, res: StepResult) -> dict:
-        """Choose a grasp + place pose with IK solutions and collision-free straight segments."""
+        """The best-ranked grasp + place pose with IK solutions and collision-free straight segments."""
+        plan = next(self.step_candidates(step, res), None)
+        if plan is None:
+            raise StepFailed(self._no_candidate_message(step, res))
+        return plan
+
+    def _no_candidate_message(self, step: Step, res: StepResult) -> str:
+        why = res.grasp.get("rejections", {})
+        return (f"none of {res.grasp.get('tried', 0)} grasp candidates on {step.pick!r} has a reachable, "
+                f"collision-free approach, lift and place (rejections: {why})")
+
+    def step_candidates(self, step: Step, res: StepResult):
+        """Yield feasible plans, best-ranked grasp first: dict with the grasp, q_pre, approach and lift
+        paths [K,n], the first feasible place option (`place`) and an iterator over the grasp's further
+        place options (`more_places`, computed lazily). Rejection counts go to res.grasp["rejections"]."""
         obj = step.pick
         T_obj = self.belief[obj]
         T_base = self.w.base.matrix()
         cands = grasp_mod.rank_grasps(self._grasps(obj), T_obj, T_base)
+        why: dict[str, int] = {}
+        res.grasp = {"candidates": len(cands), "tried": 0, "rejections": why}
         if not cands:
             raise StepFailed(f"no antipodal grasp fits the gripper on {obj!r}")
         support = self._support_of(obj)
-        places = self._place_targets(step, obj)
         half_open = self.robot.max_opening / 2
-        tried = 0
-        why: dict[str, int] = {}
+
+        def reject(reason: str) -> None:
+            why[reason] = why.get(reason, 0) + 1
+
         for g in cands[:16]:
-            tried += 1
+            res.grasp["tried"] += 1
             T_grasp = T_obj @ g.T_obj_tcp
             T_pre = T_grasp.copy()
             T_pre[:3, 3] -= T_grasp[:3, 2] * PREGRASP
             q_pre = self.ik.solve(T_pre, self.q, q_posture=self.robot.home)
             if q_pre is None:
-                why["pregrasp IK"] = why.get("pregrasp IK", 0) + 1
+                reject("pregrasp IK")
                 continue
             approach = self._cartesian(q_pre, T_pre, T_grasp)
             if approach is None:
-                why["approach IK"] = why.get("approach IK", 0) + 1
+                reject("approach IK")
                 continue
             q_grasp = approach[-1]
             self._plan_state(half_open)
             # the open fingers straddle the target: they may touch it, not land on it or push into it
             allowed = self._allow(obj, self.hand_bodies, penetration=TOUCH_DEPTH)
             ok = self.checker.is_valid(q_pre) and self.checker.path_is_valid(approach, 0.002)
-            if not ok:
-                why["approach collision"] = why.get("approach collision", 0) + 1
-                if log.isEnabledFor(logging.DEBUG):    # name the pair while the exceptions still apply
-                    log.debug("approach collision %s", self._first_pair(approach))
+            if not ok and log.isEnabledFor(logging.DEBUG):    # name the pair while the exceptions still apply
+                log.debug("approach collision %s", self._first_pair(approach))
             self._disallow(allowed)
             if not ok:
+                reject("approach collision")
                 continue
             T_lift = T_grasp.copy()
             T_lift[:3, 3] += [0, 0, LIFT]
             lift = self._cartesian(q_grasp, T_grasp, T_lift)
             if lift is None:
-                why["lift IK"] = why.get("lift IK", 0) + 1
+                reject("lift IK")
                 continue
             T_tcp_obj = np.linalg.inv(g.T_obj_tcp)
             self._plan_state(g.width / 2)
@@ -341,49 +415,61 @@ class Executor:
             allowed = self._allow(obj, support)
             ok = self.checker.path_is_valid(lift[1:], 0.002) if len(lift) > 2 else True
             self._disallow(allowed)
+            self.checker.detach()
             if not ok:
-                why["lift collision"] = why.get("lift collision", 0) + 1
-                self.checker.detach()
+                reject("lift collision")
                 continue
-            for T_place_obj in places:
-                T_place = T_place_obj @ g.T_obj_tcp
+            places = self._place_options(step, obj, g, lift[-1], reject)
+            first = next(places, None)
+            if first is None:
+                continue
+            res.grasp.update({"kind": g.kind, "width": g.width, "score": g.score})
+            yield {"grasp": g, "q_pre": q_pre, "T_pre": T_pre, "T_grasp": T_grasp, "approach": approach,
+                   "lift": lift, "T_tcp_obj": T_tcp_obj, "support": support, "place": first,
+                   "more_places": places}
+
+    def _place_options(self, step: Step, obj: str, g: grasp_mod.Grasp, q_lift: np.ndarray, reject,
+                       T_obj_tcp: np.ndarray | None = None):
+        """Yield place options for grasp g, best first: dict(T_place_obj, q_pp, descent, retreat).
+        T_obj_tcp: the object held at this pose in the hand (default: the grasp's planned one)."""
+        T_obj_tcp = g.T_obj_tcp if T_obj_tcp is None else T_obj_tcp
+        T_tcp_obj = np.linalg.inv(T_obj_tcp)
+        goal_support = [step.place_on] if step.place_on else ["world"]
+        for T_place_obj in self._place_targets(step, obj):
+            # the checker is shared with other planning between resumptions: set the carrying state anew
+            self._plan_state(g.width / 2)
+            self.checker.attach(obj, T_tcp_obj)
+            try:
+                T_place = T_place_obj @ T_obj_tcp
                 T_pp = T_place.copy()
                 T_pp[:3, 3] += [0, 0, LIFT]
-                q_pp = self.ik.solve(T_pp, lift[-1], q_posture=self.robot.home)
+                q_pp = self.ik.solve(T_pp, q_lift, q_posture=self.robot.home)
                 if q_pp is None or not self.checker.is_valid(q_pp):
-                    why["pre-place IK/collision"] = why.get("pre-place IK/collision", 0) + 1
+                    reject("pre-place IK/collision")
                     continue
                 descent = self._cartesian(q_pp, T_pp, T_place)
                 if descent is None:
-                    why["descent IK"] = why.get("descent IK", 0) + 1
+                    reject("descent IK")
                     continue
-                goal_support = [step.place_on] if step.place_on else ["world"]
                 allowed = self._allow(obj, goal_support)
                 ok = self.checker.path_is_valid(descent[:-1], 0.002)
                 self._disallow(allowed)
                 if not ok:
-                    why["descent collision"] = why.get("descent collision", 0) + 1
+                    reject("descent collision")
                     continue
                 T_ret = T_place.copy()
                 T_ret[:3, 3] -= T_place[:3, 2] * PREGRASP
                 retreat = self._cartesian(descent[-1], T_place, T_ret)
                 if retreat is None:
-                    why["retreat IK"] = why.get("retreat IK", 0) + 1
-                    continue
-                if not self._retreat_clear(obj, T_place_obj, retreat):
-                    why["retreat collision"] = why.get("retreat collision", 0) + 1
-                    self._plan_state(g.width / 2)          # back to carrying for the next place pose
-                    self.checker.attach(obj, T_tcp_obj)
+                    reject("retreat IK")
                     continue
                 self.checker.detach()
-                res.grasp = {"kind": g.kind, "width": g.width, "score": g.score, "candidates": len(cands),
-                             "tried": tried}
-                return {"grasp": g, "q_pre": q_pre, "approach": approach, "lift": lift, "q_pp": q_pp,
-                        "descent": descent, "retreat": retreat, "T_place_obj": T_place_obj,
-                        "T_tcp_obj": T_tcp_obj, "support": support}
-            self.checker.detach()
-        raise StepFailed(f"none of {tried} grasp candidates on {obj!r} has a reachable, collision-free "
-                         f"approach, lift and place (rejections: {why})")
+                if not self._retreat_clear(obj, T_place_obj, retreat):
+                    reject("retreat collision")
+                    continue
+            finally:
+                self.checker.detach()
+            yield {"T_place_obj": T_place_obj, "q_pp": q_pp, "descent": descent, "retreat": retreat}
 
     def _retreat_clear(self, obj: str, T_place_obj: np.ndarray, retreat: np.ndarray) -> bool:
         """The opened hand backs off the released object (at its place pose) without landing on it or
@@ -402,8 +488,13 @@ class Executor:
         return ok
 
     # ---- physics -------------------------------------------------------------------------------------
-    def _track(self, traj: Trajectory | None, grip: float, duration: float | None, monitor: dict) -> None:
-        """Drive the servos along traj (or hold) with gripper ctrl `grip`; record contacts in monitor."""
+    def _track(self, traj: Trajectory | None, grip: float, duration: float | None, monitor: dict,
+               guard: Callable[[], bool] | None = None) -> float | None:
+        """Drive the servos along traj (or hold) with gripper ctrl `grip`; record contacts in monitor.
+
+        guard: checked every few physics steps during the motion; when it fires the arm stops where it is
+        commanded at that moment (held for GUARD_HOLD s) and the time into traj (s) is returned, else None.
+        """
         import mujoco
 
         m, d = self.m, self.d
@@ -417,14 +508,49 @@ class Executor:
         # servo targets for every physics step at once (linear interpolation of the 100 Hz samples)
         ts = np.arange(n) * dt
         Q = traj.sample(np.minimum(ts, T)) if traj is not None else np.broadcast_to(q_hold, (n, len(q_hold)))
-        for i in range(n):
+        i = 0
+        stopped: float | None = None
+        while i < n:
             d.ctrl[self.w.arm_act] = Q[i]
             d.qfrc_applied[:] = 0.0
             d.qfrc_applied[self.arm_dofs] = d.qfrc_bias[self.arm_dofs]
             mujoco.mj_step(m, d)
             if i % 2 == 0 and d.ncon:
                 self._scan(geom_body[d.contact.geom[: d.ncon]], d.contact.dist[: d.ncon], monitor)
-        self.q = q_hold.copy()
+            if guard is not None and stopped is None and i % 4 == 0 and ts[i] < T and guard():
+                # a guarded move: stop and hold the commanded configuration of this instant
+                stopped = float(ts[i])
+                q_hold = Q[i].copy()
+                n = i + 1 + int(math.ceil(GUARD_HOLD / dt))
+                Q = np.broadcast_to(q_hold, (n, len(q_hold)))
+            i += 1
+        self.q = np.array(q_hold, dtype=float)
+        return stopped
+
+    def _landing_side(self, obj: str) -> float | None:
+        """+1 / -1: the side (along the TCP y = closing axis) of a hand contact that pushes on the target
+        along the approach direction — a finger landing on top of it instead of straddling it; None if
+        there is none. (A Franka senses this as an external force along the approach axis; its torque
+        about the TCP x axis gives the side.) Contacts with a normal across the approach (a finger
+        grazing the target's side) do not count."""
+        d, m = self.d, self.m
+        nc = d.ncon
+        if not nc:
+            return None
+        target = self.w.obj_body[obj]
+        T = self.w.tcp_pose()
+        geoms = d.contact.geom[:nc]
+        b1, b2 = m.geom_bodyid[geoms[:, 0]], m.geom_bodyid[geoms[:, 1]]
+        hand = self.is_robot
+        sel = (((b1 == target) & hand[b2]) | ((b2 == target) & hand[b1])) & (d.contact.dist[:nc] < 0)
+        if not sel.any():
+            return None
+        normals = d.contact.frame[:nc, :3][sel]
+        along = np.abs(normals @ T[:3, 2]) > LANDING_COS
+        if not along.any():
+            return None
+        side = (d.contact.pos[:nc][sel][along] - T[:3, 3]) @ T[:3, 1]
+        return float(np.sign(side.mean())) or 1.0
 
     def _scan(self, bodies: np.ndarray, dist: np.ndarray, mon: dict) -> None:
         touching = dist < 0.0
@@ -467,19 +593,85 @@ class Executor:
             self.frame_cb(label, self.w)
 
     # ---- one step -------------------------------------------------------------------------------------
+    def _reach(self, step: Step, res: StepResult, k: int, mon: dict, tag: str = "") -> dict:
+        """Plan and execute the transit to the pre-grasp of the best candidate whose transit plans; a
+        candidate whose transit finds no path (or no verified timing) falls back to the next one."""
+        from splattwin.robot.planning import PlanningError
+
+        failures = []
+        for plan in self.step_candidates(step, res):
+            self._plan_state(self.robot.max_opening / 2)
+            try:
+                transit = self._plan(plan["q_pre"], f"step{k}_transit{tag}")
+                tr = time_path(transit, self.robot.vel_limits * SPEED, self.robot.acc_limits * SPEED,
+                               self.robot.arm_joints, checker=self.checker)
+            except (PlanningError, RuntimeError) as e:
+                failures.append(str(e))
+                res.grasp.setdefault("fallbacks", []).append(f"transit: {e}"[:300])
+                continue
+            self.trajs.append((f"step{k}_transit{tag}", tr))
+            self._track(tr, self.robot.gripper_open, 0.1, mon)
+            return plan
+        if failures:
+            raise StepFailed(f"no transit to any of {len(failures)} feasible grasps on {step.pick!r}: "
+                             f"{failures[0]}")
+        raise StepFailed(self._no_candidate_message(step, res))
+
+    def _approach(self, step: Step, res: StepResult, k: int, mon: dict) -> dict:
+        """Reach and descend onto a grasp with a guarded approach. When a finger lands on the target (the
+        object is further off its believed pose than the gripper's clearance along the closing axis),
+        stop, back off to the pre-grasp, shift the believed object pose towards that finger by the
+        clearance plus half a finger pad and re-plan: a touch-based correction, at most MAX_TOUCHES times."""
+        obj = step.pick
+        touches = 0
+        T_twin = self.belief[obj].copy()
+        while True:
+            tag = f"_retry{touches}" if touches else ""
+            plan = self._reach(step, res, k, mon, tag)
+            tr = self._traj(plan["approach"], SLOW, f"step{k}_approach{tag}")
+            landed: list[float] = []
+
+            def guard() -> bool:
+                side = self._landing_side(obj)
+                if side is not None:
+                    landed.append(side)
+                return side is not None
+
+            stopped = self._track(tr, self.robot.gripper_open, 0.1, mon, guard=guard)
+            if stopped is None:
+                res.grasp["touch_corrections"] = touches
+                res.grasp["belief_correction_m"] = (self.belief[obj][:3, 3] - T_twin[:3, 3]).round(5).tolist()
+                return plan
+            side = landed[0]
+            touches += 1
+            self.trajs[-1] = (f"step{k}_approach{tag}_stopped", _truncate(tr, stopped))
+            self._hold(f"step{k}_touch{touches}", GUARD_HOLD)
+            if touches > MAX_TOUCHES:
+                raise StepFailed(f"a finger landed on {obj!r} on the approach {touches} times "
+                                 f"(the object is far from its twin pose)")
+            # back off along the approach axis to the pre-grasp (the reverse of the approach so far)
+            back = self._cartesian(self.q, self.ik.fk(self.q), plan["T_pre"])
+            if back is None:
+                raise StepFailed(f"no way back from a finger landing on {obj!r}")
+            self._track(self._traj(back, SLOW, f"step{k}_backoff{touches}"), self.robot.gripper_open, 0.1, mon)
+            g = plan["grasp"]
+            shift = (self.robot.max_opening - g.width) / 2 + grasp_mod.PAD_HALF
+            T = self.belief[obj].copy()
+            T[:3, 3] += side * shift * plan["T_grasp"][:3, 1]
+            log.info("finger landed on %s: belief shifted %.1f mm along the closing axis", obj, side * shift * 1e3)
+            self.belief[obj] = T
+
     def run_step(self, k: int, step: Step) -> StepResult:
+        from splattwin.robot.planning import PlanningError
+
         obj = step.pick
         res = StepResult(index=k, pick=obj, goal=step.goal_name)
         n_plan = len(self.plan_ms)
         mon = {"target": self.w.obj_body[obj], "active": set(), "events": [], "carrying": False}
         open_c, closed_c = self.robot.gripper_open, self.robot.gripper_closed
         try:
-            plan = self.plan_step(step, res)
+            plan = self._approach(step, res, k, mon)
             g = plan["grasp"]
-            self._plan_state(self.robot.max_opening / 2)
-            transit = self._plan(plan["q_pre"], f"step{k}_transit")
-            self._track(self._traj(transit, SPEED, f"step{k}_transit", checked=True), open_c, 0.1, mon)
-            self._track(self._traj(plan["approach"], SLOW, f"step{k}_approach"), open_c, 0.1, mon)
             z0 = self.w.object_pose(obj)[2, 3]
             self._hold(f"step{k}_close", CLOSE_TIME)
             self._track(None, closed_c, CLOSE_TIME, mon)
@@ -491,35 +683,48 @@ class Executor:
             res.grasped = bool(res.lifted_m > 0.6 * LIFT and self._held(obj))
             if not res.grasped:
                 raise StepFailed(f"{obj!r} not lifted with the gripper (rose {res.lifted_m * 100:.1f} cm)")
-            # transfer: plan with the object attached where it actually sits in the hand now
-            T_tcp_obj = np.linalg.inv(self.w.tcp_pose()) @ self.w.object_pose(obj)
+            # transfer: plan with the object attached where it sits in the hand now (sensed, or as planned:
+            # the jaws centre it along the closing axis); a place pose whose transfer finds no path falls
+            # back to the grasp's next place option
+            if self.in_hand == "sensed":
+                T_tcp_obj = np.linalg.inv(self.w.tcp_pose()) @ self.w.object_pose(obj)
+            else:
+                T_tcp_obj = np.linalg.inv(g.T_obj_tcp)
             self.belief[obj] = self.ik.fk(self.q) @ T_tcp_obj
-            self._plan_state(g.width / 2)
-            self.checker.attach(obj, T_tcp_obj)
-            mon["allowed_obj"] = set()
-            try:
-                transfer = self._plan(plan["q_pp"], f"step{k}_transfer")
-                transfer_traj = self._traj(transfer, SPEED, f"step{k}_transfer", checked=True)
-            finally:
-                self.checker.detach()
+            # place poses for the object where it sits in the hand (it may have settled off the planned
+            # grasp), then the planned ones
+            held = self._place_options(step, obj, g, self.q, lambda reason: None, T_obj_tcp=np.linalg.inv(T_tcp_obj))
+            place, transfer_traj, failures = None, None, []
+            for option in _chain(held, [plan["place"]], plan["more_places"]):
+                self._plan_state(g.width / 2)
+                self.checker.attach(obj, T_tcp_obj)
+                try:
+                    transfer = self._plan(option["q_pp"], f"step{k}_transfer")
+                    transfer_traj = self._traj(transfer, SPEED, f"step{k}_transfer", checked=True)
+                    place = option
+                    break
+                except (PlanningError, RuntimeError) as e:
+                    failures.append(str(e))
+                    res.grasp.setdefault("fallbacks", []).append(f"transfer: {e}"[:300])
+                finally:
+                    self.checker.detach()
+            if place is None:
+                raise StepFailed(f"no transfer path to any of {len(failures)} place poses for {obj!r}: "
+                                 f"{failures[0] if failures else 'none feasible'}")
             self._track(transfer_traj, closed_c, 0.1, mon)
             goal_body = self.w.model.body(step.place_on).id if step.place_on else 0
             mon["allowed_obj"] = {goal_body, 0}
-            self._track(self._traj(plan["descent"], SLOW, f"step{k}_descent"), closed_c, 0.1, mon)
+            self._track(self._traj(place["descent"], SLOW, f"step{k}_descent"), closed_c, 0.1, mon)
             mon["carrying"] = False
             self._hold(f"step{k}_open", OPEN_TIME)
             self._track(None, open_c, OPEN_TIME, mon)
             self._snap(f"step{k}_release")
-            self._track(self._traj(plan["retreat"], SLOW, f"step{k}_retreat"), open_c, SETTLE_TIME, mon)
-            self.belief[obj] = plan["T_place_obj"]
+            self._track(self._traj(place["retreat"], SLOW, f"step{k}_retreat"), open_c, SETTLE_TIME, mon)
+            self.belief[obj] = place["T_place_obj"]
             self._judge_place(step, obj, res)
         except StepFailed as e:
             res.failure = str(e)
-        except Exception as e:  # PlanningError and friends: report, do not crash the trial
-            from splattwin.robot.planning import PlanningError
-
-            if not isinstance(e, PlanningError):
-                raise
+        except PlanningError as e:  # report, do not crash the trial
             res.failure = f"planning: {e}"
         res.plan_ms = self.plan_ms[n_plan:]
         events = mon["events"]

@@ -1,6 +1,8 @@
 """Artifacts of a validation run, written atomically under OUT (default TWIN/robot):
 
-    results.json                 task, base pose, per-step results, trials summary, notes
+    results.json                 task, base pose, per-step results, trials summary (sigma per axis, its
+                                 definition, sigma_yaw), notes
+    trials/<i>.json              each finished perturbed trial (reused by a re-run with the same key)
     trajectory.json / .csv       the whole executed arm trajectory (segments + gripper holds), 100 Hz
     trajectory.ros2.yaml         the same as trajectory_msgs/JointTrajectory
     segments/<label>.json        each motion separately (transit, approach, lift, transfer, ...)
@@ -9,6 +11,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict
 from pathlib import Path
 
@@ -69,8 +72,10 @@ def print_summary(result, trials: dict | None, paths: dict[str, Path]) -> None:
               f"{result.sim_time:.1f} s simulated in {result.wall_s:.1f} s")
     if trials:
         lo, hi = trials["ci95"]
-        con.print(f"trials: {trials['successes']}/{trials['trials']} at sigma {trials['sigma'] * 1000:.1f} mm "
-                  f"(95 % CI {lo:.2f}-{hi:.2f}), collisions {trials['collisions']}")
+        con.print(f"trials: {trials['successes']}/{trials['trials']} at sigma {trials['sigma'] * 1000:.1f} mm per axis, "
+                  f"yaw {math.degrees(trials['sigma_yaw']):.1f} deg (95 % CI {lo:.2f}-{hi:.2f}), "
+                  f"collisions {trials['collisions']}"
+                  + (f", {trials['resumed']} reused from an earlier run" if trials.get("resumed") else ""))
     con.print(f"results: {paths['results']}")
 
 

@@ -23,7 +23,8 @@ per-model list, and still checks link-link self collisions and robot-world conta
 contype/conaffinity bits are rewritten (for geoms that collide at all in the source model) so MuJoCo
 skips those constant pairs in the broad phase instead of computing and discarding them. A held object
 (`attach`) moves with the TCP and takes the hand's joint set: its contacts with link7/hand/fingers are
-ignored, with everything else checked. `allow(a, b)` / `ignore_pairs` add exceptions by body name;
+ignored, with everything else checked. `set_clearance({body: c})` widens the margin to c around chosen
+static bodies (objects whose twin pose is uncertain). `allow(a, b)` / `ignore_pairs` add exceptions by body name;
 `allow(a, b, penetration=p)` is the narrower exception for intended contact (fingers closing around the
 target): the pair may come closer than the margin and touch, but penetrating deeper than p still counts.
 
@@ -145,6 +146,7 @@ class CollisionChecker:
         for a, b in ignore_pairs:
             self._ignored.add(frozenset((self._body_id(a), self._body_id(b))))
         self._attached: tuple[int, int, np.ndarray] | None = None  # (body id, qpos adr, T_tcp_obj)
+        self._clearance: dict[int, float] = {}   # body id -> margin (m) against the robot, when > margin
         self.set_world_state(data)
         self._rebuild_pair_mask()
 
@@ -201,13 +203,25 @@ class CollisionChecker:
         m.geom_contype[:] = np.where(collidable, ct, 0)
         m.geom_conaffinity[:] = np.where(collidable, ca, 0)
         m.geom_margin[base] = self.self_margin
+        gb = m.geom_bodyid
+        # larger clearance around some static bodies (movable objects whose twin pose is uncertain)
+        wide = np.zeros(m.ngeom, dtype=bool)
+        wide_c = np.zeros(m.ngeom)
+        for b, c in self._clearance.items():
+            sel = (gb == b) & ~moving
+            wide |= sel
+            wide_c[sel] = c
+        m.geom_margin[wide] = np.maximum(m.geom_margin[wide], wide_c[wide])
         # the broad phase uses the compiled per-body margin (max over its geoms): keep it in sync
         m.body_margin[:] = 0.0
         np.maximum.at(m.body_margin, m.geom_bodyid, m.geom_margin)
         check = gmask[:, None] != gmask[None, :]
         # count threshold per pair: world margin against the world, self margin robot-robot
         self._thr = np.where(moving[:, None] & moving[None, :], self.self_margin, self.margin)
-        gb = m.geom_bodyid
+        if wide.any():
+            pairs = moving[:, None] & wide[None, :]
+            self._thr = np.where(pairs, np.maximum(self._thr, wide_c[None, :]), self._thr)
+            self._thr = np.where(pairs.T, np.maximum(self._thr, wide_c[:, None]), self._thr)
         for pair in self._ignored | self._adjacent:
             ids = tuple(pair) if len(pair) == 2 else (next(iter(pair)),) * 2
             sel_a = gb == ids[0]
@@ -283,6 +297,18 @@ class CollisionChecker:
                 raise ValueError(f"penetration must be >= 0, got {penetration}")
             self._touching[pair] = float(penetration)
         self._rebuild_pair_mask()
+
+    def set_clearance(self, clearance: dict[str, float]) -> None:
+        """Replace the per-body clearances: robot (and held-object) contacts with these static bodies count
+        when closer than max(margin, clearance[body]) m instead of margin. For objects whose twin pose is
+        uncertain (reconstruction error): free motions keep a wider berth. `allow` exceptions still apply;
+        a held body is moving and not affected. `{}` restores the plain margin."""
+        new = {self._body_id(n): float(c) for n, c in clearance.items()}
+        if any(c < 0 for c in new.values()):
+            raise ValueError("clearances must be >= 0")
+        if new != self._clearance:
+            self._clearance = new
+            self._rebuild_pair_mask()
 
     def disallow(self, body_a: str, body_b: str) -> None:
         """Undo `allow` (contacts between the two bodies count again with the full margin)."""

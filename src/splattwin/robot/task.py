@@ -10,7 +10,10 @@ place, either in the same item or the next one:
     - place_in: target_frame              # the named region from the twin (config.target_frame)
 
 Validation raises InputError naming the task file for: unknown or unusable objects, a place without a
-pick, an unscaled twin, a goal off the table or out of the robot's reach.
+pick, an unscaled twin, a goal off the table or out of the robot's reach. Reach is checked in two stages:
+the horizontal distance from the base (cheap, [REACH_MIN, REACH_MAX]) and, given the robot, inverse
+kinematics (mink) of a grasp pose at the object and of the place pose and the pre-place pose above it
+(top-down at 8 yaws, or a horizontal approach pointing away from the base).
 """
 
 from __future__ import annotations
@@ -29,6 +32,8 @@ from splattwin.twin.mjcf import check_scaled
 
 REACH_MAX = 0.80     # m, horizontal distance from the base the Panda reaches top-down with margin
 REACH_MIN = 0.20     # m, closer than this the arm folds into itself
+GRIP_BELOW_TOP = 0.02   # m: the IK check puts the TCP this far below an object's top (at most half its height)
+PRE_PLACE_RISE = 0.10   # m: pre-place pose above the place pose (execute.LIFT)
 
 
 @dataclass
@@ -137,8 +142,50 @@ def load_task(path: str | Path | None, manifest: Manifest | None = None) -> Task
     return parse_task(data, path, manifest)
 
 
-def validate_task(task: Task, manifest: Manifest, twin_dir: str | Path, T_world_base: np.ndarray) -> None:
-    """Everything that can be checked without planning; raises InputError naming the task file."""
+def _tcp_poses(xyz: np.ndarray, base_xy: np.ndarray) -> list[np.ndarray]:
+    """Candidate T_world_tcp [4,4] at xyz: top-down (TCP z = -world z) at 8 yaws, then a horizontal
+    approach pointing away from the base (TCP z radial, closing axis horizontal)."""
+    out = []
+    flip = np.diag([1.0, -1.0, -1.0])
+    for k in range(8):
+        c, s = math.cos(k * math.pi / 4), math.sin(k * math.pi / 4)
+        T = np.eye(4)
+        T[:3, :3] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]) @ flip
+        T[:3, 3] = xyz
+        out.append(T)
+    radial = np.append(np.asarray(xyz)[:2] - base_xy, 0.0)
+    if np.linalg.norm(radial) > 1e-6:
+        z = radial / np.linalg.norm(radial)
+        y = np.cross([0.0, 0.0, 1.0], z)
+        T = np.eye(4)
+        T[:3, :3] = np.column_stack([np.cross(y, z), y, z])
+        T[:3, 3] = xyz
+        out.append(T)
+    return out
+
+
+def reachable(ik, xyz: np.ndarray, base_xy: np.ndarray, rise: float = 0.0) -> bool:
+    """True if some TCP pose of `_tcp_poses(xyz)` has an IK solution (mink, from the robot's home), and
+    with rise > 0 the same orientation also `rise` m above it (the pre-place pose)."""
+    home = ik.robot.home
+    for T in _tcp_poses(np.asarray(xyz, float), base_xy):
+        q = ik.solve(T, home, q_posture=home)
+        if q is None:
+            continue
+        if rise <= 0:
+            return True
+        T_up = T.copy()
+        T_up[2, 3] += rise
+        if ik.solve(T_up, q, q_posture=home) is not None:
+            return True
+    return False
+
+
+def validate_task(task: Task, manifest: Manifest, twin_dir: str | Path, T_world_base: np.ndarray,
+                  robot=None) -> None:
+    """Everything that can be checked without planning; raises InputError naming the task file.
+
+    robot: a `RobotModel`; when given, the pick and place poses must also have IK solutions (mink)."""
     where = task.path or Path(twin_dir) / "twin.json"
     check_scaled(manifest, Path(twin_dir) / "twin.json")
     names = {o.name: o for o in manifest.objects}
@@ -173,3 +220,43 @@ def validate_task(task: Task, manifest: Manifest, twin_dir: str | Path, T_world_
             reach(names[s.place_on].pose[:3, 3], f"step {k}: goal object {s.place_on!r}")
     if not all(math.isfinite(v) for v in np.asarray(T_world_base).ravel()):
         raise InputError("robot base pose is not finite", where)
+    if robot is not None:
+        _check_ik(task, manifest, names, np.asarray(T_world_base), robot, where)
+
+
+def _grip_point(top_z: float, height: float, xy: np.ndarray) -> np.ndarray:
+    """World TCP position (m) of a top grasp of an object whose top is at top_z."""
+    return np.array([xy[0], xy[1], top_z - min(GRIP_BELOW_TOP, height / 2)])
+
+
+def _check_ik(task: Task, manifest: Manifest, names: dict, T_world_base: np.ndarray, robot, where: Path) -> None:
+    """IK (mink) of each step's grasp pose at the object and of its place and pre-place poses."""
+    from splattwin.robot.ik import ArmIK
+
+    ik = ArmIK(robot, T_world_base)
+    base_xy = T_world_base[:2, 3]
+    table_z = float(manifest.background.table_height)
+
+    def top(name: str) -> float:
+        o = names[name]
+        return float(o.pose[2, 3] + abs(o.pose[2, 2]) * np.asarray(o.bbox_extent, float)[2] / 2)
+
+    for k, s in enumerate(task.steps, start=1):
+        obj = names[s.pick]
+        h = float(np.asarray(obj.bbox_extent, float)[2])
+        p = _grip_point(top(s.pick), h, obj.pose[:2, 3])
+        if not reachable(ik, p, base_xy):
+            raise InputError(f"step {k}: object {s.pick!r} at {np.round(p, 3).tolist()} is out of the robot's "
+                             f"reach: no IK solution for a grasp pose there (top-down at 8 yaws or from the "
+                             f"side; base at {np.round(T_world_base[:3, 3], 3).tolist()}; move it with "
+                             f"--base-pose)", where)
+        if s.place_on is not None:
+            goal, xy, z = f"goal object {s.place_on!r}", names[s.place_on].pose[:2, 3], top(s.place_on)
+        else:
+            goal, xy, z = f"goal region {s.place_in.name!r}", s.place_in.center[:2], table_z
+        p = _grip_point(z + h, h, xy)
+        if not reachable(ik, p, base_xy, rise=PRE_PLACE_RISE):
+            raise InputError(f"step {k}: {goal}: the place pose of {s.pick!r} at {np.round(p, 3).tolist()} is "
+                             f"out of the robot's reach: no IK solution for it and the pre-place pose "
+                             f"{PRE_PLACE_RISE:.2f} m above (top-down at 8 yaws or from the side; base at "
+                             f"{np.round(T_world_base[:3, 3], 3).tolist()}; move it with --base-pose)", where)

@@ -1,10 +1,14 @@
 """Validation runs of a task: one nominal run with outputs, and N perturbed trials in parallel processes.
 
-A trial builds the physical world with every object's pose perturbed — sigma is the RMS planar
-position error (x, y ~ N(0, sigma / sqrt 2) each) and a point 10 cm from the object centre moves by sigma
-RMS through the yaw error (yaw ~ N(0, sigma / 0.1) rad) — while the robot still plans with the twin's
-nominal poses: the trial measures how much reconstruction error the plan-then-execute loop tolerates.
+A trial builds the physical world with every object's pose perturbed — sigma is the per-axis standard
+deviation of the position error (dx, dy ~ N(0, sigma) independently, metres; z unchanged, the objects
+stay on their support) and yaw ~ N(0, sigma_yaw) rad with sigma_yaw = sigma / 0.1 m by default (a point
+10 cm from the object centre moves by sigma through the yaw error: 2.9 deg at sigma = 5 mm) — while the
+robot still plans with the twin's nominal poses: the trial measures how much reconstruction error the
+plan-then-execute loop tolerates.
 The success rate comes with a Wilson score 95 % interval (good at small N and rates near 0 or 1).
+With an output folder every finished trial is written atomically to OUT/trials/<i>.json with its key
+(twin, task and robot files by content, base, planner, seed, sigmas); a re-run skips those (resume).
 """
 
 from __future__ import annotations
@@ -20,7 +24,9 @@ import numpy as np
 
 from splattwin.robot.world import BasePose
 
-YAW_LEVER = 0.10   # m: the yaw perturbation moves a point this far from the centre by sigma RMS
+YAW_LEVER = 0.10   # m: default sigma_yaw = sigma / YAW_LEVER (a point this far from the centre moves by sigma)
+SIGMA_DEFINITION = ("sigma: per-axis standard deviation (m) of each object's x and y position error, drawn "
+                    "independently; sigma_yaw: standard deviation (rad) of its yaw error; z unchanged")
 
 
 def wilson_interval(k: int, n: int, z: float = 1.959964) -> tuple[float, float]:
@@ -34,14 +40,21 @@ def wilson_interval(k: int, n: int, z: float = 1.959964) -> tuple[float, float]:
     return (max(0.0, c - h), min(1.0, c + h))
 
 
-def perturb_poses(poses: dict[str, np.ndarray], sigma: float, rng: np.random.Generator) -> dict[str, np.ndarray]:
-    """Object poses T_world_obj [4,4] with planar noise: RMS xy error sigma (per axis sigma/sqrt 2, m),
-    yaw ~ N(0, sigma / YAW_LEVER) rad."""
+def default_sigma_yaw(sigma: float) -> float:
+    """rad: the yaw standard deviation used with a per-axis position sigma (m) unless given."""
+    return sigma / YAW_LEVER
+
+
+def perturb_poses(poses: dict[str, np.ndarray], sigma: float, rng: np.random.Generator,
+                  sigma_yaw: float | None = None) -> dict[str, np.ndarray]:
+    """Object poses T_world_obj [4,4] with planar noise: dx, dy ~ N(0, sigma) each (per-axis standard
+    deviation, m), yaw ~ N(0, sigma_yaw) rad about world z (default sigma / YAW_LEVER)."""
+    sigma_yaw = default_sigma_yaw(sigma) if sigma_yaw is None else sigma_yaw
     out = {}
     for name, T in poses.items():
         T = np.asarray(T, float).copy()
-        dx, dy = rng.normal(0.0, sigma / math.sqrt(2.0), 2)
-        a = rng.normal(0.0, sigma / YAW_LEVER)
+        dx, dy = rng.normal(0.0, sigma, 2)
+        a = rng.normal(0.0, sigma_yaw)
         c, s = math.cos(a), math.sin(a)
         Rz = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
         T[:3, :3] = Rz @ T[:3, :3]
@@ -56,9 +69,12 @@ class TrialSpec:
     task_path: str | None
     base: BasePose = field(default_factory=BasePose)
     robot_mjcf: str | None = None
-    sigma: float = 0.0
+    sigma: float = 0.0               # m, per-axis (x, y) standard deviation of the object position error
     seed: int = 0
+    sigma_yaw: float | None = None   # rad; None: sigma / YAW_LEVER
+    tcp_site: str = "tcp"            # TCP site of a user robot MJCF
     planner: str = "RRTConnect"
+    in_hand: str = "sensed"          # held object's pose for the transfer: "sensed" | "planned" (execute.py)
 
 
 def run_once(spec: TrialSpec, frame_dir: str | Path | None = None, keep_trajectories: bool = False):
@@ -72,17 +88,18 @@ def run_once(spec: TrialSpec, frame_dir: str | Path | None = None, keep_trajecto
 
     manifest = Manifest.load(spec.twin_dir)
     task = load_task(spec.task_path, manifest)
-    validate_task(task, manifest, spec.twin_dir, spec.base.matrix())
-    robot = RobotModel.from_mjcf(spec.robot_mjcf) if spec.robot_mjcf else RobotModel.panda()
+    robot = RobotModel.from_mjcf(spec.robot_mjcf, tcp_site=spec.tcp_site) if spec.robot_mjcf else RobotModel.panda()
+    validate_task(task, manifest, spec.twin_dir, spec.base.matrix(), robot=robot)
     nominal = {o.name: o.pose for o in manifest.objects if o.usable}
-    poses = perturb_poses(nominal, spec.sigma, np.random.default_rng(spec.seed)) if spec.sigma > 0 else None
+    poses = perturb_poses(nominal, spec.sigma, np.random.default_rng(spec.seed), spec.sigma_yaw) if spec.sigma > 0 else None
     world = build_world(spec.twin_dir, manifest, robot, spec.base, poses=poses, visual=frame_dir is not None)
     rec = None
     if frame_dir is not None:
         from splattwin.robot.render import FrameRecorder
 
         rec = FrameRecorder(frame_dir, world.model)
-    ex = Executor(world, belief=nominal, seed=spec.seed, planner=spec.planner, frame_cb=rec if rec and rec.available else None)
+    ex = Executor(world, belief=nominal, seed=spec.seed, planner=spec.planner, in_hand=spec.in_hand,
+                  frame_cb=rec if rec and rec.available else None)
     try:
         result = ex.run(task)
         if rec is not None:
@@ -95,7 +112,44 @@ def run_once(spec: TrialSpec, frame_dir: str | Path | None = None, keep_trajecto
     return result, (rec.note if rec is not None else ""), (rec.paths if rec is not None else [])
 
 
-def _trial_worker(spec: TrialSpec) -> dict:
+def _file_digest(path: str | Path | None) -> str | None:
+    """sha256 of a file's bytes (None for no file): a rebuilt twin or an edited task is another trial."""
+    import hashlib
+
+    if path is None or not Path(path).is_file():
+        return None
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def trial_key(spec: TrialSpec) -> dict:
+    """What makes a trial's result reusable: the same twin (path and twin.json content), task, robot,
+    base, planner, seed and noise."""
+    from dataclasses import asdict
+
+    return {"twin": str(Path(spec.twin_dir).resolve()),
+            "twin_json_sha256": _file_digest(Path(spec.twin_dir) / "twin.json"),
+            "task": str(Path(spec.task_path).resolve()) if spec.task_path else None,
+            "task_sha256": _file_digest(spec.task_path),
+            "robot_mjcf": str(Path(spec.robot_mjcf).resolve()) if spec.robot_mjcf else None,
+            "robot_mjcf_sha256": _file_digest(spec.robot_mjcf),
+            "tcp_site": spec.tcp_site if spec.robot_mjcf else None,
+            "base": asdict(spec.base), "planner": spec.planner, "in_hand": spec.in_hand, "seed": spec.seed, "sigma": spec.sigma,
+            "sigma_yaw": default_sigma_yaw(spec.sigma) if spec.sigma_yaw is None else spec.sigma_yaw}
+
+
+def load_finished(path: Path, spec: TrialSpec) -> dict | None:
+    """The stored result of a finished trial with the same key, else None (missing, stale or unreadable)."""
+    import json
+
+    try:
+        d = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+    return d if isinstance(d, dict) and d.get("key") == json.loads(json.dumps(trial_key(spec))) else None
+
+
+def _trial_worker(job: tuple[TrialSpec, str | None]) -> dict:
+    spec, path = job
     t0 = time.perf_counter()
     try:
         r, _, _ = run_once(spec)
@@ -104,30 +158,49 @@ def _trial_worker(spec: TrialSpec) -> dict:
         d = {"success": False, "collisions": 0, "plan_ms": [], "steps": [], "error": f"{type(e).__name__}: {e}"}
     d["seed"] = spec.seed
     d["trial_wall_s"] = time.perf_counter() - t0
+    if path is not None:   # written by the worker as soon as it finishes: a killed run keeps it
+        from splattwin import io
+
+        d["key"] = trial_key(spec)
+        io.write_json(path, d)
     return d
 
 
-def run_trials(base_spec: TrialSpec, n: int, sigma: float, workers: int | None = None, progress: bool = True) -> dict:
-    """N perturbed trials (seeds base_spec.seed + 1 .. + n) in a process pool; summary dict."""
+def run_trials(base_spec: TrialSpec, n: int, sigma: float, workers: int | None = None, progress: bool = True,
+               out_dir: str | Path | None = None, resume: bool = True, sigma_yaw: float | None = None) -> dict:
+    """N perturbed trials (seeds base_spec.seed + 1 .. + n) in a process pool; summary dict.
+
+    sigma: m, per-axis (x and y) standard deviation of each object's position error; sigma_yaw: rad
+    (default sigma / YAW_LEVER). out_dir: each finished trial is written atomically to
+    out_dir/trials/<i>.json (i = 1..n) with its key (`trial_key`); with resume, a re-run with the same
+    key skips the trials already there (a killed run continues where it stopped).
+    """
     from dataclasses import replace
 
-    specs = [replace(base_spec, sigma=sigma, seed=base_spec.seed + 1 + i) for i in range(n)]
-    workers = max(1, min(n, workers or (os.cpu_count() or 1)))
+    specs = [replace(base_spec, sigma=sigma, sigma_yaw=sigma_yaw, seed=base_spec.seed + 1 + i) for i in range(n)]
+    paths = [Path(out_dir) / "trials" / f"{i + 1}.json" if out_dir is not None else None for i in range(n)]
+    results: list[dict | None] = [load_finished(p, sp) if (p is not None and resume) else None
+                                  for sp, p in zip(specs, paths)]
+    todo = [i for i, r in enumerate(results) if r is None]
+    workers = max(1, min(len(todo) or 1, workers or (os.cpu_count() or 1)))
     t0 = time.perf_counter()
-    results: list[dict] = []
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        it = pool.map(_trial_worker, specs)
-        if progress:
-            from rich.progress import track
+    if todo:
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            it = pool.map(_trial_worker, [(specs[i], str(paths[i]) if paths[i] else None) for i in todo])
+            if progress:
+                from rich.progress import track
 
-            it = track(it, total=n, description=f"trials (sigma {sigma * 1000:.1f} mm)")
-        for r in it:
-            results.append(r)
-    k = sum(1 for r in results if r["success"])
+                it = track(it, total=len(todo), description=f"trials (sigma {sigma * 1000:.1f} mm per axis)")
+            for i, r in zip(todo, it):
+                results[i] = r
+    done: list[dict] = [r for r in results if r is not None]
+    k = sum(1 for r in done if r["success"])
     lo, hi = wilson_interval(k, n)
-    plan_ms = [p for r in results for p in r.get("plan_ms", [])]
+    plan_ms = [p for r in done for p in r.get("plan_ms", [])]
     return {"trials": n, "successes": k, "success_rate": k / n if n else 0.0, "ci95": [lo, hi], "sigma": sigma,
-            "collisions": int(sum(r.get("collisions", 0) for r in results)),
+            "sigma_yaw": default_sigma_yaw(sigma) if sigma_yaw is None else sigma_yaw,
+            "sigma_definition": SIGMA_DEFINITION,
+            "collisions": int(sum(r.get("collisions", 0) for r in done)),
             "plan_ms_median": float(np.median(plan_ms)) if plan_ms else None,
-            "trial_wall_s_median": float(np.median([r["trial_wall_s"] for r in results])) if results else None,
-            "wall_s": time.perf_counter() - t0, "workers": workers, "results": results}
+            "trial_wall_s_median": float(np.median([r["trial_wall_s"] for r in done])) if done else None,
+            "wall_s": time.perf_counter() - t0, "workers": workers, "resumed": n - len(todo), "results": done}
