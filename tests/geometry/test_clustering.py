@@ -69,3 +69,19 @@ def test_fit_plane_prefers_the_horizontal_table_over_a_bigger_wall():
     assert pl.normal[2] > 0.999 and abs(pl.d) < 0.001
     pl_any = fit_plane(np.concatenate([table, wall]), 0.004, max_tilt_deg=None)
     assert abs(pl_any.normal[1]) > 0.999
+
+
+def test_foot_bleed_drops_table_splats_around_a_resting_object_only():
+    from splattwin.geometry.clustering import foot_bleed_mask
+
+    rng = np.random.default_rng(0)
+    body = np.c_[rng.uniform(-0.03, 0.03, (2000, 2)), rng.uniform(0.0, 0.05, 2000)]  # a 6 cm block on z = 0
+    halo = np.c_[rng.uniform(0.04, 0.06, (100, 1)), rng.uniform(-0.03, 0.03, (100, 1)), rng.uniform(-0.002, 0.004, 100)]
+    pts = np.concatenate([body, halo])
+    keep = foot_bleed_mask(pts, 0.0, foot_height=0.006, margin=0.005)
+    assert keep[:2000].all()  # the object's own foot (under its outline) stays
+    assert not keep[2000:].any()  # table splats 1-3 cm outside its outline at table height go
+    high = halo + [0, 0, 0.02]  # the same points 2 cm up are not at the foot: kept
+    assert foot_bleed_mask(np.concatenate([body, high]), 0.0).all()
+    flat = body * [1, 1, 0.05]  # a flat thing lying on the table: nothing above the layer to judge by
+    assert foot_bleed_mask(np.concatenate([flat, halo]), 0.0).all()

@@ -4,12 +4,14 @@ import warnings
 
 import numpy as np
 import pytest
+import trimesh
 
-from splattwin.geometry.convert import ObjectUnusableWarning, ablation, convert
+from splattwin.geometry.convert import ObjectUnusableWarning, ablation, clean_indices, convert, object_geometry
+from splattwin.geometry.metrics import mesh_fidelity
 from splattwin.geometry.options import GeometryOptions
 from splattwin.splat.gaussians import Gaussians
 
-from splattwin.geometry.synthetic import synthetic_scene
+from splattwin.geometry.synthetic import synthetic_scene, trained_like_gaussians
 
 
 @pytest.fixture(scope="module")
@@ -97,3 +99,35 @@ def test_bad_inputs_mark_objects_unusable():
     assert "flat" in probs["flat"]
     assert "single point" in probs["point"] or "too few" in probs["point"]
     assert "missing label" in probs["missing"]
+
+
+def _mesh_f1(g, gt, opts: GeometryOptions):
+    """Object geometry of all of `g` (one label, resting on z = 0) and its mesh fidelity vs `gt`."""
+    labels = np.ones(len(g), dtype=np.int64)
+    opts = opts.resolved(1.2)  # the scene scale of the embedded scene (table diagonal)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = object_geometry(g, clean_indices(g, labels, 1, opts), "obj", 1, opts, support_z=0.0)
+    m = r.visual.copy()
+    m.apply_transform(r.T_world_obj)
+    return mesh_fidelity(m, gt), r
+
+
+@pytest.mark.parametrize("shape", ["box", "cylinder"])
+def test_trained_like_splats_mesh_within_5mm(shape):
+    """Trained-splat artefacts (centres 1.5 sigma inside the surface, one side nearly unobserved, short
+    elongated edge splats, haze): the twin mesh meets F1 >= 0.95 @ 5 mm; meshing the centres without
+    the support fill (the path before issue 6) leaves an open, hollow shell."""
+    if shape == "box":
+        gt = trimesh.creation.box([0.12, 0.08, 0.06])
+        gt.apply_translation([0, 0, 0.03])
+    else:
+        gt = trimesh.creation.cylinder(radius=0.035, height=0.14, sections=64)
+        gt.apply_translation([0, 0, 0.07])
+    g = trained_like_gaussians(gt, 2000, seed=1)
+    f, r = _mesh_f1(g, gt, GeometryOptions())
+    assert f.f1 >= 0.95, f
+    assert r.collision.is_watertight and 0.85 < r.collision.volume / gt.volume < 1.2
+    if shape == "box":  # the old path, once (it is the slow one: hollow shells go to CoACD)
+        old, r_old = _mesh_f1(g, gt, GeometryOptions(densify=False, fill_to_support=False, needle_length=0.0))
+        assert old.f1 < 0.9 and r_old.collision.volume < 0.5 * gt.volume, old

@@ -31,3 +31,15 @@ def test_auto_thresholds_scale_with_scene():
     o1, o2 = GeometryOptions().resolved(s1), GeometryOptions().resolved(s2)
     assert np.isclose(o2.max_scale, 3 * o1.max_scale)
     assert GeometryOptions(max_scale=0.01).resolved(s1).max_scale == 0.01
+
+
+def test_short_elongated_edge_splats_are_kept_long_needles_dropped():
+    # trained splats line edges with short elongated Gaussians (largest / middle 6-10, a few mm long):
+    # they are surface, not the long spikes the needle test is for
+    op = np.full(4, 0.9)
+    sc = np.array([[0.004, 0.0005, 0.0003], [0.0059, 0.0006, 0.0003], [0.0061, 0.0006, 0.0003],
+                   [0.02, 0.001, 0.001]])
+    keep, st = attribute_mask(op, sc, GeometryOptions(max_scale=0.05))
+    assert keep.tolist() == [True, True, False, False] and st.needle == 2
+    keep, _ = attribute_mask(op, sc, GeometryOptions(max_scale=0.05, needle_length=0.0))  # aspect alone
+    assert keep.tolist() == [False, False, False, False]

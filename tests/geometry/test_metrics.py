@@ -29,3 +29,17 @@ def test_sample_surface_drops_supported_bottom():
 
     assert on_bottom(all_pts).sum() > 100 and not on_bottom(seen).any()
     assert 0.75 < len(seen) / len(all_pts) < 0.92  # 5 of 6 faces
+
+
+def test_mesh_fidelity_known_answers():
+    from splattwin.geometry.metrics import mesh_fidelity
+
+    box = trimesh.creation.box([0.1, 0.08, 0.06])
+    same = mesh_fidelity(box, box)
+    assert same.f1 == 1.0 and same.chamfer < 0.002
+    near = box.copy()
+    near.apply_translation([0.003, 0, 0])  # 3 mm off: within the 5 mm threshold everywhere
+    assert mesh_fidelity(near, box).f1 == 1.0
+    grown = trimesh.creation.box([0.12, 0.1, 0.08])  # every face 1 cm out: nothing within 5 mm
+    f = mesh_fidelity(grown, box)
+    assert f.precision == 0.0 and f.recall == 0.0 and 0.009 < f.chamfer < 0.013

@@ -123,7 +123,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--min-samples", type=int, default=10, help="DBSCAN min_samples")
     p.add_argument("--alpha", type=float, default=None, help="alpha-shape radius (m); default from point spacing")
     p.add_argument("--no-densify", dest="densify", action="store_false",
-                   help="mesh the Gaussian centres only (default: also points sampled inside each ellipsoid)")
+                   help="mesh the Gaussian centres only (default: each splat's half-opaque ellipsoid)")
     p.add_argument("--voxel-remesh", action="store_true", help="marching cubes instead of alpha shapes (faster)")
     p.add_argument("--faces", type=int, default=1500, help="collision mesh face budget")
     p.add_argument("--density", type=float, default=500.0, help="kg/m^3 for mass = volume x density")

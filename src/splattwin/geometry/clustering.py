@@ -146,3 +146,22 @@ def split_background(points: np.ndarray, eps: float = 0.02, min_samples: int = 1
                 ids[sel] = next_id
                 next_id += 1
     return BackgroundSplit(plane=plane, table=table, obstacles=obstacles, obstacle_ids=ids)
+
+
+def foot_bleed_mask(points: np.ndarray, support_z: float, foot_height: float = 0.006, margin: float = 0.005,
+                    min_above: int = 50) -> np.ndarray:
+    """Keep-mask [N] of an object's points [N,3] (twin frame, z up, m) without the table splats that
+    mask lifting gave it at its foot (shadows, contact edges: 2D masks bleed onto the table around the
+    object). A point within `foot_height` of the support plane z = support_z that lies more than
+    `margin` (horizontally) from every point of the object above that layer is table, not object: a
+    resting object does not reach out along the table beyond its own outline. Objects with fewer than
+    `min_above` points above the layer (flat things lying on the table) are left alone."""
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    low = points[:, 2] - support_z < foot_height
+    keep = np.ones(len(points), dtype=bool)
+    if low.any() and (~low).sum() >= min_above:
+        d, _ = cKDTree(points[~low, :2]).query(points[low, :2], workers=-1)
+        keep[np.flatnonzero(low)[d > margin]] = False
+    return keep

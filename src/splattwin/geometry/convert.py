@@ -17,11 +17,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
-from splattwin.geometry.clustering import Plane, largest_cluster, split_background
+from splattwin.geometry.clustering import Plane, foot_bleed_mask, largest_cluster, split_background
 from splattwin.geometry.filtering import FilterStats, attribute_mask
-from splattwin.geometry.meshing import (add_bottom, densify_gaussians, downsample, point_spacing, simplify, smooth,
-                                        solid_mesh)
-from splattwin.geometry.metrics import Fidelity, fidelity, sample_surface
+from splattwin.geometry.meshing import (add_bottom, downsample, ellipsoid_samples, level_radii, point_spacing, simplify,
+                                        smooth, solid_mesh)
+from splattwin.geometry.metrics import Fidelity, fidelity, mesh_fidelity, sample_surface
 from splattwin.geometry.options import GeometryOptions, scene_scale
 from splattwin.geometry.physics import convex_parts, convexity, mass_properties, yaw_obb
 
@@ -116,20 +116,24 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
     """Stages 3-4 for one object from its cleaned Gaussians `g[indices]`. Never raises on bad data:
     returns usable=False with `problem` and emits ObjectUnusableWarning.
 
-    support_z: height of the table top (twin frame). Nothing physical lies below it, so points under it
+    support_z: height of the table top (twin frame). Table splats labelled as the object around its
+    foot are dropped (`clustering.foot_bleed_mask`). Nothing physical lies below it, so points under it
     (reconstruction noise) are dropped, and an object resting on it gets its unseen bottom closed
     exactly at the table instead of a few millimetres inside it (which would make a gripper reaching
     for a small object graze the table, and make the object pop up in physics)."""
     timings = timings if timings is not None else defaultdict(float)
-    out = ObjectGeometry(name=name, label=int(label), prompt=prompt, indices=np.asarray(indices, dtype=np.int64))
+    indices = np.asarray(indices, dtype=np.int64)
+    if support_z is not None and opts.foot_height > 0:
+        indices = indices[foot_bleed_mask(g.means[indices], support_z, opts.foot_height, opts.foot_margin)]
+    out = ObjectGeometry(name=name, label=int(label), prompt=prompt, indices=indices)
     pts = g.means[indices]
     problem = _problem(pts, opts)
     if problem is None:
         t0 = time.perf_counter()
         pitch = max(opts.mesh_voxel, opts.mesh_voxel_rel * point_spacing(pts, k=4))
-        if opts.densify:
-            pts = np.concatenate([pts, densify_gaussians(pts, g.subset(indices).rotation_matrices(), g.scales[indices],
-                                                         opts.densify_samples, opts.densify_sigma, seed=opts.seed)])
+        if opts.densify:  # the splats' half-opaque extents, not just their centres (see ellipsoid_samples)
+            pts = np.concatenate([pts, ellipsoid_samples(pts, g.subset(indices).rotation_matrices(), g.scales[indices],
+                                                         level_radii(g.opacities[indices], opts.surface_level))])
         mpts = downsample(pts, pitch / 2)
         z_floor = None
         if support_z is not None:
@@ -144,11 +148,16 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
         local = mpts @ T_obj_world[:3, :3].T + T_obj_world[:3, 3]
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
+            floor = None if (z_floor is None or not opts.fill_to_support) else z_floor + T_obj_world[2, 3]
             res = solid_mesh(local, pitch, opts.alpha, opts.alpha_factors, opts.close_iterations,
-                             opts.use_alpha, name=name, max_points=opts.alpha_max_points)
+                             opts.use_alpha, name=name, max_points=opts.alpha_max_points, floor_z=floor)
         for w in caught:
             warnings.warn(w.message, stacklevel=2)
         mesh = smooth(res.mesh, opts.smooth_iterations)
+        if floor is not None:  # smoothing rounds the bottom edge a little below the table: nothing is there
+            v = np.array(mesh.vertices)
+            v[:, 2] = np.maximum(v[:, 2], floor)
+            mesh = trimesh.Trimesh(v, mesh.faces, process=False)
         visual = simplify(mesh, opts.visual_faces)
         vw = visual.vertices @ box.T_world_box[:3, :3].T + box.T_world_box[:3, 3]
         visual = trimesh.Trimesh(visual.vertices, visual.faces, vertex_colors=_vertex_colors(vw, g.means[indices], g.colors[indices]),
@@ -192,6 +201,11 @@ def background_geometry(g, indices: np.ndarray, opts: GeometryOptions, table_thi
                              opts.plane_iterations, opts.support_gap, opts.obstacle_min_points, opts.seed)
     tp = pts[split.table]
     h = float(np.median(tp[:, 2])) if len(tp) else 0.0
+    if len(tp) and opts.densify:  # the top of the splats' half-opaque ellipsoids, like the objects' surfaces
+        t = np.asarray(indices)[split.table]
+        R = g.subset(t).rotation_matrices()
+        sigma_z = np.sqrt(np.sum((R[:, 2, :] * g.scales[t]) ** 2, axis=1))  # std along world z
+        h = float(np.median(tp[:, 2] + level_radii(g.opacities[t], opts.surface_level) * sigma_z))
     x0, x1 = np.percentile(tp[:, 0], [0.2, 99.8]) if len(tp) else (-0.5, 0.5)
     y0, y1 = np.percentile(tp[:, 1], [0.2, 99.8]) if len(tp) else (-0.4, 0.4)
     table = trimesh.creation.box(extents=[x1 - x0, y1 - y0, table_thickness])
@@ -277,4 +291,20 @@ def ablation(g, labels: np.ndarray, objects: list, gt_meshes: dict, opts: Geomet
             idx = clean_indices(g, labels, label, opts, attribute=c in ("attribute", "full"),
                                 cluster=c in ("cluster", "full"), attr_keep=keep)
             out[c][name] = fidelity(g.means[idx], gt, opts.f1_threshold)
+    return out
+
+
+def conversion_fidelity(conv: Conversion, gt_meshes: dict, threshold: float = 0.005) -> dict[str, Fidelity]:
+    """{object name: Fidelity} of each usable object's visual mesh, placed in the twin frame, against its
+    GT mesh (world = twin frame); objects without a GT mesh are skipped, unusable ones score zero."""
+    out = {}
+    for o in conv.objects:
+        if o.name not in gt_meshes:
+            continue
+        if not o.usable or o.visual is None:
+            out[o.name] = Fidelity(chamfer=float("inf"), precision=0.0, recall=0.0, f1=0.0, n_points=0)
+            continue
+        m = o.visual.copy()
+        m.apply_transform(o.T_world_obj)
+        out[o.name] = mesh_fidelity(m, gt_meshes[o.name], threshold)
     return out

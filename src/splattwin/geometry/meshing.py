@@ -1,10 +1,13 @@
 """Stage 3: collision-ready meshing via alpha shapes (paper section 3.3.3), repair and simplification.
 
 Alpha shapes (Open3D) of points sampled on a surface give a thin shell: an outer and an inner sheet,
-rarely manifold. So the surface points (Gaussian centres, optionally densified inside each ellipsoid)
-first become a voxel solid (occupancy, morphological closing, hole filling: scipy.ndimage); the alpha
-shape is taken of that solid's points, building the Delaunay `TetraMesh` once and trying the radii
-`alpha_factors x point spacing` in order; the outer component of the first watertight result is kept.
+rarely manifold. So the surface points (Gaussian centres plus each splat's half-opaque ellipsoid,
+`ellipsoid_samples`: trained centres sit inside the surface they render) first become a voxel solid
+(occupancy, morphological closing, hole filling: scipy.ndimage; for an object resting on the table also
+everything between the table and what was seen of it, since trained splats leave unseen sides nearly
+empty and the shell open); the alpha shape is taken of that solid's points, building the Delaunay
+`TetraMesh` once and trying the radii `alpha_factors x point spacing` in order; the outer component of
+the first watertight result is kept.
 When none is watertight after trimesh's repair we fall back, with the named warning
 `MeshRepairWarning`, to a voxel remesh (scikit-image marching cubes of the same solid), then to the
 convex hull. Simplification (quadric decimation) is only accepted when the result is still watertight.
@@ -43,22 +46,30 @@ def downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     return voxel_groups(np.asarray(points, dtype=np.float64), voxel)[0]
 
 
-def densify_gaussians(means: np.ndarray, rotations: np.ndarray, scales: np.ndarray, samples: int = 4,
-                      sigma_clip: float = 2.0, seed: int = 0) -> np.ndarray:
-    """Points sampled inside each Gaussian's ellipsoid: [N*samples,3] (world frame, m).
+def level_radii(opacities: np.ndarray, level: float = 0.5) -> np.ndarray:
+    """[N] Mahalanobis radius at which each Gaussian's own alpha, opacity * exp(-r^2/2), falls to
+    `level`: sqrt(2 ln(opacity / level)); 0 for opacities at or below the level (such a splat is never
+    that opaque on its own: only its centre is kept)."""
+    o = np.asarray(opacities, dtype=np.float64)
+    return np.sqrt(2.0 * np.log(np.maximum(o / level, 1.0)))
 
-    means [N,3], rotations [N,3,3] (Gaussian -> world), scales [N,3] std devs. Samples are normal with the
-    Gaussian's covariance, radially clipped at `sigma_clip` standard deviations. Thin objects (a blade, a
-    sheet) are covered by few, large Gaussians; their centres alone are too sparse for alpha shapes.
-    """
-    rng = np.random.default_rng(seed)
-    n = len(means)
-    u = rng.standard_normal((n, samples, 3))
-    r = np.linalg.norm(u, axis=2, keepdims=True)
-    u = np.where(r > sigma_clip, u * (sigma_clip / np.maximum(r, 1e-12)), u)
-    local = u * scales[:, None, :]
-    world = np.einsum("nij,nsj->nsi", rotations, local) + means[:, None, :]
-    return world.reshape(-1, 3)
+
+def ellipsoid_samples(means: np.ndarray, rotations: np.ndarray, scales: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """Points [N*26,3] on each Gaussian's ellipsoid of Mahalanobis radius radii[N] (world frame, m).
+
+    means [N,3], rotations [N,3,3] (Gaussian -> world), scales [N,3] std devs. Directions: the 26 of a
+    3x3x3 stencil (axes, edge and corner diagonals), normalised; deterministic, because the voxel solid
+    keeps the samples' outer envelope, and a random sampling's envelope grows with the sample count.
+    With `level_radii` these are the splats' alpha = level iso-surfaces: trained 3DGS surface splats are
+    flat discs whose thin axis follows the surface normal and whose centres sit ~1-2 sigma *inside*
+    the surface they render (measured on the demo twin: -1.5 mm on tops, -2.5 to -4.5 mm on sides);
+    the union of the half-opaque ellipsoids is where the object visibly is. Inner samples fall inside
+    the solid, so no normal orientation is needed."""
+    d = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)],
+                 dtype=np.float64)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    local = d[None] * (scales * np.asarray(radii, dtype=np.float64)[:, None])[:, None, :]
+    return (np.einsum("nij,nsj->nsi", rotations, local) + means[:, None, :]).reshape(-1, 3)
 
 
 def add_bottom(points: np.ndarray, spacing: float, z_floor: float | None = None) -> np.ndarray:
@@ -100,16 +111,25 @@ class VoxelSolid:
         return (np.argwhere(keep) + 0.5 + jitter) * self.pitch + self.origin
 
 
-def voxel_solid(points: np.ndarray, pitch: float, close_iterations: int = 2, max_extra: int = 2) -> VoxelSolid:
+def voxel_solid(points: np.ndarray, pitch: float, close_iterations: int = 2, max_extra: int = 2,
+                floor_z: float | None = None) -> VoxelSolid:
     """Solid enclosed by surface points [N,3] (m): occupancy at `pitch`, morphological closing
     (`close_iterations` voxels, 26-neighbourhood) to seal sampling gaps, interior filled
     (scipy binary_fill_holes). When filling finds no interior (the shell still leaks) the closing is
-    widened by up to `max_extra` voxels; a truly thin object stays a sheet."""
+    widened by up to `max_extra` voxels; a truly thin object stays a sheet.
+
+    floor_z: height (same frame, z up) of the support an object rests on. Then every voxel between the
+    floor and an occupied voxel above it is solid too (support extrusion). Trained splats leave faces
+    that no camera saw well nearly empty (a box's back side: ~20 Gaussians on 150 cm^2), so the
+    shell leaks and hole filling finds no interior; a resting object is solid under what was seen of
+    it, exactly so without overhangs and conservatively (never thinner) with them."""
     from scipy import ndimage
 
     points = np.asarray(points, dtype=np.float64)
     pad = close_iterations + max_extra + 2
     origin = points.min(axis=0) - pad * pitch
+    if floor_z is not None:  # floor on a layer of voxel centres: the meshed bottom lies on the support, not up to a voxel above it
+        origin[2] = floor_z - (np.ceil((floor_z - origin[2]) / pitch - 0.5) + 0.5) * pitch
     ijk = np.floor((points - origin) / pitch).astype(np.int64)
     occ = np.zeros(ijk.max(axis=0) + pad + 1, dtype=bool)
     occ[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
@@ -120,6 +140,11 @@ def voxel_solid(points: np.ndarray, pitch: float, close_iterations: int = 2, max
         if filled.sum() > 1.02 * shell.sum():  # found an enclosed interior
             break
     solid = ndimage.binary_erosion(filled, st, iterations=it, border_value=0) | occ
+    if floor_z is not None:
+        k_floor = int(np.floor((floor_z - origin[2]) / pitch))
+        below_top = np.flip(np.logical_or.accumulate(np.flip(solid, axis=2), axis=2), axis=2)
+        below_top[:, :, :max(k_floor, 0)] = False
+        solid |= below_top
     return VoxelSolid(occ=solid, origin=origin, pitch=float(pitch))
 
 
@@ -222,21 +247,22 @@ def alpha_shape_mesh(points: np.ndarray, alpha: float | None = None,
 
 def solid_mesh(points: np.ndarray, pitch: float, alpha: float | None = None, alpha_factors: tuple = (1.5, 2.0, 3.0),
                close_iterations: int = 2, use_alpha: bool = True, name: str = "mesh",
-               max_points: int = 12000) -> MeshResult:
+               max_points: int = 12000, floor_z: float | None = None) -> MeshResult:
     """Watertight mesh of the solid enclosed by surface points [N,3] (m).
 
     Alpha shape of the voxel solid's points first (the paper's shrink-wrap); if no alpha gives a
     watertight outer shell, the voxel remesh (marching cubes) of the same solid; then the convex hull.
     Each fallback emits MeshRepairWarning naming the object. Objects whose solid would exceed
     `max_points` alpha-shape points get a coarser voxel (the Delaunay dominates the cost).
+    floor_z: support height for `voxel_solid`'s support extrusion (None: off).
     """
     points = np.asarray(points, dtype=np.float64)
-    solid = voxel_solid(points, pitch, close_iterations)
+    solid = voxel_solid(points, pitch, close_iterations, floor_z=floor_z)
     notes = []
     if use_alpha:
         sp = solid.points()
         if len(sp) > max_points:  # Delaunay cost ~ points: coarsen big objects (points ~ area ~ pitch^-2)
-            solid = voxel_solid(points, pitch * np.sqrt(len(sp) / max_points), close_iterations)
+            solid = voxel_solid(points, pitch * np.sqrt(len(sp) / max_points), close_iterations, floor_z=floor_z)
             sp = solid.points()
         res = alpha_shape_mesh(sp, alpha, alpha_factors, name)
         if res is not None:

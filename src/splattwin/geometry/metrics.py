@@ -56,3 +56,10 @@ def fidelity(points: np.ndarray, gt_points: np.ndarray, threshold: float = 0.005
     f1 = 2 * p * r / (p + r) if p + r > 0 else 0.0
     return Fidelity(chamfer=float(0.5 * (d_pg.mean() + d_gp.mean())), precision=p, recall=r, f1=f1,
                     n_points=int(len(points)))
+
+
+def mesh_fidelity(mesh: trimesh.Trimesh, gt_mesh: trimesh.Trimesh, threshold: float = 0.005, spacing: float = 0.002,
+                  seed: int = 0) -> Fidelity:
+    """Fidelity of a reconstructed mesh against a GT mesh (same frame, m), both sampled evenly at
+    `spacing` over their whole surface (what `splattwin demo` reports in geometry_metrics.json)."""
+    return fidelity(sample_surface(mesh, spacing, seed=seed), sample_surface(gt_mesh, spacing, seed=seed), threshold)

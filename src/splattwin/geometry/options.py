@@ -20,6 +20,7 @@ class GeometryOptions:
     max_scale: float | None = None      # drop Gaussians whose largest scale exceeds this (m); None: auto
     max_scale_rel: float = 0.01         # auto max_scale = max_scale_rel * scene_scale
     max_aspect: float = 5.0             # needle: largest / middle scale above this (flat discs are fine)
+    needle_length: float = 0.006        # ... and largest scale above this (m): shorter elongated splats line edges
     max_flatness: float | None = None   # optional bound on largest / smallest scale (None: off)
     # -- stage 2: connectivity pruning -------------------------------------------------------------
     dbscan_eps: float = 0.02            # m (paper: 2 cm)
@@ -28,6 +29,8 @@ class GeometryOptions:
     plane_distance: float = 0.004       # RANSAC inlier distance for the table plane (m)
     plane_iterations: int = 500
     support_gap: float = 0.02           # an obstacle cluster must come this close to the table (m)
+    foot_height: float = 0.006          # object points this close to the table ...
+    foot_margin: float = 0.005          # ... and this far outside the outline above them are table (0 height: off)
     obstacle_min_points: int = 200      # smaller background clusters above the table are floaters
     # -- stage 3: meshing --------------------------------------------------------------------------
     mesh_voxel: float = 0.003           # finest voxel of the solid the surface points enclose (m)
@@ -38,10 +41,10 @@ class GeometryOptions:
     use_alpha: bool = True              # False: voxel remesh (marching cubes) directly
     alpha_max_points: int = 8000        # coarser voxel for bigger objects (Delaunay cost ~ points)
     close_bottom: bool = True           # add the unseen footprint under an object resting on the table
+    fill_to_support: bool = True        # a resting object is solid from the table up to its seen surface
     rest_gap: float = 0.01              # an object whose lowest point is within this of the table rests on it (m)
-    densify: bool = True                # sample points inside each Gaussian's ellipsoid (covers gaps)
-    densify_samples: int = 4
-    densify_sigma: float = 1.0          # samples clipped at this many standard deviations
+    densify: bool = True                # mesh each splat's alpha = surface_level ellipsoid, not only its centre
+    surface_level: float = 0.5          # alpha iso-level of a splat taken as its surface (trained centres sit inside)
     smooth_iterations: int = 10         # Taubin smoothing of the mesh (removes the voxel staircase)
     collision_faces: int = 1500         # face budget of collision meshes
     visual_faces: int = 20000           # face budget of visual meshes
