@@ -7,6 +7,12 @@ wall_s, psnr, ssim, peak_rss_gib, iters, gaussians, ms_per_iter, views, resoluti
 
     python bench/train.py                 # full benchmark
     python bench/train.py --iters 500     # shorter run
+    python bench/train.py --pose-noise-deg 1.5 --pose-noise-m 0.015   # + joint pose refinement
+
+With --pose-noise-deg/--pose-noise-m the training cameras are moved by a known random error
+(splattwin.splat.pose_refine.perturb_poses; held-out cameras stay exact) and trained with --refine-poses
+(on by default then); the JSON adds pose_rot_err_deg_before/after and pose_centre_err_m_before/after
+(means over the training cameras).
 """
 
 from __future__ import annotations
@@ -51,6 +57,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-gaussians", type=int, default=None)
     ap.add_argument("--scene-cache", type=Path, default=Path(tempfile.gettempdir()) / "splattwin_bench")
     ap.add_argument("--out", type=Path, default=None, help="training output folder (default: a temp dir)")
+    ap.add_argument("--depth-lambda", type=float, default=None, help="depth loss weight (default: TrainConfig's)")
+    ap.add_argument("--pose-noise-deg", type=float, default=0.0, help="rotation error added to each training camera")
+    ap.add_argument("--pose-noise-m", type=float, default=0.0, help="translation error added to each training camera")
+    ap.add_argument("--refine-poses", choices=["auto", "on", "off"], default="auto",
+                    help="joint pose refinement (auto: on when pose noise is added)")
+    ap.add_argument("--pose-lr", type=float, default=None, help="pose correction Adam LR (default: TrainConfig's)")
+    ap.add_argument("--pose-start", type=float, default=None, help="fraction of the run before poses move")
     ap.add_argument("--progress", action="store_true")
     args = ap.parse_args(argv)
 
@@ -58,14 +71,30 @@ def main(argv: list[str] | None = None) -> int:
     scene = ensure_scene(args.scene_cache, args.views, args.heldout, args.width, args.height, args.seed)
     t_scene = time.perf_counter() - t
 
+    import dataclasses
+
+    import numpy as np
+
     from splattwin.capture import load_dataset
     from splattwin.splat.eval import evaluate
+    from splattwin.splat.pose_refine import perturb_poses, pose_errors
     from splattwin.splat.trainer import TrainConfig, Trainer
 
     out = args.out or Path(tempfile.mkdtemp(prefix="splattwin_train_"))
     ds = load_dataset(scene)
-    kw = {} if args.max_gaussians is None else {"max_gaussians": args.max_gaussians}
-    cfg = TrainConfig(iters=args.iters, init=args.init, checkpoint_every=0, progress=args.progress, **kw)
+    kw: dict = {} if args.max_gaussians is None else {"max_gaussians": args.max_gaussians}
+    for key in ("depth_lambda", "pose_lr", "pose_start"):
+        if getattr(args, key) is not None:
+            kw[key] = getattr(args, key)
+    noisy = args.pose_noise_deg > 0 or args.pose_noise_m > 0
+    refine_poses = args.refine_poses == "on" or (args.refine_poses == "auto" and noisy)
+    T_true = np.stack([f.camera.T_cam_world for f in ds.train()])
+    if noisy:
+        T_noisy = perturb_poses(T_true, args.pose_noise_deg, args.pose_noise_m, seed=args.seed)
+        for f, T in zip(ds.train(), T_noisy):
+            f.camera = dataclasses.replace(f.camera, T_world_cam=np.linalg.inv(T))
+    cfg = TrainConfig(iters=args.iters, init=args.init, checkpoint_every=0, progress=args.progress,
+                      refine_poses=refine_poses, **kw)
 
     t0 = time.perf_counter()
     tr = Trainer(ds, out, cfg)
@@ -83,6 +112,16 @@ def main(argv: list[str] | None = None) -> int:
     ev = evaluate(res.gaussians, ds, out / "eval", progress=False)
     t_eval = time.perf_counter() - t
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB -> GiB
+
+    pose: dict = {}
+    if noisy or refine_poses:
+        T_in = np.stack([f.camera.T_cam_world for f in ds.train()])
+        T_out = T_in if res.refined_T_world_cam is None else np.stack(
+            [np.linalg.inv(np.array(res.refined_T_world_cam[f.name])) for f in ds.train()])
+        for when, T in (("before", T_in), ("after", T_out)):
+            rot, centre = pose_errors(T, T_true)
+            pose[f"pose_rot_err_deg_{when}"] = round(float(rot.mean()), 4)
+            pose[f"pose_centre_err_m_{when}"] = round(float(centre.mean()), 5)
 
     q = len(step_ms) // 4
     rows = [
@@ -102,6 +141,12 @@ def main(argv: list[str] | None = None) -> int:
         ("peak RSS", f"{peak:.2f} GiB   (target <= 3)"),
         ("side-by-side images", str(out / "eval")),
     ]
+    if pose:
+        rows.insert(-1, ("pose error before -> after (mean)",
+                         f"{pose['pose_rot_err_deg_before']:.3f} -> {pose['pose_rot_err_deg_after']:.3f} deg, "
+                         f"{pose['pose_centre_err_m_before'] * 100:.2f} -> "
+                         f"{pose['pose_centre_err_m_after'] * 100:.2f} cm"
+                         f"   (refinement {'on' if refine_poses else 'off'})"))
     w = max(len(r[0]) for r in rows)
     print("bench/train.py: 3DGS training on the embedded tabletop scene")
     for k, v in rows:
@@ -109,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     print(json.dumps({"wall_s": round(wall, 2), "psnr": round(ev.mean_psnr, 3), "ssim": round(ev.mean_ssim, 4),
                       "peak_rss_gib": round(peak, 3), "iters": res.steps, "gaussians": len(res.gaussians),
                       "ms_per_iter": round(statistics.median(step_ms), 2), "views": len(tr.views),
-                      "resolution": f"{args.width}x{args.height}"}))
+                      "resolution": f"{args.width}x{args.height}", "depth_lambda": cfg.depth_lambda, **pose}))
     return 0
 
 

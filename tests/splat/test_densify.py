@@ -96,7 +96,8 @@ def test_refine_respects_cap_and_opacity_reset():
 
 def test_schedule_scales_with_iterations():
     c = densify.DensifyConfig.for_iterations(3000)
-    assert c.refine_start < c.reset_every < c.refine_stop < 3000 and c.refine_every == 100
+    assert c.refine_start < c.refine_stop < 3000 and c.refine_every == 100
+    assert c.reset_every == 0  # no opacity reset in short runs (see for_iterations)
     c = densify.DensifyConfig.for_iterations(200)
     assert 0 < c.refine_start < c.refine_stop < 200
 
@@ -110,6 +111,8 @@ def test_size_prune_spares_far_background():
         m.params["scales"][1] = np.log(0.5)    # equally big but 20 scene radii away: background, kept
         m.params["means"][1] = torch.tensor([20.0, 0.0, 0.0])
     st = densify.DensifyState(6)
+    # without opacity resets (reset_every=0) there is no size pruning either, as in 3DGS before the first
+    assert densify.refine(m, st, densify.DensifyConfig(reset_every=0, prune_scale3d=0.1), step=100).pruned == 0
     cfg = densify.DensifyConfig(reset_every=10, prune_scale3d=0.1)
     res = densify.refine(m, st, cfg, step=100)
     assert res.pruned == 1 and len(m) == 5

@@ -8,7 +8,8 @@ from types import SimpleNamespace
 
 # Mirrors splattwin.splat.trainer.TrainConfig (not imported here: it pulls in torch, and every
 # `splattwin --help` builds this parser); a test checks they agree.
-TRAIN_DEFAULTS = SimpleNamespace(iters=3000, init_points=30_000, max_gaussians=40_000, checkpoint_every=500)
+TRAIN_DEFAULTS = SimpleNamespace(iters=3000, init_points=30_000, max_gaussians=40_000, checkpoint_every=500,
+                                 pose_lr=5e-3, pose_start=0.0, depth_lambda=0.0)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -40,6 +41,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in OUT")
     p.add_argument("--refine-poses", action="store_true",
                    help="learn a per-camera SE(3) pose correction jointly (writes OUT/refined_poses.json)")
+    p.add_argument("--pose-lr", type=float, default=d.pose_lr,
+                   help=f"Adam learning rate of the pose corrections (default {d.pose_lr:g})")
+    p.add_argument("--pose-start", type=float, default=d.pose_start,
+                   help=f"fraction of the run before the poses start to move (default {d.pose_start:g})")
+    p.add_argument("--depth-lambda", type=float, default=d.depth_lambda,
+                   help="weight of a relative depth loss on frames with depth maps (default 0: off)")
     p.add_argument("--max-frames", type=int, default=None, help="use at most this many frames of the dataset")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_train)
@@ -64,6 +71,7 @@ def _train(args: argparse.Namespace) -> int:
     cfg = TrainConfig(iters=args.iters, resolution=args.resolution, device=args.device, init=args.init,
                       init_points=args.init_points, sh_degree=args.sh_degree, seed=args.seed,
                       checkpoint_every=args.checkpoint_every, refine_poses=args.refine_poses,
+                      pose_lr=args.pose_lr, pose_start=args.pose_start, depth_lambda=args.depth_lambda,
                       max_gaussians=args.max_gaussians, progress=not args.no_progress)
     ds = load_dataset(args.dataset, max_frames=args.max_frames)
     res = train(ds, args.out, cfg, resume=args.resume)

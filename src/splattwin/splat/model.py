@@ -38,6 +38,18 @@ class LearningRates:
     shN: float = 2.5e-3 / 20
 
 
+def make_adam(param: torch.nn.Parameter, lr: float) -> torch.optim.Adam:
+    """Adam (eps 1e-15, as 3DGS) with the fused kernel where torch has one for the device.
+
+    Why fused: the default multi-tensor ("foreach") Adam makes several passes over the parameters; the
+    fused kernel one (same update rule and state layout). Training step at 40k Gaussians, SH degree 3,
+    2 idle cores: 83 ms fused vs 88-99 ms default."""
+    try:
+        return torch.optim.Adam([param], lr=lr, eps=1e-15, fused=True)
+    except (RuntimeError, ValueError, TypeError):  # a device/dtype without a fused Adam
+        return torch.optim.Adam([param], lr=lr, eps=1e-15)
+
+
 class GaussianModel:
     """Raw parameters + their Adam optimizers. `params[name]` is a leaf `torch.nn.Parameter`."""
 
@@ -52,7 +64,7 @@ class GaussianModel:
             k: torch.nn.Parameter(params[k].detach().to(device=device, dtype=torch.float32).contiguous())
             for k in PARAM_NAMES}
         self.optimizers: dict[str, torch.optim.Adam] = {
-            k: torch.optim.Adam([self.params[k]], lr=self.base_lr(k), eps=1e-15) for k in PARAM_NAMES}
+            k: make_adam(self.params[k], self.base_lr(k)) for k in PARAM_NAMES}
 
     # -- construction --------------------------------------------------------------------------
     @classmethod

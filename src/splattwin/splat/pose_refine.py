@@ -100,3 +100,38 @@ class PoseCorrection:
                 p.copy_(v.to(p.device))
         for o, s in zip(self.optimizers, sd["optimizers"]):
             o.load_state_dict(s)
+
+
+def perturb_poses(T_cam_world: np.ndarray, rot_deg: float, trans_m: float, seed: int = 0) -> np.ndarray:
+    """Cameras moved by a known random error (for tests and benchmarks of pose refinement).
+
+    T_cam_world: [C,4,4] world->camera. Camera c becomes T_cam_world[c] @ exp(w_c^): the world-frame
+    rigid motion w_c = (rho_c, phi_c) has a rotation of exactly `rot_deg` degrees and a translation part
+    of exactly `trans_m` metres (random directions; the camera centre also moves by the rotation's lever
+    arm about the world origin, so measure its error with `pose_errors`). With C >= 2 the w_c also sum
+    to zero over the rig: a motion shared by all cameras is unobservable (the trainer removes it), so
+    the true poses stay reachable. Returns [C,4,4] float64.
+    """
+    T = np.asarray(T_cam_world, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    parts = []
+    for size in (trans_m, np.radians(rot_deg)):
+        v = rng.normal(size=(len(T), 3))
+        for _ in range(50 if len(T) >= 2 else 1):  # alternate: zero mean, unit norms (converges fast)
+            if len(T) >= 2:
+                v = v - v.mean(axis=0)
+            v = v / np.linalg.norm(v, axis=1, keepdims=True).clip(1e-12)
+        parts.append(v * size)
+    w = torch.from_numpy(np.concatenate(parts, axis=1))
+    return T @ se3_exp(w).numpy()
+
+
+def pose_errors(T_cam_world: np.ndarray, T_cam_world_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-camera rotation error (degrees) and camera-centre distance (m) of [C,4,4] world->camera
+    matrices against reference ones."""
+    A = np.asarray(T_cam_world, dtype=np.float64).reshape(-1, 4, 4)
+    B = np.asarray(T_cam_world_ref, dtype=np.float64).reshape(-1, 4, 4)
+    dR = A[:, :3, :3] @ B[:, :3, :3].transpose(0, 2, 1)
+    cos = np.clip((np.trace(dR, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    centre = lambda M: -np.einsum("cji,cj->ci", M[:, :3, :3], M[:, :3, 3])  # noqa: E731  c = -R^T t
+    return np.degrees(np.arccos(cos)), np.linalg.norm(centre(A) - centre(B), axis=1)

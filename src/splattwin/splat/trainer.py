@@ -47,6 +47,12 @@ class TrainConfig:
     device: "auto" | "cpu" | "cuda" (picks the rasterizer backend); backend overrides it (e.g. "reference").
     sh_interval: raise the SH degree every this many steps (0: iters // 10).
     checkpoint_every: steps between checkpoints (0: none).
+    refine_poses / pose_lr / pose_start: joint per-camera SE(3) corrections, their Adam LR, and the
+        fraction of the run before they move. Start 0 and LR 5e-3 measured best (bench/train.py, cameras
+        off by 1.5 deg / 2.3 cm: left 0.34 deg / 0.41 cm, vs 1.43 deg / 2.1 cm with start 0.2, LR 1e-3).
+    depth_lambda: weight of a depth loss on frames that have depth maps (0: off): mean relative error
+        |ED - D| / D of the rendered expected depth ED over pixels with a finite depth D and rendered
+        alpha > 0.5. It keeps the Gaussians on the measured surfaces, which sparse views alone do not.
     """
 
     iters: int = 3000
@@ -60,9 +66,10 @@ class TrainConfig:
     seed: int = 0
     checkpoint_every: int = 500
     refine_poses: bool = False
-    pose_lr: float = 1e-3
-    pose_start: float = 0.2
+    pose_lr: float = 5e-3
+    pose_start: float = 0.0
     ssim_lambda: float = 0.2
+    depth_lambda: float = 0.0
     max_gaussians: int = 40_000
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     densify: bool = True
@@ -86,6 +93,7 @@ class TrainView:
     name: str
     image: torch.Tensor  # [H,W,3] float32 in [0,1]
     camera: Camera
+    depth: torch.Tensor | None = None  # [H,W] float32 z-depth in m, inf where unknown (with depth=True)
 
 
 @dataclass
@@ -113,9 +121,20 @@ def training_scale(width: int, resolution: int) -> float:
     return resolution / width
 
 
-def load_views(frames: list[Frame], resolution: int = 1) -> list[TrainView]:
-    """Images of `frames` as tensors, resized (PIL area filter) to the training resolution."""
+def _resize_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Nearest-neighbour resize of a depth map [H,W] (m; averaging across an edge would invent depths)."""
+    v = ((np.arange(height) + 0.5) * depth.shape[0] / height).astype(int)
+    u = ((np.arange(width) + 0.5) * depth.shape[1] / width).astype(int)
+    return depth[v[:, None], u[None, :]]
+
+
+def load_views(frames: list[Frame], resolution: int = 1, depth: bool = False,
+               depth_scale: float = 1.0) -> list[TrainView]:
+    """Images of `frames` as tensors, resized (PIL area filter) to the training resolution; with
+    depth=True also their depth maps (frames without one get None)."""
     from PIL import Image
+
+    from splattwin.capture import load_depth
 
     views = []
     for f in frames:
@@ -129,7 +148,17 @@ def load_views(frames: list[Frame], resolution: int = 1) -> list[TrainView]:
             cam = f.camera.scaled(s)
             pil = Image.fromarray((img * 255 + 0.5).astype(np.uint8)).resize((cam.width, cam.height), Image.BOX)
             img = np.asarray(pil, dtype=np.float32) / 255.0
-        views.append(TrainView(f.name, torch.from_numpy(np.ascontiguousarray(img)), cam))
+        d = None
+        if depth and f.depth_path is not None:
+            dm = load_depth(f.depth_path, depth_scale)
+            if dm.shape != (f.camera.height, f.camera.width):
+                raise InputError(f"depth map is {dm.shape[1]}x{dm.shape[0]} but its camera says "
+                                 f"{f.camera.width}x{f.camera.height}", f.depth_path)
+            if dm.shape != (cam.height, cam.width):
+                dm = _resize_depth(dm, cam.width, cam.height)
+            dm = np.where(np.isfinite(dm) & (dm > 0), dm, np.inf).astype(np.float32)
+            d = torch.from_numpy(np.ascontiguousarray(dm))
+        views.append(TrainView(f.name, torch.from_numpy(np.ascontiguousarray(img)), cam, d))
     return views
 
 
@@ -161,6 +190,17 @@ def plot_history(history: list[dict], path: str | Path, width: int = 640, height
     return write_image(path, np.asarray(img))
 
 
+def depth_loss(depth: torch.Tensor, alpha: torch.Tensor, gt_depth: torch.Tensor) -> torch.Tensor:
+    """Mean relative error |ED - D| / D of a rendered expected depth [H,W] against a measured z-depth
+    [H,W] (m, inf where unknown), over pixels with a finite D and rendered alpha > 0.5 (ED is unstable
+    where little is rendered). Zero when no pixel qualifies."""
+    ok = torch.isfinite(gt_depth) & (alpha.detach() > 0.5)
+    if not bool(ok.any()):
+        return depth.sum() * 0.0
+    d = gt_depth[ok]
+    return ((depth[ok] - d).abs() / d).mean()
+
+
 def _latest_checkpoint(out_dir: Path) -> Path | None:
     ckpts = sorted((out_dir / CKPT_DIR).glob("ckpt_*.pt"))
     return ckpts[-1] if ckpts else None
@@ -186,13 +226,15 @@ class Trainer:
             raise InputError("dataset has no camera poses; estimate them first (splattwin poses)", dataset.root)
         self.backend = resolve_backend(self.cfg.backend or self.cfg.device)
         self.device = torch.device("cuda" if self.backend == "cuda" else "cpu")
-        self.views = load_views(self.frames, self.cfg.resolution)
+        self.views = load_views(self.frames, self.cfg.resolution, depth=self.cfg.depth_lambda > 0,
+                                depth_scale=dataset.depth_scale)
         self.scene_center, self.scene_scale = scene_center_and_scale([v.camera for v in self.views])
         self.dcfg = self.cfg.densify_config()
         self.sh_interval = self.cfg.sh_interval or max(1, self.cfg.iters // 10)
         dev = self.device
         for v in self.views:
             v.image = v.image.to(dev)
+            v.depth = None if v.depth is None else v.depth.to(dev)
         self.viewmats = torch.tensor(np.stack([v.camera.T_cam_world for v in self.views]), dtype=torch.float32,
                                      device=dev)
         self.Ks = torch.tensor(np.stack([v.camera.K for v in self.views]), dtype=torch.float32, device=dev)
@@ -280,8 +322,9 @@ class Trainer:
     def sh_degree_at(self, step: int) -> int:
         return min(step // self.sh_interval, self.cfg.sh_degree)
 
-    def render(self, idx: int, sh_degree: int | None = None) -> tuple[torch.Tensor, torch.Tensor, dict]:
-        """Render training view `idx` with the current model: ([H,W,3], [H,W,1], meta)."""
+    def render(self, idx: int, sh_degree: int | None = None, render_mode: str = "RGB"
+               ) -> tuple[torch.Tensor, torch.Tensor, dict]:
+        """Render training view `idx` with the current model: ([H,W,3 or 4], [H,W,1], meta)."""
         v = self.views[idx]
         act = self.model.activated()
         viewmat = self.viewmats[idx:idx + 1]
@@ -291,16 +334,21 @@ class Trainer:
             act["means"], act["quats"], act["scales"], act["opacities"], act["sh"], viewmat,
             self.Ks[idx:idx + 1], v.camera.width, v.camera.height,
             sh_degree=self.sh_degree_at(self.step) if sh_degree is None else sh_degree,
-            backgrounds=self.bg, backend=self.backend)
+            backgrounds=self.bg, render_mode=render_mode, backend=self.backend)
         return colors[0], alphas[0], meta
 
     def train_step(self) -> dict:
         cfg = self.cfg
         self.model.set_step(self.step, cfg.iters)
         idx = self._next_view()
-        gt = self.views[idx].image
-        img, _, meta = self.render(idx)
+        gt, gt_depth = self.views[idx].image, self.views[idx].depth
+        use_depth = cfg.depth_lambda > 0 and gt_depth is not None
+        img, alpha, meta = self.render(idx, render_mode="RGB+ED" if use_depth else "RGB")
+        if use_depth:
+            img, depth = img[..., :3], img[..., 3]
         loss = photometric_loss(img, gt, cfg.ssim_lambda)
+        if use_depth:
+            loss = loss + cfg.depth_lambda * depth_loss(depth, alpha[..., 0], gt_depth)
         loss.backward()
         s = self.step + 1
         densifying = cfg.densify and s <= self.dcfg.refine_stop
@@ -309,15 +357,19 @@ class Trainer:
                                    self.views[idx].camera.height)
         self.model.step()
         self.model.zero_grad()
-        if self.poses is not None and s > self.cfg.pose_start * cfg.iters:  # after a warm-up of the scene
+        if self.poses is not None and s > self.cfg.pose_start * cfg.iters:  # after an optional warm-up
             self.poses.step([idx])
-            self.poses.remove_common_motion(self.viewmats)
+            if not self.order:
+                # once per pass over the views, not every step: applied every step this (first-order)
+                # removal kept the poses from converging (8 views of a fixed scene, 1.5 deg error:
+                # 1.4 deg left after 150 passes, vs 0.04 deg when applied once per pass)
+                self.poses.remove_common_motion(self.viewmats)
         info = {"step": s, "loss": float(loss.detach()), "psnr": psnr_from_mse(float(((img.detach() - gt) ** 2).mean())),
                 "n": len(self.model)}
         if densifying and s > self.dcfg.refine_start and s % self.dcfg.refine_every == 0:
             r = refine(self.model, self.dstate, self.dcfg, s, self.split_gen)
             info.update(cloned=r.cloned, split=r.split, pruned=r.pruned, n=len(self.model))
-        if densifying and s % self.dcfg.reset_every == 0:
+        if densifying and self.dcfg.reset_every and s % self.dcfg.reset_every == 0:
             reset_opacity(self.model, 2.0 * self.dcfg.prune_opacity)
         self.step = s
         return info
@@ -325,8 +377,6 @@ class Trainer:
     # -- the loop ---------------------------------------------------------------------------------
     def run(self, resume: bool = False, callback: Callable[[dict], None] | None = None) -> TrainResult:
         """Train to `cfg.iters` steps (continuing from the newest checkpoint with resume=True)."""
-        from tqdm.auto import tqdm
-
         ckpt = _latest_checkpoint(self.out_dir) if resume else None
         if ckpt is not None:
             self.load_checkpoint(ckpt)
@@ -335,8 +385,23 @@ class Trainer:
             if resume:
                 log.info("no checkpoint in %s: starting from scratch", self.out_dir / CKPT_DIR)
             self._fresh_state()
-        cfg = self.cfg
         t0 = time.perf_counter()
+        torch_threads = torch.get_num_threads()
+        if self.backend == "cpu":
+            # The heavy work is in numba kernels; torch only does small element-wise ops and Adam. Its
+            # thread pool competing with numba's made steps ~1.7x slower on 2 busy cores (idle: equal).
+            torch.set_num_threads(1)
+        try:
+            self._loop(callback)
+        finally:
+            torch.set_num_threads(torch_threads)
+        wall = time.perf_counter() - t0
+        return self._write_outputs(wall, self._ema_loss, self._ema_psnr)
+
+    def _loop(self, callback: Callable[[dict], None] | None) -> None:
+        from tqdm.auto import tqdm
+
+        cfg = self.cfg
         ema_loss, ema_psnr = math.nan, math.nan
         with tqdm(total=cfg.iters, initial=self.step, disable=not cfg.progress, desc="train", unit="it",
                   dynamic_ncols=True) as bar:
@@ -356,8 +421,7 @@ class Trainer:
                     callback(info)
         if cfg.checkpoint_every and self.step % cfg.checkpoint_every != 0:
             self.save_checkpoint()  # so that --resume on a finished run does no work
-        wall = time.perf_counter() - t0
-        return self._write_outputs(wall, ema_loss, ema_psnr)
+        self._ema_loss, self._ema_psnr = ema_loss, ema_psnr
 
     def _write_outputs(self, wall: float, loss: float, psnr: float) -> TrainResult:
         g = self.model.to_gaussians()
