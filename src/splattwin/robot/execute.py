@@ -691,9 +691,10 @@ class Executor:
             else:
                 T_tcp_obj = np.linalg.inv(g.T_obj_tcp)
             self.belief[obj] = self.ik.fk(self.q) @ T_tcp_obj
-            # place poses for the object where it sits in the hand (it may have settled off the planned
-            # grasp), then the planned ones
-            held = self._place_options(step, obj, g, self.q, lambda reason: None, T_obj_tcp=np.linalg.inv(T_tcp_obj))
+            # place poses for the object where it was sensed in the hand (it may have settled off the
+            # planned grasp), then the planned ones (all there is without in-hand sensing)
+            held = (self._place_options(step, obj, g, self.q, lambda reason: None, T_obj_tcp=np.linalg.inv(T_tcp_obj))
+                    if self.in_hand == "sensed" else iter(()))
             place, transfer_traj, failures = None, None, []
             for option in _chain(held, [plan["place"]], plan["more_places"]):
                 self._plan_state(g.width / 2)
