@@ -43,3 +43,16 @@ def test_side_by_side_and_heatmap():
     assert png_bytes(a)[:4] == b"\x89PNG"
     tall = side_by_side([a, np.zeros((14, 5, 3), np.float32)], gap=1)
     assert tall.shape == (14, 18, 3) and tall[10:, :12].min() == 1.0  # short image padded white
+
+
+def test_screenshot_waits_longer_for_a_page_that_draws_late(tmp_path):
+    # The page stays blank white until its script draws, 1.5 s of (virtual) time after load: a 1 s
+    # budget catches it blank, the retry with a longer budget sees the drawing.
+    page = tmp_path / "late.html"
+    page.write_text("<html><body style='margin:0;background:#fff'><script>setTimeout(function(){"
+                    "var d=document.createElement('div');d.style.cssText='width:300px;height:200px;background:#f00';"
+                    "document.body.appendChild(d);},1500);</script></body></html>")
+    png = screenshot(page.as_uri(), tmp_path / "late.png", width=400, height=300, budget_ms=1000)
+    shot = np.asarray(Image.open(png).convert("RGB")).astype(int)
+    red = (shot[..., 0] > 200) & (shot[..., 1] < 60) & (shot[..., 2] < 60)
+    assert red.sum() > 10000

@@ -26,6 +26,14 @@ def find_chromium() -> str:
     raise InputError("no Chromium found on PATH (Debian: apt-get install chromium)")
 
 
+def _blank(png: Path) -> bool:
+    """True when the picture is one flat colour (nothing rendered yet)."""
+    from PIL import Image
+
+    with Image.open(png) as im:
+        return all(lo == hi for lo, hi in im.convert("RGB").getextrema())
+
+
 def screenshot(url: str, out_png: str | Path, width: int = 1280, height: int = 900, budget_ms: int = 15000,
                timeout_s: float = 120.0) -> Path:
     """Load `url` (http:// or file://) in headless Chromium and save a PNG screenshot."""
@@ -33,8 +41,10 @@ def screenshot(url: str, out_png: str | Path, width: int = 1280, height: int = 9
     out_png.parent.mkdir(parents=True, exist_ok=True)
     out_png.unlink(missing_ok=True)  # an old picture must not pass for a new one
     # A page that animates (the viewer's WebGL canvas) can keep a loaded machine from ever reaching the
-    # virtual-time budget; on a time-out try once more with a smaller budget.
-    for budget in (budget_ms, max(budget_ms // 4, 1000)):
+    # virtual-time budget: on a time-out try again with a smaller budget. A page whose scripts had not
+    # drawn anything yet when the budget ran out (one flat colour) gets a longer budget.
+    budget, last_blank = budget_ms, None
+    for _ in range(3):
         with tempfile.TemporaryDirectory(prefix="splattwin-chromium-") as profile:
             cmd = [find_chromium(), "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
                    "--disable-background-networking", "--disable-component-update", "--disable-sync",
@@ -47,8 +57,16 @@ def screenshot(url: str, out_png: str | Path, width: int = 1280, height: int = 9
             except subprocess.TimeoutExpired:
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait()
-        if out_png.is_file():
+        if not out_png.is_file():
+            budget = max(budget // 4, 1000)
+        elif _blank(out_png):
+            last_blank = out_png.read_bytes()
+            out_png.unlink()
+            budget *= 2
+        else:
             break
+    if not out_png.is_file() and last_blank is not None:  # blank every time: hand back what the page showed
+        out_png.write_bytes(last_blank)
     if not out_png.is_file():
         raise RuntimeError(f"chromium produced no screenshot for {url}")
     return out_png
