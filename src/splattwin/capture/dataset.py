@@ -144,6 +144,14 @@ def load_depth(path: str | Path, scale: float = 1.0) -> np.ndarray:
     return d.astype(np.float32) * np.float32(scale)
 
 
+def resize_nearest(a: np.ndarray, width: int, height: int) -> np.ndarray:
+    """[H,W,...] array resized to [height,width,...] by nearest pixel centre: for depth and label maps,
+    where averaging across an edge would invent values that are in neither neighbour."""
+    v = np.minimum((np.arange(height) + 0.5) * a.shape[0] / height, a.shape[0] - 1).astype(int)
+    u = np.minimum((np.arange(width) + 0.5) * a.shape[1] / width, a.shape[1] - 1).astype(int)
+    return a[v[:, None], u[None, :]]
+
+
 def find_images(folder: Path) -> list[Path]:
     return sorted(p for p in Path(folder).iterdir() if p.is_file() and p.suffix in IMAGE_SUFFIXES)
 

@@ -22,6 +22,7 @@ import numba
 import numpy as np
 
 from splattwin.capture.camera import Camera
+from splattwin.capture.dataset import resize_nearest
 
 DepthRenderer = Callable[[np.ndarray | None, Sequence[Camera]], list[np.ndarray]]
 
@@ -155,9 +156,7 @@ class SplatDepth:
             d = colors[..., -1].astype(np.float32)
             d[alphas < self.min_alpha] = np.inf
             if c is not cam:
-                ys = np.minimum((np.arange(cam.height) + 0.5) * c.height / cam.height, c.height - 1).astype(int)
-                xs = np.minimum((np.arange(cam.width) + 0.5) * c.width / cam.width, c.width - 1).astype(int)
-                d = d[ys[:, None], xs[None, :]]
+                d = resize_nearest(d, cam.width, cam.height)
             out.append(d)
         return out
 

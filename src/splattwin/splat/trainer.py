@@ -121,20 +121,13 @@ def training_scale(width: int, resolution: int) -> float:
     return resolution / width
 
 
-def _resize_depth(depth: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Nearest-neighbour resize of a depth map [H,W] (m; averaging across an edge would invent depths)."""
-    v = ((np.arange(height) + 0.5) * depth.shape[0] / height).astype(int)
-    u = ((np.arange(width) + 0.5) * depth.shape[1] / width).astype(int)
-    return depth[v[:, None], u[None, :]]
-
-
 def load_views(frames: list[Frame], resolution: int = 1, depth: bool = False,
                depth_scale: float = 1.0) -> list[TrainView]:
     """Images of `frames` as tensors, resized (PIL area filter) to the training resolution; with
     depth=True also their depth maps (frames without one get None)."""
     from PIL import Image
 
-    from splattwin.capture import load_depth
+    from splattwin.capture import load_depth, resize_nearest
 
     views = []
     for f in frames:
@@ -155,7 +148,7 @@ def load_views(frames: list[Frame], resolution: int = 1, depth: bool = False,
                 raise InputError(f"depth map is {dm.shape[1]}x{dm.shape[0]} but its camera says "
                                  f"{f.camera.width}x{f.camera.height}", f.depth_path)
             if dm.shape != (cam.height, cam.width):
-                dm = _resize_depth(dm, cam.width, cam.height)
+                dm = resize_nearest(dm, cam.width, cam.height)
             dm = np.where(np.isfinite(dm) & (dm > 0), dm, np.inf).astype(np.float32)
             d = torch.from_numpy(np.ascontiguousarray(dm))
         views.append(TrainView(f.name, torch.from_numpy(np.ascontiguousarray(img)), cam, d))
@@ -392,13 +385,14 @@ class Trainer:
             # thread pool competing with numba's made steps ~1.7x slower on 2 busy cores (idle: equal).
             torch.set_num_threads(1)
         try:
-            self._loop(callback)
+            ema_loss, ema_psnr = self._loop(callback)
         finally:
             torch.set_num_threads(torch_threads)
         wall = time.perf_counter() - t0
-        return self._write_outputs(wall, self._ema_loss, self._ema_psnr)
+        return self._write_outputs(wall, ema_loss, ema_psnr)
 
-    def _loop(self, callback: Callable[[dict], None] | None) -> None:
+    def _loop(self, callback: Callable[[dict], None] | None) -> tuple[float, float]:
+        """Steps to cfg.iters; returns the final moving averages of the loss and the PSNR."""
         from tqdm.auto import tqdm
 
         cfg = self.cfg
@@ -421,7 +415,7 @@ class Trainer:
                     callback(info)
         if cfg.checkpoint_every and self.step % cfg.checkpoint_every != 0:
             self.save_checkpoint()  # so that --resume on a finished run does no work
-        self._ema_loss, self._ema_psnr = ema_loss, ema_psnr
+        return ema_loss, ema_psnr
 
     def _write_outputs(self, wall: float, loss: float, psnr: float) -> TrainResult:
         g = self.model.to_gaussians()
