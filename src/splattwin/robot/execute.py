@@ -38,6 +38,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from typing import Callable
 
@@ -212,15 +213,17 @@ class Executor:
         self.checker.detach()
         self.checker.set_world_state(d)
 
-    def _allow(self, obj: str, others: list[str], penetration: float | None = None) -> list[tuple[str, str]]:
+    @contextmanager
+    def _allowing(self, obj: str, others: list[str], penetration: float | None = None):
+        """Contacts of `obj` with `others` are not collisions inside the block (up to `penetration`)."""
         pairs = [(obj, b) for b in others]
         for a, b in pairs:
             self.checker.allow(a, b, penetration=penetration)
-        return pairs
-
-    def _disallow(self, pairs) -> None:
-        for a, b in pairs:
-            self.checker.disallow(a, b)
+        try:
+            yield
+        finally:
+            for a, b in pairs:
+                self.checker.disallow(a, b)
 
     def _cartesian(self, q0: np.ndarray, T0: np.ndarray, T1: np.ndarray, n: int = 6) -> np.ndarray | None:
         """Joint path [n+1,7] following the straight TCP segment T0 -> T1 (same orientation)."""
@@ -395,11 +398,10 @@ class Executor:
             q_grasp = approach[-1]
             self._plan_state(half_open)
             # the open fingers straddle the target: they may touch it, not land on it or push into it
-            allowed = self._allow(obj, self.hand_bodies, penetration=TOUCH_DEPTH)
-            ok = self.checker.is_valid(q_pre) and self.checker.path_is_valid(approach, 0.002)
-            if not ok and log.isEnabledFor(logging.DEBUG):    # name the pair while the exceptions still apply
-                log.debug("approach collision %s", self._first_pair(approach))
-            self._disallow(allowed)
+            with self._allowing(obj, self.hand_bodies, penetration=TOUCH_DEPTH):
+                ok = self.checker.is_valid(q_pre) and self.checker.path_is_valid(approach, 0.002)
+                if not ok and log.isEnabledFor(logging.DEBUG):  # name the pair while the exceptions still apply
+                    log.debug("approach collision %s", self._first_pair(approach))
             if not ok:
                 reject("approach collision")
                 continue
@@ -412,9 +414,8 @@ class Executor:
             T_tcp_obj = np.linalg.inv(g.T_obj_tcp)
             self._plan_state(g.width / 2)
             self.checker.attach(obj, T_tcp_obj)
-            allowed = self._allow(obj, support)
-            ok = self.checker.path_is_valid(lift[1:], 0.002) if len(lift) > 2 else True
-            self._disallow(allowed)
+            with self._allowing(obj, support):
+                ok = self.checker.path_is_valid(lift[1:], 0.002) if len(lift) > 2 else True
             self.checker.detach()
             if not ok:
                 reject("lift collision")
@@ -451,9 +452,8 @@ class Executor:
                 if descent is None:
                     reject("descent IK")
                     continue
-                allowed = self._allow(obj, goal_support)
-                ok = self.checker.path_is_valid(descent[:-1], 0.002)
-                self._disallow(allowed)
+                with self._allowing(obj, goal_support):
+                    ok = self.checker.path_is_valid(descent[:-1], 0.002)
                 if not ok:
                     reject("descent collision")
                     continue
@@ -480,11 +480,10 @@ class Executor:
             self._plan_state(self.robot.max_opening / 2)
         finally:
             self.belief[obj] = saved
-        allowed = self._allow(obj, self.hand_bodies, penetration=TOUCH_DEPTH)
-        ok = self.checker.path_is_valid(retreat, 0.002)
-        if not ok and log.isEnabledFor(logging.DEBUG):
-            log.debug("retreat collision %s", self._first_pair(retreat))
-        self._disallow(allowed)
+        with self._allowing(obj, self.hand_bodies, penetration=TOUCH_DEPTH):
+            ok = self.checker.path_is_valid(retreat, 0.002)
+            if not ok and log.isEnabledFor(logging.DEBUG):
+                log.debug("retreat collision %s", self._first_pair(retreat))
         return ok
 
     # ---- physics -------------------------------------------------------------------------------------
