@@ -64,6 +64,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="joint pose refinement (auto: on when pose noise is added)")
     ap.add_argument("--pose-lr", type=float, default=None, help="pose correction Adam LR (default: TrainConfig's)")
     ap.add_argument("--pose-start", type=float, default=None, help="fraction of the run before poses move")
+    ap.add_argument("--means-lr", type=float, default=None, help="position LR (x scene scale; default: 3DGS's)")
+    ap.add_argument("--rasterize-mode", default=None, choices=["classic", "antialiased"])
     ap.add_argument("--progress", action="store_true")
     args = ap.parse_args(argv)
 
@@ -83,9 +85,12 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or Path(tempfile.mkdtemp(prefix="splattwin_train_"))
     ds = load_dataset(scene)
     kw: dict = {} if args.max_gaussians is None else {"max_gaussians": args.max_gaussians}
-    for key in ("depth_lambda", "pose_lr", "pose_start"):
+    for key in ("depth_lambda", "pose_lr", "pose_start", "rasterize_mode"):
         if getattr(args, key) is not None:
             kw[key] = getattr(args, key)
+    if args.means_lr is not None:
+        from splattwin.splat.model import LearningRates
+        kw["lrs"] = LearningRates(means=args.means_lr)
     noisy = args.pose_noise_deg > 0 or args.pose_noise_m > 0
     refine_poses = args.refine_poses == "on" or (args.refine_poses == "auto" and noisy)
     T_true = np.stack([f.camera.T_cam_world for f in ds.train()])
@@ -109,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     res = tr.run(callback=tick)
     wall = time.perf_counter() - t0
     t = time.perf_counter()
-    ev = evaluate(res.gaussians, ds, out / "eval", progress=False)
+    ev = evaluate(res.gaussians, ds, out / "eval", progress=False, rasterize_mode=cfg.rasterize_mode)
     t_eval = time.perf_counter() - t
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB -> GiB
 

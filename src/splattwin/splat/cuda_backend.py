@@ -20,8 +20,8 @@ from splattwin.errors import InputError
 
 
 def rasterization_cuda(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree=None,
-                       backgrounds=None, render_mode="RGB", near_plane=0.01, far_plane=1e10, eps2d=0.3
-                       ) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
+                       backgrounds=None, render_mode="RGB", near_plane=0.01, far_plane=1e10, eps2d=0.3,
+                       rasterize_mode="classic") -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
     """Same signature and outputs as `splattwin.splat.rasterization.rasterization` (backend "cuda")."""
     try:
         import gsplat
@@ -34,7 +34,7 @@ def rasterization_cuda(means, quats, scales, opacities, colors, viewmats, Ks, wi
     render, alphas, meta = gsplat.rasterization(  # pragma: no cover
         mv(means), mv(quats), mv(scales), mv(opacities), mv(colors), mv(viewmats), mv(Ks), int(width), int(height),
         near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, sh_degree=sh_degree, packed=False,
-        tile_size=16, backgrounds=mv(backgrounds), render_mode=render_mode, rasterize_mode="classic")
+        tile_size=16, backgrounds=mv(backgrounds), render_mode=render_mode, rasterize_mode=rasterize_mode)
     radii = meta["radii"]  # pragma: no cover
     if radii.ndim == 3:  # pragma: no cover - gsplat >= 1.5: per-axis [C,N,2]
         radii = radii.amax(dim=-1)

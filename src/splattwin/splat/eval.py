@@ -60,7 +60,7 @@ def resolve_ply(path: str | Path) -> tuple[Path, dict]:
 
 def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_dir: str | Path | None = None,
              resolution: int | None = None, background=None, backend: str = "auto",
-             progress: bool = True) -> EvalResult:
+             progress: bool = True, rasterize_mode: str | None = None) -> EvalResult:
     """Evaluate a splat (training folder, PLY path, or `Gaussians`) on the dataset's held-out views."""
     from tqdm.auto import tqdm
 
@@ -83,12 +83,13 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
     cfg = info.get("config", {})
     res = resolution if resolution is not None else int(cfg.get("resolution", 1))
     bg = background if background is not None else cfg.get("background", (0.0, 0.0, 0.0))
+    mode = rasterize_mode or cfg.get("rasterize_mode", "classic")
     views = load_views(frames, res)
     out = Path(out_dir) if out_dir is not None else None
     rows = []
     for v in tqdm(views, desc="eval", unit="view", disable=not progress):
         gt = v.image.numpy()
-        img = render_rgb(g, v.camera, bg, backend)
+        img = render_rgb(g, v.camera, bg, backend, rasterize_mode=mode)
         row = {"name": v.name, "psnr": metrics.psnr(img, gt), "ssim": metrics.ssim(img, gt)}
         if out is not None:
             row["image"] = f"{v.name}.png"

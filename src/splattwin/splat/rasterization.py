@@ -23,6 +23,7 @@ from splattwin.errors import InputError
 from splattwin.splat import reference as _ref
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
+RASTERIZE_MODES = ("classic", "antialiased")
 BACKENDS = ("auto", "cpu", "cuda", "reference")
 
 
@@ -85,6 +86,15 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, 
                              f"got {tuple(colors.shape)}")
 
 
+def antialias_compensation(conics: torch.Tensor, eps2d: float) -> torch.Tensor:
+    """[...] opacity factor sqrt(det(S) / det(S + eps2d I)) of 2D covariances S, from the conics [..., 3]
+    (a, b, c) = entries of (S + eps2d I)^-1. With q = a c - b^2 = 1 / det(S + eps I):
+    det(S) / det(S + eps I) = 1 - eps (a + c) + eps^2 q. Culled Gaussians (conic 0) get 1."""
+    a, b, c = conics[..., 0], conics[..., 1], conics[..., 2]
+    ratio = 1.0 - eps2d * (a + c) + eps2d * eps2d * (a * c - b * b)
+    return torch.sqrt(torch.clamp_min(ratio, 1e-12))  # clamped: no infinite gradient at det(S) = 0
+
+
 def _backend_module(name: str) -> Any:
     if name == "reference":
         return _ref
@@ -109,6 +119,7 @@ def rasterization(
     far_plane: float = 1e10,
     eps2d: float = 0.3,
     backend: str = "auto",
+    rasterize_mode: str = "classic",
 ) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
     """Render N Gaussians into C cameras (differentiable w.r.t. every tensor input but Ks).
 
@@ -124,6 +135,10 @@ def rasterization(
         near_plane, far_plane: cull Gaussians whose camera z is outside (near, far), m.
         eps2d: low-pass filter added to the 2D covariance diagonal (px^2).
         backend: "auto" | "cpu" | "cuda" | "reference".
+        rasterize_mode: "classic" (3DGS: the eps2d low-pass widens a Gaussian at unchanged opacity, so
+            Gaussians smaller than a pixel render too large and too bright) or "antialiased" (gsplat's mode,
+            Mip-Splatting's 2D filter: opacity scaled by sqrt(det(cov2d) / det(cov2d + eps2d I)), which
+            keeps each Gaussian's integrated footprint; see `antialias_compensation`).
     Returns:
         render_colors [C,H,W,ch], render_alphas [C,H,W,1], meta dict with
         means2d [C,N,2] (pixels; its .grad is filled by backward, for densification), radii [C,N] int32,
@@ -132,12 +147,15 @@ def rasterization(
     width, height = int(width), int(height)
     _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree,
                   backgrounds, render_mode)
+    if rasterize_mode not in RASTERIZE_MODES:
+        raise ValueError(f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
     name = resolve_backend(backend, means.device)
     if name == "cuda":
         from splattwin.splat.cuda_backend import rasterization_cuda
         return rasterization_cuda(means, quats, scales, opacities, colors, viewmats, Ks, width, height,
                                   sh_degree=sh_degree, backgrounds=backgrounds, render_mode=render_mode,
-                                  near_plane=near_plane, far_plane=far_plane, eps2d=eps2d)
+                                  near_plane=near_plane, far_plane=far_plane, eps2d=eps2d,
+                                  rasterize_mode=rasterize_mode)
     B = _backend_module(name)
     C = viewmats.shape[0]
     proj = B.project(means, quats, scales, viewmats, Ks, width, height, eps2d=eps2d, near_plane=near_plane,
@@ -168,6 +186,8 @@ def rasterization(
 
     if means2d.requires_grad:
         means2d.retain_grad()
+    if rasterize_mode == "antialiased":
+        opacities = opacities[None, :] * antialias_compensation(conics, eps2d)  # [C,N]
     render, alphas = B.rasterize(means2d, conics, feats.contiguous(), opacities, depths, proj["extents"],
                                  width, height, backgrounds=bg if use_bg else None)
     if render_mode in ("ED", "RGB+ED"):

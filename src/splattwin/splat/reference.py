@@ -134,7 +134,7 @@ def rasterize(means2d: torch.Tensor, conics: torch.Tensor, colors: torch.Tensor,
     """Dense per-pixel compositing (see module docstring for the exact rules).
 
     Args:
-        means2d [C,N,2]; conics [C,N,3]; colors [C,N,D]; opacities [N]; depths [C,N] (sort key only);
+        means2d [C,N,2]; conics [C,N,3]; colors [C,N,D]; opacities [N] or [C,N]; depths [C,N] (sort key only);
         extents [C,N,2] int box half-sizes (0 = culled); backgrounds [C,D] or None.
     Returns:
         render [C,H,W,D], alphas [C,H,W,1].
@@ -148,7 +148,8 @@ def rasterize(means2d: torch.Tensor, conics: torch.Tensor, colors: torch.Tensor,
     for ci in range(C):
         vis = torch.nonzero(extents[ci, :, 0] > 0).squeeze(1)
         order = vis[torch.argsort(depths[ci, vis].detach(), stable=True)]
-        m2, co, op, cl = means2d[ci, order], conics[ci, order], opacities[order], colors[ci, order]
+        m2, co, cl = means2d[ci, order], conics[ci, order], colors[ci, order]
+        op = (opacities if opacities.ndim == 1 else opacities[ci])[order]
         ex = extents[ci, order].to(dt)
         outs, Ts = [], []
         for s in range(0, width * height, chunk_pixels):

@@ -30,8 +30,8 @@ RenderMode = str  # "RGB" | "ED" | "RGB+ED"
 @torch.no_grad()
 def render(gaussians: "Gaussians", camera: "Camera", *, mode: RenderMode = "RGB",
            colors: np.ndarray | None = None, background: tuple[float, ...] | None = None,
-           backend: str = "auto", sh_degree: int | None = None, T_cam_world: np.ndarray | None = None
-           ) -> tuple[np.ndarray, np.ndarray]:
+           backend: str = "auto", sh_degree: int | None = None, T_cam_world: np.ndarray | None = None,
+           rasterize_mode: str = "classic") -> tuple[np.ndarray, np.ndarray]:
     """Render one camera.
 
     Args:
@@ -66,7 +66,8 @@ def render(gaussians: "Gaussians", camera: "Camera", *, mode: RenderMode = "RGB"
     vm = camera.T_cam_world if T_cam_world is None else T_cam_world
     img, alpha, _ = rasterization(t(gaussians.means), t(gaussians.quats), t(gaussians.scales),
                                   t(gaussians.opacities), feats, t(vm)[None], t(camera.K)[None], w, h,
-                                  sh_degree=deg_arg, backgrounds=bg, render_mode=mode, backend=name)
+                                  sh_degree=deg_arg, backgrounds=bg, render_mode=mode, backend=name,
+                                  rasterize_mode=rasterize_mode)
     return img[0].cpu().numpy().copy(), alpha[0, ..., 0].cpu().numpy().copy()
 
 
@@ -85,10 +86,11 @@ def render_rgbd(gaussians: "Gaussians", camera: "Camera", background: tuple[floa
 
 
 def render_rgb(gaussians: "Gaussians", camera: "Camera", background: tuple[float, float, float] | None = None,
-               backend: str = "auto", T_cam_world: np.ndarray | None = None) -> np.ndarray:
+               backend: str = "auto", T_cam_world: np.ndarray | None = None, rasterize_mode: str = "classic"
+               ) -> np.ndarray:
     """[H,W,3] float32 colour image in [0,1] (over `background`, black by default)."""
     img, _ = render(gaussians, camera, mode="RGB", background=background, backend=backend,
-                    T_cam_world=T_cam_world)
+                    T_cam_world=T_cam_world, rasterize_mode=rasterize_mode)
     return np.clip(img, 0.0, 1.0)
 
 

@@ -69,6 +69,7 @@ class TrainConfig:
     pose_lr: float = 5e-3
     pose_start: float = 0.0
     ssim_lambda: float = 0.2
+    rasterize_mode: str = "classic"
     depth_lambda: float = 0.0
     max_gaussians: int = 40_000
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -327,7 +328,8 @@ class Trainer:
             act["means"], act["quats"], act["scales"], act["opacities"], act["sh"], viewmat,
             self.Ks[idx:idx + 1], v.camera.width, v.camera.height,
             sh_degree=self.sh_degree_at(self.step) if sh_degree is None else sh_degree,
-            backgrounds=self.bg, render_mode=render_mode, backend=self.backend)
+            backgrounds=self.bg, render_mode=render_mode, backend=self.backend,
+            rasterize_mode=self.cfg.rasterize_mode)
         return colors[0], alphas[0], meta
 
     def train_step(self) -> dict:

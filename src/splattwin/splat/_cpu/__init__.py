@@ -153,6 +153,9 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, depths, extents, width, height):
         m2, co, cl, op = _np32(means2d), _np32(conics), _np32(colors), _np32(opacities)
+        D_in = cl.shape[2]
+        if D_in < 3:  # the kernels keep channels 0-2 in registers: pad to 3, slice after
+            cl = np.concatenate([cl, np.zeros(cl.shape[:2] + (3 - D_in,), np.float32)], axis=2)
         dep = _np32(depths)
         ext = np.ascontiguousarray(extents.detach().cpu().numpy().astype(np.int32))
         C, N, D = cl.shape
@@ -165,7 +168,8 @@ class _Rasterize(torch.autograd.Function):
         ntiles = np.empty(N, np.int64)
         for c in range(C):
             boxes = np.empty((N, 4), np.int32)
-            K_.pixel_boxes(m2[c], ext[c], W, H, boxes, ntiles)
+            opc = op if op.ndim == 1 else op[c]
+            K_.pixel_boxes(m2[c], co[c], opc, ext[c], W, H, boxes, ntiles)
             gauss_off = np.zeros(N + 1, np.int64)
             np.cumsum(ntiles, out=gauss_off[1:])
             M = int(gauss_off[-1])
@@ -175,25 +179,33 @@ class _Rasterize(torch.autograd.Function):
             gauss_isect = np.empty(M, np.int64)
             K_.bin_tiles(order, boxes, ntiles, W, H, tile_start, isect_gauss, gauss_isect, gauss_off)
             # depth-sorted copies: tile lists hold depth ranks, so the kernels stream through these
-            srt = (m2[c][order], co[c][order], cl[c][order], op[order], boxes[order])
+            srt = (m2[c][order], co[c][order], cl[c][order], opc[order], boxes[order])
             K_.raster_fwd(*srt, tile_start, isect_gauss, _tile_perm(tw * th), W, H, render[c], final_T[c], last[c])
             saved.append((srt, tile_start, isect_gauss, gauss_isect, gauss_off))
         ctx.np = (cl.shape, final_T, last, saved)
-        ctx.cfg = (W, H)
+        ctx.op_ndim = op.ndim
+        ctx.cfg = (W, H, D_in)
         ctx.dtype = means2d.dtype
         dt = means2d.dtype
-        return torch.from_numpy(render).to(dt), torch.from_numpy(1.0 - final_T[..., None]).to(dt)
+        return (torch.from_numpy(render[..., :D_in]).to(dt),
+                torch.from_numpy(1.0 - final_T[..., None]).to(dt))
 
     @staticmethod
     def backward(ctx, v_render, v_alphas):
         (C, N, D), final_T, last, saved = ctx.np
-        W, H = ctx.cfg
-        vr = np.zeros((C, H, W, D), np.float32) if v_render is None else _np32(v_render)
+        W, H, D_in = ctx.cfg
+        if v_render is not None and D_in == D:
+            vr = _np32(v_render)
+        else:
+            vr = np.zeros((C, H, W, D), np.float32)
+            if v_render is not None:
+                vr[..., :D_in] = _np32(v_render)
         va = np.zeros((C, H, W), np.float32) if v_alphas is None else _np32(v_alphas[..., 0])
         v_m2 = np.empty((C, N, 2), np.float32)
         v_co = np.empty((C, N, 3), np.float32)
         v_cl = np.empty((C, N, D), np.float32)
-        v_op = np.zeros(N, np.float32)
+        per_cam_op = ctx.op_ndim == 2
+        v_op = np.zeros((C, N) if per_cam_op else N, np.float32)
         out = np.empty((N, 6 + D), np.float32)
         for c in range(C):
             srt, tile_start, isect_gauss, gauss_isect, gauss_off = saved[c]
@@ -203,11 +215,14 @@ class _Rasterize(torch.autograd.Function):
             K_.reduce_isect_grads(isect_grad, gauss_isect, gauss_off, out)
             v_m2[c] = out[:, 0:2]
             v_co[c] = out[:, 2:5]
-            v_op += out[:, 5]
+            if per_cam_op:
+                v_op[c] = out[:, 5]
+            else:
+                v_op += out[:, 5]
             v_cl[c] = out[:, 6:]
         dt = ctx.dtype
         f = lambda a: torch.from_numpy(a).to(dt)  # noqa: E731
-        return f(v_m2), f(v_co), f(v_cl), f(v_op), None, None, None, None
+        return f(v_m2), f(v_co), f(np.ascontiguousarray(v_cl[..., :D_in])), f(v_op), None, None, None, None
 
 
 def project(means, quats, scales, viewmats, Ks, width, height, eps2d=0.3, near_plane=0.01, far_plane=1e10):

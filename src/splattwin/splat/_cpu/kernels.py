@@ -35,6 +35,10 @@ CHUNK = 1024  # Gaussians per work item in the per-Gaussian kernels
 
 _JIT = dict(parallel=True, fastmath=False, cache=True, nogil=True)
 _JIT1 = dict(parallel=False, fastmath=False, cache=True, nogil=True)
+# The two compositing kernels (most of a training step) with fastmath: only finite values reach them
+# (culled Gaussians are never binned) and reassociating the per-pixel updates is harmless at float64;
+# ~10 % faster, images still within 1e-6 of the reference.
+_JITF = dict(parallel=True, fastmath=True, cache=True, nogil=True)
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -407,19 +411,31 @@ def sh_bwd(dirs, coeffs, degree, v_colors, v_coeffs, v_dirs, accumulate):
 # tile binning
 # --------------------------------------------------------------------------------------------------------
 @njit(**_JIT)
-def pixel_boxes(means2d, extents, width, height, boxes, ntiles):
-    """Inclusive pixel box [x0, x1, y0, y1] of each Gaussian (pixel centres within its 3-sigma box, clipped
-    to the image) and its number of touched tiles. boxes [N,4] int32, ntiles [N] int64."""
+def pixel_boxes(means2d, conics, opacities, extents, width, height, boxes, ntiles):
+    """Inclusive pixel box [x0, x1, y0, y1] of each Gaussian and its number of touched tiles.
+    boxes [N,4] int32, ntiles [N] int64.
+
+    The box holds the pixel centres inside the 3-sigma box (`extents`) that are also inside the bounding
+    box of the ellipse sigma <= log(255 opacity), outside which alpha < 1/255 and the compositing kernels
+    skip the pixel anyway: the same image from fewer tiles and rows for faint Gaussians (a 0.01 px margin
+    absorbs rounding, as in `_row_span`)."""
     N = means2d.shape[0]
     for i in prange(N):
-        rx, ry = extents[i, 0], extents[i, 1]
+        rx, ry = np.float64(extents[i, 0]), np.float64(extents[i, 1])
         ntiles[i] = 0
         boxes[i, 0] = 0
         boxes[i, 1] = -1
         boxes[i, 2] = 0
         boxes[i, 3] = -1
-        if rx == 0:
+        op = np.float64(opacities[i])
+        if rx == 0 or op * 255.0 < 1.0:
             continue
+        ca, cb, cc = np.float64(conics[i, 0]), np.float64(conics[i, 1]), np.float64(conics[i, 2])
+        det = ca * cc - cb * cb
+        if det > 0:
+            two_level = 2.0 * math.log(op * 255.0)
+            rx = min(rx, math.sqrt(two_level * cc / det) + 0.01)  # sigma_xx = c / det of the conic
+            ry = min(ry, math.sqrt(two_level * ca / det) + 0.01)
         u, v = np.float64(means2d[i, 0]), np.float64(means2d[i, 1])
         x0 = max(int(math.ceil(u - rx - 0.5)), 0)
         x1 = min(int(math.floor(u + rx - 0.5)), width - 1)
@@ -488,12 +504,12 @@ def _row_span(u, dy, ca, cb, cc, level, x0, x1):
 # --------------------------------------------------------------------------------------------------------
 # compositing
 # --------------------------------------------------------------------------------------------------------
-@njit(**_JIT)
+@njit(**_JITF)
 def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gauss, tile_perm, width, height,
                render, final_T, last):
     """Front-to-back compositing per 16x16 tile.
 
-    colors [N,D]; tile_perm [T] a permutation of the tiles (work order); writes render [H,W,D] (no
+    colors [N,D] with D >= 3 (the caller pads fewer channels); tile_perm [T] a permutation of the tiles (work order); writes render [H,W,D] (no
     background), final_T [H,W] and last [H,W] int32 (list position of the last Gaussian that contributed
     to the pixel, -1 if none).
     """
@@ -522,7 +538,9 @@ def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
                 continue
             level = math.log(op * 255.0)  # sigma above this gives alpha < 1/255
             Rr = math.exp(-ca)
-            for d in range(D):
+            # channels 0-2 in scalars: the per-pixel updates then need no inner loop (the RGB hot path)
+            cg0, cg1, cg2 = np.float64(colors[g, 0]), np.float64(colors[g, 1]), np.float64(colors[g, 2])
+            for d in range(3, D):
                 cg[d] = colors[g, d]
             for py in range(y0, y1 + 1):
                 dy = v - (py + 0.5)
@@ -548,7 +566,10 @@ def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
                                 ndone += 1
                             else:
                                 w = alpha * T
-                                for d in range(D):
+                                acc[lp, 0] += w * cg0
+                                acc[lp, 1] += w * cg1
+                                acc[lp, 2] += w * cg2
+                                for d in range(3, D):
                                     acc[lp, d] += w * cg[d]
                                 Tl[lp] = nT
                                 lastl[lp] = k
@@ -568,12 +589,12 @@ def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
                 last[py, px] = lastl[lp]
 
 
-@njit(**_JIT)
+@njit(**_JITF)
 def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gauss, tile_perm, width, height,
                final_T, last, v_render, v_alpha, isect_grad):
     """Back-to-front gradient of `raster_fwd` per tile (as in 3DGS).
 
-    v_render [H,W,D], v_alpha [H,W] (gradient of the alpha image). Writes isect_grad [M, 6+D]: per list
+    colors [N,D] with D >= 3. v_render [H,W,D], v_alpha [H,W] (gradient of the alpha image). Writes isect_grad [M, 6+D]: per list
     position the gradient w.r.t. (u, v, conic a, b, c, opacity, colour[D]) of that Gaussian from that
     tile's pixels. Rows of positions no pixel reached are zeroed.
     """
@@ -615,13 +636,15 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
             ca, cb, cc = np.float64(conics[g, 0]), np.float64(conics[g, 1]), np.float64(conics[g, 2])
             op = np.float64(opacities[g])
             gu, gv, gca, gcb, gcc, gop = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-            for d in range(D):
+            gc0, gc1, gc2 = 0.0, 0.0, 0.0  # colour gradients 0-2 in registers (see raster_fwd)
+            for d in range(3, D):
                 gcol[d] = 0.0
             if op * 255.0 < 1.0:  # never drawn
                 for j in range(6 + D):
                     isect_grad[k, j] = 0.0
                 continue
-            for d in range(D):
+            cg0, cg1, cg2 = np.float64(colors[g, 0]), np.float64(colors[g, 1]), np.float64(colors[g, 2])
+            for d in range(3, D):
                 cg[d] = colors[g, d]
             level = math.log(op * 255.0)
             Rr = math.exp(-ca)
@@ -644,8 +667,16 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
                         inv = 1.0 / om
                         T = Tl[lp] * inv  # transmittance in front of this Gaussian
                         w = alpha * T
-                        dl_da = 0.0
-                        for d in range(D):
+                        vr0, vr1, vr2 = vr[lp, 0], vr[lp, 1], vr[lp, 2]
+                        s0, s1, s2 = S[lp, 0], S[lp, 1], S[lp, 2]
+                        gc0 += w * vr0
+                        gc1 += w * vr1
+                        gc2 += w * vr2
+                        dl_da = (cg0 - s0) * vr0 + (cg1 - s1) * vr1 + (cg2 - s2) * vr2
+                        S[lp, 0] = alpha * cg0 + om * s0
+                        S[lp, 1] = alpha * cg1 + om * s1
+                        S[lp, 2] = alpha * cg2 + om * s2
+                        for d in range(3, D):
                             c = cg[d]
                             vrd = vr[lp, d]
                             gcol[d] += w * vrd
@@ -673,7 +704,10 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
             isect_grad[k, 3] = gcb
             isect_grad[k, 4] = gcc
             isect_grad[k, 5] = gop
-            for d in range(D):
+            isect_grad[k, 6] = gc0
+            isect_grad[k, 7] = gc1
+            isect_grad[k, 8] = gc2
+            for d in range(3, D):
                 isect_grad[k, 6 + d] = gcol[d]
 
 
