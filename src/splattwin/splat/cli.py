@@ -8,7 +8,7 @@ from types import SimpleNamespace
 
 # Mirrors splattwin.splat.trainer.TrainConfig (not imported here: it pulls in torch, and every
 # `splattwin --help` builds this parser); a test checks they agree.
-TRAIN_DEFAULTS = SimpleNamespace(iters=3000, init_points=30_000, max_gaussians=40_000, checkpoint_every=500,
+TRAIN_DEFAULTS = SimpleNamespace(iters=3000, init_points=24_000, max_gaussians=32_000, checkpoint_every=500,
                                  pose_lr=5e-3, pose_start=0.0, depth_lambda=0.0)
 
 
@@ -60,6 +60,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--out", type=Path, default=None, help="output folder (default: <OUT>/eval or <ply dir>/eval)")
     e.add_argument("--resolution", type=int, default=None, help="as for train (default: the training one)")
     e.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
+    e.add_argument("--align-poses", action="store_true",
+                   help="fit each held-out camera to its image first (for splats trained with --refine-poses)")
     e.add_argument("--no-progress", action="store_true")
     e.set_defaults(func=_eval)
 
@@ -86,8 +88,10 @@ def _eval(args: argparse.Namespace) -> int:
     if out is None:
         out = (args.splat if args.splat.is_dir() else args.splat.parent) / "eval"
     res = evaluate(args.splat, args.dataset, out, resolution=args.resolution, backend=args.device,
-                   progress=not args.no_progress)
+                   progress=not args.no_progress, align_poses=args.align_poses)
     for v in res.views:
-        print(f"{v['name']:>24s}  PSNR {v['psnr']:6.2f} dB  SSIM {v['ssim']:.4f}")
+        fix = (f"  pose fit {v['pose_correction_deg']:.2f} deg / {100 * v['pose_correction_m']:.2f} cm"
+               if "pose_correction_deg" in v else "")
+        print(f"{v['name']:>24s}  PSNR {v['psnr']:6.2f} dB  SSIM {v['ssim']:.4f}{fix}")
     print(f"{'mean (' + res.split + ')':>24s}  PSNR {res.mean_psnr:6.2f} dB  SSIM {res.mean_ssim:.4f}  -> {res.metrics_path}")
     return 0
