@@ -65,6 +65,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="joint pose refinement (auto: on when pose noise is added)")
     ap.add_argument("--pose-lr", type=float, default=None, help="pose correction Adam LR (default: TrainConfig's)")
     ap.add_argument("--pose-start", type=float, default=None, help="fraction of the run before poses move")
+    ap.add_argument("--opacity-reg", type=float, default=None, help="mean-opacity penalty (default: TrainConfig's)")
     ap.add_argument("--means-lr", type=float, default=None, help="position LR (x scene scale; default: 3DGS's)")
     ap.add_argument("--rasterize-mode", default=None, choices=["classic", "antialiased"])
     ap.add_argument("--progress", action="store_true")
@@ -86,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or Path(tempfile.mkdtemp(prefix="splattwin_train_"))
     ds = load_dataset(scene)
     kw: dict = {} if args.max_gaussians is None else {"max_gaussians": args.max_gaussians}
-    for key in ("depth_lambda", "pose_lr", "pose_start", "rasterize_mode"):
+    for key in ("depth_lambda", "pose_lr", "pose_start", "rasterize_mode", "opacity_reg"):
         if getattr(args, key) is not None:
             kw[key] = getattr(args, key)
     if args.means_lr is not None:
@@ -165,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
     print(json.dumps({"wall_s": round(wall, 2), "psnr": round(ev.mean_psnr, 3), "ssim": round(ev.mean_ssim, 4),
                       "peak_rss_gib": round(peak, 3), "iters": res.steps, "gaussians": len(res.gaussians),
                       "ms_per_iter": round(statistics.median(step_ms), 2), "views": len(tr.views),
-                      "resolution": f"{args.width}x{args.height}", "depth_lambda": cfg.depth_lambda, **pose}))
+                      "resolution": f"{args.width}x{args.height}", "depth_lambda": cfg.depth_lambda, "opacity_reg": cfg.opacity_reg, **pose}))
     return 0
 
 

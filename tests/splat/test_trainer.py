@@ -190,3 +190,14 @@ def test_depth_supervision_pulls_geometry_onto_measured_depth(scene_small, tmp_p
                                 for v, (img, a, _) in ((v, tr.render(i, render_mode="RGB+ED"))
                                                        for i, v in enumerate(views))])
     assert err[0.5] < 0.5 * err[0.0], err
+
+
+def test_opacity_reg_lowers_the_mean_opacity(scene_small, tmp_path):
+    """gsplat's opacity_reg: the same short run with the penalty ends with fainter Gaussians on average."""
+    ds = load_dataset(scene_small)
+    cfg = tiny_config(iters=60, resolution=2, sh_degree=0, init="depth", init_points=1500, densify=False)
+    mean_op = {}
+    for reg in (0.0, 0.5):
+        res = Trainer(ds, tmp_path / str(reg), TrainConfig(**{**cfg.__dict__, "opacity_reg": reg})).run()
+        mean_op[reg] = float(res.gaussians.opacities.mean())
+    assert mean_op[0.5] < mean_op[0.0] - 0.02, mean_op
