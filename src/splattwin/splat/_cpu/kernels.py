@@ -37,7 +37,7 @@ _JIT = dict(parallel=True, fastmath=False, cache=True, nogil=True)
 _JIT1 = dict(parallel=False, fastmath=False, cache=True, nogil=True)
 # The two compositing kernels (most of a training step) with fastmath: only finite values reach them
 # (culled Gaussians are never binned) and reassociating the per-pixel updates is harmless at float64;
-# ~10 % faster, images still within 1e-6 of the reference.
+# ~10 % faster, images still within a few 1e-6 of the reference.
 _JITF = dict(parallel=True, fastmath=True, cache=True, nogil=True)
 
 SH_C0 = 0.28209479177387814
