@@ -152,7 +152,8 @@ def test_align_camera_recovers_a_perturbed_test_camera():
     cam = helpers.ring_cameras(1, width=64, height=48)[0]
     image = helpers.render_gaussians(g, cam)
     T_true = cam.T_cam_world
-    T_pert = se3_exp(torch.tensor([[0.012, -0.008, 0.01, 0.01, -0.015, 0.012]], dtype=torch.float64))[0].numpy() @ T_true
+    xi = torch.tensor([[0.012, -0.008, 0.01, 0.01, -0.015, 0.012]], dtype=torch.float64)
+    T_pert = se3_exp(xi)[0].numpy() @ T_true
     cam_pert = dataclasses.replace(cam, T_world_cam=np.linalg.inv(T_pert))
     ang0, tr0 = _pose_error(T_pert, T_true)
     T_fit = align_camera(g, cam_pert, image, backend="cpu")

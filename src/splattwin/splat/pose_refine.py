@@ -157,11 +157,11 @@ def align_camera(gaussians, camera, image: np.ndarray, iters: int = 300, lr: flo
         [4,4] float64 corrected T_cam_world.
     """
     from splattwin.splat.losses import photometric_loss
-    from splattwin.splat.rasterization import rasterization, resolve_backend
+    from splattwin.splat.rasterization import rasterization
+    from splattwin.splat.render import as_tensor, backend_device
 
-    name = resolve_backend(backend)
-    dev = torch.device("cuda" if name == "cuda" else "cpu")
-    t = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float32, device=dev)  # noqa: E731
+    name, dev = backend_device(backend)
+    t = lambda a: as_tensor(a, dev)  # noqa: E731
     if image.shape[:2] != (camera.height, camera.width):
         raise ValueError(f"image is {image.shape[1]}x{image.shape[0]}, camera {camera.width}x{camera.height}")
     g = gaussians

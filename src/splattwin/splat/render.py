@@ -27,6 +27,17 @@ if TYPE_CHECKING:  # pragma: no cover
 RenderMode = str  # "RGB" | "ED" | "RGB+ED"
 
 
+def backend_device(backend: str = "auto") -> tuple[str, torch.device]:
+    """The concrete rasterizer backend for `backend` and the torch device its inputs live on."""
+    name = resolve_backend(backend)
+    return name, torch.device("cuda" if name == "cuda" else "cpu")
+
+
+def as_tensor(a: np.ndarray, device: torch.device | str = "cpu") -> torch.Tensor:
+    """float32 contiguous tensor of an array, on `device` (the rasterizer's input convention)."""
+    return torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float32, device=device)
+
+
 @torch.no_grad()
 def render(gaussians: "Gaussians", camera: "Camera", *, mode: RenderMode = "RGB",
            colors: np.ndarray | None = None, background: tuple[float, ...] | None = None,
@@ -54,9 +65,8 @@ def render(gaussians: "Gaussians", camera: "Camera", *, mode: RenderMode = "RGB"
         if background is not None and mode != "ED":
             img[..., :d] = np.asarray(background, np.float32)
         return img, np.zeros((h, w), np.float32)
-    name = resolve_backend(backend)
-    dev = "cuda" if name == "cuda" else "cpu"
-    t = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float32, device=dev)  # noqa: E731
+    name, dev = backend_device(backend)
+    t = lambda a: as_tensor(a, dev)  # noqa: E731
     if colors is None:
         deg = gaussians.sh_degree if sh_degree is None else min(int(sh_degree), gaussians.sh_degree)
         feats, deg_arg = t(gaussians.sh), deg

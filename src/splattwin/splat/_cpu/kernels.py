@@ -509,9 +509,9 @@ def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
                render, final_T, last):
     """Front-to-back compositing per 16x16 tile.
 
-    colors [N,D] with D >= 3 (the caller pads fewer channels); tile_perm [T] a permutation of the tiles (work order); writes render [H,W,D] (no
-    background), final_T [H,W] and last [H,W] int32 (list position of the last Gaussian that contributed
-    to the pixel, -1 if none).
+    colors [N,D] with D >= 3 (the caller pads fewer channels); tile_perm [T] a permutation of the tiles
+    (work order); writes render [H,W,D] (no background), final_T [H,W] and last [H,W] int32 (list
+    position of the last Gaussian that contributed to the pixel, -1 if none).
     """
     D = colors.shape[1]
     tw = (width + TILE - 1) // TILE
@@ -594,9 +594,9 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
                final_T, last, v_render, v_alpha, isect_grad):
     """Back-to-front gradient of `raster_fwd` per tile (as in 3DGS).
 
-    colors [N,D] with D >= 3. v_render [H,W,D], v_alpha [H,W] (gradient of the alpha image). Writes isect_grad [M, 6+D]: per list
-    position the gradient w.r.t. (u, v, conic a, b, c, opacity, colour[D]) of that Gaussian from that
-    tile's pixels. Rows of positions no pixel reached are zeroed.
+    colors [N,D] with D >= 3. v_render [H,W,D], v_alpha [H,W] (gradient of the alpha image). Writes
+    isect_grad [M, 6+D]: per list position the gradient w.r.t. (u, v, conic a, b, c, opacity, colour[D])
+    of that Gaussian from that tile's pixels. Rows of positions no pixel reached are zeroed.
     """
     D = colors.shape[1]
     tw = (width + TILE - 1) // TILE
