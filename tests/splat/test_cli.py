@@ -39,6 +39,12 @@ def test_train_and_eval_cli(tmp_path, capsys):
     m = json.loads((out / "eval" / "metrics.json").read_text())
     assert m["n_views"] == 1 and m["mean_psnr"] > 10
     assert "PSNR" in capsys.readouterr().out
+    assert main(["eval", str(out), "--dataset", str(ds), "--no-progress", "--device", "cpu", "--align-poses",
+                 "--out", str(tmp_path / "aligned")]) == 0
+    ma = json.loads((tmp_path / "aligned" / "metrics.json").read_text())
+    assert ma["poses"].startswith("aligned") and "pose_correction_deg" in ma["views"][0]
+    assert ma["mean_psnr"] >= m["mean_psnr"] - 0.5  # fitting the camera to the image cannot make it much worse
+    assert "pose fit" in capsys.readouterr().out
 
 
 def test_bad_inputs_exit_2(tmp_path, capsys):
