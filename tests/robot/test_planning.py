@@ -159,15 +159,20 @@ def _place_probe_at_distance(world, target: float) -> np.ndarray:
     return d.qpos.copy(), best
 
 
-def test_margin_counts_near_contacts(world):
+def _probe_state(world, distance: float, tol: float):
+    """(model, data, arm q) with the probe `distance` m from the robot (checked to `tol`)."""
     m, _ = world
-    qpos, dist = _place_probe_at_distance(world, 0.003)
-    assert abs(dist - 0.003) < 2e-4
+    qpos, dist = _place_probe_at_distance(world, distance)
+    assert abs(dist - distance) < tol
     d = mujoco.MjData(m)
     d.qpos[:] = qpos
+    return m, d, qpos[:7]
+
+
+def test_margin_counts_near_contacts(world):
+    m, d, q = _probe_state(world, 0.003, 2e-4)
     tight = CollisionChecker(m, d, list(range(7)), margin=0.005)
     loose = CollisionChecker(m, d, list(range(7)), margin=0.001)
-    q = qpos[:7]
     assert not tight.is_valid(q)        # 3 mm < 5 mm margin
     assert loose.is_valid(q)            # 3 mm > 1 mm margin
     assert any("probe" in p for p in tight.first_collision(q))
@@ -204,13 +209,8 @@ def test_margin_counts_near_contacts(world):
 def test_object_clearance_widens_the_margin_for_named_bodies(world):
     """set_clearance: the probe 10 mm from the hand is clear with the 5 mm margin, not with a 15 mm
     clearance around the probe; other bodies keep the margin; allow() still wins; {} restores."""
-    m, _ = world
-    qpos, dist = _place_probe_at_distance(world, 0.010)
-    assert abs(dist - 0.010) < 3e-4
-    d = mujoco.MjData(m)
-    d.qpos[:] = qpos
+    m, d, q = _probe_state(world, 0.010, 3e-4)
     c = CollisionChecker(m, d, list(range(7)), margin=0.005)
-    q = qpos[:7]
     assert c.is_valid(q)
     c.set_clearance({"probe": 0.015})
     assert not c.is_valid(q) and any("probe" in p for p in c.first_collision(q))
