@@ -73,6 +73,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="train this many times and report the median wall time (the machine's speed varies)")
     ap.add_argument("--progress", action="store_true")
     args = ap.parse_args(argv)
+    if args.repeat < 1:
+        ap.error(f"--repeat must be at least 1, got {args.repeat}")
 
     t = time.perf_counter()
     scene = ensure_scene(args.scene_cache, args.views, args.heldout, args.width, args.height, args.seed)
@@ -175,10 +177,12 @@ def main(argv: list[str] | None = None) -> int:
     print("bench/train.py: 3DGS training on the embedded tabletop scene")
     for k, v in rows:
         print(f"  {k:<{w}}  {v}")
-    print(json.dumps({"wall_s": round(wall, 2), "wall_s_runs": [round(w, 2) for w in walls], "psnr": round(ev.mean_psnr, 3), "ssim": round(ev.mean_ssim, 4),
+    print(json.dumps({"wall_s": round(wall, 2), "wall_s_runs": [round(w, 2) for w in walls],
+                      "psnr": round(ev.mean_psnr, 3), "ssim": round(ev.mean_ssim, 4),
                       "peak_rss_gib": round(peak, 3), "iters": res.steps, "gaussians": len(res.gaussians),
                       "ms_per_iter": round(statistics.median(step_ms), 2), "views": len(tr.views),
-                      "resolution": f"{args.width}x{args.height}", "depth_lambda": cfg.depth_lambda, "opacity_reg": cfg.opacity_reg, **pose}))
+                      "resolution": f"{args.width}x{args.height}", "depth_lambda": cfg.depth_lambda,
+                      "opacity_reg": cfg.opacity_reg, **pose}))
     return 0
 
 
