@@ -37,8 +37,13 @@ def _generate(out: str, views: int, heldout: int, width: int, height: int, seed:
 
 
 def ensure_scene(cache: Path, views: int, heldout: int, width: int, height: int, seed: int) -> Path:
+    from splattwin.scene import SceneOptions
+
     out = cache / f"tabletop_s{seed}_v{views}_h{heldout}_{width}x{height}"
-    if not (out / "scene.json").is_file():  # scene.json is written last: present = complete
+    want = SceneOptions(seed=seed, views=views, heldout=heldout, width=width, height=height).to_dict()
+    meta = out / "scene.json"  # written last: present = complete
+    # a scene cached by an older version (other default options, e.g. supersampling) is regenerated
+    if not meta.is_file() or json.loads(meta.read_text()).get("options") != want:
         p = mp.get_context("spawn").Process(target=_generate, args=(str(out), views, heldout, width, height, seed))
         p.start()
         p.join()

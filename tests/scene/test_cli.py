@@ -10,13 +10,13 @@ from splattwin.cli import main
 def test_cli_generate_writes_the_layout(tmp_path, capsys):
     out = tmp_path / "scene"
     rc = main(["scene", "generate", str(out), "--width", "48", "--height", "40", "--views", "3", "--heldout", "1",
-               "--seed", "2", "--marker", "--no-progress"])
+               "--seed", "2", "--marker", "--supersample", "3", "--no-progress"])
     assert rc == 0
     assert str(out.resolve()) in capsys.readouterr().out
     tj = json.loads((out / "transforms.json").read_text())
     assert len(tj["frames"]) == 4 and tj["w"] == 48 and tj["h"] == 40
     scene = json.loads((out / "scene.json").read_text())
-    assert scene["seed"] == 2 and scene["marker"]["id"] == 0
+    assert scene["seed"] == 2 and scene["marker"]["id"] == 0 and scene["options"]["supersample"] == 3
     for f in tj["frames"]:
         assert (out / f["file_path"]).is_file() and (out / f["depth_file_path"]).is_file()
         assert (out / f["label_path"]).is_file() and "mask_path" not in f  # not a nerfstudio loss mask
@@ -25,7 +25,7 @@ def test_cli_generate_writes_the_layout(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("args", [["--views", "0"], ["--width", "-3"], ["--heldout", "-1"],
-                                  ["--marker-size", "0"]])
+                                  ["--marker-size", "0"], ["--supersample", "0"], ["--supersample", "9"]])
 def test_cli_bad_options_exit_2(tmp_path, capsys, args):
     rc = main(["scene", "generate", str(tmp_path / "x"), "--no-progress", *args])
     assert rc == 2

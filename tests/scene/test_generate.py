@@ -234,7 +234,7 @@ def test_marker_is_detectable_where_recorded(tmp_path):
 
 
 @pytest.mark.parametrize("kw", [dict(width=-5), dict(height=0), dict(views=0), dict(heldout=-1),
-                                dict(marker_size=-0.1), dict(seed=-1)])
+                                dict(marker_size=-0.1), dict(seed=-1), dict(supersample=0), dict(supersample=9)])
 def test_bad_options_raise_input_error(tmp_path, kw):
     with pytest.raises(InputError):
         generate(tmp_path / "x", SceneOptions(**kw), progress=False)

@@ -9,6 +9,7 @@ import time
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add this stage's sub-commands to the `splattwin` parser."""
+    from splattwin.scene.options import SceneOptions  # light: dataclasses only
     p = sub.add_parser("scene", help="the embedded benchmark tabletop scene",
                        description="The embedded benchmark tabletop scene (synthetic, with ground truth).")
     ssub = p.add_subparsers(dest="scene_command", metavar="SUBCOMMAND")
@@ -28,6 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--marker", action="store_true", help="print an ArUco marker (DICT_4X4_50 id 0) on the table")
     g.add_argument("--marker-size", type=float, default=0.08, help="marker side in metres (default 0.08)")
     g.add_argument("--fov", type=float, default=70.0, help="horizontal field of view in degrees (default 70)")
+    g.add_argument("--supersample", type=int, default=SceneOptions.supersample,
+                   help=f"rays per pixel side, box-filtered (anti-aliasing; 1-8, default {SceneOptions.supersample})")
     g.add_argument("--clean-masks", action="store_true",
                    help="simulate a perfect segmenter (noisy masks equal the GT masks)")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -40,7 +43,7 @@ def _generate(args: argparse.Namespace) -> int:
 
     opts = SceneOptions(seed=args.seed, width=args.width, height=args.height, views=args.views,
                         heldout=args.heldout, marker=args.marker, marker_size=args.marker_size,
-                        fov_x=math.radians(args.fov), noise=MaskNoise.clean() if args.clean_masks else MaskNoise())
+                        fov_x=math.radians(args.fov), supersample=args.supersample, noise=MaskNoise.clean() if args.clean_masks else MaskNoise())
     t0 = time.perf_counter()
     out = generate(args.out_dir, opts, progress=not args.no_progress)
     print(f"scene written to {out.resolve()} ({args.views} training + {args.heldout} held-out views, "

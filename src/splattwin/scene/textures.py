@@ -63,7 +63,7 @@ def _hash1(ix: int, iy: int, iz: int, s: np.uint64) -> np.float32:
     return np.float32(h >> np.uint64(8)) * np.float32(1.0 / (1 << 24))
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)  # nogil: the renderer shades row bands in threads
 def _value_noise_kernel(q: np.ndarray, s: np.uint64, out: np.ndarray) -> None:
     for i in range(q.shape[0]):
         fx0, fy0, fz0 = np.floor(q[i, 0]), np.floor(q[i, 1]), np.floor(q[i, 2])
