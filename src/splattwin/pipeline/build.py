@@ -54,7 +54,7 @@ class BuildOptions:
     resolution: int = 1
     device: str = "auto"
     seed: int = 0
-    max_gaussians: int = 32_000
+    max_gaussians: int = 28_000
     checkpoint_every: int = 500
     kappa: float = 1.5
     fusion_iters: int = 3

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 
 # Mirrors splattwin.splat.trainer.TrainConfig (not imported here: it pulls in torch, and every
 # `splattwin --help` builds this parser); a test checks they agree.
-TRAIN_DEFAULTS = SimpleNamespace(iters=3000, init_points=24_000, max_gaussians=32_000, checkpoint_every=500,
+TRAIN_DEFAULTS = SimpleNamespace(iters=3000, init_points=24_000, max_gaussians=28_000, checkpoint_every=500,
                                  pose_lr=5e-3, pose_start=0.0, depth_lambda=0.0,
                                  opacity_reg=0.0)
 

@@ -50,14 +50,14 @@ class TrainConfig:
     refine_poses / pose_lr / pose_start: joint per-camera SE(3) corrections, their Adam LR, and the
         fraction of the run before they move. Start 0 and LR 5e-3 measured best (bench/train.py, cameras
         off by 1.5 deg / 2.3 cm: left 0.34 deg / 0.41 cm, vs 1.43 deg / 2.1 cm with start 0.2, LR 1e-3).
-    init_points / max_gaussians: at most this many initial Gaussians / Gaussians at any time. 24k / 32k
-        measured best on the embedded scene (bench/train.py, 3000 steps): held-out 30.58 dB / SSIM 0.921
-        in 226 s, vs 30.35 dB / 0.921 with 30k / 40k (266 s) and 30.35 dB / 0.920 with 20k / 26k; 80k
-        gave at most +0.006 SSIM. Raise both for larger images or scenes.
+    init_points / max_gaussians: at most this many initial Gaussians / Gaussians at any time. 24k / 28k
+        on the embedded scene (bench/train.py, 3000 steps): held-out 32.80 dB / SSIM 0.951, vs 32.69 dB /
+        0.953 with 24k / 32k (~6 % slower) and 32.48 dB / 0.950 with 20k / 26k; on the earlier 2x2-sampled
+        scene 80k gave at most +0.006 SSIM. Raise both for larger images or scenes.
     rasterize_mode: "classic" or "antialiased" (see `rasterization`); evaluation renders with the same
-        mode (train.json). Antialiased measured no better here (SSIM 0.919 vs 0.921).
-    opacity_reg: weight of a mean-opacity penalty (gsplat's opacity_reg; 0: off). Embedded scene, 3000
-        steps: 0.01 -> 30.76 dB / SSIM 0.928, 0.05 -> 30.85 dB / 0.930 (off: 30.58 / 0.921), but the
+        mode (train.json). Antialiased measured no better (2x2-sampled scene: SSIM 0.919 vs 0.921).
+    opacity_reg: weight of a mean-opacity penalty (gsplat's opacity_reg; 0: off). 0.05 raised held-out
+        SSIM by ~0.006-0.009 (4x4-sampled scene: 0.956 vs 0.949; 2x2-sampled: 0.930 vs 0.921), but the
         fainter Gaussians overlap more (~58 instead of ~50 composited per pixel): ~15-25 % slower.
     depth_lambda: weight of a depth loss on frames that have depth maps (0: off): mean relative error
         |ED - D| / D of the rendered expected depth ED over pixels with a finite depth D and rendered
@@ -81,7 +81,7 @@ class TrainConfig:
     rasterize_mode: str = "classic"
     depth_lambda: float = 0.0
     opacity_reg: float = 0.0
-    max_gaussians: int = 32_000
+    max_gaussians: int = 28_000
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     densify: bool = True
     lrs: LearningRates = field(default_factory=LearningRates)
