@@ -116,12 +116,13 @@ class SceneRenderer:
         return shade(albedo, normals, lit)
 
     # -- images ----------------------------------------------------------------------------------------
-    def render(self, camera: Camera, supersample: int = 6, threads: int | None = None) -> dict[str, np.ndarray]:
+    def render(self, camera: Camera, supersample: int = 5, threads: int | None = None) -> dict[str, np.ndarray]:
         """Render one view. -> rgb [H,W,3] float32 [0,1], depth [H,W] float32 metres (z, inf = miss),
         labels [H,W] uint8 (0 = table/background). threads: row bands shaded at once (default: the cores);
         the image does not depend on it."""
         H, W, s = camera.height, camera.width, int(supersample)
-        centre = self.cast(self.camera_rays(camera, 1))
+        centre_rays = self.camera_rays(camera, 1)
+        centre = self.cast(centre_rays)
         hit = centre["gid"] != _MISS
         depth = np.where(hit, centre["t"], np.inf).astype(np.float32)
         labels = np.zeros((H, W), dtype=np.uint8)
@@ -137,8 +138,8 @@ class SceneRenderer:
 
         def do_band(r0: int) -> None:
             r1 = min(H, r0 + band)
-            if s == 1:
-                rays = self.camera_rays(camera, 1, (r0, r1)).reshape(-1, 6)
+            if s == 1:  # the centre rays already cast
+                rays = centre_rays[r0:r1].reshape(-1, 6)
                 ans = {k: v[r0:r1].reshape(-1, *v.shape[2:]) for k, v in centre.items()}
             else:
                 rays = self.camera_rays(camera, s, (r0, r1)).reshape(-1, 6)
