@@ -501,6 +501,23 @@ def _row_span(u, dy, ca, cb, cc, level, x0, x1):
     return xa, xb
 
 
+@njit(**_JIT1)
+def _walk_to(Gw, Ew, Vw, xc, xa, Rr, iRr, Rxy, iRxy):
+    """Move the row walker (exp(-sigma) Gw, exp(-delta) Ew and the next-row factor Vw) along its row from
+    pixel column xc to xa, by multiplications only."""
+    while xc < xa:
+        Gw *= Ew
+        Vw *= Rxy
+        Ew *= Rr
+        xc += 1
+    while xc > xa:
+        Ew *= iRr
+        Vw *= iRxy
+        Gw /= Ew
+        xc -= 1
+    return Gw, Ew, Vw
+
+
 # --------------------------------------------------------------------------------------------------------
 # compositing
 # --------------------------------------------------------------------------------------------------------
@@ -542,18 +559,39 @@ def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
             cg0, cg1, cg2 = np.float64(colors[g, 0]), np.float64(colors[g, 1]), np.float64(colors[g, 2])
             for d in range(3, D):
                 cg[d] = colors[g, d]
+            walk = 0  # 0: no row drawn yet, 1: one row drawn, 2: walking down (see below)
+            xc = 0
+            Gw, Ew, Vw = 1.0, 1.0, 1.0
+            Ry, Rxy, iRr, iRxy = 1.0, 1.0, 1.0, 1.0
             for py in range(y0, y1 + 1):
                 dy = v - (py + 0.5)
+                # exp(-sigma) and exp(-delta) at each row start come from a walker that steps from the previous
+                # row start (down one row, then along it): multiplications instead of two exps per row. Its
+                # vertical factors are set up at the second row, so one-row Gaussians pay nothing extra.
+                if walk == 1:
+                    Vw = math.exp(-(0.5 * cc - cc * (dy + 1.0) - cb * (u - (xc + 0.5))))
+                    Ry, Rxy = math.exp(-cc), math.exp(-cb)
+                    iRr, iRxy = 1.0 / Rr, 1.0 / Rxy
+                    walk = 2
+                if walk == 2:
+                    Gw *= Vw
+                    Ew *= Rxy
+                    Vw *= Ry
                 xa, xb = _row_span(u, dy, ca, cb, cc, level, x0, x1)
                 if xa > xb:
                     continue
-                # sigma is quadratic along the row: exp(-sigma) by a multiplicative recurrence
-                # (two exps per row instead of one per pixel; float64 keeps it exact to ~1e-15)
+                # sigma is quadratic along the row: exp(-sigma) by a multiplicative recurrence (float64 keeps
+                # it, and the walker's, exact to ~1e-14)
                 dx = u - (xa + 0.5)
                 sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
                 delta = 0.5 * ca - ca * dx - cb * dy  # sigma(next pixel) - sigma
-                G = math.exp(-sigma)
-                E = math.exp(-delta)
+                if walk == 0:
+                    Gw, Ew = math.exp(-sigma), math.exp(-delta)
+                    walk = 1
+                else:
+                    Gw, Ew, Vw = _walk_to(Gw, Ew, Vw, xc, xa, Rr, iRr, Rxy, iRxy)
+                xc = xa
+                G, E = Gw, Ew
                 lp = (py - ty0) * TILE + (xa - tx0)
                 for px in range(xa, xb + 1):
                     if not done[lp] and sigma >= 0.0:
@@ -648,16 +686,37 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
                 cg[d] = colors[g, d]
             level = math.log(op * 255.0)
             Rr = math.exp(-ca)
+            walk = 0  # 0: no row drawn yet, 1: one row drawn, 2: walking down (see below)
+            xc = 0
+            Gw, Ew, Vw = 1.0, 1.0, 1.0
+            Ry, Rxy, iRr, iRxy = 1.0, 1.0, 1.0, 1.0
             for py in range(y0, y1 + 1):
                 dy = v - (py + 0.5)
+                # exp(-sigma) and exp(-delta) at each row start come from a walker that steps from the previous
+                # row start (down one row, then along it): multiplications instead of two exps per row. Its
+                # vertical factors are set up at the second row, so one-row Gaussians pay nothing extra.
+                if walk == 1:
+                    Vw = math.exp(-(0.5 * cc - cc * (dy + 1.0) - cb * (u - (xc + 0.5))))
+                    Ry, Rxy = math.exp(-cc), math.exp(-cb)
+                    iRr, iRxy = 1.0 / Rr, 1.0 / Rxy
+                    walk = 2
+                if walk == 2:
+                    Gw *= Vw
+                    Ew *= Rxy
+                    Vw *= Ry
                 xa, xb = _row_span(u, dy, ca, cb, cc, level, x0, x1)
                 if xa > xb:
                     continue
                 dx = u - (xa + 0.5)
                 sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
                 delta = 0.5 * ca - ca * dx - cb * dy
-                G = math.exp(-sigma)  # exp(-sigma) by the same recurrence as the forward pass
-                E = math.exp(-delta)
+                if walk == 0:
+                    Gw, Ew = math.exp(-sigma), math.exp(-delta)
+                    walk = 1
+                else:
+                    Gw, Ew, Vw = _walk_to(Gw, Ew, Vw, xc, xa, Rr, iRr, Rxy, iRxy)
+                xc = xa
+                G, E = Gw, Ew  # the same walk and recurrence as the forward pass
                 lp = (py - ty0) * TILE + (xa - tx0)
                 for px in range(xa, xb + 1):
                     a_raw = op * G
