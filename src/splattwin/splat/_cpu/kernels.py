@@ -502,6 +502,27 @@ def _row_span(u, dy, ca, cb, cc, level, x0, x1):
 
 
 @njit(**_JIT1)
+def _walk_down(walk, Gw, Ew, Vw, Ry, Rxy, iRr, iRxy, xc, u, dy, ca, cb, cc, Rr):
+    """Row walker of the compositing kernels, entering the row at offset dy (still at column xc).
+
+    exp(-sigma) Gw and exp(-delta) Ew at each row start come from a walker that steps from the previous row
+    start (down one row here, then along the row in `_walk_to`): multiplications instead of two exps per
+    row. walk: 0 no row drawn yet (nothing to do), 1 one row drawn (the vertical factors are set up now, so
+    one-row Gaussians pay nothing extra), 2 walking. Vw = exp(-(sigma(next row) - sigma)) at column xc;
+    Ry, Rxy, iRr, iRxy: its and Ew's factors per step (Rr = exp(-conic a))."""
+    if walk == 1:
+        Vw = math.exp(-(0.5 * cc - cc * (dy + 1.0) - cb * (u - (xc + 0.5))))
+        Ry, Rxy = math.exp(-cc), math.exp(-cb)
+        iRr, iRxy = 1.0 / Rr, 1.0 / Rxy
+        walk = 2
+    if walk == 2:
+        Gw *= Vw
+        Ew *= Rxy
+        Vw *= Ry
+    return walk, Gw, Ew, Vw, Ry, Rxy, iRr, iRxy
+
+
+@njit(**_JIT1)
 def _walk_to(Gw, Ew, Vw, xc, xa, Rr, iRr, Rxy, iRxy):
     """Move the row walker (exp(-sigma) Gw, exp(-delta) Ew and the next-row factor Vw) along its row from
     pixel column xc to xa, by multiplications only."""
@@ -559,24 +580,14 @@ def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
             cg0, cg1, cg2 = np.float64(colors[g, 0]), np.float64(colors[g, 1]), np.float64(colors[g, 2])
             for d in range(3, D):
                 cg[d] = colors[g, d]
-            walk = 0  # 0: no row drawn yet, 1: one row drawn, 2: walking down (see below)
+            walk = 0  # row walker state (see _walk_down)
             xc = 0
             Gw, Ew, Vw = 1.0, 1.0, 1.0
             Ry, Rxy, iRr, iRxy = 1.0, 1.0, 1.0, 1.0
             for py in range(y0, y1 + 1):
                 dy = v - (py + 0.5)
-                # exp(-sigma) and exp(-delta) at each row start come from a walker that steps from the previous
-                # row start (down one row, then along it): multiplications instead of two exps per row. Its
-                # vertical factors are set up at the second row, so one-row Gaussians pay nothing extra.
-                if walk == 1:
-                    Vw = math.exp(-(0.5 * cc - cc * (dy + 1.0) - cb * (u - (xc + 0.5))))
-                    Ry, Rxy = math.exp(-cc), math.exp(-cb)
-                    iRr, iRxy = 1.0 / Rr, 1.0 / Rxy
-                    walk = 2
-                if walk == 2:
-                    Gw *= Vw
-                    Ew *= Rxy
-                    Vw *= Ry
+                walk, Gw, Ew, Vw, Ry, Rxy, iRr, iRxy = _walk_down(walk, Gw, Ew, Vw, Ry, Rxy, iRr, iRxy, xc, u, dy,
+                                                                   ca, cb, cc, Rr)
                 xa, xb = _row_span(u, dy, ca, cb, cc, level, x0, x1)
                 if xa > xb:
                     continue
@@ -686,24 +697,14 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
                 cg[d] = colors[g, d]
             level = math.log(op * 255.0)
             Rr = math.exp(-ca)
-            walk = 0  # 0: no row drawn yet, 1: one row drawn, 2: walking down (see below)
+            walk = 0  # row walker state (see _walk_down)
             xc = 0
             Gw, Ew, Vw = 1.0, 1.0, 1.0
             Ry, Rxy, iRr, iRxy = 1.0, 1.0, 1.0, 1.0
             for py in range(y0, y1 + 1):
                 dy = v - (py + 0.5)
-                # exp(-sigma) and exp(-delta) at each row start come from a walker that steps from the previous
-                # row start (down one row, then along it): multiplications instead of two exps per row. Its
-                # vertical factors are set up at the second row, so one-row Gaussians pay nothing extra.
-                if walk == 1:
-                    Vw = math.exp(-(0.5 * cc - cc * (dy + 1.0) - cb * (u - (xc + 0.5))))
-                    Ry, Rxy = math.exp(-cc), math.exp(-cb)
-                    iRr, iRxy = 1.0 / Rr, 1.0 / Rxy
-                    walk = 2
-                if walk == 2:
-                    Gw *= Vw
-                    Ew *= Rxy
-                    Vw *= Ry
+                walk, Gw, Ew, Vw, Ry, Rxy, iRr, iRxy = _walk_down(walk, Gw, Ew, Vw, Ry, Rxy, iRr, iRxy, xc, u, dy,
+                                                                   ca, cb, cc, Rr)
                 xa, xb = _row_span(u, dy, ca, cb, cc, level, x0, x1)
                 if xa > xb:
                     continue
