@@ -523,9 +523,12 @@ def _walk_down(walk, Gw, Ew, Vw, Ry, Rxy, iRr, iRxy, xc, u, dy, ca, cb, cc, Rr):
 
 
 @njit(**_JIT1)
-def _walk_to(Gw, Ew, Vw, xc, xa, Rr, iRr, Rxy, iRxy):
+def _walk_to(walk, Gw, Ew, Vw, xc, xa, sigma, delta, Rr, iRr, Rxy, iRxy):
     """Move the row walker (exp(-sigma) Gw, exp(-delta) Ew and the next-row factor Vw) along its row from
-    pixel column xc to xa, by multiplications only."""
+    pixel column xc to the row start xa, by multiplications only; the first drawn row (walk 0) starts it
+    from sigma and delta at xa instead. -> (walk, Gw, Ew, Vw)"""
+    if walk == 0:
+        return 1, math.exp(-sigma), math.exp(-delta), Vw
     while xc < xa:
         Gw *= Ew
         Vw *= Rxy
@@ -536,7 +539,7 @@ def _walk_to(Gw, Ew, Vw, xc, xa, Rr, iRr, Rxy, iRxy):
         Vw *= iRxy
         Gw /= Ew
         xc -= 1
-    return Gw, Ew, Vw
+    return walk, Gw, Ew, Vw
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -596,11 +599,7 @@ def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
                 dx = u - (xa + 0.5)
                 sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
                 delta = 0.5 * ca - ca * dx - cb * dy  # sigma(next pixel) - sigma
-                if walk == 0:
-                    Gw, Ew = math.exp(-sigma), math.exp(-delta)
-                    walk = 1
-                else:
-                    Gw, Ew, Vw = _walk_to(Gw, Ew, Vw, xc, xa, Rr, iRr, Rxy, iRxy)
+                walk, Gw, Ew, Vw = _walk_to(walk, Gw, Ew, Vw, xc, xa, sigma, delta, Rr, iRr, Rxy, iRxy)
                 xc = xa
                 G, E = Gw, Ew
                 lp = (py - ty0) * TILE + (xa - tx0)
@@ -711,11 +710,7 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
                 dx = u - (xa + 0.5)
                 sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
                 delta = 0.5 * ca - ca * dx - cb * dy
-                if walk == 0:
-                    Gw, Ew = math.exp(-sigma), math.exp(-delta)
-                    walk = 1
-                else:
-                    Gw, Ew, Vw = _walk_to(Gw, Ew, Vw, xc, xa, Rr, iRr, Rxy, iRxy)
+                walk, Gw, Ew, Vw = _walk_to(walk, Gw, Ew, Vw, xc, xa, sigma, delta, Rr, iRr, Rxy, iRxy)
                 xc = xa
                 G, E = Gw, Ew  # the same walk and recurrence as the forward pass
                 lp = (py - ty0) * TILE + (xa - tx0)
