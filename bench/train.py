@@ -30,21 +30,21 @@ import time
 from pathlib import Path
 
 
-def _generate(out: str, views: int, heldout: int, width: int, height: int, seed: int) -> None:
-    from splattwin.scene import SceneOptions, generate
+def _generate(out: str, options) -> None:
+    from splattwin.scene import generate
 
-    generate(out, SceneOptions(seed=seed, views=views, heldout=heldout, width=width, height=height), progress=False)
+    generate(out, options, progress=False)
 
 
 def ensure_scene(cache: Path, views: int, heldout: int, width: int, height: int, seed: int) -> Path:
     from splattwin.scene import SceneOptions
 
     out = cache / f"tabletop_s{seed}_v{views}_h{heldout}_{width}x{height}"
-    want = SceneOptions(seed=seed, views=views, heldout=heldout, width=width, height=height).to_dict()
+    options = SceneOptions(seed=seed, views=views, heldout=heldout, width=width, height=height)
     meta = out / "scene.json"  # written last: present = complete
     # a scene cached by an older version (other default options, e.g. supersampling) is regenerated
-    if not meta.is_file() or json.loads(meta.read_text()).get("options") != want:
-        p = mp.get_context("spawn").Process(target=_generate, args=(str(out), views, heldout, width, height, seed))
+    if not meta.is_file() or json.loads(meta.read_text()).get("options") != options.to_dict():
+        p = mp.get_context("spawn").Process(target=_generate, args=(str(out), options))
         p.start()
         p.join()
         if p.exitcode != 0:

@@ -43,7 +43,8 @@ def _generate(args: argparse.Namespace) -> int:
 
     opts = SceneOptions(seed=args.seed, width=args.width, height=args.height, views=args.views,
                         heldout=args.heldout, marker=args.marker, marker_size=args.marker_size,
-                        fov_x=math.radians(args.fov), supersample=args.supersample, noise=MaskNoise.clean() if args.clean_masks else MaskNoise())
+                        fov_x=math.radians(args.fov), supersample=args.supersample,
+                        noise=MaskNoise.clean() if args.clean_masks else MaskNoise())
     t0 = time.perf_counter()
     out = generate(args.out_dir, opts, progress=not args.no_progress)
     print(f"scene written to {out.resolve()} ({args.views} training + {args.heldout} held-out views, "
