@@ -272,3 +272,60 @@ def test_pixel_boxes_shrink_to_the_visible_ellipse_of_faint_gaussians():
     faint_tiles = int(nt[0])
     K_.pixel_boxes(m2, co, np.array([0.99], np.float32), ext, W, H, boxes, nt)
     assert faint_tiles < int(nt[0])
+
+
+def test_walker_matches_exact_exponentials_on_its_lanes():
+    # The compositing kernels form exp(-sigma) for the 16 lanes of a tile row from one exact seed and
+    # step it down the rows by multiplications (kernels._seed_row); check every lane and row against exp.
+    from splattwin.splat._cpu import kernels as K_
+
+    rng = np.random.default_rng(0)
+    Gl, Vl = np.empty(16), np.empty(16)
+    worst = 0.0
+    for _ in range(200):
+        A = rng.normal(size=(2, 2))
+        cov = A @ A.T * rng.uniform(0.5, 20) + 0.3 * np.eye(2)
+        ca, cb, cc = np.linalg.inv(cov)[[0, 0, 1], [0, 1, 1]]
+        u, v = rng.uniform(-4, 20, size=2)
+        ia = int(rng.integers(0, 16))
+        dx0 = u - 0.5
+        assert K_._walkable(ca, cb, cc, math.log(255.0))  # the 0.3 px low-pass keeps every conic walkable
+        K_._seed_row(Gl, Vl, ia, dx0, v - 0.5, ca, cb, cc, math.exp(-ca), math.exp(-cb))
+        for row in range(16):
+            dx = dx0 - np.arange(16)
+            dy = v - (row + 0.5)
+            want = np.exp(-(0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy))
+            keep = want > 1e-3  # the lanes that can draw (alpha >= 1/255 needs sigma <= log 255)
+            if keep.any():
+                worst = max(worst, np.max(np.abs(Gl[keep] / want[keep] - 1)))
+            Gl *= Vl
+            Vl *= math.exp(-cc)
+    assert worst < 1e-11
+
+
+def test_cpu_sharp_thin_gaussians_reseed_every_row_and_match_the_reference():
+    # With a tiny low-pass (eps2d) thin needles have conics far sharper than one pixel: lanes 15 px from the
+    # seed would underflow, so the kernels re-seed such Gaussians on every row (kernels._walkable).
+    from splattwin.splat._cpu import kernels as K_
+
+    g = torch.Generator().manual_seed(11)
+    n, W, H = 60, 48, 40
+    means = (torch.rand(n, 3, generator=g, dtype=DT) - 0.5) * torch.tensor([1.2, 1.0, 0.2], dtype=DT)
+    means[:, 2] += 2.0
+    quats = torch.randn(n, 4, generator=g, dtype=DT)
+    scales = torch.stack([0.15 * torch.rand(n, generator=g, dtype=DT) + 0.02,
+                          torch.full((n,), 2e-4, dtype=DT), torch.full((n,), 2e-4, dtype=DT)], -1)
+    scales[::2, 1:] = 0.03  # every other one round and soft: walkable
+    opac = 0.3 + 0.69 * torch.rand(n, generator=g, dtype=DT)
+    cols = torch.rand(n, 3, generator=g, dtype=DT)
+    K = torch.tensor([[[40.0, 0, W / 2], [0, 40.0, H / 2], [0, 0, 1]]], dtype=DT)
+    inputs = [means, quats, scales, opac, cols, torch.eye(4, dtype=DT)[None], torch.rand(1, 3, dtype=DT)]
+    ir, ar, mr, gr = _run("reference", inputs, K, W, H, eps2d=0.01)
+    ic, ac, mc, gc = _run("cpu", inputs, K, W, H, eps2d=0.01)
+    co = mc["conics"][0].detach().numpy()
+    vis = mc["radii"][0].numpy() > 0
+    walk = [K_._walkable(a, b, c, math.log(255 * o)) for (a, b, c), o in zip(co[vis], opac.numpy()[vis])]
+    assert not all(walk) and any(walk)  # both paths run
+    assert ac.max() > 0.3
+    assert torch.allclose(ir, ic, atol=5e-5) and torch.allclose(ar, ac, atol=5e-6)
+    _assert_close_grads(gr, gc)

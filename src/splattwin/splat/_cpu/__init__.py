@@ -154,8 +154,6 @@ class _Rasterize(torch.autograd.Function):
     def forward(ctx, means2d, conics, colors, opacities, depths, extents, width, height):
         m2, co, cl, op = _np32(means2d), _np32(conics), _np32(colors), _np32(opacities)
         D_in = cl.shape[2]
-        if D_in < 3:  # the kernels keep channels 0-2 in registers: pad to 3, slice after
-            cl = np.concatenate([cl, np.zeros(cl.shape[:2] + (3 - D_in,), np.float32)], axis=2)
         dep = _np32(depths)
         ext = np.ascontiguousarray(extents.detach().cpu().numpy().astype(np.int32))
         C, N, D = cl.shape

@@ -7,7 +7,8 @@ tile-based CUDA rasterizers (3DGS, gsplat) re-organised for a CPU:
 * one camera per call, float32 arrays in, float64 scalar arithmetic inside (free on a CPU, and it keeps the
   2x2 inversions and the back-to-front transmittance recovery well conditioned);
 * tiles of 16x16 pixels are the unit of parallel work (`prange`); inside a tile the loop runs over the
-  tile's depth-sorted Gaussians and, for each, only over the pixels inside its 3-sigma box;
+  tile's depth-sorted Gaussians and, for each, over the rows of its box that hold pixels with alpha >= 1/255,
+  a whole tile row at a time as 16 SIMD lanes (see "compositing" below);
 * binning is a counting sort by tile of the Gaussians taken in global depth order, so every tile's list is
   depth-sorted without a per-tile sort;
 * the backward pass writes one gradient row per (tile, Gaussian) intersection - each row is owned by one
@@ -22,8 +23,12 @@ from __future__ import annotations
 
 import math
 
+import llvmlite.ir as _ir
 import numpy as np
-from numba import njit, prange
+from numba import carray, njit, prange
+from numba import types as _nbt
+from numba.core import cgutils as _cgutils
+from numba.extending import intrinsic as _intrinsic
 
 TILE = 16
 ALPHA_MAX = 0.99
@@ -447,7 +452,10 @@ def pixel_boxes(means2d, conics, opacities, extents, width, height, boxes, ntile
         ntiles[i] = (x1 // TILE - x0 // TILE + 1) * (y1 // TILE - y0 // TILE + 1)
 
 
-@njit(**_JIT1)
+BIN_CHUNKS = 16  # depth-order chunks binned in parallel (fixed: the output does not depend on threads)
+
+
+@njit(**_JIT)
 def bin_tiles(order, boxes, ntiles, width, height, tile_start, isect_gauss, gauss_isect, gauss_off):
     """Counting sort of (tile, Gaussian) pairs by tile, Gaussians taken in depth `order`.
 
@@ -456,103 +464,164 @@ def bin_tiles(order, boxes, ntiles, width, height, tile_start, isect_gauss, gaus
     order, read memory almost sequentially instead of at random.
     gauss_off [N+1] (in): prefix sum of ntiles. gauss_isect [M] (out): the list positions of Gaussian g's
     intersections are gauss_isect[gauss_off[g]:gauss_off[g+1]] (used to reduce gradients per Gaussian).
+
+    In parallel over BIN_CHUNKS consecutive chunks of the depth order: each chunk counts its pairs per
+    tile, a prefix sum over (tile, chunk) gives every chunk its own cursor in each tile's list, and the
+    chunks scatter independently - the same output as one sequential pass.
     """
     tw = (width + TILE - 1) // TILE
     T = tile_start.shape[0] - 1
-    for t in range(T + 1):
-        tile_start[t] = 0
-    for g in range(boxes.shape[0]):
-        if ntiles[g] == 0:
-            continue
-        for ty in range(boxes[g, 2] // TILE, boxes[g, 3] // TILE + 1):
-            for tx in range(boxes[g, 0] // TILE, boxes[g, 1] // TILE + 1):
-                tile_start[ty * tw + tx + 1] += 1
+    n = order.shape[0]
+    P = BIN_CHUNKS
+    size = (n + P - 1) // P
+    cursor = np.zeros((P, T), np.int64)
+    for p in prange(P):
+        for j in range(p * size, min(n, (p + 1) * size)):
+            g = order[j]
+            if ntiles[g] == 0:
+                continue
+            for ty in range(boxes[g, 2] // TILE, boxes[g, 3] // TILE + 1):
+                for tx in range(boxes[g, 0] // TILE, boxes[g, 1] // TILE + 1):
+                    cursor[p, ty * tw + tx] += 1
+    pos = 0
     for t in range(T):
-        tile_start[t + 1] += tile_start[t]
-    cursor = tile_start[:T].copy()
-    for j in range(order.shape[0]):
-        g = order[j]
-        if ntiles[g] == 0:
-            continue
-        k = gauss_off[g]
-        for ty in range(boxes[g, 2] // TILE, boxes[g, 3] // TILE + 1):
-            for tx in range(boxes[g, 0] // TILE, boxes[g, 1] // TILE + 1):
-                t = ty * tw + tx
-                pos = cursor[t]
-                cursor[t] = pos + 1
-                isect_gauss[pos] = j  # depth rank: the compositing kernels read depth-sorted copies
-                gauss_isect[k] = pos
-                k += 1
-
-
-@njit(**_JIT1)
-def _row_span(u, dy, ca, cb, cc, level, x0, x1):
-    """Pixel columns [xa, xb] of a row (offset dy = v - row centre) where sigma <= level, clipped to
-    [x0, x1]; xa > xb when empty. Only a speed-up: every pixel is still tested exactly (a 0.01 px margin
-    absorbs rounding), so results are those of the plain box loop."""
-    disc = cb * cb * dy * dy - ca * (cc * dy * dy - 2.0 * level)
-    if disc < 0.0:
-        return 1, 0
-    r = math.sqrt(disc)
-    lo = (-cb * dy - r) / ca  # dx range; pixel centre = u - dx
-    hi = (-cb * dy + r) / ca
-    xa = max(x0, int(math.ceil(u - hi - 0.5 - 0.01)))
-    xb = min(x1, int(math.floor(u - lo - 0.5 + 0.01)))
-    return xa, xb
-
-
-@njit(**_JIT1)
-def _walk_down(walk, Gw, Ew, Vw, Ry, Rxy, iRr, iRxy, xc, u, dy, ca, cb, cc, Rr):
-    """Row walker of the compositing kernels, entering the row at offset dy (still at column xc).
-
-    exp(-sigma) Gw and exp(-delta) Ew at each row start come from a walker that steps from the previous row
-    start (down one row here, then along the row in `_walk_to`): multiplications instead of two exps per
-    row. walk: 0 no row drawn yet (nothing to do), 1 one row drawn (the vertical factors are set up now, so
-    one-row Gaussians pay nothing extra), 2 walking. Vw = exp(-(sigma(next row) - sigma)) at column xc;
-    Ry, Rxy, iRr, iRxy: its and Ew's factors per step (Rr = exp(-conic a))."""
-    if walk == 1:
-        Vw = math.exp(-(0.5 * cc - cc * (dy + 1.0) - cb * (u - (xc + 0.5))))
-        Ry, Rxy = math.exp(-cc), math.exp(-cb)
-        iRr, iRxy = 1.0 / Rr, 1.0 / Rxy
-        walk = 2
-    if walk == 2:
-        Gw *= Vw
-        Ew *= Rxy
-        Vw *= Ry
-    return walk, Gw, Ew, Vw, Ry, Rxy, iRr, iRxy
-
-
-@njit(**_JIT1)
-def _walk_to(walk, Gw, Ew, Vw, xc, xa, sigma, delta, Rr, iRr, Rxy, iRxy):
-    """Move the row walker (exp(-sigma) Gw, exp(-delta) Ew and the next-row factor Vw) along its row from
-    pixel column xc to the row start xa, by multiplications only; the first drawn row (walk 0) starts it
-    from sigma and delta at xa instead. -> (walk, Gw, Ew, Vw)"""
-    if walk == 0:
-        return 1, math.exp(-sigma), math.exp(-delta), Vw
-    while xc < xa:
-        Gw *= Ew
-        Vw *= Rxy
-        Ew *= Rr
-        xc += 1
-    while xc > xa:
-        Ew *= iRr
-        Vw *= iRxy
-        Gw /= Ew
-        xc -= 1
-    return walk, Gw, Ew, Vw
+        tile_start[t] = pos
+        for p in range(P):
+            c = cursor[p, t]
+            cursor[p, t] = pos
+            pos += c
+    tile_start[T] = pos
+    for p in prange(P):
+        for j in range(p * size, min(n, (p + 1) * size)):
+            g = order[j]
+            if ntiles[g] == 0:
+                continue
+            k = gauss_off[g]
+            for ty in range(boxes[g, 2] // TILE, boxes[g, 3] // TILE + 1):
+                for tx in range(boxes[g, 0] // TILE, boxes[g, 1] // TILE + 1):
+                    t = ty * tw + tx
+                    q = cursor[p, t]
+                    cursor[p, t] = q + 1
+                    isect_gauss[q] = j  # depth rank: the compositing kernels read depth-sorted copies
+                    gauss_isect[k] = q
+                    k += 1
 
 
 # --------------------------------------------------------------------------------------------------------
 # compositing
 # --------------------------------------------------------------------------------------------------------
+# The compositing kernels work on one tile row at a time, all 16 pixels of it as SIMD lanes: every per-pixel
+# update is a select, not a branch, so LLVM vectorises the lane loops. Per-tile state lives in stack buffers
+# (`_stack`): LLVM knows distinct stack buffers never overlap, whereas for numba's heap arrays it must add
+# run-time overlap checks to every vectorised loop (they cost as much as the loop). exp(-sigma) comes from a
+# walker: exact exps at one pixel of the first drawn row, multiplications for the other lanes and rows.
+assert TILE == 16  # the stack buffers below are sized by literals (16 lanes, 256 pixels)
+
+
+def _stack_intrinsic(nbtype):
+    @_intrinsic
+    def _stack(typingctx, n):
+        """Pointer to a stack buffer of n (an integer literal) elements, for `carray`."""
+        if not isinstance(n, _nbt.IntegerLiteral):
+            return None
+        size = n.literal_value
+
+        def codegen(context, builder, signature, args):
+            ty = context.get_value_type(nbtype)
+            buf = _cgutils.alloca_once(builder, _ir.ArrayType(ty, size))  # in the entry block: no stack growth
+            return builder.bitcast(buf, ty.as_pointer())
+        return _nbt.CPointer(nbtype)(n), codegen
+    return _stack
+
+
+_stack_f64 = _stack_intrinsic(_nbt.float64)
+_stack_i64 = _stack_intrinsic(_nbt.int64)
+
+
+@njit(**_JIT1)
+def _row_spans(u, v, ca, cb, cc, level, x0, x1, y0, y1, xa, xb):
+    """Pixel columns [xa[j], xb[j]] of row y0 + j where sigma <= level (outside, alpha < 1/255), clipped to
+    [x0, x1] (xa > xb: empty row). Returns the first and last non-empty j (first > last: none).
+
+    All rows in one loop the compiler vectorises (row by row it is a sqrt-divide-round latency chain, which
+    was a third of the compositing time). Only a speed-up: every pixel in a span is still tested exactly,
+    and a 0.01 px margin absorbs rounding, so results are those of the plain box loop."""
+    two_ca_level = 2.0 * ca * level
+    det = ca * cc - cb * cb
+    ica = 1.0 / ca
+    n = y1 - y0 + 1
+    first, last = TILE, -1
+    for j in range(TILE):  # all 16 (fixed trip count: unrolled, no scalar remainder); rows >= n are unused
+        dy = v - (y0 + j + 0.5)
+        disc = two_ca_level - det * dy * dy  # (b dy)^2 - a (c dy^2 - 2 level)
+        r = math.sqrt(max(disc, 0.0))
+        lo = (-cb * dy - r) * ica  # dx range; pixel centre = u - dx
+        hi = (-cb * dy + r) * ica
+        a = max(x0, np.int64(math.ceil(u - hi - 0.5 - 0.01)))
+        b = min(x1, np.int64(math.floor(u - lo - 0.5 + 0.01)))
+        full = disc >= 0.0 and a <= b and j < n
+        xa[j] = a if full else 1
+        xb[j] = b if full else 0
+        first = min(first, j if full else TILE)
+        last = max(last, j if full else -1)
+    return first, last
+
+
+@njit(**_JIT1)
+def _seed_row(Gl, Vl, ia, dx0, dy, ca, cb, cc, Rr, Rxy):
+    """Start the walker on a row: Gl[i] = exp(-sigma) and Vl[i] = exp(-(sigma(next row) - sigma)) for the 16
+    lanes, at lane offsets dx = dx0 - i. Exact exps at lane ia (inside the row's span), multiplications
+    outwards from there, so lanes inside the span never pass through an underflowed value."""
+    dx = dx0 - ia
+    G = math.exp(-(0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy))
+    E = math.exp(-(0.5 * ca - ca * dx - cb * dy))  # sigma(next lane) - sigma
+    V = math.exp(-(0.5 * cc - cc * dy - cb * dx))
+    Gl[ia] = G
+    Vl[ia] = V
+    g, e, w = G, E, V
+    for i in range(ia + 1, TILE):
+        g *= e
+        e *= Rr
+        w *= Rxy
+        Gl[i] = g
+        Vl[i] = w
+    g, ie, w = G, 1.0 / E, V
+    iRxy = 1.0 / Rxy
+    for i in range(ia - 1, -1, -1):
+        ie *= Rr
+        g *= ie
+        w *= iRxy
+        Gl[i] = g
+        Vl[i] = w
+
+
+@njit(**_JIT1)
+def _step_rows(Gl, Vl, Ry):
+    """Walker one row down (Ry = exp(-conic c))."""
+    for i in range(TILE):
+        Gl[i] *= Vl[i]
+        Vl[i] *= Ry
+
+
+@njit(**_JIT1)
+def _walkable(ca, cb, cc, level):
+    """True if the walker may step down the rows of a tile from one seed. Every lane value it forms lies
+    within 15 px of a pixel with sigma <= level, so (triangle inequality in the conic's norm) its sigma is at
+    most (sqrt(2 level) + 15 sqrt(lambda_max))^2 / 2, which must stay clear of exp underflow (745). With the
+    usual 0.3 px low-pass lambda_max <= 3.3 and the bound is ~470; sharper conics are re-seeded every row."""
+    lam = 0.5 * (ca + cc) + math.sqrt(0.25 * (ca - cc) * (ca - cc) + cb * cb)
+    reach = math.sqrt(2.0 * level) + 15.0 * math.sqrt(lam)
+    return 0.5 * reach * reach < 700.0
+
+
 @njit(**_JITF)
 def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gauss, tile_perm, width, height,
                render, final_T, last):
     """Front-to-back compositing per 16x16 tile.
 
-    colors [N,D] with D >= 3 (the caller pads fewer channels); tile_perm [T] a permutation of the tiles
-    (work order); writes render [H,W,D] (no background), final_T [H,W] and last [H,W] int32 (list
-    position of the last Gaussian that contributed to the pixel, -1 if none).
+    colors [N,D]; tile_perm [T] a permutation of the tiles (work order); writes render [H,W,D] (no
+    background), final_T [H,W] and last [H,W] int32 (list position of the last Gaussian that contributed to
+    the pixel, -1 if none).
     """
     D = colors.shape[1]
     tw = (width + TILE - 1) // TILE
@@ -562,10 +631,20 @@ def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
         tx0, ty0 = (t % tw) * TILE, (t // tw) * TILE
         tx1, ty1 = min(tx0 + TILE, width) - 1, min(ty0 + TILE, height) - 1
         npix = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
-        Tl = np.ones(TILE * TILE)
-        acc = np.zeros((TILE * TILE, D))
-        lastl = np.full(TILE * TILE, -1, np.int32)
-        done = np.zeros(TILE * TILE, np.bool_)
+        Tl = carray(_stack_f64(256), (TILE, TILE))  # transmittance
+        live = carray(_stack_f64(256), (TILE, TILE))  # 1: not terminated
+        lastl = carray(_stack_f64(256), (TILE, TILE))  # last contributing list position
+        Gl = carray(_stack_f64(16), TILE)
+        Vl = carray(_stack_f64(16), TILE)
+        wb = carray(_stack_f64(16), TILE)  # blending weight alpha T per lane
+        xas = carray(_stack_i64(16), TILE)
+        xbs = carray(_stack_i64(16), TILE)
+        for r in range(TILE):
+            for i in range(TILE):
+                Tl[r, i] = 1.0
+                live[r, i] = 1.0
+                lastl[r, i] = -1.0
+        acc = np.zeros((D, TILE, TILE))
         cg = np.zeros(D)
         ndone = 0
         for k in range(tile_start[t], tile_start[t + 1]):
@@ -575,76 +654,69 @@ def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
             u, v = np.float64(means2d[g, 0]), np.float64(means2d[g, 1])
             ca, cb, cc = np.float64(conics[g, 0]), np.float64(conics[g, 1]), np.float64(conics[g, 2])
             op = np.float64(opacities[g])
-            if op * 255.0 < 1.0:
+            # alpha < 1/255 everywhere; a conic that is not positive definite is culled by the projection
+            if op * 255.0 < 1.0 or not (ca > 0.0 and ca * cc - cb * cb > 0.0):
                 continue
             level = math.log(op * 255.0)  # sigma above this gives alpha < 1/255
-            Rr = math.exp(-ca)
-            # channels 0-2 in scalars: the per-pixel updates then need no inner loop (the RGB hot path)
-            cg0, cg1, cg2 = np.float64(colors[g, 0]), np.float64(colors[g, 1]), np.float64(colors[g, 2])
-            for d in range(3, D):
+            ys, ye = _row_spans(u, v, ca, cb, cc, level, x0, x1, y0, y1, xas, xbs)
+            if ys > ye:
+                continue
+            for d in range(D):
                 cg[d] = colors[g, d]
-            walk = 0  # row walker state (see _walk_down)
-            xc = 0
-            Gw, Ew, Vw = 1.0, 1.0, 1.0
-            Ry, Rxy, iRr, iRxy = 1.0, 1.0, 1.0, 1.0
-            for py in range(y0, y1 + 1):
-                dy = v - (py + 0.5)
-                walk, Gw, Ew, Vw, Ry, Rxy, iRr, iRxy = _walk_down(walk, Gw, Ew, Vw, Ry, Rxy, iRr, iRxy, xc, u, dy,
-                                                                   ca, cb, cc, Rr)
-                xa, xb = _row_span(u, dy, ca, cb, cc, level, x0, x1)
-                if xa > xb:
+            Rr, Rxy, Ry = math.exp(-ca), math.exp(-cb), math.exp(-cc)
+            walk = _walkable(ca, cb, cc, level)
+            kf = np.float64(k)
+            dx0 = u - (tx0 + 0.5)
+            for py in range(y0 + ys, y0 + ye + 1):
+                j = py - y0
+                ia, ib = xas[j] - tx0, xbs[j] - tx0
+                if ia > ib:  # (only by rounding: spans of an ellipse in a box are contiguous)
+                    _step_rows(Gl, Vl, Ry)
                     continue
-                # sigma is quadratic along the row: exp(-sigma) by a multiplicative recurrence (float64 keeps
-                # it, and the walker's, exact to ~1e-14)
-                dx = u - (xa + 0.5)
-                sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                delta = 0.5 * ca - ca * dx - cb * dy  # sigma(next pixel) - sigma
-                walk, Gw, Ew, Vw = _walk_to(walk, Gw, Ew, Vw, xc, xa, sigma, delta, Rr, iRr, Rxy, iRxy)
-                xc = xa
-                G, E = Gw, Ew
-                lp = (py - ty0) * TILE + (xa - tx0)
-                for px in range(xa, xb + 1):
-                    if not done[lp] and sigma >= 0.0:
-                        alpha = min(ALPHA_MAX, op * G)
-                        if alpha >= ALPHA_MIN:
-                            T = Tl[lp]
-                            nT = T * (1.0 - alpha)
-                            if nT < T_MIN:
-                                done[lp] = True
-                                ndone += 1
-                            else:
-                                w = alpha * T
-                                acc[lp, 0] += w * cg0
-                                acc[lp, 1] += w * cg1
-                                acc[lp, 2] += w * cg2
-                                for d in range(3, D):
-                                    acc[lp, d] += w * cg[d]
-                                Tl[lp] = nT
-                                lastl[lp] = k
-                    sigma += delta
-                    G *= E
-                    delta += ca
-                    E *= Rr
-                    lp += 1
+                if j == ys or not walk:
+                    _seed_row(Gl, Vl, ia, dx0, v - (py + 0.5), ca, cb, cc, Rr, Rxy)
+                r = py - ty0
+                nfin = 0
+                for i in range(TILE):
+                    G = Gl[i]
+                    Gl[i] = G * Vl[i]  # the walker steps to the next row inside the vectorised lane loop
+                    Vl[i] *= Ry
+                    a_raw = op * G
+                    alpha = min(ALPHA_MAX, a_raw)
+                    T = Tl[r, i]
+                    nT = T * (1.0 - alpha)
+                    on = (i >= ia) & (i <= ib) & (a_raw >= ALPHA_MIN) & (live[r, i] > 0.0)
+                    fin = on & (nT < T_MIN)  # would drop below T_MIN: the pixel ends before this Gaussian
+                    draw = on & (nT >= T_MIN)
+                    wb[i] = alpha * T if draw else 0.0
+                    Tl[r, i] = nT if draw else T
+                    live[r, i] = 0.0 if fin else live[r, i]
+                    lastl[r, i] = kf if draw else lastl[r, i]
+                    nfin += 1 if fin else 0
+                for d in range(D):
+                    c = cg[d]
+                    for i in range(TILE):
+                        acc[d, r, i] += wb[i] * c
+                ndone += nfin
             if ndone == npix:
                 break
         for py in range(ty0, ty1 + 1):
             for px in range(tx0, tx1 + 1):
-                lp = (py - ty0) * TILE + (px - tx0)
+                r, i = py - ty0, px - tx0
                 for d in range(D):
-                    render[py, px, d] = acc[lp, d]
-                final_T[py, px] = Tl[lp]
-                last[py, px] = lastl[lp]
+                    render[py, px, d] = acc[d, r, i]
+                final_T[py, px] = Tl[r, i]
+                last[py, px] = np.int32(lastl[r, i])
 
 
 @njit(**_JITF)
 def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gauss, tile_perm, width, height,
                final_T, last, v_render, v_alpha, isect_grad):
-    """Back-to-front gradient of `raster_fwd` per tile (as in 3DGS).
+    """Back-to-front gradient of `raster_fwd` per tile (as in 3DGS), the same lanes and walker.
 
-    colors [N,D] with D >= 3. v_render [H,W,D], v_alpha [H,W] (gradient of the alpha image). Writes
-    isect_grad [M, 6+D]: per list position the gradient w.r.t. (u, v, conic a, b, c, opacity, colour[D])
-    of that Gaussian from that tile's pixels. Rows of positions no pixel reached are zeroed.
+    colors [N,D]. v_render [H,W,D], v_alpha [H,W] (gradient of the alpha image). Writes isect_grad [M, 6+D]:
+    per list position the gradient w.r.t. (u, v, conic a, b, c, opacity, colour[D]) of that Gaussian from
+    that tile's pixels. Rows of positions no pixel reached are zeroed.
     """
     D = colors.shape[1]
     tw = (width + TILE - 1) // TILE
@@ -653,25 +725,46 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
         t = tile_perm[it]  # shuffled: numba splits the range statically, this balances the threads
         tx0, ty0 = (t % tw) * TILE, (t // tw) * TILE
         tx1, ty1 = min(tx0 + TILE, width) - 1, min(ty0 + TILE, height) - 1
-        Tl = np.ones(TILE * TILE)
-        Tf = np.ones(TILE * TILE)
-        lastl = np.full(TILE * TILE, -1, np.int32)
-        S = np.zeros((TILE * TILE, D))
-        vr = np.zeros((TILE * TILE, D))
-        va = np.zeros(TILE * TILE)
+        Tl = carray(_stack_f64(256), (TILE, TILE))  # transmittance behind the current Gaussian
+        Tf = carray(_stack_f64(256), (TILE, TILE))  # final transmittance
+        lastl = carray(_stack_f64(256), (TILE, TILE))
+        va = carray(_stack_f64(256), (TILE, TILE))
+        Gl = carray(_stack_f64(16), TILE)
+        Vl = carray(_stack_f64(16), TILE)
+        lane = carray(_stack_f64(16), TILE)  # 0, 1, ..., 15
+        alb = carray(_stack_f64(16), TILE)  # per lane of the current row: alpha, 1 - alpha, T in front,
+        omb = carray(_stack_f64(16), TILE)  # blending weight, dL/dalpha, dalpha/dopacity, dalpha/dsigma
+        Tb = carray(_stack_f64(16), TILE)
+        wb = carray(_stack_f64(16), TILE)
+        dlb = carray(_stack_f64(16), TILE)
+        gb = carray(_stack_f64(16), TILE)
+        db = carray(_stack_f64(16), TILE)
+        ggeo = carray(_stack_f64(96), (6, TILE))  # per-lane sums: u, v, conic a, b, c, opacity
+        xas = carray(_stack_i64(16), TILE)
+        xbs = carray(_stack_i64(16), TILE)
+        S = np.zeros((D, TILE, TILE))  # colour accumulated behind the current Gaussian
+        vr = np.zeros((D, TILE, TILE))
         gcol = np.zeros(D)
         cg = np.zeros(D)
         kmax = -1
+        for i in range(TILE):
+            lane[i] = i
+        for r in range(TILE):
+            for i in range(TILE):
+                Tl[r, i] = 1.0
+                Tf[r, i] = 1.0
+                lastl[r, i] = -1.0
+                va[r, i] = 0.0
         for py in range(ty0, ty1 + 1):
             for px in range(tx0, tx1 + 1):
-                lp = (py - ty0) * TILE + (px - tx0)
-                Tl[lp] = final_T[py, px]
-                Tf[lp] = final_T[py, px]
-                lastl[lp] = last[py, px]
+                r, i = py - ty0, px - tx0
+                Tl[r, i] = final_T[py, px]
+                Tf[r, i] = final_T[py, px]
+                lastl[r, i] = last[py, px]
                 kmax = max(kmax, last[py, px])
                 for d in range(D):
-                    vr[lp, d] = v_render[py, px, d]
-                va[lp] = v_alpha[py, px]
+                    vr[d, r, i] = v_render[py, px, d]
+                va[r, i] = v_alpha[py, px]
         k0 = tile_start[t]
         for k in range(max(kmax + 1, k0), tile_start[t + 1]):
             for j in range(6 + D):
@@ -683,86 +776,80 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
             u, v = np.float64(means2d[g, 0]), np.float64(means2d[g, 1])
             ca, cb, cc = np.float64(conics[g, 0]), np.float64(conics[g, 1]), np.float64(conics[g, 2])
             op = np.float64(opacities[g])
-            gu, gv, gca, gcb, gcc, gop = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-            gc0, gc1, gc2 = 0.0, 0.0, 0.0  # colour gradients 0-2 in registers (see raster_fwd)
-            for d in range(3, D):
-                gcol[d] = 0.0
-            if op * 255.0 < 1.0:  # never drawn
-                for j in range(6 + D):
-                    isect_grad[k, j] = 0.0
+            for j in range(6 + D):
+                isect_grad[k, j] = 0.0
+            if op * 255.0 < 1.0 or not (ca > 0.0 and ca * cc - cb * cb > 0.0):  # never drawn
                 continue
-            cg0, cg1, cg2 = np.float64(colors[g, 0]), np.float64(colors[g, 1]), np.float64(colors[g, 2])
-            for d in range(3, D):
-                cg[d] = colors[g, d]
             level = math.log(op * 255.0)
-            Rr = math.exp(-ca)
-            walk = 0  # row walker state (see _walk_down)
-            xc = 0
-            Gw, Ew, Vw = 1.0, 1.0, 1.0
-            Ry, Rxy, iRr, iRxy = 1.0, 1.0, 1.0, 1.0
-            for py in range(y0, y1 + 1):
-                dy = v - (py + 0.5)
-                walk, Gw, Ew, Vw, Ry, Rxy, iRr, iRxy = _walk_down(walk, Gw, Ew, Vw, Ry, Rxy, iRr, iRxy, xc, u, dy,
-                                                                   ca, cb, cc, Rr)
-                xa, xb = _row_span(u, dy, ca, cb, cc, level, x0, x1)
-                if xa > xb:
+            ys, ye = _row_spans(u, v, ca, cb, cc, level, x0, x1, y0, y1, xas, xbs)
+            if ys > ye:
+                continue
+            for d in range(D):
+                cg[d] = colors[g, d]
+                gcol[d] = 0.0
+            for j in range(6):
+                for i in range(TILE):
+                    ggeo[j, i] = 0.0
+            Rr, Rxy, Ry = math.exp(-ca), math.exp(-cb), math.exp(-cc)
+            walk = _walkable(ca, cb, cc, level)
+            kf = np.float64(k)
+            dx0 = u - (tx0 + 0.5)
+            for py in range(y0 + ys, y0 + ye + 1):
+                j = py - y0
+                ia, ib = xas[j] - tx0, xbs[j] - tx0
+                if ia > ib:
+                    _step_rows(Gl, Vl, Ry)
                     continue
-                dx = u - (xa + 0.5)
-                sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                delta = 0.5 * ca - ca * dx - cb * dy
-                walk, Gw, Ew, Vw = _walk_to(walk, Gw, Ew, Vw, xc, xa, sigma, delta, Rr, iRr, Rxy, iRxy)
-                xc = xa
-                G, E = Gw, Ew  # the same walk and recurrence as the forward pass
-                lp = (py - ty0) * TILE + (xa - tx0)
-                for px in range(xa, xb + 1):
+                dy = v - (py + 0.5)
+                if j == ys or not walk:
+                    _seed_row(Gl, Vl, ia, dx0, dy, ca, cb, cc, Rr, Rxy)  # the same walk as the forward pass
+                r = py - ty0
+                for i in range(TILE):
+                    G = Gl[i]
+                    Gl[i] = G * Vl[i]
+                    Vl[i] *= Ry
                     a_raw = op * G
-                    if k <= lastl[lp] and sigma >= 0.0 and a_raw >= ALPHA_MIN:
-                        alpha = min(ALPHA_MAX, a_raw)
-                        om = 1.0 - alpha
-                        inv = 1.0 / om
-                        T = Tl[lp] * inv  # transmittance in front of this Gaussian
-                        w = alpha * T
-                        vr0, vr1, vr2 = vr[lp, 0], vr[lp, 1], vr[lp, 2]
-                        s0, s1, s2 = S[lp, 0], S[lp, 1], S[lp, 2]
-                        gc0 += w * vr0
-                        gc1 += w * vr1
-                        gc2 += w * vr2
-                        dl_da = (cg0 - s0) * vr0 + (cg1 - s1) * vr1 + (cg2 - s2) * vr2
-                        S[lp, 0] = alpha * cg0 + om * s0
-                        S[lp, 1] = alpha * cg1 + om * s1
-                        S[lp, 2] = alpha * cg2 + om * s2
-                        for d in range(3, D):
-                            c = cg[d]
-                            vrd = vr[lp, d]
-                            gcol[d] += w * vrd
-                            dl_da += (c - S[lp, d]) * vrd
-                            S[lp, d] = alpha * c + om * S[lp, d]
-                        dl_da = dl_da * T + va[lp] * Tf[lp] * inv
-                        Tl[lp] = T
-                        if a_raw < ALPHA_MAX:
-                            gop += G * dl_da
-                            dsig = -a_raw * dl_da
-                            gca += 0.5 * dx * dx * dsig
-                            gcb += dx * dy * dsig
-                            gcc += 0.5 * dy * dy * dsig
-                            gu += (ca * dx + cb * dy) * dsig
-                            gv += (cb * dx + cc * dy) * dsig
-                    sigma += delta
-                    G *= E
-                    delta += ca
-                    E *= Rr
-                    dx -= 1.0
-                    lp += 1
-            isect_grad[k, 0] = gu
-            isect_grad[k, 1] = gv
-            isect_grad[k, 2] = gca
-            isect_grad[k, 3] = gcb
-            isect_grad[k, 4] = gcc
-            isect_grad[k, 5] = gop
-            isect_grad[k, 6] = gc0
-            isect_grad[k, 7] = gc1
-            isect_grad[k, 8] = gc2
-            for d in range(3, D):
+                    on = (i >= ia) & (i <= ib) & (kf <= lastl[r, i]) & (a_raw >= ALPHA_MIN)
+                    alpha = min(ALPHA_MAX, a_raw) if on else 0.0
+                    om = 1.0 - alpha
+                    T = Tl[r, i] / om  # transmittance in front of this Gaussian (unchanged where off)
+                    Tl[r, i] = T
+                    alb[i] = alpha
+                    omb[i] = om
+                    Tb[i] = T
+                    wb[i] = alpha * T
+                    dlb[i] = 0.0
+                    ok = on & (a_raw < ALPHA_MAX)  # alpha not clamped: it depends on G and the opacity
+                    gb[i] = G if ok else 0.0
+                    db[i] = -a_raw if ok else 0.0
+                for d in range(D):
+                    c = cg[d]
+                    gsum = 0.0
+                    for i in range(TILE):
+                        s = S[d, r, i]
+                        rd = vr[d, r, i]
+                        gsum += wb[i] * rd
+                        dlb[i] += (c - s) * rd
+                        S[d, r, i] = alb[i] * c + omb[i] * s
+                    gcol[d] += gsum
+                hdy2 = 0.5 * dy * dy
+                cbdy, ccdy = cb * dy, cc * dy
+                for i in range(TILE):
+                    dl = dlb[i] * Tb[i] + va[r, i] * Tf[r, i] / omb[i]  # dL/dalpha
+                    dx = dx0 - lane[i]  # (a per-Gaussian dx array written by scalar stores stalls the vector loads)
+                    dsig = db[i] * dl
+                    ggeo[0, i] += (ca * dx + cbdy) * dsig
+                    ggeo[1, i] += (cb * dx + ccdy) * dsig
+                    ggeo[2, i] += 0.5 * dx * dx * dsig
+                    ggeo[3, i] += dx * dy * dsig
+                    ggeo[4, i] += hdy2 * dsig
+                    ggeo[5, i] += gb[i] * dl
+            for j in range(6):
+                s = 0.0
+                for i in range(TILE):
+                    s += ggeo[j, i]
+                isect_grad[k, j] = s
+            for d in range(D):
                 isect_grad[k, 6 + d] = gcol[d]
 
 
