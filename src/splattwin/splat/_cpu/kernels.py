@@ -734,6 +734,7 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
         lane = carray(_stack_f64(16), TILE)  # 0, 1, ..., 15
         alb = carray(_stack_f64(16), TILE)  # per lane of the current row: alpha, 1 - alpha, T in front,
         omb = carray(_stack_f64(16), TILE)  # blending weight, dL/dalpha, dalpha/dopacity, dalpha/dsigma
+        ivb = carray(_stack_f64(16), TILE)  # 1 / (1 - alpha)
         Tb = carray(_stack_f64(16), TILE)
         wb = carray(_stack_f64(16), TILE)
         dlb = carray(_stack_f64(16), TILE)
@@ -812,10 +813,12 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
                     on = (i >= ia) & (i <= ib) & (kf <= lastl[r, i]) & (a_raw >= ALPHA_MIN)
                     alpha = min(ALPHA_MAX, a_raw) if on else 0.0
                     om = 1.0 - alpha
-                    T = Tl[r, i] / om  # transmittance in front of this Gaussian (unchanged where off)
+                    inv = 1.0 / om  # the one division per lane (vector divisions are slow)
+                    T = Tl[r, i] * inv  # transmittance in front of this Gaussian (unchanged where off)
                     Tl[r, i] = T
                     alb[i] = alpha
                     omb[i] = om
+                    ivb[i] = inv
                     Tb[i] = T
                     wb[i] = alpha * T
                     dlb[i] = 0.0
@@ -835,7 +838,7 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
                 hdy2 = 0.5 * dy * dy
                 cbdy, ccdy = cb * dy, cc * dy
                 for i in range(TILE):
-                    dl = dlb[i] * Tb[i] + va[r, i] * Tf[r, i] / omb[i]  # dL/dalpha
+                    dl = dlb[i] * Tb[i] + va[r, i] * Tf[r, i] * ivb[i]  # dL/dalpha
                     dx = dx0 - lane[i]  # (a per-Gaussian dx array written by scalar stores stalls the vector loads)
                     dsig = db[i] * dl
                     ggeo[0, i] += (ca * dx + cbdy) * dsig
