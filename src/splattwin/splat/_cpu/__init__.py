@@ -73,6 +73,14 @@ def depth_order(depths: np.ndarray) -> np.ndarray:
     return (key & 0xFFFFFFFF).astype(np.int32)
 
 
+def _take_rows(a: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """a[order] along the first axis (1D or 2D), gathered by a parallel kernel."""
+    src = np.ascontiguousarray(a).reshape(a.shape[0], int(np.prod(a.shape[1:])))  # (-1 fails for N = 0)
+    out = np.empty((order.shape[0], src.shape[1]), a.dtype)
+    K_.take_rows(src, order, out)
+    return out.reshape((order.shape[0],) + a.shape[1:])
+
+
 class _Project(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, viewmats, Ks, width, height, eps2d, near, far):
@@ -177,7 +185,7 @@ class _Rasterize(torch.autograd.Function):
             gauss_isect = np.empty(M, np.int64)
             K_.bin_tiles(order, boxes, ntiles, W, H, tile_start, isect_gauss, gauss_isect, gauss_off)
             # depth-sorted copies: tile lists hold depth ranks, so the kernels stream through these
-            srt = (m2[c][order], co[c][order], cl[c][order], opc[order], boxes[order])
+            srt = tuple(_take_rows(a, order) for a in (m2[c], co[c], cl[c], opc, boxes))
             K_.raster_fwd(*srt, tile_start, isect_gauss, _tile_perm(tw * th), W, H, render[c], final_T[c], last[c])
             saved.append((srt, tile_start, isect_gauss, gauss_isect, gauss_off))
         ctx.np = (cl.shape, final_T, last, saved)
