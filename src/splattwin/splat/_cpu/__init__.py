@@ -186,8 +186,10 @@ class _Rasterize(torch.autograd.Function):
             K_.bin_tiles(order, boxes, ntiles, W, H, tile_start, isect_gauss, gauss_isect, gauss_off)
             # depth-sorted copies: tile lists hold depth ranks, so the kernels stream through these
             srt = tuple(_take_rows(a, order) for a in (m2[c], co[c], cl[c], opc, boxes))
-            K_.raster_fwd(*srt, tile_start, isect_gauss, _tile_perm(tw * th), W, H, render[c], final_T[c], last[c])
-            saved.append((srt, tile_start, isect_gauss, gauss_isect, gauss_off))
+            spans = np.empty((M, 34), np.int8)  # row spans, reused by the backward pass
+            K_.raster_fwd(*srt, tile_start, isect_gauss, _tile_perm(tw * th), W, H, render[c], final_T[c], last[c],
+                          spans)
+            saved.append((srt, tile_start, isect_gauss, gauss_isect, gauss_off, spans))
         ctx.np = (cl.shape, final_T, last, saved)
         ctx.op_ndim = op.ndim
         ctx.cfg = (W, H, D_in)
@@ -214,10 +216,10 @@ class _Rasterize(torch.autograd.Function):
         v_op = np.zeros((C, N) if per_cam_op else N, np.float32)
         out = np.empty((N, 6 + D), np.float32)
         for c in range(C):
-            srt, tile_start, isect_gauss, gauss_isect, gauss_off = saved[c]
+            srt, tile_start, isect_gauss, gauss_isect, gauss_off, spans = saved[c]
             isect_grad = np.empty((isect_gauss.shape[0], 6 + D), np.float32)  # summed in float64
             K_.raster_bwd(*srt, tile_start, isect_gauss, _tile_perm(len(tile_start) - 1), W, H, final_T[c], last[c],
-                          vr[c], va[c], isect_grad)
+                          spans, vr[c], va[c], isect_grad)
             K_.reduce_isect_grads(isect_grad, gauss_isect, gauss_off, out)
             v_m2[c] = out[:, 0:2]
             v_co[c] = out[:, 2:5]

@@ -625,12 +625,13 @@ def _walkable(ca, cb, cc, level):
 
 @njit(**_JITF)
 def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gauss, tile_perm, width, height,
-               render, final_T, last):
+               render, final_T, last, spans):
     """Front-to-back compositing per 16x16 tile.
 
     colors [N,D]; tile_perm [T] a permutation of the tiles (work order); writes render [H,W,D] (no
     background), final_T [H,W] and last [H,W] int32 (list position of the last Gaussian that contributed to
-    the pixel, -1 if none).
+    the pixel, -1 if none), and spans [M,34] int8 for `raster_bwd`: per list position it composited, the
+    first and last drawn tile row, then the tile-relative first (16) and last (16) column of each row.
     """
     D = colors.shape[1]
     tw = (width + TILE - 1) // TILE
@@ -671,8 +672,14 @@ def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
                 continue
             level = math.log(op * 255.0)  # sigma above this gives alpha < 1/255
             ys, ye = _row_spans(u, v, ca, cb, cc, level, x0, x1, y0, y1, xas, xbs)
+            spans[k, 0] = ys
+            spans[k, 1] = ye
             if ys > ye:
                 continue
+            for j in range(TILE):  # all 16 (a fixed-length copy vectorises); empty rows as (1, 0)
+                full = xas[j] <= xbs[j]
+                spans[k, 2 + j] = xas[j] - tx0 if full else 1
+                spans[k, 18 + j] = xbs[j] - tx0 if full else 0
             for d in range(D):
                 cg[d] = colors[g, d]
             Rr, Rxy, Ry = math.exp(-ca), math.exp(-cb), math.exp(-cc)
@@ -728,10 +735,12 @@ def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
 
 @njit(**_JITF)
 def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gauss, tile_perm, width, height,
-               final_T, last, v_render, v_alpha, isect_grad):
+               final_T, last, spans, v_render, v_alpha, isect_grad):
     """Back-to-front gradient of `raster_fwd` per tile (as in 3DGS), the same lanes and walker.
 
-    colors [N,D]. v_render [H,W,D], v_alpha [H,W] (gradient of the alpha image). Writes isect_grad [M, 6+D]:
+    colors [N,D]. spans [M,34] from raster_fwd (every position the backward pass visits was composited by
+    the forward pass, which stops no earlier than the last contributor of any pixel of the tile). v_render
+    [H,W,D], v_alpha [H,W] (gradient of the alpha image). Writes isect_grad [M, 6+D]:
     per list position the gradient w.r.t. (u, v, conic a, b, c, opacity, colour[D]) of that Gaussian from
     that tile's pixels. Rows of positions no pixel reached are zeroed.
     """
@@ -758,8 +767,6 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
         gb = carray(_stack_f64(16), TILE)
         db = carray(_stack_f64(16), TILE)
         ggeo = carray(_stack_f64(96), (6, TILE))  # per-lane sums: u, v, conic a, b, c, opacity
-        xas = carray(_stack_i64(16), TILE)
-        xbs = carray(_stack_i64(16), TILE)
         S = np.zeros((D, TILE, TILE))  # colour accumulated behind the current Gaussian
         vr = np.zeros((D, TILE, TILE))
         gcol = np.zeros(D)
@@ -799,7 +806,7 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
             if op * 255.0 < 1.0 or not (ca > 0.0 and ca * cc - cb * cb > 0.0):  # never drawn
                 continue
             level = math.log(op * 255.0)
-            ys, ye = _row_spans(u, v, ca, cb, cc, level, x0, x1, y0, y1, xas, xbs)
+            ys, ye = np.int64(spans[k, 0]), np.int64(spans[k, 1])  # the forward pass's row spans
             if ys > ye:
                 continue
             for d in range(D):
@@ -814,7 +821,7 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
             dx0 = u - (tx0 + 0.5)
             for py in range(y0 + ys, y0 + ye + 1):
                 j = py - y0
-                ia, ib = xas[j] - tx0, xbs[j] - tx0
+                ia, ib = np.int64(spans[k, 2 + j]), np.int64(spans[k, 18 + j])
                 if ia > ib:
                     _step_rows(Gl, Vl, Ry)
                     continue
