@@ -623,6 +623,12 @@ def _walkable(ca, cb, cc, level):
     return 0.5 * reach * reach < 700.0
 
 
+@njit(**_JIT1)
+def _walker_consts(ca, cb, cc, level):
+    """Per-pair walker factors exp(-a), exp(-b), exp(-c) of the conic (a, b, c), and `_walkable`."""
+    return math.exp(-ca), math.exp(-cb), math.exp(-cc), _walkable(ca, cb, cc, level)
+
+
 @njit(**_JITF)
 def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gauss, tile_perm, width, height,
                render, final_T, last, spans):
@@ -682,8 +688,7 @@ def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
                 spans[k, 18 + j] = xbs[j] - tx0 if full else 0
             for d in range(D):
                 cg[d] = colors[g, d]
-            Rr, Rxy, Ry = math.exp(-ca), math.exp(-cb), math.exp(-cc)
-            walk = _walkable(ca, cb, cc, level)
+            Rr, Rxy, Ry, walk = _walker_consts(ca, cb, cc, level)
             kf = np.float64(k)
             dx0 = u - (tx0 + 0.5)
             for py in range(y0 + ys, y0 + ye + 1):
@@ -815,8 +820,7 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
             for j in range(6):
                 for i in range(TILE):
                     ggeo[j, i] = 0.0
-            Rr, Rxy, Ry = math.exp(-ca), math.exp(-cb), math.exp(-cc)
-            walk = _walkable(ca, cb, cc, level)
+            Rr, Rxy, Ry, walk = _walker_consts(ca, cb, cc, level)
             kf = np.float64(k)
             dx0 = u - (tx0 + 0.5)
             for py in range(y0 + ys, y0 + ye + 1):
