@@ -25,6 +25,9 @@ from splattwin.splat import reference as _ref
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 RASTERIZE_MODES = ("classic", "antialiased")
 BACKENDS = ("auto", "cpu", "cuda", "reference")
+# Where the "cuda" backend's tensors live. One name for the whole package, so the test-suite can run the
+# gsplat path with gsplat's CUDA primitives emulated on the CPU (tests/splat/conftest.py).
+CUDA_DEVICE = "cuda"
 
 
 def cuda_available() -> bool:
@@ -38,12 +41,17 @@ def cuda_available() -> bool:
     return True
 
 
+def backend_device(name: str) -> torch.device:
+    """The torch device a concrete backend's inputs live on: CUDA for "cuda", the CPU otherwise."""
+    return torch.device(CUDA_DEVICE if name == "cuda" else "cpu")
+
+
 def resolve_backend(backend: str, device: torch.device | None = None) -> str:
     """Map "auto" to a concrete backend; raise InputError for an unknown or unavailable one."""
     if backend not in BACKENDS:
         raise InputError(f"unknown rasterizer backend {backend!r}; choose one of {', '.join(BACKENDS)}")
     if backend == "auto":
-        if cuda_available() and (device is None or device.type == "cuda"):
+        if cuda_available() and (device is None or device.type == backend_device("cuda").type):
             return "cuda"
         return "cpu"
     if backend == "cuda" and not cuda_available():

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from splattwin.splat.rasterization import backend_device as device_of
 from splattwin.splat.rasterization import rasterization, resolve_backend
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -30,7 +31,7 @@ RenderMode = str  # "RGB" | "ED" | "RGB+ED"
 def backend_device(backend: str = "auto") -> tuple[str, torch.device]:
     """The concrete rasterizer backend for `backend` and the torch device its inputs live on."""
     name = resolve_backend(backend)
-    return name, torch.device("cuda" if name == "cuda" else "cpu")
+    return name, device_of(name)
 
 
 def as_tensor(a: np.ndarray, device: torch.device | str = "cpu") -> torch.Tensor:

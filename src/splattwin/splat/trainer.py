@@ -31,7 +31,7 @@ from splattwin.splat.init import initial_gaussians, scene_center_and_scale
 from splattwin.splat.losses import photometric_loss, psnr_from_mse
 from splattwin.splat.model import GaussianModel, LearningRates
 from splattwin.splat.pose_refine import PoseCorrection
-from splattwin.splat.rasterization import rasterization, resolve_backend
+from splattwin.splat.rasterization import backend_device, rasterization, resolve_backend
 
 log = logging.getLogger(__name__)
 
@@ -229,7 +229,7 @@ class Trainer:
         if not dataset.has_poses:
             raise InputError("dataset has no camera poses; estimate them first (splattwin poses)", dataset.root)
         self.backend = resolve_backend(self.cfg.backend or self.cfg.device)
-        self.device = torch.device("cuda" if self.backend == "cuda" else "cpu")
+        self.device = backend_device(self.backend)
         self.views = load_views(self.frames, self.cfg.resolution, depth=self.cfg.depth_lambda > 0,
                                 depth_scale=dataset.depth_scale)
         self.scene_center, self.scene_scale = scene_center_and_scale([v.camera for v in self.views])
