@@ -152,6 +152,20 @@ def test_antialiased_mode(gsplat_on_cpu):
                                atol=1e-6 * ref[3]["scales"].abs().max().item())
 
 
+def test_gpu_without_gsplat_kernels_falls_back_with_reason(monkeypatch):
+    """A CUDA device but gsplat's kernels unbuildable (this machine: gsplat installed, CPU-only torch):
+    "auto" stays on the CPU and "cuda" says why, as a user error."""
+    from splattwin.errors import InputError
+    from splattwin.splat import rasterization as r
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    reason = r.cuda_unavailable_reason()
+    assert reason is not None and "gsplat's CUDA kernels" in reason
+    assert resolve_backend("auto") == "cpu"
+    with pytest.raises(InputError, match="gsplat's CUDA kernels"):
+        resolve_backend("cuda")
+
+
 def test_auto_picks_cuda_when_available(gsplat_on_cpu):
     assert resolve_backend("auto") == "cuda"
     inputs, K = _scene(n=20, C=1)

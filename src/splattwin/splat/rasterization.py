@@ -15,6 +15,7 @@ All semantics (culling, 3-sigma extents, alpha thresholds, early stop) are docum
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import torch
@@ -30,15 +31,34 @@ BACKENDS = ("auto", "cpu", "cuda", "reference")
 CUDA_DEVICE = "cuda"
 
 
-def cuda_available() -> bool:
-    """True when a CUDA device is present and gsplat imports (the "cuda" backend can run)."""
+def cuda_unavailable_reason() -> str | None:
+    """Why the "cuda" backend cannot run here, or None when it can (a CUDA device, an importable gsplat,
+    and gsplat's CUDA kernels loaded: gsplat compiles them on first use, which needs the CUDA toolkit)."""
     if not torch.cuda.is_available():
-        return False
+        return "no CUDA device is available (torch.cuda.is_available() is False)"
+    return _gsplat_unavailable_reason()
+
+
+@functools.lru_cache(maxsize=1)
+def _gsplat_unavailable_reason() -> str | None:
+    # Cached: a failed import is not cached by Python, and each retry would re-run gsplat's JIT build.
     try:
         import gsplat  # noqa: F401
-    except Exception:
-        return False
-    return True
+    except Exception as e:
+        return f"gsplat is not installed or fails to import ({type(e).__name__}: {e}); pip install gsplat"
+    try:
+        from gsplat.cuda._backend import _C
+    except Exception as e:  # a failed JIT build raises here
+        return f"gsplat's CUDA kernels fail to build or load ({type(e).__name__}: {e})"
+    if _C is None:
+        return ("gsplat's CUDA kernels are not built and no CUDA toolkit was found to compile them "
+                "(install the CUDA toolkit, or a gsplat wheel built for your torch and CUDA)")
+    return None
+
+
+def cuda_available() -> bool:
+    """True when the "cuda" backend can run (see `cuda_unavailable_reason`)."""
+    return cuda_unavailable_reason() is None
 
 
 def backend_device(name: str) -> torch.device:
@@ -55,8 +75,7 @@ def resolve_backend(backend: str, device: torch.device | None = None) -> str:
             return "cuda"
         return "cpu"
     if backend == "cuda" and not cuda_available():
-        why = "no CUDA device is available (torch.cuda.is_available() is False)" if not torch.cuda.is_available() \
-            else "gsplat is not installed or fails to import (pip install gsplat)"
+        why = cuda_unavailable_reason() or "it is not available"
         raise InputError(f"rasterizer backend 'cuda' requested but {why}; use backend 'cpu' (--device cpu)")
     return backend
 
