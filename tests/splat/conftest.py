@@ -6,7 +6,8 @@ plain-PyTorch emulations written from the CUDA kernels of gsplat 1.5 (csrc/Proje
 IntersectTile.cu, RasterizeToPixels3DGSFwd.cu; gsplat's own `_torch_impl` helpers where they match the
 kernels), declares CUDA available, and points our "cuda" backend's device at the CPU. Everything else -
 gsplat's argument handling, SH layout, render modes, backgrounds, and our adapter, trainer and CLI - runs
-for real, and autograd provides the gradients the CUDA backward kernels would.
+for real, and autograd provides the gradients the CUDA backward kernels would. The fixture's `dtypes`
+records the tensor dtypes the kernels were given (gsplat's CUDA kernels take float32 only).
 
 Kernel semantics emulated (gsplat 1.5), where they differ from our reference:
 - per-axis radii ceil(extend * sqrt(cov2d_ii)) with the opacity-aware extend
@@ -17,11 +18,13 @@ Kernel semantics emulated (gsplat 1.5), where they differ from our reference:
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import pytest
 import torch
 
 ALPHA_THRESHOLD = 1.0 / 255.0
+_DTYPES: set = set()  # float dtypes the emulated kernels received (the real ones take float32 only)
 
 
 def _fully_fused_projection(means, covars, quats, scales, viewmats, Ks, width, height, eps2d=0.3,
@@ -30,6 +33,7 @@ def _fully_fused_projection(means, covars, quats, scales, viewmats, Ks, width, h
     from gsplat.cuda import _torch_impl as ti
 
     assert not packed and camera_model == "pinhole" and means.ndim == 2, "emulation: unpacked pinhole only"
+    _DTYPES.update(t.dtype for t in (means, covars, quats, scales, viewmats, Ks, opacities) if t is not None)
     if covars is None:
         covars, _ = ti._quat_scale_to_covar_preci(quats, scales, compute_preci=False)
     else:  # [N,6] upper triangle -> [N,3,3]
@@ -97,6 +101,7 @@ def _rasterize_to_pixels(means2d, conics, colors, opacities, image_width, image_
                          flatten_ids, backgrounds=None, masks=None, packed=False, absgrad=False):
     """RasterizeToPixels3DGSFwd.cu per tile, vectorised over (pixel, listed Gaussian); autograd = backward."""
     assert not packed and masks is None
+    _DTYPES.update(t.dtype for t in (means2d, conics, colors, opacities, backgrounds) if t is not None)
     dims, N, D = means2d.shape[:-2], means2d.shape[-2], colors.shape[-1]
     I = math.prod(dims)
     m2, con = means2d.reshape(I * N, 2), conics.reshape(I * N, 3)
@@ -151,4 +156,5 @@ def gsplat_on_cpu(monkeypatch):
     monkeypatch.setattr(gr, "rasterize_to_pixels", _rasterize_to_pixels)
     monkeypatch.setattr(r, "cuda_available", lambda: True)
     monkeypatch.setattr(r, "CUDA_DEVICE", "cpu")
-    return gr
+    _DTYPES.clear()
+    return SimpleNamespace(module=gr, dtypes=_DTYPES)

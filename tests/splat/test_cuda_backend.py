@@ -202,3 +202,13 @@ def test_train_resume_and_eval_on_cuda_backend(gsplat_on_cpu, tmp_path):
     # a finished run resumed from its checkpoint rewrites the same result
     assert main(["train", str(ds), str(tmp_path / "cuda"), "--device", "cuda", "--resume", *args]) == 0
     np.testing.assert_array_equal(Gaussians.load_ply(tmp_path / "cuda" / "point_cloud.ply").means, g.means)
+    # joint pose refinement and test-time pose alignment (gradients w.r.t. viewmats through gsplat)
+    assert main(["train", str(ds), str(tmp_path / "poses"), "--device", "cuda", "--refine-poses", "--iters", "40",
+                 "--sh-degree", "0", "--checkpoint-every", "0", "--no-progress"]) == 0
+    poses = json.loads((tmp_path / "poses" / "refined_poses.json").read_text())["poses"]
+    assert len(poses) == 6
+    assert main(["eval", str(tmp_path / "poses"), "--dataset", str(ds), "--device", "cuda", "--align-poses",
+                 "--no-progress"]) == 0
+    ma = json.loads((tmp_path / "poses" / "eval" / "metrics.json").read_text())
+    assert "pose_correction_deg" in ma["views"][0]
+    assert gsplat_on_cpu.dtypes == {torch.float32}  # what gsplat's CUDA kernels accept
