@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import math
 from pathlib import Path
 
 import numpy as np
@@ -22,29 +21,18 @@ from splattwin.splat.rasterization import rasterization, resolve_backend
 _spec = importlib.util.spec_from_file_location("_splat_trainer_helpers", Path(__file__).with_name("test_trainer.py"))
 helpers = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(helpers)
+_spec = importlib.util.spec_from_file_location("_splat_raster_tests", Path(__file__).with_name("test_raster.py"))
+raster_tests = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(raster_tests)
 
-DT = torch.float64
-NAMES = ["means", "quats", "scales", "opacities", "colors", "viewmats", "backgrounds"]
+DT = raster_tests.DT
+NAMES = raster_tests.NAMES
 
 
-def _scene(n=120, C=2, seed=0, W=40, H=30, K_sh=9, f=40.0, opac=(0.05, 0.35)):
-    g = torch.Generator().manual_seed(seed)
-    means = (torch.rand(n, 3, generator=g, dtype=DT) - 0.5) * torch.tensor([1.6, 1.2, 0.6], dtype=DT)
-    means[:, 2] += 2.0
-    quats = torch.randn(n, 4, generator=g, dtype=DT)
-    scales = 0.02 + 0.08 * torch.rand(n, 3, generator=g, dtype=DT)
-    o = opac[0] + (opac[1] - opac[0]) * torch.rand(n, generator=g, dtype=DT)
-    sh = 0.3 * torch.randn(n, K_sh, 3, generator=g, dtype=DT)
-    vms = torch.eye(4, dtype=DT).repeat(C, 1, 1)
-    if C > 1:
-        th = 0.15
-        vms[1, :3, :3] = torch.tensor([[math.cos(th), 0, math.sin(th)], [0, 1, 0], [-math.sin(th), 0, math.cos(th)]],
-                                      dtype=DT)
-        vms[1, :3, 3] = torch.tensor([0.1, -0.05, 0.1], dtype=DT)
-    # principal point off-centre: catches a swapped cx/cy or a transposed K
-    K = torch.tensor([[f, 0, 0.45 * W], [0, 1.1 * f, 0.55 * H], [0, 0, 1]], dtype=DT).repeat(C, 1, 1)
-    bg = torch.rand(C, 3, generator=g, dtype=DT)
-    return [means, quats, scales, o, sh, vms, bg], K
+def _scene(n=120, seed=0, opac=(0.05, 0.35), **kw):
+    # principal point off-centre and fx != fy: catch a swapped cx/cy or a transposed K
+    return raster_tests._scene(n=n, seed=seed, opac_min=opac[0], opac_span=opac[1] - opac[0], th=0.15,
+                               pp=(0.45, 0.55), fy_scale=1.1, **kw)
 
 
 def _se3_grad(grad_viewmats: torch.Tensor, viewmats: torch.Tensor) -> torch.Tensor:

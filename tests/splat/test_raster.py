@@ -15,21 +15,23 @@ DT = torch.float64
 NAMES = ["means", "quats", "scales", "opacities", "colors", "viewmats", "backgrounds"]
 
 
-def _scene(n=150, C=2, seed=0, W=40, H=30, K_sh=9, f=40.0):
+def _scene(n=150, C=2, seed=0, W=40, H=30, K_sh=9, f=40.0, opac_min=0.2, opac_span=0.79, th=0.1, pp=(0.5, 0.5),
+           fy_scale=1.0):
+    """Random Gaussians in front of C cameras (the second rotated by th rad), float64. Opacities uniform in
+    [opac_min, opac_min + opac_span]; principal point at pp * (W, H); fy = fy_scale * f."""
     g = torch.Generator().manual_seed(seed)
     means = (torch.rand(n, 3, generator=g, dtype=DT) - 0.5) * torch.tensor([1.6, 1.2, 0.6], dtype=DT)
     means[:, 2] += 2.0
     quats = torch.randn(n, 4, generator=g, dtype=DT)
     scales = 0.02 + 0.08 * torch.rand(n, 3, generator=g, dtype=DT)
-    opac = 0.2 + 0.79 * torch.rand(n, generator=g, dtype=DT)
+    opac = opac_min + opac_span * torch.rand(n, generator=g, dtype=DT)
     sh = 0.3 * torch.randn(n, K_sh, 3, generator=g, dtype=DT)
     vms = torch.eye(4, dtype=DT).repeat(C, 1, 1)
     if C > 1:
-        th = 0.1
         vms[1, :3, :3] = torch.tensor([[math.cos(th), 0, math.sin(th)], [0, 1, 0], [-math.sin(th), 0, math.cos(th)]],
                                       dtype=DT)
         vms[1, :3, 3] = torch.tensor([0.1, -0.05, 0.1], dtype=DT)
-    K = torch.tensor([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]], dtype=DT).repeat(C, 1, 1)
+    K = torch.tensor([[f, 0, pp[0] * W], [0, fy_scale * f, pp[1] * H], [0, 0, 1]], dtype=DT).repeat(C, 1, 1)
     bg = torch.rand(C, 3, generator=g, dtype=DT)
     return [means, quats, scales, opac, sh, vms, bg], K
 
