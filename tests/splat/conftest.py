@@ -154,7 +154,7 @@ def gsplat_on_cpu(monkeypatch):
     monkeypatch.setattr(gr, "isect_offset_encode", ti._isect_offset_encode)
     monkeypatch.setattr(gr, "spherical_harmonics", _spherical_harmonics)
     monkeypatch.setattr(gr, "rasterize_to_pixels", _rasterize_to_pixels)
-    monkeypatch.setattr(r, "cuda_available", lambda: True)
+    monkeypatch.setattr(r, "cuda_unavailable_reason", lambda: None)
     monkeypatch.setattr(r, "CUDA_DEVICE", "cpu")
     _DTYPES.clear()
     return SimpleNamespace(module=gr, dtypes=_DTYPES)

@@ -31,12 +31,12 @@ def rasterization_cuda(means, quats, scales, opacities, colors, viewmats, Ks, wi
     """Same signature and outputs as `splattwin.splat.rasterization.rasterization` (backend "cuda")."""
     from splattwin.splat import rasterization as _r
 
-    if not _r.cuda_available():
-        _r.resolve_backend("cuda")  # raises the InputError that says why (no device, or no gsplat)
+    _r.resolve_backend("cuda")  # raises an InputError saying why when the backend cannot run here
     import gsplat
 
     # Tensors already on a CUDA device stay there (multi-GPU callers pick theirs); others go to the default.
-    dev = means.device if means.device.type == _r.backend_device("cuda").type else _r.backend_device("cuda")
+    cuda = _r.backend_device("cuda")
+    dev = means.device if means.device.type == cuda.type else cuda
     mv = lambda t: None if t is None else t.to(dev)  # noqa: E731
     render, alphas, meta = gsplat.rasterization(
         mv(means), mv(quats), mv(scales), mv(opacities), mv(colors), mv(viewmats), mv(Ks), int(width), int(height),

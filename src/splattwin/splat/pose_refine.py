@@ -158,9 +158,9 @@ def align_camera(gaussians, camera, image: np.ndarray, iters: int = 300, lr: flo
     """
     from splattwin.splat.losses import photometric_loss
     from splattwin.splat.rasterization import rasterization
-    from splattwin.splat.render import as_tensor, backend_device
+    from splattwin.splat.render import as_tensor, resolve_backend_device
 
-    name, dev = backend_device(backend)
+    name, dev = resolve_backend_device(backend)
     t = lambda a: as_tensor(a, dev)  # noqa: E731
     if image.shape[:2] != (camera.height, camera.width):
         raise ValueError(f"image is {image.shape[1]}x{image.shape[0]}, camera {camera.width}x{camera.height}")

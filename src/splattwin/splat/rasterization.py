@@ -74,8 +74,8 @@ def resolve_backend(backend: str, device: torch.device | None = None) -> str:
         if cuda_available() and (device is None or device.type == backend_device("cuda").type):
             return "cuda"
         return "cpu"
-    if backend == "cuda" and not cuda_available():
-        why = cuda_unavailable_reason() or "it is not available"
+    why = cuda_unavailable_reason() if backend == "cuda" else None
+    if why:
         raise InputError(f"rasterizer backend 'cuda' requested but {why}; use backend 'cpu' (--device cpu)")
     return backend
 

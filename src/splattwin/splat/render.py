@@ -18,8 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from splattwin.splat.rasterization import backend_device as device_of
-from splattwin.splat.rasterization import rasterization, resolve_backend
+from splattwin.splat.rasterization import backend_device, rasterization, resolve_backend
 
 if TYPE_CHECKING:  # pragma: no cover
     from splattwin.capture.camera import Camera
@@ -28,10 +27,10 @@ if TYPE_CHECKING:  # pragma: no cover
 RenderMode = str  # "RGB" | "ED" | "RGB+ED"
 
 
-def backend_device(backend: str = "auto") -> tuple[str, torch.device]:
+def resolve_backend_device(backend: str = "auto") -> tuple[str, torch.device]:
     """The concrete rasterizer backend for `backend` and the torch device its inputs live on."""
     name = resolve_backend(backend)
-    return name, device_of(name)
+    return name, backend_device(name)
 
 
 def as_tensor(a: np.ndarray, device: torch.device | str = "cpu") -> torch.Tensor:
@@ -66,7 +65,7 @@ def render(gaussians: "Gaussians", camera: "Camera", *, mode: RenderMode = "RGB"
         if background is not None and mode != "ED":
             img[..., :d] = np.asarray(background, np.float32)
         return img, np.zeros((h, w), np.float32)
-    name, dev = backend_device(backend)
+    name, dev = resolve_backend_device(backend)
     t = lambda a: as_tensor(a, dev)  # noqa: E731
     if colors is None:
         deg = gaussians.sh_degree if sh_degree is None else min(int(sh_degree), gaussians.sh_degree)
