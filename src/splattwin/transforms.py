@@ -1,0 +1,113 @@
+"""Rotations, quaternions and rigid transforms: the one place that knows quaternion orders.
+
+Built on `scipy.spatial.transform.Rotation` (vectorised over any leading batch shape); nothing here is
+hand-written rotation algebra beyond 4x4 bookkeeping.
+
+Conventions (docs/CONTRACTS.md):
+* In memory quaternions are **wxyz** (scalar first: MuJoCo, gsplat/3DGS, viser, mink) and are named
+  `quat_wxyz`. The **xyzw** order (scipy, ROS, glTF, MoveIt scene files) appears only at a file or
+  library boundary, through `quat_xyzw_from_wxyz` / `quat_wxyz_from_xyzw`.
+* `T_a_b` [..., 4, 4] maps points in frame b to frame a (metres); `R_a_b` [..., 3, 3] its rotation.
+* Quaternions returned here are unit length with w >= 0 (one of the two equivalent signs, chosen so
+  that results are reproducible).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["quat_xyzw_from_wxyz", "quat_wxyz_from_xyzw", "quat_wxyz_from_matrix", "matrix_from_quat_wxyz",
+           "pose_from_pos_quat_wxyz", "pos_quat_wxyz_from_pose", "make_pose", "invert_pose", "rot_z",
+           "yaw_of", "pose_xyz_yaw"]
+
+
+def quat_xyzw_from_wxyz(quat_wxyz: np.ndarray) -> np.ndarray:
+    """[..., 4] wxyz -> [..., 4] xyzw (same rotation, for scipy / ROS / glTF)."""
+    q = np.asarray(quat_wxyz, dtype=float)
+    return np.concatenate([q[..., 1:4], q[..., :1]], axis=-1)
+
+
+def quat_wxyz_from_xyzw(quat_xyzw: np.ndarray) -> np.ndarray:
+    """[..., 4] xyzw -> [..., 4] wxyz."""
+    q = np.asarray(quat_xyzw, dtype=float)
+    return np.concatenate([q[..., 3:4], q[..., :3]], axis=-1)
+
+
+def _rotations(R: np.ndarray):
+    from scipy.spatial.transform import Rotation
+
+    R = np.asarray(R, dtype=float)
+    if R.shape[-2:] != (3, 3):
+        raise ValueError(f"rotation matrices must be [..., 3, 3], got {R.shape}")
+    return Rotation.from_matrix(R.reshape(-1, 3, 3)), R.shape[:-2]
+
+
+def quat_wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Rotation matrices [..., 3, 3] -> unit quaternions [..., 4] wxyz with w >= 0."""
+    rot, batch = _rotations(R)
+    if not len(rot):
+        return np.zeros((*batch, 4))
+    q = quat_wxyz_from_xyzw(rot.as_quat(canonical=True))
+    return q.reshape(*batch, 4)
+
+
+def matrix_from_quat_wxyz(quat_wxyz: np.ndarray) -> np.ndarray:
+    """Quaternions [..., 4] wxyz (normalised here) -> rotation matrices [..., 3, 3]."""
+    from scipy.spatial.transform import Rotation
+
+    q = np.asarray(quat_wxyz, dtype=float)
+    if q.shape[-1:] != (4,):
+        raise ValueError(f"quaternions must be [..., 4], got {q.shape}")
+    batch = q.shape[:-1]
+    flat = q.reshape(-1, 4)
+    if not len(flat):
+        return np.zeros((*batch, 3, 3))
+    return Rotation.from_quat(quat_xyzw_from_wxyz(flat)).as_matrix().reshape(*batch, 3, 3)
+
+
+def make_pose(R: np.ndarray | None = None, p: np.ndarray | None = None) -> np.ndarray:
+    """T [..., 4, 4] from a rotation [..., 3, 3] (identity if None) and a translation [..., 3] (0 if None)."""
+    batch = np.broadcast_shapes(np.shape(R)[:-2] if R is not None else (), np.shape(p)[:-1] if p is not None else ())
+    T = np.zeros((*batch, 4, 4))
+    T[..., :3, :3] = np.eye(3) if R is None else R
+    if p is not None:
+        T[..., :3, 3] = p
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def pose_from_pos_quat_wxyz(pos: np.ndarray, quat_wxyz: np.ndarray) -> np.ndarray:
+    """Position [..., 3] (m) and quaternion [..., 4] wxyz -> T [..., 4, 4] (e.g. a MuJoCo free joint's qpos)."""
+    return make_pose(matrix_from_quat_wxyz(quat_wxyz), np.asarray(pos, dtype=float))
+
+
+def pos_quat_wxyz_from_pose(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """T [..., 4, 4] -> (position [..., 3] m, quaternion [..., 4] wxyz)."""
+    T = np.asarray(T, dtype=float)
+    return T[..., :3, 3].copy(), quat_wxyz_from_matrix(T[..., :3, :3])
+
+
+def invert_pose(T_a_b: np.ndarray) -> np.ndarray:
+    """T_b_a from T_a_b [..., 4, 4] (rigid: R^T, -R^T p)."""
+    T = np.asarray(T_a_b, dtype=float)
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    return make_pose(Rt, -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3]))
+
+
+def rot_z(yaw: float) -> np.ndarray:
+    """[3, 3] rotation by `yaw` rad about +z."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def yaw_of(R: np.ndarray) -> float:
+    """rad: heading of a rotation's x axis in the xy plane (atan2 of R[1,0], R[0,0]); R [3,3] or T [4,4]."""
+    R = np.asarray(R, dtype=float)
+    return math.atan2(float(R[1, 0]), float(R[0, 0]))
+
+
+def pose_xyz_yaw(x: float, y: float, z: float, yaw: float) -> np.ndarray:
+    """T [4, 4] translated to (x, y, z) m and rotated by `yaw` rad about +z."""
+    return make_pose(rot_z(yaw), np.array([x, y, z], dtype=float))

@@ -1,0 +1,61 @@
+"""The transforms module against MuJoCo's own quaternion routines and analytic cases."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from splattwin.transforms import (invert_pose, make_pose, matrix_from_quat_wxyz, pos_quat_wxyz_from_pose,
+                                  pose_from_pos_quat_wxyz, pose_xyz_yaw, quat_wxyz_from_matrix,
+                                  quat_wxyz_from_xyzw, quat_xyzw_from_wxyz, rot_z, yaw_of)
+
+
+def _random_quats(n: int, seed: int = 0) -> np.ndarray:
+    q = np.random.default_rng(seed).normal(size=(n, 4))
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def test_quaternions_match_mujoco():
+    import mujoco
+
+    for q in _random_quats(50):
+        R_mj = np.zeros(9)
+        mujoco.mju_quat2Mat(R_mj, q)
+        R = matrix_from_quat_wxyz(q)
+        np.testing.assert_allclose(R, R_mj.reshape(3, 3), atol=1e-12)
+        q_back = quat_wxyz_from_matrix(R)
+        q_mj = np.zeros(4)
+        mujoco.mju_mat2Quat(q_mj, R.ravel())
+        assert q_back[0] >= 0 and abs(abs(q_back @ q_mj) - 1) < 1e-12    # same rotation, canonical sign
+        assert abs(abs(q_back @ q) - 1) < 1e-12
+
+
+def test_known_rotations_and_orders():
+    q = np.array([math.cos(0.25), 0.0, 0.0, math.sin(0.25)])      # 0.5 rad about z, wxyz
+    np.testing.assert_allclose(matrix_from_quat_wxyz(q), rot_z(0.5), atol=1e-15)
+    np.testing.assert_allclose(quat_xyzw_from_wxyz(q), [0, 0, math.sin(0.25), math.cos(0.25)])
+    np.testing.assert_array_equal(quat_wxyz_from_xyzw(quat_xyzw_from_wxyz(q)), q)
+    np.testing.assert_allclose(quat_wxyz_from_matrix(np.eye(3)), [1, 0, 0, 0])
+    # a 180 deg turn about x: w = 0
+    np.testing.assert_allclose(np.abs(quat_wxyz_from_matrix(np.diag([1.0, -1.0, -1.0]))), [0, 1, 0, 0], atol=1e-15)
+    assert yaw_of(rot_z(2.5)) == pytest.approx(2.5) and yaw_of(pose_xyz_yaw(1, 2, 3, -1.0)) == pytest.approx(-1.0)
+
+
+def test_batched_poses_roundtrip_and_invert():
+    q = _random_quats(24, seed=1).reshape(2, 3, 4, 4)
+    p = np.random.default_rng(2).normal(size=(2, 3, 4, 3))
+    T = pose_from_pos_quat_wxyz(p, q)
+    assert T.shape == (2, 3, 4, 4, 4)
+    p2, q2 = pos_quat_wxyz_from_pose(T)
+    np.testing.assert_allclose(p2, p)
+    np.testing.assert_allclose(np.abs(np.sum(q2 * q, axis=-1)), 1.0, atol=1e-12)
+    Ti = invert_pose(T)
+    np.testing.assert_allclose(Ti @ T, np.broadcast_to(np.eye(4), T.shape), atol=1e-12)
+    np.testing.assert_allclose(Ti[0, 1, 2], np.linalg.inv(T[0, 1, 2]), atol=1e-12)
+    assert quat_wxyz_from_matrix(np.zeros((0, 3, 3))).shape == (0, 4)
+    assert matrix_from_quat_wxyz(np.zeros((0, 4))).shape == (0, 3, 3)
+    np.testing.assert_array_equal(make_pose(), np.eye(4))
+    with pytest.raises(ValueError):
+        quat_wxyz_from_matrix(np.eye(4))
