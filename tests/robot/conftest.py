@@ -30,3 +30,17 @@ def panda():
     from splattwin.robot.assets import RobotModel
 
     return RobotModel.panda()
+
+
+@pytest.fixture(scope="session")
+def default_run(gt_twin_default: Path):
+    """(World, RunResult) of the paper's three steps on the ground-truth twin (seed 0), executed once per
+    session; the world is left as the run ended. Read-only for the tests that share it."""
+    from splattwin.robot.execute import Executor
+    from splattwin.robot.task import load_task, validate_task
+    from splattwin.robot.world import build_world
+
+    w = build_world(gt_twin_default, visual=False)
+    task = load_task(None, w.manifest)
+    validate_task(task, w.manifest, gt_twin_default, w.base.matrix())
+    return w, Executor(w, seed=0).run(task)

@@ -17,9 +17,19 @@ def test_plan_help(capsys):
     assert e.value.code == 0 and "--trials" in out and "per-axis standard deviation" in out and "--sigma-yaw" in out
 
 
+@pytest.mark.slow
 def test_plan_writes_trajectories_and_results(gt_twin_default: Path, tmp_path: Path):
-    out = tmp_path / "robot"
-    assert main(["plan", str(gt_twin_default), "--out", str(out), "--no-render"]) == 0
+    """`splattwin plan TWIN` writes results, trajectories, the rollout and the viewer's playback track into
+    TWIN/robot, so `splattwin view TWIN` then shows the robot."""
+    import shutil
+
+    from splattwin.robot.rollout import Rollout
+    from splattwin.viewer.app import load_robot_track
+
+    twin = tmp_path / "twin"
+    shutil.copytree(gt_twin_default, twin)
+    out = twin / "robot"
+    assert main(["plan", str(twin), "--no-render"]) == 0
     res = json.loads((out / "results.json").read_text())
     assert res["nominal"]["success"] and res["nominal"]["collisions"] == 0
     assert [s["success"] for s in res["nominal"]["steps"]] == [True, True, True]
@@ -33,6 +43,12 @@ def test_plan_writes_trajectories_and_results(gt_twin_default: Path, tmp_path: P
     assert tj.duration > 5.0 and np.all(np.diff(tj.t) > 0)
     assert (out / "segments" / "step1_transit.json").is_file()
     assert res["notes"] == ["rendering disabled (--no-render)"]
+    ro = Rollout.load(out / "rollout.npz")
+    assert ro.steps() == [1, 2, 3] and ro.t[-1] == pytest.approx(res["nominal"]["sim_time"])
+    assert ro.joint_names == tj.joint_names
+    track = load_robot_track(twin)
+    assert track is not None and len(track) > 100 and set(track.object_poses) == set(ro.object_poses)
+    assert track.times[0] >= ro.t[0] and track.times[-1] == pytest.approx(ro.t[-1])
 
 
 def test_plan_missing_object_is_input_error(gt_twin_small: Path, tmp_path: Path, capsys):
@@ -77,6 +93,7 @@ def _renamed_panda(tmp_path: Path) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_user_robot_mjcf_runs_a_pick_and_place(gt_twin_default: Path, tmp_path: Path):
     """A user-supplied arm MJCF (the Panda with renamed bodies/joints/site, TCP site 'arm_tcp') on another
     base pose runs one pick-and-place step through the CLI: grasped, placed, no collisions."""
@@ -93,6 +110,10 @@ def test_user_robot_mjcf_runs_a_pick_and_place(gt_twin_default: Path, tmp_path: 
     assert res["robot_mjcf"] == str(arm) and res["base_pose"]["x"] == -0.55
     tj = Trajectory.load_json(out / "trajectory.json")
     assert tj.joint_names == [f"arm_joint{i}" for i in range(1, 8)]
+    from splattwin.robot.rollout import Rollout
+
+    ro = Rollout.load(out / "rollout.npz")           # recorded with the user's joint names
+    assert ro.joint_names == tj.joint_names and (out / "playback.npz").is_file()
     # a wrong TCP site name is bad input
     assert main(["plan", str(gt_twin_default), "--task", str(task), "--robot-mjcf", str(arm),
                  "--out", str(tmp_path / "o2"), "--no-render"]) == 2

@@ -3,20 +3,20 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from splattwin.robot.execute import Executor
+from splattwin.robot.monitor import ContactKind, MonitorState
 from splattwin.robot.trajectory import concatenate
-from splattwin.robot.task import load_task, validate_task
+from splattwin.robot.task import load_task
 from splattwin.robot.world import build_world
 
 
-def test_default_task_succeeds_on_gt_twin(gt_twin_default: Path):
+@pytest.mark.slow
+def test_default_task_succeeds_on_gt_twin(default_run):
     """The paper's three steps on the ground-truth twin: all succeed, zero collisions, physics only."""
-    w = build_world(gt_twin_default, visual=False)
+    w, r = default_run
     assert w.model.nq == 9 + 7 * len(w.objects)
-    task = load_task(None, w.manifest)
-    validate_task(task, w.manifest, gt_twin_default, w.base.matrix())
-    r = Executor(w, seed=0).run(task)
     assert [s.success for s in r.steps] == [True, True, True], [s.failure for s in r.steps]
     assert r.success and r.collisions == 0
     for s in r.steps:
@@ -37,23 +37,24 @@ def test_default_task_succeeds_on_gt_twin(gt_twin_default: Path):
 def test_collision_monitor_counts_robot_hitting_the_table(gt_twin_small: Path):
     w = build_world(gt_twin_small, visual=False)
     ex = Executor(w)
-    T = ex.ik.fk(w.robot.home)
+    T = ex.motion.ik.fk(w.robot.home)
     T[:3, 3] = [-0.05, 0.35, -0.01]          # 1 cm into the table, away from every object
-    q = ex.ik.solve(T, w.robot.home)
+    q = ex.motion.ik.solve(T, w.robot.home)
     assert q is not None
     path = np.stack([w.robot.home, q])
-    mon = {"target": w.obj_body["blue_box"], "active": set(), "events": [], "carrying": False}
-    ex._track(ex._traj(path, 0.3, "crash"), w.robot.gripper_open, 0.2, mon)
-    hits = [e for e in mon["events"] if e[0] == "robot"]
-    assert hits and any("world" in (w.body_name(e[1]), w.body_name(e[2])) for e in hits)
+    mon = MonitorState(target=w.object_body("blue_box"))
+    ex.servo.track(ex.motion.trajectory(path, 0.3), w.robot.gripper_open, 0.2, mon)
+    hits = [e for e in mon.events if e.kind is ContactKind.ROBOT]
+    assert hits and any("world" in (w.body_name(e.body_a), w.body_name(e.body_b)) for e in hits)
+    assert mon.count(ContactKind.ROBOT) == len(hits) and mon.count(ContactKind.OBJECT) == 0
     # the same motion to 5 cm above the table touches nothing
     w2 = build_world(gt_twin_small, visual=False)
     ex2 = Executor(w2)
     T[:3, 3] = [-0.05, 0.35, 0.05]
-    q2 = ex2.ik.solve(T, w2.robot.home)
-    mon2 = {"target": w2.obj_body["blue_box"], "active": set(), "events": [], "carrying": False}
-    ex2._track(ex2._traj(np.stack([w2.robot.home, q2]), 0.3, "ok"), w2.robot.gripper_open, 0.2, mon2)
-    assert mon2["events"] == []
+    q2 = ex2.motion.ik.solve(T, w2.robot.home)
+    mon2 = MonitorState(target=w2.object_body("blue_box"))
+    ex2.servo.track(ex2.motion.trajectory(np.stack([w2.robot.home, q2]), 0.3), w2.robot.gripper_open, 0.2, mon2)
+    assert mon2.events == []
 
 
 def test_hammer_sunk_into_the_table_is_still_graspable(gt_twin_default: Path):
@@ -61,9 +62,6 @@ def test_hammer_sunk_into_the_table_is_still_graspable(gt_twin_default: Path):
     follows the support surface, so the fingertips keep the planning margin above the table in the closed
     pose and the approach is collision-free (the finger-table contact was the reconstructed twin's step-3
     failure). Planning only, on the belief poses."""
-    import mujoco
-
-    from splattwin.robot.execute import StepResult
     from splattwin.robot.world import hand_points_tcp
 
     w = build_world(gt_twin_default, visual=False)
@@ -74,20 +72,14 @@ def test_hammer_sunk_into_the_table_is_still_graspable(gt_twin_default: Path):
     task = load_task(None, w.manifest)
     step = task.steps[2]
     assert step.pick == "toy_hammer"
-    res = StepResult(index=3, pick="toy_hammer", goal=step.goal_name)
-    plan = ex.plan_step(step, res)
-    q = plan["approach"][-1]
+    plan = ex.plan_step(step)
+    q = plan.approach[-1]
     # independent check on the world model: the lowest finger point at the grasp is above the table
     # by the planning margin
-    d = mujoco.MjData(w.model)
-    d.qpos[:] = w.data.qpos
-    d.qpos[w.arm_qpos_adr] = q
-    mujoco.mj_kinematics(w.model, d)
-    T_tcp = np.eye(4)
-    T_tcp[:3, :3] = d.site_xmat[w.tcp_site].reshape(3, 3)
-    T_tcp[:3, 3] = d.site_xpos[w.tcp_site]
+    qpos = w.joints.full(q, w.qpos())
+    T_tcp = w.tcp_poses(qpos[None])[0]
     lowest = float(((T_tcp[:3, :3] @ hand_points_tcp(w).T).T + T_tcp[:3, 3])[:, 2].min())
-    assert lowest >= w.manifest.background.table_height + ex.checker.margin
+    assert lowest >= w.manifest.background.table_height + ex.motion.margin
     # the pads still hold the handle: the TCP is below the hammer's top
     ext = w.manifest.object("toy_hammer").bbox_extent
     assert T_tcp[2, 3] < T[2, 3] + ext[2] / 2 - 0.004
@@ -99,6 +91,7 @@ def _shifted(T: np.ndarray, d_obj: np.ndarray) -> np.ndarray:
     return T
 
 
+@pytest.mark.slow
 def test_finger_landing_on_the_box_is_corrected_by_touch(gt_twin_default: Path):
     """The blue box (6 cm across the grasp, 8 cm gripper: 1 cm clearance per side) lies 15 mm off its
     twin pose along the closing axis: the first approach lands a finger on its top. The guarded approach
@@ -113,10 +106,10 @@ def test_finger_landing_on_the_box_is_corrected_by_touch(gt_twin_default: Path):
         ex = Executor(w, belief=nominal, seed=0)
         r = ex.run_step(1, task.steps[0])
         assert r.success and r.robot_collisions == 0 and r.object_collisions == 0, r.failure
-        assert r.grasp["touch_corrections"] == 1
+        assert r.grasp.touch_corrections == 1
         # the corrected belief is closer to the true pose than the twin's
         true_offset = poses["blue_box"][:3, 3] - nominal["blue_box"][:3, 3]
-        assert np.linalg.norm(np.array(r.grasp["belief_correction_m"]) - true_offset) < 0.008
+        assert np.linalg.norm(np.array(r.grasp.belief_correction_m) - true_offset) < 0.008
         names = [n for n, _ in ex.trajs]
         assert names[:6] == ["step1_transit", "step1_approach_stopped", "step1_touch1", "step1_backoff1",
                              "step1_transit_retry1", "step1_approach_retry1"], names
@@ -124,6 +117,7 @@ def test_finger_landing_on_the_box_is_corrected_by_touch(gt_twin_default: Path):
         assert full.duration > 5.0
 
 
+@pytest.mark.slow
 def test_blocked_best_grasp_falls_back_to_the_next_ranked(gt_twin_default: Path):
     """An obstacle (the yellow cube, 8 mm beside the blue box's long face, off-centre) blocks the best
     (central) grasp's finger: the step uses a lower-ranked grasp and still succeeds without collisions."""
@@ -135,48 +129,49 @@ def test_blocked_best_grasp_falls_back_to_the_next_ranked(gt_twin_default: Path)
     w = build_world(gt_twin_default, poses=poses, visual=False)
     ex = Executor(w, belief=poses, seed=0)
     step = load_task(None, w.manifest).steps[0]
-    from splattwin.robot import grasp as grasp_mod
-
-    best = grasp_mod.rank_grasps(ex._grasps("blue_box"), poses["blue_box"], w.base.matrix())[0]
+    best = ex.selector.ranked("blue_box", ex.belief)[0]
     r = ex.run_step(1, step)
     assert r.success and r.robot_collisions == 0 and r.object_collisions == 0, r.failure
-    assert r.grasp["tried"] > 1 and r.grasp["rejections"].get("approach collision", 0) >= 1
-    assert r.grasp["score"] < best.score
+    assert r.grasp.tried > 1 and r.grasp.rejections.get("approach collision", 0) >= 1
+    assert r.grasp.score < best.score
     # the cube was not pushed
     assert np.linalg.norm(w.object_pose("yellow_cube")[:2, 3] - cube[:2, 3]) < 0.002
 
 
+@pytest.mark.slow
 def test_failed_motion_plans_fall_back_to_next_grasp_and_place(gt_twin_default: Path, monkeypatch):
     """No transit path to the best grasp and no transfer path to the first place pose (the planner is
     made to fail once each): the step falls back to the next grasp and the next place pose."""
     from splattwin.robot.planning import PlanningError
+    from splattwin.robot.selection import place_targets
 
     w = build_world(gt_twin_default, visual=False)
     ex = Executor(w, seed=0)
     step = load_task(None, w.manifest).steps[0]
-    real_plan = ex._plan
+    real_plan = ex.motion.free_path
     failed = []
 
-    def flaky(q_goal, label):
+    def flaky(q_start, q_goal, label):
         kind = label.split("_")[-1]
         if kind not in failed:
             failed.append(kind)
             raise PlanningError(f"injected: no {kind} path")
-        return real_plan(q_goal, label)
+        return real_plan(q_start, q_goal, label)
 
-    monkeypatch.setattr(ex, "_plan", flaky)
-    first_place = ex._place_targets(step, "blue_box")[0]
+    monkeypatch.setattr(ex.motion, "free_path", flaky)
+    first_place = place_targets(step, "blue_box", ex.belief, w.manifest)[0]
     r = ex.run_step(1, step)
     assert failed == ["transit", "transfer"]
     assert r.success and r.robot_collisions == 0 and r.object_collisions == 0, r.failure
-    assert r.grasp["tried"] >= 2
-    assert [f.split(":")[0] for f in r.grasp["fallbacks"]] == ["transit", "transfer"]
+    assert r.grasp.tried >= 2
+    assert [f.split(":")[0] for f in r.grasp.fallbacks] == ["transit", "transfer"]
     # placed with another yaw than the first place option (the options differ in yaw)
     T = w.object_pose("blue_box")
     dyaw = np.arctan2(T[1, 0], T[0, 0]) - np.arctan2(first_place[1, 0], first_place[0, 0])
     assert np.cos(dyaw) < np.cos(np.radians(45))
 
 
+@pytest.mark.slow
 def test_all_motion_plans_failing_fails_the_step_with_reasons(gt_twin_default: Path, monkeypatch):
     from splattwin.robot.planning import PlanningError
 
@@ -184,20 +179,19 @@ def test_all_motion_plans_failing_fails_the_step_with_reasons(gt_twin_default: P
     ex = Executor(w, seed=0)
     step = load_task(None, w.manifest).steps[0]
 
-    def never(q_goal, label):
+    def never(q_start, q_goal, label):
         raise PlanningError("injected: blocked")
 
-    monkeypatch.setattr(ex, "_plan", never)
+    monkeypatch.setattr(ex.motion, "free_path", never)
     r = ex.run_step(1, step)
     assert not r.success and "no transit to any of" in r.failure and "blocked" in r.failure
-    assert len(r.grasp["fallbacks"]) == r.grasp["tried"] - sum(r.grasp["rejections"].values()) > 1
+    assert len(r.grasp.fallbacks) == r.grasp.tried - sum(r.grasp.rejections.values()) > 1
 
 
+@pytest.mark.slow
 def test_transfer_without_in_hand_sensing(gt_twin_default: Path):
     """in_hand="planned": the transfer assumes the object sits in the hand as grasped on the perceived
     pose (no in-hand estimate). With the box 4 mm off its twin pose the step still places it."""
-    import pytest
-
     w0 = build_world(gt_twin_default, visual=False)
     nominal = {o: w0.manifest.object(o).pose for o in w0.objects}
     task = load_task(None, w0.manifest)

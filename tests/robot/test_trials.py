@@ -41,6 +41,7 @@ def test_perturbation_statistics():
     assert np.std(yaw2) == pytest.approx(0.2, rel=0.06)
 
 
+@pytest.mark.slow
 def test_trials_in_process_pool_resume_after_kill(gt_twin_default: Path, tmp_path: Path):
     """Each finished trial is written atomically to trials/<i>.json; a re-run with the same seed, sigma
     and N reuses them and runs only the missing ones (as after a killed run)."""
@@ -57,8 +58,9 @@ def test_trials_in_process_pool_resume_after_kill(gt_twin_default: Path, tmp_pat
     stored = json.loads(files[0].read_text())
     assert stored["key"]["seed"] == 1 and stored["key"]["sigma"] == 0.005
     mtime = files[0].stat().st_mtime_ns
+    mtimes = [f.stat().st_mtime_ns for f in files]
     again = run_trials(spec, n=2, sigma=0.005, workers=2, progress=False, out_dir=tmp_path)
-    assert again["resumed"] == 2 and again["wall_s"] < 1.0
+    assert again["resumed"] == 2 and [f.stat().st_mtime_ns for f in files] == mtimes   # nothing re-run
     assert [r["success"] for r in again["results"]] == [r["success"] for r in summary["results"]]
     files[1].unlink()                          # trial 2 "killed" before it finished
     third = run_trials(spec, n=2, sigma=0.005, workers=2, progress=False, out_dir=tmp_path)

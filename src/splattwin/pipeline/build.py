@@ -8,7 +8,7 @@ Layout of the output folder TWIN (the twin folder itself):
     TWIN/splat/               point_cloud.ply, checkpoints, eval/ (held-out PSNR/SSIM, side-by-sides)
     TWIN/semantics/           labels.npy, fusion.json, label maps, per-object splats
     TWIN/twin.json, objects/, background/, export/   (the twin, see splattwin.twin)
-    TWIN/robot/               results.json, trajectories, frames, playback.npz   (with a task)
+    TWIN/robot/               results.json, trajectories, rollout.npz, playback.npz, frames   (with a task)
     TWIN/report/index.html    the self-contained report
 """
 
@@ -271,27 +271,9 @@ def _robot_stage(ctx: Context) -> dict:
         return {"results": "@robot/results.json", "success": False, "error": str(e)}
     # trials land in robot/trials/<i>.json: a killed build resumes them
     trials = run_trials(spec, o["trials"], o["sigma"], out_dir=out) if o["trials"] > 0 else None
+    # robot/rollout.npz and robot/playback.npz (the viewer's track) are written by the robot package
     write_outputs(out, spec, result, trials, render_note=note or "", frames=frames, wall_s=result.wall_s)
-    _write_playback(ctx, spec)
     return {"results": "@robot/results.json", "success": bool(result.success)}
-
-
-def _write_playback(ctx: Context, spec) -> None:
-    """Robot geometry posed along the executed trajectory, for the viewer (robot/playback.npz)."""
-    from splattwin.robot.trajectory import Trajectory
-    from splattwin.robot.world import build_world
-    from splattwin.viewer.app import robot_track_from_mujoco, save_robot_track
-
-    traj_path = ctx.path("robot/trajectory.json")
-    if not traj_path.is_file():
-        return
-    traj = Trajectory.load_json(traj_path)
-    world = build_world(ctx.out, base=spec.base)
-    step = max(1, len(traj.t) // 300)  # ~300 poses are plenty for playback
-    qpos = np.tile(world.data.qpos.copy(), (len(traj.t[::step]), 1))
-    qpos[:, world.arm_qpos_adr] = traj.q[::step, : len(world.arm_qpos_adr)]
-    track = robot_track_from_mujoco(world.model, qpos, traj.t[::step], bodies=world.robot_bodies)
-    save_robot_track(track, ctx.path("robot/playback.npz"))
 
 
 def _report_stage(ctx: Context) -> dict:

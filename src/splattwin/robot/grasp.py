@@ -17,7 +17,8 @@ extra rays over the pad area must find the same surface (no grasping a corner or
 
 Frames: T_obj_tcp maps TCP-frame points to the object frame. TCP frame: z = approach direction (out of
 the hand, towards the object), y = closing axis (finger motion), x = y × z — the Panda hand's convention.
-Ranking and IK/collision feasibility are in `rank_grasps` / `feasible_grasps` (execute.py calls them).
+Ranking is `rank_grasps`; selection for a support surface is in selection.py, IK/collision feasibility in
+candidates.py.
 """
 
 from __future__ import annotations

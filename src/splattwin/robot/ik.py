@@ -19,15 +19,16 @@ class ArmIK:
     def __init__(self, robot: RobotModel, T_world_base: np.ndarray, posture_cost: float = 1e-2):
         import mink
 
-        from splattwin.twin.mjcf import mat_to_quat_wxyz
+        from splattwin.robot.world import JointMap
+        from splattwin.transforms import quat_wxyz_from_matrix
 
         spec = robot.spec(visual=False)
         root = spec.body(robot.root_body)
         root.pos = np.asarray(T_world_base)[:3, 3].tolist()
-        root.quat = mat_to_quat_wxyz(np.asarray(T_world_base)[:3, :3]).tolist()
+        root.quat = quat_wxyz_from_matrix(np.asarray(T_world_base)[:3, :3]).tolist()
         self.model = spec.compile()
         self.robot = robot
-        self.arm_qadr = np.array([self.model.joint(n).qposadr[0] for n in robot.arm_joints])
+        self.joints = JointMap.from_model(self.model, robot)
         self.cfg = mink.Configuration(self.model)
         self.frame = mink.FrameTask(robot.tcp_site, "site", position_cost=1.0, orientation_cost=1.0, lm_damping=1e-3)
         self.posture = mink.PostureTask(self.model, cost=posture_cost)
@@ -36,9 +37,7 @@ class ArmIK:
         self.upper = self.model.jnt_range[[self.model.joint(n).id for n in robot.arm_joints], 1]
 
     def _full_q(self, q_arm: np.ndarray) -> np.ndarray:
-        q = self.model.qpos0.copy()
-        q[self.arm_qadr] = q_arm
-        return q
+        return self.joints.full(q_arm, self.model.qpos0)
 
     def fk(self, q_arm: np.ndarray) -> np.ndarray:
         """T_world_tcp [4,4] at arm configuration q_arm [n] (rad)."""
@@ -61,7 +60,7 @@ class ArmIK:
             err = self.frame.compute_error(self.cfg)
             e = np.linalg.norm(err[:3]) + 0.1 * np.linalg.norm(err[3:])
             if np.linalg.norm(err[:3]) < pos_tol and np.linalg.norm(err[3:]) < rot_tol:
-                q = self.cfg.q[self.arm_qadr].copy()
+                q = self.joints.arm(self.cfg.q)
                 if np.all(q >= self.lower - 1e-6) and np.all(q <= self.upper + 1e-6):
                     return np.clip(q, self.lower, self.upper)
                 return None

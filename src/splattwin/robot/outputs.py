@@ -6,6 +6,10 @@
     trajectory.json / .csv       the whole executed arm trajectory (segments + gripper holds), 100 Hz
     trajectory.ros2.yaml         the same as trajectory_msgs/JointTrajectory
     segments/<label>.json        each motion separately (transit, approach, lift, transfer, ...)
+    rollout.npz                  what physics did, every control step (`rollout.Rollout`: full qpos, arm and
+                                 gripper measured and commanded, object poses, task step)
+    playback.npz                 the robot's visual geometry posed along the rollout, for `splattwin view`
+                                 (`track.RobotTrack`; this module is its only writer)
     frames/frame_*.png           rendered frames (when an offscreen GL context exists)
 """
 
@@ -39,6 +43,7 @@ def write_outputs(out: str | Path, spec, result, trials: dict | None, render_not
             notes.append(f"no single trajectory file: {e}")
     if render_note:
         notes.append(render_note)
+    paths.update(write_rollout(out, spec, result))
     doc = {
         "twin": str(spec.twin_dir), "task": spec.task_path or "default (paper three-step rearrangement)",
         "base_pose": asdict(spec.base), "robot_mjcf": spec.robot_mjcf or "MuJoCo Menagerie franka_emika_panda",
@@ -49,6 +54,24 @@ def write_outputs(out: str | Path, spec, result, trials: dict | None, render_not
         "notes": notes, "wall_s": wall_s,
     }
     paths["results"] = io.write_json(out / "results.json", doc)
+    return paths
+
+
+def write_rollout(out: str | Path, spec, result) -> dict[str, Path]:
+    """OUT/rollout.npz and OUT/playback.npz (the viewer's track) from the result's rollout, if it has one.
+
+    The track is posed on a world with the robot's visual meshes (built here: the executing world may
+    have been built without them); the rollout's full qpos replays every body exactly."""
+    from splattwin.robot.track import write_playback
+    from splattwin.robot.world import build_world
+
+    rollout = getattr(result, "rollout", None)
+    if rollout is None or not len(rollout):
+        return {}
+    out = Path(out)
+    paths = {"rollout": rollout.save(out / "rollout.npz")}
+    world = build_world(spec.twin_dir, robot=spec.robot_model(), base=spec.base, visual=True)
+    paths["playback"] = write_playback(out / "playback.npz", world, rollout)
     return paths
 
 

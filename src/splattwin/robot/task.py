@@ -27,13 +27,14 @@ import numpy as np
 import yaml
 
 from splattwin.errors import InputError
+from splattwin.transforms import make_pose, rot_z
 from splattwin.twin.manifest import Manifest
 from splattwin.twin.mjcf import check_scaled
 
 REACH_MAX = 0.80     # m, horizontal distance from the base the Panda reaches top-down with margin
 REACH_MIN = 0.20     # m, closer than this the arm folds into itself
 GRIP_BELOW_TOP = 0.02   # m: the IK check puts the TCP this far below an object's top (at most half its height)
-PRE_PLACE_RISE = 0.10   # m: pre-place pose above the place pose (execute.LIFT)
+PRE_PLACE_RISE = 0.10   # m: pre-place pose above the place pose (candidates.LIFT)
 
 
 @dataclass
@@ -148,19 +149,12 @@ def _tcp_poses(xyz: np.ndarray, base_xy: np.ndarray) -> list[np.ndarray]:
     out = []
     flip = np.diag([1.0, -1.0, -1.0])
     for k in range(8):
-        c, s = math.cos(k * math.pi / 4), math.sin(k * math.pi / 4)
-        T = np.eye(4)
-        T[:3, :3] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]) @ flip
-        T[:3, 3] = xyz
-        out.append(T)
+        out.append(make_pose(rot_z(k * math.pi / 4) @ flip, xyz))
     radial = np.append(np.asarray(xyz)[:2] - base_xy, 0.0)
     if np.linalg.norm(radial) > 1e-6:
         z = radial / np.linalg.norm(radial)
         y = np.cross([0.0, 0.0, 1.0], z)
-        T = np.eye(4)
-        T[:3, :3] = np.column_stack([np.cross(y, z), y, z])
-        T[:3, 3] = xyz
-        out.append(T)
+        out.append(make_pose(np.column_stack([np.cross(y, z), y, z]), xyz))
     return out
 
 

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from splattwin.robot.world import BasePose
+from splattwin.transforms import rot_z
 
 YAW_LEVER = 0.10   # m: default sigma_yaw = sigma / YAW_LEVER (a point this far from the centre moves by sigma)
 SIGMA_DEFINITION = ("sigma: per-axis standard deviation (m) of each object's x and y position error, drawn "
@@ -54,10 +55,7 @@ def perturb_poses(poses: dict[str, np.ndarray], sigma: float, rng: np.random.Gen
     for name, T in poses.items():
         T = np.asarray(T, float).copy()
         dx, dy = rng.normal(0.0, sigma, 2)
-        a = rng.normal(0.0, sigma_yaw)
-        c, s = math.cos(a), math.sin(a)
-        Rz = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-        T[:3, :3] = Rz @ T[:3, :3]
+        T[:3, :3] = rot_z(rng.normal(0.0, sigma_yaw)) @ T[:3, :3]
         T[:2, 3] += [dx, dy]
         out[name] = T
     return out
@@ -76,11 +74,16 @@ class TrialSpec:
     planner: str = "RRTConnect"
     in_hand: str = "sensed"          # held object's pose for the transfer: "sensed" | "planned" (execute.py)
 
+    def robot_model(self):
+        """The `RobotModel` this spec names: the user's MJCF with its TCP site, else the Menagerie Panda."""
+        from splattwin.robot.assets import RobotModel
+
+        return RobotModel.from_mjcf(self.robot_mjcf, tcp_site=self.tcp_site) if self.robot_mjcf else RobotModel.panda()
+
 
 def run_once(spec: TrialSpec, frame_dir: str | Path | None = None, keep_trajectories: bool = False):
-    """Build the world (perturbed when sigma > 0), validate the task, execute it. Returns RunResult
-    (+ the recorder's note when frames were asked for)."""
-    from splattwin.robot.assets import RobotModel
+    """Build the world (perturbed when sigma > 0), validate the task, execute it. Returns (RunResult, the
+    frame recorder's note, frame paths); keep_trajectories: the result keeps its trajectories and rollout."""
     from splattwin.robot.execute import Executor
     from splattwin.robot.task import load_task, validate_task
     from splattwin.robot.world import build_world
@@ -88,7 +91,7 @@ def run_once(spec: TrialSpec, frame_dir: str | Path | None = None, keep_trajecto
 
     manifest = Manifest.load(spec.twin_dir)
     task = load_task(spec.task_path, manifest)
-    robot = RobotModel.from_mjcf(spec.robot_mjcf, tcp_site=spec.tcp_site) if spec.robot_mjcf else RobotModel.panda()
+    robot = spec.robot_model()
     validate_task(task, manifest, spec.twin_dir, spec.base.matrix(), robot=robot)
     nominal = {o.name: o.pose for o in manifest.objects if o.usable}
     poses = perturb_poses(nominal, spec.sigma, np.random.default_rng(spec.seed), spec.sigma_yaw) if spec.sigma > 0 else None
@@ -109,6 +112,7 @@ def run_once(spec: TrialSpec, frame_dir: str | Path | None = None, keep_trajecto
             rec.close()
     if not keep_trajectories:
         result.trajectories = []
+        result.rollout = None
     return result, (rec.note if rec is not None else ""), (rec.paths if rec is not None else [])
 
 

@@ -3,6 +3,11 @@
 Frames: the twin frame is MuJoCo's world frame (z up, table top at z = table_height, metres). The robot's
 root body is placed at `BasePose` (x, y, z in metres, yaw in radians about +z). Default: beside the table
 at (-0.50, 0, 0) facing +x (docs/CONTRACTS.md). Nothing here needs an OpenGL context.
+
+`World` owns named frames and joint addressing, as mink's `Configuration` does for IK: callers ask for
+the arm's joints, the gripper opening, an object's pose or a body's pose by name and never do qpos /
+qvel address arithmetic themselves. `JointMap` is that addressing for one model; it also reads recorded
+state arrays (qpos [..., nq]), so a rollout and the live simulation are read the same way.
 """
 
 from __future__ import annotations
@@ -15,8 +20,9 @@ import numpy as np
 
 from splattwin.errors import InputError
 from splattwin.robot.assets import RobotModel
+from splattwin.transforms import make_pose, pos_quat_wxyz_from_pose, pose_from_pos_quat_wxyz, pose_xyz_yaw
 from splattwin.twin.manifest import Manifest
-from splattwin.twin.mjcf import add_twin, check_scaled, mat_to_quat_wxyz
+from splattwin.twin.mjcf import add_twin, check_scaled
 
 
 @dataclass(frozen=True)
@@ -41,35 +47,124 @@ class BasePose:
 
     def matrix(self) -> np.ndarray:
         """T_world_base [4,4]."""
-        c, s = math.cos(self.yaw), math.sin(self.yaw)
-        T = np.eye(4)
-        T[:2, :2] = [[c, -s], [s, c]]
-        T[:3, 3] = [self.x, self.y, self.z]
-        return T
+        return pose_xyz_yaw(self.x, self.y, self.z, self.yaw)
 
 
-def pose_from_qpos(qpos7: np.ndarray) -> np.ndarray:
-    """Free-joint qpos [7] (pos, quat wxyz) -> T_world_body [4,4]."""
-    import mujoco
+@dataclass(frozen=True)
+class JointMap:
+    """Where the robot's joints and the objects' free joints live in one model's qpos / qvel.
 
-    T = np.eye(4)
-    R = np.zeros(9)
-    mujoco.mju_quat2Mat(R, np.asarray(qpos7[3:7], dtype=np.float64))
-    T[:3, :3] = R.reshape(3, 3)
-    T[:3, 3] = qpos7[:3]
-    return T
+    Every accessor takes the state array it reads or writes, the live `MjData.qpos` [nq] or a recorded
+    [..., nq] array, so that recorded and simulated states are addressed by the same code. Arm joints
+    are in `RobotModel.arm_joints` order; finger joints are the gripper's slide joints (their sum is the
+    distance between the fingers, m); an object's free joint holds position (m) and quaternion (wxyz).
+    """
+
+    nq: int
+    arm_qpos: np.ndarray                  # [n_arm] qpos addresses
+    arm_dof: np.ndarray                   # [n_arm] qvel / qfrc addresses
+    finger_qpos: np.ndarray               # [k] qpos addresses of the fingers' slide joints
+    object_qpos: dict[str, int] = field(default_factory=dict)   # name -> first of 7 free-joint qpos
+    object_dof: dict[str, int] = field(default_factory=dict)    # name -> first of 6 free-joint dofs
+
+    @classmethod
+    def from_model(cls, model, robot: RobotModel, objects: list[str] = ()) -> "JointMap":
+        """Addresses in `model` of the robot's joints and of the free joints `<object>/free`."""
+        import mujoco
+
+        arm = [model.joint(n) for n in robot.arm_joints]
+        slide = int(mujoco.mjtJoint.mjJNT_SLIDE)
+        fingers = [model.joint(n) for n in robot.gripper_joints if int(model.joint(n).type[0]) == slide]
+        free = {o: model.joint(f"{o}/free") for o in objects}
+        return cls(nq=int(model.nq), arm_qpos=np.array([int(j.qposadr[0]) for j in arm]),
+                   arm_dof=np.array([int(j.dofadr[0]) for j in arm]),
+                   finger_qpos=np.array([int(j.qposadr[0]) for j in fingers], dtype=int),
+                   object_qpos={o: int(j.qposadr[0]) for o, j in free.items()},
+                   object_dof={o: int(j.dofadr[0]) for o, j in free.items()})
+
+    # -- arm and gripper -------------------------------------------------------------------------------
+    def arm(self, qpos: np.ndarray) -> np.ndarray:
+        """Arm joints [..., n_arm] (rad) of qpos [..., nq] (a copy)."""
+        return np.asarray(qpos)[..., self.arm_qpos].copy()
+
+    def set_arm(self, qpos: np.ndarray, q_arm: np.ndarray) -> None:
+        """Write arm joints q_arm [..., n_arm] (rad) into qpos [..., nq] in place."""
+        qpos[..., self.arm_qpos] = q_arm
+
+    def full(self, q_arm: np.ndarray, base_qpos: np.ndarray) -> np.ndarray:
+        """A copy of base_qpos [nq] with the arm at q_arm [n_arm]."""
+        q = np.array(base_qpos, dtype=float)
+        self.set_arm(q, q_arm)
+        return q
+
+    def gripper_width(self, qpos: np.ndarray) -> np.ndarray:
+        """Distance between the fingers [...] (m): the sum of the finger slide joints."""
+        return np.asarray(qpos)[..., self.finger_qpos].sum(axis=-1)
+
+    def set_gripper_width(self, qpos: np.ndarray, width: float) -> None:
+        """Open the fingers symmetrically to `width` m (in place)."""
+        if len(self.finger_qpos):
+            qpos[..., self.finger_qpos] = width / len(self.finger_qpos)
+
+    # -- objects --------------------------------------------------------------------------------------
+    def _object(self, name: str) -> int:
+        try:
+            return self.object_qpos[name]
+        except KeyError:
+            raise KeyError(f"no free object named {name!r} (objects: {', '.join(self.object_qpos)})") from None
+
+    def object_pose(self, qpos: np.ndarray, name: str) -> np.ndarray:
+        """T_world_obj [..., 4, 4] of a free object in qpos [..., nq]."""
+        a = self._object(name)
+        q = np.asarray(qpos)
+        return pose_from_pos_quat_wxyz(q[..., a:a + 3], q[..., a + 3:a + 7])
+
+    def set_object_pose(self, qpos: np.ndarray, name: str, T_world_obj: np.ndarray) -> None:
+        """Write T_world_obj [4,4] into the object's free joint in qpos (in place)."""
+        a = self._object(name)
+        p, q = pos_quat_wxyz_from_pose(T_world_obj)
+        qpos[..., a:a + 3] = p
+        qpos[..., a + 3:a + 7] = q
+
+    def object_velocity(self, qvel: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """(linear [...,3] m/s in the world frame, angular [...,3] rad/s in the body frame) of a free object."""
+        self._object(name)
+        a = self.object_dof[name]
+        v = np.asarray(qvel)
+        return v[..., a:a + 3].copy(), v[..., a + 3:a + 6].copy()
 
 
-def qpos_from_pose(T: np.ndarray) -> np.ndarray:
-    return np.concatenate([np.asarray(T)[:3, 3], mat_to_quat_wxyz(np.asarray(T)[:3, :3])])
+@dataclass(frozen=True)
+class Contacts:
+    """The contacts of one simulation instant, per contact k: bodies (ids) body1/body2 [K], signed
+    distance dist [K] (m, < 0 penetrating), normal [K,3] (world, from body1 towards body2), pos [K,3] (m)."""
+
+    body1: np.ndarray
+    body2: np.ndarray
+    dist: np.ndarray
+    normal: np.ndarray
+    pos: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.dist)
+
+    def involving(self, body: int) -> np.ndarray:
+        """[K] bool: contacts with `body` on either side."""
+        return (self.body1 == body) | (self.body2 == body)
+
+    def partners(self, body: int) -> set[int]:
+        """Bodies touching (or within the contact margin of) `body`."""
+        sel = self.involving(body)
+        return {int(b2) if b1 == body else int(b1) for b1, b2 in zip(self.body1[sel], self.body2[sel])}
 
 
 @dataclass
 class World:
-    """Compiled world and the indices the robot stage needs.
+    """Compiled world (model + data) and named access to its state.
 
-    arm_qpos_adr / arm_dof_adr: [n_arm] addresses of the arm joints. arm_act / grip_act: actuator ids.
-    obj_qpos_adr: free-joint qpos address per object name. robot_bodies: body ids of the robot.
+    objects: the free objects' names. joints: qpos/qvel addressing (`JointMap`). robot_bodies: body ids
+    of the robot. Bodies, sites and objects are addressed by name; body ids appear only where contacts
+    are scanned every physics step.
     """
 
     model: object
@@ -79,54 +174,172 @@ class World:
     twin_dir: Path
     base: BasePose
     objects: list[str]
-    arm_qpos_adr: np.ndarray
-    arm_dof_adr: np.ndarray
+    joints: JointMap
     arm_act: np.ndarray
     grip_act: int
     tcp_site: int
-    obj_qpos_adr: dict[str, int]
-    obj_body: dict[str, int]
     robot_bodies: set[int] = field(default_factory=set)
 
-    # -- state ------------------------------------------------------------------------------------
+    def __post_init__(self) -> None:
+        self.is_robot = np.zeros(self.model.nbody, bool)
+        self.is_robot[list(self.robot_bodies)] = True
+
+    # -- names ------------------------------------------------------------------------------------------
+    def body_id(self, name: str) -> int:
+        """Body id of a named body ('world' is 0)."""
+        return 0 if name == "world" else int(self.model.body(name).id)
+
+    def body_name(self, b: int) -> str:
+        import mujoco
+
+        return mujoco.mj_id2name(self.model, mujoco.mjtObj.mjOBJ_BODY, int(b)) or "world"
+
+    def object_body(self, name: str) -> int:
+        if name not in self.joints.object_qpos:
+            raise KeyError(f"no free object named {name!r}")
+        return self.body_id(name)
+
+    @property
+    def tcp_body(self) -> int:
+        """Body id of the body holding the TCP site (the Panda's hand)."""
+        return int(self.model.site_bodyid[self.tcp_site])
+
+    @property
+    def finger_bodies(self) -> set[int]:
+        """Body ids of the hand's bodies below the TCP body (the fingers)."""
+        return {self.body_id(n) for n in self.robot.hand_bodies} - {self.tcp_body}
+
+    # -- state: arm and gripper ---------------------------------------------------------------------------
+    @property
+    def time(self) -> float:
+        """s of simulated time."""
+        return float(self.data.time)
+
+    def qpos(self) -> np.ndarray:
+        """The whole simulation configuration [nq] (a copy; for recording and exact replay)."""
+        return self.data.qpos.copy()
+
     def arm_q(self) -> np.ndarray:
-        return self.data.qpos[self.arm_qpos_adr].copy()
+        """Measured arm joints [n_arm] (rad)."""
+        return self.joints.arm(self.data.qpos)
+
+    def gripper_width(self) -> float:
+        """Measured distance between the fingers (m)."""
+        return float(self.joints.gripper_width(self.data.qpos))
+
+    def gripper_width_of_ctrl(self, ctrl: float | np.ndarray) -> float | np.ndarray:
+        """Commanded finger distance (m) of a gripper actuator command: `gripper_closed` -> 0, `gripper_open`
+        -> max_opening, linear in between (the Panda's tendon servo)."""
+        r = self.robot
+        return (np.asarray(ctrl, float) - r.gripper_closed) / (r.gripper_open - r.gripper_closed) * r.max_opening
 
     def set_arm(self, q: np.ndarray, gripper_open: bool = True) -> None:
         """Teleport the arm (and servo targets) to q, gripper open or closed; recompute kinematics."""
         import mujoco
 
         d = self.data
-        d.qpos[self.arm_qpos_adr] = q
-        d.qvel[self.arm_dof_adr] = 0.0
+        self.joints.set_arm(d.qpos, q)
+        d.qvel[self.joints.arm_dof] = 0.0
         d.ctrl[self.arm_act] = q
-        half = self.robot.max_opening / 2 if gripper_open else 0.0
-        for name in self.robot.gripper_joints:
-            j = self.model.joint(name)
-            d.qpos[j.qposadr[0]] = half
+        self.joints.set_gripper_width(d.qpos, self.robot.max_opening if gripper_open else 0.0)
         d.ctrl[self.grip_act] = self.robot.gripper_open if gripper_open else self.robot.gripper_closed
         mujoco.mj_forward(self.model, d)
 
+    # -- stepping the servos -----------------------------------------------------------------------------
+    def command_gripper(self, ctrl: float) -> None:
+        """Gripper actuator command (robot units: gripper_closed .. gripper_open)."""
+        self.data.ctrl[self.grip_act] = ctrl
+
+    def gripper_command(self) -> float:
+        return float(self.data.ctrl[self.grip_act])
+
+    def step(self, q_target: np.ndarray) -> None:
+        """One physics step with the arm's position servos at q_target [n_arm] (rad) and gravity/Coriolis
+        compensation applied as joint forces (as the Franka controller does)."""
+        import mujoco
+
+        d = self.data
+        dof = self.joints.arm_dof
+        d.ctrl[self.arm_act] = q_target
+        d.qfrc_applied[:] = 0.0
+        d.qfrc_applied[dof] = d.qfrc_bias[dof]
+        mujoco.mj_step(self.model, d)
+
+    def contacts(self) -> Contacts:
+        """The current contacts (after mj_step / mj_forward) by body."""
+        d, m = self.data, self.model
+        n = d.ncon
+        geoms = d.contact.geom[:n]
+        return Contacts(body1=m.geom_bodyid[geoms[:, 0]], body2=m.geom_bodyid[geoms[:, 1]],
+                        dist=d.contact.dist[:n].copy(), normal=d.contact.frame[:n, :3].copy(),
+                        pos=d.contact.pos[:n].copy())
+
+    def contact_bodies(self) -> tuple[np.ndarray, np.ndarray]:
+        """(body pairs [K,2], signed distances [K] m) of the current contacts: the cheap form for per-step scans."""
+        d = self.data
+        n = d.ncon
+        return self.model.geom_bodyid[d.contact.geom[:n]], d.contact.dist[:n]
+
+    # -- state: objects and frames ----------------------------------------------------------------------
     def object_pose(self, name: str) -> np.ndarray:
         """T_world_obj [4,4] of a free object now."""
-        a = self.obj_qpos_adr[name]
-        return pose_from_qpos(self.data.qpos[a:a + 7])
+        return self.joints.object_pose(self.data.qpos, name)
 
     def set_object_pose(self, name: str, T: np.ndarray) -> None:
-        a = self.obj_qpos_adr[name]
-        self.data.qpos[a:a + 7] = qpos_from_pose(T)
+        """Teleport a free object to T_world_obj [4,4], at rest (kinematics follow at the next step/forward)."""
+        self.joints.set_object_pose(self.data.qpos, name, T)
+        self.data.qvel[self.joints.object_dof[name]:self.joints.object_dof[name] + 6] = 0.0
+
+    def forward(self) -> None:
+        """Recompute kinematics, contacts and forces of the current state (mj_forward)."""
+        import mujoco
+
+        mujoco.mj_forward(self.model, self.data)
+
+    def object_speed(self, name: str) -> float:
+        """Linear speed (m/s) of a free object's body origin now."""
+        lin, _ = self.joints.object_velocity(self.data.qvel, name)
+        return float(np.linalg.norm(lin))
+
+    def body_pose(self, name: str) -> np.ndarray:
+        """T_world_body [4,4] of a named body now (after kinematics)."""
+        b = self.body_id(name)
+        return make_pose(self.data.xmat[b].reshape(3, 3), self.data.xpos[b])
+
+    def site_pose(self, name: str) -> np.ndarray:
+        """T_world_site [4,4] of a named site now."""
+        s = int(self.model.site(name).id)
+        return make_pose(self.data.site_xmat[s].reshape(3, 3), self.data.site_xpos[s])
 
     def tcp_pose(self) -> np.ndarray:
         """T_world_tcp [4,4] now (after mj_forward / mj_step)."""
-        T = np.eye(4)
-        T[:3, :3] = self.data.site_xmat[self.tcp_site].reshape(3, 3)
-        T[:3, 3] = self.data.site_xpos[self.tcp_site]
-        return T
+        return make_pose(self.data.site_xmat[self.tcp_site].reshape(3, 3), self.data.site_xpos[self.tcp_site])
 
-    def body_name(self, b: int) -> str:
+    def tcp_poses(self, qpos: np.ndarray) -> np.ndarray:
+        """T_world_tcp [T,4,4] for recorded configurations qpos [T,nq] (forward kinematics on a scratch
+        copy of the state; the simulation is not touched)."""
         import mujoco
 
-        return mujoco.mj_id2name(self.model, mujoco.mjtObj.mjOBJ_BODY, int(b)) or "world"
+        d = mujoco.MjData(self.model)
+        out = np.zeros((len(qpos), 4, 4))
+        for k, q in enumerate(np.atleast_2d(qpos)):
+            d.qpos[:] = q
+            mujoco.mj_kinematics(self.model, d)
+            out[k] = make_pose(d.site_xmat[self.tcp_site].reshape(3, 3), d.site_xpos[self.tcp_site])
+        return out
+
+    def planning_state(self, object_poses: dict[str, np.ndarray], q_arm: np.ndarray, gripper_width: float):
+        """A detached `MjData` of this world with the objects at `object_poses` (T_world_obj, e.g. the
+        robot's belief), the arm at q_arm and the fingers `gripper_width` m apart; the rest as now."""
+        import mujoco
+
+        d = mujoco.MjData(self.model)
+        d.qpos[:] = self.data.qpos
+        for o, T in object_poses.items():
+            self.joints.set_object_pose(d.qpos, o, T)
+        self.joints.set_arm(d.qpos, q_arm)
+        self.joints.set_gripper_width(d.qpos, gripper_width)
+        return d
 
 
 def build_world(twin_dir: str | Path, manifest: Manifest | None = None, robot: RobotModel | None = None,
@@ -135,6 +348,8 @@ def build_world(twin_dir: str | Path, manifest: Manifest | None = None, robot: R
     """Compile twin + robot. poses: optional T_world_obj overrides (perturbed trials). visual=False:
     without the robot's visual meshes (same physics, fast compile; nothing to render)."""
     import mujoco
+
+    from splattwin.transforms import quat_wxyz_from_matrix
 
     twin_dir = Path(twin_dir)
     manifest = manifest or Manifest.load(twin_dir)
@@ -145,7 +360,7 @@ def build_world(twin_dir: str | Path, manifest: Manifest | None = None, robot: R
     root = spec.body(robot.root_body)
     T = base.matrix()
     root.pos = T[:3, 3].tolist()
-    root.quat = mat_to_quat_wxyz(T[:3, :3]).tolist()
+    root.quat = quat_wxyz_from_matrix(T[:3, :3]).tolist()
     spec.modelname = "splattwin_world"
     _stiffen_gripper(spec, robot)
     objects = add_twin(spec, manifest, twin_dir, poses=poses)
@@ -156,19 +371,13 @@ def build_world(twin_dir: str | Path, manifest: Manifest | None = None, robot: R
     except ValueError as e:
         raise InputError(f"world does not compile: {e}", twin_dir / "twin.json") from e
     data = mujoco.MjData(model)
-    jid = lambda n: model.joint(n).id  # noqa: E731
-    arm_j = [jid(n) for n in robot.arm_joints]
-    obj_qpos = {o: int(model.jnt_qposadr[model.joint(f"{o}/free").id]) for o in objects}
-    obj_body = {o: model.body(o).id for o in objects}
     root_id = model.body(robot.root_body).id
     robot_bodies = {b for b in range(model.nbody) if _under(model, b, root_id)}
     w = World(model=model, data=data, robot=robot, manifest=manifest, twin_dir=twin_dir, base=base,
-              objects=objects, arm_qpos_adr=np.array([model.jnt_qposadr[j] for j in arm_j]),
-              arm_dof_adr=np.array([model.jnt_dofadr[j] for j in arm_j]),
+              objects=objects, joints=JointMap.from_model(model, robot, objects),
               arm_act=np.array([model.actuator(n).id for n in robot.arm_actuators]),
               grip_act=model.actuator(robot.gripper_actuator).id,
-              tcp_site=model.site(robot.tcp_site).id, obj_qpos_adr=obj_qpos, obj_body=obj_body,
-              robot_bodies=robot_bodies)
+              tcp_site=model.site(robot.tcp_site).id, robot_bodies=robot_bodies)
     w.set_arm(robot.home, gripper_open=True)
     return w
 
@@ -185,7 +394,7 @@ def hand_points_tcp(world: World) -> np.ndarray:
     m, d = world.model, world.data
     mujoco.mj_kinematics(m, d)
     T = world.tcp_pose()
-    hand = {m.body(b).id for b in world.robot.hand_bodies}
+    hand = {world.body_id(b) for b in world.robot.hand_bodies}
     corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
     pts = []
     for g in range(m.ngeom):

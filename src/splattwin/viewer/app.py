@@ -10,12 +10,13 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from splattwin.errors import InputError
+from splattwin.robot.track import RobotTrack
+from splattwin.transforms import quat_wxyz_from_matrix
 from splattwin.twin.manifest import Manifest
 
 log = logging.getLogger(__name__)
@@ -27,78 +28,6 @@ def label_colors(labels: np.ndarray) -> np.ndarray:
 
     labels = np.maximum(np.asarray(labels, dtype=np.int64), 0)
     return palette(int(labels.max(initial=0)))[labels]
-
-
-def quat_wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
-    return np.array([w, x, y, z])
-
-
-@dataclass
-class RobotTrack:
-    """A robot to draw: per-geom meshes in geom frames and their world poses over time."""
-
-    names: list[str]
-    vertices: list[np.ndarray]
-    faces: list[np.ndarray]
-    colors: list[tuple[int, int, int]]
-    positions: np.ndarray  # [T, G, 3]
-    rotations: np.ndarray  # [T, G, 3, 3]
-    times: np.ndarray = field(default_factory=lambda: np.zeros(1))
-
-
-def robot_track_from_mujoco(model, qpos: np.ndarray, times: np.ndarray | None = None,
-                            bodies: set[int] | None = None) -> RobotTrack:
-    """Visual geoms of the given bodies (all non-world bodies if None), posed for each row of
-    `qpos` [T, nq] by forward kinematics."""
-    import mujoco
-    import trimesh
-
-    data = mujoco.MjData(model)
-    geoms = []
-    for g in range(model.ngeom):
-        body = model.geom_bodyid[g]
-        if body == 0 or (bodies is not None and body not in bodies):
-            continue
-        if model.geom_group[g] > 2:  # collision-only groups in menagerie models
-            continue
-        gt = model.geom_type[g]
-        size = model.geom_size[g]
-        if gt == mujoco.mjtGeom.mjGEOM_MESH:
-            m = model.geom_dataid[g]
-            va, vn = model.mesh_vertadr[m], model.mesh_vertnum[m]
-            fa, fn = model.mesh_faceadr[m], model.mesh_facenum[m]
-            V, F = model.mesh_vert[va:va + vn].copy(), model.mesh_face[fa:fa + fn].copy()
-        elif gt == mujoco.mjtGeom.mjGEOM_BOX:
-            tm = trimesh.creation.box(extents=2 * size)
-            V, F = tm.vertices, tm.faces
-        elif gt == mujoco.mjtGeom.mjGEOM_CAPSULE:
-            tm = trimesh.creation.capsule(height=2 * size[1], radius=size[0])
-            V, F = tm.vertices, tm.faces
-        elif gt == mujoco.mjtGeom.mjGEOM_CYLINDER:
-            tm = trimesh.creation.cylinder(radius=size[0], height=2 * size[1])
-            V, F = tm.vertices, tm.faces
-        elif gt == mujoco.mjtGeom.mjGEOM_SPHERE:
-            tm = trimesh.creation.icosphere(radius=size[0], subdivisions=2)
-            V, F = tm.vertices, tm.faces
-        else:
-            continue
-        rgba = model.geom_rgba[g]
-        geoms.append((g, V.astype(np.float32), F.astype(np.uint32), tuple(int(255 * c) for c in rgba[:3])))
-    qpos = np.atleast_2d(qpos)
-    P = np.zeros((len(qpos), len(geoms), 3))
-    R = np.zeros((len(qpos), len(geoms), 3, 3))
-    for t, q in enumerate(qpos):
-        data.qpos[:] = q
-        mujoco.mj_kinematics(model, data)
-        for k, (g, *_rest) in enumerate(geoms):
-            P[t, k] = data.geom_xpos[g]
-            R[t, k] = data.geom_xmat[g].reshape(3, 3)
-    return RobotTrack(names=[f"g{g}" for g, *_ in geoms], vertices=[v for _, v, _, _ in geoms],
-                      faces=[f for _, _, f, _ in geoms], colors=[c for *_, c in geoms], positions=P, rotations=R,
-                      times=np.arange(len(qpos), dtype=float) if times is None else np.asarray(times))
 
 
 def workspace_mask(means: np.ndarray, background, margin: float = 0.3, height: float = 1.0) -> np.ndarray:
@@ -218,6 +147,13 @@ def build_scene(server, twin_dir: Path, robot: RobotTrack | None = None) -> dict
                 h = handles[f"robot/{name}"]
                 h.position = robot.positions[t, k]
                 h.wxyz = quat_wxyz_from_matrix(robot.rotations[t, k])
+            # the objects' collision meshes follow the recorded motion (the splats stay where captured)
+            for obj_name, poses in robot.object_poses.items():
+                T = poses[t]
+                for key, h in handles.items():
+                    if key.startswith(f"col/{obj_name}/"):
+                        h.position = T[:3, 3]
+                        h.wxyz = quat_wxyz_from_matrix(T[:3, :3])
 
         @slider.on_update
         def _(_e) -> None:
@@ -235,28 +171,9 @@ def build_scene(server, twin_dir: Path, robot: RobotTrack | None = None) -> dict
 
 
 def load_robot_track(twin_dir: Path) -> RobotTrack | None:
-    """The robot and its executed trajectory recorded by `splattwin plan` (robot/playback.npz), if any."""
+    """The robot and its executed motion recorded by `splattwin plan` (robot/playback.npz), if any."""
     p = Path(twin_dir) / "robot" / "playback.npz"
-    if not p.is_file():
-        return None
-    d = np.load(p, allow_pickle=False)
-    return RobotTrack(names=[str(n) for n in d["names"]],
-                      vertices=[d[f"v{k}"] for k in range(len(d["names"]))],
-                      faces=[d[f"f{k}"] for k in range(len(d["names"]))],
-                      colors=[tuple(int(c) for c in col) for col in d["colors"]],
-                      positions=d["positions"], rotations=d["rotations"], times=d["times"])
-
-
-def save_robot_track(track: RobotTrack, path: Path) -> Path:
-    from splattwin import io
-
-    arrays = {"names": np.array(track.names), "colors": np.array(track.colors, np.uint8),
-              "positions": track.positions.astype(np.float32), "rotations": track.rotations.astype(np.float32),
-              "times": np.asarray(track.times, np.float64)}
-    for k in range(len(track.names)):
-        arrays[f"v{k}"] = track.vertices[k]
-        arrays[f"f{k}"] = track.faces[k]
-    return io.write_npz(path, **arrays)
+    return RobotTrack.load(p) if p.is_file() else None
 
 
 def serve(twin_dir: str | Path, host: str = "127.0.0.1", port: int = 8080, block: bool = True):

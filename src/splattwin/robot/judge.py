@@ -1,0 +1,99 @@
+"""Judging a pick-and-place step, as in the paper: grasped and lifted, placed in the goal at rest, no collisions.
+
+The geometric tests are plain functions of poses and extents (twin frame, metres, radians) so they can
+be checked on hand-made cases; `judge_grasp` / `judge_place` read them off the simulated world.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from splattwin.robot.monitor import ContactKind, MonitorState
+from splattwin.robot.task import Region, Step
+
+LIFT_FRACTION = 0.6          # grasped: the object rose at least this fraction of the commanded lift
+REST_SPEED = 0.01            # m/s: at rest below this linear speed
+TILT_MAX = math.radians(10)  # at rest: upright within this tilt
+HEIGHT_TOL = 0.015           # m: resting on its support within this height error
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Verdict on where a released object ended: inside the goal and on it (placed), still and upright
+    (at_rest); speed m/s, tilt rad from upright."""
+
+    placed: bool
+    at_rest: bool
+    speed: float
+    tilt: float
+
+
+def tilt_of(T_world_obj: np.ndarray) -> float:
+    """rad between the object's z axis and the world's +z."""
+    return math.acos(float(np.clip(np.asarray(T_world_obj)[2, 2], -1, 1)))
+
+
+def at_rest(speed: float, T_world_obj: np.ndarray) -> bool:
+    return bool(speed < REST_SPEED and tilt_of(T_world_obj) < TILT_MAX)
+
+
+def placed_on(T_world_obj: np.ndarray, extent: np.ndarray, T_world_support: np.ndarray,
+              support_extent: np.ndarray) -> bool:
+    """The object's centre lies over the support's top face and at the height of resting on it."""
+    ext, sup = np.asarray(extent, float), np.asarray(support_extent, float)
+    p = np.linalg.inv(T_world_support) @ np.append(np.asarray(T_world_obj)[:3, 3], 1.0)
+    inside = abs(p[0]) <= sup[0] / 2 and abs(p[1]) <= sup[1] / 2
+    on_top = abs(p[2] - (sup[2] / 2 + ext[2] / 2)) < HEIGHT_TOL
+    return bool(inside and on_top)
+
+
+def placed_in(T_world_obj: np.ndarray, extent: np.ndarray, region: Region, table_height: float) -> bool:
+    """Every bounding-box corner of the object's footprint lies inside the region, resting on the table."""
+    T, ext = np.asarray(T_world_obj), np.asarray(extent, float)
+    corners = np.array([[sx * ext[0] / 2, sy * ext[1] / 2, 0, 1] for sx in (-1, 1) for sy in (-1, 1)])
+    xy = (T @ corners.T).T[:, :2]
+    inside = all(region.contains_xy(c) for c in xy)
+    on_table = abs(T[2, 3] - ext[2] / 2 - table_height) < HEIGHT_TOL
+    return bool(inside and on_table)
+
+
+def is_held(world, obj: str) -> bool:
+    """Both fingers touch the object now."""
+    fingers = world.finger_bodies
+    touched = world.contacts().partners(world.object_body(obj))
+    return len(fingers & touched) >= min(2, len(fingers))
+
+
+def judge_grasp(lifted_m: float, lift_m: float, held: bool) -> bool:
+    """Grasped: the object rose with the hand (at least LIFT_FRACTION of the lift, m) and both fingers hold it."""
+    return bool(lifted_m > LIFT_FRACTION * lift_m and held)
+
+
+def judge_place(world, step: Step, obj: str) -> Placement:
+    """Where the released object `obj` ended, against the step's goal (an object to stand on or a region)."""
+    T = world.object_pose(obj)
+    ext = np.asarray(world.manifest.object(obj).bbox_extent, float)
+    speed = world.object_speed(obj)
+    if step.place_on is not None:
+        placed = placed_on(T, ext, world.object_pose(step.place_on),
+                           np.asarray(world.manifest.object(step.place_on).bbox_extent, float))
+    else:
+        placed = placed_in(T, ext, step.place_in, world.manifest.background.table_height)
+    return Placement(placed=placed, at_rest=at_rest(speed, T), speed=speed, tilt=tilt_of(T))
+
+
+@dataclass(frozen=True)
+class Collisions:
+    """Collision counts of a step by kind and the pairs as 'kind: body - body' text (sorted)."""
+
+    robot: int
+    object: int
+    pairs: list[str]
+
+
+def collisions(monitor: MonitorState, body_name) -> Collisions:
+    return Collisions(robot=monitor.count(ContactKind.ROBOT), object=monitor.count(ContactKind.OBJECT),
+                      pairs=sorted({e.describe(body_name) for e in monitor.events}))

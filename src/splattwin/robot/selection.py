@@ -1,0 +1,111 @@
+"""Grasp and place-pose selection from the robot's belief of the object poses (geometry only: no IK,
+no collision checks — `candidates.py` makes the selections feasible).
+
+Grasp heights follow the support surface under the object (table or the object below it, from the
+belief), not the object mesh's bottom: reconstructed objects sink a few mm into the table, and the
+fingertips (which reach 8.9 mm beyond the Panda's TCP, measured from the model) must keep the planning
+margin above the surface in the closed pose.
+
+Place targets: upright at the goal — centred on the support's top face (4 yaws aligned with the support)
+or in the goal region (8 yaws, only those whose footprint fits), the one closest to the object's current
+yaw first. Frames: T_world_obj [4,4] in the twin frame, metres, radians.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from splattwin.robot import grasp as grasp_mod
+from splattwin.robot.task import Step
+from splattwin.transforms import pose_xyz_yaw, yaw_of
+from splattwin.twin.manifest import Manifest
+
+PLACE_CLEARANCE = 0.004  # m released above the support
+REGION_MARGIN = 0.02     # m: a place yaw's footprint must fit the region with this much to spare
+Belief = dict[str, np.ndarray]   # object name -> T_world_obj [4,4] the robot plans with
+
+
+def support_height(obj: str, belief: Belief, manifest: Manifest) -> float:
+    """World z (m) of the surface under `obj` in the belief: the table top, or the top of another
+    object whose footprint holds obj's centre and whose top is below obj's centre."""
+    T = belief[obj]
+    z = float(manifest.background.table_height)
+    for o, T_o in belief.items():
+        if o == obj:
+            continue
+        ext = np.asarray(manifest.object(o).bbox_extent, float)
+        p = np.linalg.inv(T_o) @ np.append(T[:3, 3], 1.0)
+        top = float((T_o[:3, 3] + T_o[:3, 2] * ext[2] / 2)[2])
+        if abs(p[0]) <= ext[0] / 2 and abs(p[1]) <= ext[1] / 2 and top < T[2, 3]:
+            z = max(z, top)
+    return z
+
+
+def place_targets(step: Step, obj: str, belief: Belief, manifest: Manifest) -> list[np.ndarray]:
+    """Candidate T_world_obj [4,4] at the step's goal (upright, yaw variants), best first."""
+    T_now = belief[obj]
+    ext = np.asarray(manifest.object(obj).bbox_extent, float)
+    yaw_now = yaw_of(T_now)
+    if step.place_on is not None:
+        T_sup = belief[step.place_on]
+        sup_ext = np.asarray(manifest.object(step.place_on).bbox_extent, float)
+        xyz = T_sup[:3, 3] + T_sup[:3, 2] * sup_ext[2] / 2
+        z = xyz[2] + ext[2] / 2 + PLACE_CLEARANCE
+        yaw_sup = yaw_of(T_sup)
+        yaws = [yaw_sup + k * math.pi / 2 for k in range(4)]
+    else:
+        reg = step.place_in
+        xyz = reg.center.copy()
+        z = manifest.background.table_height + ext[2] / 2 + PLACE_CLEARANCE
+        yaws = [k * math.pi / 4 for k in range(8)]
+        fits = []
+        for y in yaws:
+            c, s = abs(math.cos(y)), abs(math.sin(y))
+            fx, fy = c * ext[0] + s * ext[1], s * ext[0] + c * ext[1]
+            if fx <= reg.size[0] - REGION_MARGIN and fy <= reg.size[1] - REGION_MARGIN:
+                fits.append(y)
+        yaws = fits or yaws
+
+    def wrap(a: float) -> float:
+        return (a + math.pi) % (2 * math.pi) - math.pi
+
+    yaws.sort(key=lambda y: abs(wrap(y - yaw_now)))
+    return [pose_xyz_yaw(xyz[0], xyz[1], z, y) for y in yaws]
+
+
+class GraspSelector:
+    """Ranked grasp candidates on an object's collision mesh for the surface it rests on in the belief.
+
+    max_opening: gripper opening (m); tip_depth: how far the opened fingers reach beyond the TCP along
+    the approach (m); floor_clearance: fingertips kept this far above the support (m). Candidates are
+    synthesised once per (object, support height) and ranked for the current belief pose and base.
+    """
+
+    def __init__(self, manifest: Manifest, twin_dir: str | Path, T_world_base: np.ndarray, max_opening: float,
+                 tip_depth: float, floor_clearance: float):
+        self.manifest, self.twin_dir = manifest, Path(twin_dir)
+        self.T_world_base = np.asarray(T_world_base, float)
+        self.max_opening, self.tip_depth, self.floor_clearance = max_opening, tip_depth, floor_clearance
+        self._cache: dict[tuple[str, float], list[grasp_mod.Grasp]] = {}
+
+    def synthesize(self, obj: str, belief: Belief) -> list[grasp_mod.Grasp]:
+        """Unranked candidates (object frame) for the support under `obj` in the belief."""
+        import trimesh
+
+        T_obj = belief[obj]
+        floor_obj = round(support_height(obj, belief, self.manifest) - float(T_obj[2, 3]), 4)  # object frame (upright)
+        key = (obj, floor_obj)
+        if key not in self._cache:
+            entry = self.manifest.object(obj)
+            mesh = trimesh.load(self.twin_dir / entry.collision_mesh, force="mesh")
+            self._cache[key] = grasp_mod.synthesize(
+                mesh.vertices, mesh.faces, max_width=self.max_opening, floor=floor_obj,
+                tip_depth=self.tip_depth, floor_clearance=self.floor_clearance)
+        return self._cache[key]
+
+    def ranked(self, obj: str, belief: Belief) -> list[grasp_mod.Grasp]:
+        """Candidates best first for the object at its belief pose (`grasp.rank_grasps`)."""
+        return grasp_mod.rank_grasps(self.synthesize(obj, belief), belief[obj], self.T_world_base)

@@ -1,0 +1,171 @@
+"""The recorded rollout: consistent with the commanded trajectory and the simulation, and a safe file."""
+
+from __future__ import annotations
+
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from splattwin.errors import InputError
+from splattwin.robot.rollout import Rollout, RolloutRecorder
+from splattwin.robot.timing import path_deviation
+from splattwin.robot.trajectory import concatenate
+from splattwin.transforms import invert_pose
+
+
+@pytest.mark.slow
+def test_rollout_is_the_record_of_the_run(default_run):
+    w, r = default_run
+    ro = r.rollout
+    T = len(ro)
+    dt = float(w.model.opt.timestep)
+    # one sample per control (= physics) step, from the first step to the end of the run
+    assert T == int(round(r.sim_time / dt)) and ro.qpos.shape == (T, w.model.nq)
+    np.testing.assert_allclose(np.diff(ro.t), dt, atol=1e-9)
+    assert ro.t[-1] == pytest.approx(r.sim_time)
+    assert ro.q_arm.shape == ro.action_q_arm.shape == (T, 7) and ro.joint_names == w.robot.arm_joints
+    assert ro.gripper_width.shape == ro.action_gripper.shape == ro.step_index.shape == (T,)
+    assert set(ro.object_poses) == set(w.objects) and all(p.shape == (T, 4, 4) for p in ro.object_poses.values())
+    # the last sample is the simulation's final state, exactly (replay)
+    np.testing.assert_array_equal(ro.qpos[-1], w.qpos())
+    for o in w.objects:
+        np.testing.assert_allclose(ro.object_poses[o][-1], w.object_pose(o), atol=1e-12)
+    # samples belong to the three steps, in order
+    assert ro.steps() == [1, 2, 3] and np.all(np.diff(ro.step_index) >= 0) and ro.step_index.min() == 1
+    # commanded arm targets lie on the exported commanded trajectory (its 100 Hz samples interpolated)
+    full = concatenate([tr for _, tr in r.trajectories])
+    dev = np.concatenate([path_deviation(ro.action_q_arm[i:i + 250], full.q) for i in range(0, T, 250)])
+    assert dev.max() < 1e-9
+    # the measured arm follows within servo error, and settles on the target at the end
+    err = np.abs(ro.q_arm - ro.action_q_arm).max(axis=1)
+    assert err.max() < 0.2 and np.median(err) < 0.05 and err[-1] < 0.01
+    # the gripper: commanded open (max opening) or closed (0); measured open at the end
+    assert set(np.unique(ro.action_gripper)) == {0.0, w.robot.max_opening}
+    assert abs(ro.gripper_width[-1] - w.robot.max_opening) < 0.002
+
+
+@pytest.mark.slow
+def test_carried_object_follows_the_tcp(default_run):
+    """While closed on a lifted object, the object's pose in the TCP frame stays put (within slip) while
+    it travels tens of centimetres, and the measured finger distance is the object's width."""
+    w, r = default_run
+    ro = r.rollout
+    for k, step in enumerate(r.steps, start=1):
+        obj = step.pick
+        in_step = np.flatnonzero(ro.step_index == k)
+        z0 = ro.object_poses[obj][in_step[0], 2, 3]
+        carried = in_step[(ro.action_gripper[in_step] == 0.0) & (ro.object_poses[obj][in_step, 2, 3] > z0 + 0.02)]
+        assert len(carried) > 500, obj
+        sel = carried[::10]
+        T_tcp_obj = invert_pose(w.tcp_poses(ro.qpos[sel])) @ ro.object_poses[obj][sel]
+        drift = np.ptp(T_tcp_obj[:, :3, 3], axis=0)
+        travel = np.linalg.norm(np.ptp(ro.object_poses[obj][carried, :3, 3], axis=0))
+        assert np.all(drift < 0.008) and travel > 0.2, (obj, drift, travel)
+        width = ro.gripper_width[carried]
+        assert 0.01 < width.min() and np.ptp(width) < 0.002, (obj, width.min(), np.ptp(width))
+
+
+@pytest.mark.slow
+def test_rollout_file_roundtrip(default_run, tmp_path: Path):
+    _, r = default_run
+    ro = r.rollout
+    p = ro.save(tmp_path / "rollout.npz")
+    with np.load(p, allow_pickle=False) as f:       # plain arrays only
+        assert f["qpos"].shape == ro.qpos.shape
+    back = Rollout.load(p)
+    for k in ("t", "qpos", "q_arm", "gripper_width", "action_q_arm", "action_gripper", "step_index"):
+        np.testing.assert_array_equal(getattr(back, k), getattr(ro, k))
+    assert back.joint_names == ro.joint_names and list(back.object_poses) == list(ro.object_poses)
+    for o in ro.object_poses:
+        np.testing.assert_array_equal(back.object_poses[o], ro.object_poses[o])
+
+
+def _small_rollout(T: int = 5, nq: int = 16) -> Rollout:
+    rng = np.random.default_rng(0)
+    pose = np.tile(np.eye(4), (T, 1, 1))
+    return Rollout(t=np.arange(T) * 0.002, qpos=rng.normal(size=(T, nq)), q_arm=rng.normal(size=(T, 7)),
+                   gripper_width=np.full(T, 0.08), action_q_arm=rng.normal(size=(T, 7)),
+                   action_gripper=np.full(T, 0.08), object_poses={"box": pose},
+                   joint_names=[f"joint{i}" for i in range(1, 8)], step_index=np.ones(T, int))
+
+
+def test_rollout_load_rejects_bad_files(tmp_path: Path):
+    good = _small_rollout().save(tmp_path / "good.npz")
+    assert len(Rollout.load(good)) == 5
+    with pytest.raises(InputError, match="not found"):
+        Rollout.load(tmp_path / "missing.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(InputError, match="junk.npz"):
+        Rollout.load(tmp_path / "junk.npz")
+    # a member missing, shapes that disagree, a pickled object array
+    arrays = dict(np.load(good, allow_pickle=False))
+    bad = {k: v for k, v in arrays.items() if k != "q_arm"}
+    np.savez(tmp_path / "missing_key.npz", **bad)
+    with pytest.raises(InputError, match="q_arm"):
+        Rollout.load(tmp_path / "missing_key.npz")
+    np.savez(tmp_path / "shapes.npz", **{**arrays, "object_poses": np.zeros((1, 4, 4, 4))})
+    with pytest.raises(InputError, match="objects malformed"):
+        Rollout.load(tmp_path / "shapes.npz")
+    np.savez(tmp_path / "pickled.npz", **{**arrays, "joint_names": np.array([{"a": 1}], dtype=object)})
+    with pytest.raises(InputError):
+        Rollout.load(tmp_path / "pickled.npz")
+    np.savez(tmp_path / "nan.npz", **{**arrays, "t": np.array([0, np.nan, 1, 2, 3.0])})
+    with pytest.raises(InputError, match="finite"):
+        Rollout.load(tmp_path / "nan.npz")
+
+
+def test_rollout_load_bounds_sizes_before_inflating(tmp_path: Path, monkeypatch):
+    """The uncompressed size is read from the zip directory and refused before any array is read."""
+    import splattwin.robot.rollout as rollout_mod
+
+    p = _small_rollout(T=2000).save(tmp_path / "r.npz")
+    declared = sum(i.file_size for i in zipfile.ZipFile(p).infolist())
+    monkeypatch.setattr(rollout_mod, "MAX_BYTES", declared - 1)
+    read = []
+    monkeypatch.setattr(rollout_mod.np, "load", lambda *a, **k: read.append(a))
+    with pytest.raises(InputError, match="exceed"):
+        Rollout.load(p)
+    assert read == []
+
+
+def test_recorder_assembles_blocks_in_order():
+    """Samples across several preallocated blocks come back in order, with the step they belong to."""
+
+    class _World:                      # the recorder reads only the joint map, objects and arm joint names
+        objects = ["box"]
+
+        class robot:
+            arm_joints = [f"j{i}" for i in range(7)]
+
+        class joints:
+            @staticmethod
+            def arm(q):
+                return q[..., :7].copy()
+
+            @staticmethod
+            def gripper_width(q):
+                return q[..., 7] + q[..., 8]
+
+            @staticmethod
+            def object_pose(q, name):
+                T = np.tile(np.eye(4), (*q.shape[:-1], 1, 1))
+                T[..., :3, 3] = q[..., 9:12]
+                return T
+
+    rec = RolloutRecorder(nq=16, n_arm=7)
+    rec.BLOCK = 3
+    n = 8
+    for i in range(n):
+        rec.step = -1 if i < 2 else 1 + (i >= 5)
+        rec.record(0.002 * (i + 1), np.full(16, float(i)), np.full(7, -float(i)), 0.01 * i)
+    ro = rec.rollout(_World())
+    assert len(ro) == n and len(rec) == n
+    np.testing.assert_allclose(ro.t, 0.002 * np.arange(1, n + 1))
+    np.testing.assert_array_equal(ro.q_arm[:, 0], np.arange(n))
+    np.testing.assert_array_equal(ro.action_q_arm[:, 3], -np.arange(n))
+    np.testing.assert_array_equal(ro.gripper_width, 2.0 * np.arange(n))
+    np.testing.assert_array_equal(ro.step_index, [-1, -1, 1, 1, 1, 2, 2, 2])
+    np.testing.assert_array_equal(ro.object_poses["box"][:, 0, 3], np.arange(n))
+    assert ro.steps() == [1, 2]

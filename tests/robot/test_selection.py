@@ -1,0 +1,95 @@
+"""Grasp and place-pose selection on hand-made beliefs (no MuJoCo)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from splattwin.robot.selection import PLACE_CLEARANCE, GraspSelector, place_targets, support_height
+from splattwin.robot.task import Region, Step
+from splattwin.transforms import pose_xyz_yaw, yaw_of
+from splattwin.twin.manifest import Background, Manifest, ObjectEntry
+
+
+def _manifest(table: float = 0.0) -> Manifest:
+    return Manifest(objects=[ObjectEntry(name="crate", label=1, bbox_extent=[0.20, 0.20, 0.10]),
+                             ObjectEntry(name="box", label=2, bbox_extent=[0.08, 0.06, 0.05],
+                                         collision_mesh="box.obj")],
+                    background=Background(table_height=table))
+
+
+def test_support_height_is_the_table_or_the_object_below():
+    man = _manifest(table=0.01)
+    crate = pose_xyz_yaw(0.3, 0.0, 0.06, 0.0)                      # top at 0.11
+    on_table = {"crate": crate, "box": pose_xyz_yaw(0.0, 0.3, 0.035, 0.0)}
+    assert support_height("box", on_table, man) == pytest.approx(0.01)
+    stacked = {"crate": crate, "box": pose_xyz_yaw(0.35, 0.05, 0.136, 0.0)}   # over the crate's top face
+    assert support_height("box", stacked, man) == pytest.approx(0.11)
+    beside = {"crate": crate, "box": pose_xyz_yaw(0.45, 0.0, 0.136, 0.0)}    # centre off the crate's footprint
+    assert support_height("box", beside, man) == pytest.approx(0.01)
+    # the crate under the box rests on the table (the box's top is above the crate's centre anyway)
+    assert support_height("crate", stacked, man) == pytest.approx(0.01)
+
+
+def test_place_targets_on_an_object_align_with_it_nearest_yaw_first():
+    man = _manifest()
+    crate = pose_xyz_yaw(0.3, 0.1, 0.05, 0.3)
+    belief = {"crate": crate, "box": pose_xyz_yaw(0.0, 0.3, 0.025, 1.6)}
+    targets = place_targets(Step("box", place_on="crate"), "box", belief, man)
+    assert len(targets) == 4
+    for T in targets:
+        np.testing.assert_allclose(T[:2, 3], [0.3, 0.1])
+        assert T[2, 3] == pytest.approx(0.10 + 0.025 + PLACE_CLEARANCE)   # crate top + half the box + release gap
+        assert T[2, 2] == pytest.approx(1.0)
+        assert math.cos(4 * (yaw_of(T) - 0.3)) == pytest.approx(1.0)       # crate yaw + k * 90 deg
+    # best first: the yaw closest to the box's current yaw (1.6 rad -> 0.3 + pi/2)
+    assert yaw_of(targets[0]) == pytest.approx(0.3 + math.pi / 2)
+
+
+def test_place_targets_in_a_region_keep_only_fitting_yaws():
+    man = _manifest(table=0.02)
+    belief = {"crate": pose_xyz_yaw(0.5, 0.0, 0.07, 0.0), "box": pose_xyz_yaw(0.0, 0.3, 0.045, 0.0)}
+    # 0.11 x 0.09 region: the 8 x 6 cm box fits only axis-aligned (its diagonal orientations are 9.9 cm wide)
+    reg = Region(center=np.array([0.1, -0.1, 0.0]), size=np.array([0.11, 0.09]))
+    targets = place_targets(Step("box", place_in=reg), "box", belief, man)
+    yaws = sorted(round(math.degrees(yaw_of(T)) % 360) for T in targets)
+    assert yaws == [0, 180]
+    assert all(T[2, 3] == pytest.approx(0.02 + 0.025 + PLACE_CLEARANCE) for T in targets)
+    assert yaw_of(targets[0]) == pytest.approx(0.0)
+    # a region nothing fits in still gives every yaw (the planner then reports the failed placement)
+    tiny = Region(center=np.array([0.1, -0.1, 0.0]), size=np.array([0.05, 0.05]))
+    assert len(place_targets(Step("box", place_in=tiny), "box", belief, man)) == 8
+
+
+def test_grasp_selector_follows_the_support_and_caches(tmp_path: Path, monkeypatch):
+    """Candidates are synthesised once per (object, support height); a box sunk 3 mm into the table keeps
+    its fingertips above the table, not above the sunken mesh bottom; ranking prefers a wrist that points
+    away from the base."""
+    from splattwin.robot import grasp as grasp_mod
+
+    trimesh.creation.box(extents=(0.08, 0.06, 0.05)).export(tmp_path / "box.obj")
+    man = _manifest()
+    calls = []
+    real = grasp_mod.synthesize
+    monkeypatch.setattr(grasp_mod, "synthesize", lambda *a, **k: calls.append(k["floor"]) or real(*a, **k))
+    sel = GraspSelector(man, tmp_path, pose_xyz_yaw(-0.5, 0.0, 0.0, 0.0), max_opening=0.08, tip_depth=0.009,
+                        floor_clearance=0.0065)
+    # yawed by 90 deg: the 6 cm side (the only one that fits the gripper) lies along the radial x axis
+    sunk = {"crate": pose_xyz_yaw(0.5, 0.4, 0.05, 0.0), "box": pose_xyz_yaw(0.2, 0.0, 0.022, math.pi / 2)}
+    ranked = sel.ranked("box", sunk)
+    assert calls == [pytest.approx(-0.022)]          # the table (z = 0) in the box frame, not the mesh bottom
+    assert ranked and ranked == sel.ranked("box", sunk) and len(calls) == 1
+    top = [g for g in ranked if g.kind == "top"]
+    assert top
+    for g in top:   # fingertips (9 mm beyond the TCP) stay 6.5 mm above the table
+        z_tcp_world = 0.022 + g.T_obj_tcp[2, 3]
+        assert z_tcp_world - 0.009 >= 0.0065 - 1e-9
+    # best first: the closing axis (TCP y) points radially away from the base, as the Panda's home wrist
+    assert (sunk["box"] @ top[0].T_obj_tcp)[0, 1] == pytest.approx(1.0, abs=1e-6)
+    assert any((sunk["box"] @ g.T_obj_tcp)[0, 1] == pytest.approx(-1.0, abs=1e-6) for g in top[1:])
+    sel.ranked("box", {**sunk, "box": pose_xyz_yaw(0.2, 0.0, 0.025, 0.0)})
+    assert len(calls) == 2                           # another support height: synthesised again

@@ -1,0 +1,71 @@
+"""World: named access to the arm, gripper, objects and frames, for the live state and recorded arrays."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from splattwin.robot.world import build_world
+from splattwin.transforms import make_pose, pose_xyz_yaw
+
+
+def test_world_state_by_name(gt_twin_small: Path):
+    w = build_world(gt_twin_small, visual=False)
+    r = w.robot
+    np.testing.assert_allclose(w.arm_q(), r.home)
+    assert w.gripper_width() == pytest.approx(r.max_opening)
+    assert w.gripper_width_of_ctrl(r.gripper_open) == pytest.approx(r.max_opening)
+    assert w.gripper_width_of_ctrl(r.gripper_closed) == pytest.approx(0.0)
+    for o in w.objects:
+        np.testing.assert_allclose(w.object_pose(o), w.manifest.object(o).pose, atol=1e-9)
+        assert w.object_speed(o) == 0.0
+    # frames: the TCP site is 0.1034 m along the hand's z axis, and equals the IK's forward kinematics
+    np.testing.assert_allclose(w.site_pose(r.tcp_site), w.tcp_pose())
+    np.testing.assert_allclose(w.tcp_pose(), w.body_pose("hand") @ make_pose(None, [0, 0, 0.1034]), atol=1e-9)
+    from splattwin.robot.ik import ArmIK
+
+    np.testing.assert_allclose(ArmIK(r, w.base.matrix()).fk(r.home), w.tcp_pose(), atol=1e-9)
+    assert w.body_id("world") == 0 and w.body_name(w.object_body("blue_box")) == "blue_box"
+    assert {w.body_name(b) for b in w.finger_bodies} == {"left_finger", "right_finger"}
+    assert w.is_robot[w.body_id("hand")] and not w.is_robot[w.object_body("blue_box")]
+    with pytest.raises(KeyError, match="no free object"):
+        w.object_pose("table")
+
+
+def test_teleport_and_planning_state(gt_twin_small: Path):
+    w = build_world(gt_twin_small, visual=False)
+    T = pose_xyz_yaw(0.1, -0.2, 0.3, 0.7)
+    w.set_object_pose("blue_box", T)
+    np.testing.assert_allclose(w.object_pose("blue_box"), T, atol=1e-12)
+    w.forward()
+    q = w.robot.home + 0.1
+    before = w.qpos()
+    d = w.planning_state({"yellow_cube": pose_xyz_yaw(0.0, 0.0, 0.5, 0.0)}, q, 0.02)
+    np.testing.assert_array_equal(w.qpos(), before)                      # the simulation is untouched
+    np.testing.assert_allclose(w.joints.arm(d.qpos), q)
+    assert w.joints.gripper_width(d.qpos) == pytest.approx(0.02)
+    assert w.joints.object_pose(d.qpos, "yellow_cube")[2, 3] == pytest.approx(0.5)
+    np.testing.assert_allclose(w.joints.object_pose(d.qpos, "blue_box"), T, atol=1e-12)
+    w.set_arm(q, gripper_open=False)
+    np.testing.assert_allclose(w.arm_q(), q)
+    assert w.gripper_width() == 0.0
+
+
+def test_joint_map_reads_recorded_arrays(gt_twin_small: Path):
+    """The same accessors on a [T, nq] record as on the live state; tcp_poses by forward kinematics."""
+    w = build_world(gt_twin_small, visual=False)
+    qs = np.stack([w.robot.home + d for d in (0.0, 0.05, -0.05)])
+    rec = np.tile(w.qpos(), (3, 1))
+    w.joints.set_arm(rec, qs)
+    poses = np.stack([pose_xyz_yaw(0.1 * k, 0.0, 0.2, 0.3 * k) for k in range(3)])
+    for k in range(3):
+        w.joints.set_object_pose(rec[k], "bottle", poses[k])
+    np.testing.assert_allclose(w.joints.arm(rec), qs)
+    np.testing.assert_allclose(w.joints.object_pose(rec, "bottle"), poses, atol=1e-12)
+    np.testing.assert_allclose(w.joints.gripper_width(rec), w.robot.max_opening)
+    T_tcp = w.tcp_poses(rec)
+    w.set_arm(qs[1])
+    np.testing.assert_allclose(T_tcp[1], w.tcp_pose(), atol=1e-12)
+    assert np.linalg.norm(T_tcp[2, :3, 3] - T_tcp[0, :3, 3]) > 0.01
