@@ -53,9 +53,11 @@ class PlaybackRenderer:
         self.backend = backend
         deg = scene.sh_degree
         self.K = (deg + 1) ** 2
+        bd = scene.backdrop if scene.backdrop is not None else None
+        self.n_backdrop = n_bd = len(bd) if bd is not None else 0
         bg = scene.background
         fills = [scene.fills[n].gaussians for n in scene.objects if n in scene.fills]
-        n_bg = len(bg)
+        n_bg = n_bd + len(bg)
         self._fill_slices: dict[str, slice] = {}
         n_fill = sum(len(f) for f in fills)
         n_obj = sum(len(g) for g in scene.objects.values())
@@ -67,15 +69,17 @@ class PlaybackRenderer:
         self.scales = np.zeros((N, 3), np.float32)
         self.opac = np.zeros(N, np.float32)
         self.sh = np.zeros((N, self.K, 3), np.float32)
-        self._put(slice(0, n_bg), bg.means, bg.quats, bg.scales, bg.opacities, bg.sh)
+        if n_bd:
+            self._put(slice(0, n_bd), bd.means, bd.quats, bd.scales, bd.opacities, bd.sh)
+        self._put(slice(n_bd, n_bg), bg.means, bg.quats, bg.scales, bg.opacities, bg.sh)
         self._bg_opac = self.opac[:n_bg].copy()
-        self.n_bg = n_bg
+        self.n_bg = n_bg   # static rows: backdrop then background
+        self._residue = {n: np.asarray(r, np.int64) + n_bd for n, r in scene.residue.items()}
         self._fills = {n: scene.fills[n].gaussians for n in scene.objects if n in scene.fills}
-        self.n_static = n_bg
-        self.n_fill_max = n_fill
         self.n_obj, self.n_rob = n_obj, n_rob
         self._obj_cache: dict[str, tuple[np.ndarray, tuple]] = {}
         self._hidden: frozenset = frozenset()
+        self._backdrop_cache: tuple[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
         if robot is not None:
             self._rob_scales = robot.scales.astype(np.float32)
             self._rob_opac = robot.opacities.astype(np.float32)
@@ -99,7 +103,7 @@ class PlaybackRenderer:
         if moved != self._hidden:   # residue of moved objects hidden (opacity 0), others restored
             self.opac[:self.n_bg] = self._bg_opac
             for n in moved:
-                self.opac[sc.residue.get(n, np.zeros(0, np.int64))] = 0.0
+                self.opac[self._residue.get(n, np.zeros(0, np.int64))] = 0.0
             self._hidden = moved
             self._fill_slices = {}
         i = self.n_bg
@@ -132,31 +136,62 @@ class PlaybackRenderer:
             i += len(m)
         return i
 
-    @torch.no_grad()
-    def render(self, camera: Camera, object_poses: dict[str, np.ndarray] | None = None,
-               robot_pose: RobotPose | None = None, rasterize_mode: str = "classic") -> FrameImage:
-        """One frame. object_poses: T_world_obj per object (missing: twin pose); robot_pose: None = no robot."""
+    def _raster(self, start: int, n: int, camera: Camera, rasterize_mode: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Premultiplied rgb [H,W,3] (over black), expected depth [H,W] (0 where empty), alpha [H,W]."""
         from splattwin.splat.rasterization import rasterization
         from splattwin.splat.render import resolve_backend_device
 
-        t0 = time.perf_counter()
-        n = self.layout(object_poses or {}, robot_pose)
-        t1 = time.perf_counter()
         name, dev = resolve_backend_device(self.backend)
-        f = lambda a: torch.from_numpy(a[:n]).to(dev)  # noqa: E731  (zero-copy prefix on the CPU)
+        f = lambda a: torch.from_numpy(a[start:n]).to(dev)  # noqa: E731  (zero-copy rows on the CPU)
         vm = torch.as_tensor(camera.T_cam_world, dtype=torch.float32, device=dev)[None]
         Kt = torch.as_tensor(camera.K, dtype=torch.float32, device=dev)[None]
-        img, alpha, _ = rasterization(f(self.means), f(self.quats), f(self.scales), f(self.opac), f(self.sh),
-                                      vm, Kt, camera.width, camera.height, sh_degree=self.scene.sh_degree,
-                                      backgrounds=None, render_mode="RGB+ED", backend=name,
-                                      rasterize_mode=rasterize_mode)
+        means, quats, scales, opac, sh = self.means, self.quats, self.scales, self.opac, self.sh
+        img, alpha, _ = rasterization(f(means), f(quats), f(scales), f(opac), f(sh), vm, Kt, camera.width,
+                                      camera.height, sh_degree=self.scene.sh_degree, backgrounds=None,
+                                      render_mode="RGB+ED", backend=name, rasterize_mode=rasterize_mode)
         img = img[0].cpu().numpy()
         a = alpha[0, ..., 0].cpu().numpy()
-        rgb = img[..., :3] + (1 - a)[..., None] * self.background
-        depth = np.where(a > 1e-4, img[..., 3], 0.0).astype(np.float32)
+        return img[..., :3], np.where(a > 1e-4, img[..., 3], 0.0).astype(np.float32), a
+
+    def _backdrop_layer(self, camera: Camera, rasterize_mode: str):
+        """The backdrop's render for this camera, cached while the camera stays put (static cameras pay
+        it once per video)."""
+        key = b"".join(np.ascontiguousarray(x, np.float64).tobytes() for x in
+                       (camera.T_cam_world, camera.K, np.array([camera.width, camera.height]))) + rasterize_mode.encode()
+        if self._backdrop_cache is not None and self._backdrop_cache[0] == key:
+            return self._backdrop_cache[1]
+        out = self._raster(0, self.n_backdrop, camera, rasterize_mode)
+        self._backdrop_cache = (key, out)
+        return out
+
+    @torch.no_grad()
+    def render(self, camera: Camera, object_poses: dict[str, np.ndarray] | None = None,
+               robot_pose: RobotPose | None = None, rasterize_mode: str = "classic",
+               layered: bool | None = None) -> FrameImage:
+        """One frame. object_poses: T_world_obj per object (missing: twin pose); robot_pose: None = no robot.
+
+        layered (default: when the robot is drawn): the backdrop (`DynamicScene.backdrop`) is rendered
+        as a layer behind everything, so that no surroundings splat veils the robot; without the robot
+        one depth-sorted pass of all splats, exactly as they were trained."""
+        t0 = time.perf_counter()
+        n = self.layout(object_poses or {}, robot_pose)
+        layered = (robot_pose is not None and self.robot is not None) if layered is None else layered
+        layered = layered and self.n_backdrop > 0
+        t1 = time.perf_counter()
+        rgb, depth, a = self._raster(self.n_backdrop if layered else 0, n, camera, rasterize_mode)
         t2 = time.perf_counter()
-        return FrameImage(np.clip(rgb, 0, 1).astype(np.float32), depth, a.astype(np.float32),
-                          {"layout_ms": (t1 - t0) * 1e3, "raster_ms": (t2 - t1) * 1e3, "n_gaussians": n})
+        bg = np.broadcast_to(self.background, rgb.shape)
+        a_tot = a
+        if layered:
+            b_rgb, b_depth, b_a = self._backdrop_layer(camera, rasterize_mode)
+            bg = b_rgb + (1 - b_a)[..., None] * self.background
+            depth = np.where(a > 1e-4, depth, b_depth)
+            a_tot = a + (1 - a) * b_a
+        out = rgb + (1 - a)[..., None] * bg
+        t3 = time.perf_counter()
+        return FrameImage(np.clip(out, 0, 1).astype(np.float32), depth.astype(np.float32), a_tot.astype(np.float32),
+                          {"layout_ms": (t1 - t0) * 1e3, "raster_ms": (t2 - t1) * 1e3,
+                           "backdrop_ms": (t3 - t2) * 1e3, "n_gaussians": n})
 
     def camera_for(self, camera: Camera | EyeInHand, robot_pose: RobotPose | None) -> Camera:
         """A world camera as is; an eye-in-hand camera placed on the robot's body at `robot_pose`."""
@@ -178,7 +213,7 @@ class PlaybackRenderer:
         keep = np.ones(len(sc.background), bool)
         for m in moved:
             keep[sc.residue.get(m, np.zeros(0, np.int64))] = False
-        n_keep = int(keep.sum())
+        n_keep = int(keep.sum()) + (len(sc.backdrop) if sc.backdrop is not None else 0)
         feat = np.zeros((len(g), 1))
         n_fill = sum(len(sc.fills[m].gaussians) for m in moved if m in sc.fills)
         feat[n_keep:n_keep + n_fill] = 1.0

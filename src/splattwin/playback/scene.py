@@ -30,6 +30,8 @@ from splattwin.twin.splats import sh_rotation
 MOVED_POSITION = 0.002     # m: an object this far from its twin pose has left its place
 MOVED_ANGLE = np.radians(1.0)
 MAX_GAUSSIANS = 20_000_000
+BACKDROP_MARGIN = 0.03     # m beyond the table's extent
+BACKDROP_PLANE_BAND = 0.05  # m above/below the table plane
 
 
 def _confined(twin_dir: Path, rel: str, what: str) -> Path:
@@ -72,7 +74,10 @@ class DynamicScene:
     background: static Gaussians (twin frame). objects: {name: Gaussians in the object frame}.
     T_world_obj0: {name: [4,4]} twin poses. residue: {name: indices into background} hidden once the
     object moved (its cleaned-out Gaussians and, with a fill, the background under its footprint).
-    fills: {name: HoleFill}. table_height: m (twin frame).
+    fills: {name: HoleFill}. table_height: m (twin frame). backdrop: static Gaussians off the table
+    (outside its extent by BACKDROP_MARGIN, or below it): the capture's surroundings, which 3DGS places
+    at whatever depth fitted the photos -- often in front of where the robot stands. The renderer draws
+    them behind everything else (a second layer), so they never veil the robot.
     """
 
     background: Gaussians
@@ -82,6 +87,7 @@ class DynamicScene:
     fills: dict[str, HoleFill] = field(default_factory=dict)
     table_height: float = 0.0
     twin_dir: Path | None = None
+    backdrop: Gaussians | None = None
 
     @property
     def sh_degree(self) -> int:
@@ -129,11 +135,13 @@ class DynamicScene:
             # the object's own Gaussians leave the background; the rest of its label is residue
             keep[idx[in_obj]] = False
             residue[name] = idx[~in_obj]
-        bg_index = np.cumsum(keep) - 1
-        bg = full.subset(keep)
-        residue = {n: bg_index[r] for n, r in residue.items()}
-        scene = cls(background=bg, objects=objects, T_world_obj0=poses, residue=residue,
-                    table_height=float(manifest.background.table_height), twin_dir=twin_dir)
+        h = float(manifest.background.table_height)
+        back = keep & _off_table(full.means, manifest.background.table_extent, h)
+        front = keep & ~back
+        bg_index = np.cumsum(front) - 1
+        residue = {n: bg_index[r[front[r]]] for n, r in residue.items()}
+        scene = cls(background=full.subset(front), objects=objects, T_world_obj0=poses, residue=residue,
+                    table_height=h, twin_dir=twin_dir, backdrop=full.subset(back))
         if fill_holes:
             scene.fill_holes()
         return scene
@@ -166,7 +174,8 @@ class DynamicScene:
         keep = np.ones(len(self.background), bool)
         for n in moved:
             keep[self.residue.get(n, np.zeros(0, np.int64))] = False
-        parts = [self.background.subset(keep)]
+        parts = [self.backdrop] if self.backdrop is not None else []
+        parts += [self.background.subset(keep)]
         parts += [self.fills[n].gaussians for n in sorted(moved) if n in self.fills]
         for n, g in self.objects.items():
             T = np.asarray(poses.get(n, self.T_world_obj0[n]))
@@ -193,6 +202,23 @@ def concat(parts: list[Gaussians], sh_degree: int) -> Gaussians:
     return Gaussians(np.concatenate([p.means for p in parts]), np.concatenate([p.quats for p in parts]),
                      np.concatenate([p.scales for p in parts]), np.concatenate([p.opacities for p in parts]),
                      np.concatenate([_pad_sh(p.sh, sh_degree) for p in parts]))
+
+
+def _off_table(means: np.ndarray, extent, table_height: float, margin: float = BACKDROP_MARGIN,
+               plane_band: float = BACKDROP_PLANE_BAND) -> np.ndarray:
+    """[N] bool: the capture's surroundings where the robot can stand in front of them: outside the
+    table's xy extent (+ margin) and above its plane (+ band). The table's edge (where the extent
+    estimate is short) and everything below the top stay in the main layer, whose single depth-sorted
+    pass is what the splats were trained with (moving them to the backdrop layer cost 1-2 dB)."""
+    try:
+        x0, x1, y0, y1 = (float(v) for v in extent)
+    except (TypeError, ValueError):
+        return np.zeros(len(means), bool)
+    if not (x1 > x0 and y1 > y0):
+        return np.zeros(len(means), bool)
+    x, y, z = means[:, 0], means[:, 1], means[:, 2]
+    outside = (x < x0 - margin) | (x > x1 + margin) | (y < y0 - margin) | (y > y1 + margin)
+    return outside & (z > table_height + plane_band)
 
 
 def _match(a: np.ndarray, b: np.ndarray, tol: float = 1e-5) -> np.ndarray:
