@@ -79,6 +79,7 @@ class PlaybackRenderer:
         self.n_obj, self.n_rob = n_obj, n_rob
         self._obj_cache: dict[str, tuple[np.ndarray, tuple]] = {}
         self._hidden: frozenset = frozenset()
+        self._rob_start = -1
         self._backdrop_cache: tuple[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
         if robot is not None:
             self._rob_scales = robot.scales.astype(np.float32)
@@ -131,7 +132,9 @@ class PlaybackRenderer:
             self.quats[sl] = q
             self.scales[sl] = self._rob_scales
             self.opac[sl] = self._rob_opac
-            self.sh[sl] = 0
+            if self._rob_start != sl.start:   # higher SH bands of the robot are zero (Lambertian)
+                self.sh[sl, 1:] = 0
+                self._rob_start = sl.start
             self.sh[sl, 0] = rgb_to_sh0(rgb)
             i += len(m)
         return i

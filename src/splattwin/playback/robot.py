@@ -4,8 +4,8 @@ Decision (measured with bench/photoreal.py at 320x240 on the 2-core machine, sha
 offscreen renderer on this machine's software Mesa (EGL/llvmpipe) costs ~120 ms for one RGB frame of
 the Panda's 136k-triangle visual meshes even with shadows, reflections and skybox off, plus ~30 ms for
 the depth pass, before the splats are rendered (and ~550 ms with MuJoCo's default shadows): the 150 ms
-budget is gone on the robot alone. Gaussians sampled on the same meshes (~24k, 1.5 mm on the hand and
-fingers, 5 mm elsewhere) are drawn by our rasterizer in the splats' own pass for a few tens of ms, and the
+budget is gone on the robot alone. Gaussians sampled on the same meshes (~47k: 1.5 mm on the fingers,
+3 mm on the hand, 5 mm on the links) are drawn by our rasterizer in the splats' own pass for a few tens of ms, and the
 depth order against the splats, the antialiased silhouette (each Gaussian is a smooth footprint) and
 partial occlusion by translucent splats come out of the same alpha compositing, with no GL context at
 all (the report and the viewer run on machines without EGL). bench/photoreal.py prints both costs side by
@@ -28,7 +28,8 @@ LIGHT_DIR_WORLD = np.array([-0.35, 0.45, 1.0]) / np.linalg.norm([-0.35, 0.45, 1.
 AMBIENT = 0.42
 DIFFUSE = 0.58
 SPACING_ARM = 0.005      # m between samples on the links
-SPACING_HAND = 0.0015    # m on the hand and fingers (close to the wrist camera)
+SPACING_HAND = 0.003     # m on the hand body
+SPACING_FINGERS = 0.0015  # m on the fingers (10-15 cm from the wrist camera)
 SIGMA_FACTOR = 0.75      # tangential standard deviation / spacing
 THICKNESS = 0.15         # normal standard deviation / tangential
 OPACITY = 0.97
@@ -82,7 +83,8 @@ class RobotSplats:
     def __init__(self, xml_path: str | Path, T_world_base: np.ndarray | None = None, root_body: str = "link0",
                  arm_joints: list[str] | None = None, gripper_joints: list[str] | None = None,
                  spacing: float = SPACING_ARM, spacing_hand: float = SPACING_HAND,
-                 hand_bodies: tuple[str, ...] = ("hand", "left_finger", "right_finger"), seed: int = 0):
+                 spacing_fingers: float = SPACING_FINGERS, hand_bodies: tuple[str, ...] = ("hand",),
+                 finger_bodies: tuple[str, ...] = ("left_finger", "right_finger"), seed: int = 0):
         import mujoco
 
         from splattwin.robot.assets import ensure_tcp_site
@@ -107,7 +109,8 @@ class RobotSplats:
         self.gripper_joints = list(gripper_joints or [])
         self._arm_adr = np.array([m.jnt_qposadr[m.joint(j).id] for j in self.arm_joints], int)
         self._grip_adr = np.array([m.jnt_qposadr[m.joint(j).id] for j in self.gripper_joints], int)
-        hand_ids = {m.body(b).id for b in hand_bodies if mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, b) >= 0}
+        ids = lambda names: {m.body(b).id for b in names if mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, b) >= 0}  # noqa: E731
+        hand_ids, finger_ids = ids(hand_bodies), ids(finger_bodies)
         rng = np.random.default_rng(seed)
         body, P, Nn, A, S = [], [], [], [], []
         for g in range(m.ngeom):
@@ -120,7 +123,7 @@ class RobotSplats:
             V = np.asarray(m.mesh_vert[va:va + vn], float)
             F = np.asarray(m.mesh_face[fa:fa + fn], int)
             b = int(m.geom_bodyid[g])
-            sp = spacing_hand if b in hand_ids else spacing
+            sp = spacing_fingers if b in finger_ids else spacing_hand if b in hand_ids else spacing
             tri = V[F]
             cr = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
             area = 0.5 * np.linalg.norm(cr, axis=1)

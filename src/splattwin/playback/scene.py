@@ -25,11 +25,13 @@ from splattwin.errors import InputError
 from splattwin.playback.holes import HoleFill, fill_hole
 from splattwin.splat.gaussians import Gaussians
 from splattwin.twin.manifest import Manifest
-from splattwin.twin.splats import sh_rotation
+from splattwin.twin.splats import sh_rotation, transform_gaussians
 
 MOVED_POSITION = 0.002     # m: an object this far from its twin pose has left its place
 MOVED_ANGLE = np.radians(1.0)
 MAX_GAUSSIANS = 20_000_000
+CARRY_MARGIN = 0.005      # m around an object's bounding box: its Gaussians the splats.ply lacks
+CARRY_BAND = 0.004        # m above the table top (below: the table itself)
 BACKDROP_MARGIN = 0.03     # m beyond the table's extent
 BACKDROP_PLANE_BAND = 0.05  # m above/below the table plane
 
@@ -94,8 +96,13 @@ class DynamicScene:
         return self.background.sh_degree
 
     @classmethod
-    def load(cls, twin_dir: str | Path, fill_holes: bool = True) -> "DynamicScene":
-        """Read a twin folder. InputError when it has no splats (or they do not match the labels)."""
+    def load(cls, twin_dir: str | Path, fill_holes: bool = True, carry: bool = True) -> "DynamicScene":
+        """Read a twin folder. InputError when it has no splats (or they do not match the labels).
+
+        carry: an object also takes along the Gaussians inside its bounding box (+ CARRY_MARGIN) above
+        the table band that its splats.ply lacks (the geometry stage cleans the object's foot and
+        fringe out of it, and labels miss some edge Gaussians); without them a moved object loses its
+        bottom and its outline."""
         twin_dir = Path(twin_dir)
         manifest = Manifest.load(twin_dir)
         mpath = twin_dir / "twin.json"
@@ -114,7 +121,7 @@ class DynamicScene:
         if manifest.labels:
             lp = _confined(twin_dir, manifest.labels, "labels")
             labels = _load_labels(lp, len(full))
-        objects, poses = {}, {}
+        objects, poses, extents = {}, {}, {}
         for o in manifest.objects:
             if not (o.usable and o.splat_ply):
                 continue
@@ -123,6 +130,7 @@ class DynamicScene:
                 raise InputError(f"splats of object {o.name!r} are missing", p)
             objects[o.name] = Gaussians.load_ply(p)
             poses[o.name] = o.pose
+            extents[o.name] = np.asarray(o.bbox_extent, float)
         moving_labels = {o.label: o.name for o in manifest.objects if o.name in objects}
         # background: label 0 and the labels of objects without splats; cleaned-out object Gaussians too
         # (hidden when their object moves)
@@ -136,6 +144,18 @@ class DynamicScene:
             keep[idx[in_obj]] = False
             residue[name] = idx[~in_obj]
         h = float(manifest.background.table_height)
+        if carry:
+            for name in objects:
+                T0 = poses[name]
+                cand = np.flatnonzero(keep & (full.means[:, 2] > h + CARRY_BAND))
+                p_obj = (full.means[cand] - T0[:3, 3]) @ T0[:3, :3]
+                inside = np.all(np.abs(p_obj) <= extents[name] / 2 + CARRY_MARGIN, axis=1)
+                take = cand[inside]
+                if len(take):
+                    extra = transform_gaussians(full.subset(take), np.linalg.inv(T0))
+                    objects[name] = concat([objects[name], extra], objects[name].sh_degree)
+                    keep[take] = False
+                    residue[name] = np.setdiff1d(residue[name], take)
         back = keep & _off_table(full.means, manifest.background.table_extent, h)
         front = keep & ~back
         bg_index = np.cumsum(front) - 1
