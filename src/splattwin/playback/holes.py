@@ -23,7 +23,7 @@ import numpy as np
 from splattwin.splat.gaussians import Gaussians
 
 CELL = 0.002          # m, grid cell
-MARGIN = 0.01         # m, footprint dilation (residue and contact shadow at the object's foot)
+MARGIN = 0.015        # m, footprint dilation: residue and contact shadow at the object's foot (bench: 1.0-2.0 cm best)
 TABLE_BAND = 0.006    # m, |z - table_height| of the Gaussians that make the table surface
 
 
