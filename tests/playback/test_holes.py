@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from splattwin.capture.camera import Camera, look_at
+from splattwin.playback.holes import CELL, MARGIN
 from splattwin.playback.render import PlaybackRenderer
 from splattwin.playback.scene import DynamicScene
 
@@ -16,14 +17,15 @@ def test_fill_covers_the_footprint_with_table_texture(tiny_twin):
     f = sc.fills["blue_box"]
     # the footprint: the box's base plus the margin, nothing far away
     xy = f.cells_xy
-    inside_box = np.all(np.abs(xy - OBJ_CENTRE[:2]) <= OBJ_HALF[:2] + 0.012, axis=1)
+    reach = MARGIN + 2 * CELL
+    inside_box = np.all(np.abs(xy - OBJ_CENTRE[:2]) <= OBJ_HALF[:2] + reach, axis=1)
     assert inside_box.all()
     base = (2 * OBJ_HALF[0]) * (2 * OBJ_HALF[1])
-    assert base <= f.area_m2 <= (2 * OBJ_HALF[0] + 0.026) * (2 * OBJ_HALF[1] + 0.026)
+    assert base <= f.area_m2 <= (2 * OBJ_HALF[0] + 2 * reach) * (2 * OBJ_HALF[1] + 2 * reach)
     # fill Gaussians lie in the footprint, on the table plane, with the table's colours
     fm = f.gaussians.means
     assert len(fm) > 0.5 * f.area_m2 / 0.004 ** 2
-    assert np.all(np.abs(fm[:, :2] - OBJ_CENTRE[:2]) <= OBJ_HALF[:2] + 0.014)
+    assert np.all(np.abs(fm[:, :2] - OBJ_CENTRE[:2]) <= OBJ_HALF[:2] + reach + 0.004)
     assert np.abs(fm[:, 2]).max() < 1e-6
     tc = table_colour(fm[:, :2])
     assert np.abs(f.gaussians.colors - tc).mean() < 0.12   # mirrored texture continues the pattern

@@ -22,8 +22,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rollout", type=Path, default=None, help="rollout .npz (default TWIN/robot/rollout.npz)")
     p.add_argument("--fps", type=float, default=30.0, help="video frame rate (default 30)")
     p.add_argument("--width", type=int, default=None, help="rescale a world camera to this width (pixels)")
-    p.add_argument("--base-pose", default="-0.5,0,0,0",
-                   help="robot base in the twin frame: x,y,z,yaw (m, rad); write --base-pose=-0.5,0,0,0")
+    p.add_argument("--base-pose", default=None,
+                   help="robot base in the twin frame: x,y,z,yaw (m, rad); write --base-pose=-0.5,0,0,0 "
+                        "(default: the one `splattwin plan` recorded in TWIN/robot/results.json, else -0.5,0,0,0)")
     p.add_argument("--no-robot", action="store_true", help="leave the robot out of the picture")
     p.add_argument("--no-fill", action="store_true", help="do not fill the table under moved objects")
     p.set_defaults(func=run_render)
@@ -39,8 +40,6 @@ def run_render(args: argparse.Namespace) -> int:
     from splattwin.playback.robot import RobotSplats
     from splattwin.playback.scene import DynamicScene
     from splattwin.robot.rollout import Rollout
-    from splattwin.robot.world import BasePose
-
     if not 0 < args.fps <= 240:
         raise InputError(f"--fps must be in (0, 240], got {args.fps}")
     if args.width is not None and not 16 <= args.width <= 8192:
@@ -57,7 +56,7 @@ def run_render(args: argparse.Namespace) -> int:
     unknown = sorted(set(rollout.object_poses) - set(scene.objects))
     if unknown:
         Console(stderr=True).print(f"note: rollout objects without splats stay unrendered: {', '.join(unknown)}")
-    robot = None if args.no_robot else RobotSplats.panda(BasePose.parse(args.base_pose).matrix())
+    robot = None if args.no_robot else RobotSplats.panda(_base_pose(args).matrix())
     if isinstance(camera, EyeInHand) and robot is None:
         raise InputError("an eye-in-hand camera needs the robot (drop --no-robot)")
     info = render_rollout_video(PlaybackRenderer(scene, robot), rollout, camera, args.out, fps=args.fps,
@@ -65,3 +64,20 @@ def run_render(args: argparse.Namespace) -> int:
     Console().print(f"wrote {info['path']}: {info['frames']} frames {info['width']}x{info['height']} at "
                     f"{info['fps']:g} fps, median {info['render_ms_median']:.0f} ms per frame")
     return 0
+
+
+def _base_pose(args: argparse.Namespace):
+    import json
+
+    from splattwin.robot.world import BasePose
+
+    if args.base_pose is not None:
+        return BasePose.parse(args.base_pose)
+    res = args.twin / "robot" / "results.json"
+    try:
+        b = json.loads(res.read_text()).get("base_pose") if res.is_file() else None
+        if isinstance(b, dict):
+            return BasePose(**{k: float(b[k]) for k in ("x", "y", "z", "yaw")})
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    return BasePose()

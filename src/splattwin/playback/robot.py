@@ -1,16 +1,21 @@
 """The robot in the picture: the Panda as Gaussians sampled from its own visual meshes.
 
-Decision (measured with bench/photoreal.py at 320x240 on the 2-core machine, shared, medians): MuJoCo's
-offscreen renderer on this machine's software Mesa (EGL/llvmpipe) costs ~120 ms for one RGB frame of
-the Panda's 136k-triangle visual meshes even with shadows, reflections and skybox off, plus ~30 ms for
-the depth pass, before the splats are rendered (and ~550 ms with MuJoCo's default shadows): the 150 ms
-budget is gone on the robot alone. Gaussians sampled on the same meshes (~47k: 1.5 mm on the fingers,
-3 mm on the hand, 5 mm on the links) are drawn by our rasterizer in the splats' own pass for a few tens of ms, and the
-depth order against the splats, the antialiased silhouette (each Gaussian is a smooth footprint) and
-partial occlusion by translucent splats come out of the same alpha compositing, with no GL context at
-all (the report and the viewer run on machines without EGL). bench/photoreal.py prints both costs side by
-side on every run. The mesh path stays available (`MeshRobotLayer` + `composite_layers`) for machines
-with a hardware GL driver.
+Decision (bench/photoreal.py, 320x240, the demo twin, 24 frames of the task, both paths interleaved on
+the same frames, medians; the 2 cores were shared with other work, so absolute numbers moved 1.5x
+between runs while the ranking did not):
+
+    robot as Gaussians (chosen)     76 ms  = posing 21 + rasterizer 54 + compositing 1.5  (47k robot Gaussians)
+    MuJoCo meshes + compositing    117 ms  = MuJoCo RGB+depth 79 (2x supersampled for the edges) + splats 32 + 1.5
+    (under heavier load: 131 vs 201 ms)
+
+MuJoCo's offscreen renderer runs on this machine's software Mesa (EGL/llvmpipe): the Panda's 136k visual
+triangles cost ~60-120 ms per RGB frame even with shadows, reflections and the skybox off (~550 ms with
+MuJoCo's default shadows), plus a depth pass, plus supersampling for antialiased edges, before the splats
+are drawn. The Gaussians go through the splats' own rasterizer pass, so the depth order against the
+splats, the antialiased silhouette (each Gaussian is a smooth footprint) and partial occlusion by
+translucent splats come out of the same alpha compositing, with no GL context at all (the report and the
+viewer run on machines without EGL). The cost: a softer look than shaded triangles up close. The mesh
+path stays available (`MeshRobotLayer` + `composite_layers`) for machines with a hardware GL driver.
 
 Shading: the meshes' material colours (MuJoCo `mat_rgba`), Lambertian under one light from above with an
 ambient term, recomputed per frame from each Gaussian's world normal (the arm moves under a fixed light).

@@ -115,6 +115,4 @@ class Rollout:
                            object_poses=poses, joint_names=[str(n) for n in f["joint_names"]],
                            step_index=f["step_index"])
         except (ValueError, OSError, zipfile.BadZipFile, KeyError) as e:
-            if isinstance(e, InputError):
-                raise
             raise InputError(f"cannot read rollout: {e}", path) from e
