@@ -8,8 +8,8 @@ Entry points (thin calls for the report, the viewer and `plan --record`):
     scene = DynamicScene.load(twin_dir)                       # splats split into background + objects, holes
     renderer = PlaybackRenderer(scene, RobotSplats.panda())   # robot as Gaussians (see robot.py for why)
     frame = renderer.render(camera, object_poses, qpos)       # one photoreal frame (rgb, depth, alpha)
-    render_rollout_video(twin_dir, rollout, camera, out_mp4)  # MP4 of an executed task
-    write_episode(out_dir, rollout, renderer, cameras)        # LeRobot-layout episode
+    render_rollout_video(renderer, rollout, camera, out_mp4)  # MP4 of an executed task (playback.movie)
+    write_episode(out_dir, rollout, renderer, cameras)        # LeRobot-layout episode (playback.episode)
     read_episode(dataset_dir, index)                          # ... and back
 CLI: `splattwin render TWIN --camera CAM --out video.mp4`.
 """
