@@ -1,0 +1,78 @@
+"""Playback cameras: capture cameras, user YAML, eye-in-hand, and the refusals (exit 2)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from splattwin.cli import main
+from splattwin.errors import InputError
+from splattwin.playback.cameras import (EyeInHand, capture_cameras, check_camera, load_camera_yaml,
+                                        resolve_camera)
+from splattwin.playback.scene import DynamicScene
+
+
+def test_capture_and_user_cameras(tiny_twin, tmp_path):
+    cams = capture_cameras(tiny_twin)
+    assert [c.name for c in cams] == ["view_0", "view_1"]
+    assert resolve_camera("view_1", tiny_twin).name == "view_1"
+    assert resolve_camera("capture:0", tiny_twin, width=48).width == 48
+    with pytest.raises(InputError, match="no capture camera"):
+        resolve_camera("nope", tiny_twin)
+    y = tmp_path / "cam.yaml"
+    y.write_text("width: 200\nheight: 100\nfov_x_deg: 90\neye: [0.5, 0, 0.4]\nlook_at: [0, 0, 0]\n")
+    c = load_camera_yaml(y)
+    assert (c.width, c.height) == (200, 100)
+    assert c.fx == pytest.approx(100.0)                 # 90 deg over 200 px
+    z = c.T_world_cam[:3, 2]
+    np.testing.assert_allclose(z, -np.array([0.5, 0, 0.4]) / np.linalg.norm([0.5, 0, 0.4]), atol=1e-9)
+    h = tmp_path / "hand.yaml"
+    h.write_text("frame: hand\nwidth: 64\nheight: 48\nfov_y_deg: 40\n")
+    assert isinstance(load_camera_yaml(h), EyeInHand)
+
+
+def test_eye_in_hand_default_is_d435_like_and_follows_the_hand():
+    e = EyeInHand()
+    K = e.intrinsics()
+    assert (e.width, e.height) == (640, 480)
+    fov_y = 2 * np.degrees(np.arctan(240 / K[1, 1]))
+    assert fov_y == pytest.approx(42.5)
+    assert K[0, 0] == pytest.approx(K[1, 1])
+    T = np.eye(4)
+    T[:3, 3] = [0.3, 0.1, 0.4]
+    cam = e.camera(T)
+    np.testing.assert_allclose(cam.T_world_cam, T @ e.T_hand_cam)
+    # it looks along the approach axis (hand +z), towards the fingertips
+    assert cam.T_world_cam[:3, 2] @ T[:3, 2] > 0.9
+
+
+@pytest.mark.parametrize("bad,msg", [("eye: [0, 0, 1]\n", "pose missing"),
+                                     ("eye: [0, 0, 1]\nlook_at: [0, 0, 1]\n", "coincide"),
+                                     ("fov_x_deg: 500\neye: [0, 0, 1]\nlook_at: [0, 0, 0]\n", "field of view"),
+                                     ("T_world_cam: [[1, 0], [0, 1]]\n", "4x4"),
+                                     ("lens: fisheye\n", "unknown camera keys"),
+                                     ("- 1\n- 2\n", "mapping")])
+def test_bad_camera_yaml_is_input_error(tmp_path, bad, msg):
+    p = tmp_path / "bad.yaml"
+    p.write_text(bad)
+    with pytest.raises(InputError, match=msg):
+        load_camera_yaml(p)
+
+
+def test_camera_below_table_and_twin_without_splats_exit_2(tiny_twin, meshonly_twin, tmp_path, capsys):
+    below = tmp_path / "below.yaml"
+    below.write_text("eye: [0.1, 0.1, -0.3]\nlook_at: [0, 0, 0]\n")
+    with pytest.raises(InputError, match="below the table"):
+        check_camera(load_camera_yaml(below), DynamicScene.load(tiny_twin).table_height)
+    from .rollouts import synthetic_rollout
+
+    r = synthetic_rollout(0.1).save(tmp_path / "r.npz")
+    code = main(["render", str(tiny_twin), "--camera", str(below), "--out", str(tmp_path / "v.mp4"),
+                 "--rollout", str(r), "--no-robot"])
+    assert code == 2 and "below the table" in capsys.readouterr().err
+    assert not (tmp_path / "v.mp4").exists()
+    code = main(["render", str(meshonly_twin), "--camera", "capture:0", "--out", str(tmp_path / "w.mp4"),
+                 "--rollout", str(r)])
+    assert code == 2 and "no splats" in capsys.readouterr().err
+    code = main(["render", str(tiny_twin), "--camera", "capture:0", "--out", str(tmp_path / "x.mp4")])
+    assert code == 2 and "no rollout" in capsys.readouterr().err
