@@ -229,9 +229,8 @@ def _twin_stage(ctx: Context) -> dict:
 
 def _geometry_fidelity(ctx: Context, scene_dir: Path) -> None:
     """Chamfer / precision / recall / F1 @5 mm of each object's cleaned points vs the GT mesh."""
-    import trimesh
-
     from splattwin.geometry.metrics import fidelity, sample_surface
+    from splattwin.meshio import load_mesh
     from splattwin.twin.manifest import Manifest
 
     man = Manifest.load(ctx.out)
@@ -240,10 +239,10 @@ def _geometry_fidelity(ctx: Context, scene_dir: Path) -> None:
         gt_path = scene_dir / "meshes" / f"{obj.name}.ply"
         if not obj.usable or not obj.visual_mesh or not gt_path.is_file():
             continue
-        mesh = trimesh.load(ctx.out / obj.visual_mesh, force="mesh", process=False)
+        mesh = load_mesh(ctx.out / obj.visual_mesh, f"visual mesh of {obj.name!r}")
         mesh.apply_transform(obj.pose)
         pts = sample_surface(mesh, spacing=0.002)
-        gt = sample_surface(trimesh.load(gt_path, force="mesh", process=False), spacing=0.002)
+        gt = sample_surface(load_mesh(gt_path, "ground-truth mesh"), spacing=0.002)
         f = fidelity(pts, gt, threshold=0.005)
         rows[obj.name] = asdict(f) if hasattr(f, "__dataclass_fields__") else dict(f)
     io.write_json(ctx.path("geometry_metrics.json"), rows)

@@ -62,8 +62,7 @@ def render_meshes(meshes: list, T_world_cam: np.ndarray, K: np.ndarray, width: i
 
 
 def _twin_meshes(twin_dir: Path, man) -> list:
-    import trimesh
-
+    from splattwin.meshio import load_mesh
     from splattwin.viewer.app import label_colors
 
     out = []
@@ -73,12 +72,12 @@ def _twin_meshes(twin_dir: Path, man) -> list:
         parts = obj.convex_parts or ([obj.collision_mesh] if obj.collision_mesh else [])
         col = label_colors(np.array([obj.label]))[0] / 255.0
         for rel in parts:
-            m = trimesh.load(twin_dir / rel, force="mesh", process=False)
+            m = load_mesh(twin_dir / rel, f"collision mesh of {obj.name!r}")
             m.apply_transform(obj.pose)
             out.append((m.vertices, m.faces, tuple(col)))
     bg = man.background
     for rel in bg.convex_parts or ([bg.collision_mesh] if bg.collision_mesh else []):
-        m = trimesh.load(twin_dir / rel, force="mesh", process=False)
+        m = load_mesh(twin_dir / rel, "background collision mesh")
         out.append((m.vertices, m.faces, (0.75, 0.72, 0.66)))
     return out
 

@@ -135,6 +135,10 @@ def read_ply_vertices(path: str | Path) -> dict[str, np.ndarray]:
         raise InputError("PLY file not found", path)
     raw = path.read_bytes()
     fmt, elements, body = _parse_header(raw, path)
+    from splattwin.limits import check_count
+
+    for e in elements:
+        check_count(e.count, path, f"'{e.name}' elements")
     names = [e.name for e in elements]
     if "vertex" not in names:
         raise InputError("PLY has no 'vertex' element", path)

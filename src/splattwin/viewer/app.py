@@ -120,9 +120,9 @@ def _frame_camera(server, points: np.ndarray) -> None:
 
 
 def _load_mesh(path: Path):
-    import trimesh
+    from splattwin.meshio import load_mesh
 
-    m = trimesh.load(path, force="mesh", process=False)
+    m = load_mesh(path, "collision mesh")
     return np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.uint32)
 
 
