@@ -210,6 +210,47 @@ def load_npy(path: str | Path, what: str = "array", max_bytes: int | None = None
         raise InputError(f"not a readable .npy {what}: {e}", path) from None
 
 
+def load_npz(path: str | Path, what: str = "array archive", max_bytes: int | None = None) -> dict[str, np.ndarray]:
+    """All arrays of a .npz (never pickles), each header checked like `load_npy` against the member's
+    uncompressed size and `max_bytes` before it is read."""
+    import io as _io
+    import zipfile
+
+    path = Path(path)
+    limit = MAX_ARRAY_BYTES if max_bytes is None else max_bytes
+    out: dict[str, np.ndarray] = {}
+    total = 0
+    try:
+        with zipfile.ZipFile(path) as zf:
+            for info in zf.infolist():
+                if not info.filename.endswith(".npy"):
+                    continue
+                total += info.file_size
+                if info.file_size > limit or total > limit:
+                    raise InputError(f"{what} member {info.filename!r} is larger than the limit", path)
+                with zf.open(info) as f:
+                    head = f.read(4096)
+                buf = _io.BytesIO(head)
+                version = np.lib.format.read_magic(buf)
+                if version == (1, 0):
+                    shape, _, dtype = np.lib.format.read_array_header_1_0(buf)
+                else:
+                    shape, _, dtype = np.lib.format.read_array_header_2_0(buf)
+                if dtype.hasobject:
+                    raise InputError(f"{what} member {info.filename!r} holds Python objects", path)
+                need = int(np.prod(shape, dtype=object)) * dtype.itemsize
+                if need > info.file_size:
+                    raise InputError(f"{what} member {info.filename!r} claims shape {tuple(shape)} but holds "
+                                     f"{info.file_size} bytes", path)
+                with zf.open(info) as f:
+                    out[info.filename[:-4]] = np.load(_io.BytesIO(f.read()), allow_pickle=False)
+    except InputError:
+        raise
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as e:
+        raise InputError(f"not a readable .npz {what}: {e}", path) from None
+    return out
+
+
 # -- JSON and YAML ------------------------------------------------------------------------------
 def read_json(path: str | Path, missing: str = "file not found", max_bytes: int | None = None) -> Any:
     """Parse a JSON file of at most `max_bytes` (default MAX_JSON_BYTES); InputError naming the file

@@ -180,8 +180,9 @@ def load_masks(path: str | Path, objects: dict[str, int] | None = None, object_n
 
     objects: name -> label (e.g. from the scene's scene.json); unknown names get fresh labels.
     object_name: object name for a flat polygon-JSON folder (default: the folder name).
-    image_sizes: view -> (H, W) of the dataset's images: every mask is checked against its image as it
-    is read (InputError naming the mask file), and views without an image are refused.
+    image_sizes: view -> (H, W) of the dataset's images: every mask of such a view is checked against
+    its image as it is read (InputError naming the mask file). Masks of views without an image are
+    not checked here (fusion ignores them with a MaskWarning).
     """
     path = Path(path)
     if not path.exists():
@@ -221,11 +222,8 @@ def _check_names(ms: MaskSet, where: Path) -> None:
 
 def _check_image(view: str, hw: tuple[int, int], image_sizes: dict | None, where: Path) -> None:
     """The mask of `view` (size hw = (H, W)) against the dataset image of that view, if sizes are known."""
-    if image_sizes is None:
+    if image_sizes is None or view not in image_sizes:
         return
-    if view not in image_sizes:
-        have = ", ".join(sorted(image_sizes)[:6])
-        raise InputError(f"mask for view {view!r} but the dataset has no image of that name (have: {have}...)", where)
     H, W = image_sizes[view]
     if tuple(hw) != (H, W):
         raise InputError(f"mask of view {view!r} is {hw[1]}x{hw[0]} but its image is {W}x{H}", where)
