@@ -109,10 +109,12 @@ class DigestCache:
         return "missing"
 
     def files(self, paths: Iterable[str | Path | None]) -> str:
-        """One digest over several files (their order matters), e.g. a dataset's images."""
+        """One digest over several files, e.g. a dataset's images: their order, file names and contents
+        (not their folders, so the same capture at another place has the same digest)."""
         h = hashlib.sha256()
         for p in paths:
-            h.update(f"{p}\0{self.digest(p)}\n".encode("utf-8", "surrogateescape"))
+            name = "" if p is None else Path(p).name
+            h.update(f"{name}\0{self.digest(p)}\n".encode("utf-8", "surrogateescape"))
         return h.hexdigest()
 
     def save(self) -> None:

@@ -152,7 +152,8 @@ def open_image(path: str | Path, what: str = "image") -> Iterator[Any]:
         try:
             im = Image.open(path)
         except Image.DecompressionBombError as e:
-            raise InputError(f"{what} is too large to decode ({e})", path) from None
+            raise InputError(f"{what} claims more than the limit of {MAX_IMAGE_PIXELS / 1e6:.0f} megapixels "
+                             f"(PIL: {e})", path) from None
         except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
             raise InputError(f"unreadable {what} ({e.__class__.__name__}: {e})", path) from None
         try:

@@ -200,6 +200,8 @@ def read_gaussians_ply(path: str | Path) -> Gaussians:
     except ValueError:
         raise InputError(f"{n_rest} f_rest properties does not match any SH degree "
                          f"(expected 0, 9, 24 or 45)", path) from None
+    if n == 0:  # a valid, empty splat: callers that need Gaussians say so with their own message
+        return Gaussians.empty(degree)
     k = (degree + 1) ** 2
     sh = np.zeros((n, k, 3))
     if has_dc:
