@@ -11,6 +11,10 @@ run's temporary files (`splattwin.io.clean_temp`). The file itself is never dele
 let two processes lock two different files); it records `{pid, host, command, started}` of the holder.
 
 Re-entrant within a process: `build` holds the lock and calls stage functions that may take it again.
+
+Taking the lock also checks the folder for symbolic links that lead out of it (a received twin folder
+whose `splat/` is a link to elsewhere would make every write there land outside `--out`): such a link
+is an InputError naming it, before anything is written.
 """
 
 from __future__ import annotations
@@ -117,7 +121,23 @@ def acquire(folder: str | Path, command: str | None = None) -> None:
         _held[key] = [fd, 1]
     from splattwin.io import clean_temp
 
+    try:
+        check_links(folder)
+    except InputError:
+        release(folder)
+        raise
     clean_temp(folder)
+
+
+def check_links(folder: str | Path) -> None:
+    """InputError for the first symbolic link under `folder` that resolves outside it."""
+    root = Path(folder).resolve()
+    for dirpath, dirnames, filenames in os.walk(folder):
+        for name in dirnames + filenames:
+            p = Path(dirpath) / name
+            if p.is_symlink() and not p.resolve().is_relative_to(root):
+                raise InputError(f"the output folder holds a symbolic link to {os.readlink(p)!r}, outside it; "
+                                 f"splattwin never writes outside the output folder: remove the link", p)
 
 
 def release(folder: str | Path) -> None:

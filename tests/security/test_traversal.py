@@ -261,3 +261,18 @@ def test_report_never_embeds_files_from_outside(gt_twin, tmp_path, cli):
                    "views": [{"name": "v", "psnr": 30.0, "ssim": 0.9, "image": str(tmp_path / "private.png")}]})
     assert_bad_input(cli("report", twin), "metrics.json", "absolute")
     assert not (twin / "report" / "index.html").exists() or b"base64" not in (twin / "report" / "index.html").read_bytes()
+
+
+def test_links_out_of_the_output_folder_are_refused(tmp_path, victim, cli, tiny_dataset):
+    """A received folder reused as --out whose splat/ is a link elsewhere: nothing is written there."""
+    from splattwin.geometry.synthetic import synthetic_scene
+
+    g, _, _, _ = synthetic_scene(500, seed=0)
+    ply = g.save_ply(tmp_path / "s.ply")
+    out = tmp_path / "received"
+    out.mkdir()
+    os.symlink(victim, out / "splat")
+    before = tree_snapshot(victim)
+    assert_bad_input(cli("geometry", ply, "--out", out), "received/splat", "symbolic link")
+    assert_bad_input(cli("build", tiny_dataset, "--out", out, "--iters", "5"), "received/splat")
+    assert tree_snapshot(victim) == before
