@@ -2,7 +2,9 @@
 
 Each stage owns its sub-commands in `splattwin/<stage>/cli.py`, exposing `register(subparsers)`, which
 adds parsers whose `func(args) -> int` runs the command. Exit codes: 0 success, 2 bad input
-(`InputError`, message names the file and the problem), 1 internal error.
+(`InputError`, message names the file and the problem), 1 internal error or a failed robot task.
+No traceback reaches the user without `--debug`: an internal error prints one line saying what broke
+and how to get the traceback for a bug report.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import importlib
 import logging
 import sys
 import traceback
+from pathlib import Path
 
 from splattwin import __version__
 from splattwin.errors import InputError
@@ -41,6 +44,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"splattwin {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("--debug", action="store_true",
+                        help="show the full traceback of internal errors (and of bad input) for bug reports")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for mod in STAGE_CLIS:
         importlib.import_module(mod).register(sub)
@@ -49,23 +54,47 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if "--debug" in argv:  # accepted anywhere on the line, not only before the command
+        argv = ["--debug"] + [a for a in argv if a != "--debug"]
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s")
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    debug = bool(getattr(args, "debug", False))
     try:
         return int(args.func(args) or 0)
     except InputError as e:
+        if debug:
+            traceback.print_exc()
         print(f"error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
-    except Exception:  # internal error: full traceback for the bug report
-        traceback.print_exc()
+    except Exception as e:  # internal error: one line; the traceback with --debug for the bug report
+        if debug:
+            traceback.print_exc()
+        else:
+            where = _innermost_frame(e)
+            print(f"internal error: {type(e).__name__}: {str(e)[:500]}{where}\n"
+                  f"This is a bug in splattwin (or an unexpected library failure), not your input. Run the "
+                  f"same command with --debug for the traceback and include it in a bug report.", file=sys.stderr)
         return 1
+
+
+def _innermost_frame(e: BaseException) -> str:
+    tb = e.__traceback__
+    last = None
+    while tb is not None:
+        last = tb
+        tb = tb.tb_next
+    if last is None:
+        return ""
+    code = last.tb_frame.f_code
+    return f" (in {code.co_name}, {Path(code.co_filename).name}:{last.tb_lineno})"
 
 
 if __name__ == "__main__":

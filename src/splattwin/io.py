@@ -1,19 +1,59 @@
-"""Atomic file writes: every artifact is written to a temporary file beside its target and renamed.
+"""Atomic file writes: every artifact is written to a temporary file beside its target, flushed to disk
+(fsync) and renamed.
 
 A killed run therefore never leaves a half-written artifact under its final name; readers see the old
-file or the new one.
+file or the new one, also after a power cut. Temporary files are named `.<name>.tmp<PID>-<random><ext>`
+(`temp_dir` folders alike), so the next run into the same folder can find and remove those of a killed
+run (`clean_temp`, called under the output-folder lock).
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
+import re
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
+
+log = logging.getLogger(__name__)
+
+# .<target name>.tmp<pid>-<8 random chars from mkstemp/mkdtemp><suffix>
+_TEMP_RE = re.compile(r"^\..+\.tmp(?P<pid>\d+)-[a-z0-9_]{8}")
+
+
+def _temp_prefix(name: str) -> str:
+    return f".{name}.tmp{os.getpid()}-"
+
+
+def _umask() -> int:
+    umask = os.umask(0)
+    os.umask(umask)
+    return umask
+
+
+def _artifact_mode() -> int:
+    """0666 minus the umask: the permissions of an ordinary new file."""
+    return 0o666 & ~_umask()
+
+
+def fsync_path(path: str | Path) -> None:
+    """Flush a file's data (or a folder's entries) to disk; file systems that cannot do it are skipped."""
+    try:
+        fd = os.open(path, os.O_RDONLY | (os.O_DIRECTORY if Path(path).is_dir() else 0))
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 @contextlib.contextmanager
@@ -25,20 +65,59 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix if suffix is not None else path.suffix,
+    fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path.name), suffix=suffix if suffix is not None else path.suffix,
                                dir=path.parent)
     os.close(fd)
     tmp_path = Path(tmp)
     try:
         yield tmp_path
         # mkstemp makes 0600 files; artifacts get the usual permissions (0666 minus the umask).
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp_path, 0o666 & ~umask)
+        os.chmod(tmp_path, _artifact_mode())
+        fsync_path(tmp_path)  # data on disk before the rename makes it visible
         os.replace(tmp_path, path)
+        fsync_path(path.parent)
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
+
+
+def temp_dir(parent: str | Path, name: str) -> Path:
+    """A new empty folder `.<name>.tmp<PID>-XXXXXXXX` in `parent` with ordinary permissions (0777 minus
+    the umask, not mkdtemp's 0700), to be filled and renamed into place."""
+    parent = Path(parent)
+    parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=_temp_prefix(name), dir=parent))
+    os.chmod(tmp, 0o777 & ~_umask())
+    return tmp
+
+
+def clean_temp(folder: str | Path) -> list[Path]:
+    """Remove the temporary files and folders of killed runs under `folder` (any not made by this
+    process). Call it only while holding the folder's lock (`splattwin.lock`), when no other splattwin
+    process writes there. Returns what was removed."""
+    folder = Path(folder)
+    removed: list[Path] = []
+    me = os.getpid()
+    if not folder.is_dir():
+        return removed
+    for dirpath, dirnames, filenames in os.walk(folder):
+        for name in list(dirnames) + filenames:
+            m = _TEMP_RE.match(name)
+            if m is None or int(m.group("pid")) == me:
+                continue
+            p = Path(dirpath) / name
+            try:
+                if p.is_dir() and not p.is_symlink():
+                    shutil.rmtree(p)
+                    dirnames.remove(name)
+                else:
+                    p.unlink()
+                removed.append(p)
+            except OSError as e:
+                log.warning("could not remove temporary %s of an earlier run: %s", p, e)
+    if removed:
+        log.info("removed %d temporary file(s) left by a killed run in %s", len(removed), folder)
+    return removed
 
 
 def write_bytes(path: str | Path, data: bytes) -> Path:
@@ -95,13 +174,8 @@ def _json_default(o: Any) -> Any:
 
 
 def read_json(path: str | Path, missing: str = "file not found") -> Any:
-    """Parse a JSON file; InputError naming the file when it is missing or not valid JSON."""
-    from splattwin.errors import InputError
+    """Parse a JSON file; InputError naming the file when it is missing, too large (see
+    `splattwin.limits`), too deeply nested or not valid JSON."""
+    from splattwin.limits import read_json as _read
 
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(missing, path)
-    try:
-        return json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"not valid JSON: {e}", path) from e
+    return _read(path, missing)

@@ -30,7 +30,8 @@ def test_geometry_cli_builds_twin(tmp_path):
     m = Manifest.load(out)
     assert [o.name for o in m.objects] == ["box", "hammer"] and all(o.usable for o in m.objects)
     assert m.object("box").prompt == "blue box" and m.frame.scaled
-    assert m.cameras == str((tmp_path / "transforms.json").resolve())
+    # a cameras file outside the twin is recorded as a reference, never as a path in twin.json (relocatable)
+    assert m.cameras is None and m.config["cameras_source"] == str((tmp_path / "transforms.json").resolve())
     assert (out / "export" / "scene.urdf").is_file() and "urdf" in m.exports and "mjcf" not in m.exports
 
 

@@ -125,7 +125,7 @@ def test_rollout_load_bounds_sizes_before_inflating(tmp_path: Path, monkeypatch)
     monkeypatch.setattr(rollout_mod, "MAX_BYTES", declared - 1)
     read = []
     monkeypatch.setattr(rollout_mod.np, "load", lambda *a, **k: read.append(a))
-    with pytest.raises(InputError, match="exceed"):
+    with pytest.raises(InputError, match="larger than the limit"):
         Rollout.load(p)
     assert read == []
 

@@ -117,7 +117,7 @@ def test_deterministic_and_resume_equivalent(synth, tmp_path):
     with pytest.raises(Killed):
         train(ds, tmp_path / "c", cfg, callback=kill)
     assert not (tmp_path / "c" / "point_cloud.ply").exists()
-    assert sorted(p.name for p in (tmp_path / "c" / "checkpoints").iterdir()) == ["ckpt_000020.pt", "ckpt_000040.pt"]
+    assert sorted(p.name for p in (tmp_path / "c" / "checkpoints").iterdir()) == ["ckpt_000020.safetensors", "ckpt_000040.safetensors"]
     t = Trainer(ds, tmp_path / "c", cfg)
     c = t.run(resume=True)
     assert c.steps == 60

@@ -20,13 +20,15 @@ from splattwin.errors import InputError
 _REQUIRED = ("img_name", "width", "height", "position", "rotation", "fx", "fy")
 
 
-def _find_image(root: Path, name: str) -> Path | None:
+def _find_image(root: Path, name, where: Path) -> Path | None:
+    from splattwin.paths import confined
+
     for folder in (root / "images", root / "input", root):
-        p = folder / name
+        p = confined(folder, name, where, "img_name")
         if p.is_file():
             return p
         for ext in IMAGE_SUFFIXES:
-            q = folder / f"{name}{ext}"
+            q = confined(folder, f"{name}{ext}", where, "img_name")
             if q.is_file():
                 return q
     return None
@@ -39,18 +41,32 @@ def read(path: str | Path, image_dir: str | Path | None = None) -> Dataset:
         raise InputError("expected a non-empty JSON list of cameras (3DGS cameras.json)", path)
     root = Path(image_dir) if image_dir is not None else path.parent
     frames = []
-    for i, e in enumerate(sorted(entries, key=lambda e: e.get("id", 0))):
+    if not all(isinstance(e, dict) for e in entries):
+        raise InputError("every camera entry must be an object", path)
+    try:
+        entries = sorted(entries, key=lambda e: float(e.get("id", 0)))
+    except (TypeError, ValueError):
+        raise InputError("camera 'id's must be numbers", path) from None
+    from splattwin.limits import check_pixels
+
+    for i, e in enumerate(entries):
         missing = [k for k in _REQUIRED if k not in e]
         if missing:
             raise InputError(f"camera entry {i} lacks {', '.join(missing)}", path)
-        T = np.eye(4)
-        T[:3, :3] = np.asarray(e["rotation"], dtype=np.float64)
-        T[:3, 3] = np.asarray(e["position"], dtype=np.float64)
-        if not np.all(np.isfinite(T)):
-            raise InputError(f"camera {e['img_name']!r}: pose is not finite", path)
-        w, h = int(e["width"]), int(e["height"])
-        K = np.array([[float(e["fx"]), 0, w / 2.0], [0, float(e["fy"]), h / 2.0], [0, 0, 1.0]])
-        img = _find_image(root, e["img_name"])
+        if not isinstance(e["img_name"], str) or not e["img_name"]:
+            raise InputError(f"camera entry {i}: img_name must be a non-empty string", path)
+        try:
+            T = np.eye(4)
+            T[:3, :3] = np.asarray(e["rotation"], dtype=np.float64)
+            T[:3, 3] = np.asarray(e["position"], dtype=np.float64)
+            w, h = check_pixels(e["width"], e["height"], path, f"camera {e['img_name']!r}: width x height")
+            K = np.array([[float(e["fx"]), 0, w / 2.0], [0, float(e["fy"]), h / 2.0], [0, 0, 1.0]])
+        except (TypeError, ValueError) as err:
+            raise InputError(f"camera {e['img_name']!r}: position, rotation (3x3), fx, fy must be numbers ({err})",
+                             path) from None
+        if not np.all(np.isfinite(T)) or not np.all(np.isfinite(K)):
+            raise InputError(f"camera {e['img_name']!r}: pose or intrinsics are not finite", path)
+        img = _find_image(root, e["img_name"], path)
         if img is None:
             raise InputError(f"image for camera {e['img_name']!r} not found under {root}", path)
         try:

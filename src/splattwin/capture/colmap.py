@@ -2,7 +2,8 @@
 
 Layouts accepted by `read`: a sparse model folder itself (`cameras.bin|txt`, `images.*`, `points3D.*`),
 or a project folder with `sparse/0/` (or `sparse/`) and `images/`. COLMAP's pose is `cam_from_world`
-(OpenCV convention), which we invert to `T_world_cam`.
+(OpenCV convention), which we invert to `T_world_cam`. Image names in the model must stay inside the
+image folder (`splattwin.paths`).
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ from splattwin import io
 from splattwin.capture.camera import Camera
 from splattwin.capture.dataset import Dataset, Frame
 from splattwin.errors import InputError
+from splattwin.limits import check_pixels
+from splattwin.paths import confined
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +82,8 @@ def read(path: str | Path, image_dir: str | Path | None = None) -> Dataset:
         T_cam_world[:3, :4] = np.asarray(cfw.matrix())
         if not np.all(np.isfinite(T_cam_world)):
             raise InputError(f"image {im.name!r}: pose is not finite", sparse)
-        img_path = image_dir / im.name
+        img_path = confined(image_dir, im.name, sparse, f"image name of image {image_id}")
+        check_pixels(cam.width, cam.height, sparse, f"camera of image {im.name!r}")
         if not img_path.is_file():
             log.warning("%s: image %s is missing; skipping it", sparse, img_path)
             continue

@@ -81,66 +81,48 @@ class Dataset:
 
 
 def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) from the image header; InputError if missing or unreadable."""
-    from PIL import Image, UnidentifiedImageError
+    """(width, height) from the image header; InputError if missing, unreadable or beyond the pixel
+    limit (`splattwin.limits`)."""
+    from splattwin.limits import image_size as _size
 
-    if not Path(path).is_file():
-        raise InputError("image file does not exist", path)
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except (UnidentifiedImageError, OSError) as e:
-        raise InputError(f"unreadable image ({e.__class__.__name__})", path) from e
+    return _size(path)
 
 
 def load_image(path: str | Path) -> np.ndarray:
-    """RGB image as float32 HxWx3 in [0, 1] (alpha dropped, greyscale expanded)."""
-    from PIL import Image, UnidentifiedImageError
+    """RGB image as float32 HxWx3 in [0, 1] (alpha dropped, greyscale expanded). The header's size is
+    checked (`splattwin.limits`) before the pixels are decoded."""
+    from splattwin.limits import read_image_array
 
-    path = Path(path)
-    if not path.is_file():
-        raise InputError("image file does not exist", path)
-    try:
-        with Image.open(path) as im:
-            im.load()
-            rgb = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
-    except (UnidentifiedImageError, OSError) as e:
-        raise InputError(f"unreadable image ({e.__class__.__name__}: {e})", path) from e
-    return rgb
+    return read_image_array(path, mode="RGB").astype(np.float32) / 255.0
 
 
 def load_mask(path: str | Path) -> np.ndarray:
     """Mask or label image as uint8/uint16 HxW (first channel if it has several)."""
-    from PIL import Image, UnidentifiedImageError
+    from splattwin.limits import read_image_array
 
-    path = Path(path)
-    if not path.is_file():
-        raise InputError("mask file does not exist", path)
-    try:
-        with Image.open(path) as im:
-            m = np.asarray(im)
-    except (UnidentifiedImageError, OSError) as e:
-        raise InputError(f"unreadable mask ({e.__class__.__name__})", path) from e
+    m = read_image_array(path, what="mask")
     return m[..., 0] if m.ndim == 3 else m
 
 
 def load_depth(path: str | Path, scale: float = 1.0) -> np.ndarray:
     """Depth map as float32 HxW metres: `.npy` (float, metres unless `scale` says otherwise) or a
     16-bit PNG (raw units × scale; nerfstudio's convention is millimetres, scale 1e-3)."""
+    from splattwin.limits import check_pixels, load_npy
+
     path = Path(path)
     if not path.is_file():
         raise InputError("depth file does not exist", path)
     if path.suffix == ".npy":
-        try:
-            d = np.load(path)
-        except (ValueError, OSError) as e:
-            raise InputError(f"unreadable depth array: {e}", path) from e
+        d = load_npy(path, "depth array")
     else:
         d = load_mask(path)
         if scale == 1.0:
             scale = 1e-3  # integer depth images are millimetres by convention
     if d.ndim != 2:
         raise InputError(f"depth must be a 2-D array, got shape {d.shape}", path)
+    check_pixels(d.shape[1], d.shape[0], path, "depth map")
+    if d.dtype.kind not in "fiub":
+        raise InputError(f"depth must hold numbers, got dtype {d.dtype}", path)
     return d.astype(np.float32) * np.float32(scale)
 
 
@@ -156,8 +138,15 @@ def find_images(folder: Path) -> list[Path]:
     return sorted(p for p in Path(folder).iterdir() if p.is_file() and p.suffix in IMAGE_SUFFIXES)
 
 
-def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool = True) -> Dataset:
-    """Load any supported dataset layout (see module docstring)."""
+def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool = True,
+                 frames_dir: str | Path | None = None) -> Dataset:
+    """Load any supported dataset layout (see module docstring).
+
+    frames_dir: where a video's extracted frames go (default `<stem>_frames/` beside the video; `build`
+    puts them inside the twin folder so that nothing is written outside it).
+    Paths read from the dataset's files (image names, depth and mask paths) must stay inside the
+    dataset's folder (`splattwin.paths`); names of views must be plain file names (`splattwin.names`).
+    """
     from splattwin.capture import cameras_json, colmap, images, nerfstudio, video
 
     path = Path(path)
@@ -165,10 +154,11 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
         raise InputError("dataset path does not exist", path)
     if path.is_file():
         if path.name.endswith(".json"):
-            text_head = path.read_text(errors="replace")[:4096]
+            with open(path, "rb") as f:
+                text_head = f.read(4096).decode("utf-8", errors="replace")
             ds = cameras_json.read(path) if text_head.lstrip().startswith("[") else nerfstudio.read(path)
         elif path.suffix in VIDEO_SUFFIXES:
-            ds = video.read(path, max_frames=max_frames)
+            ds = video.read(path, max_frames=max_frames, out_dir=frames_dir)
         else:
             raise InputError("not a dataset: expected transforms.json, cameras.json, a video, or a folder", path)
     elif (path / "transforms.json").is_file():
@@ -186,4 +176,19 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
         ds.frames = [ds.frames[i] for i in idx]
     if validate:
         ds.validate()
+    _check_frame_names(ds, path)
     return ds
+
+
+def _check_frame_names(ds: Dataset, where: Path) -> None:
+    """View names key masks and name output files (label maps, eval images): each must be a plain file
+    name and unique within the dataset."""
+    from splattwin.names import view_name
+
+    seen: dict[str, Path] = {}
+    for f in ds.frames:
+        n = view_name(f.name, where, "view name (image file name)")
+        if n in seen:
+            raise InputError(f"two images have the view name {n!r} ({seen[n]} and {f.image_path}); view names "
+                             f"(image file names without extension) must be unique", where)
+        seen[n] = f.image_path

@@ -6,6 +6,12 @@ instance labels, ignored by nerfstudio), `ply_file_path`, and the split lists
 `train_filenames` / `val_filenames` / `test_filenames` (val and test become our "heldout" split); a
 per-frame `"split"` key is also honoured. Poses are OpenGL camera-to-world (`transform_matrix`); we
 convert to OpenCV on read and back on write. Frames whose image is missing are skipped with a warning.
+
+The file is untrusted: every path in it (`file_path`, `depth_file_path`, `mask_path`, `label_path`,
+`ply_file_path`) must be relative and stay inside the file's folder (`splattwin.paths`), every value
+must have the right type (a frame that is not an object, a `file_path` that is not a string, text in a
+matrix: InputError naming the file and the frame), and image sizes are bounded (`splattwin.limits`).
+`write` puts only paths inside the output file's folder into it.
 """
 
 from __future__ import annotations
@@ -21,6 +27,8 @@ from splattwin import io
 from splattwin.capture.camera import Camera, opencv_from_opengl, opengl_from_opencv
 from splattwin.capture.dataset import Dataset, Frame
 from splattwin.errors import InputError
+from splattwin.limits import check_count, check_pixels
+from splattwin.paths import confined
 
 log = logging.getLogger(__name__)
 
@@ -42,11 +50,17 @@ def _intrinsics(src: dict, fallback: dict, where: Path, frame_name: str) -> tupl
     missing = [k for k, v in (("fl_x", fl_x), ("w", w), ("h", h)) if v is None]
     if missing:
         raise InputError(f"frame {frame_name!r}: missing intrinsics {', '.join(missing)}", where)
-    cx = get("cx") if get("cx") is not None else float(w) / 2.0
-    cy = get("cy") if get("cy") is not None else float(h) / 2.0
-    K = np.array([[float(fl_x), 0.0, float(cx)], [0.0, float(fl_y), float(cy)], [0.0, 0.0, 1.0]])
-    dist = np.array([float(get(k) or 0.0) for k in _DIST_KEYS])
-    return K, int(w), int(h), (dist if np.any(dist) else None)
+    try:
+        w_i, h_i = check_pixels(w, h, where, f"frame {frame_name!r}: w x h")
+        cx = get("cx") if get("cx") is not None else float(w) / 2.0
+        cy = get("cy") if get("cy") is not None else float(h) / 2.0
+        K = np.array([[float(fl_x), 0.0, float(cx)], [0.0, float(fl_y), float(cy)], [0.0, 0.0, 1.0]])
+        dist = np.array([float(get(k) or 0.0) for k in _DIST_KEYS])
+    except (TypeError, ValueError, OverflowError) as e:
+        raise InputError(f"frame {frame_name!r}: intrinsics must be numbers ({e})", where) from None
+    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(dist))):
+        raise InputError(f"frame {frame_name!r}: intrinsics are not finite", where)
+    return K, w_i, h_i, (dist if np.any(dist) else None)
 
 
 def read(path: str | Path) -> Dataset:
@@ -58,15 +72,26 @@ def read(path: str | Path) -> Dataset:
     if model not in SUPPORTED_MODELS:
         raise InputError(f"unsupported camera_model {model!r} (supported: {', '.join(SUPPORTED_MODELS)})", path)
     root = path.parent
-    heldout_names = set(meta.get("test_filenames", [])) | set(meta.get("val_filenames", []))
+    check_count(len(meta["frames"]), path, "frames")
+    heldout_names = set()
+    for key in ("test_filenames", "val_filenames"):
+        names = meta.get(key, [])
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise InputError(f"{key} must be a list of file names", path)
+        heldout_names |= set(names)
     frames: list[Frame] = []
     for i, fr in enumerate(meta["frames"]):
+        if not isinstance(fr, dict):
+            raise InputError(f"frame {i} must be an object with file_path and transform_matrix, got "
+                             f"{type(fr).__name__}", path)
         if "file_path" not in fr:
             raise InputError(f"frame {i} has no file_path", path)
         rel = fr["file_path"]
-        img = root / rel
+        if not isinstance(rel, str) or not rel:
+            raise InputError(f"frame {i}: file_path must be a non-empty string, got {rel!r}", path)
+        img = confined(root, rel, path, f"frame {i} file_path")
         if not img.suffix and not img.exists():  # NeRF-synthetic omits the extension
-            img = img.with_suffix(".png")
+            img = confined(root, rel + ".png", path, f"frame {i} file_path")
         if not img.is_file():
             log.warning("%s: frame %d image %s is missing; skipping it", path, i, img)
             continue
@@ -74,7 +99,10 @@ def read(path: str | Path) -> Dataset:
         if fr_model not in SUPPORTED_MODELS:
             raise InputError(f"frame {rel!r}: unsupported camera_model {fr_model!r}", path)
         K, w, h, dist = _intrinsics(fr, meta, path, rel)
-        T_gl = np.asarray(fr.get("transform_matrix"), dtype=np.float64)
+        try:
+            T_gl = np.asarray(fr.get("transform_matrix"), dtype=np.float64)
+        except (TypeError, ValueError) as e:
+            raise InputError(f"frame {rel!r}: transform_matrix must be a 4x4 matrix of numbers ({e})", path) from None
         if T_gl.shape == (3, 4):
             T_gl = np.vstack([T_gl, [0, 0, 0, 1]])
         if T_gl.shape != (4, 4):
@@ -92,26 +120,36 @@ def read(path: str | Path) -> Dataset:
             cam = Camera(K=K, width=w, height=h, T_world_cam=opencv_from_opengl(T_gl), dist=dist, name=Path(rel).stem)
         except InputError as e:
             raise InputError(f"frame {rel!r}: {e.problem}", path) from e
+        extra = {k: confined(root, fr[k], path, f"frame {rel!r} {k}") if fr.get(k) else None
+                 for k in ("depth_file_path", "mask_path", "label_path")}
         frames.append(Frame(
             image_path=img,
             camera=cam,
-            depth_path=root / fr["depth_file_path"] if fr.get("depth_file_path") else None,
-            mask_path=root / fr["mask_path"] if fr.get("mask_path") else None,
-            label_path=root / fr["label_path"] if fr.get("label_path") else None,
+            depth_path=extra["depth_file_path"],
+            mask_path=extra["mask_path"],
+            label_path=extra["label_path"],
             split=split,
         ))
     if not frames:
         raise InputError("no frame has an existing image", path)
     xyz = rgb = None
     if meta.get("ply_file_path"):
-        ply = root / meta["ply_file_path"]
+        ply = confined(root, meta["ply_file_path"], path, "ply_file_path")
         if ply.is_file():
             xyz, rgb = read_points_ply(ply)
+            if len(xyz) == 0:
+                log.warning("%s: ply_file_path %s holds no points; no initial point cloud", path, ply)
+                xyz = rgb = None
         else:
             log.warning("%s: ply_file_path %s is missing; no initial point cloud", path, ply)
+    try:
+        depth_scale = float(meta.get("depth_unit_scale_factor", 1.0))
+    except (TypeError, ValueError):
+        raise InputError("depth_unit_scale_factor must be a number", path) from None
+    if not (np.isfinite(depth_scale) and depth_scale > 0):
+        raise InputError(f"depth_unit_scale_factor must be positive, got {depth_scale}", path)
     return Dataset(root=root, frames=frames, has_poses=True, points_xyz=xyz, points_rgb=rgb,
-                   depth_scale=float(meta.get("depth_unit_scale_factor", 1.0)),
-                   meta={"format": "nerfstudio", "path": str(path)})
+                   depth_scale=depth_scale, meta={"format": "nerfstudio", "path": str(path)})
 
 
 def write(dataset: Dataset, path: str | Path, ply_name: str = "sparse_pc.ply") -> Path:
@@ -166,11 +204,17 @@ def read_points_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     """Point cloud (xyz [N,3] float64, rgb [N,3] uint8 or None) from a PLY via Open3D-free trimesh."""
     import trimesh
 
+    from splattwin.limits import check_ply_header
+
+    check_ply_header(path, "point cloud PLY")
     try:
         pc = trimesh.load(path, process=False)
     except Exception as e:  # trimesh raises many types on malformed files
         raise InputError(f"unreadable point cloud PLY: {e}", path) from e
-    xyz = np.asarray(getattr(pc, "vertices", np.zeros((0, 3))), dtype=np.float64)
+    try:
+        xyz = np.asarray(getattr(pc, "vertices", np.zeros((0, 3))), dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError("point cloud PLY must hold xyz vertices", path) from None
     if xyz.ndim != 2 or xyz.shape[1] != 3 or not np.all(np.isfinite(xyz)):
         raise InputError("point cloud PLY must hold finite xyz vertices", path)
     colors = getattr(pc, "colors", None)

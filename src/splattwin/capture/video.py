@@ -67,11 +67,15 @@ def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = 30) 
              "mtime": path.stat().st_mtime if path.is_file() else None, "max_frames": max_frames}
     index = out_dir / "frames.json"
     if index.is_file():
+        from splattwin.paths import confined
+
         try:
             cached = json.loads(index.read_text())
-            if cached.get("stamp") == stamp and all((out_dir / n).is_file() for n in cached["frames"]):
-                return [out_dir / n for n in cached["frames"]]
-        except (json.JSONDecodeError, KeyError):
+            if cached.get("stamp") == stamp:
+                paths = [confined(out_dir, n, index, "frame file") for n in cached["frames"]]
+                if all(p.is_file() for p in paths):
+                    return paths
+        except (json.JSONDecodeError, KeyError, TypeError, AttributeError):
             pass
     # Pass 1: sharpness of every frame (cheap, downscaled).
     container = _open(path)

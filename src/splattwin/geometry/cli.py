@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from splattwin.errors import InputError
+from splattwin.names import check_unique, object_name
 
 log = logging.getLogger(__name__)
 
@@ -23,29 +24,52 @@ def _parse_object(text: str) -> tuple[str, int, str]:
         lab = -1
     if not sep or not name or lab <= 0:
         raise InputError(f"object must be NAME=LABEL[:PROMPT] with LABEL a positive integer, got {text!r}", "--object")
-    return name, lab, prompt
+    return object_name(name, "--object"), lab, prompt
 
 
 def _run(args: argparse.Namespace) -> int:
+    from splattwin.lock import output_lock
+
+    with output_lock(args.out):
+        return _run_locked(args)
+
+
+def _run_locked(args: argparse.Namespace) -> int:
     from splattwin.geometry.options import GeometryOptions
     from splattwin.splat.gaussians import Gaussians
-    from splattwin.twin.build import build_twin
+    from splattwin.twin.build import build_twin, check_formats, default_formats
     from splattwin.twin.cli import _formats
     from splattwin.twin.manifest import FRAME_SOURCES, Frame
 
     ply = Path(args.splat)
+    if args.frame not in FRAME_SOURCES:
+        raise InputError(f"unknown frame source {args.frame!r} (choose from {', '.join(FRAME_SOURCES)})", "--frame")
+    frame = Frame(source=args.frame, scaled=args.frame != "unscaled")
+    if args.formats is None:
+        formats = default_formats(frame)
+        skipped = [f for f in _formats("mjcf,urdf,moveit,gltf") if f not in formats]
+        if skipped:
+            print(f"note: {', '.join(skipped)} export skipped: the twin is unscaled (--frame {args.frame}) and "
+                  f"physics needs metres; give --frame with a metric source to get it")
+    else:
+        formats = _formats(args.formats) if args.formats else ()
+    check_formats(frame, formats, "--formats")
     if not ply.is_file():
         raise InputError("no such splat PLY", ply)
     g = Gaussians.load_ply(ply)
     g.validate(ply)
+    if len(g) == 0:
+        raise InputError("the splat PLY holds no Gaussians (0 vertices)", ply)
     if args.labels:
+        from splattwin.limits import load_npy
+
         lp = Path(args.labels)
         if not lp.is_file():
             raise InputError("no such label file", lp)
-        try:
-            labels = np.load(lp).astype(np.int64).reshape(-1)
-        except ValueError as e:
-            raise InputError(f"not a .npy label array: {e}", lp) from e
+        arr = load_npy(lp, "label array")
+        if arr.dtype.kind not in "iub":
+            raise InputError(f"labels must be integers, got dtype {arr.dtype}", lp)
+        labels = arr.astype(np.int64).reshape(-1)
         if len(labels) != len(g):
             raise InputError(f"{len(labels)} labels for {len(g)} Gaussians in {ply.name}", lp)
         objects = [_parse_object(o) for o in args.object]
@@ -56,16 +80,15 @@ def _run(args: argparse.Namespace) -> int:
         objects = objects or [(f"object_{k}", int(k), "") for k in np.unique(labels) if k > 0]
     else:  # the whole splat is one object
         labels = np.ones(len(g), dtype=np.int64)
-        objects = [(ply.stem if not args.object else _parse_object(args.object[0])[0], 1, "")]
+        objects = [(_parse_object(args.object[0])[0] if args.object else
+                    object_name(ply.stem, ply, "object name (from the PLY file name; pass --object NAME=1)"), 1, "")]
+    check_unique([o[0] for o in objects], "--object")
     opts = GeometryOptions(min_opacity=args.min_opacity, max_scale=args.max_scale, dbscan_eps=args.eps,
                            dbscan_min_samples=args.min_samples, alpha=args.alpha, densify=args.densify,
                            use_alpha=not args.voxel_remesh,
                            collision_faces=args.faces, density=args.density)
-    if args.frame not in FRAME_SOURCES:
-        raise InputError(f"unknown frame source {args.frame!r} (choose from {', '.join(FRAME_SOURCES)})", "--frame")
-    frame = Frame(source=args.frame, scaled=args.frame != "unscaled")
     m = build_twin(g, labels, objects, args.out, frame, cameras_path=args.cameras, options=opts,
-                   formats=_formats(args.formats) if args.formats else (), progress=True)
+                   formats=formats, progress=True)
     for o in m.objects:
         state = f"mass {o.mass:.3f} kg, {len(o.convex_parts)} convex part(s)" if o.usable else f"UNUSABLE: {o.problem}"
         print(f"{o.name:16s} {state}")
@@ -114,7 +137,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="twin folder to write")
     p.add_argument("--cameras", help="cameras file to reference in the manifest (transforms.json)")
     p.add_argument("--frame", default="unscaled", help="twin frame source recorded in the manifest")
-    p.add_argument("--formats", default="mjcf,urdf,moveit,gltf", help="exports to write ('' for none)")
+    p.add_argument("--formats", default=None,
+                   help="exports to write, comma-separated from mjcf,urdf,moveit,gltf ('' for none; default: all, "
+                        "less mjcf for an unscaled twin)")
     p.add_argument("--gt-scene", help="generated scene folder: print + save the raw/attribute/cluster/full "
                                       "fidelity table against its GT meshes")
     p.add_argument("--min-opacity", type=float, default=0.1)

@@ -135,7 +135,13 @@ def load_scene_gt(scene_dir) -> tuple[list, dict]:
     scene_dir = Path(scene_dir)
     sc = json.loads((scene_dir / "scene.json").read_text())
     objects = [(o["name"], int(o["label"]), o.get("prompt", "")) for o in sc["objects"]]
-    meshes = {o["name"]: trimesh.load(scene_dir / o["mesh"], force="mesh") for o in sc["objects"]}
+    from splattwin.meshio import load_mesh
+    from splattwin.names import object_name
+    from splattwin.paths import confined
+
+    where = scene_dir / "scene.json"
+    meshes = {object_name(o["name"], where): load_mesh(confined(scene_dir, o["mesh"], where), process=True)
+              for o in sc["objects"]}
     return objects, meshes
 
 

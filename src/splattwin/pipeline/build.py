@@ -4,12 +4,22 @@
 Layout of the output folder TWIN (the twin folder itself):
 
     TWIN/pipeline.json        stage keys, outputs, timings, peak memory
-    TWIN/poses/               transforms.json, frame.json, poses_report.json, cameras.png
+    TWIN/.splattwin/          lock (one writer at a time), digests.json (input hash cache)
+    TWIN/capture/frames/      frames extracted from a video input
+    TWIN/poses/               transforms.json, frame.json, poses_report.json, cameras.png, and the capture's
+                              images/, depth/, masks/, labels/ (hard links or copies: the twin is
+                              self-contained and can be moved; where the capture was is recorded in
+                              twin.json config.build, not needed afterwards)
     TWIN/splat/               point_cloud.ply, checkpoints, eval/ (held-out PSNR/SSIM, side-by-sides)
     TWIN/semantics/           labels.npy, fusion.json, label maps, per-object splats
     TWIN/twin.json, objects/, background/, export/   (the twin, see splattwin.twin)
     TWIN/robot/               results.json, trajectories, rollout.npz, playback.npz, frames   (with a task)
     TWIN/report/index.html    the self-contained report
+
+Nothing is written outside TWIN. The whole build holds TWIN's lock (`splattwin.lock`): a second build
+into the same folder exits 2 at once. Before any stage runs, inputs that can be checked cheaply are
+(`preflight`: 2D masks against the images' sizes, the task YAML), so a bad mask file is reported
+before hours of pose estimation and training, naming the file.
 """
 
 from __future__ import annotations
@@ -23,7 +33,7 @@ import numpy as np
 
 from splattwin import io
 from splattwin.errors import InputError
-from splattwin.pipeline.runner import Context, Stage, run_stages
+from splattwin.pipeline.runner import Context, Stage, compute_keys, run_stages
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +77,17 @@ class BuildOptions:
 
 
 # -- stages ------------------------------------------------------------------------------------------
+def _frames_dir(ctx: Context) -> Path:
+    """Where a video input's frames are extracted (inside the twin: nothing is written outside it)."""
+    return ctx.path("capture/frames")
+
+
+def _load_input(ctx: Context, validate: bool = True):
+    from splattwin.capture import load_dataset
+
+    return load_dataset(_input_path(ctx), validate=validate, frames_dir=_frames_dir(ctx))
+
+
 def _scene_stage(ctx: Context) -> dict:
     from splattwin.scene.generate import generate
     from splattwin.scene.options import SceneOptions
@@ -90,12 +111,40 @@ def _scene_json(ctx: Context) -> Path:
     return (src if src.is_dir() else src.parent) / "scene.json"
 
 
+def _poses_inputs(ctx: Context) -> dict:
+    """The capture's files the poses stage reads (metadata, images, depth, masks, points), its frame.json
+    prior, and the robot pose files: hashed by content for the stage key."""
+    from splattwin.capture.dataset import VIDEO_SUFFIXES
+
+    o = ctx.options
+    src = _input_path(ctx)
+    out: dict = {"robot_poses": o["robot_poses"], "hand_eye": o["hand_eye"]}
+    if src.is_file() and src.suffix in VIDEO_SUFFIXES:
+        out["capture"] = src
+        return out
+    if not src.exists():
+        out["capture"] = src
+        return out
+    ds = _load_input(ctx, validate=False)
+    files = []
+    meta_path = ds.meta.get("path")
+    if meta_path and ds.meta.get("format") in ("nerfstudio", "cameras.json", "colmap"):
+        files.append(Path(meta_path))
+        files.append((Path(meta_path).parent if Path(meta_path).is_file() else Path(meta_path)) / "frame.json")
+    for f in ds.frames:
+        files += [f.image_path, f.depth_path, f.mask_path, f.label_path]
+    out["capture"] = files
+    if ds.points_xyz is not None:
+        rgb = b"" if ds.points_rgb is None else np.ascontiguousarray(ds.points_rgb).tobytes()
+        out["points"] = np.ascontiguousarray(ds.points_xyz).tobytes() + rgb
+    return out
+
+
 def _poses_stage(ctx: Context) -> dict:
-    from splattwin.capture import load_dataset
     from splattwin.poses.estimate import PoseOptions, estimate_poses
 
     o = ctx.options
-    ds = load_dataset(_input_path(ctx))
+    ds = _load_input(ctx)
     popts = PoseOptions(method=o["poses"], robot_poses=Path(o["robot_poses"]) if o["robot_poses"] else None,
                         hand_eye=Path(o["hand_eye"]) if o["hand_eye"] else None, marker_size=o["marker_size"],
                         work_dir=ctx.path("poses/sfm"), progress=o["progress"], seed=o["seed"])
@@ -115,14 +164,17 @@ def _splat_stage(ctx: Context) -> dict:
     cfg = TrainConfig(iters=o["iters"], resolution=o["resolution"], device=o["device"], seed=o["seed"],
                       max_gaussians=o["max_gaussians"], checkpoint_every=o["checkpoint_every"],
                       progress=o["progress"])
-    # resume=True: a killed run continues from its last checkpoint inside this stage.
-    res = train(ds, ctx.path("splat"), cfg, resume=True)
+    # resume=True: a killed run continues from its last checkpoint inside this stage. A checkpoint of
+    # another run (other options or data: this stage's key changed) is not resumed: training starts over.
+    res = train(ds, ctx.path("splat"), cfg, resume=True, on_mismatch="restart")
     ev = evaluate(res.ply_path, ds, out_dir=ctx.path("splat/eval"), progress=o["progress"])
     return {"ply": "@splat/point_cloud.ply", "psnr": ev.mean_psnr, "ssim": ev.mean_ssim, "split": ev.split,
             "gaussians": len(res.gaussians), "train_s": res.wall_s}
 
 
-def _load_masks(ctx: Context):
+def _load_masks(ctx: Context, image_sizes: dict | None = None):
+    """(MaskSet, the path its masks came from) for this build (`--masks`, `--prompt` or the embedded
+    scene's segmenter). image_sizes: view -> (H, W), checked for every mask file as it is read."""
     from splattwin.capture import load_dataset
     from splattwin.semantics.masks import load_masks, scene_masks, scene_objects
 
@@ -130,13 +182,13 @@ def _load_masks(ctx: Context):
     scene_json = _scene_json(ctx)
     objs = scene_objects(scene_json.parent) if scene_json.is_file() else None
     if o["masks"]:
-        return load_masks(o["masks"], objects=objs)
+        return load_masks(o["masks"], objects=objs, image_sizes=image_sizes), Path(o["masks"])
     if o["prompt"]:
         from splattwin.semantics.segment import segment_images
 
         ds = load_dataset(ctx.path("poses/transforms.json"))
-        return segment_images({f.name: f.image_path for f in ds.train()}, o["prompt"],
-                              out_dir=ctx.path("semantics/masks2d"))
+        out = ctx.path("semantics/masks2d")
+        return segment_images({f.name: f.image_path for f in ds.train()}, o["prompt"], out_dir=out), out
     if scene_json.is_file():  # the embedded scene: its simulated open-vocabulary segmenter
         ms = scene_masks(scene_json.parent, kind="noisy")
         # Only training views are fused: held-out views stay unseen for the metrics.
@@ -144,21 +196,38 @@ def _load_masks(ctx: Context):
         for d in (ms.masks, ms.scores, ms.sizes):
             for view in [v for v in d if v not in train]:
                 del d[view]
-        return ms
+        return ms, scene_json.parent / "masks" / "noisy"
     raise InputError("no 2D masks: pass --masks DIR or --prompt 'blue box. yellow cube'")
 
 
+def _semantics_inputs(ctx: Context) -> dict:
+    o = ctx.options
+    scene_json = _scene_json(ctx)
+    out: dict = {"masks": o["masks"], "scene.json": scene_json if scene_json.is_file() else None}
+    if not o["masks"] and not o["prompt"] and scene_json.is_file():
+        out["scene_masks"] = scene_json.parent / "masks" / "noisy"
+    return out
+
+
 def _semantics_stage(ctx: Context) -> dict:
-    from splattwin.semantics.fusion import FusionOptions
-    from splattwin.semantics.lift import fuse_to_dir
+    from splattwin.semantics.fusion import FusionOptions, check_views
+    from splattwin.semantics.lift import fuse_to_dir, views_for
 
     from splattwin.capture import load_dataset
     from splattwin.splat.gaussians import Gaussians
 
     o = ctx.options
-    ms = _load_masks(ctx)
-    g = Gaussians.load_ply(ctx.path("splat/point_cloud.ply"))
     ds = load_dataset(ctx.path("poses/transforms.json"))
+    ms, masks_from = _load_masks(ctx, {f.name: (f.camera.height, f.camera.width) for f in ds.frames})
+    # checked here with the masks' path, so that a size or empty-mask error names it
+    import warnings
+
+    from splattwin.semantics.masks import MaskWarning
+
+    with warnings.catch_warnings():  # fuse_to_dir warns about unmatched views itself
+        warnings.simplefilter("ignore", MaskWarning)
+        check_views(views_for(ds.train() or ds.frames, ms, masks_from, all_frames=ds.frames), ms, masks_from)
+    g = Gaussians.load_ply(ctx.path("splat/point_cloud.ply"))
     res = fuse_to_dir(g, ds, ms,
                       ctx.path("semantics"), FusionOptions(kappa=o["kappa"], iters=o["fusion_iters"]),
                       progress=o["progress"])
@@ -218,7 +287,9 @@ def _twin_stage(ctx: Context) -> dict:
         scene = io.read_json(scene_json)
         if scene.get("target_frame"):
             man.config["target_frame"] = scene["target_frame"]
-    man.config["build"] = {k: v for k, v in o.items() if k != "progress"}
+    # references to the inputs (absolute paths), recorded but never needed by report/view/plan/export
+    man.config["build"] = {k: (str(Path(v).resolve()) if k in _PATH_OPTIONS and v and v != "default" else v)
+                           for k, v in o.items() if k != "progress"}
     man.splats = man.splats or "splat/point_cloud.ply"
     man.labels = man.labels or "semantics/labels.npy"
     man.save(ctx.out)
@@ -229,9 +300,8 @@ def _twin_stage(ctx: Context) -> dict:
 
 def _geometry_fidelity(ctx: Context, scene_dir: Path) -> None:
     """Chamfer / precision / recall / F1 @5 mm of each object's cleaned points vs the GT mesh."""
-    import trimesh
-
     from splattwin.geometry.metrics import fidelity, sample_surface
+    from splattwin.meshio import load_mesh
     from splattwin.twin.manifest import Manifest
 
     man = Manifest.load(ctx.out)
@@ -240,13 +310,28 @@ def _geometry_fidelity(ctx: Context, scene_dir: Path) -> None:
         gt_path = scene_dir / "meshes" / f"{obj.name}.ply"
         if not obj.usable or not obj.visual_mesh or not gt_path.is_file():
             continue
-        mesh = trimesh.load(ctx.out / obj.visual_mesh, force="mesh", process=False)
+        mesh = load_mesh(ctx.out / obj.visual_mesh, f"visual mesh of {obj.name!r}")
         mesh.apply_transform(obj.pose)
         pts = sample_surface(mesh, spacing=0.002)
-        gt = sample_surface(trimesh.load(gt_path, force="mesh", process=False), spacing=0.002)
+        gt = sample_surface(load_mesh(gt_path, "ground-truth mesh"), spacing=0.002)
         f = fidelity(pts, gt, threshold=0.005)
         rows[obj.name] = asdict(f) if hasattr(f, "__dataclass_fields__") else dict(f)
     io.write_json(ctx.path("geometry_metrics.json"), rows)
+
+
+_PATH_OPTIONS = ("input", "masks", "robot_poses", "hand_eye", "task")
+
+
+def _twin_inputs(ctx: Context) -> dict:
+    scene_json = _scene_json(ctx)
+    return {"scene.json": scene_json if scene_json.is_file() else None}
+
+
+def _robot_inputs(ctx: Context) -> dict:
+    from splattwin.robot.task import default_task_path
+
+    task = ctx.options["task"]
+    return {"task": None if not task else (default_task_path() if task == "default" else Path(task))}
 
 
 def _robot_stage(ctx: Context) -> dict:
@@ -284,28 +369,69 @@ def _report_stage(ctx: Context) -> dict:
 
 
 def stages() -> list[Stage]:
-    data = ("input", "scene", "poses", "robot_poses", "hand_eye", "marker_size", "seed")
+    """The pipeline. Path options are not hashed as names but by content (each stage's `inputs`); each
+    stage's `code` lists the packages whose source is part of its key (see `splattwin.pipeline.runner`)."""
+    data = ("scene", "poses", "marker_size", "seed")
     return [
-        Stage("scene", _scene_stage, option_keys=("scene",)),
-        Stage("poses", _poses_stage, option_keys=data, deps=("scene",)),
-        Stage("splats", _splat_stage, option_keys=("iters", "resolution", "device", "seed", "max_gaussians"), deps=("poses",)),
-        Stage("semantics", _semantics_stage, option_keys=("masks", "prompt", "kappa", "fusion_iters"), deps=("splats",)),
-        Stage("twin", _twin_stage, option_keys=(), deps=("semantics",)),
-        Stage("robot", _robot_stage, option_keys=("task", "trials", "sigma", "seed", "render_frames"), deps=("twin",)),
+        Stage("scene", _scene_stage, option_keys=("scene",), code=("splattwin.scene",)),
+        Stage("poses", _poses_stage, option_keys=data, deps=("scene",), inputs=_poses_inputs,
+              code=("splattwin.capture", "splattwin.poses")),
+        Stage("splats", _splat_stage, option_keys=("iters", "resolution", "device", "seed", "max_gaussians"),
+              deps=("poses",), code=("splattwin.splat", "splattwin.capture")),
+        Stage("semantics", _semantics_stage, option_keys=("prompt", "kappa", "fusion_iters"), deps=("splats",),
+              inputs=_semantics_inputs, code=("splattwin.semantics", "splattwin.capture")),
+        Stage("twin", _twin_stage, option_keys=(), deps=("semantics",), inputs=_twin_inputs,
+              code=("splattwin.geometry", "splattwin.twin", "splattwin.meshio")),
+        Stage("robot", _robot_stage, option_keys=("trials", "sigma", "seed", "render_frames"), deps=("twin",),
+              inputs=_robot_inputs, code=("splattwin.robot", "splattwin.twin", "splattwin.viewer")),
         # The report reads every stage's outputs; its key changes whenever any of them re-ran.
-        Stage("report", _report_stage, option_keys=(), deps=("poses", "splats", "semantics", "twin", "robot")),
+        Stage("report", _report_stage, option_keys=(), deps=("poses", "splats", "semantics", "twin", "robot"),
+              code=("splattwin.report", "splattwin.viewer")),
     ]
+
+
+def preflight(ctx: Context) -> None:
+    """Checks of the inputs that need no earlier stage, before any runs (see module docstring)."""
+    o = ctx.options
+    if o["input"] is not None and o["scene"] is None and o["masks"]:
+        from splattwin.semantics.masks import scene_objects
+
+        ds = _load_input(ctx)
+        sizes = {f.name: (f.camera.height, f.camera.width) for f in ds.frames}
+        ms, where = _load_masks(ctx, sizes)
+        ms.validate(None, where)  # an empty set or an object that is in no view
+        known = [v for v in ms.views if v in sizes]
+        if not known:
+            raise InputError(f"no mask view matches an image of the input (masks: {', '.join(ms.views[:5])}...; "
+                             f"images: {', '.join(sorted(sizes)[:5])}...)", where)
+    if o["task"] and o["task"] != "default":
+        from splattwin.robot.task import load_task
+
+        load_task(o["task"])  # the file parses as a task (bounded YAML); checked against the twin later
+
+
+def stage_keys(out: str | Path, options: BuildOptions) -> dict[str, str]:
+    """{stage: key} for `options` and the inputs as they are now (nothing runs, nothing is written)."""
+    return compute_keys(stages(), Context(out=Path(out), options=asdict(options)))
 
 
 def build(out: str | Path, options: BuildOptions, from_stage: str | None = None, until: str | None = None) -> Context:
     """Run (or resume) the pipeline into the twin folder `out`. Returns the run context."""
     from rich.console import Console
 
+    from splattwin.lock import output_lock
+
     out = Path(out)
     if options.input is None and options.scene is None:
         raise InputError("nothing to build: give an input dataset")
     if options.input is not None and not Path(options.input).exists():
         raise InputError("input does not exist", options.input)
+    for k in ("masks", "robot_poses", "hand_eye"):
+        v = getattr(options, k)
+        if v is not None and not Path(v).exists():
+            raise InputError(f"--{k.replace('_', '-')} does not exist", v)
+    if options.task not in (None, "default") and not Path(options.task).is_file():
+        raise InputError("task file not found", options.task)
     con = Console(stderr=True)
 
     def on_stage(name: str, status: str) -> None:
@@ -315,4 +441,6 @@ def build(out: str | Path, options: BuildOptions, from_stage: str | None = None,
             con.print(f"[bold cyan]▶ {name}[/]")
 
     ctx = Context(out=out, options=asdict(options))
-    return run_stages(stages(), ctx, from_stage=from_stage, until=until, on_stage=on_stage)
+    with output_lock(out):
+        preflight(ctx)
+        return run_stages(stages(), ctx, from_stage=from_stage, until=until, on_stage=on_stage)

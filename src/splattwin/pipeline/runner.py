@@ -1,12 +1,19 @@
 """Stage runner with input hashing: finished stages are skipped, `--from STAGE` redoes from there,
 and a killed run resumes without losing finished work.
 
-Each stage declares which options it depends on. Its key is a SHA-256 over those options, the keys of
-the stages it depends on and the stage's code version. After a stage succeeds the runner records
-`{key, outputs, seconds, peak_rss_gib}` in `TWIN/pipeline.json` (atomically). On the next run a stage
-whose recorded key matches and whose outputs all exist is skipped. Stages write their own outputs
-atomically, so a kill leaves at most the unfinished stage to redo (and training resumes from its own
-checkpoint inside the stage).
+Each stage declares what its result depends on, and its key is a SHA-256 over all of it:
+- the options it reads (`option_keys`; values, not file names: a path option goes into `inputs`),
+- the contents of the files and folders it reads (`inputs(ctx)` -> {name: path}: images, masks, poses,
+  task YAML, robot poses...), hashed by `splattwin.hashing.DigestCache` (a size+mtime prefilter, so
+  unchanged gigabytes cost a stat() each; the cache lives in TWIN/.splattwin/digests.json),
+- its code: the source of the packages it runs (`code`) and of its stage function, so editing a
+  stage's code re-runs it (a hand-set `version` can still force it),
+- the keys of the stages it depends on (`deps`), so everything downstream of a change re-runs.
+After a stage succeeds the runner records `{key, outputs, seconds, peak_rss_gib}` in
+`TWIN/pipeline.json` (atomically). On the next run a stage whose recorded key matches and whose
+outputs all exist (inside the twin folder) is skipped. Stages write their own outputs atomically, so a
+kill leaves at most the unfinished stage to redo (and training resumes from its own checkpoint inside
+the stage).
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ from typing import Any, Callable
 
 from splattwin import io
 from splattwin.errors import InputError
+from splattwin.hashing import DigestCache, code_digest
 
 log = logging.getLogger(__name__)
 
@@ -34,6 +42,10 @@ class Stage:
     run(ctx) -> dict of output name -> path (relative to the twin folder) or plain values.
     option_keys: the options (ctx.options keys) this stage's result depends on.
     deps: names of earlier stages whose results it consumes.
+    inputs(ctx) -> {name: path or list of paths or None}: files/folders read from outside the stages'
+        outputs (hashed by content when the key is computed, i.e. after the earlier stages ran).
+    code: modules/packages whose source the stage runs (with the stage function: its code version).
+    version: a hand-set extra version (rarely needed: the code digest changes with the code).
     """
 
     name: str
@@ -41,6 +53,11 @@ class Stage:
     option_keys: tuple[str, ...] = ()
     deps: tuple[str, ...] = ()
     version: str = "1"
+    inputs: Callable[["Context"], dict[str, Any]] | None = None
+    code: tuple[str, ...] = ()
+
+    def code_version(self) -> str:
+        return code_digest(self.code, [self.run])
 
 
 @dataclass
@@ -50,6 +67,7 @@ class Context:
     results: dict[str, dict[str, Any]] = field(default_factory=dict)  # stage name -> its outputs
     timings: dict[str, float] = field(default_factory=dict)
     peak_rss_gib: dict[str, float] = field(default_factory=dict)
+    digests: DigestCache | None = None
 
     def path(self, rel: str | Path) -> Path:
         return self.out / rel
@@ -63,20 +81,56 @@ def _peak_rss_gib() -> float:
     return r / (1024 ** 2)
 
 
-def stage_key(stage: Stage, options: dict[str, Any], dep_keys: dict[str, str]) -> str:
+DIGEST_CACHE = ".splattwin/digests.json"
+
+
+def input_digests(stage: Stage, ctx: Context) -> dict[str, str]:
+    """{input name: content digest} of the stage's declared inputs (see module docstring)."""
+    if stage.inputs is None:
+        return {}
+    cache = ctx.digests if ctx.digests is not None else DigestCache()
+    out = {}
+    for name, p in (stage.inputs(ctx) or {}).items():
+        if isinstance(p, bytes):  # data already in memory (e.g. a point cloud)
+            out[name] = "bytes:" + hashlib.sha256(p).hexdigest()
+        else:
+            out[name] = cache.files(p) if isinstance(p, (list, tuple)) else cache.digest(p)
+    return out
+
+
+def stage_key(stage: Stage, options: dict[str, Any], dep_keys: dict[str, str],
+              inputs: dict[str, str] | None = None) -> str:
     payload = {
         "stage": stage.name,
         "version": stage.version,
+        "code": stage.code_version(),
         "options": {k: options.get(k) for k in stage.option_keys},
+        "inputs": inputs or {},
         "deps": {d: dep_keys[d] for d in stage.deps},
     }
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
+def compute_keys(stages: list[Stage], ctx: Context) -> dict[str, str]:
+    """Every stage's key as it would be computed now (inputs as they are on disk), without running
+    anything: for inspection and tests."""
+    if ctx.digests is None:
+        ctx.digests = DigestCache()
+    keys: dict[str, str] = {}
+    for stage in stages:
+        keys[stage.name] = stage_key(stage, ctx.options, keys, input_digests(stage, ctx))
+    return keys
+
+
 def _outputs_exist(out: Path, outputs: dict[str, Any]) -> bool:
+    from splattwin.paths import is_inside
+
+    if not isinstance(outputs, dict):
+        return False
     for v in outputs.values():
         if isinstance(v, str) and v.startswith("@"):  # "@rel/path": a file the stage promises
-            if not (out / v[1:]).exists():
+            p = out / v[1:]
+            if Path(v[1:]).is_absolute() or not is_inside(p, out) or not p.exists():
                 return False
     return True
 
@@ -86,10 +140,13 @@ def load_state(out: Path) -> dict[str, Any]:
     if not p.is_file():
         return {}
     try:
-        return json.loads(p.read_text())
-    except json.JSONDecodeError:
+        state = io.read_json(p)
+    except InputError:
+        state = None
+    if not isinstance(state, dict) or not all(isinstance(v, dict) for v in state.values()):
         log.warning("%s is corrupt; re-running all stages", p)
         return {}
+    return state
 
 
 def run_stages(stages: list[Stage], ctx: Context, from_stage: str | None = None,
@@ -103,18 +160,23 @@ def run_stages(stages: list[Stage], ctx: Context, from_stage: str | None = None,
         raise InputError(f"--from: unknown stage {from_stage!r} (stages: {', '.join(names)})")
     if until is not None and until not in names:
         raise InputError(f"--until: unknown stage {until!r} (stages: {', '.join(names)})")
-    ctx.out.mkdir(parents=True, exist_ok=True)
+    from splattwin.lock import prepare_output_dir
+
+    prepare_output_dir(ctx.out)
     state = load_state(ctx.out)
+    if ctx.digests is None:
+        ctx.digests = DigestCache(ctx.out / DIGEST_CACHE)
     keys: dict[str, str] = {}
     redo = False
     for stage in stages:
-        key = stage_key(stage, ctx.options, keys)
+        key = stage_key(stage, ctx.options, keys, input_digests(stage, ctx))
+        ctx.digests.save()
         keys[stage.name] = key
         if stage.name == from_stage:
             redo = True
         rec = state.get(stage.name)
         if not redo and rec and rec.get("key") == key and _outputs_exist(ctx.out, rec.get("outputs", {})):
-            ctx.results[stage.name] = rec["outputs"]
+            ctx.results[stage.name] = dict(rec["outputs"])
             ctx.timings[stage.name] = rec.get("seconds", 0.0)
             ctx.peak_rss_gib[stage.name] = rec.get("peak_rss_gib", 0.0)
             if on_stage:

@@ -86,9 +86,12 @@ def _run(args: argparse.Namespace) -> int:
     )
     if opts.marker_size is not None and opts.marker_size <= 0:
         raise InputError(f"--marker-size must be positive (metres), got {opts.marker_size}")
+    from splattwin.lock import output_lock
+
     ds = load_dataset(args.input, max_frames=args.max_frames)
-    res = estimate_poses(ds, opts)
-    path = res.save(args.out)
+    with output_lock(args.out):
+        res = estimate_poses(ds, opts)
+        path = res.save(args.out)
     st = res.stats
     fr = res.frame
     unc = "n/a" if fr.scale_uncertainty_rel is None else f"{fr.scale_uncertainty_rel * 100:.2f} %"

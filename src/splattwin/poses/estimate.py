@@ -104,14 +104,18 @@ class PoseResult:
         return Dataset(root=root or Path("."), frames=self.frames, has_poses=True, points_xyz=self.points_xyz,
                        points_rgb=self.points_rgb, depth_scale=self.depth_scale, meta={"frame": dataclasses.asdict(self.frame)})
 
-    def save(self, out_dir: str | Path) -> Path:
+    def save(self, out_dir: str | Path, bundle: bool = True) -> Path:
         """Write OUT/transforms.json (+ points3D.ply), OUT/frame.json, OUT/poses_report.json, OUT/cameras.png,
         and OUT/points3D_depth.ply (back-projected RGB-D cloud) when there is one.
 
-        Image/depth/mask paths in transforms.json point at the input files (relative paths).
+        bundle=True (default): the frames' images, depth maps and masks are hard-linked (or copied) into
+        OUT/images/, OUT/depth/, ... (`splattwin.capture.bundle`), so OUT is a self-contained nerfstudio
+        dataset that can be moved, and transforms.json holds only paths inside OUT. bundle=False: its
+        paths point at the input files (relative paths, readable only while OUT stays where it is).
         Returns the transforms.json path.
         """
         from splattwin.capture import nerfstudio
+        from splattwin.capture.bundle import bundle_frames
 
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
@@ -127,7 +131,10 @@ class PoseResult:
         except Exception as e:  # a picture must never fail the run
             log.warning("could not draw cameras.png: %s", e)
         # transforms.json last: its presence marks a finished output.
-        return nerfstudio.write(self.to_dataset(out), out / "transforms.json", ply_name="points3D.ply")
+        ds = self.to_dataset(out)
+        if bundle:
+            ds.frames = bundle_frames(ds.frames, out)
+        return nerfstudio.write(ds, out / "transforms.json", ply_name="points3D.ply")
 
 
 def load_frame(path: str | Path) -> Frame:

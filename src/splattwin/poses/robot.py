@@ -16,7 +16,6 @@ are both common and silently swapping them gives plausible but wrong poses).
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,20 +34,13 @@ class RobotPose:
 
 
 def _read_structured(path: Path) -> Any:
+    from splattwin.limits import load_yaml, read_json
+
     if not path.is_file():
         raise InputError("file does not exist", path)
-    text = path.read_text()
     if path.suffix.lower() == ".json":
-        try:
-            return json.loads(text)
-        except json.JSONDecodeError as e:
-            raise InputError(f"not valid JSON: {e}", path) from e
-    import yaml
-
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise InputError(f"not valid YAML/JSON: {e}", path) from e
+        return read_json(path)
+    return load_yaml(path)  # safe loader, bounded size and aliases
 
 
 def quat_to_matrix(q_wxyz: np.ndarray) -> np.ndarray:

@@ -62,8 +62,7 @@ def render_meshes(meshes: list, T_world_cam: np.ndarray, K: np.ndarray, width: i
 
 
 def _twin_meshes(twin_dir: Path, man) -> list:
-    import trimesh
-
+    from splattwin.meshio import load_mesh
     from splattwin.viewer.app import label_colors
 
     out = []
@@ -73,12 +72,12 @@ def _twin_meshes(twin_dir: Path, man) -> list:
         parts = obj.convex_parts or ([obj.collision_mesh] if obj.collision_mesh else [])
         col = label_colors(np.array([obj.label]))[0] / 255.0
         for rel in parts:
-            m = trimesh.load(twin_dir / rel, force="mesh", process=False)
+            m = load_mesh(twin_dir / rel, f"collision mesh of {obj.name!r}")
             m.apply_transform(obj.pose)
             out.append((m.vertices, m.faces, tuple(col)))
     bg = man.background
     for rel in bg.convex_parts or ([bg.collision_mesh] if bg.collision_mesh else []):
-        m = trimesh.load(twin_dir / rel, force="mesh", process=False)
+        m = load_mesh(twin_dir / rel, "background collision mesh")
         out.append((m.vertices, m.faces, (0.75, 0.72, 0.66)))
     return out
 
@@ -107,6 +106,9 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
     geo = _json(twin / "geometry_metrics.json")
     robot = _json(twin / "robot" / "results.json")
     state = _json(twin / "pipeline.json") or {}
+    if not isinstance(state, dict):
+        state = {}
+    state = {k: v for k, v in state.items() if isinstance(v, dict)}
 
     head = rep.section("Summary")
     kpis = {}
@@ -128,11 +130,11 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
         kpis["pipeline time (s)"] = round(sum(tt.values()), 1)
     head.kpis(kpis)
 
-    _inputs_section(rep.section("Inputs and camera poses"), twin, poses, man)
-    _recon_section(rep.section("Reconstruction (3D Gaussian Splatting)"), twin, ev)
-    _semantics_section(rep.section("Semantic objects (visibility-aware fusion)"), twin, fusion)
-    _geometry_section(rep.section("Collision geometry"), twin, man, geo)
-    _robot_section(rep.section("Robot task in physics (Franka Panda, MuJoCo)"), twin, robot)
+    _guarded(_inputs_section, rep.section("Inputs and camera poses"), twin, poses, man)
+    _guarded(_recon_section, rep.section("Reconstruction (3D Gaussian Splatting)"), twin, ev)
+    _guarded(_semantics_section, rep.section("Semantic objects (visibility-aware fusion)"), twin, fusion)
+    _guarded(_geometry_section, rep.section("Collision geometry"), twin, man, geo)
+    _guarded(_robot_section, rep.section("Robot task in physics (Franka Panda, MuJoCo)"), twin, robot)
 
     t = rep.section("Timings and memory per stage")
     rows = []
@@ -150,6 +152,16 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
     return rep.save(twin / "report" / "index.html")
 
 
+def _guarded(fn, sec: Section, *args) -> None:
+    """A section from a stage's artifacts; artifacts of the wrong shape (a hand-edited or received twin)
+    give a one-line note in that section instead of failing the whole report."""
+    try:
+        fn(sec, *args)
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as e:
+        log.warning("report section %r: malformed artifact (%s: %s)", sec.title, type(e).__name__, e)
+        sec.text(f"this section could not be built from the twin's files ({type(e).__name__}: {str(e)[:200]})")
+
+
 def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
     from splattwin.capture import load_dataset, load_image
     from splattwin.report.html import side_by_side
@@ -158,7 +170,11 @@ def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
     if not tj.is_file():
         sec.text("poses stage not run")
         return
-    ds = load_dataset(tj, validate=False)
+    try:
+        ds = load_dataset(tj, validate=False)
+    except InputError as e:  # e.g. a twin of an earlier version whose images stayed with the capture
+        sec.text(f"the input views are not available ({e}); the twin itself does not need them")
+        return
     c = ds.frames[0].camera
     sec.text(f"{len(ds.train())} training views and {len(ds.heldout())} held-out views at {c.width}×{c.height}.")
     if poses:
@@ -184,7 +200,11 @@ def _recon_section(sec: Section, twin: Path, ev: dict | None) -> None:
              f"SSIM {ev['mean_ssim']:.4f}. Images: {ev.get('legend', 'ground truth | render | error')}.")
     sec.table(["view", "PSNR (dB)", "SSIM"], [[r["name"], r["psnr"], r["ssim"]] for r in ev["views"]])
     for r in ev["views"][:5]:
-        p = twin / "splat" / "eval" / r.get("image", "")
+        if not r.get("image"):
+            continue
+        from splattwin.paths import confined
+
+        p = confined(twin / "splat" / "eval", r["image"], twin / "splat" / "eval" / "metrics.json", "image")
         if p.is_file():
             sec.image(p, caption=f"{r['name']}: ground truth | render | error")
 
@@ -227,10 +247,15 @@ def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
         sec.table(["object", "Chamfer (m)", "precision", "recall", "F1 @5 mm"],
                   [[k, v.get("chamfer"), v.get("precision"), v.get("recall"), v.get("f1")] for k, v in geo.items()])
     tj = twin / "poses" / "transforms.json"
+    ds = None
     if tj.is_file():
         from splattwin.capture import load_dataset
 
-        ds = load_dataset(tj, validate=False)
+        try:
+            ds = load_dataset(tj, validate=False)
+        except InputError as e:
+            sec.text(f"no camera views of the collision geometry: {e}")
+    if ds is not None:
         cams = [f.camera for f in ds.frames[:: max(1, len(ds.frames) // 3)][:3]]
         for img in _mesh_views(_twin_meshes(twin, man), cams):
             sec.image(img, caption="collision geometry (convex parts), object colours = labels")

@@ -16,7 +16,10 @@ def _report(args: argparse.Namespace) -> int:
     from splattwin.errors import InputError
     from splattwin.report.build import build_report
 
+    from splattwin.lock import output_lock
+
     if not args.twin.is_dir():
         raise InputError("twin folder does not exist", args.twin)
-    print(f"report: {build_report(args.twin)}")
+    with output_lock(args.twin):
+        print(f"report: {build_report(args.twin)}")
     return 0

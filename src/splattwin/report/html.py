@@ -46,10 +46,13 @@ def png_bytes(image: np.ndarray | str | Path) -> bytes:
     from PIL import Image
 
     if isinstance(image, (str, Path)):
+        from splattwin.limits import image_size, read_image_array
+
+        image_size(image)  # header checked (size limit) before anything is decoded or embedded
         data = Path(image).read_bytes()
         if data[:8] == b"\x89PNG\r\n\x1a\n":
             return data
-        image = np.asarray(Image.open(_io.BytesIO(data)).convert("RGB"))
+        image = read_image_array(image, mode="RGB")
     arr = np.asarray(image)
     if arr.dtype != np.uint8:
         arr = (np.clip(arr, 0, 1) * 255 + 0.5).astype(np.uint8)

@@ -72,6 +72,21 @@ def run_plan(args: argparse.Namespace) -> int:
     if args.robot_mjcf is not None and not args.robot_mjcf.is_file():
         raise InputError("robot MJCF not found", args.robot_mjcf)
     out = args.out or args.twin / "robot"
+    from splattwin.lock import output_lock
+    from splattwin.paths import is_inside
+
+    if not args.twin.is_dir():
+        raise InputError("twin folder does not exist", args.twin)
+    # one writer per folder: the twin's lock when writing into it (splattwin.lock)
+    with output_lock(args.twin if is_inside(out, args.twin) else out):
+        return _plan(args, out)
+
+
+def _plan(args: argparse.Namespace, out: Path) -> int:
+    from splattwin.robot.outputs import print_summary, write_outputs
+    from splattwin.robot.trials import TrialSpec, run_once, run_trials
+    from splattwin.robot.world import BasePose
+
     spec = TrialSpec(twin_dir=str(args.twin), task_path=str(args.task) if args.task else None,
                      base=BasePose.parse(args.base_pose), robot_mjcf=str(args.robot_mjcf) if args.robot_mjcf else None,
                      seed=args.seed, planner=args.planner, tcp_site=args.tcp_site, in_hand=args.in_hand)

@@ -12,7 +12,6 @@ bounded before anything is allocated.
 
 from __future__ import annotations
 
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -133,16 +132,10 @@ class Rollout:
 
 def read_npz_bounded(path: Path, max_bytes: int) -> dict[str, np.ndarray]:
     """All arrays of an .npz, refusing pickled objects and archives whose arrays would exceed
-    `max_bytes` uncompressed (the sizes are read from the zip directory before anything is inflated)."""
-    try:
-        with zipfile.ZipFile(path) as z:
-            total = sum(i.file_size for i in z.infolist())
-            if total > max_bytes:
-                raise InputError(f"arrays of {total / 2**20:.0f} MiB exceed the {max_bytes / 2**20:.0f} MiB limit", path)
-        with np.load(path, allow_pickle=False) as f:
-            return {k: f[k] for k in f.files}
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as e:
-        raise InputError(f"not a readable .npz file: {e}", path) from e
+    `max_bytes` uncompressed (`splattwin.limits.load_npz`: headers checked before anything is read)."""
+    from splattwin.limits import load_npz
+
+    return load_npz(path, "robot record", max_bytes=max_bytes)
 
 
 class RolloutRecorder:

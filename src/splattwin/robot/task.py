@@ -24,7 +24,6 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from splattwin.errors import InputError
 from splattwin.transforms import make_pose, rot_z
@@ -133,13 +132,12 @@ def parse_task(data, where: Path, manifest: Manifest | None = None) -> Task:
 
 def load_task(path: str | Path | None, manifest: Manifest | None = None) -> Task:
     """Load a task YAML (default: the paper's three-step task)."""
+    from splattwin.limits import load_yaml
+
     path = Path(path) if path is not None else default_task_path()
     if not path.is_file():
         raise InputError("task file not found", path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise InputError(f"not valid YAML: {e}", path) from e
+    data = load_yaml(path)  # safe loader, bounded size and aliases (a task is often received)
     return parse_task(data, path, manifest)
 
 
@@ -187,6 +185,8 @@ def validate_task(task: Task, manifest: Manifest, twin_dir: str | Path, T_world_
     x0, x1, y0, y1 = manifest.background.table_extent
 
     def reach(xy, what: str) -> None:
+        if not np.all(np.isfinite(np.asarray(xy, dtype=float)[:2])):
+            raise InputError(f"{what}: its position is not finite (NaN or infinite pose in the twin)", where)
         d = float(np.linalg.norm(np.asarray(xy)[:2] - base_xy))
         if not REACH_MIN <= d <= REACH_MAX:
             raise InputError(f"{what} is {d:.2f} m from the robot base, outside its reach "

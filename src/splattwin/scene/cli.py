@@ -46,7 +46,10 @@ def _generate(args: argparse.Namespace) -> int:
                         fov_x=math.radians(args.fov), supersample=args.supersample,
                         noise=MaskNoise.clean() if args.clean_masks else MaskNoise())
     t0 = time.perf_counter()
-    out = generate(args.out_dir, opts, progress=not args.no_progress)
+    from splattwin.lock import output_lock
+
+    with output_lock(args.out_dir):
+        out = generate(args.out_dir, opts, progress=not args.no_progress)
     print(f"scene written to {out.resolve()} ({args.views} training + {args.heldout} held-out views, "
           f"{args.width}x{args.height}, seed {args.seed}, {time.perf_counter() - t0:.1f} s)")
     print(f"  cameras: {out.resolve() / 'transforms.json'}  ground truth: {out.resolve() / 'scene.json'}")

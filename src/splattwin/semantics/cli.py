@@ -59,26 +59,29 @@ def _segment(args: argparse.Namespace) -> int:
     ds = load_dataset(args.dataset)
     frames = ds.frames if args.split == "all" else [f for f in ds.frames if f.split == args.split]
     out = args.out or Path(args.dataset) / "masks" / "segment"
-    objs = dataset_objects(Path(args.dataset))
-    if args.masks is not None:
-        ms = load_masks(args.masks, objects=objs)
-        ms.validate({f.name: (f.camera.height, f.camera.width) for f in frames}, args.masks)
-    else:
-        opts = SegmentOptions(detector=args.detector or DEFAULT_DETECTOR, segmenter=args.segmenter or DEFAULT_SEGMENTER,
-                              segmenter_kind=args.segmenter_kind, box_threshold=args.box_threshold,
-                              working_size=args.working_size)
-        labels = None
-        if objs:  # map prompt phrases to the scene's labels when the dataset is a generated scene
-            import json
+    from splattwin.lock import output_lock
 
-            meta = json.loads((Path(args.dataset) / "scene.json").read_text())
-            labels = {o.get("prompt", o["name"]).lower(): int(o["label"]) for o in meta["objects"] if o["name"] in objs}
-            from splattwin.semantics.segment import parse_prompt
+    with output_lock(out):
+        objs = dataset_objects(Path(args.dataset))
+        if args.masks is not None:
+            ms = load_masks(args.masks, objects=objs)
+            ms.validate({f.name: (f.camera.height, f.camera.width) for f in frames}, args.masks)
+        else:
+            opts = SegmentOptions(detector=args.detector or DEFAULT_DETECTOR, segmenter=args.segmenter or DEFAULT_SEGMENTER,
+                                  segmenter_kind=args.segmenter_kind, box_threshold=args.box_threshold,
+                                  working_size=args.working_size)
+            labels = None
+            if objs:  # map prompt phrases to the scene's labels when the dataset is a generated scene
+                import json
 
-            if not all(ph in labels for ph in parse_prompt(args.prompt)):
-                labels = None
-        ms = segment_images({f.name: f.image_path for f in frames}, args.prompt, opts, labels=labels, out_dir=out)
-    ms.save(out)
+                meta = json.loads((Path(args.dataset) / "scene.json").read_text())
+                labels = {o.get("prompt", o["name"]).lower(): int(o["label"]) for o in meta["objects"] if o["name"] in objs}
+                from splattwin.semantics.segment import parse_prompt
+
+                if not all(ph in labels for ph in parse_prompt(args.prompt)):
+                    labels = None
+            ms = segment_images({f.name: f.image_path for f in frames}, args.prompt, opts, labels=labels, out_dir=out)
+        ms.save(out)
     print(f"{len(ms.views)} views, objects: " + ", ".join(
         f"{n} ({ms.n_views_with(k)} views)" for k, n in sorted(ms.objects.items())) + f" -> {out}")
     return 0
@@ -88,10 +91,13 @@ def _fuse(args: argparse.Namespace) -> int:
     from splattwin.semantics.fusion import FusionOptions
     from splattwin.semantics.lift import fuse_to_dir
 
+    from splattwin.lock import output_lock
+
     opts = FusionOptions(kappa=args.kappa, iters=args.iters, depth_tol=args.depth_tol, eps=args.eps,
                          min_samples=args.min_samples)
-    res = fuse_to_dir(args.splats, args.dataset, args.masks, args.out, opts, renderer=args.renderer,
-                      label_maps=not args.no_maps, naive=args.naive, maps_renderer=args.maps_renderer)
+    with output_lock(args.out):
+        res = fuse_to_dir(args.splats, args.dataset, args.masks, args.out, opts, renderer=args.renderer,
+                          label_maps=not args.no_maps, naive=args.naive, maps_renderer=args.maps_renderer)
     import json
 
     meta = json.loads((Path(args.out) / "fusion.json").read_text())

@@ -20,6 +20,13 @@ Accepted sources (`load_masks` picks by what it finds):
   folder: either `<dir>/<object>/<stem>_mask.json` or `<dir>/<stem>_mask.json` for a single object
   (named after the folder, or an optional `"object"` key). Rasterised with `cv2.fillPoly` like the
   published loader.
+
+Every loader treats its files as untrusted (they are often received from someone else): object and
+view names are checked where they enter (`splattwin.names`: never a path, unique), paths in a
+`masks.json` index stay inside its folder (`splattwin.paths`), and every image or mask size read from a
+file is checked against `splattwin.limits` before a pixel is allocated. With `image_sizes` (view ->
+(H, W) of the dataset's images) each mask is checked against its own image as it is read, so a
+wrong-size file is named, not the object whose mask happened to be read first.
 """
 
 from __future__ import annotations
@@ -33,6 +40,9 @@ import numpy as np
 
 from splattwin import io
 from splattwin.errors import InputError
+from splattwin.limits import check_pixels, read_image_array
+from splattwin.names import check_unique, name_from_label, object_name, view_name
+from splattwin.paths import child, confined
 from splattwin.semantics import rle as rle_codec
 
 log = logging.getLogger(__name__)
@@ -61,6 +71,8 @@ class MaskSet:
     sizes: dict[str, tuple[int, int]] = field(default_factory=dict)
     prompts: dict[int, str] = field(default_factory=dict)
     source: str = ""
+    # view -> the file whose mask set the view's size (named when another mask of the view differs)
+    size_sources: dict[str, str] = field(default_factory=dict, repr=False, compare=False)
 
     # -- access -------------------------------------------------------------------------------
     @property
@@ -81,21 +93,27 @@ class MaskSet:
         """bool [H,W] mask of `label` in `view`, or None when the object was not found there."""
         return self.masks.get(view, {}).get(label)
 
-    def add(self, view: str, label: int, mask: np.ndarray, score: float = 1.0, name: str | None = None) -> None:
-        """Add (or merge by union) a mask. `name` registers the object if the label is new."""
+    def add(self, view: str, label: int, mask: np.ndarray, score: float = 1.0, name: str | None = None,
+            source: str | Path | None = None) -> None:
+        """Add (or merge by union) a mask. `name` registers the object if the label is new. `source`:
+        the file the mask came from (named in errors)."""
         mask = np.asarray(mask, dtype=bool)
         if mask.ndim != 2:
-            raise InputError(f"mask for view {view!r}, label {label} must be 2D, got shape {mask.shape}")
+            raise InputError(f"mask for view {view!r}, label {label} must be 2D, got shape {mask.shape}", source)
         if label < 1:
-            raise InputError(f"object labels start at 1 (0 is background), got {label} for view {view!r}")
+            raise InputError(f"object labels start at 1 (0 is background), got {label} for view {view!r}", source)
         if name is not None:
             self.objects.setdefault(label, name)
         elif label not in self.objects:
             self.objects[label] = f"object_{label}"
         size = self.sizes.setdefault(view, mask.shape)
+        if source is not None:
+            self.size_sources.setdefault(view, str(source))
         if tuple(size) != mask.shape:
+            first = self.size_sources.get(view)
+            other = f"the first mask of that view ({first})" if first and first != str(source) else "other masks of that view"
             raise InputError(f"mask of {self.objects[label]!r} in view {view!r} is {mask.shape[1]}x{mask.shape[0]} "
-                             f"but other masks of that view are {size[1]}x{size[0]}")
+                             f"but {other} is {size[1]}x{size[0]}", source)
         per_view = self.masks.setdefault(view, {})
         if label in per_view:
             per_view[label] = per_view[label] | mask
@@ -139,9 +157,10 @@ class MaskSet:
                        "views": {}}
         for view in self.views:
             entry = {"size": list(self.sizes.get(view, ())), "masks": {}}
+            vdir = child(out_dir, view_name(view), what="view name")
             for label, m in sorted(self.masks.get(view, {}).items()):
-                rel = f"{view}/{_safe_name(self.objects[label])}.png"
-                io.write_image(out_dir / rel, (m.astype(np.uint8) * 255))
+                rel = f"{view}/{object_name(self.objects[label])}.png"
+                io.write_image(child(vdir, f"{self.objects[label]}.png"), (m.astype(np.uint8) * 255))
                 entry["masks"][self.objects[label]] = {"file": rel, "score": self.scores[view][label]}
             index["views"][view] = entry
         io.write_json(out_dir / INDEX_NAME, index)
@@ -155,11 +174,15 @@ class MaskSet:
 
 # -- loaders ----------------------------------------------------------------------------------
 
-def load_masks(path: str | Path, objects: dict[str, int] | None = None, object_name: str | None = None) -> MaskSet:
+def load_masks(path: str | Path, objects: dict[str, int] | None = None, object_name: str | None = None,
+               image_sizes: dict[str, tuple[int, int]] | None = None) -> MaskSet:
     """Load masks from a MaskSet folder, PNG folder, label-image folder, COCO JSON or polygon JSON.
 
     objects: name -> label (e.g. from the scene's scene.json); unknown names get fresh labels.
     object_name: object name for a flat polygon-JSON folder (default: the folder name).
+    image_sizes: view -> (H, W) of the dataset's images: every mask of such a view is checked against
+    its image as it is read (InputError naming the mask file). Masks of views without an image are
+    not checked here (fusion ignores them with a MaskWarning).
     """
     path = Path(path)
     if not path.exists():
@@ -169,127 +192,198 @@ def load_masks(path: str | Path, objects: dict[str, int] | None = None, object_n
             raise InputError("a mask file must be COCO JSON (or give a folder of PNG / polygon JSON masks)", path)
         data = _read_json(path)
         if isinstance(data, dict) and "annotations" in data:
-            return load_coco(path, objects)
+            return load_coco(path, objects, image_sizes)
         if isinstance(data, dict) and "segmentation_polygons" in data:
-            return load_polygon_dir(path.parent, objects, object_name)
+            return load_polygon_dir(path.parent, objects, object_name, image_sizes)
         raise InputError("JSON is neither COCO (annotations) nor polygon masks (segmentation_polygons)", path)
     if (path / INDEX_NAME).is_file():
-        return load_maskset_dir(path)
-    coco = [p for p in path.glob("*.json") if p.name != INDEX_NAME and "annotations" in p.read_text()[:100000]]
+        return load_maskset_dir(path, image_sizes)
+    coco = [p for p in path.glob("*.json") if p.name != INDEX_NAME and _mentions_annotations(p)]
     if len(coco) == 1 and not list(path.glob("*_mask.json")):
-        return load_coco(coco[0], objects)
+        return load_coco(coco[0], objects, image_sizes)
     if list(path.glob("*_mask.json")) or list(path.glob("*/*_mask.json")):
-        return load_polygon_dir(path, objects, object_name)
+        return load_polygon_dir(path, objects, object_name, image_sizes)
     if any(p.suffix.lower() in _IMAGE_EXTS for p in path.iterdir() if p.is_file()):
-        return load_label_images(path, objects)
+        return load_label_images(path, objects, image_sizes)
     if any(p.is_dir() for p in path.iterdir()):
-        return load_png_dir(path, objects)
+        return load_png_dir(path, objects, image_sizes)
     raise InputError("no masks found (expected <view>/<object>.png, <view>.png label images, COCO JSON or "
                      "<image>_mask.json polygon files)", path)
 
 
-def load_maskset_dir(path: Path) -> MaskSet:
-    index = _read_json(path / INDEX_NAME)
-    ms = MaskSet(source=index.get("source", str(path)))
+def _mentions_annotations(p: Path) -> bool:
+    with open(p, "rb") as f:
+        return b"annotations" in f.read(100_000)
+
+
+def _check_names(ms: MaskSet, where: Path) -> None:
+    check_unique(ms.objects.values(), where)
+
+
+def _check_image(view: str, hw: tuple[int, int], image_sizes: dict | None, where: Path) -> None:
+    """The mask of `view` (size hw = (H, W)) against the dataset image of that view, if sizes are known."""
+    if image_sizes is None or view not in image_sizes:
+        return
+    H, W = image_sizes[view]
+    if tuple(hw) != (H, W):
+        raise InputError(f"mask of view {view!r} is {hw[1]}x{hw[0]} but its image is {W}x{H}", where)
+
+
+def load_maskset_dir(path: Path, image_sizes: dict | None = None) -> MaskSet:
+    index_path = path / INDEX_NAME
+    index = _read_json(index_path)
     try:
+        ms = MaskSet(source=str(index.get("source", str(path))))
         by_name = {}
         for o in index["objects"]:
-            ms.objects[int(o["label"])] = o["name"]
+            name = object_name(o["name"], index_path)
+            label = int(o["label"])
+            if label < 1 or label in ms.objects:
+                raise InputError(f"object {name!r}: label {label} is < 1 or used twice", index_path)
+            ms.objects[label] = name
             if o.get("prompt"):
-                ms.prompts[int(o["label"])] = o["prompt"]
-            by_name[o["name"]] = int(o["label"])
+                ms.prompts[label] = str(o["prompt"])
+            by_name[name] = label
+        _check_names(ms, index_path)
         for view, entry in index["views"].items():
+            view_name(view, index_path)
             if entry.get("size"):
-                ms.sizes[view] = tuple(int(v) for v in entry["size"])
+                h, w = (int(v) for v in entry["size"])
+                check_pixels(w, h, index_path, f"view {view!r}")
+                ms.sizes[view] = (h, w)
+                _check_image(view, (h, w), image_sizes, index_path)
             for name, m in entry["masks"].items():
                 if name not in by_name:
-                    raise InputError(f"view {view!r} names object {name!r} missing from the objects list", path / INDEX_NAME)
-                mask = _read_binary_png(path / m["file"])
-                _check_size(ms, view, mask, path / m["file"])
-                ms.add(view, by_name[name], mask, float(m.get("score", 1.0)))
-    except (KeyError, TypeError, ValueError) as e:
-        raise InputError(f"malformed mask index: {e}", path / INDEX_NAME) from e
+                    raise InputError(f"view {view!r} names object {name!r} missing from the objects list", index_path)
+                mpath = confined(path, m["file"], index_path, f"mask file of {name!r} in view {view!r}")
+                mask = _read_binary_png(mpath)
+                _check_size(ms, view, mask, mpath)
+                _check_image(view, mask.shape, image_sizes, mpath)
+                ms.add(view, by_name[name], mask, float(m.get("score", 1.0)), source=mpath)
+    except (KeyError, TypeError, ValueError, AttributeError) as e:
+        raise InputError(f"malformed mask index: {e}", index_path) from e
     return ms
 
 
-def load_png_dir(path: Path, objects: dict[str, int] | None = None) -> MaskSet:
+def load_png_dir(path: Path, objects: dict[str, int] | None = None, image_sizes: dict | None = None) -> MaskSet:
     """`<path>/<view>/<object>.png` -> MaskSet (non-zero pixels inside)."""
     labels = dict(objects or {})
     ms = MaskSet(source=f"png:{path}")
-    files = sorted(p for p in path.glob("*/*") if p.suffix.lower() in _IMAGE_EXTS)
+    files = sorted(p for p in path.glob("*/*") if p.suffix.lower() in _IMAGE_EXTS and p.is_file())
     if not files:
         raise InputError("no <view>/<object>.png masks in this folder", path)
-    for name in sorted({p.stem for p in files}):
+    names = {}
+    for p in files:
+        names[p] = name_from_label(p.stem, p, "object name (mask file name)")
+        view_name(p.parent.name, p.parent, "view name (folder name)")
+    for name in sorted(set(names.values())):
         if name not in labels:
             labels[name] = max(labels.values(), default=0) + 1
-    for name in {p.stem for p in files}:  # only objects that have mask files
+    for name in set(names.values()):  # only objects that have mask files
         ms.objects[labels[name]] = name
+    _check_names(ms, path)
     for p in files:
         view = p.parent.name
         mask = _read_binary_png(p)
-        ms.add(view, labels[p.stem], mask, 1.0)
+        _check_image(view, mask.shape, image_sizes, p)
+        ms.add(view, labels[names[p]], mask, 1.0, source=p)
     return ms
 
 
-def load_label_images(path: Path, objects: dict[str, int] | None = None) -> MaskSet:
+def load_label_images(path: Path, objects: dict[str, int] | None = None, image_sizes: dict | None = None) -> MaskSet:
     """`<path>/<view>.png` label images (pixel = label, 0 background) -> MaskSet.
 
     objects: name -> label. Without it every non-zero value becomes `object_<value>`.
     """
     ms = MaskSet(source=f"labels:{path}")
-    files = sorted(p for p in path.iterdir() if p.suffix.lower() in _IMAGE_EXTS)
+    files = sorted(p for p in path.iterdir() if p.suffix.lower() in _IMAGE_EXTS and p.is_file())
     if objects:
         for name, label in objects.items():
-            ms.objects[int(label)] = name
+            ms.objects[int(label)] = object_name(name, path)
+        _check_names(ms, path)
     for p in files:
+        view = view_name(p.stem, p)
         img = _read_image(p)
         if img.ndim != 2:
             raise InputError(f"label image must be single-channel, got shape {img.shape}", p)
-        ms.sizes[p.stem] = img.shape
+        _check_image(view, img.shape, image_sizes, p)
+        ms.sizes[view] = img.shape
+        ms.size_sources.setdefault(view, str(p))
         present = [int(v) for v in np.unique(img) if v != 0]
         for label in present:
             if objects and label not in ms.objects:
                 continue
-            ms.add(p.stem, label, img == label, 1.0)
+            ms.add(view, label, img == label, 1.0, source=p)
     return ms
 
 
-def load_coco(path: Path, objects: dict[str, int] | None = None) -> MaskSet:
-    """COCO JSON (RLE or polygon segmentations) -> MaskSet; views are the image file stems."""
+def load_coco(path: Path, objects: dict[str, int] | None = None, image_sizes: dict | None = None) -> MaskSet:
+    """COCO JSON (RLE or polygon segmentations) -> MaskSet; views are the image file stems.
+
+    Category names are object names after `name_from_label` ("toy hammer" -> `toy_hammer`; the text
+    becomes the object's prompt). Every image and RLE size is checked before a mask is allocated."""
     data = _read_json(path)
     ms = MaskSet(source=f"coco:{path}")
     labels = dict(objects or {})
+    if not isinstance(data, dict):
+        raise InputError("malformed COCO JSON: expected an object with images, annotations, categories", path)
     try:
-        cat_name = {int(c["id"]): c["name"] for c in data.get("categories", [])}
-        images = {int(im["id"]): im for im in data["images"]}
-        for im in images.values():
-            ms.sizes[Path(im["file_name"]).stem] = (int(im["height"]), int(im["width"]))
+        cat_name, cat_text = {}, {}
+        for c in data.get("categories", []):
+            cid = int(c["id"])
+            if cid in cat_name:
+                raise InputError(f"category id {cid} appears twice", path)
+            cat_name[cid] = name_from_label(c["name"], path, f"category {cid} name")
+            cat_text[cat_name[cid]] = " ".join(str(c["name"]).split())
+        check_unique(cat_name.values(), path, "category name")
+        images = {}
+        for im in data["images"]:
+            iid = int(im["id"])
+            view = view_name(Path(str(im["file_name"])).stem, path, f"image {iid} file_name")
+            H, W = int(im["height"]), int(im["width"])
+            check_pixels(W, H, path, f"image {im['file_name']!r}")
+            _check_image(view, (H, W), image_sizes, path)
+            images[iid] = (view, H, W, str(im["file_name"]))
+            ms.sizes[view] = (H, W)
         for name in sorted(set(cat_name.values())):
             if name not in labels:
                 labels[name] = max(labels.values(), default=0) + 1
         for name, label in labels.items():
             if name in cat_name.values():
                 ms.objects[label] = name
+                if cat_text.get(name) and cat_text[name] != name:
+                    ms.prompts[label] = cat_text[name]
         for i, ann in enumerate(data["annotations"]):
             im = images.get(int(ann["image_id"]))
             if im is None:
                 raise InputError(f"annotation {i} refers to unknown image_id {ann['image_id']}", path)
+            view, H, W, file_name = im
             cid = int(ann["category_id"])
             if cid not in cat_name:
                 raise InputError(f"annotation {i} refers to unknown category_id {cid}", path)
-            H, W = int(im["height"]), int(im["width"])
             seg = ann["segmentation"]
             if isinstance(seg, dict):
-                mask = rle_codec.decode(seg)
-                if mask.shape != (H, W):
-                    raise InputError(f"annotation {i}: RLE size {mask.shape[1]}x{mask.shape[0]} differs from its image "
-                                     f"{im['file_name']} ({W}x{H})", path)
+                try:
+                    h, w = (int(v) for v in seg["size"])
+                except (KeyError, TypeError, ValueError) as e:
+                    raise InputError(f"annotation {i}: malformed RLE (need size [h, w] and counts): {e}", path) from e
+                if (h, w) != (H, W):
+                    raise InputError(f"annotation {i}: RLE size {w}x{h} differs from its image {file_name} ({W}x{H})",
+                                     path)
+                try:
+                    mask = rle_codec.decode(seg)
+                except InputError as e:
+                    raise InputError(f"annotation {i}: {e.problem}", path) from None
             elif isinstance(seg, list):
-                mask = polygons_to_mask([np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in seg], H, W)
+                mask = polygons_to_mask([np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in seg], H, W, path)
             else:
                 raise InputError(f"annotation {i}: segmentation must be RLE or polygons", path)
-            ms.add(Path(im["file_name"]).stem, labels[cat_name[cid]], mask, float(ann.get("score", 1.0)))
-    except (KeyError, TypeError, ValueError) as e:
+            ms.add(view, labels[cat_name[cid]], mask, float(ann.get("score", 1.0)), source=path)
+    except InputError as e:
+        if e.path is None:
+            raise InputError(e.problem, path) from None
+        raise
+    except (KeyError, TypeError, ValueError, AttributeError) as e:
         raise InputError(f"malformed COCO JSON: {e}", path) from e
     return ms
 
@@ -311,7 +405,8 @@ def save_coco(ms: MaskSet, path: str | Path, compressed: bool = True) -> Path:
     return io.write_json(path, {"images": images, "annotations": anns, "categories": cats}, indent=None)
 
 
-def load_polygon_dir(path: Path, objects: dict[str, int] | None = None, object_name: str | None = None) -> MaskSet:
+def load_polygon_dir(path: Path, objects: dict[str, int] | None = None, object_name: str | None = None,
+                     image_sizes: dict | None = None) -> MaskSet:
     """Polygon JSON masks of the paper's published code -> MaskSet (layout in the module docstring)."""
     ms = MaskSet(source=f"polygons:{path}")
     labels = dict(objects or {})
@@ -326,17 +421,23 @@ def load_polygon_dir(path: Path, objects: dict[str, int] | None = None, object_n
     for default_name, files in groups:
         for f in files:
             d = _read_json(f)
+            if not isinstance(d, dict):
+                raise InputError("malformed polygon mask JSON: expected an object", f)
             try:
-                name = d.get("object") or default_name or path.name
+                name = name_from_label(d.get("object") or default_name or path.name, f)
                 H, W = int(d["image_height"]), int(d["image_width"])
+                check_pixels(W, H, f, "image_width x image_height")
                 polys = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in d["segmentation_polygons"] if len(p)]
+                view = view_name(Path(str(d.get("image_filename") or f.name[: -len("_mask.json")])).stem, f,
+                                 "image_filename")
             except (KeyError, TypeError, ValueError) as e:
                 raise InputError(f"malformed polygon mask JSON: {e}", f) from e
+            _check_image(view, (H, W), image_sizes, f)
             if name not in labels:
                 labels[name] = max(labels.values(), default=0) + 1
             ms.objects[labels[name]] = name
-            view = Path(d.get("image_filename") or f.name[: -len("_mask.json")]).stem
-            ms.add(view, labels[name], polygons_to_mask(polys, H, W), float(d.get("score", 1.0)))
+            ms.add(view, labels[name], polygons_to_mask(polys, H, W, f), float(d.get("score", 1.0)), source=f)
+    _check_names(ms, path)
     return ms
 
 
@@ -350,17 +451,22 @@ def save_polygon_dir(ms: MaskSet, out_dir: str | Path) -> Path:
         for label, m in ms.masks.get(view, {}).items():
             contours, _ = cv2.findContours(m.astype(np.uint8) * 255, cv2.RETR_TREE, cv2.CHAIN_APPROX_SIMPLE)
             polys = [c.reshape(-1, 2).tolist() for c in contours if len(c)]
-            io.write_json(out_dir / _safe_name(ms.objects[label]) / f"{view}_mask.json",
+            folder = child(out_dir, _safe_name(object_name(ms.objects[label])))
+            io.write_json(child(folder, f"{view_name(view)}_mask.json"),
                           {"image_filename": f"{view}.png", "image_height": H, "image_width": W,
                            "input_points": [], "input_labels": [], "segmentation_polygons": polys,
                            "object": ms.objects[label], "score": ms.scores[view][label]})
     return out_dir
 
 
-def polygons_to_mask(polygons: list[np.ndarray], height: int, width: int) -> np.ndarray:
+def polygons_to_mask(polygons: list[np.ndarray], height: int, width: int, where: str | Path | None = None) -> np.ndarray:
     """Fill polygons ([M,2] pixel x,y each) into a bool [H,W] mask with OpenCV (as the published code)."""
     import cv2
 
+    width, height = check_pixels(width, height, where, "mask")
+    for p in polygons:
+        if not np.all(np.isfinite(p)) or np.abs(p).max(initial=0) > 1e6:
+            raise InputError("polygon coordinates must be finite pixel positions", where)
     img = np.zeros((height, width), dtype=np.uint8)
     pts = [np.round(p).astype(np.int32).reshape(-1, 1, 2) for p in polygons if len(p) >= 1]
     if pts:
@@ -380,9 +486,12 @@ def scene_masks(scene_dir: str | Path, kind: str = "noisy") -> MaskSet:
         raise InputError(f"no {kind} masks in the scene folder", sub)
     ms = load_png_dir(sub, objs) if kind != "gt" else load_label_images(sub, objs)
     # views where an object was not found still count as views (sizes from the images)
+    from splattwin.limits import image_size
+
     for img in sorted((scene_dir / "images").glob("*.png")):
         if img.stem not in ms.sizes and (kind == "gt" or (sub / img.stem).is_dir()):
-            ms.sizes[img.stem] = _read_image(img).shape[:2]
+            w, h = image_size(img)
+            ms.sizes[img.stem] = (h, w)
     meta = _read_json(scene_dir / "scene.json")
     for o in meta.get("objects", []):
         if o.get("prompt") and int(o["label"]) in ms.objects:
@@ -394,11 +503,15 @@ def scene_masks(scene_dir: str | Path, kind: str = "noisy") -> MaskSet:
 
 def scene_objects(scene_dir: str | Path) -> dict[str, int]:
     """name -> label of the embedded scene's objects (from scene.json; label 0 / "table" excluded)."""
-    meta = _read_json(Path(scene_dir) / "scene.json")
+    where = Path(scene_dir) / "scene.json"
+    meta = _read_json(where)
     try:
-        return {o["name"]: int(o["label"]) for o in meta["objects"] if int(o["label"]) > 0 and o["name"] != "table"}
-    except (KeyError, TypeError, ValueError) as e:
-        raise InputError(f"malformed scene.json objects: {e}", Path(scene_dir) / "scene.json") from e
+        out = {object_name(o["name"], where): int(o["label"]) for o in meta["objects"]
+               if int(o["label"]) > 0 and o["name"] != "table"}
+    except (KeyError, TypeError, ValueError, AttributeError) as e:
+        raise InputError(f"malformed scene.json objects: {e}", where) from e
+    check_unique(out, where)
+    return out
 
 
 # -- helpers ----------------------------------------------------------------------------------
@@ -412,13 +525,8 @@ def _read_json(path: Path):
 
 
 def _read_image(path: Path) -> np.ndarray:
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(path) as im:
-            return np.asarray(im)
-    except (UnidentifiedImageError, OSError) as e:
-        raise InputError(f"cannot read image: {e}", path) from e
+    """Decoded mask / label image; its header size is checked first (`splattwin.limits`)."""
+    return read_image_array(path, what="mask image")
 
 
 def _read_binary_png(path: Path) -> np.ndarray:

@@ -31,8 +31,17 @@ def mask_to_counts(mask: np.ndarray) -> list[int]:
 
 
 def counts_to_mask(counts: list[int], height: int, width: int) -> np.ndarray:
-    """Run lengths -> bool mask [H,W]. Raises InputError when the runs do not cover H*W pixels."""
-    counts = np.asarray(counts, dtype=np.int64)
+    """Run lengths -> bool mask [H,W]. Raises InputError when the runs do not cover H*W pixels or the
+    size is beyond `splattwin.limits.MAX_IMAGE_PIXELS` (checked before anything is allocated)."""
+    from splattwin.limits import check_pixels
+
+    width, height = check_pixels(width, height, None, "RLE mask")
+    try:
+        counts = np.asarray(counts, dtype=np.int64)
+    except (TypeError, ValueError, OverflowError) as e:
+        raise InputError(f"RLE counts must be whole numbers: {e}") from None
+    if counts.ndim != 1:
+        raise InputError("RLE counts must be a flat list of run lengths")
     if np.any(counts < 0) or int(counts.sum()) != height * width:
         raise InputError(f"RLE counts sum to {int(counts.sum())} but the mask has {height}x{width}={height * width} pixels")
     values = (np.arange(counts.size) % 2).astype(bool)

@@ -275,7 +275,11 @@ def segment_images(images: dict[str, Path], prompt: str, options: SegmentOptions
     missing = [p for p in phrases if p not in labels]
     if missing:
         raise InputError(f"prompt phrases {missing} have no object label (known: {sorted(labels)})")
-    ms = MaskSet(objects={labels[p]: p.replace(" ", "_") for p in phrases},
+    from splattwin.names import check_unique, object_name
+
+    names = {p: object_name(p.replace(" ", "_"), "--prompt", "object name from the prompt phrase") for p in phrases}
+    check_unique(names.values(), "--prompt")
+    ms = MaskSet(objects={labels[p]: names[p] for p in phrases},
                  prompts={labels[p]: p for p in phrases}, source=f"open-vocab:{prompt}")
     done: set[str] = set()
     if out_dir is not None and (Path(out_dir) / "masks.json").is_file():

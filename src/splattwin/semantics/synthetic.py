@@ -154,8 +154,13 @@ def sample_scene_gaussians(scene_dir: Path, n: int = 60000, seed: int = 0, float
     scene_dir = Path(scene_dir)
     meta = json.loads((scene_dir / "scene.json").read_text())
     rng = np.random.default_rng(seed)
-    parts = [("table", 0, trimesh.load(scene_dir / meta["table"]["mesh"], force="mesh"))]
-    parts += [(o["name"], int(o["label"]), trimesh.load(scene_dir / o["mesh"], force="mesh")) for o in meta["objects"]]
+    from splattwin.meshio import load_mesh
+    from splattwin.paths import confined
+
+    where = scene_dir / "scene.json"
+    parts = [("table", 0, load_mesh(confined(scene_dir, meta["table"]["mesh"], where), process=True))]
+    parts += [(o["name"], int(o["label"]), load_mesh(confined(scene_dir, o["mesh"], where), process=True))
+              for o in meta["objects"]]
     obj_area = np.array([m.area for _, _, m in parts[1:]])
     counts = [n // 2] + list(np.maximum((n // 2) * obj_area / obj_area.sum(), 200).astype(int))
     pts, nrm, scl, labs = [], [], [], []

@@ -39,7 +39,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every,
                    help=f"steps between checkpoints (0: none; default {d.checkpoint_every})")
-    p.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in OUT")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from the newest checkpoint in OUT (refused, exit 2, when it was made with other "
+                        "options or data)")
     p.add_argument("--refine-poses", action="store_true",
                    help="learn a per-camera SE(3) pose correction jointly (writes OUT/refined_poses.json)")
     p.add_argument("--pose-lr", type=float, default=d.pose_lr,
@@ -80,8 +82,11 @@ def _train(args: argparse.Namespace) -> int:
                       pose_lr=args.pose_lr, pose_start=args.pose_start, depth_lambda=args.depth_lambda,
                       opacity_reg=args.opacity_reg,
                       max_gaussians=args.max_gaussians, progress=not args.no_progress)
+    from splattwin.lock import output_lock
+
     ds = load_dataset(args.dataset, max_frames=args.max_frames)
-    res = train(ds, args.out, cfg, resume=args.resume)
+    with output_lock(args.out):
+        res = train(ds, args.out, cfg, resume=args.resume)
     print(f"{len(res.gaussians)} Gaussians, train PSNR {res.final_psnr:.2f} dB, {res.wall_s:.1f} s -> {res.ply_path}")
     return 0
 

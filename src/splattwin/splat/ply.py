@@ -135,6 +135,10 @@ def read_ply_vertices(path: str | Path) -> dict[str, np.ndarray]:
         raise InputError("PLY file not found", path)
     raw = path.read_bytes()
     fmt, elements, body = _parse_header(raw, path)
+    from splattwin.limits import check_count
+
+    for e in elements:
+        check_count(e.count, path, f"'{e.name}' elements")
     names = [e.name for e in elements]
     if "vertex" not in names:
         raise InputError("PLY has no 'vertex' element", path)
@@ -196,6 +200,8 @@ def read_gaussians_ply(path: str | Path) -> Gaussians:
     except ValueError:
         raise InputError(f"{n_rest} f_rest properties does not match any SH degree "
                          f"(expected 0, 9, 24 or 45)", path) from None
+    if n == 0:  # a valid, empty splat: callers that need Gaussians say so with their own message
+        return Gaussians.empty(degree)
     k = (degree + 1) ** 2
     sh = np.zeros((n, k, 3))
     if has_dc:

@@ -6,8 +6,15 @@ states are checkpointed together with parameters, Adam moments, densification st
 so a run resumed from a checkpoint reproduces the uninterrupted run (on the CPU backend).
 
 Outputs in OUT: point_cloud.ply (standard 3DGS), train.json (config, statistics), refined_poses.json
-(with --refine-poses), train_curves.png (PSNR and Gaussian count), checkpoints/ckpt_XXXXXX.pt (the two
-newest are kept).
+(with --refine-poses), train_curves.png (PSNR and Gaussian count), checkpoints/ckpt_XXXXXX.safetensors
+(tensors + plain data, never a pickle: `splattwin.splat.checkpoint`; the two newest are kept).
+
+Resume: a checkpoint is resumed only when it was made with the same training options and the same
+training data (view names, cameras and image contents, recorded as a digest). Otherwise the run does
+not silently continue someone else's or an older run: with on_mismatch="error" (`splattwin train
+--resume`) it stops with an InputError saying what differs; with on_mismatch="restart" (`splattwin
+build`, whose stage key already says the inputs changed) it says why, removes the stale checkpoints
+and starts over. Pickled checkpoints of earlier versions (`ckpt_*.pt`) are never loaded.
 """
 
 from __future__ import annotations
@@ -24,7 +31,8 @@ import torch
 
 from splattwin.capture import Camera, Dataset, Frame, load_image
 from splattwin.errors import InputError
-from splattwin.io import atomic_path, write_json
+from splattwin.io import write_json
+from splattwin.splat import checkpoint as ckpt_io
 from splattwin.splat.densify import DensifyConfig, DensifyState, refine, reset_opacity
 from splattwin.splat.gaussians import Gaussians
 from splattwin.splat.init import initial_gaussians, scene_center_and_scale
@@ -205,9 +213,52 @@ def depth_loss(depth: torch.Tensor, alpha: torch.Tensor, gt_depth: torch.Tensor)
     return ((depth[ok] - d).abs() / d).mean()
 
 
+# Options that change what a run computes: a checkpoint made with other values is not resumed. Left out:
+# progress, checkpoint_every (bookkeeping) and device/backend (the same computation on other hardware).
+_RUN_NEUTRAL = ("progress", "checkpoint_every", "device", "backend")
+
+
+def _checkpoints(out_dir: Path) -> list[Path]:
+    return sorted((out_dir / CKPT_DIR).glob(f"ckpt_*{ckpt_io.SUFFIX}"))
+
+
 def _latest_checkpoint(out_dir: Path) -> Path | None:
-    ckpts = sorted((out_dir / CKPT_DIR).glob("ckpt_*.pt"))
+    legacy = sorted((out_dir / CKPT_DIR).glob(f"ckpt_*{ckpt_io.LEGACY_SUFFIX}"))
+    if legacy:
+        log.warning("ignoring %d pickled checkpoint(s) in %s (e.g. %s): pickles can run code and are never "
+                    "loaded; only %s checkpoints are resumed", len(legacy), out_dir / CKPT_DIR, legacy[-1].name,
+                    ckpt_io.SUFFIX)
+    ckpts = _checkpoints(out_dir)
     return ckpts[-1] if ckpts else None
+
+
+def run_options(cfg: TrainConfig) -> dict:
+    """The options a checkpoint must share with the run that resumes it (JSON-normalised)."""
+    import json
+
+    d = {k: v for k, v in cfg.to_dict().items() if k not in _RUN_NEUTRAL}
+    return json.loads(json.dumps(d, default=str))
+
+
+def data_digest(views: list[TrainView]) -> str:
+    """SHA-256 of what the run trains on: view names, sizes, intrinsics, poses, image (and depth) pixels."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for v in views:
+        c = v.camera
+        h.update(v.name.encode("utf-8", "surrogateescape") + b"\0")
+        h.update(np.asarray([c.width, c.height], np.int64).tobytes())
+        h.update(np.ascontiguousarray(c.K, np.float64).tobytes())
+        h.update(np.ascontiguousarray(c.T_world_cam, np.float64).tobytes())
+        h.update(np.ascontiguousarray(v.image.detach().cpu().numpy()).tobytes())
+        if v.depth is not None:
+            h.update(np.ascontiguousarray(v.depth.detach().cpu().numpy()).tobytes())
+    return h.hexdigest()
+
+
+class CheckpointMismatch(InputError):
+    """A checkpoint that was made by another run (other options or data): not resumed."""
 
 
 class Trainer:
@@ -232,6 +283,7 @@ class Trainer:
         self.device = backend_device(self.backend)
         self.views = load_views(self.frames, self.cfg.resolution, depth=self.cfg.depth_lambda > 0,
                                 depth_scale=dataset.depth_scale)
+        self.data_digest = data_digest(self.views)
         self.scene_center, self.scene_scale = scene_center_and_scale([v.camera for v in self.views])
         self.dcfg = self.cfg.densify_config()
         self.sh_interval = self.cfg.sh_interval or max(1, self.cfg.iters // 10)
@@ -272,7 +324,24 @@ class Trainer:
                 "order": list(self.order), "poses": self.poses.state_dict() if self.poses else None,
                 "history": list(self.history), "init_method": self.init_method,
                 "torch_rng": torch.get_rng_state(), "config": self.cfg.to_dict(),
+                "run_options": run_options(self.cfg), "data_digest": self.data_digest,
                 "view_names": [v.name for v in self.views]}
+
+    def check_resumable(self, sd: dict, where: Path) -> None:
+        """CheckpointMismatch naming what differs when `sd` was made by another run (see module doc)."""
+        if not isinstance(sd.get("run_options"), dict) or not isinstance(sd.get("data_digest"), str):
+            raise CheckpointMismatch("checkpoint does not record its run's options and data", where)
+        if sd.get("view_names") != [v.name for v in self.views]:
+            raise CheckpointMismatch("checkpoint was made with different training views", where)
+        old, new = sd["run_options"], run_options(self.cfg)
+        diff = [k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)]
+        if diff:
+            shown = ", ".join(f"{k}={old.get(k)!r} (this run: {new.get(k)!r})" for k in diff[:4])
+            raise CheckpointMismatch(f"checkpoint was made with other options: {shown}"
+                                     + (f" and {len(diff) - 4} more" if len(diff) > 4 else ""), where)
+        if sd["data_digest"] != self.data_digest:
+            raise CheckpointMismatch("checkpoint was made with other training data (images, cameras or poses "
+                                     "changed)", where)
 
     def load_state_dict(self, sd: dict) -> None:
         if sd["view_names"] != [v.name for v in self.views]:
@@ -296,26 +365,22 @@ class Trainer:
         self.init_method = sd["init_method"]
         torch.set_rng_state(sd["torch_rng"])
         self.step = int(sd["step"])
-        old = sd["config"]
-        for key in ("iters", "seed", "sh_degree", "resolution", "max_gaussians"):
-            if old.get(key) != getattr(self.cfg, key):
-                log.warning("resuming with %s=%s although the checkpoint used %s", key, getattr(self.cfg, key),
-                            old.get(key))
 
     def save_checkpoint(self) -> Path:
-        path = self.out_dir / CKPT_DIR / f"ckpt_{self.step:06d}.pt"
-        with atomic_path(path) as tmp:
-            torch.save(self.state_dict(), tmp)
-        for old in sorted((self.out_dir / CKPT_DIR).glob("ckpt_*.pt"))[:-2]:
+        path = self.out_dir / CKPT_DIR / f"ckpt_{self.step:06d}{ckpt_io.SUFFIX}"
+        ckpt_io.save(path, self.state_dict())
+        for old in _checkpoints(self.out_dir)[:-2]:
             old.unlink()
         return path
 
     def load_checkpoint(self, path: Path) -> None:
+        """Resume from `path` (tensors + plain data only); CheckpointMismatch when another run made it."""
+        sd = ckpt_io.load(path)
+        self.check_resumable(sd, path)
         try:
-            sd = torch.load(path, map_location="cpu", weights_only=False)
-        except Exception as e:  # a truncated file can only come from outside our atomic writes
-            raise InputError(f"unreadable checkpoint ({e.__class__.__name__})", path) from e
-        self.load_state_dict(sd)
+            self.load_state_dict(sd)
+        except (KeyError, TypeError, ValueError, RuntimeError, IndexError) as e:
+            raise InputError(f"checkpoint state is inconsistent ({type(e).__name__}: {str(e)[:200]})", path) from None
 
     # -- one step ---------------------------------------------------------------------------------
     def _next_view(self) -> int:
@@ -382,13 +447,29 @@ class Trainer:
         return info
 
     # -- the loop ---------------------------------------------------------------------------------
-    def run(self, resume: bool = False, callback: Callable[[dict], None] | None = None) -> TrainResult:
-        """Train to `cfg.iters` steps (continuing from the newest checkpoint with resume=True)."""
+    def run(self, resume: bool = False, callback: Callable[[dict], None] | None = None,
+            on_mismatch: str = "error") -> TrainResult:
+        """Train to `cfg.iters` steps (continuing from the newest checkpoint with resume=True).
+
+        on_mismatch: what a checkpoint made by another run (other options or data) does: "error" raises
+        CheckpointMismatch (exit 2), "restart" logs why, deletes the stale checkpoints and starts over."""
+        if on_mismatch not in ("error", "restart"):
+            raise ValueError(f"on_mismatch must be 'error' or 'restart', got {on_mismatch!r}")
         ckpt = _latest_checkpoint(self.out_dir) if resume else None
         if ckpt is not None:
-            self.load_checkpoint(ckpt)
-            log.info("resumed from %s (step %d)", ckpt, self.step)
-        else:
+            try:
+                self.load_checkpoint(ckpt)
+                log.info("resumed from %s (step %d)", ckpt, self.step)
+            except CheckpointMismatch as e:
+                if on_mismatch == "error":
+                    raise CheckpointMismatch(f"{e.problem}; not resumed. Start a new run (without --resume, or "
+                                             f"into another folder) or resume with the original options and "
+                                             f"data", e.path) from None
+                log.warning("%s: %s; starting over (the stale checkpoints are removed)", e.path, e.problem)
+                for old in _checkpoints(self.out_dir):
+                    old.unlink()
+                ckpt = None
+        if ckpt is None:
             if resume:
                 log.info("no checkpoint in %s: starting from scratch", self.out_dir / CKPT_DIR)
             self._fresh_state()
@@ -451,6 +532,6 @@ class Trainer:
 
 
 def train(dataset: Dataset, out_dir: str | Path, cfg: TrainConfig | None = None, resume: bool = False,
-          callback: Callable[[dict], None] | None = None) -> TrainResult:
+          callback: Callable[[dict], None] | None = None, on_mismatch: str = "error") -> TrainResult:
     """Train 3D Gaussians on `dataset`'s training frames; writes OUT/point_cloud.ply (see module doc)."""
-    return Trainer(dataset, out_dir, cfg).run(resume=resume, callback=callback)
+    return Trainer(dataset, out_dir, cfg).run(resume=resume, callback=callback, on_mismatch=on_mismatch)

@@ -5,6 +5,10 @@ visual.obj, collision.obj, parts/part_XXX.obj} (object frame), background/{splat
 parts/} (twin frame), export/..., twin.json. Every file is written atomically; the manifest is written
 last, so a killed build never leaves a manifest pointing at missing files. Objects whose geometry failed
 are listed with usable=False and a `problem`, and get no geometry files.
+
+Object names become folder and file names: they are checked (`splattwin.names`) before anything is
+written, and every folder written or removed is verified to lie inside the twin folder
+(`splattwin.paths`), so nothing outside it is ever written or deleted.
 """
 
 from __future__ import annotations
@@ -22,12 +26,34 @@ import trimesh
 from splattwin import io
 from splattwin.geometry.convert import Conversion, convert
 from splattwin.geometry.options import GeometryOptions
+from splattwin.names import check_unique, object_name
+from splattwin.paths import child, relative_to
 from splattwin.twin.manifest import Background, Frame, Manifest, ObjectEntry
 from splattwin.twin.splats import write_object_splats
 
 log = logging.getLogger(__name__)
 
 FORMATS = ("mjcf", "urdf", "moveit", "gltf")
+METRIC_FORMATS = ("mjcf",)   # physics needs metres: refused for an unscaled twin
+
+
+def default_formats(frame: Frame) -> tuple[str, ...]:
+    """The exports written when none are asked for: all of them, less those an unscaled twin cannot
+    have (MJCF: physics in arbitrary units would be silently wrong)."""
+    return tuple(f for f in FORMATS if frame.scaled or f not in METRIC_FORMATS)
+
+
+def check_formats(frame: Frame, formats, where: str | Path | None = None) -> None:
+    """InputError, before anything is written, for unknown formats or MJCF of an unscaled twin."""
+    from splattwin.errors import InputError
+
+    for fmt in formats:
+        if fmt not in FORMATS:
+            raise InputError(f"unknown export format {fmt!r} (choose from {', '.join(FORMATS)})", where)
+        if fmt in METRIC_FORMATS and not frame.scaled:
+            raise InputError(f"cannot export {fmt}: the twin is not metrically scaled (frame source "
+                             f"{frame.source!r}) and physics needs metres; scale it first (marker, known poses or "
+                             f"a known length) or leave {fmt} out of --formats", where)
 _VERSIONED = ("splattwin", "numpy", "scipy", "scikit-learn", "open3d-cpu", "trimesh", "coacd", "scikit-image", "mujoco",
               "torch")
 
@@ -51,25 +77,26 @@ def write_mesh(path: Path, mesh: trimesh.Trimesh) -> Path:
 
 def _write_parts(folder: Path, parts: list, twin_dir: Path) -> list[str]:
     """Write part_XXX.obj into a fresh temporary folder, then swap it in: stale parts of an earlier build
-    never survive and a killed build leaves the old complete set."""
-    import tempfile
-
+    never survive and a killed build leaves the old complete set (or the new one; temporary folders of
+    a killed build are removed by the next run, see `splattwin.io.clean_temp`)."""
+    child(twin_dir, relative_to(folder, twin_dir) or str(folder))  # inside the twin folder, or InputError
     folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
+    tmp = io.temp_dir(folder.parent, folder.name)
+    old = None
     try:
         for i, p in enumerate(parts):
             p.export(tmp / f"part_{i:03d}.obj", file_type="obj")
-        old = folder.with_name(f".{folder.name}.old")
-        if old.exists():
-            shutil.rmtree(old)
+            io.fsync_path(tmp / f"part_{i:03d}.obj")
         if folder.exists():
-            folder.rename(old)
+            old = io.temp_dir(folder.parent, f"{folder.name}.old")
+            folder.rename(old / folder.name)
         tmp.rename(folder)
-        if old.exists():
-            shutil.rmtree(old)
+        io.fsync_path(folder.parent)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp)
+        if old is not None and old.exists():
+            shutil.rmtree(old)
     return [(folder / f"part_{i:03d}.obj").relative_to(twin_dir).as_posix() for i in range(len(parts))]
 
 
@@ -77,12 +104,15 @@ def write_geometry(conv: Conversion, g, labels: np.ndarray, out_dir: Path, frame
                    cameras_path: str | Path | None = None) -> Manifest:
     """Write splats, meshes and parts of a Conversion into the twin folder; return the manifest (not saved)."""
     out_dir = Path(out_dir)
+    for r in conv.objects:
+        object_name(r.name)
+    check_unique([r.name for r in conv.objects])
     g.save_ply(out_dir / "splat" / "point_cloud.ply")
     io.write_npy(out_dir / "semantics" / "labels.npy", np.asarray(labels, dtype=np.int32))
     entries = []
     for r in conv.objects:
         e = ObjectEntry(name=r.name, label=r.label, prompt=r.prompt, usable=r.usable, problem=r.problem)
-        odir = out_dir / "objects" / r.name
+        odir = child(child(out_dir, "objects"), r.name)
         if r.usable:
             write_object_splats(odir / "splats.ply", g.subset(r.indices), r.T_world_obj)
             write_mesh(odir / "visual.obj", r.visual)
@@ -109,19 +139,20 @@ def write_geometry(conv: Conversion, g, labels: np.ndarray, out_dir: Path, frame
             bg.collision_mesh = "background/collision.obj"
             bg.convex_parts = _write_parts(out_dir / "background" / "parts", b.parts, out_dir)
     cams = None
+    config: dict = {"geometry": conv.options.to_dict()}
     if cameras_path is not None:
-        # referenced, not copied: relative when inside the twin folder (a relative path that exists
-        # inside the twin folder is taken as relative to it)
+        # referenced, not copied: a path relative to the twin folder when inside it (a relative path that
+        # exists inside the twin folder is taken as relative to it). A cameras file outside the twin is
+        # only recorded (config.cameras_source): twin.json holds no path leading out of the folder.
         cp = Path(cameras_path)
         if not cp.is_absolute() and (out_dir / cp).exists():
-            cams = cp.as_posix()
+            cams = relative_to(out_dir / cp, out_dir)
         else:
-            try:
-                cams = cp.resolve().relative_to(out_dir.resolve()).as_posix()
-            except ValueError:
-                cams = str(cp.resolve())
+            cams = relative_to(cp, out_dir)
+        if cams is None:
+            config["cameras_source"] = str(cp.resolve())
     return Manifest(frame=frame, objects=entries, background=bg, cameras=cams, splats="splat/point_cloud.ply",
-                    labels="semantics/labels.npy", config={"geometry": conv.options.to_dict()},
+                    labels="semantics/labels.npy", config=config,
                     versions=package_versions(), timings={f"geometry.{k}": round(float(v), 4) for k, v in conv.timings.items()})
 
 
@@ -144,9 +175,8 @@ def export_twin(twin_dir: str | Path, manifest: Manifest | None = None, formats=
 
     twin_dir = Path(twin_dir)
     manifest = manifest or Manifest.load(twin_dir)
+    check_formats(manifest.frame, formats, twin_dir / "twin.json")
     for fmt in formats:
-        if fmt not in FORMATS:
-            raise InputError(f"unknown export format {fmt!r} (choose from {', '.join(FORMATS)})")
         fn = _exporter(fmt)
         if fn is None:
             log.warning("export format %s not available yet (splattwin.twin.%s missing); skipped", fmt, fmt)
@@ -166,9 +196,11 @@ def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path
 
     gaussians: splattwin.splat.Gaussians [N] (twin frame, m); labels [N] int (0 = background);
     objects: [(name, label, prompt)]. Returns the saved Manifest."""
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    from splattwin.lock import prepare_output_dir
+
+    out_dir = prepare_output_dir(out_dir, "twin folder")
     frame = frame or Frame()
+    check_formats(frame, formats, out_dir / "twin.json")
     t0 = time.perf_counter()
     conv = convert(gaussians, labels, objects, options, progress=progress)
     t1 = time.perf_counter()

@@ -20,12 +20,23 @@ def _formats(text: str) -> tuple[str, ...]:
 
 
 def _export(args: argparse.Namespace) -> int:
-    from splattwin.twin.build import export_twin
+    from splattwin.lock import output_lock
+    from splattwin.twin.build import default_formats, export_twin
     from splattwin.twin.manifest import Manifest
 
     twin = Path(args.twin)
-    manifest = Manifest.load(twin)
-    m = export_twin(twin, manifest, _formats(args.formats))
+    if not twin.is_dir():
+        raise InputError("twin folder does not exist", twin)
+    with output_lock(twin):
+        manifest = Manifest.load(twin)
+        if args.formats is None:
+            formats = default_formats(manifest.frame)
+            if len(formats) < 4:
+                print(f"note: mjcf export skipped: the twin is unscaled (frame source {manifest.frame.source!r}); "
+                      f"physics needs metres")
+        else:
+            formats = _formats(args.formats)
+        m = export_twin(twin, manifest, formats)
     for fmt, path in m.exports.items():
         print(f"{fmt:7s} {twin / path}")
     return 0
@@ -38,6 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "planning scene (.scene text + CollisionObject YAML), glTF binary. Files are "
                                    "replaced atomically.")
     p.add_argument("twin", metavar="TWIN", help="twin folder (contains twin.json)")
-    p.add_argument("--formats", default="mjcf,urdf,moveit,gltf",
-                   help="comma-separated subset of mjcf,urdf,moveit,gltf (default: all)")
+    p.add_argument("--formats", default=None,
+                   help="comma-separated subset of mjcf,urdf,moveit,gltf (default: all; an unscaled twin gets "
+                        "no mjcf)")
     p.set_defaults(func=_export)

@@ -13,6 +13,7 @@ import numpy as np
 import trimesh
 
 from splattwin import io
+from splattwin.meshio import load_mesh
 from splattwin.twin.manifest import Manifest
 
 # z-up twin -> y-up glTF: rotate -90 degrees about x
@@ -32,7 +33,7 @@ def twin_scene(twin_dir: Path, manifest: Manifest, y_up: bool = True) -> trimesh
     scene.add_geometry(table, node_name="table", geom_name="table", parent_node_name=root, transform=T)
     for o in manifest.objects:
         if o.usable and o.visual_mesh:
-            m = trimesh.load(twin_dir / o.visual_mesh, force="mesh")
+            m = load_mesh(twin_dir / o.visual_mesh, f"visual mesh of {o.name!r}", process=True)
             scene.add_geometry(m, node_name=o.name, geom_name=o.name, parent_node_name=root, transform=o.pose)
     return scene
 

@@ -20,6 +20,9 @@ import numpy as np
 
 from splattwin import io
 from splattwin.errors import InputError
+from splattwin.meshio import load_mesh
+from splattwin.names import object_name
+from splattwin.paths import child, confined
 from splattwin.twin.manifest import Background, Frame, Manifest, ObjectEntry
 
 log = logging.getLogger(__name__)
@@ -87,12 +90,17 @@ def twin_from_scene(scene_dir: str | Path, out_dir: str | Path) -> Manifest:
         name = o["name"]
         if name == "table":
             continue
-        mesh_path = scene_dir / o.get("mesh", f"meshes/{name}.ply")
+        name = object_name(name, scene_dir / "scene.json")
+        mesh_path = confined(scene_dir, o.get("mesh", f"meshes/{name}.ply"), scene_dir / "scene.json",
+                             f"mesh of object {name!r}")
         if not mesh_path.is_file():
             raise InputError(f"mesh of object {name!r} missing", mesh_path)
         digest = hashlib.sha256(mesh_path.read_bytes()).hexdigest()[:16]
-        T_world_obj = np.asarray(o["T_world_obj"], dtype=np.float64)
-        odir = out_dir / "objects" / name
+        try:
+            T_world_obj = np.asarray(o["T_world_obj"], dtype=np.float64).reshape(4, 4)
+        except (TypeError, ValueError):
+            raise InputError(f"object {name!r}: T_world_obj must be a 4x4 matrix", scene_dir / "scene.json") from None
+        odir = child(child(out_dir, "objects"), name)
         prev = old.get(name)
         rel = lambda p: p.relative_to(out_dir).as_posix()  # noqa: E731
         digests[name] = digest
@@ -101,7 +109,7 @@ def twin_from_scene(scene_dir: str | Path, out_dir: str | Path) -> Manifest:
             entry = prev
             entry.T_world_obj = T_world_obj.tolist()
         else:
-            m = trimesh.load(mesh_path, force="mesh", process=False)
+            m = load_mesh(mesh_path, f"mesh of object {name!r}")
             V_world = np.asarray(m.vertices, np.float64)
             V = (V_world - T_world_obj[:3, 3]) @ T_world_obj[:3, :3]   # world -> object frame
             F = np.asarray(m.faces, np.int64)

@@ -56,9 +56,9 @@ def object_parts(obj: ObjectEntry, twin_dir: Path) -> list[Path]:
 
 
 def _mesh_volume(path: Path) -> float:
-    import trimesh
+    from splattwin.meshio import load_mesh
 
-    m = trimesh.load(path, force="mesh", process=False)
+    m = load_mesh(path, "convex part")
     hull = m.convex_hull  # MuJoCo uses the hull of each part for mass and contact
     return float(abs(hull.volume))
 
@@ -92,6 +92,7 @@ def add_twin(spec, manifest: Manifest, twin_dir: str | Path, objects: list[str] 
                          pos=[0, 0, bg.table_height - FLOOR_DEPTH], rgba=[0.3, 0.3, 0.32, 1])
         _contact(fl)
     for k, rel in enumerate(bg.convex_parts):
+        _mesh_volume(twin_dir / rel)  # a readable triangle mesh (InputError naming it otherwise)
         mesh = spec.add_mesh(name=f"background_part_{k}", file=str(twin_dir / rel))
         g = wb.add_geom(name=f"background/part_{k}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=mesh.name,
                         rgba=[0.5, 0.5, 0.5, 1])

@@ -20,6 +20,7 @@ import numpy as np
 import trimesh
 
 from splattwin import io
+from splattwin.meshio import load_mesh
 from splattwin.errors import InputError
 from splattwin.twin.manifest import Manifest
 
@@ -74,7 +75,7 @@ def scene_objects(twin_dir: Path, manifest: Manifest, boxes: bool = False) -> li
     if obstacles:
         shapes = []
         for p in obstacles:
-            m = trimesh.load(twin_dir / p, force="mesh")
+            m = load_mesh(twin_dir / p, "background obstacle mesh", process=True)
             shapes.append(Shape("mesh", np.eye(4), vertices=np.asarray(m.vertices), faces=np.asarray(m.faces),
                                 color=(0.5, 0.5, 0.5, 1.0)))
         objs.append(SceneObject("background_obstacles", np.eye(4), shapes))
@@ -83,14 +84,14 @@ def scene_objects(twin_dir: Path, manifest: Manifest, boxes: bool = False) -> li
             continue
         color = (0.8, 0.8, 0.8, 1.0)
         if o.visual_mesh and (twin_dir / o.visual_mesh).is_file():
-            vis = trimesh.load(twin_dir / o.visual_mesh, force="mesh")
+            vis = load_mesh(twin_dir / o.visual_mesh, f"visual mesh of {o.name!r}", process=True)
             vc = getattr(vis.visual, "vertex_colors", None)
             if vc is not None and len(vc):
                 color = tuple(float(c) for c in np.asarray(vc, float).mean(axis=0) / 255.0)
         if boxes:
             shape = Shape("box", np.eye(4), size=np.asarray(o.bbox_extent, dtype=float), color=color)
         else:
-            m = trimesh.load(twin_dir / o.collision_mesh, force="mesh")
+            m = load_mesh(twin_dir / o.collision_mesh, f"collision mesh of {o.name!r}", process=True)
             shape = Shape("mesh", np.eye(4), vertices=np.asarray(m.vertices), faces=np.asarray(m.faces), color=color)
         objs.append(SceneObject("_".join(o.name.split()), o.pose, [shape]))  # ids are whitespace-free tokens
     return objs

@@ -16,6 +16,9 @@ import numpy as np
 import trimesh
 
 from splattwin import io
+from splattwin.meshio import load_mesh
+from splattwin.names import object_name
+from splattwin.paths import child
 from splattwin.twin.manifest import Manifest, ObjectEntry
 
 
@@ -31,7 +34,7 @@ def _rel(twin_dir: Path, rel_path: str, from_dir: Path) -> str:
 
 def _inertial(twin_dir: Path, o: ObjectEntry) -> str:
     mass = float(o.mass or 0.1)
-    m = trimesh.load(twin_dir / o.collision_mesh, force="mesh") if o.collision_mesh else None
+    m = load_mesh(twin_dir / o.collision_mesh, f"collision mesh of {o.name!r}", process=True) if o.collision_mesh else None
     if m is not None and m.is_volume:
         m.density = mass / m.volume
         com, I = m.center_mass, m.moment_inertia
@@ -96,5 +99,5 @@ def export_urdf(twin_dir: str | Path, manifest: Manifest) -> Path:
     out = twin_dir / "export"
     for o in manifest.objects:
         if o.usable:
-            io.write_text(out / f"{o.name}.urdf", object_urdf(twin_dir, o, out))
+            io.write_text(child(out, f"{object_name(o.name)}.urdf"), object_urdf(twin_dir, o, out))
     return io.write_text(out / "scene.urdf", scene_urdf(twin_dir, manifest, out))

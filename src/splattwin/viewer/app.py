@@ -2,7 +2,10 @@
 its planned trajectory played back.
 
 `splattwin view TWIN [--host 127.0.0.1 --port 8080]` serves on loopback by default; open the printed
-URL in a browser. Everything is built from the twin folder's manifest.
+URL in a browser. Everything is built from the twin folder's manifest (checked: `Manifest.load`).
+The viewer has no authentication: bound to any other address it warns that anyone who can reach the
+machine can open it. When the asked port is busy, viser serves on the next free one and the viewer
+says so.
 """
 
 from __future__ import annotations
@@ -49,9 +52,9 @@ def _frame_camera(server, points: np.ndarray) -> None:
 
 
 def _load_mesh(path: Path):
-    import trimesh
+    from splattwin.meshio import load_mesh
 
-    m = trimesh.load(path, force="mesh", process=False)
+    m = load_mesh(path, "collision mesh")
     return np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.uint32)
 
 
@@ -69,7 +72,9 @@ def build_scene(server, twin_dir: Path, robot: RobotTrack | None = None) -> dict
     splats_path = twin_dir / man.splats if man.splats else None
     if splats_path is not None and splats_path.is_file():
         g = Gaussians.load_ply(splats_path)
-        labels = np.load(twin_dir / man.labels) if man.labels and (twin_dir / man.labels).is_file() else None
+        from splattwin.limits import load_npy
+
+        labels = load_npy(twin_dir / man.labels, "label array") if man.labels and (twin_dir / man.labels).is_file() else None
         # Splats far outside the table's workspace (the room, a far background shell) and huge haze
         # splats (> 5 cm) hide the scene from most viewpoints: they get their own layer, off by default.
         near = workspace_mask(g.means, man.background) & (g.scales.max(axis=1) < 0.05)
@@ -176,14 +181,38 @@ def load_robot_track(twin_dir: Path) -> RobotTrack | None:
     return RobotTrack.load(p) if p.is_file() else None
 
 
+def is_loopback(host: str) -> bool:
+    """True for addresses only this machine can reach (127.0.0.0/8, ::1, "localhost")."""
+    import ipaddress
+
+    if host.strip().lower() in ("localhost", "localhost."):
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False  # a host name: it may resolve to a public interface
+
+
 def serve(twin_dir: str | Path, host: str = "127.0.0.1", port: int = 8080, block: bool = True):
+    import sys
+
     import viser
 
     twin_dir = Path(twin_dir)
     if not (twin_dir / "twin.json").is_file():
         raise InputError("not a twin folder (no twin.json)", twin_dir)
+    if not 0 <= int(port) <= 65535:
+        raise InputError(f"--port must be 0..65535, got {port}", "--port")
+    Manifest.load(twin_dir)  # checked before the server starts
+    track = load_robot_track(twin_dir)
+    if not is_loopback(host):
+        print(f"warning: serving on {host}, not on loopback: anyone who can reach this machine on port {port} can "
+              f"open the viewer and see the twin (there is no authentication). Use --host 127.0.0.1 (the default) "
+              f"to keep it local.", file=sys.stderr)
     server = viser.ViserServer(host=host, port=port, verbose=False)
-    build_scene(server, twin_dir, load_robot_track(twin_dir))
+    if port != 0 and server.get_port() != port:
+        print(f"note: port {port} was busy; serving on port {server.get_port()} instead", file=sys.stderr)
+    build_scene(server, twin_dir, track)
     print(f"splattwin viewer: http://{host}:{server.get_port()}  (Ctrl+C to stop)")
     if not block:
         return server

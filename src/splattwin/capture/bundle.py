@@ -1,0 +1,89 @@
+"""Bring a dataset's files into an output folder, so the folder is a self-contained dataset.
+
+The poses stage writes `transforms.json` into the twin folder. If its image paths pointed back at the
+input capture (`../../scan/img.png`), the twin could not be moved or copied (the paths would break, or
+point at other files), and reading it would have to follow paths out of its folder, which
+`splattwin.paths` refuses for untrusted files. So the frames' images, depth maps, loss masks and label
+images are hard-linked into `OUT/images/`, `OUT/depth/`, `OUT/masks/`, `OUT/labels/` (copied when a
+hard link is impossible, e.g. across file systems), keeping their paths relative to the common folder
+of each kind. Hard links cost no space; a copy costs the capture's size once. Where the capture was is
+recorded by the caller (twin.json `config.build.input`), not needed afterwards.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import shutil
+from pathlib import Path
+
+from splattwin import io
+from splattwin.capture.dataset import Frame
+from splattwin.errors import InputError
+from splattwin.paths import confined
+
+KINDS = {"image_path": "images", "depth_path": "depth", "mask_path": "masks", "label_path": "labels"}
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return a.resolve() == b.resolve() or os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def place_file(src: Path, dst: Path) -> Path:
+    """Make `dst` a hard link to (or else a copy of) `src`, atomically; nothing to do if it already is."""
+    if dst.exists() and _same_file(src, dst):
+        return dst
+    if dst.is_file() and dst.stat().st_size == src.stat().st_size and io_equal(src, dst):
+        return dst
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dst.parent / f"{io._temp_prefix(dst.name)}{os.urandom(4).hex()}{dst.suffix}"
+    try:
+        os.link(src, tmp)  # the input's inode and mode stay as they are (no chmod on a link)
+        os.replace(tmp, dst)
+        return dst
+    except OSError:  # other file system, or links not allowed: copy
+        if tmp.exists():
+            tmp.unlink()
+    with io.atomic_path(dst) as t:
+        shutil.copyfile(src, t)
+    return dst
+
+
+def io_equal(a: Path, b: Path) -> bool:
+    with open(a, "rb") as fa, open(b, "rb") as fb:
+        while True:
+            x, y = fa.read(1 << 20), fb.read(1 << 20)
+            if x != y:
+                return False
+            if not x:
+                return True
+
+
+def bundle_frames(frames: list[Frame], out_dir: str | Path) -> list[Frame]:
+    """Frames whose files live under `out_dir` (see module docstring); the input files are untouched."""
+    out_dir = Path(out_dir)
+    new = [dataclasses.replace(f) for f in frames]
+    for attr, sub in KINDS.items():
+        srcs = [getattr(f, attr) for f in frames]
+        present = [Path(p) for p in srcs if p is not None]
+        if not present:
+            continue
+        missing = [p for p in present if not p.is_file()]
+        if missing:
+            raise InputError("file listed in the dataset does not exist", missing[0])
+        common = Path(os.path.commonpath([str(p.resolve().parent) for p in present]))
+        dest_root = out_dir / sub
+        for f, src in zip(new, srcs):
+            if src is None:
+                continue
+            src = Path(src)
+            rel = src.resolve().relative_to(common).as_posix()
+            dst = confined(dest_root, rel, src, "bundled file")
+            if _same_file(src, dst):
+                setattr(f, attr, dst)
+                continue
+            setattr(f, attr, place_file(src, dst))
+    return new

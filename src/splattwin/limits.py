@@ -1,0 +1,344 @@
+"""Bounded reads: every size or count read from a file is checked before memory is allocated for it.
+
+A few bytes can claim a 30000x30000 image, a COCO mask of 10^10 pixels, a PLY of 10^12 vertices, a .npy
+array of 80 GB, or a YAML document whose nested aliases expand to billions of nodes. The readers here
+check the claim against a limit (and, where it applies, against the file's real size) and raise an
+InputError naming the file before anything is allocated.
+
+Limits (environment variables override them, e.g. for gigapixel scans):
+    SPLATTWIN_MAX_IMAGE_PIXELS   150e6   pixels per image or mask (a 15000x10000 photo)
+    SPLATTWIN_MAX_ELEMENTS       100e6   PLY vertices/faces, points, Gaussians
+    SPLATTWIN_MAX_JSON_BYTES     1 GiB   JSON files (COCO files of big datasets are hundreds of MB)
+    SPLATTWIN_MAX_YAML_BYTES     16 MiB  YAML files (tasks, robot poses)
+    SPLATTWIN_MAX_YAML_NODES     1e6     YAML nodes after expanding aliases
+    SPLATTWIN_MAX_ARRAY_BYTES    16 GiB  .npy arrays (and never more than the file holds)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import warnings
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from splattwin.errors import InputError
+
+
+def _env(name: str, default: float) -> int:
+    try:
+        return int(float(os.environ.get(name, default)))
+    except ValueError:
+        return int(default)
+
+
+MAX_IMAGE_PIXELS = _env("SPLATTWIN_MAX_IMAGE_PIXELS", 150e6)
+MAX_ELEMENTS = _env("SPLATTWIN_MAX_ELEMENTS", 100e6)
+MAX_JSON_BYTES = _env("SPLATTWIN_MAX_JSON_BYTES", 1 << 30)
+MAX_YAML_BYTES = _env("SPLATTWIN_MAX_YAML_BYTES", 16 << 20)
+MAX_YAML_NODES = _env("SPLATTWIN_MAX_YAML_NODES", 1e6)
+MAX_ARRAY_BYTES = _env("SPLATTWIN_MAX_ARRAY_BYTES", 16 << 30)
+
+
+# -- sizes and counts ---------------------------------------------------------------------------
+def check_pixels(width, height, where: str | Path | None = None, what: str = "image") -> tuple[int, int]:
+    """(width, height) as ints if both are positive and width*height <= MAX_IMAGE_PIXELS."""
+    try:
+        w, h = int(width), int(height)
+        if w != width or h != height:
+            raise ValueError
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(f"{what} size must be whole numbers, got {width!r} x {height!r}", where) from None
+    if w <= 0 or h <= 0:
+        raise InputError(f"{what} size {w}x{h} must be positive", where)
+    if w * h > MAX_IMAGE_PIXELS:
+        raise InputError(f"{what} claims {w}x{h} = {w * h / 1e6:.0f} megapixels, more than the limit of "
+                         f"{MAX_IMAGE_PIXELS / 1e6:.0f} (set SPLATTWIN_MAX_IMAGE_PIXELS to allow it)", where)
+    return w, h
+
+
+def check_count(n, where: str | Path | None = None, what: str = "elements", limit: int | None = None) -> int:
+    """`n` as an int if 0 <= n <= limit (default MAX_ELEMENTS)."""
+    limit = MAX_ELEMENTS if limit is None else limit
+    try:
+        k = int(n)
+        if k != n:
+            raise ValueError
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(f"count of {what} must be a whole number, got {n!r}", where) from None
+    if k < 0 or k > limit:
+        raise InputError(f"{k} {what} is outside [0, {limit}] (set SPLATTWIN_MAX_ELEMENTS to allow more)", where)
+    return k
+
+
+def check_file_size(path: str | Path, limit: int, what: str = "file") -> int:
+    """The file's size in bytes; InputError if it is missing or larger than `limit`."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+    except OSError as e:
+        raise InputError(f"{what} cannot be read ({e.strerror or e})", path) from None
+    if size > limit:
+        raise InputError(f"{what} is {size / 2**20:.0f} MiB, more than the limit of {limit / 2**20:.0f} MiB", path)
+    return size
+
+
+# -- PLY ------------------------------------------------------------------------------------------
+_PLY_SIZES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
+              "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
+def check_ply_header(path: str | Path, what: str = "PLY file", max_header: int = 1 << 16) -> dict[str, int]:
+    """Element counts of a PLY file's header ({"vertex": n, "face": m, ...}), each checked against
+    MAX_ELEMENTS and, for binary files of fixed-size elements, against the bytes the file really holds,
+    before a library allocates arrays for them."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{what} does not exist", path)
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(max_header)
+    if not head.startswith(b"ply"):
+        raise InputError(f"not a {what} (missing 'ply' magic)", path)
+    end = head.find(b"end_header")
+    if end < 0:
+        raise InputError(f"{what} header has no 'end_header' in its first {max_header} bytes", path)
+    body = head.find(b"\n", end) + 1
+    counts: dict[str, int] = {}
+    fixed = True
+    row_bytes: dict[str, int] = {}
+    binary = False
+    current = None
+    for line in head[:end].decode("ascii", errors="replace").splitlines():
+        tok = line.split()
+        if not tok:
+            continue
+        if tok[0] == "format":
+            binary = len(tok) > 1 and tok[1].startswith("binary")
+        elif tok[0] == "element" and len(tok) == 3:
+            current = tok[1]
+            counts[current] = check_count(tok[2] if not tok[2].isdigit() else int(tok[2]), path,
+                                          f"'{current}' elements in the {what} header")
+            row_bytes[current] = 0
+        elif tok[0] == "property" and current is not None:
+            if len(tok) > 1 and tok[1] == "list":
+                fixed = False
+            elif len(tok) == 3 and tok[1] in _PLY_SIZES:
+                row_bytes[current] += _PLY_SIZES[tok[1]]
+    if binary and fixed and body > 0:
+        need = sum(counts[e] * row_bytes[e] for e in counts)
+        if need > size - body:
+            raise InputError(f"{what} header claims {need} bytes of data but the file holds {size - body}", path)
+    return counts
+
+
+# -- images -------------------------------------------------------------------------------------
+@contextlib.contextmanager
+def open_image(path: str | Path, what: str = "image") -> Iterator[Any]:
+    """PIL image opened lazily (header only) whose size was checked against MAX_IMAGE_PIXELS; decode
+    it with `im.load()` / `np.asarray(im)` inside the block. InputError for missing, unreadable or
+    oversized files."""
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{what} file does not exist", path)
+    with warnings.catch_warnings():
+        # PIL's own bomb guard warns above 89 MP and raises above 179 MP; ours is the limit that counts.
+        warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+        try:
+            im = Image.open(path)
+        except Image.DecompressionBombError as e:
+            raise InputError(f"{what} claims more than the limit of {MAX_IMAGE_PIXELS / 1e6:.0f} megapixels "
+                             f"(PIL: {e})", path) from None
+        except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
+            raise InputError(f"unreadable {what} ({e.__class__.__name__}: {e})", path) from None
+        try:
+            check_pixels(*im.size, where=path, what=what)
+            yield im
+        except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as e:  # decoding a corrupt body
+            raise InputError(f"unreadable {what} ({e.__class__.__name__}: {e})", path) from None
+        finally:
+            im.close()
+
+
+def image_size(path: str | Path, what: str = "image") -> tuple[int, int]:
+    """(width, height) from the header, checked against the pixel limit."""
+    with open_image(path, what) as im:
+        return im.size
+
+
+def read_image_array(path: str | Path, mode: str | None = None, what: str = "image") -> np.ndarray:
+    """Decoded image as a numpy array (optionally converted to a PIL mode such as "RGB")."""
+    with open_image(path, what) as im:
+        im.load()
+        return np.asarray(im.convert(mode) if mode is not None and im.mode != mode else im)
+
+
+# -- arrays -------------------------------------------------------------------------------------
+def load_npy(path: str | Path, what: str = "array", max_bytes: int | None = None) -> np.ndarray:
+    """A .npy array (never pickles) whose header was checked: shape x itemsize must fit in the file
+    and under `max_bytes` (default MAX_ARRAY_BYTES) before the data is read."""
+    path = Path(path)
+    limit = MAX_ARRAY_BYTES if max_bytes is None else max_bytes
+    if not path.is_file():
+        raise InputError(f"{what} file does not exist", path)
+    size = path.stat().st_size
+    try:
+        with open(path, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            if version == (1, 0):
+                shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+            elif version in ((2, 0), (3, 0)):
+                shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
+            else:
+                raise ValueError(f"unsupported .npy version {version}")
+            if dtype.hasobject:
+                raise InputError(f"{what} holds Python objects (pickles); only plain numeric arrays are read", path)
+            need = int(np.prod(shape, dtype=object)) * dtype.itemsize
+            if need > limit or need > size - f.tell():
+                raise InputError(f"{what} header claims shape {tuple(shape)} ({need / 2**20:.1f} MiB) but the file "
+                                 f"holds {max(size - f.tell(), 0) / 2**20:.1f} MiB of data (limit "
+                                 f"{limit / 2**20:.0f} MiB)", path)
+            f.seek(0)
+            return np.load(f, allow_pickle=False)
+    except InputError:
+        raise
+    except (ValueError, OSError, EOFError) as e:
+        raise InputError(f"not a readable .npy {what}: {e}", path) from None
+
+
+def load_npz(path: str | Path, what: str = "array archive", max_bytes: int | None = None) -> dict[str, np.ndarray]:
+    """All arrays of a .npz (never pickles), each header checked like `load_npy` against the member's
+    uncompressed size and `max_bytes` before it is read."""
+    import io as _io
+    import zipfile
+
+    path = Path(path)
+    limit = MAX_ARRAY_BYTES if max_bytes is None else max_bytes
+    out: dict[str, np.ndarray] = {}
+    try:
+        with zipfile.ZipFile(path) as zf:
+            members = [i for i in zf.infolist() if i.filename.endswith(".npy")]
+            # the whole archive is bounded from the zip directory before any member is inflated
+            total = sum(i.file_size for i in members)
+            if total > limit:
+                raise InputError(f"{what}: arrays of {total} bytes are larger than the limit ({limit})", path)
+            for info in members:
+                with zf.open(info) as f:
+                    head = f.read(4096)
+                buf = _io.BytesIO(head)
+                version = np.lib.format.read_magic(buf)
+                if version == (1, 0):
+                    shape, _, dtype = np.lib.format.read_array_header_1_0(buf)
+                else:
+                    shape, _, dtype = np.lib.format.read_array_header_2_0(buf)
+                if dtype.hasobject:
+                    raise InputError(f"{what} member {info.filename!r} holds Python objects", path)
+                need = int(np.prod(shape, dtype=object)) * dtype.itemsize
+                if need > info.file_size:
+                    raise InputError(f"{what} member {info.filename!r} claims shape {tuple(shape)} but holds "
+                                     f"{info.file_size} bytes", path)
+                with zf.open(info) as f:
+                    out[info.filename[:-4]] = np.load(_io.BytesIO(f.read()), allow_pickle=False)
+    except InputError:
+        raise
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as e:
+        raise InputError(f"not a readable .npz {what}: {e}", path) from None
+    return out
+
+
+# -- JSON and YAML ------------------------------------------------------------------------------
+def read_json(path: str | Path, missing: str = "file not found", max_bytes: int | None = None) -> Any:
+    """Parse a JSON file of at most `max_bytes` (default MAX_JSON_BYTES); InputError naming the file
+    when it is missing, too large, too deeply nested or not valid JSON."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(missing, path)
+    check_file_size(path, MAX_JSON_BYTES if max_bytes is None else max_bytes, "JSON file")
+    try:
+        return json.loads(path.read_bytes())
+    except RecursionError:
+        raise InputError("JSON is nested too deeply", path) from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise InputError(f"not valid JSON: {e}", path) from None
+
+
+def _yaml_loader(max_nodes: int, where: Path | None):
+    import yaml
+
+    class BoundedLoader(yaml.SafeLoader):
+        """yaml.SafeLoader that refuses documents whose aliases expand to more than `max_nodes` nodes
+        (the "billion laughs" bomb) or that refer to themselves."""
+
+        def compose_document(self):
+            node = super().compose_document()
+            _check_expanded_size(node, max_nodes, where)
+            return node
+
+    return BoundedLoader
+
+
+def _check_expanded_size(root, max_nodes: int, where: Path | None) -> None:
+    """Nodes of the document with every alias expanded, counted on the shared graph in linear time."""
+    import yaml
+
+    size: dict[int, int] = {}
+    on_path: set[int] = set()
+    stack: list[tuple[Any, bool]] = [(root, False)]
+    while stack:
+        node, done = stack.pop()
+        key = id(node)
+        if done:
+            on_path.discard(key)
+            if isinstance(node, yaml.SequenceNode):
+                children = node.value
+            elif isinstance(node, yaml.MappingNode):
+                children = [x for kv in node.value for x in kv]
+            else:
+                children = []
+            total = 1 + sum(size[id(c)] for c in children)
+            if total > max_nodes:
+                raise InputError(f"YAML expands to more than {max_nodes} nodes through its aliases (&anchor / "
+                                 f"*alias); refusing to load it", where)
+            size[key] = total
+            continue
+        if key in size:
+            continue
+        if key in on_path:
+            raise InputError("YAML alias refers to a node that contains it (a recursive structure)", where)
+        on_path.add(key)
+        stack.append((node, True))
+        if isinstance(node, yaml.SequenceNode):
+            stack.extend((c, False) for c in node.value if id(c) not in size)
+        elif isinstance(node, yaml.MappingNode):
+            stack.extend((c, False) for kv in node.value for c in kv if id(c) not in size)
+
+
+def load_yaml(path: str | Path, max_bytes: int | None = None, max_nodes: int | None = None) -> Any:
+    """Parse a YAML file safely (plain data only, `yaml.SafeLoader`) with bounded size and aliases."""
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("file does not exist", path)
+    check_file_size(path, MAX_YAML_BYTES if max_bytes is None else max_bytes, "YAML file")
+    return loads_yaml(path.read_bytes(), path, max_nodes)
+
+
+def loads_yaml(text: str | bytes, where: str | Path | None = None, max_nodes: int | None = None) -> Any:
+    """`load_yaml` for text already in memory (`where` is named in errors)."""
+    import yaml
+
+    loader = _yaml_loader(MAX_YAML_NODES if max_nodes is None else max_nodes, where)
+    try:
+        return yaml.load(text, Loader=loader)  # noqa: S506 - a SafeLoader subclass
+    except RecursionError:
+        raise InputError("YAML is nested too deeply", where) from None
+    except yaml.YAMLError as e:
+        raise InputError(f"not valid YAML: {e}", where) from None
+    except UnicodeDecodeError as e:
+        raise InputError(f"YAML is not valid UTF-8 text: {e}", where) from None

@@ -1,0 +1,79 @@
+"""Validated names: object / label names and view names that come from files or the command line.
+
+Object names become folder and file names (`objects/<name>/`, `export/<name>.urdf`,
+`masks/<view>/<name>.png`), MuJoCo body names, URDF link names and MoveIt ids, and they come from
+files other people made (COCO categories, polygon JSON, mask folders, twin.json, scene.json) or from
+`--object`. Every entry point checks them here, so a name can never be a path: `../../victim`, `/etc`,
+`a/b`, `.` and `..` are refused with an InputError naming the file.
+
+object names: 1-64 ASCII letters, digits, `_`, `-`, `.` and single inner spaces ("toy hammer" is a
+    common COCO category), starting with a letter or digit and not ending with `.` or a space (Windows
+    drops those), and not a Windows device name (CON, NUL, COM1...). `name_from_label` first collapses
+    runs of whitespace (tabs, newlines, leading/trailing) into single spaces, then checks. Uniqueness
+    ignores case and treats ` ` and `_` alike, so no two objects collide as files on a
+    case-insensitive file system or as MoveIt ids (which replace spaces by `_`).
+view names (image stems of real photos: `IMG 0001 (2)`): any single path component of at most 255
+    bytes without `/`, `\\`, NUL or other control characters, and not `.` or `..`.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable
+from pathlib import Path
+
+from splattwin.errors import InputError
+
+MAX_NAME_LEN = 64
+MAX_COMPONENT_BYTES = 255
+_NAME_RE = re.compile(r"[A-Za-z0-9](?:(?:[A-Za-z0-9_.\-]| (?! )){0,62}[A-Za-z0-9_\-])?")
+_WINDOWS_DEVICES = {"con", "prn", "aux", "nul", *(f"com{i}" for i in range(1, 10)), *(f"lpt{i}" for i in range(1, 10))}
+_CONTROL_RE = re.compile(r"[\x00-\x1f\x7f]")
+
+
+def _show(text) -> str:
+    s = repr(text)
+    return s if len(s) <= 80 else s[:77] + "..."
+
+
+def object_name(text, where: str | Path | None = None, what: str = "object name") -> str:
+    """`text` if it is a valid object name (see module docstring), else InputError naming `where`."""
+    if not isinstance(text, str):
+        raise InputError(f"{what} must be a string, got {type(text).__name__} {_show(text)}", where)
+    if not _NAME_RE.fullmatch(text):
+        raise InputError(f"{what} {_show(text)} is not allowed: use 1-{MAX_NAME_LEN} letters, digits, '_', '-', "
+                         f"'.' or single spaces, starting with a letter or digit (a name must never be a path)", where)
+    if text.split(".")[0].lower() in _WINDOWS_DEVICES:
+        raise InputError(f"{what} {_show(text)} is a reserved device name on Windows", where)
+    return text
+
+
+def name_from_label(text, where: str | Path | None = None, what: str = "object name") -> str:
+    """A human label ("toy  hammer\n") as an object name ("toy hammer"): whitespace runs become one
+    space, then `object_name` checks the result (anything else not allowed is refused, not rewritten)."""
+    if not isinstance(text, str):
+        raise InputError(f"{what} must be a string, got {type(text).__name__} {_show(text)}", where)
+    return object_name(" ".join(text.split()), where, what)
+
+
+def view_name(text, where: str | Path | None = None, what: str = "view name") -> str:
+    """`text` if it is a single safe path component (see module docstring), else InputError."""
+    if not isinstance(text, str):
+        raise InputError(f"{what} must be a string, got {type(text).__name__} {_show(text)}", where)
+    if (not text or text in (".", "..") or "/" in text or "\\" in text or _CONTROL_RE.search(text)
+            or len(text.encode("utf-8", "surrogateescape")) > MAX_COMPONENT_BYTES):
+        raise InputError(f"{what} {_show(text)} is not allowed: it must be one file name (no '/', '\\', "
+                         f"control characters, '.' or '..'; at most {MAX_COMPONENT_BYTES} bytes)", where)
+    return text
+
+
+def check_unique(names: Iterable[str], where: str | Path | None = None, what: str = "object name") -> None:
+    """InputError if a name repeats (compared ignoring case and ` ` vs `_`: names must not collide as
+    files on case-insensitive file systems or as MoveIt ids either)."""
+    seen: dict[str, str] = {}
+    for n in names:
+        k = n.lower().replace(" ", "_")
+        if k in seen:
+            same = "twice" if seen[k] == n else f"and {seen[k]!r} (they differ only in case or ' ' vs '_')"
+            raise InputError(f"{what} {n!r} appears {same}; names must be unique", where)
+        seen[k] = n

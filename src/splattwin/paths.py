@@ -1,0 +1,69 @@
+"""Confined paths: every path read from a file stays inside that file's folder.
+
+Datasets (transforms.json `file_path`, depth and mask paths, COLMAP image names, cameras.json image
+names), mask indexes and twin manifests name other files by path. Those files are often received from
+someone else, so a path read from them is accepted only when it is relative and, with every `..` and
+symbolic link resolved, still inside the folder it is relative to. Anything else is an InputError
+naming the file that held the path (the CLI exits 2).
+
+Names that become paths (object and view names) are checked by `splattwin.names` first; `child`
+joins such a name onto a folder and checks the result the same way.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from splattwin.errors import InputError
+
+
+def _show(text) -> str:
+    s = repr(text)
+    return s if len(s) <= 100 else s[:97] + "..."
+
+
+def is_inside(path: str | Path, root: str | Path) -> bool:
+    """True if `path`, resolved (symlinks and `..`), is `root` or lies under it."""
+    return Path(path).resolve().is_relative_to(Path(root).resolve())
+
+
+def confined(root: str | Path, rel, where: str | Path | None = None, what: str = "path") -> Path:
+    """`root / rel` if `rel` is a relative path that stays inside `root` once resolved.
+
+    root: the folder the path is relative to (usually the folder of the file it was read from).
+    rel: the path as read from the file (str or Path). where: the file, named in the error.
+    Returns the joined (not resolved) path, so callers see the same paths as before.
+    """
+    if isinstance(rel, Path):
+        text = str(rel)
+    elif isinstance(rel, str):
+        text = rel
+    else:
+        raise InputError(f"{what} must be a string, got {type(rel).__name__} {_show(rel)}", where)
+    if not text or "\x00" in text:
+        raise InputError(f"{what} {_show(text)} is empty or contains a NUL byte", where)
+    p = Path(text)
+    if p.is_absolute() or text.startswith("~"):
+        raise InputError(f"{what} {_show(text)} is absolute; paths in this file must be relative to its folder "
+                         f"{root}", where)
+    full = Path(root) / p
+    if not is_inside(full, root):
+        raise InputError(f"{what} {_show(text)} leads outside its folder {root} (after resolving '..' and "
+                         f"symbolic links); refusing to read or write there", where)
+    return full
+
+
+def child(root: str | Path, name: str, where: str | Path | None = None, what: str = "name") -> Path:
+    """`root / name` for a name already checked by `splattwin.names`, verified to stay inside `root`
+    (e.g. a folder `objects/<name>` that is a symbolic link to elsewhere is refused)."""
+    return confined(root, name, where, what)
+
+
+def relative_to(path: str | Path, root: str | Path) -> str | None:
+    """`path` relative to `root` as a POSIX string when it lies inside it (resolved), else None."""
+    try:
+        return Path(os.path.relpath(Path(path).resolve(), Path(root).resolve())).as_posix() \
+            if is_inside(path, root) else None
+    except ValueError:
+        return None
