@@ -1,9 +1,8 @@
 """Benchmark of the playback stage: the twin in motion against ground truth, render cost, episodes.
 
 1. Twin: the demo twin (`splattwin demo --out DIR`, built once when --twin does not exist; ~5-8 min).
-2. Motion: the paper's three-step task executed in MuJoCo with the robot stage's Executor; the physics
-   state is recorded at 100 Hz into a `Rollout` (until `splattwin plan` writes robot/rollout.npz, this
-   bench records it itself by observing mujoco.mj_step; nothing in robot/ is changed).
+2. Motion: the paper's three-step task executed in MuJoCo by the robot stage (`trials.run_once`); its
+   recorded `Rollout` (one sample per physics step) is decimated to 100 Hz.
 3. Ground truth: the objects' simulated final poses applied to the embedded scene's own objects (the same
    rigid motion from their start poses) and rendered by the scene's ray caster (`scene.render`) from the
    held-out cameras; the twin renders the same state photoreal (robot parked out of view: not drawn).
@@ -41,74 +40,25 @@ import numpy as np  # noqa: E402
 
 # -- 2. the task, recorded -------------------------------------------------------------------------------
 def record_task(twin: Path, rate: float = 100.0):
-    """Run the default three-step task on the twin; returns (Rollout, RunResult, base matrix)."""
-    import mujoco
+    """Run the default three-step task on the twin; returns (Rollout at ~`rate` Hz, RunResult, base matrix).
 
-    from splattwin.robot.assets import RobotModel
-    from splattwin.robot.execute import Executor
-    from splattwin.robot.rollout import Rollout
-    from splattwin.robot.task import load_task, validate_task
-    from splattwin.robot.world import BasePose, build_world
-    from splattwin.twin.manifest import Manifest
+    The rollout is the robot stage's own record (`RunResult.rollout`, one sample per physics step),
+    decimated to `rate` for rendering."""
+    from splattwin.robot.trials import TrialSpec, run_once
 
-    manifest = Manifest.load(twin)
-    robot = RobotModel.panda()
-    base = BasePose()
-    task = load_task(None, manifest)
-    validate_task(task, manifest, twin, base.matrix(), robot=robot)
-    world = build_world(twin, manifest, robot, base, visual=False)
-    m, d = world.model, world.data
-    stride = max(1, int(round(1.0 / (rate * m.opt.timestep))))
-    grip_adr = [int(m.jnt_qposadr[m.joint(n).id]) for n in robot.gripper_joints]
-    span = robot.gripper_open - robot.gripper_closed
-    rows: dict[str, list] = {k: [] for k in ("t", "qpos", "ctrl_arm", "ctrl_grip", "step")}
-    state = {"n": 0, "step": -1}
-
-    def sample() -> None:
-        rows["t"].append(float(d.time))
-        rows["qpos"].append(d.qpos.copy())
-        rows["ctrl_arm"].append(d.ctrl[world.arm_act].copy())
-        rows["ctrl_grip"].append(float(d.ctrl[world.grip_act]))
-        rows["step"].append(state["step"])
-
-    class Recording(Executor):
-        def run_step(self, k, step):
-            state["step"] = k - 1
-            try:
-                return super().run_step(k, step)
-            finally:
-                state["step"] = -1
-
-    real_step = mujoco.mj_step
-
-    def step(model, data, *a, **kw):
-        real_step(model, data, *a, **kw)
-        if data is d:
-            state["n"] += 1
-            if state["n"] % stride == 0:
-                sample()
-
-    sample()
-    mujoco.mj_step = step
-    try:
-        result = Recording(world, seed=0).run(task)
-    finally:
-        mujoco.mj_step = real_step
-    qpos = np.array(rows["qpos"])
-    t = np.array(rows["t"])
-    keep = np.concatenate([[True], np.diff(t) > 0])
-    qpos = qpos[keep]
-    poses = {}
-    for name, a in world.obj_qpos_adr.items():
-        from splattwin.robot.world import pose_from_qpos
-
-        poses[name] = np.stack([pose_from_qpos(q[a:a + 7]) for q in qpos])
-    width = qpos[:, grip_adr].sum(1)
-    cmd_w = (np.array(rows["ctrl_grip"])[keep] - robot.gripper_closed) / span * robot.max_opening
-    rollout = Rollout(t=t[keep] - t[0], qpos=qpos, q_arm=qpos[:, world.arm_qpos_adr], gripper_width=width,
-                      action_q_arm=np.array(rows["ctrl_arm"])[keep], action_gripper=cmd_w,
-                      object_poses=poses, joint_names=list(robot.arm_joints), step_index=np.array(rows["step"])[keep])
-    return rollout, result, base.matrix()
+    spec = TrialSpec(twin_dir=str(twin), task_path=None, seed=0)
+    result, _, _ = run_once(spec, keep_trajectories=True)
+    ro = result.rollout
+    dt = float(np.median(np.diff(ro.t))) if len(ro.t) > 1 else 1.0 / rate
+    stride = max(1, int(round(1.0 / (rate * dt))))
+    keep = np.arange(0, len(ro.t), stride)
+    if keep[-1] != len(ro.t) - 1:
+        keep = np.append(keep, len(ro.t) - 1)   # the final state is what the ground truth is compared with
+    rollout = type(ro)(t=ro.t[keep], qpos=ro.qpos[keep], q_arm=ro.q_arm[keep], gripper_width=ro.gripper_width[keep],
+                       action_q_arm=ro.action_q_arm[keep], action_gripper=ro.action_gripper[keep],
+                       object_poses={k: v[keep] for k, v in ro.object_poses.items()},
+                       joint_names=list(ro.joint_names), step_index=ro.step_index[keep])
+    return rollout, result, spec.base.matrix()
 
 
 # -- 3. ground truth of an arrangement -------------------------------------------------------------------
