@@ -141,3 +141,26 @@ def json_load(p: Path):
     import json
 
     return json.loads(p.read_text())
+
+
+def test_unregistered_image_named_with_reason_in_report_and_cli(tmp_path: Path, scene_default: Path, capsys):
+    """Four scene views plus an unrelated noise image: the retries cannot register it; poses_report.json
+    and the CLI output name it and say why."""
+    import shutil
+
+    from splattwin import io
+    from splattwin.cli import main
+
+    imgs = tmp_path / "imgs"
+    imgs.mkdir()
+    for n in ("train_000.png", "train_001.png", "train_002.png", "train_003.png"):
+        shutil.copy(scene_default / "images" / n, imgs / n)
+    io.write_image(imgs / "zz_noise.png", np.random.default_rng(1).integers(0, 255, (240, 320, 3), dtype=np.uint8))
+    rc = main(["poses", str(imgs), str(tmp_path / "out"), "--min-registered", "3"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    rep = json_load(tmp_path / "out" / "poses_report.json")
+    assert rep["registered"] == 4 and list(rep["failures"]) == ["zz_noise.png"]
+    assert "no verified matches" in rep["failures"]["zz_noise.png"]
+    assert [a["name"] for a in rep["attempts"]][:2] == ["default", "relaxed"]  # retried, to no avail
+    assert "zz_noise.png: no verified matches" in out and "SfM attempts:" in out

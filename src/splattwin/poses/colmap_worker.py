@@ -19,6 +19,7 @@ import os
 import shutil
 import signal
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any, Callable
 
@@ -258,54 +259,101 @@ def step_triangulate(job: dict) -> dict:
 
 
 def step_merge(job: dict) -> dict:
-    """Merge sub-models that share registered images into the largest one: each is aligned to it by a
-    Sim(3) from the shared images' reprojections, its other images are added with the aligned poses, and
-    then all points are re-triangulated from the database and bundle-adjusted together."""
+    """Complete the base model with images other models registered (sub-models of the same mapping, or
+    models of other attempts on other databases): each donor is aligned to the base by a Sim(3) of the
+    camera centres of >= `min_common_images` shared images, the images the base lacks get the aligned
+    poses, then all points are re-triangulated from the base's database and everything is bundle-adjusted.
+    An added image is kept only if it then observes >= `min_observations` points with a mean reprojection
+    error <= `max_error_px` (default 10 and 2 px: the relaxed mapper itself registers images
+    that observe ~10 points on the weakly textured cake photos); otherwise it is dropped and the merge
+    redone without it."""
+    import numpy as np
     import pycolmap
 
     db, root, out = job["db"], job["image_root"], Path(job["out"])
-    models = [pycolmap.Reconstruction(p) for p in job["models"]]
-    base = models[0]
-    merged_any = False
+    base = pycolmap.Reconstruction(job["base"])
+    donors = [pycolmap.Reconstruction(p) for p in job["donors"]]
     min_common = int(job.get("min_common_images", 3))
-    for other in models[1:]:
-        names_base = {base.image(i).name for i in base.reg_image_ids()}
-        common = [i for i in other.reg_image_ids() if other.image(i).name in names_base]
-        new = [i for i in other.reg_image_ids() if other.image(i).name not in names_base]
-        if len(common) < min_common or not new:
+    base_names = {base.image(i).name: base.image(i).cam_from_world().matrix() for i in base.reg_image_ids()}
+    added: dict[str, np.ndarray] = {}
+    for donor in donors:
+        reg = {donor.image(i).name: i for i in donor.reg_image_ids()}
+        new = [n for n in reg if n not in base_names and n not in added]
+        common = [n for n in reg if n in base_names]
+        if not new or len(common) < min_common:
             continue
-        sim = pycolmap.align_reconstructions_via_reprojections(other, base, min_inlier_observations=0.3,
-                                                               max_reproj_error=8.0)
-        if sim is None:
-            continue
-        other.transform(sim)
-        full = _reconstruction_from_db(db)
-        for i in base.reg_image_ids():
-            _copy_pose(full, base, i)
-        for i in new:
-            _copy_pose(full, other, i)
-        for cid in full.cameras:  # intrinsics refined in either model: keep the base model's
-            if cid in base.cameras:
-                full.cameras[cid].params = base.cameras[cid].params
-            elif cid in other.cameras:
-                full.cameras[cid].params = other.cameras[cid].params
-        base = full
-        merged_any = True
-    if not merged_any:
-        return {"merged": False, "registered": int(models[0].num_reg_images())}
+        src = np.array([donor.image(reg[n]).projection_center() for n in common])
+        tgt = np.array([-base_names[n][:, :3].T @ base_names[n][:, 3] for n in common])
+        spread = float(np.linalg.norm(tgt - tgt.mean(0), axis=1).max()) or 1.0
+        # robust: a shared camera one model placed wrongly must not drag the alignment
+        ransac = pycolmap.RANSACOptions()
+        ransac.max_error = 0.05 * spread
+        ransac.random_seed = 0
+        fit = pycolmap.estimate_sim3d_robust(src, tgt, ransac)
+        if not fit or fit.get("tgt_from_src") is None or int(fit["num_inliers"]) < min_common:
+            continue  # the shared cameras disagree: the models differ too much to combine
+        donor.transform(fit["tgt_from_src"])
+        for n in new:
+            added[n] = donor.image(reg[n]).cam_from_world().matrix()
+    if not added:
+        return {"merged": False, "registered": int(base.num_reg_images())}
+    kept = dict(added)
+    rec = None
+    for _ in range(len(added) + 1):
+        rec = _merged(db, root, base, kept, job)
+        bad = [n for n in kept if not _image_ok(rec, n, int(job.get("min_observations", 10)),
+                                                float(job.get("max_error_px", 2.0)))]
+        if not bad:
+            break
+        for n in bad:
+            kept.pop(n)
+        if not kept:
+            return {"merged": False, "registered": int(base.num_reg_images()), "rejected": sorted(added)}
     tmp = out.with_name(out.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    opts = _triangulation_options(job.get("options", {}))
-    rec = pycolmap.triangulate_points(base, db, root, str(tmp), clear_points=True, options=opts,
-                                      refine_intrinsics=False)
-    ba = pycolmap.BundleAdjustmentOptions()
-    ba.print_summary = False
-    pycolmap.bundle_adjustment(rec, ba)
     rec.write(str(tmp))
     shutil.rmtree(out, ignore_errors=True)
     os.replace(tmp, out)
-    return {"merged": True, "registered": int(rec.num_reg_images()), "path": str(out)}
+    return {"merged": True, "registered": int(rec.num_reg_images()), "path": str(out), "added": sorted(kept),
+            "rejected": sorted(set(added) - set(kept))}
+
+
+def _merged(db: str, root: str, base, added: dict, job: dict):
+    """Base poses + added poses in a reconstruction of `db`, points triangulated, then bundle-adjusted."""
+    import pycolmap
+
+    full = _reconstruction_from_db(db)
+    by_name = {full.image(i).name: i for i in full.images}
+    for i in base.reg_image_ids():
+        n = base.image(i).name
+        _set_pose(full, by_name[n], base.image(i).cam_from_world().matrix())
+    for n, T in added.items():
+        _set_pose(full, by_name[n], T)
+    base_cams = {base.image(i).name: base.camera(base.image(i).camera_id) for i in base.reg_image_ids()}
+    for n, cam in base_cams.items():  # the base model's refined intrinsics
+        full.cameras[full.image(by_name[n]).camera_id].params = cam.params
+    with tempfile.TemporaryDirectory() as scratch:
+        rec = pycolmap.triangulate_points(full, db, root, scratch, clear_points=True,
+                                          options=_triangulation_options(job.get("options", {})),
+                                          refine_intrinsics=False)
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.print_summary = False
+    pycolmap.bundle_adjustment(rec, ba)
+    return rec
+
+
+def _image_ok(rec, name: str, min_obs: int, max_err: float) -> bool:
+    import numpy as np
+
+    im = next(rec.image(i) for i in rec.reg_image_ids() if rec.image(i).name == name)
+    errs = []
+    for p2 in im.points2D:
+        if p2.has_point3D():
+            uv = im.project_point(rec.points3D[p2.point3D_id].xyz)
+            if uv is not None:
+                errs.append(float(np.linalg.norm(np.asarray(uv).ravel() - np.asarray(p2.xy).ravel())))
+    return len(errs) >= min_obs and float(np.mean(errs)) <= max_err
 
 
 def _copy_pose(dst, src, image_id: int) -> None:

@@ -60,6 +60,7 @@ MATCHERS = ("auto", "exhaustive", "sequential", "retrieval")
 # images: mapping then takes < 1 s per run, and on the cake photos (guided matches) single runs registered
 # 6, 8, 8, 6, 6, 7 of 8 images with seeds 1-6.
 MAPPING_SEEDS, MAPPING_SEEDS_MAX_IMAGES = 4, 100
+LARGE_SIDE = 1400  # px: images at least this large (after the size bound) skip SIFT's upsampled octave
 _MAX_IMAGE_ID = 2147483647  # COLMAP pair_id = id1 * this + id2 (id1 < id2)
 
 
@@ -180,13 +181,14 @@ def choose_matcher(num_images: int, matcher: str = "auto", ordered: bool | None 
 def extraction_threads(num_threads: int, max_side: int, budget_gib: float, cpu_count: int | None = None) -> int:
     """Parallel SIFT extraction threads: all cores (num_threads 0) but no more than fit in the budget.
 
-    Per thread COLMAP's CPU SIFT holds the float scale-space of one image upsampled 2x (first octave -1):
-    measured ~0.4 GiB at 1600x900 (statue photos), i.e. ~70 float32 copies of the input pixel count; we
-    assume a 16:9 image at `max_side` and keep 0.35 GiB for the process itself.
+    Per thread COLMAP's CPU SIFT holds the float scale space of the image it works on: measured ~0.4 GiB
+    per thread for 1600x900 photos upsampled 2x (first octave -1), i.e. ~17 float32 copies of the
+    3200x1800 pixels. `max_side` is the side SIFT works on (2x the image for octave -1); we assume 16:9
+    and keep 0.35 GiB for the process itself.
     """
     want = num_threads if num_threads > 0 else (cpu_count or _cpu_count())
     side = max(int(max_side), 64)
-    per_thread = 70 * 4 * side * (side * 9 / 16) / 2**30
+    per_thread = 17 * 4 * side * (side * 9 / 16) / 2**30
     fit = int((budget_gib - 0.35) // max(per_thread, 1e-6))
     return max(1, min(want, fit))
 
@@ -322,9 +324,19 @@ def retry_plan(groups: list[CameraGroup], opts: SfmOptions, small_images: bool, 
     return plan
 
 
-def _extraction_options(opts: SfmOptions, features: str, threads: int) -> dict:
+def first_octave(min_side: int, features: str = "base") -> int:
+    """SIFT's first octave: -1 (image upsampled 2x, COLMAP's default) unless every image is at least
+    `LARGE_SIDE` px after the size bound. Then the upsampled octave's small-scale features would be the
+    first ones dropped by the feature cap anyway (COLMAP keeps the largest scales): on the statue photos
+    (1600 px) octave 0 cut extraction from 14.9 to 4.7 CPU s and its memory from 0.97 to 0.35 GB with the
+    same 9/9 registered; at ~1000 px (british_museum) it lost two thirds of the points, so it is kept there."""
+    return 0 if features == "base" and min_side >= LARGE_SIDE else -1
+
+
+def _extraction_options(opts: SfmOptions, features: str, threads: int, min_side: int) -> dict:
     o = {"num_threads": threads, "max_image_size": opts.max_image_size if opts.max_image_size > 0 else -1,
-         "sift.max_num_features": opts.max_num_features, "sift.peak_threshold": opts.peak_threshold}
+         "sift.max_num_features": opts.max_num_features, "sift.peak_threshold": opts.peak_threshold,
+         "sift.first_octave": first_octave(min_side, features)}
     if features == "more":
         o["sift.max_num_features"] = 2 * opts.max_num_features
         o["sift.peak_threshold"] = opts.peak_threshold / 2
@@ -461,8 +473,12 @@ class _Run:
             self._mark(db, "extract", json.loads((db.parent / f"{same_features.stem}.extract.done").read_text()))
             return db
         o = self.opts
-        side = min(self.max_side, o.max_image_size) if o.max_image_size > 0 else self.max_side
-        threads = extraction_threads(o.num_threads, side, o.max_memory_gib)
+        bound = o.max_image_size if o.max_image_size > 0 else 1 << 30
+        side = min(self.max_side, bound)
+        min_side = min(min(max(g.width, g.height), bound) for g in self.groups)
+        octave = first_octave(min_side, a.features)
+        # the upsampled octave (-1) holds 4x the pixels: budget for the size SIFT actually works on
+        threads = extraction_threads(o.num_threads, side * (2 if octave < 0 else 1), o.max_memory_gib)
         groups = [CameraGroup(sum((g.names for g in self.groups), []), self.groups[0].width, self.groups[0].height)] \
             if a.cameras == "shared" else self.groups
         job_groups = []
@@ -473,7 +489,7 @@ class _Run:
                           prior_focal=True)
             job_groups.append(jg)
         job = {"step": "extract", "db": str(db), "image_root": str(self.image_root), "names": self.names,
-               "groups": job_groups, "extraction": _extraction_options(o, a.features, threads)}
+               "groups": job_groups, "extraction": _extraction_options(o, a.features, threads, min_side)}
         n = len(self.names)
         res, st = colmap_process.run_step(
             job, self.work, self.progress, f"{label}: SIFT features ({n} images, <= {side} px, {threads} threads)",
@@ -535,23 +551,32 @@ class _Run:
         self._add("map", st)
         paths = [Path(m["path"]) for m in res["models"]]
         if a.merge and len(paths) > 1:
-            merged = self.merge(db, paths, out.parent / f"{a.name}_merged", label)
+            merged = self.merge(db, paths[0], paths[1:], out.parent / f"{a.name}_merged", label)
             if merged is not None:
                 paths = [merged] + paths
         io.write_json(info, {"paths": [str(p) for p in paths]})
         return paths
 
-    def merge(self, db: Path, paths: list[Path], out: Path, label: str) -> Path | None:
+    def merge(self, db: Path, base: Path, donors: list[Path], out: Path, label: str) -> Path | None:
+        """The base model completed with the images the donor models registered (see colmap_worker's
+        step_merge); None if nothing could be added."""
+        info = out.parent / f"{out.name}.json"
+        if info.is_file():
+            return Path(json.loads(info.read_text())["path"]) if json.loads(info.read_text()).get("merged") else None
         job = {"step": "merge", "db": str(db), "image_root": str(self.image_root), "out": str(out),
-               "models": [str(p) for p in paths], "options": mapping_options(self.opts, len(self.names), "relaxed",
-                                                                             self.threads)}
+               "base": str(base), "donors": [str(p) for p in donors],
+               "options": mapping_options(self.opts, len(self.names), "relaxed", self.threads)}
         try:
-            res, st = colmap_process.run_step(job, self.work, self.progress, f"{label}: merging sub-models",
+            res, st = colmap_process.run_step(job, self.work, self.progress, f"{label}: merging models",
                                               cleanup=[out])
-        except colmap_process.StepError as e:  # merging is a bonus: keep the sub-models
-            log.warning("SfM: merging sub-models failed: %s", e.message)
+        except colmap_process.StepError as e:  # merging is a bonus: keep what there is
+            log.warning("SfM: merging models failed: %s", e.message)
             return None
         self._add("map", st)
+        io.write_json(info, {"merged": bool(res.get("merged")), "path": str(out), "added": res.get("added", []),
+                             "rejected": res.get("rejected", [])})
+        if res.get("rejected"):
+            log.info("SfM merge: rejected %s (too few or inconsistent observations)", ", ".join(res["rejected"]))
         return out if res.get("merged") else None
 
 
@@ -600,8 +625,8 @@ def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | No
             _check_enough(res, opts, image_root)
             return res
         run = _Run(work, image_root, names, opts, bar)
-        best = _run_attempts(run, bar)
-        rec, attempt, sub_models, db = best
+        outcome, attempt = _run_attempts(run, bar)
+        rec, sub_models, db = outcome.rec, outcome.sub_models, outcome.db
         res = _result_from_reconstruction(rec, names, run.timings, image_root)
         res.attempts = run_attempts_log(work)
         res.matcher = run.matcher
@@ -655,9 +680,64 @@ def run_attempts_log(work: Path) -> list[dict]:
     return json.loads(p.read_text()) if p.is_file() else []
 
 
-def _run_attempts(run: _Run, bar: StageProgress):
-    """Run the attempts of the retry plan until every image registers; returns the best
-    (reconstruction, attempt, image sets of unmerged sub-models, its database)."""
+@dataclass
+class AttemptOutcome:
+    """What one attempt produced: its largest model (None: nothing reconstructed), registered images,
+    image sets of the other sub-models that hold images the largest lacks, its database, sub-model sizes."""
+
+    rec: object | None
+    registered: int
+    sub_models: list[set[str]]
+    db: Path | None
+    models: list[int] = field(default_factory=list)
+    path: Path | None = None                              # the largest model's folder
+    paths: list[Path] = field(default_factory=list)       # all its models' folders
+
+
+def run_plan(plan: list[Attempt], num_images: int, execute, say=lambda text: None,
+             record=lambda attempt, outcome, seconds: None, complete=None) -> tuple[AttemptOutcome, Attempt]:
+    """Run attempts in order until one registers every image; returns the best (most registered, the
+    earlier on a tie: stricter settings). execute(attempt, index) -> AttemptOutcome. complete(best,
+    outcomes so far) -> AttemptOutcome | None: after a retry, the best model completed with images other
+    attempts registered (merging across attempts). InputError if no attempt reconstructed anything."""
+    best: tuple[AttemptOutcome, Attempt] | None = None
+    history: list[AttemptOutcome] = []
+    for i, a in enumerate(plan):
+        if i > 0:
+            say(f"SfM: {best[0].registered if best else 0}/{num_images} images registered; retrying with {a.why}")
+        t0 = time.perf_counter()
+        out = execute(a, i)
+        record(a, out, time.perf_counter() - t0)
+        history.append(out)
+        if out.rec is not None and (best is None or out.registered > best[0].registered):
+            best = (out, a)
+        if best is not None and best[0].registered < num_images and i > 0 and complete is not None:
+            merged = complete(best[0], history)
+            if merged is not None and merged.registered > best[0].registered:
+                best = (merged, Attempt(f"{best[1].name}+merged", f"{best[1].why}, completed from other attempts",
+                                        best[1].features, best[1].cameras, best[1].matching, best[1].mapping))
+        if best is not None and best[0].registered >= num_images:
+            break
+    if best is None:
+        raise InputError(f"structure from motion failed: no initial image pair could be reconstructed from "
+                         f"{num_images} images (tried: {', '.join(a.name for a in plan)}); {_ADVICE}")
+    return best
+
+
+def _outcome(recs: list, paths: list[Path], db: Path) -> AttemptOutcome:
+    """AttemptOutcome of the models `recs` (stored in `paths`) reconstructed from `db`."""
+    if not recs:
+        return AttemptOutcome(None, 0, [], db)
+    k = max(range(len(recs)), key=lambda j: recs[j].num_reg_images())
+    rec = recs[k]
+    main = {rec.image(i).name for i in rec.reg_image_ids()}
+    subs = [s for s in ({r.image(i).name for i in r.reg_image_ids()} for r in recs if r is not rec) if s - main]
+    return AttemptOutcome(rec, int(rec.num_reg_images()), subs, db, [r.num_reg_images() for r in recs],
+                          path=Path(paths[k]), paths=[Path(p) for p in paths])
+
+
+def _run_attempts(run: _Run, bar: StageProgress) -> tuple[AttemptOutcome, Attempt]:
+    """The retry plan for this capture, run until every image registers (see `run_plan`)."""
     import pycolmap
 
     n = len(run.names)
@@ -669,41 +749,42 @@ def _run_attempts(run: _Run, bar: StageProgress):
     plan = retry_plan(run.groups, run.opts, small_images=small, exif_focal=exif_focal)
     log_path = run.work / "attempts.json"
     done_log = run_attempts_log(run.work)
-    best = None
-    best_reg = -1
-    for i, a in enumerate(plan):
+
+    def execute(a: Attempt, i: int) -> AttemptOutcome:
         label = "SfM" if i == 0 else f"SfM retry {i}/{len(plan) - 1} ({a.name})"
         if i > 0:
-            bar.message(f"SfM: {best_reg}/{n} images registered; retrying with {a.why}")
             log.info("SfM retry %d/%d: %s", i, len(plan) - 1, a.why)
         t0 = time.perf_counter()
-        db = run.extract(a, label if i == 0 else label)
+        db = run.extract(a, label)
         run.match(db, a, label)
         paths = run.map(db, a, label)
         recs = [pycolmap.Reconstruction(str(p)) for p in paths]
         if i > 0:
             run.timings["retries"] = run.timings.get("retries", 0.0) + time.perf_counter() - t0
         if not recs:
-            reg, rec, subs = 0, None, []
-        else:
-            rec = max(recs, key=lambda r: r.num_reg_images())
-            reg = rec.num_reg_images()
-            main = {rec.image(k).name for k in rec.reg_image_ids()}
-            subs = [s for s in ({r.image(k).name for k in r.reg_image_ids()} for r in recs if r is not rec)
-                    if s - main]
-        entry = {"name": a.name, "why": a.why, "registered": int(reg), "models": [r.num_reg_images() for r in recs],
-                 "seconds": round(time.perf_counter() - t0, 2)}
+            return AttemptOutcome(None, 0, [], db)
+        return _outcome(recs, paths, db)
+
+    def complete(best: AttemptOutcome, history: list[AttemptOutcome]) -> AttemptOutcome | None:
+        donors = [p for h in history for p in h.paths if p != best.path]
+        if best.path is None or not donors:
+            return None
+        k = len(history)
+        merged = run.merge(best.db, best.path, donors, run.work / "models" / f"completed_{k}", "SfM: completing")
+        if merged is None:
+            return None
+        return _outcome([pycolmap.Reconstruction(str(merged))], [merged], best.db)
+
+    def record(a: Attempt, out: AttemptOutcome, seconds: float) -> None:
         if not any(e.get("name") == a.name for e in done_log):
-            done_log.append(entry)
+            done_log.append({"name": a.name, "why": a.why, "registered": out.registered, "models": out.models,
+                             "seconds": round(seconds, 2)})
             io.write_json(log_path, done_log)
-        if rec is not None and reg > best_reg:
-            best, best_reg = (rec, a, subs, db), reg
-        if best_reg >= n:
-            break
-    if best is None:
-        raise InputError(f"structure from motion failed: no initial image pair could be reconstructed from {n} "
-                         f"images (tried: {', '.join(a.name for a in plan)}); {_ADVICE}", run.image_root)
-    return best
+
+    try:
+        return run_plan(plan, n, execute, say=bar.message, record=record, complete=complete)
+    except InputError as e:
+        raise InputError(e.problem, run.image_root) from e
 
 
 def _match_graph(db: Path, names: list[str]) -> tuple[dict[str, int], dict[tuple[str, str], int]]:

@@ -140,8 +140,7 @@ def triangulate_known_poses(image_paths: list[Path], cameras: list[Camera], work
                 run.match(db, a, label)
                 poses = {n: c.T_cam_world[:3].tolist() for n, c in zip(names, cameras)}
                 job = {"step": "triangulate", "db": str(db), "image_root": str(image_root), "out": str(out),
-                       "poses": poses, "options": {"num_threads": run.threads,
-                                                   "triangulation.ignore_two_view_tracks": False}}
+                       "poses": poses, "options": {"num_threads": run.threads}}
                 _, st = colmap_process.run_step(job, work, bar, f"{label}: triangulation", cleanup=[out])
                 run._add("triangulate", st)
                 io.write_json(out / "done", {"timings": run.timings, "peak_rss_gib": run.peak / 2**30})
