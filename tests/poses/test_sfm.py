@@ -164,3 +164,35 @@ def test_unregistered_image_named_with_reason_in_report_and_cli(tmp_path: Path, 
     assert "no verified matches" in rep["failures"]["zz_noise.png"]
     assert [a["name"] for a in rep["attempts"]][:2] == ["default", "relaxed"]  # retried, to no avail
     assert "zz_noise.png: no verified matches" in out and "SfM attempts:" in out
+
+
+def _pairs(db: Path) -> list[tuple[int, int]]:
+    import sqlite3
+
+    con = sqlite3.connect(db)
+    try:
+        return [divmod(p, 2147483647) for (p,) in con.execute("SELECT pair_id FROM two_view_geometries")]
+    finally:
+        con.close()
+
+
+def test_ordered_frames_match_sequentially_with_loop_closure(scene_default: Path, tmp_path: Path):
+    from splattwin.poses.sfm import SfmOptions, run_sfm
+
+    paths = sorted((scene_default / "images").glob("train_*.png"))
+    res = run_sfm(paths, tmp_path / "w", SfmOptions(ordered=True, sequential_overlap=3), progress=False)
+    assert res.matcher == "sequential" and res.num_registered == len(paths) == 15
+    assert (tmp_path / "w" / "visual_index.bin").is_file()  # built from this capture's descriptors
+    pairs = _pairs(tmp_path / "w" / "database.db")
+    assert len(pairs) < 15 * 14 // 2                       # not all pairs
+    assert any(b - a > 3 for a, b in pairs)                # loop closure found pairs beyond the overlap
+
+
+def test_large_unordered_sets_match_retrieved_pairs(scene_default: Path, tmp_path: Path):
+    from splattwin.poses.sfm import SfmOptions, run_sfm
+
+    paths = sorted((scene_default / "images").glob("train_*.png"))
+    res = run_sfm(paths, tmp_path / "w", SfmOptions(exhaustive_max_images=5, retrieval_neighbours=6), progress=False)
+    assert res.matcher == "retrieval" and res.num_registered == 15
+    pairs = _pairs(tmp_path / "w" / "database.db")
+    assert 15 * 3 <= len(pairs) < 15 * 14 // 2

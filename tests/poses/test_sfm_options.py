@@ -214,3 +214,18 @@ def test_plain_progress_lines_when_not_a_tty(monkeypatch):
         p.update("x", 1, 2)
         p.message("y")
     assert quiet.getvalue() == ""
+
+
+def test_retry_loop_completes_the_best_model_from_other_attempts():
+    plan = [Attempt(n, n) for n in ("default", "relaxed", "guided")]
+    calls = []
+
+    def complete(best, history):
+        calls.append((best.registered, len(history)))
+        return _outcome(8) if len(history) == 2 else None
+
+    out, a = run_plan(plan, 8, lambda a, i: _outcome([3, 7, 7][i]), complete=complete)
+    assert out.registered == 8 and a.name == "relaxed+merged" and calls == [(7, 2)]
+    calls.clear()
+    out, a = run_plan(plan, 8, lambda a, i: _outcome([3, 7, 6][i]), complete=lambda b, h: _outcome(5))
+    assert out.registered == 7 and a.name == "relaxed"  # a worse completion is ignored

@@ -108,3 +108,15 @@ def test_pairs_from_poses_pair_neighbours_that_see_the_same_side():
     assert all(i < j for i, j in pairs)
     deg = np.bincount(np.array(pairs).ravel(), minlength=24)
     assert deg.min() >= 4
+
+
+def test_outlier_mask_drops_isolated_and_badly_reprojected_points():
+    from splattwin.poses.triangulate import outlier_mask
+
+    rng = np.random.default_rng(0)
+    xyz = rng.uniform(0, 0.1, (500, 3))
+    err = rng.uniform(0.1, 0.5, 500)
+    xyz[:5] += 2.0            # far from everything
+    err[5:10] = 4.0           # reprojects badly
+    keep = outlier_mask(xyz, err)
+    assert not keep[:10].any() and keep[10:].mean() > 0.97

@@ -80,6 +80,7 @@ class SfmOptions:
     exhaustive_max_images: "auto" matches all pairs up to this many images.
     sequential_overlap: sequential matching pairs each frame with this many following frames.
     loop_closure: sequential matching also pairs frames that look alike (visual vocabulary).
+    retrieval_neighbours: retrieval matching pairs each image with this many most similar ones.
     retry: retry hard captures (see the module docstring) while images are unregistered.
     min_registered: fewer registered images than this -> InputError. None = all images but at most 3
       missing, >= 3.
@@ -97,6 +98,7 @@ class SfmOptions:
     exhaustive_max_images: int = 50
     sequential_overlap: int = 10
     loop_closure: bool = True
+    retrieval_neighbours: int = 30
     peak_threshold: float = 0.004      # COLMAP default 0.0067: more features from small, low-res views
     max_ratio: float = 0.85            # COLMAP default 0.8: a looser ratio test, geometric verification filters
     min_two_view_inliers: int = 12     # COLMAP default 15
@@ -117,8 +119,9 @@ class SfmOptions:
             raise InputError(f"--threads must be >= 0 (0 = all cores), got {self.num_threads}")
         if self.max_memory_gib <= 0:
             raise InputError(f"the SfM memory budget must be positive, got {self.max_memory_gib} GiB")
-        if self.sequential_overlap < 1:
-            raise InputError(f"sequential overlap must be >= 1, got {self.sequential_overlap}")
+        if self.sequential_overlap < 1 or self.retrieval_neighbours < 1:
+            raise InputError(f"sequential overlap and retrieval neighbours must be >= 1, got "
+                             f"{self.sequential_overlap} and {self.retrieval_neighbours}")
 
 
 @dataclass
@@ -519,7 +522,7 @@ class _Run:
             job["pairs_file"] = str(self.pairs_file)
             total = sum(1 for line in Path(self.pairs_file).read_text().splitlines() if line.strip())
         else:  # retrieval
-            total = n * min(30, n - 1)
+            total = n * min(o.retrieval_neighbours, n - 1)
             job = self._retrieval_job(db, job)
         res, st = colmap_process.run_step(
             job, self.work, self.progress, f"{label}: {self.matcher} matching"
@@ -532,7 +535,7 @@ class _Run:
         # retrieval = match pairs proposed by a visual index of this capture: run as vocab-tree matching
         job = dict(job)
         job["kind"] = "vocabtree"
-        job["pairing"] = {"num_images": 30, "num_threads": self.threads}
+        job["pairing"] = {"num_images": self.opts.retrieval_neighbours, "num_threads": self.threads}
         job["loop_closure"] = {"path": str(self.work / "visual_index.bin"), "num_threads": self.threads}
         return job
 

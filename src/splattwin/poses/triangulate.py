@@ -3,7 +3,7 @@
 When poses come from the dataset or a robot but no point cloud does, SIFT features are extracted and
 matched as for SfM (`splattwin.poses.sfm`: bounded size, all cores, child process, Ctrl-C safe) and then
 triangulated with every pose and intrinsic held fixed, so the points are in the poses' own frame (metres
-when they are metric). Images with identical intrinsics share one COLMAP camera. Pairs: all pairs for up
+when they are metric), and isolated or badly reprojecting points are dropped (`outlier_mask`). Images with identical intrinsics share one COLMAP camera. Pairs: all pairs for up
 to `exhaustive_max_images` images, else the `neighbours` cameras nearest in position and viewing direction
 (`pairs_from_poses`), since the poses already say which views overlap.
 """
@@ -61,6 +61,30 @@ def known_camera_groups(cameras: list[Camera], names: list[str]) -> list[CameraG
             groups[key] = CameraGroup([], cam.width, cam.height, camera_model=model, camera_params=params)
         groups[key].names.append(n)
     return list(groups.values())
+
+
+def outlier_mask(xyz: np.ndarray, error_px: np.ndarray, k: int = 6, nn_factor: float = 3.0,
+                 error_factor: float = 3.0, min_error_px: float = 1.5) -> np.ndarray:
+    """[N] True for points to keep: reprojection error <= max(min_error_px, error_factor x the median) and
+    mean distance to the k nearest points <= nn_factor x the median of that (statistical outlier removal).
+
+    Why: with the poses held fixed nothing moves the cameras to expose a wrong match, and an isolated wrong
+    point becomes a large floater (its initial scale is its neighbour distance). On the embedded scene 10 %
+    of the triangulated points lay > 5 mm off the surfaces (some > 1 m away) and training from them ended
+    2.1 dB below training from SfM's points; this keeps 87 % of them, 95 % within 5 mm (SfM's: 94 %).
+    """
+    from scipy.spatial import cKDTree
+
+    n = len(xyz)
+    keep = np.ones(n, bool)
+    if n == 0:
+        return keep
+    keep &= error_px <= max(min_error_px, error_factor * float(np.median(error_px)))
+    if n > k:
+        d, _ = cKDTree(xyz).query(xyz, k=k + 1)
+        nn = d[:, 1:].mean(axis=1)
+        keep &= nn <= nn_factor * float(np.median(nn))
+    return keep
 
 
 def pairs_from_poses(cameras: list[Camera], neighbours: int = 20, max_angle_deg: float = 90.0) -> list[tuple[int, int]]:
@@ -152,8 +176,10 @@ def triangulate_known_poses(image_paths: list[Path], cameras: list[Camera], work
         err = np.array([pts[i].error for i in ids], dtype=np.float64)
         tl = np.array([pts[i].track.length() for i in ids], dtype=np.int64)
         info = json.loads((out / "done").read_text())
-        stats = {"images": len(names), "points": int(len(xyz)), "matcher": matcher,
-                 "mean_reproj_error": float(err.mean()) if len(err) else None, **info}
+        keep = outlier_mask(xyz, err)
+        xyz, rgb, err, tl = xyz[keep], rgb[keep], err[keep], tl[keep]
+        stats = {"images": len(names), "points": int(len(xyz)), "outliers_removed": int((~keep).sum()),
+                 "matcher": matcher, "mean_reproj_error": float(err.mean()) if len(err) else None, **info}
         if len(xyz) == 0:
             raise InputError(f"no points could be triangulated from the {len(names)} posed images (too little "
                              "texture or overlap)", image_root)
