@@ -177,7 +177,7 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
     in_cams: dict[str, Camera]
 
     if method == "sfm":
-        from splattwin.poses.sfm import SfmOptions, run_sfm
+        from splattwin.poses.sfm import run_sfm
 
         sopts = _sfm_options(opts, intrinsics=_intrinsics_tuple(opts, frames), ordered=bool(dataset.meta.get("sequential")))
         import tempfile

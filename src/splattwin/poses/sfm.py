@@ -149,6 +149,7 @@ class SfmResult:
     matcher: str = ""
     camera_groups: list[dict] = field(default_factory=list)
     peak_rss_gib: float = 0.0
+    resumed_timings: dict[str, float] = field(default_factory=dict)  # of the run that made a re-used model
 
     @property
     def num_registered(self) -> int:
@@ -163,6 +164,7 @@ class SfmResult:
         return {"registered": self.num_registered, "total": self.num_total, "matcher": self.matcher,
                 "mean_reproj_error": self.mean_reproj_error, "num_points": int(len(self.points_xyz)),
                 "timings": self.timings, "attempts": self.attempts, "failures": self.failures,
+                **({"resumed_from_timings": self.resumed_timings} if self.resumed_timings else {}),
                 "camera_groups": self.camera_groups, "peak_rss_gib": self.peak_rss_gib}
 
 
@@ -625,6 +627,8 @@ def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | No
             res = _result_from_reconstruction(rec, names, {}, image_root)
             res.failures, res.attempts = meta.get("failures", {}), meta.get("attempts", [])
             res.matcher, res.camera_groups = meta.get("matcher", ""), meta.get("camera_groups", [])
+            res.peak_rss_gib = float(meta.get("peak_rss_gib", 0.0))
+            res.resumed_timings = meta.get("timings", {})
             _check_enough(res, opts, image_root)
             return res
         run = _Run(work, image_root, names, opts, bar)
@@ -643,7 +647,8 @@ def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | No
         tmp.mkdir()
         rec.write(str(tmp))
         io.write_json(tmp / "done", {"attempt": attempt.name, "failures": res.failures, "attempts": res.attempts,
-                                      "matcher": res.matcher, "camera_groups": res.camera_groups})
+                                      "matcher": res.matcher, "camera_groups": res.camera_groups,
+                                      "timings": res.timings, "peak_rss_gib": res.peak_rss_gib})
         shutil.rmtree(model_dir, ignore_errors=True)
         os.replace(tmp, model_dir)
     for n, why in res.failures.items():
