@@ -166,9 +166,13 @@ def test_image_folder(tmp_path, make_dataset):
     back = load_dataset(tmp_path / "images")
     assert not back.has_poses and len(back.frames) == 4
     assert back.frames[0].camera.width == 64
+    # photos of several sizes (internet photos, several cameras) are accepted: one camera per frame
     io.write_image(ds.frames[2].image_path, np.zeros((20, 30, 3), np.uint8))
-    with pytest.raises(InputError, match="share a size"):
-        images.read(tmp_path / "images")
+    mixed = images.read(tmp_path / "images")
+    sizes = [(f.camera.width, f.camera.height) for f in mixed.frames]
+    assert sizes[2] == (30, 20) and sizes[0] == (64, sizes[0][1]) and len(set(sizes)) == 2
+    assert mixed.frames[2].camera.cx == 15.0 and mixed.frames[2].camera.cy == 10.0
+    mixed.validate()  # each image matches its own camera
 
 
 def test_empty_folder(tmp_path):

@@ -129,7 +129,7 @@ def test_sequential_matching_with_known_intrinsics(scene_small: Path, tmp_path: 
     ds.meta["sequential"] = True
     res = estimate_poses(ds, PoseOptions(method="sfm", intrinsics=(c.fx, c.fy, c.cx, c.cy), min_registered=6,
                                          work_dir=tmp_path / "w", progress=False))
-    assert json_load(tmp_path / "w" / "sfm_config.json")["matcher"] == "sequential"
+    assert res.stats["matcher"] == "sequential"  # ordered frames (video) -> sequential matching
     assert res.stats["registered"] >= 6
     for f in res.frames:
         np.testing.assert_allclose(f.camera.K, c.K, atol=1e-9)
@@ -141,3 +141,58 @@ def json_load(p: Path):
     import json
 
     return json.loads(p.read_text())
+
+
+def test_unregistered_image_named_with_reason_in_report_and_cli(tmp_path: Path, scene_default: Path, capsys):
+    """Four scene views plus an unrelated noise image: the retries cannot register it; poses_report.json
+    and the CLI output name it and say why."""
+    import shutil
+
+    from splattwin import io
+    from splattwin.cli import main
+
+    imgs = tmp_path / "imgs"
+    imgs.mkdir()
+    for n in ("train_000.png", "train_001.png", "train_002.png", "train_003.png"):
+        shutil.copy(scene_default / "images" / n, imgs / n)
+    io.write_image(imgs / "zz_noise.png", np.random.default_rng(1).integers(0, 255, (240, 320, 3), dtype=np.uint8))
+    rc = main(["poses", str(imgs), str(tmp_path / "out"), "--min-registered", "3"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    rep = json_load(tmp_path / "out" / "poses_report.json")
+    assert rep["registered"] == 4 and list(rep["failures"]) == ["zz_noise.png"]
+    assert "no verified matches" in rep["failures"]["zz_noise.png"]
+    assert [a["name"] for a in rep["attempts"]][:2] == ["default", "relaxed"]  # retried, to no avail
+    assert "zz_noise.png: no verified matches" in out and "SfM attempts:" in out
+
+
+def _pairs(db: Path) -> list[tuple[int, int]]:
+    import sqlite3
+
+    con = sqlite3.connect(db)
+    try:
+        return [divmod(p, 2147483647) for (p,) in con.execute("SELECT pair_id FROM two_view_geometries")]
+    finally:
+        con.close()
+
+
+def test_ordered_frames_match_sequentially_with_loop_closure(scene_default: Path, tmp_path: Path):
+    from splattwin.poses.sfm import SfmOptions, run_sfm
+
+    paths = sorted((scene_default / "images").glob("train_*.png"))
+    res = run_sfm(paths, tmp_path / "w", SfmOptions(ordered=True, sequential_overlap=3), progress=False)
+    assert res.matcher == "sequential" and res.num_registered == len(paths) == 15
+    assert (tmp_path / "w" / "visual_index.bin").is_file()  # built from this capture's descriptors
+    pairs = _pairs(tmp_path / "w" / "database.db")
+    assert len(pairs) < 15 * 14 // 2                       # not all pairs
+    assert any(b - a > 3 for a, b in pairs)                # loop closure found pairs beyond the overlap
+
+
+def test_large_unordered_sets_match_retrieved_pairs(scene_default: Path, tmp_path: Path):
+    from splattwin.poses.sfm import SfmOptions, run_sfm
+
+    paths = sorted((scene_default / "images").glob("train_*.png"))
+    res = run_sfm(paths, tmp_path / "w", SfmOptions(exhaustive_max_images=5, retrieval_neighbours=6), progress=False)
+    assert res.matcher == "retrieval" and res.num_registered == 15
+    pairs = _pairs(tmp_path / "w" / "database.db")
+    assert 15 * 3 <= len(pairs) < 15 * 14 // 2

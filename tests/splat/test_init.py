@@ -65,9 +65,33 @@ def test_initial_gaussians_methods():
     assert m == "sfm" and len(g) == 50 and g.sh_degree == 2
     np.testing.assert_allclose(g.opacities, 0.1)
     np.testing.assert_allclose(g.colors, 0.5)
-    g, m = initial_gaussians("auto", frames, None, None, max_points=100)
-    assert m == "random" and len(g) == 100 and np.all(np.abs(g.means - c) <= s + 1e-9)
+    g, m = initial_gaussians("auto", frames, None, None, max_points=100)  # no images: nothing to triangulate
+    assert m == "random" and len(g) == 100
+    # inside the common view: in front of and inside the image of both cameras, not around the cameras
+    for cam in cams:
+        uv, z = cam.project(g.means)
+        assert np.all(cam.in_image(uv)) and np.all(z > 0)
     with pytest.raises(InputError, match="sfm"):
         initial_gaussians("sfm", frames, None, None)
     with pytest.raises(InputError, match="unknown"):
         initial_gaussians("magic", frames, pts, None)
+
+
+def test_random_init_stays_in_the_common_view_of_a_ring():
+    from splattwin.splat.init import random_points_in_view
+
+    cams = []
+    for i in range(12):  # a ring 1 m around the origin, 0.5 m up, looking at the table centre
+        a = 2 * math.pi * i / 12
+        cams.append(Camera.from_fov(math.radians(50), 64, 48, look_at(np.array([math.cos(a), math.sin(a), 0.5]),
+                                                                      np.zeros(3))))
+    xyz, rgb = random_points_in_view(cams, 2000, seed=1)
+    assert xyz.shape == (2000, 3) and rgb.shape == (2000, 3)
+    seen = np.zeros(len(xyz), int)
+    for c in cams:
+        uv, z = c.project(xyz)
+        seen += c.in_image(uv) & (z > 0)
+    assert np.all(seen >= 6)  # at least half of the cameras see each point
+    # nothing around the cameras (where random points become per-view floaters)
+    d = np.min(np.linalg.norm(xyz[:, None] - np.array([c.center for c in cams])[None], axis=2), axis=1)
+    assert d.min() > 0.3

@@ -36,9 +36,10 @@ def _info(args: argparse.Namespace) -> int:
     from splattwin.capture.dataset import load_dataset
 
     ds = load_dataset(args.path, max_frames=args.max_frames)
-    c = ds.frames[0].camera
+    sizes = sorted({(f.camera.width, f.camera.height) for f in ds.frames})
+    size = f"{sizes[0][0]}x{sizes[0][1]}" if len(sizes) == 1 else f"{len(sizes)} image sizes"
     print(f"{args.path}: {ds.meta.get('format')} dataset, {len(ds.frames)} frames "
-          f"({len(ds.train())} train, {len(ds.heldout())} held-out), {c.width}x{c.height}, "
+          f"({len(ds.train())} train, {len(ds.heldout())} held-out), {size}, "
           f"poses: {'yes' if ds.has_poses else 'no'}, points: {0 if ds.points_xyz is None else len(ds.points_xyz)}")
     return 0
 

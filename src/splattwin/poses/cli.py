@@ -43,8 +43,18 @@ def register(sub: argparse._SubParsersAction) -> None:
                    choices=["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"],
                    help="camera model when SfM estimates the intrinsics (default SIMPLE_RADIAL)")
     p.add_argument("--per-image-intrinsics", action="store_true", help="one camera per image (default: shared)")
-    p.add_argument("--matcher", default="auto", choices=["auto", "exhaustive", "sequential"],
-                   help="feature matching (auto: exhaustive for <= 50 images, sequential for videos/more)")
+    p.add_argument("--matcher", default="auto", choices=["auto", "exhaustive", "sequential", "retrieval"],
+                   help="feature matching (auto: exhaustive for <= 50 images; beyond, sequential + loop closure "
+                        "for video frames, vocabulary-tree retrieval for unordered photos)")
+    p.add_argument("--max-image-size", type=int, default=1600, metavar="PX",
+                   help="SfM extracts features from images resized to this longest side (default 1600; 0: full size)")
+    p.add_argument("--max-features", type=int, default=4096, metavar="N",
+                   help="SIFT features per image (default 4096)")
+    p.add_argument("--no-retry", action="store_true",
+                   help="no automatic SfM retries when images fail to register")
+    p.add_argument("--threads", type=int, default=0, metavar="N", help="CPU threads for SfM (default 0: all cores)")
+    p.add_argument("--no-triangulate", action="store_true",
+                   help="known/robot poses without a point cloud: do not triangulate points from the images")
     p.add_argument("--min-registered", type=int, metavar="N",
                    help="fail unless SfM registers at least N images (default: all but 3, at least 3)")
     p.add_argument("--work-dir", type=Path, help="SfM scratch folder, re-used to resume (default OUT/sfm)")
@@ -68,6 +78,21 @@ def parse_intrinsics(text: str | None) -> str | tuple[float, float, float, float
     return vals  # type: ignore[return-value]
 
 
+def print_sfm_summary(stats: dict) -> None:
+    """Attempts (retries) and timings of an SfM or triangulation run, as plain lines."""
+    attempts = stats.get("attempts") or []
+    if len(attempts) > 1:
+        print("  SfM attempts: " + "; ".join(f"{a['name']} {a['registered']}/{stats.get('total')}" for a in attempts))
+    t = stats.get("timings") or {}
+    if t:
+        parts = [f"{k} {v:.1f} s" for k, v in t.items() if k not in ("cpu", "retries")]
+        print(f"  SfM time: {', '.join(parts)} (peak memory {stats.get('peak_rss_gib', 0):.2f} GiB, "
+              f"matcher {stats.get('matcher', '?')})")
+    tri = stats.get("triangulation")
+    if tri:
+        print(f"  points from known poses: {tri.get('points', 0)}" + (f" ({tri['error']})" if "error" in tri else ""))
+
+
 def _run(args: argparse.Namespace) -> int:
     from splattwin.capture import load_dataset
     from splattwin.poses.estimate import PoseOptions, estimate_poses
@@ -82,7 +107,9 @@ def _run(args: argparse.Namespace) -> int:
         known_length=KnownLength.parse(args.known_length) if args.known_length else None,
         intrinsics=parse_intrinsics(args.intrinsics), camera_model=args.camera_model,
         shared_intrinsics=not args.per_image_intrinsics, matcher=args.matcher, min_registered=args.min_registered,
-        work_dir=args.work_dir or (args.out / "sfm"), depth_points=not args.no_depth_points, seed=args.seed,
+        max_image_size=args.max_image_size, max_num_features=args.max_features, retry=not args.no_retry,
+        num_threads=args.threads, work_dir=args.work_dir or (args.out / "sfm"), depth_points=not args.no_depth_points,
+        triangulate=not args.no_triangulate, seed=args.seed,
     )
     if opts.marker_size is not None and opts.marker_size <= 0:
         raise InputError(f"--marker-size must be positive (metres), got {opts.marker_size}")
@@ -97,8 +124,14 @@ def _run(args: argparse.Namespace) -> int:
     unc = "n/a" if fr.scale_uncertainty_rel is None else f"{fr.scale_uncertainty_rel * 100:.2f} %"
     print(f"poses: {st.get('registered')}/{st.get('total')} images posed ({st.get('method')})"
           + (f", mean reprojection error {st['mean_reproj_error']:.3f} px" if "mean_reproj_error" in st else ""))
+    print_sfm_summary(st)
     if res.unregistered:
-        print(f"  not registered: {', '.join(Path(u).name for u in res.unregistered)}")
+        failures = st.get("failures") or {}
+        print(f"  not registered ({len(res.unregistered)}):")
+        for u in res.unregistered:
+            name = Path(u).name
+            why = next((v for k, v in failures.items() if Path(k).name == name), "no pose")
+            print(f"    {name}: {why}")
     print(f"frame: {fr.source} ({'metric' if fr.scaled else 'UNSCALED'}), scale uncertainty {unc}")
     print(f"  {fr.description}")
     print(f"wrote {path}")

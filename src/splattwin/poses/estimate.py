@@ -50,8 +50,11 @@ class PoseOptions:
     intrinsics: None = estimate (SfM) / take the dataset's; "dataset" = the dataset's K, kept fixed;
       (fx, fy, cx, cy) pixels = known, kept fixed.
     min_registered: SfM must register at least this many images (None: all but 3, at least 3).
+    max_image_size / max_num_features / retry / num_threads: see `splattwin.poses.sfm.SfmOptions`.
     work_dir: SfM scratch folder (database, model) for resuming; None = a temp folder.
     depth_points: also back-project depth images (RGB-D) into a point cloud when the frame is metric.
+    triangulate: known/robot poses without a point cloud (and without depth for one): triangulate sparse
+      points from the images with the poses held fixed (`splattwin.poses.triangulate`).
     """
 
     method: str = "auto"
@@ -66,8 +69,13 @@ class PoseOptions:
     shared_intrinsics: bool = True
     matcher: str = "auto"
     min_registered: int | None = None
+    max_image_size: int = 1600
+    max_num_features: int = 4096
+    retry: bool = True
+    num_threads: int = 0
     work_dir: Path | None = None
     depth_points: bool = True
+    triangulate: bool = True
     depth_stride: int = 4
     progress: bool = True
     seed: int = 0
@@ -176,26 +184,25 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
     in_cams: dict[str, Camera]
 
     if method == "sfm":
-        from splattwin.poses.sfm import SfmOptions, run_sfm
+        from splattwin.poses.sfm import run_sfm
 
-        sopts = SfmOptions(intrinsics=_intrinsics_tuple(opts, frames), camera_model=opts.camera_model,
-                           shared_intrinsics=opts.shared_intrinsics, matcher=_matcher(opts, dataset),
-                           min_registered=opts.min_registered, seed=opts.seed)
-        work = Path(opts.work_dir) if opts.work_dir is not None else None
-        if work is None:
-            import tempfile
+        sopts = _sfm_options(opts, intrinsics=_intrinsics_tuple(opts, frames), ordered=bool(dataset.meta.get("sequential")))
+        import tempfile
 
-            tmp = tempfile.TemporaryDirectory(prefix="splattwin_sfm_")
-            work = Path(tmp.name)
-        sfm = run_sfm([f.image_path for f in frames], work, sopts, progress=opts.progress)
+        tmp = None if opts.work_dir is not None else tempfile.TemporaryDirectory(prefix="splattwin_sfm_")
+        work = Path(opts.work_dir) if opts.work_dir is not None else Path(tmp.name)  # type: ignore[union-attr]
+        try:
+            sfm = run_sfm([f.image_path for f in frames], work, sopts, progress=opts.progress)
+        finally:
+            if tmp is not None:
+                tmp.cleanup()
         key_of = _sfm_keys(frames)
         in_cams = {}
         for k, cam in sfm.cameras.items():
             n = key_of[k]
             in_cams[n] = dataclasses.replace(cam, name=frames[names.index(n)].camera.name or Path(k).stem)
         pts_xyz, pts_rgb = sfm.points_xyz, sfm.points_rgb
-        stats.update(registered=sfm.num_registered, mean_reproj_error=sfm.mean_reproj_error,
-                     num_points=int(len(pts_xyz)), timings=sfm.timings)
+        stats.update(sfm.report())
         log.info("SfM registered %d/%d images, mean reprojection error %.3f px, %d points",
                  sfm.num_registered, sfm.num_total, sfm.mean_reproj_error, len(pts_xyz))
         input_scaled = False
@@ -255,6 +262,12 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
     elif opts.known_length is not None or not input_scaled:
         from splattwin.poses.table import fit_table_plane, scale_from_known_length, table_frame
 
+        if (pts_xyz is None or len(pts_xyz) < 20) and method != "sfm" and opts.triangulate:
+            # known poses without points: triangulate them now (input frame), the table plane needs them
+            tri = _triangulate(opts, [frames[names.index(n)].image_path for n in order], [in_cams[n] for n in order],
+                               stats)
+            if tri is not None:
+                pts_xyz, pts_rgb = tri
         if pts_xyz is None or len(pts_xyz) < 20:
             raise InputError("the table frame needs sparse points (SfM or the dataset's point cloud); none available",
                              dataset.root)
@@ -280,9 +293,11 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
 
     out_cams = {n: align.transform_camera(T_out_in, c) for n, c in in_cams.items()}
     if frame.source == "sfm+robot" and opts.shared_intrinsics:
-        # Images SfM could not register still have exact robot poses: pose them with the shared SfM camera.
+        # Images SfM could not register still have exact robot poses: pose them with the shared SfM camera
+        # (only images of the reference camera's size: other sizes are other cameras).
         ref = in_cams[order[0]]
-        filled = [n for n in names if n not in out_cams and n in robot_T]
+        size = {n: (f.camera.width, f.camera.height) for f, n in zip(frames, names)}
+        filled = [n for n in names if n not in out_cams and n in robot_T and size[n] == (ref.width, ref.height)]
         for n in filled:
             out_cams[n] = Camera(K=ref.K, width=ref.width, height=ref.height, T_world_cam=robot_T[n], dist=ref.dist,
                                  name=frames[names.index(n)].camera.name)
@@ -308,6 +323,11 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
                 pts_xyz, pts_rgb = depth_xyz, depth_rgb
         else:
             log.warning("depth images ignored for the point cloud: the frame is unscaled")
+    if (pts_xyz is None or len(pts_xyz) == 0) and method != "sfm" and opts.triangulate and len(out_frames) >= 2:
+        # known poses, no point cloud, no (metric) depth: points from the images with the poses held fixed
+        tri = _triangulate(opts, [f.image_path for f in out_frames], [f.camera for f in out_frames], stats)
+        if tri is not None:
+            pts_xyz, pts_rgb = tri
     return PoseResult(frames=out_frames, unregistered=unregistered, frame=frame, points_xyz=pts_xyz,
                       points_rgb=pts_rgb, depth_xyz=depth_xyz, depth_rgb=depth_rgb, T_out_in=T_out_in,
                       stats=stats, depth_scale=dataset.depth_scale)
@@ -333,10 +353,32 @@ def _frame_beside(dataset: Dataset) -> Frame | None:
     return load_frame(cand) if cand.is_file() else None
 
 
-def _matcher(opts: PoseOptions, dataset: Dataset) -> str:
-    if opts.matcher != "auto":
-        return opts.matcher
-    return "sequential" if dataset.meta.get("sequential") or len(dataset.frames) > 50 else "exhaustive"
+def _triangulate(opts: PoseOptions, image_paths: list[Path], cameras: list[Camera], stats: dict
+                 ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Sparse points from images with known cameras (poses held fixed), in the cameras' frame; None (and a
+    warning) when nothing can be triangulated."""
+    from splattwin.poses.triangulate import triangulate_known_poses
+
+    work = Path(opts.work_dir) / "triangulation" if opts.work_dir is not None else None
+    try:
+        tri = triangulate_known_poses(image_paths, cameras, work, _sfm_options(opts), progress=opts.progress)
+    except InputError as e:
+        log.warning("no points from the known poses (%s): training will start from fewer cues", e.problem)
+        stats["triangulation"] = {"error": e.problem}
+        return None
+    stats["triangulation"] = tri.stats
+    stats["num_points"] = int(len(tri.points_xyz))
+    return tri.points_xyz, tri.points_rgb
+
+
+def _sfm_options(opts: PoseOptions, intrinsics: tuple[float, float, float, float] | None = None,
+                 ordered: bool | None = None):
+    from splattwin.poses.sfm import SfmOptions
+
+    return SfmOptions(intrinsics=intrinsics, camera_model=opts.camera_model, shared_intrinsics=opts.shared_intrinsics,
+                      matcher=opts.matcher, ordered=ordered, min_registered=opts.min_registered,
+                      max_image_size=opts.max_image_size, max_num_features=opts.max_num_features, retry=opts.retry,
+                      num_threads=opts.num_threads, seed=opts.seed)
 
 
 def _intrinsics_tuple(opts: PoseOptions, frames: list[DataFrame]) -> tuple[float, float, float, float] | None:

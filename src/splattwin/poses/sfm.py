@@ -1,19 +1,40 @@
 """Structure from motion with pycolmap on the CPU: SIFT extraction, matching, incremental mapping.
 
 The result is in COLMAP's arbitrary (unscaled) world frame; `splattwin.poses.estimate` turns it into a
-metric table frame. Options are tuned for sparse captures (8–20 views, measured on the embedded scene):
-a lower SIFT peak threshold and looser ratio test with guided matching (more verified matches per
-wide-baseline pair), lower inlier thresholds for the initial pair and for registering further images, a
-smaller minimum model size, and frequent global bundle adjustment (cheap with few images).
+metric table frame.
 
-Resume: the COLMAP database and the model live in `work_dir`; a killed run re-uses the features and
-matches already in the database (COLMAP skips images/pairs it has) and a finished model is re-loaded.
+Scaling to real photos:
+- Features are extracted from images resized to `max_image_size` (longest side, default 1600 px; COLMAP
+  maps keypoints back to full-size pixels) with at most `max_num_features` per image, on all cores but no
+  more extraction threads than the memory budget allows (`extraction_threads`).
+- The matcher follows the capture (`choose_matcher`): exhaustive for small sets, sequential with loop
+  closure for ordered frames (video), vocabulary-tree retrieval for large unordered sets. Loop closure and
+  retrieval use a visual vocabulary built from the capture's own descriptors (no download).
+- One COLMAP camera per group of images that share a size and EXIF camera (make, model, focal length):
+  a phone capture gets one shared camera, internet photos one per camera/size (`camera_groups`).
+- Every pycolmap step runs in a child process (`colmap_process`): Ctrl-C stops it within a second, and
+  progress shows live in a terminal and as plain lines in a redirected log.
+
+Hard captures (`retry=True`): when images stay unregistered, cheaper-first retries follow (`retry_plan`):
+relaxed mapping thresholds plus merging of sub-models that share images; the EXIF focal length held fixed;
+one shared camera for same-size images when per-image cameras were asked for; guided matching; more
+features on small images. The attempt registering the most images wins (the earlier one on a tie), and
+each image that still fails gets a reason from the match graph (`explain_failures`).
+
+The default thresholds suit sparse captures (8-20 views): a lower SIFT peak threshold and a looser ratio
+test than COLMAP's (more matches per wide-baseline pair), fewer inliers for the initial pair and for
+registering images, and frequent global bundle adjustment (cheap with few images).
+
+Resume: the COLMAP databases, the attempts and the final model live in `work_dir`; a killed run re-uses
+the features and matches already committed (COLMAP skips images/pairs it has), finished attempts
+(attempts.json) and a finished model (sparse/done).
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import shutil
 import time
@@ -25,6 +46,8 @@ import numpy as np
 from splattwin import io
 from splattwin.capture.camera import Camera, invert_se3
 from splattwin.errors import InputError
+from splattwin.poses import colmap_process
+from splattwin.poses.progress import StageProgress
 
 log = logging.getLogger(__name__)
 
@@ -32,30 +55,73 @@ _ADVICE = ("try: more overlap between views (each part of the table seen from >=
            "neighbouring views 15-30 degrees apart), more texture in the scene, known intrinsics "
            "(--intrinsics fx,fy,cx,cy), or known/robot poses (--known, --robot-poses)")
 
+MATCHERS = ("auto", "exhaustive", "sequential", "retrieval")
+# Relaxed retries map with this many random seeds (keeping the best) on captures of up to this many
+# images: mapping then takes < 1 s per run, and on the cake photos (guided matches) single runs registered
+# 6, 8, 8, 6, 6, 7 of 8 images with seeds 1-6.
+MAPPING_SEEDS, MAPPING_SEEDS_MAX_IMAGES = 4, 100
+LARGE_SIDE = 1400  # px: images at least this large (after the size bound) skip SIFT's upsampled octave
+_MAX_IMAGE_ID = 2147483647  # COLMAP pair_id = id1 * this + id2 (id1 < id2)
+
 
 @dataclass
 class SfmOptions:
     """Knobs for `run_sfm`.
 
-    intrinsics: (fx, fy, cx, cy) in pixels, known and kept fixed; None = estimate one shared camera.
+    intrinsics: (fx, fy, cx, cy) in pixels, known and kept fixed (all images must share a size); None =
+      estimate: one camera per group of images with the same size and EXIF camera (see shared_intrinsics).
     camera_model: COLMAP model when intrinsics are estimated (SIMPLE_RADIAL, SIMPLE_PINHOLE, PINHOLE, OPENCV).
-    shared_intrinsics: one camera for all images (True) or one per image.
-    matcher: "auto" (exhaustive for <= 50 images, else sequential), "exhaustive" or "sequential".
-    min_registered: fewer registered images than this -> InputError. None = all images but at most 3 missing, >= 3.
+    shared_intrinsics: True = one camera per size/EXIF group; False = one camera per image.
+    max_image_size: longest side (px) images are resized to for feature extraction (keypoints are in
+      full-size pixels); <= 0: full size.
+    max_num_features: SIFT features kept per image (the strongest).
+    matcher: "auto" (`choose_matcher`), "exhaustive", "sequential" (+ loop closure) or "retrieval".
+    ordered: the images are frames in capture order (video); None = unknown (treated as unordered).
+    exhaustive_max_images: "auto" matches all pairs up to this many images.
+    sequential_overlap: sequential matching pairs each frame with this many following frames.
+    loop_closure: sequential matching also pairs frames that look alike (visual vocabulary).
+    retrieval_neighbours: retrieval matching pairs each image with this many most similar ones.
+    retry: retry hard captures (see the module docstring) while images are unregistered.
+    min_registered: fewer registered images than this -> InputError. None = all images but at most 3
+      missing, >= 3.
+    num_threads: CPU threads for extraction, matching and mapping; 0 = all cores.
+    max_memory_gib: memory budget that bounds the number of parallel extraction threads.
     """
 
     intrinsics: tuple[float, float, float, float] | None = None
     camera_model: str = "SIMPLE_RADIAL"
     shared_intrinsics: bool = True
+    max_image_size: int = 1600
+    max_num_features: int = 4096
     matcher: str = "auto"
+    ordered: bool | None = None
+    exhaustive_max_images: int = 50
     sequential_overlap: int = 10
-    max_num_features: int = 8192
+    loop_closure: bool = True
+    retrieval_neighbours: int = 30
     peak_threshold: float = 0.004      # COLMAP default 0.0067: more features from small, low-res views
     max_ratio: float = 0.85            # COLMAP default 0.8: a looser ratio test, geometric verification filters
     min_two_view_inliers: int = 12     # COLMAP default 15
+    retry: bool = True
     min_registered: int | None = None
-    num_threads: int = 2
+    num_threads: int = 0
+    max_memory_gib: float = 2.0
     seed: int = 0
+
+    def validate(self) -> None:
+        if self.matcher not in MATCHERS:
+            raise InputError(f"unknown matcher {self.matcher!r} ({', '.join(MATCHERS)})")
+        if self.max_image_size != 0 and 0 < self.max_image_size < 64:
+            raise InputError(f"--max-image-size must be >= 64 px (or 0 for full size), got {self.max_image_size}")
+        if self.max_num_features < 64:
+            raise InputError(f"--max-features must be >= 64, got {self.max_num_features}")
+        if self.num_threads < 0:
+            raise InputError(f"--threads must be >= 0 (0 = all cores), got {self.num_threads}")
+        if self.max_memory_gib <= 0:
+            raise InputError(f"the SfM memory budget must be positive, got {self.max_memory_gib} GiB")
+        if self.sequential_overlap < 1 or self.retrieval_neighbours < 1:
+            raise InputError(f"sequential overlap and retrieval neighbours must be >= 1, got "
+                             f"{self.sequential_overlap} and {self.retrieval_neighbours}")
 
 
 @dataclass
@@ -63,8 +129,11 @@ class SfmResult:
     """SfM output in COLMAP's world frame (arbitrary scale, T_world_cam OpenCV convention).
 
     cameras: name -> Camera for each registered image. unregistered: names that did not register.
-    points_xyz [N,3] float64, points_rgb [N,3] uint8, points_error [N] px, points_track_len [N].
-    timings: seconds per stage (extract, match, map).
+    failures: unregistered name -> why (from the match graph). points_xyz [N,3] float64, points_rgb [N,3]
+    uint8, points_error [N] px, points_track_len [N]. timings: seconds per stage (extract, match, map,
+    retries). attempts: one dict per attempt (name, what changed, registered, seconds). matcher: the
+    matcher used. camera_groups: one dict per COLMAP camera group (size, EXIF, images). peak_rss_gib:
+    the largest resident memory of a pycolmap step.
     """
 
     cameras: dict[str, Camera]
@@ -75,6 +144,12 @@ class SfmResult:
     points_track_len: np.ndarray
     mean_reproj_error: float
     timings: dict[str, float] = field(default_factory=dict)
+    failures: dict[str, str] = field(default_factory=dict)
+    attempts: list[dict] = field(default_factory=list)
+    matcher: str = ""
+    camera_groups: list[dict] = field(default_factory=list)
+    peak_rss_gib: float = 0.0
+    resumed_timings: dict[str, float] = field(default_factory=dict)  # of the run that made a re-used model
 
     @property
     def num_registered(self) -> int:
@@ -84,11 +159,658 @@ class SfmResult:
     def num_total(self) -> int:
         return len(self.cameras) + len(self.unregistered)
 
+    def report(self) -> dict:
+        """JSON-ready summary for poses_report.json."""
+        return {"registered": self.num_registered, "total": self.num_total, "matcher": self.matcher,
+                "mean_reproj_error": self.mean_reproj_error, "num_points": int(len(self.points_xyz)),
+                "timings": self.timings, "attempts": self.attempts, "failures": self.failures,
+                **({"resumed_from_timings": self.resumed_timings} if self.resumed_timings else {}),
+                "camera_groups": self.camera_groups, "peak_rss_gib": self.peak_rss_gib}
 
-def _quiet_colmap() -> None:
+
+# -- choices (pure functions, unit-tested) -----------------------------------------------------------------
+def choose_matcher(num_images: int, matcher: str = "auto", ordered: bool | None = None,
+                   exhaustive_max_images: int = 50) -> str:
+    """The matcher for a capture: frames in capture order (video) are matched sequentially (each with its
+    next frames, plus loop closure); unordered photos all pairs while that is affordable (the most robust),
+    and beyond `exhaustive_max_images` the pairs a vocabulary-tree retrieval proposes."""
+    if matcher not in MATCHERS:
+        raise InputError(f"unknown matcher {matcher!r} ({', '.join(MATCHERS)})")
+    if matcher != "auto":
+        return matcher
+    if ordered:
+        return "sequential"
+    return "exhaustive" if num_images <= exhaustive_max_images else "retrieval"
+
+
+def extraction_threads(num_threads: int, max_side: int, budget_gib: float, cpu_count: int | None = None) -> int:
+    """Parallel SIFT extraction threads: all cores (num_threads 0) but no more than fit in the budget.
+
+    Per thread COLMAP's CPU SIFT holds the float scale space of the image it works on: measured ~0.4 GiB
+    per thread for 1600x900 photos upsampled 2x (first octave -1), i.e. ~17 float32 copies of the
+    3200x1800 pixels. `max_side` is the side SIFT works on (2x the image for octave -1); we assume 16:9
+    and keep 0.35 GiB for the process itself.
+    """
+    want = num_threads if num_threads > 0 else (cpu_count or _cpu_count())
+    side = max(int(max_side), 64)
+    per_thread = 17 * 4 * side * (side * 9 / 16) / 2**30
+    fit = int((budget_gib - 0.35) // max(per_thread, 1e-6))
+    return max(1, min(want, fit))
+
+
+def _cpu_count() -> int:
+    """Cores this process may run on."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return os.cpu_count() or 1
+
+
+def _all_threads(opts: SfmOptions) -> int:
+    return opts.num_threads if opts.num_threads > 0 else _cpu_count()
+
+
+@dataclass
+class CameraGroup:
+    """Images that share one COLMAP camera: same size and EXIF camera (make, model, focal length)."""
+
+    names: list[str]
+    width: int
+    height: int
+    exif: dict = field(default_factory=dict)
+    per_image: bool = False
+    camera_model: str | None = None     # known intrinsics: COLMAP model and its parameters, held fixed
+    camera_params: list[float] | None = None
+
+    def to_dict(self) -> dict:
+        d = {"size": [self.width, self.height], "exif": self.exif, "images": len(self.names),
+             "first": self.names[0], "per_image": self.per_image}
+        if self.camera_params is not None:
+            d["known"] = {"model": self.camera_model, "params": list(self.camera_params)}
+        return d
+
+
+def read_exif_camera(path: Path) -> dict:
+    """EXIF make, model and focal length (mm, and 35 mm equivalent) from an image header; {} if none."""
+    from PIL import Image
+
+    out: dict = {}
+    try:
+        with Image.open(path) as im:
+            ex = im.getexif()
+            if not ex:
+                return out
+            for tag, key in ((271, "make"), (272, "model")):
+                v = ex.get(tag)
+                if isinstance(v, str) and v.strip():
+                    out[key] = v.strip()[:64]
+            sub = ex.get_ifd(0x8769)
+            for tag, key in ((37386, "focal_mm"), (41989, "focal_35mm")):
+                v = sub.get(tag)
+                try:
+                    f = float(v)
+                except (TypeError, ValueError):
+                    continue
+                if math.isfinite(f) and 0 < f < 10_000:
+                    out[key] = round(f, 3)
+    except Exception:  # EXIF is a hint only: unreadable EXIF must not stop SfM
+        return {}
+    return out
+
+
+def camera_groups(paths: list[Path], names: list[str], opts: SfmOptions) -> list[CameraGroup]:
+    """Group images into COLMAP cameras (see CameraGroup); names in the given order inside each group,
+    groups ordered by their first image. Fixed intrinsics need one image size."""
+    from splattwin.capture.dataset import image_size
+
+    info = []
+    for p, n in zip(paths, names):
+        w, h = image_size(p)
+        info.append((n, w, h, read_exif_camera(p)))
+    if opts.intrinsics is not None:
+        sizes = {(w, h) for _, w, h, _ in info}
+        if len(sizes) > 1:
+            raise InputError(f"known intrinsics (--intrinsics) need one image size, but the images have "
+                             f"{len(sizes)} sizes: {', '.join(f'{w}x{h}' for w, h in sorted(sizes))}", paths[0].parent)
+    if opts.intrinsics is not None:
+        w, h = info[0][1], info[0][2]
+        return [CameraGroup([n for n, *_ in info], w, h, info[0][3], camera_model="PINHOLE",
+                            camera_params=[float(v) for v in opts.intrinsics])]
+    if not opts.shared_intrinsics:
+        return [CameraGroup([n], w, h, ex, per_image=True) for n, w, h, ex in info]
+    groups: dict[tuple, CameraGroup] = {}
+    for n, w, h, ex in info:
+        key = (w, h, ex.get("make"), ex.get("model"), ex.get("focal_mm"), ex.get("focal_35mm"))
+        if key not in groups:
+            groups[key] = CameraGroup([], w, h, ex)
+        groups[key].names.append(n)
+    return list(groups.values())
+
+
+# -- retry plan ------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Attempt:
+    """One SfM attempt: which features, matching and mapping settings (see `retry_plan`)."""
+
+    name: str
+    why: str
+    features: str = "base"      # "base" | "more"
+    cameras: str = "base"       # "base" | "shared"
+    matching: str = "base"      # "base" | "guided"
+    mapping: str = "default"    # "default" | "relaxed" | "fixed_focal"
+    merge: bool = False
+
+    @property
+    def db_key(self) -> str:
+        return f"{self.features}_{self.cameras}_{self.matching}"
+
+
+def retry_plan(groups: list[CameraGroup], opts: SfmOptions, small_images: bool, exif_focal: bool) -> list[Attempt]:
+    """Attempts in order, cheapest first. The first is the default run; retries only follow while images
+    stay unregistered. Mapping-only retries re-use the features and matches; guided matching re-matches
+    the same features; more features re-extracts (only worthwhile on small images, where the size bound
+    did not already give the feature budget)."""
+    plan = [Attempt("default", "default settings")]
+    if not opts.retry:
+        return plan
+    plan.append(Attempt("relaxed", "relaxed initialisation and registration thresholds, sub-models merged",
+                        mapping="relaxed", merge=True))
+    same_size = len({(g.width, g.height) for g in groups}) == 1
+    if not opts.shared_intrinsics and same_size and len(groups) > 1 and opts.intrinsics is None:
+        plan.append(Attempt("shared_intrinsics", "one camera shared by all images (same size)", cameras="shared",
+                            mapping="relaxed", merge=True))
+    if exif_focal and opts.intrinsics is None:
+        plan.append(Attempt("exif_focal", "focal length fixed to the EXIF value", mapping="fixed_focal", merge=True))
+    plan.append(Attempt("guided", "guided matching (epipolar-guided re-matching of the same features)",
+                        matching="guided", mapping="relaxed", merge=True))
+    if small_images:
+        plan.append(Attempt("more_features", "more features (lower SIFT threshold) on the small images, "
+                                             "guided matching", features="more", matching="guided",
+                            mapping="relaxed", merge=True))
+    return plan
+
+
+def first_octave(min_side: int, features: str = "base") -> int:
+    """SIFT's first octave: -1 (image upsampled 2x, COLMAP's default) unless every image is at least
+    `LARGE_SIDE` px after the size bound. Then the upsampled octave's small-scale features would be the
+    first ones dropped by the feature cap anyway (COLMAP keeps the largest scales): on the statue photos
+    (1600 px) octave 0 cut extraction from 14.9 to 4.7 CPU s and its memory from 0.97 to 0.35 GB with the
+    same 9/9 registered; at ~1000 px (british_museum) it lost two thirds of the points, so it is kept there."""
+    return 0 if features == "base" and min_side >= LARGE_SIDE else -1
+
+
+def _extraction_options(opts: SfmOptions, features: str, threads: int, min_side: int) -> dict:
+    o = {"num_threads": threads, "max_image_size": opts.max_image_size if opts.max_image_size > 0 else -1,
+         "sift.max_num_features": opts.max_num_features, "sift.peak_threshold": opts.peak_threshold,
+         "sift.first_octave": first_octave(min_side, features)}
+    if features == "more":
+        o["sift.max_num_features"] = 2 * opts.max_num_features
+        o["sift.peak_threshold"] = opts.peak_threshold / 2
+    return o
+
+
+def _matching_options(opts: SfmOptions, matching: str, threads: int) -> tuple[dict, dict]:
+    m = {"num_threads": threads, "sift.max_ratio": opts.max_ratio, "guided_matching": matching == "guided"}
+    v = {"min_num_inliers": opts.min_two_view_inliers, "ransac.random_seed": opts.seed}
+    return m, v
+
+
+def mapping_options(opts: SfmOptions, n: int, mode: str = "default", threads: int = 1) -> dict:
+    """IncrementalPipelineOptions for `mode` "default", "relaxed" or "fixed_focal" (relaxed + focal
+    lengths held at their prior) as dotted attributes."""
+    o: dict = {"num_threads": threads, "random_seed": opts.seed, "min_model_size": min(3, n),
+               "multiple_models": True, "extract_colors": True,
+               # COLMAP 4's structure-less registration fallback took 15-30 s per failing image on the
+               # cake photos (8 views) and registered nothing the relaxed retry does not
+               "structure_less_registration_fallback": False,
+               "mapper.init_min_num_inliers": 50, "mapper.abs_pose_min_num_inliers": 20,
+               "mapper.init_min_tri_angle": 8.0, "mapper.random_seed": opts.seed,
+               # Global BA after every image: at <= a few dozen views it costs little and keeps drift out.
+               "ba_global_frames_ratio": 1.0 + 1.0 / max(n, 2), "ba_global_points_ratio": 1.0 + 1.0 / max(n, 2)}
+    if n > 100:  # large captures: COLMAP's own schedule (global BA when the model grew by 10 %)
+        o.pop("ba_global_frames_ratio")
+        o.pop("ba_global_points_ratio")
+    if mode in ("relaxed", "fixed_focal"):
+        # Wide baselines and weak texture: fewer inliers and a smaller angle suffice to start, and images
+        # with few 2D-3D inliers are still tried (cake: 3/8 -> 8/8 registered with guided matching).
+        # Two-view tracks are triangulated too: more 2D-3D correspondences for the next image.
+        o.update({"min_num_matches": 10, "mapper.init_min_num_inliers": 15, "mapper.abs_pose_min_num_inliers": 6,
+                  "mapper.abs_pose_min_inlier_ratio": 0.1, "mapper.abs_pose_max_error": 16.0,
+                  "mapper.init_min_tri_angle": 2.0, "mapper.max_reg_trials": 5,
+                  "triangulation.ignore_two_view_tracks": False})
+    if mode == "fixed_focal" or opts.intrinsics is not None:
+        o.update({"ba_refine_focal_length": False, "mapper.abs_pose_refine_focal_length": False})
+    if opts.intrinsics is not None:
+        o.update({"ba_refine_principal_point": False, "ba_refine_extra_params": False,
+                  "mapper.abs_pose_refine_extra_params": False})
+    return o
+
+
+def explain_failures(names: list[str], registered: set[str], keypoints: dict[str, int],
+                     verified: dict[tuple[str, str], int], min_inliers: int, sub_models: list[set[str]] | None = None,
+                     min_features: int = 100) -> dict[str, str]:
+    """Why each unregistered image failed, from its features and its verified matches (inlier counts per
+    image pair). sub_models: image sets of the smaller sub-models (not merged into the main one)."""
+    out: dict[str, str] = {}
+    for n in names:
+        if n in registered:
+            continue
+        k = keypoints.get(n, 0)
+        if k < min_features:
+            out[n] = f"only {k} features: textureless, blurred or over-exposed"
+            continue
+        links = {(b if a == n else a): c for (a, b), c in verified.items() if n in (a, b) and c >= min_inliers}
+        if not links:
+            out[n] = (f"no verified matches with any other image ({k} features): it does not overlap the others "
+                      "or the viewpoint/lighting differs too much")
+            continue
+        to_reg = {m: c for m, c in links.items() if m in registered}
+        sub = next((s for s in sub_models or [] if n in s), None)
+        if sub is not None:
+            out[n] = (f"registered only in a separate sub-model of {len(sub)} images that shares too few images "
+                      "with the main one to be merged")
+        elif not to_reg:
+            others = sorted(links, key=lambda m: -links[m])[:3]
+            out[n] = f"matches only other unregistered images ({', '.join(others)}): a separate group of views"
+        else:
+            best = max(to_reg, key=lambda m: to_reg[m])
+            out[n] = (f"its pose could not be estimated from the registered images (best: {to_reg[best]} inlier "
+                      f"matches with {best}): too few of them see points of the model")
+    return out
+
+
+# -- the run ---------------------------------------------------------------------------------------------
+def _image_layout(image_paths: list[Path]) -> tuple[Path, list[str]]:
+    """Common image folder and the names relative to it (COLMAP identifies images by these names)."""
+    paths = [Path(p).resolve() for p in image_paths]
+    root = Path(os.path.commonpath([str(p.parent) for p in paths]))
+    names = [p.relative_to(root).as_posix() for p in paths]
+    if len(set(names)) != len(names):
+        raise InputError("duplicate image paths in the dataset", root)
+    return root, names
+
+
+def _config_key(opts: SfmOptions, names: list[str]) -> dict:
+    d = asdict(opts)
+    for k in ("min_registered", "num_threads", "max_memory_gib", "retry"):
+        d.pop(k)  # do not change what a finished step computed
+    d["images"] = names
+    return d
+
+
+class _Run:
+    """State of one `run_sfm` call: folders, databases, progress, accumulated timings."""
+
+    def __init__(self, work: Path, image_root: Path, names: list[str], opts: SfmOptions, progress: StageProgress,
+                 groups: list[CameraGroup] | None = None, matcher: str | None = None, pairs_file: Path | None = None):
+        self.work, self.image_root, self.names, self.opts = work, image_root, names, opts
+        self.progress = progress
+        self.threads = _all_threads(opts)
+        self.timings: dict[str, float] = {}
+        self.peak = 0
+        self.groups = groups if groups is not None else camera_groups([image_root / n for n in names], names, opts)
+        self.matcher = matcher or choose_matcher(len(names), opts.matcher, opts.ordered, opts.exhaustive_max_images)
+        self.pairs_file = pairs_file
+        self.max_side = max(max(g.width, g.height) for g in self.groups)
+
+    def _add(self, key: str, stats: colmap_process.StepStats) -> None:
+        self.timings[key] = self.timings.get(key, 0.0) + stats.seconds
+        self.timings["cpu"] = self.timings.get("cpu", 0.0) + stats.cpu_seconds
+        self.peak = max(self.peak, stats.peak_rss_bytes)
+
+    def db_path(self, a: Attempt) -> Path:
+        return self.work / ("database.db" if a.db_key == "base_base_base" else f"database_{a.db_key}.db")
+
+    def _done(self, db: Path, stage: str) -> bool:
+        return (db.parent / f"{db.stem}.{stage}.done").is_file()
+
+    def _mark(self, db: Path, stage: str, info: dict) -> None:
+        io.write_json(db.parent / f"{db.stem}.{stage}.done", info)
+
+    # -- stages -------------------------------------------------------------------------------------
+    def extract(self, a: Attempt, label: str) -> Path:
+        db = self.db_path(a)
+        if self._done(db, "extract"):
+            return db
+        same_features = self.db_path(Attempt("src", "", features=a.features, cameras=a.cameras))
+        if same_features != db and self._done(same_features, "extract"):
+            # re-matching only (guided): copy the features, drop the matches
+            _copy_features(same_features, db)
+            self._mark(db, "extract", json.loads((db.parent / f"{same_features.stem}.extract.done").read_text()))
+            return db
+        o = self.opts
+        bound = o.max_image_size if o.max_image_size > 0 else 1 << 30
+        side = min(self.max_side, bound)
+        min_side = min(min(max(g.width, g.height), bound) for g in self.groups)
+        octave = first_octave(min_side, a.features)
+        # the upsampled octave (-1) holds 4x the pixels: budget for the size SIFT actually works on
+        threads = extraction_threads(o.num_threads, side * (2 if octave < 0 else 1), o.max_memory_gib)
+        groups = [CameraGroup(sum((g.names for g in self.groups), []), self.groups[0].width, self.groups[0].height)] \
+            if a.cameras == "shared" else self.groups
+        job_groups = []
+        for g in groups:
+            jg = {"names": g.names, "camera_model": o.camera_model, "per_image": g.per_image}
+            if g.camera_params is not None:
+                jg.update(camera_model=g.camera_model, camera_params=",".join(f"{v:.10g}" for v in g.camera_params),
+                          prior_focal=True)
+            job_groups.append(jg)
+        job = {"step": "extract", "db": str(db), "image_root": str(self.image_root), "names": self.names,
+               "groups": job_groups, "extraction": _extraction_options(o, a.features, threads, min_side)}
+        n = len(self.names)
+        res, st = colmap_process.run_step(
+            job, self.work, self.progress, f"{label}: SIFT features ({n} images, <= {side} px, {threads} threads)",
+            total=n, poll=lambda: colmap_process.db_counts(db).get("keypoints"), cleanup=[])
+        self._add("extract", st)
+        self._mark(db, "extract", {"keypoints": res["keypoints"]})
+        return db
+
+    def match(self, db: Path, a: Attempt, label: str) -> None:
+        if self._done(db, "match"):
+            return
+        o = self.opts
+        n = len(self.names)
+        m, v = _matching_options(o, a.matching, self.threads)
+        job: dict = {"step": "match", "db": str(db), "kind": self.matcher, "matching": m, "verification": v}
+        if self.matcher == "exhaustive":
+            # small blocks: the database (and so the progress) advances every few pairs
+            job["pairing"] = {"block_size": max(4, min(50, math.ceil(n / 3)))}
+            total = n * (n - 1) // 2
+        elif self.matcher == "sequential":
+            job["pairing"] = {"overlap": o.sequential_overlap, "quadratic_overlap": False, "num_threads": self.threads}
+            if o.loop_closure and n > o.sequential_overlap + 1:  # else every pair is matched already
+                job["loop_closure"] = {"path": str(self.work / "visual_index.bin"), "num_threads": self.threads}
+                job["pairing"].update({"loop_detection_period": 10, "loop_detection_num_images": 30})
+            total = n * min(o.sequential_overlap, n - 1)
+        elif self.matcher == "pairs":
+            job["pairs_file"] = str(self.pairs_file)
+            total = sum(1 for line in Path(self.pairs_file).read_text().splitlines() if line.strip())
+        else:  # retrieval
+            total = n * min(o.retrieval_neighbours, n - 1)
+            job = self._retrieval_job(db, job)
+        res, st = colmap_process.run_step(
+            job, self.work, self.progress, f"{label}: {self.matcher} matching"
+            + (" (guided)" if a.matching == "guided" else ""), total=total,
+            poll=lambda: colmap_process.db_counts(db).get("two_view_geometries"))
+        self._add("match", st)
+        self._mark(db, "match", res)
+
+    def _retrieval_job(self, db: Path, job: dict) -> dict:
+        # retrieval = match pairs proposed by a visual index of this capture: run as vocab-tree matching
+        job = dict(job)
+        job["kind"] = "vocabtree"
+        job["pairing"] = {"num_images": self.opts.retrieval_neighbours, "num_threads": self.threads}
+        job["loop_closure"] = {"path": str(self.work / "visual_index.bin"), "num_threads": self.threads}
+        return job
+
+    def map(self, db: Path, a: Attempt, label: str) -> list[Path]:
+        out = self.work / "models" / a.name
+        info = out.parent / f"{a.name}.json"
+        if info.is_file() and out.is_dir():
+            return [Path(p) for p in json.loads(info.read_text())["paths"]]
+        n = len(self.names)
+        job = {"step": "map", "db": str(db), "image_root": str(self.image_root), "out": str(out),
+               "num_images": n, "options": mapping_options(self.opts, n, a.mapping, self.threads)}
+        if a.mapping != "default" and n <= MAPPING_SEEDS_MAX_IMAGES:
+            job["seeds"] = [self.opts.seed + k for k in range(MAPPING_SEEDS)]
+        res, st = colmap_process.run_step(job, self.work, self.progress, f"{label}: incremental mapping", total=n,
+                                          cleanup=[out])
+        self._add("map", st)
+        paths = [Path(m["path"]) for m in res["models"]]
+        if a.merge and len(paths) > 1:
+            merged = self.merge(db, paths[0], paths[1:], out.parent / f"{a.name}_merged", label)
+            if merged is not None:
+                paths = [merged] + paths
+        io.write_json(info, {"paths": [str(p) for p in paths]})
+        return paths
+
+    def merge(self, db: Path, base: Path, donors: list[Path], out: Path, label: str) -> Path | None:
+        """The base model completed with the images the donor models registered (see colmap_worker's
+        step_merge); None if nothing could be added."""
+        info = out.parent / f"{out.name}.json"
+        if info.is_file():
+            return Path(json.loads(info.read_text())["path"]) if json.loads(info.read_text()).get("merged") else None
+        job = {"step": "merge", "db": str(db), "image_root": str(self.image_root), "out": str(out),
+               "base": str(base), "donors": [str(p) for p in donors],
+               "options": mapping_options(self.opts, len(self.names), "relaxed", self.threads)}
+        try:
+            res, st = colmap_process.run_step(job, self.work, self.progress, f"{label}: merging models",
+                                              cleanup=[out])
+        except colmap_process.StepError as e:  # merging is a bonus: keep what there is
+            log.warning("SfM: merging models failed: %s", e.message)
+            return None
+        self._add("map", st)
+        io.write_json(info, {"merged": bool(res.get("merged")), "path": str(out), "added": res.get("added", []),
+                             "rejected": res.get("rejected", [])})
+        if res.get("rejected"):
+            log.info("SfM merge: rejected %s (too few or inconsistent observations)", ", ".join(res["rejected"]))
+        return out if res.get("merged") else None
+
+
+def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | None = None,
+            progress: bool = True) -> SfmResult:
+    """Reconstruct camera poses and sparse points from images.
+
+    Args:
+        image_paths: images (any folders); names in the result are their paths relative to the common folder.
+        work_dir: folder for the databases, attempts and the model (sparse/); re-used to resume.
+        progress: live progress (bar on a terminal, plain lines in a redirected log).
+    Returns: SfmResult in COLMAP's frame. Raises InputError if mapping fails or too few images register;
+    KeyboardInterrupt (within about a second, the running step stopped and cleaned up) on Ctrl-C.
+    """
     import pycolmap
 
-    pycolmap.logging.minloglevel = 2  # glog: errors only; stages report through our progress bar
+    opts = opts or SfmOptions()
+    opts.validate()
+    if len(image_paths) < 2:
+        raise InputError(f"structure from motion needs at least 2 images, got {len(image_paths)}; {_ADVICE}")
+    for p in image_paths:
+        if not Path(p).is_file():
+            raise InputError("image not found", p)
+    work = Path(work_dir)
+    work.mkdir(parents=True, exist_ok=True)
+    image_root, names = _image_layout(image_paths)
+    names = sorted(names)  # COLMAP ids follow this order: same images in any order -> same model (and resume)
+    key = _config_key(opts, names)
+    key_path, model_dir = work / "sfm_config.json", work / "sparse"
+    if key_path.is_file() and json.loads(key_path.read_text()) != json.loads(json.dumps(key)):
+        log.info("SfM options or images changed: starting over in %s", work)
+        _clear_work(work)
+    io.write_json(key_path, key)
+
+    with StageProgress(progress) as bar:
+        if (model_dir / "done").is_file():
+            bar.update("SfM: re-using the finished model", 1, 1)
+            try:
+                meta = json.loads((model_dir / "done").read_text())
+            except json.JSONDecodeError:  # written by an older version
+                meta = {}
+            rec = pycolmap.Reconstruction(str(model_dir))
+            res = _result_from_reconstruction(rec, names, {}, image_root)
+            res.failures, res.attempts = meta.get("failures", {}), meta.get("attempts", [])
+            res.matcher, res.camera_groups = meta.get("matcher", ""), meta.get("camera_groups", [])
+            res.peak_rss_gib = float(meta.get("peak_rss_gib", 0.0))
+            res.resumed_timings = meta.get("timings", {})
+            _check_enough(res, opts, image_root)
+            return res
+        run = _Run(work, image_root, names, opts, bar)
+        outcome, attempt = _run_attempts(run, bar)
+        rec, sub_models, db = outcome.rec, outcome.sub_models, outcome.db
+        res = _result_from_reconstruction(rec, names, run.timings, image_root)
+        res.attempts = run_attempts_log(work)
+        res.matcher = run.matcher
+        res.camera_groups = [g.to_dict() for g in run.groups]
+        res.peak_rss_gib = run.peak / 2**30
+        kp, ver = _match_graph(db, names)
+        res.failures = explain_failures(names, set(res.cameras), kp, ver, opts.min_two_view_inliers, sub_models)
+        # final model: written beside, then renamed; `done` (with the report) marks it complete
+        tmp = work / "sparse.tmp"
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir()
+        rec.write(str(tmp))
+        io.write_json(tmp / "done", {"attempt": attempt.name, "failures": res.failures, "attempts": res.attempts,
+                                      "matcher": res.matcher, "camera_groups": res.camera_groups,
+                                      "timings": res.timings, "peak_rss_gib": res.peak_rss_gib})
+        shutil.rmtree(model_dir, ignore_errors=True)
+        os.replace(tmp, model_dir)
+    for n, why in res.failures.items():
+        log.warning("SfM: %s not registered: %s", n, why)
+    _check_enough(res, opts, image_root)
+    return res
+
+
+def _copy_features(src: Path, dst: Path) -> None:
+    """Copy a COLMAP database without its matches (same images, cameras and features), atomically."""
+    import sqlite3
+
+    colmap_process.recover_database(src)
+    with io.atomic_path(dst) as tmp:
+        shutil.copyfile(src, tmp)
+        con = sqlite3.connect(str(tmp))
+        try:
+            con.execute("DELETE FROM matches")
+            con.execute("DELETE FROM two_view_geometries")
+            con.commit()
+        finally:
+            con.close()
+
+
+def _clear_work(work: Path) -> None:
+    for q in work.iterdir():
+        if q.name == "sfm_config.json":
+            continue
+        if q.is_dir():
+            shutil.rmtree(q)
+        else:
+            q.unlink()
+
+
+def run_attempts_log(work: Path) -> list[dict]:
+    p = work / "attempts.json"
+    return json.loads(p.read_text()) if p.is_file() else []
+
+
+@dataclass
+class AttemptOutcome:
+    """What one attempt produced: its largest model (None: nothing reconstructed), registered images,
+    image sets of the other sub-models that hold images the largest lacks, its database, sub-model sizes."""
+
+    rec: object | None
+    registered: int
+    sub_models: list[set[str]]
+    db: Path | None
+    models: list[int] = field(default_factory=list)
+    path: Path | None = None                              # the largest model's folder
+    paths: list[Path] = field(default_factory=list)       # all its models' folders
+
+
+def run_plan(plan: list[Attempt], num_images: int, execute, say=lambda text: None,
+             record=lambda attempt, outcome, seconds: None, complete=None) -> tuple[AttemptOutcome, Attempt]:
+    """Run attempts in order until one registers every image; returns the best (most registered, the
+    earlier on a tie: stricter settings). execute(attempt, index) -> AttemptOutcome. complete(best,
+    outcomes so far) -> AttemptOutcome | None: after a retry, the best model completed with images other
+    attempts registered (merging across attempts). InputError if no attempt reconstructed anything."""
+    best: tuple[AttemptOutcome, Attempt] | None = None
+    history: list[AttemptOutcome] = []
+    for i, a in enumerate(plan):
+        if i > 0:
+            say(f"SfM: {best[0].registered if best else 0}/{num_images} images registered; retrying with {a.why}")
+        t0 = time.perf_counter()
+        out = execute(a, i)
+        record(a, out, time.perf_counter() - t0)
+        history.append(out)
+        if out.rec is not None and (best is None or out.registered > best[0].registered):
+            best = (out, a)
+        if best is not None and best[0].registered < num_images and i > 0 and complete is not None:
+            merged = complete(best[0], history)
+            if merged is not None and merged.registered > best[0].registered:
+                best = (merged, Attempt(f"{best[1].name}+merged", f"{best[1].why}, completed from other attempts",
+                                        best[1].features, best[1].cameras, best[1].matching, best[1].mapping))
+        if best is not None and best[0].registered >= num_images:
+            break
+    if best is None:
+        raise InputError(f"structure from motion failed: no initial image pair could be reconstructed from "
+                         f"{num_images} images (tried: {', '.join(a.name for a in plan)}); {_ADVICE}")
+    return best
+
+
+def _outcome(recs: list, paths: list[Path], db: Path) -> AttemptOutcome:
+    """AttemptOutcome of the models `recs` (stored in `paths`) reconstructed from `db`."""
+    if not recs:
+        return AttemptOutcome(None, 0, [], db)
+    k = max(range(len(recs)), key=lambda j: recs[j].num_reg_images())
+    rec = recs[k]
+    main = {rec.image(i).name for i in rec.reg_image_ids()}
+    subs = [s for s in ({r.image(i).name for i in r.reg_image_ids()} for r in recs if r is not rec) if s - main]
+    return AttemptOutcome(rec, int(rec.num_reg_images()), subs, db, [r.num_reg_images() for r in recs],
+                          path=Path(paths[k]), paths=[Path(p) for p in paths])
+
+
+def _run_attempts(run: _Run, bar: StageProgress) -> tuple[AttemptOutcome, Attempt]:
+    """The retry plan for this capture, run until every image registers (see `run_plan`)."""
+    import pycolmap
+
+    n = len(run.names)
+    # "small": the size bound did not shrink the images (much), so more features must come from a lower
+    # SIFT threshold, not from more pixels
+    limit = run.opts.max_image_size if run.opts.max_image_size > 0 else 1600
+    small = run.max_side <= 0.75 * limit
+    exif_focal = any("focal_mm" in g.exif or "focal_35mm" in g.exif for g in run.groups)
+    plan = retry_plan(run.groups, run.opts, small_images=small, exif_focal=exif_focal)
+    log_path = run.work / "attempts.json"
+    done_log = run_attempts_log(run.work)
+
+    def execute(a: Attempt, i: int) -> AttemptOutcome:
+        label = "SfM" if i == 0 else f"SfM retry {i}/{len(plan) - 1} ({a.name})"
+        if i > 0:
+            log.info("SfM retry %d/%d: %s", i, len(plan) - 1, a.why)
+        t0 = time.perf_counter()
+        db = run.extract(a, label)
+        run.match(db, a, label)
+        paths = run.map(db, a, label)
+        recs = [pycolmap.Reconstruction(str(p)) for p in paths]
+        if i > 0:
+            run.timings["retries"] = run.timings.get("retries", 0.0) + time.perf_counter() - t0
+        if not recs:
+            return AttemptOutcome(None, 0, [], db)
+        return _outcome(recs, paths, db)
+
+    def complete(best: AttemptOutcome, history: list[AttemptOutcome]) -> AttemptOutcome | None:
+        donors = [p for h in history for p in h.paths if p != best.path]
+        if best.path is None or not donors:
+            return None
+        k = len(history)
+        merged = run.merge(best.db, best.path, donors, run.work / "models" / f"completed_{k}", "SfM: completing")
+        if merged is None:
+            return None
+        return _outcome([pycolmap.Reconstruction(str(merged))], [merged], best.db)
+
+    def record(a: Attempt, out: AttemptOutcome, seconds: float) -> None:
+        if not any(e.get("name") == a.name for e in done_log):
+            done_log.append({"name": a.name, "why": a.why, "registered": out.registered, "models": out.models,
+                             "seconds": round(seconds, 2)})
+            io.write_json(log_path, done_log)
+
+    try:
+        return run_plan(plan, n, execute, say=bar.message, record=record, complete=complete)
+    except InputError as e:
+        raise InputError(e.problem, run.image_root) from e
+
+
+def _match_graph(db: Path, names: list[str]) -> tuple[dict[str, int], dict[tuple[str, str], int]]:
+    """Keypoints per image and verified inlier matches per image pair, read from a COLMAP database."""
+    import sqlite3
+
+    con = sqlite3.connect(str(db))
+    try:
+        id_name = dict(con.execute("SELECT image_id, name FROM images").fetchall())
+        kp = {id_name[i]: int(r) for i, r in con.execute("SELECT image_id, rows FROM keypoints") if i in id_name}
+        ver = {}
+        for pid, rows in con.execute("SELECT pair_id, rows FROM two_view_geometries"):
+            a, b = divmod(int(pid), _MAX_IMAGE_ID)
+            if a in id_name and b in id_name:
+                ver[(id_name[a], id_name[b])] = int(rows)
+    finally:
+        con.close()
+    return {n: kp.get(n, 0) for n in names}, ver
 
 
 def _camera_from_colmap(cam, T_cam_world: np.ndarray, name: str) -> Camera:
@@ -111,154 +833,18 @@ def _camera_from_colmap(cam, T_cam_world: np.ndarray, name: str) -> Camera:
     return Camera(K=K, width=cam.width, height=cam.height, T_world_cam=invert_se3(T_cam_world), dist=dist, name=name)
 
 
-def _image_layout(image_paths: list[Path]) -> tuple[Path, list[str]]:
-    """Common image folder and the names relative to it (COLMAP identifies images by these names)."""
-    paths = [Path(p).resolve() for p in image_paths]
-    root = Path(os.path.commonpath([str(p.parent) for p in paths]))
-    names = [p.relative_to(root).as_posix() for p in paths]
-    if len(set(names)) != len(names):
-        raise InputError("duplicate image paths in the dataset", root)
-    return root, names
+def _check_enough(res: SfmResult, opts: SfmOptions, image_root: Path) -> None:
+    n = res.num_total
+    need = opts.min_registered if opts.min_registered is not None else max(3, n - 3)
+    need = min(need, n)
+    if res.num_registered < need:
+        why = "; ".join(f"{k}: {v}" for k, v in res.failures.items()) or ", ".join(res.unregistered)
+        raise InputError(
+            f"structure from motion registered only {res.num_registered}/{n} images (need {need}); "
+            f"not registered: {why}; {_ADVICE}; or lower --min-registered", image_root)
 
 
-def _config_key(opts: SfmOptions, names: list[str]) -> dict:
-    d = asdict(opts)
-    d.pop("min_registered")  # does not change the reconstruction
-    d["images"] = names
-    return d
-
-
-def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | None = None,
-            progress: bool = True) -> SfmResult:
-    """Reconstruct camera poses and sparse points from images.
-
-    Args:
-        image_paths: images (any folders); names in the result are the file stems' relative paths.
-        work_dir: folder for database.db and the model (sparse/); re-used to resume.
-    Returns: SfmResult in COLMAP's frame. Raises InputError if mapping fails or too few images register.
-    """
-    import pycolmap
-
-    opts = opts or SfmOptions()
-    _quiet_colmap()
-    if len(image_paths) < 2:
-        raise InputError(f"structure from motion needs at least 2 images, got {len(image_paths)}; {_ADVICE}")
-    for p in image_paths:
-        if not Path(p).is_file():
-            raise InputError("image not found", p)
-    work = Path(work_dir)
-    work.mkdir(parents=True, exist_ok=True)
-    image_root, names = _image_layout(image_paths)
-    names = sorted(names)  # COLMAP ids follow this order: same images in any order -> same model (and resume)
-    key = _config_key(opts, names)
-    key_path, db, model_dir = work / "sfm_config.json", work / "database.db", work / "sparse"
-    if key_path.is_file() and json.loads(key_path.read_text()) != json.loads(json.dumps(key)):
-        log.info("SfM options or images changed: starting over in %s", work)
-        for q in (db, model_dir):
-            if q.is_dir():
-                shutil.rmtree(q)
-            elif q.exists():
-                q.unlink()
-    io.write_json(key_path, key)
-
-    timings: dict[str, float] = {}
-    with _stage_progress(progress) as bar:
-        if (model_dir / "done").is_file():
-            rec = pycolmap.Reconstruction(str(model_dir))
-            bar("SfM: re-using finished model", 1, 1)
-        else:
-            # -- extract -----------------------------------------------------------------------
-            t0 = time.perf_counter()
-            bar("SfM 1/3: SIFT features", 0, 1)
-            reader = pycolmap.ImageReaderOptions()
-            if opts.intrinsics is not None:
-                reader.camera_model = "PINHOLE"
-                reader.camera_params = ",".join(f"{v:.10g}" for v in opts.intrinsics)
-            else:
-                reader.camera_model = opts.camera_model
-            # One extraction thread: with more, image ids follow thread completion order and the whole
-            # reconstruction changes from run to run (measured: equally fast at 320x240 on 2 cores).
-            ext = pycolmap.FeatureExtractionOptions(num_threads=1)
-            ext.sift.max_num_features = opts.max_num_features
-            ext.sift.peak_threshold = opts.peak_threshold
-            mode = pycolmap.CameraMode.SINGLE if (opts.shared_intrinsics or opts.intrinsics is not None) \
-                else pycolmap.CameraMode.PER_IMAGE
-            pycolmap.extract_features(str(db), str(image_root), image_names=names, camera_mode=mode,
-                                      reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu)
-            timings["extract"] = time.perf_counter() - t0
-            # -- match -------------------------------------------------------------------------
-            t0 = time.perf_counter()
-            matcher = opts.matcher if opts.matcher != "auto" else ("exhaustive" if len(names) <= 50 else "sequential")
-            bar(f"SfM 2/3: {matcher} matching", 0, 1)
-            mopts = pycolmap.FeatureMatchingOptions(num_threads=opts.num_threads)
-            mopts.guided_matching = True  # more inliers per pair: 9/11 instead of 2/11 views on a 160x120 scene
-            mopts.sift.max_ratio = opts.max_ratio
-            verify = pycolmap.TwoViewGeometryOptions()
-            verify.min_num_inliers = opts.min_two_view_inliers
-            verify.ransac.random_seed = opts.seed
-            if matcher == "exhaustive":
-                pycolmap.match_exhaustive(str(db), matching_options=mopts, verification_options=verify,
-                                          device=pycolmap.Device.cpu)
-            elif matcher == "sequential":
-                pair = pycolmap.SequentialPairingOptions(overlap=opts.sequential_overlap, loop_detection=False)
-                pycolmap.match_sequential(str(db), matching_options=mopts, pairing_options=pair,
-                                          verification_options=verify, device=pycolmap.Device.cpu)
-            else:
-                raise InputError(f"unknown matcher {opts.matcher!r} (auto, exhaustive, sequential)")
-            timings["match"] = time.perf_counter() - t0
-            # -- map ---------------------------------------------------------------------------
-            t0 = time.perf_counter()
-            done = [0]
-
-            def _next() -> None:
-                done[0] += 1
-                bar("SfM 3/3: incremental mapping", min(done[0] + 1, len(names)), len(names))
-
-            bar("SfM 3/3: incremental mapping", 0, len(names))
-            if model_dir.exists():
-                shutil.rmtree(model_dir)
-            model_dir.mkdir(parents=True)
-            recs = pycolmap.incremental_mapping(str(db), str(image_root), str(model_dir / "tmp"),
-                                                options=_mapping_options(opts, len(names)),
-                                                initial_image_pair_callback=_next, next_image_callback=_next)
-            timings["map"] = time.perf_counter() - t0
-            if not recs:
-                raise InputError(f"structure from motion failed: no initial image pair could be reconstructed "
-                                 f"from {len(names)} images; {_ADVICE}", image_root)
-            rec = max(recs.values(), key=lambda r: r.num_reg_images())
-            rec.write(str(model_dir))
-            shutil.rmtree(model_dir / "tmp", ignore_errors=True)
-            (model_dir / "done").write_text("ok\n")
-    return _result_from_reconstruction(rec, names, opts, timings, image_root)
-
-
-def _mapping_options(opts: SfmOptions, n: int):
-    import pycolmap
-
-    o = pycolmap.IncrementalPipelineOptions()
-    o.num_threads = opts.num_threads
-    o.random_seed = opts.seed
-    o.min_model_size = min(3, n)
-    o.multiple_models = True
-    o.extract_colors = True
-    o.mapper.init_min_num_inliers = 50
-    o.mapper.abs_pose_min_num_inliers = 20
-    o.mapper.init_min_tri_angle = 8.0
-    o.mapper.random_seed = opts.seed
-    # Global BA after every image: at <= a few dozen views it costs little and keeps drift out.
-    o.ba_global_frames_ratio = 1.0 + 1.0 / max(n, 2)
-    o.ba_global_points_ratio = 1.0 + 1.0 / max(n, 2)
-    if opts.intrinsics is not None:
-        o.ba_refine_focal_length = False
-        o.ba_refine_principal_point = False
-        o.ba_refine_extra_params = False
-        o.mapper.abs_pose_refine_focal_length = False
-        o.mapper.abs_pose_refine_extra_params = False
-    return o
-
-
-def _result_from_reconstruction(rec, names: list[str], opts: SfmOptions, timings: dict[str, float],
-                                image_root: Path) -> SfmResult:
+def _result_from_reconstruction(rec, names: list[str], timings: dict[str, float], image_root: Path) -> SfmResult:
     cameras: dict[str, Camera] = {}
     for iid in rec.reg_image_ids():
         im = rec.image(iid)
@@ -266,15 +852,6 @@ def _result_from_reconstruction(rec, names: list[str], opts: SfmOptions, timings
         T_cam_world[:3, :] = im.cam_from_world().matrix()
         cameras[im.name] = _camera_from_colmap(rec.camera(im.camera_id), T_cam_world, im.name)
     unregistered = [n for n in names if n not in cameras]
-    need = opts.min_registered if opts.min_registered is not None else max(3, len(names) - 3)
-    need = min(need, len(names))
-    if len(cameras) < need:
-        raise InputError(
-            f"structure from motion registered only {len(cameras)}/{len(names)} images (need {need}); "
-            f"not registered: {', '.join(unregistered)}; {_ADVICE}; or lower --min-registered", image_root)
-    if unregistered:
-        log.warning("SfM: %d/%d images did not register and get no pose: %s", len(unregistered), len(names),
-                    ", ".join(unregistered))
     pts = rec.points3D
     ids = sorted(pts.keys())  # stable order: a resumed run must give the same frame
     xyz = np.array([pts[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
@@ -283,32 +860,4 @@ def _result_from_reconstruction(rec, names: list[str], opts: SfmOptions, timings
     tl = np.array([pts[i].track.length() for i in ids], dtype=np.int64)
     return SfmResult(cameras=cameras, unregistered=unregistered, points_xyz=xyz, points_rgb=rgb, points_error=err,
                      points_track_len=tl, mean_reproj_error=float(rec.compute_mean_reprojection_error()),
-                     timings=timings)
-
-
-class _stage_progress:
-    """Rich progress bar with one line per SfM stage (description + count + elapsed)."""
-
-    def __init__(self, enabled: bool):
-        self.enabled = enabled
-        self.progress = None
-        self.task = None
-
-    def __enter__(self):
-        if self.enabled:
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-            self.progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                                     TimeElapsedColumn(), transient=False)
-            self.progress.__enter__()
-            self.task = self.progress.add_task("SfM", total=1)
-        return self
-
-    def __call__(self, desc: str, done: int, total: int) -> None:
-        if self.progress is not None:
-            self.progress.update(self.task, description=desc, completed=done, total=total)
-
-    def __exit__(self, *exc):
-        if self.progress is not None:
-            self.progress.__exit__(*exc)
-        return False
+                     timings=dict(timings))

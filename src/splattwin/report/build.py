@@ -175,8 +175,9 @@ def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
     except InputError as e:  # e.g. a twin of an earlier version whose images stayed with the capture
         sec.text(f"the input views are not available ({e}); the twin itself does not need them")
         return
-    c = ds.frames[0].camera
-    sec.text(f"{len(ds.train())} training views and {len(ds.heldout())} held-out views at {c.width}×{c.height}.")
+    sizes = sorted({(f.camera.width, f.camera.height) for f in ds.frames})
+    at = f"{sizes[0][0]}×{sizes[0][1]}" if len(sizes) == 1 else f"{len(sizes)} image sizes ({', '.join(f'{w}×{h}' for w, h in sizes[:4])}{', ...' if len(sizes) > 4 else ''})"
+    sec.text(f"{len(ds.train())} training views and {len(ds.heldout())} held-out views at {at}.")
     if poses:
         rows = [[k, poses[k]] for k in ("method", "registered", "total", "mean_reproj_error_px", "sfm_s") if k in poses]
         if rows:

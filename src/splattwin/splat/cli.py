@@ -28,8 +28,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "-1 caps the width at 1600 (default 1)")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                    help="rasterizer device: cuda uses gsplat (default auto)")
-    p.add_argument("--init", choices=["auto", "sfm", "depth", "random"], default="auto",
-                   help="initial point cloud: dataset/SfM points, back-projected depth maps, or random "
+    p.add_argument("--init", choices=["auto", "sfm", "depth", "triangulate", "random"], default="auto",
+                   help="initial point cloud: dataset/SfM points, back-projected depth maps, points "
+                        "triangulated from the known poses, or random in the cameras' common view "
                         "(default auto: the first available in that order)")
     p.add_argument("--init-points", type=int, default=d.init_points,
                    help=f"at most this many initial Gaussians (default {d.init_points})")

@@ -1,4 +1,5 @@
-"""Initial Gaussians from a point cloud: SfM points, back-projected depth maps, or random in a box.
+"""Initial Gaussians from a point cloud: SfM points, back-projected depth maps, points triangulated from
+the known poses, or (last resort, with a warning) random points inside the cameras' common view.
 
 Scales start isotropic at the mean distance to the 3 nearest neighbours (scipy cKDTree), opacities at 0.1,
 rotations at identity, DC colour from the point colour, higher SH at zero (as 3DGS does).
@@ -170,16 +171,101 @@ def random_points(n: int, center: np.ndarray, half_extent: float | np.ndarray, s
     return xyz, rng.uniform(0, 1, size=(n, 3))
 
 
+def look_at_point(cameras: Sequence[Camera]) -> np.ndarray | None:
+    """[3] least-squares point nearest to all optical axes (where inward-facing cameras look), or None when
+    the axes are (nearly) parallel or the point is behind a camera."""
+    if len(cameras) < 2:
+        return None
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for c in cameras:
+        d = c.T_world_cam[:3, 2]
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ c.center
+    if np.linalg.cond(A) > 1e6:
+        return None
+    x = np.linalg.solve(A, b)
+    if any(c.world_to_cam(x[None])[0, 2] <= 0 for c in cameras):
+        return None
+    return x
+
+
+def random_points_in_view(cameras: Sequence[Camera], n: int, seed: int = 0, min_view_fraction: float = 0.5
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """n random points inside the cameras' common view: uniform in a cube around the point the cameras
+    look at (half side = the largest camera distance to it), kept where at least `min_view_fraction` of the
+    cameras (and at least 2) see them in front of them and inside the image (fewer when too few such
+    points exist).
+    Random colours. The cameras' own surroundings, where random points become floaters that each view
+    overfits, stay empty."""
+    rng = np.random.default_rng(seed)
+    center, scale = scene_center_and_scale(cameras)
+    target = look_at_point(cameras)
+    if target is None:  # no common focus: a point one scene radius ahead of the mean camera
+        d = np.mean([c.T_world_cam[:3, 2] for c in cameras], axis=0)
+        target = center + (d / max(np.linalg.norm(d), 1e-9)) * scale
+    half = max(float(np.max([np.linalg.norm(c.center - target) for c in cameras])), 1e-6)
+    need = min(len(cameras), max(2, int(np.ceil(min_view_fraction * len(cameras)))))  # >= 2 views: no floaters
+    kept: list[np.ndarray] = []
+    loose: list[np.ndarray] = []
+    total = 0
+    for _ in range(50):
+        cand = target + rng.uniform(-1, 1, size=(max(4 * n, 1000), 3)) * half
+        seen = np.zeros(len(cand), int)
+        for c in cameras:
+            uv, z = c.project(cand)
+            seen += c.in_image(uv) & (z > 0.02 * half)
+        kept.append(cand[seen >= need])
+        loose.append(cand[(seen >= 1) & (seen < need)])
+        total += len(kept[-1])
+        if total >= n:
+            break
+    xyz = np.concatenate(kept)[:n]
+    if len(xyz) < n:
+        xyz = np.concatenate([xyz, np.concatenate(loose)[: n - len(xyz)]])
+    if len(xyz) == 0:
+        xyz = target + rng.uniform(-1, 1, size=(n, 3)) * half
+    return xyz, rng.uniform(0, 1, size=(len(xyz), 3))
+
+
+def points_from_known_poses(frames: Sequence[Frame], work_dir: str | None = None, progress: bool = True
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    """Sparse points triangulated from the frames' images with their cameras held fixed (COLMAP's point
+    triangulator, `splattwin.poses.triangulate`); colours in [0, 1]. InputError when nothing triangulates."""
+    from splattwin.poses.triangulate import triangulate_known_poses
+
+    tri = triangulate_known_poses([f.image_path for f in frames], [f.camera for f in frames], work_dir,
+                                  progress=progress)
+    return tri.points_xyz, tri.points_rgb.astype(np.float64) / 255.0
+
+
+def _images_exist(frames: Sequence[Frame]) -> bool:
+    from pathlib import Path
+
+    return len(frames) >= 2 and all(f.image_path is not None and Path(f.image_path).is_file() for f in frames)
+
+
 def initial_gaussians(method: str, train_frames: Sequence[Frame], points_xyz: np.ndarray | None = None,
                       points_rgb: np.ndarray | None = None, depth_scale: float = 1.0, sh_degree: int = 3,
                       max_points: int = 30_000, seed: int = 0) -> tuple[Gaussians, str]:
-    """Initial Gaussians by `method` ("auto" | "sfm" | "depth" | "random"); returns (gaussians, method used).
-    "auto" takes the SfM/dataset points if present, else depth maps if present, else random."""
+    """Initial Gaussians by `method` ("auto" | "sfm" | "depth" | "triangulate" | "random"); returns
+    (gaussians, method used). "auto" takes the SfM/dataset points if present, else depth maps if present,
+    else points triangulated from the images with their known poses, else (with a warning) random points
+    in the cameras' common view."""
+    tri: tuple[np.ndarray, np.ndarray] | None = None
     if method == "auto":
         if points_xyz is not None and len(points_xyz) >= 4:
             method = "sfm"
         elif any(f.depth_path is not None for f in train_frames):
             method = "depth"
+        elif _images_exist(train_frames):
+            try:
+                tri = points_from_known_poses(train_frames)
+                method = "triangulate" if len(tri[0]) >= 4 else "random"
+            except InputError as e:
+                log.warning("could not triangulate points from the known poses: %s", e)
+                method = "random"
         else:
             method = "random"
     if method == "sfm":
@@ -193,12 +279,19 @@ def initial_gaussians(method: str, train_frames: Sequence[Frame], points_xyz: np
             xyz, rgb = xyz[keep], rgb[keep]
     elif method == "depth":
         xyz, rgb = points_from_depth(train_frames, depth_scale, max_points=max_points, seed=seed)
+    elif method == "triangulate":
+        xyz, rgb = tri if tri is not None else points_from_known_poses(train_frames)
+        if len(xyz) > max_points:
+            keep = np.sort(np.random.default_rng(seed).choice(len(xyz), max_points, replace=False))
+            xyz, rgb = xyz[keep], rgb[keep]
     elif method == "random":
-        # 3DGS/gsplat random init: a cube around the cameras' centre, as large as the camera spread
-        center, scale = scene_center_and_scale([f.camera for f in train_frames])
-        xyz, rgb = random_points(min(max_points, 20_000), center, scale, seed)
+        n = min(max_points, 20_000)
+        log.warning("no point cloud, depth maps or triangulated points: starting from %d random Gaussians inside "
+                    "the cameras' common view. Expect a hazy result; give depth maps, a point cloud, or images "
+                    "with enough texture to triangulate", n)
+        xyz, rgb = random_points_in_view([f.camera for f in train_frames], n, seed)
     else:
-        raise InputError(f"unknown --init method {method!r}; choose auto, sfm, depth or random")
+        raise InputError(f"unknown --init method {method!r}; choose auto, sfm, depth, triangulate or random")
     ok = np.all(np.isfinite(xyz), axis=1)
     if not ok.all():
         log.warning("dropping %d non-finite initial points", int((~ok).sum()))

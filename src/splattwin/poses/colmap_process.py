@@ -1,0 +1,227 @@
+"""Run a pycolmap step in a child process (`splattwin.poses.colmap_worker`) and stay responsive.
+
+Why a process: pycolmap's extraction, matching and mapping block in C++ and ignore Ctrl-C until they
+return (minutes on large photos). The parent waits on the child's progress lines with a short timeout, so
+KeyboardInterrupt is raised within a fraction of a second; the child is then terminated (SIGTERM, SIGKILL
+after 2 s) and whatever the step had half-written is cleaned: its `*.tmp` output folder is removed and the
+SQLite database's hot journal is rolled back, leaving the last committed features/matches for a resumed
+run. Progress: the child's own events (mapping: one per registered image) plus a poll of the database
+(extraction: images with keypoints; matching: pairs matched), shown through `StageProgress`. The child's
+peak resident memory (VmHWM) is recorded per step.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import logging
+import os
+import queue
+import shutil
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from splattwin.poses.progress import StageProgress
+
+log = logging.getLogger(__name__)
+
+TERMINATE_GRACE_S = 2.0
+
+
+class StepError(RuntimeError):
+    """A pycolmap step failed in the child (message, plus the tail of its stderr)."""
+
+    def __init__(self, step: str, message: str, stderr_tail: str = ""):
+        self.step, self.message, self.stderr_tail = step, message, stderr_tail
+        super().__init__(f"{step}: {message}" + (f"\n{stderr_tail}" if stderr_tail else ""))
+
+
+@dataclass
+class StepStats:
+    """Wall seconds, CPU seconds (user + system, all threads) and peak resident memory of one step."""
+
+    seconds: float
+    peak_rss_bytes: int
+    cpu_seconds: float = 0.0
+
+
+def _children_cpu() -> float:
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def _package_root() -> str:
+    import splattwin
+
+    return str(Path(splattwin.__file__).resolve().parents[1])
+
+
+def _read_hwm(pid: int) -> int:
+    """Peak resident set size (VmHWM) of a live process in bytes; 0 where /proc is unavailable."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0
+
+
+def terminate(proc: subprocess.Popen) -> None:
+    """SIGTERM (the worker has no handler: it dies at once), SIGKILL if it is still there after the grace."""
+    if proc.poll() is not None:
+        return
+    proc.terminate()
+    try:
+        proc.wait(TERMINATE_GRACE_S)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def recover_database(db: str | Path) -> None:
+    """Settle the database after a step: roll back a transaction a killed writer left open (SQLite does so
+    on the first access) and fold COLMAP's write-ahead log into the file (no -wal/-shm files left)."""
+    db = Path(db)
+    if not db.is_file():
+        return
+    try:
+        con = sqlite3.connect(str(db), timeout=5.0)
+        try:
+            con.execute("SELECT count(*) FROM sqlite_master").fetchone()
+            con.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchone()
+        finally:
+            con.close()
+    except sqlite3.Error as e:
+        log.warning("could not check the SfM database %s after an interruption: %s", db, e)
+
+
+def db_counts(db: str | Path) -> dict[str, int]:
+    """Rows in the COLMAP database tables that grow during a step ({} while the file is busy or new)."""
+    out: dict[str, int] = {}
+    try:
+        con = sqlite3.connect(f"file:{Path(db).resolve()}?mode=ro", uri=True, timeout=0.2)
+        try:
+            for t in ("images", "keypoints", "matches", "two_view_geometries"):
+                out[t] = int(con.execute(f"SELECT count(*) FROM {t}").fetchone()[0])
+        finally:
+            con.close()
+    except sqlite3.Error:
+        return {}
+    return out
+
+
+def run_step(job: dict, job_dir: Path, progress: StageProgress, label: str, total: int = 1,
+             poll: Callable[[], int | None] | None = None, cleanup: list[Path] | None = None
+             ) -> tuple[dict, StepStats]:
+    """Run `job` (a dict with "step" and the step's arguments, see colmap_worker) in a child process.
+
+    progress: shows `label` with done/`total`; `poll()` (called about once a second) returns the current
+      count, or None to keep the last one; the child's own progress events also update it.
+    cleanup: paths removed if the step is interrupted or fails (its half-written outputs).
+    Returns (the child's result dict, StepStats). Raises StepError if the step fails, KeyboardInterrupt
+    (after stopping the child and cleaning up) if interrupted.
+    """
+    job_dir.mkdir(parents=True, exist_ok=True)
+    job_path = job_dir / f".job_{job['step']}_{os.getpid()}.json"
+    job_path.write_text(json.dumps(job))
+    env = os.environ.copy()
+    env["PYTHONPATH"] = _package_root() + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    t0, cpu0 = time.perf_counter(), _children_cpu()
+    proc = subprocess.Popen([sys.executable, "-m", "splattwin.poses.colmap_worker", str(job_path)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, env=env,
+                            start_new_session=True, text=True, bufsize=1)
+    lines: queue.Queue = queue.Queue()
+    err_tail: collections.deque = collections.deque(maxlen=40)
+
+    def _pump_out() -> None:
+        for line in proc.stdout:  # type: ignore[union-attr]
+            lines.put(line)
+        lines.put(None)
+
+    def _pump_err() -> None:
+        for line in proc.stderr:  # type: ignore[union-attr]
+            err_tail.append(line.rstrip())
+
+    threads = [threading.Thread(target=_pump_out, daemon=True), threading.Thread(target=_pump_err, daemon=True)]
+    for t in threads:
+        t.start()
+    result: dict | None = None
+    error: str | None = None
+    done, peak, last_poll = 0, 0, 0.0
+    progress.update(label, 0, total)
+    try:
+        while True:
+            try:
+                line = lines.get(timeout=0.25)
+            except queue.Empty:
+                line = ""
+            if line is None:
+                break
+            if line:
+                try:
+                    msg = json.loads(line)
+                except json.JSONDecodeError:
+                    err_tail.append(line.rstrip())
+                    msg = {}
+                ev = msg.get("event")
+                if ev == "progress":
+                    done = int(msg.get("done", done))
+                    total = int(msg.get("total", total)) or total
+                    progress.update(label, done, total)
+                elif ev == "result":
+                    result = {k: v for k, v in msg.items() if k != "event"}
+                elif ev == "error":
+                    error = str(msg.get("message"))
+            now = time.monotonic()
+            if now - last_poll >= 1.0:
+                last_poll = now
+                peak = max(peak, _read_hwm(proc.pid))
+                if poll is not None:
+                    v = poll()
+                    if v is not None and v != done:
+                        done = v
+                        progress.update(label, done, total)
+            progress.tick()
+        peak = max(peak, _read_hwm(proc.pid))
+        rc = proc.wait()
+        for t in threads:
+            t.join(1.0)
+    except BaseException:
+        terminate(proc)
+        _remove(cleanup)
+        if "db" in job:
+            recover_database(job["db"])
+        raise
+    finally:
+        job_path.unlink(missing_ok=True)
+    if "db" in job:
+        recover_database(job["db"])
+    stats = StepStats(seconds=time.perf_counter() - t0, peak_rss_bytes=peak, cpu_seconds=_children_cpu() - cpu0)
+    if result is None or rc != 0:
+        _remove(cleanup)
+        if "db" in job:
+            recover_database(job["db"])
+        tail = "\n".join(list(err_tail)[-15:])
+        raise StepError(job["step"], error or f"the pycolmap worker exited with status {rc}", tail)
+    progress.update(label, total if job["step"] != "map" else done, total)
+    return result, stats
+
+
+def _remove(paths: list[Path] | None) -> None:
+    for p in paths or []:
+        p = Path(p)
+        for q in (p, p.with_name(p.name + ".tmp")):
+            if q.is_dir():
+                shutil.rmtree(q, ignore_errors=True)
+            elif q.exists():
+                q.unlink(missing_ok=True)

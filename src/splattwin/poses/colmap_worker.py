@@ -1,0 +1,404 @@
+"""Child-process side of `splattwin.poses.colmap_process`: runs one pycolmap step and reports progress.
+
+pycolmap's calls block in C++ for seconds to minutes and do not return to Python on Ctrl-C, so each heavy
+step (feature extraction, matching, mapping, triangulation, sub-model merging) runs in this separate
+process, which the parent can terminate at once. Protocol: the parent starts
+`python -m splattwin.poses.colmap_worker JOB.json`; this process writes one JSON object per line to stdout
+(`{"event": "progress", ...}`, then `{"event": "result", ...}` or `{"event": "error", "message": ...}`).
+Everything it writes besides the COLMAP database (which is SQLite: transactional, a killed writer leaves
+the last committed state) goes to a temporary folder that is renamed into place when complete.
+
+Options arrive as `{"dotted.attribute.path": value}` dicts and are set on the pycolmap option objects, so
+the parent decides every setting and this file holds no tuning.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any, Callable
+
+
+def emit(event: str, **kw: Any) -> None:
+    """One protocol line to the parent."""
+    sys.stdout.write(json.dumps({"event": event, **kw}) + "\n")
+    sys.stdout.flush()
+
+
+def _set_options(obj: Any, values: dict[str, Any]) -> Any:
+    """Set dotted attributes (`"mapper.init_min_num_inliers": 15`) on a pycolmap options object."""
+    for key, value in values.items():
+        target = obj
+        *path, last = key.split(".")
+        for part in path:
+            target = getattr(target, part)
+        if not hasattr(target, last):
+            raise AttributeError(f"{type(target).__name__} has no option {last!r} ({key})")
+        setattr(target, last, value)
+    return obj
+
+
+def _ensure_db(db: str) -> None:
+    import pycolmap
+
+    pycolmap.Database.open(db).close()  # creates the schema if the file is new
+
+
+# -- steps --------------------------------------------------------------------------------------------
+def step_extract(job: dict) -> dict:
+    """Import the images camera group by camera group (one COLMAP camera per group, ids in a fixed order),
+    then extract SIFT features of all of them in one multi-threaded call."""
+    import pycolmap
+
+    db, root = job["db"], job["image_root"]
+    _ensure_db(db)
+    with pycolmap.Database.open(db) as d:
+        have = {im.name for im in d.read_all_images()}
+    for g in job["groups"]:
+        new = [n for n in g["names"] if n not in have]
+        if not new:
+            continue
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = g["camera_model"]
+        if g.get("camera_params"):
+            reader.camera_params = g["camera_params"]
+        mode = pycolmap.CameraMode.PER_IMAGE if g.get("per_image") else pycolmap.CameraMode.SINGLE
+        pycolmap.import_images(db, root, camera_mode=mode, image_names=new, options=reader)
+        if g.get("prior_focal") is not None:
+            with pycolmap.Database.open(db) as d:
+                ids = {d.read_image_with_name(n).camera_id for n in new}
+                for cid in ids:
+                    cam = d.read_camera(cid)
+                    cam.has_prior_focal_length = bool(g["prior_focal"])
+                    d.update_camera(cam)
+    ext = _set_options(pycolmap.FeatureExtractionOptions(), job["extraction"])
+    pycolmap.extract_features(db, root, image_names=job["names"], extraction_options=ext, device=pycolmap.Device.cpu)
+    with pycolmap.Database.open(db) as d:
+        counts = {im.name: int(d.num_keypoints_for_image(im.image_id)) for im in d.read_all_images()}
+    return {"keypoints": counts}
+
+
+def step_match(job: dict) -> dict:
+    """Match and verify image pairs: exhaustive, sequential (+ loop closure), vocabulary-tree retrieval (both
+    with a visual index built from this capture's own descriptors), or an explicit pair list."""
+    import pycolmap
+
+    db = job["db"]
+    mopts = _set_options(pycolmap.FeatureMatchingOptions(), job["matching"])
+    vopts = _set_options(pycolmap.TwoViewGeometryOptions(), job["verification"])
+    kind = job["kind"]
+    cpu = pycolmap.Device.cpu
+    if kind == "exhaustive":
+        popts = _set_options(pycolmap.ExhaustivePairingOptions(), job.get("pairing", {}))
+        pycolmap.match_exhaustive(db, matching_options=mopts, pairing_options=popts, verification_options=vopts,
+                                  device=cpu)
+    elif kind == "sequential":
+        popts = _set_options(pycolmap.SequentialPairingOptions(), job.get("pairing", {}))
+        if job.get("loop_closure"):
+            popts.loop_detection = True
+            popts.vocab_tree_path = _build_visual_index(db, job["loop_closure"])
+        pycolmap.match_sequential(db, matching_options=mopts, pairing_options=popts, verification_options=vopts,
+                                  device=cpu)
+    elif kind == "vocabtree":
+        popts = _set_options(pycolmap.VocabTreePairingOptions(), job.get("pairing", {}))
+        popts.vocab_tree_path = _build_visual_index(db, job["loop_closure"])
+        pycolmap.match_vocabtree(db, matching_options=mopts, pairing_options=popts, verification_options=vopts,
+                                 device=cpu)
+    elif kind == "pairs":
+        popts = _set_options(pycolmap.ImportedPairingOptions(), job.get("pairing", {}))
+        popts.match_list_path = job["pairs_file"]
+        pycolmap.match_image_pairs(db, matching_options=mopts, pairing_options=popts, verification_options=vopts,
+                                   device=cpu)
+    else:
+        raise ValueError(f"unknown matcher kind {kind!r}")
+    with pycolmap.Database.open(db) as d:
+        return {"verified_pairs": int(d.num_verified_image_pairs())}
+
+
+def _build_visual_index(db: str, spec: dict) -> str:
+    """A small visual vocabulary (k-means tree) from a sample of the capture's own SIFT descriptors, written
+    to spec["path"]: loop detection needs one and COLMAP's pre-trained trees are a download we avoid."""
+    import numpy as np
+    import pycolmap
+
+    path = spec["path"]
+    if Path(path).is_file():
+        return path
+    rng = np.random.default_rng(0)
+    per_image = int(spec.get("descriptors_per_image", 500))
+    sample = []
+    with pycolmap.Database.open(db) as d:
+        for im in d.read_all_images():
+            desc = d.read_descriptors(im.image_id).data
+            if len(desc) > per_image:
+                desc = desc[np.sort(rng.choice(len(desc), per_image, replace=False))]
+            sample.append(np.asarray(desc, dtype=np.float32))
+    data = np.concatenate(sample) if sample else np.zeros((0, 128), np.float32)
+    words = int(min(spec.get("num_visual_words", 4096), max(64, len(data) // 40)))
+    index = pycolmap.VisualIndex.create(128, 64)
+    bo = pycolmap.VisualIndex.BuildOptions()
+    bo.num_visual_words = words
+    bo.num_iterations = int(spec.get("num_iterations", 25))
+    bo.num_rounds = 1
+    bo.num_threads = int(spec.get("num_threads", -1))
+    index.build(bo, pycolmap.FeatureDescriptorsFloat(pycolmap.FeatureExtractorType.SIFT, data))
+    tmp = path + ".tmp"
+    index.write(tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def step_map(job: dict) -> dict:
+    """Incremental mapping into job["out"]/<i> (sub-models, largest first; written to a temp folder, then
+    renamed). With several `seeds` the mapping is repeated with each random seed (cheap for small sets,
+    and on weakly connected captures the registration order changes what registers) and the run whose
+    largest model registers the most images is kept; it stops early once all images register."""
+    import pycolmap
+
+    out = Path(job["out"])
+    tmp = out.with_name(out.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    n = int(job.get("num_images", 0))
+    seeds = job.get("seeds") or [None]
+    best: dict | None = None
+    best_reg, best_seed = -1, None
+    for k, seed in enumerate(seeds):
+        opts = _set_options(pycolmap.IncrementalPipelineOptions(), job["options"])
+        if seed is not None:
+            opts.random_seed = int(seed)
+            opts.mapper.random_seed = int(seed)
+        done = [0]
+
+        def _next() -> None:
+            done[0] += 1
+            emit("progress", done=min(done[0] + 1, n), total=n, run=k + 1, runs=len(seeds))
+
+        run_dir = tmp / f"run{k}"
+        run_dir.mkdir()
+        recs = pycolmap.incremental_mapping(job["db"], job["image_root"], str(run_dir), options=opts,
+                                            initial_image_pair_callback=_next, next_image_callback=_next)
+        shutil.rmtree(run_dir)
+        reg = max((r.num_reg_images() for r in recs.values()), default=0)
+        if reg > best_reg:
+            best, best_reg, best_seed = recs, reg, seed
+        if best_reg >= n:
+            break
+    models = []
+    for i, (_, rec) in enumerate(sorted((best or {}).items(), key=lambda kv: -kv[1].num_reg_images())):
+        d = tmp / str(i)
+        d.mkdir()
+        rec.write(str(d))
+        models.append({"path": str(out / str(i)), "registered": int(rec.num_reg_images())})
+    shutil.rmtree(out, ignore_errors=True)
+    os.replace(tmp, out)
+    return {"models": models, "seed": best_seed}
+
+
+def _reconstruction_from_db(db: str):
+    """An empty Reconstruction holding the database's cameras, rigs, frames and images (same ids)."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction()
+    with pycolmap.Database.open(db) as d:
+        for cam in d.read_all_cameras():
+            rec.add_camera(cam)
+        for rig in d.read_all_rigs():
+            rec.add_rig(rig)
+        for fr in d.read_all_frames():
+            rec.add_frame(fr)
+        for im in d.read_all_images():
+            rec.add_image(im)
+    return rec
+
+
+def _set_pose(rec, image_id: int, T_cam_world) -> None:
+    import numpy as np
+    import pycolmap
+
+    T = np.asarray(T_cam_world, dtype=np.float64)
+    im = rec.image(image_id)
+    frame = rec.frame(im.frame_id)
+    frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(T[:3, :3]), T[:3, 3])
+    rec.register_frame(im.frame_id)
+
+
+def _triangulation_options(values: dict):
+    import pycolmap
+
+    return _set_options(pycolmap.IncrementalPipelineOptions(), values)
+
+
+def step_triangulate(job: dict) -> dict:
+    """Points from known poses: the database's features and matches triangulated with every camera pose
+    (and the intrinsics) held fixed: COLMAP's point triangulator."""
+    import pycolmap
+
+    db, root, out = job["db"], job["image_root"], Path(job["out"])
+    rec = _reconstruction_from_db(db)
+    poses = job["poses"]  # name -> 3x4 cam_from_world
+    with pycolmap.Database.open(db) as d:
+        for im in d.read_all_images():
+            if im.name in poses:
+                _set_pose(rec, im.image_id, poses[im.name])
+    tmp = out.with_name(out.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    res = pycolmap.triangulate_points(rec, db, root, str(tmp), clear_points=True,
+                                      options=_triangulation_options(job.get("options", {})),
+                                      refine_intrinsics=False)
+    res.write(str(tmp))
+    shutil.rmtree(out, ignore_errors=True)
+    os.replace(tmp, out)
+    return {"points": int(res.num_points3D()), "registered": int(res.num_reg_images())}
+
+
+def step_merge(job: dict) -> dict:
+    """Complete the base model with images other models registered (sub-models of the same mapping, or
+    models of other attempts on other databases): each donor is aligned to the base by a Sim(3) of the
+    camera centres of >= `min_common_images` shared images, the images the base lacks get the aligned
+    poses, then all points are re-triangulated from the base's database and everything is bundle-adjusted.
+    An added image is kept only if it then observes >= `min_observations` points with a mean reprojection
+    error <= `max_error_px` (default 10 and 2 px: the relaxed mapper itself registers images
+    that observe ~10 points on the weakly textured cake photos); otherwise it is dropped and the merge
+    redone without it."""
+    import numpy as np
+    import pycolmap
+
+    db, root, out = job["db"], job["image_root"], Path(job["out"])
+    base = pycolmap.Reconstruction(job["base"])
+    donors = [pycolmap.Reconstruction(p) for p in job["donors"]]
+    min_common = int(job.get("min_common_images", 3))
+    base_names = {base.image(i).name: base.image(i).cam_from_world().matrix() for i in base.reg_image_ids()}
+    added: dict[str, np.ndarray] = {}
+    for donor in donors:
+        reg = {donor.image(i).name: i for i in donor.reg_image_ids()}
+        new = [n for n in reg if n not in base_names and n not in added]
+        common = [n for n in reg if n in base_names]
+        if not new or len(common) < min_common:
+            continue
+        src = np.array([donor.image(reg[n]).projection_center() for n in common])
+        tgt = np.array([-base_names[n][:, :3].T @ base_names[n][:, 3] for n in common])
+        spread = float(np.linalg.norm(tgt - tgt.mean(0), axis=1).max()) or 1.0
+        # robust: a shared camera one model placed wrongly must not drag the alignment
+        ransac = pycolmap.RANSACOptions()
+        ransac.max_error = 0.05 * spread
+        ransac.random_seed = 0
+        fit = pycolmap.estimate_sim3d_robust(src, tgt, ransac)
+        if not fit or fit.get("tgt_from_src") is None or int(fit["num_inliers"]) < min_common:
+            continue  # the shared cameras disagree: the models differ too much to combine
+        donor.transform(fit["tgt_from_src"])
+        for n in new:
+            added[n] = donor.image(reg[n]).cam_from_world().matrix()
+    if not added:
+        return {"merged": False, "registered": int(base.num_reg_images())}
+    kept = dict(added)
+    rec = None
+    for _ in range(len(added) + 1):
+        rec = _merged(db, root, base, kept, job)
+        bad = [n for n in kept if not _image_ok(rec, n, int(job.get("min_observations", 10)),
+                                                float(job.get("max_error_px", 2.0)))]
+        if not bad:
+            break
+        for n in bad:
+            kept.pop(n)
+        if not kept:
+            return {"merged": False, "registered": int(base.num_reg_images()), "rejected": sorted(added)}
+    tmp = out.with_name(out.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    rec.write(str(tmp))
+    shutil.rmtree(out, ignore_errors=True)
+    os.replace(tmp, out)
+    return {"merged": True, "registered": int(rec.num_reg_images()), "path": str(out), "added": sorted(kept),
+            "rejected": sorted(set(added) - set(kept))}
+
+
+def _merged(db: str, root: str, base, added: dict, job: dict):
+    """Base poses + added poses in a reconstruction of `db`, points triangulated, then bundle-adjusted."""
+    import pycolmap
+
+    full = _reconstruction_from_db(db)
+    by_name = {full.image(i).name: i for i in full.images}
+    for i in base.reg_image_ids():
+        n = base.image(i).name
+        _set_pose(full, by_name[n], base.image(i).cam_from_world().matrix())
+    for n, T in added.items():
+        _set_pose(full, by_name[n], T)
+    base_cams = {base.image(i).name: base.camera(base.image(i).camera_id) for i in base.reg_image_ids()}
+    for n, cam in base_cams.items():  # the base model's refined intrinsics
+        full.cameras[full.image(by_name[n]).camera_id].params = cam.params
+    with tempfile.TemporaryDirectory() as scratch:
+        rec = pycolmap.triangulate_points(full, db, root, scratch, clear_points=True,
+                                          options=_triangulation_options(job.get("options", {})),
+                                          refine_intrinsics=False)
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.print_summary = False
+    pycolmap.bundle_adjustment(rec, ba)
+    return rec
+
+
+def _image_ok(rec, name: str, min_obs: int, max_err: float) -> bool:
+    import numpy as np
+
+    im = next(rec.image(i) for i in rec.reg_image_ids() if rec.image(i).name == name)
+    errs = []
+    for p2 in im.points2D:
+        if p2.has_point3D():
+            uv = im.project_point(rec.points3D[p2.point3D_id].xyz)
+            if uv is not None:
+                errs.append(float(np.linalg.norm(np.asarray(uv).ravel() - np.asarray(p2.xy).ravel())))
+    return len(errs) >= min_obs and float(np.mean(errs)) <= max_err
+
+
+def _copy_pose(dst, src, image_id: int) -> None:
+    T = src.image(image_id).cam_from_world().matrix()
+    _set_pose(dst, image_id, T)
+
+
+STEPS: dict[str, Callable[[dict], dict]] = {
+    "extract": step_extract, "match": step_match, "map": step_map, "triangulate": step_triangulate,
+    "merge": step_merge,
+}
+
+
+def _die_with_parent() -> None:
+    """Linux: get SIGKILL when the parent dies, so a killed run leaves no orphan burning the CPU."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+        if os.getppid() == 1:  # the parent died before prctl took effect
+            os._exit(1)
+    except OSError:
+        pass
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    _die_with_parent()
+    # Ctrl-C in a terminal reaches the whole process group; the parent decides (it terminates us).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    job = json.loads(Path(argv[0]).read_text())
+    import pycolmap
+
+    pycolmap.logging.minloglevel = int(job.get("log_level", 2))
+    try:
+        result = STEPS[job["step"]](job)
+    except Exception as e:  # reported to the parent, which raises it with the step's context
+        emit("error", message=f"{type(e).__name__}: {e}")
+        return 1
+    emit("result", **result)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

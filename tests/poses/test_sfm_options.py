@@ -1,0 +1,231 @@
+"""SfM choices without running COLMAP: options, matcher, threads, camera groups, retry plan and loop,
+failure reasons, progress lines."""
+
+from __future__ import annotations
+
+import io as _io
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from splattwin.errors import InputError
+from splattwin.poses.sfm import (Attempt, AttemptOutcome, CameraGroup, SfmOptions, camera_groups, choose_matcher,
+                                 explain_failures, extraction_threads, first_octave, mapping_options, retry_plan,
+                                 run_plan)
+
+
+# -- options ---------------------------------------------------------------------------------------------
+def test_defaults_bound_size_and_features():
+    o = SfmOptions()
+    assert o.max_image_size == 1600 and 0 < o.max_num_features <= 8192 and o.num_threads == 0 and o.retry
+    o.validate()
+
+
+@pytest.mark.parametrize("kw, word", [({"max_image_size": 10}, "max-image-size"), ({"max_num_features": 5}, "max-features"),
+                                      ({"num_threads": -2}, "threads"), ({"matcher": "magic"}, "matcher"),
+                                      ({"max_memory_gib": 0}, "memory"), ({"sequential_overlap": 0}, "overlap")])
+def test_bad_options_are_input_errors(kw, word):
+    with pytest.raises(InputError, match=word):
+        SfmOptions(**kw).validate()
+
+
+def test_full_size_option_is_valid():
+    SfmOptions(max_image_size=0).validate()
+
+
+def test_cli_rejects_bad_sfm_option_before_any_work(tmp_path, capsys):
+    from splattwin import io
+    from splattwin.cli import main
+
+    for i in range(2):
+        io.write_image(tmp_path / "imgs" / f"{i}.png", np.zeros((20, 30, 3), np.uint8))
+    rc = main(["poses", str(tmp_path / "imgs"), str(tmp_path / "out"), "--max-image-size", "8"])
+    assert rc == 2 and "max-image-size" in capsys.readouterr().err
+    assert not (tmp_path / "out" / "transforms.json").exists()
+
+
+# -- matcher ---------------------------------------------------------------------------------------------
+def test_matcher_follows_capture_type():
+    assert choose_matcher(9) == "exhaustive"                       # small unordered photo set
+    assert choose_matcher(50) == "exhaustive"
+    assert choose_matcher(51) == "retrieval"                       # large unordered: vocabulary-tree pairs
+    assert choose_matcher(9, ordered=True) == "sequential"         # video frames
+    assert choose_matcher(400, ordered=True) == "sequential"
+    assert choose_matcher(400, ordered=False, exhaustive_max_images=500) == "exhaustive"
+    assert choose_matcher(400, "exhaustive", ordered=True) == "exhaustive"  # explicit choice wins
+    with pytest.raises(InputError, match="matcher"):
+        choose_matcher(5, "flann")
+
+
+# -- threads and memory ----------------------------------------------------------------------------------
+def test_extraction_threads_use_all_cores_within_the_memory_budget():
+    assert extraction_threads(0, 1600, 2.0, cpu_count=16) == 16    # small scale space: every core
+    few = extraction_threads(0, 3200, 2.0, cpu_count=16)            # upsampled 1600 px images
+    assert 1 <= few < 16
+    assert extraction_threads(0, 3200, 8.0, cpu_count=16) > few     # more memory, more threads
+    assert extraction_threads(0, 20000, 2.0, cpu_count=16) == 1     # never zero
+    assert extraction_threads(3, 800, 2.0, cpu_count=16) == 3       # an explicit count is an upper bound
+
+
+def test_first_octave_skips_upsampling_only_for_large_images():
+    assert first_octave(1600) == 0 and first_octave(1400) == 0
+    assert first_octave(1060) == -1 and first_octave(683) == -1
+    assert first_octave(1600, "more") == -1  # the more-features retry upsamples
+
+
+# -- camera groups ---------------------------------------------------------------------------------------
+def _jpeg(path: Path, w: int, h: int, exif: dict | None = None) -> Path:
+    from PIL import Image
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    im = Image.new("RGB", (w, h), (120, 80, 40))
+    if exif:
+        ex = Image.Exif()
+        ex[271], ex[272] = exif["make"], exif["model"]
+        ex.get_ifd(0x8769)[37386] = exif["focal"]
+        im.save(path, exif=ex)
+    else:
+        im.save(path)
+    return path
+
+
+def test_one_camera_per_size_and_exif_camera(tmp_path):
+    paths = [_jpeg(tmp_path / "a.jpg", 64, 48), _jpeg(tmp_path / "b.jpg", 64, 48), _jpeg(tmp_path / "c.jpg", 48, 64),
+             _jpeg(tmp_path / "d.jpg", 64, 48, {"make": "Acme", "model": "P1", "focal": 4.2}),
+             _jpeg(tmp_path / "e.jpg", 64, 48, {"make": "Acme", "model": "P1", "focal": 4.2}),
+             _jpeg(tmp_path / "f.jpg", 64, 48, {"make": "Acme", "model": "P1", "focal": 6.0})]
+    names = [p.name for p in paths]
+    groups = camera_groups(paths, names, SfmOptions())
+    as_sets = sorted(sorted(g.names) for g in groups)
+    assert as_sets == [["a.jpg", "b.jpg"], ["c.jpg"], ["d.jpg", "e.jpg"], ["f.jpg"]]
+    g = next(g for g in groups if "d.jpg" in g.names)
+    assert g.exif["make"] == "Acme" and g.exif["focal_mm"] == pytest.approx(4.2)
+    # per-image cameras on request
+    assert all(len(g.names) == 1 and g.per_image for g in camera_groups(paths, names, SfmOptions(shared_intrinsics=False)))
+    # known intrinsics: one fixed camera, so one image size
+    with pytest.raises(InputError, match="one image size"):
+        camera_groups(paths, names, SfmOptions(intrinsics=(50.0, 50.0, 32.0, 24.0)))
+    fixed = camera_groups(paths[:2], names[:2], SfmOptions(intrinsics=(50.0, 50.0, 32.0, 24.0)))
+    assert len(fixed) == 1 and fixed[0].camera_model == "PINHOLE" and fixed[0].camera_params == [50.0, 50.0, 32.0, 24.0]
+
+
+# -- retries ---------------------------------------------------------------------------------------------
+def _groups(n=1, size=(640, 480), per_image=False):
+    return [CameraGroup([f"{i}.jpg"], *size, per_image=per_image) for i in range(n)]
+
+
+def test_retry_plan_cheapest_first():
+    plan = retry_plan(_groups(), SfmOptions(), small_images=True, exif_focal=False)
+    names = [a.name for a in plan]
+    assert names == ["default", "relaxed", "guided", "more_features"]
+    assert plan[1].features == "base" and plan[1].matching == "base" and plan[1].merge   # mapping only + merge
+    assert plan[2].features == "base" and plan[2].matching == "guided"                    # same features
+    assert plan[3].features == "more"                                                     # re-extract last
+    # large images: the size bound already gave the features, no more-features retry
+    assert "more_features" not in [a.name for a in retry_plan(_groups(), SfmOptions(), False, False)]
+    # EXIF focal length: a retry holding it fixed; per-image cameras of one size: a shared-camera retry
+    assert "exif_focal" in [a.name for a in retry_plan(_groups(), SfmOptions(), False, True)]
+    shared = retry_plan(_groups(3, per_image=True), SfmOptions(shared_intrinsics=False), False, False)
+    assert [a.cameras for a in shared if a.name == "shared_intrinsics"] == ["shared"]
+    assert [a.name for a in retry_plan(_groups(), SfmOptions(retry=False), True, True)] == ["default"]
+
+
+def test_relaxed_mapping_is_looser_than_default():
+    d = mapping_options(SfmOptions(), 10, "default")
+    r = mapping_options(SfmOptions(), 10, "relaxed")
+    f = mapping_options(SfmOptions(), 10, "fixed_focal")
+    for k in ("mapper.init_min_num_inliers", "mapper.abs_pose_min_num_inliers", "mapper.init_min_tri_angle"):
+        assert r[k] < d[k]
+    assert d.get("ba_refine_focal_length", True) and f["ba_refine_focal_length"] is False
+    assert mapping_options(SfmOptions(intrinsics=(1, 1, 0, 0)), 10)["ba_refine_focal_length"] is False
+
+
+def _outcome(reg: int) -> AttemptOutcome:
+    return AttemptOutcome(rec=object() if reg else None, registered=reg, sub_models=[], db=None)
+
+
+def test_retry_loop_stops_when_all_register_and_keeps_the_best():
+    plan = [Attempt(n, n) for n in ("default", "relaxed", "guided", "more_features")]
+    said, seen = [], []
+
+    def execute(results):
+        def run(a, i):
+            seen.append(a.name)
+            return _outcome(results[i])
+        return run
+
+    out, a = run_plan(plan, 8, execute([5, 8, 3, 8]), say=said.append)
+    assert a.name == "relaxed" and out.registered == 8 and seen == ["default", "relaxed"]
+    assert len(said) == 1 and "5/8" in said[0] and "relaxed" in plan[1].why
+    seen.clear()
+    out, a = run_plan(plan, 8, execute([5, 7, 7, 6]))  # never all: the best, the earlier on a tie
+    assert a.name == "relaxed" and out.registered == 7 and seen == [p.name for p in plan]
+    with pytest.raises(InputError, match="no initial image pair"):
+        run_plan(plan, 8, execute([0, 0, 0, 0]))
+
+
+def test_failure_reasons_from_the_match_graph():
+    names = ["a", "b", "c", "d", "e", "f", "g", "h"]
+    reg = {"a", "b", "c"}
+    kp = {n: 2000 for n in names} | {"d": 12}
+    verified = {("a", "b"): 300, ("b", "c"): 200, ("a", "e"): 40, ("f", "g"): 90, ("a", "h"): 5, ("c", "h"): 8}
+    why = explain_failures(names, reg, kp, verified, min_inliers=12, sub_models=[{"f", "g", "x"}])
+    assert set(why) == {"d", "e", "f", "g", "h"}
+    assert "only 12 features" in why["d"]
+    assert "40 inlier matches with a" in why["e"]
+    assert "sub-model of 3 images" in why["f"]
+    assert "no verified matches" in why["h"]  # 5 and 8 inliers: below the verification threshold
+    why = explain_failures(names, reg, kp, verified, min_inliers=12)
+    assert "matches only other unregistered images (g)" in why["f"]
+
+
+def test_pair_ids_decode_like_colmap():
+    import pycolmap
+
+    from splattwin.poses.sfm import _MAX_IMAGE_ID
+
+    for a, b in ((1, 2), (3, 7), (12, 70000)):
+        assert divmod(pycolmap.image_pair_to_pair_id(a, b), _MAX_IMAGE_ID) == (a, b)
+        assert divmod(pycolmap.image_pair_to_pair_id(b, a), _MAX_IMAGE_ID) == (a, b)
+
+
+# -- progress --------------------------------------------------------------------------------------------
+def test_plain_progress_lines_when_not_a_tty(monkeypatch):
+    from splattwin.poses import progress as prog
+
+    clock = [100.0]
+    monkeypatch.setattr(prog.time, "monotonic", lambda: clock[0])
+    buf = _io.StringIO()
+    with prog.StageProgress(True, stream=buf, interval=5.0) as p:
+        p.update("SfM: SIFT features", 0, 9)       # new stage: a line at once
+        clock[0] += 1
+        p.update("SfM: SIFT features", 3, 9)       # within the interval: no line
+        clock[0] += 5
+        p.tick()                                    # heartbeat after the interval
+        p.update("SfM: matching", 0, 36)
+        p.message("SfM: 5/8 images registered; retrying")
+    lines = buf.getvalue().splitlines()
+    assert lines == ["SfM: SIFT features: 0/9 (0 s)", "SfM: SIFT features: 3/9 (6 s)", "SfM: matching: 0/36 (0 s)",
+                     "SfM: 5/8 images registered; retrying"]
+    assert "\r" not in buf.getvalue() and "\x1b" not in buf.getvalue()
+    quiet = _io.StringIO()
+    with prog.StageProgress(False, stream=quiet) as p:
+        p.update("x", 1, 2)
+        p.message("y")
+    assert quiet.getvalue() == ""
+
+
+def test_retry_loop_completes_the_best_model_from_other_attempts():
+    plan = [Attempt(n, n) for n in ("default", "relaxed", "guided")]
+    calls = []
+
+    def complete(best, history):
+        calls.append((best.registered, len(history)))
+        return _outcome(8) if len(history) == 2 else None
+
+    out, a = run_plan(plan, 8, lambda a, i: _outcome([3, 7, 7][i]), complete=complete)
+    assert out.registered == 8 and a.name == "relaxed+merged" and calls == [(7, 2)]
+    calls.clear()
+    out, a = run_plan(plan, 8, lambda a, i: _outcome([3, 7, 6][i]), complete=lambda b, h: _outcome(5))
+    assert out.registered == 7 and a.name == "relaxed"  # a worse completion is ignored
