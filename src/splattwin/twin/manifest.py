@@ -38,6 +38,8 @@ class Frame:
 
     source: one of FRAME_SOURCES. scaled: False when the metric scale is unknown (robot stages refuse).
     scale_uncertainty_rel: 1-sigma relative scale uncertainty (0.01 = 1 %).
+    T_twin_input: how the input's coordinates map into the twin frame (e.g. a z-down robot world rotated
+    180 degrees about x). up_check: the evidence for up (cameras, table plane) when poses were known.
     """
 
     source: str = "unscaled"
@@ -46,6 +48,10 @@ class Frame:
     up: str = "+z"
     scale_uncertainty_rel: float | None = None
     description: str = ""
+    # [4,4] similarity from the input's world (known or robot poses; the SfM model for SfM) to this frame
+    T_twin_input: list | None = None
+    # known poses: where up was found and the rotation applied (splattwin.poses.up.UpCheck.to_dict)
+    up_check: dict | None = None
 
 
 @dataclass
