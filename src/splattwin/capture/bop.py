@@ -130,8 +130,9 @@ def read(path: str | Path) -> Dataset:
     depth_files = ({p.stem: p for p in depth_dir.iterdir() if p.is_file() and p.suffix.lower() in (".png", ".tif", ".tiff")}
                    if depth_dir.is_dir() else {})
     entries = sorted(((_image_id(k, cam_file), v) for k, v in meta.items()), key=lambda kv: kv[0])
-    posed = [isinstance(v, dict) and ("cam_R_w2c" in v or "cam_t_w2c" in v) for _, v in entries]
-    if any(posed) and not all(posed):
+    posed = [isinstance(v, dict) and "cam_R_w2c" in v and "cam_t_w2c" in v for _, v in entries]
+    some = [isinstance(v, dict) and ("cam_R_w2c" in v or "cam_t_w2c" in v) for _, v in entries]
+    if any(some) and not all(posed):
         missing = [i for (i, _), p in zip(entries, posed) if not p][:5]
         raise InputError(f"some images have camera poses (cam_R_w2c, cam_t_w2c) and some do not (e.g. image "
                          f"{missing}); give poses for all images or for none", cam_file)
