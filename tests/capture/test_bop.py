@@ -109,6 +109,7 @@ def test_bop_malformed_input_exits_2_naming_the_file(tmp_path, capsys):
 
 
 def test_scene_gt_and_object_names(tmp_path):
+    tmp_path = tmp_path / "test" / "000001"    # dataset root / split / scene
     T = np.eye(4)
     T[:3, 3] = [0.01, -0.02, 0.5]
     bop.write_scene_gt(tmp_path / "scene_gt.json", [[(3, T), (7, T)], [(7, T)]])

@@ -287,6 +287,9 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
     assert frame is not None
     if method == "known" and prior is None and input_scaled and opts.marker_size is None and opts.known_length is None:
         frame, T_out_in = _check_up(frame, [in_cams[n] for n in order], pts_xyz, frames, dataset, opts, stats)
+    elif opts.up not in ("auto", "keep"):
+        log.warning("--up %s ignored: it applies to known poses in their own world, but this frame comes from %s",
+                    opts.up, frame.source if prior is None else "an earlier poses run (frame.json)")
     T_twin_input = np.asarray(T_out_in, dtype=np.float64)
     if prior is not None and prior.T_twin_input is not None:  # chained runs: from the original input
         T_twin_input = T_twin_input @ np.asarray(prior.T_twin_input, dtype=np.float64)

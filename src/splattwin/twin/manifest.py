@@ -132,6 +132,10 @@ class Manifest:
         also resolved (symbolic links) and must stay inside it. InputError naming `where`."""
         if not isinstance(self.objects, list) or not all(isinstance(o, ObjectEntry) for o in self.objects):
             raise InputError("malformed manifest: objects must be a list of objects", where)
+        if self.frame.T_twin_input is not None:
+            _matrix(self.frame.T_twin_input, (4, 4), where, "frame T_twin_input")
+        if self.frame.up_check is not None and not isinstance(self.frame.up_check, dict):
+            raise InputError("malformed manifest: frame up_check must be an object", where)
         labels: set[int] = set()
         for o in self.objects:
             object_name(o.name, where)
