@@ -94,7 +94,7 @@ def test_cameras_pointing_everywhere_without_points_are_ambiguous():
     cams = [Camera.from_fov(1.0, 64, 48, T_world_cam=np.block([[Rotation.random(random_state=k).as_matrix(),
                                                                  rng.normal(size=(3, 1))], [np.zeros((1, 3)), 1]]))
             for k in range(40)]
-    assert camera_cue(cams)[1] < 0.5
+    assert camera_cue(cams)[1] < 0.5 and camera_cue(cams)[2] == "view"
     with pytest.raises(InputError, match="cameras disagree"):
         check_up(cams, None)
 
@@ -162,3 +162,23 @@ def test_poses_cli_up_option(scene_small: Path, tmp_path: Path, capsys):
         main(["poses", str(src), str(tmp_path / "b"), "--known", "--up=down"])
     with pytest.raises(InputError, match="--up"):
         estimate_poses(load_dataset(src), PoseOptions(method="known", up="z"))
+
+
+def test_cameras_alone_never_level_a_tilted_world():
+    R_in = Rotation.from_rotvec(math.radians(40) * np.array([1, 1, 0]) / math.sqrt(2)).as_matrix()
+    cams, _ = _moved(R_in, *_tabletop())
+    with pytest.raises(InputError, match="cannot be levelled reliably"):
+        check_up(cams, None)
+    cams, _ = _moved(Rotation.from_euler("x", 20, degrees=True).as_matrix(), *_tabletop())
+    chk = check_up(cams, None)     # 20 degrees off +z with cameras only: taken as +z, not levelled
+    assert chk.input_up == "+z" and not chk.changed
+
+
+def test_horizon_cue_of_rolled_and_upward_looking_cameras():
+    # cameras looking up at something (a statue) with level horizons: the horizon cue still finds up
+    rng = np.random.default_rng(3)
+    cams = [Camera.from_fov(1.0, 64, 48, T_world_cam=look_at(np.array([np.cos(a), np.sin(a), 0.0]),
+                                                              np.array([0.0, 0.0, 0.6]) + rng.normal(0, 0.05, 3)))
+            for a in np.linspace(0, 1.5, 9)]
+    up, strength, kind = camera_cue(cams)
+    assert kind == "horizon" and math.degrees(math.acos(up[2])) < 1.0

@@ -6,10 +6,16 @@ camera-like worlds), y up (OpenGL / Blender exports), or the first camera's fram
 them as "z up" turns the twin upside down or on its side, so `check_up` looks for up in the data itself.
 
 Cues, all in the input world frame:
-- the cameras: each camera's image-up direction (-y of its OpenCV frame) plus its viewing direction
-  reversed (-z). For people and robots photographing a table from above or from the side their mean
-  points up: a camera looking straight down contributes through -z, a level camera through -y (each
-  term has an up component >= 1 for elevations in [0, 90] degrees). Strength = |mean| / sqrt(2), in [0, 1].
+- the cameras, "horizon" cue: people (and most robot wrist cameras) hold cameras with little roll, so
+  every camera's image x axis is nearly horizontal and up is the direction most perpendicular to all of
+  them (the eigenvector of the smallest eigenvalue of mean(x x^T); OpenSfM aligns "horizontal" captures
+  the same way). Used when it is well defined (smallest eigenvalue < 0.02, middle one > 0.1: the x axes
+  span a plane); its sign, and the fallback when it is not (cameras rolled every which way, or all
+  facing one direction), is the mean of each camera's image-up direction (-y) plus its viewing
+  direction reversed (-z), which points up for cameras looking at a table from the side down to
+  straight down (strength = |mean| / sqrt(2) in [0, 1]). On the real captures (../shared/data/real,
+  SfM poses) the two agree within 3 degrees for the cake; for the statue, photographed from below, only
+  the horizon cue is right (the mean is 56 degrees off), hence the order.
 - the table plane: a RANSAC plane (`splattwin.poses.table.fit_table_plane`) through the 3D points
   available (the dataset's points, triangulated points, back-projected depth), its normal oriented
   towards the cameras (the cameras are above the table). Precise, but only a table when most cameras
@@ -17,12 +23,14 @@ Cues, all in the input world frame:
 
 Decision: with both cues they must agree within `MAX_CUE_ANGLE` (else the dominant plane may be a wall:
 ambiguous) and up = the plane normal; with the plane only, up = its normal; with the cameras only, up =
-the camera cue if its strength is at least `MIN_CAMERA_STRENGTH`; otherwise ambiguous. Then, when up is
+the camera cue if it is well defined (`MIN_CAMERA_STRENGTH`); otherwise ambiguous. Then, when up is
 within `AXIS_SNAP_DEG` of a world axis (+-x, +-y, +-z), that axis is the input's up and the rotation is
 the exact quarter/half turn taking it to +z (identity for +z, 180 degrees about x for -z), so the twin
-keeps the user's coordinates up to that recorded rotation; a world tilted away from every axis is
-levelled by the smallest rotation taking up to +z. Ambiguous captures stop with an InputError that
-shows the evidence and names the override (`PoseOptions.up`, `--up`).
+keeps the user's coordinates up to that recorded rotation. A world tilted away from every axis is
+levelled by the smallest rotation taking up to +z, but only on the table plane: the cameras alone are
+too coarse for that (a camera cue within `CAMERA_SNAP_DEG` of an axis is snapped to it; further off,
+the check stops). Ambiguous captures stop with an InputError that shows the evidence and names the
+override (`PoseOptions.up`, `--up`).
 """
 
 from __future__ import annotations
@@ -43,6 +51,7 @@ AXES = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "+y": (0.0, 1.0, 0.0), "-
         "+z": (0.0, 0.0, 1.0), "-z": (0.0, 0.0, -1.0)}
 UP_CHOICES = ("auto", "keep", *AXES)
 AXIS_SNAP_DEG = 15.0        # up this close to a world axis: that axis is the input's up
+CAMERA_SNAP_DEG = 30.0      # the same for up from the cameras alone (a coarser cue, never used to level)
 MAX_CUE_ANGLE = 60.0        # camera cue and table normal further apart than this: ambiguous
 MIN_CAMERA_STRENGTH = 0.5   # |mean(-y_cam - z_cam)| / sqrt(2) needed to trust the cameras alone
 MIN_CAMERAS_ABOVE = 0.8     # share of cameras on the normal's side for a plane to count as the table
@@ -97,13 +106,19 @@ def _rotation_text(R: np.ndarray) -> str:
     return f"{math.degrees(ang):.1f} degrees about {name or np.round(axis, 4).tolist()}"
 
 
-def camera_cue(cameras: list[Camera]) -> tuple[np.ndarray, float]:
-    """(unit up estimate [3], strength in [0, 1]) from the cameras' image-up and viewing directions."""
+def camera_cue(cameras: list[Camera]) -> tuple[np.ndarray, float, str]:
+    """(unit up estimate [3], strength in [0, 1], "horizon" | "view") from the cameras (module docstring)."""
     R = np.array([c.T_world_cam[:3, :3] for c in cameras])          # [N,3,3] columns = camera axes in world
-    v = -R[:, :, 1] - R[:, :, 2]                                      # image up + backwards
-    m = v.mean(axis=0)
+    m = (-R[:, :, 1] - R[:, :, 2]).mean(axis=0)                       # image up + backwards
     n = float(np.linalg.norm(m))
-    return (m / n if n > 0 else np.array([0.0, 0.0, 1.0])), n / math.sqrt(2.0)
+    view = m / n if n > 0 else np.array([0.0, 0.0, 1.0])
+    strength = n / math.sqrt(2.0)
+    x = R[:, :, 0]
+    w, V = np.linalg.eigh(x.T @ x / len(x))                           # ascending eigenvalues
+    if len(cameras) >= 3 and w[0] < 0.02 and w[1] > 0.1 and strength > 0.2:
+        g = V[:, 0] * (1.0 if V[:, 0] @ view >= 0 else -1.0)
+        return g, 1.0 - w[0] / w[1], "horizon"
+    return view, strength, "view"
 
 
 def axis_rotation(axis: str) -> np.ndarray:
@@ -168,8 +183,9 @@ def check_up(cameras: list[Camera], points: np.ndarray | None = None, up: str = 
         return UpCheck(up_input=v, input_up=up, R_twin_input=axis_rotation(up), source="given")
     if not cameras:
         raise InputError("no cameras to find up from", where)
-    cam_up, strength = camera_cue(cameras)
-    ev: dict = {"camera_up": [round(float(x), 6) for x in cam_up], "camera_strength": round(strength, 4)}
+    cam_up, strength, kind = camera_cue(cameras)
+    ev: dict = {"camera_up": [round(float(x), 6) for x in cam_up], "camera_strength": round(strength, 4),
+                "camera_cue": kind}
     normal = None
     if points is not None and len(points) >= 50:
         from splattwin.poses.table import fit_table_plane
@@ -208,8 +224,12 @@ def check_up(cameras: list[Camera], points: np.ndarray | None = None, up: str = 
     best = max(dots, key=dots.get)
     off = math.degrees(math.acos(min(1.0, dots[best])))
     ev["angle_to_axis_deg"] = round(off, 3)
-    if off <= AXIS_SNAP_DEG:
+    if off <= (CAMERA_SNAP_DEG if source == "cameras" else AXIS_SNAP_DEG):
         return UpCheck(up_input=up_v, input_up=best, R_twin_input=axis_rotation(best), source=source, evidence=ev)
+    if source == "cameras":
+        raise InputError(_ambiguous(f"the cameras alone say up is {_fmt(up_v)}, {off:.0f} degrees from the nearest "
+                                    f"world axis ({best}), and without a table plane (no points or depth) the world "
+                                    f"cannot be levelled reliably"), where)
     log.warning("the known poses' world is tilted %.1f degrees from its nearest axis (%s): levelling it with the "
                 "%s", off, best, source.replace("+", " and "))
     return UpCheck(up_input=up_v, input_up="tilted", R_twin_input=level_rotation(up_v), source=source, evidence=ev)
