@@ -14,8 +14,9 @@ Cues, all in the input world frame:
   facing one direction), is the mean of each camera's image-up direction (-y) plus its viewing
   direction reversed (-z), which points up for cameras looking at a table from the side down to
   straight down (strength = |mean| / sqrt(2) in [0, 1]). On the real captures (../shared/data/real,
-  SfM poses) the two agree within 3 degrees for the cake; for the statue, photographed from below, only
-  the horizon cue is right (the mean is 56 degrees off), hence the order.
+  SfM poses) the two agree within 3 degrees for the cake; for the statue, photographed from below, the
+  horizon cue says every camera is pitched up 13-18 degrees (as the photos look) while the mean is 56
+  degrees away from it, hence the order.
 - the table plane: a RANSAC plane (`splattwin.poses.table.fit_table_plane`) through the 3D points
   available (the dataset's points, triangulated points, back-projected depth), its normal oriented
   towards the cameras (the cameras are above the table). Precise, but only a table when most cameras
