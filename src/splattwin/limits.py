@@ -12,6 +12,7 @@ Limits (environment variables override them, e.g. for gigapixel scans):
     SPLATTWIN_MAX_YAML_BYTES     16 MiB  YAML files (tasks, robot poses)
     SPLATTWIN_MAX_YAML_NODES     1e6     YAML nodes after expanding aliases
     SPLATTWIN_MAX_ARRAY_BYTES    16 GiB  .npy arrays (and never more than the file holds)
+    SPLATTWIN_MAX_TEXT_BYTES     256 MiB plain-text lists (TUM pose lists, rgb.txt)
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ MAX_JSON_BYTES = _env("SPLATTWIN_MAX_JSON_BYTES", 1 << 30)
 MAX_YAML_BYTES = _env("SPLATTWIN_MAX_YAML_BYTES", 16 << 20)
 MAX_YAML_NODES = _env("SPLATTWIN_MAX_YAML_NODES", 1e6)
 MAX_ARRAY_BYTES = _env("SPLATTWIN_MAX_ARRAY_BYTES", 16 << 30)
+MAX_TEXT_BYTES = _env("SPLATTWIN_MAX_TEXT_BYTES", 256 << 20)
 
 
 # -- sizes and counts ---------------------------------------------------------------------------
@@ -249,6 +251,20 @@ def load_npz(path: str | Path, what: str = "array archive", max_bytes: int | Non
     except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as e:
         raise InputError(f"not a readable .npz {what}: {e}", path) from None
     return out
+
+
+# -- text ----------------------------------------------------------------------------------------
+def read_text(path: str | Path, what: str = "text file", max_bytes: int | None = None) -> str:
+    """A UTF-8 text file of at most `max_bytes` (default MAX_TEXT_BYTES); InputError naming the file
+    when it is missing, too large or not UTF-8."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{what} does not exist", path)
+    check_file_size(path, MAX_TEXT_BYTES if max_bytes is None else max_bytes, what)
+    try:
+        return path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise InputError(f"{what} is not UTF-8 text: {e}", path) from None
 
 
 # -- JSON and YAML ------------------------------------------------------------------------------

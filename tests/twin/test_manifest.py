@@ -34,3 +34,16 @@ def test_bad_manifests_raise_input_error(tmp_path):
     (tmp_path / "twin.json").write_text(json.dumps({"schema_version": 1, "objects": [{"name": "a"}]}))
     with pytest.raises(InputError, match="malformed"):
         Manifest.load(tmp_path)
+
+
+def test_frame_records_the_input_world_and_is_checked(tmp_path):
+    F = np.diag([1.0, -1.0, -1.0, 1.0])
+    m = Manifest(frame=Frame("known_poses", True, T_twin_input=F.tolist(), up_check={"input_up": "-z"}))
+    m.save(tmp_path)
+    back = Manifest.load(tmp_path)
+    assert np.array_equal(back.frame.T_twin_input, F) and back.frame.up_check == {"input_up": "-z"}
+    d = json.loads((tmp_path / "twin.json").read_text())
+    d["frame"]["T_twin_input"] = [[1, 0], [0, 1]]
+    (tmp_path / "twin.json").write_text(json.dumps(d))
+    with pytest.raises(InputError, match="frame T_twin_input must be a finite 4x4"):
+        Manifest.load(tmp_path)

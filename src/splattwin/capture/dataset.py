@@ -5,8 +5,16 @@
 - a COLMAP sparse model folder (`cameras.bin|txt`, `images.bin|txt`, `points3D.*`; or a folder with
   `sparse/0/` and `images/`),
 - a 3DGS / InstantSplat `cameras.json` (or a folder containing one),
+- a BOP scene folder (`scene_camera.json` + `rgb/` or `gray/`, optional `depth/`; `splattwin.capture.bop`),
+- a TUM-style folder: a pose list (`groundtruth.txt`, `poses.txt`, ...) + an intrinsics file
+  (`splattwin.capture.tum`),
 - a plain image folder (no poses),
 - a video file (frames extracted with PyAV into a cache folder beside it).
+
+Depth units are explicit per format (`Dataset.depth_scale`, metres per raw depth unit): nerfstudio's
+`depth_unit_scale_factor`, BOP's per-scene `depth_scale` (raw x depth_scale = mm), TUM's 5000 units per
+metre unless its intrinsics file says otherwise. `None` means the format's default: integer (16-bit PNG)
+depth in millimetres, float depth (`.npy`) in metres.
 """
 
 from __future__ import annotations
@@ -51,7 +59,9 @@ class Dataset:
     has_poses: bool
     points_xyz: np.ndarray | None = None  # [N,3] float64
     points_rgb: np.ndarray | None = None  # [N,3] uint8
-    depth_scale: float = 1.0  # multiply raw depth-file values by this to get metres (PNG depth in mm: 1e-3)
+    # metres per raw depth-file unit (16-bit PNG in mm: 1e-3; TUM: 1/5000); None: the default of the file
+    # type (integer PNG in mm, float .npy in metres), see `load_depth`
+    depth_scale: float | None = None
     meta: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
@@ -104,26 +114,35 @@ def load_mask(path: str | Path) -> np.ndarray:
     return m[..., 0] if m.ndim == 3 else m
 
 
-def load_depth(path: str | Path, scale: float = 1.0) -> np.ndarray:
-    """Depth map as float32 HxW metres: `.npy` (float, metres unless `scale` says otherwise) or a
-    16-bit PNG (raw units × scale; nerfstudio's convention is millimetres, scale 1e-3)."""
+def load_depth(path: str | Path, scale: float | None = None) -> np.ndarray:
+    """Depth map as float32 HxW metres (0 / non-finite = no measurement, as the sensors write it).
+
+    path: `.npy` (numbers) or an image (16-bit PNG / TIFF). scale: metres per raw unit, explicit per
+    format (`Dataset.depth_scale`: nerfstudio `depth_unit_scale_factor`, BOP `depth_scale` / 1000,
+    TUM 1/5000); None = the file type's default: integer images in millimetres (nerfstudio's default
+    1e-3), float arrays in metres. Integer depth with a scale of 1/k for a whole k (1/1000, 1/5000) is
+    divided by k, so the metres are the correctly rounded float32 of raw / k.
+    """
     from splattwin.limits import check_pixels, load_npy
 
     path = Path(path)
     if not path.is_file():
         raise InputError("depth file does not exist", path)
-    if path.suffix == ".npy":
-        d = load_npy(path, "depth array")
-    else:
-        d = load_mask(path)
-        if scale == 1.0:
-            scale = 1e-3  # integer depth images are millimetres by convention
+    d = load_npy(path, "depth array") if path.suffix == ".npy" else load_mask(path)
     if d.ndim != 2:
         raise InputError(f"depth must be a 2-D array, got shape {d.shape}", path)
     check_pixels(d.shape[1], d.shape[0], path, "depth map")
     if d.dtype.kind not in "fiub":
         raise InputError(f"depth must hold numbers, got dtype {d.dtype}", path)
-    return d.astype(np.float32) * np.float32(scale)
+    if scale is None:
+        scale = 1e-3 if d.dtype.kind in "iub" else 1.0
+    scale = float(scale)
+    if not (np.isfinite(scale) and scale > 0):
+        raise InputError(f"depth scale must be a positive number of metres per unit, got {scale}", path)
+    inv = 1.0 / scale
+    if d.dtype.kind in "iub" and inv > 1.5 and abs(inv - round(inv)) < 1e-6 * inv:
+        return (d.astype(np.float64) / round(inv)).astype(np.float32)
+    return (d.astype(np.float64) * scale).astype(np.float32)
 
 
 def resize_nearest(a: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -147,13 +166,17 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
     Paths read from the dataset's files (image names, depth and mask paths) must stay inside the
     dataset's folder (`splattwin.paths`); names of views must be plain file names (`splattwin.names`).
     """
-    from splattwin.capture import cameras_json, colmap, images, nerfstudio, video
+    from splattwin.capture import bop, cameras_json, colmap, images, nerfstudio, tum, video
 
     path = Path(path)
     if not path.exists():
         raise InputError("dataset path does not exist", path)
     if path.is_file():
-        if path.name.endswith(".json"):
+        if path.name == bop.SCENE_CAMERA:
+            ds = bop.read(path)
+        elif path.name in tum.POSE_FILES:
+            ds = tum.read(path)
+        elif path.name.endswith(".json"):
             with open(path, "rb") as f:
                 text_head = f.read(4096).decode("utf-8", errors="replace")
             ds = cameras_json.read(path) if text_head.lstrip().startswith("[") else nerfstudio.read(path)
@@ -167,10 +190,19 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
         ds = colmap.read(path)
     elif (path / "cameras.json").is_file():
         ds = cameras_json.read(path / "cameras.json")
+    elif bop.is_scene(path):
+        ds = bop.read(path)
+    elif tum.is_capture(path) or (path / "rgb.txt").is_file():  # rgb.txt alone: say what is missing
+        ds = tum.read(path)
     elif find_images(path) or (path / "images").is_dir():
         ds = images.read(path)
     else:
-        raise InputError("no dataset found here (no transforms.json, COLMAP model, cameras.json or images)", path)
+        scenes = sorted(p.name for p in path.iterdir() if p.is_dir() and bop.is_scene(p))
+        if scenes:
+            raise InputError(f"this folder holds {len(scenes)} BOP scenes ({', '.join(scenes[:5])}"
+                             f"{'...' if len(scenes) > 5 else ''}); give one scene folder", path)
+        raise InputError("no dataset found here (no transforms.json, COLMAP model, cameras.json, BOP scene, "
+                         "TUM pose list + intrinsics, or images)", path)
     if max_frames is not None and len(ds.frames) > max_frames and not (path.is_file() and path.suffix in VIDEO_SUFFIXES):
         idx = np.linspace(0, len(ds.frames) - 1, max_frames).round().astype(int)
         ds.frames = [ds.frames[i] for i in idx]

@@ -142,12 +142,14 @@ def read(path: str | Path) -> Dataset:
                 xyz = rgb = None
         else:
             log.warning("%s: ply_file_path %s is missing; no initial point cloud", path, ply)
-    try:
-        depth_scale = float(meta.get("depth_unit_scale_factor", 1.0))
-    except (TypeError, ValueError):
-        raise InputError("depth_unit_scale_factor must be a number", path) from None
-    if not (np.isfinite(depth_scale) and depth_scale > 0):
-        raise InputError(f"depth_unit_scale_factor must be positive, got {depth_scale}", path)
+    depth_scale = None  # absent: nerfstudio's default (16-bit PNG in mm), our .npy in metres
+    if meta.get("depth_unit_scale_factor") is not None:
+        try:
+            depth_scale = float(meta["depth_unit_scale_factor"])
+        except (TypeError, ValueError):
+            raise InputError("depth_unit_scale_factor must be a number", path) from None
+        if not (np.isfinite(depth_scale) and depth_scale > 0):
+            raise InputError(f"depth_unit_scale_factor must be positive, got {depth_scale}", path)
     return Dataset(root=root, frames=frames, has_poses=True, points_xyz=xyz, points_rgb=rgb,
                    depth_scale=depth_scale, meta={"format": "nerfstudio", "path": str(path)})
 
@@ -188,7 +190,7 @@ def write(dataset: Dataset, path: str | Path, ply_name: str = "sparse_pc.ply") -
     meta["frames"] = frames
     meta["train_filenames"] = [fr["file_path"] for fr in frames if fr["split"] == "train"]
     meta["test_filenames"] = [fr["file_path"] for fr in frames if fr["split"] == "heldout"]
-    if dataset.depth_scale != 1.0:
+    if dataset.depth_scale is not None:  # explicit units (BOP, TUM, ...) travel with the dataset
         meta["depth_unit_scale_factor"] = dataset.depth_scale
     if dataset.points_xyz is not None:
         write_points_ply(root / ply_name, dataset.points_xyz, dataset.points_rgb)

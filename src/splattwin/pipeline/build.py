@@ -58,6 +58,7 @@ class BuildOptions:
     robot_poses: str | None = None
     hand_eye: str | None = None
     marker_size: float | None = None
+    up: str = "auto"  # known poses: the world's up axis or auto-detect (PoseOptions.up; issue #16)
     masks: str | None = None
     prompt: str | None = None
     iters: int = 3000
@@ -131,6 +132,7 @@ def _poses_inputs(ctx: Context) -> dict:
     if meta_path and ds.meta.get("format") in ("nerfstudio", "cameras.json", "colmap"):
         files.append(Path(meta_path))
         files.append((Path(meta_path).parent if Path(meta_path).is_file() else Path(meta_path)) / "frame.json")
+    files += [Path(p) for p in ds.meta.get("files", [])]  # pose lists, intrinsics, BOP json (bop, tum)
     for f in ds.frames:
         files += [f.image_path, f.depth_path, f.mask_path, f.label_path]
     out["capture"] = files
@@ -147,7 +149,8 @@ def _poses_stage(ctx: Context) -> dict:
     ds = _load_input(ctx)
     popts = PoseOptions(method=o["poses"], robot_poses=Path(o["robot_poses"]) if o["robot_poses"] else None,
                         hand_eye=Path(o["hand_eye"]) if o["hand_eye"] else None, marker_size=o["marker_size"],
-                        work_dir=ctx.path("poses/sfm"), progress=o["progress"], seed=o["seed"])
+                        work_dir=ctx.path("poses/sfm"), progress=o["progress"], seed=o["seed"],
+                        up=o.get("up", "auto"))
     result = estimate_poses(ds, popts)
     result.save(ctx.path("poses"))
     return {"transforms": "@poses/transforms.json", "frame": "@poses/frame.json",
@@ -371,7 +374,7 @@ def _report_stage(ctx: Context) -> dict:
 def stages() -> list[Stage]:
     """The pipeline. Path options are not hashed as names but by content (each stage's `inputs`); each
     stage's `code` lists the packages whose source is part of its key (see `splattwin.pipeline.runner`)."""
-    data = ("scene", "poses", "marker_size", "seed")
+    data = ("scene", "poses", "marker_size", "seed", "up")
     return [
         Stage("scene", _scene_stage, option_keys=("scene",), code=("splattwin.scene",)),
         Stage("poses", _poses_stage, option_keys=data, deps=("scene",), inputs=_poses_inputs,

@@ -26,14 +26,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     b = sub.add_parser("build", help="photos → planning-ready twin: poses, splats, semantics, geometry, export",
                        description="Run the whole pipeline. Finished stages are skipped on a re-run (their inputs "
                                    "and options are hashed); --from redoes from a stage; a killed run resumes.")
-    b.add_argument("input", type=Path, help="dataset: image folder, video, transforms.json, COLMAP or cameras.json")
+    b.add_argument("input", type=Path, help="dataset: image folder, video, transforms.json, COLMAP, cameras.json, "
+                                            "BOP scene, or TUM pose list + intrinsics")
     b.add_argument("--out", type=Path, required=True, help="twin folder to write")
     b.add_argument("--prompt", default=None, help='open-vocabulary objects, e.g. "blue box. yellow cube. toy hammer"')
-    b.add_argument("--masks", type=Path, default=None, help="2D masks instead of --prompt (PNG dirs, COCO RLE, polygons)")
+    b.add_argument("--masks", type=Path, default=None, help="2D masks instead of --prompt (PNG dirs, COCO RLE, polygons, "
+                                                                  "BOP mask_visib, per-instance files)")
     b.add_argument("--poses", choices=("auto", "known", "sfm", "robot"), default="auto")
     b.add_argument("--robot-poses", type=Path, default=None, help="T_base_ee per image (JSON/YAML)")
     b.add_argument("--hand-eye", type=Path, default=None, help="T_ee_cam (JSON/YAML)")
     b.add_argument("--marker-size", type=float, default=None, help="ArUco marker side (m) for metric scale")
+    b.add_argument("--up", default="auto", choices=("auto", "keep", "+z", "-z", "+y", "-y", "+x", "-x"),
+                   help="known poses: the world axis pointing up (--up=-z, --up=+y, ...); auto finds it (cameras, table plane) and turns "
+                        "z-down worlds z up; keep = trust the poses")
     b.add_argument("--task", default=None, help="robot task YAML to validate in physics ('default' = paper's task)")
     _common(b)
     b.set_defaults(func=_build)
@@ -61,7 +66,7 @@ def _build(args: argparse.Namespace) -> int:
 
     opts = _options(args, input=str(args.input), poses=args.poses,
                     robot_poses=str(args.robot_poses) if args.robot_poses else None,
-                    hand_eye=str(args.hand_eye) if args.hand_eye else None, marker_size=args.marker_size,
+                    hand_eye=str(args.hand_eye) if args.hand_eye else None, marker_size=args.marker_size, up=args.up,
                     masks=str(args.masks) if args.masks else None, prompt=args.prompt, task=args.task)
     ctx = build(args.out, opts, from_stage=args.from_stage, until=args.until)
     _print_headline(ctx)

@@ -22,7 +22,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "robot poses, an ArUco marker, the table plane + a known length, robot/known poses; "
                     "otherwise the table plane, marked 'unscaled' (robot stages refuse unscaled twins).",
     )
-    p.add_argument("input", type=Path, help="dataset: image folder, video, transforms.json, COLMAP model, cameras.json")
+    p.add_argument("input", type=Path, help="dataset: image folder, video, transforms.json, COLMAP model, cameras.json, BOP scene, "
+                                            "TUM pose list + intrinsics")
     p.add_argument("out", type=Path, help="output folder")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--sfm", action="store_true", help="structure from motion even if the dataset has poses")
@@ -60,6 +61,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--work-dir", type=Path, help="SfM scratch folder, re-used to resume (default OUT/sfm)")
     p.add_argument("--max-frames", type=int, help="use at most N frames (evenly spaced; videos: best N)")
     p.add_argument("--no-depth-points", action="store_true", help="do not back-project depth images")
+    p.add_argument("--up", default="auto", choices=("auto", "keep", "+z", "-z", "+y", "-y", "+x", "-x"),
+                   help="known poses: the world axis that points up (--up=+z, --up=-z, +y, -y, +x, -x); auto (default) finds it from the "
+                        "cameras and the table plane and rotates z-down/y-up worlds to z up (recorded in frame.json), "
+                        "stopping when unclear; keep = use the poses as they are")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_run)
 
@@ -109,7 +114,7 @@ def _run(args: argparse.Namespace) -> int:
         shared_intrinsics=not args.per_image_intrinsics, matcher=args.matcher, min_registered=args.min_registered,
         max_image_size=args.max_image_size, max_num_features=args.max_features, retry=not args.no_retry,
         num_threads=args.threads, work_dir=args.work_dir or (args.out / "sfm"), depth_points=not args.no_depth_points,
-        triangulate=not args.no_triangulate, seed=args.seed,
+        triangulate=not args.no_triangulate, seed=args.seed, up=args.up,
     )
     if opts.marker_size is not None and opts.marker_size <= 0:
         raise InputError(f"--marker-size must be positive (metres), got {opts.marker_size}")

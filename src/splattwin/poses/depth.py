@@ -48,7 +48,7 @@ def backproject_depth(depth: np.ndarray, camera: Camera, image: np.ndarray | Non
     return xyz, rgb
 
 
-def backproject_frames(frames, stride: int = 4, max_depth: float = np.inf, depth_scale: float = 1.0,
+def backproject_frames(frames, stride: int = 4, max_depth: float = np.inf, depth_scale: float | None = None,
                        max_points: int | None = 200_000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Fused cloud from every frame with a depth_path (splattwin.capture Frames). Colours from the images.
 

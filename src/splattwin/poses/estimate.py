@@ -55,6 +55,7 @@ class PoseOptions:
     depth_points: also back-project depth images (RGB-D) into a point cloud when the frame is metric.
     triangulate: known/robot poses without a point cloud (and without depth for one): triangulate sparse
       points from the images with the poses held fixed (`splattwin.poses.triangulate`).
+    up: which way is up in a known-pose world ("auto" detects it; see `splattwin.poses.up`).
     """
 
     method: str = "auto"
@@ -77,6 +78,10 @@ class PoseOptions:
     depth_points: bool = True
     triangulate: bool = True
     depth_stride: int = 4
+    # known poses: the input world's up axis. "auto" = detect from the cameras and the table plane and
+    # rotate z-down / y-up / tilted worlds to z up (splattwin.poses.up), stop when ambiguous; "+z", "-z",
+    # "+y", ... = that axis is up; "keep" = use the poses as they are (no check). New option (issue #16).
+    up: str = "auto"
     progress: bool = True
     seed: int = 0
 
@@ -102,7 +107,7 @@ class PoseResult:
     depth_rgb: np.ndarray | None = None
     T_out_in: np.ndarray = field(default_factory=lambda: np.eye(4))
     stats: dict = field(default_factory=dict)
-    depth_scale: float = 1.0
+    depth_scale: float | None = None  # metres per raw depth unit (see splattwin.capture.dataset)
 
     @property
     def cameras(self) -> list[Camera]:
@@ -171,6 +176,8 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         method = "robot" if opts.robot_poses is not None else ("known" if dataset.has_poses else "sfm")
     if method not in ("sfm", "known", "robot"):
         raise InputError(f"unknown pose method {opts.method!r} (auto, sfm, known, robot)")
+    if opts.up not in ("auto", "keep", "+x", "-x", "+y", "-y", "+z", "-z"):
+        raise InputError(f"--up {opts.up!r}: use auto, keep, or the world axis that points up (+z, -z, +y, -y, +x, -x)")
     if method == "known" and not dataset.has_poses:
         raise InputError("--known: this dataset has no camera poses (use --sfm or --robot-poses)", dataset.root)
 
@@ -181,6 +188,7 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
     pts_xyz = pts_rgb = None
     T_out_in = np.eye(4)
     frame: Frame | None = None
+    prior: Frame | None = None
     in_cams: dict[str, Camera]
 
     if method == "sfm":
@@ -290,6 +298,23 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
                                       "NOT metric. Give --marker-size, --known-length or --robot-poses for a metric twin")
             log.warning("no metric scale: the frame is marked 'unscaled' and robot stages will refuse it")
     assert frame is not None
+    if method == "known" and prior is None and input_scaled and opts.marker_size is None and opts.known_length is None:
+        if ((pts_xyz is None or len(pts_xyz) == 0) and opts.triangulate and len(order) >= 2
+                and not any(f.depth_path is not None for f in frames)):
+            # known poses, no points, no depth: triangulate now (input frame), so the up check also has the
+            # table plane and not only the cameras
+            tri = _triangulate(opts, [frames[names.index(n)].image_path for n in order], [in_cams[n] for n in order],
+                               stats)
+            if tri is not None:
+                pts_xyz, pts_rgb = tri
+        frame, T_out_in = _check_up(frame, [in_cams[n] for n in order], pts_xyz, frames, dataset, opts, stats)
+    elif opts.up not in ("auto", "keep"):
+        log.warning("--up %s ignored: it applies to known poses in their own world, but this frame comes from %s",
+                    opts.up, frame.source if prior is None else "an earlier poses run (frame.json)")
+    T_twin_input = np.asarray(T_out_in, dtype=np.float64)
+    if prior is not None and prior.T_twin_input is not None:  # chained runs: from the original input
+        T_twin_input = T_twin_input @ np.asarray(prior.T_twin_input, dtype=np.float64)
+    frame = dataclasses.replace(frame, T_twin_input=T_twin_input.tolist())
 
     out_cams = {n: align.transform_camera(T_out_in, c) for n, c in in_cams.items()}
     if frame.source == "sfm+robot" and opts.shared_intrinsics:
@@ -334,6 +359,27 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
 
 
 # ------------------------------------------------------------------------------------------------
+def _check_up(frame: Frame, cams: list[Camera], pts_xyz: np.ndarray | None, frames: list[DataFrame],
+              dataset: Dataset, opts: PoseOptions, stats: dict) -> tuple[Frame, np.ndarray]:
+    """Known poses: find up (cameras + table plane of the points or depth) and rotate the world to z up
+    (`splattwin.poses.up`). Returns the frame (with `up_check`) and T_out_in."""
+    if opts.up == "keep":
+        return dataclasses.replace(frame, up_check={"input_up": "kept as given (--up keep)"}), np.eye(4)
+    from splattwin.poses.up import check_up, depth_points
+
+    pts = pts_xyz
+    if (pts is None or len(pts) < 50) and opts.up == "auto":
+        pts = depth_points(frames, dataset.depth_scale, seed=opts.seed)
+    chk = check_up(cams, pts, opts.up, where=dataset.meta.get("path", dataset.root), seed=opts.seed)
+    stats["up_check"] = chk.to_dict()
+    if chk.changed:
+        log.warning("known poses: %s (recorded in frame.json)", chk.describe())
+        frame = dataclasses.replace(frame, description=f"{frame.description}; {chk.describe()}")
+    else:
+        log.info("known poses: %s", chk.describe())
+    return dataclasses.replace(frame, up_check=chk.to_dict()), chk.T_twin_input
+
+
 def _frame_key(f: DataFrame) -> str:
     return str(Path(f.image_path).resolve())
 

@@ -33,6 +33,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"rays per pixel side, box-filtered (anti-aliasing; 1-8, default {SceneOptions.supersample})")
     g.add_argument("--clean-masks", action="store_true",
                    help="simulate a perfect segmenter (noisy masks equal the GT masks)")
+    # robot-style capture (issue #16); the options refactor may regenerate these from RobotCaptureOptions
+    g.add_argument("--robot-capture", choices=("bop", "tum"), default=None,
+                   help="write a robot-style RGB-D capture instead (D435-like camera, 16-bit depth in mm, "
+                        "per-instance masks, known poses in a z-down world): a BOP scene or a TUM pose list")
+    g.add_argument("--robot-world", choices=("z-down", "z-up"), default="z-down",
+                   help="world of the robot capture's poses (default z-down: the scene rotated 180 deg about x)")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
     g.set_defaults(func=_generate)
 
@@ -48,6 +54,16 @@ def _generate(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     from splattwin.lock import output_lock
 
+    if args.robot_capture:
+        from splattwin.scene.robot_capture import RobotCaptureOptions, write_robot_capture
+
+        cap = RobotCaptureOptions(views=args.views, width=args.width, height=args.height, world=args.robot_world,
+                                  format=args.robot_capture)
+        with output_lock(args.out_dir):
+            out = write_robot_capture(args.out_dir, opts, cap, progress=not args.no_progress)
+        print(f"robot-style capture ({args.robot_capture}, world {args.robot_world}) written to {out.resolve()} "
+              f"({args.views} views, {args.width}x{args.height}, seed {args.seed}, {time.perf_counter() - t0:.1f} s)")
+        return 0
     with output_lock(args.out_dir):
         out = generate(args.out_dir, opts, progress=not args.no_progress)
     print(f"scene written to {out.resolve()} ({args.views} training + {args.heldout} held-out views, "

@@ -162,7 +162,18 @@ def generate(out_dir: str | Path, options: SceneOptions | None = None, progress:
 
     write_image(out / "preview.png", preview_image([v for v, _ in previews], [m for _, m in previews]))
     write_json(out / "transforms.json", transforms_json(cameras))
-    scene = {
+    scene = scene_record(options, objects, layout, marker, [c.name for c in cameras])
+    scene["preview"] = "preview.png"
+    scene["noise"] = {**options.noise.to_dict(), "events": noise_events}
+    write_json(out / "scene.json", scene)
+    log.debug("scene written to %s", out)
+    return out
+
+
+def scene_record(options: SceneOptions, objects: list[SceneObject], layout: dict, marker: TableMarker | None,
+                 views: list[str]) -> dict:
+    """The ground-truth part of scene.json (world frame, robot base, table, objects, target, light)."""
+    return {
         "format_version": FORMAT_VERSION,
         "seed": options.seed,
         "options": options.to_dict(),
@@ -176,13 +187,8 @@ def generate(out_dir: str | Path, options: SceneOptions | None = None, progress:
         "marker": marker.to_json() if marker is not None else None,
         "light": {"direction_world": LIGHT_DIR.tolist(), "ambient": AMBIENT, "diffuse": DIFFUSE,
                   "shadows": options.shadows},
-        "views": [c.name for c in cameras],
-        "preview": "preview.png",
-        "noise": {**options.noise.to_dict(), "events": noise_events},
+        "views": views,
     }
-    write_json(out / "scene.json", scene)
-    log.debug("scene written to %s", out)
-    return out
 
 
 def _remove_stale_views(out: Path, views: set[str], objects: list[str]) -> None:

@@ -13,6 +13,17 @@ Accepted sources (`load_masks` picks by what it finds):
   `annotations[{image_id, category_id, segmentation, score?}]` where segmentation is RLE
   (compressed string or list counts, see `splattwin.semantics.rle`) or polygons `[[x1, y1, x2, y2, ...]]`.
   Several annotations of one category in one image are merged (union, max score).
+- Per-instance mask files, one binary image per object instance and view:
+  - a BOP scene (`scene_gt.json` + `mask_visib/` or `mask/`, files `{image:06d}_{instance:06d}.png`): give
+    the scene folder (visible masks `mask_visib/` preferred) or the mask folder itself. The instance's
+    object is its `obj_id` in `scene_gt.json`, named by `splattwin.capture.bop.object_names`
+    (`object_names.json`, or `obj_000001`). Several instances of one `obj_id` are told apart by their
+    positions in the world when the scene has camera poses (else by their order in each image's list)
+    and named `<name>`, `<name>_2`, ...
+  - `<dir>/<view>_<instance>.png` with `<dir>/instances.json` naming the instances
+    (`{"1": "mug", "2": "bowl"}`; without it `instance_1`, ...). The layout is recognised by the
+    `instances.json` file, or, when the dataset's views are known, by file names that are a view name
+    plus `_<number>`.
 - Polygon JSON of the paper's published code (github.com/535A59/3DGS-Digital-Twin,
   `src/semantic_segmentation/sam_segmentation.py`): one file per image named `<stem>_mask.json` with
   `{"image_filename", "image_height", "image_width", "input_points", "input_labels",
@@ -198,6 +209,10 @@ def load_masks(path: str | Path, objects: dict[str, int] | None = None, object_n
         raise InputError("JSON is neither COCO (annotations) nor polygon masks (segmentation_polygons)", path)
     if (path / INDEX_NAME).is_file():
         return load_maskset_dir(path, image_sizes)
+    if find_bop_scene(path) is not None:
+        return load_bop_masks(path, objects, image_sizes)
+    if (path / INSTANCES_FILE).is_file() or _looks_per_instance(path, image_sizes):
+        return load_instance_masks(path, objects, image_sizes)
     coco = [p for p in path.glob("*.json") if p.name != INDEX_NAME and _mentions_annotations(p)]
     if len(coco) == 1 and not list(path.glob("*_mask.json")):
         return load_coco(coco[0], objects, image_sizes)
@@ -386,6 +401,188 @@ def load_coco(path: Path, objects: dict[str, int] | None = None, image_sizes: di
     except (KeyError, TypeError, ValueError, AttributeError) as e:
         raise InputError(f"malformed COCO JSON: {e}", path) from e
     return ms
+
+
+# -- per-instance mask files (BOP and similar) ------------------------------------------------------
+
+INSTANCES_FILE = "instances.json"
+_INSTANCE_RE = re.compile(r"^(.+)_(\d{1,9})$")
+_SAME_INSTANCE_M = 0.05  # instances of one obj_id closer than this in the world are the same object
+
+
+def find_bop_scene(path: Path) -> Path | None:
+    """The BOP scene folder of a mask path: the scene itself (with scene_gt.json and mask_visib/ or
+    mask/), or its mask_visib/ or mask/ folder; None when `path` is neither."""
+    from splattwin.capture.bop import MASK_DIRS, SCENE_GT
+
+    path = Path(path)
+    if path.is_dir() and (path / SCENE_GT).is_file() and any((path / d).is_dir() for d in MASK_DIRS):
+        return path
+    if path.is_dir() and path.name in MASK_DIRS and (path.parent / SCENE_GT).is_file():
+        return path.parent
+    return None
+
+
+def _bop_instance_keys(gt: dict, T_world_cam: dict[int, np.ndarray] | None, where: Path) -> dict[tuple[int, int], tuple[int, int]]:
+    """(image id, instance index) -> (obj_id, n): the n-th distinct object with that obj_id."""
+    keys: dict[tuple[int, int], tuple[int, int]] = {}
+    dup_ids = {g.obj_id for insts in gt.values() for g in insts
+               if sum(h.obj_id == g.obj_id for h in insts) > 1}
+    centres: dict[int, list[np.ndarray]] = {}   # obj_id -> world positions of its distinct objects
+    warned = False
+    for im_id in sorted(gt):
+        seen: dict[int, list[int]] = {}
+        for g in gt[im_id]:
+            if g.obj_id not in dup_ids:
+                keys[(im_id, g.index)] = (g.obj_id, 0)
+                continue
+            taken = seen.setdefault(g.obj_id, [])
+            if T_world_cam is not None and im_id in T_world_cam:
+                p = (T_world_cam[im_id] @ g.T_cam_obj)[:3, 3]
+                cs = centres.setdefault(g.obj_id, [])
+                d = [np.linalg.norm(c - p) if n not in taken else np.inf for n, c in enumerate(cs)]
+                n = int(np.argmin(d)) if d and min(d) < _SAME_INSTANCE_M else len(cs)
+                if n == len(cs):
+                    cs.append(p)
+            else:
+                if not warned:
+                    log.warning("%s: several instances of one obj_id and no camera poses: instances are told apart "
+                                "by their order in each image's list", where)
+                    warned = True
+                n = len(taken)
+            taken.append(n)
+            keys[(im_id, g.index)] = (g.obj_id, n)
+    return keys
+
+
+def load_bop_masks(path: str | Path, objects: dict[str, int] | None = None,
+                   image_sizes: dict | None = None) -> MaskSet:
+    """A BOP scene's per-instance masks -> MaskSet (layout in the module docstring). Views are the
+    image stems (`000012`); instances whose mask file is missing or empty are left out of that view."""
+    from splattwin.capture.bop import MASK_DIRS, SCENE_CAMERA, SCENE_GT, mask_name, object_names, read_scene_gt
+
+    path = Path(path)
+    scene = find_bop_scene(path)
+    if scene is None:
+        raise InputError("not a BOP scene or mask folder (needs scene_gt.json and mask_visib/ or mask/)", path)
+    mask_dir = path if path.name in MASK_DIRS and path != scene else next(scene / d for d in MASK_DIRS
+                                                                         if (scene / d).is_dir())
+    gt_file = scene / SCENE_GT
+    gt = read_scene_gt(gt_file)
+    T_world_cam = None
+    if (scene / SCENE_CAMERA).is_file():
+        from splattwin.capture import bop
+
+        try:
+            ds = bop.read(scene)
+            if ds.has_poses:
+                T_world_cam = {int(f.camera.name): f.camera.T_world_cam for f in ds.frames}
+        except InputError as e:  # the masks do not need the images; say why poses were not used
+            log.info("%s: camera poses not used to tell instances apart (%s)", scene, e)
+    keys = _bop_instance_keys(gt, T_world_cam, gt_file)
+    base = object_names(scene, sorted({k[0] for k in keys.values()}))
+    counts: dict[int, int] = {}
+    for oid, n in set(keys.values()):
+        counts[oid] = max(counts.get(oid, 0), n + 1)
+    name_of = {(oid, n): (base[oid] if n == 0 else f"{base[oid]}_{n + 1}")
+               for oid, n in sorted(set(keys.values()))}
+    for nm in name_of.values():
+        object_name(nm, gt_file)
+    check_unique(name_of.values(), gt_file)
+    labels = dict(objects or {})
+    for key in sorted(name_of):
+        if name_of[key] not in labels:
+            labels[name_of[key]] = max(labels.values(), default=0) + 1
+    ms = MaskSet(source=f"bop:{mask_dir}")
+    missing = []
+    for im_id in sorted(gt):
+        view = f"{im_id:06d}"
+        for g in gt[im_id]:
+            f = mask_dir / mask_name(im_id, g.index)
+            if not f.is_file():
+                missing.append(f.name)
+                continue
+            mask = _read_binary_png(f)
+            _check_image(view, mask.shape, image_sizes, f)
+            _check_size(ms, view, mask, f)
+            ms.sizes.setdefault(view, mask.shape)
+            ms.size_sources.setdefault(view, str(f))
+            if mask.any():
+                nm = name_of[keys[(im_id, g.index)]]
+                ms.add(view, labels[nm], mask, 1.0, name=nm, source=f)
+    if missing:
+        log.warning("%s: %d instance mask file(s) listed in %s are missing (e.g. %s)", mask_dir, len(missing),
+                    SCENE_GT, ", ".join(missing[:3]))
+    if not ms.sizes:
+        raise InputError(f"no mask file of {SCENE_GT} exists in {mask_dir.name}/", mask_dir)
+    _check_names(ms, gt_file)
+    return ms
+
+
+def _looks_per_instance(path: Path, image_sizes: dict | None) -> bool:
+    """Flat files named `<view>_<number>` where the views are known and no file is a view itself."""
+    if not image_sizes:
+        return False
+    stems = [p.stem for p in path.iterdir() if p.is_file() and p.suffix.lower() in _IMAGE_EXTS]
+    if not stems or any(s in image_sizes for s in stems):
+        return False
+    return all((m := _INSTANCE_RE.match(s)) is not None and m.group(1) in image_sizes for s in stems)
+
+
+def load_instance_masks(path: str | Path, objects: dict[str, int] | None = None,
+                        image_sizes: dict | None = None) -> MaskSet:
+    """`<dir>/<view>_<instance>.png` binary masks -> MaskSet; names from `<dir>/instances.json`
+    (`{"<instance>": "name"}`, instance numbers compared as integers) or `instance_<n>`."""
+    path = Path(path)
+    names: dict[int, str] = {}
+    index = path / INSTANCES_FILE
+    if index.is_file():
+        data = _read_json(index)
+        if not isinstance(data, dict):
+            raise InputError('expected an object {"<instance number>": "object name", ...}', index)
+        for k, v in data.items():
+            if not isinstance(k, str) or not k.isdigit() or len(k) > 9:
+                raise InputError(f"instance key {k!r} must be a whole number", index)
+            names[int(k)] = name_from_label(v, index, f"name of instance {k}")
+    files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in _IMAGE_EXTS)
+    if not files:
+        raise InputError("no <view>_<instance>.png mask files in this folder", path)
+    parsed = []
+    for p in files:
+        m = _INSTANCE_RE.match(p.stem)
+        if m is None:
+            raise InputError("per-instance mask file names must be <view>_<instance number>.png", p)
+        view, inst = view_name(m.group(1), p, "view name (file name before _<instance>)"), int(m.group(2))
+        if names and inst not in names:
+            raise InputError(f"instance {inst} (file {p.name}) has no name in {INSTANCES_FILE}", index)
+        parsed.append((p, view, inst))
+    name_of = {inst: names.get(inst, f"instance_{inst}") for _, _, inst in parsed}
+    check_unique(set(name_of.values()), index if names else path)
+    labels = dict(objects or {})
+    for inst in sorted(name_of):
+        if name_of[inst] not in labels:
+            labels[name_of[inst]] = max(labels.values(), default=0) + 1
+    ms = MaskSet(source=f"instances:{path}")
+    for p, view, inst in parsed:
+        mask = _read_binary_png(p)
+        _check_image(view, mask.shape, image_sizes, p)
+        _check_size(ms, view, mask, p)
+        ms.sizes.setdefault(view, mask.shape)
+        ms.size_sources.setdefault(view, str(p))
+        if mask.any():
+            ms.add(view, labels[name_of[inst]], mask, 1.0, name=name_of[inst], source=p)
+    _check_names(ms, path)
+    return ms
+
+
+def save_instance_masks(ms: MaskSet, out_dir: str | Path) -> Path:
+    """Write `<out_dir>/<view>_<label:06d>.png` (0/255) and `instances.json` ({label: name})."""
+    out_dir = Path(out_dir)
+    for view in ms.views:
+        for label, m in sorted(ms.masks.get(view, {}).items()):
+            io.write_image(child(out_dir, f"{view_name(view)}_{label:06d}.png"), m.astype(np.uint8) * 255)
+    io.write_json(out_dir / INSTANCES_FILE, {str(k): object_name(v) for k, v in sorted(ms.objects.items())})
+    return out_dir
 
 
 def save_coco(ms: MaskSet, path: str | Path, compressed: bool = True) -> Path:

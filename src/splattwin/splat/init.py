@@ -86,7 +86,7 @@ def backproject_depth(depth: np.ndarray, camera: Camera, image: np.ndarray | Non
     return p_world, rgb
 
 
-def points_from_depth(frames: Sequence[Frame], depth_scale: float = 1.0, max_points: int = 30_000,
+def points_from_depth(frames: Sequence[Frame], depth_scale: float | None = None, max_points: int = 30_000,
                       background_fraction: float = 0.1, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Fused back-projection of the frames' depth maps, randomly subsampled to `max_points`, of which at
     most `background_fraction` are far-sphere background points. Raises InputError without depth maps."""
@@ -247,7 +247,7 @@ def _images_exist(frames: Sequence[Frame]) -> bool:
 
 
 def initial_gaussians(method: str, train_frames: Sequence[Frame], points_xyz: np.ndarray | None = None,
-                      points_rgb: np.ndarray | None = None, depth_scale: float = 1.0, sh_degree: int = 3,
+                      points_rgb: np.ndarray | None = None, depth_scale: float | None = None, sh_degree: int = 3,
                       max_points: int = 30_000, seed: int = 0) -> tuple[Gaussians, str]:
     """Initial Gaussians by `method` ("auto" | "sfm" | "depth" | "triangulate" | "random"); returns
     (gaussians, method used). "auto" takes the SfM/dataset points if present, else depth maps if present,

@@ -141,7 +141,7 @@ def training_scale(width: int, resolution: int) -> float:
 
 
 def load_views(frames: list[Frame], resolution: int = 1, depth: bool = False,
-               depth_scale: float = 1.0) -> list[TrainView]:
+               depth_scale: float | None = None) -> list[TrainView]:
     """Images of `frames` as tensors, resized (PIL area filter) to the training resolution; with
     depth=True also their depth maps (frames without one get None)."""
     from PIL import Image

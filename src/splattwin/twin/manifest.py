@@ -38,6 +38,8 @@ class Frame:
 
     source: one of FRAME_SOURCES. scaled: False when the metric scale is unknown (robot stages refuse).
     scale_uncertainty_rel: 1-sigma relative scale uncertainty (0.01 = 1 %).
+    T_twin_input: how the input's coordinates map into the twin frame (e.g. a z-down robot world rotated
+    180 degrees about x). up_check: the evidence for up (cameras, table plane) when poses were known.
     """
 
     source: str = "unscaled"
@@ -46,6 +48,10 @@ class Frame:
     up: str = "+z"
     scale_uncertainty_rel: float | None = None
     description: str = ""
+    # [4,4] similarity from the input's world (known or robot poses; the SfM model for SfM) to this frame
+    T_twin_input: list | None = None
+    # known poses: where up was found and the rotation applied (splattwin.poses.up.UpCheck.to_dict)
+    up_check: dict | None = None
 
 
 @dataclass
@@ -126,6 +132,10 @@ class Manifest:
         also resolved (symbolic links) and must stay inside it. InputError naming `where`."""
         if not isinstance(self.objects, list) or not all(isinstance(o, ObjectEntry) for o in self.objects):
             raise InputError("malformed manifest: objects must be a list of objects", where)
+        if self.frame.T_twin_input is not None:
+            _matrix(self.frame.T_twin_input, (4, 4), where, "frame T_twin_input")
+        if self.frame.up_check is not None and not isinstance(self.frame.up_check, dict):
+            raise InputError("malformed manifest: frame up_check must be an object", where)
         labels: set[int] = set()
         for o in self.objects:
             object_name(o.name, where)

@@ -1,0 +1,400 @@
+"""TUM-style captures: a pose list + an intrinsics file (+ optional depth): read and write.
+
+A folder holding
+- a pose list `groundtruth.txt` | `poses.txt` | `trajectory.txt` | `camera_poses.txt` | `poses.tum` |
+  `trajectory.tum`: one pose per line, `id_or_timestamp tx ty tz qx qy qz qw` (spaces or commas, `#`
+  comments): T_world_cam, camera-to-world, metres, quaternion xyzw (scalar last, the TUM RGB-D
+  benchmark's convention), OpenCV camera frame (x right, y down, z forward: the TUM optical frame);
+- an intrinsics file `intrinsics.{yaml,yml,json}` | `camera.{yaml,yml,json}` | `calibration.{yaml,yml,json}`:
+  `fx fy cx cy width height` (also `w`/`h`, a 3x3 `K`, nested under `camera:`/`intrinsics:`, or
+  ORB-SLAM's `Camera.fx` / `Camera1.fx` keys; an OpenCV `%YAML:1.0` first line is skipped), optional
+  distortion `k1 k2 p1 p2 [k3]` or `distortion: [...]`, and the depth unit: `depth_factor` (units per
+  metre, TUM / ORB-SLAM `DepthMapFactor`, 5000 for TUM RGB-D) or `depth_scale` (metres per unit, the
+  RealSense SDK's, 0.001 for millimetres);
+- images: listed in `rgb.txt` (`timestamp path`, TUM RGB-D) or the files of `rgb/` (else `images/`);
+- depth (optional): listed in `depth.txt` or the files of `depth/`, 16-bit images.
+
+Matching poses to images: by id when the first column names the images (`000012` or `12` for
+`000012.png`, or the file name); otherwise by time: each image takes the pose with the nearest
+timestamp within `max_dt` (default 0.02 s, as TUM's `associate.py`) and images without one are skipped
+with a warning. Image timestamps come from `rgb.txt`, else from the file names (`1305031102.175304.png`).
+Depth images are matched to images the same way.
+
+Depth units are explicit: the intrinsics file's `depth_factor` / `depth_scale`; without them 5000 per
+metre for the TUM RGB-D layout (`depth.txt` present), and an InputError otherwise (a wrong guess would
+scale the whole twin).
+
+Everything read is untrusted: text and JSON/YAML sizes are bounded (`splattwin.limits`), paths from
+`rgb.txt` / `depth.txt` stay inside the folder (`splattwin.paths`), numbers are checked (finite, unit
+quaternions); errors name the file and the line.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from splattwin import io
+from splattwin.capture.camera import Camera
+from splattwin.capture.dataset import Dataset, Frame, find_images, image_size
+from splattwin.errors import InputError
+from splattwin.limits import check_count, check_pixels, loads_yaml, read_text
+from splattwin.paths import confined
+
+log = logging.getLogger(__name__)
+
+POSE_FILES = ("groundtruth.txt", "poses.txt", "trajectory.txt", "camera_poses.txt", "poses.tum", "trajectory.tum")
+INTRINSICS_FILES = tuple(f"{s}.{e}" for s in ("intrinsics", "camera", "calibration") for e in ("yaml", "yml", "json"))
+TUM_DEPTH_FACTOR = 5000.0  # TUM RGB-D: 5000 depth units per metre
+MAX_DT = 0.02              # seconds: TUM associate.py's default max_difference
+_SPLIT = re.compile(r"[\s,]+")
+
+
+@dataclass
+class Intrinsics:
+    """Pinhole intrinsics of a capture (pixels), optional OpenCV distortion and depth unit (metres per
+    raw depth unit, None when the file does not say)."""
+
+    K: np.ndarray
+    width: int
+    height: int
+    dist: np.ndarray | None = None
+    depth_scale: float | None = None
+
+
+def find_pose_file(folder: Path) -> Path | None:
+    return next((folder / n for n in POSE_FILES if (folder / n).is_file()), None)
+
+
+def find_intrinsics_file(folder: Path) -> Path | None:
+    return next((folder / n for n in INTRINSICS_FILES if (folder / n).is_file()), None)
+
+
+def is_capture(folder: Path) -> bool:
+    """A folder with a pose list and an intrinsics file."""
+    return find_pose_file(folder) is not None and find_intrinsics_file(folder) is not None
+
+
+# -- text lists -----------------------------------------------------------------------------------
+def _lines(path: Path, what: str) -> list[tuple[int, list[str]]]:
+    """(line number, fields) of the non-empty, non-comment lines of a bounded text file."""
+    text = read_text(path, what)
+    out = []
+    for i, line in enumerate(text.splitlines(), start=1):
+        s = line.strip()
+        if s and not s.startswith("#"):
+            out.append((i, [t for t in _SPLIT.split(s) if t]))
+    check_count(len(out), path, f"lines of the {what}")
+    return out
+
+
+def read_pose_list(path: str | Path) -> list[tuple[str, np.ndarray]]:
+    """`id_or_timestamp tx ty tz qx qy qz qw` lines -> [(id, T_world_cam [4,4])] in file order."""
+    from splattwin.transforms import pose_from_pos_quat_wxyz, quat_wxyz_from_xyzw
+
+    path = Path(path)
+    rows = _lines(path, "pose list")
+    if not rows:
+        raise InputError("pose list holds no pose (expected lines 'id tx ty tz qx qy qz qw')", path)
+    keys, vals = [], []
+    for ln, tok in rows:
+        if len(tok) != 8:
+            raise InputError(f"line {ln}: expected 8 fields 'id_or_timestamp tx ty tz qx qy qz qw', got {len(tok)}", path)
+        try:
+            v = np.array([float(t) for t in tok[1:]])
+        except ValueError:
+            raise InputError(f"line {ln}: tx ty tz qx qy qz qw must be numbers, got {' '.join(tok[1:])!r}", path) from None
+        if not np.all(np.isfinite(v)):
+            raise InputError(f"line {ln}: pose holds a non-finite number", path)
+        n = np.linalg.norm(v[3:])
+        if abs(n - 1.0) > 1e-2:
+            raise InputError(f"line {ln}: quaternion qx qy qz qw has norm {n:.4f}, not 1 (is the order "
+                             f"'tx ty tz qx qy qz qw'?)", path)
+        keys.append(tok[0])
+        vals.append(v)
+    V = np.array(vals)
+    T = pose_from_pos_quat_wxyz(V[:, :3], quat_wxyz_from_xyzw(V[:, 3:] / np.linalg.norm(V[:, 3:], axis=1, keepdims=True)))
+    if len(set(keys)) != len(keys):
+        dup = next(k for k in keys if keys.count(k) > 1)
+        raise InputError(f"id/timestamp {dup!r} appears twice", path)
+    return list(zip(keys, T))
+
+
+def write_pose_list(path: str | Path, poses: list[tuple[str, np.ndarray]], header: str = "") -> Path:
+    """Write `id tx ty tz qx qy qz qw` lines (T_world_cam, metres, quaternion xyzw)."""
+    from splattwin.transforms import pos_quat_wxyz_from_pose, quat_xyzw_from_wxyz
+
+    lines = [f"# {h}" for h in header.splitlines()] + ["# id_or_timestamp tx ty tz qx qy qz qw"]
+    for key, T in poses:
+        p, q = pos_quat_wxyz_from_pose(np.asarray(T, dtype=np.float64))
+        vals = list(p) + list(quat_xyzw_from_wxyz(q))
+        lines.append(" ".join([str(key)] + [repr(float(x)) for x in vals]))
+    return io.write_text(path, "\n".join(lines) + "\n")
+
+
+def _file_list(path: Path, root: Path, what: str) -> list[tuple[float, Path]]:
+    """`timestamp path` lines (TUM rgb.txt / depth.txt) -> [(t, file)], paths confined to `root`."""
+    out = []
+    for ln, tok in _lines(path, what):
+        if len(tok) < 2:
+            raise InputError(f"line {ln}: expected 'timestamp path'", path)
+        try:
+            t = float(tok[0])
+        except ValueError:
+            raise InputError(f"line {ln}: timestamp {tok[0]!r} is not a number", path) from None
+        if not np.isfinite(t):
+            raise InputError(f"line {ln}: timestamp is not finite", path)
+        out.append((t, confined(root, tok[1], path, f"line {ln} path")))
+    return out
+
+
+# -- intrinsics -----------------------------------------------------------------------------------
+def _load_mapping(path: Path) -> dict:
+    if path.suffix == ".json":
+        data = io.read_json(path)
+    else:
+        text = read_text(path, "intrinsics file", max_bytes=1 << 20)
+        if text.startswith("%YAML"):  # OpenCV FileStorage header: not YAML 1.1, skip it
+            text = text.split("\n", 1)[1] if "\n" in text else ""
+        data = loads_yaml(text, path)
+    if not isinstance(data, dict):
+        raise InputError("intrinsics file must hold a mapping (fx, fy, cx, cy, width, height)", path)
+    flat = dict(data)
+    for k in ("camera", "intrinsics", "Camera", "color"):
+        if isinstance(data.get(k), dict):
+            flat.update(data[k])
+    return flat
+
+
+def _get(d: dict, names: tuple[str, ...]):
+    for n in names:
+        for prefix in ("", "Camera.", "Camera1."):
+            if prefix + n in d:
+                return d[prefix + n]
+    return None
+
+
+def _num(v, path: Path, what: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+        raise InputError(f"{what} must be a finite number, got {v!r}", path)
+    return float(v)
+
+
+def read_intrinsics(path: str | Path) -> Intrinsics:
+    """Intrinsics file (YAML/JSON, see module docstring) -> Intrinsics; InputError naming the file."""
+    path = Path(path)
+    d = _load_mapping(path)
+    K = None
+    if d.get("K") is not None:
+        try:
+            K = np.asarray(d["K"], dtype=np.float64).reshape(3, 3)
+        except (TypeError, ValueError):
+            raise InputError("K must be a 3x3 matrix of numbers", path) from None
+        if not np.all(np.isfinite(K)):
+            raise InputError("K is not finite", path)
+    else:
+        vals = {n: _get(d, (n,)) for n in ("fx", "fy", "cx", "cy")}
+        missing = [n for n, v in vals.items() if v is None]
+        if missing:
+            raise InputError(f"intrinsics file lacks {', '.join(missing)} (needs fx fy cx cy width height)", path)
+        fx, fy, cx, cy = (_num(vals[n], path, n) for n in ("fx", "fy", "cx", "cy"))
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    w, h = _get(d, ("width", "w", "image_width")), _get(d, ("height", "h", "image_height"))
+    if w is None or h is None:
+        raise InputError("intrinsics file lacks width/height (image size in pixels)", path)
+    w, h = check_pixels(w, h, path, "width x height")
+    dist = None
+    raw = _get(d, ("distortion", "dist", "distortion_coeffs", "D"))
+    if raw is not None:
+        try:
+            dist = np.asarray(raw, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            raise InputError("distortion must be a list of numbers k1 k2 p1 p2 [k3]", path) from None
+    elif any(_get(d, (k,)) is not None for k in ("k1", "k2", "p1", "p2", "k3")):
+        dist = np.array([_num(_get(d, (k,)) or 0.0, path, k) for k in ("k1", "k2", "p1", "p2", "k3")])
+    if dist is not None:
+        if dist.size not in (4, 5) or not np.all(np.isfinite(dist)):
+            raise InputError(f"distortion must be 4 or 5 finite numbers k1 k2 p1 p2 [k3], got {dist.size}", path)
+        if dist.size == 5 and dist[4] == 0:
+            dist = dist[:4]
+    depth_scale = None
+    factor = _get(d, ("depth_factor", "DepthMapFactor", "depth_units_per_metre", "depth_units_per_meter"))
+    scale = _get(d, ("depth_scale", "depth_unit_scale_factor"))
+    if factor is not None and scale is not None:
+        raise InputError("give the depth unit once: depth_factor (units per metre) or depth_scale (metres per unit)", path)
+    if factor is not None:
+        f = _num(factor, path, "depth_factor")
+        if f <= 0:
+            raise InputError(f"depth_factor must be positive (units per metre), got {f}", path)
+        depth_scale = 1.0 / f
+    elif scale is not None:
+        s = _num(scale, path, "depth_scale")
+        if not 0 < s <= 1:
+            raise InputError(f"depth_scale is metres per depth unit (0.001 for millimetres), got {s}; for units "
+                             f"per metre (TUM: 5000) write depth_factor", path)
+        depth_scale = s
+    try:
+        Camera(K=K, width=w, height=h, dist=dist)
+    except InputError as e:
+        raise InputError(e.problem, path) from e
+    return Intrinsics(K=K, width=w, height=h, dist=dist if dist is not None and np.any(dist) else None,
+                      depth_scale=depth_scale)
+
+
+def write_intrinsics(path: str | Path, camera: Camera, depth_factor: float | None = None) -> Path:
+    """YAML intrinsics file (fx fy cx cy width height, distortion, depth_factor in units per metre)."""
+    import yaml
+
+    d: dict = {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
+               "width": camera.width, "height": camera.height}
+    if camera.dist is not None:
+        d["distortion"] = [float(x) for x in camera.dist]
+    if depth_factor is not None:
+        d["depth_factor"] = float(depth_factor)
+    return io.write_text(path, yaml.safe_dump(d, sort_keys=False))
+
+
+# -- matching -------------------------------------------------------------------------------------
+def _as_int(s: str) -> int | None:
+    return int(s) if s.isdigit() and len(s) < 19 else None
+
+
+def _as_time(s: str) -> float | None:
+    try:
+        t = float(s)
+    except ValueError:
+        return None
+    return t if np.isfinite(t) else None
+
+
+def _match_by_id(keys: list[str], names: list[tuple[str, str]]) -> dict[int, int]:
+    """image index -> pose index where a pose id names the image (stem, file name, or equal integers)."""
+    by_key: dict = {}
+    for j, k in enumerate(keys):
+        by_key[k] = j
+        if _as_int(k) is not None:
+            by_key[("int", _as_int(k))] = j
+    out = {}
+    for i, (stem, fname) in enumerate(names):
+        j = by_key.get(stem, by_key.get(fname))
+        if j is None and _as_int(stem) is not None:
+            j = by_key.get(("int", _as_int(stem)))
+        if j is not None:
+            out[i] = j
+    return out
+
+
+def nearest(t_query: np.ndarray, t_ref: np.ndarray, max_dt: float) -> np.ndarray:
+    """For each query time, the index of the nearest reference time within max_dt, else -1."""
+    order = np.argsort(t_ref)
+    ts = t_ref[order]
+    pos = np.clip(np.searchsorted(ts, t_query), 1, max(len(ts) - 1, 1))
+    lo = np.clip(pos - 1, 0, len(ts) - 1)
+    hi = np.clip(pos, 0, len(ts) - 1)
+    pick = np.where(np.abs(ts[lo] - t_query) <= np.abs(ts[hi] - t_query), lo, hi)
+    ok = np.abs(ts[pick] - t_query) <= max_dt
+    return np.where(ok, order[pick], -1)
+
+
+def _images(folder: Path) -> tuple[list[Path], list[float | None], Path | None]:
+    rgb_txt = folder / "rgb.txt"
+    if rgb_txt.is_file():
+        lst = _file_list(rgb_txt, folder, "image list")
+        return [p for _, p in lst], [t for t, _ in lst], rgb_txt
+    for sub in ("rgb", "images"):
+        if (folder / sub).is_dir() and find_images(folder / sub):
+            files = find_images(folder / sub)
+            return files, [_as_time(p.stem) for p in files], None
+    files = find_images(folder)
+    return files, [_as_time(p.stem) for p in files], None
+
+
+def _depths(folder: Path, images: list[Path], times: list[float | None], max_dt: float) -> tuple[list[Path | None], Path | None]:
+    depth_txt = folder / "depth.txt"
+    if depth_txt.is_file():
+        lst = _file_list(depth_txt, folder, "depth list")
+        if not lst:
+            return [None] * len(images), depth_txt
+        if any(t is None for t in times):
+            raise InputError("depth.txt pairs depth by timestamp, but the images have none (no rgb.txt)", depth_txt)
+        idx = nearest(np.array(times, dtype=np.float64), np.array([t for t, _ in lst]), max_dt)
+        return [lst[j][1] if j >= 0 else None for j in idx], depth_txt
+    ddir = folder / "depth"
+    if not ddir.is_dir():
+        return [None] * len(images), None
+    files = {p.stem: p for p in ddir.iterdir() if p.is_file() and p.suffix.lower() in (".png", ".tif", ".tiff", ".npy")}
+    out = [files.get(p.stem) for p in images]
+    if not any(out) and files and all(t is not None for t in times):
+        dkeys = list(files)
+        dt = np.array([_as_time(k) if _as_time(k) is not None else np.nan for k in dkeys])
+        if np.all(np.isfinite(dt)):
+            idx = nearest(np.array(times, dtype=np.float64), dt, max_dt)
+            out = [files[dkeys[j]] if j >= 0 else None for j in idx]
+    return out, None
+
+
+def read(path: str | Path, max_dt: float = MAX_DT) -> Dataset:
+    """A TUM-style folder (or its pose list) -> Dataset (see module docstring)."""
+    path = Path(path)
+    folder = path.parent if path.is_file() else path
+    pose_file = path if path.is_file() else find_pose_file(folder)
+    intr_file = find_intrinsics_file(folder)
+    if pose_file is None:
+        raise InputError(f"no pose list here (expected one of {', '.join(POSE_FILES)})", folder)
+    if intr_file is None:
+        raise InputError(f"no intrinsics file beside the pose list (expected one of {', '.join(INTRINSICS_FILES)} "
+                         f"with fx fy cx cy width height)", folder)
+    intr = read_intrinsics(intr_file)
+    poses = read_pose_list(pose_file)
+    keys = [k for k, _ in poses]
+    images, times, rgb_txt = _images(folder)
+    if not images:
+        raise InputError("no images found (rgb.txt, rgb/ or images/)", folder)
+    by_id = _match_by_id(keys, [(p.stem, p.name) for p in images])
+    if len(by_id) >= max(1, len(images) // 2):
+        match = by_id
+        mode = "id"
+    else:
+        pose_t = [_as_time(k) for k in keys]
+        if any(t is None for t in pose_t) or any(t is None for t in times):
+            raise InputError("pose ids match no image names and are not all timestamps (or the images have no "
+                             "timestamps: add rgb.txt or name the images by time)", pose_file)
+        idx = nearest(np.array(times, dtype=np.float64), np.array(pose_t, dtype=np.float64), max_dt)
+        match = {i: int(j) for i, j in enumerate(idx) if j >= 0}
+        mode = "timestamp"
+    if not match:
+        raise InputError(f"no image has a pose (matched by {mode}"
+                         + (f", within {max_dt} s" if mode == "timestamp" else "") + ")", pose_file)
+    missing = [images[i].name for i in range(len(images)) if i not in match]
+    if missing:
+        log.warning("%s: %d of %d images have no pose (matched by %s) and are skipped, e.g. %s", pose_file,
+                    len(missing), len(images), mode, ", ".join(missing[:3]))
+    depths, depth_txt = _depths(folder, images, times, max_dt)
+    depth_scale = intr.depth_scale
+    if any(d is not None for d in depths) and depth_scale is None:
+        if depth_txt is None:
+            raise InputError("depth images found but the intrinsics file gives no depth unit: add depth_factor "
+                             "(units per metre, e.g. 1000 for millimetres, 5000 for TUM) or depth_scale (metres "
+                             "per unit)", intr_file)
+        depth_scale = 1.0 / TUM_DEPTH_FACTOR
+    frames = []
+    for i, img in enumerate(images):
+        if i not in match:
+            continue
+        w, h = image_size(img)
+        if (w, h) != (intr.width, intr.height):
+            raise InputError(f"image is {w}x{h} but the intrinsics file says {intr.width}x{intr.height}", img)
+        cam = Camera(K=intr.K, width=w, height=h, T_world_cam=poses[match[i]][1], dist=intr.dist, name=img.stem)
+        frames.append(Frame(image_path=img, camera=cam, depth_path=depths[i]))
+    files = [pose_file, intr_file] + [f for f in (rgb_txt, depth_txt) if f is not None]
+    return Dataset(root=folder, frames=frames, has_poses=True, depth_scale=depth_scale,
+                   meta={"format": "tum", "path": str(pose_file), "files": [str(f) for f in files],
+                         "matched_by": mode, "sequential": True})
+
+
+__all__ = ["Intrinsics", "read", "read_intrinsics", "read_pose_list", "write_intrinsics",
+           "write_pose_list", "nearest", "is_capture"]

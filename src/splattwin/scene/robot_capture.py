@@ -1,0 +1,179 @@
+"""The embedded scene written as a robot-style RGB-D capture: the formats and conventions a robot
+user's data comes in, so that path is tested end to end.
+
+`write_robot_capture(out_dir, SceneOptions, RobotCaptureOptions)` renders the seeded tabletop from an
+eye-in-hand-like sweep (from the robot's side of the table, looking down 50-70 degrees, the wrist camera
+rolled a little from view to view) with a RealSense-D435-like colour camera (640x480, fx = fy = 615 px,
+principal point slightly off centre; scaled with the image size), and writes it in a robot world that is
+NOT the twin's: by default z down (the scene's world rotated 180 degrees about x, `R_capture_world`).
+
+Layouts (`RobotCaptureOptions.format`):
+- "bop": a BOP scene (`splattwin.capture.bop`): `scene_camera.json` (cam_K, depth_scale 1.0, world-to-
+  camera poses in mm), `scene_gt.json` (obj_id = the object's scene label, model = the object's frame),
+  `rgb/000000.png`, `depth/000000.png` (16-bit, mm), `mask_visib/000000_000000.png` per instance (visible
+  part, from the ground-truth labels), `object_names.json` (obj_id -> the scene's object names).
+- "tum": `rgb/<t>.png`, `depth/<t>.png` (16-bit, mm), `rgb.txt`, `depth.txt` (timestamps), a pose list
+  `groundtruth.txt` (`t tx ty tz qx qy qz qw`, sampled 5 ms after each image so matching by nearest
+  timestamp is exercised), `camera.yaml` (fx fy cx cy width height, depth_factor 1000 units per metre),
+  and per-instance masks `masks/<t>_<obj_id>.png` with `masks/instances.json`.
+
+Both also hold the scene's ground truth in its own z-up world (`scene.json` with a `robot_capture`
+entry giving `R_capture_world`, and `meshes/`), so a twin built from the capture can be checked against it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from splattwin.capture.camera import Camera, look_at
+from splattwin.errors import InputError
+from splattwin.io import write_image, write_json, write_text
+from splattwin.scene.options import SceneOptions
+
+log = logging.getLogger(__name__)
+
+D435_SIZE = (640, 480)
+D435_K = (615.0, 615.0, 321.5, 243.5)   # fx fy cx cy at 640x480 (a typical D435 colour stream)
+WORLDS = ("z-down", "z-up")
+FORMATS = ("bop", "tum")
+
+
+@dataclass(frozen=True)
+class RobotCaptureOptions:
+    """What the robot-style capture looks like.
+
+    views: number of frames. width, height: image size (D435 intrinsics scaled to it; 4:3 expected).
+    world: "z-down" (scene world rotated 180 degrees about x) or "z-up" (the scene's own world).
+    format: "bop" or "tum" (see module docstring). distance: (min, max) metres from the look-at point;
+    elevation: (min, max) degrees above the table; roll_deg: max wrist roll about the optical axis.
+    """
+
+    views: int = 16
+    width: int = 640
+    height: int = 480
+    world: str = "z-down"
+    format: str = "bop"
+    distance: tuple[float, float] = (0.65, 0.80)
+    elevation: tuple[float, float] = (50.0, 70.0)
+    roll_deg: float = 20.0
+
+    def validate(self) -> None:
+        if not 3 <= self.views <= 500:
+            raise InputError(f"robot capture views must be in [3, 500], got {self.views}")
+        if not (16 <= self.width <= 4096 and 16 <= self.height <= 4096):
+            raise InputError(f"robot capture size must be 16..4096 pixels, got {self.width}x{self.height}")
+        if self.world not in WORLDS:
+            raise InputError(f"robot capture world must be one of {', '.join(WORLDS)}, got {self.world!r}")
+        if self.format not in FORMATS:
+            raise InputError(f"robot capture format must be one of {', '.join(FORMATS)}, got {self.format!r}")
+
+
+def R_capture_world(world: str) -> np.ndarray:
+    """[4,4] rigid transform from the scene's z-up world to the capture's world."""
+    T = np.eye(4)
+    if world == "z-down":
+        T[:3, :3] = np.diag([1.0, -1.0, -1.0])   # 180 degrees about x
+    return T
+
+
+def d435_camera(width: int, height: int, T_world_cam: np.ndarray, name: str) -> Camera:
+    """D435-like colour camera scaled to width x height."""
+    sx, sy = width / D435_SIZE[0], height / D435_SIZE[1]
+    fx, fy, cx, cy = D435_K
+    K = np.array([[fx * sx, 0.0, cx * sx], [0.0, fy * sy, cy * sy], [0.0, 0.0, 1.0]])
+    return Camera(K=K, width=width, height=height, T_world_cam=T_world_cam, name=name)
+
+
+def sweep_cameras(opts: RobotCaptureOptions, target: np.ndarray, seed: int) -> list[Camera]:
+    """Eye-in-hand-like sweep over the table from the robot's side (-x), in the scene's z-up world."""
+    rng = np.random.default_rng([seed, 16])
+    cams = []
+    for i in range(opts.views):
+        s = (i + 0.5) / opts.views
+        az = math.pi + math.radians(100.0) * (2 * s - 1) + rng.normal(0, math.radians(3.0))
+        el = math.radians(opts.elevation[0] + (opts.elevation[1] - opts.elevation[0]) * (0.5 + 0.5 * math.sin(5 * s)))
+        r = opts.distance[0] + (opts.distance[1] - opts.distance[0]) * (0.5 + 0.5 * math.cos(3 * s))
+        eye = target + r * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        T = look_at(eye, target + rng.normal(0, 0.01, 3))
+        roll = math.radians(opts.roll_deg) * rng.uniform(-1, 1)
+        c, sn = math.cos(roll), math.sin(roll)
+        T[:3, :3] = T[:3, :3] @ np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]])  # about the optical axis
+        cams.append(d435_camera(opts.width, opts.height, T, f"{i:06d}"))
+    return cams
+
+
+def depth_mm(depth_m: np.ndarray) -> np.ndarray:
+    """z-depth in metres (inf = no return) -> uint16 millimetres (0 = no measurement)."""
+    d = np.where(np.isfinite(depth_m), np.round(depth_m * 1000.0), 0.0)
+    return np.clip(d, 0, 65535).astype(np.uint16)
+
+
+def write_robot_capture(out_dir: str | Path, options: SceneOptions | None = None,
+                        capture: RobotCaptureOptions | None = None, progress: bool = True) -> Path:
+    """Render and write the robot-style capture into `out_dir` (see module docstring). Returns out_dir."""
+    from rich.progress import Progress
+
+    from splattwin.capture import bop, tum
+    from splattwin.scene.generate import _to_u8, _write_ply, build_scene, look_target, scene_record
+
+    options = options or SceneOptions()
+    capture = capture or RobotCaptureOptions(width=options.width, height=options.height)
+    options.validate()
+    capture.validate()
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError("output path exists and is not a directory", out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "scene.json").unlink(missing_ok=True)  # written last: marks a complete capture
+
+    objects, layout, marker, renderer = build_scene(options)
+    cams_world = sweep_cameras(capture, look_target(objects), options.seed)
+    T_cw = R_capture_world(capture.world)
+    cams = [Camera(K=c.K, width=c.width, height=c.height, T_world_cam=T_cw @ c.T_world_cam, name=c.name)
+            for c in cams_world]
+    for surf in renderer.surfaces:
+        _write_ply(out / "meshes" / f"{surf.name}.ply", surf.mesh_world)
+
+    times = [1.0 + i / 30.0 for i in range(len(cams))]          # a 30 Hz stream
+    stems = [bop.image_name(i, "") if capture.format == "bop" else f"{t:.6f}" for i, t in enumerate(times)]
+    gt_lists = []
+    with Progress(disable=not progress, transient=True) as bar:
+        task = bar.add_task("rendering robot capture", total=len(cams))
+        for i, (cw, stem) in enumerate(zip(cams_world, stems)):
+            view = renderer.render(cw, options.supersample)
+            write_image(out / "rgb" / f"{stem}.png", _to_u8(view["rgb"]))
+            write_image(out / "depth" / f"{stem}.png", depth_mm(view["depth"]))
+            insts = []
+            for k, o in enumerate(objects):
+                m = (view["labels"] == o.label).astype(np.uint8) * 255
+                if capture.format == "bop":
+                    write_image(out / "mask_visib" / bop.mask_name(i, k), m)
+                elif m.any():
+                    write_image(out / "masks" / f"{stem}_{o.label}.png", m)
+                insts.append((o.label, cw.T_cam_world @ o.T_world_obj))
+            gt_lists.append(insts)
+            bar.advance(task)
+
+    names = {str(o.label): o.name for o in objects}
+    if capture.format == "bop":
+        bop.write_scene_gt(out / bop.SCENE_GT, gt_lists)
+        write_json(out / bop.NAMES_FILE, names)
+        bop.write_scene_camera(out / bop.SCENE_CAMERA, cams, depth_scale=1.0)
+    else:
+        write_json(out / "masks" / "instances.json", names)
+        write_text(out / "rgb.txt", "# timestamp filename\n" + "".join(f"{s} rgb/{s}.png\n" for s in stems))
+        write_text(out / "depth.txt", "# timestamp filename\n" + "".join(f"{s} depth/{s}.png\n" for s in stems))
+        tum.write_intrinsics(out / "camera.yaml", cams[0], depth_factor=1000.0)
+        tum.write_pose_list(out / "groundtruth.txt", [(f"{t + 0.005:.6f}", c.T_world_cam) for t, c in zip(times, cams)],
+                            header="T_world_cam of the colour camera (OpenCV optical frame), world z down")
+    scene = scene_record(options, objects, layout, marker, stems)
+    scene["robot_capture"] = {**asdict(capture), "R_capture_world": T_cw.tolist(),
+                              "note": "scene.json and meshes/ are in the scene's z-up world; the capture's poses "
+                                      "are in R_capture_world @ that world"}
+    write_json(out / "scene.json", scene)
+    return out

@@ -1,0 +1,62 @@
+"""Depth units: 16-bit PNG in mm -> metres exactly (nearest float32), explicit scales per format."""
+
+from __future__ import annotations
+
+import json
+from fractions import Fraction
+
+import numpy as np
+import pytest
+
+from splattwin import io
+from splattwin.capture import load_dataset, load_depth, nerfstudio
+from splattwin.errors import InputError
+
+
+def _nearest_f32(q: Fraction) -> np.float32:
+    """The float32 nearest to the rational q (ties away are irrelevant here), computed exactly."""
+    f = np.float32(float(q))
+    cands = [np.nextafter(f, np.float32(-np.inf)), f, np.nextafter(f, np.float32(np.inf))]
+    return min(cands, key=lambda c: abs(Fraction(float(c)) - q))
+
+
+@pytest.mark.parametrize("units_per_m", [1000, 5000, 10000])
+def test_integer_depth_is_the_nearest_float32_of_raw_over_units(tmp_path, units_per_m):
+    raw = np.arange(65536, dtype=np.uint16).reshape(256, 256)
+    io.write_image(tmp_path / "d.png", raw)
+    d = load_depth(tmp_path / "d.png", 1.0 / units_per_m)
+    assert d.dtype == np.float32 and d.shape == raw.shape
+    sample = np.r_[0:40, 999:1003, 4999:5003, 65500:65536, np.random.default_rng(0).integers(0, 65536, 300)]
+    for r in sample:
+        assert d.reshape(-1)[r] == _nearest_f32(Fraction(int(r), units_per_m)), r
+    assert d.reshape(-1)[1234] == np.float32(1234 / units_per_m)
+
+
+def test_defaults_by_file_type_and_explicit_scale(tmp_path):
+    io.write_image(tmp_path / "d.png", np.full((4, 5), 1500, np.uint16))
+    io.write_npy(tmp_path / "d.npy", np.full((4, 5), 1.5, np.float32))
+    assert np.all(load_depth(tmp_path / "d.png") == np.float32(1.5))      # PNG: millimetres by default
+    assert np.all(load_depth(tmp_path / "d.npy") == np.float32(1.5))      # float: metres by default
+    assert np.all(load_depth(tmp_path / "d.npy", 0.1) == np.float32(0.15))  # an explicit scale applies to all
+    # a scale of exactly 1.0 is honoured (it no longer means "guess millimetres")
+    assert np.all(load_depth(tmp_path / "d.png", 1.0) == np.float32(1500.0))
+    for bad in (0.0, -1e-3, float("nan")):
+        with pytest.raises(InputError, match="depth scale must be a positive"):
+            load_depth(tmp_path / "d.png", bad)
+
+
+def test_nerfstudio_depth_unit_scale_factor_round_trip(tmp_path, make_dataset):
+    ds = make_dataset(tmp_path, with_points=False)
+    out = nerfstudio.write(ds, tmp_path / "transforms.json")
+    assert "depth_unit_scale_factor" not in json.loads(out.read_text())
+    assert load_dataset(out).depth_scale is None          # absent: the file type's default
+    ds.depth_scale = 2e-4
+    nerfstudio.write(ds, out)
+    assert json.loads(out.read_text())["depth_unit_scale_factor"] == 2e-4
+    assert load_dataset(out).depth_scale == 2e-4
+    meta = json.loads(out.read_text())
+    meta["depth_unit_scale_factor"] = "mm"
+    out.write_text(json.dumps(meta))
+    with pytest.raises(InputError, match="depth_unit_scale_factor must be a number") as e:
+        load_dataset(out)
+    assert e.value.path == out

@@ -1,0 +1,175 @@
+"""TUM-style pose lists + intrinsics: parsing, quaternion order, id and timestamp matching, depth units,
+malformed input."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from splattwin import io
+from splattwin.capture import Camera, load_dataset, load_depth, look_at, tum
+from splattwin.cli import main
+from splattwin.errors import InputError
+
+W, H = 40, 30
+INTR = "fx: 35.0\nfy: 36.0\ncx: 19.5\ncy: 15.25\nwidth: 40\nheight: 30\n"
+
+
+def _poses(n: int) -> list[np.ndarray]:
+    return [look_at(np.array([0.5 * np.cos(a), 0.5 * np.sin(a), 0.3]), np.zeros(3))
+            for a in np.linspace(0, 2 * np.pi, n, endpoint=False)]
+
+
+def _images(folder: Path, stems: list[str]) -> None:
+    rng = np.random.default_rng(0)
+    for s in stems:
+        io.write_image(folder / f"{s}.png", rng.integers(0, 255, (H, W, 3), dtype=np.uint8))
+
+
+def test_pose_list_quaternion_order_and_comments(tmp_path):
+    # 90 degrees about z: qx qy qz qw = 0 0 sin45 cos45; commas and comments allowed
+    s = math.sqrt(0.5)
+    (tmp_path / "poses.txt").write_text(f"# id tx ty tz qx qy qz qw\n\n7, 1.0, 2.0, 3.0, 0, 0, {s}, {s}\n"
+                                        f"  # indented comment\n8 0 0 0 0 0 0 1\n")
+    poses = tum.read_pose_list(tmp_path / "poses.txt")
+    assert [k for k, _ in poses] == ["7", "8"]
+    T = poses[0][1]
+    np.testing.assert_allclose(T[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
+    np.testing.assert_allclose(T[:3, 3], [1, 2, 3])
+    # round trip through the writer
+    tum.write_pose_list(tmp_path / "back.txt", poses)
+    back = tum.read_pose_list(tmp_path / "back.txt")
+    for (ka, a), (kb, b) in zip(poses, back):
+        assert ka == kb
+        np.testing.assert_allclose(a, b, atol=1e-12)
+
+
+@pytest.mark.parametrize("line, msg", [
+    ("1 0 0 0 0 0 0", "line 2: expected 8 fields"),
+    ("1 0 0 x 0 0 0 1", "line 2: tx ty tz qx qy qz qw must be numbers"),
+    ("1 0 0 nan 0 0 0 1", "line 2: pose holds a non-finite"),
+    ("1 0 0 0 0 0 0 2", "line 2: quaternion .* norm 2.0000"),
+    ("0 0 0 0 0 0 0 1", "'0' appears twice"),
+])
+def test_pose_list_malformed_names_file_and_line(tmp_path, line, msg):
+    (tmp_path / "poses.txt").write_text(f"0 0 0 0 0 0 0 1\n{line}\n")
+    with pytest.raises(InputError, match=msg) as e:
+        tum.read_pose_list(tmp_path / "poses.txt")
+    assert e.value.path == tmp_path / "poses.txt"
+
+
+def test_ids_match_image_names_with_leading_zeros(tmp_path):
+    _images(tmp_path / "images", [f"{i:06d}" for i in range(4)])
+    tum.write_pose_list(tmp_path / "poses.txt", [(str(i), T) for i, T in enumerate(_poses(4))][::-1])
+    (tmp_path / "intrinsics.yaml").write_text(INTR)
+    ds = load_dataset(tmp_path)
+    assert ds.meta["format"] == "tum" and ds.meta["matched_by"] == "id" and ds.has_poses
+    for i, f in enumerate(ds.frames):
+        assert f.name == f"{i:06d}"
+        np.testing.assert_allclose(f.camera.T_world_cam, _poses(4)[i], atol=1e-12)
+        np.testing.assert_allclose(f.camera.K, [[35, 0, 19.5], [0, 36, 15.25], [0, 0, 1]])
+    assert ds.depth_scale is None and all(f.depth_path is None for f in ds.frames)
+
+
+def test_tum_rgbd_timestamps_nearest_within_tolerance_and_depth_5000(tmp_path, caplog):
+    t_img = [1305031102.175304, 1305031102.211214, 1305031102.243211, 1305031102.275326, 1305031109.0]
+    stems = [f"{t:.6f}" for t in t_img]
+    _images(tmp_path / "rgb", stems)
+    raw = np.arange(H * W, dtype=np.uint16).reshape(H, W) * 7
+    for t in t_img:
+        io.write_image(tmp_path / "depth" / f"{t + 0.004:.6f}.png", raw)
+    (tmp_path / "rgb.txt").write_text("# color images\n" + "".join(f"{s} rgb/{s}.png\n" for s in stems))
+    (tmp_path / "depth.txt").write_text("".join(f"{t + 0.004:.6f} depth/{t + 0.004:.6f}.png\n" for t in t_img))
+    # mocap at 100 Hz, offset from the images; nothing near the last image (7 s later)
+    t_gt = np.arange(1305031102.10, 1305031102.40, 0.01)
+    T_all = _poses(len(t_gt))
+    tum.write_pose_list(tmp_path / "groundtruth.txt", [(f"{t:.4f}", T) for t, T in zip(t_gt, T_all)])
+    (tmp_path / "camera.yaml").write_text("%YAML:1.0\n---\nCamera.fx: 35.0\nCamera.fy: 36.0\nCamera.cx: 19.5\n"
+                                         "Camera.cy: 15.25\nCamera.width: 40\nCamera.height: 30\n")
+    ds = load_dataset(tmp_path)
+    assert ds.meta["matched_by"] == "timestamp" and len(ds.frames) == 4
+    assert "1 of 5 images have no pose" in caplog.text
+    for f in ds.frames:
+        j = int(np.argmin(np.abs(t_gt - float(f.name))))
+        np.testing.assert_allclose(f.camera.T_world_cam, T_all[j], atol=1e-12)
+    # TUM RGB-D layout: 5000 depth units per metre by default, metres = raw / 5000 exactly rounded
+    assert ds.depth_scale == pytest.approx(1 / 5000)
+    d = load_depth(ds.frames[1].depth_path, ds.depth_scale)
+    np.testing.assert_array_equal(d, (raw.astype(np.float64) / 5000).astype(np.float32))
+
+
+def test_depth_folder_needs_an_explicit_unit(tmp_path):
+    _images(tmp_path / "rgb", ["000000", "000001", "000002"])
+    for i in range(3):
+        io.write_image(tmp_path / "depth" / f"{i:06d}.png", np.full((H, W), 1234, np.uint16))
+    tum.write_pose_list(tmp_path / "poses.txt", [(f"{i:06d}", T) for i, T in enumerate(_poses(3))])
+    (tmp_path / "intrinsics.yaml").write_text(INTR)
+    with pytest.raises(InputError, match="no depth unit") as e:
+        load_dataset(tmp_path)
+    assert e.value.path == tmp_path / "intrinsics.yaml"
+    (tmp_path / "intrinsics.yaml").write_text(INTR + "depth_factor: 1000\n")
+    ds = load_dataset(tmp_path)
+    assert ds.depth_scale == pytest.approx(1e-3) and ds.frames[0].depth_path.name == "000000.png"
+    assert load_depth(ds.frames[0].depth_path, ds.depth_scale)[0, 0] == np.float32(1.234)
+    (tmp_path / "intrinsics.yaml").write_text(INTR + "depth_scale: 0.001\n")   # RealSense: metres per unit
+    assert load_dataset(tmp_path).depth_scale == pytest.approx(1e-3)
+
+
+def test_intrinsics_variants_and_writer(tmp_path):
+    p = tmp_path / "camera.json"
+    io.write_json(p, {"camera": {"K": [[35, 0, 19.5], [0, 36, 15.25], [0, 0, 1]], "w": 40, "h": 30,
+                                 "distortion": [0.1, -0.01, 0.001, 0.002, 0.0]}})
+    intr = tum.read_intrinsics(p)
+    assert (intr.width, intr.height) == (40, 30) and intr.K[1, 1] == 36
+    np.testing.assert_allclose(intr.dist, [0.1, -0.01, 0.001, 0.002])
+    cam = Camera(K=intr.K, width=40, height=30, dist=intr.dist)
+    tum.write_intrinsics(tmp_path / "intrinsics.yaml", cam, depth_factor=5000)
+    back = tum.read_intrinsics(tmp_path / "intrinsics.yaml")
+    np.testing.assert_allclose(back.K, intr.K)
+    np.testing.assert_allclose(back.dist, intr.dist)
+    assert back.depth_scale == pytest.approx(2e-4)
+
+
+@pytest.mark.parametrize("text, msg", [
+    ("fx: 35\nfy: 36\ncx: 19.5\nwidth: 40\nheight: 30\n", "lacks cy"),
+    ("fx: 35\nfy: 36\ncx: 19.5\ncy: 15\n", "lacks width/height"),
+    (INTR.replace("fx: 35.0", "fx: -35.0"), "positive focal"),
+    (INTR.replace("fx: 35.0", "fx: abc"), "fx must be a finite number"),
+    (INTR + "depth_scale: 5000\n", "depth_scale is metres per depth unit"),
+    (INTR + "depth_factor: 5000\ndepth_scale: 0.0002\n", "give the depth unit once"),
+    (INTR + "distortion: [1, 2]\n", "4 or 5 finite numbers"),
+    ("width: 100000\nheight: 100000\nfx: 1\nfy: 1\ncx: 0\ncy: 0\n", "megapixels"),
+    ("a: &a [1, *a]\n", "recursive|YAML"),
+    ("- 1\n- 2\n", "must hold a mapping"),
+])
+def test_intrinsics_malformed_names_the_file(tmp_path, text, msg):
+    p = tmp_path / "intrinsics.yaml"
+    p.write_text(text)
+    with pytest.raises(InputError, match=msg) as e:
+        tum.read_intrinsics(p)
+    assert e.value.path == p
+
+
+def test_rgb_txt_paths_stay_inside_the_folder(tmp_path):
+    _images(tmp_path / "rgb", ["1.000000"])
+    (tmp_path / "rgb.txt").write_text("1.0 ../../etc/passwd\n")
+    tum.write_pose_list(tmp_path / "groundtruth.txt", [("1.0", np.eye(4))])
+    (tmp_path / "intrinsics.yaml").write_text(INTR)
+    with pytest.raises(InputError, match="leads outside") as e:
+        load_dataset(tmp_path)
+    assert e.value.path == tmp_path / "rgb.txt"
+
+
+def test_no_pose_matches_and_missing_intrinsics(tmp_path, capsys):
+    _images(tmp_path / "rgb", ["1.000000", "2.000000"])
+    tum.write_pose_list(tmp_path / "groundtruth.txt", [("5.0", np.eye(4))])
+    (tmp_path / "rgb.txt").write_text("1.0 rgb/1.000000.png\n2.0 rgb/2.000000.png\n")
+    with pytest.raises(InputError, match="no intrinsics file"):
+        load_dataset(tmp_path)
+    (tmp_path / "intrinsics.yaml").write_text(INTR)
+    assert main(["poses", str(tmp_path), str(tmp_path / "out"), "--known"]) == 2
+    err = capsys.readouterr().err
+    assert "groundtruth.txt" in err and "no image has a pose" in err

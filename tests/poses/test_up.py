@@ -1,0 +1,184 @@
+"""Up-axis sanity for known poses: cues, snapping to world axes, levelling tilted worlds, ambiguity, and
+estimate_poses turning a z-down world z up (recorded in frame.json)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from splattwin.capture import Camera, Dataset, load_dataset, look_at, nerfstudio
+from splattwin.cli import main
+from splattwin.errors import InputError
+from splattwin.poses import PoseOptions, estimate_poses, load_frame
+from splattwin.poses.up import axis_rotation, camera_cue, check_up, level_rotation
+
+
+def _tabletop(n_cams: int = 10, seed: int = 0) -> tuple[list[Camera], np.ndarray]:
+    """Cameras on a 200-degree arc above a table (z up), rolled a little, and points on the table + a box."""
+    rng = np.random.default_rng(seed)
+    cams = []
+    for i, az in enumerate(np.linspace(-1.7, 1.7, n_cams) + np.pi):
+        el = math.radians(rng.uniform(35, 70))
+        eye = 0.6 * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+        T = look_at(eye, rng.normal(0, 0.02, 3))
+        T[:3, :3] = T[:3, :3] @ Rotation.from_euler("z", rng.uniform(-20, 20), degrees=True).as_matrix()
+        cams.append(Camera.from_fov(1.0, 64, 48, T_world_cam=T, name=f"c{i}"))
+    table = np.column_stack([rng.uniform(-0.4, 0.4, (3000, 2)), rng.normal(0, 0.0005, 3000)])
+    box = rng.uniform([-0.05, -0.05, 0.0], [0.05, 0.05, 0.1], (600, 3))
+    return cams, np.vstack([table, box])
+
+
+def _moved(R_in: np.ndarray, cams: list[Camera], pts: np.ndarray) -> tuple[list[Camera], np.ndarray]:
+    T = np.eye(4)
+    T[:3, :3] = R_in
+    return [dataclasses.replace(c, T_world_cam=T @ c.T_world_cam) for c in cams], pts @ R_in.T
+
+
+def _up_after(R_twin_input: np.ndarray, R_in: np.ndarray) -> float:
+    """Degrees between the true up carried through input and correction, and +z."""
+    z = (R_twin_input @ R_in)[:, 2]
+    return math.degrees(math.acos(np.clip(z[2], -1, 1)))
+
+
+@pytest.mark.parametrize("axis, R_in", [
+    ("+z", np.eye(3)),
+    ("-z", np.diag([1.0, -1.0, -1.0])),
+    ("+y", Rotation.from_euler("x", -90, degrees=True).as_matrix()),
+    ("-x", Rotation.from_euler("y", -90, degrees=True).as_matrix() @ Rotation.from_euler("z", 30, degrees=True).as_matrix()),
+])
+def test_world_axis_up_is_found_and_turned_exactly(axis, R_in):
+    cams, pts = _moved(R_in, *_tabletop())
+    chk = check_up(cams, pts)
+    assert chk.input_up == axis and chk.source == "table_plane+cameras"
+    np.testing.assert_allclose(chk.R_twin_input, axis_rotation(axis), atol=0)
+    assert _up_after(chk.R_twin_input, R_in) < 1e-9          # a quarter/half turn: exact, not a fit
+    assert chk.changed == (axis != "+z")
+    if axis == "-z":
+        np.testing.assert_array_equal(chk.R_twin_input, np.diag([1.0, -1.0, -1.0]))
+        assert "180.0 degrees about +x" in chk.describe()
+
+
+def test_cameras_alone_find_a_z_down_world():
+    cams, _ = _moved(np.diag([1.0, -1.0, -1.0]), *_tabletop())
+    chk = check_up(cams, None)
+    assert chk.input_up == "-z" and chk.source == "cameras"
+    assert "fewer than 50 points" in chk.evidence["table_plane"]
+
+
+def test_tilted_world_is_levelled_by_the_table_plane():
+    R_in = Rotation.from_rotvec(math.radians(33) * np.array([1, 1, 0]) / math.sqrt(2)).as_matrix()
+    cams, pts = _moved(R_in, *_tabletop())
+    chk = check_up(cams, pts)
+    assert chk.input_up == "tilted" and chk.evidence["angle_to_axis_deg"] > 30
+    assert _up_after(chk.R_twin_input, R_in) < 0.1        # the plane fit, not a guess
+    np.testing.assert_allclose(level_rotation(chk.up_input) @ chk.up_input, [0, 0, 1], atol=1e-12)
+
+
+def test_a_wall_as_dominant_plane_is_ambiguous():
+    cams, _ = _tabletop()
+    rng = np.random.default_rng(1)
+    wall = np.column_stack([np.full(4000, 0.8), rng.uniform(-0.4, 0.4, 4000), rng.uniform(0, 0.5, 4000)])
+    with pytest.raises(InputError, match=r"cannot tell which way is up.*wall.*--up=\+z") as e:
+        check_up(cams, wall, where="scan/transforms.json")
+    assert str(e.value.path) == "scan/transforms.json"
+
+
+def test_cameras_pointing_everywhere_without_points_are_ambiguous():
+    rng = np.random.default_rng(2)
+    cams = [Camera.from_fov(1.0, 64, 48, T_world_cam=np.block([[Rotation.random(random_state=k).as_matrix(),
+                                                                 rng.normal(size=(3, 1))], [np.zeros((1, 3)), 1]]))
+            for k in range(40)]
+    assert camera_cue(cams)[1] < 0.5 and camera_cue(cams)[2] == "view"
+    with pytest.raises(InputError, match="cameras disagree"):
+        check_up(cams, None)
+
+
+def test_given_axis_is_used_without_detection():
+    cams, pts = _tabletop()  # z up, but the user says -y is up: trusted
+    chk = check_up(cams, pts, up="-y")
+    assert chk.source == "given" and chk.input_up == "-y"
+    np.testing.assert_allclose(chk.R_twin_input @ [0, -1, 0], [0, 0, 1], atol=1e-12)
+
+
+# -- estimate_poses --------------------------------------------------------------------------------
+def _z_down_copy(scene: Path, out: Path) -> Path:
+    """The embedded scene's dataset with every pose in a z-down world (180 degrees about x)."""
+    ds = load_dataset(scene)
+    F = np.diag([1.0, -1.0, -1.0, 1.0])
+    frames = [dataclasses.replace(f, camera=dataclasses.replace(f.camera, T_world_cam=F @ f.camera.T_world_cam))
+              for f in ds.frames]
+    from splattwin.capture.bundle import bundle_frames
+
+    return nerfstudio.write(Dataset(root=out, frames=bundle_frames(frames, out), has_poses=True), out / "transforms.json")
+
+
+def test_estimate_poses_turns_a_z_down_world_z_up(scene_small: Path, tmp_path: Path):
+    gt = load_dataset(scene_small)
+    zdown = load_dataset(_z_down_copy(scene_small, tmp_path))
+    res = estimate_poses(zdown, PoseOptions(method="known", progress=False))
+    np.testing.assert_allclose(res.T_out_in, np.diag([1.0, -1.0, -1.0, 1.0]), atol=0)
+    for a, b in zip(res.frames, gt.frames):
+        np.testing.assert_allclose(a.camera.T_world_cam, b.camera.T_world_cam, atol=1e-12)
+    assert res.frame.up == "+z" and res.frame.up_check["input_up"] == "-z"
+    assert res.frame.up_check["source"] == "table_plane+cameras"        # the plane from the depth images
+    # the back-projected depth cloud lands on the z-up table: its dominant plane is z = 0 with normal +z
+    from splattwin.poses.table import fit_table_plane
+
+    plane = fit_table_plane(res.points_xyz, np.array([c.center for c in res.cameras]))
+    assert math.degrees(math.acos(plane.normal[2])) < 1.0 and abs(plane.d) < 0.005
+    out = tmp_path / "poses"
+    res.save(out)
+    frame = load_frame(out)
+    np.testing.assert_allclose(frame.T_twin_input, np.diag([1.0, -1.0, -1.0, 1.0]))
+    assert "rotated 180.0 degrees about +x" in frame.description
+    # chained: reading our own output again changes nothing and keeps the record of the input's world
+    again = estimate_poses(load_dataset(out), PoseOptions(method="known", progress=False))
+    np.testing.assert_allclose(again.T_out_in, np.eye(4))
+    np.testing.assert_allclose(again.frame.T_twin_input, np.diag([1.0, -1.0, -1.0, 1.0]))
+
+
+def test_z_up_scene_is_left_alone_and_keep_trusts_the_poses(scene_small: Path, tmp_path: Path):
+    res = estimate_poses(load_dataset(scene_small), PoseOptions(method="known", progress=False))
+    np.testing.assert_array_equal(res.T_out_in, np.eye(4))
+    assert res.frame.up_check["input_up"] == "+z" and res.frame.up_check["applied"] == "none"
+    zdown = load_dataset(_z_down_copy(scene_small, tmp_path))
+    kept = estimate_poses(zdown, PoseOptions(method="known", up="keep", progress=False))
+    np.testing.assert_array_equal(kept.T_out_in, np.eye(4))   # today's behaviour, on request only
+    assert kept.frame.up_check == {"input_up": "kept as given (--up keep)"}
+
+
+def test_poses_cli_up_option(scene_small: Path, tmp_path: Path, capsys):
+    src = _z_down_copy(scene_small, tmp_path / "in")
+    assert main(["poses", str(src), str(tmp_path / "a"), "--known", "--up=-z"]) == 0
+    fr = json.loads((tmp_path / "a" / "frame.json").read_text())
+    assert fr["up_check"]["source"] == "given" and fr["T_twin_input"][2][2] == -1.0
+    with pytest.raises(SystemExit):
+        main(["poses", str(src), str(tmp_path / "b"), "--known", "--up=down"])
+    with pytest.raises(InputError, match="--up"):
+        estimate_poses(load_dataset(src), PoseOptions(method="known", up="z"))
+
+
+def test_cameras_alone_never_level_a_tilted_world():
+    R_in = Rotation.from_rotvec(math.radians(40) * np.array([1, 1, 0]) / math.sqrt(2)).as_matrix()
+    cams, _ = _moved(R_in, *_tabletop())
+    with pytest.raises(InputError, match="cannot be levelled reliably"):
+        check_up(cams, None)
+    cams, _ = _moved(Rotation.from_euler("x", 20, degrees=True).as_matrix(), *_tabletop())
+    chk = check_up(cams, None)     # 20 degrees off +z with cameras only: taken as +z, not levelled
+    assert chk.input_up == "+z" and not chk.changed
+
+
+def test_horizon_cue_of_rolled_and_upward_looking_cameras():
+    # cameras looking up at something (a statue) with level horizons: the horizon cue still finds up
+    rng = np.random.default_rng(3)
+    cams = [Camera.from_fov(1.0, 64, 48, T_world_cam=look_at(np.array([np.cos(a), np.sin(a), 0.0]),
+                                                              np.array([0.0, 0.0, 0.6]) + rng.normal(0, 0.05, 3)))
+            for a in np.linspace(0, 1.5, 9)]
+    up, strength, kind = camera_cue(cams)
+    assert kind == "horizon" and math.degrees(math.acos(up[2])) < 1.0

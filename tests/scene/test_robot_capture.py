@@ -1,0 +1,131 @@
+"""The embedded scene as a robot-style capture (z-down world, D435-like camera, 16-bit mm depth, BOP /
+TUM layouts, per-instance masks): files, round trip through load_dataset -> poses -> z-up twin frame,
+and (slow) the whole build with known poses and the BOP masks."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from splattwin.capture import load_dataset, load_depth
+from splattwin.cli import main
+from splattwin.poses import PoseOptions, estimate_poses
+from splattwin.poses.table import fit_table_plane
+from splattwin.scene import SceneOptions
+from splattwin.scene.robot_capture import (R_capture_world, RobotCaptureOptions, depth_mm, sweep_cameras,
+                                           write_robot_capture)
+from splattwin.semantics.masks import load_masks, scene_objects
+
+W, H = 96, 72
+OPTS = SceneOptions(seed=0, width=W, height=H, supersample=1)
+
+
+@pytest.fixture(scope="module")
+def bop_capture(tmp_path_factory) -> Path:
+    return write_robot_capture(tmp_path_factory.mktemp("robot_bop"), OPTS,
+                               RobotCaptureOptions(views=8, width=W, height=H), progress=False)
+
+
+@pytest.fixture(scope="module")
+def tum_capture(tmp_path_factory) -> Path:
+    return write_robot_capture(tmp_path_factory.mktemp("robot_tum"), OPTS,
+                               RobotCaptureOptions(views=6, width=W, height=H, format="tum"), progress=False)
+
+
+def _truth(n: int):
+    """The scene's renderer and the sweep's cameras in the scene's z-up world."""
+    from splattwin.scene.generate import build_scene, look_target
+
+    objects, _, _, renderer = build_scene(OPTS)
+    return objects, renderer, sweep_cameras(RobotCaptureOptions(views=n, width=W, height=H), look_target(objects), 0)
+
+
+def test_bop_capture_files(bop_capture: Path):
+    ds = load_dataset(bop_capture)
+    assert ds.meta["format"] == "bop" and ds.has_poses and len(ds.frames) == 8
+    assert ds.depth_scale == pytest.approx(1e-3)                                # BOP depth_scale 1.0 = mm
+    K = ds.frames[0].camera.K
+    np.testing.assert_allclose([K[0, 0], K[1, 1]], [615 * W / 640, 615 * H / 480])   # D435-like, scaled
+    objects, renderer, cams = _truth(8)
+    F = R_capture_world("z-down")
+    np.testing.assert_array_equal(F[:3, :3], np.diag([1.0, -1.0, -1.0]))
+    for f, c in zip(ds.frames, cams):
+        np.testing.assert_allclose(f.camera.T_world_cam, F @ c.T_world_cam, atol=1e-9)   # z-down world, mm -> m
+    view = renderer.render(cams[3], 1)
+    from PIL import Image
+
+    raw = np.asarray(Image.open(ds.frames[3].depth_path))
+    assert raw.dtype == np.uint16
+    np.testing.assert_array_equal(raw, depth_mm(view["depth"]))
+    d = load_depth(ds.frames[3].depth_path, ds.depth_scale)
+    hit = np.isfinite(view["depth"])
+    assert np.abs(d[hit] - view["depth"][hit]).max() <= 0.0005 + 1e-6          # mm rounding only
+    assert np.all(d[~hit] == 0)
+    # per-instance BOP masks carry the scene's names and labels and equal the visible GT regions
+    ms = load_masks(bop_capture, objects=scene_objects(bop_capture))
+    assert ms.objects == {label: name for name, label in scene_objects(bop_capture).items()}
+    for o in objects:
+        m = ms.get("000003", o.label)
+        gt = view["labels"] == o.label
+        assert (m is None and not gt.any()) or np.array_equal(m, gt)
+    gt_json = json.loads((bop_capture / "scene_gt.json").read_text())
+    assert [g["obj_id"] for g in gt_json["0"]] == [o.label for o in objects]
+
+
+def _table_normal_deg(res) -> float:
+    plane = fit_table_plane(res.points_xyz, np.array([c.center for c in res.cameras]))
+    return math.degrees(math.acos(np.clip(plane.normal[2], -1, 1)))
+
+
+@pytest.mark.parametrize("which", ["bop", "tum"])
+def test_round_trip_to_a_z_up_frame(which, bop_capture, tum_capture):
+    path = bop_capture if which == "bop" else tum_capture
+    ds = load_dataset(path)
+    res = estimate_poses(ds, PoseOptions(method="known", progress=False))
+    np.testing.assert_allclose(res.T_out_in, np.diag([1.0, -1.0, -1.0, 1.0]), atol=0)
+    assert res.frame.up_check["input_up"] == "-z"
+    assert _table_normal_deg(res) < 1.0
+    _, _, cams = _truth(len(ds.frames))
+    for f, c in zip(res.frames, cams):
+        np.testing.assert_allclose(f.camera.T_world_cam, c.T_world_cam, atol=1e-9)   # back in the scene's world
+    if which == "tum":
+        assert ds.meta["matched_by"] == "timestamp" and ds.depth_scale == pytest.approx(1e-3)
+        sizes = {f.name: (f.camera.height, f.camera.width) for f in ds.frames}
+        ms = load_masks(path / "masks", objects=scene_objects(path), image_sizes=sizes)
+        assert set(ms.objects.values()) <= set(scene_objects(path)) and len(ms.objects) >= 4
+
+
+def test_z_up_option_and_cli(tmp_path):
+    out = write_robot_capture(tmp_path / "up", OPTS, RobotCaptureOptions(views=4, width=W, height=H, world="z-up"),
+                              progress=False)
+    res = estimate_poses(load_dataset(out), PoseOptions(method="known", progress=False))
+    np.testing.assert_array_equal(res.T_out_in, np.eye(4))
+    assert main(["scene", "generate", str(tmp_path / "cli"), "--robot-capture", "tum", "--width", "64",
+                 "--height", "48", "--views", "3", "--supersample", "1", "--no-progress"]) == 0
+    assert (tmp_path / "cli" / "groundtruth.txt").is_file() and (tmp_path / "cli" / "camera.yaml").is_file()
+    assert load_dataset(tmp_path / "cli").meta["format"] == "tum"
+
+
+@pytest.mark.slow
+def test_build_robot_capture_with_known_poses_and_bop_masks(bop_capture: Path, tmp_path: Path):
+    """The robot path end to end at a tiny size: BOP scene in a z-down world -> z-up twin."""
+    twin = tmp_path / "twin"
+    code = main(["build", str(bop_capture), "--out", str(twin), "--poses", "known",
+                 "--masks", str(bop_capture / "mask_visib"), "--iters", "60", "--no-frames"])
+    assert code == 0
+    man = json.loads((twin / "twin.json").read_text())
+    assert man["frame"]["up"] == "+z" and man["frame"]["up_check"]["input_up"] == "-z"
+    np.testing.assert_allclose(man["frame"]["T_twin_input"], np.diag([1.0, -1.0, -1.0, 1.0]))
+    scene = json.loads((bop_capture / "scene.json").read_text())
+    truth = {o["name"]: np.array(o["T_world_obj"]) for o in scene["objects"]}
+    objs = [o for o in man["objects"] if o["name"] in truth and o["usable"]]   # tiny and short: not all usable
+    assert len(objs) >= 2
+    for o in objs:   # objects stand on the z-up table where the scene put them (a z-down twin: z < 0, y flipped)
+        T = np.array(o["T_world_obj"])
+        assert T[2, 3] > 0
+        assert np.linalg.norm(T[:2, 3] - truth[o["name"]][:2, 3]) < 0.04, o["name"]
+    assert abs(man["background"]["table_height"]) < 0.01
