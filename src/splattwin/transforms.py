@@ -9,7 +9,10 @@ Conventions (docs/CONTRACTS.md):
   library boundary, through `quat_xyzw_from_wxyz` / `quat_wxyz_from_xyzw`.
 * `T_a_b` [..., 4, 4] maps points in frame b to frame a (metres); `R_a_b` [..., 3, 3] its rotation.
 * Quaternions returned here are unit length with w >= 0 (one of the two equivalent signs, chosen so
-  that results are reproducible).
+  that results are reproducible), except where a function says otherwise (`canonical=False`).
+* Zero-length input quaternions (e.g. a degenerate splat in a PLY) are read as the identity rotation.
+* The torch (differentiable) quaternion -> matrix used by the rasterizers and densification is
+  `splattwin.splat.reference.quat_to_rotmat`; the numba kernels keep their own inlined copy.
 """
 
 from __future__ import annotations
@@ -19,8 +22,8 @@ import math
 import numpy as np
 
 __all__ = ["quat_xyzw_from_wxyz", "quat_wxyz_from_xyzw", "quat_wxyz_from_matrix", "matrix_from_quat_wxyz",
-           "pose_from_pos_quat_wxyz", "pos_quat_wxyz_from_pose", "make_pose", "invert_pose", "rot_z",
-           "yaw_of", "pose_xyz_yaw"]
+           "quat_mul_wxyz", "quat_wxyz_z_to", "pose_from_pos_quat_wxyz", "pos_quat_wxyz_from_pose", "make_pose",
+           "invert_pose", "rot_z", "yaw_of", "pose_xyz_yaw"]
 
 
 def quat_xyzw_from_wxyz(quat_wxyz: np.ndarray) -> np.ndarray:
@@ -44,17 +47,22 @@ def _rotations(R: np.ndarray):
     return Rotation.from_matrix(R.reshape(-1, 3, 3)), R.shape[:-2]
 
 
-def quat_wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Rotation matrices [..., 3, 3] -> unit quaternions [..., 4] wxyz with w >= 0."""
+def quat_wxyz_from_matrix(R: np.ndarray, canonical: bool = True) -> np.ndarray:
+    """Rotation matrices [..., 3, 3] -> unit quaternions [..., 4] wxyz.
+
+    canonical=True: the sign with w >= 0. canonical=False: scipy's own choice (Shepperd's method: the
+    component computed from the largest of trace and diagonal is positive), which the embedded-scene
+    generator and the twin's splat files were first written with; kept there so their bytes do not
+    change (either sign is the same rotation)."""
     rot, batch = _rotations(R)
     if not len(rot):
         return np.zeros((*batch, 4))
-    q = quat_wxyz_from_xyzw(rot.as_quat(canonical=True))
+    q = quat_wxyz_from_xyzw(rot.as_quat(canonical=canonical))
     return q.reshape(*batch, 4)
 
 
-def matrix_from_quat_wxyz(quat_wxyz: np.ndarray) -> np.ndarray:
-    """Quaternions [..., 4] wxyz (normalised here) -> rotation matrices [..., 3, 3]."""
+def _scipy_rotations_wxyz(quat_wxyz: np.ndarray):
+    """(scipy Rotation of the flattened [M, 4] wxyz quaternions, batch shape); zero-length rows -> identity."""
     from scipy.spatial.transform import Rotation
 
     q = np.asarray(quat_wxyz, dtype=float)
@@ -63,8 +71,51 @@ def matrix_from_quat_wxyz(quat_wxyz: np.ndarray) -> np.ndarray:
     batch = q.shape[:-1]
     flat = q.reshape(-1, 4)
     if not len(flat):
+        return None, batch
+    zero = ~np.any(flat != 0.0, axis=1)
+    if zero.any():
+        flat = flat.copy()
+        flat[zero] = (1.0, 0.0, 0.0, 0.0)
+    return Rotation.from_quat(quat_xyzw_from_wxyz(flat)), batch
+
+
+def matrix_from_quat_wxyz(quat_wxyz: np.ndarray) -> np.ndarray:
+    """Quaternions [..., 4] wxyz (normalised here) -> rotation matrices [..., 3, 3]."""
+    rot, batch = _scipy_rotations_wxyz(quat_wxyz)
+    if rot is None:
         return np.zeros((*batch, 3, 3))
-    return Rotation.from_quat(quat_xyzw_from_wxyz(flat)).as_matrix().reshape(*batch, 3, 3)
+    return rot.as_matrix().reshape(*batch, 3, 3)
+
+
+def quat_mul_wxyz(a_wxyz: np.ndarray, b_wxyz: np.ndarray) -> np.ndarray:
+    """Hamilton product a * b (apply b, then a) of wxyz quaternions, broadcast over [..., 4] -> [..., 4].
+
+    Both are normalised first; the result is unit length and keeps the product's sign (not made
+    canonical), so a * q and a * (-q) stay opposite like the inputs."""
+    a, b = np.broadcast_arrays(np.asarray(a_wxyz, dtype=float), np.asarray(b_wxyz, dtype=float))
+    ra, batch = _scipy_rotations_wxyz(a)
+    rb, _ = _scipy_rotations_wxyz(b)
+    if ra is None:
+        return np.zeros((*batch, 4))
+    return quat_wxyz_from_xyzw((ra * rb).as_quat()).reshape(*batch, 4)
+
+
+def quat_wxyz_z_to(directions: np.ndarray) -> np.ndarray:
+    """[..., 3] directions (normalised here) -> [..., 4] wxyz quaternions of the shortest rotation taking
+    +z onto them (-z: half a turn about x)."""
+    from scipy.spatial.transform import Rotation
+
+    n = np.asarray(directions, dtype=float)
+    batch = n.shape[:-1]
+    n = n.reshape(-1, 3) / np.linalg.norm(n.reshape(-1, 3), axis=1, keepdims=True)
+    axis = np.stack([-n[:, 1], n[:, 0], np.zeros(len(n))], axis=1)   # z x n
+    s = np.linalg.norm(axis, axis=1)
+    angle = np.arctan2(s, n[:, 2])
+    unit = np.where(s[:, None] > 0, axis / np.where(s > 0, s, 1.0)[:, None], [[1.0, 0.0, 0.0]])
+    if not len(n):
+        return np.zeros((*batch, 4))
+    q = Rotation.from_rotvec(unit * angle[:, None]).as_quat(canonical=True)
+    return quat_wxyz_from_xyzw(q).reshape(*batch, 4)
 
 
 def make_pose(R: np.ndarray | None = None, p: np.ndarray | None = None) -> np.ndarray:

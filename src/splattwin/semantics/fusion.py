@@ -48,6 +48,7 @@ from splattwin.capture.camera import Camera
 from splattwin.errors import InputError
 from splattwin.semantics.masks import MaskSet, MaskWarning
 from splattwin.semantics.render import DepthRenderer, PointDepth, project_to_pixels
+from splattwin.transforms import matrix_from_quat_wxyz
 
 log = logging.getLogger(__name__)
 
@@ -200,14 +201,10 @@ def splat_normals(quats: np.ndarray, scales: np.ndarray, flatness: float = 0.3) 
 
     quats [N,4] wxyz, scales [N,3] m. Flat: smallest scale < flatness x the middle one.
     """
-    q = quats / np.linalg.norm(quats, axis=1, keepdims=True)
-    w, x, y, z = q.T
-    R = np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-                  np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-                  np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], axis=1)
+    R = matrix_from_quat_wxyz(quats)
     order = np.argsort(scales, axis=1)
     axis = order[:, 0]
-    n = R[np.arange(len(q)), :, axis]
+    n = R[np.arange(len(R)), :, axis]
     s_sorted = np.take_along_axis(scales, order, axis=1)
     flat = s_sorted[:, 0] < flatness * s_sorted[:, 1]
     n[~flat] = np.nan

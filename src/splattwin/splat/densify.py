@@ -22,6 +22,7 @@ from typing import Callable
 import torch
 
 from splattwin.splat.model import PARAM_NAMES, GaussianModel
+from splattwin.splat.reference import quat_to_rotmat
 
 
 @dataclass
@@ -110,15 +111,6 @@ def duplicate(model: GaussianModel, sel: torch.Tensor) -> None:
     append(model, {k: model.params[k].detach()[sel] for k in PARAM_NAMES})
 
 
-def _quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], dim=-1).reshape(q.shape[:-1] + (3, 3))
-
-
 def split(model: GaussianModel, sel: torch.Tensor, generator: torch.Generator | None = None,
           factor: float = 1.6) -> None:
     """Replace each selected Gaussian by 2 drawn from its own distribution, scales divided by `factor`."""
@@ -127,7 +119,7 @@ def split(model: GaussianModel, sel: torch.Tensor, generator: torch.Generator | 
     if m == 0:
         return
     scales = p["scales"][sel].exp()  # [M,3]
-    R = _quat_to_rotmat(p["quats"][sel])  # [M,3,3]
+    R = quat_to_rotmat(p["quats"][sel])  # [M,3,3]
     z = torch.randn((2, m, 3), generator=generator).to(scales.device)  # CPU generator: same draws anywhere
     means = (p["means"][sel][None] + torch.einsum("mij,bmj->bmi", R, z * scales[None])).reshape(2 * m, 3)
     new = {k: p[k][sel].repeat((2,) + (1,) * (p[k].dim() - 1)) for k in PARAM_NAMES}
