@@ -19,6 +19,7 @@ and starts over. Pickled checkpoints of earlier versions (`ckpt_*.pt`) are never
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
@@ -32,6 +33,7 @@ import torch
 from splattwin.capture import Camera, Dataset, Frame, load_image
 from splattwin.errors import InputError
 from splattwin.io import write_json
+from splattwin.runtime import torch_threads
 from splattwin.splat import checkpoint as ckpt_io
 from splattwin.splat.densify import DensifyConfig, DensifyState, refine, reset_opacity
 from splattwin.splat.gaussians import Gaussians
@@ -474,15 +476,11 @@ class Trainer:
                 log.info("no checkpoint in %s: starting from scratch", self.out_dir / CKPT_DIR)
             self._fresh_state()
         t0 = time.perf_counter()
-        torch_threads = torch.get_num_threads()
-        if self.backend == "cpu":
-            # The heavy work is in numba kernels; torch only does small element-wise ops and Adam. Its
-            # thread pool competing with numba's made steps ~1.7x slower on 2 busy cores (idle: equal).
-            torch.set_num_threads(1)
-        try:
+        # CPU backend: the heavy work is in numba kernels; torch only does small element-wise ops and
+        # Adam. Its thread pool competing with numba's made steps ~1.7x slower on 2 busy cores (idle:
+        # equal). One torch thread for the loop only; the caller's count is restored afterwards.
+        with torch_threads(1) if self.backend == "cpu" else contextlib.nullcontext():
             ema_loss, ema_psnr = self._loop(callback)
-        finally:
-            torch.set_num_threads(torch_threads)
         wall = time.perf_counter() - t0
         return self._write_outputs(wall, ema_loss, ema_psnr)
 
