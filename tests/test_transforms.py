@@ -9,7 +9,8 @@ import pytest
 
 from splattwin.transforms import (invert_pose, make_pose, matrix_from_quat_wxyz, pos_quat_wxyz_from_pose,
                                   pose_from_pos_quat_wxyz, pose_xyz_yaw, quat_mul_wxyz, quat_wxyz_from_matrix,
-                                  quat_wxyz_from_xyzw, quat_wxyz_z_to, quat_xyzw_from_wxyz, rot_z, yaw_of)
+                                  quat_wxyz_from_xyzw, quat_wxyz_z_to, quat_xyzw_from_wxyz, rot_z, yaw_of,
+                                  pose_from_file_value)
 
 
 def _random_quats(n: int, seed: int = 0) -> np.ndarray:
@@ -109,3 +110,22 @@ def test_quat_z_to_takes_z_onto_directions():
     axis = q[:-4, 1:]
     np.testing.assert_allclose(axis[:, 2], 0.0, atol=1e-15)
     np.testing.assert_allclose(np.einsum("ij,ij->i", axis, unit[:-4]), 0.0, atol=1e-12)
+
+
+def test_pose_from_file_value_checks_what_a_file_gave():
+    from splattwin.errors import InputError
+
+    T = pose_xyz_yaw(0.1, 0.2, 0.3, 0.4)
+    np.testing.assert_array_equal(pose_from_file_value(T.tolist(), "T"), T)
+    np.testing.assert_array_equal(pose_from_file_value(T[:3].tolist(), "T", rigid=True), T)   # 3x4 completed
+    scaled = T.copy()
+    scaled[:3, :3] *= 2.0
+    np.testing.assert_array_equal(pose_from_file_value(scaled.tolist(), "T"), scaled)          # not rigid: fine
+    for bad, msg in [([[1, 0], [0, 1]], "expected a 4x4 matrix"), ([["a"] * 4] * 4, "not a numeric matrix"),
+                     ([[float("nan")] * 4] * 4, "not finite"), (None, "expected a 4x4 matrix")]:
+        with pytest.raises(InputError, match=msg) as e:
+            pose_from_file_value(bad, "T_x", "f.json")
+        assert "T_x" in str(e.value) and "f.json" in str(e.value)
+    for bad in (scaled, np.diag([1.0, 1.0, -1.0, 1.0])):                                       # scale, mirror
+        with pytest.raises(InputError, match="not a rigid transform"):
+            pose_from_file_value(bad.tolist(), "T", rigid=True)

@@ -23,7 +23,7 @@ import numpy as np
 
 __all__ = ["quat_xyzw_from_wxyz", "quat_wxyz_from_xyzw", "quat_wxyz_from_matrix", "matrix_from_quat_wxyz",
            "quat_mul_wxyz", "quat_wxyz_z_to", "pose_from_pos_quat_wxyz", "pos_quat_wxyz_from_pose", "make_pose",
-           "invert_pose", "rot_z", "yaw_of", "pose_xyz_yaw"]
+           "invert_pose", "rot_z", "yaw_of", "pose_xyz_yaw", "pose_from_file_value"]
 
 
 def quat_xyzw_from_wxyz(quat_wxyz: np.ndarray) -> np.ndarray:
@@ -145,6 +145,29 @@ def invert_pose(T_a_b: np.ndarray) -> np.ndarray:
     T = np.asarray(T_a_b, dtype=float)
     Rt = np.swapaxes(T[..., :3, :3], -1, -2)
     return make_pose(Rt, -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3]))
+
+
+def pose_from_file_value(value, what: str, where=None, rigid: bool = False) -> np.ndarray:
+    """T [4, 4] float64 from a value read from a file: a 4x4 (or 3x4, completed with 0 0 0 1) nested list
+    of finite numbers. rigid=True also requires an orthonormal, right-handed rotation (to 1e-4) and the
+    last row 0 0 0 1. Anything else: InputError("<what>: <problem>", where)."""
+    from splattwin.errors import InputError
+
+    try:
+        M = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise InputError(f"{what}: not a numeric matrix ({e})", where) from None
+    if M.shape == (3, 4):
+        M = np.vstack([M, [0, 0, 0, 1.0]])
+    if M.shape != (4, 4):
+        raise InputError(f"{what}: expected a 4x4 matrix, got shape {M.shape}", where)
+    if not np.all(np.isfinite(M)):
+        raise InputError(f"{what}: matrix is not finite", where)
+    R = M[:3, :3]
+    if rigid and (not np.allclose(R.T @ R, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0
+                  or not np.allclose(M[3], [0, 0, 0, 1])):
+        raise InputError(f"{what}: not a rigid transform (rotation part must be orthonormal, last row 0 0 0 1)", where)
+    return M
 
 
 def rot_z(yaw: float) -> np.ndarray:

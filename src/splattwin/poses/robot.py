@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from splattwin.errors import InputError
-from splattwin.transforms import pose_from_pos_quat_wxyz, quat_wxyz_from_xyzw
+from splattwin.transforms import pose_from_file_value, pose_from_pos_quat_wxyz, quat_wxyz_from_xyzw
 
 
 @dataclass
@@ -65,20 +65,7 @@ def parse_transform(obj: Any, where: Path, what: str, matrix_key: str) -> np.nda
             return pose_from_pos_quat_wxyz(_vec(pos, 3, where, f"{what}: position"), q / n)
         raise InputError(f"{what}: expected '{matrix_key}' (4x4) or 'position' + 'quat_xyzw'/'quat_wxyz', "
                          f"got keys {sorted(obj)}", where)
-    try:
-        M = np.asarray(obj, dtype=np.float64)
-    except (TypeError, ValueError) as e:
-        raise InputError(f"{what}: not a numeric matrix", where) from e
-    if M.shape == (3, 4):
-        M = np.vstack([M, [0, 0, 0, 1.0]])
-    if M.shape != (4, 4):
-        raise InputError(f"{what}: expected a 4x4 matrix, got shape {M.shape}", where)
-    if not np.all(np.isfinite(M)):
-        raise InputError(f"{what}: matrix is not finite", where)
-    R = M[:3, :3]
-    if not np.allclose(R.T @ R, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0 or not np.allclose(M[3], [0, 0, 0, 1]):
-        raise InputError(f"{what}: not a rigid transform (rotation part must be orthonormal, last row 0 0 0 1)", where)
-    return M
+    return pose_from_file_value(obj, what, where, rigid=True)
 
 
 def _vec(v: Any, n: int, where: Path, what: str) -> np.ndarray:
