@@ -10,7 +10,7 @@ import pytest
 from splattwin.transforms import (invert_pose, make_pose, matrix_from_quat_wxyz, pos_quat_wxyz_from_pose,
                                   pose_from_pos_quat_wxyz, pose_xyz_yaw, quat_mul_wxyz, quat_wxyz_from_matrix,
                                   quat_wxyz_from_xyzw, quat_wxyz_z_to, quat_xyzw_from_wxyz, rot_z, yaw_of,
-                                  pose_from_file_value)
+                                  pose_from_file_value, mujoco_quat_wxyz_from_matrix)
 
 
 def _random_quats(n: int, seed: int = 0) -> np.ndarray:
@@ -129,3 +129,15 @@ def test_pose_from_file_value_checks_what_a_file_gave():
     for bad in (scaled, np.diag([1.0, 1.0, -1.0, 1.0])):                                       # scale, mirror
         with pytest.raises(InputError, match="not a rigid transform"):
             pose_from_file_value(bad.tolist(), "T", rigid=True)
+
+
+def test_mujoco_conversion_is_mujocos_and_the_same_rotation():
+    import mujoco
+    from scipy.spatial.transform import Rotation
+
+    for R in Rotation.random(20, random_state=8).as_matrix():
+        q = mujoco_quat_wxyz_from_matrix(R)
+        q_mj = np.zeros(4)
+        mujoco.mju_mat2Quat(q_mj, R.ravel())
+        np.testing.assert_array_equal(q, q_mj)
+        assert abs(abs(q @ quat_wxyz_from_matrix(R)) - 1) < 1e-12

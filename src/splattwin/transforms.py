@@ -22,7 +22,7 @@ import math
 import numpy as np
 
 __all__ = ["quat_xyzw_from_wxyz", "quat_wxyz_from_xyzw", "quat_wxyz_from_matrix", "matrix_from_quat_wxyz",
-           "quat_mul_wxyz", "quat_wxyz_z_to", "pose_from_pos_quat_wxyz", "pos_quat_wxyz_from_pose", "make_pose",
+           "quat_mul_wxyz", "quat_wxyz_z_to", "mujoco_quat_wxyz_from_matrix", "pose_from_pos_quat_wxyz", "pos_quat_wxyz_from_pose", "make_pose",
            "invert_pose", "rot_z", "yaw_of", "pose_xyz_yaw", "pose_from_file_value"]
 
 
@@ -59,6 +59,19 @@ def quat_wxyz_from_matrix(R: np.ndarray, canonical: bool = True) -> np.ndarray:
         return np.zeros((*batch, 4))
     q = quat_wxyz_from_xyzw(rot.as_quat(canonical=canonical))
     return q.reshape(*batch, 4)
+
+
+def mujoco_quat_wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
+    """[3, 3] rotation -> [4] wxyz quaternion by MuJoCo's own `mju_mat2Quat`, for quaternions written into
+    MuJoCo models (MJCF bodies). Same rotation as `quat_wxyz_from_matrix`, but the sign and the last bit
+    can differ, and MuJoCo's contact dynamics amplify a 1-ulp change of an object's pose into millimetres
+    over a pick-and-place rollout: with MuJoCo's conversion the models and rollouts stay bit-identical
+    to those MuJoCo makes from the matrix (and to earlier splattwin versions)."""
+    import mujoco
+
+    q = np.zeros(4)
+    mujoco.mju_mat2Quat(q, np.ascontiguousarray(R, dtype=np.float64).reshape(9))
+    return q
 
 
 def _scipy_rotations_wxyz(quat_wxyz: np.ndarray):

@@ -29,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from splattwin.transforms import matrix_from_quat_wxyz, quat_mul_wxyz, quat_wxyz_from_matrix
+from splattwin.transforms import (matrix_from_quat_wxyz, mujoco_quat_wxyz_from_matrix, quat_mul_wxyz,
+                                  quat_wxyz_from_matrix)
 
 LIGHT_DIR_WORLD = np.array([-0.35, 0.45, 1.0]) / np.linalg.norm([-0.35, 0.45, 1.0])  # towards the light
 AMBIENT = 0.42
@@ -92,7 +93,7 @@ class RobotSplats:
 
             raise InputError(f"robot MJCF has no body {root_body!r}", xml_path)
         root.pos = T[:3, 3].tolist()
-        root.quat = quat_wxyz_from_matrix(T[:3, :3]).tolist()
+        root.quat = mujoco_quat_wxyz_from_matrix(T[:3, :3]).tolist()
         self.model = m = spec.compile()
         self.data = mujoco.MjData(m)
         self.T_world_base = T

@@ -22,7 +22,7 @@ import numpy as np
 
 from splattwin import io
 from splattwin.errors import InputError
-from splattwin.transforms import quat_wxyz_from_matrix
+from splattwin.transforms import mujoco_quat_wxyz_from_matrix
 from splattwin.twin.manifest import Manifest, ObjectEntry
 
 log = logging.getLogger(__name__)
@@ -101,7 +101,7 @@ def add_twin(spec, manifest: Manifest, twin_dir: str | Path, objects: list[str] 
             raise InputError(f"object {obj.name!r} has zero-volume collision geometry", parts[0])
         mass = float(obj.mass) if obj.mass else DEFAULT_DENSITY * total
         density = mass / total
-        body = wb.add_body(name=obj.name, pos=T[:3, 3].tolist(), quat=quat_wxyz_from_matrix(T[:3, :3]).tolist())
+        body = wb.add_body(name=obj.name, pos=T[:3, 3].tolist(), quat=mujoco_quat_wxyz_from_matrix(T[:3, :3]).tolist())
         body.add_freejoint(name=f"{obj.name}/free")
         rgba = _colour(obj)
         for k, p in enumerate(parts):
