@@ -15,10 +15,11 @@ import numpy as np
 import pytest
 
 from splattwin.capture.camera import Camera
+# project_to_pixels as the fusion uses it (it lives with the depth renderers)
 from splattwin.semantics.fusion import (FusionOptions, View, consensus, dbscan_1d, find_floaters, fuse, grazing,
-                                        knn_smooth, smooth_labels, soft_gate, view_observations, visible_mask)
+                                        knn_smooth, project_to_pixels, smooth_labels, soft_gate, view_observations,
+                                        visible_mask)
 from splattwin.semantics.masks import MaskSet
-from splattwin.semantics.render import project_to_pixels
 
 W = H = 4
 K = np.array([[10.0, 0.0, 2.0], [0.0, 10.0, 2.0], [0.0, 0.0, 1.0]])
