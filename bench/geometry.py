@@ -21,6 +21,11 @@ convert_s, ...).
 
 from __future__ import annotations
 
+import splattwin.runtime
+
+# OpenMP passive waiting, headless MuJoCo, numba threads: before torch, numba or mujoco load (as the CLI)
+splattwin.runtime.configure()
+
 import argparse
 import json
 import sys

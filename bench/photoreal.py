@@ -23,10 +23,10 @@ wrist.mp4, the episode, rollout.npz, photoreal.json. Prints a table; the LAST li
 
 from __future__ import annotations
 
-import os
+import splattwin.runtime
 
-os.environ.setdefault("MUJOCO_GL", "egl")
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# OpenMP passive waiting, headless MuJoCo, numba threads: before torch, numba or mujoco load (as the CLI)
+splattwin.runtime.configure()
 
 import argparse  # noqa: E402
 import json  # noqa: E402

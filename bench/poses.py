@@ -11,6 +11,11 @@ Target: sfm_s <= 20 s for 15 views at 320x240 on 2 cores.
 
 from __future__ import annotations
 
+import splattwin.runtime
+
+# OpenMP passive waiting, headless MuJoCo, numba threads: before torch, numba or mujoco load (as the CLI)
+splattwin.runtime.configure()
+
 import argparse
 import json
 import shutil

@@ -16,11 +16,10 @@ Usage: python bench/raster.py [--repeats 5] [--skip-reference] [--threads N]
 
 from __future__ import annotations
 
-import os
+import splattwin.runtime
 
-# Passive OpenMP waiting for torch's and numba's thread pools (set before torch loads its libgomp): spinning
-# idle threads steal time slices from the working ones; 2x wall time on a loaded machine (measured).
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# OpenMP passive waiting, headless MuJoCo, numba threads: before torch, numba or mujoco load (as the CLI)
+splattwin.runtime.configure()
 
 import argparse
 import json  # noqa: E402

@@ -18,6 +18,11 @@ wall_s <= 15 on 2 cores.
 
 from __future__ import annotations
 
+import splattwin.runtime
+
+# OpenMP passive waiting, headless MuJoCo, numba threads: before torch, numba or mujoco load (as the CLI)
+splattwin.runtime.configure()
+
 import argparse
 import json
 import math

@@ -14,6 +14,11 @@ Last line: JSON with default_scene_s, marker_scene_s, per_view_ms, cast_open3d_m
 
 from __future__ import annotations
 
+import splattwin.runtime
+
+# OpenMP passive waiting, headless MuJoCo, numba threads: before torch, numba or mujoco load (as the CLI)
+splattwin.runtime.configure()
+
 import argparse
 import json
 import statistics

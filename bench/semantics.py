@@ -17,6 +17,11 @@ The last line printed is one JSON object.
 
 from __future__ import annotations
 
+import splattwin.runtime
+
+# OpenMP passive waiting, headless MuJoCo, numba threads: before torch, numba or mujoco load (as the CLI)
+splattwin.runtime.configure()
+
 import argparse
 import json
 import statistics

@@ -19,6 +19,11 @@ held-out camera to the fixed splat (`evaluate(align_poses=True)`, InstantSplat's
 
 from __future__ import annotations
 
+import splattwin.runtime
+
+# OpenMP passive waiting, headless MuJoCo, numba threads: before torch, numba or mujoco load (as the CLI)
+splattwin.runtime.configure()
+
 import argparse
 import json
 import multiprocessing as mp

@@ -14,6 +14,12 @@ from pathlib import Path
 
 import pytest
 
+import splattwin.runtime
+
+# As the CLI does, before any test module imports torch, numba or mujoco (tests/test_runtime.py checks
+# that importing splattwin alone changes nothing).
+splattwin.runtime.configure()
+
 
 def _make_scene(tmp_path_factory: pytest.TempPathFactory, name: str, **kw) -> Path:
     from splattwin.scene import SceneOptions, generate

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from splattwin.transforms import (invert_pose, make_pose, matrix_from_quat_wxyz, pos_quat_wxyz_from_pose,
-                                  pose_from_pos_quat_wxyz, pose_xyz_yaw, quat_wxyz_from_matrix,
-                                  quat_wxyz_from_xyzw, quat_xyzw_from_wxyz, rot_z, yaw_of)
+                                  pose_from_pos_quat_wxyz, pose_xyz_yaw, quat_mul_wxyz, quat_wxyz_from_matrix,
+                                  quat_wxyz_from_xyzw, quat_wxyz_z_to, quat_xyzw_from_wxyz, rot_z, yaw_of,
+                                  pose_from_file_value, mujoco_quat_wxyz_from_matrix)
 
 
 def _random_quats(n: int, seed: int = 0) -> np.ndarray:
@@ -59,3 +60,84 @@ def test_batched_poses_roundtrip_and_invert():
     np.testing.assert_array_equal(make_pose(), np.eye(4))
     with pytest.raises(ValueError):
         quat_wxyz_from_matrix(np.eye(4))
+
+
+def test_quat_mul_matches_mujoco_and_keeps_sign():
+    import mujoco
+
+    a, b = _random_quats(30, seed=3), _random_quats(30, seed=4)
+    ab = quat_mul_wxyz(a, 2.5 * b)                              # inputs are normalised first
+    for qa, qb, q in zip(a, b, ab):
+        q_mj = np.zeros(4)
+        mujoco.mju_mulQuat(q_mj, qa, qb)
+        np.testing.assert_allclose(q, q_mj, atol=1e-14)      # same sign as the Hamilton product
+    np.testing.assert_allclose(matrix_from_quat_wxyz(ab), matrix_from_quat_wxyz(a) @ matrix_from_quat_wxyz(b), atol=1e-12)
+    a0_b = quat_mul_wxyz(a[0], b)                               # one [4] broadcast over [N,4]
+    assert a0_b.shape == (30, 4)
+    np.testing.assert_array_equal(a0_b[3], quat_mul_wxyz(a[0], b[3]))
+    np.testing.assert_allclose(quat_mul_wxyz(a[0], -b), -a0_b, atol=1e-15)   # sign follows the inputs
+    assert quat_mul_wxyz(np.zeros((0, 4)), np.zeros((0, 4))).shape == (0, 4)
+
+
+def test_zero_quaternion_is_identity():
+    q = np.array([[0.0, 0, 0, 0], [0.0, 0, 0, 2.0]])
+    R = matrix_from_quat_wxyz(q)
+    np.testing.assert_array_equal(R[0], np.eye(3))
+    np.testing.assert_allclose(R[1], rot_z(math.pi), atol=1e-15)
+
+
+def test_canonical_flag_only_changes_the_sign():
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.random(40, random_state=5).as_matrix()
+    q_c, q_s = quat_wxyz_from_matrix(R), quat_wxyz_from_matrix(R, canonical=False)
+    assert np.all(q_c[:, 0] >= 0)
+    np.testing.assert_array_equal(q_s, quat_wxyz_from_xyzw(Rotation.from_matrix(R).as_quat()))  # scipy's own sign
+    np.testing.assert_array_equal(np.abs(q_c), np.abs(q_s))
+    assert np.any(q_s[:, 0] < 0)
+
+
+def test_quat_z_to_takes_z_onto_directions():
+    n = np.random.default_rng(6).normal(size=(50, 3))
+    n = np.concatenate([n, [[0, 0, 1.0], [0, 0, -1.0], [0, 0, -3.0], [1e-9, 0, -1.0]]])
+    q = quat_wxyz_z_to(n)
+    R = matrix_from_quat_wxyz(q)
+    unit = n / np.linalg.norm(n, axis=1, keepdims=True)
+    np.testing.assert_allclose(R[..., 2], unit, atol=1e-12)            # +z lands on n
+    np.testing.assert_allclose(q[-4], [1, 0, 0, 0])                    # already +z: no turn
+    np.testing.assert_allclose(q[-3], [0, 1, 0, 0], atol=1e-15)        # -z: half a turn about x
+    # shortest rotation: its axis is perpendicular to both z and n (no spin about n)
+    axis = q[:-4, 1:]
+    np.testing.assert_allclose(axis[:, 2], 0.0, atol=1e-15)
+    np.testing.assert_allclose(np.einsum("ij,ij->i", axis, unit[:-4]), 0.0, atol=1e-12)
+
+
+def test_pose_from_file_value_checks_what_a_file_gave():
+    from splattwin.errors import InputError
+
+    T = pose_xyz_yaw(0.1, 0.2, 0.3, 0.4)
+    np.testing.assert_array_equal(pose_from_file_value(T.tolist(), "T"), T)
+    np.testing.assert_array_equal(pose_from_file_value(T[:3].tolist(), "T", rigid=True), T)   # 3x4 completed
+    scaled = T.copy()
+    scaled[:3, :3] *= 2.0
+    np.testing.assert_array_equal(pose_from_file_value(scaled.tolist(), "T"), scaled)          # not rigid: fine
+    for bad, msg in [([[1, 0], [0, 1]], "expected a 4x4 matrix"), ([["a"] * 4] * 4, "not a numeric matrix"),
+                     ([[float("nan")] * 4] * 4, "not finite"), (None, "expected a 4x4 matrix")]:
+        with pytest.raises(InputError, match=msg) as e:
+            pose_from_file_value(bad, "T_x", "f.json")
+        assert "T_x" in str(e.value) and "f.json" in str(e.value)
+    for bad in (scaled, np.diag([1.0, 1.0, -1.0, 1.0])):                                       # scale, mirror
+        with pytest.raises(InputError, match="not a rigid transform"):
+            pose_from_file_value(bad.tolist(), "T", rigid=True)
+
+
+def test_mujoco_conversion_is_mujocos_and_the_same_rotation():
+    import mujoco
+    from scipy.spatial.transform import Rotation
+
+    for R in Rotation.random(20, random_state=8).as_matrix():
+        q = mujoco_quat_wxyz_from_matrix(R)
+        q_mj = np.zeros(4)
+        mujoco.mju_mat2Quat(q_mj, R.ravel())
+        np.testing.assert_array_equal(q, q_mj)
+        assert abs(abs(q @ quat_wxyz_from_matrix(R)) - 1) < 1e-12

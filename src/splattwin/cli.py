@@ -16,7 +16,7 @@ import sys
 import traceback
 from pathlib import Path
 
-from splattwin import __version__
+from splattwin import __version__, runtime
 from splattwin.errors import InputError
 
 # Order = order in `splattwin --help`.
@@ -53,6 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    runtime.configure()  # before any stage imports torch, numba or mujoco (see splattwin.runtime)
     parser = build_parser()
     argv = list(sys.argv[1:] if argv is None else argv)
     if "--debug" in argv:  # accepted anywhere on the line, not only before the command

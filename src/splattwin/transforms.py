@@ -9,7 +9,10 @@ Conventions (docs/CONTRACTS.md):
   library boundary, through `quat_xyzw_from_wxyz` / `quat_wxyz_from_xyzw`.
 * `T_a_b` [..., 4, 4] maps points in frame b to frame a (metres); `R_a_b` [..., 3, 3] its rotation.
 * Quaternions returned here are unit length with w >= 0 (one of the two equivalent signs, chosen so
-  that results are reproducible).
+  that results are reproducible), except where a function says otherwise (`canonical=False`).
+* Zero-length input quaternions (e.g. a degenerate splat in a PLY) are read as the identity rotation.
+* The torch (differentiable) quaternion -> matrix used by the rasterizers and densification is
+  `splattwin.splat.reference.quat_to_rotmat`; the numba kernels keep their own inlined copy.
 """
 
 from __future__ import annotations
@@ -19,8 +22,8 @@ import math
 import numpy as np
 
 __all__ = ["quat_xyzw_from_wxyz", "quat_wxyz_from_xyzw", "quat_wxyz_from_matrix", "matrix_from_quat_wxyz",
-           "pose_from_pos_quat_wxyz", "pos_quat_wxyz_from_pose", "make_pose", "invert_pose", "rot_z",
-           "yaw_of", "pose_xyz_yaw"]
+           "quat_mul_wxyz", "quat_wxyz_z_to", "mujoco_quat_wxyz_from_matrix", "pose_from_pos_quat_wxyz", "pos_quat_wxyz_from_pose", "make_pose",
+           "invert_pose", "rot_z", "yaw_of", "pose_xyz_yaw", "pose_from_file_value"]
 
 
 def quat_xyzw_from_wxyz(quat_wxyz: np.ndarray) -> np.ndarray:
@@ -44,17 +47,35 @@ def _rotations(R: np.ndarray):
     return Rotation.from_matrix(R.reshape(-1, 3, 3)), R.shape[:-2]
 
 
-def quat_wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Rotation matrices [..., 3, 3] -> unit quaternions [..., 4] wxyz with w >= 0."""
+def quat_wxyz_from_matrix(R: np.ndarray, canonical: bool = True) -> np.ndarray:
+    """Rotation matrices [..., 3, 3] -> unit quaternions [..., 4] wxyz.
+
+    canonical=True: the sign with w >= 0. canonical=False: scipy's own choice (Shepperd's method: the
+    component computed from the largest of trace and diagonal is positive), which the embedded-scene
+    generator and the twin's splat files were first written with; kept there so their bytes do not
+    change (either sign is the same rotation)."""
     rot, batch = _rotations(R)
     if not len(rot):
         return np.zeros((*batch, 4))
-    q = quat_wxyz_from_xyzw(rot.as_quat(canonical=True))
+    q = quat_wxyz_from_xyzw(rot.as_quat(canonical=canonical))
     return q.reshape(*batch, 4)
 
 
-def matrix_from_quat_wxyz(quat_wxyz: np.ndarray) -> np.ndarray:
-    """Quaternions [..., 4] wxyz (normalised here) -> rotation matrices [..., 3, 3]."""
+def mujoco_quat_wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
+    """[3, 3] rotation -> [4] wxyz quaternion by MuJoCo's own `mju_mat2Quat`, for quaternions written into
+    MuJoCo models (MJCF bodies). Same rotation as `quat_wxyz_from_matrix`, but the sign and the last bit
+    can differ, and MuJoCo's contact dynamics amplify a 1-ulp change of an object's pose into millimetres
+    over a pick-and-place rollout: with MuJoCo's conversion the models and rollouts stay bit-identical
+    to those MuJoCo makes from the matrix (and to earlier splattwin versions)."""
+    import mujoco
+
+    q = np.zeros(4)
+    mujoco.mju_mat2Quat(q, np.ascontiguousarray(R, dtype=np.float64).reshape(9))
+    return q
+
+
+def _scipy_rotations_wxyz(quat_wxyz: np.ndarray):
+    """(scipy Rotation of the flattened [M, 4] wxyz quaternions, batch shape); zero-length rows -> identity."""
     from scipy.spatial.transform import Rotation
 
     q = np.asarray(quat_wxyz, dtype=float)
@@ -63,8 +84,51 @@ def matrix_from_quat_wxyz(quat_wxyz: np.ndarray) -> np.ndarray:
     batch = q.shape[:-1]
     flat = q.reshape(-1, 4)
     if not len(flat):
+        return None, batch
+    zero = ~np.any(flat != 0.0, axis=1)
+    if zero.any():
+        flat = flat.copy()
+        flat[zero] = (1.0, 0.0, 0.0, 0.0)
+    return Rotation.from_quat(quat_xyzw_from_wxyz(flat)), batch
+
+
+def matrix_from_quat_wxyz(quat_wxyz: np.ndarray) -> np.ndarray:
+    """Quaternions [..., 4] wxyz (normalised here) -> rotation matrices [..., 3, 3]."""
+    rot, batch = _scipy_rotations_wxyz(quat_wxyz)
+    if rot is None:
         return np.zeros((*batch, 3, 3))
-    return Rotation.from_quat(quat_xyzw_from_wxyz(flat)).as_matrix().reshape(*batch, 3, 3)
+    return rot.as_matrix().reshape(*batch, 3, 3)
+
+
+def quat_mul_wxyz(a_wxyz: np.ndarray, b_wxyz: np.ndarray) -> np.ndarray:
+    """Hamilton product a * b (apply b, then a) of wxyz quaternions, broadcast over [..., 4] -> [..., 4].
+
+    Both are normalised first; the result is unit length and keeps the product's sign (not made
+    canonical), so a * q and a * (-q) stay opposite like the inputs."""
+    a, b = np.broadcast_arrays(np.asarray(a_wxyz, dtype=float), np.asarray(b_wxyz, dtype=float))
+    ra, batch = _scipy_rotations_wxyz(a)
+    rb, _ = _scipy_rotations_wxyz(b)
+    if ra is None:
+        return np.zeros((*batch, 4))
+    return quat_wxyz_from_xyzw((ra * rb).as_quat()).reshape(*batch, 4)
+
+
+def quat_wxyz_z_to(directions: np.ndarray) -> np.ndarray:
+    """[..., 3] directions (normalised here) -> [..., 4] wxyz quaternions of the shortest rotation taking
+    +z onto them (-z: half a turn about x)."""
+    from scipy.spatial.transform import Rotation
+
+    n = np.asarray(directions, dtype=float)
+    batch = n.shape[:-1]
+    n = n.reshape(-1, 3) / np.linalg.norm(n.reshape(-1, 3), axis=1, keepdims=True)
+    axis = np.stack([-n[:, 1], n[:, 0], np.zeros(len(n))], axis=1)   # z x n
+    s = np.linalg.norm(axis, axis=1)
+    angle = np.arctan2(s, n[:, 2])
+    unit = np.where(s[:, None] > 0, axis / np.where(s > 0, s, 1.0)[:, None], [[1.0, 0.0, 0.0]])
+    if not len(n):
+        return np.zeros((*batch, 4))
+    q = Rotation.from_rotvec(unit * angle[:, None]).as_quat(canonical=True)
+    return quat_wxyz_from_xyzw(q).reshape(*batch, 4)
 
 
 def make_pose(R: np.ndarray | None = None, p: np.ndarray | None = None) -> np.ndarray:
@@ -94,6 +158,29 @@ def invert_pose(T_a_b: np.ndarray) -> np.ndarray:
     T = np.asarray(T_a_b, dtype=float)
     Rt = np.swapaxes(T[..., :3, :3], -1, -2)
     return make_pose(Rt, -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3]))
+
+
+def pose_from_file_value(value, what: str, where=None, rigid: bool = False) -> np.ndarray:
+    """T [4, 4] float64 from a value read from a file: a 4x4 (or 3x4, completed with 0 0 0 1) nested list
+    of finite numbers. rigid=True also requires an orthonormal, right-handed rotation (to 1e-4) and the
+    last row 0 0 0 1. Anything else: InputError("<what>: <problem>", where)."""
+    from splattwin.errors import InputError
+
+    try:
+        M = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise InputError(f"{what}: not a numeric matrix ({e})", where) from None
+    if M.shape == (3, 4):
+        M = np.vstack([M, [0, 0, 0, 1.0]])
+    if M.shape != (4, 4):
+        raise InputError(f"{what}: expected a 4x4 matrix, got shape {M.shape}", where)
+    if not np.all(np.isfinite(M)):
+        raise InputError(f"{what}: matrix is not finite", where)
+    R = M[:3, :3]
+    if rigid and (not np.allclose(R.T @ R, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0
+                  or not np.allclose(M[3], [0, 0, 0, 1])):
+        raise InputError(f"{what}: not a rigid transform (rotation part must be orthonormal, last row 0 0 0 1)", where)
+    return M
 
 
 def rot_z(yaw: float) -> np.ndarray:

@@ -64,28 +64,29 @@ def test_split_samples_and_scales():
 
 def test_refine_clones_small_splits_large_prunes_transparent():
     m = make_model()
-    st = densify.DensifyState(6)
+    st = densify.new_state(6)
     # grads: Gaussians 0 (small) and 3 (large) above threshold
     grad = torch.zeros(1, 6, 2)
     grad[0, 0] = torch.tensor([1e-3, 0.0])
     grad[0, 3] = torch.tensor([0.0, 1e-3])
-    st.accumulate(grad, torch.ones(1, 6, dtype=torch.int32), width=4, height=4)
-    np.testing.assert_allclose(st.grad2d[0].item(), 2e-3 * 1.0, rtol=1e-6)  # x * W/2
+    densify.accumulate(st, grad, torch.ones(1, 6, dtype=torch.int32), width=4, height=4)
+    np.testing.assert_allclose(st["grad2d"][0].item(), 2e-3 * 1.0, rtol=1e-6)  # x * W/2
+    assert st["count"].tolist() == [1.0] * 6
     with torch.no_grad():
         m.params["opacities"][5] = -10.0  # will be pruned
     cfg = densify.DensifyConfig(grad_threshold=5e-4, grow_scale3d=0.01, reset_every=10_000)
     res = densify.refine(m, st, cfg, step=100, generator=torch.Generator().manual_seed(0))
     assert (res.cloned, res.split, res.pruned) == (1, 1, 1)
     assert len(m) == 6 + 1 + 1 - 1
-    assert st.grad2d.shape == (7,) and float(st.grad2d.sum()) == 0
+    assert st["grad2d"].shape == (7,) and float(st["grad2d"].sum()) == 0 and float(st["count"].sum()) == 0
     for k in PARAM_NAMES:
         assert moments(m, k).shape == m.params[k].shape
 
 
 def test_refine_respects_cap_and_opacity_reset():
     m = make_model()
-    st = densify.DensifyState(6)
-    st.accumulate(torch.full((1, 6, 2), 1e-2), torch.ones(1, 6, dtype=torch.int32), 10, 10)
+    st = densify.new_state(6)
+    densify.accumulate(st, torch.full((1, 6, 2), 1e-2), torch.ones(1, 6, dtype=torch.int32), 10, 10)
     cfg = densify.DensifyConfig(max_gaussians=8, reset_every=10_000)
     densify.refine(m, st, cfg, step=1)
     assert len(m) == 8
@@ -110,7 +111,7 @@ def test_size_prune_spares_far_background():
         m.params["means"][0] = 0.0
         m.params["scales"][1] = np.log(0.5)    # equally big but 20 scene radii away: background, kept
         m.params["means"][1] = torch.tensor([20.0, 0.0, 0.0])
-    st = densify.DensifyState(6)
+    st = densify.new_state(6)
     # without opacity resets (reset_every=0) there is no size pruning either, as in 3DGS before the first
     assert densify.refine(m, st, densify.DensifyConfig(reset_every=0, prune_scale3d=0.1), step=100).pruned == 0
     cfg = densify.DensifyConfig(reset_every=10, prune_scale3d=0.1)

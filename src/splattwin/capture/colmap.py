@@ -19,6 +19,7 @@ from splattwin.capture.dataset import Dataset, Frame
 from splattwin.errors import InputError
 from splattwin.limits import check_pixels
 from splattwin.paths import confined
+from splattwin.transforms import quat_wxyz_from_matrix
 
 log = logging.getLogger(__name__)
 
@@ -126,7 +127,7 @@ def write_text(dataset: Dataset, sparse_dir: str | Path) -> Path:
                 cam_lines.append(f"{cam_ids[key]} FULL_OPENCV {c.width} {c.height} {c.fx!r} {c.fy!r} {c.cx!r} {c.cy!r} "
                                  + " ".join(repr(float(x)) for x in d[:5]) + " 0 0 0")
         T = c.T_cam_world
-        qw, qx, qy, qz = _quat_wxyz(T[:3, :3])
+        qw, qx, qy, qz = (float(v) for v in quat_wxyz_from_matrix(T[:3, :3]))  # COLMAP's order is wxyz, w >= 0
         tx, ty, tz = (float(v) for v in T[:3, 3])
         name = f.image_path.relative_to(image_root).as_posix() if f.image_path.is_relative_to(image_root) else f.image_path.name
         img_lines.append(f"{i} {qw!r} {qx!r} {qy!r} {qz!r} {tx!r} {ty!r} {tz!r} {cam_ids[key]} {name}\n")
@@ -139,12 +140,3 @@ def write_text(dataset: Dataset, sparse_dir: str | Path) -> Path:
     io.write_text(sparse_dir / "images.txt", "# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME / POINTS2D\n" + "".join(l + "\n" for l in img_lines))
     io.write_text(sparse_dir / "points3D.txt", "# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[]\n" + "".join(l + "\n" for l in pts))
     return sparse_dir
-
-
-def _quat_wxyz(R: np.ndarray) -> tuple[float, float, float, float]:
-    from scipy.spatial.transform import Rotation
-
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
-    if w < 0:
-        x, y, z, w = -x, -y, -z, -w
-    return float(w), float(x), float(y), float(z)

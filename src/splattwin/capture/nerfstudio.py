@@ -29,6 +29,7 @@ from splattwin.capture.dataset import Dataset, Frame
 from splattwin.errors import InputError
 from splattwin.limits import check_count, check_pixels
 from splattwin.paths import confined
+from splattwin.transforms import pose_from_file_value
 
 log = logging.getLogger(__name__)
 
@@ -99,16 +100,7 @@ def read(path: str | Path) -> Dataset:
         if fr_model not in SUPPORTED_MODELS:
             raise InputError(f"frame {rel!r}: unsupported camera_model {fr_model!r}", path)
         K, w, h, dist = _intrinsics(fr, meta, path, rel)
-        try:
-            T_gl = np.asarray(fr.get("transform_matrix"), dtype=np.float64)
-        except (TypeError, ValueError) as e:
-            raise InputError(f"frame {rel!r}: transform_matrix must be a 4x4 matrix of numbers ({e})", path) from None
-        if T_gl.shape == (3, 4):
-            T_gl = np.vstack([T_gl, [0, 0, 0, 1]])
-        if T_gl.shape != (4, 4):
-            raise InputError(f"frame {rel!r}: transform_matrix must be 4x4, got shape {T_gl.shape}", path)
-        if not np.all(np.isfinite(T_gl)):
-            raise InputError(f"frame {rel!r}: transform_matrix is not finite", path)
+        T_gl = pose_from_file_value(fr.get("transform_matrix"), f"frame {rel!r}: transform_matrix", path)
         split = fr.get("split")
         if split is None:
             split = "heldout" if (rel in heldout_names or img.name in heldout_names) else "train"

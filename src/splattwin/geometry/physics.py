@@ -13,6 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+from splattwin.transforms import rot_z, yaw_of
+
 
 @dataclass
 class YawBox:
@@ -23,13 +25,7 @@ class YawBox:
 
     @property
     def yaw(self) -> float:
-        return float(np.arctan2(self.T_world_box[1, 0], self.T_world_box[0, 0]))
-
-
-def yaw_rotation(yaw: float) -> np.ndarray:
-    """[3,3] rotation about +z by yaw (rad)."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        return yaw_of(self.T_world_box)
 
 
 def yaw_obb(points: np.ndarray) -> YawBox:
@@ -48,7 +44,7 @@ def yaw_obb(points: np.ndarray) -> YawBox:
     edges = np.roll(hull, -1, axis=0) - hull
     angles = np.unique(np.mod(np.arctan2(edges[:, 1], edges[:, 0]), np.pi / 2)) if len(hull) > 1 else np.zeros(1)
     for a in angles:
-        R = yaw_rotation(-a)[:2, :2]
+        R = rot_z(-a)[:2, :2]
         p = hull @ R.T
         lo, hi = p.min(axis=0), p.max(axis=0)
         area = np.prod(hi - lo)
@@ -59,13 +55,13 @@ def yaw_obb(points: np.ndarray) -> YawBox:
     if ext[1] > ext[0]:  # x along the longer side
         a += np.pi / 2
         ext = ext[::-1]
-        R = yaw_rotation(-a)[:2, :2]
+        R = rot_z(-a)[:2, :2]
         p = hull @ R.T
         lo, hi = p.min(axis=0), p.max(axis=0)
     a = float(np.mod(a + np.pi / 2, np.pi) - np.pi / 2)  # (-pi/2, pi/2]
     if a <= -np.pi / 2 + 1e-12:
         a += np.pi
-    R3 = yaw_rotation(a)
+    R3 = rot_z(a)
     p = hull @ R3[:2, :2]  # box-frame footprint (R^T applied to row vectors)
     lo, hi = p.min(axis=0), p.max(axis=0)
     centre_box = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2])

@@ -11,6 +11,7 @@ import numpy as np
 import trimesh
 
 from splattwin.splat.gaussians import Gaussians, rgb_to_sh0
+from splattwin.transforms import quat_wxyz_from_matrix
 
 
 def _yaw(mesh: trimesh.Trimesh, yaw: float, xy) -> trimesh.Trimesh:
@@ -188,7 +189,6 @@ def trained_like_gaussians(mesh: trimesh.Trimesh, n: int = 3000, seed: int = 0, 
     all_R = np.concatenate([R, Rotation.random(k, random_state=rng).as_matrix()])
     all_scales = np.concatenate([scales, rng.uniform(0.005, 0.015, (k, 3))])
     all_opac = np.concatenate([opac, rng.uniform(0.01, 0.08, k)])
-    quats_xyzw = Rotation.from_matrix(all_R).as_quat()
-    quats = np.concatenate([quats_xyzw[:, 3:], quats_xyzw[:, :3]], axis=1)  # wxyz
+    quats = quat_wxyz_from_matrix(all_R, canonical=False)
     sh = np.repeat(rgb_to_sh0(np.array([0.5, 0.5, 0.5]))[None, None], len(all_means), axis=0)
     return Gaussians(means=all_means, quats=quats, scales=all_scales, opacities=all_opac, sh=sh)

@@ -341,9 +341,6 @@ def _robot_stage(ctx: Context) -> dict:
     o = ctx.options
     if not o["task"]:
         return {}
-    from splattwin.robot.render import prefer_egl
-
-    prefer_egl()
     from splattwin.robot.outputs import write_outputs
     from splattwin.robot.trials import TrialSpec, run_once, run_trials
 

@@ -29,6 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
+from splattwin.transforms import (matrix_from_quat_wxyz, mujoco_quat_wxyz_from_matrix, quat_mul_wxyz,
+                                  quat_wxyz_from_matrix)
+
 LIGHT_DIR_WORLD = np.array([-0.35, 0.45, 1.0]) / np.linalg.norm([-0.35, 0.45, 1.0])  # towards the light
 AMBIENT = 0.42
 DIFFUSE = 0.58
@@ -47,21 +50,6 @@ def _frames_from_normals(n: np.ndarray) -> np.ndarray:
     t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
     t2 = np.cross(n, t1)
     return np.stack([t1, t2, n], axis=2)
-
-
-def _quats_from_matrices(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(R).as_quat()  # xyzw
-    return np.concatenate([q[:, 3:], q[:, :3]], axis=1)
-
-
-def quat_mul_batch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton products a_i * b_i of wxyz quaternions [N,4]."""
-    w1, x1, y1, z1 = a.T
-    w2, x2, y2, z2 = b.T
-    return np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=1)
 
 
 def shade(albedo: np.ndarray, n_world: np.ndarray) -> np.ndarray:
@@ -93,7 +81,6 @@ class RobotSplats:
         import mujoco
 
         from splattwin.robot.assets import ensure_tcp_site
-        from splattwin.twin.mjcf import mat_to_quat_wxyz
 
         spec = mujoco.MjSpec.from_file(str(xml_path))
         ensure_tcp_site(spec)
@@ -106,7 +93,7 @@ class RobotSplats:
 
             raise InputError(f"robot MJCF has no body {root_body!r}", xml_path)
         root.pos = T[:3, 3].tolist()
-        root.quat = mat_to_quat_wxyz(T[:3, :3]).tolist()
+        root.quat = mujoco_quat_wxyz_from_matrix(T[:3, :3]).tolist()
         self.model = m = spec.compile()
         self.data = mujoco.MjData(m)
         self.T_world_base = T
@@ -141,9 +128,7 @@ class RobotSplats:
             pts = (1 - s1)[:, None] * tri[f, 0] + (s1 * (1 - r2))[:, None] * tri[f, 1] + (s1 * r2)[:, None] * tri[f, 2]
             nrm = cr[f] / np.maximum(np.linalg.norm(cr[f], axis=1, keepdims=True), 1e-12)
             # geom frame -> body frame (MuJoCo stores the mesh in its re-centred geom frame)
-            Rg = np.zeros(9)
-            mujoco.mju_quat2Mat(Rg, m.geom_quat[g])
-            Rg = Rg.reshape(3, 3)
+            Rg = matrix_from_quat_wxyz(m.geom_quat[g])
             P.append(pts @ Rg.T + m.geom_pos[g])
             Nn.append(nrm @ Rg.T)
             matid = int(m.geom_matid[g])
@@ -156,7 +141,7 @@ class RobotSplats:
         self.n = np.concatenate(Nn)
         self.albedo = np.concatenate(A)
         sp = np.concatenate(S)
-        self.q = _quats_from_matrices(_frames_from_normals(self.n))
+        self.q = quat_wxyz_from_matrix(_frames_from_normals(self.n), canonical=False)
         sig = SIGMA_FACTOR * sp
         self.scales = np.stack([sig, sig, THICKNESS * sig], axis=1)
         self.opacities = np.full(len(self.p), OPACITY)
@@ -196,7 +181,7 @@ class RobotSplats:
         d = self.data
         R = d.xmat.reshape(-1, 3, 3)[self.body]
         means = np.einsum("nij,nj->ni", R, self.p) + d.xpos[self.body]
-        quats = quat_mul_batch(d.xquat[self.body], self.q)
+        quats = quat_mul_wxyz(d.xquat[self.body], self.q)
         n_world = np.einsum("nij,nj->ni", R, self.n)
         return means, quats, shade(self.albedo, n_world)
 

@@ -58,12 +58,11 @@ def rigid_transform(g: Gaussians, T_new_old: np.ndarray) -> tuple[np.ndarray, np
 
     Same maths as `twin.splats.transform_gaussians` (which this stage reuses for single transforms),
     without building a new `Gaussians` (per-frame path)."""
-    from splattwin.twin.splats import _quat_from_matrix, _quat_mul
+    from splattwin.transforms import quat_mul_wxyz, quat_wxyz_from_matrix
 
     R, t = T_new_old[:3, :3], T_new_old[:3, 3]
     means = g.means @ R.T + t
-    quats = _quat_mul(_quat_from_matrix(R), g.quats)
-    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    quats = quat_mul_wxyz(quat_wxyz_from_matrix(R, canonical=False), g.quats)
     D = sh_rotation(R.T, g.sh_degree)
     sh = np.einsum("kj,njc->nkc", D, g.sh)
     return means, quats, sh

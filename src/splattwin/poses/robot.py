@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from splattwin.errors import InputError
+from splattwin.transforms import pose_from_file_value, pose_from_pos_quat_wxyz, quat_wxyz_from_xyzw
 
 
 @dataclass
@@ -43,16 +44,6 @@ def _read_structured(path: Path) -> Any:
     return load_yaml(path)  # safe loader, bounded size and aliases
 
 
-def quat_to_matrix(q_wxyz: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) -> rotation matrix [3,3]."""
-    w, x, y, z = q_wxyz
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
-
-
 def parse_transform(obj: Any, where: Path, what: str, matrix_key: str) -> np.ndarray:
     """A rigid transform [4,4] from a 4x4 (or 3x4) nested list, {matrix_key: 4x4}, or position + quaternion."""
     if isinstance(obj, dict):
@@ -61,8 +52,7 @@ def parse_transform(obj: Any, where: Path, what: str, matrix_key: str) -> np.nda
         if "position" in obj or "translation" in obj:
             pos = obj.get("position", obj.get("translation"))
             if "quat_xyzw" in obj:
-                q = _vec(obj["quat_xyzw"], 4, where, f"{what}: quat_xyzw")
-                q = np.array([q[3], q[0], q[1], q[2]])
+                q = quat_wxyz_from_xyzw(_vec(obj["quat_xyzw"], 4, where, f"{what}: quat_xyzw"))
             elif "quat_wxyz" in obj:
                 q = _vec(obj["quat_wxyz"], 4, where, f"{what}: quat_wxyz")
             else:
@@ -72,26 +62,10 @@ def parse_transform(obj: Any, where: Path, what: str, matrix_key: str) -> np.nda
             n = np.linalg.norm(q)
             if not (abs(n - 1.0) < 1e-3):
                 raise InputError(f"{what}: quaternion is not unit length (norm {n:.4g})", where)
-            T = np.eye(4)
-            T[:3, :3] = quat_to_matrix(q / n)
-            T[:3, 3] = _vec(pos, 3, where, f"{what}: position")
-            return T
+            return pose_from_pos_quat_wxyz(_vec(pos, 3, where, f"{what}: position"), q / n)
         raise InputError(f"{what}: expected '{matrix_key}' (4x4) or 'position' + 'quat_xyzw'/'quat_wxyz', "
                          f"got keys {sorted(obj)}", where)
-    try:
-        M = np.asarray(obj, dtype=np.float64)
-    except (TypeError, ValueError) as e:
-        raise InputError(f"{what}: not a numeric matrix", where) from e
-    if M.shape == (3, 4):
-        M = np.vstack([M, [0, 0, 0, 1.0]])
-    if M.shape != (4, 4):
-        raise InputError(f"{what}: expected a 4x4 matrix, got shape {M.shape}", where)
-    if not np.all(np.isfinite(M)):
-        raise InputError(f"{what}: matrix is not finite", where)
-    R = M[:3, :3]
-    if not np.allclose(R.T @ R, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0 or not np.allclose(M[3], [0, 0, 0, 1]):
-        raise InputError(f"{what}: not a rigid transform (rotation part must be orthonormal, last row 0 0 0 1)", where)
-    return M
+    return pose_from_file_value(obj, what, where, rigid=True)
 
 
 def _vec(v: Any, n: int, where: Path, what: str) -> np.ndarray:

@@ -55,9 +55,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_plan(args: argparse.Namespace) -> int:
-    from splattwin.robot.render import prefer_egl
-
-    prefer_egl()  # before mujoco is imported
     from splattwin.errors import InputError
     from splattwin.robot.outputs import print_summary, write_outputs
     from splattwin.robot.trials import TrialSpec, run_once, run_trials

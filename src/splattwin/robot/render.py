@@ -1,22 +1,17 @@
 """Offscreen frames of the execution (MuJoCo renderer, EGL/OSMesa), or a clear note when no GL exists.
 
-MuJoCo picks its GL backend from MUJOCO_GL when it is first imported; `prefer_egl()` sets it to EGL
-unless the user chose one, and must run before anything imports mujoco (the CLI calls it first).
+MuJoCo picks its GL backend from MUJOCO_GL when it is first imported; `splattwin.runtime.configure()`
+(called first by the CLI) sets it to EGL on a machine without a display unless the user chose one.
 Camera: a free camera looking at the table centre from the front-left, above the robot's reach.
 """
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
 from splattwin import io
-
-
-def prefer_egl() -> None:
-    os.environ.setdefault("MUJOCO_GL", "egl")
 
 
 class FrameRecorder:

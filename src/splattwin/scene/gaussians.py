@@ -24,12 +24,12 @@ from splattwin.errors import InputError
 from splattwin.scene.generate import build_scene, load_scene
 from splattwin.scene.options import SceneOptions
 from splattwin.splat.gaussians import Gaussians, rgb_to_sh0
+from splattwin.transforms import quat_wxyz_from_matrix
 
 
 def _quats_wxyz(R: np.ndarray) -> np.ndarray:
-    """[N,3,3] rotations -> [N,4] unit wxyz quaternions."""
-    q = Rotation.from_matrix(R).as_quat()  # xyzw
-    return np.concatenate([q[:, 3:], q[:, :3]], axis=1)
+    """[N,3,3] rotations -> [N,4] unit wxyz quaternions (scipy's sign: the scene's bytes stay the same)."""
+    return quat_wxyz_from_matrix(R, canonical=False)
 
 
 def _frames_from_normals(n: np.ndarray, rng: np.random.Generator) -> np.ndarray:

@@ -8,11 +8,12 @@ top-left (-s/2, s/2), top-right, bottom-right, bottom-left. `size` is the side o
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
+from splattwin.transforms import pose_xyz_yaw
 
 DICTIONARY = "DICT_4X4_50"
 _BITS = 4  # data bits per side; +2 border modules
@@ -30,11 +31,7 @@ class TableMarker:
 
     @property
     def T_world_marker(self) -> np.ndarray:
-        c, s = math.cos(self.yaw), math.sin(self.yaw)
-        T = np.eye(4)
-        T[:2, :2] = [[c, -s], [s, c]]
-        T[:3, 3] = [self.x, self.y, 0.0]
-        return T
+        return pose_xyz_yaw(self.x, self.y, 0.0, self.yaw)
 
     def bitmap(self) -> np.ndarray:
         """Marker image, one pixel per module, border included. -> [6,6] uint8 {0,255}"""

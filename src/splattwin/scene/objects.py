@@ -14,6 +14,7 @@ import numpy as np
 import trimesh
 
 from splattwin.scene import textures as tx
+from splattwin.transforms import pose_xyz_yaw
 
 # Table top: [xmin, xmax, ymin, ymax] metres, and thickness (top at z = 0).
 TABLE_EXTENT = (-0.45, 0.45, -0.55, 0.55)
@@ -207,11 +208,7 @@ def sample_layout(objects: list[SceneObject], seed: int, marker_size: float = 0.
                 success = False
                 break
             placed.extend(quads)
-            T = np.eye(4)
-            c, s = math.cos(yaw), math.sin(yaw)
-            T[:2, :2] = [[c, -s], [s, c]]
-            T[:3, 3] = [xy[0], xy[1], obj.extent[2] / 2]
-            obj.T_world_obj = T
+            obj.T_world_obj = pose_xyz_yaw(xy[0], xy[1], obj.extent[2] / 2, yaw)
         if not success:
             continue
         # marker (reserved even when not printed): flat on the table near the objects, so the scan sees it

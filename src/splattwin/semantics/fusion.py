@@ -19,6 +19,10 @@ For every object label o and view j (all arrays numpy, N Gaussians, L object lab
    new floater is found (the next round would repeat the last one exactly).
 5. Several objects: a Gaussian passing the consensus for several labels takes the one with the most
    weighted votes; everything else is background (0).
+Each step is a function of its own, tested on hand-worked cases (tests/semantics/test_fusion_steps.py):
+1 `project_to_pixels` + `visible_mask` (+ `grazing`), 2 `dbscan_1d` + `soft_gate`, per view
+`view_observations`, 3 + 5 `consensus`, 4 `find_floaters` and the rounds of `fuse`, `smooth_labels`
+(iterated `knn_smooth`).
 
 DBSCAN on 1-D depth is done exactly by sorting (`dbscan_1d`) instead of scikit-learn: in 1-D the
 eps-neighbourhood of a point is a contiguous range of the sorted depths (two binary searches), and core
@@ -48,6 +52,7 @@ from splattwin.capture.camera import Camera
 from splattwin.errors import InputError
 from splattwin.semantics.masks import MaskSet, MaskWarning
 from splattwin.semantics.render import DepthRenderer, PointDepth, project_to_pixels
+from splattwin.transforms import matrix_from_quat_wxyz
 
 log = logging.getLogger(__name__)
 
@@ -200,14 +205,10 @@ def splat_normals(quats: np.ndarray, scales: np.ndarray, flatness: float = 0.3) 
 
     quats [N,4] wxyz, scales [N,3] m. Flat: smallest scale < flatness x the middle one.
     """
-    q = quats / np.linalg.norm(quats, axis=1, keepdims=True)
-    w, x, y, z = q.T
-    R = np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-                  np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-                  np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], axis=1)
+    R = matrix_from_quat_wxyz(quats)
     order = np.argsort(scales, axis=1)
     axis = order[:, 0]
-    n = R[np.arange(len(q)), :, axis]
+    n = R[np.arange(len(R)), :, axis]
     s_sorted = np.take_along_axis(scales, order, axis=1)
     flat = s_sorted[:, 0] < flatness * s_sorted[:, 1]
     n[~flat] = np.nan
@@ -237,6 +238,49 @@ def consensus(votes: np.ndarray, n_visible: np.ndarray, kappa: float, label_ids:
                     1.0 - (ratio.max(axis=1) if len(ids) else 0.0))
     conf = np.where(n > 0, conf, 0.0)
     return labels, np.clip(conf, 0.0, 1.0)
+
+
+def view_observations(pix: np.ndarray, z: np.ndarray, vis: np.ndarray,
+                      view_masks: Sequence[tuple[int, np.ndarray]], opts: FusionOptions
+                      ) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
+    """Observation weights W_ij of one view (steps 2 and the vote of 3 in the module docstring).
+
+    pix [N] pixel index (-1 outside), z [N] camera depth (m), vis [N] bool (`visible_mask`), view_masks:
+    (column k, flat mask [H*W] bool) per object with a mask in this view. -> per object with at least
+    one visible in-mask Gaussian: (k, idx [n] Gaussian indices, w [n] soft-gate weights, front [n] bool
+    gated out in front of the object's main depth cluster)."""
+    vis_idx = np.flatnonzero(vis)
+    vpix = pix[vis_idx]
+    out = []
+    for k, m in view_masks:
+        idx = vis_idx[m[vpix]]
+        if idx.size == 0:
+            continue
+        w, front = soft_gate(z[idx], opts.eps, opts.min_samples, opts.gate_sigma)
+        out.append((k, idx, w, front))
+    return out
+
+
+def smooth_labels(labels: np.ndarray, confidence: np.ndarray, neighbours, opts: FusionOptions
+                  ) -> tuple[np.ndarray, int]:
+    """Iterative KNN boundary refinement: `knn_smooth` passes (at most max(opts.iters, 1)) until fewer
+    than opts.converge_share x N labels flip. Updates `confidence` of flipped points in place.
+    -> (labels [N], total flips)."""
+    flipped = 0
+    for _ in range(max(opts.iters, 1)):
+        labels, f = knn_smooth(labels, confidence, neighbours, opts.knn_threshold, opts.knn_confidence,
+                               update_confidence=True)
+        flipped += f
+        if f < opts.converge_share * len(labels):
+            break
+    return labels, flipped
+
+
+def find_floaters(labels: np.ndarray, gated_front: np.ndarray, hits: np.ndarray, share: float) -> np.ndarray:
+    """[N] bool: background Gaussians gated out in front of an object (`soft_gate`'s `front`) in at least
+    `share` of their in-mask visible observations (gated_front [N] counts, hits [N,L] observations)."""
+    n_obs = hits.sum(axis=1)
+    return (labels == 0) & (gated_front > 0) & (gated_front >= share * np.maximum(n_obs, 1))
 
 
 class KnnCache:
@@ -366,27 +410,15 @@ def fuse(means: np.ndarray, views: Sequence[View], masks: MaskSet, options: Fusi
             if normals is not None and opts.min_cos > 0:
                 vis &= ~grazing(means, normals, cam.center, opts.min_cos)
             n_vis += vis
-            vis_idx = np.flatnonzero(vis)
-            vpix = pix[vis_idx]
-            for k, m in fm:
-                idx = vis_idx[m[vpix]]
-                if idx.size == 0:
-                    continue
-                w, front = soft_gate(z[idx], opts.eps, opts.min_samples, opts.gate_sigma)
+            for k, idx, w, front in view_observations(pix, z, vis, fm, opts):
                 votes[idx, k] += w
                 hits[idx, k] += 1
                 gated_front[idx] += front
         new, conf = consensus(votes, n_vis, opts.kappa, label_ids, opts.min_views)
-        flipped = 0
-        for _ in range(max(opts.iters, 1)):  # iterative KNN boundary refinement (<= iters passes)
-            new, f = knn_smooth(new, conf, neighbours, opts.knn_threshold, opts.knn_confidence, update_confidence=True)
-            flipped += f
-            if f < opts.converge_share * N:
-                break
+        new, flipped = smooth_labels(new, conf, neighbours, opts)
         changed = int((new != labels).sum()) if it else N
         labels = new
-        n_obs = hits.sum(axis=1)
-        new_floaters = (labels == 0) & (gated_front > 0) & (gated_front >= opts.floater_share * np.maximum(n_obs, 1))
+        new_floaters = find_floaters(labels, gated_front, hits, opts.floater_share)
         history.append({"round": it + 1, "changed": changed, "knn_flipped": flipped,
                         "floaters": int(new_floaters.sum()),
                         "per_object": {masks.objects[k]: int((labels == k).sum()) for k in label_ids}})

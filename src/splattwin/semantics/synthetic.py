@@ -18,6 +18,7 @@ from scipy import ndimage
 from splattwin.capture.camera import Camera, look_at
 from splattwin.semantics.fusion import View
 from splattwin.semantics.masks import MaskSet
+from splattwin.transforms import quat_wxyz_z_to
 
 TABLE = (-0.3, 0.3, -0.25, 0.25)
 BOXES = {1: (np.array([0.08, 0.05, 0.05]), np.array([0.05, 0.04, 0.05])),
@@ -183,21 +184,9 @@ def sample_scene_gaussians(scene_dir: Path, n: int = 60000, seed: int = 0, float
     s = np.concatenate(scl)
     labels = np.concatenate(labs)
     N = len(means)
-    quats = _quat_z_to(normals)
+    quats = quat_wxyz_z_to(normals)
     hue = np.array([[0.6, 0.6, 0.6], [0.6, 0.45, 0.3], [0.2, 0.3, 0.8], [0.9, 0.8, 0.1], [0.8, 0.2, 0.2], [0.3, 0.7, 0.4]])
     rgb = hue[np.minimum(labels, len(hue) - 1)]
     g = Gaussians(means=means, quats=quats, scales=np.stack([s, s, 0.2 * s], 1), opacities=np.full(N, 0.9),
                   sh=rgb_to_sh0(rgb)[:, None, :])
     return g, labels
-
-
-def _quat_z_to(n: np.ndarray) -> np.ndarray:
-    """[N,3] unit normals -> [N,4] wxyz quaternions rotating +z onto them."""
-    n = n / np.linalg.norm(n, axis=1, keepdims=True)
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(np.broadcast_to(z, n.shape), n)
-    w = 1.0 + n[:, 2]
-    q = np.concatenate([w[:, None], axis], axis=1)
-    flip = w < 1e-8  # normal = -z: rotate 180 deg about x
-    q[flip] = [0.0, 1.0, 0.0, 0.0]
-    return q / np.linalg.norm(q, axis=1, keepdims=True)

@@ -12,6 +12,10 @@ Every `refine_every` steps between `refine_start` and `refine_stop`:
   - the Gaussian count never exceeds `max_gaussians` (candidates with the highest gradients win).
 Each parameter's Adam moments are edited with it (kept rows keep theirs, new rows start at zero), so the
 optimizer state always matches the parameters. Random split samples come from a seeded torch.Generator.
+
+These are the operations; the schedule that calls them during training is a strategy object
+(`splattwin.splat.strategy.DefaultStrategy`, as gsplat's `strategy/default.py` over its `strategy/ops.py`).
+The statistics live in a plain state dict {"grad2d": [N], "count": [N]} (`new_state`), checkpointed as is.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from typing import Callable
 import torch
 
 from splattwin.splat.model import PARAM_NAMES, GaussianModel
+from splattwin.splat.reference import quat_to_rotmat
 
 
 @dataclass
@@ -48,32 +53,23 @@ class DensifyConfig:
                    reset_every=0, max_gaussians=max_gaussians)
 
 
-class DensifyState:
-    """Per-Gaussian accumulated view-space gradient norms and visible counts."""
+def new_state(n: int, device: str | torch.device = "cpu") -> dict[str, torch.Tensor]:
+    """Zeroed statistics for n Gaussians: grad2d [N] summed NDC gradient norms, count [N] views seen in."""
+    return {"grad2d": torch.zeros(n, device=device), "count": torch.zeros(n, device=device)}
 
-    def __init__(self, n: int, device: str | torch.device = "cpu"):
-        self.device = torch.device(device)
-        self.reset(n)
 
-    def reset(self, n: int) -> None:
-        self.grad2d = torch.zeros(n, device=self.device)
-        self.count = torch.zeros(n, device=self.device)
+def accumulate(state: dict[str, torch.Tensor], means2d_grad: torch.Tensor, radii: torch.Tensor, width: int,
+               height: int) -> None:
+    """Add the gradient norms of the visible Gaussians to `state` (in place).
 
-    def accumulate(self, means2d_grad: torch.Tensor, radii: torch.Tensor, width: int, height: int) -> None:
-        """means2d_grad [C,N,2] (pixels), radii [C,N]: add gradient norms of visible Gaussians."""
-        g = means2d_grad.detach().clone()
-        g[..., 0] *= width / 2.0 * g.shape[0]
-        g[..., 1] *= height / 2.0 * g.shape[0]
-        vis = radii > 0
-        norms = torch.where(vis, g.norm(dim=-1), torch.zeros((), device=g.device))
-        self.grad2d += norms.sum(0)
-        self.count += vis.sum(0).to(self.count.dtype)
-
-    def state_dict(self) -> dict:
-        return {"grad2d": self.grad2d.clone(), "count": self.count.clone()}
-
-    def load_state_dict(self, sd: dict) -> None:
-        self.grad2d, self.count = sd["grad2d"].to(self.device), sd["count"].to(self.device)
+    means2d_grad [C,N,2] (pixels; scaled here to NDC units by [W/2, H/2] times C), radii [C,N]."""
+    g = means2d_grad.detach().clone()
+    g[..., 0] *= width / 2.0 * g.shape[0]
+    g[..., 1] *= height / 2.0 * g.shape[0]
+    vis = radii > 0
+    norms = torch.where(vis, g.norm(dim=-1), torch.zeros((), device=g.device))
+    state["grad2d"] += norms.sum(0)
+    state["count"] += vis.sum(0).to(state["count"].dtype)
 
 
 # -- parameter + optimizer-state surgery ----------------------------------------------------------
@@ -110,15 +106,6 @@ def duplicate(model: GaussianModel, sel: torch.Tensor) -> None:
     append(model, {k: model.params[k].detach()[sel] for k in PARAM_NAMES})
 
 
-def _quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
-    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], dim=-1).reshape(q.shape[:-1] + (3, 3))
-
-
 def split(model: GaussianModel, sel: torch.Tensor, generator: torch.Generator | None = None,
           factor: float = 1.6) -> None:
     """Replace each selected Gaussian by 2 drawn from its own distribution, scales divided by `factor`."""
@@ -127,7 +114,7 @@ def split(model: GaussianModel, sel: torch.Tensor, generator: torch.Generator | 
     if m == 0:
         return
     scales = p["scales"][sel].exp()  # [M,3]
-    R = _quat_to_rotmat(p["quats"][sel])  # [M,3,3]
+    R = quat_to_rotmat(p["quats"][sel])  # [M,3,3]
     z = torch.randn((2, m, 3), generator=generator).to(scales.device)  # CPU generator: same draws anywhere
     means = (p["means"][sel][None] + torch.einsum("mij,bmj->bmi", R, z * scales[None])).reshape(2 * m, 3)
     new = {k: p[k][sel].repeat((2,) + (1,) * (p[k].dim() - 1)) for k in PARAM_NAMES}
@@ -159,13 +146,13 @@ def size_limit(model: GaussianModel) -> torch.Tensor:
     return torch.clamp_min(d, model.scene_scale)
 
 
-def refine(model: GaussianModel, state: DensifyState, cfg: DensifyConfig, step: int,
+def refine(model: GaussianModel, state: dict[str, torch.Tensor], cfg: DensifyConfig, step: int,
            generator: torch.Generator | None = None) -> RefineResult:
-    """One densification round (clone, split, prune); resets the statistics."""
+    """One densification round (clone, split, prune); resets the statistics in `state` (`new_state`)."""
     res = RefineResult()
     n = len(model)
     with torch.no_grad():
-        avg = state.grad2d / state.count.clamp_min(1)
+        avg = state["grad2d"] / state["count"].clamp_min(1)
         high = avg > cfg.grad_threshold
         big = model.params["scales"].exp().max(dim=1).values > cfg.grow_scale3d * model.scene_scale
         budget = max(cfg.max_gaussians - n, 0)
@@ -184,5 +171,5 @@ def refine(model: GaussianModel, state: DensifyState, cfg: DensifyConfig, step: 
         res.pruned = int(prune.sum())
         if res.pruned:
             remove(model, ~prune)
-    state.reset(len(model))
+    state.update(new_state(len(model), state["grad2d"].device))
     return res

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from splattwin.errors import InputError
+from splattwin.transforms import matrix_from_quat_wxyz
 
 SH_C0 = 0.28209479177387814  # Y_0^0 = 1 / (2 sqrt(pi))
 
@@ -108,19 +109,7 @@ class Gaussians:
 
     def rotation_matrices(self) -> np.ndarray:
         """[N,3,3] rotation matrices of the (normalised) quaternions."""
-        q = self.quats / np.linalg.norm(self.quats, axis=1, keepdims=True)
-        w, x, y, z = q.T
-        R = np.empty((len(self), 3, 3))
-        R[:, 0, 0] = 1 - 2 * (y * y + z * z)
-        R[:, 0, 1] = 2 * (x * y - w * z)
-        R[:, 0, 2] = 2 * (x * z + w * y)
-        R[:, 1, 0] = 2 * (x * y + w * z)
-        R[:, 1, 1] = 1 - 2 * (x * x + z * z)
-        R[:, 1, 2] = 2 * (y * z - w * x)
-        R[:, 2, 0] = 2 * (x * z - w * y)
-        R[:, 2, 1] = 2 * (y * z + w * x)
-        R[:, 2, 2] = 1 - 2 * (x * x + y * y)
-        return R
+        return matrix_from_quat_wxyz(self.quats)
 
     def covariances(self) -> np.ndarray:
         """[N,3,3] world-frame covariances R diag(s^2) R^T, m^2."""

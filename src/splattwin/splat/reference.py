@@ -36,8 +36,11 @@ FOV_CLAMP = 1.3  # Jacobian evaluated with x/z, y/z clamped to 1.3x the half fie
 
 
 def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """[N,4] wxyz quaternions (normalised here) -> [N,3,3] rotation matrices."""
-    q = quats / torch.linalg.vector_norm(quats, dim=-1, keepdim=True)
+    """[..., 4] wxyz quaternions (normalised here) -> [..., 3, 3] rotation matrices; differentiable.
+
+    The one torch implementation (densification's split uses it too); numpy code goes through
+    `splattwin.transforms`. A zero quaternion gives the identity (its norm is clamped at 1e-12)."""
+    q = quats / torch.linalg.vector_norm(quats, dim=-1, keepdim=True).clamp_min(1e-12)
     w, x, y, z = q.unbind(-1)
     return torch.stack([
         1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),

@@ -1,5 +1,6 @@
-"""3DGS training loop: one view per step, Adam, (1-l) L1 + l D-SSIM, SH warm-up, adaptive density
-control, optional pose refinement, atomic checkpoints and exact resume.
+"""3DGS training loop: one view per step, Adam, (1-l) L1 + l D-SSIM, SH warm-up, densification by a
+strategy object (`splattwin.splat.strategy`; default: 3DGS adaptive density control on
+`TrainConfig.densify_config()`), optional pose refinement, atomic checkpoints and exact resume.
 
 Determinism: every random choice comes from seeded generators (view order, split samples, init), whose
 states are checkpointed together with parameters, Adam moments, densification statistics and the step,
@@ -9,8 +10,8 @@ Outputs in OUT: point_cloud.ply (standard 3DGS), train.json (config, statistics)
 (with --refine-poses), train_curves.png (PSNR and Gaussian count), checkpoints/ckpt_XXXXXX.safetensors
 (tensors + plain data, never a pickle: `splattwin.splat.checkpoint`; the two newest are kept).
 
-Resume: a checkpoint is resumed only when it was made with the same training options and the same
-training data (view names, cameras and image contents, recorded as a digest). Otherwise the run does
+Resume: a checkpoint is resumed only when it was made with the same training options, the same
+densification strategy and the same training data (view names, cameras and image contents, recorded as a digest). Otherwise the run does
 not silently continue someone else's or an older run: with on_mismatch="error" (`splattwin train
 --resume`) it stops with an InputError saying what differs; with on_mismatch="restart" (`splattwin
 build`, whose stage key already says the inputs changed) it says why, removes the stale checkpoints
@@ -19,6 +20,7 @@ and starts over. Pickled checkpoints of earlier versions (`ckpt_*.pt`) are never
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
@@ -32,14 +34,16 @@ import torch
 from splattwin.capture import Camera, Dataset, Frame, load_image
 from splattwin.errors import InputError
 from splattwin.io import write_json
+from splattwin.runtime import torch_threads
 from splattwin.splat import checkpoint as ckpt_io
-from splattwin.splat.densify import DensifyConfig, DensifyState, refine, reset_opacity
+from splattwin.splat.densify import DensifyConfig
 from splattwin.splat.gaussians import Gaussians
 from splattwin.splat.init import initial_gaussians, scene_center_and_scale
 from splattwin.splat.losses import photometric_loss, psnr_from_mse
 from splattwin.splat.model import GaussianModel, LearningRates
 from splattwin.splat.pose_refine import PoseCorrection
 from splattwin.splat.rasterization import backend_device, rasterization, resolve_backend
+from splattwin.splat.strategy import DefaultStrategy, Strategy
 
 log = logging.getLogger(__name__)
 
@@ -262,9 +266,13 @@ class CheckpointMismatch(InputError):
 
 
 class Trainer:
-    """Holds the state of one training run; `run()` trains (or resumes) to `cfg.iters`."""
+    """Holds the state of one training run; `run()` trains (or resumes) to `cfg.iters`.
 
-    def __init__(self, dataset: Dataset, out_dir: str | Path, cfg: TrainConfig | None = None):
+    strategy: how the Gaussians are densified/pruned (`splattwin.splat.strategy`); default
+    `DefaultStrategy(cfg.densify_config())`, or no densification with `cfg.densify=False`."""
+
+    def __init__(self, dataset: Dataset, out_dir: str | Path, cfg: TrainConfig | None = None,
+                 strategy: Strategy | None = None):
         self.cfg = cfg or TrainConfig()
         self.dataset = dataset
         self.out_dir = Path(out_dir)
@@ -286,6 +294,9 @@ class Trainer:
         self.data_digest = data_digest(self.views)
         self.scene_center, self.scene_scale = scene_center_and_scale([v.camera for v in self.views])
         self.dcfg = self.cfg.densify_config()
+        if strategy is None:
+            strategy = DefaultStrategy(self.dcfg) if self.cfg.densify else Strategy()
+        self.strategy = strategy
         self.sh_interval = self.cfg.sh_interval or max(1, self.cfg.iters // 10)
         dev = self.device
         for v in self.views:
@@ -310,7 +321,7 @@ class Trainer:
         self.model = GaussianModel.from_gaussians(g, max_sh_degree=cfg.sh_degree, lrs=cfg.lrs,
                                                   scene_scale=self.scene_scale, device=self.device,
                                                   scene_center=torch.tensor(self.scene_center))
-        self.dstate = DensifyState(len(self.model), self.device)
+        self.strategy_state = self.strategy.initialize_state(self.model)
         self.split_gen = torch.Generator().manual_seed(cfg.seed)
         self.view_gen = torch.Generator().manual_seed(cfg.seed + 1)
         self.order: list[int] = []
@@ -319,7 +330,8 @@ class Trainer:
         self.history = []
 
     def state_dict(self) -> dict:
-        return {"step": self.step, "model": self.model.state_dict(), "densify": self.dstate.state_dict(),
+        return {"step": self.step, "model": self.model.state_dict(), "densify": self.strategy_state,
+                "strategy": self.strategy.describe(),
                 "split_gen": self.split_gen.get_state(), "view_gen": self.view_gen.get_state(),
                 "order": list(self.order), "poses": self.poses.state_dict() if self.poses else None,
                 "history": list(self.history), "init_method": self.init_method,
@@ -342,14 +354,18 @@ class Trainer:
         if sd["data_digest"] != self.data_digest:
             raise CheckpointMismatch("checkpoint was made with other training data (images, cameras or poses "
                                      "changed)", where)
+        # (checkpoints before strategy objects: the strategy followed from the options compared above)
+        if "strategy" in sd and sd["strategy"] != self.strategy.describe():
+            name = sd["strategy"].get("name") if isinstance(sd["strategy"], dict) else sd["strategy"]
+            raise CheckpointMismatch(f"checkpoint was made with another densification strategy ({name!r}, "
+                                     f"this run: {self.strategy.name!r} or other options)", where)
 
     def load_state_dict(self, sd: dict) -> None:
         if sd["view_names"] != [v.name for v in self.views]:
             raise InputError("checkpoint was made with different training views; start a new run "
                              "(without --resume) or use the original dataset", self.out_dir)
         self.model = GaussianModel.from_state_dict(sd["model"], self.device)
-        self.dstate = DensifyState(0, self.device)
-        self.dstate.load_state_dict(sd["densify"])
+        self.strategy_state = self.strategy.load_state(sd["densify"], self.model)
         self.split_gen = torch.Generator()
         self.split_gen.set_state(sd["split_gen"])
         self.view_gen = torch.Generator()
@@ -421,12 +437,12 @@ class Trainer:
             loss = loss + cfg.depth_lambda * depth_loss(depth, alpha[..., 0], gt_depth)
         if cfg.opacity_reg > 0:  # gsplat's opacity_reg: mean opacity, fewer semi-transparent layers
             loss = loss + cfg.opacity_reg * torch.sigmoid(self.model.params["opacities"]).mean()
-        loss.backward()
         s = self.step + 1
-        densifying = cfg.densify and s <= self.dcfg.refine_stop
-        if densifying and meta["means2d"].grad is not None:
-            self.dstate.accumulate(meta["means2d"].grad, meta["radii"], self.views[idx].camera.width,
-                                   self.views[idx].camera.height)
+        cam = self.views[idx].camera
+        hook_info = {**meta, "width": cam.width, "height": cam.height, "view": idx, "iters": cfg.iters,
+                     "generator": self.split_gen}
+        self.strategy.step_pre_backward(self.model, self.strategy_state, s, hook_info)
+        loss.backward()
         self.model.step()
         self.model.zero_grad()
         if self.poses is not None and s > self.cfg.pose_start * cfg.iters:  # after an optional warm-up
@@ -436,13 +452,9 @@ class Trainer:
                 # removal kept the poses from converging (8 views of a fixed scene, 1.5 deg error:
                 # 1.4 deg left after 150 passes, vs 0.04 deg when applied once per pass)
                 self.poses.remove_common_motion(self.viewmats)
-        info = {"step": s, "loss": float(loss.detach()), "psnr": psnr_from_mse(float(((img.detach() - gt) ** 2).mean())),
-                "n": len(self.model)}
-        if densifying and s > self.dcfg.refine_start and s % self.dcfg.refine_every == 0:
-            r = refine(self.model, self.dstate, self.dcfg, s, self.split_gen)
-            info.update(cloned=r.cloned, split=r.split, pruned=r.pruned, n=len(self.model))
-        if densifying and self.dcfg.reset_every and s % self.dcfg.reset_every == 0:
-            reset_opacity(self.model, 2.0 * self.dcfg.prune_opacity)
+        info = {"step": s, "loss": float(loss.detach()), "psnr": psnr_from_mse(float(((img.detach() - gt) ** 2).mean()))}
+        stats = self.strategy.step_post_backward(self.model, self.strategy_state, s, hook_info)
+        info.update(stats, n=len(self.model), densified=bool(stats))
         self.step = s
         return info
 
@@ -474,15 +486,11 @@ class Trainer:
                 log.info("no checkpoint in %s: starting from scratch", self.out_dir / CKPT_DIR)
             self._fresh_state()
         t0 = time.perf_counter()
-        torch_threads = torch.get_num_threads()
-        if self.backend == "cpu":
-            # The heavy work is in numba kernels; torch only does small element-wise ops and Adam. Its
-            # thread pool competing with numba's made steps ~1.7x slower on 2 busy cores (idle: equal).
-            torch.set_num_threads(1)
-        try:
+        # CPU backend: the heavy work is in numba kernels; torch only does small element-wise ops and
+        # Adam. Its thread pool competing with numba's made steps ~1.7x slower on 2 busy cores (idle:
+        # equal). One torch thread for the loop only; the caller's count is restored afterwards.
+        with torch_threads(1) if self.backend == "cpu" else contextlib.nullcontext():
             ema_loss, ema_psnr = self._loop(callback)
-        finally:
-            torch.set_num_threads(torch_threads)
         wall = time.perf_counter() - t0
         return self._write_outputs(wall, ema_loss, ema_psnr)
 
@@ -498,7 +506,7 @@ class Trainer:
                 info = self.train_step()
                 ema_loss = info["loss"] if math.isnan(ema_loss) else 0.9 * ema_loss + 0.1 * info["loss"]
                 ema_psnr = info["psnr"] if math.isnan(ema_psnr) else 0.9 * ema_psnr + 0.1 * info["psnr"]
-                if self.step % 10 == 0 or self.step == cfg.iters or "cloned" in info:
+                if self.step % 10 == 0 or self.step == cfg.iters or info["densified"]:
                     self.history.append({"step": self.step, "loss": round(ema_loss, 6),
                                          "psnr": round(ema_psnr, 3), "n": info["n"]})
                     bar.set_postfix(loss=f"{ema_loss:.4f}", psnr=f"{ema_psnr:.2f}", gaussians=info["n"],
@@ -523,7 +531,8 @@ class Trainer:
             write_json(self.out_dir / "refined_poses.json", {"convention": "T_world_cam, OpenCV", "poses": refined})
         plot_history(self.history, self.out_dir / "train_curves.png")
         write_json(self.out_dir / "train.json", {
-            "dataset": str(self.dataset.root), "config": self.cfg.to_dict(), "backend": self.backend,
+            "dataset": str(self.dataset.root), "config": self.cfg.to_dict(), "strategy": self.strategy.describe(),
+            "backend": self.backend,
             "init_method": self.init_method, "steps": self.step, "gaussians": len(g), "wall_s": round(wall, 3),
             "train_loss": loss, "train_psnr": psnr, "scene_scale": self.scene_scale,
             "views": [{"name": v.name, "width": v.camera.width, "height": v.camera.height} for v in self.views],
@@ -532,6 +541,8 @@ class Trainer:
 
 
 def train(dataset: Dataset, out_dir: str | Path, cfg: TrainConfig | None = None, resume: bool = False,
-          callback: Callable[[dict], None] | None = None, on_mismatch: str = "error") -> TrainResult:
-    """Train 3D Gaussians on `dataset`'s training frames; writes OUT/point_cloud.ply (see module doc)."""
-    return Trainer(dataset, out_dir, cfg).run(resume=resume, callback=callback, on_mismatch=on_mismatch)
+          callback: Callable[[dict], None] | None = None, on_mismatch: str = "error",
+          strategy: Strategy | None = None) -> TrainResult:
+    """Train 3D Gaussians on `dataset`'s training frames; writes OUT/point_cloud.ply (see module doc).
+    strategy: densification (`splattwin.splat.strategy`; default from cfg, see `Trainer`)."""
+    return Trainer(dataset, out_dir, cfg, strategy).run(resume=resume, callback=callback, on_mismatch=on_mismatch)

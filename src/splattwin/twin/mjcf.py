@@ -22,6 +22,7 @@ import numpy as np
 
 from splattwin import io
 from splattwin.errors import InputError
+from splattwin.transforms import mujoco_quat_wxyz_from_matrix
 from splattwin.twin.manifest import Manifest, ObjectEntry
 
 log = logging.getLogger(__name__)
@@ -33,15 +34,6 @@ SOLIMP = (0.95, 0.99, 0.001, 0.5, 2.0)
 DEFAULT_DENSITY = 400.0            # kg/m^3 when the manifest has no mass (light packaging / wood)
 TABLE_RGBA = (0.62, 0.52, 0.40, 1.0)
 FLOOR_DEPTH = 0.75                 # m below the table top: a floor to catch dropped objects
-
-
-def mat_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
-    """[3,3] rotation -> [4] unit quaternion wxyz (MuJoCo convention)."""
-    import mujoco
-
-    q = np.zeros(4)
-    mujoco.mju_mat2Quat(q, np.ascontiguousarray(R, dtype=np.float64).reshape(9))
-    return q
 
 
 def object_parts(obj: ObjectEntry, twin_dir: Path) -> list[Path]:
@@ -109,7 +101,7 @@ def add_twin(spec, manifest: Manifest, twin_dir: str | Path, objects: list[str] 
             raise InputError(f"object {obj.name!r} has zero-volume collision geometry", parts[0])
         mass = float(obj.mass) if obj.mass else DEFAULT_DENSITY * total
         density = mass / total
-        body = wb.add_body(name=obj.name, pos=T[:3, 3].tolist(), quat=mat_to_quat_wxyz(T[:3, :3]).tolist())
+        body = wb.add_body(name=obj.name, pos=T[:3, 3].tolist(), quat=mujoco_quat_wxyz_from_matrix(T[:3, :3]).tolist())
         body.add_freejoint(name=f"{obj.name}/free")
         rgba = _colour(obj)
         for k, p in enumerate(parts):

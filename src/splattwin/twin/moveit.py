@@ -22,6 +22,8 @@ import trimesh
 from splattwin import io
 from splattwin.meshio import load_mesh
 from splattwin.errors import InputError
+from splattwin.transforms import (pose_from_pos_quat_wxyz, quat_wxyz_from_matrix, quat_wxyz_from_xyzw,
+                                  quat_xyzw_from_wxyz)
 from splattwin.twin.manifest import Manifest
 
 ADD = 0
@@ -46,18 +48,12 @@ class SceneObject:
 
 
 def _quat_xyzw(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(R).as_quat()
+    """File boundary: MoveIt scene files and messages order quaternions xyzw."""
+    return quat_xyzw_from_wxyz(quat_wxyz_from_matrix(R, canonical=False))
 
 
 def _pose_T(xyz, q_xyzw) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat(q_xyzw).as_matrix()
-    T[:3, 3] = xyz
-    return T
+    return pose_from_pos_quat_wxyz(np.asarray(xyz, dtype=float), quat_wxyz_from_xyzw(q_xyzw))
 
 
 def scene_objects(twin_dir: Path, manifest: Manifest, boxes: bool = False) -> list[SceneObject]:

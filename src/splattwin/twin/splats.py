@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from splattwin.splat.gaussians import Gaussians
+from splattwin.transforms import quat_mul_wxyz, quat_wxyz_from_matrix
 
 _C1 = 0.4886025119029199
 _C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
@@ -59,29 +60,13 @@ def sh_rotation(R: np.ndarray, degree: int) -> np.ndarray:
     return D
 
 
-def _quat_from_matrix(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(R).as_quat()  # xyzw
-    return np.array([q[3], q[0], q[1], q[2]])
-
-
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a * b, wxyz; a [4], b [N,4]."""
-    w1, x1, y1, z1 = a
-    w2, x2, y2, z2 = b.T
-    return np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=1)
-
-
 def transform_gaussians(g: Gaussians, T_new_old: np.ndarray) -> Gaussians:
     """Gaussians expressed in a new frame: means, orientations and SH colour rotated, scales kept.
 
     T_new_old [4,4] rigid, maps old-frame points to the new frame."""
     R, t = T_new_old[:3, :3], T_new_old[:3, 3]
     means = g.means @ R.T + t
-    quats = _quat_mul(_quat_from_matrix(R), g.quats)
-    quats /= np.linalg.norm(quats, axis=1, keepdims=True)
+    quats = quat_mul_wxyz(quat_wxyz_from_matrix(R, canonical=False), g.quats)
     # colour seen along d_new equals old colour along R^T d_new  ->  f_new(d) = f_old(R^T d)
     D = sh_rotation(R.T, g.sh_degree)
     sh = np.einsum("kj,njc->nkc", D, g.sh)

@@ -12,34 +12,14 @@ gradients are cast back to the input dtype.
 
 from __future__ import annotations
 
-import os
+# Thread count and OpenMP wait policy (passive: numba's workers must not spin between kernels) are set
+# by `splattwin.runtime.configure()`, not at import.
+import numpy as np
+import torch
 
-# numba's OpenMP threads otherwise spin-wait between parallel regions; on a shared or oversubscribed
-# machine the spinning steals the time slices the working threads need (measured: 2-3x slower wall time
-# under load). Passive waiting costs microseconds per kernel on an idle machine. Must be set before
-# numba loads libgomp (its first parallel call); a user's own setting wins.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
-import numba  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from splattwin.splat._cpu import kernels as K_  # noqa: E402
+from splattwin.splat._cpu import kernels as K_
 
 TILE = K_.TILE
-
-
-def _set_threads() -> int:
-    try:
-        n = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - non-Linux
-        n = os.cpu_count() or 1
-    n = max(1, min(n, numba.config.NUMBA_NUM_THREADS))
-    numba.set_num_threads(n)
-    return n
-
-
-NUM_THREADS = _set_threads()
 
 
 def _np32(t: torch.Tensor) -> np.ndarray:
