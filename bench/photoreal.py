@@ -66,7 +66,7 @@ def gt_renderer(scene_dir: Path, motions: dict[str, np.ndarray]):
     """The embedded scene's ray caster with each object moved by motions[name] (T_new_old, world)."""
     import trimesh
 
-    from splattwin.scene.generate import build_scene, load_scene
+    from splattwin.scene.generator import build_scene, load_scene
     from splattwin.scene.options import SceneOptions
     from splattwin.scene.render import SceneRenderer, Surface
 

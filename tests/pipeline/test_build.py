@@ -19,7 +19,8 @@ from splattwin.pipeline.build import BuildOptions, build
 from splattwin.report.screenshot import screenshot
 
 SCENE = {"seed": 0, "width": 96, "height": 72, "views": 6, "heldout": 2}
-FAST = dict(iters=80, max_gaussians=8000, checkpoint_every=20, progress=False, render_frames=False)
+FAST = {"splat": {"iters": 80, "max_gaussians": 8000, "checkpoint_every": 20}, "robot": {"render": False}}
+OPTIONS = {"scene": SCENE, "poses": {"method": "known"}, **FAST}
 
 
 def _digest(twin: Path) -> dict:
@@ -37,7 +38,7 @@ def _digest(twin: Path) -> dict:
 @pytest.fixture(scope="module")
 def built(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("e2e") / "twin"
-    build(out, BuildOptions(scene=SCENE, poses="known", **FAST))
+    build(out, BuildOptions.from_dict(OPTIONS), progress=False)
     return out
 
 
@@ -63,7 +64,7 @@ def test_build_writes_every_stage(built):
 
 def test_rerun_skips_everything(built, capsys):
     t0 = time.perf_counter()
-    ctx = build(built, BuildOptions(scene=SCENE, poses="known", **FAST))
+    ctx = build(built, BuildOptions.from_dict(OPTIONS), progress=False)
     assert time.perf_counter() - t0 < 5.0
     assert set(ctx.results) == {"scene", "poses", "splats", "semantics", "twin", "robot", "report"}
 
@@ -98,7 +99,7 @@ def test_viewer_in_chromium(built, tmp_path):
 def test_killed_build_resumes_to_the_same_twin(built, tmp_path):
     out = tmp_path / "twin"
     code = ("import sys; from splattwin.pipeline.build import BuildOptions, build; "
-            f"build(sys.argv[1], BuildOptions(scene={SCENE!r}, poses='known', **{FAST!r}))")
+            f"build(sys.argv[1], BuildOptions.from_dict({OPTIONS!r}), progress=False)")
     proc = subprocess.Popen([sys.executable, "-c", code, str(out)], start_new_session=True)
     ckpt_dir = out / "splat" / "checkpoints"
     deadline = time.time() + 600
@@ -111,5 +112,5 @@ def test_killed_build_resumes_to_the_same_twin(built, tmp_path):
     proc.wait()
     state = json.loads((out / "pipeline.json").read_text())
     assert "splats" not in state  # killed inside training
-    build(out, BuildOptions(scene=SCENE, poses="known", **FAST))
+    build(out, BuildOptions.from_dict(OPTIONS), progress=False)
     assert _digest(out) == _digest(built)

@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from splattwin.errors import InputError
+from splattwin.geometry.options import GeometryOptions
+from splattwin.options import add_options, dest, from_args
 from splattwin.names import check_unique, object_name
 
 log = logging.getLogger(__name__)
@@ -35,24 +37,21 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _run_locked(args: argparse.Namespace) -> int:
-    from splattwin.geometry.options import GeometryOptions
     from splattwin.splat.gaussians import Gaussians
-    from splattwin.twin.build import build_twin, check_formats, default_formats
-    from splattwin.twin.cli import _formats
+    from splattwin.twin.build import build_twin, check_formats
     from splattwin.twin.manifest import FRAME_SOURCES, Frame
+    from splattwin.twin.options import FORMATS, ExportOptions
 
     ply = Path(args.splat)
     if args.frame not in FRAME_SOURCES:
         raise InputError(f"unknown frame source {args.frame!r} (choose from {', '.join(FRAME_SOURCES)})", "--frame")
     frame = Frame(source=args.frame, scaled=args.frame != "unscaled")
-    if args.formats is None:
-        formats = default_formats(frame)
-        skipped = [f for f in _formats("mjcf,urdf,moveit,gltf") if f not in formats]
-        if skipped:
-            print(f"note: {', '.join(skipped)} export skipped: the twin is unscaled (--frame {args.frame}) and "
-                  f"physics needs metres; give --frame with a metric source to get it")
-    else:
-        formats = _formats(args.formats) if args.formats else ()
+    exports = from_args(ExportOptions, args)
+    formats = exports.resolve(frame.scaled)
+    skipped = [f for f in FORMATS if f not in formats]
+    if exports.formats is None and skipped:
+        print(f"note: {', '.join(skipped)} export skipped: the twin is unscaled (--frame {args.frame}) and "
+              f"physics needs metres; give --frame with a metric source to get it")
     check_formats(frame, formats, "--formats")
     if not ply.is_file():
         raise InputError("no such splat PLY", ply)
@@ -83,10 +82,7 @@ def _run_locked(args: argparse.Namespace) -> int:
         objects = [(_parse_object(args.object[0])[0] if args.object else
                     object_name(ply.stem, ply, "object name (from the PLY file name; pass --object NAME=1)"), 1, "")]
     check_unique([o[0] for o in objects], "--object")
-    opts = GeometryOptions(min_opacity=args.min_opacity, max_scale=args.max_scale, dbscan_eps=args.eps,
-                           dbscan_min_samples=args.min_samples, alpha=args.alpha, densify=args.densify,
-                           use_alpha=not args.voxel_remesh,
-                           collision_faces=args.faces, density=args.density)
+    opts = from_args(GeometryOptions, args)
     m = build_twin(g, labels, objects, args.out, frame, cameras_path=args.cameras, options=opts,
                    formats=formats, progress=True)
     for o in m.objects:
@@ -126,6 +122,8 @@ def evaluate(g, labels, objects, scene_dir: Path, opts, out_dir: Path) -> dict:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add this stage's sub-commands to the `splattwin` parser."""
+    from splattwin.twin.options import ExportOptions
+
     p = sub.add_parser("geometry", help="clean a labelled splat and build collision geometry + twin folder",
                        description="Attribute filtering, DBSCAN connectivity pruning, alpha-shape meshing, convex "
                                    "decomposition and mass per object; table plane + obstacles for the background "
@@ -137,19 +135,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="twin folder to write")
     p.add_argument("--cameras", help="cameras file to reference in the manifest (transforms.json)")
     p.add_argument("--frame", default="unscaled", help="twin frame source recorded in the manifest")
-    p.add_argument("--formats", default=None,
-                   help="exports to write, comma-separated from mjcf,urdf,moveit,gltf ('' for none; default: all, "
-                        "less mjcf for an unscaled twin)")
+    add_options(p, ExportOptions)
     p.add_argument("--gt-scene", help="generated scene folder: print + save the raw/attribute/cluster/full "
                                       "fidelity table against its GT meshes")
-    p.add_argument("--min-opacity", type=float, default=0.1)
-    p.add_argument("--max-scale", type=float, default=None, help="m; default 1.5%% of the scene size")
-    p.add_argument("--eps", type=float, default=0.02, help="DBSCAN eps (m)")
-    p.add_argument("--min-samples", type=int, default=10, help="DBSCAN min_samples")
-    p.add_argument("--alpha", type=float, default=None, help="alpha-shape radius (m); default from point spacing")
-    p.add_argument("--no-densify", dest="densify", action="store_false",
-                   help="mesh the Gaussian centres only (default: each splat's half-opaque ellipsoid)")
-    p.add_argument("--voxel-remesh", action="store_true", help="marching cubes instead of alpha shapes (faster)")
-    p.add_argument("--faces", type=int, default=1500, help="collision mesh face budget")
-    p.add_argument("--density", type=float, default=500.0, help="kg/m^3 for mass = volume x density")
+    add_options(p, GeometryOptions)
+    p.add_argument("--voxel-remesh", dest=dest("use_alpha"), action="store_false", default=argparse.SUPPRESS,
+                   help="= --no-use-alpha: marching cubes instead of alpha shapes (faster)")
     p.set_defaults(func=_run)

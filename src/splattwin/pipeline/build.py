@@ -25,55 +25,18 @@ before hours of pose estimation and training, naming the file.
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from splattwin import io
 from splattwin.errors import InputError
+from splattwin.options import to_dict
+from splattwin.pipeline.options import STAGES, BuildOptions  # noqa: F401 - STAGES re-exported
 from splattwin.pipeline.runner import Context, Stage, compute_keys, run_stages
 
 log = logging.getLogger(__name__)
-
-STAGES = ("scene", "poses", "splats", "semantics", "twin", "robot", "report")
-
-
-@dataclass
-class BuildOptions:
-    """Everything a build depends on (recorded in the twin's manifest and used for stage hashing).
-
-    input: dataset path (any layout `splattwin.capture.load_dataset` reads), or None with `scene` set.
-    scene: options of the embedded scene to generate as input (the demo), as a dict for SceneOptions.
-    poses: "auto" | "known" | "sfm" | "robot"; robot_poses / hand_eye: files; marker_size (m).
-    masks: folder/file of 2D masks; prompt: open-vocabulary text ("blue box. yellow cube").
-    iters / resolution / device / seed / max_gaussians: splat training.
-    kappa / fusion_iters: semantic fusion. task: robot task YAML ("default" for the paper's task, None: skip).
-    """
-
-    input: str | None = None
-    scene: dict | None = None
-    poses: str = "auto"
-    robot_poses: str | None = None
-    hand_eye: str | None = None
-    marker_size: float | None = None
-    masks: str | None = None
-    prompt: str | None = None
-    iters: int = 3000
-    resolution: int = 1
-    device: str = "auto"
-    seed: int = 0
-    max_gaussians: int = 28_000
-    checkpoint_every: int = 500
-    kappa: float = 1.5
-    fusion_iters: int = 3
-    task: str | None = None
-    trials: int = 0
-    sigma: float = 0.005
-    render_frames: bool = True
-    progress: bool = True
-    extra: dict[str, Any] = field(default_factory=dict)
 
 
 # -- stages ------------------------------------------------------------------------------------------
@@ -89,20 +52,19 @@ def _load_input(ctx: Context, validate: bool = True):
 
 
 def _scene_stage(ctx: Context) -> dict:
-    from splattwin.scene.generate import generate
-    from splattwin.scene.options import SceneOptions
+    from splattwin.scene.generator import generate
 
-    opts = ctx.options["scene"]
+    opts = ctx.config.scene
     if opts is None:
         return {}
-    generate(ctx.path("scene"), SceneOptions(**opts), progress=ctx.options["progress"])
+    generate(ctx.path("scene"), opts, progress=ctx.progress)
     return {"dir": "@scene/scene.json"}
 
 
 def _input_path(ctx: Context) -> Path:
-    if ctx.options["scene"] is not None:
+    if ctx.config.scene is not None:
         return ctx.path("scene")
-    return Path(ctx.options["input"])
+    return Path(ctx.config.input)
 
 
 def _scene_json(ctx: Context) -> Path:
@@ -116,9 +78,9 @@ def _poses_inputs(ctx: Context) -> dict:
     prior, and the robot pose files: hashed by content for the stage key."""
     from splattwin.capture.dataset import VIDEO_SUFFIXES
 
-    o = ctx.options
+    o = ctx.config.poses
     src = _input_path(ctx)
-    out: dict = {"robot_poses": o["robot_poses"], "hand_eye": o["hand_eye"]}
+    out: dict = {"robot_poses": o.robot_poses, "hand_eye": o.hand_eye}
     if src.is_file() and src.suffix in VIDEO_SUFFIXES:
         out["capture"] = src
         return out
@@ -141,14 +103,10 @@ def _poses_inputs(ctx: Context) -> dict:
 
 
 def _poses_stage(ctx: Context) -> dict:
-    from splattwin.poses.estimate import PoseOptions, estimate_poses
+    from splattwin.poses.estimate import estimate_poses
 
-    o = ctx.options
     ds = _load_input(ctx)
-    popts = PoseOptions(method=o["poses"], robot_poses=Path(o["robot_poses"]) if o["robot_poses"] else None,
-                        hand_eye=Path(o["hand_eye"]) if o["hand_eye"] else None, marker_size=o["marker_size"],
-                        work_dir=ctx.path("poses/sfm"), progress=o["progress"], seed=o["seed"])
-    result = estimate_poses(ds, popts)
+    result = estimate_poses(ds, replace(ctx.config.poses, work_dir=ctx.path("poses/sfm"), progress=ctx.progress))
     result.save(ctx.path("poses"))
     return {"transforms": "@poses/transforms.json", "frame": "@poses/frame.json",
             "registered": result.stats.get("registered"), "total": result.stats.get("total")}
@@ -157,17 +115,14 @@ def _poses_stage(ctx: Context) -> dict:
 def _splat_stage(ctx: Context) -> dict:
     from splattwin.capture import load_dataset
     from splattwin.splat.eval import evaluate
-    from splattwin.splat.trainer import TrainConfig, train
+    from splattwin.splat.trainer import train
 
-    o = ctx.options
     ds = load_dataset(ctx.path("poses/transforms.json"))
-    cfg = TrainConfig(iters=o["iters"], resolution=o["resolution"], device=o["device"], seed=o["seed"],
-                      max_gaussians=o["max_gaussians"], checkpoint_every=o["checkpoint_every"],
-                      progress=o["progress"])
+    cfg = replace(ctx.config.splat, progress=ctx.progress)
     # resume=True: a killed run continues from its last checkpoint inside this stage. A checkpoint of
     # another run (other options or data: this stage's key changed) is not resumed: training starts over.
     res = train(ds, ctx.path("splat"), cfg, resume=True, on_mismatch="restart")
-    ev = evaluate(res.ply_path, ds, out_dir=ctx.path("splat/eval"), progress=o["progress"])
+    ev = evaluate(res.ply_path, ds, out_dir=ctx.path("splat/eval"), progress=ctx.progress)
     return {"ply": "@splat/point_cloud.ply", "psnr": ev.mean_psnr, "ssim": ev.mean_ssim, "split": ev.split,
             "gaussians": len(res.gaussians), "train_s": res.wall_s}
 
@@ -178,17 +133,17 @@ def _load_masks(ctx: Context, image_sizes: dict | None = None):
     from splattwin.capture import load_dataset
     from splattwin.semantics.masks import load_masks, scene_masks, scene_objects
 
-    o = ctx.options
+    o = ctx.config.semantics
     scene_json = _scene_json(ctx)
     objs = scene_objects(scene_json.parent) if scene_json.is_file() else None
-    if o["masks"]:
-        return load_masks(o["masks"], objects=objs, image_sizes=image_sizes), Path(o["masks"])
-    if o["prompt"]:
+    if o.masks:
+        return load_masks(o.masks, objects=objs, image_sizes=image_sizes), Path(o.masks)
+    if o.prompt:
         from splattwin.semantics.segment import segment_images
 
         ds = load_dataset(ctx.path("poses/transforms.json"))
         out = ctx.path("semantics/masks2d")
-        return segment_images({f.name: f.image_path for f in ds.train()}, o["prompt"], out_dir=out), out
+        return segment_images({f.name: f.image_path for f in ds.train()}, o.prompt, o.segment, out_dir=out), out
     if scene_json.is_file():  # the embedded scene: its simulated open-vocabulary segmenter
         ms = scene_masks(scene_json.parent, kind="noisy")
         # Only training views are fused: held-out views stay unseen for the metrics.
@@ -201,22 +156,22 @@ def _load_masks(ctx: Context, image_sizes: dict | None = None):
 
 
 def _semantics_inputs(ctx: Context) -> dict:
-    o = ctx.options
+    o = ctx.config.semantics
     scene_json = _scene_json(ctx)
-    out: dict = {"masks": o["masks"], "scene.json": scene_json if scene_json.is_file() else None}
-    if not o["masks"] and not o["prompt"] and scene_json.is_file():
+    out: dict = {"masks": o.masks, "scene.json": scene_json if scene_json.is_file() else None}
+    if not o.masks and not o.prompt and scene_json.is_file():
         out["scene_masks"] = scene_json.parent / "masks" / "noisy"
     return out
 
 
 def _semantics_stage(ctx: Context) -> dict:
-    from splattwin.semantics.fusion import FusionOptions, check_views
+    from splattwin.semantics.fusion import check_views
     from splattwin.semantics.lift import fuse_to_dir, views_for
 
     from splattwin.capture import load_dataset
     from splattwin.splat.gaussians import Gaussians
 
-    o = ctx.options
+    o = ctx.config.semantics
     ds = load_dataset(ctx.path("poses/transforms.json"))
     ms, masks_from = _load_masks(ctx, {f.name: (f.camera.height, f.camera.width) for f in ds.frames})
     # checked here with the masks' path, so that a size or empty-mask error names it
@@ -228,9 +183,8 @@ def _semantics_stage(ctx: Context) -> dict:
         warnings.simplefilter("ignore", MaskWarning)
         check_views(views_for(ds.train() or ds.frames, ms, masks_from, all_frames=ds.frames), ms, masks_from)
     g = Gaussians.load_ply(ctx.path("splat/point_cloud.ply"))
-    res = fuse_to_dir(g, ds, ms,
-                      ctx.path("semantics"), FusionOptions(kappa=o["kappa"], iters=o["fusion_iters"]),
-                      progress=o["progress"])
+    res = fuse_to_dir(g, ds, ms, ctx.path("semantics"), o.fusion, renderer=o.renderer, label_maps=o.maps,
+                      naive=o.naive, progress=ctx.progress, maps_renderer=o.maps_renderer)
     prompts = ms.prompts or {}
     objects = [[res.names[k], int(k), prompts.get(k, res.names[k].replace("_", " "))] for k in res.label_ids]
     io.write_json(ctx.path("semantics/objects.json"), objects)
@@ -274,13 +228,14 @@ def _twin_stage(ctx: Context) -> dict:
     from splattwin.splat.gaussians import Gaussians
     from splattwin.twin.build import build_twin
 
-    o = ctx.options
+    o = ctx.config
     g = Gaussians.load_ply(ctx.path("splat/point_cloud.ply"))
     labels = np.load(ctx.path("semantics/labels.npy"))
     objects = [tuple(x) for x in io.read_json(ctx.path("semantics/objects.json"))]
     frame = load_frame(ctx.path("poses/frame.json"))
     man = build_twin(g, labels, objects, ctx.out, frame=frame, cameras_path="poses/transforms.json",
-                     progress=o["progress"])
+                     options=o.geometry, formats=o.export.resolve(frame.scaled, "export.formats"),
+                     progress=ctx.progress)
     # Scene facts the robot task needs (goal regions) travel in the manifest's config.
     scene_json = _scene_json(ctx)
     if scene_json.is_file():
@@ -288,8 +243,7 @@ def _twin_stage(ctx: Context) -> dict:
         if scene.get("target_frame"):
             man.config["target_frame"] = scene["target_frame"]
     # references to the inputs (absolute paths), recorded but never needed by report/view/plan/export
-    man.config["build"] = {k: (str(Path(v).resolve()) if k in _PATH_OPTIONS and v and v != "default" else v)
-                           for k, v in o.items() if k != "progress"}
+    man.config["build"] = resolved_config(o)
     man.splats = man.splats or "splat/point_cloud.ply"
     man.labels = man.labels or "semantics/labels.npy"
     man.save(ctx.out)
@@ -319,7 +273,22 @@ def _geometry_fidelity(ctx: Context, scene_dir: Path) -> None:
     io.write_json(ctx.path("geometry_metrics.json"), rows)
 
 
-_PATH_OPTIONS = ("input", "masks", "robot_poses", "hand_eye", "task")
+def resolved_config(options: BuildOptions) -> dict:
+    """The options as recorded in twin.json: every option, path options made absolute (references to the
+    inputs, never needed by report/view/plan/export)."""
+    from splattwin.options import specs
+
+    def absolute(obj):
+        kw = {}
+        for spec in specs(type(obj)):
+            v = getattr(obj, spec.name)
+            if spec.nested is not None and v is not None:
+                kw[spec.name] = absolute(v)
+            elif spec.meta.get("path") and v not in (None, "", "default"):
+                kw[spec.name] = type(v)(Path(v).resolve()) if isinstance(v, Path) else str(Path(v).resolve())
+        return replace(obj, **kw)
+
+    return to_dict(absolute(options))
 
 
 def _twin_inputs(ctx: Context) -> dict:
@@ -330,13 +299,13 @@ def _twin_inputs(ctx: Context) -> dict:
 def _robot_inputs(ctx: Context) -> dict:
     from splattwin.robot.task import default_task_path
 
-    task = ctx.options["task"]
+    task = ctx.config.robot.task
     return {"task": None if not task else (default_task_path() if task == "default" else Path(task))}
 
 
 def _robot_stage(ctx: Context) -> dict:
-    o = ctx.options
-    if not o["task"]:
+    o = ctx.config.robot
+    if not o.task:
         return {}
     from splattwin.robot.render import prefer_egl
 
@@ -345,17 +314,18 @@ def _robot_stage(ctx: Context) -> dict:
     from splattwin.robot.trials import TrialSpec, run_once, run_trials
 
     out = ctx.path("robot")
-    spec = TrialSpec(twin_dir=str(ctx.out), task_path=None if o["task"] == "default" else o["task"], seed=o["seed"])
+    spec = TrialSpec.from_options(ctx.out, o)
     try:
-        result, note, frames = run_once(spec, frame_dir=out / "frames" if o["render_frames"] else None,
+        result, note, frames = run_once(spec, frame_dir=out / "frames" if o.render else None,
                                         keep_trajectories=True)
     except InputError as e:
         # The task cannot run on this twin (e.g. an object whose geometry failed): record why, so the
         # report still gets written and says it, and let the command exit 2 at the end.
-        io.write_json(out / "results.json", {"error": str(e), "task": o["task"]})
+        io.write_json(out / "results.json", {"error": str(e), "task": o.task})
         return {"results": "@robot/results.json", "success": False, "error": str(e)}
     # trials land in robot/trials/<i>.json: a killed build resumes them
-    trials = run_trials(spec, o["trials"], o["sigma"], out_dir=out) if o["trials"] > 0 else None
+    trials = run_trials(spec, o.trials, o.sigma, workers=o.workers, out_dir=out, resume=o.resume,
+                        sigma_yaw=o.sigma_yaw) if o.trials > 0 else None
     # robot/rollout.npz and robot/playback.npz (the viewer's track) are written by the robot package
     write_outputs(out, spec, result, trials, render_note=note or "", frames=frames, wall_s=result.wall_s)
     return {"results": "@robot/results.json", "success": bool(result.success)}
@@ -369,21 +339,21 @@ def _report_stage(ctx: Context) -> dict:
 
 
 def stages() -> list[Stage]:
-    """The pipeline. Path options are not hashed as names but by content (each stage's `inputs`); each
-    stage's `code` lists the packages whose source is part of its key (see `splattwin.pipeline.runner`)."""
-    data = ("scene", "poses", "marker_size", "seed")
+    """The pipeline. Each stage's key hashes its own sub-config of BuildOptions (`option_keys`), less the
+    path options, which are hashed by content instead (each stage's `inputs`); each stage's `code` lists
+    the packages whose source is part of its key (see `splattwin.pipeline.runner`)."""
     return [
         Stage("scene", _scene_stage, option_keys=("scene",), code=("splattwin.scene",)),
-        Stage("poses", _poses_stage, option_keys=data, deps=("scene",), inputs=_poses_inputs,
+        Stage("poses", _poses_stage, option_keys=("scene", "poses"), deps=("scene",), inputs=_poses_inputs,
               code=("splattwin.capture", "splattwin.poses")),
-        Stage("splats", _splat_stage, option_keys=("iters", "resolution", "device", "seed", "max_gaussians"),
-              deps=("poses",), code=("splattwin.splat", "splattwin.capture")),
-        Stage("semantics", _semantics_stage, option_keys=("prompt", "kappa", "fusion_iters"), deps=("splats",),
+        Stage("splats", _splat_stage, option_keys=("splat",), deps=("poses",),
+              code=("splattwin.splat", "splattwin.capture")),
+        Stage("semantics", _semantics_stage, option_keys=("semantics",), deps=("splats",),
               inputs=_semantics_inputs, code=("splattwin.semantics", "splattwin.capture")),
-        Stage("twin", _twin_stage, option_keys=(), deps=("semantics",), inputs=_twin_inputs,
+        Stage("twin", _twin_stage, option_keys=("geometry", "export"), deps=("semantics",), inputs=_twin_inputs,
               code=("splattwin.geometry", "splattwin.twin", "splattwin.meshio")),
-        Stage("robot", _robot_stage, option_keys=("trials", "sigma", "seed", "render_frames"), deps=("twin",),
-              inputs=_robot_inputs, code=("splattwin.robot", "splattwin.twin", "splattwin.viewer")),
+        Stage("robot", _robot_stage, option_keys=("robot",), deps=("twin",),
+              inputs=_robot_inputs, code=("splattwin.robot", "splattwin.twin")),
         # The report reads every stage's outputs; its key changes whenever any of them re-ran.
         Stage("report", _report_stage, option_keys=(), deps=("poses", "splats", "semantics", "twin", "robot"),
               code=("splattwin.report", "splattwin.viewer")),
@@ -392,10 +362,8 @@ def stages() -> list[Stage]:
 
 def preflight(ctx: Context) -> None:
     """Checks of the inputs that need no earlier stage, before any runs (see module docstring)."""
-    o = ctx.options
-    if o["input"] is not None and o["scene"] is None and o["masks"]:
-        from splattwin.semantics.masks import scene_objects
-
+    o = ctx.config
+    if o.input is not None and o.scene is None and o.semantics.masks:
         ds = _load_input(ctx)
         sizes = {f.name: (f.camera.height, f.camera.width) for f in ds.frames}
         ms, where = _load_masks(ctx, sizes)
@@ -404,34 +372,49 @@ def preflight(ctx: Context) -> None:
         if not known:
             raise InputError(f"no mask view matches an image of the input (masks: {', '.join(ms.views[:5])}...; "
                              f"images: {', '.join(sorted(sizes)[:5])}...)", where)
-    if o["task"] and o["task"] != "default":
+    if o.robot.task and o.robot.task != "default":
         from splattwin.robot.task import load_task
 
-        load_task(o["task"])  # the file parses as a task (bounded YAML); checked against the twin later
+        load_task(o.robot.task)  # the file parses as a task (bounded YAML); checked against the twin later
+
+
+def _context(out: str | Path, options: BuildOptions, progress: bool = True) -> Context:
+    return Context(out=Path(out), options=to_dict(options, "key"), config=options, progress=progress)
 
 
 def stage_keys(out: str | Path, options: BuildOptions) -> dict[str, str]:
     """{stage: key} for `options` and the inputs as they are now (nothing runs, nothing is written)."""
-    return compute_keys(stages(), Context(out=Path(out), options=asdict(options)))
+    return compute_keys(stages(), _context(out, options))
 
 
-def build(out: str | Path, options: BuildOptions, from_stage: str | None = None, until: str | None = None) -> Context:
-    """Run (or resume) the pipeline into the twin folder `out`. Returns the run context."""
+def check_inputs(options: BuildOptions) -> None:
+    """InputError, before anything runs, for an input or an option's file that does not exist."""
+    if options.input is None and options.scene is None:
+        raise InputError("nothing to build: give an input dataset")
+    if options.input is not None and options.scene is not None:
+        raise InputError("give either an input dataset or scene options (the embedded scene), not both")
+    if options.input is not None and not Path(options.input).exists():
+        raise InputError("input does not exist", options.input)
+    for flag, v in (("--masks", options.semantics.masks), ("--robot-poses", options.poses.robot_poses),
+                    ("--hand-eye", options.poses.hand_eye), ("--robot.robot-mjcf", options.robot.robot_mjcf)):
+        if v is not None and not Path(v).exists():
+            raise InputError(f"{flag} does not exist", v)
+    task = options.robot.task
+    if task not in (None, "default") and not Path(task).is_file():
+        raise InputError("task file not found", task)
+    options.robot.validate()
+
+
+def build(out: str | Path, options: BuildOptions, from_stage: str | None = None, until: str | None = None,
+          progress: bool = True) -> Context:
+    """Run (or resume) the pipeline into the twin folder `out`. Returns the run context.
+    progress: progress bars of every stage (not an option of the result: no stage key depends on it)."""
     from rich.console import Console
 
     from splattwin.lock import output_lock
 
     out = Path(out)
-    if options.input is None and options.scene is None:
-        raise InputError("nothing to build: give an input dataset")
-    if options.input is not None and not Path(options.input).exists():
-        raise InputError("input does not exist", options.input)
-    for k in ("masks", "robot_poses", "hand_eye"):
-        v = getattr(options, k)
-        if v is not None and not Path(v).exists():
-            raise InputError(f"--{k.replace('_', '-')} does not exist", v)
-    if options.task not in (None, "default") and not Path(options.task).is_file():
-        raise InputError("task file not found", options.task)
+    check_inputs(options)
     con = Console(stderr=True)
 
     def on_stage(name: str, status: str) -> None:
@@ -440,7 +423,7 @@ def build(out: str | Path, options: BuildOptions, from_stage: str | None = None,
         elif status == "run":
             con.print(f"[bold cyan]▶ {name}[/]")
 
-    ctx = Context(out=out, options=asdict(options))
+    ctx = _context(out, options, progress)
     with output_lock(out):
         preflight(ctx)
         return run_stages(stages(), ctx, from_stage=from_stage, until=until, on_stage=on_stage)

@@ -29,6 +29,7 @@ from splattwin.capture.camera import Camera
 from splattwin.capture.dataset import Dataset, Frame as DataFrame, load_image
 from splattwin.errors import InputError
 from splattwin.poses import align
+from splattwin.poses.options import PoseOptions
 from splattwin.poses.table import KnownLength
 from splattwin.twin.manifest import Frame
 
@@ -37,40 +38,6 @@ log = logging.getLogger(__name__)
 FRAME_FILE = "frame.json"
 REPORT_FILE = "poses_report.json"
 DEPTH_PLY = "points3D_depth.ply"
-
-
-@dataclass
-class PoseOptions:
-    """Options of `estimate_poses`.
-
-    method: "auto" | "sfm" | "known" | "robot".
-    robot_poses / hand_eye: files (see `splattwin.poses.robot`); hand_eye may also be inline in robot_poses.
-    marker_size: ArUco side in metres (enables the marker frame); marker_dict, marker_id: which marker.
-    known_length: scale for the table-plane frame (see `splattwin.poses.table.KnownLength`).
-    intrinsics: None = estimate (SfM) / take the dataset's; "dataset" = the dataset's K, kept fixed;
-      (fx, fy, cx, cy) pixels = known, kept fixed.
-    min_registered: SfM must register at least this many images (None: all but 3, at least 3).
-    work_dir: SfM scratch folder (database, model) for resuming; None = a temp folder.
-    depth_points: also back-project depth images (RGB-D) into a point cloud when the frame is metric.
-    """
-
-    method: str = "auto"
-    robot_poses: Path | None = None
-    hand_eye: Path | None = None
-    marker_size: float | None = None
-    marker_dict: str = "DICT_4X4_50"
-    marker_id: int = 0
-    known_length: KnownLength | None = None
-    intrinsics: str | tuple[float, float, float, float] | None = None
-    camera_model: str = "SIMPLE_RADIAL"
-    shared_intrinsics: bool = True
-    matcher: str = "auto"
-    min_registered: int | None = None
-    work_dir: Path | None = None
-    depth_points: bool = True
-    depth_stride: int = 4
-    progress: bool = True
-    seed: int = 0
 
 
 @dataclass
@@ -153,9 +120,7 @@ def load_frame(path: str | Path) -> Frame:
 # ------------------------------------------------------------------------------------------------
 def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> PoseResult:
     """Camera poses for `dataset` and the frame they are expressed in (see module docstring)."""
-    opts = options or PoseOptions()
-    if opts.known_length is not None:
-        opts.known_length.validate()
+    opts = _normalised(options or PoseOptions())
     if not dataset.frames:
         raise InputError("dataset has no frames", dataset.root)
     method = opts.method
@@ -331,6 +296,33 @@ def _frame_beside(dataset: Dataset) -> Frame | None:
     p = Path(dataset.meta.get("path", dataset.root))
     cand = (p.parent if p.is_file() else p) / FRAME_FILE
     return load_frame(cand) if cand.is_file() else None
+
+
+def _normalised(opts: PoseOptions) -> PoseOptions:
+    """Options with their text forms parsed (known_length -> KnownLength, intrinsics -> (fx, fy, cx, cy))."""
+    kl = opts.known_length
+    if isinstance(kl, str):
+        kl = KnownLength.parse(kl)
+    if kl is not None:
+        kl.validate()
+    return dataclasses.replace(opts, known_length=kl, intrinsics=parse_intrinsics(opts.intrinsics))
+
+
+def parse_intrinsics(value) -> str | tuple[float, float, float, float] | None:
+    """None, "dataset", "fx,fy,cx,cy" (pixels) or a sequence of four numbers -> None, "dataset" or a tuple."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        if value.strip() == "dataset":
+            return "dataset"
+        try:
+            value = [float(v) for v in value.split(",")]
+        except ValueError as e:
+            raise InputError(f"--intrinsics {value!r}: expected fx,fy,cx,cy in pixels or 'dataset'") from e
+    vals = tuple(float(v) for v in value)
+    if len(vals) != 4 or vals[0] <= 0 or vals[1] <= 0:
+        raise InputError(f"--intrinsics {value!r}: expected four numbers fx,fy,cx,cy with positive focal lengths")
+    return vals  # type: ignore[return-value]
 
 
 def _matcher(opts: PoseOptions, dataset: Dataset) -> str:

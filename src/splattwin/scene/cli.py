@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import argparse
-import math
 import time
+from dataclasses import replace
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add this stage's sub-commands to the `splattwin` parser."""
+    from splattwin.options import add_options, add_progress_flag
     from splattwin.scene.options import SceneOptions  # light: dataclasses only
+
     p = sub.add_parser("scene", help="the embedded benchmark tabletop scene",
                        description="The embedded benchmark tabletop scene (synthetic, with ground truth).")
     ssub = p.add_subparsers(dest="scene_command", metavar="SUBCOMMAND")
@@ -21,36 +23,27 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "masks/noisy/, meshes/, transforms.json (nerfstudio), scene.json. "
                     "Same seed and options give byte-identical files.")
     g.add_argument("out_dir", metavar="OUT_DIR", help="output folder (created)")
-    g.add_argument("--seed", type=int, default=0, help="layout/texture/noise seed (default 0)")
-    g.add_argument("--width", type=int, default=320, help="image width in pixels (default 320)")
-    g.add_argument("--height", type=int, default=240, help="image height in pixels (default 240)")
-    g.add_argument("--views", type=int, default=15, help="training views (default 15)")
-    g.add_argument("--heldout", type=int, default=5, help="held-out views interleaved with them (default 5)")
-    g.add_argument("--marker", action="store_true", help="print an ArUco marker (DICT_4X4_50 id 0) on the table")
-    g.add_argument("--marker-size", type=float, default=0.08, help="marker side in metres (default 0.08)")
-    g.add_argument("--fov", type=float, default=70.0, help="horizontal field of view in degrees (default 70)")
-    g.add_argument("--supersample", type=int, default=SceneOptions.supersample,
-                   help=f"rays per pixel side, box-filtered (anti-aliasing; 1-8, default {SceneOptions.supersample})")
+    add_options(g, SceneOptions)
     g.add_argument("--clean-masks", action="store_true",
-                   help="simulate a perfect segmenter (noisy masks equal the GT masks)")
-    g.add_argument("--no-progress", action="store_true", help="no progress bar")
+                   help="simulate a perfect segmenter (noisy masks equal the GT masks; overrides --noise.*)")
+    add_progress_flag(g)
     g.set_defaults(func=_generate)
 
 
 def _generate(args: argparse.Namespace) -> int:
-    from splattwin.scene.generate import generate
+    from splattwin.scene.generator import generate
+    from splattwin.options import from_args
     from splattwin.scene.options import MaskNoise, SceneOptions
 
-    opts = SceneOptions(seed=args.seed, width=args.width, height=args.height, views=args.views,
-                        heldout=args.heldout, marker=args.marker, marker_size=args.marker_size,
-                        fov_x=math.radians(args.fov), supersample=args.supersample,
-                        noise=MaskNoise.clean() if args.clean_masks else MaskNoise())
+    opts = from_args(SceneOptions, args)
+    if args.clean_masks:
+        opts = replace(opts, noise=MaskNoise.clean())
     t0 = time.perf_counter()
     from splattwin.lock import output_lock
 
     with output_lock(args.out_dir):
-        out = generate(args.out_dir, opts, progress=not args.no_progress)
-    print(f"scene written to {out.resolve()} ({args.views} training + {args.heldout} held-out views, "
-          f"{args.width}x{args.height}, seed {args.seed}, {time.perf_counter() - t0:.1f} s)")
+        out = generate(args.out_dir, opts, progress=args.progress)
+    print(f"scene written to {out.resolve()} ({opts.views} training + {opts.heldout} held-out views, "
+          f"{opts.width}x{opts.height}, seed {opts.seed}, {time.perf_counter() - t0:.1f} s)")
     print(f"  cameras: {out.resolve() / 'transforms.json'}  ground truth: {out.resolve() / 'scene.json'}")
     return 0

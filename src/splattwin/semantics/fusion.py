@@ -47,29 +47,10 @@ from splattwin import io
 from splattwin.capture.camera import Camera
 from splattwin.errors import InputError
 from splattwin.semantics.masks import MaskSet, MaskWarning
+from splattwin.semantics.options import FusionOptions
 from splattwin.semantics.render import DepthRenderer, PointDepth, project_to_pixels
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class FusionOptions:
-    """Parameters of `fuse` (units: metres)."""
-
-    kappa: float = 1.5                # consensus strictness, tau = N / kappa
-    iters: int = 3                    # refinement rounds (1 = single pass, no re-rendering)
-    depth_tol: float = 0.02           # visibility: |z - rendered depth| <= depth_tol + depth_tol_rel * depth
-    depth_tol_rel: float = 0.01
-    eps: float = 0.02                 # DBSCAN eps on depth
-    min_samples: int = 10             # DBSCAN min_samples (point itself included, like scikit-learn)
-    gate_sigma: float | None = None   # soft-gate length scale (default eps)
-    min_views: int = 1                # need >= this many visible views to be labelled by consensus
-    min_cos: float = 0.25             # flat splats seen more edge-on than this |cos| do not count as visible
-    knn_k: int = 16                   # KNN boundary smoothing
-    knn_threshold: float = 0.6        # neighbour majority share needed to flip a label
-    knn_confidence: float = 0.8       # only labels with confidence below this may flip
-    floater_share: float = 0.5        # share of in-mask observations gated out in front -> floater
-    converge_share: float = 0.001     # stop refining when fewer labels change
 
 
 @dataclass

@@ -23,12 +23,10 @@ from splattwin import io
 from splattwin.errors import InputError
 from splattwin.semantics.fusion import FusionOptions, FusionResult, View, fuse, naive_fusion, splat_normals
 from splattwin.semantics.masks import MaskSet, MaskWarning, _safe_name, load_masks, scene_objects
+from splattwin.semantics.options import RENDERERS
 from splattwin.semantics.render import PointDepth, SplatDepth, colorize, render_label_maps
 
 log = logging.getLogger(__name__)
-
-RENDERERS = ("auto", "splat", "points")
-
 
 def dataset_objects(dataset_root: Path) -> dict[str, int] | None:
     """name -> label from a generated scene's scene.json next to the dataset, else None."""

@@ -29,18 +29,17 @@ from splattwin.geometry.options import GeometryOptions
 from splattwin.names import check_unique, object_name
 from splattwin.paths import child, relative_to
 from splattwin.twin.manifest import Background, Frame, Manifest, ObjectEntry
+from splattwin.twin.options import FORMATS, METRIC_FORMATS, ExportOptions
 from splattwin.twin.splats import write_object_splats
 
 log = logging.getLogger(__name__)
 
-FORMATS = ("mjcf", "urdf", "moveit", "gltf")
-METRIC_FORMATS = ("mjcf",)   # physics needs metres: refused for an unscaled twin
 
 
 def default_formats(frame: Frame) -> tuple[str, ...]:
     """The exports written when none are asked for: all of them, less those an unscaled twin cannot
     have (MJCF: physics in arbitrary units would be silently wrong)."""
-    return tuple(f for f in FORMATS if frame.scaled or f not in METRIC_FORMATS)
+    return ExportOptions().resolve(frame.scaled)
 
 
 def check_formats(frame: Frame, formats, where: str | Path | None = None) -> None:
