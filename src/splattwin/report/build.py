@@ -164,7 +164,7 @@ def _guarded(fn, sec: Section, *args) -> None:
 
 def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
     from splattwin.capture import load_dataset, load_image
-    from splattwin.report.html import side_by_side
+    from splattwin.pictures import side_by_side
 
     tj = twin / "poses" / "transforms.json"
     if not tj.is_file():

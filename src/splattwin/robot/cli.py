@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import time
 from pathlib import Path
 
 from splattwin.options import add_options
@@ -30,13 +29,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_plan(args: argparse.Namespace) -> int:
-    from splattwin.robot.render import prefer_egl
-
-    prefer_egl()  # before mujoco is imported
     from splattwin.errors import InputError
     from splattwin.lock import output_lock
     from splattwin.options import from_args
     from splattwin.paths import is_inside
+    from splattwin.robot.outputs import print_summary
+    from splattwin.robot.stage import RobotInputs, run
 
     opts = from_args(RobotOptions, args)
     opts.validate()
@@ -45,21 +43,8 @@ def run_plan(args: argparse.Namespace) -> int:
         raise InputError("twin folder does not exist", args.twin)
     # one writer per folder: the twin's lock when writing into it (splattwin.lock)
     with output_lock(args.twin if is_inside(out, args.twin) else out):
-        return _plan(args.twin, opts, out)
-
-
-def _plan(twin: Path, opts: RobotOptions, out: Path) -> int:
-    from splattwin.robot.outputs import print_summary, write_outputs
-    from splattwin.robot.trials import TrialSpec, run_once, run_trials
-
-    spec = TrialSpec.from_options(twin, opts)
-    t0 = time.perf_counter()
-    result, note, frames = run_once(spec, frame_dir=out / "frames" if opts.render else None, keep_trajectories=True)
-    trials = run_trials(spec, opts.trials, opts.sigma, workers=opts.workers, out_dir=out, resume=opts.resume,
-                        sigma_yaw=opts.sigma_yaw) if opts.trials > 0 else None
-    paths = write_outputs(out, spec, result, trials,
-                          render_note=note if opts.render else "rendering disabled (--no-render)",
-                          frames=frames, wall_s=time.perf_counter() - t0)
-    print_summary(result, trials, paths)
-    ok = result.success and (trials is None or trials["successes"] == trials["trials"])
+        res = run(RobotInputs(args.twin, out), opts)
+    d = res.details
+    print_summary(d["run"], d["trials"], d["paths"])
+    ok = res.success and (d["trials"] is None or d["trials"]["successes"] == d["trials"]["trials"])
     return 0 if ok else 1

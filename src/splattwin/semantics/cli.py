@@ -82,7 +82,7 @@ def _fuse(args: argparse.Namespace) -> int:
     opts = from_args(SemanticsOptions, args, fusion=from_args(FusionOptions, args))
     with output_lock(args.out):
         res = fuse_to_dir(args.splats, args.dataset, args.masks, args.out, opts.fusion, renderer=opts.renderer,
-                          label_maps=opts.maps, naive=opts.naive, maps_renderer=opts.maps_renderer)
+                          label_maps=opts.maps, naive=opts.naive, maps_renderer=opts.maps_renderer, metrics=True)
     import json
 
     meta = json.loads((Path(args.out) / "fusion.json").read_text())

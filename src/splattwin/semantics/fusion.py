@@ -81,15 +81,16 @@ class FusionResult:
         """Consensus labels for another kappa from the final round's votes (no KNN smoothing)."""
         return consensus(self.votes, self.n_visible, kappa, self.label_ids, self.options.min_views)[0]
 
-    def save(self, out_dir: str | Path) -> Path:
-        """`labels.npy` (int32 per Gaussian) + `fusion.json` (names, options, per-object counts, history)."""
+    def save(self, out_dir: str | Path, extra: dict | None = None) -> Path:
+        """`labels.npy` (int32 per Gaussian) + `fusion.json` (names, options, per-object counts, history,
+        and `extra`: label-map scores, metrics), the only writer of both."""
         out_dir = Path(out_dir)
         io.write_npy(out_dir / "labels.npy", self.labels.astype(np.int32))
         io.write_json(out_dir / "fusion.json", {
             "objects": [{"name": self.names[k], "label": k, "n_gaussians": int((self.labels == k).sum())}
                         for k in self.label_ids],
             "n_gaussians": int(len(self.labels)), "options": self.options.__dict__,
-            "history": self.history, "seconds": self.seconds})
+            "history": self.history, "seconds": self.seconds, **(extra or {})})
         return out_dir
 
 

@@ -1,11 +1,13 @@
-"""Options of the twin stage's exports (`splattwin export`, `splattwin geometry`, `build --export.*`).
-The geometry options are `splattwin.geometry.options.GeometryOptions`. Light: read by `splattwin --help`."""
+"""Options of the twin stage: its exports (`splattwin export`, `splattwin geometry`, `build --export.*`)
+and, as the stage runs, the pair geometry + exports (`TwinOptions`). The geometry options are
+`splattwin.geometry.options.GeometryOptions`. Light: read by `splattwin --help`."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from splattwin.errors import InputError
+from splattwin.geometry.options import GeometryOptions
 from splattwin.options import option
 
 FORMATS = ("mjcf", "urdf", "moveit", "gltf")
@@ -27,3 +29,11 @@ class ExportOptions:
             raise InputError(f"unknown export format(s) {', '.join(bad)}; choose from {', '.join(FORMATS)}", where)
         return fmts
 
+
+@dataclass
+class TwinOptions:
+    """The twin stage's options as it runs (`splattwin.twin.stage.run`): the geometry conversion and the
+    exports. `build` nests the two separately (`--geometry.*`, `--export.*`)."""
+
+    geometry: GeometryOptions = field(default_factory=GeometryOptions)
+    export: ExportOptions = field(default_factory=ExportOptions)
