@@ -177,7 +177,7 @@ def stages() -> list[Stage]:
               code=("splattwin.robot", "splattwin.twin")),
         # The report reads every stage's outputs; its key changes whenever any of them re-ran.
         Stage("report", _report, option_keys=(), deps=("poses", "splats", "semantics", "twin", "robot"),
-              code=("splattwin.report", "splattwin.viewer")),
+              code=("splattwin.report", "splattwin.playback.view_model")),
     ]
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import importlib
 
 _EXPORTS = {"PoseOptions": "options", "PoseResult": "estimate", "estimate_poses": "estimate",
-            "load_frame": "estimate", "KnownLength": "table"}
+            "load_frame": "twin_frame", "TwinFrame": "twin_frame", "KnownLength": "table"}
 
 __all__ = list(_EXPORTS)
 

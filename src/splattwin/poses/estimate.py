@@ -10,14 +10,13 @@ that applies:
 4. Robot poses alone → robot base frame; known dataset poses → kept as they are (assumed metric).
 5. Otherwise RANSAC table plane without scale → table frame marked "unscaled" (robot stages refuse it).
 
-Every result carries a `splattwin.twin.manifest.Frame` naming the method and the 1-sigma relative scale
+Every result carries a `splattwin.poses.twin_frame.TwinFrame` naming the method and the 1-sigma relative scale
 uncertainty.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,11 +30,10 @@ from splattwin.errors import InputError
 from splattwin.poses import align
 from splattwin.poses.options import PoseOptions
 from splattwin.poses.table import KnownLength
-from splattwin.twin.manifest import Frame
+from splattwin.poses.twin_frame import FRAME_FILE, TwinFrame, load_frame
 
 log = logging.getLogger(__name__)
 
-FRAME_FILE = "frame.json"
 REPORT_FILE = "poses_report.json"
 DEPTH_PLY = "points3D_depth.ply"
 
@@ -54,7 +52,7 @@ class PoseResult:
 
     frames: list[DataFrame]
     unregistered: list[str]
-    frame: Frame
+    frame: TwinFrame
     points_xyz: np.ndarray | None = None
     points_rgb: np.ndarray | None = None
     depth_xyz: np.ndarray | None = None
@@ -104,19 +102,6 @@ class PoseResult:
         return nerfstudio.write(ds, out / "transforms.json", ply_name="points3D.ply")
 
 
-def load_frame(path: str | Path) -> Frame:
-    """Frame definition from a frame.json (or the folder holding it)."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / FRAME_FILE
-    if not path.is_file():
-        raise InputError("no frame definition here (expected frame.json)", path)
-    try:
-        return Frame(**json.loads(path.read_text()))
-    except (json.JSONDecodeError, TypeError) as e:
-        raise InputError(f"malformed frame definition: {e}", path) from e
-
-
 # ------------------------------------------------------------------------------------------------
 def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> PoseResult:
     """Camera poses for `dataset` and the frame they are expressed in (see module docstring)."""
@@ -137,7 +122,7 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
     stats: dict = {"method": method, "total": len(frames)}
     pts_xyz = pts_rgb = None
     T_out_in = np.eye(4)
-    frame: Frame | None = None
+    frame: TwinFrame | None = None
     in_cams: dict[str, Camera]
 
     if method == "sfm":
@@ -168,7 +153,7 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         assert robot_T is not None
         in_cams = {n: _with_pose(f.camera, robot_T[n], opts) for f, n in zip(frames, names) if n in robot_T}
         stats.update(registered=len(in_cams))
-        frame = Frame(source="robot", scaled=True, scale_uncertainty_rel=0.0,
+        frame = TwinFrame(source="robot", scaled=True, scale_uncertainty_rel=0.0,
                       description="robot base frame: T_base_cam = T_base_ee @ T_ee_cam (metres)")
         input_scaled = True
     else:
@@ -176,10 +161,10 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         pts_xyz, pts_rgb = dataset.points_xyz, dataset.points_rgb
         stats.update(registered=len(in_cams))
         meta_frame = dataset.meta.get("frame")
-        prior = Frame(**meta_frame) if isinstance(meta_frame, dict) else _frame_beside(dataset)
+        prior = TwinFrame(**meta_frame) if isinstance(meta_frame, dict) else _frame_beside(dataset)
         # A COLMAP model is SfM output: arbitrary scale unless a frame.json beside it says otherwise.
         input_scaled = prior is not None or dataset.meta.get("format") != "colmap"
-        frame = prior or (Frame(source="known_poses", scaled=True, scale_uncertainty_rel=None,
+        frame = prior or (TwinFrame(source="known_poses", scaled=True, scale_uncertainty_rel=None,
                                 description="camera poses given with the dataset, assumed metric")
                           if input_scaled else None)
 
@@ -197,7 +182,7 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         except ValueError as e:
             raise InputError(f"cannot align SfM to the robot poses: {e}", opts.robot_poses) from e
         T_out_in = fit.S
-        frame = Frame(source="sfm+robot", scaled=True, scale_uncertainty_rel=fit.scale_uncertainty_rel,
+        frame = TwinFrame(source="sfm+robot", scaled=True, scale_uncertainty_rel=fit.scale_uncertainty_rel,
                       description=f"robot base frame via Umeyama Sim(3) of {len(src)} SfM camera centres to robot "
                                   f"camera centres; residual RMS {fit.rms * 1000:.2f} mm")
         stats["umeyama"] = {"residual_rms_m": fit.rms, "residual_max_m": float(fit.residuals.max()),
@@ -211,7 +196,7 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         mf = fit_marker(cams, imgs, opts.marker_size, opts.marker_dict, opts.marker_id, where=dataset.root,
                         pixel_sigma_floor=float(stats.get("mean_reproj_error", 0.0)))
         T_out_in = align.sim3_inverse(mf.S_sfm_marker)
-        frame = Frame(source="marker", scaled=True, scale_uncertainty_rel=mf.scale_uncertainty_rel,
+        frame = TwinFrame(source="marker", scaled=True, scale_uncertainty_rel=mf.scale_uncertainty_rel,
                       description=f"ArUco {opts.marker_dict} id {opts.marker_id} ({opts.marker_size * 1000:.1f} mm) frame: "
                                   f"origin at its centre, z = its normal; seen in {len(mf.views)} views, "
                                   f"corner reprojection RMS {mf.reproj_rms:.2f} px")
@@ -232,12 +217,12 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
                                                    stats.get("mean_reproj_error", 0.5))
             S = np.diag([s, s, s, 1.0])
             T_out_in = S @ T_tab_in
-            frame = Frame(source="table_plane+known_length", scaled=True, scale_uncertainty_rel=unc,
+            frame = TwinFrame(source="table_plane+known_length", scaled=True, scale_uncertainty_rel=unc,
                           description=f"table frame (RANSAC plane, z up, table top z = 0, origin near the table "
                                       f"centre); scale from {note} = {opts.known_length.value} m")
         else:
             T_out_in = T_tab_in
-            frame = Frame(source="unscaled", scaled=False, scale_uncertainty_rel=None,
+            frame = TwinFrame(source="unscaled", scaled=False, scale_uncertainty_rel=None,
                           description="table frame (RANSAC plane, z up, table top z = 0) in arbitrary SfM units: "
                                       "NOT metric. Give --marker-size, --known-length or --robot-poses for a metric twin")
             log.warning("no metric scale: the frame is marked 'unscaled' and robot stages will refuse it")
@@ -291,7 +276,7 @@ def _sfm_keys(frames: list[DataFrame]) -> dict[str, str]:
     return {r: _frame_key(f) for r, f in zip(rel, frames)}
 
 
-def _frame_beside(dataset: Dataset) -> Frame | None:
+def _frame_beside(dataset: Dataset) -> TwinFrame | None:
     """A frame.json written by this stage next to the dataset's transforms.json (chained runs)."""
     p = Path(dataset.meta.get("path", dataset.root))
     cand = (p.parent if p.is_file() else p) / FRAME_FILE

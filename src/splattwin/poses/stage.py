@@ -36,7 +36,8 @@ def _load(inputs: PosesInputs, validate: bool = True):
 
 
 def run(inputs: PosesInputs, options: PoseOptions, *, progress: bool = True) -> PosesResult:
-    from splattwin.poses.estimate import FRAME_FILE, estimate_poses
+    from splattwin.poses.estimate import estimate_poses
+    from splattwin.poses.twin_frame import FRAME_FILE
 
     opts = replace(options, progress=progress, work_dir=options.work_dir or inputs.out_dir / "sfm")
     result = estimate_poses(_load(inputs), opts)

@@ -1,7 +1,10 @@
 """Embedded benchmark scene ("tabletop"): a seeded, ray-traced tabletop with ground truth and simulated
 segmenter masks, for testing every later stage without photos (see docs/CONTRACTS.md, "Embedded scene").
 
-Imports are lazy (`splattwin.scene.options` is read by `splattwin --help` and must not pull in Open3D).
+`splattwin.scene.synthetic`: smaller generators with a known answer for the tests and benchmarks of the
+semantics and geometry stages. The package sits above every stage (it uses their types to build test
+data); only the pipeline, the tests and the benchmarks import it. Imports are lazy
+(`splattwin.scene.options` is read by `splattwin --help` and must not pull in Open3D).
 """
 
 from __future__ import annotations

@@ -48,7 +48,7 @@ from splattwin.capture.camera import Camera
 from splattwin.errors import InputError
 from splattwin.semantics.masks import MaskSet, MaskWarning
 from splattwin.semantics.options import FusionOptions
-from splattwin.semantics.render import DepthRenderer, PointDepth, project_to_pixels
+from splattwin.semantics.label_render import DepthRenderer, PointDepth, project_to_pixels
 
 log = logging.getLogger(__name__)
 

@@ -25,7 +25,7 @@ from splattwin.errors import InputError
 from splattwin.semantics.fusion import FusionOptions, FusionResult, View, fuse, naive_fusion, splat_normals
 from splattwin.semantics.masks import MaskSet, MaskWarning, _safe_name, load_masks, scene_objects
 from splattwin.semantics.options import RENDERERS
-from splattwin.semantics.render import PointDepth, SplatDepth, colorize, render_label_maps
+from splattwin.semantics.label_render import PointDepth, SplatDepth, colorize, render_label_maps
 
 log = logging.getLogger(__name__)
 

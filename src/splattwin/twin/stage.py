@@ -36,7 +36,7 @@ class TwinResult:
 def run(inputs: TwinInputs, options: TwinOptions, *, progress: bool = True) -> TwinResult:
     from splattwin import io
     from splattwin.limits import load_npy
-    from splattwin.poses.estimate import load_frame
+    from splattwin.poses.twin_frame import load_frame
     from splattwin.splat.gaussians import Gaussians
     from splattwin.twin.build import build_twin
 

@@ -1,4 +1,6 @@
-"""Sub-commands of the geometry stage: `splattwin geometry SPLAT.ply ...` cleans, meshes and writes a twin."""
+"""`splattwin geometry SPLAT.ply ...`: the geometry stage run by hand — clean a labelled splat, mesh it and
+write a twin folder (registered by the twin package, which writes twin folders; the geometry package
+itself knows nothing of twins)."""
 
 from __future__ import annotations
 
@@ -10,8 +12,9 @@ import numpy as np
 
 from splattwin.errors import InputError
 from splattwin.geometry.options import GeometryOptions
-from splattwin.options import add_options, dest, from_args
 from splattwin.names import check_unique, object_name
+from splattwin.options import add_options, dest, from_args
+from splattwin.twin.options import FORMATS, ExportOptions
 
 log = logging.getLogger(__name__)
 
@@ -38,14 +41,13 @@ def _run(args: argparse.Namespace) -> int:
 
 def _run_locked(args: argparse.Namespace) -> int:
     from splattwin.splat.gaussians import Gaussians
+    from splattwin.poses.twin_frame import FRAME_SOURCES, TwinFrame
     from splattwin.twin.build import build_twin, check_formats
-    from splattwin.twin.manifest import FRAME_SOURCES, Frame
-    from splattwin.twin.options import FORMATS, ExportOptions
 
     ply = Path(args.splat)
     if args.frame not in FRAME_SOURCES:
         raise InputError(f"unknown frame source {args.frame!r} (choose from {', '.join(FRAME_SOURCES)})", "--frame")
-    frame = Frame(source=args.frame, scaled=args.frame != "unscaled")
+    frame = TwinFrame(source=args.frame, scaled=args.frame != "unscaled")
     exports = from_args(ExportOptions, args)
     formats = exports.resolve(frame.scaled)
     skipped = [f for f in FORMATS if f not in formats]
@@ -73,7 +75,7 @@ def _run_locked(args: argparse.Namespace) -> int:
             raise InputError(f"{len(labels)} labels for {len(g)} Gaussians in {ply.name}", lp)
         objects = [_parse_object(o) for o in args.object]
         if not objects and args.gt_scene and (Path(args.gt_scene) / "scene.json").is_file():
-            from splattwin.geometry.synthetic import load_scene_gt
+            from splattwin.twin.groundtruth import load_scene_gt
 
             objects = list(load_scene_gt(args.gt_scene)[0])  # the scene's names, prompts and labels
         objects = objects or [(f"object_{k}", int(k), "") for k in np.unique(labels) if k > 0]
@@ -102,7 +104,7 @@ def evaluate(g, labels, objects, scene_dir: Path, opts, out_dir: Path) -> dict:
 
     from splattwin import io
     from splattwin.geometry.convert import CONFIGS, ablation
-    from splattwin.geometry.synthetic import load_scene_gt
+    from splattwin.twin.groundtruth import load_scene_gt
 
     if not (scene_dir / "scene.json").is_file():
         raise InputError("not a generated scene (no scene.json)", scene_dir)
@@ -122,8 +124,6 @@ def evaluate(g, labels, objects, scene_dir: Path, opts, out_dir: Path) -> dict:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add this stage's sub-commands to the `splattwin` parser."""
-    from splattwin.twin.options import ExportOptions
-
     p = sub.add_parser("geometry", help="clean a labelled splat and build collision geometry + twin folder",
                        description="Attribute filtering, DBSCAN connectivity pruning, alpha-shape meshing, convex "
                                    "decomposition and mass per object; table plane + obstacles for the background "
