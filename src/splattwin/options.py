@@ -163,7 +163,7 @@ def help_text(spec: Spec) -> str:
     if unit:
         text += f" [{unit}]"
     if spec.nested is None and d is not MISSING:
-        text += f" (default {_fmt(d, spec)})" if not (spec.base is bool) else (" (default on)" if d else " (default off)")
+        text += (" (default on)" if d else " (default off)") if spec.base is bool else f" (default {_fmt(d, spec)})"
     return text.replace("%", "%%")
 
 

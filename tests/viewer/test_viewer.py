@@ -50,6 +50,7 @@ def test_build_scene_handles(tmp_path):
         server.stop()
 
 
+@pytest.mark.slow
 def test_viewer_page_shows_content(tmp_path):
     twin = _twin(tmp_path)
     port = _free_port()

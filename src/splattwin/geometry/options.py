@@ -17,29 +17,35 @@ class GeometryOptions:
 
     # -- stage 1: attribute filtering ------------------------------------------------------------
     min_opacity: float = option(0.1, "drop Gaussians with opacity below this (haze, ghosts)")
-    max_scale: float | None = option(None, "drop Gaussians whose largest scale exceeds this (none: max_scale_rel x scene size)", unit="m")
+    max_scale: float | None = option(None, "drop Gaussians whose largest scale exceeds this (none: max_scale_rel x "
+                                     "scene size)", unit="m")
     max_scale_rel: float = option(0.01, "automatic max_scale as a share of the scene size (diagonal of the robust box)")
     max_aspect: float = option(5.0, "a needle has largest / middle scale above this (flat discs are fine) ...")
-    needle_length: float = option(0.006, "... and its largest scale above this (shorter elongated splats line edges)", unit="m")
+    needle_length: float = option(0.006, "... and its largest scale above this (shorter elongated splats line "
+                                  "edges)", unit="m")
     max_flatness: float | None = option(None, "optional bound on largest / smallest scale (none: off)")
     # -- stage 2: connectivity pruning -------------------------------------------------------------
     dbscan_eps: float = option(0.02, "DBSCAN eps of the connectivity pruning (paper: 2 cm)", unit="m", aliases=("eps",))
     dbscan_min_samples: int = option(10, "DBSCAN min_samples", aliases=("min-samples",))
-    dbscan_voxel: float | None = option(None, "voxel of the weighted DBSCAN on voxel centroids (none: eps / 4; 0: exact DBSCAN)", unit="m")
+    dbscan_voxel: float | None = option(None, "voxel of the weighted DBSCAN on voxel centroids (none: eps / 4; 0: "
+                                        "exact DBSCAN)", unit="m")
     plane_distance: float = option(0.004, "RANSAC inlier distance for the table plane", unit="m")
     plane_iterations: int = option(500, "RANSAC iterations of the table plane fit")
     support_gap: float = option(0.02, "an obstacle cluster must come this close to the table", unit="m")
     foot_height: float = option(0.006, "object points this close to the table ...", unit="m")
-    foot_margin: float = option(0.005, "... and this far outside the outline above them are table (foot_height 0: off)", unit="m")
+    foot_margin: float = option(0.005, "... and this far outside the outline above them are table (foot_height 0: "
+                                "off)", unit="m")
     obstacle_min_points: int = option(200, "smaller background clusters above the table are floaters")
     # -- stage 3: meshing --------------------------------------------------------------------------
     mesh_voxel: float = option(0.003, "finest voxel of the solid the surface points enclose", unit="m")
     mesh_voxel_rel: float = option(0.75, "the voxel is at least this times the 4th-neighbour spacing (sparse splats)")
     close_iterations: int = option(2, "morphological closing iterations (voxels) sealing gaps between samples")
     alpha: float | None = option(None, "alpha-shape radius (none: alpha_factors x point spacing)", unit="m")
-    alpha_factors: tuple[float, ...] = option((1.5, 2.0, 3.0), "alpha radii in point spacings, tried in order until the outer shell is watertight")
+    alpha_factors: tuple[float, ...] = option((1.5, 2.0, 3.0), "alpha radii in point spacings, tried in order until "
+                                              "the outer shell is watertight")
     use_alpha: bool = option(True, "alpha shapes (--no-use-alpha: voxel remesh by marching cubes, faster)")
-    alpha_max_points: int = option(8000, "objects with more points get a coarser voxel (the Delaunay cost grows with the points)")
+    alpha_max_points: int = option(8000, "objects with more points get a coarser voxel (the Delaunay cost grows with "
+                                   "the points)")
     close_bottom: bool = option(True, "add the unseen footprint under an object resting on the table")
     fill_to_support: bool = option(True, "a resting object is solid from the table up to its seen surface")
     rest_gap: float = option(0.01, "an object whose lowest point is within this of the table rests on it", unit="m")

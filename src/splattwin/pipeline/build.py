@@ -18,10 +18,10 @@ Layout of the output folder TWIN (the twin folder itself):
 
 The pipeline only wires the stages and records them: each stage is `splattwin.<stage>.stage.run(inputs,
 options) -> result` (typed dataclasses), reads its own sub-config of `BuildOptions`, and is the only writer
-of its artifacts (docs/ARCHITECTURE.md lists them). Nothing is written outside TWIN. The whole build holds TWIN's lock (`splattwin.lock`): a second build
-into the same folder exits 2 at once. Before any stage runs, inputs that can be checked cheaply are
-(`preflight`: 2D masks against the images' sizes, the task YAML), so a bad mask file is reported
-before hours of pose estimation and training, naming the file.
+of its artifacts (docs/ARCHITECTURE.md lists them). Nothing is written outside TWIN. The whole build holds
+TWIN's lock (`splattwin.lock`): a second build into the same folder exits 2 at once. Before any stage
+runs, inputs that can be checked cheaply are (`preflight`: 2D masks against the images' sizes, the task
+YAML), so a bad mask file is reported before hours of pose estimation and training, naming the file.
 """
 
 from __future__ import annotations

@@ -26,8 +26,9 @@ import numpy as np
 
 from splattwin.errors import InputError
 from splattwin.semantics.masks import MaskSet
-# re-exported: the options live in the light `splattwin.semantics.options`
-from splattwin.semantics.options import DEFAULT_DETECTOR, DEFAULT_SEGMENTER, SEGMENTER_KINDS, SegmentOptions  # noqa: F401
+# the options live in the light `splattwin.semantics.options` (re-exported here)
+from splattwin.semantics.options import (DEFAULT_DETECTOR, DEFAULT_SEGMENTER, SEGMENTER_KINDS,  # noqa: F401
+                                         SegmentOptions)
 
 log = logging.getLogger(__name__)
 
