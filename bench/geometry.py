@@ -41,7 +41,7 @@ def _load_trained(args) -> tuple:
     """(Gaussians, labels [N], objects [(name, label, prompt)], GT meshes {name: Trimesh}, source text)."""
     from splattwin import io
     from splattwin.errors import InputError
-    from splattwin.geometry.synthetic import load_scene_gt
+    from splattwin.twin.groundtruth import load_scene_gt
     from splattwin.splat.gaussians import Gaussians
 
     if args.twin_from is not None:
@@ -80,8 +80,9 @@ def main(argv=None) -> int:
 
     from splattwin.geometry.convert import CONFIGS, ablation, conversion_fidelity, convert
     from splattwin.geometry.options import GeometryOptions
-    from splattwin.geometry.synthetic import leak_labels, load_scene_gt
     from splattwin.scene import SceneOptions, generate, synthetic_gaussians
+    from splattwin.scene.synthetic import leak_labels
+    from splattwin.twin.groundtruth import load_scene_gt
 
     con = Console(width=150)
     tmp = tempfile.TemporaryDirectory()

@@ -4,7 +4,7 @@
 2. Motion: the paper's three-step task executed in MuJoCo by the robot stage (`trials.run_once`); its
    recorded `Rollout` (one sample per physics step) is decimated to 100 Hz.
 3. Ground truth: the objects' simulated final poses applied to the embedded scene's own objects (the same
-   rigid motion from their start poses) and rendered by the scene's ray caster (`scene.render`) from the
+   rigid motion from their start poses) and rendered by the scene's ray caster (`scene.raycast`) from the
    held-out cameras; the twin renders the same state photoreal (robot parked out of view: not drawn).
    psnr_final / ssim_final over the whole image, psnr_final_objects / ssim_final_objects over the moved
    objects' pixels (ground-truth labels of the final arrangement), psnr_filled over the filled holes.
@@ -66,9 +66,9 @@ def gt_renderer(scene_dir: Path, motions: dict[str, np.ndarray]):
     """The embedded scene's ray caster with each object moved by motions[name] (T_new_old, world)."""
     import trimesh
 
-    from splattwin.scene.generate import build_scene, load_scene
+    from splattwin.scene.generator import build_scene, load_scene
     from splattwin.scene.options import SceneOptions
-    from splattwin.scene.render import SceneRenderer, Surface
+    from splattwin.scene.raycast import SceneRenderer, Surface
 
     meta = load_scene(scene_dir)
     opts = SceneOptions.from_dict(meta["options"])
@@ -121,7 +121,7 @@ def main() -> int:
     from splattwin.playback.cameras import EyeInHand, capture_cameras
     from splattwin.playback.episode import check_episode, read_episode, sample_indices, write_episode
     from splattwin.playback.movie import render_rollout_video
-    from splattwin.playback.render import PlaybackRenderer, rollout_state
+    from splattwin.playback.compositor import PlaybackRenderer, rollout_state
     from splattwin.playback.robot import MeshRobotLayer, RobotSplats, composite_layers
     from splattwin.playback.scene import DynamicScene
     from splattwin.splat import metrics

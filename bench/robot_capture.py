@@ -47,7 +47,7 @@ def _normal_deg(points: np.ndarray, camera_centres: np.ndarray) -> float:
 def _poses_row(capture: Path, up: str) -> dict:
     from splattwin.capture import load_dataset
     from splattwin.poses import PoseOptions, estimate_poses
-    from splattwin.scene.generate import build_scene, look_target
+    from splattwin.scene.generator import build_scene, look_target
     from splattwin.scene.options import SceneOptions
     from splattwin.scene.robot_capture import RobotCaptureOptions, sweep_cameras
 

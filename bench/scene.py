@@ -3,7 +3,7 @@
     python bench/scene.py [--repeats 3]
 
 Rows (median of `--repeats` runs each, same machine, same run):
-  generate default    `splattwin.scene.generate`, 320x240, 15 + 5 views, no marker (all files written)
+  generate default    `splattwin.scene.generator`, 320x240, 15 + 5 views, no marker (all files written)
   generate marker     the same with the ArUco marker
   render view ss=N    one view: RGB (N x N supersampled, the default N; shadows) + GT depth/labels, no writing
   render view ss=1    one view without supersampling
@@ -48,7 +48,7 @@ def main() -> None:
     from splattwin.capture.camera import Camera
     from splattwin.scene import SceneOptions, generate
     from splattwin.scene.cameras import scan_cameras
-    from splattwin.scene.generate import build_scene, look_target
+    from splattwin.scene.generator import build_scene, look_target
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

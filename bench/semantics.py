@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     from splattwin.semantics.fusion import FusionOptions, View, fuse, naive_fusion, splat_normals
     from splattwin.semantics.masks import MaskSet, _read_image, scene_masks
     from splattwin.semantics.metrics import ghost_index, miou, projection_consistency
-    from splattwin.semantics.render import PointDepth, SplatDepth, colorize, render_label_maps
+    from splattwin.semantics.label_render import PointDepth, SplatDepth, colorize, render_label_maps
 
     tmp = tempfile.TemporaryDirectory()
     scene = args.scene
@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
 
         g, gt, source = Gaussians.load_ply(args.splats), None, f"trained PLY {args.splats.name}"
     else:
-        from splattwin.semantics.synthetic import scene_gaussians
+        from splattwin.scene.synthetic import scene_gaussians
 
         g, gt = scene_gaussians(scene, n=args.n)
         source = "synthetic_gaussians (GT surfaces + haze/floaters/needles)"

@@ -27,7 +27,7 @@ STAGE_CLIS = [
     "splattwin.poses.cli",
     "splattwin.splat.cli",
     "splattwin.semantics.cli",
-    "splattwin.geometry.cli",
+    "splattwin.twin.geometry_cli",
     "splattwin.twin.cli",
     "splattwin.robot.cli",
     "splattwin.playback.cli",

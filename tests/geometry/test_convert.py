@@ -11,7 +11,7 @@ from splattwin.geometry.metrics import mesh_fidelity
 from splattwin.geometry.options import GeometryOptions
 from splattwin.splat.gaussians import Gaussians
 
-from splattwin.geometry.synthetic import synthetic_scene, trained_like_gaussians
+from splattwin.scene.synthetic import synthetic_scene, trained_like_gaussians
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from splattwin.geometry.convert import ablation, convert
-from splattwin.geometry.synthetic import leak_labels, load_scene_gt
+from splattwin.scene.synthetic import leak_labels
+from splattwin.twin.groundtruth import load_scene_gt
 
 
 @pytest.fixture(scope="module")

@@ -69,7 +69,8 @@ def write_twin(out: Path, with_splats: bool = True) -> Path:
     from splattwin import io
     from splattwin.capture.dataset import Dataset, Frame
     from splattwin.capture.nerfstudio import write as write_transforms
-    from splattwin.twin.manifest import Background, Frame as TwinFrame, Manifest, ObjectEntry
+    from splattwin.poses.twin_frame import TwinFrame
+    from splattwin.twin.manifest import Background, Manifest, ObjectEntry
     from splattwin.twin.splats import write_object_splats
 
     table, obj = make_table(), make_object()

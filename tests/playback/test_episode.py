@@ -10,7 +10,7 @@ import pytest
 from splattwin.errors import InputError
 from splattwin.playback.cameras import EyeInHand, resolve_camera
 from splattwin.playback.episode import check_episode, read_episode, sample_indices, write_episode
-from splattwin.playback.render import PlaybackRenderer
+from splattwin.playback.compositor import PlaybackRenderer
 from splattwin.playback.robot import RobotSplats
 from splattwin.playback.scene import DynamicScene
 from splattwin.robot.rollout import Rollout

@@ -6,7 +6,7 @@ import numpy as np
 
 from splattwin.capture.camera import Camera, look_at
 from splattwin.playback.holes import CELL, MARGIN
-from splattwin.playback.render import PlaybackRenderer
+from splattwin.playback.compositor import PlaybackRenderer
 from splattwin.playback.scene import DynamicScene
 
 from .conftest import OBJ_CENTRE, OBJ_HALF, table_colour

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from splattwin.capture.camera import Camera, look_at
-from splattwin.playback.render import PlaybackRenderer
+from splattwin.playback.compositor import PlaybackRenderer
 from splattwin.playback.robot import RobotPose, RobotSplats, composite_layers
 from splattwin.playback.scene import DynamicScene
 from splattwin.splat.gaussians import Gaussians, rgb_to_sh0

@@ -91,11 +91,11 @@ def test_sfm_cli_with_known_length_writes_depth_cloud(default_unscaled, sfm_defa
 def test_result_round_trips_through_its_dataset(scene_small: Path):
     """PoseResult.to_dataset() carries the frame; estimating again with --known keeps it."""
     from splattwin.poses import PoseOptions, estimate_poses
-    from splattwin.twin.manifest import Frame
+    from splattwin.poses.twin_frame import TwinFrame
 
     gt = load_dataset(scene_small)
     res = estimate_poses(gt, PoseOptions(method="known", depth_points=False, progress=False))
     ds = res.to_dataset(scene_small)
     ds.meta["frame"]["source"] = "marker"
     again = estimate_poses(ds, PoseOptions(method="known", depth_points=False, progress=False))
-    assert isinstance(again.frame, Frame) and again.frame.source == "marker"
+    assert isinstance(again.frame, TwinFrame) and again.frame.source == "marker"

@@ -1,7 +1,8 @@
 import numpy as np
 from PIL import Image
 
-from splattwin.report.html import Report, png_bytes, side_by_side
+from splattwin.pictures import side_by_side
+from splattwin.report.html import Report, png_bytes
 from splattwin.splat.metrics import error_heatmap
 from splattwin.report.screenshot import screenshot
 

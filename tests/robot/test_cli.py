@@ -24,7 +24,7 @@ def test_plan_writes_trajectories_and_results(gt_twin_default: Path, tmp_path: P
     import shutil
 
     from splattwin.robot.rollout import Rollout
-    from splattwin.viewer.app import load_robot_track
+    from splattwin.playback.view_model import load_robot_track
 
     twin = tmp_path / "twin"
     shutil.copytree(gt_twin_default, twin)

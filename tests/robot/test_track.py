@@ -72,9 +72,10 @@ def test_viewer_moves_the_objects_with_the_track(gt_twin_small: Path, tmp_path: 
 
     import viser
 
+    from splattwin.playback.view_model import load_robot_track
     from splattwin.robot.track import robot_track
     from splattwin.robot.world import build_world
-    from splattwin.viewer.app import build_scene, load_robot_track
+    from splattwin.viewer.app import build_scene
 
     twin = tmp_path / "twin"
     shutil.copytree(gt_twin_small, twin)

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from splattwin.scene import SceneOptions
-from splattwin.scene import render as scene_render
+from splattwin.scene import raycast as scene_render
 from splattwin.scene.cameras import scan_cameras
-from splattwin.scene.generate import build_scene, look_target
+from splattwin.scene.generator import build_scene, look_target
 from splattwin.splat.metrics import ssim
 
 

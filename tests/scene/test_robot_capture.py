@@ -38,7 +38,7 @@ def tum_capture(tmp_path_factory) -> Path:
 
 def _truth(n: int):
     """The scene's renderer and the sweep's cameras in the scene's z-up world."""
-    from splattwin.scene.generate import build_scene, look_target
+    from splattwin.scene.generator import build_scene, look_target
 
     objects, _, _, renderer = build_scene(OPTS)
     return objects, renderer, sweep_cameras(RobotCaptureOptions(views=n, width=W, height=H), look_target(objects), 0)

@@ -116,7 +116,7 @@ def test_malformed_twin(gt_twin, tmp_path, cli, case):
 def test_out_pointing_at_a_file(tmp_path, cli, tiny_dataset):
     f = tmp_path / "a_file"
     f.write_text("x")
-    from splattwin.geometry.synthetic import synthetic_scene
+    from splattwin.scene.synthetic import synthetic_scene
 
     g, _, _, _ = synthetic_scene(500, seed=0)
     ply = g.save_ply(tmp_path / "s.ply")
@@ -160,11 +160,12 @@ def test_nan_object_pose_message(scene_small):
     from splattwin.robot.task import load_task, validate_task
     from splattwin.twin.manifest import Manifest
 
-    from splattwin.twin.manifest import Frame, ObjectEntry
+    from splattwin.poses.twin_frame import TwinFrame
+    from splattwin.twin.manifest import ObjectEntry
 
     T = np.eye(4)
     T[0, 3] = np.nan
-    man = Manifest(frame=Frame("ground_truth", True), objects=[ObjectEntry("blue_box", 1, T_world_obj=T.tolist()),
+    man = Manifest(frame=TwinFrame("ground_truth", True), objects=[ObjectEntry("blue_box", 1, T_world_obj=T.tolist()),
                                                                  ObjectEntry("cardboard_box", 2),
                                                                  ObjectEntry("yellow_cube", 3),
                                                                  ObjectEntry("toy_hammer", 4)],

@@ -93,7 +93,7 @@ def test_coco_size_bomb(tmp_path, case):
 
 
 def test_npy_and_ply_header_bombs(tmp_path, cli):
-    from splattwin.geometry.synthetic import synthetic_scene
+    from splattwin.scene.synthetic import synthetic_scene
     from splattwin.limits import load_npy
     from splattwin.splat.gaussians import Gaussians
 

@@ -24,7 +24,18 @@ from splattwin.pipeline.build import BuildOptions, build, stage_keys
 from security_helpers import no_temp_files, tree_snapshot
 
 SCENE = {"seed": 0, "width": 96, "height": 72, "views": 6, "heldout": 2}
-FAST = dict(iters=80, max_gaussians=8000, checkpoint_every=20, progress=False, render_frames=False)
+FAST = {"poses": {"method": "known"}, "splat": {"iters": 80, "max_gaussians": 8000, "checkpoint_every": 20},
+        "robot": {"render": False}}
+
+
+def _opts(**kw) -> BuildOptions:
+    """Fast build options; kw: more nested options ({"input": ..., "robot": {"task": ...}})."""
+    d = {k: dict(v) for k, v in FAST.items()}
+    for k, v in kw.items():
+        d[k] = {**d.get(k, {}), **v} if isinstance(v, dict) else v
+    return BuildOptions.from_dict(d)
+
+
 CLI_FAST = ["--poses", "known", "--iters", "80", "--no-frames"]
 
 
@@ -67,7 +78,7 @@ def reference(capture_factory, tmp_path_factory) -> tuple[Path, Path, float]:
     capture = capture_factory("capture_ref")
     out = tmp_path_factory.mktemp("ref") / "twin"
     t0 = time.perf_counter()
-    build(out, BuildOptions(input=str(capture), poses="known", **FAST))
+    build(out, _opts(input=str(capture)), progress=False)
     return out, capture, time.perf_counter() - t0
 
 
@@ -104,7 +115,7 @@ def test_concurrent_builds_and_kill9_at_random_points(reference, capture_factory
             pass
         proc.communicate()
     # the last killed run's lock is stale: the re-run takes it over and cleans its temporary files
-    ctx = build(out, BuildOptions(input=str(capture), poses="known", **FAST))
+    ctx = build(out, _opts(input=str(capture)), progress=False)
     assert set(ctx.results) == {"scene", "poses", "splats", "semantics", "twin", "robot", "report"}
     assert _digest(out) == _digest(ref)
     assert no_temp_files(out) == []
@@ -152,14 +163,14 @@ def test_stage_keys_follow_contents_not_names(capture_factory, tmp_path):
     capture = capture_factory("capture_keys")
     task = tmp_path / "task.yaml"
     task.write_text("- pick: blue_box\n  place_on: cardboard_box\n")
-    opts = BuildOptions(input=str(capture), poses="known", task=str(task), **FAST)
+    opts = _opts(input=str(capture), robot={"task": str(task)})
     out = tmp_path / "twin"
     k0 = stage_keys(out, opts)
     assert stage_keys(out, opts) == k0
     os.utime(capture / "images" / "train_001.png")   # touched, same bytes
     moved = tmp_path / "elsewhere" / "scene"
     shutil.copytree(capture, moved)                   # same content under another path
-    assert stage_keys(out, BuildOptions(input=str(moved), poses="known", task=str(task), **FAST)) == k0
+    assert stage_keys(out, _opts(input=str(moved), robot={"task": str(task)})) == k0
 
     def changed(new: dict) -> set[str]:
         return {s for s in k0 if new[s] != k0[s]}
@@ -188,7 +199,8 @@ def test_editing_a_stage_module_changes_its_key(tmp_path):
     copy = tmp_path / "src"
     shutil.copytree(src / "splattwin", copy / "splattwin", ignore=shutil.ignore_patterns("__pycache__"))
     code = ("import json, sys; from splattwin.pipeline.build import BuildOptions, stage_keys; "
-            f"print(json.dumps(stage_keys(sys.argv[1], BuildOptions(scene={SCENE!r}, poses='known'))))")
+            f"print(json.dumps(stage_keys(sys.argv[1], BuildOptions.from_dict({{'scene': {SCENE!r}, "
+            f"'poses': {{'method': 'known'}}}}))))")
     env = {**os.environ, "PYTHONPATH": str(copy)}
 
     def keys() -> dict:

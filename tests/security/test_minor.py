@@ -69,14 +69,14 @@ def test_fsync_before_rename(tmp_path, monkeypatch):
 
 
 def test_parts_folders_have_ordinary_permissions(tmp_path):
-    from splattwin.geometry.synthetic import synthetic_scene
+    from splattwin.scene.synthetic import synthetic_scene
     from splattwin.twin.build import build_twin
-    from splattwin.twin.manifest import Frame
+    from splattwin.poses.twin_frame import TwinFrame
 
     g, labels, objects, _ = synthetic_scene(3000, seed=2)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        m = build_twin(g, labels, objects, tmp_path / "t", Frame("ground_truth", True), formats=(), progress=False)
+        m = build_twin(g, labels, objects, tmp_path / "t", TwinFrame("ground_truth", True), formats=(), progress=False)
     umask = os.umask(0)
     os.umask(umask)
     parts = [tmp_path / "t" / Path(o.convex_parts[0]).parent for o in m.objects if o.convex_parts]
@@ -91,7 +91,7 @@ def test_geometry_with_default_options_succeeds(tmp_path, cli):
     """`splattwin geometry X.ply --out T`: the default frame is unscaled, so MJCF (physics needs metres) is
     skipped with a note and everything else is written; asking for MJCF explicitly is refused before
     anything is written."""
-    from splattwin.geometry.synthetic import synthetic_scene
+    from splattwin.scene.synthetic import synthetic_scene
     from splattwin.twin.manifest import Manifest
 
     g, _, _, _ = synthetic_scene(3000, seed=4)

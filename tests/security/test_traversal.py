@@ -95,7 +95,7 @@ def test_mask_index_paths_stay_inside(tmp_path, victim):
 
 
 def test_object_option_is_checked(tmp_path, cli):
-    from splattwin.geometry.synthetic import synthetic_scene
+    from splattwin.scene.synthetic import synthetic_scene
 
     g, labels, _, _ = synthetic_scene(2000, seed=3)
     ply = g.save_ply(tmp_path / "s.ply")
@@ -107,7 +107,7 @@ def test_object_option_is_checked(tmp_path, cli):
 
 def test_unusable_object_named_as_a_path_deletes_nothing(tmp_path, victim):
     """The issue's data loss: an object that got no Gaussians had its folder objects/<name> removed."""
-    from splattwin.geometry.synthetic import synthetic_scene
+    from splattwin.scene.synthetic import synthetic_scene
     from splattwin.twin.build import build_twin
 
     g, labels, _, _ = synthetic_scene(2000, seed=3)
@@ -121,7 +121,7 @@ def test_unusable_object_named_as_a_path_deletes_nothing(tmp_path, victim):
 
 
 def test_symlinked_object_folder_is_not_followed(tmp_path, victim):
-    from splattwin.geometry.synthetic import synthetic_scene
+    from splattwin.scene.synthetic import synthetic_scene
     from splattwin.twin.build import build_twin
 
     g, labels, objects, _ = synthetic_scene(3000, seed=2)
@@ -265,7 +265,7 @@ def test_report_never_embeds_files_from_outside(gt_twin, tmp_path, cli):
 
 def test_links_out_of_the_output_folder_are_refused(tmp_path, victim, cli, tiny_dataset):
     """A received folder reused as --out whose splat/ is a link elsewhere: nothing is written there."""
-    from splattwin.geometry.synthetic import synthetic_scene
+    from splattwin.scene.synthetic import synthetic_scene
 
     g, _, _, _ = synthetic_scene(500, seed=0)
     ply = g.save_ply(tmp_path / "s.ply")

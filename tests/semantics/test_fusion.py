@@ -12,9 +12,9 @@ from splattwin.semantics.fusion import (FusionOptions, KnnCache, View, consensus
                                         naive_fusion, soft_gate, visible_mask)
 from splattwin.semantics.masks import MaskSet, MaskWarning
 from splattwin.semantics.metrics import ghost_index, iou_table, miou, projection_consistency
-from splattwin.semantics.render import project_to_pixels, render_label_maps, zbuffer
+from splattwin.semantics.label_render import project_to_pixels, render_label_maps, zbuffer
 
-from splattwin.semantics.synthetic import make_synth, raycast_labels
+from splattwin.scene.synthetic import make_synth, raycast_labels
 
 
 def _same_partition(a: np.ndarray, b: np.ndarray) -> bool:
@@ -202,7 +202,7 @@ def test_fusion_bad_input(synth):
 
 def test_splat_renderers_match_raycast():
     """Rasterizer depth and rasterized one-hot label maps against exact ray casting of the analytic scene."""
-    from splattwin.semantics.render import SplatDepth
+    from splattwin.semantics.label_render import SplatDepth
     from splattwin.splat.gaussians import Gaussians
 
     s = make_synth(n_views=2, width=160, height=120, n_table=40000, n_box=12000)

@@ -13,7 +13,7 @@ from splattwin.cli import main
 from splattwin.semantics.fusion import View, fuse, naive_fusion, splat_normals
 from splattwin.semantics.masks import _read_image, scene_masks
 from splattwin.semantics.metrics import miou, projection_consistency
-from splattwin.semantics.render import render_label_maps
+from splattwin.semantics.label_render import render_label_maps
 
 
 @pytest.fixture(scope="module")

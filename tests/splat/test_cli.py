@@ -63,10 +63,18 @@ def test_bad_inputs_exit_2(tmp_path, capsys):
     assert main(["eval", str(tmp_path / "bad.ply"), "--dataset", str(tmp_path), "--no-progress"]) == 2
 
 
-def test_cli_defaults_match_train_config():
-    from splattwin.splat.cli import TRAIN_DEFAULTS
-    from splattwin.splat.trainer import TrainConfig
+def test_train_flags_come_from_train_config():
+    """`splattwin train` without flags trains with TrainConfig's defaults; every option has a flag."""
+    from splattwin.cli import build_parser
+    from splattwin.options import from_args
+    from splattwin.splat.config import TrainConfig
 
-    cfg = TrainConfig()
-    for k, v in vars(TRAIN_DEFAULTS).items():
-        assert getattr(cfg, k) == v, k
+    p = build_parser()
+    args = p.parse_args(["train", "data", "out"])
+    assert from_args(TrainConfig, args) == TrainConfig()
+    args = p.parse_args(["train", "data", "out", "--depth-lambda", "0.1", "--opacity-reg", "0.05", "--refine-poses",
+                         "--init", "depth", "--lrs.means", "1e-3", "--background", "1", "1", "1", "--no-progress"])
+    cfg = from_args(TrainConfig, args)
+    assert (cfg.depth_lambda, cfg.opacity_reg, cfg.refine_poses, cfg.init) == (0.1, 0.05, True, "depth")
+    assert cfg.lrs.means == 1e-3 and cfg.background == (1.0, 1.0, 1.0) and cfg.progress is False
+    assert cfg.iters == TrainConfig.iters

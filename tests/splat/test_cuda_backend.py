@@ -163,6 +163,7 @@ def test_auto_picks_cuda_when_available(gsplat_on_cpu):
     assert meta["backend"] == "cpu"
 
 
+@pytest.mark.slow
 def test_train_resume_and_eval_on_cuda_backend(gsplat_on_cpu, tmp_path):
     """`splattwin train/eval --device cuda`: the trainer's CUDA path (device placement, densification from
     gsplat's means2d gradients, checkpoints and resume, PLY) runs end to end and learns the scene about as

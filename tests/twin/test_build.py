@@ -8,9 +8,10 @@ import trimesh
 import yaml
 
 from splattwin.cli import main
-from splattwin.geometry.synthetic import synthetic_scene
+from splattwin.scene.synthetic import synthetic_scene
 from splattwin.twin.build import build_twin
-from splattwin.twin.manifest import Frame, Manifest
+from splattwin.poses.twin_frame import TwinFrame
+from splattwin.twin.manifest import Manifest
 from splattwin.twin.moveit import parse_scene, pose_from_msg
 
 
@@ -20,7 +21,7 @@ def twin(tmp_path_factory):
     out = tmp_path_factory.mktemp("twin")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        m = build_twin(g, labels, objects + [("ghost", 9, "a ghost")], out, Frame("ground_truth", scaled=True),
+        m = build_twin(g, labels, objects + [("ghost", 9, "a ghost")], out, TwinFrame("ground_truth", scaled=True),
                        formats=("urdf", "moveit", "gltf"), progress=False)
     return out, m, g, labels
 

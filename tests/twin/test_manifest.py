@@ -4,13 +4,14 @@ import numpy as np
 import pytest
 
 from splattwin.errors import InputError
-from splattwin.twin.manifest import Background, Frame, Manifest, ObjectEntry
+from splattwin.poses.twin_frame import TwinFrame
+from splattwin.twin.manifest import Background, Manifest, ObjectEntry
 
 
 def test_round_trip_and_lookup(tmp_path):
     T = np.eye(4)
     T[:3, 3] = [0.1, 0.2, 0.03]
-    m = Manifest(frame=Frame("marker", True, scale_uncertainty_rel=0.01),
+    m = Manifest(frame=TwinFrame("marker", True, scale_uncertainty_rel=0.01),
                  objects=[ObjectEntry("box", 1, "blue box", T_world_obj=T.tolist(), mass=0.2),
                           ObjectEntry("ghost", 2, usable=False, problem="missing label")],
                  background=Background(table_height=0.0), timings={"geometry.mesh": 1.5})
@@ -38,7 +39,7 @@ def test_bad_manifests_raise_input_error(tmp_path):
 
 def test_frame_records_the_input_world_and_is_checked(tmp_path):
     F = np.diag([1.0, -1.0, -1.0, 1.0])
-    m = Manifest(frame=Frame("known_poses", True, T_twin_input=F.tolist(), up_check={"input_up": "-z"}))
+    m = Manifest(frame=TwinFrame("known_poses", True, T_twin_input=F.tolist(), up_check={"input_up": "-z"}))
     m.save(tmp_path)
     back = Manifest.load(tmp_path)
     assert np.array_equal(back.frame.T_twin_input, F) and back.frame.up_check == {"input_up": "-z"}

@@ -7,7 +7,8 @@ from PIL import Image
 from splattwin.report.screenshot import screenshot
 from splattwin.splat.gaussians import Gaussians, rgb_to_sh0
 from splattwin.twin.manifest import Manifest, ObjectEntry
-from splattwin.viewer.app import build_scene, label_colors, serve
+from splattwin.playback.view_model import label_colors
+from splattwin.viewer.app import build_scene, serve
 
 
 def _free_port() -> int:
@@ -49,6 +50,7 @@ def test_build_scene_handles(tmp_path):
         server.stop()
 
 
+@pytest.mark.slow
 def test_viewer_page_shows_content(tmp_path):
     twin = _twin(tmp_path)
     port = _free_port()
@@ -79,7 +81,59 @@ def test_far_and_huge_splats_get_their_own_hidden_layer(tmp_path):
     finally:
         server.stop()
     from splattwin.twin.manifest import Background
-    from splattwin.viewer.app import workspace_mask
+    from splattwin.playback.view_model import workspace_mask
 
     near = workspace_mask(g.means, Background())
     assert not near[:10].any() and near[10:].all()
+
+
+def _track(steps: int = 5):
+    from splattwin.robot.track import RobotTrack
+
+    V = np.array([[0, 0, 0], [0.05, 0, 0], [0, 0.05, 0], [0, 0, 0.05]], np.float32)
+    F = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]], np.uint32)
+    pos = np.zeros((steps, 1, 3))
+    pos[:, 0, 2] = np.linspace(0.0, 0.2, steps)
+    return RobotTrack(names=["link"], vertices=[V], faces=[F], colors=[(200, 40, 40)], positions=pos,
+                      rotations=np.tile(np.eye(3), (steps, 1, 1, 1)), times=np.arange(steps) * 0.1)
+
+
+def test_player_plays_and_stops_with_the_server(tmp_path):
+    """Ticking Play advances the trajectory; stopping the server ends the player thread."""
+    import time
+
+    import viser
+
+    twin = _twin(tmp_path, n=300)
+    server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
+    try:
+        h = build_scene(server, twin, _track())
+        player = h["_player"]
+        assert player.thread.is_alive()
+        h["_slider"].value = 0
+        time.sleep(0.3)
+        assert h["_slider"].value == 0                       # not playing yet
+        player.playing.value = True
+        deadline = time.time() + 5.0
+        while h["_slider"].value == 0 and time.time() < deadline:
+            time.sleep(0.02)
+        assert h["_slider"].value != 0
+    finally:
+        server.stop()
+    player.thread.join(5.0)
+    assert not player.thread.is_alive(), "the player thread outlived the server"
+
+
+def test_serve_stops_its_player(tmp_path):
+    import threading
+
+    twin = _twin(tmp_path, n=300)
+    (twin / "robot").mkdir()
+    _track().save(twin / "robot" / "playback.npz")
+    server = serve(twin, host="127.0.0.1", port=_free_port(), block=False)
+    players = [t for t in threading.enumerate() if t.name == "splattwin-viewer-player"]
+    assert players
+    server.stop()
+    for t in players:
+        t.join(5.0)
+    assert not any(t.is_alive() for t in players)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
 
-import numpy as np
+from splattwin.options import option
 
 
 @dataclass
@@ -16,50 +16,56 @@ class GeometryOptions:
     """Knobs of the Gaussians -> collision geometry conversion (defaults follow the paper, section 3.3)."""
 
     # -- stage 1: attribute filtering ------------------------------------------------------------
-    min_opacity: float = 0.1            # drop alpha < min_opacity (haze, ghosts)
-    max_scale: float | None = None      # drop Gaussians whose largest scale exceeds this (m); None: auto
-    max_scale_rel: float = 0.01         # auto max_scale = max_scale_rel * scene_scale
-    max_aspect: float = 5.0             # needle: largest / middle scale above this (flat discs are fine)
-    needle_length: float = 0.006        # ... and largest scale above this (m): shorter elongated splats line edges
-    max_flatness: float | None = None   # optional bound on largest / smallest scale (None: off)
+    min_opacity: float = option(0.1, "drop Gaussians with opacity below this (haze, ghosts)")
+    max_scale: float | None = option(None, "drop Gaussians whose largest scale exceeds this (none: max_scale_rel x "
+                                     "scene size)", unit="m")
+    max_scale_rel: float = option(0.01, "automatic max_scale as a share of the scene size (diagonal of the robust box)")
+    max_aspect: float = option(5.0, "a needle has largest / middle scale above this (flat discs are fine) ...")
+    needle_length: float = option(0.006, "... and its largest scale above this (shorter elongated splats line "
+                                  "edges)", unit="m")
+    max_flatness: float | None = option(None, "optional bound on largest / smallest scale (none: off)")
     # -- stage 2: connectivity pruning -------------------------------------------------------------
-    dbscan_eps: float = 0.02            # m (paper: 2 cm)
-    dbscan_min_samples: int = 10
-    dbscan_voxel: float | None = None   # voxel for weighted DBSCAN on voxel centroids; None: eps / 4; 0: exact
-    plane_distance: float = 0.004       # RANSAC inlier distance for the table plane (m)
-    plane_iterations: int = 500
-    support_gap: float = 0.02           # an obstacle cluster must come this close to the table (m)
-    foot_height: float = 0.006          # object points this close to the table ...
-    foot_margin: float = 0.005          # ... and this far outside the outline above them are table (0 height: off)
-    obstacle_min_points: int = 200      # smaller background clusters above the table are floaters
+    dbscan_eps: float = option(0.02, "DBSCAN eps of the connectivity pruning (paper: 2 cm)", unit="m", aliases=("eps",))
+    dbscan_min_samples: int = option(10, "DBSCAN min_samples", aliases=("min-samples",))
+    dbscan_voxel: float | None = option(None, "voxel of the weighted DBSCAN on voxel centroids (none: eps / 4; 0: "
+                                        "exact DBSCAN)", unit="m")
+    plane_distance: float = option(0.004, "RANSAC inlier distance for the table plane", unit="m")
+    plane_iterations: int = option(500, "RANSAC iterations of the table plane fit")
+    support_gap: float = option(0.02, "an obstacle cluster must come this close to the table", unit="m")
+    foot_height: float = option(0.006, "object points this close to the table ...", unit="m")
+    foot_margin: float = option(0.005, "... and this far outside the outline above them are table (foot_height 0: "
+                                "off)", unit="m")
+    obstacle_min_points: int = option(200, "smaller background clusters above the table are floaters")
     # -- stage 3: meshing --------------------------------------------------------------------------
-    mesh_voxel: float = 0.003           # finest voxel of the solid the surface points enclose (m)
-    mesh_voxel_rel: float = 0.75        # voxel at least this x the 4th-neighbour spacing (sparse splats)
-    close_iterations: int = 2           # morphological closing (voxels) sealing gaps between samples
-    alpha: float | None = None          # alpha-shape radius (m); None: alpha_factors * point spacing
-    alpha_factors: tuple = (1.5, 2.0, 3.0)   # tried in order until the outer shell is watertight
-    use_alpha: bool = True              # False: voxel remesh (marching cubes) directly
-    alpha_max_points: int = 8000        # coarser voxel for bigger objects (Delaunay cost ~ points)
-    close_bottom: bool = True           # add the unseen footprint under an object resting on the table
-    fill_to_support: bool = True        # a resting object is solid from the table up to its seen surface
-    rest_gap: float = 0.01              # an object whose lowest point is within this of the table rests on it (m)
-    densify: bool = True                # mesh each splat's alpha = surface_level ellipsoid, not only its centre
-    surface_level: float = 0.5          # alpha iso-level of a splat taken as its surface (trained centres sit inside)
-    smooth_iterations: int = 10         # Taubin smoothing of the mesh (removes the voxel staircase)
-    collision_faces: int = 1500         # face budget of collision meshes
-    visual_faces: int = 20000           # face budget of visual meshes
+    mesh_voxel: float = option(0.003, "finest voxel of the solid the surface points enclose", unit="m")
+    mesh_voxel_rel: float = option(0.75, "the voxel is at least this times the 4th-neighbour spacing (sparse splats)")
+    close_iterations: int = option(2, "morphological closing iterations (voxels) sealing gaps between samples")
+    alpha: float | None = option(None, "alpha-shape radius (none: alpha_factors x point spacing)", unit="m")
+    alpha_factors: tuple[float, ...] = option((1.5, 2.0, 3.0), "alpha radii in point spacings, tried in order until "
+                                              "the outer shell is watertight")
+    use_alpha: bool = option(True, "alpha shapes (--no-use-alpha: voxel remesh by marching cubes, faster)")
+    alpha_max_points: int = option(8000, "objects with more points get a coarser voxel (the Delaunay cost grows with "
+                                   "the points)")
+    close_bottom: bool = option(True, "add the unseen footprint under an object resting on the table")
+    fill_to_support: bool = option(True, "a resting object is solid from the table up to its seen surface")
+    rest_gap: float = option(0.01, "an object whose lowest point is within this of the table rests on it", unit="m")
+    densify: bool = option(True, "mesh each splat's alpha = surface_level ellipsoid, not only its centre")
+    surface_level: float = option(0.5, "alpha iso-level of a splat taken as its surface (trained centres sit inside)")
+    smooth_iterations: int = option(10, "Taubin smoothing of the mesh (removes the voxel staircase)")
+    collision_faces: int = option(1500, "face budget of collision meshes", aliases=("faces",))
+    visual_faces: int = option(20000, "face budget of visual meshes")
     # -- stage 4: physics --------------------------------------------------------------------------
-    density: float = 500.0              # kg/m^3 for mass = volume * density
-    convex_ratio: float = 0.85          # mesh volume / hull volume below this -> convex decomposition
-    coacd_threshold: float = 0.1       # CoACD concavity bound (relative to the object size)
-    coacd_faces: int = 400              # CoACD runs on a copy decimated to this (its cost grows fast)
-    max_convex_parts: int = 8
+    density: float = option(500.0, "mass = volume * density", unit="kg/m^3")
+    convex_ratio: float = option(0.85, "convex decomposition when mesh volume / hull volume is below this")
+    coacd_threshold: float = option(0.1, "CoACD concavity bound (relative to the object size)")
+    coacd_faces: int = option(400, "CoACD runs on a copy decimated to this (its cost grows fast)")
+    max_convex_parts: int = option(8, "at most this many convex parts per object")
     # -- bad input -----------------------------------------------------------------------------------
-    min_points: int = 50                # fewer points after cleaning -> object unusable
-    min_thickness: float = 0.002        # a cluster thinner than this (PCA extent, m) is degenerate
+    min_points: int = option(50, "an object with fewer points after cleaning is unusable")
+    min_thickness: float = option(0.002, "a cluster thinner than this (PCA extent) is degenerate", unit="m")
     # -- metrics -------------------------------------------------------------------------------------
-    f1_threshold: float = 0.005         # m
-    seed: int = 0
+    f1_threshold: float = option(0.005, "distance threshold of the F1 score against ground truth", unit="m")
+    seed: int = option(0, "seed of RANSAC and CoACD")
 
     def resolved(self, scene_scale: float) -> "GeometryOptions":
         """Copy with the scene-size dependent defaults filled in."""
@@ -85,8 +91,10 @@ class GeometryOptions:
         return cls(**kw)
 
 
-def scene_scale(means: np.ndarray) -> float:
+def scene_scale(means) -> float:
     """Diagonal (m) of the 1–99 percentile box of the points [N,3]: a size robust to floaters."""
+    import numpy as np
+
     if len(means) == 0:
         return 1.0
     lo, hi = np.percentile(means, [1, 99], axis=0)

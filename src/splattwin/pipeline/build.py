@@ -16,422 +16,240 @@ Layout of the output folder TWIN (the twin folder itself):
     TWIN/robot/               results.json, trajectories, rollout.npz, playback.npz, frames   (with a task)
     TWIN/report/index.html    the self-contained report
 
-Nothing is written outside TWIN. The whole build holds TWIN's lock (`splattwin.lock`): a second build
-into the same folder exits 2 at once. Before any stage runs, inputs that can be checked cheaply are
-(`preflight`: 2D masks against the images' sizes, the task YAML), so a bad mask file is reported
-before hours of pose estimation and training, naming the file.
+The pipeline only wires the stages and records them: each stage is `splattwin.<stage>.stage.run(inputs,
+options) -> result` (typed dataclasses), reads its own sub-config of `BuildOptions`, and is the only writer
+of its artifacts (docs/ARCHITECTURE.md lists them). Nothing is written outside TWIN. The whole build holds
+TWIN's lock (`splattwin.lock`): a second build into the same folder exits 2 at once. Before any stage
+runs, inputs that can be checked cheaply are (`preflight`: 2D masks against the images' sizes, the task
+YAML), so a bad mask file is reported before hours of pose estimation and training, naming the file.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-from dataclasses import asdict, dataclass, field
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from splattwin import io
 from splattwin.errors import InputError
+from splattwin.options import specs, to_dict
+from splattwin.pipeline.options import STAGES, BuildOptions  # noqa: F401 - STAGES re-exported
 from splattwin.pipeline.runner import Context, Stage, compute_keys, run_stages
 
 log = logging.getLogger(__name__)
 
-STAGES = ("scene", "poses", "splats", "semantics", "twin", "robot", "report")
+
+def record(result: Any, out: Path) -> dict[str, Any]:
+    """A stage result as pipeline.json records it: files inside the twin as "@relative/path" (the runner
+    checks they still exist before skipping the stage), plain values as they are."""
+    rec: dict[str, Any] = {}
+    for f in dataclasses.fields(result):
+        v = getattr(result, f.name)
+        if isinstance(v, Path):
+            rec[f.name] = "@" + Path(v).resolve().relative_to(Path(out).resolve()).as_posix()
+        elif v is None or isinstance(v, (str, int, float, bool)):
+            rec[f.name] = v
+    return rec
 
 
-@dataclass
-class BuildOptions:
-    """Everything a build depends on (recorded in the twin's manifest and used for stage hashing).
-
-    input: dataset path (any layout `splattwin.capture.load_dataset` reads), or None with `scene` set.
-    scene: options of the embedded scene to generate as input (the demo), as a dict for SceneOptions.
-    poses: "auto" | "known" | "sfm" | "robot"; robot_poses / hand_eye: files; marker_size (m).
-    masks: folder/file of 2D masks; prompt: open-vocabulary text ("blue box. yellow cube").
-    iters / resolution / device / seed / max_gaussians: splat training.
-    kappa / fusion_iters: semantic fusion. task: robot task YAML ("default" for the paper's task, None: skip).
-    """
-
-    input: str | None = None
-    scene: dict | None = None
-    poses: str = "auto"
-    robot_poses: str | None = None
-    hand_eye: str | None = None
-    marker_size: float | None = None
-    up: str = "auto"  # known poses: the world's up axis or auto-detect (PoseOptions.up; issue #16)
-    masks: str | None = None
-    prompt: str | None = None
-    iters: int = 3000
-    resolution: int = 1
-    device: str = "auto"
-    seed: int = 0
-    max_gaussians: int = 28_000
-    checkpoint_every: int = 500
-    kappa: float = 1.5
-    fusion_iters: int = 3
-    task: str | None = None
-    trials: int = 0
-    sigma: float = 0.005
-    render_frames: bool = True
-    progress: bool = True
-    extra: dict[str, Any] = field(default_factory=dict)
-
-
-# -- stages ------------------------------------------------------------------------------------------
-def _frames_dir(ctx: Context) -> Path:
-    """Where a video input's frames are extracted (inside the twin: nothing is written outside it)."""
-    return ctx.path("capture/frames")
-
-
-def _load_input(ctx: Context, validate: bool = True):
-    from splattwin.capture import load_dataset
-
-    return load_dataset(_input_path(ctx), validate=validate, frames_dir=_frames_dir(ctx))
-
-
-def _scene_stage(ctx: Context) -> dict:
-    from splattwin.scene.generate import generate
-    from splattwin.scene.options import SceneOptions
-
-    opts = ctx.options["scene"]
-    if opts is None:
-        return {}
-    generate(ctx.path("scene"), SceneOptions(**opts), progress=ctx.options["progress"])
-    return {"dir": "@scene/scene.json"}
-
-
+# -- where each stage's inputs are -------------------------------------------------------------------
 def _input_path(ctx: Context) -> Path:
-    if ctx.options["scene"] is not None:
-        return ctx.path("scene")
-    return Path(ctx.options["input"])
+    """The capture: the given dataset, or the embedded scene generated into TWIN/scene."""
+    return ctx.path("scene") if ctx.config.scene is not None else Path(ctx.config.input)
 
 
-def _scene_json(ctx: Context) -> Path:
-    """Where an embedded scene's scene.json would be for this input (it may not exist)."""
+def _scene_dir(ctx: Context) -> Path | None:
+    """The folder of an embedded scene's ground truth (scene.json) for this input, if it is one."""
     src = _input_path(ctx)
-    return (src if src.is_dir() else src.parent) / "scene.json"
+    d = src if src.is_dir() else src.parent
+    return d if (d / "scene.json").is_file() else None
 
 
-def _poses_inputs(ctx: Context) -> dict:
-    """The capture's files the poses stage reads (metadata, images, depth, masks, points), its frame.json
-    prior, and the robot pose files: hashed by content for the stage key."""
-    from splattwin.capture.dataset import VIDEO_SUFFIXES
+def _poses_inputs(ctx: Context):
+    from splattwin.poses.stage import PosesInputs
 
-    o = ctx.options
-    src = _input_path(ctx)
-    out: dict = {"robot_poses": o["robot_poses"], "hand_eye": o["hand_eye"]}
-    if src.is_file() and src.suffix in VIDEO_SUFFIXES:
-        out["capture"] = src
-        return out
-    if not src.exists():
-        out["capture"] = src
-        return out
-    ds = _load_input(ctx, validate=False)
-    files = []
-    meta_path = ds.meta.get("path")
-    if meta_path and ds.meta.get("format") in ("nerfstudio", "cameras.json", "colmap"):
-        files.append(Path(meta_path))
-        files.append((Path(meta_path).parent if Path(meta_path).is_file() else Path(meta_path)) / "frame.json")
-    files += [Path(p) for p in ds.meta.get("files", [])]  # pose lists, intrinsics, BOP json (bop, tum)
-    for f in ds.frames:
-        files += [f.image_path, f.depth_path, f.mask_path, f.label_path]
-    out["capture"] = files
-    if ds.points_xyz is not None:
-        rgb = b"" if ds.points_rgb is None else np.ascontiguousarray(ds.points_rgb).tobytes()
-        out["points"] = np.ascontiguousarray(ds.points_xyz).tobytes() + rgb
-    return out
+    # a video's frames are extracted inside the twin: nothing is written outside it
+    return PosesInputs(capture=_input_path(ctx), out_dir=ctx.path("poses"), frames_dir=ctx.path("capture/frames"))
 
 
-def _poses_stage(ctx: Context) -> dict:
-    from splattwin.poses.estimate import PoseOptions, estimate_poses
+def _semantics_inputs(ctx: Context):
+    from splattwin.semantics.stage import SemanticsInputs
 
-    o = ctx.options
-    ds = _load_input(ctx)
-    popts = PoseOptions(method=o["poses"], robot_poses=Path(o["robot_poses"]) if o["robot_poses"] else None,
-                        hand_eye=Path(o["hand_eye"]) if o["hand_eye"] else None, marker_size=o["marker_size"],
-                        work_dir=ctx.path("poses/sfm"), progress=o["progress"], seed=o["seed"],
-                        up=o.get("up", "auto"))
-    result = estimate_poses(ds, popts)
-    result.save(ctx.path("poses"))
-    return {"transforms": "@poses/transforms.json", "frame": "@poses/frame.json",
-            "registered": result.stats.get("registered"), "total": result.stats.get("total")}
+    return SemanticsInputs(transforms=ctx.path("poses/transforms.json"), splats=ctx.path("splat/point_cloud.ply"),
+                           out_dir=ctx.path("semantics"), scene_dir=_scene_dir(ctx))
 
 
-def _splat_stage(ctx: Context) -> dict:
-    from splattwin.capture import load_dataset
-    from splattwin.splat.eval import evaluate
-    from splattwin.splat.trainer import TrainConfig, train
+# -- the stages: wiring only ------------------------------------------------------------------------
+def _scene(ctx: Context) -> dict:
+    from splattwin.scene.stage import SceneInputs, run
 
-    o = ctx.options
-    ds = load_dataset(ctx.path("poses/transforms.json"))
-    cfg = TrainConfig(iters=o["iters"], resolution=o["resolution"], device=o["device"], seed=o["seed"],
-                      max_gaussians=o["max_gaussians"], checkpoint_every=o["checkpoint_every"],
-                      progress=o["progress"])
-    # resume=True: a killed run continues from its last checkpoint inside this stage. A checkpoint of
-    # another run (other options or data: this stage's key changed) is not resumed: training starts over.
-    res = train(ds, ctx.path("splat"), cfg, resume=True, on_mismatch="restart")
-    ev = evaluate(res.ply_path, ds, out_dir=ctx.path("splat/eval"), progress=o["progress"])
-    return {"ply": "@splat/point_cloud.ply", "psnr": ev.mean_psnr, "ssim": ev.mean_ssim, "split": ev.split,
-            "gaussians": len(res.gaussians), "train_s": res.wall_s}
+    if ctx.config.scene is None:
+        return {}
+    return record(run(SceneInputs(ctx.path("scene")), ctx.config.scene, progress=ctx.progress), ctx.out)
 
 
-def _load_masks(ctx: Context, image_sizes: dict | None = None):
-    """(MaskSet, the path its masks came from) for this build (`--masks`, `--prompt` or the embedded
-    scene's segmenter). image_sizes: view -> (H, W), checked for every mask file as it is read."""
-    from splattwin.capture import load_dataset
-    from splattwin.semantics.masks import load_masks, scene_masks, scene_objects
+def _poses(ctx: Context) -> dict:
+    from splattwin.poses.stage import run
 
-    o = ctx.options
-    scene_json = _scene_json(ctx)
-    objs = scene_objects(scene_json.parent) if scene_json.is_file() else None
-    if o["masks"]:
-        return load_masks(o["masks"], objects=objs, image_sizes=image_sizes), Path(o["masks"])
-    if o["prompt"]:
-        from splattwin.semantics.segment import segment_images
-
-        ds = load_dataset(ctx.path("poses/transforms.json"))
-        out = ctx.path("semantics/masks2d")
-        return segment_images({f.name: f.image_path for f in ds.train()}, o["prompt"], out_dir=out), out
-    if scene_json.is_file():  # the embedded scene: its simulated open-vocabulary segmenter
-        ms = scene_masks(scene_json.parent, kind="noisy")
-        # Only training views are fused: held-out views stay unseen for the metrics.
-        train = {f.name for f in load_dataset(ctx.path("poses/transforms.json"), validate=False).train()}
-        for d in (ms.masks, ms.scores, ms.sizes):
-            for view in [v for v in d if v not in train]:
-                del d[view]
-        return ms, scene_json.parent / "masks" / "noisy"
-    raise InputError("no 2D masks: pass --masks DIR or --prompt 'blue box. yellow cube'")
+    return record(run(_poses_inputs(ctx), ctx.config.poses, progress=ctx.progress), ctx.out)
 
 
-def _semantics_inputs(ctx: Context) -> dict:
-    o = ctx.options
-    scene_json = _scene_json(ctx)
-    out: dict = {"masks": o["masks"], "scene.json": scene_json if scene_json.is_file() else None}
-    if not o["masks"] and not o["prompt"] and scene_json.is_file():
-        out["scene_masks"] = scene_json.parent / "masks" / "noisy"
-    return out
+def _poses_files(ctx: Context) -> dict:
+    from splattwin.poses.stage import input_files
+
+    return input_files(_poses_inputs(ctx), ctx.config.poses)
 
 
-def _semantics_stage(ctx: Context) -> dict:
-    from splattwin.semantics.fusion import FusionOptions, check_views
-    from splattwin.semantics.lift import fuse_to_dir, views_for
+def _splats(ctx: Context) -> dict:
+    from splattwin.splat.stage import SplatInputs, run
 
-    from splattwin.capture import load_dataset
-    from splattwin.splat.gaussians import Gaussians
-
-    o = ctx.options
-    ds = load_dataset(ctx.path("poses/transforms.json"))
-    ms, masks_from = _load_masks(ctx, {f.name: (f.camera.height, f.camera.width) for f in ds.frames})
-    # checked here with the masks' path, so that a size or empty-mask error names it
-    import warnings
-
-    from splattwin.semantics.masks import MaskWarning
-
-    with warnings.catch_warnings():  # fuse_to_dir warns about unmatched views itself
-        warnings.simplefilter("ignore", MaskWarning)
-        check_views(views_for(ds.train() or ds.frames, ms, masks_from, all_frames=ds.frames), ms, masks_from)
-    g = Gaussians.load_ply(ctx.path("splat/point_cloud.ply"))
-    res = fuse_to_dir(g, ds, ms,
-                      ctx.path("semantics"), FusionOptions(kappa=o["kappa"], iters=o["fusion_iters"]),
-                      progress=o["progress"])
-    prompts = ms.prompts or {}
-    objects = [[res.names[k], int(k), prompts.get(k, res.names[k].replace("_", " "))] for k in res.label_ids]
-    io.write_json(ctx.path("semantics/objects.json"), objects)
-    _semantic_metrics(ctx, res, ms, g, ds)
-    return {"labels": "@semantics/labels.npy", "objects": "@semantics/objects.json"}
+    inputs = SplatInputs(transforms=ctx.path("poses/transforms.json"), out_dir=ctx.path("splat"))
+    return record(run(inputs, ctx.config.splat, progress=ctx.progress), ctx.out)
 
 
-KAPPA_SWEEP = (2.0, 1.8, 1.5, 1.2, 1.0)
+def _semantics(ctx: Context) -> dict:
+    from splattwin.semantics.stage import run
+
+    return record(run(_semantics_inputs(ctx), ctx.config.semantics, progress=ctx.progress), ctx.out)
 
 
-def _semantic_metrics(ctx: Context, res, ms, g, ds) -> None:
-    """The paper's 3D projection consistency and ghost index, the κ sweep, and 2D masks | fused labels
-    pictures, added to semantics/fusion.json and semantics/masks_vs_labels/."""
-    from splattwin.capture import load_image, load_mask
-    from splattwin.report.html import side_by_side
-    from splattwin.semantics.lift import views_for
-    from splattwin.semantics.metrics import ghost_index, projection_consistency
-    from splattwin.semantics.render import colorize
+def _semantics_files(ctx: Context) -> dict:
+    from splattwin.semantics.stage import input_files
 
-    views = views_for(ds.train() or ds.frames, ms)
-    sweep = [{"kappa": k, "consistency": projection_consistency(g.means, res.relabel(k), views, ms),
-              "ghost_index": ghost_index(res, k)} for k in KAPPA_SWEEP]
-    meta = io.read_json(ctx.path("semantics/fusion.json"))
-    meta["consistency"] = projection_consistency(g.means, res.labels, views, ms)
-    meta["ghost_index"] = ghost_index(res)
-    meta["kappa_sweep"] = sweep
-    io.write_json(ctx.path("semantics/fusion.json"), meta)
-    for f in [fr for fr in ds.train() if fr.name in ms.sizes][:3]:
-        h, w = ms.sizes[f.name]
-        mask_map = np.zeros((h, w), np.int32)
-        for k in sorted(ms.masks.get(f.name, {})):
-            mask_map[ms.masks[f.name][k]] = k
-        img = load_image(f.image_path)
-        fused = load_mask(ctx.path(f"semantics/label_maps/raw/{f.name}.png")).astype(np.int32)
-        pic = side_by_side([colorize(mask_map, res.names, img, legend=False), colorize(fused, res.names, img)])
-        io.write_image(ctx.path(f"semantics/masks_vs_labels/{f.name}.png"), (pic * 255 + 0.5).astype(np.uint8))
+    return input_files(_semantics_inputs(ctx), ctx.config.semantics)
 
 
-def _twin_stage(ctx: Context) -> dict:
-    from splattwin.poses.estimate import load_frame
-    from splattwin.splat.gaussians import Gaussians
-    from splattwin.twin.build import build_twin
+def _twin(ctx: Context) -> dict:
+    from splattwin.twin.options import TwinOptions
+    from splattwin.twin.stage import TwinInputs, run
 
-    o = ctx.options
-    g = Gaussians.load_ply(ctx.path("splat/point_cloud.ply"))
-    labels = np.load(ctx.path("semantics/labels.npy"))
-    objects = [tuple(x) for x in io.read_json(ctx.path("semantics/objects.json"))]
-    frame = load_frame(ctx.path("poses/frame.json"))
-    man = build_twin(g, labels, objects, ctx.out, frame=frame, cameras_path="poses/transforms.json",
-                     progress=o["progress"])
-    # Scene facts the robot task needs (goal regions) travel in the manifest's config.
-    scene_json = _scene_json(ctx)
-    if scene_json.is_file():
-        scene = io.read_json(scene_json)
-        if scene.get("target_frame"):
-            man.config["target_frame"] = scene["target_frame"]
-    # references to the inputs (absolute paths), recorded but never needed by report/view/plan/export
-    man.config["build"] = {k: (str(Path(v).resolve()) if k in _PATH_OPTIONS and v and v != "default" else v)
-                           for k, v in o.items() if k != "progress"}
-    man.splats = man.splats or "splat/point_cloud.ply"
-    man.labels = man.labels or "semantics/labels.npy"
-    man.save(ctx.out)
-    if scene_json.is_file():
-        _geometry_fidelity(ctx, scene_json.parent)
-    return {"manifest": "@twin.json"}
+    inputs = TwinInputs(splats=ctx.path("splat/point_cloud.ply"), labels=ctx.path("semantics/labels.npy"),
+                        objects=ctx.path("semantics/objects.json"), frame=ctx.path("poses/frame.json"),
+                        twin_dir=ctx.out, cameras="poses/transforms.json", scene_dir=_scene_dir(ctx),
+                        config=resolved_config(ctx.config))
+    options = TwinOptions(geometry=ctx.config.geometry, export=ctx.config.export)
+    return record(run(inputs, options, progress=ctx.progress), ctx.out)
 
 
-def _geometry_fidelity(ctx: Context, scene_dir: Path) -> None:
-    """Chamfer / precision / recall / F1 @5 mm of each object's cleaned points vs the GT mesh."""
-    from splattwin.geometry.metrics import fidelity, sample_surface
-    from splattwin.meshio import load_mesh
-    from splattwin.twin.manifest import Manifest
-
-    man = Manifest.load(ctx.out)
-    rows = {}
-    for obj in man.objects:
-        gt_path = scene_dir / "meshes" / f"{obj.name}.ply"
-        if not obj.usable or not obj.visual_mesh or not gt_path.is_file():
-            continue
-        mesh = load_mesh(ctx.out / obj.visual_mesh, f"visual mesh of {obj.name!r}")
-        mesh.apply_transform(obj.pose)
-        pts = sample_surface(mesh, spacing=0.002)
-        gt = sample_surface(load_mesh(gt_path, "ground-truth mesh"), spacing=0.002)
-        f = fidelity(pts, gt, threshold=0.005)
-        rows[obj.name] = asdict(f) if hasattr(f, "__dataclass_fields__") else dict(f)
-    io.write_json(ctx.path("geometry_metrics.json"), rows)
+def _twin_files(ctx: Context) -> dict:
+    d = _scene_dir(ctx)
+    return {"scene.json": d / "scene.json" if d is not None else None}
 
 
-_PATH_OPTIONS = ("input", "masks", "robot_poses", "hand_eye", "task")
+def _robot(ctx: Context) -> dict:
+    from splattwin.robot.stage import RobotInputs, run
+
+    if not ctx.config.robot.task:
+        return {}
+    res = run(RobotInputs(ctx.out, ctx.path("robot")), ctx.config.robot, progress=ctx.progress, record_errors=True)
+    return record(res, ctx.out)
 
 
-def _twin_inputs(ctx: Context) -> dict:
-    scene_json = _scene_json(ctx)
-    return {"scene.json": scene_json if scene_json.is_file() else None}
-
-
-def _robot_inputs(ctx: Context) -> dict:
+def _robot_files(ctx: Context) -> dict:
     from splattwin.robot.task import default_task_path
 
-    task = ctx.options["task"]
+    task = ctx.config.robot.task
     return {"task": None if not task else (default_task_path() if task == "default" else Path(task))}
 
 
-def _robot_stage(ctx: Context) -> dict:
-    o = ctx.options
-    if not o["task"]:
-        return {}
-    from splattwin.robot.outputs import write_outputs
-    from splattwin.robot.trials import TrialSpec, run_once, run_trials
+def _report(ctx: Context) -> dict:
+    from splattwin.report.stage import ReportInputs, run
 
-    out = ctx.path("robot")
-    spec = TrialSpec(twin_dir=str(ctx.out), task_path=None if o["task"] == "default" else o["task"], seed=o["seed"])
-    try:
-        result, note, frames = run_once(spec, frame_dir=out / "frames" if o["render_frames"] else None,
-                                        keep_trajectories=True)
-    except InputError as e:
-        # The task cannot run on this twin (e.g. an object whose geometry failed): record why, so the
-        # report still gets written and says it, and let the command exit 2 at the end.
-        io.write_json(out / "results.json", {"error": str(e), "task": o["task"]})
-        return {"results": "@robot/results.json", "success": False, "error": str(e)}
-    # trials land in robot/trials/<i>.json: a killed build resumes them
-    trials = run_trials(spec, o["trials"], o["sigma"], out_dir=out) if o["trials"] > 0 else None
-    # robot/rollout.npz and robot/playback.npz (the viewer's track) are written by the robot package
-    write_outputs(out, spec, result, trials, render_note=note or "", frames=frames, wall_s=result.wall_s)
-    return {"results": "@robot/results.json", "success": bool(result.success)}
-
-
-def _report_stage(ctx: Context) -> dict:
-    from splattwin.report.build import build_report
-
-    path = build_report(ctx.out, timings=ctx.timings, peak_rss_gib=ctx.peak_rss_gib)
-    return {"report": f"@{path.relative_to(ctx.out).as_posix()}"}
+    return record(run(ReportInputs(ctx.out, dict(ctx.timings), dict(ctx.peak_rss_gib))), ctx.out)
 
 
 def stages() -> list[Stage]:
-    """The pipeline. Path options are not hashed as names but by content (each stage's `inputs`); each
-    stage's `code` lists the packages whose source is part of its key (see `splattwin.pipeline.runner`)."""
-    data = ("scene", "poses", "marker_size", "seed", "up")
+    """The pipeline. Each stage's key hashes its own sub-config of BuildOptions (`option_keys`), less the
+    path options, which are hashed by content instead (each stage's `inputs`); each stage's `code` lists
+    the packages whose source is part of its key (see `splattwin.pipeline.runner`)."""
     return [
-        Stage("scene", _scene_stage, option_keys=("scene",), code=("splattwin.scene",)),
-        Stage("poses", _poses_stage, option_keys=data, deps=("scene",), inputs=_poses_inputs,
+        Stage("scene", _scene, option_keys=("scene",), code=("splattwin.scene",)),
+        Stage("poses", _poses, option_keys=("scene", "poses"), deps=("scene",), inputs=_poses_files,
               code=("splattwin.capture", "splattwin.poses")),
-        Stage("splats", _splat_stage, option_keys=("iters", "resolution", "device", "seed", "max_gaussians"),
-              deps=("poses",), code=("splattwin.splat", "splattwin.capture")),
-        Stage("semantics", _semantics_stage, option_keys=("prompt", "kappa", "fusion_iters"), deps=("splats",),
-              inputs=_semantics_inputs, code=("splattwin.semantics", "splattwin.capture")),
-        Stage("twin", _twin_stage, option_keys=(), deps=("semantics",), inputs=_twin_inputs,
+        Stage("splats", _splats, option_keys=("splat",), deps=("poses",),
+              code=("splattwin.splat", "splattwin.capture")),
+        Stage("semantics", _semantics, option_keys=("semantics",), deps=("splats",), inputs=_semantics_files,
+              code=("splattwin.semantics", "splattwin.capture")),
+        Stage("twin", _twin, option_keys=("geometry", "export"), deps=("semantics",), inputs=_twin_files,
               code=("splattwin.geometry", "splattwin.twin", "splattwin.meshio")),
-        Stage("robot", _robot_stage, option_keys=("trials", "sigma", "seed", "render_frames"), deps=("twin",),
-              inputs=_robot_inputs, code=("splattwin.robot", "splattwin.twin", "splattwin.viewer")),
+        Stage("robot", _robot, option_keys=("robot",), deps=("twin",), inputs=_robot_files,
+              code=("splattwin.robot", "splattwin.twin")),
         # The report reads every stage's outputs; its key changes whenever any of them re-ran.
-        Stage("report", _report_stage, option_keys=(), deps=("poses", "splats", "semantics", "twin", "robot"),
-              code=("splattwin.report", "splattwin.viewer")),
+        Stage("report", _report, option_keys=(), deps=("poses", "splats", "semantics", "twin", "robot"),
+              code=("splattwin.report", "splattwin.playback.view_model")),
     ]
+
+
+def resolved_config(options: BuildOptions) -> dict:
+    """The options as recorded in twin.json: every option, path options made absolute (references to the
+    inputs, never needed by report/view/plan/export)."""
+
+    def absolute(obj):
+        kw = {}
+        for spec in specs(type(obj)):
+            v = getattr(obj, spec.name)
+            if spec.nested is not None and v is not None:
+                kw[spec.name] = absolute(v)
+            elif spec.meta.get("path") and v not in (None, "", "default"):
+                kw[spec.name] = type(v)(Path(v).resolve()) if isinstance(v, Path) else str(Path(v).resolve())
+        return replace(obj, **kw)
+
+    return to_dict(absolute(options))
 
 
 def preflight(ctx: Context) -> None:
     """Checks of the inputs that need no earlier stage, before any runs (see module docstring)."""
-    o = ctx.options
-    if o["input"] is not None and o["scene"] is None and o["masks"]:
-        from splattwin.semantics.masks import scene_objects
+    o = ctx.config
+    if o.input is not None and o.scene is None and o.semantics.masks:
+        from splattwin.capture import load_dataset
+        from splattwin.semantics.stage import check_masks
 
-        ds = _load_input(ctx)
-        sizes = {f.name: (f.camera.height, f.camera.width) for f in ds.frames}
-        ms, where = _load_masks(ctx, sizes)
-        ms.validate(None, where)  # an empty set or an object that is in no view
-        known = [v for v in ms.views if v in sizes]
-        if not known:
-            raise InputError(f"no mask view matches an image of the input (masks: {', '.join(ms.views[:5])}...; "
-                             f"images: {', '.join(sorted(sizes)[:5])}...)", where)
-    if o["task"] and o["task"] != "default":
+        ds = load_dataset(_input_path(ctx), frames_dir=ctx.path("capture/frames"))
+        check_masks(o.semantics, ds.frames, _scene_dir(ctx))
+    if o.robot.task and o.robot.task != "default":
         from splattwin.robot.task import load_task
 
-        load_task(o["task"])  # the file parses as a task (bounded YAML); checked against the twin later
+        load_task(o.robot.task)  # the file parses as a task (bounded YAML); checked against the twin later
+
+
+def _context(out: str | Path, options: BuildOptions, progress: bool = True) -> Context:
+    return Context(out=Path(out), options=to_dict(options, "key"), config=options, progress=progress)
 
 
 def stage_keys(out: str | Path, options: BuildOptions) -> dict[str, str]:
     """{stage: key} for `options` and the inputs as they are now (nothing runs, nothing is written)."""
-    return compute_keys(stages(), Context(out=Path(out), options=asdict(options)))
+    return compute_keys(stages(), _context(out, options))
 
 
-def build(out: str | Path, options: BuildOptions, from_stage: str | None = None, until: str | None = None) -> Context:
-    """Run (or resume) the pipeline into the twin folder `out`. Returns the run context."""
+def check_inputs(options: BuildOptions) -> None:
+    """InputError, before anything runs, for an input or an option's file that does not exist."""
+    if options.input is None and options.scene is None:
+        raise InputError("nothing to build: give an input dataset")
+    if options.input is not None and options.scene is not None:
+        raise InputError("give either an input dataset or scene options (the embedded scene), not both")
+    if options.input is not None and not Path(options.input).exists():
+        raise InputError("input does not exist", options.input)
+    for flag, v in (("--masks", options.semantics.masks), ("--robot-poses", options.poses.robot_poses),
+                    ("--hand-eye", options.poses.hand_eye), ("--robot.robot-mjcf", options.robot.robot_mjcf)):
+        if v is not None and not Path(v).exists():
+            raise InputError(f"{flag} does not exist", v)
+    task = options.robot.task
+    if task not in (None, "default") and not Path(task).is_file():
+        raise InputError("task file not found", task)
+    options.robot.validate()
+
+
+def build(out: str | Path, options: BuildOptions, from_stage: str | None = None, until: str | None = None,
+          progress: bool = True) -> Context:
+    """Run (or resume) the pipeline into the twin folder `out`. Returns the run context.
+    progress: progress bars of every stage (not an option of the result: no stage key depends on it)."""
     from rich.console import Console
 
     from splattwin.lock import output_lock
 
     out = Path(out)
-    if options.input is None and options.scene is None:
-        raise InputError("nothing to build: give an input dataset")
-    if options.input is not None and not Path(options.input).exists():
-        raise InputError("input does not exist", options.input)
-    for k in ("masks", "robot_poses", "hand_eye"):
-        v = getattr(options, k)
-        if v is not None and not Path(v).exists():
-            raise InputError(f"--{k.replace('_', '-')} does not exist", v)
-    if options.task not in (None, "default") and not Path(options.task).is_file():
-        raise InputError("task file not found", options.task)
+    check_inputs(options)
     con = Console(stderr=True)
 
     def on_stage(name: str, status: str) -> None:
@@ -440,7 +258,7 @@ def build(out: str | Path, options: BuildOptions, from_stage: str | None = None,
         elif status == "run":
             con.print(f"[bold cyan]▶ {name}[/]")
 
-    ctx = Context(out=out, options=asdict(options))
+    ctx = _context(out, options, progress)
     with output_lock(out):
         preflight(ctx)
         return run_stages(stages(), ctx, from_stage=from_stage, until=until, on_stage=on_stage)

@@ -1,76 +1,94 @@
-"""`splattwin build` (photos → validated twin) and `splattwin demo` (the same on the embedded scene)."""
+"""`splattwin build` (photos → validated twin) and `splattwin demo` (the same on the embedded scene).
+
+Every stage option is a flag here, generated from the stage's options dataclass (`--splat.depth-lambda`,
+`--semantics.fusion.kappa`, ...; the common ones also have short names: `--iters`, `--kappa`, `--task`),
+and can come from a config file (`--config twin.yaml`, nested like the flags); flags override the file.
+"""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from splattwin.pipeline.build import STAGES
+from splattwin.options import add_config_flag, add_options, given, load_config, merge
 
 
-def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--iters", type=int, default=3000, help="splat training iterations (default 3000)")
-    p.add_argument("--resolution", type=int, default=1, help="training image downscale 1/2/4/8 or target width")
-    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto", help="rasterizer backend")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--kappa", type=float, default=1.5, help="semantic consensus strictness, tau = N/kappa")
-    p.add_argument("--from", dest="from_stage", choices=STAGES, default=None, help="redo from this stage on")
-    p.add_argument("--until", choices=STAGES, default=None, help="stop after this stage")
-    p.add_argument("--trials", type=int, default=0, help="extra robot trials with perturbed object poses")
-    p.add_argument("--sigma", type=float, default=0.005, help="object pose error of the trials: per-axis standard deviation of x and y (m); yaw "
-                        "sigma / 0.1 m rad")
-    p.add_argument("--no-frames", action="store_true", help="do not render robot execution frames")
+
+def _common(p: argparse.ArgumentParser, demo: bool) -> None:
+    from splattwin.pipeline.options import STAGES, BuildOptions
+
+    add_config_flag(p)
+    p.add_argument("--seed", type=int, help="seed of every stage (sets each --<stage>.seed)")
+    p.add_argument("--from", dest="from_stage", choices=STAGES, help="redo from this stage on")
+    p.add_argument("--until", choices=STAGES, help="stop after this stage")
+    p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
+    add_options(p, BuildOptions, build=True, exclude=("input",) if demo else ("input", "scene"))
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     b = sub.add_parser("build", help="photos → planning-ready twin: poses, splats, semantics, geometry, export",
                        description="Run the whole pipeline. Finished stages are skipped on a re-run (their inputs "
-                                   "and options are hashed); --from redoes from a stage; a killed run resumes.")
-    b.add_argument("input", type=Path, help="dataset: image folder, video, transforms.json, COLMAP, cameras.json, "
-                                            "BOP scene, or TUM pose list + intrinsics")
-    b.add_argument("--out", type=Path, required=True, help="twin folder to write")
-    b.add_argument("--prompt", default=None, help='open-vocabulary objects, e.g. "blue box. yellow cube. toy hammer"')
-    b.add_argument("--masks", type=Path, default=None, help="2D masks instead of --prompt (PNG dirs, COCO RLE, polygons, "
-                                                                  "BOP mask_visib, per-instance files)")
-    b.add_argument("--poses", choices=("auto", "known", "sfm", "robot"), default="auto")
-    b.add_argument("--robot-poses", type=Path, default=None, help="T_base_ee per image (JSON/YAML)")
-    b.add_argument("--hand-eye", type=Path, default=None, help="T_ee_cam (JSON/YAML)")
-    b.add_argument("--marker-size", type=float, default=None, help="ArUco marker side (m) for metric scale")
-    b.add_argument("--up", default="auto", choices=("auto", "keep", "+z", "-z", "+y", "-y", "+x", "-x"),
-                   help="known poses: the world axis pointing up (--up=-z, --up=+y, ...); auto finds it (cameras, table plane) and turns "
-                        "z-down worlds z up; keep = trust the poses")
-    b.add_argument("--task", default=None, help="robot task YAML to validate in physics ('default' = paper's task)")
-    _common(b)
+                                   "and options are hashed); --from redoes from a stage; a killed run resumes. "
+                                   "Options: flags, or a YAML file (--config) nested like them; flags win.")
+    b.add_argument("input", type=Path, nargs="?", help="dataset: image folder, video, transforms.json, COLMAP, "
+                                                       "cameras.json, BOP scene, or TUM pose list + intrinsics (or "
+                                                       "`input:` in the config file)")
+    b.add_argument("--out", type=Path, help="twin folder to write (required)")
+    _common(b, demo=False)
     b.set_defaults(func=_build)
 
     d = sub.add_parser("demo", help="the whole pipeline on the embedded tabletop scene, the three-step task "
                                     "in physics, and the HTML report")
     d.add_argument("--out", type=Path, default=Path("demo_out"))
-    d.add_argument("--width", type=int, default=320)
-    d.add_argument("--height", type=int, default=240)
-    d.add_argument("--views", type=int, default=15)
-    d.add_argument("--heldout", type=int, default=5)
-    _common(d)
+    _common(d, demo=True)
     d.set_defaults(func=_demo)
 
 
-def _options(args: argparse.Namespace, **kw):
-    from splattwin.pipeline.build import BuildOptions
+def resolve_options(args: argparse.Namespace, demo: bool = False):
+    """BuildOptions of a command line: the demo's or the built-in defaults, then the config file, then
+    --seed, then the flags given."""
+    from splattwin.pipeline.options import BuildOptions
+    from splattwin.poses.options import PoseOptions
+    from splattwin.robot.options import RobotOptions
+    from splattwin.scene.options import SceneOptions
 
-    return BuildOptions(iters=args.iters, resolution=args.resolution, device=args.device, seed=args.seed,
-                        kappa=args.kappa, trials=args.trials, sigma=args.sigma, render_frames=not args.no_frames, **kw)
+    opts = BuildOptions()
+    if demo:  # the embedded scene as input, its poses as known, the paper's task
+        opts = BuildOptions(scene=SceneOptions(), poses=PoseOptions(method="known"), robot=RobotOptions(task="default"))
+    if args.config is not None:
+        opts = load_config(args.config, BuildOptions, base=opts)
+    if args.seed is not None:
+        opts = opts.with_seed(args.seed)
+    opts = merge(opts, given(args, BuildOptions))
+    if not demo and getattr(args, "input", None) is not None:
+        opts = merge(opts, {"input": str(args.input)})
+    return opts
+
+
+def _run(args: argparse.Namespace, demo: bool) -> int:
+    from splattwin.errors import InputError
+    from splattwin.options import dump_yaml, to_dict
+    from splattwin.pipeline.build import build
+
+    opts = resolve_options(args, demo)
+    if args.print_config:
+        print(dump_yaml(to_dict(opts, "config")), end="")
+        return 0
+    if args.out is None:
+        raise InputError("--out TWIN is required: the twin folder to write")
+    if not demo and opts.input is None:
+        raise InputError("no input: give the dataset (splattwin build INPUT --out TWIN) or `input:` in --config")
+    ctx = build(args.out, opts, from_stage=args.from_stage, until=args.until, progress=args.progress)
+    _print_headline(ctx)
+    return _exit_code(ctx)
 
 
 def _build(args: argparse.Namespace) -> int:
-    from splattwin.pipeline.build import build
+    return _run(args, demo=False)
 
-    opts = _options(args, input=str(args.input), poses=args.poses,
-                    robot_poses=str(args.robot_poses) if args.robot_poses else None,
-                    hand_eye=str(args.hand_eye) if args.hand_eye else None, marker_size=args.marker_size, up=args.up,
-                    masks=str(args.masks) if args.masks else None, prompt=args.prompt, task=args.task)
-    ctx = build(args.out, opts, from_stage=args.from_stage, until=args.until)
-    _print_headline(ctx)
-    return _exit_code(ctx)
+
+def _demo(args: argparse.Namespace) -> int:
+    return _run(args, demo=True)
 
 
 def _exit_code(ctx) -> int:
@@ -79,16 +97,6 @@ def _exit_code(ctx) -> int:
     if robot.get("error"):
         return 2
     return 0 if robot.get("success", True) else 1
-
-
-def _demo(args: argparse.Namespace) -> int:
-    from splattwin.pipeline.build import build
-
-    scene = {"seed": args.seed, "width": args.width, "height": args.height, "views": args.views, "heldout": args.heldout}
-    opts = _options(args, scene=scene, poses="known", task="default")
-    ctx = build(args.out, opts, from_stage=args.from_stage, until=args.until)
-    _print_headline(ctx)
-    return _exit_code(ctx)
 
 
 def _print_headline(ctx) -> None:

@@ -40,7 +40,7 @@ class Stage:
     """One pipeline stage.
 
     run(ctx) -> dict of output name -> path (relative to the twin folder) or plain values.
-    option_keys: the options (ctx.options keys) this stage's result depends on.
+    option_keys: the options (ctx.options keys, e.g. a stage's whole sub-config) its result depends on.
     deps: names of earlier stages whose results it consumes.
     inputs(ctx) -> {name: path or list of paths or None}: files/folders read from outside the stages'
         outputs (hashed by content when the key is computed, i.e. after the earlier stages ran).
@@ -62,12 +62,17 @@ class Stage:
 
 @dataclass
 class Context:
+    """A run: the twin folder, the options as hashed into stage keys (`options`: {key: plain value}), the
+    options object the stages read (`config`, e.g. BuildOptions), and what the stages returned."""
+
     out: Path
     options: dict[str, Any]
     results: dict[str, dict[str, Any]] = field(default_factory=dict)  # stage name -> its outputs
     timings: dict[str, float] = field(default_factory=dict)
     peak_rss_gib: dict[str, float] = field(default_factory=dict)
     digests: DigestCache | None = None
+    config: Any = None
+    progress: bool = True
 
     def path(self, rel: str | Path) -> Path:
         return self.out / rel

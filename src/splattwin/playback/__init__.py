@@ -4,9 +4,12 @@ picture, any camera (capture, user, eye-in-hand) renders the scene as it changes
 Layering: capture -> poses -> splat -> semantics -> geometry -> twin -> robot -> **playback** -> report/viewer.
 It may import anything below it; only report, viewer and the CLI import it.
 
+`view_model.TwinView`: the twin as the viewer and the report draw it (splat layers, label colours,
+collision parts, the robot's recorded track), without any GUI.
+
 Entry points (thin calls for the report, the viewer and `plan --record`):
     scene = DynamicScene.load(twin_dir)                       # splats split into background + objects, holes
-    renderer = PlaybackRenderer(scene, RobotSplats.panda())   # robot as Gaussians (see robot.py for why)
+    renderer = PlaybackRenderer(scene, RobotSplats.panda())   # robot as Gaussians (compositor.py; robot.py says why)
     frame = renderer.render(camera, object_poses, qpos)       # one photoreal frame (rgb, depth, alpha)
     render_rollout_video(renderer, rollout, camera, out_mp4)  # MP4 of an executed task (playback.movie)
     write_episode(out_dir, rollout, renderer, cameras)        # LeRobot-layout episode (playback.episode)

@@ -36,7 +36,7 @@ def run_render(args: argparse.Namespace) -> int:
     from splattwin.errors import InputError
     from splattwin.playback.cameras import EyeInHand, resolve_camera
     from splattwin.playback.movie import render_rollout_video
-    from splattwin.playback.render import PlaybackRenderer
+    from splattwin.playback.compositor import PlaybackRenderer
     from splattwin.playback.robot import RobotSplats
     from splattwin.playback.scene import DynamicScene
     from splattwin.robot.rollout import Rollout

@@ -106,7 +106,7 @@ def write_episode(root: str | Path, rollout, renderer, cameras: dict, fps: float
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from splattwin.playback.render import rollout_state
+    from splattwin.playback.compositor import rollout_state
 
     root = Path(root)
     if not cameras:
@@ -285,7 +285,7 @@ def check_episode(episode: Episode, rollout, renderer=None, cameras: dict | None
     fps), every row's state, action, timestamp, indices against the rollout sample it names, every video's
     frame count and, with a renderer and the cameras, every decoded frame against a fresh render of that
     state (PSNR >= min_psnr dB: H.264 is lossy)."""
-    from splattwin.playback.render import rollout_state
+    from splattwin.playback.compositor import rollout_state
 
     fps = float(fps or episode.info.get("fps"))
     src = sample_indices(rollout.t, fps)

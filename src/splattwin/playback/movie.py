@@ -9,7 +9,7 @@ import numpy as np
 from splattwin.capture.camera import Camera
 from splattwin.playback.cameras import EyeInHand, check_camera
 from splattwin.playback.episode import sample_indices
-from splattwin.playback.render import PlaybackRenderer, rollout_state
+from splattwin.playback.compositor import PlaybackRenderer, rollout_state
 from splattwin.playback.video import Mp4Writer
 
 

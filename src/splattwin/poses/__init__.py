@@ -1,7 +1,20 @@
 """Poses stage: camera poses (SfM with pycolmap, known poses, robot poses + hand-eye) and the metric twin
-frame (robot alignment, ArUco marker, table plane + known length, or flagged unscaled)."""
+frame (robot alignment, ArUco marker, table plane + known length, or flagged unscaled).
 
-from splattwin.poses.estimate import PoseOptions, PoseResult, estimate_poses, load_frame
-from splattwin.poses.table import KnownLength
+Imports are lazy: `splattwin.poses.options` is read by `splattwin --help` without numpy or pycolmap.
+"""
 
-__all__ = ["KnownLength", "PoseOptions", "PoseResult", "estimate_poses", "load_frame"]
+from __future__ import annotations
+
+import importlib
+
+_EXPORTS = {"PoseOptions": "options", "PoseResult": "estimate", "estimate_poses": "estimate",
+            "load_frame": "twin_frame", "TwinFrame": "twin_frame", "KnownLength": "table"}
+
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f"splattwin.poses.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module 'splattwin.poses' has no attribute {name!r}")

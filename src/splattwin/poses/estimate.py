@@ -10,14 +10,13 @@ that applies:
 4. Robot poses alone → robot base frame; known dataset poses → kept as they are (assumed metric).
 5. Otherwise RANSAC table plane without scale → table frame marked "unscaled" (robot stages refuse it).
 
-Every result carries a `splattwin.twin.manifest.Frame` naming the method and the 1-sigma relative scale
+Every result carries a `splattwin.poses.twin_frame.TwinFrame` naming the method and the 1-sigma relative scale
 uncertainty.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,61 +28,14 @@ from splattwin.capture.camera import Camera
 from splattwin.capture.dataset import Dataset, Frame as DataFrame, load_image
 from splattwin.errors import InputError
 from splattwin.poses import align
+from splattwin.poses.options import UP_AXES, PoseOptions
 from splattwin.poses.table import KnownLength
-from splattwin.twin.manifest import Frame
+from splattwin.poses.twin_frame import FRAME_FILE, TwinFrame, load_frame
 
 log = logging.getLogger(__name__)
 
-FRAME_FILE = "frame.json"
 REPORT_FILE = "poses_report.json"
 DEPTH_PLY = "points3D_depth.ply"
-
-
-@dataclass
-class PoseOptions:
-    """Options of `estimate_poses`.
-
-    method: "auto" | "sfm" | "known" | "robot".
-    robot_poses / hand_eye: files (see `splattwin.poses.robot`); hand_eye may also be inline in robot_poses.
-    marker_size: ArUco side in metres (enables the marker frame); marker_dict, marker_id: which marker.
-    known_length: scale for the table-plane frame (see `splattwin.poses.table.KnownLength`).
-    intrinsics: None = estimate (SfM) / take the dataset's; "dataset" = the dataset's K, kept fixed;
-      (fx, fy, cx, cy) pixels = known, kept fixed.
-    min_registered: SfM must register at least this many images (None: all but 3, at least 3).
-    max_image_size / max_num_features / retry / num_threads: see `splattwin.poses.sfm.SfmOptions`.
-    work_dir: SfM scratch folder (database, model) for resuming; None = a temp folder.
-    depth_points: also back-project depth images (RGB-D) into a point cloud when the frame is metric.
-    triangulate: known/robot poses without a point cloud (and without depth for one): triangulate sparse
-      points from the images with the poses held fixed (`splattwin.poses.triangulate`).
-    up: which way is up in a known-pose world ("auto" detects it; see `splattwin.poses.up`).
-    """
-
-    method: str = "auto"
-    robot_poses: Path | None = None
-    hand_eye: Path | None = None
-    marker_size: float | None = None
-    marker_dict: str = "DICT_4X4_50"
-    marker_id: int = 0
-    known_length: KnownLength | None = None
-    intrinsics: str | tuple[float, float, float, float] | None = None
-    camera_model: str = "SIMPLE_RADIAL"
-    shared_intrinsics: bool = True
-    matcher: str = "auto"
-    min_registered: int | None = None
-    max_image_size: int = 1600
-    max_num_features: int = 4096
-    retry: bool = True
-    num_threads: int = 0
-    work_dir: Path | None = None
-    depth_points: bool = True
-    triangulate: bool = True
-    depth_stride: int = 4
-    # known poses: the input world's up axis. "auto" = detect from the cameras and the table plane and
-    # rotate z-down / y-up / tilted worlds to z up (splattwin.poses.up), stop when ambiguous; "+z", "-z",
-    # "+y", ... = that axis is up; "keep" = use the poses as they are (no check). New option (issue #16).
-    up: str = "auto"
-    progress: bool = True
-    seed: int = 0
 
 
 @dataclass
@@ -100,7 +52,7 @@ class PoseResult:
 
     frames: list[DataFrame]
     unregistered: list[str]
-    frame: Frame
+    frame: TwinFrame
     points_xyz: np.ndarray | None = None
     points_rgb: np.ndarray | None = None
     depth_xyz: np.ndarray | None = None
@@ -150,25 +102,10 @@ class PoseResult:
         return nerfstudio.write(ds, out / "transforms.json", ply_name="points3D.ply")
 
 
-def load_frame(path: str | Path) -> Frame:
-    """Frame definition from a frame.json (or the folder holding it)."""
-    path = Path(path)
-    if path.is_dir():
-        path = path / FRAME_FILE
-    if not path.is_file():
-        raise InputError("no frame definition here (expected frame.json)", path)
-    try:
-        return Frame(**json.loads(path.read_text()))
-    except (json.JSONDecodeError, TypeError) as e:
-        raise InputError(f"malformed frame definition: {e}", path) from e
-
-
 # ------------------------------------------------------------------------------------------------
 def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> PoseResult:
     """Camera poses for `dataset` and the frame they are expressed in (see module docstring)."""
-    opts = options or PoseOptions()
-    if opts.known_length is not None:
-        opts.known_length.validate()
+    opts = _normalised(options or PoseOptions())
     if not dataset.frames:
         raise InputError("dataset has no frames", dataset.root)
     method = opts.method
@@ -176,7 +113,7 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         method = "robot" if opts.robot_poses is not None else ("known" if dataset.has_poses else "sfm")
     if method not in ("sfm", "known", "robot"):
         raise InputError(f"unknown pose method {opts.method!r} (auto, sfm, known, robot)")
-    if opts.up not in ("auto", "keep", "+x", "-x", "+y", "-y", "+z", "-z"):
+    if opts.up not in UP_AXES:
         raise InputError(f"--up {opts.up!r}: use auto, keep, or the world axis that points up (+z, -z, +y, -y, +x, -x)")
     if method == "known" and not dataset.has_poses:
         raise InputError("--known: this dataset has no camera poses (use --sfm or --robot-poses)", dataset.root)
@@ -187,8 +124,8 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
     stats: dict = {"method": method, "total": len(frames)}
     pts_xyz = pts_rgb = None
     T_out_in = np.eye(4)
-    frame: Frame | None = None
-    prior: Frame | None = None
+    frame: TwinFrame | None = None
+    prior: TwinFrame | None = None
     in_cams: dict[str, Camera]
 
     if method == "sfm":
@@ -218,7 +155,7 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         assert robot_T is not None
         in_cams = {n: _with_pose(f.camera, robot_T[n], opts) for f, n in zip(frames, names) if n in robot_T}
         stats.update(registered=len(in_cams))
-        frame = Frame(source="robot", scaled=True, scale_uncertainty_rel=0.0,
+        frame = TwinFrame(source="robot", scaled=True, scale_uncertainty_rel=0.0,
                       description="robot base frame: T_base_cam = T_base_ee @ T_ee_cam (metres)")
         input_scaled = True
     else:
@@ -226,10 +163,10 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         pts_xyz, pts_rgb = dataset.points_xyz, dataset.points_rgb
         stats.update(registered=len(in_cams))
         meta_frame = dataset.meta.get("frame")
-        prior = Frame(**meta_frame) if isinstance(meta_frame, dict) else _frame_beside(dataset)
+        prior = TwinFrame(**meta_frame) if isinstance(meta_frame, dict) else _frame_beside(dataset)
         # A COLMAP model is SfM output: arbitrary scale unless a frame.json beside it says otherwise.
         input_scaled = prior is not None or dataset.meta.get("format") != "colmap"
-        frame = prior or (Frame(source="known_poses", scaled=True, scale_uncertainty_rel=None,
+        frame = prior or (TwinFrame(source="known_poses", scaled=True, scale_uncertainty_rel=None,
                                 description="camera poses given with the dataset, assumed metric")
                           if input_scaled else None)
 
@@ -247,7 +184,7 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         except ValueError as e:
             raise InputError(f"cannot align SfM to the robot poses: {e}", opts.robot_poses) from e
         T_out_in = fit.S
-        frame = Frame(source="sfm+robot", scaled=True, scale_uncertainty_rel=fit.scale_uncertainty_rel,
+        frame = TwinFrame(source="sfm+robot", scaled=True, scale_uncertainty_rel=fit.scale_uncertainty_rel,
                       description=f"robot base frame via Umeyama Sim(3) of {len(src)} SfM camera centres to robot "
                                   f"camera centres; residual RMS {fit.rms * 1000:.2f} mm")
         stats["umeyama"] = {"residual_rms_m": fit.rms, "residual_max_m": float(fit.residuals.max()),
@@ -261,7 +198,7 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         mf = fit_marker(cams, imgs, opts.marker_size, opts.marker_dict, opts.marker_id, where=dataset.root,
                         pixel_sigma_floor=float(stats.get("mean_reproj_error", 0.0)))
         T_out_in = align.sim3_inverse(mf.S_sfm_marker)
-        frame = Frame(source="marker", scaled=True, scale_uncertainty_rel=mf.scale_uncertainty_rel,
+        frame = TwinFrame(source="marker", scaled=True, scale_uncertainty_rel=mf.scale_uncertainty_rel,
                       description=f"ArUco {opts.marker_dict} id {opts.marker_id} ({opts.marker_size * 1000:.1f} mm) frame: "
                                   f"origin at its centre, z = its normal; seen in {len(mf.views)} views, "
                                   f"corner reprojection RMS {mf.reproj_rms:.2f} px")
@@ -288,12 +225,12 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
                                                    stats.get("mean_reproj_error", 0.5))
             S = np.diag([s, s, s, 1.0])
             T_out_in = S @ T_tab_in
-            frame = Frame(source="table_plane+known_length", scaled=True, scale_uncertainty_rel=unc,
+            frame = TwinFrame(source="table_plane+known_length", scaled=True, scale_uncertainty_rel=unc,
                           description=f"table frame (RANSAC plane, z up, table top z = 0, origin near the table "
                                       f"centre); scale from {note} = {opts.known_length.value} m")
         else:
             T_out_in = T_tab_in
-            frame = Frame(source="unscaled", scaled=False, scale_uncertainty_rel=None,
+            frame = TwinFrame(source="unscaled", scaled=False, scale_uncertainty_rel=None,
                           description="table frame (RANSAC plane, z up, table top z = 0) in arbitrary SfM units: "
                                       "NOT metric. Give --marker-size, --known-length or --robot-poses for a metric twin")
             log.warning("no metric scale: the frame is marked 'unscaled' and robot stages will refuse it")
@@ -359,8 +296,8 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
 
 
 # ------------------------------------------------------------------------------------------------
-def _check_up(frame: Frame, cams: list[Camera], pts_xyz: np.ndarray | None, frames: list[DataFrame],
-              dataset: Dataset, opts: PoseOptions, stats: dict) -> tuple[Frame, np.ndarray]:
+def _check_up(frame: TwinFrame, cams: list[Camera], pts_xyz: np.ndarray | None, frames: list[DataFrame],
+              dataset: Dataset, opts: PoseOptions, stats: dict) -> tuple[TwinFrame, np.ndarray]:
     """Known poses: find up (cameras + table plane of the points or depth) and rotate the world to z up
     (`splattwin.poses.up`). Returns the frame (with `up_check`) and T_out_in."""
     if opts.up == "keep":
@@ -392,7 +329,7 @@ def _sfm_keys(frames: list[DataFrame]) -> dict[str, str]:
     return {r: _frame_key(f) for r, f in zip(rel, frames)}
 
 
-def _frame_beside(dataset: Dataset) -> Frame | None:
+def _frame_beside(dataset: Dataset) -> TwinFrame | None:
     """A frame.json written by this stage next to the dataset's transforms.json (chained runs)."""
     p = Path(dataset.meta.get("path", dataset.root))
     cand = (p.parent if p.is_file() else p) / FRAME_FILE
@@ -425,6 +362,34 @@ def _sfm_options(opts: PoseOptions, intrinsics: tuple[float, float, float, float
                       matcher=opts.matcher, ordered=ordered, min_registered=opts.min_registered,
                       max_image_size=opts.max_image_size, max_num_features=opts.max_num_features, retry=opts.retry,
                       num_threads=opts.num_threads, seed=opts.seed)
+
+
+def _normalised(opts: PoseOptions) -> PoseOptions:
+    """Options with their text forms parsed (known_length -> KnownLength, intrinsics -> (fx, fy, cx, cy))."""
+    kl = opts.known_length
+    if isinstance(kl, str):
+        kl = KnownLength.parse(kl)
+    if kl is not None:
+        kl.validate()
+    return dataclasses.replace(opts, known_length=kl, intrinsics=parse_intrinsics(opts.intrinsics))
+
+
+def parse_intrinsics(value) -> str | tuple[float, float, float, float] | None:
+    """None, "dataset", "fx,fy,cx,cy" (pixels) or a sequence of four numbers -> None, "dataset" or a tuple."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        if value.strip() == "dataset":
+            return "dataset"
+        try:
+            value = [float(v) for v in value.split(",")]
+        except ValueError as e:
+            raise InputError(f"--intrinsics {value!r}: expected fx,fy,cx,cy in pixels or 'dataset'") from e
+    vals = tuple(float(v) for v in value)
+    if len(vals) != 4 or vals[0] <= 0 or vals[1] <= 0:
+        raise InputError(f"--intrinsics {value!r}: expected four numbers fx,fy,cx,cy with positive focal lengths")
+    return vals  # type: ignore[return-value]
+
 
 
 def _intrinsics_tuple(opts: PoseOptions, frames: list[DataFrame]) -> tuple[float, float, float, float] | None:

@@ -47,6 +47,7 @@ from splattwin import io
 from splattwin.capture.camera import Camera, invert_se3
 from splattwin.errors import InputError
 from splattwin.poses import colmap_process
+from splattwin.poses.options import MATCHERS
 from splattwin.poses.progress import StageProgress
 
 log = logging.getLogger(__name__)
@@ -55,7 +56,6 @@ _ADVICE = ("try: more overlap between views (each part of the table seen from >=
            "neighbouring views 15-30 degrees apart), more texture in the scene, known intrinsics "
            "(--intrinsics fx,fy,cx,cy), or known/robot poses (--known, --robot-poses)")
 
-MATCHERS = ("auto", "exhaustive", "sequential", "retrieval")
 # Relaxed retries map with this many random seeds (keeping the best) on captures of up to this many
 # images: mapping then takes < 1 s per run, and on the cake photos (guided matches) single runs registered
 # 6, 8, 8, 6, 6, 7 of 8 images with seeds 1-6.

@@ -61,25 +61,14 @@ def render_meshes(meshes: list, T_world_cam: np.ndarray, K: np.ndarray, width: i
     return img
 
 
-def _twin_meshes(twin_dir: Path, man) -> list:
-    from splattwin.meshio import load_mesh
-    from splattwin.viewer.app import label_colors
+def _twin_meshes(twin_dir: Path) -> list:
+    """World-frame collision parts in their label colours (the background in table colour)."""
+    from splattwin.playback.view_model import collision_parts
+    from splattwin.twin.manifest import Manifest
 
-    out = []
-    for obj in man.objects:
-        if not obj.usable:
-            continue
-        parts = obj.convex_parts or ([obj.collision_mesh] if obj.collision_mesh else [])
-        col = label_colors(np.array([obj.label]))[0] / 255.0
-        for rel in parts:
-            m = load_mesh(twin_dir / rel, f"collision mesh of {obj.name!r}")
-            m.apply_transform(obj.pose)
-            out.append((m.vertices, m.faces, tuple(col)))
-    bg = man.background
-    for rel in bg.convex_parts or ([bg.collision_mesh] if bg.collision_mesh else []):
-        m = load_mesh(twin_dir / rel, "background collision mesh")
-        out.append((m.vertices, m.faces, (0.75, 0.72, 0.66)))
-    return out
+    parts = collision_parts(twin_dir, Manifest.load(twin_dir))
+    return [(p.world_vertices(), p.faces, (0.75, 0.72, 0.66) if p.owner == "background" else
+             tuple(c / 255.0 for c in p.color)) for p in parts]
 
 
 def _mesh_views(meshes: list, cameras: list) -> list[np.ndarray]:
@@ -164,7 +153,7 @@ def _guarded(fn, sec: Section, *args) -> None:
 
 def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
     from splattwin.capture import load_dataset, load_image
-    from splattwin.report.html import side_by_side
+    from splattwin.pictures import side_by_side
 
     tj = twin / "poses" / "transforms.json"
     if not tj.is_file():
@@ -258,7 +247,7 @@ def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
             sec.text(f"no camera views of the collision geometry: {e}")
     if ds is not None:
         cams = [f.camera for f in ds.frames[:: max(1, len(ds.frames) // 3)][:3]]
-        for img in _mesh_views(_twin_meshes(twin, man), cams):
+        for img in _mesh_views(_twin_meshes(twin), cams):
             sec.image(img, caption="collision geometry (convex parts), object colours = labels")
     if man.exports:
         sec.table(["export", "path"], [[k, v] for k, v in man.exports.items()])

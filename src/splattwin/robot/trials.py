@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from splattwin.robot.options import RobotOptions
 from splattwin.robot.world import BasePose
 from splattwin.transforms import rot_z
 
@@ -63,16 +64,27 @@ def perturb_poses(poses: dict[str, np.ndarray], sigma: float, rng: np.random.Gen
 
 @dataclass
 class TrialSpec:
+    """One validation run: the twin and task, the robot and how it plans (defaults: `RobotOptions`'s),
+    and the perturbation of this trial (sigma 0: the nominal run)."""
+
     twin_dir: str
     task_path: str | None
     base: BasePose = field(default_factory=BasePose)
     robot_mjcf: str | None = None
     sigma: float = 0.0               # m, per-axis (x, y) standard deviation of the object position error
-    seed: int = 0
+    seed: int = RobotOptions.seed
     sigma_yaw: float | None = None   # rad; None: sigma / YAW_LEVER
-    tcp_site: str = "tcp"            # TCP site of a user robot MJCF
-    planner: str = "RRTConnect"
-    in_hand: str = "sensed"          # held object's pose for the transfer: "sensed" | "planned" (execute.py)
+    tcp_site: str = RobotOptions.tcp_site      # TCP site of a user robot MJCF
+    planner: str = RobotOptions.planner
+    in_hand: str = RobotOptions.in_hand        # held object's pose for the transfer (execute.py)
+
+    @classmethod
+    def from_options(cls, twin_dir: str | Path, opts: RobotOptions) -> "TrialSpec":
+        """The nominal run of `opts` on the twin in `twin_dir`."""
+        return cls(twin_dir=str(twin_dir), task_path=None if opts.task in (None, "default") else str(opts.task),
+                   base=BasePose.parse(opts.base_pose) if opts.base_pose else BasePose(),
+                   robot_mjcf=str(opts.robot_mjcf) if opts.robot_mjcf else None, seed=opts.seed,
+                   tcp_site=opts.tcp_site, planner=opts.planner, in_hand=opts.in_hand)
 
     def robot_model(self):
         """The `RobotModel` this spec names: the user's MJCF with its TCP site, else the Menagerie Panda."""

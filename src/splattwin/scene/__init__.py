@@ -1,18 +1,31 @@
 """Embedded benchmark scene ("tabletop"): a seeded, ray-traced tabletop with ground truth and simulated
-segmenter masks, for testing every later stage without photos (see docs/CONTRACTS.md, "Embedded scene")."""
+segmenter masks, for testing every later stage without photos (see docs/CONTRACTS.md, "Embedded scene").
 
-from splattwin.scene.generate import generate, load_scene, scene_cameras
-from splattwin.scene.options import MaskNoise, SceneOptions
+`splattwin.scene.synthetic`: smaller generators with a known answer for the tests and benchmarks of the
+semantics and geometry stages. The package sits above every stage (it uses their types to build test
+data); only the pipeline, the tests and the benchmarks import it. Imports are lazy
+(`splattwin.scene.options` is read by `splattwin --help` and must not pull in Open3D).
+"""
 
-__all__ = ["MaskNoise", "SceneOptions", "generate", "load_scene", "scene_cameras"]
+from __future__ import annotations
+
+import importlib
+
+_EXPORTS = {"generate": "generator", "load_scene": "generator", "scene_cameras": "generator",
+            "MaskNoise": "options", "SceneOptions": "options"}
+
+__all__ = [*_EXPORTS, "synthetic_gaussians"]
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f"splattwin.scene.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module 'splattwin.scene' has no attribute {name!r}")
 
 
 def synthetic_gaussians(scene_dir, seed: int = 0, density: float = 40000.0, artefacts: bool = True, **kw):
     """Gaussians on the GT surfaces of a generated scene (+ 3DGS-like artefacts) and labels_gt [N] int32.
-    See `splattwin.scene.gaussians.synthetic_gaussians` (imported lazily: it needs the splat stage)."""
+    See `splattwin.scene.gaussians.synthetic_gaussians`."""
     from splattwin.scene.gaussians import synthetic_gaussians as _sg
 
     return _sg(scene_dir, seed=seed, density=density, artefacts=artefacts, **kw)
-
-
-__all__ += ["synthetic_gaussians"]

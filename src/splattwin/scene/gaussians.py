@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from splattwin.errors import InputError
-from splattwin.scene.generate import build_scene, load_scene
+from splattwin.scene.generator import build_scene, load_scene
 from splattwin.scene.options import SceneOptions
 from splattwin.splat.gaussians import Gaussians, rgb_to_sh0
 from splattwin.transforms import quat_wxyz_from_matrix
@@ -70,7 +70,7 @@ def synthetic_gaussians(scene_dir: str | Path, seed: int = 0, density: float = 4
     """Gaussians sampled on the scene's GT surfaces (+ artefacts) and their GT labels.
 
     Args:
-        scene_dir: a folder written by `splattwin.scene.generate`.
+        scene_dir: a folder written by `splattwin.scene.generator`.
         seed: seeds the sampling (independent of the scene's seed).
         density: object-surface Gaussians per square metre (at least `min_per_object` per object).
         table_density: table-surface Gaussians per m^2; default density / 2.

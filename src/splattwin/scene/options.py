@@ -1,13 +1,16 @@
-"""Options of the embedded tabletop scene: what to render (`SceneOptions`) and how the simulated
-open-vocabulary segmenter errs (`MaskNoise`). Both are plain dataclasses recorded verbatim in scene.json.
+"""Options of the embedded tabletop scene: what to render (`SceneOptions`), how the simulated
+open-vocabulary segmenter errs (`MaskNoise`), and the robot-style capture `scene generate --robot-capture`
+writes instead (`RobotCaptureOptions`, see `splattwin.scene.robot_capture`). Plain dataclasses recorded
+verbatim in scene.json.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 
 from splattwin.errors import InputError
+from splattwin.options import option
 
 
 @dataclass(frozen=True)
@@ -15,37 +18,26 @@ class MaskNoise:
     """Error model of the simulated open-vocabulary segmenter (one mask per view and object).
 
     Each (view, object) pair draws its own events from a generator seeded by (seed, view index, label),
-    so masks do not change when other views are added. Probabilities are per (view, object) pair.
-
-    Attributes:
-        p_miss: probability the object is not detected at all (empty mask).
-        p_partial: probability only part of the object is segmented: the pixels on one side of a random
-            straight cut are kept, a fraction drawn uniformly from `partial_keep`.
-        partial_keep: (min, max) fraction of the object's visible pixels kept by a partial detection.
-        p_bleed: probability the mask bleeds across the object's boundary.
-        bleed_px: (min, max) bleed distance in pixels (dilation radius).
-        bleed_behind_only: bleeding spreads only onto surfaces *behind* the object (deeper than the
-            object's nearby depth + `bleed_depth_margin`), as a box-prompted segmenter does; occluders in
-            front are not swallowed.
-        bleed_depth_margin: metres.
-        p_blob: probability of one spurious blob elsewhere in the image (false positive).
-        blob_radius_px: (min, max) blob radius in pixels at 320 px image width (scaled with width).
-        boundary_jitter_px: standard deviation in pixels of the smooth random boundary wobble every
-            detected mask gets (real masks never follow the silhouette exactly).
-        min_visible_px: objects with fewer visible pixels than this are never detected (too small).
+    so masks do not change when other views are added. Probabilities are per (view, object) pair. A
+    partial detection keeps the pixels on one side of a random straight cut. Bleeding spreads only onto
+    surfaces *behind* the object (deeper than its nearby depth + `bleed_depth_margin`) when
+    `bleed_behind_only`, as a box-prompted segmenter does; occluders in front are not swallowed.
     """
 
-    p_miss: float = 0.06
-    p_partial: float = 0.08
-    partial_keep: tuple[float, float] = (0.45, 0.8)
-    p_bleed: float = 0.35
-    bleed_px: tuple[int, int] = (2, 5)
-    bleed_behind_only: bool = True
-    bleed_depth_margin: float = 0.01
-    p_blob: float = 0.12
-    blob_radius_px: tuple[float, float] = (4.0, 10.0)
-    boundary_jitter_px: float = 0.7
-    min_visible_px: int = 12
+    p_miss: float = option(0.06, "probability the object is not detected at all (empty mask)")
+    p_partial: float = option(0.08, "probability only part of the object is segmented")
+    partial_keep: tuple[float, float] = option((0.45, 0.8), "(min, max) fraction of the visible pixels a partial "
+                                                "detection keeps")
+    p_bleed: float = option(0.35, "probability the mask bleeds across the object's boundary")
+    bleed_px: tuple[int, int] = option((2, 5), "(min, max) bleed distance (dilation radius)", unit="px")
+    bleed_behind_only: bool = option(True, "bleeding spreads only onto surfaces behind the object")
+    bleed_depth_margin: float = option(0.01, "depth margin of 'behind' for bleeding", unit="m")
+    p_blob: float = option(0.12, "probability of one spurious blob elsewhere in the image (false positive)")
+    blob_radius_px: tuple[float, float] = option((4.0, 10.0), "(min, max) blob radius at 320 px image width "
+                                                 "(scaled with the width)", unit="px")
+    boundary_jitter_px: float = option(0.7, "standard deviation of the smooth random boundary wobble every "
+                                       "detected mask gets", unit="px")
+    min_visible_px: int = option(12, "objects with fewer visible pixels are never detected", unit="px")
 
     def validate(self) -> None:
         for name in ("p_miss", "p_partial", "p_bleed", "p_blob"):
@@ -79,34 +71,25 @@ class MaskNoise:
 class SceneOptions:
     """What the generator renders.
 
-    Attributes:
-        seed: seeds the layout, the camera jitter, the textures and the mask noise.
-        width, height: image size in pixels.
-        views: number of training views; heldout: number of held-out views interleaved between them.
-        marker: print an ArUco marker (DICT_4X4_50, id `marker_id`) of side `marker_size` metres on the table.
-        fov_x: horizontal field of view, radians.
-        supersample: rays per pixel side for the RGB image (a box filter over the pixel, as a sensor integrates
-            light over its area); GT depth/labels use pixel centres. 5 by default: the wood grain and the 2 mm
-            speckle are above the pixel rate on the far table, and with 2x2 samples the held-out views
-            carry moire that no other view predicts (heldout_004 at 320x240: SSIM 0.955 against a 12x12
-            reference, 0.998 at 5x5; a splat trained on 2x2 images scored held-out SSIM 0.921, on 5x5
-            images 0.953).
-        shadows: cast shadows from the directional light.
-        noise: the simulated segmenter's error model.
+    supersample: rays per pixel side for the RGB image (a box filter over the pixel, as a sensor integrates
+    light over its area); GT depth/labels use pixel centres. 5 by default: the wood grain and the 2 mm
+    speckle are above the pixel rate on the far table, and with 2x2 samples the held-out views carry
+    moire that no other view predicts (heldout_004 at 320x240: SSIM 0.955 against a 12x12 reference,
+    0.998 at 5x5; a splat trained on 2x2 images scored held-out SSIM 0.921, on 5x5 images 0.953).
     """
 
-    seed: int = 0
-    width: int = 320
-    height: int = 240
-    views: int = 15
-    heldout: int = 5
-    marker: bool = False
-    marker_id: int = 0
-    marker_size: float = 0.08
-    fov_x: float = math.radians(70.0)
-    supersample: int = 5
-    shadows: bool = True
-    noise: MaskNoise = field(default_factory=MaskNoise)
+    seed: int = option(0, "layout / texture / camera jitter / mask noise seed")
+    width: int = option(320, "image width", unit="px", build_alias="width")
+    height: int = option(240, "image height", unit="px", build_alias="height")
+    views: int = option(15, "training views", build_alias="views")
+    heldout: int = option(5, "held-out views interleaved with the training views", build_alias="heldout")
+    marker: bool = option(False, "print an ArUco marker (DICT_4X4_50, id marker_id) on the table")
+    marker_id: int = option(0, "ArUco marker id (DICT_4X4_50)")
+    marker_size: float = option(0.08, "marker side", unit="m")
+    fov_x: float = option(math.radians(70.0), "horizontal field of view", unit="rad", flag="fov", degrees=True)
+    supersample: int = option(5, "rays per pixel side, box-filtered (anti-aliasing; 1-8)")
+    shadows: bool = option(True, "cast shadows from the directional light")
+    noise: MaskNoise = option(factory=MaskNoise, help="the simulated segmenter's error model")
 
     def validate(self) -> None:
         if not isinstance(self.seed, int) or self.seed < 0:
@@ -145,3 +128,39 @@ class SceneOptions:
         if isinstance(kw.get("noise"), dict):
             kw["noise"] = MaskNoise.from_dict(kw["noise"])
         return cls(**kw)
+
+
+WORLDS = ("z-down", "z-up")
+FORMATS = ("bop", "tum")
+
+
+@dataclass(frozen=True)
+class RobotCaptureOptions:
+    """What the robot-style capture looks like (`splattwin.scene.robot_capture.write_robot_capture`).
+
+    views, width, height: frames and image size (D435 intrinsics scaled to it; 4:3 expected); on `scene
+    generate` they come from the scene's --views, --width, --height. world: "z-down" (the scene's world
+    rotated 180 degrees about x) or "z-up" (the scene's own world). format: "bop" or "tum".
+    """
+
+    views: int = option(16, "frames", cli=False)
+    width: int = option(640, "image width", unit="px", cli=False)
+    height: int = option(480, "image height", unit="px", cli=False)
+    world: str = option("z-down", "world of the capture's poses (z-down: the scene's world rotated 180 deg about x)",
+                        choices=WORLDS, aliases=("robot-world",))
+    format: str = option("bop", "write a robot-style RGB-D capture instead of the scene (D435-like camera, 16-bit "
+                         "depth in mm, per-instance masks, known poses in a z-down world): a BOP scene or a TUM pose "
+                         "list", choices=FORMATS, aliases=("robot-capture",))
+    distance: tuple[float, float] = option((0.65, 0.80), "(min, max) camera distance from the look-at point", unit="m")
+    elevation: tuple[float, float] = option((50.0, 70.0), "(min, max) camera elevation above the table", unit="deg")
+    roll_deg: float = option(20.0, "largest wrist roll about the optical axis", unit="deg")
+
+    def validate(self) -> None:
+        if not 3 <= self.views <= 500:
+            raise InputError(f"robot capture views must be in [3, 500], got {self.views}")
+        if not (16 <= self.width <= 4096 and 16 <= self.height <= 4096):
+            raise InputError(f"robot capture size must be 16..4096 pixels, got {self.width}x{self.height}")
+        if self.world not in WORLDS:
+            raise InputError(f"robot capture world must be one of {', '.join(WORLDS)}, got {self.world!r}")
+        if self.format not in FORMATS:
+            raise InputError(f"robot capture format must be one of {', '.join(FORMATS)}, got {self.format!r}")

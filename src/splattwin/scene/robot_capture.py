@@ -7,7 +7,7 @@ rolled a little from view to view) with a RealSense-D435-like colour camera (640
 principal point slightly off centre; scaled with the image size), and writes it in a robot world that is
 NOT the twin's: by default z down (the scene's world rotated 180 degrees about x, `R_capture_world`).
 
-Layouts (`RobotCaptureOptions.format`):
+Layouts (`RobotCaptureOptions.format`, in `splattwin.scene.options`):
 - "bop": a BOP scene (`splattwin.capture.bop`): `scene_camera.json` (cam_K, depth_scale 1.0, world-to-
   camera poses in mm), `scene_gt.json` (obj_id = the object's scene label, model = the object's frame),
   `rgb/000000.png`, `depth/000000.png` (16-bit, mm), `mask_visib/000000_000000.png` per instance (visible
@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -33,44 +33,14 @@ import numpy as np
 from splattwin.capture.camera import Camera, look_at
 from splattwin.errors import InputError
 from splattwin.io import write_image, write_json, write_text
-from splattwin.scene.options import SceneOptions
+from splattwin.scene.options import FORMATS, WORLDS, RobotCaptureOptions, SceneOptions
 
 log = logging.getLogger(__name__)
 
 D435_SIZE = (640, 480)
 D435_K = (615.0, 615.0, 321.5, 243.5)   # fx fy cx cy at 640x480 (a typical D435 colour stream)
-WORLDS = ("z-down", "z-up")
-FORMATS = ("bop", "tum")
-
-
-@dataclass(frozen=True)
-class RobotCaptureOptions:
-    """What the robot-style capture looks like.
-
-    views: number of frames. width, height: image size (D435 intrinsics scaled to it; 4:3 expected).
-    world: "z-down" (scene world rotated 180 degrees about x) or "z-up" (the scene's own world).
-    format: "bop" or "tum" (see module docstring). distance: (min, max) metres from the look-at point;
-    elevation: (min, max) degrees above the table; roll_deg: max wrist roll about the optical axis.
-    """
-
-    views: int = 16
-    width: int = 640
-    height: int = 480
-    world: str = "z-down"
-    format: str = "bop"
-    distance: tuple[float, float] = (0.65, 0.80)
-    elevation: tuple[float, float] = (50.0, 70.0)
-    roll_deg: float = 20.0
-
-    def validate(self) -> None:
-        if not 3 <= self.views <= 500:
-            raise InputError(f"robot capture views must be in [3, 500], got {self.views}")
-        if not (16 <= self.width <= 4096 and 16 <= self.height <= 4096):
-            raise InputError(f"robot capture size must be 16..4096 pixels, got {self.width}x{self.height}")
-        if self.world not in WORLDS:
-            raise InputError(f"robot capture world must be one of {', '.join(WORLDS)}, got {self.world!r}")
-        if self.format not in FORMATS:
-            raise InputError(f"robot capture format must be one of {', '.join(FORMATS)}, got {self.format!r}")
+__all__ = ["FORMATS", "WORLDS", "RobotCaptureOptions", "R_capture_world", "d435_camera", "depth_mm", "sweep_cameras",
+           "write_robot_capture"]
 
 
 def R_capture_world(world: str) -> np.ndarray:
@@ -119,7 +89,7 @@ def write_robot_capture(out_dir: str | Path, options: SceneOptions | None = None
     from rich.progress import Progress
 
     from splattwin.capture import bop, tum
-    from splattwin.scene.generate import _to_u8, _write_ply, build_scene, look_target, scene_record
+    from splattwin.scene.generator import _to_u8, _write_ply, build_scene, look_target, scene_record
 
     options = options or SceneOptions()
     capture = capture or RobotCaptureOptions(width=options.width, height=options.height)

@@ -6,10 +6,24 @@
 - `fuse` / `naive_fusion` (`fusion`): visibility-aware fusion (paper section 3.2) and the baseline.
 - metrics (`metrics`): 2D mIoU, 3D projection consistency, ghost index.
 - `fuse_to_dir` (`lift`): files in, labels.npy + object PLYs + label maps out.
+- options (`options`): `SemanticsOptions`, `FusionOptions`, `SegmentOptions`.
+
+Imports are lazy (`splattwin.semantics.options` is read by `splattwin --help`).
 """
 
-from splattwin.semantics.fusion import FusionOptions, FusionResult, View, fuse, naive_fusion, splat_normals
-from splattwin.semantics.masks import MaskSet, MaskWarning, load_masks, scene_masks
+from __future__ import annotations
 
-__all__ = ["FusionOptions", "FusionResult", "MaskSet", "MaskWarning", "View", "fuse", "load_masks", "naive_fusion",
-           "scene_masks", "splat_normals"]
+import importlib
+
+_EXPORTS = {"FusionOptions": "options", "SegmentOptions": "options", "SemanticsOptions": "options",
+            "FusionResult": "fusion", "View": "fusion", "fuse": "fusion", "naive_fusion": "fusion",
+            "splat_normals": "fusion", "MaskSet": "masks", "MaskWarning": "masks", "load_masks": "masks",
+            "scene_masks": "masks"}
+
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f"splattwin.semantics.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module 'splattwin.semantics' has no attribute {name!r}")

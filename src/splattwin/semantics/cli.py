@@ -6,6 +6,9 @@ import argparse
 import logging
 from pathlib import Path
 
+from splattwin.options import add_options, from_args
+from splattwin.semantics.options import FusionOptions, SegmentOptions, SemanticsOptions
+
 log = logging.getLogger(__name__)
 
 
@@ -20,11 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     src.add_argument("--prompt", help='objects as phrases separated by ".", e.g. "blue box. yellow cube. toy hammer"')
     src.add_argument("--masks", type=Path, help="existing masks to import and check against the dataset images")
     p.add_argument("--out", type=Path, default=None, help="output mask folder (default DATASET/masks/segment)")
-    p.add_argument("--detector", default=None, help="Grounding DINO hub id or folder (default IDEA-Research/grounding-dino-tiny)")
-    p.add_argument("--segmenter", default=None, help="SAM / SAM 2 / SAM 3 hub id or folder (default facebook/sam-vit-base)")
-    p.add_argument("--segmenter-kind", default="auto", choices=["auto", "sam", "sam2", "sam3"])
-    p.add_argument("--box-threshold", type=float, default=0.30, help="minimum phrase score of a box (0-1)")
-    p.add_argument("--working-size", type=int, default=640, help="longest image edge fed to the detector (px)")
+    add_options(p, SegmentOptions)
     p.add_argument("--split", default="all", choices=["all", "train", "heldout"], help="which views to segment")
     p.set_defaults(func=_segment)
 
@@ -36,17 +35,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     f.add_argument("--dataset", type=Path, required=True, help="dataset with the cameras of the masks")
     f.add_argument("--masks", type=Path, required=True, help="mask folder / COCO JSON (see `splattwin segment`)")
     f.add_argument("--out", type=Path, required=True, help="output folder")
-    f.add_argument("--kappa", type=float, default=1.5, help="consensus strictness: tau = N / kappa (default 1.5)")
-    f.add_argument("--iters", type=int, default=3, help="refinement rounds (default 3)")
-    f.add_argument("--depth-tol", type=float, default=0.02, help="visibility depth tolerance, m (default 0.02)")
-    f.add_argument("--eps", type=float, default=0.02, help="DBSCAN eps on depth, m (default 0.02)")
-    f.add_argument("--min-samples", type=int, default=10, help="DBSCAN min_samples (default 10)")
-    f.add_argument("--renderer", default="auto", choices=["auto", "splat", "points"],
-                   help="depth for the visibility test: centre z-buffer (points, fast; = auto) or the rasterizer (splat)")
-    f.add_argument("--maps-renderer", default="auto", choices=["auto", "splat", "points"],
-                   help="label maps: rasterized one-hot labels (splat; auto when available) or centre z-buffer")
-    f.add_argument("--naive", action="store_true", help="use the naive voting baseline instead (for comparison)")
-    f.add_argument("--no-maps", action="store_true", help="skip rendering label maps")
+    add_options(f, FusionOptions)
+    add_options(f, SemanticsOptions, include=("renderer", "maps_renderer", "maps", "naive"))
     f.set_defaults(func=_fuse)
 
 
@@ -54,7 +44,7 @@ def _segment(args: argparse.Namespace) -> int:
     from splattwin.capture import load_dataset
     from splattwin.semantics.lift import dataset_objects
     from splattwin.semantics.masks import load_masks
-    from splattwin.semantics.segment import DEFAULT_DETECTOR, DEFAULT_SEGMENTER, SegmentOptions, segment_images
+    from splattwin.semantics.segment import segment_images
 
     ds = load_dataset(args.dataset)
     frames = ds.frames if args.split == "all" else [f for f in ds.frames if f.split == args.split]
@@ -67,9 +57,7 @@ def _segment(args: argparse.Namespace) -> int:
             ms = load_masks(args.masks, objects=objs)
             ms.validate({f.name: (f.camera.height, f.camera.width) for f in frames}, args.masks)
         else:
-            opts = SegmentOptions(detector=args.detector or DEFAULT_DETECTOR, segmenter=args.segmenter or DEFAULT_SEGMENTER,
-                                  segmenter_kind=args.segmenter_kind, box_threshold=args.box_threshold,
-                                  working_size=args.working_size)
+            opts = from_args(SegmentOptions, args)
             labels = None
             if objs:  # map prompt phrases to the scene's labels when the dataset is a generated scene
                 import json
@@ -88,16 +76,13 @@ def _segment(args: argparse.Namespace) -> int:
 
 
 def _fuse(args: argparse.Namespace) -> int:
-    from splattwin.semantics.fusion import FusionOptions
+    from splattwin.lock import output_lock
     from splattwin.semantics.lift import fuse_to_dir
 
-    from splattwin.lock import output_lock
-
-    opts = FusionOptions(kappa=args.kappa, iters=args.iters, depth_tol=args.depth_tol, eps=args.eps,
-                         min_samples=args.min_samples)
+    opts = from_args(SemanticsOptions, args, fusion=from_args(FusionOptions, args))
     with output_lock(args.out):
-        res = fuse_to_dir(args.splats, args.dataset, args.masks, args.out, opts, renderer=args.renderer,
-                          label_maps=not args.no_maps, naive=args.naive, maps_renderer=args.maps_renderer)
+        res = fuse_to_dir(args.splats, args.dataset, args.masks, args.out, opts.fusion, renderer=opts.renderer,
+                          label_maps=opts.maps, naive=opts.naive, maps_renderer=opts.maps_renderer, metrics=True)
     import json
 
     meta = json.loads((Path(args.out) / "fusion.json").read_text())

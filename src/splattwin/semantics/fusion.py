@@ -51,30 +51,11 @@ from splattwin import io
 from splattwin.capture.camera import Camera
 from splattwin.errors import InputError
 from splattwin.semantics.masks import MaskSet, MaskWarning
-from splattwin.semantics.render import DepthRenderer, PointDepth, project_to_pixels
+from splattwin.semantics.label_render import DepthRenderer, PointDepth, project_to_pixels
+from splattwin.semantics.options import FusionOptions
 from splattwin.transforms import matrix_from_quat_wxyz
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class FusionOptions:
-    """Parameters of `fuse` (units: metres)."""
-
-    kappa: float = 1.5                # consensus strictness, tau = N / kappa
-    iters: int = 3                    # refinement rounds (1 = single pass, no re-rendering)
-    depth_tol: float = 0.02           # visibility: |z - rendered depth| <= depth_tol + depth_tol_rel * depth
-    depth_tol_rel: float = 0.01
-    eps: float = 0.02                 # DBSCAN eps on depth
-    min_samples: int = 10             # DBSCAN min_samples (point itself included, like scikit-learn)
-    gate_sigma: float | None = None   # soft-gate length scale (default eps)
-    min_views: int = 1                # need >= this many visible views to be labelled by consensus
-    min_cos: float = 0.25             # flat splats seen more edge-on than this |cos| do not count as visible
-    knn_k: int = 16                   # KNN boundary smoothing
-    knn_threshold: float = 0.6        # neighbour majority share needed to flip a label
-    knn_confidence: float = 0.8       # only labels with confidence below this may flip
-    floater_share: float = 0.5        # share of in-mask observations gated out in front -> floater
-    converge_share: float = 0.001     # stop refining when fewer labels change
 
 
 @dataclass
@@ -105,15 +86,16 @@ class FusionResult:
         """Consensus labels for another kappa from the final round's votes (no KNN smoothing)."""
         return consensus(self.votes, self.n_visible, kappa, self.label_ids, self.options.min_views)[0]
 
-    def save(self, out_dir: str | Path) -> Path:
-        """`labels.npy` (int32 per Gaussian) + `fusion.json` (names, options, per-object counts, history)."""
+    def save(self, out_dir: str | Path, extra: dict | None = None) -> Path:
+        """`labels.npy` (int32 per Gaussian) + `fusion.json` (names, options, per-object counts, history,
+        and `extra`: label-map scores, metrics), the only writer of both."""
         out_dir = Path(out_dir)
         io.write_npy(out_dir / "labels.npy", self.labels.astype(np.int32))
         io.write_json(out_dir / "fusion.json", {
             "objects": [{"name": self.names[k], "label": k, "n_gaussians": int((self.labels == k).sum())}
                         for k in self.label_ids],
             "n_gaussians": int(len(self.labels)), "options": self.options.__dict__,
-            "history": self.history, "seconds": self.seconds})
+            "history": self.history, "seconds": self.seconds, **(extra or {})})
         return out_dir
 
 

@@ -2,15 +2,16 @@
 
 Output folder layout (`fuse_to_dir`):
     OUT/labels.npy                 int32 per Gaussian (0 background), order of the input PLY
-    OUT/fusion.json                objects, options, per-round history, timings, metrics when GT exists
+    OUT/fusion.json                objects, options, per-round history, timings, metrics (mIoU when GT
+                                   exists; with metrics=True consistency, ghost index, kappa sweep)
     OUT/objects/<name>.ply         each object's Gaussians (world frame, standard 3DGS PLY)
     OUT/label_maps/<view>.png      rendered label map, colour-coded with a legend (all dataset views)
     OUT/label_maps/raw/<view>.png  the same as uint8 label ids (for metrics / other tools)
+    OUT/masks_vs_labels/<view>.png 2D masks | fused labels (with metrics=True)
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 import warnings
@@ -23,12 +24,10 @@ from splattwin import io
 from splattwin.errors import InputError
 from splattwin.semantics.fusion import FusionOptions, FusionResult, View, fuse, naive_fusion, splat_normals
 from splattwin.semantics.masks import MaskSet, MaskWarning, _safe_name, load_masks, scene_objects
-from splattwin.semantics.render import PointDepth, SplatDepth, colorize, render_label_maps
+from splattwin.semantics.options import RENDERERS
+from splattwin.semantics.label_render import PointDepth, SplatDepth, colorize, render_label_maps
 
 log = logging.getLogger(__name__)
-
-RENDERERS = ("auto", "splat", "points")
-
 
 def dataset_objects(dataset_root: Path) -> dict[str, int] | None:
     """name -> label from a generated scene's scene.json next to the dataset, else None."""
@@ -82,14 +81,18 @@ def make_depth_renderer(gaussians, renderer: str = "auto"):
     return PointDepth(gaussians.means)
 
 
-def fuse_to_dir(splats: "str | Path | Gaussians", dataset: "str | Path | Dataset", masks: str | Path | MaskSet, out_dir: str | Path,
-                options: FusionOptions | None = None, renderer: str = "auto", label_maps: bool = True,
-                naive: bool = False, progress: bool = True, maps_renderer: str = "auto") -> FusionResult:
-    """Run the fusion on files and write the output folder (layout in the module docstring).
+def fuse_to_dir(splats: "str | Path | Gaussians", dataset: "str | Path | Dataset", masks: str | Path | MaskSet,
+                out_dir: str | Path, options: FusionOptions | None = None, renderer: str = "auto",
+                label_maps: bool = True, naive: bool = False, progress: bool = True, maps_renderer: str = "auto",
+                metrics: bool = False) -> FusionResult:
+    """Run the fusion on files and write the output folder (layout in the module docstring); fusion.json
+    is written last, once, with everything in it (it marks a finished output).
 
     splats / dataset: paths, or already loaded objects (the pipeline passes those it also uses afterwards).
     renderer: depth for the visibility test (`make_depth_renderer`). maps_renderer: label maps through
     the rasterizer ("splat"), the centre z-buffer ("points"), or "auto" (splat when usable).
+    metrics: also the paper's 3D projection consistency and ghost index, the kappa sweep, and 2D masks |
+    fused labels pictures (OUT/masks_vs_labels/, with label maps).
     """
     from splattwin.capture import Dataset, load_dataset
     from splattwin.splat.gaussians import Gaussians
@@ -111,7 +114,6 @@ def fuse_to_dir(splats: "str | Path | Gaussians", dataset: "str | Path | Dataset
     if naive:
         labels = naive_fusion(g.means, views, ms)
         res.labels = labels
-    res.save(out_dir)
     for k in res.label_ids:
         sel = labels == k
         if sel.any():
@@ -123,12 +125,45 @@ def fuse_to_dir(splats: "str | Path | Gaussians", dataset: "str | Path | Dataset
             raise InputError(f"unknown label-map renderer {maps_renderer!r}; choose one of {', '.join(RENDERERS)}")
         mr = maps_renderer if maps_renderer != "auto" else ("splat" if rasterizer_usable() else "points")
         summary.update(write_label_maps(g, labels, ds.frames, res.names, out_dir, renderer=mr, progress=progress))
+    if metrics:
+        summary.update(fusion_metrics(res, g.means, views, ms))
+        if label_maps:
+            write_mask_comparisons(res, ms, ds, out_dir)
     summary["seconds_total"] = time.perf_counter() - t0
-    meta = json.loads((out_dir / "fusion.json").read_text())
-    meta.update(summary)
-    meta["method"] = "naive" if naive else "visibility-aware"
-    io.write_json(out_dir / "fusion.json", meta)
+    summary["method"] = "naive" if naive else "visibility-aware"
+    res.save(out_dir, extra=summary)
     return res
+
+
+KAPPA_SWEEP = (2.0, 1.8, 1.5, 1.2, 1.0)
+
+
+def fusion_metrics(res: FusionResult, means: np.ndarray, views: Sequence[View], masks: MaskSet) -> dict:
+    """The paper's 3D projection consistency (%) and ghost index (%) of the result, and both for the
+    consensus labels of each kappa in KAPPA_SWEEP (tau = N / kappa)."""
+    from splattwin.semantics.metrics import ghost_index, projection_consistency
+
+    sweep = [{"kappa": k, "consistency": projection_consistency(means, res.relabel(k), views, masks),
+              "ghost_index": ghost_index(res, k)} for k in KAPPA_SWEEP]
+    return {"consistency": projection_consistency(means, res.labels, views, masks), "ghost_index": ghost_index(res),
+            "kappa_sweep": sweep}
+
+
+def write_mask_comparisons(res: FusionResult, masks: MaskSet, dataset, out_dir: Path, n: int = 3) -> None:
+    """OUT/masks_vs_labels/<view>.png for the first `n` training views with masks: the 2D segmenter masks
+    (the fusion's input) | the fused labels rendered (OUT/label_maps/raw)."""
+    from splattwin.capture import load_image, load_mask
+    from splattwin.pictures import side_by_side
+
+    for f in [fr for fr in dataset.train() if fr.name in masks.sizes][:n]:
+        h, w = masks.sizes[f.name]
+        mask_map = np.zeros((h, w), np.int32)
+        for k in sorted(masks.masks.get(f.name, {})):
+            mask_map[masks.masks[f.name][k]] = k
+        img = load_image(f.image_path)
+        fused = load_mask(out_dir / "label_maps" / "raw" / f"{f.name}.png").astype(np.int32)
+        pic = side_by_side([colorize(mask_map, res.names, img, legend=False), colorize(fused, res.names, img)])
+        io.write_image(out_dir / "masks_vs_labels" / f"{f.name}.png", (pic * 255 + 0.5).astype(np.uint8))
 
 
 def write_label_maps(g, labels: np.ndarray, frames: Sequence, names: dict[int, str], out_dir: Path,

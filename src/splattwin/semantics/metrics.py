@@ -19,7 +19,7 @@ import numpy as np
 
 from splattwin.semantics.fusion import FusionResult, View, consensus, visible_mask
 from splattwin.semantics.masks import MaskSet
-from splattwin.semantics.render import project_to_pixels
+from splattwin.semantics.label_render import project_to_pixels
 
 
 def iou_table(pred: Sequence[np.ndarray], gt: Sequence[np.ndarray], label_ids: Sequence[int]) -> np.ndarray:

@@ -19,7 +19,6 @@ Finished views are saved to `out_dir` as they complete, so a killed run resumes 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
@@ -27,28 +26,14 @@ import numpy as np
 
 from splattwin.errors import InputError
 from splattwin.semantics.masks import MaskSet
+# the options live in the light `splattwin.semantics.options` (re-exported here)
+from splattwin.semantics.options import (DEFAULT_DETECTOR, DEFAULT_SEGMENTER, SEGMENTER_KINDS,  # noqa: F401
+                                         SegmentOptions)
 
 log = logging.getLogger(__name__)
 
-DEFAULT_DETECTOR = "IDEA-Research/grounding-dino-tiny"
-DEFAULT_SEGMENTER = "facebook/sam-vit-base"
-SEGMENTER_KINDS = ("auto", "sam", "sam2", "sam3")
 _IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
 _IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
-
-
-@dataclass
-class SegmentOptions:
-    """Open-vocabulary segmentation settings. Sizes in pixels, thresholds in [0,1]."""
-
-    detector: str = DEFAULT_DETECTOR          # hub id or local folder
-    segmenter: str = DEFAULT_SEGMENTER        # hub id or local folder (facebook/sam2.1-hiera-tiny, facebook/sam3)
-    segmenter_kind: str = "auto"              # auto: from the model config's model_type
-    box_threshold: float = 0.30
-    working_size: int = 640                   # longest image edge fed to Grounding DINO
-    max_per_object: int = 1                   # twin objects are single instances
-    device: str = "cpu"
-    extra: dict = field(default_factory=dict)
 
 
 def parse_prompt(prompt: str) -> list[str]:

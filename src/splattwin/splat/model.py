@@ -14,28 +14,13 @@ moments together, and so learning rates are set per parameter.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import torch
 
+from splattwin.splat.config import LearningRates
 from splattwin.splat.gaussians import Gaussians, num_sh_bases
 
 PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
-
-
-@dataclass
-class LearningRates:
-    """Adam learning rates (3DGS/gsplat defaults). `means` is multiplied by the scene scale and decays
-    exponentially to `means_final_factor` times its start over the run."""
-
-    means: float = 1.6e-4
-    means_final_factor: float = 0.01
-    scales: float = 5e-3
-    quats: float = 1e-3
-    opacities: float = 5e-2
-    sh0: float = 2.5e-3
-    shN: float = 2.5e-3 / 20
 
 
 def make_adam(param: torch.nn.Parameter, lr: float) -> torch.optim.Adam:

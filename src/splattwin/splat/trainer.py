@@ -24,7 +24,7 @@ import contextlib
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -36,11 +36,11 @@ from splattwin.errors import InputError
 from splattwin.io import write_json
 from splattwin.runtime import torch_threads
 from splattwin.splat import checkpoint as ckpt_io
-from splattwin.splat.densify import DensifyConfig
+from splattwin.splat.config import TrainConfig
 from splattwin.splat.gaussians import Gaussians
 from splattwin.splat.init import initial_gaussians, scene_center_and_scale
 from splattwin.splat.losses import photometric_loss, psnr_from_mse
-from splattwin.splat.model import GaussianModel, LearningRates
+from splattwin.splat.model import GaussianModel
 from splattwin.splat.pose_refine import PoseCorrection
 from splattwin.splat.rasterization import backend_device, rasterization, resolve_backend
 from splattwin.splat.strategy import DefaultStrategy, Strategy
@@ -48,65 +48,6 @@ from splattwin.splat.strategy import DefaultStrategy, Strategy
 log = logging.getLogger(__name__)
 
 CKPT_DIR = "checkpoints"
-
-
-@dataclass
-class TrainConfig:
-    """Training options. Defaults suit sparse tabletop captures (~15 views, 320x240) on a CPU.
-
-    resolution: as 3DGS `-r`: 1, 2, 4, 8 divide the image size; a larger value is a target width in
-        pixels; -1 downsizes only images wider than 1600 px.
-    device: "auto" | "cpu" | "cuda" (picks the rasterizer backend); backend overrides it (e.g. "reference").
-    sh_interval: raise the SH degree every this many steps (0: iters // 10).
-    checkpoint_every: steps between checkpoints (0: none).
-    refine_poses / pose_lr / pose_start: joint per-camera SE(3) corrections, their Adam LR, and the
-        fraction of the run before they move. Start 0 and LR 5e-3 measured best (bench/train.py, cameras
-        off by 1.5 deg / 2.3 cm: left 0.34 deg / 0.41 cm, vs 1.43 deg / 2.1 cm with start 0.2, LR 1e-3).
-    init_points / max_gaussians: at most this many initial Gaussians / Gaussians at any time. 24k / 28k
-        on the embedded scene (bench/train.py, 3000 steps): held-out 32.80 dB / SSIM 0.951, vs 32.69 dB /
-        0.953 with 24k / 32k (~6 % slower) and 32.48 dB / 0.950 with 20k / 26k; on the earlier 2x2-sampled
-        scene 80k gave at most +0.006 SSIM. Raise both for larger images or scenes.
-    rasterize_mode: "classic" or "antialiased" (see `rasterization`); evaluation renders with the same
-        mode (train.json). Antialiased measured no better (2x2-sampled scene: SSIM 0.919 vs 0.921).
-    opacity_reg: weight of a mean-opacity penalty (gsplat's opacity_reg; 0: off). 0.05 raised held-out
-        SSIM by ~0.006-0.009 (4x4-sampled scene: 0.956 vs 0.949; 2x2-sampled: 0.930 vs 0.921), but the
-        fainter Gaussians overlap more (~58 instead of ~50 composited per pixel): ~15-25 % slower.
-    depth_lambda: weight of a depth loss on frames that have depth maps (0: off): mean relative error
-        |ED - D| / D of the rendered expected depth ED over pixels with a finite depth D and rendered
-        alpha > 0.5. It keeps the Gaussians on the measured surfaces, which sparse views alone do not.
-    """
-
-    iters: int = 3000
-    resolution: int = 1
-    device: str = "auto"
-    backend: str | None = None
-    init: str = "auto"
-    init_points: int = 24_000
-    sh_degree: int = 3
-    sh_interval: int = 0
-    seed: int = 0
-    checkpoint_every: int = 500
-    refine_poses: bool = False
-    pose_lr: float = 5e-3
-    pose_start: float = 0.0
-    ssim_lambda: float = 0.2
-    rasterize_mode: str = "classic"
-    depth_lambda: float = 0.0
-    opacity_reg: float = 0.0
-    max_gaussians: int = 28_000
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    densify: bool = True
-    lrs: LearningRates = field(default_factory=LearningRates)
-    densify_cfg: DensifyConfig | None = None
-    progress: bool = True
-
-    def densify_config(self) -> DensifyConfig:
-        return self.densify_cfg or DensifyConfig.for_iterations(self.iters, self.max_gaussians)
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["densify_cfg"] = asdict(self.densify_config())
-        return d
 
 
 @dataclass

@@ -28,22 +28,22 @@ from splattwin.geometry.convert import Conversion, convert
 from splattwin.geometry.options import GeometryOptions
 from splattwin.names import check_unique, object_name
 from splattwin.paths import child, relative_to
-from splattwin.twin.manifest import Background, Frame, Manifest, ObjectEntry
+from splattwin.poses.twin_frame import TwinFrame
+from splattwin.twin.manifest import Background, Manifest, ObjectEntry
+from splattwin.twin.options import FORMATS, METRIC_FORMATS, ExportOptions
 from splattwin.twin.splats import write_object_splats
 
 log = logging.getLogger(__name__)
 
-FORMATS = ("mjcf", "urdf", "moveit", "gltf")
-METRIC_FORMATS = ("mjcf",)   # physics needs metres: refused for an unscaled twin
 
 
-def default_formats(frame: Frame) -> tuple[str, ...]:
+def default_formats(frame: TwinFrame) -> tuple[str, ...]:
     """The exports written when none are asked for: all of them, less those an unscaled twin cannot
     have (MJCF: physics in arbitrary units would be silently wrong)."""
-    return tuple(f for f in FORMATS if frame.scaled or f not in METRIC_FORMATS)
+    return ExportOptions().resolve(frame.scaled)
 
 
-def check_formats(frame: Frame, formats, where: str | Path | None = None) -> None:
+def check_formats(frame: TwinFrame, formats, where: str | Path | None = None) -> None:
     """InputError, before anything is written, for unknown formats or MJCF of an unscaled twin."""
     from splattwin.errors import InputError
 
@@ -100,7 +100,7 @@ def _write_parts(folder: Path, parts: list, twin_dir: Path) -> list[str]:
     return [(folder / f"part_{i:03d}.obj").relative_to(twin_dir).as_posix() for i in range(len(parts))]
 
 
-def write_geometry(conv: Conversion, g, labels: np.ndarray, out_dir: Path, frame: Frame,
+def write_geometry(conv: Conversion, g, labels: np.ndarray, out_dir: Path, frame: TwinFrame,
                    cameras_path: str | Path | None = None) -> Manifest:
     """Write splats, meshes and parts of a Conversion into the twin folder; return the manifest (not saved)."""
     out_dir = Path(out_dir)
@@ -189,7 +189,7 @@ def export_twin(twin_dir: str | Path, manifest: Manifest | None = None, formats=
     return manifest
 
 
-def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path, frame: Frame | None = None,
+def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path, frame: TwinFrame | None = None,
                cameras_path: str | Path | None = None, options: GeometryOptions | None = None,
                formats=FORMATS, progress: bool = True) -> Manifest:
     """Labelled Gaussians -> twin folder with manifest and exports.
@@ -199,7 +199,7 @@ def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path
     from splattwin.lock import prepare_output_dir
 
     out_dir = prepare_output_dir(out_dir, "twin folder")
-    frame = frame or Frame()
+    frame = frame or TwinFrame()
     check_formats(frame, formats, out_dir / "twin.json")
     t0 = time.perf_counter()
     conv = convert(gaussians, labels, objects, options, progress=progress)

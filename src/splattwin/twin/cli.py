@@ -6,22 +6,13 @@ import argparse
 from pathlib import Path
 
 from splattwin.errors import InputError
-
-
-def _formats(text: str) -> tuple[str, ...]:
-    from splattwin.twin.build import FORMATS
-
-    fmts = tuple(f.strip().lower() for f in text.split(",") if f.strip())
-    bad = [f for f in fmts if f not in FORMATS]
-    if bad or not fmts:
-        raise InputError(f"unknown export format(s) {', '.join(bad) or '(none)'}; choose from {', '.join(FORMATS)}",
-                         "--formats")
-    return fmts
+from splattwin.options import add_options, from_args
+from splattwin.twin.options import FORMATS, ExportOptions
 
 
 def _export(args: argparse.Namespace) -> int:
     from splattwin.lock import output_lock
-    from splattwin.twin.build import default_formats, export_twin
+    from splattwin.twin.build import export_twin
     from splattwin.twin.manifest import Manifest
 
     twin = Path(args.twin)
@@ -29,13 +20,13 @@ def _export(args: argparse.Namespace) -> int:
         raise InputError("twin folder does not exist", twin)
     with output_lock(twin):
         manifest = Manifest.load(twin)
-        if args.formats is None:
-            formats = default_formats(manifest.frame)
-            if len(formats) < 4:
-                print(f"note: mjcf export skipped: the twin is unscaled (frame source {manifest.frame.source!r}); "
-                      f"physics needs metres")
-        else:
-            formats = _formats(args.formats)
+        opts = from_args(ExportOptions, args)
+        formats = opts.resolve(manifest.frame.scaled)
+        if opts.formats is None and len(formats) < len(FORMATS):
+            print(f"note: mjcf export skipped: the twin is unscaled (frame source {manifest.frame.source!r}); "
+                  f"physics needs metres")
+        if not formats:
+            raise InputError("no export format given; choose from " + ", ".join(FORMATS), "--formats")
         m = export_twin(twin, manifest, formats)
     for fmt, path in m.exports.items():
         print(f"{fmt:7s} {twin / path}")
@@ -49,7 +40,5 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "planning scene (.scene text + CollisionObject YAML), glTF binary. Files are "
                                    "replaced atomically.")
     p.add_argument("twin", metavar="TWIN", help="twin folder (contains twin.json)")
-    p.add_argument("--formats", default=None,
-                   help="comma-separated subset of mjcf,urdf,moveit,gltf (default: all; an unscaled twin gets "
-                        "no mjcf)")
+    add_options(p, ExportOptions)
     p.set_defaults(func=_export)

@@ -23,7 +23,8 @@ from splattwin.errors import InputError
 from splattwin.meshio import load_mesh
 from splattwin.names import object_name
 from splattwin.paths import child, confined
-from splattwin.twin.manifest import Background, Frame, Manifest, ObjectEntry
+from splattwin.poses.twin_frame import TwinFrame
+from splattwin.twin.manifest import Background, Manifest, ObjectEntry
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +40,17 @@ def _load_scene(scene_dir: Path) -> dict:
     if not isinstance(scene.get("objects"), list) or not scene["objects"]:
         raise InputError("scene.json lists no objects", path)
     return scene
+
+
+def load_scene_gt(scene_dir: str | Path) -> tuple[list, dict]:
+    """(objects [(name, label, prompt)], GT world meshes {name: Trimesh}) of an embedded scene folder."""
+    scene_dir = Path(scene_dir)
+    where = scene_dir / "scene.json"
+    sc = _load_scene(scene_dir)
+    objects = [(o["name"], int(o["label"]), o.get("prompt", "")) for o in sc["objects"]]
+    meshes = {object_name(o["name"], where): load_mesh(confined(scene_dir, o["mesh"], where), process=True)
+              for o in sc["objects"]}
+    return objects, meshes
 
 
 def _write_obj(path: Path, V: np.ndarray, F: np.ndarray) -> None:
@@ -135,8 +147,8 @@ def twin_from_scene(scene_dir: str | Path, out_dir: str | Path) -> Manifest:
     t = scene.get("table", {})
     ext = t.get("extent", [-0.5, 0.5, -0.4, 0.4])
     manifest = Manifest(
-        frame=Frame(source="ground_truth", scaled=True, scale_uncertainty_rel=0.0,
-                    description=f"embedded scene {scene_dir} world frame (table top z = 0)"),
+        frame=TwinFrame(source="ground_truth", scaled=True, scale_uncertainty_rel=0.0,
+                        description=f"embedded scene {scene_dir} world frame (table top z = 0)"),
         objects=objects,
         background=Background(table_height=0.0, table_extent=[float(x) for x in ext],
                               table_thickness=float(t.get("thickness", 0.03))),

@@ -24,35 +24,10 @@ from splattwin import io
 from splattwin.errors import InputError
 from splattwin.names import check_unique, object_name
 from splattwin.paths import confined
+from splattwin.poses.twin_frame import TwinFrame
 
 SCHEMA_VERSION = 1
 MANIFEST_NAME = "twin.json"
-
-# Where a twin frame can come from (poses stage): see `Frame.source`.
-FRAME_SOURCES = ("ground_truth", "known_poses", "robot", "sfm+robot", "marker", "table_plane+known_length", "unscaled")
-
-
-@dataclass
-class Frame:
-    """Definition of the twin frame.
-
-    source: one of FRAME_SOURCES. scaled: False when the metric scale is unknown (robot stages refuse).
-    scale_uncertainty_rel: 1-sigma relative scale uncertainty (0.01 = 1 %).
-    T_twin_input: how the input's coordinates map into the twin frame (e.g. a z-down robot world rotated
-    180 degrees about x). up_check: the evidence for up (cameras, table plane) when poses were known.
-    """
-
-    source: str = "unscaled"
-    scaled: bool = False
-    units: str = "m"
-    up: str = "+z"
-    scale_uncertainty_rel: float | None = None
-    description: str = ""
-    # [4,4] similarity from the input's world (known or robot poses; the SfM model for SfM) to this frame
-    T_twin_input: list | None = None
-    # known poses: where up was found and the rotation applied (splattwin.poses.up.UpCheck.to_dict)
-    up_check: dict | None = None
-
 
 @dataclass
 class ObjectEntry:
@@ -100,7 +75,7 @@ class Background:
 
 @dataclass
 class Manifest:
-    frame: Frame = field(default_factory=Frame)
+    frame: TwinFrame = field(default_factory=TwinFrame)
     objects: list[ObjectEntry] = field(default_factory=list)
     background: Background = field(default_factory=Background)
     cameras: str | None = None          # path of a cameras file (nerfstudio transforms.json)
@@ -184,7 +159,7 @@ class Manifest:
             if d.get("schema_version") != SCHEMA_VERSION:
                 raise InputError(f"unsupported schema_version {d.get('schema_version')!r} (expected {SCHEMA_VERSION})", where)
             m = cls(
-                frame=Frame(**d.get("frame", {})),
+                frame=TwinFrame(**d.get("frame", {})),
                 objects=[ObjectEntry(**o) for o in d.get("objects", [])],
                 background=Background(**d.get("background", {})),
                 **{k: d[k] for k in ("cameras", "splats", "labels", "exports", "config", "versions", "timings", "schema_version") if k in d},

@@ -1,11 +1,12 @@
 """Web viewer (viser) for a twin: splats, semantic labels in colour, collision meshes, the robot and
-its planned trajectory played back.
+its planned trajectory played back. The GUI only: what is drawn comes from
+`splattwin.playback.view_model.TwinView` (shared with the report).
 
 `splattwin view TWIN [--host 127.0.0.1 --port 8080]` serves on loopback by default; open the printed
 URL in a browser. Everything is built from the twin folder's manifest (checked: `Manifest.load`).
 The viewer has no authentication: bound to any other address it warns that anyone who can reach the
 machine can open it. When the asked port is busy, viser serves on the next free one and the viewer
-says so.
+says so. The trajectory player is a thread that stops with the server (`server.stop()`).
 """
 
 from __future__ import annotations
@@ -18,28 +19,10 @@ from pathlib import Path
 import numpy as np
 
 from splattwin.errors import InputError
-from splattwin.robot.track import RobotTrack
+from splattwin.playback.view_model import TwinView
 from splattwin.transforms import quat_wxyz_from_matrix
-from splattwin.twin.manifest import Manifest
 
 log = logging.getLogger(__name__)
-
-def label_colors(labels: np.ndarray) -> np.ndarray:
-    """[N] int labels -> [N,3] uint8 colours, the same palette as the semantic label maps
-    (negative labels count as background)."""
-    from splattwin.semantics.render import palette
-
-    labels = np.maximum(np.asarray(labels, dtype=np.int64), 0)
-    return palette(int(labels.max(initial=0)))[labels]
-
-
-def workspace_mask(means: np.ndarray, background, margin: float = 0.3, height: float = 1.0) -> np.ndarray:
-    """[N] bool: Gaussians within the table's footprint (+ margin) from below the table to `height` above."""
-    xmin, xmax, ymin, ymax = background.table_extent
-    z0 = background.table_height
-    x, y, z = means[:, 0], means[:, 1], means[:, 2]
-    return ((x > xmin - margin) & (x < xmax + margin) & (y > ymin - margin) & (y < ymax + margin)
-            & (z > z0 - margin) & (z < z0 + height))
 
 
 def _frame_camera(server, points: np.ndarray) -> None:
@@ -51,63 +34,81 @@ def _frame_camera(server, points: np.ndarray) -> None:
     server.initial_camera.up = (0.0, 0.0, 1.0)
 
 
-def _load_mesh(path: Path):
-    from splattwin.meshio import load_mesh
+class Player:
+    """Advances the trajectory slider while "Play" is ticked, every `period` seconds, in a daemon thread
+    that ends on `stop()` (called when the server stops)."""
 
-    m = load_mesh(path, "collision mesh")
-    return np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.uint32)
+    def __init__(self, slider, playing, n_steps: int, period: float = 0.05):
+        self.slider, self.playing, self.n_steps, self.period = slider, playing, n_steps, period
+        self._stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, name="splattwin-viewer-player", daemon=True)
+
+    def start(self) -> "Player":
+        self.thread.start()
+        return self
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period):
+            if self.playing.value and self.n_steps > 1:
+                self.slider.value = (int(self.slider.value) + 1) % self.n_steps
+
+    def stop(self, timeout: float = 2.0) -> None:
+        self._stop.set()
+        if self.thread.is_alive() and threading.current_thread() is not self.thread:
+            self.thread.join(timeout)
 
 
-def build_scene(server, twin_dir: Path, robot: RobotTrack | None = None) -> dict:
-    """Populate a viser server with the twin. Returns the scene handles by name."""
-    from splattwin.splat.gaussians import Gaussians
+def _stop_with_server(server, player: Player) -> None:
+    """Make `server.stop()` stop the player thread first (viser has no stop callback)."""
+    stop_server = server.stop
 
-    twin_dir = Path(twin_dir)
-    man = Manifest.load(twin_dir)
+    def stop() -> None:
+        player.stop()
+        stop_server()
+    server.stop = stop
+
+
+def build_scene(server, twin_dir: Path, robot=None) -> dict:
+    """Populate a viser server with the twin. robot: a `RobotTrack` to play (default: none; `serve` passes
+    the twin's recorded one). Returns the scene handles by name."""
+    view = TwinView.load(twin_dir, robot=False)
+    view.track = robot
+    return draw(server, view)
+
+
+def draw(server, view: TwinView) -> dict:
+    """Draw a loaded `TwinView` on a viser server. Returns the scene handles by name."""
     handles: dict = {}
     gui = server.gui
     server.scene.set_up_direction("+z")
     server.scene.add_frame("/twin_frame", axes_length=0.1, axes_radius=0.003)
 
-    splats_path = twin_dir / man.splats if man.splats else None
-    if splats_path is not None and splats_path.is_file():
-        g = Gaussians.load_ply(splats_path)
-        from splattwin.limits import load_npy
-
-        labels = load_npy(twin_dir / man.labels, "label array") if man.labels and (twin_dir / man.labels).is_file() else None
-        # Splats far outside the table's workspace (the room, a far background shell) and huge haze
-        # splats (> 5 cm) hide the scene from most viewpoints: they get their own layer, off by default.
-        near = workspace_mask(g.means, man.background) & (g.scales.max(axis=1) < 0.05)
-        g_far = g.subset(~near)
-        g = g.subset(near)
+    g = view.splats
+    if g is not None:
         covs = g.covariances()
-        _frame_camera(server, g.means[g.opacities > 0.5] if (g.opacities > 0.5).sum() > 10 else g.means)
+        if len(g):
+            _frame_camera(server, g.means[g.opacities > 0.5] if (g.opacities > 0.5).sum() > 10 else g.means)
         handles["splats"] = server.scene.add_gaussian_splats("/splats", centers=g.means, covariances=covs,
                                                              rgbs=np.clip(g.colors, 0, 1), opacities=g.opacities[:, None])
-        if len(g_far):
+        far = view.far
+        if far is not None and len(far):
             handles["far"] = server.scene.add_gaussian_splats(
-                "/splats_far", centers=g_far.means, covariances=g_far.covariances(), rgbs=np.clip(g_far.colors, 0, 1),
-                opacities=g_far.opacities[:, None], visible=False)
-        if labels is not None and len(labels) == len(near):
-            lab_rgb = label_colors(labels[near]).astype(np.float32) / 255.0
-            handles["labels"] = server.scene.add_gaussian_splats("/labels", centers=g.means, covariances=covs,
-                                                                 rgbs=lab_rgb, opacities=g.opacities[:, None], visible=False)
-    for obj in man.objects:
-        if not obj.usable:
-            continue
-        T = obj.pose
-        col = tuple(int(c) for c in label_colors(np.array([obj.label]))[0])
-        parts = obj.convex_parts or ([obj.collision_mesh] if obj.collision_mesh else [])
-        for i, rel in enumerate(parts):
-            V, F = _load_mesh(twin_dir / rel)
-            handles[f"col/{obj.name}/{i}"] = server.scene.add_mesh_simple(
-                f"/collision/{obj.name}/part{i}", V, F, color=col, opacity=0.6, wxyz=quat_wxyz_from_matrix(T[:3, :3]),
-                position=T[:3, 3], visible=False)
-    bg = man.background
-    for i, rel in enumerate(bg.convex_parts or ([bg.collision_mesh] if bg.collision_mesh else [])):
-        V, F = _load_mesh(twin_dir / rel)
-        handles[f"col/background/{i}"] = server.scene.add_mesh_simple(f"/collision/background/part{i}", V, F,
-                                                                      color=(160, 160, 160), opacity=0.5, visible=False)
+                "/splats_far", centers=far.means, covariances=far.covariances(), rgbs=np.clip(far.colors, 0, 1),
+                opacities=far.opacities[:, None], visible=False)
+        if view.label_rgb is not None:
+            handles["labels"] = server.scene.add_gaussian_splats(
+                "/labels", centers=g.means, covariances=covs, rgbs=view.label_rgb.astype(np.float32) / 255.0,
+                opacities=g.opacities[:, None], visible=False)
+    for p in view.parts:
+        if p.owner == "background":
+            handles[f"col/background/{p.index}"] = server.scene.add_mesh_simple(
+                f"/collision/background/part{p.index}", p.vertices, p.faces, color=p.color, opacity=0.5,
+                visible=False)
+        else:
+            T = p.T_world_part
+            handles[f"col/{p.owner}/{p.index}"] = server.scene.add_mesh_simple(
+                f"/collision/{p.owner}/part{p.index}", p.vertices, p.faces, color=p.color, opacity=0.6,
+                wxyz=quat_wxyz_from_matrix(T[:3, :3]), position=T[:3, 3], visible=False)
 
     with gui.add_folder("Layers"):
         show_splats = gui.add_checkbox("Splats", True)
@@ -138,6 +139,7 @@ def build_scene(server, twin_dir: Path, robot: RobotTrack | None = None) -> dict
             if k.startswith("col/"):
                 h.visible = show_coll.value
 
+    robot = view.track
     if robot is not None and len(robot.names):
         for k, name in enumerate(robot.names):
             handles[f"robot/{name}"] = server.scene.add_mesh_simple(
@@ -164,21 +166,11 @@ def build_scene(server, twin_dir: Path, robot: RobotTrack | None = None) -> dict
         def _(_e) -> None:
             show(int(slider.value))
 
-        def player() -> None:
-            while True:
-                time.sleep(0.05)
-                if playing.value and len(robot.positions) > 1:
-                    slider.value = (int(slider.value) + 1) % len(robot.positions)
-
-        threading.Thread(target=player, daemon=True).start()
+        player = Player(slider, playing, len(robot.positions)).start()
+        _stop_with_server(server, player)
         handles["_slider"] = slider
+        handles["_player"] = player
     return handles
-
-
-def load_robot_track(twin_dir: Path) -> RobotTrack | None:
-    """The robot and its executed motion recorded by `splattwin plan` (robot/playback.npz), if any."""
-    p = Path(twin_dir) / "robot" / "playback.npz"
-    return RobotTrack.load(p) if p.is_file() else None
 
 
 def is_loopback(host: str) -> bool:
@@ -203,8 +195,7 @@ def serve(twin_dir: str | Path, host: str = "127.0.0.1", port: int = 8080, block
         raise InputError("not a twin folder (no twin.json)", twin_dir)
     if not 0 <= int(port) <= 65535:
         raise InputError(f"--port must be 0..65535, got {port}", "--port")
-    Manifest.load(twin_dir)  # checked before the server starts
-    track = load_robot_track(twin_dir)
+    view = TwinView.load(twin_dir)  # checked before the server starts
     if not is_loopback(host):
         print(f"warning: serving on {host}, not on loopback: anyone who can reach this machine on port {port} can "
               f"open the viewer and see the twin (there is no authentication). Use --host 127.0.0.1 (the default) "
@@ -212,7 +203,7 @@ def serve(twin_dir: str | Path, host: str = "127.0.0.1", port: int = 8080, block
     server = viser.ViserServer(host=host, port=port, verbose=False)
     if port != 0 and server.get_port() != port:
         print(f"note: port {port} was busy; serving on port {server.get_port()} instead", file=sys.stderr)
-    build_scene(server, twin_dir, track)
+    draw(server, view)
     print(f"splattwin viewer: http://{host}:{server.get_port()}  (Ctrl+C to stop)")
     if not block:
         return server

@@ -1,4 +1,6 @@
-"""Sub-commands of the geometry stage: `splattwin geometry SPLAT.ply ...` cleans, meshes and writes a twin."""
+"""`splattwin geometry SPLAT.ply ...`: the geometry stage run by hand — clean a labelled splat, mesh it and
+write a twin folder (registered by the twin package, which writes twin folders; the geometry package
+itself knows nothing of twins)."""
 
 from __future__ import annotations
 
@@ -9,7 +11,10 @@ from pathlib import Path
 import numpy as np
 
 from splattwin.errors import InputError
+from splattwin.geometry.options import GeometryOptions
 from splattwin.names import check_unique, object_name
+from splattwin.options import add_options, dest, from_args
+from splattwin.twin.options import FORMATS, ExportOptions
 
 log = logging.getLogger(__name__)
 
@@ -35,24 +40,20 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _run_locked(args: argparse.Namespace) -> int:
-    from splattwin.geometry.options import GeometryOptions
     from splattwin.splat.gaussians import Gaussians
-    from splattwin.twin.build import build_twin, check_formats, default_formats
-    from splattwin.twin.cli import _formats
-    from splattwin.twin.manifest import FRAME_SOURCES, Frame
+    from splattwin.poses.twin_frame import FRAME_SOURCES, TwinFrame
+    from splattwin.twin.build import build_twin, check_formats
 
     ply = Path(args.splat)
     if args.frame not in FRAME_SOURCES:
         raise InputError(f"unknown frame source {args.frame!r} (choose from {', '.join(FRAME_SOURCES)})", "--frame")
-    frame = Frame(source=args.frame, scaled=args.frame != "unscaled")
-    if args.formats is None:
-        formats = default_formats(frame)
-        skipped = [f for f in _formats("mjcf,urdf,moveit,gltf") if f not in formats]
-        if skipped:
-            print(f"note: {', '.join(skipped)} export skipped: the twin is unscaled (--frame {args.frame}) and "
-                  f"physics needs metres; give --frame with a metric source to get it")
-    else:
-        formats = _formats(args.formats) if args.formats else ()
+    frame = TwinFrame(source=args.frame, scaled=args.frame != "unscaled")
+    exports = from_args(ExportOptions, args)
+    formats = exports.resolve(frame.scaled)
+    skipped = [f for f in FORMATS if f not in formats]
+    if exports.formats is None and skipped:
+        print(f"note: {', '.join(skipped)} export skipped: the twin is unscaled (--frame {args.frame}) and "
+              f"physics needs metres; give --frame with a metric source to get it")
     check_formats(frame, formats, "--formats")
     if not ply.is_file():
         raise InputError("no such splat PLY", ply)
@@ -74,7 +75,7 @@ def _run_locked(args: argparse.Namespace) -> int:
             raise InputError(f"{len(labels)} labels for {len(g)} Gaussians in {ply.name}", lp)
         objects = [_parse_object(o) for o in args.object]
         if not objects and args.gt_scene and (Path(args.gt_scene) / "scene.json").is_file():
-            from splattwin.geometry.synthetic import load_scene_gt
+            from splattwin.twin.groundtruth import load_scene_gt
 
             objects = list(load_scene_gt(args.gt_scene)[0])  # the scene's names, prompts and labels
         objects = objects or [(f"object_{k}", int(k), "") for k in np.unique(labels) if k > 0]
@@ -83,10 +84,7 @@ def _run_locked(args: argparse.Namespace) -> int:
         objects = [(_parse_object(args.object[0])[0] if args.object else
                     object_name(ply.stem, ply, "object name (from the PLY file name; pass --object NAME=1)"), 1, "")]
     check_unique([o[0] for o in objects], "--object")
-    opts = GeometryOptions(min_opacity=args.min_opacity, max_scale=args.max_scale, dbscan_eps=args.eps,
-                           dbscan_min_samples=args.min_samples, alpha=args.alpha, densify=args.densify,
-                           use_alpha=not args.voxel_remesh,
-                           collision_faces=args.faces, density=args.density)
+    opts = from_args(GeometryOptions, args)
     m = build_twin(g, labels, objects, args.out, frame, cameras_path=args.cameras, options=opts,
                    formats=formats, progress=True)
     for o in m.objects:
@@ -106,7 +104,7 @@ def evaluate(g, labels, objects, scene_dir: Path, opts, out_dir: Path) -> dict:
 
     from splattwin import io
     from splattwin.geometry.convert import CONFIGS, ablation
-    from splattwin.geometry.synthetic import load_scene_gt
+    from splattwin.twin.groundtruth import load_scene_gt
 
     if not (scene_dir / "scene.json").is_file():
         raise InputError("not a generated scene (no scene.json)", scene_dir)
@@ -137,19 +135,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="twin folder to write")
     p.add_argument("--cameras", help="cameras file to reference in the manifest (transforms.json)")
     p.add_argument("--frame", default="unscaled", help="twin frame source recorded in the manifest")
-    p.add_argument("--formats", default=None,
-                   help="exports to write, comma-separated from mjcf,urdf,moveit,gltf ('' for none; default: all, "
-                        "less mjcf for an unscaled twin)")
+    add_options(p, ExportOptions)
     p.add_argument("--gt-scene", help="generated scene folder: print + save the raw/attribute/cluster/full "
                                       "fidelity table against its GT meshes")
-    p.add_argument("--min-opacity", type=float, default=0.1)
-    p.add_argument("--max-scale", type=float, default=None, help="m; default 1.5%% of the scene size")
-    p.add_argument("--eps", type=float, default=0.02, help="DBSCAN eps (m)")
-    p.add_argument("--min-samples", type=int, default=10, help="DBSCAN min_samples")
-    p.add_argument("--alpha", type=float, default=None, help="alpha-shape radius (m); default from point spacing")
-    p.add_argument("--no-densify", dest="densify", action="store_false",
-                   help="mesh the Gaussian centres only (default: each splat's half-opaque ellipsoid)")
-    p.add_argument("--voxel-remesh", action="store_true", help="marching cubes instead of alpha shapes (faster)")
-    p.add_argument("--faces", type=int, default=1500, help="collision mesh face budget")
-    p.add_argument("--density", type=float, default=500.0, help="kg/m^3 for mass = volume x density")
+    add_options(p, GeometryOptions)
+    p.add_argument("--voxel-remesh", dest=dest("use_alpha"), action="store_false", default=argparse.SUPPRESS,
+                   help="= --no-use-alpha: marching cubes instead of alpha shapes (faster)")
     p.set_defaults(func=_run)

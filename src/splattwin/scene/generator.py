@@ -25,7 +25,7 @@ from splattwin.scene.marker import TableMarker
 from splattwin.scene.objects import (ROBOT_BASE_XY, TABLE_EXTENT, TABLE_THICKNESS, SceneObject, make_objects,
                                      sample_layout, table_mesh)
 from splattwin.scene.options import SceneOptions
-from splattwin.scene.render import AMBIENT, DIFFUSE, LIGHT_DIR, SceneRenderer, Surface
+from splattwin.scene.raycast import AMBIENT, DIFFUSE, LIGHT_DIR, SceneRenderer, Surface
 from splattwin.scene.segmenter import segment
 
 log = logging.getLogger(__name__)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from splattwin.cli import build_parser, main
-from splattwin.geometry.synthetic import synthetic_scene
+from splattwin.scene.synthetic import synthetic_scene
 from splattwin.twin.manifest import Manifest
 
 

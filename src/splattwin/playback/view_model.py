@@ -1,0 +1,135 @@
+"""What a twin looks like to the viewer and the report, without a GUI: the splats split into the workspace
+layer and the far / huge background layer, label colours, the collision meshes (object parts posed by
+their T_world_obj, background parts in the twin frame), and the robot's recorded motion
+(robot/playback.npz, written by `splattwin plan` / the pipeline's robot stage).
+
+`splattwin.viewer` draws a `TwinView` with viser; `splattwin.report` renders its meshes into pictures.
+Units: metres; colours uint8 RGB; frames: the twin frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from splattwin.robot.track import RobotTrack
+from splattwin.twin.manifest import Manifest
+
+HUGE_SPLAT = 0.05   # m: splats with a larger scale (haze) go to the background layer
+BACKGROUND_RGB = (160, 160, 160)
+
+
+def label_colors(labels: np.ndarray) -> np.ndarray:
+    """[N] int labels -> [N,3] uint8 colours, the same palette as the semantic label maps
+    (negative labels count as background)."""
+    from splattwin.semantics.label_render import palette
+
+    labels = np.maximum(np.asarray(labels, dtype=np.int64), 0)
+    return palette(int(labels.max(initial=0)))[labels]
+
+
+def workspace_mask(means: np.ndarray, background, margin: float = 0.3, height: float = 1.0) -> np.ndarray:
+    """[N] bool: Gaussians within the table's footprint (+ margin) from below the table to `height` above."""
+    xmin, xmax, ymin, ymax = background.table_extent
+    z0 = background.table_height
+    x, y, z = means[:, 0], means[:, 1], means[:, 2]
+    return ((x > xmin - margin) & (x < xmax + margin) & (y > ymin - margin) & (y < ymax + margin)
+            & (z > z0 - margin) & (z < z0 + height))
+
+
+def load_robot_track(twin_dir: str | Path) -> RobotTrack | None:
+    """The robot and its executed motion recorded by `splattwin plan` (robot/playback.npz), if any."""
+    p = Path(twin_dir) / "robot" / "playback.npz"
+    return RobotTrack.load(p) if p.is_file() else None
+
+
+@dataclass
+class MeshPart:
+    """One collision part: vertices [n,3] float32 in the part's frame, faces [m,3] uint32, the part's pose
+    T_world_part [4,4] (identity for background parts), colour uint8 RGB. `owner`: object name or
+    "background"."""
+
+    owner: str
+    index: int
+    vertices: np.ndarray
+    faces: np.ndarray
+    T_world_part: np.ndarray
+    color: tuple[int, int, int]
+
+    def world_vertices(self) -> np.ndarray:
+        return self.vertices @ self.T_world_part[:3, :3].T + self.T_world_part[:3, 3]
+
+
+@dataclass
+class TwinView:
+    """A twin ready to draw. splats / far: the workspace layer and the background layer (Gaussians, or
+    None without splats); label_rgb: [len(splats),3] uint8 label colours of the workspace layer (None
+    without labels); parts: collision parts of the usable objects, then of the background; track: the
+    robot's recorded motion, if any."""
+
+    manifest: Manifest
+    splats: object | None = None
+    far: object | None = None
+    label_rgb: np.ndarray | None = None
+    parts: list[MeshPart] = field(default_factory=list)
+    track: RobotTrack | None = None
+
+    @classmethod
+    def load(cls, twin_dir: str | Path, meshes: bool = True, robot: bool = True) -> "TwinView":
+        """Read a twin folder (checked: `Manifest.load`); meshes / robot: also the collision parts / the track."""
+        twin_dir = Path(twin_dir)
+        man = Manifest.load(twin_dir)
+        view = cls(manifest=man)
+        view._load_splats(twin_dir)
+        if meshes:
+            view.parts = collision_parts(twin_dir, man)
+        if robot:
+            view.track = load_robot_track(twin_dir)
+        return view
+
+    def _load_splats(self, twin_dir: Path) -> None:
+        from splattwin.limits import load_npy
+        from splattwin.splat.gaussians import Gaussians
+
+        man = self.manifest
+        path = twin_dir / man.splats if man.splats else None
+        if path is None or not path.is_file():
+            return
+        g = Gaussians.load_ply(path)
+        labels = None
+        if man.labels and (twin_dir / man.labels).is_file():
+            labels = load_npy(twin_dir / man.labels, "label array")
+        # Splats far outside the table's workspace (the room, a far background shell) and huge haze
+        # splats hide the scene from most viewpoints: they get their own layer.
+        near = workspace_mask(g.means, man.background) & (g.scales.max(axis=1) < HUGE_SPLAT)
+        self.splats, self.far = g.subset(near), g.subset(~near)
+        if labels is not None and len(labels) == len(near):
+            self.label_rgb = label_colors(labels[near])
+
+    def world_meshes(self) -> list[tuple[np.ndarray, np.ndarray, tuple[float, float, float]]]:
+        """[(V_world [n,3], F [m,3], rgb in 0..1)] of every collision part (for pictures)."""
+        return [(p.world_vertices(), p.faces, tuple(c / 255.0 for c in p.color)) for p in self.parts]
+
+
+def collision_parts(twin_dir: Path, man: Manifest) -> list[MeshPart]:
+    """The collision parts of the usable objects (object frame, posed) and of the background (twin frame)."""
+    from splattwin.meshio import load_mesh
+
+    def part(owner: str, k: int, rel: str, T: np.ndarray, color) -> MeshPart:
+        m = load_mesh(Path(twin_dir) / rel, f"collision mesh of {owner!r}")
+        return MeshPart(owner, k, np.asarray(m.vertices, np.float32), np.asarray(m.faces, np.uint32),
+                        np.asarray(T, np.float64), tuple(int(c) for c in color))
+
+    out = []
+    for obj in man.objects:
+        if not obj.usable:
+            continue
+        col = label_colors(np.array([obj.label]))[0]
+        for k, rel in enumerate(obj.convex_parts or ([obj.collision_mesh] if obj.collision_mesh else [])):
+            out.append(part(obj.name, k, rel, obj.pose, col))
+    bg = man.background
+    for k, rel in enumerate(bg.convex_parts or ([bg.collision_mesh] if bg.collision_mesh else [])):
+        out.append(part("background", k, rel, np.eye(4), BACKGROUND_RGB))
+    return out

@@ -1,0 +1,73 @@
+"""Options of the poses stage (`estimate_poses`, `splattwin poses`, `build --poses.*`): one plain dataclass,
+the single source of their defaults and help (see `splattwin.options`). Light: no numpy, no capture."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from splattwin.options import option
+
+METHODS = ("auto", "known", "sfm", "robot")
+CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+MATCHERS = ("auto", "exhaustive", "sequential", "retrieval")
+# known poses: which input world axis points up ("auto": detect, see splattwin.poses.up; "keep": no check)
+UP_AXES = ("auto", "keep", "+z", "-z", "+y", "-y", "+x", "-x")
+
+
+@dataclass
+class PoseOptions:
+    """Options of `estimate_poses`.
+
+    method "auto": robot poses when given, else the dataset's poses, else structure from motion.
+    intrinsics: None = estimate (SfM) / take the dataset's; "dataset" = the dataset's K, kept fixed;
+      "fx,fy,cx,cy" (or a tuple of four floats from Python) = known, kept fixed.
+    known_length: metric scale for the table-plane frame, as `splattwin.poses.table.KnownLength.parse`
+      reads it (Python callers may pass a `KnownLength`).
+    max_image_size / max_num_features / retry / num_threads: see `splattwin.poses.sfm.SfmOptions`.
+    triangulate: points for known/robot poses without a point cloud or depth (`splattwin.poses.triangulate`).
+    up: which way is up in a known-pose world (`splattwin.poses.up`); recorded in frame.json.
+    """
+
+    method: str = option("auto", "pose source: robot poses, the dataset's (known), or structure from motion",
+                         choices=METHODS, build_alias="poses")
+    robot_poses: Path | None = option(None, "JSON/YAML list of end-effector poses T_base_ee per image (4x4, or "
+                                      "position + quat_xyzw/quat_wxyz); alone: exact cameras in the robot base "
+                                      "frame; with SfM: SfM aligned to them (Umeyama)", path=True,
+                                      build_alias="robot-poses")
+    hand_eye: Path | None = option(None, "hand-eye calibration T_ee_cam (JSON/YAML); may also be inline in "
+                                   "robot_poses", path=True, build_alias="hand-eye")
+    marker_size: float | None = option(None, "ArUco marker side: marker frame + metric scale", unit="m",
+                                       build_alias="marker-size")
+    marker_dict: str = option("DICT_4X4_50", "ArUco dictionary")
+    marker_id: int = option(0, "ArUco marker id")
+    known_length: str | None = option(None, "metric scale for the table frame: camera_height=M (mean camera "
+                                      "height above the table), camera_height@IMAGE=M, or baseline@IMG_A,IMG_B=M "
+                                      "(distance between two camera centres)")
+    intrinsics: str | tuple[float, float, float, float] | None = option(
+        None, "known pinhole intrinsics 'fx,fy,cx,cy' in pixels (kept fixed), or 'dataset' to use the dataset's")
+    camera_model: str = option("SIMPLE_RADIAL", "camera model when SfM estimates the intrinsics", choices=CAMERA_MODELS)
+    shared_intrinsics: bool = option(True, "one camera for all images (--no-shared-intrinsics: one per image)")
+    matcher: str = option("auto", "feature matching (auto: exhaustive for <= 50 images; beyond, sequential + loop "
+                          "closure for video frames, vocabulary-tree retrieval for unordered photos)",
+                          choices=MATCHERS)
+    min_registered: int | None = option(None, "fail unless SfM registers at least this many images (none: all but "
+                                        "3, at least 3)")
+    max_image_size: int = option(1600, "SfM extracts features from images resized to this longest side (0: full "
+                                 "size)", unit="px")
+    max_num_features: int = option(4096, "SIFT features per image (the strongest)", aliases=("max-features",))
+    retry: bool = option(True, "retry SfM automatically (other settings) while images fail to register")
+    num_threads: int = option(0, "CPU threads for SfM (0: all cores)", aliases=("threads",), hashed=False)
+    depth_points: bool = option(True, "back-project depth images (RGB-D) into the initial point cloud when the "
+                                "frame is metric")
+    triangulate: bool = option(True, "known/robot poses without a point cloud: triangulate sparse points from the "
+                               "images with the poses held fixed")
+    depth_stride: int = option(4, "pixel stride of the depth back-projection")
+    up: str = option("auto", "known poses: the world axis that points up (--up=-z, --up=+y, ...); auto finds it "
+                     "from the cameras and the table plane and rotates z-down/y-up worlds to z up (recorded in "
+                     "frame.json), stopping when unclear; keep = use the poses as they are",
+                     choices=UP_AXES, build_alias="up")
+    seed: int = option(0, "seed of the SfM and RANSAC steps")
+    work_dir: Path | None = option(None, "SfM scratch folder (database, model), re-used to resume (default: "
+                                   "OUT/sfm; the pipeline: TWIN/poses/sfm)", runtime=True)
+    progress: bool = option(True, "progress bars", runtime=True)

@@ -1,0 +1,53 @@
+"""Options of the robot stage (`splattwin plan`, `build --robot.*`): one plain dataclass, the single source
+of their defaults and help (see `splattwin.options`). Light: no MuJoCo here (`splattwin --help`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from splattwin.errors import InputError
+from splattwin.options import option
+
+IN_HAND = ("sensed", "planned")
+
+
+@dataclass
+class RobotOptions:
+    """How the task is validated in physics. `task` None: `splattwin plan` runs the paper's three-step
+    task, `splattwin build` skips the robot stage; "default" names the paper's task explicitly."""
+
+    task: str | None = option(None, "task YAML ('default': the paper's three steps: blue box onto the cardboard "
+                              "box, yellow cube onto the blue box, toy hammer into the target frame)", path=True,
+                              build_alias="task")
+    trials: int = option(0, "extra trials with perturbed object poses", build_alias="trials")
+    sigma: float = option(0.005, "object pose error of the trials: per-axis standard deviation of the x and y "
+                          "position error (the robot plans with the twin's poses)", unit="m", build_alias="sigma")
+    sigma_yaw: float | None = option(None, "standard deviation of the objects' yaw error in the trials (none: "
+                                     "sigma / 0.1 m: 0.05 rad = 2.9 deg at sigma 5 mm)", unit="rad")
+    base_pose: str | None = option(None, "robot base in the twin frame: x,y,z,yaw (m, rad); write "
+                                   "--base-pose=-0.5,0,0,0 when x is negative (none: -0.5,0,0,0)")
+    robot_mjcf: Path | None = option(None, "your own arm+gripper MJCF with a TCP site (z = approach, y = finger "
+                                     "closing axis), one position actuator per arm joint and one gripper actuator "
+                                     "(none: Menagerie Franka Panda); a keyframe named 'home' gives the neutral "
+                                     "arm pose", path=True)
+    tcp_site: str = option("tcp", "name of the TCP site in robot_mjcf")
+    in_hand: str = option("sensed", "where the transfer assumes the held object sits: 'sensed' (read in the "
+                          "simulation, as an in-hand estimate such as a wrist camera gives) or 'planned' (as grasped "
+                          "on the twin pose; no in-hand sensing on the real cell)", choices=IN_HAND)
+    planner: str = option("RRTConnect", "OMPL planner")
+    seed: int = option(0, "seed of the planner and of the trials' perturbations")
+    render: bool = option(True, "render PNG frames of the execution", build_alias="frames")
+    workers: int | None = option(None, "processes for the trials (none: CPU count)", hashed=False)
+    resume: bool = option(True, "reuse finished trials in OUT/trials/ with the same twin, task, robot, seed and "
+                          "sigmas, so a killed run continues", hashed=False)
+
+    def validate(self) -> None:
+        if self.trials < 0:
+            raise InputError(f"--trials must be >= 0, got {self.trials}")
+        if not 0 <= self.sigma <= 0.05:
+            raise InputError(f"--sigma must be in [0, 0.05] metres, got {self.sigma}")
+        if self.sigma_yaw is not None and not 0 <= self.sigma_yaw <= 0.5:
+            raise InputError(f"--sigma-yaw must be in [0, 0.5] radians, got {self.sigma_yaw}")
+        if self.robot_mjcf is not None and not Path(self.robot_mjcf).is_file():
+            raise InputError("robot MJCF not found", self.robot_mjcf)

@@ -1,0 +1,62 @@
+"""The robot stage (`splattwin plan` and the pipeline): `run(RobotInputs, RobotOptions) -> RobotResult`.
+
+Reads the twin folder and the task; validates the task in MuJoCo physics and writes OUT (default
+TWIN/robot; `splattwin.robot.outputs`, the only writer of each): results.json, trials/, trajectories,
+rollout.npz, playback.npz (what `splattwin view` plays), frames/.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from splattwin.errors import InputError
+from splattwin.robot.options import RobotOptions
+
+
+@dataclass
+class RobotInputs:
+    twin_dir: Path      # twin folder (twin.json)
+    out_dir: Path       # where the run's files go (TWIN/robot)
+
+
+@dataclass
+class RobotResult:
+    results: Path                 # results.json
+    success: bool                 # the nominal run succeeded (trials are reported in results.json)
+    error: str | None = None      # why the task could not run on this twin (bad input), if it could not
+    details: dict[str, Any] = field(default_factory=dict)   # run, trials, paths: for printing, not recorded
+
+
+def run(inputs: RobotInputs, options: RobotOptions, *, progress: bool = True,
+        record_errors: bool = False) -> RobotResult:
+    """Plan and execute the task (options.task None or "default": the paper's task), then the trials.
+
+    record_errors: an InputError of the task on this twin (e.g. an object whose geometry failed) is
+    written to results.json and returned as `error` (the pipeline: the report says why) instead of raised."""
+    from splattwin import io
+    from splattwin.robot.outputs import write_outputs
+    from splattwin.robot.trials import TrialSpec, run_once, run_trials
+
+    options.validate()
+    out = Path(inputs.out_dir)
+    spec = TrialSpec.from_options(inputs.twin_dir, options)
+    t0 = time.perf_counter()
+    try:
+        result, note, frames = run_once(spec, frame_dir=out / "frames" if options.render else None,
+                                        keep_trajectories=True)
+    except InputError as e:
+        if not record_errors:
+            raise
+        path = io.write_json(out / "results.json", {"error": str(e), "task": options.task})
+        return RobotResult(results=path, success=False, error=str(e))
+    # trials land in OUT/trials/<i>.json: a killed run resumes them
+    trials = run_trials(spec, options.trials, options.sigma, workers=options.workers, progress=progress,
+                        out_dir=out, resume=options.resume, sigma_yaw=options.sigma_yaw) if options.trials > 0 else None
+    paths = write_outputs(out, spec, result, trials,
+                          render_note=(note or "") if options.render else "rendering disabled (--no-render)",
+                          frames=frames, wall_s=time.perf_counter() - t0)
+    return RobotResult(results=paths["results"], success=bool(result.success),
+                       details={"run": result, "trials": trials, "paths": paths})

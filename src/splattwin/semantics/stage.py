@@ -1,0 +1,110 @@
+"""The semantics stage as the pipeline runs it: `run(SemanticsInputs, SemanticsOptions) -> SemanticsResult`.
+
+Reads the posed dataset, the trained splats and the 2D masks — from `options.masks`, from text prompts
+(`options.prompt`, segmented into OUT/masks2d/), or the embedded scene's simulated segmenter
+(`inputs.scene_dir`; only training views are fused, held-out views stay unseen for the metrics).
+Writes (`splattwin.semantics.lift.fuse_to_dir`, the only writer of each): OUT/labels.npy, OUT/fusion.json
+(with the metrics), OUT/objects/, OUT/label_maps/, OUT/masks_vs_labels/; and OUT/objects.json (the objects
+[name, label, prompt] handed to the twin stage).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+from splattwin.errors import InputError
+from splattwin.semantics.options import SemanticsOptions
+
+
+@dataclass
+class SemanticsInputs:
+    transforms: Path               # posed dataset (the cameras of the masks)
+    splats: Path                   # trained 3DGS PLY
+    out_dir: Path                  # the stage's folder (TWIN/semantics)
+    scene_dir: Path | None = None  # an embedded scene's folder: its object names and simulated masks
+
+
+@dataclass
+class SemanticsResult:
+    labels: Path                   # int32 per Gaussian, 0 background
+    objects: Path                  # objects.json: [[name, label, prompt], ...]
+    fusion: Path                   # fusion.json: options, history, metrics
+    miou_heldout: float | None = None
+
+
+def load_stage_masks(options: SemanticsOptions, frames, scene_dir: Path | None, segment_dir: Path | None = None,
+                     image_sizes: dict | None = None):
+    """(MaskSet, the path its masks came from): options.masks, options.prompt (segmenting `frames` into
+    `segment_dir`) or the embedded scene's simulated segmenter (training views only). image_sizes: view ->
+    (H, W), checked for every mask file as it is read."""
+    from splattwin.semantics.masks import load_masks, scene_masks, scene_objects
+
+    objs = scene_objects(scene_dir) if scene_dir is not None else None
+    if options.masks:
+        return load_masks(options.masks, objects=objs, image_sizes=image_sizes), Path(options.masks)
+    if options.prompt:
+        from splattwin.semantics.segment import segment_images
+
+        if segment_dir is None:
+            raise InputError("text prompts are segmented when the stage runs (after poses)")
+        ms = segment_images({f.name: f.image_path for f in frames if f.split == "train"}, options.prompt,
+                            options.segment, out_dir=segment_dir)
+        return ms, segment_dir
+    if scene_dir is not None:
+        ms = scene_masks(scene_dir, kind="noisy")
+        train = {f.name for f in frames if f.split == "train"}
+        for d in (ms.masks, ms.scores, ms.sizes):
+            for view in [v for v in d if v not in train]:
+                del d[view]
+        return ms, scene_dir / "masks" / "noisy"
+    raise InputError("no 2D masks: pass --masks DIR or --prompt 'blue box. yellow cube'")
+
+
+def check_masks(options: SemanticsOptions, frames, scene_dir: Path | None = None) -> None:
+    """Before any stage runs: mask files given with `options.masks` read, fit the capture's images
+    `frames` and name at least one of them (InputError naming the mask file otherwise)."""
+    if not options.masks:
+        return
+    sizes = {f.name: (f.camera.height, f.camera.width) for f in frames}
+    ms, where = load_stage_masks(options, frames, scene_dir, image_sizes=sizes)
+    ms.validate(None, where)  # an empty set or an object that is in no view
+    if not [v for v in ms.views if v in sizes]:
+        raise InputError(f"no mask view matches an image of the input (masks: {', '.join(ms.views[:5])}...; "
+                         f"images: {', '.join(sorted(sizes)[:5])}...)", where)
+
+
+def input_files(inputs: SemanticsInputs, options: SemanticsOptions) -> dict:
+    """What the stage reads from outside the twin (hashed by content for its key)."""
+    scene_json = inputs.scene_dir / "scene.json" if inputs.scene_dir is not None else None
+    out: dict = {"masks": options.masks, "scene.json": scene_json}
+    if not options.masks and not options.prompt and inputs.scene_dir is not None:
+        out["scene_masks"] = inputs.scene_dir / "masks" / "noisy"
+    return out
+
+
+def run(inputs: SemanticsInputs, options: SemanticsOptions, *, progress: bool = True) -> SemanticsResult:
+    from splattwin import io
+    from splattwin.capture import load_dataset
+    from splattwin.semantics.fusion import check_views
+    from splattwin.semantics.lift import fuse_to_dir, views_for
+    from splattwin.semantics.masks import MaskWarning
+    from splattwin.splat.gaussians import Gaussians
+
+    ds = load_dataset(inputs.transforms)
+    ms, masks_from = load_stage_masks(options, ds.frames, inputs.scene_dir, inputs.out_dir / "masks2d",
+                                      {f.name: (f.camera.height, f.camera.width) for f in ds.frames})
+    # checked here with the masks' path, so that a size or empty-mask error names it
+    with warnings.catch_warnings():  # fuse_to_dir warns about unmatched views itself
+        warnings.simplefilter("ignore", MaskWarning)
+        check_views(views_for(ds.train() or ds.frames, ms, masks_from, all_frames=ds.frames), ms, masks_from)
+    g = Gaussians.load_ply(inputs.splats)
+    res = fuse_to_dir(g, ds, ms, inputs.out_dir, options.fusion, renderer=options.renderer, label_maps=options.maps,
+                      naive=options.naive, progress=progress, maps_renderer=options.maps_renderer, metrics=True)
+    prompts = ms.prompts or {}
+    objects = [[res.names[k], int(k), prompts.get(k, res.names[k].replace("_", " "))] for k in res.label_ids]
+    io.write_json(inputs.out_dir / "objects.json", objects)
+    fusion = io.read_json(inputs.out_dir / "fusion.json")
+    return SemanticsResult(labels=inputs.out_dir / "labels.npy", objects=inputs.out_dir / "objects.json",
+                           fusion=inputs.out_dir / "fusion.json", miou_heldout=fusion.get("miou_heldout"))

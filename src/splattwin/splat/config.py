@@ -1,0 +1,98 @@
+"""Options of the splat stage (`train`, `splattwin train`, `build --splat.*`): `TrainConfig` and its
+`LearningRates`, the single source of their defaults and help (see `splattwin.options`).
+
+Light on purpose: no torch here, so `splattwin --help` builds the training flags without importing it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
+
+from splattwin.options import option
+
+if TYPE_CHECKING:  # pragma: no cover
+    from splattwin.splat.densify import DensifyConfig
+
+DEVICES = ("auto", "cpu", "cuda")
+INIT_METHODS = ("auto", "sfm", "depth", "triangulate", "random")
+
+
+@dataclass
+class LearningRates:
+    """Adam learning rates (3DGS/gsplat defaults). `means` is multiplied by the scene scale and decays
+    exponentially to `means_final_factor` times its start over the run."""
+
+    means: float = option(1.6e-4, "Adam LR of the means (times the scene scale)")
+    means_final_factor: float = option(0.01, "the means' LR decays exponentially to this times its start")
+    scales: float = option(5e-3, "Adam LR of the log scales")
+    quats: float = option(1e-3, "Adam LR of the rotations")
+    opacities: float = option(5e-2, "Adam LR of the opacity logits")
+    sh0: float = option(2.5e-3, "Adam LR of the DC colour")
+    shN: float = option(2.5e-3 / 20, "Adam LR of the higher SH bands")
+
+
+@dataclass
+class TrainConfig:
+    """Training options. Defaults suit sparse tabletop captures (~15 views, 320x240) on a CPU.
+
+    resolution: as 3DGS `-r`: 1, 2, 4, 8 divide the image size; a larger value is a target width in
+        pixels; -1 downsizes only images wider than 1600 px.
+    refine_poses / pose_lr / pose_start: joint per-camera SE(3) corrections, their Adam LR, and the
+        fraction of the run before they move. Start 0 and LR 5e-3 measured best (bench/train.py, cameras
+        off by 1.5 deg / 2.3 cm: left 0.34 deg / 0.41 cm, vs 1.43 deg / 2.1 cm with start 0.2, LR 1e-3).
+    init_points / max_gaussians: at most this many initial Gaussians / Gaussians at any time. 24k / 28k
+        on the embedded scene (bench/train.py, 3000 steps): held-out 32.80 dB / SSIM 0.951, vs 32.69 dB /
+        0.953 with 24k / 32k (~6 % slower) and 32.48 dB / 0.950 with 20k / 26k; on the earlier 2x2-sampled
+        scene 80k gave at most +0.006 SSIM. Raise both for larger images or scenes.
+    rasterize_mode: "classic" or "antialiased" (see `rasterization`); evaluation renders with the same
+        mode (train.json). Antialiased measured no better (2x2-sampled scene: SSIM 0.919 vs 0.921).
+    opacity_reg: weight of a mean-opacity penalty (gsplat's opacity_reg; 0: off). 0.05 raised held-out
+        SSIM by ~0.006-0.009 (4x4-sampled scene: 0.956 vs 0.949; 2x2-sampled: 0.930 vs 0.921), but the
+        fainter Gaussians overlap more (~58 instead of ~50 composited per pixel): ~15-25 % slower.
+    depth_lambda: weight of a depth loss on frames that have depth maps (0: off): mean relative error
+        |ED - D| / D of the rendered expected depth ED over pixels with a finite depth D and rendered
+        alpha > 0.5. It keeps the Gaussians on the measured surfaces, which sparse views alone do not.
+    densify_cfg: the adaptive density control schedule (None: `DensifyConfig.for_iterations`); set from
+        Python only.
+    """
+
+    iters: int = option(3000, "training steps", build_alias="iters")
+    resolution: int = option(1, "1/2/4/8 divide the image size, larger values are a target width in px, -1 caps "
+                             "the width at 1600", build_alias="resolution")
+    device: str = option("auto", "rasterizer device: cuda uses gsplat", choices=DEVICES, build_alias="device")
+    backend: str | None = option(None, "rasterizer backend by name (e.g. reference), overriding --device")
+    init: str = option("auto", "initial point cloud: dataset/SfM points, back-projected depth maps, points "
+                       "triangulated from the known poses, or random in the cameras' common view (auto: the first "
+                       "available in that order)", choices=INIT_METHODS)
+    init_points: int = option(24_000, "at most this many initial Gaussians")
+    sh_degree: int = option(3, "maximum SH degree", choices=(0, 1, 2, 3))
+    sh_interval: int = option(0, "raise the SH degree every this many steps (0: iters // 10)")
+    seed: int = option(0, "seed of the view order, initialisation and split samples")
+    checkpoint_every: int = option(500, "steps between checkpoints (0: none)", hashed=False)
+    refine_poses: bool = option(False, "learn a per-camera SE(3) pose correction jointly (writes "
+                                "refined_poses.json)")
+    pose_lr: float = option(5e-3, "Adam learning rate of the pose corrections")
+    pose_start: float = option(0.0, "fraction of the run before the poses start to move")
+    ssim_lambda: float = option(0.2, "weight of D-SSIM in the photometric loss (1 - l) L1 + l D-SSIM")
+    rasterize_mode: str = option("classic", "rasterizer mode (evaluation renders with the same)",
+                                 choices=("classic", "antialiased"))
+    depth_lambda: float = option(0.0, "weight of a relative depth loss on frames with depth maps (0: off)")
+    opacity_reg: float = option(0.0, "weight of a mean-opacity penalty, as gsplat's opacity_reg (0: off; 0.05 "
+                                "gave +0.27 dB / +0.009 SSIM on the embedded scene, ~15 % slower)")
+    max_gaussians: int = option(28_000, "cap on the Gaussian count")
+    background: tuple[float, float, float] = option((0.0, 0.0, 0.0), "background colour (RGB in [0, 1])")
+    densify: bool = option(True, "adaptive density control (clone, split, prune)")
+    lrs: LearningRates = option(factory=LearningRates, help="Adam learning rates")
+    densify_cfg: DensifyConfig | None = option(None, "densification schedule (None: scaled to iters)", cli=False)
+    progress: bool = option(True, "progress bar", runtime=True)
+
+    def densify_config(self) -> DensifyConfig:
+        from splattwin.splat.densify import DensifyConfig
+
+        return self.densify_cfg or DensifyConfig.for_iterations(self.iters, self.max_gaussians)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["densify_cfg"] = asdict(self.densify_config())
+        return d

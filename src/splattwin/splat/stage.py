@@ -1,0 +1,41 @@
+"""The splat stage as the pipeline runs it: `run(SplatInputs, TrainConfig) -> SplatResult`.
+
+Reads the posed dataset (TWIN/poses/transforms.json); writes OUT/point_cloud.ply, OUT/train.json,
+OUT/checkpoints/ (a killed run resumes from them; a checkpoint of other options or data is not resumed,
+training starts over) and OUT/eval/ (held-out PSNR/SSIM, side-by-side pictures).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+from splattwin.splat.config import TrainConfig
+
+
+@dataclass
+class SplatInputs:
+    transforms: Path   # posed dataset
+    out_dir: Path      # the stage's folder (TWIN/splat)
+
+
+@dataclass
+class SplatResult:
+    ply: Path          # standard 3DGS PLY (twin frame, metres)
+    psnr: float        # mean over the evaluation split (dB)
+    ssim: float
+    split: str         # "heldout", or "train" when the dataset has no held-out views
+    gaussians: int
+    train_s: float
+
+
+def run(inputs: SplatInputs, options: TrainConfig, *, progress: bool = True) -> SplatResult:
+    from splattwin.capture import load_dataset
+    from splattwin.splat.eval import evaluate
+    from splattwin.splat.trainer import train
+
+    ds = load_dataset(inputs.transforms)
+    res = train(ds, inputs.out_dir, replace(options, progress=progress), resume=True, on_mismatch="restart")
+    ev = evaluate(res.ply_path, ds, out_dir=inputs.out_dir / "eval", progress=progress)
+    return SplatResult(ply=res.ply_path, psnr=ev.mean_psnr, ssim=ev.mean_ssim, split=ev.split,
+                       gaussians=len(res.gaussians), train_s=res.wall_s)

@@ -1,0 +1,184 @@
+"""BuildOptions nests the stages' options: every stage option is reachable from `build`/`demo` flags and
+from a config file, flags override the file, and each stage's key follows its own sub-config only."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+
+from splattwin.cli import build_parser, main
+from splattwin.errors import InputError
+from splattwin.options import Spec, is_option, specs, to_dict
+from splattwin.pipeline.cli import resolve_options
+from splattwin.pipeline.options import BuildOptions
+
+
+def _leaves(cls, prefix=""):
+    """(dotted path, Spec) of every option a config file / build flag can set."""
+    for s in specs(cls):
+        if not is_option(s):
+            continue
+        if s.nested is not None:
+            yield from _leaves(s.nested, f"{prefix}{s.name}.")
+        else:
+            yield f"{prefix}{s.name}", s
+
+
+def _other_value(s: Spec):
+    """A valid value other than the default, and its command-line form."""
+    d = s.default()
+    choices = s.meta.get("choices")
+    if choices:
+        v = next(c for c in choices if c != d)
+        return v, [str(v)]
+    if s.base is bool:
+        return (not d), None
+    if s.base is int:
+        v = (d or 0) + 2
+        return v, [str(v)]
+    if s.base is float:
+        v = (d or 0.0) + 0.25
+        if s.meta.get("degrees"):
+            import math
+
+            return math.radians(33.0), ["33"]
+        return v, [repr(v)]
+    if s.base is tuple:
+        v = tuple(type(x)(x + 1) for x in d)
+        return v, [str(x) for x in v]
+    if s.base is Path:
+        return Path("some/file.yaml"), ["some/file.yaml"]
+    return "other-value", ["other-value"]
+
+
+def _get(obj, path: str):
+    for part in path.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def test_build_options_nest_and_do_not_copy():
+    stage_fields = {s.name for s in specs(BuildOptions)} - {"input"}
+    nested_names = set()
+    for s in specs(BuildOptions):
+        if s.name != "input":
+            assert s.nested is not None, f"BuildOptions.{s.name} must be a stage's options dataclass"
+            nested_names |= {x.name for x in specs(s.nested)}
+    assert not (stage_fields | {"input"}) & nested_names, "BuildOptions repeats a stage option"
+    assert "extra" not in {s.name for s in specs(BuildOptions)}
+
+
+@pytest.mark.parametrize("command", ["build", "demo"])
+def test_every_stage_option_is_a_flag(command):
+    parser = build_parser()
+    base = ["build", "data", "--out", "t"] if command == "build" else ["demo"]
+    n = 0
+    for path, s in _leaves(BuildOptions):
+        if path == "input" or (command == "build" and path.startswith("scene.")):
+            continue
+        value, text = _other_value(s)
+        flag = "--" + ".".join(p.replace("_", "-") for p in path.split(".")[:-1] + [s.meta.get("flag") or s.name])
+        if s.base is bool:
+            argv = [flag] if value else ["--no-" + flag[2:]]
+        else:
+            argv = [flag, *text]
+        opts = resolve_options(parser.parse_args(base + argv), demo=command == "demo")
+        got = _get(opts, path)
+        assert got == pytest.approx(value) if isinstance(value, float) else got == value, (path, got, value)
+        n += 1
+    assert n > 120   # every stage's options, not a handful
+
+
+def test_short_aliases_and_seed():
+    p = build_parser()
+    o = resolve_options(p.parse_args(["build", "data", "--out", "t", "--iters", "80", "--kappa", "2", "--task",
+                                      "default", "--no-frames", "--poses", "sfm", "--seed", "4",
+                                      "--splat.seed", "9"]))
+    assert (o.splat.iters, o.semantics.fusion.kappa, o.robot.task, o.robot.render, o.poses.method) == \
+        (80, 2.0, "default", False, "sfm")
+    assert (o.poses.seed, o.robot.seed, o.geometry.seed, o.splat.seed) == (4, 4, 4, 9)   # the flag wins
+    d = resolve_options(p.parse_args(["demo", "--views", "6", "--width", "96"]), demo=True)
+    assert (d.scene.views, d.scene.width, d.poses.method, d.robot.task) == (6, 96, "known", "default")
+    assert resolve_options(p.parse_args(["build", "data", "--out", "t"])) == BuildOptions(input="data")
+
+
+def test_config_file_then_flags(tmp_path):
+    cfg = tmp_path / "cfg" / "twin.yaml"
+    cfg.parent.mkdir()
+    cfg.write_text("input: photos\n"
+                   "splat: {iters: 500, depth_lambda: 0.1, lrs: {means: 0.001}}\n"
+                   "semantics: {masks: masks/, fusion: {kappa: 1.2}}\n"
+                   "robot: {task: default, trials: 3}\n")
+    p = build_parser()
+    o = resolve_options(p.parse_args(["build", "--config", str(cfg), "--out", "t", "--iters", "40"]))
+    assert (o.splat.iters, o.splat.depth_lambda, o.splat.lrs.means) == (40, 0.1, 0.001)
+    assert o.input == str(cfg.parent.resolve() / "photos")                    # relative to the file
+    assert Path(o.semantics.masks) == cfg.parent.resolve() / "masks"
+    assert (o.semantics.fusion.kappa, o.robot.trials, o.robot.task) == (1.2, 3, "default")  # "default" stays
+    assert resolve_options(p.parse_args(["build", "cli_photos", "--config", str(cfg), "--out", "t"])).input == \
+        "cli_photos"
+
+
+def test_bad_config_file_exits_2_naming_it(tmp_path, capsys):
+    cfg = tmp_path / "twin.yaml"
+    cfg.write_text("splat: {iterz: 3}\n")
+    assert main(["build", "x", "--out", str(tmp_path / "t"), "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert "twin.yaml" in err and "splat.iterz" in err
+    cfg.write_text("robot: {trials: lots}\n")
+    assert main(["build", "x", "--out", str(tmp_path / "t"), "--config", str(cfg)]) == 2
+    assert "robot.trials: expected an integer" in capsys.readouterr().err
+    assert main(["build", "--out", str(tmp_path / "t")]) == 2                          # no input at all
+    assert main(["build", "x", "--out", str(tmp_path / "t"), "--config", str(tmp_path / "none.yaml")]) == 2
+
+
+def test_print_config_reads_back(tmp_path, capsys):
+    assert main(["demo", "--print-config", "--iters", "77", "--scene.noise.p-miss", "0.5"]) == 0
+    text = capsys.readouterr().out
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(text)
+    p = build_parser()
+    o = resolve_options(p.parse_args(["demo", "--config", str(cfg)]), demo=True)
+    assert o.splat.iters == 77 and o.scene.noise.p_miss == 0.5
+    assert o == resolve_options(p.parse_args(["demo", "--iters", "77", "--scene.noise.p-miss", "0.5"]), demo=True)
+
+
+def test_from_dict_rejects_what_a_file_may_not_set():
+    with pytest.raises(InputError, match="unknown option 'splat.progress'"):
+        BuildOptions.from_dict({"splat": {"progress": False}})
+    with pytest.raises(InputError, match="unknown option 'extra'"):
+        BuildOptions.from_dict({"extra": {}})
+
+
+def test_stage_keys_follow_their_own_sub_config(tmp_path):
+    from splattwin.pipeline.build import stage_keys
+
+    base = BuildOptions.from_dict({"scene": {"width": 64, "height": 48, "views": 4, "heldout": 1},
+                                   "poses": {"method": "known"}, "robot": {"task": "default"}})
+    k0 = stage_keys(tmp_path / "twin", base)
+
+    def changed(**sub) -> set[str]:
+        k = stage_keys(tmp_path / "twin", BuildOptions.from_dict(sub, base=base))
+        return {s for s in k0 if k[s] != k0[s]}
+
+    later = {"semantics", "twin", "robot", "report"}
+    assert changed(splat={"depth_lambda": 0.1}) == {"splats"} | later
+    assert changed(semantics={"fusion": {"kappa": 2.0}}) == later
+    assert changed(geometry={"collision_faces": 900}) == {"twin", "robot", "report"}
+    assert changed(robot={"trials": 2}) == {"robot", "report"}
+    # what does not change results does not change keys
+    assert changed(splat={"checkpoint_every": 7}, robot={"workers": 1, "resume": False}) == set()
+    quiet = dataclasses.replace(base, splat=dataclasses.replace(base.splat, progress=False))
+    assert stage_keys(tmp_path / "twin", quiet) == k0 == stage_keys(tmp_path / "twin", base.with_seed(0))
+
+
+def test_resolved_config_records_absolute_paths(tmp_path):
+    from splattwin.pipeline.build import resolved_config
+
+    o = BuildOptions.from_dict({"input": "rel/photos", "robot": {"task": "default"}})
+    rec = resolved_config(o)
+    assert rec["input"] == str(Path("rel/photos").resolve()) and rec["robot"]["task"] == "default"
+    assert rec["splat"]["iters"] == 3000 and "progress" not in rec["splat"]
+    assert to_dict(o, "config")["input"] == "rel/photos"
