@@ -42,7 +42,7 @@ def test_importing_every_module_changes_no_env_and_no_threads():
     code = f"""
 import importlib, json, os
 # the libraries splattwin builds on, loaded first: whatever they do themselves is not ours to judge
-import numba, torch, mujoco, cv2  # (cv2 edits LD_LIBRARY_PATH when it loads)
+import numba, torch, mujoco, cv2, open3d  # (cv2 edits LD_LIBRARY_PATH, open3d sets TCM_ENABLE when they load)
 env0, nb0, th0, inter0 = dict(os.environ), numba.get_num_threads(), torch.get_num_threads(), torch.get_num_interop_threads()
 failed = []
 for name in {modules!r}:
