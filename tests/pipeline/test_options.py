@@ -104,6 +104,28 @@ def test_short_aliases_and_seed():
     assert resolve_options(p.parse_args(["build", "data", "--out", "t"])) == BuildOptions(input="data")
 
 
+def test_sfm_and_up_options_reach_build_and_the_poses_key(tmp_path):
+    from splattwin.pipeline.build import resolved_config, stage_keys
+
+    p = build_parser()
+    o = resolve_options(p.parse_args(["build", "data", "--out", "t", "--up=-z", "--poses.max-num-features", "2000",
+                                      "--no-poses.retry", "--no-poses.triangulate", "--poses.num-threads", "1",
+                                      "--poses.matcher", "retrieval"]))
+    assert (o.poses.up, o.poses.max_num_features, o.poses.retry, o.poses.triangulate, o.poses.num_threads,
+            o.poses.matcher) == ("-z", 2000, False, False, 1, "retrieval")
+    assert resolve_options(p.parse_args(["build", "data", "--out", "t", "--poses.up", "+y"])).poses.up == "+y"
+    rec = resolved_config(o)["poses"]                                            # recorded in twin.json
+    assert (rec["up"], rec["max_num_features"], rec["retry"], rec["num_threads"]) == ("-z", 2000, False, 1)
+    base = BuildOptions.from_dict({"scene": {"width": 64, "height": 48, "views": 4, "heldout": 1},
+                                   "poses": {"method": "known"}})
+    k0 = stage_keys(tmp_path / "twin", base)
+    for sub in ({"up": "-z"}, {"triangulate": False}, {"max_image_size": 800}, {"retry": False}):
+        k = stage_keys(tmp_path / "twin", BuildOptions.from_dict({"poses": sub}, base=base))
+        assert k["poses"] != k0["poses"] and k["scene"] == k0["scene"], sub
+    # CPU threads do not change the result: not in the key
+    assert stage_keys(tmp_path / "twin", BuildOptions.from_dict({"poses": {"num_threads": 1}}, base=base)) == k0
+
+
 def test_config_file_then_flags(tmp_path):
     cfg = tmp_path / "cfg" / "twin.yaml"
     cfg.parent.mkdir()

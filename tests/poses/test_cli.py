@@ -20,6 +20,28 @@ def test_help_works(capsys):
     assert "--robot-poses" in capsys.readouterr().out
 
 
+def test_sfm_and_up_flags_set_pose_options():
+    """sfm's and formats' flags are generated from PoseOptions; their old spellings still work."""
+    from splattwin.cli import build_parser
+    from splattwin.options import from_args
+    from splattwin.poses import PoseOptions
+
+    p = build_parser()
+    old = from_args(PoseOptions, p.parse_args(["poses", "in", "out", "--max-features", "2000", "--threads", "1",
+                                                "--no-retry", "--no-triangulate", "--up=-z", "--max-image-size", "0",
+                                                "--matcher", "retrieval"]))
+    new = from_args(PoseOptions, p.parse_args(["poses", "in", "out", "--max-num-features", "2000", "--num-threads",
+                                                "1", "--no-retry", "--no-triangulate", "--up", "+y"]))
+    assert (old.max_num_features, old.num_threads, old.retry, old.triangulate, old.up, old.max_image_size,
+            old.matcher) == (2000, 1, False, False, "-z", 0, "retrieval")
+    assert (new.max_num_features, new.num_threads, new.retry, new.triangulate, new.up) == (2000, 1, False, False, "+y")
+    d = from_args(PoseOptions, p.parse_args(["poses", "in", "out"]))
+    assert (d.max_image_size, d.max_num_features, d.retry, d.num_threads, d.triangulate, d.up) == \
+        (1600, 4096, True, 0, True, "auto")
+    with pytest.raises(SystemExit):
+        p.parse_args(["poses", "in", "out", "--up", "down"])
+
+
 def test_known_poses_round_trip(scene_small: Path, tmp_path: Path):
     out = tmp_path / "out"
     assert main(["poses", str(scene_small), str(out), "--known"]) == 0

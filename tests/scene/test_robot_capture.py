@@ -108,6 +108,16 @@ def test_z_up_option_and_cli(tmp_path):
                  "--height", "48", "--views", "3", "--supersample", "1", "--no-progress"]) == 0
     assert (tmp_path / "cli" / "groundtruth.txt").is_file() and (tmp_path / "cli" / "camera.yaml").is_file()
     assert load_dataset(tmp_path / "cli").meta["format"] == "tum"
+    sj = json.loads((tmp_path / "cli" / "scene.json").read_text())["robot_capture"]
+    assert (sj["world"], sj["views"], sj["width"]) == ("z-down", 3, 64)      # the flags' values, recorded
+    assert main(["scene", "generate", str(tmp_path / "cli2"), "--robot-capture", "bop", "--robot-world", "z-up",
+                 "--robot-capture.roll-deg", "0", "--width", "64", "--height", "48", "--views", "3",
+                 "--supersample", "1", "--no-progress"]) == 0
+    sj = json.loads((tmp_path / "cli2" / "scene.json").read_text())["robot_capture"]
+    assert (sj["format"], sj["world"], sj["roll_deg"]) == ("bop", "z-up", 0.0)
+    # the capture's options without the layout: a clear error, not a scene written instead
+    assert main(["scene", "generate", str(tmp_path / "cli3"), "--robot-world", "z-up"]) == 2
+    assert not (tmp_path / "cli3" / "scene.json").exists()
 
 
 @pytest.mark.slow

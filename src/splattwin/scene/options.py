@@ -146,11 +146,11 @@ class RobotCaptureOptions:
     views: int = option(16, "frames", cli=False)
     width: int = option(640, "image width", unit="px", cli=False)
     height: int = option(480, "image height", unit="px", cli=False)
+    format: str = option("bop", "given on `scene generate`: write a robot-style RGB-D capture instead of the scene "
+                         "(D435-like camera, 16-bit depth in mm, per-instance masks, known poses), as a BOP scene or "
+                         "a TUM pose list", choices=FORMATS, aliases=("robot-capture",))
     world: str = option("z-down", "world of the capture's poses (z-down: the scene's world rotated 180 deg about x)",
                         choices=WORLDS, aliases=("robot-world",))
-    format: str = option("bop", "write a robot-style RGB-D capture instead of the scene (D435-like camera, 16-bit "
-                         "depth in mm, per-instance masks, known poses in a z-down world): a BOP scene or a TUM pose "
-                         "list", choices=FORMATS, aliases=("robot-capture",))
     distance: tuple[float, float] = option((0.65, 0.80), "(min, max) camera distance from the look-at point", unit="m")
     elevation: tuple[float, float] = option((50.0, 70.0), "(min, max) camera elevation above the table", unit="deg")
     roll_deg: float = option(20.0, "largest wrist roll about the optical axis", unit="deg")
