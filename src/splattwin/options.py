@@ -186,6 +186,20 @@ def dest(name: str, prefix: str = "") -> str:
     return _DEST + prefix + name
 
 
+def add_command(sub: argparse._SubParsersAction, name: str, func) -> argparse.ArgumentParser:
+    """Add the sub-command `name`, run as `func(args) -> exit code`. Its text is `func`'s docstring,
+    written once: the first paragraph is the one-line help in `splattwin --help`, the whole docstring
+    the command's description."""
+    import inspect
+
+    doc = inspect.cleandoc(func.__doc__ or "")
+    summary = " ".join(doc.split("\n\n")[0].split()).rstrip(".")
+    summary = summary[:1].lower() + summary[1:]  # like the other entries of `splattwin --help`
+    p = sub.add_parser(name, help=summary, description=doc)
+    p.set_defaults(func=func)
+    return p
+
+
 def add_options(parser: argparse.ArgumentParser, cls: type, prefix: str = "", *, include: Iterable[str] | None = None,
                 exclude: Iterable[str] = (), build: bool = False, title: str | None = None) -> None:
     """Add a flag for every option of `cls` (nested option dataclasses recursively, as `--sub.name`).

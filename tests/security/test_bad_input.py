@@ -192,35 +192,36 @@ def test_internal_errors_exit_1_without_traceback(gt_twin, cli, monkeypatch):
 
 
 # -- fuzzing -----------------------------------------------------------------------------------------
-def test_fuzzed_transforms_json(tiny_dataset, tmp_path):
-    from splattwin.capture import load_dataset
-
-    ds = tmp_path / "ds"
-    shutil.copytree(tiny_dataset, ds)
-    good = json.loads((tiny_dataset / "transforms.json").read_text())
+def _fuzz_file(src: Path, tmp_path: Path, name: str, load_and_check) -> None:
+    """Copy folder `src`, then for many mutations of its JSON file `name` write the mutant and call
+    `load_and_check(folder)` (which must not raise anything but the asserted errors)."""
+    folder = tmp_path / "fuzzed"
+    shutil.copytree(src, folder)
+    good = json.loads((src / name).read_text())
 
     @FUZZ
     @given(doc=mutations(good))
     def check(doc):
-        (ds / "transforms.json").write_text(json.dumps(doc))
+        (folder / name).write_text(json.dumps(doc))
+        load_and_check(folder)
+    check()
+
+
+def test_fuzzed_transforms_json(tiny_dataset, tmp_path):
+    from splattwin.capture import load_dataset
+
+    def load(ds):
         try:
             load_dataset(ds)
         except InputError as e:
             assert e.path is not None
-    check()
+    _fuzz_file(tiny_dataset, tmp_path, "transforms.json", load)
 
 
 def test_fuzzed_twin_json(gt_twin, tmp_path):
     from splattwin.twin.manifest import Manifest
 
-    twin = tmp_path / "t"
-    shutil.copytree(gt_twin, twin)
-    good = json.loads((gt_twin / "twin.json").read_text())
-
-    @FUZZ
-    @given(doc=mutations(good))
-    def check(doc):
-        (twin / "twin.json").write_text(json.dumps(doc))
+    def load(twin):
         try:
             m = Manifest.load(twin)
         except InputError as e:
@@ -230,7 +231,7 @@ def test_fuzzed_twin_json(gt_twin, tmp_path):
             assert (twin / rel).resolve().is_relative_to(twin.resolve())
         for o in m.objects:
             assert o.pose.shape == (4, 4) and np.all(np.isfinite(o.pose))
-    check()
+    _fuzz_file(gt_twin, tmp_path, "twin.json", load)
 
 
 def test_fuzzed_coco(tmp_path):

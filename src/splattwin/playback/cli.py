@@ -7,13 +7,9 @@ from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "render",
-        help="render the executed task as a photoreal MP4 (moving splats + the robot) from any camera",
-        description="Play a rollout (TWIN/robot/rollout.npz, written by `splattwin plan`) on the twin's splats: "
-                    "objects move with the simulation, the Panda is drawn as Gaussians from its meshes, the table "
-                    "under picked objects is filled. Exit code 2 on bad input (no splats, camera below the table, ...).",
-    )
+    from splattwin.options import add_command
+
+    p = add_command(sub, "render", run_render)
     p.add_argument("twin", type=Path, help="twin folder (with twin.json and splats)")
     p.add_argument("--camera", default="capture:0",
                    help="a capture image name (e.g. heldout_000), 'capture:<index>', 'wrist' (eye-in-hand, "
@@ -27,10 +23,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(default: the one `splattwin plan` recorded in TWIN/robot/results.json, else -0.5,0,0,0)")
     p.add_argument("--no-robot", action="store_true", help="leave the robot out of the picture")
     p.add_argument("--no-fill", action="store_true", help="do not fill the table under moved objects")
-    p.set_defaults(func=run_render)
 
 
 def run_render(args: argparse.Namespace) -> int:
+    """Render the executed task as a photoreal MP4 (moving splats + the robot) from any camera.
+
+    Plays a rollout (TWIN/robot/rollout.npz, written by `splattwin plan`) on the twin's splats: objects
+    move with the simulation, the Panda is drawn as Gaussians from its meshes, the table under picked
+    objects is filled. Exit code 2 on bad input (no splats, camera below the table, ...)."""
     from rich.console import Console
 
     from splattwin.errors import InputError

@@ -8,23 +8,14 @@ from dataclasses import replace
 from pathlib import Path
 
 from splattwin.errors import InputError
-from splattwin.options import add_options, dest
+from splattwin.options import add_command, add_options, dest
 from splattwin.poses.options import PoseOptions
 
 log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add this stage's sub-commands to the `splattwin` parser."""
-    p = sub.add_parser(
-        "poses",
-        help="camera poses (SfM / known / robot) and a metric table frame -> posed nerfstudio dataset",
-        description="Estimate camera poses for a capture and define the twin frame. Writes OUT/transforms.json "
-                    "(nerfstudio, + points3D.ply), OUT/frame.json (frame source, scaled, scale uncertainty), "
-                    "OUT/poses_report.json and OUT/cameras.png. The frame comes from, in order: SfM aligned to "
-                    "robot poses, an ArUco marker, the table plane + a known length, robot/known poses; "
-                    "otherwise the table plane, marked 'unscaled' (robot stages refuse unscaled twins).",
-    )
+    p = add_command(sub, "poses", _run)
     p.add_argument("input", type=Path, help="dataset: image folder, video, transforms.json, COLMAP model, cameras.json, BOP scene, "
                                             "TUM pose list + intrinsics")
     p.add_argument("out", type=Path, help="output folder")
@@ -38,7 +29,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--per-image-intrinsics", dest=dest("shared_intrinsics"), action="store_false",
                    default=argparse.SUPPRESS, help="= --no-shared-intrinsics")
     p.add_argument("--max-frames", type=int, help="use at most N frames (evenly spaced; videos: best N)")
-    p.set_defaults(func=_run)
 
 
 def print_sfm_summary(stats: dict) -> None:
@@ -57,6 +47,13 @@ def print_sfm_summary(stats: dict) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
+    """Camera poses (SfM / known / robot) and a metric table frame -> posed nerfstudio dataset.
+
+    Estimates camera poses for a capture and defines the twin frame. Writes OUT/transforms.json
+    (nerfstudio, + points3D.ply), OUT/frame.json (frame source, scaled, scale uncertainty),
+    OUT/poses_report.json and OUT/cameras.png. The frame comes from, in order: SfM aligned to robot poses,
+    an ArUco marker, the table plane + a known length, robot/known poses; otherwise the table plane,
+    marked 'unscaled' (robot stages refuse unscaled twins)."""
     from splattwin.capture import load_dataset
     from splattwin.options import from_args
     from splattwin.poses.estimate import estimate_poses

@@ -6,29 +6,26 @@ import argparse
 import logging
 from pathlib import Path
 
-from splattwin.options import add_options
+from splattwin.options import add_command, add_options
 from splattwin.robot.options import RobotOptions
 
 log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add this stage's sub-commands to the `splattwin` parser."""
-    p = sub.add_parser(
-        "plan",
-        help="plan a pick-and-place task on a twin and validate it in MuJoCo physics (Franka Panda)",
-        description="Plan the task against the twin (grasps, IK, OMPL paths, TOPP-RA timing), execute it in "
-                    "MuJoCo with the real gripper, report per-step success and collisions, export the joint "
-                    "trajectory (JSON, CSV, ROS 2 JointTrajectory YAML) and frames. Exit code 0 when the task "
-                    "succeeded, 1 when it failed, 2 on bad input.",
-    )
+    p = add_command(sub, "plan", run_plan)
     p.add_argument("twin", type=Path, help="twin folder (with twin.json)")
     add_options(p, RobotOptions)
     p.add_argument("--out", type=Path, default=None, help="output folder (default: TWIN/robot)")
-    p.set_defaults(func=run_plan)
 
 
 def run_plan(args: argparse.Namespace) -> int:
+    """Plan a pick-and-place task on a twin and validate it in MuJoCo physics (Franka Panda).
+
+    Plans the task against the twin (grasps, IK, OMPL paths, TOPP-RA timing), executes it in MuJoCo with
+    the real gripper, reports per-step success and collisions, exports the joint trajectory (JSON, CSV,
+    ROS 2 JointTrajectory YAML) and frames. Exit code 0 when the task succeeded, 1 when it failed, 2 on
+    bad input."""
     from splattwin.errors import InputError
     from splattwin.lock import output_lock
     from splattwin.options import from_args

@@ -29,6 +29,7 @@ robot with anything but the target and no contact of the carried object with any
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 import time
@@ -166,21 +167,34 @@ class Executor:
             raise StepFailed(self.planner.no_candidate_message(step, report))
         return plan
 
+    def _track_first(self, options, goal: Callable, label: str, kind: str, res: StepResult, width: float,
+                     gripper: float, mon: MonitorState, carrying: tuple | None = None):
+        """Plan a checked free-space path from the current joints to `goal(option)` for each option in
+        turn (the fingers frozen at `width`, carrying `(obj, T_tcp_obj)` if given) and execute the first
+        that plans. Returns (that option or None, the failure messages of those before it)."""
+        failures = []
+        for option in options:
+            self.motion.freeze(self.q, width)
+            try:
+                with self.motion.carrying(*carrying) if carrying else contextlib.nullcontext():
+                    path = self.motion.free_path(self.q, goal(option), label)
+                    tr = self.motion.trajectory(path, SPEED, checked=True)
+            except (PlanningError, RuntimeError) as e:
+                failures.append(str(e))
+                res.grasp.fallbacks.append(f"{kind}: {e}"[:300])
+                continue
+            self.trajs.append((label, tr))
+            self.servo.track(tr, gripper, 0.1, mon)
+            return option, failures
+        return None, failures
+
     def _reach(self, step: Step, res: StepResult, k: int, mon: MonitorState, tag: str = "") -> GraspPlan:
         """Plan and execute the transit to the pre-grasp of the best candidate whose transit plans; a
         candidate whose transit finds no path (or no verified timing) falls back to the next one."""
-        failures = []
-        for plan in self.planner.candidates(step, res.grasp):
-            self.motion.freeze(self.q, self.robot.max_opening)
-            try:
-                path = self.motion.free_path(self.q, plan.q_pregrasp, f"step{k}_transit{tag}")
-                tr = self.motion.trajectory(path, SPEED, checked=True)
-            except (PlanningError, RuntimeError) as e:
-                failures.append(str(e))
-                res.grasp.fallbacks.append(f"transit: {e}"[:300])
-                continue
-            self.trajs.append((f"step{k}_transit{tag}", tr))
-            self.servo.track(tr, self.robot.gripper_open, 0.1, mon)
+        plan, failures = self._track_first(
+            self.planner.candidates(step, res.grasp), lambda p: p.q_pregrasp, f"step{k}_transit{tag}",
+            "transit", res, self.robot.max_opening, self.robot.gripper_open, mon)
+        if plan is not None:
             return plan
         if failures:
             raise StepFailed(f"no transit to any of {len(failures)} feasible grasps on {step.pick!r}: "
@@ -246,19 +260,10 @@ class Executor:
         self.belief[obj] = self.motion.ik.fk(self.q) @ T_tcp_obj
         sensed = (self.planner.place_options(step, g, self.q, None, T_obj_tcp=invert_pose(T_tcp_obj))
                   if self.in_hand == "sensed" else iter(()))
-        failures = []
-        for option in itertools.chain(sensed, [plan.place], plan.places):
-            self.motion.freeze(self.q, g.width)
-            try:
-                with self.motion.carrying(obj, T_tcp_obj):
-                    path = self.motion.free_path(self.q, option.q_preplace, f"step{k}_transfer")
-                    tr = self.motion.trajectory(path, SPEED, checked=True)
-            except (PlanningError, RuntimeError) as e:
-                failures.append(str(e))
-                res.grasp.fallbacks.append(f"transfer: {e}"[:300])
-                continue
-            self.trajs.append((f"step{k}_transfer", tr))
-            self.servo.track(tr, self.robot.gripper_closed, 0.1, mon)
+        option, failures = self._track_first(
+            itertools.chain(sensed, [plan.place], plan.places), lambda o: o.q_preplace, f"step{k}_transfer",
+            "transfer", res, g.width, self.robot.gripper_closed, mon, carrying=(obj, T_tcp_obj))
+        if option is not None:
             return option
         raise StepFailed(f"no transfer path to any of {len(failures)} place poses for {obj!r}: "
                          f"{failures[0] if failures else 'none feasible'}")

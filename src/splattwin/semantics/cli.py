@@ -6,18 +6,14 @@ import argparse
 import logging
 from pathlib import Path
 
-from splattwin.options import add_options, from_args
+from splattwin.options import add_command, add_options, from_args
 from splattwin.semantics.options import FusionOptions, SegmentOptions, SemanticsOptions
 
 log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add this stage's sub-commands to the `splattwin` parser."""
-    p = sub.add_parser("segment", help="2D object masks per view from text prompts (Grounding DINO + SAM) or mask files",
-                       description="Make a mask set (<out>/masks.json + <view>/<object>.png) for a dataset, either "
-                                   "from text prompts (open-vocabulary, weights from the local Hugging Face cache) "
-                                   "or by importing masks (PNG folders, label images, COCO RLE JSON, polygon JSON).")
+    p = add_command(sub, "segment", _segment)
     p.add_argument("dataset", type=Path, help="dataset folder (transforms.json, COLMAP, images...)")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--prompt", help='objects as phrases separated by ".", e.g. "blue box. yellow cube. toy hammer"')
@@ -25,22 +21,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, default=None, help="output mask folder (default DATASET/masks/segment)")
     add_options(p, SegmentOptions)
     p.add_argument("--split", default="all", choices=["all", "train", "heldout"], help="which views to segment")
-    p.set_defaults(func=_segment)
 
-    f = sub.add_parser("fuse", help="lift 2D masks onto the Gaussians (visibility-aware fusion)",
-                       description="Visibility-aware semantic fusion (depth agreement, DBSCAN depth isolation, "
-                                   "weighted consensus tau = N/kappa, refinement with KNN smoothing). Writes "
-                                   "labels.npy, fusion.json, objects/<name>.ply and label_maps/.")
+    f = add_command(sub, "fuse", _fuse)
     f.add_argument("--splats", type=Path, required=True, help="3DGS PLY of the scene")
     f.add_argument("--dataset", type=Path, required=True, help="dataset with the cameras of the masks")
     f.add_argument("--masks", type=Path, required=True, help="mask folder / COCO JSON (see `splattwin segment`)")
     f.add_argument("--out", type=Path, required=True, help="output folder")
     add_options(f, FusionOptions)
     add_options(f, SemanticsOptions, include=("renderer", "maps_renderer", "maps", "naive"))
-    f.set_defaults(func=_fuse)
 
 
 def _segment(args: argparse.Namespace) -> int:
+    """2D object masks per view from text prompts (Grounding DINO + SAM) or mask files.
+
+    Makes a mask set (<out>/masks.json + <view>/<object>.png) for a dataset, either from text prompts
+    (open-vocabulary, weights from the local Hugging Face cache) or by importing masks (PNG folders, label
+    images, COCO RLE JSON, polygon JSON)."""
     from splattwin.capture import load_dataset
     from splattwin.semantics.lift import dataset_objects
     from splattwin.semantics.masks import load_masks
@@ -76,6 +72,11 @@ def _segment(args: argparse.Namespace) -> int:
 
 
 def _fuse(args: argparse.Namespace) -> int:
+    """Lift 2D masks onto the Gaussians (visibility-aware fusion).
+
+    Visibility-aware semantic fusion (depth agreement, DBSCAN depth isolation, weighted consensus
+    tau = N/kappa, refinement with KNN smoothing). Writes labels.npy, fusion.json, objects/<name>.ply and
+    label_maps/."""
     from splattwin.lock import output_lock
     from splattwin.semantics.lift import fuse_to_dir
 

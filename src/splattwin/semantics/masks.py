@@ -502,14 +502,8 @@ def load_bop_masks(path: str | Path, objects: dict[str, int] | None = None,
             if not f.is_file():
                 missing.append(f.name)
                 continue
-            mask = _read_binary_png(f)
-            _check_image(view, mask.shape, image_sizes, f)
-            _check_size(ms, view, mask, f)
-            ms.sizes.setdefault(view, mask.shape)
-            ms.size_sources.setdefault(view, str(f))
-            if mask.any():
-                nm = name_of[keys[(im_id, g.index)]]
-                ms.add(view, labels[nm], mask, 1.0, name=nm, source=f)
+            nm = name_of[keys[(im_id, g.index)]]
+            _add_instance_png(ms, view, labels[nm], nm, f, image_sizes)
     if missing:
         log.warning("%s: %d instance mask file(s) listed in %s are missing (e.g. %s)", mask_dir, len(missing),
                     SCENE_GT, ", ".join(missing[:3]))
@@ -564,16 +558,22 @@ def load_instance_masks(path: str | Path, objects: dict[str, int] | None = None,
             labels[name_of[inst]] = max(labels.values(), default=0) + 1
     ms = MaskSet(source=f"instances:{path}")
     for p, view, inst in parsed:
-        mask = _read_binary_png(p)
-        _check_image(view, mask.shape, image_sizes, p)
-        _check_size(ms, view, mask, p)
-        ms.sizes.setdefault(view, mask.shape)
-        ms.size_sources.setdefault(view, str(p))
-        if mask.any():
-            ms.add(view, labels[name_of[inst]], mask, 1.0, name=name_of[inst], source=p)
+        _add_instance_png(ms, view, labels[name_of[inst]], name_of[inst], p, image_sizes)
     _check_names(ms, path)
     return ms
 
+
+
+def _add_instance_png(ms: MaskSet, view: str, label: int, name: str, f: Path, image_sizes) -> None:
+    """Read one binary instance-mask PNG, check its size against the view's image and the view's other
+    masks (naming the file), and add it to `ms` unless it is empty."""
+    mask = _read_binary_png(f)
+    _check_image(view, mask.shape, image_sizes, f)
+    _check_size(ms, view, mask, f)
+    ms.sizes.setdefault(view, mask.shape)
+    ms.size_sources.setdefault(view, str(f))
+    if mask.any():
+        ms.add(view, label, mask, 1.0, name=name, source=f)
 
 def save_instance_masks(ms: MaskSet, out_dir: str | Path) -> Path:
     """Write `<out_dir>/<view>_<label:06d>.png` (0/255) and `instances.json` ({label: name})."""

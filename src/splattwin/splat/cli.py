@@ -5,16 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from splattwin.options import add_options, from_args
+from splattwin.options import add_command, add_options, from_args
 from splattwin.splat.config import DEVICES, TrainConfig
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add this stage's sub-commands to the `splattwin` parser."""
-    p = sub.add_parser("train", help="train 3D Gaussians on a posed dataset (writes OUT/point_cloud.ply)",
-                       description="Train a 3D Gaussian Splatting model on DATASET (transforms.json, COLMAP, "
-                                   "cameras.json, ...) and write OUT/point_cloud.ply (standard 3DGS PLY), "
-                                   "OUT/train.json and checkpoints.")
+    p = add_command(sub, "train", _train)
     p.add_argument("dataset", type=Path, help="dataset folder or file (any format `splattwin` reads)")
     p.add_argument("out", type=Path, help="output folder")
     add_options(p, TrainConfig)
@@ -22,12 +18,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="continue from the newest checkpoint in OUT (refused, exit 2, when it was made with other "
                         "options or data)")
     p.add_argument("--max-frames", type=int, help="use at most this many frames of the dataset")
-    p.set_defaults(func=_train)
 
-    e = sub.add_parser("eval", help="render held-out views: PSNR/SSIM and side-by-side images",
-                       description="Evaluate a trained splat (training folder OUT or a .ply) on DATASET's "
-                                   "held-out views: PSNR and SSIM per view and mean (metrics.json) and "
-                                   "side-by-side PNGs (ground truth | render | error).")
+    e = add_command(sub, "eval", _eval)
     e.add_argument("splat", type=Path, help="training output folder or 3DGS .ply file")
     e.add_argument("--dataset", type=Path, required=True, help="dataset with (held-out) views")
     e.add_argument("--out", type=Path, default=None, help="output folder (default: <OUT>/eval or <ply dir>/eval)")
@@ -36,10 +28,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--align-poses", action="store_true",
                    help="fit each held-out camera to its image first (for splats trained with --refine-poses)")
     e.add_argument("--no-progress", action="store_true")
-    e.set_defaults(func=_eval)
 
 
 def _train(args: argparse.Namespace) -> int:
+    """Train 3D Gaussians on a posed dataset (writes OUT/point_cloud.ply).
+
+    Trains a 3D Gaussian Splatting model on DATASET (transforms.json, COLMAP, cameras.json, ...) and
+    writes OUT/point_cloud.ply (standard 3DGS PLY), OUT/train.json and checkpoints."""
     from splattwin.capture import load_dataset
     from splattwin.splat.trainer import train
 
@@ -54,6 +49,10 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _eval(args: argparse.Namespace) -> int:
+    """Render held-out views: PSNR/SSIM and side-by-side images.
+
+    Evaluates a trained splat (training folder OUT or a .ply) on DATASET's held-out views: PSNR and SSIM
+    per view and mean (metrics.json) and side-by-side PNGs (ground truth | render | error)."""
     from splattwin.splat.eval import evaluate
 
     out = args.out

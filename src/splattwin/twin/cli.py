@@ -6,11 +6,15 @@ import argparse
 from pathlib import Path
 
 from splattwin.errors import InputError
-from splattwin.options import add_options, from_args
+from splattwin.options import add_command, add_options, from_args
 from splattwin.twin.options import FORMATS, ExportOptions
 
 
 def _export(args: argparse.Namespace) -> int:
+    """(Re-)export a twin folder for simulators and planners.
+
+    Writes the twin's exports: MJCF (MuJoCo), URDF per object and scene, MoveIt 2 planning scene (.scene
+    text + CollisionObject YAML), glTF binary. Files are replaced atomically."""
     from splattwin.lock import output_lock
     from splattwin.twin.build import export_twin
     from splattwin.twin.manifest import Manifest
@@ -34,11 +38,6 @@ def _export(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add this stage's sub-commands to the `splattwin` parser."""
-    p = sub.add_parser("export", help="(re-)export a twin folder for simulators and planners",
-                       description="Write the twin's exports: MJCF (MuJoCo), URDF per object and scene, MoveIt 2 "
-                                   "planning scene (.scene text + CollisionObject YAML), glTF binary. Files are "
-                                   "replaced atomically.")
+    p = add_command(sub, "export", _export)
     p.add_argument("twin", metavar="TWIN", help="twin folder (contains twin.json)")
     add_options(p, ExportOptions)
-    p.set_defaults(func=_export)

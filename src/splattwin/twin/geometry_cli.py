@@ -13,7 +13,7 @@ import numpy as np
 from splattwin.errors import InputError
 from splattwin.geometry.options import GeometryOptions
 from splattwin.names import check_unique, object_name
-from splattwin.options import add_options, dest, from_args
+from splattwin.options import add_command, add_options, dest, from_args
 from splattwin.twin.options import FORMATS, ExportOptions
 
 log = logging.getLogger(__name__)
@@ -33,6 +33,11 @@ def _parse_object(text: str) -> tuple[str, int, str]:
 
 
 def _run(args: argparse.Namespace) -> int:
+    """Clean a labelled splat and build collision geometry + twin folder.
+
+    Attribute filtering, DBSCAN connectivity pruning, alpha-shape meshing, convex decomposition and mass
+    per object; table plane + obstacles for the background (label 0). Writes a twin folder (twin.json,
+    meshes, splats, exports)."""
     from splattwin.lock import output_lock
 
     with output_lock(args.out):
@@ -123,11 +128,7 @@ def evaluate(g, labels, objects, scene_dir: Path, opts, out_dir: Path) -> dict:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add this stage's sub-commands to the `splattwin` parser."""
-    p = sub.add_parser("geometry", help="clean a labelled splat and build collision geometry + twin folder",
-                       description="Attribute filtering, DBSCAN connectivity pruning, alpha-shape meshing, convex "
-                                   "decomposition and mass per object; table plane + obstacles for the background "
-                                   "(label 0). Writes a twin folder (twin.json, meshes, splats, exports).")
+    p = add_command(sub, "geometry", _run)
     p.add_argument("splat", metavar="SPLAT.ply", help="3DGS PLY (twin frame, metres)")
     p.add_argument("--labels", help="per-Gaussian int label array (.npy, 0 = background); omit: one object")
     p.add_argument("--object", action="append", default=[], metavar="NAME=LABEL[:PROMPT]",
@@ -141,4 +142,3 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_options(p, GeometryOptions)
     p.add_argument("--voxel-remesh", dest=dest("use_alpha"), action="store_false", default=argparse.SUPPRESS,
                    help="= --no-use-alpha: marching cubes instead of alpha shapes (faster)")
-    p.set_defaults(func=_run)
