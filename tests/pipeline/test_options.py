@@ -204,3 +204,24 @@ def test_resolved_config_records_absolute_paths(tmp_path):
     assert rec["input"] == str(Path("rel/photos").resolve()) and rec["robot"]["task"] == "default"
     assert rec["splat"]["iters"] == 3000 and "progress" not in rec["splat"]
     assert to_dict(o, "config")["input"] == "rel/photos"
+
+
+def test_robot_key_follows_the_default_arm_model(tmp_path, monkeypatch):
+    """An edited Menagerie Panda (MJCF or meshes) re-runs the trials: its folder is a robot-stage input."""
+    import shutil
+
+    from splattwin.pipeline.build import stage_keys
+    from splattwin.robot.assets import panda_model_path
+
+    root = tmp_path / "menagerie"
+    src = panda_model_path().parent
+    shutil.copytree(src, root / src.name)
+    monkeypatch.setenv("MENAGERIE_ROOT", str(root))
+    base = BuildOptions.from_dict({"scene": {"width": 64, "height": 48, "views": 4, "heldout": 1},
+                                   "poses": {"method": "known"}, "robot": {"task": "default"}})
+    k0 = stage_keys(tmp_path / "twin", base)
+    xml = panda_model_path()
+    assert xml.is_relative_to(root)
+    xml.write_text(xml.read_text() + "\n<!-- edited -->\n")
+    k1 = stage_keys(tmp_path / "twin", base)
+    assert {s for s in k0 if k1[s] != k0[s]} == {"robot", "report"}

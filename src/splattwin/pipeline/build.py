@@ -150,7 +150,17 @@ def _robot_files(ctx: Context) -> dict:
     from splattwin.robot.task import default_task_path
 
     task = ctx.config.robot.task
-    return {"task": None if not task else (default_task_path() if task == "default" else Path(task))}
+    files = {"task": None if not task else (default_task_path() if task == "default" else Path(task))}
+    if task and ctx.config.robot.robot_mjcf is None:
+        # the default arm's model folder (MJCF + meshes): an updated Menagerie copy re-runs the trials
+        from splattwin.errors import InputError
+        from splattwin.robot.assets import panda_model_path
+
+        try:
+            files["robot_model"] = panda_model_path().parent
+        except InputError:
+            pass  # no model offline: the robot stage itself reports it
+    return files
 
 
 def _report(ctx: Context) -> dict:
