@@ -81,3 +81,14 @@ def test_cli_convert_and_info(tmp_path, capsys, make_dataset):
     assert main(["capture", "info", str(tmp_path / "missing")]) == 2
     assert "does not exist" in capsys.readouterr().err
     assert main(["capture", "convert", str(tmp_path / "images"), str(tmp_path / "x"), "--format", "nerfstudio"]) == 2
+
+
+def test_info_on_a_video_writes_nothing_beside_it(tmp_path, capsys):
+    from splattwin.cli import main
+
+    video = tmp_path / "scan.mp4"
+    _write_video(video)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    assert main(["capture", "info", str(video)]) == 0
+    assert "frames" in capsys.readouterr().out
+    assert sorted(p.name for p in tmp_path.iterdir()) == before

@@ -35,7 +35,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _info(args: argparse.Namespace) -> int:
     from splattwin.capture.dataset import load_dataset
 
-    ds = load_dataset(args.path, max_frames=args.max_frames)
+    import tempfile
+
+    # a video's frames are extracted into a temporary folder: `info` writes nothing beside the capture
+    with tempfile.TemporaryDirectory(prefix="splattwin-info-") as tmp:
+        ds = load_dataset(args.path, max_frames=args.max_frames, frames_dir=Path(tmp))
     sizes = sorted({(f.camera.width, f.camera.height) for f in ds.frames})
     size = f"{sizes[0][0]}x{sizes[0][1]}" if len(sizes) == 1 else f"{len(sizes)} image sizes"
     print(f"{args.path}: {ds.meta.get('format')} dataset, {len(ds.frames)} frames "
