@@ -29,7 +29,6 @@ STAGE_CLIS = [
     "splattwin.semantics.cli",
     "splattwin.twin.geometry_cli",
     "splattwin.twin.cli",
-    "splattwin.robot.cli",
     "splattwin.playback.cli",
     "splattwin.report.cli",
     "splattwin.viewer.cli",

@@ -111,3 +111,73 @@ def tiny_twin(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="session")
 def meshonly_twin(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_twin(tmp_path_factory.mktemp("meshonly_twin"), with_splats=False)
+
+
+def add_splats_to_gt_twin(twin: Path, per_object: int = 1200, table_spacing: float = 0.01, seed: int = 0) -> Path:
+    """Give a ground-truth twin (meshes, no splats; `twin.groundtruth.twin_from_scene`) splats: Gaussians
+    on each usable object's visual mesh in its label colour, and a textured table, with the labels and
+    per-object splats.ply the semantics and twin stages would write. Physics runs on the meshes as before."""
+    import trimesh
+
+    from splattwin import io
+    from splattwin.meshio import load_mesh
+    from splattwin.twin.manifest import Manifest
+    from splattwin.twin.splats import write_object_splats
+
+    rng = np.random.default_rng(seed)
+    man = Manifest.load(twin)
+    bg = man.background
+    x0, x1, y0, y1 = (float(v) for v in bg.table_extent)
+    gx, gy = np.meshgrid(np.arange(x0, x1, table_spacing), np.arange(y0, y1, table_spacing), indexing="ij")
+    xy = np.stack([gx.ravel(), gy.ravel()], 1)
+    n = len(xy)
+    sh = np.zeros((n, 16, 3))
+    sh[:, 0] = rgb_to_sh0(table_colour(xy))
+    parts = [Gaussians(np.c_[xy, np.full(n, bg.table_height)], np.tile([1.0, 0, 0, 0], (n, 1)),
+                       np.tile([table_spacing * 0.7, table_spacing * 0.7, 1e-4], (n, 1)), np.full(n, 0.95), sh)]
+    labels = [np.zeros(n, np.int32)]
+    palette = np.array([[0.15, 0.3, 0.85], [0.9, 0.8, 0.1], [0.6, 0.45, 0.3], [0.8, 0.2, 0.2], [0.2, 0.7, 0.3]])
+    for k, o in enumerate(man.objects):
+        if not o.usable:
+            continue
+        m = load_mesh(twin / o.visual_mesh, o.name)
+        tm = trimesh.Trimesh(np.asarray(m.vertices), np.asarray(m.faces), process=False)
+        pts, _ = trimesh.sample.sample_surface(tm, per_object, seed=seed + k)
+        T = o.pose
+        world = pts @ T[:3, :3].T + T[:3, 3]
+        sh = np.zeros((len(pts), 16, 3))
+        sh[:, 0] = rgb_to_sh0(np.clip(palette[k % len(palette)] + rng.normal(0, 0.03, (len(pts), 3)), 0, 1))
+        g = Gaussians(world, np.tile([1.0, 0, 0, 0], (len(pts), 1)), np.full((len(pts), 3), 0.005),
+                      np.full(len(pts), 0.9), sh)
+        rel = f"objects/{o.name}/splats.ply"
+        write_object_splats(twin / rel, g, T)
+        o.splat_ply = rel
+        parts.append(g)
+        labels.append(np.full(len(pts), o.label, np.int32))
+    full = Gaussians(*(np.concatenate([getattr(p, a) for p in parts])
+                       for a in ("means", "quats", "scales", "opacities", "sh")))
+    full.save_ply(twin / "splat" / "point_cloud.ply")
+    io.write_npy(twin / "semantics" / "labels.npy", np.concatenate(labels))
+    man.splats, man.labels = "splat/point_cloud.ply", "semantics/labels.npy"
+    man.save(twin)
+    return twin
+
+
+@pytest.fixture(scope="session")
+def splat_gt_twin(scene_small: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The small embedded scene's ground-truth twin with synthetic splats (`add_splats_to_gt_twin`)."""
+    from splattwin.twin.groundtruth import twin_from_scene
+
+    import shutil
+
+    from splattwin.twin.manifest import Manifest
+
+    out = tmp_path_factory.mktemp("splat_gt_twin")
+    twin_from_scene(scene_small, out)
+    # the capture cameras, as the poses stage leaves them
+    shutil.copytree(scene_small / "images", out / "poses" / "images")
+    shutil.copy(scene_small / "transforms.json", out / "poses" / "transforms.json")
+    man = Manifest.load(out)
+    man.cameras = "poses/transforms.json"
+    man.save(out)
+    return add_splats_to_gt_twin(out)

@@ -1,13 +1,31 @@
-"""`splattwin render TWIN --camera CAM --out video.mp4`: the executed task, photoreal, from any camera."""
+"""Commands that run or show the twin in motion:
+
+`splattwin plan TWIN [--task T.yaml --trials N --sigma S] [--record DIR]`: the robot stage (plan, validate in
+MuJoCo, trials) and, with --record, every run as a LeRobot-layout episode (`playback.record`). The command
+lives here, not in `robot/`, because recording renders the splats: the robot stage may not import playback
+(docs/ARCHITECTURE.md, layering); its options are the robot stage's (`RobotOptions`, record fields included).
+
+`splattwin render TWIN --camera CAM --out video.mp4`: the executed task, photoreal, from any camera.
+"""
 
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
+
+from splattwin.options import add_command, add_options
+from splattwin.robot.options import RobotOptions
+
+log = logging.getLogger(__name__)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from splattwin.options import add_command
+    """Add `plan` and `render` to the `splattwin` parser."""
+    p = add_command(sub, "plan", run_plan)
+    p.add_argument("twin", type=Path, help="twin folder (with twin.json)")
+    add_options(p, RobotOptions)
+    p.add_argument("--out", type=Path, default=None, help="output folder (default: TWIN/robot)")
 
     p = add_command(sub, "render", run_render)
     p.add_argument("twin", type=Path, help="twin folder (with twin.json and splats)")
@@ -23,6 +41,58 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(default: the one `splattwin plan` recorded in TWIN/robot/results.json, else -0.5,0,0,0)")
     p.add_argument("--no-robot", action="store_true", help="leave the robot out of the picture")
     p.add_argument("--no-fill", action="store_true", help="do not fill the table under moved objects")
+
+
+def run_plan(args: argparse.Namespace) -> int:
+    """Plan a pick-and-place task on a twin and validate it in MuJoCo physics (Franka Panda).
+
+    Plans the task against the twin (grasps, IK, OMPL paths, TOPP-RA timing), executes it in MuJoCo with
+    the real gripper, reports per-step success and collisions, exports the joint trajectory (JSON, CSV,
+    ROS 2 JointTrajectory YAML) and frames. With --record DIR every run (nominal, then each trial) is also
+    written as a LeRobot-layout episode rendered from the twin's splats (wrist + scene camera). Exit code
+    0 when the task succeeded, 1 when it failed, 2 on bad input."""
+    from rich.console import Console
+
+    from splattwin.errors import InputError
+    from splattwin.lock import output_lock
+    from splattwin.options import from_args
+    from splattwin.paths import is_inside
+    from splattwin.robot.outputs import print_summary
+    from splattwin.robot.stage import RobotInputs, run
+    from splattwin.robot.world import BasePose
+
+    opts = from_args(RobotOptions, args)
+    opts.validate()
+    out = args.out or args.twin / "robot"
+    if not args.twin.is_dir():
+        raise InputError("twin folder does not exist", args.twin)
+    recorder = None
+    if opts.record is not None:   # everything the recording needs is checked before the physics runs
+        from splattwin.playback.record import Recorder, check_destination
+
+        check_destination(opts.record)
+        if is_inside(opts.record, out) or is_inside(out, opts.record):
+            raise InputError(f"--record must be outside the robot output folder {out}", opts.record)
+        if opts.robot_mjcf is not None:
+            raise InputError("--record renders the Franka Panda's Gaussians; a user robot MJCF cannot be recorded "
+                             "yet", opts.robot_mjcf)
+        base = BasePose.parse(opts.base_pose) if opts.base_pose else BasePose()
+        recorder = Recorder(args.twin, base.matrix(), camera=opts.record_camera, width=opts.record_width,
+                            fps=opts.record_fps)
+    # one writer per folder: the twin's lock when writing into it (splattwin.lock)
+    with output_lock(args.twin if is_inside(out, args.twin) else out):
+        res = run(RobotInputs(args.twin, out), opts)
+        d = res.details
+        print_summary(d["run"], d["trials"], d["paths"])
+        if recorder is not None:
+            from splattwin.playback.record import runs_of, task_text
+
+            info = recorder.record(opts.record, runs_of(out, d, task_text(d["run"])))
+            Console().print(f"recorded {info['episodes']} episode(s) into {info['path']} "
+                            f"({info['reused']} reused from a killed run; {info['fps']:g} fps, cameras "
+                            + ", ".join(f"{k} {w}x{h}" for k, (w, h) in info["cameras"].items()) + ")")
+    ok = res.success and (d["trials"] is None or d["trials"]["successes"] == d["trials"]["trials"])
+    return 0 if ok else 1
 
 
 def run_render(args: argparse.Namespace) -> int:

@@ -93,14 +93,15 @@ def _write_jsonl(path: Path, rows: list[dict]) -> None:
 
 def write_episode(root: str | Path, rollout, renderer, cameras: dict, fps: float = 15.0,
                   task: str = "pick and place", episode_index: int | None = None, robot_type: str = "franka_panda",
-                  progress: bool = False) -> dict:
+                  progress: bool = False, extra: dict | None = None) -> dict:
     """Render and write one episode of `rollout` (a `splattwin.robot.rollout.Rollout`) into the dataset
     folder `root` (created, or appended to).
 
     Args:
         renderer: a `PlaybackRenderer` with the robot. cameras: {key: Camera | EyeInHand}; the video
             feature is `observation.images.<key>`. fps: episode frame rate (frames are rollout samples).
-        episode_index: None = the next free index.
+        episode_index: None = the next free index. extra: more keys of the episode's record in
+            meta/episodes.jsonl (the run's seed, success, perturbation).
     Returns: the episode's meta record ({episode_index, tasks, length, ...}).
     """
     import pyarrow as pa
@@ -196,7 +197,7 @@ def write_episode(root: str | Path, rollout, renderer, cameras: dict, fps: float
                      "has_audio": False}}
     if info is not None and set(info.get("features", {})) != set(features):
         raise InputError("the dataset's features differ from this episode's (other cameras?)", info_path)
-    meta = {"episode_index": ep, "tasks": [task], "length": T}
+    meta = {**(extra or {}), "episode_index": ep, "tasks": [task], "length": T}
     episodes.append(meta)
     episodes.sort(key=lambda e: e["episode_index"])
     stats.append({"episode_index": ep, "stats": {"observation.state": _stats(state), "action": _stats(action),

@@ -1,7 +1,9 @@
 """What a twin looks like to the viewer and the report, without a GUI: the splats split into the workspace
 layer and the far / huge background layer, label colours, the collision meshes (object parts posed by
 their T_world_obj, background parts in the twin frame), and the robot's recorded motion
-(robot/playback.npz, written by `splattwin plan` / the pipeline's robot stage).
+(robot/playback.npz, written by `splattwin plan` / the pipeline's robot stage), and with that motion the
+splats themselves in motion (`MovingSplats`: the objects' Gaussians posed by the recorded object poses,
+the table filled under objects that left their place; the same split as `DynamicScene`).
 
 `splattwin.viewer` draws a `TwinView` with viser; `splattwin.report` renders its meshes into pictures.
 Units: metres; colours uint8 RGB; frames: the twin frame.
@@ -63,11 +65,76 @@ class MeshPart:
 
 
 @dataclass
+class MovingSplats:
+    """The twin's splats as groups a viewer poses or shows per frame of a recorded motion (no GUI).
+
+    static: always drawn (background and backdrop, less every residue); residue[name]: background
+    Gaussians drawn only while `name` is at its twin pose (its cleaned-out Gaussians, the table under it);
+    fills[name]: drawn only once `name` left (the hole fill); objects[name]: Gaussians in the object
+    frame, drawn at the object's pose of the frame (`poses`). Twin frame, metres; colours view-independent
+    (the viewer draws SH degree 0, so posing needs no SH rotation)."""
+
+    static: object
+    residue: dict
+    fills: dict
+    objects: dict
+    T_world_obj0: dict
+    poses: dict = field(default_factory=dict)     # name -> [T, 4, 4] T_world_obj per frame (the track's)
+
+    @classmethod
+    def from_scene(cls, scene, object_poses: dict | None = None) -> "MovingSplats":
+        """Groups of a `playback.scene.DynamicScene`; object_poses: name -> [T,4,4] (e.g. a RobotTrack's)."""
+        from splattwin.playback.scene import concat
+
+        n_bg = len(scene.background)
+        owner = np.full(n_bg, -1)
+        names = list(scene.objects)
+        for k, n in enumerate(names):   # a Gaussian in several residues goes with the first object's
+            r = np.asarray(scene.residue.get(n, np.zeros(0, np.int64)), np.int64)
+            r = r[owner[r] < 0]
+            owner[r] = k
+        static = scene.background.subset(owner < 0)
+        if scene.backdrop is not None and len(scene.backdrop):
+            static = concat([scene.backdrop, static], scene.sh_degree)
+        return cls(static=static, residue={n: scene.background.subset(owner == k) for k, n in enumerate(names)},
+                   fills={n: f.gaussians for n, f in scene.fills.items()}, objects=dict(scene.objects),
+                   T_world_obj0=dict(scene.T_world_obj0),
+                   poses={n: np.asarray(T, float) for n, T in (object_poses or {}).items() if n in scene.objects})
+
+    def __len__(self) -> int:
+        return max((len(T) for T in self.poses.values()), default=1)
+
+    def state(self, k: int) -> dict[str, tuple[np.ndarray, bool]]:
+        """name -> (T_world_obj [4,4], moved) at frame k (clamped; objects without poses stay put)."""
+        from splattwin.playback.scene import pose_moved
+
+        out = {}
+        for n, T0 in self.T_world_obj0.items():
+            P = self.poses.get(n)
+            T = P[int(np.clip(k, 0, len(P) - 1))] if P is not None and len(P) else T0
+            out[n] = (T, pose_moved(T0, T))
+        return out
+
+    def means_at(self, k: int) -> dict[str, np.ndarray]:
+        """Group name -> world positions [n,3] of the Gaussians drawn at frame k ("static", "residue/<obj>",
+        "fill/<obj>", "object/<obj>"); groups hidden at k are absent."""
+        out = {"static": self.static.means}
+        for n, (T, moved) in self.state(k).items():
+            if moved and n in self.fills:
+                out[f"fill/{n}"] = self.fills[n].means
+            if not moved and len(self.residue.get(n, ())):
+                out[f"residue/{n}"] = self.residue[n].means
+            out[f"object/{n}"] = self.objects[n].means @ T[:3, :3].T + T[:3, 3]
+        return out
+
+
+@dataclass
 class TwinView:
     """A twin ready to draw. splats / far: the workspace layer and the background layer (Gaussians, or
     None without splats); label_rgb: [len(splats),3] uint8 label colours of the workspace layer (None
     without labels); parts: collision parts of the usable objects, then of the background; track: the
-    robot's recorded motion, if any."""
+    robot's recorded motion, if any; motion: the splats in motion along it (`MovingSplats`), when the twin
+    has object splats and a recorded track."""
 
     manifest: Manifest
     splats: object | None = None
@@ -75,6 +142,7 @@ class TwinView:
     label_rgb: np.ndarray | None = None
     parts: list[MeshPart] = field(default_factory=list)
     track: RobotTrack | None = None
+    motion: MovingSplats | None = None
 
     @classmethod
     def load(cls, twin_dir: str | Path, meshes: bool = True, robot: bool = True) -> "TwinView":
@@ -87,6 +155,7 @@ class TwinView:
             view.parts = collision_parts(twin_dir, man)
         if robot:
             view.track = load_robot_track(twin_dir)
+            view.motion = load_motion(twin_dir, view.track) if view.track is not None else None
         return view
 
     def _load_splats(self, twin_dir: Path) -> None:
@@ -111,6 +180,23 @@ class TwinView:
     def world_meshes(self) -> list[tuple[np.ndarray, np.ndarray, tuple[float, float, float]]]:
         """[(V_world [n,3], F [m,3], rgb in 0..1)] of every collision part (for pictures)."""
         return [(p.world_vertices(), p.faces, tuple(c / 255.0 for c in p.color)) for p in self.parts]
+
+
+def load_motion(twin_dir: str | Path, track: RobotTrack) -> MovingSplats | None:
+    """The splats in motion along `track` (None when the twin has no object splats or the track no object
+    poses). A twin whose splats cannot be split (`DynamicScene.load`'s InputError) shows them static."""
+    from splattwin.errors import InputError
+    from splattwin.playback.scene import DynamicScene
+
+    if not track.object_poses:
+        return None
+    try:
+        scene = DynamicScene.load(twin_dir)
+    except InputError:
+        return None
+    if not scene.objects:
+        return None
+    return MovingSplats.from_scene(scene, track.object_poses)
 
 
 def collision_parts(twin_dir: Path, man: Manifest) -> list[MeshPart]:

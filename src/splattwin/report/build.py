@@ -81,7 +81,9 @@ def _mesh_views(meshes: list, cameras: list) -> list[np.ndarray]:
     return imgs
 
 
-def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib: dict | None = None) -> Path:
+def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib: dict | None = None,
+                 options=None) -> Path:
+    """Write TWIN/report/index.html. options: `report.options.ReportOptions` (the task video)."""
     from splattwin.twin.manifest import Manifest
 
     twin = Path(twin_dir)
@@ -124,6 +126,10 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
     _guarded(_semantics_section, rep.section("Semantic objects (visibility-aware fusion)"), twin, fusion)
     _guarded(_geometry_section, rep.section("Collision geometry"), twin, man, geo)
     _guarded(_robot_section, rep.section("Robot task in physics (Franka Panda, MuJoCo)"), twin, robot)
+    if robot and "error" not in robot:
+        from splattwin.report.playback import playback_section
+
+        _guarded(playback_section, rep.section("The task in motion (photoreal twin)"), twin, options)
 
     t = rep.section("Timings and memory per stage")
     rows = []

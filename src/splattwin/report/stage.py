@@ -19,8 +19,9 @@ class ReportResult:
     report: Path       # the self-contained HTML report
 
 
-def run(inputs: ReportInputs, options: None = None, *, progress: bool = True) -> ReportResult:
+def run(inputs: ReportInputs, options=None, *, progress: bool = True) -> ReportResult:
+    """options: `report.options.ReportOptions` (None: its defaults)."""
     from splattwin.report.build import build_report
 
     return ReportResult(report=build_report(inputs.twin_dir, timings=inputs.timings or None,
-                                            peak_rss_gib=inputs.peak_rss_gib or None))
+                                            peak_rss_gib=inputs.peak_rss_gib or None, options=options))

@@ -39,6 +39,17 @@ class RobotOptions:
     seed: int = option(0, "seed of the planner and of the trials' perturbations")
     render: bool = option(True, "render PNG frames of the execution", build_alias="frames")
     workers: int | None = option(None, "processes for the trials (none: CPU count)", hashed=False)
+    record: Path | None = option(None, "record every run (the nominal one as episode 0, trial i as episode i) as a "
+                                 "LeRobot-layout episode (v2.1: parquet of joint positions, gripper width and "
+                                 "commanded actions + one MP4 per camera: wrist and scene) into this folder, "
+                                 "rendered photoreal from the twin's splats (replaces a dataset already there)",
+                                 hashed=False)
+    record_fps: float = option(10.0, "frame rate of the recorded episodes", unit="Hz", hashed=False)
+    record_camera: str = option("capture:0", "scene camera of the recorded episodes: a capture image name, "
+                                "'capture:<index>' or a camera YAML (as `splattwin render --camera`); the wrist "
+                                "camera (eye-in-hand, D435-like) is always recorded", hashed=False)
+    record_width: int = option(320, "image width of the recorded episodes (the wrist camera is 4:3 at this width, "
+                               "the scene camera keeps its aspect)", unit="px", hashed=False)
     resume: bool = option(True, "reuse finished trials in OUT/trials/ with the same twin, task, robot, seed and "
                           "sigmas, so a killed run continues", hashed=False)
 
@@ -51,3 +62,7 @@ class RobotOptions:
             raise InputError(f"--sigma-yaw must be in [0, 0.5] radians, got {self.sigma_yaw}")
         if self.robot_mjcf is not None and not Path(self.robot_mjcf).is_file():
             raise InputError("robot MJCF not found", self.robot_mjcf)
+        if not 0 < self.record_fps <= 120:
+            raise InputError(f"--record-fps must be in (0, 120] Hz, got {self.record_fps}")
+        if not 16 <= self.record_width <= 4096:
+            raise InputError(f"--record-width must be in [16, 4096] pixels, got {self.record_width}")

@@ -3,6 +3,8 @@
     results.json                 task, base pose, per-step results, trials summary (sigma per axis, its
                                  definition, sigma_yaw), notes
     trials/<i>.json              each finished perturbed trial (reused by a re-run with the same key)
+    trials/<i>.rollout.npz       its rollout, kept when the run is recorded (`plan --record`); both written
+                                 by the trial's worker (`trials.run_trials`), the rollout first
     trajectory.json / .csv       the whole executed arm trajectory (segments + gripper holds), 100 Hz
     trajectory.ros2.yaml         the same as trajectory_msgs/JointTrajectory
     segments/<label>.json        each motion separately (transit, approach, lift, transfer, ...)

@@ -2,7 +2,9 @@
 
 Reads the twin folder and the task; validates the task in MuJoCo physics and writes OUT (default
 TWIN/robot; `splattwin.robot.outputs`, the only writer of each): results.json, trials/, trajectories,
-rollout.npz, playback.npz (what `splattwin view` plays), frames/.
+rollout.npz, playback.npz (what `splattwin view` plays), frames/; with `options.record` also each
+trial's rollout (trials/<i>.rollout.npz), from which `splattwin.playback.record` renders the episodes
+(this stage does not render them: playback is the layer above).
 """
 
 from __future__ import annotations
@@ -54,7 +56,8 @@ def run(inputs: RobotInputs, options: RobotOptions, *, progress: bool = True,
         return RobotResult(results=path, success=False, error=str(e))
     # trials land in OUT/trials/<i>.json: a killed run resumes them
     trials = run_trials(spec, options.trials, options.sigma, workers=options.workers, progress=progress,
-                        out_dir=out, resume=options.resume, sigma_yaw=options.sigma_yaw) if options.trials > 0 else None
+                        out_dir=out, resume=options.resume, sigma_yaw=options.sigma_yaw,
+                        keep_rollouts=options.record is not None) if options.trials > 0 else None
     paths = write_outputs(out, spec, result, trials,
                           render_note=(note or "") if options.render else "rendering disabled (--no-render)",
                           frames=frames, wall_s=time.perf_counter() - t0)

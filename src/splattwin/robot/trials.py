@@ -153,22 +153,34 @@ def trial_key(spec: TrialSpec) -> dict:
             "sigma_yaw": default_sigma_yaw(spec.sigma) if spec.sigma_yaw is None else spec.sigma_yaw}
 
 
-def load_finished(path: Path, spec: TrialSpec) -> dict | None:
-    """The stored result of a finished trial with the same key, else None (missing, stale or unreadable)."""
+def rollout_path(trial_json: str | Path) -> Path:
+    """Where a trial's rollout is kept beside its result: trials/<i>.json -> trials/<i>.rollout.npz."""
+    p = Path(trial_json)
+    return p.with_name(p.stem + ".rollout.npz")
+
+
+def load_finished(path: Path, spec: TrialSpec, rollouts: bool = False) -> dict | None:
+    """The stored result of a finished trial with the same key, else None (missing, stale or unreadable).
+    rollouts: a trial that ran without keeping its rollout (or lost it) counts as not finished."""
     import json
 
     try:
         d = json.loads(Path(path).read_text())
     except (OSError, ValueError):
         return None
-    return d if isinstance(d, dict) and d.get("key") == json.loads(json.dumps(trial_key(spec))) else None
+    if not (isinstance(d, dict) and d.get("key") == json.loads(json.dumps(trial_key(spec)))):
+        return None
+    if rollouts and "error" not in d and not rollout_path(path).is_file():
+        return None
+    return d
 
 
-def _trial_worker(job: tuple[TrialSpec, str | None]) -> dict:
-    spec, path = job
+def _trial_worker(job: tuple) -> dict:
+    spec, path, keep_rollout = job if len(job) == 3 else (*job, False)
     t0 = time.perf_counter()
+    r = None
     try:
-        r, _, _ = run_once(spec)
+        r, _, _ = run_once(spec, keep_trajectories=keep_rollout and path is not None)
         d = r.to_dict()
     except Exception as e:  # a crashed trial is a failed trial, with the reason
         d = {"success": False, "collisions": 0, "plan_ms": [], "steps": [], "error": f"{type(e).__name__}: {e}"}
@@ -177,32 +189,40 @@ def _trial_worker(job: tuple[TrialSpec, str | None]) -> dict:
     if path is not None:   # written by the worker as soon as it finishes: a killed run keeps it
         from splattwin import io
 
+        if r is not None and r.rollout is not None and len(r.rollout):
+            # the rollout first (atomic), the result that marks the trial finished last
+            d["rollout"] = r.rollout.save(rollout_path(path)).name
         d["key"] = trial_key(spec)
         io.write_json(path, d)
     return d
 
 
 def run_trials(base_spec: TrialSpec, n: int, sigma: float, workers: int | None = None, progress: bool = True,
-               out_dir: str | Path | None = None, resume: bool = True, sigma_yaw: float | None = None) -> dict:
+               out_dir: str | Path | None = None, resume: bool = True, sigma_yaw: float | None = None,
+               keep_rollouts: bool = False) -> dict:
     """N perturbed trials (seeds base_spec.seed + 1 .. + n) in a process pool; summary dict.
 
     sigma: m, per-axis (x and y) standard deviation of each object's position error; sigma_yaw: rad
     (default sigma / YAW_LEVER). out_dir: each finished trial is written atomically to
     out_dir/trials/<i>.json (i = 1..n) with its key (`trial_key`); with resume, a re-run with the same
-    key skips the trials already there (a killed run continues where it stopped).
+    key skips the trials already there (a killed run continues where it stopped). keep_rollouts (needs
+    out_dir): each worker also writes its trial's `Rollout` to out_dir/trials/<i>.rollout.npz (atomically,
+    before the result; the result names it under "rollout"), e.g. for `plan --record`.
     """
     from dataclasses import replace
 
     specs = [replace(base_spec, sigma=sigma, sigma_yaw=sigma_yaw, seed=base_spec.seed + 1 + i) for i in range(n)]
     paths = [Path(out_dir) / "trials" / f"{i + 1}.json" if out_dir is not None else None for i in range(n)]
-    results: list[dict | None] = [load_finished(p, sp) if (p is not None and resume) else None
+    keep_rollouts = keep_rollouts and out_dir is not None
+    results: list[dict | None] = [load_finished(p, sp, rollouts=keep_rollouts) if (p is not None and resume) else None
                                   for sp, p in zip(specs, paths)]
     todo = [i for i, r in enumerate(results) if r is None]
     workers = max(1, min(len(todo) or 1, workers or (os.cpu_count() or 1)))
     t0 = time.perf_counter()
     if todo:
         with ProcessPoolExecutor(max_workers=workers) as pool:
-            it = pool.map(_trial_worker, [(specs[i], str(paths[i]) if paths[i] else None) for i in todo])
+            it = pool.map(_trial_worker, [(specs[i], str(paths[i]) if paths[i] else None, keep_rollouts)
+                                          for i in todo])
             if progress:
                 from rich.progress import track
 

@@ -1,6 +1,8 @@
 """Web viewer (viser) for a twin: splats, semantic labels in colour, collision meshes, the robot and
 its planned trajectory played back. The GUI only: what is drawn comes from
-`splattwin.playback.view_model.TwinView` (shared with the report).
+`splattwin.playback.view_model.TwinView` (shared with the report). With a recorded task the splats move:
+each object's Gaussians are one node posed per frame by the recorded object poses, the table under an
+object that left its place shows the hole fill (`view_model.MovingSplats`).
 
 `splattwin view TWIN [--host 127.0.0.1 --port 8080]` serves on loopback by default; open the printed
 URL in a browser. Everything is built from the twin folder's manifest (checked: `Manifest.load`).
@@ -73,6 +75,10 @@ def build_scene(server, twin_dir: Path, robot=None) -> dict:
     the twin's recorded one). Returns the scene handles by name."""
     view = TwinView.load(twin_dir, robot=False)
     view.track = robot
+    if robot is not None:
+        from splattwin.playback.view_model import load_motion
+
+        view.motion = load_motion(twin_dir, robot)
     return draw(server, view)
 
 
@@ -88,8 +94,12 @@ def draw(server, view: TwinView) -> dict:
         covs = g.covariances()
         if len(g):
             _frame_camera(server, g.means[g.opacities > 0.5] if (g.opacities > 0.5).sum() > 10 else g.means)
-        handles["splats"] = server.scene.add_gaussian_splats("/splats", centers=g.means, covariances=covs,
-                                                             rgbs=np.clip(g.colors, 0, 1), opacities=g.opacities[:, None])
+        if view.motion is None:
+            handles["splats"] = server.scene.add_gaussian_splats("/splats", centers=g.means, covariances=covs,
+                                                                 rgbs=np.clip(g.colors, 0, 1),
+                                                                 opacities=g.opacities[:, None])
+        else:   # the splats in motion: static part, and per object its splats, residue and fill as nodes
+            _add_motion(server, view, handles)
         far = view.far
         if far is not None and len(far):
             handles["far"] = server.scene.add_gaussian_splats(
@@ -123,15 +133,18 @@ def draw(server, view: TwinView) -> dict:
 
     @show_splats.on_update
     def _(_e) -> None:
-        if "splats" in handles:
-            handles["splats"].visible = show_splats.value
+        on = show_splats.value and not show_labels.value
+        for k, h in handles.items():
+            if k == "splats" or k.startswith("motion/"):
+                h.visible = on and _motion_visible(k, handles)
 
     @show_labels.on_update
     def _(_e) -> None:
         if "labels" in handles:
             handles["labels"].visible = show_labels.value
-            if "splats" in handles:
-                handles["splats"].visible = show_splats.value and not show_labels.value
+            for k, h in handles.items():
+                if k == "splats" or k.startswith("motion/"):
+                    h.visible = show_splats.value and not show_labels.value and _motion_visible(k, handles)
 
     @show_coll.on_update
     def _(_e) -> None:
@@ -154,7 +167,9 @@ def draw(server, view: TwinView) -> dict:
                 h = handles[f"robot/{name}"]
                 h.position = robot.positions[t, k]
                 h.wxyz = quat_wxyz_from_matrix(robot.rotations[t, k])
-            # the objects' collision meshes follow the recorded motion (the splats stay where captured)
+            # the objects' splats and collision meshes follow the recorded motion
+            if view.motion is not None:
+                _show_motion(view.motion, handles, t, show_splats.value and not show_labels.value)
             for obj_name, poses in robot.object_poses.items():
                 T = poses[t]
                 for key, h in handles.items():
@@ -171,6 +186,57 @@ def draw(server, view: TwinView) -> dict:
         handles["_slider"] = slider
         handles["_player"] = player
     return handles
+
+
+def _add_motion(server, view: TwinView, handles: dict) -> None:
+    """Nodes of `view.motion` (`MovingSplats`): "/splats" (static, workspace part), and per object
+    "/motion/objects/<name>" (object frame, posed per frame), "/motion/residue/<name>", "/motion/fill/<name>"."""
+    from splattwin.playback.view_model import HUGE_SPLAT, workspace_mask
+
+    mo = view.motion
+
+    def add(key: str, node: str, g, visible: bool = True, T=None) -> None:
+        if g is None or not len(g):
+            return
+        kw = {} if T is None else {"wxyz": quat_wxyz_from_matrix(T[:3, :3]), "position": T[:3, 3]}
+        handles[key] = server.scene.add_gaussian_splats(node, centers=g.means, covariances=g.covariances(),
+                                                        rgbs=np.clip(g.colors, 0, 1), opacities=g.opacities[:, None],
+                                                        visible=visible, **kw)
+
+    st = mo.static
+    near = workspace_mask(st.means, view.manifest.background) & (st.scales.max(axis=1) < HUGE_SPLAT)
+    add("splats", "/splats", st.subset(near))
+    state = mo.state(0)
+    handles["_motion_state"] = {n: moved for n, (_, moved) in state.items()}
+    for n in mo.objects:
+        T, moved = state[n]
+        add(f"motion/residue/{n}", f"/motion/residue/{n}", mo.residue.get(n), visible=not moved)
+        add(f"motion/fill/{n}", f"/motion/fill/{n}", mo.fills.get(n), visible=moved)
+        add(f"motion/objects/{n}", f"/motion/objects/{n}", mo.objects[n], T=T)
+
+
+def _motion_visible(key: str, handles: dict) -> bool:
+    """Whether a splat node is part of the current frame (residue/fill nodes depend on the state)."""
+    state = handles.get("_motion_state", {})
+    if key.startswith("motion/residue/"):
+        return not state.get(key.split("/", 2)[2], False)
+    if key.startswith("motion/fill/"):
+        return state.get(key.split("/", 2)[2], False)
+    return True
+
+
+def _show_motion(motion, handles: dict, t: int, splats_on: bool) -> None:
+    """Pose the object nodes for frame t; show each residue while its object is in place, its fill after."""
+    state = motion.state(t)
+    handles["_motion_state"] = {n: moved for n, (_, moved) in state.items()}
+    for n, (T, moved) in state.items():
+        h = handles.get(f"motion/objects/{n}")
+        if h is not None:
+            h.position = T[:3, 3]
+            h.wxyz = quat_wxyz_from_matrix(T[:3, :3])
+        for key, vis in ((f"motion/residue/{n}", not moved), (f"motion/fill/{n}", moved)):
+            if key in handles:
+                handles[key].visible = splats_on and vis
 
 
 def is_loopback(host: str) -> bool:

@@ -1,0 +1,145 @@
+"""The report's "task in motion" section: the MP4 of the validated task rendered photoreal from one
+camera (moving splats, the robot as Gaussians; `splattwin.playback`), shown beside the physics frames,
+and a picture of the final state with the hole-filled table regions outlined, with their area and the
+fraction of the picture they cover.
+
+The video is cached in TWIN/report/ (task_<camera>.mp4 + its key: the rollout's content and the
+settings), so re-writing the report does not re-render an unchanged task.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from splattwin import io
+from splattwin.report.options import ReportOptions
+
+OUTLINE_RGB = (1.0, 0.0, 1.0)
+
+
+def choose_camera(twin: Path, spec: str, width: int):
+    """The video's camera: `spec` as `playback.cameras.resolve_camera`, 'auto' = first held-out capture
+    camera, else the first capture camera; world cameras rescaled to `width`."""
+    from splattwin.playback.cameras import capture_cameras, resolve_camera
+
+    if spec == "auto":
+        cams = capture_cameras(twin)
+        held = [c.name for c in cams if c.name.startswith("heldout")]
+        spec = held[0] if held else "capture:0"
+    return spec, resolve_camera(spec, twin, width=width)
+
+
+def fill_outline(mask: np.ndarray) -> np.ndarray:
+    """[H,W] bool: the 1-pixel inner boundary of a bool mask (4-neighbourhood)."""
+    from scipy import ndimage
+
+    return mask & ~ndimage.binary_erosion(mask, structure=np.ones((3, 3), bool), border_value=0)
+
+
+def filled_picture(renderer, camera, poses: dict) -> tuple[np.ndarray, float, np.ndarray]:
+    """(rgb [H,W,3] with the filled regions outlined in magenta, fraction of the picture's pixels that show
+    fill, the fill mask [H,W] bool) for the state `poses` (robot not drawn)."""
+    rgb = renderer.render(camera, poses, None).rgb.copy()
+    mask = renderer.fill_mask(camera, poses) > 0.5
+    edge = fill_outline(mask)
+    from scipy import ndimage
+
+    edge = ndimage.binary_dilation(edge) if min(mask.shape) >= 200 else edge   # visible at report size
+    rgb[mask] = 0.8 * rgb[mask] + 0.2 * np.asarray(OUTLINE_RGB)
+    rgb[edge] = OUTLINE_RGB
+    return rgb, float(mask.mean()), mask
+
+
+def _base(twin: Path) -> np.ndarray:
+    from splattwin.robot.world import BasePose
+
+    try:
+        b = json.loads((twin / "robot" / "results.json").read_text()).get("base_pose")
+        return BasePose(**{k: float(b[k]) for k in ("x", "y", "z", "yaw")}).matrix()
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return BasePose().matrix()
+
+
+def task_video(twin: Path, options: ReportOptions, progress: bool = False) -> dict | None:
+    """Render (or reuse) the task video and the filled-regions picture. None when the twin has no rollout;
+    InputError when it has no splats."""
+    from splattwin.playback.cameras import EyeInHand
+    from splattwin.playback.compositor import PlaybackRenderer, rollout_state
+    from splattwin.playback.movie import render_rollout_video
+    from splattwin.playback.robot import RobotSplats
+    from splattwin.playback.scene import DynamicScene
+    from splattwin.robot.rollout import Rollout
+
+    rpath = twin / "robot" / "rollout.npz"
+    if not rpath.is_file():
+        return None
+    scene = DynamicScene.load(twin)
+    spec, camera = choose_camera(twin, options.video_camera, options.video_width)
+    rollout = Rollout.load(rpath)
+    T_base = _base(twin)
+    renderer = PlaybackRenderer(scene, RobotSplats.panda(T_base))
+    key = {"rollout_sha256": hashlib.sha256(rpath.read_bytes()).hexdigest(), "options": asdict(options),
+           "camera": spec, "base": T_base.round(9).tolist(),
+           "twin_json_sha256": hashlib.sha256((twin / "twin.json").read_bytes()).hexdigest()}
+    safe = "".join(ch if ch.isalnum() or ch in "_-" else "_" for ch in spec)[:64]
+    mp4 = twin / "report" / f"task_{safe}.mp4"
+    keyfile = mp4.with_suffix(".json")
+    try:
+        cached = json.loads(keyfile.read_text()) if keyfile.is_file() and mp4.is_file() else None
+    except (OSError, ValueError):
+        cached = None
+    if cached is not None and cached.get("key") == json.loads(json.dumps(key)):
+        info = cached["info"]
+    else:
+        info = render_rollout_video(renderer, rollout, camera, mp4, fps=options.video_fps, progress=progress)
+        io.write_json(keyfile, {"key": key, "info": info})
+    final, _ = rollout_state(rollout, len(rollout) - 1)
+    pic_cam = camera if not isinstance(camera, EyeInHand) else choose_camera(twin, "auto", options.video_width)[1]
+    picture, fraction, _ = filled_picture(renderer, pic_cam, final)
+    moved = scene.moved(final)
+    areas = {n: scene.fills[n].to_dict()["area_m2"] for n in moved if n in scene.fills}
+    return {"mp4": mp4, "info": info, "camera": spec, "picture": picture, "fill_fraction": fraction,
+            "fill_area_m2": areas, "moved": moved}
+
+
+def playback_section(sec, twin: Path, options: ReportOptions | None = None) -> None:
+    """Fill the report section (see the module docstring); a one-line note when there is nothing to show."""
+    from splattwin.errors import InputError
+
+    options = options or ReportOptions()
+    if not options.video:
+        sec.text("task video disabled (--no-video)")
+        return
+    try:
+        v = task_video(twin, options)
+    except InputError as e:
+        sec.text(f"no photoreal playback: {e}")
+        return
+    if v is None:
+        sec.text("no executed task to play (splattwin plan TWIN writes robot/rollout.npz)")
+        return
+    i = v["info"]
+    sec.text(f"The validated task rendered photoreal from camera {v['camera']} ({i['width']}×{i['height']}, "
+             f"{i['frames']} frames at {i['fps']:g} fps): the objects' Gaussians move with the simulation, the "
+             f"Panda is drawn as Gaussians sampled from its meshes, the table under picked objects is filled.")
+    physics = twin / "robot" / "overview.png"
+    if not physics.is_file():
+        physics = twin / "robot" / "frames" / "overview.png"
+    sec.row_start()
+    sec.video(v["mp4"], caption=f"photoreal twin in motion ({v['camera']})", width=max(320, i["width"]))
+    if physics.is_file():
+        sec.image(physics, caption="the same task in MuJoCo physics", width=max(320, i["width"]))
+    else:
+        sec.text("(no physics frames: the run had no offscreen GL context or --no-render)")
+    sec.row_end()
+    sec.image(v["picture"], caption=f"final state; hole-filled table regions outlined in magenta "
+                                    f"({100 * v['fill_fraction']:.1f} % of this picture)", width=max(320, i["width"]))
+    if v["fill_area_m2"]:
+        sec.table(["moved object", "filled area (cm²)"],
+                  [[n, round(a * 1e4, 1)] for n, a in v["fill_area_m2"].items()])
+    sec.kpis({"filled fraction of the picture": f"{100 * v['fill_fraction']:.1f} %"})

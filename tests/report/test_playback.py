@@ -1,0 +1,75 @@
+"""The report's task-in-motion section: the photoreal MP4 embedded beside the physics frames, and the
+filled hole regions outlined with their fraction of the picture."""
+
+from __future__ import annotations
+
+import base64
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parents[1]))
+from playback.conftest import write_twin  # noqa: E402
+from playback.rollouts import synthetic_rollout  # noqa: E402
+
+from splattwin.errors import InputError  # noqa: E402
+from splattwin.playback.video import read_mp4  # noqa: E402
+from splattwin.playback.episode import sample_indices  # noqa: E402
+from splattwin.report.html import Report  # noqa: E402
+from splattwin.report.options import ReportOptions  # noqa: E402
+from splattwin.report.playback import fill_outline, playback_section, task_video  # noqa: E402
+
+
+@pytest.fixture()
+def twin_with_rollout(tmp_path):
+    twin = write_twin(tmp_path / "twin")
+    rollout = synthetic_rollout(0.6)
+    rollout.save(twin / "robot" / "rollout.npz")
+    return twin, rollout
+
+
+def test_fill_outline_is_the_inner_boundary():
+    m = np.zeros((9, 9), bool)
+    m[2:7, 3:8] = True
+    e = fill_outline(m)
+    assert e.sum() == 2 * 5 + 2 * 3 and not e[3:6, 4:7].any() and np.all(e <= m)
+
+
+def test_report_embeds_the_task_video_and_marks_the_fill(twin_with_rollout):
+    twin, rollout = twin_with_rollout
+    opts = ReportOptions(video_camera="view_0", video_fps=10.0, video_width=96)
+    rep = Report("t")
+    sec = rep.section("motion")
+    playback_section(sec, twin, opts)
+    page = rep.to_html()
+    m = re.search(r'<video[^>]*src="data:video/mp4;base64,([A-Za-z0-9+/=]+)"', page)
+    assert m, "no embedded MP4"
+    mp4 = twin / "report" / "task_view_0.mp4"
+    assert base64.b64decode(m.group(1)) == mp4.read_bytes()
+    frames = read_mp4(mp4)
+    assert len(frames) == len(sample_indices(rollout.t, 10.0)) and frames.shape[1:] == (72, 96, 3)
+    assert "filled fraction of the picture" in page and "blue_box" in page
+
+    v = task_video(twin, opts)     # cached: the same file, not rendered again
+    assert v["mp4"] == mp4 and v["moved"] == ["blue_box"]
+    assert 0.0 < v["fill_fraction"] < 0.5 and v["fill_area_m2"]["blue_box"] > 0.002   # the 5 x 4 cm foot
+    # the outline is magenta and lies where the fill mask has its edge
+    pic = v["picture"]
+    magenta = np.all(np.abs(pic - [1.0, 0.0, 1.0]) < 1e-6, axis=-1)
+    assert magenta.sum() > 10
+
+
+def test_report_section_notes_without_rollout_or_splats(tmp_path, twin_with_rollout):
+    rep = Report("t")
+    twin = write_twin(tmp_path / "norollout")
+    playback_section(rep.section("a"), twin)
+    mesh = write_twin(tmp_path / "meshonly", with_splats=False)
+    synthetic_rollout(0.2).save(mesh / "robot" / "rollout.npz")
+    playback_section(rep.section("b"), mesh)
+    page = rep.to_html()
+    assert "no executed task to play" in page and "no photoreal playback" in page and "no splats" in page
+    with pytest.raises(InputError):
+        ReportOptions(video_fps=0).validate()

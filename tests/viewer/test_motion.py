@@ -1,0 +1,100 @@
+"""The viewer plays the splats in motion: the data model (`MovingSplats`, no GUI) gives each frame's
+splat positions from the recorded object poses; the viser GUI poses its nodes the same way."""
+
+from __future__ import annotations
+
+import socket
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parents[1]))
+from playback.conftest import write_twin  # noqa: E402
+from playback.rollouts import synthetic_rollout  # noqa: E402
+
+from splattwin.playback.scene import DynamicScene  # noqa: E402
+from splattwin.playback.view_model import MovingSplats, TwinView  # noqa: E402
+from splattwin.robot.track import RobotTrack  # noqa: E402
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture()
+def twin_in_motion(tmp_path):
+    twin = write_twin(tmp_path / "twin")
+    ro = synthetic_rollout(0.6, rate=20.0)
+    V = np.array([[0, 0, 0], [0.05, 0, 0], [0, 0.05, 0], [0, 0, 0.05]], np.float32)
+    F = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]], np.uint32)
+    n = len(ro.t)
+    pos = np.zeros((n, 1, 3))
+    pos[:, 0, 0] = np.linspace(-0.4, -0.3, n)
+    track = RobotTrack(names=["hand"], vertices=[V], faces=[F], colors=[(200, 200, 200)], positions=pos,
+                       rotations=np.tile(np.eye(3), (n, 1, 1, 1)), times=ro.t, object_poses=dict(ro.object_poses))
+    track.save(twin / "robot" / "playback.npz")
+    return twin, ro
+
+
+def test_splat_positions_follow_the_rollout(twin_in_motion):
+    twin, ro = twin_in_motion
+    view = TwinView.load(twin)
+    mo = view.motion
+    assert isinstance(mo, MovingSplats) and len(mo) == len(ro.t)
+    scene = DynamicScene.load(twin)
+    obj = scene.objects["blue_box"].means
+    T0 = scene.T_world_obj0["blue_box"]
+    for k in (0, len(ro.t) // 2, len(ro.t) - 1):
+        T = ro.object_poses["blue_box"][k]
+        frame = mo.means_at(k)
+        np.testing.assert_allclose(frame["object/blue_box"], obj @ T[:3, :3].T + T[:3, 3], atol=1e-9)
+        np.testing.assert_array_equal(frame["static"], mo.static.means)       # the background never moves
+    # at the start the box is at its twin pose: its splats where captured, the table under it as captured
+    f0 = mo.means_at(0)
+    np.testing.assert_allclose(f0["object/blue_box"], obj @ T0[:3, :3].T + T0[:3, 3], atol=1e-9)
+    assert "fill/blue_box" not in f0
+    # at the end it left: the fill is drawn, the residue (table under it, cleaned-out splats) is not
+    fe = mo.means_at(len(ro.t) - 1)
+    assert "fill/blue_box" in fe and "residue/blue_box" not in fe
+    np.testing.assert_array_equal(fe["fill/blue_box"], scene.fills["blue_box"].gaussians.means)
+    # every Gaussian of the scene is in exactly one group
+    n_all = len(scene.background) + len(scene.backdrop) + len(obj)
+    assert len(mo.static) + len(mo.residue["blue_box"]) + len(obj) == n_all
+
+
+def test_viewer_gui_poses_the_moving_splats(twin_in_motion):
+    import viser
+
+    from splattwin.transforms import quat_wxyz_from_matrix
+    from splattwin.viewer.app import draw
+
+    twin, ro = twin_in_motion
+    view = TwinView.load(twin)
+    server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
+    try:
+        h = draw(server, view)
+        node = h["motion/objects/blue_box"]
+        np.testing.assert_allclose(node.position, ro.object_poses["blue_box"][0][:3, 3], atol=1e-6)
+        assert h["motion/residue/blue_box"].visible and not h["motion/fill/blue_box"].visible
+        last = len(ro.t) - 1
+        h["_slider"].value = last
+        deadline = time.time() + 5.0
+        T = ro.object_poses["blue_box"][last]
+        while np.linalg.norm(np.asarray(node.position) - T[:3, 3]) > 1e-6 and time.time() < deadline:
+            time.sleep(0.02)
+        np.testing.assert_allclose(node.position, T[:3, 3], atol=1e-6)
+        q = np.asarray(node.wxyz)
+        q_ref = quat_wxyz_from_matrix(T[:3, :3])
+        assert abs(abs(float(q @ q_ref)) - 1) < 1e-6
+        assert h["motion/fill/blue_box"].visible and not h["motion/residue/blue_box"].visible
+        assert h["splats"].visible
+    finally:
+        server.stop()
+    player = h["_player"]
+    player.thread.join(5.0)
+    assert not player.thread.is_alive()
