@@ -17,6 +17,12 @@ Sections (SECTIONS below; each returns table rows and JSON keys, so more can be 
   (default 1500, shorter than the 3000 default to keep the bench affordable), each arm trained with
   --init-seeds training seeds (default 2; mean reported). With --random-arm also random initialisation in
   the cameras' common view (the last resort) for reference.
+- unscaled_twin_complete: the cake built without any metric scale (SfM frame, masks made here by colour
+  thresholding: `cake_masks`) at --unscaled-iters steps, half resolution: true when the build ends with
+  twin.json, every export (MJCF, URDF, MoveIt, glTF, each marked unscaled), the report (saying unscaled)
+  and the viewer's data (splat layers, collision parts), and `splattwin plan` on it exits 2 naming
+  --known-length. Also reported: the share of the cake's labelled Gaussians that survive cleaning
+  (unscaled_cake_kept_frac) and the same with the metric thresholds as written (the old behaviour).
 Targets (issue #16): registered_frac_min 1.0, registered_frac_internet >= 0.8, sfm_s_max <= 40,
 sfm_peak_rss_gib <= 2, known_pose_init_gap_db <= 1.0. The real photos are read in place (CC BY-NC).
 Last line: one JSON object.
@@ -206,7 +212,118 @@ def section_known_pose_init(args) -> tuple[list[tuple[str, str]], dict]:
     return rows, keys
 
 
-SECTIONS: dict[str, Callable] = {"sfm": section_sfm, "known_pose_init": section_known_pose_init}
+# -- an unscaled twin, built completely ------------------------------------------------------------------
+def cake_masks(out: Path) -> Path:
+    """2D masks of the cake (`out/<image stem>/cake.png`) by colour: its dark red sponge (red well above
+    green and blue), the cream frosting next to it, closed and filled as the convex hull of the largest
+    region. Rough (a few pixels at the frosting's edge), enough for fusion; made at run time because the
+    photos may not be copied or derived into the repository."""
+    import numpy as np
+    from PIL import Image
+    from scipy import ndimage
+    from skimage.morphology import convex_hull_image
+
+    def largest(m):
+        lab, n = ndimage.label(m)
+        if n == 0:
+            return m
+        return lab == 1 + int(np.argmax(ndimage.sum(m, lab, range(1, n + 1))))
+
+    for p in sorted((DATA / "cake" / "images").glob("*.jpg")):
+        a = np.asarray(Image.open(p).convert("RGB")).astype(np.float32)
+        r, g, b = a[..., 0], a[..., 1], a[..., 2]
+        red = largest(ndimage.binary_opening((r > 28) & (r > 1.8 * g) & (r > 1.4 * b), iterations=2))
+        cream = (r > 150) & (g > 140) & (b > 110) & (r - b > 10) & ndimage.binary_dilation(red, iterations=25)
+        m = largest(ndimage.binary_closing(red | cream, iterations=4))
+        if m.any():
+            m = convex_hull_image(m)
+        (out / p.stem).mkdir(parents=True, exist_ok=True)
+        Image.fromarray((m * 255).astype(np.uint8)).save(out / p.stem / "cake.png")
+    return out
+
+
+def unscaled_twin_checks(twin: Path) -> dict:
+    """What an unscaled twin must hold to be complete (see the module docstring), as {check: bool}."""
+    from splattwin.playback.view_model import TwinView
+    from splattwin.twin.manifest import Manifest
+
+    man = Manifest.load(twin)
+    view = TwinView.load(twin, robot=False)
+    ex = twin / "export"
+    report = twin / "report" / "index.html"
+    checks = {
+        "twin.json unscaled": man.frame.units == "unscaled" and not man.frame.scaled,
+        "frame.json unscaled": json.loads((twin / "poses" / "frame.json").read_text()).get("units") == "unscaled",
+        "object usable": any(o.usable and o.visual_mesh for o in man.objects),
+        "exports": set(man.exports) == {"mjcf", "urdf", "moveit", "gltf"},
+        "mjcf marked": (ex / "scene.xml").is_file() and "UNSCALED" in (ex / "scene.xml").read_text(),
+        "urdf marked": (ex / "scene.urdf").is_file() and "UNSCALED" in (ex / "scene.urdf").read_text(),
+        "moveit marked": (ex / "moveit" / "collision_objects.yaml").is_file()
+        and (ex / "moveit" / "collision_objects.yaml").read_text().startswith("# UNSCALED"),
+        "gltf written": (ex / "scene.glb").is_file(),
+        "report unscaled": report.is_file() and "UNSCALED" in report.read_text(),
+        "viewer data": view.splats is not None and len(view.splats) > 0 and len(view.parts) > 0,
+    }
+    return checks
+
+
+def section_unscaled_twin_complete(args) -> tuple[list[tuple[str, str]], dict]:
+    import numpy as np
+
+    work = Path(tempfile.mkdtemp(prefix="bench_real_unscaled_"))
+    masks = cake_masks(work / "masks")
+    twin = work / "twin"
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
+    cli = [sys.executable, "-m", "splattwin.cli"]
+    t0 = time.perf_counter()
+    b = subprocess.run(cli + ["build", str(DATA / "cake" / "images"), "--masks", str(masks), "--out", str(twin),
+                              "--iters", str(args.unscaled_iters), "--resolution", "2", "--no-progress"],
+                       env=env, capture_output=True, text=True)
+    t_build = time.perf_counter() - t0
+    rows: list[tuple[str, str]] = []
+    keys: dict = {}
+    if b.returncode != 0:
+        rows.append(("unscaled cake build", f"FAILED (exit {b.returncode}): {b.stderr.strip()[-200:]}"))
+        keys["unscaled_twin_complete"] = False
+        return rows, keys
+    p = subprocess.run(cli + ["plan", str(twin)], env=env, capture_output=True, text=True)
+    checks = unscaled_twin_checks(twin)
+    checks["plan exits 2 naming --known-length"] = p.returncode == 2 and "--known-length" in p.stderr
+    complete = all(checks.values())
+    # share of the cake's labelled Gaussians that survive cleaning, and with the metre thresholds as written
+    from splattwin.geometry.convert import clean_indices
+    from splattwin.geometry.filtering import attribute_mask
+    from splattwin.geometry.options import GeometryOptions, scene_scale
+    from splattwin.poses.twin_frame import load_frame
+    from splattwin.splat.gaussians import Gaussians
+
+    g = Gaussians.load_ply(twin / "splat" / "point_cloud.ply")
+    labels = np.load(twin / "semantics" / "labels.npy")
+    frame = load_frame(twin / "poses" / "frame.json")
+    kept = {}
+    for tag, ls in (("unscaled", frame.length_scale()), ("metric_as_written", 1.0)):
+        o = GeometryOptions().resolved(scene_scale(g.means), ls)
+        keep = attribute_mask(g.opacities, g.scales, o)[0]
+        kept[tag] = len(clean_indices(g, labels, 1, o, attr_keep=keep)) / max(int((labels == 1).sum()), 1)
+    from splattwin.twin.manifest import Manifest
+
+    cake = Manifest.load(twin).objects[0]
+    rows.append(("unscaled cake twin", f"{'complete' if complete else 'INCOMPLETE'} in {t_build:.0f} s "
+                                       f"({args.unscaled_iters} steps, half resolution); nominal metre "
+                                       f"{frame.nominal_metre} units; cake {'usable' if cake.usable else cake.problem}, "
+                                       f"box {np.round(np.array(cake.bbox_extent) / (frame.nominal_metre or 1), 3).tolist()} "
+                                       "nominal m"))
+    rows.append(("  checks", ", ".join(f"{k}: {'ok' if v else 'NO'}" for k, v in checks.items())))
+    rows.append(("  cake Gaussians kept by cleaning", f"{kept['unscaled']:.1%} of {int((labels == 1).sum())} labelled "
+                                                     f"(metre thresholds as written: {kept['metric_as_written']:.1%})"))
+    keys.update(unscaled_twin_complete=complete, unscaled_cake_kept_frac=round(kept["unscaled"], 4),
+                unscaled_cake_kept_frac_metric_thresholds=round(kept["metric_as_written"], 4),
+                unscaled_build_s=round(t_build, 1), unscaled_nominal_metre=frame.nominal_metre)
+    return rows, keys
+
+
+SECTIONS: dict[str, Callable] = {"sfm": section_sfm, "known_pose_init": section_known_pose_init,
+                                 "unscaled_twin_complete": section_unscaled_twin_complete}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -218,6 +335,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--init-iters", type=int, default=1500, help="training steps of each known-pose-init arm")
     ap.add_argument("--init-seeds", type=int, default=2, help="known_pose_init: training seeds per arm (mean)")
     ap.add_argument("--random-arm", action="store_true", help="known_pose_init: also train from random points")
+    ap.add_argument("--unscaled-iters", type=int, default=1000, help="unscaled_twin_complete: training steps")
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "splattwin_bench")
     ap.add_argument("--run-sfm", nargs=2, metavar=("IMAGES", "WORK"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)

@@ -288,6 +288,33 @@ def set_everywhere(obj: Any, name: str, value: Any) -> Any:
     return dataclasses.replace(obj, **kw)
 
 
+# powers of a length a unit carries: a value in this unit is multiplied by factor ** power
+LENGTH_POWERS = {"m": 1, "kg/m^3": -3}
+
+
+def scale_lengths(obj: Any, factor: float) -> Any:
+    """Copy of option object `obj` with every length option (unit "m", and densities "kg/m^3" by
+    factor^-3) expressed in a frame where one metre is `factor` units, nested options included; None
+    stays None (derived later from the scaled values). factor 1 returns `obj` itself, unchanged.
+
+    An unscaled twin's stages run with their options passed through this, `factor` being the frame's
+    nominal metre (`splattwin.poses.twin_frame.TwinFrame.length_scale`): the thresholds written in
+    metres become the same share of the scene as in a metric capture."""
+    if factor == 1.0:
+        return obj
+    kw = {}
+    for spec in specs(type(obj)):
+        cur = getattr(obj, spec.name)
+        power = LENGTH_POWERS.get(spec.meta.get("unit"))
+        if spec.nested is not None and cur is not None:
+            kw[spec.name] = scale_lengths(cur, factor)
+        elif power is not None and cur is not None and not isinstance(cur, bool):
+            f = float(factor) ** power
+            kw[spec.name] = (tuple(float(v) * f for v in cur) if isinstance(cur, (tuple, list))
+                             else float(cur) * f)
+    return dataclasses.replace(obj, **kw)
+
+
 # -- dicts and config files -------------------------------------------------------------------------
 def to_dict(obj: Any, mode: str = "record") -> dict[str, Any]:
     """Plain nested dict of option object `obj` (tuples as lists, paths as strings), for JSON/YAML.

@@ -88,9 +88,9 @@ def test_parts_folders_have_ordinary_permissions(tmp_path):
 
 
 def test_geometry_with_default_options_succeeds(tmp_path, cli):
-    """`splattwin geometry X.ply --out T`: the default frame is unscaled, so MJCF (physics needs metres) is
-    skipped with a note and everything else is written; asking for MJCF explicitly is refused before
-    anything is written."""
+    """`splattwin geometry X.ply --out T`: the default frame is unscaled; every export is written (MJCF
+    included, issue #16), each marked unscaled, and a re-export does the same; an unknown format is refused
+    before anything is written."""
     from splattwin.scene.synthetic import synthetic_scene
     from splattwin.twin.manifest import Manifest
 
@@ -100,14 +100,14 @@ def test_geometry_with_default_options_succeeds(tmp_path, cli):
         warnings.simplefilter("ignore")
         res = cli("geometry", ply, "--out", tmp_path / "T")
     assert res.rc == 0, res.err[-2000:]
-    assert "mjcf export skipped" in res.out
+    assert "the twin is unscaled" in res.out
     m = Manifest.load(tmp_path / "T")
-    assert not m.frame.scaled and set(m.exports) == {"urdf", "moveit", "gltf"}
-    assert (tmp_path / "T" / "export" / "scene.glb").is_file() and not (tmp_path / "T" / "export" / "scene.xml").exists()
+    assert not m.frame.scaled and m.frame.units == "unscaled" and set(m.exports) == {"mjcf", "urdf", "moveit", "gltf"}
+    assert "UNSCALED" in (tmp_path / "T" / "export" / "scene.xml").read_text()
     assert cli("export", tmp_path / "T").rc == 0            # the same default for a re-export
-    assert_bad_input(cli("export", tmp_path / "T", "--formats", "mjcf"), "not metrically scaled")
-    res = cli("geometry", ply, "--out", tmp_path / "T2", "--formats", "mjcf")
-    assert_bad_input(res, "--formats", "not metrically scaled")
+    assert "UNSCALED" in (tmp_path / "T" / "export" / "scene.urdf").read_text()
+    res = cli("geometry", ply, "--out", tmp_path / "T2", "--formats", "sdf")
+    assert_bad_input(res, "--formats", "unknown export format")
     assert not (tmp_path / "T2" / "twin.json").exists()
 
 

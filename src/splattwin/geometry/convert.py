@@ -229,8 +229,10 @@ def background_geometry(g, indices: np.ndarray, opts: GeometryOptions, table_thi
 
 
 def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None = None, background: bool = True,
-            table_thickness: float = 0.03, progress: bool = True) -> Conversion:
-    """Full conversion. g: Gaussians [N]; labels [N] int (0 = background); objects: [(name, label, prompt)]."""
+            table_thickness: float = 0.03, progress: bool = True, length_scale: float = 1.0) -> Conversion:
+    """Full conversion. g: Gaussians [N]; labels [N] int (0 = background); objects: [(name, label, prompt)].
+    length_scale: frame units per metre of the options' lengths and of table_thickness (m): 1 in a
+    metric twin, the frame's nominal metre in an unscaled one (`TwinFrame.length_scale`)."""
     from rich.progress import Progress
 
     opts = opts or GeometryOptions()
@@ -241,7 +243,8 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
         raise InputError(f"labels has {len(labels)} entries for {len(g)} Gaussians")
     timings: dict = defaultdict(float)
     t0 = time.perf_counter()
-    opts = opts.resolved(scene_scale(g.means))
+    opts = opts.resolved(scene_scale(g.means), length_scale)
+    table_thickness = table_thickness * length_scale
     keep, stats = attribute_mask(g.opacities, g.scales, opts)
     timings["filter"] = time.perf_counter() - t0
     results = []
@@ -276,10 +279,11 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
 
 
 def ablation(g, labels: np.ndarray, objects: list, gt_meshes: dict, opts: GeometryOptions | None = None,
-             table_height: float | None = 0.0, spacing: float = 0.002) -> dict[str, dict[str, Fidelity]]:
+             table_height: float | None = 0.0, spacing: float = 0.002, length_scale: float = 1.0
+             ) -> dict[str, dict[str, Fidelity]]:
     """Paper Table 5: {config: {object name: Fidelity}} of the cleaned Gaussian centres vs GT meshes
-    (world frame) for the configurations raw, attribute, cluster, full."""
-    opts = (opts or GeometryOptions()).resolved(scene_scale(g.means))
+    (world frame) for the configurations raw, attribute, cluster, full. length_scale: see `convert`."""
+    opts = (opts or GeometryOptions()).resolved(scene_scale(g.means), length_scale)
     keep = attribute_mask(g.opacities, g.scales, opts)[0]
     out: dict[str, dict[str, Fidelity]] = {c: {} for c in CONFIGS}
     for obj in objects:

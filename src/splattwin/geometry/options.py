@@ -1,7 +1,10 @@
 """Options of the geometry stage (filtering, clustering, meshing, physics), one plain data object.
 
 Units: metres, kilograms. Thresholds set to None are derived from the scene size (`scene_scale`, the
-diagonal of the robust bounding box of all Gaussian centres) when the conversion starts.
+diagonal of the robust bounding box of all Gaussian centres) when the conversion starts. In an unscaled
+twin (SfM units) every length (unit "m") is first multiplied by the frame's nominal metre and the
+density divided by its cube (`resolved(..., length_scale)`, `splattwin.options.scale_lengths`), so each
+threshold is the same share of the scene as in a metric twin; a metric twin uses them as written.
 """
 
 from __future__ import annotations
@@ -67,13 +70,16 @@ class GeometryOptions:
     f1_threshold: float = option(0.005, "distance threshold of the F1 score against ground truth", unit="m")
     seed: int = option(0, "seed of RANSAC and CoACD")
 
-    def resolved(self, scene_scale: float) -> "GeometryOptions":
-        """Copy with the scene-size dependent defaults filled in."""
-        d = asdict(self)
+    def resolved(self, scene_scale: float, length_scale: float = 1.0) -> "GeometryOptions":
+        """Copy with the scene-size dependent defaults filled in. length_scale: frame units per metre of
+        the lengths (1 in a metric twin; an unscaled twin's nominal metre, see the module docstring)."""
+        from splattwin.options import scale_lengths
+
+        d = asdict(scale_lengths(self, length_scale))
         if d["max_scale"] is None:
             d["max_scale"] = float(self.max_scale_rel * scene_scale)
         if d["dbscan_voxel"] is None:
-            d["dbscan_voxel"] = self.dbscan_eps / 4.0
+            d["dbscan_voxel"] = d["dbscan_eps"] / 4.0
         d["alpha_factors"] = tuple(d["alpha_factors"])
         return GeometryOptions(**d)
 

@@ -172,7 +172,10 @@ class TwinView:
             labels = load_npy(twin_dir / man.labels, "label array")
         # Splats far outside the table's workspace (the room, a far background shell) and huge haze
         # splats hide the scene from most viewpoints: they get their own layer.
-        near = workspace_mask(g.means, man.background) & (g.scales.max(axis=1) < HUGE_SPLAT)
+        # (metres; an unscaled twin's nominal metre, TwinFrame.length_scale, keeps the same share of it)
+        s = man.frame.length_scale()
+        near = (workspace_mask(g.means, man.background, margin=0.3 * s, height=1.0 * s)
+                & (g.scales.max(axis=1) < HUGE_SPLAT * s))
         self.splats, self.far = g.subset(near), g.subset(~near)
         if labels is not None and len(labels) == len(near):
             self.label_rgb = label_colors(labels[near])

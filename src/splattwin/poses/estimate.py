@@ -233,7 +233,9 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
             frame = TwinFrame(source="unscaled", scaled=False, scale_uncertainty_rel=None,
                           description="table frame (RANSAC plane, z up, table top z = 0) in arbitrary SfM units: "
                                       "NOT metric. Give --marker-size, --known-length or --robot-poses for a metric twin")
-            log.warning("no metric scale: the frame is marked 'unscaled' and robot stages will refuse it")
+            log.warning("no metric scale: the frame is marked 'unscaled' (lengths in SfM units; thresholds derived "
+                        "from the cameras' distance to the scene); the twin is built but robot planning will "
+                        "refuse it (give --known-length, --marker-size or metric poses for a metric twin)")
     assert frame is not None
     if method == "known" and prior is None and input_scaled and opts.marker_size is None and opts.known_length is None:
         if ((pts_xyz is None or len(pts_xyz) == 0) and opts.triangulate and len(order) >= 2
@@ -268,6 +270,14 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
             log.info("%d image(s) not registered by SfM posed from their robot poses", len(filled))
     if pts_xyz is not None:
         pts_xyz = align.transform_points(T_out_in, pts_xyz)
+    if not frame.scaled and pts_xyz is not None and len(pts_xyz):
+        # the length every metric threshold of the later stages is expressed in (TwinFrame.nominal_metre)
+        from splattwin.poses.table import nominal_metre
+
+        nm = nominal_metre(list(out_cams.values()), pts_xyz, seed=opts.seed)
+        frame = dataclasses.replace(frame, nominal_metre=None if nm is None else round(nm, 6))
+        if nm is not None:
+            stats["nominal_metre"] = round(nm, 6)
     out_frames = [dataclasses.replace(f, camera=out_cams[n]) for f, n in zip(frames, names) if n in out_cams]
     unregistered = [n for n in names if n not in out_cams]
     stats["registered"] = len(out_frames)

@@ -7,12 +7,14 @@ Not to be confused with `splattwin.capture.Frame`, an image of the capture with 
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
 from splattwin.errors import InputError
 
 FRAME_FILE = "frame.json"
+UNSCALED_UNITS = "unscaled"  # TwinFrame.units of a frame without metric scale
 
 # Where a twin frame can come from (poses stage): see `TwinFrame.source`.
 FRAME_SOURCES = ("ground_truth", "known_poses", "robot", "sfm+robot", "marker", "table_plane+known_length", "unscaled")
@@ -22,8 +24,14 @@ FRAME_SOURCES = ("ground_truth", "known_poses", "robot", "sfm+robot", "marker", 
 class TwinFrame:
     """Definition of the twin frame (metres, z up when it comes from the table or the robot base).
 
-    source: one of FRAME_SOURCES. scaled: False when the metric scale is unknown (robot stages refuse).
+    source: one of FRAME_SOURCES. scaled: False when the metric scale is unknown (robot planning refuses).
+    units: "m", or "unscaled" when the frame is not metric (lengths are in arbitrary SfM units).
     scale_uncertainty_rel: 1-sigma relative scale uncertainty (0.01 = 1 %).
+    nominal_metre: unscaled frames only: the frame units that stand for one metre when the stages derive
+    their length thresholds (cleaning, meshing, fusion: every option with unit "m" is multiplied by it,
+    see `length_scale`); estimated from the capture by `splattwin.poses.table.nominal_metre` (the
+    cameras' median distance to the scene over a typical tabletop viewing distance). None for a metric
+    frame, whose thresholds are used as given.
     T_twin_input: how the input's coordinates map into the twin frame (e.g. a z-down robot world rotated
     180 degrees about x). up_check: the evidence for up (cameras, table plane) when poses were known.
     """
@@ -38,6 +46,21 @@ class TwinFrame:
     T_twin_input: list | None = None
     # known poses: where up was found and the rotation applied (splattwin.poses.up.UpCheck.to_dict)
     up_check: dict | None = None
+    nominal_metre: float | None = None
+
+    def __post_init__(self) -> None:
+        if not self.scaled:
+            self.units = UNSCALED_UNITS  # never "m" for a frame without metric scale (older files said so)
+
+    def length_scale(self, fallback: float | None = None) -> float:
+        """Factor applied to every metric length option: 1 for a metric frame; for an unscaled one its
+        `nominal_metre`, else `fallback` (estimated by the caller from its data), else 1."""
+        if self.scaled:
+            return 1.0
+        for v in (self.nominal_metre, fallback):
+            if v is not None and math.isfinite(v) and v > 0:
+                return float(v)
+        return 1.0
 
 
 def load_frame(path: str | Path) -> TwinFrame:

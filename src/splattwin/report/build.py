@@ -119,7 +119,14 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
     tt = timings or {k: v.get("seconds", 0.0) for k, v in state.items()}
     if tt:
         kpis["pipeline time (s)"] = round(sum(tt.values()), 1)
+    if man and not man.frame.scaled:
+        kpis["scale"] = "unscaled"
     head.kpis(kpis)
+    if man and not man.frame.scaled:
+        from splattwin.twin.manifest import unscaled_note
+
+        head.text(f"{unscaled_note(man.frame)} The geometry's thresholds were derived from the capture "
+                  f"(nominal metre {man.frame.nominal_metre or 'n/a'} units); robot planning refuses this twin.")
 
     _guarded(_inputs_section, rep.section("Inputs and camera poses"), twin, poses, man)
     _guarded(_recon_section, rep.section("Reconstruction (3D Gaussian Splatting)"), twin, ev)
@@ -180,6 +187,7 @@ def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
     if man:
         f = man.frame
         sec.table(["twin frame", "value"], [["source", f.source], ["metric", f.scaled], ["units", f.units],
+                                            *([["nominal metre (units)", f.nominal_metre]] if not f.scaled else []),
                                             ["scale uncertainty (rel.)", f.scale_uncertainty_rel if f.scale_uncertainty_rel is not None else "n/a"]])
     thumbs = [load_image(fr.image_path) for fr in ds.train()[:: max(1, len(ds.train()) // 4)][:4]]
     if thumbs:

@@ -41,9 +41,18 @@ def run(inputs: RobotInputs, options: RobotOptions, *, progress: bool = True,
     from splattwin import io
     from splattwin.robot.outputs import write_outputs
     from splattwin.robot.trials import TrialSpec, run_once, run_trials
+    from splattwin.twin.manifest import Manifest
+    from splattwin.twin.mjcf import check_scaled
 
     options.validate()
     out = Path(inputs.out_dir)
+    try:  # before the task: a twin in SfM units cannot be planned in at all (the message says how to scale it)
+        check_scaled(Manifest.load(inputs.twin_dir), Path(inputs.twin_dir) / "twin.json")
+    except InputError as e:
+        if not record_errors:
+            raise
+        path = io.write_json(out / "results.json", {"error": str(e), "task": options.task})
+        return RobotResult(results=path, success=False, error=str(e))
     spec = TrialSpec.from_options(inputs.twin_dir, options)
     t0 = time.perf_counter()
     try:

@@ -75,6 +75,20 @@ def check_masks(options: SemanticsOptions, frames, scene_dir: Path | None = None
                          f"images: {', '.join(sorted(sizes)[:5])}...)", where)
 
 
+def fusion_options_for(fusion, transforms: Path):
+    """The fusion options for the posed dataset at `transforms`: as given in a metric frame; in an unscaled
+    one (frame.json beside it says so) every length (depth tolerance, depth-DBSCAN eps, gate) multiplied by
+    the frame's nominal metre (`TwinFrame.length_scale`), so they keep their share of the scene."""
+    from splattwin.options import scale_lengths
+    from splattwin.poses.twin_frame import FRAME_FILE, load_frame
+
+    p = Path(transforms)
+    frame_json = (p.parent if p.suffix == ".json" else p) / FRAME_FILE
+    if not frame_json.is_file():
+        return fusion
+    return scale_lengths(fusion, load_frame(frame_json).length_scale())
+
+
 def input_files(inputs: SemanticsInputs, options: SemanticsOptions) -> dict:
     """What the stage reads from outside the twin (hashed by content for its key)."""
     scene_json = inputs.scene_dir / "scene.json" if inputs.scene_dir is not None else None
@@ -100,7 +114,8 @@ def run(inputs: SemanticsInputs, options: SemanticsOptions, *, progress: bool = 
         warnings.simplefilter("ignore", MaskWarning)
         check_views(views_for(ds.train() or ds.frames, ms, masks_from, all_frames=ds.frames), ms, masks_from)
     g = Gaussians.load_ply(inputs.splats)
-    res = fuse_to_dir(g, ds, ms, inputs.out_dir, options.fusion, renderer=options.renderer, label_maps=options.maps,
+    fusion = fusion_options_for(options.fusion, inputs.transforms)
+    res = fuse_to_dir(g, ds, ms, inputs.out_dir, fusion, renderer=options.renderer, label_maps=options.maps,
                       naive=options.naive, progress=progress, maps_renderer=options.maps_renderer, metrics=True)
     prompts = ms.prompts or {}
     objects = [[res.names[k], int(k), prompts.get(k, res.names[k].replace("_", " "))] for k in res.label_ids]

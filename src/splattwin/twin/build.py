@@ -13,6 +13,7 @@ written, and every folder written or removed is verified to lie inside the twin 
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import importlib.metadata
 import logging
@@ -29,8 +30,8 @@ from splattwin.geometry.options import GeometryOptions
 from splattwin.names import check_unique, object_name
 from splattwin.paths import child, relative_to
 from splattwin.poses.twin_frame import TwinFrame
-from splattwin.twin.manifest import Background, Manifest, ObjectEntry
-from splattwin.twin.options import FORMATS, METRIC_FORMATS, ExportOptions
+from splattwin.twin.manifest import Background, Manifest, ObjectEntry, unscaled_note  # noqa: F401
+from splattwin.twin.options import FORMATS, ExportOptions
 from splattwin.twin.splats import write_object_splats
 
 log = logging.getLogger(__name__)
@@ -38,22 +39,19 @@ log = logging.getLogger(__name__)
 
 
 def default_formats(frame: TwinFrame) -> tuple[str, ...]:
-    """The exports written when none are asked for: all of them, less those an unscaled twin cannot
-    have (MJCF: physics in arbitrary units would be silently wrong)."""
-    return ExportOptions().resolve(frame.scaled)
+    """The exports written when none are asked for: all of them (an unscaled twin's are marked so)."""
+    return ExportOptions().resolve()
 
 
 def check_formats(frame: TwinFrame, formats, where: str | Path | None = None) -> None:
-    """InputError, before anything is written, for unknown formats or MJCF of an unscaled twin."""
+    """InputError, before anything is written, for unknown formats."""
     from splattwin.errors import InputError
 
     for fmt in formats:
         if fmt not in FORMATS:
             raise InputError(f"unknown export format {fmt!r} (choose from {', '.join(FORMATS)})", where)
-        if fmt in METRIC_FORMATS and not frame.scaled:
-            raise InputError(f"cannot export {fmt}: the twin is not metrically scaled (frame source "
-                             f"{frame.source!r}) and physics needs metres; scale it first (marker, known poses or "
-                             f"a known length) or leave {fmt} out of --formats", where)
+
+
 _VERSIONED = ("splattwin", "numpy", "scipy", "scikit-learn", "open3d-cpu", "trimesh", "coacd", "scikit-image", "mujoco",
               "torch")
 
@@ -189,6 +187,32 @@ def export_twin(twin_dir: str | Path, manifest: Manifest | None = None, formats=
     return manifest
 
 
+def _estimated_nominal_metre(gaussians, out_dir: Path, cameras_path) -> float | None:
+    """An unscaled frame without a recorded nominal metre (e.g. `splattwin geometry --frame unscaled`):
+    estimated here from the cameras file and the splat centres, else from the scene's extent."""
+    from splattwin.geometry.options import scene_scale
+    from splattwin.poses.table import nominal_metre
+
+    if cameras_path is not None:
+        cp = Path(cameras_path)
+        cp = out_dir / cp if not cp.is_absolute() and (out_dir / cp).exists() else cp
+        if cp.is_file():
+            try:
+                from splattwin.capture import load_dataset
+
+                value = nominal_metre([f.camera for f in load_dataset(cp).frames], gaussians.means)
+                if value is not None:
+                    return value
+            except Exception as e:  # the cameras only refine a guess: never fail the build on them
+                log.warning("nominal metre not estimated from %s: %s", cp, e)
+    return scene_scale(gaussians.means) / NOMINAL_SCENE_SIZE
+
+
+# robust diagonal (m) of a tabletop scene's splats (the embedded scene's is about this): the last-resort
+# guess of an unscaled twin's nominal metre when there are no cameras to measure the viewing distance
+NOMINAL_SCENE_SIZE = 1.2
+
+
 def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path, frame: TwinFrame | None = None,
                cameras_path: str | Path | None = None, options: GeometryOptions | None = None,
                formats=FORMATS, progress: bool = True) -> Manifest:
@@ -202,7 +226,11 @@ def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path
     frame = frame or TwinFrame()
     check_formats(frame, formats, out_dir / "twin.json")
     t0 = time.perf_counter()
-    conv = convert(gaussians, labels, objects, options, progress=progress)
+    length_scale = frame.length_scale(None if frame.scaled else _estimated_nominal_metre(gaussians, out_dir, cameras_path))
+    if not frame.scaled:
+        log.info("unscaled twin: metric thresholds x %.4g (frame units per nominal metre)", length_scale)
+        frame = dataclasses.replace(frame, nominal_metre=frame.nominal_metre or round(length_scale, 6))
+    conv = convert(gaussians, labels, objects, options, progress=progress, length_scale=length_scale)
     t1 = time.perf_counter()
     manifest = write_geometry(conv, gaussians, labels, out_dir, frame, cameras_path)
     manifest.timings["write"] = round(time.perf_counter() - t1, 4)

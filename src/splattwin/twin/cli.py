@@ -25,10 +25,9 @@ def _export(args: argparse.Namespace) -> int:
     with output_lock(twin):
         manifest = Manifest.load(twin)
         opts = from_args(ExportOptions, args)
-        formats = opts.resolve(manifest.frame.scaled)
-        if opts.formats is None and len(formats) < len(FORMATS):
-            print(f"note: mjcf export skipped: the twin is unscaled (frame source {manifest.frame.source!r}); "
-                  f"physics needs metres")
+        formats = opts.resolve()
+        if not manifest.frame.scaled:
+            print("note: the twin is unscaled (SfM units, not metres): its exports are marked so in each file")
         if not formats:
             raise InputError("no export format given; choose from " + ", ".join(FORMATS), "--formats")
         m = export_twin(twin, manifest, formats)

@@ -14,7 +14,7 @@ from splattwin.errors import InputError
 from splattwin.geometry.options import GeometryOptions
 from splattwin.names import check_unique, object_name
 from splattwin.options import add_command, add_options, dest, from_args
-from splattwin.twin.options import FORMATS, ExportOptions
+from splattwin.twin.options import ExportOptions
 
 log = logging.getLogger(__name__)
 
@@ -54,11 +54,10 @@ def _run_locked(args: argparse.Namespace) -> int:
         raise InputError(f"unknown frame source {args.frame!r} (choose from {', '.join(FRAME_SOURCES)})", "--frame")
     frame = TwinFrame(source=args.frame, scaled=args.frame != "unscaled")
     exports = from_args(ExportOptions, args)
-    formats = exports.resolve(frame.scaled)
-    skipped = [f for f in FORMATS if f not in formats]
-    if exports.formats is None and skipped:
-        print(f"note: {', '.join(skipped)} export skipped: the twin is unscaled (--frame {args.frame}) and "
-              f"physics needs metres; give --frame with a metric source to get it")
+    formats = exports.resolve()
+    if not frame.scaled:
+        print(f"note: the twin is unscaled (--frame {args.frame}): lengths in the splat's units, thresholds "
+              "derived from the cameras or the scene size, every export marked unscaled")
     check_formats(frame, formats, "--formats")
     if not ply.is_file():
         raise InputError("no such splat PLY", ply)

@@ -14,7 +14,7 @@ import trimesh
 
 from splattwin import io
 from splattwin.meshio import load_mesh
-from splattwin.twin.manifest import Manifest
+from splattwin.twin.manifest import Manifest, unscaled_note
 
 # z-up twin -> y-up glTF: rotate -90 degrees about x
 Y_UP_FROM_Z_UP = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], dtype=float)
@@ -22,6 +22,10 @@ Y_UP_FROM_Z_UP = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 
 
 def twin_scene(twin_dir: Path, manifest: Manifest, y_up: bool = True) -> trimesh.Scene:
     scene = trimesh.Scene()
+    # glTF lengths are metres by spec: an unscaled twin says what its numbers are (scene extras)
+    scene.metadata["splattwin"] = {"units": manifest.frame.units, "scaled": bool(manifest.frame.scaled),
+                                   "frame_source": manifest.frame.source,
+                                   **({"note": unscaled_note(manifest.frame)} if not manifest.frame.scaled else {})}
     root = "twin_z_up"
     scene.graph.update(frame_to=root, frame_from=scene.graph.base_frame, matrix=Y_UP_FROM_Z_UP if y_up else np.eye(4))
     bg = manifest.background

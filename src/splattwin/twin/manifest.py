@@ -29,6 +29,15 @@ from splattwin.poses.twin_frame import TwinFrame
 SCHEMA_VERSION = 1
 MANIFEST_NAME = "twin.json"
 
+def unscaled_note(frame: TwinFrame) -> str | None:
+    """The line every export of an unscaled twin carries (a comment or metadata), None for a metric twin."""
+    if frame.scaled:
+        return None
+    nm = f"; about {frame.nominal_metre:.4g} units stand for 1 m (a guess)" if frame.nominal_metre else ""
+    return (f"UNSCALED twin: lengths are in arbitrary SfM units, not metres (frame source {frame.source!r}{nm}); "
+            "masses are nominal. Rebuild with --known-length, --marker-size or metric poses for a metric twin.")
+
+
 @dataclass
 class ObjectEntry:
     """One manipulable object of the twin.

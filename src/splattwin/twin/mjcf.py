@@ -23,7 +23,7 @@ import numpy as np
 from splattwin import io
 from splattwin.errors import InputError
 from splattwin.transforms import mujoco_quat_wxyz_from_matrix
-from splattwin.twin.manifest import Manifest, ObjectEntry
+from splattwin.twin.manifest import Manifest, ObjectEntry, unscaled_note
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +81,7 @@ def add_twin(spec, manifest: Manifest, twin_dir: str | Path, objects: list[str] 
     _contact(table)
     if floor:
         fl = wb.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 0.05],
-                         pos=[0, 0, bg.table_height - FLOOR_DEPTH], rgba=[0.3, 0.3, 0.32, 1])
+                         pos=[0, 0, bg.table_height - FLOOR_DEPTH * manifest.frame.length_scale()], rgba=[0.3, 0.3, 0.32, 1])
         _contact(fl)
     for k, rel in enumerate(bg.convex_parts):
         _mesh_volume(twin_dir / rel)  # a readable triangle mesh (InputError naming it otherwise)
@@ -136,18 +136,29 @@ def _colour(obj: ObjectEntry) -> list[float]:
     return [*(0.25 + 0.7 * rng.random(3)).tolist(), 1.0]
 
 
+def _xml_comment(text: str) -> str:
+    return text.replace("--", "- -")
+
+
 def check_scaled(manifest: Manifest, where: str | Path) -> None:
-    """Physics needs metres: refuse an unscaled twin."""
+    """Robot planning and physics need metres: refuse an unscaled twin, saying how to give it scale."""
     if not manifest.frame.scaled:
-        raise InputError(f"the twin is not metrically scaled (frame source {manifest.frame.source!r}); "
-                         "scale it first (marker, known poses or a known length)", where)
+        raise InputError(
+            f"the twin is not metrically scaled (frame source {manifest.frame.source!r}, units "
+            f"{manifest.frame.units!r}): a robot cannot plan in SfM units. Rebuild it with a metric scale: "
+            "--known-length camera_height=M (mean camera height above the table, metres) or "
+            "baseline@IMG_A,IMG_B=M (distance between two camera centres), --marker-size M (an ArUco marker "
+            "in view), metric known poses (a dataset's transforms.json or --robot-poses with --hand-eye), "
+            "or metric depth images with known poses", where)
 
 
-def build_spec(manifest: Manifest, twin_dir: str | Path, **kw):
-    """A `mujoco.MjSpec` of the twin alone (table, background, objects). kw: see `add_twin`."""
+def build_spec(manifest: Manifest, twin_dir: str | Path, unscaled_ok: bool = False, **kw):
+    """A `mujoco.MjSpec` of the twin alone (table, background, objects). kw: see `add_twin`.
+    unscaled_ok: build an unscaled twin's spec too (the export, marked unscaled; never for planning)."""
     import mujoco
 
-    check_scaled(manifest, Path(twin_dir) / "twin.json")
+    if not unscaled_ok:
+        check_scaled(manifest, Path(twin_dir) / "twin.json")
     spec = mujoco.MjSpec()
     spec.modelname = "splattwin_twin"
     spec.option.timestep = 0.002
@@ -161,12 +172,18 @@ def export_mjcf(twin_dir: str | Path, manifest: Manifest | None = None) -> Path:
     """Write TWIN/export/scene.xml (mesh files referenced relative to it) and record it in the manifest."""
     twin_dir = Path(twin_dir).resolve()
     manifest = manifest or Manifest.load(twin_dir)
-    spec = build_spec(manifest, twin_dir)
+    spec = build_spec(manifest, twin_dir, unscaled_ok=True)
+    if not manifest.frame.scaled:
+        spec.modelname = "splattwin_twin_unscaled"
     try:
         spec.compile()
     except ValueError as e:
         raise InputError(f"twin does not compile as MJCF: {e}", twin_dir / "twin.json") from e
     xml = spec.to_xml().replace(f'file="{twin_dir}/', 'file="../')
+    note = unscaled_note(manifest.frame)
+    if note:  # a comment right after the root element's opening tag
+        j = xml.index(">", xml.index("<mujoco")) + 1
+        xml = f"{xml[:j]}\n  <!-- {_xml_comment(note)} -->{xml[j:]}"
     out = io.write_text(twin_dir / "export" / "scene.xml", xml)
     manifest.exports["mjcf"] = "export/scene.xml"
     manifest.save(twin_dir)

@@ -24,7 +24,7 @@ from splattwin.meshio import load_mesh
 from splattwin.errors import InputError
 from splattwin.transforms import (pose_from_pos_quat_wxyz, quat_wxyz_from_matrix, quat_wxyz_from_xyzw,
                                   quat_xyzw_from_wxyz)
-from splattwin.twin.manifest import Manifest
+from splattwin.twin.manifest import Manifest, unscaled_note
 
 ADD = 0
 BOX = 1  # shape_msgs/SolidPrimitive.BOX
@@ -209,10 +209,14 @@ def export_moveit(twin_dir: str | Path, manifest: Manifest, frame_id: str = "wor
     twin_dir = Path(twin_dir)
     out = twin_dir / "export" / "moveit"
     dumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)  # libyaml: ~10x faster on mesh-sized lists
+    note = unscaled_note(manifest.frame)
+    # the .scene text format has no comments: an unscaled twin says so in the scene's name
+    unscaled = "" if note is None else "_unscaled"
     for boxes, suffix in ((True, "_boxes"), (False, "")):
         objs = scene_objects(twin_dir, manifest, boxes=boxes)
         io.write_text(out / f"collision_objects{suffix}.yaml",
-                      yaml.dump(collision_object_msgs(objs, frame_id), Dumper=dumper, default_flow_style=None,
-                                sort_keys=False, width=1 << 20))
-        path = io.write_text(out / f"scene{suffix}.scene", scene_text(objs, "splattwin" + suffix))
+                      ("" if note is None else f"# {note}\n")
+                      + yaml.dump(collision_object_msgs(objs, frame_id), Dumper=dumper, default_flow_style=None,
+                                  sort_keys=False, width=1 << 20))
+        path = io.write_text(out / f"scene{suffix}.scene", scene_text(objs, "splattwin" + suffix + unscaled))
     return path

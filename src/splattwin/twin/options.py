@@ -11,18 +11,17 @@ from splattwin.geometry.options import GeometryOptions
 from splattwin.options import option
 
 FORMATS = ("mjcf", "urdf", "moveit", "gltf")
-METRIC_FORMATS = ("mjcf",)   # physics needs metres: refused for an unscaled twin
 
 
 @dataclass
 class ExportOptions:
     formats: str | None = option(None, "exports to write, comma-separated from mjcf,urdf,moveit,gltf ('' for none; "
-                                 "none: all, less mjcf for an unscaled twin)")
+                                 "none: all; an unscaled twin's are marked unscaled in each file)")
 
-    def resolve(self, scaled: bool, where: str = "--formats") -> tuple[str, ...]:
-        """The formats to write for a twin whose frame is (not) metric. InputError for unknown names."""
+    def resolve(self, where: str = "--formats") -> tuple[str, ...]:
+        """The formats to write. InputError for unknown names."""
         if self.formats is None:
-            return tuple(f for f in FORMATS if scaled or f not in METRIC_FORMATS)
+            return FORMATS
         fmts = tuple(f.strip().lower() for f in self.formats.split(",") if f.strip())
         bad = [f for f in fmts if f not in FORMATS]
         if bad:

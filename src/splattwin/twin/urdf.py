@@ -19,7 +19,7 @@ from splattwin import io
 from splattwin.meshio import load_mesh
 from splattwin.names import object_name
 from splattwin.paths import child
-from splattwin.twin.manifest import Manifest, ObjectEntry
+from splattwin.twin.manifest import Manifest, ObjectEntry, unscaled_note
 
 
 def _origin(T: np.ndarray) -> str:
@@ -62,8 +62,15 @@ def object_link(twin_dir: Path, o: ObjectEntry, from_dir: Path) -> str:
     return "\n  ".join(parts)
 
 
-def object_urdf(twin_dir: Path, o: ObjectEntry, out_dir: Path) -> str:
-    return f'<?xml version="1.0"?>\n<robot name={quoteattr(o.name)}>\n  {object_link(twin_dir, o, out_dir)}\n</robot>\n'
+def _note(manifest: Manifest | None) -> str:
+    """An XML comment line for an unscaled twin (URDF has no unit field: lengths are metres by spec)."""
+    note = unscaled_note(manifest.frame) if manifest is not None else None
+    return "" if not note else "<!-- " + note.replace("--", "- -") + " -->\n"
+
+
+def object_urdf(twin_dir: Path, o: ObjectEntry, out_dir: Path, manifest: Manifest | None = None) -> str:
+    return (f'<?xml version="1.0"?>\n{_note(manifest)}<robot name={quoteattr(o.name)}>\n  '
+            f'{object_link(twin_dir, o, out_dir)}\n</robot>\n')
 
 
 def scene_urdf(twin_dir: Path, manifest: Manifest, out_dir: Path) -> str:
@@ -72,7 +79,8 @@ def scene_urdf(twin_dir: Path, manifest: Manifest, out_dir: Path) -> str:
     box = f"{x1 - x0:.6g} {y1 - y0:.6g} {bg.table_thickness:.6g}"
     T_table = np.eye(4)
     T_table[:3, 3] = [(x0 + x1) / 2, (y0 + y1) / 2, bg.table_height - bg.table_thickness / 2]
-    lines = ['<?xml version="1.0"?>', '<robot name="splattwin_scene">', '  <link name="world"/>',
+    lines = ['<?xml version="1.0"?>', *([_note(manifest).rstrip()] if _note(manifest) else []),
+             '<robot name="splattwin_scene">', '  <link name="world"/>',
              f'  <link name="table"><visual><geometry><box size="{box}"/></geometry></visual>'
              f'<collision><geometry><box size="{box}"/></geometry></collision></link>',
              f'  <joint name="world_to_table" type="fixed"><parent link="world"/><child link="table"/>{_origin(T_table)}</joint>']
@@ -99,5 +107,5 @@ def export_urdf(twin_dir: str | Path, manifest: Manifest) -> Path:
     out = twin_dir / "export"
     for o in manifest.objects:
         if o.usable:
-            io.write_text(child(out, f"{object_name(o.name)}.urdf"), object_urdf(twin_dir, o, out))
+            io.write_text(child(out, f"{object_name(o.name)}.urdf"), object_urdf(twin_dir, o, out, manifest))
     return io.write_text(out / "scene.urdf", scene_urdf(twin_dir, manifest, out))

@@ -87,7 +87,10 @@ def draw(server, view: TwinView) -> dict:
     handles: dict = {}
     gui = server.gui
     server.scene.set_up_direction("+z")
-    server.scene.add_frame("/twin_frame", axes_length=0.1, axes_radius=0.003)
+    s = view.manifest.frame.length_scale()  # 1 in a metric twin; an unscaled twin's nominal metre
+    server.scene.add_frame("/twin_frame", axes_length=0.1 * s, axes_radius=0.003 * s)
+    if not view.manifest.frame.scaled:
+        gui.add_markdown("**Unscaled twin**: lengths in SfM units, not metres")
 
     g = view.splats
     if g is not None:
