@@ -271,11 +271,16 @@ def section_psnr_heldout_statue(args) -> tuple[list[tuple[str, str]], dict]:
     argv = ["build", str(DATA / "statue" / "images"), "--out", str(work / "twin"), "--until", "splats", "--no-progress"]
     if args.statue_iters:
         argv += ["--iters", str(args.statue_iters)]
-    code, wall, err = _cli_run(argv)
-    m_path = work / "twin" / "splat" / "eval" / "metrics.json"
-    if code != 0 or not m_path.is_file():
-        return [("statue held-out", f"build failed (exit {code}): {err.strip()[-200:]}")], {"psnr_heldout_statue": None}
-    m = json.loads(m_path.read_text())
+    import shutil
+
+    try:
+        code, wall, err = _cli_run(argv)
+        m_path = work / "twin" / "splat" / "eval" / "metrics.json"
+        if code != 0 or not m_path.is_file():
+            return [("statue held-out", f"build failed (exit {code}): {err.strip()[-200:]}")], {"psnr_heldout_statue": None}
+        m = json.loads(m_path.read_text())
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
     er, held = m.get("eval_resolution", {}), m.get("heldout", {})
     rows = [("statue held-out", f"PSNR {m['mean_psnr']:.2f} dB, SSIM {m['mean_ssim']:.4f} on {m['split']} views "
                                 f"{held.get('views')} ({held.get('rule')}); evaluated at {er.get('sizes')} of "
