@@ -23,7 +23,13 @@ Sections (SECTIONS below; each returns table rows and JSON keys, so more can be 
   and the viewer's data (splat layers, collision parts), and `splattwin plan` on it exits 2 naming
   --known-length. Also reported: the share of the cake's labelled Gaussians that survive cleaning
   (unscaled_cake_kept_frac) and the same with the metric thresholds as written (the old behaviour).
-Targets (issue #16): registered_frac_min 1.0, registered_frac_internet >= 0.8, sfm_s_max <= 40,
+- preflight_s: `build --prompt` with no segmentation weights (cake) and `build --task` on an unscaled capture
+  (statue, SfM, no scale), each in a fresh process; both must exit 2 before SfM. Key: the slower median (s).
+- zdown_fixed: `measure_zdown()` of bench/robot_capture.py (a z-down robot capture becomes a z-up twin).
+- psnr_heldout_statue: statue built to the splats with the default hold-out and resolution; held-out PSNR
+  and SSIM (ssim_heldout_statue) at the training resolution.
+Targets (issue #16): preflight_s <= 10, zdown_fixed true, unscaled_twin_complete true, psnr_heldout_statue >= 20,
+registered_frac_min 1.0, registered_frac_internet >= 0.8, sfm_s_max <= 40,
 sfm_peak_rss_gib <= 2, known_pose_init_gap_db <= 1.0. The real photos are read in place (CC BY-NC).
 Last line: one JSON object.
 """
@@ -322,7 +328,89 @@ def section_unscaled_twin_complete(args) -> tuple[list[tuple[str, str]], dict]:
     return rows, keys
 
 
+# -- pre-flight: builds that cannot succeed stop in seconds, before SfM ----------------------------------
+def _cli_run(argv: list[str], env_extra: dict | None = None) -> tuple[int, float, str]:
+    """`splattwin ARGV` in a fresh process (imports included, as a user runs it): (exit code, wall s, stderr)."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "src"), **(env_extra or {}))
+    t0 = time.perf_counter()
+    p = subprocess.run([sys.executable, "-m", "splattwin.cli", *argv], env=env, capture_output=True, text=True)
+    return p.returncode, time.perf_counter() - t0, p.stderr
+
+
+def section_preflight(args) -> tuple[list[tuple[str, str]], dict]:
+    """`build --prompt` without segmentation weights (an empty Hugging Face cache) and `build --task` on an
+    unscaled capture (an image folder posed by SfM, no scale): each must exit 2 before SfM (no poses/
+    folder). preflight_s: the slower case's median wall time (process start and imports included)."""
+    cases = {"prompt_no_weights": (["build", str(DATA / "cake" / "images"), "--prompt", "cake. plate"], True),
+             "task_unscaled": (["build", str(DATA / "statue" / "images"), "--task", "default"], False)}
+    times: dict[str, list[float]] = {k: [] for k in cases}
+    ok: dict[str, bool] = {k: True for k in cases}
+    notes: dict[str, str] = {}
+    for rep in range(args.repeats):
+        for name, (argv, empty_cache) in cases.items():
+            with tempfile.TemporaryDirectory(prefix="bench_preflight_") as tmp:
+                env = {"HF_HUB_CACHE": str(Path(tmp) / "hf"), "HF_HUB_OFFLINE": "1"} if empty_cache else {}
+                out = Path(tmp) / "twin"
+                code, wall, err = _cli_run([*argv, "--out", str(out), "--no-progress"], env)
+                stopped = code == 2 and not (out / "poses").exists() and not (out / "splat").exists()
+                ok[name] &= stopped
+                times[name].append(wall)
+                notes[name] = (err.strip().splitlines() or [""])[-1][:160]
+                print(f"  [preflight {rep + 1}/{args.repeats}] {name}: exit {code}, {wall:.2f} s, stopped before "
+                      f"SfM: {stopped}", file=sys.stderr)
+    med = {k: statistics.median(v) for k, v in times.items()}
+    rows = [(f"preflight {k}", f"exit 2 before SfM: {ok[k]}, {med[k]:.2f} s (runs {[round(t, 2) for t in times[k]]}); "
+                               f"{notes[k][:110]}") for k in cases]
+    return rows, {"preflight_s": round(max(med.values()), 3), "preflight_ok": all(ok.values()),
+                  "preflight": {k: round(v, 3) for k, v in med.items()}}
+
+
+# -- z-down robot capture -> z-up twin (bench/robot_capture.py) ------------------------------------------
+def section_zdown_fixed(args) -> tuple[list[tuple[str, str]], dict]:
+    sys.path.insert(0, str(ROOT / "bench"))
+    from robot_capture import measure_zdown
+
+    with tempfile.TemporaryDirectory(prefix="bench_real_zdown_") as work:
+        r = measure_zdown(work)
+    rows = [(f"zdown {x['format']} up={x['up']}", f"found {x['up_found']}, applied {x['applied']}, table normal "
+                                                  f"{x['table_normal_deg']:.2f} deg") for x in r["rows"]]
+    rows.append(("zdown twin", f"table normal {r['zdown_table_normal_deg']:.3f} deg from +z, fixed: {r['zdown_fixed']}"
+                               + (f", build exit {r['build_exit']} in {r['build_s']:.0f} s" if "build_s" in r else "")))
+    return rows, {"zdown_fixed": bool(r["zdown_fixed"]), "zdown_table_normal_deg": round(r["zdown_table_normal_deg"], 4)}
+
+
+# -- held-out PSNR on the statue with the defaults -------------------------------------------------------
+def section_psnr_heldout_statue(args) -> tuple[list[tuple[str, str]], dict]:
+    """`build statue --until splats` with the default hold-out (every 8th view from the first) and the
+    default resolution (auto: longest side 640 px on the CPU); held-out PSNR/SSIM at the training
+    resolution from TWIN/splat/eval/metrics.json."""
+    work = Path(tempfile.mkdtemp(prefix="bench_real_statue_"))
+    argv = ["build", str(DATA / "statue" / "images"), "--out", str(work / "twin"), "--until", "splats", "--no-progress"]
+    if args.statue_iters:
+        argv += ["--iters", str(args.statue_iters)]
+    import shutil
+
+    try:
+        code, wall, err = _cli_run(argv)
+        m_path = work / "twin" / "splat" / "eval" / "metrics.json"
+        if code != 0 or not m_path.is_file():
+            return [("statue held-out", f"build failed (exit {code}): {err.strip()[-200:]}")], {"psnr_heldout_statue": None}
+        m = json.loads(m_path.read_text())
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    er, held = m.get("eval_resolution", {}), m.get("heldout", {})
+    rows = [("statue held-out", f"PSNR {m['mean_psnr']:.2f} dB, SSIM {m['mean_ssim']:.4f} on {m['split']} views "
+                                f"{held.get('views')} ({held.get('rule')}); evaluated at {er.get('sizes')} of "
+                                f"{er.get('full_sizes')} ({er.get('mode')}); {m['gaussians']} Gaussians; build "
+                                f"{wall:.0f} s")]
+    return rows, {"psnr_heldout_statue": round(m["mean_psnr"], 3), "ssim_heldout_statue": round(m["mean_ssim"], 4),
+                  "statue_heldout_views": held.get("views"), "statue_eval_size": er.get("sizes"),
+                  "statue_build_s": round(wall, 1), "statue_iters": args.statue_iters or "default"}
+
+
 SECTIONS: dict[str, Callable] = {"sfm": section_sfm, "known_pose_init": section_known_pose_init,
+                                 "preflight_s": section_preflight, "zdown_fixed": section_zdown_fixed,
+                                 "psnr_heldout_statue": section_psnr_heldout_statue,
                                  "unscaled_twin_complete": section_unscaled_twin_complete}
 
 
@@ -336,6 +424,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--init-seeds", type=int, default=2, help="known_pose_init: training seeds per arm (mean)")
     ap.add_argument("--random-arm", action="store_true", help="known_pose_init: also train from random points")
     ap.add_argument("--unscaled-iters", type=int, default=1000, help="unscaled_twin_complete: training steps")
+    ap.add_argument("--statue-iters", type=int, default=0, help="psnr_heldout_statue: training steps (0: the default)")
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "splattwin_bench")
     ap.add_argument("--run-sfm", nargs=2, metavar=("IMAGES", "WORK"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)

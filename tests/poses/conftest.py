@@ -18,7 +18,8 @@ def stripped(ds: Dataset) -> Dataset:
 
     frames = [replace(f, camera=Camera.from_fov(np.radians(60.0), f.camera.width, f.camera.height,
                                                 name=f.camera.name)) for f in ds.frames]
-    return Dataset(root=ds.root, frames=frames, has_poses=False, meta={"format": "images"})
+    # the scene's train/held-out split is kept as the capture's own (else the default hold-out re-splits)
+    return Dataset(root=ds.root, frames=frames, has_poses=False, meta={"format": "images", "split": True})
 
 
 @pytest.fixture(scope="session")

@@ -142,8 +142,17 @@ def read(path: str | Path) -> Dataset:
             raise InputError("depth_unit_scale_factor must be a number", path) from None
         if not (np.isfinite(depth_scale) and depth_scale > 0):
             raise InputError(f"depth_unit_scale_factor must be positive, got {depth_scale}", path)
+    ds_meta: dict = {"format": "nerfstudio", "path": str(path)}
+    # a split of its own (file lists or per-frame splits): kept unless a hold-out option is given
+    if any(k in meta for k in ("train_filenames", "val_filenames", "test_filenames")) or any(
+            isinstance(fr, dict) and "split" in fr for fr in meta["frames"]):
+        ds_meta["split"] = True
+    rec = meta.get("heldout")
+    if isinstance(rec, dict):  # the rule that made the split (splattwin.poses.holdout), for the report
+        ds_meta["heldout"] = {k: (rec[k][:200] if isinstance(rec[k], str) else rec[k]) for k in ("source", "rule", "every")
+                              if isinstance(rec.get(k), (str, int)) and not isinstance(rec.get(k), bool)}
     return Dataset(root=root, frames=frames, has_poses=True, points_xyz=xyz, points_rgb=rgb,
-                   depth_scale=depth_scale, meta={"format": "nerfstudio", "path": str(path)})
+                   depth_scale=depth_scale, meta=ds_meta)
 
 
 def write(dataset: Dataset, path: str | Path, ply_name: str = "sparse_pc.ply") -> Path:
@@ -182,6 +191,10 @@ def write(dataset: Dataset, path: str | Path, ply_name: str = "sparse_pc.ply") -
     meta["frames"] = frames
     meta["train_filenames"] = [fr["file_path"] for fr in frames if fr["split"] == "train"]
     meta["test_filenames"] = [fr["file_path"] for fr in frames if fr["split"] == "heldout"]
+    rec = dataset.meta.get("heldout")
+    if isinstance(rec, dict):  # how the split was chosen (splattwin.poses.holdout)
+        meta["heldout"] = {**{k: rec[k] for k in ("source", "rule", "every") if k in rec},
+                           "views": [Path(fr["file_path"]).stem for fr in frames if fr["split"] == "heldout"]}
     if dataset.depth_scale is not None:  # explicit units (BOP, TUM, ...) travel with the dataset
         meta["depth_unit_scale_factor"] = dataset.depth_scale
     if dataset.points_xyz is not None:

@@ -20,8 +20,10 @@ The pipeline only wires the stages and records them: each stage is `splattwin.<s
 options) -> result` (typed dataclasses), reads its own sub-config of `BuildOptions`, and is the only writer
 of its artifacts (docs/ARCHITECTURE.md lists them). Nothing is written outside TWIN. The whole build holds
 TWIN's lock (`splattwin.lock`): a second build into the same folder exits 2 at once. Before any stage
-runs, inputs that can be checked cheaply are (`preflight`: 2D masks against the images' sizes, the task
-YAML), so a bad mask file is reported before hours of pose estimation and training, naming the file.
+runs, inputs that can be checked cheaply are (`preflight`, `splattwin.pipeline.preflight`: 2D masks
+against the images' sizes, the prompt's segmentation weights, a metric scale when a task is given, the
+task YAML, memory and disk), so a bad mask file is reported before hours of pose estimation and
+training, naming the file.
 """
 
 from __future__ import annotations
@@ -208,19 +210,14 @@ def resolved_config(options: BuildOptions) -> dict:
     return to_dict(absolute(options))
 
 
-def preflight(ctx: Context) -> None:
-    """Checks of the inputs that need no earlier stage, before any runs (see module docstring)."""
+def preflight(ctx: Context) -> dict:
+    """Checks of the inputs that need no earlier stage, before any runs (`splattwin.pipeline.preflight`:
+    masks, segmentation weights, a metric scale for --task, memory and disk)."""
+    from splattwin.pipeline.preflight import run_preflight
+
     o = ctx.config
-    if o.input is not None and o.scene is None and o.semantics.masks:
-        from splattwin.capture import load_dataset
-        from splattwin.semantics.stage import check_masks
-
-        ds = load_dataset(_input_path(ctx), frames_dir=ctx.path("capture/frames"))
-        check_masks(o.semantics, ds.frames, _scene_dir(ctx))
-    if o.robot.task and o.robot.task != "default":
-        from splattwin.robot.task import load_task
-
-        load_task(o.robot.task)  # the file parses as a task (bounded YAML); checked against the twin later
+    return run_preflight(o, ctx.out, _input_path(ctx) if o.scene is None else None, _scene_dir(ctx),
+                         ctx.path("capture/frames"))
 
 
 def _context(out: str | Path, options: BuildOptions, progress: bool = True) -> Context:

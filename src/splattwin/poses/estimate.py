@@ -67,7 +67,8 @@ class PoseResult:
 
     def to_dataset(self, root: Path | None = None) -> Dataset:
         return Dataset(root=root or Path("."), frames=self.frames, has_poses=True, points_xyz=self.points_xyz,
-                       points_rgb=self.points_rgb, depth_scale=self.depth_scale, meta={"frame": dataclasses.asdict(self.frame)})
+                       points_rgb=self.points_rgb, depth_scale=self.depth_scale, meta={"frame": dataclasses.asdict(self.frame),
+                             **({"heldout": self.stats["heldout"]} if "heldout" in self.stats else {})})
 
     def save(self, out_dir: str | Path, bundle: bool = True) -> Path:
         """Write OUT/transforms.json (+ points3D.ply), OUT/frame.json, OUT/poses_report.json, OUT/cameras.png,
@@ -118,10 +119,13 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
     if method == "known" and not dataset.has_poses:
         raise InputError("--known: this dataset has no camera poses (use --sfm or --robot-poses)", dataset.root)
 
+    from splattwin.poses.holdout import HOLDOUT_KEY, apply_holdout
+
+    heldout = apply_holdout(dataset, opts.holdout)  # capture order, before SfM (splattwin.poses.holdout)
     frames = list(dataset.frames)
     names = [_frame_key(f) for f in frames]
     robot_T = _robot_cameras(opts, frames, names, dataset) if opts.robot_poses is not None else None
-    stats: dict = {"method": method, "total": len(frames)}
+    stats: dict = {"method": method, "total": len(frames), HOLDOUT_KEY: heldout.record()}
     pts_xyz = pts_rgb = None
     T_out_in = np.eye(4)
     frame: TwinFrame | None = None

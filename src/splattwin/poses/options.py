@@ -13,6 +13,31 @@ CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV
 MATCHERS = ("auto", "exhaustive", "sequential", "retrieval")
 # known poses: which input world axis points up ("auto": detect, see splattwin.poses.up; "keep": no check)
 UP_AXES = ("auto", "keep", "+z", "-z", "+y", "-y", "+x", "-x")
+HELDOUT_EVERY_DEFAULT = 8   # Mip-NeRF 360 / 3DGS: every 8th view, starting with the first
+HELDOUT_MIN_VIEWS = 6       # below this many views nothing is held out by default
+
+
+@dataclass
+class HoldoutOptions:
+    """Which views are held out of training for the held-out PSNR/SSIM (`splattwin.poses.holdout`).
+
+    Give at most one of the three. None given: a capture with a split of its own (a transforms.json with
+    train/test file lists or per-frame splits, the embedded scene) keeps it; otherwise every 8th view,
+    starting with the first, is held out when there are >= 6 views (the Mip-NeRF 360 / 3DGS
+    convention), none below 6. Views are counted in the capture's order (image folders: sorted by file
+    name; video: time order; known-pose captures: their file's order), before pose estimation, so the
+    split does not depend on which images SfM registers. The split is recorded in transforms.json
+    ("heldout"), eval/metrics.json and the report.
+    """
+
+    heldout_every: int | None = option(None, "hold out every K-th view, starting with the first (0: none; default: "
+                                       "8 with >= 6 views, unless the capture has its own split)",
+                                       aliases=("heldout-every",), build_alias="heldout-every")
+    heldout: int | None = option(None, "hold out N views spread evenly over the capture, starting with the first "
+                                 "(0: none)", aliases=("heldout",), build_alias="heldout")
+    heldout_views: str | None = option(None, "hold out exactly these views: a comma list of view indices (0-based, "
+                                       "capture order) and/or image names, e.g. '0,12,img_0031'",
+                                       aliases=("heldout-views",), build_alias="heldout-views")
 
 
 @dataclass
@@ -27,6 +52,7 @@ class PoseOptions:
     max_image_size / max_num_features / retry / num_threads: see `splattwin.poses.sfm.SfmOptions`.
     triangulate: points for known/robot poses without a point cloud or depth (`splattwin.poses.triangulate`).
     up: which way is up in a known-pose world (`splattwin.poses.up`); recorded in frame.json.
+    holdout: which views are held out of training (`HoldoutOptions`); recorded in transforms.json.
     """
 
     method: str = option("auto", "pose source: robot poses, the dataset's (known), or structure from motion",
@@ -68,6 +94,7 @@ class PoseOptions:
                      "frame.json), stopping when unclear; keep = use the poses as they are",
                      choices=UP_AXES, build_alias="up")
     seed: int = option(0, "seed of the SfM and RANSAC steps")
+    holdout: HoldoutOptions = option(factory=HoldoutOptions, help="held-out views (evaluation)")
     work_dir: Path | None = option(None, "SfM scratch folder (database, model), re-used to resume (default: "
                                    "OUT/sfm; the pipeline: TWIN/poses/sfm)", runtime=True)
     progress: bool = option(True, "progress bars", runtime=True)

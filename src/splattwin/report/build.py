@@ -180,6 +180,7 @@ def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
     sizes = sorted({(f.camera.width, f.camera.height) for f in ds.frames})
     at = f"{sizes[0][0]}×{sizes[0][1]}" if len(sizes) == 1 else f"{len(sizes)} image sizes ({', '.join(f'{w}×{h}' for w, h in sizes[:4])}{', ...' if len(sizes) > 4 else ''})"
     sec.text(f"{len(ds.train())} training views and {len(ds.heldout())} held-out views at {at}.")
+    _heldout_rows(sec, ds.meta.get("heldout"), [f.name for f in ds.heldout()])
     if poses:
         rows = [[k, poses[k]] for k in ("method", "registered", "total", "mean_reproj_error_px", "sfm_s") if k in poses]
         if rows:
@@ -196,12 +197,29 @@ def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
         sec.image(twin / "poses" / "cameras.png", caption="camera poses and sparse points", width=520)
 
 
+def _heldout_rows(sec: Section, rec, views: list) -> None:
+    """Which views are held out and by which rule (`splattwin.poses.holdout`)."""
+    rule = rec.get("rule") if isinstance(rec, dict) else None
+    names = [str(v) for v in views][:40]
+    sec.table(["held-out views", "value"], [["rule", str(rule or "the capture's own split")],
+                                            ["views", (", ".join(names) + (" ..." if len(views) > 40 else ""))
+                                             if names else "none"]])
+
+
 def _recon_section(sec: Section, twin: Path, ev: dict | None) -> None:
     if not ev:
         sec.text("splat stage not run")
         return
     sec.text(f"{ev['gaussians']} Gaussians; {ev['split']} views: mean PSNR {ev['mean_psnr']:.2f} dB, "
              f"SSIM {ev['mean_ssim']:.4f}. Images: {ev.get('legend', 'ground truth | render | error')}.")
+    er = ev.get("eval_resolution")
+    if isinstance(er, dict):
+        what = {"training": "the training resolution", "full": "full resolution", "given": "a given resolution"}
+        sec.table(["evaluation", "value"], [
+            ["evaluated at", f"{er.get('sizes', '?')} ({what.get(str(er.get('mode')), str(er.get('mode')))})"],
+            ["image size", str(er.get("full_sizes", "?"))], ["training resolution rule", str(er.get("how", "?"))]])
+    if isinstance(ev.get("heldout"), dict):
+        _heldout_rows(sec, ev["heldout"], ev["heldout"].get("views") or [])
     sec.table(["view", "PSNR (dB)", "SSIM"], [[r["name"], r["psnr"], r["ssim"]] for r in ev["views"]])
     for r in ev["views"][:5]:
         if not r.get("image"):

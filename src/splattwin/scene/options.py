@@ -82,7 +82,8 @@ class SceneOptions:
     width: int = option(320, "image width", unit="px", build_alias="width")
     height: int = option(240, "image height", unit="px", build_alias="height")
     views: int = option(15, "training views", build_alias="views")
-    heldout: int = option(5, "held-out views interleaved with the training views", build_alias="heldout")
+    heldout: int = option(5, "held-out views interleaved with the training views (demo: --scene.heldout; --heldout "
+                          "there is the poses stage's hold-out, which re-splits the views)")
     marker: bool = option(False, "print an ArUco marker (DICT_4X4_50, id marker_id) on the table")
     marker_id: int = option(0, "ArUco marker id (DICT_4X4_50)")
     marker_size: float = option(0.08, "marker side", unit="m")

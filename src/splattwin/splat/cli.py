@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from splattwin.options import add_command, add_options, from_args
+from splattwin.poses.options import HoldoutOptions
 from splattwin.splat.config import DEVICES, TrainConfig
 
 
@@ -14,6 +15,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("dataset", type=Path, help="dataset folder or file (any format `splattwin` reads)")
     p.add_argument("out", type=Path, help="output folder")
     add_options(p, TrainConfig)
+    add_options(p, HoldoutOptions, prefix="holdout.", title="held-out views (kept out of training; see "
+                                                        "splattwin.poses.holdout)")
     p.add_argument("--resume", action="store_true",
                    help="continue from the newest checkpoint in OUT (refused, exit 2, when it was made with other "
                         "options or data)")
@@ -23,7 +26,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.add_argument("splat", type=Path, help="training output folder or 3DGS .ply file")
     e.add_argument("--dataset", type=Path, required=True, help="dataset with (held-out) views")
     e.add_argument("--out", type=Path, default=None, help="output folder (default: <OUT>/eval or <ply dir>/eval)")
-    e.add_argument("--resolution", type=int, help="as for train (default: the training one)")
+    e.add_argument("--resolution", type=int, help="as for train (default: the training one, recorded in train.json)")
+    e.add_argument("--full-resolution", action="store_true", help="render at the full image size")
     e.add_argument("--device", choices=DEVICES, help="rasterizer device (default auto)")
     e.add_argument("--align-poses", action="store_true",
                    help="fit each held-out camera to its image first (for splats trained with --refine-poses)")
@@ -41,7 +45,11 @@ def _train(args: argparse.Namespace) -> int:
     cfg = from_args(TrainConfig, args)
     from splattwin.lock import output_lock
 
+    from splattwin.poses.holdout import apply_holdout
+
     ds = load_dataset(args.dataset, max_frames=args.max_frames)
+    h = apply_holdout(ds, from_args(HoldoutOptions, args, prefix="holdout."))
+    print(f"held-out views ({h.rule}): {', '.join(h.names) if h.names else 'none'}")
     with output_lock(args.out):
         res = train(ds, args.out, cfg, resume=args.resume)
     print(f"{len(res.gaussians)} Gaussians, train PSNR {res.final_psnr:.2f} dB, {res.wall_s:.1f} s -> {res.ply_path}")
@@ -59,7 +67,8 @@ def _eval(args: argparse.Namespace) -> int:
     if out is None:
         out = (args.splat if args.splat.is_dir() else args.splat.parent) / "eval"
     res = evaluate(args.splat, args.dataset, out, resolution=args.resolution, backend=args.device or "auto",
-                   progress=not args.no_progress, align_poses=args.align_poses)
+                   progress=not args.no_progress, align_poses=args.align_poses,
+                   full_resolution=args.full_resolution)
     for v in res.views:
         fix = (f"  pose fit {v['pose_correction_deg']:.2f} deg / {100 * v['pose_correction_m']:.2f} cm"
                if "pose_correction_deg" in v else "")

@@ -37,7 +37,9 @@ class TrainConfig:
     """Training options. Defaults suit sparse tabletop captures (~15 views, 320x240) on a CPU.
 
     resolution: as 3DGS `-r`: 1, 2, 4, 8 divide the image size; a larger value is a target width in
-        pixels; -1 downsizes only images wider than 1600 px.
+        pixels; -1 downsizes only images wider than 1600 px; 0 (auto, default): on the CPU the longest
+        side is capped at `cpu_max_side` (640 px), with CUDA full size (`splattwin.splat.resolution`).
+    eval_full_resolution: held-out views are evaluated at the training resolution unless this is set.
     refine_poses / pose_lr / pose_start: joint per-camera SE(3) corrections, their Adam LR, and the
         fraction of the run before they move. Start 0 and LR 5e-3 measured best (bench/train.py, cameras
         off by 1.5 deg / 2.3 cm: left 0.34 deg / 0.41 cm, vs 1.43 deg / 2.1 cm with start 0.2, LR 1e-3).
@@ -58,8 +60,13 @@ class TrainConfig:
     """
 
     iters: int = option(3000, "training steps", build_alias="iters")
-    resolution: int = option(1, "1/2/4/8 divide the image size, larger values are a target width in px, -1 caps "
+    resolution: int = option(0, "0 (auto): longest side capped at --cpu-max-side on the CPU, full size with CUDA; "
+                             "1/2/4/8 divide the image size, larger values are a target width in px, -1 caps "
                              "the width at 1600", build_alias="resolution")
+    cpu_max_side: int = option(640, "--resolution 0 (auto) on the CPU: images whose longest side is larger are "
+                               "trained at this size", unit="px", build_alias="cpu-max-side")
+    eval_full_resolution: bool = option(False, "evaluate the held-out views at the full image size (default: at "
+                                        "the training resolution)", build_alias="eval-full-resolution")
     device: str = option("auto", "rasterizer device: cuda uses gsplat", choices=DEVICES, build_alias="device")
     backend: str | None = option(None, "rasterizer backend by name (e.g. reference), overriding --device")
     init: str = option("auto", "initial point cloud: dataset/SfM points, back-projected depth maps, points "

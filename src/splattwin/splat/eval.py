@@ -1,9 +1,15 @@
 """`splattwin eval`: render held-out views of a trained splat, PSNR and SSIM per view and mean,
 side-by-side pictures (ground truth | render | error heat map) and a metrics JSON.
 
-Views are rendered at the training resolution when a training folder (with train.json) is given,
-else at the dataset's image size; the background is the training background (black by default).
-Without held-out frames in the dataset the training frames are evaluated instead (and flagged so).
+Views are rendered at the training resolution when a training folder (with train.json) is given (the
+rule train.json records, `splattwin.splat.resolution`: a photo trained at 640 px on the CPU is
+evaluated at 640 px), else at the dataset's image size; `full_resolution=True` (`build
+--eval-full-resolution`) renders at the full image size, `resolution=` at another 3DGS `-r` value.
+metrics.json records the size used (`eval_resolution`) and the held-out views and their rule
+(`heldout`). The background is the training background (black by default). The held-out views are the
+dataset's; a dataset without any uses the held-out views train.json names (`splattwin train` applies
+the hold-out to the dataset it reads); without either the training frames are evaluated instead (and
+flagged so).
 
 `align_poses=True` (`--align-poses`) first fits each held-out camera to its image with the splat fixed
 (`pose_refine.align_camera`, InstantSplat's protocol): for models trained with pose refinement, whose
@@ -26,6 +32,7 @@ from splattwin.splat import metrics
 from splattwin.splat.gaussians import Gaussians
 from splattwin.splat.pose_refine import align_camera, pose_errors
 from splattwin.splat.render import render_rgb
+from splattwin.splat.resolution import FULL, Resolution, describe_sizes, resolve
 from splattwin.splat.trainer import load_views
 
 log = logging.getLogger(__name__)
@@ -38,6 +45,8 @@ class EvalResult:
     mean_ssim: float
     split: str                 # "heldout" | "train"
     metrics_path: Path | None = None
+    eval_resolution: dict | None = None  # {"mode", "how", "sizes", "full_sizes", "scale"} (metrics.json)
+    heldout: dict | None = None          # {"views", "rule", "source"[, "every"]} (metrics.json)
 
 
 def side_by_side(gt: np.ndarray, render: np.ndarray) -> np.ndarray:
@@ -63,11 +72,30 @@ def resolve_ply(path: str | Path) -> tuple[Path, dict]:
     return path, {}
 
 
+def _eval_resolution(info: dict, resolution: int | None, full_resolution: bool) -> tuple[Resolution, str]:
+    """(the rule, its name for metrics.json): an explicit `resolution` (a 3DGS `-r` value; 0 = auto as on
+    the CPU), the full size, or the training resolution train.json recorded (older train.json: its
+    config's `resolution`; nothing recorded: full size)."""
+    cfg = info.get("config", {}) if isinstance(info.get("config"), dict) else {}
+    if resolution is not None:
+        return resolve(int(resolution), int(cfg.get("cpu_max_side", 640)), "cpu"), "given"
+    if full_resolution:
+        return FULL, "full"
+    rec = Resolution.from_record(info.get("resolution"))
+    if rec is not None:
+        return rec, "training"
+    r = cfg.get("resolution")
+    if isinstance(r, int) and r != 0:
+        return Resolution(r, None, f"--resolution {r}"), "training"
+    return FULL, "full"
+
+
 def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_dir: str | Path | None = None,
              resolution: int | None = None, background=None, backend: str = "auto",
              progress: bool = True, rasterize_mode: str | None = None, align_poses: bool = False,
-             align_iters: int = 300) -> EvalResult:
-    """Evaluate a splat (training folder, PLY path, or `Gaussians`) on the dataset's held-out views."""
+             align_iters: int = 300, full_resolution: bool = False) -> EvalResult:
+    """Evaluate a splat (training folder, PLY path, or `Gaussians`) on the dataset's held-out views
+    (see the module docstring for the resolution)."""
     from tqdm.auto import tqdm
 
     info: dict = {}
@@ -83,14 +111,26 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
     if not ds.has_poses:
         raise InputError("dataset has no camera poses to render from", ds.root)
     frames, split = ds.heldout(), "heldout"
+    trained_heldout = info.get("heldout") if isinstance(info.get("heldout"), dict) else None
+    if not frames and trained_heldout and isinstance(trained_heldout.get("views"), list):
+        names = {str(n) for n in trained_heldout["views"]}
+        frames = [f for f in ds.frames if f.name in names]
     if not frames:
         log.warning("dataset has no held-out frames: evaluating the training frames (not a generalisation test)")
         frames, split = ds.train(), "train"
     cfg = info.get("config", {})
-    res = resolution if resolution is not None else int(cfg.get("resolution", 1))
+    rule, mode_res = _eval_resolution(info, resolution, full_resolution)
     bg = background if background is not None else cfg.get("background", (0.0, 0.0, 0.0))
     mode = rasterize_mode or cfg.get("rasterize_mode", "classic")
-    views = load_views(frames, res)
+    views = load_views(frames, rule)
+    sizes = [(v.camera.width, v.camera.height) for v in views]
+    full = [(f.camera.width, f.camera.height) for f in frames]
+    eval_res = {"mode": mode_res, "how": rule.how, "sizes": describe_sizes(sizes),
+                "full_sizes": describe_sizes(full), "scale": round(min(w / fw for (w, _), (fw, _) in zip(sizes, full)), 6)}
+    log.info("evaluating %d %s views at %s (%s)", len(views), split, eval_res["sizes"], mode_res)
+    held = dict(ds.meta.get("heldout") or trained_heldout or {})
+    held = {k: held[k] for k in ("source", "rule", "every") if k in held}
+    held["views"] = [f.name for f in frames] if split == "heldout" else []
     out = Path(out_dir) if out_dir is not None else None
     rows = []
     for v in tqdm(views, desc="eval", unit="view", disable=not progress):
@@ -109,11 +149,12 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
         rows.append(row)
     mean_psnr = float(np.mean([r["psnr"] for r in rows]))
     mean_ssim = float(np.mean([r["ssim"] for r in rows]))
-    result = EvalResult(rows, mean_psnr, mean_ssim, split)
+    result = EvalResult(rows, mean_psnr, mean_ssim, split, eval_resolution=eval_res, heldout=held)
     if out is not None:
         result.metrics_path = write_json(out / "metrics.json", {
             "split": split, "mean_psnr": mean_psnr, "mean_ssim": mean_ssim, "n_views": len(rows),
             "poses": "aligned (test-time pose fit)" if align_poses else "as given",
-            "gaussians": len(g), "resolution": res, "views": rows,
+            "gaussians": len(g), "resolution": rule.resolution, "eval_resolution": eval_res, "heldout": held,
+            "views": rows,
             "legend": "images: ground truth | render | |error| heat map (black 0 -> white >= 0.25)"})
     return result

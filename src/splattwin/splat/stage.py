@@ -36,6 +36,8 @@ def run(inputs: SplatInputs, options: TrainConfig, *, progress: bool = True) -> 
 
     ds = load_dataset(inputs.transforms)
     res = train(ds, inputs.out_dir, replace(options, progress=progress), resume=True, on_mismatch="restart")
-    ev = evaluate(res.ply_path, ds, out_dir=inputs.out_dir / "eval", progress=progress)
+    # the training folder (train.json): held-out views rendered at the training resolution by default
+    ev = evaluate(inputs.out_dir, ds, out_dir=inputs.out_dir / "eval", progress=progress,
+                  full_resolution=options.eval_full_resolution)
     return SplatResult(ply=res.ply_path, psnr=ev.mean_psnr, ssim=ev.mean_ssim, split=ev.split,
                        gaussians=len(res.gaussians), train_s=res.wall_s)

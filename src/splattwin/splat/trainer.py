@@ -43,6 +43,7 @@ from splattwin.splat.losses import photometric_loss, psnr_from_mse
 from splattwin.splat.model import GaussianModel
 from splattwin.splat.pose_refine import PoseCorrection
 from splattwin.splat.rasterization import backend_device, rasterization, resolve_backend
+from splattwin.splat.resolution import Resolution, describe_sizes, resolve as resolve_resolution
 from splattwin.splat.strategy import DefaultStrategy, Strategy
 
 log = logging.getLogger(__name__)
@@ -75,20 +76,14 @@ class TrainResult:
 
 def training_scale(width: int, resolution: int) -> float:
     """Scale factor applied to an image of `width` px for the 3DGS `-r` convention (see TrainConfig)."""
-    if resolution in (1, 2, 4, 8):
-        return 1.0 / resolution
-    if resolution == -1:
-        return min(1.0, 1600.0 / width)
-    if resolution < 16:
-        raise InputError(f"--resolution must be 1, 2, 4, 8, a target width of at least 16 pixels, or -1; "
-                         f"got {resolution}")
-    return resolution / width
+    return Resolution(resolution).scale(width, width)
 
 
-def load_views(frames: list[Frame], resolution: int = 1, depth: bool = False,
+def load_views(frames: list[Frame], resolution: int | Resolution = 1, depth: bool = False,
                depth_scale: float | None = None) -> list[TrainView]:
-    """Images of `frames` as tensors, resized (PIL area filter) to the training resolution; with
-    depth=True also their depth maps (frames without one get None)."""
+    """Images of `frames` as tensors, resized (PIL area filter) to the training resolution (a 3DGS `-r`
+    value or a resolved `splattwin.splat.resolution.Resolution`); with depth=True also their depth maps
+    (frames without one get None)."""
     from PIL import Image
 
     from splattwin.capture import load_depth, resize_nearest
@@ -99,7 +94,8 @@ def load_views(frames: list[Frame], resolution: int = 1, depth: bool = False,
         if img.shape[:2] != (f.camera.height, f.camera.width):
             raise InputError(f"image is {img.shape[1]}x{img.shape[0]} but its camera says "
                              f"{f.camera.width}x{f.camera.height}", f.image_path)
-        s = training_scale(f.camera.width, resolution)
+        s = (resolution if isinstance(resolution, Resolution) else Resolution(resolution)).scale(
+            f.camera.width, f.camera.height)
         cam = f.camera
         if abs(s - 1.0) > 1e-9:
             cam = f.camera.scaled(s)
@@ -160,7 +156,7 @@ def depth_loss(depth: torch.Tensor, alpha: torch.Tensor, gt_depth: torch.Tensor)
 
 # Options that change what a run computes: a checkpoint made with other values is not resumed. Left out:
 # progress, checkpoint_every (bookkeeping) and device/backend (the same computation on other hardware).
-_RUN_NEUTRAL = ("progress", "checkpoint_every", "device", "backend")
+_RUN_NEUTRAL = ("progress", "checkpoint_every", "device", "backend", "eval_full_resolution")
 
 
 def _checkpoints(out_dir: Path) -> list[Path]:
@@ -230,8 +226,11 @@ class Trainer:
             raise InputError("dataset has no camera poses; estimate them first (splattwin poses)", dataset.root)
         self.backend = resolve_backend(self.cfg.backend or self.cfg.device)
         self.device = backend_device(self.backend)
-        self.views = load_views(self.frames, self.cfg.resolution, depth=self.cfg.depth_lambda > 0,
+        self.resolution = resolve_resolution(self.cfg.resolution, self.cfg.cpu_max_side, self.device.type)
+        self.views = load_views(self.frames, self.resolution, depth=self.cfg.depth_lambda > 0,
                                 depth_scale=dataset.depth_scale)
+        log.info("training at %s (%s)", describe_sizes([(v.camera.width, v.camera.height) for v in self.views]),
+                 self.resolution.how)
         self.data_digest = data_digest(self.views)
         self.scene_center, self.scene_scale = scene_center_and_scale([v.camera for v in self.views])
         self.dcfg = self.cfg.densify_config()
@@ -473,7 +472,8 @@ class Trainer:
         plot_history(self.history, self.out_dir / "train_curves.png")
         write_json(self.out_dir / "train.json", {
             "dataset": str(self.dataset.root), "config": self.cfg.to_dict(), "strategy": self.strategy.describe(),
-            "backend": self.backend,
+            "backend": self.backend, "resolution": self.resolution.record(),
+            "heldout": self.dataset.meta.get("heldout"),
             "init_method": self.init_method, "steps": self.step, "gaussians": len(g), "wall_s": round(wall, 3),
             "train_loss": loss, "train_psnr": psnr, "scene_scale": self.scene_scale,
             "views": [{"name": v.name, "width": v.camera.width, "height": v.camera.height} for v in self.views],

@@ -1,0 +1,215 @@
+"""Pre-flight: the checks `build` runs before any stage, in seconds, so that a run that cannot succeed
+stops (InputError, exit 2) before minutes of SfM and hours of training, with a message naming the file,
+model or option:
+
+- 2D masks (`--masks`) read and fit the capture's images (`semantics.stage.check_masks`);
+- `--prompt`: the segmentation models it needs (Grounding DINO + SAM, or SAM 3) are on this machine,
+  all missing ones named with their hub ids (`semantics.models`);
+- `--task`: the twin will be metric. An image folder or video posed by SfM is known only up to scale;
+  without --known-length, --marker-size or --robot-poses the robot stage would refuse it after training;
+- the task YAML parses;
+- memory and disk for the capture at the training resolution and the Gaussian budget (`estimate`):
+  refused only when clearly insufficient (the estimate above `REFUSE_FACTOR` times what is free), a
+  warning when tight.
+
+Reads image headers only (no decoding); a video is probed for its frame size, not decoded.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from splattwin.errors import InputError
+
+log = logging.getLogger(__name__)
+
+GIB = 2 ** 30
+REFUSE_FACTOR = 1.5     # refuse when the estimate exceeds what is free by this factor ("clearly")
+WARN_FACTOR = 0.8       # warn when the estimate exceeds this share of what is free
+BASE_PROCESS = 1.5 * GIB    # Python + torch + numba + open3d + mujoco loaded in one process (measured ~1.2)
+SFM_BASE = 1.0 * GIB        # pycolmap worker: SIFT at --max-image-size, matching (bench/real.py: <= 2 GiB)
+BYTES_PER_GAUSSIAN = 59 * 4 * 4 + 64    # params + grads + 2 Adam moments (float32), densify statistics
+RASTER_BYTES_PER_PIXEL = 400            # CPU rasterizer: per-pixel state, tile lists, backward buffers
+
+
+@dataclass
+class Estimate:
+    """Bytes needed at peak (memory) and written (disk), with the parts that make them up."""
+
+    memory: float
+    disk: float
+    parts: dict = field(default_factory=dict)
+
+    def describe(self) -> str:
+        return ", ".join(f"{k} {v / GIB:.2f} GiB" for k, v in self.parts.items())
+
+
+def estimate(sizes: list[tuple[int, int]], train_sizes: list[tuple[int, int]], max_gaussians: int, sfm: bool,
+             capture_bytes: int, max_image_size: int = 1600) -> Estimate:
+    """Peak memory and disk of a build of views of `sizes` (w, h) trained at `train_sizes`, with at most
+    `max_gaussians`, with SfM or not; `capture_bytes`: the capture's files (bundled into the twin: hard
+    links where possible, copies at worst)."""
+    n = len(sizes)
+    train_px = sum(w * h for w, h in train_sizes)
+    big = max((w * h for w, h in sizes), default=0)
+    parts = {
+        "process": BASE_PROCESS,
+        "training images": train_px * 3 * 4 * 1.0,                  # float32 RGB in memory
+        "decoding one image": big * 3 * 5,                           # uint8 + float32 while resizing
+        "Gaussians": max_gaussians * BYTES_PER_GAUSSIAN,
+        "rasterizer": max((w * h for w, h in train_sizes), default=0) * RASTER_BYTES_PER_PIXEL,
+    }
+    if sfm:
+        side = max_image_size or max((max(s) for s in sizes), default=0)
+        parts["SfM"] = SFM_BASE + min(big, side * side) * 4 * 2
+    memory = sum(parts.values())
+    disk = (capture_bytes + 2 * 3 * max_gaussians * 59 * 4     # bundle (copies at worst) + 2 checkpoints
+            + max_gaussians * 62 * 4 * 2                        # PLYs (splat, objects)
+            + train_px * 3                                      # label maps, eval pictures (PNG, uncompressed bound)
+            + (n * 4096 * 140 + n * n * 4096 * 8 // 10 if sfm else 0)   # SfM database: features + matches
+            + 200 * 2 ** 20)                                    # twin exports, report, robot outputs
+    return Estimate(memory, disk, parts)
+
+
+def available_memory() -> float:
+    """Bytes of memory a new allocation can get now (MemAvailable + free swap)."""
+    import psutil
+
+    return float(psutil.virtual_memory().available + psutil.swap_memory().free)
+
+
+def free_disk(path: Path) -> float:
+    p = Path(path).resolve()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return float(shutil.disk_usage(p).free)
+
+
+def check_resources(est: Estimate, out: Path, what: str) -> None:
+    """InputError when memory or disk is clearly insufficient for `est`; a warning when tight."""
+    mem, disk = available_memory(), free_disk(out)
+    if est.memory > REFUSE_FACTOR * mem:
+        raise InputError(f"not enough memory for {what}: needs about {est.memory / GIB:.1f} GiB ({est.describe()}) "
+                         f"but {mem / GIB:.1f} GiB is free. Train at a lower resolution (--cpu-max-side, "
+                         f"--resolution 2/4), lower --splat.max-gaussians, use fewer views, or free memory")
+    if est.disk > REFUSE_FACTOR * disk:
+        raise InputError(f"not enough disk space for {what}: needs about {est.disk / GIB:.1f} GiB but "
+                         f"{disk / GIB:.1f} GiB is free here", out)
+    if est.memory > WARN_FACTOR * mem:
+        log.warning("memory is tight: about %.1f GiB needed (%s), %.1f GiB free", est.memory / GIB, est.describe(),
+                    mem / GIB)
+    if est.disk > WARN_FACTOR * disk:
+        log.warning("disk space is tight in %s: about %.1f GiB needed, %.1f GiB free", out, est.disk / GIB, disk / GIB)
+
+
+# -- scale -----------------------------------------------------------------------------------------
+def unscaled_reason(poses, has_poses: bool, fmt: str | None, frame_json_beside: bool) -> str | None:
+    """Why the poses stage will produce an unscaled frame with these `PoseOptions`, or None when it will
+    be metric (mirrors `splattwin.poses.estimate`: robot poses, a marker or a known length give scale; so
+    do known poses, except a COLMAP model without a frame.json beside it)."""
+    if poses.robot_poses is not None or poses.marker_size is not None or poses.known_length is not None:
+        return None
+    method = poses.method
+    if method == "auto":
+        method = "known" if has_poses else "sfm"
+    if method == "sfm":
+        return "structure from motion recovers the scene only up to an unknown scale"
+    if method == "known" and fmt == "colmap" and not frame_json_beside:
+        return "a COLMAP model is SfM output in arbitrary units"
+    return None
+
+
+SCALE_HELP = ("give the metric scale with one of: --known-length camera_height=0.45 (mean camera height above the "
+              "table, m) or --known-length baseline@IMG_A,IMG_B=0.30 (distance between two camera centres, m); "
+              "--marker-size 0.05 (an ArUco DICT_4X4_50 marker of that side in view); --robot-poses POSES.json "
+              "(+ --hand-eye); or a capture with known metric poses (transforms.json, BOP or TUM RGB-D). "
+              "Without --task the twin is built unscaled")
+
+
+# -- the whole pre-flight ---------------------------------------------------------------------------
+def _video_sizes(path: Path, max_frames: int = 30) -> list[tuple[int, int]]:
+    """Frame sizes a video will give (probed, not decoded)."""
+    from splattwin.capture.video import _open
+
+    c = _open(path)
+    try:
+        s = c.streams.video[0]
+        n = min(max_frames, s.frames or max_frames)
+        return [(int(s.codec_context.width), int(s.codec_context.height))] * n
+    finally:
+        c.close()
+
+
+def run_preflight(options, out: Path, input_path: Path | None, scene_dir: Path | None, frames_dir: Path) -> dict:
+    """All checks for `BuildOptions` `options` building into `out` (see module docstring). input_path:
+    the capture (None for the embedded scene, generated later). Returns what it measured."""
+    import time
+
+    from splattwin.capture.dataset import VIDEO_SUFFIXES
+
+    t0 = time.perf_counter()
+    o = options
+    info: dict = {}
+    # models first: needs no capture at all
+    if o.semantics.prompt and not o.semantics.masks:
+        from splattwin.semantics.models import missing_models_error
+
+        err = missing_models_error(o.semantics.segment)
+        if err is not None:
+            raise err
+    if o.robot.task and o.robot.task != "default":
+        from splattwin.robot.task import load_task
+
+        load_task(o.robot.task)  # the file parses as a task (bounded YAML); checked against the twin later
+    if input_path is None:
+        return info
+    video = input_path.is_file() and input_path.suffix in VIDEO_SUFFIXES
+    ds = None
+    if not video or o.semantics.masks:
+        from splattwin.capture import load_dataset
+
+        ds = load_dataset(input_path, frames_dir=frames_dir)  # image headers only
+    if o.robot.task:
+        fmt = ds.meta.get("format") if ds is not None else "video"
+        meta_path = Path(ds.meta.get("path", ds.root)) if ds is not None else input_path
+        beside = (meta_path.parent if meta_path.is_file() else meta_path) / "frame.json"
+        why = unscaled_reason(o.poses, bool(ds is not None and ds.has_poses), fmt, beside.is_file())
+        if why is not None:
+            raise InputError(f"--task needs a metric twin, but this capture gives no scale ({why}): {SCALE_HELP}",
+                             input_path)
+    if o.semantics.masks:
+        from splattwin.semantics.stage import check_masks
+
+        check_masks(o.semantics, ds.frames, scene_dir)
+    # resources at the training resolution
+    from splattwin.splat.resolution import resolve
+
+    sizes = _video_sizes(input_path) if ds is None else [(f.camera.width, f.camera.height) for f in ds.frames]
+    device = "cuda" if o.splat.device == "cuda" else "cpu"
+    rule = resolve(o.splat.resolution, o.splat.cpu_max_side, device)
+    train_sizes = [rule.size(w, h) for w, h in sizes]
+    capture_bytes = 0
+    if ds is not None:
+        for f in ds.frames:
+            for p in (f.image_path, f.depth_path, f.mask_path):
+                if p is not None:
+                    try:
+                        capture_bytes += os.stat(p).st_size
+                    except OSError:
+                        pass
+    else:
+        capture_bytes = sum(w * h * 3 for w, h in sizes)
+    has_poses = bool(ds is not None and ds.has_poses)
+    sfm = o.poses.method == "sfm" or (o.poses.method == "auto" and not has_poses and o.poses.robot_poses is None)
+    est = estimate(sizes, train_sizes, o.splat.max_gaussians, sfm, capture_bytes, o.poses.max_image_size)
+    check_resources(est, out, f"{len(sizes)} views trained at {rule.how.split(' (')[0]} with up to "
+                              f"{o.splat.max_gaussians} Gaussians")
+    info.update(views=len(sizes), memory_gib=round(est.memory / GIB, 3), disk_gib=round(est.disk / GIB, 3),
+                seconds=round(time.perf_counter() - t0, 3))
+    log.info("pre-flight: %d views, about %.1f GiB memory and %.1f GiB disk needed (%.1f s)", len(sizes),
+             est.memory / GIB, est.disk / GIB, info["seconds"])
+    return info

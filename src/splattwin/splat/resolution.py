@@ -1,0 +1,88 @@
+"""The image size training (and, by default, evaluation) runs at.
+
+`TrainConfig.resolution` follows 3DGS's `-r`: 1, 2, 4, 8 divide the image size; a larger value is a
+target width in pixels; -1 downsizes only images wider than 1600 px. 0 ("auto", the default) depends on
+where training runs: on the CPU every image whose longest side exceeds `TrainConfig.cpu_max_side`
+(640 px by default) is scaled down to it (a 12-megapixel photo trained at full size would take days on
+our CPU rasterizer, and sparse captures gain little from it); with CUDA the images are used at full size.
+The embedded scene (320 x 240) is below the cap and is trained unchanged.
+
+`Resolution` is the rule resolved for one device; `scale(width, height)` is the factor applied to an
+image of that size. train.json records the rule (`record`) so that evaluation renders the held-out views
+at the same size (`splattwin.splat.eval`; `--eval-full-resolution` for the full image size).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from splattwin.errors import InputError
+
+AUTO = 0
+MIN_SIDE = 16
+
+
+@dataclass(frozen=True)
+class Resolution:
+    """resolution: as TrainConfig.resolution but never AUTO; max_side: cap on the longest image side in
+    px (None: no cap). how: one line for the log and the report."""
+
+    resolution: int = 1
+    max_side: int | None = None
+    how: str = "full size"
+
+    def scale(self, width: int, height: int) -> float:
+        """Factor (<= 1 unless a target width asks for more) applied to a width x height image."""
+        r = self.resolution
+        if r in (1, 2, 4, 8):
+            s = 1.0 / r
+        elif r == -1:
+            s = min(1.0, 1600.0 / width)
+        elif r >= MIN_SIDE:
+            s = r / width
+        else:
+            raise InputError(f"--resolution must be 0 (auto), 1, 2, 4, 8, a target width of at least {MIN_SIDE} "
+                             f"pixels, or -1; got {r}")
+        if self.max_side is not None:
+            s = min(s, self.max_side / max(width, height))
+        return s
+
+    def size(self, width: int, height: int) -> tuple[int, int]:
+        """(width, height) in px at this resolution (as `Camera.scaled` rounds)."""
+        s = self.scale(width, height)
+        return max(1, int(round(width * s))), max(1, int(round(height * s)))
+
+    def record(self) -> dict:
+        return {"resolution": self.resolution, "max_side": self.max_side, "how": self.how}
+
+    @classmethod
+    def from_record(cls, rec: dict | None) -> "Resolution | None":
+        """The rule train.json recorded (None when absent or malformed: older training folders)."""
+        if not isinstance(rec, dict) or not isinstance(rec.get("resolution"), int):
+            return None
+        ms = rec.get("max_side")
+        ms = ms if isinstance(ms, int) and ms >= MIN_SIDE else None
+        return cls(rec["resolution"], ms, str(rec.get("how", ""))[:200])
+
+
+FULL = Resolution(1, None, "full size")
+
+
+def resolve(resolution: int, cpu_max_side: int, device: str) -> Resolution:
+    """The rule for TrainConfig.resolution / cpu_max_side on `device` ("cpu" or "cuda")."""
+    if resolution != AUTO:
+        Resolution(resolution).scale(100, 100)  # InputError for an invalid value
+        return Resolution(resolution, None, f"--resolution {resolution}")
+    if device == "cuda":
+        return Resolution(1, None, "auto: full size (CUDA)")
+    if cpu_max_side < MIN_SIDE:
+        raise InputError(f"--cpu-max-side must be at least {MIN_SIDE} px, got {cpu_max_side}")
+    return Resolution(1, int(cpu_max_side), f"auto: longest side at most {cpu_max_side} px on the CPU "
+                                            "(--resolution 1: full size)")
+
+
+def describe_sizes(sizes: list[tuple[int, int]]) -> str:
+    """'640x427' or '640x427, 480x640 (2 sizes)' for a list of (width, height)."""
+    uniq = sorted(set(sizes), key=lambda s: (-s[0] * s[1], s))
+    text = ", ".join(f"{w}x{h}" for w, h in uniq[:4]) + (", ..." if len(uniq) > 4 else "")
+    return text + (f" ({len(uniq)} sizes)" if len(uniq) > 1 else "")

@@ -1,0 +1,125 @@
+"""Pre-flight (`splattwin.pipeline.preflight`, `splattwin.semantics.models`): a build that cannot succeed
+stops with exit 2 before pose estimation, naming the models, the missing scale or the resource."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from splattwin.cli import main as cli
+from splattwin.errors import InputError
+from splattwin.io import write_image
+from splattwin.pipeline import preflight as pf
+from splattwin.pipeline.options import BuildOptions
+from splattwin.poses.options import PoseOptions
+from splattwin.robot.options import RobotOptions
+from splattwin.semantics import models
+from splattwin.semantics.options import SegmentOptions, SemanticsOptions
+
+
+def _images(root: Path, n: int = 6, w: int = 64, h: int = 48) -> Path:
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        write_image(root / f"img_{i:02d}.png", rng.integers(0, 255, (h, w, 3), dtype=np.uint8))
+    return root
+
+
+def _model_dir(root: Path, model_type: str) -> Path:
+    root.mkdir(parents=True)
+    (root / "config.json").write_text(json.dumps({"model_type": model_type}))
+    (root / "model.safetensors").write_bytes(b"\0" * 8)
+    return root
+
+
+def test_prompt_without_weights_names_every_model_and_stops_before_poses(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(models, "_local_file", lambda model, name: None)  # an empty Hugging Face cache
+    out = tmp_path / "twin"
+    code = cli(["build", str(_images(tmp_path / "imgs")), "--out", str(out), "--prompt", "red box. cup",
+                "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "IDEA-Research/grounding-dino-tiny" in err and "facebook/sam-vit-base" in err
+    assert "Grounding DINO" in err and "SAM" in err and "hf download" in err
+    assert not (out / "poses").exists() and not (out / "splat").exists()
+
+
+def test_models_from_local_folders(tmp_path):
+    det = _model_dir(tmp_path / "dino", "grounding-dino")
+    sam = _model_dir(tmp_path / "sam", "sam")
+    assert models.missing_models_error(SegmentOptions(detector=str(det), segmenter=str(sam))) is None
+    # SAM 3 segments the phrases itself: no detector needed
+    sam3 = _model_dir(tmp_path / "sam3", "sam3")
+    opts = SegmentOptions(detector=str(tmp_path / "absent"), segmenter=str(sam3))
+    assert [r for r, _ in models.required_models(opts)] == ["SAM 3 segmenter"]
+    assert models.missing_models_error(opts) is None
+    # one present, one missing: both listed, only the missing one as MISSING
+    e = models.missing_models_error(SegmentOptions(detector=str(det), segmenter=str(tmp_path / "nosam")))
+    assert e is not None and "(present)" in e.problem and f"{tmp_path / 'nosam'}' (MISSING)" in e.problem
+    # config without weights is not available
+    (sam / "model.safetensors").unlink()
+    assert not models.is_available(str(sam))
+
+
+def test_task_on_an_unscaled_capture_stops_before_sfm(tmp_path, capsys):
+    out = tmp_path / "twin"
+    code = cli(["build", str(_images(tmp_path / "imgs")), "--out", str(out), "--task", "default", "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "--task needs a metric twin" in err and "--known-length" in err and "--marker-size" in err
+    assert "--robot-poses" in err and str(tmp_path / "imgs") in err
+    assert not (out / "poses").exists()
+
+
+def test_scale_sources_satisfy_the_task_check(tmp_path):
+    imgs = _images(tmp_path / "imgs")
+    for poses in (PoseOptions(known_length="camera_height=0.5"), PoseOptions(marker_size=0.05),
+                  PoseOptions(robot_poses=tmp_path / "robot.json")):
+        o = BuildOptions(input=str(imgs), poses=poses, robot=RobotOptions(task="default"))
+        pf.run_preflight(o, tmp_path / "twin", imgs, None, tmp_path / "frames")  # no error
+    P = PoseOptions
+    assert pf.unscaled_reason(P(), has_poses=False, fmt="images", frame_json_beside=False) is not None
+    assert pf.unscaled_reason(P(), has_poses=True, fmt="nerfstudio", frame_json_beside=False) is None
+    assert "COLMAP" in pf.unscaled_reason(P(), has_poses=True, fmt="colmap", frame_json_beside=False)
+    assert pf.unscaled_reason(P(), has_poses=True, fmt="colmap", frame_json_beside=True) is None
+    assert pf.unscaled_reason(P(method="sfm"), has_poses=True, fmt="nerfstudio", frame_json_beside=True)
+
+
+def test_memory_and_disk_refused_only_when_clearly_insufficient(tmp_path, monkeypatch):
+    imgs = _images(tmp_path / "imgs")
+    o = BuildOptions(input=str(imgs))
+    monkeypatch.setattr(pf, "available_memory", lambda: 64 * pf.GIB)
+    monkeypatch.setattr(pf, "free_disk", lambda p: 500 * pf.GIB)
+    info = pf.run_preflight(o, tmp_path / "twin", imgs, None, tmp_path / "frames")
+    assert info["views"] == 6 and 1.0 < info["memory_gib"] < 8
+    need = info["memory_gib"] * pf.GIB
+    monkeypatch.setattr(pf, "available_memory", lambda: need / 1.2)   # tight: a warning only
+    pf.run_preflight(o, tmp_path / "twin", imgs, None, tmp_path / "frames")
+    monkeypatch.setattr(pf, "available_memory", lambda: need / 2)     # clearly short
+    with pytest.raises(InputError, match="not enough memory.*--cpu-max-side"):
+        pf.run_preflight(o, tmp_path / "twin", imgs, None, tmp_path / "frames")
+    monkeypatch.setattr(pf, "available_memory", lambda: 64 * pf.GIB)
+    monkeypatch.setattr(pf, "free_disk", lambda p: 0.01 * pf.GIB)
+    with pytest.raises(InputError, match="not enough disk space"):
+        pf.run_preflight(o, tmp_path / "twin", imgs, None, tmp_path / "frames")
+
+
+def test_estimate_grows_with_resolution_and_budget():
+    small = pf.estimate([(4032, 3024)] * 20, [(640, 480)] * 20, 28_000, True, 0)
+    full = pf.estimate([(4032, 3024)] * 20, [(4032, 3024)] * 20, 28_000, True, 0)
+    more = pf.estimate([(4032, 3024)] * 20, [(640, 480)] * 20, 1_000_000, True, 0)
+    assert full.memory > small.memory + 20 * 4032 * 3024 * 12 * 0.9
+    assert more.memory > small.memory and more.disk > small.disk
+    assert "SfM" in small.parts and "SfM" not in pf.estimate([(64, 48)], [(64, 48)], 100, False, 0).parts
+
+
+def test_bad_mask_folder_found_at_preflight(tmp_path, capsys):
+    imgs = _images(tmp_path / "imgs")
+    masks = tmp_path / "masks"
+    write_image(masks / "img_00" / "box.png", np.full((10, 10), 255, np.uint8))  # not the image size
+    out = tmp_path / "twin"
+    code = cli(["build", str(imgs), "--out", str(out), "--masks", str(masks), "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2 and "box.png" in err and not (out / "poses").exists()

@@ -1,0 +1,33 @@
+"""The report names the held-out views, their rule and the evaluation resolution (from the artifacts)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+from splattwin.report.build import build_report
+
+_spec = importlib.util.spec_from_file_location("_report_trainer_helpers",
+                                               Path(__file__).parents[1] / "splat" / "test_trainer.py")
+helpers = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(helpers)
+
+
+def test_report_shows_heldout_views_and_eval_resolution(tmp_path):
+    twin = tmp_path / "twin"
+    helpers.make_dataset(twin / "poses", n_train=3, n_heldout=2)
+    (twin / "splat" / "eval").mkdir(parents=True)
+    (twin / "splat" / "eval" / "metrics.json").write_text(json.dumps({
+        "split": "heldout", "mean_psnr": 24.5, "mean_ssim": 0.81, "n_views": 2, "gaussians": 1234,
+        "eval_resolution": {"mode": "training", "how": "auto: longest side at most 640 px on the CPU",
+                            "sizes": "640x480", "full_sizes": "4032x3024", "scale": 0.1587},
+        "heldout": {"rule": "every 8th view from the first (default with >= 6 views)", "source": "default",
+                    "views": ["heldout_003", "heldout_004"]},
+        "views": [{"name": "heldout_003", "psnr": 24.0, "ssim": 0.8}, {"name": "heldout_004", "psnr": 25.0,
+                                                                         "ssim": 0.82}]}))
+    html = build_report(twin).read_text()
+    assert "640x480 (the training resolution)" in html and "4032x3024" in html
+    assert "every 8th view from the first" in html
+    assert "heldout_003, heldout_004" in html
+    assert "3 training views and 2 held-out views" in html
