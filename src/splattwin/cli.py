@@ -27,6 +27,7 @@ STAGE_CLIS = [
     "splattwin.geometry.cli",
     "splattwin.twin.cli",
     "splattwin.robot.cli",
+    "splattwin.cluster.cli",
     "splattwin.playback.cli",
     "splattwin.report.cli",
     "splattwin.viewer.cli",

@@ -48,9 +48,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "grasped on the twin pose; no in-hand sensing on the real cell)")
     p.add_argument("--planner", default="RRTConnect", help="OMPL planner (default RRTConnect)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--workers", type=int, default=None, help="processes for the trials (default: CPU count)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="processes for the trials (default: CPU count); with --executor ray and no address: CPUs "
+                        "of the local Ray")
     p.add_argument("--no-render", action="store_true", help="do not render PNG frames")
     p.add_argument("--out", type=Path, default=None, help="output folder (default: TWIN/robot)")
+    from splattwin.cluster.cli import add_executor_args
+
+    add_executor_args(p)
     p.set_defaults(func=run_plan)
 
 
@@ -77,8 +82,13 @@ def run_plan(args: argparse.Namespace) -> int:
                      seed=args.seed, planner=args.planner, tcp_site=args.tcp_site, in_hand=args.in_hand)
     t0 = time.perf_counter()
     result, note, frames = run_once(spec, frame_dir=None if args.no_render else out / "frames", keep_trajectories=True)
-    trials = run_trials(spec, args.trials, args.sigma, workers=args.workers, out_dir=out, resume=not args.no_resume,
-                        sigma_yaw=args.sigma_yaw) if args.trials > 0 else None
+    trials = None
+    if args.trials > 0:
+        from splattwin.cluster.cli import executor_from_args
+
+        with executor_from_args(args, args.workers) as ex:
+            trials = run_trials(spec, args.trials, args.sigma, workers=args.workers, out_dir=out,
+                                resume=not args.no_resume, sigma_yaw=args.sigma_yaw, executor=ex)
     paths = write_outputs(out, spec, result, trials, render_note=note if not args.no_render else "rendering disabled (--no-render)",
                           frames=frames, wall_s=time.perf_counter() - t0)
     print_summary(result, trials, paths)
