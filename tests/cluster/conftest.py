@@ -1,4 +1,4 @@
-"""Cluster fixtures: one in-process Ray instance for the whole session (start-up costs ~10 s on 2 cores),
+"""Cluster fixtures: one in-process Ray instance shared by these tests (start-up costs ~10 s on 2 cores),
 a ground-truth twin of the default scene, and a helper that kills a Ray worker by its task name."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def ray_session():
-    """ray.init(num_cpus=2) once; shut down at the end of the session."""
+    """ray.init(num_cpus=2) once for all the cluster tests; shut down after the last of them."""
     import ray
 
     if not ray.is_initialized():

@@ -4,6 +4,7 @@
     OUT/batch.json         per capture: status, failed stage and error, figures, timings
     OUT/summary.csv        one row per capture
     OUT/summary.html       the same table with each capture's held-out render and a link to its report
+    OUT/logs/<name>.log    everything the capture's build printed
 
 Each capture is two tasks: its reconstruction (pipeline stages up to `splats`; one GPU when the cluster
 has GPUs, so training lands on GPU nodes) and then the rest of its build (semantics, geometry, export,
@@ -15,11 +16,13 @@ every retry) is reported with the stage and the error; the other captures go on.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io as _io
 import logging
 import os
 import re
+import sys
 import time
 import traceback
 from dataclasses import asdict, dataclass
@@ -52,7 +55,7 @@ def capture_names(inputs: list[str | Path]) -> list[Capture]:
         while name.lower() in seen or name.lower() in ("batch.json", "summary.csv", "summary.html"):
             name, k = f"{base}-{k}", k + 1
         seen.add(name.lower())
-        out.append(Capture(name, str(p)))
+        out.append(Capture(name, str(p.absolute())))
     return out
 
 
@@ -75,20 +78,64 @@ def _failed_stage(exc: BaseException) -> str | None:
     return stage
 
 
-def build_task(twin: str, options: dict, until: str | None, threads: int) -> dict:
+@contextlib.contextmanager
+def _output_to(path: Path):
+    """Send this process's stdout and stderr (Python and C level: numba, OpenGL) to `path` (appended) while
+    a build runs, so the builds' stage lines and warnings go to one log per capture, not the terminal."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = os.dup(1), os.dup(2)
+    with open(path, "ab") as f:
+        os.dup2(f.fileno(), 1)
+        os.dup2(f.fileno(), 2)
+        try:
+            yield
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            os.close(saved[0])
+            os.close(saved[1])
+
+
+def in_ray_worker() -> bool:
+    """True inside a Ray worker process."""
+    if "ray" not in sys.modules:
+        return False
+    try:
+        import ray
+
+        return ray.is_initialized() and ray.get_runtime_context().worker.mode == ray.WORKER_MODE
+    except Exception:  # noqa: BLE001 - any doubt: not a Ray worker
+        return False
+
+
+def build_task(twin: str, options: dict, until: str | None, threads: int, log_path: str | None = None) -> dict:
     """One part of one capture's build (a task). Returns the stage results; raises StageFailed naming the
-    stage and the error."""
+    stage and the error. log_path: the build's output goes there."""
     from splattwin.cluster.sweep import _threads
     from splattwin.pipeline.build import BuildOptions, build
 
     _threads(threads)
+    if in_ray_worker():
+        # the build's own process pools (the robot stage's trials) must not fork a Ray worker: its gRPC
+        # threads do not survive fork(); fresh interpreters instead
+        import multiprocessing
+
+        multiprocessing.set_start_method("spawn", force=True)
     t0 = time.perf_counter()
-    try:
-        ctx = build(twin, BuildOptions(**options), until=until)
-    except Exception as e:
-        stage = _failed_stage(e)
-        kind = "bad input" if isinstance(e, InputError) else type(e).__name__
-        raise StageFailed(f"{stage or 'setup'}: {kind}: {e}") from None
+    with _output_to(Path(log_path)) if log_path else contextlib.nullcontext():
+        try:
+            print(f"== {time.strftime('%Y-%m-%d %H:%M:%S')} build until {until or 'the end'} (pid {os.getpid()})",
+                  flush=True)
+            ctx = build(twin, BuildOptions(**options), until=until)
+        except Exception as e:
+            traceback.print_exc()
+            stage = _failed_stage(e)
+            kind = "bad input" if isinstance(e, InputError) else type(e).__name__
+            raise StageFailed(f"{stage or 'setup'}: {kind}: {e}") from None
     return {"stages": list(ctx.results), "timings": dict(ctx.timings), "wall_s": time.perf_counter() - t0,
             "pid": os.getpid()}
 
@@ -97,8 +144,8 @@ def figures(twin: Path) -> dict[str, Any]:
     """Headline figures of a built twin folder, read from its files (what the report shows)."""
     def js(rel: str):
         try:
-            return io.read_json(twin / rel)
-        except (OSError, ValueError):
+            return io.read_json(twin / rel) if (twin / rel).is_file() else None
+        except (OSError, ValueError, InputError):   # unreadable: the figure is left out
             return None
 
     f: dict[str, Any] = {}
@@ -132,7 +179,8 @@ def figures(twin: Path) -> dict[str, Any]:
         f["task"] = "error" if "error" in rob else ("success" if rob.get("nominal", {}).get("success") else "failure")
         if rob.get("trials"):
             f["trials"] = f"{rob['trials']['successes']}/{rob['trials']['trials']}"
-    f["build_s"] = sum(float(v.get("seconds", 0.0)) for v in state.values() if isinstance(v, dict))
+    if state:
+        f["build_s"] = sum(float(v.get("seconds", 0.0)) for v in state.values() if isinstance(v, dict))
     if (twin / "report" / "index.html").is_file():
         f["report"] = "report/index.html"
     return f
@@ -147,7 +195,7 @@ def run_batch(inputs: list[str | Path], out: str | Path, options, executor: Exec
     cluster has GPUs). until: stop every build after this stage."""
     from splattwin.pipeline.build import STAGES
 
-    out = Path(out)
+    out = Path(out).absolute()     # workers may run in another directory (or on another node)
     if not inputs:
         raise InputError("no captures given")
     if until is not None and until not in STAGES:
@@ -161,8 +209,8 @@ def run_batch(inputs: list[str | Path], out: str | Path, options, executor: Exec
     threads = max(1, int(cpus)) if executor.kind == "ray" else max(1, (os.cpu_count() or 1) // executor.workers)
     base = asdict(options)
     base["progress"] = False
-    state: dict[str, dict] = {c.name: {"name": c.name, "input": c.input, "twin": str(out / c.name), "status": "pending"}
-                              for c in caps}
+    state: dict[str, dict] = {c.name: {"name": c.name, "input": c.input, "twin": str(out / c.name), "status": "pending",
+                                       "log": str(out / "logs" / f"{c.name}.log")} for c in caps}
     t0 = time.perf_counter()
 
     def opts(c: Capture) -> dict:
@@ -190,7 +238,8 @@ def run_batch(inputs: list[str | Path], out: str | Path, options, executor: Exec
         if part == "recon" and not recon_only:
             st["status"] = "reconstructed"
             save()
-            return [Job((name, "finish"), build_task, (str(out / name), opts(caps_by[name]), until, threads),
+            return [Job((name, "finish"), build_task, (str(out / name), opts(caps_by[name]), until, threads,
+                                                       state[name]["log"]),
                         Resources(cpus), name=f"batch-finish-{name}")]
         st.update(status="ok", error=None, failed_stage=None)
         st.update(figures(out / name))
@@ -200,7 +249,7 @@ def run_batch(inputs: list[str | Path], out: str | Path, options, executor: Exec
         return []
 
     caps_by = {c.name: c for c in caps}
-    jobs = [Job((c.name, "recon"), build_task, (str(out / c.name), opts(c), recon_until, threads),
+    jobs = [Job((c.name, "recon"), build_task, (str(out / c.name), opts(c), recon_until, threads, state[c.name]["log"]),
                 Resources(cpus, gpus), name=f"batch-recon-{c.name}") for c in caps]
     save()
     executor.run(jobs, on_done=on_done, progress=progress, description="captures (recon + build)",
@@ -209,6 +258,41 @@ def run_batch(inputs: list[str | Path], out: str | Path, options, executor: Exec
                "ok": sum(1 for s in state.values() if s["status"] == "ok"), "failed": sum(1 for s in state.values() if s["status"] != "ok")}
     summary["outputs"] = {k: str(v) for k, v in write_summary(out, summary).items()}
     return summary
+
+
+def lost_outputs(twin: Path) -> list[str]:
+    """The outputs a twin folder's pipeline.json promises that are missing or unreadable (empty: complete).
+
+    Every "@path" output of every recorded stage must exist; JSON, NumPy and PLY files must also load."""
+    import json
+
+    import numpy as np
+
+    twin = Path(twin)
+    try:
+        state = json.loads((twin / "pipeline.json").read_text())
+    except (OSError, ValueError) as e:
+        return [f"pipeline.json: {e}"]
+    lost = []
+    for stage, rec in state.items():
+        for name, v in (rec.get("outputs") or {}).items():
+            if not (isinstance(v, str) and v.startswith("@")):
+                continue
+            path = twin / v[1:]
+            try:
+                if not path.is_file():
+                    raise FileNotFoundError("missing")
+                if path.suffix == ".json":
+                    json.loads(path.read_text())
+                elif path.suffix == ".npy":
+                    np.load(path, allow_pickle=False)
+                elif path.suffix == ".ply":
+                    from splattwin.splat.gaussians import Gaussians
+
+                    Gaussians.load_ply(path)
+            except Exception as e:  # noqa: BLE001 - any failure to read it counts as lost
+                lost.append(f"{stage}.{name} {v[1:]}: {type(e).__name__}: {e}")
+    return lost
 
 
 # -- outputs --------------------------------------------------------------------------------------------
@@ -245,7 +329,7 @@ def summary_html(out: Path, summary: dict) -> str:
         s = rep.section(f"{c['name']} — {c['status']}")
         s.text(f"capture: {c['input']}")
         if c.get("error"):
-            s.pre(f"failed in {c.get('failed_stage') or '?'}: {c['error']}")
+            s.pre(f"failed in {c.get('failed_stage') or '?'}: {c['error']}\n(log: {c.get('log')})")
         twin = out / c["name"]
         ev = sorted((twin / "splat" / "eval").glob("*.png")) if (twin / "splat" / "eval").is_dir() else []
         if ev:
@@ -254,7 +338,7 @@ def summary_html(out: Path, summary: dict) -> str:
             with Image.open(ev[0]) as im:
                 im = im.convert("RGB")
                 im.thumbnail((480, 240))
-                s.image(np.asarray(im), caption=f"held-out view {ev[0].stem}: ground truth | render")
+                s.image(np.asarray(im), caption=f"held-out view {ev[0].stem}: ground truth | render | error")
         if c.get("report"):
             href = html.escape(f"{c['name']}/{c['report']}", quote=True)
             s.parts.append(f'<p><a href="{href}">report of {html.escape(c["name"])}</a></p>')
@@ -265,7 +349,7 @@ def print_summary(summary: dict) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    cols = ("name", "status", "views", "psnr", "ssim", "miou_heldout", "objects_usable", "f1_min", "task", "build_s", "error")
+    cols = ("name", "status", "views", "psnr", "ssim", "miou_heldout", "objects_usable", "f1_min", "task", "build_s")
     t = Table(title=f"batch: {summary['ok']} built, {summary['failed']} failed ({summary['executor']}, {summary['wall_s']:.0f} s)")
     for c in cols:
         t.add_column(c, overflow="fold")
@@ -273,4 +357,8 @@ def print_summary(summary: dict) -> None:
         t.add_row(*["" if c.get(k) is None else (f"{c[k]:.4g}" if isinstance(c[k], float) else str(c[k])) for k in cols])
     con = Console()
     con.print(t)
+    for c in summary["captures"]:
+        if c.get("error"):
+            e = c["error"] if len(c["error"]) < 240 else c["error"][:237] + "..."
+            con.print(f"[red]{c['name']}[/] failed in {c.get('failed_stage')}: {e}  (log: {c.get('log')})")
     con.print("  ".join(f"{k}: {v}" for k, v in summary.get("outputs", {}).items()))

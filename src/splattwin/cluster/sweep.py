@@ -277,7 +277,7 @@ def plan_sweep(spec: SweepSpec, out: Path, fusion_base, geometry_base) -> tuple[
     man = Manifest.load(twin)
     grid_targets = {P.canonical(n).split(".")[0] for n in spec.grid}
     need_fusion, need_twin = "fusion" in grid_targets, bool(grid_targets & {"fusion", "geometry"})
-    ctx: dict[str, Any] = {"twin_sha": file_digest(twin / "twin.json")}
+    ctx: dict[str, Any] = {}
     scene = resolve_scene(twin, spec.scene)
     ctx["scene"] = str(scene.resolve()) if scene else None
     if need_twin:
@@ -293,13 +293,18 @@ def plan_sweep(spec: SweepSpec, out: Path, fusion_base, geometry_base) -> tuple[
         ctx["labels"] = str(_twin_file(twin, man.labels, "labels file"))
         ctx["labels_sha"] = file_digest(Path(ctx["labels"]))
         ctx["objects"] = [[o.name, o.label, o.prompt] for o in man.objects]
+    tr = spec.trial
+    # what decides whether the task can run on a cell's twin (checked by its twin task)
+    task_key = {"task": file_digest(Path(tr.task_path)) if tr.task_path else "default", "base": asdict(tr.base),
+                "robot": file_digest(Path(tr.robot_mjcf)) if tr.robot_mjcf else "panda", "tcp_site": tr.tcp_site}
+    cameras_sha = file_digest(Path(ctx["cameras"])) if need_fusion else None
     plan = _Plan()
     for i, cell in enumerate(spec.cells()):
         parts = P.split(cell)
         c: dict[str, Any] = {"cell": i + 1, "params": cell, "fusion": None, "twin": None}
         if need_fusion:
             fopts = asdict(P.apply(fusion_base, parts["fusion"]))
-            fkey = {"splats": ctx["splats_sha"], "cameras": file_digest(Path(ctx["cameras"])),
+            fkey = {"splats": ctx["splats_sha"], "cameras": cameras_sha,
                     "masks": ctx["masks_sha"], "options": fopts}
             fid = _short(fkey)
             plan.fusion.setdefault(fid, {"options": fopts, "key": fkey, "folder": out / "fusion" / fid})
@@ -307,7 +312,7 @@ def plan_sweep(spec: SweepSpec, out: Path, fusion_base, geometry_base) -> tuple[
         if need_twin:
             gopts = P.apply(geometry_base, parts["geometry"]).to_dict()
             tkey = {"splats": ctx["splats_sha"], "labels": c["fusion"] or ctx["labels_sha"], "geometry": gopts,
-                    "scene": ctx["scene"], "task": spec.trial.task_path}
+                    "scene": ctx["scene"], "task": task_key}
             tid = _short(tkey)
             plan.twins.setdefault(tid, {"fusion": c["fusion"], "geometry": gopts, "key": tkey,
                                         "folder": out / "twins" / tid})
@@ -326,9 +331,10 @@ def run_sweep(spec: SweepSpec, out: str | Path, executor: Executor, progress: bo
     from splattwin.semantics.fusion import FusionOptions
     from splattwin.twin.manifest import Manifest
 
-    out = Path(out)
+    out = Path(out).absolute()     # workers may run in another directory (or on another node)
     out.mkdir(parents=True, exist_ok=True)
-    twin = Path(spec.twin)
+    twin = Path(spec.twin).absolute()
+    spec = replace(spec, twin=twin)
     if not (twin / "twin.json").is_file():
         raise InputError("not a twin folder (no twin.json)", twin)
     if spec.trials < 1:
