@@ -97,3 +97,44 @@ def test_batch_cli_bad_input(tmp_path, capsys):
     assert main(["batch", str(tmp_path), "--out", str(tmp_path / "o"), "--from", "poses"]) == 2
     assert "--from" in capsys.readouterr().err
     assert main(["batch", str(tmp_path), "--out", str(tmp_path / "o"), "--cpus-per-build", "0"]) == 2
+
+
+def _stub_build(*args) -> dict:
+    return {"stages": [], "timings": {}, "wall_s": 0.0, "pid": 0}
+
+
+class _GpuCluster(LocalExecutor):
+    """A local pool that reports a GPU, records the jobs it is given and runs a stub instead of builds."""
+
+    kind = "ray"
+
+    def __init__(self):
+        super().__init__(1)
+        self.jobs = []
+
+    def gpus(self) -> float:
+        return 1.0
+
+    def submit(self, job, attempt=1):
+        from dataclasses import replace
+
+        self.jobs.append(job)
+        return super().submit(replace(job, fn=_stub_build), attempt)
+
+
+def test_reconstruction_asks_for_a_gpu_when_the_cluster_has_one(tmp_path):
+    """Each capture: a reconstruction task with 1 GPU (training lands on a GPU node), then the rest of its
+    build on CPUs only; both reserve --cpus-per-build CPUs."""
+    ex = _GpuCluster()
+    with ex:
+        run_batch([tmp_path / "a", tmp_path / "b"], tmp_path / "out", OPTS, ex, cpus=3, progress=False)
+    parts = {(j.key, j.resources.cpus, j.resources.gpus) for j in ex.jobs}
+    assert parts == {(("a", "recon"), 3, 1.0), (("b", "recon"), 3, 1.0), (("a", "finish"), 3, 0.0),
+                     (("b", "finish"), 3, 0.0)}
+    assert all(j.args[2] == "splats" for j in ex.jobs if j.key[1] == "recon")       # until the training
+    assert all(j.args[2] is None for j in ex.jobs if j.key[1] == "finish")          # then to the end
+    ex2 = _GpuCluster()
+    ex2.gpus = lambda: 0.0
+    with ex2:
+        run_batch([tmp_path / "a"], tmp_path / "out2", OPTS, ex2, cpus=1, progress=False)
+    assert {j.resources.gpus for j in ex2.jobs} == {0.0}
