@@ -117,3 +117,17 @@ def test_ray_missing_is_a_clear_input_error(monkeypatch):
     monkeypatch.setattr(builtins, "__import__", no_ray)
     with pytest.raises(InputError, match=r"splattwin\[ray\]"):
         make_executor("ray")
+
+
+def test_executor_choice_from_flags_and_environment(monkeypatch):
+    from splattwin.cluster.cli import executor_choice
+
+    monkeypatch.delenv("SPLATTWIN_RAY_ADDRESS", raising=False)
+    assert executor_choice(None, None) == ("local", None)              # the default needs no Ray
+    assert executor_choice("ray", None) == ("ray", None)               # a local Ray instance
+    assert executor_choice(None, "auto") == ("ray", "auto")            # an address means Ray
+    assert executor_choice("local", "auto") == ("local", "auto")       # ... refused by make_executor
+    monkeypatch.setenv("SPLATTWIN_RAY_ADDRESS", "head:6379")
+    assert executor_choice(None, None) == ("ray", "head:6379")
+    assert executor_choice("ray", "other:6379") == ("ray", "other:6379")  # the flag wins
+    assert executor_choice("local", None) == ("local", None)

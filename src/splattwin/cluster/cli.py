@@ -16,23 +16,34 @@ def add_executor_args(p: argparse.ArgumentParser) -> None:
     """The flags that pick where tasks run (the command keeps its own --workers)."""
     g = p.add_argument_group("where the tasks run")
     g.add_argument("--executor", choices=EXECUTORS, default=None,
-                   help="local: a process pool on this machine (default); ray: a Ray cluster (pip install "
-                        "'splattwin[ray]'), a local one unless --ray-address or $%s names one" % ADDRESS_ENV)
+                   help="local: a process pool on this machine (the default unless a Ray address is given); ray: "
+                        "a Ray cluster (pip install 'splattwin[ray]'), a local one unless --ray-address or $%s "
+                        "names one" % ADDRESS_ENV)
     g.add_argument("--ray-address", default=None, metavar="ADDRESS",
                    help="Ray cluster to run on: 'auto' (the cluster this node belongs to), HOST:6379, or "
-                        "ray://HOST:10001 (default: $%s; implies --executor ray). Twins and outputs must be on "
+                        "ray://HOST:10001 (default: $%s; either implies --executor ray). Twins and outputs must be on "
                         "a filesystem every node mounts at the same path" % ADDRESS_ENV)
     g.add_argument("--max-retries", type=int, default=DEFAULT_MAX_RETRIES,
                    help=f"times a task is run again after its worker process died (default {DEFAULT_MAX_RETRIES})")
+
+
+def executor_choice(executor: str | None, ray_address: str | None) -> tuple[str, str | None]:
+    """(kind, address) from --executor / --ray-address / $SPLATTWIN_RAY_ADDRESS: an address (flag or
+    environment) means Ray unless --executor local says otherwise; no address with ray: a local Ray."""
+    env = os.environ.get(ADDRESS_ENV) or None
+    if executor == "local":
+        return "local", ray_address            # make_executor refuses an explicit --ray-address with local
+    if executor == "ray" or ray_address or env:
+        return "ray", ray_address or env
+    return "local", None
 
 
 def executor_from_args(args: argparse.Namespace, workers: int | None = None):
     """The Executor the flags ask for (the caller closes it)."""
     from splattwin.cluster.executor import make_executor
 
-    kind = args.executor or ("ray" if args.ray_address else "local")
-    return make_executor(kind, address=args.ray_address or (os.environ.get(ADDRESS_ENV) if kind == "ray" else None),
-                         workers=workers, max_retries=args.max_retries)
+    kind, address = executor_choice(args.executor, args.ray_address)
+    return make_executor(kind, address=address, workers=workers, max_retries=args.max_retries)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

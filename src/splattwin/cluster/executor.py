@@ -358,5 +358,4 @@ def make_executor(kind: str = "local", address: str | None = None, workers: int 
         if address:
             raise InputError("--ray-address needs --executor ray")
         return LocalExecutor(workers, max_retries=max_retries)
-    address = address or os.environ.get(ADDRESS_ENV) or None
-    return RayExecutor(address, num_cpus=workers, max_retries=max_retries)
+    return RayExecutor(address or os.environ.get(ADDRESS_ENV) or None, num_cpus=workers, max_retries=max_retries)
