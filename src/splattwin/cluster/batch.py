@@ -296,7 +296,7 @@ def lost_outputs(twin: Path) -> list[str]:
 
 
 # -- outputs --------------------------------------------------------------------------------------------
-COLUMNS = ("name", "status", "failed_stage", "error", "views", "psnr", "ssim", "gaussians", "miou_heldout",
+COLUMNS = ("name", "status", "failed_stage", "error", "views", "psnr", "ssim", "eval_split", "gaussians", "miou_heldout",
            "objects_usable", "f1_min", "task", "trials", "build_s", "input", "twin")
 
 
