@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from splattwin import io
-from splattwin.cluster.executor import Executor, Job, Outcome, Resources
+from splattwin.cluster.executor import Executor, Job, Outcome, Resources, limit_threads
 from splattwin.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -115,10 +115,9 @@ def in_ray_worker() -> bool:
 def build_task(twin: str, options: dict, until: str | None, threads: int, log_path: str | None = None) -> dict:
     """One part of one capture's build (a task). Returns the stage results; raises StageFailed naming the
     stage and the error. log_path: the build's output goes there."""
-    from splattwin.cluster.sweep import _threads
     from splattwin.pipeline.build import BuildOptions, build
 
-    _threads(threads)
+    limit_threads(threads)
     if in_ray_worker():
         # the build's own process pools (the robot stage's trials) must not fork a Ray worker: its gRPC
         # threads do not survive fork(); fresh interpreters instead

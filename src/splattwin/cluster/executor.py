@@ -181,6 +181,24 @@ class _Bar:
             self.p.stop()
 
 
+def limit_threads(cpus: float) -> None:
+    """Keep a task's thread pools (numba, torch) within the CPUs it reserved; Ray itself only sets
+    OMP_NUM_THREADS. Called at the start of a task that computes in parallel."""
+    n = max(1, int(cpus))
+    try:
+        import numba
+
+        numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+    except Exception:  # numba missing or its threading layer already fixed: keep its default
+        pass
+    try:
+        import torch
+
+        torch.set_num_threads(n)
+    except Exception:
+        pass
+
+
 # -- local process pool ------------------------------------------------------------------------------
 def _call(fn: Callable, args: tuple) -> Any:
     return fn(*args)

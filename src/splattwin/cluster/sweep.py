@@ -37,7 +37,7 @@ import numpy as np
 
 from splattwin import io
 from splattwin.cluster import params as P
-from splattwin.cluster.executor import Executor, Job, Outcome, Resources
+from splattwin.cluster.executor import Executor, Job, Outcome, Resources, limit_threads
 from splattwin.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -104,23 +104,6 @@ def _twin_file(twin: Path, rel: str | None, what: str) -> Path:
     return p
 
 
-def _threads(cpus: float) -> None:
-    """Keep a task's thread pools within the CPUs it reserved (Ray only pins OMP_NUM_THREADS)."""
-    n = max(1, int(cpus))
-    try:
-        import numba
-
-        numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
-    except Exception:  # numba missing or its threading layer already fixed: keep its default
-        pass
-    try:
-        import torch
-
-        torch.set_num_threads(n)
-    except Exception:
-        pass
-
-
 # -- masks and ground truth of the base twin ---------------------------------------------------------------
 def resolve_scene(twin: Path, scene: Path | None) -> Path | None:
     if scene is not None:
@@ -158,7 +141,7 @@ def fusion_task(folder: str, key: dict, splats: str, cameras: str, masks: str, o
     done = finished(Path(folder), key)
     if done is not None:
         return done
-    _threads(cpus)
+    limit_threads(cpus)
     from splattwin.capture import load_dataset
     from splattwin.semantics.fusion import FusionOptions
     from splattwin.semantics.lift import fuse_to_dir, views_for
@@ -194,7 +177,7 @@ def twin_task(folder: str, key: dict, base_twin: str, labels: str, objects: list
     done = finished(out, key)
     if done is not None:
         return done
-    _threads(cpus)
+    limit_threads(cpus)
     from splattwin.geometry.options import GeometryOptions
     from splattwin.splat.gaussians import Gaussians
     from splattwin.twin.build import build_twin
