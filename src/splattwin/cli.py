@@ -30,6 +30,7 @@ STAGE_CLIS = [
     "splattwin.twin.geometry_cli",
     "splattwin.twin.cli",
     "splattwin.robot.cli",
+    "splattwin.cluster.cli",
     "splattwin.playback.cli",
     "splattwin.report.cli",
     "splattwin.viewer.cli",

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from splattwin.errors import InputError
+from splattwin.executor import ExecutorOptions
 from splattwin.options import option
 
 IN_HAND = ("sensed", "planned")
@@ -38,7 +39,8 @@ class RobotOptions:
     planner: str = option("RRTConnect", "OMPL planner")
     seed: int = option(0, "seed of the planner and of the trials' perturbations")
     render: bool = option(True, "render PNG frames of the execution", build_alias="frames")
-    workers: int | None = option(None, "processes for the trials (none: CPU count)", hashed=False)
+    cluster: ExecutorOptions = option(factory=ExecutorOptions, help="where the trials run: a local process pool "
+                                      "or a Ray cluster (splattwin.executor)", hashed=False)
     resume: bool = option(True, "reuse finished trials in OUT/trials/ with the same twin, task, robot, seed and "
                           "sigmas, so a killed run continues", hashed=False)
 
@@ -51,3 +53,4 @@ class RobotOptions:
             raise InputError(f"--sigma-yaw must be in [0, 0.5] radians, got {self.sigma_yaw}")
         if self.robot_mjcf is not None and not Path(self.robot_mjcf).is_file():
             raise InputError("robot MJCF not found", self.robot_mjcf)
+        self.cluster.resolve()   # a bad executor choice fails before the nominal run
