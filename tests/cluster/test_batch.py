@@ -138,3 +138,28 @@ def test_reconstruction_asks_for_a_gpu_when_the_cluster_has_one(tmp_path):
     with ex2:
         run_batch([tmp_path / "a"], tmp_path / "out2", OPTS, ex2, cpus=1, progress=False)
     assert {j.resources.gpus for j in ex2.jobs} == {0.0}
+
+
+def test_batch_cli_flags_reach_the_build_options(tmp_path, monkeypatch):
+    """`batch` takes every `build` flag (generated from BuildOptions) and its own (BatchOptions, with the
+    executor's); each capture's build gets its input, and its trials a local pool of the task's CPUs."""
+    from splattwin.cli import build_parser
+    from splattwin.cluster.options import BatchOptions
+    from splattwin.executor import ExecutorOptions
+    from splattwin.options import from_args
+    from splattwin.pipeline.cli import resolve_options
+
+    a = build_parser().parse_args(["batch", "a", "b", "--out", "o", "--iters", "50", "--semantics.fusion.kappa", "2",
+                                   "--executor", "ray", "--max-retries", "1", "--cpus-per-build", "3",
+                                   "--robot.cluster.executor", "ray", "--task", "default", "--trials", "4"])
+    bo = from_args(BatchOptions, a)
+    assert bo == BatchOptions(cpus_per_build=3.0, cluster=ExecutorOptions(executor="ray", max_retries=1))
+    build = resolve_options(a)
+    assert (build.splat.iters, build.semantics.fusion.kappa, build.robot.trials) == (50, 2.0, 4)
+    ex = _GpuCluster()
+    with ex:
+        run_batch([tmp_path / "a"], tmp_path / "out", build, ex, cpus=3, progress=False)
+    opts = {j.key[1]: j.args[1] for j in ex.jobs}
+    for o in opts.values():
+        assert o.input == str((tmp_path / "a").absolute()) and o.splat.iters == 50 and o.robot.trials == 4
+        assert o.robot.cluster == ExecutorOptions(executor="local", workers=3)

@@ -117,3 +117,34 @@ def test_sweep_cli_bad_input(gt_twin: Path, tmp_path: Path, capsys):
     # fusion cells re-run from the twin's splats: a ground-truth twin has none
     assert main(["sweep", str(gt_twin), "--out", str(tmp_path / "d"), "--kappa", "1.2"]) == 2
     assert "no splat file" in capsys.readouterr().err
+
+
+def test_sweep_starts_from_the_twins_resolved_config(gt_twin: Path, tmp_path: Path):
+    """The values a sweep does not vary are those twin.json records (config.build, nested as `build`
+    writes it): fusion, geometry and the trials' robot options; a bad entry names twin.json."""
+    import shutil
+
+    from splattwin.cluster.sweep import base_options, trial_options
+    from splattwin.geometry.options import GeometryOptions
+    from splattwin.twin.manifest import Manifest
+
+    twin = tmp_path / "twin"
+    shutil.copytree(gt_twin, twin)
+    man = Manifest.load(twin)
+    man.config["build"] = {"semantics": {"fusion": {"kappa": 2.5, "iters": 1}},
+                           "geometry": {"min_opacity": 0.2, "alpha_factors": [2.0]},
+                           "robot": {"planner": "RRTstar", "seed": 7, "cluster": {"executor": "ray"}}}
+    man.save(twin)
+    man = Manifest.load(twin)
+    fusion, geometry = base_options(twin, man)
+    assert (fusion.kappa, fusion.iters, fusion.depth_tol) == (2.5, 1, FusionOptions().depth_tol)
+    assert (geometry.min_opacity, geometry.alpha_factors) == (0.2, (2.0,))
+    assert geometry.dbscan_eps == GeometryOptions().dbscan_eps
+    robot = trial_options(twin, man)
+    assert (robot.planner, robot.seed) == ("RRTstar", 7)
+    assert robot.cluster.executor is None     # where the build's trials ran is not where the sweep's run
+    man.config["build"]["geometry"]["min_opacity"] = "high"
+    man.save(twin)
+    with pytest.raises(Exception, match="min_opacity") as e:
+        base_options(twin, Manifest.load(twin))
+    assert "twin.json" in str(e.value)

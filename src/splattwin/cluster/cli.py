@@ -83,13 +83,10 @@ def _grid(opts: SweepOptions) -> dict[str, list]:
 
 
 def run_sweep_cli(args: argparse.Namespace) -> int:
-    from splattwin.robot.render import prefer_egl
-
-    prefer_egl()
     from splattwin.cluster.sweep import SweepSpec, print_table, run_sweep, trial_options
     from splattwin.errors import InputError
     from splattwin.executor import make_executor
-    from splattwin.options import from_args
+    from splattwin.options import from_args, given, merge
     from splattwin.robot.options import RobotOptions
     from splattwin.robot.trials import TrialSpec
     from splattwin.twin.manifest import Manifest
@@ -100,7 +97,9 @@ def run_sweep_cli(args: argparse.Namespace) -> int:
     if not (args.twin / "twin.json").is_file():
         raise InputError("not a twin folder (no twin.json)", args.twin)
     # the trials as the twin was built (its resolved config), the flags given here on top
-    robot = from_args(RobotOptions, args, base=trial_options(args.twin, Manifest.load(args.twin)))
+    # (only the robot flags this command has: --sigma, --trials and --cluster.* are the sweep's own)
+    given_robot = {k: v for k, v in given(args, RobotOptions).items() if k in SWEEP_ROBOT_FLAGS}
+    robot = merge(trial_options(args.twin, Manifest.load(args.twin)), given_robot)
     robot.validate()
     if robot.task not in (None, "default") and not Path(robot.task).is_file():
         raise InputError("task file not found", robot.task)
