@@ -1,6 +1,6 @@
 """The package imports only downwards: capture -> poses -> splat -> semantics -> geometry -> twin -> robot ->
-playback -> report / viewer, with scene (the embedded-scene generator, used by tests and the pipeline)
-and pipeline on top; the shared modules at the top level (errors, io, options, paths, ...) import no
+playback -> report / viewer, with scene (the embedded-scene generator, used by tests and the pipeline),
+pipeline, and cluster (sweeps and batches of builds) on top; the shared modules at the top level (errors, io, options, paths, ...) import no
 stage. Every import counts, including those inside functions (lazy imports are still dependencies)."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 SRC = Path(__file__).parents[1] / "src" / "splattwin"
 
 LAYERS = ["capture", "poses", "splat", "semantics", "geometry", "twin", "robot", "playback", "report", "viewer",
-          "scene", "pipeline"]
+          "scene", "pipeline", "cluster"]
 TOP = {"cli"}   # the command line registers every stage's commands
 
 

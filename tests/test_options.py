@@ -132,6 +132,7 @@ def test_set_everywhere_reaches_nested_options():
 
 # -- every default is written once ------------------------------------------------------------------
 def _option_classes() -> list[type]:
+    from splattwin.cluster.options import BatchOptions, SweepOptions
     from splattwin.pipeline.options import BuildOptions
     from splattwin.robot.options import RobotOptions
 
@@ -146,6 +147,8 @@ def _option_classes() -> list[type]:
                 walk(s.nested)
     walk(BuildOptions)
     walk(RobotOptions)
+    walk(SweepOptions)
+    walk(BatchOptions)
     return seen
 
 

@@ -29,6 +29,7 @@ STAGE_CLIS = [
     "splattwin.semantics.cli",
     "splattwin.twin.geometry_cli",
     "splattwin.twin.cli",
+    "splattwin.cluster.cli",
     "splattwin.playback.cli",
     "splattwin.report.cli",
     "splattwin.viewer.cli",

@@ -144,7 +144,7 @@ def flag_name(spec: Spec) -> str:
 
 
 def _fmt(v: Any, spec: Spec) -> str:
-    if v is None:
+    if v is None or v == ():
         return "none"
     if spec.meta.get("degrees") and isinstance(v, (int, float)):
         v = round(math.degrees(v), 6)

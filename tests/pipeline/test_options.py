@@ -191,7 +191,9 @@ def test_stage_keys_follow_their_own_sub_config(tmp_path):
     assert changed(geometry={"collision_faces": 900}) == {"twin", "robot", "report"}
     assert changed(robot={"trials": 2}) == {"robot", "report"}
     # what does not change results does not change keys
-    assert changed(splat={"checkpoint_every": 7}, robot={"workers": 1, "resume": False}) == set()
+    assert changed(splat={"checkpoint_every": 7}, robot={"resume": False,
+                                                         "cluster": {"executor": "ray", "ray_address": "auto",
+                                                                     "max_retries": 0, "workers": 1}}) == set()
     quiet = dataclasses.replace(base, splat=dataclasses.replace(base.splat, progress=False))
     assert stage_keys(tmp_path / "twin", quiet) == k0 == stage_keys(tmp_path / "twin", base.with_seed(0))
 

@@ -13,8 +13,9 @@ from pathlib import Path
 from splattwin.options import add_config_flag, add_options, given, load_config, merge
 
 
-
-def _common(p: argparse.ArgumentParser, demo: bool) -> None:
+def add_build_flags(p: argparse.ArgumentParser, demo: bool = False) -> None:
+    """The flags of `build` (and `demo`, and `batch`): config file, --seed, --from/--until, --no-progress, and
+    every stage option generated from `BuildOptions` (read back with `resolve_options`)."""
     from splattwin.pipeline.options import STAGES, BuildOptions
 
     add_config_flag(p)
@@ -34,13 +35,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                        "cameras.json, BOP scene, or TUM pose list + intrinsics (or "
                                                        "`input:` in the config file)")
     b.add_argument("--out", type=Path, help="twin folder to write (required)")
-    _common(b, demo=False)
+    add_build_flags(b)
     b.set_defaults(func=_build)
 
     d = sub.add_parser("demo", help="the whole pipeline on the embedded tabletop scene, the three-step task "
                                     "in physics, and the HTML report")
     d.add_argument("--out", type=Path, default=Path("demo_out"))
-    _common(d, demo=True)
+    add_build_flags(d, demo=True)
     d.set_defaults(func=_demo)
 
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from splattwin.errors import InputError
+from splattwin.executor import ExecutorOptions
 from splattwin.options import option
 
 IN_HAND = ("sensed", "planned")
@@ -38,7 +39,6 @@ class RobotOptions:
     planner: str = option("RRTConnect", "OMPL planner")
     seed: int = option(0, "seed of the planner and of the trials' perturbations")
     render: bool = option(True, "render PNG frames of the execution", build_alias="frames")
-    workers: int | None = option(None, "processes for the trials (none: CPU count)", hashed=False)
     record: Path | None = option(None, "record every run (the nominal one as episode 0, trial i as episode i) as a "
                                  "LeRobot-layout episode (v2.1: parquet of joint positions, gripper width and "
                                  "commanded actions + one MP4 per camera: wrist and scene) into this folder, "
@@ -50,6 +50,8 @@ class RobotOptions:
                                 "camera (eye-in-hand, D435-like) is always recorded", hashed=False)
     record_width: int = option(320, "image width of the recorded episodes (the wrist camera is 4:3 at this width, "
                                "the scene camera keeps its aspect)", unit="px", hashed=False)
+    cluster: ExecutorOptions = option(factory=ExecutorOptions, help="where the trials run: a local process pool "
+                                      "or a Ray cluster (splattwin.executor)", hashed=False)
     resume: bool = option(True, "reuse finished trials in OUT/trials/ with the same twin, task, robot, seed and "
                           "sigmas, so a killed run continues", hashed=False)
 
@@ -66,3 +68,4 @@ class RobotOptions:
             raise InputError(f"--record-fps must be in (0, 120] Hz, got {self.record_fps}")
         if not 16 <= self.record_width <= 4096:
             raise InputError(f"--record-width must be in [16, 4096] pixels, got {self.record_width}")
+        self.cluster.resolve()   # a bad executor choice fails before the nominal run

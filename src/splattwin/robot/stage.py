@@ -64,9 +64,15 @@ def run(inputs: RobotInputs, options: RobotOptions, *, progress: bool = True,
         path = io.write_json(out / "results.json", {"error": str(e), "task": options.task})
         return RobotResult(results=path, success=False, error=str(e))
     # trials land in OUT/trials/<i>.json: a killed run resumes them
-    trials = run_trials(spec, options.trials, options.sigma, workers=options.workers, progress=progress,
-                        out_dir=out, resume=options.resume, sigma_yaw=options.sigma_yaw,
-                        keep_rollouts=options.record is not None) if options.trials > 0 else None
+    trials = None
+    if options.trials > 0:
+        from splattwin.executor import make_executor
+
+        # a local pool or a Ray cluster (options.cluster); the outcomes depend only on the trials' seeds
+        with make_executor(options.cluster, max_tasks=options.trials) as ex:
+            trials = run_trials(spec, options.trials, options.sigma, progress=progress, out_dir=out,
+                                resume=options.resume, sigma_yaw=options.sigma_yaw, executor=ex,
+                                keep_rollouts=options.record is not None)
     paths = write_outputs(out, spec, result, trials,
                           render_note=(note or "") if options.render else "rendering disabled (--no-render)",
                           frames=frames, wall_s=time.perf_counter() - t0)

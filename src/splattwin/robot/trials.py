@@ -9,6 +9,8 @@ plan-then-execute loop tolerates.
 The success rate comes with a Wilson score 95 % interval (good at small N and rates near 0 or 1).
 With an output folder every finished trial is written atomically to OUT/trials/<i>.json with its key
 (twin, task and robot files by content, base, planner, seed, sigmas); a re-run skips those (resume).
+The trials run on an executor (`splattwin.executor`): a local process pool by default, or a Ray
+cluster; a trial's outcome depends only on its spec (seeded), not on where it ran.
 """
 
 from __future__ import annotations
@@ -16,7 +18,6 @@ from __future__ import annotations
 import math
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -175,8 +176,10 @@ def load_finished(path: Path, spec: TrialSpec, rollouts: bool = False) -> dict |
     return d
 
 
-def _trial_worker(job: tuple) -> dict:
-    spec, path, keep_rollout = job if len(job) == 3 else (*job, False)
+def run_trial_job(spec: TrialSpec, path: str | None, keep_rollout: bool = False) -> dict:
+    """One perturbed trial (a task for any executor): its result dict; written atomically to `path` with
+    its key as soon as it finishes, so a killed run keeps it. keep_rollout: its `Rollout` is written
+    first, to `rollout_path(path)` (the result names it under "rollout")."""
     t0 = time.perf_counter()
     r = None
     try:
@@ -186,7 +189,7 @@ def _trial_worker(job: tuple) -> dict:
         d = {"success": False, "collisions": 0, "plan_ms": [], "steps": [], "error": f"{type(e).__name__}: {e}"}
     d["seed"] = spec.seed
     d["trial_wall_s"] = time.perf_counter() - t0
-    if path is not None:   # written by the worker as soon as it finishes: a killed run keeps it
+    if path is not None:
         from splattwin import io
 
         if r is not None and r.rollout is not None and len(r.rollout):
@@ -197,39 +200,22 @@ def _trial_worker(job: tuple) -> dict:
     return d
 
 
-def run_trials(base_spec: TrialSpec, n: int, sigma: float, workers: int | None = None, progress: bool = True,
-               out_dir: str | Path | None = None, resume: bool = True, sigma_yaw: float | None = None,
-               keep_rollouts: bool = False) -> dict:
-    """N perturbed trials (seeds base_spec.seed + 1 .. + n) in a process pool; summary dict.
-
-    sigma: m, per-axis (x and y) standard deviation of each object's position error; sigma_yaw: rad
-    (default sigma / YAW_LEVER). out_dir: each finished trial is written atomically to
-    out_dir/trials/<i>.json (i = 1..n) with its key (`trial_key`); with resume, a re-run with the same
-    key skips the trials already there (a killed run continues where it stopped). keep_rollouts (needs
-    out_dir): each worker also writes its trial's `Rollout` to out_dir/trials/<i>.rollout.npz (atomically,
-    before the result; the result names it under "rollout"), e.g. for `plan --record`.
-    """
+def trial_jobs(base_spec: TrialSpec, n: int, sigma: float, out_dir: str | Path | None = None,
+               sigma_yaw: float | None = None) -> tuple[list[TrialSpec], list[Path | None]]:
+    """The specs (seeds base_spec.seed + 1 .. + n) and result paths (out_dir/trials/<i>.json) of n trials."""
     from dataclasses import replace
 
+    # absolute paths: a worker may run in another working directory (or on another node of a cluster)
+    absolute = {k: str(Path(v).resolve()) for k in ("twin_dir", "task_path", "robot_mjcf")
+                if (v := getattr(base_spec, k)) is not None}
+    base_spec = replace(base_spec, **absolute)
     specs = [replace(base_spec, sigma=sigma, sigma_yaw=sigma_yaw, seed=base_spec.seed + 1 + i) for i in range(n)]
     paths = [Path(out_dir) / "trials" / f"{i + 1}.json" if out_dir is not None else None for i in range(n)]
-    keep_rollouts = keep_rollouts and out_dir is not None
-    results: list[dict | None] = [load_finished(p, sp, rollouts=keep_rollouts) if (p is not None and resume) else None
-                                  for sp, p in zip(specs, paths)]
-    todo = [i for i, r in enumerate(results) if r is None]
-    workers = max(1, min(len(todo) or 1, workers or (os.cpu_count() or 1)))
-    t0 = time.perf_counter()
-    if todo:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            it = pool.map(_trial_worker, [(specs[i], str(paths[i]) if paths[i] else None, keep_rollouts)
-                                          for i in todo])
-            if progress:
-                from rich.progress import track
+    return specs, paths
 
-                it = track(it, total=len(todo), description=f"trials (sigma {sigma * 1000:.1f} mm per axis)")
-            for i, r in zip(todo, it):
-                results[i] = r
-    done: list[dict] = [r for r in results if r is not None]
+
+def summarize_trials(done: list[dict], n: int, sigma: float, sigma_yaw: float | None = None) -> dict:
+    """Success rate with its Wilson 95 % interval, collisions and timings of finished trial results."""
     k = sum(1 for r in done if r["success"])
     lo, hi = wilson_interval(k, n)
     plan_ms = [p for r in done for p in r.get("plan_ms", [])]
@@ -238,5 +224,44 @@ def run_trials(base_spec: TrialSpec, n: int, sigma: float, workers: int | None =
             "sigma_definition": SIGMA_DEFINITION,
             "collisions": int(sum(r.get("collisions", 0) for r in done)),
             "plan_ms_median": float(np.median(plan_ms)) if plan_ms else None,
-            "trial_wall_s_median": float(np.median([r["trial_wall_s"] for r in done])) if done else None,
-            "wall_s": time.perf_counter() - t0, "workers": workers, "resumed": n - len(todo), "results": done}
+            "trial_wall_s_median": float(np.median([r["trial_wall_s"] for r in done])) if done else None}
+
+
+def run_trials(base_spec: TrialSpec, n: int, sigma: float, workers: int | None = None, progress: bool = True,
+               out_dir: str | Path | None = None, resume: bool = True, sigma_yaw: float | None = None,
+               executor=None, keep_rollouts: bool = False) -> dict:
+    """N perturbed trials (seeds base_spec.seed + 1 .. + n) in parallel; summary dict.
+
+    sigma: m, per-axis (x and y) standard deviation of each object's position error; sigma_yaw: rad
+    (default sigma / YAW_LEVER). out_dir: each finished trial is written atomically to
+    out_dir/trials/<i>.json (i = 1..n) with its key (`trial_key`); with resume, a re-run with the same
+    key skips the trials already there (a killed run continues where it stopped).
+    executor: a `splattwin.executor.Executor` (e.g. Ray); default a local pool of `workers`
+    processes (default: CPU count). keep_rollouts (needs out_dir): each trial also writes its `Rollout`
+    to out_dir/trials/<i>.rollout.npz (atomically, before its result), e.g. for `plan --record`.
+    """
+    from splattwin.executor import Job, LocalExecutor
+
+    specs, paths = trial_jobs(base_spec, n, sigma, out_dir, sigma_yaw)
+    keep_rollouts = keep_rollouts and out_dir is not None
+    results: list[dict | None] = [load_finished(p, sp, rollouts=keep_rollouts) if (p is not None and resume) else None
+                                  for sp, p in zip(specs, paths)]
+    todo = [i for i, r in enumerate(results) if r is None]
+    ex = executor or LocalExecutor(max(1, min(len(todo) or 1, workers or (os.cpu_count() or 1))))
+    t0 = time.perf_counter()
+    if todo:
+        def done(job, out) -> None:
+            # a trial whose worker died max_retries + 1 times is a failed trial (not stored: a re-run tries again)
+            results[job.key] = out.value if out.ok else {"success": False, "collisions": 0, "plan_ms": [], "steps": [],
+                                                         "seed": specs[job.key].seed, "trial_wall_s": 0.0,
+                                                         "error": f"worker: {out.error}"}
+        try:
+            ex.run([Job(i, run_trial_job, (specs[i], str(paths[i]) if paths[i] else None, keep_rollouts), name=f"trial-{i + 1}")
+                    for i in todo], on_done=done, progress=progress,
+                   description=f"trials (sigma {sigma * 1000:.1f} mm per axis)")
+        finally:
+            if executor is None:
+                ex.close()
+    done_results: list[dict] = [r for r in results if r is not None]
+    return {**summarize_trials(done_results, n, sigma, sigma_yaw), "wall_s": time.perf_counter() - t0,
+            "workers": ex.workers, "executor": ex.kind, "resumed": n - len(todo), "results": done_results}

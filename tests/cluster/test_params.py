@@ -1,0 +1,55 @@
+"""Sweep parameters map onto the stages' options objects by field name, parsed by the field's type."""
+
+from __future__ import annotations
+
+import pytest
+
+from splattwin.cluster import params as P
+from splattwin.errors import InputError
+from splattwin.geometry.options import GeometryOptions
+from splattwin.robot.options import RobotOptions
+from splattwin.semantics.options import FusionOptions
+
+
+def test_aliases_and_targets():
+    assert P.canonical("kappa") == "fusion.kappa"
+    assert P.canonical("fusion-iters") == "fusion.iters"
+    assert P.canonical("sigma") == "trials.sigma"
+    assert P.canonical("geometry.min_opacity") == "geometry.min_opacity"
+    assert P.canonical("fusion.depth_tol") == "fusion.depth_tol"
+
+
+@pytest.mark.parametrize("bad", ["foo", "fusion.nope", "geometry.alpha_factors", "trials.seed", "trials.twin_dir",
+                                 "robot.sigma", "fusion."])
+def test_unknown_parameters_are_input_errors(bad):
+    with pytest.raises(InputError):
+        P.canonical(bad)
+
+
+def test_values_parsed_by_field_type():
+    assert P.parse_values("fusion.kappa", "1.2, 2") == [1.2, 2.0]
+    assert P.parse_values("fusion.iters", "1,3") == [1, 3]
+    assert all(type(v) is int for v in P.parse_values("geometry.dbscan_min_samples", "5,10"))
+    assert P.parse_values("geometry.use_alpha", "true,off") == [True, False]
+    assert P.parse_values("geometry.max_scale", "none,0.01") == [None, 0.01]
+    assert P.parse_values("trials.in_hand", "sensed,planned") == ["sensed", "planned"]
+    assert P.parse_assignment("geometry.min_opacity=0.05,0.1") == ("geometry.min_opacity", [0.05, 0.1])
+    for name, text in [("fusion.iters", "1.5"), ("fusion.kappa", "abc"), ("fusion.kappa", "nan"),
+                       ("geometry.use_alpha", "maybe"), ("trials.sigma", "0.2"), ("fusion.kappa", "0"),
+                       ("fusion.kappa", "1,1"), ("trials.in_hand", "guessed")]:   # choices are checked
+        with pytest.raises(InputError):
+            P.parse_values(name, text)
+    with pytest.raises(InputError, match="NAME=V1,V2"):
+        P.parse_assignment("geometry.min_opacity")
+
+
+def test_split_and_apply_set_the_named_fields():
+    parts = P.split({"fusion.kappa": 1.2, "geometry.min_opacity": 0.05, "trials.sigma": 0.004, "fusion.iters": 1})
+    assert parts == {"fusion": {"kappa": 1.2, "iters": 1}, "geometry": {"min_opacity": 0.05}, "trials": {"sigma": 0.004}}
+    f = P.apply(FusionOptions(), parts["fusion"])
+    assert (f.kappa, f.iters, f.depth_tol) == (1.2, 1, FusionOptions().depth_tol)
+    g = P.apply(GeometryOptions(), parts["geometry"])
+    assert g.min_opacity == 0.05 and g.dbscan_eps == GeometryOptions().dbscan_eps
+    t = P.apply(RobotOptions(), parts["trials"])
+    assert t.sigma == 0.004 and t.seed == RobotOptions().seed
+    assert P.default("fusion.kappa") == FusionOptions().kappa

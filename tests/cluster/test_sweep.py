@@ -1,0 +1,150 @@
+"""`splattwin sweep`: a grid over fusion, geometry cleaning and trial parameters on a small built twin,
+on Ray; every parameter reaches its options object; a re-run on the local pool resumes everything and
+gives the same table."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from splattwin.executor import LocalExecutor, RayExecutor
+from splattwin.cluster.sweep import SweepSpec, run_sweep
+from splattwin.robot.trials import TrialSpec, wilson_interval
+from splattwin.semantics.options import FusionOptions
+
+SCENE = {"seed": 0, "width": 160, "height": 120, "views": 8, "heldout": 3}
+SPLAT = {"iters": 800, "max_gaussians": 20000, "checkpoint_every": 200}
+
+
+@pytest.fixture(scope="module")
+def small_twin(tmp_path_factory) -> Path:
+    """A built twin (scene, poses, splats, semantics, twin) of a small embedded scene. Its yellow cube keeps
+    22 points after cleaning: usable with geometry.min_points=10, not with the default 50."""
+    from splattwin.pipeline.build import BuildOptions, build
+
+    out = tmp_path_factory.mktemp("sweep_twin") / "twin"
+    opts = BuildOptions.from_dict({"scene": SCENE, "poses": {"method": "known"}, "splat": SPLAT})
+    build(out, opts, until="twin", progress=False)
+    return out
+
+
+def _rows(summary: dict) -> list[dict]:
+    return [{k: v for k, v in r.items() if k != "twin"} for r in summary["cells"]]
+
+
+@pytest.mark.slow
+def test_sweep_grid_on_ray_then_resumed_locally(small_twin: Path, ray_session, tmp_path: Path):
+    from splattwin.capture import load_dataset
+    from splattwin.semantics.lift import fuse_to_dir
+    from splattwin.semantics.masks import load_masks
+    from splattwin.twin.manifest import Manifest
+
+    grid = {"fusion.kappa": [1.5, 2.0], "geometry.min_points": [10, 50], "trials.sigma": [0.004]}
+    spec = SweepSpec(twin=small_twin, grid=grid, trials=2, trial=TrialSpec(str(small_twin), None))
+    out = tmp_path / "sweep"
+    with RayExecutor() as ex:
+        s = run_sweep(spec, out, ex, progress=False)
+    cells = s["cells"]
+    assert [(c["fusion.kappa"], c["geometry.min_points"]) for c in cells] == [(1.5, 10), (1.5, 50), (2.0, 10), (2.0, 50)]
+    assert len(list((out / "fusion").iterdir())) == 2 and len(list((out / "twins").iterdir())) == 4
+    for c in cells:
+        assert 0 <= c["consistency"] <= 100 and 0 <= c["ghost_index"] <= 100 and 0 < c["miou_heldout"] <= 1
+        man = Manifest.load(c["twin"])
+        # the geometry parameter reached GeometryOptions, the fusion one FusionOptions (the cell twin's resolved
+        # config, nested as `build` records it); the others kept the twin's own values
+        base = Manifest.load(small_twin).config["build"]
+        assert man.config["build"]["geometry"]["min_points"] == c["geometry.min_points"]
+        assert man.config["build"]["semantics"]["fusion"]["kappa"] == c["fusion.kappa"]
+        assert man.config["build"]["geometry"]["dbscan_eps"] == base["geometry"]["dbscan_eps"]
+        assert man.config["build"]["splat"] == base["splat"]
+        if c["geometry.min_points"] == 50:   # the cube is too small for the default: reported, no trials
+            assert "yellow_cube" in c["error"] and "not usable" in c["error"] and c["trials"] is None
+        else:
+            assert c["error"] is None and c["trials"] == 2 and c["objects_usable"] == "5/5"
+            assert [c["ci95_lo"], c["ci95_hi"]] == list(wilson_interval(c["successes"], 2))
+            trial_files = sorted(Path(out / "cells").glob("*/trials/*.json"))
+            keys = [json.loads(f.read_text())["key"] for f in trial_files]
+            assert {k["twin"] for k in keys} == {str(Path(c["twin"]).resolve()) for c in cells if c["trials"]}  # noqa: E501
+            assert {k["sigma"] for k in keys} == {0.004}
+    # the fusion parameter reached FusionOptions: the cell's labels are those of a direct fusion with kappa 2
+    fusion_dir = next(d for d in (out / "fusion").iterdir() if json.loads((d / "fusion.json").read_text())["options"]["kappa"] == 2.0)
+    direct = fuse_to_dir(small_twin / "splat" / "point_cloud.ply", load_dataset(small_twin / "poses" / "transforms.json"),
+                         load_masks(out / "masks"), tmp_path / "direct", FusionOptions(kappa=2.0, iters=3),
+                         label_maps=False, progress=False)
+    np.testing.assert_array_equal(np.load(fusion_dir / "labels.npy"), direct.labels)
+    # one table: CSV rows = JSON cells
+    rows = list(csv.DictReader((out / "sweep.csv").open()))
+    assert [r["fusion.kappa"] for r in rows] == ["1.5", "1.5", "2.0", "2.0"]
+    assert [r["successes"] for r in rows] == ["" if c["successes"] is None else str(c["successes"]) for c in cells]
+    assert (out / "sweep.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # a re-run (here on the local pool) reuses every finished task and gives the same table
+    done = {p: p.stat().st_mtime_ns for p in out.rglob("*.json") if p.parent.name != "sweep"
+            and p.name not in ("sweep.json", "masks.json")}
+    with LocalExecutor(2) as ex:
+        again = run_sweep(spec, out, ex, progress=False)
+    assert _rows(again) == _rows(s)
+    assert {p: p.stat().st_mtime_ns for p in done} == done, "a finished task ran again"
+
+
+@pytest.mark.slow
+def test_sweep_cli_sigma_grid_on_ray(gt_twin: Path, ray_session, tmp_path: Path, capsys):
+    from splattwin.cli import main
+
+    out = tmp_path / "sw"
+    rc = main(["sweep", str(gt_twin), "--out", str(out), "--sigma", "0.004,0.008", "--trials", "2", "--executor", "ray"])
+    s = json.loads((out / "sweep.json").read_text())
+    assert rc == 0 and [c["trials.sigma"] for c in s["cells"]] == [0.004, 0.008]
+    assert all(c["trials"] == 2 and c["error"] is None for c in s["cells"])
+    assert all(c["twin"] == str(gt_twin.resolve()) for c in s["cells"])        # no fusion/geometry: the twin itself
+    assert not (out / "fusion").exists() and not (out / "twins").exists()
+    assert "Ray" in s["executor"]
+    assert "sweep of" in capsys.readouterr().out
+
+
+def test_sweep_cli_bad_input(gt_twin: Path, tmp_path: Path, capsys):
+    from splattwin.cli import main
+
+    assert main(["sweep", str(gt_twin), "--out", str(tmp_path / "a")]) == 2
+    assert "nothing to sweep" in capsys.readouterr().err
+    assert main(["sweep", str(gt_twin), "--out", str(tmp_path / "b"), "--param", "fusion.nope=1"]) == 2
+    assert "nope" in capsys.readouterr().err
+    assert main(["sweep", str(tmp_path), "--out", str(tmp_path / "c"), "--sigma", "0.004"]) == 2
+    assert "twin.json" in capsys.readouterr().err
+    # fusion cells re-run from the twin's splats: a ground-truth twin has none
+    assert main(["sweep", str(gt_twin), "--out", str(tmp_path / "d"), "--kappa", "1.2"]) == 2
+    assert "no splat file" in capsys.readouterr().err
+
+
+def test_sweep_starts_from_the_twins_resolved_config(gt_twin: Path, tmp_path: Path):
+    """The values a sweep does not vary are those twin.json records (config.build, nested as `build`
+    writes it): fusion, geometry and the trials' robot options; a bad entry names twin.json."""
+    import shutil
+
+    from splattwin.cluster.sweep import base_options, trial_options
+    from splattwin.geometry.options import GeometryOptions
+    from splattwin.twin.manifest import Manifest
+
+    twin = tmp_path / "twin"
+    shutil.copytree(gt_twin, twin)
+    man = Manifest.load(twin)
+    man.config["build"] = {"semantics": {"fusion": {"kappa": 2.5, "iters": 1}},
+                           "geometry": {"min_opacity": 0.2, "alpha_factors": [2.0]},
+                           "robot": {"planner": "RRTstar", "seed": 7, "cluster": {"executor": "ray"}}}
+    man.save(twin)
+    man = Manifest.load(twin)
+    fusion, geometry = base_options(twin, man)
+    assert (fusion.kappa, fusion.iters, fusion.depth_tol) == (2.5, 1, FusionOptions().depth_tol)
+    assert (geometry.min_opacity, geometry.alpha_factors) == (0.2, (2.0,))
+    assert geometry.dbscan_eps == GeometryOptions().dbscan_eps
+    robot = trial_options(twin, man)
+    assert (robot.planner, robot.seed) == ("RRTstar", 7)
+    assert robot.cluster.executor is None     # where the build's trials ran is not where the sweep's run
+    man.config["build"]["geometry"]["min_opacity"] = "high"
+    man.save(twin)
+    with pytest.raises(Exception, match="min_opacity") as e:
+        base_options(twin, Manifest.load(twin))
+    assert "twin.json" in str(e.value)
