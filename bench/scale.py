@@ -39,15 +39,6 @@ import threading
 import time
 from pathlib import Path
 
-TIMING = ("plan_ms", "wall_s", "trial_wall_s")
-
-
-def outcome(d):
-    if isinstance(d, dict):
-        return {k: outcome(v) for k, v in d.items() if k not in TIMING}
-    if isinstance(d, list):
-        return [outcome(v) for v in d]
-    return d
 
 
 def tree_cpu_s() -> float:
@@ -178,6 +169,8 @@ def main() -> int:
             con.print(f"{kind}: {r['wall_s']:.1f} s wall ({r['warm_s']:.1f} s without start/stop), "
                       f"{r['cpu_s']:.0f} CPU s, {r['successes']}/{args.trials}")
             runs.append(r)
+    from splattwin.robot.trials import trial_outcome as outcome
+
     by = {k: [r for r in runs if r["kind"] == k] for k in ("local", "ray")}
     ref = outcome(by["local"][0]["results"])
     equal = all(outcome(r["results"]) == ref for r in runs)

@@ -35,7 +35,8 @@ _SKIP_SUFFIXES = (".pyc", ".pyo", ".nbi", ".nbc")
 _CHUNK = 1 << 20
 
 
-def _sha256_file(path: Path) -> str:
+def sha256_file(path: str | Path) -> str:
+    """SHA-256 (hex) of a file's bytes, read in chunks."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
         while chunk := f.read(_CHUNK):
@@ -67,7 +68,7 @@ class DigestCache:
         hit = self._entries.get(key)
         if hit is not None and hit[0] == stamp and isinstance(hit[1], str):
             return hit[1]
-        digest = _sha256_file(path)
+        digest = sha256_file(path)
         self._entries[key] = [stamp, digest]
         self._dirty = True
         return digest

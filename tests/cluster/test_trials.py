@@ -11,20 +11,11 @@ import pytest
 
 from splattwin.executor import LocalExecutor, RayExecutor
 from splattwin.robot.trials import TrialSpec, run_trials
+from splattwin.robot.trials import trial_outcome as outcome
 
 from .conftest import kill_worker_when
 
 SIGMA = 0.008   # large enough that the trials differ (touch corrections, other grasps), same seeds each run
-TIMING = ("plan_ms", "wall_s", "trial_wall_s")
-
-
-def outcome(d):
-    """A trial result without its wall-clock timings (everything physics and planning decided)."""
-    if isinstance(d, dict):
-        return {k: outcome(v) for k, v in d.items() if k not in TIMING}
-    if isinstance(d, list):
-        return [outcome(v) for v in d]
-    return d
 
 
 @pytest.fixture(scope="module")

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from splattwin import io
+from splattwin.hashing import sha256_file
 from splattwin.cluster import params as P
 from splattwin.executor import Executor, Job, Outcome, Resources, limit_threads
 from splattwin.errors import InputError
@@ -72,12 +73,7 @@ def digest(obj: Any) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def file_digest(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
+file_digest = sha256_file
 
 
 def finished(folder: Path, key: dict) -> dict | None:

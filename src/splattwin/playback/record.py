@@ -17,7 +17,6 @@ ever replaced.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -28,6 +27,7 @@ import numpy as np
 
 from splattwin import io
 from splattwin.errors import InputError
+from splattwin.hashing import sha256_file
 from splattwin.playback.cameras import EyeInHand, check_camera, resolve_camera
 
 STATE_FILE = "record.json"
@@ -106,7 +106,7 @@ class Recorder:
         stage.mkdir(parents=True, exist_ok=True)
         reused = 0
         for ep, run in enumerate(runs):
-            digest = _sha256(run.rollout)
+            digest = sha256_file(run.rollout)
             if state["episodes"].get(str(ep)) == digest and _has_episode(stage, ep):
                 reused += 1
                 continue
@@ -162,14 +162,6 @@ def _read_state(path: Path) -> dict:
     except (OSError, ValueError):
         return {}
     return d if isinstance(d, dict) and isinstance(d.get("episodes"), dict) else {}
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _replace_dir(src: Path, dest: Path) -> None:

@@ -19,7 +19,6 @@ driving an arm joint.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import os
 import re
@@ -34,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from splattwin.errors import InputError
+from splattwin.hashing import sha256_file
 
 PANDA_NAME = "franka_emika_panda"
 PANDA_ENTRY = "panda"
@@ -102,14 +102,6 @@ def panda_model_path(entry: str = PANDA_ENTRY) -> Path:
 
 # -- provisioning from PyPI ---------------------------------------------------------------------------
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def _find_or_download_wheel(wheel_dir: Path, quiet: bool) -> Path:
     pattern = f"genesis_world-{GENESIS_VERSION}-*.whl"
     found = sorted(wheel_dir.glob(pattern))
@@ -176,7 +168,7 @@ def ensure_panda(dest_root: Path | None = None, wheel_dir: Path | None = None, q
             "source": f"PyPI {GENESIS_PACKAGE}=={GENESIS_VERSION} ({wheel.name}), folder {GENESIS_PREFIX}",
             "origin": "MuJoCo Menagerie franka_emika_panda (github.com/google-deepmind/mujoco_menagerie)",
             "licence": "Apache-2.0 (model: README.md 'License'; wheel: LICENSE)",
-            "wheel_sha256": _sha256(wheel),
+            "wheel_sha256": sha256_file(wheel),
             "modifications": f"added site '{TCP_SITE}' on body 'hand' at z = {TCP_OFFSET_Z} m",
         }
         (stage / SOURCE_FILE).write_text(json.dumps(source, indent=2) + "\n")

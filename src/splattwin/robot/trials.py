@@ -214,6 +214,19 @@ def trial_jobs(base_spec: TrialSpec, n: int, sigma: float, out_dir: str | Path |
     return specs, paths
 
 
+TIMING_KEYS = ("plan_ms", "wall_s", "trial_wall_s")
+
+
+def trial_outcome(d):
+    """A trial result (dict/list tree) without its wall-clock timings: everything physics and planning
+    decided, which equal seeds reproduce bit for bit on any executor."""
+    if isinstance(d, dict):
+        return {k: trial_outcome(v) for k, v in d.items() if k not in TIMING_KEYS}
+    if isinstance(d, list):
+        return [trial_outcome(v) for v in d]
+    return d
+
+
 def summarize_trials(done: list[dict], n: int, sigma: float, sigma_yaw: float | None = None) -> dict:
     """Success rate with its Wilson 95 % interval, collisions and timings of finished trial results."""
     k = sum(1 for r in done if r["success"])
