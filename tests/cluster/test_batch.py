@@ -68,7 +68,7 @@ def test_batch_on_ray_survives_a_killed_worker(captures: list[Path], ray_session
         assert lost_outputs(out / name) == []
         assert c["views"] == "8/8" and c["psnr"] > 10 and 0 < c["ssim"] <= 1 and c["report"] == "report/index.html"
     bad = by["empty"]
-    assert bad["status"] == "failed" and bad["failed_stage"] == "poses" and "no dataset found" in bad["error"]
+    assert bad["status"] == "failed" and bad["failed_stage"] == "preflight" and "no dataset found" in bad["error"]
     assert "Traceback" in Path(bad["log"]).read_text()
     # one summary: CSV rows, JSON and HTML agree
     rows = list(csv.DictReader((out / "summary.csv").open()))
@@ -76,7 +76,7 @@ def test_batch_on_ray_survives_a_killed_worker(captures: list[Path], ray_session
     assert float(rows[0]["psnr"]) == pytest.approx(by["scene0"]["psnr"], abs=1e-4)
     assert json.loads((out / "batch.json").read_text())["ok"] == 2
     html = (out / "summary.html").read_text()
-    assert "failed in poses" in html and html.count("data:image/png;base64,") >= 2
+    assert "failed in preflight" in html and html.count("data:image/png;base64,") >= 2
     assert 'href="scene0/report/index.html"' in html
 
     # a re-run on the local pool skips every finished stage of every capture

@@ -72,6 +72,7 @@ def _failed_stage(exc: BaseException) -> str | None:
 
     # a stage's own function, or the one that lists its input files (hashed before the stage runs)
     fns = {f.__name__: s.name for s in stages() for f in (s.run, s.inputs) if f is not None}
+    fns["preflight"] = "preflight"   # the checks that run before any stage (pipeline.build.preflight)
     stage = None
     for fr in traceback.extract_tb(exc.__traceback__):
         if fr.name in fns:
