@@ -269,11 +269,12 @@ def test_pixel_boxes_shrink_to_the_visible_ellipse_of_faint_gaussians():
     m2 = meta["means2d"][0].detach().numpy().astype(np.float32)
     co = meta["conics"][0].detach().numpy().astype(np.float32)
     ext = np.stack([meta["radii"][0].numpy()] * 2, -1).astype(np.int32)
-    boxes, nt = np.empty((1, 4), np.int32), np.empty(1, np.int64)
-    K_.pixel_boxes(m2, co, np.array([0.02], np.float32), ext, W, H, boxes, nt)
-    faint_tiles = int(nt[0])
-    K_.pixel_boxes(m2, co, np.array([0.99], np.float32), ext, W, H, boxes, nt)
+    rec, nt = np.empty((1, K_.R_COL + 1), np.float32), np.empty(1, np.int64)
+    K_.make_records(m2, co, np.ones((1, 1), np.float32), np.array([0.02], np.float32), ext, W, H, rec, nt)
+    faint_tiles, faint_box = int(nt[0]), rec[0, K_.R_X0:K_.R_Y1 + 1].copy()
+    K_.make_records(m2, co, np.ones((1, 1), np.float32), np.array([0.99], np.float32), ext, W, H, rec, nt)
     assert faint_tiles < int(nt[0])
+    assert faint_box[1] - faint_box[0] < rec[0, K_.R_X1] - rec[0, K_.R_X0]
 
 
 def test_walker_matches_exact_exponentials_on_its_lanes():

@@ -415,82 +415,95 @@ def sh_bwd(dirs, coeffs, degree, v_colors, v_coeffs, v_dirs, accumulate):
 # --------------------------------------------------------------------------------------------------------
 # tile binning
 # --------------------------------------------------------------------------------------------------------
+# record layout of one (Gaussian, camera): float32 columns
+R_U, R_V, R_A, R_B, R_C, R_OP, R_X0, R_X1, R_Y0, R_Y1 = range(10)
+R_COL = 10  # colour channels from here (D of them)
+
+
 @njit(**_JIT)
-def pixel_boxes(means2d, conics, opacities, extents, width, height, boxes, ntiles):
-    """Inclusive pixel box [x0, x1, y0, y1] of each Gaussian and its number of touched tiles.
-    boxes [N,4] int32, ntiles [N] int64.
+def make_records(means2d, conics, colors, opacities, extents, width, height, rec, ntiles):
+    """Per Gaussian one float32 record rec [N, 10+D]: u, v, conic a, b, c, opacity, inclusive pixel box
+    x0, x1, y0, y1 (integers, exact in float32), colours [D]; and its number of touched tiles ntiles [N]
+    (0: not drawn). One record = one cache line or two: binning copies it into every tile list it touches,
+    so the compositing kernels stream each tile's Gaussians from consecutive memory.
 
     The box holds the pixel centres inside the 3-sigma box (`extents`) that are also inside the bounding
     box of the ellipse sigma <= log(255 opacity), outside which alpha < 1/255 and the compositing kernels
     skip the pixel anyway: the same image from fewer tiles and rows for faint Gaussians (a 0.01 px margin
-    absorbs rounding, as in `_row_span`)."""
+    absorbs rounding, as in `_row_spans`)."""
     N = means2d.shape[0]
+    D = colors.shape[1]
     for i in prange(N):
         rx, ry = np.float64(extents[i, 0]), np.float64(extents[i, 1])
         ntiles[i] = 0
-        boxes[i, 0] = 0
-        boxes[i, 1] = -1
-        boxes[i, 2] = 0
-        boxes[i, 3] = -1
         op = np.float64(opacities[i])
-        if rx == 0 or op * 255.0 < 1.0:
-            continue
-        ca, cb, cc = np.float64(conics[i, 0]), np.float64(conics[i, 1]), np.float64(conics[i, 2])
-        det = ca * cc - cb * cb
-        if det > 0:
-            two_level = 2.0 * math.log(op * 255.0)
-            rx = min(rx, math.sqrt(two_level * cc / det) + 0.01)  # sigma_xx = c / det of the conic
-            ry = min(ry, math.sqrt(two_level * ca / det) + 0.01)
         u, v = np.float64(means2d[i, 0]), np.float64(means2d[i, 1])
+        ca, cb, cc = np.float64(conics[i, 0]), np.float64(conics[i, 1]), np.float64(conics[i, 2])
+        rec[i, R_U] = means2d[i, 0]
+        rec[i, R_V] = means2d[i, 1]
+        rec[i, R_A] = conics[i, 0]
+        rec[i, R_B] = conics[i, 1]
+        rec[i, R_C] = conics[i, 2]
+        rec[i, R_OP] = opacities[i]
+        for d in range(D):
+            rec[i, R_COL + d] = colors[i, d]
+        rec[i, R_X0] = 0.0
+        rec[i, R_X1] = -1.0
+        rec[i, R_Y0] = 0.0
+        rec[i, R_Y1] = -1.0
+        det = ca * cc - cb * cb
+        # alpha < 1/255 everywhere, or a conic that is not positive definite: never drawn
+        if rx == 0 or op * 255.0 < 1.0 or not (ca > 0.0 and det > 0.0):
+            continue
+        two_level = 2.0 * math.log(op * 255.0)
+        rx = min(rx, math.sqrt(two_level * cc / det) + 0.01)  # sigma_xx = c / det of the conic
+        ry = min(ry, math.sqrt(two_level * ca / det) + 0.01)
         x0 = max(int(math.ceil(u - rx - 0.5)), 0)
         x1 = min(int(math.floor(u + rx - 0.5)), width - 1)
         y0 = max(int(math.ceil(v - ry - 0.5)), 0)
         y1 = min(int(math.floor(v + ry - 0.5)), height - 1)
         if x0 > x1 or y0 > y1:
             continue
-        boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3] = x0, x1, y0, y1
+        rec[i, R_X0], rec[i, R_X1], rec[i, R_Y0], rec[i, R_Y1] = x0, x1, y0, y1
         ntiles[i] = (x1 // TILE - x0 // TILE + 1) * (y1 // TILE - y0 // TILE + 1)
-
-
-@njit(**_JIT)
-def take_rows(src, order, dst):
-    """dst[j] = src[order[j]] for 2D arrays (numpy's fancy indexing is single-threaded and ~10x slower)."""
-    for j in prange(order.shape[0]):
-        g = order[j]
-        for c in range(src.shape[1]):
-            dst[j, c] = src[g, c]
 
 
 BIN_CHUNKS = 16  # depth-order chunks binned in parallel (fixed: the output does not depend on threads)
 
 
 @njit(**_JIT)
-def bin_tiles(order, boxes, ntiles, width, height, tile_start, isect_gauss, gauss_isect, gauss_off):
-    """Counting sort of (tile, Gaussian) pairs by tile, Gaussians taken in depth `order`.
+def bin_tiles(order, rec, width, height, tile_start, packed, rank_off, rank_isect):
+    """Counting sort of (tile, Gaussian) pairs by tile, Gaussians taken in depth `order` [n] (drawn
+    Gaussians only), each pair's record copied: packed [M, 10+D] holds tile t's Gaussians, depth-sorted, at
+    rows tile_start[t]:tile_start[t+1] (tile_start [T+1], out), so a tile's compositing streams through
+    consecutive memory (scattered reads made the 640x480 / 200k case 2x slower per pair than 320x240).
+    rank_off [n+1] (out): prefix sum of the touched tiles in depth order; rank_isect [M] (out): the packed
+    rows of the Gaussian of depth rank j are rank_isect[rank_off[j]:rank_off[j+1]] (to reduce gradients).
 
-    tile_start [T+1] (out): tile t's list is isect_gauss[tile_start[t]:tile_start[t+1]]: ascending depth
-    ranks j (Gaussian order[j]), so the compositing kernels, given per-Gaussian arrays gathered in depth
-    order, read memory almost sequentially instead of at random.
-    gauss_off [N+1] (in): prefix sum of ntiles. gauss_isect [M] (out): the list positions of Gaussian g's
-    intersections are gauss_isect[gauss_off[g]:gauss_off[g+1]] (used to reduce gradients per Gaussian).
-
-    In parallel over BIN_CHUNKS consecutive chunks of the depth order: each chunk counts its pairs per
-    tile, a prefix sum over (tile, chunk) gives every chunk its own cursor in each tile's list, and the
-    chunks scatter independently - the same output as one sequential pass.
+    The records are first gathered in depth order (one random read per Gaussian), then binned in parallel
+    over BIN_CHUNKS consecutive chunks of that order: each chunk counts its pairs per tile, a prefix sum over
+    (tile, chunk) gives every chunk its own cursor in each tile's list, and the chunks scatter independently
+    - the same output as one sequential pass.
     """
     tw = (width + TILE - 1) // TILE
     T = tile_start.shape[0] - 1
     n = order.shape[0]
+    RW = rec.shape[1]
     P = BIN_CHUNKS
     size = (n + P - 1) // P
+    srt = np.empty((n, RW), np.float32)
+    nt = np.empty(n, np.int64)
     cursor = np.zeros((P, T), np.int64)
     for p in prange(P):
         for j in range(p * size, min(n, (p + 1) * size)):
             g = order[j]
-            if ntiles[g] == 0:
-                continue
-            for ty in range(boxes[g, 2] // TILE, boxes[g, 3] // TILE + 1):
-                for tx in range(boxes[g, 0] // TILE, boxes[g, 1] // TILE + 1):
+            for c in range(RW):
+                srt[j, c] = rec[g, c]
+            x0, x1 = np.int64(srt[j, R_X0]) // TILE, np.int64(srt[j, R_X1]) // TILE
+            y0, y1 = np.int64(srt[j, R_Y0]) // TILE, np.int64(srt[j, R_Y1]) // TILE
+            nt[j] = (x1 - x0 + 1) * (y1 - y0 + 1)
+            for ty in range(y0, y1 + 1):
+                for tx in range(x0, x1 + 1):
                     cursor[p, ty * tw + tx] += 1
     pos = 0
     for t in range(T):
@@ -500,20 +513,48 @@ def bin_tiles(order, boxes, ntiles, width, height, tile_start, isect_gauss, gaus
             cursor[p, t] = pos
             pos += c
     tile_start[T] = pos
+    rank_off[0] = 0
+    for j in range(n):
+        rank_off[j + 1] = rank_off[j] + nt[j]
     for p in prange(P):
         for j in range(p * size, min(n, (p + 1) * size)):
-            g = order[j]
-            if ntiles[g] == 0:
-                continue
-            k = gauss_off[g]
-            for ty in range(boxes[g, 2] // TILE, boxes[g, 3] // TILE + 1):
-                for tx in range(boxes[g, 0] // TILE, boxes[g, 1] // TILE + 1):
+            k = rank_off[j]
+            x0, x1 = np.int64(srt[j, R_X0]) // TILE, np.int64(srt[j, R_X1]) // TILE
+            y0, y1 = np.int64(srt[j, R_Y0]) // TILE, np.int64(srt[j, R_Y1]) // TILE
+            for ty in range(y0, y1 + 1):
+                for tx in range(x0, x1 + 1):
                     t = ty * tw + tx
                     q = cursor[p, t]
                     cursor[p, t] = q + 1
-                    isect_gauss[q] = j  # depth rank: the compositing kernels read depth-sorted copies
-                    gauss_isect[k] = q
+                    for c in range(RW):
+                        packed[q, c] = srt[j, c]
+                    rank_isect[k] = q
                     k += 1
+
+
+@njit(**_JIT)
+def reduce_isect_grads(isect_grad, order, rank_off, rank_isect, out):
+    """out [N, 6+D] = sum of each Gaussian's pair rows (fixed order: deterministic); zero for Gaussians
+    that were not drawn. isect_grad [M, 6+D] per packed pair; order, rank_off, rank_isect from bin_tiles."""
+    N = out.shape[0]
+    J = out.shape[1]
+    n = order.shape[0]
+    for g in prange(N):
+        for j in range(J):
+            out[g, j] = 0.0
+    nch = (n + CHUNK - 1) // CHUNK
+    for ch in prange(nch):
+        acc = np.zeros(J)
+        for r in range(ch * CHUNK, min(n, (ch + 1) * CHUNK)):
+            for j in range(J):
+                acc[j] = 0.0
+            for k in range(rank_off[r], rank_off[r + 1]):
+                pos = rank_isect[k]
+                for j in range(J):
+                    acc[j] += isect_grad[pos, j]
+            g = order[r]
+            for j in range(J):
+                out[g, j] = acc[j]
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -630,8 +671,7 @@ def _walker_consts(ca, cb, cc, level):
 
 
 @njit(**_JITF)
-def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gauss, tile_perm, width, height,
-               render, final_T, last, spans):
+def raster_fwd(packed, tile_start, tile_perm, width, height, render, final_T, last, spans):
     """Front-to-back compositing per 16x16 tile.
 
     colors [N,D]; tile_perm [T] a permutation of the tiles (work order); writes render [H,W,D] (no
@@ -639,7 +679,7 @@ def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
     the pixel, -1 if none), and spans [M,34] int8 for `raster_bwd`: per list position it composited, the
     first and last drawn tile row, then the tile-relative first (16) and last (16) column of each row.
     """
-    D = colors.shape[1]
+    D = packed.shape[1] - R_COL
     tw = (width + TILE - 1) // TILE
     th = (height + TILE - 1) // TILE
     for it in prange(tw * th):
@@ -667,12 +707,11 @@ def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
         # to re-vectorise it; scalar stores followed by vector loads stall store forwarding (measured)
         nlanes = TILE if width > 0 else 0
         for k in range(tile_start[t], tile_start[t + 1]):
-            g = isect_gauss[k]
-            x0, x1 = max(boxes[g, 0], tx0), min(boxes[g, 1], tx1)
-            y0, y1 = max(boxes[g, 2], ty0), min(boxes[g, 3], ty1)
-            u, v = np.float64(means2d[g, 0]), np.float64(means2d[g, 1])
-            ca, cb, cc = np.float64(conics[g, 0]), np.float64(conics[g, 1]), np.float64(conics[g, 2])
-            op = np.float64(opacities[g])
+            x0, x1 = max(np.int64(packed[k, R_X0]), tx0), min(np.int64(packed[k, R_X1]), tx1)
+            y0, y1 = max(np.int64(packed[k, R_Y0]), ty0), min(np.int64(packed[k, R_Y1]), ty1)
+            u, v = np.float64(packed[k, R_U]), np.float64(packed[k, R_V])
+            ca, cb, cc = np.float64(packed[k, R_A]), np.float64(packed[k, R_B]), np.float64(packed[k, R_C])
+            op = np.float64(packed[k, R_OP])
             # alpha < 1/255 everywhere; a conic that is not positive definite is culled by the projection
             if op * 255.0 < 1.0 or not (ca > 0.0 and ca * cc - cb * cb > 0.0):
                 continue
@@ -687,7 +726,7 @@ def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
                 spans[k, 2 + j] = xas[j] - tx0 if full else 1
                 spans[k, 18 + j] = xbs[j] - tx0 if full else 0
             for d in range(D):
-                cg[d] = colors[g, d]
+                cg[d] = packed[k, R_COL + d]
             Rr, Rxy, Ry, walk = _walker_consts(ca, cb, cc, level)
             kf = np.float64(k)
             dx0 = u - (tx0 + 0.5)
@@ -739,8 +778,7 @@ def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
 
 
 @njit(**_JITF)
-def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gauss, tile_perm, width, height,
-               final_T, last, spans, v_render, v_alpha, isect_grad):
+def raster_bwd(packed, tile_start, tile_perm, width, height, final_T, last, spans, v_render, v_alpha, isect_grad):
     """Back-to-front gradient of `raster_fwd` per tile (as in 3DGS), the same lanes and walker.
 
     colors [N,D]. spans [M,34] from raster_fwd (every position the backward pass visits was composited by
@@ -749,7 +787,7 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
     per list position the gradient w.r.t. (u, v, conic a, b, c, opacity, colour[D]) of that Gaussian from
     that tile's pixels. Rows of positions no pixel reached are zeroed.
     """
-    D = colors.shape[1]
+    D = packed.shape[1] - R_COL
     tw = (width + TILE - 1) // TILE
     th = (height + TILE - 1) // TILE
     for it in prange(tw * th):
@@ -800,12 +838,11 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
             for j in range(6 + D):
                 isect_grad[k, j] = 0.0
         for k in range(kmax, k0 - 1, -1):
-            g = isect_gauss[k]
-            x0, x1 = max(boxes[g, 0], tx0), min(boxes[g, 1], tx1)
-            y0, y1 = max(boxes[g, 2], ty0), min(boxes[g, 3], ty1)
-            u, v = np.float64(means2d[g, 0]), np.float64(means2d[g, 1])
-            ca, cb, cc = np.float64(conics[g, 0]), np.float64(conics[g, 1]), np.float64(conics[g, 2])
-            op = np.float64(opacities[g])
+            x0, x1 = max(np.int64(packed[k, R_X0]), tx0), min(np.int64(packed[k, R_X1]), tx1)
+            y0, y1 = max(np.int64(packed[k, R_Y0]), ty0), min(np.int64(packed[k, R_Y1]), ty1)
+            u, v = np.float64(packed[k, R_U]), np.float64(packed[k, R_V])
+            ca, cb, cc = np.float64(packed[k, R_A]), np.float64(packed[k, R_B]), np.float64(packed[k, R_C])
+            op = np.float64(packed[k, R_OP])
             for j in range(6 + D):
                 isect_grad[k, j] = 0.0
             if op * 255.0 < 1.0 or not (ca > 0.0 and ca * cc - cb * cb > 0.0):  # never drawn
@@ -815,7 +852,7 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
             if ys > ye:
                 continue
             for d in range(D):
-                cg[d] = colors[g, d]
+                cg[d] = packed[k, R_COL + d]
                 gcol[d] = 0.0
             for j in range(6):
                 for i in range(TILE):
@@ -882,22 +919,3 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
                 isect_grad[k, j] = s
             for d in range(D):
                 isect_grad[k, 6 + d] = gcol[d]
-
-
-@njit(**_JIT)
-def reduce_isect_grads(isect_grad, gauss_isect, gauss_off, out):
-    """out [N, 6+D] = sum of each Gaussian's intersection rows (fixed order: deterministic)."""
-    N = out.shape[0]
-    J = out.shape[1]
-    nch = (N + CHUNK - 1) // CHUNK
-    for ch in prange(nch):
-        acc = np.zeros(J)
-        for g in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
-            for j in range(J):
-                acc[j] = 0.0
-            for k in range(gauss_off[g], gauss_off[g + 1]):
-                pos = gauss_isect[k]
-                for j in range(J):
-                    acc[j] += isect_grad[pos, j]
-            for j in range(J):
-                out[g, j] = acc[j]
