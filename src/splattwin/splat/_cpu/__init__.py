@@ -176,9 +176,8 @@ class _Rasterize(torch.autograd.Function):
             rank_off = np.empty(order.shape[0] + 1, np.int64)
             rank_isect = np.empty(M, np.int64)
             K_.bin_tiles(order, rec, W, H, tile_start, packed, rank_off, rank_isect)
-            spans = np.empty((M, 34), np.int8)  # row spans, reused by the backward pass
-            K_.raster_fwd(packed, tile_start, _tile_perm(tw * th), W, H, render[c], final_T[c], last[c], spans)
-            saved.append((packed, tile_start, order, rank_off, rank_isect, spans))
+            K_.raster_fwd(packed, tile_start, _tile_perm(tw * th), W, H, render[c], final_T[c], last[c])
+            saved.append((packed, tile_start, order, rank_off, rank_isect))
         ctx.np = (cl.shape, final_T, last, saved)
         ctx.op_ndim = op.ndim
         ctx.cfg = (W, H, D_in)
@@ -205,10 +204,10 @@ class _Rasterize(torch.autograd.Function):
         v_op = np.zeros((C, N) if per_cam_op else N, np.float32)
         out = np.empty((N, 6 + D), np.float32)
         for c in range(C):
-            packed, tile_start, order, rank_off, rank_isect, spans = saved[c]
+            packed, tile_start, order, rank_off, rank_isect = saved[c]
             isect_grad = np.empty((packed.shape[0], 6 + D), np.float32)  # summed in float64
-            K_.raster_bwd(packed, tile_start, _tile_perm(len(tile_start) - 1), W, H, final_T[c], last[c], spans,
-                          vr[c], va[c], isect_grad)
+            K_.raster_bwd(packed, tile_start, _tile_perm(len(tile_start) - 1), W, H, final_T[c], last[c], vr[c], va[c],
+                          isect_grad)
             K_.reduce_isect_grads(isect_grad, order, rank_off, rank_isect, out)
             v_m2[c] = out[:, 0:2]
             v_co[c] = out[:, 2:5]

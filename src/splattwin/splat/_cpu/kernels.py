@@ -43,7 +43,7 @@ _JIT1 = dict(parallel=False, fastmath=False, cache=True, nogil=True)
 # The two compositing kernels (most of a training step) with fastmath: only finite values reach them
 # (culled Gaussians are never binned) and reassociating the per-pixel updates is harmless at float64;
 # ~10 % faster, images still within a few 1e-6 of the reference.
-_JITF = dict(parallel=True, fastmath=True, cache=True, nogil=True)
+_JITF = dict(parallel=True, fastmath={"nnan", "ninf", "nsz", "arcp", "contract", "afn"}, cache=True, nogil=True)
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -560,11 +560,16 @@ def reduce_isect_grads(isect_grad, order, rank_off, rank_isect, out):
 # --------------------------------------------------------------------------------------------------------
 # compositing
 # --------------------------------------------------------------------------------------------------------
-# The compositing kernels work on one tile row at a time, all 16 pixels of it as SIMD lanes: every per-pixel
-# update is a select, not a branch, so LLVM vectorises the lane loops. Per-tile state lives in stack buffers
-# (`_stack`): LLVM knows distinct stack buffers never overlap, whereas for numba's heap arrays it must add
-# run-time overlap checks to every vectorised loop (they cost as much as the loop). exp(-sigma) comes from a
-# walker: exact exps at one pixel of the first drawn row, multiplications for the other lanes and rows.
+# The compositing kernels work on one tile row at a time, all 16 pixels of it as SIMD lanes in float32:
+# every per-pixel update is a select, not a branch, so LLVM vectorises the lane loops (float32: twice the
+# lanes of float64 per instruction). Per-tile state lives in stack buffers (`_stack`): LLVM knows distinct
+# stack buffers never overlap, whereas for numba's heap arrays it must add run-time overlap checks to every
+# vectorised loop (they cost as much as the loop).
+#
+# alpha of a lane is exp(log(opacity) - sigma) from a vectorisable float32 exp (`_exp32`), with sigma written
+# about the row's minimum: sigma = a/2 t^2 + sigma_min(row), t = dx + (b/a) dy. The per-row terms are float64
+# scalars, so no large terms cancel in float32 (as they would in a/2 dx^2 + b dx dy + c/2 dy^2 for a thin
+# Gaussian far from its centre); float32 alphas are within a few 1e-7 of float64 ones (tested).
 assert TILE == 16  # the stack buffers below are sized by literals (16 lanes, 256 pixels)
 
 
@@ -584,100 +589,72 @@ def _stack_intrinsic(nbtype):
     return _stack
 
 
-_stack_f64 = _stack_intrinsic(_nbt.float64)
-_stack_i64 = _stack_intrinsic(_nbt.int64)
+_stack_f32 = _stack_intrinsic(_nbt.float32)
+_stack_i32 = _stack_intrinsic(_nbt.int32)
+
+
+@_intrinsic
+def _bits_to_f32(typingctx, x):
+    """The float32 whose bit pattern is the int32 x (a free register move, and vectorisable)."""
+    if x != _nbt.int32:
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], _ir.FloatType())
+    return _nbt.float32(_nbt.int32), codegen
+
+
+_F0, _F1, _HALF = np.float32(0.0), np.float32(1.0), np.float32(0.5)
+_A_MAX, _A_MIN, _T_MIN = np.float32(ALPHA_MAX), np.float32(ALPHA_MIN), np.float32(T_MIN)
+EXP_LO = np.float32(-30.0)  # exp(-30) ~ 1e-13 << 1/255: lanes below are masked off, and never denormal
+_LOG2E, _LN2_HI, _LN2_LO = np.float32(1.4426950408889634), np.float32(0.693359375), np.float32(-2.12194440e-4)
+_E0, _E1, _E2 = np.float32(1.9875691500e-4), np.float32(1.3981999507e-3), np.float32(8.3334519073e-3)
+_E3, _E4, _E5 = np.float32(4.1665795894e-2), np.float32(1.6666665459e-1), np.float32(5.0000001201e-1)
+_EXP_BIAS, _EXP_SHIFT = np.float32(127.0), np.float32(8388608.0)  # 2^k as bits: (k + 127) << 23
 
 
 @njit(**_JIT1)
-def _row_spans(u, v, ca, cb, cc, level, x0, x1, y0, y1, xa, xb):
-    """Pixel columns [xa[j], xb[j]] of row y0 + j where sigma <= level (outside, alpha < 1/255), clipped to
-    [x0, x1] (xa > xb: empty row). Returns the first and last non-empty j (first > last: none).
-
-    All rows in one loop the compiler vectorises (row by row it is a sqrt-divide-round latency chain, which
-    was a third of the compositing time). Only a speed-up: every pixel in a span is still tested exactly,
-    and a 0.01 px margin absorbs rounding, so results are those of the plain box loop."""
-    two_ca_level = 2.0 * ca * level
-    det = ca * cc - cb * cb
-    ica = 1.0 / ca
-    n = y1 - y0 + 1
-    first, last = TILE, -1
-    for j in range(TILE):  # all 16 (fixed trip count: unrolled, no scalar remainder); rows >= n are unused
-        dy = v - (y0 + j + 0.5)
-        disc = two_ca_level - det * dy * dy  # (b dy)^2 - a (c dy^2 - 2 level)
-        r = math.sqrt(max(disc, 0.0))
-        lo = (-cb * dy - r) * ica  # dx range; pixel centre = u - dx
-        hi = (-cb * dy + r) * ica
-        a = max(x0, np.int64(math.ceil(u - hi - 0.5 - 0.01)))
-        b = min(x1, np.int64(math.floor(u - lo - 0.5 + 0.01)))
-        full = disc >= 0.0 and a <= b and j < n
-        xa[j] = a if full else 1
-        xb[j] = b if full else 0
-        first = min(first, j if full else TILE)
-        last = max(last, j if full else -1)
-    return first, last
+def _exp32(x):
+    """exp(x) for a float32 x in [-87, 0], within 2 ulp (Cephes' expf: x = k ln2 + r, |r| <= ln2/2, a degree-6
+    polynomial for exp(r), 2^k assembled from its bits). Plain arithmetic, so LLVM vectorises it in the lane
+    loops (numba's math.exp stays a scalar libm call per lane)."""
+    fk = np.floor(x * _LOG2E + _HALF)
+    r = x - fk * _LN2_HI - fk * _LN2_LO
+    p = ((((_E0 * r + _E1) * r + _E2) * r + _E3) * r + _E4) * r + _E5
+    y = p * r * r + r + _F1
+    return y * _bits_to_f32(np.int32((fk + _EXP_BIAS) * _EXP_SHIFT))
 
 
 @njit(**_JIT1)
-def _seed_row(Gl, Vl, ia, dx0, dy, ca, cb, cc, Rr, Rxy):
-    """Start the walker on a row: Gl[i] = exp(-sigma) and Vl[i] = exp(-(sigma(next row) - sigma)) for the 16
-    lanes, at lane offsets dx = dx0 - i. Exact exps at lane ia (inside the row's span), multiplications
-    outwards from there, so lanes inside the span never pass through an underflowed value."""
-    dx = dx0 - ia
-    G = math.exp(-(0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy))
-    E = math.exp(-(0.5 * ca - ca * dx - cb * dy))  # sigma(next lane) - sigma
-    V = math.exp(-(0.5 * cc - cc * dy - cb * dx))
-    Gl[ia] = G
-    Vl[ia] = V
-    g, e, w = G, E, V
-    for i in range(ia + 1, TILE):
-        g *= e
-        e *= Rr
-        w *= Rxy
-        Gl[i] = g
-        Vl[i] = w
-    g, ie, w = G, 1.0 / E, V
-    iRxy = 1.0 / Rxy
-    for i in range(ia - 1, -1, -1):
-        ie *= Rr
-        g *= ie
-        w *= iRxy
-        Gl[i] = g
-        Vl[i] = w
+def _pair_consts(ca, cb, cc, op):
+    """Per-(tile, Gaussian) constants: level (sigma above it gives alpha < 1/255), log opacity, b/a,
+    det/(2a), a/2, 2/a."""
+    return math.log(op * 255.0), math.log(op), cb / ca, 0.5 * (ca * cc - cb * cb) / ca, 0.5 * ca, 2.0 / ca
 
 
 @njit(**_JIT1)
-def _step_rows(Gl, Vl, Ry):
-    """Walker one row down (Ry = exp(-conic c))."""
-    for i in range(TILE):
-        Gl[i] *= Vl[i]
-        Vl[i] *= Ry
-
-
-@njit(**_JIT1)
-def _walkable(ca, cb, cc, level):
-    """True if the walker may step down the rows of a tile from one seed. Every lane value it forms lies
-    within 15 px of a pixel with sigma <= level, so (triangle inequality in the conic's norm) its sigma is at
-    most (sqrt(2 level) + 15 sqrt(lambda_max))^2 / 2, which must stay clear of exp underflow (745). With the
-    usual 0.3 px low-pass lambda_max <= 3.3 and the bound is ~470; sharper conics are re-seeded every row."""
-    lam = 0.5 * (ca + cc) + math.sqrt(0.25 * (ca - cc) * (ca - cc) + cb * cb)
-    reach = math.sqrt(2.0 * level) + 15.0 * math.sqrt(lam)
-    return 0.5 * reach * reach < 700.0
-
-
-@njit(**_JIT1)
-def _walker_consts(ca, cb, cc, level):
-    """Per-pair walker factors exp(-a), exp(-b), exp(-c) of the conic (a, b, c), and `_walkable`."""
-    return math.exp(-ca), math.exp(-cb), math.exp(-cc), _walkable(ca, cb, cc, level)
+def _row(v, py, dx0, b_a, hdet_a, inv_ha, level, lop, bx0, bx1):
+    """Row py of a (tile, Gaussian) pair: lanes [ia, ib] (tile-relative, inside the pair's box bx0..bx1)
+    that may hold alpha >= 1/255 (ia > ib: none; a 0.01 px margin absorbs rounding, every lane is still
+    tested), e (lane i has t = e - i) and log(op) - sigma_min(row), and dy = v - pixel centre."""
+    dy = v - (py + 0.5)
+    smin = hdet_a * dy * dy
+    e = dx0 + b_a * dy
+    w = math.sqrt(max(level - smin, 0.0) * inv_ha) + 0.01
+    ia = max(bx0, np.int64(math.ceil(min(max(e - w, -1.0), 17.0))))
+    ib = min(bx1, np.int64(math.floor(min(max(e + w, -1.0), 17.0))))
+    if smin > level + 0.01:
+        ib = ia - 1
+    return ia, ib, e, lop - smin, dy
 
 
 @njit(**_JITF)
-def raster_fwd(packed, tile_start, tile_perm, width, height, render, final_T, last, spans):
+def raster_fwd(packed, tile_start, tile_perm, width, height, render, final_T, last):
     """Front-to-back compositing per 16x16 tile.
 
-    colors [N,D]; tile_perm [T] a permutation of the tiles (work order); writes render [H,W,D] (no
-    background), final_T [H,W] and last [H,W] int32 (list position of the last Gaussian that contributed to
-    the pixel, -1 if none), and spans [M,34] int8 for `raster_bwd`: per list position it composited, the
-    first and last drawn tile row, then the tile-relative first (16) and last (16) column of each row.
+    packed [M, 10+D] from `bin_tiles`; tile_perm [T] a permutation of the tiles (work order); writes render
+    [H,W,D] (no background), final_T [H,W] and last [H,W] int32 (position in its tile's list of the last
+    Gaussian that contributed to the pixel, -1 if none).
     """
     D = packed.shape[1] - R_COL
     tw = (width + TILE - 1) // TILE
@@ -687,84 +664,67 @@ def raster_fwd(packed, tile_start, tile_perm, width, height, render, final_T, la
         tx0, ty0 = (t % tw) * TILE, (t // tw) * TILE
         tx1, ty1 = min(tx0 + TILE, width) - 1, min(ty0 + TILE, height) - 1
         npix = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
-        Tl = carray(_stack_f64(256), (TILE, TILE))  # transmittance
-        live = carray(_stack_f64(256), (TILE, TILE))  # 1: not terminated
-        lastl = carray(_stack_f64(256), (TILE, TILE))  # last contributing list position
-        Gl = carray(_stack_f64(16), TILE)
-        Vl = carray(_stack_f64(16), TILE)
-        wb = carray(_stack_f64(16), TILE)  # blending weight alpha T per lane
-        xas = carray(_stack_i64(16), TILE)
-        xbs = carray(_stack_i64(16), TILE)
+        Tl = carray(_stack_f32(256), (TILE, TILE))  # transmittance
+        live = carray(_stack_f32(256), (TILE, TILE))  # 1: not terminated
+        lastl = carray(_stack_i32(256), (TILE, TILE))  # last contributing list position
+        lane = carray(_stack_f32(16), TILE)  # 0, 1, ..., 15
+        wb = carray(_stack_f32(16), TILE)  # blending weight alpha T per lane
+        for i in range(TILE):
+            lane[i] = i
         for r in range(TILE):
             for i in range(TILE):
                 Tl[r, i] = 1.0
                 live[r, i] = 1.0
-                lastl[r, i] = -1.0
-        acc = np.zeros((D, TILE, TILE))
-        cg = np.zeros(D)
+                lastl[r, i] = -1
+        acc = np.zeros((D, TILE, TILE), np.float32)
+        cg = np.zeros(D, np.float32)
         ndone = 0
-        # 16, but not a compile-time constant: LLVM fully unrolls a constant 16-iteration loop and then fails
-        # to re-vectorise it; scalar stores followed by vector loads stall store forwarding (measured)
-        nlanes = TILE if width > 0 else 0
-        for k in range(tile_start[t], tile_start[t + 1]):
-            x0, x1 = max(np.int64(packed[k, R_X0]), tx0), min(np.int64(packed[k, R_X1]), tx1)
-            y0, y1 = max(np.int64(packed[k, R_Y0]), ty0), min(np.int64(packed[k, R_Y1]), ty1)
+        k0 = tile_start[t]
+        for k in range(k0, tile_start[t + 1]):
             u, v = np.float64(packed[k, R_U]), np.float64(packed[k, R_V])
             ca, cb, cc = np.float64(packed[k, R_A]), np.float64(packed[k, R_B]), np.float64(packed[k, R_C])
             op = np.float64(packed[k, R_OP])
-            # alpha < 1/255 everywhere; a conic that is not positive definite is culled by the projection
-            if op * 255.0 < 1.0 or not (ca > 0.0 and ca * cc - cb * cb > 0.0):
+            if op * 255.0 < 1.0 or not (ca > 0.0 and ca * cc - cb * cb > 0.0):  # never drawn
                 continue
-            level = math.log(op * 255.0)  # sigma above this gives alpha < 1/255
-            ys, ye = _row_spans(u, v, ca, cb, cc, level, x0, x1, y0, y1, xas, xbs)
-            spans[k, 0] = ys
-            spans[k, 1] = ye
-            if ys > ye:
-                continue
-            for j in range(TILE):  # all 16 (a fixed-length copy vectorises); empty rows as (1, 0)
-                full = xas[j] <= xbs[j]
-                spans[k, 2 + j] = xas[j] - tx0 if full else 1
-                spans[k, 18 + j] = xbs[j] - tx0 if full else 0
+            bx0, bx1 = max(np.int64(packed[k, R_X0]), tx0) - tx0, min(np.int64(packed[k, R_X1]), tx1) - tx0
+            y0, y1 = max(np.int64(packed[k, R_Y0]), ty0), min(np.int64(packed[k, R_Y1]), ty1)
+            level, lop, b_a, hdet_a, ha, inv_ha = _pair_consts(ca, cb, cc, op)
+            haf = np.float32(ha)
             for d in range(D):
                 cg[d] = packed[k, R_COL + d]
-            Rr, Rxy, Ry, walk = _walker_consts(ca, cb, cc, level)
-            kf = np.float64(k)
+            kk = np.int32(k - k0)
             dx0 = u - (tx0 + 0.5)
-            for py in range(y0 + ys, y0 + ye + 1):
-                j = py - y0
-                ia, ib = xas[j] - tx0, xbs[j] - tx0
-                if ia > ib:  # (only by rounding: spans of an ellipse in a box are contiguous)
-                    _step_rows(Gl, Vl, Ry)
+            for py in range(y0, y1 + 1):
+                ia, ib, e, cs, _ = _row(v, py, dx0, b_a, hdet_a, inv_ha, level, lop, bx0, bx1)
+                if ia > ib:
                     continue
-                if j == ys or not walk:
-                    _seed_row(Gl, Vl, ia, dx0, v - (py + 0.5), ca, cb, cc, Rr, Rxy)
                 r = py - ty0
+                ef, cf = np.float32(e), np.float32(cs)
+                el = np.float32(e - np.float64(ef))  # e = ef + el: t = (ef - i) + el, the first difference exact
+                iaf, ibf = np.float32(ia), np.float32(ib)
                 # lanes [l0, l0 + nl): the half of the row that holds the span, else all 16 (half the work for
-                # most small Gaussians; the same in raster_bwd measured slower, so it keeps 16)
+                # most small Gaussians)
                 l0 = 8 if ia >= 8 else 0
                 nl = 8 if (ib < 8 or ia >= 8) else 16
                 nfin = 0
                 for i in range(l0, l0 + nl):
-                    G = Gl[i]
-                    a_raw = op * G
-                    alpha = min(ALPHA_MAX, a_raw)
+                    tt = (ef - lane[i]) + el
+                    a_raw = _exp32(max(cf - haf * tt * tt, EXP_LO))
+                    alpha = min(_A_MAX, a_raw)
                     T = Tl[r, i]
-                    nT = T * (1.0 - alpha)
-                    on = (i >= ia) & (i <= ib) & (a_raw >= ALPHA_MIN) & (live[r, i] > 0.0)
-                    fin = on & (nT < T_MIN)  # would drop below T_MIN: the pixel ends before this Gaussian
-                    draw = on & (nT >= T_MIN)
-                    wb[i] = alpha * T if draw else 0.0
+                    nT = T * (_F1 - alpha)
+                    on = (lane[i] >= iaf) & (lane[i] <= ibf) & (a_raw >= _A_MIN) & (live[r, i] > _F0)
+                    fin = on & (nT < _T_MIN)  # would drop below T_MIN: the pixel ends before this Gaussian
+                    draw = on & (nT >= _T_MIN)
+                    wb[i] = alpha * T if draw else _F0
                     Tl[r, i] = nT if draw else T
-                    live[r, i] = 0.0 if fin else live[r, i]
-                    lastl[r, i] = kf if draw else lastl[r, i]
+                    live[r, i] = _F0 if fin else live[r, i]
+                    lastl[r, i] = kk if draw else lastl[r, i]
                     nfin += 1 if fin else 0
                 for d in range(D):
                     c = cg[d]
                     for i in range(l0, l0 + nl):
                         acc[d, r, i] += wb[i] * c
-                for i in range(nlanes):  # walker to the next row, all lanes
-                    Gl[i] *= Vl[i]
-                    Vl[i] *= Ry
                 ndone += nfin
             if ndone == npix:
                 break
@@ -774,18 +734,17 @@ def raster_fwd(packed, tile_start, tile_perm, width, height, render, final_T, la
                 for d in range(D):
                     render[py, px, d] = acc[d, r, i]
                 final_T[py, px] = Tl[r, i]
-                last[py, px] = np.int32(lastl[r, i])
+                last[py, px] = lastl[r, i]
 
 
 @njit(**_JITF)
-def raster_bwd(packed, tile_start, tile_perm, width, height, final_T, last, spans, v_render, v_alpha, isect_grad):
-    """Back-to-front gradient of `raster_fwd` per tile (as in 3DGS), the same lanes and walker.
+def raster_bwd(packed, tile_start, tile_perm, width, height, final_T, last, v_render, v_alpha, isect_grad):
+    """Back-to-front gradient of `raster_fwd` per tile (as in 3DGS), the same lanes and alphas.
 
-    colors [N,D]. spans [M,34] from raster_fwd (every position the backward pass visits was composited by
-    the forward pass, which stops no earlier than the last contributor of any pixel of the tile). v_render
-    [H,W,D], v_alpha [H,W] (gradient of the alpha image). Writes isect_grad [M, 6+D]:
-    per list position the gradient w.r.t. (u, v, conic a, b, c, opacity, colour[D]) of that Gaussian from
-    that tile's pixels. Rows of positions no pixel reached are zeroed.
+    packed [M, 10+D]; final_T [H,W], last [H,W] from raster_fwd (the backward pass starts at the last
+    contributor of any pixel of the tile); v_render [H,W,D], v_alpha [H,W] (gradient of the alpha image).
+    Writes isect_grad [M, 6+D]: per list position the gradient w.r.t. (u, v, conic a, b, c, opacity,
+    colour[D]) of that Gaussian from that tile's pixels. Rows of positions no pixel reached are zeroed.
     """
     D = packed.shape[1] - R_COL
     tw = (width + TILE - 1) // TILE
@@ -794,26 +753,24 @@ def raster_bwd(packed, tile_start, tile_perm, width, height, final_T, last, span
         t = tile_perm[it]  # shuffled: numba splits the range statically, this balances the threads
         tx0, ty0 = (t % tw) * TILE, (t // tw) * TILE
         tx1, ty1 = min(tx0 + TILE, width) - 1, min(ty0 + TILE, height) - 1
-        Tl = carray(_stack_f64(256), (TILE, TILE))  # transmittance behind the current Gaussian
-        Tf = carray(_stack_f64(256), (TILE, TILE))  # final transmittance
-        lastl = carray(_stack_f64(256), (TILE, TILE))
-        va = carray(_stack_f64(256), (TILE, TILE))
-        Gl = carray(_stack_f64(16), TILE)
-        Vl = carray(_stack_f64(16), TILE)
-        lane = carray(_stack_f64(16), TILE)  # 0, 1, ..., 15
-        alb = carray(_stack_f64(16), TILE)  # per lane of the current row: alpha, 1 - alpha, T in front,
-        omb = carray(_stack_f64(16), TILE)  # blending weight, dL/dalpha, dalpha/dopacity, dalpha/dsigma
-        ivb = carray(_stack_f64(16), TILE)  # 1 / (1 - alpha)
-        Tb = carray(_stack_f64(16), TILE)
-        wb = carray(_stack_f64(16), TILE)
-        dlb = carray(_stack_f64(16), TILE)
-        gb = carray(_stack_f64(16), TILE)
-        db = carray(_stack_f64(16), TILE)
-        ggeo = carray(_stack_f64(96), (6, TILE))  # per-lane sums: u, v, conic a, b, c, opacity
-        S = np.zeros((D, TILE, TILE))  # colour accumulated behind the current Gaussian
-        vr = np.zeros((D, TILE, TILE))
-        gcol = np.zeros(D)
-        cg = np.zeros(D)
+        Tl = carray(_stack_f32(256), (TILE, TILE))  # transmittance behind the current Gaussian
+        Tf = carray(_stack_f32(256), (TILE, TILE))  # final transmittance
+        lastl = carray(_stack_i32(256), (TILE, TILE))
+        va = carray(_stack_f32(256), (TILE, TILE))
+        lane = carray(_stack_f32(16), TILE)  # 0, 1, ..., 15
+        alb = carray(_stack_f32(16), TILE)  # per lane of the current row: alpha, 1 - alpha, 1 / (1 - alpha),
+        omb = carray(_stack_f32(16), TILE)  # T in front, blending weight, dL/dalpha (colour part), and
+        ivb = carray(_stack_f32(16), TILE)  # unclamped alpha where alpha depends on sigma and opacity
+        Tb = carray(_stack_f32(16), TILE)
+        wb = carray(_stack_f32(16), TILE)
+        dlb = carray(_stack_f32(16), TILE)
+        qb = carray(_stack_f32(16), TILE)
+        # per-lane sums over the pair's pixels of q = alpha_raw dL/dalpha times dx, dx^2, dy, dx dy, dy^2, 1
+        P = carray(_stack_f32(96), (6, TILE))
+        S = np.zeros((D, TILE, TILE), np.float32)  # colour accumulated behind the current Gaussian
+        vr = np.zeros((D, TILE, TILE), np.float32)
+        gcl = np.zeros((D, TILE), np.float32)
+        cg = np.zeros(D, np.float32)
         kmax = -1
         for i in range(TILE):
             lane[i] = i
@@ -821,7 +778,7 @@ def raster_bwd(packed, tile_start, tile_perm, width, height, final_T, last, span
             for i in range(TILE):
                 Tl[r, i] = 1.0
                 Tf[r, i] = 1.0
-                lastl[r, i] = -1.0
+                lastl[r, i] = -1
                 va[r, i] = 0.0
         for py in range(ty0, ty1 + 1):
             for px in range(tx0, tx1 + 1):
@@ -829,56 +786,49 @@ def raster_bwd(packed, tile_start, tile_perm, width, height, final_T, last, span
                 Tl[r, i] = final_T[py, px]
                 Tf[r, i] = final_T[py, px]
                 lastl[r, i] = last[py, px]
-                kmax = max(kmax, last[py, px])
+                kmax = max(kmax, np.int64(last[py, px]))
                 for d in range(D):
                     vr[d, r, i] = v_render[py, px, d]
                 va[r, i] = v_alpha[py, px]
         k0 = tile_start[t]
-        for k in range(max(kmax + 1, k0), tile_start[t + 1]):
+        for k in range(k0 + kmax + 1, tile_start[t + 1]):
             for j in range(6 + D):
                 isect_grad[k, j] = 0.0
-        for k in range(kmax, k0 - 1, -1):
-            x0, x1 = max(np.int64(packed[k, R_X0]), tx0), min(np.int64(packed[k, R_X1]), tx1)
-            y0, y1 = max(np.int64(packed[k, R_Y0]), ty0), min(np.int64(packed[k, R_Y1]), ty1)
+        for k in range(k0 + kmax, k0 - 1, -1):
+            for j in range(6 + D):
+                isect_grad[k, j] = 0.0
             u, v = np.float64(packed[k, R_U]), np.float64(packed[k, R_V])
             ca, cb, cc = np.float64(packed[k, R_A]), np.float64(packed[k, R_B]), np.float64(packed[k, R_C])
             op = np.float64(packed[k, R_OP])
-            for j in range(6 + D):
-                isect_grad[k, j] = 0.0
             if op * 255.0 < 1.0 or not (ca > 0.0 and ca * cc - cb * cb > 0.0):  # never drawn
                 continue
-            level = math.log(op * 255.0)
-            ys, ye = np.int64(spans[k, 0]), np.int64(spans[k, 1])  # the forward pass's row spans
-            if ys > ye:
-                continue
+            bx0, bx1 = max(np.int64(packed[k, R_X0]), tx0) - tx0, min(np.int64(packed[k, R_X1]), tx1) - tx0
+            y0, y1 = max(np.int64(packed[k, R_Y0]), ty0), min(np.int64(packed[k, R_Y1]), ty1)
+            level, lop, b_a, hdet_a, ha, inv_ha = _pair_consts(ca, cb, cc, op)
+            haf = np.float32(ha)
             for d in range(D):
                 cg[d] = packed[k, R_COL + d]
-                gcol[d] = 0.0
             for j in range(6):
                 for i in range(TILE):
-                    ggeo[j, i] = 0.0
-            Rr, Rxy, Ry, walk = _walker_consts(ca, cb, cc, level)
-            kf = np.float64(k)
+                    P[j, i] = 0.0
+            kkf = np.int32(k - k0)
             dx0 = u - (tx0 + 0.5)
-            for py in range(y0 + ys, y0 + ye + 1):
-                j = py - y0
-                ia, ib = np.int64(spans[k, 2 + j]), np.int64(spans[k, 18 + j])
+            dx0f = np.float32(dx0)
+            for py in range(y0, y1 + 1):
+                ia, ib, e, cs, dy = _row(v, py, dx0, b_a, hdet_a, inv_ha, level, lop, bx0, bx1)
                 if ia > ib:
-                    _step_rows(Gl, Vl, Ry)
                     continue
-                dy = v - (py + 0.5)
-                if j == ys or not walk:
-                    _seed_row(Gl, Vl, ia, dx0, dy, ca, cb, cc, Rr, Rxy)  # the same walk as the forward pass
                 r = py - ty0
+                ef, cf = np.float32(e), np.float32(cs)
+                el = np.float32(e - np.float64(ef))  # e = ef + el: t = (ef - i) + el, the first difference exact
+                iaf, ibf = np.float32(ia), np.float32(ib)
                 for i in range(TILE):
-                    G = Gl[i]
-                    Gl[i] = G * Vl[i]
-                    Vl[i] *= Ry
-                    a_raw = op * G
-                    on = (i >= ia) & (i <= ib) & (kf <= lastl[r, i]) & (a_raw >= ALPHA_MIN)
-                    alpha = min(ALPHA_MAX, a_raw) if on else 0.0
-                    om = 1.0 - alpha
-                    inv = 1.0 / om  # the one division per lane (vector divisions are slow)
+                    tt = (ef - lane[i]) + el
+                    a_raw = _exp32(max(cf - haf * tt * tt, EXP_LO))
+                    on = (lane[i] >= iaf) & (lane[i] <= ibf) & (kkf <= lastl[r, i]) & (a_raw >= _A_MIN)
+                    alpha = min(_A_MAX, a_raw) if on else _F0
+                    om = _F1 - alpha
+                    inv = _F1 / om  # the one division per lane (vector divisions are slow)
                     T = Tl[r, i] * inv  # transmittance in front of this Gaussian (unchanged where off)
                     Tl[r, i] = T
                     alb[i] = alpha
@@ -886,36 +836,47 @@ def raster_bwd(packed, tile_start, tile_perm, width, height, final_T, last, span
                     ivb[i] = inv
                     Tb[i] = T
                     wb[i] = alpha * T
-                    dlb[i] = 0.0
-                    ok = on & (a_raw < ALPHA_MAX)  # alpha not clamped: it depends on G and the opacity
-                    gb[i] = G if ok else 0.0
-                    db[i] = -a_raw if ok else 0.0
+                    dlb[i] = _F0
+                    qb[i] = a_raw if (on & (a_raw < _A_MAX)) else _F0  # alpha not clamped: it has gradients
                 for d in range(D):
                     c = cg[d]
-                    gsum = 0.0
                     for i in range(TILE):
                         s = S[d, r, i]
                         rd = vr[d, r, i]
-                        gsum += wb[i] * rd
+                        gcl[d, i] += wb[i] * rd
                         dlb[i] += (c - s) * rd
                         S[d, r, i] = alb[i] * c + omb[i] * s
-                    gcol[d] += gsum
-                hdy2 = 0.5 * dy * dy
-                cbdy, ccdy = cb * dy, cc * dy
+                dyf = np.float32(dy)
+                dy2f = np.float32(dy * dy)
                 for i in range(TILE):
                     dl = dlb[i] * Tb[i] + va[r, i] * Tf[r, i] * ivb[i]  # dL/dalpha
-                    dx = dx0 - lane[i]  # (a per-Gaussian dx array written by scalar stores stalls the vector loads)
-                    dsig = db[i] * dl
-                    ggeo[0, i] += (ca * dx + cbdy) * dsig
-                    ggeo[1, i] += (cb * dx + ccdy) * dsig
-                    ggeo[2, i] += 0.5 * dx * dx * dsig
-                    ggeo[3, i] += dx * dy * dsig
-                    ggeo[4, i] += hdy2 * dsig
-                    ggeo[5, i] += gb[i] * dl
-            for j in range(6):
+                    q = qb[i] * dl
+                    dx = dx0f - lane[i]
+                    qx = dx * q
+                    P[0, i] += qx
+                    P[1, i] += dx * qx
+                    P[2, i] += dyf * q
+                    P[3, i] += dyf * qx
+                    P[4, i] += dy2f * q
+                    P[5, i] += q
+            sx, sxx, sy, sxy, syy, sq = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+            for i in range(TILE):
+                sx += P[0, i]
+                sxx += P[1, i]
+                sy += P[2, i]
+                sxy += P[3, i]
+                syy += P[4, i]
+                sq += P[5, i]
+            # dalpha/dsigma = -alpha_raw, sigma = a/2 dx^2 + b dx dy + c/2 dy^2 (dx = u - px, dy = v - py)
+            isect_grad[k, 0] = -(ca * sx + cb * sy)
+            isect_grad[k, 1] = -(cb * sx + cc * sy)
+            isect_grad[k, 2] = -0.5 * sxx
+            isect_grad[k, 3] = -sxy
+            isect_grad[k, 4] = -0.5 * syy
+            isect_grad[k, 5] = sq / op  # dalpha/dopacity = alpha_raw / opacity
+            for d in range(D):
                 s = 0.0
                 for i in range(TILE):
-                    s += ggeo[j, i]
-                isect_grad[k, j] = s
-            for d in range(D):
-                isect_grad[k, 6 + d] = gcol[d]
+                    s += gcl[d, i]
+                    gcl[d, i] = 0.0
+                isect_grad[k, 6 + d] = s
