@@ -304,17 +304,20 @@ def test_lane_alphas_about_the_row_minimum_match_float64_for_thin_far_gaussians(
         u, v = rng.uniform(-200, 216, size=2)
         level, lop, b_a, hdet_a, ha, inv_ha = K_._pair_consts(ca, cb, cc, op)
         dx0 = u - 0.5
+        IA, IB, EF, EL, CF, DY = (np.empty(16, np.float32) for _ in range(6))
+        K_._rows(v, 0, 0, 15, dx0, b_a, hdet_a, inv_ha, level, lop, 0, 15, 16, IA, IB, EF, EL, CF, DY)
         for py in range(16):
-            ia, ib, e, cs, dy = K_._row(v, py, dx0, b_a, hdet_a, inv_ha, level, lop, 0, 15)
             dx = dx0 - np.arange(16)
+            dy = v - (py + 0.5)
+            assert DY[py] == np.float32(dy)
             sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
             want = op * np.exp(-sigma)
             inside = want >= 1 / 255
             lanes = np.arange(16)
-            assert np.all((lanes[inside] >= ia) & (lanes[inside] <= ib))  # the span holds every drawn lane
+            assert np.all((lanes[inside] >= IA[py]) & (lanes[inside] <= IB[py]))  # the span holds every drawn lane
             if inside.any():
-                tt = np.float32(e) - lanes.astype(np.float32)
-                s = np.float32(cs) - np.float32(ha) * tt * tt
+                tt = (EF[py] - lanes.astype(np.float32)) + EL[py]
+                s = CF[py] - np.float32(ha) * tt * tt
                 got = np.array([K_._exp32(np.float32(max(q, K_.EXP_LO))) for q in s], np.float64)
                 worst = max(worst, float(np.max(np.abs(got[inside] / want[inside] - 1))))
     assert worst < 2e-5

@@ -40,10 +40,11 @@ CHUNK = 1024  # Gaussians per work item in the per-Gaussian kernels
 
 _JIT = dict(parallel=True, fastmath=False, cache=True, nogil=True)
 _JIT1 = dict(parallel=False, fastmath=False, cache=True, nogil=True)
-# The two compositing kernels (most of a training step) with fastmath: only finite values reach them
-# (culled Gaussians are never binned) and reassociating the per-pixel updates is harmless at float64;
-# ~10 % faster, images still within a few 1e-6 of the reference.
-_JITF = dict(parallel=True, fastmath={"nnan", "ninf", "nsz", "arcp", "contract", "afn"}, cache=True, nogil=True)
+# The two compositing kernels (most of a training step) with fastmath flags: only finite values reach them
+# (culled Gaussians are never binned), and fused multiply-adds only make the float32 lanes more accurate.
+_FAST = {"nnan", "ninf", "nsz", "arcp", "contract", "afn"}  # not "reassoc": it would undo compensated sums
+_JITF = dict(parallel=True, fastmath=_FAST, cache=True, nogil=True)
+_JIT1F = dict(parallel=False, fastmath=_FAST, cache=True, nogil=True)  # helpers inlined into the _JITF kernels
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -613,7 +614,7 @@ _E3, _E4, _E5 = np.float32(4.1665795894e-2), np.float32(1.6666665459e-1), np.flo
 _EXP_BIAS, _EXP_SHIFT = np.float32(127.0), np.float32(8388608.0)  # 2^k as bits: (k + 127) << 23
 
 
-@njit(**_JIT1)
+@njit(**_JIT1F)
 def _exp32(x):
     """exp(x) for a float32 x in [-87, 0], within 2 ulp (Cephes' expf: x = k ln2 + r, |r| <= ln2/2, a degree-6
     polynomial for exp(r), 2^k assembled from its bits). Plain arithmetic, so LLVM vectorises it in the lane
@@ -633,19 +634,38 @@ def _pair_consts(ca, cb, cc, op):
 
 
 @njit(**_JIT1)
-def _row(v, py, dx0, b_a, hdet_a, inv_ha, level, lop, bx0, bx1):
-    """Row py of a (tile, Gaussian) pair: lanes [ia, ib] (tile-relative, inside the pair's box bx0..bx1)
-    that may hold alpha >= 1/255 (ia > ib: none; a 0.01 px margin absorbs rounding, every lane is still
-    tested), e (lane i has t = e - i) and log(op) - sigma_min(row), and dy = v - pixel centre."""
-    dy = v - (py + 0.5)
-    smin = hdet_a * dy * dy
-    e = dx0 + b_a * dy
-    w = math.sqrt(max(level - smin, 0.0) * inv_ha) + 0.01
-    ia = max(bx0, np.int64(math.ceil(min(max(e - w, -1.0), 17.0))))
-    ib = min(bx1, np.int64(math.floor(min(max(e + w, -1.0), 17.0))))
-    if smin > level + 0.01:
-        ib = ia - 1
-    return ia, ib, e, lop - smin, dy
+def _rows(v, ty0, ry0, ry1, dx0, b_a, hdet_a, inv_ha, level, lop, bx0, bx1, nrows, IA, IB, EF, EL, CF, DY):
+    """The rows of a (tile, Gaussian) pair, all 16 in one loop LLVM vectorises (row by row, the sqrt-round
+    chain of each row stalls the lane loops). Row j (pixel row ty0 + j) gets lanes [IA[j], IB[j]] (tile-
+    relative, inside the pair's box columns bx0..bx1 and rows ry0..ry1) that may hold alpha >= 1/255 (IA >
+    IB: none; a 0.01 px margin absorbs rounding, every lane is still tested); lane i there has
+    t = (EF[j] - i) + EL[j] (EF + EL = e in float64) and log(op) - sigma = CF[j] - a/2 t^2; DY[j] = v -
+    the row's pixel centre. nrows = 16 (a run-time value: see raster_fwd)."""
+    for j in range(nrows):
+        dy = v - (ty0 + j + 0.5)
+        smin = hdet_a * dy * dy
+        e = dx0 + b_a * dy
+        w = math.sqrt(max(level - smin, 0.0) * inv_ha) + 0.01
+        ia = max(np.float64(bx0), math.ceil(min(max(e - w, -1.0), 17.0)))
+        ib = min(np.float64(bx1), math.floor(min(max(e + w, -1.0), 17.0)))
+        full = (smin <= level + 0.01) & (j >= ry0) & (j <= ry1)
+        IA[j] = np.float32(ia)
+        IB[j] = np.float32(ib if full else ia - 1.0)
+        ef = np.float32(e)
+        EF[j] = ef
+        EL[j] = np.float32(e - np.float64(ef))  # t = (EF - i) + EL: the first difference is exact
+        CF[j] = np.float32(lop - smin)
+        DY[j] = np.float32(dy)
+
+
+@njit(**_JIT1)
+def _window(ia, ib):
+    """Lanes [l0, l0 + n) to compute for a row span [ia, ib] (float lane indices): 8 lanes from min(ia, 8)
+    when the span fits in 8 (most rows of most Gaussians: one SIMD vector of float32 instead of two), else
+    all 16."""
+    if ib - ia < 8.0:
+        return max(min(np.int64(ia), 8), 0), 8  # (max: provably >= 0, or numba's negative-index wrap stops
+    return 0, TILE  # vectorisation)
 
 
 @njit(**_JITF)
@@ -669,6 +689,12 @@ def raster_fwd(packed, tile_start, tile_perm, width, height, render, final_T, la
         lastl = carray(_stack_i32(256), (TILE, TILE))  # last contributing list position
         lane = carray(_stack_f32(16), TILE)  # 0, 1, ..., 15
         wb = carray(_stack_f32(16), TILE)  # blending weight alpha T per lane
+        IA, IB = carray(_stack_f32(16), TILE), carray(_stack_f32(16), TILE)  # per row of a pair (`_rows`)
+        EF, EL = carray(_stack_f32(16), TILE), carray(_stack_f32(16), TILE)
+        CF, DY = carray(_stack_f32(16), TILE), carray(_stack_f32(16), TILE)
+        # 16, but not a compile-time constant: LLVM fully unrolls a constant 16-iteration loop and then fails
+        # to re-vectorise it
+        nrows = TILE if width > 0 else 0
         for i in range(TILE):
             lane[i] = i
         for r in range(TILE):
@@ -687,25 +713,20 @@ def raster_fwd(packed, tile_start, tile_perm, width, height, render, final_T, la
             if op * 255.0 < 1.0 or not (ca > 0.0 and ca * cc - cb * cb > 0.0):  # never drawn
                 continue
             bx0, bx1 = max(np.int64(packed[k, R_X0]), tx0) - tx0, min(np.int64(packed[k, R_X1]), tx1) - tx0
-            y0, y1 = max(np.int64(packed[k, R_Y0]), ty0), min(np.int64(packed[k, R_Y1]), ty1)
+            ry0, ry1 = max(np.int64(packed[k, R_Y0]), ty0) - ty0, min(np.int64(packed[k, R_Y1]), ty1) - ty0
             level, lop, b_a, hdet_a, ha, inv_ha = _pair_consts(ca, cb, cc, op)
             haf = np.float32(ha)
             for d in range(D):
                 cg[d] = packed[k, R_COL + d]
             kk = np.int32(k - k0)
-            dx0 = u - (tx0 + 0.5)
-            for py in range(y0, y1 + 1):
-                ia, ib, e, cs, _ = _row(v, py, dx0, b_a, hdet_a, inv_ha, level, lop, bx0, bx1)
-                if ia > ib:
+            _rows(v, ty0, ry0, ry1, u - (tx0 + 0.5), b_a, hdet_a, inv_ha, level, lop, bx0, bx1, nrows, IA, IB, EF, EL,
+                  CF, DY)
+            for r in range(ry0, ry1 + 1):
+                iaf, ibf = IA[r], IB[r]
+                if iaf > ibf:
                     continue
-                r = py - ty0
-                ef, cf = np.float32(e), np.float32(cs)
-                el = np.float32(e - np.float64(ef))  # e = ef + el: t = (ef - i) + el, the first difference exact
-                iaf, ibf = np.float32(ia), np.float32(ib)
-                # lanes [l0, l0 + nl): the half of the row that holds the span, else all 16 (half the work for
-                # most small Gaussians)
-                l0 = 8 if ia >= 8 else 0
-                nl = 8 if (ib < 8 or ia >= 8) else 16
+                ef, el, cf = EF[r], EL[r], CF[r]
+                l0, nl = _window(iaf, ibf)
                 nfin = 0
                 for i in range(l0, l0 + nl):
                     tt = (ef - lane[i]) + el
@@ -767,11 +788,17 @@ def raster_bwd(packed, tile_start, tile_perm, width, height, final_T, last, v_re
         qb = carray(_stack_f32(16), TILE)
         # per-lane sums over the pair's pixels of q = alpha_raw dL/dalpha times dx, dx^2, dy, dx dy, dy^2, 1
         P = carray(_stack_f32(96), (6, TILE))
+        IA, IB = carray(_stack_f32(16), TILE), carray(_stack_f32(16), TILE)  # per row of a pair (`_rows`)
+        EF, EL = carray(_stack_f32(16), TILE), carray(_stack_f32(16), TILE)
+        CF, DY = carray(_stack_f32(16), TILE), carray(_stack_f32(16), TILE)
         S = np.zeros((D, TILE, TILE), np.float32)  # colour accumulated behind the current Gaussian
         vr = np.zeros((D, TILE, TILE), np.float32)
         gcl = np.zeros((D, TILE), np.float32)
         cg = np.zeros(D, np.float32)
         kmax = -1
+        # 16, but not a compile-time constant: LLVM fully unrolls a constant 16-iteration loop and then fails
+        # to re-vectorise it (the colour loop became 16 scalar lanes per channel)
+        nlanes = TILE if width > 0 else 0
         for i in range(TILE):
             lane[i] = i
         for r in range(TILE):
@@ -803,7 +830,7 @@ def raster_bwd(packed, tile_start, tile_perm, width, height, final_T, last, v_re
             if op * 255.0 < 1.0 or not (ca > 0.0 and ca * cc - cb * cb > 0.0):  # never drawn
                 continue
             bx0, bx1 = max(np.int64(packed[k, R_X0]), tx0) - tx0, min(np.int64(packed[k, R_X1]), tx1) - tx0
-            y0, y1 = max(np.int64(packed[k, R_Y0]), ty0), min(np.int64(packed[k, R_Y1]), ty1)
+            ry0, ry1 = max(np.int64(packed[k, R_Y0]), ty0) - ty0, min(np.int64(packed[k, R_Y1]), ty1) - ty0
             level, lop, b_a, hdet_a, ha, inv_ha = _pair_consts(ca, cb, cc, op)
             haf = np.float32(ha)
             for d in range(D):
@@ -814,15 +841,13 @@ def raster_bwd(packed, tile_start, tile_perm, width, height, final_T, last, v_re
             kkf = np.int32(k - k0)
             dx0 = u - (tx0 + 0.5)
             dx0f = np.float32(dx0)
-            for py in range(y0, y1 + 1):
-                ia, ib, e, cs, dy = _row(v, py, dx0, b_a, hdet_a, inv_ha, level, lop, bx0, bx1)
-                if ia > ib:
+            _rows(v, ty0, ry0, ry1, dx0, b_a, hdet_a, inv_ha, level, lop, bx0, bx1, nlanes, IA, IB, EF, EL, CF, DY)
+            for r in range(ry0, ry1 + 1):
+                iaf, ibf = IA[r], IB[r]
+                if iaf > ibf:
                     continue
-                r = py - ty0
-                ef, cf = np.float32(e), np.float32(cs)
-                el = np.float32(e - np.float64(ef))  # e = ef + el: t = (ef - i) + el, the first difference exact
-                iaf, ibf = np.float32(ia), np.float32(ib)
-                for i in range(TILE):
+                ef, el, cf = EF[r], EL[r], CF[r]
+                for i in range(nlanes):
                     tt = (ef - lane[i]) + el
                     a_raw = _exp32(max(cf - haf * tt * tt, EXP_LO))
                     on = (lane[i] >= iaf) & (lane[i] <= ibf) & (kkf <= lastl[r, i]) & (a_raw >= _A_MIN)
@@ -840,15 +865,15 @@ def raster_bwd(packed, tile_start, tile_perm, width, height, final_T, last, v_re
                     qb[i] = a_raw if (on & (a_raw < _A_MAX)) else _F0  # alpha not clamped: it has gradients
                 for d in range(D):
                     c = cg[d]
-                    for i in range(TILE):
+                    for i in range(nlanes):
                         s = S[d, r, i]
                         rd = vr[d, r, i]
                         gcl[d, i] += wb[i] * rd
                         dlb[i] += (c - s) * rd
                         S[d, r, i] = alb[i] * c + omb[i] * s
-                dyf = np.float32(dy)
-                dy2f = np.float32(dy * dy)
-                for i in range(TILE):
+                dyf = DY[r]
+                dy2f = dyf * dyf
+                for i in range(nlanes):
                     dl = dlb[i] * Tb[i] + va[r, i] * Tf[r, i] * ivb[i]  # dL/dalpha
                     q = qb[i] * dl
                     dx = dx0f - lane[i]
