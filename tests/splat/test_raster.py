@@ -302,7 +302,8 @@ def test_lane_alphas_about_the_row_minimum_match_float64_for_thin_far_gaussians(
         ca, cb, cc = np.linalg.inv(cov)[[0, 0, 1], [0, 1, 1]]
         op = rng.uniform(0.05, 1.0)
         u, v = rng.uniform(-200, 216, size=2)
-        level, lop, b_a, hdet_a, ha, inv_ha = K_._pair_consts(ca, cb, cc, op)
+        level, lop = K_._levels(op)
+        b_a, hdet_a, ha, inv_ha = K_._pair_consts(ca, cb, cc)
         dx0 = u - 0.5
         IA, IB, EF, EL, CF, DY = (np.empty(16, np.float32) for _ in range(6))
         K_._rows(v, 0, 0, 15, dx0, b_a, hdet_a, inv_ha, level, lop, 0, 15, 16, IA, IB, EF, EL, CF, DY)
@@ -323,40 +324,73 @@ def test_lane_alphas_about_the_row_minimum_match_float64_for_thin_far_gaussians(
     assert worst < 2e-5
 
 
-def test_bin_tiles_lists_every_touching_gaussian_once_in_depth_order():
-    from splattwin.splat._cpu import _tile_perm, depth_order
+def test_bin_tiles_lists_every_reached_tile_once_in_depth_order():
+    # Random (often elongated) Gaussians on a 7 x 5 tile grid: each tile's packed list holds exactly the
+    # Gaussians with a pixel centre of alpha >= 1/255 in that tile (up to the 1e-3 sigma margin of the
+    # rectangle test), once each, in depth order (ties by index); box tiles the ellipse misses are skipped.
+    from splattwin.splat._cpu import _tile_order, depth_order
     from splattwin.splat._cpu import kernels as K_
 
     rng = np.random.default_rng(3)
-    N, W, H, D = 500, 100, 70, 2
-    rec = np.zeros((N, K_.R_COL + D), np.float32)
-    rec[:, K_.R_U] = np.arange(N)  # identifies the Gaussian in the packed copy
-    x0, y0 = rng.integers(0, W, N), rng.integers(0, H, N)
-    rec[:, K_.R_X0], rec[:, K_.R_X1] = x0, np.minimum(x0 + rng.integers(0, 40, N), W - 1)
-    rec[:, K_.R_Y0], rec[:, K_.R_Y1] = y0, np.minimum(y0 + rng.integers(0, 40, N), H - 1)
-    tiles = lambda g: {(ty, tx) for ty in range(int(rec[g, K_.R_Y0]) // 16, int(rec[g, K_.R_Y1]) // 16 + 1)  # noqa: E731
-                       for tx in range(int(rec[g, K_.R_X0]) // 16, int(rec[g, K_.R_X1]) // 16 + 1)}
-    ntiles = np.array([len(tiles(g)) for g in range(N)], np.int64)
-    ntiles[::7] = 0  # not drawn
+    N, W, H, D = 400, 100, 70, 2
+    th_ = rng.uniform(0, np.pi, N)
+    sd = np.stack([rng.uniform(0.5, 20, N), rng.uniform(0.5, 3, N)], 1)
+    R = np.stack([np.cos(th_), -np.sin(th_), np.sin(th_), np.cos(th_)], 1).reshape(N, 2, 2)
+    cov = R @ (sd[:, :, None] ** 2 * np.eye(2)) @ R.transpose(0, 2, 1)
+    Q = np.linalg.inv(cov)
+    conics = np.stack([Q[:, 0, 0], Q[:, 0, 1], Q[:, 1, 1]], 1).astype(np.float32)
+    m2 = np.stack([rng.uniform(-10, W + 10, N), rng.uniform(-10, H + 10, N)], 1).astype(np.float32)
+    op = rng.uniform(0.02, 1.0, N).astype(np.float32)
+    ext = np.ceil(3 * np.sqrt(np.stack([cov[:, 0, 0], cov[:, 1, 1]], 1))).astype(np.int32)
+    rec, ntiles = np.empty((N, K_.R_COL + D), np.float32), np.empty(N, np.int64)
+    K_.make_records(m2, conics, rng.uniform(0, 1, (N, D)).astype(np.float32), op, ext, W, H, rec, ntiles)
+    rec[:, K_.R_COL] = np.arange(N)  # a colour channel identifies the Gaussian in the packed copy
     depths = rng.uniform(0.5, 3.0, N).astype(np.float32)
     depths[1::50] = depths[0]  # ties: by index
     order = depth_order(depths, ntiles)
-    assert len(order) == int((ntiles > 0).sum())
+    assert len(order) == int((ntiles > 0).sum()) and np.all(np.diff(depths[order]) >= 0)
     tw, th = 7, 5
     M = int(ntiles.sum())
     tile_start, packed = np.empty(tw * th + 1, np.int64), np.empty((M, rec.shape[1]), np.float32)
     rank_off, rank_isect = np.empty(len(order) + 1, np.int64), np.empty(M, np.int64)
     K_.bin_tiles(order, rec, W, H, tile_start, packed, rank_off, rank_isect)
-    rank = np.full(N, -1)
-    rank[order] = np.arange(len(order))
+    assert tile_start[-1] < M  # box tiles the ellipses miss are left out
+    # brute force: which tiles hold a pixel centre with sigma <= level (inside the pixel box), and which
+    # hold any point of the box's continuous rectangle of pixel centres with sigma <= level + 0.05
+    ys, xs = np.mgrid[0:H, 0:W] + 0.5
+    fy, fx = np.mgrid[0:H * 4, 0:W * 4] / 4.0 + 0.5  # 1/4 px grid
+    reached, near = {}, {}
+    for g in range(N):
+        x0, x1, y0, y1 = (int(rec[g, k]) for k in (K_.R_X0, K_.R_X1, K_.R_Y0, K_.R_Y1))
+        a, b, c = (float(x) for x in conics[g])
+        sigma = lambda px, py: (0.5 * (a * (m2[g, 0] - px) ** 2 + c * (m2[g, 1] - py) ** 2)  # noqa: E731
+                                + b * (m2[g, 0] - px) * (m2[g, 1] - py))
+        level = np.log(255 * op[g])
+        inside = (sigma(xs, ys) <= level) & (xs >= x0) & (xs <= x1 + 1) & (ys >= y0) & (ys <= y1 + 1)
+        reached[g] = {(int(y) // 16, int(x) // 16) for y, x in zip(*np.nonzero(inside))}
+        box = (fx >= x0 + 0.5) & (fx <= x1 + 0.5) & (fy >= y0 + 0.5) & (fy <= y1 + 0.5)
+        close = (sigma(fx, fy) <= level + 0.05) & box
+        near[g] = {(int(y) // 16, int(x) // 16) for y, x in zip(fy[close], fx[close])}
+
+    listed = {g: set() for g in range(N)}
     for t in range(tw * th):
-        got = packed[tile_start[t]:tile_start[t + 1], K_.R_U].astype(int)
-        want = [g for g in order if ntiles[g] and (t // tw, t % tw) in tiles(g)]
-        assert list(got) == want  # every touching Gaussian, once, in depth order (ties by index)
+        got = packed[tile_start[t]:tile_start[t + 1], K_.R_COL].astype(int)
+        assert len(set(got)) == len(got)  # once each
+        assert list(got) == [g for g in order if g in set(got)]  # depth order, ties by index
+        for g in got:
+            listed[g].add((t // tw, t % tw))
+    for g in range(N):
+        assert reached[g] <= listed[g]  # no tile with a drawn pixel is dropped
+        x0, x1, y0, y1 = (int(rec[g, k]) // 16 for k in (K_.R_X0, K_.R_X1, K_.R_Y0, K_.R_Y1))
+        if x0 != x1 and y0 != y1:  # boxes over several tile rows and columns: tested, within 0.05 of level
+            assert listed[g] <= near[g], g
+        elif ntiles[g]:  # one tile row or column: every tile of the box (an ellipse crosses them all)
+            assert len(listed[g]) == ntiles[g]
+    assert sum(ntiles[g] - len(listed[g]) for g in range(N)) > 50  # box tiles the ellipses miss: left out
     for j, g in enumerate(order):  # each Gaussian's pairs, for the gradient reduction
         rows = rank_isect[rank_off[j]:rank_off[j + 1]]
-        assert len(rows) == ntiles[g] and np.all(packed[rows, K_.R_U] == g)
-    assert sorted(_tile_perm(35)) == list(range(35))
+        assert len(rows) == len(listed[g]) and np.all(packed[rows, K_.R_COL] == g)
+    assert sorted(_tile_order(7, 5)) == list(range(35))
 
 
 def test_cpu_sharp_thin_gaussians_match_the_reference():

@@ -417,15 +417,25 @@ def sh_bwd(dirs, coeffs, degree, v_colors, v_coeffs, v_dirs, accumulate):
 # tile binning
 # --------------------------------------------------------------------------------------------------------
 # record layout of one (Gaussian, camera): float32 columns
-R_U, R_V, R_A, R_B, R_C, R_OP, R_X0, R_X1, R_Y0, R_Y1 = range(10)
-R_COL = 10  # colour channels from here (D of them)
+R_U, R_V, R_A, R_B, R_C, R_OP, R_X0, R_X1, R_Y0, R_Y1, R_LEVEL, R_LOP = range(12)
+R_COL = 12  # colour channels from here (D of them)
+
+
+@njit(**_JIT1)
+def _levels(op):
+    """(log(255 op), log(op)) of an opacity, guarded for op <= 0 (those are never drawn)."""
+    if op * 255.0 < 1.0:
+        return 0.0, -1e30
+    return math.log(op * 255.0), math.log(op)
 
 
 @njit(**_JIT)
 def make_records(means2d, conics, colors, opacities, extents, width, height, rec, ntiles):
-    """Per Gaussian one float32 record rec [N, 10+D]: u, v, conic a, b, c, opacity, inclusive pixel box
-    x0, x1, y0, y1 (integers, exact in float32), colours [D]; and its number of touched tiles ntiles [N]
-    (0: not drawn). One record = one cache line or two: binning copies it into every tile list it touches,
+    """Per Gaussian one float32 record rec [N, 12+D]: u, v, conic a, b, c, opacity, inclusive pixel box
+    x0, x1, y0, y1 (integers, exact in float32), level = log(255 opacity) (sigma above it gives alpha <
+    1/255) and log(opacity) (computed once here rather than per tile), colours [D]; and its number of touched tiles ntiles [N]
+    (0: not drawn; an upper bound: `bin_tiles` leaves out the tiles of the box the ellipse misses, see
+    `_touches`). One record = one cache line or two: binning copies it into every tile list it touches,
     so the compositing kernels stream each tile's Gaussians from consecutive memory.
 
     The box holds the pixel centres inside the 3-sigma box (`extents`) that are also inside the bounding
@@ -446,6 +456,7 @@ def make_records(means2d, conics, colors, opacities, extents, width, height, rec
         rec[i, R_B] = conics[i, 1]
         rec[i, R_C] = conics[i, 2]
         rec[i, R_OP] = opacities[i]
+        rec[i, R_LEVEL], rec[i, R_LOP] = _levels(op)
         for d in range(D):
             rec[i, R_COL + d] = colors[i, d]
         rec[i, R_X0] = 0.0
@@ -469,6 +480,41 @@ def make_records(means2d, conics, colors, opacities, extents, width, height, rec
         ntiles[i] = (x1 // TILE - x0 // TILE + 1) * (y1 // TILE - y0 // TILE + 1)
 
 
+@njit(**_JIT1)
+def _touches(u, v, ca, cb, cc, level, x0, x1, y0, y1):
+    """True if some point of the rectangle of pixel centres [x0 + 1/2, x1 + 1/2] x [y0 + 1/2, y1 + 1/2] has
+    sigma <= level (+ 1e-3, for rounding): the exact test of a convex quadratic against a rectangle (the
+    minimum is the centre, or on an edge: a clamped 1-D minimum per edge). Tiles of a Gaussian's box that
+    fail it hold no pixel with alpha >= 1/255 (gsplat's and 3DGS's bounding boxes list them anyway: ~9 % of
+    the pairs of a trained model)."""
+    dxa, dxb = u - (x1 + 0.5), u - (x0 + 0.5)  # dx = u - pixel centre over the rectangle
+    dya, dyb = v - (y1 + 0.5), v - (y0 + 0.5)
+    if dxa <= 0.0 <= dxb and dya <= 0.0 <= dyb:
+        return True
+    best = math.inf
+    for X in (dxa, dxb):  # vertical edges
+        dy = min(max(-cb * X / cc, dya), dyb)
+        best = min(best, 0.5 * ca * X * X + cb * X * dy + 0.5 * cc * dy * dy)
+    for Y in (dya, dyb):  # horizontal edges
+        dx = min(max(-cb * Y / ca, dxa), dxb)
+        best = min(best, 0.5 * ca * dx * dx + cb * dx * Y + 0.5 * cc * Y * Y)
+    return best <= level + 1e-3
+
+
+@njit(**_JIT1)
+def _tile_hit(r, tx, ty):
+    """Whether record r's ellipse reaches tile (tx, ty) of its box (the part of the tile inside the box).
+    Always true when the box spans one tile row or column: an ellipse crosses every column (row) of its
+    bounding box, and the box is that, clipped (most Gaussians: no test)."""
+    bx0, bx1, by0, by1 = np.int64(r[R_X0]), np.int64(r[R_X1]), np.int64(r[R_Y0]), np.int64(r[R_Y1])
+    if bx0 // TILE == bx1 // TILE or by0 // TILE == by1 // TILE:
+        return True
+    x0, x1 = max(np.int64(r[R_X0]), tx * TILE), min(np.int64(r[R_X1]), tx * TILE + TILE - 1)
+    y0, y1 = max(np.int64(r[R_Y0]), ty * TILE), min(np.int64(r[R_Y1]), ty * TILE + TILE - 1)
+    return _touches(np.float64(r[R_U]), np.float64(r[R_V]), np.float64(r[R_A]), np.float64(r[R_B]),
+                    np.float64(r[R_C]), np.float64(r[R_LEVEL]), x0, x1, y0, y1)
+
+
 BIN_CHUNKS = 16  # depth-order chunks binned in parallel (fixed: the output does not depend on threads)
 
 
@@ -480,6 +526,8 @@ def bin_tiles(order, rec, width, height, tile_start, packed, rank_off, rank_isec
     consecutive memory (scattered reads made the 640x480 / 200k case 2x slower per pair than 320x240).
     rank_off [n+1] (out): prefix sum of the touched tiles in depth order; rank_isect [M] (out): the packed
     rows of the Gaussian of depth rank j are rank_isect[rank_off[j]:rank_off[j+1]] (to reduce gradients).
+    packed and rank_isect may be longer than needed (sized by make_records' box counts): M = tile_start[T]
+    rows are used (box tiles the ellipse misses, `_tile_hit`, are not listed).
 
     The records are first gathered in depth order (one random read per Gaussian), then binned in parallel
     over BIN_CHUNKS consecutive chunks of that order: each chunk counts its pairs per tile, a prefix sum over
@@ -502,10 +550,13 @@ def bin_tiles(order, rec, width, height, tile_start, packed, rank_off, rank_isec
                 srt[j, c] = rec[g, c]
             x0, x1 = np.int64(srt[j, R_X0]) // TILE, np.int64(srt[j, R_X1]) // TILE
             y0, y1 = np.int64(srt[j, R_Y0]) // TILE, np.int64(srt[j, R_Y1]) // TILE
-            nt[j] = (x1 - x0 + 1) * (y1 - y0 + 1)
+            c = 0
             for ty in range(y0, y1 + 1):
                 for tx in range(x0, x1 + 1):
-                    cursor[p, ty * tw + tx] += 1
+                    if _tile_hit(srt[j], tx, ty):
+                        cursor[p, ty * tw + tx] += 1
+                        c += 1
+            nt[j] = c
     pos = 0
     for t in range(T):
         tile_start[t] = pos
@@ -524,6 +575,8 @@ def bin_tiles(order, rec, width, height, tile_start, packed, rank_off, rank_isec
             y0, y1 = np.int64(srt[j, R_Y0]) // TILE, np.int64(srt[j, R_Y1]) // TILE
             for ty in range(y0, y1 + 1):
                 for tx in range(x0, x1 + 1):
+                    if not _tile_hit(srt[j], tx, ty):
+                        continue
                     t = ty * tw + tx
                     q = cursor[p, t]
                     cursor[p, t] = q + 1
@@ -627,10 +680,19 @@ def _exp32(x):
 
 
 @njit(**_JIT1)
-def _pair_consts(ca, cb, cc, op):
-    """Per-(tile, Gaussian) constants: level (sigma above it gives alpha < 1/255), log opacity, b/a,
-    det/(2a), a/2, 2/a."""
-    return math.log(op * 255.0), math.log(op), cb / ca, 0.5 * (ca * cc - cb * cb) / ca, 0.5 * ca, 2.0 / ca
+def _pair_consts(ca, cb, cc):
+    """Per-(tile, Gaussian) constants of the conic (a, b, c): b/a, det/(2a), a/2, 2/a."""
+    ia = 1.0 / ca
+    return cb * ia, 0.5 * (ca * cc - cb * cb) * ia, 0.5 * ca, 2.0 * ia
+
+
+@njit(**_JIT1)
+def _fold16(A, n):
+    """A[j, 0] = sum of A[j, :16] for j < n, by halving (vector adds; float32 sums of 16 per-lane sums)."""
+    for w in (8, 4, 2, 1):
+        for j in range(n):
+            for i in range(w):
+                A[j, i] += A[j, i + w]
 
 
 @njit(**_JIT1)
@@ -714,7 +776,8 @@ def raster_fwd(packed, tile_start, tile_perm, width, height, render, final_T, la
                 continue
             bx0, bx1 = max(np.int64(packed[k, R_X0]), tx0) - tx0, min(np.int64(packed[k, R_X1]), tx1) - tx0
             ry0, ry1 = max(np.int64(packed[k, R_Y0]), ty0) - ty0, min(np.int64(packed[k, R_Y1]), ty1) - ty0
-            level, lop, b_a, hdet_a, ha, inv_ha = _pair_consts(ca, cb, cc, op)
+            level, lop = np.float64(packed[k, R_LEVEL]), np.float64(packed[k, R_LOP])
+            b_a, hdet_a, ha, inv_ha = _pair_consts(ca, cb, cc)
             haf = np.float32(ha)
             for d in range(D):
                 cg[d] = packed[k, R_COL + d]
@@ -831,7 +894,8 @@ def raster_bwd(packed, tile_start, tile_perm, width, height, final_T, last, v_re
                 continue
             bx0, bx1 = max(np.int64(packed[k, R_X0]), tx0) - tx0, min(np.int64(packed[k, R_X1]), tx1) - tx0
             ry0, ry1 = max(np.int64(packed[k, R_Y0]), ty0) - ty0, min(np.int64(packed[k, R_Y1]), ty1) - ty0
-            level, lop, b_a, hdet_a, ha, inv_ha = _pair_consts(ca, cb, cc, op)
+            level, lop = np.float64(packed[k, R_LEVEL]), np.float64(packed[k, R_LOP])
+            b_a, hdet_a, ha, inv_ha = _pair_consts(ca, cb, cc)
             haf = np.float32(ha)
             for d in range(D):
                 cg[d] = packed[k, R_COL + d]
@@ -884,14 +948,10 @@ def raster_bwd(packed, tile_start, tile_perm, width, height, final_T, last, v_re
                     P[3, i] += dyf * qx
                     P[4, i] += dy2f * q
                     P[5, i] += q
-            sx, sxx, sy, sxy, syy, sq = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-            for i in range(TILE):
-                sx += P[0, i]
-                sxx += P[1, i]
-                sy += P[2, i]
-                sxy += P[3, i]
-                syy += P[4, i]
-                sq += P[5, i]
+            _fold16(P, 6)
+            _fold16(gcl, D)
+            sx, sxx, sy = np.float64(P[0, 0]), np.float64(P[1, 0]), np.float64(P[2, 0])
+            sxy, syy, sq = np.float64(P[3, 0]), np.float64(P[4, 0]), np.float64(P[5, 0])
             # dalpha/dsigma = -alpha_raw, sigma = a/2 dx^2 + b dx dy + c/2 dy^2 (dx = u - px, dy = v - py)
             isect_grad[k, 0] = -(ca * sx + cb * sy)
             isect_grad[k, 1] = -(cb * sx + cc * sy)
@@ -900,8 +960,6 @@ def raster_bwd(packed, tile_start, tile_perm, width, height, final_T, last, v_re
             isect_grad[k, 4] = -0.5 * syy
             isect_grad[k, 5] = sq / op  # dalpha/dopacity = alpha_raw / opacity
             for d in range(D):
-                s = 0.0
+                isect_grad[k, 6 + d] = gcl[d, 0]
                 for i in range(TILE):
-                    s += gcl[d, i]
                     gcl[d, i] = 0.0
-                isect_grad[k, 6 + d] = s
