@@ -60,6 +60,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--width", type=int, default=320)
     ap.add_argument("--height", type=int, default=240)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--dataset", type=Path, default=None,
+                    help="train on this dataset (with held-out frames, e.g. real photos with poses) instead of the "
+                         "embedded scene; --width/--height/--views/--heldout are then unused")
+    ap.add_argument("--resolution", type=int, default=1, help="as `splattwin train --resolution` (with --dataset)")
     ap.add_argument("--init", default="auto", choices=["auto", "sfm", "depth", "random"])
     ap.add_argument("--max-gaussians", type=int, default=None)
     ap.add_argument("--scene-cache", type=Path, default=Path(tempfile.gettempdir()) / "splattwin_bench")
@@ -74,6 +78,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--opacity-reg", type=float, default=None, help="mean-opacity penalty (default: TrainConfig's)")
     ap.add_argument("--means-lr", type=float, default=None, help="position LR (x scene scale; default: 3DGS's)")
     ap.add_argument("--rasterize-mode", default=None, choices=["classic", "antialiased"])
+    ap.add_argument("--num-downscales", type=int, default=None, help="coarse-to-fine levels (default: TrainConfig's)")
+    ap.add_argument("--downscale-every", type=float, default=None,
+                    help="fraction of the steps per coarse level (default: TrainConfig's)")
+    ap.add_argument("--max-gaussians-init", type=int, default=None, help="initial Gaussians (default: TrainConfig's)")
+    ap.add_argument("--eval-every", type=int, default=250,
+                    help="held-out PSNR every this many steps, for the time-to-PSNR curve (0: off; not timed)")
+    ap.add_argument("--target-psnr", type=float, default=32.9, help="PSNR for the time-to-PSNR figure")
     ap.add_argument("--repeat", type=int, default=1,
                     help="train this many times and report the median wall time (the machine's speed varies)")
     ap.add_argument("--progress", action="store_true")
@@ -82,7 +93,10 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--repeat must be at least 1, got {args.repeat}")
 
     t = time.perf_counter()
-    scene = ensure_scene(args.scene_cache, args.views, args.heldout, args.width, args.height, args.seed)
+    if args.dataset is None:
+        scene = ensure_scene(args.scene_cache, args.views, args.heldout, args.width, args.height, args.seed)
+    else:
+        scene = args.dataset
     t_scene = time.perf_counter() - t
 
     import dataclasses
@@ -97,9 +111,12 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or Path(tempfile.mkdtemp(prefix="splattwin_train_"))
     ds = load_dataset(scene)
     kw: dict = {} if args.max_gaussians is None else {"max_gaussians": args.max_gaussians}
-    for key in ("depth_lambda", "pose_lr", "pose_start", "rasterize_mode", "opacity_reg"):
+    for key in ("depth_lambda", "pose_lr", "pose_start", "rasterize_mode", "opacity_reg", "num_downscales",
+                "downscale_every"):
         if getattr(args, key) is not None:
             kw[key] = getattr(args, key)
+    if args.max_gaussians_init is not None:
+        kw["init_points"] = args.max_gaussians_init
     if args.means_lr is not None:
         from splattwin.splat.model import LearningRates
         kw["lrs"] = LearningRates(means=args.means_lr)
@@ -111,22 +128,31 @@ def main(argv: list[str] | None = None) -> int:
         for f, T in zip(ds.train(), T_noisy):
             f.camera = dataclasses.replace(f.camera, T_world_cam=np.linalg.inv(T))
     cfg = TrainConfig(iters=args.iters, init=args.init, checkpoint_every=0, progress=args.progress,
-                      refine_poses=refine_poses, **kw)
+                      refine_poses=refine_poses, resolution=args.resolution, **kw)
 
     walls: list[float] = []
+    curve: list[dict] = []  # held-out PSNR along the first run: {step, train_s, psnr}
     for rep in range(args.repeat):  # training is deterministic: repeats differ only in time
         t0 = time.perf_counter()
         tr = Trainer(ds, out if rep == 0 else out / f"repeat_{rep}", cfg)
         step_ms: list[float] = []
         last = [time.perf_counter()]
+        paused = [0.0]  # seconds spent on the curve's evaluations (not training time)
 
-        def tick(_info: dict) -> None:
+        def tick(info: dict, tr=tr, rep=rep, t0=t0) -> None:
             now = time.perf_counter()
             step_ms.append((now - last[0]) * 1000)
-            last[0] = now
+            if rep == 0 and args.eval_every and (info["step"] % args.eval_every == 0 or info["step"] == cfg.iters):
+                g = tr.model.to_gaussians()
+                e = evaluate(g, ds, None, resolution=cfg.resolution, progress=False,
+                             rasterize_mode=cfg.rasterize_mode)
+                curve.append({"step": info["step"], "train_s": round(now - t0 - paused[0], 2),
+                              "psnr": round(e.mean_psnr, 3), "ssim": round(e.mean_ssim, 4), "n": len(g)})
+                paused[0] += time.perf_counter() - now
+            last[0] = time.perf_counter()
 
         res_rep = tr.run(callback=tick)
-        walls.append(time.perf_counter() - t0)
+        walls.append(time.perf_counter() - t0 - paused[0])
         if rep == 0:
             res = res_rep
         elif not np.array_equal(res_rep.gaussians.means, res.gaussians.means):
@@ -150,10 +176,12 @@ def main(argv: list[str] | None = None) -> int:
             pose[f"pose_rot_err_deg_{when}"] = round(float(rot.mean()), 4)
             pose[f"pose_centre_err_m_{when}"] = round(float(centre.mean()), 5)
 
+    res_str = f"{tr.views[0].camera.width}x{tr.views[0].camera.height}"
+    hit = next((c for c in curve if c["psnr"] >= args.target_psnr), None)
     q = len(step_ms) // 4
     rows = [
         ("scene generation (cached)", f"{t_scene:.1f} s"),
-        ("training views / held-out", f"{len(tr.views)} / {len(ev.views)} at {args.width}x{args.height}"),
+        ("training views / held-out", f"{len(tr.views)} / {len(ev.views)} at {res_str}"),
         ("init method / backend", f"{res.init_method} / {tr.backend}"),
         ("iterations", f"{res.steps}"),
         ("train wall (incl. init, JIT)", f"{wall:.1f} s   (target <= 240 s for 3000 it)"
@@ -170,6 +198,11 @@ def main(argv: list[str] | None = None) -> int:
         ("peak RSS", f"{peak:.2f} GiB   (target <= 3)"),
         ("side-by-side images", str(out / "eval")),
     ]
+    if curve:
+        rows.insert(-1, (f"held-out PSNR >= {args.target_psnr} dB",
+                         f"at step {hit['step']} after {hit['train_s']:.1f} s" if hit else "not reached"))
+        rows.insert(-1, ("held-out PSNR curve (step: s, dB)",
+                         ", ".join(f"{c['step']}: {c['train_s']:.0f}, {c['psnr']:.2f}" for c in curve)))
     if pose:
         rows.insert(-1, ("held-out PSNR / SSIM, cameras aligned",
                          f"{pose['psnr_aligned']:.2f} dB / {pose['ssim_aligned']:.4f}   (test-time pose fit)"))
@@ -186,8 +219,11 @@ def main(argv: list[str] | None = None) -> int:
                       "psnr": round(ev.mean_psnr, 3), "ssim": round(ev.mean_ssim, 4),
                       "peak_rss_gib": round(peak, 3), "iters": res.steps, "gaussians": len(res.gaussians),
                       "ms_per_iter": round(statistics.median(step_ms), 2), "views": len(tr.views),
-                      "resolution": f"{args.width}x{args.height}", "depth_lambda": cfg.depth_lambda,
-                      "opacity_reg": cfg.opacity_reg, **pose}))
+                      "resolution": res_str, "depth_lambda": cfg.depth_lambda,
+                      "opacity_reg": cfg.opacity_reg, "num_downscales": cfg.num_downscales,
+                      "downscale_every": cfg.downscale_every, "target_psnr": args.target_psnr,
+                      "time_to_psnr_s": hit["train_s"] if hit else None, "steps_to_psnr": hit["step"] if hit else None,
+                      "psnr_curve": [[c["step"], c["train_s"], c["psnr"]] for c in curve], **pose}))
     return 0
 
 
