@@ -38,7 +38,8 @@ class BuildOptions:
     scene: options of the embedded scene to generate as input (the demo), as a dict for SceneOptions.
     poses: "auto" | "known" | "sfm" | "robot"; robot_poses / hand_eye: files; marker_size (m).
     masks: folder/file of 2D masks; prompt: open-vocabulary text ("blue box. yellow cube").
-    iters / resolution / device / seed / max_gaussians: splat training.
+    iters / resolution / device / seed / max_gaussians: splat training (max_gaussians 0: scaled with the
+        training image size, see `splattwin.splat.trainer.capacity`).
     kappa / fusion_iters: semantic fusion. task: robot task YAML ("default" for the paper's task, None: skip).
     """
 
@@ -54,7 +55,7 @@ class BuildOptions:
     resolution: int = 1
     device: str = "auto"
     seed: int = 0
-    max_gaussians: int = 28_000
+    max_gaussians: int = 0
     checkpoint_every: int = 500
     kappa: float = 1.5
     fusion_iters: int = 3

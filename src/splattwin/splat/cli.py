@@ -8,7 +8,7 @@ from types import SimpleNamespace
 
 # Mirrors splattwin.splat.trainer.TrainConfig (not imported here: it pulls in torch, and every
 # `splattwin --help` builds this parser); a test checks they agree.
-TRAIN_DEFAULTS = SimpleNamespace(iters=3000, init_points=24_000, max_gaussians=28_000, checkpoint_every=500,
+TRAIN_DEFAULTS = SimpleNamespace(iters=3000, init_points=0, max_gaussians=0, checkpoint_every=500,
                                  pose_lr=5e-3, pose_start=0.0, depth_lambda=0.0,
                                  opacity_reg=0.0)
 
@@ -32,10 +32,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="initial point cloud: dataset/SfM points, back-projected depth maps, or random "
                         "(default auto: the first available in that order)")
     p.add_argument("--init-points", type=int, default=d.init_points,
-                   help=f"at most this many initial Gaussians (default {d.init_points})")
+                   help="at most this many initial Gaussians (default 0: 24000 for 320x240 images, scaled "
+                        "with the square root of the pixel count above)")
     p.add_argument("--sh-degree", type=int, default=3, choices=[0, 1, 2, 3], help="maximum SH degree")
     p.add_argument("--max-gaussians", type=int, default=d.max_gaussians,
-                   help=f"cap on the Gaussian count (default {d.max_gaussians})")
+                   help="cap on the Gaussian count (default 0: 28000 for 320x240 images, scaled with the "
+                        "square root of the pixel count above)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every,
                    help=f"steps between checkpoints (0: none; default {d.checkpoint_every})")

@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -50,10 +50,12 @@ class TrainConfig:
     refine_poses / pose_lr / pose_start: joint per-camera SE(3) corrections, their Adam LR, and the
         fraction of the run before they move. Start 0 and LR 5e-3 measured best (bench/train.py, cameras
         off by 1.5 deg / 2.3 cm: left 0.34 deg / 0.41 cm, vs 1.43 deg / 2.1 cm with start 0.2, LR 1e-3).
-    init_points / max_gaussians: at most this many initial Gaussians / Gaussians at any time. 24k / 28k
-        on the embedded scene (bench/train.py, 3000 steps): held-out 32.80 dB / SSIM 0.951, vs 32.69 dB /
-        0.953 with 24k / 32k (~6 % slower) and 32.48 dB / 0.950 with 20k / 26k; on the earlier 2x2-sampled
-        scene 80k gave at most +0.006 SSIM. Raise both for larger images or scenes.
+    init_points / max_gaussians: at most this many initial Gaussians / Gaussians at any time; 0 (the
+        default): 24k / 28k for 320x240 training images, times sqrt(pixels / (320 x 240)) for larger ones
+        (`capacity`). 24k / 28k on the embedded scene at 320x240 (bench/train.py, 3000 steps): held-out
+        32.80 dB / SSIM 0.951, vs 32.69 dB / 0.953 with 24k / 32k (~6 % slower) and 32.48 dB / 0.950 with
+        20k / 26k. At 640x480 the 28k cap left 32.53 dB / 0.958 and 48k / 56k gave 33.69 dB / 0.970: finer
+        images need more Gaussians, about with the side length rather than the pixel count.
     rasterize_mode: "classic" or "antialiased" (see `rasterization`); evaluation renders with the same
         mode (train.json). Antialiased measured no better (2x2-sampled scene: SSIM 0.919 vs 0.921).
     opacity_reg: weight of a mean-opacity penalty (gsplat's opacity_reg; 0: off). 0.05 raised held-out
@@ -72,7 +74,7 @@ class TrainConfig:
     device: str = "auto"
     backend: str | None = None
     init: str = "auto"
-    init_points: int = 24_000
+    init_points: int = 0
     sh_degree: int = 3
     sh_interval: int = 0
     seed: int = 0
@@ -84,7 +86,7 @@ class TrainConfig:
     rasterize_mode: str = "classic"
     depth_lambda: float = 0.0
     opacity_reg: float = 0.0
-    max_gaussians: int = 28_000
+    max_gaussians: int = 0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     densify: bool = True
     lrs: LearningRates = field(default_factory=LearningRates)
@@ -129,6 +131,16 @@ EPS2D = 0.3  # the rasterizer's low-pass (px^2 at the training size); 1/4^level 
 # a coarse level renders every Gaussian as the training size does, only sampled on a coarser grid (with
 # 0.3 coarse px^2, sub-pixel Gaussians learnt at 1/4 size were dilated 16x more than at full size, and the
 # model kept that bias: -0.4 dB held-out on the embedded scene)
+BASE_PIXELS, BASE_INIT_POINTS, BASE_MAX_GAUSSIANS = 320 * 240, 24_000, 28_000
+
+
+def capacity(n_pixels: float) -> tuple[int, int]:
+    """Default (init_points, max_gaussians) for training images of n_pixels (mean): 24k / 28k up to
+    320x240, scaled with sqrt(n_pixels / (320 x 240)) above (2x at 640x480)."""
+    s = max(1.0, math.sqrt(n_pixels / BASE_PIXELS))
+    return int(round(BASE_INIT_POINTS * s, -3)), int(round(BASE_MAX_GAUSSIANS * s, -3))
+
+
 MIN_LEVEL_SIDE = 32  # coarse levels keep at least this many pixels on the short side (SSIM needs 11)
 
 
@@ -272,6 +284,10 @@ class Trainer:
         self.views = load_views(self.frames, self.cfg.resolution, depth=self.cfg.depth_lambda > 0,
                                 depth_scale=dataset.depth_scale)
         self.scene_center, self.scene_scale = scene_center_and_scale([v.camera for v in self.views])
+        if self.cfg.init_points <= 0 or self.cfg.max_gaussians <= 0:  # 0: scaled with the image size
+            init, cap = capacity(float(np.mean([v.camera.width * v.camera.height for v in self.views])))
+            self.cfg = replace(self.cfg, init_points=self.cfg.init_points if self.cfg.init_points > 0 else init,
+                               max_gaussians=self.cfg.max_gaussians if self.cfg.max_gaussians > 0 else cap)
         self.dcfg = self.cfg.densify_config()
         self.sh_interval = self.cfg.sh_interval or max(1, self.cfg.iters // 10)
         dev = self.device
