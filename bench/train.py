@@ -208,7 +208,9 @@ def main(argv: list[str] | None = None) -> int:
         ("ms/iter median, 1st / last quarter", f"{statistics.median(step_ms):.1f}   "
                                                f"{statistics.median(step_ms[:q] or step_ms):.1f} / "
                                                f"{statistics.median(step_ms[-q:] or step_ms):.1f}"),
-        ("Gaussians (final)", f"{len(res.gaussians)}"),
+        ("Gaussians (final / cap)", f"{len(res.gaussians)} / {tr.cfg.max_gaussians}"),
+        ("coarse-to-fine levels", f"{tr.cfg.num_downscales} (each {tr.cfg.downscale_every:.0%} of the steps)"
+                                  if tr.cfg.num_downscales else "off"),
         ("train PSNR (EMA)", f"{res.final_psnr:.2f} dB"),
         ("held-out PSNR", f"{ev.mean_psnr:.2f} dB"),
         ("held-out SSIM", f"{ev.mean_ssim:.4f}"),
@@ -239,8 +241,9 @@ def main(argv: list[str] | None = None) -> int:
                       "peak_rss_gib": round(peak, 3), "iters": res.steps, "gaussians": len(res.gaussians),
                       "ms_per_iter": round(statistics.median(step_ms), 2), "views": len(tr.views),
                       "resolution": res_str, "depth_lambda": cfg.depth_lambda,
-                      "opacity_reg": cfg.opacity_reg, "num_downscales": cfg.num_downscales,
-                      "downscale_every": cfg.downscale_every, "target_psnr": args.target_psnr,
+                      "opacity_reg": cfg.opacity_reg, "max_gaussians": tr.cfg.max_gaussians,
+                      "num_downscales": tr.cfg.num_downscales, "downscale_every": tr.cfg.downscale_every,
+                      "target_psnr": args.target_psnr,
                       "time_to_psnr_s": hit["train_s"] if hit else None, "steps_to_psnr": hit["step"] if hit else None,
                       "psnr_curve": [[c["step"], c["train_s"], c["psnr"]] for c in curve],
                       "psnr_curve_cpu_s": [c["train_cpu_s"] for c in curve], **pose}))

@@ -291,3 +291,14 @@ def test_default_capacity_scales_with_the_image_side(synth, tmp_path):
     assert tr.dcfg.max_gaussians == tr.cfg.max_gaussians
     tr = Trainer(ds, tmp_path / "b", tiny_config(init_points=500, max_gaussians=0))
     assert (tr.cfg.init_points, tr.cfg.max_gaussians) == (500, 28_000)  # an explicit value is kept
+
+
+def test_coarse_to_fine_is_on_by_default_only_for_photo_sized_images(synth, tmp_path):
+    from splattwin.splat.trainer import auto_downscales
+
+    assert auto_downscales(480) == 2 and auto_downscales(400) == 2
+    assert auto_downscales(399) == 0 and auto_downscales(240) == 0
+    cfg = tiny_config()
+    assert cfg.num_downscales == -1  # the default: decided from the image size
+    tr = Trainer(load_dataset(synth), tmp_path / "a", cfg)
+    assert tr.cfg.num_downscales == 0 and len(tr.levels) == 1

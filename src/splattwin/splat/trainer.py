@@ -67,6 +67,10 @@ class TrainConfig:
     num_downscales / downscale_every: coarse-to-fine schedule (as nerfstudio's splatfacto and OpenSplat):
         the first steps render 1/2^num_downscales of the training size, and the size doubles every
         downscale_every * iters steps (0 or 0.0: always the training size). See `resolution_level`.
+        -1 (default): `auto_downscales` - 2 levels for photo-sized images (short side >= 400 px), none for
+        smaller ones. Embedded scene, 3000 steps, 5 % per level: at 640x480 (56k Gaussians) 33.78 dB /
+        SSIM 0.968 with 2 levels vs 33.69 / 0.970 without, ~8 % less work; at 320x240 any coarse phase
+        cost 0.1-0.2 dB (1 level: 32.72 vs 32.85 dB; 2 levels: 32.69; 2 levels of 10 %: 32.36).
     """
 
     iters: int = 3000
@@ -92,8 +96,8 @@ class TrainConfig:
     lrs: LearningRates = field(default_factory=LearningRates)
     densify_cfg: DensifyConfig | None = None
     progress: bool = True
-    num_downscales: int = 0
-    downscale_every: float = 0.0
+    num_downscales: int = -1
+    downscale_every: float = 0.05
 
     def densify_config(self) -> DensifyConfig:
         return self.densify_cfg or DensifyConfig.for_iterations(self.iters, self.max_gaussians)
@@ -142,6 +146,16 @@ def capacity(n_pixels: float) -> tuple[int, int]:
 
 
 MIN_LEVEL_SIDE = 32  # coarse levels keep at least this many pixels on the short side (SSIM needs 11)
+
+
+AUTO_DOWNSCALE_MIN_SIDE = 400  # coarse-to-fine by default only for images at least this large (short side)
+
+
+def auto_downscales(short_side: int) -> int:
+    """Default coarse levels for training images whose short side is `short_side` px: 2 from 400 px up
+    (the coarsest level stays >= 100 px), else 0 (smaller images lost 0.1-0.2 dB held-out with any coarse
+    phase; see TrainConfig)."""
+    return 2 if short_side >= AUTO_DOWNSCALE_MIN_SIDE else 0
 
 
 def resolution_level(step: int, iters: int, num_downscales: int, downscale_every: float) -> int:
@@ -298,6 +312,8 @@ class Trainer:
                                      device=dev)
         # coarse-to-fine: views and intrinsics per level (level k: 1/2^k of the training size)
         short = min(min(v.camera.width, v.camera.height) for v in self.views)
+        if self.cfg.num_downscales < 0:
+            self.cfg = replace(self.cfg, num_downscales=auto_downscales(short))
         n_levels = 1 + max(0, min(self.cfg.num_downscales, int(math.log2(max(short / MIN_LEVEL_SIDE, 1.0)))))
         self.levels = [self.views] + [[downscale_view(v, 2**k) for v in self.views] for k in range(1, n_levels)]
         for views in self.levels[1:]:
