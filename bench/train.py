@@ -177,14 +177,15 @@ def main(argv: list[str] | None = None) -> int:
             sys.exit("training is not deterministic: repeat runs gave different Gaussians")
     wall = statistics.median(walls)
     t = time.perf_counter()
-    ev = evaluate(res.gaussians, ds, out / "eval", progress=False, rasterize_mode=cfg.rasterize_mode)
+    ev = evaluate(res.gaussians, ds, out / "eval", resolution=cfg.resolution, progress=False,
+                  rasterize_mode=cfg.rasterize_mode)
     t_eval = time.perf_counter() - t
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB -> GiB
 
     pose: dict = {}
     if noisy or refine_poses:  # + InstantSplat's protocol: held-out cameras fitted to the fixed splat
-        ev_al = evaluate(res.gaussians, ds, out / "eval_aligned", progress=False, align_poses=True,
-                         rasterize_mode=cfg.rasterize_mode)
+        ev_al = evaluate(res.gaussians, ds, out / "eval_aligned", resolution=cfg.resolution, progress=False,
+                         align_poses=True, rasterize_mode=cfg.rasterize_mode)
         pose["psnr_aligned"], pose["ssim_aligned"] = round(ev_al.mean_psnr, 3), round(ev_al.mean_ssim, 4)
         T_in = np.stack([f.camera.T_cam_world for f in ds.train()])
         T_out = T_in if res.refined_T_world_cam is None else np.stack(
