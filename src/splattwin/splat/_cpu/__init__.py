@@ -6,8 +6,8 @@ direction, to means and view matrices) and `rasterize` (tile compositing; gradie
 conics, colours and opacities). All backward passes are hand-written kernels; the only autograd glue is
 O(N) tensor arithmetic (camera centres, view directions, background blending).
 
-Kernels run in float32 storage (float64 scalar arithmetic inside) whatever the input dtype; outputs and
-gradients are cast back to the input dtype.
+Kernels run in float32 storage (float32 SIMD lanes per pixel, float64 per-Gaussian scalars) whatever the
+input dtype; outputs and gradients are cast back to the input dtype.
 """
 
 from __future__ import annotations

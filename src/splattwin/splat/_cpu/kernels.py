@@ -4,16 +4,18 @@ Why our own kernels: no differentiable CPU Gaussian rasterizer exists on PyPI (g
 are GPU-only) and a dense PyTorch version is O(H W N) in time and memory. These follow the published
 tile-based CUDA rasterizers (3DGS, gsplat) re-organised for a CPU:
 
-* one camera per call, float32 arrays in, float64 scalar arithmetic inside (free on a CPU, and it keeps the
-  2x2 inversions and the back-to-front transmittance recovery well conditioned);
+* one camera per call; float32 arrays; per-Gaussian and per-pair terms in float64 scalars (free on a CPU,
+  and they keep the 2x2 inversions and the per-row terms well conditioned), per-pixel work in float32 SIMD;
+* every drawn Gaussian gets one float32 record (2D mean, conic, opacity, its opacity-aware pixel box,
+  log-levels, colours); binning is a counting sort by tile of the Gaussians taken in global depth order
+  that copies each record into every tile list it reaches (box tiles the ellipse misses are left out), so
+  every tile's list is depth-sorted without a per-tile sort and is streamed from consecutive memory;
 * tiles of 16x16 pixels are the unit of parallel work (`prange`); inside a tile the loop runs over the
-  tile's depth-sorted Gaussians and, for each, over the rows of its box that hold pixels with alpha >= 1/255,
-  a whole tile row at a time as 16 SIMD lanes (see "compositing" below);
-* binning is a counting sort by tile of the Gaussians taken in global depth order, so every tile's list is
-  depth-sorted without a per-tile sort;
-* the backward pass writes one gradient row per (tile, Gaussian) intersection - each row is owned by one
-  tile, so threads never write to the same memory (numba has no atomics) - then a parallel reduction per
-  Gaussian sums its rows in a fixed order: results are deterministic for any thread count;
+  tile's Gaussians and, for each, over the rows of its box that hold pixels with alpha >= 1/255, a whole
+  tile row at a time as 16 float32 SIMD lanes (see "compositing" below);
+* the backward pass writes one gradient row per (tile, Gaussian) pair - each row is owned by one tile, so
+  threads never write to the same memory (numba has no atomics) - then a parallel reduction per Gaussian
+  sums its rows in a fixed order: results are deterministic for any thread count;
 * per-camera gradients of the view matrix are reduced over fixed chunks of Gaussians.
 
 Exact semantics (culling, extents, thresholds) are those of `splattwin.splat.reference`.
