@@ -384,6 +384,16 @@ def sh_bwd(dirs, coeffs, degree, v_colors, v_coeffs, v_dirs, accumulate):
         dY = np.zeros((16, 3))
         gcl = np.zeros(3)
         for i in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
+            if v_colors[i, 0] == 0.0 and v_colors[i, 1] == 0.0 and v_colors[i, 2] == 0.0:
+                # not drawn in this camera (or no gradient): zero gradients, no basis to evaluate
+                if not accumulate:
+                    for k in range(K):
+                        for c in range(3):
+                            v_coeffs[i, k, c] = 0.0
+                v_dirs[i, 0] = 0.0
+                v_dirs[i, 1] = 0.0
+                v_dirs[i, 2] = 0.0
+                continue
             dx, dy, dz = np.float64(dirs[i, 0]), np.float64(dirs[i, 1]), np.float64(dirs[i, 2])
             n = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
             ux, uy, uz = dx / n, dy / n, dz / n
