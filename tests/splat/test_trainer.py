@@ -296,8 +296,9 @@ def test_default_capacity_scales_with_the_image_side(synth, tmp_path):
 def test_coarse_to_fine_is_on_by_default_only_for_photo_sized_images(synth, tmp_path):
     from splattwin.splat.trainer import auto_downscales
 
-    assert auto_downscales(480) == 2 and auto_downscales(400) == 2
-    assert auto_downscales(399) == 0 and auto_downscales(240) == 0
+    assert auto_downscales(480) == 2 and auto_downscales(1080) == 2  # 640x480: 1/4 and 1/2 size first
+    assert auto_downscales(360) == 1 and auto_downscales(300) == 1  # 360x640 photos: 1/2 size first
+    assert auto_downscales(299) == 0 and auto_downscales(240) == 0  # 320x240: never
     cfg = tiny_config()
     assert cfg.num_downscales == -1  # the default: decided from the image size
     tr = Trainer(load_dataset(synth), tmp_path / "a", cfg)
