@@ -504,11 +504,12 @@ def _touches(u, v, ca, cb, cc, level, x0, x1, y0, y1):
     if dxa <= 0.0 <= dxb and dya <= 0.0 <= dyb:
         return True
     best = math.inf
+    b_c, b_a = cb / cc, cb / ca
     for X in (dxa, dxb):  # vertical edges
-        dy = min(max(-cb * X / cc, dya), dyb)
+        dy = min(max(-b_c * X, dya), dyb)
         best = min(best, 0.5 * ca * X * X + cb * X * dy + 0.5 * cc * dy * dy)
     for Y in (dya, dyb):  # horizontal edges
-        dx = min(max(-cb * Y / ca, dxa), dxb)
+        dx = min(max(-b_a * Y, dxa), dxb)
         best = min(best, 0.5 * ca * dx * dx + cb * dx * Y + 0.5 * cc * Y * Y)
     return best <= level + 1e-3
 
@@ -554,6 +555,7 @@ def bin_tiles(order, rec, width, height, tile_start, packed, rank_off, rank_isec
     size = (n + P - 1) // P
     srt = np.empty((n, RW), np.float32)
     nt = np.empty(n, np.int64)
+    hits = np.empty(n, np.uint64)
     cursor = np.zeros((P, T), np.int64)
     for p in prange(P):
         for j in range(p * size, min(n, (p + 1) * size)):
@@ -562,13 +564,20 @@ def bin_tiles(order, rec, width, height, tile_start, packed, rank_off, rank_isec
                 srt[j, c] = rec[g, c]
             x0, x1 = np.int64(srt[j, R_X0]) // TILE, np.int64(srt[j, R_X1]) // TILE
             y0, y1 = np.int64(srt[j, R_Y0]) // TILE, np.int64(srt[j, R_Y1]) // TILE
+            test = x0 != x1 and y0 != y1  # a single row or column of tiles: all reached (`_tile_hit`)
             c = 0
+            bits = np.uint64(0)  # which box tiles are reached (the first 64), for the scatter pass
+            b = 0
             for ty in range(y0, y1 + 1):
                 for tx in range(x0, x1 + 1):
-                    if _tile_hit(srt[j], tx, ty):
+                    if not test or _tile_hit(srt[j], tx, ty):
                         cursor[p, ty * tw + tx] += 1
                         c += 1
+                        if b < 64:
+                            bits |= np.uint64(1) << np.uint64(b)
+                    b += 1
             nt[j] = c
+            hits[j] = bits
     pos = 0
     for t in range(T):
         tile_start[t] = pos
@@ -585,10 +594,16 @@ def bin_tiles(order, rec, width, height, tile_start, packed, rank_off, rank_isec
             k = rank_off[j]
             x0, x1 = np.int64(srt[j, R_X0]) // TILE, np.int64(srt[j, R_X1]) // TILE
             y0, y1 = np.int64(srt[j, R_Y0]) // TILE, np.int64(srt[j, R_Y1]) // TILE
+            test = x0 != x1 and y0 != y1
+            bits = hits[j]
+            b = -1
             for ty in range(y0, y1 + 1):
                 for tx in range(x0, x1 + 1):
-                    if not _tile_hit(srt[j], tx, ty):
-                        continue
+                    b += 1
+                    if test:
+                        hit = (bits >> np.uint64(b)) & np.uint64(1) if b < 64 else _tile_hit(srt[j], tx, ty)
+                        if not hit:
+                            continue
                     t = ty * tw + tx
                     q = cursor[p, t]
                     cursor[p, t] = q + 1
