@@ -268,13 +268,22 @@ def test_coarse_to_fine_training_trains_at_each_level_and_is_deterministic(synth
         sizes.append((a[7], a[8]))
         return real(*a, **k)
 
+    from splattwin.splat.strategy import DefaultStrategy
+
+    class Recording(DefaultStrategy):  # the hooks get the size of the level rendered (means2d's pixels)
+        def step_pre_backward(self, model, state, step, info):
+            seen.append((info["width"], info["height"]))
+            super().step_pre_backward(model, state, step, info)
+
+    seen: list = []
     cfg = tiny_config(iters=40, num_downscales=1, downscale_every=0.25)
     T.rasterization = spy
     try:
-        a = train(ds, tmp_path / "a", cfg)
+        a = train(ds, tmp_path / "a", cfg, strategy=Recording(cfg.densify_config()))
     finally:
         T.rasterization = real
     assert sizes[:10] == [(64, 48)] * 10 and sizes[10:] == [(128, 96)] * 30
+    assert seen == sizes
     b = train(ds, tmp_path / "b", cfg)
     np.testing.assert_array_equal(a.gaussians.means, b.gaussians.means)
     assert a.final_psnr > a.history[0]["psnr"]
