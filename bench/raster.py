@@ -136,16 +136,144 @@ def bench(backend, scene, W, H, N, repeats):
     return statistics.median(f), statistics.median(b), statistics.median(c), img
 
 
+KERNELS = [  # (name in splattwin.splat._cpu / its kernels module, what it does)
+    ("project_fwd", "EWA projection"), ("sh_fwd", "SH colours"), ("make_records", "records + opacity-aware boxes"),
+    ("depth_order", "depth sort (numpy SIMD)"), ("bin_tiles", "tile binning + packing"),
+    ("raster_fwd", "compositing forward"), ("raster_bwd", "compositing backward"),
+    ("reduce_isect_grads", "per-Gaussian gradient sums"), ("sh_bwd", "SH backward"),
+    ("project_bwd", "projection backward")]
+
+
+def _pair_stats(packed, tile_start, width, height, last):
+    """(pairs up to each tile's last contributor, rows with a non-empty span, lanes inside the spans)."""
+    import numba
+    import numpy as np
+
+    from splattwin.splat._cpu import kernels as K_
+
+    @numba.njit(cache=False)
+    def stats(packed, tile_start, width, height, last):
+        tw = (width + 15) // 16
+        pairs, rows, lanes = 0, 0, 0
+        buf = np.empty((6, 16), np.float32)
+        IA, IB, EF, EL, CF, DY = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5]
+        for t in range(len(tile_start) - 1):
+            tx0, ty0 = (t % tw) * 16, (t // tw) * 16
+            tx1, ty1 = min(tx0 + 16, width) - 1, min(ty0 + 16, height) - 1
+            kmax = last[ty0:ty1 + 1, tx0:tx1 + 1].max()
+            for k in range(tile_start[t], tile_start[t] + kmax + 1):
+                u, v = np.float64(packed[k, K_.R_U]), np.float64(packed[k, K_.R_V])
+                ca, cb, cc = packed[k, K_.R_A], packed[k, K_.R_B], packed[k, K_.R_C]
+                level, lop = np.float64(packed[k, K_.R_LEVEL]), np.float64(packed[k, K_.R_LOP])
+                b_a, hdet_a, ha, inv_ha = K_._pair_consts(ca, cb, cc)
+                bx0, bx1 = max(np.int64(packed[k, K_.R_X0]), tx0) - tx0, min(np.int64(packed[k, K_.R_X1]), tx1) - tx0
+                ry0, ry1 = max(np.int64(packed[k, K_.R_Y0]), ty0) - ty0, min(np.int64(packed[k, K_.R_Y1]), ty1) - ty0
+                K_._rows(v, ty0, ry0, ry1, u - (tx0 + 0.5), b_a, hdet_a, inv_ha, level, lop, bx0, bx1, 16, IA, IB, EF,
+                         EL, CF, DY)
+                pairs += 1
+                for r in range(16):
+                    if IA[r] <= IB[r]:
+                        rows += 1
+                        lanes += int(IB[r] - IA[r]) + 1
+        return pairs, rows, lanes
+
+    return stats(packed, tile_start, width, height, last)
+
+
+def profile_cpu(scene, W: int, H: int, N: int, repeats: int) -> dict:
+    """Per-kernel wall and CPU time (medians over `repeats` fwd+bwd runs after a warm-up) and the work they
+    do: Gaussians drawn, (tile, Gaussian) pairs, tile list lengths, rows and lanes composited, bytes of the
+    main arrays each pass streams."""
+    import numpy as np
+
+    from splattwin.splat import _cpu
+    from splattwin.splat._cpu import kernels as K_
+
+    params, K = scene(W, H, N)
+    weights = torch.rand(1, H, W, 3, generator=torch.Generator().manual_seed(1))
+    times: dict[str, list] = {name: [] for name, _ in KERNELS}
+    cap: dict = {}
+    saved = {}
+    for name, _ in KERNELS:
+        mod = _cpu if name == "depth_order" else K_
+        f = saved[name] = (mod, getattr(mod, name))
+
+        def timed(*a, _f=f[1], _name=name):
+            t0, c0 = time.perf_counter(), time.process_time()
+            r = _f(*a)
+            times[_name].append((time.perf_counter() - t0, time.process_time() - c0))
+            if _name in ("raster_fwd", "bin_tiles"):
+                cap[_name] = a
+            return r
+        setattr(mod, name, timed)
+    try:
+        totals = []
+        for rep in range(repeats + 1):
+            if rep == 1:
+                for v in times.values():
+                    v.clear()
+                totals.clear()
+            tf, tb, tc, _ = run_once("cpu", params, K, W, H, weights)
+            totals.append((tf + tb, tc))
+    finally:
+        for name, (mod, f) in saved.items():
+            setattr(mod, name, f)
+    med = lambda xs: statistics.median(xs) * 1e3  # noqa: E731
+    out = {"kernels": {n: (med([t[0] for t in times[n]]), med([t[1] for t in times[n]])) for n, _ in KERNELS},
+           "total": (statistics.median(t[0] for t in totals), statistics.median(t[1] for t in totals))}
+    packed, tile_start, _, _, _, _, _, last = cap["raster_fwd"]
+    order = cap["bin_tiles"][0]
+    lens = np.diff(tile_start)
+    pairs, rows, lanes = _pair_stats(packed, tile_start, W, H, last)
+    M, D = packed.shape[0], packed.shape[1] - K_.R_COL
+    out["stats"] = {
+        "drawn": int(order.shape[0]), "pairs": int(M), "tiles_per_gaussian": M / max(1, order.shape[0]),
+        "list_mean": float(lens.mean()), "list_median": float(np.median(lens)), "list_max": int(lens.max()),
+        "pairs_before_stop": pairs / max(1, M), "rows_per_pair": rows / max(1, pairs),
+        "lanes_per_row": lanes / max(1, rows), "span_pixels_per_pixel": lanes / (W * H),
+        "packed_mb": packed.nbytes / 2**20, "pair_grad_mb": M * (6 + D) * 4 / 2**20,
+        "sh_mb": N * 16 * 3 * 4 / 2**20}
+    return out
+
+
+def print_profile(profiles: dict) -> None:
+    """Where the time goes: one column per size, kernels as rows, then the work statistics."""
+    keys = list(profiles)
+    print(f"\nwhere the time goes (CPU backend, fwd+bwd; wall / CPU ms, medians):")
+    print(f"  {'kernel':<20} {'what':<30}" + "".join(f" {k:>20}" for k in keys))
+    for name, what in KERNELS:
+        cells = "".join(f" {profiles[k]['kernels'][name][0]:>9.1f} / {profiles[k]['kernels'][name][1]:>7.1f}" for k in keys)
+        print(f"  {name:<20} {what:<30}{cells}")
+    cells = "".join(f" {profiles[k]['total'][0]:>9.1f} / {profiles[k]['total'][1]:>7.1f}" for k in keys)
+    print(f"  {'total':<20} {'(incl. Python/torch glue)':<30}{cells}")
+    rows = [("Gaussians drawn", "drawn", "{:.0f}"), ("(tile, Gaussian) pairs", "pairs", "{:.0f}"),
+            ("tiles per Gaussian", "tiles_per_gaussian", "{:.2f}"),
+            ("tile list length mean / median / max", None, None),
+            ("pairs before the tile's early stop", "pairs_before_stop", "{:.1%}"),
+            ("rows per pair", "rows_per_pair", "{:.2f}"), ("span lanes per row", "lanes_per_row", "{:.2f}"),
+            ("span pixels per image pixel", "span_pixels_per_pixel", "{:.1f}"),
+            ("packed records MB (1 write, 2 reads)", "packed_mb", "{:.1f}"),
+            ("pair gradients MB (1 write, 1 read)", "pair_grad_mb", "{:.1f}"),
+            ("SH coefficients MB (3 passes)", "sh_mb", "{:.1f}")]
+    for label, key, fmt in rows:
+        if key is None:
+            cells = "".join(f" {'%.0f / %.0f / %d' % (profiles[k]['stats']['list_mean'], profiles[k]['stats']['list_median'], profiles[k]['stats']['list_max']):>20}"
+                            for k in keys)
+        else:
+            cells = "".join(f" {fmt.format(profiles[k]['stats'][key]):>20}" for k in keys)
+        print(f"  {label:<51}{cells}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--skip-reference", action="store_true")
     ap.add_argument("--threads", type=int, default=None, help="numba threads (default: available cores)")
     ap.add_argument("--png", default=None, help="save CPU | reference | 10x difference at 160x120/20k here")
+    ap.add_argument("--no-profile", action="store_true", help="skip the per-kernel breakdown")
     args = ap.parse_args()
     import numba
 
-    from splattwin.splat import _cpu  # noqa: F401  (sets the numba thread count)
     if args.threads:
         numba.set_num_threads(args.threads)
     torch.set_num_threads(numba.get_num_threads())
@@ -185,6 +313,13 @@ def main() -> None:
         print(f"{name:<24} {scene:<8} {key:<22} {tf:>9.1f} {tb:>9.1f} {tf + tb:>9.1f} {tc:>9.1f}")
     print(f"(wall-clock medians of {args.repeats} runs after a warm-up, {out['threads']} threads; reference: 1 run; "
           f"cpu-time = process CPU time summed over threads; SH degree 3)")
+    if not args.no_profile:
+        profiles = {}
+        for W, H, N in SIZES[1:]:
+            key = f"{W}x{H}_{N // 1000}k"
+            profiles[key] = profile_cpu(make_surface_scene, W, H, N, args.repeats)
+            out[f"profile_cpu_ms_{key}"] = {n: round(v[1], 2) for n, v in profiles[key]["kernels"].items()}
+        print_profile(profiles)
     print(json.dumps(out))
 
 

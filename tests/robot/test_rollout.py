@@ -169,3 +169,11 @@ def test_recorder_assembles_blocks_in_order():
     np.testing.assert_array_equal(ro.step_index, [-1, -1, 1, 1, 1, 2, 2, 2])
     np.testing.assert_array_equal(ro.object_poses["box"][:, 0, 3], np.arange(n))
     assert ro.steps() == [1, 2]
+
+
+def test_a_run_without_motion_gives_an_empty_rollout(tmp_path: Path):
+    """A task whose first step fails before any motion (e.g. no grasp fits) still records its rollout."""
+    ro = _small_rollout(T=0)
+    assert len(ro) == 0 and ro.qpos.shape == (0, 16) and ro.q_arm.shape == (0, 7) and ro.duration == 0.0
+    back = Rollout.load(ro.save(tmp_path / "empty.npz"))
+    assert len(back) == 0 and back.qpos.shape == (0, 16) and back.action_q_arm.shape == (0, 7)

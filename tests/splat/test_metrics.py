@@ -76,11 +76,12 @@ def test_error_heatmap():
     assert tuple(hm[0, 0]) == (255, 255, 255) and tuple(hm[1, 1]) == (0, 0, 0)
 
 
-def test_fused_ssim_matches_torch_reference_and_gradient():
+@pytest.mark.parametrize("h,w", [(23, 31), (131, 67)])  # the second spans several row bands of the kernels
+def test_fused_ssim_matches_torch_reference_and_gradient(h, w):
     from splattwin.splat.losses import fused_ssim
     torch.manual_seed(0)
-    ref = torch.rand(23, 31, 3)
-    img = (ref + 0.15 * torch.randn(23, 31, 3)).clamp(0, 1).requires_grad_(True)
+    ref = torch.rand(h, w, 3)
+    img = (ref + 0.15 * torch.randn(h, w, 3)).clamp(0, 1).requires_grad_(True)
     s = fused_ssim(img, ref)
     s.backward()
     img64 = img.detach().double().requires_grad_(True)

@@ -201,3 +201,114 @@ def test_opacity_reg_lowers_the_mean_opacity(scene_small, tmp_path):
         res = Trainer(ds, tmp_path / str(reg), TrainConfig(**{**cfg.__dict__, "opacity_reg": reg})).run()
         mean_op[reg] = float(res.gaussians.opacities.mean())
     assert mean_op[0.5] < mean_op[0.0] - 0.02, mean_op
+
+
+def test_resolution_level_schedule():
+    from splattwin.splat.trainer import resolution_level
+
+    # 2 levels, 10 % of 3000 steps each: 1/4 for steps 0-299, 1/2 for 300-599, full size from 600
+    lv = [resolution_level(s, 3000, 2, 0.1) for s in (0, 299, 300, 599, 600, 2999)]
+    assert lv == [2, 2, 1, 1, 0, 0]
+    assert [resolution_level(s, 1000, 1, 0.05) for s in (0, 49, 50)] == [1, 1, 0]
+    assert {resolution_level(s, 3000, 0, 0.1) for s in range(0, 3000, 7)} == {0}  # off
+    assert {resolution_level(s, 3000, 2, 0.0) for s in range(0, 3000, 7)} == {0}  # off
+    assert resolution_level(0, 5, 3, 0.01) == 3 and resolution_level(1, 5, 3, 0.01) == 2  # blocks >= 1 step
+
+
+def test_downscale_view_averages_pixels_and_scales_the_camera():
+    from splattwin.splat.trainer import TrainView, downscale_view
+
+    rng = np.random.default_rng(0)
+    img = rng.uniform(0, 1, (36, 48, 3)).astype(np.float32)
+    depth = rng.uniform(1, 2, (36, 48)).astype(np.float32)
+    cam = Camera.from_fov(math.radians(60), 48, 36, np.eye(4))
+    small = downscale_view(TrainView("v", torch.from_numpy(img), cam, torch.from_numpy(depth)), 4)
+    assert small.image.shape == (9, 12, 3) and small.depth.shape == (9, 12)
+    want = img.reshape(9, 4, 12, 4, 3).mean(axis=(1, 3))  # box filter = block means (no 8-bit rounding)
+    np.testing.assert_allclose(small.image.numpy(), want, atol=1e-6)
+    assert set(np.unique(small.depth.numpy())) <= set(np.unique(depth))  # nearest samples, not blends
+    assert (small.camera.width, small.camera.height) == (12, 9)
+    np.testing.assert_allclose(small.camera.K[:2], cam.K[:2] / 4)
+    # the same ray through the same relative image position
+    p = np.array([[0.05, -0.03, 1.0]])
+    np.testing.assert_allclose(small.camera.project(p)[0], cam.project(p)[0] / 4, atol=1e-9)
+
+
+def test_coarse_levels_render_the_training_size_model_on_a_coarser_grid(synth, tmp_path):
+    """Level k renders with the low-pass eps2d / 4^k (coarse px^2): a Gaussian's footprint is the one the
+    full-size render gives it, so coarse-level alpha mass x 4^k matches the full-size mass; the full eps2d
+    at coarse levels would inflate small Gaussians (16x more dilation at 1/4 size)."""
+    ds = load_dataset(make_dataset(tmp_path / "big", width=128, height=96))
+    tr = Trainer(ds, tmp_path / "o", tiny_config(num_downscales=2, downscale_every=0.1))
+    tr._fresh_state()
+    assert len(tr.levels) == 2  # 1/4 would leave 24 px (< MIN_LEVEL_SIDE): capped at 1/2
+    assert [tr.level_at(s) for s in (0, 11, 12, 23, 24)] == [1, 1, 1, 1, 0]  # levels 2 (capped to 1), 1, 0
+    assert tuple(tr.levels[1][0].image.shape) == (48, 64, 3)
+    with torch.no_grad():
+        full = float(tr.render(0, level=0)[1].sum())
+        coarse = float(tr.render(0, level=1)[1].sum()) * 4
+        act = tr.model.activated()
+        v = tr.levels[1][0]
+        _, a_bad, _ = rasterization(act["means"], act["quats"], act["scales"], act["opacities"], act["sh"],
+                                    tr.viewmats[:1], tr.Ks_levels[1][:1], v.camera.width, v.camera.height,
+                                    sh_degree=0, backend="cpu", eps2d=0.3)
+    bad = float(a_bad.sum()) * 4
+    assert abs(coarse - full) < 0.03 * full
+    assert bad > coarse + 3 * abs(coarse - full)
+
+
+def test_coarse_to_fine_training_trains_at_each_level_and_is_deterministic(synth, tmp_path):
+    ds = load_dataset(make_dataset(tmp_path / "big", width=128, height=96))
+    sizes: list[tuple[int, int]] = []
+    import splattwin.splat.trainer as T
+
+    real = T.rasterization
+
+    def spy(*a, **k):
+        sizes.append((a[7], a[8]))
+        return real(*a, **k)
+
+    from splattwin.splat.strategy import DefaultStrategy
+
+    class Recording(DefaultStrategy):  # the hooks get the size of the level rendered (means2d's pixels)
+        def step_pre_backward(self, model, state, step, info):
+            seen.append((info["width"], info["height"]))
+            super().step_pre_backward(model, state, step, info)
+
+    seen: list = []
+    cfg = tiny_config(iters=40, num_downscales=1, downscale_every=0.25)
+    T.rasterization = spy
+    try:
+        a = train(ds, tmp_path / "a", cfg, strategy=Recording(cfg.densify_config()))
+    finally:
+        T.rasterization = real
+    assert sizes[:10] == [(64, 48)] * 10 and sizes[10:] == [(128, 96)] * 30
+    assert seen == sizes
+    b = train(ds, tmp_path / "b", cfg)
+    np.testing.assert_array_equal(a.gaussians.means, b.gaussians.means)
+    assert a.final_psnr > a.history[0]["psnr"]
+
+
+def test_default_capacity_scales_with_the_image_side(synth, tmp_path):
+    from splattwin.splat.trainer import capacity
+
+    assert capacity(320 * 240) == (24_000, 28_000) and capacity(100 * 80) == (24_000, 28_000)
+    assert capacity(640 * 480) == (48_000, 56_000)
+    ds = load_dataset(synth)
+    tr = Trainer(ds, tmp_path / "a", tiny_config(init_points=0, max_gaussians=0))
+    assert (tr.cfg.init_points, tr.cfg.max_gaussians) == capacity(W * H)
+    assert tr.dcfg.max_gaussians == tr.cfg.max_gaussians
+    tr = Trainer(ds, tmp_path / "b", tiny_config(init_points=500, max_gaussians=0))
+    assert (tr.cfg.init_points, tr.cfg.max_gaussians) == (500, 28_000)  # an explicit value is kept
+
+
+def test_coarse_to_fine_is_on_by_default_only_for_photo_sized_images(synth, tmp_path):
+    from splattwin.splat.trainer import auto_downscales
+
+    assert auto_downscales(480) == 2 and auto_downscales(1080) == 2  # 640x480: 1/4 and 1/2 size first
+    assert auto_downscales(360) == 1 and auto_downscales(300) == 1  # 360x640 photos: 1/2 size first
+    assert auto_downscales(299) == 0 and auto_downscales(240) == 0  # 320x240: never
+    cfg = tiny_config()
+    assert cfg.num_downscales == -1  # the default: decided from the image size
+    tr = Trainer(load_dataset(synth), tmp_path / "a", cfg)
+    assert tr.cfg.num_downscales == 0 and len(tr.levels) == 1

@@ -28,6 +28,13 @@ MAX_NAME = 256                 # characters of a joint or object name
 MAX_BYTES = 4 << 30            # uncompressed bytes of all arrays together
 
 
+def _rows(a, T: int) -> np.ndarray:
+    """`a` as float64 [T, k]; with T = 0 (a run whose first step failed before any motion) k is taken from
+    a's own last axis, which reshape(0, -1) cannot infer."""
+    a = np.asarray(a, dtype=np.float64)
+    return a.reshape(T, -1) if T else a.reshape(0, a.shape[-1] if a.ndim == 2 else 0)
+
+
 @dataclass
 class Rollout:
     """Executed motion at the control rate; twin (world) frame, metres, radians, seconds."""
@@ -45,9 +52,9 @@ class Rollout:
     def __post_init__(self) -> None:
         self.t = np.asarray(self.t, dtype=np.float64).reshape(-1)
         T = len(self.t)
-        self.qpos = np.asarray(self.qpos, dtype=np.float64).reshape(T, -1)
-        self.q_arm = np.asarray(self.q_arm, dtype=np.float64).reshape(T, -1)
-        self.action_q_arm = np.asarray(self.action_q_arm, dtype=np.float64).reshape(T, -1)
+        self.qpos = _rows(self.qpos, T)
+        self.q_arm = _rows(self.q_arm, T)
+        self.action_q_arm = _rows(self.action_q_arm, T)
         self.gripper_width = np.asarray(self.gripper_width, dtype=np.float64).reshape(T)
         self.action_gripper = np.asarray(self.action_gripper, dtype=np.float64).reshape(T)
         self.step_index = np.asarray(self.step_index, dtype=np.int64).reshape(T)

@@ -43,10 +43,13 @@ class TrainConfig:
     refine_poses / pose_lr / pose_start: joint per-camera SE(3) corrections, their Adam LR, and the
         fraction of the run before they move. Start 0 and LR 5e-3 measured best (bench/train.py, cameras
         off by 1.5 deg / 2.3 cm: left 0.34 deg / 0.41 cm, vs 1.43 deg / 2.1 cm with start 0.2, LR 1e-3).
-    init_points / max_gaussians: at most this many initial Gaussians / Gaussians at any time. 24k / 28k
-        on the embedded scene (bench/train.py, 3000 steps): held-out 32.80 dB / SSIM 0.951, vs 32.69 dB /
-        0.953 with 24k / 32k (~6 % slower) and 32.48 dB / 0.950 with 20k / 26k; on the earlier 2x2-sampled
-        scene 80k gave at most +0.006 SSIM. Raise both for larger images or scenes.
+    init_points / max_gaussians: at most this many initial Gaussians / Gaussians at any time; 0 (the
+        default): 24k / 28k for 320x240 training images, times sqrt(pixels / (320 x 240)) for larger ones
+        (`splattwin.splat.trainer.capacity`). 24k / 28k on the embedded scene at 320x240 (bench/train.py,
+        3000 steps): held-out 32.80 dB / SSIM 0.951, vs 32.69 dB / 0.953 with 24k / 32k (~6 % slower) and
+        32.48 dB / 0.950 with 20k / 26k. At 640x480 the 28k cap left 32.53 dB / 0.958 and 48k / 56k gave
+        33.69 dB / 0.970: finer images need more Gaussians, about with the side length rather than the
+        pixel count.
     rasterize_mode: "classic" or "antialiased" (see `rasterization`); evaluation renders with the same
         mode (train.json). Antialiased measured no better (2x2-sampled scene: SSIM 0.919 vs 0.921).
     opacity_reg: weight of a mean-opacity penalty (gsplat's opacity_reg; 0: off). 0.05 raised held-out
@@ -55,6 +58,16 @@ class TrainConfig:
     depth_lambda: weight of a depth loss on frames that have depth maps (0: off): mean relative error
         |ED - D| / D of the rendered expected depth ED over pixels with a finite depth D and rendered
         alpha > 0.5. It keeps the Gaussians on the measured surfaces, which sparse views alone do not.
+    num_downscales / downscale_every: coarse-to-fine schedule (as nerfstudio's splatfacto and OpenSplat):
+        the first steps render 1/2^num_downscales of the training size, and the size doubles every
+        downscale_every * iters steps (0 or 0.0: always the training size; see
+        `splattwin.splat.trainer.resolution_level`). -1 (the default): `auto_downscales` - none below 300 px
+        on the short side, else as many halvings (at most 2) as keep the coarsest level >= 120 px.
+        Measured with 5 % of the steps per level (3000 steps): embedded scene at 640x480 (56k Gaussians)
+        33.78 dB / SSIM 0.968 with 2 levels vs 33.69 / 0.970 without, ~8 % less work; statue photos
+        (7 training views at 360x640, 48k) 18.8 dB held-out with 1 level vs 17.7 without; but at 320x240
+        any coarse phase cost 0.1-0.2 dB (1 level: 32.72 vs 32.85 dB; 2 levels: 32.69; 2 levels of 10 %:
+        32.36).
     densify_cfg: the adaptive density control schedule (None: `DensifyConfig.for_iterations`); set from
         Python only.
     """
@@ -72,7 +85,8 @@ class TrainConfig:
     init: str = option("auto", "initial point cloud: dataset/SfM points, back-projected depth maps, points "
                        "triangulated from the known poses, or random in the cameras' common view (auto: the first "
                        "available in that order)", choices=INIT_METHODS)
-    init_points: int = option(24_000, "at most this many initial Gaussians")
+    init_points: int = option(0, "at most this many initial Gaussians (0: 24000 for 320x240 images, scaled "
+                              "with the square root of the pixel count above)")
     sh_degree: int = option(3, "maximum SH degree", choices=(0, 1, 2, 3))
     sh_interval: int = option(0, "raise the SH degree every this many steps (0: iters // 10)")
     seed: int = option(0, "seed of the view order, initialisation and split samples")
@@ -87,11 +101,15 @@ class TrainConfig:
     depth_lambda: float = option(0.0, "weight of a relative depth loss on frames with depth maps (0: off)")
     opacity_reg: float = option(0.0, "weight of a mean-opacity penalty, as gsplat's opacity_reg (0: off; 0.05 "
                                 "gave +0.27 dB / +0.009 SSIM on the embedded scene, ~15 % slower)")
-    max_gaussians: int = option(28_000, "cap on the Gaussian count")
+    max_gaussians: int = option(0, "cap on the Gaussian count (0: 28000 for 320x240 images, scaled with the "
+                                "square root of the pixel count above)")
     background: tuple[float, float, float] = option((0.0, 0.0, 0.0), "background colour (RGB in [0, 1])")
     densify: bool = option(True, "adaptive density control (clone, split, prune)")
     lrs: LearningRates = option(factory=LearningRates, help="Adam learning rates")
     densify_cfg: DensifyConfig | None = option(None, "densification schedule (None: scaled to iters)", cli=False)
+    num_downscales: int = option(-1, "coarse-to-fine: start at 1/2^N of the training size (0: off; -1: auto, "
+                                 "none below 300 px on the short side, else up to 2 halvings keeping >= 120 px)")
+    downscale_every: float = option(0.05, "coarse-to-fine: fraction of the steps spent at each coarse level")
     progress: bool = option(True, "progress bar", runtime=True)
 
     def densify_config(self) -> DensifyConfig:

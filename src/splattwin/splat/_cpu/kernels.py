@@ -4,16 +4,18 @@ Why our own kernels: no differentiable CPU Gaussian rasterizer exists on PyPI (g
 are GPU-only) and a dense PyTorch version is O(H W N) in time and memory. These follow the published
 tile-based CUDA rasterizers (3DGS, gsplat) re-organised for a CPU:
 
-* one camera per call, float32 arrays in, float64 scalar arithmetic inside (free on a CPU, and it keeps the
-  2x2 inversions and the back-to-front transmittance recovery well conditioned);
+* one camera per call; float32 arrays; per-Gaussian and per-pair terms in float64 scalars (free on a CPU,
+  and they keep the 2x2 inversions and the per-row terms well conditioned), per-pixel work in float32 SIMD;
+* every drawn Gaussian gets one float32 record (2D mean, conic, opacity, its opacity-aware pixel box,
+  log-levels, colours); binning is a counting sort by tile of the Gaussians taken in global depth order
+  that copies each record into every tile list it reaches (box tiles the ellipse misses are left out), so
+  every tile's list is depth-sorted without a per-tile sort and is streamed from consecutive memory;
 * tiles of 16x16 pixels are the unit of parallel work (`prange`); inside a tile the loop runs over the
-  tile's depth-sorted Gaussians and, for each, over the rows of its box that hold pixels with alpha >= 1/255,
-  a whole tile row at a time as 16 SIMD lanes (see "compositing" below);
-* binning is a counting sort by tile of the Gaussians taken in global depth order, so every tile's list is
-  depth-sorted without a per-tile sort;
-* the backward pass writes one gradient row per (tile, Gaussian) intersection - each row is owned by one
-  tile, so threads never write to the same memory (numba has no atomics) - then a parallel reduction per
-  Gaussian sums its rows in a fixed order: results are deterministic for any thread count;
+  tile's Gaussians and, for each, over the rows of its box that hold pixels with alpha >= 1/255, a whole
+  tile row at a time as 16 float32 SIMD lanes (see "compositing" below);
+* the backward pass writes one gradient row per (tile, Gaussian) pair - each row is owned by one tile, so
+  threads never write to the same memory (numba has no atomics) - then a parallel reduction per Gaussian
+  sums its rows in a fixed order: results are deterministic for any thread count;
 * per-camera gradients of the view matrix are reduced over fixed chunks of Gaussians.
 
 Exact semantics (culling, extents, thresholds) are those of `splattwin.splat.reference`.
@@ -40,10 +42,11 @@ CHUNK = 1024  # Gaussians per work item in the per-Gaussian kernels
 
 _JIT = dict(parallel=True, fastmath=False, cache=True, nogil=True)
 _JIT1 = dict(parallel=False, fastmath=False, cache=True, nogil=True)
-# The two compositing kernels (most of a training step) with fastmath: only finite values reach them
-# (culled Gaussians are never binned) and reassociating the per-pixel updates is harmless at float64;
-# ~10 % faster, images still within a few 1e-6 of the reference.
-_JITF = dict(parallel=True, fastmath=True, cache=True, nogil=True)
+# The two compositing kernels (most of a training step) with fastmath flags: only finite values reach them
+# (culled Gaussians are never binned), and fused multiply-adds only make the float32 lanes more accurate.
+_FAST = {"nnan", "ninf", "nsz", "arcp", "contract", "afn"}  # not "reassoc": it would undo compensated sums
+_JITF = dict(parallel=True, fastmath=_FAST, cache=True, nogil=True)
+_JIT1F = dict(parallel=False, fastmath=_FAST, cache=True, nogil=True)  # helpers inlined into the _JITF kernels
 
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
@@ -381,6 +384,16 @@ def sh_bwd(dirs, coeffs, degree, v_colors, v_coeffs, v_dirs, accumulate):
         dY = np.zeros((16, 3))
         gcl = np.zeros(3)
         for i in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
+            if v_colors[i, 0] == 0.0 and v_colors[i, 1] == 0.0 and v_colors[i, 2] == 0.0:
+                # not drawn in this camera (or no gradient): zero gradients, no basis to evaluate
+                if not accumulate:
+                    for k in range(K):
+                        for c in range(3):
+                            v_coeffs[i, k, c] = 0.0
+                v_dirs[i, 0] = 0.0
+                v_dirs[i, 1] = 0.0
+                v_dirs[i, 2] = 0.0
+                continue
             dx, dy, dz = np.float64(dirs[i, 0]), np.float64(dirs[i, 1]), np.float64(dirs[i, 2])
             n = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
             ux, uy, uz = dx / n, dy / n, dz / n
@@ -415,83 +428,156 @@ def sh_bwd(dirs, coeffs, degree, v_colors, v_coeffs, v_dirs, accumulate):
 # --------------------------------------------------------------------------------------------------------
 # tile binning
 # --------------------------------------------------------------------------------------------------------
+# record layout of one (Gaussian, camera): float32 columns
+R_U, R_V, R_A, R_B, R_C, R_OP, R_X0, R_X1, R_Y0, R_Y1, R_LEVEL, R_LOP = range(12)
+R_COL = 12  # colour channels from here (D of them)
+
+
+@njit(**_JIT1)
+def _levels(op):
+    """(log(255 op), log(op)) of an opacity, guarded for op <= 0 (those are never drawn)."""
+    if op * 255.0 < 1.0:
+        return 0.0, -1e30
+    return math.log(op * 255.0), math.log(op)
+
+
 @njit(**_JIT)
-def pixel_boxes(means2d, conics, opacities, extents, width, height, boxes, ntiles):
-    """Inclusive pixel box [x0, x1, y0, y1] of each Gaussian and its number of touched tiles.
-    boxes [N,4] int32, ntiles [N] int64.
+def make_records(means2d, conics, colors, opacities, extents, width, height, rec, ntiles):
+    """Per Gaussian one float32 record rec [N, 12+D]: u, v, conic a, b, c, opacity, inclusive pixel box
+    x0, x1, y0, y1 (integers, exact in float32), level = log(255 opacity) (sigma above it gives alpha <
+    1/255) and log(opacity) (computed once here rather than per tile), colours [D]; and its number of touched tiles ntiles [N]
+    (0: not drawn; an upper bound: `bin_tiles` leaves out the tiles of the box the ellipse misses, see
+    `_touches`). One record = one cache line or two: binning copies it into every tile list it touches,
+    so the compositing kernels stream each tile's Gaussians from consecutive memory.
 
     The box holds the pixel centres inside the 3-sigma box (`extents`) that are also inside the bounding
     box of the ellipse sigma <= log(255 opacity), outside which alpha < 1/255 and the compositing kernels
     skip the pixel anyway: the same image from fewer tiles and rows for faint Gaussians (a 0.01 px margin
-    absorbs rounding, as in `_row_span`)."""
+    absorbs rounding, as in `_row_spans`)."""
     N = means2d.shape[0]
+    D = colors.shape[1]
     for i in prange(N):
         rx, ry = np.float64(extents[i, 0]), np.float64(extents[i, 1])
         ntiles[i] = 0
-        boxes[i, 0] = 0
-        boxes[i, 1] = -1
-        boxes[i, 2] = 0
-        boxes[i, 3] = -1
         op = np.float64(opacities[i])
-        if rx == 0 or op * 255.0 < 1.0:
-            continue
-        ca, cb, cc = np.float64(conics[i, 0]), np.float64(conics[i, 1]), np.float64(conics[i, 2])
-        det = ca * cc - cb * cb
-        if det > 0:
-            two_level = 2.0 * math.log(op * 255.0)
-            rx = min(rx, math.sqrt(two_level * cc / det) + 0.01)  # sigma_xx = c / det of the conic
-            ry = min(ry, math.sqrt(two_level * ca / det) + 0.01)
         u, v = np.float64(means2d[i, 0]), np.float64(means2d[i, 1])
+        ca, cb, cc = np.float64(conics[i, 0]), np.float64(conics[i, 1]), np.float64(conics[i, 2])
+        rec[i, R_U] = means2d[i, 0]
+        rec[i, R_V] = means2d[i, 1]
+        rec[i, R_A] = conics[i, 0]
+        rec[i, R_B] = conics[i, 1]
+        rec[i, R_C] = conics[i, 2]
+        rec[i, R_OP] = opacities[i]
+        rec[i, R_LEVEL], rec[i, R_LOP] = _levels(op)
+        for d in range(D):
+            rec[i, R_COL + d] = colors[i, d]
+        rec[i, R_X0] = 0.0
+        rec[i, R_X1] = -1.0
+        rec[i, R_Y0] = 0.0
+        rec[i, R_Y1] = -1.0
+        det = ca * cc - cb * cb
+        # alpha < 1/255 everywhere, or a conic that is not positive definite: never drawn
+        if rx == 0 or op * 255.0 < 1.0 or not (ca > 0.0 and det > 0.0):
+            continue
+        two_level = 2.0 * math.log(op * 255.0)
+        rx = min(rx, math.sqrt(two_level * cc / det) + 0.01)  # sigma_xx = c / det of the conic
+        ry = min(ry, math.sqrt(two_level * ca / det) + 0.01)
         x0 = max(int(math.ceil(u - rx - 0.5)), 0)
         x1 = min(int(math.floor(u + rx - 0.5)), width - 1)
         y0 = max(int(math.ceil(v - ry - 0.5)), 0)
         y1 = min(int(math.floor(v + ry - 0.5)), height - 1)
         if x0 > x1 or y0 > y1:
             continue
-        boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3] = x0, x1, y0, y1
+        rec[i, R_X0], rec[i, R_X1], rec[i, R_Y0], rec[i, R_Y1] = x0, x1, y0, y1
         ntiles[i] = (x1 // TILE - x0 // TILE + 1) * (y1 // TILE - y0 // TILE + 1)
 
 
-@njit(**_JIT)
-def take_rows(src, order, dst):
-    """dst[j] = src[order[j]] for 2D arrays (numpy's fancy indexing is single-threaded and ~10x slower)."""
-    for j in prange(order.shape[0]):
-        g = order[j]
-        for c in range(src.shape[1]):
-            dst[j, c] = src[g, c]
+@njit(**_JIT1)
+def _touches(u, v, ca, cb, cc, level, x0, x1, y0, y1):
+    """True if some point of the rectangle of pixel centres [x0 + 1/2, x1 + 1/2] x [y0 + 1/2, y1 + 1/2] has
+    sigma <= level (+ 1e-3, for rounding): the exact test of a convex quadratic against a rectangle (the
+    minimum is the centre, or on an edge: a clamped 1-D minimum per edge). Tiles of a Gaussian's box that
+    fail it hold no pixel with alpha >= 1/255 (gsplat's and 3DGS's bounding boxes list them anyway: ~9 % of
+    the pairs of a trained model)."""
+    dxa, dxb = u - (x1 + 0.5), u - (x0 + 0.5)  # dx = u - pixel centre over the rectangle
+    dya, dyb = v - (y1 + 0.5), v - (y0 + 0.5)
+    if dxa <= 0.0 <= dxb and dya <= 0.0 <= dyb:
+        return True
+    best = math.inf
+    b_c, b_a = cb / cc, cb / ca
+    for X in (dxa, dxb):  # vertical edges
+        dy = min(max(-b_c * X, dya), dyb)
+        best = min(best, 0.5 * ca * X * X + cb * X * dy + 0.5 * cc * dy * dy)
+    for Y in (dya, dyb):  # horizontal edges
+        dx = min(max(-b_a * Y, dxa), dxb)
+        best = min(best, 0.5 * ca * dx * dx + cb * dx * Y + 0.5 * cc * Y * Y)
+    return best <= level + 1e-3
+
+
+@njit(**_JIT1)
+def _tile_hit(r, tx, ty):
+    """Whether record r's ellipse reaches tile (tx, ty) of its box (the part of the tile inside the box).
+    Always true when the box spans one tile row or column: an ellipse crosses every column (row) of its
+    bounding box, and the box is that, clipped (most Gaussians: no test)."""
+    bx0, bx1, by0, by1 = np.int64(r[R_X0]), np.int64(r[R_X1]), np.int64(r[R_Y0]), np.int64(r[R_Y1])
+    if bx0 // TILE == bx1 // TILE or by0 // TILE == by1 // TILE:
+        return True
+    x0, x1 = max(np.int64(r[R_X0]), tx * TILE), min(np.int64(r[R_X1]), tx * TILE + TILE - 1)
+    y0, y1 = max(np.int64(r[R_Y0]), ty * TILE), min(np.int64(r[R_Y1]), ty * TILE + TILE - 1)
+    return _touches(np.float64(r[R_U]), np.float64(r[R_V]), np.float64(r[R_A]), np.float64(r[R_B]),
+                    np.float64(r[R_C]), np.float64(r[R_LEVEL]), x0, x1, y0, y1)
 
 
 BIN_CHUNKS = 16  # depth-order chunks binned in parallel (fixed: the output does not depend on threads)
 
 
 @njit(**_JIT)
-def bin_tiles(order, boxes, ntiles, width, height, tile_start, isect_gauss, gauss_isect, gauss_off):
-    """Counting sort of (tile, Gaussian) pairs by tile, Gaussians taken in depth `order`.
+def bin_tiles(order, rec, width, height, tile_start, packed, rank_off, rank_isect):
+    """Counting sort of (tile, Gaussian) pairs by tile, Gaussians taken in depth `order` [n] (drawn
+    Gaussians only), each pair's record copied: packed [M, 10+D] holds tile t's Gaussians, depth-sorted, at
+    rows tile_start[t]:tile_start[t+1] (tile_start [T+1], out), so a tile's compositing streams through
+    consecutive memory (scattered reads made the 640x480 / 200k case 2x slower per pair than 320x240).
+    rank_off [n+1] (out): prefix sum of the touched tiles in depth order; rank_isect [M] (out): the packed
+    rows of the Gaussian of depth rank j are rank_isect[rank_off[j]:rank_off[j+1]] (to reduce gradients).
+    packed and rank_isect may be longer than needed (sized by make_records' box counts): M = tile_start[T]
+    rows are used (box tiles the ellipse misses, `_tile_hit`, are not listed).
 
-    tile_start [T+1] (out): tile t's list is isect_gauss[tile_start[t]:tile_start[t+1]]: ascending depth
-    ranks j (Gaussian order[j]), so the compositing kernels, given per-Gaussian arrays gathered in depth
-    order, read memory almost sequentially instead of at random.
-    gauss_off [N+1] (in): prefix sum of ntiles. gauss_isect [M] (out): the list positions of Gaussian g's
-    intersections are gauss_isect[gauss_off[g]:gauss_off[g+1]] (used to reduce gradients per Gaussian).
-
-    In parallel over BIN_CHUNKS consecutive chunks of the depth order: each chunk counts its pairs per
-    tile, a prefix sum over (tile, chunk) gives every chunk its own cursor in each tile's list, and the
-    chunks scatter independently - the same output as one sequential pass.
+    The records are first gathered in depth order (one random read per Gaussian), then binned in parallel
+    over BIN_CHUNKS consecutive chunks of that order: each chunk counts its pairs per tile, a prefix sum over
+    (tile, chunk) gives every chunk its own cursor in each tile's list, and the chunks scatter independently
+    - the same output as one sequential pass.
     """
     tw = (width + TILE - 1) // TILE
     T = tile_start.shape[0] - 1
     n = order.shape[0]
+    RW = rec.shape[1]
     P = BIN_CHUNKS
     size = (n + P - 1) // P
+    srt = np.empty((n, RW), np.float32)
+    nt = np.empty(n, np.int64)
+    hits = np.empty(n, np.uint64)
     cursor = np.zeros((P, T), np.int64)
     for p in prange(P):
         for j in range(p * size, min(n, (p + 1) * size)):
             g = order[j]
-            if ntiles[g] == 0:
-                continue
-            for ty in range(boxes[g, 2] // TILE, boxes[g, 3] // TILE + 1):
-                for tx in range(boxes[g, 0] // TILE, boxes[g, 1] // TILE + 1):
-                    cursor[p, ty * tw + tx] += 1
+            for c in range(RW):
+                srt[j, c] = rec[g, c]
+            x0, x1 = np.int64(srt[j, R_X0]) // TILE, np.int64(srt[j, R_X1]) // TILE
+            y0, y1 = np.int64(srt[j, R_Y0]) // TILE, np.int64(srt[j, R_Y1]) // TILE
+            test = x0 != x1 and y0 != y1  # a single row or column of tiles: all reached (`_tile_hit`)
+            c = 0
+            bits = np.uint64(0)  # which box tiles are reached (the first 64), for the scatter pass
+            b = 0
+            for ty in range(y0, y1 + 1):
+                for tx in range(x0, x1 + 1):
+                    if not test or _tile_hit(srt[j], tx, ty):
+                        cursor[p, ty * tw + tx] += 1
+                        c += 1
+                        if b < 64:
+                            bits |= np.uint64(1) << np.uint64(b)
+                    b += 1
+            nt[j] = c
+            hits[j] = bits
     pos = 0
     for t in range(T):
         tile_start[t] = pos
@@ -500,30 +586,71 @@ def bin_tiles(order, boxes, ntiles, width, height, tile_start, isect_gauss, gaus
             cursor[p, t] = pos
             pos += c
     tile_start[T] = pos
+    rank_off[0] = 0
+    for j in range(n):
+        rank_off[j + 1] = rank_off[j] + nt[j]
     for p in prange(P):
         for j in range(p * size, min(n, (p + 1) * size)):
-            g = order[j]
-            if ntiles[g] == 0:
-                continue
-            k = gauss_off[g]
-            for ty in range(boxes[g, 2] // TILE, boxes[g, 3] // TILE + 1):
-                for tx in range(boxes[g, 0] // TILE, boxes[g, 1] // TILE + 1):
+            k = rank_off[j]
+            x0, x1 = np.int64(srt[j, R_X0]) // TILE, np.int64(srt[j, R_X1]) // TILE
+            y0, y1 = np.int64(srt[j, R_Y0]) // TILE, np.int64(srt[j, R_Y1]) // TILE
+            test = x0 != x1 and y0 != y1
+            bits = hits[j]
+            b = -1
+            for ty in range(y0, y1 + 1):
+                for tx in range(x0, x1 + 1):
+                    b += 1
+                    if test:
+                        hit = (bits >> np.uint64(b)) & np.uint64(1) if b < 64 else _tile_hit(srt[j], tx, ty)
+                        if not hit:
+                            continue
                     t = ty * tw + tx
                     q = cursor[p, t]
                     cursor[p, t] = q + 1
-                    isect_gauss[q] = j  # depth rank: the compositing kernels read depth-sorted copies
-                    gauss_isect[k] = q
+                    for c in range(RW):
+                        packed[q, c] = srt[j, c]
+                    rank_isect[k] = q
                     k += 1
+
+
+@njit(**_JIT)
+def reduce_isect_grads(isect_grad, order, rank_off, rank_isect, out):
+    """out [N, 6+D] = sum of each Gaussian's pair rows (fixed order: deterministic); zero for Gaussians
+    that were not drawn. isect_grad [M, 6+D] per packed pair; order, rank_off, rank_isect from bin_tiles."""
+    N = out.shape[0]
+    J = out.shape[1]
+    n = order.shape[0]
+    for g in prange(N):
+        for j in range(J):
+            out[g, j] = 0.0
+    nch = (n + CHUNK - 1) // CHUNK
+    for ch in prange(nch):
+        acc = np.zeros(J)
+        for r in range(ch * CHUNK, min(n, (ch + 1) * CHUNK)):
+            for j in range(J):
+                acc[j] = 0.0
+            for k in range(rank_off[r], rank_off[r + 1]):
+                pos = rank_isect[k]
+                for j in range(J):
+                    acc[j] += isect_grad[pos, j]
+            g = order[r]
+            for j in range(J):
+                out[g, j] = acc[j]
 
 
 # --------------------------------------------------------------------------------------------------------
 # compositing
 # --------------------------------------------------------------------------------------------------------
-# The compositing kernels work on one tile row at a time, all 16 pixels of it as SIMD lanes: every per-pixel
-# update is a select, not a branch, so LLVM vectorises the lane loops. Per-tile state lives in stack buffers
-# (`_stack`): LLVM knows distinct stack buffers never overlap, whereas for numba's heap arrays it must add
-# run-time overlap checks to every vectorised loop (they cost as much as the loop). exp(-sigma) comes from a
-# walker: exact exps at one pixel of the first drawn row, multiplications for the other lanes and rows.
+# The compositing kernels work on one tile row at a time, all 16 pixels of it as SIMD lanes in float32:
+# every per-pixel update is a select, not a branch, so LLVM vectorises the lane loops (float32: twice the
+# lanes of float64 per instruction). Per-tile state lives in stack buffers (`_stack`): LLVM knows distinct
+# stack buffers never overlap, whereas for numba's heap arrays it must add run-time overlap checks to every
+# vectorised loop (they cost as much as the loop).
+#
+# alpha of a lane is exp(log(opacity) - sigma) from a vectorisable float32 exp (`_exp32`), with sigma written
+# about the row's minimum: sigma = a/2 t^2 + sigma_min(row), t = dx + (b/a) dy. The per-row terms are float64
+# scalars, so no large terms cancel in float32 (as they would in a/2 dx^2 + b dx dy + c/2 dy^2 for a thin
+# Gaussian far from its centre); float32 alphas are within a few 1e-7 of float64 ones (tested).
 assert TILE == 16  # the stack buffers below are sized by literals (16 lanes, 256 pixels)
 
 
@@ -543,103 +670,102 @@ def _stack_intrinsic(nbtype):
     return _stack
 
 
-_stack_f64 = _stack_intrinsic(_nbt.float64)
-_stack_i64 = _stack_intrinsic(_nbt.int64)
+_stack_f32 = _stack_intrinsic(_nbt.float32)
+_stack_i32 = _stack_intrinsic(_nbt.int32)
+
+
+@_intrinsic
+def _bits_to_f32(typingctx, x):
+    """The float32 whose bit pattern is the int32 x (a free register move, and vectorisable)."""
+    if x != _nbt.int32:
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], _ir.FloatType())
+    return _nbt.float32(_nbt.int32), codegen
+
+
+_F0, _F1, _HALF = np.float32(0.0), np.float32(1.0), np.float32(0.5)
+_A_MAX, _A_MIN, _T_MIN = np.float32(ALPHA_MAX), np.float32(ALPHA_MIN), np.float32(T_MIN)
+EXP_LO = np.float32(-30.0)  # exp(-30) ~ 1e-13 << 1/255: lanes below are masked off, and never denormal
+_LOG2E, _LN2_HI, _LN2_LO = np.float32(1.4426950408889634), np.float32(0.693359375), np.float32(-2.12194440e-4)
+_E0, _E1, _E2 = np.float32(1.9875691500e-4), np.float32(1.3981999507e-3), np.float32(8.3334519073e-3)
+_E3, _E4, _E5 = np.float32(4.1665795894e-2), np.float32(1.6666665459e-1), np.float32(5.0000001201e-1)
+_EXP_BIAS, _EXP_SHIFT = np.float32(127.0), np.float32(8388608.0)  # 2^k as bits: (k + 127) << 23
+
+
+@njit(**_JIT1F)
+def _exp32(x):
+    """exp(x) for a float32 x in [-87, 0], within 2 ulp (Cephes' expf: x = k ln2 + r, |r| <= ln2/2, a degree-6
+    polynomial for exp(r), 2^k assembled from its bits). Plain arithmetic, so LLVM vectorises it in the lane
+    loops (numba's math.exp stays a scalar libm call per lane)."""
+    fk = np.floor(x * _LOG2E + _HALF)
+    r = x - fk * _LN2_HI - fk * _LN2_LO
+    p = ((((_E0 * r + _E1) * r + _E2) * r + _E3) * r + _E4) * r + _E5
+    y = p * r * r + r + _F1
+    return y * _bits_to_f32(np.int32((fk + _EXP_BIAS) * _EXP_SHIFT))
 
 
 @njit(**_JIT1)
-def _row_spans(u, v, ca, cb, cc, level, x0, x1, y0, y1, xa, xb):
-    """Pixel columns [xa[j], xb[j]] of row y0 + j where sigma <= level (outside, alpha < 1/255), clipped to
-    [x0, x1] (xa > xb: empty row). Returns the first and last non-empty j (first > last: none).
-
-    All rows in one loop the compiler vectorises (row by row it is a sqrt-divide-round latency chain, which
-    was a third of the compositing time). Only a speed-up: every pixel in a span is still tested exactly,
-    and a 0.01 px margin absorbs rounding, so results are those of the plain box loop."""
-    two_ca_level = 2.0 * ca * level
-    det = ca * cc - cb * cb
-    ica = 1.0 / ca
-    n = y1 - y0 + 1
-    first, last = TILE, -1
-    for j in range(TILE):  # all 16 (fixed trip count: unrolled, no scalar remainder); rows >= n are unused
-        dy = v - (y0 + j + 0.5)
-        disc = two_ca_level - det * dy * dy  # (b dy)^2 - a (c dy^2 - 2 level)
-        r = math.sqrt(max(disc, 0.0))
-        lo = (-cb * dy - r) * ica  # dx range; pixel centre = u - dx
-        hi = (-cb * dy + r) * ica
-        a = max(x0, np.int64(math.ceil(u - hi - 0.5 - 0.01)))
-        b = min(x1, np.int64(math.floor(u - lo - 0.5 + 0.01)))
-        full = disc >= 0.0 and a <= b and j < n
-        xa[j] = a if full else 1
-        xb[j] = b if full else 0
-        first = min(first, j if full else TILE)
-        last = max(last, j if full else -1)
-    return first, last
+def _pair_consts(ca, cb, cc):
+    """Per-(tile, Gaussian) constants of the conic (a, b, c): b/a, det/(2a), a/2, 2/a."""
+    ia = 1.0 / ca
+    return cb * ia, 0.5 * (ca * cc - cb * cb) * ia, 0.5 * ca, 2.0 * ia
 
 
 @njit(**_JIT1)
-def _seed_row(Gl, Vl, ia, dx0, dy, ca, cb, cc, Rr, Rxy):
-    """Start the walker on a row: Gl[i] = exp(-sigma) and Vl[i] = exp(-(sigma(next row) - sigma)) for the 16
-    lanes, at lane offsets dx = dx0 - i. Exact exps at lane ia (inside the row's span), multiplications
-    outwards from there, so lanes inside the span never pass through an underflowed value."""
-    dx = dx0 - ia
-    G = math.exp(-(0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy))
-    E = math.exp(-(0.5 * ca - ca * dx - cb * dy))  # sigma(next lane) - sigma
-    V = math.exp(-(0.5 * cc - cc * dy - cb * dx))
-    Gl[ia] = G
-    Vl[ia] = V
-    g, e, w = G, E, V
-    for i in range(ia + 1, TILE):
-        g *= e
-        e *= Rr
-        w *= Rxy
-        Gl[i] = g
-        Vl[i] = w
-    g, ie, w = G, 1.0 / E, V
-    iRxy = 1.0 / Rxy
-    for i in range(ia - 1, -1, -1):
-        ie *= Rr
-        g *= ie
-        w *= iRxy
-        Gl[i] = g
-        Vl[i] = w
+def _fold16(A, n):
+    """A[j, 0] = sum of A[j, :16] for j < n, by halving (vector adds; float32 sums of 16 per-lane sums)."""
+    for w in (8, 4, 2, 1):
+        for j in range(n):
+            for i in range(w):
+                A[j, i] += A[j, i + w]
 
 
 @njit(**_JIT1)
-def _step_rows(Gl, Vl, Ry):
-    """Walker one row down (Ry = exp(-conic c))."""
-    for i in range(TILE):
-        Gl[i] *= Vl[i]
-        Vl[i] *= Ry
+def _rows(v, ty0, ry0, ry1, dx0, b_a, hdet_a, inv_ha, level, lop, bx0, bx1, nrows, IA, IB, EF, EL, CF, DY):
+    """The rows of a (tile, Gaussian) pair, all 16 in one loop LLVM vectorises (row by row, the sqrt-round
+    chain of each row stalls the lane loops). Row j (pixel row ty0 + j) gets lanes [IA[j], IB[j]] (tile-
+    relative, inside the pair's box columns bx0..bx1 and rows ry0..ry1) that may hold alpha >= 1/255 (IA >
+    IB: none; a 0.01 px margin absorbs rounding, every lane is still tested); lane i there has
+    t = (EF[j] - i) + EL[j] (EF + EL = e in float64) and log(op) - sigma = CF[j] - a/2 t^2; DY[j] = v -
+    the row's pixel centre. nrows = 16 (a run-time value: see raster_fwd)."""
+    for j in range(nrows):
+        dy = v - (ty0 + j + 0.5)
+        smin = hdet_a * dy * dy
+        e = dx0 + b_a * dy
+        w = math.sqrt(max(level - smin, 0.0) * inv_ha) + 0.01
+        ia = max(np.float64(bx0), math.ceil(min(max(e - w, -1.0), 17.0)))
+        ib = min(np.float64(bx1), math.floor(min(max(e + w, -1.0), 17.0)))
+        full = (smin <= level + 0.01) & (j >= ry0) & (j <= ry1)
+        IA[j] = np.float32(ia)
+        IB[j] = np.float32(ib if full else ia - 1.0)
+        ef = np.float32(e)
+        EF[j] = ef
+        EL[j] = np.float32(e - np.float64(ef))  # t = (EF - i) + EL: the first difference is exact
+        CF[j] = np.float32(lop - smin)
+        DY[j] = np.float32(dy)
 
 
 @njit(**_JIT1)
-def _walkable(ca, cb, cc, level):
-    """True if the walker may step down the rows of a tile from one seed. Every lane value it forms lies
-    within 15 px of a pixel with sigma <= level, so (triangle inequality in the conic's norm) its sigma is at
-    most (sqrt(2 level) + 15 sqrt(lambda_max))^2 / 2, which must stay clear of exp underflow (745). With the
-    usual 0.3 px low-pass lambda_max <= 3.3 and the bound is ~470; sharper conics are re-seeded every row."""
-    lam = 0.5 * (ca + cc) + math.sqrt(0.25 * (ca - cc) * (ca - cc) + cb * cb)
-    reach = math.sqrt(2.0 * level) + 15.0 * math.sqrt(lam)
-    return 0.5 * reach * reach < 700.0
-
-
-@njit(**_JIT1)
-def _walker_consts(ca, cb, cc, level):
-    """Per-pair walker factors exp(-a), exp(-b), exp(-c) of the conic (a, b, c), and `_walkable`."""
-    return math.exp(-ca), math.exp(-cb), math.exp(-cc), _walkable(ca, cb, cc, level)
+def _window(ia, ib):
+    """Lanes [l0, l0 + n) to compute for a row span [ia, ib] (float lane indices): 8 lanes from min(ia, 8)
+    when the span fits in 8 (most rows of most Gaussians: one SIMD vector of float32 instead of two), else
+    all 16."""
+    if ib - ia < 8.0:
+        return max(min(np.int64(ia), 8), 0), 8  # (max: provably >= 0, or numba's negative-index wrap stops
+    return 0, TILE  # vectorisation)
 
 
 @njit(**_JITF)
-def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gauss, tile_perm, width, height,
-               render, final_T, last, spans):
+def raster_fwd(packed, tile_start, tile_perm, width, height, render, final_T, last):
     """Front-to-back compositing per 16x16 tile.
 
-    colors [N,D]; tile_perm [T] a permutation of the tiles (work order); writes render [H,W,D] (no
-    background), final_T [H,W] and last [H,W] int32 (list position of the last Gaussian that contributed to
-    the pixel, -1 if none), and spans [M,34] int8 for `raster_bwd`: per list position it composited, the
-    first and last drawn tile row, then the tile-relative first (16) and last (16) column of each row.
+    packed [M, 10+D] from `bin_tiles`; tile_perm [T] a permutation of the tiles (work order); writes render
+    [H,W,D] (no background), final_T [H,W] and last [H,W] int32 (position in its tile's list of the last
+    Gaussian that contributed to the pixel, -1 if none).
     """
-    D = colors.shape[1]
+    D = packed.shape[1] - R_COL
     tw = (width + TILE - 1) // TILE
     th = (height + TILE - 1) // TILE
     for it in prange(tw * th):
@@ -647,85 +773,69 @@ def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
         tx0, ty0 = (t % tw) * TILE, (t // tw) * TILE
         tx1, ty1 = min(tx0 + TILE, width) - 1, min(ty0 + TILE, height) - 1
         npix = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
-        Tl = carray(_stack_f64(256), (TILE, TILE))  # transmittance
-        live = carray(_stack_f64(256), (TILE, TILE))  # 1: not terminated
-        lastl = carray(_stack_f64(256), (TILE, TILE))  # last contributing list position
-        Gl = carray(_stack_f64(16), TILE)
-        Vl = carray(_stack_f64(16), TILE)
-        wb = carray(_stack_f64(16), TILE)  # blending weight alpha T per lane
-        xas = carray(_stack_i64(16), TILE)
-        xbs = carray(_stack_i64(16), TILE)
+        Tl = carray(_stack_f32(256), (TILE, TILE))  # transmittance
+        live = carray(_stack_f32(256), (TILE, TILE))  # 1: not terminated
+        lastl = carray(_stack_i32(256), (TILE, TILE))  # last contributing list position
+        lane = carray(_stack_f32(16), TILE)  # 0, 1, ..., 15
+        wb = carray(_stack_f32(16), TILE)  # blending weight alpha T per lane
+        IA, IB = carray(_stack_f32(16), TILE), carray(_stack_f32(16), TILE)  # per row of a pair (`_rows`)
+        EF, EL = carray(_stack_f32(16), TILE), carray(_stack_f32(16), TILE)
+        CF, DY = carray(_stack_f32(16), TILE), carray(_stack_f32(16), TILE)
+        # 16, but not a compile-time constant: LLVM fully unrolls a constant 16-iteration loop and then fails
+        # to re-vectorise it
+        nrows = TILE if width > 0 else 0
+        for i in range(TILE):
+            lane[i] = i
         for r in range(TILE):
             for i in range(TILE):
                 Tl[r, i] = 1.0
                 live[r, i] = 1.0
-                lastl[r, i] = -1.0
-        acc = np.zeros((D, TILE, TILE))
-        cg = np.zeros(D)
+                lastl[r, i] = -1
+        acc = np.zeros((D, TILE, TILE), np.float32)
+        cg = np.zeros(D, np.float32)
         ndone = 0
-        # 16, but not a compile-time constant: LLVM fully unrolls a constant 16-iteration loop and then fails
-        # to re-vectorise it; scalar stores followed by vector loads stall store forwarding (measured)
-        nlanes = TILE if width > 0 else 0
-        for k in range(tile_start[t], tile_start[t + 1]):
-            g = isect_gauss[k]
-            x0, x1 = max(boxes[g, 0], tx0), min(boxes[g, 1], tx1)
-            y0, y1 = max(boxes[g, 2], ty0), min(boxes[g, 3], ty1)
-            u, v = np.float64(means2d[g, 0]), np.float64(means2d[g, 1])
-            ca, cb, cc = np.float64(conics[g, 0]), np.float64(conics[g, 1]), np.float64(conics[g, 2])
-            op = np.float64(opacities[g])
-            # alpha < 1/255 everywhere; a conic that is not positive definite is culled by the projection
-            if op * 255.0 < 1.0 or not (ca > 0.0 and ca * cc - cb * cb > 0.0):
+        k0 = tile_start[t]
+        for k in range(k0, tile_start[t + 1]):
+            u, v = np.float64(packed[k, R_U]), np.float64(packed[k, R_V])
+            ca, cb, cc = np.float64(packed[k, R_A]), np.float64(packed[k, R_B]), np.float64(packed[k, R_C])
+            op = np.float64(packed[k, R_OP])
+            if op * 255.0 < 1.0 or not (ca > 0.0 and ca * cc - cb * cb > 0.0):  # never drawn
                 continue
-            level = math.log(op * 255.0)  # sigma above this gives alpha < 1/255
-            ys, ye = _row_spans(u, v, ca, cb, cc, level, x0, x1, y0, y1, xas, xbs)
-            spans[k, 0] = ys
-            spans[k, 1] = ye
-            if ys > ye:
-                continue
-            for j in range(TILE):  # all 16 (a fixed-length copy vectorises); empty rows as (1, 0)
-                full = xas[j] <= xbs[j]
-                spans[k, 2 + j] = xas[j] - tx0 if full else 1
-                spans[k, 18 + j] = xbs[j] - tx0 if full else 0
+            bx0, bx1 = max(np.int64(packed[k, R_X0]), tx0) - tx0, min(np.int64(packed[k, R_X1]), tx1) - tx0
+            ry0, ry1 = max(np.int64(packed[k, R_Y0]), ty0) - ty0, min(np.int64(packed[k, R_Y1]), ty1) - ty0
+            level, lop = np.float64(packed[k, R_LEVEL]), np.float64(packed[k, R_LOP])
+            b_a, hdet_a, ha, inv_ha = _pair_consts(ca, cb, cc)
+            haf = np.float32(ha)
             for d in range(D):
-                cg[d] = colors[g, d]
-            Rr, Rxy, Ry, walk = _walker_consts(ca, cb, cc, level)
-            kf = np.float64(k)
-            dx0 = u - (tx0 + 0.5)
-            for py in range(y0 + ys, y0 + ye + 1):
-                j = py - y0
-                ia, ib = xas[j] - tx0, xbs[j] - tx0
-                if ia > ib:  # (only by rounding: spans of an ellipse in a box are contiguous)
-                    _step_rows(Gl, Vl, Ry)
+                cg[d] = packed[k, R_COL + d]
+            kk = np.int32(k - k0)
+            _rows(v, ty0, ry0, ry1, u - (tx0 + 0.5), b_a, hdet_a, inv_ha, level, lop, bx0, bx1, nrows, IA, IB, EF, EL,
+                  CF, DY)
+            for r in range(ry0, ry1 + 1):
+                iaf, ibf = IA[r], IB[r]
+                if iaf > ibf:
                     continue
-                if j == ys or not walk:
-                    _seed_row(Gl, Vl, ia, dx0, v - (py + 0.5), ca, cb, cc, Rr, Rxy)
-                r = py - ty0
-                # lanes [l0, l0 + nl): the half of the row that holds the span, else all 16 (half the work for
-                # most small Gaussians; the same in raster_bwd measured slower, so it keeps 16)
-                l0 = 8 if ia >= 8 else 0
-                nl = 8 if (ib < 8 or ia >= 8) else 16
+                ef, el, cf = EF[r], EL[r], CF[r]
+                l0, nl = _window(iaf, ibf)
                 nfin = 0
                 for i in range(l0, l0 + nl):
-                    G = Gl[i]
-                    a_raw = op * G
-                    alpha = min(ALPHA_MAX, a_raw)
+                    tt = (ef - lane[i]) + el
+                    a_raw = _exp32(max(cf - haf * tt * tt, EXP_LO))
+                    alpha = min(_A_MAX, a_raw)
                     T = Tl[r, i]
-                    nT = T * (1.0 - alpha)
-                    on = (i >= ia) & (i <= ib) & (a_raw >= ALPHA_MIN) & (live[r, i] > 0.0)
-                    fin = on & (nT < T_MIN)  # would drop below T_MIN: the pixel ends before this Gaussian
-                    draw = on & (nT >= T_MIN)
-                    wb[i] = alpha * T if draw else 0.0
+                    nT = T * (_F1 - alpha)
+                    on = (lane[i] >= iaf) & (lane[i] <= ibf) & (a_raw >= _A_MIN) & (live[r, i] > _F0)
+                    fin = on & (nT < _T_MIN)  # would drop below T_MIN: the pixel ends before this Gaussian
+                    draw = on & (nT >= _T_MIN)
+                    wb[i] = alpha * T if draw else _F0
                     Tl[r, i] = nT if draw else T
-                    live[r, i] = 0.0 if fin else live[r, i]
-                    lastl[r, i] = kf if draw else lastl[r, i]
+                    live[r, i] = _F0 if fin else live[r, i]
+                    lastl[r, i] = kk if draw else lastl[r, i]
                     nfin += 1 if fin else 0
                 for d in range(D):
                     c = cg[d]
                     for i in range(l0, l0 + nl):
                         acc[d, r, i] += wb[i] * c
-                for i in range(nlanes):  # walker to the next row, all lanes
-                    Gl[i] *= Vl[i]
-                    Vl[i] *= Ry
                 ndone += nfin
             if ndone == npix:
                 break
@@ -735,55 +845,57 @@ def raster_fwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
                 for d in range(D):
                     render[py, px, d] = acc[d, r, i]
                 final_T[py, px] = Tl[r, i]
-                last[py, px] = np.int32(lastl[r, i])
+                last[py, px] = lastl[r, i]
 
 
 @njit(**_JITF)
-def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gauss, tile_perm, width, height,
-               final_T, last, spans, v_render, v_alpha, isect_grad):
-    """Back-to-front gradient of `raster_fwd` per tile (as in 3DGS), the same lanes and walker.
+def raster_bwd(packed, tile_start, tile_perm, width, height, final_T, last, v_render, v_alpha, isect_grad):
+    """Back-to-front gradient of `raster_fwd` per tile (as in 3DGS), the same lanes and alphas.
 
-    colors [N,D]. spans [M,34] from raster_fwd (every position the backward pass visits was composited by
-    the forward pass, which stops no earlier than the last contributor of any pixel of the tile). v_render
-    [H,W,D], v_alpha [H,W] (gradient of the alpha image). Writes isect_grad [M, 6+D]:
-    per list position the gradient w.r.t. (u, v, conic a, b, c, opacity, colour[D]) of that Gaussian from
-    that tile's pixels. Rows of positions no pixel reached are zeroed.
+    packed [M, 10+D]; final_T [H,W], last [H,W] from raster_fwd (the backward pass starts at the last
+    contributor of any pixel of the tile); v_render [H,W,D], v_alpha [H,W] (gradient of the alpha image).
+    Writes isect_grad [M, 6+D]: per list position the gradient w.r.t. (u, v, conic a, b, c, opacity,
+    colour[D]) of that Gaussian from that tile's pixels. Rows of positions no pixel reached are zeroed.
     """
-    D = colors.shape[1]
+    D = packed.shape[1] - R_COL
     tw = (width + TILE - 1) // TILE
     th = (height + TILE - 1) // TILE
     for it in prange(tw * th):
         t = tile_perm[it]  # shuffled: numba splits the range statically, this balances the threads
         tx0, ty0 = (t % tw) * TILE, (t // tw) * TILE
         tx1, ty1 = min(tx0 + TILE, width) - 1, min(ty0 + TILE, height) - 1
-        Tl = carray(_stack_f64(256), (TILE, TILE))  # transmittance behind the current Gaussian
-        Tf = carray(_stack_f64(256), (TILE, TILE))  # final transmittance
-        lastl = carray(_stack_f64(256), (TILE, TILE))
-        va = carray(_stack_f64(256), (TILE, TILE))
-        Gl = carray(_stack_f64(16), TILE)
-        Vl = carray(_stack_f64(16), TILE)
-        lane = carray(_stack_f64(16), TILE)  # 0, 1, ..., 15
-        alb = carray(_stack_f64(16), TILE)  # per lane of the current row: alpha, 1 - alpha, T in front,
-        omb = carray(_stack_f64(16), TILE)  # blending weight, dL/dalpha, dalpha/dopacity, dalpha/dsigma
-        ivb = carray(_stack_f64(16), TILE)  # 1 / (1 - alpha)
-        Tb = carray(_stack_f64(16), TILE)
-        wb = carray(_stack_f64(16), TILE)
-        dlb = carray(_stack_f64(16), TILE)
-        gb = carray(_stack_f64(16), TILE)
-        db = carray(_stack_f64(16), TILE)
-        ggeo = carray(_stack_f64(96), (6, TILE))  # per-lane sums: u, v, conic a, b, c, opacity
-        S = np.zeros((D, TILE, TILE))  # colour accumulated behind the current Gaussian
-        vr = np.zeros((D, TILE, TILE))
-        gcol = np.zeros(D)
-        cg = np.zeros(D)
+        Tl = carray(_stack_f32(256), (TILE, TILE))  # transmittance behind the current Gaussian
+        Tf = carray(_stack_f32(256), (TILE, TILE))  # final transmittance
+        lastl = carray(_stack_i32(256), (TILE, TILE))
+        va = carray(_stack_f32(256), (TILE, TILE))
+        lane = carray(_stack_f32(16), TILE)  # 0, 1, ..., 15
+        alb = carray(_stack_f32(16), TILE)  # per lane of the current row: alpha, 1 - alpha, 1 / (1 - alpha),
+        omb = carray(_stack_f32(16), TILE)  # T in front, blending weight, dL/dalpha (colour part), and
+        ivb = carray(_stack_f32(16), TILE)  # unclamped alpha where alpha depends on sigma and opacity
+        Tb = carray(_stack_f32(16), TILE)
+        wb = carray(_stack_f32(16), TILE)
+        dlb = carray(_stack_f32(16), TILE)
+        qb = carray(_stack_f32(16), TILE)
+        # per-lane sums over the pair's pixels of q = alpha_raw dL/dalpha times dx, dx^2, dy, dx dy, dy^2, 1
+        P = carray(_stack_f32(96), (6, TILE))
+        IA, IB = carray(_stack_f32(16), TILE), carray(_stack_f32(16), TILE)  # per row of a pair (`_rows`)
+        EF, EL = carray(_stack_f32(16), TILE), carray(_stack_f32(16), TILE)
+        CF, DY = carray(_stack_f32(16), TILE), carray(_stack_f32(16), TILE)
+        S = np.zeros((D, TILE, TILE), np.float32)  # colour accumulated behind the current Gaussian
+        vr = np.zeros((D, TILE, TILE), np.float32)
+        gcl = np.zeros((D, TILE), np.float32)
+        cg = np.zeros(D, np.float32)
         kmax = -1
+        # 16, but not a compile-time constant: LLVM fully unrolls a constant 16-iteration loop and then fails
+        # to re-vectorise it (the colour loop became 16 scalar lanes per channel)
+        nlanes = TILE if width > 0 else 0
         for i in range(TILE):
             lane[i] = i
         for r in range(TILE):
             for i in range(TILE):
                 Tl[r, i] = 1.0
                 Tf[r, i] = 1.0
-                lastl[r, i] = -1.0
+                lastl[r, i] = -1
                 va[r, i] = 0.0
         for py in range(ty0, ty1 + 1):
             for px in range(tx0, tx1 + 1):
@@ -791,57 +903,48 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
                 Tl[r, i] = final_T[py, px]
                 Tf[r, i] = final_T[py, px]
                 lastl[r, i] = last[py, px]
-                kmax = max(kmax, last[py, px])
+                kmax = max(kmax, np.int64(last[py, px]))
                 for d in range(D):
                     vr[d, r, i] = v_render[py, px, d]
                 va[r, i] = v_alpha[py, px]
         k0 = tile_start[t]
-        for k in range(max(kmax + 1, k0), tile_start[t + 1]):
+        for k in range(k0 + kmax + 1, tile_start[t + 1]):
             for j in range(6 + D):
                 isect_grad[k, j] = 0.0
-        for k in range(kmax, k0 - 1, -1):
-            g = isect_gauss[k]
-            x0, x1 = max(boxes[g, 0], tx0), min(boxes[g, 1], tx1)
-            y0, y1 = max(boxes[g, 2], ty0), min(boxes[g, 3], ty1)
-            u, v = np.float64(means2d[g, 0]), np.float64(means2d[g, 1])
-            ca, cb, cc = np.float64(conics[g, 0]), np.float64(conics[g, 1]), np.float64(conics[g, 2])
-            op = np.float64(opacities[g])
+        for k in range(k0 + kmax, k0 - 1, -1):
             for j in range(6 + D):
                 isect_grad[k, j] = 0.0
+            u, v = np.float64(packed[k, R_U]), np.float64(packed[k, R_V])
+            ca, cb, cc = np.float64(packed[k, R_A]), np.float64(packed[k, R_B]), np.float64(packed[k, R_C])
+            op = np.float64(packed[k, R_OP])
             if op * 255.0 < 1.0 or not (ca > 0.0 and ca * cc - cb * cb > 0.0):  # never drawn
                 continue
-            level = math.log(op * 255.0)
-            ys, ye = np.int64(spans[k, 0]), np.int64(spans[k, 1])  # the forward pass's row spans
-            if ys > ye:
-                continue
+            bx0, bx1 = max(np.int64(packed[k, R_X0]), tx0) - tx0, min(np.int64(packed[k, R_X1]), tx1) - tx0
+            ry0, ry1 = max(np.int64(packed[k, R_Y0]), ty0) - ty0, min(np.int64(packed[k, R_Y1]), ty1) - ty0
+            level, lop = np.float64(packed[k, R_LEVEL]), np.float64(packed[k, R_LOP])
+            b_a, hdet_a, ha, inv_ha = _pair_consts(ca, cb, cc)
+            haf = np.float32(ha)
             for d in range(D):
-                cg[d] = colors[g, d]
-                gcol[d] = 0.0
+                cg[d] = packed[k, R_COL + d]
             for j in range(6):
                 for i in range(TILE):
-                    ggeo[j, i] = 0.0
-            Rr, Rxy, Ry, walk = _walker_consts(ca, cb, cc, level)
-            kf = np.float64(k)
+                    P[j, i] = 0.0
+            kkf = np.int32(k - k0)
             dx0 = u - (tx0 + 0.5)
-            for py in range(y0 + ys, y0 + ye + 1):
-                j = py - y0
-                ia, ib = np.int64(spans[k, 2 + j]), np.int64(spans[k, 18 + j])
-                if ia > ib:
-                    _step_rows(Gl, Vl, Ry)
+            dx0f = np.float32(dx0)
+            _rows(v, ty0, ry0, ry1, dx0, b_a, hdet_a, inv_ha, level, lop, bx0, bx1, nlanes, IA, IB, EF, EL, CF, DY)
+            for r in range(ry0, ry1 + 1):
+                iaf, ibf = IA[r], IB[r]
+                if iaf > ibf:
                     continue
-                dy = v - (py + 0.5)
-                if j == ys or not walk:
-                    _seed_row(Gl, Vl, ia, dx0, dy, ca, cb, cc, Rr, Rxy)  # the same walk as the forward pass
-                r = py - ty0
-                for i in range(TILE):
-                    G = Gl[i]
-                    Gl[i] = G * Vl[i]
-                    Vl[i] *= Ry
-                    a_raw = op * G
-                    on = (i >= ia) & (i <= ib) & (kf <= lastl[r, i]) & (a_raw >= ALPHA_MIN)
-                    alpha = min(ALPHA_MAX, a_raw) if on else 0.0
-                    om = 1.0 - alpha
-                    inv = 1.0 / om  # the one division per lane (vector divisions are slow)
+                ef, el, cf = EF[r], EL[r], CF[r]
+                for i in range(nlanes):
+                    tt = (ef - lane[i]) + el
+                    a_raw = _exp32(max(cf - haf * tt * tt, EXP_LO))
+                    on = (lane[i] >= iaf) & (lane[i] <= ibf) & (kkf <= lastl[r, i]) & (a_raw >= _A_MIN)
+                    alpha = min(_A_MAX, a_raw) if on else _F0
+                    om = _F1 - alpha
+                    inv = _F1 / om  # the one division per lane (vector divisions are slow)
                     T = Tl[r, i] * inv  # transmittance in front of this Gaussian (unchanged where off)
                     Tl[r, i] = T
                     alb[i] = alpha
@@ -849,55 +952,41 @@ def raster_bwd(means2d, conics, colors, opacities, boxes, tile_start, isect_gaus
                     ivb[i] = inv
                     Tb[i] = T
                     wb[i] = alpha * T
-                    dlb[i] = 0.0
-                    ok = on & (a_raw < ALPHA_MAX)  # alpha not clamped: it depends on G and the opacity
-                    gb[i] = G if ok else 0.0
-                    db[i] = -a_raw if ok else 0.0
+                    dlb[i] = _F0
+                    qb[i] = a_raw if (on & (a_raw < _A_MAX)) else _F0  # alpha not clamped: it has gradients
                 for d in range(D):
                     c = cg[d]
-                    gsum = 0.0
-                    for i in range(TILE):
+                    for i in range(nlanes):
                         s = S[d, r, i]
                         rd = vr[d, r, i]
-                        gsum += wb[i] * rd
+                        gcl[d, i] += wb[i] * rd
                         dlb[i] += (c - s) * rd
                         S[d, r, i] = alb[i] * c + omb[i] * s
-                    gcol[d] += gsum
-                hdy2 = 0.5 * dy * dy
-                cbdy, ccdy = cb * dy, cc * dy
-                for i in range(TILE):
+                dyf = DY[r]
+                dy2f = dyf * dyf
+                for i in range(nlanes):
                     dl = dlb[i] * Tb[i] + va[r, i] * Tf[r, i] * ivb[i]  # dL/dalpha
-                    dx = dx0 - lane[i]  # (a per-Gaussian dx array written by scalar stores stalls the vector loads)
-                    dsig = db[i] * dl
-                    ggeo[0, i] += (ca * dx + cbdy) * dsig
-                    ggeo[1, i] += (cb * dx + ccdy) * dsig
-                    ggeo[2, i] += 0.5 * dx * dx * dsig
-                    ggeo[3, i] += dx * dy * dsig
-                    ggeo[4, i] += hdy2 * dsig
-                    ggeo[5, i] += gb[i] * dl
-            for j in range(6):
-                s = 0.0
-                for i in range(TILE):
-                    s += ggeo[j, i]
-                isect_grad[k, j] = s
+                    q = qb[i] * dl
+                    dx = dx0f - lane[i]
+                    qx = dx * q
+                    P[0, i] += qx
+                    P[1, i] += dx * qx
+                    P[2, i] += dyf * q
+                    P[3, i] += dyf * qx
+                    P[4, i] += dy2f * q
+                    P[5, i] += q
+            _fold16(P, 6)
+            _fold16(gcl, D)
+            sx, sxx, sy = np.float64(P[0, 0]), np.float64(P[1, 0]), np.float64(P[2, 0])
+            sxy, syy, sq = np.float64(P[3, 0]), np.float64(P[4, 0]), np.float64(P[5, 0])
+            # dalpha/dsigma = -alpha_raw, sigma = a/2 dx^2 + b dx dy + c/2 dy^2 (dx = u - px, dy = v - py)
+            isect_grad[k, 0] = -(ca * sx + cb * sy)
+            isect_grad[k, 1] = -(cb * sx + cc * sy)
+            isect_grad[k, 2] = -0.5 * sxx
+            isect_grad[k, 3] = -sxy
+            isect_grad[k, 4] = -0.5 * syy
+            isect_grad[k, 5] = sq / op  # dalpha/dopacity = alpha_raw / opacity
             for d in range(D):
-                isect_grad[k, 6 + d] = gcol[d]
-
-
-@njit(**_JIT)
-def reduce_isect_grads(isect_grad, gauss_isect, gauss_off, out):
-    """out [N, 6+D] = sum of each Gaussian's intersection rows (fixed order: deterministic)."""
-    N = out.shape[0]
-    J = out.shape[1]
-    nch = (N + CHUNK - 1) // CHUNK
-    for ch in prange(nch):
-        acc = np.zeros(J)
-        for g in range(ch * CHUNK, min(N, (ch + 1) * CHUNK)):
-            for j in range(J):
-                acc[j] = 0.0
-            for k in range(gauss_off[g], gauss_off[g + 1]):
-                pos = gauss_isect[k]
-                for j in range(J):
-                    acc[j] += isect_grad[pos, j]
-            for j in range(J):
-                out[g, j] = acc[j]
+                isect_grad[k, 6 + d] = gcl[d, 0]
+                for i in range(TILE):
+                    gcl[d, i] = 0.0
