@@ -246,7 +246,7 @@ def test_appearance_and_learnt_background_checkpoint_and_resume(synth, tmp_path)
 
 def test_background_sphere_adds_initial_gaussians(synth, tmp_path):
     ds = load_dataset(synth)
-    plain = Trainer(ds, tmp_path / "p", tiny_config(iters=1))
+    plain = Trainer(ds, tmp_path / "p", tiny_config(iters=1, bg_sphere_points=0))
     plain._fresh_state()
     sph = Trainer(ds, tmp_path / "s", tiny_config(iters=1, bg_sphere_points=300, bg_sphere_radius=4.0))
     sph._fresh_state()

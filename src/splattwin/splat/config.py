@@ -93,7 +93,8 @@ class TrainConfig:
     background_lr: float = option(1e-2, "Adam learning rate of the learnt background")
     env_size: int = option(16, "environment map height in texels (width: twice)")
     bg_sphere_points: int = option(0, "extra initial Gaussians on a sphere around the scene, coloured from the "
-                                   "training images (0: off)")
+                                   "training images (0: off; 3000 gave +0.66 dB held-out on the statue photos, "
+                                   "+0.27 dB on the embedded scene, 600-step A/B)")
     bg_sphere_radius: float = option(3.0, "background sphere radius in scene scales (at least beyond 98 % of "
                                      "the initial points)")
     opacity_reg: float = option(0.0, "weight of a mean-opacity penalty, as gsplat's opacity_reg (0: off; 0.05 "
