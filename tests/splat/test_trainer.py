@@ -312,3 +312,75 @@ def test_coarse_to_fine_is_on_by_default_only_for_photo_sized_images(synth, tmp_
     assert cfg.num_downscales == -1  # the default: decided from the image size
     tr = Trainer(load_dataset(synth), tmp_path / "a", cfg)
     assert tr.cfg.num_downscales == 0 and len(tr.levels) == 1
+
+
+def test_appearance_and_learnt_background_checkpoint_and_resume(synth, tmp_path):
+    """Per-view colour corrections and an environment map are trained, written to extras.safetensors,
+    checkpointed with the rest, and a killed run resumes to the same result."""
+    from splattwin.splat import checkpoint as ckpt_io
+    from splattwin.splat.eval import evaluate
+    from splattwin.splat.extras import EXTRAS_FILE, read_background
+
+    ds = load_dataset(synth)
+    cfg = tiny_config(iters=40, checkpoint_every=20, appearance="affine", appearance_lr=5e-3,
+                      background_mode="env", env_size=4, bg_sphere_points=50)
+    a = train(ds, tmp_path / "a", cfg)
+    assert len(a.gaussians) > 0
+    st = ckpt_io.load(tmp_path / "a" / EXTRAS_FILE)
+    A = st["appearance"]["A"].numpy()
+    assert st["appearance"]["names"] == [f.name for f in ds.train()] and A.shape == (len(ds.train()), 3, 3)
+    assert 0 < np.abs(A - np.eye(3)).max() < 0.5  # learnt, and near identity
+    bg = read_background(tmp_path / "a")
+    assert bg is not None and bg.mode == "env" and tuple(bg.param.shape) == (3, 4, 8)
+
+    def kill(info):
+        if info["step"] == 27:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(ds, tmp_path / "b", cfg, callback=kill)
+    b = train(ds, tmp_path / "b", cfg, resume=True)
+    np.testing.assert_array_equal(a.gaussians.means, b.gaussians.means)
+    st_b = ckpt_io.load(tmp_path / "b" / EXTRAS_FILE)
+    torch.testing.assert_close(st_b["appearance"]["A"], st["appearance"]["A"], rtol=0, atol=0)
+    torch.testing.assert_close(st_b["background"]["param"], st["background"]["param"], rtol=0, atol=0)
+    # evaluation composites the saved background: differs from rendering over black
+    with_bg = evaluate(tmp_path / "a", ds, None, progress=False)
+    over_black = evaluate(a.gaussians, ds, None, progress=False)
+    assert with_bg.mean_psnr != over_black.mean_psnr
+    assert np.isfinite(with_bg.mean_psnr_right_corrected)
+    # a checkpoint of a run without these parts is not resumed by one with them (options differ)
+    from splattwin.splat.trainer import CheckpointMismatch
+    with pytest.raises(CheckpointMismatch):
+        train(ds, tmp_path / "b", tiny_config(iters=40, checkpoint_every=20), resume=True)
+
+
+def test_background_sphere_adds_initial_gaussians(synth, tmp_path):
+    ds = load_dataset(synth)
+    plain = Trainer(ds, tmp_path / "p", tiny_config(iters=1, bg_sphere_points=0))
+    plain._fresh_state()
+    sph = Trainer(ds, tmp_path / "s", tiny_config(iters=1, bg_sphere_points=300, bg_sphere_radius=4.0))
+    sph._fresh_state()
+    assert len(sph.model) == len(plain.model) + 300
+    r = np.linalg.norm(sph.model.params["means"].detach().numpy()[-300:] - sph.scene_center, axis=1)
+    np.testing.assert_allclose(r, r[0], rtol=1e-5)
+    assert r[0] >= 4.0 * sph.scene_scale - 1e-6
+
+
+def test_inverse_depth_mode_trains(scene_small, tmp_path):
+    """The inverse-depth loss pulls rendered depth towards the measurement like the relative one."""
+    from splattwin.splat.trainer import depth_loss, load_views
+
+    ds = load_dataset(scene_small)
+    views = load_views(ds.train(), 2, depth=True)
+    cfg = tiny_config(iters=120, resolution=2, sh_degree=0, init="random", init_points=2000, densify=False)
+    err = {}
+    for lam in (0.0, 0.5):
+        tr = Trainer(ds, tmp_path / str(lam), TrainConfig(**{**cfg.__dict__, "depth_lambda": lam,
+                                                             "depth_mode": "inverse"}))
+        tr.run()
+        with torch.no_grad():
+            err[lam] = np.mean([float(depth_loss(img[..., 3], a[..., 0], v.depth, "relative"))
+                                for v, (img, a, _) in ((v, tr.render(i, render_mode="RGB+ED"))
+                                                       for i, v in enumerate(views))])
+    assert err[0.5] < 0.6 * err[0.0], err

@@ -16,6 +16,9 @@ if TYPE_CHECKING:  # pragma: no cover
 
 DEVICES = ("auto", "cpu", "cuda")
 INIT_METHODS = ("auto", "sfm", "depth", "triangulate", "random")
+APPEARANCE_MODES = ("off", "gain", "affine")      # splat/appearance.py
+BACKGROUND_MODES = ("fixed", "color", "env")      # splat/background.py
+DEPTH_MODES = ("relative", "inverse")             # splat/depth_loss.py
 
 
 @dataclass
@@ -98,7 +101,23 @@ class TrainConfig:
     ssim_lambda: float = option(0.2, "weight of D-SSIM in the photometric loss (1 - l) L1 + l D-SSIM")
     rasterize_mode: str = option("classic", "rasterizer mode (evaluation renders with the same)",
                                  choices=("classic", "antialiased"))
-    depth_lambda: float = option(0.0, "weight of a relative depth loss on frames with depth maps (0: off)")
+    depth_lambda: float = option(0.0, "weight of a depth loss on frames with depth maps (0: off)")
+    depth_mode: str = option("relative", "depth loss: relative |ED-D|/D, or inverse-depth L1 |1/ED-1/D| (1/m); "
+                             "pixels without measured depth are masked", choices=DEPTH_MODES)
+    appearance: str = option("off", "per-image colour correction learnt with the splats: per-channel gain+bias, "
+                             "or affine 3x3+bias (held-out views: identity)", choices=APPEARANCE_MODES)
+    appearance_lr: float = option(1e-3, "Adam learning rate of the colour corrections")
+    appearance_reg: float = option(0.01, "weight of the corrections' squared distance from identity")
+    background_mode: str = option("fixed", "what shows behind the splats: the fixed --background colour, a learnt "
+                                  "colour, or a learnt environment map (far field by ray direction)",
+                                  choices=BACKGROUND_MODES)
+    background_lr: float = option(1e-2, "Adam learning rate of the learnt background")
+    env_size: int = option(16, "environment map height in texels (width: twice)")
+    bg_sphere_points: int = option(0, "extra initial Gaussians on a sphere around the scene, coloured from the "
+                                   "training images (0: off; 3000 gave +0.66 dB held-out on the statue photos, "
+                                   "+0.27 dB on the embedded scene, 600-step A/B)")
+    bg_sphere_radius: float = option(3.0, "background sphere radius in scene scales (at least beyond 98 % of "
+                                     "the initial points)")
     opacity_reg: float = option(0.0, "weight of a mean-opacity penalty, as gsplat's opacity_reg (0: off; 0.05 "
                                 "gave +0.27 dB / +0.009 SSIM on the embedded scene, ~15 % slower)")
     max_gaussians: int = option(0, "cap on the Gaussian count (0: 28000 for 320x240 images, scaled with the "

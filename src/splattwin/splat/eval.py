@@ -14,6 +14,12 @@ flagged so).
 `align_poses=True` (`--align-poses`) first fits each held-out camera to its image with the splat fixed
 (`pose_refine.align_camera`, InstantSplat's protocol): for models trained with pose refinement, whose
 scene sits slightly off the input frame. The metrics JSON then records the correction of every view.
+
+A learnt background (`TrainConfig.background_mode`, saved in the training folder's extras.safetensors, or
+passed as `background_model=`) is composited behind the splats. Held-out views are rendered without a
+colour correction (identity: `psnr`); every view also gets the appearance-protocol figures
+(`appearance.heldout_corrected_psnr`: an affine colour fit on the left half of the image, PSNR on the
+right half before/after it), so runs with and without `--appearance` compare on both.
 """
 
 from __future__ import annotations
@@ -24,11 +30,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from splattwin.capture import Dataset, load_dataset
 from splattwin.errors import InputError
 from splattwin.io import write_image, write_json
 from splattwin.splat import metrics
+from splattwin.splat.appearance import heldout_corrected_psnr
 from splattwin.splat.gaussians import Gaussians
 from splattwin.splat.pose_refine import align_camera, pose_errors
 from splattwin.splat.render import render_rgb
@@ -47,6 +55,8 @@ class EvalResult:
     metrics_path: Path | None = None
     eval_resolution: dict | None = None  # {"mode", "how", "sizes", "full_sizes", "scale"} (metrics.json)
     heldout: dict | None = None          # {"views", "rule", "source"[, "every"]} (metrics.json)
+    mean_psnr_right_plain: float = float("nan")      # right half, as rendered
+    mean_psnr_right_corrected: float = float("nan")  # right half, affine colour fitted on the left half
 
 
 def side_by_side(gt: np.ndarray, render: np.ndarray) -> np.ndarray:
@@ -93,10 +103,14 @@ def _eval_resolution(info: dict, resolution: int | None, full_resolution: bool) 
 def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_dir: str | Path | None = None,
              resolution: int | None = None, background=None, backend: str = "auto",
              progress: bool = True, rasterize_mode: str | None = None, align_poses: bool = False,
-             align_iters: int = 300, full_resolution: bool = False) -> EvalResult:
+             align_iters: int = 300, full_resolution: bool = False, background_model=None) -> EvalResult:
     """Evaluate a splat (training folder, PLY path, or `Gaussians`) on the dataset's held-out views
-    (see the module docstring for the resolution)."""
+    (see the module docstring for the resolution). background_model: a learnt
+    `background.BackgroundModel` to composite (default: the one saved beside the PLY, if any)."""
     from tqdm.auto import tqdm
+
+    from splattwin.splat import extras
+    from splattwin.splat.render import render
 
     info: dict = {}
     if isinstance(splat, Gaussians):
@@ -104,6 +118,8 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
     else:
         ply, info = resolve_ply(splat)
         g = Gaussians.load_ply(ply)
+        if background_model is None:
+            background_model = extras.read_background(ply.parent)
     if g.sh_degree > 3:
         log.warning("SH degree %d: rendering with the first 3 degrees", g.sh_degree)
         g = g.with_sh_degree(3)
@@ -141,18 +157,35 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
                                 rasterize_mode=mode)
             rot, centre = pose_errors(T_cw[None], v.camera.T_cam_world[None])
             extra = {"pose_correction_deg": float(rot[0]), "pose_correction_m": float(centre[0])}
-        img = render_rgb(g, v.camera, bg, backend, T_cam_world=T_cw, rasterize_mode=mode)
-        row = {"name": v.name, "psnr": metrics.psnr(img, gt), "ssim": metrics.ssim(img, gt), **extra}
+        if background_model is None:
+            img = render_rgb(g, v.camera, bg, backend, T_cam_world=T_cw, rasterize_mode=mode)
+        else:
+            img, alpha = render(g, v.camera, mode="RGB", background=(0.0, 0.0, 0.0), backend=backend,
+                                T_cam_world=T_cw, rasterize_mode=mode)
+            T = v.camera.T_cam_world if T_cw is None else T_cw
+            with torch.no_grad():
+                img = background_model.composite(
+                    torch.from_numpy(img), torch.from_numpy(alpha)[..., None],
+                    torch.tensor(v.camera.K, dtype=torch.float32),
+                    torch.linalg.inv(torch.tensor(T, dtype=torch.float32))).clamp(0, 1).numpy()
+        row = {"name": v.name, "psnr": metrics.psnr(img, gt), "ssim": metrics.ssim(img, gt), **extra,
+               **heldout_corrected_psnr(img, gt)}
         if out is not None:
             row["image"] = f"{v.name}.png"
             write_image(out / row["image"], side_by_side(gt, img))
         rows.append(row)
     mean_psnr = float(np.mean([r["psnr"] for r in rows]))
     mean_ssim = float(np.mean([r["ssim"] for r in rows]))
-    result = EvalResult(rows, mean_psnr, mean_ssim, split, eval_resolution=eval_res, heldout=held)
+    result = EvalResult(rows, mean_psnr, mean_ssim, split, eval_resolution=eval_res, heldout=held,
+                        mean_psnr_right_plain=float(np.mean([r["psnr_right_plain"] for r in rows])),
+                        mean_psnr_right_corrected=float(np.mean([r["psnr_right_corrected"] for r in rows])))
     if out is not None:
         result.metrics_path = write_json(out / "metrics.json", {
             "split": split, "mean_psnr": mean_psnr, "mean_ssim": mean_ssim, "n_views": len(rows),
+            "mean_psnr_right_plain": result.mean_psnr_right_plain,
+            "mean_psnr_right_corrected": result.mean_psnr_right_corrected,
+            "appearance_protocol": "psnr_right_*: right half of each view; corrected = affine colour fitted "
+                                   "on its left half (ridge towards identity)",
             "poses": "aligned (test-time pose fit)" if align_poses else "as given",
             "gaussians": len(g), "resolution": rule.resolution, "eval_resolution": eval_res, "heldout": held,
             "views": rows,

@@ -36,7 +36,9 @@ from splattwin.errors import InputError
 from splattwin.io import write_json
 from splattwin.runtime import torch_threads
 from splattwin.splat import checkpoint as ckpt_io
+from splattwin.splat import extras
 from splattwin.splat.config import TrainConfig
+from splattwin.splat.depth_loss import depth_loss  # noqa: F401  (also re-exported: trainer.depth_loss)
 from splattwin.splat.gaussians import Gaussians
 from splattwin.splat.init import initial_gaussians, scene_center_and_scale
 from splattwin.splat.losses import photometric_loss, psnr_from_mse
@@ -203,17 +205,6 @@ def plot_history(history: list[dict], path: str | Path, width: int = 640, height
     return write_image(path, np.asarray(img))
 
 
-def depth_loss(depth: torch.Tensor, alpha: torch.Tensor, gt_depth: torch.Tensor) -> torch.Tensor:
-    """Mean relative error |ED - D| / D of a rendered expected depth [H,W] against a measured z-depth
-    [H,W] (m, inf where unknown), over pixels with a finite D and rendered alpha > 0.5 (ED is unstable
-    where little is rendered). Zero when no pixel qualifies."""
-    ok = torch.isfinite(gt_depth) & (alpha.detach() > 0.5)
-    if not bool(ok.any()):
-        return depth.sum() * 0.0
-    d = gt_depth[ok]
-    return ((depth[ok] - d).abs() / d).mean()
-
-
 # Options that change what a run computes: a checkpoint made with other values is not resumed. Left out:
 # progress, checkpoint_every (bookkeeping) and device/backend (the same computation on other hardware).
 _RUN_NEUTRAL = ("progress", "checkpoint_every", "device", "backend", "eval_full_resolution")
@@ -334,6 +325,7 @@ class Trainer:
             depth_scale=self.dataset.depth_scale, sh_degree=cfg.sh_degree, max_points=cfg.init_points,
             seed=cfg.seed)
         torch.manual_seed(cfg.seed)
+        g = extras.with_background_sphere(g, cfg, self.views, self.scene_center, self.scene_scale)
         self.model = GaussianModel.from_gaussians(g, max_sh_degree=cfg.sh_degree, lrs=cfg.lrs,
                                                   scene_scale=self.scene_scale, device=self.device,
                                                   scene_center=torch.tensor(self.scene_center))
@@ -342,6 +334,7 @@ class Trainer:
         self.view_gen = torch.Generator().manual_seed(cfg.seed + 1)
         self.order: list[int] = []
         self.poses = PoseCorrection(len(self.views), cfg.pose_lr, self.device) if cfg.refine_poses else None
+        self.appearance, self.bg_model = extras.make(cfg, self.views, self.device)
         self.step = 0
         self.history = []
 
@@ -351,6 +344,8 @@ class Trainer:
                 "split_gen": self.split_gen.get_state(), "view_gen": self.view_gen.get_state(),
                 "order": list(self.order), "poses": self.poses.state_dict() if self.poses else None,
                 "history": list(self.history), "init_method": self.init_method,
+                "appearance": self.appearance.state_dict() if self.appearance else None,
+                "bg_model": self.bg_model.state_dict() if self.bg_model else None,
                 "torch_rng": torch.get_rng_state(), "config": self.cfg.to_dict(),
                 "run_options": run_options(self.cfg), "data_digest": self.data_digest,
                 "view_names": [v.name for v in self.views]}
@@ -393,6 +388,8 @@ class Trainer:
             self.poses.load_state_dict(sd["poses"])
         elif self.cfg.refine_poses:
             raise InputError("--refine-poses differs from the checkpointed run; start a new run", self.out_dir)
+        self.appearance, self.bg_model = extras.make(self.cfg, self.views, self.device)
+        extras.load_state(self.appearance, self.bg_model, sd)
         self.history = list(sd["history"])
         self.init_method = sd["init_method"]
         torch.set_rng_state(sd["torch_rng"])
@@ -456,9 +453,11 @@ class Trainer:
         img, alpha, meta = self.render(idx, render_mode="RGB+ED" if use_depth else "RGB", level=level)
         if use_depth:
             img, depth = img[..., :3], img[..., 3]
-        loss = photometric_loss(img, gt, cfg.ssim_lambda)
+        img, extra_loss = extras.apply(self.appearance, self.bg_model, img, alpha, idx, self.Ks[idx],
+                                       self.viewmats[idx], self.bg[0])
+        loss = photometric_loss(img, gt, cfg.ssim_lambda) + extra_loss
         if use_depth:
-            loss = loss + cfg.depth_lambda * depth_loss(depth, alpha[..., 0], gt_depth)
+            loss = loss + cfg.depth_lambda * depth_loss(depth, alpha[..., 0], gt_depth, cfg.depth_mode)
         if cfg.opacity_reg > 0:  # gsplat's opacity_reg: mean opacity, fewer semi-transparent layers
             loss = loss + cfg.opacity_reg * torch.sigmoid(self.model.params["opacities"]).mean()
         s = self.step + 1
@@ -469,6 +468,7 @@ class Trainer:
         loss.backward()
         self.model.step()
         self.model.zero_grad()
+        extras.step(self.appearance, self.bg_model, idx)
         if self.poses is not None and s > self.cfg.pose_start * cfg.iters:  # after an optional warm-up
             self.poses.step([idx])
             if not self.order:
@@ -553,6 +553,7 @@ class Trainer:
             T_cw = self.poses.corrected(np.stack([v.camera.T_cam_world for v in self.views]))
             refined = {v.name: invert_se3(T).tolist() for v, T in zip(self.views, T_cw)}
             write_json(self.out_dir / "refined_poses.json", {"convention": "T_world_cam, OpenCV", "poses": refined})
+        extras.write(self.out_dir, self.appearance, self.bg_model, [v.name for v in self.views])
         plot_history(self.history, self.out_dir / "train_curves.png")
         write_json(self.out_dir / "train.json", {
             "dataset": str(self.dataset.root), "config": self.cfg.to_dict(), "strategy": self.strategy.describe(),
