@@ -384,3 +384,27 @@ def test_inverse_depth_mode_trains(scene_small, tmp_path):
                                 for v, (img, a, _) in ((v, tr.render(i, render_mode="RGB+ED"))
                                                        for i, v in enumerate(views))])
     assert err[0.5] < 0.6 * err[0.0], err
+
+
+def test_learnt_environment_uses_the_coarse_level_camera(synth, tmp_path):
+    """At a coarse level the environment map is looked up through that level's intrinsics (the image is
+    smaller); the full-size K would look up directions outside the picture."""
+    import splattwin.splat.extras as X
+
+    ds = load_dataset(make_dataset(tmp_path / "big", width=128, height=96))
+    seen = []
+    real = X.apply
+
+    def spy(app, bg, img, alpha, idx, K, *a, **k):
+        seen.append((tuple(img.shape[:2]), float(K[0, 2])))
+        return real(app, bg, img, alpha, idx, K, *a, **k)
+
+    X.apply = spy
+    try:
+        train(ds, tmp_path / "o", tiny_config(iters=8, num_downscales=1, downscale_every=0.5,
+                                              background_mode="env", env_size=4))
+    finally:
+        X.apply = real
+    for (h, w), cx in seen:
+        assert abs(cx - w / 2) < 0.3 * w, (h, w, cx)   # the principal point of the image drawn
+    assert {hw for hw, _ in seen} == {(48, 64), (96, 128)}

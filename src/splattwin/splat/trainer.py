@@ -453,7 +453,7 @@ class Trainer:
         img, alpha, meta = self.render(idx, render_mode="RGB+ED" if use_depth else "RGB", level=level)
         if use_depth:
             img, depth = img[..., :3], img[..., 3]
-        img, extra_loss = extras.apply(self.appearance, self.bg_model, img, alpha, idx, self.Ks[idx],
+        img, extra_loss = extras.apply(self.appearance, self.bg_model, img, alpha, idx, self.Ks_levels[level][idx],
                                        self.viewmats[idx], self.bg[0])
         loss = photometric_loss(img, gt, cfg.ssim_lambda) + extra_loss
         if use_depth:
