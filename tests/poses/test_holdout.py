@@ -82,12 +82,7 @@ def test_transforms_split_survives_and_own_split_detected(tmp_path):
     h = apply_holdout(ds)
     assert h.indices is None and [f.name for f in ds.heldout()] == ["heldout_008", "heldout_009"]
     # the same file without any split information: the default rule applies (10 views -> 0 and 8)
-    meta = json.loads((root / "transforms.json").read_text())
-    for k in ("train_filenames", "test_filenames"):
-        meta.pop(k)
-    for fr in meta["frames"]:
-        fr.pop("split")
-    (root / "transforms.json").write_text(json.dumps(meta))
+    helpers.drop_split(root)
     bare = load_dataset(root)
     assert not bare.meta.get("split") and not bare.heldout()
     apply_holdout(bare)
@@ -97,12 +92,7 @@ def test_transforms_split_survives_and_own_split_detected(tmp_path):
 def test_poses_stage_writes_the_split_and_its_rule(tmp_path):
     from splattwin.poses.estimate import estimate_poses
 
-    root = helpers.make_dataset(tmp_path / "ds", n_train=9, n_heldout=0)
-    meta = json.loads((root / "transforms.json").read_text())
-    meta.pop("train_filenames"), meta.pop("test_filenames")
-    for fr in meta["frames"]:
-        fr.pop("split")
-    (root / "transforms.json").write_text(json.dumps(meta))
+    root = helpers.drop_split(helpers.make_dataset(tmp_path / "ds", n_train=9, n_heldout=0))
     res = estimate_poses(load_dataset(root), PoseOptions(method="known", up="keep", progress=False,
                                                          holdout=HoldoutOptions(heldout_views="2,train_005")))
     out = res.save(tmp_path / "poses")

@@ -76,12 +76,7 @@ def test_training_and_default_eval_at_the_auto_size_full_size_as_an_option(tmp_p
 def test_train_command_holds_out_views_and_eval_finds_them(tmp_path):
     from splattwin.cli import main as cli
 
-    root = helpers.make_dataset(tmp_path / "ds", n_train=8, n_heldout=0)
-    meta = json.loads((root / "transforms.json").read_text())
-    meta.pop("train_filenames"), meta.pop("test_filenames")
-    for fr in meta["frames"]:
-        fr.pop("split")
-    (root / "transforms.json").write_text(json.dumps(meta))
+    root = helpers.drop_split(helpers.make_dataset(tmp_path / "ds", n_train=8, n_heldout=0))
     out = tmp_path / "train"
     assert cli(["train", str(root), str(out), "--iters", "10", "--heldout-every", "4", "--no-densify",
                 "--init-points", "300", "--checkpoint-every", "0", "--no-progress", "--sh-degree", "0"]) == 0

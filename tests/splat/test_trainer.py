@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -70,6 +71,28 @@ def make_dataset(root: Path, n_train: int = 8, n_heldout: int = 2, seed: int = 0
     ds = Dataset(root=root, frames=frames, has_poses=True, points_xyz=pts,
                  points_rgb=(np.clip(g.colors, 0, 1) * 255).astype(np.uint8))
     write_transforms(ds, root / "transforms.json")
+    return root
+
+
+def interrupted_then_resumed(ds, out: Path, cfg, at_step: int):
+    """Train into `out`, stopped by Ctrl-C at `at_step`, then resumed from its last checkpoint: the result."""
+    def stop(info):
+        if info["step"] == at_step:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(ds, out, cfg, callback=stop)
+    return train(ds, out, cfg, resume=True)
+
+
+def drop_split(root: Path) -> Path:
+    """Remove every train/held-out mark from root/transforms.json (a capture without its own split)."""
+    meta = json.loads((root / "transforms.json").read_text())
+    for k in ("train_filenames", "test_filenames"):
+        meta.pop(k, None)
+    for fr in meta["frames"]:
+        fr.pop("split", None)
+    (root / "transforms.json").write_text(json.dumps(meta))
     return root
 
 
@@ -147,13 +170,7 @@ def test_refine_poses_outputs_and_resume(synth, tmp_path):
     moved = [np.abs(np.array(poses[f.name]) - f.camera.T_world_cam).max() for f in ds.train()]
     assert 0 < max(moved) < 0.05
 
-    def kill(info):
-        if info["step"] == 27:
-            raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):
-        train(ds, tmp_path / "b", cfg, callback=kill)
-    b = train(ds, tmp_path / "b", cfg, resume=True)
+    b = interrupted_then_resumed(ds, tmp_path / "b", cfg, at_step=27)
     np.testing.assert_array_equal(a.gaussians.means, b.gaussians.means)
     assert a.refined_T_world_cam == b.refined_T_world_cam
 
@@ -333,13 +350,7 @@ def test_appearance_and_learnt_background_checkpoint_and_resume(synth, tmp_path)
     bg = read_background(tmp_path / "a")
     assert bg is not None and bg.mode == "env" and tuple(bg.param.shape) == (3, 4, 8)
 
-    def kill(info):
-        if info["step"] == 27:
-            raise KeyboardInterrupt
-
-    with pytest.raises(KeyboardInterrupt):
-        train(ds, tmp_path / "b", cfg, callback=kill)
-    b = train(ds, tmp_path / "b", cfg, resume=True)
+    b = interrupted_then_resumed(ds, tmp_path / "b", cfg, at_step=27)
     np.testing.assert_array_equal(a.gaussians.means, b.gaussians.means)
     st_b = ckpt_io.load(tmp_path / "b" / EXTRAS_FILE)
     torch.testing.assert_close(st_b["appearance"]["A"], st["appearance"]["A"], rtol=0, atol=0)
