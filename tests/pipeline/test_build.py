@@ -121,3 +121,29 @@ def test_killed_build_resumes_to_the_same_twin(built, tmp_path):
     assert "splats" not in state  # killed inside training
     build(out, BuildOptions.from_dict(OPTIONS), progress=False)
     assert _digest(out) == _digest(built)
+
+
+def test_build_records_episodes_when_asked(tmp_path):
+    """`build --robot.record DIR` writes the robot stage's runs as LeRobot episodes, as `plan --record`
+    does; each is read back and checked against its rollout."""
+    from splattwin.playback.episode import check_episode, read_episode, sample_indices
+    from splattwin.playback.record import Recorder
+    from splattwin.robot.rollout import Rollout
+    from splattwin.robot.world import BasePose
+
+    ds = tmp_path / "episodes"
+    task = tmp_path / "task.yaml"
+    task.write_text("- pick: blue_box\n  place_on: cardboard_box\n")
+    # a little larger than OPTIONS' scene, so that the blue box's splats make a usable object
+    opts = {"scene": {**SCENE, "width": 160, "height": 120, "views": 10},
+            "poses": {"method": "known"}, "splat": {"iters": 600, "max_gaussians": 12000, "checkpoint_every": 0},
+            "robot": {"render": False, "task": str(task), "record": str(ds), "record_fps": 4.0, "record_width": 48}}
+    out = tmp_path / "twin"
+    build(out, BuildOptions.from_dict(opts), progress=False)
+    info = json.loads((ds / "meta" / "info.json").read_text())
+    assert info["total_episodes"] == 1 and info["total_videos"] == 2
+    ro = Rollout.load(out / "robot" / "rollout.npz")
+    ep = read_episode(ds, 0)
+    assert len(ep) == len(sample_indices(ro.t, 4.0)) > 0
+    rec = Recorder(out, BasePose().matrix(), camera="capture:0", width=48, fps=4.0)
+    assert check_episode(ep, ro, rec.renderer, rec.cameras, min_psnr=24.0) == len(ep)

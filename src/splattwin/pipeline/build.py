@@ -144,7 +144,17 @@ def _robot(ctx: Context) -> dict:
 
     if not ctx.config.robot.task:
         return {}
-    res = run(RobotInputs(ctx.out, ctx.path("robot")), ctx.config.robot, progress=ctx.progress, record_errors=True)
+    opts = ctx.config.robot
+    recorder = None
+    if opts.record is not None:   # `--robot.record DIR`: checked before the physics runs, as `plan --record`
+        from splattwin.playback.record import recorder_for
+
+        recorder = recorder_for(ctx.out, ctx.path("robot"), opts)
+    res = run(RobotInputs(ctx.out, ctx.path("robot")), opts, progress=ctx.progress, record_errors=True)
+    if recorder is not None and res.details:
+        from splattwin.playback.record import record_result
+
+        record_result(recorder, opts.record, ctx.path("robot"), res.details, progress=ctx.progress)
     return record(res, ctx.out)
 
 

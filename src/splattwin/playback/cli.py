@@ -57,37 +57,24 @@ def run_plan(args: argparse.Namespace) -> int:
     from splattwin.lock import output_lock
     from splattwin.options import from_args
     from splattwin.paths import is_inside
+    from splattwin.playback.record import record_result, recorder_for
     from splattwin.robot.outputs import print_summary
     from splattwin.robot.stage import RobotInputs, run
-    from splattwin.robot.world import BasePose
 
     opts = from_args(RobotOptions, args)
     opts.validate()
     out = args.out or args.twin / "robot"
     if not args.twin.is_dir():
         raise InputError("twin folder does not exist", args.twin)
-    recorder = None
-    if opts.record is not None:   # everything the recording needs is checked before the physics runs
-        from splattwin.playback.record import Recorder, check_destination
-
-        check_destination(opts.record)
-        if is_inside(opts.record, out) or is_inside(out, opts.record):
-            raise InputError(f"--record must be outside the robot output folder {out}", opts.record)
-        if opts.robot_mjcf is not None:
-            raise InputError("--record renders the Franka Panda's Gaussians; a user robot MJCF cannot be recorded "
-                             "yet", opts.robot_mjcf)
-        base = BasePose.parse(opts.base_pose) if opts.base_pose else BasePose()
-        recorder = Recorder(args.twin, base.matrix(), camera=opts.record_camera, width=opts.record_width,
-                            fps=opts.record_fps)
+    # everything the recording needs is checked before the physics runs
+    recorder = recorder_for(args.twin, out, opts) if opts.record is not None else None
     # one writer per folder: the twin's lock when writing into it (splattwin.lock)
     with output_lock(args.twin if is_inside(out, args.twin) else out):
         res = run(RobotInputs(args.twin, out), opts)
         d = res.details
         print_summary(d["run"], d["trials"], d["paths"])
         if recorder is not None:
-            from splattwin.playback.record import runs_of, task_text
-
-            info = recorder.record(opts.record, runs_of(out, d, task_text(d["run"])))
+            info = record_result(recorder, opts.record, out, d)
             Console().print(f"recorded {info['episodes']} episode(s) into {info['path']} "
                             f"({info['reused']} reused from a killed run; {info['fps']:g} fps, cameras "
                             + ", ".join(f"{k} {w}x{h}" for k, (w, h) in info["cameras"].items()) + ")")

@@ -122,6 +122,30 @@ class Recorder:
                             ((k, self.cameras[k]) for k in self.cameras)}}
 
 
+def recorder_for(twin_dir: str | Path, robot_out: str | Path, opts) -> Recorder:
+    """The `Recorder` for `RobotOptions.record` (`opts`), with everything the recording needs checked
+    before the physics runs: the destination, its place outside the robot output folder, the arm (only
+    the Panda's Gaussians can be drawn), the twin's splats and the camera (InputError otherwise)."""
+    from splattwin.paths import is_inside
+    from splattwin.robot.world import BasePose
+
+    check_destination(opts.record)
+    if is_inside(opts.record, robot_out) or is_inside(robot_out, opts.record):
+        raise InputError(f"--record must be outside the robot output folder {robot_out}", opts.record)
+    if opts.robot_mjcf is not None:
+        raise InputError("--record renders the Franka Panda's Gaussians; a user robot MJCF cannot be recorded "
+                         "yet", opts.robot_mjcf)
+    base = BasePose.parse(opts.base_pose) if opts.base_pose else BasePose()
+    return Recorder(twin_dir, base.matrix(), camera=opts.record_camera, width=opts.record_width,
+                    fps=opts.record_fps)
+
+
+def record_result(recorder: Recorder, dest: str | Path, robot_out: str | Path, details: dict,
+                  progress: bool = True) -> dict:
+    """Write the nominal run and every trial of a robot stage result (`RobotResult.details`) into `dest`."""
+    return recorder.record(dest, runs_of(robot_out, details, task_text(details["run"])), progress=progress)
+
+
 def runs_of(robot_out: str | Path, results: dict, task: str) -> list[RecordRun]:
     """The nominal run and each trial of a robot stage result (`RobotResult.details`) as `RecordRun`s."""
     out = Path(robot_out)
