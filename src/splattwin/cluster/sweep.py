@@ -73,9 +73,6 @@ def digest(obj: Any) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 
 
-file_digest = sha256_file
-
-
 def finished(folder: Path, key: dict) -> dict | None:
     """The folder's result.json when it was written for `key`, else None."""
     try:
@@ -296,22 +293,22 @@ def plan_sweep(spec: SweepSpec, out: Path, fusion_base, geometry_base) -> tuple[
     ctx["scene"] = str(scene.resolve()) if scene else None
     if need_twin:
         ctx["splats"] = str(_twin_file(twin, man.splats, "splat file"))
-        ctx["splats_sha"] = file_digest(Path(ctx["splats"]))
+        ctx["splats_sha"] = sha256_file(Path(ctx["splats"]))
     if need_fusion:
         cameras = _twin_file(twin, man.cameras, "cameras file")
         ms = sweep_masks(twin, man, spec.masks, scene, load_dataset(cameras))
         ms.save(out / "masks")
         ctx.update(cameras=str(cameras), masks=str((out / "masks").resolve()),
-                   masks_sha=file_digest(out / "masks" / "masks.json"))
+                   masks_sha=sha256_file(out / "masks" / "masks.json"))
     elif need_twin:
         ctx["labels"] = str(_twin_file(twin, man.labels, "labels file"))
-        ctx["labels_sha"] = file_digest(Path(ctx["labels"]))
+        ctx["labels_sha"] = sha256_file(Path(ctx["labels"]))
         ctx["objects"] = [[o.name, o.label, o.prompt] for o in man.objects]
     tr = spec.trial
     # what decides whether the task can run on a cell's twin (checked by its twin task)
-    task_key = {"task": file_digest(Path(tr.task_path)) if tr.task_path else "default", "base": asdict(tr.base),
-                "robot": file_digest(Path(tr.robot_mjcf)) if tr.robot_mjcf else "panda", "tcp_site": tr.tcp_site}
-    cameras_sha = file_digest(Path(ctx["cameras"])) if need_fusion else None
+    task_key = {"task": sha256_file(Path(tr.task_path)) if tr.task_path else "default", "base": asdict(tr.base),
+                "robot": sha256_file(Path(tr.robot_mjcf)) if tr.robot_mjcf else "panda", "tcp_site": tr.tcp_site}
+    cameras_sha = sha256_file(Path(ctx["cameras"])) if need_fusion else None
     plan = _Plan()
     for i, cell in enumerate(spec.cells()):
         parts = P.split(cell)

@@ -131,11 +131,9 @@ def run_once(spec: TrialSpec, frame_dir: str | Path | None = None, keep_trajecto
 
 def _file_digest(path: str | Path | None) -> str | None:
     """sha256 of a file's bytes (None for no file): a rebuilt twin or an edited task is another trial."""
-    import hashlib
+    from splattwin.hashing import sha256_file
 
-    if path is None or not Path(path).is_file():
-        return None
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    return sha256_file(path) if path is not None and Path(path).is_file() else None
 
 
 def trial_key(spec: TrialSpec) -> dict:
