@@ -80,11 +80,11 @@ EPS2D = 0.3  # the rasterizer's low-pass (px^2 at the training size); 1/4^level 
 # a coarse level renders every Gaussian as the training size does, only sampled on a coarser grid (with
 # 0.3 coarse px^2, sub-pixel Gaussians learnt at 1/4 size were dilated 16x more than at full size, and the
 # model kept that bias: -0.4 dB held-out on the embedded scene)
-BASE_PIXELS, BASE_INIT_POINTS, BASE_MAX_GAUSSIANS = 320 * 240, 24_000, 28_000
+BASE_PIXELS, BASE_INIT_POINTS, BASE_MAX_GAUSSIANS = 320 * 240, 24_000, 40_000
 
 
 def capacity(n_pixels: float) -> tuple[int, int]:
-    """Default (init_points, max_gaussians) for training images of n_pixels (mean): 24k / 28k up to
+    """Default (init_points, max_gaussians) for training images of n_pixels (mean): 24k / 40k up to
     320x240, scaled with sqrt(n_pixels / (320 x 240)) above (2x at 640x480)."""
     s = max(1.0, math.sqrt(n_pixels / BASE_PIXELS))
     return int(round(BASE_INIT_POINTS * s, -3)), int(round(BASE_MAX_GAUSSIANS * s, -3))
