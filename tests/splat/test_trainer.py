@@ -310,7 +310,7 @@ def test_default_capacity_scales_with_the_image_side(synth, tmp_path):
     from splattwin.splat.trainer import capacity
 
     assert capacity(320 * 240) == (24_000, 40_000) and capacity(100 * 80) == (24_000, 40_000)
-    assert capacity(640 * 480) == (48_000, 80_000)
+    assert capacity(640 * 480) == (48_000, 56_000) and capacity(360 * 640) == (42_000, 48_000)
     ds = load_dataset(synth)
     tr = Trainer(ds, tmp_path / "a", tiny_config(init_points=0, max_gaussians=0))
     assert (tr.cfg.init_points, tr.cfg.max_gaussians) == capacity(W * H)
