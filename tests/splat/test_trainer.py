@@ -307,7 +307,7 @@ def test_coarse_to_fine_training_trains_at_each_level_and_is_deterministic(synth
 
 
 def test_default_capacity_scales_with_the_image_side(synth, tmp_path):
-    from splattwin.splat.trainer import capacity
+    from splattwin.splat.resolution import capacity
 
     assert capacity(320 * 240) == (24_000, 40_000) and capacity(100 * 80) == (24_000, 40_000)
     assert capacity(640 * 480) == (48_000, 56_000) and capacity(360 * 640) == (42_000, 48_000)

@@ -48,7 +48,7 @@ class TrainConfig:
         off by 1.5 deg / 2.3 cm: left 0.34 deg / 0.41 cm, vs 1.43 deg / 2.1 cm with start 0.2, LR 1e-3).
     init_points / max_gaussians: at most this many initial Gaussians / Gaussians at any time; 0 (the
         default): 24k / 28k for 320x240 training images, times sqrt(pixels / (320 x 240)) for larger ones,
-        the cap at least 40k (`splattwin.splat.trainer.capacity`: 40k at 320x240, 48k at 360x640, 56k at
+        the cap at least 40k (`splattwin.splat.resolution.capacity`: 40k at 320x240, 48k at 360x640, 56k at
         640x480). Embedded scene at 320x240 (bench/train.py, 3000 steps, held-out dB): cap 28k 32.82, 36k
         32.96, 40k 33.02, 44k 32.98 (scene seed 1: 34.19 with 28k, 34.31 with 36k); 40k costs ~12 % more
         CPU time per run and passes 32.9 dB by step 2000. Larger images did not take the same step up: at
