@@ -27,7 +27,9 @@ Sections (SECTIONS below; each returns table rows and JSON keys, so more can be 
   (statue, SfM, no scale), each in a fresh process; both must exit 2 before SfM. Key: the slower median (s).
 - zdown_fixed: `measure_zdown()` of bench/robot_capture.py (a z-down robot capture becomes a z-up twin).
 - psnr_heldout_statue: statue built to the splats with the default hold-out and resolution; held-out PSNR
-  and SSIM (ssim_heldout_statue) at the training resolution.
+  and SSIM (ssim_heldout_statue) at the training resolution. The same build checks the pre-flight's
+  constants: its memory and disk estimates (from its log line) against the build's peak RSS (the process
+  and its SfM worker, wait4) and the bytes written: preflight_estimate_covers_peak.
 Targets (issue #16): preflight_s <= 10, zdown_fixed true, unscaled_twin_complete true, psnr_heldout_statue >= 20,
 registered_frac_min 1.0, registered_frac_internet >= 0.8, sfm_s_max <= 40,
 sfm_peak_rss_gib <= 2, known_pose_init_gap_db <= 1.0. The real photos are read in place (CC BY-NC).
@@ -39,6 +41,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import resource
 import statistics
 import subprocess
@@ -337,6 +340,31 @@ def _cli_run(argv: list[str], env_extra: dict | None = None) -> tuple[int, float
     return p.returncode, time.perf_counter() - t0, p.stderr
 
 
+def _cli_run_peak(argv: list[str]) -> tuple[int, float, str, float]:
+    """As `_cli_run`, plus the peak RSS (GiB) of the process and the descendants it waited for (the SfM
+    worker): wait4's rusage, so an earlier section's children do not count."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
+    with tempfile.TemporaryFile(mode="w+") as err:
+        t0 = time.perf_counter()
+        p = subprocess.Popen([sys.executable, "-m", "splattwin.cli", *argv], env=env, stdout=subprocess.DEVNULL,
+                             stderr=err, text=True)
+        _, status, usage = os.wait4(p.pid, 0)
+        p.returncode = os.waitstatus_to_exitcode(status)
+        wall = time.perf_counter() - t0
+        err.seek(0)
+        return p.returncode, wall, err.read(), usage.ru_maxrss * 1024 / 2 ** 30
+
+
+def _preflight_estimate(stderr: str) -> tuple[float | None, float | None]:
+    """(memory GiB, disk GiB) from the build's pre-flight log line."""
+    m = re.search(r"pre-flight: \d+ views, about ([\d.]+) GiB memory and ([\d.]+) GiB disk", stderr)
+    return (float(m.group(1)), float(m.group(2))) if m else (None, None)
+
+
+def _tree_bytes(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file() and not f.is_symlink())
+
+
 def section_preflight(args) -> tuple[list[tuple[str, str]], dict]:
     """`build --prompt` without segmentation weights (an empty Hugging Face cache) and `build --task` on an
     unscaled capture (an image folder posed by SfM, no scale): each must exit 2 before SfM (no poses/
@@ -391,21 +419,29 @@ def section_psnr_heldout_statue(args) -> tuple[list[tuple[str, str]], dict]:
     import shutil
 
     try:
-        code, wall, err = _cli_run(argv)
+        code, wall, err, peak_gib = _cli_run_peak(argv)
         m_path = work / "twin" / "splat" / "eval" / "metrics.json"
         if code != 0 or not m_path.is_file():
             return [("statue held-out", f"build failed (exit {code}): {err.strip()[-200:]}")], {"psnr_heldout_statue": None}
         m = json.loads(m_path.read_text())
+        disk_gib = _tree_bytes(work / "twin") / 2 ** 30
     finally:
         shutil.rmtree(work, ignore_errors=True)
+    est_mem, est_disk = _preflight_estimate(err)
     er, held = m.get("eval_resolution", {}), m.get("heldout", {})
     rows = [("statue held-out", f"PSNR {m['mean_psnr']:.2f} dB, SSIM {m['mean_ssim']:.4f} on {m['split']} views "
                                 f"{held.get('views')} ({held.get('rule')}); evaluated at {er.get('sizes')} of "
                                 f"{er.get('full_sizes')} ({er.get('mode')}); {m['gaussians']} Gaussians; build "
-                                f"{wall:.0f} s")]
+                                f"{wall:.0f} s"),
+            ("statue pre-flight vs measured", f"memory estimate {est_mem} GiB vs peak RSS {peak_gib:.2f} GiB; disk "
+                                              f"estimate {est_disk} GiB vs {disk_gib:.3f} GiB written (until splats)")]
+    covers = est_mem is not None and est_disk is not None and est_mem >= peak_gib and est_disk >= disk_gib
     return rows, {"psnr_heldout_statue": round(m["mean_psnr"], 3), "ssim_heldout_statue": round(m["mean_ssim"], 4),
                   "statue_heldout_views": held.get("views"), "statue_eval_size": er.get("sizes"),
-                  "statue_build_s": round(wall, 1), "statue_iters": args.statue_iters or "default"}
+                  "statue_build_s": round(wall, 1), "statue_iters": args.statue_iters or "default",
+                  "statue_peak_rss_gib": round(peak_gib, 3), "statue_preflight_memory_gib": est_mem,
+                  "statue_disk_gib": round(disk_gib, 3), "statue_preflight_disk_gib": est_disk,
+                  "preflight_estimate_covers_peak": covers}
 
 
 SECTIONS: dict[str, Callable] = {"sfm": section_sfm, "known_pose_init": section_known_pose_init,

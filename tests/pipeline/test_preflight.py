@@ -123,3 +123,17 @@ def test_bad_mask_folder_found_at_preflight(tmp_path, capsys):
     code = cli(["build", str(imgs), "--out", str(out), "--masks", str(masks), "--no-progress"])
     err = capsys.readouterr().err
     assert code == 2 and "box.png" in err and not (out / "poses").exists()
+
+
+def test_estimate_uses_the_trainers_default_budget_and_the_larger_phase():
+    from splattwin.splat.resolution import capacity
+
+    sizes, train = [(1080, 1920)] * 9, [(360, 640)] * 9
+    auto = pf.estimate(sizes, train, 0, True, 0)
+    cap = capacity(360 * 640)[1]
+    assert auto.parts["Gaussians"] == cap * pf.BYTES_PER_GAUSSIAN
+    assert auto.memory == pf.estimate(sizes, train, cap, True, 0).memory
+    # SfM runs in its own process before training: the peak is one phase, not their sum
+    assert auto.memory < sum(auto.parts.values())
+    no_sfm = pf.estimate(sizes, train, cap, False, 0)
+    assert auto.memory >= no_sfm.memory and no_sfm.memory == sum(no_sfm.parts.values())

@@ -307,16 +307,16 @@ def test_coarse_to_fine_training_trains_at_each_level_and_is_deterministic(synth
 
 
 def test_default_capacity_scales_with_the_image_side(synth, tmp_path):
-    from splattwin.splat.trainer import capacity
+    from splattwin.splat.resolution import capacity
 
-    assert capacity(320 * 240) == (24_000, 28_000) and capacity(100 * 80) == (24_000, 28_000)
-    assert capacity(640 * 480) == (48_000, 56_000)
+    assert capacity(320 * 240) == (24_000, 40_000) and capacity(100 * 80) == (24_000, 40_000)
+    assert capacity(640 * 480) == (48_000, 56_000) and capacity(360 * 640) == (42_000, 48_000)
     ds = load_dataset(synth)
     tr = Trainer(ds, tmp_path / "a", tiny_config(init_points=0, max_gaussians=0))
     assert (tr.cfg.init_points, tr.cfg.max_gaussians) == capacity(W * H)
     assert tr.dcfg.max_gaussians == tr.cfg.max_gaussians
     tr = Trainer(ds, tmp_path / "b", tiny_config(init_points=500, max_gaussians=0))
-    assert (tr.cfg.init_points, tr.cfg.max_gaussians) == (500, 28_000)  # an explicit value is kept
+    assert (tr.cfg.init_points, tr.cfg.max_gaussians) == (500, 40_000)  # an explicit value is kept
 
 
 def test_coarse_to_fine_is_on_by_default_only_for_photo_sized_images(synth, tmp_path):

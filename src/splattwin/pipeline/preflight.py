@@ -30,11 +30,12 @@ log = logging.getLogger(__name__)
 GIB = 2 ** 30
 REFUSE_FACTOR = 1.5     # refuse when the estimate exceeds what is free by this factor ("clearly")
 WARN_FACTOR = 0.8       # warn when the estimate exceeds this share of what is free
-BASE_PROCESS = 1.5 * GIB    # Python + torch + numba + open3d + mujoco loaded in one process (measured ~1.2)
-SFM_BASE = 1.0 * GIB        # pycolmap worker: SIFT at --max-image-size, matching (bench/real.py: <= 2 GiB)
-BYTES_PER_GAUSSIAN = 59 * 4 * 4 + 64    # params + grads + 2 Adam moments (float32), densify statistics
-RASTER_BYTES_PER_PIXEL = 400            # CPU rasterizer: per-pixel state, tile lists, backward buffers
-
+# Measured peaks (bench/real.py psnr_heldout_statue checks the estimate against a build's peak RSS):
+BASE_PROCESS = 0.6 * GIB    # Python + torch + numba + open3d + mujoco + pycolmap imported: 0.43 GiB measured
+SFM_BASE = 0.7 * GIB        # pycolmap worker process: SIFT at --max-image-size, matching (bench/real.py: <= 0.69)
+BYTES_PER_GAUSSIAN = 2000   # params, grads, 2 Adam moments, densify statistics, per-view projections and
+# autograd intermediates (bench/train.py: 0.45 GiB above the imports at 640x480 with 56k Gaussians)
+RASTER_BYTES_PER_PIXEL = 800            # CPU rasterizer: per-pixel state, tile lists, backward buffers
 
 @dataclass
 class Estimate:
@@ -51,10 +52,16 @@ class Estimate:
 def estimate(sizes: list[tuple[int, int]], train_sizes: list[tuple[int, int]], max_gaussians: int, sfm: bool,
              capture_bytes: int, max_image_size: int = 1600) -> Estimate:
     """Peak memory and disk of a build of views of `sizes` (w, h) trained at `train_sizes`, with at most
-    `max_gaussians`, with SfM or not; `capture_bytes`: the capture's files (bundled into the twin: hard
-    links where possible, copies at worst)."""
+    `max_gaussians` (0: the trainer's default for the training size, `splat.resolution.capacity`), with
+    SfM or not; `capture_bytes`: the capture's files (bundled into the twin: hard links where possible,
+    copies at worst). SfM runs in its own process before training: the peak is the larger of the SfM
+    phase (this process + the worker) and the training phase."""
+    from splattwin.splat.resolution import capacity
+
     n = len(sizes)
     train_px = sum(w * h for w, h in train_sizes)
+    if max_gaussians <= 0:
+        max_gaussians = capacity(train_px / max(n, 1))[1]
     big = max((w * h for w, h in sizes), default=0)
     parts = {
         "process": BASE_PROCESS,
@@ -63,10 +70,13 @@ def estimate(sizes: list[tuple[int, int]], train_sizes: list[tuple[int, int]], m
         "Gaussians": max_gaussians * BYTES_PER_GAUSSIAN,
         "rasterizer": max((w * h for w, h in train_sizes), default=0) * RASTER_BYTES_PER_PIXEL,
     }
+    training = sum(parts.values())
+    sfm_phase = 0.0
     if sfm:
         side = max_image_size or max((max(s) for s in sizes), default=0)
         parts["SfM"] = SFM_BASE + min(big, side * side) * 4 * 2
-    memory = sum(parts.values())
+        sfm_phase = BASE_PROCESS + parts["decoding one image"] + parts["SfM"]
+    memory = max(training, sfm_phase)
     disk = (capture_bytes + 2 * 3 * max_gaussians * 59 * 4     # bundle (copies at worst) + 2 checkpoints
             + max_gaussians * 62 * 4 * 2                        # PLYs (splat, objects)
             + train_px * 3                                      # label maps, eval pictures (PNG, uncompressed bound)
@@ -207,7 +217,7 @@ def run_preflight(options, out: Path, input_path: Path | None, scene_dir: Path |
     sfm = o.poses.method == "sfm" or (o.poses.method == "auto" and not has_poses and o.poses.robot_poses is None)
     est = estimate(sizes, train_sizes, o.splat.max_gaussians, sfm, capture_bytes, o.poses.max_image_size)
     check_resources(est, out, f"{len(sizes)} views trained at {rule.how.split(' (')[0]} with up to "
-                              f"{o.splat.max_gaussians} Gaussians")
+                              f"{int(est.parts['Gaussians'] // BYTES_PER_GAUSSIAN)} Gaussians")
     info.update(views=len(sizes), memory_gib=round(est.memory / GIB, 3), disk_gib=round(est.disk / GIB, 3),
                 seconds=round(time.perf_counter() - t0, 3))
     log.info("pre-flight: %d views, about %.1f GiB memory and %.1f GiB disk needed (%.1f s)", len(sizes),

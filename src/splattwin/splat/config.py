@@ -47,12 +47,14 @@ class TrainConfig:
         fraction of the run before they move. Start 0 and LR 5e-3 measured best (bench/train.py, cameras
         off by 1.5 deg / 2.3 cm: left 0.34 deg / 0.41 cm, vs 1.43 deg / 2.1 cm with start 0.2, LR 1e-3).
     init_points / max_gaussians: at most this many initial Gaussians / Gaussians at any time; 0 (the
-        default): 24k / 28k for 320x240 training images, times sqrt(pixels / (320 x 240)) for larger ones
-        (`splattwin.splat.trainer.capacity`). 24k / 28k on the embedded scene at 320x240 (bench/train.py,
-        3000 steps): held-out 32.80 dB / SSIM 0.951, vs 32.69 dB / 0.953 with 24k / 32k (~6 % slower) and
-        32.48 dB / 0.950 with 20k / 26k. At 640x480 the 28k cap left 32.53 dB / 0.958 and 48k / 56k gave
-        33.69 dB / 0.970: finer images need more Gaussians, about with the side length rather than the
-        pixel count.
+        default): 24k / 28k for 320x240 training images, times sqrt(pixels / (320 x 240)) for larger ones,
+        the cap at least 40k (`splattwin.splat.resolution.capacity`: 40k at 320x240, 48k at 360x640, 56k at
+        640x480). Embedded scene at 320x240 (bench/train.py, 3000 steps, held-out dB): cap 28k 32.82, 36k
+        32.96, 40k 33.02, 44k 32.98 (scene seed 1: 34.19 with 28k, 34.31 with 36k); 40k costs ~12 % more
+        CPU time per run and passes 32.9 dB by step 2000. Larger images did not take the same step up: at
+        640x480, 80k gave 34.26 dB against 33.78 with 56k, but the statue photos (7 views at 360x640) fell
+        from 14.40 dB held-out with 48k to 13.10 with 69k, so only the floor moved. Earlier: 20k / 26k
+        32.48 dB at 320x240; at 640x480 a 28k cap left 32.53 dB / 0.958.
     rasterize_mode: "classic" or "antialiased" (see `rasterization`); evaluation renders with the same
         mode (train.json). Antialiased measured no better (2x2-sampled scene: SSIM 0.919 vs 0.921).
     opacity_reg: weight of a mean-opacity penalty (gsplat's opacity_reg; 0: off). 0.05 raised held-out
@@ -120,8 +122,8 @@ class TrainConfig:
                                      "the initial points)")
     opacity_reg: float = option(0.0, "weight of a mean-opacity penalty, as gsplat's opacity_reg (0: off; 0.05 "
                                 "gave +0.27 dB / +0.009 SSIM on the embedded scene, ~15 % slower)")
-    max_gaussians: int = option(0, "cap on the Gaussian count (0: 28000 for 320x240 images, scaled with the "
-                                "square root of the pixel count above)")
+    max_gaussians: int = option(0, "cap on the Gaussian count (0: 28000 x sqrt(pixels / 320x240), "
+                                "at least 40000)")
     background: tuple[float, float, float] = option((0.0, 0.0, 0.0), "background colour (RGB in [0, 1])")
     densify: bool = option(True, "adaptive density control (clone, split, prune)")
     lrs: LearningRates = option(factory=LearningRates, help="Adam learning rates")

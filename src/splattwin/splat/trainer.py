@@ -45,7 +45,7 @@ from splattwin.splat.losses import photometric_loss, psnr_from_mse
 from splattwin.splat.model import GaussianModel
 from splattwin.splat.pose_refine import PoseCorrection
 from splattwin.splat.rasterization import backend_device, rasterization, resolve_backend
-from splattwin.splat.resolution import Resolution, describe_sizes, resolve as resolve_resolution
+from splattwin.splat.resolution import Resolution, capacity, describe_sizes, resolve as resolve_resolution
 from splattwin.splat.strategy import DefaultStrategy, Strategy
 
 log = logging.getLogger(__name__)
@@ -80,16 +80,6 @@ EPS2D = 0.3  # the rasterizer's low-pass (px^2 at the training size); 1/4^level 
 # a coarse level renders every Gaussian as the training size does, only sampled on a coarser grid (with
 # 0.3 coarse px^2, sub-pixel Gaussians learnt at 1/4 size were dilated 16x more than at full size, and the
 # model kept that bias: -0.4 dB held-out on the embedded scene)
-BASE_PIXELS, BASE_INIT_POINTS, BASE_MAX_GAUSSIANS = 320 * 240, 24_000, 28_000
-
-
-def capacity(n_pixels: float) -> tuple[int, int]:
-    """Default (init_points, max_gaussians) for training images of n_pixels (mean): 24k / 28k up to
-    320x240, scaled with sqrt(n_pixels / (320 x 240)) above (2x at 640x480)."""
-    s = max(1.0, math.sqrt(n_pixels / BASE_PIXELS))
-    return int(round(BASE_INIT_POINTS * s, -3)), int(round(BASE_MAX_GAUSSIANS * s, -3))
-
-
 MIN_LEVEL_SIDE = 32  # coarse levels keep at least this many pixels on the short side (SSIM needs 11)
 
 
