@@ -4,15 +4,16 @@ On the demo twin and the rollout that bench/photoreal.py recorded (its --out hol
 arrangement from every held-out camera, PSNR over the moved objects' pixels (ground-truth labels of the
 final arrangement), each figure the mean over the views:
 
-fused_relit     the bench's own figure: the twin (`DynamicScene.load`: splats.ply + labels + bbox carry)
-                against the ray-cast ground truth of the moved objects
+fused_relit     the twin as trained (`DynamicScene.load(view_fade=False)`: splats.ply + labels + bbox
+                carry, SH as trained) against the ray-cast ground truth of the moved objects
 oracle_relit    membership: the moving sets replaced by every Gaussian whose centre lies within
                 ORACLE_MARGIN of the ground-truth object's surface at its start pose (or inside it),
                 above the table plane
 fused_baked     shading: against a ground truth that does NOT re-light the moved objects (their hits
                 shaded as at the start pose in the start arrangement: the capture's n.l and cast
                 shadows carried along), i.e. what a perfect splat that cannot re-light would show
-sh_dc_relit     view dependence: the moved objects drawn with their SH degree-0 colour only
+sh_dc_relit     view dependence: the moved objects drawn with their SH degree-0 colour only (what
+                `DynamicScene.view_fade`, the default, does to an object that moved > VIEW_FADE_M)
 photo_gt_geom   an image-based bound with no splat at all: each object pixel takes the colour of the
                 training photos at the EXACT (ground-truth) surface point at its start pose (visible
                 views, weighted by their sampling density), i.e. what the photos hold about that point
@@ -138,7 +139,7 @@ def oracle_scene(twin: Path, members: dict[str, np.ndarray], base):
     back = keep & _off_table(full.means, man.background.table_extent, h)
     front = keep & ~back
     sc = DynamicScene(background=full.subset(front), objects=objects, T_world_obj0=dict(base.T_world_obj0),
-                      residue={}, table_height=h, twin_dir=twin, backdrop=full.subset(back))
+                      residue={}, table_height=h, twin_dir=twin, backdrop=full.subset(back), view_fade=base.view_fade)
     sc.fill_holes()
     return sc
 
@@ -227,7 +228,7 @@ def main() -> int:
     man = Manifest.load(twin)
     ro = Rollout.load(args.rollout)
     final = {n: T[-1] for n, T in ro.object_poses.items()}
-    scene = DynamicScene.load(twin)
+    scene = DynamicScene.load(twin, view_fade=False)   # the splats as trained; sh_dc_relit is the fade's effect
     moved = scene.moved(final)
     motions = {n: final[n] @ np.linalg.inv(man.object(n).pose) for n in moved}
     r_final, labels_of, _ = gt_renderer(twin / "scene", motions)
