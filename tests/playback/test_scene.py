@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from splattwin.capture.camera import Camera, look_at
-from splattwin.playback.scene import DynamicScene, rigid_transform
+from splattwin.playback.scene import VIEW_FADE_M, VIEW_FADE_RAD, DynamicScene, rigid_transform, view_weight
 from splattwin.splat.gaussians import Gaussians
 from splattwin.splat.render import render_rgb
 from splattwin.twin.splats import eval_sh, sh_rotation, transform_gaussians
@@ -82,3 +82,47 @@ def test_dynamic_scene_split_and_state(tiny_twin):
     assert len(g1) == len(full) - len(np.unique(sc.residue["blue_box"])) + len(fill.gaussians)
     obj_now = g1.means[-n_obj:]
     np.testing.assert_allclose(obj_now.mean(0), T[:3, 3] + (sc.objects["blue_box"].means.mean(0)), atol=1e-9)
+
+
+def test_view_weight_fades_with_motion():
+    T0 = _rigid(5)
+    assert view_weight(T0, T0) == 1.0
+    T = T0.copy()
+    T[:3, 3] += [0.6 * VIEW_FADE_M, 0.0, 0.0]
+    assert view_weight(T0, T) == pytest.approx(0.4)
+    T[:3, 3] += [VIEW_FADE_M, 0.0, 0.0]
+    assert view_weight(T0, T) == 0.0
+    R = T0.copy()   # a turn in place: the angle alone fades
+    R[:3, :3] = Rotation.from_rotvec([0, 0, 0.5 * VIEW_FADE_RAD]).as_matrix() @ T0[:3, :3]
+    assert view_weight(T0, R) == pytest.approx(0.5)
+
+
+def test_moved_object_is_drawn_view_independent(tiny_twin):
+    """Far from its twin pose an object keeps its degree-0 colour and loses the higher SH bands, in the
+    scene's `gaussians` and in the renderer's buffers alike; at rest (and with view_fade=False) the
+    bands are kept; halfway through the fade they are scaled."""
+    from splattwin.playback.compositor import PlaybackRenderer
+
+    sc = DynamicScene.load(tiny_twin)
+    g = sc.objects["blue_box"]
+    n = len(g)
+    assert np.abs(g.sh[:, 1:]).max() > 0.01   # the fixture has view-dependent colour: the test can fail
+    T0 = sc.T_world_obj0["blue_box"]
+    far = T0.copy()
+    far[:3, 3] += [-0.12, 0.12, 0.0]
+    half = T0.copy()
+    half[:3, 3] += [0.5 * VIEW_FADE_M, 0.0, 0.0]
+    _, _, sh_far = rigid_transform(g, far)
+    np.testing.assert_allclose(sc.gaussians({}).sh[-n:], rigid_transform(g, T0)[2], atol=1e-9)   # at rest: kept
+    got = sc.gaussians({"blue_box": far}).sh[-n:]
+    np.testing.assert_allclose(got[:, 0], sh_far[:, 0], atol=1e-9)
+    assert np.abs(got[:, 1:]).max() == 0.0
+    _, _, sh_half = rigid_transform(g, half)
+    np.testing.assert_allclose(sc.gaussians({"blue_box": half}).sh[-n:, 1:], 0.5 * sh_half[:, 1:], atol=1e-9)
+    # the renderer lays out the same colours (its buffers are float32)
+    r = PlaybackRenderer(sc, backend="cpu")
+    k = r.layout({"blue_box": far}, None)
+    np.testing.assert_allclose(r.sh[k - n:k], got, atol=1e-5)
+    # view_fade=False: the rotated bands as they were
+    keep = DynamicScene.load(tiny_twin, view_fade=False)
+    np.testing.assert_allclose(keep.gaussians({"blue_box": far}).sh[-n:], sh_far, atol=1e-9)

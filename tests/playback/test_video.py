@@ -45,3 +45,26 @@ def test_render_cli_writes_video(tiny_twin, tmp_path):
     assert info["frames"] == 7 and (info["width"], info["height"]) == (96, 72)
     v = read_mp4(out)
     assert np.abs(v[0].astype(float) - v[-1].astype(float)).mean() > 1.0   # the object moved
+
+
+def test_render_cli_keep_view_dependence(tiny_twin, tmp_path, monkeypatch):
+    """--keep-view-dependence reaches the scene (view_fade=False); without it the fade is on. (The effect
+    itself is tested in test_scene.py; frames of an MP4 carry codec noise of the same size.)"""
+    from splattwin.playback.scene import DynamicScene
+
+    from .rollouts import synthetic_rollout
+
+    r = synthetic_rollout(0.3).save(tmp_path / "r.npz")
+    seen = []
+    load = DynamicScene.load.__func__
+
+    def spy(cls, *a, **kw):
+        sc = load(cls, *a, **kw)
+        seen.append(sc.view_fade)
+        return sc
+
+    monkeypatch.setattr(DynamicScene, "load", classmethod(spy))
+    for extra in ([], ["--keep-view-dependence"]):
+        assert main(["render", str(tiny_twin), "--camera", "view_0", "--out", str(tmp_path / "v.mp4"),
+                     "--rollout", str(r), "--fps", "20", "--no-robot", *extra]) == 0
+    assert seen == [True, False]

@@ -41,6 +41,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(default: the one `splattwin plan` recorded in TWIN/robot/results.json, else -0.5,0,0,0)")
     p.add_argument("--no-robot", action="store_true", help="leave the robot out of the picture")
     p.add_argument("--no-fill", action="store_true", help="do not fill the table under moved objects")
+    p.add_argument("--keep-view-dependence", action="store_true",
+                   help="moved objects keep the capture's view-dependent colour (default: it fades out over "
+                        "their first 5 cm of motion; see playback/scene.py)")
 
 
 def run_plan(args: argparse.Namespace) -> int:
@@ -103,7 +106,7 @@ def run_render(args: argparse.Namespace) -> int:
         raise InputError(f"--width must be in [16, 8192], got {args.width}")
     if args.out.suffix.lower() != ".mp4":
         raise InputError("--out must name an .mp4 file", args.out)
-    scene = DynamicScene.load(args.twin, fill_holes=not args.no_fill)
+    scene = DynamicScene.load(args.twin, fill_holes=not args.no_fill, view_fade=not args.keep_view_dependence)
     camera = resolve_camera(args.camera, args.twin, width=args.width)
     rpath = args.rollout or args.twin / "robot" / "rollout.npz"
     if not rpath.is_file():

@@ -122,7 +122,7 @@ class PlaybackRenderer:
             key = (sl.start, T.tobytes())
             if self._obj_cache.get(n) != key:   # only moved rows are rewritten
                 m, q, sh = rigid_transform(g, T)
-                self._put(sl, m, q, g.scales, g.opacities, sh)
+                self._put(sl, m, q, g.scales, g.opacities, sc.object_sh(n, sh, T))
                 self._obj_cache[n] = key
             i += len(g)
         if self.robot is not None and robot_pose is not None:
