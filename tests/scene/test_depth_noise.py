@@ -152,8 +152,11 @@ def test_capture_is_seeded_and_perfect_depth_switch(tmp_path: Path):
     truth, _ = _truth_depth(3, 1)
     np.testing.assert_array_equal(dp, depth_mm(truth))             # perfect: the ray-cast depth in mm
     assert (da != dp).mean() > 0.3
-    rec = json.loads((p / "scene.json").read_text())["robot_capture"]["depth_noise"]
-    assert rec["enabled"] is False
+    rec = json.loads((p / "scene.json").read_text())["robot_capture"]
+    assert rec["depth_noise"]["enabled"] is False
+    assert RobotCaptureOptions.from_dict(rec) == replace(cap, depth_noise=DepthNoise.perfect())
+    rec_a = json.loads((a / "scene.json").read_text())["robot_capture"]
+    assert RobotCaptureOptions.from_dict(rec_a) == cap                  # the record round-trips
     # the CLI switch, recorded in scene.json
     assert main(["scene", "generate", str(tmp_path / "cli"), "--robot-capture", "bop", "--width", "64", "--height",
                  "48", "--views", "3", "--supersample", "1", "--no-progress",

@@ -231,3 +231,17 @@ class RobotCaptureOptions:
         if self.format not in FORMATS:
             raise InputError(f"robot capture format must be one of {', '.join(FORMATS)}, got {self.format!r}")
         self.depth_noise.validate()
+
+    @classmethod
+    def from_dict(cls, d: dict) -> RobotCaptureOptions:
+        """The options as scene.json's `robot_capture` entry records them (other keys ignored; a record
+        written before `depth_noise` existed had perfect depth)."""
+        names = {f.name for f in fields(cls)}
+        kw = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items() if k in names}
+        dn = kw.get("depth_noise")
+        if isinstance(dn, dict):
+            dn_names = {f.name for f in fields(DepthNoise)}
+            kw["depth_noise"] = DepthNoise(**{k: v for k, v in dn.items() if k in dn_names})
+        elif "depth_noise" not in kw:
+            kw["depth_noise"] = DepthNoise.perfect()
+        return cls(**kw)
