@@ -153,6 +153,9 @@ class DepthNoise:
       between neighbours, or next to no return), about `edge_hole_prob` of that band.
     - Blobs: `blob_fraction` of the pixels lost in smooth random blobs of ~`blob_radius_px` (specular,
       dark or textureless patches).
+
+    On the robot capture at 320x240 (cameras 0.65-0.8 m from the table centre) the defaults give a median
+    |D - D_true| of 3.7 mm (mean 5.0 mm) and lose 4.6 % of the pixels that see a surface (bench/depth.py).
     """
 
     enabled: bool = option(True, "apply the D435-like error model (off: perfect ray-cast depth)")
