@@ -58,8 +58,7 @@ def _poses_row(capture: Path, up: str) -> dict:
     scene = json.loads((capture / "scene.json").read_text())
     opts = SceneOptions.from_dict(scene["options"])
     rc = scene["robot_capture"]
-    cap = RobotCaptureOptions(**{k: tuple(v) if isinstance(v, list) else v for k, v in rc.items()
-                                 if k in RobotCaptureOptions.__dataclass_fields__})
+    cap = RobotCaptureOptions.from_dict(rc)
     objects = build_scene(opts)[0]
     truth = sweep_cameras(cap, look_target(objects), opts.seed)
     centre_err = max(float(np.linalg.norm(f.camera.center - c.center)) for f, c in zip(res.frames, truth))

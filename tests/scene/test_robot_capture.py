@@ -16,7 +16,8 @@ from splattwin.cli import main
 from splattwin.poses import PoseOptions, estimate_poses
 from splattwin.poses.table import fit_table_plane
 from splattwin.scene import SceneOptions
-from splattwin.scene.robot_capture import (R_capture_world, RobotCaptureOptions, depth_mm, sweep_cameras,
+from splattwin.scene.depth_noise import sensor_depth, view_rng
+from splattwin.scene.robot_capture import (R_capture_world, DepthNoise, RobotCaptureOptions, depth_mm, sweep_cameras,
                                            write_robot_capture)
 from splattwin.semantics.masks import load_masks, scene_objects
 
@@ -60,11 +61,13 @@ def test_bop_capture_files(bop_capture: Path):
 
     raw = np.asarray(Image.open(ds.frames[3].depth_path))
     assert raw.dtype == np.uint16
-    np.testing.assert_array_equal(raw, depth_mm(view["depth"]))
+    # the D435-like sensor model of view 3 (its own seeded generator), in millimetres, 0 = no reading
+    sensed = sensor_depth(view["depth"], float(K[0, 0]), DepthNoise(), view_rng(0, 3))
+    np.testing.assert_array_equal(raw, depth_mm(sensed))
     d = load_depth(ds.frames[3].depth_path, ds.depth_scale)
-    hit = np.isfinite(view["depth"])
-    assert np.abs(d[hit] - view["depth"][hit]).max() <= 0.0005 + 1e-6          # mm rounding only
-    assert np.all(d[~hit] == 0)
+    hit = np.isfinite(sensed)
+    assert np.abs(d[hit] - sensed[hit]).max() <= 0.0005 + 1e-6                 # mm rounding only
+    assert np.all(d[~hit] == 0) and (~hit & np.isfinite(view["depth"])).any()  # holes where the truth has depth
     # per-instance BOP masks carry the scene's names and labels and equal the visible GT regions
     ms = load_masks(bop_capture, objects=scene_objects(bop_capture))
     assert ms.objects == {label: name for name, label in scene_objects(bop_capture).items()}

@@ -209,6 +209,31 @@ def test_depth_supervision_pulls_geometry_onto_measured_depth(scene_small, tmp_p
     assert err[0.5] < 0.5 * err[0.0], err
 
 
+@pytest.mark.parametrize("mode", ["relative", "inverse"])
+def test_depth_holes_never_pull_depth(scene_small, tmp_path, mode):
+    """A D435 writes 0 where it has no reading: a run whose depth maps are all holes (0, as a 16-bit PNG
+    writes them; NaN and inf too) with the depth loss on trains exactly as the run without depth loss."""
+    import shutil
+
+    ds0 = load_dataset(scene_small)
+    holed = tmp_path / "holed"
+    shutil.copytree(scene_small, holed)
+    for i, f in enumerate(ds0.frames):
+        d = np.load(f.depth_path)
+        d[:] = (0.0, np.nan, np.inf)[i % 3]
+        np.save(holed / f.depth_path.relative_to(scene_small), d)
+    cfg = tiny_config(iters=30, resolution=2, sh_degree=0, init="random", init_points=800, densify=False)
+    res = {}
+    for lam, root in ((0.0, scene_small), (1.0, holed)):
+        ds = load_dataset(root)
+        tr = Trainer(ds, tmp_path / f"out_{lam}", TrainConfig(**{**cfg.__dict__, "depth_lambda": lam,
+                                                                 "depth_mode": mode}))
+        assert lam == 0 or all(v.depth is not None and torch.isinf(v.depth).all() for v in tr.views)
+        res[lam] = tr.run().gaussians
+    np.testing.assert_array_equal(np.asarray(res[1.0].means), np.asarray(res[0.0].means))
+    np.testing.assert_array_equal(np.asarray(res[1.0].opacities), np.asarray(res[0.0].opacities))
+
+
 def test_opacity_reg_lowers_the_mean_opacity(scene_small, tmp_path):
     """gsplat's opacity_reg: the same short run with the penalty ends with fainter Gaussians on average."""
     ds = load_dataset(scene_small)

@@ -7,10 +7,15 @@ rolled a little from view to view) with a RealSense-D435-like colour camera (640
 principal point slightly off centre; scaled with the image size), and writes it in a robot world that is
 NOT the twin's: by default z down (the scene's world rotated 180 degrees about x, `R_capture_world`).
 
+The depth maps are what a D435 would read, not the ray-cast truth: axial noise growing with z^2, edge
+fattening, lost readings (0 in the PNG) in occlusion shadows, at depth edges and in random blobs
+(`RobotCaptureOptions.depth_noise`, `splattwin.scene.depth_noise`; `DepthNoise.perfect()` writes the
+ray-cast depth). The truth stays recoverable: scene.json and meshes/ (below).
+
 Layouts (`RobotCaptureOptions.format`, in `splattwin.scene.options`):
 - "bop": a BOP scene (`splattwin.capture.bop`): `scene_camera.json` (cam_K, depth_scale 1.0, world-to-
   camera poses in mm), `scene_gt.json` (obj_id = the object's scene label, model = the object's frame),
-  `rgb/000000.png`, `depth/000000.png` (16-bit, mm), `mask_visib/000000_000000.png` per instance (visible
+  `rgb/000000.png`, `depth/000000.png` (16-bit, mm, 0 = no reading), `mask_visib/000000_000000.png` per instance (visible
   part, from the ground-truth labels), `object_names.json` (obj_id -> the scene's object names).
 - "tum": `rgb/<t>.png`, `depth/<t>.png` (16-bit, mm), `rgb.txt`, `depth.txt` (timestamps), a pose list
   `groundtruth.txt` (`t tx ty tz qx qy qz qw`, sampled 5 ms after each image so matching by nearest
@@ -33,13 +38,14 @@ import numpy as np
 from splattwin.capture.camera import Camera, look_at
 from splattwin.errors import InputError
 from splattwin.io import write_image, write_json, write_text
-from splattwin.scene.options import FORMATS, WORLDS, RobotCaptureOptions, SceneOptions
+from splattwin.scene.depth_noise import sensor_depth, view_rng
+from splattwin.scene.options import FORMATS, WORLDS, DepthNoise, RobotCaptureOptions, SceneOptions
 
 log = logging.getLogger(__name__)
 
 D435_SIZE = (640, 480)
 D435_K = (615.0, 615.0, 321.5, 243.5)   # fx fy cx cy at 640x480 (a typical D435 colour stream)
-__all__ = ["FORMATS", "WORLDS", "RobotCaptureOptions", "R_capture_world", "d435_camera", "depth_mm", "sweep_cameras",
+__all__ = ["FORMATS", "WORLDS", "DepthNoise", "RobotCaptureOptions", "R_capture_world", "d435_camera", "depth_mm", "sweep_cameras",
            "write_robot_capture"]
 
 
@@ -117,7 +123,8 @@ def write_robot_capture(out_dir: str | Path, options: SceneOptions | None = None
         for i, (cw, stem) in enumerate(zip(cams_world, stems)):
             view = renderer.render(cw, options.supersample)
             write_image(out / "rgb" / f"{stem}.png", _to_u8(view["rgb"]))
-            write_image(out / "depth" / f"{stem}.png", depth_mm(view["depth"]))
+            sensed = sensor_depth(view["depth"], float(cw.K[0, 0]), capture.depth_noise, view_rng(options.seed, i))
+            write_image(out / "depth" / f"{stem}.png", depth_mm(sensed))
             insts = []
             for k, o in enumerate(objects):
                 m = (view["labels"] == o.label).astype(np.uint8) * 255
