@@ -118,3 +118,23 @@ def test_torch_threads_is_scoped():
     except KeyError:
         pass
     assert torch.get_num_threads() == before
+
+
+def test_torch_threads_survive_the_first_numba_kernel():
+    # the first numba parallel call in a process sets OpenMP's thread count, torch's too; torch_threads
+    # starts numba's pool first, so the count set for the block holds (without it: 2 inside the block)
+    out = _run(
+        "import json, splattwin.runtime as r; r.configure(numba_threads=2)\n"
+        "import numpy as np, torch\n"
+        "from numba import njit, prange\n"
+        "@njit(parallel=True)\n"
+        "def k(a):\n"
+        "    for i in prange(a.shape[0]):\n"
+        "        a[i] += 1.0\n"
+        "torch.set_num_threads(2)\n"
+        "with r.torch_threads(1):\n"
+        "    k(np.zeros(64))\n"
+        "    inside = torch.get_num_threads()\n"
+        "print(json.dumps({'inside': inside, 'after': torch.get_num_threads()}))\n")
+    assert out == {"inside": 1, "after": 2}
+

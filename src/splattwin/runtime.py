@@ -37,7 +37,7 @@ from typing import Iterator
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RuntimeSettings", "configure", "available_cpus", "torch_threads"]
+__all__ = ["RuntimeSettings", "configure", "available_cpus", "start_numba_threads", "torch_threads"]
 
 
 @dataclass
@@ -95,11 +95,39 @@ def configure(numba_threads: int | None = None) -> RuntimeSettings:
     return out
 
 
+_NUMBA_STARTED = False
+
+
+def start_numba_threads() -> None:
+    """Run one tiny numba parallel kernel, once per process. The first parallel call in a process sets the
+    OpenMP thread count (numba's "omp" layer calls omp_set_num_threads), which is also torch's intra-op
+    count: a torch count set before it is silently undone. torch's element-wise kernels round differently
+    at their chunk boundaries with 1 and 2 threads (torch.sigmoid differs in the last bit), so the first
+    training in a process ran on 2 torch threads and every later one on 1: the same run gave different
+    Gaussians depending on what ran before it (`bench/train.py --repeat`, a resumed build)."""
+    global _NUMBA_STARTED
+    if _NUMBA_STARTED:
+        return
+    import numpy as np
+    from numba import njit, prange
+
+    @njit(parallel=True)
+    def _touch(a):
+        for i in prange(a.shape[0]):
+            a[i] = i
+
+    _touch(np.zeros(8))
+    _NUMBA_STARTED = True
+
+
 @contextlib.contextmanager
 def torch_threads(n: int) -> Iterator[None]:
-    """Run a block with torch's intra-op thread count set to `n`, restoring the previous count after."""
+    """Run a block with torch's intra-op thread count set to `n`, restoring the previous count after.
+    numba's thread pool is started first (`start_numba_threads`), so a numba kernel inside the block does
+    not reset the count."""
     import torch
 
+    start_numba_threads()
     before = torch.get_num_threads()
     if n != before:
         torch.set_num_threads(n)

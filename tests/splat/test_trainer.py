@@ -444,3 +444,37 @@ def test_learnt_environment_uses_the_coarse_level_camera(synth, tmp_path):
     for (h, w), cx in seen:
         assert abs(cx - w / 2) < 0.3 * w, (h, w, cx)   # the principal point of the image drawn
     assert {hw for hw, _ in seen} == {(48, 64), (96, 128)}
+
+
+def test_first_and_later_training_in_a_process_agree(synth, tmp_path):
+    # The first numba parallel call in a process resets torch's thread count to OpenMP's; torch.sigmoid
+    # rounds differently at its 2-thread chunk boundary (> 32768 elements), so the first training in a
+    # process (left on 2 torch threads) differed from a later one (1 thread): bench/train.py --repeat and
+    # resumed builds saw different Gaussians. A fresh interpreter, so the first run really is the first.
+    import os
+    import subprocess
+    import sys
+
+    import splattwin
+
+    code = (
+        "import json, tempfile, numpy as np, torch, splattwin.runtime as r; r.configure(numba_threads=2)\n"
+        "from pathlib import Path\n"
+        "from splattwin.capture import load_dataset\n"
+        "from splattwin.splat.trainer import TrainConfig, Trainer\n"
+        "torch.set_num_threads(2)\n"
+        f"ds = load_dataset(Path({str(synth)!r}))\n"
+        "cfg = TrainConfig(iters=6, checkpoint_every=0, progress=False, resolution=1, sh_degree=0, backend='cpu')\n"
+        "seen, g = [], []\n"
+        "for _ in range(2):\n"
+        "    s = set()\n"
+        "    g.append(Trainer(ds, Path(tempfile.mkdtemp()), cfg).run(callback=lambda i: s.add(torch.get_num_threads())).gaussians)\n"
+        "    seen.append(sorted(s))\n"
+        "print(json.dumps({'seen': seen, 'after': torch.get_num_threads(), 'equal': all(bool(np.array_equal("
+        "getattr(g[0], k), getattr(g[1], k))) for k in ('means', 'scales', 'opacities', 'sh'))}))\n")
+    env = dict(os.environ, PYTHONPATH=str(Path(splattwin.__file__).resolve().parents[1]))
+    env.pop("OMP_WAIT_POLICY", None)
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out == {"seen": [[1], [1]], "after": 2, "equal": True}
