@@ -115,7 +115,8 @@ class SfmOptions:
     min_two_view_inliers: int = 12     # COLMAP default 15
     retry: bool = True
     check_registration: bool = True    # drop registered images whose poses fail `splattwin.poses.sanity`
-    min_observations: int = 12         # the sanity check's minimum of model points an image observes
+    min_observations: int = 30         # the sanity check's minimum of model points an image observes
+                                       # (COLMAP's default abs_pose_min_num_inliers; see poses.sanity)
     min_registered: int | None = None
     num_threads: int = 0
     max_memory_gib: float = 2.0
