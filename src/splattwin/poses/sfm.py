@@ -827,7 +827,7 @@ def _run_attempts(run: _Run, bar: StageProgress) -> tuple[AttemptOutcome, Attemp
     def record(a: Attempt, out: AttemptOutcome, seconds: float) -> None:
         if not any(e.get("name") == a.name for e in done_log):
             done_log.append({"name": a.name, "why": a.why, "registered": out.registered, "models": out.models,
-                             "seconds": round(seconds, 2)})
+                             "seconds": round(seconds, 2), **({"dropped": sorted(out.dropped)} if out.dropped else {})})
             io.write_json(log_path, done_log)
 
     try:
