@@ -147,3 +147,16 @@ def test_drop_step_removes_the_image_and_keeps_the_others(default_unscaled, sfm_
     for n, im in left.items():
         assert np.linalg.norm(im.projection_center() - c0[n]) < 0.02 * spread
     assert rec.compute_mean_reprojection_error() < 1.0
+
+
+def test_few_observations_and_below_the_table_gives_both_reasons():
+    """The cake's frame000069: 18 observations and posed on the table plane; the report names both, and
+    the other cameras' medians ignore it."""
+    cams, obs, pts = _capture()
+    c = cams["img5"].center
+    cams["img5"] = _cam(_look_at([c[0], c[1], -0.1], [0, 0, 1.0]), "img5")
+    obs["img5"] = 18
+    chk = check_registration(cams, obs, pts)
+    why = chk.dropped["img5"]
+    assert set(chk.dropped) == {"img5"} and "only 18 points" in why and "below the table plane" in why
+    assert chk.per_image["img5"]["height_rel"] < 0 and chk.per_image["img5"]["pitch_deg"] < 0

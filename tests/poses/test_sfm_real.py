@@ -35,7 +35,8 @@ def test_cake_registers_consistently_and_drops_the_wrong_poses(tmp_path: Path):
     assert st["registered"] == 6 and {Path(u).name for u in res.unregistered} == bad
     assert set(st["failures"]) == bad and set(st["registration_check"]["dropped"]) <= bad
     for why in st["failures"].values():
-        assert "dropped by the registration sanity check" in why
+        assert "dropped by the registration sanity check" in why and "observes only" in why
+    assert any("table plane" in why or "inconsistent with the other cameras" in why for why in st["failures"].values())
     # the six kept cameras: one height band above the table plane, all looking down at it
     for c in res.cameras:
         d = c.T_world_cam[:3, 2]

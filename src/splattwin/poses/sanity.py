@@ -131,20 +131,23 @@ def check_registration(cameras: dict[str, Camera], observations: dict[str, int],
         out.skipped = f"no table plane: {e.problem}"
         return out
     nrm, d = plane.normal, plane.d
-    h = C @ nrm + d
-    if np.median(h) < 0:  # up = the side most cameras are on (one wrong camera must not flip it)
-        nrm, d, h = -nrm, -d, -h
-    med_h = float(np.median(h))
-    pitch = {n: float(np.degrees(np.arcsin(np.clip(-_axis(cameras[n]) @ nrm, -1, 1)))) for n in names}
-    med_pitch = float(np.median(list(pitch.values())))
+    if np.median(C @ nrm + d) < 0:  # up = the side most cameras are on (one wrong camera must not flip it)
+        nrm, d = -nrm, -d
+    # the reference (medians, the scene's look-at point) comes from the images with enough observations;
+    # the geometry of the others is reported too (and added to their reason)
+    every = list(cameras)
+    h = {n: float(cameras[n].center @ nrm + d) for n in every}
+    pitch = {n: float(np.degrees(np.arcsin(np.clip(-_axis(cameras[n]) @ nrm, -1, 1)))) for n in every}
+    med_h = float(np.median([h[n] for n in names]))
+    med_pitch = float(np.median([pitch[n] for n in names]))
     if med_h <= 0 or med_pitch < o.min_median_pitch_deg:
         out.skipped = (f"not a tabletop capture: median camera height {med_h:.3g}, median pitch "
                        f"{med_pitch:.1f} deg below the dominant plane's horizon")
         return out
     out.tabletop = True
     flagged: dict[str, str] = {}
-    for n, hn in zip(names, h):
-        rel = float(hn / med_h)
+    for n in every:
+        rel = h[n] / med_h
         out.per_image[n].update(height_rel=round(rel, 4), pitch_deg=round(pitch[n], 2))
         if rel < o.min_height_frac:
             flagged[n] = (f"posed at or below the table plane (height {rel:.2f} x the median camera height) "
@@ -160,7 +163,7 @@ def check_registration(cameras: dict[str, Camera], observations: dict[str, int],
                           f"theirs, looking {pitch[n]:.0f} deg down where they look {med_pitch:.0f} deg down")
     # the point the (so far unflagged) cameras look at; each camera is compared with the others'
     good = [n for n in names if n not in flagged]
-    for n in names:
+    for n in every:
         ref = [cameras[m] for m in good if m != n]
         target = _nearest_to_axes(ref) if len(ref) >= 2 else None
         if target is None:
@@ -175,5 +178,6 @@ def check_registration(cameras: dict[str, Camera], observations: dict[str, int],
         if n not in flagged and ang > limit:
             flagged[n] = (f"looks away from the scene: the point the other cameras look at is {ang:.0f} deg off "
                           f"its optical axis (its view reaches {limit - o.view_margin_deg:.0f} deg)")
-    out.dropped.update(flagged)
+    for n, why in flagged.items():  # an image short of observations gets its geometric reason as well
+        out.dropped[n] = f"{out.dropped[n]}; {why}" if n in out.dropped else why
     return out
