@@ -6,7 +6,9 @@
 
 Sections (SECTIONS below; each returns table rows and JSON keys, so more can be added):
 - sfm: pose estimation (`estimate_poses`, default options: what `splattwin poses IMAGES OUT` runs) on each
-  set, each run in a fresh child process so its time and memory are its own. Per set: registered images,
+  set, each run in a fresh child process so its time and memory are its own. Per set: registered images
+  (only those that pass the registration sanity check; `dropped`: images SfM registered but the check
+  dropped, e.g. 2 of the cake's 8, posed at the table plane looking up),
   wall seconds (median of --repeats, sets interleaved), CPU seconds, peak memory (the driver process plus
   its largest pycolmap worker: an upper bound of what was resident at once). Keys: registered_frac_min
   (cake, statue), registered_frac_internet (british_museum), sfm_s_max (slowest set, median), sfm_peak_rss_gib.
@@ -73,7 +75,8 @@ def _sfm_child(images: str, work: str) -> None:
         st = res.stats
         out.update(registered=int(st["registered"]), total=int(st["total"]),
                    attempts=[a.get("name") for a in st.get("attempts", [])],
-                   failures=st.get("failures", {}), timings=st.get("timings", {}))
+                   failures=st.get("failures", {}), timings=st.get("timings", {}),
+                   dropped=sorted((st.get("registration_check") or {}).get("dropped", {})))
     except InputError as e:
         out.update(error=e.problem[:300])
     out["wall_s"] = time.perf_counter() - t0
@@ -115,7 +118,8 @@ def section_sfm(args) -> tuple[list[tuple[str, str]], dict]:
             "registered": min(r["registered"] for r in ok), "total": ok[0]["total"],
             "wall_s": statistics.median(r["wall_s"] for r in ok), "walls": [round(r["wall_s"], 1) for r in ok],
             "cpu_s": statistics.median(r["cpu_s"] for r in ok), "peak": max(r["peak_rss_gib"] for r in ok),
-            "attempts": ok[-1].get("attempts"), "failures": ok[-1].get("failures")}
+            "attempts": ok[-1].get("attempts"), "failures": ok[-1].get("failures"),
+            "dropped": max(len(r.get("dropped", [])) for r in ok)}
         summary[(tag, name)] = s
         if "error" in s and s["error"]:
             rows.append((f"{tag} {name}", f"refused/failed: {s['error'][:100]}"))
@@ -123,7 +127,8 @@ def section_sfm(args) -> tuple[list[tuple[str, str]], dict]:
             rows.append((f"{tag} {name}",
                          f"{s['registered']}/{s['total']} registered, {s['wall_s']:.1f} s (runs {s['walls']}), "
                          f"CPU {s['cpu_s']:.1f} s, peak {s['peak']:.2f} GiB, attempts {'+'.join(s['attempts'] or [])}"
-                         + (f", failed: {', '.join(s['failures'])}" if s.get("failures") else "")))
+                         + (f", failed: {', '.join(s['failures'])}" if s.get("failures") else "")
+                         + (f" ({s['dropped']} registered but dropped by the sanity check)" if s.get("dropped") else "")))
     new = {n: summary[("new", n)] for n in args.sets}
 
     def frac(n: str) -> float:
@@ -140,7 +145,8 @@ def section_sfm(args) -> tuple[list[tuple[str, str]], dict]:
     keys["sfm_s_max"] = round(max(s["wall_s"] for s in ok), 2) if ok else None
     keys["sfm_peak_rss_gib"] = round(max(s["peak"] for s in ok), 3) if ok else None
     keys["sfm"] = {n: {k: (round(v, 2) if isinstance(v, float) else v) for k, v in new[n].items()
-                       if k in ("registered", "total", "wall_s", "walls", "cpu_s", "peak", "error")} for n in args.sets}
+                       if k in ("registered", "total", "wall_s", "walls", "cpu_s", "peak", "error", "dropped")}
+                  for n in args.sets}
     if args.peer_src:
         keys["sfm_peer"] = {n: {k: (round(v, 2) if isinstance(v, float) else v) for k, v in summary[("peer", n)].items()
                                 if k in ("registered", "total", "wall_s", "walls", "cpu_s", "peak", "error")}

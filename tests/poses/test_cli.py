@@ -40,6 +40,12 @@ def test_sfm_and_up_flags_set_pose_options():
         (1600, 4096, True, 0, True, "auto")
     with pytest.raises(SystemExit):
         p.parse_args(["poses", "in", "out", "--up", "down"])
+    assert d.check_registration is True
+    off = from_args(PoseOptions, p.parse_args(["poses", "in", "out", "--no-check-registration"]))
+    assert off.check_registration is False
+    from splattwin.poses.estimate import _sfm_options
+
+    assert _sfm_options(off).check_registration is False and _sfm_options(d).check_registration is True
 
 
 def test_known_poses_round_trip(scene_small: Path, tmp_path: Path):

@@ -1,6 +1,10 @@
 """SfM on a real capture: the cake photos (8 video frames at 683x384 walking around a slice of cake on
-grass, weak texture, wide baselines). Default settings register only 2 of them; the retries must register
-all 8, consistently (every camera looking at the cake). The photos are read in place (CC BY-NC)."""
+grass, weak texture, wide baselines). Default settings register only 2 of them; the retries register 6
+consistently (every camera above the table, looking down at the cake). Two more, frame000069 and
+frame000096, get registered by the guided / more-features retries from ~18 observations (matches with the
+rest are mostly grass: a PnP on the 6 good cameras' points finds 5-7 inliers of 58 correspondences for
+frame000069 and 4 correspondences for frame000096), at the table's height looking up: the registration
+sanity check must drop them, with the reason, and not count them. The photos are read in place (CC BY-NC)."""
 
 from __future__ import annotations
 
@@ -18,7 +22,7 @@ CAKE = REAL / "cake" / "images"
 
 @pytest.mark.slow
 @pytest.mark.skipif(not CAKE.is_dir(), reason=f"real captures not available at {CAKE}")
-def test_cake_registers_every_image(tmp_path: Path):
+def test_cake_registers_consistently_and_drops_the_wrong_poses(tmp_path: Path):
     from splattwin.capture import load_dataset
     from splattwin.poses import PoseOptions, estimate_poses
     from splattwin.splat.init import look_at_point
@@ -27,7 +31,18 @@ def test_cake_registers_every_image(tmp_path: Path):
     assert len(ds.frames) == 8
     res = estimate_poses(ds, PoseOptions(work_dir=tmp_path / "w", progress=False))
     st = res.stats
-    assert st["registered"] == 8 and res.unregistered == [] and st["failures"] == {}
+    bad = {"frame000069.jpg", "frame000096.jpg"}
+    assert st["registered"] == 6 and {Path(u).name for u in res.unregistered} == bad
+    assert set(st["failures"]) == bad and set(st["registration_check"]["dropped"]) <= bad
+    for why in st["failures"].values():
+        assert "dropped by the registration sanity check" in why and "observes only" in why
+    assert any("table plane" in why or "inconsistent with the other cameras" in why for why in st["failures"].values())
+    # the six kept cameras: one height band above the table plane, all looking down at it
+    for c in res.cameras:
+        d = c.T_world_cam[:3, 2]
+        assert np.degrees(np.arcsin(-d[2])) > 25
+    h = np.array([c.center[2] for c in res.cameras])
+    assert h.min() > 0.8 * np.median(h) and h.max() < 1.25 * np.median(h)
     assert [a["name"] for a in st["attempts"]][0] == "default" and len(st["attempts"]) >= 2  # it took retries
     assert st["mean_reproj_error"] < 1.5 and st["num_points"] > 300
     # a walk around the cake: every optical axis passes close to one common point
@@ -43,4 +58,5 @@ def test_cake_registers_every_image(tmp_path: Path):
     import json
 
     rep = json.loads((out.parent / "poses_report.json").read_text())
-    assert rep["registered"] == 8 and len(rep["attempts"]) >= 2
+    assert rep["registered"] == 6 and len(rep["attempts"]) >= 2
+    assert {Path(u).name for u in rep["unregistered"]} == bad and set(rep["failures"]) == bad

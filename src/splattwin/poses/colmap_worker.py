@@ -356,6 +356,30 @@ def _image_ok(rec, name: str, min_obs: int, max_err: float) -> bool:
     return len(errs) >= min_obs and float(np.mean(errs)) <= max_err
 
 
+def step_drop(job: dict) -> dict:
+    """The model job["base"] without the images job["names"] (de-registered with their observations; points
+    left with < 2 observations go), bundle-adjusted again, written to job["out"] (temp folder, renamed)."""
+    import pycolmap
+
+    out = Path(job["out"])
+    rec = pycolmap.Reconstruction(job["base"])
+    drop = set(job["names"])
+    for i in list(rec.reg_image_ids()):
+        if rec.image(i).name in drop:
+            rec.deregister_frame(rec.image(i).frame_id)
+    if rec.num_reg_images() >= 2 and rec.num_points3D() > 0:
+        ba = pycolmap.BundleAdjustmentOptions()
+        ba.print_summary = False
+        pycolmap.bundle_adjustment(rec, ba)
+    tmp = out.with_name(out.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    rec.write(str(tmp))
+    shutil.rmtree(out, ignore_errors=True)
+    os.replace(tmp, out)
+    return {"registered": int(rec.num_reg_images()), "points": int(rec.num_points3D()), "path": str(out)}
+
+
 def _copy_pose(dst, src, image_id: int) -> None:
     T = src.image(image_id).cam_from_world().matrix()
     _set_pose(dst, image_id, T)
@@ -363,7 +387,7 @@ def _copy_pose(dst, src, image_id: int) -> None:
 
 STEPS: dict[str, Callable[[dict], dict]] = {
     "extract": step_extract, "match": step_match, "map": step_map, "triangulate": step_triangulate,
-    "merge": step_merge,
+    "merge": step_merge, "drop": step_drop,
 }
 
 

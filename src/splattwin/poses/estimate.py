@@ -375,6 +375,7 @@ def _sfm_options(opts: PoseOptions, intrinsics: tuple[float, float, float, float
     return SfmOptions(intrinsics=intrinsics, camera_model=opts.camera_model, shared_intrinsics=opts.shared_intrinsics,
                       matcher=opts.matcher, ordered=ordered, min_registered=opts.min_registered,
                       max_image_size=opts.max_image_size, max_num_features=opts.max_num_features, retry=opts.retry,
+                      check_registration=opts.check_registration,
                       num_threads=opts.num_threads, seed=opts.seed)
 
 

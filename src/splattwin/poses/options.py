@@ -49,7 +49,8 @@ class PoseOptions:
       "fx,fy,cx,cy" (or a tuple of four floats from Python) = known, kept fixed.
     known_length: metric scale for the table-plane frame, as `splattwin.poses.table.KnownLength.parse`
       reads it (Python callers may pass a `KnownLength`).
-    max_image_size / max_num_features / retry / num_threads: see `splattwin.poses.sfm.SfmOptions`.
+    max_image_size / max_num_features / retry / check_registration / num_threads: see
+      `splattwin.poses.sfm.SfmOptions`.
     triangulate: points for known/robot poses without a point cloud or depth (`splattwin.poses.triangulate`).
     up: which way is up in a known-pose world (`splattwin.poses.up`); recorded in frame.json.
     holdout: which views are held out of training (`HoldoutOptions`); recorded in transforms.json.
@@ -83,6 +84,9 @@ class PoseOptions:
                                  "size)", unit="px")
     max_num_features: int = option(4096, "SIFT features per image (the strongest)", aliases=("max-features",))
     retry: bool = option(True, "retry SfM automatically (other settings) while images fail to register")
+    check_registration: bool = option(True, "after SfM, drop images registered from too few observations or posed "
+                                      "inconsistently with a tabletop capture (at/below the table plane, looking up "
+                                      "or away from the scene); they are reported and count as unregistered")
     num_threads: int = option(0, "CPU threads for SfM (0: all cores)", aliases=("threads",), hashed=False)
     depth_points: bool = option(True, "back-project depth images (RGB-D) into the initial point cloud when the "
                                 "frame is metric")

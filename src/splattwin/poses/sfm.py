@@ -21,6 +21,12 @@ one shared camera for same-size images when per-image cameras were asked for; gu
 features on small images. The attempt registering the most images wins (the earlier one on a tie), and
 each image that still fails gets a reason from the match graph (`explain_failures`).
 
+Registration sanity check (`check_registration`, `splattwin.poses.sanity`): after every attempt (and every
+merge) images registered with too few observations, or posed inconsistently with a tabletop capture (at or
+below the table plane, looking up or away from the scene the others look at), are dropped from the model
+(de-registered, then bundle adjustment again) and reported with the reason; only the images that pass
+count as registered, so the retries go on while any is dropped.
+
 The default thresholds suit sparse captures (8-20 views): a lower SIFT peak threshold and a looser ratio
 test than COLMAP's (more matches per wide-baseline pair), fewer inliers for the initial pair and for
 registering images, and frequent global bundle adjustment (cheap with few images).
@@ -82,6 +88,11 @@ class SfmOptions:
     loop_closure: sequential matching also pairs frames that look alike (visual vocabulary).
     retrieval_neighbours: retrieval matching pairs each image with this many most similar ones.
     retry: retry hard captures (see the module docstring) while images are unregistered.
+    check_registration: after each attempt, images whose poses fail the registration sanity check
+      (`splattwin.poses.sanity`: too few observations; for a tabletop capture at or below the table plane,
+      looking up while the others look down, or away from the scene) are dropped from the model, reported
+      with the reason and count as unregistered (so the retries go on).
+    min_observations: that check's minimum number of model points an image must observe.
     min_registered: fewer registered images than this -> InputError. None = all images but at most 3
       missing, >= 3.
     num_threads: CPU threads for extraction, matching and mapping; 0 = all cores.
@@ -103,6 +114,9 @@ class SfmOptions:
     max_ratio: float = 0.85            # COLMAP default 0.8: a looser ratio test, geometric verification filters
     min_two_view_inliers: int = 12     # COLMAP default 15
     retry: bool = True
+    check_registration: bool = True    # drop registered images whose poses fail `splattwin.poses.sanity`
+    min_observations: int = 30         # the sanity check's minimum of model points an image observes
+                                       # (COLMAP's default abs_pose_min_num_inliers; see poses.sanity)
     min_registered: int | None = None
     num_threads: int = 0
     max_memory_gib: float = 2.0
@@ -129,7 +143,7 @@ class SfmResult:
     """SfM output in COLMAP's world frame (arbitrary scale, T_world_cam OpenCV convention).
 
     cameras: name -> Camera for each registered image. unregistered: names that did not register.
-    failures: unregistered name -> why (from the match graph). points_xyz [N,3] float64, points_rgb [N,3]
+    failures: unregistered name -> why (from the match graph, or why the registration sanity check dropped it). points_xyz [N,3] float64, points_rgb [N,3]
     uint8, points_error [N] px, points_track_len [N]. timings: seconds per stage (extract, match, map,
     retries). attempts: one dict per attempt (name, what changed, registered, seconds). matcher: the
     matcher used. camera_groups: one dict per COLMAP camera group (size, EXIF, images). peak_rss_gib:
@@ -150,6 +164,7 @@ class SfmResult:
     camera_groups: list[dict] = field(default_factory=list)
     peak_rss_gib: float = 0.0
     resumed_timings: dict[str, float] = field(default_factory=dict)  # of the run that made a re-used model
+    registration_check: dict = field(default_factory=dict)  # RegistrationCheck.to_dict() of the final model
 
     @property
     def num_registered(self) -> int:
@@ -165,7 +180,8 @@ class SfmResult:
                 "mean_reproj_error": self.mean_reproj_error, "num_points": int(len(self.points_xyz)),
                 "timings": self.timings, "attempts": self.attempts, "failures": self.failures,
                 **({"resumed_from_timings": self.resumed_timings} if self.resumed_timings else {}),
-                "camera_groups": self.camera_groups, "peak_rss_gib": self.peak_rss_gib}
+                "camera_groups": self.camera_groups, "peak_rss_gib": self.peak_rss_gib,
+                "registration_check": self.registration_check}
 
 
 # -- choices (pure functions, unit-tested) -----------------------------------------------------------------
@@ -451,6 +467,7 @@ class _Run:
         self.matcher = matcher or choose_matcher(len(names), opts.matcher, opts.ordered, opts.exhaustive_max_images)
         self.pairs_file = pairs_file
         self.max_side = max(max(g.width, g.height) for g in self.groups)
+        self.dropped: dict[str, str] = {}  # name -> why the sanity check dropped it (any attempt)
 
     def _add(self, key: str, stats: colmap_process.StepStats) -> None:
         self.timings[key] = self.timings.get(key, 0.0) + stats.seconds
@@ -562,6 +579,18 @@ class _Run:
         io.write_json(info, {"paths": [str(p) for p in paths]})
         return paths
 
+    def drop(self, base: Path, names: list[str], out: Path, label: str) -> Path:
+        """The model in `base` without the images `names`, bundle-adjusted again (colmap_worker step_drop)."""
+        info = out.parent / f"{out.name}.json"
+        if info.is_file() and out.is_dir():
+            return out
+        job = {"step": "drop", "base": str(base), "out": str(out), "names": sorted(names)}
+        _, st = colmap_process.run_step(job, self.work, self.progress, f"{label}: dropping {len(names)} "
+                                        "untrustworthy registration(s)", cleanup=[out])
+        self._add("map", st)
+        io.write_json(info, {"path": str(out), "dropped": sorted(names)})
+        return out
+
     def merge(self, db: Path, base: Path, donors: list[Path], out: Path, label: str) -> Path | None:
         """The base model completed with the images the donor models registered (see colmap_worker's
         step_merge); None if nothing could be added."""
@@ -629,6 +658,7 @@ def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | No
             res.matcher, res.camera_groups = meta.get("matcher", ""), meta.get("camera_groups", [])
             res.peak_rss_gib = float(meta.get("peak_rss_gib", 0.0))
             res.resumed_timings = meta.get("timings", {})
+            res.registration_check = meta.get("registration_check", {})
             _check_enough(res, opts, image_root)
             return res
         run = _Run(work, image_root, names, opts, bar)
@@ -641,6 +671,10 @@ def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | No
         res.peak_rss_gib = run.peak / 2**30
         kp, ver = _match_graph(db, names)
         res.failures = explain_failures(names, set(res.cameras), kp, ver, opts.min_two_view_inliers, sub_models)
+        for n in res.unregistered:  # registered by some attempt, but its pose failed the sanity check
+            if n in run.dropped:
+                res.failures[n] = f"registered, but dropped by the registration sanity check: {run.dropped[n]}"
+        res.registration_check = outcome.check
         # final model: written beside, then renamed; `done` (with the report) marks it complete
         tmp = work / "sparse.tmp"
         shutil.rmtree(tmp, ignore_errors=True)
@@ -648,7 +682,8 @@ def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | No
         rec.write(str(tmp))
         io.write_json(tmp / "done", {"attempt": attempt.name, "failures": res.failures, "attempts": res.attempts,
                                       "matcher": res.matcher, "camera_groups": res.camera_groups,
-                                      "timings": res.timings, "peak_rss_gib": res.peak_rss_gib})
+                                      "timings": res.timings, "peak_rss_gib": res.peak_rss_gib,
+                                      "registration_check": res.registration_check})
         shutil.rmtree(model_dir, ignore_errors=True)
         os.replace(tmp, model_dir)
     for n, why in res.failures.items():
@@ -700,6 +735,8 @@ class AttemptOutcome:
     models: list[int] = field(default_factory=list)
     path: Path | None = None                              # the largest model's folder
     paths: list[Path] = field(default_factory=list)       # all its models' folders
+    dropped: dict[str, str] = field(default_factory=dict)  # name -> why the sanity check dropped it
+    check: dict = field(default_factory=dict)              # the final RegistrationCheck.to_dict()
 
 
 def run_plan(plan: list[Attempt], num_images: int, execute, say=lambda text: None,
@@ -771,7 +808,7 @@ def _run_attempts(run: _Run, bar: StageProgress) -> tuple[AttemptOutcome, Attemp
             run.timings["retries"] = run.timings.get("retries", 0.0) + time.perf_counter() - t0
         if not recs:
             return AttemptOutcome(None, 0, [], db)
-        return _outcome(recs, paths, db)
+        return checked(_outcome(recs, paths, db), a.name, label)
 
     def complete(best: AttemptOutcome, history: list[AttemptOutcome]) -> AttemptOutcome | None:
         donors = [p for h in history for p in h.paths if p != best.path]
@@ -781,18 +818,55 @@ def _run_attempts(run: _Run, bar: StageProgress) -> tuple[AttemptOutcome, Attemp
         merged = run.merge(best.db, best.path, donors, run.work / "models" / f"completed_{k}", "SfM: completing")
         if merged is None:
             return None
-        return _outcome([pycolmap.Reconstruction(str(merged))], [merged], best.db)
+        return checked(_outcome([pycolmap.Reconstruction(str(merged))], [merged], best.db), f"completed_{k}",
+                       "SfM: completing")
+
+    def checked(out: AttemptOutcome, tag: str, label: str) -> AttemptOutcome:
+        return _checked(run, out, tag, label)
 
     def record(a: Attempt, out: AttemptOutcome, seconds: float) -> None:
         if not any(e.get("name") == a.name for e in done_log):
             done_log.append({"name": a.name, "why": a.why, "registered": out.registered, "models": out.models,
-                             "seconds": round(seconds, 2)})
+                             "seconds": round(seconds, 2), **({"dropped": sorted(out.dropped)} if out.dropped else {})})
             io.write_json(log_path, done_log)
 
     try:
         return run_plan(plan, n, execute, say=bar.message, record=record, complete=complete)
     except InputError as e:
         raise InputError(e.problem, run.image_root) from e
+
+
+def _checked(run: _Run, out: AttemptOutcome, tag: str, label: str) -> AttemptOutcome:
+    """`out` with the registrations the sanity check (`splattwin.poses.sanity`) does not trust removed:
+    they are de-registered and the model is bundle-adjusted again (models/<tag>_checked<k>), repeated
+    while the check still flags images (a drop moves the plane and the others' consensus a little)."""
+    import dataclasses
+
+    import pycolmap
+
+    from splattwin.poses.sanity import SanityOptions, check_registration
+
+    if not run.opts.check_registration or out.rec is None or out.path is None:
+        return out
+    rec, path, dropped = out.rec, out.path, {}
+    sopts = SanityOptions(min_observations=run.opts.min_observations)
+    for k in range(4):
+        res = _result_from_reconstruction(rec, [], {}, run.image_root)
+        obs = {rec.image(i).name: int(rec.image(i).num_points3D) for i in rec.reg_image_ids()}
+        chk = check_registration(res.cameras, obs, res.points_xyz, sopts, seed=run.opts.seed)
+        if not chk.dropped or k == 3:
+            break
+        for n, why in sorted(chk.dropped.items()):
+            log.warning("SfM (%s): %s registered but dropped: %s", tag, n, why)
+        dropped.update(chk.dropped)
+        run.dropped.update(chk.dropped)
+        path = run.drop(path, list(chk.dropped), run.work / "models" / f"{tag}_checked{k}", label)
+        rec = pycolmap.Reconstruction(str(path))
+    check = chk.to_dict()
+    check["dropped"] = dict(dropped)
+    paths = [path] + [p for p in out.paths if p != out.path]  # the unchecked model is no merge donor
+    return dataclasses.replace(out, rec=rec, registered=int(rec.num_reg_images()), path=path, paths=paths,
+                               dropped=dropped, check=check)
 
 
 def _match_graph(db: Path, names: list[str]) -> tuple[dict[str, int], dict[tuple[str, str], int]]:
