@@ -24,6 +24,16 @@ from pathlib import Path
 from typing import Any, Callable
 
 
+def _write_model(rec, out: Path) -> None:
+    """Write a pycolmap Reconstruction to the folder `out` atomically (a sibling temp folder, renamed)."""
+    tmp = out.with_name(out.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    rec.write(str(tmp))
+    shutil.rmtree(out, ignore_errors=True)
+    os.replace(tmp, out)
+
+
 def emit(event: str, **kw: Any) -> None:
     """One protocol line to the parent."""
     sys.stdout.write(json.dumps({"event": event, **kw}) + "\n")
@@ -309,12 +319,7 @@ def step_merge(job: dict) -> dict:
             kept.pop(n)
         if not kept:
             return {"merged": False, "registered": int(base.num_reg_images()), "rejected": sorted(added)}
-    tmp = out.with_name(out.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    rec.write(str(tmp))
-    shutil.rmtree(out, ignore_errors=True)
-    os.replace(tmp, out)
+    _write_model(rec, out)
     return {"merged": True, "registered": int(rec.num_reg_images()), "path": str(out), "added": sorted(kept),
             "rejected": sorted(set(added) - set(kept))}
 
@@ -371,12 +376,7 @@ def step_drop(job: dict) -> dict:
         ba = pycolmap.BundleAdjustmentOptions()
         ba.print_summary = False
         pycolmap.bundle_adjustment(rec, ba)
-    tmp = out.with_name(out.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    rec.write(str(tmp))
-    shutil.rmtree(out, ignore_errors=True)
-    os.replace(tmp, out)
+    _write_model(rec, out)
     return {"registered": int(rec.num_reg_images()), "points": int(rec.num_points3D()), "path": str(out)}
 
 
