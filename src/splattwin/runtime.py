@@ -109,14 +109,10 @@ def start_numba_threads() -> None:
     if _NUMBA_STARTED:
         return
     import numpy as np
-    from numba import njit, prange
 
-    @njit(parallel=True)
-    def _touch(a):
-        for i in prange(a.shape[0]):
-            a[i] = i
+    from splattwin._numba_start import touch
 
-    _touch(np.zeros(8))
+    touch(np.zeros(8))  # cached kernel: no compilation after the first run on a machine
     _NUMBA_STARTED = True
 
 
