@@ -380,6 +380,182 @@ def step_drop(job: dict) -> dict:
     return {"registered": int(rec.num_reg_images()), "points": int(rec.num_points3D()), "path": str(out)}
 
 
+def step_recover(job: dict) -> dict:
+    """Re-register images the sanity check dropped (or the mapper left out) against the trusted model
+    job["base"]: for each image of job["names"] in turn, candidate poses from (1) absolute pose: COLMAP's
+    `register_next_image` on the 2D-3D correspondences its verified matches give with the trusted images'
+    points, then (2) structure-less resectioning (`register_next_structure_less_image`: the 2D-2D matches
+    with the registered images, for an image that sees few of the model's points). Each candidate is
+    refined like a merge (`_merged`: all points re-triangulated from the database, bundle adjustment) and
+    kept only if, in the refined model, it observes >= `min_observations` points at <= `max_error_px`
+    mean reprojection error, no image fails the registration sanity check (`splattwin.poses.sanity`), and
+    it is not a parallax-free copy of a registered camera (`_coincident`: what a planar scene's homography
+    gives structure-less resectioning, seen on the cake) nor, for numbered frames of a walk around the
+    scene (job["frame_order"]), out of the walking order (`_out_of_order`). The accepted images are added
+    one by one (a later one can use the points an earlier one brought). Writes the completed model to
+    job["out"] when anything was recovered. Returns {"recovered": {name: {"method", "observations"}},
+    "rejected": {name: why, per method}, "registered", "path" (if written)}."""
+    import pycolmap
+
+    db, root, out = job["db"], job["image_root"], Path(job["out"])
+    popts = _set_options(pycolmap.IncrementalPipelineOptions(), job.get("options", {}))
+    mopts = popts.get_mapper()
+    mopts.random_seed = int(job.get("seed", 0))  # RANSAC of both registrations: reproducible candidates
+    min_obs, max_err = int(job.get("min_observations", 30)), float(job.get("max_error_px", 2.0))
+    with pycolmap.Database.open(db) as d:
+        ids = {im.name: im.image_id for im in d.read_all_images()}
+        copts = pycolmap.DatabaseCacheOptions()
+        copts.min_num_matches = int(popts.min_num_matches)
+        cache = pycolmap.DatabaseCache.create(d, copts)
+    base = pycolmap.Reconstruction(job["base"])
+    current, recovered, rejected = base, {}, {}
+    for name in job["names"]:
+        if name not in ids:
+            rejected[name] = "not in the database"
+            continue
+        tried = []
+        for method in ("absolute", "structure_less"):
+            try:
+                T = _candidate_pose(cache, current, mopts, ids[name], method)
+            except (RuntimeError, ValueError) as e:  # a failed COLMAP check: this candidate only
+                tried.append(f"{method}: {e}")
+                continue
+            if T is None:
+                tried.append(f"{method}: no pose")
+                continue
+            rec = _merged(db, root, current, {name: T}, job)  # T is in current's frame
+            why = _recovery_problem(rec, name, min_obs, max_err, job)
+            if why:
+                tried.append(f"{method}: {why}")
+                continue
+            current = rec
+            recovered[name] = {"method": method, "observations": _observations(rec, name)}
+            break
+        if name not in recovered:
+            rejected[name] = "; ".join(tried)
+        emit("progress", done=len(recovered) + len(rejected), total=len(job["names"]))
+    if recovered:
+        _write_model(current, out)
+    return {"recovered": recovered, "rejected": rejected, "registered": int(current.num_reg_images()),
+            **({"path": str(out)} if recovered else {})}
+
+
+def _candidate_pose(cache, model, mopts, image_id: int, method: str):
+    """cam_from_world [3,4] of `image_id` registered into a copy of `model` by `method`, or None."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(model)
+    mapper = pycolmap.IncrementalMapper(cache)
+    mapper.begin_reconstruction(rec)
+    try:
+        if method == "absolute":
+            ok = mapper.register_next_image(mopts, image_id)
+        else:
+            ok = mapper.register_next_structure_less_image(mopts, image_id)
+        return mapper.reconstruction.image(image_id).cam_from_world().matrix() if ok else None
+    finally:
+        mapper.end_reconstruction(True)
+
+
+def _observations(rec, name: str) -> int:
+    return int(next(rec.image(i) for i in rec.reg_image_ids() if rec.image(i).name == name).num_points3D)
+
+
+def _recovery_problem(rec, name: str, min_obs: int, max_err: float, job: dict) -> str:
+    """Why the re-registered `name` in the refined model `rec` is not trusted ("" if it is)."""
+    from splattwin.poses.sanity import SanityOptions, check_registration
+    from splattwin.poses.sfm import _result_from_reconstruction
+
+    if name not in {rec.image(i).name for i in rec.reg_image_ids()}:
+        return "lost in the refinement"
+    if not _image_ok(rec, name, min_obs, max_err):
+        return f"observes {_observations(rec, name)} points (need >= {min_obs} within {max_err:g} px)"
+    res = _result_from_reconstruction(rec, [], {}, Path(job["image_root"]))
+    obs = {rec.image(i).name: int(rec.image(i).num_points3D) for i in rec.reg_image_ids()}
+    chk = check_registration(res.cameras, obs, res.points_xyz, SanityOptions(min_observations=min_obs),
+                             seed=int(job.get("seed", 0)))
+    if chk.dropped:
+        return "fails the registration check: " + "; ".join(f"{n}: {w}" for n, w in sorted(chk.dropped.items()))
+    twin = _coincident(res.cameras, name, float(job.get("min_baseline_frac", 0.05)),
+                       float(job.get("max_turn_deg", 10.0)))
+    if twin:
+        return twin
+    return _out_of_order(res.cameras, res.points_xyz, name, job.get("frame_order") or [],
+                         float(job.get("order_margin_deg", 10.0)), int(job.get("seed", 0)))
+
+
+def _out_of_order(cameras: dict, points, name: str, order: list[str], margin_deg: float, seed: int) -> str:
+    """For frames of a walk around the scene (`order`: the names in capture order): the azimuth of `name`
+    about the point the cameras look at (in the table plane) must lie between those of its registered
+    predecessor and successor, within `margin_deg`. Applies only when the other registered cameras'
+    azimuths advance monotonically with the frame order (< 180 deg per step); "" if it holds or does
+    not apply."""
+    import numpy as np
+
+    from splattwin.errors import InputError
+    from splattwin.poses.sanity import _nearest_to_axes
+    from splattwin.poses.table import fit_table_plane
+
+    seq = [n for n in order if n in cameras]
+    if name not in seq or len(seq) < 5:
+        return ""
+    k = seq.index(name)
+    if k == 0 or k == len(seq) - 1:
+        return ""  # an end of the walk: no interval to lie in
+    others = [n for n in seq if n != name]
+    try:
+        plane = fit_table_plane(np.asarray(points, np.float64).reshape(-1, 3),
+                                np.array([cameras[n].center for n in others]), seed=seed)
+    except InputError:
+        return ""
+    target = _nearest_to_axes([cameras[n] for n in others])
+    if target is None:
+        return ""
+    nrm = plane.normal
+    e1 = np.cross(nrm, [1.0, 0.0, 0.0] if abs(nrm[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(nrm, e1)
+
+    def az(n: str) -> float:
+        v = cameras[n].center - target
+        return float(np.degrees(np.arctan2(v @ e2, v @ e1)))
+
+    steps = [(az(b) - az(a) + 180.0) % 360.0 - 180.0 for a, b in zip(others, others[1:])]
+    sign = np.sign(np.sum(steps))
+    if sign == 0 or any(np.sign(st) != sign for st in steps):
+        return ""  # not a walk in one direction: no order to check
+    prev, nxt = seq[k - 1], seq[k + 1]
+    span = ((az(nxt) - az(prev)) * sign) % 360.0
+    at = ((az(name) - az(prev)) * sign) % 360.0
+    if at <= span + margin_deg or at >= 360.0 - margin_deg:
+        return ""
+    return (f"out of the capture order: {at:.0f} deg around the scene from {prev}, while {nxt} (the next "
+            f"registered frame) is {span:.0f} deg on")
+
+
+def _coincident(cameras: dict, name: str, min_baseline_frac: float, max_turn_deg: float) -> str:
+    """A camera placed (nearly) at another's centre but turned by more than `max_turn_deg`: a hand-held
+    capture does not turn in place between views SfM had to register separately, while a homography
+    (the plate and tray are nearly planar) is explained by exactly such a pure rotation. Distances are
+    relative to the median distance between camera centres. "" if none."""
+    import numpy as np
+
+    C = {n: c.center for n, c in cameras.items()}
+    others = [n for n in C if n != name]
+    if len(others) < 2:
+        return ""
+    pair = [float(np.linalg.norm(C[a] - C[b])) for i, a in enumerate(list(C)) for b in list(C)[i + 1:]]
+    scale = float(np.median(pair)) or 1.0
+    for m in others:
+        dist = float(np.linalg.norm(C[name] - C[m])) / scale
+        R = cameras[name].T_world_cam[:3, :3].T @ cameras[m].T_world_cam[:3, :3]
+        turn = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+        if dist < min_baseline_frac and turn > max_turn_deg:
+            return (f"placed at the centre of {m} ({dist:.3f} x the median camera distance) but turned "
+                    f"{turn:.0f} deg: a parallax-free (homography) registration")
+    return ""
+
+
 def _copy_pose(dst, src, image_id: int) -> None:
     T = src.image(image_id).cam_from_world().matrix()
     _set_pose(dst, image_id, T)
@@ -387,7 +563,7 @@ def _copy_pose(dst, src, image_id: int) -> None:
 
 STEPS: dict[str, Callable[[dict], dict]] = {
     "extract": step_extract, "match": step_match, "map": step_map, "triangulate": step_triangulate,
-    "merge": step_merge, "drop": step_drop,
+    "merge": step_merge, "drop": step_drop, "recover": step_recover,
 }
 
 
