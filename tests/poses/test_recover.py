@@ -187,3 +187,31 @@ def test_sfm_recovers_a_dropped_image_and_reports_it(dropped_model, sfm_default_
         run.dropped = {gone: "test"}
         same, _ = _recovered(run, best, Attempt("default", "x"), [], work / "attempts2.json")
     assert same is best
+
+
+def test_plane_homography_candidate_lands_near_the_true_pose(dropped_model, sfm_default_dir, scene_default):
+    """The table-plane homography candidate (what re-registered the cake's frame000096, where absolute
+    pose found nothing): on the embedded tabletop, the dropped image's candidate from its best-matched
+    registered image is close to where the full model has it (same frame: the drop step keeps it)."""
+    import pycolmap
+
+    from splattwin.poses.colmap_worker import _plane_homography_candidates
+
+    full, base, gone = dropped_model
+    model = pycolmap.Reconstruction(str(base))
+    db = str(sfm_default_dir / "database.db")
+    with pycolmap.Database.open(db) as d:
+        ids = {im.name: im.image_id for im in d.read_all_images()}
+    tried: list = []
+    job = _job(sfm_default_dir, base, "unused", [gone], image_root=str(scene_default / "images"))
+    cands = list(_plane_homography_candidates(model, db, ids, gone, tried, job))
+    assert cands, tried
+    method, T = cands[0]
+    assert method.startswith("plane_homography via ")
+    true = next(full.image(i) for i in full.reg_image_ids() if full.image(i).name == gone)
+    c_true = np.asarray(true.projection_center())
+    c = -T[:, :3].T @ T[:, 3]
+    spread = np.ptp(np.array(list(_model_centres(full).values())), axis=0).max()
+    assert np.linalg.norm(c - c_true) < 0.05 * spread
+    R_err = T[:, :3] @ true.cam_from_world().rotation.matrix().T
+    assert np.degrees(np.arccos(np.clip((np.trace(R_err) - 1) / 2, -1, 1))) < 3.0

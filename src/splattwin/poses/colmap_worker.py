@@ -382,62 +382,173 @@ def step_drop(job: dict) -> dict:
 
 def step_recover(job: dict) -> dict:
     """Re-register images the sanity check dropped (or the mapper left out) against the trusted model
-    job["base"]: for each image of job["names"] in turn, candidate poses from (1) absolute pose: COLMAP's
-    `register_next_image` on the 2D-3D correspondences its verified matches give with the trusted images'
-    points, then (2) structure-less resectioning (`register_next_structure_less_image`: the 2D-2D matches
-    with the registered images, for an image that sees few of the model's points). Each candidate is
-    refined like a merge (`_merged`: all points re-triangulated from the database, bundle adjustment) and
-    kept only if, in the refined model, it observes >= `min_observations` points at <= `max_error_px`
-    mean reprojection error, no image fails the registration sanity check (`splattwin.poses.sanity`), and
-    it is not a parallax-free copy of a registered camera (`_coincident`: what a planar scene's homography
-    gives structure-less resectioning, seen on the cake) nor, for numbered frames of a walk around the
-    scene (job["frame_order"]), out of the walking order (`_out_of_order`). The accepted images are added
-    one by one (a later one can use the points an earlier one brought). Writes the completed model to
-    job["out"] when anything was recovered. Returns {"recovered": {name: {"method", "observations"}},
-    "rejected": {name: why, per method}, "registered", "path" (if written)}."""
+    job["base"]. Candidate poses per image, cheap ones first: (1) absolute pose (COLMAP's
+    `register_next_image` on the 2D-3D correspondences its verified matches give with the model's points);
+    (2) the table-plane homography with each registered image it matches (`_plane_homography_candidates`:
+    the plane known in the model picks the right decomposition and fixes the scale, where (1) and the
+    mapper give a mirrored or parallax-free pose); only when a pass of those adds nothing, (3)
+    structure-less resectioning (`register_next_structure_less_image`, 2D-2D matches with the registered
+    images; a few RANSAC seeds). Each candidate is refined like a merge (`_merged`: all points
+    re-triangulated from the database, bundle adjustment) and kept only if, in the refined model, it
+    observes >= `min_observations` points at <= `max_error_px` mean reprojection error, no image fails
+    the registration sanity check (`splattwin.poses.sanity`), it is not a parallax-free copy of a
+    registered camera (`_coincident`) nor, for numbered frames of a walk around the scene
+    (job["frame_order"]), out of the walking order (`_out_of_order`). Accepted images are added one by
+    one and the passes repeat while they add any (on the cake, frame000096 came back by (2) and then
+    frame000069 by (3) with the points 096 brought). Writes the completed model to job["out"] when
+    anything was recovered. Returns {"recovered": {name: {"method", "observations"}}, "rejected":
+    {name: why, per candidate}, "registered", "path" (if written)}."""
     import pycolmap
 
     db, root, out = job["db"], job["image_root"], Path(job["out"])
     popts = _set_options(pycolmap.IncrementalPipelineOptions(), job.get("options", {}))
     mopts = popts.get_mapper()
-    mopts.random_seed = int(job.get("seed", 0))  # RANSAC of both registrations: reproducible candidates
     min_obs, max_err = int(job.get("min_observations", 30)), float(job.get("max_error_px", 2.0))
     with pycolmap.Database.open(db) as d:
         ids = {im.name: im.image_id for im in d.read_all_images()}
         copts = pycolmap.DatabaseCacheOptions()
         copts.min_num_matches = int(popts.min_num_matches)
         cache = pycolmap.DatabaseCache.create(d, copts)
-    base = pycolmap.Reconstruction(job["base"])
-    current, recovered, rejected = base, {}, {}
-    for name in job["names"]:
-        if name not in ids:
-            rejected[name] = "not in the database"
-            continue
-        tried = []
-        for method in ("absolute", "structure_less"):
-            try:
-                T = _candidate_pose(cache, current, mopts, ids[name], method)
-            except (RuntimeError, ValueError) as e:  # a failed COLMAP check: this candidate only
-                tried.append(f"{method}: {e}")
-                continue
-            if T is None:
-                tried.append(f"{method}: no pose")
-                continue
-            rec = _merged(db, root, current, {name: T}, job)  # T is in current's frame
-            why = _recovery_problem(rec, name, min_obs, max_err, job)
-            if why:
-                tried.append(f"{method}: {why}")
-                continue
-            current = rec
-            recovered[name] = {"method": method, "observations": _observations(rec, name)}
+    current, recovered, rejected = pycolmap.Reconstruction(job["base"]), {}, {}
+    todo = [n for n in job["names"] if n in ids]
+    rejected.update({n: "not in the database" for n in job["names"] if n not in ids})
+    costly = False  # structure-less tries (seconds each) only once the cheap ones add nothing
+    reasons: dict[str, dict[bool, str]] = {}  # name -> {costly: why its last such pass failed}
+    while todo:  # passes until one adds nothing: an image recovered later may carry the next one
+        progress = False
+        for name in list(todo):
+            tried = []
+            for method, T in _candidates(cache, current, mopts, db, ids, name, tried, job, costly):
+                rec = _merged(db, root, current, {name: T}, job)  # T is in current's frame
+                why = _recovery_problem(rec, name, min_obs, max_err, job)
+                if why:
+                    tried.append(f"{method}: {why}")
+                    continue
+                current = rec
+                recovered[name] = {"method": method, "observations": _observations(rec, name)}
+                break
+            if name in recovered:
+                todo.remove(name)
+                progress = True
+            else:
+                reasons.setdefault(name, {})[costly] = "; ".join(tried)
+            emit("progress", done=len(recovered), total=len(job["names"]))
+            if progress and costly:
+                break  # back to the cheap candidates with the new image's points
+        if progress:
+            costly = False
+        elif costly:
             break
-        if name not in recovered:
-            rejected[name] = "; ".join(tried)
-        emit("progress", done=len(recovered) + len(rejected), total=len(job["names"]))
+        else:
+            costly = True
+    for name in todo:
+        rejected[name] = "; ".join(r for r in (reasons.get(name, {}).get(False), reasons.get(name, {}).get(True)) if r)
     if recovered:
         _write_model(current, out)
     return {"recovered": recovered, "rejected": rejected, "registered": int(current.num_reg_images()),
             **({"path": str(out)} if recovered else {})}
+
+
+def _candidates(cache, model, mopts, db: str, ids: dict, name: str, tried: list, job: dict, costly: bool):
+    """(method, cam_from_world [3,4]) candidates for `name` in `model`'s frame: absolute pose and the
+    table-plane homography with each registered image it matches (most matches first); with `costly`
+    structure-less resectioning instead. Failures are appended to `tried`."""
+    import pycolmap
+
+    seed = int(job.get("seed", 0))
+    tries = [("absolute", seed), ("plane_homography", seed)]
+    if costly:
+        # structure-less resectioning of a weakly connected image depends on its RANSAC draws (cake
+        # frame000069: 11 or 47 observations, depending on the random state): a few seeded tries
+        tries = [("structure_less", seed + k) for k in range(int(job.get("structure_less_tries", 3)))]
+    for method, s in tries:
+        if method == "plane_homography":
+            yield from _plane_homography_candidates(model, db, ids, name, tried, job)
+            continue
+        pycolmap.set_random_seed(s)  # COLMAP's RANSAC draws from a process-wide generator
+        mopts.random_seed = s
+        if method == "structure_less" and s != seed:
+            method = f"structure_less (seed {s})"
+        try:
+            T = _candidate_pose(cache, model, mopts, ids[name], method.split(" ")[0])
+        except (RuntimeError, ValueError) as e:  # a failed COLMAP check: this candidate only
+            tried.append(f"{method}: {e}")
+            continue
+        if T is None:
+            tried.append(f"{method}: no pose")
+            continue
+        yield method, T
+
+
+def _plane_homography_candidates(model, db: str, ids: dict, name: str, tried: list, job: dict):
+    """Poses of `name` from the homography its matches with a registered image induce through the table
+    plane. On a nearly planar tabletop (plate, tray, ground) the 2D-2D matches fit a homography, which the
+    relative-pose and absolute-pose solvers turn into a mirrored or parallax-free pose; but with the plane
+    known in the model (`fit_table_plane`), H = R + t n^T / d has one decomposition whose normal is the
+    known one, and d (the plane's distance from the registered camera) fixes the scale of t. A solution
+    whose normal is more than `max_normal_deg` (20) off the known one is not used."""
+    import numpy as np
+    import pycolmap
+
+    from splattwin.errors import InputError
+    from splattwin.poses.sfm import _result_from_reconstruction
+    from splattwin.poses.table import fit_table_plane
+
+    try:
+        import cv2
+    except ImportError:  # the other candidates still run
+        tried.append("plane_homography: OpenCV not available")
+        return
+    res = _result_from_reconstruction(model, [], {}, Path(job["image_root"]))
+    if len(res.cameras) < 3:
+        return
+    try:
+        plane = fit_table_plane(res.points_xyz, np.array([c.center for c in res.cameras.values()]),
+                                seed=int(job.get("seed", 0)))
+    except InputError as e:
+        tried.append(f"plane_homography: no table plane ({e.problem})")
+        return
+    max_normal = float(job.get("max_normal_deg", 20.0))
+    min_inliers = int(job.get("min_homography_inliers", 15))
+    reg = {model.image(i).name: model.image(i) for i in model.reg_image_ids()}
+    with pycolmap.Database.open(db) as d:
+        links = []
+        for ref in reg:
+            m = np.asarray(d.read_two_view_geometry(ids[ref], ids[name]).inlier_matches).reshape(-1, 2)
+            if len(m) >= min_inliers:
+                links.append((len(m), ref, m))
+        links.sort(key=lambda x: (-x[0], x[1]))
+        kp = {n: d.read_keypoints(ids[n])[:, :2].astype(np.float64) for n in [name] + [r for _, r, _ in links]}
+        cid = d.read_image(ids[name]).camera_id  # the model may not hold the unregistered image
+        cam2 = model.camera(cid) if cid in model.cameras else d.read_camera(cid)
+    if not links:
+        tried.append(f"plane_homography: no registered image with >= {min_inliers} verified matches")
+        return
+    for _, ref, m in links:
+        im = reg[ref]
+        T1 = im.cam_from_world().matrix()
+        R1, t1 = T1[:, :3], T1[:, 3]
+        # the plane n.X + d = 0 (world) in ref's camera frame as n_c.x = dist, dist > 0
+        n_c, d_c = -(R1 @ plane.normal), plane.d - plane.normal @ (R1.T @ t1)
+        if d_c < 0:
+            n_c, d_c = -n_c, -d_c
+        cam1 = model.camera(im.camera_id)
+        u1 = np.asarray(cam1.cam_from_img(kp[ref][m[:, 0]]), np.float64)[:, :2]
+        u2 = np.asarray(cam2.cam_from_img(kp[name][m[:, 1]]), np.float64)[:, :2]
+        H, mask = cv2.findHomography(u1, u2, cv2.RANSAC, float(job.get("homography_max_error_px", 3.0))
+                                     / float(cam1.mean_focal_length()))
+        if H is None or int(mask.sum()) < min_inliers:
+            tried.append(f"plane_homography via {ref}: {0 if mask is None else int(mask.sum())} homography inliers")
+            continue
+        _, Rs, ts, ns = cv2.decomposeHomographyMat(H, np.eye(3))
+        off = [float(np.degrees(np.arccos(np.clip(np.ravel(nn) @ n_c, -1, 1)))) for nn in ns]
+        k = int(np.argmin(off))
+        if off[k] > max_normal:
+            tried.append(f"plane_homography via {ref}: no decomposition with the table's normal "
+                         f"(best {off[k]:.0f} deg off)")
+            continue
+        R, t = Rs[k], np.ravel(ts[k]) * d_c  # x2 = R x1 + t, t/d from OpenCV
+        yield f"plane_homography via {ref}", np.hstack([R @ R1, (R @ t1 + t)[:, None]])
 
 
 def _candidate_pose(cache, model, mopts, image_id: int, method: str):

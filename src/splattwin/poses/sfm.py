@@ -27,9 +27,10 @@ below the table plane, looking up or away from the scene the others look at), ar
 (de-registered, then bundle adjustment again) and reported with the reason; only the images that pass
 count as registered, so the retries go on while any is dropped. After the attempts, each dropped image the
 final model lacks is re-registered against that trusted model (`recover_dropped`: absolute pose from its
-matches to the model's points, else structure-less resectioning; refined, and kept only if it passes the
-check again, is no parallax-free copy of another camera and, for numbered video frames walking around
-the scene, lies between its neighbouring frames); the "recover" entry of the attempts says what came back.
+matches to the model's points, the homography its matches induce through the model's table plane, else
+structure-less resectioning; refined, and kept only if it passes the check again, is no parallax-free
+copy of another camera and, for numbered video frames walking around the scene, lies between its
+neighbouring frames); the "recover" entry of the attempts says what came back and how.
 
 The default thresholds suit sparse captures (8-20 views): a lower SIFT peak threshold and a looser ratio
 test than COLMAP's (more matches per wide-baseline pair), fewer inliers for the initial pair and for
@@ -98,8 +99,9 @@ class SfmOptions:
       with the reason and count as unregistered (so the retries go on).
     min_observations: that check's minimum number of model points an image must observe.
     recover_dropped: after the attempts, re-register each image the check dropped (in any attempt) and the
-      final model lacks, against the final (trusted) model: absolute pose, else structure-less
-      resectioning, refined and kept only if it passes the check again (colmap_worker's recover step).
+      final model lacks, against the final (trusted) model: absolute pose, table-plane homography, else
+      structure-less resectioning, refined and kept only if it passes the check again (colmap_worker's
+      recover step).
     min_registered: fewer registered images than this -> InputError. None = all images but at most 3
       missing, >= 3.
     num_threads: CPU threads for extraction, matching and mapping; 0 = all cores.
@@ -916,7 +918,7 @@ def _recovered(run: _Run, best: AttemptOutcome, attempt: Attempt, done_log: list
     out = run.work / "models" / "recovered"
     res = run.recover(best.db, best.path, names, out, "SfM: re-registering dropped images")
     entry = {"name": "recover", "why": f"re-register {len(names)} dropped image(s) against the {attempt.name} "
-             "model (absolute pose, else structure-less), kept only if they pass the check",
+             "model (absolute pose, table-plane homography, else structure-less), kept only if they pass the check",
              "tried": names, "recovered": res.get("recovered", {}), "rejected": res.get("rejected", {}),
              "registered": best.registered, "seconds": round(time.perf_counter() - t0, 2)}
     if res.get("recovered"):
