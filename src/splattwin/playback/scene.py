@@ -106,7 +106,10 @@ class DynamicScene:
     fills: {name: HoleFill}. table_height: m (twin frame). backdrop: static Gaussians off the table
     (outside its extent by BACKDROP_MARGIN, or below it): the capture's surroundings, which 3DGS places
     at whatever depth fitted the photos -- often in front of where the robot stands. The renderer draws
-    them behind everything else (a second layer), so they never veil the robot.
+    them behind everything else (a second layer), so they never veil the robot. rasterize_mode: the
+    rasterizer mode the splats were trained with (twin.json config.build.splat; "classic" when not
+    recorded), which the renderer uses by default: the antialiased mode's opacity compensation is part of
+    what the training fitted.
     """
 
     background: Gaussians
@@ -118,6 +121,7 @@ class DynamicScene:
     twin_dir: Path | None = None
     backdrop: Gaussians | None = None
     view_fade: bool = True
+    rasterize_mode: str = "classic"
 
     def object_sh(self, name: str, sh: np.ndarray, T_world_obj: np.ndarray) -> np.ndarray:
         """The posed SH [N,K,3] of object `name` at T_world_obj, its view dependence faded with its
@@ -197,7 +201,8 @@ class DynamicScene:
         bg_index = np.cumsum(front) - 1
         residue = {n: bg_index[r[front[r]]] for n, r in residue.items()}
         scene = cls(background=full.subset(front), objects=objects, T_world_obj0=poses, residue=residue,
-                    table_height=h, twin_dir=twin_dir, backdrop=full.subset(back), view_fade=view_fade)
+                    table_height=h, twin_dir=twin_dir, backdrop=full.subset(back), view_fade=view_fade,
+                    rasterize_mode=trained_rasterize_mode(manifest, mpath))
         if fill_holes:
             scene.fill_holes()
         return scene
@@ -239,6 +244,20 @@ class DynamicScene:
             sh = self.object_sh(n, sh, T)
             parts.append(Gaussians(m, q, g.scales, g.opacities, _pad_sh(sh, self.sh_degree)))
         return concat(parts, self.sh_degree)
+
+
+def trained_rasterize_mode(manifest: Manifest, where: Path | None = None) -> str:
+    """The rasterizer mode the twin's splats were trained with (twin.json config.build.splat.rasterize_mode),
+    "classic" when the twin does not record one. InputError for an unknown mode."""
+    from splattwin.splat.rasterization import RASTERIZE_MODES
+
+    build = manifest.config.get("build") if isinstance(manifest.config, dict) else None
+    splat = build.get("splat") if isinstance(build, dict) else None
+    mode = splat.get("rasterize_mode", "classic") if isinstance(splat, dict) else "classic"
+    if mode not in RASTERIZE_MODES:
+        raise InputError(f"unknown rasterize_mode {mode!r} in config.build.splat (one of {', '.join(RASTERIZE_MODES)})",
+                         where)
+    return mode
 
 
 def _pad_sh(sh: np.ndarray, degree: int) -> np.ndarray:
