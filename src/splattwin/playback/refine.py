@@ -21,8 +21,8 @@ Measured (bench/photoreal.py, demo twin of seed 0, moved objects' PSNR after the
 same rollout): classic splats 20.99 -> 21.26 dB (1500 steps); antialiased splats 21.03 -> 21.66 dB (800 or
 1500 steps; an 8x budget 21.64), the whole final image 28.51 -> 28.55, the held-out start views 34.10 ->
 34.38. What it does not fix: the blue box stays near 19.8 dB after the task (vs ~26 from the held-out
-views at the start); its faces that the final views see frontally were seen by the training views at
-grazing angles (cos <= 0.45) or from farther away (bench/objects_bounds.py has the bounds).
+views at the start): one of its faces, which two final views see at cos 0.72-0.74, no training view saw
+at more than cos 0.45 (bench/objects_bounds.py has the bounds).
 
 Output, in the twin folder: refined/point_cloud.ply (background as before + the refined objects, in the
 twin frame), refined/labels.npy, and each refined object's splats.ply rewritten (object frame); twin.json's
