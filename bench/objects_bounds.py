@@ -156,7 +156,8 @@ def oracle_scene(twin: Path, members: dict[str, np.ndarray], base):
     back = keep & _off_table(full.means, man.background.table_extent, h)
     front = keep & ~back
     sc = DynamicScene(background=full.subset(front), objects=objects, T_world_obj0=dict(base.T_world_obj0),
-                      residue={}, table_height=h, twin_dir=twin, backdrop=full.subset(back), view_fade=base.view_fade)
+                      residue={}, table_height=h, twin_dir=twin, backdrop=full.subset(back), view_fade=base.view_fade,
+                      rasterize_mode=base.rasterize_mode)
     sc.fill_holes()
     return sc
 
