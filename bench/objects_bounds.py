@@ -43,6 +43,12 @@ Since then (#19): training antialiased 21.03 (whole final image 27.79 -> 28.51, 
 the rest frozen, split on their own 4x budget) 21.66-21.71, the blue box's training-photo fit 27.3 -> 30.0
 (classic) but after the task only 19.1 -> 19.8: one of its faces, which two final views see at cos
 0.72-0.74, no training view saw at more than cos 0.45 (the box crossed the table: its far side now faces them).
+This bench on that demo twin (antialiased + refined, its own rollout): fused_relit 21.42, oracle_relit 21.28,
+fused_baked 21.94, sh_dc_relit 21.71 (= psnr_final_objects), photo_gt_geom 24.48, photo_twin_mesh 20.22,
+blur_1.5x 20.65, inner 21.99 / ring 18.97, same_view 22.38 / 28.79 / 29.38, train_fit 29.15 / 35.73 / 33.73.
+What is left to 24 dB: the image-based bound itself is 24.5; re-lighting (new cast shadows, e.g. the cube's
+on the box) ~0.5 dB; the outline ring 3 dB below the inside; the blue box 2.9 dB below its own same_view
+(19.49 relit in the arrangement vs 22.38 from the same relative view at the start).
 
 Pictures: bounds_<view>.png = GT relit | GT baked | twin (fused) | photos on the exact geometry.
 LAST line one JSON object.
