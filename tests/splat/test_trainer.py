@@ -102,7 +102,9 @@ def synth(tmp_path_factory) -> Path:
 
 
 def tiny_config(**kw) -> TrainConfig:
-    base = dict(iters=120, sh_degree=1, checkpoint_every=0, progress=False, backend="cpu", max_gaussians=2000)
+    # sparse_views=0: these tests pin the dense defaults (the sparse profile has its own tests)
+    base = dict(iters=120, sh_degree=1, checkpoint_every=0, progress=False, backend="cpu", max_gaussians=2000,
+                sparse_views=0)
     base.update(kw)
     return TrainConfig(**base)
 
