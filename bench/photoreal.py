@@ -15,6 +15,12 @@
 5. episode_frames_checked: one LeRobot-layout episode (wrist + held-out camera, 10 fps) written, read
    back and checked frame by frame against the rollout (`playback.episode.check_episode`).
 
+Measured (Nov 2026, demo of seed 0, 2 shared cores at load ~5-7: timings not comparable): classic splats
+(before #19) psnr_final 27.79, psnr_final_objects 20.99 (blue box 19.11, yellow cube 22.73, hammer 24.39),
+ssim_final_objects 0.779, psnr_start 32.01; the demo now trains antialiased and refines its objects
+(`splattwin.playback.refine`, 800 steps): 28.63, 21.71 (19.83 / 23.25 / 25.20), 0.822, psnr_start 34.40,
+psnr_start_objects 26.09 -> 28.91. The object outline ring (1 px) 18.90 -> 19.11 dB, inside it 21.40 -> 22.33.
+
 Writes into --out: final_<view>.png (ground truth | twin | error | filled-hole mark), task_<view>.mp4,
 wrist.mp4, the episode, rollout.npz, photoreal.json. Prints a table; the LAST line is one JSON object.
 
@@ -222,7 +228,10 @@ def main() -> int:
     ep_cams = {"wrist": EyeInHand(width=320, height=240), "scene": cams[held[0]]}
     write_episode(ep_root, rollout, renderer, ep_cams, fps=args.episode_fps, task="three-step rearrangement")
     ep = read_episode(ep_root, 0)
-    checked = check_episode(ep, rollout, renderer, ep_cams)
+    # H.264 (CRF 18, 4:2:0) loses more on finer detail: the wrist view's worst frame came back at 32.9 dB from
+    # the classic twin and 29.7 dB from the antialiased + refined one; the check is after frames of a wrong
+    # state or corrupt ones, not the codec's loss
+    checked = check_episode(ep, rollout, renderer, ep_cams, min_psnr=28.0)
     t3 = time.perf_counter()
 
     gp = np.median(np.array(gauss_parts), axis=0)

@@ -21,7 +21,8 @@ from splattwin.report.screenshot import screenshot
 pytestmark = pytest.mark.slow
 
 SCENE = {"seed": 0, "width": 96, "height": 72, "views": 6, "heldout": 2}
-FAST = {"splat": {"iters": 80, "max_gaussians": 8000, "checkpoint_every": 20}, "robot": {"render": False}}
+FAST = {"splat": {"iters": 80, "max_gaussians": 8000, "checkpoint_every": 20}, "robot": {"render": False},
+        "refine": {"iters": 20, "refine_every": 10}}
 OPTIONS = {"scene": SCENE, "poses": {"method": "known"}, **FAST}
 
 
@@ -61,6 +62,9 @@ def test_build_writes_every_stage(built):
     man = json.loads((built / "twin.json").read_text())
     assert man["frame"]["scaled"] and man["frame"]["source"] == "known_poses"
     assert (built / "export" / "scene.xml").is_file()
+    # the object refinement ran: the twin's splats are its output, the splat stage's are left as they were
+    assert man["splats"] == "refined/point_cloud.ply" and man["labels"] == "refined/labels.npy"
+    assert (built / "refined" / "point_cloud.ply").is_file()
     assert man["config"].get("target_frame"), "the scene's goal region must travel into the twin"
     # the resolved options, nested like BuildOptions
     rec = man["config"]["build"]

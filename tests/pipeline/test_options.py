@@ -101,6 +101,12 @@ def test_short_aliases_and_seed():
     assert (o.poses.seed, o.robot.seed, o.geometry.seed, o.splat.seed) == (4, 4, 4, 9)   # the flag wins
     d = resolve_options(p.parse_args(["demo", "--views", "6", "--width", "96"]), demo=True)
     assert (d.scene.views, d.scene.width, d.poses.method, d.robot.task) == (6, 96, "known", "default")
+    # the demo trains antialiased and refines its objects; build does neither unless asked; flags win
+    assert (d.splat.rasterize_mode, d.refine.iters) == ("antialiased", 800)
+    b = resolve_options(p.parse_args(["build", "data", "--out", "t"]))
+    assert (b.splat.rasterize_mode, b.refine.iters) == ("classic", 0)
+    d = resolve_options(p.parse_args(["demo", "--refine.iters", "0", "--splat.rasterize-mode", "classic"]), demo=True)
+    assert (d.splat.rasterize_mode, d.refine.iters) == ("classic", 0)
     assert resolve_options(p.parse_args(["build", "data", "--out", "t"])) == BuildOptions(input="data")
 
 

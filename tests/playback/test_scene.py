@@ -126,3 +126,53 @@ def test_moved_object_is_drawn_view_independent(tiny_twin):
     # view_fade=False: the rotated bands as they were
     keep = DynamicScene.load(tiny_twin, view_fade=False)
     np.testing.assert_allclose(keep.gaussians({"blue_box": far}).sh[-n:], sh_far, atol=1e-9)
+
+
+def test_renderer_uses_the_trained_rasterize_mode(tmp_path):
+    """A twin trained with --splat.rasterize-mode antialiased is drawn antialiased by default (its splats
+    fitted the opacity compensation); twins that record no mode are drawn classic; a bad mode is an error
+    naming twin.json."""
+    from splattwin.errors import InputError
+    from splattwin.playback.compositor import PlaybackRenderer
+    from splattwin.twin.manifest import Manifest
+
+    from .conftest import capture_cameras, write_twin
+
+    twin = write_twin(tmp_path / "twin")
+    assert DynamicScene.load(twin, fill_holes=False).rasterize_mode == "classic"
+    man = Manifest.load(twin)
+    man.config["build"] = {"splat": {"rasterize_mode": "antialiased"}}
+    man.save(twin)
+    sc = DynamicScene.load(twin, fill_holes=False)
+    assert sc.rasterize_mode == "antialiased"
+    r = PlaybackRenderer(sc, backend="cpu")
+    cam = capture_cameras()[0]
+    default, aa, classic = (r.render(cam, {}, rasterize_mode=m).rgb for m in (None, "antialiased", "classic"))
+    np.testing.assert_array_equal(default, aa)
+    assert np.abs(default - classic).max() > 1e-3   # the modes differ on these splats: the test can fail
+    man.config["build"] = {"splat": {"rasterize_mode": "mip"}}
+    man.save(twin)
+    with pytest.raises(InputError, match="rasterize_mode") as e:
+        DynamicScene.load(twin)
+    assert "twin.json" in str(e.value)
+
+
+def test_quat_left_mul_equals_the_general_product():
+    """The per-frame product (written out) against `transforms.quat_mul_wxyz` (scipy), unnormalised
+    inputs, both signs, and a zero row (identity there)."""
+    from splattwin.playback.scene import quat_left_mul
+    from splattwin.transforms import quat_mul_wxyz
+
+    rng = np.random.default_rng(4)
+    a = rng.normal(size=4) * 3.0
+    b = rng.normal(size=(50, 4)) * rng.uniform(0.1, 5.0, (50, 1))
+    b[7] = 0.0
+    np.testing.assert_allclose(quat_left_mul(a, b), quat_mul_wxyz(a, b), atol=1e-12)
+    np.testing.assert_allclose(quat_left_mul(-a, b), quat_mul_wxyz(-a, b), atol=1e-12)
+    g = make_object(n=40)
+    T = _rigid(2)
+    m, q, sh = rigid_transform(g, T)
+    ref = transform_gaussians(g, T)
+    np.testing.assert_allclose(m, ref.means, atol=1e-12)
+    np.testing.assert_allclose(np.abs(np.sum(q * ref.quats, axis=1)), 1.0, atol=1e-12)   # same rotation
+    np.testing.assert_allclose(sh, ref.sh, atol=1e-12)

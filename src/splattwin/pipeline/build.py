@@ -131,7 +131,16 @@ def _twin(ctx: Context) -> dict:
                         twin_dir=ctx.out, cameras="poses/transforms.json", scene_dir=_scene_dir(ctx),
                         config=resolved_config(ctx.config))
     options = TwinOptions(geometry=ctx.config.geometry, export=ctx.config.export)
-    return record(run(inputs, options, progress=ctx.progress), ctx.out)
+    result = record(run(inputs, options, progress=ctx.progress), ctx.out)
+    if ctx.config.refine.iters > 0:
+        # the moved objects' splats trained again on the training photos (twin.json then points to them)
+        from splattwin.capture import load_dataset
+        from splattwin.playback.refine import refine_objects
+
+        frames = load_dataset(ctx.path("poses")).train()
+        refine_objects(ctx.out, frames, ctx.config.refine, resolution=ctx.config.splat.resolution,
+                       cpu_max_side=ctx.config.splat.cpu_max_side, progress=ctx.progress)
+    return result
 
 
 def _twin_files(ctx: Context) -> dict:
@@ -193,8 +202,9 @@ def stages() -> list[Stage]:
               code=("splattwin.splat", "splattwin.capture")),
         Stage("semantics", _semantics, option_keys=("semantics",), deps=("splats",), inputs=_semantics_files,
               code=("splattwin.semantics", "splattwin.capture")),
-        Stage("twin", _twin, option_keys=("geometry", "export"), deps=("semantics",), inputs=_twin_files,
-              code=("splattwin.geometry", "splattwin.twin", "splattwin.meshio")),
+        Stage("twin", _twin, option_keys=("geometry", "export", "refine"), deps=("semantics",), inputs=_twin_files,
+              code=("splattwin.geometry", "splattwin.twin", "splattwin.meshio", "splattwin.playback.refine",
+                    "splattwin.playback.scene", "splattwin.playback.holes")),
         Stage("robot", _robot, option_keys=("robot",), deps=("twin",), inputs=_robot_files,
               code=("splattwin.robot", "splattwin.twin")),
         # The report reads every stage's outputs; its key changes whenever any of them re-ran.

@@ -14,6 +14,7 @@ from typing import Any
 
 from splattwin.geometry.options import GeometryOptions
 from splattwin.options import from_dict, option, set_everywhere, to_dict
+from splattwin.playback.options import RefineOptions
 from splattwin.poses.options import PoseOptions
 from splattwin.robot.options import RobotOptions
 from splattwin.scene.options import SceneOptions
@@ -38,6 +39,8 @@ class BuildOptions:
     semantics: SemanticsOptions = option(factory=SemanticsOptions, help="2D masks and their fusion")
     geometry: GeometryOptions = option(factory=GeometryOptions, help="cleaning, meshing, convex parts, mass")
     export: ExportOptions = option(factory=ExportOptions, help="exports of the twin")
+    refine: RefineOptions = option(factory=RefineOptions, help="object-focused refinement of the splats (after the "
+                                   "twin is built)")
     robot: RobotOptions = option(factory=RobotOptions, help="the robot task validated in physics")
 
     @classmethod

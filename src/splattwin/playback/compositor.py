@@ -169,14 +169,16 @@ class PlaybackRenderer:
 
     @torch.no_grad()
     def render(self, camera: Camera, object_poses: dict[str, np.ndarray] | None = None,
-               robot_pose: RobotPose | None = None, rasterize_mode: str = "classic",
+               robot_pose: RobotPose | None = None, rasterize_mode: str | None = None,
                layered: bool | None = None) -> FrameImage:
         """One frame. object_poses: T_world_obj per object (missing: twin pose); robot_pose: None = no robot.
+        rasterize_mode: None = the one the splats were trained with (`DynamicScene.rasterize_mode`).
 
         layered (default: when the robot is drawn): the backdrop (`DynamicScene.backdrop`) is rendered
         as a layer behind everything, so that no surroundings splat veils the robot; without the robot
         one depth-sorted pass of all splats, exactly as they were trained."""
         t0 = time.perf_counter()
+        rasterize_mode = rasterize_mode or getattr(self.scene, "rasterize_mode", "classic")
         n = self.layout(object_poses or {}, robot_pose)
         layered = (robot_pose is not None and self.robot is not None) if layered is None else layered
         layered = layered and self.n_backdrop > 0

@@ -380,6 +380,293 @@ def step_drop(job: dict) -> dict:
     return {"registered": int(rec.num_reg_images()), "points": int(rec.num_points3D()), "path": str(out)}
 
 
+def step_recover(job: dict) -> dict:
+    """Re-register images the sanity check dropped (or the mapper left out) against the trusted model
+    job["base"]. Candidate poses per image, cheap ones first: (1) absolute pose (COLMAP's
+    `register_next_image` on the 2D-3D correspondences its verified matches give with the model's points);
+    (2) the table-plane homography with each registered image it matches (`_plane_homography_candidates`:
+    the plane known in the model picks the right decomposition and fixes the scale, where (1) and the
+    mapper give a mirrored or parallax-free pose); only when a pass of those adds nothing, (3)
+    structure-less resectioning (`register_next_structure_less_image`, 2D-2D matches with the registered
+    images; a few RANSAC seeds). Each candidate is refined like a merge (`_merged`: all points
+    re-triangulated from the database, bundle adjustment) and kept only if, in the refined model, it
+    observes >= `min_observations` points at <= `max_error_px` mean reprojection error, no image fails
+    the registration sanity check (`splattwin.poses.sanity`), it is not a parallax-free copy of a
+    registered camera (`_coincident`) nor, for numbered frames of a walk around the scene
+    (job["frame_order"]), out of the walking order (`_out_of_order`). Accepted images are added one by
+    one and the passes repeat while they add any (on the cake, frame000096 came back by (2) and then
+    frame000069 by (3) with the points 096 brought). Writes the completed model to job["out"] when
+    anything was recovered. Returns {"recovered": {name: {"method", "observations"}}, "rejected":
+    {name: why, per candidate}, "registered", "path" (if written)}."""
+    import pycolmap
+
+    db, root, out = job["db"], job["image_root"], Path(job["out"])
+    popts = _set_options(pycolmap.IncrementalPipelineOptions(), job.get("options", {}))
+    mopts = popts.get_mapper()
+    min_obs, max_err = int(job.get("min_observations", 30)), float(job.get("max_error_px", 2.0))
+    with pycolmap.Database.open(db) as d:
+        ids = {im.name: im.image_id for im in d.read_all_images()}
+        copts = pycolmap.DatabaseCacheOptions()
+        copts.min_num_matches = int(popts.min_num_matches)
+        cache = pycolmap.DatabaseCache.create(d, copts)
+    current, recovered, rejected = pycolmap.Reconstruction(job["base"]), {}, {}
+    todo = [n for n in job["names"] if n in ids]
+    rejected.update({n: "not in the database" for n in job["names"] if n not in ids})
+    costly = False  # structure-less tries (seconds each) only once the cheap ones add nothing
+    reasons: dict[str, dict[bool, str]] = {}  # name -> {costly: why its last such pass failed}
+    while todo:  # passes until one adds nothing: an image recovered later may carry the next one
+        progress = False
+        for name in list(todo):
+            tried = []
+            for method, T in _candidates(cache, current, mopts, db, ids, name, tried, job, costly):
+                rec = _merged(db, root, current, {name: T}, job)  # T is in current's frame
+                why = _recovery_problem(rec, name, min_obs, max_err, job)
+                if why:
+                    tried.append(f"{method}: {why}")
+                    continue
+                current = rec
+                recovered[name] = {"method": method, "observations": _observations(rec, name)}
+                break
+            if name in recovered:
+                todo.remove(name)
+                progress = True
+            else:
+                reasons.setdefault(name, {})[costly] = "; ".join(tried)
+            emit("progress", done=len(recovered), total=len(job["names"]))
+            if progress and costly:
+                break  # back to the cheap candidates with the new image's points
+        if progress:
+            costly = False
+        elif costly:
+            break
+        else:
+            costly = True
+    for name in todo:
+        rejected[name] = "; ".join(r for r in (reasons.get(name, {}).get(False), reasons.get(name, {}).get(True)) if r)
+    if recovered:
+        _write_model(current, out)
+    return {"recovered": recovered, "rejected": rejected, "registered": int(current.num_reg_images()),
+            **({"path": str(out)} if recovered else {})}
+
+
+def _candidates(cache, model, mopts, db: str, ids: dict, name: str, tried: list, job: dict, costly: bool):
+    """(method, cam_from_world [3,4]) candidates for `name` in `model`'s frame: absolute pose and the
+    table-plane homography with each registered image it matches (most matches first); with `costly`
+    structure-less resectioning instead. Failures are appended to `tried`."""
+    import pycolmap
+
+    seed = int(job.get("seed", 0))
+    tries = [("absolute", seed), ("plane_homography", seed)]
+    if costly:
+        # structure-less resectioning of a weakly connected image depends on its RANSAC draws (cake
+        # frame000069: 11 or 47 observations, depending on the random state): a few seeded tries
+        tries = [("structure_less", seed + k) for k in range(int(job.get("structure_less_tries", 3)))]
+    for method, s in tries:
+        if method == "plane_homography":
+            yield from _plane_homography_candidates(model, db, ids, name, tried, job)
+            continue
+        pycolmap.set_random_seed(s)  # COLMAP's RANSAC draws from a process-wide generator
+        mopts.random_seed = s
+        if method == "structure_less" and s != seed:
+            method = f"structure_less (seed {s})"
+        try:
+            T = _candidate_pose(cache, model, mopts, ids[name], method.split(" ")[0])
+        except (RuntimeError, ValueError) as e:  # a failed COLMAP check: this candidate only
+            tried.append(f"{method}: {e}")
+            continue
+        if T is None:
+            tried.append(f"{method}: no pose")
+            continue
+        yield method, T
+
+
+def _plane_homography_candidates(model, db: str, ids: dict, name: str, tried: list, job: dict):
+    """Poses of `name` from the homography its matches with a registered image induce through the table
+    plane. On a nearly planar tabletop (plate, tray, ground) the 2D-2D matches fit a homography, which the
+    relative-pose and absolute-pose solvers turn into a mirrored or parallax-free pose; but with the plane
+    known in the model (`fit_table_plane`), H = R + t n^T / d has one decomposition whose normal is the
+    known one, and d (the plane's distance from the registered camera) fixes the scale of t. A solution
+    whose normal is more than `max_normal_deg` (20) off the known one is not used."""
+    import numpy as np
+    import pycolmap
+
+    from splattwin.errors import InputError
+    from splattwin.poses.sfm import _result_from_reconstruction
+    from splattwin.poses.table import fit_table_plane
+
+    try:
+        import cv2
+    except ImportError:  # the other candidates still run
+        tried.append("plane_homography: OpenCV not available")
+        return
+    res = _result_from_reconstruction(model, [], {}, Path(job["image_root"]))
+    if len(res.cameras) < 3:
+        return
+    try:
+        plane = fit_table_plane(res.points_xyz, np.array([c.center for c in res.cameras.values()]),
+                                seed=int(job.get("seed", 0)))
+    except InputError as e:
+        tried.append(f"plane_homography: no table plane ({e.problem})")
+        return
+    max_normal = float(job.get("max_normal_deg", 20.0))
+    min_inliers = int(job.get("min_homography_inliers", 15))
+    reg = {model.image(i).name: model.image(i) for i in model.reg_image_ids()}
+    with pycolmap.Database.open(db) as d:
+        links = []
+        for ref in reg:
+            m = np.asarray(d.read_two_view_geometry(ids[ref], ids[name]).inlier_matches).reshape(-1, 2)
+            if len(m) >= min_inliers:
+                links.append((len(m), ref, m))
+        links.sort(key=lambda x: (-x[0], x[1]))
+        kp = {n: d.read_keypoints(ids[n])[:, :2].astype(np.float64) for n in [name] + [r for _, r, _ in links]}
+        cid = d.read_image(ids[name]).camera_id  # the model may not hold the unregistered image
+        cam2 = model.camera(cid) if cid in model.cameras else d.read_camera(cid)
+    if not links:
+        tried.append(f"plane_homography: no registered image with >= {min_inliers} verified matches")
+        return
+    for _, ref, m in links:
+        im = reg[ref]
+        T1 = im.cam_from_world().matrix()
+        R1, t1 = T1[:, :3], T1[:, 3]
+        # the plane n.X + d = 0 (world) in ref's camera frame as n_c.x = dist, dist > 0
+        n_c, d_c = -(R1 @ plane.normal), plane.d - plane.normal @ (R1.T @ t1)
+        if d_c < 0:
+            n_c, d_c = -n_c, -d_c
+        cam1 = model.camera(im.camera_id)
+        u1 = np.asarray(cam1.cam_from_img(kp[ref][m[:, 0]]), np.float64)[:, :2]
+        u2 = np.asarray(cam2.cam_from_img(kp[name][m[:, 1]]), np.float64)[:, :2]
+        H, mask = cv2.findHomography(u1, u2, cv2.RANSAC, float(job.get("homography_max_error_px", 3.0))
+                                     / float(cam1.mean_focal_length()))
+        if H is None or int(mask.sum()) < min_inliers:
+            tried.append(f"plane_homography via {ref}: {0 if mask is None else int(mask.sum())} homography inliers")
+            continue
+        _, Rs, ts, ns = cv2.decomposeHomographyMat(H, np.eye(3))
+        off = [float(np.degrees(np.arccos(np.clip(np.ravel(nn) @ n_c, -1, 1)))) for nn in ns]
+        k = int(np.argmin(off))
+        if off[k] > max_normal:
+            tried.append(f"plane_homography via {ref}: no decomposition with the table's normal "
+                         f"(best {off[k]:.0f} deg off)")
+            continue
+        R, t = Rs[k], np.ravel(ts[k]) * d_c  # x2 = R x1 + t, t/d from OpenCV
+        yield f"plane_homography via {ref}", np.hstack([R @ R1, (R @ t1 + t)[:, None]])
+
+
+def _candidate_pose(cache, model, mopts, image_id: int, method: str):
+    """cam_from_world [3,4] of `image_id` registered into a copy of `model` by `method`, or None."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(model)
+    mapper = pycolmap.IncrementalMapper(cache)
+    mapper.begin_reconstruction(rec)
+    try:
+        if method == "absolute":
+            ok = mapper.register_next_image(mopts, image_id)
+        else:
+            ok = mapper.register_next_structure_less_image(mopts, image_id)
+        return mapper.reconstruction.image(image_id).cam_from_world().matrix() if ok else None
+    finally:
+        mapper.end_reconstruction(True)
+
+
+def _observations(rec, name: str) -> int:
+    return int(next(rec.image(i) for i in rec.reg_image_ids() if rec.image(i).name == name).num_points3D)
+
+
+def _recovery_problem(rec, name: str, min_obs: int, max_err: float, job: dict) -> str:
+    """Why the re-registered `name` in the refined model `rec` is not trusted ("" if it is)."""
+    from splattwin.poses.sanity import SanityOptions, check_registration
+    from splattwin.poses.sfm import _result_from_reconstruction
+
+    if name not in {rec.image(i).name for i in rec.reg_image_ids()}:
+        return "lost in the refinement"
+    if not _image_ok(rec, name, min_obs, max_err):
+        return f"observes {_observations(rec, name)} points (need >= {min_obs} within {max_err:g} px)"
+    res = _result_from_reconstruction(rec, [], {}, Path(job["image_root"]))
+    obs = {rec.image(i).name: int(rec.image(i).num_points3D) for i in rec.reg_image_ids()}
+    chk = check_registration(res.cameras, obs, res.points_xyz, SanityOptions(min_observations=min_obs),
+                             seed=int(job.get("seed", 0)))
+    if chk.dropped:
+        return "fails the registration check: " + "; ".join(f"{n}: {w}" for n, w in sorted(chk.dropped.items()))
+    twin = _coincident(res.cameras, name, float(job.get("min_baseline_frac", 0.05)),
+                       float(job.get("max_turn_deg", 10.0)))
+    if twin:
+        return twin
+    return _out_of_order(res.cameras, res.points_xyz, name, job.get("frame_order") or [],
+                         float(job.get("order_margin_deg", 10.0)), int(job.get("seed", 0)))
+
+
+def _out_of_order(cameras: dict, points, name: str, order: list[str], margin_deg: float, seed: int) -> str:
+    """For frames of a walk around the scene (`order`: the names in capture order): the azimuth of `name`
+    about the point the cameras look at (in the table plane) must lie between those of its registered
+    predecessor and successor, within `margin_deg`. Applies only when the other registered cameras'
+    azimuths advance monotonically with the frame order (< 180 deg per step); "" if it holds or does
+    not apply."""
+    import numpy as np
+
+    from splattwin.errors import InputError
+    from splattwin.poses.sanity import _nearest_to_axes
+    from splattwin.poses.table import fit_table_plane
+
+    seq = [n for n in order if n in cameras]
+    if name not in seq or len(seq) < 5:
+        return ""
+    k = seq.index(name)
+    if k == 0 or k == len(seq) - 1:
+        return ""  # an end of the walk: no interval to lie in
+    others = [n for n in seq if n != name]
+    try:
+        plane = fit_table_plane(np.asarray(points, np.float64).reshape(-1, 3),
+                                np.array([cameras[n].center for n in others]), seed=seed)
+    except InputError:
+        return ""
+    target = _nearest_to_axes([cameras[n] for n in others])
+    if target is None:
+        return ""
+    nrm = plane.normal
+    e1 = np.cross(nrm, [1.0, 0.0, 0.0] if abs(nrm[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(nrm, e1)
+
+    def az(n: str) -> float:
+        v = cameras[n].center - target
+        return float(np.degrees(np.arctan2(v @ e2, v @ e1)))
+
+    steps = [(az(b) - az(a) + 180.0) % 360.0 - 180.0 for a, b in zip(others, others[1:])]
+    sign = np.sign(np.sum(steps))
+    if sign == 0 or any(np.sign(st) != sign for st in steps):
+        return ""  # not a walk in one direction: no order to check
+    prev, nxt = seq[k - 1], seq[k + 1]
+    span = ((az(nxt) - az(prev)) * sign) % 360.0
+    at = ((az(name) - az(prev)) * sign) % 360.0
+    if at <= span + margin_deg or at >= 360.0 - margin_deg:
+        return ""
+    return (f"out of the capture order: {at:.0f} deg around the scene from {prev}, while {nxt} (the next "
+            f"registered frame) is {span:.0f} deg on")
+
+
+def _coincident(cameras: dict, name: str, min_baseline_frac: float, max_turn_deg: float) -> str:
+    """A camera placed (nearly) at another's centre but turned by more than `max_turn_deg`: a hand-held
+    capture does not turn in place between views SfM had to register separately, while a homography
+    (the plate and tray are nearly planar) is explained by exactly such a pure rotation. Distances are
+    relative to the median distance between camera centres. "" if none."""
+    import numpy as np
+
+    C = {n: c.center for n, c in cameras.items()}
+    others = [n for n in C if n != name]
+    if len(others) < 2:
+        return ""
+    pair = [float(np.linalg.norm(C[a] - C[b])) for i, a in enumerate(list(C)) for b in list(C)[i + 1:]]
+    scale = float(np.median(pair)) or 1.0
+    for m in others:
+        dist = float(np.linalg.norm(C[name] - C[m])) / scale
+        R = cameras[name].T_world_cam[:3, :3].T @ cameras[m].T_world_cam[:3, :3]
+        turn = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+        if dist < min_baseline_frac and turn > max_turn_deg:
+            return (f"placed at the centre of {m} ({dist:.3f} x the median camera distance) but turned "
+                    f"{turn:.0f} deg: a parallax-free (homography) registration")
+    return ""
+
+
 def _copy_pose(dst, src, image_id: int) -> None:
     T = src.image(image_id).cam_from_world().matrix()
     _set_pose(dst, image_id, T)
@@ -387,7 +674,7 @@ def _copy_pose(dst, src, image_id: int) -> None:
 
 STEPS: dict[str, Callable[[dict], dict]] = {
     "extract": step_extract, "match": step_match, "map": step_map, "triangulate": step_triangulate,
-    "merge": step_merge, "drop": step_drop,
+    "merge": step_merge, "drop": step_drop, "recover": step_recover,
 }
 
 

@@ -25,7 +25,12 @@ Registration sanity check (`check_registration`, `splattwin.poses.sanity`): afte
 merge) images registered with too few observations, or posed inconsistently with a tabletop capture (at or
 below the table plane, looking up or away from the scene the others look at), are dropped from the model
 (de-registered, then bundle adjustment again) and reported with the reason; only the images that pass
-count as registered, so the retries go on while any is dropped.
+count as registered, so the retries go on while any is dropped. After the attempts, each dropped image the
+final model lacks is re-registered against that trusted model (`recover_dropped`: absolute pose from its
+matches to the model's points, the homography its matches induce through the model's table plane, else
+structure-less resectioning; refined, and kept only if it passes the check again, is no parallax-free
+copy of another camera and, for numbered video frames walking around the scene, lies between its
+neighbouring frames); the "recover" entry of the attempts says what came back and how.
 
 The default thresholds suit sparse captures (8-20 views): a lower SIFT peak threshold and a looser ratio
 test than COLMAP's (more matches per wide-baseline pair), fewer inliers for the initial pair and for
@@ -93,6 +98,10 @@ class SfmOptions:
       looking up while the others look down, or away from the scene) are dropped from the model, reported
       with the reason and count as unregistered (so the retries go on).
     min_observations: that check's minimum number of model points an image must observe.
+    recover_dropped: after the attempts, re-register each image the check dropped (in any attempt) and the
+      final model lacks, against the final (trusted) model: absolute pose, table-plane homography, else
+      structure-less resectioning, refined and kept only if it passes the check again (colmap_worker's
+      recover step).
     min_registered: fewer registered images than this -> InputError. None = all images but at most 3
       missing, >= 3.
     num_threads: CPU threads for extraction, matching and mapping; 0 = all cores.
@@ -117,6 +126,7 @@ class SfmOptions:
     check_registration: bool = True    # drop registered images whose poses fail `splattwin.poses.sanity`
     min_observations: int = 30         # the sanity check's minimum of model points an image observes
                                        # (COLMAP's default abs_pose_min_num_inliers; see poses.sanity)
+    recover_dropped: bool = True      # re-register the images the check dropped against the trusted model
     min_registered: int | None = None
     num_threads: int = 0
     max_memory_gib: float = 2.0
@@ -401,6 +411,25 @@ def mapping_options(opts: SfmOptions, n: int, mode: str = "default", threads: in
     return o
 
 
+def frame_order(names: list[str], opts: SfmOptions) -> list[str]:
+    """The names in capture order when they are numbered frames (each ends in a number, as a video's
+    extracted frames do: frame000069.jpg), sorted by that number; [] when they are not (or ordered=False),
+    so order-based checks do not apply."""
+    import re
+
+    if opts.ordered is False:
+        return []
+    nums = {}
+    for n in names:
+        m = re.search(r"(\d+)\D*$", Path(n).name)
+        if m is None:
+            return []
+        nums[n] = int(m.group(1))
+    if len(set(nums.values())) != len(names):
+        return []
+    return sorted(names, key=lambda n: nums[n])
+
+
 def explain_failures(names: list[str], registered: set[str], keypoints: dict[str, int],
                      verified: dict[tuple[str, str], int], min_inliers: int, sub_models: list[set[str]] | None = None,
                      min_features: int = 100) -> dict[str, str]:
@@ -468,6 +497,7 @@ class _Run:
         self.pairs_file = pairs_file
         self.max_side = max(max(g.width, g.height) for g in self.groups)
         self.dropped: dict[str, str] = {}  # name -> why the sanity check dropped it (any attempt)
+        self.recovery: dict = {}  # the recover step's result (colmap_worker.step_recover)
 
     def _add(self, key: str, stats: colmap_process.StepStats) -> None:
         self.timings[key] = self.timings.get(key, 0.0) + stats.seconds
@@ -591,6 +621,32 @@ class _Run:
         io.write_json(info, {"path": str(out), "dropped": sorted(names)})
         return out
 
+    def recover(self, db: Path, base: Path, names: list[str], out: Path, label: str) -> dict:
+        """Re-register `names` against the model `base` (colmap_worker's recover step); its result dict
+        ({} if the step failed: recovery is a bonus, the trusted model stays)."""
+        info = out.parent / f"{out.name}.json"
+        if info.is_file():
+            self.recovery = json.loads(info.read_text())
+            return self.recovery
+        job = {"step": "recover", "db": str(db), "image_root": str(self.image_root), "out": str(out),
+               "base": str(base), "names": list(names), "frame_order": frame_order(self.names, self.opts),
+               "min_observations": self.opts.min_observations, "seed": self.opts.seed,
+               "options": mapping_options(self.opts, len(self.names), "relaxed", self.threads)}
+        try:
+            res, st = colmap_process.run_step(job, self.work, self.progress, label, total=len(names),
+                                              cleanup=[out])
+        except colmap_process.StepError as e:
+            log.warning("SfM: re-registering dropped images failed: %s", e.message)
+            return {}
+        self._add("map", st)
+        for n, why in res.get("rejected", {}).items():
+            log.info("SfM: %s not re-registered: %s", n, why)
+        for n, how in res.get("recovered", {}).items():
+            log.info("SfM: %s re-registered (%s, %d observations)", n, how["method"], how["observations"])
+        io.write_json(info, res)
+        self.recovery = res
+        return res
+
     def merge(self, db: Path, base: Path, donors: list[Path], out: Path, label: str) -> Path | None:
         """The base model completed with the images the donor models registered (see colmap_worker's
         step_merge); None if nothing could be added."""
@@ -674,6 +730,9 @@ def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | No
         for n in res.unregistered:  # registered by some attempt, but its pose failed the sanity check
             if n in run.dropped:
                 res.failures[n] = f"registered, but dropped by the registration sanity check: {run.dropped[n]}"
+        for n, why in run.recovery.get("rejected", {}).items():
+            if n in res.failures:
+                res.failures[n] += f"; re-registering it against the final model failed ({why})"
         res.registration_check = outcome.check
         # final model: written beside, then renamed; `done` (with the report) marks it complete
         tmp = work / "sparse.tmp"
@@ -737,6 +796,7 @@ class AttemptOutcome:
     paths: list[Path] = field(default_factory=list)       # all its models' folders
     dropped: dict[str, str] = field(default_factory=dict)  # name -> why the sanity check dropped it
     check: dict = field(default_factory=dict)              # the final RegistrationCheck.to_dict()
+    recovery: dict = field(default_factory=dict)           # the recover step's result (recovered, rejected)
 
 
 def run_plan(plan: list[Attempt], num_images: int, execute, say=lambda text: None,
@@ -831,9 +891,60 @@ def _run_attempts(run: _Run, bar: StageProgress) -> tuple[AttemptOutcome, Attemp
             io.write_json(log_path, done_log)
 
     try:
-        return run_plan(plan, n, execute, say=bar.message, record=record, complete=complete)
+        best, attempt = run_plan(plan, n, execute, say=bar.message, record=record, complete=complete)
     except InputError as e:
         raise InputError(e.problem, run.image_root) from e
+    return _recovered(run, best, attempt, done_log, log_path)
+
+
+def _recovered(run: _Run, best: AttemptOutcome, attempt: Attempt, done_log: list[dict],
+               log_path: Path) -> tuple[AttemptOutcome, Attempt]:
+    """`best` with the images the sanity check dropped (in any attempt) that it lacks re-registered
+    against it (colmap_worker's recover step), checked again; `best` itself when nothing was recovered.
+    The step's result is logged as the attempt "recover" (attempts.json, poses_report.json)."""
+    import dataclasses
+
+    import pycolmap
+
+    from splattwin.poses.sanity import SanityOptions, check_registration
+
+    if not (run.opts.check_registration and run.opts.recover_dropped) or best.path is None or best.db is None:
+        return best, attempt
+    have = {best.rec.image(i).name for i in best.rec.reg_image_ids()}
+    names = [n for n in run.names if n in run.dropped and n not in have]
+    if not names:
+        return best, attempt
+    t0 = time.perf_counter()
+    out = run.work / "models" / "recovered"
+    res = run.recover(best.db, best.path, names, out, "SfM: re-registering dropped images")
+    entry = {"name": "recover", "why": f"re-register {len(names)} dropped image(s) against the {attempt.name} "
+             "model (absolute pose, table-plane homography, else structure-less), kept only if they pass the check",
+             "tried": names, "recovered": res.get("recovered", {}), "rejected": res.get("rejected", {}),
+             "registered": best.registered, "seconds": round(time.perf_counter() - t0, 2)}
+    if res.get("recovered"):
+        rec = pycolmap.Reconstruction(str(out))
+        full = _result_from_reconstruction(rec, [], {}, run.image_root)
+        obs = {rec.image(i).name: int(rec.image(i).num_points3D) for i in rec.reg_image_ids()}
+        chk = check_registration(full.cameras, obs, full.points_xyz,
+                                 SanityOptions(min_observations=run.opts.min_observations), seed=run.opts.seed)
+        if not chk.dropped:  # the worker checked the same; a disagreement keeps the trusted model
+            check = chk.to_dict()
+            check["dropped"] = {n: w for n, w in best.dropped.items() if n not in res["recovered"]}
+            check["recovered"] = res["recovered"]
+            best = dataclasses.replace(best, rec=rec, registered=int(rec.num_reg_images()), path=out,
+                                       paths=[out] + best.paths, check=check, recovery=res,
+                                       dropped=check["dropped"])
+            attempt = Attempt(f"{attempt.name}+recovered", f"{attempt.why}, dropped images re-registered",
+                              attempt.features, attempt.cameras, attempt.matching, attempt.mapping)
+            for n in res["recovered"]:
+                run.dropped.pop(n, None)
+        else:
+            entry["rejected_by_parent_check"] = chk.dropped
+    entry["registered"] = best.registered
+    if not any(e.get("name") == "recover" for e in done_log):
+        done_log.append(entry)
+        io.write_json(log_path, done_log)
+    return best, attempt
 
 
 def _checked(run: _Run, out: AttemptOutcome, tag: str, label: str) -> AttemptOutcome:

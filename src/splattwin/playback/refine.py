@@ -1,0 +1,212 @@
+"""Object-focused refinement of a twin's splats: a short extra training phase on the labelled objects only.
+
+Why: the 3DGS run spends its Gaussian budget where the photometric gradient is, mostly on the table and
+the surroundings; a small, finely printed object ends up with a few hundred Gaussians that blur its
+print (demo twin: the blue box fits its own training photos to 26 dB, the others to 30-31). Once the
+robot moves it, the blur is seen from new distances and directions (bench/objects_bounds.py).
+
+What: every object Gaussian the playback moves (`DynamicScene.load`: the object's splats.ply plus what it
+carries) is trained again on the training photos with the rest of the scene frozen, rendered in one
+depth-sorted pass as the splat stage trained it: only the objects' parameters get gradients, so every
+step's loss works on them. Densification (3DGS clone/split, `splat.densify`) runs on the objects alone
+with a lower gradient threshold and its own budget (`RefineOptions.max_factor` times the object's
+count), so the extra Gaussians go where the object's print is under-reconstructed; selected Gaussians
+larger than `split_scale` (1.5 mm) split, since the splat stage's rule (1 % of the scene scale, ~7 mm)
+would clone nearly every object Gaussian onto itself, which adds no resolution (measured: 1500 steps of
+clones gave +0.12 dB on the moved objects, splits +0.27). `dc_only` trains the objects' degree-0 colour
+alone (a moved object is drawn with it: `playback.scene`'s view fade); it measured no better (21.24 vs
+21.26 dB), so it is off.
+
+Measured (bench/photoreal.py, demo twin of seed 0, moved objects' PSNR after the three-step task, the
+same rollout): classic splats 20.99 -> 21.26 dB (1500 steps); antialiased splats 21.03 -> 21.66 dB (800 or
+1500 steps; an 8x budget 21.64), the whole final image 28.51 -> 28.55, the held-out start views 34.10 ->
+34.38. What it does not fix: the blue box stays near 19.8 dB after the task (vs ~26 from the held-out
+views at the start): one of its faces, which two final views see at cos 0.72-0.74, no training view saw
+at more than cos 0.45 (bench/objects_bounds.py has the bounds).
+
+Output, in the twin folder: refined/point_cloud.ply (background as before + the refined objects, in the
+twin frame), refined/labels.npy, and each refined object's splats.ply rewritten (object frame); twin.json's
+`splats` / `labels` point to the refined files, so the playback, viewer and exports use them. The splat
+stage's own output is left untouched.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+
+from splattwin.errors import InputError
+from splattwin.playback.options import RefineOptions
+
+log = logging.getLogger(__name__)
+
+REFINED_DIR = "refined"
+
+
+def _object_sets(twin_dir: Path):
+    """(DynamicScene without fills, manifest, {name: world-frame Gaussians the playback moves at its twin
+    pose}, {name: label})."""
+    from splattwin.playback.scene import DynamicScene
+    from splattwin.twin.manifest import Manifest
+    from splattwin.twin.splats import transform_gaussians
+
+    scene = DynamicScene.load(twin_dir, fill_holes=False)
+    man = Manifest.load(twin_dir)
+    world = {n: transform_gaussians(g, scene.T_world_obj0[n]) for n, g in scene.objects.items()}
+    label_of = {o.name: int(o.label) for o in man.objects if o.name in scene.objects}
+    return scene, man, world, label_of
+
+
+def refine_objects(twin_dir: str | Path, frames, opts: RefineOptions | None = None, resolution: int = 0,
+                   cpu_max_side: int = 640, progress: bool = False) -> dict:
+    """Refine the twin's object Gaussians on the training `frames` (capture `Frame`s with poses, in the twin
+    frame); writes the refined splats into the twin (module docstring). -> statistics dict."""
+    import torch
+
+    from splattwin.io import write_json
+    from splattwin.playback.scene import concat
+    from splattwin.runtime import torch_threads
+    from splattwin.splat import densify
+    from splattwin.splat.config import LearningRates
+    from splattwin.splat.gaussians import Gaussians
+    from splattwin.splat.init import scene_center_and_scale
+    from splattwin.splat.losses import photometric_loss
+    from splattwin.splat.model import GaussianModel
+    from splattwin.splat.rasterization import rasterization
+    from splattwin.splat.resolution import resolve as resolve_resolution
+    from splattwin.splat.trainer import EPS2D, load_views
+
+    opts = opts or RefineOptions(iters=800)
+    twin_dir = Path(twin_dir)
+    if opts.iters <= 0:
+        raise ValueError(f"iters must be positive, got {opts.iters}")
+    if not frames:
+        raise InputError("no training frames to refine the objects on", twin_dir)
+    scene, man, world, label_of = _object_sets(twin_dir)
+    if not world:
+        return {"objects": {}, "iters": 0}
+    names = sorted(world)
+    deg = scene.sh_degree
+    views = load_views(frames, resolve_resolution(resolution, cpu_max_side, "cpu"))
+    center, scale = scene_center_and_scale([v.camera for v in views])
+    # the frozen rest of the scene, in one pass with the objects as the splat stage trained it
+    rest = concat([g for g in (scene.backdrop, scene.background) if g is not None], deg)
+    fz = {k: torch.tensor(np.asarray(v), dtype=torch.float32) for k, v in
+          (("means", rest.means), ("quats", rest.quats), ("scales", rest.scales), ("opacities", rest.opacities),
+           ("sh", rest.with_sh_degree(deg).sh))}
+    lrs = LearningRates(means=opts.means_lr)
+    models, states, caps = {}, {}, {}
+    for n in names:
+        g = world[n].with_sh_degree(deg)
+        if opts.dc_only:
+            g = Gaussians(g.means, g.quats, g.scales, g.opacities,
+                          np.concatenate([g.sh[:, :1], np.zeros_like(g.sh[:, 1:])], 1))
+        models[n] = GaussianModel.from_gaussians(g, max_sh_degree=deg, lrs=lrs, scene_scale=scale,
+                                                 scene_center=torch.tensor(center))
+        if opts.dc_only:
+            models[n].params["shN"].requires_grad_(False)
+        states[n] = densify.new_state(len(g))
+        caps[n] = int(math.ceil(opts.max_factor * len(g)))
+    start_counts = {n: len(models[n]) for n in names}
+    dcfg = {n: densify.DensifyConfig(grad_threshold=opts.grad_threshold, refine_every=opts.refine_every,
+                                     reset_every=0, max_gaussians=caps[n],
+                                     grow_scale3d=opts.split_scale / scale) for n in names}
+    viewmats = torch.tensor(np.stack([v.camera.T_cam_world for v in views]), dtype=torch.float32)
+    Ks = torch.tensor(np.stack([v.camera.K for v in views]), dtype=torch.float32)
+    bg = torch.zeros(1, 3)
+    gen = torch.Generator().manual_seed(opts.seed)
+    order: list[int] = []
+    stop = int(opts.refine_stop * opts.iters)
+    ema = math.nan
+    with torch_threads(1):
+        for step in range(opts.iters):
+            if not order:
+                order = torch.randperm(len(views), generator=gen).tolist()
+            i = order.pop(0)
+            acts = [models[n].activated() for n in names]
+            for n in names:
+                models[n].set_step(step, opts.iters)
+            cat = lambda k: torch.cat([fz[k]] + [a[k] for a in acts])  # noqa: E731
+            img, _, meta = rasterization(cat("means"), cat("quats"), cat("scales"), cat("opacities"), cat("sh"),
+                                         viewmats[i:i + 1], Ks[i:i + 1], views[i].camera.width,
+                                         views[i].camera.height, sh_degree=deg, backgrounds=bg,
+                                         backend="cpu", eps2d=EPS2D,
+                                         rasterize_mode=scene.rasterize_mode)
+            loss = photometric_loss(img[0], views[i].image, opts.ssim_lambda)
+            loss.backward()
+            for n in names:
+                models[n].step()
+                models[n].zero_grad()
+            lv = float(loss.detach())
+            ema = lv if math.isnan(ema) else 0.95 * ema + 0.05 * lv
+            if step < stop:
+                g2d, radii = meta["means2d"].grad, meta["radii"]
+                o = len(rest)
+                for n in names:
+                    k = len(models[n])
+                    densify.accumulate(states[n], g2d[:, o:o + k], radii[:, o:o + k], views[i].camera.width,
+                                       views[i].camera.height)
+                    o += k
+                if (step + 1) % opts.refine_every == 0:
+                    for n in names:
+                        densify.refine(models[n], states[n], dcfg[n], step + 1, gen)
+                        if opts.dc_only:
+                            models[n].params["shN"].requires_grad_(False)
+            if progress and (step + 1) % 100 == 0:
+                log.info("refine step %d: loss %.4f, %s", step + 1, ema, {n: len(models[n]) for n in names})
+    refined = {n: models[n].to_gaussians() for n in names}
+    _write(twin_dir, scene, man, refined, label_of, deg)
+    stats = {"iters": opts.iters, "loss": ema,
+             "objects": {n: {"before": start_counts[n], "after": len(refined[n])} for n in names}}
+    write_json(twin_dir / REFINED_DIR / "refine.json", stats)
+    return stats
+
+
+def _write(twin_dir: Path, scene, man, refined: dict, label_of: dict[str, int], deg: int) -> None:
+    """refined/point_cloud.ply + labels.npy (the frozen rest, then each refined object), objects' splats.ply,
+    twin.json pointing to them."""
+    from splattwin.io import atomic_path
+    from splattwin.playback.scene import concat
+    from splattwin.splat.gaussians import Gaussians
+    from splattwin.twin.splats import transform_gaussians
+
+    names = sorted(refined)
+    parts = [g for g in (scene.backdrop, scene.background) if g is not None and len(g)]
+    rest = concat(parts, deg)
+    # the rest keeps the labels it had: object-labelled Gaussians there are the objects' residue (cleaned
+    # out of splats.ply), which the playback hides once their object moved
+    labels = [_labels_of(rest.means, Gaussians.load_ply(twin_dir / man.splats).means,
+                         np.load(twin_dir / man.labels, allow_pickle=False) if man.labels else None)]
+    for n in names:
+        parts.append(refined[n])
+        labels.append(np.full(len(refined[n]), label_of[n], np.int64))
+    full = concat(parts, deg)
+    out = twin_dir / REFINED_DIR
+    out.mkdir(parents=True, exist_ok=True)
+    full.save_ply(out / "point_cloud.ply")
+    with atomic_path(out / "labels.npy") as tmp:
+        with open(tmp, "wb") as f:
+            np.save(f, np.concatenate(labels))
+    for o in man.objects:
+        if o.name in refined:
+            g = transform_gaussians(refined[o.name], np.linalg.inv(scene.T_world_obj0[o.name]))
+            g.save_ply(twin_dir / o.splat_ply)
+    man.splats = f"{REFINED_DIR}/point_cloud.ply"
+    man.labels = f"{REFINED_DIR}/labels.npy"
+    man.save(twin_dir)
+
+
+def _labels_of(means: np.ndarray, full_means: np.ndarray, full_labels: np.ndarray | None) -> np.ndarray:
+    """Labels of Gaussians taken unchanged from the full set (`means` [M,3] coincide with rows of
+    `full_means`); 0 without labels."""
+    if full_labels is None or len(means) == 0:
+        return np.zeros(len(means), np.int64)
+    from scipy.spatial import cKDTree
+
+    d, idx = cKDTree(full_means).query(means)
+    if not np.all(d < 1e-9):
+        raise ValueError("Gaussians of the rest of the scene do not coincide with the twin's splats")
+    return np.asarray(full_labels, np.int64)[idx]
