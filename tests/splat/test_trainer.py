@@ -102,7 +102,9 @@ def synth(tmp_path_factory) -> Path:
 
 
 def tiny_config(**kw) -> TrainConfig:
-    base = dict(iters=120, sh_degree=1, checkpoint_every=0, progress=False, backend="cpu", max_gaussians=2000)
+    # sparse_views=0: these tests pin the dense defaults (the sparse profile has its own tests)
+    base = dict(iters=120, sh_degree=1, checkpoint_every=0, progress=False, backend="cpu", max_gaussians=2000,
+                sparse_views=0)
     base.update(kw)
     return TrainConfig(**base)
 
@@ -478,3 +480,40 @@ def test_first_and_later_training_in_a_process_agree(synth, tmp_path):
     assert r.returncode == 0, r.stderr[-3000:]
     out = json.loads(r.stdout.strip().splitlines()[-1])
     assert out == {"seen": [[1], [1]], "after": 2, "equal": True}
+
+
+def test_sparse_profile_resolves_only_automatic_values():
+    from splattwin.splat.config import SPARSE_DENSIFY_GRAD, SPARSE_SPHERE_POINTS
+
+    cap = 48_000
+    cfg, line = TrainConfig(max_gaussians=cap).resolved(7)
+    assert (cfg.sh_degree, cfg.bg_sphere_points, cfg.densify_grad) == (0, SPARSE_SPHERE_POINTS, SPARSE_DENSIFY_GRAD)
+    assert cfg.densify_config().grad_threshold == SPARSE_DENSIFY_GRAD and "7 training views" in line
+    dense, line = TrainConfig(max_gaussians=cap).resolved(15)
+    assert (dense.sh_degree, dense.bg_sphere_points, dense.densify_config().grad_threshold) == (3, 0, 2e-4)
+    assert line == ""
+    # what the user set stays; --sparse-views 0 turns the profile off
+    mine, _ = TrainConfig(max_gaussians=cap, sh_degree=2, bg_sphere_points=0, densify_grad=3e-4).resolved(7)
+    assert (mine.sh_degree, mine.bg_sphere_points, mine.densify_config().grad_threshold) == (2, 0, 3e-4)
+    off, line = TrainConfig(max_gaussians=cap, sparse_views=0).resolved(3)
+    assert (off.sh_degree, off.bg_sphere_points) == (3, 0) and line == ""
+    # the sphere never takes more than a tenth of a small cap
+    assert TrainConfig(max_gaussians=2000).resolved(5)[0].bg_sphere_points == 200
+
+
+def test_sparse_capture_trains_with_the_profile(synth, tmp_path):
+    """8 training views (< 10): SH degree 0, the background sphere, the sparse threshold; all recorded."""
+    import json
+
+    cfg = TrainConfig(iters=40, checkpoint_every=0, progress=False, backend="cpu", max_gaussians=2000)
+    res = train(load_dataset(synth), tmp_path / "out", cfg)
+    info = json.loads((tmp_path / "out" / "train.json").read_text())
+    assert info["profile"].startswith("sparse capture (8 training views")
+    assert info["config"]["sh_degree"] == 0 and info["config"]["bg_sphere_points"] == 200
+    assert info["config"]["densify_cfg"]["grad_threshold"] == 6e-4
+    assert res.gaussians.sh_degree == 0
+    dense = TrainConfig(iters=40, checkpoint_every=0, progress=False, backend="cpu", max_gaussians=2000,
+                        sparse_views=0)
+    train(load_dataset(synth), tmp_path / "dense", dense)
+    info = json.loads((tmp_path / "dense" / "train.json").read_text())
+    assert info["profile"] == "dense (defaults)" and info["config"]["sh_degree"] == 3

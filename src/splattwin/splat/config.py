@@ -6,7 +6,7 @@ Light on purpose: no torch here, so `splattwin --help` builds the training flags
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import TYPE_CHECKING
 
 from splattwin.options import option
@@ -19,6 +19,10 @@ INIT_METHODS = ("auto", "sfm", "depth", "triangulate", "random")
 APPEARANCE_MODES = ("off", "gain", "affine")      # splat/appearance.py
 BACKGROUND_MODES = ("fixed", "color", "env")      # splat/background.py
 DEPTH_MODES = ("relative", "inverse")             # splat/depth_loss.py
+# the sparse-view profile (`TrainConfig.resolved`)
+SPARSE_SPHERE_POINTS = 3000
+SPARSE_DENSIFY_GRAD = 6e-4
+DENSE_DENSIFY_GRAD = 2e-4                           # 3DGS's default
 
 
 @dataclass
@@ -107,7 +111,8 @@ class TrainConfig:
                        "available in that order)", choices=INIT_METHODS)
     init_points: int = option(0, "at most this many initial Gaussians (0: 24000 for 320x240 images, scaled "
                               "with the square root of the pixel count above)")
-    sh_degree: int = option(3, "maximum SH degree", choices=(0, 1, 2, 3))
+    sh_degree: int = option(-1, "maximum SH degree (-1: auto: 3, or 0 on a sparse capture, see --sparse-views)",
+                            choices=(-1, 0, 1, 2, 3))
     sh_interval: int = option(0, "raise the SH degree every this many steps (0: iters // 10)")
     seed: int = option(0, "seed of the view order, initialisation and split samples")
     checkpoint_every: int = option(500, "steps between checkpoints (0: none)", hashed=False)
@@ -132,13 +137,17 @@ class TrainConfig:
                                   choices=BACKGROUND_MODES)
     background_lr: float = option(1e-2, "Adam learning rate of the learnt background")
     env_size: int = option(16, "environment map height in texels (width: twice)")
-    bg_sphere_points: int = option(0, "extra initial Gaussians on a sphere around the scene, coloured from the "
-                                   "training images (0: off; 3000 gave +0.66 dB held-out on the statue photos, "
-                                   "+0.27 dB on the embedded scene, 600-step A/B)")
+    bg_sphere_points: int = option(-1, "extra initial Gaussians on a sphere around the scene, coloured from the "
+                                   "training images (-1: auto: 3000 on a sparse capture, else 0; 0: off)")
     bg_sphere_radius: float = option(3.0, "background sphere radius in scene scales (at least beyond 98 % of "
                                      "the initial points)")
     opacity_reg: float = option(0.0, "weight of a mean-opacity penalty, as gsplat's opacity_reg (0: off; 0.05 "
                                 "gave +0.27 dB / +0.009 SSIM on the embedded scene, ~15 % slower)")
+    densify_grad: float = option(0.0, "densification's threshold on a Gaussian's mean view-space gradient "
+                                 "(0: auto: 2e-4 as 3DGS, 6e-4 on a sparse capture)")
+    sparse_views: int = option(10, "a capture with fewer training views than this is sparse: --sh-degree, "
+                               "--bg-sphere-points and --densify-grad left on auto become 0, 3000 and 6e-4 "
+                               "(0: never)")
     max_gaussians: int = option(0, "cap on the Gaussian count (0: 28000 x sqrt(pixels / 320x240), "
                                 "at least 40000)")
     background: tuple[float, float, float] = option((0.0, 0.0, 0.0), "background colour (RGB in [0, 1])")
@@ -153,7 +162,34 @@ class TrainConfig:
     def densify_config(self) -> DensifyConfig:
         from splattwin.splat.densify import DensifyConfig
 
-        return self.densify_cfg or DensifyConfig.for_iterations(self.iters, self.max_gaussians)
+        if self.densify_cfg is not None:
+            return self.densify_cfg
+        d = DensifyConfig.for_iterations(self.iters, self.max_gaussians)
+        return replace(d, grad_threshold=self.densify_grad) if self.densify_grad > 0 else d
+
+    def resolved(self, n_views: int) -> tuple[TrainConfig, str]:
+        """This config with the sparse-view profile's automatic values filled in for `n_views` training
+        views, and a line saying what was chosen ('' when the capture is not sparse). Call it once
+        max_gaussians is known (the sphere takes at most a tenth of it).
+
+        Sparse profile (n_views < sparse_views): SH degree 0, a 3000-Gaussian background sphere and a 3x
+        higher densification threshold. With few views the higher SH bands and the many small Gaussians
+        that densification grows fit each photo's own view (the held-out views see streaks and floaters),
+        and the far field, seen by few views, is best started as geometry. Statue photos (7 training
+        views of 9 at 360x640, held out 000 and 016, 1500 steps): held-out 14.67 dB as dense, SH 0 15.12,
+        + sphere and a learnt environment map 15.38, + threshold 6e-4 15.66 (see the README's table)."""
+        sparse = 0 < self.sparse_views and n_views < self.sparse_views
+        auto = {"sh_degree": (self.sh_degree < 0, 0 if sparse else 3),
+                "bg_sphere_points": (self.bg_sphere_points < 0, min(SPARSE_SPHERE_POINTS, self.max_gaussians // 10)
+                                     if sparse else 0),
+                "densify_grad": (self.densify_grad <= 0, SPARSE_DENSIFY_GRAD if sparse else DENSE_DENSIFY_GRAD)}
+        chosen = {k: v for k, (is_auto, v) in auto.items() if is_auto}
+        cfg = replace(self, **chosen)
+        if not sparse or not chosen:
+            return cfg, ""
+        what = ", ".join(f"{k} {v:g}" for k, v in chosen.items())
+        return cfg, (f"sparse capture ({n_views} training views < --sparse-views {self.sparse_views}): {what} "
+                     f"(set them, or --sparse-views 0, to override)")
 
     def to_dict(self) -> dict:
         d = asdict(self)

@@ -256,8 +256,8 @@ class Trainer:
         self.out_dir = Path(out_dir)
         if self.cfg.iters <= 0:
             raise InputError(f"--iters must be positive, got {self.cfg.iters}")
-        if not 0 <= self.cfg.sh_degree <= 3:
-            raise InputError(f"--sh-degree must be 0..3, got {self.cfg.sh_degree}")
+        if not -1 <= self.cfg.sh_degree <= 3:
+            raise InputError(f"--sh-degree must be 0..3 (or -1: auto), got {self.cfg.sh_degree}")
         if self.cfg.device not in ("auto", "cpu", "cuda"):
             raise InputError(f"--device must be auto, cpu or cuda, got {self.cfg.device!r}")
         self.frames = dataset.train()
@@ -278,6 +278,9 @@ class Trainer:
             init, cap = capacity(float(np.mean([v.camera.width * v.camera.height for v in self.views])))
             self.cfg = replace(self.cfg, init_points=self.cfg.init_points if self.cfg.init_points > 0 else init,
                                max_gaussians=self.cfg.max_gaussians if self.cfg.max_gaussians > 0 else cap)
+        self.cfg, self.profile = self.cfg.resolved(len(self.views))
+        if self.profile:
+            log.info("%s", self.profile)
         self.dcfg = self.cfg.densify_config()
         if strategy is None:
             strategy = DefaultStrategy(self.dcfg) if self.cfg.densify else Strategy()
@@ -549,6 +552,7 @@ class Trainer:
             "dataset": str(self.dataset.root), "config": self.cfg.to_dict(), "strategy": self.strategy.describe(),
             "backend": self.backend, "resolution": self.resolution.record(),
             "heldout": self.dataset.meta.get("heldout"),
+            "profile": self.profile or "dense (defaults)",
             "init_method": self.init_method, "steps": self.step, "gaussians": len(g), "wall_s": round(wall, 3),
             "train_loss": loss, "train_psnr": psnr, "scene_scale": self.scene_scale,
             "views": [{"name": v.name, "width": v.camera.width, "height": v.camera.height} for v in self.views],
