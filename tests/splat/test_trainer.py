@@ -483,11 +483,13 @@ def test_first_and_later_training_in_a_process_agree(synth, tmp_path):
 
 
 def test_sparse_profile_resolves_only_automatic_values():
-    from splattwin.splat.config import SPARSE_DENSIFY_GRAD, SPARSE_SPHERE_POINTS
+    from splattwin.splat.config import SPARSE_DENSIFY_GRAD, SPARSE_SH_DEGREE, SPARSE_SPHERE_POINTS
 
     cap = 48_000
     cfg, line = TrainConfig(max_gaussians=cap).resolved(7)
-    assert (cfg.sh_degree, cfg.bg_sphere_points, cfg.densify_grad) == (0, SPARSE_SPHERE_POINTS, SPARSE_DENSIFY_GRAD)
+    assert SPARSE_SH_DEGREE < 3
+    assert (cfg.sh_degree, cfg.bg_sphere_points, cfg.densify_grad) == (SPARSE_SH_DEGREE, SPARSE_SPHERE_POINTS,
+                                                                       SPARSE_DENSIFY_GRAD)
     assert cfg.densify_config().grad_threshold == SPARSE_DENSIFY_GRAD and "7 training views" in line
     dense, line = TrainConfig(max_gaussians=cap).resolved(15)
     assert (dense.sh_degree, dense.bg_sphere_points, dense.densify_config().grad_threshold) == (3, 0, 2e-4)
@@ -502,16 +504,16 @@ def test_sparse_profile_resolves_only_automatic_values():
 
 
 def test_sparse_capture_trains_with_the_profile(synth, tmp_path):
-    """8 training views (< 10): SH degree 0, the background sphere, the sparse threshold; all recorded."""
+    """8 training views (< 10): SH degree 1, the background sphere, the sparse threshold; all recorded."""
     import json
 
     cfg = TrainConfig(iters=40, checkpoint_every=0, progress=False, backend="cpu", max_gaussians=2000)
     res = train(load_dataset(synth), tmp_path / "out", cfg)
     info = json.loads((tmp_path / "out" / "train.json").read_text())
     assert info["profile"].startswith("sparse capture (8 training views")
-    assert info["config"]["sh_degree"] == 0 and info["config"]["bg_sphere_points"] == 200
+    assert info["config"]["sh_degree"] == 1 and info["config"]["bg_sphere_points"] == 200
     assert info["config"]["densify_cfg"]["grad_threshold"] == 6e-4
-    assert res.gaussians.sh_degree == 0
+    assert res.gaussians.sh_degree == 1
     dense = TrainConfig(iters=40, checkpoint_every=0, progress=False, backend="cpu", max_gaussians=2000,
                         sparse_views=0)
     train(load_dataset(synth), tmp_path / "dense", dense)

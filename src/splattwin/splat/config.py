@@ -20,6 +20,7 @@ APPEARANCE_MODES = ("off", "gain", "affine")      # splat/appearance.py
 BACKGROUND_MODES = ("fixed", "color", "env")      # splat/background.py
 DEPTH_MODES = ("relative", "inverse")             # splat/depth_loss.py
 # the sparse-view profile (`TrainConfig.resolved`)
+SPARSE_SH_DEGREE = 1
 SPARSE_SPHERE_POINTS = 3000
 SPARSE_DENSIFY_GRAD = 6e-4
 DENSE_DENSIFY_GRAD = 2e-4                           # 3DGS's default
@@ -111,7 +112,7 @@ class TrainConfig:
                        "available in that order)", choices=INIT_METHODS)
     init_points: int = option(0, "at most this many initial Gaussians (0: 24000 for 320x240 images, scaled "
                               "with the square root of the pixel count above)")
-    sh_degree: int = option(-1, "maximum SH degree (-1: auto: 3, or 0 on a sparse capture, see --sparse-views)",
+    sh_degree: int = option(-1, "maximum SH degree (-1: auto: 3, or 1 on a sparse capture, see --sparse-views)",
                             choices=(-1, 0, 1, 2, 3))
     sh_interval: int = option(0, "raise the SH degree every this many steps (0: iters // 10)")
     seed: int = option(0, "seed of the view order, initialisation and split samples")
@@ -146,7 +147,7 @@ class TrainConfig:
     densify_grad: float = option(0.0, "densification's threshold on a Gaussian's mean view-space gradient "
                                  "(0: auto: 2e-4 as 3DGS, 6e-4 on a sparse capture)")
     sparse_views: int = option(10, "a capture with fewer training views than this is sparse: --sh-degree, "
-                               "--bg-sphere-points and --densify-grad left on auto become 0, 3000 and 6e-4 "
+                               "--bg-sphere-points and --densify-grad left on auto become 1, 3000 and 6e-4 "
                                "(0: never)")
     max_gaussians: int = option(0, "cap on the Gaussian count (0: 28000 x sqrt(pixels / 320x240), "
                                 "at least 40000)")
@@ -172,17 +173,19 @@ class TrainConfig:
         views, and a line saying what was chosen ('' when the capture is not sparse). Call it once
         max_gaussians is known (the sphere takes at most a tenth of it).
 
-        Sparse profile (n_views < sparse_views): SH degree 0, a 3000-Gaussian background sphere and a 3x
+        Sparse profile (n_views < sparse_views): SH degree 1, a 3000-Gaussian background sphere and a 3x
         higher densification threshold. With few views the higher SH bands and the many small Gaussians
         that densification grows fit each photo's own view (the held-out views see streaks and floaters),
         and the far field, seen by few views, is best started as geometry. Statue photos (7 training
         views of 9 at 360x640, held out 000 and 016; held-out dB after 1500 / 3000 steps): dense defaults
         14.67 / 14.46, SH 0 15.12 / 14.77, + sphere + learnt environment map 15.38 / 15.29 (at 2500), +
-        threshold 6e-4 15.66 / 15.49, the profile (no environment map) 15.75 / 15.52. Tried and left out:
+        threshold 6e-4 15.66 / 15.49, without the environment map 15.75 / 15.52, the same with SH degree 1
+        (the profile) 15.67 / 15.65 (SSIM 0.456). Tried and left out: a 10k sphere 15.32 at 2000,
         an anisotropy penalty (0.01, r 10) 14.58 at 1500, threshold 1e-3 15.85, cap 24k 15.88 / 15.61,
-        antialiased rasterization 15.67 at 1500."""
+        antialiased rasterization 15.67 at 1500 (these with SH 0), opacity_reg 0.05 14.08 at 2000, a longer
+        coarse phase 15.62 at 2000, --refine-poses 14.70 at 1000."""
         sparse = 0 < self.sparse_views and n_views < self.sparse_views
-        auto = {"sh_degree": (self.sh_degree < 0, 0 if sparse else 3),
+        auto = {"sh_degree": (self.sh_degree < 0, SPARSE_SH_DEGREE if sparse else 3),
                 "bg_sphere_points": (self.bg_sphere_points < 0, min(SPARSE_SPHERE_POINTS, self.max_gaussians // 10)
                                      if sparse else 0),
                 "densify_grad": (self.densify_grad <= 0, SPARSE_DENSIFY_GRAD if sparse else DENSE_DENSIFY_GRAD)}
