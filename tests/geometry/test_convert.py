@@ -101,6 +101,29 @@ def test_bad_inputs_mark_objects_unusable():
     assert "missing label" in probs["missing"]
 
 
+def test_a_mesh_collapsed_to_a_sliver_marks_the_object_unusable(monkeypatch):
+    """A cluster that passes the point checks but whose mesh collapses (seen on a sparse real capture: a
+    7 x 1.5 x 0.7 mm tetrahedron, which MuJoCo refuses: no inertia) is unusable, not exported."""
+    import splattwin.geometry.convert as C
+    from splattwin.geometry.meshing import MeshResult
+
+    rng = np.random.default_rng(1)
+    cube = rng.uniform(-0.03, 0.03, (800, 3)) + [0.0, 0.0, 0.03]
+    g = Gaussians(**_blob_gaussians(cube))
+    opts = GeometryOptions(dbscan_voxel=0.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ok = object_geometry(g, np.arange(len(cube)), "cube", 1, opts)
+    assert ok.usable and min(ok.extent) > 0.05
+    sliver = trimesh.Trimesh([[0, 0, 0], [0.007, 0, 0], [0, 0.0015, 0], [0, 0, 0.0007]],
+                             [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    assert sliver.is_watertight
+    monkeypatch.setattr(C, "solid_mesh", lambda *a, **k: MeshResult(sliver, "alpha"))
+    with pytest.warns(ObjectUnusableWarning, match="sliver"):
+        bad = object_geometry(g, np.arange(len(cube)), "cube", 1, opts)
+    assert not bad.usable and bad.collision is None and not bad.parts and "sliver" in bad.problem
+
+
 def _mesh_f1(g, gt, opts: GeometryOptions):
     """Object geometry of all of `g` (one label, resting on z = 0) and its mesh fidelity vs `gt`."""
     labels = np.ones(len(g), dtype=np.int64)

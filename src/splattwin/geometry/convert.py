@@ -172,7 +172,11 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
         T_world_obj[:3, 3] += box.T_world_box[:3, :3] @ c
         timings["mesh"] += time.perf_counter() - t0
         t0 = time.perf_counter()
-        if not collision.is_watertight:  # simplify() guarantees this; keep the invariant explicit
+        thin = float(np.min(hi - lo))
+        if thin < pitch:  # a sliver (e.g. a tetrahedron of a few points): no physics engine can give it inertia
+            problem = (f"its mesh collapsed to a sliver {thin:.3g} thick (less than the mesh pitch {pitch:.3g}): "
+                       f"too few or too scattered points")
+        elif not collision.is_watertight:  # simplify() guarantees this; keep the invariant explicit
             problem = "collision mesh is not watertight"
         else:
             out.parts = convex_parts(simplify(collision, opts.coacd_faces), opts.convex_ratio, opts.coacd_threshold,
