@@ -129,7 +129,8 @@ def test_build_robot_capture_with_known_poses_and_bop_masks(bop_capture: Path, t
     twin = tmp_path / "twin"
     code = main(["build", str(bop_capture), "--out", str(twin), "--poses", "known",
                  "--masks", str(bop_capture / "mask_visib"), "--iters", "60", "--no-frames",
-                 "--heldout-every", "0"])   # all views train: the object positions of this tiny, short run
+                 "--heldout-every", "0",    # all views train: the object positions of this tiny, short run
+                 "--splat.sparse-views", "0"])  # 60 steps: the sparse profile's higher threshold grows too few
     assert code == 0
     man = json.loads((twin / "twin.json").read_text())
     assert man["frame"]["up"] == "+z" and man["frame"]["up_check"]["input_up"] == "-z"
