@@ -22,8 +22,7 @@ DEPTH_MODES = ("relative", "inverse")             # splat/depth_loss.py
 # the sparse-view profile (`TrainConfig.resolved`)
 SPARSE_SH_DEGREE = 1
 SPARSE_SPHERE_POINTS = 3000
-SPARSE_DENSIFY_GRAD = 6e-4
-DENSE_DENSIFY_GRAD = 2e-4                           # 3DGS's default
+SPARSE_DENSIFY_GRAD = 6e-4                          # dense captures keep DensifyConfig's 3DGS default
 
 
 @dataclass
@@ -188,7 +187,7 @@ class TrainConfig:
         auto = {"sh_degree": (self.sh_degree < 0, SPARSE_SH_DEGREE if sparse else 3),
                 "bg_sphere_points": (self.bg_sphere_points < 0, min(SPARSE_SPHERE_POINTS, self.max_gaussians // 10)
                                      if sparse else 0),
-                "densify_grad": (self.densify_grad <= 0, SPARSE_DENSIFY_GRAD if sparse else DENSE_DENSIFY_GRAD)}
+                "densify_grad": (sparse and self.densify_grad <= 0, SPARSE_DENSIFY_GRAD)}
         chosen = {k: v for k, (is_auto, v) in auto.items() if is_auto}
         cfg = replace(self, **chosen)
         if not sparse or not chosen:
