@@ -42,6 +42,17 @@ def _workers_of(job_dir: Path) -> list[int]:
     return pids
 
 
+def _stack_of(pid: int) -> str:
+    """The kernel wait channel and signal masks of `pid` (why it has not exited)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text().splitlines()
+        wchan = Path(f"/proc/{pid}/wchan").read_text()
+    except OSError as e:
+        return f"unavailable: {e}"
+    keep = [ln for ln in status if ln.startswith(("State", "Threads", "SigBlk", "SigIgn", "SigCgt", "SigPnd", "ShdPnd"))]
+    return f"wchan {wchan}; " + "; ".join(keep)
+
+
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc to look for surviving worker processes")
 def test_sigint_during_sfm_stops_within_5s_and_leaves_nothing_half_written(tmp_path: Path):
     imgs = tmp_path / "imgs"
@@ -72,8 +83,14 @@ def test_sigint_during_sfm_stops_within_5s_and_leaves_nothing_half_written(tmp_p
     try:
         proc.wait(timeout=5)
     except subprocess.TimeoutExpired:
+        # what the machine was doing, and what the child said, for the failure report
+        busy = subprocess.run(["ps", "-eo", "pid,ppid,pcpu,rss,etime,stat,args", "--sort=-pcpu"],
+                              capture_output=True, text=True).stdout.splitlines()[:12]
+        stack = _stack_of(proc.pid)
         proc.kill()
-        pytest.fail("SfM did not stop within 5 s of SIGINT")
+        rest = proc.stderr.read()
+        pytest.fail("SfM did not stop within 5 s of SIGINT\nchild stderr after SIGINT:\n" + rest[-3000:]
+                    + "\nchild stack:\n" + stack + "\nbusiest processes:\n" + "\n".join(busy))
     assert time.monotonic() - t0 < 5
     rest = proc.stderr.read()
     assert proc.returncode == 130 and "interrupted" in rest
