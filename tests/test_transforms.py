@@ -77,6 +77,15 @@ def test_quat_mul_matches_mujoco_and_keeps_sign():
     np.testing.assert_array_equal(a0_b[3], quat_mul_wxyz(a[0], b[3]))
     np.testing.assert_allclose(quat_mul_wxyz(a[0], -b), -a0_b, atol=1e-15)   # sign follows the inputs
     assert quat_mul_wxyz(np.zeros((0, 4)), np.zeros((0, 4))).shape == (0, 4)
+    z = b.copy()
+    z[7] = 0.0                                                  # a zero quaternion is the identity
+    np.testing.assert_allclose(quat_mul_wxyz(a[0], z)[7], a[0] / np.linalg.norm(a[0]), atol=1e-15)
+    np.testing.assert_allclose(quat_mul_wxyz(z[7], a)[2], a[2] / np.linalg.norm(a[2]), atol=1e-15)
+    ab_grid = quat_mul_wxyz(a[:3, None], b[None, :5])           # [3,1,4] x [1,5,4] -> [3,5,4]
+    assert ab_grid.shape == (3, 5, 4)
+    np.testing.assert_array_equal(ab_grid[2, 4], quat_mul_wxyz(a[2], b[4]))
+    with pytest.raises(ValueError, match="4"):
+        quat_mul_wxyz(np.ones(3), np.ones(4))
 
 
 def test_zero_quaternion_is_identity():

@@ -103,14 +103,26 @@ def matrix_from_quat_wxyz(quat_wxyz: np.ndarray) -> np.ndarray:
 def quat_mul_wxyz(a_wxyz: np.ndarray, b_wxyz: np.ndarray) -> np.ndarray:
     """Hamilton product a * b (apply b, then a) of wxyz quaternions, broadcast over [..., 4] -> [..., 4].
 
-    Both are normalised first; the result is unit length and keeps the product's sign (not made
-    canonical), so a * q and a * (-q) stay opposite like the inputs."""
-    a, b = np.broadcast_arrays(np.asarray(a_wxyz, dtype=float), np.asarray(b_wxyz, dtype=float))
-    ra, batch = _scipy_rotations_wxyz(a)
-    rb, _ = _scipy_rotations_wxyz(b)
-    if ra is None:
-        return np.zeros((*batch, 4))
-    return quat_wxyz_from_xyzw((ra * rb).as_quat()).reshape(*batch, 4)
+    Both are normalised first (a zero quaternion is the identity, as everywhere here); the result is unit
+    length and keeps the product's sign (not made canonical), so a * q and a * (-q) stay opposite like the
+    inputs. Written out rather than through scipy's Rotation: the playback moves every object's Gaussians
+    with it each frame, and the Rotation round trip cost ~12 ms per 9k Gaussians."""
+    a, b = np.broadcast_arrays(_unit_wxyz(a_wxyz), _unit_wxyz(b_wxyz))
+    w1, x1, y1, z1 = np.moveaxis(a, -1, 0)
+    w2, x2, y2, z2 = np.moveaxis(b, -1, 0)
+    return np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+                     w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+                     w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=-1)
+
+
+def _unit_wxyz(quat_wxyz: np.ndarray) -> np.ndarray:
+    """[..., 4] wxyz quaternions normalised; zero rows -> the identity (1, 0, 0, 0)."""
+    q = np.asarray(quat_wxyz, dtype=float)
+    if q.shape[-1:] != (4,):
+        raise ValueError(f"quaternions must be [..., 4], got {q.shape}")
+    n = np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(n > 0, q / np.where(n > 0, n, 1.0), np.array([1.0, 0.0, 0.0, 0.0]))
 
 
 def quat_wxyz_z_to(directions: np.ndarray) -> np.ndarray:

@@ -157,18 +157,8 @@ def test_renderer_uses_the_trained_rasterize_mode(tmp_path):
     assert "twin.json" in str(e.value)
 
 
-def test_quat_left_mul_equals_the_general_product():
-    """The per-frame product (written out) against `transforms.quat_mul_wxyz` (scipy), unnormalised
-    inputs, both signs, and a zero row (identity there)."""
-    from splattwin.playback.scene import quat_left_mul
-    from splattwin.transforms import quat_mul_wxyz
-
-    rng = np.random.default_rng(4)
-    a = rng.normal(size=4) * 3.0
-    b = rng.normal(size=(50, 4)) * rng.uniform(0.1, 5.0, (50, 1))
-    b[7] = 0.0
-    np.testing.assert_allclose(quat_left_mul(a, b), quat_mul_wxyz(a, b), atol=1e-12)
-    np.testing.assert_allclose(quat_left_mul(-a, b), quat_mul_wxyz(-a, b), atol=1e-12)
+def test_rigid_transform_matches_transform_gaussians():
+    """The per-frame rigid motion against the twin's general Gaussian transform."""
     g = make_object(n=40)
     T = _rigid(2)
     m, q, sh = rigid_transform(g, T)

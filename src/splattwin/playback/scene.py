@@ -86,32 +86,14 @@ def rigid_transform(g: Gaussians, T_new_old: np.ndarray) -> tuple[np.ndarray, np
 
     Same maths as `twin.splats.transform_gaussians` (which this stage reuses for single transforms),
     without building a new `Gaussians` (per-frame path)."""
-    from splattwin.transforms import quat_wxyz_from_matrix
+    from splattwin.transforms import quat_mul_wxyz, quat_wxyz_from_matrix
 
     R, t = T_new_old[:3, :3], T_new_old[:3, 3]
     means = g.means @ R.T + t
-    quats = quat_left_mul(quat_wxyz_from_matrix(R, canonical=False), g.quats)
+    quats = quat_mul_wxyz(quat_wxyz_from_matrix(R, canonical=False), g.quats)
     D = sh_rotation(R.T, g.sh_degree)
     sh = np.matmul(D, g.sh)   # = einsum("kj,njc->nkc"), batched BLAS: ~10x faster at 10k Gaussians
     return means, quats, sh
-
-
-def quat_left_mul(a_wxyz: np.ndarray, b_wxyz: np.ndarray) -> np.ndarray:
-    """Hamilton product a * b of one wxyz quaternion a [4] with many b [N,4], both normalised first (as
-    `transforms.quat_mul_wxyz`, which it equals; written out because the per-frame path moves every
-    object's Gaussians and scipy's Rotation product cost ~12 ms per 9k Gaussians, most of a frame's posing).
-    Zero rows of b stay the identity, as there."""
-    a = np.asarray(a_wxyz, float)
-    a = a / np.linalg.norm(a)
-    b = np.asarray(b_wxyz, float)
-    n = np.linalg.norm(b, axis=1, keepdims=True)
-    b = np.where(n > 0, b / np.where(n > 0, n, 1.0), np.array([1.0, 0.0, 0.0, 0.0]))
-    w1, x1, y1, z1 = a
-    w2, x2, y2, z2 = b[:, 0], b[:, 1], b[:, 2], b[:, 3]
-    return np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-                     w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-                     w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=1)
 
 
 @dataclass
