@@ -137,9 +137,15 @@ def _twin(ctx: Context) -> dict:
         from splattwin.capture import load_dataset
         from splattwin.playback.refine import refine_objects
 
-        frames = load_dataset(ctx.path("poses")).train()
-        refine_objects(ctx.out, frames, ctx.config.refine, resolution=ctx.config.splat.resolution,
-                       cpu_max_side=ctx.config.splat.cpu_max_side, progress=ctx.progress)
+        ds = load_dataset(ctx.path("poses"))
+        masks = None
+        if ctx.config.refine.mask_lambda > 0:  # the semantics stage's 2D masks (prompt masks: its saved ones)
+            from splattwin.semantics.stage import load_stage_masks
+
+            masks, _ = load_stage_masks(ctx.config.semantics, ds.frames, _scene_dir(ctx),
+                                        ctx.path("semantics") / "masks2d")
+        refine_objects(ctx.out, ds.train(), ctx.config.refine, resolution=ctx.config.splat.resolution,
+                       cpu_max_side=ctx.config.splat.cpu_max_side, progress=ctx.progress, masks=masks)
     return result
 
 

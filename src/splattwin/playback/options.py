@@ -26,4 +26,8 @@ class RefineOptions:
     dc_only: bool = option(False, "train and keep the objects' SH degree 0 only (moved objects are drawn "
                            "with it)")
     ssim_lambda: float = option(0.2, "weight of D-SSIM in the photometric loss")
+    mask_lambda: float = option(0.01, "weight of a silhouette loss: each object's rendered coverage against its "
+                                "2D masks (the semantics stage's), where a view has one (0: off)")
+    mask_min_iou: float = option(0.7, "a mask joins the silhouette loss only if its IoU with the object as the "
+                                 "twin renders it before refinement is at least this (detector errors stay out)")
     seed: int = option(0, "seed of the view order and the split samples")

@@ -61,9 +61,11 @@ def _object_sets(twin_dir: Path):
 
 
 def refine_objects(twin_dir: str | Path, frames, opts: RefineOptions | None = None, resolution: int = 0,
-                   cpu_max_side: int = 640, progress: bool = False) -> dict:
+                   cpu_max_side: int = 640, progress: bool = False, masks=None) -> dict:
     """Refine the twin's object Gaussians on the training `frames` (capture `Frame`s with poses, in the twin
-    frame); writes the refined splats into the twin (module docstring). -> statistics dict."""
+    frame); writes the refined splats into the twin (module docstring). masks: the semantics stage's
+    `MaskSet` (labels as the twin's objects), used by the silhouette loss (`opts.mask_lambda`).
+    -> statistics dict."""
     import torch
 
     from splattwin.io import write_json
@@ -75,7 +77,7 @@ def refine_objects(twin_dir: str | Path, frames, opts: RefineOptions | None = No
     from splattwin.splat.init import scene_center_and_scale
     from splattwin.splat.losses import photometric_loss
     from splattwin.splat.model import GaussianModel
-    from splattwin.splat.rasterization import rasterization
+    from splattwin.splat.rasterization import rasterization, view_colors
     from splattwin.splat.resolution import resolve as resolve_resolution
     from splattwin.splat.trainer import EPS2D, load_views
 
@@ -116,26 +118,53 @@ def refine_objects(twin_dir: str | Path, frames, opts: RefineOptions | None = No
                                      grow_scale3d=opts.split_scale / scale) for n in names}
     viewmats = torch.tensor(np.stack([v.camera.T_cam_world for v in views]), dtype=torch.float32)
     Ks = torch.tensor(np.stack([v.camera.K for v in views]), dtype=torch.float32)
-    bg = torch.zeros(1, 3)
+    targets = _silhouette_targets(views, names, label_of, masks) if opts.mask_lambda > 0 else {}
+    with_cover = bool(targets)  # render one coverage channel per object beside the colours
+    bg = torch.zeros(1, 3 + (len(names) if with_cover else 0))
     gen = torch.Generator().manual_seed(opts.seed)
     order: list[int] = []
     stop = int(opts.refine_stop * opts.iters)
     ema = math.nan
+
+    def render(i: int):
+        """The view `i` with every Gaussian (objects trainable, the rest frozen): [1,H,W,3 (+ M coverage)]."""
+        acts = [models[n].activated() for n in names]
+        cat = lambda k: torch.cat([fz[k]] + [a[k] for a in acts])  # noqa: E731
+        feats, sh_deg = cat("sh"), deg
+        if with_cover:  # colours + one coverage channel per object, in the same depth-sorted pass
+            parts = [torch.zeros(len(rest), len(names))] + [
+                torch.nn.functional.one_hot(torch.full((len(a["means"]),), k), len(names)).float()
+                for k, a in enumerate(acts)]
+            feats = torch.cat([view_colors(cat("means"), feats, viewmats[i:i + 1], deg, backend="cpu"),
+                               torch.cat(parts)[None]], -1)
+            sh_deg = None
+        img, _, meta = rasterization(cat("means"), cat("quats"), cat("scales"), cat("opacities"), feats,
+                                     viewmats[i:i + 1], Ks[i:i + 1], views[i].camera.width,
+                                     views[i].camera.height, sh_degree=sh_deg, backgrounds=bg,
+                                     backend="cpu", eps2d=EPS2D, rasterize_mode=scene.rasterize_mode)
+        return img, meta
+
+    mask_stats: dict = {}
     with torch_threads(1):
+        if with_cover:  # masks that disagree with what the twin already shows there are detector errors
+            with torch.no_grad():
+                cover0 = {i: render(i)[0][0, ..., 3:] for i in targets}
+            n_all = sum(len(ks) for ks, _ in targets.values())
+            targets = _agreeing(targets, cover0, opts.mask_min_iou)
+            mask_stats = {"masks": n_all, "used": sum(len(ks) for ks, _ in targets.values())}
+            log.info("refine: silhouette loss on %d of %d object masks (the rest disagree with the twin: IoU < %.2f)",
+                     mask_stats["used"], n_all, opts.mask_min_iou)
         for step in range(opts.iters):
             if not order:
                 order = torch.randperm(len(views), generator=gen).tolist()
             i = order.pop(0)
-            acts = [models[n].activated() for n in names]
             for n in names:
                 models[n].set_step(step, opts.iters)
-            cat = lambda k: torch.cat([fz[k]] + [a[k] for a in acts])  # noqa: E731
-            img, _, meta = rasterization(cat("means"), cat("quats"), cat("scales"), cat("opacities"), cat("sh"),
-                                         viewmats[i:i + 1], Ks[i:i + 1], views[i].camera.width,
-                                         views[i].camera.height, sh_degree=deg, backgrounds=bg,
-                                         backend="cpu", eps2d=EPS2D,
-                                         rasterize_mode=scene.rasterize_mode)
-            loss = photometric_loss(img[0], views[i].image, opts.ssim_lambda)
+            img, meta = render(i)
+            loss = photometric_loss(img[0, ..., :3], views[i].image, opts.ssim_lambda)
+            if i in targets:
+                ks, target = targets[i]
+                loss = loss + opts.mask_lambda * silhouette_loss(img[0, ..., 3:][..., ks], target)
             loss.backward()
             for n in names:
                 models[n].step()
@@ -161,8 +190,59 @@ def refine_objects(twin_dir: str | Path, frames, opts: RefineOptions | None = No
     _write(twin_dir, scene, man, refined, label_of, deg)
     stats = {"iters": opts.iters, "loss": ema,
              "objects": {n: {"before": start_counts[n], "after": len(refined[n])} for n in names}}
+    if mask_stats:
+        stats["silhouette"] = mask_stats
     write_json(twin_dir / REFINED_DIR / "refine.json", stats)
     return stats
+
+
+def silhouette_loss(cover, target):
+    """Mean over objects of sum |cover - target| / target area: cover [H,W,M] each object's rendered
+    coverage (its Gaussians' accumulated weight, occlusion included), target [H,W,M] its 2D mask in [0, 1].
+    Normalised by the mask's area so that a small object weighs as much as a large one."""
+    import torch
+
+    area = target.sum(dim=(0, 1)).clamp_min(1.0)
+    return ((cover - target).abs().sum(dim=(0, 1)) / area).mean() if target.shape[-1] else cover.sum() * 0.0
+
+
+def _silhouette_targets(views, names: list[str], label_of: dict[str, int], masks) -> dict:
+    """{view index: (object columns, float [H,W,M] masks at the view's training size, area-averaged)} for the
+    views where the mask set has a mask of some object; objects without a mask there are not supervised
+    (a detector that missed an object is no evidence that it is absent)."""
+    import torch
+
+    if masks is None:
+        return {}
+    out = {}
+    for i, v in enumerate(views):
+        ks, ms = [], []
+        for k, n in enumerate(names):
+            m = masks.get(v.name, label_of.get(n, -1))
+            if m is None or not m.any():
+                continue
+            t = torch.from_numpy(np.asarray(m, np.float32))[None, None]
+            ms.append(torch.nn.functional.interpolate(t, size=(v.camera.height, v.camera.width), mode="area")[0, 0])
+            ks.append(k)
+        if ks:
+            out[i] = (ks, torch.stack(ms, -1))
+    return out
+
+
+def _agreeing(targets: dict, cover: dict, min_iou: float) -> dict:
+    """`targets` without the masks whose IoU with the object's rendered coverage (> 0.5) is below
+    `min_iou`: a missed part, a wrong object or a false detection, which the loss would otherwise paint in."""
+    out = {}
+    for i, (ks, t) in targets.items():
+        keep = []
+        for j, k in enumerate(ks):
+            m, c = t[..., j] > 0.5, cover[i][..., k] > 0.5
+            union = int((m | c).sum())
+            if union and int((m & c).sum()) / union >= min_iou:
+                keep.append(j)
+        if keep:
+            out[i] = ([ks[j] for j in keep], t[..., keep])
+    return out
 
 
 def _write(twin_dir: Path, scene, man, refined: dict, label_of: dict[str, int], deg: int) -> None:

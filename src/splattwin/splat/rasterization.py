@@ -129,6 +129,17 @@ def _backend_module(name: str) -> Any:
     return _cpu
 
 
+def view_colors(means: torch.Tensor, sh: torch.Tensor, viewmats: torch.Tensor, sh_degree: int,
+                backend: str = "auto") -> torch.Tensor:
+    """[C,N,3] colours of SH [N,K,3] seen from each camera, exactly as `rasterization` evaluates them
+    (clamp_min(SH + 0.5, 0), view direction from the camera centre): for renders that append channels of
+    their own to the colours (then passed with sh_degree None). means [N,3] m, viewmats [C,4,4]."""
+    name = resolve_backend(backend, means.device)
+    if name == "cuda":  # the CUDA backend evaluates SH in its kernels; the reference maths is the same
+        name = "reference"
+    return _backend_module(name).sh_colors(means, sh, viewmats, sh_degree)
+
+
 def rasterization(
     means: torch.Tensor,
     quats: torch.Tensor,
