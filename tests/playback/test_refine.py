@@ -3,6 +3,7 @@ rest of the scene is left bit for bit, and the twin folder stays consistent for 
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -114,3 +115,75 @@ def test_labels_of_takes_labels_by_position_and_rejects_strangers():
     np.testing.assert_array_equal(_labels_of(full[[1]], full, None), [0])
     with pytest.raises(ValueError, match="do not coincide"):
         _labels_of(full[[1]] + 1e-4, full, lab)
+
+
+def _coverage(g: Gaussians, cam: Camera) -> np.ndarray:
+    """[H,W] accumulated alpha of `g` alone as seen by `cam`."""
+    import torch
+
+    from splattwin.splat.rasterization import rasterization
+
+    t = lambda a: torch.tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
+    _, alpha, _ = rasterization(t(g.means), t(g.quats), t(g.scales), t(g.opacities), torch.ones(len(g), 1),
+                                t(cam.T_cam_world)[None], t(cam.K)[None], cam.width, cam.height, backend="cpu")
+    return alpha[0, ..., 0].numpy()
+
+
+def _mask_error(twin: Path, frames: list[Frame], ms) -> float:
+    """Mean |object coverage - mask| over the pixels of the views that have a mask."""
+    from splattwin.twin.splats import transform_gaussians
+
+    sc = DynamicScene.load(twin, fill_holes=False)
+    g = transform_gaussians(sc.objects["blue_box"], sc.T_world_obj0["blue_box"])
+    return float(np.mean([np.abs(_coverage(g, f.camera) - ms.get(f.name, 1)).mean() for f in frames]))
+
+
+def test_silhouette_loss_pulls_the_object_to_its_masks_and_ignores_a_false_one(twin_and_photos):
+    import shutil
+
+    from splattwin.semantics.masks import MaskSet
+
+    twin, frames = twin_and_photos
+    truth = sharp_object()
+    ms = MaskSet(objects={1: "blue_box"})
+    for f in frames:
+        ms.add(f.name, 1, _coverage(truth, f.camera) > 0.5)
+    # a seventh view whose mask is a false detection in the image corner: it must not be painted in
+    c0 = frames[0].camera
+    odd = Frame(image_path=frames[0].image_path,
+                camera=Camera.from_fov(np.radians(50), c0.width, c0.height, c0.T_world_cam, name="train_odd"))
+    wrong = np.zeros((c0.height, c0.width), bool)
+    wrong[:12, :12] = True
+    ms.add("train_odd", 1, wrong)
+    plain = twin.parent / "plain"
+    shutil.copytree(twin, plain)
+    e0 = _mask_error(twin, frames, ms)
+    opts = dict(iters=160, refine_every=40, max_factor=2.0, seed=0)
+    refine_objects(plain, frames + [odd], RefineOptions(mask_lambda=0.0, **opts), masks=ms)
+    stats = refine_objects(twin, frames + [odd], RefineOptions(mask_lambda=0.05, **opts), masks=ms)
+    assert stats["silhouette"] == {"masks": 7, "used": 6}
+    assert "silhouette" not in json.loads((plain / "refined" / "refine.json").read_text())
+    e_plain, e_masks = _mask_error(plain, frames, ms), _mask_error(twin, frames, ms)
+    assert e_masks < 0.8 * e_plain, (e0, e_plain, e_masks)
+    from splattwin.twin.splats import transform_gaussians
+
+    sc = DynamicScene.load(twin, fill_holes=False)
+    corner = _coverage(transform_gaussians(sc.objects["blue_box"], sc.T_world_obj0["blue_box"]), odd.camera)[:12, :12]
+    assert corner.max() < 0.05
+
+
+def test_silhouette_loss_is_the_area_normalised_l1():
+    import torch
+
+    from splattwin.playback.refine import silhouette_loss
+
+    t = torch.zeros(8, 8, 2)
+    t[:2, :2, 0] = 1.0                          # areas 4 and 16
+    t[4:, 4:, 1] = 1.0
+    assert float(silhouette_loss(t.clone(), t)) == 0.0
+    c = t.clone()
+    c[..., 0] = 0.0                              # first object missing: 4/4 = 1; second perfect: 0
+    assert float(silhouette_loss(c, t)) == pytest.approx(0.5)
+    c = t.clone()
+    c[0, 7, 1] = 1.0                             # one stray pixel of the large object: 1/16
+    assert float(silhouette_loss(c, t)) == pytest.approx(0.5 / 16)
