@@ -49,6 +49,11 @@ blur_1.5x 20.65, inner 21.99 / ring 18.97, same_view 22.38 / 28.79 / 29.38, trai
 What is left to 24 dB: the image-based bound itself is 24.5; re-lighting (new cast shadows, e.g. the cube's
 on the box) ~0.5 dB; the outline ring 3 dB below the inside; the blue box 2.9 dB below its own same_view
 (19.49 relit in the arrangement vs 22.38 from the same relative view at the start).
+With the refinement's silhouette loss (fresh demo twin, its own rollout): fused_relit 22.36, oracle 22.22,
+fused_baked 23.10, sh_dc_relit 22.37 (= psnr_final_objects), photo_gt_geom 24.48, inner 22.78 / ring 20.47
+(the ring +1.5 dB), same_view 22.24 / 28.64 / 29.13, train_fit 29.10 / 33.80 / 33.53. Left to 24 dB:
+re-lighting 0.74 dB (fused_baked - fused_relit), the ring 2.3 dB below the inside, the blue box 1.8 dB below
+its own same_view.
 
 Pictures: bounds_<view>.png = GT relit | GT baked | twin (fused) | photos on the exact geometry.
 LAST line one JSON object.

@@ -20,6 +20,9 @@ Measured (Nov 2026, demo of seed 0, 2 shared cores at load ~5-7: timings not com
 ssim_final_objects 0.779, psnr_start 32.01; the demo now trains antialiased and refines its objects
 (`splattwin.playback.refine`, 800 steps): 28.63, 21.71 (19.83 / 23.25 / 25.20), 0.822, psnr_start 34.40,
 psnr_start_objects 26.09 -> 28.91. The object outline ring (1 px) 18.90 -> 19.11 dB, inside it 21.40 -> 22.33.
+With the refinement's silhouette loss (weight 0.01 against the filtered 2D masks, fresh demo twin, idle):
+psnr_final 28.66, psnr_final_objects 22.37 (20.46 / 24.33 / 26.39), ssim_final_objects 0.834, psnr_start
+34.35, render_ms 47.4 (posing 19.0, raster 26.3; MuJoCo meshes path 73.6).
 
 Writes into --out: final_<view>.png (ground truth | twin | error | filled-hole mark), task_<view>.mp4,
 wrist.mp4, the episode, rollout.npz, photoreal.json. Prints a table; the LAST line is one JSON object.

@@ -65,6 +65,9 @@ def test_build_writes_every_stage(built):
     # the object refinement ran: the twin's splats are its output, the splat stage's are left as they were
     assert man["splats"] == "refined/point_cloud.ply" and man["labels"] == "refined/labels.npy"
     assert (built / "refined" / "point_cloud.ply").is_file()
+    # with the semantics stage's 2D masks (here the scene's simulated segmenter) for the silhouette loss
+    sil = json.loads((built / "refined" / "refine.json").read_text())["silhouette"]
+    assert sil["masks"] > 0 and 0 <= sil["used"] <= sil["masks"]
     assert man["config"].get("target_frame"), "the scene's goal region must travel into the twin"
     # the resolved options, nested like BuildOptions
     rec = man["config"]["build"]

@@ -24,6 +24,19 @@ same rollout): classic splats 20.99 -> 21.26 dB (1500 steps); antialiased splats
 views at the start): one of its faces, which two final views see at cos 0.72-0.74, no training view saw
 at more than cos 0.45 (bench/objects_bounds.py has the bounds).
 
+Silhouette loss (`RefineOptions.mask_lambda`, on by default): the outline of a moved object is where its
+error is worst (a 1-px ring 3 dB below the inside): Gaussians of the table around the footprint or half
+transparent skirts were fused into the object and travel with it. Each step renders, in the same depth-sorted
+pass as the colours, one coverage channel per object (its Gaussians' accumulated weight, occlusion by the
+rest included) and adds the area-normalised L1 to the object's 2D mask of that view (the semantics
+stage's: user masks, Grounded-SAM's, or the embedded scene's simulated noisy segmenter). Masks are noisy
+(detector IoU 0.4-0.6 on small objects, false detections): a mask joins only if its IoU with the object as
+the twin renders it before refinement is >= `mask_min_iou` (0.7: 52 of the demo's 70 masks). Measured on
+the demo twin (moved objects after the task, mean over 5 held-out views; control 21.61): weight 0.005 /
+0.01 / 0.03 -> 22.20 / 22.27 / 22.07 with the filtered noisy masks; 0.03 unfiltered 21.60 (the yellow cube
+fell 23.0 -> 19.3 on the false detections); 0.03 with exact masks 22.32 (exact masks are a bound: BOP
+`mask_visib` files are that good).
+
 Output, in the twin folder: refined/point_cloud.ply (background as before + the refined objects, in the
 twin frame), refined/labels.npy, and each refined object's splats.ply rewritten (object frame); twin.json's
 `splats` / `labels` point to the refined files, so the playback, viewer and exports use them. The splat
