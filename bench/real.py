@@ -32,6 +32,12 @@ Sections (SECTIONS below; each returns table rows and JSON keys, so more can be 
   and SSIM (ssim_heldout_statue) at the training resolution. The same build checks the pre-flight's
   constants: its memory and disk estimates (from its log line) against the build's peak RSS (the process
   and its SfM worker, wait4) and the bytes written: preflight_estimate_covers_peak.
+  Coverage (`splat.eval.training_coverage`): statue_heldout_seen_frac = the share of held-out pixels whose
+  rendered surface point lies in some training camera's image; psnr_heldout_statue_seen / _unseen over
+  those and the rest; psnr_heldout_statue_seen_perfect = the PSNR with every seen pixel perfect and the
+  unseen ones as rendered. Measured (Nov 2026, 3000 steps, 000/016 held out): 77.5 % seen, 16.84 dB
+  there, 13.01 dB on the unseen 22.5 %, bound 19.49 dB: the two held-out views are the ends of the sweep,
+  and 20 dB is out of reach without inventing the content no training photo holds.
 Targets (issue #16): preflight_s <= 10, zdown_fixed true, unscaled_twin_complete true, psnr_heldout_statue >= 20,
 registered_frac_min 1.0, registered_frac_internet >= 0.8, sfm_s_max <= 40,
 sfm_peak_rss_gib <= 2, known_pose_init_gap_db <= 1.0. The real photos are read in place (CC BY-NC).
@@ -414,6 +420,21 @@ def section_zdown_fixed(args) -> tuple[list[tuple[str, str]], dict]:
 
 
 # -- held-out PSNR on the statue with the defaults -------------------------------------------------------
+def _coverage_figures(m: dict) -> dict:
+    """From the eval's metrics.json: the share of held-out pixels some training camera saw, PSNR over those
+    and over the rest, and the PSNR the view would reach with every seen pixel perfect and the unseen ones as
+    rendered (an upper bound for any method that does not invent the unseen content)."""
+    import math
+
+    f, unseen = m.get("mean_covered_frac"), m.get("mean_psnr_uncovered")
+    bound = None
+    if f is not None and unseen is not None and f < 1:
+        bound = round(-10 * math.log10((1 - f) * 10 ** (-unseen / 10)), 2)
+    r = lambda x, k=3: None if x is None else round(x, k)  # noqa: E731
+    return {"statue_heldout_seen_frac": r(f), "psnr_heldout_statue_seen": r(m.get("mean_psnr_covered")),
+            "psnr_heldout_statue_unseen": r(unseen), "psnr_heldout_statue_seen_perfect": bound}
+
+
 def section_psnr_heldout_statue(args) -> tuple[list[tuple[str, str]], dict]:
     """`build statue --until splats` with the default hold-out (every 8th view from the first) and the
     default resolution (auto: longest side 640 px on the CPU); held-out PSNR/SSIM at the training
@@ -435,14 +456,20 @@ def section_psnr_heldout_statue(args) -> tuple[list[tuple[str, str]], dict]:
         shutil.rmtree(work, ignore_errors=True)
     est_mem, est_disk = _preflight_estimate(err)
     er, held = m.get("eval_resolution", {}), m.get("heldout", {})
+    cov = _coverage_figures(m)
     rows = [("statue held-out", f"PSNR {m['mean_psnr']:.2f} dB, SSIM {m['mean_ssim']:.4f} on {m['split']} views "
                                 f"{held.get('views')} ({held.get('rule')}); evaluated at {er.get('sizes')} of "
                                 f"{er.get('full_sizes')} ({er.get('mode')}); {m['gaussians']} Gaussians; build "
                                 f"{wall:.0f} s"),
+            ("statue held-out coverage", f"{cov['statue_heldout_seen_frac']} of the held-out pixels lie in some training "
+                                         f"view (frustum test): PSNR {cov['psnr_heldout_statue_seen']} dB there, "
+                                         f"{cov['psnr_heldout_statue_unseen']} dB on the rest; with the seen pixels "
+                                         f"perfect and the rest as rendered: {cov['psnr_heldout_statue_seen_perfect']} dB"),
             ("statue pre-flight vs measured", f"memory estimate {est_mem} GiB vs peak RSS {peak_gib:.2f} GiB; disk "
                                               f"estimate {est_disk} GiB vs {disk_gib:.3f} GiB written (until splats)")]
     covers = est_mem is not None and est_disk is not None and est_mem >= peak_gib and est_disk >= disk_gib
     return rows, {"psnr_heldout_statue": round(m["mean_psnr"], 3), "ssim_heldout_statue": round(m["mean_ssim"], 4),
+                  **cov,
                   "statue_heldout_views": held.get("views"), "statue_eval_size": er.get("sizes"),
                   "statue_build_s": round(wall, 1), "statue_iters": args.statue_iters or "default",
                   "statue_peak_rss_gib": round(peak_gib, 3), "statue_preflight_memory_gib": est_mem,

@@ -61,3 +61,36 @@ def test_eval_align_poses_fits_held_out_cameras_that_are_off(tmp_path):
         assert v["pose_correction_deg"] == pytest.approx(1.0, abs=0.2)
     m = json.loads((out / "metrics.json").read_text())
     assert m["poses"].startswith("aligned") and "pose_correction_m" in m["views"][0]
+
+
+def test_training_coverage_analytic_frustum_overlap():
+    """A fronto-parallel plane 2 m ahead; a training camera 1 m to the right (same orientation) sees the
+    held-out pixels whose x on the plane is >= -1 m: columns 50..199 of 200 (fx 100, cx 100) -> 0.75."""
+    from splattwin.capture.camera import Camera
+    from splattwin.splat.eval import training_coverage
+
+    K = [[100.0, 0, 100.0], [0, 100.0, 50.0], [0, 0, 1]]
+    held = Camera(K, 200, 100)
+    right = np.eye(4)
+    right[0, 3] = 1.0
+    behind = np.diag([-1.0, 1.0, -1.0, 1.0])       # turned around: the plane is behind it
+    depth, alpha = np.full((100, 200), 2.0), np.ones((100, 200))
+    seen = training_coverage(depth, alpha, held, [Camera(K, 200, 100, right)])
+    assert seen[:, 50:].all() and not seen[:, :50].any() and seen.mean() == 0.75
+    assert not training_coverage(depth, alpha, held, [Camera(K, 200, 100, behind)]).any()
+    alpha[:, 150:] = 0.2                             # nothing drawn there: not covered
+    assert training_coverage(depth, alpha, held, [Camera(K, 200, 100, right)]).mean() == 0.5
+    # training cameras at another image size (the held-out K is at the render's size): the same
+    K2 = [[200.0, 0, 200.0], [0, 200.0, 100.0], [0, 0, 1]]
+    alpha[:] = 1.0
+    assert training_coverage(depth, alpha, held, [Camera(K2, 400, 200, right)]).mean() == 0.75
+
+
+def test_eval_reports_psnr_over_pixels_the_training_views_saw(tmp_path):
+    ds_root = helpers.make_dataset(tmp_path / "ds", n_train=3, n_heldout=2)
+    res = evaluate(helpers.gt_gaussians(), ds_root, tmp_path / "eval", progress=False)
+    m = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    assert 0.0 < res.mean_covered_frac <= 1.0 and m["mean_covered_frac"] == pytest.approx(res.mean_covered_frac)
+    for v in res.views:
+        assert 0.0 < v["covered_frac"] <= 1.0 and v["psnr_covered"] > 40
+    assert m["mean_psnr_covered"] > 40 and "coverage_protocol" in m

@@ -220,7 +220,15 @@ def _recon_section(sec: Section, twin: Path, ev: dict | None) -> None:
             ["image size", str(er.get("full_sizes", "?"))], ["training resolution rule", str(er.get("how", "?"))]])
     if isinstance(ev.get("heldout"), dict):
         _heldout_rows(sec, ev["heldout"], ev["heldout"].get("views") or [])
-    sec.table(["view", "PSNR (dB)", "SSIM"], [[r["name"], r["psnr"], r["ssim"]] for r in ev["views"]])
+    if any("covered_frac" in r for r in ev["views"]):
+        # how much of each held-out view the training photos saw at all (frustum test): the rest is content
+        # no photo holds, reported apart so that a sparse capture's extrapolation is not read as blur
+        sec.table(["view", "PSNR (dB)", "SSIM", "seen by training views (%)", "PSNR seen (dB)", "PSNR unseen (dB)"],
+                  [[r["name"], r["psnr"], r["ssim"], round(100 * r.get("covered_frac", float("nan")), 1),
+                    "-" if r.get("psnr_covered") is None else r["psnr_covered"],
+                    "-" if r.get("psnr_uncovered") is None else r["psnr_uncovered"]] for r in ev["views"]])
+    else:
+        sec.table(["view", "PSNR (dB)", "SSIM"], [[r["name"], r["psnr"], r["ssim"]] for r in ev["views"]])
     for r in ev["views"][:5]:
         if not r.get("image"):
             continue

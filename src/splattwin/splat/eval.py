@@ -37,6 +37,7 @@ from splattwin.errors import InputError
 from splattwin.io import write_image, write_json
 from splattwin.splat import metrics
 from splattwin.splat.appearance import heldout_corrected_psnr
+from splattwin.splat.losses import psnr_from_mse
 from splattwin.splat.gaussians import Gaussians
 from splattwin.splat.pose_refine import align_camera, pose_errors
 from splattwin.splat.render import render_rgb
@@ -57,6 +58,23 @@ class EvalResult:
     heldout: dict | None = None          # {"views", "rule", "source"[, "every"]} (metrics.json)
     mean_psnr_right_plain: float = float("nan")      # right half, as rendered
     mean_psnr_right_corrected: float = float("nan")  # right half, affine colour fitted on the left half
+    mean_covered_frac: float = float("nan")   # share of held-out pixels some training camera saw (see coverage)
+    mean_psnr_covered: float = float("nan")   # PSNR over those pixels
+    mean_psnr_uncovered: float = float("nan")  # and over the rest (content no training photo holds)
+
+
+def _coverage_means(rows: list[dict]) -> dict:
+    """{"covered_frac", "psnr_covered", "psnr_uncovered"} over the views (PSNRs pooled by pixel count through
+    their MSEs), None where no view has the figure."""
+    got = [r for r in rows if "covered_frac" in r]
+    if not got:
+        return {"covered_frac": None, "psnr_covered": None, "psnr_uncovered": None}
+    out = {"covered_frac": float(np.mean([r["covered_frac"] for r in got]))}
+    for k, frac in (("psnr_covered", lambda r: r["covered_frac"]), ("psnr_uncovered", lambda r: 1 - r["covered_frac"])):
+        parts = [(frac(r), 10 ** (-r[k] / 10)) for r in got if r.get(k) is not None]
+        wsum = sum(f for f, _ in parts)
+        out[k] = psnr_from_mse(sum(f * m for f, m in parts) / wsum) if parts and wsum > 0 else None
+    return out
 
 
 def side_by_side(gt: np.ndarray, render: np.ndarray) -> np.ndarray:
@@ -65,6 +83,38 @@ def side_by_side(gt: np.ndarray, render: np.ndarray) -> np.ndarray:
     gap = np.full((h, 4, 3), 255, np.uint8)
     u8 = lambda a: (np.clip(a, 0, 1) * 255 + 0.5).astype(np.uint8)  # noqa: E731
     return np.concatenate([u8(gt), gap, u8(render), gap, metrics.error_heatmap(render, gt)], axis=1)
+
+
+def training_coverage(depth: np.ndarray, alpha: np.ndarray, camera, train_cameras, T_cam_world=None,
+                      min_alpha: float = 0.5) -> np.ndarray:
+    """[H,W] bool: the held-out pixels whose surface point (the render's expected z-depth `depth` [H,W], m,
+    where `alpha` [H,W] > min_alpha) lies inside the image of at least one training camera (in front of it).
+
+    A frustum test, not an occlusion test: an upper bound on what the training photos saw. A sparse sweep's
+    end views are extrapolations; the uncovered part is content no training photo holds, which no method
+    can reconstruct, so its PSNR is reported apart (`evaluate`). camera: the held-out `Camera` (its K at the
+    render's size); T_cam_world overrides its pose; train_cameras: `Camera`s at any size."""
+    h, w = depth.shape
+    T_cw = camera.T_cam_world if T_cam_world is None else T_cam_world
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(camera.K).T      # [H,W,3] camera frame, z = 1
+    p_cam = rays * depth[..., None]
+    T_wc = np.linalg.inv(T_cw)
+    p_world = p_cam @ T_wc[:3, :3].T + T_wc[:3, 3]
+    seen = np.zeros((h, w), bool)
+    for c in train_cameras:
+        q = p_world @ c.T_cam_world[:3, :3].T + c.T_cam_world[:3, 3]
+        z = q[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = (q @ c.K.T)[..., :2] / z[..., None]
+        seen |= (z > 1e-6) & (uv[..., 0] >= 0) & (uv[..., 0] < c.width) & (uv[..., 1] >= 0) & (uv[..., 1] < c.height)
+    return seen & (alpha > min_alpha) & (depth > 0)
+
+
+def _masked_psnr(img: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float | None:
+    if not mask.any():
+        return None
+    return psnr_from_mse(float(((img[mask].astype(np.float64) - gt[mask]) ** 2).mean()))
 
 
 def resolve_ply(path: str | Path) -> tuple[Path, dict]:
@@ -148,6 +198,7 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
     held = {k: held[k] for k in ("source", "rule", "every") if k in held}
     held["views"] = [f.name for f in frames] if split == "heldout" else []
     out = Path(out_dir) if out_dir is not None else None
+    train_cams = [f.camera for f in ds.train()] if split == "heldout" else []
     rows = []
     for v in tqdm(views, desc="eval", unit="view", disable=not progress):
         gt = v.image.numpy()
@@ -170,15 +221,22 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
                     torch.linalg.inv(torch.tensor(T, dtype=torch.float32))).clamp(0, 1).numpy()
         row = {"name": v.name, "psnr": metrics.psnr(img, gt), "ssim": metrics.ssim(img, gt), **extra,
                **heldout_corrected_psnr(img, gt)}
+        if split == "heldout" and train_cams:
+            depth, alpha_d = render(g, v.camera, mode="ED", backend=backend, T_cam_world=T_cw, rasterize_mode=mode)
+            seen = training_coverage(depth[..., 0], alpha_d, v.camera, train_cams, T_cam_world=T_cw)
+            row.update(covered_frac=float(seen.mean()), psnr_covered=_masked_psnr(img, gt, seen),
+                       psnr_uncovered=_masked_psnr(img, gt, ~seen))
         if out is not None:
             row["image"] = f"{v.name}.png"
             write_image(out / row["image"], side_by_side(gt, img))
         rows.append(row)
     mean_psnr = float(np.mean([r["psnr"] for r in rows]))
     mean_ssim = float(np.mean([r["ssim"] for r in rows]))
+    cov = _coverage_means(rows)
     result = EvalResult(rows, mean_psnr, mean_ssim, split, eval_resolution=eval_res, heldout=held,
                         mean_psnr_right_plain=float(np.mean([r["psnr_right_plain"] for r in rows])),
-                        mean_psnr_right_corrected=float(np.mean([r["psnr_right_corrected"] for r in rows])))
+                        mean_psnr_right_corrected=float(np.mean([r["psnr_right_corrected"] for r in rows])),
+                        **{f"mean_{k}": (float("nan") if x is None else x) for k, x in cov.items()})
     if out is not None:
         result.metrics_path = write_json(out / "metrics.json", {
             "split": split, "mean_psnr": mean_psnr, "mean_ssim": mean_ssim, "n_views": len(rows),
@@ -187,6 +245,10 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
             "appearance_protocol": "psnr_right_*: right half of each view; corrected = affine colour fitted "
                                    "on its left half (ridge towards identity)",
             "poses": "aligned (test-time pose fit)" if align_poses else "as given",
+            **{f"mean_{k}": x for k, x in cov.items()},
+            "coverage_protocol": "covered = held-out pixels whose rendered surface point lies inside some training "
+                                 "camera's image (frustum test, occlusion ignored); psnr_covered / psnr_uncovered "
+                                 "over those and the other pixels (pooled over the views)",
             "gaussians": len(g), "resolution": rule.resolution, "eval_resolution": eval_res, "heldout": held,
             "views": rows,
             "legend": "images: ground truth | render | |error| heat map (black 0 -> white >= 0.25)"})
