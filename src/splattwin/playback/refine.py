@@ -213,8 +213,6 @@ def silhouette_loss(cover, target):
     """Mean over objects of sum |cover - target| / target area: cover [H,W,M] each object's rendered
     coverage (its Gaussians' accumulated weight, occlusion included), target [H,W,M] its 2D mask in [0, 1].
     Normalised by the mask's area so that a small object weighs as much as a large one."""
-    import torch
-
     area = target.sum(dim=(0, 1)).clamp_min(1.0)
     return ((cover - target).abs().sum(dim=(0, 1)) / area).mean() if target.shape[-1] else cover.sum() * 0.0
 
