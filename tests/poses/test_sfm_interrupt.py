@@ -43,10 +43,10 @@ def _workers_of(job_dir: Path) -> list[int]:
 
 
 # The CLI as a shell at a terminal starts it: Ctrl-C raises KeyboardInterrupt. A child inherits ignored
-# signals, and Python keeps SIGINT ignored when it starts with it ignored (as it must for `nohup cmd &`);
-# inside the full suite the test process was seen passing SIGINT and SIGQUIT on as ignored (their pair is
-# what libc's system() ignores while it runs, e.g. in some library's thread), and the CLI then never
-# stopped. So the child sets the default handler itself before running the CLI module.
+# signals, and Python keeps SIGINT ignored when it starts with it ignored (as it must for `nohup cmd &`). A
+# test run started in the background by a non-interactive shell (`make test > log &`) has SIGINT and SIGQUIT
+# ignored (POSIX, for asynchronous commands without job control), so its CLI child never stopped on Ctrl-C
+# and this test failed there only. So the child sets the default handler itself before running the CLI.
 _AS_FROM_A_TERMINAL = ("import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
                        "sys.argv[0] = 'splattwin'; runpy.run_module('splattwin.cli', run_name='__main__')")
 
