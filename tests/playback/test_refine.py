@@ -187,3 +187,26 @@ def test_silhouette_loss_is_the_area_normalised_l1():
     c = t.clone()
     c[0, 7, 1] = 1.0                             # one stray pixel of the large object: 1/16
     assert float(silhouette_loss(c, t)) == pytest.approx(0.5 / 16)
+
+
+def test_masks_that_all_disagree_leave_the_refinement_as_without_masks(twin_and_photos):
+    import shutil
+
+    from splattwin.semantics.masks import MaskSet
+
+    twin, frames = twin_and_photos
+    ms = MaskSet(objects={1: "blue_box"})
+    for f in frames:                                 # every mask a false detection in the image corner
+        wrong = np.zeros((f.camera.height, f.camera.width), bool)
+        wrong[:8, :8] = True
+        ms.add(f.name, 1, wrong)
+    plain = twin.parent / "plain"
+    shutil.copytree(twin, plain)
+    opts = dict(iters=40, refine_every=20, max_factor=2.0, seed=0)
+    refine_objects(plain, frames, RefineOptions(mask_lambda=0.0, **opts))
+    stats = refine_objects(twin, frames, RefineOptions(mask_lambda=0.05, **opts), masks=ms)
+    assert stats["silhouette"] == {"masks": 6, "used": 0}
+    a = Gaussians.load_ply(twin / "refined" / "point_cloud.ply")
+    b = Gaussians.load_ply(plain / "refined" / "point_cloud.ply")
+    np.testing.assert_array_equal(a.means, b.means)
+    np.testing.assert_array_equal(a.sh, b.sh)

@@ -165,6 +165,8 @@ def refine_objects(twin_dir: str | Path, frames, opts: RefineOptions | None = No
             n_all = sum(len(ks) for ks, _ in targets.values())
             targets = _agreeing(targets, cover0, opts.mask_min_iou)
             mask_stats = {"masks": n_all, "used": sum(len(ks) for ks, _ in targets.values())}
+            if not targets:  # every mask disagreed: colours only, as without masks
+                with_cover, bg = False, torch.zeros(1, 3)
             log.info("refine: silhouette loss on %d of %d object masks (the rest disagree with the twin: IoU < %.2f)",
                      mask_stats["used"], n_all, opts.mask_min_iou)
         for step in range(opts.iters):
