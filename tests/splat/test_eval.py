@@ -94,3 +94,18 @@ def test_eval_reports_psnr_over_pixels_the_training_views_saw(tmp_path):
     for v in res.views:
         assert 0.0 < v["covered_frac"] <= 1.0 and v["psnr_covered"] > 40
     assert m["mean_psnr_covered"] > 40 and "coverage_protocol" in m
+
+
+def test_side_by_side_tints_unseen_pixels_of_the_error_map_only():
+    from splattwin.splat.eval import UNSEEN_TINT, side_by_side
+
+    gt = np.zeros((6, 5, 3))
+    render = np.zeros((6, 5, 3))
+    unseen = np.zeros((6, 5), bool)
+    unseen[:, 3:] = True
+    plain, tinted = side_by_side(gt, render), side_by_side(gt, render, unseen)
+    assert plain.shape == tinted.shape == (6, 3 * 5 + 8, 3)
+    err = slice(2 * 5 + 8, None)
+    np.testing.assert_array_equal(tinted[:, :2 * 5 + 8], plain[:, :2 * 5 + 8])   # photo and render untouched
+    np.testing.assert_array_equal(tinted[:, err][:, :3], plain[:, err][:, :3])
+    np.testing.assert_array_equal(tinted[:, err][:, 3:], (plain[:, err][:, 3:].astype(np.uint16) + UNSEEN_TINT) // 2)

@@ -82,12 +82,19 @@ def _coverage_means(rows: list[dict]) -> dict:
     return out
 
 
-def side_by_side(gt: np.ndarray, render: np.ndarray) -> np.ndarray:
-    """[H, 3W + 8, 3] uint8: ground truth | render | error heat map, 4-px white gaps."""
+UNSEEN_TINT = np.array([40, 110, 255], np.uint8)  # error-map pixels no training camera saw (blended 50 %)
+
+
+def side_by_side(gt: np.ndarray, render: np.ndarray, unseen: np.ndarray | None = None) -> np.ndarray:
+    """[H, 3W + 8, 3] uint8: ground truth | render | error heat map, 4-px white gaps. unseen: [H,W] bool,
+    pixels tinted blue in the error map (content no training photo holds, `training_coverage`)."""
     h = gt.shape[0]
     gap = np.full((h, 4, 3), 255, np.uint8)
     u8 = lambda a: (np.clip(a, 0, 1) * 255 + 0.5).astype(np.uint8)  # noqa: E731
-    return np.concatenate([u8(gt), gap, u8(render), gap, metrics.error_heatmap(render, gt)], axis=1)
+    err = metrics.error_heatmap(render, gt)
+    if unseen is not None and unseen.any():
+        err[unseen] = ((err[unseen].astype(np.uint16) + UNSEEN_TINT) // 2).astype(np.uint8)
+    return np.concatenate([u8(gt), gap, u8(render), gap, err], axis=1)
 
 
 def training_coverage(depth: np.ndarray, alpha: np.ndarray, camera, train_cameras, T_cam_world=None,
@@ -226,6 +233,7 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
                     torch.linalg.inv(torch.tensor(T, dtype=torch.float32))).clamp(0, 1).numpy()
         row = {"name": v.name, "psnr": metrics.psnr(img, gt), "ssim": metrics.ssim(img, gt), **extra,
                **heldout_corrected_psnr(img, gt)}
+        seen = None
         if split == "heldout" and train_cams:
             depth, alpha_d = render(g, v.camera, mode="ED", backend=backend, T_cam_world=T_cw, rasterize_mode=mode)
             seen = training_coverage(depth[..., 0], alpha_d, v.camera, train_cams, T_cam_world=T_cw)
@@ -233,7 +241,7 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
                        psnr_uncovered=_masked_psnr(img, gt, ~seen))
         if out is not None:
             row["image"] = f"{v.name}.png"
-            write_image(out / row["image"], side_by_side(gt, img))
+            write_image(out / row["image"], side_by_side(gt, img, None if seen is None else ~seen))
         rows.append(row)
     mean_psnr = float(np.mean([r["psnr"] for r in rows]))
     mean_ssim = float(np.mean([r["ssim"] for r in rows]))
@@ -256,5 +264,6 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
                                  "over those and the other pixels (pooled over the views)",
             "gaussians": len(g), "resolution": rule.resolution, "eval_resolution": eval_res, "heldout": held,
             "views": rows,
-            "legend": "images: ground truth | render | |error| heat map (black 0 -> white >= 0.25)"})
+            "legend": "images: ground truth | render | |error| heat map (black 0 -> white >= 0.25; tinted blue: "
+                      "pixels no training camera saw)"})
     return result
