@@ -46,6 +46,8 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from splattwin.splat import metrics  # noqa: E402
+
 
 # -- 2. the task, recorded -------------------------------------------------------------------------------
 def record_task(twin: Path, rate: float = 100.0):
@@ -92,11 +94,7 @@ def gt_renderer(scene_dir: Path, motions: dict[str, np.ndarray]):
     return SceneRenderer(surfaces, shadows=opts.shadows), {o.name: o.label for o in objects}, opts
 
 
-def masked_psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
-    if not mask.any():
-        return float("nan")
-    mse = float(np.mean((a[mask] - b[mask]) ** 2))
-    return 10 * np.log10(1.0 / max(mse, 1e-12))
+masked_psnr = metrics.masked_psnr  # NaN for an empty mask (bench/objects_bounds.py imports it from here)
 
 
 def masked_ssim(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:

@@ -96,3 +96,17 @@ def test_fused_ssim_matches_torch_reference_and_gradient(h, w):
     m[5, 7, 1] -= e
     fd = (float(ssim(p.double(), ref.double())) - float(ssim(m.double(), ref.double()))) / (2 * e)
     assert float(img.grad[5, 7, 1]) == pytest.approx(fd, rel=1e-2, abs=1e-6)
+
+
+def test_masked_psnr_known_answers():
+    from splattwin.splat.metrics import masked_psnr
+
+    ref = np.zeros((4, 4, 3))
+    img = ref.copy()
+    img[:2] = 0.1                                  # error 0.1 on the top half only
+    top = np.zeros((4, 4), bool)
+    top[:2] = True
+    assert masked_psnr(img, ref, top) == pytest.approx(20.0)
+    assert masked_psnr(img, ref, ~top) == float("inf")
+    assert np.isnan(masked_psnr(img, ref, np.zeros((4, 4), bool)))
+    assert masked_psnr(img, ref, np.ones((4, 4), bool)) == pytest.approx(metrics.psnr(img, ref))

@@ -124,9 +124,9 @@ def training_coverage(depth: np.ndarray, alpha: np.ndarray, camera, train_camera
 
 
 def _masked_psnr(img: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float | None:
-    if not mask.any():
-        return None
-    return psnr_from_mse(float(((img[mask].astype(np.float64) - gt[mask]) ** 2).mean()))
+    """`metrics.masked_psnr`, None (JSON null) for an empty mask."""
+    p = metrics.masked_psnr(img, gt, mask)
+    return None if np.isnan(p) else p
 
 
 def resolve_ply(path: str | Path) -> tuple[Path, dict]:

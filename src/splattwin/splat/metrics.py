@@ -26,6 +26,16 @@ def psnr(img: np.ndarray | torch.Tensor, ref: np.ndarray | torch.Tensor, max_val
     return psnr_from_mse(mse)
 
 
+def masked_psnr(img: np.ndarray | torch.Tensor, ref: np.ndarray | torch.Tensor, mask: np.ndarray) -> float:
+    """PSNR in dB (data range 1) over the pixels of HxWxC images where the HxW bool `mask` is set: NaN when
+    the mask is empty, inf when those pixels are identical."""
+    m = torch.from_numpy(np.asarray(mask, bool))
+    if not bool(m.any()):
+        return float("nan")
+    x, y = _as64(img), _as64(ref)
+    return psnr_from_mse(float(((x[m] - y[m]) ** 2).mean()))
+
+
 def ssim(img: np.ndarray | torch.Tensor, ref: np.ndarray | torch.Tensor) -> float:
     """Mean structural similarity of HxWxC images in [0,1] (1 when identical)."""
     x, y = _as64(img), _as64(ref)
