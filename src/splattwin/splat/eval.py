@@ -45,7 +45,6 @@ from splattwin.splat.appearance import heldout_corrected_psnr
 from splattwin.splat.losses import psnr_from_mse
 from splattwin.splat.gaussians import Gaussians
 from splattwin.splat.pose_refine import align_camera, pose_errors
-from splattwin.splat.render import render_rgb
 from splattwin.splat.resolution import FULL, Resolution, describe_sizes, resolve
 from splattwin.splat.trainer import load_views
 
@@ -220,11 +219,13 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
                                 rasterize_mode=mode)
             rot, centre = pose_errors(T_cw[None], v.camera.T_cam_world[None])
             extra = {"pose_correction_deg": float(rot[0]), "pose_correction_m": float(centre[0])}
-        if background_model is None:
-            img = render_rgb(g, v.camera, bg, backend, T_cam_world=T_cw, rasterize_mode=mode)
-        else:
-            img, alpha = render(g, v.camera, mode="RGB", background=(0.0, 0.0, 0.0), backend=backend,
-                                T_cam_world=T_cw, rasterize_mode=mode)
+        # the expected depth for the coverage test comes from the same pass as the colours
+        with_depth = split == "heldout" and bool(train_cams)
+        rendered, alpha = render(g, v.camera, mode="RGB+ED" if with_depth else "RGB",
+                                 background=tuple(bg) if background_model is None else (0.0, 0.0, 0.0),
+                                 backend=backend, T_cam_world=T_cw, rasterize_mode=mode)
+        img = np.clip(rendered[..., :3], 0.0, 1.0) if background_model is None else rendered[..., :3].copy()
+        if background_model is not None:
             T = v.camera.T_cam_world if T_cw is None else T_cw
             with torch.no_grad():
                 img = background_model.composite(
@@ -234,9 +235,8 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
         row = {"name": v.name, "psnr": metrics.psnr(img, gt), "ssim": metrics.ssim(img, gt), **extra,
                **heldout_corrected_psnr(img, gt)}
         seen = None
-        if split == "heldout" and train_cams:
-            depth, alpha_d = render(g, v.camera, mode="ED", backend=backend, T_cam_world=T_cw, rasterize_mode=mode)
-            seen = training_coverage(depth[..., 0], alpha_d, v.camera, train_cams, T_cam_world=T_cw)
+        if with_depth:
+            seen = training_coverage(rendered[..., 3], alpha, v.camera, train_cams, T_cam_world=T_cw)
             row.update(covered_frac=float(seen.mean()), psnr_covered=_masked_psnr(img, gt, seen),
                        psnr_uncovered=_masked_psnr(img, gt, ~seen))
         if out is not None:
