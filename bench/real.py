@@ -38,6 +38,10 @@ Sections (SECTIONS below; each returns table rows and JSON keys, so more can be 
   unseen ones as rendered. Measured (Nov 2026, 3000 steps, 000/016 held out): 77.5 % seen, 16.84 dB
   there, 13.01 dB on the unseen 22.5 %, bound 19.49 dB: the two held-out views are the ends of the sweep,
   and 20 dB is out of reach without inventing the content no training photo holds.
+- stereo_init: the opt-in `--init-stereo` (plane-sweep stereo points added to the SfM cloud, splat/mvs.py):
+  the fused points' depth error on the embedded scene (true depth known) and the statue's held-out PSNR/SSIM
+  with and without 10000 stereo points (--stereo-seeds seeds each, default options otherwise). Not part of
+  the default run's targets.
 Targets (issue #16): preflight_s <= 10, zdown_fixed true, unscaled_twin_complete true, psnr_heldout_statue >= 20,
 registered_frac_min 1.0, registered_frac_internet >= 0.8, sfm_s_max <= 40,
 sfm_peak_rss_gib <= 2, known_pose_init_gap_db <= 1.0. The real photos are read in place (CC BY-NC).
@@ -477,15 +481,95 @@ def section_psnr_heldout_statue(args) -> tuple[list[tuple[str, str]], dict]:
                   "preflight_estimate_covers_peak": covers}
 
 
+# -- plane-sweep stereo init (opt-in) ---------------------------------------------------------------------
+def _stereo_depth_accuracy(cache: Path) -> dict:
+    """Fused stereo points of the embedded scene's training views against its ground-truth depth maps: each
+    point's distance along the ray to the true surface in the training view that agrees best (m)."""
+    import numpy as np
+
+    from splattwin.capture import load_dataset, load_depth
+    from splattwin.splat.mvs import StereoOptions, dense_points
+
+    ds = load_dataset(_scene(cache))
+    train = [f for f in ds.train() if f.depth_path is not None]
+    t0 = time.perf_counter()
+    xyz, _ = dense_points(train, ds.points_xyz, 10**8, StereoOptions(max_side=320), progress=False)
+    secs = time.perf_counter() - t0
+    err = np.full(len(xyz), np.inf)
+    for f in train:
+        depth, c = load_depth(f.depth_path, ds.depth_scale), f.camera
+        p = xyz @ c.T_cam_world[:3, :3].T + c.T_cam_world[:3, 3]
+        z = p[:, 2]
+        zs = np.maximum(z, 1e-9)
+        u = np.floor(c.fx * p[:, 0] / zs + c.cx).astype(np.int64)
+        v = np.floor(c.fy * p[:, 1] / zs + c.cy).astype(np.int64)
+        ok = (z > 0) & (u >= 0) & (u < depth.shape[1]) & (v >= 0) & (v < depth.shape[0])
+        e = np.full(len(xyz), np.inf)
+        e[ok] = np.abs(depth[v[ok], u[ok]] - z[ok])
+        err = np.minimum(err, e)
+    return {"points": len(xyz), "views": len(train), "s": secs, "median_mm": float(np.median(err) * 1e3),
+            "p90_mm": float(np.percentile(err, 90) * 1e3), "within_5mm": float(np.mean(err < 0.005))}
+
+
+def section_stereo_init(args) -> tuple[list[tuple[str, str]], dict]:
+    """`--init-stereo` (opt-in): (1) depth accuracy of the fused stereo points on the embedded scene (true
+    depth known); (2) the statue (SfM poses, default hold-out and options) trained with and without 10000
+    stereo points, --stereo-seeds training seeds each, held-out PSNR/SSIM (mean) and the stereo step's time."""
+    import statistics as st
+
+    from splattwin.capture import load_dataset
+    from splattwin.splat.eval import evaluate
+    from splattwin.splat.trainer import TrainConfig, Trainer
+
+    acc = _stereo_depth_accuracy(args.cache)
+    posed = args.cache / "statue_posed"
+    if not (posed / "transforms.json").is_file():
+        code, _, err = _cli_run(["poses", str(DATA / "statue" / "images"), str(posed), "--no-progress"])
+        if code != 0:
+            return [("stereo init", f"statue poses failed (exit {code}): {err.strip()[-200:]}")], {}
+    ds = load_dataset(posed)
+    work = Path(tempfile.mkdtemp(prefix="bench_real_stereo_"))
+    arms: dict[str, list[tuple[float, float, float]]] = {"default": [], "stereo": []}
+    for seed in range(args.stereo_seeds):
+        for arm, n in (("default", 0), ("stereo", 10_000)):
+            cfg = TrainConfig(checkpoint_every=0, progress=False, seed=seed, init_stereo=n)
+            t0 = time.perf_counter()
+            res = Trainer(ds, work / f"{arm}_{seed}", cfg).run()
+            secs = time.perf_counter() - t0
+            ev = evaluate(res.gaussians, ds, None, progress=False, rasterize_mode=cfg.rasterize_mode)
+            arms[arm].append((ev.mean_psnr, ev.mean_ssim, secs))
+            print(f"  [stereo] {arm} seed {seed}: init {res.init_method}, held-out {ev.mean_psnr:.2f} dB / SSIM "
+                  f"{ev.mean_ssim:.4f} ({secs:.0f} s)", file=sys.stderr)
+    import shutil
+
+    shutil.rmtree(work, ignore_errors=True)
+    mean = {a: (st.mean(r[0] for r in v), st.mean(r[1] for r in v), st.mean(r[2] for r in v)) for a, v in arms.items()}
+    rows = [("stereo depth (embedded scene)", f"{acc['points']} fused points from {acc['views']} training views in "
+                                              f"{acc['s']:.0f} s: distance to the true surface median "
+                                              f"{acc['median_mm']:.2f} mm, 90th percentile {acc['p90_mm']:.2f} mm, "
+                                              f"{acc['within_5mm']:.1%} within 5 mm")]
+    rows += [(f"statue, init {a}", f"held-out {m[0]:.2f} dB / SSIM {m[1]:.4f} (seeds {[round(r[0], 2) for r in arms[a]]}), "
+                                   f"train+eval {m[2]:.0f} s") for a, m in mean.items()]
+    return rows, {"stereo_depth_err_mm_median": round(acc["median_mm"], 2),
+                  "stereo_depth_within_5mm": round(acc["within_5mm"], 3),
+                  "psnr_statue_stereo": round(mean["stereo"][0], 3), "psnr_statue_default": round(mean["default"][0], 3),
+                  "stereo_init_gain_db": round(mean["stereo"][0] - mean["default"][0], 3),
+                  "stereo_init_gain_ssim": round(mean["stereo"][1] - mean["default"][1], 4),
+                  "stereo_extra_s": round(mean["stereo"][2] - mean["default"][2], 1), "stereo_seeds": args.stereo_seeds}
+
+
 SECTIONS: dict[str, Callable] = {"sfm": section_sfm, "known_pose_init": section_known_pose_init,
                                  "preflight_s": section_preflight, "zdown_fixed": section_zdown_fixed,
                                  "psnr_heldout_statue": section_psnr_heldout_statue,
-                                 "unscaled_twin_complete": section_unscaled_twin_complete}
+                                 "unscaled_twin_complete": section_unscaled_twin_complete,
+                                 "stereo_init": section_stereo_init}
+OPT_IN_SECTIONS = ("stereo_init",)   # an A/B of an opt-in option, not a target: run it by name
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--sections", default=",".join(SECTIONS), help=f"comma list of {', '.join(SECTIONS)}")
+    ap.add_argument("--sections", default=",".join(s for s in SECTIONS if s not in OPT_IN_SECTIONS),
+                    help=f"comma list of {', '.join(SECTIONS)} (default: all but {', '.join(OPT_IN_SECTIONS)})")
     ap.add_argument("--repeats", type=int, default=2, help="SfM runs per set (median reported)")
     ap.add_argument("--sets", default=",".join(SETS), help=f"sfm section: comma list of {', '.join(SETS)}")
     ap.add_argument("--peer-src", type=Path, help="another source tree (its src/) to run the SfM section with too")
@@ -494,6 +578,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--random-arm", action="store_true", help="known_pose_init: also train from random points")
     ap.add_argument("--unscaled-iters", type=int, default=1000, help="unscaled_twin_complete: training steps")
     ap.add_argument("--statue-iters", type=int, default=0, help="psnr_heldout_statue: training steps (0: the default)")
+    ap.add_argument("--stereo-seeds", type=int, default=2, help="stereo_init: training seeds per arm (mean)")
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "splattwin_bench")
     ap.add_argument("--run-sfm", nargs=2, metavar=("IMAGES", "WORK"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)

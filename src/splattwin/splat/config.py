@@ -109,6 +109,9 @@ class TrainConfig:
     init: str = option("auto", "initial point cloud: dataset/SfM points, back-projected depth maps, points "
                        "triangulated from the known poses, or random in the cameras' common view (auto: the first "
                        "available in that order)", choices=INIT_METHODS)
+    init_stereo: int = option(0, "add up to this many points from plane-sweep stereo on the training views to "
+                              "the SfM/triangulated ones (0: off; statue photos, 10000: held-out +0.12 dB / SSIM "
+                              "+0.02 over 2 seeds, ~40 s on 2 cores)", build_alias="init-stereo")
     init_points: int = option(0, "at most this many initial Gaussians (0: 24000 for 320x240 images, scaled "
                               "with the square root of the pixel count above)")
     sh_degree: int = option(-1, "maximum SH degree (-1: auto: 3, or 1 on a sparse capture, see --sparse-views)",

@@ -248,11 +248,14 @@ def _images_exist(frames: Sequence[Frame]) -> bool:
 
 def initial_gaussians(method: str, train_frames: Sequence[Frame], points_xyz: np.ndarray | None = None,
                       points_rgb: np.ndarray | None = None, depth_scale: float | None = None, sh_degree: int = 3,
-                      max_points: int = 30_000, seed: int = 0) -> tuple[Gaussians, str]:
+                      max_points: int = 30_000, seed: int = 0, stereo_points: int = 0,
+                      progress: bool = True) -> tuple[Gaussians, str]:
     """Initial Gaussians by `method` ("auto" | "sfm" | "depth" | "triangulate" | "random"); returns
     (gaussians, method used). "auto" takes the SfM/dataset points if present, else depth maps if present,
     else points triangulated from the images with their known poses, else (with a warning) random points
-    in the cameras' common view."""
+    in the cameras' common view. stereo_points > 0: up to that many plane-sweep stereo points from the
+    training views (`splattwin.splat.mvs`) join the SfM/triangulated ones (the total stays within
+    max_points; method reported as e.g. "sfm+stereo")."""
     tri: tuple[np.ndarray, np.ndarray] | None = None
     if method == "auto":
         if points_xyz is not None and len(points_xyz) >= 4:
@@ -292,6 +295,14 @@ def initial_gaussians(method: str, train_frames: Sequence[Frame], points_xyz: np
         xyz, rgb = random_points_in_view([f.camera for f in train_frames], n, seed)
     else:
         raise InputError(f"unknown --init method {method!r}; choose auto, sfm, depth, triangulate or random")
+    room = min(stereo_points, max_points - len(xyz))
+    if method in ("sfm", "triangulate") and room > 0:
+        from splattwin.splat.mvs import dense_points
+
+        s_xyz, s_rgb = dense_points(train_frames, xyz, room, seed=seed, progress=progress)
+        if len(s_xyz):
+            xyz, rgb = np.concatenate([xyz, s_xyz]), np.concatenate([rgb, s_rgb])
+            method = f"{method}+stereo"
     ok = np.all(np.isfinite(xyz), axis=1)
     if not ok.all():
         log.warning("dropping %d non-finite initial points", int((~ok).sum()))

@@ -316,7 +316,7 @@ class Trainer:
         g, self.init_method = initial_gaussians(
             cfg.init, self.frames, self.dataset.points_xyz, self.dataset.points_rgb,
             depth_scale=self.dataset.depth_scale, sh_degree=cfg.sh_degree, max_points=cfg.init_points,
-            seed=cfg.seed)
+            seed=cfg.seed, stereo_points=cfg.init_stereo, progress=cfg.progress)
         torch.manual_seed(cfg.seed)
         g = extras.with_background_sphere(g, cfg, self.views, self.scene_center, self.scene_scale)
         self.model = GaussianModel.from_gaussians(g, max_sh_degree=cfg.sh_degree, lrs=cfg.lrs,
