@@ -35,7 +35,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from splattwin.capture import Camera, Frame, load_image
+from splattwin.capture import Camera, Frame
 from splattwin.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -169,11 +169,6 @@ def fuse(cams: Sequence[Camera], depths: Sequence[np.ndarray], scores: Sequence[
     return np.concatenate(xyz_all), np.concatenate(rgb_all), kept
 
 
-def _resized(img: np.ndarray, width: int, height: int) -> np.ndarray:
-    t = torch.as_tensor(np.ascontiguousarray(img[..., :3]), dtype=torch.float32).permute(2, 0, 1)[None]
-    return F.interpolate(t, size=(height, width), mode="area")[0].permute(1, 2, 0).numpy()
-
-
 def dense_points(frames: Sequence[Frame], points_xyz: np.ndarray, max_points: int,
                  opts: StereoOptions = StereoOptions(), seed: int = 0, progress: bool = True
                  ) -> tuple[np.ndarray, np.ndarray]:
@@ -182,19 +177,16 @@ def dense_points(frames: Sequence[Frame], points_xyz: np.ndarray, max_points: in
     `points_xyz` [N,3] (the sparse SfM/triangulated cloud) bounds each view's depth range; views that see
     fewer than 8 of its points are skipped as references. InputError with fewer than 2 frames."""
     from splattwin.poses.progress import StageProgress
+    from splattwin.splat.resolution import Resolution
+    from splattwin.splat.trainer import load_views
 
     if len(frames) < 2:
         raise InputError(f"stereo needs at least 2 training views, got {len(frames)}")
     pts = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
-    cams, images, grays = [], [], []
-    for f in frames:
-        img = load_image(f.image_path)
-        s = min(1.0, opts.max_side / max(img.shape[:2]))
-        cam = f.camera.scaled(s) if s < 1.0 else f.camera
-        cam_img = _resized(img, cam.width, cam.height) if (cam.width, cam.height) != img.shape[1::-1] else img[..., :3]
-        cams.append(cam)
-        images.append(np.asarray(cam_img, dtype=np.float32))
-        grays.append(_gray(np.asarray(cam_img, dtype=np.float32)))
+    views = load_views(list(frames), Resolution(1, opts.max_side, f"stereo: longest side at most {opts.max_side} px"))
+    cams = [v.camera for v in views]
+    images = [v.image.numpy()[..., :3] for v in views]
+    grays = [_gray(im) for im in images]
     centers = np.array([c.center for c in cams])
     depths, scores = [], []
     with StageProgress(progress, prefix="stereo") as bar:
