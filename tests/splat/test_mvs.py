@@ -131,3 +131,27 @@ def test_initial_gaussians_add_stereo_points_within_the_budget(tmp_path):
     assert np.percentile(np.abs(g.means[9:, 2] - PLANE_Z), 95) < 0.03 * PLANE_Z
     g0, m0 = initial_gaussians("sfm", frames, sparse, None, max_points=600, progress=False)
     assert m0 == "sfm" and len(g0) == 9
+
+
+def test_dense_points_match_the_embedded_scenes_true_depth(scene_small):
+    """Rendered textures, shading and occlusions (8 training views at 160x120): the fused points lie on the
+    true surfaces (measured: median 2.6 mm, 92 % within 1 cm, 31 % of the pixels fused)."""
+    from splattwin.capture import load_dataset, load_depth
+    from splattwin.splat.init import backproject_depth
+
+    ds = load_dataset(scene_small)
+    train = ds.train()
+    depths = [load_depth(f.depth_path, ds.depth_scale) for f in train]
+    sparse = np.concatenate([backproject_depth(d, f.camera, stride=16)[0] for d, f in zip(depths, train)])
+    xyz, _ = mvs.dense_points(train, sparse, 10**7, progress=False)
+    assert len(xyz) > 0.2 * len(train) * 160 * 120
+    err = np.full(len(xyz), np.inf)   # distance along the ray to the true surface, best training view
+    for d, f in zip(depths, train):
+        uv, z = f.camera.project(xyz)
+        u, v = np.floor(uv).astype(int).T
+        ok = (z > 0) & (u >= 0) & (u < d.shape[1]) & (v >= 0) & (v < d.shape[0])
+        e = np.full(len(xyz), np.inf)
+        e[ok] = np.abs(d[v[ok], u[ok]] - z[ok])
+        err = np.minimum(err, e)
+    assert np.median(err) < 0.005
+    assert np.mean(err < 0.01) > 0.8
