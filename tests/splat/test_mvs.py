@@ -118,6 +118,8 @@ def test_needs_two_views(tmp_path):
     frames = _frames(tmp_path)[:1]
     with pytest.raises(InputError, match="at least 2"):
         mvs.dense_points(frames, np.zeros((10, 3)), max_points=10, progress=False)
+    with pytest.raises(InputError, match="sparse point cloud"):
+        mvs.dense_points(_frames(tmp_path), None, max_points=10, progress=False)
 
 
 def test_initial_gaussians_add_stereo_points_within_the_budget(tmp_path):

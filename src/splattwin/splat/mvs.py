@@ -182,6 +182,8 @@ def dense_points(frames: Sequence[Frame], points_xyz: np.ndarray, max_points: in
 
     if len(frames) < 2:
         raise InputError(f"stereo needs at least 2 training views, got {len(frames)}")
+    if points_xyz is None or np.size(points_xyz) < 3 * 8:
+        raise InputError("stereo needs a sparse point cloud (at least 8 points, e.g. SfM's) to bound its depth range")
     pts = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
     views = load_views(list(frames), Resolution(1, opts.max_side, f"stereo: longest side at most {opts.max_side} px"))
     cams = [v.camera for v in views]
