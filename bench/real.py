@@ -50,7 +50,11 @@ Last line: one JSON object.
 
 from __future__ import annotations
 
-import argparse
+import splattwin.runtime
+
+splattwin.runtime.configure()  # before torch/numba load (OpenMP wait policy, thread counts)
+
+import argparse  # noqa: E402
 import json
 import os
 import re
