@@ -110,8 +110,8 @@ class TrainConfig:
                        "triangulated from the known poses, or random in the cameras' common view (auto: the first "
                        "available in that order)", choices=INIT_METHODS)
     init_stereo: int = option(0, "add up to this many points from plane-sweep stereo on the training views to "
-                              "the SfM/triangulated ones (0: off; statue photos, 10000: held-out +0.12 dB / SSIM "
-                              "+0.02 over 2 seeds, ~40 s on 2 cores)", build_alias="init-stereo")
+                              "the SfM/triangulated ones (0: off; see TrainConfig.resolved for what it gave on "
+                              "the real photos)", build_alias="init-stereo")
     init_points: int = option(0, "at most this many initial Gaussians (0: 24000 for 320x240 images, scaled "
                               "with the square root of the pixel count above)")
     sh_degree: int = option(-1, "maximum SH degree (-1: auto: 3, or 1 on a sparse capture, see --sparse-views)",
@@ -185,7 +185,12 @@ class TrainConfig:
         (the profile) 15.67 / 15.65 (SSIM 0.456). Tried and left out: a 10k sphere 15.32 at 2000,
         an anisotropy penalty (0.01, r 10) 14.58 at 1500, threshold 1e-3 15.85, cap 24k 15.88 / 15.61,
         antialiased rasterization 15.67 at 1500 (these with SH 0), opacity_reg 0.05 14.08 at 2000, a longer
-        coarse phase 15.62 at 2000, --refine-poses 14.70 at 1000."""
+        coarse phase 15.62 at 2000, --refine-poses 14.70 at 1000. Left opt-in: plane-sweep stereo points
+        (`--init-stereo 10000`, splat/mvs.py; 3000 steps, paired seeds, bench/real.py --sections
+        stereo_init): statue 15.39 -> 15.76 dB, SSIM 0.451 -> 0.470 over 3 seeds (each +0.11 to +0.57;
+        another SfM run of the same photos +0.16 / +0.07), +53 s on 2 cores; but the cake (7 views around
+        it, one held-out view) 10.81 / 9.13 / 11.07 -> 10.73 / 10.50 / 10.84 dB with SSIM lower in all three
+        seeds (-0.008 to -0.019). As depth supervision (the fused depth maps, depth_lambda 0.1) 15.37."""
         sparse = 0 < self.sparse_views and n_views < self.sparse_views
         auto = {"sh_degree": (self.sh_degree < 0, SPARSE_SH_DEGREE if sparse else 3),
                 "bg_sphere_points": (self.bg_sphere_points < 0, min(SPARSE_SPHERE_POINTS, self.max_gaussians // 10)
