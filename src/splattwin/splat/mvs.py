@@ -149,6 +149,7 @@ def fuse(cams: Sequence[Camera], depths: Sequence[np.ndarray], scores: Sequence[
         for j, other in enumerate(cams):
             if j == i:
                 continue
+            # pinhole, as the sweep (Camera.project would add the lens distortion the sweep ignores)
             q = p_world @ other.T_cam_world[:3, :3].T + other.T_cam_world[:3, 3]
             z = q[:, 2]
             zs = np.maximum(z, 1e-9)
