@@ -83,3 +83,18 @@ def test_dict_roundtrip():
     np.testing.assert_allclose(back.dist, cam.dist)
     assert back.name == "x"
 
+
+
+def test_pixel_rays_back_project_to_the_pixel_centres():
+    cam = Camera(K=[[50.0, 0, 19.3], [0, 45.0, 14.1], [0, 0, 1]], width=40, height=30,
+                 T_world_cam=look_at(np.array([0.2, -0.5, 0.8]), np.zeros(3)))
+    rays = cam.pixel_rays()
+    assert rays.shape == (30, 40, 3) and np.all(rays[..., 2] == 1.0)
+    depth = np.random.default_rng(0).uniform(0.5, 2.0, (30, 40))
+    p_cam = (rays * depth[..., None]).reshape(-1, 3)
+    p_world = p_cam @ cam.T_world_cam[:3, :3].T + cam.T_world_cam[:3, 3]
+    np.testing.assert_allclose(cam.world_to_cam(p_world), p_cam, atol=1e-12)
+    uv, z = cam.project(p_world)
+    v, u = np.mgrid[0:30, 0:40]
+    np.testing.assert_allclose(uv, np.stack([u.ravel() + 0.5, v.ravel() + 0.5], 1), atol=1e-9)
+    np.testing.assert_allclose(z, depth.ravel(), atol=1e-12)

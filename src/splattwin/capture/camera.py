@@ -159,6 +159,12 @@ class Camera:
         T = self.T_cam_world
         return np.asarray(p_world, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
 
+    def pixel_rays(self) -> np.ndarray:
+        """[H,W,3] camera-frame ray directions with z = 1 through the pixel centres (pinhole: the lens
+        distortion, if any, is ignored), so that `pixel_rays() * depth[..., None]` back-projects a z-depth map."""
+        v, u = np.mgrid[0:self.height, 0:self.width]
+        return np.stack([(u + 0.5 - self.cx) / self.fx, (v + 0.5 - self.cy) / self.fy, np.ones(u.shape)], axis=-1)
+
     def project(self, p_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Project world points. Returns (uv [N,2] pixels with distortion applied, depth z [N] metres).
 

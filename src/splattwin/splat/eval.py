@@ -106,15 +106,15 @@ def training_coverage(depth: np.ndarray, alpha: np.ndarray, camera, train_camera
     can reconstruct, so its PSNR is reported apart (`evaluate`). camera: the held-out `Camera` (its K at the
     render's size); T_cam_world overrides its pose; train_cameras: `Camera`s at any size."""
     h, w = depth.shape
+    if (w, h) != (camera.width, camera.height):
+        raise ValueError(f"depth map is {w}x{h} but the camera is {camera.width}x{camera.height}")
     T_cw = camera.T_cam_world if T_cam_world is None else T_cam_world
-    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(camera.K).T      # [H,W,3] camera frame, z = 1
-    p_cam = rays * depth[..., None]
+    p_cam = camera.pixel_rays() * depth[..., None]
     T_wc = np.linalg.inv(T_cw)
     p_world = p_cam @ T_wc[:3, :3].T + T_wc[:3, 3]
     seen = np.zeros((h, w), bool)
     for c in train_cameras:
-        q = p_world @ c.T_cam_world[:3, :3].T + c.T_cam_world[:3, 3]
+        q = c.world_to_cam(p_world)
         z = q[..., 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             uv = (q @ c.K.T)[..., :2] / z[..., None]

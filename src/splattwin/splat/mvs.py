@@ -80,13 +80,6 @@ def zncc(ref: torch.Tensor, src: torch.Tensor, window: int) -> torch.Tensor:
     return torch.where(ok, cov / torch.sqrt(vr * vs).clamp_min(1e-12), torch.zeros_like(cov))
 
 
-def _pixel_rays(cam: Camera) -> np.ndarray:
-    """[H*W,3] camera-frame ray directions with z = 1 through the pixel centres."""
-    v, u = np.mgrid[0:cam.height, 0:cam.width]
-    return np.stack([(u + 0.5 - cam.cx) / cam.fx, (v + 0.5 - cam.cy) / cam.fy, np.ones(u.shape)],
-                    axis=-1).reshape(-1, 3)
-
-
 def plane_sweep(ref_gray: np.ndarray, ref_cam: Camera, src_grays: Sequence[np.ndarray],
                 src_cams: Sequence[Camera], depth_min: float, depth_max: float, n_planes: int = 96,
                 window: int = 7) -> tuple[np.ndarray, np.ndarray]:
@@ -100,7 +93,7 @@ def plane_sweep(ref_gray: np.ndarray, ref_cam: Camera, src_grays: Sequence[np.nd
         raise ValueError(f"window must be odd and >= 3, got {window}")
     h, w = ref_cam.height, ref_cam.width
     ref = torch.as_tensor(ref_gray, dtype=torch.float32)
-    rays = _pixel_rays(ref_cam)
+    rays = ref_cam.pixel_rays().reshape(-1, 3)
     T_world_ref = ref_cam.T_world_cam
     # per source: q(d) = d * (R_src_ref rays) + t_src_ref, so one matrix product per source, not per plane
     a_list, b_list = [], []
@@ -142,7 +135,7 @@ def fuse(cams: Sequence[Camera], depths: Sequence[np.ndarray], scores: Sequence[
     xyz_all, rgb_all, kept = [], [], []
     for i, cam in enumerate(cams):
         d = depths[i].reshape(-1)
-        p_cam = _pixel_rays(cam) * d[:, None]
+        p_cam = cam.pixel_rays().reshape(-1, 3) * d[:, None]
         T = cam.T_world_cam
         p_world = p_cam @ T[:3, :3].T + T[:3, 3]
         agree = np.zeros(len(d), dtype=np.int32)
@@ -150,7 +143,7 @@ def fuse(cams: Sequence[Camera], depths: Sequence[np.ndarray], scores: Sequence[
             if j == i:
                 continue
             # pinhole, as the sweep (Camera.project would add the lens distortion the sweep ignores)
-            q = p_world @ other.T_cam_world[:3, :3].T + other.T_cam_world[:3, 3]
+            q = other.world_to_cam(p_world)
             z = q[:, 2]
             zs = np.maximum(z, 1e-9)
             u = np.floor(other.fx * q[:, 0] / zs + other.cx).astype(np.int64)
@@ -195,8 +188,8 @@ def dense_points(frames: Sequence[Frame], points_xyz: np.ndarray, max_points: in
     with StageProgress(progress, prefix="stereo") as bar:
         for i, cam in enumerate(cams):
             bar.update("stereo: plane sweep per training view", i, len(cams))
-            p_cam = pts @ cam.T_cam_world[:3, :3].T + cam.T_cam_world[:3, 3]
-            z = p_cam[:, 2][p_cam[:, 2] > 0]
+            z = cam.world_to_cam(pts)[:, 2]
+            z = z[z > 0]
             if len(z) < 8:
                 depths.append(np.zeros((cam.height, cam.width)))
                 scores.append(np.full((cam.height, cam.width), -1.0))
