@@ -4,7 +4,11 @@ DBSCAN is scikit-learn's. For speed the points are first averaged per voxel (def
 voxel centroids are clustered with `sample_weight` = points per voxel, so `min_samples` keeps its
 meaning (points within about eps: centroids move by at most a voxel diagonal) while the neighbour
 search handles ~10x fewer samples with ~10x fewer neighbours each; voxel = 0 runs
-exact DBSCAN on the points. The plane comes from Open3D's RANSAC `segment_plane`.
+exact DBSCAN on the points. The table plane is our own seeded RANSAC (`ransac_plane`, numpy) rather than
+Open3D's `segment_plane`: Open3D's samples hypotheses on several threads from one generator, so even with
+`o3d.utility.random.seed` the same points give different planes from run to run (isl-org/Open3D#7270; seen
+here as two table heights 8 µm apart and a different hammer mesh between a build and its resumed copy),
+and a twin must be reproducible.
 """
 
 from __future__ import annotations
@@ -62,27 +66,52 @@ class Plane:
         return points @ self.normal + self.d
 
 
+def ransac_plane(points: np.ndarray, distance: float, iterations: int, rng: np.random.Generator,
+                 chunk: int = 64) -> tuple[np.ndarray, float, np.ndarray]:
+    """RANSAC plane of points [N,3] (N >= 3): (unit normal [3], d, inlier indices [K]) of the hypothesis
+    through 3 random points with the most points within `distance` (m; ties: the first drawn).
+    Deterministic for a given generator state; `chunk` hypotheses are scored at a time ([chunk, N] floats)."""
+    pts = np.asarray(points, dtype=np.float64)
+    tri = rng.integers(0, len(pts), size=(max(1, iterations), 3))
+    a, b, c = pts[tri[:, 0]], pts[tri[:, 1]], pts[tri[:, 2]]
+    n = np.cross(b - a, c - a)
+    norm = np.linalg.norm(n, axis=1)
+    ok = norm > 1e-12                     # repeated or collinear samples define no plane
+    n = np.where(ok[:, None], n / np.maximum(norm, 1e-300)[:, None], 0.0)
+    d = -np.einsum("ij,ij->i", n, a)
+    counts = np.full(len(n), -1, dtype=np.int64)
+    for i in range(0, len(n), chunk):
+        dist = np.abs(pts @ n[i:i + chunk].T + d[i:i + chunk])       # [N, chunk]
+        counts[i:i + chunk] = np.where(ok[i:i + chunk], (dist <= distance).sum(axis=0), -1)
+    best = int(np.argmax(counts))
+    if counts[best] < 0:                  # every sample degenerate (e.g. all points on one line)
+        raise ValueError("no plane through the points: they are collinear or repeated")
+    return n[best], float(d[best]), np.flatnonzero(np.abs(pts @ n[best] + d[best]) <= distance)
+
+
 def fit_plane(points: np.ndarray, distance: float = 0.004, iterations: int = 500, max_samples: int = 30000,
               seed: int = 0, max_tilt_deg: float | None = 30.0, tries: int = 4) -> Plane:
-    """Dominant (near-horizontal) plane of points [N,3] by RANSAC (Open3D), refined by least squares.
+    """Dominant (near-horizontal) plane of points [N,3] by RANSAC (`ransac_plane`), refined by least squares.
+    The same points and seed give the same plane, bit for bit.
 
     max_tilt_deg: planes tilted more than this from the xy plane (walls, box sides) are set aside and the
     search repeats on the remaining points, up to `tries` planes; None accepts any plane."""
-    import open3d as o3d
-
     rng = np.random.default_rng(seed)
     pts = points if len(points) <= max_samples else points[rng.choice(len(points), max_samples, replace=False)]
-    o3d.utility.random.seed(seed)
     first = None
     for _ in range(max(1, tries)):
-        pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-        (a, b, c, d), inl = pc.segment_plane(distance_threshold=distance, ransac_n=3, num_iterations=iterations)
-        n = np.array([a, b, c], dtype=np.float64)
+        try:
+            n, _, inl = ransac_plane(pts, distance, iterations, rng)
+        except ValueError:
+            if first is None:
+                raise
+            n, pts, inl = first   # what is left of the points after a wall holds no plane
+            break
         first = first or (n, pts, inl)
         if max_tilt_deg is None or abs(n[2]) >= np.cos(np.radians(max_tilt_deg)):
             break
         keep = np.ones(len(pts), dtype=bool)
-        keep[np.asarray(inl)] = False
+        keep[inl] = False
         if keep.sum() < 3:
             break
         pts = pts[keep]
@@ -91,7 +120,7 @@ def fit_plane(points: np.ndarray, distance: float = 0.004, iterations: int = 500
     if max_tilt_deg is not None and abs(n[2]) < np.cos(np.radians(max_tilt_deg)):
         n, pts, inl = first
     # least-squares refinement (SVD of the inliers) for an unbiased height
-    q = pts[np.asarray(inl)]
+    q = pts[inl]
     centre = q.mean(axis=0)
     _, _, vt = np.linalg.svd(q - centre, full_matrices=False)
     n2 = vt[2]
