@@ -124,9 +124,12 @@ def test_training_reduces_loss_and_writes_ply(synth, tmp_path):
     assert Image.open(tmp_path / "out" / "train_curves.png").size == (640, 240)
 
 
-def test_deterministic_and_resume_equivalent(synth, tmp_path):
+@pytest.mark.parametrize("drop_rate", [0.0, 0.4])
+def test_deterministic_and_resume_equivalent(synth, tmp_path, drop_rate):
+    """Same options, same result; a run killed after a checkpoint resumes to the uninterrupted result (with
+    DropGaussian's random masks too: their generator is checkpointed)."""
     ds = load_dataset(synth)
-    cfg = tiny_config(iters=60, checkpoint_every=20)
+    cfg = tiny_config(iters=60, checkpoint_every=20, drop_rate=drop_rate)
     a = train(ds, tmp_path / "a", cfg)
     b = train(ds, tmp_path / "b", cfg)
     np.testing.assert_array_equal(a.gaussians.means, b.gaussians.means)
@@ -148,6 +151,53 @@ def test_deterministic_and_resume_equivalent(synth, tmp_path):
     assert c.steps == 60
     for k in ("means", "quats", "scales", "opacities", "sh"):
         np.testing.assert_array_equal(getattr(c.gaussians, k), getattr(a.gaussians, k))
+
+
+def test_drop_rate_hides_gaussians_and_compensates_opacity(synth, tmp_path):
+    """DropGaussian: the training render at rate r equals the reference rasterization of the model with a
+    Bernoulli(1 - r) subset kept (drawn from the trainer's own generator) at opacity / (1 - r); the rate
+    ramps linearly over the run; rate 0 draws nothing (default training unchanged)."""
+    ds = load_dataset(synth)
+    t = Trainer(ds, tmp_path / "t", tiny_config(iters=40, drop_rate=0.5))
+    t._fresh_state()
+    state = t.drop_gen.get_state()
+    img, alpha, _ = t.render(0, sh_degree=0, drop=0.5)
+    gen = torch.Generator()
+    gen.set_state(state)
+    act = t.model.activated()
+    keep = torch.rand(act["opacities"].shape, generator=gen) >= 0.5
+    assert 0.3 < keep.float().mean() < 0.7
+    v = t.levels[0][0]
+    ref, ref_alpha, _ = rasterization(act["means"], act["quats"], act["scales"], act["opacities"] * keep / 0.5,
+                                      act["sh"], t.viewmats[0:1], t.Ks_levels[0][0:1], v.camera.width,
+                                      v.camera.height, sh_degree=0, backgrounds=t.bg, backend=t.backend,
+                                      rasterize_mode=t.cfg.rasterize_mode, eps2d=0.3)
+    torch.testing.assert_close(img, ref[0])
+    torch.testing.assert_close(alpha, ref_alpha[0])
+    full, _, _ = t.render(0, sh_degree=0)
+    assert (img - full).abs().max() > 0.05        # something was hidden
+    # the ramp: no draw at step 0, the generator advances once per step after
+    t2 = Trainer(ds, tmp_path / "t2", tiny_config(iters=40, drop_rate=0.5))
+    t2._fresh_state()
+    s0 = t2.drop_gen.get_state()
+    t2.train_step()
+    assert torch.equal(t2.drop_gen.get_state(), s0)
+    t2.train_step()
+    assert not torch.equal(t2.drop_gen.get_state(), s0)
+    t3 = Trainer(ds, tmp_path / "t3", tiny_config(iters=40))
+    t3._fresh_state()
+    s3 = t3.drop_gen.get_state()
+    for _ in range(3):
+        t3.train_step()
+    assert torch.equal(t3.drop_gen.get_state(), s3)
+
+
+@pytest.mark.parametrize("rate", [1.0, 1.5, -0.5])
+def test_drop_rate_outside_0_1_is_refused(synth, tmp_path, rate):
+    from splattwin.errors import InputError
+
+    with pytest.raises(InputError, match="--drop-rate must be in"):
+        Trainer(load_dataset(synth), tmp_path / "t", tiny_config(drop_rate=rate))
 
 
 def test_densification_runs_in_training(synth, tmp_path):
@@ -483,29 +533,35 @@ def test_first_and_later_training_in_a_process_agree(synth, tmp_path):
 
 
 def test_sparse_profile_resolves_only_automatic_values():
-    from splattwin.splat.config import SPARSE_DENSIFY_GRAD, SPARSE_SH_DEGREE, SPARSE_SPHERE_POINTS
+    from splattwin.splat.config import SPARSE_DENSIFY_GRAD, SPARSE_DROP_RATE, SPARSE_SH_DEGREE, SPARSE_SPHERE_POINTS
 
     cap = 48_000
     cfg, line = TrainConfig(max_gaussians=cap).resolved(7)
-    assert SPARSE_SH_DEGREE < 3
-    assert (cfg.sh_degree, cfg.bg_sphere_points, cfg.densify_grad) == (SPARSE_SH_DEGREE, SPARSE_SPHERE_POINTS,
-                                                                       SPARSE_DENSIFY_GRAD)
+    assert SPARSE_SH_DEGREE < 3 and 0 < SPARSE_DROP_RATE < 1
+    assert (cfg.sh_degree, cfg.bg_sphere_points, cfg.densify_grad, cfg.drop_rate) == (
+        SPARSE_SH_DEGREE, SPARSE_SPHERE_POINTS, SPARSE_DENSIFY_GRAD, SPARSE_DROP_RATE)
     assert cfg.densify_config().grad_threshold == SPARSE_DENSIFY_GRAD and "7 training views" in line
+    assert f"drop_rate {SPARSE_DROP_RATE:g}" in line
     dense, line = TrainConfig(max_gaussians=cap).resolved(15)
     assert (dense.sh_degree, dense.bg_sphere_points, dense.densify_config().grad_threshold) == (3, 0, 2e-4)
-    assert line == ""
+    assert dense.drop_rate == 0 and line == ""
     # what the user set stays; --sparse-views 0 turns the profile off
-    mine, _ = TrainConfig(max_gaussians=cap, sh_degree=2, bg_sphere_points=0, densify_grad=3e-4).resolved(7)
+    mine, _ = TrainConfig(max_gaussians=cap, sh_degree=2, bg_sphere_points=0, densify_grad=3e-4,
+                          drop_rate=0.0).resolved(7)
     assert (mine.sh_degree, mine.bg_sphere_points, mine.densify_config().grad_threshold) == (2, 0, 3e-4)
+    assert mine.drop_rate == 0
     off, line = TrainConfig(max_gaussians=cap, sparse_views=0).resolved(3)
-    assert (off.sh_degree, off.bg_sphere_points) == (3, 0) and line == ""
+    assert (off.sh_degree, off.bg_sphere_points, off.drop_rate) == (3, 0, 0) and line == ""
     # the sphere never takes more than a tenth of a small cap
     assert TrainConfig(max_gaussians=2000).resolved(5)[0].bg_sphere_points == 200
 
 
 def test_sparse_capture_trains_with_the_profile(synth, tmp_path):
-    """8 training views (< 10): SH degree 1, the background sphere, the sparse threshold; all recorded."""
+    """8 training views (< 10): SH degree 1, the background sphere, the sparse threshold, DropGaussian; all
+    recorded."""
     import json
+
+    from splattwin.splat.config import SPARSE_DROP_RATE
 
     cfg = TrainConfig(iters=40, checkpoint_every=0, progress=False, backend="cpu", max_gaussians=2000)
     res = train(load_dataset(synth), tmp_path / "out", cfg)
@@ -513,6 +569,7 @@ def test_sparse_capture_trains_with_the_profile(synth, tmp_path):
     assert info["profile"].startswith("sparse capture (8 training views")
     assert info["config"]["sh_degree"] == 1 and info["config"]["bg_sphere_points"] == 200
     assert info["config"]["densify_cfg"]["grad_threshold"] == 6e-4
+    assert info["config"]["drop_rate"] == SPARSE_DROP_RATE
     assert res.gaussians.sh_degree == 1
     dense = TrainConfig(iters=40, checkpoint_every=0, progress=False, backend="cpu", max_gaussians=2000,
                         sparse_views=0)

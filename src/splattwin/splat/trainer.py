@@ -258,6 +258,8 @@ class Trainer:
             raise InputError(f"--iters must be positive, got {self.cfg.iters}")
         if not -1 <= self.cfg.sh_degree <= 3:
             raise InputError(f"--sh-degree must be 0..3 (or -1: auto), got {self.cfg.sh_degree}")
+        if not (self.cfg.drop_rate == -1 or 0 <= self.cfg.drop_rate < 1):
+            raise InputError(f"--drop-rate must be in [0, 1) (or -1: auto), got {self.cfg.drop_rate:g}")
         if self.cfg.device not in ("auto", "cpu", "cuda"):
             raise InputError(f"--device must be auto, cpu or cuda, got {self.cfg.device!r}")
         self.frames = dataset.train()
@@ -325,6 +327,7 @@ class Trainer:
         self.strategy_state = self.strategy.initialize_state(self.model)
         self.split_gen = torch.Generator().manual_seed(cfg.seed)
         self.view_gen = torch.Generator().manual_seed(cfg.seed + 1)
+        self.drop_gen = torch.Generator().manual_seed(cfg.seed + 2)
         self.order: list[int] = []
         self.poses = PoseCorrection(len(self.views), cfg.pose_lr, self.device) if cfg.refine_poses else None
         self.appearance, self.bg_model = extras.make(cfg, self.views, self.device)
@@ -335,7 +338,8 @@ class Trainer:
         return {"step": self.step, "model": self.model.state_dict(), "densify": self.strategy_state,
                 "strategy": self.strategy.describe(),
                 "split_gen": self.split_gen.get_state(), "view_gen": self.view_gen.get_state(),
-                "order": list(self.order), "poses": self.poses.state_dict() if self.poses else None,
+                "drop_gen": self.drop_gen.get_state(), "order": list(self.order),
+                "poses": self.poses.state_dict() if self.poses else None,
                 "history": list(self.history), "init_method": self.init_method,
                 "appearance": self.appearance.state_dict() if self.appearance else None,
                 "bg_model": self.bg_model.state_dict() if self.bg_model else None,
@@ -374,6 +378,9 @@ class Trainer:
         self.split_gen.set_state(sd["split_gen"])
         self.view_gen = torch.Generator()
         self.view_gen.set_state(sd["view_gen"])
+        self.drop_gen = torch.Generator().manual_seed(self.cfg.seed + 2)
+        if "drop_gen" in sd:   # checkpoints made before DropGaussian: it was off there
+            self.drop_gen.set_state(sd["drop_gen"])
         self.order = list(sd["order"])
         self.poses = None
         if sd["poses"] is not None:
@@ -418,12 +425,15 @@ class Trainer:
         lvl = resolution_level(step, self.cfg.iters, self.cfg.num_downscales, self.cfg.downscale_every)
         return min(lvl, len(self.levels) - 1)
 
-    def render(self, idx: int, sh_degree: int | None = None, render_mode: str = "RGB", level: int = 0
-               ) -> tuple[torch.Tensor, torch.Tensor, dict]:
+    def render(self, idx: int, sh_degree: int | None = None, render_mode: str = "RGB", level: int = 0,
+               drop: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, dict]:
         """Render training view `idx` with the current model: ([H,W,3 or 4], [H,W,1], meta), at
-        coarse-to-fine `level` (0: the training size)."""
+        coarse-to-fine `level` (0: the training size); drop: fraction of Gaussians hidden at random."""
         v = self.levels[level][idx]
         act = self.model.activated()
+        if drop > 0:   # DropGaussian (TrainConfig.drop_rate): a random subset, opacity-compensated
+            keep = torch.rand(act["opacities"].shape, generator=self.drop_gen) >= drop
+            act = {**act, "opacities": act["opacities"] * keep.to(act["opacities"]) / (1.0 - drop)}
         viewmat = self.viewmats[idx:idx + 1]
         if self.poses is not None and self.step >= self.cfg.pose_start * self.cfg.iters:
             viewmat = self.poses.apply(viewmat, [idx])
@@ -443,7 +453,8 @@ class Trainer:
         view = self.levels[level][idx]
         gt, gt_depth = view.image, view.depth
         use_depth = cfg.depth_lambda > 0 and gt_depth is not None
-        img, alpha, meta = self.render(idx, render_mode="RGB+ED" if use_depth else "RGB", level=level)
+        drop = cfg.drop_rate * self.step / cfg.iters
+        img, alpha, meta = self.render(idx, render_mode="RGB+ED" if use_depth else "RGB", level=level, drop=drop)
         if use_depth:
             img, depth = img[..., :3], img[..., 3]
         img, extra_loss = extras.apply(self.appearance, self.bg_model, img, alpha, idx, self.Ks_levels[level][idx],
