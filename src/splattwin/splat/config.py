@@ -191,7 +191,8 @@ class TrainConfig:
         streaks and floaters), and the far field, seen by few views, is best started as geometry. Statue
         photos (7 training views of 9 at 360x640, held out 000 and 016; held-out dB after 1500 / 3000
         steps): dense defaults 14.67 / 14.46, SH 0 15.12 / 14.77, + sphere + learnt environment map
-        15.38 / 15.29 (at 2500), + threshold 6e-4 15.66 / 15.49, without the environment map 15.75 / 15.52, the same with SH degree 1
+        15.38 / 15.29 (at 2500), + threshold 6e-4 15.66 / 15.49, without the environment map 15.75 / 15.52,
+        the same with SH degree 1
         (the profile) 15.67 / 15.65 (SSIM 0.456). Tried and left out: a 10k sphere 15.32 at 2000,
         an anisotropy penalty (0.01, r 10) 14.58 at 1500, threshold 1e-3 15.85, cap 24k 15.88 / 15.61,
         antialiased rasterization 15.67 at 1500 (these with SH 0), opacity_reg 0.05 14.08 at 2000, a longer
