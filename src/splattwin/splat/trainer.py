@@ -378,9 +378,8 @@ class Trainer:
         self.split_gen.set_state(sd["split_gen"])
         self.view_gen = torch.Generator()
         self.view_gen.set_state(sd["view_gen"])
-        self.drop_gen = torch.Generator().manual_seed(self.cfg.seed + 2)
-        if "drop_gen" in sd:   # checkpoints made before DropGaussian: it was off there
-            self.drop_gen.set_state(sd["drop_gen"])
+        self.drop_gen = torch.Generator()
+        self.drop_gen.set_state(sd["drop_gen"])
         self.order = list(sd["order"])
         self.poses = None
         if sd["poses"] is not None:
