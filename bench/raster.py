@@ -281,9 +281,9 @@ def main() -> None:
     imgs = {}
     runs = [("surface", make_surface_scene, W, H, N) for W, H, N in SIZES]
     runs.append(("volume", make_volume_scene, 320, 240, 50_000))
-    from tqdm import tqdm
+    from splattwin.progress import track
 
-    for name, scene, W, H, N in tqdm(runs, desc="cpu backend", unit="size"):
+    for name, scene, W, H, N in track(runs, "cpu backend", unit="size"):
         tf, tb, tc, img = bench("cpu", scene, W, H, N, args.repeats)
         imgs[(name, W, H, N)] = img
         key = f"{W}x{H}_{N // 1000}k" + ("" if name == "surface" else f"_{name}")

@@ -205,27 +205,20 @@ class Executor:
 
 
 class _Bar:
-    """A rich progress bar with ETA (or nothing)."""
+    """Progress of the jobs (`splattwin.progress.Progress`: a bar with ETA, plain lines in a log; or nothing)."""
 
     def __init__(self, enabled: bool, description: str, total: int):
-        self.p = None
-        if enabled and total > 0:
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+        from splattwin.progress import Progress
 
-            self.p = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                              TimeRemainingColumn(), transient=False)
-            self.p.start()
-            self.t = self.p.add_task(description, total=total)
+        self.p = Progress(total, description, unit="job", enabled=enabled and total > 0)
 
     def advance(self, new_total: int | None) -> None:
-        if self.p is not None:
-            if new_total is not None:
-                self.p.update(self.t, total=new_total)
-            self.p.advance(self.t)
+        if new_total is not None:
+            self.p.set_total(new_total)
+        self.p.update(1)
 
     def close(self) -> None:
-        if self.p is not None:
-            self.p.stop()
+        self.p.close()
 
 
 def limit_threads(cpus: float) -> None:

@@ -435,7 +435,8 @@ def add_config_flag(parser: argparse.ArgumentParser) -> None:
 
 def add_progress_flag(parser: argparse.ArgumentParser) -> None:
     """`--no-progress`: a run-time choice, not an option of any stage (no stage key changes with it)."""
-    parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
+    parser.add_argument("--no-progress", dest="progress", action="store_false",
+                        help="no progress bars (terminal) or progress lines (log)")
 
 
 def dump_yaml(data: dict) -> str:

@@ -124,6 +124,20 @@ def test_training_reduces_loss_and_writes_ply(synth, tmp_path):
     assert Image.open(tmp_path / "out" / "train_curves.png").size == (640, 240)
 
 
+def test_progress_in_a_redirected_log_is_plain_lines(synth, tmp_path, capsys, monkeypatch):
+    """stderr not a terminal (a log file, CI): a start line, lines every interval with the figures, an end
+    line; no carriage-return redraws (tqdm wrote one per 0.1 s)."""
+    monkeypatch.setenv("SPLATTWIN_PROGRESS_INTERVAL", "0.000001")   # a line at every update
+    train(load_dataset(synth), tmp_path / "out", tiny_config(iters=30, progress=True))
+    err = capsys.readouterr().err
+    assert "\r" not in err
+    lines = [ln for ln in err.splitlines() if ln.startswith("train: ")]
+    assert lines[0].startswith("train: 0/30 it (0 %)")
+    assert any(ln.startswith("train: 10/30 it (33 %)") and "ETA" in ln and "psnr" in ln and "gaussians" in ln
+               for ln in lines)
+    assert lines[-1].startswith("train: 30/30 it done in")
+
+
 @pytest.mark.parametrize("drop_rate", [0.0, 0.4])
 def test_deterministic_and_resume_equivalent(synth, tmp_path, drop_rate):
     """Same options, same result; a run killed after a checkpoint resumes to the uninterrupted result (with

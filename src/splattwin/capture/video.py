@@ -58,7 +58,7 @@ def select_frames(scores: np.ndarray, max_frames: int) -> list[int]:
 
 def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = 30) -> list[Path]:
     """Write the selected frames as PNG into `out_dir` (frame_00000.png, ...); cached by video size/mtime."""
-    from rich.progress import Progress
+    from splattwin.progress import Progress
 
     path, out_dir = Path(path), Path(out_dir)
     if max_frames < 1:
@@ -80,13 +80,11 @@ def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = 30) 
     # Pass 1: sharpness of every frame (cheap, downscaled).
     container = _open(path)
     scores = []
-    with Progress(transient=True) as prog:
-        total = container.streams.video[0].frames or None
-        task = prog.add_task(f"scoring {path.name}", total=total)
+    with Progress(container.streams.video[0].frames or None, f"scoring {path.name}", unit="frame") as prog:
         try:
             for frame in container.decode(video=0):
                 scores.append(sharpness(frame.to_ndarray(format="rgb24")))
-                prog.advance(task)
+                prog.update(1)
         except Exception as e:  # noqa: BLE001 — PyAV decode errors have many types
             raise InputError(f"video decoding failed after {len(scores)} frames: {e}", path) from e
         finally:

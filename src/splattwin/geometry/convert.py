@@ -237,7 +237,7 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
     """Full conversion. g: Gaussians [N]; labels [N] int (0 = background); objects: [(name, label, prompt)].
     length_scale: frame units per metre of the options' lengths and of table_thickness (m): 1 in a
     metric twin, the frame's nominal metre in an unscaled one (`TwinFrame.length_scale`)."""
-    from rich.progress import Progress
+    from splattwin.progress import Progress
 
     opts = opts or GeometryOptions()
     labels = np.asarray(labels).reshape(-1)
@@ -252,21 +252,20 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
     keep, stats = attribute_mask(g.opacities, g.scales, opts)
     timings["filter"] = time.perf_counter() - t0
     results = []
-    with Progress(disable=not progress, transient=True) as bar:
-        task = bar.add_task("geometry", total=len(objects) + int(background))
+    with Progress(len(objects) + int(background), "geometry", unit="part", enabled=progress) as bar:
         # Background first: its table height is the support plane the objects are clipped to.
         bg = None
         if background:
-            bar.update(task, description="geometry: background")
+            bar.set_description("geometry: background")
             t1 = time.perf_counter()
             bidx = np.flatnonzero((labels == 0) & keep)
             bg = background_geometry(g, bidx, opts, table_thickness)
             timings["background"] = time.perf_counter() - t1
-            bar.advance(task)
+            bar.update(1)
         support_z = bg.table_height if bg is not None and bg.plane is not None else None
         for obj in objects:
             name, label, prompt = (tuple(obj) + ("",))[:3]
-            bar.update(task, description=f"geometry: {name}")
+            bar.set_description(f"geometry: {name}")
             t1 = time.perf_counter()
             idx = clean_indices(g, labels, label, opts, attr_keep=keep)
             timings["cluster"] += time.perf_counter() - t1
@@ -277,7 +276,7 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
             else:
                 r = object_geometry(g, idx, name, label, opts, prompt, timings, support_z=support_z)
             results.append(r)
-            bar.advance(task)
+            bar.update(1)
     timings["total"] = time.perf_counter() - t0
     return Conversion(objects=results, background=bg, filter_stats=stats, options=opts, timings=dict(timings))
 

@@ -145,12 +145,9 @@ def write_episode(root: str | Path, rollout, renderer, cameras: dict, fps: float
     sizes = {}
     ok = False
     try:
-        it = range(T)
-        if progress:
-            from rich.progress import track
+        from splattwin.progress import track
 
-            it = track(it, description=f"episode {ep}: rendering {T} frames x {len(cameras)} cameras")
-        for k in it:
+        for k in track(range(T), f"episode {ep}: rendering {len(cameras)} cameras", unit="frame", enabled=progress):
             poses, rpose = rollout_state(rollout, int(src[k]))
             for key, cam in cameras.items():
                 c = renderer.camera_for(cam, rpose)

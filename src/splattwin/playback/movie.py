@@ -22,11 +22,9 @@ def render_rollout_video(renderer: PlaybackRenderer, rollout, camera: Camera | E
         check_camera(camera, renderer.scene.table_height)
     src = sample_indices(rollout.t, fps)
     ms = []
-    it = range(len(src))
-    if progress:
-        from rich.progress import track
+    from splattwin.progress import track
 
-        it = track(it, description=f"rendering {len(src)} frames")
+    it = track(range(len(src)), "rendering video", unit="frame", enabled=progress)
     size = None
     with Mp4Writer(out, fps) as w:
         for k in it:

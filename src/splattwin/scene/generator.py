@@ -138,10 +138,9 @@ def generate(out_dir: str | Path, options: SceneOptions | None = None, progress:
     noise_events: dict[str, dict] = {}
     preview_at = set(np.linspace(0, len(cameras) - 1, min(4, len(cameras))).round().astype(int).tolist())
     previews: list[tuple[dict, np.ndarray]] = []
-    from rich.progress import Progress
+    from splattwin.progress import Progress
 
-    with Progress(disable=not progress, transient=True) as bar:
-        task = bar.add_task("rendering scene views", total=len(cameras))
+    with Progress(len(cameras), "rendering scene views", unit="view", enabled=progress) as bar:
         for vi, cam in enumerate(cameras):
             view = renderer.render(cam, options.supersample)
             write_image(out / "images" / f"{cam.name}.png", _to_u8(view["rgb"]))
@@ -158,7 +157,7 @@ def generate(out_dir: str | Path, options: SceneOptions | None = None, progress:
             if vi in preview_at:
                 previews.append((view, union))
             noise_events[cam.name] = ev
-            bar.advance(task)
+            bar.update(1)
 
     write_image(out / "preview.png", preview_image([v for v, _ in previews], [m for _, m in previews]))
     write_json(out / "transforms.json", transforms_json(cameras))

@@ -92,7 +92,7 @@ def depth_mm(depth_m: np.ndarray) -> np.ndarray:
 def write_robot_capture(out_dir: str | Path, options: SceneOptions | None = None,
                         capture: RobotCaptureOptions | None = None, progress: bool = True) -> Path:
     """Render and write the robot-style capture into `out_dir` (see module docstring). Returns out_dir."""
-    from rich.progress import Progress
+    from splattwin.progress import Progress
 
     from splattwin.capture import bop, tum
     from splattwin.scene.generator import _to_u8, _write_ply, build_scene, look_target, scene_record
@@ -118,8 +118,7 @@ def write_robot_capture(out_dir: str | Path, options: SceneOptions | None = None
     times = [1.0 + i / 30.0 for i in range(len(cams))]          # a 30 Hz stream
     stems = [bop.image_name(i, "") if capture.format == "bop" else f"{t:.6f}" for i, t in enumerate(times)]
     gt_lists = []
-    with Progress(disable=not progress, transient=True) as bar:
-        task = bar.add_task("rendering robot capture", total=len(cams))
+    with Progress(len(cams), "rendering robot capture", unit="view", enabled=progress) as bar:
         for i, (cw, stem) in enumerate(zip(cams_world, stems)):
             view = renderer.render(cw, options.supersample)
             write_image(out / "rgb" / f"{stem}.png", _to_u8(view["rgb"]))
@@ -134,7 +133,7 @@ def write_robot_capture(out_dir: str | Path, options: SceneOptions | None = None
                     write_image(out / "masks" / f"{stem}_{o.label}.png", m)
                 insts.append((o.label, cw.T_cam_world @ o.T_world_obj))
             gt_lists.append(insts)
-            bar.advance(task)
+            bar.update(1)
 
     names = {str(o.label): o.name for o in objects}
     if capture.format == "bop":

@@ -442,14 +442,6 @@ def naive_fusion(means: np.ndarray, views: Sequence[View], masks: MaskSet, fract
 
 
 def _progress(enabled: bool, total: int):
-    if enabled:
-        from tqdm import tqdm
+    from splattwin.progress import Progress
 
-        return tqdm(total=total, desc="fusion rounds", unit="round")
-
-    class _Null:
-        def update(self, n): ...
-
-        def close(self): ...
-
-    return _Null()
+    return Progress(total, "fusion rounds", unit="round", enabled=enabled)

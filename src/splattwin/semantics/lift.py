@@ -172,11 +172,11 @@ def write_label_maps(g, labels: np.ndarray, frames: Sequence, names: dict[int, s
     from splattwin.capture import load_image
     from splattwin.semantics.metrics import miou
 
-    from tqdm import tqdm
+    from splattwin.progress import track
 
     n = max(names, default=0)
     scores: dict[str, list] = {}
-    for f in tqdm(frames, desc="label maps", unit="view", disable=not progress):
+    for f in track(frames, "label maps", unit="view", enabled=progress):
         lab = render_label_maps(g, labels, [f.camera], n, renderer=renderer)[0]
         img = None
         try:

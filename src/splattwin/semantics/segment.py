@@ -295,6 +295,6 @@ def segment_images(images: dict[str, Path], prompt: str, options: SegmentOptions
 
 
 def _bar(enabled: bool, total: int):
-    from tqdm import tqdm
+    from splattwin.progress import Progress
 
-    return tqdm(total=total, desc="segmenting views", unit="view", disable=not enabled)
+    return Progress(total, "segmenting views", unit="view", enabled=enabled)

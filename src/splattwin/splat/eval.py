@@ -168,7 +168,7 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
     """Evaluate a splat (training folder, PLY path, or `Gaussians`) on the dataset's held-out views
     (see the module docstring for the resolution). background_model: a learnt
     `background.BackgroundModel` to composite (default: the one saved beside the PLY, if any)."""
-    from tqdm.auto import tqdm
+    from splattwin.progress import track
 
     from splattwin.splat import extras
     from splattwin.splat.render import render
@@ -211,7 +211,7 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
     out = Path(out_dir) if out_dir is not None else None
     train_cams = [f.camera for f in ds.train()] if split == "heldout" else []
     rows = []
-    for v in tqdm(views, desc="eval", unit="view", disable=not progress):
+    for v in track(views, "eval", unit="view", enabled=progress):
         gt = v.image.numpy()
         T_cw, extra = None, {}
         if align_poses:

@@ -523,12 +523,11 @@ class Trainer:
 
     def _loop(self, callback: Callable[[dict], None] | None) -> tuple[float, float]:
         """Steps to cfg.iters; returns the final moving averages of the loss and the PSNR."""
-        from tqdm.auto import tqdm
+        from splattwin.progress import Progress
 
         cfg = self.cfg
         ema_loss, ema_psnr = math.nan, math.nan
-        with tqdm(total=cfg.iters, initial=self.step, disable=not cfg.progress, desc="train", unit="it",
-                  dynamic_ncols=True) as bar:
+        with Progress(cfg.iters, "train", unit="it", enabled=cfg.progress, initial=self.step) as bar:
             while self.step < cfg.iters:
                 info = self.train_step()
                 ema_loss = info["loss"] if math.isnan(ema_loss) else 0.9 * ema_loss + 0.1 * info["loss"]
@@ -536,8 +535,7 @@ class Trainer:
                 if self.step % 10 == 0 or self.step == cfg.iters or info["densified"]:
                     self.history.append({"step": self.step, "loss": round(ema_loss, 6),
                                          "psnr": round(ema_psnr, 3), "n": info["n"]})
-                    bar.set_postfix(loss=f"{ema_loss:.4f}", psnr=f"{ema_psnr:.2f}", gaussians=info["n"],
-                                    refresh=False)
+                    bar.set_postfix(loss=f"{ema_loss:.4f}", psnr=f"{ema_psnr:.2f}", gaussians=info["n"])
                 bar.update(1)
                 if cfg.checkpoint_every and self.step % cfg.checkpoint_every == 0:
                     self.save_checkpoint()
