@@ -18,6 +18,10 @@ What it sets, and why (a value the user already set is never overridden):
 * ``MUJOCO_GL=egl`` (environment; MuJoCo picks its OpenGL backend when it is first imported), only when
   there is no X display: headless offscreen rendering (robot frames, playback) through EGL (Mesa), where
   MuJoCo's default (GLFW) needs a display. With a display MuJoCo's own choice stands.
+* numba's "TBB threading layer requires TBB version 2021 update 6" warning is silenced (a warnings filter
+  on that message only). Open3D and embreex ship an older libtbb; once either is loaded, numba's first
+  parallel kernel tries TBB, warns on stderr in the middle of a run's output, and uses OpenMP, which is the
+  layer the settings above are tuned for. The user can do nothing about it; numba's choice is unchanged.
 * numba's thread count = the CPUs this process may run on (``os.sched_getaffinity``), as
   ``NUMBA_NUM_THREADS`` before numba loads, or ``numba.set_num_threads`` after. numba's default is
   every CPU of the machine, which oversubscribes a process restricted to fewer (containers, taskset).
@@ -32,10 +36,13 @@ import contextlib
 import logging
 import os
 import sys
+import warnings
 from dataclasses import dataclass, field
 from typing import Iterator
 
 log = logging.getLogger(__name__)
+
+TBB_WARNING = r"The TBB threading layer requires TBB version"   # numba, with Open3D's older libtbb loaded
 
 __all__ = ["RuntimeSettings", "configure", "available_cpus", "start_numba_threads", "torch_threads"]
 
@@ -75,6 +82,7 @@ def configure(numba_threads: int | None = None) -> RuntimeSettings:
         out.late.append("OMP_WAIT_POLICY: torch/numba were imported before configure(); OpenMP may already "
                         "have read its wait policy")
     _setdefault(out.env, "OMP_WAIT_POLICY", "PASSIVE")
+    warnings.filterwarnings("ignore", message=TBB_WARNING)
     if not os.environ.get("DISPLAY"):
         if "MUJOCO_GL" not in os.environ and "mujoco" in sys.modules:
             out.late.append("MUJOCO_GL: mujoco was imported before configure(); it keeps the GL backend it chose")

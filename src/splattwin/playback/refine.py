@@ -169,38 +169,43 @@ def refine_objects(twin_dir: str | Path, frames, opts: RefineOptions | None = No
                 with_cover, bg = False, torch.zeros(1, 3)
             log.info("refine: silhouette loss on %d of %d object masks (the rest disagree with the twin: IoU < %.2f)",
                      mask_stats["used"], n_all, opts.mask_min_iou)
-        for step in range(opts.iters):
-            if not order:
-                order = torch.randperm(len(views), generator=gen).tolist()
-            i = order.pop(0)
-            for n in names:
-                models[n].set_step(step, opts.iters)
-            img, meta = render(i)
-            loss = photometric_loss(img[0, ..., :3], views[i].image, opts.ssim_lambda)
-            if i in targets:
-                ks, target = targets[i]
-                loss = loss + opts.mask_lambda * silhouette_loss(img[0, ..., 3:][..., ks], target)
-            loss.backward()
-            for n in names:
-                models[n].step()
-                models[n].zero_grad()
-            lv = float(loss.detach())
-            ema = lv if math.isnan(ema) else 0.95 * ema + 0.05 * lv
-            if step < stop:
-                g2d, radii = meta["means2d"].grad, meta["radii"]
-                o = len(rest)
+        from splattwin.progress import Progress
+
+        with Progress(opts.iters, "refine objects", unit="it", enabled=progress) as bar:
+            for step in range(opts.iters):
+                if not order:
+                    order = torch.randperm(len(views), generator=gen).tolist()
+                i = order.pop(0)
                 for n in names:
-                    k = len(models[n])
-                    densify.accumulate(states[n], g2d[:, o:o + k], radii[:, o:o + k], views[i].camera.width,
-                                       views[i].camera.height)
-                    o += k
-                if (step + 1) % opts.refine_every == 0:
+                    models[n].set_step(step, opts.iters)
+                img, meta = render(i)
+                loss = photometric_loss(img[0, ..., :3], views[i].image, opts.ssim_lambda)
+                if i in targets:
+                    ks, target = targets[i]
+                    loss = loss + opts.mask_lambda * silhouette_loss(img[0, ..., 3:][..., ks], target)
+                loss.backward()
+                for n in names:
+                    models[n].step()
+                    models[n].zero_grad()
+                lv = float(loss.detach())
+                ema = lv if math.isnan(ema) else 0.95 * ema + 0.05 * lv
+                if step < stop:
+                    g2d, radii = meta["means2d"].grad, meta["radii"]
+                    o = len(rest)
                     for n in names:
-                        densify.refine(models[n], states[n], dcfg[n], step + 1, gen)
-                        if opts.dc_only:
-                            models[n].params["shN"].requires_grad_(False)
-            if progress and (step + 1) % 100 == 0:
-                log.info("refine step %d: loss %.4f, %s", step + 1, ema, {n: len(models[n]) for n in names})
+                        k = len(models[n])
+                        densify.accumulate(states[n], g2d[:, o:o + k], radii[:, o:o + k], views[i].camera.width,
+                                           views[i].camera.height)
+                        o += k
+                    if (step + 1) % opts.refine_every == 0:
+                        for n in names:
+                            densify.refine(models[n], states[n], dcfg[n], step + 1, gen)
+                            if opts.dc_only:
+                                models[n].params["shN"].requires_grad_(False)
+                if (step + 1) % 10 == 0:
+                    bar.set_postfix(loss=f"{ema:.4f}", gaussians=sum(len(m) for m in models.values()))
+                bar.update(1)
+        log.info("refine: loss %.4f, Gaussians per object %s", ema, {n: len(models[n]) for n in names})
     refined = {n: models[n].to_gaussians() for n in names}
     _write(twin_dir, scene, man, refined, label_of, deg)
     stats = {"iters": opts.iters, "loss": ema,
