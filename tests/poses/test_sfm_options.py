@@ -209,6 +209,17 @@ def test_plain_progress_lines_when_not_a_tty(monkeypatch):
     assert lines == ["SfM: SIFT features: 0/9 (0 s)", "SfM: SIFT features: 3/9 (6 s)", "SfM: matching: 0/36 (0 s)",
                      "SfM: 5/8 images registered; retrying"]
     assert "\r" not in buf.getvalue() and "\x1b" not in buf.getvalue()
+    # a stage that ended between lines gets its final count, before the next stage and at the end
+    buf = _io.StringIO()
+    with prog.StageProgress(True, stream=buf, interval=5.0) as p:
+        p.update("SfM: SIFT features", 0, 9)
+        clock[0] += 2
+        p.update("SfM: SIFT features", 9, 9)
+        p.update("SfM: matching", 0, 36)
+        clock[0] += 3
+        p.update("SfM: matching", 36, 36)
+    assert buf.getvalue().splitlines() == ["SfM: SIFT features: 0/9 (0 s)", "SfM: SIFT features: 9/9 (2 s)",
+                                           "SfM: matching: 0/36 (0 s)", "SfM: matching: 36/36 (3 s)"]
     quiet = _io.StringIO()
     with prog.StageProgress(False, stream=quiet) as p:
         p.update("x", 1, 2)

@@ -1,8 +1,10 @@
 """Progress of long pose-estimation steps, live in a terminal and readable in a redirected log.
 
 On a TTY: a rich progress bar (stage, count, elapsed). Otherwise (stderr redirected to a file or a CI
-log): plain lines, one when a stage starts and then at most one every `interval` seconds while it runs,
-so a log shows that SfM is alive and how far it got without carriage-return noise.
+log): plain lines, one when a stage starts, at most one every `interval` seconds while it runs, and its
+last count when it ends (the next stage starts or the work is done) unless that was already the last line,
+so a log shows that SfM is alive and how far each step got, without carriage-return noise.
+(`splattwin.progress.Progress` is the same rule for one counted task; this class has named stages.)
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ class StageProgress:
         self._rich = None
         self._task = None
         self._state: tuple[str, int, int] | None = None
+        self._printed: tuple[str, int, int] | None = None   # the state of the last plain line
         self._stage_t0 = time.monotonic()
         self._last_print = 0.0
 
@@ -44,13 +47,21 @@ class StageProgress:
         if self._rich is not None:
             self._rich.__exit__(*exc)
             self._rich = None
+        else:
+            self._finish()
         return False
+
+    def _finish(self) -> None:
+        """Plain output: the current stage's last count, unless it is what the last line said."""
+        if self.enabled and self._rich is None and self._state is not None and self._state != self._printed:
+            self._print()
 
     def update(self, description: str, done: int, total: int) -> None:
         if not self.enabled:
             return
         new_stage = self._state is None or self._state[0] != description
         if new_stage:
+            self._finish()
             self._stage_t0 = time.monotonic()
         self._state = (description, int(done), max(int(total), 1))
         if self._rich is not None:
@@ -80,3 +91,4 @@ class StageProgress:
         self.stream.write(f"{desc}: {done}/{total} ({el:.0f} s)\n")
         self.stream.flush()
         self._last_print = time.monotonic()
+        self._printed = self._state
