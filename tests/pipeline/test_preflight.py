@@ -73,12 +73,43 @@ def test_task_on_an_unscaled_capture_stops_before_sfm(tmp_path, capsys):
     assert not (out / "poses").exists()
 
 
+def test_no_masks_stops_before_sfm_and_until_splats_builds_without(tmp_path, capsys, monkeypatch):
+    """An image folder with neither --masks nor --prompt: the semantics stage could only fail, after SfM and
+    training (minutes to hours); pre-flight says so at once and how to build the splats alone."""
+    imgs = _images(tmp_path / "imgs")
+    out = tmp_path / "twin"
+    code = cli(["build", str(imgs), "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2 and "no 2D masks" in err and "--masks" in err and "--prompt" in err and "--until splats" in err
+    assert str(imgs) in err and not (out / "poses").exists()
+    o = BuildOptions(input=str(imgs))
+    for until in ("scene", "poses", "splats"):      # the stages before semantics need no masks
+        pf.run_preflight(o, out, imgs, None, tmp_path / "frames", until=until)
+    for until in ("semantics", "twin", "report", None):
+        with pytest.raises(InputError, match="no 2D masks"):
+            pf.run_preflight(o, out, imgs, None, tmp_path / "frames", until=until)
+    # the embedded scene (generated, or a written scene folder as input) brings its own simulated masks
+    pf.run_preflight(BuildOptions(), out, None, None, tmp_path / "frames")
+    pf.run_preflight(o, out, imgs, imgs, tmp_path / "frames")
+
+
+def test_every_independent_problem_is_named_in_one_run(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(models, "_local_file", lambda model, name: None)
+    imgs = _images(tmp_path / "imgs")
+    code = cli(["build", str(imgs), "--out", str(tmp_path / "twin"), "--prompt", "red box", "--task", "default",
+                "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2 and "pre-flight found 2 problems" in err
+    assert "1. " in err and "grounding-dino" in err and "2. " in err and "--task needs a metric twin" in err
+    assert not (tmp_path / "twin" / "poses").exists()
+
+
 def test_scale_sources_satisfy_the_task_check(tmp_path):
     imgs = _images(tmp_path / "imgs")
     for poses in (PoseOptions(known_length="camera_height=0.5"), PoseOptions(marker_size=0.05),
                   PoseOptions(robot_poses=tmp_path / "robot.json")):
         o = BuildOptions(input=str(imgs), poses=poses, robot=RobotOptions(task="default"))
-        pf.run_preflight(o, tmp_path / "twin", imgs, None, tmp_path / "frames")  # no error
+        pf.run_preflight(o, tmp_path / "twin", imgs, None, tmp_path / "frames", until="splats")  # no error
     P = PoseOptions
     assert pf.unscaled_reason(P(), has_poses=False, fmt="images", frame_json_beside=False) is not None
     assert pf.unscaled_reason(P(), has_poses=True, fmt="nerfstudio", frame_json_beside=False) is None
@@ -92,18 +123,18 @@ def test_memory_and_disk_refused_only_when_clearly_insufficient(tmp_path, monkey
     o = BuildOptions(input=str(imgs))
     monkeypatch.setattr(pf, "available_memory", lambda: 64 * pf.GIB)
     monkeypatch.setattr(pf, "free_disk", lambda p: 500 * pf.GIB)
-    info = pf.run_preflight(o, tmp_path / "twin", imgs, None, tmp_path / "frames")
+    info = pf.run_preflight(o, tmp_path / "twin", imgs, None, tmp_path / "frames", until="splats")
     assert info["views"] == 6 and 1.0 < info["memory_gib"] < 8
     need = info["memory_gib"] * pf.GIB
     monkeypatch.setattr(pf, "available_memory", lambda: need / 1.2)   # tight: a warning only
-    pf.run_preflight(o, tmp_path / "twin", imgs, None, tmp_path / "frames")
+    pf.run_preflight(o, tmp_path / "twin", imgs, None, tmp_path / "frames", until="splats")
     monkeypatch.setattr(pf, "available_memory", lambda: need / 2)     # clearly short
     with pytest.raises(InputError, match="not enough memory.*--cpu-max-side"):
-        pf.run_preflight(o, tmp_path / "twin", imgs, None, tmp_path / "frames")
+        pf.run_preflight(o, tmp_path / "twin", imgs, None, tmp_path / "frames", until="splats")
     monkeypatch.setattr(pf, "available_memory", lambda: 64 * pf.GIB)
     monkeypatch.setattr(pf, "free_disk", lambda p: 0.01 * pf.GIB)
     with pytest.raises(InputError, match="not enough disk space"):
-        pf.run_preflight(o, tmp_path / "twin", imgs, None, tmp_path / "frames")
+        pf.run_preflight(o, tmp_path / "twin", imgs, None, tmp_path / "frames", until="splats")
 
 
 def test_estimate_grows_with_resolution_and_budget():

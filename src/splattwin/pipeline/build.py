@@ -236,14 +236,14 @@ def resolved_config(options: BuildOptions) -> dict:
     return to_dict(absolute(options))
 
 
-def preflight(ctx: Context) -> dict:
+def preflight(ctx: Context, until: str | None = None) -> dict:
     """Checks of the inputs that need no earlier stage, before any runs (`splattwin.pipeline.preflight`:
     masks, segmentation weights, a metric scale for --task, memory and disk)."""
     from splattwin.pipeline.preflight import run_preflight
 
     o = ctx.config
     return run_preflight(o, ctx.out, _input_path(ctx) if o.scene is None else None, _scene_dir(ctx),
-                         ctx.path("capture/frames"))
+                         ctx.path("capture/frames"), until=until)
 
 
 def _context(out: str | Path, options: BuildOptions, progress: bool = True) -> Context:
@@ -293,5 +293,5 @@ def build(out: str | Path, options: BuildOptions, from_stage: str | None = None,
 
     ctx = _context(out, options, progress)
     with output_lock(out):
-        preflight(ctx)
+        preflight(ctx, until)
         return run_stages(stages(), ctx, from_stage=from_stage, until=until, on_stage=on_stage)

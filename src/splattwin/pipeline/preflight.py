@@ -2,7 +2,9 @@
 stops (InputError, exit 2) before minutes of SfM and hours of training, with a message naming the file,
 model or option:
 
-- 2D masks (`--masks`) read and fit the capture's images (`semantics.stage.check_masks`);
+- 2D masks (`--masks`) read and fit the capture's images (`semantics.stage.check_masks`); a build whose
+  semantics stage would run with no masks at all (no --masks, no --prompt, not the embedded scene) stops
+  here, not after SfM and training, and says how to build the splats alone (`--until splats`);
 - `--prompt`: the segmentation models it needs (Grounding DINO + SAM, or SAM 3) are on this machine,
   all missing ones named with their hub ids (`semantics.models`);
 - `--task`: the twin will be metric. An image folder or video posed by SfM is known only up to scale;
@@ -141,6 +143,23 @@ SCALE_HELP = ("give the metric scale with one of: --known-length camera_height=0
 
 
 # -- the whole pre-flight ---------------------------------------------------------------------------
+def _raise(problems: list[InputError]) -> None:
+    """Nothing for no problem; the problem itself for one; one InputError listing them all for several."""
+    if len(problems) == 1:
+        raise problems[0]
+    if problems:
+        lines = [f"  {i}. {e}" for i, e in enumerate(problems, 1)]
+        raise InputError(f"pre-flight found {len(problems)} problems:\n" + "\n".join(lines))
+
+
+def _runs(until: str | None, stage: str) -> bool:
+    """Whether `stage` is among the stages a build with --until `until` runs."""
+    from splattwin.pipeline.build import stages
+
+    names = [s.name for s in stages()]
+    return until is None or until not in names or names.index(stage) <= names.index(until)
+
+
 def _video_sizes(path: Path, max_frames: int = 30) -> list[tuple[int, int]]:
     """Frame sizes a video will give (probed, not decoded)."""
     from splattwin.capture.video import _open
@@ -154,9 +173,11 @@ def _video_sizes(path: Path, max_frames: int = 30) -> list[tuple[int, int]]:
         c.close()
 
 
-def run_preflight(options, out: Path, input_path: Path | None, scene_dir: Path | None, frames_dir: Path) -> dict:
+def run_preflight(options, out: Path, input_path: Path | None, scene_dir: Path | None, frames_dir: Path,
+                  until: str | None = None) -> dict:
     """All checks for `BuildOptions` `options` building into `out` (see module docstring). input_path:
-    the capture (None for the embedded scene, generated later). Returns what it measured."""
+    the capture (None for the embedded scene, generated later). until: the last stage that will run
+    (None: all). Returns what it measured."""
     import time
 
     from splattwin.capture.dataset import VIDEO_SUFFIXES
@@ -164,37 +185,53 @@ def run_preflight(options, out: Path, input_path: Path | None, scene_dir: Path |
     t0 = time.perf_counter()
     o = options
     info: dict = {}
+    # every independent problem is collected, so one run names all of them (a user fixing the first and
+    # re-running only to meet the second is what pre-flight is for)
+    problems: list[InputError] = []
     # models first: needs no capture at all
     if o.semantics.prompt and not o.semantics.masks:
         from splattwin.semantics.models import missing_models_error
 
         err = missing_models_error(o.semantics.segment)
         if err is not None:
-            raise err
+            problems.append(err)
     if o.robot.task and o.robot.task != "default":
         from splattwin.robot.task import load_task
 
-        load_task(o.robot.task)  # the file parses as a task (bounded YAML); checked against the twin later
+        try:
+            load_task(o.robot.task)  # the file parses as a task (bounded YAML); checked against the twin later
+        except InputError as e:
+            problems.append(e)
     if input_path is None:
+        _raise(problems)
         return info
+    if not (o.semantics.masks or o.semantics.prompt) and scene_dir is None and _runs(until, "semantics"):
+        problems.append(InputError(
+            "no 2D masks for the semantics stage (which objects are where): pass --masks DIR (mask images per "
+            "view and object, BOP mask_visib, COCO JSON) or --prompt 'red mug. cereal box' (open-vocabulary "
+            "segmentation); or build only the splats with --until splats", input_path))
     video = input_path.is_file() and input_path.suffix in VIDEO_SUFFIXES
     ds = None
     if not video or o.semantics.masks:
         from splattwin.capture import load_dataset
 
-        ds = load_dataset(input_path, frames_dir=frames_dir)  # image headers only
+        ds = load_dataset(input_path, frames_dir=frames_dir)  # image headers only; nothing else works without
     if o.robot.task:
         fmt = ds.meta.get("format") if ds is not None else "video"
         meta_path = Path(ds.meta.get("path", ds.root)) if ds is not None else input_path
         beside = (meta_path.parent if meta_path.is_file() else meta_path) / "frame.json"
         why = unscaled_reason(o.poses, bool(ds is not None and ds.has_poses), fmt, beside.is_file())
         if why is not None:
-            raise InputError(f"--task needs a metric twin, but this capture gives no scale ({why}): {SCALE_HELP}",
-                             input_path)
+            problems.append(InputError(f"--task needs a metric twin, but this capture gives no scale ({why}): "
+                                       f"{SCALE_HELP}", input_path))
     if o.semantics.masks:
         from splattwin.semantics.stage import check_masks
 
-        check_masks(o.semantics, ds.frames, scene_dir)
+        try:
+            check_masks(o.semantics, ds.frames, scene_dir)
+        except InputError as e:
+            problems.append(e)
+    _raise(problems)
     # resources at the training resolution
     from splattwin.splat.resolution import resolve
 
