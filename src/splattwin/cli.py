@@ -76,6 +76,11 @@ def main(argv: list[str] | None = None) -> int:
         print("interrupted", file=sys.stderr)
         return 130
     except Exception as e:  # internal error: one line; the traceback with --debug for the bug report
+        from splattwin.interrupt import is_interrupt
+
+        if is_interrupt(e):   # Ctrl-C inside numba or torch, which wrap it (SystemError, RuntimeError)
+            print("interrupted", file=sys.stderr)
+            return 130
         if debug:
             traceback.print_exc()
         else:

@@ -523,11 +523,13 @@ class Trainer:
 
     def _loop(self, callback: Callable[[dict], None] | None) -> tuple[float, float]:
         """Steps to cfg.iters; returns the final moving averages of the loss and the PSNR."""
+        from splattwin.interrupt import DeferredInterrupt
         from splattwin.progress import Progress
 
         cfg = self.cfg
         ema_loss, ema_psnr = math.nan, math.nan
-        with Progress(cfg.iters, "train", unit="it", enabled=cfg.progress, initial=self.step) as bar:
+        with Progress(cfg.iters, "train", unit="it", enabled=cfg.progress, initial=self.step) as bar, \
+                DeferredInterrupt("this training step") as interrupt:
             while self.step < cfg.iters:
                 info = self.train_step()
                 ema_loss = info["loss"] if math.isnan(ema_loss) else 0.9 * ema_loss + 0.1 * info["loss"]
@@ -541,6 +543,12 @@ class Trainer:
                     self.save_checkpoint()
                 if callback is not None:
                     callback(info)
+                if interrupt.requested:   # Ctrl-C: the step is complete, so the state is consistent
+                    if cfg.checkpoint_every:
+                        path = self.save_checkpoint()
+                        log.warning("interrupted at step %d: saved %s; run again with --resume to continue "
+                                    "(build: run it again)", self.step, path)
+                    raise KeyboardInterrupt
         if cfg.checkpoint_every and self.step % cfg.checkpoint_every != 0:
             self.save_checkpoint()  # so that --resume on a finished run does no work
         return ema_loss, ema_psnr

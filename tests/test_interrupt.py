@@ -1,0 +1,111 @@
+"""Ctrl-C: deferred to the end of a training step (checkpoint, exit 130), never reported as a bug."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+import splattwin
+from splattwin.interrupt import DeferredInterrupt, is_interrupt
+
+SRC = str(Path(splattwin.__file__).resolve().parents[1])
+
+
+def test_first_ctrl_c_is_a_request_the_second_stops_at_once():
+    with DeferredInterrupt() as d:
+        os.kill(os.getpid(), signal.SIGINT)
+        assert d.requested                         # no exception: the loop decides when to stop
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1)                          # (the handler runs at the next bytecode)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_someone_elses_handler_is_left_alone():
+    seen = []
+    prev = signal.signal(signal.SIGINT, lambda s, f: seen.append(s))
+    try:
+        with DeferredInterrupt() as d:
+            os.kill(os.getpid(), signal.SIGINT)
+        assert seen == [signal.SIGINT] and not d.requested
+    finally:
+        signal.signal(signal.SIGINT, prev)
+
+
+def test_interrupts_wrapped_by_libraries_are_recognised():
+    def numba_like():
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as k:
+            raise SystemError("CPUDispatcher(...) returned a result with an exception set") from k
+
+    with pytest.raises(SystemError) as e:
+        numba_like()
+    assert is_interrupt(e.value) and is_interrupt(KeyboardInterrupt())
+    try:
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise RuntimeError("while handling")    # implicit context, as torch re-raises
+    except RuntimeError as r:
+        assert is_interrupt(r)
+    assert not is_interrupt(ValueError("x")) and not is_interrupt(None)
+    a = ValueError("a")
+    a.__context__ = a                              # a cycle does not hang
+    assert not is_interrupt(a)
+
+
+def test_cli_maps_a_wrapped_interrupt_to_exit_130(monkeypatch, capsys):
+    from splattwin import cli
+
+    def boom(args):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as k:
+            raise SystemError("returned a result with an exception set") from k
+
+    parser = cli.build_parser()
+    monkeypatch.setattr(cli, "build_parser", lambda: parser)
+    args = parser.parse_args(["eval", "x.ply", "--dataset", "d"])
+    monkeypatch.setattr(parser, "parse_args", lambda argv: args)
+    monkeypatch.setattr(args, "func", boom, raising=False)
+    assert cli.main(["eval", "x.ply", "--dataset", "d"]) == 130
+    err = capsys.readouterr().err
+    assert "interrupted" in err and "internal error" not in err
+
+
+def test_ctrl_c_during_splattwin_train(scene_small, tmp_path):
+    """The real thing: SIGINT to a training process once it reports progress -> exit 130, 'interrupted',
+    a checkpoint of the step it stopped at, no 'internal error'; --resume then finishes the run."""
+    out = tmp_path / "run"
+    env = {**os.environ, "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", ""),
+           "SPLATTWIN_PROGRESS_INTERVAL": "0.2"}
+    cmd = [sys.executable, "-m", "splattwin.cli", "train", str(scene_small), str(out), "--iters", "400"]
+    p = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    lines = []
+    try:
+        for line in p.stderr:
+            lines.append(line)
+            if line.startswith("train: ") and not line.startswith("train: 0/"):
+                p.send_signal(signal.SIGINT)
+                break
+        rest = p.communicate(timeout=300)[1]
+    finally:
+        if p.poll() is None:
+            p.kill()
+    err = "".join(lines) + rest
+    assert p.returncode == 130, err[-3000:]
+    assert "interrupted at step" in err and "--resume" in err and "internal error" not in err
+    ckpts = sorted((out / "checkpoints").glob("ckpt_*.safetensors"))
+    assert ckpts and int(ckpts[-1].stem.split("_")[1]) > 0
+    assert not (out / "point_cloud.ply").exists()
+    r = subprocess.run([sys.executable, "-m", "splattwin.cli", "train", str(scene_small), str(out), "--iters", "400",
+                        "--resume", "--no-progress"], env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "resumed from" in r.stderr and (out / "point_cloud.ply").is_file()
