@@ -45,10 +45,21 @@ def test_eta_counts_from_a_resumed_start():
     clock.t += 10.0
     bar.update(100)                  # 100 steps in 10 s, 900 left: 90 s, not 15 s
     assert lines(s)[-1] == "train: 2100/3000 it (70 %), 10 s, ETA 1 min 30 s"
-    bar.close()
+    bar.close(failed=True)
     bar.close()                      # idempotent
     assert lines(s)[-1].startswith("train: 2100/3000 it stopped after 10 s")
     assert len(lines(s)) == 3
+    # an exception leaving the block: "stopped after"; a loop ending early on its own (convergence): "done in"
+    s = io.StringIO()
+    with pytest.raises(KeyboardInterrupt):
+        with Progress(10, "train", stream=s, interval=1e9) as bar:
+            bar.update(4)
+            raise KeyboardInterrupt
+    assert lines(s)[-1].startswith("train: 4/10 it stopped after")
+    s = io.StringIO()
+    with Progress(3, "fusion rounds", unit="round", stream=s, interval=1e9) as bar:
+        bar.update(2)
+    assert lines(s)[-1].startswith("fusion rounds: 2/3 round done in")
 
 
 def test_disabled_writes_nothing_and_unknown_total():

@@ -122,8 +122,10 @@ class Progress:
             if self._rich is not None:
                 self._rich.update(self._task, total=self.total)
 
-    def close(self) -> None:
-        """End: the terminal bar stays drawn; plain output gets its final line."""
+    def close(self, failed: bool = False) -> None:
+        """End: the terminal bar stays drawn; plain output gets its final line, "done in" (a loop may end
+        before `total`, e.g. on convergence) or, when `failed` (an exception left the block), "stopped
+        after"."""
         with self._lock:
             if self._closed or not self.enabled:
                 self._closed = True
@@ -133,13 +135,14 @@ class Progress:
                 self._rich.update(self._task, completed=self.n, post=self._post())
                 self._rich.stop()
             else:
-                self._write(self._line(final=True))
+                self._write(self._line(final=True, failed=failed))
 
     def __enter__(self) -> "Progress":
         return self
 
-    def __exit__(self, *exc) -> bool:
-        self.close()
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        # GeneratorExit: the consumer of `track` stopped iterating, which is not a failure
+        self.close(failed=exc_type is not None and not issubclass(exc_type, GeneratorExit))
         return False
 
     # -- internals -----------------------------------------------------------------------------------
@@ -156,14 +159,13 @@ class Progress:
     def _post(self) -> str:
         return ", ".join(f"{k} {v}" for k, v in self.postfix.items())
 
-    def _line(self, now: float | None = None, final: bool = False) -> str:
+    def _line(self, now: float | None = None, final: bool = False, failed: bool = False) -> str:
         now = self.clock() if now is None else now
         el = now - self._t0
         count = f"{self.n}/{self.total}" if self.total is not None else f"{self.n}"
         parts = [f"{self.desc}: {count} {self.unit}"]
         if final:
-            finished = self.total is None or self.n >= self.total
-            parts[0] += f" {'done in' if finished else 'stopped after'} {format_duration(el)}"
+            parts[0] += f" {'stopped after' if failed else 'done in'} {format_duration(el)}"
         else:
             if self.total:
                 parts[0] += f" ({100.0 * self.n / self.total:.0f} %)"

@@ -277,6 +277,7 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
                 r = object_geometry(g, idx, name, label, opts, prompt, timings, support_z=support_z)
             results.append(r)
             bar.update(1)
+        bar.set_description("geometry")
     timings["total"] = time.perf_counter() - t0
     return Conversion(objects=results, background=bg, filter_stats=stats, options=opts, timings=dict(timings))
 
