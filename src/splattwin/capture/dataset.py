@@ -162,7 +162,9 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
     """Load any supported dataset layout (see module docstring).
 
     frames_dir: where a video's extracted frames go (default `<stem>_frames/` beside the video; `build`
-    puts them inside the twin folder so that nothing is written outside it).
+    puts them inside the twin folder so that nothing is written outside it), and the upright copies of an
+    image folder's photos stored rotated (EXIF Orientation; `capture.orientation`: without frames_dir
+    such a folder is refused).
     Paths read from the dataset's files (image names, depth and mask paths) must stay inside the
     dataset's folder (`splattwin.paths`); names of views must be plain file names (`splattwin.names`).
     """
@@ -195,7 +197,7 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
     elif tum.is_capture(path) or (path / "rgb.txt").is_file():  # rgb.txt alone: say what is missing
         ds = tum.read(path)
     elif find_images(path) or (path / "images").is_dir():
-        ds = images.read(path)
+        ds = images.read(path, out_dir=frames_dir)
     else:
         scenes = sorted(p.name for p in path.iterdir() if p.is_dir() and bop.is_scene(p))
         if scenes:

@@ -12,17 +12,25 @@ from pathlib import Path
 
 from splattwin.capture.camera import Camera
 from splattwin.capture.dataset import Dataset, Frame, find_images, image_size
+from splattwin.capture.orientation import upright_copies
 from splattwin.errors import InputError
 
 
-def read(path: str | Path, fov_x_deg: float = 60.0) -> Dataset:
+def read(path: str | Path, fov_x_deg: float = 60.0, out_dir: str | Path | None = None) -> Dataset:
+    """The images of `path` (or of path/images) as frames without poses. out_dir: where upright copies of
+    photos stored rotated (EXIF Orientation) go (`capture.orientation`); needed only when there are any."""
     path = Path(path)
     folder = path / "images" if (path / "images").is_dir() and not find_images(path) else path
     files = find_images(folder)
     if not files:
         raise InputError("no images found (png/jpg/...)", folder)
+    upright = upright_copies(files, None if out_dir is None else Path(out_dir), folder)
     frames = []
     for p in files:
-        w, h = image_size(p)
-        frames.append(Frame(image_path=p, camera=Camera.from_fov(math.radians(fov_x_deg), w, h, name=p.stem)))
-    return Dataset(root=path, frames=frames, has_poses=False, meta={"format": "images", "path": str(folder)})
+        q = upright.get(p, p)
+        w, h = image_size(q)
+        frames.append(Frame(image_path=q, camera=Camera.from_fov(math.radians(fov_x_deg), w, h, name=p.stem)))
+    meta = {"format": "images", "path": str(folder)}
+    if upright:
+        meta["exif_rotated"] = sorted(p.name for p in upright)
+    return Dataset(root=path, frames=frames, has_poses=False, meta=meta)

@@ -67,8 +67,9 @@ def _run(args: argparse.Namespace) -> int:
         raise InputError(f"--marker-size must be positive (metres), got {opts.marker_size}")
     from splattwin.lock import output_lock
 
-    ds = load_dataset(args.input, max_frames=args.max_frames)
     with output_lock(args.out):
+        # a video's frames and upright copies of rotated photos go inside OUT, as in `build`
+        ds = load_dataset(args.input, max_frames=args.max_frames, frames_dir=args.out / "capture" / "frames")
         res = estimate_poses(ds, opts)
         path = res.save(args.out)
     st = res.stats
