@@ -14,7 +14,9 @@ model or option:
   refused only when clearly insufficient (the estimate above `REFUSE_FACTOR` times what is free), a
   warning when tight.
 
-Reads image headers only (no decoding); a video is probed for its frame size, not decoded.
+Reads image headers only (no decoding); a video is probed for its frame size, not decoded. Photos stored
+rotated (EXIF Orientation) are the exception: their upright copies are written here, into the twin's
+capture/frames/upright/, and the poses stage reuses them (`capture.orientation`).
 """
 
 from __future__ import annotations
