@@ -101,13 +101,20 @@ def test_viewer_in_chromium(built, tmp_path):
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     server = serve(built, host="127.0.0.1", port=port, block=False)
+    stds = []
     try:
-        png = screenshot(f"http://127.0.0.1:{port}/", tmp_path / "viewer.png", 1000, 700, budget_ms=12000)
+        # the splats stream in over the websocket: on a loaded machine (the full suite on 2 cores) the
+        # first picture can catch the canvas with the grid only (std ~20 where a drawn scene gives ~46);
+        # one more try with a doubled budget before calling the view empty
+        for budget in (12000, 24000):
+            png = screenshot(f"http://127.0.0.1:{port}/", tmp_path / "viewer.png", 1000, 700, budget_ms=budget)
+            img = np.asarray(Image.open(png).convert("RGB")).astype(int)
+            stds.append(img[150:600, 100:650].std())  # the 3D canvas, left of the GUI panel
+            if stds[-1] > 20:
+                break
     finally:
         server.stop()
-    img = np.asarray(Image.open(png).convert("RGB")).astype(int)
-    centre = img[150:600, 100:650]  # the 3D canvas, left of the GUI panel
-    assert centre.std() > 20, "the 3D view is empty"
+    assert stds[-1] > 20, f"the 3D view is empty (pixel std {stds})"
 
 
 def test_killed_build_resumes_to_the_same_twin(built, tmp_path):
