@@ -138,6 +138,19 @@ def check_ply_header(path: str | Path, what: str = "PLY file", max_header: int =
 
 
 # -- images -------------------------------------------------------------------------------------
+def _register_heif(path: Path) -> None:
+    """Teach PIL to read HEIC/HEIF (an iPhone's default photo format) through pillow-heif, once. libheif
+    applies the rotation the container records (a portrait shot's), so the pixels come out upright."""
+    try:
+        import pillow_heif
+    except ImportError:
+        raise InputError("HEIC/HEIF photos need the pillow-heif package (pip install pillow-heif), or convert "
+                         "them to JPEG first", path) from None
+    if not getattr(_register_heif, "done", False):
+        pillow_heif.register_heif_opener()
+        _register_heif.done = True
+
+
 @contextlib.contextmanager
 def open_image(path: str | Path, what: str = "image") -> Iterator[Any]:
     """PIL image opened lazily (header only) whose size was checked against MAX_IMAGE_PIXELS; decode
@@ -148,6 +161,8 @@ def open_image(path: str | Path, what: str = "image") -> Iterator[Any]:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{what} file does not exist", path)
+    if path.suffix.lower() in (".heic", ".heif"):
+        _register_heif(path)
     with warnings.catch_warnings():
         # PIL's own bomb guard warns above 89 MP and raises above 179 MP; ours is the limit that counts.
         warnings.simplefilter("ignore", Image.DecompressionBombWarning)

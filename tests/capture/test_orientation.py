@@ -133,3 +133,32 @@ def test_sfm_on_phone_style_rotated_photos_gives_upright_cameras(scene_small, tm
     # 160x120 photos: SfM itself is within ~2 degrees; sideways cameras would be ~90 degrees off
     assert max(a_rot.values()) < 3.0, a_rot
     assert all(abs(a_rot[n] - a_up[n]) < 0.5 for n in a_up), (a_up, a_rot)
+
+
+def test_heic_photos_are_read_through_png_copies(tmp_path):
+    """HEIC (an iPhone's default format): found in the folder (any suffix case), decoded through pillow-heif,
+    and given a PNG copy COLMAP can read."""
+    pytest.importorskip("pillow_heif")   # a declared dependency; the skip only guards a broken install
+    import pillow_heif
+
+    from splattwin.capture.dataset import load_image
+
+    pillow_heif.register_heif_opener()
+    src = tmp_path / "iphone"
+    src.mkdir()
+    yy, xx = np.mgrid[0:48, 0:64]
+    upright = np.stack([xx * 4, yy * 5, (xx + yy) * 2], -1).astype(np.uint8)   # smooth: HEVC keeps it close
+    # (an iPhone records a portrait shot's turn as a HEIF container transform, which libheif applies on
+    # decoding; pillow-heif cannot write one, so this file is stored upright)
+    Image.fromarray(upright).save(src / "IMG_0001.HEIC", quality=95)
+    Image.fromarray(upright).save(src / "IMG_0002.Jpg", quality=95)
+    ds = load_dataset(src, frames_dir=tmp_path / "frames")
+    assert [f.name for f in ds.frames] == ["IMG_0001", "IMG_0002"]
+    heic, jpg = ds.frames
+    assert heic.image_path == tmp_path / "frames" / "upright" / "IMG_0001.png" and jpg.image_path == src / "IMG_0002.Jpg"
+    assert (heic.camera.width, heic.camera.height) == (64, 48)
+    got = (load_image(heic.image_path) * 255 + 0.5).astype(np.uint8)
+    direct = (load_image(src / "IMG_0001.HEIC") * 255 + 0.5).astype(np.uint8)   # our reader, through pillow-heif
+    np.testing.assert_array_equal(got, direct)
+    assert np.abs(got.astype(int) - upright).mean() < 4   # the photo (HEVC is lossy)
+    assert ds.meta["exif_rotated"] == ["IMG_0001.HEIC"]

@@ -30,7 +30,9 @@ from splattwin.errors import InputError
 
 log = logging.getLogger(__name__)
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG", ".bmp", ".tif", ".tiff", ".webp")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG", ".bmp", ".tif", ".tiff", ".webp", ".heic", ".heif",
+                  ".HEIC", ".HEIF")
+_IMAGE_SUFFIXES_LOWER = frozenset(s.lower() for s in IMAGE_SUFFIXES)   # find_images: any case (.Jpg)
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".MP4", ".MOV", ".m4v")
 
 
@@ -154,7 +156,8 @@ def resize_nearest(a: np.ndarray, width: int, height: int) -> np.ndarray:
 
 
 def find_images(folder: Path) -> list[Path]:
-    return sorted(p for p in Path(folder).iterdir() if p.is_file() and p.suffix in IMAGE_SUFFIXES)
+    """The image files of `folder` (suffix in IMAGE_SUFFIXES, any case), sorted by name."""
+    return sorted(p for p in Path(folder).iterdir() if p.is_file() and p.suffix.lower() in _IMAGE_SUFFIXES_LOWER)
 
 
 def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool = True,

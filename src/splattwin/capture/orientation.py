@@ -8,8 +8,11 @@ on rotated cameras. Measured on the cake photos re-saved as a phone writes them 
 Orientation 6): 6/8 images registered instead of 8/8, and the cameras' image-up vector at world z
 -0.01..0.52 instead of 0.76..0.86.
 
-What: for a plain image folder (where the cameras come from the images), every photo whose tag is not 1
-is written upright (PIL's `ImageOps.exif_transpose`, lossless PNG) into a folder of the run's own
+HEIC/HEIF (an iPhone's default format) takes the same path: PIL reads it through pillow-heif (libheif
+applies the rotation the container records for a portrait shot), COLMAP cannot read it at all.
+
+What: for a plain image folder (where the cameras come from the images), every photo whose tag is not 1,
+and every HEIC/HEIF photo, is written upright (PIL's `ImageOps.exif_transpose`, lossless PNG) into a folder of the run's own
 (`build`: TWIN/capture/frames/upright/), and the frames point at those copies; photos without a tag or
 with Orientation 1 are used as they are. The copies are reused while the source's size and mtime are
 unchanged (upright.json). Datasets that come with their own cameras (transforms.json, COLMAP, BOP, TUM)
@@ -28,6 +31,7 @@ from splattwin.limits import read_json
 log = logging.getLogger(__name__)
 
 ORIENTATION_TAG = 0x0112
+HEIF_SUFFIXES = (".heic", ".heif")
 UPRIGHT_DIR = "upright"
 INDEX = "upright.json"
 _SWAPS = {5, 6, 7, 8}   # orientations that exchange width and height
@@ -69,22 +73,31 @@ def write_upright(src: Path, dst: Path) -> Path:
     return write_image(dst, arr)
 
 
+def needs_copy(path: Path) -> int | str | None:
+    """Why `path` cannot be used as stored: its EXIF Orientation (2..8), "HEIF" (COLMAP cannot read HEIC/HEIF,
+    an iPhone's default format), or None."""
+    if path.suffix.lower() in HEIF_SUFFIXES:
+        return "HEIF"
+    o = exif_orientation(path)
+    return o if o != 1 else None
+
+
 def upright_copies(paths: list[Path], out_dir: Path | None, where: Path) -> dict[Path, Path]:
-    """{source: upright copy} for the images in `paths` stored rotated (none: {}). The copies go to
-    out_dir/upright/<stem>.png; out_dir None with rotated images: InputError (nowhere to write them)."""
+    """{source: upright PNG copy} for the images in `paths` stored rotated or as HEIC/HEIF (none: {}). The
+    copies go to out_dir/upright/<stem>.png; out_dir None when some are needed: InputError."""
     rotated = {}
     for p in paths:
-        o = exif_orientation(p)
-        if o != 1:
-            rotated[p] = o
+        why = needs_copy(p)
+        if why is not None:
+            rotated[p] = why
     if not rotated:
         return {}
     if out_dir is None:
         first = next(iter(rotated))
-        raise InputError(f"{len(rotated)} of {len(paths)} photos are stored rotated (EXIF Orientation, e.g. "
-                         f"{first.name}: {rotated[first]}) and need upright copies, but no folder was given for "
-                         f"them; run `splattwin build` or `splattwin poses`, or turn the files upright first "
-                         f"(exiftran -ai, mogrify -auto-orient)", where)
+        raise InputError(f"{len(rotated)} of {len(paths)} photos are stored rotated (EXIF Orientation) or as "
+                         f"HEIC/HEIF (e.g. {first.name}: {rotated[first]}) and need upright PNG copies, but no "
+                         f"folder was given for them; run `splattwin build` or `splattwin poses`, or convert the "
+                         f"files first (exiftran -ai, mogrify -auto-orient, heif-convert)", where)
     folder = Path(out_dir) / UPRIGHT_DIR
     index_path = folder / INDEX
     try:   # a stale or damaged index only costs a rewrite of the copies
@@ -98,7 +111,7 @@ def upright_copies(paths: list[Path], out_dir: Path | None, where: Path) -> dict
     for p, o in rotated.items():
         dst = folder / f"{p.stem}.png"
         st = p.stat()
-        stamp = {"source": str(p.resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns, "orientation": o}
+        stamp = {"source": str(p.resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns, "reason": o}
         if index.get(dst.name) != stamp or not dst.is_file():
             write_upright(p, dst)
             index[dst.name] = stamp
@@ -108,6 +121,6 @@ def upright_copies(paths: list[Path], out_dir: Path | None, where: Path) -> dict
         from splattwin.io import write_json
 
         write_json(index_path, index)
-    log.info("%d of %d photos are stored rotated (EXIF Orientation): using upright copies in %s (%d written)",
-             len(rotated), len(paths), folder, written)
+    log.info("%d of %d photos are stored rotated (EXIF Orientation) or as HEIC/HEIF: using upright PNG copies in "
+             "%s (%d written)", len(rotated), len(paths), folder, written)
     return out
