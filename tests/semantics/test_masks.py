@@ -143,8 +143,12 @@ def test_png_and_label_images(tmp_path):
 
 def test_bad_inputs(tmp_path):
     ms = _maskset()
-    with pytest.raises(InputError, match="are 30x20 but its image is 40x20"):
+    with pytest.raises(InputError, match="are 30x20 but its image is 40x20") as e:
         ms.validate({"v0": (20, 40), "v1": (20, 30), "v2": (20, 30)})
+    assert "turned" not in e.value.problem
+    # masks drawn on a phone photo's stored (sideways) pixels: the size turned by 90 degrees, said so
+    with pytest.raises(InputError, match="are 30x20 but its image is 20x30 .turned by 90 degrees.*EXIF Orientation"):
+        ms.validate({"v0": (30, 20), "v1": (20, 30), "v2": (20, 30)})
     with pytest.raises(InputError, match="empty mask set"):
         MaskSet().validate()
     ms.objects[7] = "ghost"

@@ -156,7 +156,8 @@ class MaskSet:
                                  f"(have: {', '.join(sorted(image_sizes)[:6])}...)", where)
             if tuple(hw) != tuple(image_sizes[view]):
                 H, W = image_sizes[view]
-                raise InputError(f"masks of view {view!r} are {hw[1]}x{hw[0]} but its image is {W}x{H}", where)
+                raise InputError(f"masks of view {view!r} are {hw[1]}x{hw[0]} but its image is {W}x{H}"
+                                 f"{_turned(hw, (H, W))}", where)
 
     # -- load / save --------------------------------------------------------------------------
     def save(self, out_dir: str | Path) -> Path:
@@ -184,6 +185,14 @@ class MaskSet:
 
 
 # -- loaders ----------------------------------------------------------------------------------
+
+def _turned(mask_hw, image_hw) -> str:
+    """A hint when a mask has the image's size turned by 90 degrees."""
+    if tuple(mask_hw) == tuple(image_hw)[::-1] and mask_hw[0] != mask_hw[1]:
+        return (" (turned by 90 degrees: masks must match the photo as a viewer shows it, upright; a photo stored "
+                "sideways with an EXIF Orientation tag is used upright)")
+    return ""
+
 
 def load_masks(path: str | Path, objects: dict[str, int] | None = None, object_name: str | None = None,
                image_sizes: dict[str, tuple[int, int]] | None = None) -> MaskSet:
@@ -241,7 +250,8 @@ def _check_image(view: str, hw: tuple[int, int], image_sizes: dict | None, where
         return
     H, W = image_sizes[view]
     if tuple(hw) != (H, W):
-        raise InputError(f"mask of view {view!r} is {hw[1]}x{hw[0]} but its image is {W}x{H}", where)
+        raise InputError(f"mask of view {view!r} is {hw[1]}x{hw[0]} but its image is {W}x{H}{_turned(hw, (H, W))}",
+                         where)
 
 
 def load_maskset_dir(path: Path, image_sizes: dict | None = None) -> MaskSet:
