@@ -85,6 +85,14 @@ def interrupted_then_resumed(ds, out: Path, cfg, at_step: int):
     return train(ds, out, cfg, resume=True)
 
 
+def assert_resumes_to(ds, out: Path, cfg, reference) -> None:
+    """Resuming the interrupted run in `out` reaches `reference` (an uninterrupted run) bit for bit."""
+    c = Trainer(ds, out, cfg).run(resume=True)
+    assert c.steps == cfg.iters
+    for k in ("means", "quats", "scales", "opacities", "sh"):
+        np.testing.assert_array_equal(getattr(c.gaussians, k), getattr(reference.gaussians, k))
+
+
 def drop_split(root: Path) -> Path:
     """Remove every train/held-out mark from root/transforms.json (a capture without its own split)."""
     meta = json.loads((root / "transforms.json").read_text())
@@ -160,11 +168,7 @@ def test_deterministic_and_resume_equivalent(synth, tmp_path, drop_rate):
         train(ds, tmp_path / "c", cfg, callback=kill)
     assert not (tmp_path / "c" / "point_cloud.ply").exists()
     assert sorted(p.name for p in (tmp_path / "c" / "checkpoints").iterdir()) == ["ckpt_000020.safetensors", "ckpt_000040.safetensors"]
-    t = Trainer(ds, tmp_path / "c", cfg)
-    c = t.run(resume=True)
-    assert c.steps == 60
-    for k in ("means", "quats", "scales", "opacities", "sh"):
-        np.testing.assert_array_equal(getattr(c.gaussians, k), getattr(a.gaussians, k))
+    assert_resumes_to(ds, tmp_path / "c", cfg, a)
 
 
 def test_ctrl_c_finishes_the_step_saves_and_resumes_to_the_same_result(synth, tmp_path):
@@ -187,11 +191,7 @@ def test_ctrl_c_finishes_the_step_saves_and_resumes_to_the_same_result(synth, tm
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler   # handler restored
     names = sorted(p.name for p in (tmp_path / "c" / "checkpoints").iterdir())
     assert names == ["ckpt_000040.safetensors", "ckpt_000047.safetensors"]
-    t = Trainer(ds, tmp_path / "c", cfg)
-    c = t.run(resume=True)
-    assert c.steps == 60
-    for k in ("means", "quats", "scales", "opacities", "sh"):
-        np.testing.assert_array_equal(getattr(c.gaussians, k), getattr(a.gaussians, k))
+    assert_resumes_to(ds, tmp_path / "c", cfg, a)
 
 
 def test_drop_rate_hides_gaussians_and_compensates_opacity(synth, tmp_path):
