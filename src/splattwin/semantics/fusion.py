@@ -369,7 +369,9 @@ def fuse(means: np.ndarray, views: Sequence[View], masks: MaskSet, options: Fusi
     floaters = np.zeros(N, dtype=bool)
     labels = np.zeros(N, dtype=np.int32)
     history: list[dict] = []
-    bar = _progress(progress, max(opts.iters, 1))
+    from splattwin.progress import Progress
+
+    bar = Progress(max(opts.iters, 1), "fusion rounds", unit="round", enabled=progress)
     rendered_without: np.ndarray | None = None
     for it in range(max(opts.iters, 1)):
         if rendered_without is None:
@@ -439,9 +441,3 @@ def naive_fusion(means: np.ndarray, views: Sequence[View], masks: MaskSet, fract
     best = votes.argmax(axis=1)
     ok = votes[np.arange(len(means)), best] >= max(need, 1)
     return np.where(ok, np.asarray(label_ids, dtype=np.int32)[best], 0).astype(np.int32)
-
-
-def _progress(enabled: bool, total: int):
-    from splattwin.progress import Progress
-
-    return Progress(total, "fusion rounds", unit="round", enabled=enabled)

@@ -276,7 +276,9 @@ def segment_images(images: dict[str, Path], prompt: str, options: SegmentOptions
     seg = segmenter
     if todo and seg is None:
         seg = OpenVocabSegmenter(options)
-    bar = _bar(progress, len(todo))
+    from splattwin.progress import Progress
+
+    bar = Progress(len(todo), "segmenting views", unit="view", enabled=progress)
     for view in todo:
         img = (np.clip(load_image(images[view]), 0, 1) * 255 + 0.5).astype(np.uint8)
         ms.sizes[view] = img.shape[:2]
@@ -292,9 +294,3 @@ def segment_images(images: dict[str, Path], prompt: str, options: SegmentOptions
             raise InputError(f"prompt phrase {ms.prompts[lab]!r} was found in no view (box threshold "
                              f"{(options or SegmentOptions()).box_threshold}); rephrase it or lower --box-threshold")
     return ms
-
-
-def _bar(enabled: bool, total: int):
-    from splattwin.progress import Progress
-
-    return Progress(total, "segmenting views", unit="view", enabled=enabled)
