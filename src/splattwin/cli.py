@@ -61,6 +61,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s")
+    if not args.verbose:   # PyOpenGL (MuJoCo's renderer) logs at INFO that an optional speed-up is missing
+        logging.getLogger("OpenGL").setLevel(logging.WARNING)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
