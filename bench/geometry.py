@@ -4,10 +4,13 @@ Two sources of labelled Gaussians:
   * synthetic (default): builds the small embedded scene, samples ~200k synthetic Gaussians with 3DGS
     artefacts on it (`splattwin.scene.synthetic_gaussians`) and lets the artefacts leak into the object
     labels as mask lifting would (`leak_labels`);
-  * trained: `--twin-from RUN` (a `splattwin demo --out RUN` folder: RUN/splat/point_cloud.ply,
-    RUN/semantics/labels.npy + objects.json, GT in RUN/scene), or `--splats PLY --labels NPY --scene DIR`
-    [--objects JSON]: the splats the trainer produced, with their real artefacts (centres inside the
-    surface, unobserved sides, label bleed).
+  * trained: `--twin-from RUN` (a `splattwin demo --out RUN` or `build --out RUN` folder:
+    RUN/splat/point_cloud.ply, RUN/semantics/labels.npy + objects.json, the capture cameras in
+    RUN/poses/transforms.json, GT in RUN/scene, or --scene), or `--splats PLY --labels NPY --scene DIR`
+    [--objects JSON] [--cameras transforms.json]: the splats the trainer produced, with their real
+    artefacts (centres inside the surface, unobserved sides, thick splats seen face-on, label bleed).
+    With cameras, ours carves the meshes (`geometry.carving`, as the twin stage does) and the mesh
+    table shows the same conversion without carving side by side.
 Prints
   1. the four-configuration ablation per object on the cleaned Gaussian centres: Chamfer (mm),
      precision, recall, F1 @ 5 mm;
@@ -38,7 +41,8 @@ import numpy as np
 
 
 def _load_trained(args) -> tuple:
-    """(Gaussians, labels [N], objects [(name, label, prompt)], GT meshes {name: Trimesh}, source text)."""
+    """(Gaussians, labels [N], objects [(name, label, prompt)], GT meshes {name: Trimesh}, source text,
+    cameras [Camera] or None)."""
     from splattwin import io
     from splattwin.errors import InputError
     from splattwin.twin.groundtruth import load_scene_gt
@@ -48,8 +52,10 @@ def _load_trained(args) -> tuple:
         run = args.twin_from
         ply, lab_path, obj_path = run / "splat/point_cloud.ply", run / "semantics/labels.npy", run / "semantics/objects.json"
         scene = args.scene or run / "scene"
+        cameras_path = args.cameras or run / "poses/transforms.json"
     else:
         ply, lab_path, obj_path, scene = args.splats, args.labels, args.objects, args.scene
+        cameras_path = args.cameras
         if lab_path is None or scene is None:
             raise InputError("--splats needs --labels and --scene", ply)
     for p in (ply, lab_path, scene / "scene.json"):
@@ -61,7 +67,12 @@ def _load_trained(args) -> tuple:
         raise InputError(f"{len(labels)} labels for {len(g)} Gaussians in {ply}", lab_path)
     scene_objects, meshes = load_scene_gt(scene)
     objects = [tuple(o) for o in io.read_json(obj_path)] if obj_path is not None and Path(obj_path).is_file() else scene_objects
-    return g, labels, objects, meshes, f"trained:{ply}"
+    cameras = None
+    if cameras_path is not None and Path(cameras_path).is_file():
+        from splattwin.capture import load_dataset
+
+        cameras = [f.camera for f in load_dataset(cameras_path, validate=False).frames]
+    return g, labels, objects, meshes, f"trained:{ply}", cameras
 
 
 def main(argv=None) -> int:
@@ -73,6 +84,8 @@ def main(argv=None) -> int:
     ap.add_argument("--splats", type=Path, default=None, help="trained splat PLY (with --labels and --scene)")
     ap.add_argument("--labels", type=Path, default=None, help="labels.npy, one int per Gaussian (0 = background)")
     ap.add_argument("--objects", type=Path, default=None, help="objects.json [[name, label, prompt], ...] (default: the scene's)")
+    ap.add_argument("--cameras", type=Path, default=None,
+                    help="transforms.json of the capture (twin frame), for the meshes' carving (default: RUN/poses/)")
     args = ap.parse_args(argv)
 
     from rich.console import Console
@@ -87,9 +100,11 @@ def main(argv=None) -> int:
     con = Console(width=150)
     tmp = tempfile.TemporaryDirectory()
     trained = args.twin_from is not None or args.splats is not None
+    cameras = None
     if trained:
-        g, labels, objects, meshes, source = _load_trained(args)
-        con.print(f"{source}: {len(g)} Gaussians, {len(objects)} objects")
+        g, labels, objects, meshes, source, cameras = _load_trained(args)
+        con.print(f"{source}: {len(g)} Gaussians, {len(objects)} objects, "
+                  f"{len(cameras) if cameras else 'no'} cameras")
     else:
         scene = args.scene or generate(Path(tmp.name) / "scene", SceneOptions(seed=0, width=160, height=120, views=8,
                                                                               heldout=3), progress=False)
@@ -124,33 +139,39 @@ def main(argv=None) -> int:
     results = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        convert(g, labels, objects, GeometryOptions(), progress=False)  # warm-up: imports, numba/JIT caches
+        convert(g, labels, objects, GeometryOptions(), progress=False, cameras=cameras)  # warm-up: imports, JIT caches
         for name, opts in peers.items():
             runs = []
             for _ in range(args.runs if name == ours_name else 1):
                 t0 = time.perf_counter()
-                conv = convert(g, labels, objects, opts, progress=False)
+                conv = convert(g, labels, objects, opts, progress=False, cameras=cameras)
                 runs.append((time.perf_counter() - t0, conv))
             runs.sort(key=lambda r: r[0])
             results[name] = runs[len(runs) // 2]
         # baseline meshing: the splat centres alone, no fill under the seen surface (the path before issue 6)
         base = convert(g, labels, objects, GeometryOptions(densify=False, fill_to_support=False), progress=False)
+        uncarved = convert(g, labels, objects, GeometryOptions(carve=False), progress=False) if cameras else None
     ours_s, ours = results[ours_name]
     fid = conversion_fidelity(ours, meshes)
     fid_base = conversion_fidelity(base, meshes)
+    fid_unc = conversion_fidelity(uncarved, meshes) if uncarved is not None else None
     tm = Table(title="Twin meshes vs GT (visual mesh and GT both sampled at 2 mm; threshold 5 mm)")
     tm.add_column("object")
-    for c in ("baseline: centres, no support fill", "ours"):
+    cols = {"baseline: centres, no support fill": fid_base}
+    if fid_unc is not None:
+        cols["ours without carving"] = fid_unc
+    cols["ours" + (f" (carved from {len(cameras)} cameras)" if cameras else "")] = fid
+    for c in cols:
         tm.add_column(f"{c}\nCD mm / P / R / F1", justify="right")
     for n, _, _ in objects:
         tm.add_row(n, *[f"{f[n].chamfer * 1e3:.2f} / {f[n].precision:.3f} / {f[n].recall:.3f} / {f[n].f1:.3f}"
-                        for f in (fid_base, fid)])
+                        for f in cols.values()])
     con.print(tm)
-    stages = ("filter", "cluster", "mesh", "decompose", "background")
+    stages = ("filter", "cluster", "mesh", "carve", "decompose", "background")
     t2 = Table(title=f"Conversion of {len(g)} Gaussians ({args.runs} runs for ours, median; 1 run per peer), seconds")
     t2.add_column("method")
     for s_ in (*stages, "total"):
-        t2.add_column(s_, justify="right")
+        t2.add_column("carve\n(in mesh)" if s_ == "carve" else s_, justify="right")
     t2.add_column("usable / watertight")
     for name, (sec, conv) in results.items():
         ok = sum(o.usable for o in conv.objects)
@@ -170,6 +191,9 @@ def main(argv=None) -> int:
         "f1_5mm_mesh": {n: round(f.f1, 4) for n, f in fid.items()},
         "chamfer_mesh": float(np.mean([f.chamfer for f in fid.values()])),
         "f1_5mm_mesh_min_baseline": min(f.f1 for f in fid_base.values()),
+        **({"f1_5mm_mesh_min_uncarved": min(f.f1 for f in fid_unc.values()),
+            "f1_5mm_mesh_uncarved": {n: round(f.f1, 4) for n, f in fid_unc.items()}} if fid_unc is not None else {}),
+        "carve_cameras": len(cameras) if cameras else 0,
         "convert_s": round(ours_s, 3),
         **{f"{s_}_s": round(ours.timings.get(s_, 0.0), 3) for s_ in stages},
         "all_watertight": all(o.collision.is_watertight for o in ours.objects if o.usable),

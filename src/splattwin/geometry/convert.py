@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
+from splattwin.geometry.carving import depth_views, free_space_mask
 from splattwin.geometry.clustering import Plane, foot_bleed_mask, largest_cluster, split_background
 from splattwin.geometry.filtering import FilterStats, attribute_mask
 from splattwin.geometry.meshing import (add_bottom, downsample, ellipsoid_samples, level_radii, point_spacing, simplify,
@@ -112,7 +113,8 @@ def _vertex_colors(vertices_world: np.ndarray, means: np.ndarray, colors: np.nda
 
 
 def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: GeometryOptions, prompt: str = "",
-                    timings: dict | None = None, support_z: float | None = None) -> ObjectGeometry:
+                    timings: dict | None = None, support_z: float | None = None, cameras: list | None = None
+                    ) -> ObjectGeometry:
     """Stages 3-4 for one object from its cleaned Gaussians `g[indices]`. Never raises on bad data:
     returns usable=False with `problem` and emits ObjectUnusableWarning.
 
@@ -120,7 +122,10 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
     foot are dropped (`clustering.foot_bleed_mask`). Nothing physical lies below it, so points under it
     (reconstruction noise) are dropped, and an object resting on it gets its unseen bottom closed
     exactly at the table instead of a few millimetres inside it (which would make a gripper reaching
-    for a small object graze the table, and make the object pop up in physics)."""
+    for a small object graze the table, and make the object pop up in physics).
+
+    cameras: the capture cameras (twin frame). With `opts.carve`, splat-extent samples that one of them
+    sees in front of the object's rendered depth are dropped (`geometry.carving`); None: no carving."""
     timings = timings if timings is not None else defaultdict(float)
     indices = np.asarray(indices, dtype=np.int64)
     if support_z is not None and opts.foot_height > 0:
@@ -132,8 +137,15 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
         t0 = time.perf_counter()
         pitch = max(opts.mesh_voxel, opts.mesh_voxel_rel * point_spacing(pts, k=4))
         if opts.densify:  # the splats' half-opaque extents, not just their centres (see ellipsoid_samples)
-            pts = np.concatenate([pts, ellipsoid_samples(pts, g.subset(indices).rotation_matrices(), g.scales[indices],
-                                                         level_radii(g.opacities[indices], opts.surface_level))])
+            sub = g.subset(indices)
+            samples = ellipsoid_samples(pts, sub.rotation_matrices(), sub.scales,
+                                        level_radii(sub.opacities, opts.surface_level))
+            if opts.carve and cameras and opts.carve_views > 0:
+                t1 = time.perf_counter()
+                cams = [cameras[i] for i in np.unique(np.linspace(0, len(cameras) - 1, opts.carve_views).round().astype(int))]
+                samples = samples[~free_space_mask(samples, depth_views(sub, cams), opts.carve_tolerance)]
+                timings["carve"] += time.perf_counter() - t1
+            pts = np.concatenate([pts, samples])
         mpts = downsample(pts, pitch / 2)
         z_floor = None
         if support_z is not None:
@@ -233,10 +245,13 @@ def background_geometry(g, indices: np.ndarray, opts: GeometryOptions, table_thi
 
 
 def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None = None, background: bool = True,
-            table_thickness: float = 0.03, progress: bool = True, length_scale: float = 1.0) -> Conversion:
+            table_thickness: float = 0.03, progress: bool = True, length_scale: float = 1.0,
+            cameras: list | None = None) -> Conversion:
     """Full conversion. g: Gaussians [N]; labels [N] int (0 = background); objects: [(name, label, prompt)].
     length_scale: frame units per metre of the options' lengths and of table_thickness (m): 1 in a
-    metric twin, the frame's nominal metre in an unscaled one (`TwinFrame.length_scale`)."""
+    metric twin, the frame's nominal metre in an unscaled one (`TwinFrame.length_scale`).
+    cameras: [Camera] of the capture in the twin frame, for the free-space carving of the object
+    meshes (`GeometryOptions.carve`); None: meshes without it."""
     from splattwin.progress import Progress
 
     opts = opts or GeometryOptions()
@@ -274,7 +289,7 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
                                    problem=f"missing label: no Gaussian carries label {label}")
                 warnings.warn(ObjectUnusableWarning(f"object {name!r}: {r.problem}"), stacklevel=2)
             else:
-                r = object_geometry(g, idx, name, label, opts, prompt, timings, support_z=support_z)
+                r = object_geometry(g, idx, name, label, opts, prompt, timings, support_z=support_z, cameras=cameras)
             results.append(r)
             bar.update(1)
         bar.set_description("geometry")

@@ -47,13 +47,18 @@ class GeometryOptions:
     alpha_factors: tuple[float, ...] = option((1.5, 2.0, 3.0), "alpha radii in point spacings, tried in order until "
                                               "the outer shell is watertight")
     use_alpha: bool = option(True, "alpha shapes (--no-use-alpha: voxel remesh by marching cubes, faster)")
-    alpha_max_points: int = option(8000, "objects with more points get a coarser voxel (the Delaunay cost grows with "
+    alpha_max_points: int = option(16000, "objects with more points get a coarser voxel (the Delaunay cost grows with "
                                    "the points)")
     close_bottom: bool = option(True, "add the unseen footprint under an object resting on the table")
     fill_to_support: bool = option(True, "a resting object is solid from the table up to its seen surface")
     rest_gap: float = option(0.01, "an object whose lowest point is within this of the table rests on it", unit="m")
     densify: bool = option(True, "mesh each splat's alpha = surface_level ellipsoid, not only its centre")
     surface_level: float = option(0.5, "alpha iso-level of a splat taken as its surface (trained centres sit inside)")
+    carve: bool = option(True, "drop splat-extent samples that a capture camera sees in front of the object's "
+                         "rendered depth (free space; needs the cameras, see geometry.carving)")
+    carve_tolerance: float = option(0.002, "a sample is free space when it is this far in front of the rendered depth",
+                                    unit="m")
+    carve_views: int = option(32, "at most this many cameras carve (spread evenly over the capture)")
     smooth_iterations: int = option(10, "Taubin smoothing of the mesh (removes the voxel staircase)")
     collision_faces: int = option(1500, "face budget of collision meshes", aliases=("faces",))
     visual_faces: int = option(20000, "face budget of visual meshes")

@@ -187,24 +187,34 @@ def export_twin(twin_dir: str | Path, manifest: Manifest | None = None, formats=
     return manifest
 
 
-def _estimated_nominal_metre(gaussians, out_dir: Path, cameras_path) -> float | None:
+def _capture_cameras(out_dir: Path, cameras_path) -> list | None:
+    """The capture's cameras (twin frame) from the cameras file, or None (no file, or unreadable: the
+    cameras only refine the geometry, so a bad file is a warning here, never a failed build)."""
+    if cameras_path is None:
+        return None
+    cp = Path(cameras_path)
+    cp = out_dir / cp if not cp.is_absolute() and (out_dir / cp).exists() else cp
+    if not cp.is_file():
+        return None
+    try:
+        from splattwin.capture import load_dataset
+
+        return [f.camera for f in load_dataset(cp, validate=False).frames]
+    except Exception as e:  # noqa: BLE001 - see the docstring
+        log.warning("cameras not read from %s (geometry without them): %s", cp, e)
+        return None
+
+
+def _estimated_nominal_metre(gaussians, cameras: list | None) -> float:
     """An unscaled frame without a recorded nominal metre (e.g. `splattwin geometry --frame unscaled`):
-    estimated here from the cameras file and the splat centres, else from the scene's extent."""
+    estimated from the cameras and the splat centres, else from the scene's extent."""
     from splattwin.geometry.options import scene_scale
     from splattwin.poses.table import nominal_metre
 
-    if cameras_path is not None:
-        cp = Path(cameras_path)
-        cp = out_dir / cp if not cp.is_absolute() and (out_dir / cp).exists() else cp
-        if cp.is_file():
-            try:
-                from splattwin.capture import load_dataset
-
-                value = nominal_metre([f.camera for f in load_dataset(cp).frames], gaussians.means)
-                if value is not None:
-                    return value
-            except Exception as e:  # the cameras only refine a guess: never fail the build on them
-                log.warning("nominal metre not estimated from %s: %s", cp, e)
+    if cameras:
+        value = nominal_metre(cameras, gaussians.means)
+        if value is not None:
+            return value
     return scene_scale(gaussians.means) / NOMINAL_SCENE_SIZE
 
 
@@ -226,11 +236,12 @@ def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path
     frame = frame or TwinFrame()
     check_formats(frame, formats, out_dir / "twin.json")
     t0 = time.perf_counter()
-    length_scale = frame.length_scale(None if frame.scaled else _estimated_nominal_metre(gaussians, out_dir, cameras_path))
+    cameras = _capture_cameras(out_dir, cameras_path)
+    length_scale = frame.length_scale(None if frame.scaled else _estimated_nominal_metre(gaussians, cameras))
     if not frame.scaled:
         log.info("unscaled twin: metric thresholds x %.4g (frame units per nominal metre)", length_scale)
         frame = dataclasses.replace(frame, nominal_metre=frame.nominal_metre or round(length_scale, 6))
-    conv = convert(gaussians, labels, objects, options, progress=progress, length_scale=length_scale)
+    conv = convert(gaussians, labels, objects, options, progress=progress, length_scale=length_scale, cameras=cameras)
     t1 = time.perf_counter()
     manifest = write_geometry(conv, gaussians, labels, out_dir, frame, cameras_path)
     manifest.timings["write"] = round(time.perf_counter() - t1, 4)

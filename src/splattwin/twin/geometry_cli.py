@@ -133,7 +133,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--object", action="append", default=[], metavar="NAME=LABEL[:PROMPT]",
                    help="object to build (repeatable); default: every label > 0")
     p.add_argument("--out", required=True, help="twin folder to write")
-    p.add_argument("--cameras", help="cameras file to reference in the manifest (transforms.json)")
+    p.add_argument("--cameras", help="cameras file (transforms.json, twin frame): referenced in the manifest, and the "
+                   "meshes are carved against the splats' rendered depth from these cameras")
     p.add_argument("--frame", default="unscaled", help="twin frame source recorded in the manifest")
     add_options(p, ExportOptions)
     p.add_argument("--gt-scene", help="generated scene folder: print + save the raw/attribute/cluster/full "
