@@ -61,6 +61,10 @@ def test_cli_segment_import_and_fuse(small, tmp_path):
     meta = json.loads((out / "fusion.json").read_text())
     assert {o["name"] for o in meta["objects"]} == set(ms.objects.values())
     assert meta["depth_renderer"] == "points" and 0.3 < meta["miou_heldout"] <= 1.0
+    # the imported masks cover the held-out views too: scored against them (the fusion used training views only)
+    heldout = sorted(f.name for f in ds.frames if f.split == "heldout")
+    assert heldout and meta["miou_heldout_masks_views"] == heldout and 0.3 < meta["miou_heldout_masks"] <= 1.0
+    assert (out / "masks_vs_labels" / f"{heldout[0]}.png").is_file()
     for o in meta["objects"]:
         from splattwin.splat.gaussians import Gaussians
 

@@ -108,6 +108,8 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
         kpis[f"SSIM {ev['split']}"] = round(ev["mean_ssim"], 4)
     if fusion and fusion.get("miou_heldout") is not None:
         kpis["mIoU held-out"] = round(fusion["miou_heldout"], 3)
+    elif fusion and fusion.get("miou_heldout_masks") is not None:
+        kpis["mIoU held-out vs 2D masks"] = round(fusion["miou_heldout_masks"], 3)
     if geo:
         kpis["F1 @5 mm (min)"] = round(min(v["f1"] for v in geo.values()), 3)
     if robot and "error" in robot:
@@ -246,7 +248,8 @@ def _semantics_section(sec: Section, twin: Path, fusion: dict | None) -> None:
     sec.text(f"method: {fusion.get('method', 'visibility-aware')}; κ = {fusion['options']['kappa']}, "
              f"{fusion['options']['iters']} refinement rounds; {fusion.get('n_views_fused', '?')} views fused.")
     sec.table(["object", "label", "Gaussians"], [[o["name"], o["label"], o["n_gaussians"]] for o in fusion["objects"]])
-    m = [[k.replace("miou_", "mIoU "), fusion[k]] for k in sorted(fusion) if k.startswith("miou")]
+    m = [[k.replace("miou_", "mIoU ").replace("_masks", " vs its 2D masks").replace("_", " "), fusion[k]]
+         for k in sorted(fusion) if k.startswith("miou") and isinstance(fusion[k], (int, float))]
     for k in ("consistency", "ghost_index"):
         if k in fusion:
             m.append([k, fusion[k]])
@@ -256,8 +259,10 @@ def _semantics_section(sec: Section, twin: Path, fusion: dict | None) -> None:
         sec.text("κ sweep (τ = N/κ): 3D projection consistency (% of labelled points with N_fg/N ≥ 0.8) and ghost index (%).")
         sec.table(["κ", "consistency (%)", "ghost index (%)"],
                   [[r["kappa"], r["consistency"], r["ghost_index"]] for r in fusion["kappa_sweep"]])
+    heldout = set(fusion.get("miou_heldout_masks_views") or [])
     for p in sorted((twin / "semantics" / "masks_vs_labels").glob("*.png")):
-        sec.image(p, caption=f"{p.stem}: 2D segmenter masks (input) | fused 3D labels rendered")
+        sec.image(p, caption=f"{p.stem}: 2D masks (held-out view: not used by the fusion) | fused 3D labels rendered"
+                  if p.stem in heldout else f"{p.stem}: 2D segmenter masks (input) | fused 3D labels rendered")
     maps = sorted((twin / "semantics" / "label_maps").glob("*.png"))
     held = [p for p in maps if "heldout" in p.stem] or maps
     for p in held[:4]:

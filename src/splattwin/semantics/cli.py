@@ -91,6 +91,9 @@ def _fuse(args: argparse.Namespace) -> int:
     meta = json.loads((Path(args.out) / "fusion.json").read_text())
     counts = ", ".join(f"{n}: {c}" for n, c in res.counts().items())
     extra = "".join(f", {k} {meta[k]:.3f}" for k in ("miou_train", "miou_heldout") if k in meta)
+    if "miou_heldout_masks" in meta:
+        extra += (f", held-out mIoU against the 2D masks {meta['miou_heldout_masks']:.3f} "
+                  f"({len(meta['miou_heldout_masks_views'])} views the fusion did not use)")
     print(f"labelled {int((res.labels > 0).sum())} of {len(res.labels)} Gaussians ({counts}) in "
           f"{res.seconds:.1f} s{extra} -> {args.out}")
     return 0

@@ -129,6 +129,7 @@ def fuse_to_dir(splats: "str | Path | Gaussians", dataset: "str | Path | Dataset
         summary.update(fusion_metrics(res, g.means, views, ms))
         if label_maps:
             write_mask_comparisons(res, ms, ds, out_dir)
+            summary.update(heldout_mask_miou(ms, ds, out_dir, res.label_ids))
     summary["seconds_total"] = time.perf_counter() - t0
     summary["method"] = "naive" if naive else "visibility-aware"
     res.save(out_dir, extra=summary)
@@ -149,17 +150,50 @@ def fusion_metrics(res: FusionResult, means: np.ndarray, views: Sequence[View], 
             "kappa_sweep": sweep}
 
 
+def _mask_map(masks: MaskSet, view: str) -> np.ndarray:
+    """[H,W] int label image of a view's 2D masks (0 = none; where masks overlap the higher label wins)."""
+    h, w = masks.sizes[view]
+    mask_map = np.zeros((h, w), np.int32)
+    for k in sorted(masks.masks.get(view, {})):
+        mask_map[masks.masks[view][k]] = k
+    return mask_map
+
+
+def heldout_mask_miou(masks: MaskSet, dataset, out_dir: Path, label_ids: Sequence[int]) -> dict:
+    """mIoU of the fused labels rendered in the held-out views (OUT/label_maps/raw) against the 2D masks
+    given for those views, which the fusion never used: the label quality that a real capture without
+    ground-truth label images can still measure (its masks are only as good as the segmenter or the
+    user's). {"miou_heldout_masks": float, "miou_heldout_masks_views": [names]}, or {} when no held-out
+    view has masks."""
+    from splattwin.capture import load_mask
+    from splattwin.semantics.metrics import miou
+
+    pred, ref, names = [], [], []
+    for f in dataset.frames:
+        raw = out_dir / "label_maps" / "raw" / f"{f.name}.png"
+        if f.split != "heldout" or f.name not in masks.sizes or not raw.is_file():
+            continue
+        fused = load_mask(raw).astype(np.int32)
+        mask_map = _mask_map(masks, f.name)
+        if fused.shape == mask_map.shape:
+            pred.append(fused)
+            ref.append(mask_map)
+            names.append(f.name)
+    if not names:
+        return {}
+    return {"miou_heldout_masks": miou(pred, ref, sorted(label_ids)), "miou_heldout_masks_views": names}
+
+
 def write_mask_comparisons(res: FusionResult, masks: MaskSet, dataset, out_dir: Path, n: int = 3) -> None:
-    """OUT/masks_vs_labels/<view>.png for the first `n` training views with masks: the 2D segmenter masks
-    (the fusion's input) | the fused labels rendered (OUT/label_maps/raw)."""
+    """OUT/masks_vs_labels/<view>.png for the first `n` training views and the first `n` held-out views
+    with masks: the 2D masks (the fusion's input; on held-out views unused by it) | the fused labels
+    rendered (OUT/label_maps/raw)."""
     from splattwin.capture import load_image, load_mask
     from splattwin.pictures import side_by_side
 
-    for f in [fr for fr in dataset.train() if fr.name in masks.sizes][:n]:
-        h, w = masks.sizes[f.name]
-        mask_map = np.zeros((h, w), np.int32)
-        for k in sorted(masks.masks.get(f.name, {})):
-            mask_map[masks.masks[f.name][k]] = k
+    with_masks = [fr for fr in dataset.frames if fr.name in masks.sizes]
+    for f in [fr for fr in with_masks if fr.split != "heldout"][:n] + [fr for fr in with_masks if fr.split == "heldout"][:n]:
+        mask_map = _mask_map(masks, f.name)
         img = load_image(f.image_path)
         fused = load_mask(out_dir / "label_maps" / "raw" / f"{f.name}.png").astype(np.int32)
         pic = side_by_side([colorize(mask_map, res.names, img, legend=False), colorize(fused, res.names, img)])
