@@ -30,10 +30,14 @@ from splattwin.semantics.label_render import PointDepth, SplatDepth, colorize, r
 log = logging.getLogger(__name__)
 
 def dataset_objects(dataset_root: Path) -> dict[str, int] | None:
-    """name -> label from a generated scene's scene.json next to the dataset, else None."""
+    """name -> label from a generated scene's scene.json next to the dataset (a scene folder), or in the
+    twin's scene/ when the dataset is a twin's poses/ (its ground-truth label images use those ids), else None."""
     root = Path(dataset_root)
     root = root if root.is_dir() else root.parent
-    return scene_objects(root) if (root / "scene.json").is_file() else None
+    for d in (root, root.parent / "scene"):
+        if (d / "scene.json").is_file():
+            return scene_objects(d)
+    return None
 
 
 def views_for(frames, masks: MaskSet, where: Path | None = None, all_frames=None) -> list[View]:
