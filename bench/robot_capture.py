@@ -15,7 +15,8 @@ deterministic, the times come from a machine shared with other work).
 Unless --no-build, the BOP capture then goes through the whole `build` (known poses, its BOP masks,
 --iters iterations) and the table normal is measured again on the twin itself: a RANSAC plane through
 the trained background Gaussians (label 0), and twin.json's frame must say up +z with the rotation
-recorded in T_twin_input.
+recorded in T_twin_input. The build's mesh F1@5 mm against the scene's ground truth is reported too
+(`robot_capture_f1_5mm_min`; run with --iters 3000, the default training length, for the README figure).
 
 `zdown_fixed` is true when the twin (or, with --no-build, the poses stage's frame) has its table
 normal within 1 degree of +z. Last line: one JSON object with `zdown_fixed` and the measured angles.
@@ -118,6 +119,11 @@ def measure_zdown(work_dir: str | Path, size: tuple[int, int] = (320, 240), view
         out["build_s"] = time.perf_counter() - t0
         out["build_exit"] = code
         if code == 0:
+            gm = twin / "geometry_metrics.json"
+            if gm.is_file():  # the build scores its meshes against the scene's ground truth
+                f1 = {k: round(float(v["f1"]), 4) for k, v in json.loads(gm.read_text()).items()}
+                out["robot_capture_f1_5mm"] = f1
+                out["robot_capture_f1_5mm_min"] = min(f1.values()) if f1 else None
             deg, frame = _twin_normal_deg(twin)
             out["zdown_twin_table_normal_deg"] = deg
             out["zdown_table_normal_deg"] = deg
@@ -153,6 +159,8 @@ def main() -> None:
         print(f"build (BOP, known poses, BOP masks, {args.iters} iters): exit {res['build_exit']}, "
               f"{res['build_s']:.0f} s, twin table normal vs +z: "
               + (f"{tw:.3f} deg" if tw is not None else "n/a"))
+        if res.get("robot_capture_f1_5mm"):
+            print("mesh F1@5mm vs ground truth: " + ", ".join(f"{k} {v:.3f}" for k, v in res["robot_capture_f1_5mm"].items()))
     print(f"target: table normal within {TARGET_DEG} deg of +z -> zdown_fixed = {res['zdown_fixed']}")
     summary = {k: v for k, v in res.items() if k != "rows"}
     print(json.dumps(summary))

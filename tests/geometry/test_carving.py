@@ -3,6 +3,7 @@
 import warnings
 
 import numpy as np
+import pytest
 import trimesh
 
 from splattwin.capture.camera import Camera, look_at
@@ -62,6 +63,10 @@ def test_depth_views_render_the_splats_surface_and_cap_the_size():
     [(cam, depth)] = depth_views(g, [big], max_side=128)
     assert (cam.width, cam.height) == (128, 96) and depth.shape == (96, 128)
     assert np.isclose(cam.fx, big.fx * 0.1)
+    # a long video's cameras: at most max_views of them, spread from the first to the last
+    ring = [_down_camera(height=0.4 + 0.01 * i) for i in range(10)]
+    picked = [c for c, _ in depth_views(g, ring, max_views=3)]
+    assert [c.T_world_cam[2, 3] for c in picked] == pytest.approx([0.4, 0.445, 0.49], abs=0.006)
     centre = depth[40:56, 56:72]
     np.testing.assert_allclose(centre, 0.48, atol=1e-4)
     assert np.isinf(depth[0, 0])

@@ -154,3 +154,69 @@ def test_trained_like_splats_mesh_within_5mm(shape):
     if shape == "box":  # the old path, once (it is the slow one: hollow shells go to CoACD)
         old, r_old = _mesh_f1(g, gt, GeometryOptions(densify=False, fill_to_support=False, needle_length=0.0))
         assert old.f1 < 0.9 and r_old.collision.volume < 0.5 * gt.volume, old
+
+
+def test_an_object_with_an_unseen_foot_rests_on_the_table_unless_it_stands_on_another():
+    """A box whose splats stop 2.5 cm above the table (a downward sweep saw little of its lower sides):
+    nothing holds it in the air, so its mesh is filled down to the table (F1 as for a fully seen box). The
+    same splats over another object's points (a 2 cm slab under its footprint) stand on that object:
+    the mesh then ends where its splats do."""
+    gt = trimesh.creation.box([0.12, 0.08, 0.06])
+    gt.apply_translation([0, 0, 0.03])
+    g = trained_like_gaussians(gt, 2000, seed=1)
+    g = g.subset(g.means[:, 2] > 0.025)
+    opts = GeometryOptions().resolved(1.2)
+    idx = clean_indices(g, np.ones(len(g), dtype=np.int64), 1, opts)
+
+    def mesh(others):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            r = object_geometry(g, idx, "box", 1, opts, support_z=0.0, other_points=others)
+        m = r.visual.copy()
+        m.apply_transform(r.T_world_obj)
+        return m
+
+    rests = mesh(None)
+    assert rests.bounds[0, 2] < 0.002 and mesh_fidelity(rests, gt).f1 >= 0.95
+    xy = np.random.default_rng(0).uniform([-0.05, -0.03], [0.05, 0.03], (200, 2))
+    slab = np.column_stack([xy, np.full(len(xy), 0.02)])
+    stands = mesh(slab)
+    assert stands.bounds[0, 2] > 0.015, stands.bounds
+    # points beside the footprint hold nothing up: it rests on the table again
+    assert mesh(slab + [0.3, 0.0, 0.0]).bounds[0, 2] < 0.002
+
+
+def test_an_object_over_a_background_obstacle_stands_on_it():
+    """The background's obstacles count as supports too: a box with an unseen foot over a 2 cm slab that
+    is part of the background (a plate under a cake) is not filled down through the slab."""
+    gt = trimesh.creation.box([0.12, 0.08, 0.06])
+    gt.apply_translation([0, 0, 0.03])
+    box = trained_like_gaussians(gt, 2000, seed=1)
+    box = box.subset(box.means[:, 2] > 0.025)
+    xy = np.stack(np.meshgrid(np.linspace(-0.3, 0.3, 121), np.linspace(-0.3, 0.3, 121)), -1).reshape(-1, 2)
+    table = np.column_stack([xy, np.zeros(len(xy))])
+    slab_mesh = trimesh.creation.box([0.14, 0.10, 0.02])
+    slab_mesh.apply_translation([0, 0, 0.01])
+    slab = np.asarray(trimesh.sample.sample_surface_even(slab_mesh, 3000, seed=0)[0])
+    slab = slab[slab[:, 2] > 0.003]
+
+    def bottom(with_slab: bool) -> float:
+        bg = np.concatenate([table, slab]) if with_slab else table
+        n = len(bg)
+        means = np.concatenate([bg, box.means])
+        g = Gaussians(means, np.concatenate([np.tile([1.0, 0, 0, 0], (n, 1)), box.quats]),
+                      np.concatenate([np.full((n, 3), 0.002), box.scales]),
+                      np.concatenate([np.full(n, 0.9), box.opacities]), np.full((len(means), 1, 3), 0.2))
+        labels = np.r_[np.zeros(n, np.int64), np.ones(len(box), np.int64)]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            conv = convert(g, labels, [("box", 1)], GeometryOptions(max_scale=0.012), progress=False)
+        if with_slab:
+            assert conv.background.n_obstacles == 1
+        o = conv.objects[0]
+        m = o.visual.copy()
+        m.apply_transform(o.T_world_obj)
+        return float(m.bounds[0, 2]) - conv.background.table_height  # height above the table top
+
+    assert bottom(False) < 0.002
+    assert bottom(True) > 0.012

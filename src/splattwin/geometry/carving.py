@@ -30,14 +30,17 @@ if TYPE_CHECKING:  # pragma: no cover
     from splattwin.splat.gaussians import Gaussians
 
 
-def depth_views(gaussians: "Gaussians", cameras: list["Camera"], max_side: int = 640, min_alpha: float = 0.5
-                ) -> list[tuple["Camera", np.ndarray]]:
+def depth_views(gaussians: "Gaussians", cameras: list["Camera"], max_views: int = 32, max_side: int = 640,
+                min_alpha: float = 0.5) -> list[tuple["Camera", np.ndarray]]:
     """[(camera, depth [H,W])]: the splats' expected depth (camera z) from each camera, inf where their
-    accumulated alpha is below `min_alpha`. Cameras are used as ideal pinholes (the rasterizer's model)
-    and scaled so their longest side is at most `max_side` pixels (the carving needs the surface, not
-    the photo's detail)."""
+    accumulated alpha is below `min_alpha`. At most `max_views` cameras, spread evenly over the list (a
+    video's hundreds of frames add nothing but time). Cameras are used as ideal pinholes (the rasterizer's
+    model) and scaled so their longest side is at most `max_side` pixels (the carving needs the surface,
+    not the photo's detail)."""
     from splattwin.splat.render import render_depth
 
+    if len(cameras) > max_views:
+        cameras = [cameras[i] for i in np.unique(np.linspace(0, len(cameras) - 1, max(max_views, 1)).round().astype(int))]
     out = []
     for cam in cameras:
         cam = dataclasses.replace(cam, dist=None)

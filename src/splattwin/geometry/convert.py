@@ -69,6 +69,7 @@ class BackgroundGeometry:
     collision: trimesh.Trimesh | None
     parts: list
     n_obstacles: int = 0
+    obstacles: list = field(default_factory=list)  # [Trimesh] each obstacle's mesh on the table (twin frame)
 
 
 @dataclass
@@ -112,9 +113,30 @@ def _vertex_colors(vertices_world: np.ndarray, means: np.ndarray, colors: np.nda
     return np.concatenate([rgb, np.full((len(rgb), 1), 255, np.uint8)], axis=1)
 
 
+def _stands_on_other(points: np.ndarray, others: np.ndarray | None, support_z: float, margin: float,
+                     min_points: int = 10) -> bool:
+    """True when at least `min_points` of the other objects' points [M,3] lie under this object's points
+    [N,3]: inside its footprint (xy convex hull), above the table (support_z + margin) and below its
+    lowest point + margin: it may stand on them rather than on the table."""
+    if others is None or len(others) < min_points:
+        return False
+    from scipy.spatial import Delaunay
+    from scipy.spatial import QhullError
+
+    z_low = float(points[:, 2].min())
+    cand = others[(others[:, 2] > support_z + margin) & (others[:, 2] < z_low + margin)]
+    if len(cand) < min_points:
+        return False
+    try:
+        hull = Delaunay(points[:, :2])
+    except (QhullError, ValueError):  # a degenerate footprint (a line of points): nothing stands on it
+        return False
+    return int((hull.find_simplex(cand[:, :2]) >= 0).sum()) >= min_points
+
+
 def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: GeometryOptions, prompt: str = "",
-                    timings: dict | None = None, support_z: float | None = None, cameras: list | None = None
-                    ) -> ObjectGeometry:
+                    timings: dict | None = None, support_z: float | None = None, cameras: list | None = None,
+                    other_points: np.ndarray | None = None) -> ObjectGeometry:
     """Stages 3-4 for one object from its cleaned Gaussians `g[indices]`. Never raises on bad data:
     returns usable=False with `problem` and emits ObjectUnusableWarning.
 
@@ -125,7 +147,11 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
     for a small object graze the table, and make the object pop up in physics).
 
     cameras: the capture cameras (twin frame). With `opts.carve`, splat-extent samples that one of them
-    sees in front of the object's rendered depth are dropped (`geometry.carving`); None: no carving."""
+    sees in front of the object's rendered depth are dropped (`geometry.carving`); None: no carving.
+    other_points: the other objects' cleaned centres [M,3]. An object whose lowest point is more than
+    `rest_gap` but at most `foot_gap` above the table rests on it unless some of these lie under it (it
+    may stand on another object): a downward robot sweep sees little of an object's lower sides, and
+    its lowest splats can be 2 cm up (a box whose mesh then stopped there, hollow: F1@5 mm 0.49)."""
     timings = timings if timings is not None else defaultdict(float)
     indices = np.asarray(indices, dtype=np.int64)
     if support_z is not None and opts.foot_height > 0:
@@ -142,8 +168,8 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
                                         level_radii(sub.opacities, opts.surface_level))
             if opts.carve and cameras and opts.carve_views > 0:
                 t1 = time.perf_counter()
-                cams = [cameras[i] for i in np.unique(np.linspace(0, len(cameras) - 1, opts.carve_views).round().astype(int))]
-                samples = samples[~free_space_mask(samples, depth_views(sub, cams), opts.carve_tolerance)]
+                views = depth_views(sub, cameras, max_views=opts.carve_views)
+                samples = samples[~free_space_mask(samples, views, opts.carve_tolerance)]
                 timings["carve"] += time.perf_counter() - t1
             pts = np.concatenate([pts, samples])
         mpts = downsample(pts, pitch / 2)
@@ -151,7 +177,9 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
         if support_z is not None:
             above = mpts[mpts[:, 2] >= support_z]
             mpts = above if len(above) >= 4 else mpts
-            if mpts[:, 2].min() - support_z < opts.rest_gap:
+            gap = mpts[:, 2].min() - support_z
+            if gap < opts.rest_gap or (gap < opts.foot_gap
+                                       and not _stands_on_other(mpts, other_points, support_z, opts.rest_gap)):
                 z_floor = support_z
         if opts.close_bottom:
             mpts = add_bottom(mpts, pitch / 2, z_floor=z_floor)
@@ -241,7 +269,7 @@ def background_geometry(g, indices: np.ndarray, opts: GeometryOptions, table_thi
     return BackgroundGeometry(indices=np.asarray(indices)[split.keep], plane=split.plane, table_height=h,
                               table_extent=[float(x0), float(x1), float(y0), float(y1)],
                               table_thickness=table_thickness, collision=trimesh.util.concatenate(meshes),
-                              parts=parts, n_obstacles=n_obs)
+                              parts=parts, n_obstacles=n_obs, obstacles=meshes[1:])
 
 
 def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None = None, background: bool = True,
@@ -278,18 +306,25 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
             timings["background"] = time.perf_counter() - t1
             bar.update(1)
         support_z = bg.table_height if bg is not None and bg.plane is not None else None
+        t1 = time.perf_counter()
+        cleaned = {int(obj[1]): clean_indices(g, labels, obj[1], opts, attr_keep=keep) for obj in objects}
+        timings["cluster"] += time.perf_counter() - t1
+        # what an object may stand on besides the table: the other objects and the background's obstacles
+        # (a plate under a cake), each obstacle as points on its mesh
+        obstacle_pts = [np.asarray(trimesh.sample.sample_surface(m, 2000, seed=opts.seed)[0])
+                        for m in (bg.obstacles if bg is not None else []) if m.area > 0]
         for obj in objects:
             name, label, prompt = (tuple(obj) + ("",))[:3]
             bar.set_description(f"geometry: {name}")
-            t1 = time.perf_counter()
-            idx = clean_indices(g, labels, label, opts, attr_keep=keep)
-            timings["cluster"] += time.perf_counter() - t1
+            idx = cleaned[int(label)]
+            others = [g.means[i] for lab, i in cleaned.items() if lab != int(label) and len(i)] + obstacle_pts
             if not np.any(labels == label):
                 r = ObjectGeometry(name=name, label=int(label), prompt=prompt, usable=False,
                                    problem=f"missing label: no Gaussian carries label {label}")
                 warnings.warn(ObjectUnusableWarning(f"object {name!r}: {r.problem}"), stacklevel=2)
             else:
-                r = object_geometry(g, idx, name, label, opts, prompt, timings, support_z=support_z, cameras=cameras)
+                r = object_geometry(g, idx, name, label, opts, prompt, timings, support_z=support_z, cameras=cameras,
+                                    other_points=np.concatenate(others) if others else None)
             results.append(r)
             bar.update(1)
         bar.set_description("geometry")

@@ -52,6 +52,8 @@ class GeometryOptions:
     close_bottom: bool = option(True, "add the unseen footprint under an object resting on the table")
     fill_to_support: bool = option(True, "a resting object is solid from the table up to its seen surface")
     rest_gap: float = option(0.01, "an object whose lowest point is within this of the table rests on it", unit="m")
+    foot_gap: float = option(0.05, "... and so does one up to this high with no other object under it (its foot "
+                             "was not seen: nothing holds it in the air)", unit="m")
     densify: bool = option(True, "mesh each splat's alpha = surface_level ellipsoid, not only its centre")
     surface_level: float = option(0.5, "alpha iso-level of a splat taken as its surface (trained centres sit inside)")
     carve: bool = option(True, "drop splat-extent samples that a capture camera sees in front of the object's "

@@ -278,6 +278,10 @@ def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
         rows.append([o.name, o.usable, len(o.convex_parts), o.mass if o.mass is not None else "n/a",
                      " × ".join(f"{x * 100:.1f}" for x in o.bbox_extent) + " cm", o.problem or ""])
     sec.table(["object", "usable", "convex parts", "mass (kg)", "box", "problem"], rows)
+    carve = (man.timings or {}).get("geometry.carve")
+    sec.text("meshes: alpha shapes of the objects' half-opaque splats (solid down to the table when resting on it)"
+             + (f", carved where a capture camera sees through them to the splats' rendered surface ({carve:.2f} s)"
+                if carve is not None else " (not carved: no capture cameras, or carving off)") + ".")
     if geo:
         sec.table(["object", "Chamfer (m)", "precision", "recall", "F1 @5 mm"],
                   [[k, v.get("chamfer"), v.get("precision"), v.get("recall"), v.get("f1")] for k, v in geo.items()])
