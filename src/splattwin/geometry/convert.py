@@ -115,9 +115,10 @@ def _vertex_colors(vertices_world: np.ndarray, means: np.ndarray, colors: np.nda
 
 def _stands_on_other(points: np.ndarray, others: np.ndarray | None, support_z: float, margin: float,
                      min_points: int = 10) -> bool:
-    """True when at least `min_points` of the other objects' points [M,3] lie under this object's points
-    [N,3]: inside its footprint (xy convex hull), above the table (support_z + margin) and below its
-    lowest point + margin: it may stand on them rather than on the table."""
+    """True when at least `min_points` of `others` [M,3] (what else could hold it up: the other objects'
+    centres, points on the background's obstacles) lie under this object's points [N,3]: inside its
+    footprint (xy convex hull), above the table (support_z + margin) and below its lowest point + margin:
+    it may stand on them rather than on the table."""
     if others is None or len(others) < min_points:
         return False
     from scipy.spatial import Delaunay
@@ -148,10 +149,11 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
 
     cameras: the capture cameras (twin frame). With `opts.carve`, splat-extent samples that one of them
     sees in front of the object's rendered depth are dropped (`geometry.carving`); None: no carving.
-    other_points: the other objects' cleaned centres [M,3]. An object whose lowest point is more than
-    `rest_gap` but at most `foot_gap` above the table rests on it unless some of these lie under it (it
-    may stand on another object): a downward robot sweep sees little of an object's lower sides, and
-    its lowest splats can be 2 cm up (a box whose mesh then stopped there, hollow: F1@5 mm 0.49)."""
+    other_points: [M,3] the other objects' cleaned centres and points on the background's obstacles. An
+    object whose lowest point is more than `rest_gap` but at most `foot_gap` above the table rests on it
+    unless some of these lie under it (it may stand on them): a downward robot sweep sees little of an
+    object's lower sides, and its lowest splats can be 2 cm up (a box whose mesh then stopped there,
+    hollow: F1@5 mm 0.42)."""
     timings = timings if timings is not None else defaultdict(float)
     indices = np.asarray(indices, dtype=np.int64)
     if support_z is not None and opts.foot_height > 0:
