@@ -6,10 +6,14 @@ directory `Path`; layout in docs/CONTRACTS.md "Embedded scene"):
 - `scene_default`: 320x240, 15 + 5 views, no marker (the default `splattwin scene generate`)
 - `scene_marker`:  320x240, 15 + 5 views, ArUco marker (DICT_4X4_50 id 0, 0.08 m) on the table
 All use seed 0. Treat them as read-only: they are shared by every test of the session.
+
+`terminal_ctrl_c`: SIGINT handled as in an interactive terminal for the test (and so in the child processes
+it starts), whatever the test run inherited.
 """
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 
 import pytest
@@ -45,3 +49,17 @@ def scene_marker(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """320x240, 15 training + 5 held-out views, seed 0, ArUco marker id 0 (0.08 m) on the table."""
     return _make_scene(tmp_path_factory, "scene_marker", width=320, height=240, views=15, heldout=5,
                        marker=True)
+
+
+@pytest.fixture
+def terminal_ctrl_c():
+    """SIGINT raises KeyboardInterrupt in this process for the test, as in an interactive terminal; a child
+    process started meanwhile gets the default disposition (a handled signal is reset on exec), so its
+    Python does the same. A test run started in the background of a script (`make test &`) inherits
+    SIGINT *ignored*: Python then never sees a Ctrl-C and splattwin rightly leaves an ignored SIGINT
+    ignored, so the Ctrl-C tests would fail without testing anything."""
+    prev = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, prev)

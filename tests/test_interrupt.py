@@ -17,7 +17,7 @@ from splattwin.interrupt import DeferredInterrupt, is_interrupt
 SRC = str(Path(splattwin.__file__).resolve().parents[1])
 
 
-def test_first_ctrl_c_is_a_request_the_second_stops_at_once():
+def test_first_ctrl_c_is_a_request_the_second_stops_at_once(terminal_ctrl_c):
     with DeferredInterrupt() as d:
         os.kill(os.getpid(), signal.SIGINT)
         assert d.requested                         # no exception: the loop decides when to stop
@@ -27,7 +27,7 @@ def test_first_ctrl_c_is_a_request_the_second_stops_at_once():
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
-def test_someone_elses_handler_is_left_alone():
+def test_someone_elses_handler_is_left_alone(terminal_ctrl_c):
     seen = []
     prev = signal.signal(signal.SIGINT, lambda s, f: seen.append(s))
     try:
@@ -80,7 +80,7 @@ def test_cli_maps_a_wrapped_interrupt_to_exit_130(monkeypatch, capsys):
     assert "interrupted" in err and "internal error" not in err
 
 
-def test_ctrl_c_during_splattwin_train(scene_small, tmp_path):
+def test_ctrl_c_during_splattwin_train(scene_small, tmp_path, terminal_ctrl_c):
     """The real thing: SIGINT to a training process once it reports progress -> exit 130, 'interrupted',
     a checkpoint of the step it stopped at, no 'internal error'; --resume then finishes the run."""
     out = tmp_path / "run"

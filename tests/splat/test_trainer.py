@@ -171,7 +171,7 @@ def test_deterministic_and_resume_equivalent(synth, tmp_path, drop_rate):
     assert_resumes_to(ds, tmp_path / "c", cfg, a)
 
 
-def test_ctrl_c_finishes_the_step_saves_and_resumes_to_the_same_result(synth, tmp_path):
+def test_ctrl_c_finishes_the_step_saves_and_resumes_to_the_same_result(synth, tmp_path, terminal_ctrl_c):
     """A real SIGINT mid-run: the step in progress completes, a checkpoint of that step is written (not only
     the periodic ones: steps 41..47 are kept), KeyboardInterrupt ends the run, and --resume reaches the
     uninterrupted result bit for bit."""
