@@ -69,6 +69,10 @@ def test_nerfstudio_split_lists_and_missing_image(tmp_path, caplog, make_dataset
         back = load_dataset(out)
     assert "gone.png" in caplog.text
     assert [f.split for f in back.frames] == ["train", "train", "train", "heldout"]
+    # for work on cameras alone (the geometry stage's carving) the frame without its image is kept
+    cams = load_dataset(out, require_images=False)
+    assert [f.name for f in cams.frames] == [f.name for f in back.frames] + ["gone"]
+    np.testing.assert_allclose(cams.frames[-1].camera.T_world_cam, np.diag([1.0, -1.0, -1.0, 1.0]))  # GL identity
 
 
 @pytest.mark.parametrize("mutate, msg", [
@@ -153,6 +157,13 @@ def test_cameras_json_roundtrip(tmp_path, make_dataset):
     back = load_dataset(out)
     assert back.meta["format"] == "cameras.json"
     assert_same_cameras(ds, back, check_split=False)
+    back.frames[0].image_path.unlink()  # an image gone: refused, unless only the cameras are wanted
+    with pytest.raises(InputError, match="not found"):
+        load_dataset(out)
+    cams = {f.name: f.camera for f in load_dataset(out, require_images=False).frames}
+    assert sorted(cams) == sorted(f.name for f in ds.frames)
+    for f in ds.frames:
+        np.testing.assert_allclose(cams[f.name].T_world_cam, f.camera.T_world_cam, atol=1e-9)
 
 
 def test_cameras_json_rejects_offcentre(tmp_path, make_dataset):

@@ -34,7 +34,9 @@ def _find_image(root: Path, name, where: Path) -> Path | None:
     return None
 
 
-def read(path: str | Path, image_dir: str | Path | None = None) -> Dataset:
+def read(path: str | Path, image_dir: str | Path | None = None, require_images: bool = True) -> Dataset:
+    """A 3DGS cameras.json. Every camera's image must be found (require_images False: a camera without
+    its image is kept, its image path the one it would have under images/)."""
     path = Path(path)
     entries = io.read_json(path, missing="file does not exist")
     if not isinstance(entries, list) or not entries:
@@ -67,6 +69,10 @@ def read(path: str | Path, image_dir: str | Path | None = None) -> Dataset:
         if not np.all(np.isfinite(T)) or not np.all(np.isfinite(K)):
             raise InputError(f"camera {e['img_name']!r}: pose or intrinsics are not finite", path)
         img = _find_image(root, e["img_name"], path)
+        if img is None and not require_images:
+            from splattwin.paths import confined
+
+            img = confined(root / "images", e["img_name"], path, "img_name")
         if img is None:
             raise InputError(f"image for camera {e['img_name']!r} not found under {root}", path)
         try:

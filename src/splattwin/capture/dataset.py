@@ -161,13 +161,15 @@ def find_images(folder: Path) -> list[Path]:
 
 
 def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool = True,
-                 frames_dir: str | Path | None = None) -> Dataset:
+                 frames_dir: str | Path | None = None, require_images: bool = True) -> Dataset:
     """Load any supported dataset layout (see module docstring).
 
     frames_dir: where a video's extracted frames go (default `<stem>_frames/` beside the video; `build`
     puts them inside the twin folder so that nothing is written outside it), and the upright copies of an
     image folder's photos stored rotated (EXIF Orientation; `capture.orientation`: without frames_dir
     such a folder is refused).
+    require_images: False keeps the cameras of a transforms.json / cameras.json whose images are missing
+    (for work that needs only cameras; implies validate=False, which would read the images).
     Paths read from the dataset's files (image names, depth and mask paths) must stay inside the
     dataset's folder (`splattwin.paths`); names of views must be plain file names (`splattwin.names`).
     """
@@ -184,17 +186,18 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
         elif path.name.endswith(".json"):
             with open(path, "rb") as f:
                 text_head = f.read(4096).decode("utf-8", errors="replace")
-            ds = cameras_json.read(path) if text_head.lstrip().startswith("[") else nerfstudio.read(path)
+            ds = (cameras_json.read(path, require_images=require_images) if text_head.lstrip().startswith("[")
+                  else nerfstudio.read(path, require_images=require_images))
         elif path.suffix in VIDEO_SUFFIXES:
             ds = video.read(path, max_frames=max_frames, out_dir=frames_dir)
         else:
             raise InputError("not a dataset: expected transforms.json, cameras.json, a video, or a folder", path)
     elif (path / "transforms.json").is_file():
-        ds = nerfstudio.read(path / "transforms.json")
+        ds = nerfstudio.read(path / "transforms.json", require_images=require_images)
     elif colmap.find_sparse_dir(path) is not None:
         ds = colmap.read(path)
     elif (path / "cameras.json").is_file():
-        ds = cameras_json.read(path / "cameras.json")
+        ds = cameras_json.read(path / "cameras.json", require_images=require_images)
     elif bop.is_scene(path):
         ds = bop.read(path)
     elif tum.is_capture(path) or (path / "rgb.txt").is_file():  # rgb.txt alone: say what is missing
@@ -211,7 +214,7 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
     if max_frames is not None and len(ds.frames) > max_frames and not (path.is_file() and path.suffix in VIDEO_SUFFIXES):
         idx = np.linspace(0, len(ds.frames) - 1, max_frames).round().astype(int)
         ds.frames = [ds.frames[i] for i in idx]
-    if validate:
+    if validate and require_images:
         ds.validate()
     _check_frame_names(ds, path)
     return ds

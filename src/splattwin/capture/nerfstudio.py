@@ -64,7 +64,10 @@ def _intrinsics(src: dict, fallback: dict, where: Path, frame_name: str) -> tupl
     return K, w_i, h_i, (dist if np.any(dist) else None)
 
 
-def read(path: str | Path) -> Dataset:
+def read(path: str | Path, require_images: bool = True) -> Dataset:
+    """A nerfstudio transforms.json. Frames whose image is missing are skipped (a warning each), unless
+    require_images is False: then they are kept for their cameras (e.g. the geometry stage's carving,
+    which never reads a pixel)."""
     path = Path(path)
     meta = io.read_json(path, missing="file does not exist")
     if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list):
@@ -93,7 +96,7 @@ def read(path: str | Path) -> Dataset:
         img = confined(root, rel, path, f"frame {i} file_path")
         if not img.suffix and not img.exists():  # NeRF-synthetic omits the extension
             img = confined(root, rel + ".png", path, f"frame {i} file_path")
-        if not img.is_file():
+        if require_images and not img.is_file():
             log.warning("%s: frame %d image %s is missing; skipping it", path, i, img)
             continue
         fr_model = fr.get("camera_model", model)
@@ -123,7 +126,7 @@ def read(path: str | Path) -> Dataset:
             split=split,
         ))
     if not frames:
-        raise InputError("no frame has an existing image", path)
+        raise InputError("no frame has an existing image" if require_images else "no frames", path)
     xyz = rgb = None
     if meta.get("ply_file_path"):
         ply = confined(root, meta["ply_file_path"], path, "ply_file_path")

@@ -199,7 +199,7 @@ def _capture_cameras(out_dir: Path, cameras_path) -> list | None:
     try:
         from splattwin.capture import load_dataset
 
-        return [f.camera for f in load_dataset(cp, validate=False).frames]
+        return [f.camera for f in load_dataset(cp, validate=False, require_images=False).frames]
     except Exception as e:  # noqa: BLE001 - see the docstring
         log.warning("cameras not read from %s (geometry without them): %s", cp, e)
         return None
