@@ -146,6 +146,9 @@ def main() -> int:
     scene = DynamicScene.load(twin)
     robot = RobotSplats.panda(T_base)
     renderer = PlaybackRenderer(scene, robot)
+    unlit = PlaybackRenderer(scene, robot, relight=False)   # the peer: every splat as trained
+    con.print("light from the twin's shadows: " + (json.dumps(scene.light.to_dict()) if scene.light is not None
+                                                  else "none found (not re-lit)"))
     final = {n: T[-1] for n, T in rollout.object_poses.items()}
     moved = scene.moved(final)
     motions = {n: final[n] @ np.linalg.inv(manifest.object(n).pose) for n in moved}
@@ -160,12 +163,15 @@ def main() -> int:
         ref = gt.render(cam)
         f = renderer.render(cam, final, None)
         obj_mask = np.isin(ref["labels"], [labels_of[n] for n in moved])
+        fu = unlit.render(cam, final, None)
         fill = renderer.fill_mask(cam, final) > 0.5
         rows.append({"view": name, "psnr": metrics.psnr(f.rgb, ref["rgb"]), "ssim": metrics.ssim(f.rgb, ref["rgb"]),
                      "psnr_objects": masked_psnr(f.rgb, ref["rgb"], obj_mask),
                      "ssim_objects": masked_ssim(f.rgb, ref["rgb"], obj_mask),
                      "psnr_filled": masked_psnr(f.rgb, ref["rgb"], fill & ~obj_mask),
-                     "object_px": int(obj_mask.sum()), "filled_px": int((fill & ~obj_mask).sum())})
+                     "object_px": int(obj_mask.sum()), "filled_px": int((fill & ~obj_mask).sum()),
+                     "psnr_unlit": metrics.psnr(fu.rgb, ref["rgb"]),
+                     "psnr_objects_unlit": masked_psnr(fu.rgb, ref["rgb"], obj_mask), "relit_rows": renderer.relit_rows})
         u8 = lambda a: (np.clip(a, 0, 1) * 255 + 0.5).astype(np.uint8)  # noqa: E731
         mark = f.rgb.copy()
         mark[fill] = 0.5 * mark[fill] + 0.5 * np.array([1.0, 0.0, 1.0])
@@ -188,7 +194,7 @@ def main() -> int:
         cam = cam.scaled(320 / cam.width)
     src = sample_indices(rollout.t, 1.0)
     pick = src[np.linspace(0, len(src) - 1, min(args.frames, len(src))).round().astype(int)]
-    gauss_ms, gauss_parts, mesh_ms, mesh_parts = [], [], [], []
+    gauss_ms, gauss_parts, mesh_ms, mesh_parts, unlit_ms = [], [], [], [], []
     layer = None
     try:
         layer = MeshRobotLayer(robot, cam.width, cam.height, supersample=2)
@@ -200,6 +206,9 @@ def main() -> int:
         ta = time.perf_counter()
         f = renderer.render(cam, poses, rp)
         gauss_ms.append((time.perf_counter() - ta) * 1e3)
+        ta = time.perf_counter()
+        unlit.render(cam, poses, rp)
+        unlit_ms.append((time.perf_counter() - ta) * 1e3)
         gauss_parts.append((f.timings["layout_ms"], f.timings["raster_ms"], f.timings["backdrop_ms"]))
         if layer is not None:
             tb = time.perf_counter()
@@ -238,12 +247,12 @@ def main() -> int:
     gp = np.median(np.array(gauss_parts), axis=0)
     tab = Table(title="twin after the task vs ground truth (held-out cameras; robot not drawn)")
     for c in ("view", "PSNR", "SSIM", "PSNR objects", "SSIM objects", "PSNR filled", "obj px", "PSNR start",
-              "PSNR start objects"):
+              "PSNR start objects", "PSNR not re-lit", "PSNR objects not re-lit"):
         tab.add_column(c)
     for r in rows:
         tab.add_row(r["view"], f"{r['psnr']:.2f}", f"{r['ssim']:.4f}", f"{r['psnr_objects']:.2f}",
                     f"{r['ssim_objects']:.4f}", f"{r['psnr_filled']:.2f}", str(r["object_px"]), f"{r['psnr_start']:.2f}",
-                    f"{r['psnr_start_objects']:.2f}")
+                    f"{r['psnr_start_objects']:.2f}", f"{r['psnr_unlit']:.2f}", f"{r['psnr_objects_unlit']:.2f}")
     con.print(tab)
     t2b = Table(title=f"render cost per 320x240 frame with the robot ({len(pick)} frames, median ms; 2 shared cores)")
     t2b.add_column("robot as")
@@ -253,6 +262,7 @@ def main() -> int:
     t2b.add_row("Gaussians (chosen)", f"{np.median(gauss_ms):.1f}",
                 f"posing {gp[0]:.1f}, rasterizer {gp[1]:.1f}, backdrop + compositing {gp[2]:.1f} "
                 f"({len(robot)} robot + {renderer.n_bg} scene Gaussians)")
+    t2b.add_row("Gaussians, not re-lit", f"{np.median(unlit_ms):.1f}", "the same without re-lighting")
     if mesh_ms:
         mp = np.median(np.array(mesh_parts), axis=0)
         t2b.add_row("MuJoCo meshes + compositing", f"{np.median(mesh_ms):.1f}",
@@ -270,6 +280,9 @@ def main() -> int:
         "render_ms_parts": {"posing": round(float(gp[0]), 1), "raster": round(float(gp[1]), 1),
                             "backdrop_composite": round(float(gp[2]), 1)},
         "render_ms_mesh_path": round(float(np.median(mesh_ms)), 1) if mesh_ms else None,
+        "render_ms_unlit": round(float(np.median(unlit_ms)), 1),
+        "psnr_final_unlit": round(mean("psnr_unlit"), 3), "psnr_final_objects_unlit": round(mean("psnr_objects_unlit"), 3),
+        "light": scene.light.to_dict() if scene.light is not None else None,
         "episode_frames_checked": int(checked),
         "episode_frames_expected": int(len(sample_indices(rollout.t, args.episode_fps))),
         "task_success": bool(result.success), "moved_objects": moved, "heldout_views": len(rows),

@@ -44,6 +44,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--keep-view-dependence", action="store_true",
                    help="moved objects keep the capture's view-dependent colour (default: it fades out over "
                         "their first 5 cm of motion; see playback/scene.py)")
+    p.add_argument("--no-relight", action="store_true",
+                   help="keep every splat's trained colour (default: moved objects cast and receive shadows under "
+                        "the light estimated from the twin's own shadows; see playback/relight.py)")
 
 
 def run_plan(args: argparse.Namespace) -> int:
@@ -106,7 +109,8 @@ def run_render(args: argparse.Namespace) -> int:
         raise InputError(f"--width must be in [16, 8192], got {args.width}")
     if args.out.suffix.lower() != ".mp4":
         raise InputError("--out must name an .mp4 file", args.out)
-    scene = DynamicScene.load(args.twin, fill_holes=not args.no_fill, view_fade=not args.keep_view_dependence)
+    scene = DynamicScene.load(args.twin, fill_holes=not args.no_fill, view_fade=not args.keep_view_dependence,
+                              relight=not args.no_relight)
     camera = resolve_camera(args.camera, args.twin, width=args.width)
     rpath = args.rollout or args.twin / "robot" / "rollout.npz"
     if not rpath.is_file():
@@ -121,6 +125,12 @@ def run_render(args: argparse.Namespace) -> int:
         raise InputError("an eye-in-hand camera needs the robot (drop --no-robot)")
     info = render_rollout_video(PlaybackRenderer(scene, robot), rollout, camera, args.out, fps=args.fps,
                                 robot=robot is not None)
+    if scene.light is not None:
+        lt = scene.light
+        Console().print(f"re-lit: light from the twin's shadows at azimuth {lt.azimuth_deg:.0f} deg, elevation "
+                        f"{lt.elevation_deg:.0f} deg (twin frame), ambient share {lt.ambient:.2f}")
+    elif not args.no_relight:
+        Console().print("not re-lit: no clear cast shadow found on the twin's table (splats keep their trained colour)")
     Console().print(f"wrote {info['path']}: {info['frames']} frames {info['width']}x{info['height']} at "
                     f"{info['fps']:g} fps, median {info['render_ms_median']:.0f} ms per frame")
     return 0

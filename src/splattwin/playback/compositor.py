@@ -6,7 +6,10 @@ robot's Gaussians, composited in one rasterizer pass.
 move (objects whose pose changed, the robot) and hands the rasterizer a contiguous prefix, so the static
 background is never copied. The residue of an object that left its place (its cleaned-out Gaussians and
 the background under its footprint) is not drawn (the rows of the background are masked by opacity 0);
-its fill is.
+its fill is. With a light (`DynamicScene.light`, estimated from the twin's shadows) the rows whose shadow
+changes in a state -- the table where a moved object's shadow was or now falls, the moved objects, others
+in their new shadows -- get their colours scaled (`playback.relight`); their trained colours come back when
+the state changes.
 
 Units: metres; images float32 [0,1]; depth = expected camera z (m), 0 where nothing was drawn.
 """
@@ -21,6 +24,7 @@ import torch
 
 from splattwin.capture.camera import Camera
 from splattwin.playback.cameras import EyeInHand
+from splattwin.playback.relight import scale_sh
 from splattwin.playback.robot import RobotPose, RobotSplats
 from splattwin.playback.scene import DynamicScene, pose_moved, rigid_transform
 from splattwin.splat.gaussians import rgb_to_sh0
@@ -47,7 +51,8 @@ class PlaybackRenderer:
     """
 
     def __init__(self, scene: DynamicScene, robot: RobotSplats | None = None,
-                 background: tuple[float, float, float] = (0.0, 0.0, 0.0), backend: str = "auto"):
+                 background: tuple[float, float, float] = (0.0, 0.0, 0.0), backend: str = "auto",
+                 relight: bool = True):
         self.scene, self.robot = scene, robot
         self.background = np.asarray(background, np.float32)
         self.backend = backend
@@ -84,6 +89,16 @@ class PlaybackRenderer:
         if robot is not None:
             self._rob_scales = robot.scales.astype(np.float32)
             self._rob_opac = robot.opacities.astype(np.float32)
+        # re-lighting (playback.relight): rows whose colour the current state scales, with their unscaled SH
+        self.relighter = None
+        if relight and scene.light is not None and scene.meshes:
+            from splattwin.playback.relight import Relighter
+
+            self.relighter = Relighter(scene.light, scene.meshes, scene.T_world_obj0, bg, scene.table_height,
+                                       scene.objects, scene.unit)
+        self._relit: list[tuple[np.ndarray, np.ndarray]] = []
+        self._relit_key: bytes | None = None
+        self.relit_rows = 0
 
     def _put(self, sl: slice, means, quats, scales, opac, sh) -> None:
         self.means[sl] = means
@@ -101,6 +116,14 @@ class PlaybackRenderer:
         sc = self.scene
         moved = frozenset(n for n in sc.objects if n in object_poses
                           and pose_moved(sc.T_world_obj0[n], np.asarray(object_poses[n])))
+        relight_key = None
+        if self.relighter is not None:
+            relight_key = b"".join([",".join(sorted(moved)).encode()] + [
+                np.asarray(object_poses.get(n, sc.T_world_obj0[n]), np.float64).tobytes() for n in sc.objects])
+            if relight_key != self._relit_key:
+                for rows, base in self._relit:   # back to the trained colours before this state's are written
+                    self.sh[rows] = base
+                self._relit = []
         if moved != self._hidden:   # residue of moved objects hidden (opacity 0), others restored
             self.opac[:self.n_bg] = self._bg_opac
             for n in moved:
@@ -116,6 +139,7 @@ class PlaybackRenderer:
                     self._put(sl, f.means, f.quats, f.scales, f.opacities, f.sh)
                     self._fill_slices[n] = sl
                 i += len(f)
+        obj_slices = {}
         for n, g in sc.objects.items():
             T = np.asarray(object_poses.get(n, sc.T_world_obj0[n]), float)
             sl = slice(i, i + len(g))
@@ -124,7 +148,11 @@ class PlaybackRenderer:
                 m, q, sh = rigid_transform(g, T)
                 self._put(sl, m, q, g.scales, g.opacities, sc.object_sh(n, sh, T))
                 self._obj_cache[n] = key
+            obj_slices[n] = sl
             i += len(g)
+        if relight_key is not None and relight_key != self._relit_key:
+            self._relight(sorted(moved), object_poses, obj_slices)
+            self._relit_key = relight_key
         if self.robot is not None and robot_pose is not None:
             m, q, rgb = self.robot.posed(robot_pose)
             sl = slice(i, i + len(m))
@@ -138,6 +166,52 @@ class PlaybackRenderer:
             self.sh[sl, 0] = rgb_to_sh0(rgb)
             i += len(m)
         return i
+
+    def _relight(self, moved: list[str], object_poses: dict[str, np.ndarray], obj_slices: dict[str, slice]) -> None:
+        """Scale the colours of the rows this state shadows or lights differently from the capture
+        (`playback.relight`); the unscaled rows are kept in `_relit` for the next state."""
+        rl, sc = self.relighter, self.scene
+        poses = {n: np.asarray(object_poses.get(n, sc.T_world_obj0[n]), float) for n in sc.objects}
+        groups: list[tuple[np.ndarray, np.ndarray]] = []
+        if moved:
+            nb = self.n_backdrop
+            bg_means = self.means[nb:self.n_bg].astype(np.float64)
+            rows = np.flatnonzero(rl.candidates(bg_means, moved, poses))
+            if len(rows):
+                groups.append((rows + nb, rl.static_factors(rows, bg_means[rows], self._spread(rows + nb), poses)))
+            for n, sl in self._fill_slices.items():   # fills copy lit table: lit at capture, facing up
+                fm = self.means[sl].astype(np.float64)
+                rows = np.flatnonzero(rl.candidates(fm, moved, poses))
+                if len(rows):
+                    groups.append((rows + sl.start, rl.static_factors(
+                        rows, fm[rows], self._spread(rows + sl.start), poses, lit0=np.ones(len(rows)),
+                        ndl=np.full(len(rows), rl.L[2]))))
+        for n, sl in obj_slices.items():
+            if n not in rl.index:
+                continue
+            om = self.means[sl].astype(np.float64)
+            if n in moved:
+                rows = np.arange(sl.start, sl.stop)
+                groups.append((rows, rl.object_factors(n, om, self._spread(rows), poses)))
+            elif moved:
+                rows = np.flatnonzero(rl.candidates(om, moved, poses))
+                if len(rows):
+                    groups.append((rows + sl.start, rl.object_factors(n, om[rows], self._spread(rows + sl.start), poses,
+                                                                      rows=rows)))
+        total = 0
+        for rows, f in groups:
+            ch = np.abs(f - 1.0) > 1e-4
+            rows, f = rows[ch], f[ch]
+            if len(rows):
+                base = self.sh[rows].copy()
+                self._relit.append((rows, base))
+                self.sh[rows] = scale_sh(base, f)
+                total += len(rows)
+        self.relit_rows = total
+
+    def _spread(self, rows: np.ndarray) -> np.ndarray | None:
+        """Footprint axes (world, current state) of buffer rows, for the soft shadow test."""
+        return self.relighter.spread(self.quats[rows], self.scales[rows])
 
     def _raster(self, start: int, n: int, camera: Camera, rasterize_mode: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Premultiplied rgb [H,W,3] (over black), expected depth [H,W] (0 where empty), alpha [H,W]."""

@@ -66,7 +66,7 @@ def _object_sets(twin_dir: Path):
     from splattwin.twin.manifest import Manifest
     from splattwin.twin.splats import transform_gaussians
 
-    scene = DynamicScene.load(twin_dir, fill_holes=False)
+    scene = DynamicScene.load(twin_dir, fill_holes=False, relight=False)
     man = Manifest.load(twin_dir)
     world = {n: transform_gaussians(g, scene.T_world_obj0[n]) for n, g in scene.objects.items()}
     label_of = {o.name: int(o.label) for o in man.objects if o.name in scene.objects}

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from splattwin.errors import InputError
+from splattwin.playback.relight import Light
 from splattwin.playback.holes import HoleFill, fill_hole
 from splattwin.splat.gaussians import Gaussians
 from splattwin.twin.manifest import Manifest
@@ -109,7 +110,9 @@ class DynamicScene:
     them behind everything else (a second layer), so they never veil the robot. rasterize_mode: the
     rasterizer mode the splats were trained with (twin.json config.build.splat; "classic" when not
     recorded), which the renderer uses by default: the antialiased mode's opacity compensation is part of
-    what the training fitted.
+    what the training fitted. meshes: {name: trimesh} the objects' visual meshes (object frame), the shadow
+    casters; light: the light estimated from the twin's shadows (`relight.estimate_light`), None when none
+    was found or re-lighting is off (then nothing is re-lit); unit: twin units per metre.
     """
 
     background: Gaussians
@@ -122,6 +125,9 @@ class DynamicScene:
     backdrop: Gaussians | None = None
     view_fade: bool = True
     rasterize_mode: str = "classic"
+    meshes: dict = field(default_factory=dict)
+    light: "Light | None" = None
+    unit: float = 1.0
 
     def object_sh(self, name: str, sh: np.ndarray, T_world_obj: np.ndarray) -> np.ndarray:
         """The posed SH [N,K,3] of object `name` at T_world_obj, its view dependence faded with its
@@ -135,14 +141,16 @@ class DynamicScene:
         return self.background.sh_degree
 
     @classmethod
-    def load(cls, twin_dir: str | Path, fill_holes: bool = True, carry: bool = True, view_fade: bool = True
-             ) -> "DynamicScene":
+    def load(cls, twin_dir: str | Path, fill_holes: bool = True, carry: bool = True, view_fade: bool = True,
+             relight: bool = True) -> "DynamicScene":
         """Read a twin folder. InputError when it has no splats (or they do not match the labels).
 
         carry: an object also takes along the Gaussians inside its bounding box (+ CARRY_MARGIN) above
         the table band that its splats.ply lacks (the geometry stage cleans the object's foot and
         fringe out of it, and labels miss some edge Gaussians); without them a moved object loses its
-        bottom and its outline. view_fade: moved objects lose their view dependence (module docstring)."""
+        bottom and its outline. view_fade: moved objects lose their view dependence (module docstring).
+        relight: estimate the light from the twin's shadows (`relight.estimate_light`, ~1-2 s) so that
+        moved objects cast and receive shadows (`light` stays None when no clear shadow is found)."""
         twin_dir = Path(twin_dir)
         manifest = Manifest.load(twin_dir)
         mpath = twin_dir / "twin.json"
@@ -171,6 +179,14 @@ class DynamicScene:
             objects[o.name] = Gaussians.load_ply(p)
             poses[o.name] = o.pose
             extents[o.name] = np.asarray(o.bbox_extent, float)
+        meshes = {}
+        if relight:
+            from splattwin.meshio import load_mesh
+
+            for o in manifest.objects:
+                if o.name in objects and o.visual_mesh:
+                    meshes[o.name] = load_mesh(_confined(twin_dir, o.visual_mesh, f"object {o.name!r} visual mesh"),
+                                               f"visual mesh of object {o.name!r}")
         moving_labels = {o.label: o.name for o in manifest.objects if o.name in objects}
         # background: label 0 and the labels of objects without splats; cleaned-out object Gaussians too
         # (hidden when their object moves)
@@ -202,7 +218,17 @@ class DynamicScene:
         residue = {n: bg_index[r[front[r]]] for n, r in residue.items()}
         scene = cls(background=full.subset(front), objects=objects, T_world_obj0=poses, residue=residue,
                     table_height=h, twin_dir=twin_dir, backdrop=full.subset(back), view_fade=view_fade,
-                    rasterize_mode=trained_rasterize_mode(manifest, mpath))
+                    rasterize_mode=trained_rasterize_mode(manifest, mpath), meshes=meshes,
+                    unit=manifest.frame.length_scale())
+        if meshes:
+            from splattwin.playback.relight import estimate_light
+
+            world = []
+            for n, m in meshes.items():
+                w = m.copy()
+                w.apply_transform(np.asarray(poses[n], float))
+                world.append(w)
+            scene.light = estimate_light(scene.background, h, world, scene.unit)
         if fill_holes:
             scene.fill_holes()
         return scene

@@ -85,6 +85,7 @@ def task_video(twin: Path, options: ReportOptions, progress: bool = False) -> di
     renderer = PlaybackRenderer(scene, RobotSplats.panda(T_base))
     key = {"rollout_sha256": hashlib.sha256(rpath.read_bytes()).hexdigest(), "options": asdict(options),
            "camera": spec, "base": T_base.round(9).tolist(),
+           "light": scene.light.to_dict() if scene.light is not None else None,
            "twin_json_sha256": hashlib.sha256((twin / "twin.json").read_bytes()).hexdigest()}
     safe = "".join(ch if ch.isalnum() or ch in "_-" else "_" for ch in spec)[:64]
     mp4 = twin / "report" / f"task_{safe}.mp4"
@@ -104,7 +105,7 @@ def task_video(twin: Path, options: ReportOptions, progress: bool = False) -> di
     moved = scene.moved(final)
     areas = {n: scene.fills[n].to_dict()["area_m2"] for n in moved if n in scene.fills}
     return {"mp4": mp4, "info": info, "camera": spec, "picture": picture, "fill_fraction": fraction,
-            "fill_area_m2": areas, "moved": moved}
+            "fill_area_m2": areas, "moved": moved, "light": scene.light}
 
 
 def playback_section(sec, twin: Path, options: ReportOptions | None = None) -> None:
@@ -127,6 +128,16 @@ def playback_section(sec, twin: Path, options: ReportOptions | None = None) -> N
     sec.text(f"The validated task rendered photoreal from camera {v['camera']} ({i['width']}×{i['height']}, "
              f"{i['frames']} frames at {i['fps']:g} fps): the objects' Gaussians move with the simulation, the "
              f"Panda is drawn as Gaussians sampled from its meshes, the table under picked objects is filled.")
+    light = v.get("light")
+    if light is not None:
+        sec.text(f"Re-lit: moved objects cast and receive shadows under the light estimated from the twin's own "
+                 f"shadows (azimuth {light.azimuth_deg:.0f}°, elevation {light.elevation_deg:.0f}° in the twin frame, "
+                 f"ambient share {light.ambient:.2f}; the table in the objects' shadows is {light.shadow_ratio:.2f} "
+                 f"as bright as around them, {light.shadowed} of {light.receivers} table splats).")
+    else:
+        sec.text("Not re-lit: no clear cast shadow of the objects on the table was found (soft or many lights, or "
+                 "too few table splats around the objects), so every splat keeps the colour it was trained with; "
+                 "a moved object's old shadow stays on the table.")
     physics = twin / "robot" / "overview.png"
     if not physics.is_file():
         physics = twin / "robot" / "frames" / "overview.png"
