@@ -5,13 +5,15 @@ arrangement from every held-out camera, PSNR over the moved objects' pixels (gro
 final arrangement), each figure the mean over the views:
 
 fused_relit     the twin as trained (`DynamicScene.load(view_fade=False)`: splats.ply + labels + bbox
-                carry, SH as trained) against the ray-cast ground truth of the moved objects
+                carry, SH as trained), re-lit under the light estimated from its shadows (`playback.relight`),
+                against the ray-cast ground truth of the moved objects
+unlit_relit     the same without re-lighting (every splat its trained colour)
 oracle_relit    membership: the moving sets replaced by every Gaussian whose centre lies within
                 ORACLE_MARGIN of the ground-truth object's surface at its start pose (or inside it),
                 above the table plane
-fused_baked     shading: against a ground truth that does NOT re-light the moved objects (their hits
-                shaded as at the start pose in the start arrangement: the capture's n.l and cast
-                shadows carried along), i.e. what a perfect splat that cannot re-light would show
+fused_baked     shading: the twin without re-lighting against a ground truth that does NOT re-light the moved
+                objects (their hits shaded as at the start pose in the start arrangement: the capture's n.l
+                and cast shadows carried along), i.e. what a perfect splat that cannot re-light would show
 sh_dc_relit     view dependence: the moved objects drawn with their SH degree-0 colour only (what
                 `DynamicScene.view_fade`, the default, does to an object that moved > VIEW_FADE_M)
 photo_gt_geom   an image-based bound with no splat at all: each object pixel takes the colour of the
@@ -168,7 +170,7 @@ def oracle_scene(twin: Path, members: dict[str, np.ndarray], base):
     front = keep & ~back
     sc = DynamicScene(background=full.subset(front), objects=objects, T_world_obj0=dict(base.T_world_obj0),
                       residue={}, table_height=h, twin_dir=twin, backdrop=full.subset(back), view_fade=base.view_fade,
-                      rasterize_mode=base.rasterize_mode)
+                      rasterize_mode=base.rasterize_mode, meshes=base.meshes, light=base.light, unit=base.unit)
     sc.fill_holes()
     return sc
 
@@ -272,6 +274,7 @@ def main() -> int:
     members = oracle_members(full.means, meshes0, scene.table_height, args.margin)
     counts = {n: {"fused": len(scene.objects[n]), "oracle": len(members[n])} for n in scene.objects}
     r_fused, r_oracle = PlaybackRenderer(scene), PlaybackRenderer(oracle_scene(twin, members, scene))
+    r_unlit = PlaybackRenderer(scene, relight=False)
     dc = copy.copy(scene)
     dc.objects = {n: (Gaussians(g.means, g.quats, g.scales, g.opacities,
                                 np.concatenate([g.sh[:, :1], np.zeros_like(g.sh[:, 1:])], 1)) if n in moved else g)
@@ -310,6 +313,7 @@ def main() -> int:
         mask = np.isin(ref["labels"], [labels_of[n] for n in moved])
         baked = baked_render(r_final, r_start, motions_idx, cam)
         tf = r_fused.render(cam, final).rgb
+        tu = r_unlit.render(cam, final).rgb
         rays = r_final.camera_rays(cam, 1).reshape(-1, 6)
         a = r_final.cast(rays)
         exact = photo_render(tf, cam, (rays, a["t"].reshape(-1), a["normal"].reshape(-1, 3)),
@@ -327,7 +331,8 @@ def main() -> int:
         row = {"view": name, "px": int(mask.sum()),
                "fused_relit": masked_psnr(tf, ref["rgb"], mask),
                "oracle_relit": masked_psnr(r_oracle.render(cam, final).rgb, ref["rgb"], mask),
-               "fused_baked": masked_psnr(tf, baked, mask),
+               "fused_baked": masked_psnr(tu, baked, mask),
+               "unlit_relit": masked_psnr(tu, ref["rgb"], mask),
                "sh_dc_relit": masked_psnr(r_dc.render(cam, final).rgb, ref["rgb"], mask),
                "photo_gt_geom": masked_psnr(exact, ref["rgb"], mask),
                "photo_twin_mesh": masked_psnr(mesh, ref["rgb"], mask),
