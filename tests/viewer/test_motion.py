@@ -98,3 +98,60 @@ def test_viewer_gui_poses_the_moving_splats(twin_in_motion):
     player = h["_player"]
     player.thread.join(5.0)
     assert not player.thread.is_alive()
+
+
+def test_viewer_draws_the_moved_box_shadow(tmp_path):
+    """A twin with a baked shadow and a light (tests/playback/test_relight.py): the data model's colours at
+    the start are the trained ones; once the box moved, the table in its old shadow is brightened by
+    1/ratio and the GUI node shows those colours."""
+    import viser
+
+    from playback.test_relight import L_TRUE, OBJ_CENTRE, table_lit, write_lit_twin
+    from splattwin.viewer.app import draw
+
+    twin = write_lit_twin(tmp_path / "twin")
+    ro = synthetic_rollout(0.6, rate=20.0)
+    n = len(ro.t)
+    T0 = DynamicScene.load(twin, relight=False).T_world_obj0["blue_box"]
+    poses = np.tile(T0, (n, 1, 1))
+    poses[:, 0, 3] += np.linspace(0.0, 0.12, n)
+    pos = np.zeros((n, 1, 3))
+    pos[:, 0, 0] = -0.4
+    V = np.array([[0, 0, 0], [0.05, 0, 0], [0, 0.05, 0]], np.float32)
+    track = RobotTrack(names=["hand"], vertices=[V], faces=[np.array([[0, 1, 2]], np.uint32)], colors=[(200, 200, 200)],
+                       positions=pos, rotations=np.tile(np.eye(3), (n, 1, 1, 1)), times=ro.t,
+                       object_poses={"blue_box": poses})
+    track.save(twin / "robot" / "playback.npz")
+    view = TwinView.load(twin)
+    mo = view.motion
+    assert mo.relighter is not None
+    c0 = mo.colours_at(0)
+    np.testing.assert_array_equal(c0["static"], mo.static.colors)
+    np.testing.assert_array_equal(c0["object/blue_box"], mo.objects["blue_box"].colors)
+    last = n - 1
+    ce = mo.colours_at(last)
+    xy = mo.static.means[:, :2]
+    on_table = np.abs(mo.static.means[:, 2]) < 1e-6
+    freed = on_table & (table_lit(xy, OBJ_CENTRE, L_TRUE, 0.008) == 0) & (table_lit(xy, poses[last][:3, 3], L_TRUE, 0.008) == 1)
+    assert freed.sum() > 20
+    ratio = mo.relighter.light.shadow_ratio
+    got = ce["static"][freed] / mo.static.colors[freed]
+    np.testing.assert_allclose(got, 1 / ratio, rtol=0.02)
+    server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
+    try:
+        h = draw(server, view)
+        near = h["_static_near"]
+        h["_slider"].value = last
+        deadline = time.time() + 5.0
+        want = np.clip(ce["static"][near], 0, 1)
+        while time.time() < deadline and np.abs(np.asarray(h["splats"].rgbs, float) / _scale(h["splats"].rgbs) - want).max() > 0.01:
+            time.sleep(0.02)
+        np.testing.assert_allclose(np.asarray(h["splats"].rgbs, float) / _scale(h["splats"].rgbs), want, atol=0.01)
+    finally:
+        server.stop()
+    h["_player"].thread.join(5.0)
+
+
+def _scale(rgbs) -> float:
+    """viser may keep colours as uint8 (0..255) or floats (0..1)."""
+    return 255.0 if np.asarray(rgbs).dtype == np.uint8 else 1.0

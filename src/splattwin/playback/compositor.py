@@ -96,6 +96,7 @@ class PlaybackRenderer:
 
             self.relighter = Relighter(scene.light, scene.meshes, scene.T_world_obj0, bg, scene.table_height,
                                        scene.objects, scene.unit)
+        self._fill_lit0: dict[str, np.ndarray] = {}   # capture-time lit share of each fill's sources
         self._relit: list[tuple[np.ndarray, np.ndarray]] = []
         self._relit_key: bytes | None = None
         self.relit_rows = 0
@@ -179,12 +180,13 @@ class PlaybackRenderer:
             rows = np.flatnonzero(rl.candidates(bg_means, moved, poses))
             if len(rows):
                 groups.append((rows + nb, rl.static_factors(rows, bg_means[rows], self._spread(rows + nb), poses)))
-            for n, sl in self._fill_slices.items():   # fills copy lit table: lit at capture, facing up
+            for n, sl in self._fill_slices.items():   # fills: table copies, lit as their sources were
                 fm = self.means[sl].astype(np.float64)
                 rows = np.flatnonzero(rl.candidates(fm, moved, poses))
                 if len(rows):
+                    lit0 = self._fill_lit(n)
                     groups.append((rows + sl.start, rl.static_factors(
-                        rows, fm[rows], self._spread(rows + sl.start), poses, lit0=np.ones(len(rows)),
+                        rows, fm[rows], self._spread(rows + sl.start), poses, lit0=lit0[rows],
                         ndl=np.full(len(rows), rl.L[2]))))
         for n, sl in obj_slices.items():
             if n not in rl.index:
@@ -208,6 +210,18 @@ class PlaybackRenderer:
                 self.sh[rows] = scale_sh(base, f)
                 total += len(rows)
         self.relit_rows = total
+
+    def _fill_lit(self, name: str) -> np.ndarray:
+        """Capture-time lit share of object `name`'s fill Gaussians: their sources' (the fill copies the
+        table around the footprint, shadows included), 1 where the fill records no source."""
+        if name not in self._fill_lit0:
+            f = self.scene.fills[name]
+            src = np.asarray(getattr(f, "source", np.zeros(0)), np.int64)
+            if len(src) == len(f.gaussians) and len(src):
+                self._fill_lit0[name] = self.relighter.static_lit0[src]   # static rows = the background
+            else:
+                self._fill_lit0[name] = np.ones(len(f.gaussians))
+        return self._fill_lit0[name]
 
     def _spread(self, rows: np.ndarray) -> np.ndarray | None:
         """Footprint axes (world, current state) of buffer rows, for the soft shadow test."""

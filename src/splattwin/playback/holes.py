@@ -16,7 +16,7 @@ object), which `DynamicScene` hides once the object has left its place.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -33,7 +33,8 @@ class HoleFill:
 
     gaussians: the fill; outline_xy [M,2]: the footprint's convex outline on the table (for drawing);
     area_m2: footprint area; hidden: indices into the background Gaussians replaced by the fill (hidden
-    once the object moved); cells_xy [C,2]: centres of the footprint cells.
+    once the object moved); cells_xy [C,2]: centres of the footprint cells; source: [len(gaussians)] the
+    background Gaussian each fill Gaussian copies (the re-lighting takes its capture-time shadow from it).
     """
 
     object: str
@@ -44,6 +45,7 @@ class HoleFill:
     cells_xy: np.ndarray
     table_height: float
     method: str = "table Gaussians mirrored across the footprint boundary"
+    source: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     def to_dict(self) -> dict:
         """Summary for reports (JSON-ready)."""
@@ -142,4 +144,4 @@ def fill_hole(name: str, object_means_world: np.ndarray, background: Gaussians, 
     hidden = np.flatnonzero(inside & (bz < top) & (bz > h - band))
     hidden = hidden[foot[bc[hidden, 0], bc[hidden, 1]]]
     cells_xy = g0 + (p + 0.5) * cell
-    return HoleFill(name, fill, _outline(cells_xy), float(len(p)) * cell * cell, hidden, cells_xy, h)
+    return HoleFill(name, fill, _outline(cells_xy), float(len(p)) * cell * cell, hidden, cells_xy, h, source=src)

@@ -306,6 +306,11 @@ class Relighter:
     def _lit(self, points, spreads, owner, poses) -> np.ndarray:
         return soft_lit(self.occ, points, spreads, owner, poses, self.L, RAY_OFFSET * self.unit)
 
+    def lit_at_capture(self, points: np.ndarray, spreads: np.ndarray | None) -> np.ndarray:
+        """Lit share [N] of static points (world) with every object at its twin pose: what a hole fill's
+        copies carried from their sources (`HoleFill.source`)."""
+        return self._lit(np.asarray(points, float), spreads, np.full(len(points), -1), self.T0)
+
     def _footprint(self, name: str, T: np.ndarray, margin: float) -> tuple[np.ndarray, float]:
         """2D box (xmin, ymin, xmax, ymax) of the object's bounding box projected along the light onto the
         table plane, and the box's top z: what lies in it and below the top may be in its shadow."""

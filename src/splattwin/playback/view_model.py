@@ -72,7 +72,9 @@ class MovingSplats:
     Gaussians drawn only while `name` is at its twin pose (its cleaned-out Gaussians, the table under it);
     fills[name]: drawn only once `name` left (the hole fill); objects[name]: Gaussians in the object
     frame, drawn at the object's pose of the frame (`poses`). Twin frame, metres; colours view-independent
-    (the viewer draws SH degree 0, so posing needs no SH rotation)."""
+    (the viewer draws SH degree 0, so posing needs no SH rotation). relighter: the scene's re-lighting
+    (`playback.relight.Relighter` over `static`), None when the twin has no light; `colours_at(k)` then
+    gives each group's colours with the frame's shadows, as the renderer draws them."""
 
     static: object
     residue: dict
@@ -80,6 +82,8 @@ class MovingSplats:
     objects: dict
     T_world_obj0: dict
     poses: dict = field(default_factory=dict)     # name -> [T, 4, 4] T_world_obj per frame (the track's)
+    relighter: object = None
+    fill_lit0: dict = field(default_factory=dict)   # name -> capture-time lit share of the fill's sources
 
     @classmethod
     def from_scene(cls, scene, object_poses: dict | None = None) -> "MovingSplats":
@@ -96,10 +100,22 @@ class MovingSplats:
         static = scene.background.subset(owner < 0)
         if scene.backdrop is not None and len(scene.backdrop):
             static = concat([scene.backdrop, static], scene.sh_degree)
+        relighter, fill_lit0 = None, {}
+        if getattr(scene, "light", None) is not None and scene.meshes:
+            from splattwin.playback.relight import Relighter
+
+            relighter = Relighter(scene.light, scene.meshes, scene.T_world_obj0, static, scene.table_height,
+                                  scene.objects, scene.unit)
+            bg = scene.background
+            for n, f in scene.fills.items():
+                src = np.asarray(getattr(f, "source", np.zeros(0)), np.int64)
+                if len(src) == len(f.gaussians) and len(src):
+                    fill_lit0[n] = relighter.lit_at_capture(bg.means[src], relighter.spread(bg.quats[src], bg.scales[src]))
         return cls(static=static, residue={n: scene.background.subset(owner == k) for k, n in enumerate(names)},
                    fills={n: f.gaussians for n, f in scene.fills.items()}, objects=dict(scene.objects),
                    T_world_obj0=dict(scene.T_world_obj0),
-                   poses={n: np.asarray(T, float) for n, T in (object_poses or {}).items() if n in scene.objects})
+                   poses={n: np.asarray(T, float) for n, T in (object_poses or {}).items() if n in scene.objects},
+                   relighter=relighter, fill_lit0=fill_lit0)
 
     def __len__(self) -> int:
         return max((len(T) for T in self.poses.values()), default=1)
@@ -113,6 +129,58 @@ class MovingSplats:
             P = self.poses.get(n)
             T = P[int(np.clip(k, 0, len(P) - 1))] if P is not None and len(P) else T0
             out[n] = (T, pose_moved(T0, T))
+        return out
+
+    def colours_at(self, k: int) -> dict[str, np.ndarray]:
+        """Group name ("static", "fill/<obj>", "object/<obj>") -> RGB [n,3] in [0,1] at frame k: the trained
+        degree-0 colours, scaled where the frame's shadows differ from the capture's (`playback.relight`;
+        unscaled without a relighter). Residue groups keep their colours (drawn only while in place)."""
+        from splattwin.playback.relight import spread
+
+        out = {"static": self.static.colors}
+        out.update({f"fill/{n}": f.colors for n, f in self.fills.items()})
+        out.update({f"object/{n}": g.colors for n, g in self.objects.items()})
+        rl = self.relighter
+        if rl is None:
+            return out
+        state = self.state(k)
+        poses = {n: T for n, (T, _) in state.items()}
+        moved = [n for n, (_, mv) in state.items() if mv]
+
+        def spreads(g, T=None):
+            sp = rl.spread(g.quats, g.scales)
+            return sp if sp is None or T is None else sp @ T[:3, :3].T
+
+        def apply(key, rows, f):
+            if len(rows):
+                c = out[key].copy()
+                c[rows] = np.clip(c[rows] * f[:, None], 0.0, 1.0)
+                out[key] = c
+
+        if moved:
+            st = self.static
+            rows = np.flatnonzero(rl.candidates(st.means, moved, poses))
+            sub = st.subset(rows)
+            apply("static", rows, rl.static_factors(rows, sub.means, spreads(sub), poses))
+            for n in moved:
+                f = self.fills.get(n)
+                if f is None or not len(f):
+                    continue
+                rows = np.flatnonzero(rl.candidates(f.means, moved, poses))
+                sub = f.subset(rows)
+                lit0 = self.fill_lit0.get(n, np.ones(len(f)))[rows]
+                apply(f"fill/{n}", rows, rl.static_factors(rows, sub.means, spreads(sub), poses, lit0=lit0,
+                                                          ndl=np.full(len(rows), rl.L[2])))
+        for n, g in self.objects.items():
+            if n not in rl.index:
+                continue
+            T = poses[n]
+            world = g.means @ T[:3, :3].T + T[:3, 3]
+            if n in moved:
+                apply(f"object/{n}", np.arange(len(g)), rl.object_factors(n, world, spreads(g, T), poses))
+            elif moved:
+                rows = np.flatnonzero(rl.candidates(world, moved, poses))
+                apply(f"object/{n}", rows, rl.object_factors(n, world[rows], spreads(g.subset(rows), T), poses, rows=rows))
         return out
 
     def means_at(self, k: int) -> dict[str, np.ndarray]:

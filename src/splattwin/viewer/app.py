@@ -209,6 +209,7 @@ def _add_motion(server, view: TwinView, handles: dict) -> None:
     st = mo.static
     near = workspace_mask(st.means, view.manifest.background) & (st.scales.max(axis=1) < HUGE_SPLAT)
     add("splats", "/splats", st.subset(near))
+    handles["_static_near"] = near
     state = mo.state(0)
     handles["_motion_state"] = {n: moved for n, (_, moved) in state.items()}
     for n in mo.objects:
@@ -240,6 +241,15 @@ def _show_motion(motion, handles: dict, t: int, splats_on: bool) -> None:
         for key, vis in ((f"motion/residue/{n}", not moved), (f"motion/fill/{n}", moved)):
             if key in handles:
                 handles[key].visible = splats_on and vis
+    if getattr(motion, "relighter", None) is not None:   # the frame's shadows (playback.relight)
+        cols = motion.colours_at(t)
+        if "splats" in handles and "_static_near" in handles:
+            handles["splats"].rgbs = cols["static"][handles["_static_near"]]
+        for key, rgb in cols.items():
+            kind, _, name = key.partition("/")
+            h = handles.get(f"motion/{'objects' if kind == 'object' else kind}/{name}") if name else None
+            if h is not None:
+                h.rgbs = rgb
 
 
 def is_loopback(host: str) -> bool:
