@@ -24,7 +24,13 @@ split is clear (`MIN_RECEIVERS`, `MIN_SHADOWED` splats, shadow at most `MAX_SHAD
 brightness, t-statistic at least `MIN_T`); otherwise `None` and nothing is re-lit: soft light from many
 lamps, or a capture with too few table splats around its objects (the real cake: 76), is left as trained.
 On the embedded scene (one sun-like light) it finds the generator's light within 1.5 deg, ambient share
-0.35 for the true 0.38.
+0.35 for the true 0.38; on the robot-style capture of it (16 views, z-down world) within 1 deg.
+
+Measured (bench/photoreal.py, demo twin of seed 0, its three-step task, 5 held-out views, the peer without
+re-lighting in the same run): moved objects 22.28 -> 23.54 dB (SSIM 0.833 -> 0.879), whole image 28.50 ->
+29.83 dB; the true light and ambient instead of the estimate: 23.47 / 29.78. The same scene generated
+without shadows (`--no-scene.shadows`): no light found, nothing re-lit. Cost: ~20 ms per 320x240 frame
+while objects move (47 -> 68 ms with the robot; ray casting against the meshes, 5 samples per splat).
 
 Our own code: no library estimates a directional light from a splat scene; Open3D's `RaycastingScene` does
 the ray casting.
