@@ -254,3 +254,26 @@ def test_box_moved_into_a_shadow_darkens(lit_twin):
     frac = np.mean(np.all(np.abs(f[lit_face] - expect[:, None]) < 0.03, axis=1))
     assert frac > 0.9, frac    # footprint samples at the slab's shadow edge aside
     np.testing.assert_allclose(f[facing < 0], 1.0, atol=1e-6)
+
+
+def test_render_cli_relights_unless_told(lit_twin, tmp_path, capsys):
+    """`splattwin render` says which light it found and re-lights; --no-relight draws the trained colours:
+    the last frames differ where the box's old shadow was (far beyond MP4 noise)."""
+    from splattwin.cli import main
+    from splattwin.playback.video import read_mp4
+
+    from .rollouts import synthetic_rollout
+
+    r = synthetic_rollout(0.3).save(tmp_path / "r.npz")
+    args = ["render", str(lit_twin), "--camera", "view_0", "--out", "", "--rollout", str(r), "--fps", "20", "--no-robot"]
+    args[5] = str(tmp_path / "lit.mp4")
+    assert main(args) == 0
+    assert "re-lit: light from the twin's shadows" in capsys.readouterr().out
+    args[5] = str(tmp_path / "unlit.mp4")
+    assert main(args + ["--no-relight"]) == 0
+    assert "re-lit" not in capsys.readouterr().out
+    a, b = read_mp4(tmp_path / "lit.mp4"), read_mp4(tmp_path / "unlit.mp4")
+    d0 = np.abs(a[0].astype(float) - b[0].astype(float)).mean(-1)
+    assert (d0 > 25).sum() == 0, (d0 > 25).sum()    # at rest: the same picture, codec noise aside
+    d = np.abs(a[-1].astype(float) - b[-1].astype(float)).mean(-1)
+    assert (d > 25).sum() > 30, (d > 25).sum()    # moved: shadows differ

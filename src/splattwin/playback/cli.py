@@ -130,7 +130,8 @@ def run_render(args: argparse.Namespace) -> int:
         Console().print(f"re-lit: light from the twin's shadows at azimuth {lt.azimuth_deg:.0f} deg, elevation "
                         f"{lt.elevation_deg:.0f} deg (twin frame), ambient share {lt.ambient:.2f}")
     elif not args.no_relight:
-        Console().print("not re-lit: no clear cast shadow found on the twin's table (splats keep their trained colour)")
+        why = "no clear cast shadow found on the twin's table" if scene.meshes else "the twin has no object meshes"
+        Console().print(f"not re-lit: {why} (splats keep their trained colour)")
     Console().print(f"wrote {info['path']}: {info['frames']} frames {info['width']}x{info['height']} at "
                     f"{info['fps']:g} fps, median {info['render_ms_median']:.0f} ms per frame")
     return 0
