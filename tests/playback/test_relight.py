@@ -304,3 +304,74 @@ def test_candidates_hold_every_row_whose_shadow_changes(lit_twin):
         assert np.all(f[~cand] == 1.0)
         checked += int((f[cand] != 1.0).sum())
     assert checked > 100   # shadows did change inside the candidates
+
+
+def test_shadow_map_of_a_plate_analytic():
+    """A square plate of points 0.3 m above a floor: under a light from above it shadows the floor under it;
+    tilted 45 deg it shadows the floor displaced by 0.3 m (tan 45); nothing above or beside it; its own
+    points and points just under them (within eps) are not shadowed."""
+    from splattwin.playback.relight import ShadowMap
+
+    g = np.arange(-0.1, 0.1001, 0.004)
+    xx, yy = np.meshgrid(g, g, indexing="ij")
+    plate = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, 0.3)], 1)
+    floor = np.array([[0.0, 0.0, 0.0], [0.09, -0.09, 0.0], [0.15, 0.0, 0.0], [0.3, 0.0, 0.0], [0.0, 0.0, 0.5],
+                      [0.0, 0.0, 0.295]])
+    up = ShadowMap(plate, np.array([0.0, 0.0, 1.0]), cell=0.004, eps=0.01)
+    np.testing.assert_array_equal(up.shadowed(floor), [True, True, False, False, False, False])
+    assert not up.shadowed(plate).any()
+    L = np.array([1.0, 0.0, 1.0]) / np.sqrt(2)   # light towards +x: the shadow falls towards -x
+    tilt = ShadowMap(plate, L, cell=0.004, eps=0.01)
+    shifted = floor.copy()
+    shifted[:4, 0] -= 0.3
+    np.testing.assert_array_equal(tilt.shadowed(shifted[:4]), [True, True, False, False])
+    np.testing.assert_array_equal(tilt.shadowed(floor[:1]), [False])
+
+
+def test_robot_is_shaded_by_the_twin_light():
+    from splattwin.playback.relight import Light
+    from splattwin.playback.robot import AMBIENT, LIGHT_DIR_WORLD, shade
+
+    rng = np.random.default_rng(1)
+    albedo = rng.uniform(0.1, 0.9, (20, 3))
+    n = rng.normal(size=(20, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    light = Light(np.array([0.0, 0.6, 0.8]), 0.3, 0.4, 20.0, 1000, 100)
+    want = albedo * (0.3 + 0.7 * np.clip(n @ light.direction, 0, None))[:, None]
+    np.testing.assert_allclose(shade(albedo, n, light), np.clip(want, 0, 1), atol=1e-12)
+    default = albedo * (AMBIENT + (1 - AMBIENT) * np.clip(n @ LIGHT_DIR_WORLD, 0, None))[:, None]
+    np.testing.assert_allclose(shade(albedo, n), np.clip(default, 0, 1), atol=1e-12)
+
+
+def test_robot_casts_its_shadow_on_the_table(lit_twin):
+    """The Panda reaching over the table: table rows in its shadow map darken by the ratio, the robot's
+    Gaussians are not touched, robot_shadows=False and the robot parked out of the picture leave the table
+    as trained."""
+    from splattwin.playback.compositor import PlaybackRenderer
+    from splattwin.playback.relight import ROBOT_SHADOW_CELL, ROBOT_SHADOW_EPS, ShadowMap
+    from splattwin.playback.robot import RobotPose, RobotSplats
+    from splattwin.playback.scene import DynamicScene
+
+    sc = DynamicScene.load(lit_twin)
+    T_base = np.eye(4)
+    T_base[:3, 3] = [-0.35, 0.0, 0.0]
+    rob = RobotSplats.panda(T_base)
+    pose = RobotPose(np.array([0.0, 0.3, 0.0, -1.8, 0.0, 2.1, 0.78]), 0.04)
+    r = PlaybackRenderer(sc, rob, backend="cpu")
+    n0 = r.layout({}, None)
+    trained = r.sh[:n0].copy()
+    n = r.layout({}, pose)
+    colour = lambda sh: 0.5 + SH_C0 * sh[:, 0]  # noqa: E731
+    rows = np.arange(r.n_backdrop, r.n_bg)
+    sm = ShadowMap(r.means[n0:n].astype(float), r.relighter.L, ROBOT_SHADOW_CELL, ROBOT_SHADOW_EPS)
+    in_shadow = sm.shadowed(r.means[rows].astype(float)) & (r.relighter.static_lit0[rows - r.n_backdrop] == 1.0)
+    assert in_shadow.sum() > 100   # the arm's shadow falls on the table: the test can fail
+    f = colour(r.sh[rows]) / colour(trained[rows])
+    np.testing.assert_allclose(f[in_shadow], r.relighter.light.shadow_ratio, rtol=0.02)
+    np.testing.assert_array_equal(r.sh[rows[~in_shadow & (r.relighter.static_lit0[rows - r.n_backdrop] == 1.0)]],
+                                  trained[rows[~in_shadow & (r.relighter.static_lit0[rows - r.n_backdrop] == 1.0)]])
+    off = PlaybackRenderer(sc, rob, backend="cpu", robot_shadows=False)
+    off.layout({}, pose)
+    np.testing.assert_array_equal(off.sh[:n0], trained)
+    assert r.layout({}, None) == n0   # robot parked out of the picture: the table as trained
+    np.testing.assert_array_equal(r.sh[:n0], trained)

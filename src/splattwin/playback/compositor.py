@@ -52,7 +52,7 @@ class PlaybackRenderer:
 
     def __init__(self, scene: DynamicScene, robot: RobotSplats | None = None,
                  background: tuple[float, float, float] = (0.0, 0.0, 0.0), backend: str = "auto",
-                 relight: bool = True):
+                 relight: bool = True, robot_shadows: bool = True):
         self.scene, self.robot = scene, robot
         self.background = np.asarray(background, np.float32)
         self.backend = backend
@@ -100,6 +100,7 @@ class PlaybackRenderer:
         self._relit: list[tuple[np.ndarray, np.ndarray]] = []
         self._relit_key: bytes | None = None
         self.relit_rows = 0
+        self.robot_shadows = robot_shadows
 
     def _put(self, sl: slice, means, quats, scales, opac, sh) -> None:
         self.means[sl] = means
@@ -118,9 +119,12 @@ class PlaybackRenderer:
         moved = frozenset(n for n in sc.objects if n in object_poses
                           and pose_moved(sc.T_world_obj0[n], np.asarray(object_poses[n])))
         relight_key = None
+        robot_drawn = self.robot is not None and robot_pose is not None
         if self.relighter is not None:
             relight_key = b"".join([",".join(sorted(moved)).encode()] + [
-                np.asarray(object_poses.get(n, sc.T_world_obj0[n]), np.float64).tobytes() for n in sc.objects])
+                np.asarray(object_poses.get(n, sc.T_world_obj0[n]), np.float64).tobytes() for n in sc.objects] + (
+                [np.asarray(robot_pose.q_arm, np.float64).tobytes(), np.float64(robot_pose.gripper_width).tobytes()]
+                if robot_drawn and self.robot_shadows else [b"no robot"]))
             if relight_key != self._relit_key:
                 for rows, base in self._relit:   # back to the trained colours before this state's are written
                     self.sh[rows] = base
@@ -151,11 +155,10 @@ class PlaybackRenderer:
                 self._obj_cache[n] = key
             obj_slices[n] = sl
             i += len(g)
-        if relight_key is not None and relight_key != self._relit_key:
-            self._relight(sorted(moved), object_poses, obj_slices)
-            self._relit_key = relight_key
-        if self.robot is not None and robot_pose is not None:
-            m, q, rgb = self.robot.posed(robot_pose)
+        robot_means = None
+        if robot_drawn:
+            light = self.scene.light if self.relighter is not None else None
+            m, q, rgb = self.robot.posed(robot_pose, light)
             sl = slice(i, i + len(m))
             self.means[sl] = m
             self.quats[sl] = q
@@ -165,50 +168,71 @@ class PlaybackRenderer:
                 self.sh[sl, 1:] = 0
                 self._rob_start = sl.start
             self.sh[sl, 0] = rgb_to_sh0(rgb)
+            robot_means = m
             i += len(m)
+        if relight_key is not None and relight_key != self._relit_key:
+            self._relight(sorted(moved), object_poses, obj_slices, robot_means if self.robot_shadows else None)
+            self._relit_key = relight_key
         return i
 
-    def _relight(self, moved: list[str], object_poses: dict[str, np.ndarray], obj_slices: dict[str, slice]) -> None:
+    def _relight(self, moved: list[str], object_poses: dict[str, np.ndarray], obj_slices: dict[str, slice],
+                 robot_means: np.ndarray | None = None) -> None:
         """Scale the colours of the rows this state shadows or lights differently from the capture
-        (`playback.relight`); the unscaled rows are kept in `_relit` for the next state."""
+        (`playback.relight`): the moved objects' shadows (ray cast against their meshes, on the rows that
+        can be in them) and the robot's (`ShadowMap` of its Gaussians, every row); the unscaled rows are
+        kept in `_relit` for the next state."""
+        from splattwin.playback.relight import ROBOT_SHADOW_CELL, ROBOT_SHADOW_EPS, ShadowMap
+
         rl, sc = self.relighter, self.scene
         poses = {n: np.asarray(object_poses.get(n, sc.T_world_obj0[n]), float) for n in sc.objects}
-        groups: list[tuple[np.ndarray, np.ndarray]] = []
-        if moved:
-            nb = self.n_backdrop
-            bg_means = self.means[nb:self.n_bg].astype(np.float64)
-            rows = np.flatnonzero(rl.candidates(bg_means, moved, poses))
+        sm = None
+        if robot_means is not None and len(robot_means):
+            sm = ShadowMap(robot_means, rl.L, ROBOT_SHADOW_CELL * sc.unit, ROBOT_SHADOW_EPS * sc.unit)
+        total = 0
+
+        def block(start: int, means: np.ndarray, lit0: np.ndarray, ndl0: np.ndarray, ndl: np.ndarray,
+                  lit_of, every: bool = False) -> None:
+            """Rows start.. with capture-time lit0/ndl0, n.l now; lit_of(rows) = object-shadow lit share now
+            of those rows (only the candidates are re-tested, or every row)."""
+            nonlocal total
+            lit = lit0.copy()
+            if moved:
+                c = np.arange(len(means)) if every else np.flatnonzero(rl.candidates(means, moved, poses))
+                if len(c):
+                    lit[c] = lit_of(c)
+            if sm is not None:
+                lit[sm.shadowed(means)] = 0.0
+            f = rl.ratio(ndl0, lit0, ndl, lit)
+            rows = np.flatnonzero(np.abs(f - 1.0) > 1e-4)
             if len(rows):
-                groups.append((rows + nb, rl.static_factors(rows, bg_means[rows], self._spread(rows + nb), poses)))
+                g = rows + start
+                base = self.sh[g].copy()
+                self._relit.append((g, base))
+                self.sh[g] = scale_sh(base, f[rows])
+                total += len(rows)
+
+        nb = self.n_backdrop
+        if moved or sm is not None:
+            bgm = self.means[nb:self.n_bg].astype(np.float64)
+            ndl = rl.static_ndl
+            block(nb, bgm, rl.static_lit0, ndl, ndl,
+                  lambda c: rl.static_lit(bgm[c], self._spread(c + nb), poses))
             for n, sl in self._fill_slices.items():   # fills: table copies, lit as their sources were
                 fm = self.means[sl].astype(np.float64)
-                rows = np.flatnonzero(rl.candidates(fm, moved, poses))
-                if len(rows):
-                    lit0 = self._fill_lit(n)
-                    groups.append((rows + sl.start, rl.static_factors(
-                        rows, fm[rows], self._spread(rows + sl.start), poses, lit0=lit0[rows],
-                        ndl=np.full(len(rows), rl.L[2]))))
+                up = np.full(len(fm), rl.L[2])
+                block(sl.start, fm, self._fill_lit(n), up, up,
+                      lambda c, fm=fm, sl=sl: rl.static_lit(fm[c], self._spread(c + sl.start), poses))
         for n, sl in obj_slices.items():
-            if n not in rl.index:
+            if n not in rl.index or not (moved or sm is not None):
                 continue
             om = self.means[sl].astype(np.float64)
-            if n in moved:
-                rows = np.arange(sl.start, sl.stop)
-                groups.append((rows, rl.object_factors(n, om, self._spread(rows), poses)))
-            elif moved:
-                rows = np.flatnonzero(rl.candidates(om, moved, poses))
-                if len(rows):
-                    groups.append((rows + sl.start, rl.object_factors(n, om[rows], self._spread(rows + sl.start), poses,
-                                                                      rows=rows)))
-        total = 0
-        for rows, f in groups:
-            ch = np.abs(f - 1.0) > 1e-4
-            rows, f = rows[ch], f[ch]
-            if len(rows):
-                base = self.sh[rows].copy()
-                self._relit.append((rows, base))
-                self.sh[rows] = scale_sh(base, f)
-                total += len(rows)
+            ndl0, ndl = rl.object_ndl(n, poses[n])
+            if n in moved:   # every row re-tested
+                block(sl.start, om, rl.obj_lit0[n], ndl0, ndl,
+                      lambda c, n=n, om=om, sl=sl: rl.object_lit(n, om[c], self._spread(c + sl.start), poses), every=True)
+            else:
+                block(sl.start, om, rl.obj_lit0[n], ndl0, ndl,
+                      lambda c, n=n, om=om, sl=sl: rl.object_lit(n, om[c], self._spread(c + sl.start), poses))
         self.relit_rows = total
 
     def _fill_lit(self, name: str) -> np.ndarray:

@@ -17,8 +17,9 @@ translucent splats come out of the same alpha compositing, with no GL context at
 viewer run on machines without EGL). The cost: a softer look than shaded triangles up close. The mesh
 path stays available (`MeshRobotLayer` + `composite_layers`) for machines with a hardware GL driver.
 
-Shading: the meshes' material colours (MuJoCo `mat_rgba`), Lambertian under one light from above with an
-ambient term, recomputed per frame from each Gaussian's world normal (the arm moves under a fixed light).
+Shading: the meshes' material colours (MuJoCo `mat_rgba`), Lambertian under the twin's light (estimated from
+its shadows, `playback.relight`; without one, a fixed light from above) with an ambient term, recomputed per
+frame from each Gaussian's world normal. The arm's shadow on the scene: `playback.relight.ShadowMap`.
 Frames: Gaussians are stored in their body's frame; MuJoCo forward kinematics places them per frame.
 """
 
@@ -52,10 +53,15 @@ def _frames_from_normals(n: np.ndarray) -> np.ndarray:
     return np.stack([t1, t2, n], axis=2)
 
 
-def shade(albedo: np.ndarray, n_world: np.ndarray) -> np.ndarray:
-    """[N,3] colour: albedo [N,3] under the fixed light, unit normals [N,3] (world)."""
-    ndl = np.clip(n_world @ LIGHT_DIR_WORLD, 0.0, None)
-    return np.clip(albedo * (AMBIENT + DIFFUSE * ndl)[:, None], 0.0, 1.0)
+def shade(albedo: np.ndarray, n_world: np.ndarray, light=None) -> np.ndarray:
+    """[N,3] colour: albedo [N,3] at unit normals [N,3] (world) under `light` (a `playback.relight.Light`:
+    the twin's, estimated from its shadows) or, without one, the fixed light from above."""
+    if light is None:
+        direction, ambient = LIGHT_DIR_WORLD, AMBIENT
+    else:
+        direction, ambient = np.asarray(light.direction, float), float(light.ambient)
+    ndl = np.clip(n_world @ direction, 0.0, None)
+    return np.clip(albedo * (ambient + (1.0 - ambient) * ndl)[:, None], 0.0, 1.0)
 
 
 @dataclass
@@ -175,15 +181,15 @@ class RobotSplats:
         T[:3, 3] = self.data.xpos[b]
         return T
 
-    def posed(self, pose: RobotPose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """World-frame means [N,3], quats [N,4] wxyz and shaded RGB [N,3] at `pose`."""
+    def posed(self, pose: RobotPose, light=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World-frame means [N,3], quats [N,4] wxyz and shaded RGB [N,3] at `pose` (under `light`, see `shade`)."""
         self.set_pose(pose)
         d = self.data
         R = d.xmat.reshape(-1, 3, 3)[self.body]
         means = np.einsum("nij,nj->ni", R, self.p) + d.xpos[self.body]
         quats = quat_mul_wxyz(d.xquat[self.body], self.q)
         n_world = np.einsum("nij,nj->ni", R, self.n)
-        return means, quats, shade(self.albedo, n_world)
+        return means, quats, shade(self.albedo, n_world, light)
 
 
 class MeshRobotLayer:
