@@ -56,6 +56,9 @@ fused_baked 23.10, sh_dc_relit 22.37 (= psnr_final_objects), photo_gt_geom 24.48
 (the ring +1.5 dB), same_view 22.24 / 28.64 / 29.13, train_fit 29.10 / 33.80 / 33.53. Left to 24 dB:
 re-lighting 0.74 dB (fused_baked - fused_relit), the ring 2.3 dB below the inside, the blue box 1.8 dB below
 its own same_view.
+Re-lit (`playback.relight`, fresh demo twin, its own rollout): fused_relit 23.56 (unlit_relit 22.24,
+fused_baked 22.99), photo_gt_geom 24.30, inner 23.75 / ring 22.62; blue box 21.57 vs its same_view 22.15,
+yellow cube 25.18 / 28.15, hammer 28.06 / 28.98. Left to 24 dB: the blue box (62-87 % of the error).
 
 Pictures: bounds_<view>.png = GT relit | GT baked | twin (fused) | photos on the exact geometry.
 LAST line one JSON object.

@@ -23,6 +23,9 @@ psnr_start_objects 26.09 -> 28.91. The object outline ring (1 px) 18.90 -> 19.11
 With the refinement's silhouette loss (weight 0.01 against the filtered 2D masks, fresh demo twin, idle):
 psnr_final 28.66, psnr_final_objects 22.37 (20.46 / 24.33 / 26.39), ssim_final_objects 0.834, psnr_start
 34.35, render_ms 47.4 (posing 19.0, raster 26.3; MuJoCo meshes path 73.6).
+Re-lit (`splattwin.playback.relight`: the light estimated from the twin's shadows; fresh demo twin, the peer
+without re-lighting in the same run): psnr_final 28.50 -> 29.84, psnr_final_objects 22.28 -> 23.54, ssim_final_objects
+0.833 -> 0.879, render_ms 47.5 -> 77.2 (the objects' shadows and the arm's).
 
 Writes into --out: final_<view>.png (ground truth | twin | error | filled-hole mark), task_<view>.mp4,
 wrist.mp4, the episode, rollout.npz, photoreal.json. Prints a table; the LAST line is one JSON object.
