@@ -190,19 +190,10 @@ class PlaybackRenderer:
             sm = ShadowMap(robot_means, rl.L, ROBOT_SHADOW_CELL * sc.unit, ROBOT_SHADOW_EPS * sc.unit)
         total = 0
 
-        def block(start: int, means: np.ndarray, lit0: np.ndarray, ndl0: np.ndarray, ndl: np.ndarray,
-                  lit_of, every: bool = False) -> None:
-            """Rows start.. with capture-time lit0/ndl0, n.l now; lit_of(rows) = object-shadow lit share now
-            of those rows (only the candidates are re-tested, or every row)."""
+        def block(start: int, means: np.ndarray, lit0, ndl0, ndl, owner: str | None = None, every: bool = False):
             nonlocal total
-            lit = lit0.copy()
-            if moved:
-                c = np.arange(len(means)) if every else np.flatnonzero(rl.candidates(means, moved, poses))
-                if len(c):
-                    lit[c] = lit_of(c)
-            if sm is not None:
-                lit[sm.shadowed(means)] = 0.0
-            f = rl.ratio(ndl0, lit0, ndl, lit)
+            f = rl.block_factors(means, lit0, ndl0, ndl, poses, moved, owner,
+                                 lambda c: self._spread(c + start), every, sm)
             rows = np.flatnonzero(np.abs(f - 1.0) > 1e-4)
             if len(rows):
                 g = rows + start
@@ -211,28 +202,18 @@ class PlaybackRenderer:
                 self.sh[g] = scale_sh(base, f[rows])
                 total += len(rows)
 
+        if not (moved or sm is not None):
+            self.relit_rows = 0
+            return
         nb = self.n_backdrop
-        if moved or sm is not None:
-            bgm = self.means[nb:self.n_bg].astype(np.float64)
-            ndl = rl.static_ndl
-            block(nb, bgm, rl.static_lit0, ndl, ndl,
-                  lambda c: rl.static_lit(bgm[c], self._spread(c + nb), poses))
-            for n, sl in self._fill_slices.items():   # fills: table copies, lit as their sources were
-                fm = self.means[sl].astype(np.float64)
-                up = np.full(len(fm), rl.L[2])
-                block(sl.start, fm, self._fill_lit(n), up, up,
-                      lambda c, fm=fm, sl=sl: rl.static_lit(fm[c], self._spread(c + sl.start), poses))
+        block(nb, self.means[nb:self.n_bg].astype(np.float64), rl.static_lit0, rl.static_ndl, rl.static_ndl)
+        for n, sl in self._fill_slices.items():   # fills: table copies, lit as their sources were, facing up
+            up = np.full(sl.stop - sl.start, rl.L[2])
+            block(sl.start, self.means[sl].astype(np.float64), self._fill_lit(n), up, up)
         for n, sl in obj_slices.items():
-            if n not in rl.index or not (moved or sm is not None):
-                continue
-            om = self.means[sl].astype(np.float64)
-            ndl0, ndl = rl.object_ndl(n, poses[n])
-            if n in moved:   # every row re-tested
-                block(sl.start, om, rl.obj_lit0[n], ndl0, ndl,
-                      lambda c, n=n, om=om, sl=sl: rl.object_lit(n, om[c], self._spread(c + sl.start), poses), every=True)
-            else:
-                block(sl.start, om, rl.obj_lit0[n], ndl0, ndl,
-                      lambda c, n=n, om=om, sl=sl: rl.object_lit(n, om[c], self._spread(c + sl.start), poses))
+            if n in rl.index:
+                ndl0, ndl = rl.object_ndl(n, poses[n])
+                block(sl.start, self.means[sl].astype(np.float64), rl.obj_lit0[n], ndl0, ndl, n, every=n in moved)
         self.relit_rows = total
 
     def _fill_lit(self, name: str) -> np.ndarray:

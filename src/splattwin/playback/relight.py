@@ -362,6 +362,27 @@ class Relighter:
         a = self.light.ambient
         return shading(a, ndl, lit) / np.maximum(shading(a, ndl0, lit0), 1e-6)
 
+    def block_factors(self, means: np.ndarray, lit0: np.ndarray, ndl0: np.ndarray, ndl: np.ndarray,
+                      poses: dict[str, np.ndarray], moved: list[str], owner: str | None = None, spreads_of=None,
+                      every: bool = False, shadow_map: "ShadowMap | None" = None) -> np.ndarray:
+        """Factors [N] of one block of rows in state `poses` (the renderer's and the viewer's one rule).
+
+        means: world [N,3] now; lit0 / ndl0: their lit share and n.l at capture; ndl: n.l now; owner: the
+        object they belong to (None: static rows); spreads_of(rows) -> footprint axes of those rows (None:
+        centres only). The object-shadow lit share is re-tested on the rows in a moved object's possible
+        shadow (`candidates`; every row with every=True), the rest keep lit0; shadow_map (the robot's) then
+        darkens what it covers."""
+        lit = np.array(lit0, float)
+        if moved:
+            c = np.arange(len(means)) if every else np.flatnonzero(self.candidates(means, moved, poses))
+            if len(c):
+                sp = spreads_of(c) if spreads_of is not None else None
+                lit[c] = (self.static_lit(means[c], sp, poses) if owner is None
+                          else self.object_lit(owner, means[c], sp, poses))
+        if shadow_map is not None:
+            lit[shadow_map.shadowed(means)] = 0.0
+        return self.ratio(ndl0, lit0, ndl, lit)
+
     def static_factors(self, rows: np.ndarray, means: np.ndarray, spreads: np.ndarray | None,
                        poses: dict[str, np.ndarray], lit0: np.ndarray | None = None, ndl: np.ndarray | None = None
                        ) -> np.ndarray:

@@ -135,8 +135,6 @@ class MovingSplats:
         """Group name ("static", "fill/<obj>", "object/<obj>") -> RGB [n,3] in [0,1] at frame k: the trained
         degree-0 colours, scaled where the frame's shadows differ from the capture's (`playback.relight`;
         unscaled without a relighter). Residue groups keep their colours (drawn only while in place)."""
-        from splattwin.playback.relight import spread
-
         out = {"static": self.static.colors}
         out.update({f"fill/{n}": f.colors for n, f in self.fills.items()})
         out.update({f"object/{n}": g.colors for n, g in self.objects.items()})
@@ -147,40 +145,28 @@ class MovingSplats:
         poses = {n: T for n, (T, _) in state.items()}
         moved = [n for n, (_, mv) in state.items() if mv]
 
-        def spreads(g, T=None):
-            sp = rl.spread(g.quats, g.scales)
-            return sp if sp is None or T is None else sp @ T[:3, :3].T
+        def apply(key: str, g, lit0, ndl0, ndl, owner=None, T=None) -> None:
+            world = g.means if T is None else g.means @ T[:3, :3].T + T[:3, 3]
 
-        def apply(key, rows, f):
-            if len(rows):
-                c = out[key].copy()
-                c[rows] = np.clip(c[rows] * f[:, None], 0.0, 1.0)
-                out[key] = c
+            def spreads_of(c):
+                sp = rl.spread(g.quats[c], g.scales[c])
+                return sp if sp is None or T is None else sp @ T[:3, :3].T
+
+            f = rl.block_factors(world, lit0, ndl0, ndl, poses, moved, owner, spreads_of, every=owner in moved)
+            if np.any(f != 1.0):
+                out[key] = np.clip(out[key] * f[:, None], 0.0, 1.0)
 
         if moved:
-            st = self.static
-            rows = np.flatnonzero(rl.candidates(st.means, moved, poses))
-            sub = st.subset(rows)
-            apply("static", rows, rl.static_factors(rows, sub.means, spreads(sub), poses))
+            apply("static", self.static, rl.static_lit0, rl.static_ndl, rl.static_ndl)
             for n in moved:
                 f = self.fills.get(n)
-                if f is None or not len(f):
-                    continue
-                rows = np.flatnonzero(rl.candidates(f.means, moved, poses))
-                sub = f.subset(rows)
-                lit0 = self.fill_lit0.get(n, np.ones(len(f)))[rows]
-                apply(f"fill/{n}", rows, rl.static_factors(rows, sub.means, spreads(sub), poses, lit0=lit0,
-                                                          ndl=np.full(len(rows), rl.L[2])))
-        for n, g in self.objects.items():
-            if n not in rl.index:
-                continue
-            T = poses[n]
-            world = g.means @ T[:3, :3].T + T[:3, 3]
-            if n in moved:
-                apply(f"object/{n}", np.arange(len(g)), rl.object_factors(n, world, spreads(g, T), poses))
-            elif moved:
-                rows = np.flatnonzero(rl.candidates(world, moved, poses))
-                apply(f"object/{n}", rows, rl.object_factors(n, world[rows], spreads(g.subset(rows), T), poses, rows=rows))
+                if f is not None and len(f):   # fills: table copies, lit as their sources were, facing up
+                    up = np.full(len(f), rl.L[2])
+                    apply(f"fill/{n}", f, self.fill_lit0.get(n, np.ones(len(f))), up, up)
+            for n, g in self.objects.items():
+                if n in rl.index:
+                    ndl0, ndl = rl.object_ndl(n, poses[n])
+                    apply(f"object/{n}", g, rl.obj_lit0[n], ndl0, ndl, n, poses[n])
         return out
 
     def means_at(self, k: int) -> dict[str, np.ndarray]:
