@@ -277,8 +277,8 @@ class Relighter:
     """Per-state colour factors of a `DynamicScene`'s rows under `light` (module docstring).
 
     Built once per renderer with the static rows (background; world frame, fixed) and the objects (their
-    Gaussians in the object frame, normals from their meshes); `factors(...)` then gives, for a state, the
-    rows whose colour changes and by how much."""
+    Gaussians in the object frame, normals from their meshes): their lit share and n.l at capture.
+    `block_factors` then gives, for a state, each row's colour factor (1 where nothing changed)."""
 
     def __init__(self, light: Light, meshes: dict, T_world_obj0: dict[str, np.ndarray], static: Gaussians,
                  table_height: float, objects: dict[str, Gaussians], unit: float = 1.0, soft: bool = True):
