@@ -375,3 +375,27 @@ def test_robot_casts_its_shadow_on_the_table(lit_twin):
     np.testing.assert_array_equal(off.sh[:n0], trained)
     assert r.layout({}, None) == n0   # robot parked out of the picture: the table as trained
     np.testing.assert_array_equal(r.sh[:n0], trained)
+
+
+def test_report_light_check_picture(lit_twin, tmp_path):
+    """The report's light check outlines the table the estimated light shadows (here: the baked box shadow)
+    in cyan; a twin that is not re-lit has no such picture."""
+    from splattwin.playback.compositor import PlaybackRenderer
+    from splattwin.playback.scene import DynamicScene
+    from splattwin.report.playback import SHADOW_RGB, light_check_picture
+
+    from .conftest import capture_cameras
+
+    cam = capture_cameras(192, 144)[0]
+    r = PlaybackRenderer(DynamicScene.load(lit_twin), backend="cpu")
+    rgb, frac = light_check_picture(r, cam)
+    cyan = np.all(np.isclose(rgb, SHADOW_RGB), axis=-1)
+    assert cyan.sum() > 20 and 0.002 < frac < 0.2
+    # the outline is where the baked shadow is dark: its pixels' neighbourhood holds the darkest table
+    plain = r.render(cam, {}, None).rgb.mean(-1)
+    from scipy import ndimage
+
+    near = ndimage.binary_dilation(cyan, iterations=3)
+    assert plain[near].min() < 0.6 * np.median(plain[plain > 0.05])
+    unlit = PlaybackRenderer(DynamicScene.load(write_lit_twin(tmp_path / "t", light=False)), backend="cpu")
+    assert light_check_picture(unlit, cam) is None

@@ -1,7 +1,8 @@
 """The report's "task in motion" section: the MP4 of the validated task rendered photoreal from one
 camera (moving splats, the robot as Gaussians; `splattwin.playback`), shown beside the physics frames,
 and a picture of the final state with the hole-filled table regions outlined, with their area and the
-fraction of the picture they cover.
+fraction of the picture they cover; for a re-lit twin, the light it estimated and a picture to check it
+(the table it puts in the objects' shadows, outlined at the start).
 
 The video is cached in TWIN/report/ (task_<camera>.mp4 + its key: the rollout's content and the
 settings), so re-writing the report does not re-render an unchanged task.
@@ -20,6 +21,7 @@ from splattwin import io
 from splattwin.report.options import ReportOptions
 
 OUTLINE_RGB = (1.0, 0.0, 1.0)
+SHADOW_RGB = (0.0, 0.9, 1.0)
 
 
 def choose_camera(twin: Path, spec: str, width: int):
@@ -53,6 +55,29 @@ def filled_picture(renderer, camera, poses: dict) -> tuple[np.ndarray, float, np
     rgb[mask] = 0.8 * rgb[mask] + 0.2 * np.asarray(OUTLINE_RGB)
     rgb[edge] = OUTLINE_RGB
     return rgb, float(mask.mean()), mask
+
+
+def light_check_picture(renderer, camera) -> tuple[np.ndarray, float] | None:
+    """The start state with the table splats the estimated light puts in the objects' shadows outlined in
+    cyan (they should trace the dark shadows in the photo: a wrong light shows at a glance), and the share
+    of the picture they cover; None when the twin is not re-lit."""
+    from splattwin.splat.render import render
+
+    rl = renderer.relighter
+    if rl is None:
+        return None
+    sc = renderer.scene
+    rgb = renderer.render(camera, {}, None).rgb.copy()
+    g = sc.gaussians({})   # [backdrop | background | objects] at the twin poses
+    nb = len(sc.backdrop) if sc.backdrop is not None else 0
+    feat = np.zeros((len(g), 1))
+    on_table = np.abs(sc.background.means[:, 2] - sc.table_height) < 0.005 * sc.unit
+    feat[nb:nb + len(sc.background), 0] = (on_table & (rl.static_lit0 < 0.5)).astype(float)
+    img, _ = render(g, camera, colors=feat, backend=renderer.backend)
+    mask = img[..., 0] > 0.5
+    edge = fill_outline(mask)
+    rgb[edge] = SHADOW_RGB
+    return rgb, float(mask.mean())
 
 
 def _base(twin: Path) -> np.ndarray:
@@ -102,10 +127,12 @@ def task_video(twin: Path, options: ReportOptions, progress: bool = False) -> di
     final, _ = rollout_state(rollout, len(rollout) - 1)
     pic_cam = camera if not isinstance(camera, EyeInHand) else choose_camera(twin, "auto", options.video_width)[1]
     picture, fraction, _ = filled_picture(renderer, pic_cam, final)
+    check = light_check_picture(renderer, pic_cam)
     moved = scene.moved(final)
     areas = {n: scene.fills[n].to_dict()["area_m2"] for n in moved if n in scene.fills}
     return {"mp4": mp4, "info": info, "camera": spec, "picture": picture, "fill_fraction": fraction,
-            "fill_area_m2": areas, "moved": moved, "light": scene.light}
+            "fill_area_m2": areas, "moved": moved, "light": scene.light,
+            "light_check": check[0] if check is not None else None}
 
 
 def playback_section(sec, twin: Path, options: ReportOptions | None = None) -> None:
@@ -134,6 +161,10 @@ def playback_section(sec, twin: Path, options: ReportOptions | None = None) -> N
                  f"shadows (azimuth {light.azimuth_deg:.0f}°, elevation {light.elevation_deg:.0f}° in the twin frame, "
                  f"ambient share {light.ambient:.2f}; the table in the objects' shadows is {light.shadow_ratio:.2f} "
                  f"as bright as around them, {light.shadowed} of {light.receivers} table splats).")
+        if v.get("light_check") is not None:
+            sec.image(v["light_check"], caption="the light check: at the start, the table the estimated light puts "
+                                                "in the objects' shadows, outlined in cyan (it should trace the "
+                                                "shadows in the picture)", width=max(320, i["width"]))
     else:
         sec.text("Not re-lit: no clear cast shadow of the objects on the table was found (soft or many lights, or "
                  "too few table splats around the objects), so every splat keeps the colour it was trained with; "
