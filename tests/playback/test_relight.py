@@ -399,3 +399,16 @@ def test_report_light_check_picture(lit_twin, tmp_path):
     assert plain[near].min() < 0.6 * np.median(plain[plain > 0.05])
     unlit = PlaybackRenderer(DynamicScene.load(write_lit_twin(tmp_path / "t", light=False)), backend="cpu")
     assert light_check_picture(unlit, cam) is None
+
+
+def test_estimate_light_bounds_its_work(lit_twin, monkeypatch):
+    """More table splats than MAX_RECEIVERS: the estimate runs on a spread subsample and finds the same light."""
+    import splattwin.playback.relight as relight
+    from splattwin.playback.scene import DynamicScene
+
+    full = DynamicScene.load(lit_twin).light
+    monkeypatch.setattr(relight, "MAX_RECEIVERS", 3000)
+    sub = DynamicScene.load(lit_twin).light
+    assert sub is not None and sub.receivers == 3000 < full.receivers
+    assert np.degrees(np.arccos(np.clip(sub.direction @ full.direction, -1, 1))) < 2.0
+    assert abs(sub.ambient - full.ambient) < 0.05
