@@ -297,8 +297,8 @@ class Relighter:
         # static rows at capture: lit (any mesh may shadow them), facing: the table's normal for what lies
         # on it, else assumed facing the light (a shadow change then has its full effect)
         sm = static.means
-        on_table = np.abs(sm[:, 2] - table_height) < RECEIVER_BAND * unit
-        self.static_ndl = np.where(on_table, self.L[2], 1.0)
+        self.static_on_table = np.abs(sm[:, 2] - table_height) < RECEIVER_BAND * unit
+        self.static_ndl = np.where(self.static_on_table, self.L[2], 1.0)
         self.static_lit0 = self._lit(sm, self.spread(static.quats, static.scales), np.full(len(sm), -1), self.T0)
         # object rows: normals (object frame) from the object's mesh, lit at the twin pose (others' shadows)
         self.obj_normals, self.obj_lit0 = {}, {}

@@ -34,8 +34,7 @@ from splattwin.transforms import (matrix_from_quat_wxyz, mujoco_quat_wxyz_from_m
                                   quat_wxyz_from_matrix)
 
 LIGHT_DIR_WORLD = np.array([-0.35, 0.45, 1.0]) / np.linalg.norm([-0.35, 0.45, 1.0])  # towards the light
-AMBIENT = 0.42
-DIFFUSE = 0.58
+AMBIENT = 0.42           # ambient share of the fixed light (the rest is diffuse)
 SPACING_ARM = 0.005      # m between samples on the links
 SPACING_HAND = 0.003     # m on the hand body
 SPACING_FINGERS = 0.0015  # m on the fingers (10-15 cm from the wrist camera)

@@ -32,8 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from splattwin.errors import InputError
-from splattwin.playback.relight import Light
 from splattwin.playback.holes import HoleFill, fill_hole
+from splattwin.playback.relight import Light
 from splattwin.splat.gaussians import Gaussians
 from splattwin.twin.manifest import Manifest
 from splattwin.twin.splats import sh_rotation, transform_gaussians

@@ -71,8 +71,7 @@ def light_check_picture(renderer, camera) -> tuple[np.ndarray, float] | None:
     g = sc.gaussians({})   # [backdrop | background | objects] at the twin poses
     nb = len(sc.backdrop) if sc.backdrop is not None else 0
     feat = np.zeros((len(g), 1))
-    on_table = np.abs(sc.background.means[:, 2] - sc.table_height) < 0.005 * sc.unit
-    feat[nb:nb + len(sc.background), 0] = (on_table & (rl.static_lit0 < 0.5)).astype(float)
+    feat[nb:nb + len(sc.background), 0] = (rl.static_on_table & (rl.static_lit0 < 0.5)).astype(float)
     img, _ = render(g, camera, colors=feat, backend=renderer.backend)
     mask = img[..., 0] > 0.5
     edge = fill_outline(mask)

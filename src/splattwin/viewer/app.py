@@ -241,7 +241,11 @@ def _show_motion(motion, handles: dict, t: int, splats_on: bool) -> None:
         for key, vis in ((f"motion/residue/{n}", not moved), (f"motion/fill/{n}", moved)):
             if key in handles:
                 handles[key].visible = splats_on and vis
-    if getattr(motion, "relighter", None) is not None:   # the frame's shadows (playback.relight)
+    any_moved = any(moved for _, moved in state.values())
+    # the frame's shadows (playback.relight): recoloured while something is away from its place, and once
+    # more when everything is back
+    if getattr(motion, "relighter", None) is not None and (any_moved or handles.get("_recoloured")):
+        handles["_recoloured"] = any_moved
         cols = motion.colours_at(t)
         if "splats" in handles and "_static_near" in handles:
             handles["splats"].rgbs = cols["static"][handles["_static_near"]]
