@@ -173,7 +173,7 @@ def oracle_scene(twin: Path, members: dict[str, np.ndarray], base):
     front = keep & ~back
     sc = DynamicScene(background=full.subset(front), objects=objects, T_world_obj0=dict(base.T_world_obj0),
                       residue={}, table_height=h, twin_dir=twin, backdrop=full.subset(back), view_fade=base.view_fade,
-                      rasterize_mode=base.rasterize_mode, meshes=base.meshes, light=base.light, unit=base.unit)
+                      rasterize_mode=base.rasterize_mode, eps2d=base.eps2d, meshes=base.meshes, light=base.light, unit=base.unit)
     sc.fill_holes()
     return sc
 

@@ -130,8 +130,8 @@ def test_moved_object_is_drawn_view_independent(tiny_twin):
 
 def test_renderer_uses_the_trained_rasterize_mode(tmp_path):
     """A twin trained with --splat.rasterize-mode antialiased is drawn antialiased by default (its splats
-    fitted the opacity compensation); twins that record no mode are drawn classic; a bad mode is an error
-    naming twin.json."""
+    fitted the opacity compensation) with the low-pass it was trained with; twins that record no mode are
+    drawn classic; a bad mode or low-pass is an error naming twin.json."""
     from splattwin.errors import InputError
     from splattwin.playback.compositor import PlaybackRenderer
     from splattwin.twin.manifest import Manifest
@@ -150,11 +150,23 @@ def test_renderer_uses_the_trained_rasterize_mode(tmp_path):
     default, aa, classic = (r.render(cam, {}, rasterize_mode=m).rgb for m in (None, "antialiased", "classic"))
     np.testing.assert_array_equal(default, aa)
     assert np.abs(default - classic).max() > 1e-3   # the modes differ on these splats: the test can fail
-    man.config["build"] = {"splat": {"rasterize_mode": "mip"}}
+    assert sc.eps2d == 0.3  # recorded before eps2d was: trained with 0.3
+    # eps2d recorded (0: the mode's default, Mip-Splatting's 0.1): drawn with it, as trained
+    man.config["build"] = {"splat": {"rasterize_mode": "antialiased", "eps2d": 0.0}}
     man.save(twin)
-    with pytest.raises(InputError, match="rasterize_mode") as e:
-        DynamicScene.load(twin)
-    assert "twin.json" in str(e.value)
+    sc01 = DynamicScene.load(twin, fill_holes=False)
+    assert (sc01.rasterize_mode, sc01.eps2d) == ("antialiased", 0.1)
+    r01 = PlaybackRenderer(sc01, backend="cpu")
+    narrow = r01.render(cam, {}).rgb
+    np.testing.assert_array_equal(narrow, r01.render(cam, {}, rasterize_mode="antialiased").rgb)
+    assert np.abs(narrow - default).max() > 1e-3
+    np.testing.assert_array_equal(r01.render(cam, {}, rasterize_mode="classic").rgb, classic)
+    for bad in ({"rasterize_mode": "mip"}, {"rasterize_mode": "antialiased", "eps2d": -1}):
+        man.config["build"] = {"splat": bad}
+        man.save(twin)
+        with pytest.raises(InputError, match=next(iter(bad)) if "eps2d" not in bad else "eps2d") as e:
+            DynamicScene.load(twin)
+        assert "twin.json" in str(e.value)
 
 
 def test_rigid_transform_matches_transform_gaussians():

@@ -55,3 +55,83 @@ def test_dataset_objects_finds_the_scene_of_a_twins_poses_folder(tmp_path):
     assert dataset_objects(twin / "poses" / "transforms.json") == {"yellow_cube": 1, "blue_box": 2}
     assert dataset_objects(twin / "scene") == {"yellow_cube": 1, "blue_box": 2}
     assert dataset_objects(tmp_path / "elsewhere") is None
+
+
+def _trainer_helpers():
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("_splat_trainer_helpers_lift",
+                                                  Path(__file__).parents[1] / "splat" / "test_trainer.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_splat_depth_and_label_maps_draw_the_splats_as_trained():
+    """`raster` = the splats' trained (mode, eps2d): SplatDepth's depth and the label maps use it. Sub-pixel
+    Gaussians drawn classic (0.3 dilation, no opacity compensation) cover far more pixels than the same
+    splats drawn antialiased with 0.1, as they were trained."""
+    from splattwin.capture import Camera
+    from splattwin.semantics.label_render import SplatDepth, render_label_maps
+    from splattwin.splat.gaussians import Gaussians
+    from splattwin.splat.render import render
+
+    rng = np.random.default_rng(0)
+    n = 60
+    means = np.c_[rng.uniform(-0.5, 0.5, (n, 2)), np.full(n, 2.0)]   # ~0.4 px std each, apart
+    g = Gaussians(means=means, quats=np.tile([1.0, 0, 0, 0], (n, 1)), scales=np.full((n, 3), 0.008),
+                  opacities=np.full(n, 0.95), sh=np.zeros((n, 1, 3)))
+    cam = Camera.from_fov(0.6, 64, 64)
+    aa = ("antialiased", 0.1)
+    d_aa = SplatDepth(g, raster=aa, min_alpha=0.3)(None, [cam])[0]
+    d_cl = SplatDepth(g, min_alpha=0.3)(None, [cam])[0]
+    ref, alpha = render(g, cam, mode="ED", rasterize_mode="antialiased", eps2d=0.1)
+    np.testing.assert_array_equal(np.isfinite(d_aa), alpha >= 0.3)
+    assert np.isfinite(d_cl).sum() > 1.5 * np.isfinite(d_aa).sum() > 0
+    labels = np.ones(n, np.int64)
+    lab_aa = render_label_maps(g, labels, [cam], 1, raster=aa, threshold=0.3)[0]
+    lab_cl = render_label_maps(g, labels, [cam], 1, threshold=0.3)[0]
+    np.testing.assert_array_equal(lab_aa > 0, alpha >= 0.3)
+    assert (lab_cl > 0).sum() > 1.5 * (lab_aa > 0).sum()
+
+
+def test_fuse_to_dir_reads_the_trained_filter_beside_the_splats(tmp_path, monkeypatch):
+    """A splat file beside its training record (train.json) is fused with the mode and low-pass it was
+    trained with; bare Gaussians or a PLY without a record: classic 0.3; a bad record names train.json."""
+    import json
+
+    import pytest
+
+    from splattwin.capture import load_dataset
+    from splattwin.errors import InputError
+    from splattwin.semantics import lift
+
+    h = _trainer_helpers()
+    ds = load_dataset(h.make_dataset(tmp_path / "ds", n_train=3, n_heldout=1))
+    g = h.gt_gaussians()
+    ms = MaskSet()
+    for f in ds.frames:
+        m = np.zeros((f.camera.height, f.camera.width), bool)
+        m[: f.camera.height // 2] = True
+        ms.add(f.name, 1, m, name="thing")
+    seen = []
+    real = lift.make_depth_renderer
+    monkeypatch.setattr(lift, "make_depth_renderer", lambda gs, r="auto", raster=("classic", None):
+                        seen.append(raster) or real(gs, r, raster))
+
+    def fuse(splats, name):
+        return lift.fuse_to_dir(splats, ds, ms, tmp_path / name, label_maps=False, progress=False)
+
+    run = tmp_path / "run"
+    run.mkdir()
+    g.save_ply(run / "point_cloud.ply")
+    fuse(run / "point_cloud.ply", "no_record")
+    (run / "train.json").write_text(json.dumps({"config": {"rasterize_mode": "antialiased", "eps2d": 0.0}}))
+    fuse(run / "point_cloud.ply", "with_record")
+    fuse(g, "bare")
+    assert seen == [("classic", 0.3), ("antialiased", 0.1), ("classic", 0.3)]
+    (run / "train.json").write_text(json.dumps({"config": {"rasterize_mode": "antialiased", "eps2d": -2}}))
+    with pytest.raises(InputError, match="eps2d") as e:
+        fuse(run / "point_cloud.ply", "bad")
+    assert "train.json" in str(e.value)

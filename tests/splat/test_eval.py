@@ -109,3 +109,30 @@ def test_side_by_side_tints_unseen_pixels_of_the_error_map_only():
     np.testing.assert_array_equal(tinted[:, :2 * 5 + 8], plain[:, :2 * 5 + 8])   # photo and render untouched
     np.testing.assert_array_equal(tinted[:, err][:, :3], plain[:, err][:, :3])
     np.testing.assert_array_equal(tinted[:, err][:, 3:], (plain[:, err][:, 3:].astype(np.uint16) + UNSEEN_TINT) // 2)
+
+
+def test_eval_renders_with_the_low_pass_the_splats_were_trained_with(tmp_path):
+    """train.json's config names the mode and low-pass (eps2d; 0: the mode's default, 0.1 antialiased);
+    a config from before the option recorded it was trained with 0.3; a bad value is an error naming
+    train.json. Bare Gaussians with a mode: the mode's default."""
+    ds_root = helpers.make_dataset(tmp_path / "ds", n_train=3, n_heldout=2)
+    g = helpers.gt_gaussians()
+
+    def folder(name, cfg):
+        d = tmp_path / name
+        d.mkdir()
+        g.save_ply(d / "point_cloud.ply")
+        (d / "train.json").write_text(json.dumps({"config": cfg}))
+        return d
+
+    auto = evaluate(folder("auto", {"rasterize_mode": "antialiased", "eps2d": 0.0}), ds_root, None, progress=False)
+    legacy = evaluate(folder("legacy", {"rasterize_mode": "antialiased"}), ds_root, None, progress=False)
+    explicit = evaluate(folder("explicit", {"rasterize_mode": "antialiased", "eps2d": 0.3}), ds_root, None,
+                        progress=False)
+    bare = evaluate(g, ds_root, None, progress=False, rasterize_mode="antialiased")
+    assert legacy.mean_psnr == explicit.mean_psnr
+    assert auto.mean_psnr == pytest.approx(bare.mean_psnr, abs=1e-4)  # (the PLY stores float32)
+    assert abs(auto.mean_psnr - legacy.mean_psnr) > 0.01  # the two low-passes differ here: the test can fail
+    with pytest.raises(InputError, match="eps2d") as e:
+        evaluate(folder("bad", {"rasterize_mode": "antialiased", "eps2d": "wide"}), ds_root, None, progress=False)
+    assert "train.json" in str(e.value)

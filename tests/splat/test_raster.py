@@ -137,11 +137,37 @@ def test_antialiased_mode_preserves_a_small_gaussians_footprint():
         sc = torch.full((1, 3), s_px * z / f, dtype=DT)
         args = (torch.tensor([[0.0, 0.0, z]], dtype=DT), torch.tensor([[1.0, 0, 0, 0]], dtype=DT), sc,
                 torch.tensor([op], dtype=DT), torch.ones(1, 1, dtype=DT), torch.eye(4, dtype=DT)[None], K, W, H)
-        _, a_aa, _ = rasterization(*args, backend="cpu", rasterize_mode="antialiased")
+        # eps2d 0.3 in both: sampled at pixel centres, a narrower filtered Gaussian would alias the sum
+        _, a_aa, _ = rasterization(*args, backend="cpu", rasterize_mode="antialiased", eps2d=0.3)
         _, a_cl, _ = rasterization(*args, backend="cpu")
         # 3-sigma truncation and pixel sampling: within a few per cent
         assert a_aa.sum().item() == pytest.approx(op * 2 * math.pi * s_px**2, rel=0.04)
         assert a_cl.sum().item() == pytest.approx(op * 2 * math.pi * (s_px**2 + 0.3), rel=0.04)
+
+
+def test_default_low_pass_follows_the_mode():
+    """eps2d None: 3DGS's 0.3 dilation for classic, Mip-Splatting's 0.1 (about one pixel's box filter,
+    variance 1/12 px^2) for antialiased; an explicit eps2d is used as given. A Gaussian of screen std
+    1.5 px (well sampled): its rendered peak is op * s^2 / (s^2 + eps2d) antialiased."""
+    from splattwin.splat.rasterization import DEFAULT_EPS2D
+
+    assert DEFAULT_EPS2D == {"classic": 0.3, "antialiased": 0.1}
+    W = H = 32
+    f, z, s_px, op = 100.0, 2.0, 1.5, 0.5
+    K = torch.tensor([[[f, 0, 16.0], [0, f, 16.0], [0, 0, 1.0]]], dtype=DT)
+    args = (torch.tensor([[0.0, 0.0, z]], dtype=DT), torch.tensor([[1.0, 0, 0, 0]], dtype=DT),
+            torch.full((1, 3), s_px * z / f, dtype=DT), torch.tensor([op], dtype=DT), torch.ones(1, 1, dtype=DT),
+            torch.eye(4, dtype=DT)[None], K, W, H)
+    for mode in ("classic", "antialiased"):
+        _, a_def, _ = rasterization(*args, backend="cpu", rasterize_mode=mode)
+        for eps in (0.1, 0.3):
+            _, a_eps, _ = rasterization(*args, backend="cpu", rasterize_mode=mode, eps2d=eps)
+            same = torch.equal(a_def, a_eps)
+            assert same == (eps == DEFAULT_EPS2D[mode]), (mode, eps)
+    _, a_aa, _ = rasterization(*args, backend="cpu", rasterize_mode="antialiased")
+    peak = a_aa.max().item()  # the pixel at the centre (16, 16) is 0.5 px from the mean: exp(-0.25 / 2v)
+    v = s_px**2 + 0.1
+    assert peak == pytest.approx(op * math.sqrt(s_px**4 / v**2) * math.exp(-0.25 / (2 * v)) ** 2, rel=1e-3)
 
 
 def test_antialias_compensation_formula():

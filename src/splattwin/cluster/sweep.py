@@ -140,6 +140,7 @@ def fusion_task(folder: str, key: dict, splats: str, cameras: str, masks: str, o
     from splattwin.semantics.masks import load_masks
     from splattwin.semantics.metrics import ghost_index, projection_consistency
     from splattwin.semantics.options import FusionOptions
+    from splattwin.splat.config import filter_beside
     from splattwin.splat.gaussians import Gaussians
 
     out = Path(folder)
@@ -147,7 +148,7 @@ def fusion_task(folder: str, key: dict, splats: str, cameras: str, masks: str, o
     g = Gaussians.load_ply(splats)
     ds = load_dataset(cameras)
     ms = load_masks(masks)
-    res = fuse_to_dir(g, ds, ms, out, FusionOptions(**options), progress=False)
+    res = fuse_to_dir(g, ds, ms, out, FusionOptions(**options), progress=False, raster=filter_beside(splats))
     io.write_json(out / "objects.json", [[res.names[k], int(k), (ms.prompts or {}).get(k, res.names[k].replace("_", " "))]
                                          for k in res.label_ids])
     meta = io.read_json(out / "fusion.json")

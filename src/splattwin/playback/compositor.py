@@ -232,8 +232,10 @@ class PlaybackRenderer:
         """Footprint axes (world, current state) of buffer rows, for the soft shadow test."""
         return self.relighter.spread(self.quats[rows], self.scales[rows])
 
-    def _raster(self, start: int, n: int, camera: Camera, rasterize_mode: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Premultiplied rgb [H,W,3] (over black), expected depth [H,W] (0 where empty), alpha [H,W]."""
+    def _raster(self, start: int, n: int, camera: Camera, filt: tuple[str, float | None]
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Premultiplied rgb [H,W,3] (over black), expected depth [H,W] (0 where empty), alpha [H,W].
+        filt: (rasterize_mode, eps2d px^2 or None for the mode's default)."""
         from splattwin.splat.rasterization import rasterization
         from splattwin.splat.render import resolve_backend_device
 
@@ -244,19 +246,19 @@ class PlaybackRenderer:
         means, quats, scales, opac, sh = self.means, self.quats, self.scales, self.opac, self.sh
         img, alpha, _ = rasterization(f(means), f(quats), f(scales), f(opac), f(sh), vm, Kt, camera.width,
                                       camera.height, sh_degree=self.scene.sh_degree, backgrounds=None,
-                                      render_mode="RGB+ED", backend=name, rasterize_mode=rasterize_mode)
+                                      render_mode="RGB+ED", backend=name, rasterize_mode=filt[0], eps2d=filt[1])
         img = img[0].cpu().numpy()
         a = alpha[0, ..., 0].cpu().numpy()
         return img[..., :3], np.where(a > 1e-4, img[..., 3], 0.0).astype(np.float32), a
 
-    def _backdrop_layer(self, camera: Camera, rasterize_mode: str):
+    def _backdrop_layer(self, camera: Camera, filt: tuple[str, float | None]):
         """The backdrop's render for this camera, cached while the camera stays put (static cameras pay
         it once per video)."""
         key = b"".join(np.ascontiguousarray(x, np.float64).tobytes() for x in
-                       (camera.T_cam_world, camera.K, np.array([camera.width, camera.height]))) + rasterize_mode.encode()
+                       (camera.T_cam_world, camera.K, np.array([camera.width, camera.height]))) + repr(filt).encode()
         if self._backdrop_cache is not None and self._backdrop_cache[0] == key:
             return self._backdrop_cache[1]
-        out = self._raster(0, self.n_backdrop, camera, rasterize_mode)
+        out = self._raster(0, self.n_backdrop, camera, filt)
         self._backdrop_cache = (key, out)
         return out
 
@@ -265,23 +267,25 @@ class PlaybackRenderer:
                robot_pose: RobotPose | None = None, rasterize_mode: str | None = None,
                layered: bool | None = None) -> FrameImage:
         """One frame. object_poses: T_world_obj per object (missing: twin pose); robot_pose: None = no robot.
-        rasterize_mode: None = the one the splats were trained with (`DynamicScene.rasterize_mode`).
+        rasterize_mode: None = the one the splats were trained with (`DynamicScene.rasterize_mode`, with
+        its low-pass `DynamicScene.eps2d`); another mode renders with that mode's default low-pass.
 
         layered (default: when the robot is drawn): the backdrop (`DynamicScene.backdrop`) is rendered
         as a layer behind everything, so that no surroundings splat veils the robot; without the robot
         one depth-sorted pass of all splats, exactly as they were trained."""
         t0 = time.perf_counter()
-        rasterize_mode = rasterize_mode or getattr(self.scene, "rasterize_mode", "classic")
+        trained = (self.scene.rasterize_mode, self.scene.eps2d)
+        filt = trained if rasterize_mode in (None, trained[0]) else (rasterize_mode, None)
         n = self.layout(object_poses or {}, robot_pose)
         layered = (robot_pose is not None and self.robot is not None) if layered is None else layered
         layered = layered and self.n_backdrop > 0
         t1 = time.perf_counter()
-        rgb, depth, a = self._raster(self.n_backdrop if layered else 0, n, camera, rasterize_mode)
+        rgb, depth, a = self._raster(self.n_backdrop if layered else 0, n, camera, filt)
         t2 = time.perf_counter()
         bg = np.broadcast_to(self.background, rgb.shape)
         a_tot = a
         if layered:
-            b_rgb, b_depth, b_a = self._backdrop_layer(camera, rasterize_mode)
+            b_rgb, b_depth, b_a = self._backdrop_layer(camera, filt)
             bg = b_rgb + (1 - b_a)[..., None] * self.background
             depth = np.where(a > 1e-4, depth, b_depth)
             a_tot = a + (1 - a) * b_a

@@ -92,7 +92,7 @@ def refine_objects(twin_dir: str | Path, frames, opts: RefineOptions | None = No
     from splattwin.splat.model import GaussianModel
     from splattwin.splat.rasterization import rasterization, view_colors
     from splattwin.splat.resolution import resolve as resolve_resolution
-    from splattwin.splat.trainer import EPS2D, load_views
+    from splattwin.splat.trainer import load_views
 
     opts = opts or RefineOptions(iters=800)
     twin_dir = Path(twin_dir)
@@ -154,7 +154,7 @@ def refine_objects(twin_dir: str | Path, frames, opts: RefineOptions | None = No
         img, _, meta = rasterization(cat("means"), cat("quats"), cat("scales"), cat("opacities"), feats,
                                      viewmats[i:i + 1], Ks[i:i + 1], views[i].camera.width,
                                      views[i].camera.height, sh_degree=sh_deg, backgrounds=bg,
-                                     backend="cpu", eps2d=EPS2D, rasterize_mode=scene.rasterize_mode)
+                                     backend="cpu", eps2d=scene.eps2d, rasterize_mode=scene.rasterize_mode)
         return img, meta
 
     mask_stats: dict = {}

@@ -110,7 +110,8 @@ class DynamicScene:
     them behind everything else (a second layer), so they never veil the robot. rasterize_mode: the
     rasterizer mode the splats were trained with (twin.json config.build.splat; "classic" when not
     recorded), which the renderer uses by default: the antialiased mode's opacity compensation is part of
-    what the training fitted. meshes: {name: trimesh} the objects' visual meshes (object frame), the shadow
+    what the training fitted; eps2d: the low-pass they were trained with (px^2, `splat.config.trained_filter`)
+    for the same reason. meshes: {name: trimesh} the objects' visual meshes (object frame), the shadow
     casters; light: the light estimated from the twin's shadows (`relight.estimate_light`), None when none
     was found or re-lighting is off (then nothing is re-lit); unit: twin units per metre.
     """
@@ -125,6 +126,7 @@ class DynamicScene:
     backdrop: Gaussians | None = None
     view_fade: bool = True
     rasterize_mode: str = "classic"
+    eps2d: float = 0.3
     meshes: dict = field(default_factory=dict)
     light: "Light | None" = None
     unit: float = 1.0
@@ -154,6 +156,7 @@ class DynamicScene:
         twin_dir = Path(twin_dir)
         manifest = Manifest.load(twin_dir)
         mpath = twin_dir / "twin.json"
+        mode, eps2d = trained_filter(manifest, mpath)
         if not manifest.splats:
             raise InputError("the twin has no splats (twin.json 'splats' is empty): nothing photoreal to render; "
                              "build it from photos (splattwin build) rather than from meshes", mpath)
@@ -218,7 +221,7 @@ class DynamicScene:
         residue = {n: bg_index[r[front[r]]] for n, r in residue.items()}
         scene = cls(background=full.subset(front), objects=objects, T_world_obj0=poses, residue=residue,
                     table_height=h, twin_dir=twin_dir, backdrop=full.subset(back), view_fade=view_fade,
-                    rasterize_mode=trained_rasterize_mode(manifest, mpath), meshes=meshes,
+                    rasterize_mode=mode, eps2d=eps2d, meshes=meshes,
                     unit=manifest.frame.length_scale())
         if meshes:
             from splattwin.playback.relight import estimate_light
@@ -272,18 +275,18 @@ class DynamicScene:
         return concat(parts, self.sh_degree)
 
 
-def trained_rasterize_mode(manifest: Manifest, where: Path | None = None) -> str:
-    """The rasterizer mode the twin's splats were trained with (twin.json config.build.splat.rasterize_mode),
-    "classic" when the twin does not record one. InputError for an unknown mode."""
-    from splattwin.splat.rasterization import RASTERIZE_MODES
+def trained_filter(manifest: Manifest, where: Path | None = None) -> tuple[str, float]:
+    """(rasterize_mode, eps2d px^2) the twin's splats were trained with (twin.json config.build.splat, see
+    `splat.config.trained_filter`; ("classic", 0.3) when not recorded). InputError naming `where` for an
+    unknown mode or a bad eps2d."""
+    from splattwin.splat.config import trained_filter as from_config
 
     build = manifest.config.get("build") if isinstance(manifest.config, dict) else None
     splat = build.get("splat") if isinstance(build, dict) else None
-    mode = splat.get("rasterize_mode", "classic") if isinstance(splat, dict) else "classic"
-    if mode not in RASTERIZE_MODES:
-        raise InputError(f"unknown rasterize_mode {mode!r} in config.build.splat (one of {', '.join(RASTERIZE_MODES)})",
-                         where)
-    return mode
+    try:
+        return from_config(splat)
+    except ValueError as e:
+        raise InputError(f"config.build.splat: {e}", where) from None
 
 
 def _pad_sh(sh: np.ndarray, degree: int) -> np.ndarray:

@@ -139,10 +139,12 @@ class SplatDepth:
 
     name = "splat"
 
-    def __init__(self, gaussians, min_alpha: float = 0.5, backend: str = "auto", scale: float = 1.0):
+    def __init__(self, gaussians, min_alpha: float = 0.5, backend: str = "auto", scale: float = 1.0,
+                 raster: tuple[str, float | None] = ("classic", None)):
         from splattwin.splat.rasterization import rasterization  # noqa: F401  (fail early if missing)
 
         self.gaussians = gaussians
+        self.raster = raster  # (rasterize_mode, eps2d): as the splats were trained
         self.min_alpha = min_alpha
         self.backend = backend
         self.scale = scale  # render at scale x resolution, upsample (nearest) to the camera's size
@@ -152,7 +154,8 @@ class SplatDepth:
         out = []
         for cam in cameras:
             c = cam if self.scale == 1.0 else cam.scaled(self.scale)
-            colors, alphas = _rasterize(g, np.zeros((len(g.means), 1), np.float32), c, "ED", self.backend)
+            colors, alphas = _rasterize(g, np.zeros((len(g.means), 1), np.float32), c, "ED", self.backend,
+                                        self.raster)
             d = colors[..., -1].astype(np.float32)
             d[alphas < self.min_alpha] = np.inf
             if c is not cam:
@@ -161,11 +164,14 @@ class SplatDepth:
         return out
 
 
-def _rasterize(g, colors: np.ndarray, cam: Camera, mode: str, backend: str) -> tuple[np.ndarray, np.ndarray]:
-    """One camera through the splat stage's `render()`. colors [N,C] -> (render [H,W,ch], alpha [H,W])."""
+def _rasterize(g, colors: np.ndarray, cam: Camera, mode: str, backend: str,
+               raster: tuple[str, float | None] = ("classic", None)) -> tuple[np.ndarray, np.ndarray]:
+    """One camera through the splat stage's `render()`. colors [N,C] -> (render [H,W,ch], alpha [H,W]).
+    raster: (rasterize_mode, eps2d) the splats were trained with (`splat.config.trained_filter`): their
+    footprints and opacities are those the training fitted."""
     from splattwin.splat.render import render
 
-    return render(g, cam, mode=mode, colors=colors, backend=backend)
+    return render(g, cam, mode=mode, colors=colors, backend=backend, rasterize_mode=raster[0], eps2d=raster[1])
 
 
 def default_depth_renderer(gaussians, prefer: str = "splat") -> DepthRenderer:
@@ -179,8 +185,10 @@ def default_depth_renderer(gaussians, prefer: str = "splat") -> DepthRenderer:
 
 
 def render_label_maps(gaussians, labels: np.ndarray, cameras: Sequence[Camera], n_labels: int,
-                      renderer: str = "splat", threshold: float = 0.5, backend: str = "auto") -> list[np.ndarray]:
-    """Per-camera label image [H,W] int32 (0 background) of the labelled Gaussians.
+                      renderer: str = "splat", threshold: float = 0.5, backend: str = "auto",
+                      raster: tuple[str, float | None] = ("classic", None)) -> list[np.ndarray]:
+    """Per-camera label image [H,W] int32 (0 background) of the labelled Gaussians. raster: the splats'
+    trained (rasterize_mode, eps2d), for the "splat" renderer.
 
     renderer "splat": one-hot channels for labels 1..n_labels rendered with `rasterization`; a pixel
     takes the label with the largest accumulated weight, the unlabelled Gaussians' weight (alpha minus
@@ -195,7 +203,7 @@ def render_label_maps(gaussians, labels: np.ndarray, cameras: Sequence[Camera], 
         fg = labels > 0
         onehot[np.flatnonzero(fg), labels[fg] - 1] = 1.0
         for cam in cameras:
-            rc, alpha = _rasterize(gaussians, onehot, cam, "RGB", backend)
+            rc, alpha = _rasterize(gaussians, onehot, cam, "RGB", backend, raster)
             bg = alpha - rc.sum(axis=-1)  # weight of unlabelled Gaussians
             lab = np.concatenate([bg[..., None], rc], axis=-1).argmax(axis=-1).astype(np.int32)
             lab[alpha < threshold] = 0

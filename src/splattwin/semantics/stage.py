@@ -104,6 +104,7 @@ def run(inputs: SemanticsInputs, options: SemanticsOptions, *, progress: bool = 
     from splattwin.semantics.fusion import check_views
     from splattwin.semantics.lift import fuse_to_dir, views_for
     from splattwin.semantics.masks import MaskWarning
+    from splattwin.splat.config import filter_beside
     from splattwin.splat.gaussians import Gaussians
 
     ds = load_dataset(inputs.transforms)
@@ -116,7 +117,8 @@ def run(inputs: SemanticsInputs, options: SemanticsOptions, *, progress: bool = 
     g = Gaussians.load_ply(inputs.splats)
     fusion = fusion_options_for(options.fusion, inputs.transforms)
     res = fuse_to_dir(g, ds, ms, inputs.out_dir, fusion, renderer=options.renderer, label_maps=options.maps,
-                      naive=options.naive, progress=progress, maps_renderer=options.maps_renderer, metrics=True)
+                      naive=options.naive, progress=progress, maps_renderer=options.maps_renderer, metrics=True,
+                      raster=filter_beside(inputs.splats))
     prompts = ms.prompts or {}
     objects = [[res.names[k], int(k), prompts.get(k, res.names[k].replace("_", " "))] for k in res.label_ids]
     io.write_json(inputs.out_dir / "objects.json", objects)

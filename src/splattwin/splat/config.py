@@ -14,6 +14,11 @@ from splattwin.options import option
 if TYPE_CHECKING:  # pragma: no cover
     from splattwin.splat.densify import DensifyConfig
 
+# the rasterizer's default low-pass per mode (px^2); kept here, torch-free, and re-exported by
+# `splat.rasterization` (see there for why)
+DEFAULT_EPS2D = {"classic": 0.3, "antialiased": 0.1}
+LEGACY_EPS2D = 0.3  # what every config trained with before it recorded eps2d, in both modes
+MAX_EPS2D = 10.0
 DEVICES = ("auto", "cpu", "cuda")
 INIT_METHODS = ("auto", "sfm", "depth", "triangulate", "random")
 APPEARANCE_MODES = ("off", "gain", "affine")      # splat/appearance.py
@@ -65,6 +70,14 @@ class TrainConfig:
         Antialiased measured no better on a 2x2-sampled scene (SSIM 0.919 vs 0.921), but on the demo's
         5x5-sampled scene (seed 0, 3000 steps) held-out 34.10 dB / SSIM 0.956 vs 32.01 / 0.948 classic,
         and the twin after the robot's task (bench/photoreal.py) 28.51 vs 27.79 dB: the demo trains with it.
+    eps2d: the low-pass added to each projected Gaussian's covariance (px^2; 0: `DEFAULT_EPS2D` of the mode).
+        Antialiased with 3DGS's 0.3 (the value before this option) blurs every Gaussian wider than the pixel
+        it is seen through; 0.1 (Mip-Splatting's) matches a pixel's box filter (demo scene, 3000 steps,
+        held-out 34.10 -> 36.31 dB / SSIM 0.956 -> 0.974). On real photos (statue, 3000 steps, default
+        hold-out) antialiased 0.3 -> 0.1: 15.98 -> 16.32 dB (SSIM 0.463 -> 0.465), the build's classic
+        16.37 / 0.474, classic with 0.1 16.43 / 0.469 (seed noise ~0.1 dB): the build keeps classic and
+        0.3. Recorded with the config; a config without it
+        (older twins) was trained with 0.3 (`trained_filter`).
     opacity_reg: weight of a mean-opacity penalty (gsplat's opacity_reg; 0: off). 0.05 raised held-out
         SSIM by ~0.006-0.009 (4x4-sampled scene: 0.956 vs 0.949; 2x2-sampled: 0.930 vs 0.921), but the
         fainter Gaussians overlap more (~58 instead of ~50 composited per pixel): ~15-25 % slower.
@@ -132,6 +145,9 @@ class TrainConfig:
     ssim_lambda: float = option(0.2, "weight of D-SSIM in the photometric loss (1 - l) L1 + l D-SSIM")
     rasterize_mode: str = option("classic", "rasterizer mode (evaluation renders with the same)",
                                  choices=("classic", "antialiased"))
+    eps2d: float = option(0.0, "the rasterizer's low-pass filter, px^2 at the training size (0: auto by mode: 0.3 "
+                          "classic, 3DGS's dilation; 0.1 antialiased, Mip-Splatting's 2D filter, about one pixel's "
+                          "box filter); evaluation and the playback render with the same")
     depth_lambda: float = option(0.0, "weight of a depth loss on frames with depth maps (0: off; on D435-like "
                                  "depth, inverse 0.05 cut the rendered-depth error 62 -> 2.4 mm but cost 0.3 dB "
                                  "held-out PSNR, bench/depth.py)")
@@ -224,7 +240,47 @@ class TrainConfig:
         return cfg, (f"sparse capture ({n_views} training views < --sparse-views {self.sparse_views}): {what} "
                      f"(set them, or --sparse-views 0, to override)")
 
+    def filter_eps2d(self) -> float:
+        """The low-pass this config trains with (px^2 at the training size): eps2d, or the mode's default."""
+        return self.eps2d if self.eps2d > 0 else DEFAULT_EPS2D[self.rasterize_mode]
+
     def to_dict(self) -> dict:
         d = asdict(self)
         d["densify_cfg"] = asdict(self.densify_config())
         return d
+
+
+def filter_beside(ply) -> tuple[str, float]:
+    """(rasterize_mode, eps2d) of the training run that wrote `ply` (the train.json in its folder, as
+    `splattwin train` and the splat stage write it); ("classic", 0.3) for a PLY without one. InputError
+    naming train.json when it cannot be read or holds a bad mode or low-pass."""
+    from pathlib import Path
+
+    from splattwin.errors import InputError
+    from splattwin.io import read_json
+
+    rec = Path(ply).parent / "train.json"
+    if not rec.is_file():
+        return trained_filter(None)
+    info = read_json(rec)
+    try:
+        return trained_filter(info.get("config") if isinstance(info, dict) else None)
+    except ValueError as e:
+        raise InputError(f"config: {e}", rec) from None
+
+
+def trained_filter(cfg: dict | None) -> tuple[str, float]:
+    """(rasterize_mode, eps2d px^2) a recorded `TrainConfig.to_dict()` (train.json's config, twin.json's
+    config.build.splat) was trained with: ("classic", 0.3) for none; a config without eps2d predates the
+    option and used LEGACY_EPS2D. ValueError for an unknown mode or an eps2d outside [0, MAX_EPS2D]."""
+    if not isinstance(cfg, dict):
+        return "classic", DEFAULT_EPS2D["classic"]
+    mode = cfg.get("rasterize_mode", "classic")
+    if mode not in DEFAULT_EPS2D:
+        raise ValueError(f"unknown rasterize_mode {mode!r} (one of {', '.join(DEFAULT_EPS2D)})")
+    if "eps2d" not in cfg:
+        return mode, LEGACY_EPS2D
+    eps = cfg["eps2d"]
+    if isinstance(eps, bool) or not isinstance(eps, (int, float)) or not 0.0 <= eps <= MAX_EPS2D:
+        raise ValueError(f"eps2d must be a number in [0, {MAX_EPS2D:g}] px^2, got {eps!r}")
+    return mode, float(eps) if eps > 0 else DEFAULT_EPS2D[mode]

@@ -42,6 +42,7 @@ from splattwin.errors import InputError
 from splattwin.io import write_image, write_json
 from splattwin.splat import metrics
 from splattwin.splat.appearance import heldout_corrected_psnr
+from splattwin.splat.config import trained_filter
 from splattwin.splat.losses import psnr_from_mse
 from splattwin.splat.gaussians import Gaussians
 from splattwin.splat.pose_refine import align_camera, pose_errors
@@ -198,7 +199,15 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
     cfg = info.get("config", {})
     rule, mode_res = _eval_resolution(info, resolution, full_resolution)
     bg = background if background is not None else cfg.get("background", (0.0, 0.0, 0.0))
-    mode = rasterize_mode or cfg.get("rasterize_mode", "classic")
+    # the mode and low-pass the splats were trained with (train.json); bare Gaussians: the mode's default
+    mode, eps2d = "classic", None
+    if cfg:
+        try:
+            mode, eps2d = trained_filter(cfg)
+        except ValueError as e:
+            raise InputError(f"config: {e}", Path(splat) / "train.json") from None
+    if rasterize_mode and rasterize_mode != mode:
+        mode, eps2d = rasterize_mode, None
     views = load_views(frames, rule)
     sizes = [(v.camera.width, v.camera.height) for v in views]
     full = [(f.camera.width, f.camera.height) for f in frames]
@@ -216,14 +225,14 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
         T_cw, extra = None, {}
         if align_poses:
             T_cw = align_camera(g, v.camera, gt, iters=align_iters, background=tuple(bg), backend=backend,
-                                rasterize_mode=mode)
+                                rasterize_mode=mode, eps2d=eps2d)
             rot, centre = pose_errors(T_cw[None], v.camera.T_cam_world[None])
             extra = {"pose_correction_deg": float(rot[0]), "pose_correction_m": float(centre[0])}
         # the expected depth for the coverage test comes from the same pass as the colours
         with_depth = split == "heldout" and bool(train_cams)
         rendered, alpha = render(g, v.camera, mode="RGB+ED" if with_depth else "RGB",
                                  background=tuple(bg) if background_model is None else (0.0, 0.0, 0.0),
-                                 backend=backend, T_cam_world=T_cw, rasterize_mode=mode)
+                                 backend=backend, T_cam_world=T_cw, rasterize_mode=mode, eps2d=eps2d)
         img = np.clip(rendered[..., :3], 0.0, 1.0) if background_model is None else rendered[..., :3].copy()
         if background_model is not None:
             T = v.camera.T_cam_world if T_cw is None else T_cw

@@ -139,7 +139,7 @@ def pose_errors(T_cam_world: np.ndarray, T_cam_world_ref: np.ndarray) -> tuple[n
 
 def align_camera(gaussians, camera, image: np.ndarray, iters: int = 300, lr: float = 1e-3,
                  background: tuple[float, float, float] = (0.0, 0.0, 0.0), ssim_lambda: float = 0.2,
-                 backend: str = "auto", rasterize_mode: str = "classic") -> np.ndarray:
+                 backend: str = "auto", rasterize_mode: str = "classic", eps2d: float | None = None) -> np.ndarray:
     """Test-time pose alignment (InstantSplat's evaluation protocol): the camera's SE(3) correction that
     best renders `image` from the fixed Gaussians.
 
@@ -153,6 +153,7 @@ def align_camera(gaussians, camera, image: np.ndarray, iters: int = 300, lr: flo
     Args:
         gaussians: a `Gaussians` set (not modified). camera: its `Camera` (K, size, T_cam_world).
         image: [H,W,3] float32 in [0,1] at the camera's size.
+        rasterize_mode, eps2d: as the splats were trained (eps2d None: the mode's default).
     Returns:
         [4,4] float64 corrected T_cam_world.
     """
@@ -173,7 +174,7 @@ def align_camera(gaussians, camera, image: np.ndarray, iters: int = 300, lr: flo
     for _ in range(iters):
         img, _, _ = rasterization(*args, pc.apply(vm, [0]), K, camera.width, camera.height,
                                   sh_degree=g.sh_degree, backgrounds=bg, backend=name,
-                                  rasterize_mode=rasterize_mode)
+                                  rasterize_mode=rasterize_mode, eps2d=eps2d)
         photometric_loss(img[0], gt, ssim_lambda).backward()
         pc.step([0])
         for grp in pc.optimizers[0].param_groups:

@@ -42,7 +42,7 @@ def as_tensor(a: np.ndarray, device: torch.device | str = "cpu") -> torch.Tensor
 def render(gaussians: "Gaussians", camera: "Camera", *, mode: RenderMode = "RGB",
            colors: np.ndarray | None = None, background: tuple[float, ...] | None = None,
            backend: str = "auto", sh_degree: int | None = None, T_cam_world: np.ndarray | None = None,
-           rasterize_mode: str = "classic") -> tuple[np.ndarray, np.ndarray]:
+           rasterize_mode: str = "classic", eps2d: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Render one camera.
 
     Args:
@@ -52,6 +52,8 @@ def render(gaussians: "Gaussians", camera: "Camera", *, mode: RenderMode = "RGB"
         background: [D] values behind the Gaussians (channel modes only); None = zeros.
         sh_degree: cap on the SH degree used (None = the model's degree).
         T_cam_world: [4,4] view matrix overriding `camera.T_cam_world`.
+        rasterize_mode, eps2d: the rasterizer's mode and low-pass (px^2; None: the mode's default), as the
+            splats were trained (`splat.config.trained_filter`).
     Returns:
         image [H,W,C] float32 (C = D for "RGB", 1 for "ED", D+1 for "RGB+ED"), alpha [H,W] float32.
     """
@@ -77,7 +79,7 @@ def render(gaussians: "Gaussians", camera: "Camera", *, mode: RenderMode = "RGB"
     img, alpha, _ = rasterization(t(gaussians.means), t(gaussians.quats), t(gaussians.scales),
                                   t(gaussians.opacities), feats, t(vm)[None], t(camera.K)[None], w, h,
                                   sh_degree=deg_arg, backgrounds=bg, render_mode=mode, backend=name,
-                                  rasterize_mode=rasterize_mode)
+                                  rasterize_mode=rasterize_mode, eps2d=eps2d)
     return img[0].cpu().numpy().copy(), alpha[0, ..., 0].cpu().numpy().copy()
 
 
@@ -96,11 +98,11 @@ def render_rgbd(gaussians: "Gaussians", camera: "Camera", background: tuple[floa
 
 
 def render_rgb(gaussians: "Gaussians", camera: "Camera", background: tuple[float, float, float] | None = None,
-               backend: str = "auto", T_cam_world: np.ndarray | None = None, rasterize_mode: str = "classic"
-               ) -> np.ndarray:
+               backend: str = "auto", T_cam_world: np.ndarray | None = None, rasterize_mode: str = "classic",
+               eps2d: float | None = None) -> np.ndarray:
     """[H,W,3] float32 colour image in [0,1] (over `background`, black by default)."""
     img, _ = render(gaussians, camera, mode="RGB", background=background, backend=backend,
-                    T_cam_world=T_cam_world, rasterize_mode=rasterize_mode)
+                    T_cam_world=T_cam_world, rasterize_mode=rasterize_mode, eps2d=eps2d)
     return np.clip(img, 0.0, 1.0)
 
 

@@ -37,7 +37,7 @@ from splattwin.io import write_json
 from splattwin.runtime import torch_threads
 from splattwin.splat import checkpoint as ckpt_io
 from splattwin.splat import extras
-from splattwin.splat.config import TrainConfig
+from splattwin.splat.config import MAX_EPS2D, TrainConfig
 from splattwin.splat.depth_loss import depth_loss  # noqa: F401  (also re-exported: trainer.depth_loss)
 from splattwin.splat.gaussians import Gaussians
 from splattwin.splat.init import initial_gaussians, scene_center_and_scale
@@ -76,10 +76,10 @@ class TrainResult:
     refined_T_world_cam: dict[str, list] | None = None
 
 
-EPS2D = 0.3  # the rasterizer's low-pass (px^2 at the training size); 1/4^level of it at coarse levels, so
-# a coarse level renders every Gaussian as the training size does, only sampled on a coarser grid (with
-# 0.3 coarse px^2, sub-pixel Gaussians learnt at 1/4 size were dilated 16x more than at full size, and the
-# model kept that bias: -0.4 dB held-out on the embedded scene)
+# The low-pass is the config's (`TrainConfig.filter_eps2d`, px^2 at the training size) and 1/4^level of it
+# at coarse levels, so a coarse level renders every Gaussian as the training size does, only sampled on a
+# coarser grid (with 0.3 coarse px^2, sub-pixel Gaussians learnt at 1/4 size were dilated 16x more than at
+# full size, and the model kept that bias: -0.4 dB held-out on the embedded scene)
 MIN_LEVEL_SIDE = 32  # coarse levels keep at least this many pixels on the short side (SSIM needs 11)
 
 
@@ -260,6 +260,8 @@ class Trainer:
             raise InputError(f"--sh-degree must be 0..3 (or -1: auto), got {self.cfg.sh_degree}")
         if not (self.cfg.drop_rate == -1 or 0 <= self.cfg.drop_rate < 1):
             raise InputError(f"--drop-rate must be in [0, 1) (or -1: auto), got {self.cfg.drop_rate:g}")
+        if not 0.0 <= self.cfg.eps2d <= MAX_EPS2D:
+            raise InputError(f"--eps2d must be in [0, {MAX_EPS2D:g}] px^2 (0: auto), got {self.cfg.eps2d:g}")
         if self.cfg.device not in ("auto", "cpu", "cuda"):
             raise InputError(f"--device must be auto, cpu or cuda, got {self.cfg.device!r}")
         self.frames = dataset.train()
@@ -441,7 +443,7 @@ class Trainer:
             self.Ks_levels[level][idx:idx + 1], v.camera.width, v.camera.height,
             sh_degree=self.sh_degree_at(self.step) if sh_degree is None else sh_degree,
             backgrounds=self.bg, render_mode=render_mode, backend=self.backend,
-            rasterize_mode=self.cfg.rasterize_mode, eps2d=EPS2D / 4**level)
+            rasterize_mode=self.cfg.rasterize_mode, eps2d=self.cfg.filter_eps2d() / 4**level)
         return colors[0], alphas[0], meta
 
     def train_step(self) -> dict:
