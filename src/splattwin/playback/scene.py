@@ -156,7 +156,7 @@ class DynamicScene:
         twin_dir = Path(twin_dir)
         manifest = Manifest.load(twin_dir)
         mpath = twin_dir / "twin.json"
-        mode, eps2d = trained_filter(manifest, mpath)
+        mode, eps2d = manifest_filter(manifest, mpath)
         if not manifest.splats:
             raise InputError("the twin has no splats (twin.json 'splats' is empty): nothing photoreal to render; "
                              "build it from photos (splattwin build) rather than from meshes", mpath)
@@ -275,16 +275,16 @@ class DynamicScene:
         return concat(parts, self.sh_degree)
 
 
-def trained_filter(manifest: Manifest, where: Path | None = None) -> tuple[str, float]:
+def manifest_filter(manifest: Manifest, where: Path | None = None) -> tuple[str, float]:
     """(rasterize_mode, eps2d px^2) the twin's splats were trained with (twin.json config.build.splat, see
     `splat.config.trained_filter`; ("classic", 0.3) when not recorded). InputError naming `where` for an
     unknown mode or a bad eps2d."""
-    from splattwin.splat.config import trained_filter as from_config
+    from splattwin.splat.config import trained_filter
 
     build = manifest.config.get("build") if isinstance(manifest.config, dict) else None
     splat = build.get("splat") if isinstance(build, dict) else None
     try:
-        return from_config(splat)
+        return trained_filter(splat)
     except ValueError as e:
         raise InputError(f"config.build.splat: {e}", where) from None
 
