@@ -168,3 +168,22 @@ def test_estimate_uses_the_trainers_default_budget_and_the_larger_phase():
     assert auto.memory < sum(auto.parts.values())
     no_sfm = pf.estimate(sizes, train, cap, False, 0)
     assert auto.memory >= no_sfm.memory and no_sfm.memory == sum(no_sfm.parts.values())
+
+
+def test_bad_training_option_stops_before_poses_with_the_other_problems(tmp_path, capsys):
+    """A training option out of range (here the rasterizer's low-pass) is named at pre-flight, with the
+    other problems, not after pose estimation; a build that stops before the splat stage is not held up
+    by it."""
+    from splattwin.splat.config import TrainConfig
+
+    imgs = _images(tmp_path / "imgs")
+    out = tmp_path / "twin"
+    code = cli(["build", str(imgs), "--out", str(out), "--splat.eps2d", "-1", "--task", "default", "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2 and "pre-flight found 3 problems" in err
+    assert "--eps2d must be in [0, 10]" in err and "--task needs a metric twin" in err and "no 2D masks" in err
+    assert not (out / "poses").exists()
+    bad = BuildOptions(input=str(imgs), splat=TrainConfig(drop_rate=1.5))
+    pf.run_preflight(bad, out, imgs, None, tmp_path / "frames", until="poses")
+    with pytest.raises(InputError, match="--drop-rate must be in"):
+        pf.run_preflight(bad, out, imgs, None, tmp_path / "frames", until="splats")

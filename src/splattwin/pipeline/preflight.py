@@ -10,6 +10,8 @@ model or option:
 - `--task`: the twin will be metric. An image folder or video posed by SfM is known only up to scale;
   without --known-length, --marker-size or --robot-poses the robot stage would refuse it after training;
 - the task YAML parses;
+- the training options lie in their ranges (`TrainConfig.check`, which the trainer runs again), when the
+  splat stage will run;
 - memory and disk for the capture at the training resolution and the Gaussian budget (`estimate`):
   refused only when clearly insufficient (the estimate above `REFUSE_FACTOR` times what is free), a
   warning when tight.
@@ -190,6 +192,11 @@ def run_preflight(options, out: Path, input_path: Path | None, scene_dir: Path |
     # every independent problem is collected, so one run names all of them (a user fixing the first and
     # re-running only to meet the second is what pre-flight is for)
     problems: list[InputError] = []
+    if _runs(until, "splats"):  # option ranges the trainer would refuse only after the poses
+        try:
+            o.splat.check()
+        except InputError as e:
+            problems.append(e)
     # models first: needs no capture at all
     if o.semantics.prompt and not o.semantics.masks:
         from splattwin.semantics.models import missing_models_error

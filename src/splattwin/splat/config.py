@@ -240,6 +240,22 @@ class TrainConfig:
         return cfg, (f"sparse capture ({n_views} training views < --sparse-views {self.sparse_views}): {what} "
                      f"(set them, or --sparse-views 0, to override)")
 
+    def check(self) -> None:
+        """InputError naming the first option out of its range (the trainer's check, and the build's
+        pre-flight, so a bad value stops a build before pose estimation)."""
+        from splattwin.errors import InputError
+
+        if self.iters <= 0:
+            raise InputError(f"--iters must be positive, got {self.iters}")
+        if not -1 <= self.sh_degree <= 3:
+            raise InputError(f"--sh-degree must be 0..3 (or -1: auto), got {self.sh_degree}")
+        if not (self.drop_rate == -1 or 0 <= self.drop_rate < 1):
+            raise InputError(f"--drop-rate must be in [0, 1) (or -1: auto), got {self.drop_rate:g}")
+        if not 0.0 <= self.eps2d <= MAX_EPS2D:
+            raise InputError(f"--eps2d must be in [0, {MAX_EPS2D:g}] px^2 (0: auto), got {self.eps2d:g}")
+        if self.device not in DEVICES:
+            raise InputError(f"--device must be auto, cpu or cuda, got {self.device!r}")
+
     def filter_eps2d(self) -> float:
         """The low-pass this config trains with (px^2 at the training size): eps2d, or the mode's default."""
         return self.eps2d if self.eps2d > 0 else DEFAULT_EPS2D[self.rasterize_mode]

@@ -37,7 +37,7 @@ from splattwin.io import write_json
 from splattwin.runtime import torch_threads
 from splattwin.splat import checkpoint as ckpt_io
 from splattwin.splat import extras
-from splattwin.splat.config import MAX_EPS2D, TrainConfig
+from splattwin.splat.config import TrainConfig
 from splattwin.splat.depth_loss import depth_loss  # noqa: F401  (also re-exported: trainer.depth_loss)
 from splattwin.splat.gaussians import Gaussians
 from splattwin.splat.init import initial_gaussians, scene_center_and_scale
@@ -254,16 +254,7 @@ class Trainer:
         self.cfg = cfg or TrainConfig()
         self.dataset = dataset
         self.out_dir = Path(out_dir)
-        if self.cfg.iters <= 0:
-            raise InputError(f"--iters must be positive, got {self.cfg.iters}")
-        if not -1 <= self.cfg.sh_degree <= 3:
-            raise InputError(f"--sh-degree must be 0..3 (or -1: auto), got {self.cfg.sh_degree}")
-        if not (self.cfg.drop_rate == -1 or 0 <= self.cfg.drop_rate < 1):
-            raise InputError(f"--drop-rate must be in [0, 1) (or -1: auto), got {self.cfg.drop_rate:g}")
-        if not 0.0 <= self.cfg.eps2d <= MAX_EPS2D:
-            raise InputError(f"--eps2d must be in [0, {MAX_EPS2D:g}] px^2 (0: auto), got {self.cfg.eps2d:g}")
-        if self.cfg.device not in ("auto", "cpu", "cuda"):
-            raise InputError(f"--device must be auto, cpu or cuda, got {self.cfg.device!r}")
+        self.cfg.check()
         self.frames = dataset.train()
         if not self.frames:
             raise InputError("dataset has no training frames", dataset.root)
