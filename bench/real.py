@@ -185,7 +185,8 @@ def _train_eval(ds, out: Path, iters: int, seed: int = 0, init: str = "auto") ->
     t0 = time.perf_counter()
     cfg = TrainConfig(iters=iters, checkpoint_every=0, progress=False, seed=seed, init=init)
     res = Trainer(ds, out, cfg).run()
-    ev = evaluate(res.gaussians, ds, out / "eval", progress=False, rasterize_mode=cfg.rasterize_mode)
+    ev = evaluate(res.gaussians, ds, out / "eval", progress=False, rasterize_mode=cfg.rasterize_mode,
+                  eps2d=cfg.filter_eps2d())
     return ev.mean_psnr, ev.mean_ssim, res.init_method, time.perf_counter() - t0
 
 

@@ -166,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
             if rep == 0 and args.eval_every and (info["step"] % args.eval_every == 0 or info["step"] == cfg.iters):
                 g = tr.model.to_gaussians()
                 e = evaluate(g, ds, None, resolution=cfg.resolution, progress=False,
-                             rasterize_mode=cfg.rasterize_mode)
+                             rasterize_mode=cfg.rasterize_mode, eps2d=cfg.filter_eps2d())
                 curve.append({"step": info["step"], "train_s": round(now - t0 - paused[0], 2),
                               "train_cpu_s": round(cnow - c0 - paused[1], 2),
                               "psnr": round(e.mean_psnr, 3), "ssim": round(e.mean_ssim, 4), "n": len(g)})
@@ -184,14 +184,14 @@ def main(argv: list[str] | None = None) -> int:
     wall = statistics.median(walls)
     t = time.perf_counter()
     ev = evaluate(res.gaussians, ds, out / "eval", resolution=cfg.resolution, progress=False,
-                  rasterize_mode=cfg.rasterize_mode)
+                  rasterize_mode=cfg.rasterize_mode, eps2d=cfg.filter_eps2d())
     t_eval = time.perf_counter() - t
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB -> GiB
 
     pose: dict = {}
     if noisy or refine_poses:  # + InstantSplat's protocol: held-out cameras fitted to the fixed splat
         ev_al = evaluate(res.gaussians, ds, out / "eval_aligned", resolution=cfg.resolution, progress=False,
-                         align_poses=True, rasterize_mode=cfg.rasterize_mode)
+                         align_poses=True, rasterize_mode=cfg.rasterize_mode, eps2d=cfg.filter_eps2d())
         pose["psnr_aligned"], pose["ssim_aligned"] = round(ev_al.mean_psnr, 3), round(ev_al.mean_ssim, 4)
         T_in = np.stack([f.camera.T_cam_world for f in ds.train()])
         T_out = T_in if res.refined_T_world_cam is None else np.stack(

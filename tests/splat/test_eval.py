@@ -133,6 +133,8 @@ def test_eval_renders_with_the_low_pass_the_splats_were_trained_with(tmp_path):
     assert legacy.mean_psnr == explicit.mean_psnr
     assert auto.mean_psnr == pytest.approx(bare.mean_psnr, abs=1e-4)  # (the PLY stores float32)
     assert abs(auto.mean_psnr - legacy.mean_psnr) > 0.01  # the two low-passes differ here: the test can fail
+    given = evaluate(g, ds_root, None, progress=False, rasterize_mode="antialiased", eps2d=0.3)
+    assert given.mean_psnr == pytest.approx(legacy.mean_psnr, abs=1e-4)   # an explicit low-pass wins
     with pytest.raises(InputError, match="eps2d") as e:
         evaluate(folder("bad", {"rasterize_mode": "antialiased", "eps2d": "wide"}), ds_root, None, progress=False)
     assert "train.json" in str(e.value)

@@ -164,11 +164,14 @@ def _eval_resolution(info: dict, resolution: int | None, full_resolution: bool) 
 
 def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_dir: str | Path | None = None,
              resolution: int | None = None, background=None, backend: str = "auto",
-             progress: bool = True, rasterize_mode: str | None = None, align_poses: bool = False,
-             align_iters: int = 300, full_resolution: bool = False, background_model=None) -> EvalResult:
+             progress: bool = True, rasterize_mode: str | None = None, eps2d: float | None = None,
+             align_poses: bool = False, align_iters: int = 300, full_resolution: bool = False,
+             background_model=None) -> EvalResult:
     """Evaluate a splat (training folder, PLY path, or `Gaussians`) on the dataset's held-out views
     (see the module docstring for the resolution). background_model: a learnt
-    `background.BackgroundModel` to composite (default: the one saved beside the PLY, if any)."""
+    `background.BackgroundModel` to composite (default: the one saved beside the PLY, if any).
+    rasterize_mode, eps2d: the rasterizer's mode and low-pass (px^2); None: as train.json records them (bare
+    Gaussians: classic, and a mode's default low-pass)."""
     from splattwin.progress import track
 
     from splattwin.splat import extras
@@ -200,14 +203,15 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
     rule, mode_res = _eval_resolution(info, resolution, full_resolution)
     bg = background if background is not None else cfg.get("background", (0.0, 0.0, 0.0))
     # the mode and low-pass the splats were trained with (train.json); bare Gaussians: the mode's default
-    mode, eps2d = "classic", None
+    mode, low_pass = "classic", None
     if cfg:
         try:
-            mode, eps2d = trained_filter(cfg)
+            mode, low_pass = trained_filter(cfg)
         except ValueError as e:
             raise InputError(f"config: {e}", Path(splat) / "train.json") from None
     if rasterize_mode and rasterize_mode != mode:
-        mode, eps2d = rasterize_mode, None
+        mode, low_pass = rasterize_mode, None
+    eps2d = low_pass if eps2d is None else float(eps2d)
     views = load_views(frames, rule)
     sizes = [(v.camera.width, v.camera.height) for v in views]
     full = [(f.camera.width, f.camera.height) for f in frames]
