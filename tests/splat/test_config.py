@@ -42,3 +42,11 @@ def test_filter_beside_reads_the_training_record_next_to_a_splat_file(tmp_path):
     (tmp_path / "train.json").write_text("{not json")
     with pytest.raises(InputError, match="train.json"):
         filter_beside(ply)
+
+
+def test_filter_for_keeps_the_trained_low_pass_only_in_the_trained_mode():
+    from splattwin.splat.config import filter_for
+
+    assert filter_for(("antialiased", 0.1)) == ("antialiased", 0.1)
+    assert filter_for(("antialiased", 0.1), "antialiased") == ("antialiased", 0.1)
+    assert filter_for(("antialiased", 0.1), "classic") == ("classic", None)   # that mode's own default

@@ -27,6 +27,7 @@ from splattwin.playback.cameras import EyeInHand
 from splattwin.playback.relight import scale_sh
 from splattwin.playback.robot import RobotPose, RobotSplats
 from splattwin.playback.scene import DynamicScene, pose_moved, rigid_transform
+from splattwin.splat.config import filter_for
 from splattwin.splat.gaussians import rgb_to_sh0
 
 
@@ -274,8 +275,7 @@ class PlaybackRenderer:
         as a layer behind everything, so that no surroundings splat veils the robot; without the robot
         one depth-sorted pass of all splats, exactly as they were trained."""
         t0 = time.perf_counter()
-        trained = (self.scene.rasterize_mode, self.scene.eps2d)
-        filt = trained if rasterize_mode in (None, trained[0]) else (rasterize_mode, None)
+        filt = filter_for((self.scene.rasterize_mode, self.scene.eps2d), rasterize_mode)
         n = self.layout(object_poses or {}, robot_pose)
         layered = (robot_pose is not None and self.robot is not None) if layered is None else layered
         layered = layered and self.n_backdrop > 0

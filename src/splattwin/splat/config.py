@@ -76,8 +76,8 @@ class TrainConfig:
         held-out 34.10 -> 36.31 dB / SSIM 0.956 -> 0.974). On real photos (statue, 3000 steps, default
         hold-out) antialiased 0.3 -> 0.1: 15.98 -> 16.32 dB (SSIM 0.463 -> 0.465), the build's classic
         16.37 / 0.474, classic with 0.1 16.43 / 0.469 (seed noise ~0.1 dB): the build keeps classic and
-        0.3. Recorded with the config; a config without it
-        (older twins) was trained with 0.3 (`trained_filter`).
+        0.3. Recorded with the config; a config without it (older twins) was trained with 0.3
+        (`trained_filter`).
     opacity_reg: weight of a mean-opacity penalty (gsplat's opacity_reg; 0: off). 0.05 raised held-out
         SSIM by ~0.006-0.009 (4x4-sampled scene: 0.956 vs 0.949; 2x2-sampled: 0.930 vs 0.921), but the
         fainter Gaussians overlap more (~58 instead of ~50 composited per pixel): ~15-25 % slower.
@@ -283,6 +283,12 @@ def filter_beside(ply) -> tuple[str, float]:
         return trained_filter(info.get("config") if isinstance(info, dict) else None)
     except ValueError as e:
         raise InputError(f"config: {e}", rec) from None
+
+
+def filter_for(trained: tuple[str, float | None], rasterize_mode: str | None = None) -> tuple[str, float | None]:
+    """(mode, eps2d) to draw splats trained with `trained` = (mode, eps2d) in `rasterize_mode`: None or the
+    trained mode keeps the trained low-pass; another mode takes its own default (eps2d None)."""
+    return trained if rasterize_mode in (None, trained[0]) else (rasterize_mode, None)
 
 
 def trained_filter(cfg: dict | None) -> tuple[str, float]:

@@ -42,7 +42,7 @@ from splattwin.errors import InputError
 from splattwin.io import write_image, write_json
 from splattwin.splat import metrics
 from splattwin.splat.appearance import heldout_corrected_psnr
-from splattwin.splat.config import trained_filter
+from splattwin.splat.config import filter_for, trained_filter
 from splattwin.splat.losses import psnr_from_mse
 from splattwin.splat.gaussians import Gaussians
 from splattwin.splat.pose_refine import align_camera, pose_errors
@@ -203,14 +203,13 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
     rule, mode_res = _eval_resolution(info, resolution, full_resolution)
     bg = background if background is not None else cfg.get("background", (0.0, 0.0, 0.0))
     # the mode and low-pass the splats were trained with (train.json); bare Gaussians: the mode's default
-    mode, low_pass = "classic", None
+    trained: tuple[str, float | None] = ("classic", None)
     if cfg:
         try:
-            mode, low_pass = trained_filter(cfg)
+            trained = trained_filter(cfg)
         except ValueError as e:
             raise InputError(f"config: {e}", Path(splat) / "train.json") from None
-    if rasterize_mode and rasterize_mode != mode:
-        mode, low_pass = rasterize_mode, None
+    mode, low_pass = filter_for(trained, rasterize_mode or None)
     eps2d = low_pass if eps2d is None else float(eps2d)
     views = load_views(frames, rule)
     sizes = [(v.camera.width, v.camera.height) for v in views]
