@@ -135,3 +135,40 @@ def test_fuse_to_dir_reads_the_trained_filter_beside_the_splats(tmp_path, monkey
     with pytest.raises(InputError, match="eps2d") as e:
         fuse(run / "point_cloud.ply", "bad")
     assert "train.json" in str(e.value)
+
+
+def test_splat_depth_and_label_maps_land_where_a_distorted_camera_sees_the_splats():
+    """A photo with lens distortion (SfM's SIMPLE_RADIAL): the fusion projects centres through the lens
+    model (`project_to_pixels`), so the depth and label maps it compares them with must be in the photo's
+    pixel grid too. Small splats near the corners (displaced ~9 px by k1 = 0.1) are found at their distorted
+    pixels with their depth; drawn as a pinhole they were not."""
+    import dataclasses
+
+    from splattwin.capture import Camera
+    from splattwin.semantics.label_render import SplatDepth, project_to_pixels, render_label_maps
+    from splattwin.splat.gaussians import Gaussians
+
+    cam = Camera(K=np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]]), width=320, height=240,
+                 dist=[0.1, 0.0, 0.0, 0.0])
+    xy = np.array([[-0.45, -0.32], [0.45, -0.3], [-0.44, 0.31], [0.42, 0.33], [0.0, 0.0]])
+    z = np.array([1.0, 1.2, 1.4, 1.1, 1.3])
+    means = np.c_[xy * z[:, None], z]
+    n = len(means)
+    g = Gaussians(means=means, quats=np.tile([1.0, 0, 0, 0], (n, 1)), scales=np.full((n, 3), 0.004),
+                  opacities=np.full(n, 0.99), sh=np.zeros((n, 1, 3)))
+    pix, zz = project_to_pixels(means, cam)
+    assert np.all(pix >= 0)
+    v, u = np.divmod(pix, cam.width)
+    d = SplatDepth(g, min_alpha=0.3)(None, [cam])[0]
+    assert d.shape == (240, 320)
+    np.testing.assert_allclose(d[v, u], zz, rtol=1e-3)
+    half = SplatDepth(g, min_alpha=0.3, scale=0.5)(None, [cam])[0]  # drawn at half size, in the photo's grid
+    assert half.shape == (240, 320)
+    np.testing.assert_allclose(half[v, u], zz, rtol=1e-3)
+    labels = np.arange(1, n + 1)
+    lab = render_label_maps(g, labels, [cam], n, threshold=0.3)[0]
+    np.testing.assert_array_equal(lab[v, u], labels)
+    # the same splats drawn as if the lens were ideal miss their corner pixels
+    pinhole = dataclasses.replace(cam, dist=None)
+    d_pin = SplatDepth(g, min_alpha=0.3)(None, [pinhole])[0]
+    assert np.isinf(d_pin[v[:4], u[:4]]).all() and np.isfinite(d_pin[v[4], u[4]])

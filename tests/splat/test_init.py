@@ -38,6 +38,21 @@ def test_backproject_plane_and_missing_pixels():
     assert np.allclose(rgb, 0.5)
 
 
+def test_backproject_through_a_distorted_lens():
+    """With lens distortion (TUM's Freiburg cameras, SfM's SIMPLE_RADIAL) each pixel's point lies on the
+    ray the lens model sends through that pixel: projected back with the model it lands on the pixel
+    centre at the measured z-depth."""
+    import dataclasses
+
+    cam = dataclasses.replace(_cam(), dist=np.array([0.2, -0.1, 0.001, -0.002]))
+    depth = np.full((30, 40), 1.5, np.float32)
+    xyz, _ = backproject_depth(depth, cam, stride=1)
+    uv, z = cam.project(xyz)
+    np.testing.assert_allclose(z, 1.5, atol=1e-9)
+    v, u = np.mgrid[0:30, 0:40]
+    np.testing.assert_allclose(uv, np.stack([u.ravel() + 0.5, v.ravel() + 0.5], 1), atol=1e-6)
+
+
 def test_points_from_depth_with_background(tmp_path):
     cam = _cam()
     depth = np.full((30, 40), 1.0, np.float32)

@@ -648,3 +648,37 @@ def test_training_renders_with_the_configs_low_pass(synth, tmp_path):
     torch.testing.assert_close(img, ref[0.3])
     with pytest.raises(InputError, match="eps2d"):
         Trainer(ds, tmp_path / "bad", tiny_config(eps2d=-1.0))
+
+
+@pytest.mark.parametrize("resolution", [1, 2])
+def test_load_views_undistorts_photos_to_the_rasterizers_pinhole(tmp_path, resolution):
+    """A photo with lens distortion is trained on (and evaluated against) as its ideal pinhole image: the
+    loaded view's camera has no distortion and its pixels match a pinhole render of the scene; the photo
+    as taken, compared with a pinhole render at its own intrinsics (what training did before), does not."""
+    import dataclasses
+
+    from splattwin.capture.undistort import distort_image, pinhole_for
+    from splattwin.errors import InputError
+    from splattwin.splat.losses import psnr_from_mse
+    from splattwin.splat.trainer import load_views
+
+    g = gt_gaussians()
+    cam = dataclasses.replace(ring_cameras(1, 160, 120)[0], dist=np.array([0.12, 0.02, 0.0, 0.0]), name="d0")
+    pin = pinhole_for(cam)
+    fine = pin.scaled(2.0)
+    photo = distort_image(render_gaussians(g, fine), fine, cam)
+    p = write_image(tmp_path / "d0.png", (np.clip(photo, 0, 1) * 255 + 0.5).astype(np.uint8))
+    view = load_views([Frame(image_path=p, camera=cam)], resolution)[0]
+    assert view.camera.dist is None
+    expect = pin.scaled(1.0 / resolution)
+    np.testing.assert_allclose(view.camera.K, expect.K, rtol=1e-9)
+    truth = render_gaussians(g, expect)
+    inner = (slice(2, -2), slice(2, -2))
+    psnr = lambda a, b: float(psnr_from_mse(torch.tensor(float(np.mean((a[inner] - b[inner]) ** 2)))))  # noqa: E731
+    ok = psnr(view.image.numpy(), truth)
+    raw = load_views([Frame(image_path=p, camera=dataclasses.replace(cam, dist=None))], resolution)[0]
+    naive = psnr(raw.image.numpy(), render_gaussians(g, raw.camera))
+    assert ok > 40.0 and ok > naive + 10.0, (ok, naive)
+    bad = dataclasses.replace(cam, dist=np.array([-8.0, 0.0, 0.0, 0.0]))  # folds back: no lens does that
+    with pytest.raises(InputError, match=r"d0\.png.*cannot be undistorted"):
+        load_views([Frame(image_path=p, camera=bad)], resolution)

@@ -13,6 +13,10 @@ Two depth backends behind one call signature `(keep [N] bool | None, cameras) ->
 Label maps: one-hot label channels rendered through `rasterization()` (`sh_degree=None`, any number of
 channels), the largest accumulated weight wins with the unlabelled weight as background; or, with the
 point backend, the label of the nearest centre (the "projected" labels).
+
+Cameras with lens distortion (SfM's SIMPLE_RADIAL): the rasterizer draws at the pinhole camera that covers
+the photo (`capture.undistort.covering_pinhole`) and the map is resampled to the photo's pixel grid, where
+the masks are and where `project_to_pixels` puts the centres.
 """
 from __future__ import annotations
 
@@ -23,6 +27,7 @@ import numpy as np
 
 from splattwin.capture.camera import Camera
 from splattwin.capture.dataset import resize_nearest
+from splattwin.capture.undistort import covering_pinhole, distort_image
 
 DepthRenderer = Callable[[np.ndarray | None, Sequence[Camera]], list[np.ndarray]]
 
@@ -153,12 +158,15 @@ class SplatDepth:
         g = self.gaussians if keep is None else self.gaussians.subset(keep)
         out = []
         for cam in cameras:
-            c = cam if self.scale == 1.0 else cam.scaled(self.scale)
+            pin = covering_pinhole(cam)  # the rasterizer draws pinholes: a distorted photo's is resampled
+            c = pin if self.scale == 1.0 else pin.scaled(self.scale)
             colors, alphas = _rasterize(g, np.zeros((len(g.means), 1), np.float32), c, "ED", self.backend,
                                         self.raster)
             d = colors[..., -1].astype(np.float32)
             d[alphas < self.min_alpha] = np.inf
-            if c is not cam:
+            if cam.dist is not None:
+                d = distort_image(d, c, cam, nearest=True)
+            elif c is not cam:
                 d = resize_nearest(d, cam.width, cam.height)
             out.append(d)
         return out
@@ -203,10 +211,13 @@ def render_label_maps(gaussians, labels: np.ndarray, cameras: Sequence[Camera], 
         fg = labels > 0
         onehot[np.flatnonzero(fg), labels[fg] - 1] = 1.0
         for cam in cameras:
-            rc, alpha = _rasterize(gaussians, onehot, cam, "RGB", backend, raster)
+            pin = covering_pinhole(cam)
+            rc, alpha = _rasterize(gaussians, onehot, pin, "RGB", backend, raster)
             bg = alpha - rc.sum(axis=-1)  # weight of unlabelled Gaussians
             lab = np.concatenate([bg[..., None], rc], axis=-1).argmax(axis=-1).astype(np.int32)
             lab[alpha < threshold] = 0
+            if cam.dist is not None:  # labels < 2^24 pass through float32 exactly
+                lab = distort_image(lab.astype(np.float32), pin, cam, nearest=True).astype(np.int32)
             out.append(lab)
         return out
     for cam in cameras:

@@ -11,6 +11,9 @@ dataset's; a dataset without any uses the held-out views train.json names (`spla
 the hold-out to the dataset it reads); without either the training frames are evaluated instead (and
 flagged so).
 
+Photos with lens distortion (SfM's SIMPLE_RADIAL) are compared undistorted, at their pinhole camera
+(`capture.undistort.pinhole_for`, as they were trained; 3DGS evaluates on COLMAP-undistorted images too).
+
 `align_poses=True` (`--align-poses`) first fits each held-out camera to its image with the splat fixed
 (`pose_refine.align_camera`, InstantSplat's protocol): for models trained with pose refinement, whose
 scene sits slightly off the input frame. The metrics JSON then records the correction of every view.
@@ -38,6 +41,7 @@ import numpy as np
 import torch
 
 from splattwin.capture import Dataset, load_dataset
+from splattwin.capture.undistort import pinhole_for
 from splattwin.errors import InputError
 from splattwin.io import write_image, write_json
 from splattwin.splat import metrics
@@ -221,7 +225,8 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
     held = {k: held[k] for k in ("source", "rule", "every") if k in held}
     held["views"] = [f.name for f in frames] if split == "heldout" else []
     out = Path(out_dir) if out_dir is not None else None
-    train_cams = [f.camera for f in ds.train()] if split == "heldout" else []
+    # the training photos' pinhole cameras: what the splats were fitted to (undistorted, `load_views`)
+    train_cams = [pinhole_for(f.camera) for f in ds.train()] if split == "heldout" else []
     rows = []
     for v in track(views, "eval", unit="view", enabled=progress):
         gt = v.image.numpy()
@@ -275,6 +280,8 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
                                  "camera's image (frustum test, occlusion ignored); psnr_covered / psnr_uncovered "
                                  "over those and the other pixels (pooled over the views)",
             "gaussians": len(g), "resolution": rule.resolution, "eval_resolution": eval_res, "heldout": held,
+            # photos with lens distortion are compared undistorted, at their pinhole cameras (load_views)
+            "undistorted_views": [f.name for f in frames if f.camera.dist is not None],
             "views": rows,
             "legend": "images: ground truth | render | |error| heat map (black 0 -> white >= 0.25; tinted blue: "
                       "pixels no training camera saw)"})

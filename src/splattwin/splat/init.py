@@ -61,7 +61,8 @@ def backproject_depth(depth: np.ndarray, camera: Camera, image: np.ndarray | Non
                       far_depth: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """World points [M,3] (and colours [M,3] in [0,1], grey without an image) of the pixels of a z-depth
     map [H,W] (m), every `stride`-th pixel through its centre. Pixels with depth inf/nan/<=0 are
-    dropped, or placed at `far_depth` along their ray when it is given. Ignores lens distortion."""
+    dropped, or placed at `far_depth` along their ray when it is given. A camera with lens distortion
+    casts each pixel's ray through its model (`capture.undistort`)."""
     h, w = depth.shape
     if (w, h) != (camera.width, camera.height):
         camera = camera.scaled(w / camera.width)
@@ -72,8 +73,14 @@ def backproject_depth(depth: np.ndarray, camera: Camera, image: np.ndarray | Non
         z = np.where(ok, z, far_depth)
         ok = np.ones_like(ok)
     u, v, z = u[ok], v[ok], z[ok]
-    x = (u + 0.5 - camera.cx) / camera.fx * z
-    y = (v + 0.5 - camera.cy) / camera.fy * z
+    if camera.dist is None:
+        x = (u + 0.5 - camera.cx) / camera.fx * z
+        y = (v + 0.5 - camera.cy) / camera.fy * z
+    else:
+        from splattwin.capture.undistort import rays_through
+
+        rx, ry = rays_through(camera, u + 0.5, v + 0.5)
+        x, y = rx * z, ry * z
     p_cam = np.stack([x, y, z], axis=1)
     T = camera.T_world_cam
     p_world = p_cam @ T[:3, :3].T + T[:3, 3]

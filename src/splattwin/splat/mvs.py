@@ -17,12 +17,12 @@ Method (the classic plane sweep, Collins 1996, with the fusion test of COLMAP's 
    within `rel_tol`. Textureless areas (sky, walls) and occlusion boundaries fail one or the other.
 
 Why our own code: COLMAP's PatchMatch stereo (pycolmap) runs only with CUDA, OpenCV's block matchers
-need rectified image pairs (and OpenCV is not one of our dependencies), and Open3D has no MVS. The sweep
-is a few dozen torch lines (grid_sample + box filters) and runs on all cores.
+need rectified image pairs, and Open3D has no MVS. The sweep is a few dozen torch lines (grid_sample +
+box filters) and runs on all cores.
 
-Pinhole only: lens distortion is ignored (as in depth back-projection); points it displaces fail the
-fusion test rather than landing off the surface. Units: depths in the cameras' world units (metres when
-the capture is metric), pixels at the stereo size (`max_side`).
+The photos are read through `trainer.load_views`, which resamples a distorted photo to its ideal pinhole
+camera (`capture.undistort`), so the sweep's pinhole model holds. Units: depths in the cameras' world
+units (metres when the capture is metric), pixels at the stereo size (`max_side`).
 """
 
 from __future__ import annotations

@@ -6,7 +6,9 @@ renders without gradients and returns numpy. The thin helpers below (`render_rgb
 `render_depth`, `render_features`) pick its mode.
 
 Float32 in [0,1] for colours, metres for depth. The camera is treated as an ideal pinhole: distortion
-coefficients, if any, are ignored (render undistorted images, or undistort the photos, before comparing).
+coefficients, if any, are ignored. Photos with lens distortion are compared with renders at their pinhole
+camera after undistortion (`splattwin.capture.undistort`, done by `trainer.load_views` for training and
+evaluation), or renders are resampled to the photo's grid (`undistort.distort_image`, the semantic fusion).
 Frames: `camera.T_cam_world` is the view matrix (OpenCV convention); `T_cam_world=` overrides it (e.g. a
 refined pose from training).
 """

@@ -135,22 +135,33 @@ def load_views(frames: list[Frame], resolution: int | Resolution = 1, depth: boo
                depth_scale: float | None = None) -> list[TrainView]:
     """Images of `frames` as tensors, resized (PIL area filter) to the training resolution (a 3DGS `-r`
     value or a resolved `splattwin.splat.resolution.Resolution`); with depth=True also their depth maps
-    (frames without one get None)."""
+    (frames without one get None). A photo with lens distortion is first resampled to its pinhole camera
+    (`splattwin.capture.undistort.pinhole_for`): the views' cameras are ideal pinholes."""
     from PIL import Image
 
     from splattwin.capture import load_depth, resize_nearest
+    from splattwin.capture.undistort import pinhole_for, undistort_image
 
     views = []
+    zooms = []  # focal scale of each undistorted photo's pinhole camera
     for f in frames:
         img = load_image(f.image_path)
         if img.shape[:2] != (f.camera.height, f.camera.width):
             raise InputError(f"image is {img.shape[1]}x{img.shape[0]} but its camera says "
                              f"{f.camera.width}x{f.camera.height}", f.image_path)
+        # the rasterizer draws pinhole images: a distorted photo is resampled once to its pinhole camera
+        try:
+            pin = pinhole_for(f.camera)
+        except InputError as e:  # a lens model no photo was taken with: name the photo
+            raise InputError(e.problem, e.path or f.image_path) from None
+        if pin is not f.camera:
+            img = undistort_image(img, f.camera, pin)
+            zooms.append(pin.fx / f.camera.fx)
         s = (resolution if isinstance(resolution, Resolution) else Resolution(resolution)).scale(
-            f.camera.width, f.camera.height)
-        cam = f.camera
+            pin.width, pin.height)
+        cam = pin
         if abs(s - 1.0) > 1e-9:
-            cam = f.camera.scaled(s)
+            cam = pin.scaled(s)
             pil = Image.fromarray((img * 255 + 0.5).astype(np.uint8)).resize((cam.width, cam.height), Image.BOX)
             img = np.asarray(pil, dtype=np.float32) / 255.0
         d = None
@@ -159,11 +170,16 @@ def load_views(frames: list[Frame], resolution: int | Resolution = 1, depth: boo
             if dm.shape != (f.camera.height, f.camera.width):
                 raise InputError(f"depth map is {dm.shape[1]}x{dm.shape[0]} but its camera says "
                                  f"{f.camera.width}x{f.camera.height}", f.depth_path)
+            if pin is not f.camera:
+                dm = undistort_image(dm, f.camera, pin, nearest=True)
             if dm.shape != (cam.height, cam.width):
                 dm = resize_nearest(dm, cam.width, cam.height)
             dm = np.where(np.isfinite(dm) & (dm > 0), dm, np.inf).astype(np.float32)
             d = torch.from_numpy(np.ascontiguousarray(dm))
         views.append(TrainView(f.name, torch.from_numpy(np.ascontiguousarray(img)), cam, d))
+    if zooms:
+        log.info("%d of %d photos have lens distortion: undistorted to pinhole cameras (focal x%.4f to x%.4f)",
+                 len(zooms), len(frames), min(zooms), max(zooms))
     return views
 
 
