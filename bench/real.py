@@ -38,7 +38,9 @@ Sections (SECTIONS below; each returns table rows and JSON keys, so more can be 
   unseen ones as rendered. Measured (Nov 2026, 3000 steps, 000/016 held out): 77.5 % seen, 16.84 dB
   there, 13.01 dB on the unseen 22.5 %, bound 19.49 dB: the two held-out views are the ends of the sweep.
   With the sparse profile's DropGaussian (rate 0.5): 16.37 dB / SSIM 0.474, 77.7 % seen, 17.38 dB there,
-  14.02 dB on the rest (fewer streaks into the unseen strip), bound 20.53 dB.
+  14.02 dB on the rest (fewer streaks into the unseen strip), bound 20.53 dB. With the photos undistorted
+  (capture.undistort; SfM's k1 = 0.032): 16.51 dB / SSIM 0.480, 77.9 % seen, 17.57 dB there, 14.05 dB on
+  the rest, bound 20.61 dB (seeds 0/1/2: 16.51 / 16.43 / 16.41, before 16.37 / 16.20 / 16.32).
 - stereo_init: the opt-in `--init-stereo` (plane-sweep stereo points added to the SfM cloud, splat/mvs.py):
   the fused points' depth error on the embedded scene (true depth known) and
   the statue's held-out PSNR/SSIM with 0 and 10000 stereo points (--stereo-seeds seeds each, default options
