@@ -51,6 +51,15 @@ def test_backproject_through_a_distorted_lens():
     np.testing.assert_allclose(z, 1.5, atol=1e-9)
     v, u = np.mgrid[0:30, 0:40]
     np.testing.assert_allclose(uv, np.stack([u.ravel() + 0.5, v.ravel() + 0.5], 1), atol=1e-6)
+    # rays that hit nothing go to the background sphere along the same lens rays
+    from splattwin.splat.init import _rays_to_sphere
+
+    sel = np.zeros(30 * 40, bool)
+    sel[::7] = True
+    pts, _ = _rays_to_sphere(cam, np.zeros((30, 40, 3)), 1, sel, np.zeros(3), 5.0)
+    np.testing.assert_allclose(np.linalg.norm(pts, axis=1), 5.0, rtol=1e-9)
+    uv, _ = cam.project(pts)
+    np.testing.assert_allclose(uv, np.stack([u.ravel() + 0.5, v.ravel() + 0.5], 1)[sel], atol=1e-6)
 
 
 def test_points_from_depth_with_background(tmp_path):

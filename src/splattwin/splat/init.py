@@ -18,6 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from splattwin.capture import Camera, Frame, load_depth, load_image
+from splattwin.capture.undistort import rays_through
 from splattwin.errors import InputError
 from splattwin.splat.gaussians import Gaussians, num_sh_bases, rgb_to_sh0
 
@@ -73,14 +74,8 @@ def backproject_depth(depth: np.ndarray, camera: Camera, image: np.ndarray | Non
         z = np.where(ok, z, far_depth)
         ok = np.ones_like(ok)
     u, v, z = u[ok], v[ok], z[ok]
-    if camera.dist is None:
-        x = (u + 0.5 - camera.cx) / camera.fx * z
-        y = (v + 0.5 - camera.cy) / camera.fy * z
-    else:
-        from splattwin.capture.undistort import rays_through
-
-        rx, ry = rays_through(camera, u + 0.5, v + 0.5)
-        x, y = rx * z, ry * z
+    rx, ry = rays_through(camera, u + 0.5, v + 0.5)  # through the lens model, if the camera has one
+    x, y = rx * z, ry * z
     p_cam = np.stack([x, y, z], axis=1)
     T = camera.T_world_cam
     p_world = p_cam @ T[:3, :3].T + T[:3, 3]
@@ -159,7 +154,8 @@ def _rays_to_sphere(camera: Camera, image: np.ndarray, stride: int, sel: np.ndar
         camera = camera.scaled(w / camera.width)
     v, u = np.mgrid[0:h:stride, 0:w:stride]
     u, v = u.ravel()[sel], v.ravel()[sel]
-    d_cam = np.stack([(u + 0.5 - camera.cx) / camera.fx, (v + 0.5 - camera.cy) / camera.fy, np.ones(len(u))], 1)
+    rx, ry = rays_through(camera, u + 0.5, v + 0.5)
+    d_cam = np.stack([rx, ry, np.ones(len(u))], 1)
     R, o = camera.T_world_cam[:3, :3], camera.T_world_cam[:3, 3]
     d = d_cam @ R.T
     d /= np.linalg.norm(d, axis=1, keepdims=True)
