@@ -36,7 +36,9 @@ def _blank(png: Path) -> bool:
 
 def screenshot(url: str, out_png: str | Path, width: int = 1280, height: int = 900, budget_ms: int = 15000,
                timeout_s: float = 120.0) -> Path:
-    """Load `url` (http:// or file://) in headless Chromium and save a PNG screenshot."""
+    """Load `url` (http:// or file://) in headless Chromium and save a PNG screenshot. Each try is given
+    max(45 s, 3x its virtual-time budget), at most `timeout_s`: a Chromium that hangs (seen with the viewer's
+    page: ~10 s normally, now and then the full 120 s) is retried sooner."""
     out_png = Path(out_png).resolve()
     out_png.parent.mkdir(parents=True, exist_ok=True)
     out_png.unlink(missing_ok=True)  # an old picture must not pass for a new one
@@ -53,7 +55,7 @@ def screenshot(url: str, out_png: str | Path, width: int = 1280, height: int = 9
                    f"--virtual-time-budget={budget}", f"--screenshot={out_png}", url]
             proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
             try:
-                proc.wait(timeout=timeout_s)
+                proc.wait(timeout=min(timeout_s, max(45.0, 3.0 * budget / 1000.0)))
             except subprocess.TimeoutExpired:
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait()
