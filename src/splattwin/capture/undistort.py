@@ -222,7 +222,20 @@ def distort_image(image: np.ndarray, pinhole: Camera, camera: Camera, nearest: b
     if image.shape[:2] != (pinhole.height, pinhole.width):
         raise ValueError(f"image is {image.shape[1]}x{image.shape[0]} but the pinhole camera is "
                          f"{pinhole.width}x{pinhole.height}")
-    x, y = photo_rays(camera)
-    map_u = (pinhole.fx * x + pinhole.cx - 0.5).astype(np.float32)
-    map_v = (pinhole.fy * y + pinhole.cy - 0.5).astype(np.float32)
+    map_u, map_v = _distort_maps(_key(camera), _key(pinhole))
     return _remap(image, map_u, map_v, nearest, cubic=False)
+
+
+@functools.lru_cache(maxsize=8)
+def _distort_maps(photo_key: tuple, pinhole_key: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """Remap maps [H,W] float32 from the photo's pixels into the pinhole image (OpenCV's pixel centres).
+    Cached by intrinsics (the pose does not enter, so one camera's views share a pair): the fusion resamples
+    every view's depth and label maps in each refinement round, and the inverse of the lens model takes
+    ~0.4 s for a 1080p photo."""
+    camera, pin = _from_key(photo_key), _from_key(pinhole_key)
+    x, y = photo_rays(camera)
+    map_u = (pin.fx * x + pin.cx - 0.5).astype(np.float32)
+    map_v = (pin.fy * y + pin.cy - 0.5).astype(np.float32)
+    map_u.setflags(write=False)
+    map_v.setflags(write=False)
+    return map_u, map_v
