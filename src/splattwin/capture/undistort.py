@@ -48,11 +48,13 @@ def _border_pixels(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _source_pixels(camera: Camera, K_new: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Where pixel centres (u, v) of the pinhole camera K_new fall in the distorted photo (continuous px)."""
+    """Where pixel centres (u, v) of the pinhole camera K_new fall in the (possibly distorted) photo
+    (continuous px)."""
     x = (u - K_new[0, 2]) / K_new[0, 0]
     y = (v - K_new[1, 2]) / K_new[1, 1]
-    xd, yd = distort(x, y, camera.dist)
-    return camera.fx * xd + camera.cx, camera.fy * yd + camera.cy
+    if camera.dist is not None:
+        x, y = distort(x, y, camera.dist)
+    return camera.fx * x + camera.cx, camera.fy * y + camera.cy
 
 
 def _valid(camera: Camera, scale: float, us: np.ndarray, vs: np.ndarray) -> bool:
@@ -124,11 +126,7 @@ def _undistort_maps(photo_key: tuple, pinhole_key: tuple) -> tuple[np.ndarray, n
     Cached: a video's frames share one camera, and a 1080p map takes ~0.4 s."""
     camera, pin = _from_key(photo_key), _from_key(pinhole_key)
     v, u = np.mgrid[0:pin.height, 0:pin.width].astype(np.float64)
-    if camera.dist is not None:
-        su, sv = _source_pixels(camera, pin.K, u + 0.5, v + 0.5)
-    else:
-        su = (u + 0.5 - pin.cx) / pin.fx * camera.fx + camera.cx
-        sv = (v + 0.5 - pin.cy) / pin.fy * camera.fy + camera.cy
+    su, sv = _source_pixels(camera, pin.K, u + 0.5, v + 0.5)
     map_u, map_v = (su - 0.5).astype(np.float32), (sv - 0.5).astype(np.float32)
     map_u.setflags(write=False)
     map_v.setflags(write=False)
