@@ -215,3 +215,40 @@ def test_plane_homography_candidate_lands_near_the_true_pose(dropped_model, sfm_
     assert np.linalg.norm(c - c_true) < 0.05 * spread
     R_err = T[:, :3] @ true.cam_from_world().rotation.matrix().T
     assert np.degrees(np.arccos(np.clip((np.trace(R_err) - 1) / 2, -1, 1))) < 3.0
+
+
+def test_drop_and_recover_keep_known_intrinsics(dropped_model, sfm_default_dir, scene_default, tmp_path):
+    """With known intrinsics (mapping options ba_refine_* False) the drop's and the recovery's bundle
+    adjustments move poses and points only; by default they refine the focal length as the mapper does."""
+    import pycolmap
+
+    from splattwin.poses.colmap_worker import step_drop, step_recover
+    from splattwin.poses.sfm import mapping_options
+
+    full, _, gone = dropped_model
+    n = full.num_reg_images()
+    fixed = mapping_options(SfmOptions(intrinsics=(1.0, 1.0, 0.0, 0.0)), n, "relaxed", 1)
+    # cameras pulled 3 % off the model's focal length: a refining BA moves them back, a fixed one must not
+    base = tmp_path / "base"
+    rec = pycolmap.Reconstruction(str(sfm_default_dir / "sparse"))
+    for cam in rec.cameras.values():
+        p = np.array(cam.params)
+        p[0] *= 1.03
+        cam.params = p
+    base.mkdir()
+    rec.write(str(base))
+    given = {c: np.array(cam.params) for c, cam in rec.cameras.items()}
+
+    def params(path) -> dict:
+        return {c: np.array(cam.params) for c, cam in pycolmap.Reconstruction(str(path)).cameras.items()}
+
+    step_drop({"base": str(base), "out": str(tmp_path / "d_fixed"), "names": [gone], "options": fixed})
+    step_drop({"base": str(base), "out": str(tmp_path / "d_free"), "names": [gone]})
+    kept, free = params(tmp_path / "d_fixed"), params(tmp_path / "d_free")
+    assert all(np.array_equal(kept[c], given[c]) for c in kept)
+    assert any(abs(free[c][0] / given[c][0] - 1) > 1e-3 for c in free)  # the default refines the focal
+    res = step_recover({**_job(sfm_default_dir, tmp_path / "d_fixed", tmp_path / "rec", [gone],
+                               image_root=str(scene_default / "images")), "options": fixed})
+    assert set(res["recovered"]) == {gone}
+    after = params(res["path"])
+    assert all(np.array_equal(after[c], given[c]) for c in after if c in given)

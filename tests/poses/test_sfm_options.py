@@ -240,3 +240,24 @@ def test_retry_loop_completes_the_best_model_from_other_attempts():
     calls.clear()
     out, a = run_plan(plan, 8, lambda a, i: _outcome([3, 7, 6][i]), complete=lambda b, h: _outcome(5))
     assert out.registered == 7 and a.name == "relaxed"  # a worse completion is ignored
+
+
+def test_retry_loop_recovers_before_the_next_retry_and_stops_when_all_are_back():
+    plan = [Attempt(n, n) for n in ("default", "relaxed", "guided", "more_features")]
+    seen, calls = [], []
+
+    def execute(a, i):
+        seen.append(a.name)
+        return _outcome([2, 4, 6, 6][i])
+
+    def recover(best, attempt):  # gives all 8 back once the best has 6 (the cake's guided model)
+        calls.append((best.registered, attempt.name))
+        return (_outcome(8), Attempt(attempt.name + "+recovered", "")) if best.registered == 6 else None
+
+    out, a = run_plan(plan, 8, execute, recover=recover)
+    assert out.registered == 8 and a.name == "guided+recovered"
+    assert seen == ["default", "relaxed", "guided"]  # more_features not run
+    assert calls == [(2, "default"), (4, "relaxed"), (6, "guided")]
+    seen.clear()
+    out, a = run_plan(plan, 8, execute, recover=lambda b, at: (_outcome(5), at))  # a worse result is ignored
+    assert out.registered == 6 and a.name == "guided" and seen == [p.name for p in plan]

@@ -342,10 +342,22 @@ def _merged(db: str, root: str, base, added: dict, job: dict):
         rec = pycolmap.triangulate_points(full, db, root, scratch, clear_points=True,
                                           options=_triangulation_options(job.get("options", {})),
                                           refine_intrinsics=False)
+    _bundle_adjust(rec, job.get("options", {}))
+    return rec
+
+
+def _bundle_adjust(rec, options: dict) -> None:
+    """Global bundle adjustment of `rec` in place, refining the intrinsics only as the mapping options
+    (`sfm.mapping_options`) let the mapper: known intrinsics stay as given (pycolmap's
+    BundleAdjustmentOptions refine the focal length and distortion by default)."""
+    import pycolmap
+
     ba = pycolmap.BundleAdjustmentOptions()
     ba.print_summary = False
+    ba.refine_focal_length = bool(options.get("ba_refine_focal_length", True))
+    ba.refine_principal_point = bool(options.get("ba_refine_principal_point", False))
+    ba.refine_extra_params = bool(options.get("ba_refine_extra_params", True))
     pycolmap.bundle_adjustment(rec, ba)
-    return rec
 
 
 def _image_ok(rec, name: str, min_obs: int, max_err: float) -> bool:
@@ -373,9 +385,7 @@ def step_drop(job: dict) -> dict:
         if rec.image(i).name in drop:
             rec.deregister_frame(rec.image(i).frame_id)
     if rec.num_reg_images() >= 2 and rec.num_points3D() > 0:
-        ba = pycolmap.BundleAdjustmentOptions()
-        ba.print_summary = False
-        pycolmap.bundle_adjustment(rec, ba)
+        _bundle_adjust(rec, job.get("options", {}))
     _write_model(rec, out)
     return {"registered": int(rec.num_reg_images()), "points": int(rec.num_points3D()), "path": str(out)}
 

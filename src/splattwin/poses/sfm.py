@@ -25,8 +25,10 @@ Registration sanity check (`check_registration`, `splattwin.poses.sanity`): afte
 merge) images registered with too few observations, or posed inconsistently with a tabletop capture (at or
 below the table plane, looking up or away from the scene the others look at), are dropped from the model
 (de-registered, then bundle adjustment again) and reported with the reason; only the images that pass
-count as registered, so the retries go on while any is dropped. After the attempts, each dropped image the
-final model lacks is re-registered against that trusted model (`recover_dropped`: absolute pose from its
+count as registered, so the retries go on while any is dropped. Each dropped image the best model lacks is
+re-registered against that trusted model once, as soon as every image it lacks is such a dropped one (before
+further retries, which would re-extract or re-match to no avail), else after the attempts
+(`recover_dropped`: absolute pose from its
 matches to the model's points, the homography its matches induce through the model's table plane, else
 structure-less resectioning; refined, and kept only if it passes the check again, is no parallax-free
 copy of another camera and, for numbered video frames walking around the scene, lies between its
@@ -98,10 +100,10 @@ class SfmOptions:
       looking up while the others look down, or away from the scene) are dropped from the model, reported
       with the reason and count as unregistered (so the retries go on).
     min_observations: that check's minimum number of model points an image must observe.
-    recover_dropped: after the attempts, re-register each image the check dropped (in any attempt) and the
-      final model lacks, against the final (trusted) model: absolute pose, table-plane homography, else
-      structure-less resectioning, refined and kept only if it passes the check again (colmap_worker's
-      recover step).
+    recover_dropped: re-register each image the check dropped (in any attempt) and the best model lacks,
+      against that (trusted) model: absolute pose, table-plane homography, else structure-less
+      resectioning, refined and kept only if it passes the check again (colmap_worker's recover step).
+      Once per run: as soon as the dropped images are all the best model lacks, else after the attempts.
     min_registered: fewer registered images than this -> InputError. None = all images but at most 3
       missing, >= 3.
     num_threads: CPU threads for extraction, matching and mapping; 0 = all cores.
@@ -614,7 +616,8 @@ class _Run:
         info = out.parent / f"{out.name}.json"
         if info.is_file() and out.is_dir():
             return out
-        job = {"step": "drop", "base": str(base), "out": str(out), "names": sorted(names)}
+        job = {"step": "drop", "base": str(base), "out": str(out), "names": sorted(names),
+               "options": mapping_options(self.opts, len(self.names), "default", self.threads)}
         _, st = colmap_process.run_step(job, self.work, self.progress, f"{label}: dropping {len(names)} "
                                         "untrustworthy registration(s)", cleanup=[out])
         self._add("map", st)
@@ -800,11 +803,14 @@ class AttemptOutcome:
 
 
 def run_plan(plan: list[Attempt], num_images: int, execute, say=lambda text: None,
-             record=lambda attempt, outcome, seconds: None, complete=None) -> tuple[AttemptOutcome, Attempt]:
+             record=lambda attempt, outcome, seconds: None, complete=None,
+             recover=None) -> tuple[AttemptOutcome, Attempt]:
     """Run attempts in order until one registers every image; returns the best (most registered, the
     earlier on a tie: stricter settings). execute(attempt, index) -> AttemptOutcome. complete(best,
     outcomes so far) -> AttemptOutcome | None: after a retry, the best model completed with images other
-    attempts registered (merging across attempts). InputError if no attempt reconstructed anything."""
+    attempts registered (merging across attempts). recover(best, its attempt) -> (AttemptOutcome, Attempt)
+    | None: then, before the next retry, the best model with images re-registered by other means (None:
+    not tried or nothing gained). InputError if no attempt reconstructed anything."""
     best: tuple[AttemptOutcome, Attempt] | None = None
     history: list[AttemptOutcome] = []
     for i, a in enumerate(plan):
@@ -821,6 +827,10 @@ def run_plan(plan: list[Attempt], num_images: int, execute, say=lambda text: Non
             if merged is not None and merged.registered > best[0].registered:
                 best = (merged, Attempt(f"{best[1].name}+merged", f"{best[1].why}, completed from other attempts",
                                         best[1].features, best[1].cameras, best[1].matching, best[1].mapping))
+        if best is not None and best[0].registered < num_images and recover is not None:
+            got = recover(*best)
+            if got is not None and got[0].registered > best[0].registered:
+                best = got
         if best is not None and best[0].registered >= num_images:
             break
     if best is None:
@@ -890,10 +900,28 @@ def _run_attempts(run: _Run, bar: StageProgress) -> tuple[AttemptOutcome, Attemp
                              "seconds": round(seconds, 2), **({"dropped": sorted(out.dropped)} if out.dropped else {})})
             io.write_json(log_path, done_log)
 
+    recovery_tried = False
+
+    def recover(best: AttemptOutcome, attempt: Attempt) -> tuple[AttemptOutcome, Attempt] | None:
+        # Early, once: when every image the best model lacks did register in some attempt but failed the
+        # sanity check, re-registering those against the best model is what finally helps, and the
+        # retries left (more features) would not: on the cake photos "more_features" (~1/3 of the SfM
+        # time) ended with the same 6 images as "guided", and the recovery against guided's model then
+        # brought 8/8 anyway.
+        nonlocal recovery_tried
+        have = {best.rec.image(i).name for i in best.rec.reg_image_ids()}
+        if recovery_tried or any(nm not in run.dropped for nm in run.names if nm not in have):
+            return None
+        recovery_tried = True
+        return _recovered(run, best, attempt, done_log, log_path)
+
     try:
-        best, attempt = run_plan(plan, n, execute, say=bar.message, record=record, complete=complete)
+        best, attempt = run_plan(plan, n, execute, say=bar.message, record=record, complete=complete,
+                                 recover=recover)
     except InputError as e:
         raise InputError(e.problem, run.image_root) from e
+    if recovery_tried:  # at most once: its result is cached by name (a killed run resumes to the same model)
+        return best, attempt
     return _recovered(run, best, attempt, done_log, log_path)
 
 
