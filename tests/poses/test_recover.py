@@ -1,7 +1,8 @@
 """Re-registering images the registration sanity check dropped (colmap_worker's recover step, run by
-`splattwin.poses.sfm` after the attempts): an image removed from the embedded scene's SfM model comes back
-by absolute pose at its old place; a wrong registration (a parallax-free copy of another camera, a frame
-out of the walking order) is refused."""
+`splattwin.poses.sfm` once the dropped images are all the best model lacks, or after the attempts): an
+image removed from the embedded scene's SfM model comes back by absolute pose at its old place; a wrong
+registration (a parallax-free copy of another camera, a frame out of the walking order) is refused; known
+intrinsics stay fixed."""
 
 from __future__ import annotations
 
