@@ -605,7 +605,7 @@ class _Run:
         self._add("map", st)
         paths = [Path(m["path"]) for m in res["models"]]
         if a.merge and len(paths) > 1:
-            merged = self.merge(db, paths[0], paths[1:], out.parent / f"{a.name}_merged", label)
+            merged = self.merge(db, paths[0], paths[1:], out.parent / f"{a.name}_merged", label, a.mapping)
             if merged is not None:
                 paths = [merged] + paths
         io.write_json(info, {"paths": [str(p) for p in paths]})
@@ -650,15 +650,17 @@ class _Run:
         self.recovery = res
         return res
 
-    def merge(self, db: Path, base: Path, donors: list[Path], out: Path, label: str) -> Path | None:
+    def merge(self, db: Path, base: Path, donors: list[Path], out: Path, label: str,
+              mapping: str = "relaxed") -> Path | None:
         """The base model completed with the images the donor models registered (see colmap_worker's
-        step_merge); None if nothing could be added."""
+        step_merge), with the mapping options of `mapping` (an attempt's own: "fixed_focal" keeps the
+        focal lengths in the merge's bundle adjustment too); None if nothing could be added."""
         info = out.parent / f"{out.name}.json"
         if info.is_file():
             return Path(json.loads(info.read_text())["path"]) if json.loads(info.read_text()).get("merged") else None
         job = {"step": "merge", "db": str(db), "image_root": str(self.image_root), "out": str(out),
                "base": str(base), "donors": [str(p) for p in donors],
-               "options": mapping_options(self.opts, len(self.names), "relaxed", self.threads)}
+               "options": mapping_options(self.opts, len(self.names), mapping, self.threads)}
         try:
             res, st = colmap_process.run_step(job, self.work, self.progress, f"{label}: merging models",
                                               cleanup=[out])
