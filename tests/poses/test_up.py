@@ -182,3 +182,49 @@ def test_horizon_cue_of_rolled_and_upward_looking_cameras():
             for a in np.linspace(0, 1.5, 9)]
     up, strength, kind = camera_cue(cams)
     assert kind == "horizon" and math.degrees(math.acos(up[2])) < 1.0
+
+
+def _wall(n: int = 6000, seed: int = 1) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return np.column_stack([np.full(n, 0.8), rng.uniform(-0.6, 0.6, n), rng.uniform(0, 0.8, n)])
+
+
+def test_table_frame_of_an_sfm_capture_takes_the_table_not_a_larger_wall(caplog):
+    """SfM frames have no up of their own: the dominant plane is the table unless the cameras' horizon
+    says it is a wall (here twice the table's points), then the largest level plane is."""
+    from splattwin.poses.table import fit_table_plane
+    from splattwin.poses.up import table_plane_under_cameras
+
+    R_in = Rotation.from_euler("xyz", [70, -20, 140], degrees=True).as_matrix()  # an arbitrary SfM frame
+    cams, pts = _tabletop()
+    cams, pts = _moved(R_in, cams, np.vstack([pts, _wall()]))
+    up = R_in[:, 2]
+    centres = np.array([c.center for c in cams])
+    assert abs(fit_table_plane(pts, centres).normal @ up) < 0.05  # the dominant plane is the wall
+    plane, ev = table_plane_under_cameras(pts, cams)
+    assert math.degrees(math.acos(min(1.0, plane.normal @ up))) < 1.0
+    assert ev["table"] == "level plane under a wall" and ev["dominant_plane_tilt_deg"] > 85
+    assert abs(plane.d) < 0.01  # the table top passes through the origin of the moved frame
+    assert "a wall, not a table" in caplog.text
+    # a tabletop without the wall: the dominant plane, unchanged
+    cams, pts = _moved(R_in, *_tabletop())
+    plane, ev = table_plane_under_cameras(pts, cams)
+    ref = fit_table_plane(pts, np.array([c.center for c in cams]))
+    np.testing.assert_allclose(plane.normal, ref.normal)
+    assert ev["table"] == "dominant plane"
+
+
+def test_sfm_capture_without_a_level_plane_is_levelled_by_the_cameras(caplog):
+    from splattwin.poses.up import table_plane_under_cameras
+
+    R_in = Rotation.from_euler("xyz", [10, 80, -30], degrees=True).as_matrix()
+    cams, _ = _tabletop()
+    cams, pts = _moved(R_in, cams, _wall())
+    plane, ev = table_plane_under_cameras(pts, cams)
+    up = R_in[:, 2]
+    cue = camera_cue(cams)[0]
+    np.testing.assert_allclose(plane.normal, cue)
+    assert math.degrees(math.acos(min(1.0, cue @ up))) < 10  # rolled +-20 deg each: the horizon still holds
+    heights = pts @ plane.normal + plane.d
+    assert np.mean(heights >= 0) == pytest.approx(0.98, abs=0.005)  # z = 0 at the lowest points
+    assert ev["table"].startswith("none level") and "levelled by the cameras" in caplog.text

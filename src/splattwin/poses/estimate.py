@@ -209,7 +209,8 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         stats["marker"] = {"views": mf.views, "reproj_rms_px": mf.reproj_rms,
                            "side_lengths_m": (mf.side_lengths * 1.0).tolist()}
     elif opts.known_length is not None or not input_scaled:
-        from splattwin.poses.table import fit_table_plane, scale_from_known_length, table_frame
+        from splattwin.poses.table import scale_from_known_length, table_frame
+        from splattwin.poses.up import table_plane_under_cameras
 
         if (pts_xyz is None or len(pts_xyz) < 20) and method != "sfm" and opts.triangulate:
             # known poses without points: triangulate them now (input frame), the table plane needs them
@@ -220,9 +221,9 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         if pts_xyz is None or len(pts_xyz) < 20:
             raise InputError("the table frame needs sparse points (SfM or the dataset's point cloud); none available",
                              dataset.root)
-        plane = fit_table_plane(pts_xyz, centres, seed=opts.seed)
+        plane, table_evidence = table_plane_under_cameras(pts_xyz, [in_cams[n] for n in order], seed=opts.seed)
         T_tab_in = table_frame(plane, pts_xyz, in_cams[order[0]])
-        stats["table_plane"] = {"inliers": int(plane.inliers.sum()), "rms": plane.rms}
+        stats["table_plane"] = {"inliers": int(plane.inliers.sum()), "rms": plane.rms, **table_evidence}
         if opts.known_length is not None:
             tab_cams = {n: align.transform_camera(T_tab_in, c) for n, c in in_cams.items()}
             s, unc, note = scale_from_known_length(opts.known_length, tab_cams, plane.rms,
@@ -240,6 +241,8 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
             log.warning("no metric scale: the frame is marked 'unscaled' (lengths in SfM units; thresholds derived "
                         "from the cameras' distance to the scene); the twin is built but robot planning will "
                         "refuse it (give --known-length, --marker-size or metric poses for a metric twin)")
+        frame = dataclasses.replace(frame, up_check={"source": "table plane checked against the cameras' horizon",
+                                                     **table_evidence})
     assert frame is not None
     if method == "known" and prior is None and input_scaled and opts.marker_size is None and opts.known_length is None:
         if ((pts_xyz is None or len(pts_xyz) == 0) and opts.triangulate and len(order) >= 2

@@ -72,10 +72,14 @@ class PlaneFit:
 
 
 def fit_table_plane(points: np.ndarray, camera_centres: np.ndarray, threshold: float | None = None,
-                    seed: int = 0, num_iterations: int = 2000) -> PlaneFit:
+                    seed: int = 0, num_iterations: int = 2000, up_hint: np.ndarray | None = None,
+                    max_tilt_deg: float = 90.0, min_inlier_frac: float = 0.15) -> PlaneFit:
     """RANSAC plane through the dominant flat surface of `points` [N,3]; normal oriented to the cameras.
 
     threshold: inlier distance; default 1 % of the points' robust extent (units of the input).
+    up_hint [3], max_tilt_deg: only planes whose normal is within max_tilt_deg of +-up_hint count (the
+    dominant horizontal plane, not a wall). min_inlier_frac: InputError when the best plane holds fewer
+    of the points.
     """
     pts = np.asarray(points, dtype=np.float64)
     if len(pts) < 20:
@@ -90,6 +94,12 @@ def fit_table_plane(points: np.ndarray, camera_centres: np.ndarray, threshold: f
     ln = np.linalg.norm(nrm, axis=1)
     ok = ln > 1e-12
     nrm, a = nrm[ok] / ln[ok, None], a[ok]
+    if up_hint is not None:
+        up = np.asarray(up_hint, dtype=np.float64) / np.linalg.norm(up_hint)
+        keep = np.abs(nrm @ up) >= np.cos(np.radians(max_tilt_deg))
+        nrm, a = nrm[keep], a[keep]
+        if not len(nrm):
+            raise InputError(f"no plane within {max_tilt_deg:g} degrees of the given up direction")
     best, best_count = None, -1
     for start in range(0, len(nrm), 256):                          # chunks keep memory at [256,N]
         n_, a_ = nrm[start:start + 256], a[start:start + 256]
@@ -108,7 +118,7 @@ def fit_table_plane(points: np.ndarray, camera_centres: np.ndarray, threshold: f
         n = -n
     d = -float(n @ mu)
     rms = float(np.sqrt(np.mean(((q @ n) + d) ** 2)))
-    if inl.sum() < 0.15 * len(pts):
+    if inl.sum() < min_inlier_frac * len(pts):
         raise InputError(f"no dominant table plane: the best plane holds only {inl.sum()}/{len(pts)} points")
     return PlaneFit(normal=n, d=d, inliers=inl, rms=rms)
 

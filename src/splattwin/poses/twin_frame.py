@@ -33,7 +33,8 @@ class TwinFrame:
     cameras' median distance to the scene over a typical tabletop viewing distance). None for a metric
     frame, whose thresholds are used as given.
     T_twin_input: how the input's coordinates map into the twin frame (e.g. a z-down robot world rotated
-    180 degrees about x). up_check: the evidence for up (cameras, table plane) when poses were known.
+    180 degrees about x). up_check: the evidence for up (cameras, table plane): for known poses, which
+    way their world's up was; for a table frame (SfM, unscaled), which plane is the table.
     """
 
     source: str = "unscaled"

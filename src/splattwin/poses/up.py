@@ -243,3 +243,60 @@ def _fmt(v: np.ndarray) -> str:
 def _ambiguous(why: str) -> str:
     return (f"cannot tell which way is up in the known poses' world: {why}. Say which world axis points up "
             f"with --up=+z (or --up=-z, +y, -y, +x, -x), or --up=keep to use the poses as they are")
+
+
+WALL_TILT_DEG = MAX_CUE_ANGLE   # a dominant plane this far from the cameras' horizon up is a wall
+TABLE_TILT_DEG = 15.0           # the table sought instead: within this of the cameras' up (their horizon is
+                                # good to a few degrees: the cake's table is 6 degrees from it)
+MIN_TABLE_FRAC = 0.05           # ... holding at least this share of the points
+
+
+def table_plane_under_cameras(points: np.ndarray, cameras: list[Camera], seed: int = 0):
+    """(PlaneFit, evidence dict) of the table in a frame with no up of its own (SfM, unscaled poses).
+
+    The dominant plane of `points` (`fit_table_plane`) is the table unless the cameras' horizon cue
+    (`camera_cue`: their image x axes are level) is well defined and puts up more than `WALL_TILT_DEG`
+    from its normal: then the dominant plane is a wall (a tabletop against a wall, a facade behind a
+    statue), and the table is the largest plane within `TABLE_TILT_DEG` of the cameras' up holding
+    >= `MIN_TABLE_FRAC` of the points with >= `MIN_CAMERAS_ABOVE` of the cameras above it. With no such
+    plane the frame is levelled by the cameras: a plane normal to their up through the lowest points
+    (2nd percentile of height), and a warning. InputError only when `fit_table_plane` finds no plane.
+    """
+    from splattwin.poses.table import PlaneFit, fit_table_plane
+
+    pts = np.asarray(points, dtype=np.float64)
+    centres = np.array([c.center for c in cameras])
+    plane = fit_table_plane(pts, centres, seed=seed)
+    cam_up, strength, kind = camera_cue(cameras)
+    ev: dict = {"camera_up": [round(float(x), 6) for x in cam_up], "camera_strength": round(strength, 4),
+                "camera_cue": kind, "dominant_plane_normal": [round(float(x), 6) for x in plane.normal],
+                "dominant_plane_inliers": int(plane.inliers.sum())}
+    ang = math.degrees(math.acos(float(np.clip(abs(plane.normal @ cam_up), 0.0, 1.0))))
+    ev["dominant_plane_tilt_deg"] = round(ang, 2)
+    if kind != "horizon" or strength < MIN_CAMERA_STRENGTH or ang <= WALL_TILT_DEG:
+        ev["table"] = "dominant plane"
+        return plane, ev
+    try:
+        table = fit_table_plane(pts, centres, seed=seed, up_hint=cam_up, max_tilt_deg=TABLE_TILT_DEG,
+                                min_inlier_frac=MIN_TABLE_FRAC)
+        above = float(np.mean(centres @ table.normal + table.d > 0))
+        if above < MIN_CAMERAS_ABOVE:
+            raise InputError(f"only {above:.0%} of the cameras are above the level plane")
+    except InputError as e:
+        lo = float(np.percentile(pts @ cam_up, 2))
+        dist = pts @ cam_up - lo
+        thr = 0.01 * float(np.linalg.norm(np.ptp(np.percentile(pts, [5, 95], axis=0), axis=0)))
+        near = np.abs(dist) < thr
+        table = PlaneFit(normal=cam_up.copy(), d=-lo, inliers=np.ones(len(pts), bool),
+                         rms=float(np.sqrt(np.mean(dist[near] ** 2))) if near.any() else 0.0)
+        ev["table"] = f"none level ({e.problem}): levelled by the cameras, z = 0 at the lowest points"
+        log.warning("the dominant plane (%d points) is %.0f degrees from the cameras' up: a wall, not a table; no "
+                    "level plane found (%s), so the frame is levelled by the cameras' horizon, z = 0 at the lowest "
+                    "points", plane.inliers.sum(), ang, e.problem)
+        return table, ev
+    ev.update(table="level plane under a wall", table_normal=[round(float(x), 6) for x in table.normal],
+              table_inliers=int(table.inliers.sum()))
+    log.warning("the dominant plane (%d points) is %.0f degrees from the cameras' up: a wall, not a table; the "
+                "table frame uses the largest level plane (%d points) instead", plane.inliers.sum(), ang,
+                table.inliers.sum())
+    return table, ev
