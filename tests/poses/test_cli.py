@@ -109,6 +109,9 @@ def test_sfm_cli_with_known_length_writes_depth_cloud(default_unscaled, sfm_defa
     assert main(["poses", str(imgs), str(out), "--known-length", f"camera_height={h}"]) == 0
     frame = load_frame(out)
     assert frame.source == "table_plane+known_length" and frame.scaled
+    # the table plane was checked against the cameras' horizon: the embedded table is level, not a wall
+    chk = frame.up_check
+    assert chk["camera_cue"] == "horizon" and chk["table"] == "dominant plane" and chk["dominant_plane_tilt_deg"] < 5
     report = json.loads((out / "poses_report.json").read_text())
     assert report["timings"] == {}  # the finished model was re-used
     assert report["registered"] == 20 and "depth_ply" not in report  # an image folder has no depth
