@@ -225,7 +225,11 @@ class TrainConfig:
         cake 10.81 / 9.13 / 11.07 (0.378) -> 0.3 11.56 / 11.48 / 11.07 (0.450) -> 0.5 11.86 / 12.26 / 11.68
         (0.455); rate 0.7 (seed 0) 16.25 and 11.90. On the dense embedded scene (15 views, antialiased)
         rate 0.3 cost 0.19 dB and 0.018 SSIM (32.87 vs 33.06), so dense captures keep it off. Stereo points
-        on top of it (seeds 0/1): statue 16.40 / 16.39, cake 10.72 / 10.18: still opt-in."""
+        on top of it (seeds 0/1): statue 16.40 / 16.39, cake 10.72 / 10.18: still opt-in. Also measured on
+        the statue with DropGaussian and undistorted photos (16.51 on seed 0), not kept: AbsGS densification
+        (per-pixel |grad| sums, threshold 2.4e-3) 16.37 (training views 25.06 -> 27.27 dB: overfits), the
+        position LR x2 16.77 / 16.44 / 16.58 (seeds 0/1/2) but the cake -1.6 dB (10.83 / 11.12 vs 12.48 /
+        12.83), a log-depth smoothness loss in cameras between training cameras 16.44."""
         sparse = 0 < self.sparse_views and n_views < self.sparse_views
         auto = {"sh_degree": (self.sh_degree < 0, SPARSE_SH_DEGREE if sparse else 3),
                 "bg_sphere_points": (self.bg_sphere_points < 0, min(SPARSE_SPHERE_POINTS, self.max_gaussians // 10)
