@@ -181,7 +181,17 @@ def test_sfm_recovers_a_dropped_image_and_reports_it(dropped_model, sfm_default_
     assert out.check["recovered"][gone]["method"] == "absolute" and out.check["dropped"] == {}
     log = json.loads((work / "attempts.json").read_text())
     assert log[-1]["name"] == "recover" and gone in log[-1]["recovered"] and log[-1]["registered"] == n0 + 1
-    assert gone not in run.dropped
+    assert gone not in run.dropped and (work / "models" / "recovered").is_dir()
+    # a second recovery (against a later, better model) has its own model folder and log entry
+    with StageProgress(False) as bar:
+        run = _Run(work, scene_default / "images", names, SfmOptions(), bar)
+        run.dropped = {gone: "test"}
+        again, attempt = _recovered(run, best, Attempt("guided", "x"), log, work / "attempts.json",
+                                    tag="recover_final")
+    assert again.registered == n0 + 1 and attempt.name == "guided+recovered"
+    assert (work / "models" / "recovered_recover_final").is_dir()
+    log = json.loads((work / "attempts.json").read_text())
+    assert [e["name"] for e in log] == ["recover", "recover_final"]
     # recovery off: the model stays as it is
     with StageProgress(False) as bar:
         run = _Run(work, scene_default / "images", names, SfmOptions(recover_dropped=False), bar)

@@ -902,7 +902,7 @@ def _run_attempts(run: _Run, bar: StageProgress) -> tuple[AttemptOutcome, Attemp
                              "seconds": round(seconds, 2), **({"dropped": sorted(out.dropped)} if out.dropped else {})})
             io.write_json(log_path, done_log)
 
-    recovery_tried = False
+    tried_on: list[str] = []  # the attempt whose model the early recovery ran against
 
     def recover(best: AttemptOutcome, attempt: Attempt) -> tuple[AttemptOutcome, Attempt] | None:
         # Early, once: when every image the best model lacks did register in some attempt but failed the
@@ -910,11 +910,10 @@ def _run_attempts(run: _Run, bar: StageProgress) -> tuple[AttemptOutcome, Attemp
         # retries left (more features) would not: on the cake photos "more_features" (~1/3 of the SfM
         # time) ended with the same 6 images as "guided", and the recovery against guided's model then
         # brought 8/8 anyway.
-        nonlocal recovery_tried
         have = {best.rec.image(i).name for i in best.rec.reg_image_ids()}
-        if recovery_tried or any(nm not in run.dropped for nm in run.names if nm not in have):
+        if tried_on or any(nm not in run.dropped for nm in run.names if nm not in have):
             return None
-        recovery_tried = True
+        tried_on.append(attempt.name)
         return _recovered(run, best, attempt, done_log, log_path)
 
     try:
@@ -922,16 +921,20 @@ def _run_attempts(run: _Run, bar: StageProgress) -> tuple[AttemptOutcome, Attemp
                                  recover=recover)
     except InputError as e:
         raise InputError(e.problem, run.image_root) from e
-    if recovery_tried:  # at most once: its result is cached by name (a killed run resumes to the same model)
-        return best, attempt
-    return _recovered(run, best, attempt, done_log, log_path)
+    if not tried_on:
+        return _recovered(run, best, attempt, done_log, log_path)
+    if best.registered < n and attempt.name != tried_on[0] and not attempt.name.endswith("+recovered"):
+        # a later retry beat the model the early recovery used: its own dropped images get their try too
+        return _recovered(run, best, attempt, done_log, log_path, tag="recover_final")
+    return best, attempt
 
 
 def _recovered(run: _Run, best: AttemptOutcome, attempt: Attempt, done_log: list[dict],
-               log_path: Path) -> tuple[AttemptOutcome, Attempt]:
+               log_path: Path, tag: str = "recover") -> tuple[AttemptOutcome, Attempt]:
     """`best` with the images the sanity check dropped (in any attempt) that it lacks re-registered
     against it (colmap_worker's recover step), checked again; `best` itself when nothing was recovered.
-    The step's result is logged as the attempt "recover" (attempts.json, poses_report.json)."""
+    The step's result is logged as the attempt `tag` (attempts.json, poses_report.json), its model in
+    models/recovered (models/recovered_<tag> for another tag)."""
     import dataclasses
 
     import pycolmap
@@ -945,9 +948,9 @@ def _recovered(run: _Run, best: AttemptOutcome, attempt: Attempt, done_log: list
     if not names:
         return best, attempt
     t0 = time.perf_counter()
-    out = run.work / "models" / "recovered"
+    out = run.work / "models" / ("recovered" if tag == "recover" else f"recovered_{tag}")
     res = run.recover(best.db, best.path, names, out, "SfM: re-registering dropped images")
-    entry = {"name": "recover", "why": f"re-register {len(names)} dropped image(s) against the {attempt.name} "
+    entry = {"name": tag, "why": f"re-register {len(names)} dropped image(s) against the {attempt.name} "
              "model (absolute pose, table-plane homography, else structure-less), kept only if they pass the check",
              "tried": names, "recovered": res.get("recovered", {}), "rejected": res.get("rejected", {}),
              "registered": best.registered, "seconds": round(time.perf_counter() - t0, 2)}
@@ -971,7 +974,7 @@ def _recovered(run: _Run, best: AttemptOutcome, attempt: Attempt, done_log: list
         else:
             entry["rejected_by_parent_check"] = chk.dropped
     entry["registered"] = best.registered
-    if not any(e.get("name") == "recover" for e in done_log):
+    if not any(e.get("name") == tag for e in done_log):
         done_log.append(entry)
         io.write_json(log_path, done_log)
     return best, attempt

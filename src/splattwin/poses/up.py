@@ -1,5 +1,6 @@
 """Which way is up: a sanity check of known camera poses, and the rotation that brings their world to
-the twin frame (z up).
+the twin frame (z up); and, for frames with no up of their own (SfM), which plane is the table
+(`table_plane_under_cameras`: the dominant plane unless the cameras' horizon says it is a wall).
 
 Datasets with known poses use many world conventions: z up (ROS, MuJoCo, the twin), z down (robot and
 camera-like worlds), y up (OpenGL / Blender exports), or the first camera's frame (tilted). Taking any of
