@@ -611,13 +611,14 @@ class _Run:
         io.write_json(info, {"paths": [str(p) for p in paths]})
         return paths
 
-    def drop(self, base: Path, names: list[str], out: Path, label: str) -> Path:
-        """The model in `base` without the images `names`, bundle-adjusted again (colmap_worker step_drop)."""
+    def drop(self, base: Path, names: list[str], out: Path, label: str, mapping: str = "default") -> Path:
+        """The model in `base` without the images `names`, bundle-adjusted again (colmap_worker step_drop)
+        with the intrinsics refined as `mapping`'s options allow."""
         info = out.parent / f"{out.name}.json"
         if info.is_file() and out.is_dir():
             return out
         job = {"step": "drop", "base": str(base), "out": str(out), "names": sorted(names),
-               "options": mapping_options(self.opts, len(self.names), "default", self.threads)}
+               "options": mapping_options(self.opts, len(self.names), mapping, self.threads)}
         _, st = colmap_process.run_step(job, self.work, self.progress, f"{label}: dropping {len(names)} "
                                         "untrustworthy registration(s)", cleanup=[out])
         self._add("map", st)
@@ -880,7 +881,7 @@ def _run_attempts(run: _Run, bar: StageProgress) -> tuple[AttemptOutcome, Attemp
             run.timings["retries"] = run.timings.get("retries", 0.0) + time.perf_counter() - t0
         if not recs:
             return AttemptOutcome(None, 0, [], db)
-        return checked(_outcome(recs, paths, db), a.name, label)
+        return checked(_outcome(recs, paths, db), a.name, label, a.mapping)
 
     def complete(best: AttemptOutcome, history: list[AttemptOutcome]) -> AttemptOutcome | None:
         donors = [p for h in history for p in h.paths if p != best.path]
@@ -893,8 +894,8 @@ def _run_attempts(run: _Run, bar: StageProgress) -> tuple[AttemptOutcome, Attemp
         return checked(_outcome([pycolmap.Reconstruction(str(merged))], [merged], best.db), f"completed_{k}",
                        "SfM: completing")
 
-    def checked(out: AttemptOutcome, tag: str, label: str) -> AttemptOutcome:
-        return _checked(run, out, tag, label)
+    def checked(out: AttemptOutcome, tag: str, label: str, mapping: str = "relaxed") -> AttemptOutcome:
+        return _checked(run, out, tag, label, mapping)
 
     def record(a: Attempt, out: AttemptOutcome, seconds: float) -> None:
         if not any(e.get("name") == a.name for e in done_log):
@@ -980,7 +981,7 @@ def _recovered(run: _Run, best: AttemptOutcome, attempt: Attempt, done_log: list
     return best, attempt
 
 
-def _checked(run: _Run, out: AttemptOutcome, tag: str, label: str) -> AttemptOutcome:
+def _checked(run: _Run, out: AttemptOutcome, tag: str, label: str, mapping: str = "default") -> AttemptOutcome:
     """`out` with the registrations the sanity check (`splattwin.poses.sanity`) does not trust removed:
     they are de-registered and the model is bundle-adjusted again (models/<tag>_checked<k>), repeated
     while the check still flags images (a drop moves the plane and the others' consensus a little)."""
@@ -1004,7 +1005,7 @@ def _checked(run: _Run, out: AttemptOutcome, tag: str, label: str) -> AttemptOut
             log.warning("SfM (%s): %s registered but dropped: %s", tag, n, why)
         dropped.update(chk.dropped)
         run.dropped.update(chk.dropped)
-        path = run.drop(path, list(chk.dropped), run.work / "models" / f"{tag}_checked{k}", label)
+        path = run.drop(path, list(chk.dropped), run.work / "models" / f"{tag}_checked{k}", label, mapping)
         rec = pycolmap.Reconstruction(str(path))
     check = chk.to_dict()
     check["dropped"] = dict(dropped)
