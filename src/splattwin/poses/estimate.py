@@ -176,7 +176,6 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
 
     # -- frame definition ----------------------------------------------------------------------
     order = [n for n in names if n in in_cams]
-    centres = np.array([in_cams[n].center for n in order])
     if method == "sfm" and robot_T is not None:
         tgt = np.array([robot_T[n][:3, 3] for n in order if n in robot_T])
         src = np.array([in_cams[n].center for n in order if n in robot_T])

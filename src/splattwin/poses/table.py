@@ -70,6 +70,16 @@ class PlaneFit:
     inliers: np.ndarray
     rms: float
 
+    def share_above(self, points: np.ndarray) -> float:
+        """Share of `points` [N,3] on the normal's side of the plane (the cameras above a table)."""
+        return float(np.mean(np.asarray(points) @ self.normal + self.d > 0))
+
+
+def plane_threshold(points: np.ndarray) -> float:
+    """Default inlier distance for a plane through `points` [N,3]: 1 % of their robust (5-95 %) extent."""
+    lo, hi = np.percentile(points, [5, 95], axis=0)
+    return 0.01 * float(np.linalg.norm(hi - lo))
+
 
 def fit_table_plane(points: np.ndarray, camera_centres: np.ndarray, threshold: float | None = None,
                     seed: int = 0, num_iterations: int = 2000, up_hint: np.ndarray | None = None,
@@ -85,8 +95,7 @@ def fit_table_plane(points: np.ndarray, camera_centres: np.ndarray, threshold: f
     if len(pts) < 20:
         raise InputError(f"only {len(pts)} sparse points: too few to find the table plane")
     if threshold is None:
-        lo, hi = np.percentile(pts, [5, 95], axis=0)
-        threshold = 0.01 * float(np.linalg.norm(hi - lo))
+        threshold = plane_threshold(pts)
     rng = np.random.default_rng(seed)
     tri = rng.integers(0, len(pts), size=(num_iterations, 3))
     a, b, c = pts[tri[:, 0]], pts[tri[:, 1]], pts[tri[:, 2]]

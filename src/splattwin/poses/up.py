@@ -198,7 +198,7 @@ def check_up(cameras: list[Camera], points: np.ndarray | None = None, up: str = 
         except InputError as e:
             ev["table_plane"] = f"none ({e.problem})"
         else:
-            above = float(np.mean(centres @ plane.normal + plane.d > 0))
+            above = plane.share_above(centres)
             ev.update(table_normal=[round(float(x), 6) for x in plane.normal], cameras_above_table=round(above, 3),
                       table_inliers=int(plane.inliers.sum()), table_points=int(len(points)))
             if above >= MIN_CAMERAS_ABOVE:
@@ -263,7 +263,7 @@ def table_plane_under_cameras(points: np.ndarray, cameras: list[Camera], seed: i
     plane the frame is levelled by the cameras: a plane normal to their up through the lowest points
     (2nd percentile of height), and a warning. InputError only when `fit_table_plane` finds no plane.
     """
-    from splattwin.poses.table import PlaneFit, fit_table_plane
+    from splattwin.poses.table import PlaneFit, fit_table_plane, plane_threshold
 
     pts = np.asarray(points, dtype=np.float64)
     centres = np.array([c.center for c in cameras])
@@ -280,14 +280,13 @@ def table_plane_under_cameras(points: np.ndarray, cameras: list[Camera], seed: i
     try:
         table = fit_table_plane(pts, centres, seed=seed, up_hint=cam_up, max_tilt_deg=TABLE_TILT_DEG,
                                 min_inlier_frac=MIN_TABLE_FRAC)
-        above = float(np.mean(centres @ table.normal + table.d > 0))
+        above = table.share_above(centres)
         if above < MIN_CAMERAS_ABOVE:
             raise InputError(f"only {above:.0%} of the cameras are above the level plane")
     except InputError as e:
         lo = float(np.percentile(pts @ cam_up, 2))
         dist = pts @ cam_up - lo
-        thr = 0.01 * float(np.linalg.norm(np.ptp(np.percentile(pts, [5, 95], axis=0), axis=0)))
-        near = np.abs(dist) < thr
+        near = np.abs(dist) < plane_threshold(pts)
         table = PlaneFit(normal=cam_up.copy(), d=-lo, inliers=np.ones(len(pts), bool),
                          rms=float(np.sqrt(np.mean(dist[near] ** 2))) if near.any() else 0.0)
         ev["table"] = f"none level ({e.problem}): levelled by the cameras, z = 0 at the lowest points"
