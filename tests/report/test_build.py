@@ -31,3 +31,19 @@ def test_report_shows_heldout_views_and_eval_resolution(tmp_path):
     assert "every 8th view from the first" in html
     assert "heldout_003, heldout_004" in html
     assert "3 training views and 2 held-out views" in html
+
+
+def test_report_shows_the_transient_masks_when_training_wrote_them(tmp_path):
+    import numpy as np
+
+    from splattwin.io import write_image
+
+    twin = tmp_path / "twin"
+    helpers.make_dataset(twin / "poses", n_train=3, n_heldout=2)
+    (twin / "splat" / "eval").mkdir(parents=True)
+    (twin / "splat" / "eval" / "metrics.json").write_text(json.dumps({
+        "split": "heldout", "mean_psnr": 24.5, "mean_ssim": 0.81, "n_views": 2, "gaussians": 1234,
+        "views": [{"name": "heldout_003", "psnr": 24.0, "ssim": 0.8}]}))
+    assert "transient masks" not in build_report(twin).read_text()
+    write_image(twin / "splat" / "transients.png", np.zeros((20, 30, 3), np.uint8))
+    assert "transient masks (red)" in build_report(twin).read_text()

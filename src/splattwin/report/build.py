@@ -239,6 +239,9 @@ def _recon_section(sec: Section, twin: Path, ev: dict | None) -> None:
         p = confined(twin / "splat" / "eval", r["image"], twin / "splat" / "eval" / "metrics.json", "image")
         if p.is_file():
             sec.image(p, caption=f"{r['name']}: ground truth | render | error")
+    if (twin / "splat" / "transients.png").is_file():   # a photo collection: what the loss left out
+        sec.image(twin / "splat" / "transients.png", caption="transient masks (red): what training left out of "
+                  "each photo as seen in that photo only (people, vehicles; `--splat.robust-quantile`)", width=720)
 
 
 def _semantics_section(sec: Section, twin: Path, fusion: dict | None) -> None:

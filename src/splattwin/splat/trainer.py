@@ -46,6 +46,7 @@ from splattwin.splat.model import GaussianModel
 from splattwin.splat.pose_refine import PoseCorrection
 from splattwin.splat.rasterization import backend_device, rasterization, resolve_backend
 from splattwin.splat.resolution import Resolution, capacity, describe_sizes, resolve as resolve_resolution
+from splattwin.splat.robust import masked_target, transient_sheet
 from splattwin.splat.strategy import DefaultStrategy, Strategy
 
 log = logging.getLogger(__name__)
@@ -467,6 +468,10 @@ class Trainer:
             img, depth = img[..., :3], img[..., 3]
         img, extra_loss = extras.apply(self.appearance, self.bg_model, img, alpha, idx, self.Ks_levels[level][idx],
                                        self.viewmats[idx], self.bg[0])
+        masked = 0.0
+        if cfg.robust_quantile > 0 and self.step >= cfg.robust_start * cfg.iters:
+            gt, outliers = masked_target(img, gt, cfg.robust_quantile)
+            masked = float(outliers.float().mean())
         loss = photometric_loss(img, gt, cfg.ssim_lambda) + extra_loss
         if use_depth:
             loss = loss + cfg.depth_lambda * depth_loss(depth, alpha[..., 0], gt_depth, cfg.depth_mode)
@@ -491,6 +496,8 @@ class Trainer:
         info = {"step": s, "loss": float(loss.detach()), "psnr": psnr_from_mse(float(((img.detach() - gt) ** 2).mean()))}
         stats = self.strategy.step_post_backward(self.model, self.strategy_state, s, hook_info)
         info.update(stats, n=len(self.model), densified=bool(stats))
+        if cfg.robust_quantile > 0:
+            info["masked"] = masked
         self.step = s
         return info
 
@@ -562,6 +569,23 @@ class Trainer:
             self.save_checkpoint()  # so that --resume on a finished run does no work
         return ema_loss, ema_psnr
 
+    def _write_transients(self) -> dict:
+        """The transient masks of the final model on every training view: OUT/transients.png (the photos with
+        what the loss leaves out tinted red) and each view's masked share (for train.json)."""
+        photos, masks = [], []
+        with torch.no_grad():
+            for idx, v in enumerate(self.views):
+                img, alpha, _ = self.render(idx)
+                img, _ = extras.apply(self.appearance, self.bg_model, img, alpha, idx, self.Ks[idx],
+                                      self.viewmats[idx], self.bg[0])
+                _, out = masked_target(img, v.image, self.cfg.robust_quantile)
+                photos.append(v.image.cpu().numpy())
+                masks.append(out.cpu().numpy())
+        names = [v.name for v in self.views]
+        sheet = transient_sheet(photos, masks, names, self.out_dir / "transients.png")
+        return {"quantile": self.cfg.robust_quantile, "start": self.cfg.robust_start, "image": sheet.name,
+                "masked_share": {n: round(float(m.mean()), 4) for n, m in zip(names, masks)}}
+
     def _write_outputs(self, wall: float, loss: float, psnr: float) -> TrainResult:
         g = self.model.to_gaussians()
         ply = g.save_ply(self.out_dir / "point_cloud.ply")
@@ -573,6 +597,7 @@ class Trainer:
             write_json(self.out_dir / "refined_poses.json", {"convention": "T_world_cam, OpenCV", "poses": refined})
         extras.write(self.out_dir, self.appearance, self.bg_model, [v.name for v in self.views])
         plot_history(self.history, self.out_dir / "train_curves.png")
+        transients = self._write_transients() if self.cfg.robust_quantile > 0 else None
         write_json(self.out_dir / "train.json", {
             "dataset": str(self.dataset.root), "config": self.cfg.to_dict(), "strategy": self.strategy.describe(),
             "backend": self.backend, "resolution": self.resolution.record(),
@@ -581,7 +606,7 @@ class Trainer:
             "init_method": self.init_method, "steps": self.step, "gaussians": len(g), "wall_s": round(wall, 3),
             "train_loss": loss, "train_psnr": psnr, "scene_scale": self.scene_scale,
             "views": [{"name": v.name, "width": v.camera.width, "height": v.camera.height} for v in self.views],
-            "history": self.history})
+            "transients": transients, "history": self.history})
         return TrainResult(g, ply, self.step, wall, loss, psnr, self.init_method, self.history, refined)
 
 
