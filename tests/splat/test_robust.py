@@ -150,6 +150,8 @@ def test_trainer_leaves_a_distractor_out(tmp_path, monkeypatch):
     assert Image.open(tmp_path / "q0.8" / rec["image"]).size[0] == 4 * 256
     shares = rec["masked_share"]
     assert max(shares, key=shares.get) == t.views[0].name and shares[t.views[0].name] > 0.1
+    (tmp_path / "q0.0").mkdir(exist_ok=True)
+    (tmp_path / "q0.0" / "transients.png").write_bytes(b"stale")   # from an earlier run with the masks
     plain._write_outputs(1.0, 0.0, 0.0)
     assert json.loads((tmp_path / "q0.0" / "train.json").read_text())["transients"] is None
     assert not (tmp_path / "q0.0" / "transients.png").exists()

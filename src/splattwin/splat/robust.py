@@ -19,8 +19,8 @@ The rule here follows that idea on the current render's residual (all tensors de
 `masked_target` puts the (detached) render in place of the photo at the outliers, so L1 and SSIM see no
 error there and send no gradient from them; the trainer uses it after a warm-up (`TrainConfig.
 robust_start`), when the static scene is fitted and the distractors stand out. Written here because it is
-a handful of pooling operations on the residual image; the robust losses of the NeRF libraries live in
-their CUDA trainers.
+a handful of operations on the residual image and no maintained package offers it for a torch trainer
+(RobustNeRF's own code is a JAX research release).
 """
 
 from __future__ import annotations

@@ -468,11 +468,11 @@ class Trainer:
             img, depth = img[..., :3], img[..., 3]
         img, extra_loss = extras.apply(self.appearance, self.bg_model, img, alpha, idx, self.Ks_levels[level][idx],
                                        self.viewmats[idx], self.bg[0])
-        masked = 0.0
+        target, masked = gt, 0.0
         if cfg.robust_quantile > 0 and self.step >= cfg.robust_start * cfg.iters:
-            gt, outliers = masked_target(img, gt, cfg.robust_quantile)
+            target, outliers = masked_target(img, gt, cfg.robust_quantile)
             masked = float(outliers.float().mean())
-        loss = photometric_loss(img, gt, cfg.ssim_lambda) + extra_loss
+        loss = photometric_loss(img, target, cfg.ssim_lambda) + extra_loss
         if use_depth:
             loss = loss + cfg.depth_lambda * depth_loss(depth, alpha[..., 0], gt_depth, cfg.depth_mode)
         if cfg.opacity_reg > 0:  # gsplat's opacity_reg: mean opacity, fewer semi-transparent layers
@@ -598,6 +598,8 @@ class Trainer:
         extras.write(self.out_dir, self.appearance, self.bg_model, [v.name for v in self.views])
         plot_history(self.history, self.out_dir / "train_curves.png")
         transients = self._write_transients() if self.cfg.robust_quantile > 0 else None
+        if transients is None and (self.out_dir / "transients.png").exists():
+            (self.out_dir / "transients.png").unlink()   # a stale one from an earlier run with the masks
         write_json(self.out_dir / "train.json", {
             "dataset": str(self.dataset.root), "config": self.cfg.to_dict(), "strategy": self.strategy.describe(),
             "backend": self.backend, "resolution": self.resolution.record(),
