@@ -14,18 +14,24 @@ helpers = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(helpers)
 
 
-def test_report_shows_heldout_views_and_eval_resolution(tmp_path):
+def _twin(tmp_path: Path, **metrics) -> Path:
+    """A twin folder with a 3+2-view capture and the eval metrics given (plus the required ones)."""
     twin = tmp_path / "twin"
     helpers.make_dataset(twin / "poses", n_train=3, n_heldout=2)
     (twin / "splat" / "eval").mkdir(parents=True)
     (twin / "splat" / "eval" / "metrics.json").write_text(json.dumps({
-        "split": "heldout", "mean_psnr": 24.5, "mean_ssim": 0.81, "n_views": 2, "gaussians": 1234,
+        "split": "heldout", "mean_psnr": 24.5, "mean_ssim": 0.81, "n_views": 2, "gaussians": 1234, **metrics}))
+    return twin
+
+
+def test_report_shows_heldout_views_and_eval_resolution(tmp_path):
+    twin = _twin(tmp_path, **{
         "eval_resolution": {"mode": "training", "how": "auto: longest side at most 640 px on the CPU",
                             "sizes": "640x480", "full_sizes": "4032x3024", "scale": 0.1587},
         "heldout": {"rule": "every 8th view from the first (default with >= 6 views)", "source": "default",
                     "views": ["heldout_003", "heldout_004"]},
         "views": [{"name": "heldout_003", "psnr": 24.0, "ssim": 0.8}, {"name": "heldout_004", "psnr": 25.0,
-                                                                         "ssim": 0.82}]}))
+                                                                         "ssim": 0.82}]})
     html = build_report(twin).read_text()
     assert "640x480 (the training resolution)" in html and "4032x3024" in html
     assert "every 8th view from the first" in html
@@ -38,12 +44,7 @@ def test_report_shows_the_transient_masks_when_training_wrote_them(tmp_path):
 
     from splattwin.io import write_image
 
-    twin = tmp_path / "twin"
-    helpers.make_dataset(twin / "poses", n_train=3, n_heldout=2)
-    (twin / "splat" / "eval").mkdir(parents=True)
-    (twin / "splat" / "eval" / "metrics.json").write_text(json.dumps({
-        "split": "heldout", "mean_psnr": 24.5, "mean_ssim": 0.81, "n_views": 2, "gaussians": 1234,
-        "views": [{"name": "heldout_003", "psnr": 24.0, "ssim": 0.8}]}))
+    twin = _twin(tmp_path, views=[{"name": "heldout_003", "psnr": 24.0, "ssim": 0.8}])
     assert "transient masks" not in build_report(twin).read_text()
     write_image(twin / "splat" / "transients.png", np.zeros((20, 30, 3), np.uint8))
     assert "transient masks (red)" in build_report(twin).read_text()
