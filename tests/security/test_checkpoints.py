@@ -135,3 +135,18 @@ def test_other_data_is_not_resumed(tiny_dataset, tmp_path):
     Image.fromarray(a).save(img)
     with pytest.raises(CheckpointMismatch, match="other training data"):
         Trainer(load_dataset(ds_dir), tmp_path / "out", _cfg()).run(resume=True)
+
+
+def test_a_checkpoint_from_before_an_option_resumes_with_its_default(tiny_dataset, tmp_path):
+    """A checkpoint written before an option existed (its run_options lack the key) ran with the option's
+    default behaviour: a run with the default resumes it, a run that sets the option is refused."""
+    ds = load_dataset(tiny_dataset)
+    train(ds, tmp_path / "a", _cfg(iters=18))
+    ckpt = sorted((tmp_path / "a" / "checkpoints").iterdir())[-1]
+    sd = ckpt_io.load(ckpt)
+    for k in ("robust_quantile", "robust_start"):
+        sd["run_options"].pop(k)
+    ckpt_io.save(ckpt, sd)
+    assert Trainer(ds, tmp_path / "a", _cfg(iters=18)).run(resume=True).steps == 18
+    with pytest.raises(CheckpointMismatch, match=r"robust_quantile=0.0 \(this run: 0.8\)"):
+        Trainer(ds, tmp_path / "a", _cfg(iters=18, robust_quantile=0.8)).run(resume=True)

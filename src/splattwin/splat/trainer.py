@@ -364,6 +364,9 @@ class Trainer:
         if sd.get("view_names") != [v.name for v in self.views]:
             raise CheckpointMismatch("checkpoint was made with different training views", where)
         old, new = sd["run_options"], run_options(self.cfg)
+        # an option the checkpoint does not record is newer than it: that run had the option's default
+        # behaviour (options are added with a default that keeps what came before)
+        old = {**{k: v for k, v in run_options(TrainConfig()).items() if k not in old}, **old}
         diff = [k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)]
         if diff:
             shown = ", ".join(f"{k}={old.get(k)!r} (this run: {new.get(k)!r})" for k in diff[:4])
