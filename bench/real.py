@@ -472,8 +472,8 @@ def _misplacement_bound(twin: Path) -> dict:
         se, n = 0.0, 0
         for v in views:
             a = v.image.numpy().astype(np.float64)
-            for diff in (a[:, d:] - a[:, :-d], a[d:] - a[:-d]):
-                se, n = se + 2 * float((diff ** 2).sum()), n + 2 * diff.size  # +d and -d: the same residuals
+            for diff in (a[:, d:] - a[:, :-d], a[d:] - a[:-d]):  # a shift by -d leaves the same residuals
+                se, n = se + float((diff ** 2).sum()), n + diff.size
         out[f"statue_self_shift_{d}px_db"] = round(-10 * math.log10(se / n), 2) if n and se > 0 else None
     return out
 
