@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -169,3 +170,30 @@ def test_eval_compares_distorted_photos_undistorted(tmp_path):
         f.camera = dataclasses.replace(f.camera, dist=None)
     naive = evaluate(g, ds, None, progress=False)
     assert naive.mean_psnr < res.mean_psnr - 8, (naive.mean_psnr, res.mean_psnr)
+
+
+def test_eval_holds_out_what_training_held_out_and_never_a_training_view(tmp_path, caplog):
+    """`splattwin train --heldout-views` splits the dataset in memory: the dataset's own split (here
+    heldout_003/004) then names views the splat was trained on. Evaluation follows train.json."""
+    caplog.set_level(logging.INFO, logger="splattwin.splat.eval")
+    ds_root = helpers.make_dataset(tmp_path / "ds", n_train=3, n_heldout=2)
+    run = tmp_path / "run"
+    helpers.gt_gaussians().save_ply(run / "point_cloud.ply")
+    trained = ["train_000", "train_002", "heldout_003", "heldout_004"]
+    record = {"source": "option", "rule": "listed views (--heldout-views 1)", "views": ["train_001"]}
+    (run / "train.json").write_text(json.dumps({"views": [{"name": n} for n in trained], "heldout": record}))
+    res = evaluate(run, ds_root, tmp_path / "eval", progress=False)
+    assert res.split == "heldout" and [v["name"] for v in res.views] == ["train_001"]
+    m = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    assert m["heldout"]["views"] == ["train_001"] and m["heldout"]["rule"] == record["rule"]
+    assert "not the dataset's split" in caplog.text
+    # trained without a hold-out (`--heldout-every 0`): the dataset's held-out views were training views
+    (run / "train.json").write_text(json.dumps({"views": [{"name": n} for n in trained + ["train_001"]],
+                                                "heldout": {"source": "option", "rule": "none", "views": []}}))
+    caplog.clear()
+    res = evaluate(run, ds_root, None, progress=False)
+    assert res.split == "train" and "heldout_003, heldout_004: trained on by this splat" in caplog.text
+    # a malformed record (untrusted file) is ignored, not a crash: the dataset's split
+    (run / "train.json").write_text(json.dumps({"views": "x", "heldout": {"views": 3}}))
+    res = evaluate(run, ds_root, None, progress=False)
+    assert [v["name"] for v in res.views] == ["heldout_003", "heldout_004"]

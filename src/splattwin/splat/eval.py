@@ -7,9 +7,10 @@ evaluated at 640 px), else at the dataset's image size; `full_resolution=True` (
 --eval-full-resolution`) renders at the full image size, `resolution=` at another 3DGS `-r` value.
 metrics.json records the size used (`eval_resolution`) and the held-out views and their rule
 (`heldout`). The background is the training background (black by default). The held-out views are the
-dataset's; a dataset without any uses the held-out views train.json names (`splattwin train` applies
-the hold-out to the dataset it reads); without either the training frames are evaluated instead (and
-flagged so).
+ones train.json names when the dataset has them (`splattwin train --heldout-*` applies its hold-out to
+the dataset it reads, so the dataset's own split may differ), else the dataset's; a view the splat was
+trained on is never evaluated as held-out (`_heldout_split`). Without any held-out view the training
+frames are evaluated instead (and flagged so).
 
 Photos with lens distortion (SfM's SIMPLE_RADIAL) are compared undistorted, at their pinhole camera
 (`capture.undistort.pinhole_for`, as they were trained; 3DGS evaluates on COLMAP-undistorted images too).
@@ -40,7 +41,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from splattwin.capture import Dataset, load_dataset
+from splattwin.capture import Dataset, Frame, load_dataset
 from splattwin.capture.undistort import pinhole_for
 from splattwin.errors import InputError
 from splattwin.io import write_image, write_json
@@ -148,6 +149,37 @@ def resolve_ply(path: str | Path) -> tuple[Path, dict]:
     return path, {}
 
 
+def _heldout_split(ds: Dataset, info: dict) -> tuple[list[Frame], list[Frame], dict]:
+    """(held-out frames, the frames the splat was trained on, the hold-out record) of `ds` for the
+    training record `info` (train.json, {} for a bare PLY).
+
+    The training record decides: `splattwin train --heldout-*` splits the dataset it reads in memory, so
+    the dataset's own split (e.g. the poses stage's default every 8th view) may name views this splat was
+    trained on. The views train.json holds out are evaluated when the dataset has them, and no view it
+    trained on is ever reported as held-out."""
+    rec = info.get("heldout") if isinstance(info.get("heldout"), dict) else None
+    rows = info.get("views") if isinstance(info.get("views"), list) else []
+    trained = {str(r["name"]) for r in rows if isinstance(r, dict) and "name" in r}
+    frames, held = ds.heldout(), dict(ds.meta.get("heldout") or rec or {})
+    named = {str(n) for n in rec["views"]} if rec and isinstance(rec.get("views"), list) else set()
+    listed = [f for f in ds.frames if f.name in named and f.name not in trained]
+    if listed:
+        if {f.name for f in listed} != {f.name for f in frames} and frames:
+            log.info("evaluating the views held out in training (%s: %s), not the dataset's split (%s)",
+                     rec.get("rule", "train.json"), ", ".join(f.name for f in listed),
+                     ", ".join(f.name for f in frames))
+        frames, held = listed, dict(rec)
+    seen = [f.name for f in frames if f.name in trained]
+    if seen:
+        log.warning("%s: trained on by this splat, so not evaluated as held-out", ", ".join(seen))
+        frames = [f for f in frames if f.name not in trained]
+    if trained:
+        train_frames = [f for f in ds.frames if f.name in trained]
+    else:
+        train_frames = ds.train()
+    return frames, train_frames, held
+
+
 def _eval_resolution(info: dict, resolution: int | None, full_resolution: bool) -> tuple[Resolution, str]:
     """(the rule, its name for metrics.json): an explicit `resolution` (a 3DGS `-r` value; 0 = auto as on
     the CPU), the full size, or the training resolution train.json recorded (older train.json: its
@@ -195,14 +227,11 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
     if not ds.has_poses:
         raise InputError("dataset has no camera poses to render from", ds.root)
-    frames, split = ds.heldout(), "heldout"
-    trained_heldout = info.get("heldout") if isinstance(info.get("heldout"), dict) else None
-    if not frames and trained_heldout and isinstance(trained_heldout.get("views"), list):
-        names = {str(n) for n in trained_heldout["views"]}
-        frames = [f for f in ds.frames if f.name in names]
+    frames, train_frames, held = _heldout_split(ds, info)
+    split = "heldout"
     if not frames:
         log.warning("dataset has no held-out frames: evaluating the training frames (not a generalisation test)")
-        frames, split = ds.train(), "train"
+        frames, split = train_frames, "train"
     cfg = info.get("config", {})
     rule, mode_res = _eval_resolution(info, resolution, full_resolution)
     bg = background if background is not None else cfg.get("background", (0.0, 0.0, 0.0))
@@ -221,12 +250,11 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
     eval_res = {"mode": mode_res, "how": rule.how, "sizes": describe_sizes(sizes),
                 "full_sizes": describe_sizes(full), "scale": round(min(w / fw for (w, _), (fw, _) in zip(sizes, full)), 6)}
     log.info("evaluating %d %s views at %s (%s)", len(views), split, eval_res["sizes"], mode_res)
-    held = dict(ds.meta.get("heldout") or trained_heldout or {})
     held = {k: held[k] for k in ("source", "rule", "every") if k in held}
     held["views"] = [f.name for f in frames] if split == "heldout" else []
     out = Path(out_dir) if out_dir is not None else None
     # the training photos' pinhole cameras: what the splats were fitted to (undistorted, `load_views`)
-    train_cams = [pinhole_for(f.camera) for f in ds.train()] if split == "heldout" else []
+    train_cams = [pinhole_for(f.camera) for f in train_frames] if split == "heldout" else []
     rows = []
     for v in track(views, "eval", unit="view", enabled=progress):
         gt = v.image.numpy()
