@@ -120,8 +120,9 @@ class TrainConfig:
         on the short side, else as many halvings (at most 2) as keep the coarsest level >= 120 px.
         Measured with 5 % of the steps per level (3000 steps): embedded scene at 640x480 (56k Gaussians)
         33.78 dB / SSIM 0.968 with 2 levels vs 33.69 / 0.970 without, ~8 % less work; statue photos
-        (7 training views at 360x640, 48k) 18.8 dB held-out with 1 level vs 17.7 without; but at 320x240
-        any coarse phase cost 0.1-0.2 dB (1 level: 32.72 vs 32.85 dB; 2 levels: 32.69; 2 levels of 10 %:
+        (7 training views at 360x640, 48k; an earlier hold-out, not the default ends 000/016) 18.8 dB
+        held-out with 1 level vs 17.7 without; but at 320x240 any coarse phase cost 0.1-0.2 dB (1 level:
+        32.72 vs 32.85 dB; 2 levels: 32.69; 2 levels of 10 %:
         32.36).
     densify_cfg: the adaptive density control schedule (None: `DensifyConfig.for_iterations`); set from
         Python only.
