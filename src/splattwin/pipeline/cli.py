@@ -138,6 +138,9 @@ def _print_headline(ctx) -> None:
         con.print(f"[red]robot task not run: {r['robot']['error']}[/]")
     elif r.get("robot"):
         con.print(f"robot task: {'[green]success[/]' if r['robot']['success'] else '[red]failure[/]'}")
-    con.print(f"total {sum(ctx.timings.values()):.0f} s; twin: {ctx.out / 'twin.json'}")
+    twin = ctx.out / "twin.json"
+    # --until before the twin stage: name the folder, not a twin.json that is not there
+    where = f"twin: {twin}" if twin.is_file() else f"outputs in {ctx.out} (no twin.json: stopped before the twin stage)"
+    con.print(f"total {sum(ctx.timings.values()):.0f} s; {where}")
     if r.get("report"):
         con.print(f"report: {ctx.out / r['report']['report'][1:]}")
