@@ -197,3 +197,7 @@ def test_eval_holds_out_what_training_held_out_and_never_a_training_view(tmp_pat
     (run / "train.json").write_text(json.dumps({"views": "x", "heldout": {"views": 3}}))
     res = evaluate(run, ds_root, None, progress=False)
     assert [v["name"] for v in res.views] == ["heldout_003", "heldout_004"]
+    # trained on another capture (no name in common): the dataset's split, its training views for coverage
+    (run / "train.json").write_text(json.dumps({"views": [{"name": "other_000"}]}))
+    res = evaluate(run, ds_root, None, progress=False)
+    assert [v["name"] for v in res.views] == ["heldout_003", "heldout_004"] and res.mean_covered_frac > 0.5

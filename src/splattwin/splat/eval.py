@@ -173,10 +173,8 @@ def _heldout_split(ds: Dataset, info: dict) -> tuple[list[Frame], list[Frame], d
     if seen:
         log.warning("%s: trained on by this splat, so not evaluated as held-out", ", ".join(seen))
         frames = [f for f in frames if f.name not in trained]
-    if trained:
-        train_frames = [f for f in ds.frames if f.name in trained]
-    else:
-        train_frames = ds.train()
+    # a record naming none of these frames: trained on another capture, the dataset's training views stand in
+    train_frames = [f for f in ds.frames if f.name in trained] or ds.train()
     return frames, train_frames, held
 
 
