@@ -62,11 +62,16 @@ def test_training_and_default_eval_at_the_auto_size_full_size_as_an_option(tmp_p
     rec = json.loads((out / "train.json").read_text())
     assert {(v["width"], v["height"]) for v in rec["views"]} == {(48, 36)}
     assert rec["resolution"] == {"resolution": 1, "max_side": 48, "how": rec["resolution"]["how"]}
+    assert rec["heldout"]["views"] == ["heldout_004", "heldout_005"]   # always listed, not only the rule
     ev = evaluate(out, ds, tmp_path / "eval", progress=False)
     m = json.loads((tmp_path / "eval" / "metrics.json").read_text())
     assert m["eval_resolution"]["mode"] == "training" and m["eval_resolution"]["sizes"] == "48x36"
     assert m["eval_resolution"]["full_sizes"] == "96x72" and m["eval_resolution"]["scale"] == 0.5
     assert m["heldout"]["views"] == ["heldout_004", "heldout_005"] and ev.split == "heldout"
+    # the folder's point_cloud.ply by its path: the same splat, evaluated the same way
+    by_ply = evaluate(out / "point_cloud.ply", ds, tmp_path / "eval_ply", progress=False)
+    mp = json.loads((tmp_path / "eval_ply" / "metrics.json").read_text())
+    assert mp["eval_resolution"] == m["eval_resolution"] and by_ply.mean_psnr == ev.mean_psnr
     full = evaluate(out, ds, tmp_path / "eval_full", progress=False, full_resolution=True)
     mf = json.loads((tmp_path / "eval_full" / "metrics.json").read_text())
     assert mf["eval_resolution"]["mode"] == "full" and mf["eval_resolution"]["sizes"] == "96x72"

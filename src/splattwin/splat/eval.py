@@ -1,9 +1,9 @@
 """`splattwin eval`: render held-out views of a trained splat, PSNR and SSIM per view and mean,
 side-by-side pictures (ground truth | render | error heat map) and a metrics JSON.
 
-Views are rendered at the training resolution when a training folder (with train.json) is given (the
-rule train.json records, `splattwin.splat.resolution`: a photo trained at 640 px on the CPU is
-evaluated at 640 px), else at the dataset's image size; `full_resolution=True` (`build
+Views are rendered at the training resolution when a training folder (with train.json) or its
+point_cloud.ply is given (the rule train.json records, `splattwin.splat.resolution`: a photo trained at
+640 px on the CPU is evaluated at 640 px), else at the dataset's image size; `full_resolution=True` (`build
 --eval-full-resolution`) renders at the full image size, `resolution=` at another 3DGS `-r` value.
 metrics.json records the size used (`eval_resolution`) and the held-out views and their rule
 (`heldout`). The background is the training background (black by default). The held-out views are the
@@ -135,8 +135,12 @@ def _masked_psnr(img: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float | N
 
 
 def resolve_ply(path: str | Path) -> tuple[Path, dict]:
-    """A PLY path and the training record (train.json, or {}) from a training folder or a PLY file."""
+    """A PLY path and the training record (train.json, or {}) from a training folder or a PLY file.
+    A training folder's own point_cloud.ply given by its path gets the folder's record too: the same
+    splat, so the same held-out views and resolution."""
     path = Path(path)
+    if path.is_file() and path.name == "point_cloud.ply" and (path.parent / "train.json").is_file():
+        path = path.parent
     if path.is_dir():
         ply = path / "point_cloud.ply"
         if not ply.is_file():

@@ -589,6 +589,15 @@ class Trainer:
         return {"quantile": self.cfg.robust_quantile, "start": self.cfg.robust_start, "image": sheet.name,
                 "masked_share": {n: round(float(m.mean()), 4) for n, m in zip(names, masks)}}
 
+    def _heldout_record(self) -> dict:
+        """The hold-out this splat was trained without: the dataset's rule and, always, the views
+        (transforms.json keeps the views in its frames' split, not in its rule record), so `eval` can
+        tell them from the training views whatever split the dataset it is given has."""
+        rec = self.dataset.meta.get("heldout")
+        rec = dict(rec) if isinstance(rec, dict) else {}
+        rec["views"] = [f.name for f in self.dataset.heldout()]
+        return rec
+
     def _write_outputs(self, wall: float, loss: float, psnr: float) -> TrainResult:
         g = self.model.to_gaussians()
         ply = g.save_ply(self.out_dir / "point_cloud.ply")
@@ -606,7 +615,7 @@ class Trainer:
         write_json(self.out_dir / "train.json", {
             "dataset": str(self.dataset.root), "config": self.cfg.to_dict(), "strategy": self.strategy.describe(),
             "backend": self.backend, "resolution": self.resolution.record(),
-            "heldout": self.dataset.meta.get("heldout"),
+            "heldout": self._heldout_record(),
             "profile": self.profile or "dense (defaults)",
             "init_method": self.init_method, "steps": self.step, "gaussians": len(g), "wall_s": round(wall, 3),
             "train_loss": loss, "train_psnr": psnr, "scene_scale": self.scene_scale,
