@@ -349,7 +349,7 @@ def summary_html(out: Path, summary: dict) -> str:
 
 
 def print_summary(summary: dict) -> None:
-    from rich.console import Console
+    from splattwin.console import console
     from rich.table import Table
 
     cols = ("name", "status", "views", "psnr", "ssim", "miou_heldout", "objects_usable", "f1_min", "task", "build_s")
@@ -358,7 +358,7 @@ def print_summary(summary: dict) -> None:
         t.add_column(c, overflow="fold")
     for c in summary["captures"]:
         t.add_row(*["" if c.get(k) is None else (f"{c[k]:.4g}" if isinstance(c[k], float) else str(c[k])) for k in cols])
-    con = Console()
+    con = console()
     con.print(t)
     for c in summary["captures"]:
         if c.get("error"):

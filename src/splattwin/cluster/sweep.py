@@ -530,7 +530,7 @@ def plot(summary: dict, path: Path) -> Path:
 
 
 def print_table(summary: dict, paths: dict | None = None) -> None:
-    from rich.console import Console
+    from splattwin.console import console
     from rich.table import Table
 
     cols = [c for c in columns(summary) if c != "error"]
@@ -539,7 +539,7 @@ def print_table(summary: dict, paths: dict | None = None) -> None:
         t.add_column(c.split(".")[-1], overflow="fold")
     for r in summary["cells"]:
         t.add_row(*[_fmt(r.get(c)) for c in cols])
-    con = Console()
+    con = console()
     con.print(t)
     for r in summary["cells"]:
         if r.get("error"):

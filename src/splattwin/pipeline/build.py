@@ -277,13 +277,13 @@ def build(out: str | Path, options: BuildOptions, from_stage: str | None = None,
           progress: bool = True) -> Context:
     """Run (or resume) the pipeline into the twin folder `out`. Returns the run context.
     progress: progress bars of every stage (not an option of the result: no stage key depends on it)."""
-    from rich.console import Console
+    from splattwin.console import console
 
     from splattwin.lock import output_lock
 
     out = Path(out)
     check_inputs(options)
-    con = Console(stderr=True)
+    con = console(stderr=True)
 
     def on_stage(name: str, status: str) -> None:
         if status == "skip":

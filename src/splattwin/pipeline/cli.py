@@ -114,9 +114,9 @@ def _exit_code(ctx) -> int:
 def _print_headline(ctx) -> None:
     import json
 
-    from rich.console import Console
+    from splattwin.console import console
 
-    con = Console()
+    con = console()
     r = ctx.results
     if "splats" in r and r["splats"]:
         s = r["splats"]

@@ -57,7 +57,7 @@ def run_plan(args: argparse.Namespace) -> int:
     ROS 2 JointTrajectory YAML) and frames. With --record DIR every run (nominal, then each trial) is also
     written as a LeRobot-layout episode rendered from the twin's splats (wrist + scene camera). Exit code
     0 when the task succeeded, 1 when it failed, 2 on bad input."""
-    from rich.console import Console
+    from splattwin.console import console
 
     from splattwin.errors import InputError
     from splattwin.lock import output_lock
@@ -81,7 +81,7 @@ def run_plan(args: argparse.Namespace) -> int:
         print_summary(d["run"], d["trials"], d["paths"])
         if recorder is not None:
             info = record_result(recorder, opts.record, out, d)
-            Console().print(f"recorded {info['episodes']} episode(s) into {info['path']} "
+            console().print(f"recorded {info['episodes']} episode(s) into {info['path']} "
                             f"({info['reused']} reused from a killed run; {info['fps']:g} fps, cameras "
                             + ", ".join(f"{k} {w}x{h}" for k, (w, h) in info["cameras"].items()) + ")")
     ok = res.success and (d["trials"] is None or d["trials"]["successes"] == d["trials"]["trials"])
@@ -94,7 +94,7 @@ def run_render(args: argparse.Namespace) -> int:
     Plays a rollout (TWIN/robot/rollout.npz, written by `splattwin plan`) on the twin's splats: objects
     move with the simulation, the Panda is drawn as Gaussians from its meshes, the table under picked
     objects is filled. Exit code 2 on bad input (no splats, camera below the table, ...)."""
-    from rich.console import Console
+    from splattwin.console import console
 
     from splattwin.errors import InputError
     from splattwin.playback.cameras import EyeInHand, resolve_camera
@@ -119,7 +119,7 @@ def run_render(args: argparse.Namespace) -> int:
     rollout = Rollout.load(rpath)
     unknown = sorted(set(rollout.object_poses) - set(scene.objects))
     if unknown:
-        Console(stderr=True).print(f"note: rollout objects without splats stay unrendered: {', '.join(unknown)}")
+        console(stderr=True).print(f"note: rollout objects without splats stay unrendered: {', '.join(unknown)}")
     robot = None if args.no_robot else RobotSplats.panda(_base_pose(args).matrix())
     if isinstance(camera, EyeInHand) and robot is None:
         raise InputError("an eye-in-hand camera needs the robot (drop --no-robot)")
@@ -127,12 +127,12 @@ def run_render(args: argparse.Namespace) -> int:
                                 robot=robot is not None)
     if scene.light is not None:
         lt = scene.light
-        Console().print(f"re-lit: light from the twin's shadows at azimuth {lt.azimuth_deg:.0f} deg, elevation "
+        console().print(f"re-lit: light from the twin's shadows at azimuth {lt.azimuth_deg:.0f} deg, elevation "
                         f"{lt.elevation_deg:.0f} deg (twin frame), ambient share {lt.ambient:.2f}")
     elif not args.no_relight:
         why = "no clear cast shadow found on the twin's table" if scene.meshes else "the twin has no object meshes"
-        Console().print(f"not re-lit: {why} (splats keep their trained colour)")
-    Console().print(f"wrote {info['path']}: {info['frames']} frames {info['width']}x{info['height']} at "
+        console().print(f"not re-lit: {why} (splats keep their trained colour)")
+    console().print(f"wrote {info['path']}: {info['frames']} frames {info['width']}x{info['height']} at "
                     f"{info['fps']:g} fps, median {info['render_ms_median']:.0f} ms per frame")
     return 0
 

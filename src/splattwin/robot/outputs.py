@@ -78,10 +78,10 @@ def write_rollout(out: str | Path, spec, result) -> dict[str, Path]:
 
 
 def print_summary(result, trials: dict | None, paths: dict[str, Path]) -> None:
-    from rich.console import Console
+    from splattwin.console import console
     from rich.table import Table
 
-    con = Console()
+    con = console()
     t = Table(title="task validation in MuJoCo")
     for c in ("step", "pick", "goal", "grasped", "lift cm", "placed", "at rest", "collisions", "plan ms", "result"):
         t.add_column(c)

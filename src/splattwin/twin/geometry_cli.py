@@ -103,7 +103,7 @@ def _run_locked(args: argparse.Namespace) -> int:
 def evaluate(g, labels, objects, scene_dir: Path, opts, out_dir: Path) -> dict:
     """Print the four-configuration ablation (paper Table 5) against a generated scene's GT meshes and
     write it to OUT/geometry_ablation.json."""
-    from rich.console import Console
+    from splattwin.console import console
     from rich.table import Table
 
     from splattwin import io
@@ -120,7 +120,7 @@ def evaluate(g, labels, objects, scene_dir: Path, opts, out_dir: Path) -> dict:
         t.add_column(f"{c}: CD mm / F1", justify="right")
     for name in ab["full"]:
         t.add_row(name, *[f"{ab[c][name].chamfer * 1e3:.2f} / {ab[c][name].f1:.3f}" for c in CONFIGS])
-    Console().print(t)
+    console().print(t)
     result = {c: {n: f.to_dict() for n, f in v.items()} for c, v in ab.items()}
     io.write_json(out_dir / "geometry_ablation.json", result)
     return result
