@@ -14,6 +14,7 @@ import importlib
 import logging
 import sys
 import traceback
+import warnings
 from pathlib import Path
 
 from splattwin import __version__, runtime
@@ -67,6 +68,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     debug = bool(getattr(args, "debug", False))
+    plain_format = warnings.formatwarning
+    if not (debug or args.verbose):
+        warnings.formatwarning = _format_warning
     try:
         return int(args.func(args) or 0)
     except InputError as e:
@@ -91,6 +95,20 @@ def main(argv: list[str] | None = None) -> int:
                   f"This is a bug in splattwin (or an unexpected library failure), not your input. Run the "
                   f"same command with --debug for the traceback and include it in a bug report.", file=sys.stderr)
         return 1
+    finally:
+        warnings.formatwarning = plain_format
+
+
+def _format_warning(message, category, filename, lineno, line=None) -> str:
+    """Our own warnings (MaskWarning, ObjectUnusableWarning, ...) as the log lines around them, not
+    Python's `path:line: Category: message` plus the source line: they are about the user's data, not
+    our code (-v / --debug keep the full form)."""
+    if category.__module__.startswith("splattwin"):
+        return f"WARNING {category.__module__}: {message}\n"
+    return _PLAIN_FORMAT(message, category, filename, lineno, line)
+
+
+_PLAIN_FORMAT = warnings.formatwarning
 
 
 def _innermost_frame(e: BaseException) -> str:
