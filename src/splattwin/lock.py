@@ -166,9 +166,30 @@ def holds(folder: str | Path) -> bool:
 
 @contextlib.contextmanager
 def output_lock(folder: str | Path, command: str | None = None) -> Iterator[Path]:
-    """`with output_lock(out):` hold the lock of `out` for the block (see module docstring)."""
+    """`with output_lock(out):` hold the lock of `out` for the block (see module docstring).
+
+    A command that fails (bad input, Ctrl-C) before writing anything into a folder it created leaves no
+    folder behind: only its lock was there, and an empty `OUT/.splattwin/lock` would look like a run."""
+    created = not Path(folder).exists()
     acquire(folder, command)
+    done = False
     try:
         yield Path(folder)
+        done = True
     finally:
+        if created and not done:
+            _remove_if_untouched(Path(folder))   # still locked: nobody else can be writing there
         release(folder)
+
+
+def _remove_if_untouched(folder: Path) -> None:
+    """Remove `folder` if it holds nothing but our state folder with its lock file."""
+    state = folder / STATE_DIR
+    try:
+        if [p.name for p in folder.iterdir()] != [STATE_DIR] or [p.name for p in state.iterdir()] != [LOCK_NAME]:
+            return
+        (state / LOCK_NAME).unlink()
+        state.rmdir()
+        folder.rmdir()
+    except OSError:   # something appeared meanwhile, or no permission: leave it
+        pass
