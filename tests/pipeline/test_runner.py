@@ -57,3 +57,17 @@ def test_killed_run_resumes_without_redoing_finished_stages(tmp_path):
     ctx = run_stages(_stages(calls), Context(tmp_path, opts))
     assert calls == ["b", "c"]
     assert set(ctx.timings) == {"a", "b", "c"}
+
+
+def test_a_rerun_stopped_midway_leaves_no_record_of_the_old_later_outputs(tmp_path):
+    """New options for b, Ctrl-C during b: pipeline.json must not keep vouching for the old b and c
+    (their files are still there, from the earlier options)."""
+    calls = []
+    run_stages(_stages(calls), Context(tmp_path, {"a": 1, "b": 1, "c": 1}))
+    with pytest.raises(KeyboardInterrupt):
+        run_stages(_stages(calls, fail_at="b"), Context(tmp_path, {"a": 1, "b": 2, "c": 1}))
+    assert list(json.loads((tmp_path / "pipeline.json").read_text())) == ["a"]
+    assert (tmp_path / "c.txt").is_file()   # files are left (a stage may resume from its own checkpoints)
+    calls.clear()
+    run_stages(_stages(calls), Context(tmp_path, {"a": 1, "b": 2, "c": 1}))
+    assert calls == ["b", "c"]

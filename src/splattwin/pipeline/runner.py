@@ -10,7 +10,8 @@ Each stage declares what its result depends on, and its key is a SHA-256 over al
   stage's code re-runs it (a hand-set `version` can still force it),
 - the keys of the stages it depends on (`deps`), so everything downstream of a change re-runs.
 After a stage succeeds the runner records `{key, outputs, seconds, peak_rss_gib}` in
-`TWIN/pipeline.json` (atomically). On the next run a stage whose recorded key matches and whose
+`TWIN/pipeline.json` (atomically); when a stage re-runs, its record and those of every later stage are
+dropped first, so a run stopped midway never leaves a record of old outputs beside new ones. On the next run a stage whose recorded key matches and whose
 outputs all exist (inside the twin folder) is skipped. Stages write their own outputs atomically, so a
 kill leaves at most the unfinished stage to redo (and training resumes from its own checkpoint inside
 the stage).
@@ -188,6 +189,13 @@ def run_stages(stages: list[Stage], ctx: Context, from_stage: str | None = None,
                 on_stage(stage.name, "skip")
         else:
             redo = True  # everything downstream of a re-run stage re-runs too
+            # ... so until each finishes, pipeline.json vouches for none of their old outputs: a run
+            # stopped here (Ctrl-C, error) must not leave new poses recorded beside the old splats
+            stale = [n for n in names[names.index(stage.name):] if n in state]
+            if stale:
+                for n in stale:
+                    del state[n]
+                io.write_json(ctx.out / STATE_NAME, state)
             if on_stage:
                 on_stage(stage.name, "run")
             t0 = time.perf_counter()
