@@ -220,3 +220,36 @@ def test_an_object_over_a_background_obstacle_stands_on_it():
 
     assert bottom(False) < 0.002
     assert bottom(True) > 0.012
+
+
+def _plane_gaussians(xyz: np.ndarray) -> Gaussians:
+    n = len(xyz)
+    return Gaussians(means=xyz, quats=np.tile([1.0, 0, 0, 0], (n, 1)), scales=np.full((n, 3), 0.002),
+                     opacities=np.full(n, 0.9), sh=np.full((n, 1, 3), 0.5))
+
+
+def test_a_known_table_plane_beats_a_larger_far_plane_and_a_missing_table_is_a_flagged_default_under_the_objects():
+    from splattwin.geometry.clustering import Plane
+    from splattwin.geometry.convert import background_geometry
+
+    rng = np.random.default_rng(0)
+    table = np.c_[rng.uniform(-0.2, 0.2, (6000, 2)), rng.normal(0, 0.0005, 6000)]
+    floor = np.c_[rng.uniform(-3, 3, (24000, 2)), np.full(24000, -2.0)]  # far field: 4x the table's splats
+    g = _plane_gaussians(np.concatenate([table, floor]))
+    opts = GeometryOptions().resolved(2.0)
+    idx = np.arange(len(g))
+    fitted = background_geometry(g, idx, opts)
+    # the RANSAC fit takes the far plane and finds no table on it (the cake's failure; why the prior exists)
+    assert abs(fitted.plane.d - 2.0) < 0.01 and fitted.default_reason is not None
+    known = background_geometry(g, idx, opts, plane=Plane(normal=np.array([0.0, 0.0, 1.0]), d=0.0))
+    assert known.default_reason is None and abs(known.table_height) < 0.003
+    assert np.allclose(known.table_extent, [-0.2, 0.2, -0.2, 0.2], atol=0.01)
+    # only the far floor: no table splats on the plane z = 0 -> a default table, said so, under the objects
+    g_far = _plane_gaussians(floor)
+    objects = np.c_[rng.uniform(1.9, 2.1, (500, 2)), rng.uniform(0, 0.1, 500)]
+    d = background_geometry(g_far, np.arange(len(g_far)), opts, plane=Plane(normal=np.array([0.0, 0.0, 1.0]), d=0.0),
+                            length_scale=5.0, object_points=objects)
+    assert d.default_reason is not None and "0 of them" in d.default_reason
+    assert d.table_height == 0.0
+    assert np.allclose(d.table_extent, [2.0 - 2.5, 2.0 + 2.5, 2.0 - 2.0, 2.0 + 2.0], atol=0.02)  # 1 x 0.8 m x 5
+    assert np.allclose(d.collision.bounds[1, :2], [4.5, 4.0], atol=0.02)

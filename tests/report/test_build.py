@@ -48,3 +48,41 @@ def test_report_shows_the_transient_masks_when_training_wrote_them(tmp_path):
     assert "transient masks" not in build_report(twin).read_text()
     write_image(twin / "splat" / "transients.png", np.zeros((20, 30, 3), np.uint8))
     assert "transient masks (red)" in build_report(twin).read_text()
+
+
+def test_report_takes_training_and_evaluation_resolution_each_from_its_own_record(tmp_path):
+    # trained at --resolution 2, evaluated at full size (--eval-full-resolution): the audit's statue
+    twin = _twin(tmp_path, eval_resolution={"mode": "full", "how": "full size", "sizes": "1080x1920",
+                                            "full_sizes": "1080x1920", "scale": 1.0},
+                 views=[{"name": "heldout_003", "psnr": 24.0, "ssim": 0.8}])
+    (twin / "splat" / "train.json").write_text(json.dumps(
+        {"resolution": {"resolution": 2, "max_side": None, "how": "--resolution 2"}}))
+    html = build_report(twin).read_text()
+    assert "<td>training resolution rule</td><td>--resolution 2</td>" in html.replace("\n", "")
+    assert "<td>evaluation resolution rule</td><td>full size</td>" in html.replace("\n", "")
+
+
+def _manifest_twin(tmp_path: Path, scaled: bool, table_default: str | None = None) -> Path:
+    from splattwin.poses.twin_frame import TwinFrame
+    from splattwin.twin.manifest import Background, Manifest, ObjectEntry
+
+    twin = _twin(tmp_path, views=[{"name": "heldout_003", "psnr": 24.0, "ssim": 0.8}])
+    frame = TwinFrame(source="known_poses" if scaled else "unscaled", scaled=scaled, nominal_metre=None if scaled else 6.49)
+    Manifest(frame=frame, objects=[ObjectEntry(name="cake", label=1, bbox_extent=[1.143, 0.736, 1.354])],
+             background=Background(table_extent=[-4.61, 1.88, -5.18, 0.01], table_default=table_default)).save(twin)
+    return twin
+
+
+def test_report_shows_an_unscaled_twins_lengths_in_units_never_cm(tmp_path):
+    html = build_report(_manifest_twin(tmp_path, scaled=False, table_default="no table splats")).read_text()
+    assert "1.14 × 0.736 × 1.35 units (SfM, unscaled)" in html
+    assert "114.3" not in html and " cm" not in html
+    # the assumed table is said so, in the twin's units
+    assert "WARNING: no table was found in the splats (no table splats)" in html
+    assert "x -4.61 .. 1.88 units (SfM, unscaled)" in html
+
+
+def test_report_shows_a_metric_twins_box_in_cm_and_no_table_warning_when_found(tmp_path):
+    html = build_report(_manifest_twin(tmp_path / "m", scaled=True)).read_text()
+    assert "114.3 × 73.6 × 135.4 cm" in html
+    assert "no table was found" not in html

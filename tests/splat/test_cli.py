@@ -78,3 +78,11 @@ def test_train_flags_come_from_train_config():
     assert (cfg.depth_lambda, cfg.opacity_reg, cfg.refine_poses, cfg.init) == (0.1, 0.05, True, "depth")
     assert cfg.lrs.means == 1e-3 and cfg.background == (1.0, 1.0, 1.0) and cfg.progress is False
     assert cfg.iters == TrainConfig.iters
+
+
+def test_eval_prints_an_unscaled_pose_correction_in_units_never_cm():
+    from splattwin.splat.cli import _pose_length
+
+    assert _pose_length({"pose_correction": 0.0743, "pose_correction_units": "unscaled"}) == "0.0743 units (SfM, unscaled)"
+    assert _pose_length({"pose_correction": 0.0743, "pose_correction_units": "m"}) == "7.43 cm"
+    assert _pose_length({"pose_correction_m": 0.0743}) == "7.43 cm"  # a metrics.json of an older version

@@ -201,3 +201,14 @@ def test_eval_holds_out_what_training_held_out_and_never_a_training_view(tmp_pat
     (run / "train.json").write_text(json.dumps({"views": [{"name": "other_000"}]}))
     res = evaluate(run, ds_root, None, progress=False)
     assert [v["name"] for v in res.views] == ["heldout_003", "heldout_004"] and res.mean_covered_frac > 0.5
+
+
+def test_dataset_units_come_from_the_frame_json_beside_the_poses(tmp_path):
+    from splattwin.capture import load_dataset
+    from splattwin.poses.twin_frame import TwinFrame
+    from splattwin.splat.eval import dataset_units
+
+    root = helpers.make_dataset(tmp_path / "ds", n_train=3, n_heldout=1)
+    assert dataset_units(load_dataset(root)) == "m"  # known poses without a frame.json: metres, as the poses stage
+    (root / "frame.json").write_text(json.dumps(vars(TwinFrame(source="unscaled", scaled=False))))
+    assert dataset_units(load_dataset(root)) == "unscaled"

@@ -147,15 +147,16 @@ class BackgroundSplit:
 
 def split_background(points: np.ndarray, eps: float = 0.02, min_samples: int = 10, voxel: float = 0.0,
                      plane_distance: float = 0.004, plane_iterations: int = 500, support_gap: float = 0.02,
-                     obstacle_min_points: int = 200, seed: int = 0) -> BackgroundSplit:
+                     obstacle_min_points: int = 200, seed: int = 0, plane: Plane | None = None) -> BackgroundSplit:
     """Table plane + obstacles of background points [N,3]; floaters and points under the table dropped.
 
     The supporting surface is the largest connected part of the plane inliers (within 2x plane_distance);
     obstacles are clusters above the plane with at least `obstacle_min_points` points whose lowest point is
-    within `support_gap` of the plane (floaters hover, real things stand).
+    within `support_gap` of the plane (floaters hover, real things stand). plane: the table plane when it
+    is already known (a frame built on the table: z = 0), used instead of a RANSAC fit.
     """
     n = len(points)
-    plane = fit_plane(points, plane_distance, plane_iterations, seed=seed)
+    plane = plane if plane is not None else fit_plane(points, plane_distance, plane_iterations, seed=seed)
     h = plane.signed_distance(points)
     near = np.abs(h) <= 2.0 * plane_distance
     table = np.zeros(n, dtype=bool)

@@ -70,6 +70,7 @@ class BackgroundGeometry:
     parts: list
     n_obstacles: int = 0
     obstacles: list = field(default_factory=list)  # [Trimesh] each obstacle's mesh on the table (twin frame)
+    default_reason: str | None = None  # why the table is the assumed default (`default_table`), None when found
 
 
 @dataclass
@@ -236,26 +237,96 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
     return out
 
 
-def background_geometry(g, indices: np.ndarray, opts: GeometryOptions, table_thickness: float = 0.03) -> BackgroundGeometry:
-    """Table plane + obstacles from the (attribute-filtered) background Gaussians `g[indices]` (twin frame)."""
+DEFAULT_TABLE_EXTENT = (-0.5, 0.5, -0.4, 0.4)  # m: the table assumed when none is found (xmin, xmax, ymin, ymax)
+NEAR_FIELD = 2.0  # background farther than this x the cameras' depth to the objects (from every camera) is far field
+
+
+def near_field_mask(points: np.ndarray, cameras: list | None, object_points: np.ndarray | None,
+                    factor: float = NEAR_FIELD) -> np.ndarray | None:
+    """Keep-mask [N] of points [N,3] within `factor` x the viewing depth of some capture camera, the
+    viewing depth being the median over cameras of the median depth of the objects' points each sees.
+    The far field (the sparse-view background sphere at 3 scene scales, a room's floor and walls) is no
+    table, but it can outnumber the table's splats many times over and take the plane fit. None (keep
+    everything) without cameras or objects to measure the depth against."""
+    if not cameras or object_points is None or len(object_points) < 10:
+        return None
+    depths = []
+    for cam in cameras:
+        uv, z = cam.project(object_points)
+        seen = cam.in_image(uv) & (z > 0)
+        if seen.sum() >= 10:
+            depths.append(float(np.median(z[seen])))
+    if not depths:
+        return None
+    from scipy.spatial import cKDTree
+
+    centres = np.array([np.asarray(c.center, dtype=np.float64).reshape(3) for c in cameras])
+    dist, _ = cKDTree(centres).query(points)
+    return dist <= factor * float(np.median(depths))
+
+
+def default_table(object_points: np.ndarray | None, length_scale: float = 1.0, margin: float = 0.1
+                  ) -> list[float]:
+    """[xmin, xmax, ymin, ymax] of the table assumed when none was found: `DEFAULT_TABLE_EXTENT` (m, x
+    length_scale) centred under the objects' points, grown to their footprint plus `margin` (m): a user
+    expects the objects on the table, not off its edge (the origin of an SfM frame can be anywhere)."""
+    half = np.array([DEFAULT_TABLE_EXTENT[1], DEFAULT_TABLE_EXTENT[3]]) * length_scale
+    if object_points is None or len(object_points) == 0:
+        return [float(-half[0]), float(half[0]), float(-half[1]), float(half[1])]
+    lo, hi = np.percentile(object_points[:, :2], [1, 99], axis=0)
+    c = (lo + hi) / 2
+    half = np.maximum(half, (hi - lo) / 2 + margin * length_scale)
+    return [float(c[0] - half[0]), float(c[0] + half[0]), float(c[1] - half[1]), float(c[1] + half[1])]
+
+
+def _table_box(extent, h: float, thickness: float) -> trimesh.Trimesh:
+    x0, x1, y0, y1 = extent
+    table = trimesh.creation.box(extents=[x1 - x0, y1 - y0, thickness])
+    table.apply_translation([(x0 + x1) / 2, (y0 + y1) / 2, h - thickness / 2])
+    return table
+
+
+def background_geometry(g, indices: np.ndarray, opts: GeometryOptions, table_thickness: float = 0.03,
+                        plane: Plane | None = None, length_scale: float = 1.0,
+                        object_points: np.ndarray | None = None) -> BackgroundGeometry:
+    """Table plane + obstacles from the (attribute-filtered) background Gaussians `g[indices]` (twin frame).
+    plane: the table plane when the frame already defines it (see `split_background`). When no table
+    splats are found the table is `default_table` (under `object_points`, lengths x length_scale) at
+    the plane's height (0 without one), and `default_reason` says why."""
     pts = g.means[indices]
     if len(pts) < max(opts.min_points, 3):
-        return BackgroundGeometry(indices=np.zeros(0, np.int64), plane=None, table_height=0.0,
-                                  table_extent=[-0.5, 0.5, -0.4, 0.4], table_thickness=table_thickness,
-                                  collision=None, parts=[])
+        h = float(-plane.d / plane.normal[2]) + 0.0 if plane is not None else 0.0  # + 0.0: never -0
+        ext = default_table(object_points, length_scale)
+        return BackgroundGeometry(indices=np.zeros(0, np.int64), plane=plane, table_height=h, table_extent=ext,
+                                  table_thickness=table_thickness, collision=_table_box(ext, h, table_thickness),
+                                  parts=[_table_box(ext, h, table_thickness)],
+                                  default_reason=f"too few background splats near the cameras ({len(pts)})")
     split = split_background(pts, opts.dbscan_eps, opts.dbscan_min_samples, opts.dbscan_voxel, opts.plane_distance,
-                             opts.plane_iterations, opts.support_gap, opts.obstacle_min_points, opts.seed)
+                             opts.plane_iterations, opts.support_gap, opts.obstacle_min_points, opts.seed, plane=plane)
+    n_table = int(split.table.sum())
+    if n_table < opts.min_points:  # a few connected splats are no table top (the cake's 12 spanned 2 x 50 mm)
+        split.table[:] = False
     tp = pts[split.table]
-    h = float(np.median(tp[:, 2])) if len(tp) else 0.0
+    h = float(np.median(tp[:, 2])) if len(tp) else float(-split.plane.d / split.plane.normal[2]) + 0.0
+    if plane is None and not len(tp):
+        h = 0.0  # a fitted plane without table splats is no evidence of the table's height
     if len(tp) and opts.densify:  # the top of the splats' half-opaque ellipsoids, like the objects' surfaces
         t = np.asarray(indices)[split.table]
         R = g.subset(t).rotation_matrices()
         sigma_z = np.sqrt(np.sum((R[:, 2, :] * g.scales[t]) ** 2, axis=1))  # std along world z
         h = float(np.median(tp[:, 2] + level_radii(g.opacities[t], opts.surface_level) * sigma_z))
-    x0, x1 = np.percentile(tp[:, 0], [0.2, 99.8]) if len(tp) else (-0.5, 0.5)
-    y0, y1 = np.percentile(tp[:, 1], [0.2, 99.8]) if len(tp) else (-0.4, 0.4)
-    table = trimesh.creation.box(extents=[x1 - x0, y1 - y0, table_thickness])
-    table.apply_translation([(x0 + x1) / 2, (y0 + y1) / 2, h - table_thickness / 2])
+    reason = None
+    if len(tp):
+        x0, x1 = np.percentile(tp[:, 0], [0.2, 99.8])
+        y0, y1 = np.percentile(tp[:, 1], [0.2, 99.8])
+        extent = [float(x0), float(x1), float(y0), float(y1)]
+    else:
+        extent = default_table(object_points, length_scale)
+        reason = (f"{int((np.abs(split.plane.signed_distance(pts)) <= 2 * opts.plane_distance).sum())} background "
+                  f"splats within {2 * opts.plane_distance:.3g} of the {'frame' if plane is not None else 'fitted'} "
+                  f"table plane, the largest connected group (DBSCAN eps {opts.dbscan_eps:.3g}) {n_table} of them "
+                  f"(< {opts.min_points}): the table top is too sparse or not in the splats")
+    table = _table_box(extent, h, table_thickness)
     parts = [table]
     meshes = [table]
     n_obs = int(split.obstacle_ids.max() + 1) if split.obstacles.any() else 0
@@ -269,19 +340,20 @@ def background_geometry(g, indices: np.ndarray, opts: GeometryOptions, table_thi
         parts.extend(convex_parts(simplify(m, opts.coacd_faces), opts.convex_ratio, opts.coacd_threshold,
                                   opts.max_convex_parts, opts.seed))
     return BackgroundGeometry(indices=np.asarray(indices)[split.keep], plane=split.plane, table_height=h,
-                              table_extent=[float(x0), float(x1), float(y0), float(y1)],
-                              table_thickness=table_thickness, collision=trimesh.util.concatenate(meshes),
-                              parts=parts, n_obstacles=n_obs, obstacles=meshes[1:])
+                              table_extent=extent, table_thickness=table_thickness,
+                              collision=trimesh.util.concatenate(meshes), parts=parts, n_obstacles=n_obs,
+                              obstacles=meshes[1:], default_reason=reason)
 
 
 def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None = None, background: bool = True,
             table_thickness: float = 0.03, progress: bool = True, length_scale: float = 1.0,
-            cameras: list | None = None) -> Conversion:
+            cameras: list | None = None, table_plane: Plane | None = None) -> Conversion:
     """Full conversion. g: Gaussians [N]; labels [N] int (0 = background); objects: [(name, label, prompt)].
     length_scale: frame units per metre of the options' lengths and of table_thickness (m): 1 in a
     metric twin, the frame's nominal metre in an unscaled one (`TwinFrame.length_scale`).
     cameras: [Camera] of the capture in the twin frame, for the free-space carving of the object
-    meshes (`GeometryOptions.carve`); None: meshes without it."""
+    meshes (`GeometryOptions.carve`) and for the background's near field (`near_field_mask`); None:
+    neither. table_plane: the table plane when the frame defines it (a table frame: z = 0), else fitted."""
     from splattwin.progress import Progress
 
     opts = opts or GeometryOptions()
@@ -298,19 +370,32 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
     timings["filter"] = time.perf_counter() - t0
     results = []
     with Progress(len(objects) + int(background), "geometry", unit="part", enabled=progress) as bar:
+        t1 = time.perf_counter()
+        cleaned = {int(obj[1]): clean_indices(g, labels, obj[1], opts, attr_keep=keep) for obj in objects}
+        timings["cluster"] += time.perf_counter() - t1
+        obj_idx = [i for i in cleaned.values() if len(i)]
+        obj_pts = g.means[np.concatenate(obj_idx)] if obj_idx else None
         # Background first: its table height is the support plane the objects are clipped to.
         bg = None
         if background:
             bar.set_description("geometry: background")
             t1 = time.perf_counter()
             bidx = np.flatnonzero((labels == 0) & keep)
-            bg = background_geometry(g, bidx, opts, table_thickness)
+            near = near_field_mask(g.means[bidx], cameras, obj_pts)
+            if near is not None:
+                log.info("background: %d of %d splats in the cameras' near field (the rest is far field, no table)",
+                         int(near.sum()), len(bidx))
+                bidx = bidx[near]
+            bg = background_geometry(g, bidx, opts, table_thickness, plane=table_plane, length_scale=length_scale,
+                                     object_points=obj_pts)
+            if bg.default_reason is not None:
+                x0, x1, y0, y1 = bg.table_extent
+                log.warning("no table found in the background (%s): the twin gets a default table, x %.3g..%.3g, "
+                            "y %.3g..%.3g at z %.3g, under the objects; check its placement", bg.default_reason,
+                            x0, x1, y0, y1, bg.table_height)
             timings["background"] = time.perf_counter() - t1
             bar.update(1)
         support_z = bg.table_height if bg is not None and bg.plane is not None else None
-        t1 = time.perf_counter()
-        cleaned = {int(obj[1]): clean_indices(g, labels, obj[1], opts, attr_keep=keep) for obj in objects}
-        timings["cluster"] += time.perf_counter() - t1
         # what an object may stand on besides the table: the other objects and the background's obstacles
         # (a plate under a cake), each obstacle as points on its mesh
         obstacle_pts = [np.asarray(trimesh.sample.sample_surface(m, 2000, seed=opts.seed)[0])

@@ -208,6 +208,13 @@ def _heldout_rows(sec: Section, rec, views: list) -> None:
                                              if names else "none"]])
 
 
+def length_text(values, scaled: bool, sep: str = " × ") -> str:
+    """Lengths for display: centimetres in a metric twin; an unscaled twin's are SfM units, never cm."""
+    if scaled:
+        return sep.join(f"{x * 100:.1f}" for x in values) + " cm"
+    return sep.join(f"{x:.3g}" for x in values) + " units (SfM, unscaled)"
+
+
 def _recon_section(sec: Section, twin: Path, ev: dict | None) -> None:
     if not ev:
         sec.text("splat stage not run")
@@ -217,9 +224,15 @@ def _recon_section(sec: Section, twin: Path, ev: dict | None) -> None:
     er = ev.get("eval_resolution")
     if isinstance(er, dict):
         what = {"training": "the training resolution", "full": "full resolution", "given": "a given resolution"}
+        # each rule from its own record: eval's "how" is the evaluation's rule (full size under
+        # --eval-full-resolution), not the training's, which only train.json records
+        tr = _json(twin / "splat" / "train.json")
+        tres = tr.get("resolution") if isinstance(tr, dict) else None
         sec.table(["evaluation", "value"], [
             ["evaluated at", f"{er.get('sizes', '?')} ({what.get(str(er.get('mode')), str(er.get('mode')))})"],
-            ["image size", str(er.get("full_sizes", "?"))], ["training resolution rule", str(er.get("how", "?"))]])
+            ["image size", str(er.get("full_sizes", "?"))],
+            ["training resolution rule", str(tres.get("how", "?")) if isinstance(tres, dict) else "not recorded"],
+            ["evaluation resolution rule", str(er.get("how", "?"))]])
     if isinstance(ev.get("heldout"), dict):
         _heldout_rows(sec, ev["heldout"], ev["heldout"].get("views") or [])
     if any("covered_frac" in r for r in ev["views"]):
@@ -279,8 +292,18 @@ def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
     rows = []
     for o in man.objects:
         rows.append([o.name, o.usable, len(o.convex_parts), o.mass if o.mass is not None else "n/a",
-                     " × ".join(f"{x * 100:.1f}" for x in o.bbox_extent) + " cm", o.problem or ""])
-    sec.table(["object", "usable", "convex parts", "mass (kg)", "box", "problem"], rows)
+                     length_text(o.bbox_extent, man.frame.scaled), o.problem or ""])
+    sec.table(["object", "usable", "convex parts", "mass (kg)" if man.frame.scaled else "mass (nominal)", "box",
+               "problem"], rows)
+    if not man.frame.scaled:
+        sec.text("lengths in SfM units: the twin is unscaled (no metric scale), so they are not metres.")
+    b = man.background
+    if b.table_default:
+        x0, x1, y0, y1 = b.table_extent
+        sec.text(f"WARNING: no table was found in the splats ({b.table_default}); the twin has an assumed "
+                 f"table, x {length_text([x0, x1], man.frame.scaled, ' .. ')}, y "
+                 f"{length_text([y0, y1], man.frame.scaled, ' .. ')}, top at z = "
+                 f"{length_text([b.table_height], man.frame.scaled)}: check it before relying on it.")
     carve = (man.timings or {}).get("geometry.carve")
     sec.text("meshes: alpha shapes of the objects' half-opaque splats (solid down to the table when resting on it)"
              + (f", carved where a capture camera sees through them to the splats' rendered surface ({carve:.2f} s)"

@@ -70,14 +70,21 @@ def _eval(args: argparse.Namespace) -> int:
                    progress=not args.no_progress, align_poses=args.align_poses,
                    full_resolution=args.full_resolution)
     for v in res.views:
-        fix = (f"  pose fit {v['pose_correction_deg']:.2f} deg / {100 * v['pose_correction_m']:.2f} cm"
-               if "pose_correction_deg" in v else "")
+        fix = f"  pose fit {v['pose_correction_deg']:.2f} deg / {_pose_length(v)}" if "pose_correction_deg" in v else ""
         print(f"{v['name']:>24s}  PSNR {v['psnr']:6.2f} dB  SSIM {v['ssim']:.4f}{fix}{_coverage_text(v)}")
     cov = {"covered_frac": res.mean_covered_frac, "psnr_covered": res.mean_psnr_covered,
            "psnr_uncovered": res.mean_psnr_uncovered}
     print(f"{'mean (' + res.split + ')':>24s}  PSNR {res.mean_psnr:6.2f} dB  SSIM {res.mean_ssim:.4f}"
           f"{_coverage_text(cov)}  -> {res.metrics_path}")
     return 0
+
+
+def _pose_length(v: dict) -> str:
+    """A view's pose correction (camera centre shift) in its unit: cm in metres; an unscaled dataset's
+    SfM units said so (never as cm)."""
+    if v.get("pose_correction_units", "m") == "m":
+        return f"{100 * v.get('pose_correction', v.get('pose_correction_m', float('nan'))):.2f} cm"
+    return f"{v['pose_correction']:.3g} units (SfM, unscaled)"
 
 
 def _coverage_text(v: dict) -> str:

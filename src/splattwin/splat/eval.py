@@ -59,7 +59,8 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class EvalResult:
-    views: list[dict]          # {name, psnr, ssim, image[, pose_correction_deg, pose_correction_m]}
+    views: list[dict]          # {name, psnr, ssim, image[, pose_correction_deg, pose_correction, pose_correction_units
+    #                            (, pose_correction_m: metric datasets only)]}
     mean_psnr: float
     mean_ssim: float
     split: str                 # "heldout" | "train"
@@ -182,6 +183,23 @@ def _heldout_split(ds: Dataset, info: dict) -> tuple[list[Frame], list[Frame], d
     return frames, train_frames, held
 
 
+def dataset_units(ds: Dataset) -> str:
+    """The length unit of the dataset's poses: its frame.json's (the poses stage writes one beside
+    transforms.json: "m" or "unscaled"); without one a COLMAP model is unscaled (SfM units) and other
+    known poses are taken as metres, as the poses stage takes them."""
+    from splattwin.poses.twin_frame import FRAME_FILE, UNSCALED_UNITS, load_frame
+
+    meta = Path(ds.meta.get("path", ds.root))
+    frame_json = (meta.parent if meta.is_file() else meta) / FRAME_FILE
+    if frame_json.is_file():
+        try:
+            return load_frame(frame_json).units
+        except InputError as e:
+            log.warning("%s; pose corrections in the dataset's units, taken as unscaled", e)
+            return UNSCALED_UNITS
+    return UNSCALED_UNITS if ds.meta.get("format") == "colmap" else "m"
+
+
 def _eval_resolution(info: dict, resolution: int | None, full_resolution: bool) -> tuple[Resolution, str]:
     """(the rule, its name for metrics.json): an explicit `resolution` (a 3DGS `-r` value; 0 = auto as on
     the CPU), the full size, or the training resolution train.json recorded (older train.json: its
@@ -257,6 +275,7 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
     out = Path(out_dir) if out_dir is not None else None
     # the training photos' pinhole cameras: what the splats were fitted to (undistorted, `load_views`)
     train_cams = [pinhole_for(f.camera) for f in train_frames] if split == "heldout" else []
+    units = dataset_units(ds)
     rows = []
     for v in track(views, "eval", unit="view", enabled=progress):
         gt = v.image.numpy()
@@ -265,7 +284,10 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
             T_cw = align_camera(g, v.camera, gt, iters=align_iters, background=tuple(bg), backend=backend,
                                 rasterize_mode=mode, eps2d=eps2d)
             rot, centre = pose_errors(T_cw[None], v.camera.T_cam_world[None])
-            extra = {"pose_correction_deg": float(rot[0]), "pose_correction_m": float(centre[0])}
+            extra = {"pose_correction_deg": float(rot[0]), "pose_correction": float(centre[0]),
+                     "pose_correction_units": units}
+            if units == "m":  # the older key, kept for its readers; never written for a length that is no metre
+                extra["pose_correction_m"] = float(centre[0])
         # the expected depth for the coverage test comes from the same pass as the colours
         with_depth = split == "heldout" and bool(train_cams)
         rendered, alpha = render(g, v.camera, mode="RGB+ED" if with_depth else "RGB",
@@ -304,7 +326,7 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
             "mean_psnr_right_corrected": result.mean_psnr_right_corrected,
             "appearance_protocol": "psnr_right_*: right half of each view; corrected = affine colour fitted "
                                    "on its left half (ridge towards identity)",
-            "poses": "aligned (test-time pose fit)" if align_poses else "as given",
+            "poses": "aligned (test-time pose fit)" if align_poses else "as given", "units": units,
             **{f"mean_{k}": x for k, x in cov.items()},
             "coverage_protocol": "covered = held-out pixels whose rendered surface point lies inside some training "
                                  "camera's image (frustum test, occlusion ignored); psnr_covered / psnr_uncovered "

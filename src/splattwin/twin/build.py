@@ -128,7 +128,8 @@ def write_geometry(conv: Conversion, g, labels: np.ndarray, out_dir: Path, frame
     bg = Background()
     b = conv.background
     if b is not None:
-        bg = Background(table_height=b.table_height, table_extent=list(b.table_extent), table_thickness=b.table_thickness)
+        bg = Background(table_height=b.table_height, table_extent=list(b.table_extent), table_thickness=b.table_thickness,
+                        table_default=b.default_reason)
         if len(b.indices):
             g.subset(b.indices).save_ply(out_dir / "background" / "splats.ply")
             bg.splat_ply = "background/splats.ply"
@@ -218,6 +219,18 @@ def _estimated_nominal_metre(gaussians, cameras: list | None) -> float:
     return scene_scale(gaussians.means) / NOMINAL_SCENE_SIZE
 
 
+def table_plane(frame: TwinFrame):
+    """The table plane z = 0 when the poses stage built the frame on the table (`poses.up`'s evidence
+    names it), else None (fitted). The frame's plane came from the SfM points, free of the splats' far
+    field, so it is the better estimate; refitting on the splats took a far plane (the cake)."""
+    from splattwin.geometry.clustering import Plane
+
+    table = (frame.up_check or {}).get("table")
+    if table in ("dominant plane", "level plane under a wall"):
+        return Plane(normal=np.array([0.0, 0.0, 1.0]), d=0.0)
+    return None
+
+
 # robust diagonal (m) of a tabletop scene's splats (the embedded scene's is about this): the last-resort
 # guess of an unscaled twin's nominal metre when there are no cameras to measure the viewing distance
 NOMINAL_SCENE_SIZE = 1.2
@@ -241,7 +254,8 @@ def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path
     if not frame.scaled:
         log.info("unscaled twin: metric thresholds x %.4g (frame units per nominal metre)", length_scale)
         frame = dataclasses.replace(frame, nominal_metre=frame.nominal_metre or round(length_scale, 6))
-    conv = convert(gaussians, labels, objects, options, progress=progress, length_scale=length_scale, cameras=cameras)
+    conv = convert(gaussians, labels, objects, options, progress=progress, length_scale=length_scale, cameras=cameras,
+                   table_plane=table_plane(frame))
     t1 = time.perf_counter()
     manifest = write_geometry(conv, gaussians, labels, out_dir, frame, cameras_path)
     manifest.timings["write"] = round(time.perf_counter() - t1, 4)

@@ -71,7 +71,9 @@ class ObjectEntry:
 class Background:
     """Static environment: the table (plane z = table_height in the twin frame) and other obstacles.
 
-    Meshes are in the twin frame. table_extent: [xmin, xmax, ymin, ymax] of the table top (m).
+    Meshes are in the twin frame. table_extent: [xmin, xmax, ymin, ymax] of the table top (m; frame
+    units in an unscaled twin). table_default: why the table is an assumed default (no table was found
+    in the splats), None when it was found.
     """
 
     table_height: float = 0.0
@@ -80,6 +82,7 @@ class Background:
     splat_ply: str | None = None
     collision_mesh: str | None = None
     convex_parts: list = field(default_factory=list)
+    table_default: str | None = None
 
 
 @dataclass
