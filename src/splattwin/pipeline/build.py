@@ -107,7 +107,8 @@ def _splats(ctx: Context) -> dict:
     from splattwin.splat.stage import SplatInputs, run
 
     inputs = SplatInputs(transforms=ctx.path("poses/transforms.json"), out_dir=ctx.path("splat"))
-    return record(run(inputs, ctx.config.splat, progress=ctx.progress), ctx.out)
+    # --from splats (or earlier): retrain from scratch, never resume the finished run's checkpoints
+    return record(run(inputs, ctx.config.splat, progress=ctx.progress, fresh="splats" in ctx.fresh), ctx.out)
 
 
 def _semantics(ctx: Context) -> dict:

@@ -25,7 +25,8 @@ def add_build_flags(p: argparse.ArgumentParser, demo: bool = False) -> None:
 
     add_config_flag(p)
     p.add_argument("--seed", type=int, help="seed of every stage (sets each --<stage>.seed)")
-    p.add_argument("--from", dest="from_stage", choices=STAGES, help="redo from this stage on")
+    p.add_argument("--from", dest="from_stage", choices=STAGES,
+                   help="redo this stage and every later one from scratch (splats: retrained, checkpoints not resumed)")
     p.add_argument("--until", choices=STAGES, help="stop after this stage")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
     add_options(p, BuildOptions, build=True, exclude=("input",) if demo else ("input", "scene"))

@@ -9,6 +9,9 @@ Each stage declares what its result depends on, and its key is a SHA-256 over al
 - its code: the source of the packages it runs (`code`) and of its stage function, so editing a
   stage's code re-runs it (a hand-set `version` can still force it),
 - the keys of the stages it depends on (`deps`), so everything downstream of a change re-runs.
+`--from STAGE` runs that stage and every later one again from scratch: they are named in `ctx.fresh`,
+so a stage that resumes partial work of its own (training checkpoints) starts over instead (a finished
+run's checkpoint would otherwise be "resumed" with nothing left to do: no retraining).
 After a stage succeeds the runner records `{key, outputs, seconds, peak_rss_gib}` in
 `TWIN/pipeline.json` (atomically). On the next run a stage whose recorded key matches and whose
 outputs all exist (inside the twin folder) is skipped. Stages write their own outputs atomically, so a
@@ -73,6 +76,7 @@ class Context:
     digests: DigestCache | None = None
     config: Any = None
     progress: bool = True
+    fresh: set[str] = field(default_factory=set)   # stages redone on request (--from): start over, resume nothing
 
     def path(self, rel: str | Path) -> Path:
         return self.out / rel
@@ -172,13 +176,15 @@ def run_stages(stages: list[Stage], ctx: Context, from_stage: str | None = None,
     if ctx.digests is None:
         ctx.digests = DigestCache(ctx.out / DIGEST_CACHE)
     keys: dict[str, str] = {}
-    redo = False
+    redo = requested = False
     for stage in stages:
         key = stage_key(stage, ctx.options, keys, input_digests(stage, ctx))
         ctx.digests.save()
         keys[stage.name] = key
         if stage.name == from_stage:
-            redo = True
+            redo = requested = True
+        if requested:
+            ctx.fresh.add(stage.name)
         rec = state.get(stage.name)
         if not redo and rec and rec.get("key") == key and _outputs_exist(ctx.out, rec.get("outputs", {})):
             ctx.results[stage.name] = dict(rec["outputs"])
