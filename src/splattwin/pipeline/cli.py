@@ -117,6 +117,8 @@ def _print_headline(ctx) -> None:
 
     from rich.console import Console
 
+    from splattwin.wording import plural
+
     con = Console()
     r = ctx.results
     if "splats" in r and r["splats"]:
@@ -128,8 +130,9 @@ def _print_headline(ctx) -> None:
         if f.get("miou_heldout") is not None:
             con.print(f"semantics: held-out mIoU {f['miou_heldout']:.3f}")
         elif f.get("miou_heldout_masks") is not None:
+            n = len(f.get('miou_heldout_masks_views', []))
             con.print(f"semantics: held-out mIoU {f['miou_heldout_masks']:.3f} against the 2D masks of "
-                      f"{len(f.get('miou_heldout_masks_views', []))} held-out views (not used by the fusion)")
+                      f"{plural(n, 'held-out view')} (not used by the fusion)")
     gj = ctx.path("geometry_metrics.json")
     if gj.is_file():
         g = json.loads(gj.read_text())
