@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -293,6 +294,9 @@ def build(out: str | Path, options: BuildOptions, from_stage: str | None = None,
             con.print(f"[bold cyan]▶ {name}[/]")
 
     ctx = _context(out, options, progress)
+    t0 = time.perf_counter()
     with output_lock(out):
         preflight(ctx, until)
-        return run_stages(stages(), ctx, from_stage=from_stage, until=until, on_stage=on_stage)
+        run_stages(stages(), ctx, from_stage=from_stage, until=until, on_stage=on_stage)
+    ctx.wall_s = time.perf_counter() - t0   # with the pre-flight
+    return ctx

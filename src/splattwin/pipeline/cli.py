@@ -112,6 +112,20 @@ def _exit_code(ctx) -> int:
     return 0 if robot.get("success", True) else 1
 
 
+def _total(ctx) -> str:
+    """What this run took. ctx.timings of skipped stages are their earlier runs' seconds: a fully skipped
+    re-run (0.3 s) used to print their sum. Without a run time (a context not made by run_stages): the sum."""
+    if ctx.wall_s is None:
+        return f"total {sum(ctx.timings.values()):.0f} s"
+    took = f"{ctx.wall_s:.1f} s" if ctx.wall_s < 10 else f"{ctx.wall_s:.0f} s"
+    n = len(ctx.skipped)
+    if n == 0:
+        return f"total {took}"
+    if n == len(ctx.timings):
+        return f"total {took} (all {n} stages up to date, skipped)"
+    return f"total {took} ({n} of {len(ctx.timings)} stages up to date, skipped: {', '.join(ctx.skipped)})"
+
+
 def _print_headline(ctx) -> None:
     import json
 
@@ -145,6 +159,6 @@ def _print_headline(ctx) -> None:
     twin = ctx.out / "twin.json"
     # --until before the twin stage: name the folder, not a twin.json that is not there
     where = f"twin: {twin}" if twin.is_file() else f"outputs in {ctx.out} (no twin.json: stopped before the twin stage)"
-    con.print(f"total {sum(ctx.timings.values()):.0f} s; {where}")
+    con.print(f"{_total(ctx)}; {where}")
     if r.get("report"):
         con.print(f"report: {ctx.out / r['report']['report'][1:]}")

@@ -71,12 +71,14 @@ class Context:
     out: Path
     options: dict[str, Any]
     results: dict[str, dict[str, Any]] = field(default_factory=dict)  # stage name -> its outputs
-    timings: dict[str, float] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)   # a skipped stage: the seconds it took when it ran
     peak_rss_gib: dict[str, float] = field(default_factory=dict)
     digests: DigestCache | None = None
     config: Any = None
     progress: bool = True
     fresh: set[str] = field(default_factory=set)   # stages redone on request (--from): start over, resume nothing
+    skipped: list[str] = field(default_factory=list)   # stages found up to date and not run
+    wall_s: float | None = None   # what this run took (None: not run by run_stages)
 
     def path(self, rel: str | Path) -> Path:
         return self.out / rel
@@ -171,6 +173,7 @@ def run_stages(stages: list[Stage], ctx: Context, from_stage: str | None = None,
         raise InputError(f"--until: unknown stage {until!r} (stages: {', '.join(names)})")
     from splattwin.lock import prepare_output_dir
 
+    t_start = time.perf_counter()
     prepare_output_dir(ctx.out)
     state = load_state(ctx.out)
     if ctx.digests is None:
@@ -190,6 +193,7 @@ def run_stages(stages: list[Stage], ctx: Context, from_stage: str | None = None,
             ctx.results[stage.name] = dict(rec["outputs"])
             ctx.timings[stage.name] = rec.get("seconds", 0.0)
             ctx.peak_rss_gib[stage.name] = rec.get("peak_rss_gib", 0.0)
+            ctx.skipped.append(stage.name)
             if on_stage:
                 on_stage(stage.name, "skip")
         else:
@@ -209,4 +213,5 @@ def run_stages(stages: list[Stage], ctx: Context, from_stage: str | None = None,
                 on_stage(stage.name, "done")
         if stage.name == until:
             break
+    ctx.wall_s = time.perf_counter() - t_start
     return ctx
