@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import os
 import re
 import shutil
@@ -130,8 +131,29 @@ def write_text(path: str | Path, text: str) -> Path:
     return write_bytes(path, text.encode("utf-8"))
 
 
-def write_json(path: str | Path, obj: Any, indent: int = 2) -> Path:
-    return write_text(path, json.dumps(obj, indent=indent, sort_keys=False, default=_json_default) + "\n")
+def write_json(path: str | Path, obj: Any, indent: int = 2, strict: bool = False) -> Path:
+    """Write `obj` as JSON, atomically. strict=True writes standard JSON: NaN and infinities become null
+    (Python's default writes the bare tokens NaN/Infinity, which JSON.parse, jq and most other readers
+    reject). Not the default yet: some records read back here may hold NaN and expect a float."""
+    if strict:
+        obj = finite_or_none(obj)
+    text = json.dumps(obj, indent=indent, sort_keys=False, default=_json_default, allow_nan=not strict)
+    return write_text(path, text + "\n")
+
+
+def finite_or_none(obj: Any) -> Any:
+    """`obj` with every non-finite float (NaN, +-inf; numpy scalars and arrays included) replaced by None."""
+    if isinstance(obj, np.ndarray):
+        obj = obj.tolist()
+    if isinstance(obj, (np.floating, np.integer, np.bool_)):
+        obj = obj.item()
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: finite_or_none(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_or_none(v) for v in obj]
+    return obj
 
 
 def write_npy(path: str | Path, array: np.ndarray) -> Path:

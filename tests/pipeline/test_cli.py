@@ -17,3 +17,32 @@ def test_headline_names_the_twin_only_when_there_is_one(tmp_path, capsys, monkey
     _print_headline(ctx)
     out = capsys.readouterr().out
     assert f"twin: {tmp_path / 'twin.json'}" in out and "no twin.json" not in out
+
+
+def test_headline_total_is_what_this_run_took(tmp_path, capsys, monkeypatch):
+    """A re-run that skipped every stage took 0.3 s: the total says so (it printed the skipped stages' old
+    8 + 25 s as "total 33 s"); a run that redid some names those it skipped."""
+    monkeypatch.setenv("COLUMNS", "1000")
+    ctx = Context(out=tmp_path, options={}, timings={"poses": 8.0, "splats": 25.0}, skipped=["poses", "splats"],
+                  wall_s=0.25)
+    _print_headline(ctx)
+    out = capsys.readouterr().out
+    assert "total 0.2 s (all 2 stages up to date, skipped)" in out and "33 s" not in out
+    ctx = Context(out=tmp_path, options={}, timings={"poses": 8.0, "splats": 25.0}, skipped=["poses"], wall_s=26.4)
+    _print_headline(ctx)
+    assert "total 26 s (1 of 2 stages up to date, skipped: poses)" in capsys.readouterr().out
+
+
+def test_run_stages_records_what_it_skipped_and_its_own_time(tmp_path):
+    from splattwin.pipeline.runner import Stage, run_stages
+
+    def slow(ctx):
+        import time
+        time.sleep(0.3)
+        return {}
+
+    stages = [Stage("a", slow), Stage("b", lambda ctx: {})]
+    first = run_stages(stages, Context(tmp_path, {}))
+    assert first.skipped == [] and first.wall_s >= 0.3
+    again = run_stages(stages, Context(tmp_path, {}))
+    assert again.skipped == ["a", "b"] and again.wall_s < 0.3 <= again.timings["a"]

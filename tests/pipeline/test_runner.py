@@ -71,3 +71,43 @@ def test_a_rerun_stopped_midway_leaves_no_record_of_the_old_later_outputs(tmp_pa
     calls.clear()
     run_stages(_stages(calls), Context(tmp_path, {"a": 1, "b": 2, "c": 1}))
     assert calls == ["b", "c"]
+
+
+def test_from_names_the_stages_it_redoes_as_fresh(tmp_path):
+    """--from b: b and c are redone on request (`ctx.fresh`: they must not resume partial work of their own);
+    a plain re-run, or a killed run resumed, names none."""
+    calls = []
+    opts = {"a": 1, "b": 1, "c": 1}
+    with pytest.raises(KeyboardInterrupt):
+        run_stages(_stages(calls, fail_at="b"), Context(tmp_path, opts))
+    assert run_stages(_stages(calls), Context(tmp_path, opts)).fresh == set()
+    assert run_stages(_stages(calls), Context(tmp_path, opts), from_stage="b").fresh == {"b", "c"}
+    assert run_stages(_stages(calls), Context(tmp_path, opts)).fresh == set()
+
+
+def test_from_splats_retrains_instead_of_resuming_the_finished_run(scene_small, tmp_path):
+    """The pipeline's splats stage on a finished twin: a re-run after a kill resumes the checkpoints, but
+    `--from splats` retrains from step 0 (it used to resume the finished run's last checkpoint: no step
+    trained, the stale figures kept)."""
+    import shutil
+
+    from splattwin.pipeline.build import _splats
+    from splattwin.pipeline.options import BuildOptions
+    from splattwin.splat.config import TrainConfig
+
+    shutil.copytree(scene_small, tmp_path / "poses")
+    cfg = BuildOptions(splat=TrainConfig(iters=20, checkpoint_every=10, sh_degree=1, max_gaussians=2000,
+                                         backend="cpu", sparse_views=0))
+    stages = [Stage("splats", _splats)]
+
+    def trained(**kw) -> dict:
+        run_stages(stages, Context(tmp_path, {}, config=cfg, progress=False), **kw)
+        return json.loads((tmp_path / "splat" / "train.json").read_text())
+
+    assert trained()["resumed_at_step"] is None
+    (tmp_path / "pipeline.json").unlink()   # as after a kill between training and the stage's record
+    assert trained()["resumed_at_step"] == 20   # the stage resumes its own checkpoints: nothing retrained
+    rec = trained(from_stage="splats")
+    assert rec["resumed_at_step"] is None and rec["steps"] == 20
+    assert sorted(p.name for p in (tmp_path / "splat" / "checkpoints").iterdir()) == \
+        ["ckpt_000010.safetensors", "ckpt_000020.safetensors"]

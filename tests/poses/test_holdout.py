@@ -75,6 +75,44 @@ def test_image_folder_gets_the_default_split_in_name_order(tmp_path):
     assert len(ds.train()) == 8 and ds.meta["heldout"]["rule"].startswith("every 8th")
 
 
+@pytest.mark.parametrize("opts, rule", [
+    (HoldoutOptions(heldout_every=2), "every 2nd view from the first"),
+    (HoldoutOptions(heldout_every=3), "every 3rd view from the first"),
+    (HoldoutOptions(heldout_every=11), "every 11th view from the first"),
+    (HoldoutOptions(heldout_every=12), "every 12th view from the first"),
+    (HoldoutOptions(heldout_every=13), "every 13th view from the first"),
+    (HoldoutOptions(heldout=1), "1 view spread evenly from the first"),
+    (HoldoutOptions(heldout=2), "2 views spread evenly from the first"),
+    (HoldoutOptions(), "every 8th view from the first"),
+])
+def test_rules_in_words(opts, rule):
+    """Ordinals and plurals in the rule that poses, train and the report print ("every 3th", "1 views" before)."""
+    assert select_heldout(NAMES, opts).rule.startswith(rule)
+
+
+@pytest.mark.parametrize("n", [5, 10, 17])
+def test_capture_info_reports_the_split_poses_will_use(tmp_path, capsys, n):
+    """`capture info` on an image folder (no split of its own) reports the default rule's split, as
+    apply_holdout makes it (it said "0 held-out" where poses/build hold out every 8th view)."""
+    from splattwin.cli import main
+
+    folder = _image_folder(tmp_path / "imgs", n)
+    assert main(["capture", "info", str(folder)]) == 0
+    out = capsys.readouterr().out
+    ds = load_dataset(folder)
+    h = apply_holdout(ds)
+    assert f"({len(ds.train())} train, {len(ds.heldout())} held-out by the default rule: {h.rule})" in out
+    assert len(ds.heldout()) == {5: 0, 10: 2, 17: 3}[n]
+
+
+def test_capture_info_reports_a_captures_own_split(tmp_path, capsys):
+    from splattwin.cli import main
+
+    root = helpers.make_dataset(tmp_path / "ds", n_train=8, n_heldout=2)
+    assert main(["capture", "info", str(root)]) == 0
+    assert "(8 train, 2 held-out: the capture's own split)" in capsys.readouterr().out
+
+
 def test_transforms_split_survives_and_own_split_detected(tmp_path):
     root = helpers.make_dataset(tmp_path / "ds", n_train=8, n_heldout=2)
     ds = load_dataset(root)

@@ -85,12 +85,23 @@ def interrupted_then_resumed(ds, out: Path, cfg, at_step: int):
     return train(ds, out, cfg, resume=True)
 
 
+def strict_json(path: Path):
+    """The JSON file at `path`, refusing the non-standard NaN/Infinity tokens Python's json writes by default."""
+    def refuse(token):
+        raise AssertionError(f"{path.name} holds {token}: not standard JSON")
+    return json.loads(path.read_text(), parse_constant=refuse)
+
+
 def assert_resumes_to(ds, out: Path, cfg, reference) -> None:
-    """Resuming the interrupted run in `out` reaches `reference` (an uninterrupted run) bit for bit."""
+    """Resuming the interrupted run in `out` reaches `reference` (an uninterrupted run) bit for bit, with the
+    same training curve and final figures (the moving averages are checkpointed, not restarted)."""
     c = Trainer(ds, out, cfg).run(resume=True)
     assert c.steps == cfg.iters
     for k in ("means", "quats", "scales", "opacities", "sh"):
         np.testing.assert_array_equal(getattr(c.gaussians, k), getattr(reference.gaussians, k))
+    assert c.history == reference.history
+    assert (c.final_loss, c.final_psnr) == (reference.final_loss, reference.final_psnr)
+    assert strict_json(out / "train.json")["history"] == reference.history
 
 
 def drop_split(root: Path) -> Path:
@@ -169,6 +180,44 @@ def test_deterministic_and_resume_equivalent(synth, tmp_path, drop_rate):
     assert not (tmp_path / "c" / "point_cloud.ply").exists()
     assert sorted(p.name for p in (tmp_path / "c" / "checkpoints").iterdir()) == ["ckpt_000020.safetensors", "ckpt_000040.safetensors"]
     assert_resumes_to(ds, tmp_path / "c", cfg, a)
+
+
+def test_resuming_a_finished_run_reports_its_figures(synth, tmp_path):
+    """--resume on a finished run runs no step and reports the run's own final loss/PSNR and training time
+    (it used to write NaN, invalid JSON, and the 0.2 s the resume took); train.json is strict JSON."""
+    ds = load_dataset(synth)
+    cfg = tiny_config(iters=40, checkpoint_every=20)
+    a = train(ds, tmp_path / "a", cfg)
+    first = strict_json(tmp_path / "a" / "train.json")
+    assert first["resumed_at_step"] is None and first["wall_s"] == round(a.wall_s, 3)
+    b = train(ds, tmp_path / "a", cfg, resume=True)
+    rec = strict_json(tmp_path / "a" / "train.json")
+    assert b.steps == 40 and b.resumed_at_step == 40 and rec["resumed_at_step"] == 40
+    assert (b.final_loss, b.final_psnr) == (a.final_loss, a.final_psnr)
+    assert (rec["train_loss"], rec["train_psnr"]) == (first["train_loss"], first["train_psnr"])
+    assert math.isfinite(rec["train_psnr"]) and rec["history"] == first["history"]
+    # the training time behind the result: the original run's (checkpointed at its last step), not the resume's
+    assert 0.9 * a.wall_s <= b.wall_s <= a.wall_s + 5.0
+    np.testing.assert_array_equal(b.gaussians.means, a.gaussians.means)
+
+
+def test_a_fresh_run_removes_an_earlier_runs_checkpoints(synth, tmp_path):
+    """A run that starts over (no --resume) into a folder with a finished run's checkpoints removes them:
+    left there, the finished step-40 checkpoint outranked the new run's and a later --resume (after a kill)
+    continued the old run instead of the new one."""
+    ds = load_dataset(synth)
+    cfg = tiny_config(iters=40, checkpoint_every=20)
+    train(ds, tmp_path / "a", cfg)
+
+    def stop(info):
+        if info["step"] == 25:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(ds, tmp_path / "a", cfg, callback=stop)
+    names = sorted(p.name for p in (tmp_path / "a" / "checkpoints").iterdir())
+    assert names == ["ckpt_000020.safetensors"]
+    assert train(ds, tmp_path / "a", cfg, resume=True).resumed_at_step == 20
 
 
 def test_ctrl_c_finishes_the_step_saves_and_resumes_to_the_same_result(synth, tmp_path, terminal_ctrl_c):

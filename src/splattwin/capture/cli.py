@@ -33,17 +33,23 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _info(args: argparse.Namespace) -> int:
-    from splattwin.capture.dataset import load_dataset
-
     import tempfile
+
+    from splattwin.capture.dataset import load_dataset
+    from splattwin.heldout import default_heldout
 
     # a video's frames are extracted into a temporary folder: `info` writes nothing beside the capture
     with tempfile.TemporaryDirectory(prefix="splattwin-info-") as tmp:
         ds = load_dataset(args.path, max_frames=args.max_frames, frames_dir=Path(tmp))
     sizes = sorted({(f.camera.width, f.camera.height) for f in ds.frames})
     size = f"{sizes[0][0]}x{sizes[0][1]}" if len(sizes) == 1 else f"{len(sizes)} image sizes"
+    if ds.meta.get("split"):   # the capture's own split: poses/train/build keep it
+        split = f"{len(ds.train())} train, {len(ds.heldout())} held-out: the capture's own split"
+    else:   # no split of its own: the one poses/train/build will use (without --heldout* options)
+        held, _, rule = default_heldout(len(ds.frames))
+        split = f"{len(ds.frames) - len(held)} train, {len(held)} held-out by the default rule: {rule}"
     print(f"{args.path}: {ds.meta.get('format')} dataset, {len(ds.frames)} frames "
-          f"({len(ds.train())} train, {len(ds.heldout())} held-out), {size}, "
+          f"({split}), {size}, "
           f"poses: {'yes' if ds.has_poses else 'no'}, points: {0 if ds.points_xyz is None else len(ds.points_xyz)}")
     return 0
 

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -107,7 +108,8 @@ def _splats(ctx: Context) -> dict:
     from splattwin.splat.stage import SplatInputs, run
 
     inputs = SplatInputs(transforms=ctx.path("poses/transforms.json"), out_dir=ctx.path("splat"))
-    return record(run(inputs, ctx.config.splat, progress=ctx.progress), ctx.out)
+    # --from splats (or earlier): retrain from scratch, never resume the finished run's checkpoints
+    return record(run(inputs, ctx.config.splat, progress=ctx.progress, fresh="splats" in ctx.fresh), ctx.out)
 
 
 def _semantics(ctx: Context) -> dict:
@@ -292,6 +294,9 @@ def build(out: str | Path, options: BuildOptions, from_stage: str | None = None,
             con.print(f"[bold cyan]▶ {name}[/]")
 
     ctx = _context(out, options, progress)
+    t0 = time.perf_counter()
     with output_lock(out):
         preflight(ctx, until)
-        return run_stages(stages(), ctx, from_stage=from_stage, until=until, on_stage=on_stage)
+        run_stages(stages(), ctx, from_stage=from_stage, until=until, on_stage=on_stage)
+    ctx.wall_s = time.perf_counter() - t0   # with the pre-flight
+    return ctx

@@ -25,7 +25,8 @@ def add_build_flags(p: argparse.ArgumentParser, demo: bool = False) -> None:
 
     add_config_flag(p)
     p.add_argument("--seed", type=int, help="seed of every stage (sets each --<stage>.seed)")
-    p.add_argument("--from", dest="from_stage", choices=STAGES, help="redo from this stage on")
+    p.add_argument("--from", dest="from_stage", choices=STAGES,
+                   help="redo this stage and every later one from scratch (splats: retrained, checkpoints not resumed)")
     p.add_argument("--until", choices=STAGES, help="stop after this stage")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
     add_options(p, BuildOptions, build=True, exclude=("input",) if demo else ("input", "scene"))
@@ -111,10 +112,26 @@ def _exit_code(ctx) -> int:
     return 0 if robot.get("success", True) else 1
 
 
+def _total(ctx) -> str:
+    """What this run took. ctx.timings of skipped stages are their earlier runs' seconds: a fully skipped
+    re-run (0.3 s) used to print their sum. Without a run time (a context not made by run_stages): the sum."""
+    if ctx.wall_s is None:
+        return f"total {sum(ctx.timings.values()):.0f} s"
+    took = f"{ctx.wall_s:.1f} s" if ctx.wall_s < 10 else f"{ctx.wall_s:.0f} s"
+    n = len(ctx.skipped)
+    if n == 0:
+        return f"total {took}"
+    if n == len(ctx.timings):
+        return f"total {took} (all {n} stages up to date, skipped)"
+    return f"total {took} ({n} of {len(ctx.timings)} stages up to date, skipped: {', '.join(ctx.skipped)})"
+
+
 def _print_headline(ctx) -> None:
     import json
 
     from splattwin.console import console
+
+    from splattwin.wording import plural
 
     con = console()
     r = ctx.results
@@ -127,8 +144,9 @@ def _print_headline(ctx) -> None:
         if f.get("miou_heldout") is not None:
             con.print(f"semantics: held-out mIoU {f['miou_heldout']:.3f}")
         elif f.get("miou_heldout_masks") is not None:
+            n = len(f.get('miou_heldout_masks_views', []))
             con.print(f"semantics: held-out mIoU {f['miou_heldout_masks']:.3f} against the 2D masks of "
-                      f"{len(f.get('miou_heldout_masks_views', []))} held-out views (not used by the fusion)")
+                      f"{plural(n, 'held-out view')} (not used by the fusion)")
     gj = ctx.path("geometry_metrics.json")
     if gj.is_file():
         g = json.loads(gj.read_text())
@@ -141,6 +159,6 @@ def _print_headline(ctx) -> None:
     twin = ctx.out / "twin.json"
     # --until before the twin stage: name the folder, not a twin.json that is not there
     where = f"twin: {twin}" if twin.is_file() else f"outputs in {ctx.out} (no twin.json: stopped before the twin stage)"
-    con.print(f"total {sum(ctx.timings.values()):.0f} s; {where}")
+    con.print(f"{_total(ctx)}; {where}")
     if r.get("report"):
         con.print(f"report: {ctx.out / r['report']['report'][1:]}")

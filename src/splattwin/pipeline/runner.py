@@ -9,6 +9,9 @@ Each stage declares what its result depends on, and its key is a SHA-256 over al
 - its code: the source of the packages it runs (`code`) and of its stage function, so editing a
   stage's code re-runs it (a hand-set `version` can still force it),
 - the keys of the stages it depends on (`deps`), so everything downstream of a change re-runs.
+`--from STAGE` runs that stage and every later one again from scratch: they are named in `ctx.fresh`,
+so a stage that resumes partial work of its own (training checkpoints) starts over instead (a finished
+run's checkpoint would otherwise be "resumed" with nothing left to do: no retraining).
 After a stage succeeds the runner records `{key, outputs, seconds, peak_rss_gib}` in
 `TWIN/pipeline.json` (atomically); when a stage re-runs, its record and those of every later stage are
 dropped first, so a run stopped midway never leaves a record of old outputs beside new ones. On the next run a stage whose recorded key matches and whose
@@ -69,11 +72,14 @@ class Context:
     out: Path
     options: dict[str, Any]
     results: dict[str, dict[str, Any]] = field(default_factory=dict)  # stage name -> its outputs
-    timings: dict[str, float] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)   # a skipped stage: the seconds it took when it ran
     peak_rss_gib: dict[str, float] = field(default_factory=dict)
     digests: DigestCache | None = None
     config: Any = None
     progress: bool = True
+    fresh: set[str] = field(default_factory=set)   # stages redone on request (--from): start over, resume nothing
+    skipped: list[str] = field(default_factory=list)   # stages found up to date and not run
+    wall_s: float | None = None   # what this run took (None: not run by run_stages)
 
     def path(self, rel: str | Path) -> Path:
         return self.out / rel
@@ -168,23 +174,27 @@ def run_stages(stages: list[Stage], ctx: Context, from_stage: str | None = None,
         raise InputError(f"--until: unknown stage {until!r} (stages: {', '.join(names)})")
     from splattwin.lock import prepare_output_dir
 
+    t_start = time.perf_counter()
     prepare_output_dir(ctx.out)
     state = load_state(ctx.out)
     if ctx.digests is None:
         ctx.digests = DigestCache(ctx.out / DIGEST_CACHE)
     keys: dict[str, str] = {}
-    redo = False
+    redo = requested = False
     for stage in stages:
         key = stage_key(stage, ctx.options, keys, input_digests(stage, ctx))
         ctx.digests.save()
         keys[stage.name] = key
         if stage.name == from_stage:
-            redo = True
+            redo = requested = True
+        if requested:
+            ctx.fresh.add(stage.name)
         rec = state.get(stage.name)
         if not redo and rec and rec.get("key") == key and _outputs_exist(ctx.out, rec.get("outputs", {})):
             ctx.results[stage.name] = dict(rec["outputs"])
             ctx.timings[stage.name] = rec.get("seconds", 0.0)
             ctx.peak_rss_gib[stage.name] = rec.get("peak_rss_gib", 0.0)
+            ctx.skipped.append(stage.name)
             if on_stage:
                 on_stage(stage.name, "skip")
         else:
@@ -211,4 +221,5 @@ def run_stages(stages: list[Stage], ctx: Context, from_stage: str | None = None,
                 on_stage(stage.name, "done")
         if stage.name == until:
             break
+    ctx.wall_s = time.perf_counter() - t_start
     return ctx

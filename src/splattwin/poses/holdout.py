@@ -16,7 +16,9 @@ import logging
 from dataclasses import dataclass, field
 
 from splattwin.errors import InputError
-from splattwin.poses.options import HELDOUT_EVERY_DEFAULT, HELDOUT_MIN_VIEWS, HoldoutOptions
+from splattwin.heldout import default_heldout
+from splattwin.poses.options import HoldoutOptions
+from splattwin.wording import ordinal, plural
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +99,7 @@ def select_heldout(names: list[str], options: HoldoutOptions | None = None, own_
         if k < 0 or k == 1:
             raise InputError(f"--heldout-every must be 0 (no held-out views) or at least 2, got {k}")
         idx, src, every = (_every(n, k) if k else []), "option", (k or None)
-        rule = f"every {k}th view from the first (--heldout-every {k})" if k else "none (--heldout-every 0)"
+        rule = f"every {ordinal(k)} view from the first (--heldout-every {k})" if k else "none (--heldout-every 0)"
     elif o.heldout is not None:
         c = int(o.heldout)
         if c < 0:
@@ -105,17 +107,13 @@ def select_heldout(names: list[str], options: HoldoutOptions | None = None, own_
         if c >= n and c > 0:
             raise InputError(f"--heldout {c}: the capture has only {n} views; at least one must stay for training")
         idx, src = (_spread(n, c) if c else []), "option"
-        rule = f"{c} views spread evenly from the first (--heldout {c})" if c else "none (--heldout 0)"
+        rule = f"{plural(c, 'view')} spread evenly from the first (--heldout {c})" if c else "none (--heldout 0)"
     elif o.heldout_views is not None:
         idx, src, rule = _listed(names, o.heldout_views), "option", f"listed views (--heldout-views {o.heldout_views})"
     elif own_split:
         return Holdout(None, "capture", "the capture's own split")
-    elif n >= HELDOUT_MIN_VIEWS:
-        every = HELDOUT_EVERY_DEFAULT
-        idx, src = _every(n, every), "default"
-        rule = f"every {every}th view from the first (default with >= {HELDOUT_MIN_VIEWS} views)"
-    else:
-        idx, src, rule = [], "default", f"none (fewer than {HELDOUT_MIN_VIEWS} views)"
+    else:   # the default rule (splattwin.heldout, shared with `capture info`)
+        (idx, every, rule), src = default_heldout(n), "default"
     if n and len(idx) >= n:
         raise InputError(f"the hold-out ({rule}) leaves no view for training ({n} views)")
     return Holdout(idx, src, rule, every, [names[i] for i in idx])

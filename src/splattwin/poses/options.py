@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from splattwin.heldout import HELDOUT_EVERY_DEFAULT, HELDOUT_MIN_VIEWS  # noqa: F401 (re-exported)
 from splattwin.options import option
 
 METHODS = ("auto", "known", "sfm", "robot")
@@ -13,8 +14,6 @@ CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV
 MATCHERS = ("auto", "exhaustive", "sequential", "retrieval")
 # known poses: which input world axis points up ("auto": detect, see splattwin.poses.up; "keep": no check)
 UP_AXES = ("auto", "keep", "+z", "-z", "+y", "-y", "+x", "-x")
-HELDOUT_EVERY_DEFAULT = 8   # Mip-NeRF 360 / 3DGS: every 8th view, starting with the first
-HELDOUT_MIN_VIEWS = 6       # below this many views nothing is held out by default
 
 
 @dataclass

@@ -17,6 +17,7 @@ import numpy as np
 from splattwin import io
 from splattwin.errors import InputError
 from splattwin.report.html import Report, Section
+from splattwin.wording import plural
 
 log = logging.getLogger(__name__)
 
@@ -181,7 +182,7 @@ def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
         return
     sizes = sorted({(f.camera.width, f.camera.height) for f in ds.frames})
     at = f"{sizes[0][0]}×{sizes[0][1]}" if len(sizes) == 1 else f"{len(sizes)} image sizes ({', '.join(f'{w}×{h}' for w, h in sizes[:4])}{', ...' if len(sizes) > 4 else ''})"
-    sec.text(f"{len(ds.train())} training views and {len(ds.heldout())} held-out views at {at}.")
+    sec.text(f"{plural(len(ds.train()), 'training view')} and {plural(len(ds.heldout()), 'held-out view')} at {at}.")
     _heldout_rows(sec, ds.meta.get("heldout"), [f.name for f in ds.heldout()])
     if poses:
         rows = [[k, poses[k]] for k in ("method", "registered", "total", "mean_reproj_error_px", "sfm_s") if k in poses]

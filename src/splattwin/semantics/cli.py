@@ -8,6 +8,7 @@ from pathlib import Path
 
 from splattwin.options import add_command, add_options, from_args
 from splattwin.semantics.options import FusionOptions, SegmentOptions, SemanticsOptions
+from splattwin.wording import plural
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +94,7 @@ def _fuse(args: argparse.Namespace) -> int:
     extra = "".join(f", {k} {meta[k]:.3f}" for k in ("miou_train", "miou_heldout") if k in meta)
     if "miou_heldout_masks" in meta:
         extra += (f", held-out mIoU against the 2D masks {meta['miou_heldout_masks']:.3f} "
-                  f"({len(meta['miou_heldout_masks_views'])} views the fusion did not use)")
+                  f"({plural(len(meta['miou_heldout_masks_views']), 'view')} the fusion did not use)")
     print(f"labelled {int((res.labels > 0).sum())} of {len(res.labels)} Gaussians ({counts}) in "
           f"{res.seconds:.1f} s{extra} -> {args.out}")
     return 0

@@ -52,7 +52,13 @@ def _train(args: argparse.Namespace) -> int:
     print(f"held-out views ({h.rule}): {', '.join(h.names) if h.names else 'none'}")
     with output_lock(args.out):
         res = train(ds, args.out, cfg, resume=args.resume)
-    print(f"{len(res.gaussians)} Gaussians, train PSNR {res.final_psnr:.2f} dB, {res.wall_s:.1f} s -> {res.ply_path}")
+    psnr = "unknown" if res.final_psnr is None else f"{res.final_psnr:.2f} dB"
+    # wall_s: the training time of the result over the original run and resumes (see trainer)
+    took = "training time unknown" if res.wall_s is None else f"{res.wall_s:.1f} s of training"
+    if res.resumed_at_step is not None:
+        took += (f" (resumed a finished run at step {res.resumed_at_step}: no step left)"
+                 if res.resumed_at_step >= res.steps else f" (resumed at step {res.resumed_at_step})")
+    print(f"{len(res.gaussians)} Gaussians, train PSNR {psnr}, {took} -> {res.ply_path}")
     return 0
 
 

@@ -2,7 +2,8 @@
 
 Reads the posed dataset (TWIN/poses/transforms.json); writes OUT/point_cloud.ply, OUT/train.json,
 OUT/checkpoints/ (a killed run resumes from them; a checkpoint of other options or data is not resumed,
-training starts over) and OUT/eval/ (held-out PSNR/SSIM, side-by-side pictures).
+training starts over; with fresh=True, `build --from` this stage or an earlier one, training starts over
+and the old checkpoints are removed) and OUT/eval/ (held-out PSNR/SSIM, side-by-side pictures).
 """
 
 from __future__ import annotations
@@ -29,13 +30,14 @@ class SplatResult:
     train_s: float
 
 
-def run(inputs: SplatInputs, options: TrainConfig, *, progress: bool = True) -> SplatResult:
+def run(inputs: SplatInputs, options: TrainConfig, *, progress: bool = True, fresh: bool = False) -> SplatResult:
     from splattwin.capture import load_dataset
     from splattwin.splat.eval import evaluate
     from splattwin.splat.trainer import train
 
     ds = load_dataset(inputs.transforms)
-    res = train(ds, inputs.out_dir, replace(options, progress=progress), resume=True, on_mismatch="restart")
+    res = train(ds, inputs.out_dir, replace(options, progress=progress), resume=not fresh,
+                on_mismatch="restart")
     # the training folder (train.json): held-out views rendered at the training resolution by default
     ev = evaluate(inputs.out_dir, ds, out_dir=inputs.out_dir / "eval", progress=progress,
                   full_resolution=options.eval_full_resolution)

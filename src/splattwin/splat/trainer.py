@@ -10,6 +10,13 @@ Outputs in OUT: point_cloud.ply (standard 3DGS), train.json (config, statistics)
 (with --refine-poses), train_curves.png (PSNR and Gaussian count), checkpoints/ckpt_XXXXXX.safetensors
 (tensors + plain data, never a pickle: `splattwin.splat.checkpoint`; the two newest are kept).
 
+Outputs record the run's figures in strict JSON (no NaN): train.json's train_loss/train_psnr are the moving
+averages at the final step (checkpointed, so a resumed run, even one with no step left, reports the run's
+own figures; null only when unknown) and wall_s is the training time of the result: the time spent in
+the steps that led to it, summed over the original run and every resume (steps redone after a kill
+counted once; null when resumed from a checkpoint that predates this record). resumed_at_step names
+the checkpoint's step when the run resumed one.
+
 Resume: a checkpoint is resumed only when it was made with the same training options, the same
 densification strategy and the same training data (view names, cameras and image contents, recorded as a digest). Otherwise the run does
 not silently continue someone else's or an older run: with on_mismatch="error" (`splattwin train
@@ -69,12 +76,13 @@ class TrainResult:
     gaussians: Gaussians
     ply_path: Path
     steps: int
-    wall_s: float
-    final_loss: float
-    final_psnr: float
+    wall_s: float | None   # training time of the result over the original run and resumes (see module doc)
+    final_loss: float | None   # moving averages at the final step; None when unknown
+    final_psnr: float | None
     init_method: str
     history: list[dict]
     refined_T_world_cam: dict[str, list] | None = None
+    resumed_at_step: int | None = None   # the checkpoint's step when the run resumed one
 
 
 # The low-pass is the config's (`TrainConfig.filter_eps2d`, px^2 at the training size) and 1/4^level of it
@@ -321,6 +329,11 @@ class Trainer:
         self.step = 0
         self.history: list[dict] = []
         self.init_method = ""
+        # moving averages of the loss and PSNR, and the training seconds behind the current state: both
+        # checkpointed, so that a resumed run logs and reports what the uninterrupted run would have
+        self.ema_loss, self.ema_psnr = math.nan, math.nan
+        self.train_s: float | None = 0.0   # None: resumed from a checkpoint that did not record it
+        self._run_t0: float | None = None  # perf_counter() when this process's steps began
 
     # -- state ------------------------------------------------------------------------------------
     def _fresh_state(self) -> None:
@@ -343,6 +356,14 @@ class Trainer:
         self.appearance, self.bg_model = extras.make(cfg, self.views, self.device)
         self.step = 0
         self.history = []
+        self.ema_loss, self.ema_psnr = math.nan, math.nan
+        self.train_s = 0.0
+
+    def elapsed_s(self) -> float | None:
+        """Training seconds behind the current state: the checkpoint's plus this process's so far."""
+        if self.train_s is None:
+            return None
+        return self.train_s + (time.perf_counter() - self._run_t0 if self._run_t0 is not None else 0.0)
 
     def state_dict(self) -> dict:
         return {"step": self.step, "model": self.model.state_dict(), "densify": self.strategy_state,
@@ -351,6 +372,7 @@ class Trainer:
                 "drop_gen": self.drop_gen.get_state(), "order": list(self.order),
                 "poses": self.poses.state_dict() if self.poses else None,
                 "history": list(self.history), "init_method": self.init_method,
+                "ema": [self.ema_loss, self.ema_psnr], "train_s": self.elapsed_s(),
                 "appearance": self.appearance.state_dict() if self.appearance else None,
                 "bg_model": self.bg_model.state_dict() if self.bg_model else None,
                 "torch_rng": torch.get_rng_state(), "config": self.cfg.to_dict(),
@@ -404,6 +426,10 @@ class Trainer:
         extras.load_state(self.appearance, self.bg_model, sd)
         self.history = list(sd["history"])
         self.init_method = sd["init_method"]
+        # checkpoints from before these records: the averages restart, the training time is unknown
+        ema = sd.get("ema")
+        self.ema_loss, self.ema_psnr = (float(ema[0]), float(ema[1])) if ema is not None else (math.nan, math.nan)
+        self.train_s = float(sd["train_s"]) if sd.get("train_s") is not None else None
         torch.set_rng_state(sd["torch_rng"])
         self.step = int(sd["step"])
 
@@ -514,9 +540,11 @@ class Trainer:
         if on_mismatch not in ("error", "restart"):
             raise ValueError(f"on_mismatch must be 'error' or 'restart', got {on_mismatch!r}")
         ckpt = _latest_checkpoint(self.out_dir) if resume else None
+        resumed_at = None
         if ckpt is not None:
             try:
                 self.load_checkpoint(ckpt)
+                resumed_at = self.step
                 log.info("resumed from %s (step %d)", ckpt, self.step)
             except CheckpointMismatch as e:
                 if on_mismatch == "error":
@@ -530,29 +558,49 @@ class Trainer:
         if ckpt is None:
             if resume:
                 log.info("no checkpoint in %s: starting from scratch", self.out_dir / CKPT_DIR)
+            # checkpoints of an earlier run in this folder are stale now: left there, the newest (say a
+            # finished run's step 200) would outrank this run's and a later --resume would continue it
+            stale = _checkpoints(self.out_dir)
+            if stale:
+                log.info("starting over: removing %d checkpoint(s) of an earlier run in %s", len(stale),
+                         self.out_dir / CKPT_DIR)
+                for old in stale:
+                    old.unlink()
             self._fresh_state()
-        t0 = time.perf_counter()
+        self._run_t0 = time.perf_counter()
         # CPU backend: the heavy work is in numba kernels; torch only does small element-wise ops and
         # Adam. Its thread pool competing with numba's made steps ~1.7x slower on 2 busy cores (idle:
         # equal). One torch thread for the loop only; the caller's count is restored afterwards.
         with torch_threads(1) if self.backend == "cpu" else contextlib.nullcontext():
-            ema_loss, ema_psnr = self._loop(callback)
-        wall = time.perf_counter() - t0
-        return self._write_outputs(wall, ema_loss, ema_psnr)
+            self._loop(callback)
+        wall = self.elapsed_s()
+        self._run_t0 = None
+        return self._write_outputs(wall, *self._final_figures(), resumed_at)
 
-    def _loop(self, callback: Callable[[dict], None] | None) -> tuple[float, float]:
-        """Steps to cfg.iters; returns the final moving averages of the loss and the PSNR."""
+    def _final_figures(self) -> tuple[float | None, float | None]:
+        """The moving averages at the final step; from the history's last entry (that step's, rounded)
+        when a checkpoint predating the averages was resumed with nothing left to do; else None."""
+        if math.isfinite(self.ema_loss) and math.isfinite(self.ema_psnr):
+            return self.ema_loss, self.ema_psnr
+        last = self.history[-1] if self.history else None
+        if last is not None and last.get("step") == self.step:
+            ok = lambda x: float(x) if x is not None and math.isfinite(float(x)) else None  # noqa: E731
+            return ok(last.get("loss")), ok(last.get("psnr"))
+        return None, None
+
+    def _loop(self, callback: Callable[[dict], None] | None) -> None:
+        """Steps to cfg.iters, updating the moving averages self.ema_loss / self.ema_psnr."""
         from splattwin.interrupt import DeferredInterrupt
         from splattwin.progress import Progress
 
         cfg = self.cfg
-        ema_loss, ema_psnr = math.nan, math.nan
         with Progress(cfg.iters, "train", unit="it", enabled=cfg.progress, initial=self.step) as bar, \
                 DeferredInterrupt("this training step") as interrupt:
             while self.step < cfg.iters:
                 info = self.train_step()
-                ema_loss = info["loss"] if math.isnan(ema_loss) else 0.9 * ema_loss + 0.1 * info["loss"]
-                ema_psnr = info["psnr"] if math.isnan(ema_psnr) else 0.9 * ema_psnr + 0.1 * info["psnr"]
+                ema_loss = info["loss"] if math.isnan(self.ema_loss) else 0.9 * self.ema_loss + 0.1 * info["loss"]
+                ema_psnr = info["psnr"] if math.isnan(self.ema_psnr) else 0.9 * self.ema_psnr + 0.1 * info["psnr"]
+                self.ema_loss, self.ema_psnr = ema_loss, ema_psnr
                 if self.step % 10 == 0 or self.step == cfg.iters or info["densified"]:
                     self.history.append({"step": self.step, "loss": round(ema_loss, 6),
                                          "psnr": round(ema_psnr, 3), "n": info["n"]})
@@ -570,7 +618,6 @@ class Trainer:
                     raise KeyboardInterrupt
         if cfg.checkpoint_every and self.step % cfg.checkpoint_every != 0:
             self.save_checkpoint()  # so that --resume on a finished run does no work
-        return ema_loss, ema_psnr
 
     def _write_transients(self) -> dict:
         """The transient masks of the final model on every training view: OUT/transients.png (the photos with
@@ -598,7 +645,8 @@ class Trainer:
         rec["views"] = [f.name for f in self.dataset.heldout()]
         return rec
 
-    def _write_outputs(self, wall: float, loss: float, psnr: float) -> TrainResult:
+    def _write_outputs(self, wall: float | None, loss: float | None, psnr: float | None,
+                       resumed_at: int | None = None) -> TrainResult:
         g = self.model.to_gaussians()
         ply = g.save_ply(self.out_dir / "point_cloud.ply")
         refined = None
@@ -612,16 +660,17 @@ class Trainer:
         transients = self._write_transients() if self.cfg.robust_quantile > 0 else None
         if transients is None and (self.out_dir / "transients.png").exists():
             (self.out_dir / "transients.png").unlink()   # a stale one from an earlier run with the masks
-        write_json(self.out_dir / "train.json", {
+        write_json(self.out_dir / "train.json", strict=True, obj={
             "dataset": str(self.dataset.root), "config": self.cfg.to_dict(), "strategy": self.strategy.describe(),
             "backend": self.backend, "resolution": self.resolution.record(),
             "heldout": self._heldout_record(),
             "profile": self.profile or "dense (defaults)",
-            "init_method": self.init_method, "steps": self.step, "gaussians": len(g), "wall_s": round(wall, 3),
+            "init_method": self.init_method, "steps": self.step, "gaussians": len(g),
+            "wall_s": None if wall is None else round(wall, 3), "resumed_at_step": resumed_at,
             "train_loss": loss, "train_psnr": psnr, "scene_scale": self.scene_scale,
             "views": [{"name": v.name, "width": v.camera.width, "height": v.camera.height} for v in self.views],
             "transients": transients, "history": self.history})
-        return TrainResult(g, ply, self.step, wall, loss, psnr, self.init_method, self.history, refined)
+        return TrainResult(g, ply, self.step, wall, loss, psnr, self.init_method, self.history, refined, resumed_at)
 
 
 def train(dataset: Dataset, out_dir: str | Path, cfg: TrainConfig | None = None, resume: bool = False,
