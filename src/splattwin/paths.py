@@ -60,6 +60,18 @@ def child(root: str | Path, name: str, where: str | Path | None = None, what: st
     return confined(root, name, where, what)
 
 
+def unfollowed(path: str | Path) -> Path:
+    """`path` made absolute with its folder resolved but not its last component: a symbolic link keeps
+    its own name. Names and relative paths of a user's files (SfM image names, bundled file names,
+    transforms.json `file_path`) come from where the user put them, never from a link's target (a
+    capture folder of links to photos elsewhere is still `images/000.jpg`). Reading goes through the
+    link as usual."""
+    p = Path(path).absolute()
+    if p.name in ("", ".", ".."):
+        return p.resolve()
+    return p.parent.resolve() / p.name
+
+
 def relative_to(path: str | Path, root: str | Path) -> str | None:
     """`path` relative to `root` as a POSIX string when it lies inside it (resolved), else None."""
     try:

@@ -1,6 +1,10 @@
 """Dataset helpers."""
 
 import numpy as np
+import pytest
+
+from splattwin.capture import load_dataset
+from splattwin.errors import InputError
 
 
 def test_resize_nearest_takes_pixel_centres():
@@ -12,3 +16,88 @@ def test_resize_nearest_takes_pixel_centres():
     # down by 2: the centre of output pixel (0, 0) lies in input pixel (1, 1); values are never blended
     assert np.array_equal(resize_nearest(a, 2, 1), [[5.0, 7.0]])
     assert resize_nearest(np.zeros((5, 7, 3)), 3, 2).shape == (2, 3, 3)
+
+
+def test_truncated_or_corrupt_images_are_refused_cheaply(tmp_path):
+    """`limits.check_image_complete` (run by `Dataset.validate`): complete JPEG/PNG pass on their end marker;
+    a cut-short one is refused naming the file; data after a JPEG's end (a motion photo's video) is fine."""
+    from PIL import Image
+
+    from splattwin.limits import check_image_complete
+
+    rng = np.random.default_rng(0)
+    arr = rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)
+    for suffix in (".jpg", ".png"):
+        good = tmp_path / f"good{suffix}"
+        Image.fromarray(arr).save(good)
+        check_image_complete(good)
+        cut = tmp_path / f"cut{suffix}"
+        cut.write_bytes(good.read_bytes()[: good.stat().st_size * 2 // 3])
+        with pytest.raises(InputError, match="truncated or corrupt") as e:
+            check_image_complete(cut)
+        assert e.value.path == cut
+    trailer = tmp_path / "motion.jpg"
+    trailer.write_bytes((tmp_path / "good.jpg").read_bytes() + b"\0\0ftypmp42" + bytes(100))
+    check_image_complete(trailer)
+    # an image folder with a cut-short photo is refused when loaded (before any SfM)
+    folder = tmp_path / "cap"
+    folder.mkdir()
+    for i in range(3):
+        Image.fromarray(arr).save(folder / f"{i}.jpg")
+    (folder / "1.jpg").write_bytes((folder / "1.jpg").read_bytes()[:400])
+    with pytest.raises(InputError, match="truncated") as e:
+        load_dataset(folder)
+    assert str(folder / "1.jpg") in str(e.value)
+
+
+def test_links_out_of_a_posed_dataset_are_refused_but_a_photo_folder_of_links_is_read(tmp_path):
+    """A transforms.json dataset may come from someone else: an image that is a link out of its folder is
+    refused (`splattwin.paths.confined`). A plain photo folder is the user's own capture: links are read,
+    and named by the link, not the target."""
+    import json
+    import os
+
+    from PIL import Image
+
+    photo = tmp_path / "elsewhere" / "IMG_1234.png"
+    photo.parent.mkdir()
+    Image.fromarray(np.zeros((48, 64, 3), np.uint8)).save(photo)
+    ds_dir = tmp_path / "dataset"
+    (ds_dir / "images").mkdir(parents=True)
+    os.symlink(photo, ds_dir / "images" / "a.png")
+    (ds_dir / "transforms.json").write_text(json.dumps({
+        "fl_x": 50.0, "fl_y": 50.0, "cx": 32.0, "cy": 24.0, "w": 64, "h": 48,
+        "frames": [{"file_path": "images/a.png", "transform_matrix": np.eye(4).tolist()}]}))
+    with pytest.raises(InputError, match="leads outside its folder"):
+        load_dataset(ds_dir)
+    ds = load_dataset(ds_dir / "images")  # the same folder given as a photo folder
+    assert [f.image_path for f in ds.frames] == [ds_dir / "images" / "a.png"] and ds.frames[0].name == "a"
+
+
+def test_linked_photos_are_named_by_their_links_and_bundled_as_files(tmp_path):
+    """Links to photos in several folders: SfM names and bundled names are the links' (not `a/IMG_1.png`, nor
+    paths relative to `/` when the targets share no folder), and the bundle holds files, not links."""
+    import os
+
+    from PIL import Image
+
+    from splattwin.capture import Camera
+    from splattwin.capture.bundle import bundle_frames
+    from splattwin.capture.dataset import Frame
+    from splattwin.poses.sfm import _image_layout
+
+    cap = tmp_path / "cap"
+    cap.mkdir()
+    frames = []
+    for i, sub in enumerate(("a", "b")):
+        target = tmp_path / "elsewhere" / sub / f"IMG_{i}.png"
+        target.parent.mkdir(parents=True)
+        Image.fromarray(np.full((48, 64, 3), 40 * i, np.uint8)).save(target)
+        os.symlink(target, cap / f"view{i}.png")
+        frames.append(Frame(image_path=cap / f"view{i}.png", camera=Camera.from_fov(1.0, 64, 48, name=f"view{i}")))
+    assert _image_layout([f.image_path for f in frames]) == (cap.resolve(), ["view0.png", "view1.png"])
+    out = tmp_path / "out"
+    bundled = bundle_frames(frames, out)
+    for f, b in zip(frames, bundled):
+        assert b.image_path == out / "images" / f.image_path.name
+        assert not b.image_path.is_symlink() and b.image_path.read_bytes() == f.image_path.read_bytes()

@@ -187,3 +187,30 @@ def test_bad_training_option_stops_before_poses_with_the_other_problems(tmp_path
     pf.run_preflight(bad, out, imgs, None, tmp_path / "frames", until="poses")
     with pytest.raises(InputError, match="--drop-rate must be in"):
         pf.run_preflight(bad, out, imgs, None, tmp_path / "frames", until="splats")
+
+
+def _jpegs(root: Path, n: int = 6, w: int = 64, h: int = 48) -> Path:
+    from PIL import Image
+
+    root.mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        Image.fromarray(rng.integers(0, 255, (h, w, 3), dtype=np.uint8)).save(root / f"img_{i:02d}.jpg", quality=90)
+    return root
+
+
+def test_truncated_photo_stops_the_build_before_sfm_naming_the_users_file(tmp_path, capsys):
+    """A photo cut short (an interrupted copy) used to pass pre-flight and SfM and fail only at training,
+    naming the twin's copy of it; pre-flight now names the user's file and nothing is built."""
+    imgs = _jpegs(tmp_path / "imgs")
+    bad = imgs / "img_03.jpg"
+    bad.write_bytes(bad.read_bytes()[: bad.stat().st_size * 2 // 3])
+    out = tmp_path / "twin"
+    code = cli(["build", str(imgs), "--out", str(out), "--until", "splats", "--iters", "20", "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2 and f"{bad}: image is truncated or corrupt" in err
+    assert not (out / "poses").exists() and not (out / "pipeline.json").exists()
+    # `splattwin poses` on the same folder stops too, before SfM writes anything
+    assert cli(["poses", str(imgs), str(tmp_path / "p")]) == 2
+    assert f"{bad}: image is truncated" in capsys.readouterr().err
+    assert not (tmp_path / "p" / "transforms.json").exists() and not (tmp_path / "p" / "sfm").exists()

@@ -130,3 +130,37 @@ def test_result_round_trips_through_its_dataset(scene_small: Path):
     ds.meta["frame"]["source"] = "marker"
     again = estimate_poses(ds, PoseOptions(method="known", depth_points=False, progress=False))
     assert isinstance(again.frame, TwinFrame) and again.frame.source == "marker"
+
+
+def test_capture_of_symlinked_photos_works_like_the_photos(default_unscaled, sfm_default_dir: Path, tmp_path: Path):
+    """A photo folder of symbolic links (to photos kept elsewhere, in several folders, under other names) is
+    the user's own capture: the links' names are the images' names (SfM, report, transforms.json) and the
+    poses folder holds the photos themselves, so training reads it. Links used to be followed: file_path
+    was the targets' path (`../../elsewhere/...`, refused by `train`) and names were relative to `/`."""
+    import os
+    import shutil
+
+    gt, _ = default_unscaled
+    cap = tmp_path / "cap"
+    cap.mkdir()
+    for i, f in enumerate(gt.frames):  # targets in two folders, named otherwise than the links
+        target = tmp_path / "elsewhere" / "ab"[i % 2] / f"IMG_{i:04d}{f.image_path.suffix}"
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(f.image_path, target)
+        os.symlink(target, cap / f.image_path.name)
+    h = float(np.mean([f.camera.center[2] for f in gt.frames]))
+    out = tmp_path / "out"
+    shutil.copytree(sfm_default_dir, out / "sfm")  # resumes only if SfM names the images by the links' names
+    assert main(["poses", str(cap), str(out), "--known-length", f"camera_height={h}", "--no-progress"]) == 0
+    report = json.loads((out / "poses_report.json").read_text())
+    assert report["timings"] == {} and report["registered"] == 20
+    names = sorted(f.image_path.name for f in gt.frames)
+    assert sorted(report["registration_check"]["per_image"]) == names
+    meta = json.loads((out / "transforms.json").read_text())
+    assert sorted(fr["file_path"] for fr in meta["frames"]) == [f"images/{n}" for n in names]
+    for n in names:  # the photos themselves, not links leading out of the twin
+        p = out / "images" / n
+        assert not p.is_symlink() and p.read_bytes() == (cap / n).read_bytes()
+    # training reads the poses folder (it used to stop: "file_path ... leads outside its folder")
+    assert main(["train", str(out), str(tmp_path / "splat"), "--iters", "2", "--no-progress"]) == 0
+    assert (tmp_path / "splat" / "point_cloud.ply").is_file()

@@ -8,6 +8,9 @@ images are hard-linked into `OUT/images/`, `OUT/depth/`, `OUT/masks/`, `OUT/labe
 hard link is impossible, e.g. across file systems), keeping their paths relative to the common folder
 of each kind. Hard links cost no space; a copy costs the capture's size once. Where the capture was is
 recorded by the caller (twin.json `config.build.input`), not needed afterwards.
+
+A capture file that is a symbolic link keeps its own name (not its target's) and is bundled as the
+file it points at: OUT never holds a link, which would lead out of OUT (and be refused when read).
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from pathlib import Path
 from splattwin import io
 from splattwin.capture.dataset import Frame
 from splattwin.errors import InputError
-from splattwin.paths import confined
+from splattwin.paths import confined, unfollowed
 
 KINDS = {"image_path": "images", "depth_path": "depth", "mask_path": "masks", "label_path": "labels"}
 
@@ -33,15 +36,18 @@ def _same_file(a: Path, b: Path) -> bool:
 
 
 def place_file(src: Path, dst: Path) -> Path:
-    """Make `dst` a hard link to (or else a copy of) `src`, atomically; nothing to do if it already is."""
-    if dst.exists() and _same_file(src, dst):
-        return dst
-    if dst.is_file() and dst.stat().st_size == src.stat().st_size and io_equal(src, dst):
-        return dst
+    """Make `dst` a hard link to (or else a copy of) `src`, atomically; nothing to do if it already is.
+    A `src` that is a symbolic link gives its target's content; `dst` is always a regular file."""
+    if not dst.is_symlink():  # a link (older versions left some) is replaced by the file itself
+        if dst.exists() and _same_file(src, dst):
+            return dst
+        if dst.is_file() and dst.stat().st_size == src.stat().st_size and io_equal(src, dst):
+            return dst
     dst.parent.mkdir(parents=True, exist_ok=True)
     tmp = dst.parent / f"{io._temp_prefix(dst.name)}{os.urandom(4).hex()}{dst.suffix}"
     try:
-        os.link(src, tmp)  # the input's inode and mode stay as they are (no chmod on a link)
+        # the link's target: os.link on Linux links a symbolic link itself (whatever follow_symlinks says)
+        os.link(os.path.realpath(src), tmp)  # the input's inode and mode stay as they are (no chmod on a link)
         os.replace(tmp, dst)
         return dst
     except OSError:  # other file system, or links not allowed: copy
@@ -74,15 +80,16 @@ def bundle_frames(frames: list[Frame], out_dir: str | Path) -> list[Frame]:
         missing = [p for p in present if not p.is_file()]
         if missing:
             raise InputError("file listed in the dataset does not exist", missing[0])
-        common = Path(os.path.commonpath([str(p.resolve().parent) for p in present]))
+        # names from where the files are, not from links' targets (targets may be anywhere, even apart)
+        common = Path(os.path.commonpath([str(unfollowed(p).parent) for p in present]))
         dest_root = out_dir / sub
         for f, src in zip(new, srcs):
             if src is None:
                 continue
             src = Path(src)
-            rel = src.resolve().relative_to(common).as_posix()
+            rel = unfollowed(src).relative_to(common).as_posix()
             dst = confined(dest_root, rel, src, "bundled file")
-            if _same_file(src, dst):
+            if not dst.is_symlink() and _same_file(src, dst):
                 setattr(f, attr, dst)
                 continue
             setattr(f, attr, place_file(src, dst))

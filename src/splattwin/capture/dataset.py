@@ -80,11 +80,15 @@ class Dataset:
         return [f.camera for f in self.frames]
 
     def validate(self) -> None:
-        """Check that files exist and that images match their cameras' sizes (reads image headers only)."""
+        """Check that files exist, that images match their cameras' sizes and are complete (reads image
+        headers and ends only, `limits.check_image_complete`: a truncated photo stops here, before SfM)."""
+        from splattwin.limits import check_image_complete
+
         if not self.frames:
             raise InputError("dataset has no frames", self.root)
         for f in self.frames:
             w, h = image_size(f.image_path)
+            check_image_complete(f.image_path)
             if (w, h) != (f.camera.width, f.camera.height):
                 raise InputError(f"image is {w}x{h} but its camera says {f.camera.width}x{f.camera.height}", f.image_path)
             for extra in (f.depth_path, f.mask_path, f.label_path):

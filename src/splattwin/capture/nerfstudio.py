@@ -28,7 +28,7 @@ from splattwin.capture.camera import Camera, opencv_from_opengl, opengl_from_ope
 from splattwin.capture.dataset import Dataset, Frame
 from splattwin.errors import InputError
 from splattwin.limits import check_count, check_pixels
-from splattwin.paths import confined
+from splattwin.paths import confined, unfollowed
 from splattwin.transforms import pose_from_file_value
 
 log = logging.getLogger(__name__)
@@ -207,7 +207,8 @@ def write(dataset: Dataset, path: str | Path, ply_name: str = "sparse_pc.ply") -
 
 
 def _rel(p: Path, root: Path) -> str:
-    return Path(os.path.relpath(Path(p).resolve(), root.resolve())).as_posix()
+    # the link's own place, not its target: a bundled image is `images/x.jpg` even if it is a link
+    return Path(os.path.relpath(unfollowed(p), root.resolve())).as_posix()
 
 
 def read_points_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None]:

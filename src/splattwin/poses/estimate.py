@@ -334,7 +334,9 @@ def _check_up(frame: TwinFrame, cams: list[Camera], pts_xyz: np.ndarray | None, 
 
 
 def _frame_key(f: DataFrame) -> str:
-    return str(Path(f.image_path).resolve())
+    from splattwin.paths import unfollowed
+
+    return str(unfollowed(f.image_path))  # a link's own path, matching the SfM names (sfm._image_layout)
 
 
 def _sfm_keys(frames: list[DataFrame]) -> dict[str, str]:

@@ -467,8 +467,11 @@ def explain_failures(names: list[str], registered: set[str], keypoints: dict[str
 
 # -- the run ---------------------------------------------------------------------------------------------
 def _image_layout(image_paths: list[Path]) -> tuple[Path, list[str]]:
-    """Common image folder and the names relative to it (COLMAP identifies images by these names)."""
-    paths = [Path(p).resolve() for p in image_paths]
+    """Common image folder and the names relative to it (COLMAP identifies images by these names).
+    Symbolic links are not followed: a link's own name is the image's name (`paths.unfollowed`)."""
+    from splattwin.paths import unfollowed
+
+    paths = [unfollowed(p) for p in image_paths]
     root = Path(os.path.commonpath([str(p.parent) for p in paths]))
     names = [p.relative_to(root).as_posix() for p in paths]
     if len(set(names)) != len(names):
