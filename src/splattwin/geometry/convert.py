@@ -250,19 +250,16 @@ def near_field_mask(points: np.ndarray, cameras: list | None, object_points: np.
     everything) without cameras or objects to measure the depth against."""
     if not cameras or object_points is None or len(object_points) < 10:
         return None
-    depths = []
-    for cam in cameras:
-        uv, z = cam.project(object_points)
-        seen = cam.in_image(uv) & (z > 0)
-        if seen.sum() >= 10:
-            depths.append(float(np.median(z[seen])))
-    if not depths:
-        return None
     from scipy.spatial import cKDTree
 
+    from splattwin.poses.table import viewing_depth
+
+    depth = viewing_depth(cameras, object_points)
+    if depth is None:
+        return None
     centres = np.array([np.asarray(c.center, dtype=np.float64).reshape(3) for c in cameras])
     dist, _ = cKDTree(centres).query(points)
-    return dist <= factor * float(np.median(depths))
+    return dist <= factor * depth
 
 
 def default_table(object_points: np.ndarray | None, length_scale: float = 1.0, margin: float = 0.1

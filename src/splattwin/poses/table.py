@@ -208,13 +208,20 @@ def nominal_metre(cameras, points: np.ndarray, view_depth: float = NOMINAL_VIEW_
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     if len(pts) > max_points:
         pts = pts[np.random.default_rng(seed).choice(len(pts), max_points, replace=False)]
+    depth = viewing_depth(cameras, pts, min_cameras=2)
+    if depth is None:
+        return None
+    value = depth / view_depth
+    return value if np.isfinite(value) and value > 0 else None
+
+
+def viewing_depth(cameras, points: np.ndarray, min_cameras: int = 1) -> float | None:
+    """The median over cameras of the median depth (frame units) of the points [N,3] each sees (in
+    front, inside the image; a camera counts with >= 10 of them). None with fewer than `min_cameras`."""
     depths = []
     for cam in cameras:
-        uv, z = cam.project(pts)
+        uv, z = cam.project(points)
         seen = cam.in_image(uv) & (z > 0)
         if seen.sum() >= 10:
             depths.append(float(np.median(z[seen])))
-    if len(depths) < 2:
-        return None
-    value = float(np.median(depths)) / view_depth
-    return value if np.isfinite(value) and value > 0 else None
+    return float(np.median(depths)) if len(depths) >= max(min_cameras, 1) else None
