@@ -163,3 +163,21 @@ def test_batch_cli_flags_reach_the_build_options(tmp_path, monkeypatch):
     for o in opts.values():
         assert o.input == str((tmp_path / "a").absolute()) and o.splat.iters == 50 and o.robot.trials == 4
         assert o.robot.cluster == ExecutorOptions(executor="local", workers=3)
+
+
+def test_summary_shows_finished_builds_pictures_and_never_reads_one_being_written(tmp_path):
+    """The summary is rewritten as each capture finishes, while others are still building: their eval/
+    holds half-written temp files (a Ray run failed reading one)."""
+    import numpy as np
+    from PIL import Image
+
+    from splattwin.cluster.batch import summary_html
+
+    for name in ("done", "building"):
+        ev = tmp_path / name / "splat" / "eval"
+        ev.mkdir(parents=True)
+        (ev / ".000.png.tmp1-abcd.png").write_bytes(b"\x89PNG half")   # sorts before 000.png
+    Image.fromarray(np.full((8, 24, 3), 200, np.uint8)).save(tmp_path / "done" / "splat" / "eval" / "000.png")
+    caps = [{"name": "done", "status": "ok", "input": "a"}, {"name": "building", "status": "reconstructed", "input": "b"}]
+    page = summary_html(tmp_path, {"captures": caps, "executor": "local", "wall_s": 1.0})
+    assert page.count("<img") == 1 and "held-out view 000" in page and "could not be read" not in page

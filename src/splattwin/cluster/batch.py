@@ -334,14 +334,20 @@ def summary_html(out: Path, summary: dict) -> str:
         if c.get("error"):
             s.pre(f"failed in {c.get('failed_stage') or '?'}: {c['error']}\n(log: {c.get('log')})")
         twin = out / c["name"]
-        ev = sorted((twin / "splat" / "eval").glob("*.png")) if (twin / "splat" / "eval").is_dir() else []
+        # a finished build's picture only: a capture still building is writing its eval/ (hidden temp files)
+        built = c["status"] == "ok" or c.get("failed_stage") == "robot"
+        ev_dir = twin / "splat" / "eval"
+        ev = sorted(p for p in ev_dir.glob("*.png") if not p.name.startswith(".")) if built and ev_dir.is_dir() else []
         if ev:
-            from PIL import Image
+            from PIL import Image, UnidentifiedImageError
 
-            with Image.open(ev[0]) as im:
-                im = im.convert("RGB")
-                im.thumbnail((480, 240))
-                s.image(np.asarray(im), caption=f"held-out view {ev[0].stem}: ground truth | render | error")
+            try:
+                with Image.open(ev[0]) as im:
+                    im = im.convert("RGB")
+                    im.thumbnail((480, 240))
+                    s.image(np.asarray(im), caption=f"held-out view {ev[0].stem}: ground truth | render | error")
+            except (OSError, UnidentifiedImageError):   # replaced or removed meanwhile: the summary goes on
+                s.text(f"(held-out picture {ev[0].name} could not be read)")
         if c.get("report"):
             href = html.escape(f"{c['name']}/{c['report']}", quote=True)
             s.parts.append(f'<p><a href="{href}">report of {html.escape(c["name"])}</a></p>')
