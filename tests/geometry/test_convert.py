@@ -253,3 +253,28 @@ def test_a_known_table_plane_beats_a_larger_far_plane_and_a_missing_table_is_a_f
     assert d.table_height == 0.0
     assert np.allclose(d.table_extent, [2.0 - 2.5, 2.0 + 2.5, 2.0 - 2.0, 2.0 + 2.0], atol=0.02)  # 1 x 0.8 m x 5
     assert np.allclose(d.collision.bounds[1, :2], [4.5, 4.0], atol=0.02)
+
+
+def test_a_table_patch_beside_the_objects_is_extended_under_them_and_flagged():
+    """The cake: the only table splats form a 5 cm patch away from the cake; the collision table must
+    still be under the objects (they stand on it), and the twin says the table was partly assumed."""
+    from splattwin.geometry.clustering import Plane
+    from splattwin.geometry.convert import background_geometry
+
+    rng = np.random.default_rng(1)
+    patch = np.c_[rng.uniform(-0.45, -0.35, (3000, 2)), rng.normal(0, 0.0005, 3000)]
+    g = _plane_gaussians(patch)
+    objects = np.c_[rng.uniform(0.2, 0.3, (500, 2)), rng.uniform(0, 0.1, 500)]
+    opts = GeometryOptions().resolved(2.0)
+    z0 = Plane(normal=np.array([0.0, 0.0, 1.0]), d=0.0)
+    alone = background_geometry(g, np.arange(len(g)), opts, plane=z0)   # no objects to check against
+    assert alone.default_reason is None and np.allclose(alone.table_extent, [-0.45, -0.35, -0.45, -0.35], atol=0.01)
+    b = background_geometry(g, np.arange(len(g)), opts, plane=z0, object_points=objects)
+    x0, x1, y0, y1 = b.table_extent
+    assert b.default_reason is not None and "not under the objects" in b.default_reason
+    assert x0 <= -0.44 and y0 <= -0.44 and x1 >= 0.3 and y1 >= 0.3          # the patch and the objects' footprint
+    assert abs(b.table_height) < 0.003
+    # a table the objects stand on is used as found
+    under = _plane_gaussians(np.c_[rng.uniform(0.0, 0.5, (6000, 2)), rng.normal(0, 0.0005, 6000)])
+    ok = background_geometry(under, np.arange(len(under)), opts, plane=z0, object_points=objects)
+    assert ok.default_reason is None and np.allclose(ok.table_extent, [0.0, 0.5, 0.0, 0.5], atol=0.01)

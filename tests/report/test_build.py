@@ -78,11 +78,11 @@ def test_report_shows_an_unscaled_twins_lengths_in_units_never_cm(tmp_path):
     assert "1.14 × 0.736 × 1.35 units (SfM, unscaled)" in html
     assert "114.3" not in html and " cm" not in html
     # the assumed table is said so, in the twin's units
-    assert "WARNING: no table was found in the splats (no table splats)" in html
+    assert "WARNING: the table is assumed (no table splats)" in html
     assert "x -4.61 .. 1.88 units (SfM, unscaled)" in html
 
 
 def test_report_shows_a_metric_twins_box_in_cm_and_no_table_warning_when_found(tmp_path):
     html = build_report(_manifest_twin(tmp_path / "m", scaled=True)).read_text()
     assert "114.3 × 73.6 × 135.4 cm" in html
-    assert "no table was found" not in html
+    assert "the table is assumed" not in html

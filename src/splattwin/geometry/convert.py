@@ -317,6 +317,17 @@ def background_geometry(g, indices: np.ndarray, opts: GeometryOptions, table_thi
         x0, x1 = np.percentile(tp[:, 0], [0.2, 99.8])
         y0, y1 = np.percentile(tp[:, 1], [0.2, 99.8])
         extent = [float(x0), float(x1), float(y0), float(y1)]
+        if object_points is not None and len(object_points):
+            # objects stand on the table: a patch of table splats beside them (a plain cloth elsewhere,
+            # the cake's 5 cm patch 2.5 units away) is part of it, not all of it
+            lo, hi = np.percentile(object_points[:, :2], [1, 99], axis=0)
+            cx, cy = (lo + hi) / 2
+            if not (extent[0] <= cx <= extent[1] and extent[2] <= cy <= extent[3]):
+                under = default_table(object_points, length_scale)
+                reason = (f"the {len(tp)} table splats found (x {extent[0]:.3g}..{extent[1]:.3g}, y {extent[2]:.3g}.."
+                          f"{extent[3]:.3g}) are not under the objects: the table is extended under them")
+                extent = [min(extent[0], under[0]), max(extent[1], under[1]), min(extent[2], under[2]),
+                          max(extent[3], under[3])]
     else:
         extent = default_table(object_points, length_scale)
         reason = (f"{int((np.abs(split.plane.signed_distance(pts)) <= 2 * opts.plane_distance).sum())} background "
@@ -387,9 +398,8 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
                                      object_points=obj_pts)
             if bg.default_reason is not None:
                 x0, x1, y0, y1 = bg.table_extent
-                log.warning("no table found in the background (%s): the twin gets a default table, x %.3g..%.3g, "
-                            "y %.3g..%.3g at z %.3g, under the objects; check its placement", bg.default_reason,
-                            x0, x1, y0, y1, bg.table_height)
+                log.warning("table assumed (%s): the twin's table is x %.3g..%.3g, y %.3g..%.3g at z %.3g, under "
+                            "the objects; check its placement", bg.default_reason, x0, x1, y0, y1, bg.table_height)
             timings["background"] = time.perf_counter() - t1
             bar.update(1)
         support_z = bg.table_height if bg is not None and bg.plane is not None else None

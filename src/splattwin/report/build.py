@@ -301,8 +301,8 @@ def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
     b = man.background
     if b.table_default:
         x0, x1, y0, y1 = b.table_extent
-        sec.text(f"WARNING: no table was found in the splats ({b.table_default}); the twin has an assumed "
-                 f"table, x {length_text([x0, x1], man.frame.scaled, ' .. ')}, y "
+        sec.text(f"WARNING: the table is assumed ({b.table_default}); the twin's table is"
+                 f" x {length_text([x0, x1], man.frame.scaled, ' .. ')}, y "
                  f"{length_text([y0, y1], man.frame.scaled, ' .. ')}, top at z = "
                  f"{length_text([b.table_height], man.frame.scaled)}: check it before relying on it.")
     carve = (man.timings or {}).get("geometry.carve")

@@ -72,8 +72,8 @@ class Background:
     """Static environment: the table (plane z = table_height in the twin frame) and other obstacles.
 
     Meshes are in the twin frame. table_extent: [xmin, xmax, ymin, ymax] of the table top (m; frame
-    units in an unscaled twin). table_default: why the table is an assumed default (no table was found
-    in the splats), None when it was found.
+    units in an unscaled twin). table_default: why the table is assumed, in whole (no table in the splats)
+    or in part (extended under the objects), None when the splats' table is used as found.
     """
 
     table_height: float = 0.0
