@@ -130,7 +130,6 @@ def _print_headline(ctx) -> None:
     import json
 
     from splattwin.console import console
-
     from splattwin.wording import plural
 
     con = console()
