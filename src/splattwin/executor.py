@@ -47,6 +47,10 @@ log = logging.getLogger(__name__)
 
 EXECUTORS = ("local", "ray")
 ADDRESS_ENV = "SPLATTWIN_RAY_ADDRESS"
+# bounds of the count options: a local pool starts up to --workers processes at once, and a task whose
+# worker keeps dying is re-run --max-retries times
+MAX_WORKERS = 1024
+MAX_RETRIES = 100
 
 
 @dataclass
@@ -62,9 +66,9 @@ class ExecutorOptions:
                                      "HOST:6379 or ray://HOST:10001; implies --executor ray (none: "
                                      f"${ADDRESS_ENV}). Inputs and outputs must be on a filesystem every node "
                                      "mounts at the same path", aliases=("ray-address",), hashed=False)
-    max_retries: int = option(3, "times a task is run again after its worker process died (killed, out of memory, "
-                              "node lost); a task that raises is not retried", aliases=("max-retries",), hashed=False)
-    workers: int | None = option(None, "local: processes (none: as many tasks as fit the CPU count); ray without an "
+    max_retries: int = option(3, f"times a task is run again after its worker process died (killed, out of memory, "
+                              "node lost; at most {MAX_RETRIES}); a task that raises is not retried", aliases=("max-retries",), hashed=False)
+    workers: int | None = option(None, f"local: processes (at most {MAX_WORKERS}; none: as many tasks as fit the CPU count); ray without an "
                                  "address: CPUs of the local Ray instance (none: all)", aliases=("workers",),
                                  hashed=False)
 
@@ -73,10 +77,10 @@ class ExecutorOptions:
         "local"; Ray without an address: a local Ray instance."""
         if self.executor is not None and self.executor not in EXECUTORS:
             raise InputError(f"unknown executor {self.executor!r} (choose from {', '.join(EXECUTORS)})")
-        if self.max_retries < 0:
-            raise InputError(f"--max-retries must be >= 0, got {self.max_retries}")
-        if self.workers is not None and self.workers < 1:
-            raise InputError(f"--workers must be >= 1, got {self.workers}")
+        if not 0 <= self.max_retries <= MAX_RETRIES:
+            raise InputError(f"--max-retries must be in [0, {MAX_RETRIES}], got {self.max_retries}")
+        if self.workers is not None and not 1 <= self.workers <= MAX_WORKERS:
+            raise InputError(f"--workers must be in [1, {MAX_WORKERS}], got {self.workers}")
         env = os.environ.get(ADDRESS_ENV) or None
         if self.executor == "local":
             if self.ray_address:

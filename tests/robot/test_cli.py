@@ -117,3 +117,68 @@ def test_user_robot_mjcf_runs_a_pick_and_place(gt_twin_default: Path, tmp_path: 
     # a wrong TCP site name is bad input
     assert main(["plan", str(gt_twin_default), "--task", str(task), "--robot-mjcf", str(arm),
                  "--out", str(tmp_path / "o2"), "--no-render"]) == 2
+
+
+def test_plan_keeps_only_this_runs_outputs(gt_twin_small: Path, tmp_path: Path, capsys):
+    """A run replaces the earlier run's outputs: none of its per-step files, frames or extra trials stay
+    beside the new ones; files of other names, and what a link points to, are left alone; a bad task
+    leaves the earlier outputs as they were."""
+    from splattwin.robot.options import RobotOptions
+    from splattwin.robot.stage import RobotInputs, run
+
+    out = tmp_path / "o"
+    stale = [out / "segments" / "step2_transit.json", out / "segments" / "step1_approach_retry1.json",
+             out / "frames" / "frame_005_step3_grasp.png", out / "frames" / "overview.png",
+             out / "trials" / "4.json", out / "trials" / "4.rollout.npz",
+             out / "trials" / "1.rollout.npz",        # trial 1 re-runs without recording: not its rollout
+             out / "trials" / "1.json"]               # (another key: re-run)
+    kept = [out / "segments" / "notes.txt", out / "trials" / "README.md", out / "keep" / "step5_lift.json",
+            out / "keep" / "frame_001_start.png"]
+    for p in stale + kept:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text("{}")
+    link = out / "segments" / "step7_lift.json"
+    link.symlink_to(out / "keep" / "step5_lift.json")
+    (out / "frames" / "sub").symlink_to(out / "keep", target_is_directory=True)
+    task = tmp_path / "one.yaml"
+    task.write_text("- pick: yellow_cube\n- place_in: {center: [0.1, -0.05, 0.0], size: 0.1}\n")
+    assert main(["plan", str(gt_twin_small), "--task", str(task), "--out", str(out), "--no-render",
+                 "--trials", "1"]) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert len(res["nominal"]["steps"]) == 1 and res["trials"]["trials"] == 1
+    assert [p for p in stale if p.exists()] == [out / "trials" / "1.json"]
+    assert json.loads((out / "trials" / "1.json").read_text())["seed"] == 1      # rewritten by this run
+    assert all(p.is_file() for p in kept) and not link.is_symlink() and (out / "frames" / "sub").is_symlink()
+    segs = sorted(p.name for p in (out / "segments").iterdir())
+    assert segs and all(n.startswith("step1_") for n in segs if n != "notes.txt")
+    # a task refused before planning leaves the finished run's outputs as they were
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("- pick: purple_unicorn\n- place_on: blue_box\n")
+    assert main(["plan", str(gt_twin_small), "--task", str(bad), "--out", str(out), "--no-render"]) == 2
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    # the pipeline records the error instead: its results.json stands alone
+    r = run(RobotInputs(gt_twin_small, out), RobotOptions(task=str(bad), render=False), progress=False,
+            record_errors=True)
+    assert r.error and "purple_unicorn" in json.loads(r.results.read_text())["error"]
+    assert not list((out / "segments").glob("step*")) and not list((out / "trials").glob("*.json"))
+    assert not (out / "trajectory.json").exists() and not (out / "rollout.npz").exists()
+    capsys.readouterr()
+
+
+def test_plan_count_options_are_bounded(gt_twin_small: Path, tmp_path: Path, capsys):
+    """--trials 10**12 grew memory without bound: counts beyond the documented limits are bad input."""
+    from splattwin.cluster.options import SweepOptions
+    from splattwin.errors import InputError
+    from splattwin.executor import MAX_RETRIES, MAX_WORKERS
+    from splattwin.robot.options import MAX_TRIALS, RobotOptions
+
+    out = tmp_path / "o"
+    for flag, n in (("--trials", 10 ** 12), ("--trials", MAX_TRIALS + 1), ("--cluster.workers", MAX_WORKERS + 1),
+                    ("--cluster.max-retries", MAX_RETRIES + 1)):
+        assert main(["plan", str(gt_twin_small), flag, str(n), "--out", str(out), "--no-render"]) == 2
+        assert f"{flag.removeprefix('--cluster.')}" in capsys.readouterr().err
+    assert not out.exists()
+    RobotOptions(trials=MAX_TRIALS).validate()
+    with pytest.raises(InputError, match="--trials"):
+        SweepOptions(trials=MAX_TRIALS + 1).validate()

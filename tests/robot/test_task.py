@@ -88,3 +88,28 @@ def test_unreachable_pick_found_by_ik(tmp_path: Path, gt_twin_small: Path, panda
     t = load_task(None, m)
     with pytest.raises(InputError, match=r"step 1: object 'blue_box'.*no IK solution"):
         validate_task(t, m, gt_twin_small, BasePose(z=-1.0).matrix(), robot=panda)
+
+
+@pytest.mark.parametrize("size", ["1e400", ".inf", "[0.1, .nan]"])
+def test_region_size_must_be_finite(tmp_path: Path, gt_twin_small: Path, size):
+    """An infinite region contains every place: it would make any place a success."""
+    path = _write(tmp_path, f"- pick: yellow_cube\n- place_in: {{center: [0.1, 0.0], size: {size}}}\n")
+    with pytest.raises(InputError, match="finite") as e:
+        load_task(path, Manifest.load(gt_twin_small))
+    assert e.value.path == path
+
+
+def test_region_larger_than_the_table_is_refused(tmp_path: Path, gt_twin_small: Path):
+    m = Manifest.load(gt_twin_small)
+    x0, x1, y0, y1 = m.background.table_extent
+    base = BasePose().matrix()
+    for size in ("1e6", f"{x1 - x0 + 0.01}", f"[0.1, {y1 - y0 + 0.01}]"):
+        path = _write(tmp_path, f"- pick: yellow_cube\n- place_in: {{center: [0.1, 0.0], size: {size}}}\n")
+        t = load_task(path, m)
+        with pytest.raises(InputError, match="larger than the table") as e:
+            validate_task(t, m, gt_twin_small, base)
+        assert e.value.path == path
+    # the whole table is still a region
+    t = load_task(_write(tmp_path, f"- pick: yellow_cube\n- place_in: {{center: [0.1, 0.0], "
+                                   f"size: [{x1 - x0}, {y1 - y0}]}}\n"), m)
+    validate_task(t, m, gt_twin_small, base)

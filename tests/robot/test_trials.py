@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from splattwin.robot.trials import (TrialSpec, YAW_LEVER, default_sigma_yaw, load_finished, perturb_poses, run_trials,
-                                    wilson_interval)
+from splattwin.robot.trials import (TrialSpec, YAW_LEVER, default_sigma_yaw, load_finished, perturb_poses, rollout_path,
+                                    run_trials, trial_key, wilson_interval)
 
 
 def test_wilson_interval_reference_values():
@@ -78,3 +78,16 @@ def test_trials_in_process_pool_resume_after_kill(gt_twin_default: Path, tmp_pat
     moved = {**stored, "key": {**stored["key"], "twin": str(other.resolve())}}
     (tmp_path / "moved.json").write_text(json.dumps(moved))
     assert load_finished(tmp_path / "moved.json", replace(spec, twin_dir=str(other), sigma=0.005, seed=1)) is None
+
+
+def test_resume_with_rollouts_needs_the_results_own_rollout(gt_twin_small: Path, tmp_path: Path):
+    """A rollout file beside a result that does not name it is another run's: not a finished recorded trial."""
+    spec = TrialSpec(str(gt_twin_small), None, sigma=0.005, seed=1)
+    p = tmp_path / "1.json"
+    d = {"success": True, "collisions": 0, "steps": [], "key": trial_key(spec)}
+    p.write_text(json.dumps(d))
+    rollout_path(p).write_bytes(b"an earlier run's rollout")
+    assert load_finished(p, spec) is not None
+    assert load_finished(p, spec, rollouts=True) is None
+    p.write_text(json.dumps({**d, "rollout": rollout_path(p).name}))
+    assert load_finished(p, spec, rollouts=True) is not None

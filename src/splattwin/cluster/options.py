@@ -10,6 +10,7 @@ from pathlib import Path
 from splattwin.errors import InputError
 from splattwin.executor import ExecutorOptions
 from splattwin.options import option
+from splattwin.robot.options import MAX_TRIALS
 
 
 @dataclass
@@ -37,8 +38,8 @@ class SweepOptions:
     cluster: ExecutorOptions = option(factory=ExecutorOptions, help="where the sweep's tasks run", hashed=False)
 
     def validate(self) -> None:
-        if self.trials < 1:
-            raise InputError(f"--trials must be >= 1, got {self.trials}")
+        if not 1 <= self.trials <= MAX_TRIALS:   # the robot stage's bound, per cell
+            raise InputError(f"--trials must be in [1, {MAX_TRIALS}], got {self.trials}")
 
 
 @dataclass

@@ -347,8 +347,10 @@ def run_sweep(spec: SweepSpec, out: str | Path, executor: Executor, progress: bo
     spec = replace(spec, twin=twin)
     if not (twin / "twin.json").is_file():
         raise InputError("not a twin folder (no twin.json)", twin)
-    if spec.trials < 1:
-        raise InputError(f"--trials must be >= 1, got {spec.trials}")
+    from splattwin.robot.options import MAX_TRIALS
+
+    if not 1 <= spec.trials <= MAX_TRIALS:
+        raise InputError(f"--trials must be in [1, {MAX_TRIALS}], got {spec.trials}")
     man = Manifest.load(twin)
     from splattwin.robot.task import load_task
 

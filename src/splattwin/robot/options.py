@@ -11,6 +11,9 @@ from splattwin.executor import ExecutorOptions
 from splattwin.options import option
 
 IN_HAND = ("sensed", "planned")
+# --trials at most: 50x the largest run we document (2000 on a Ray cluster); each trial's result is kept
+# in memory and in results.json, so an unbounded count only grows memory until the machine gives out
+MAX_TRIALS = 10_000
 
 
 @dataclass
@@ -21,7 +24,8 @@ class RobotOptions:
     task: str | None = option(None, "task YAML ('default': the paper's three steps: blue box onto the cardboard "
                               "box, yellow cube onto the blue box, toy hammer into the target frame)", path=True,
                               build_alias="task")
-    trials: int = option(0, "extra trials with perturbed object poses", build_alias="trials")
+    trials: int = option(0, f"extra trials with perturbed object poses (at most {MAX_TRIALS})",
+                         build_alias="trials")
     sigma: float = option(0.005, "object pose error of the trials: per-axis standard deviation of the x and y "
                           "position error (the robot plans with the twin's poses)", unit="m", build_alias="sigma")
     sigma_yaw: float | None = option(None, "standard deviation of the objects' yaw error in the trials (none: "
@@ -56,8 +60,8 @@ class RobotOptions:
                           "sigmas, so a killed run continues", hashed=False)
 
     def validate(self) -> None:
-        if self.trials < 0:
-            raise InputError(f"--trials must be >= 0, got {self.trials}")
+        if not 0 <= self.trials <= MAX_TRIALS:
+            raise InputError(f"--trials must be in [0, {MAX_TRIALS}], got {self.trials}")
         if not 0 <= self.sigma <= 0.05:
             raise InputError(f"--sigma must be in [0, 0.05] metres, got {self.sigma}")
         if self.sigma_yaw is not None and not 0 <= self.sigma_yaw <= 0.5:

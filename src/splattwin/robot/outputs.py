@@ -13,15 +13,67 @@
     playback.npz                 the robot's visual geometry posed along the rollout, for `splattwin view`
                                  (`track.RobotTrack`; this module is its only writer)
     frames/frame_*.png           rendered frames (when an offscreen GL context exists)
+
+OUT holds one run: once its task is valid, a run first removes every file of these names left by an
+earlier run (`remove_previous`; results.json first, trials/<i> beyond this run's N), then writes its
+own, results.json last. A killed run therefore leaves no results.json and only files of its own.
 """
 
 from __future__ import annotations
 
+import logging
 import math
+import os
+import re
 from dataclasses import asdict
 from pathlib import Path
 
 from splattwin import io
+
+log = logging.getLogger(__name__)
+
+# The names a run writes (module docstring); `remove_previous` removes nothing else
+TOP_FILES = ("results.json", "trajectory.json", "trajectory.csv", "trajectory.ros2.yaml", "rollout.npz",
+             "playback.npz")
+_OWN = {"segments": re.compile(r"^step\d+_[A-Za-z0-9_]+\.json$"),
+        "frames": re.compile(r"^(frame_\d+_[A-Za-z0-9_]+|overview)\.png$")}
+_TRIAL = re.compile(r"^(?P<i>\d+)(\.rollout\.npz|\.json)$")
+
+
+def remove_previous(out: str | Path, keep_trials: int = 0) -> list[Path]:
+    """Remove an earlier run's outputs from OUT: the files named in the module docstring, and of
+    trials/ those of trials beyond `keep_trials` (the first keep_trials stay: the run resumes or
+    rewrites them). Removes only plain files and links of our names (a link itself, never what it
+    points to), never descends into a linked folder. results.json goes first: from then on OUT
+    claims no finished run until this run writes its own. Returns what was removed."""
+    out = Path(out)
+    removed: list[Path] = []
+
+    def unlink(p: Path) -> None:
+        try:
+            if p.is_symlink() or p.is_file():
+                p.unlink()
+                removed.append(p)
+        except FileNotFoundError:
+            pass
+
+    for name in TOP_FILES:
+        unlink(out / name)
+    for sub, pattern in {**_OWN, "trials": _TRIAL}.items():
+        d = out / sub
+        if d.is_symlink() or not d.is_dir():
+            continue
+        with os.scandir(d) as it:
+            for e in it:
+                m = pattern.match(e.name)
+                if m is None or e.is_dir(follow_symlinks=False):
+                    continue
+                if sub == "trials" and int(m.group("i")) <= keep_trials:
+                    continue
+                unlink(d / e.name)
+    if removed:
+        log.info("removed %d file(s) of an earlier run from %s", len(removed), out)
+    return removed
 
 
 def write_outputs(out: str | Path, spec, result, trials: dict | None, render_note: str = "",

@@ -38,8 +38,7 @@ def run(inputs: RobotInputs, options: RobotOptions, *, progress: bool = True,
 
     record_errors: an InputError of the task on this twin (e.g. an object whose geometry failed) is
     written to results.json and returned as `error` (the pipeline: the report says why) instead of raised."""
-    from splattwin import io
-    from splattwin.robot.outputs import write_outputs
+    from splattwin.robot.outputs import remove_previous, write_outputs
     from splattwin.robot.trials import TrialSpec, run_once, run_trials
     from splattwin.twin.manifest import Manifest
     from splattwin.twin.mjcf import check_scaled
@@ -51,18 +50,19 @@ def run(inputs: RobotInputs, options: RobotOptions, *, progress: bool = True,
     except InputError as e:
         if not record_errors:
             raise
-        path = io.write_json(out / "results.json", {"error": str(e), "task": options.task})
-        return RobotResult(results=path, success=False, error=str(e))
+        return _error_result(out, e, options)
     spec = TrialSpec.from_options(inputs.twin_dir, options)
     t0 = time.perf_counter()
     try:
+        # the earlier run's outputs go once the task is valid (a bad task leaves them), before this run
+        # writes any: OUT then holds only this run's files (trials 1..N stay: resumed or rewritten)
         result, note, frames = run_once(spec, frame_dir=out / "frames" if options.render else None,
-                                        keep_trajectories=True)
+                                        keep_trajectories=True,
+                                        on_valid=lambda: remove_previous(out, keep_trials=options.trials))
     except InputError as e:
         if not record_errors:
             raise
-        path = io.write_json(out / "results.json", {"error": str(e), "task": options.task})
-        return RobotResult(results=path, success=False, error=str(e))
+        return _error_result(out, e, options)
     # trials land in OUT/trials/<i>.json: a killed run resumes them
     trials = None
     if options.trials > 0:
@@ -78,3 +78,13 @@ def run(inputs: RobotInputs, options: RobotOptions, *, progress: bool = True,
                           frames=frames, wall_s=time.perf_counter() - t0)
     return RobotResult(results=paths["results"], success=bool(result.success),
                        details={"run": result, "trials": trials, "paths": paths})
+
+
+def _error_result(out: Path, e: InputError, options: RobotOptions) -> RobotResult:
+    """results.json saying why the task could not run, alone in OUT (no earlier run's files beside it)."""
+    from splattwin import io
+    from splattwin.robot.outputs import remove_previous
+
+    remove_previous(out)
+    path = io.write_json(out / "results.json", {"error": str(e), "task": options.task})
+    return RobotResult(results=path, success=False, error=str(e))

@@ -9,8 +9,11 @@ place, either in the same item or the next one:
     - place_in: {center: [0.05, 0.03, 0.0], size: 0.24}    # square region on the table (m, twin frame)
     - place_in: target_frame              # the named region from the twin (config.target_frame)
 
+A region's size is one side (square) or [sx, sy], metres, finite and > 0, each side at most the table's
+(its extent in twin.json); its centre must be on the table.
+
 Validation raises InputError naming the task file for: unknown or unusable objects, a place without a
-pick, an unscaled twin, a goal off the table or out of the robot's reach. Reach is checked in two stages:
+pick, an unscaled twin, a goal off the table, a region larger than the table, or out of the robot's reach. Reach is checked in two stages:
 the horizontal distance from the base (cheap, [REACH_MIN, REACH_MAX]) and, given the robot, inverse
 kinematics (mink) of a grasp pose at the object and of the place pose and the pre-place pose above it
 (top-down at 8 yaws, or a horizontal approach pointing away from the base).
@@ -91,8 +94,10 @@ def _region(v, where: Path, manifest: Manifest | None) -> Region:
         raise InputError(f"place_in: bad numbers: {e}", where) from e
     if len(c) == 2:
         c = np.array([c[0], c[1], 0.0])
-    if len(c) != 3 or len(s) not in (1, 2) or np.any(s <= 0) or not np.all(np.isfinite(c)):
-        raise InputError(f"place_in: center must be [x, y(, z)] and size > 0, got {v}", where)
+    # finite size too: an infinite region contains every position, so any place would be judged a success
+    if (len(c) != 3 or len(s) not in (1, 2) or not np.all(np.isfinite(c)) or not np.all(np.isfinite(s))
+            or np.any(s <= 0)):
+        raise InputError(f"place_in: center must be [x, y(, z)] and size finite and > 0, got {v}", where)
     return Region(center=c, size=np.broadcast_to(s, (2,)).astype(float).copy(), name=name)
 
 
@@ -209,6 +214,13 @@ def validate_task(task: Task, manifest: Manifest, twin_dir: str | Path, T_world_
             if not (x0 <= c[0] <= x1 and y0 <= c[1] <= y1):
                 raise InputError(f"step {k}: goal region centre {np.round(c, 3).tolist()} is off the table "
                                  f"(extent {manifest.background.table_extent})", where)
+            # a region wider than the table is no goal: every place on the table would be inside it
+            sx, sy = s.place_in.size
+            if sx > x1 - x0 or sy > y1 - y0:
+                raise InputError(f"step {k}: goal region {s.place_in.name!r} of size "
+                                 f"{np.round(s.place_in.size, 3).tolist()} m is larger than the table "
+                                 f"({x1 - x0:.3f} x {y1 - y0:.3f} m, extent {manifest.background.table_extent})",
+                                 where)
             reach(c, f"step {k}: goal region {s.place_in.name!r}")
         elif s.place_on is not None:
             reach(names[s.place_on].pose[:3, 3], f"step {k}: goal object {s.place_on!r}")

@@ -94,9 +94,12 @@ class TrialSpec:
         return RobotModel.from_mjcf(self.robot_mjcf, tcp_site=self.tcp_site) if self.robot_mjcf else RobotModel.panda()
 
 
-def run_once(spec: TrialSpec, frame_dir: str | Path | None = None, keep_trajectories: bool = False):
+def run_once(spec: TrialSpec, frame_dir: str | Path | None = None, keep_trajectories: bool = False,
+             on_valid=None):
     """Build the world (perturbed when sigma > 0), validate the task, execute it. Returns (RunResult, the
-    frame recorder's note, frame paths); keep_trajectories: the result keeps its trajectories and rollout."""
+    frame recorder's note, frame paths); keep_trajectories: the result keeps its trajectories and rollout.
+    on_valid: called once the task is valid, before any frame is written (the stage clears the earlier
+    run's outputs there, so a bad task leaves them as they were)."""
     from splattwin.robot.execute import Executor
     from splattwin.robot.task import load_task, validate_task
     from splattwin.robot.world import build_world
@@ -106,6 +109,8 @@ def run_once(spec: TrialSpec, frame_dir: str | Path | None = None, keep_trajecto
     task = load_task(spec.task_path, manifest)
     robot = spec.robot_model()
     validate_task(task, manifest, spec.twin_dir, spec.base.matrix(), robot=robot)
+    if on_valid is not None:
+        on_valid()
     nominal = {o.name: o.pose for o in manifest.objects if o.usable}
     poses = perturb_poses(nominal, spec.sigma, np.random.default_rng(spec.seed), spec.sigma_yaw) if spec.sigma > 0 else None
     world = build_world(spec.twin_dir, manifest, robot, spec.base, poses=poses, visual=frame_dir is not None)
@@ -169,7 +174,9 @@ def load_finished(path: Path, spec: TrialSpec, rollouts: bool = False) -> dict |
         return None
     if not (isinstance(d, dict) and d.get("key") == json.loads(json.dumps(trial_key(spec)))):
         return None
-    if rollouts and "error" not in d and not rollout_path(path).is_file():
+    # the result must name its rollout: a rollout file beside a result that does not is another run's
+    if rollouts and "error" not in d and (d.get("rollout") != rollout_path(path).name
+                                          or not rollout_path(path).is_file()):
         return None
     return d
 
@@ -193,6 +200,8 @@ def run_trial_job(spec: TrialSpec, path: str | None, keep_rollout: bool = False)
         if r is not None and r.rollout is not None and len(r.rollout):
             # the rollout first (atomic), the result that marks the trial finished last
             d["rollout"] = r.rollout.save(rollout_path(path)).name
+        else:  # an earlier run's rollout of this trial is not this result's: gone before the result lands
+            rollout_path(path).unlink(missing_ok=True)
         d["key"] = trial_key(spec)
         io.write_json(path, d)
     return d
