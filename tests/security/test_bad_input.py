@@ -81,7 +81,8 @@ def gt_twin(tmp_path_factory, scene_small) -> Path:
     return out
 
 
-@pytest.mark.parametrize("case", ["non_mesh", "json_as_mesh", "text_pose", "nan_pose", "bad_extent"])
+@pytest.mark.parametrize("case", ["non_mesh", "json_as_mesh", "text_pose", "nan_pose", "bad_extent", "huge_table",
+                                  "flat_table"])
 def test_malformed_twin(gt_twin, tmp_path, cli, case):
     twin = tmp_path / "t"
     shutil.copytree(gt_twin, twin)
@@ -100,6 +101,12 @@ def test_malformed_twin(gt_twin, tmp_path, cli, case):
     elif case == "nan_pose":
         o["T_world_obj"][0][3] = float("nan")
         needles += ["T_world_obj"]
+    elif case == "huge_table":  # was exported as an MJCF MuJoCo cannot load (size="1e+300 ..."), exit 0
+        d["background"]["table_extent"] = [-1e300, 1e300, -1e300, 1e300]
+        needles += ["table_extent"]
+    elif case == "flat_table":  # a zero MJCF box size
+        d["background"]["table_thickness"] = 0.0
+        needles += ["table_thickness"]
     else:
         o["bbox_extent"] = [0.1, -1, 0.1]
         needles += ["bbox_extent"]

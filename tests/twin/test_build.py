@@ -169,3 +169,26 @@ def test_export_from_relative_folder_records_relative_paths(twin, monkeypatch):
     m = Manifest.load(out)
     assert m.exports["mjcf"] == "export/scene.xml"
     assert m.exports["urdf"] == "export/scene.urdf"
+
+
+def test_export_prints_and_records_only_files_on_disk(twin, tmp_path, capsys):
+    # twin.json listed moveit and gltf after `export --formats mjcf,urdf` although their files were gone
+    import shutil
+
+    out = tmp_path / "t"
+    shutil.copytree(twin[0], out)
+    assert {"moveit", "gltf"} <= set(Manifest.load(out).exports)   # built with them (earlier tests add more)
+    shutil.rmtree(out / "export")
+    capsys.readouterr()
+    assert main(["export", str(out), "--formats", "mjcf,urdf"]) == 0
+    printed = capsys.readouterr().out
+    assert "scene.xml" in printed and "scene.urdf" in printed
+    assert "moveit" not in printed and "glb" not in printed
+    assert Manifest.load(out).exports == {"mjcf": "export/scene.xml", "urdf": "export/scene.urdf"}
+    # an earlier export still on disk stays recorded, but only this run's files are printed
+    assert main(["export", str(out), "--formats", "gltf"]) == 0
+    printed = capsys.readouterr().out
+    assert "scene.glb" in printed and "scene.urdf" not in printed and "scene.xml" not in printed
+    exports = Manifest.load(out).exports
+    assert exports == {"mjcf": "export/scene.xml", "urdf": "export/scene.urdf", "gltf": "export/scene.glb"}
+    assert all((out / rel).is_file() for rel in exports.values())

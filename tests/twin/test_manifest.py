@@ -48,3 +48,86 @@ def test_frame_records_the_input_world_and_is_checked(tmp_path):
     (tmp_path / "twin.json").write_text(json.dumps(d))
     with pytest.raises(InputError, match="frame T_twin_input must be a finite 4x4"):
         Manifest.load(tmp_path)
+
+
+def _saved(tmp_path, edit):
+    """A valid twin.json in tmp_path, edited as raw JSON (as a received file would be)."""
+    T = np.eye(4)
+    T[:3, 3] = [0.1, 0.2, 0.03]
+    Manifest(frame=TwinFrame("marker", True), objects=[ObjectEntry("box", 1, T_world_obj=T.tolist(), mass=0.2,
+                                                                   bbox_extent=[0.1, 0.1, 0.05])]).save(tmp_path)
+    d = json.loads((tmp_path / "twin.json").read_text())
+    edit(d)
+    (tmp_path / "twin.json").write_text(json.dumps(d))
+    return tmp_path
+
+
+def _set(path, value):
+    def edit(d):
+        *keys, last = path
+        for k in keys:
+            d = d[k]
+        d[last] = value
+    return edit
+
+
+@pytest.mark.parametrize("path, value, needle", [
+    (("background", "table_extent"), [-1e300, 1e300, -1e300, 1e300], "table_extent"),   # MJCF MuJoCo cannot load
+    (("background", "table_extent"), [0.5, 0.5, -0.4, 0.4], "table_extent"),           # zero-width table box
+    (("background", "table_extent"), [0.5, -0.5, -0.4, 0.4], "table_extent"),
+    (("background", "table_thickness"), 0.0, "table_thickness"),
+    (("background", "table_thickness"), 1e30, "table_thickness"),
+    (("background", "table_height"), -1e9, "table_height"),
+    (("objects", 0, "bbox_extent"), [0.1, 1e12, 0.1], "bbox_extent"),
+    (("objects", 0, "mass"), 1e300, "mass"),
+    (("objects", 0, "volume"), -1.0, "volume"),
+    (("objects", 0, "T_world_obj"), [[1, 0, 0, 1e300], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "T_world_obj"),
+    (("objects", 0, "T_world_obj"), [[2, 0, 0, 0], [0, 2, 0, 0], [0, 0, 2, 0], [0, 0, 0, 1]], "rigid"),
+    (("objects", 0, "T_world_obj"), [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 5, 1]], "rigid"),
+    (("frame", "nominal_metre"), 1e300, "nominal_metre"),
+    (("frame", "nominal_metre"), 0.0, "nominal_metre"),
+    (("frame", "T_twin_input"), [[1e300, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "T_twin_input"),
+    (("exports",), {"mjcf": 5}, "export 'mjcf'"),
+])
+def test_absurd_numbers_are_refused_naming_twin_json(tmp_path, path, value, needle):
+    twin = _saved(tmp_path, _set(path, value))
+    with pytest.raises(InputError, match=needle) as e:
+        Manifest.load(twin)
+    assert e.value.path == twin / "twin.json"
+
+
+def test_unscaled_twin_sizes_are_within_bounds(tmp_path):
+    # an unscaled twin (SfM units) can be hundreds of units across: the bounds must not refuse it
+    def edit(d):
+        d["frame"] = {"source": "unscaled", "scaled": False, "nominal_metre": 350.0}
+        d["background"]["table_extent"] = [-800.0, 900.0, -650.0, 700.0]
+        d["background"]["table_height"] = -120.0
+        d["background"]["table_thickness"] = 10.5
+        o = d["objects"][0]
+        o["T_world_obj"][0][3] = 420.0
+        o["bbox_extent"] = [70.0, 55.0, 40.0]
+        o["volume"] = 154000.0
+    m = Manifest.load(_saved(tmp_path, edit))
+    assert m.background.table_extent[1] == 900.0 and m.frame.nominal_metre == 350.0
+
+
+@pytest.mark.parametrize("key", ["splats", "labels", "collision_mesh", "export"])
+def test_escaping_path_error_names_the_twin_folder(tmp_path, key):
+    def edit(d):
+        if key == "collision_mesh":
+            d["objects"][0]["collision_mesh"] = "../../etc/passwd"
+        elif key == "export":
+            d["exports"]["mjcf"] = "../../etc/passwd"
+        else:
+            d[key] = "../../etc/passwd"
+    (tmp_path / "twin").mkdir()
+    twin = _saved(tmp_path / "twin", edit)
+    with pytest.raises(InputError, match="leads outside") as e:
+        Manifest.load(twin)
+    assert e.value.path == twin / "twin.json"
+    assert f"its folder {twin} " in str(e.value) and "nonexistent" not in str(e.value)
+    # without a folder (a manifest from a dict), the folder of the file named
+    d = json.loads((twin / "twin.json").read_text())
+    with pytest.raises(InputError, match=f"outside its folder {tmp_path}") as e:
+        Manifest.from_dict(d, tmp_path / "twin.json")
+    assert "nonexistent" not in str(e.value)

@@ -167,14 +167,29 @@ def _exporter(fmt: str):
 
 def export_twin(twin_dir: str | Path, manifest: Manifest | None = None, formats=FORMATS) -> Manifest:
     """Run the exporters on a twin folder and record their outputs and timings in the manifest (saved).
-
-    Each exporter writes its files atomically (temporary name, then rename), so a re-export replaces
-    files whole or not at all. Unknown formats raise InputError."""
-    from splattwin.errors import InputError
-
+    See `write_exports`; returns the manifest."""
     twin_dir = Path(twin_dir)
     manifest = manifest or Manifest.load(twin_dir)
+    write_exports(twin_dir, manifest, formats)
+    return manifest
+
+
+def write_exports(twin_dir: str | Path, manifest: Manifest, formats=FORMATS) -> dict[str, str]:
+    """Run the exporters of `formats`; returns {format: path relative to the twin} of those written now.
+
+    `manifest.exports` (saved) then records what is on disk: the formats written now, plus exports of
+    earlier runs whose file is still there (an export only reads the twin, so they still describe it);
+    an earlier export whose file is gone is dropped, so twin.json never lists a missing file.
+    Each exporter writes its files atomically (temporary name, then rename), so a re-export replaces
+    files whole or not at all. Unknown formats raise InputError."""
+    twin_dir = Path(twin_dir)
     check_formats(manifest.frame, formats, twin_dir / "twin.json")
+    # drop before exporting: an exporter may save the manifest itself (export_mjcf does)
+    for fmt, rel in list(manifest.exports.items()):
+        if not (twin_dir / rel).is_file():   # rel was confined to the twin folder when loaded
+            log.info("export %s (%s) no longer exists; dropped from twin.json", fmt, rel)
+            del manifest.exports[fmt]
+    written: dict[str, str] = {}
     for fmt in formats:
         fn = _exporter(fmt)
         if fn is None:
@@ -182,10 +197,10 @@ def export_twin(twin_dir: str | Path, manifest: Manifest | None = None, formats=
             continue
         t0 = time.perf_counter()
         path = Path(fn(twin_dir, manifest))
-        manifest.exports[fmt] = path.resolve().relative_to(twin_dir.resolve()).as_posix()
+        written[fmt] = manifest.exports[fmt] = path.resolve().relative_to(twin_dir.resolve()).as_posix()
         manifest.timings[f"export.{fmt}"] = round(time.perf_counter() - t0, 4)
     manifest.save(twin_dir)
-    return manifest
+    return written
 
 
 def _capture_cameras(out_dir: Path, cameras_path) -> list | None:

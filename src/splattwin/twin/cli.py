@@ -14,9 +14,10 @@ def _export(args: argparse.Namespace) -> int:
     """(Re-)export a twin folder for simulators and planners.
 
     Writes the twin's exports: MJCF (MuJoCo), URDF per object and scene, MoveIt 2 planning scene (.scene
-    text + CollisionObject YAML), glTF binary. Files are replaced atomically."""
+    text + CollisionObject YAML), glTF binary. Files are replaced atomically. Prints the files written;
+    twin.json keeps earlier exports only while their files exist."""
     from splattwin.lock import output_lock
-    from splattwin.twin.build import export_twin
+    from splattwin.twin.build import write_exports
     from splattwin.twin.manifest import Manifest
 
     twin = Path(args.twin)
@@ -30,8 +31,8 @@ def _export(args: argparse.Namespace) -> int:
             print("note: the twin is unscaled (SfM units, not metres): its exports are marked so in each file")
         if not formats:
             raise InputError("no export format given; choose from " + ", ".join(FORMATS), "--formats")
-        m = export_twin(twin, manifest, formats)
-    for fmt, path in m.exports.items():
+        written = write_exports(twin, manifest, formats)
+    for fmt, path in written.items():  # only what this run wrote (twin.json may list earlier exports too)
         print(f"{fmt:7s} {twin / path}")
     return 0
 

@@ -7,9 +7,15 @@ in the twin frame.
 
 A twin.json is often received from someone else, so `Manifest.load` checks it before anything uses it:
 object names are valid, unique names (`splattwin.names`), labels are unique positive integers, poses
-are finite 4x4 matrices, sizes and masses finite numbers, and every path is relative and stays inside
-the twin folder once `..` and symbolic links are resolved (`splattwin.paths`). Anything else is an
-InputError naming twin.json (exit 2).
+are rigid 4x4 matrices, every number is finite and within the bounds below, and every path is relative
+and stays inside the twin folder once `..` and symbolic links are resolved (`splattwin.paths`); the
+error names the twin folder. Anything else is an InputError naming twin.json (exit 2).
+
+Bounds (generous for real twins, unscaled ones in SfM units included; they exist so that no absurd
+value reaches an exporter, e.g. a 1e300 m table MuJoCo cannot load): every coordinate and length at
+most MAX_LENGTH in magnitude; the table's sides and thickness at least MIN_LENGTH (MJCF box sizes
+must be positive); volumes at most MAX_LENGTH**3, masses at most MAX_MASS; `exports` maps formats
+to paths.
 """
 
 from __future__ import annotations
@@ -28,6 +34,17 @@ from splattwin.poses.twin_frame import TwinFrame
 
 SCHEMA_VERSION = 1
 MANIFEST_NAME = "twin.json"
+
+# Bounds on the numbers of a twin.json (module docstring). Twin frames are centred on the scene, so even an
+# unscaled twin (SfM units: tens to hundreds of units across) stays far inside 1e6.
+MAX_LENGTH = 1e6          # |coordinate|, extent, table height/thickness, nominal metre (m or frame units)
+MIN_LENGTH = 1e-6         # table sides and thickness: a positive MJCF box size
+MAX_VOLUME = MAX_LENGTH ** 3
+MAX_MASS = 1e12           # kg; an unscaled twin's masses are nominal and may be far from real ones
+# T_twin_input maps the input's world (e.g. a georeferenced SfM model, coordinates ~1e7) to the twin
+# frame: only finiteness and this looser bound
+MAX_INPUT_COORD = 1e12
+RIGID_TOL = 1e-3          # |R^T R - I| and |bottom row - [0 0 0 1]| of an object pose
 
 def unscaled_note(frame: TwinFrame) -> str | None:
     """The line every export of an unscaled twin carries (a comment or metadata), None for a metric twin."""
@@ -116,38 +133,58 @@ class Manifest:
 
     def validate(self, twin_dir: str | Path | None = None, where: str | Path = MANIFEST_NAME) -> None:
         """Check names, labels, numbers and paths (see module docstring); with `twin_dir` the paths are
-        also resolved (symbolic links) and must stay inside it. InputError naming `where`."""
+        also resolved (symbolic links) and must stay inside it, else they are checked as written, against
+        the folder holding `where`. InputError naming `where`."""
         if not isinstance(self.objects, list) or not all(isinstance(o, ObjectEntry) for o in self.objects):
             raise InputError("malformed manifest: objects must be a list of objects", where)
-        if self.frame.T_twin_input is not None:
-            _matrix(self.frame.T_twin_input, (4, 4), where, "frame T_twin_input")
-        if self.frame.up_check is not None and not isinstance(self.frame.up_check, dict):
+        f = self.frame
+        if f.T_twin_input is not None:
+            _matrix(f.T_twin_input, (4, 4), where, "frame T_twin_input", bound=MAX_INPUT_COORD)
+        if f.up_check is not None and not isinstance(f.up_check, dict):
             raise InputError("malformed manifest: frame up_check must be an object", where)
+        if f.nominal_metre is not None:
+            _numbers([f.nominal_metre], 1, where, "frame nominal_metre", low=MIN_LENGTH, high=MAX_LENGTH)
+        if f.scale_uncertainty_rel is not None:
+            _numbers([f.scale_uncertainty_rel], 1, where, "frame scale_uncertainty_rel", low=0.0, high=1e3)
         labels: set[int] = set()
         for o in self.objects:
             object_name(o.name, where)
             if isinstance(o.label, bool) or not isinstance(o.label, int) or o.label < 1 or o.label in labels:
                 raise InputError(f"object {o.name!r}: label {o.label!r} must be a unique integer >= 1", where)
             labels.add(o.label)
-            _matrix(o.T_world_obj, (4, 4), where, f"object {o.name!r} T_world_obj")
-            _numbers(o.bbox_extent, 3, where, f"object {o.name!r} bbox_extent", nonneg=True)
-            for k in ("mass", "volume"):
+            _pose(o.T_world_obj, where, f"object {o.name!r} T_world_obj")
+            _numbers(o.bbox_extent, 3, where, f"object {o.name!r} bbox_extent", low=0.0, high=MAX_LENGTH)
+            for k, high in (("mass", MAX_MASS), ("volume", MAX_VOLUME)):
                 if getattr(o, k) is not None:
-                    _numbers([getattr(o, k)], 1, where, f"object {o.name!r} {k}", nonneg=True)
+                    _numbers([getattr(o, k)], 1, where, f"object {o.name!r} {k}", low=0.0, high=high)
             if not isinstance(o.convex_parts, list):
                 raise InputError(f"object {o.name!r}: convex_parts must be a list of paths", where)
         check_unique([o.name for o in self.objects], where)
         b = self.background
-        _numbers(b.table_extent, 4, where, "background table_extent")
-        _numbers([b.table_height, b.table_thickness], 2, where, "background table_height / table_thickness")
+        x0, x1, y0, y1 = _numbers(b.table_extent, 4, where, "background table_extent", low=-MAX_LENGTH, high=MAX_LENGTH)
+        if not (x1 - x0 >= MIN_LENGTH and y1 - y0 >= MIN_LENGTH):  # MJCF table box half-sizes must be > 0
+            raise InputError(f"background table_extent [xmin, xmax, ymin, ymax] must have xmax - xmin and ymax - ymin "
+                             f">= {MIN_LENGTH:g}, got {str(b.table_extent)[:80]}", where)
+        _numbers([b.table_height], 1, where, "background table_height", low=-MAX_LENGTH, high=MAX_LENGTH)
+        _numbers([b.table_thickness], 1, where, "background table_thickness", low=MIN_LENGTH, high=MAX_LENGTH)
         if not isinstance(b.convex_parts, list):
             raise InputError("background convex_parts must be a list of paths", where)
         for k in ("exports", "config", "versions", "timings"):
             if not isinstance(getattr(self, k), dict):
                 raise InputError(f"malformed manifest: {k} must be an object", where)
-        root = Path(twin_dir) if twin_dir is not None else Path("/nonexistent-twin-root")
-        for what, rel in self.paths():
-            confined(root, rel, where, f"{what} path")
+        for k, v in self.exports.items():
+            if not isinstance(v, str):
+                raise InputError(f"export {k!r} must be a path (text), got {str(v)[:60]!r}", where)
+        if twin_dir is not None:
+            root = Path(twin_dir)
+            for what, rel in self.paths():
+                confined(root, rel, where, f"{what} path")
+        else:
+            # no folder to resolve links in (a manifest from a dict): the paths as written must stay
+            # inside the folder of `where`; the error names that folder, never a made-up one
+            folder = Path(where).parent
+            for what, rel in self.paths():
+                confined_as_written(folder, rel, where, f"{what} path")
 
     def object(self, name: str) -> ObjectEntry:
         for o in self.objects:
@@ -164,7 +201,9 @@ class Manifest:
         return io.write_json(Path(twin_dir) / MANIFEST_NAME, self.to_dict())
 
     @classmethod
-    def from_dict(cls, d: dict, where: str | Path = MANIFEST_NAME) -> "Manifest":
+    def from_dict(cls, d: dict, where: str | Path = MANIFEST_NAME, twin_dir: str | Path | None = None) -> "Manifest":
+        """The manifest in `d` (read from `where`), validated; `twin_dir`: the folder its paths are relative
+        to (resolved, see `validate`)."""
         if not isinstance(d, dict):
             raise InputError("malformed manifest: expected a JSON object", where)
         try:
@@ -178,38 +217,66 @@ class Manifest:
             )
         except TypeError as e:  # unknown / missing keys, or an entry that is not an object
             raise InputError(f"malformed manifest: {e}", where) from e
-        m.validate(None, where)
+        m.validate(twin_dir, where)
         return m
 
     @classmethod
     def load(cls, twin_dir: str | Path) -> "Manifest":
         path = Path(twin_dir) / MANIFEST_NAME
-        m = cls.from_dict(io.read_json(path, missing="no twin manifest here (expected twin.json)"), where=path)
-        m.validate(twin_dir, path)
-        return m
+        return cls.from_dict(io.read_json(path, missing="no twin manifest here (expected twin.json)"), path, twin_dir)
 
 
-def _numbers(v, n: int, where, what: str, nonneg: bool = False) -> np.ndarray:
+def _numbers(v, n: int, where, what: str, low: float = -MAX_LENGTH, high: float = MAX_LENGTH) -> np.ndarray:
+    """`v` as n finite numbers in [low, high], else InputError naming `where`."""
     try:
         if isinstance(v, (str, bytes)):
             raise ValueError("text")
         a = np.asarray(v, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InputError(f"{what} must be {n} number(s), got {str(v)[:60]!r}", where) from None
-    if a.shape != (n,) or not np.all(np.isfinite(a)) or (nonneg and np.any(a < 0)):
-        raise InputError(f"{what} must be {n} finite{' non-negative' if nonneg else ''} number(s), got "
-                         f"{str(v)[:80]}", where)
+    if a.shape != (n,) or not np.all(np.isfinite(a)) or np.any(a < low) or np.any(a > high):
+        raise InputError(f"{what} must be {n} finite number(s) in [{low:g}, {high:g}], got {str(v)[:80]}", where)
     return a
 
 
-def _matrix(v, shape: tuple[int, int], where, what: str) -> np.ndarray:
+def _matrix(v, shape: tuple[int, int], where, what: str, bound: float = MAX_LENGTH) -> np.ndarray:
     try:
         if isinstance(v, (str, bytes)):
             raise ValueError("text")
         a = np.asarray(v, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InputError(f"{what} must be a {shape[0]}x{shape[1]} matrix of numbers, got {str(v)[:60]!r}", where) from None
     if a.shape != shape or not np.all(np.isfinite(a)):
         raise InputError(f"{what} must be a finite {shape[0]}x{shape[1]} matrix, got shape {a.shape}"
                          + ("" if a.shape != shape else " with NaN or infinite values"), where)
+    if np.any(np.abs(a) > bound):
+        raise InputError(f"{what} has a value beyond +-{bound:g}", where)
     return a
+
+
+def _pose(v, where, what: str) -> np.ndarray:
+    """A rigid 4x4 transform (rotation + translation within MAX_LENGTH): exporters turn it into a
+    quaternion, which would silently drop any scale or shear."""
+    T = _matrix(v, (4, 4), where, what)
+    R = T[:3, :3]
+    if (np.abs(R.T @ R - np.eye(3)).max() > RIGID_TOL or np.linalg.det(R) <= 0
+            or np.abs(T[3] - [0, 0, 0, 1]).max() > RIGID_TOL):
+        raise InputError(f"{what} must be a rigid transform (rotation, translation, last row 0 0 0 1)", where)
+    return T
+
+
+def confined_as_written(folder: Path, rel, where, what: str) -> None:
+    """`splattwin.paths.confined` without touching the disk: relative, and no `..` leading above `folder`."""
+    import posixpath
+
+    if not isinstance(rel, str):
+        raise InputError(f"{what} must be a string, got {type(rel).__name__}", where)
+    if not rel or "\x00" in rel:
+        raise InputError(f"{what} {rel[:100]!r} is empty or contains a NUL byte", where)
+    if Path(rel).is_absolute() or rel.startswith("~"):
+        raise InputError(f"{what} {rel[:100]!r} is absolute; paths in this file must be relative to its folder "
+                         f"{folder}", where)
+    norm = posixpath.normpath(rel)
+    if norm == ".." or norm.startswith("../"):
+        raise InputError(f"{what} {rel[:100]!r} leads outside its folder {folder}; refusing to read or write there",
+                         where)
