@@ -17,8 +17,8 @@ from splattwin.poses import PoseOptions, estimate_poses
 from splattwin.poses.table import fit_table_plane
 from splattwin.scene import SceneOptions
 from splattwin.scene.depth_noise import sensor_depth, view_rng
-from splattwin.scene.robot_capture import (R_capture_world, DepthNoise, RobotCaptureOptions, depth_mm, sweep_cameras,
-                                           write_robot_capture)
+from splattwin.scene.robot_capture import (MAX_RANGE_M, R_capture_world, DepthNoise, RobotCaptureOptions, depth_mm,
+                                           sweep_cameras, write_robot_capture)
 from splattwin.semantics.masks import load_masks, scene_objects
 
 W, H = 96, 72
@@ -65,7 +65,7 @@ def test_bop_capture_files(bop_capture: Path):
     sensed = sensor_depth(view["depth"], float(K[0, 0]), DepthNoise(), view_rng(0, 3))
     np.testing.assert_array_equal(raw, depth_mm(sensed))
     d = load_depth(ds.frames[3].depth_path, ds.depth_scale)
-    hit = np.isfinite(sensed)
+    hit = np.isfinite(sensed) & (sensed <= MAX_RANGE_M)
     assert np.abs(d[hit] - sensed[hit]).max() <= 0.0005 + 1e-6                 # mm rounding only
     assert np.all(d[~hit] == 0) and (~hit & np.isfinite(view["depth"])).any()  # holes where the truth has depth
     # per-instance BOP masks carry the scene's names and labels and equal the visible GT regions
@@ -82,6 +82,41 @@ def test_bop_capture_files(bop_capture: Path):
 def _table_normal_deg(res) -> float:
     plane = fit_table_plane(res.points_xyz, np.array([c.center for c in res.cameras]))
     return math.degrees(math.acos(np.clip(plane.normal[2], -1, 1)))
+
+
+def test_duplicate_object_names_blame_object_names_json(bop_capture: Path, tmp_path: Path):
+    """Two obj_ids named alike: the error names object_names.json (the file to fix), not scene_gt.json."""
+    import shutil
+
+    from splattwin.errors import InputError
+
+    scene = shutil.copytree(bop_capture, tmp_path / "scene")
+    (scene / "object_names.json").write_text(json.dumps({"1": "mug", "2": "mug", "3": "cube"}))
+    with pytest.raises(InputError, match="'mug' appears twice") as e:
+        load_masks(scene / "mask_visib")
+    assert Path(e.value.path).name == "object_names.json"
+
+
+def test_depth_beyond_range_is_no_measurement():
+    """Far readings are 0 (no measurement), never clipped to 65535: that would read as a valid 65.5 m."""
+    d = np.array([[0.5, MAX_RANGE_M, MAX_RANGE_M + 0.01, 70.0, np.inf, 1e9]])
+    np.testing.assert_array_equal(depth_mm(d), [[500, int(MAX_RANGE_M * 1000), 0, 0, 0, 0]])
+    assert depth_mm(d, max_range=100.0)[0, 3] == 0               # past the 16-bit range even when allowed
+
+
+def test_sensor_depth_stays_near_the_truth():
+    """The noise model never invents far readings: its edge fattening spread the "no return" stand-in
+    (1 km) into the background next to objects, which the PNG saturated at 65535 mm (31-62 px a view)."""
+    from splattwin.scene.generator import look_target
+
+    objects, renderer, _ = _truth(4)
+    cams = sweep_cameras(RobotCaptureOptions(views=4, width=320, height=240), look_target(objects), 0)  # CLI size
+    for i, c in enumerate(cams):
+        truth = renderer.render(c, 1)["depth"]
+        assert np.isinf(truth).any()                                   # background with no return is there
+        sensed = sensor_depth(truth, float(c.K[0, 0]), DepthNoise(), view_rng(0, i))
+        got = sensed[np.isfinite(sensed)]
+        assert got.max() < 1.2 * truth[np.isfinite(truth)].max()
 
 
 @pytest.mark.parametrize("which", ["bop", "tum"])

@@ -213,31 +213,38 @@ def read_scene_gt(path: str | Path) -> dict[int, list[GtInstance]]:
     return out
 
 
+def names_source(scene: str | Path) -> Path | None:
+    """The file that names a scene's objects (object_names.json beside, above or two above the scene,
+    else the dataset's models*/models_info.json), or None: the file to blame when names collide."""
+    scene = Path(scene)
+    for folder in (scene, scene.parent, scene.parent.parent):
+        if (folder / NAMES_FILE).is_file():
+            return folder / NAMES_FILE
+    return next(iter(sorted(scene.parent.parent.glob("models*/models_info.json"))), None)
+
+
 def object_names(scene: str | Path, obj_ids: list[int] | None = None) -> dict[int, str]:
     """obj_id -> object name for a scene folder (see module docstring). With `obj_ids`, every one of
-    them gets a name (the default `obj_XXXXXX` where no file names it)."""
-    from splattwin.names import name_from_label
+    them gets a name (the default `obj_XXXXXX` where no file names it). InputError naming the names
+    file when two obj_ids get one name (their masks would merge into one object)."""
+    from splattwin.names import check_unique, name_from_label
 
-    scene = Path(scene)
     names: dict[int, str] = {}
-    for folder in (scene, scene.parent, scene.parent.parent):
-        f = folder / NAMES_FILE
-        if f.is_file():
-            data = io.read_json(f)
-            if not isinstance(data, dict):
-                raise InputError('expected an object {"<obj_id>": "name", ...}', f)
+    f = names_source(scene)
+    if f is not None and f.name == NAMES_FILE:
+        data = io.read_json(f)
+        if not isinstance(data, dict):
+            raise InputError('expected an object {"<obj_id>": "name", ...}', f)
+        for k, v in data.items():
+            names[_image_id(str(k), f)] = name_from_label(v, f, f"name of obj_id {k}")
+    elif f is not None:
+        data = io.read_json(f)
+        if isinstance(data, dict):
             for k, v in data.items():
-                names[_image_id(str(k), f)] = name_from_label(v, f, f"name of obj_id {k}")
-            break
-    else:
-        root = scene.parent.parent
-        for info in sorted(root.glob("models*/models_info.json")):
-            data = io.read_json(info)
-            if isinstance(data, dict):
-                for k, v in data.items():
-                    if isinstance(v, dict) and isinstance(v.get("name"), str):
-                        names.setdefault(_image_id(str(k), info), name_from_label(v["name"], info, f"name of obj_id {k}"))
-            break
+                if isinstance(v, dict) and isinstance(v.get("name"), str):
+                    names.setdefault(_image_id(str(k), f), name_from_label(v["name"], f, f"name of obj_id {k}"))
+    if f is not None:
+        check_unique(names.values(), f)
     for oid in obj_ids or []:
         names.setdefault(oid, f"obj_{oid:06d}")
     return names

@@ -60,6 +60,7 @@ class PoseResult:
     T_out_in: np.ndarray = field(default_factory=lambda: np.eye(4))
     stats: dict = field(default_factory=dict)
     depth_scale: float | None = None  # metres per raw depth unit (see splattwin.capture.dataset)
+    label_objects: dict | None = None  # name -> id of the label images' objects (capture.nerfstudio)
 
     @property
     def cameras(self) -> list[Camera]:
@@ -68,7 +69,8 @@ class PoseResult:
     def to_dataset(self, root: Path | None = None) -> Dataset:
         return Dataset(root=root or Path("."), frames=self.frames, has_poses=True, points_xyz=self.points_xyz,
                        points_rgb=self.points_rgb, depth_scale=self.depth_scale, meta={"frame": dataclasses.asdict(self.frame),
-                             **({"heldout": self.stats["heldout"]} if "heldout" in self.stats else {})})
+                             **({"heldout": self.stats["heldout"]} if "heldout" in self.stats else {}),
+                             **({"label_objects": self.label_objects} if self.label_objects else {})})
 
     def save(self, out_dir: str | Path, bundle: bool = True) -> Path:
         """Write OUT/transforms.json (+ points3D.ply), OUT/frame.json, OUT/poses_report.json, OUT/cameras.png,
@@ -308,7 +310,7 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
             pts_xyz, pts_rgb = tri
     return PoseResult(frames=out_frames, unregistered=unregistered, frame=frame, points_xyz=pts_xyz,
                       points_rgb=pts_rgb, depth_xyz=depth_xyz, depth_rgb=depth_rgb, T_out_in=T_out_in,
-                      stats=stats, depth_scale=dataset.depth_scale)
+                      stats=stats, depth_scale=dataset.depth_scale, label_objects=dataset.meta.get("label_objects"))
 
 
 # ------------------------------------------------------------------------------------------------

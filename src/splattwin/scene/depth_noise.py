@@ -86,7 +86,9 @@ def sensor_depth(depth_m: np.ndarray, fx: float, noise: DepthNoise, rng: np.rand
     if r > 0 and edges.any():   # the nearer surface (smaller depth) spreads across the edge
         size = 2 * int(np.ceil(r)) + 1
         near = ndimage.minimum_filter(np.where(hit, d, FAR), size=size)
-        fat = (far_from_edge <= r) & (near < d - noise.edge_jump)
+        # only a real surface spreads: a window with no return holds the FAR stand-in, which spread into
+        # no-return pixels became 1 km "readings" (then +-km noise, saturated at 65535 mm in the PNG)
+        fat = (far_from_edge <= r) & (near < FAR) & (near < d - noise.edge_jump)
         out = np.where(fat, near, out)
         hit = hit | fat
     if noise.rms_1m > 0:

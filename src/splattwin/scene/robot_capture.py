@@ -10,7 +10,8 @@ NOT the twin's: by default z down (the scene's world rotated 180 degrees about x
 The depth maps are what a D435 would read, not the ray-cast truth: axial noise growing with z^2, edge
 fattening, lost readings (0 in the PNG) in occlusion shadows, at depth edges and in random blobs
 (`RobotCaptureOptions.depth_noise`, `splattwin.scene.depth_noise`; `DepthNoise.perfect()` writes the
-ray-cast depth). The truth stays recoverable: scene.json and meshes/ (below).
+ray-cast depth). Beyond a D435's 10 m range (`MAX_RANGE_M`) the depth is 0 too, perfect or not, never
+clipped to 65535. The truth stays recoverable: scene.json and meshes/ (below).
 
 Layouts (`RobotCaptureOptions.format`, in `splattwin.scene.options`):
 - "bop": a BOP scene (`splattwin.capture.bop`): `scene_camera.json` (cam_K, depth_scale 1.0, world-to-
@@ -45,7 +46,7 @@ log = logging.getLogger(__name__)
 
 D435_SIZE = (640, 480)
 D435_K = (615.0, 615.0, 321.5, 243.5)   # fx fy cx cy at 640x480 (a typical D435 colour stream)
-__all__ = ["FORMATS", "WORLDS", "DepthNoise", "RobotCaptureOptions", "R_capture_world", "d435_camera", "depth_mm", "sweep_cameras",
+__all__ = ["FORMATS", "MAX_RANGE_M", "WORLDS", "DepthNoise", "RobotCaptureOptions", "R_capture_world", "d435_camera", "depth_mm", "sweep_cameras",
            "write_robot_capture"]
 
 
@@ -83,10 +84,17 @@ def sweep_cameras(opts: RobotCaptureOptions, target: np.ndarray, seed: int) -> l
     return cams
 
 
-def depth_mm(depth_m: np.ndarray) -> np.ndarray:
-    """z-depth in metres (inf = no return) -> uint16 millimetres (0 = no measurement)."""
+MAX_RANGE_M = 10.0  # a D435's rated maximum range; it reports nothing (0) beyond, as it does for no return
+
+
+def depth_mm(depth_m: np.ndarray, max_range: float = MAX_RANGE_M) -> np.ndarray:
+    """z-depth in metres (inf = no return) -> uint16 millimetres (0 = no measurement).
+
+    Depths beyond `max_range` (at most 65.535 m, the 16-bit limit) are written as 0, not clipped: a
+    clipped 65535 reads as a valid 65.5 m measurement."""
+    max_mm = min(float(max_range) * 1000.0, 65535.0)
     d = np.where(np.isfinite(depth_m), np.round(depth_m * 1000.0), 0.0)
-    return np.clip(d, 0, 65535).astype(np.uint16)
+    return np.where((d > 0) & (d <= max_mm), d, 0.0).astype(np.uint16)
 
 
 def write_robot_capture(out_dir: str | Path, options: SceneOptions | None = None,

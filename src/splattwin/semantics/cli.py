@@ -39,7 +39,7 @@ def _segment(args: argparse.Namespace) -> int:
     (open-vocabulary, weights from the local Hugging Face cache) or by importing masks (PNG folders, label
     images, COCO RLE JSON, polygon JSON)."""
     from splattwin.capture import load_dataset
-    from splattwin.semantics.lift import dataset_objects
+    from splattwin.semantics.lift import label_objects
     from splattwin.semantics.masks import load_masks
     from splattwin.semantics.segment import segment_images
 
@@ -49,14 +49,14 @@ def _segment(args: argparse.Namespace) -> int:
     from splattwin.lock import output_lock
 
     with output_lock(out):
-        objs = dataset_objects(Path(args.dataset))
+        objs = label_objects(ds)  # as `fuse` numbers them
         if args.masks is not None:
             ms = load_masks(args.masks, objects=objs)
             ms.validate({f.name: (f.camera.height, f.camera.width) for f in frames}, args.masks)
         else:
             opts = from_args(SegmentOptions, args)
             labels = None
-            if objs:  # map prompt phrases to the scene's labels when the dataset is a generated scene
+            if objs and (Path(args.dataset) / "scene.json").is_file():  # phrases -> a generated scene's labels
                 import json
 
                 meta = json.loads((Path(args.dataset) / "scene.json").read_text())

@@ -40,6 +40,13 @@ def dataset_objects(dataset_root: Path) -> dict[str, int] | None:
     return None
 
 
+def label_objects(ds) -> dict[str, int] | None:
+    """name -> id of the objects in a loaded dataset's ground-truth label images: what its transforms.json
+    records (`label_objects`, kept by the poses stage), else `dataset_objects`. Masks are numbered by it
+    on every route, and the metrics match objects by these names."""
+    return dict(ds.meta["label_objects"]) if ds.meta.get("label_objects") else dataset_objects(ds.root)
+
+
 def views_for(frames, masks: MaskSet, where: Path | None = None, all_frames=None) -> list[View]:
     """Views (cameras) of the frames that have masks; InputError when none match by name."""
     views = [View(f.name, f.camera) for f in frames if f.name in masks.sizes]
@@ -115,7 +122,7 @@ def fuse_to_dir(splats: "str | Path | Gaussians", dataset: "str | Path | Dataset
     if len(g.means) == 0:
         raise InputError("the splat file has no Gaussians", None if isinstance(splats, Gaussians) else splats)
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
-    objs = dataset_objects(ds.root)
+    objs = label_objects(ds)
     ms = masks if isinstance(masks, MaskSet) else load_masks(masks, objects=objs)
     where = None if isinstance(masks, MaskSet) else Path(masks)
     views = views_for(ds.train() or ds.frames, ms, where, all_frames=ds.frames)
@@ -137,7 +144,7 @@ def fuse_to_dir(splats: "str | Path | Gaussians", dataset: "str | Path | Dataset
             raise InputError(f"unknown label-map renderer {maps_renderer!r}; choose one of {', '.join(RENDERERS)}")
         mr = maps_renderer if maps_renderer != "auto" else ("splat" if rasterizer_usable() else "points")
         summary.update(write_label_maps(g, labels, ds.frames, res.names, out_dir, renderer=mr, progress=progress,
-                                        raster=raster))
+                                        raster=raster, gt_objects=objs))
     if metrics:
         summary.update(fusion_metrics(res, g.means, views, ms))
         if label_maps:
@@ -215,8 +222,13 @@ def write_mask_comparisons(res: FusionResult, masks: MaskSet, dataset, out_dir: 
 
 def write_label_maps(g, labels: np.ndarray, frames: Sequence, names: dict[int, str], out_dir: Path,
                      renderer: str = "points", progress: bool = False,
-                     raster: tuple[str, float | None] = ("classic", None)) -> dict:
-    """Render and save label maps for all frames; mIoU per split when the frames carry GT label images."""
+                     raster: tuple[str, float | None] = ("classic", None),
+                     gt_objects: dict[str, int] | None = None) -> dict:
+    """Render and save label maps for all frames; mIoU per split when the frames carry GT label images.
+
+    gt_objects: name -> id in the GT label images. Given, the fused objects are matched to the GT by name
+    (an object the GT lacks scores 0), so masks numbered otherwise than the GT cannot lower the mIoU;
+    without it by label id ("miou_matched_by" says which)."""
     from splattwin.capture import load_image
     from splattwin.semantics.metrics import miou
 
@@ -240,6 +252,17 @@ def write_label_maps(g, labels: np.ndarray, frames: Sequence, names: dict[int, s
             if gt.ndim == 2 and gt.shape == lab.shape:
                 scores.setdefault(f.split, []).append((lab, gt))
     out: dict = {"label_map_renderer": renderer}
+    if not scores:
+        return out
+    ids = {k: k for k in names}
+    if gt_objects:
+        spare = max([*gt_objects.values(), *names, 0]) + 1
+        for k in sorted(names):  # unmatched names get ids absent from the GT
+            ids[k] = gt_objects[names[k]] if names[k] in gt_objects else spare + k
+    lut = np.arange(max([n, *ids.values()]) + 1)
+    for k, v in ids.items():
+        lut[k] = v
     for split, pairs in scores.items():
-        out[f"miou_{split}"] = miou([p for p, _ in pairs], [g_ for _, g_ in pairs], sorted(names))
+        out[f"miou_{split}"] = miou([lut[p] for p, _ in pairs], [g_ for _, g_ in pairs], sorted(ids.values()))
+    out["miou_matched_by"] = "name" if gt_objects else "label id"
     return out

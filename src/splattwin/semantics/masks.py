@@ -346,7 +346,8 @@ def load_coco(path: Path, objects: dict[str, int] | None = None, image_sizes: di
     """COCO JSON (RLE or polygon segmentations) -> MaskSet; views are the image file stems.
 
     Category names are object names after `name_from_label` ("toy hammer" -> `toy_hammer`; the text
-    becomes the object's prompt). Every image and RLE size is checked before a mask is allocated."""
+    becomes the object's prompt); their labels are the category ids unless `objects` names them. Every
+    image and RLE size is checked before a mask is allocated."""
     data = _read_json(path)
     ms = MaskSet(source=f"coco:{path}")
     labels = dict(objects or {})
@@ -370,6 +371,11 @@ def load_coco(path: Path, objects: dict[str, int] | None = None, image_sizes: di
             _check_image(view, (H, W), image_sizes, path)
             images[iid] = (view, H, W, str(im["file_name"]))
             ms.sizes[view] = (H, W)
+        # labels: the given objects' (a scene's), else the category id itself, so that every route (segment,
+        # fuse, build) numbers the objects alike; a fresh one only where the id is < 1 or already taken
+        for cid, name in sorted(cat_name.items()):
+            if name not in labels and cid >= 1 and cid not in labels.values():
+                labels[name] = cid
         for name in sorted(set(cat_name.values())):
             if name not in labels:
                 labels[name] = max(labels.values(), default=0) + 1
@@ -469,7 +475,8 @@ def load_bop_masks(path: str | Path, objects: dict[str, int] | None = None,
                    image_sizes: dict | None = None) -> MaskSet:
     """A BOP scene's per-instance masks -> MaskSet (layout in the module docstring). Views are the
     image stems (`000012`); instances whose mask file is missing or empty are left out of that view."""
-    from splattwin.capture.bop import MASK_DIRS, SCENE_CAMERA, SCENE_GT, mask_name, object_names, read_scene_gt
+    from splattwin.capture.bop import (MASK_DIRS, SCENE_CAMERA, SCENE_GT, mask_name, names_source, object_names,
+                                       read_scene_gt)
 
     path = Path(path)
     scene = find_bop_scene(path)
@@ -498,7 +505,8 @@ def load_bop_masks(path: str | Path, objects: dict[str, int] | None = None,
                for oid, n in sorted(set(keys.values()))}
     for nm in name_of.values():
         object_name(nm, gt_file)
-    check_unique(name_of.values(), gt_file)
+    # a collision left here comes from the names file ("mug" with 2 instances -> "mug_2", also a name there)
+    check_unique(name_of.values(), names_source(scene) or gt_file)
     labels = dict(objects or {})
     for key in sorted(name_of):
         if name_of[key] not in labels:
