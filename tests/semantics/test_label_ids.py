@@ -8,9 +8,11 @@ import json
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from splattwin import io
 from splattwin.capture import nerfstudio
+from splattwin.errors import InputError
 from splattwin.semantics import lift
 from splattwin.semantics.masks import load_masks
 from splattwin.semantics.rle import encode
@@ -39,6 +41,9 @@ def test_coco_category_ids_are_the_labels(tmp_path):
     assert load_masks(p, objects={"apple": 1, "zebra": 2}).objects == {1: "apple", 2: "zebra", 7: "mango"}
     p0 = _coco(tmp_path / "c0.json", {0: "zebra", 1: "apple"})
     assert load_masks(p0).objects == {1: "apple", 2: "zebra"}
+    # an id no 16-bit label image can hold (an untrusted file's 10**12) is not a label: a fresh one
+    big = _coco(tmp_path / "big.json", {10**12: "zebra", 1: "apple"})
+    assert load_masks(big).objects == {1: "apple", 2: "zebra"}
 
 
 def test_label_maps_are_scored_by_object_name(tmp_path, monkeypatch):
@@ -85,3 +90,8 @@ def test_label_names_travel_with_the_posed_dataset(tmp_path):
     ds.frames = [dataclasses.replace(f, image_path=out / "v0.png") for f in ds.frames]
     nerfstudio.write(ds, out / "transforms.json")
     assert lift.label_objects(load_dataset(out)) == {"box": 3}       # no scene.json there
+    bad = json.loads((out / "transforms.json").read_text())
+    bad["label_objects"] = {"box": 10**12}
+    (out / "transforms.json").write_text(json.dumps(bad))
+    with pytest.raises(InputError, match="at most 65535"):
+        load_dataset(out)

@@ -175,8 +175,9 @@ def _label_objects(meta: dict, root: Path, path: Path) -> dict[str, int]:
     if src is None:
         return {}
     if not isinstance(src, dict) or not all(isinstance(n, str) and isinstance(k, int) and not isinstance(k, bool)
-                                            for n, k in src.items()):
-        raise InputError("label_objects must map object names to integer label ids", where)
+                                            and k <= 65535 for n, k in src.items()):
+        raise InputError("label_objects must map object names to integer label ids (at most 65535: label images "
+                         "are 16-bit)", where)
     return {n: k for n, k in src.items() if k > 0}
 
 

@@ -59,6 +59,7 @@ from splattwin.semantics import rle as rle_codec
 log = logging.getLogger(__name__)
 
 INDEX_NAME = "masks.json"
+MAX_LABEL_ID = 65535   # label images are at most 16-bit: an id above cannot be drawn (nor sizes an array)
 _IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
 
@@ -374,7 +375,7 @@ def load_coco(path: Path, objects: dict[str, int] | None = None, image_sizes: di
         # labels: the given objects' (a scene's), else the category id itself, so that every route (segment,
         # fuse, build) numbers the objects alike; a fresh one only where the id is < 1 or already taken
         for cid, name in sorted(cat_name.items()):
-            if name not in labels and cid >= 1 and cid not in labels.values():
+            if name not in labels and 1 <= cid <= MAX_LABEL_ID and cid not in labels.values():
                 labels[name] = cid
         for name in sorted(set(cat_name.values())):
             if name not in labels:
