@@ -28,12 +28,14 @@ def is_inside(path: str | Path, root: str | Path) -> bool:
     return Path(path).resolve().is_relative_to(Path(root).resolve())
 
 
-def confined(root: str | Path, rel, where: str | Path | None = None, what: str = "path") -> Path:
+def confined(root: str | Path, rel, where: str | Path | None = None, what: str = "path",
+             resolve: bool = True) -> Path:
     """`root / rel` if `rel` is a relative path that stays inside `root` once resolved.
 
     root: the folder the path is relative to (usually the folder of the file it was read from).
     rel: the path as read from the file (str or Path). where: the file, named in the error.
-    Returns the joined (not resolved) path, so callers see the same paths as before.
+    resolve=False: the path as written only (its `..`), without touching the disk (no folder to resolve
+    links in yet). Returns the joined (not resolved) path, so callers see the same paths as before.
     """
     if isinstance(rel, Path):
         text = str(rel)
@@ -48,7 +50,14 @@ def confined(root: str | Path, rel, where: str | Path | None = None, what: str =
         raise InputError(f"{what} {_show(text)} is absolute; paths in this file must be relative to its folder "
                          f"{root}", where)
     full = Path(root) / p
-    if not is_inside(full, root):
+    if not resolve:
+        import posixpath
+
+        norm = posixpath.normpath(p.as_posix())
+        inside = not (norm == ".." or norm.startswith("../"))
+    else:
+        inside = is_inside(full, root)
+    if not inside:
         raise InputError(f"{what} {_show(text)} leads outside its folder {root} (after resolving '..' and "
                          f"symbolic links); refusing to read or write there", where)
     return full

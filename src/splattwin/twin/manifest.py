@@ -184,7 +184,7 @@ class Manifest:
             # inside the folder of `where`; the error names that folder, never a made-up one
             folder = Path(where).parent
             for what, rel in self.paths():
-                confined_as_written(folder, rel, where, f"{what} path")
+                confined(folder, rel, where, f"{what} path", resolve=False)
 
     def object(self, name: str) -> ObjectEntry:
         for o in self.objects:
@@ -263,20 +263,3 @@ def _pose(v, where, what: str) -> np.ndarray:
             or np.abs(T[3] - [0, 0, 0, 1]).max() > RIGID_TOL):
         raise InputError(f"{what} must be a rigid transform (rotation, translation, last row 0 0 0 1)", where)
     return T
-
-
-def confined_as_written(folder: Path, rel, where, what: str) -> None:
-    """`splattwin.paths.confined` without touching the disk: relative, and no `..` leading above `folder`."""
-    import posixpath
-
-    if not isinstance(rel, str):
-        raise InputError(f"{what} must be a string, got {type(rel).__name__}", where)
-    if not rel or "\x00" in rel:
-        raise InputError(f"{what} {rel[:100]!r} is empty or contains a NUL byte", where)
-    if Path(rel).is_absolute() or rel.startswith("~"):
-        raise InputError(f"{what} {rel[:100]!r} is absolute; paths in this file must be relative to its folder "
-                         f"{folder}", where)
-    norm = posixpath.normpath(rel)
-    if norm == ".." or norm.startswith("../"):
-        raise InputError(f"{what} {rel[:100]!r} leads outside its folder {folder}; refusing to read or write there",
-                         where)
