@@ -67,7 +67,7 @@ class ExecutorOptions:
                                      f"${ADDRESS_ENV}). Inputs and outputs must be on a filesystem every node "
                                      "mounts at the same path", aliases=("ray-address",), hashed=False)
     max_retries: int = option(3, f"times a task is run again after its worker process died (killed, out of memory, "
-                              "node lost; at most {MAX_RETRIES}); a task that raises is not retried", aliases=("max-retries",), hashed=False)
+                              f"node lost; at most {MAX_RETRIES}); a task that raises is not retried", aliases=("max-retries",), hashed=False)
     workers: int | None = option(None, f"local: processes (at most {MAX_WORKERS}; none: as many tasks as fit the CPU count); ray without an "
                                  "address: CPUs of the local Ray instance (none: all)", aliases=("workers",),
                                  hashed=False)

@@ -11,7 +11,7 @@ from splattwin.executor import ExecutorOptions
 from splattwin.options import option
 
 IN_HAND = ("sensed", "planned")
-# --trials at most: 50x the largest run we document (2000 on a Ray cluster); each trial's result is kept
+# --trials at most: 5x the largest run we document (2000 on a Ray cluster); each trial's result is kept
 # in memory and in results.json, so an unbounded count only grows memory until the machine gives out
 MAX_TRIALS = 10_000
 
