@@ -30,7 +30,7 @@ from splattwin.errors import InputError
 from splattwin.poses import align
 from splattwin.poses.options import UP_AXES, PoseOptions
 from splattwin.poses.table import KnownLength
-from splattwin.poses.twin_frame import FRAME_FILE, TwinFrame, load_frame
+from splattwin.poses.twin_frame import FRAME_FILE, TwinFrame, frame_beside
 
 log = logging.getLogger(__name__)
 
@@ -169,7 +169,7 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         pts_xyz, pts_rgb = dataset.points_xyz, dataset.points_rgb
         stats.update(registered=len(in_cams))
         meta_frame = dataset.meta.get("frame")
-        prior = TwinFrame(**meta_frame) if isinstance(meta_frame, dict) else _frame_beside(dataset)
+        prior = TwinFrame(**meta_frame) if isinstance(meta_frame, dict) else frame_beside(dataset.meta.get("path", dataset.root))  # chained runs
         # A COLMAP model is SfM output: arbitrary scale unless a frame.json beside it says otherwise.
         input_scaled = prior is not None or dataset.meta.get("format") != "colmap"
         frame = prior or (TwinFrame(source="known_poses", scaled=True, scale_uncertainty_rel=None,
@@ -347,13 +347,6 @@ def _sfm_keys(frames: list[DataFrame]) -> dict[str, str]:
 
     _, rel = _image_layout([f.image_path for f in frames])
     return {r: _frame_key(f) for r, f in zip(rel, frames)}
-
-
-def _frame_beside(dataset: Dataset) -> TwinFrame | None:
-    """A frame.json written by this stage next to the dataset's transforms.json (chained runs)."""
-    p = Path(dataset.meta.get("path", dataset.root))
-    cand = (p.parent if p.is_file() else p) / FRAME_FILE
-    return load_frame(cand) if cand.is_file() else None
 
 
 def _triangulate(opts: PoseOptions, image_paths: list[Path], cameras: list[Camera], stats: dict

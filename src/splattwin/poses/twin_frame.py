@@ -64,6 +64,14 @@ class TwinFrame:
         return 1.0
 
 
+def frame_beside(path: str | Path) -> TwinFrame | None:
+    """The frame.json next to a posed dataset (`path`: its transforms.json or its folder), as the poses
+    stage writes it; None when there is none."""
+    p = Path(path)
+    cand = (p.parent if p.is_file() else p) / FRAME_FILE
+    return load_frame(cand) if cand.is_file() else None
+
+
 def load_frame(path: str | Path) -> TwinFrame:
     """Frame definition from a frame.json (or the folder holding it)."""
     path = Path(path)

@@ -80,13 +80,10 @@ def fusion_options_for(fusion, transforms: Path):
     one (frame.json beside it says so) every length (depth tolerance, depth-DBSCAN eps, gate) multiplied by
     the frame's nominal metre (`TwinFrame.length_scale`), so they keep their share of the scene."""
     from splattwin.options import scale_lengths
-    from splattwin.poses.twin_frame import FRAME_FILE, load_frame
+    from splattwin.poses.twin_frame import frame_beside
 
-    p = Path(transforms)
-    frame_json = (p.parent if p.suffix == ".json" else p) / FRAME_FILE
-    if not frame_json.is_file():
-        return fusion
-    return scale_lengths(fusion, load_frame(frame_json).length_scale())
+    frame = frame_beside(transforms)
+    return fusion if frame is None else scale_lengths(fusion, frame.length_scale())
 
 
 def input_files(inputs: SemanticsInputs, options: SemanticsOptions) -> dict:

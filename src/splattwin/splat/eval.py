@@ -187,16 +187,15 @@ def dataset_units(ds: Dataset) -> str:
     """The length unit of the dataset's poses: its frame.json's (the poses stage writes one beside
     transforms.json: "m" or "unscaled"); without one a COLMAP model is unscaled (SfM units) and other
     known poses are taken as metres, as the poses stage takes them."""
-    from splattwin.poses.twin_frame import FRAME_FILE, UNSCALED_UNITS, load_frame
+    from splattwin.poses.twin_frame import UNSCALED_UNITS, frame_beside
 
-    meta = Path(ds.meta.get("path", ds.root))
-    frame_json = (meta.parent if meta.is_file() else meta) / FRAME_FILE
-    if frame_json.is_file():
-        try:
-            return load_frame(frame_json).units
-        except InputError as e:
-            log.warning("%s; pose corrections in the dataset's units, taken as unscaled", e)
-            return UNSCALED_UNITS
+    try:
+        frame = frame_beside(ds.meta.get("path", ds.root))
+    except InputError as e:
+        log.warning("%s; pose corrections in the dataset's units, taken as unscaled", e)
+        return UNSCALED_UNITS
+    if frame is not None:
+        return frame.units
     return UNSCALED_UNITS if ds.meta.get("format") == "colmap" else "m"
 
 
