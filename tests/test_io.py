@@ -37,18 +37,19 @@ def test_read_json_errors_name_the_file(tmp_path):
 
 
 def test_write_json_strict_writes_null_for_non_finite_floats(tmp_path):
-    """strict=True: standard JSON (NaN/Infinity are not JSON; JSON.parse and jq refuse them), numpy included."""
+    """The default: standard JSON (NaN/Infinity are not JSON; JSON.parse, jq and the viewer's browser refuse
+    them), numpy included; strict=False keeps Python's tokens."""
     import json
 
     import numpy as np
 
     obj = {"a": float("nan"), "b": [1.5, float("inf"), np.float32("nan")], "c": np.array([1.0, -np.inf]),
            "d": (2, "x"), "e": None}
-    p = io.write_json(tmp_path / "s.json", obj, strict=True)
+    p = io.write_json(tmp_path / "s.json", obj)
 
     def refuse(token):
         raise AssertionError(token)
 
     assert json.loads(p.read_text(), parse_constant=refuse) == {"a": None, "b": [1.5, None, None],
                                                                 "c": [1.0, None], "d": [2, "x"], "e": None}
-    assert "NaN" in io.write_json(tmp_path / "l.json", {"a": float("nan")}).read_text()   # the default: unchanged
+    assert "NaN" in io.write_json(tmp_path / "l.json", {"a": float("nan")}, strict=False).read_text()

@@ -131,10 +131,10 @@ def write_text(path: str | Path, text: str) -> Path:
     return write_bytes(path, text.encode("utf-8"))
 
 
-def write_json(path: str | Path, obj: Any, indent: int = 2, strict: bool = False) -> Path:
-    """Write `obj` as JSON, atomically. strict=True writes standard JSON: NaN and infinities become null
-    (Python's default writes the bare tokens NaN/Infinity, which JSON.parse, jq and most other readers
-    reject). Not the default yet: some records read back here may hold NaN and expect a float."""
+def write_json(path: str | Path, obj: Any, indent: int = 2, strict: bool = True) -> Path:
+    """Write `obj` as JSON, atomically. strict (the default) writes standard JSON: NaN and infinities
+    become null (Python's default writes the bare tokens NaN/Infinity, which JSON.parse, jq, the viewer's
+    browser and most other readers reject); readers here take null as "not measured"."""
     if strict:
         obj = finite_or_none(obj)
     text = json.dumps(obj, indent=indent, sort_keys=False, default=_json_default, allow_nan=not strict)

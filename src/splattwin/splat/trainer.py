@@ -660,7 +660,7 @@ class Trainer:
         transients = self._write_transients() if self.cfg.robust_quantile > 0 else None
         if transients is None and (self.out_dir / "transients.png").exists():
             (self.out_dir / "transients.png").unlink()   # a stale one from an earlier run with the masks
-        write_json(self.out_dir / "train.json", strict=True, obj={
+        write_json(self.out_dir / "train.json", obj={
             "dataset": str(self.dataset.root), "config": self.cfg.to_dict(), "strategy": self.strategy.describe(),
             "backend": self.backend, "resolution": self.resolution.record(),
             "heldout": self._heldout_record(),
