@@ -67,8 +67,9 @@ def test_label_maps_are_scored_by_object_name(tmp_path, monkeypatch):
 
 
 def test_label_names_travel_with_the_posed_dataset(tmp_path):
-    """transforms.json's label_objects (the poses stage writes the capture's) names the GT ids, so a
-    twin's poses/ without its scene still matches by name; a generated scene's scene.json otherwise."""
+    """transforms.json's label_objects (a generated scene writes it, the poses stage keeps it) names the GT
+    ids, so a twin's poses/ without its scene still matches by name. The capture reader does not parse a
+    scene.json beside the file (that is the semantics stage's fallback, `lift.label_objects`)."""
     import dataclasses
     import shutil
 
@@ -81,6 +82,10 @@ def test_label_names_travel_with_the_posed_dataset(tmp_path):
           "frames": [{"file_path": "v0.png", "transform_matrix": np.eye(4).tolist()}]}
     (src / "transforms.json").write_text(json.dumps(tf))
     (src / "scene.json").write_text(json.dumps({"objects": [{"name": "table", "label": 0}, {"name": "box", "label": 3}]}))
+    assert "label_objects" not in load_dataset(src).meta
+    assert lift.label_objects(load_dataset(src)) == {"box": 3}       # the semantics stage's scene.json fallback
+    tf["label_objects"] = {"box": 3}
+    (src / "transforms.json").write_text(json.dumps(tf))
     ds = load_dataset(src)
     assert ds.meta["label_objects"] == {"box": 3} and lift.label_objects(ds) == {"box": 3}
     out = tmp_path / "poses"
@@ -95,3 +100,17 @@ def test_label_names_travel_with_the_posed_dataset(tmp_path):
     (out / "transforms.json").write_text(json.dumps(bad))
     with pytest.raises(InputError, match="at most 65535"):
         load_dataset(out)
+
+
+def test_generated_scene_names_its_label_ids(tmp_path):
+    """`scene generate` writes the ground-truth label images' names into transforms.json."""
+    from splattwin.capture import load_dataset
+    from splattwin.scene.generator import generate
+    from splattwin.scene.options import SceneOptions
+
+    d = generate(tmp_path / "s", SceneOptions(seed=0, width=48, height=36, views=2, heldout=1), progress=False)
+    scene = json.loads((d / "scene.json").read_text())
+    want = {o["name"]: o["label"] for o in scene["objects"] if o["label"] > 0}
+    assert json.loads((d / "transforms.json").read_text())["label_objects"] == want
+    assert load_dataset(d).meta["label_objects"] == want and len(want) >= 3
+

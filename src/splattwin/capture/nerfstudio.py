@@ -154,24 +154,18 @@ def read(path: str | Path, require_images: bool = True) -> Dataset:
     if isinstance(rec, dict):  # the rule that made the split (splattwin.poses.holdout), for the report
         ds_meta["heldout"] = {k: (rec[k][:200] if isinstance(rec[k], str) else rec[k]) for k in ("source", "rule", "every")
                               if isinstance(rec.get(k), (str, int)) and not isinstance(rec.get(k), bool)}
-    names = _label_objects(meta, root, path)
+    names = _label_objects(meta, path)
     if names:
         ds_meta["label_objects"] = names
     return Dataset(root=root, frames=frames, has_poses=True, points_xyz=xyz, points_rgb=rgb,
                    depth_scale=depth_scale, meta=ds_meta)
 
 
-def _label_objects(meta: dict, root: Path, path: Path) -> dict[str, int]:
+def _label_objects(meta: dict, path: Path) -> dict[str, int]:
     """name -> id of the objects in the frames' ground-truth label images (`label_path`): the file's
-    "label_objects", else a generated scene's scene.json beside it. Lets the metrics match fused objects
+    "label_objects" (a generated scene and the poses stage write it). Lets the metrics match fused objects
     to the ground truth by name, whatever ids the masks gave them. {} when unknown."""
     src, where = meta.get("label_objects"), path
-    if src is None and (root / "scene.json").is_file():
-        where = root / "scene.json"
-        scene = io.read_json(where)
-        objs = scene.get("objects") if isinstance(scene, dict) else None
-        src = {o.get("name"): o.get("label") for o in objs if isinstance(o, dict)} if isinstance(objs, list) else None
-        src = {n: k for n, k in (src or {}).items() if n != "table"}
     if src is None:
         return {}
     if not isinstance(src, dict) or not all(isinstance(n, str) and isinstance(k, int) and not isinstance(k, bool)

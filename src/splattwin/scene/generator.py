@@ -94,8 +94,9 @@ def preview_image(views: list[dict[str, np.ndarray]], noisy: list[np.ndarray]) -
     return np.concatenate([np.concatenate(r, axis=1) for r in rows], axis=0)
 
 
-def transforms_json(cameras: list[Camera]) -> dict:
-    """nerfstudio transforms.json (shared intrinsics, OpenGL camera-to-world per frame)."""
+def transforms_json(cameras: list[Camera], objects: list[SceneObject] = ()) -> dict:
+    """nerfstudio transforms.json (shared intrinsics, OpenGL camera-to-world per frame). `label_objects`
+    names the ids of the ground-truth label images (`label_path`), so that metrics match objects by name."""
     c0 = cameras[0]
     frames = []
     for cam in cameras:
@@ -109,6 +110,7 @@ def transforms_json(cameras: list[Camera]) -> dict:
         "frames": frames,
         "train_filenames": [f["file_path"] for f in frames if f["split"] == "train"],
         "test_filenames": [f["file_path"] for f in frames if f["split"] == "heldout"],
+        "label_objects": {o.name: int(o.label) for o in objects if o.label > 0},
     }
 
 
@@ -160,7 +162,7 @@ def generate(out_dir: str | Path, options: SceneOptions | None = None, progress:
             bar.update(1)
 
     write_image(out / "preview.png", preview_image([v for v, _ in previews], [m for _, m in previews]))
-    write_json(out / "transforms.json", transforms_json(cameras))
+    write_json(out / "transforms.json", transforms_json(cameras, objects))
     scene = scene_record(options, objects, layout, marker, [c.name for c in cameras])
     scene["preview"] = "preview.png"
     scene["noise"] = {**options.noise.to_dict(), "events": noise_events}
