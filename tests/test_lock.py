@@ -36,3 +36,62 @@ def test_a_folder_that_existed_or_got_outputs_stays(tmp_path):
     with output_lock(ok):
         pass
     assert (ok / STATE_DIR / LOCK_NAME).is_file()   # a successful run keeps its (released) lock file
+
+
+_KILLED_PLAN = """
+import os, sys, time
+from pathlib import Path
+from splattwin.executor import Job, LocalExecutor
+from splattwin.lock import output_lock
+
+def work(pid_file):
+    Path(pid_file).write_text(str(os.getpid()))
+    time.sleep(60)
+
+out, pid_file = sys.argv[1], sys.argv[2]
+with output_lock(out):
+    ex = LocalExecutor(workers=1)
+    h = ex.submit(Job(key="k", fn=work, args=(pid_file,)))
+    while not Path(pid_file).is_file():
+        time.sleep(0.05)
+    print("ready", flush=True)
+    time.sleep(60)
+"""
+
+
+def test_a_killed_run_s_pool_workers_neither_keep_its_lock_nor_outlive_it(tmp_path):
+    """`kill -9` of `plan` while its trial workers run: the workers (forked, sharing the lock's open file)
+    must not keep the folder locked, so the killed run resumes at once, and they exit with their parent."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from splattwin.lock import acquire, release
+
+    out, pid_file = tmp_path / "twin", tmp_path / "worker.pid"
+    (tmp_path / "plan.py").write_text(_KILLED_PLAN)
+    proc = subprocess.Popen([sys.executable, str(tmp_path / "plan.py"), str(out), str(pid_file)],
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        worker = int(pid_file.read_text())
+        with pytest.raises(InputError, match="another splattwin process"):
+            acquire(out)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+        acquire(out)        # the worker still runs (its sleep), but holds no lock
+        release(out)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            try:
+                os.kill(worker, 0)
+            except ProcessLookupError:
+                break
+            time.sleep(0.1)
+        else:
+            os.kill(worker, signal.SIGKILL)
+            pytest.fail("the pool worker outlived its killed parent")
+    finally:
+        proc.kill()

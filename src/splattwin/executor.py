@@ -248,6 +248,23 @@ def _call(fn: Callable, args: tuple) -> Any:
     return fn(*args)
 
 
+PARENT_POLL_S = 0.5
+
+
+def _exit_with_parent(parent: int) -> None:
+    """Pool worker initializer: exit when the process that started the pool is gone (`kill -9` of
+    `plan`): an orphaned worker would go on writing trials into a folder nobody holds any more."""
+    import threading
+    import time
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_POLL_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="splattwin-parent-watch", daemon=True).start()
+
+
 @dataclass(eq=False)
 class _LocalHandle:
     job: Job
@@ -280,7 +297,8 @@ class LocalExecutor(Executor):
 
     def _get_pool(self) -> ProcessPoolExecutor:
         if self._pool is None:
-            self._pool = ProcessPoolExecutor(max_workers=self._workers)
+            self._pool = ProcessPoolExecutor(max_workers=self._workers, initializer=_exit_with_parent,
+                                             initargs=(os.getpid(),))
         return self._pool
 
     def submit(self, job: Job, attempt: int = 1) -> _LocalHandle:

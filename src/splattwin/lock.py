@@ -12,6 +12,11 @@ let two processes lock two different files); it records `{pid, host, command, st
 
 Re-entrant within a process: `build` holds the lock and calls stage functions that may take it again.
 
+A forked child (a process pool's worker) closes its copies of the lock descriptors at once: the flock
+belongs to the open file, shared with the child, so a worker outliving a killed parent would otherwise
+keep the folder locked and the killed run could never resume. (Closing, not unlocking: an unlock from
+the child would release the parent's lock too.)
+
 Taking the lock also checks the folder for symbolic links that lead out of it (a received twin folder
 whose `splat/` is a link to elsewhere would make every write there land outside `--out`): such a link
 is an InputError naming it, before anything is written.
@@ -41,6 +46,21 @@ LOCK_NAME = "lock"
 
 _held: dict[str, list] = {}   # resolved folder -> [fd, depth]
 _guard = threading.Lock()
+
+
+def _forget_in_child() -> None:
+    """After fork, in the child: drop the inherited lock descriptors (see the module docstring)."""
+    global _guard
+    _guard = threading.Lock()   # a lock another thread of the parent held at fork time would never be released
+    for fd, _depth in _held.values():
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+    _held.clear()
+
+
+os.register_at_fork(after_in_child=_forget_in_child)
 
 
 def lock_path(folder: str | Path) -> Path:
