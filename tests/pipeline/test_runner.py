@@ -111,3 +111,23 @@ def test_from_splats_retrains_instead_of_resuming_the_finished_run(scene_small, 
     assert rec["resumed_at_step"] is None and rec["steps"] == 20
     assert sorted(p.name for p in (tmp_path / "splat" / "checkpoints").iterdir()) == \
         ["ckpt_000010.safetensors", "ckpt_000020.safetensors"]
+
+
+def test_a_stage_whose_outputs_were_rewritten_by_hand_runs_again(tmp_path):
+    """`splattwin plan` run by hand with other options rewrites robot/results.json: the next build must not
+    vouch for it as its own robot stage's output (it skipped the stage and kept the hand run's results)."""
+    import os
+
+    calls = []
+    opts = {"a": 1, "b": 1, "c": 1}
+    run_stages(_stages(calls), Context(tmp_path, opts))
+    calls.clear()
+    f = tmp_path / "b.txt"
+    st = f.stat()
+    f.write_text("9")                                   # another command's output, same size
+    os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+    run_stages(_stages(calls), Context(tmp_path, opts))
+    assert calls == ["b", "c"] and f.read_text() == "1"
+    calls.clear()
+    run_stages(_stages(calls), Context(tmp_path, opts))
+    assert calls == []
