@@ -86,3 +86,22 @@ def test_report_shows_a_metric_twins_box_in_cm_and_no_table_warning_when_found(t
     html = build_report(_manifest_twin(tmp_path / "m", scaled=True)).read_text()
     assert "114.3 × 73.6 × 135.4 cm" in html
     assert "the table is assumed" not in html
+
+
+def test_report_shows_the_robot_options_that_made_the_results_not_the_twin_stage_s(tmp_path):
+    """A build re-run with `--task default --trials 3` skips the twin stage: twin.json's config.build.robot
+    still says trials 0. The report's options show those of the run in robot/results.json."""
+    from splattwin.twin.manifest import Manifest
+
+    twin = _manifest_twin(tmp_path, scaled=True)
+    man = Manifest.load(twin)
+    man.config["build"] = {"robot": {"task": None, "trials": 0}, "geometry": {"min_points": 50}}
+    man.save(twin)
+    (twin / "robot").mkdir()
+    (twin / "robot" / "results.json").write_text(json.dumps({
+        "error": "no usable object", "task": "default", "options": {"task": "default", "trials": 3, "seed": 5}}))
+    import html as htmllib
+
+    html = htmllib.unescape(build_report(twin).read_text())
+    assert "(from robot/results.json)" in html and '"trials": 3' in html and '"trials": 0' not in html
+    assert '"min_points": 50' in html

@@ -33,6 +33,7 @@ def test_plan_writes_trajectories_and_results(gt_twin_default: Path, tmp_path: P
     res = json.loads((out / "results.json").read_text())
     assert res["nominal"]["success"] and res["nominal"]["collisions"] == 0
     assert [s["success"] for s in res["nominal"]["steps"]] == [True, True, True]
+    assert res["options"]["render"] is False and res["options"]["trials"] == 0   # what made these results
     tj = Trajectory.load_json(out / "trajectory.json")
     tc = Trajectory.load_csv(out / "trajectory.csv")
     ty = Trajectory.load_ros2_yaml(out / "trajectory.ros2.yaml")

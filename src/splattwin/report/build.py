@@ -153,8 +153,18 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
     v = rep.section("Versions and options")
     if man:
         v.table(["package", "version"], sorted(man.versions.items()))
-        v.pre(json.dumps(man.config, indent=2, default=str)[:20000])
+        v.pre(json.dumps(_config_shown(man.config, robot), indent=2, default=str)[:20000])
     return rep.save(twin / "report" / "index.html")
+
+
+def _config_shown(config: dict, robot: dict | None) -> dict:
+    """twin.json's config with `build.robot` replaced by the options of the robot run whose results the
+    report shows (robot/results.json `options`): twin.json records the robot options the build held when
+    its twin stage ran, and a later `build --task ...` (twin stage skipped) or `plan` used others."""
+    ran = robot.get("options") if isinstance(robot, dict) else None
+    if not isinstance(ran, dict) or not isinstance(config.get("build"), dict):
+        return config
+    return {**config, "build": {**config["build"], "robot": {"(from robot/results.json)": True, **ran}}}
 
 
 def _guarded(fn, sec: Section, *args) -> None:

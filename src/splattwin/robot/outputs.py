@@ -77,7 +77,11 @@ def remove_previous(out: str | Path, keep_trials: int = 0) -> list[Path]:
 
 
 def write_outputs(out: str | Path, spec, result, trials: dict | None, render_note: str = "",
-                  frames: list[Path] | None = None, wall_s: float | None = None) -> dict[str, Path]:
+                  frames: list[Path] | None = None, wall_s: float | None = None,
+                  options: dict | None = None) -> dict[str, Path]:
+    """OUT/results.json (with `options`: the robot options of this run, as `splattwin.options.to_dict`
+    writes them; a twin's config.build.robot is what the build asked for when its twin stage ran, so the
+    results say what made them), segments, trajectories, the rollout."""
     from splattwin.robot.trajectory import concatenate
 
     out = Path(out)
@@ -106,6 +110,7 @@ def write_outputs(out: str | Path, spec, result, trials: dict | None, render_not
         "trials": trials,
         "frames": [str(Path(f).relative_to(out)) for f in (frames or [])],
         "notes": notes, "wall_s": wall_s,
+        **({"options": options} if options is not None else {}),
     }
     paths["results"] = io.write_json(out / "results.json", doc)
     return paths

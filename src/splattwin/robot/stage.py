@@ -73,9 +73,11 @@ def run(inputs: RobotInputs, options: RobotOptions, *, progress: bool = True,
             trials = run_trials(spec, options.trials, options.sigma, progress=progress, out_dir=out,
                                 resume=options.resume, sigma_yaw=options.sigma_yaw, executor=ex,
                                 keep_rollouts=options.record is not None)
+    from splattwin.options import to_dict
+
     paths = write_outputs(out, spec, result, trials,
                           render_note=(note or "") if options.render else "rendering disabled (--no-render)",
-                          frames=frames, wall_s=time.perf_counter() - t0)
+                          frames=frames, wall_s=time.perf_counter() - t0, options=to_dict(options))
     return RobotResult(results=paths["results"], success=bool(result.success),
                        details={"run": result, "trials": trials, "paths": paths})
 
