@@ -53,3 +53,23 @@ def test_write_json_strict_writes_null_for_non_finite_floats(tmp_path):
     assert json.loads(p.read_text(), parse_constant=refuse) == {"a": None, "b": [1.5, None, None],
                                                                 "c": [1.0, None], "d": [2, "x"], "e": None}
     assert "NaN" in io.write_json(tmp_path / "l.json", {"a": float("nan")}, strict=False).read_text()
+
+
+def test_remove_stale_removes_only_gone_entries_and_never_follows_a_link(tmp_path):
+    d = tmp_path / "objects"
+    d.mkdir()
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "keep.ply").write_text("x")
+    for n in ("a.ply", "b.ply", "b.txt"):
+        (d / n).write_text(n)
+    (d / "c.ply").symlink_to(outside / "keep.ply")
+    (d / "sub").mkdir()
+    removed = io.remove_stale(d, {"a.ply"}, suffix=".ply")
+    assert sorted(p.name for p in removed) == ["b.ply", "c.ply"]
+    assert sorted(p.name for p in d.iterdir()) == ["a.ply", "b.txt", "sub"] and (outside / "keep.ply").is_file()
+    (d / "gone").mkdir()
+    (d / "gone" / "f").write_text("f")
+    (d / "link").symlink_to(outside)
+    assert [p.name for p in io.remove_stale(d, {"sub"}, dirs=True)] == ["gone"]
+    assert (d / "link").is_symlink() and (outside / "keep.ply").is_file()

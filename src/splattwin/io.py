@@ -121,6 +121,32 @@ def clean_temp(folder: str | Path) -> list[Path]:
     return removed
 
 
+def remove_stale(folder: str | Path, keep: set[str], suffix: str | None = None, dirs: bool = False) -> list[Path]:
+    """Remove from `folder` the entries an earlier run wrote for things that are gone (an object no longer
+    in the twin): files ending in `suffix` (or, with dirs=True, sub-folders) whose name is not in `keep`.
+    Never follows a link (a link is removed itself); leaves every other entry alone. Returns what went."""
+    folder = Path(folder)
+    removed: list[Path] = []
+    if folder.is_symlink() or not folder.is_dir():
+        return removed
+    with os.scandir(folder) as it:
+        entries = list(it)
+    for e in entries:
+        if e.name in keep or _TEMP_RE.match(e.name):
+            continue
+        p = folder / e.name
+        if dirs and e.is_dir(follow_symlinks=False):
+            shutil.rmtree(p)
+        elif not dirs and suffix is not None and e.name.endswith(suffix) and (e.is_symlink() or e.is_file()):
+            p.unlink()
+        else:
+            continue
+        removed.append(p)
+    if removed:
+        log.info("removed %s of an earlier run (no longer in the twin)", ", ".join(str(r) for r in removed))
+    return removed
+
+
 def write_bytes(path: str | Path, data: bytes) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)

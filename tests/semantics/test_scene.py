@@ -53,8 +53,11 @@ def test_cli_segment_import_and_fuse(small, tmp_path):
     assert main(["segment", str(sd), "--masks", str(sd / "masks" / "noisy"), "--out", str(tmp_path / "m")]) == 0
     assert (tmp_path / "m" / "masks.json").is_file()
     out = tmp_path / "fused"
+    (out / "objects").mkdir(parents=True)
+    (out / "objects" / "gone_object.ply").write_text("an earlier fusion's object, not in these masks")
     rc = main(["fuse", "--splats", str(ply), "--dataset", str(sd), "--masks", str(tmp_path / "m"), "--out", str(out),
                "--renderer", "points", "--iters", "2"])
+    assert not (out / "objects" / "gone_object.ply").exists()
     assert rc == 0
     labels = np.load(out / "labels.npy")
     assert labels.dtype == np.int32 and labels.shape == (len(g.means),)

@@ -192,3 +192,25 @@ def test_export_prints_and_records_only_files_on_disk(twin, tmp_path, capsys):
     exports = Manifest.load(out).exports
     assert exports == {"mjcf": "export/scene.xml", "urdf": "export/scene.urdf", "gltf": "export/scene.glb"}
     assert all((out / rel).is_file() for rel in exports.values())
+
+
+def test_a_rebuild_without_an_object_leaves_none_of_its_files(twin, tmp_path):
+    """A rebuild where an object is gone (masks without it) or unusable left its objects/<name>/ folder and
+    export/<name>.urdf (pointing to deleted meshes) behind: only this build's objects remain."""
+    import shutil
+
+    out = tmp_path / "t"
+    shutil.copytree(twin[0], out)
+    _, m, g, labels = twin
+    names = [o.name for o in m.objects if o.usable]
+    gone, kept = names[0], names[1:]
+    assert (out / "objects" / gone).is_dir() and (out / "export" / f"{gone}.urdf").is_file()
+    (out / "export" / "notes.txt").write_text("mine")            # not ours to remove
+    objects = [(o.name, o.label, o.prompt) for o in m.objects if o.name in kept]
+    lab = np.where(np.isin(labels, [o.label for o in m.objects if o.name in kept]), labels, 0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        build_twin(g, lab, objects, out, TwinFrame("ground_truth", scaled=True), formats=("urdf",), progress=False)
+    assert not (out / "objects" / gone).exists() and not (out / "export" / f"{gone}.urdf").exists()
+    assert all((out / "objects" / n).is_dir() and (out / "export" / f"{n}.urdf").is_file() for n in kept)
+    assert (out / "export" / "notes.txt").read_text() == "mine" and (out / "export" / "scene.urdf").is_file()

@@ -133,11 +133,14 @@ def fuse_to_dir(splats: "str | Path | Gaussians", dataset: "str | Path | Dataset
     if naive:
         labels = naive_fusion(g.means, views, ms)
         res.labels = labels
+    written = set()
     for k in res.label_ids:
         sel = labels == k
         if sel.any():
+            written.add(f"{_safe_name(res.names[k])}.ply")
             with io.atomic_path(out_dir / "objects" / f"{_safe_name(res.names[k])}.ply") as tmp:
                 g.subset(sel).save_ply(tmp)
+    io.remove_stale(out_dir / "objects", written, suffix=".ply")   # objects of an earlier fusion that are gone
     summary = {"depth_renderer": getattr(depth, "name", "custom"), "n_views_fused": len(views)}
     if label_maps:
         if maps_renderer not in RENDERERS:

@@ -108,6 +108,8 @@ def write_geometry(conv: Conversion, g, labels: np.ndarray, out_dir: Path, frame
     g.save_ply(out_dir / "splat" / "point_cloud.ply")
     io.write_npy(out_dir / "semantics" / "labels.npy", np.asarray(labels, dtype=np.int32))
     entries = []
+    # an earlier build's objects that are not in this one (masks changed): their folders go too
+    io.remove_stale(out_dir / "objects", {r.name for r in conv.objects}, dirs=True)
     for r in conv.objects:
         e = ObjectEntry(name=r.name, label=r.label, prompt=r.prompt, usable=r.usable, problem=r.problem)
         odir = child(child(out_dir, "objects"), r.name)

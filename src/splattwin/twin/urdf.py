@@ -105,7 +105,11 @@ def export_urdf(twin_dir: str | Path, manifest: Manifest) -> Path:
     """Write export/scene.urdf and export/<name>.urdf for every usable object (atomically). Returns scene.urdf."""
     twin_dir = Path(twin_dir)
     out = twin_dir / "export"
+    names = {"scene.urdf"}
     for o in manifest.objects:
         if o.usable:
+            names.add(f"{object_name(o.name)}.urdf")
             io.write_text(child(out, f"{object_name(o.name)}.urdf"), object_urdf(twin_dir, o, out, manifest))
-    return io.write_text(out / "scene.urdf", scene_urdf(twin_dir, manifest, out))
+    path = io.write_text(out / "scene.urdf", scene_urdf(twin_dir, manifest, out))
+    io.remove_stale(out, names, suffix=".urdf")   # an earlier build's object that is gone or now unusable
+    return path
