@@ -28,7 +28,9 @@ log = logging.getLogger(__name__)
 _TEMP_RE = re.compile(r"^\..+\.tmp(?P<pid>\d+)-[a-z0-9_]{8}")
 
 
-def _temp_prefix(name: str) -> str:
+def temp_prefix(name: str) -> str:
+    """The prefix of this process's temporary files for target `name` (mkstemp's `prefix`): a killed run's
+    are recognised by it and removed by the next run (`clean_temp`)."""
     return f".{name}.tmp{os.getpid()}-"
 
 
@@ -66,7 +68,7 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path.name), suffix=suffix if suffix is not None else path.suffix,
+    fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path.name), suffix=suffix if suffix is not None else path.suffix,
                                dir=path.parent)
     os.close(fd)
     tmp_path = Path(tmp)
@@ -87,7 +89,7 @@ def temp_dir(parent: str | Path, name: str) -> Path:
     the umask, not mkdtemp's 0700), to be filled and renamed into place."""
     parent = Path(parent)
     parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=_temp_prefix(name), dir=parent))
+    tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(name), dir=parent))
     os.chmod(tmp, 0o777 & ~_umask())
     return tmp
 

@@ -68,3 +68,19 @@ def test_render_cli_keep_view_dependence(tiny_twin, tmp_path, monkeypatch):
         assert main(["render", str(tiny_twin), "--camera", "view_0", "--out", str(tmp_path / "v.mp4"),
                      "--rollout", str(r), "--fps", "20", "--no-robot", *extra]) == 0
     assert seen == [True, False]
+
+
+def test_a_killed_writer_s_half_video_is_removed_by_the_next_run(tmp_path):
+    """The half-written MP4 of a killed `report`/`render` carries our temporary name, so the next run
+    that takes the folder's lock removes it (it was `.name.<random>.mp4` and stayed for ever)."""
+    import os
+
+    from splattwin import io
+
+    with Mp4Writer(tmp_path / "task.mp4", 10) as w:
+        w.write(np.zeros((16, 16, 3), np.uint8))
+        tmp = [p for p in tmp_path.iterdir() if p.name != "task.mp4"]
+        assert len(tmp) == 1
+        m = io._TEMP_RE.match(tmp[0].name)
+        assert m is not None and int(m.group("pid")) == os.getpid()
+    assert (tmp_path / "task.mp4").is_file() and not tmp[0].exists()

@@ -44,7 +44,7 @@ def place_file(src: Path, dst: Path) -> Path:
         if dst.is_file() and dst.stat().st_size == src.stat().st_size and io_equal(src, dst):
             return dst
     dst.parent.mkdir(parents=True, exist_ok=True)
-    tmp = dst.parent / f"{io._temp_prefix(dst.name)}{os.urandom(4).hex()}{dst.suffix}"
+    tmp = dst.parent / f"{io.temp_prefix(dst.name)}{os.urandom(4).hex()}{dst.suffix}"
     try:
         # the link's target: os.link on Linux links a symbolic link itself (whatever follow_symlinks says)
         os.link(os.path.realpath(src), tmp)  # the input's inode and mode stay as they are (no chmod on a link)

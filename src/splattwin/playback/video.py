@@ -45,7 +45,10 @@ class Mp4Writer:
         import av
 
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".mp4", dir=self.path.parent)
+        from splattwin.io import temp_prefix
+
+        # named as every temporary file of ours: a killed run's half video is removed by the next run
+        fd, tmp = tempfile.mkstemp(prefix=temp_prefix(self.path.name), suffix=".mp4", dir=self.path.parent)
         os.close(fd)
         self._tmp = Path(tmp)
         self._container = av.open(str(self._tmp), mode="w")

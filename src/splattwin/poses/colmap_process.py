@@ -21,6 +21,7 @@ import shutil
 import sqlite3
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass
@@ -132,14 +133,23 @@ def run_step(job: dict, job_dir: Path, progress: StageProgress, label: str, tota
     (after stopping the child and cleaning up) if interrupted.
     """
     job_dir.mkdir(parents=True, exist_ok=True)
-    job_path = job_dir / f".job_{job['step']}_{os.getpid()}.json"
-    job_path.write_text(json.dumps(job))
+    from splattwin import io
+
+    # a temporary name of ours (removed after the step; a killed run's by the next run, `io.clean_temp`)
+    fd, name = tempfile.mkstemp(prefix=io.temp_prefix(f"job_{job['step']}.json"), suffix=".json", dir=job_dir)
+    with os.fdopen(fd, "w") as f:
+        f.write(json.dumps(job))
+    job_path = Path(name)
     env = os.environ.copy()
     env["PYTHONPATH"] = _package_root() + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     t0, cpu0 = time.perf_counter(), _children_cpu()
-    proc = subprocess.Popen([sys.executable, "-m", "splattwin.poses.colmap_worker", str(job_path)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, env=env,
-                            start_new_session=True, text=True, bufsize=1)
+    try:
+        proc = subprocess.Popen([sys.executable, "-m", "splattwin.poses.colmap_worker", str(job_path)],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, env=env,
+                                start_new_session=True, text=True, bufsize=1)
+    except BaseException:
+        job_path.unlink(missing_ok=True)
+        raise
     lines: queue.Queue = queue.Queue()
     err_tail: collections.deque = collections.deque(maxlen=40)
 
