@@ -109,3 +109,37 @@ def test_ctrl_c_during_splattwin_train(scene_small, tmp_path, terminal_ctrl_c):
                         "--resume", "--no-progress"], env=env, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     assert "resumed from" in r.stderr and (out / "point_cloud.ply").is_file()
+
+
+def test_a_ctrl_c_a_library_swallowed_still_stops_the_command(terminal_ctrl_c, monkeypatch, tmp_path):
+    """trimesh wraps its lazy imports in `except BaseException`: a Ctrl-C landing there was lost, every
+    later stage ran and the build exited 0. The CLI remembers it: the next progress update or stage
+    raises, and a command that returns anyway exits 130."""
+    from splattwin import interrupt
+    from splattwin.capture import cli as capture_cli
+    from splattwin.cli import main
+    from splattwin.progress import Progress
+
+    def swallowing(args):
+        try:                                          # as trimesh's `try: import networkx except BaseException`
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1)
+        except BaseException:
+            pass
+        return 0
+
+    monkeypatch.setattr(capture_cli, "_info", swallowing)
+    assert main(["capture", "info", str(tmp_path)]) == 130
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler     # the CLI's handler is gone
+
+    def swallowed_then_loop(args):
+        swallowing(args)
+        with Progress(3, "work", enabled=False) as bar:
+            bar.update(1)                             # raises: the loop stops here
+        raise AssertionError("not reached")
+
+    monkeypatch.setattr(capture_cli, "_info", swallowed_then_loop)
+    assert main(["capture", "info", str(tmp_path)]) == 130
+    interrupt.install()
+    assert not interrupt.seen()                       # each command starts afresh
+    interrupt.uninstall()

@@ -71,8 +71,15 @@ def main(argv: list[str] | None = None) -> int:
     plain_format = warnings.formatwarning
     if not (debug or args.verbose):
         warnings.formatwarning = _format_warning
+    from splattwin import interrupt
+
+    interrupt.install()
     try:
-        return int(args.func(args) or 0)
+        rc = int(args.func(args) or 0)
+        if interrupt.seen():   # a Ctrl-C some library swallowed (see splattwin.interrupt): not a success
+            print("interrupted", file=sys.stderr)
+            return 130
+        return rc
     except InputError as e:
         if debug:
             traceback.print_exc()
@@ -97,6 +104,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     finally:
         warnings.formatwarning = plain_format
+        interrupt.uninstall()
 
 
 def _format_warning(message, category, filename, lineno, line=None) -> str:

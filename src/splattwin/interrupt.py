@@ -11,6 +11,12 @@ written, so up to `checkpoint_every` steps were lost.
 request the loop polls between steps (`requested`): the loop finishes the step it is in, saves its state
 and raises KeyboardInterrupt itself. A second Ctrl-C stops at once, as before. `is_interrupt` finds a
 KeyboardInterrupt in an exception's cause/context chain (for the CLI's exit code 130).
+
+Some libraries swallow a KeyboardInterrupt: trimesh wraps its lazy imports (networkx, scipy) in
+`except BaseException`, so a Ctrl-C landing in one was lost and the build ran to the end with exit 0.
+The CLI therefore installs `install()`'s handler, which remembers every SIGINT; `check()` (between
+pipeline stages and on every progress update) raises KeyboardInterrupt for one that was swallowed, and
+the CLI exits 130 for it even when the command returned.
 """
 
 from __future__ import annotations
@@ -20,6 +26,42 @@ import signal
 import threading
 
 log = logging.getLogger(__name__)
+
+_seen = False   # a SIGINT arrived since `install()` (this process)
+
+
+def _remembering_handler(signum, frame) -> None:
+    global _seen
+    _seen = True
+    raise KeyboardInterrupt
+
+
+def install() -> None:
+    """The CLI's SIGINT handler (main thread, when SIGINT has Python's default handler): as the default,
+    and it remembers the interrupt for `check()`/`seen()`. Resets the memory."""
+    global _seen
+    _seen = False
+    if threading.current_thread() is threading.main_thread() and \
+            signal.getsignal(signal.SIGINT) in (signal.default_int_handler, _remembering_handler):
+        signal.signal(signal.SIGINT, _remembering_handler)
+
+
+def uninstall() -> None:
+    if signal.getsignal(signal.SIGINT) is _remembering_handler:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def seen() -> bool:
+    """Whether a Ctrl-C arrived since `install()`, whether or not it was handled."""
+    return _seen
+
+
+def check() -> None:
+    """Raise KeyboardInterrupt if a Ctrl-C arrived that nobody acted on (see the module docstring); only
+    in the main thread, where Python delivers it too (a loop that defers it, `DeferredInterrupt`, has
+    its own handler meanwhile)."""
+    if _seen and threading.current_thread() is threading.main_thread():
+        raise KeyboardInterrupt
 
 
 class DeferredInterrupt:
@@ -35,7 +77,7 @@ class DeferredInterrupt:
 
     def __enter__(self) -> "DeferredInterrupt":
         if threading.current_thread() is threading.main_thread() and \
-                signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+                signal.getsignal(signal.SIGINT) in (signal.default_int_handler, _remembering_handler):
             self._previous = signal.signal(signal.SIGINT, self._handle)
             self._installed = True
         return self

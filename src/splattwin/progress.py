@@ -96,7 +96,10 @@ class Progress:
 
     # -- updates -------------------------------------------------------------------------------------
     def update(self, n: int = 1) -> None:
-        """`n` more units done."""
+        """`n` more units done. Raises KeyboardInterrupt for a Ctrl-C a library swallowed (interrupt.check)."""
+        from splattwin.interrupt import check
+
+        check()
         with self._lock:
             self.n += int(n)
             self._refresh()

@@ -196,7 +196,10 @@ def run_stages(stages: list[Stage], ctx: Context, from_stage: str | None = None,
         ctx.digests = DigestCache(ctx.out / DIGEST_CACHE)
     keys: dict[str, str] = {}
     redo = requested = False
+    from splattwin.interrupt import check
+
     for stage in stages:
+        check()   # a Ctrl-C that a library swallowed during the previous stage (trimesh's lazy imports)
         key = stage_key(stage, ctx.options, keys, input_digests(stage, ctx))
         ctx.digests.save()
         keys[stage.name] = key
