@@ -232,3 +232,16 @@ def test_many_repeated_instances_load_in_linear_time(tmp_path):
     assert np.array_equal(ms.get("000000", ms.label_of("obj_000003")), A > 0)
     assert np.array_equal(ms.get("000001", ms.label_of(f"obj_000003_{n}")), C > 0)   # the same object again
 
+
+def test_segment_names_the_wrong_size_mask_file(tmp_path, capsys):
+    scene = tmp_path / "scene"
+    wide = np.zeros((H, W + 10), np.uint8)
+    _scene(scene, [[(1, _at(0, 0)), (2, _at(0.1, 0))]], {(0, 0): wide, (0, 1): B})
+    bad = scene / "mask_visib" / bop.mask_name(0, 0)
+    code = main(["segment", str(scene), "--masks", str(scene), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert code == 2 and str(bad) in err and "is 50x30 but its image is 40x30" in err
+    assert not (tmp_path / "out").exists()
+    # without the images' sizes the file that set the view's size is named beside the one that differs
+    with pytest.raises(InputError, match=f"is 40x30 but view '000000' is 50x30 .the size of {bad}."):
+        load_masks(scene)

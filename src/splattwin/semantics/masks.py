@@ -849,4 +849,7 @@ def _read_binary_png(path: Path) -> np.ndarray:
 def _check_size(ms: MaskSet, view: str, mask: np.ndarray, path: Path) -> None:
     hw = ms.sizes.get(view)
     if hw is not None and tuple(hw) != mask.shape:
-        raise InputError(f"mask is {mask.shape[1]}x{mask.shape[0]} but view {view!r} is {hw[1]}x{hw[0]}", path)
+        first = ms.size_sources.get(view)
+        # name the file that set the view's size: it may be the wrong one
+        by = f" (the size of {first})" if first and first != str(path) else ""
+        raise InputError(f"mask is {mask.shape[1]}x{mask.shape[0]} but view {view!r} is {hw[1]}x{hw[0]}{by}", path)
