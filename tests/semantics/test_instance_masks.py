@@ -147,3 +147,101 @@ def test_build_preflight_rejects_a_bad_bop_mask_with_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and "000001_000000.png" in err and "but its image is 40x30" in err
     assert not (tmp_path / "twin" / "poses").exists()   # stopped before any stage
+
+
+# -- untrusted folders: links, keys, counts, names ---------------------------------------------------------
+def test_mask_links_leaving_the_folder_are_refused(tmp_path):
+    import os
+
+    outside = tmp_path / "outside.png"
+    io.write_image(outside, B)
+    scene = tmp_path / "scene"
+    _scene(scene, [[(1, _at(0, 0)), (2, _at(0.1, 0))]], {(0, 0): A})
+    os.symlink(outside, scene / "mask_visib" / bop.mask_name(0, 1))
+    for path in (scene, scene / "mask_visib"):
+        with pytest.raises(InputError, match="leads outside its folder") as e:
+            load_masks(path)
+        assert e.value.path == scene / "mask_visib" / bop.mask_name(0, 1)
+    d = tmp_path / "inst"
+    io.write_image(d / "img_a_1.png", A)
+    io.write_json(d / "instances.json", {"1": "mug", "2": "bowl"})
+    os.symlink(outside, d / "img_a_2.png")
+    with pytest.raises(InputError, match="leads outside its folder") as e:
+        load_masks(d)
+    assert e.value.path == d / "img_a_2.png"
+    # a link that stays inside the folder is a file of the folder
+    (d / "img_a_2.png").unlink()
+    os.symlink("img_a_1.png", d / "img_a_2.png")
+    assert sorted(load_masks(d).objects.values()) == ["bowl", "mug"]
+
+
+@pytest.mark.parametrize("key", ["²", "٣", "1²"])
+def test_non_ascii_digit_keys_are_input_errors(tmp_path, key):
+    scene = tmp_path / "scene"
+    _scene(scene, [[(1, _at(0, 0))]], {(0, 0): A})
+    io.write_json(scene / bop.NAMES_FILE, {key: "mug"})
+    with pytest.raises(InputError, match="must be a whole number") as e:
+        load_masks(scene)
+    assert e.value.path == scene / bop.NAMES_FILE
+    (scene / bop.NAMES_FILE).unlink()
+    io.write_json(scene / bop.SCENE_GT, {key: [{"obj_id": 1}]})
+    with pytest.raises(InputError, match="must be a whole number") as e:
+        load_masks(scene)
+    assert e.value.path == scene / bop.SCENE_GT
+    d = tmp_path / "inst"
+    io.write_image(d / "img_a_1.png", A)
+    io.write_json(d / "instances.json", {key: "mug"})
+    with pytest.raises(InputError, match="must be a whole number") as e:
+        load_masks(d)
+    assert e.value.path == d / "instances.json"
+
+
+def test_instances_json_names_must_be_unique(tmp_path):
+    d = tmp_path / "inst"
+    io.write_image(d / "img_a_1.png", A)
+    io.write_image(d / "img_a_2.png", B)
+    io.write_json(d / "instances.json", {"1": "mug", "2": "mug"})   # would merge two objects into one
+    with pytest.raises(InputError, match="'mug' appears twice") as e:
+        load_masks(d)
+    assert e.value.path == d / "instances.json"
+    io.write_json(d / "instances.json", {"1": "mug", "01": "bowl"})
+    with pytest.raises(InputError, match="instance 1 is named twice"):
+        load_masks(d)
+
+
+def test_instances_per_bop_image_are_bounded(tmp_path):
+    from splattwin.semantics.masks import MAX_OBJECTS_PER_VIEW
+
+    _scene(tmp_path, [[(1, _at(0, 0))]], {(0, 0): A})
+    io.write_json(tmp_path / bop.SCENE_GT, {"0": [{"obj_id": 1}] * (MAX_OBJECTS_PER_VIEW + 1)})
+    with pytest.raises(InputError, match=f"{MAX_OBJECTS_PER_VIEW + 1} instances, more than the limit") as e:
+        load_masks(tmp_path)
+    assert e.value.path == tmp_path / bop.SCENE_GT
+
+
+def test_many_repeated_instances_load_in_linear_time(tmp_path):
+    import time
+
+    # 400 copies of one obj_id at distinct places in both images: was a sum per instance over the image and
+    # a Python distance list per instance (2000 copies took 26 s)
+    n = 400
+    _scene(tmp_path, [[(3, _at(0.1 * i, 0)) for i in range(n)]] * 2, {(0, 0): A, (1, n - 1): C})
+    t = time.perf_counter()
+    ms = load_masks(tmp_path)
+    assert time.perf_counter() - t < 20
+    assert np.array_equal(ms.get("000000", ms.label_of("obj_000003")), A > 0)
+    assert np.array_equal(ms.get("000001", ms.label_of(f"obj_000003_{n}")), C > 0)   # the same object again
+
+
+def test_segment_names_the_wrong_size_mask_file(tmp_path, capsys):
+    scene = tmp_path / "scene"
+    wide = np.zeros((H, W + 10), np.uint8)
+    _scene(scene, [[(1, _at(0, 0)), (2, _at(0.1, 0))]], {(0, 0): wide, (0, 1): B})
+    bad = scene / "mask_visib" / bop.mask_name(0, 0)
+    code = main(["segment", str(scene), "--masks", str(scene), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert code == 2 and str(bad) in err and "is 50x30 but its image is 40x30" in err
+    assert not (tmp_path / "out").exists()
+    # without the images' sizes the file that set the view's size is named beside the one that differs
+    with pytest.raises(InputError, match=f"is 40x30 but view '000000' is 50x30 .the size of {bad}."):
+        load_masks(scene)

@@ -170,3 +170,118 @@ def test_bad_inputs(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         _maskset().validate()  # a valid set raises nothing
+
+
+# -- untrusted files: numbers, names and sizes ---------------------------------------------------------------
+def _coco(**change) -> dict:
+    """A one-image, one-category COCO dict; `change` replaces parts: image=, category=, annotation=, extra=."""
+    im = {"id": 1, "file_name": "v0.png", "height": 4, "width": 4, **change.get("image", {})}
+    cat = {"id": 1, "name": "mug", **change.get("category", {})}
+    ann = {"image_id": 1, "category_id": 1, "segmentation": {"size": [4, 4], "counts": [5, 2, 2, 2, 5]},
+           **change.get("annotation", {})}
+    return {"images": [im] + change.get("extra", []), "categories": [cat], "annotations": [ann]}
+
+
+@pytest.mark.parametrize("change,message", [
+    ({"category": {"id": float("inf")}}, "category id must be a whole number, got inf"),
+    ({"category": {"id": 1.7}}, "category id must be a whole number, got 1.7"),
+    ({"image": {"height": float("inf")}}, "size must be whole numbers"),
+    ({"annotation": {"segmentation": {"size": [float("inf"), 4], "counts": [16]}}}, "annotation 0 RLE size"),
+    ({"image": {"id": 1.7}}, "image id must be a whole number, got 1.7"),
+    ({"annotation": {"image_id": 1.7}}, "annotation 0 image_id must be a whole number"),
+    ({"extra": [{"id": 1, "file_name": "v1.png", "height": 4, "width": 4}]}, "image id 1 appears twice"),
+    ({"extra": [{"id": 2, "file_name": "v0.jpg", "height": 4, "width": 4}]}, "two images have the view name 'v0'"),
+    ({"image": {"file_name": ["v0.png"]}}, r"file_name must be a string, got \['v0.png'\]"),
+    ({"annotation": {"score": float("nan")}}, "score must be a number in .0, 1., got nan"),
+    ({"annotation": {"score": float("inf")}}, "score must be a number in .0, 1., got inf"),
+    ({"annotation": {"score": 1e6}}, "score must be a number in .0, 1."),
+    ({"annotation": {"score": "x"}}, "score must be a number in .0, 1."),
+])
+def test_coco_bad_numbers_names_and_duplicates(tmp_path, change, message):
+    f = tmp_path / "c.json"
+    f.write_text(json.dumps(_coco(**change)).replace("Infinity", "1e400"))   # as a file would spell it
+    with pytest.raises(InputError, match=message) as e:
+        load_masks(f)
+    assert e.value.path == f
+    io.write_json(f, _coco())
+    assert load_masks(f).get("v0", 1).sum() == 4   # the unchanged file loads
+
+
+def test_coco_integer_too_long_for_python(tmp_path):
+    f = tmp_path / "c.json"
+    f.write_text(json.dumps(_coco()).replace('"id": 1,', '"id": 1' + "0" * 5000 + ",", 1))
+    with pytest.raises(InputError, match="not readable JSON") as e:
+        load_masks(f)
+    assert e.value.path == f
+
+
+def test_coco_categories_bounded(tmp_path):
+    from splattwin.semantics.masks import MAX_CATEGORIES
+
+    d = _coco()
+    d["categories"] = [{"id": i, "name": f"c{i}"} for i in range(1, MAX_CATEGORIES + 2)]
+    io.write_json(tmp_path / "c.json", d)
+    with pytest.raises(InputError, match=f"at most {MAX_CATEGORIES}"):
+        load_masks(tmp_path / "c.json")
+
+
+def test_polygon_json_bad_size_and_score(tmp_path):
+    d = {"image_filename": "v0.png", "image_height": 10, "image_width": 12, "input_points": [],
+         "input_labels": [], "segmentation_polygons": [[[2, 2], [6, 2], [6, 5], [2, 5]]]}
+    f = tmp_path / "hammer" / "v0_mask.json"
+    for change, message in (({"image_height": float("inf")}, "size must be whole numbers"),
+                            ({"score": "x"}, "score must be a number in .0, 1., got 'x'"),
+                            ({"score": float("nan")}, "score must be a number"),
+                            ({"image_filename": ["v0.png"]}, "image_filename must be a string")):
+        f.parent.mkdir(exist_ok=True)
+        f.write_text(json.dumps({**d, **change}).replace("Infinity", "1e400"))
+        with pytest.raises(InputError, match=message) as e:
+            load_masks(tmp_path / "hammer")
+        assert e.value.path == f
+
+
+def test_mask_index_bad_label_size_and_score(tmp_path):
+    ms = _maskset()
+    ms.save(tmp_path / "m")
+    index = tmp_path / "m" / "masks.json"
+    good = json.loads(index.read_text())
+    for edit, message in ((lambda d: d["objects"][0].update(label=float("inf")), "label of object 'blue_box' must be"),
+                          (lambda d: d["objects"][0].update(label=70000), r"outside \[1, 65535\]"),
+                          (lambda d: d["views"]["v0"].update(size=[20, float("inf")]), "size must be whole numbers"),
+                          (lambda d: d["views"]["v0"]["masks"]["blue_box"].update(score="x"), "score of 'blue_box'")):
+        d = json.loads(json.dumps(good))
+        edit(d)
+        index.write_text(json.dumps(d).replace("Infinity", "1e400"))
+        with pytest.raises(InputError, match=message) as e:
+            MaskSet.load(tmp_path / "m")
+        assert e.value.path == index
+
+
+def test_mask_index_wrong_size_blames_the_index(tmp_path):
+    ms = _maskset()
+    ms.save(tmp_path / "m")
+    index = tmp_path / "m" / "masks.json"
+    d = json.loads(index.read_text())
+    d["views"]["v0"]["size"] = [10, 10]
+    index.write_text(json.dumps(d))
+    with pytest.raises(InputError, match="masks.json says view 'v0' is 10x10 but its mask file v0/blue_box.png "
+                                         "is 30x20") as e:
+        MaskSet.load(tmp_path / "m")
+    assert e.value.path == index
+    with pytest.raises(InputError, match="mask of view 'v0' is 10x10 but its image is 30x20") as e:
+        load_masks(tmp_path / "m", image_sizes={"v0": (20, 30)})
+    assert e.value.path == index
+
+
+def test_label_image_with_too_many_labels_is_refused_before_masks(tmp_path):
+    from splattwin.semantics.masks import MAX_OBJECTS_PER_VIEW
+
+    lab = np.arange(64 * 32, dtype=np.uint16).reshape(32, 64)   # 2047 labels in 2 KiB of pixels
+    io.write_image(tmp_path / "gt" / "v0.png", lab)
+    with pytest.raises(InputError, match=f"2047 distinct labels, more than the limit of {MAX_OBJECTS_PER_VIEW}") as e:
+        load_masks(tmp_path / "gt")
+    assert e.value.path == tmp_path / "gt" / "v0.png"
+    few = np.zeros((32, 64), np.uint16)
+    few[:4, :4], few[10:, 10:] = 7, 300
+    io.write_image(tmp_path / "gt" / "v0.png", few)
+    assert sorted(load_masks(tmp_path / "gt").objects) == [7, 300]

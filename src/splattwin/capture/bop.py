@@ -31,6 +31,7 @@ built from integer ids, never taken from the files.
 from __future__ import annotations
 
 import logging
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -68,7 +69,8 @@ def is_scene(path: Path) -> bool:
 
 
 def _image_id(key, where: Path) -> int:
-    if not isinstance(key, str) or not key.isdigit() or len(key) > 9:
+    # ASCII digits only: str.isdigit() also takes "²", which int() refuses
+    if not isinstance(key, str) or not re.fullmatch(r"[0-9]{1,9}", key):
         raise InputError(f"image id {key!r} must be a whole number (a key like \"0\" or \"12\")", where)
     return int(key)
 

@@ -51,8 +51,11 @@ def _segment(args: argparse.Namespace) -> int:
     with output_lock(out):
         objs = label_objects(ds)  # as `fuse` numbers them
         if args.masks is not None:
-            ms = load_masks(args.masks, objects=objs)
-            ms.validate({f.name: (f.camera.height, f.camera.width) for f in frames}, args.masks)
+            # every mask checked against its own image as it is read (as `build` does), so a wrong-size
+            # file is named, not the next mask of its view
+            sizes = {f.name: (f.camera.height, f.camera.width) for f in ds.frames}
+            ms = load_masks(args.masks, objects=objs, image_sizes=sizes)
+            ms.validate({f.name: sizes[f.name] for f in frames}, args.masks)
         else:
             opts = from_args(SegmentOptions, args)
             labels = None

@@ -34,10 +34,11 @@ Accepted sources (`load_masks` picks by what it finds):
 
 Every loader treats its files as untrusted (they are often received from someone else): object and
 view names are checked where they enter (`splattwin.names`: never a path, unique), paths in a
-`masks.json` index stay inside its folder (`splattwin.paths`), and every image or mask size read from a
-file is checked against `splattwin.limits` before a pixel is allocated. With `image_sizes` (view ->
-(H, W) of the dataset's images) each mask is checked against its own image as it is read, so a
-wrong-size file is named, not the object whose mask happened to be read first.
+`masks.json` index and files found by listing a mask folder stay inside it, symbolic links resolved
+(`splattwin.paths`), every image or mask size read from a file is checked against `splattwin.limits`
+before a pixel is allocated, and a view holds at most `MAX_OBJECTS_PER_VIEW` objects. With
+`image_sizes` (view -> (H, W) of the dataset's images) each mask is checked against its own image as it
+is read, so a wrong-size file is named, not the object whose mask happened to be read first.
 """
 
 from __future__ import annotations
@@ -60,6 +61,11 @@ log = logging.getLogger(__name__)
 
 INDEX_NAME = "masks.json"
 MAX_LABEL_ID = 65535   # label images are at most 16-bit: an id above cannot be drawn (nor sizes an array)
+# Objects in one view (distinct values of a label image, instances of a BOP image): a scene has tens.
+# Each costs a full-size mask (and a PNG when saved), so a few bytes of file must not claim thousands.
+MAX_OBJECTS_PER_VIEW = 1000
+MAX_CATEGORIES = 10_000    # COCO categories (LVIS has 1203); more is not a label set
+MAX_ID = 2**63 - 1         # COCO image and category ids: whole numbers that fit an int64
 _IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
 
@@ -263,9 +269,9 @@ def load_maskset_dir(path: Path, image_sizes: dict | None = None) -> MaskSet:
         by_name = {}
         for o in index["objects"]:
             name = object_name(o["name"], index_path)
-            label = int(o["label"])
-            if label < 1 or label in ms.objects:
-                raise InputError(f"object {name!r}: label {label} is < 1 or used twice", index_path)
+            label = _whole(o["label"], index_path, f"label of object {name!r}", 1, MAX_LABEL_ID)
+            if label in ms.objects:
+                raise InputError(f"object {name!r}: label {label} is used twice", index_path)
             ms.objects[label] = name
             if o.get("prompt"):
                 ms.prompts[label] = str(o["prompt"])
@@ -273,19 +279,25 @@ def load_maskset_dir(path: Path, image_sizes: dict | None = None) -> MaskSet:
         _check_names(ms, index_path)
         for view, entry in index["views"].items():
             view_name(view, index_path)
+            size = None
             if entry.get("size"):
-                h, w = (int(v) for v in entry["size"])
-                check_pixels(w, h, index_path, f"view {view!r}")
-                ms.sizes[view] = (h, w)
-                _check_image(view, (h, w), image_sizes, index_path)
+                h, w = entry["size"]
+                w, h = check_pixels(w, h, index_path, f"view {view!r}")
+                size = ms.sizes[view] = (h, w)
+                _check_image(view, size, image_sizes, index_path)
             for name, m in entry["masks"].items():
                 if name not in by_name:
                     raise InputError(f"view {view!r} names object {name!r} missing from the objects list", index_path)
                 mpath = confined(path, m["file"], index_path, f"mask file of {name!r} in view {view!r}")
+                score = _score(m.get("score", 1.0), index_path, f"score of {name!r} in view {view!r}")
                 mask = _read_binary_png(mpath)
-                _check_size(ms, view, mask, mpath)
+                # against the image first: a file that differs from its photo is the one to blame
                 _check_image(view, mask.shape, image_sizes, mpath)
-                ms.add(view, by_name[name], mask, float(m.get("score", 1.0)), source=mpath)
+                if size is not None and mask.shape != size:  # the index's size is the claim that is wrong
+                    raise InputError(f"{INDEX_NAME} says view {view!r} is {size[1]}x{size[0]} but its mask file "
+                                     f"{m['file']} is {mask.shape[1]}x{mask.shape[0]}", index_path)
+                _check_size(ms, view, mask, mpath)
+                ms.add(view, by_name[name], mask, score, source=mpath)
     except (KeyError, TypeError, ValueError, AttributeError) as e:
         raise InputError(f"malformed mask index: {e}", index_path) from e
     return ms
@@ -302,15 +314,13 @@ def load_png_dir(path: Path, objects: dict[str, int] | None = None, image_sizes:
     for p in files:
         names[p] = name_from_label(p.stem, p, "object name (mask file name)")
         view_name(p.parent.name, p.parent, "view name (folder name)")
-    for name in sorted(set(names.values())):
-        if name not in labels:
-            labels[name] = max(labels.values(), default=0) + 1
+    _new_labels(labels, sorted(set(names.values())))
     for name in set(names.values()):  # only objects that have mask files
         ms.objects[labels[name]] = name
     _check_names(ms, path)
     for p in files:
         view = p.parent.name
-        mask = _read_binary_png(p)
+        mask = _read_binary_png(_inside(path, p))
         _check_image(view, mask.shape, image_sizes, p)
         ms.add(view, labels[names[p]], mask, 1.0, source=p)
     return ms
@@ -329,13 +339,23 @@ def load_label_images(path: Path, objects: dict[str, int] | None = None, image_s
         _check_names(ms, path)
     for p in files:
         view = view_name(p.stem, p)
-        img = _read_image(p)
+        img = _read_image(_inside(path, p, "label image"))
         if img.ndim != 2:
             raise InputError(f"label image must be single-channel, got shape {img.shape}", p)
+        if img.dtype.kind not in "biu":
+            raise InputError(f"label image must hold whole-number labels, got {img.dtype} pixels", p)
         _check_image(view, img.shape, image_sizes, p)
         ms.sizes[view] = img.shape
         ms.size_sources.setdefault(view, str(p))
-        present = [int(v) for v in np.unique(img) if v != 0]
+        values = np.unique(img)
+        values = values[values != 0]
+        # bounded before a mask is built: each label costs a full-size mask (a 389-byte PNG can hold 32768)
+        if values.size > MAX_OBJECTS_PER_VIEW:
+            raise InputError(f"label image holds {values.size} distinct labels, more than the limit of "
+                             f"{MAX_OBJECTS_PER_VIEW} objects per view (is it a photo or depth map, not labels?)", p)
+        present = [int(v) for v in values]
+        if present and not (0 < present[0] and present[-1] <= MAX_LABEL_ID):
+            raise InputError(f"label image values must lie in [0, {MAX_LABEL_ID}], got {present[0]}..{present[-1]}", p)
         for label in present:
             if objects and label not in ms.objects:
                 continue
@@ -355,9 +375,12 @@ def load_coco(path: Path, objects: dict[str, int] | None = None, image_sizes: di
     if not isinstance(data, dict):
         raise InputError("malformed COCO JSON: expected an object with images, annotations, categories", path)
     try:
+        cats = data.get("categories", [])
+        if not isinstance(cats, list) or len(cats) > MAX_CATEGORIES:
+            raise InputError(f"categories must be a list of at most {MAX_CATEGORIES} entries", path)
         cat_name, cat_text = {}, {}
-        for c in data.get("categories", []):
-            cid = int(c["id"])
+        for c in cats:
+            cid = _whole(c["id"], path, "category id", 0, MAX_ID)
             if cid in cat_name:
                 raise InputError(f"category id {cid} appears twice", path)
             cat_name[cid] = name_from_label(c["name"], path, f"category {cid} name")
@@ -365,40 +388,51 @@ def load_coco(path: Path, objects: dict[str, int] | None = None, image_sizes: di
         check_unique(cat_name.values(), path, "category name")
         images = {}
         for im in data["images"]:
-            iid = int(im["id"])
-            view = view_name(Path(str(im["file_name"])).stem, path, f"image {iid} file_name")
-            H, W = int(im["height"]), int(im["width"])
-            check_pixels(W, H, path, f"image {im['file_name']!r}")
+            iid = _whole(im["id"], path, "image id", 0, MAX_ID)
+            if iid in images:
+                raise InputError(f"image id {iid} appears twice", path)
+            file_name = im["file_name"]
+            if not isinstance(file_name, str):
+                raise InputError(f"image {iid} file_name must be a string, got {_show(file_name)}", path)
+            view = view_name(Path(file_name).stem, path, f"image {iid} file_name")
+            if view in ms.sizes:  # two images whose masks would merge into one view
+                raise InputError(f"two images have the view name {view!r} (image {iid}, file_name {file_name!r})",
+                                 path)
+            W, H = check_pixels(im["width"], im["height"], path, f"image {file_name!r}")
             _check_image(view, (H, W), image_sizes, path)
-            images[iid] = (view, H, W, str(im["file_name"]))
+            images[iid] = (view, H, W, file_name)
             ms.sizes[view] = (H, W)
         # labels: the given objects' (a scene's), else the category id itself, so that every route (segment,
         # fuse, build) numbers the objects alike; a fresh one only where the id is < 1 or already taken
+        used = set(labels.values())  # a set: `in labels.values()` per category is quadratic
         for cid, name in sorted(cat_name.items()):
-            if name not in labels and 1 <= cid <= MAX_LABEL_ID and cid not in labels.values():
+            if name not in labels and 1 <= cid <= MAX_LABEL_ID and cid not in used:
                 labels[name] = cid
-        for name in sorted(set(cat_name.values())):
-            if name not in labels:
-                labels[name] = max(labels.values(), default=0) + 1
+                used.add(cid)
+        _new_labels(labels, sorted(set(cat_name.values())))
+        cat_names = set(cat_name.values())
         for name, label in labels.items():
-            if name in cat_name.values():
+            if name in cat_names:
                 ms.objects[label] = name
                 if cat_text.get(name) and cat_text[name] != name:
                     ms.prompts[label] = cat_text[name]
         for i, ann in enumerate(data["annotations"]):
-            im = images.get(int(ann["image_id"]))
+            iid = _whole(ann["image_id"], path, f"annotation {i} image_id", 0, MAX_ID)
+            im = images.get(iid)
             if im is None:
-                raise InputError(f"annotation {i} refers to unknown image_id {ann['image_id']}", path)
+                raise InputError(f"annotation {i} refers to unknown image_id {iid}", path)
             view, H, W, file_name = im
-            cid = int(ann["category_id"])
+            cid = _whole(ann["category_id"], path, f"annotation {i} category_id", 0, MAX_ID)
             if cid not in cat_name:
                 raise InputError(f"annotation {i} refers to unknown category_id {cid}", path)
+            score = _score(ann.get("score", 1.0), path, f"annotation {i} score")
             seg = ann["segmentation"]
             if isinstance(seg, dict):
                 try:
-                    h, w = (int(v) for v in seg["size"])
+                    h, w = seg["size"]
                 except (KeyError, TypeError, ValueError) as e:
                     raise InputError(f"annotation {i}: malformed RLE (need size [h, w] and counts): {e}", path) from e
+                w, h = check_pixels(w, h, path, f"annotation {i} RLE")
                 if (h, w) != (H, W):
                     raise InputError(f"annotation {i}: RLE size {w}x{h} differs from its image {file_name} ({W}x{H})",
                                      path)
@@ -410,7 +444,7 @@ def load_coco(path: Path, objects: dict[str, int] | None = None, image_sizes: di
                 mask = polygons_to_mask([np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in seg], H, W, path)
             else:
                 raise InputError(f"annotation {i}: segmentation must be RLE or polygons", path)
-            ms.add(view, labels[cat_name[cid]], mask, float(ann.get("score", 1.0)), source=path)
+            ms.add(view, labels[cat_name[cid]], mask, score, source=path)
     except InputError as e:
         if e.path is None:
             raise InputError(e.problem, path) from None
@@ -423,7 +457,7 @@ def load_coco(path: Path, objects: dict[str, int] | None = None, image_sizes: di
 # -- per-instance mask files (BOP and similar) ------------------------------------------------------
 
 INSTANCES_FILE = "instances.json"
-_INSTANCE_RE = re.compile(r"^(.+)_(\d{1,9})$")
+_INSTANCE_RE = re.compile(r"^(.+)_([0-9]{1,9})$")  # ASCII digits (\d also takes other scripts' digits)
 _SAME_INSTANCE_M = 0.05  # instances of one obj_id closer than this in the world are the same object
 
 
@@ -441,33 +475,48 @@ def find_bop_scene(path: Path) -> Path | None:
 
 
 def _bop_instance_keys(gt: dict, T_world_cam: dict[int, np.ndarray] | None, where: Path) -> dict[tuple[int, int], tuple[int, int]]:
-    """(image id, instance index) -> (obj_id, n): the n-th distinct object with that obj_id."""
+    """(image id, instance index) -> (obj_id, n): the n-th distinct object with that obj_id.
+
+    Linear in the instances apart from one vectorised distance per repeated instance to the objects
+    of its obj_id found so far (at most MAX_OBJECTS_PER_VIEW instances per image)."""
+    from collections import Counter
+
     keys: dict[tuple[int, int], tuple[int, int]] = {}
-    dup_ids = {g.obj_id for insts in gt.values() for g in insts
-               if sum(h.obj_id == g.obj_id for h in insts) > 1}
-    centres: dict[int, list[np.ndarray]] = {}   # obj_id -> world positions of its distinct objects
+    dup_ids = set()
+    for im_id, insts in gt.items():
+        if len(insts) > MAX_OBJECTS_PER_VIEW:
+            raise InputError(f"image {im_id} lists {len(insts)} instances, more than the limit of "
+                             f"{MAX_OBJECTS_PER_VIEW} objects per view", where)
+        dup_ids.update(oid for oid, k in Counter(g.obj_id for g in insts).items() if k > 1)
+    centres: dict[int, np.ndarray] = {}   # obj_id -> [N,3] world positions of its distinct objects
     warned = False
     for im_id in sorted(gt):
-        seen: dict[int, list[int]] = {}
+        seen: dict[int, np.ndarray] = {}   # obj_id -> bool [N]: objects already given an instance here
+        n_here: dict[int, int] = {}
         for g in gt[im_id]:
             if g.obj_id not in dup_ids:
                 keys[(im_id, g.index)] = (g.obj_id, 0)
                 continue
-            taken = seen.setdefault(g.obj_id, [])
             if T_world_cam is not None and im_id in T_world_cam:
                 p = (T_world_cam[im_id] @ g.T_cam_obj)[:3, 3]
-                cs = centres.setdefault(g.obj_id, [])
-                d = [np.linalg.norm(c - p) if n not in taken else np.inf for n, c in enumerate(cs)]
-                n = int(np.argmin(d)) if d and min(d) < _SAME_INSTANCE_M else len(cs)
+                cs = centres.setdefault(g.obj_id, np.zeros((0, 3)))
+                taken = seen.setdefault(g.obj_id, np.zeros(0, bool))
+                taken = np.concatenate([taken, np.zeros(len(cs) - len(taken), bool)])
+                d = np.linalg.norm(cs - p, axis=1)
+                d[taken] = np.inf
+                n = int(np.argmin(d)) if d.size and d.min() < _SAME_INSTANCE_M else len(cs)
                 if n == len(cs):
-                    cs.append(p)
+                    centres[g.obj_id] = np.vstack([cs, p])
+                    taken = np.append(taken, False)
+                taken[n] = True
+                seen[g.obj_id] = taken
             else:
                 if not warned:
                     log.warning("%s: several instances of one obj_id and no camera poses: instances are told apart "
                                 "by their order in each image's list", where)
                     warned = True
-                n = len(taken)
-            taken.append(n)
+                n = n_here.get(g.obj_id, 0)
+                n_here[g.obj_id] = n + 1
             keys[(im_id, g.index)] = (g.obj_id, n)
     return keys
 
@@ -499,9 +548,6 @@ def load_bop_masks(path: str | Path, objects: dict[str, int] | None = None,
             log.info("%s: camera poses not used to tell instances apart (%s)", scene, e)
     keys = _bop_instance_keys(gt, T_world_cam, gt_file)
     base = object_names(scene, sorted({k[0] for k in keys.values()}))
-    counts: dict[int, int] = {}
-    for oid, n in set(keys.values()):
-        counts[oid] = max(counts.get(oid, 0), n + 1)
     name_of = {(oid, n): (base[oid] if n == 0 else f"{base[oid]}_{n + 1}")
                for oid, n in sorted(set(keys.values()))}
     for nm in name_of.values():
@@ -509,9 +555,7 @@ def load_bop_masks(path: str | Path, objects: dict[str, int] | None = None,
     # a collision left here comes from the names file ("mug" with 2 instances -> "mug_2", also a name there)
     check_unique(name_of.values(), names_source(scene) or gt_file)
     labels = dict(objects or {})
-    for key in sorted(name_of):
-        if name_of[key] not in labels:
-            labels[name_of[key]] = max(labels.values(), default=0) + 1
+    _new_labels(labels, [name_of[key] for key in sorted(name_of)])
     ms = MaskSet(source=f"bop:{mask_dir}")
     missing = []
     for im_id in sorted(gt):
@@ -522,7 +566,7 @@ def load_bop_masks(path: str | Path, objects: dict[str, int] | None = None,
                 missing.append(f.name)
                 continue
             nm = name_of[keys[(im_id, g.index)]]
-            _add_instance_png(ms, view, labels[nm], nm, f, image_sizes)
+            _add_instance_png(ms, view, labels[nm], nm, _inside(scene, f), image_sizes)
     if missing:
         log.warning("%s: %d instance mask file(s) listed in %s are missing (e.g. %s)", mask_dir, len(missing),
                     SCENE_GT, ", ".join(missing[:3]))
@@ -550,13 +594,18 @@ def load_instance_masks(path: str | Path, objects: dict[str, int] | None = None,
     names: dict[int, str] = {}
     index = path / INSTANCES_FILE
     if index.is_file():
-        data = _read_json(index)
+        data = _read_json(_inside(path, index, INSTANCES_FILE))
         if not isinstance(data, dict):
             raise InputError('expected an object {"<instance number>": "object name", ...}', index)
         for k, v in data.items():
-            if not isinstance(k, str) or not k.isdigit() or len(k) > 9:
-                raise InputError(f"instance key {k!r} must be a whole number", index)
+            if not isinstance(k, str) or not _DIGITS.fullmatch(k):
+                raise InputError(f"instance key {k!r} must be a whole number (digits 0-9, at most 9)", index)
+            if int(k) in names:  # "1" and "01"
+                raise InputError(f"instance {int(k)} is named twice (key {k!r} and another with the same number)",
+                                 index)
             names[int(k)] = name_from_label(v, index, f"name of instance {k}")
+        # two instances of one name would merge into one object (as BOP's object_names.json refuses)
+        check_unique(names.values(), index)
     files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in _IMAGE_EXTS)
     if not files:
         raise InputError("no <view>_<instance>.png mask files in this folder", path)
@@ -572,12 +621,10 @@ def load_instance_masks(path: str | Path, objects: dict[str, int] | None = None,
     name_of = {inst: names.get(inst, f"instance_{inst}") for _, _, inst in parsed}
     check_unique(set(name_of.values()), index if names else path)
     labels = dict(objects or {})
-    for inst in sorted(name_of):
-        if name_of[inst] not in labels:
-            labels[name_of[inst]] = max(labels.values(), default=0) + 1
+    _new_labels(labels, [name_of[inst] for inst in sorted(name_of)])
     ms = MaskSet(source=f"instances:{path}")
     for p, view, inst in parsed:
-        _add_instance_png(ms, view, labels[name_of[inst]], name_of[inst], p, image_sizes)
+        _add_instance_png(ms, view, labels[name_of[inst]], name_of[inst], _inside(path, p), image_sizes)
     _check_names(ms, path)
     return ms
 
@@ -636,23 +683,24 @@ def load_polygon_dir(path: Path, objects: dict[str, int] | None = None, object_n
             groups.append((sub.name, files))
     for default_name, files in groups:
         for f in files:
-            d = _read_json(f)
+            d = _read_json(_inside(path, f, "polygon mask file"))
             if not isinstance(d, dict):
                 raise InputError("malformed polygon mask JSON: expected an object", f)
             try:
                 name = name_from_label(d.get("object") or default_name or path.name, f)
-                H, W = int(d["image_height"]), int(d["image_width"])
-                check_pixels(W, H, f, "image_width x image_height")
+                W, H = check_pixels(d["image_width"], d["image_height"], f, "image_width x image_height")
                 polys = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in d["segmentation_polygons"] if len(p)]
-                view = view_name(Path(str(d.get("image_filename") or f.name[: -len("_mask.json")])).stem, f,
-                                 "image_filename")
+                image_file = d.get("image_filename") or f.name[: -len("_mask.json")]
+                if not isinstance(image_file, str):
+                    raise InputError(f"image_filename must be a string, got {_show(image_file)}", f)
+                view = view_name(Path(image_file).stem, f, "image_filename")
+                score = _score(d.get("score", 1.0), f, "score")
             except (KeyError, TypeError, ValueError) as e:
                 raise InputError(f"malformed polygon mask JSON: {e}", f) from e
             _check_image(view, (H, W), image_sizes, f)
-            if name not in labels:
-                labels[name] = max(labels.values(), default=0) + 1
+            _new_labels(labels, [name])
             ms.objects[labels[name]] = name
-            ms.add(view, labels[name], polygons_to_mask(polys, H, W, f), float(d.get("score", 1.0)), source=f)
+            ms.add(view, labels[name], polygons_to_mask(polys, H, W, f), score, source=f)
     _check_names(ms, path)
     return ms
 
@@ -737,7 +785,53 @@ def _safe_name(name: str) -> str:
 
 
 def _read_json(path: Path):
-    return io.read_json(path)
+    try:
+        return io.read_json(path)
+    except ValueError as e:  # Python refuses to parse an integer of over 4300 digits
+        raise InputError(f"not readable JSON: {e}", path) from None
+
+
+_DIGITS = re.compile(r"[0-9]{1,9}")  # ASCII only: str.isdigit() also takes "²", which int() refuses
+
+
+def _show(v) -> str:
+    try:
+        s = repr(v)
+    except ValueError:  # an int too long to print
+        return "a number too long to print"
+    return s if len(s) <= 60 else s[:57] + "..."
+
+
+def _whole(v, where, what: str, lo: int, hi: int) -> int:
+    """`v` if it is a JSON integer (not a bool, 1.7 or 1e400) in [lo, hi], else InputError."""
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise InputError(f"{what} must be a whole number, got {_show(v)}", where)
+    if not lo <= v <= hi:
+        raise InputError(f"{what} {_show(v)} is outside [{lo}, {hi}]", where)
+    return v
+
+
+def _score(v, where, what: str) -> float:
+    """A mask score: a number in [0, 1] (NaN, inf and strings refused)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v <= 1:  # NaN fails 0 <= v
+        raise InputError(f"{what} must be a number in [0, 1], got {_show(v)}", where)
+    return float(v)
+
+
+def _new_labels(labels: dict[str, int], names) -> None:
+    """Give each of `names` missing from `labels` the next label above the highest, in order (a running
+    maximum: max() per name is quadratic in the number of names)."""
+    top = max(labels.values(), default=0)
+    for n in names:
+        if n not in labels:
+            top += 1
+            labels[n] = top
+
+
+def _inside(root: Path, f: Path, what: str = "mask file") -> Path:
+    """`f`, found by listing a folder under `root`, unless it is a symbolic link leading out of `root`:
+    received masks must not pull in files from elsewhere (as paths named in an index are confined)."""
+    return confined(root, f.relative_to(root).as_posix(), f, what)
 
 
 def _read_image(path: Path) -> np.ndarray:
@@ -755,4 +849,7 @@ def _read_binary_png(path: Path) -> np.ndarray:
 def _check_size(ms: MaskSet, view: str, mask: np.ndarray, path: Path) -> None:
     hw = ms.sizes.get(view)
     if hw is not None and tuple(hw) != mask.shape:
-        raise InputError(f"mask is {mask.shape[1]}x{mask.shape[0]} but view {view!r} is {hw[1]}x{hw[0]}", path)
+        first = ms.size_sources.get(view)
+        # name the file that set the view's size: it may be the wrong one
+        by = f" (the size of {first})" if first and first != str(path) else ""
+        raise InputError(f"mask is {mask.shape[1]}x{mask.shape[0]} but view {view!r} is {hw[1]}x{hw[0]}{by}", path)

@@ -36,14 +36,25 @@ def counts_to_mask(counts: list[int], height: int, width: int) -> np.ndarray:
     from splattwin.limits import check_pixels
 
     width, height = check_pixels(width, height, None, "RLE mask")
-    try:
-        counts = np.asarray(counts, dtype=np.int64)
-    except (TypeError, ValueError, OverflowError) as e:
-        raise InputError(f"RLE counts must be whole numbers: {e}") from None
-    if counts.ndim != 1:
-        raise InputError("RLE counts must be a flat list of run lengths")
-    if np.any(counts < 0) or int(counts.sum()) != height * width:
-        raise InputError(f"RLE counts sum to {int(counts.sum())} but the mask has {height}x{width}={height * width} pixels")
+    n = height * width
+    if isinstance(counts, np.ndarray):
+        counts = counts.tolist()
+    if not isinstance(counts, (list, tuple)):
+        raise InputError(f"RLE counts must be a list of run lengths, got {type(counts).__name__}")
+    # a valid encoding has at most one run per pixel plus the leading zero run
+    if len(counts) > n + 1:
+        raise InputError(f"RLE has {len(counts)} runs but the mask has only {height}x{width}={n} pixels")
+    # checked as Python ints before numpy: int64 sums wrap (2**63-1 twice + k "sums" to H*W) and np.repeat
+    # of such counts writes out of bounds
+    for i, c in enumerate(counts):
+        if isinstance(c, bool) or not isinstance(c, (int, np.integer)):
+            raise InputError(f"RLE counts must be whole numbers, got {str(c)[:40]!r} at run {i}")
+        if c < 0:
+            raise InputError(f"RLE count {i} is negative ({c}): run lengths are pixel counts")
+    total = sum(int(c) for c in counts)
+    if total != n:
+        raise InputError(f"RLE counts sum to {total} but the mask has {height}x{width}={n} pixels")
+    counts = np.asarray(counts, dtype=np.int64)  # each now in [0, H*W]
     values = (np.arange(counts.size) % 2).astype(bool)
     flat = np.repeat(values, counts)
     return flat.reshape((height, width), order="F")
@@ -65,11 +76,19 @@ def counts_to_string(counts: list[int]) -> str:
     return "".join(out)
 
 
-def string_to_counts(s: str) -> list[int]:
-    """COCO compressed RLE string -> run lengths."""
+# 5-bit groups per count: 13 hold any 64-bit value, so a longer count is nonsense, and bounding the groups
+# keeps decoding linear (an unbounded "____...0" count builds one huge int, quadratically)
+_MAX_GROUPS = 13
+
+
+def string_to_counts(s: str, n_pixels: int | None = None) -> list[int]:
+    """COCO compressed RLE string -> run lengths. With `n_pixels` (H*W of the mask) every count must lie
+    in [0, n_pixels] and there may be at most n_pixels + 1 of them (checked while decoding)."""
     counts: list[int] = []
     p = 0
     n = len(s)
+    if n_pixels is not None and n > _MAX_GROUPS * (n_pixels + 1):
+        raise InputError(f"COCO RLE string of {n} characters is too long for a mask of {n_pixels} pixels")
     while p < n:
         x = 0
         k = 0
@@ -77,6 +96,9 @@ def string_to_counts(s: str) -> list[int]:
         while more:
             if p >= n:
                 raise InputError(f"truncated COCO RLE string {s[:40]!r}")
+            if k >= _MAX_GROUPS:
+                raise InputError(f"COCO RLE string holds a run length of more than {_MAX_GROUPS} characters "
+                                 f"(at character {p}): not a pixel count")
             g = ord(s[p]) - 48
             if g < 0 or g > 63:
                 raise InputError(f"invalid character {s[p]!r} in COCO RLE string")
@@ -88,6 +110,12 @@ def string_to_counts(s: str) -> list[int]:
                 x |= -1 << (5 * k)
         if len(counts) > 2:
             x += counts[-2]
+        if n_pixels is not None:
+            if not 0 <= x <= n_pixels:
+                raise InputError(f"COCO RLE run {len(counts)} has length {x}, outside [0, {n_pixels}] "
+                                 f"(the mask's pixels)")
+            if len(counts) > n_pixels:
+                raise InputError(f"COCO RLE string has more runs than the mask's {n_pixels} pixels")
         counts.append(x)
     return counts
 
@@ -102,13 +130,19 @@ def encode(mask: np.ndarray, compressed: bool = True) -> dict:
 
 def decode(rle: dict) -> np.ndarray:
     """COCO RLE dict (compressed string or uncompressed list counts) -> bool mask [H,W]."""
+    from splattwin.limits import check_pixels
+
     try:
-        h, w = (int(v) for v in rle["size"])
-        counts = rle["counts"]
+        size, counts = rle["size"], rle["counts"]
+        h, w = size
     except (KeyError, TypeError, ValueError) as e:
         raise InputError(f"malformed COCO RLE (need size [h, w] and counts): {e}") from e
+    w, h = check_pixels(w, h, None, "RLE mask")
     if isinstance(counts, bytes):
-        counts = counts.decode("ascii")
+        try:
+            counts = counts.decode("ascii")
+        except UnicodeDecodeError:
+            raise InputError("COCO RLE string is not ASCII") from None
     if isinstance(counts, str):
-        counts = string_to_counts(counts)
-    return counts_to_mask(list(counts), h, w)
+        counts = string_to_counts(counts, h * w)
+    return counts_to_mask(counts, h, w)
