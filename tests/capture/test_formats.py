@@ -195,3 +195,62 @@ def test_max_frames_subsamples(tmp_path, make_dataset):
     ds = make_dataset(tmp_path, n=6, with_points=False)
     nerfstudio.write(ds, tmp_path / "transforms.json")
     assert len(load_dataset(tmp_path, max_frames=3).frames) == 3
+
+
+def _binary_model(tmp_path, make_dataset):
+    import pycolmap
+
+    ds = make_dataset(tmp_path)
+    sparse = tmp_path / "sparse" / "0"
+    colmap.write_text(ds, sparse)
+    rec = pycolmap.Reconstruction(str(sparse))
+    for f in sparse.glob("*.txt"):
+        f.unlink()
+    rec.write_binary(str(sparse))
+    return sparse
+
+
+@pytest.mark.parametrize("file,offset,what", [
+    ("images.bin", None, "number of 2D points of image"),    # the first image's count (after its name)
+    ("points3D.bin", 0, "number of 3D points"),
+    ("points3D.bin", 8 + 43, "track length of 3D point 0"),
+    ("cameras.bin", 0, "number of cameras"),
+])
+def test_colmap_binary_counts_are_bounded_by_the_file_before_pycolmap_allocates(tmp_path, make_dataset, file, offset,
+                                                                                  what):
+    """A uint64 count patched to 2^40 made pycolmap reserve 15-17 GB (then bad_alloc): each count is
+    checked against the bytes the file holds before pycolmap reads it."""
+    import struct
+
+    sparse = _binary_model(tmp_path, make_dataset)
+    raw = bytearray((sparse / file).read_bytes())
+    if offset is None:   # uint64 num_images, then uint32 id, 7 doubles, uint32 camera id, the name, its count
+        offset = raw.index(b"\0", 8 + 4 + 56 + 4) + 1
+    struct.pack_into("<Q", raw, offset, 1 << 40)
+    (sparse / file).write_bytes(bytes(raw))
+    with pytest.raises(InputError, match=what) as e:
+        load_dataset(tmp_path)
+    assert e.value.path == sparse / file
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_colmap_zero_quaternion_is_no_rotation(tmp_path, make_dataset, binary):
+    """pycolmap turned a zero quaternion into the identity, silently (TUM refuses it)."""
+    import struct
+
+    if binary:
+        sparse = _binary_model(tmp_path, make_dataset)
+        raw = bytearray((sparse / "images.bin").read_bytes())
+        struct.pack_into("<4d", raw, 8 + 4, 0.0, 0.0, 0.0, 0.0)
+        (sparse / "images.bin").write_bytes(bytes(raw))
+    else:
+        ds = make_dataset(tmp_path)
+        sparse = tmp_path / "sparse" / "0"
+        colmap.write_text(ds, sparse)
+        lines = (sparse / "images.txt").read_text().splitlines()
+        i = next(k for k, ln in enumerate(lines) if ln.strip() and not ln.startswith("#"))
+        f = lines[i].split()
+        lines[i] = " ".join([f[0], "0", "0", "0", "0"] + f[5:])
+        (sparse / "images.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match="is not a rotation"):
+        load_dataset(tmp_path)

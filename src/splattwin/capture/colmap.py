@@ -4,11 +4,19 @@ Layouts accepted by `read`: a sparse model folder itself (`cameras.bin|txt`, `im
 or a project folder with `sparse/0/` (or `sparse/`) and `images/`. COLMAP's pose is `cam_from_world`
 (OpenCV convention), which we invert to `T_world_cam`. Image names in the model must stay inside the
 image folder (`splattwin.paths`).
+
+A model is untrusted input, and pycolmap allocates whatever counts a binary file declares (a 40-byte
+patch of images.bin made it reserve 15 GB): `check_model` walks the binary files first, checking every
+count against the bytes actually left in the file and against `limits.MAX_ELEMENTS`, and every image's
+rotation (a zero quaternion, which pycolmap silently turns into the identity), before pycolmap reads them.
 """
 
 from __future__ import annotations
 
 import logging
+import math
+import mmap
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +25,7 @@ from splattwin import io
 from splattwin.capture.camera import Camera
 from splattwin.capture.dataset import Dataset, Frame
 from splattwin.errors import InputError
-from splattwin.limits import check_pixels
+from splattwin.limits import MAX_ELEMENTS, MAX_TEXT_BYTES, check_pixels
 from splattwin.paths import confined
 from splattwin.transforms import quat_wxyz_from_matrix
 
@@ -58,6 +66,129 @@ def camera_from_colmap(model: str, params: np.ndarray, width: int, height: int, 
     return K, dist
 
 
+def _model_params() -> dict[int, int]:
+    """COLMAP camera model id -> number of parameters (from pycolmap, so new models are known)."""
+    import pycolmap
+
+    out = {}
+    for m in pycolmap.CameraModelId.__members__.values():
+        if int(m.value) >= 0:
+            out[int(m.value)] = len(pycolmap.Camera.create_from_model_id(1, m, 1.0, 1, 1).params)
+    return out
+
+
+class _Reader:
+    """Bounds-checked little-endian reads over a memory map of one binary model file."""
+
+    def __init__(self, buf, path: Path):
+        self.buf, self.pos, self.path = buf, 0, path
+
+    def left(self) -> int:
+        return len(self.buf) - self.pos
+
+    def take(self, fmt: str, what: str) -> tuple:
+        n = struct.calcsize(fmt)
+        if self.left() < n:
+            raise InputError(f"truncated COLMAP model file: {what} at byte {self.pos} runs past its end", self.path)
+        v = struct.unpack_from(fmt, self.buf, self.pos)
+        self.pos += n
+        return v
+
+    def count(self, what: str, record_bytes: int) -> int:
+        """A uint64 count of records of at least `record_bytes` each: bounded by the bytes left."""
+        (n,) = self.take("<Q", what)
+        if n > MAX_ELEMENTS or n * record_bytes > self.left():
+            raise InputError(f"{what} is {n}, but the file has only {self.left()} bytes left for them "
+                             f"({record_bytes} or more bytes each; at most {int(MAX_ELEMENTS)}): a corrupt or "
+                             f"crafted model", self.path)
+        return n
+
+    def skip(self, n_bytes: int, what: str) -> None:
+        if self.left() < n_bytes:
+            raise InputError(f"truncated COLMAP model file: {what} at byte {self.pos} runs past its end", self.path)
+        self.pos += n_bytes
+
+    def name(self, what: str) -> str:
+        end = self.buf.find(b"\0", self.pos, min(len(self.buf), self.pos + 4096))
+        if end < 0:
+            raise InputError(f"{what}: no end of the name within 4096 bytes", self.path)
+        raw = bytes(self.buf[self.pos:end])
+        self.pos = end + 1
+        return raw.decode("utf-8", "replace")
+
+
+def _walk(path: Path, fn) -> None:
+    if path.stat().st_size == 0:
+        raise InputError("empty COLMAP model file", path)
+    with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as buf:
+        r = _Reader(buf, path)
+        fn(r)
+        if r.left():
+            raise InputError(f"{r.left()} bytes after the last record: not a COLMAP model file", path)
+
+
+def _check_rotation(q, name: str, where: Path) -> None:
+    norm = math.sqrt(sum(float(x) ** 2 for x in q))
+    if not math.isfinite(norm) or norm < 1e-6:
+        raise InputError(f"image {name!r}: its quaternion {tuple(float(x) for x in q)} is not a rotation", where)
+
+
+def check_model(sparse: Path) -> None:
+    """InputError for a model file whose declared counts exceed what the file holds or `MAX_ELEMENTS`,
+    a camera model pycolmap does not know, or an image whose rotation is no rotation (see the module
+    docstring). Text files are bounded by size (their records are lines) and their quaternions checked."""
+    models = _model_params()
+
+    def cameras(r: _Reader) -> None:
+        for i in range(r.count("number of cameras", 24)):
+            _cid, model = r.take("<Ii", f"camera {i}")[:2]
+            if model not in models:
+                raise InputError(f"camera {i}: unknown COLMAP camera model id {model}", r.path)
+            r.skip(16 + 8 * models[model], f"camera {i}")
+
+    def images(r: _Reader) -> None:
+        for i in range(r.count("number of images", 69)):
+            rec = r.take("<I4d3dI", f"image {i}")
+            name = r.name(f"image {i}")
+            _check_rotation(rec[1:5], name, r.path)
+            r.skip(24 * r.count(f"number of 2D points of image {name!r}", 24), f"points of image {name!r}")
+
+    def points(r: _Reader) -> None:
+        for i in range(r.count("number of 3D points", 51)):
+            r.skip(43, f"3D point {i}")
+            r.skip(8 * r.count(f"track length of 3D point {i}", 8), f"track of 3D point {i}")
+
+    for stem, fn in (("cameras", cameras), ("images", images), ("points3D", points)):
+        b, t = sparse / f"{stem}.bin", sparse / f"{stem}.txt"
+        if b.is_file():
+            _walk(b, fn)
+        elif t.is_file():
+            if t.stat().st_size > MAX_TEXT_BYTES:
+                raise InputError(f"COLMAP model file of {t.stat().st_size} bytes (at most {int(MAX_TEXT_BYTES)})", t)
+            if stem == "images":
+                _check_text_rotations(t)
+
+
+def _check_text_rotations(path: Path) -> None:
+    """images.txt: each image line (`IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME`, the first non-empty,
+    non-comment line) is followed by its points line (read as is, possibly empty), as COLMAP reads them."""
+    from splattwin.limits import read_text
+
+    lines = iter(read_text(path, "COLMAP images.txt").splitlines())
+    for ln in lines:
+        if not ln.strip() or ln.lstrip().startswith("#"):
+            continue
+        next(lines, None)   # its 2D points
+        f = ln.split()
+        if len(f) < 10:
+            continue        # pycolmap names the bad line
+        try:
+            q = [float(x) for x in f[1:5]]
+        except ValueError:
+            continue
+        _check_rotation(q, f[9], path)
+
+
 def read(path: str | Path, image_dir: str | Path | None = None) -> Dataset:
     import pycolmap
 
@@ -69,6 +200,7 @@ def read(path: str | Path, image_dir: str | Path | None = None) -> Dataset:
         candidates = [path / "images", sparse.parent / "images", sparse.parent.parent / "images"]
         image_dir = next((c for c in candidates if c.is_dir()), path)
     image_dir = Path(image_dir)
+    check_model(sparse)
     try:
         rec = pycolmap.Reconstruction(str(sparse))
     except Exception as e:  # pycolmap raises RuntimeError/ValueError on corrupt files
