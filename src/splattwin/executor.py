@@ -200,8 +200,10 @@ class Executor:
                 # handles resubmitted inside outcome() come back through _resubmitted
                 for h, j in self._take_resubmitted():
                     pending[h] = j
-        finally:
-            bar.close()
+        except BaseException:
+            bar.close(failed=True)   # "stopped after", not "done in" (Ctrl-C, a lost cluster)
+            raise
+        bar.close()
         return outcomes
 
     def _take_resubmitted(self) -> list:
@@ -221,8 +223,8 @@ class _Bar:
             self.p.set_total(new_total)
         self.p.update(1)
 
-    def close(self) -> None:
-        self.p.close()
+    def close(self, failed: bool = False) -> None:
+        self.p.close(failed=failed)
 
 
 def limit_threads(cpus: float) -> None:

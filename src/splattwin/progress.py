@@ -144,8 +144,11 @@ class Progress:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> bool:
-        # GeneratorExit: the consumer of `track` stopped iterating, which is not a failure
-        self.close(failed=exc_type is not None and not issubclass(exc_type, GeneratorExit))
+        # GeneratorExit: the consumer of `track` stopped iterating, by a break or by an exception in its loop
+        # body (a Ctrl-C), which the generator cannot tell apart: "done" only when every item was done
+        stopped = exc_type is not None and issubclass(exc_type, GeneratorExit) and (
+            self.total is None or self.n < self.total)
+        self.close(failed=exc_type is not None and (stopped or not issubclass(exc_type, GeneratorExit)))
         return False
 
     # -- internals -----------------------------------------------------------------------------------

@@ -158,3 +158,15 @@ def test_executor_flags_are_generated_once_and_change_no_key():
     assert "cluster" not in to_dict(b, "key")["robot"]
     with pytest.raises(SystemExit):
         p.parse_args(["plan", "twin", "--executor", "slurm"])
+
+
+def test_an_interrupted_run_s_progress_says_stopped_not_done(capsys):
+    """Ctrl-C while the trials run printed "trials ...: 0/3 job done in 1 s"."""
+    def interrupt(job, out):
+        raise KeyboardInterrupt
+
+    with LocalExecutor(workers=1) as ex:
+        with pytest.raises(KeyboardInterrupt):
+            ex.run([Job(i, _square, (i,)) for i in range(3)], on_done=interrupt, progress=True, description="trials")
+    err = capsys.readouterr().err.splitlines()
+    assert err[-1].startswith("trials: 0/3 job stopped after"), err
