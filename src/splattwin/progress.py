@@ -74,6 +74,7 @@ class Progress:
         self._closed = False
         self._t0 = clock()
         self._last = self._t0
+        self._first: tuple[float, int] | None = None   # (time, count) at the first update
         self._rich = None
         self._task = None
         if not self.enabled:
@@ -102,6 +103,8 @@ class Progress:
         check()
         with self._lock:
             self.n += int(n)
+            if self._first is None:   # the first unit carries the start-up (numba compiling, caches)
+                self._first = (self.clock(), self.n)
             self._refresh()
 
     def set_postfix(self, **figures: Any) -> None:
@@ -177,8 +180,15 @@ class Progress:
                 parts[0] += f" ({100.0 * self.n / self.total:.0f} %)"
             parts.append(format_duration(el))
             done_here = self.n - self.initial
-            if self.total is not None and done_here > 0 and el > 0:
-                parts.append("ETA " + format_duration((self.total - self.n) * el / done_here))
+            rate = None   # seconds per unit
+            if self._first is not None and self.n > self._first[1] and now > self._first[0]:
+                # the rate since the first unit: a first training step of a minute (numba compiling on a
+                # fresh cache) made the ETA of a 73 s run 4 h 52 min
+                rate = (now - self._first[0]) / (self.n - self._first[1])
+            elif done_here > 0 and el > 0:
+                rate = el / done_here
+            if self.total is not None and rate is not None:
+                parts.append("ETA " + format_duration((self.total - self.n) * rate))
         if self.postfix:
             parts.append(self._post())
         return ", ".join(parts)
