@@ -253,3 +253,10 @@ def test_bop_depth_images_must_be_16_bit_depth_of_the_camera_size(tmp_path, kind
     with pytest.raises(InputError, match=msg) as e:
         load_depth(bad, 1e-4, size=(W, H))
     assert e.value.path == bad
+
+
+def test_object_names_keys_are_ascii_obj_ids(tmp_path):
+    io.write_json(tmp_path / "object_names.json", {"\u00b2": "mug"})    # '²' passed str.isdigit, int() failed
+    with pytest.raises(InputError, match="obj_id '²' must be a whole number") as e:
+        bop.object_names(tmp_path, [1])
+    assert e.value.path == tmp_path / "object_names.json"

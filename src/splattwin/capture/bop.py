@@ -67,10 +67,10 @@ def is_scene(path: Path) -> bool:
     return (path / SCENE_CAMERA).is_file() and any((path / d).is_dir() for d in IMAGE_DIRS)
 
 
-def _image_id(key, where: Path) -> int:
+def _image_id(key, where: Path, what: str = "image id") -> int:
     i = ascii_uint(key, 9)
     if i is None:
-        raise InputError(f"image id {str(key)[:40]!r} must be a whole number (a key like \"0\" or \"12\")", where)
+        raise InputError(f"{what} {str(key)[:40]!r} must be a whole number (a key like \"0\" or \"12\")", where)
     return i
 
 
@@ -238,13 +238,13 @@ def object_names(scene: str | Path, obj_ids: list[int] | None = None) -> dict[in
         if not isinstance(data, dict):
             raise InputError('expected an object {"<obj_id>": "name", ...}', f)
         for k, v in data.items():
-            names[_image_id(str(k), f)] = name_from_label(v, f, f"name of obj_id {k}")
+            names[_image_id(str(k), f, "obj_id")] = name_from_label(v, f, f"name of obj_id {k}")
     elif f is not None:
         data = io.read_json(f)
         if isinstance(data, dict):
             for k, v in data.items():
                 if isinstance(v, dict) and isinstance(v.get("name"), str):
-                    names.setdefault(_image_id(str(k), f), name_from_label(v["name"], f, f"name of obj_id {k}"))
+                    names.setdefault(_image_id(str(k), f, "obj_id"), name_from_label(v["name"], f, f"name of obj_id {k}"))
     if f is not None:
         check_unique(names.values(), f)
     for oid in obj_ids or []:
