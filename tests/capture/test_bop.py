@@ -90,7 +90,7 @@ def _mutate(path: Path, fn) -> None:
     (lambda d: d["2"].update(cam_t_w2c=[0, float("nan"), 0]), "non-finite"),
     (lambda d: d.update({"../x": d["0"]}), "must be a whole number"),
     (lambda d: d["3"].update(depth_scale=1.0), "depth_scale differs"),
-    (lambda d: d["3"].update(depth_scale=-1), "depth_scale must be a positive"),
+    (lambda d: d["3"].update(depth_scale=-1), r"depth_scale \(mm per raw depth unit\) must be within"),
 ])
 def test_bop_malformed_scene_camera_names_the_file(tmp_path, fn, msg):
     write_scene(tmp_path)
@@ -138,3 +138,125 @@ def test_scene_gt_malformed(tmp_path, entry, msg):
     with pytest.raises(InputError, match=msg) as e:
         bop.read_scene_gt(tmp_path / "scene_gt.json")
     assert e.value.path == tmp_path / "scene_gt.json"
+
+
+def _edit_text(path: Path, old: str, new: str) -> None:
+    """Replace the first `old` in a file's text: for JSON that json.dumps cannot write (duplicate keys,
+    5000-digit integers)."""
+    text = path.read_text()
+    assert old in text
+    path.write_text(text.replace(old, new, 1))
+
+
+@pytest.mark.parametrize("fn, msg", [
+    # ids: ASCII digits only ("²" passes str.isdigit, then int() failed), one entry per image
+    (lambda d: d.update({"²": d["0"]}), "image id '²' must be a whole number"),
+    (lambda d: d.update({"00": d["0"]}), r"scene_camera.json has two entries for image 0 \('0' and '00'\)"),
+    # an entry that is not an object is named as such (it was "some images have camera poses...")
+    (lambda d: d.update({"1": [1, 2]}), "image 1: entry must be an object with cam_K, got list"),
+    (lambda d: d.update({"1": None}), "image 1: entry must be an object with cam_K, got NoneType"),
+    # numbers: huge integers, text and bools are not numbers (strings in cam_K were accepted)
+    (lambda d: d["1"].update(cam_K=[10**400] + d["1"]["cam_K"][1:]), "image 1 cam_K element 1 .*too large"),
+    (lambda d: d["1"].update(cam_K=[str(x) for x in d["1"]["cam_K"]]), "cam_K element 1 must be a number, got str"),
+    (lambda d: d["1"].update(depth_scale=10**400), "depth_scale .* too large"),
+    (lambda d: d["1"].update(depth_scale=True), "depth_scale .* must be a number, got bool"),
+    # absurd but finite values
+    (lambda d: [e.update(depth_scale=1e300) for e in d.values()], r"depth_scale \(mm per raw depth unit\) must be within"),
+    (lambda d: [e.update(depth_scale=1e-300) for e in d.values()], r"depth_scale \(mm per raw depth unit\) must be within"),
+    (lambda d: d["1"].update(cam_K=[1e308, 0, 31.5, 0, 61, 24.25, 0, 0, 1]), "focal length fx = 1e\\+308 px is implausible"),
+    (lambda d: d["1"].update(cam_K=[60, 0, 31.5, 0, 61, 24.25, 5, 7, 0]), r"K must be \[\[fx, 0, cx\], \[0, fy, cy\], \[0, 0, 1\]\]"),
+    (lambda d: d["1"].update(cam_K=[60, 0, 500, 0, 61, 24.25, 0, 0, 1]), r"principal point .* far outside the 64x48 image"),
+    (lambda d: d["1"].update(cam_t_w2c=[1e308, 0, 0]), r"translation \(mm\) element 1 must be within"),
+])
+def test_bop_scene_camera_values_are_checked(tmp_path, fn, msg):
+    write_scene(tmp_path)
+    _mutate(tmp_path / "scene_camera.json", fn)
+    with pytest.raises(InputError, match=msg) as e:
+        load_dataset(tmp_path)
+    assert e.value.path == tmp_path / "scene_camera.json"
+
+
+@pytest.mark.parametrize("old, new, msg", [
+    ('"0": {', '"0": {"cam_K": [1], "0": 1}, "0": {', "the key '0' twice"),     # json would keep the last
+    ('"depth_scale": 0.1', '"depth_scale": ' + "1" * 5000, "number too long to read"),  # > 4300 digits
+])
+def test_bop_scene_camera_json_oddities_are_input_errors(tmp_path, old, new, msg):
+    write_scene(tmp_path)
+    _edit_text(tmp_path / "scene_camera.json", old, new)
+    with pytest.raises(InputError, match=msg) as e:
+        load_dataset(tmp_path)
+    assert e.value.path == tmp_path / "scene_camera.json"
+
+
+def test_scene_gt_ids_are_ascii_and_unique(tmp_path):
+    bop.write_scene_gt(tmp_path / "scene_gt.json", [[(3, np.eye(4))], [(7, np.eye(4))]])
+    _mutate(tmp_path / "scene_gt.json", lambda d: d.update({"01": d["1"]}))
+    with pytest.raises(InputError, match=r"two entries for image 1 \('1' and '01'\)"):
+        bop.read_scene_gt(tmp_path)
+    _mutate(tmp_path / "scene_gt.json", lambda d: d.update({"٣": d.pop("01")}))  # an Arabic-Indic 3
+    with pytest.raises(InputError, match="must be a whole number"):
+        bop.read_scene_gt(tmp_path)
+
+
+def test_bop_links_out_of_the_scene_are_refused(tmp_path):
+    """rgb/ and depth/ files that are symbolic links leading out of the scene folder are refused (they were
+    followed, and hard-linked into the poses output), as paths named in a file are; links inside are fine."""
+    import os
+
+    scene = tmp_path / "scene"
+    write_scene(scene)
+    outside = tmp_path / "outside.png"
+    (scene / "rgb" / "000002.png").rename(outside)
+    os.symlink(outside, scene / "rgb" / "000002.png")
+    with pytest.raises(InputError, match="leads outside its folder") as e:
+        load_dataset(scene)
+    assert e.value.path == scene / "rgb" / "000002.png"
+    # a link that stays inside the scene is read as before
+    (scene / "rgb" / "000002.png").unlink()
+    (scene / "kept").mkdir()
+    outside.rename(scene / "kept" / "000002.png")
+    os.symlink(scene / "kept" / "000002.png", scene / "rgb" / "000002.png")
+    assert len(load_dataset(scene).frames) == 4
+    # depth/ likewise
+    (scene / "depth" / "000001.png").rename(tmp_path / "d.png")
+    os.symlink(tmp_path / "d.png", scene / "depth" / "000001.png")
+    with pytest.raises(InputError, match="leads outside its folder") as e:
+        load_dataset(scene)
+    assert e.value.path == scene / "depth" / "000001.png"
+
+
+@pytest.mark.parametrize("kind", ["8-bit", "rgb", "size", "garbage", "truncated"])
+def test_bop_depth_images_must_be_16_bit_depth_of_the_camera_size(tmp_path, kind):
+    """An 8-bit or colour depth PNG was read as millimetres; a wrong-sized one failed (rc 1) only when
+    back-projected; a corrupt one was called an unreadable "mask"."""
+    write_scene(tmp_path)
+    bad = tmp_path / "depth" / "000002.png"
+    if kind == "8-bit":
+        io.write_image(bad, np.full((H, W), 100, np.uint8))
+    elif kind == "rgb":
+        io.write_image(bad, np.full((H, W, 3), 100, np.uint8))
+    elif kind == "size":
+        io.write_image(bad, np.full((H + 2, W), 100, np.uint16))
+    elif kind == "garbage":
+        bad.write_bytes(b"not a png at all")
+    else:
+        bad.write_bytes(bad.read_bytes()[:200])
+    msg = {"8-bit": "single-channel 16-bit.*mode 'L'", "rgb": "single-channel 16-bit.*mode 'RGB'",
+           "size": f"depth map is {W}x{H + 2} but its camera is {W}x{H}", "garbage": "unreadable depth image",
+           "truncated": "depth image is truncated"}[kind]
+    with pytest.raises(InputError, match=msg) as e:
+        load_dataset(tmp_path)
+    assert e.value.path == bad
+    # and where it is read (the poses stage's back-projection): named as a depth image, with its size
+    if kind == "truncated":
+        msg = "unreadable depth image .*truncated"
+    with pytest.raises(InputError, match=msg) as e:
+        load_depth(bad, 1e-4, size=(W, H))
+    assert e.value.path == bad
+
+
+def test_object_names_keys_are_ascii_obj_ids(tmp_path):
+    io.write_json(tmp_path / "object_names.json", {"\u00b2": "mug"})    # '²' passed str.isdigit, int() failed
+    with pytest.raises(InputError, match="obj_id '²' must be a whole number") as e:
+        bop.object_names(tmp_path, [1])
+    assert e.value.path == tmp_path / "object_names.json"

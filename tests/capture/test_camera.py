@@ -98,3 +98,22 @@ def test_pixel_rays_back_project_to_the_pixel_centres():
     v, u = np.mgrid[0:30, 0:40]
     np.testing.assert_allclose(uv, np.stack([u.ravel() + 0.5, v.ravel() + 0.5], 1), atol=1e-9)
     np.testing.assert_allclose(z, depth.ravel(), atol=1e-12)
+
+
+@pytest.mark.parametrize("bad, msg", [
+    (dict(K=np.array([[100.0, 0, 32], [0, 100, 24], [0.5, 0, 1]])), r"K must be \[\[fx, 0, cx\]"),
+    (dict(K=np.array([[100.0, 3, 32], [0, 100, 24], [0, 0, 1]])), "no skew"),
+    (dict(K=np.diag([1e308, 100.0, 1.0])), "focal length fx = 1e\\+308 px is implausible for a 64x48 image"),
+    (dict(K=np.diag([100.0, 0.01, 1.0])), "focal length fy = 0.01 px"),
+    (dict(K=np.array([[100.0, 0, 200], [0, 100, 24], [0, 0, 1]])), r"principal point \(cx, cy\) = \(200, 24\)"),
+    (dict(dist=[1e300, 0, 0, 0]), r"distortion coefficients must be within \+-1000"),
+    (dict(T_world_cam=np.diag([1.0, 1, 1, 1]) + np.eye(4, k=3) * 2e6), r"camera position .* more than 1e\+06 m"),
+])
+def test_plausible_refuses_what_no_camera_is(bad, msg):
+    from splattwin.capture.camera import plausible
+
+    kw = dict(K=np.array([[100.0, 0, 32], [0, 100, 24], [0, 0, 1]]), width=64, height=48, name="c0")
+    assert plausible(Camera(**kw)).fx == 100.0
+    kw.update(bad)
+    with pytest.raises(InputError, match=msg):
+        plausible(Camera(**kw))

@@ -254,3 +254,52 @@ def test_colmap_zero_quaternion_is_no_rotation(tmp_path, make_dataset, binary):
         (sparse / "images.txt").write_text("\n".join(lines) + "\n")
     with pytest.raises(InputError, match="is not a rotation"):
         load_dataset(tmp_path)
+
+
+@pytest.mark.parametrize("mutate, msg", [
+    # camera_angle_x (Blender / NeRF-synthetic): 0 divided by zero, text raised ValueError (exit 1), pi gave 5e-15 px
+    (lambda m: m.update(camera_angle_x=0), "camera_angle_x must be a field of view in radians, between 0 and pi, got 0"),
+    (lambda m: m.update(camera_angle_x=np.pi), "camera_angle_x must be a field of view in radians, between 0 and pi"),
+    (lambda m: m.update(camera_angle_x="wide"), r"camera_angle_x \(radians\) must be a number, got str 'wide'"),
+    # depth units: a bool was read as 1.0, 1e300 made every depth infinite
+    (lambda m: m.update(depth_unit_scale_factor=True), "depth_unit_scale_factor must be a number, got bool"),
+    (lambda m: m.update(depth_unit_scale_factor=1e300), r"depth_unit_scale_factor must be within \[1e-06, 100\]"),
+    (lambda m: m.update(k1=1e300), r"distortion coefficients must be within \+-1000"),
+    (lambda m: m.update(fl_x=1e308), "focal length fx = 1e\\+308 px is implausible"),
+    (lambda m: m.update(cx="32"), "cx must be a number, got str '32'"),
+    (lambda m: m["frames"][0]["transform_matrix"].__setitem__(3, [5, 6, 7, 8]), "must end with the row 0 0 0 1"),
+    (lambda m: m["frames"][0]["transform_matrix"][0].__setitem__(3, 1e300), r"camera position .* more than 1e\+06 m"),
+])
+def test_nerfstudio_values_are_checked(tmp_path, mutate, msg, make_dataset):
+    ds = make_dataset(tmp_path, with_points=False)
+    out = nerfstudio.write(ds, tmp_path / "transforms.json")
+    meta = json.loads(out.read_text())
+    if "camera_angle_x" in msg:
+        meta.pop("fl_x"), meta.pop("fl_y")
+    mutate(meta)
+    io.write_json(out, meta)
+    with pytest.raises(InputError, match=msg) as e:
+        load_dataset(out)
+    assert e.value.path == out
+
+
+@pytest.mark.parametrize("edit, msg", [
+    (lambda e: e.update(id=10**400), "camera entry 0: id <an integer of about 400 digits> is too large"),
+    (lambda e: e.update(id=True), "camera entry 0: id must be a number, got bool"),
+    (lambda e: e.update(fx=10**400), "fx <an integer of about 400 digits> is too large"),
+    (lambda e: e.update(fx="50"), "fx must be a number, got str '50'"),
+    (lambda e: e.update(fx=1e308), "focal length fx = 1e\\+308 px is implausible"),
+    (lambda e: e.update(position=[1e300, 0, 0]), r"position element 1 must be within \[-1e\+06, 1e\+06\]"),
+    (lambda e: e.update(rotation=[["1", 0, 0], [0, 1, 0], [0, 0, 1]]), "rotation element 1 must be a number"),
+])
+def test_cameras_json_values_are_checked(tmp_path, make_dataset, edit, msg):
+    ds = make_dataset(tmp_path, with_points=False)
+    for f in ds.frames:
+        f.camera.K[0, 2], f.camera.K[1, 2] = 32.0, 24.0
+    out = cameras_json.write(ds, tmp_path / "cameras.json")
+    cams = json.loads(out.read_text())
+    edit(cams[0])
+    out.write_text(json.dumps(cams))
+    with pytest.raises(InputError, match=msg) as e:
+        load_dataset(out)
+    assert e.value.path == out

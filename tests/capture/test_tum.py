@@ -137,7 +137,7 @@ def test_intrinsics_variants_and_writer(tmp_path):
     ("fx: 35\nfy: 36\ncx: 19.5\nwidth: 40\nheight: 30\n", "lacks cy"),
     ("fx: 35\nfy: 36\ncx: 19.5\ncy: 15\n", "lacks width/height"),
     (INTR.replace("fx: 35.0", "fx: -35.0"), "positive focal"),
-    (INTR.replace("fx: 35.0", "fx: abc"), "fx must be a finite number"),
+    (INTR.replace("fx: 35.0", "fx: abc"), "fx must be a number, got str 'abc'"),
     (INTR + "depth_scale: 5000\n", "depth_scale is metres per depth unit"),
     (INTR + "depth_factor: 5000\ndepth_scale: 0.0002\n", "give the depth unit once"),
     (INTR + "distortion: [1, 2]\n", "4 or 5 finite numbers"),
@@ -173,3 +173,119 @@ def test_no_pose_matches_and_missing_intrinsics(tmp_path, capsys):
     assert main(["poses", str(tmp_path), str(tmp_path / "out"), "--known"]) == 2
     err = capsys.readouterr().err
     assert "groundtruth.txt" in err and "no image has a pose" in err
+
+
+def test_duplicate_pose_ids_are_found_in_linear_time(tmp_path):
+    """The duplicate check was keys.count(k) per key: 100k lines took ~2 minutes. Now a set, and the message
+    names both lines."""
+    import time
+
+    n = 30_000
+    (tmp_path / "poses.txt").write_text("".join(f"{i} 0 0 0 0 0 0 1\n" for i in range(n)) + "7 0 0 0 0 0 0 1\n")
+    t0 = time.perf_counter()
+    with pytest.raises(InputError, match=f"line {n + 1}: id/timestamp '7' appears twice \\(first on line 8\\)"):
+        tum.read_pose_list(tmp_path / "poses.txt")
+    assert time.perf_counter() - t0 < 5.0   # quadratic: ~10 s here; linear: ~0.3 s
+
+
+@pytest.mark.parametrize("line, msg", [
+    ("1 1e308 0 0 0 0 0 1", r"line 2: translation 1e308 0 0 is more than 1e\+06 m from the origin"),
+    ("1 0 -2e6 0 0 0 0 1", "line 2: translation .* more than"),
+])
+def test_pose_list_translations_are_bounded(tmp_path, line, msg):
+    """A finite but huge translation (1e308) hung `poses` in an SVD of the table plane fit."""
+    (tmp_path / "poses.txt").write_text(f"0 0 0 0 0 0 0 1\n{line}\n")
+    with pytest.raises(InputError, match=msg) as e:
+        tum.read_pose_list(tmp_path / "poses.txt")
+    assert e.value.path == tmp_path / "poses.txt"
+
+
+def test_unicode_digit_pose_ids_are_not_numbers(tmp_path, caplog):
+    """'²' passes str.isdigit(), then int() raised (exit 1): it is an id that names no image."""
+    _images(tmp_path / "images", [f"{i:06d}" for i in range(3)])
+    tum.write_pose_list(tmp_path / "poses.txt", [(k, T) for k, T in zip(("0", "1", "²"), _poses(3))])
+    (tmp_path / "intrinsics.yaml").write_text(INTR)
+    ds = load_dataset(tmp_path)
+    assert [f.name for f in ds.frames] == ["000000", "000001"] and "1 of 3 images have no pose" in caplog.text
+
+
+@pytest.mark.parametrize("text, msg", [
+    # integers beyond float range (OverflowError / TypeError before)
+    (INTR.replace("fx: 35.0", "fx: " + "9" * 400), "fx <an integer of about 400 digits> is too large"),
+    (INTR + "K: [" + "9" * 400 + ", 0, 19.5, 0, 36, 15.25, 0, 0, 1]\n", r"K \(3x3\) element 1 .* too large"),
+    (INTR + "depth_factor: " + "9" * 400 + "\n", "depth_factor .* too large"),
+    (INTR + "k1: " + "9" * 400 + "\n", "k1 .* too large"),
+    (INTR.replace("width: 40", "width: " + "9" * 400), "width x height claims <an integer of about 400 digits>x30"),
+    # bools and text are not numbers (width: true was read as 1; text in K was accepted, '153.75' as fx not)
+    (INTR.replace("width: 40", "width: true"), "size must be whole numbers, got True x 30"),
+    (INTR + "K: ['35', 0, 19.5, 0, 36, 15.25, 0, 0, 1]\n", r"K \(3x3\) element 1 must be a number, got str '35'"),
+    (INTR.replace("fx: 35.0", "fx: '35.5'"), "fx must be a number, got str '35.5' .write numbers without quotes"),
+    (INTR + "depth_factor: 1e3\n", r"got str '1e3' .*YAML .*write 1\.0e\+3"),   # PyYAML reads 1e3 as text
+    # absurd finite values
+    (INTR + "depth_factor: 1.0e-300\n", r"depth_factor \(depth units per metre\) must be within"),
+    (INTR + "depth_scale: 1.0e-300\n", r"depth_scale \(metres per depth unit\) must be within"),
+    (INTR + "k1: 1.0e+300\n", r"distortion coefficients must be within \+-1000"),
+    (INTR.replace("fx: 35.0", "fx: 1.0e+308"), "focal length fx = 1e\\+308 px is implausible"),
+    ("K: [[35, 0, 19.5], [0, 36, 15.25], [3, 4, 0]]\nwidth: 40\nheight: 30\n", r"K must be .*\[0, 0, 1\]"),
+    (INTR.replace("cx: 19.5", "cx: 800"), r"principal point .* far outside the 40x30 image"),
+])
+def test_intrinsics_numbers_are_checked(tmp_path, text, msg):
+    p = tmp_path / "intrinsics.yaml"
+    p.write_text(text)
+    with pytest.raises(InputError, match=msg) as e:
+        tum.read_intrinsics(p)
+    assert e.value.path == p
+
+
+def _rgbd(folder: Path, depth_times: list[float], depth=None) -> None:
+    """TUM RGB-D layout: images at 1.0, 1.1, 1.2 s with rgb.txt, poses by timestamp, depth.txt at depth_times."""
+    t_img = [1.0, 1.1, 1.2]
+    _images(folder / "rgb", [f"{t:.6f}" for t in t_img])
+    (folder / "rgb.txt").write_text("".join(f"{t:.6f} rgb/{t:.6f}.png\n" for t in t_img))
+    tum.write_pose_list(folder / "groundtruth.txt", [(f"{t:.6f}", T) for t, T in zip(t_img, _poses(3))])
+    (folder / "intrinsics.yaml").write_text(INTR)
+    for t in depth_times:
+        io.write_image(folder / "depth" / f"{t:.6f}.png", np.full((H, W), 5000, np.uint16) if depth is None else depth)
+    (folder / "depth.txt").write_text("".join(f"{t:.6f} depth/{t:.6f}.png\n" for t in depth_times))
+
+
+def test_depth_txt_matching_no_image_is_an_error_and_some_a_warning(tmp_path, caplog):
+    """Depth that matched no image was dropped silently (the capture then had no depth at all)."""
+    _rgbd(tmp_path / "none", [5.0, 5.1, 5.2])
+    with pytest.raises(InputError, match=r"none of its 3 depth images is within 0.02 s of one of the 3 posed") as e:
+        load_dataset(tmp_path / "none")
+    assert e.value.path == tmp_path / "none" / "depth.txt"
+    _rgbd(tmp_path / "some", [1.005, 5.1, 1.205])
+    ds = load_dataset(tmp_path / "some")
+    assert [f.depth_path is not None for f in ds.frames] == [True, False, True]
+    assert "depth.txt: 1 of 3 posed images have no depth image within 0.02 s (of 3 depth images)" in caplog.text
+
+
+def test_depth_txt_naming_a_colour_image_is_refused(tmp_path):
+    _rgbd(tmp_path, [1.0, 1.1, 1.2], depth=np.full((H, W, 3), 50, np.uint8))
+    with pytest.raises(InputError, match="depth image must be single-channel 16-bit.*'RGB'") as e:
+        load_dataset(tmp_path)
+    assert e.value.path == tmp_path / "depth" / "1.000000.png"
+
+
+def test_tum_folder_links_out_are_refused(tmp_path):
+    """The images of rgb/ (no rgb.txt) and depth/ are files of the capture: a link out of it is refused."""
+    import os
+
+    cap = tmp_path / "cap"
+    _images(cap / "rgb", ["000000", "000001"])
+    tum.write_pose_list(cap / "poses.txt", [(f"{i:06d}", T) for i, T in enumerate(_poses(2))])
+    (cap / "intrinsics.yaml").write_text(INTR + "depth_factor: 1000\n")
+    (cap / "rgb" / "000001.png").rename(tmp_path / "outside.png")
+    os.symlink(tmp_path / "outside.png", cap / "rgb" / "000001.png")
+    with pytest.raises(InputError, match="leads outside its folder") as e:
+        load_dataset(cap)
+    assert e.value.path == cap / "rgb" / "000001.png"
+    (cap / "rgb" / "000001.png").unlink()
+    (tmp_path / "outside.png").rename(cap / "rgb" / "000001.png")
+    io.write_image(tmp_path / "d.png", np.full((H, W), 1000, np.uint16))
+    (cap / "depth").mkdir()
+    os.symlink(tmp_path / "d.png", cap / "depth" / "000000.png")
+    with pytest.raises(InputError, match="leads outside its folder") as e:
+        load_dataset(cap)
+    assert e.value.path == cap / "depth" / "000000.png"

@@ -45,3 +45,29 @@ def test_distorted_camera_round_trip():
     ok = np.isfinite(depth) & (depth > 0)
     np.testing.assert_allclose(uv, np.stack([u[ok] + 0.5, v[ok] + 0.5], 1), atol=1e-3)
     np.testing.assert_allclose(z, depth[ok], rtol=1e-9)
+
+
+def test_a_wrong_size_depth_map_among_many_is_named(tmp_path):
+    """One 200x160 depth map among 14 of 160x120: the up check samples 12 frames and missed it, then the
+    back-projection raised ValueError (exit 1). Every depth map is now checked where it is read."""
+    import pytest
+
+    from splattwin import io
+    from splattwin.capture import Frame
+    from splattwin.errors import InputError
+    from splattwin.poses.depth import backproject_frames
+    from splattwin.poses.up import depth_points
+
+    frames = []
+    for i in range(14):
+        cam = Camera.from_fov(1.0, 16, 12, T_world_cam=look_at(np.array([0.5, 0.1 * i, 0.5]), np.zeros(3)), name=f"{i}")
+        io.write_image(tmp_path / f"{i}.png", np.zeros((12, 16, 3), np.uint8))
+        d = tmp_path / f"{i}_d.png"
+        io.write_image(d, np.full((14, 16) if i == 3 else (12, 16), 500, np.uint16))
+        frames.append(Frame(image_path=tmp_path / f"{i}.png", camera=cam, depth_path=d))
+    with pytest.raises(InputError, match="depth map is 16x14 but its camera is 16x12") as e:
+        backproject_frames(frames, stride=1)
+    assert e.value.path == tmp_path / "3_d.png"
+    with pytest.raises(InputError, match="depth map is 16x14") as e:
+        depth_points(frames, None, max_frames=14)
+    assert e.value.path == tmp_path / "3_d.png"

@@ -124,6 +124,47 @@ def test_json_nesting_and_size(tmp_path):
         read_json(tmp_path / "deep.json", max_bytes=1000)
 
 
+def test_json_long_integers_and_duplicate_keys(tmp_path):
+    """Python refuses to parse integers of more than 4300 digits with a ValueError that read_json let through
+    (exit 1); a key given twice in one object was silently the last one's."""
+    from splattwin.limits import read_json
+
+    p = tmp_path / "long.json"
+    p.write_text('{"id": ' + "7" * 5000 + "}")
+    with pytest.raises(InputError, match="number too long to read") as e:
+        read_json(p)
+    assert e.value.path == p and len(str(e.value)) < 300
+    p.write_text('{"a": {"0": {"cam_K": 1}, "0": {"cam_K": 2}}}')
+    with pytest.raises(InputError, match="the key '0' twice") as e:
+        read_json(p)
+    assert e.value.path == p
+    p.write_text('{"a": [{"0": 1}, {"0": 2}]}')   # one key in two objects is fine
+    assert read_json(p) == {"a": [{"0": 1}, {"0": 2}]}
+
+
+def test_numbers_read_from_files_are_numbers(tmp_path):
+    """The shared number parsing of the capture readers: bools, text, integers beyond float range and
+    non-finite values are InputErrors naming the file; YAML's 1e3-as-text gets a hint."""
+    from splattwin.limits import ascii_uint, check_pixels, number, numbers
+
+    where = tmp_path / "f.json"
+    assert number(3, where, "x") == 3.0 and numbers([[1, 2], [3, 4]], 4, where, "M").tolist() == [1, 2, 3, 4]
+    for v, msg in [(True, "must be a number, got bool"), ("1.5", "got str '1.5' .write numbers without quotes"),
+                   ("1e3", r"YAML .* write 1\.0e\+3"), (10**400, "about 400 digits> is too large"),
+                   (float("inf"), "finite"), (None, "must be a number"), (2e6, r"within \[0, 1e\+06\]")]:
+        with pytest.raises(InputError, match=msg) as e:
+            number(v, where, "x", 0, 1e6)
+        assert e.value.path == where
+    for v, msg in [(["1", 2], "element 1 must be a number"), ([1], "must hold 2 numbers, got 1"),
+                   ("12", "must be a list of 2 numbers"), ([[[[[1, 2]]]]] * 1000, "must hold 2 numbers")]:
+        with pytest.raises(InputError, match=msg):
+            numbers(v, 2, where, "v")
+    for w, msg in [(True, "whole numbers, got True"), (10**5000, "about 5000 digits")]:
+        with pytest.raises(InputError, match=msg):
+            check_pixels(w, 10, where)
+    assert [ascii_uint(s) for s in ("12", "0012", "²", "٣", "", "-1", "1" * 19)] == [12, 12, None, None, None, None, None]
+
+
 @pytest.fixture(scope="module")
 def gt_twin_small(tmp_path_factory, scene_small) -> Path:
     from splattwin.twin.groundtruth import twin_from_scene

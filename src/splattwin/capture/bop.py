@@ -31,17 +31,16 @@ built from integer ids, never taken from the files.
 from __future__ import annotations
 
 import logging
-import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from splattwin import io
-from splattwin.capture.camera import Camera, invert_se3
-from splattwin.capture.dataset import IMAGE_SUFFIXES, Dataset, Frame, image_size
+from splattwin.capture.camera import Camera, invert_se3, plausible
+from splattwin.capture.dataset import DEPTH_SCALE_RANGE, IMAGE_SUFFIXES, Dataset, Frame, image_size, list_files
 from splattwin.errors import InputError
-from splattwin.limits import check_count
+from splattwin.limits import MAX_POSITION, ascii_uint, check_count, number, numbers
 
 log = logging.getLogger(__name__)
 
@@ -68,31 +67,28 @@ def is_scene(path: Path) -> bool:
     return (path / SCENE_CAMERA).is_file() and any((path / d).is_dir() for d in IMAGE_DIRS)
 
 
-def _image_id(key, where: Path) -> int:
-    # ASCII digits only: str.isdigit() also takes "²", which int() refuses
-    if not isinstance(key, str) or not re.fullmatch(r"[0-9]{1,9}", key):
-        raise InputError(f"image id {key!r} must be a whole number (a key like \"0\" or \"12\")", where)
-    return int(key)
+def _image_id(key, where: Path, what: str = "image id") -> int:
+    i = ascii_uint(key, 9)
+    if i is None:
+        raise InputError(f"{what} {str(key)[:40]!r} must be a whole number (a key like \"0\" or \"12\")", where)
+    return i
 
 
-def _numbers(v, n: int, where: Path, what: str) -> np.ndarray:
-    if isinstance(v, (str, bytes, dict)) or v is None:
-        raise InputError(f"{what} must be a list of {n} numbers, got {type(v).__name__}", where)
-    try:
-        a = np.asarray(v, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise InputError(f"{what} must be a list of {n} numbers", where) from None
-    if a.size != n:
-        raise InputError(f"{what} must hold {n} numbers, got {a.size}", where)
-    if not np.all(np.isfinite(a)):
-        raise InputError(f"{what} holds a non-finite number", where)
-    return a
+def _unique_ids(keys, where: Path, what: str) -> dict[int, str]:
+    """id -> key of a file's image-id keys; InputError when two keys name one id ("0" and "00")."""
+    out: dict[int, str] = {}
+    for k in keys:
+        i = _image_id(k, where)
+        if i in out:
+            raise InputError(f"{what} has two entries for image {i} ({out[i]!r} and {k!r})", where)
+        out[i] = k
+    return out
 
 
 def _rigid(R9, t3, where: Path, what: str) -> np.ndarray:
     """[4,4] from a row-major rotation [9] and a translation [3] in mm (-> metres); checked rotation."""
-    R = _numbers(R9, 9, where, f"{what} rotation").reshape(3, 3)
-    t = _numbers(t3, 3, where, f"{what} translation") * MM
+    R = numbers(R9, 9, where, f"{what} rotation").reshape(3, 3)
+    t = numbers(t3, 3, where, f"{what} translation (mm)", -MAX_POSITION / MM, MAX_POSITION / MM) * MM
     if not np.allclose(R.T @ R, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0:
         raise InputError(f"{what} rotation is not a proper rotation matrix", where)
     # re-orthonormalise the rounded matrix BOP files store (6-8 digits)
@@ -113,12 +109,16 @@ def _read_dict(path: Path, what: str) -> dict:
 
 def _index_images(scene: Path) -> tuple[Path, dict[str, Path]]:
     for d in IMAGE_DIRS:
-        folder = scene / d
-        if folder.is_dir():
-            files = {p.stem: p for p in sorted(folder.iterdir()) if p.is_file() and p.suffix in IMAGE_SUFFIXES}
-            if files:
-                return folder, files
+        files = _listing(scene, d, IMAGE_SUFFIXES)
+        if files:
+            return scene / d, files
     raise InputError("BOP scene has no images in rgb/ or gray/", scene)
+
+
+def _listing(scene: Path, sub: str, suffixes) -> dict[str, Path]:
+    """stem -> file of scene/sub, confined to the scene (a link out of it is refused: `list_files`)."""
+    folder = scene / sub
+    return {p.stem: p for p in list_files(folder, suffixes, inside=scene)} if folder.is_dir() else {}
 
 
 def read(path: str | Path) -> Dataset:
@@ -128,10 +128,12 @@ def read(path: str | Path) -> Dataset:
     cam_file = scene / SCENE_CAMERA
     meta = _read_dict(cam_file, SCENE_CAMERA)
     image_dir, images = _index_images(scene)
-    depth_dir = scene / "depth"
-    depth_files = ({p.stem: p for p in depth_dir.iterdir() if p.is_file() and p.suffix.lower() in (".png", ".tif", ".tiff")}
-                   if depth_dir.is_dir() else {})
-    entries = sorted(((_image_id(k, cam_file), v) for k, v in meta.items()), key=lambda kv: kv[0])
+    depth_files = _listing(scene, "depth", (".png", ".tif", ".tiff"))
+    entries = sorted(((i, meta[k]) for i, k in _unique_ids(meta, cam_file, SCENE_CAMERA).items()),
+                     key=lambda kv: kv[0])
+    for im_id, e in entries:  # before the pose check, which would call a non-object "an image without pose"
+        if not isinstance(e, dict):
+            raise InputError(f"image {im_id}: entry must be an object with cam_K, got {type(e).__name__}", cam_file)
     posed = [isinstance(v, dict) and "cam_R_w2c" in v and "cam_t_w2c" in v for _, v in entries]
     some = [isinstance(v, dict) and ("cam_R_w2c" in v or "cam_t_w2c" in v) for _, v in entries]
     if any(some) and not all(posed):
@@ -144,11 +146,9 @@ def read(path: str | Path) -> Dataset:
     skipped = []
     for im_id, e in entries:
         where = f"image {im_id}"
-        if not isinstance(e, dict):
-            raise InputError(f"{where}: entry must be an object with cam_K", cam_file)
         if "cam_K" not in e:
             raise InputError(f"{where}: no cam_K", cam_file)
-        K = _numbers(e["cam_K"], 9, cam_file, f"{where} cam_K").reshape(3, 3)
+        K = numbers(e["cam_K"], 9, cam_file, f"{where} cam_K").reshape(3, 3)
         stem = f"{im_id:06d}"
         img = images.get(stem)
         if img is None:
@@ -160,12 +160,12 @@ def read(path: str | Path) -> Dataset:
             T = invert_se3(_rigid(e["cam_R_w2c"], e["cam_t_w2c"], cam_file, f"{where} cam_R_w2c/cam_t_w2c"))
         depth = depth_files.get(stem)
         if depth is not None:
-            s = e.get("depth_scale", 1.0)
-            if isinstance(s, bool) or not isinstance(s, (int, float)) or not np.isfinite(s) or s <= 0:
-                raise InputError(f"{where}: depth_scale must be a positive number, got {s!r}", cam_file)
-            scales.setdefault(float(s), []).append(im_id)
+            # BOP's depth_scale is millimetres per raw unit
+            lo, hi = (x / MM for x in DEPTH_SCALE_RANGE)
+            s = number(e.get("depth_scale", 1.0), cam_file, f"{where}: depth_scale (mm per raw depth unit)", lo, hi)
+            scales.setdefault(s, []).append(im_id)
         try:
-            cam = Camera(K=K, width=w, height=h, T_world_cam=T, name=stem)
+            cam = plausible(Camera(K=K, width=w, height=h, T_world_cam=T, name=stem))
         except InputError as err:
             raise InputError(f"{where}: {err.problem}", cam_file) from err
         frames.append(Frame(image_path=img, camera=cam, depth_path=depth))
@@ -194,8 +194,8 @@ def read_scene_gt(path: str | Path) -> dict[int, list[GtInstance]]:
         path = path / SCENE_GT
     data = _read_dict(path, SCENE_GT)
     out: dict[int, list[GtInstance]] = {}
-    for key, lst in data.items():
-        im_id = _image_id(key, path)
+    for im_id, key in _unique_ids(data, path, SCENE_GT).items():
+        lst = data[key]
         if not isinstance(lst, list):
             raise InputError(f"image {im_id}: expected a list of annotated instances", path)
         check_count(len(lst), path, f"instances of image {im_id}", limit=100_000)
@@ -238,13 +238,13 @@ def object_names(scene: str | Path, obj_ids: list[int] | None = None) -> dict[in
         if not isinstance(data, dict):
             raise InputError('expected an object {"<obj_id>": "name", ...}', f)
         for k, v in data.items():
-            names[_image_id(str(k), f)] = name_from_label(v, f, f"name of obj_id {k}")
+            names[_image_id(str(k), f, "obj_id")] = name_from_label(v, f, f"name of obj_id {k}")
     elif f is not None:
         data = io.read_json(f)
         if isinstance(data, dict):
             for k, v in data.items():
                 if isinstance(v, dict) and isinstance(v.get("name"), str):
-                    names.setdefault(_image_id(str(k), f), name_from_label(v["name"], f, f"name of obj_id {k}"))
+                    names.setdefault(_image_id(str(k), f, "obj_id"), name_from_label(v["name"], f, f"name of obj_id {k}"))
     if f is not None:
         check_unique(names.values(), f)
     for oid in obj_ids or []:

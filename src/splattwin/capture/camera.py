@@ -201,6 +201,46 @@ class Camera:
                    name=d.get("name", ""))
 
 
+# Bounds on a camera read from a dataset file (`plausible`): wide enough for any real lens, narrow enough
+# that a typo or a hostile file cannot give a focal length of 5e-15 px or a principal point 80 px off a 1x1
+# image (both were accepted and made every later stage produce nonsense or fail far from the cause).
+FOCAL_RANGE = (1e-3, 1e3)   # fx, fy as a multiple of the image's larger side (a fisheye is ~0.3, a 1° lens ~60)
+MAX_DISTORTION = 1e3        # |k1 k2 p1 p2 k3| (real lenses: |k| < 10 even for the rational wide-angle fits)
+K_TOL = 1e-6                # the fixed entries of K (0, 0, 1 in the last row, 0 below fx, no skew)
+
+
+def plausible(cam: Camera) -> Camera:
+    """`cam` if its numbers are those of a real camera, else InputError (without a path: readers wrap it
+    with the file, as they do Camera's own errors): K of the form [[fx 0 cx] [0 fy cy] [0 0 1]] (other
+    entries would be silently dropped), fx, fy within FOCAL_RANGE x the image's larger side, the principal
+    point within [-w, 2w] x [-h, 2h], distortion within +-MAX_DISTORTION, and the camera centre within
+    +-MAX_POSITION metres (`splattwin.limits`)."""
+    from splattwin.limits import MAX_POSITION
+
+    where = f"camera {cam.name!r}: " if cam.name else ""
+    K, w, h = cam.K, cam.width, cam.height
+    fixed = [K[1, 0], K[2, 0], K[2, 1], K[2, 2] - 1.0, K[0, 1] / max(abs(K[0, 0]), 1.0)]
+    if max(abs(x) for x in fixed) > K_TOL:
+        raise InputError(f"{where}K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew; last row 0 0 1), got "
+                         f"{np.array2string(K, precision=6, separator=', ')}".replace("\n", ""))
+    lo, hi = (r * max(w, h) for r in FOCAL_RANGE)
+    for name, f in (("fx", cam.fx), ("fy", cam.fy)):
+        if not lo <= f <= hi:
+            raise InputError(f"{where}focal length {name} = {f:g} px is implausible for a {w}x{h} image (expected "
+                             f"{FOCAL_RANGE[0]:g} to {FOCAL_RANGE[1]:g} x its larger side: {lo:g} to {hi:g} px)")
+    if not (-w <= cam.cx <= 2 * w and -h <= cam.cy <= 2 * h):
+        raise InputError(f"{where}principal point (cx, cy) = ({cam.cx:g}, {cam.cy:g}) is far outside the {w}x{h} "
+                         f"image (expected cx in [{-w}, {2 * w}], cy in [{-h}, {2 * h}])")
+    if cam.dist is not None and np.max(np.abs(cam.dist)) > MAX_DISTORTION:
+        raise InputError(f"{where}distortion coefficients must be within +-{MAX_DISTORTION:g}, got "
+                         f"{[float(x) for x in cam.dist]}")
+    c = cam.T_world_cam[:3, 3]
+    if np.max(np.abs(c)) > MAX_POSITION:
+        raise InputError(f"{where}camera position {[float(x) for x in c]} is more than {MAX_POSITION:g} m from "
+                         f"the origin (wrong units?)")
+    return cam
+
+
 def distort(x: np.ndarray, y: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Apply OpenCV radial/tangential distortion (k1, k2, p1, p2[, k3]) to normalised coordinates."""
     k1, k2, p1, p2 = dist[:4]

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from splattwin import io
-from splattwin.capture.camera import Camera
+from splattwin.capture.camera import Camera, plausible
 from splattwin.capture.dataset import IMAGE_SUFFIXES, Dataset, Frame
 from splattwin.errors import InputError
 
@@ -45,11 +45,10 @@ def read(path: str | Path, image_dir: str | Path | None = None, require_images: 
     frames = []
     if not all(isinstance(e, dict) for e in entries):
         raise InputError("every camera entry must be an object", path)
-    try:
-        entries = sorted(entries, key=lambda e: float(e.get("id", 0)))
-    except (TypeError, ValueError):
-        raise InputError("camera 'id's must be numbers", path) from None
-    from splattwin.limits import check_pixels
+    from splattwin.limits import MAX_POSITION, check_pixels, number, numbers
+
+    ids = [number(e.get("id", 0), path, f"camera entry {i}: id") for i, e in enumerate(entries)]
+    entries = [e for _, e in sorted(zip(ids, entries), key=lambda ie: ie[0])]
 
     for i, e in enumerate(entries):
         missing = [k for k in _REQUIRED if k not in e]
@@ -57,17 +56,16 @@ def read(path: str | Path, image_dir: str | Path | None = None, require_images: 
             raise InputError(f"camera entry {i} lacks {', '.join(missing)}", path)
         if not isinstance(e["img_name"], str) or not e["img_name"]:
             raise InputError(f"camera entry {i}: img_name must be a non-empty string", path)
-        try:
-            T = np.eye(4)
-            T[:3, :3] = np.asarray(e["rotation"], dtype=np.float64)
-            T[:3, 3] = np.asarray(e["position"], dtype=np.float64)
-            w, h = check_pixels(e["width"], e["height"], path, f"camera {e['img_name']!r}: width x height")
-            K = np.array([[float(e["fx"]), 0, w / 2.0], [0, float(e["fy"]), h / 2.0], [0, 0, 1.0]])
-        except (TypeError, ValueError) as err:
-            raise InputError(f"camera {e['img_name']!r}: position, rotation (3x3), fx, fy must be numbers ({err})",
-                             path) from None
-        if not np.all(np.isfinite(T)) or not np.all(np.isfinite(K)):
-            raise InputError(f"camera {e['img_name']!r}: pose or intrinsics are not finite", path)
+        what = f"camera {e['img_name']!r}:"
+        rot = e["rotation"]
+        if not (isinstance(rot, list) and len(rot) == 3 and all(isinstance(r, list) and len(r) == 3 for r in rot)):
+            raise InputError(f"{what} rotation must be a 3x3 matrix (a list of 3 rows of 3 numbers)", path)
+        T = np.eye(4)
+        T[:3, :3] = numbers(rot, 9, path, f"{what} rotation").reshape(3, 3)
+        T[:3, 3] = numbers(e["position"], 3, path, f"{what} position", -MAX_POSITION, MAX_POSITION)
+        w, h = check_pixels(e["width"], e["height"], path, f"{what} width x height")
+        K = np.array([[number(e["fx"], path, f"{what} fx"), 0, w / 2.0], [0, number(e["fy"], path, f"{what} fy"), h / 2.0],
+                      [0, 0, 1.0]])
         img = _find_image(root, e["img_name"], path)
         if img is None and not require_images:
             from splattwin.paths import confined
@@ -76,7 +74,7 @@ def read(path: str | Path, image_dir: str | Path | None = None, require_images: 
         if img is None:
             raise InputError(f"image for camera {e['img_name']!r} not found under {root}", path)
         try:
-            cam = Camera(K=K, width=w, height=h, T_world_cam=T, name=Path(e["img_name"]).stem)
+            cam = plausible(Camera(K=K, width=w, height=h, T_world_cam=T, name=Path(e["img_name"]).stem))
         except InputError as err:
             raise InputError(f"camera {e['img_name']!r}: {err.problem}", path) from err
         frames.append(Frame(image_path=img, camera=cam))

@@ -80,8 +80,9 @@ class Dataset:
         return [f.camera for f in self.frames]
 
     def validate(self) -> None:
-        """Check that files exist, that images match their cameras' sizes and are complete (reads image
-        headers and ends only, `limits.check_image_complete`: a truncated photo stops here, before SfM)."""
+        """Check that files exist, that images and depth images match their cameras' sizes and are complete
+        (reads image headers and ends only, `limits.check_image_complete`: a truncated photo stops here,
+        before SfM), and that depth images are depth (`DEPTH_MODES`)."""
         from splattwin.limits import check_image_complete
 
         if not self.frames:
@@ -94,6 +95,9 @@ class Dataset:
             for extra in (f.depth_path, f.mask_path, f.label_path):
                 if extra is not None and not extra.is_file():
                     raise InputError("file listed in the dataset does not exist", extra)
+            if f.depth_path is not None and f.depth_path.suffix.lower() != ".npy":
+                depth_image_size(f.depth_path, (f.camera.width, f.camera.height))  # header only
+                check_image_complete(f.depth_path, "depth image")
 
 
 def image_size(path: Path) -> tuple[int, int]:
@@ -120,7 +124,35 @@ def load_mask(path: str | Path) -> np.ndarray:
     return m[..., 0] if m.ndim == 3 else m
 
 
-def load_depth(path: str | Path, scale: float | None = None) -> np.ndarray:
+# PIL modes of depth images: 16-bit greyscale (PNG, TIFF; "I" is how PIL opens some 16-bit PNGs), 32-bit
+# integer or float (TIFF). 8-bit, palette or colour images are not depth: read as millimetres they gave a
+# plausible but wrong cloud (a 0..255 mm scene), so they are refused.
+DEPTH_MODES = ("I;16", "I;16B", "I;16L", "I;16N", "I", "F")
+# metres per raw depth unit, every format (BOP depth_scale / 1000, TUM 1 / depth_factor, nerfstudio
+# depth_unit_scale_factor): from a micrometre to 100 m. Values outside made every depth 0 or inf.
+DEPTH_SCALE_RANGE = (1e-6, 1e2)
+
+
+def _check_depth_image(im, path: Path, size: tuple[int, int] | None) -> None:
+    if im.mode not in DEPTH_MODES:
+        raise InputError(f"depth image must be single-channel 16-bit (or 32-bit integer or float), got PIL mode "
+                         f"{im.mode!r} ({len(im.getbands())} channel(s)); 8-bit or colour images are not depth maps",
+                         path)
+    if size is not None and tuple(im.size) != tuple(size):
+        raise InputError(f"depth map is {im.size[0]}x{im.size[1]} but its camera is {size[0]}x{size[1]}", path)
+
+
+def depth_image_size(path: str | Path, size: tuple[int, int] | None = None) -> tuple[int, int]:
+    """(width, height) of a depth image from its header, InputError naming it when it is not a depth image
+    (DEPTH_MODES) or, with `size`, not of that size (its camera's)."""
+    from splattwin.limits import open_image
+
+    with open_image(path, "depth image") as im:
+        _check_depth_image(im, Path(path), size)
+        return im.size
+
+
+def load_depth(path: str | Path, scale: float | None = None, size: tuple[int, int] | None = None) -> np.ndarray:
     """Depth map as float32 HxW metres (0 / non-finite = no measurement, as the sensors write it).
 
     path: `.npy` (numbers) or an image (16-bit PNG / TIFF). scale: metres per raw unit, explicit per
@@ -128,16 +160,26 @@ def load_depth(path: str | Path, scale: float | None = None) -> np.ndarray:
     TUM 1/5000); None = the file type's default: integer images in millimetres (nerfstudio's default
     1e-3), float arrays in metres. Integer depth with a scale of 1/k for a whole k (1/1000, 1/5000) is
     divided by k, so the metres are the correctly rounded float32 of raw / k.
+    size: (width, height) the map must have (its camera's), else InputError naming the depth file.
+    Images must be single-channel 16-bit, 32-bit integer or float (DEPTH_MODES).
     """
-    from splattwin.limits import check_pixels, load_npy
+    from splattwin.limits import check_pixels, load_npy, open_image
 
     path = Path(path)
     if not path.is_file():
         raise InputError("depth file does not exist", path)
-    d = load_npy(path, "depth array") if path.suffix == ".npy" else load_mask(path)
+    if path.suffix == ".npy":
+        d = load_npy(path, "depth array")
+    else:
+        with open_image(path, "depth image") as im:
+            _check_depth_image(im, path, size)
+            im.load()
+            d = np.asarray(im)
     if d.ndim != 2:
         raise InputError(f"depth must be a 2-D array, got shape {d.shape}", path)
     check_pixels(d.shape[1], d.shape[0], path, "depth map")
+    if size is not None and (d.shape[1], d.shape[0]) != tuple(size):
+        raise InputError(f"depth map is {d.shape[1]}x{d.shape[0]} but its camera is {size[0]}x{size[1]}", path)
     if d.dtype.kind not in "fiub":
         raise InputError(f"depth must hold numbers, got dtype {d.dtype}", path)
     if scale is None:
@@ -159,9 +201,28 @@ def resize_nearest(a: np.ndarray, width: int, height: int) -> np.ndarray:
     return a[v[:, None], u[None, :]]
 
 
-def find_images(folder: Path) -> list[Path]:
-    """The image files of `folder` (suffix in IMAGE_SUFFIXES, any case), sorted by name."""
-    return sorted(p for p in Path(folder).iterdir() if p.is_file() and p.suffix.lower() in _IMAGE_SUFFIXES_LOWER)
+def find_images(folder: Path, inside: Path | None = None) -> list[Path]:
+    """The image files of `folder` (suffix in IMAGE_SUFFIXES, any case), sorted by name (see `list_files`
+    for `inside`)."""
+    return list_files(folder, _IMAGE_SUFFIXES_LOWER, inside)
+
+
+def list_files(folder: Path, suffixes, inside: Path | None = None) -> list[Path]:
+    """The files of `folder` whose suffix is in `suffixes` (any case), sorted by name.
+
+    inside: the dataset folder every file must stay in, symbolic links resolved (InputError naming the
+    link otherwise), as paths named in a dataset's files must (`splattwin.paths`): a received dataset
+    cannot pull other files of this machine into the twin. None (a user's own photo folder): links to
+    photos elsewhere are followed, by design."""
+    from splattwin.paths import confined
+
+    folder = Path(folder)
+    lower = {x.lower() for x in suffixes}
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in lower and p.is_file())
+    if inside is not None:
+        for p in files:
+            confined(inside, p.relative_to(inside), p, f"{p.parent.name}/ file")
+    return files
 
 
 def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool = True,

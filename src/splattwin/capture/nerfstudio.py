@@ -24,10 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from splattwin import io
-from splattwin.capture.camera import Camera, opencv_from_opengl, opengl_from_opencv
-from splattwin.capture.dataset import Dataset, Frame
+from splattwin.capture.camera import Camera, opencv_from_opengl, opengl_from_opencv, plausible
+from splattwin.capture.dataset import DEPTH_SCALE_RANGE, Dataset, Frame
 from splattwin.errors import InputError
-from splattwin.limits import check_count, check_pixels
+from splattwin.limits import check_count, check_pixels, number
 from splattwin.paths import confined, unfollowed
 from splattwin.transforms import pose_from_file_value
 
@@ -44,23 +44,24 @@ def _intrinsics(src: dict, fallback: dict, where: Path, frame_name: str) -> tupl
 
     fl_x, fl_y = get("fl_x"), get("fl_y")
     w, h = get("w"), get("h")
-    if fl_x is None and get("camera_angle_x") is not None and w is not None:  # Blender/NeRF-synthetic style
-        fl_x = 0.5 * float(w) / math.tan(0.5 * float(get("camera_angle_x")))
-    if fl_y is None:
-        fl_y = fl_x
-    missing = [k for k, v in (("fl_x", fl_x), ("w", w), ("h", h)) if v is None]
+    missing = [k for k, v in (("fl_x or camera_angle_x", fl_x if fl_x is not None else get("camera_angle_x")),
+                              ("w", w), ("h", h)) if v is None]
     if missing:
         raise InputError(f"frame {frame_name!r}: missing intrinsics {', '.join(missing)}", where)
-    try:
-        w_i, h_i = check_pixels(w, h, where, f"frame {frame_name!r}: w x h")
-        cx = get("cx") if get("cx") is not None else float(w) / 2.0
-        cy = get("cy") if get("cy") is not None else float(h) / 2.0
-        K = np.array([[float(fl_x), 0.0, float(cx)], [0.0, float(fl_y), float(cy)], [0.0, 0.0, 1.0]])
-        dist = np.array([float(get(k) or 0.0) for k in _DIST_KEYS])
-    except (TypeError, ValueError, OverflowError) as e:
-        raise InputError(f"frame {frame_name!r}: intrinsics must be numbers ({e})", where) from None
-    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(dist))):
-        raise InputError(f"frame {frame_name!r}: intrinsics are not finite", where)
+    what = f"frame {frame_name!r}: intrinsics"
+    w_i, h_i = check_pixels(w, h, where, f"{what} w x h")
+    if fl_x is None:  # Blender/NeRF-synthetic style: horizontal field of view, radians
+        angle = number(get("camera_angle_x"), where, f"{what} camera_angle_x (radians)")
+        if not 0 < angle < math.pi:
+            raise InputError(f"{what} camera_angle_x must be a field of view in radians, between 0 and pi, got "
+                             f"{angle:g}", where)
+        fl_x = 0.5 * w_i / math.tan(0.5 * angle)
+    fl_x = number(fl_x, where, f"{what} fl_x")
+    fl_y = fl_x if fl_y is None else number(fl_y, where, f"{what} fl_y")
+    cx = w_i / 2.0 if get("cx") is None else number(get("cx"), where, f"{what} cx")
+    cy = h_i / 2.0 if get("cy") is None else number(get("cy"), where, f"{what} cy")
+    K = np.array([[fl_x, 0.0, cx], [0.0, fl_y, cy], [0.0, 0.0, 1.0]])
+    dist = np.array([0.0 if get(k) is None else number(get(k), where, f"{what} {k}") for k in _DIST_KEYS])
     return K, w_i, h_i, (dist if np.any(dist) else None)
 
 
@@ -104,6 +105,9 @@ def read(path: str | Path, require_images: bool = True) -> Dataset:
             raise InputError(f"frame {rel!r}: unsupported camera_model {fr_model!r}", path)
         K, w, h, dist = _intrinsics(fr, meta, path, rel)
         T_gl = pose_from_file_value(fr.get("transform_matrix"), f"frame {rel!r}: transform_matrix", path)
+        if np.max(np.abs(T_gl[3] - [0.0, 0.0, 0.0, 1.0])) > 1e-6:  # a projective row would be silently dropped
+            raise InputError(f"frame {rel!r}: transform_matrix must end with the row 0 0 0 1, got "
+                             f"{[float(x) for x in T_gl[3]]}", path)
         split = fr.get("split")
         if split is None:
             split = "heldout" if (rel in heldout_names or img.name in heldout_names) else "train"
@@ -112,7 +116,8 @@ def read(path: str | Path, require_images: bool = True) -> Dataset:
         else:
             split = "train"
         try:
-            cam = Camera(K=K, width=w, height=h, T_world_cam=opencv_from_opengl(T_gl), dist=dist, name=Path(rel).stem)
+            cam = plausible(Camera(K=K, width=w, height=h, T_world_cam=opencv_from_opengl(T_gl), dist=dist,
+                                   name=Path(rel).stem))
         except InputError as e:
             raise InputError(f"frame {rel!r}: {e.problem}", path) from e
         extra = {k: confined(root, fr[k], path, f"frame {rel!r} {k}") if fr.get(k) else None
@@ -139,12 +144,8 @@ def read(path: str | Path, require_images: bool = True) -> Dataset:
             log.warning("%s: ply_file_path %s is missing; no initial point cloud", path, ply)
     depth_scale = None  # absent: nerfstudio's default (16-bit PNG in mm), our .npy in metres
     if meta.get("depth_unit_scale_factor") is not None:
-        try:
-            depth_scale = float(meta["depth_unit_scale_factor"])
-        except (TypeError, ValueError):
-            raise InputError("depth_unit_scale_factor must be a number", path) from None
-        if not (np.isfinite(depth_scale) and depth_scale > 0):
-            raise InputError(f"depth_unit_scale_factor must be positive, got {depth_scale}", path)
+        # metres per raw depth unit
+        depth_scale = number(meta["depth_unit_scale_factor"], path, "depth_unit_scale_factor", *DEPTH_SCALE_RANGE)
     ds_meta: dict = {"format": "nerfstudio", "path": str(path)}
     # a split of its own (file lists or per-frame splits): kept unless a hold-out option is given
     if any(k in meta for k in ("train_filenames", "val_filenames", "test_filenames")) or any(

@@ -39,10 +39,10 @@ from pathlib import Path
 import numpy as np
 
 from splattwin import io
-from splattwin.capture.camera import Camera
-from splattwin.capture.dataset import Dataset, Frame, find_images, image_size
+from splattwin.capture.camera import Camera, plausible
+from splattwin.capture.dataset import DEPTH_SCALE_RANGE, Dataset, Frame, find_images, image_size, list_files
 from splattwin.errors import InputError
-from splattwin.limits import check_count, check_pixels, loads_yaml, read_text
+from splattwin.limits import MAX_POSITION, ascii_uint, check_count, check_pixels, loads_yaml, number, numbers, read_text
 from splattwin.paths import confined
 
 log = logging.getLogger(__name__)
@@ -101,6 +101,7 @@ def read_pose_list(path: str | Path) -> list[tuple[str, np.ndarray]]:
     if not rows:
         raise InputError("pose list holds no pose (expected lines 'id tx ty tz qx qy qz qw')", path)
     keys, vals = [], []
+    seen: dict[str, int] = {}  # id -> line: a set, not keys.count (quadratic on a long trajectory)
     for ln, tok in rows:
         if len(tok) != 8:
             raise InputError(f"line {ln}: expected 8 fields 'id_or_timestamp tx ty tz qx qy qz qw', got {len(tok)}", path)
@@ -110,17 +111,20 @@ def read_pose_list(path: str | Path) -> list[tuple[str, np.ndarray]]:
             raise InputError(f"line {ln}: tx ty tz qx qy qz qw must be numbers, got {' '.join(tok[1:])!r}", path) from None
         if not np.all(np.isfinite(v)):
             raise InputError(f"line {ln}: pose holds a non-finite number", path)
+        if np.max(np.abs(v[:3])) > MAX_POSITION:
+            raise InputError(f"line {ln}: translation {' '.join(tok[1:4])} is more than {MAX_POSITION:g} m from the "
+                             f"origin (wrong units?)", path)
         n = np.linalg.norm(v[3:])
         if abs(n - 1.0) > 1e-2:
             raise InputError(f"line {ln}: quaternion qx qy qz qw has norm {n:.4f}, not 1 (is the order "
                              f"'tx ty tz qx qy qz qw'?)", path)
+        if tok[0] in seen:
+            raise InputError(f"line {ln}: id/timestamp {tok[0]!r} appears twice (first on line {seen[tok[0]]})", path)
+        seen[tok[0]] = ln
         keys.append(tok[0])
         vals.append(v)
     V = np.array(vals)
     T = pose_from_pos_quat_wxyz(V[:, :3], quat_wxyz_from_xyzw(V[:, 3:] / np.linalg.norm(V[:, 3:], axis=1, keepdims=True)))
-    if len(set(keys)) != len(keys):
-        dup = next(k for k in keys if keys.count(k) > 1)
-        raise InputError(f"id/timestamp {dup!r} appears twice", path)
     return list(zip(keys, T))
 
 
@@ -178,30 +182,19 @@ def _get(d: dict, names: tuple[str, ...]):
     return None
 
 
-def _num(v, path: Path, what: str) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
-        raise InputError(f"{what} must be a finite number, got {v!r}", path)
-    return float(v)
-
-
 def read_intrinsics(path: str | Path) -> Intrinsics:
     """Intrinsics file (YAML/JSON, see module docstring) -> Intrinsics; InputError naming the file."""
     path = Path(path)
     d = _load_mapping(path)
     K = None
     if d.get("K") is not None:
-        try:
-            K = np.asarray(d["K"], dtype=np.float64).reshape(3, 3)
-        except (TypeError, ValueError):
-            raise InputError("K must be a 3x3 matrix of numbers", path) from None
-        if not np.all(np.isfinite(K)):
-            raise InputError("K is not finite", path)
+        K = numbers(d["K"], 9, path, "K (3x3)").reshape(3, 3)
     else:
         vals = {n: _get(d, (n,)) for n in ("fx", "fy", "cx", "cy")}
         missing = [n for n, v in vals.items() if v is None]
         if missing:
             raise InputError(f"intrinsics file lacks {', '.join(missing)} (needs fx fy cx cy width height)", path)
-        fx, fy, cx, cy = (_num(vals[n], path, n) for n in ("fx", "fy", "cx", "cy"))
+        fx, fy, cx, cy = (number(vals[n], path, n) for n in ("fx", "fy", "cx", "cy"))
         K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     w, h = _get(d, ("width", "w", "image_width")), _get(d, ("height", "h", "image_height"))
     if w is None or h is None:
@@ -210,15 +203,13 @@ def read_intrinsics(path: str | Path) -> Intrinsics:
     dist = None
     raw = _get(d, ("distortion", "dist", "distortion_coeffs", "D"))
     if raw is not None:
-        try:
-            dist = np.asarray(raw, dtype=np.float64).reshape(-1)
-        except (TypeError, ValueError):
-            raise InputError("distortion must be a list of numbers k1 k2 p1 p2 [k3]", path) from None
+        if not isinstance(raw, (list, tuple)) or len(raw) not in (4, 5):
+            raise InputError(f"distortion must be 4 or 5 finite numbers k1 k2 p1 p2 [k3], got {str(raw)[:60]}", path)
+        dist = numbers(raw, len(raw), path, "distortion k1 k2 p1 p2 [k3]")
     elif any(_get(d, (k,)) is not None for k in ("k1", "k2", "p1", "p2", "k3")):
-        dist = np.array([_num(_get(d, (k,)) or 0.0, path, k) for k in ("k1", "k2", "p1", "p2", "k3")])
+        dist = np.array([number(0.0 if _get(d, (k,)) is None else _get(d, (k,)), path, k)
+                         for k in ("k1", "k2", "p1", "p2", "k3")])
     if dist is not None:
-        if dist.size not in (4, 5) or not np.all(np.isfinite(dist)):
-            raise InputError(f"distortion must be 4 or 5 finite numbers k1 k2 p1 p2 [k3], got {dist.size}", path)
         if dist.size == 5 and dist[4] == 0:
             dist = dist[:4]
     depth_scale = None
@@ -226,19 +217,17 @@ def read_intrinsics(path: str | Path) -> Intrinsics:
     scale = _get(d, ("depth_scale", "depth_unit_scale_factor"))
     if factor is not None and scale is not None:
         raise InputError("give the depth unit once: depth_factor (units per metre) or depth_scale (metres per unit)", path)
+    lo, hi = DEPTH_SCALE_RANGE  # metres per raw unit
     if factor is not None:
-        f = _num(factor, path, "depth_factor")
-        if f <= 0:
-            raise InputError(f"depth_factor must be positive (units per metre), got {f}", path)
-        depth_scale = 1.0 / f
+        depth_scale = 1.0 / number(factor, path, "depth_factor (depth units per metre)", 1.0 / hi, 1.0 / lo)
     elif scale is not None:
-        s = _num(scale, path, "depth_scale")
+        s = number(scale, path, "depth_scale")
         if not 0 < s <= 1:
             raise InputError(f"depth_scale is metres per depth unit (0.001 for millimetres), got {s}; for units "
                              f"per metre (TUM: 5000) write depth_factor", path)
-        depth_scale = s
+        depth_scale = number(s, path, "depth_scale (metres per depth unit)", lo, hi)
     try:
-        Camera(K=K, width=w, height=h, dist=dist)
+        plausible(Camera(K=K, width=w, height=h, dist=dist))
     except InputError as e:
         raise InputError(e.problem, path) from e
     return Intrinsics(K=K, width=w, height=h, dist=dist if dist is not None and np.any(dist) else None,
@@ -260,7 +249,7 @@ def write_intrinsics(path: str | Path, camera: Camera, depth_factor: float | Non
 
 # -- matching -------------------------------------------------------------------------------------
 def _as_int(s: str) -> int | None:
-    return int(s) if s.isdigit() and len(s) < 19 else None
+    return ascii_uint(s, 18)
 
 
 def _as_time(s: str) -> float | None:
@@ -305,28 +294,32 @@ def _images(folder: Path) -> tuple[list[Path], list[float | None], Path | None]:
     if rgb_txt.is_file():
         lst = _file_list(rgb_txt, folder, "image list")
         return [p for _, p in lst], [t for t, _ in lst], rgb_txt
+    # a capture's folders, not a user's photo folder: files must stay inside it (links out are refused)
     for sub in ("rgb", "images"):
-        if (folder / sub).is_dir() and find_images(folder / sub):
-            files = find_images(folder / sub)
+        files = find_images(folder / sub, inside=folder) if (folder / sub).is_dir() else []
+        if files:
             return files, [_as_time(p.stem) for p in files], None
-    files = find_images(folder)
+    files = find_images(folder, inside=folder)
     return files, [_as_time(p.stem) for p in files], None
 
 
-def _depths(folder: Path, images: list[Path], times: list[float | None], max_dt: float) -> tuple[list[Path | None], Path | None]:
+def _depths(folder: Path, images: list[Path], times: list[float | None],
+            max_dt: float) -> tuple[list[Path | None], Path | None, int]:
+    """Depth file per image (None where none matches), the depth list (depth.txt or depth/) and how many
+    depth files it holds."""
     depth_txt = folder / "depth.txt"
     if depth_txt.is_file():
         lst = _file_list(depth_txt, folder, "depth list")
         if not lst:
-            return [None] * len(images), depth_txt
+            return [None] * len(images), depth_txt, 0
         if any(t is None for t in times):
             raise InputError("depth.txt pairs depth by timestamp, but the images have none (no rgb.txt)", depth_txt)
         idx = nearest(np.array(times, dtype=np.float64), np.array([t for t, _ in lst]), max_dt)
-        return [lst[j][1] if j >= 0 else None for j in idx], depth_txt
+        return [lst[j][1] if j >= 0 else None for j in idx], depth_txt, len(lst)
     ddir = folder / "depth"
     if not ddir.is_dir():
-        return [None] * len(images), None
-    files = {p.stem: p for p in ddir.iterdir() if p.is_file() and p.suffix.lower() in (".png", ".tif", ".tiff", ".npy")}
+        return [None] * len(images), None, 0
+    files = {p.stem: p for p in list_files(ddir, (".png", ".tif", ".tiff", ".npy"), inside=folder)}
     out = [files.get(p.stem) for p in images]
     if not any(out) and files and all(t is not None for t in times):
         dkeys = list(files)
@@ -334,7 +327,7 @@ def _depths(folder: Path, images: list[Path], times: list[float | None], max_dt:
         if np.all(np.isfinite(dt)):
             idx = nearest(np.array(times, dtype=np.float64), dt, max_dt)
             out = [files[dkeys[j]] if j >= 0 else None for j in idx]
-    return out, None
+    return out, ddir, len(files)
 
 
 def read(path: str | Path, max_dt: float = MAX_DT) -> Dataset:
@@ -361,8 +354,10 @@ def read(path: str | Path, max_dt: float = MAX_DT) -> Dataset:
     else:
         pose_t = [_as_time(k) for k in keys]
         if any(t is None for t in pose_t) or any(t is None for t in times):
-            raise InputError("pose ids match no image names and are not all timestamps (or the images have no "
-                             "timestamps: add rgb.txt or name the images by time)", pose_file)
+            bad = next((k for k, t in zip(keys, pose_t) if t is None), None)
+            raise InputError("pose ids match no image names and are not all timestamps"
+                             + (f" (e.g. {bad[:40]!r})" if bad is not None else "")
+                             + " (or the images have no timestamps: add rgb.txt or name the images by time)", pose_file)
         idx = nearest(np.array(times, dtype=np.float64), np.array(pose_t, dtype=np.float64), max_dt)
         match = {i: int(j) for i, j in enumerate(idx) if j >= 0}
         mode = "timestamp"
@@ -373,7 +368,17 @@ def read(path: str | Path, max_dt: float = MAX_DT) -> Dataset:
     if missing:
         log.warning("%s: %d of %d images have no pose (matched by %s) and are skipped, e.g. %s", pose_file,
                     len(missing), len(images), mode, ", ".join(missing[:3]))
-    depths, depth_txt = _depths(folder, images, times, max_dt)
+    depths, depth_src, n_depth = _depths(folder, images, times, max_dt)
+    depth_txt = depth_src if depth_src is not None and depth_src.is_file() else None
+    n_with = sum(depths[i] is not None for i in match)
+    if n_depth and n_with < len(match):
+        # depth paired with nothing used to vanish silently (a capture then trains without its depth)
+        how = f"within {max_dt} s" if depth_txt is not None else "by name or timestamp"
+        if n_with == 0 and depth_txt is not None:
+            raise InputError(f"none of its {n_depth} depth images is {how} of one of the {len(match)} posed images "
+                             f"(check the timestamps, or remove depth.txt to go without depth)", depth_txt)
+        log.warning("%s: %d of %d posed images have no depth image %s (of %d depth images)", depth_src,
+                    len(match) - n_with, len(match), how, n_depth)
     depth_scale = intr.depth_scale
     if any(d is not None for d in depths) and depth_scale is None:
         if depth_txt is None:

@@ -60,7 +60,7 @@ def backproject_frames(frames, stride: int = 4, max_depth: float = np.inf, depth
     for f in frames:
         if f.depth_path is None:
             continue
-        d = load_depth(f.depth_path, depth_scale)
+        d = load_depth(f.depth_path, depth_scale, size=(f.camera.width, f.camera.height))  # names a misfit file
         xyz, rgb = backproject_depth(d, f.camera, load_image(f.image_path), stride=stride, max_depth=max_depth)
         xs.append(xyz)
         cs.append(rgb)

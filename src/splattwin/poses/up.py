@@ -159,10 +159,7 @@ def depth_points(frames, depth_scale: float | None, max_frames: int = 12, stride
     xs = []
     for i in pick:
         f = with_depth[i]
-        d = load_depth(f.depth_path, depth_scale)
-        if d.shape != (f.camera.height, f.camera.width):
-            raise InputError(f"depth is {d.shape[1]}x{d.shape[0]} but its image is {f.camera.width}x{f.camera.height}",
-                             f.depth_path)
+        d = load_depth(f.depth_path, depth_scale, size=(f.camera.width, f.camera.height))
         xyz, _ = backproject_depth(d, f.camera, None, stride=stride)
         xs.append(xyz)
     xyz = np.concatenate(xs)
