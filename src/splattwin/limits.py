@@ -99,10 +99,11 @@ def _show(v, n: int = 60) -> str:
 
 
 # -- numbers read from files --------------------------------------------------------------------
-# Camera positions and translations, metres: the bound twin.json puts on every coordinate
-# (splattwin.twin.manifest.MAX_LENGTH). Far beyond any capture, and it keeps squares and products of
-# coordinates (plane fits, SVDs) finite: 1e308 m overflowed there and LAPACK never returned.
-MAX_POSITION = 1e6
+# Camera positions and translations read from a capture, metres: beyond Earth-centred coordinates
+# (6.4e6 m), so a georeferenced capture (UTM, ECEF) passes, and it keeps squares and products of
+# coordinates (plane fits, SVDs) finite: 1e308 m overflowed there and LAPACK never returned. (A twin's
+# own coordinates, in its table frame, have the tighter splattwin.twin.manifest.MAX_LENGTH.)
+MAX_POSITION = 1e9
 
 
 def ascii_uint(text, max_digits: int = 18) -> int | None:

@@ -107,7 +107,7 @@ def test_pixel_rays_back_project_to_the_pixel_centres():
     (dict(K=np.diag([100.0, 0.01, 1.0])), "focal length fy = 0.01 px"),
     (dict(K=np.array([[100.0, 0, 200], [0, 100, 24], [0, 0, 1]])), r"principal point \(cx, cy\) = \(200, 24\)"),
     (dict(dist=[1e300, 0, 0, 0]), r"distortion coefficients must be within \+-1000"),
-    (dict(T_world_cam=np.diag([1.0, 1, 1, 1]) + np.eye(4, k=3) * 2e6), r"camera position .* more than 1e\+06 m"),
+    (dict(T_world_cam=np.diag([1.0, 1, 1, 1]) + np.eye(4, k=3) * 2e9), r"camera position .* more than 1e\+09 m"),
 ])
 def test_plausible_refuses_what_no_camera_is(bad, msg):
     from splattwin.capture.camera import plausible

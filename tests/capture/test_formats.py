@@ -268,7 +268,7 @@ def test_colmap_zero_quaternion_is_no_rotation(tmp_path, make_dataset, binary):
     (lambda m: m.update(fl_x=1e308), "focal length fx = 1e\\+308 px is implausible"),
     (lambda m: m.update(cx="32"), "cx must be a number, got str '32'"),
     (lambda m: m["frames"][0]["transform_matrix"].__setitem__(3, [5, 6, 7, 8]), "must end with the row 0 0 0 1"),
-    (lambda m: m["frames"][0]["transform_matrix"][0].__setitem__(3, 1e300), r"camera position .* more than 1e\+06 m"),
+    (lambda m: m["frames"][0]["transform_matrix"][0].__setitem__(3, 1e300), r"camera position .* more than 1e\+09 m"),
 ])
 def test_nerfstudio_values_are_checked(tmp_path, mutate, msg, make_dataset):
     ds = make_dataset(tmp_path, with_points=False)
@@ -289,7 +289,7 @@ def test_nerfstudio_values_are_checked(tmp_path, mutate, msg, make_dataset):
     (lambda e: e.update(fx=10**400), "fx <an integer of about 400 digits> is too large"),
     (lambda e: e.update(fx="50"), "fx must be a number, got str '50'"),
     (lambda e: e.update(fx=1e308), "focal length fx = 1e\\+308 px is implausible"),
-    (lambda e: e.update(position=[1e300, 0, 0]), r"position element 1 must be within \[-1e\+06, 1e\+06\]"),
+    (lambda e: e.update(position=[1e300, 0, 0]), r"position element 1 must be within \[-1e\+09, 1e\+09\]"),
     (lambda e: e.update(rotation=[["1", 0, 0], [0, 1, 0], [0, 0, 1]]), "rotation element 1 must be a number"),
 ])
 def test_cameras_json_values_are_checked(tmp_path, make_dataset, edit, msg):
@@ -303,3 +303,19 @@ def test_cameras_json_values_are_checked(tmp_path, make_dataset, edit, msg):
     with pytest.raises(InputError, match=msg) as e:
         load_dataset(out)
     assert e.value.path == out
+
+
+def test_colmap_cameras_are_plausible(tmp_path, make_dataset):
+    """The other readers' camera bounds hold for COLMAP models too (a focal length of 1e300 px was read)."""
+    ds = make_dataset(tmp_path, with_points=False)
+    sparse = tmp_path / "sparse" / "0"
+    colmap.write_text(ds, sparse)
+    lines = (sparse / "cameras.txt").read_text().splitlines()
+    i = next(k for k, ln in enumerate(lines) if ln.strip() and not ln.startswith("#"))
+    f = lines[i].split()
+    f[4] = "1e300"
+    lines[i] = " ".join(f)
+    (sparse / "cameras.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match="focal length fx = 1e\\+300 px is implausible") as e:
+        load_dataset(tmp_path)
+    assert e.value.path == sparse

@@ -219,16 +219,12 @@ def test_instances_per_bop_image_are_bounded(tmp_path):
     assert e.value.path == tmp_path / bop.SCENE_GT
 
 
-def test_many_repeated_instances_load_in_linear_time(tmp_path):
-    import time
-
+def test_many_repeated_instances_are_paired_across_images(tmp_path):
     # 400 copies of one obj_id at distinct places in both images: was a sum per instance over the image and
     # a Python distance list per instance (2000 copies took 26 s)
     n = 400
     _scene(tmp_path, [[(3, _at(0.1 * i, 0)) for i in range(n)]] * 2, {(0, 0): A, (1, n - 1): C})
-    t = time.perf_counter()
-    ms = load_masks(tmp_path)
-    assert time.perf_counter() - t < 20
+    ms = load_masks(tmp_path)      # (the quadratic version took ~1 s here, 26 s for 2000: bench-worthy, not timed)
     assert np.array_equal(ms.get("000000", ms.label_of("obj_000003")), A > 0)
     assert np.array_equal(ms.get("000001", ms.label_of(f"obj_000003_{n}")), C > 0)   # the same object again
 

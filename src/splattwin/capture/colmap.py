@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from splattwin import io
-from splattwin.capture.camera import Camera
+from splattwin.capture.camera import Camera, plausible
 from splattwin.capture.dataset import Dataset, Frame
 from splattwin.errors import InputError
 from splattwin.limits import MAX_ELEMENTS, MAX_TEXT_BYTES, check_pixels
@@ -221,8 +221,8 @@ def read(path: str | Path, image_dir: str | Path | None = None) -> Dataset:
             log.warning("%s: image %s is missing; skipping it", sparse, img_path)
             continue
         try:
-            camera = Camera(K=K, width=cam.width, height=cam.height, T_world_cam=np.linalg.inv(T_cam_world), dist=dist,
-                            name=Path(im.name).stem)
+            camera = plausible(Camera(K=K, width=cam.width, height=cam.height, T_world_cam=np.linalg.inv(T_cam_world),
+                                      dist=dist, name=Path(im.name).stem))
         except InputError as e:
             raise InputError(f"image {im.name!r}: {e.problem}", sparse) from e
         frames.append(Frame(image_path=img_path, camera=camera))

@@ -52,7 +52,7 @@ import numpy as np
 
 from splattwin import io
 from splattwin.errors import InputError
-from splattwin.limits import check_pixels, read_image_array
+from splattwin.limits import ascii_uint, check_pixels, read_image_array
 from splattwin.names import check_unique, name_from_label, object_name, view_name
 from splattwin.paths import child, confined
 from splattwin.semantics import rle as rle_codec
@@ -217,7 +217,7 @@ def load_masks(path: str | Path, objects: dict[str, int] | None = None, object_n
     if path.is_file():
         if path.suffix.lower() != ".json":
             raise InputError("a mask file must be COCO JSON (or give a folder of PNG / polygon JSON masks)", path)
-        data = _read_json(path)
+        data = io.read_json(path)
         if isinstance(data, dict) and "annotations" in data:
             return load_coco(path, objects, image_sizes)
         if isinstance(data, dict) and "segmentation_polygons" in data:
@@ -263,7 +263,7 @@ def _check_image(view: str, hw: tuple[int, int], image_sizes: dict | None, where
 
 def load_maskset_dir(path: Path, image_sizes: dict | None = None) -> MaskSet:
     index_path = path / INDEX_NAME
-    index = _read_json(index_path)
+    index = io.read_json(index_path)
     try:
         ms = MaskSet(source=str(index.get("source", str(path))))
         by_name = {}
@@ -369,7 +369,7 @@ def load_coco(path: Path, objects: dict[str, int] | None = None, image_sizes: di
     Category names are object names after `name_from_label` ("toy hammer" -> `toy_hammer`; the text
     becomes the object's prompt); their labels are the category ids unless `objects` names them. Every
     image and RLE size is checked before a mask is allocated."""
-    data = _read_json(path)
+    data = io.read_json(path)
     ms = MaskSet(source=f"coco:{path}")
     labels = dict(objects or {})
     if not isinstance(data, dict):
@@ -594,11 +594,11 @@ def load_instance_masks(path: str | Path, objects: dict[str, int] | None = None,
     names: dict[int, str] = {}
     index = path / INSTANCES_FILE
     if index.is_file():
-        data = _read_json(_inside(path, index, INSTANCES_FILE))
+        data = io.read_json(_inside(path, index, INSTANCES_FILE))
         if not isinstance(data, dict):
             raise InputError('expected an object {"<instance number>": "object name", ...}', index)
         for k, v in data.items():
-            if not isinstance(k, str) or not _DIGITS.fullmatch(k):
+            if ascii_uint(k, 9) is None:
                 raise InputError(f"instance key {k!r} must be a whole number (digits 0-9, at most 9)", index)
             if int(k) in names:  # "1" and "01"
                 raise InputError(f"instance {int(k)} is named twice (key {k!r} and another with the same number)",
@@ -683,7 +683,7 @@ def load_polygon_dir(path: Path, objects: dict[str, int] | None = None, object_n
             groups.append((sub.name, files))
     for default_name, files in groups:
         for f in files:
-            d = _read_json(_inside(path, f, "polygon mask file"))
+            d = io.read_json(_inside(path, f, "polygon mask file"))
             if not isinstance(d, dict):
                 raise InputError("malformed polygon mask JSON: expected an object", f)
             try:
@@ -756,7 +756,7 @@ def scene_masks(scene_dir: str | Path, kind: str = "noisy") -> MaskSet:
         if img.stem not in ms.sizes and (kind == "gt" or (sub / img.stem).is_dir()):
             w, h = image_size(img)
             ms.sizes[img.stem] = (h, w)
-    meta = _read_json(scene_dir / "scene.json")
+    meta = io.read_json(scene_dir / "scene.json")
     for o in meta.get("objects", []):
         if o.get("prompt") and int(o["label"]) in ms.objects:
             ms.prompts[int(o["label"])] = o["prompt"]
@@ -768,7 +768,7 @@ def scene_masks(scene_dir: str | Path, kind: str = "noisy") -> MaskSet:
 def scene_objects(scene_dir: str | Path) -> dict[str, int]:
     """name -> label of the embedded scene's objects (from scene.json; label 0 / "table" excluded)."""
     where = Path(scene_dir) / "scene.json"
-    meta = _read_json(where)
+    meta = io.read_json(where)
     try:
         out = {object_name(o["name"], where): int(o["label"]) for o in meta["objects"]
                if int(o["label"]) > 0 and o["name"] != "table"}
@@ -783,15 +783,6 @@ def scene_objects(scene_dir: str | Path) -> dict[str, int]:
 def _safe_name(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_") or "object"
 
-
-def _read_json(path: Path):
-    try:
-        return io.read_json(path)
-    except ValueError as e:  # Python refuses to parse an integer of over 4300 digits
-        raise InputError(f"not readable JSON: {e}", path) from None
-
-
-_DIGITS = re.compile(r"[0-9]{1,9}")  # ASCII only: str.isdigit() also takes "²", which int() refuses
 
 
 def _show(v) -> str:
