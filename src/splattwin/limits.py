@@ -505,3 +505,5 @@ def loads_yaml(text: str | bytes, where: str | Path | None = None, max_nodes: in
         raise InputError(f"not valid YAML: {e}", where) from None
     except UnicodeDecodeError as e:
         raise InputError(f"YAML is not valid UTF-8 text: {e}", where) from None
+    except ValueError as e:  # Python refuses integers of more than 4300 digits (sys.get_int_max_str_digits)
+        raise InputError(f"YAML holds a number too long to read ({str(e).split(';')[0]})", where) from None
