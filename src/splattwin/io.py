@@ -223,9 +223,9 @@ def _json_default(o: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-def read_json(path: str | Path, missing: str = "file not found") -> Any:
-    """Parse a JSON file; InputError naming the file when it is missing, too large (see
-    `splattwin.limits`), too deeply nested or not valid JSON."""
+def read_json(path: str | Path, missing: str = "file not found", max_bytes: int | None = None) -> Any:
+    """Parse a JSON file; InputError naming the file when it is missing, larger than `max_bytes` (default:
+    `splattwin.limits.MAX_JSON_BYTES`; records use MAX_RECORD_BYTES), too deeply nested or not valid JSON."""
     from splattwin.limits import read_json as _read
 
-    return _read(path, missing)
+    return _read(path, missing, max_bytes)

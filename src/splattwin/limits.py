@@ -9,6 +9,7 @@ Limits (environment variables override them, e.g. for gigapixel scans):
     SPLATTWIN_MAX_IMAGE_PIXELS   150e6   pixels per image or mask (a 15000x10000 photo)
     SPLATTWIN_MAX_ELEMENTS       100e6   PLY vertices/faces, points, Gaussians
     SPLATTWIN_MAX_JSON_BYTES     1 GiB   JSON files (COCO files of big datasets are hundreds of MB)
+    SPLATTWIN_MAX_RECORD_BYTES   64 MiB  small JSON records: twin.json, frame.json, train.json, results
     SPLATTWIN_MAX_YAML_BYTES     16 MiB  YAML files (tasks, robot poses)
     SPLATTWIN_MAX_YAML_NODES     1e6     YAML nodes after expanding aliases
     SPLATTWIN_MAX_ARRAY_BYTES    16 GiB  .npy arrays (and never more than the file holds)
@@ -39,6 +40,10 @@ def _env(name: str, default: float) -> int:
 MAX_IMAGE_PIXELS = _env("SPLATTWIN_MAX_IMAGE_PIXELS", 150e6)
 MAX_ELEMENTS = _env("SPLATTWIN_MAX_ELEMENTS", 100e6)
 MAX_JSON_BYTES = _env("SPLATTWIN_MAX_JSON_BYTES", 1 << 30)
+# Records the project writes itself (twin.json, frame.json, train.json, pipeline.json, results) are KB to a
+# few MB; parsing JSON takes about 10x its size in memory, so the 1 GiB limit meant for COCO files would let
+# a received record cost ~10 GB.
+MAX_RECORD_BYTES = _env("SPLATTWIN_MAX_RECORD_BYTES", 64 << 20)
 MAX_YAML_BYTES = _env("SPLATTWIN_MAX_YAML_BYTES", 16 << 20)
 MAX_YAML_NODES = _env("SPLATTWIN_MAX_YAML_NODES", 1e6)
 MAX_ARRAY_BYTES = _env("SPLATTWIN_MAX_ARRAY_BYTES", 16 << 30)

@@ -88,10 +88,37 @@ def _set(path, value):
     (("frame", "nominal_metre"), 0.0, "nominal_metre"),
     (("frame", "T_twin_input"), [[1e300, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "T_twin_input"),
     (("exports",), {"mjcf": 5}, "export 'mjcf'"),
+    # wrong types that Python's truthiness or True == 1 let through (a metric-looking unscaled twin)
+    (("frame", "scaled"), "false", "scaled must be true or false"),
+    (("frame", "source"), 123, "source must be text"),
+    (("objects", 0, "usable"), "false", "usable must be true or false"),
+    (("objects", 0, "prompt"), {"a": 1}, "prompt must be text"),
+    (("objects", 0, "problem"), [1], "problem must be text"),
+    (("schema_version",), True, "schema_version"),
+    # labels index 16-bit label images and per-label tables (a palette of 1.5e9 colours took 9 GB)
+    (("objects", 0, "label"), 1_500_000_000, r"label .* \[1, 65535\]"),
+    (("objects", 0, "label"), 10**30, r"label .* \[1, 65535\]"),
 ])
 def test_absurd_numbers_are_refused_naming_twin_json(tmp_path, path, value, needle):
     twin = _saved(tmp_path, _set(path, value))
     with pytest.raises(InputError, match=needle) as e:
+        Manifest.load(twin)
+    assert e.value.path == twin / "twin.json"
+
+
+def test_big_twin_json_is_refused_and_errors_stay_short(tmp_path, monkeypatch):
+    """twin.json was read under the 1 GiB limit for COCO files (a 300 MB padded list took 3 GB), and the
+    error turned the whole padded list into text before cutting it."""
+    from splattwin import limits
+    from splattwin.twin import manifest
+
+    twin = _saved(tmp_path, _set(("objects", 0, "bbox_extent"), [0.0] * 200_000))
+    with pytest.raises(InputError, match="bbox_extent") as e:
+        Manifest.load(twin)
+    assert len(str(e.value)) < 400
+    assert manifest.MAX_RECORD_BYTES == limits.MAX_RECORD_BYTES <= 64 << 20
+    monkeypatch.setattr(manifest, "MAX_RECORD_BYTES", 100_000)   # the file is ~1 MB
+    with pytest.raises(InputError, match="limit") as e:
         Manifest.load(twin)
     assert e.value.path == twin / "twin.json"
 

@@ -6,7 +6,6 @@ Not to be confused with `splattwin.capture.Frame`, an image of the capture with 
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,6 +52,16 @@ class TwinFrame:
         if not self.scaled:
             self.units = UNSCALED_UNITS  # never "m" for a frame without metric scale (older files said so)
 
+    def check(self, where) -> None:
+        """InputError naming `where` for fields of the wrong type (a received frame.json or twin.json:
+        "scaled": "false" is a non-empty string, so truthy, and would mark an unscaled twin metric)."""
+        for k in ("source", "units", "up", "description"):
+            if not isinstance(getattr(self, k), str):
+                raise InputError(f"malformed frame: {k} must be text, got {type(getattr(self, k)).__name__}", where)
+        if not isinstance(self.scaled, bool):
+            raise InputError(f"malformed frame: scaled must be true or false, got {type(self.scaled).__name__} "
+                             f"{str(self.scaled)[:40]!r}", where)
+
     def length_scale(self, fallback: float | None = None) -> float:
         """Factor applied to every metric length option: 1 for a metric frame; for an unscaled one its
         `nominal_metre`, else `fallback` (estimated by the caller from its data), else 1."""
@@ -77,9 +86,14 @@ def load_frame(path: str | Path) -> TwinFrame:
     path = Path(path)
     if path.is_dir():
         path = path / FRAME_FILE
-    if not path.is_file():
-        raise InputError("no frame definition here (expected frame.json)", path)
+    from splattwin.limits import MAX_RECORD_BYTES, read_json
+
+    d = read_json(path, "no frame definition here (expected frame.json)", MAX_RECORD_BYTES)
+    if not isinstance(d, dict):
+        raise InputError("malformed frame definition: expected a JSON object", path)
     try:
-        return TwinFrame(**json.loads(path.read_text()))
-    except (json.JSONDecodeError, TypeError) as e:
-        raise InputError(f"malformed frame definition: {e}", path) from e
+        frame = TwinFrame(**d)
+    except TypeError as e:
+        raise InputError(f"malformed frame definition: {e}", path) from None
+    frame.check(path)
+    return frame

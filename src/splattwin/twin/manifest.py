@@ -28,6 +28,7 @@ import numpy as np
 
 from splattwin import io
 from splattwin.errors import InputError
+from splattwin.limits import MAX_RECORD_BYTES
 from splattwin.names import check_unique, object_name
 from splattwin.paths import confined
 from splattwin.poses.twin_frame import TwinFrame
@@ -44,6 +45,9 @@ MAX_MASS = 1e12           # kg; an unscaled twin's masses are nominal and may be
 # T_twin_input maps the input's world (e.g. a georeferenced SfM model, coordinates ~1e7) to the twin
 # frame: only finiteness and this looser bound
 MAX_INPUT_COORD = 1e12
+# Labels are stored in 16-bit label images (0 = background), and a label sizes per-label tables (a
+# viewer palette of label+1 colours): 1.5e9 cost 9 GB.
+MAX_LABEL = 65535
 RIGID_TOL = 1e-3          # |R^T R - I| and |bottom row - [0 0 0 1]| of an object pose
 
 def unscaled_note(frame: TwinFrame) -> str | None:
@@ -137,7 +141,12 @@ class Manifest:
         the folder holding `where`. InputError naming `where`."""
         if not isinstance(self.objects, list) or not all(isinstance(o, ObjectEntry) for o in self.objects):
             raise InputError("malformed manifest: objects must be a list of objects", where)
+        # True == 1 to Python: a schema_version of true would pass the version test
+        if isinstance(self.schema_version, bool) or self.schema_version != SCHEMA_VERSION:
+            raise InputError(f"unsupported schema_version {_brief(self.schema_version)} (expected {SCHEMA_VERSION})",
+                             where)
         f = self.frame
+        f.check(where)
         if f.T_twin_input is not None:
             _matrix(f.T_twin_input, (4, 4), where, "frame T_twin_input", bound=MAX_INPUT_COORD)
         if f.up_check is not None and not isinstance(f.up_check, dict):
@@ -149,8 +158,10 @@ class Manifest:
         labels: set[int] = set()
         for o in self.objects:
             object_name(o.name, where)
-            if isinstance(o.label, bool) or not isinstance(o.label, int) or o.label < 1 or o.label in labels:
-                raise InputError(f"object {o.name!r}: label {o.label!r} must be a unique integer >= 1", where)
+            if (isinstance(o.label, bool) or not isinstance(o.label, int) or not 1 <= o.label <= MAX_LABEL
+                    or o.label in labels):
+                raise InputError(f"object {o.name!r}: label {_brief(o.label)} must be a unique integer in "
+                                 f"[1, {MAX_LABEL}]", where)
             labels.add(o.label)
             _pose(o.T_world_obj, where, f"object {o.name!r} T_world_obj")
             _numbers(o.bbox_extent, 3, where, f"object {o.name!r} bbox_extent", low=0.0, high=MAX_LENGTH)
@@ -159,22 +170,32 @@ class Manifest:
                     _numbers([getattr(o, k)], 1, where, f"object {o.name!r} {k}", low=0.0, high=high)
             if not isinstance(o.convex_parts, list):
                 raise InputError(f"object {o.name!r}: convex_parts must be a list of paths", where)
+            # usable "false" (text) is truthy: an object whose geometry failed would count as usable
+            if not isinstance(o.usable, bool):
+                raise InputError(f"object {o.name!r}: usable must be true or false, got {type(o.usable).__name__}",
+                                 where)
+            for k in ("prompt", "problem"):
+                v = getattr(o, k)
+                if not (isinstance(v, str) or (k == "problem" and v is None)):
+                    raise InputError(f"object {o.name!r}: {k} must be text, got {type(v).__name__}", where)
         check_unique([o.name for o in self.objects], where)
         b = self.background
         x0, x1, y0, y1 = _numbers(b.table_extent, 4, where, "background table_extent", low=-MAX_LENGTH, high=MAX_LENGTH)
         if not (x1 - x0 >= MIN_LENGTH and y1 - y0 >= MIN_LENGTH):  # MJCF table box half-sizes must be > 0
             raise InputError(f"background table_extent [xmin, xmax, ymin, ymax] must have xmax - xmin and ymax - ymin "
-                             f">= {MIN_LENGTH:g}, got {str(b.table_extent)[:80]}", where)
+                             f">= {MIN_LENGTH:g}, got {_brief(b.table_extent)}", where)
         _numbers([b.table_height], 1, where, "background table_height", low=-MAX_LENGTH, high=MAX_LENGTH)
         _numbers([b.table_thickness], 1, where, "background table_thickness", low=MIN_LENGTH, high=MAX_LENGTH)
         if not isinstance(b.convex_parts, list):
             raise InputError("background convex_parts must be a list of paths", where)
+        if not (b.table_default is None or isinstance(b.table_default, str)):
+            raise InputError("background table_default must be text or null", where)
         for k in ("exports", "config", "versions", "timings"):
             if not isinstance(getattr(self, k), dict):
                 raise InputError(f"malformed manifest: {k} must be an object", where)
         for k, v in self.exports.items():
             if not isinstance(v, str):
-                raise InputError(f"export {k!r} must be a path (text), got {str(v)[:60]!r}", where)
+                raise InputError(f"export {k!r} must be a path (text), got {_brief(v)}", where)
         if twin_dir is not None:
             root = Path(twin_dir)
             for what, rel in self.paths():
@@ -207,8 +228,9 @@ class Manifest:
         if not isinstance(d, dict):
             raise InputError("malformed manifest: expected a JSON object", where)
         try:
-            if d.get("schema_version") != SCHEMA_VERSION:
-                raise InputError(f"unsupported schema_version {d.get('schema_version')!r} (expected {SCHEMA_VERSION})", where)
+            v = d.get("schema_version")
+            if isinstance(v, bool) or v != SCHEMA_VERSION:  # True == 1 to Python
+                raise InputError(f"unsupported schema_version {_brief(v)} (expected {SCHEMA_VERSION})", where)
             m = cls(
                 frame=TwinFrame(**d.get("frame", {})),
                 objects=[ObjectEntry(**o) for o in d.get("objects", [])],
@@ -223,29 +245,44 @@ class Manifest:
     @classmethod
     def load(cls, twin_dir: str | Path) -> "Manifest":
         path = Path(twin_dir) / MANIFEST_NAME
-        return cls.from_dict(io.read_json(path, missing="no twin manifest here (expected twin.json)"), path, twin_dir)
+        return cls.from_dict(io.read_json(path, missing="no twin manifest here (expected twin.json)",
+                                          max_bytes=MAX_RECORD_BYTES), path, twin_dir)
+
+
+def _brief(v) -> str:
+    """A short repr of a value read from twin.json: str() of a 157-million-item list before cutting it cost
+    gigabytes; reprlib shows a few items at a few levels."""
+    import reprlib
+
+    r = reprlib.Repr()
+    r.maxlevel, r.maxlist, r.maxstring, r.maxother = 3, 6, 40, 40
+    return r.repr(v)
 
 
 def _numbers(v, n: int, where, what: str, low: float = -MAX_LENGTH, high: float = MAX_LENGTH) -> np.ndarray:
     """`v` as n finite numbers in [low, high], else InputError naming `where`."""
     try:
-        if isinstance(v, (str, bytes)):
-            raise ValueError("text")
+        if isinstance(v, (str, bytes)) or (isinstance(v, (list, tuple)) and len(v) > n):
+            raise ValueError("text or too many")
         a = np.asarray(v, dtype=np.float64).reshape(-1)
     except (TypeError, ValueError, OverflowError):
-        raise InputError(f"{what} must be {n} number(s), got {str(v)[:60]!r}", where) from None
+        raise InputError(f"{what} must be {n} number(s), got {_brief(v)}", where) from None
     if a.shape != (n,) or not np.all(np.isfinite(a)) or np.any(a < low) or np.any(a > high):
-        raise InputError(f"{what} must be {n} finite number(s) in [{low:g}, {high:g}], got {str(v)[:80]}", where)
+        raise InputError(f"{what} must be {n} finite number(s) in [{low:g}, {high:g}], got {_brief(v)}", where)
     return a
 
 
 def _matrix(v, shape: tuple[int, int], where, what: str, bound: float = MAX_LENGTH) -> np.ndarray:
+    # the rows' lengths first: np.asarray would convert a padded row of millions of items
+    if isinstance(v, (list, tuple)) and not (len(v) == shape[0] and all(
+            isinstance(r, (list, tuple)) and len(r) == shape[1] for r in v)):
+        raise InputError(f"{what} must be a finite {shape[0]}x{shape[1]} matrix, got {_brief(v)}", where)
     try:
         if isinstance(v, (str, bytes)):
             raise ValueError("text")
         a = np.asarray(v, dtype=np.float64)
     except (TypeError, ValueError, OverflowError):
-        raise InputError(f"{what} must be a {shape[0]}x{shape[1]} matrix of numbers, got {str(v)[:60]!r}", where) from None
+        raise InputError(f"{what} must be a {shape[0]}x{shape[1]} matrix of numbers, got {_brief(v)}", where) from None
     if a.shape != shape or not np.all(np.isfinite(a)):
         raise InputError(f"{what} must be a finite {shape[0]}x{shape[1]} matrix, got shape {a.shape}"
                          + ("" if a.shape != shape else " with NaN or infinite values"), where)
