@@ -212,3 +212,40 @@ def test_dataset_units_come_from_the_frame_json_beside_the_poses(tmp_path):
     assert dataset_units(load_dataset(root)) == "m"  # known poses without a frame.json: metres, as the poses stage
     (root / "frame.json").write_text(json.dumps(vars(TwinFrame(source="unscaled", scaled=False))))
     assert dataset_units(load_dataset(root)) == "unscaled"
+
+
+@pytest.mark.parametrize("text, needle", [
+    # a target width of 100000 px upsampled every view to gigapixels (23 GB, OOM-killed)
+    (json.dumps({"resolution": {"resolution": 100000, "max_side": 10**6}}), "target width of 16 to 65535"),
+    (json.dumps({"resolution": {"resolution": 1, "max_side": 10**9}}), "max_side"),
+    (json.dumps({"resolution": {"resolution": True}}), "whole number"),
+    (json.dumps({"config": {"resolution": -5}}), "config resolution"),
+    (json.dumps({"config": {"cpu_max_side": "big"}}), "cpu_max_side"),
+    (json.dumps({"config": {"background": [0, "x", 0]}}), "background"),
+    (json.dumps({"config": {"rasterize_mode": ["x"]}}), "rasterize_mode"),
+    (json.dumps({"resolution": 7}), "resolution must be a JSON object"),
+    ("[1, 2]", "expected a JSON object"),   # was AttributeError (exit 1)
+    ("{'a': 1}", "not valid JSON"),          # was a JSONDecodeError (exit 1)
+    ('{"n": ' + "7" * 5000 + "}", "number too long"),
+])
+def test_eval_checks_the_training_record_before_sizing_views(tmp_path, text, needle):
+    d = tmp_path / "run"
+    d.mkdir()
+    helpers.gt_gaussians().save_ply(d / "point_cloud.ply")
+    (d / "train.json").write_text(text)
+    with pytest.raises(InputError, match=needle) as e:
+        evaluate(d, tmp_path / "no-dataset", None, progress=False)
+    assert e.value.path == d / "train.json"
+
+
+def test_views_are_never_upsampled_beyond_the_pixel_limit(tmp_path, monkeypatch):
+    from splattwin import limits
+    from splattwin.capture import load_dataset
+    from splattwin.splat.resolution import Resolution
+    from splattwin.splat.trainer import load_views
+
+    ds = load_dataset(helpers.make_dataset(tmp_path / "ds", n_train=1, n_heldout=0))
+    monkeypatch.setattr(limits, "MAX_IMAGE_PIXELS", 100_000)
+    with pytest.raises(InputError, match="megapixels") as e:
+        load_views(ds.frames, Resolution(1000))   # 1000 px wide from a small image: over the (lowered) limit
+    assert e.value.path == ds.frames[0].image_path

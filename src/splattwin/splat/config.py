@@ -301,11 +301,12 @@ def filter_beside(ply) -> tuple[str, float]:
 
     from splattwin.errors import InputError
     from splattwin.io import read_json
+    from splattwin.limits import MAX_RECORD_BYTES
 
     rec = Path(ply).parent / "train.json"
     if not rec.is_file():
         return trained_filter(None)
-    info = read_json(rec)
+    info = read_json(rec, max_bytes=MAX_RECORD_BYTES)
     try:
         return trained_filter(info.get("config") if isinstance(info, dict) else None)
     except ValueError as e:
@@ -325,7 +326,7 @@ def trained_filter(cfg: dict | None) -> tuple[str, float]:
     if not isinstance(cfg, dict):
         return "classic", DEFAULT_EPS2D["classic"]
     mode = cfg.get("rasterize_mode", "classic")
-    if mode not in DEFAULT_EPS2D:
+    if not isinstance(mode, str) or mode not in DEFAULT_EPS2D:  # (a list is unhashable: TypeError)
         raise ValueError(f"unknown rasterize_mode {mode!r} (one of {', '.join(DEFAULT_EPS2D)})")
     if "eps2d" not in cfg:
         return mode, LEGACY_EPS2D

@@ -33,7 +33,6 @@ split tells a blur of what the photos saw from content they never held.
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,7 +50,7 @@ from splattwin.splat.config import filter_for, trained_filter
 from splattwin.splat.losses import psnr_from_mse
 from splattwin.splat.gaussians import Gaussians
 from splattwin.splat.pose_refine import align_camera, pose_errors
-from splattwin.splat.resolution import FULL, Resolution, describe_sizes, resolve
+from splattwin.splat.resolution import AUTO, FULL, MAX_SIDE, MIN_SIDE, Resolution, describe_sizes, resolve
 from splattwin.splat.trainer import load_views
 
 log = logging.getLogger(__name__)
@@ -147,11 +146,53 @@ def resolve_ply(path: str | Path) -> tuple[Path, dict]:
         if not ply.is_file():
             raise InputError("no point_cloud.ply in this folder (train first: splattwin train)", path)
         rec = path / "train.json"
-        info = json.loads(rec.read_text()) if rec.is_file() else {}
-        return ply, info
+        return ply, (training_record(rec) if rec.is_file() else {})
     if not path.is_file():
         raise InputError("splat file or training folder does not exist", path)
     return path, {}
+
+
+def training_record(path: Path) -> dict:
+    """train.json of a training folder, checked before anything is sized from it: a training folder may
+    come from someone else, and its recorded resolution sets the size of every rendered view (a target
+    width of 100000 px took 23 GB). InputError naming the file."""
+    from splattwin.limits import MAX_RECORD_BYTES, number, read_json
+
+    info = read_json(path, max_bytes=MAX_RECORD_BYTES)
+    if not isinstance(info, dict):
+        raise InputError("malformed training record: expected a JSON object", path)
+    # (a malformed hold-out record or view list is ignored by _heldout_split: the dataset's split stands)
+    for k in ("config", "resolution"):
+        if info.get(k) is not None and not isinstance(info[k], dict):
+            raise InputError(f"malformed training record: {k} must be a JSON object", path)
+    cfg = info.get("config") or {}
+    rec = info.get("resolution")
+    rules = [("resolution", rec.get("resolution")), ("max_side", rec.get("max_side"))] if rec else []
+    rules += [("config resolution", cfg.get("resolution")), ("config cpu_max_side", cfg.get("cpu_max_side"))]
+    for what, v in rules:
+        if v is None:
+            continue
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise InputError(f"training record: {what} must be a whole number, got {type(v).__name__}", path)
+        try:
+            if what.endswith("max_side"):
+                if not MIN_SIDE <= v <= MAX_SIDE:
+                    raise InputError(f"--cpu-max-side must be in [{MIN_SIDE}, {MAX_SIDE}] px, got {v}")
+            elif v != AUTO:
+                Resolution(v).scale(100, 100)  # the rule the CLI applies to --resolution
+        except InputError as e:
+            raise InputError(f"training record: {what}: {e.problem}", path) from None
+    try:
+        trained_filter(cfg or None)
+    except ValueError as e:
+        raise InputError(f"config: {e}", path) from None
+    if cfg.get("background") is not None:
+        bg = cfg["background"]
+        if not isinstance(bg, (list, tuple)) or len(bg) != 3:
+            raise InputError("training record: config background must be 3 numbers", path)
+        for x in bg:
+            number(x, path, "config background", 0.0, 1.0)
+    return info
 
 
 def _heldout_split(ds: Dataset, info: dict) -> tuple[list[Frame], list[Frame], dict]:
@@ -260,7 +301,7 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
         try:
             trained = trained_filter(cfg)
         except ValueError as e:
-            raise InputError(f"config: {e}", Path(splat) / "train.json") from None
+            raise InputError(f"config: {e}", ply.parent / "train.json") from None
     mode, low_pass = filter_for(trained, rasterize_mode or None)
     eps2d = low_pass if eps2d is None else float(eps2d)
     views = load_views(frames, rule)

@@ -21,6 +21,10 @@ from splattwin.errors import InputError
 
 AUTO = 0
 MIN_SIDE = 16
+# Largest target width or side cap: JPEG's own limit on an image side. (A received train.json's target
+# width of 100000 px made evaluation allocate 23 GB; the view sizes are also checked against
+# splattwin.limits.MAX_IMAGE_PIXELS.)
+MAX_SIDE = 65535
 
 
 @dataclass(frozen=True)
@@ -39,11 +43,11 @@ class Resolution:
             s = 1.0 / r
         elif r == -1:
             s = min(1.0, 1600.0 / width)
-        elif r >= MIN_SIDE:
+        elif MIN_SIDE <= r <= MAX_SIDE:
             s = r / width
         else:
-            raise InputError(f"--resolution must be 0 (auto), 1, 2, 4, 8, a target width of at least {MIN_SIDE} "
-                             f"pixels, or -1; got {r}")
+            raise InputError(f"--resolution must be 0 (auto), 1, 2, 4, 8, a target width of {MIN_SIDE} to "
+                             f"{MAX_SIDE} pixels, or -1; got {r}")
         if self.max_side is not None:
             s = min(s, self.max_side / max(width, height))
         return s

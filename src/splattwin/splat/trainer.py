@@ -41,6 +41,7 @@ import torch
 from splattwin.capture import Camera, Dataset, Frame, load_image
 from splattwin.errors import InputError
 from splattwin.io import write_json
+from splattwin.limits import check_pixels
 from splattwin.runtime import torch_threads
 from splattwin.splat import checkpoint as ckpt_io
 from splattwin.splat import extras
@@ -171,6 +172,8 @@ def load_views(frames: list[Frame], resolution: int | Resolution = 1, depth: boo
         cam = pin
         if abs(s - 1.0) > 1e-9:
             cam = pin.scaled(s)
+            # a target width far above the photo's would upsample it to gigapixels
+            check_pixels(cam.width, cam.height, f.image_path, "view at the training resolution")
             pil = Image.fromarray((img * 255 + 0.5).astype(np.uint8)).resize((cam.width, cam.height), Image.BOX)
             img = np.asarray(pil, dtype=np.float32) / 255.0
         d = None
