@@ -148,3 +148,29 @@ def test_sweep_starts_from_the_twins_resolved_config(gt_twin: Path, tmp_path: Pa
     with pytest.raises(Exception, match="min_opacity") as e:
         base_options(twin, Manifest.load(twin))
     assert "twin.json" in str(e.value)
+
+
+def test_sweep_does_not_follow_paths_recorded_in_a_received_twin(tmp_path: Path, caplog):
+    """A received twin.json's config.build.robot named a task YAML (and could name an MJCF) outside the twin
+    folder: sweep read and used it. Paths outside the twin are dropped with a warning; inside, kept."""
+    import logging
+
+    from splattwin.cluster.sweep import trial_options
+    from splattwin.twin.manifest import Manifest
+
+    twin, outside = tmp_path / "twin", tmp_path / "outside"
+    twin.mkdir(), outside.mkdir()
+    (outside / "task.yaml").write_text("steps: []\n")
+    (outside / "arm.xml").write_text("<mujoco/>\n")
+    (twin / "mine.yaml").write_text("steps: []\n")
+    man = Manifest(config={"build": {"robot": {"task": str(outside / "task.yaml"), "robot_mjcf": "../outside/arm.xml",
+                                               "record": str(outside / "rec"), "record_camera": "/etc/cam.yaml",
+                                               "planner": "RRTstar"}}})
+    caplog.set_level(logging.WARNING, logger="splattwin.cluster.sweep")
+    robot = trial_options(twin, man)
+    assert robot.task is None and robot.robot_mjcf is None and robot.record is None
+    assert robot.record_camera == "capture:0" and robot.planner == "RRTstar"
+    assert "ignoring the recorded task" in caplog.text and "--task" in caplog.text
+    man.config["build"]["robot"] = {"task": "mine.yaml", "record_camera": "train_000"}
+    robot = trial_options(twin, man)
+    assert Path(robot.task) == twin / "mine.yaml" and robot.record_camera == "train_000"

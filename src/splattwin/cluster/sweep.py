@@ -264,8 +264,43 @@ def trial_options(twin: Path, man):
     from splattwin.robot.options import RobotOptions
 
     robot = (man.config.get("build") or {}).get("robot") or {}
+    if not isinstance(robot, dict):
+        raise InputError("config.build.robot must be a mapping (the resolved robot options)", twin / "twin.json")
     robot = {k: v for k, v in robot.items() if k != "cluster"}   # where the build's trials ran: not the sweep's
-    return from_dict(RobotOptions, robot, twin / "twin.json")
+    return from_dict(RobotOptions, _recorded_paths_inside(twin, robot), twin / "twin.json")
+
+
+def _recorded_paths_inside(twin: Path, robot: dict) -> dict:
+    """`robot` without the file options (task, robot MJCF, record folder, camera YAML) whose recorded path
+    is outside the twin folder. A received twin.json is untrusted: its recorded paths must not make the
+    sweep read a task or an MJCF (with its includes) from elsewhere, nor write a recording there; the user
+    gives those on the command line. A path inside the twin folder (absolute, or relative to it) is kept."""
+    import dataclasses
+
+    from splattwin.cluster.cli import SWEEP_ROBOT_FLAGS
+    from splattwin.paths import is_inside
+    from splattwin.robot.options import RobotOptions
+
+    files = {f.name for f in dataclasses.fields(RobotOptions)
+             if f.metadata.get("path") or "Path" in str(f.type)} | {"record_camera"}
+    out = dict(robot)
+    for k in sorted(files & set(robot)):
+        v = robot[k]
+        if v is None or v == "default" or (k == "record_camera" and isinstance(v, str) and v.startswith("capture:")):
+            continue
+        p = Path(v) if isinstance(v, str) and v and "\x00" not in v else None
+        if k == "record_camera" and p is not None and p.suffix.lower() not in (".yaml", ".yml"):  # an image name
+            continue
+        if p is not None and not p.is_absolute():
+            p = twin / p
+        if p is not None and is_inside(p, twin) and p.exists():
+            out[k] = str(p)
+            continue
+        del out[k]
+        hint = f"; give --{k.replace('_', '-')} on the command line" if k in SWEEP_ROBOT_FLAGS else ""
+        log.warning("%s: ignoring the recorded %s %s: it is not a file inside the twin folder (a received twin's "
+                    "paths are not followed)%s", twin / "twin.json", k, str(v)[:100], hint)
+    return out
 
 
 @dataclass
