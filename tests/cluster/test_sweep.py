@@ -174,3 +174,21 @@ def test_sweep_does_not_follow_paths_recorded_in_a_received_twin(tmp_path: Path,
     man.config["build"]["robot"] = {"task": "mine.yaml", "record_camera": "train_000"}
     robot = trial_options(twin, man)
     assert Path(robot.task) == twin / "mine.yaml" and robot.record_camera == "train_000"
+
+
+@pytest.mark.parametrize("array, needle", [
+    (np.array([1, None, 2], dtype=object), "Python objects"),   # was a ValueError failing the cell (exit 1)
+    (np.array([0.0, 1.5, 2.0]), "integer labels"),
+    (np.array([0, 1]), "3 integer labels"),
+    (np.array([0, 1, 1_500_000_000]), r"\[0, 65535\]"),
+    (np.array([0, -1, 2]), r"\[0, 65535\]"),
+])
+def test_sweep_checks_the_twins_labels_file(tmp_path: Path, array, needle):
+    from splattwin.cluster.sweep import _labels
+    from splattwin.errors import InputError
+
+    p = tmp_path / "labels.npy"
+    np.save(p, array, allow_pickle=True)
+    with pytest.raises(InputError, match=needle) as e:
+        _labels(p, 3)
+    assert e.value.path == p

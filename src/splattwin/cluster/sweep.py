@@ -75,9 +75,11 @@ def digest(obj: Any) -> str:
 
 def finished(folder: Path, key: dict) -> dict | None:
     """The folder's result.json when it was written for `key`, else None."""
+    from splattwin.limits import MAX_RECORD_BYTES
+
     try:
-        d = json.loads((folder / RESULT).read_text())
-    except (OSError, ValueError):
+        d = io.read_json(folder / RESULT, max_bytes=MAX_RECORD_BYTES)
+    except (OSError, InputError):   # missing, too large or corrupt: the cell runs again
         return None
     return d if isinstance(d, dict) and d.get("key") == json.loads(json.dumps(key, default=str)) else None
 
@@ -184,9 +186,7 @@ def twin_task(folder: str, key: dict, base_twin: str, labels: str, objects: list
     if out.exists():   # a stale twin of another key (the base twin changed): start clean
         shutil.rmtree(out)
     g = Gaussians.load_ply(_twin_file(base, bman.splats, "splat file"))
-    lab = np.load(labels)
-    if lab.shape != (len(g),):
-        raise InputError(f"{lab.shape[0]} labels for {len(g)} Gaussians", labels)
+    lab = _labels(Path(labels), len(g))
     cameras = _twin_file(base, bman.cameras, "cameras file") if bman.cameras else None
     man = build_twin(g, lab, [tuple(o) for o in objects], out, frame=bman.frame, cameras_path=cameras,
                      options=from_dict(GeometryOptions, geometry), progress=False)
@@ -210,6 +210,21 @@ def twin_task(folder: str, key: dict, base_twin: str, labels: str, objects: list
     result["wall_s"] = time.perf_counter() - t0
     io.write_json(out / RESULT, result)
     return result
+
+
+def _labels(path: Path, n: int) -> np.ndarray:
+    """The per-Gaussian labels (.npy) of a twin, checked: never a pickle, one integer label per Gaussian in
+    [0, MAX_LABEL], bounded by the file and that count before it is read. InputError naming the file."""
+    from splattwin.limits import load_npy
+    from splattwin.twin.manifest import MAX_LABEL
+
+    lab = load_npy(path, "label array", max_bytes=8 * n + 1024)
+    if lab.shape != (n,) or lab.dtype.kind not in "iu":
+        raise InputError(f"label array must hold {n} integer labels (one per Gaussian), got {lab.dtype} "
+                         f"{tuple(lab.shape)}", path)
+    if n and (lab.min() < 0 or lab.max() > MAX_LABEL):
+        raise InputError(f"labels must be in [0, {MAX_LABEL}], got {lab.min()} to {lab.max()}", path)
+    return lab
 
 
 def _check_task(twin: Path, man, spec) -> None:
