@@ -731,3 +731,36 @@ def test_load_views_undistorts_photos_to_the_rasterizers_pinhole(tmp_path, resol
     bad = dataclasses.replace(cam, dist=np.array([-8.0, 0.0, 0.0, 0.0]))  # folds back: no lens does that
     with pytest.raises(InputError, match=r"d0\.png.*cannot be undistorted"):
         load_views([Frame(image_path=p, camera=bad)], resolution)
+
+
+def _nan_means(sd):
+    sd["model"]["params"]["means"][0, 0] = float("nan")
+
+
+def _fewer_means(sd):
+    sd["model"]["params"]["means"] = sd["model"]["params"]["means"][:3]
+
+
+@pytest.mark.parametrize("edit, needle", [
+    (_nan_means, "NaN"),                          # resumed into an all-NaN point_cloud.ply, exit 0
+    (lambda sd: sd.update(step=10**15), "step"),  # "resumed a finished run at step 10**15"
+    (lambda sd: sd.update(step=-5), "step"),      # sh_degree -1: internal error
+    (lambda sd: sd.update(order=[10**6]), "order"),
+    (lambda sd: sd.update(order=[-1]), "order"),
+    (_fewer_means, "shape"),
+    (lambda sd: sd.update(history=[{"step": "x"}]), "history"),
+])
+def test_resume_refuses_an_inconsistent_checkpoint_naming_it(synth, tmp_path, edit, needle):
+    from splattwin.errors import InputError
+    from splattwin.splat import checkpoint
+
+    ds = load_dataset(synth)
+    cfg = tiny_config(iters=4, checkpoint_every=2)
+    train(ds, tmp_path / "a", cfg)
+    ck = sorted((tmp_path / "a" / "checkpoints").glob("*.safetensors"))[-1]
+    sd = checkpoint.load(ck)
+    edit(sd)
+    checkpoint.save(ck, sd)
+    with pytest.raises(InputError, match=needle) as e:
+        train(ds, tmp_path / "a", cfg, resume=True)
+    assert e.value.path == ck

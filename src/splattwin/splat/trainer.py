@@ -406,6 +406,58 @@ class Trainer:
             raise CheckpointMismatch(f"checkpoint was made with another densification strategy ({name!r}, "
                                      f"this run: {self.strategy.name!r} or other options)", where)
 
+    def check_state(self, sd: dict, where: Path) -> None:
+        """InputError naming the checkpoint when its state is not one this run could have saved: a received
+        checkpoint of NaN parameters resumed silently into an all-NaN point_cloud.ply, and a bad order,
+        step, shape or history failed deep inside training (exit 1)."""
+        from splattwin.limits import MAX_ELEMENTS
+        from splattwin.splat.model import PARAM_NAMES
+
+        def bad(what: str) -> InputError:
+            return InputError(f"checkpoint state is inconsistent: {what}", where)
+
+        def whole(v) -> bool:
+            return isinstance(v, int) and not isinstance(v, bool)
+
+        step = sd.get("step")
+        if not whole(step) or not 0 <= step <= self.cfg.iters:
+            raise bad(f"step {str(step)[:40]} is not in [0, {self.cfg.iters}] (the run's --iters)")
+        order = sd.get("order")
+        if (not isinstance(order, list) or len(order) > len(self.views)
+                or not all(whole(i) and 0 <= i < len(self.views) for i in order)):
+            raise bad(f"order must list view indices in [0, {len(self.views)})")
+        history = sd.get("history")
+        if not isinstance(history, list) or len(history) > step + 1 or not all(
+                isinstance(h, dict) and whole(h.get("step"))
+                and all(isinstance(h.get(k), (int, float)) and not isinstance(h.get(k), bool)
+                        for k in ("loss", "psnr", "n")) for h in history):
+            raise bad("history must be a list of {step, loss, psnr, n} records")
+        model = sd.get("model")
+        params = model.get("params") if isinstance(model, dict) else None
+        if not isinstance(params, dict) or not all(isinstance(params.get(k), torch.Tensor) for k in PARAM_NAMES):
+            raise bad(f"model parameters {', '.join(PARAM_NAMES)} are missing")
+        n = params["means"].shape[0] if params["means"].ndim else -1
+        want = {"means": (n, 3), "scales": (n, 3), "quats": (n, 4), "opacities": (n,), "sh0": (n, 1, 3)}
+        for k in PARAM_NAMES:
+            t = params[k]
+            shape = tuple(t.shape)
+            ok = shape == want[k] if k in want else (t.ndim == 3 and shape[0] == n and shape[2] == 3
+                                                      and shape[1] + 1 in (1, 4, 9, 16))
+            if not 0 <= n <= MAX_ELEMENTS or not ok or not t.is_floating_point():
+                raise bad(f"parameter {k} has shape {shape} (dtype {t.dtype}) for {n} Gaussians")
+            if not bool(torch.isfinite(t).all()):
+                raise bad(f"parameter {k} holds NaN or infinite values")
+        opt = model.get("optimizers")
+        if isinstance(opt, dict):
+            for k, o in opt.items():
+                states = o.get("state") if isinstance(o, dict) else None
+                for st in (states.values() if isinstance(states, dict) else []):
+                    for name, v in (st.items() if isinstance(st, dict) else []):
+                        if (isinstance(v, torch.Tensor) and v.ndim and k in params
+                                and tuple(v.shape) != tuple(params[k].shape)):
+                            raise bad(f"optimizer state {k}.{name} has shape {tuple(v.shape)}, the parameter "
+                                      f"{tuple(params[k].shape)}")
+
     def load_state_dict(self, sd: dict) -> None:
         if sd["view_names"] != [v.name for v in self.views]:
             raise InputError("checkpoint was made with different training views; start a new run "
@@ -447,6 +499,7 @@ class Trainer:
         """Resume from `path` (tensors + plain data only); CheckpointMismatch when another run made it."""
         sd = ckpt_io.load(path)
         self.check_resumable(sd, path)
+        self.check_state(sd, path)
         try:
             self.load_state_dict(sd)
         except (KeyError, TypeError, ValueError, RuntimeError, IndexError) as e:
