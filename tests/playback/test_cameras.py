@@ -76,3 +76,14 @@ def test_camera_below_table_and_twin_without_splats_exit_2(tiny_twin, meshonly_t
     assert code == 2 and "no splats" in capsys.readouterr().err
     code = main(["render", str(tiny_twin), "--camera", "capture:0", "--out", str(tmp_path / "x.mp4")])
     assert code == 2 and "no rollout" in capsys.readouterr().err
+
+
+def test_camera_yaml_alias_bomb_is_refused_before_expanding(tmp_path):
+    """Nested aliases (a few hundred bytes expanding to 10^9 floats) are refused by the bounded loader;
+    this one expands to 10^5 nodes, harmless unbounded too, but above a camera's node limit."""
+    lines = ["a0: &a0 [1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0]"]
+    lines += [f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 10)}]" for i in range(1, 5)]
+    p = tmp_path / "bomb.yaml"
+    p.write_text("name: {" + ", ".join(lines) + "}\nK: *a4\n")
+    with pytest.raises(InputError, match=r"bomb\.yaml.*aliases"):
+        load_camera_yaml(p)
