@@ -87,3 +87,23 @@ def test_camera_yaml_alias_bomb_is_refused_before_expanding(tmp_path):
     p.write_text("name: {" + ", ".join(lines) + "}\nK: *a4\n")
     with pytest.raises(InputError, match=r"bomb\.yaml.*aliases"):
         load_camera_yaml(p)
+
+
+def test_capture_camera_too_large_to_render_names_the_cameras_file(tiny_twin, tmp_path):
+    """The capture camera's size comes from the twin's cameras file: 12000x9000 there is refused (it took
+    6 GB before the rasterizer failed); --width scales it down to something renderable."""
+    import json
+    import shutil
+
+    twin = shutil.copytree(tiny_twin, tmp_path / "twin")
+    p = twin / "poses" / "transforms.json"
+    d = json.loads(p.read_text())
+    scale = 12000 / d.get("w", d["frames"][0].get("w", 96))
+    for block in [d] + d["frames"]:
+        for k in ("w", "h", "fl_x", "fl_y", "cx", "cy"):
+            if k in block:
+                block[k] = int(block[k] * scale) if k in ("w", "h") else block[k] * scale
+    p.write_text(json.dumps(d))
+    with pytest.raises(InputError, match=r"transforms\.json.*12000x9000.*--width"):
+        resolve_camera("capture:0", twin)
+    assert resolve_camera("capture:0", twin, width=640).width == 640

@@ -87,9 +87,8 @@ def check_camera(camera: Camera, table_height: float = 0.0, where: str | Path | 
     return camera
 
 
-def capture_cameras(twin_dir: str | Path) -> list[Camera]:
-    """The twin's capture cameras (twin.json `cameras`, else poses/transforms.json), named by image."""
-    from splattwin.capture import nerfstudio
+def capture_cameras_path(twin_dir: str | Path) -> Path:
+    """The twin's capture cameras file (twin.json `cameras`, else poses/transforms.json)."""
     from splattwin.twin.manifest import Manifest
 
     twin_dir = Path(twin_dir)
@@ -99,6 +98,14 @@ def capture_cameras(twin_dir: str | Path) -> list[Camera]:
         path = twin_dir / path
     if path.is_dir():
         path = path / "transforms.json"
+    return path
+
+
+def capture_cameras(twin_dir: str | Path) -> list[Camera]:
+    """The twin's capture cameras (twin.json `cameras`, else poses/transforms.json), named by image."""
+    from splattwin.capture import nerfstudio
+
+    path = capture_cameras_path(twin_dir)
     if not path.is_file():
         raise InputError("the twin's capture cameras file is missing", path)
     ds = nerfstudio.read(path)
@@ -203,4 +210,11 @@ def resolve_camera(spec: str, twin_dir: str | Path, width: int | None = None) ->
             cam = found[0]
     if width is not None and isinstance(cam, Camera) and width != cam.width:
         cam = cam.scaled(width / cam.width)
+    # a capture camera's size is read from the twin's cameras file: 12000x9000 there took 6 GB before the
+    # rasterizer gave up. Rendering is bounded like a camera YAML (MAX_PIXELS); --width scales it down.
+    if cam.width * cam.height > MAX_PIXELS:
+        where = spec if isinstance(cam, EyeInHand) or spec.endswith((".yaml", ".yml")) or Path(spec).is_file() \
+            else capture_cameras_path(twin_dir)
+        raise InputError(f"camera {cam.name!r} renders {cam.width}x{cam.height} pixels, more than the "
+                         f"{MAX_PIXELS / 1e6:.1f} megapixels a video frame may have; give a smaller --width", where)
     return cam
