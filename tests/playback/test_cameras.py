@@ -107,3 +107,20 @@ def test_capture_camera_too_large_to_render_names_the_cameras_file(tiny_twin, tm
     with pytest.raises(InputError, match=r"transforms\.json.*12000x9000.*--width"):
         resolve_camera("capture:0", twin)
     assert resolve_camera("capture:0", twin, width=640).width == 640
+
+
+def test_render_with_nan_recorded_base_pose_exits_2_naming_results_json(tiny_twin, tmp_path, capsys):
+    """render reads the base pose plan recorded in TWIN/robot/results.json: "nan" there made it fail with
+    'negative dimensions' (exit 1)."""
+    import json
+    import shutil
+
+    from .rollouts import synthetic_rollout
+
+    twin = shutil.copytree(tiny_twin, tmp_path / "twin")
+    (twin / "robot").mkdir(exist_ok=True)
+    (twin / "robot" / "results.json").write_text(json.dumps({"base_pose": {"x": "nan", "y": 0, "z": 0, "yaw": 0}}))
+    r = synthetic_rollout(0.1).save(tmp_path / "r.npz")
+    code = main(["render", str(twin), "--camera", "capture:0", "--out", str(tmp_path / "v.mp4"), "--rollout", str(r)])
+    assert code == 2 and "results.json" in capsys.readouterr().err
+    assert not (tmp_path / "v.mp4").exists()

@@ -69,3 +69,20 @@ def test_joint_map_reads_recorded_arrays(gt_twin_small: Path):
     w.set_arm(qs[1])
     np.testing.assert_allclose(T_tcp[1], w.tcp_pose(), atol=1e-12)
     assert np.linalg.norm(T_tcp[2, :3, 3] - T_tcp[0, :3, 3]) > 0.01
+
+
+@pytest.mark.parametrize("b", [{"x": "nan", "y": 0, "z": 0, "yaw": 0}, {"x": 1e300, "y": 0, "z": 0, "yaw": 0},
+                               {"x": -0.5, "y": 0, "z": 0}, [0, 0, 0, 0]], ids=["text-nan", "1e300", "no-yaw", "list"])
+def test_recorded_base_pose_is_checked_naming_results_json(tmp_path: Path, b):
+    import json
+
+    from splattwin.errors import InputError
+    from splattwin.robot.world import BasePose
+
+    p = tmp_path / "results.json"
+    assert BasePose.recorded(p) == BasePose()                      # no results: the default base
+    p.write_text(json.dumps({"base_pose": {"x": -0.4, "y": 0.1, "z": 0.0, "yaw": 0.5}}))
+    assert BasePose.recorded(p) == BasePose(-0.4, 0.1, 0.0, 0.5)
+    p.write_text(json.dumps({"base_pose": b}))
+    with pytest.raises(InputError, match=r"results\.json"):
+        BasePose.recorded(p)

@@ -24,6 +24,10 @@ from splattwin.transforms import make_pose, pos_quat_wxyz_from_pose, pose_from_p
 from splattwin.twin.manifest import Manifest
 from splattwin.twin.mjcf import add_twin, check_scaled
 
+MAX_BASE_OFFSET = 1e4      # m: a robot base beyond this from the twin's origin is not a pose of this twin
+MAX_BASE_YAW = 1e3         # rad (angles wrap; this only keeps them finite and meaningful)
+MAX_RESULTS_BYTES = 256 << 20
+
 
 @dataclass(frozen=True)
 class BasePose:
@@ -48,6 +52,26 @@ class BasePose:
     def matrix(self) -> np.ndarray:
         """T_world_base [4,4]."""
         return pose_xyz_yaw(self.x, self.y, self.z, self.yaw)
+
+    @classmethod
+    def recorded(cls, results_json: str | Path) -> "BasePose":
+        """The base pose `splattwin plan` recorded in robot/results.json; the default when the file or its
+        `base_pose` is absent. A base_pose that is not four finite, bounded numbers is an InputError naming
+        the file (a "nan" there made render fail with 'negative dimensions')."""
+        from splattwin.limits import number, read_json
+
+        path = Path(results_json)
+        if not path.is_file():
+            return cls()
+        d = read_json(path, max_bytes=MAX_RESULTS_BYTES)
+        b = d.get("base_pose") if isinstance(d, dict) else None
+        if b is None:
+            return cls()
+        if not isinstance(b, dict) or not {"x", "y", "z", "yaw"} <= set(b):
+            raise InputError("base_pose must be a mapping with x, y, z (m) and yaw (rad)", path)
+        return cls(*(number(b[k], path, f"base_pose.{k}", -lim, lim)
+                     for k, lim in (("x", MAX_BASE_OFFSET), ("y", MAX_BASE_OFFSET), ("z", MAX_BASE_OFFSET),
+                                    ("yaw", MAX_BASE_YAW))))
 
 
 @dataclass(frozen=True)
