@@ -86,3 +86,27 @@ def test_recorded_base_pose_is_checked_naming_results_json(tmp_path: Path, b):
     p.write_text(json.dumps({"base_pose": b}))
     with pytest.raises(InputError, match=r"results\.json"):
         BasePose.recorded(p)
+
+
+@pytest.mark.parametrize("tf", [{"center": [0, 0], "size": "big"}, {"center": [0, 0], "size": [1e300, 1e300]},
+                                [1, 2], {"size": 0.1}], ids=["size-text", "size-1e300", "list", "no-center"])
+def test_malformed_target_frame_is_not_drawn_with_a_warning(gt_twin_small: Path, capsys, tf):
+    """config.target_frame only draws the goal outline here: malformed, the world is still built (plans that
+    never use it ran into an internal error), without the outline, and the warning names twin.json."""
+    from splattwin.twin.manifest import Manifest
+
+    man = Manifest.load(gt_twin_small)
+    man.config["target_frame"] = tf
+    w = build_world(gt_twin_small, manifest=man, visual=True)
+    assert w.model.ngeom > 0 and "goal_outline_0" not in [w.model.geom(g).name for g in range(w.model.ngeom)]
+    err = capsys.readouterr().err
+    assert "twin.json" in err and "target_frame" in err
+
+
+def test_well_formed_target_frame_is_drawn(gt_twin_small: Path):
+    from splattwin.twin.manifest import Manifest
+
+    man = Manifest.load(gt_twin_small)
+    man.config["target_frame"] = {"center": [0.1, 0.2, 0.0], "size": 0.15}
+    w = build_world(gt_twin_small, manifest=man, visual=True)
+    assert "goal_outline_0" in [w.model.geom(g).name for g in range(w.model.ngeom)]

@@ -388,8 +388,9 @@ def build_world(twin_dir: str | Path, manifest: Manifest | None = None, robot: R
     spec.modelname = "splattwin_world"
     _stiffen_gripper(spec, robot)
     objects = add_twin(spec, manifest, twin_dir, poses=poses)
-    if visual and isinstance(manifest.config.get("target_frame"), dict):
-        _add_region_outline(spec, manifest.config["target_frame"], manifest.background.table_height)
+    region = _outline_region(manifest.config.get("target_frame"), twin_dir / "twin.json") if visual else None
+    if region is not None:
+        _add_region_outline(spec, *region, manifest.background.table_height)
     try:
         model = spec.compile()
     except ValueError as e:
@@ -461,12 +462,37 @@ def _stiffen_gripper(spec, robot: RobotModel) -> None:
     act.biasprm = b
 
 
-def _add_region_outline(spec, region: dict, z: float) -> None:
-    """Draw a goal region {center, size} as a thin green outline on the table (visual only, no contacts)."""
+def _outline_region(region, where: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """(centre [2+], size [2]) of twin.json's config.target_frame for the goal outline; None when absent,
+    and None with a warning naming twin.json when malformed: the outline is only drawn, and a task that
+    places into the region checks it itself (a size "big" crashed plans that never used it)."""
+    from splattwin.limits import numbers
+
+    if region is None:
+        return None
+    try:
+        if not isinstance(region, dict) or "center" not in region or "size" not in region:
+            raise InputError("config.target_frame must be {center: [x, y(, z)], size: s or [sx, sy]}", where)
+        c, s = region["center"], region["size"]
+        c = numbers(c, len(c) if isinstance(c, list) and len(c) in (2, 3) else 3, where,
+                    "config.target_frame center", -MAX_BASE_OFFSET, MAX_BASE_OFFSET)
+        s = numbers(s if isinstance(s, list) else [s], len(s) if isinstance(s, list) and len(s) in (1, 2) else 1,
+                    where, "config.target_frame size", 0.0, MAX_BASE_OFFSET)
+        if np.any(s <= 0):
+            raise InputError("config.target_frame size must be > 0", where)
+    except InputError as e:
+        from splattwin.console import console
+
+        console(stderr=True).print(f"warning: {e}; the goal region's outline is not drawn", markup=False,
+                                   highlight=False)
+        return None
+    return c, np.broadcast_to(s, (2,))
+
+
+def _add_region_outline(spec, c: np.ndarray, s: np.ndarray, z: float) -> None:
+    """Draw a goal region (centre, size xy) as a thin green outline on the table (visual only, no contacts)."""
     import mujoco
 
-    c = np.asarray(region["center"], float)
-    s = np.broadcast_to(np.asarray(region["size"], float), (2,))
     w = 0.006
     for k, (dx, dy, hx, hy) in enumerate([(0, s[1] / 2, s[0] / 2, w), (0, -s[1] / 2, s[0] / 2, w),
                                           (s[0] / 2, 0, w, s[1] / 2), (-s[0] / 2, 0, w, s[1] / 2)]):
