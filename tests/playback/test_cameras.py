@@ -76,3 +76,51 @@ def test_camera_below_table_and_twin_without_splats_exit_2(tiny_twin, meshonly_t
     assert code == 2 and "no splats" in capsys.readouterr().err
     code = main(["render", str(tiny_twin), "--camera", "capture:0", "--out", str(tmp_path / "x.mp4")])
     assert code == 2 and "no rollout" in capsys.readouterr().err
+
+
+def test_camera_yaml_alias_bomb_is_refused_before_expanding(tmp_path):
+    """Nested aliases (a few hundred bytes expanding to 10^9 floats) are refused by the bounded loader;
+    this one expands to 10^5 nodes, harmless unbounded too, but above a camera's node limit."""
+    lines = ["a0: &a0 [1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0]"]
+    lines += [f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 10)}]" for i in range(1, 5)]
+    p = tmp_path / "bomb.yaml"
+    p.write_text("name: {" + ", ".join(lines) + "}\nK: *a4\n")
+    with pytest.raises(InputError, match=r"bomb\.yaml.*aliases"):
+        load_camera_yaml(p)
+
+
+def test_capture_camera_too_large_to_render_names_the_cameras_file(tiny_twin, tmp_path):
+    """The capture camera's size comes from the twin's cameras file: 12000x9000 there is refused (it took
+    6 GB before the rasterizer failed); --width scales it down to something renderable."""
+    import json
+    import shutil
+
+    twin = shutil.copytree(tiny_twin, tmp_path / "twin")
+    p = twin / "poses" / "transforms.json"
+    d = json.loads(p.read_text())
+    scale = 12000 / d.get("w", d["frames"][0].get("w", 96))
+    for block in [d] + d["frames"]:
+        for k in ("w", "h", "fl_x", "fl_y", "cx", "cy"):
+            if k in block:
+                block[k] = int(block[k] * scale) if k in ("w", "h") else block[k] * scale
+    p.write_text(json.dumps(d))
+    with pytest.raises(InputError, match=r"transforms\.json.*12000x9000.*--width"):
+        resolve_camera("capture:0", twin)
+    assert resolve_camera("capture:0", twin, width=640).width == 640
+
+
+def test_render_with_nan_recorded_base_pose_exits_2_naming_results_json(tiny_twin, tmp_path, capsys):
+    """render reads the base pose plan recorded in TWIN/robot/results.json: "nan" there made it fail with
+    'negative dimensions' (exit 1)."""
+    import json
+    import shutil
+
+    from .rollouts import synthetic_rollout
+
+    twin = shutil.copytree(tiny_twin, tmp_path / "twin")
+    (twin / "robot").mkdir(exist_ok=True)
+    (twin / "robot" / "results.json").write_text(json.dumps({"base_pose": {"x": "nan", "y": 0, "z": 0, "yaw": 0}}))
+    r = synthetic_rollout(0.1).save(tmp_path / "r.npz")
+    code = main(["render", str(twin), "--camera", "capture:0", "--out", str(tmp_path / "v.mp4"), "--rollout", str(r)])
+    assert code == 2 and "results.json" in capsys.readouterr().err
+    assert not (tmp_path / "v.mp4").exists()

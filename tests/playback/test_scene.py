@@ -178,3 +178,19 @@ def test_rigid_transform_matches_transform_gaussians():
     np.testing.assert_allclose(m, ref.means, atol=1e-12)
     np.testing.assert_allclose(np.abs(np.sum(q * ref.quats, axis=1)), 1.0, atol=1e-12)   # same rotation
     np.testing.assert_allclose(sh, ref.sh, atol=1e-12)
+
+
+@pytest.mark.parametrize("bad", ["negative", "over-16-bit"])
+def test_dynamic_scene_refuses_labels_out_of_range_naming_the_file(tiny_twin, tmp_path, bad):
+    """A label file of a twin we did not write: negative or above 16-bit labels are refused, not drawn."""
+    import shutil
+
+    from splattwin.errors import InputError
+
+    twin = shutil.copytree(tiny_twin, tmp_path / "twin")
+    p = twin / "semantics" / "labels.npy"
+    labels = np.load(p)
+    labels[-1] = -1 if bad == "negative" else 70_000
+    np.save(p, labels)
+    with pytest.raises(InputError, match=r"labels\.npy.*65535"):
+        DynamicScene.load(twin)

@@ -73,3 +73,17 @@ def test_report_section_notes_without_rollout_or_splats(tmp_path, twin_with_roll
     assert "no executed task to play" in page and "no photoreal playback" in page and "no splats" in page
     with pytest.raises(InputError):
         ReportOptions(video_fps=0).validate()
+
+
+def test_report_base_pose_nan_in_results_json_is_an_input_error(tmp_path):
+    """report's task video reads the recorded base pose: "nan" there is an InputError naming results.json
+    (it was read unchecked, as by render)."""
+    import json
+
+    from splattwin.errors import InputError
+    from splattwin.report.playback import _base
+
+    (tmp_path / "robot").mkdir()
+    (tmp_path / "robot" / "results.json").write_text(json.dumps({"base_pose": {"x": "nan", "y": 0, "z": 0, "yaw": 0}}))
+    with pytest.raises(InputError, match=r"results\.json.*base_pose\.x"):
+        _base(tmp_path)

@@ -130,6 +130,40 @@ def test_rollout_load_bounds_sizes_before_inflating(tmp_path: Path, monkeypatch)
     assert read == []
 
 
+def test_rollout_load_refuses_header_shapes_before_reading_any_array(tmp_path: Path, monkeypatch):
+    """A zip bomb (a small file declaring millions of samples of zeros, under the byte limit) is refused from
+    the .npy headers: no array data is inflated."""
+    import splattwin.robot.rollout as rollout_mod
+
+    p = _small_rollout(T=2000).save(tmp_path / "r.npz")
+    monkeypatch.setattr(rollout_mod, "MAX_SAMPLES", 1000)
+    read = []
+    monkeypatch.setattr(np.lib.format, "read_array", lambda *a, **k: read.append(a))
+    monkeypatch.setattr(np, "load", lambda *a, **k: read.append(a))
+    with pytest.raises(InputError, match=r"r\.npz.*2000 samples"):
+        Rollout.load(p)
+    assert read == []
+
+
+def test_rollout_load_holds_each_array_once(tmp_path: Path):
+    """An array is read from the zip stream into its own buffer, not first into a bytes copy: reading a
+    file whose one array dominates peaks near the arrays' size, not twice that one array."""
+    import tracemalloc
+
+    T = 4000
+    ro = _small_rollout(T=T, nq=2)
+    ro.object_poses = {f"o{i}": np.tile(np.eye(4), (T, 1, 1)) for i in range(40)}   # 20 MB of 21
+    p = ro.save(tmp_path / "big.npz")
+    need = sum(v.nbytes for v in np.load(p, allow_pickle=False).values())
+    tracemalloc.start()
+    try:
+        Rollout.load(p)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 1.5 * need, (peak, need)
+
+
 def test_recorder_assembles_blocks_in_order():
     """Samples across several preallocated blocks come back in order, with the step they belong to."""
 

@@ -93,3 +93,25 @@ def test_grasp_selector_follows_the_support_and_caches(tmp_path: Path, monkeypat
     assert any((sunk["box"] @ g.T_obj_tcp)[0, 1] == pytest.approx(-1.0, abs=1e-6) for g in top[1:])
     sel.ranked("box", {**sunk, "box": pose_xyz_yaw(0.2, 0.0, 0.025, 0.0)})
     assert len(calls) == 2                           # another support height: synthesised again
+
+
+@pytest.mark.parametrize("content,name", [
+    (b"ply\nformat binary_little_endian 1.0\nelement vertex 1000000000000\nproperty float x\nproperty float y\n"
+     b"property float z\nend_header\n", "box.ply"),
+    (b"ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+     b"element face 2\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 1 9\n"
+     b"3 0 1 3\n", "box.ply"),
+    (b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", "box.obj"),
+    (b"", "box.obj")], ids=["ply-header-claims-1e12", "ascii-ply-bad-index", "flat", "empty-obj"])
+def test_grasp_selector_refuses_a_bad_collision_mesh_naming_it(tmp_path: Path, content: bytes, name: str):
+    """A received twin's collision mesh goes through the checked loader (meshio.load_mesh): an InputError
+    naming the file, not trimesh's ValueError / IndexError."""
+    from splattwin.errors import InputError
+
+    (tmp_path / name).write_bytes(content)
+    man = _manifest()
+    man.objects[1].collision_mesh = name
+    sel = GraspSelector(man, tmp_path, pose_xyz_yaw(-0.5, 0.0, 0.0, 0.0), max_opening=0.08, tip_depth=0.009,
+                        floor_clearance=0.0065)
+    with pytest.raises(InputError, match=name.replace(".", r"\.")):
+        sel.ranked("box", {"crate": pose_xyz_yaw(0.5, 0.4, 0.05, 0.0), "box": pose_xyz_yaw(0.2, 0.0, 0.025, 0.0)})

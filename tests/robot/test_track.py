@@ -66,6 +66,23 @@ def test_track_load_rejects_malformed_files(tmp_path: Path):
         RobotTrack.load(tmp_path / "bad_shape.npz")
 
 
+def test_track_load_refuses_header_shapes_before_reading_any_array(tmp_path: Path, monkeypatch):
+    """A playback file claiming more frames than allowed is refused from its .npy headers, unread."""
+    import splattwin.robot.track as track_mod
+
+    tr = RobotTrack(names=["g1"], vertices=[np.eye(3, dtype=np.float32)], faces=[np.array([[0, 1, 2]], np.uint32)],
+                    colors=[(1, 2, 3)], positions=np.zeros((40, 1, 3)), rotations=np.tile(np.eye(3), (40, 1, 1, 1)),
+                    times=np.arange(40.0))
+    p = tr.save(tmp_path / "playback.npz")
+    monkeypatch.setattr(track_mod, "MAX_TRACK_FRAMES", 10, raising=False)
+    read = []
+    monkeypatch.setattr(np.lib.format, "read_array", lambda *a, **k: read.append(a))
+    monkeypatch.setattr(np, "load", lambda *a, **k: read.append(a))
+    with pytest.raises(InputError, match=r"playback\.npz.*40 frames"):
+        RobotTrack.load(p)
+    assert read == []
+
+
 def test_viewer_moves_the_objects_with_the_track(gt_twin_small: Path, tmp_path: Path):
     """build_scene draws the track's robot and moves the objects' collision meshes to the recorded poses."""
     import shutil

@@ -91,3 +91,22 @@ def test_resume_with_rollouts_needs_the_results_own_rollout(gt_twin_small: Path,
     assert load_finished(p, spec, rollouts=True) is None
     p.write_text(json.dumps({**d, "rollout": rollout_path(p).name}))
     assert load_finished(p, spec, rollouts=True) is not None
+
+
+@pytest.mark.parametrize("field,value", [("success", "no"), ("collisions", "x"), ("plan_ms", ["a", "b"]),
+                                         ("plan_ms", [float("nan")]), ("trial_wall_s", "slow"), ("collisions", True)])
+def test_resume_ignores_a_wrongly_typed_stored_result_with_a_warning(tmp_path: Path, capsys, field, value):
+    """A stored result with the right key but wrong types is re-run (with a warning naming it), not summed
+    ("success": "no" counted as a success; "collisions": "x" crashed the summary)."""
+    (tmp_path / "twin").mkdir()
+    (tmp_path / "twin" / "twin.json").write_text("{}")
+    spec = TrialSpec(str(tmp_path / "twin"), None, sigma=0.005, seed=1)
+    good = {"success": False, "collisions": 0, "plan_ms": [12.5], "steps": [], "trial_wall_s": 1.0,
+            "key": trial_key(spec)}
+    p = tmp_path / "1.json"
+    p.write_text(json.dumps(good))
+    assert load_finished(p, spec) is not None and capsys.readouterr().err == ""
+    p.write_text(json.dumps({**good, field: value}))
+    assert load_finished(p, spec) is None
+    err = capsys.readouterr().err
+    assert "1.json" in err and field in err

@@ -69,3 +69,44 @@ def test_joint_map_reads_recorded_arrays(gt_twin_small: Path):
     w.set_arm(qs[1])
     np.testing.assert_allclose(T_tcp[1], w.tcp_pose(), atol=1e-12)
     assert np.linalg.norm(T_tcp[2, :3, 3] - T_tcp[0, :3, 3]) > 0.01
+
+
+@pytest.mark.parametrize("b", [{"x": "nan", "y": 0, "z": 0, "yaw": 0}, {"x": 1e300, "y": 0, "z": 0, "yaw": 0},
+                               {"x": -0.5, "y": 0, "z": 0}, [0, 0, 0, 0]], ids=["text-nan", "1e300", "no-yaw", "list"])
+def test_recorded_base_pose_is_checked_naming_results_json(tmp_path: Path, b):
+    import json
+
+    from splattwin.errors import InputError
+    from splattwin.robot.world import BasePose
+
+    p = tmp_path / "results.json"
+    assert BasePose.recorded(p) == BasePose()                      # no results: the default base
+    p.write_text(json.dumps({"base_pose": {"x": -0.4, "y": 0.1, "z": 0.0, "yaw": 0.5}}))
+    assert BasePose.recorded(p) == BasePose(-0.4, 0.1, 0.0, 0.5)
+    p.write_text(json.dumps({"base_pose": b}))
+    with pytest.raises(InputError, match=r"results\.json"):
+        BasePose.recorded(p)
+
+
+@pytest.mark.parametrize("tf", [{"center": [0, 0], "size": "big"}, {"center": [0, 0], "size": [1e300, 1e300]},
+                                [1, 2], {"size": 0.1}], ids=["size-text", "size-1e300", "list", "no-center"])
+def test_malformed_target_frame_is_not_drawn_with_a_warning(gt_twin_small: Path, capsys, tf):
+    """config.target_frame only draws the goal outline here: malformed, the world is still built (plans that
+    never use it ran into an internal error), without the outline, and the warning names twin.json."""
+    from splattwin.twin.manifest import Manifest
+
+    man = Manifest.load(gt_twin_small)
+    man.config["target_frame"] = tf
+    w = build_world(gt_twin_small, manifest=man, visual=True)
+    assert w.model.ngeom > 0 and "goal_outline_0" not in [w.model.geom(g).name for g in range(w.model.ngeom)]
+    err = capsys.readouterr().err
+    assert "twin.json" in err and "target_frame" in err
+
+
+def test_well_formed_target_frame_is_drawn(gt_twin_small: Path):
+    from splattwin.twin.manifest import Manifest
+
+    man = Manifest.load(gt_twin_small)
+    man.config["target_frame"] = {"center": [0.1, 0.2, 0.0], "size": 0.15}
+    w = build_world(gt_twin_small, manifest=man, visual=True)
+    assert "goal_outline_0" in [w.model.geom(g).name for g in range(w.model.ngeom)]

@@ -32,15 +32,17 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from splattwin.capture.camera import Camera, look_at, opencv_from_opengl
 from splattwin.errors import InputError
+from splattwin.limits import load_yaml
 
 D435_SIZE = (640, 480)
 D435_FOV_Y_DEG = 42.5
 HAND_BODY = "hand"
 MAX_PIXELS = 4096 * 4096
+MAX_CAMERA_YAML_BYTES = 1 << 20
+MAX_CAMERA_YAML_NODES = 10_000   # a camera is a few dozen numbers
 
 
 def _mount_default() -> np.ndarray:
@@ -85,9 +87,8 @@ def check_camera(camera: Camera, table_height: float = 0.0, where: str | Path | 
     return camera
 
 
-def capture_cameras(twin_dir: str | Path) -> list[Camera]:
-    """The twin's capture cameras (twin.json `cameras`, else poses/transforms.json), named by image."""
-    from splattwin.capture import nerfstudio
+def capture_cameras_path(twin_dir: str | Path) -> Path:
+    """The twin's capture cameras file (twin.json `cameras`, else poses/transforms.json)."""
     from splattwin.twin.manifest import Manifest
 
     twin_dir = Path(twin_dir)
@@ -97,6 +98,14 @@ def capture_cameras(twin_dir: str | Path) -> list[Camera]:
         path = twin_dir / path
     if path.is_dir():
         path = path / "transforms.json"
+    return path
+
+
+def capture_cameras(twin_dir: str | Path) -> list[Camera]:
+    """The twin's capture cameras (twin.json `cameras`, else poses/transforms.json), named by image."""
+    from splattwin.capture import nerfstudio
+
+    path = capture_cameras_path(twin_dir)
     if not path.is_file():
         raise InputError("the twin's capture cameras file is missing", path)
     ds = nerfstudio.read(path)
@@ -112,12 +121,8 @@ def load_camera_yaml(path: str | Path) -> Camera | EyeInHand:
     path = Path(path)
     if not path.is_file():
         raise InputError("camera file not found", path)
-    if path.stat().st_size > 1 << 20:
-        raise InputError("camera file is larger than 1 MiB", path)
-    try:
-        d = yaml.safe_load(path.read_text())
-    except (yaml.YAMLError, UnicodeDecodeError) as e:
-        raise InputError(f"not valid YAML: {e}", path) from e
+    # the bounded loader: a 489-byte file of nested aliases expanded to 10^9 floats under yaml.safe_load
+    d = load_yaml(path, max_bytes=MAX_CAMERA_YAML_BYTES, max_nodes=MAX_CAMERA_YAML_NODES)
     if not isinstance(d, dict):
         raise InputError("camera YAML must be a mapping (width, height, fov_x_deg / K, eye + look_at / T_world_cam)", path)
     try:
@@ -205,4 +210,11 @@ def resolve_camera(spec: str, twin_dir: str | Path, width: int | None = None) ->
             cam = found[0]
     if width is not None and isinstance(cam, Camera) and width != cam.width:
         cam = cam.scaled(width / cam.width)
+    # a capture camera's size is read from the twin's cameras file: 12000x9000 there took 6 GB before the
+    # rasterizer gave up. Rendering is bounded like a camera YAML (MAX_PIXELS); --width scales it down.
+    if cam.width * cam.height > MAX_PIXELS:
+        where = spec if isinstance(cam, EyeInHand) or spec.endswith((".yaml", ".yml")) or Path(spec).is_file() \
+            else capture_cameras_path(twin_dir)
+        raise InputError(f"camera {cam.name!r} renders {cam.width}x{cam.height} pixels, more than the "
+                         f"{MAX_PIXELS / 1e6:.1f} megapixels a video frame may have; give a smaller --width", where)
     return cam

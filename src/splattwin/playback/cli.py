@@ -138,17 +138,8 @@ def run_render(args: argparse.Namespace) -> int:
 
 
 def _base_pose(args: argparse.Namespace):
-    import json
-
     from splattwin.robot.world import BasePose
 
     if args.base_pose is not None:
         return BasePose.parse(args.base_pose)
-    res = args.twin / "robot" / "results.json"
-    try:
-        b = json.loads(res.read_text()).get("base_pose") if res.is_file() else None
-        if isinstance(b, dict):
-            return BasePose(**{k: float(b[k]) for k in ("x", "y", "z", "yaw")})
-    except (OSError, ValueError, KeyError, TypeError):
-        pass
-    return BasePose()
+    return BasePose.recorded(args.twin / "robot" / "results.json")

@@ -267,7 +267,7 @@ def _write(twin_dir: Path, scene, man, refined: dict, label_of: dict[str, int], 
     """refined/point_cloud.ply + labels.npy (the frozen rest, then each refined object), objects' splats.ply,
     twin.json pointing to them."""
     from splattwin.io import atomic_path
-    from splattwin.playback.scene import concat
+    from splattwin.playback.scene import concat, load_labels
     from splattwin.splat.gaussians import Gaussians
     from splattwin.twin.splats import transform_gaussians
 
@@ -277,7 +277,7 @@ def _write(twin_dir: Path, scene, man, refined: dict, label_of: dict[str, int], 
     # the rest keeps the labels it had: object-labelled Gaussians there are the objects' residue (cleaned
     # out of splats.ply), which the playback hides once their object moved
     labels = [_labels_of(rest.means, Gaussians.load_ply(twin_dir / man.splats).means,
-                         np.load(twin_dir / man.labels, allow_pickle=False) if man.labels else None)]
+                         load_labels(twin_dir / man.labels) if man.labels else None)]
     for n in names:
         parts.append(refined[n])
         labels.append(np.full(len(refined[n]), label_of[n], np.int64))

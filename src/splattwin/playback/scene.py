@@ -41,6 +41,7 @@ from splattwin.twin.splats import sh_rotation, transform_gaussians
 MOVED_POSITION = 0.002     # m: an object this far from its twin pose has left its place
 MOVED_ANGLE = np.radians(1.0)
 MAX_GAUSSIANS = 20_000_000
+MAX_LABEL = 65535          # object labels are 16-bit, like the label images they come from
 CARRY_MARGIN = 0.005      # m around an object's bounding box: its Gaussians the splats.ply lacks
 CARRY_BAND = 0.004        # m above the table top (below: the table itself)
 BACKDROP_MARGIN = 0.03     # m beyond the table's extent
@@ -171,7 +172,7 @@ class DynamicScene:
         labels = np.zeros(len(full), np.int64)
         if manifest.labels:
             lp = _confined(twin_dir, manifest.labels, "labels")
-            labels = _load_labels(lp, len(full))
+            labels = load_labels(lp, len(full))
         objects, poses, extents = {}, {}, {}
         for o in manifest.objects:
             if not (o.usable and o.splat_ply):
@@ -336,13 +337,18 @@ def _match(a: np.ndarray, b: np.ndarray, tol: float = 1e-5) -> np.ndarray:
     return np.isfinite(d)
 
 
-def _load_labels(path: Path, n: int) -> np.ndarray:
+def load_labels(path: Path, n: int | None = None) -> np.ndarray:
+    """A twin's label file (one label per Gaussian, 0 = background) as int64 [n], each in [0, MAX_LABEL];
+    InputError naming the file otherwise. Labels index colour tables and name objects: a float, a negative
+    or a 2**62 label is a broken file, not a colour to make up."""
+    from splattwin.limits import load_npy
+
     if not path.is_file():
         raise InputError("the twin's label file is missing", path)
-    try:
-        a = np.load(path, mmap_mode="r", allow_pickle=False)   # header only until the shape is checked
-    except (ValueError, OSError) as e:
-        raise InputError(f"not a .npy label array: {e}", path) from e
-    if a.shape != (n,) or a.dtype.kind not in "iu":
-        raise InputError(f"labels must be an integer array of shape ({n},) (one per Gaussian), got {a.dtype} {a.shape}", path)
-    return np.asarray(a, dtype=np.int64)
+    a = load_npy(path, "label array")
+    if a.ndim != 1 or (n is not None and len(a) != n) or a.dtype.kind not in "iu":
+        want = f"({n},) (one per Gaussian)" if n is not None else "[N] (one per Gaussian)"
+        raise InputError(f"labels must be an integer array of shape {want}, got {a.dtype} {a.shape}", path)
+    if len(a) and (int(a.min()) < 0 or int(a.max()) > MAX_LABEL):
+        raise InputError(f"labels must be within [0, {MAX_LABEL}], got {int(a.min())} to {int(a.max())}", path)
+    return a.astype(np.int64)

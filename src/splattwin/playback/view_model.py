@@ -23,13 +23,27 @@ HUGE_SPLAT = 0.05   # m: splats with a larger scale (haze) go to the background 
 BACKGROUND_RGB = (160, 160, 160)
 
 
-def label_colors(labels: np.ndarray) -> np.ndarray:
+def label_colors(labels: np.ndarray, where: str | Path | None = None, what: str = "labels") -> np.ndarray:
     """[N] int labels -> [N,3] uint8 colours, the same palette as the semantic label maps
-    (negative labels count as background)."""
+    (negative labels count as background). Labels above MAX_LABEL (or not whole numbers) are an InputError
+    naming `where`: a label read from a file must not size the palette (1.5e9 took 9 GB)."""
+    from splattwin.errors import InputError
+    from splattwin.playback.scene import MAX_LABEL
     from splattwin.semantics.label_render import palette
 
-    labels = np.maximum(np.asarray(labels, dtype=np.int64), 0)
-    return palette(int(labels.max(initial=0)))[labels]
+    labels = np.asarray(labels)
+    if labels.size == 0:
+        return np.zeros((0, 3), np.uint8)
+    if labels.dtype.kind not in "iu":
+        raise InputError(f"{what} must be whole numbers within [0, {MAX_LABEL}], got {labels.dtype} values "
+                         f"({str(labels.reshape(-1)[0])[:40]}...)", where)
+    hi = int(labels.max())
+    if hi > MAX_LABEL:
+        raise InputError(f"{what} must be within [0, {MAX_LABEL}], got {hi}", where)
+    # colours of the labels present only (np.unique's inverse maps them back); the palette stays
+    # the label maps' one, at most MAX_LABEL + 1 entries
+    present, inverse = np.unique(np.maximum(labels.astype(np.int64), 0), return_inverse=True)
+    return palette(int(present[-1]))[present][inverse.reshape(labels.shape)]
 
 
 def workspace_mask(means: np.ndarray, background, margin: float = 0.3, height: float = 1.0) -> np.ndarray:
@@ -213,7 +227,7 @@ class TwinView:
         return view
 
     def _load_splats(self, twin_dir: Path) -> None:
-        from splattwin.limits import load_npy
+        from splattwin.playback.scene import load_labels
         from splattwin.splat.gaussians import Gaussians
 
         man = self.manifest
@@ -223,7 +237,7 @@ class TwinView:
         g = Gaussians.load_ply(path)
         labels = None
         if man.labels and (twin_dir / man.labels).is_file():
-            labels = load_npy(twin_dir / man.labels, "label array")
+            labels = load_labels(twin_dir / man.labels)
         # Splats far outside the table's workspace (the room, a far background shell) and huge haze
         # splats hide the scene from most viewpoints: they get their own layer.
         # (metres; an unscaled twin's nominal metre, TwinFrame.length_scale, keeps the same share of it)
@@ -269,7 +283,7 @@ def collision_parts(twin_dir: Path, man: Manifest) -> list[MeshPart]:
     for obj in man.objects:
         if not obj.usable:
             continue
-        col = label_colors(np.array([obj.label]))[0]
+        col = label_colors(np.array([obj.label]), Path(twin_dir) / "twin.json", f"label of object {obj.name!r}")[0]
         for k, rel in enumerate(obj.convex_parts or ([obj.collision_mesh] if obj.collision_mesh else [])):
             out.append(part(obj.name, k, rel, obj.pose, col))
     bg = man.background

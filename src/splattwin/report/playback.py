@@ -82,11 +82,7 @@ def light_check_picture(renderer, camera) -> tuple[np.ndarray, float] | None:
 def _base(twin: Path) -> np.ndarray:
     from splattwin.robot.world import BasePose
 
-    try:
-        b = json.loads((twin / "robot" / "results.json").read_text()).get("base_pose")
-        return BasePose(**{k: float(b[k]) for k in ("x", "y", "z", "yaw")}).matrix()
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
-        return BasePose().matrix()
+    return BasePose.recorded(twin / "robot" / "results.json").matrix()
 
 
 def task_video(twin: Path, options: ReportOptions, progress: bool = False) -> dict | None:

@@ -104,7 +104,7 @@ class Rollout:
         path = Path(path)
         if not path.is_file():
             raise InputError("rollout file not found", path)
-        arrays = read_npz_bounded(path, MAX_BYTES)
+        arrays = read_npz_bounded(path, MAX_BYTES, _check_rollout_headers)
         need = ("format", "version", "t", "qpos", "q_arm", "gripper_width", "action_q_arm", "action_gripper",
                 "object_names", "object_poses", "joint_names", "step_index")
         missing = [k for k in need if k not in arrays]
@@ -137,12 +137,96 @@ class Rollout:
             raise InputError(f"rollout arrays inconsistent: {e}", path) from e
 
 
-def read_npz_bounded(path: Path, max_bytes: int) -> dict[str, np.ndarray]:
-    """All arrays of an .npz, refusing pickled objects and archives whose arrays would exceed
-    `max_bytes` uncompressed (`splattwin.limits.load_npz`: headers checked before anything is read)."""
-    from splattwin.limits import load_npz
+MAX_MEMBERS = 100_000          # arrays in one .npz (a playback track holds two per robot geom)
 
-    return load_npz(path, "robot record", max_bytes=max_bytes)
+
+def read_npz_bounded(path: Path, max_bytes: int, check=None, what: str = "robot record") -> dict[str, np.ndarray]:
+    """All arrays of an .npz without unpickling, every size bounded before anything is inflated.
+
+    A 20 MB zip can declare gigabytes of zeros, so the zip directory's uncompressed sizes are summed
+    against `max_bytes` and every member's .npy header (shape, dtype) is read and must fit its member;
+    then `check(headers)` ({name: (shape, dtype)}) may refuse the shapes (return a message) before any
+    array data is read. Arrays are read straight from the zip stream into their final buffer (no second
+    copy of a member in memory)."""
+    import zipfile
+
+    path = Path(path)
+    headers: dict[str, tuple[tuple[int, ...], np.dtype]] = {}
+    out: dict[str, np.ndarray] = {}
+    try:
+        with zipfile.ZipFile(path) as zf:
+            members = [i for i in zf.infolist() if i.filename.endswith(".npy")]
+            if len(members) > MAX_MEMBERS:
+                raise InputError(f"{what} holds {len(members)} arrays, more than {MAX_MEMBERS}", path)
+            total = sum(i.file_size for i in members)
+            if total > max_bytes:
+                raise InputError(f"{what}: arrays of {total} bytes uncompressed are larger than the limit "
+                                 f"({max_bytes})", path)
+            for info in members:
+                name = info.filename[:-4]
+                if name in headers:
+                    raise InputError(f"{what} holds the array {name!r} twice", path)
+                with zf.open(info) as f:
+                    shape, dtype = _npy_header(f)
+                if dtype.hasobject:
+                    raise InputError(f"{what} array {name!r} holds Python objects (pickles); only plain arrays "
+                                     f"are read", path)
+                need = int(np.prod(shape, dtype=object)) * dtype.itemsize
+                if need > info.file_size:
+                    raise InputError(f"{what} array {name!r} claims shape {tuple(shape)} but its member holds "
+                                     f"{info.file_size} bytes", path)
+                headers[name] = (tuple(shape), dtype)
+            problem = check(headers) if check is not None else None
+            if problem:
+                raise InputError(f"{what}: {problem}", path)
+            for info in members:
+                with zf.open(info) as f:
+                    out[info.filename[:-4]] = np.lib.format.read_array(f, allow_pickle=False)
+    except InputError:
+        raise
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError, NotImplementedError) as e:
+        raise InputError(f"not a readable .npz {what}: {e}", path) from None
+    return out
+
+
+def _npy_header(f) -> tuple[tuple[int, ...], np.dtype]:
+    """(shape, dtype) from the header of an .npy stream (only the header bytes are read)."""
+    version = np.lib.format.read_magic(f)
+    if version == (1, 0):
+        shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+    elif version in ((2, 0), (3, 0)):
+        shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+    else:
+        raise ValueError(f"unsupported .npy version {version}")
+    return tuple(int(n) for n in shape), dtype
+
+
+_PER_SAMPLE = ("t", "qpos", "q_arm", "gripper_width", "action_q_arm", "action_gripper", "step_index")
+
+
+def _check_rollout_headers(h: dict) -> str | None:
+    """The rollout's shapes from the headers alone: T samples (<= MAX_SAMPLES) in every per-sample array,
+    at most MAX_NQ columns, MAX_OBJECTS object poses, so a bomb of valid-looking zeros is refused unread."""
+    if "t" not in h or len(h["t"][0]) != 1:
+        return "missing or malformed 't' (sample times)"
+    T = h["t"][0][0]
+    if T > MAX_SAMPLES:
+        return f"{T} samples, more than {MAX_SAMPLES}"
+    for k in _PER_SAMPLE:
+        if k in h:
+            shape = h[k][0]
+            if not 1 <= len(shape) <= 2 or shape[0] != T or (len(shape) == 2 and shape[1] > MAX_NQ):
+                return f"array {k!r} has shape {shape}, expected [{T}] or [{T}, <= {MAX_NQ}]"
+    if "object_poses" in h:
+        shape = h["object_poses"][0]
+        if len(shape) != 4 or shape[0] > MAX_OBJECTS or shape[1:] != (T, 4, 4):
+            return f"rollout objects malformed: 'object_poses' has shape {shape}, expected [<= {MAX_OBJECTS}, {T}, 4, 4]"
+    for k, n in (("object_names", MAX_OBJECTS), ("joint_names", MAX_NQ)):
+        if k in h:
+            shape, dtype = h[k]
+            if int(np.prod(shape, dtype=object)) > n or dtype.itemsize > 4 * MAX_NAME:
+                return f"array {k!r} has shape {shape} of {dtype}, more than {n} names of {MAX_NAME} characters"
+    return None
 
 
 class RolloutRecorder:

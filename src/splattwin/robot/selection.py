@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from splattwin.errors import InputError
 from splattwin.robot import grasp as grasp_mod
 from splattwin.robot.task import Step
 from splattwin.transforms import pose_xyz_yaw, yaw_of
@@ -93,14 +94,22 @@ class GraspSelector:
 
     def synthesize(self, obj: str, belief: Belief) -> list[grasp_mod.Grasp]:
         """Unranked candidates (object frame) for the support under `obj` in the belief."""
-        import trimesh
+        from splattwin.meshio import load_mesh
 
         T_obj = belief[obj]
         floor_obj = round(support_height(obj, belief, self.manifest) - float(T_obj[2, 3]), 4)  # object frame (upright)
         key = (obj, floor_obj)
         if key not in self._cache:
             entry = self.manifest.object(obj)
-            mesh = trimesh.load(self.twin_dir / entry.collision_mesh, force="mesh")
+            if not entry.collision_mesh:
+                raise InputError(f"object {obj!r} has no collision mesh to grasp", self.twin_dir / "twin.json")
+            # the checked loader: a bad PLY header or an empty OBJ in a received twin is an InputError naming it
+            path = self.twin_dir / entry.collision_mesh
+            mesh = load_mesh(path, f"collision mesh of object {obj!r}", process=True)
+            v = np.asarray(mesh.vertices)
+            if np.linalg.matrix_rank(v - v.mean(axis=0), tol=1e-9) < 3:  # qhull fails on it in synthesis
+                raise InputError(f"collision mesh of object {obj!r} is flat (its vertices lie on a plane): "
+                                 f"not a solid to grasp", path)
             self._cache[key] = grasp_mod.synthesize(
                 mesh.vertices, mesh.faces, max_width=self.max_opening, floor=floor_obj,
                 tip_depth=self.tip_depth, floor_clearance=self.floor_clearance)

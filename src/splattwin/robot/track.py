@@ -19,6 +19,7 @@ from splattwin.errors import InputError
 MAX_FRAMES = 300            # poses kept for playback (~10 per second of a three-step task)
 MAX_GEOMS = 10_000
 MAX_BYTES = 1 << 30         # uncompressed bytes of a playback file
+MAX_TRACK_FRAMES = 100_000  # poses a playback file may hold (the writer keeps MAX_FRAMES)
 
 
 @dataclass
@@ -61,7 +62,7 @@ class RobotTrack:
         from splattwin.robot.rollout import read_npz_bounded
 
         path = Path(path)
-        d = read_npz_bounded(path, MAX_BYTES)
+        d = read_npz_bounded(path, MAX_BYTES, _check_track_headers, "robot playback track")
         try:
             names = [str(n) for n in d["names"].reshape(-1)]
             G = len(names)
@@ -83,6 +84,24 @@ class RobotTrack:
         return cls(names=names, vertices=verts, faces=faces, colors=[tuple(int(c) for c in col) for col in d["colors"]],
                    positions=pos, rotations=rot, times=times,
                    object_poses={o: obj_poses[i].astype(np.float64) for i, o in enumerate(obj_names)})
+
+
+def _check_track_headers(h: dict) -> str | None:
+    """The track's shapes from the .npz headers alone (before any array is inflated): T frames and G geoms
+    within bounds and consistent between times, positions, rotations and object poses."""
+    shape = lambda k: h[k][0] if k in h else None  # noqa: E731
+    times, pos = shape("times"), shape("positions")
+    if times is None or pos is None or len(times) != 1 or len(pos) != 3:
+        return "missing or malformed 'times' / 'positions'"
+    T, G = times[0], pos[1]
+    if T > MAX_TRACK_FRAMES or G > MAX_GEOMS:
+        return f"{T} frames of {G} geoms, more than {MAX_TRACK_FRAMES} frames or {MAX_GEOMS} geoms"
+    if pos != (T, G, 3) or shape("rotations") not in (None, (T, G, 3, 3)):
+        return f"positions {pos} and rotations {shape('rotations')} do not match {T} frames of {G} geoms"
+    op = shape("object_poses")
+    if op is not None and (len(op) != 4 or op[0] > MAX_GEOMS or op[1:] != (T, 4, 4)):
+        return f"object poses {op} do not match {T} frames"
+    return None
 
 
 def visual_geoms(model, bodies: set[int] | None = None) -> list[tuple[int, np.ndarray, np.ndarray, tuple[int, int, int]]]:

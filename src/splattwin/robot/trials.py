@@ -163,22 +163,60 @@ def rollout_path(trial_json: str | Path) -> Path:
     return p.with_name(p.stem + ".rollout.npz")
 
 
+MAX_TRIAL_BYTES = 64 << 20     # a stored trial result (its steps and timings) is kilobytes
+MAX_TRIAL_PLANS = 100_000      # planning times listed in one trial result
+
+
 def load_finished(path: Path, spec: TrialSpec, rollouts: bool = False) -> dict | None:
     """The stored result of a finished trial with the same key, else None (missing, stale or unreadable).
-    rollouts: a trial that ran without keeping its rollout (or lost it) counts as not finished."""
+    rollouts: a trial that ran without keeping its rollout (or lost it) counts as not finished.
+    A result with the right key but wrongly typed fields ("success": "no") is not counted: it is re-run,
+    with a warning naming the file."""
     import json
 
+    from splattwin.errors import InputError
+    from splattwin.limits import read_json
+
+    if not Path(path).is_file():
+        return None
     try:
-        d = json.loads(Path(path).read_text())
-    except (OSError, ValueError):
+        d = read_json(path, max_bytes=MAX_TRIAL_BYTES)
+    except InputError:
         return None
     if not (isinstance(d, dict) and d.get("key") == json.loads(json.dumps(trial_key(spec)))):
+        return None
+    problem = _result_problem(d)
+    if problem:
+        from splattwin.console import console
+
+        console(stderr=True).print(f"warning: {path}: stored trial result ignored ({problem}); running the trial "
+                                   f"again", markup=False, highlight=False)
         return None
     # the result must name its rollout: a rollout file beside a result that does not is another run's
     if rollouts and "error" not in d and (d.get("rollout") != rollout_path(path).name
                                           or not rollout_path(path).is_file()):
         return None
     return d
+
+
+def _result_problem(d: dict) -> str | None:
+    """Why a stored trial result cannot be summarised (types the summary relies on), else None."""
+    def number(v) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0
+
+    if not isinstance(d.get("success"), bool):
+        return f"'success' must be true or false, got {type(d.get('success')).__name__}"
+    c = d.get("collisions", 0)
+    if not (isinstance(c, int) and not isinstance(c, bool) and 0 <= c <= 10**9):
+        return "'collisions' must be a whole number"
+    plans = d.get("plan_ms", [])
+    if not (isinstance(plans, list) and len(plans) <= MAX_TRIAL_PLANS and all(number(p) for p in plans)):
+        return "'plan_ms' must be a list of numbers"
+    if "trial_wall_s" in d and not number(d["trial_wall_s"]):
+        return "'trial_wall_s' must be a number"
+    if not isinstance(d.get("steps", []), list) or not isinstance(d.get("error", ""), str):
+        return "'steps' must be a list and 'error' text"
+    return None
 
 
 def run_trial_job(spec: TrialSpec, path: str | None, keep_rollout: bool = False) -> dict:
@@ -239,12 +277,13 @@ def summarize_trials(done: list[dict], n: int, sigma: float, sigma_yaw: float | 
     k = sum(1 for r in done if r["success"])
     lo, hi = wilson_interval(k, n)
     plan_ms = [p for r in done for p in r.get("plan_ms", [])]
+    walls = [r["trial_wall_s"] for r in done if "trial_wall_s" in r]   # (a stored result may lack it)
     return {"trials": n, "successes": k, "success_rate": k / n if n else 0.0, "ci95": [lo, hi], "sigma": sigma,
             "sigma_yaw": default_sigma_yaw(sigma) if sigma_yaw is None else sigma_yaw,
             "sigma_definition": SIGMA_DEFINITION,
             "collisions": int(sum(r.get("collisions", 0) for r in done)),
             "plan_ms_median": float(np.median(plan_ms)) if plan_ms else None,
-            "trial_wall_s_median": float(np.median([r["trial_wall_s"] for r in done])) if done else None}
+            "trial_wall_s_median": float(np.median(walls)) if walls else None}
 
 
 def run_trials(base_spec: TrialSpec, n: int, sigma: float, workers: int | None = None, progress: bool = True,

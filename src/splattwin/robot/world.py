@@ -24,6 +24,10 @@ from splattwin.transforms import make_pose, pos_quat_wxyz_from_pose, pose_from_p
 from splattwin.twin.manifest import Manifest
 from splattwin.twin.mjcf import add_twin, check_scaled
 
+MAX_BASE_OFFSET = 1e4      # m: a robot base beyond this from the twin's origin is not a pose of this twin
+MAX_BASE_YAW = 1e3         # rad (angles wrap; this only keeps them finite and meaningful)
+MAX_RESULTS_BYTES = 256 << 20
+
 
 @dataclass(frozen=True)
 class BasePose:
@@ -48,6 +52,26 @@ class BasePose:
     def matrix(self) -> np.ndarray:
         """T_world_base [4,4]."""
         return pose_xyz_yaw(self.x, self.y, self.z, self.yaw)
+
+    @classmethod
+    def recorded(cls, results_json: str | Path) -> "BasePose":
+        """The base pose `splattwin plan` recorded in robot/results.json; the default when the file or its
+        `base_pose` is absent. A base_pose that is not four finite, bounded numbers is an InputError naming
+        the file (a "nan" there made render fail with 'negative dimensions')."""
+        from splattwin.limits import number, read_json
+
+        path = Path(results_json)
+        if not path.is_file():
+            return cls()
+        d = read_json(path, max_bytes=MAX_RESULTS_BYTES)
+        b = d.get("base_pose") if isinstance(d, dict) else None
+        if b is None:
+            return cls()
+        if not isinstance(b, dict) or not {"x", "y", "z", "yaw"} <= set(b):
+            raise InputError("base_pose must be a mapping with x, y, z (m) and yaw (rad)", path)
+        return cls(*(number(b[k], path, f"base_pose.{k}", -lim, lim)
+                     for k, lim in (("x", MAX_BASE_OFFSET), ("y", MAX_BASE_OFFSET), ("z", MAX_BASE_OFFSET),
+                                    ("yaw", MAX_BASE_YAW))))
 
 
 @dataclass(frozen=True)
@@ -364,8 +388,9 @@ def build_world(twin_dir: str | Path, manifest: Manifest | None = None, robot: R
     spec.modelname = "splattwin_world"
     _stiffen_gripper(spec, robot)
     objects = add_twin(spec, manifest, twin_dir, poses=poses)
-    if visual and isinstance(manifest.config.get("target_frame"), dict):
-        _add_region_outline(spec, manifest.config["target_frame"], manifest.background.table_height)
+    region = _outline_region(manifest.config.get("target_frame"), twin_dir / "twin.json") if visual else None
+    if region is not None:
+        _add_region_outline(spec, *region, manifest.background.table_height)
     try:
         model = spec.compile()
     except ValueError as e:
@@ -437,12 +462,37 @@ def _stiffen_gripper(spec, robot: RobotModel) -> None:
     act.biasprm = b
 
 
-def _add_region_outline(spec, region: dict, z: float) -> None:
-    """Draw a goal region {center, size} as a thin green outline on the table (visual only, no contacts)."""
+def _outline_region(region, where: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """(centre [2+], size [2]) of twin.json's config.target_frame for the goal outline; None when absent,
+    and None with a warning naming twin.json when malformed: the outline is only drawn, and a task that
+    places into the region checks it itself (a size "big" crashed plans that never used it)."""
+    from splattwin.limits import numbers
+
+    if region is None:
+        return None
+    try:
+        if not isinstance(region, dict) or "center" not in region or "size" not in region:
+            raise InputError("config.target_frame must be {center: [x, y(, z)], size: s or [sx, sy]}", where)
+        c, s = region["center"], region["size"]
+        c = numbers(c, len(c) if isinstance(c, list) and len(c) in (2, 3) else 3, where,
+                    "config.target_frame center", -MAX_BASE_OFFSET, MAX_BASE_OFFSET)
+        s = numbers(s if isinstance(s, list) else [s], len(s) if isinstance(s, list) and len(s) in (1, 2) else 1,
+                    where, "config.target_frame size", 0.0, MAX_BASE_OFFSET)
+        if np.any(s <= 0):
+            raise InputError("config.target_frame size must be > 0", where)
+    except InputError as e:
+        from splattwin.console import console
+
+        console(stderr=True).print(f"warning: {e}; the goal region's outline is not drawn", markup=False,
+                                   highlight=False)
+        return None
+    return c, np.broadcast_to(s, (2,))
+
+
+def _add_region_outline(spec, c: np.ndarray, s: np.ndarray, z: float) -> None:
+    """Draw a goal region (centre, size xy) as a thin green outline on the table (visual only, no contacts)."""
     import mujoco
 
-    c = np.asarray(region["center"], float)
-    s = np.broadcast_to(np.asarray(region["size"], float), (2,))
     w = 0.006
     for k, (dx, dy, hx, hy) in enumerate([(0, s[1] / 2, s[0] / 2, w), (0, -s[1] / 2, s[0] / 2, w),
                                           (s[0] / 2, 0, w, s[1] / 2), (-s[0] / 2, 0, w, s[1] / 2)]):

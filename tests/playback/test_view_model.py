@@ -1,0 +1,62 @@
+"""The viewer's model of a twin: label colours and label files read from a twin we did not write."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from splattwin.errors import InputError
+from splattwin.playback.view_model import TwinView, collision_parts, label_colors
+from splattwin.semantics.label_render import palette
+from splattwin.splat.gaussians import Gaussians, rgb_to_sh0
+from splattwin.twin.manifest import Manifest, ObjectEntry
+
+
+def _twin(tmp_path: Path, labels: np.ndarray) -> Path:
+    n = len(labels)
+    means = np.random.default_rng(0).uniform(-0.05, 0.05, (n, 3))
+    g = Gaussians(means=means, quats=np.tile([1.0, 0, 0, 0], (n, 1)), scales=np.full((n, 3), 0.006),
+                  opacities=np.full(n, 0.9), sh=rgb_to_sh0(np.full((n, 3), 0.5))[:, None, :])
+    (tmp_path / "splat").mkdir()
+    g.save_ply(tmp_path / "splat" / "point_cloud.ply")
+    np.save(tmp_path / "labels.npy", labels)
+    Manifest(objects=[ObjectEntry(name="box", label=1)], splats="splat/point_cloud.ply",
+             labels="labels.npy").save(tmp_path)
+    return tmp_path
+
+
+def test_label_colors_are_the_label_maps_palette_and_refuse_huge_labels():
+    labels = np.array([0, 3, 12, 3, 65535])
+    np.testing.assert_array_equal(label_colors(labels), palette(65535)[labels])
+    # a label read from a file must not size the palette (1.5e9 allocated 9 GB; 10**30 overflowed)
+    with pytest.raises(InputError, match=r"twin\.json.*65535"):
+        label_colors(np.array([70_000]), Path("twin.json"))
+    with pytest.raises(InputError, match=r"twin\.json.*whole numbers"):
+        label_colors(np.array([10**30]), Path("twin.json"))
+
+
+@pytest.mark.parametrize("bad", [np.full(200, 1.5), np.full(200, -5), np.full(200, 70_000)],
+                         ids=["float", "negative", "over-16-bit"])
+def test_view_refuses_a_bad_labels_npy_naming_it(tmp_path: Path, bad: np.ndarray):
+    twin = _twin(tmp_path, bad)
+    with pytest.raises(InputError, match=r"labels\.npy"):
+        TwinView.load(twin, meshes=False, robot=False)
+
+
+def test_view_shows_good_labels(tmp_path: Path):
+    twin = _twin(tmp_path, np.r_[np.zeros(100, np.int32), np.ones(100, np.int32)])
+    view = TwinView.load(twin, meshes=False, robot=False)
+    assert view.label_rgb is not None and len({tuple(c) for c in view.label_rgb}) == 2
+
+
+def test_collision_parts_refuse_a_huge_object_label_naming_twin_json(tmp_path: Path):
+    import trimesh
+
+    trimesh.creation.box(extents=[0.05, 0.05, 0.05]).export(tmp_path / "box.obj")
+    man = Manifest(objects=[ObjectEntry(name="box", label=70_000, collision_mesh="box.obj")])
+    with pytest.raises(InputError, match=r"twin\.json.*'box'"):
+        collision_parts(tmp_path, man)
+    man.objects[0].label = 2
+    assert len(collision_parts(tmp_path, man)) == 1
