@@ -131,3 +131,16 @@ def test_a_stage_whose_outputs_were_rewritten_by_hand_runs_again(tmp_path):
     calls.clear()
     run_stages(_stages(calls), Context(tmp_path, opts))
     assert calls == []
+
+
+def test_an_oversized_pipeline_json_is_not_parsed(tmp_path, monkeypatch, caplog):
+    """pipeline.json is a record (KBs): read under limits.MAX_RECORD_BYTES, not the 1 GiB of a COCO file; a
+    larger one counts as corrupt (every stage runs again) instead of costing ~10x its size in memory."""
+    import splattwin.limits
+
+    calls = []
+    run_stages(_stages(calls), Context(tmp_path, {"a": 1}))
+    calls.clear()
+    monkeypatch.setattr(splattwin.limits, "MAX_RECORD_BYTES", 16)
+    run_stages(_stages(calls), Context(tmp_path, {"a": 1}))
+    assert calls == ["a", "b", "c"] and "pipeline.json is corrupt" in caplog.text

@@ -267,14 +267,16 @@ def lost_outputs(twin: Path) -> list[str]:
     """The outputs a twin folder's pipeline.json promises that are missing or unreadable (empty: complete).
 
     Every "@path" output of every recorded stage must exist; JSON, NumPy and PLY files must also load."""
-    import json
-
     import numpy as np
+
+    from splattwin.limits import MAX_RECORD_BYTES
 
     twin = Path(twin)
     try:
-        state = json.loads((twin / "pipeline.json").read_text())
-    except (OSError, ValueError) as e:
+        state = io.read_json(twin / "pipeline.json", max_bytes=MAX_RECORD_BYTES)
+        if not isinstance(state, dict) or not all(isinstance(r, dict) for r in state.values()):
+            raise ValueError("not a mapping of stage records")
+    except (OSError, ValueError, InputError) as e:
         return [f"pipeline.json: {e}"]
     lost = []
     for stage, rec in state.items():
@@ -286,7 +288,7 @@ def lost_outputs(twin: Path) -> list[str]:
                 if not path.is_file():
                     raise FileNotFoundError("missing")
                 if path.suffix == ".json":
-                    json.loads(path.read_text())
+                    io.read_json(path, max_bytes=MAX_RECORD_BYTES)
                 elif path.suffix == ".npy":
                     np.load(path, allow_pickle=False)
                 elif path.suffix == ".ply":

@@ -40,6 +40,7 @@ from splattwin.hashing import sha256_file
 from splattwin.cluster import params as P
 from splattwin.executor import Executor, Job, Outcome, Resources, limit_threads
 from splattwin.errors import InputError
+from splattwin.limits import MAX_RECORD_BYTES
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +76,6 @@ def digest(obj: Any) -> str:
 
 def finished(folder: Path, key: dict) -> dict | None:
     """The folder's result.json when it was written for `key`, else None."""
-    from splattwin.limits import MAX_RECORD_BYTES
 
     try:
         d = io.read_json(folder / RESULT, max_bytes=MAX_RECORD_BYTES)
@@ -153,7 +153,7 @@ def fusion_task(folder: str, key: dict, splats: str, cameras: str, masks: str, o
     res = fuse_to_dir(g, ds, ms, out, FusionOptions(**options), progress=False, raster=filter_beside(splats))
     io.write_json(out / "objects.json", [[res.names[k], int(k), (ms.prompts or {}).get(k, res.names[k].replace("_", " "))]
                                          for k in res.label_ids])
-    meta = io.read_json(out / "fusion.json")
+    meta = io.read_json(out / "fusion.json", max_bytes=MAX_RECORD_BYTES)
     views = views_for(ds.train() or ds.frames, ms)
     result = {"key": key, "labels": "labels.npy", "objects": "objects.json",
               "consistency": projection_consistency(g.means, res.labels, views, ms),
@@ -237,19 +237,18 @@ def _check_task(twin: Path, man, spec) -> None:
 def fidelity(twin: Path, man, scene: Path, threshold: float = 0.005) -> dict[str, float]:
     """F1 @ threshold (m) of each usable object's visual mesh against the scene's ground-truth mesh,
     both sampled every 2 mm (as the build's geometry_metrics.json)."""
-    import trimesh
-
     from splattwin.geometry.metrics import fidelity as fid, sample_surface
+    from splattwin.meshio import load_mesh
 
     out = {}
     for o in man.objects:
         gt = scene / "meshes" / f"{o.name}.ply"
         if not o.usable or not o.visual_mesh or not gt.is_file():
             continue
-        mesh = trimesh.load(twin / o.visual_mesh, force="mesh", process=False)
+        mesh = load_mesh(twin / o.visual_mesh, f"visual mesh of {o.name!r}")   # checked: a received twin
         mesh.apply_transform(o.pose)
-        f = fid(sample_surface(mesh, spacing=0.002), sample_surface(trimesh.load(gt, force="mesh", process=False),
-                                                                   spacing=0.002), threshold=threshold)
+        f = fid(sample_surface(mesh, spacing=0.002), sample_surface(load_mesh(gt, "ground-truth mesh"), spacing=0.002),
+                threshold=threshold)
         out[o.name] = float(f.f1)
     return out
 
@@ -446,7 +445,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, executor: Executor, progress: bo
         t = plan.twins[tid]
         if t["fusion"]:
             fdir = plan.fusion[t["fusion"]]["folder"]
-            labels, objects = str(fdir / "labels.npy"), io.read_json(fdir / "objects.json")
+            labels, objects = str(fdir / "labels.npy"), io.read_json(fdir / "objects.json", max_bytes=MAX_RECORD_BYTES)
         else:
             labels, objects = ctx["labels"], ctx["objects"]
         fusion = plan.fusion[t["fusion"]]["options"] if t["fusion"] else None

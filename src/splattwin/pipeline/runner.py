@@ -167,7 +167,9 @@ def load_state(out: Path) -> dict[str, Any]:
     if not p.is_file():
         return {}
     try:
-        state = io.read_json(p)
+        from splattwin.limits import MAX_RECORD_BYTES
+
+        state = io.read_json(p, max_bytes=MAX_RECORD_BYTES)
     except InputError:
         state = None
     if not isinstance(state, dict) or not all(isinstance(v, dict) for v in state.values()):
