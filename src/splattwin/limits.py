@@ -23,7 +23,7 @@ import json
 import os
 import warnings
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -323,13 +323,7 @@ def load_npy(path: str | Path, what: str = "array", max_bytes: int | None = None
     size = path.stat().st_size
     try:
         with open(path, "rb") as f:
-            version = np.lib.format.read_magic(f)
-            if version == (1, 0):
-                shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
-            elif version in ((2, 0), (3, 0)):
-                shape, fortran, dtype = np.lib.format.read_array_header_2_0(f)
-            else:
-                raise ValueError(f"unsupported .npy version {version}")
+            shape, dtype = npy_header(f)
             if dtype.hasobject:
                 raise InputError(f"{what} holds Python objects (pickles); only plain numeric arrays are read", path)
             need = int(np.prod(shape, dtype=object)) * dtype.itemsize
@@ -345,42 +339,68 @@ def load_npy(path: str | Path, what: str = "array", max_bytes: int | None = None
         raise InputError(f"not a readable .npy {what}: {e}", path) from None
 
 
-def load_npz(path: str | Path, what: str = "array archive", max_bytes: int | None = None) -> dict[str, np.ndarray]:
-    """All arrays of a .npz (never pickles), each header checked like `load_npy` against the member's
-    uncompressed size and `max_bytes` before it is read."""
-    import io as _io
+def npy_header(f) -> tuple[tuple[int, ...], np.dtype]:
+    """(shape, dtype) from the header of an .npy stream; only the header bytes are read."""
+    version = np.lib.format.read_magic(f)
+    if version == (1, 0):
+        shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+    elif version in ((2, 0), (3, 0)):
+        shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+    else:
+        raise ValueError(f"unsupported .npy version {version}")
+    return tuple(int(n) for n in shape), dtype
+
+
+MAX_NPZ_MEMBERS = 100_000   # arrays in one .npz (a robot playback track holds two per robot geom)
+
+
+def load_npz(path: str | Path, what: str = "array archive", max_bytes: int | None = None,
+             check: Callable[[dict], str | None] | None = None) -> dict[str, np.ndarray]:
+    """All arrays of an .npz without unpickling, every size bounded before anything is inflated.
+
+    A 20 MB zip can declare gigabytes of zeros, so the zip directory's uncompressed sizes are summed
+    against `max_bytes` (default MAX_ARRAY_BYTES) and every member's .npy header (shape, dtype) is read
+    and must fit its member; then `check(headers)` ({name: (shape, dtype)}) may refuse the shapes (return
+    a message) before any array data is read. Arrays are read straight from the zip stream into their
+    final buffer (no second copy of a member in memory)."""
     import zipfile
 
     path = Path(path)
     limit = MAX_ARRAY_BYTES if max_bytes is None else max_bytes
+    headers: dict[str, tuple[tuple[int, ...], np.dtype]] = {}
     out: dict[str, np.ndarray] = {}
     try:
         with zipfile.ZipFile(path) as zf:
             members = [i for i in zf.infolist() if i.filename.endswith(".npy")]
-            # the whole archive is bounded from the zip directory before any member is inflated
+            if len(members) > MAX_NPZ_MEMBERS:
+                raise InputError(f"{what} holds {len(members)} arrays, more than {MAX_NPZ_MEMBERS}", path)
             total = sum(i.file_size for i in members)
             if total > limit:
-                raise InputError(f"{what}: arrays of {total} bytes are larger than the limit ({limit})", path)
+                raise InputError(f"{what}: arrays of {total} bytes uncompressed are larger than the limit "
+                                 f"({limit})", path)
             for info in members:
+                name = info.filename[:-4]
+                if name in headers:
+                    raise InputError(f"{what} holds the array {name!r} twice", path)
                 with zf.open(info) as f:
-                    head = f.read(4096)
-                buf = _io.BytesIO(head)
-                version = np.lib.format.read_magic(buf)
-                if version == (1, 0):
-                    shape, _, dtype = np.lib.format.read_array_header_1_0(buf)
-                else:
-                    shape, _, dtype = np.lib.format.read_array_header_2_0(buf)
+                    shape, dtype = npy_header(f)
                 if dtype.hasobject:
-                    raise InputError(f"{what} member {info.filename!r} holds Python objects", path)
+                    raise InputError(f"{what} array {name!r} holds Python objects (pickles); only plain arrays "
+                                     f"are read", path)
                 need = int(np.prod(shape, dtype=object)) * dtype.itemsize
                 if need > info.file_size:
-                    raise InputError(f"{what} member {info.filename!r} claims shape {tuple(shape)} but holds "
+                    raise InputError(f"{what} array {name!r} claims shape {tuple(shape)} but its member holds "
                                      f"{info.file_size} bytes", path)
+                headers[name] = (tuple(shape), dtype)
+            problem = check(headers) if check is not None else None
+            if problem:
+                raise InputError(f"{what}: {problem}", path)
+            for info in members:
                 with zf.open(info) as f:
-                    out[info.filename[:-4]] = np.load(_io.BytesIO(f.read()), allow_pickle=False)
+                    out[info.filename[:-4]] = np.lib.format.read_array(f, allow_pickle=False)
     except InputError:
         raise
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as e:
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError, NotImplementedError) as e:
         raise InputError(f"not a readable .npz {what}: {e}", path) from None
     return out
 

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from splattwin.errors import InputError
+from splattwin.limits import load_npz
 
 FORMAT = "splattwin.rollout"
 VERSION = 1
@@ -104,7 +105,7 @@ class Rollout:
         path = Path(path)
         if not path.is_file():
             raise InputError("rollout file not found", path)
-        arrays = read_npz_bounded(path, MAX_BYTES, _check_rollout_headers)
+        arrays = load_npz(path, "robot record", max_bytes=MAX_BYTES, check=_check_rollout_headers)
         need = ("format", "version", "t", "qpos", "q_arm", "gripper_width", "action_q_arm", "action_gripper",
                 "object_names", "object_poses", "joint_names", "step_index")
         missing = [k for k in need if k not in arrays]
@@ -135,70 +136,6 @@ class Rollout:
                        step_index=arrays["step_index"])
         except ValueError as e:
             raise InputError(f"rollout arrays inconsistent: {e}", path) from e
-
-
-MAX_MEMBERS = 100_000          # arrays in one .npz (a playback track holds two per robot geom)
-
-
-def read_npz_bounded(path: Path, max_bytes: int, check=None, what: str = "robot record") -> dict[str, np.ndarray]:
-    """All arrays of an .npz without unpickling, every size bounded before anything is inflated.
-
-    A 20 MB zip can declare gigabytes of zeros, so the zip directory's uncompressed sizes are summed
-    against `max_bytes` and every member's .npy header (shape, dtype) is read and must fit its member;
-    then `check(headers)` ({name: (shape, dtype)}) may refuse the shapes (return a message) before any
-    array data is read. Arrays are read straight from the zip stream into their final buffer (no second
-    copy of a member in memory)."""
-    import zipfile
-
-    path = Path(path)
-    headers: dict[str, tuple[tuple[int, ...], np.dtype]] = {}
-    out: dict[str, np.ndarray] = {}
-    try:
-        with zipfile.ZipFile(path) as zf:
-            members = [i for i in zf.infolist() if i.filename.endswith(".npy")]
-            if len(members) > MAX_MEMBERS:
-                raise InputError(f"{what} holds {len(members)} arrays, more than {MAX_MEMBERS}", path)
-            total = sum(i.file_size for i in members)
-            if total > max_bytes:
-                raise InputError(f"{what}: arrays of {total} bytes uncompressed are larger than the limit "
-                                 f"({max_bytes})", path)
-            for info in members:
-                name = info.filename[:-4]
-                if name in headers:
-                    raise InputError(f"{what} holds the array {name!r} twice", path)
-                with zf.open(info) as f:
-                    shape, dtype = _npy_header(f)
-                if dtype.hasobject:
-                    raise InputError(f"{what} array {name!r} holds Python objects (pickles); only plain arrays "
-                                     f"are read", path)
-                need = int(np.prod(shape, dtype=object)) * dtype.itemsize
-                if need > info.file_size:
-                    raise InputError(f"{what} array {name!r} claims shape {tuple(shape)} but its member holds "
-                                     f"{info.file_size} bytes", path)
-                headers[name] = (tuple(shape), dtype)
-            problem = check(headers) if check is not None else None
-            if problem:
-                raise InputError(f"{what}: {problem}", path)
-            for info in members:
-                with zf.open(info) as f:
-                    out[info.filename[:-4]] = np.lib.format.read_array(f, allow_pickle=False)
-    except InputError:
-        raise
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError, NotImplementedError) as e:
-        raise InputError(f"not a readable .npz {what}: {e}", path) from None
-    return out
-
-
-def _npy_header(f) -> tuple[tuple[int, ...], np.dtype]:
-    """(shape, dtype) from the header of an .npy stream (only the header bytes are read)."""
-    version = np.lib.format.read_magic(f)
-    if version == (1, 0):
-        shape, _, dtype = np.lib.format.read_array_header_1_0(f)
-    elif version in ((2, 0), (3, 0)):
-        shape, _, dtype = np.lib.format.read_array_header_2_0(f)
-    else:
-        raise ValueError(f"unsupported .npy version {version}")
-    return tuple(int(n) for n in shape), dtype
 
 
 _PER_SAMPLE = ("t", "qpos", "q_arm", "gripper_width", "action_q_arm", "action_gripper", "step_index")

@@ -59,10 +59,10 @@ class RobotTrack:
     @classmethod
     def load(cls, path: str | Path) -> "RobotTrack":
         """Read a playback .npz (no unpickling, sizes bounded); InputError naming the file when malformed."""
-        from splattwin.robot.rollout import read_npz_bounded
+        from splattwin.limits import load_npz
 
         path = Path(path)
-        d = read_npz_bounded(path, MAX_BYTES, _check_track_headers, "robot playback track")
+        d = load_npz(path, "robot playback track", max_bytes=MAX_BYTES, check=_check_track_headers)
         try:
             names = [str(n) for n in d["names"].reshape(-1)]
             G = len(names)
