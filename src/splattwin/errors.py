@@ -16,3 +16,16 @@ class InputError(Exception):
         self.problem = problem
         self.path = None if path is None else Path(path)
         super().__init__(f"{self.path}: {problem}" if self.path is not None else problem)
+
+
+def short_repr(v, n: int = 60) -> str:
+    """repr of a value read from a file for an error message, cut to n characters: a 5000-digit number or a
+    megabyte string must not fill the screen (and str() of an int of over 4300 digits raises)."""
+    if isinstance(v, int) and not isinstance(v, bool) and v.bit_length() > 3 * n:
+        return f"<an integer of about {int(v.bit_length() * 0.30103)} digits>"
+    try:
+        r = repr(v)
+    except ValueError:
+        return "<a value too long to print>"
+    return r if len(r) <= n else r[:n - 3] + "..."
+

@@ -27,7 +27,7 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from splattwin.errors import InputError
+from splattwin.errors import InputError, short_repr
 
 
 def _env(name: str, default: float) -> int:
@@ -60,11 +60,11 @@ def check_pixels(width, height, where: str | Path | None = None, what: str = "im
         if w != width or h != height:
             raise ValueError
     except (TypeError, ValueError, OverflowError):
-        raise InputError(f"{what} size must be whole numbers, got {_show(width)} x {_show(height)}", where) from None
+        raise InputError(f"{what} size must be whole numbers, got {short_repr(width)} x {short_repr(height)}", where) from None
     if w <= 0 or h <= 0:
-        raise InputError(f"{what} size {_show(w)}x{_show(h)} must be positive", where)
+        raise InputError(f"{what} size {short_repr(w)}x{short_repr(h)} must be positive", where)
     if w * h > MAX_IMAGE_PIXELS:  # (integer division: a 400-digit size cannot become a float)
-        raise InputError(f"{what} claims {_show(w)}x{_show(h)} = {_show(w * h // 10**6)} megapixels, more than the "
+        raise InputError(f"{what} claims {short_repr(w)}x{short_repr(h)} = {short_repr(w * h // 10**6)} megapixels, more than the "
                          f"limit of {MAX_IMAGE_PIXELS / 1e6:.0f} (set SPLATTWIN_MAX_IMAGE_PIXELS to allow it)", where)
     return w, h
 
@@ -93,14 +93,6 @@ def check_file_size(path: str | Path, limit: int, what: str = "file") -> int:
     if size > limit:
         raise InputError(f"{what} is {size / 2**20:.0f} MiB, more than the limit of {limit / 2**20:.0f} MiB", path)
     return size
-
-
-def _show(v, n: int = 60) -> str:
-    """repr of a value read from a file, cut to n characters (a 5000-digit number must not fill the screen)."""
-    if isinstance(v, int) and v.bit_length() > 3 * n:  # (str() of a 5000-digit int raises)
-        return f"<an integer of about {int(v.bit_length() * 0.30103)} digits>"
-    r = repr(v)
-    return r if len(r) <= n else r[:n - 3] + "..."
 
 
 # -- numbers read from files --------------------------------------------------------------------
@@ -133,11 +125,11 @@ def number(v, where: str | Path | None = None, what: str = "value", low: float =
                         "a sign, like 1e3 or 1.0e3, as text: write 1.0e+3)")
             except ValueError:
                 pass
-        raise InputError(f"{what} must be a number, got {type(v).__name__} {_show(v)}{hint}", where)
+        raise InputError(f"{what} must be a number, got {type(v).__name__} {short_repr(v)}{hint}", where)
     try:
         x = float(v)
     except OverflowError:
-        raise InputError(f"{what} {_show(v)} is too large", where) from None
+        raise InputError(f"{what} {short_repr(v)} is too large", where) from None
     if not np.isfinite(x):
         raise InputError(f"{what} must be a finite number, got non-finite {x}", where)
     if not low <= x <= high:
@@ -150,7 +142,7 @@ def numbers(v, n: int, where: str | Path | None = None, what: str = "values", lo
     """`v` (a list of n numbers, or nested lists holding n, e.g. a 3x3 matrix) as a flat float64 array [n],
     each checked by `number`."""
     if not isinstance(v, (list, tuple)):
-        raise InputError(f"{what} must be a list of {n} numbers, got {type(v).__name__} {_show(v)}", where)
+        raise InputError(f"{what} must be a list of {n} numbers, got {type(v).__name__} {short_repr(v)}", where)
     flat: list = []
     stack, pushed = [v], 0
     while stack:
@@ -432,7 +424,7 @@ def read_json(path: str | Path, missing: str = "file not found", max_bytes: int 
     except RecursionError:
         raise InputError("JSON is nested too deeply", path) from None
     except _DuplicateKey as e:
-        raise InputError(f"JSON object has the key {_show(e.key)} twice (which one is meant?)", path) from None
+        raise InputError(f"JSON object has the key {short_repr(e.key)} twice (which one is meant?)", path) from None
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise InputError(f"not valid JSON: {e}", path) from None
     except ValueError as e:  # Python refuses integers of more than 4300 digits (sys.get_int_max_str_digits)

@@ -22,7 +22,7 @@ import re
 from collections.abc import Iterable
 from pathlib import Path
 
-from splattwin.errors import InputError
+from splattwin.errors import InputError, short_repr
 
 MAX_NAME_LEN = 64
 MAX_COMPONENT_BYTES = 255
@@ -31,20 +31,15 @@ _WINDOWS_DEVICES = {"con", "prn", "aux", "nul", *(f"com{i}" for i in range(1, 10
 _CONTROL_RE = re.compile(r"[\x00-\x1f\x7f]")
 
 
-def _show(text) -> str:
-    s = repr(text)
-    return s if len(s) <= 80 else s[:77] + "..."
-
-
 def object_name(text, where: str | Path | None = None, what: str = "object name") -> str:
     """`text` if it is a valid object name (see module docstring), else InputError naming `where`."""
     if not isinstance(text, str):
-        raise InputError(f"{what} must be a string, got {type(text).__name__} {_show(text)}", where)
+        raise InputError(f"{what} must be a string, got {type(text).__name__} {short_repr(text, 80)}", where)
     if not _NAME_RE.fullmatch(text):
-        raise InputError(f"{what} {_show(text)} is not allowed: use 1-{MAX_NAME_LEN} letters, digits, '_', '-', "
+        raise InputError(f"{what} {short_repr(text, 80)} is not allowed: use 1-{MAX_NAME_LEN} letters, digits, '_', '-', "
                          f"'.' or single spaces, starting with a letter or digit (a name must never be a path)", where)
     if text.split(".")[0].lower() in _WINDOWS_DEVICES:
-        raise InputError(f"{what} {_show(text)} is a reserved device name on Windows", where)
+        raise InputError(f"{what} {short_repr(text, 80)} is a reserved device name on Windows", where)
     return text
 
 
@@ -52,17 +47,17 @@ def name_from_label(text, where: str | Path | None = None, what: str = "object n
     """A human label ("toy  hammer\n") as an object name ("toy hammer"): whitespace runs become one
     space, then `object_name` checks the result (anything else not allowed is refused, not rewritten)."""
     if not isinstance(text, str):
-        raise InputError(f"{what} must be a string, got {type(text).__name__} {_show(text)}", where)
+        raise InputError(f"{what} must be a string, got {type(text).__name__} {short_repr(text, 80)}", where)
     return object_name(" ".join(text.split()), where, what)
 
 
 def view_name(text, where: str | Path | None = None, what: str = "view name") -> str:
     """`text` if it is a single safe path component (see module docstring), else InputError."""
     if not isinstance(text, str):
-        raise InputError(f"{what} must be a string, got {type(text).__name__} {_show(text)}", where)
+        raise InputError(f"{what} must be a string, got {type(text).__name__} {short_repr(text, 80)}", where)
     if (not text or text in (".", "..") or "/" in text or "\\" in text or _CONTROL_RE.search(text)
             or len(text.encode("utf-8", "surrogateescape")) > MAX_COMPONENT_BYTES):
-        raise InputError(f"{what} {_show(text)} is not allowed: it must be one file name (no '/', '\\', "
+        raise InputError(f"{what} {short_repr(text, 80)} is not allowed: it must be one file name (no '/', '\\', "
                          f"control characters, '.' or '..'; at most {MAX_COMPONENT_BYTES} bytes)", where)
     return text
 

@@ -15,12 +15,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from splattwin.errors import InputError
-
-
-def _show(text) -> str:
-    s = repr(text)
-    return s if len(s) <= 100 else s[:97] + "..."
+from splattwin.errors import InputError, short_repr
 
 
 def is_inside(path: str | Path, root: str | Path) -> bool:
@@ -42,12 +37,12 @@ def confined(root: str | Path, rel, where: str | Path | None = None, what: str =
     elif isinstance(rel, str):
         text = rel
     else:
-        raise InputError(f"{what} must be a string, got {type(rel).__name__} {_show(rel)}", where)
+        raise InputError(f"{what} must be a string, got {type(rel).__name__} {short_repr(rel, 100)}", where)
     if not text or "\x00" in text:
-        raise InputError(f"{what} {_show(text)} is empty or contains a NUL byte", where)
+        raise InputError(f"{what} {short_repr(text, 100)} is empty or contains a NUL byte", where)
     p = Path(text)
     if p.is_absolute() or text.startswith("~"):
-        raise InputError(f"{what} {_show(text)} is absolute; paths in this file must be relative to its folder "
+        raise InputError(f"{what} {short_repr(text, 100)} is absolute; paths in this file must be relative to its folder "
                          f"{root}", where)
     full = Path(root) / p
     if not resolve:
@@ -58,7 +53,7 @@ def confined(root: str | Path, rel, where: str | Path | None = None, what: str =
     else:
         inside = is_inside(full, root)
     if not inside:
-        raise InputError(f"{what} {_show(text)} leads outside its folder {root} (after resolving '..' and "
+        raise InputError(f"{what} {short_repr(text, 100)} leads outside its folder {root} (after resolving '..' and "
                          f"symbolic links); refusing to read or write there", where)
     return full
 

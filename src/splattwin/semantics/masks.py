@@ -51,7 +51,7 @@ from pathlib import Path
 import numpy as np
 
 from splattwin import io
-from splattwin.errors import InputError
+from splattwin.errors import InputError, short_repr
 from splattwin.limits import ascii_uint, check_pixels, read_image_array
 from splattwin.names import check_unique, name_from_label, object_name, view_name
 from splattwin.paths import child, confined
@@ -393,7 +393,7 @@ def load_coco(path: Path, objects: dict[str, int] | None = None, image_sizes: di
                 raise InputError(f"image id {iid} appears twice", path)
             file_name = im["file_name"]
             if not isinstance(file_name, str):
-                raise InputError(f"image {iid} file_name must be a string, got {_show(file_name)}", path)
+                raise InputError(f"image {iid} file_name must be a string, got {short_repr(file_name)}", path)
             view = view_name(Path(file_name).stem, path, f"image {iid} file_name")
             if view in ms.sizes:  # two images whose masks would merge into one view
                 raise InputError(f"two images have the view name {view!r} (image {iid}, file_name {file_name!r})",
@@ -692,7 +692,7 @@ def load_polygon_dir(path: Path, objects: dict[str, int] | None = None, object_n
                 polys = [np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in d["segmentation_polygons"] if len(p)]
                 image_file = d.get("image_filename") or f.name[: -len("_mask.json")]
                 if not isinstance(image_file, str):
-                    raise InputError(f"image_filename must be a string, got {_show(image_file)}", f)
+                    raise InputError(f"image_filename must be a string, got {short_repr(image_file)}", f)
                 view = view_name(Path(image_file).stem, f, "image_filename")
                 score = _score(d.get("score", 1.0), f, "score")
             except (KeyError, TypeError, ValueError) as e:
@@ -785,27 +785,19 @@ def _safe_name(name: str) -> str:
 
 
 
-def _show(v) -> str:
-    try:
-        s = repr(v)
-    except ValueError:  # an int too long to print
-        return "a number too long to print"
-    return s if len(s) <= 60 else s[:57] + "..."
-
-
 def _whole(v, where, what: str, lo: int, hi: int) -> int:
     """`v` if it is a JSON integer (not a bool, 1.7 or 1e400) in [lo, hi], else InputError."""
     if isinstance(v, bool) or not isinstance(v, int):
-        raise InputError(f"{what} must be a whole number, got {_show(v)}", where)
+        raise InputError(f"{what} must be a whole number, got {short_repr(v)}", where)
     if not lo <= v <= hi:
-        raise InputError(f"{what} {_show(v)} is outside [{lo}, {hi}]", where)
+        raise InputError(f"{what} {short_repr(v)} is outside [{lo}, {hi}]", where)
     return v
 
 
 def _score(v, where, what: str) -> float:
     """A mask score: a number in [0, 1] (NaN, inf and strings refused)."""
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v <= 1:  # NaN fails 0 <= v
-        raise InputError(f"{what} must be a number in [0, 1], got {_show(v)}", where)
+        raise InputError(f"{what} must be a number in [0, 1], got {short_repr(v)}", where)
     return float(v)
 
 
