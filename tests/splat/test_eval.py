@@ -193,10 +193,13 @@ def test_eval_holds_out_what_training_held_out_and_never_a_training_view(tmp_pat
     caplog.clear()
     res = evaluate(run, ds_root, None, progress=False)
     assert res.split == "train" and "heldout_003, heldout_004: trained on by this splat" in caplog.text
-    # a malformed record (untrusted file) is ignored, not a crash: the dataset's split
-    (run / "train.json").write_text(json.dumps({"views": "x", "heldout": {"views": 3}}))
-    res = evaluate(run, ds_root, None, progress=False)
-    assert [v["name"] for v in res.views] == ["heldout_003", "heldout_004"]
+    # a malformed record (untrusted file) is refused, naming the file, not silently replaced by another split
+    for bad in ({"views": "x"}, {"views": [{"name": 3}]}, {"heldout": {"views": 3}}, {"heldout": {"views": [1]}},
+                {"heldout": []}):
+        (run / "train.json").write_text(json.dumps(bad))
+        with pytest.raises(InputError, match="malformed training record") as e:
+            evaluate(run, ds_root, None, progress=False)
+        assert e.value.path == run / "train.json"
     # trained on another capture (no name in common): the dataset's split, its training views for coverage
     (run / "train.json").write_text(json.dumps({"views": [{"name": "other_000"}]}))
     res = evaluate(run, ds_root, None, progress=False)
@@ -236,6 +239,24 @@ def test_eval_checks_the_training_record_before_sizing_views(tmp_path, text, nee
     with pytest.raises(InputError, match=needle) as e:
         evaluate(d, tmp_path / "no-dataset", None, progress=False)
     assert e.value.path == d / "train.json"
+
+
+def test_eval_never_upsamples_held_out_photos_beyond_their_size(tmp_path):
+    # a received train.json's target width (here 20000 px for 64 px photos) is capped at the photo's size:
+    # an upsampled held-out photo holds nothing more, and the views would be sized up to the pixel limit
+    ds_root = helpers.make_dataset(tmp_path / "ds", n_train=2, n_heldout=1)
+    d = tmp_path / "run"
+    d.mkdir()
+    helpers.gt_gaussians().save_ply(d / "point_cloud.ply")
+    for r, want in ((20000, "full"), (2, "half")):
+        (d / "train.json").write_text(json.dumps({"resolution": {"resolution": r, "max_side": None, "how": "x"}}))
+        res = evaluate(d, ds_root, None, progress=False)
+        er = res.eval_resolution
+        assert er["mode"] == "training"
+        if want == "full":
+            assert er["sizes"] == er["full_sizes"]
+        else:
+            assert er["sizes"] != er["full_sizes"]
 
 
 def test_views_are_never_upsampled_beyond_the_pixel_limit(tmp_path, monkeypatch):

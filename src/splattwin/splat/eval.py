@@ -33,6 +33,8 @@ split tells a blur of what the photos saw from content they never held.
 
 from __future__ import annotations
 
+import dataclasses
+
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -161,10 +163,17 @@ def training_record(path: Path) -> dict:
     info = read_json(path, max_bytes=MAX_RECORD_BYTES)
     if not isinstance(info, dict):
         raise InputError("malformed training record: expected a JSON object", path)
-    # (a malformed hold-out record or view list is ignored by _heldout_split: the dataset's split stands)
-    for k in ("config", "resolution"):
+    for k in ("config", "resolution", "heldout"):
         if info.get(k) is not None and not isinstance(info[k], dict):
             raise InputError(f"malformed training record: {k} must be a JSON object", path)
+    # the views trained on and held out decide which views are evaluated as held-out (_heldout_split)
+    rows = info.get("views")
+    if rows is not None and not (isinstance(rows, list) and all(
+            isinstance(r, dict) and isinstance(r.get("name"), str) for r in rows)):
+        raise InputError("malformed training record: views must be a list of objects with a name", path)
+    held = (info.get("heldout") or {}).get("views")
+    if held is not None and not (isinstance(held, list) and all(isinstance(n, str) for n in held)):
+        raise InputError("malformed training record: heldout views must be a list of view names", path)
     cfg = info.get("config") or {}
     rec = info.get("resolution")
     rules = [("resolution", rec.get("resolution")), ("max_side", rec.get("max_side"))] if rec else []
@@ -249,12 +258,14 @@ def _eval_resolution(info: dict, resolution: int | None, full_resolution: bool) 
         return resolve(int(resolution), int(cfg.get("cpu_max_side", 640)), "cpu"), "given"
     if full_resolution:
         return FULL, "full"
+    # the training size, never above the photo's own: a held-out photo upsampled holds nothing more, and a
+    # received train.json's target width would otherwise size every view up to the pixel limit
     rec = Resolution.from_record(info.get("resolution"))
     if rec is not None:
-        return rec, "training"
+        return dataclasses.replace(rec, max_scale=1.0), "training"
     r = cfg.get("resolution")
     if isinstance(r, int) and r != 0:
-        return Resolution(r, None, f"--resolution {r}"), "training"
+        return Resolution(r, None, f"--resolution {r}", max_scale=1.0), "training"
     return FULL, "full"
 
 

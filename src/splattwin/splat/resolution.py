@@ -30,11 +30,14 @@ MAX_SIDE = 65535
 @dataclass(frozen=True)
 class Resolution:
     """resolution: as TrainConfig.resolution but never AUTO; max_side: cap on the longest image side in
-    px (None: no cap). how: one line for the log and the report."""
+    px (None: no cap). how: one line for the log and the report. max_scale: cap on the factor (None: none;
+    evaluation from a training record uses 1.0, since a held-out photo upsampled holds nothing more and a
+    forged target width would size every view up to the pixel limit)."""
 
     resolution: int = 1
     max_side: int | None = None
     how: str = "full size"
+    max_scale: float | None = None
 
     def scale(self, width: int, height: int) -> float:
         """Factor (<= 1 unless a target width asks for more) applied to a width x height image."""
@@ -50,6 +53,8 @@ class Resolution:
                              f"{MAX_SIDE} pixels, or -1; got {r}")
         if self.max_side is not None:
             s = min(s, self.max_side / max(width, height))
+        if self.max_scale is not None:
+            s = min(s, self.max_scale)
         return s
 
     def size(self, width: int, height: int) -> tuple[int, int]:
