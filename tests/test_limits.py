@@ -17,3 +17,34 @@ def test_yaml_long_integer_names_the_file(tmp_path):
     with pytest.raises(InputError, match="number too long to read") as e:
         load_yaml(p)
     assert e.value.path == p and len(str(e.value)) < 300
+
+
+def test_yaml_key_given_twice_is_refused_but_a_merge_may_be_overridden(tmp_path):
+    """YAML's loaders keep the last of two equal keys silently (a task giving `goal` twice used the second);
+    JSON readers already refuse duplicates. Keys a merge (<<: *base) brings in may still be overridden."""
+    from splattwin.limits import load_yaml, loads_yaml
+
+    p = tmp_path / "task.yaml"
+    p.write_text("steps:\n  - {pick: cube, place: box, pick: hammer}\n")
+    with pytest.raises(InputError, match=r"key 'pick' is given twice \(line 2\)") as e:
+        load_yaml(p)
+    assert e.value.path == p
+    with pytest.raises(InputError, match="'a' is given twice"):
+        loads_yaml("a: 1\nb: 2\na: 3\n", "x.yaml")
+    assert loads_yaml("base: &b {x: 1, y: 2}\nd:\n  <<: *b\n  x: 5\n") == {"base": {"x": 1, "y": 2},
+                                                                          "d": {"x": 5, "y": 2}}
+    assert loads_yaml("a: {x: 1}\nb: {x: 1}\n") == {"a": {"x": 1}, "b": {"x": 1}}  # same key, other maps
+
+
+def test_trajectory_yaml_is_read_with_the_bounded_loader(tmp_path):
+    """A received trajectory.ros2.yaml went through yaml.safe_load: an alias bomb expanded without bound."""
+    from splattwin.robot.trajectory import Trajectory
+
+    p = tmp_path / "trajectory.ros2.yaml"
+    lines = ["a0: &a0 [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]"]
+    lines += [f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 10) + "]" for i in range(1, 9)]
+    lines += ["joint_names: [j1]", "points: *a8"]
+    p.write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match="aliases") as e:
+        Trajectory.load_ros2_yaml(p)
+    assert e.value.path == p

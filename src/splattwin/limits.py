@@ -459,6 +459,23 @@ def _yaml_loader(max_nodes: int, where: Path | None):
             _check_expanded_size(node, max_nodes, where)
             return node
 
+        def construct_mapping(self, node, deep=False):
+            # a key given twice is refused, as in JSON (YAML's loaders keep the last one silently); keys
+            # brought in by a merge (<<: *base) may be overridden, as YAML intends
+            seen = set()
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    if key in seen:
+                        raise InputError(f"YAML key {short_repr(key)} is given twice "
+                                         f"(line {key_node.start_mark.line + 1})", where)
+                    seen.add(key)
+                except TypeError:  # an unhashable key: the constructor below refuses it
+                    break
+            return super().construct_mapping(node, deep)
+
     return BoundedLoader
 
 

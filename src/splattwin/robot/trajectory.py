@@ -188,13 +188,13 @@ class Trajectory:
 
     @classmethod
     def load_ros2_yaml(cls, path: str | Path) -> "Trajectory":
-        import yaml
+        from splattwin.limits import load_yaml
 
         path = Path(path)
         if not path.is_file():
             raise InputError("trajectory file not found", path)
+        msg = load_yaml(path)  # bounded size and aliases: a trajectory may come from someone else
         try:
-            msg = yaml.safe_load(path.read_text())
             pts = msg["points"]
             t = np.array([p["time_from_start"]["sec"] + p["time_from_start"]["nanosec"] * 1e-9 for p in pts])
             q = np.array([p["positions"] for p in pts], dtype=float)
@@ -202,7 +202,7 @@ class Trajectory:
             qd = np.array([p.get("velocities") or [0.0] * n for p in pts], dtype=float)
             qdd = np.array([p.get("accelerations") or [0.0] * n for p in pts], dtype=float)
             return cls(t, q, qd, qdd, list(msg["joint_names"]))
-        except (yaml.YAMLError, KeyError, TypeError, IndexError, ValueError) as e:
+        except (KeyError, TypeError, IndexError, ValueError) as e:
             raise InputError(f"not a trajectory_msgs/JointTrajectory YAML: {e}", path) from e
 
 
