@@ -144,3 +144,39 @@ def test_an_oversized_pipeline_json_is_not_parsed(tmp_path, monkeypatch, caplog)
     monkeypatch.setattr(splattwin.limits, "MAX_RECORD_BYTES", 16)
     run_stages(_stages(calls), Context(tmp_path, {"a": 1}))
     assert calls == ["a", "b", "c"] and "pipeline.json is corrupt" in caplog.text
+
+
+@pytest.mark.parametrize("stage", ["semantics", "robot"])
+def test_from_a_stage_reuses_none_of_its_saved_work(tmp_path, monkeypatch, stage):
+    """`--from semantics` segmented nothing again (the saved prompt masks were resumed) and `--from robot`
+    reused every stored trial: the stages resume their own partial work only when not redone on request."""
+    from splattwin.pipeline import build as b
+    from splattwin.pipeline.options import BuildOptions
+    from splattwin.robot import stage as robot_stage
+    from splattwin.robot.options import RobotOptions
+    from splattwin.semantics import stage as sem_stage
+
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def fake_sem(inputs, options, *, progress=True, fresh=False):
+        seen.append(fresh)
+        raise Stop
+
+    def fake_robot(inputs, options, *, progress=True, record_errors=False):
+        seen.append(not options.resume)
+        raise Stop
+
+    monkeypatch.setattr(sem_stage, "run", fake_sem)
+    monkeypatch.setattr(robot_stage, "run", fake_robot)
+    monkeypatch.setattr(b, "_semantics_inputs", lambda ctx: None)
+    cfg = BuildOptions(robot=RobotOptions(task="default"))
+    fn = b._semantics if stage == "semantics" else b._robot
+    for fresh in (set(), {stage}):
+        ctx = Context(tmp_path, {}, config=cfg, progress=False)
+        ctx.fresh = set(fresh)
+        with pytest.raises(Stop):
+            fn(ctx)
+    assert seen == [False, True]

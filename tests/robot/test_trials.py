@@ -93,6 +93,31 @@ def test_resume_with_rollouts_needs_the_results_own_rollout(gt_twin_small: Path,
     assert load_finished(p, spec, rollouts=True) is not None
 
 
+def test_a_stored_trial_is_not_reused_after_its_meshes_or_the_code_change(gt_twin_small: Path, tmp_path: Path,
+                                                                           monkeypatch):
+    """The key covered twin.json only: a twin whose collision meshes were rebuilt with the same twin.json,
+    or an upgraded splattwin, reused the old outcomes (`build` re-ran the robot stage, the trials did not)."""
+    import shutil
+
+    from splattwin import hashing
+    from splattwin.twin.manifest import Manifest
+
+    twin = tmp_path / "twin"
+    shutil.copytree(gt_twin_small, twin)
+    spec = TrialSpec(str(twin), None, sigma=0.005, seed=1)
+    p = tmp_path / "1.json"
+    p.write_text(json.dumps({"success": True, "collisions": 0, "steps": [], "key": trial_key(spec)}))
+    assert load_finished(p, spec) is not None
+    monkeypatch.setattr(hashing, "code_digest", lambda *a, **k: "another version")
+    assert load_finished(p, spec) is None
+    monkeypatch.undo()
+    assert load_finished(p, spec) is not None
+    m = Manifest.load(twin)
+    mesh = twin / next(o.collision_mesh for o in m.objects if o.collision_mesh)
+    mesh.write_bytes(mesh.read_bytes() + b"\n")
+    assert load_finished(p, spec) is None
+
+
 @pytest.mark.parametrize("field,value", [("success", "no"), ("collisions", "x"), ("plan_ms", ["a", "b"]),
                                          ("plan_ms", [float("nan")]), ("trial_wall_s", "slow"), ("collisions", True)])
 def test_resume_ignores_a_wrongly_typed_stored_result_with_a_warning(tmp_path: Path, capsys, field, value):

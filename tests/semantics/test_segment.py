@@ -6,6 +6,8 @@ plumbing (shapes, box -> mask, phrase -> label bookkeeping, resume, errors), not
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -122,6 +124,34 @@ def test_end_to_end_tiny_models(tiny_models, tmp_path):
     for v in images:
         for lab in ms.masks.get(v, {}):
             assert np.array_equal(again.get(v, lab), ms.get(v, lab))
+
+    square = np.zeros((72, 96), bool)
+    square[5:9, 5:9] = True
+
+    class Count:  # the views segmented anew; finds a 4x4 square for every phrase
+        def __init__(self):
+            self.views = 0
+
+        def __call__(self, img, phrases):
+            self.views += 1
+            return {i: (square, 0.9) for i in range(len(phrases))}
+
+    # a view is reused only for the same photo and options: the mask files were kept when the options
+    # (model, threshold) or a photo changed, and `build --from semantics` still reused them
+    for kw, n in ((dict(options=replace(opts, box_threshold=0.5)), 2), (dict(resume=False), 2)):
+        c = Count()
+        segment_images(images, "blue box. yellow cube", kw.get("options", opts), labels=labels, out_dir=out,
+                       progress=False, segmenter=c, resume=kw.get("resume", True))
+        assert c.views == n
+        ms = segment_images(images, "blue box. yellow cube", opts, labels=labels, out_dir=out, progress=False,
+                            segmenter=seg)   # back to the first options: segmented again, then kept
+    io.write_image(images["train_001"], rng.integers(0, 255, (72, 96, 3), dtype=np.uint8))
+    c = Count()
+    again = segment_images(images, "blue box. yellow cube", opts, labels=labels, out_dir=out, progress=False,
+                           segmenter=c)
+    assert c.views == 1 and all(np.array_equal(again.get("train_001", lab), square) for lab in (3, 5))
+    for lab in ms.masks.get("train_000", {}):
+        assert np.array_equal(again.get("train_000", lab), ms.get("train_000", lab))
 
 
 def test_sam2_path_tiny_model(tiny_models):

@@ -115,7 +115,9 @@ def _splats(ctx: Context) -> dict:
 def _semantics(ctx: Context) -> dict:
     from splattwin.semantics.stage import run
 
-    return record(run(_semantics_inputs(ctx), ctx.config.semantics, progress=ctx.progress), ctx.out)
+    # --from semantics (or earlier): segment every view again, never reuse the saved prompt masks
+    return record(run(_semantics_inputs(ctx), ctx.config.semantics, progress=ctx.progress,
+                      fresh="semantics" in ctx.fresh), ctx.out)
 
 
 def _semantics_files(ctx: Context) -> dict:
@@ -162,6 +164,8 @@ def _robot(ctx: Context) -> dict:
     if not ctx.config.robot.task:
         return {}
     opts = ctx.config.robot
+    if "robot" in ctx.fresh:  # --from robot (or earlier): run every trial again, reuse none
+        opts = replace(opts, resume=False)
     recorder = None
     if opts.record is not None:   # `--robot.record DIR`: checked before the physics runs, as `plan --record`
         from splattwin.playback.record import recorder_for

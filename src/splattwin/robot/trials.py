@@ -141,13 +141,34 @@ def _file_digest(path: str | Path | None) -> str | None:
     return sha256_file(path) if path is not None and Path(path).is_file() else None
 
 
+def _twin_meshes_digest(twin_dir: str | Path) -> str | None:
+    """One digest over the meshes the trial's physics reads (visual, collision and convex parts of the
+    objects and the background, as twin.json names them): a twin whose meshes were rebuilt with the same
+    twin.json is another trial. None when twin.json is unreadable (the trial then fails on it anyway)."""
+    from splattwin.errors import InputError
+    from splattwin.hashing import DigestCache
+    from splattwin.twin.manifest import Manifest
+
+    try:
+        m = Manifest.load(twin_dir)  # paths checked: inside the twin folder
+    except InputError:
+        return None
+    files = [Path(twin_dir) / p for what, p in m.paths() if "mesh" in what or "convex part" in what]
+    return DigestCache().files(files)
+
+
 def trial_key(spec: TrialSpec) -> dict:
-    """What makes a trial's result reusable: the same twin (path and twin.json content), task, robot,
-    base, planner, seed and noise."""
+    """What makes a trial's result reusable: the same twin (path, twin.json and mesh contents), task,
+    robot, base, planner, seed and noise, and the same code (the robot and twin packages' source: an
+    upgraded splattwin plans and executes anew)."""
     from dataclasses import asdict
+
+    from splattwin.hashing import code_digest
 
     return {"twin": str(Path(spec.twin_dir).resolve()),
             "twin_json_sha256": _file_digest(Path(spec.twin_dir) / "twin.json"),
+            "twin_meshes_sha256": _twin_meshes_digest(spec.twin_dir),
+            "code": code_digest(("splattwin.robot", "splattwin.twin")),
             "task": str(Path(spec.task_path).resolve()) if spec.task_path else None,
             "task_sha256": _file_digest(spec.task_path),
             "robot_mjcf": str(Path(spec.robot_mjcf).resolve()) if spec.robot_mjcf else None,

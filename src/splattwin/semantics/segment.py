@@ -245,13 +245,47 @@ class OpenVocabSegmenter:
         return found
 
 
+SEGMENT_KEY = "segment_key.json"
+
+
+def _segment_key(images: dict[str, Path], prompts: dict[int, str], options: SegmentOptions) -> dict:
+    """What a saved view's masks depend on: {"run": digest of the prompt and options, "views": {view:
+    sha256 of its photo}}."""
+    import dataclasses
+    import hashlib
+    import json
+
+    from splattwin.hashing import sha256_file
+
+    run = {"prompts": {str(k): v for k, v in sorted(prompts.items())},
+           "options": {k: str(v) for k, v in sorted(dataclasses.asdict(options).items())}}
+    return {"run": hashlib.sha256(json.dumps(run, sort_keys=True).encode()).hexdigest(),
+            "views": {v: sha256_file(p) for v, p in sorted(images.items())}}
+
+
+def _read_segment_key(out_dir: Path) -> dict | None:
+    """The saved key, or None (absent, unreadable or malformed: nothing is reused)."""
+    from splattwin.limits import MAX_RECORD_BYTES, read_json
+
+    try:
+        k = read_json(out_dir / SEGMENT_KEY, max_bytes=MAX_RECORD_BYTES)
+    except InputError:
+        return None
+    if not (isinstance(k, dict) and isinstance(k.get("run"), str) and isinstance(k.get("views"), dict)):
+        return None
+    return k
+
+
 def segment_images(images: dict[str, Path], prompt: str, options: SegmentOptions | None = None,
                    labels: dict[str, int] | None = None, out_dir: str | Path | None = None,
-                   progress: bool = True, segmenter: OpenVocabSegmenter | None = None) -> MaskSet:
+                   progress: bool = True, segmenter: OpenVocabSegmenter | None = None,
+                   resume: bool = True) -> MaskSet:
     """Run the open-vocabulary segmenter over views {view name: image path} -> MaskSet.
 
-    labels: phrase -> object label (default 1..K in prompt order). out_dir: save after every view and
-    skip views already saved there (resume). Objects found in no view raise InputError.
+    labels: phrase -> object label (default 1..K in prompt order). out_dir: save after every view and,
+    with resume, skip views already saved there whose photo (by content), prompt and segmentation
+    options (models, thresholds, sizes) are the same (out_dir/segment_key.json). Objects found in no
+    view raise InputError.
     """
     from splattwin.capture import load_image
 
@@ -267,11 +301,24 @@ def segment_images(images: dict[str, Path], prompt: str, options: SegmentOptions
     ms = MaskSet(objects={labels[p]: names[p] for p in phrases},
                  prompts={labels[p]: p for p in phrases}, source=f"open-vocab:{prompt}")
     done: set[str] = set()
-    if out_dir is not None and (Path(out_dir) / "masks.json").is_file():
-        prev = MaskSet.load(out_dir)
-        if prev.prompts == ms.prompts:
-            ms, done = prev, set(prev.sizes)
-            log.info("resuming: %d of %d views already segmented in %s", len(done), len(images), out_dir)
+    key = _segment_key(images, ms.prompts, options or SegmentOptions())
+    if out_dir is not None and resume and (Path(out_dir) / "masks.json").is_file():
+        prev_key = _read_segment_key(Path(out_dir))
+        if prev_key is not None and prev_key["run"] == key["run"]:
+            prev = MaskSet.load(out_dir)
+            if prev.prompts == ms.prompts:
+                # a view is reused only when its photo is the one segmented (same name, same bytes)
+                done = {v for v in prev.sizes if v in images and prev_key["views"].get(v) == key["views"][v]}
+                for v in set(prev.views) | set(prev.sizes):
+                    if v not in done:
+                        prev.masks.pop(v, None), prev.scores.pop(v, None), prev.sizes.pop(v, None)
+                ms = prev
+                log.info("resuming: %d of %d views already segmented in %s", len(done), len(images), out_dir)
+    if out_dir is not None:
+        from splattwin import io
+
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+        io.write_json(Path(out_dir) / SEGMENT_KEY, key)
     todo = [v for v in sorted(images) if v not in done]
     seg = segmenter
     if todo and seg is None:

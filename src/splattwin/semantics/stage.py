@@ -35,9 +35,10 @@ class SemanticsResult:
 
 
 def load_stage_masks(options: SemanticsOptions, frames, scene_dir: Path | None, segment_dir: Path | None = None,
-                     image_sizes: dict | None = None):
+                     image_sizes: dict | None = None, fresh: bool = False):
     """(MaskSet, the path its masks came from): options.masks, options.prompt (segmenting `frames` into
-    `segment_dir`) or the embedded scene's simulated segmenter (training views only). image_sizes: view ->
+    `segment_dir`; views segmented there before with the same photo and options are reused unless
+    `fresh`) or the embedded scene's simulated segmenter (training views only). image_sizes: view ->
     (H, W), checked for every mask file as it is read."""
     from splattwin.semantics.masks import load_masks, scene_masks, scene_objects
 
@@ -50,7 +51,7 @@ def load_stage_masks(options: SemanticsOptions, frames, scene_dir: Path | None, 
         if segment_dir is None:
             raise InputError("text prompts are segmented when the stage runs (after poses)")
         ms = segment_images({f.name: f.image_path for f in frames if f.split == "train"}, options.prompt,
-                            options.segment, out_dir=segment_dir)
+                            options.segment, out_dir=segment_dir, resume=not fresh)
         return ms, segment_dir
     if scene_dir is not None:
         ms = scene_masks(scene_dir, kind="noisy")
@@ -95,7 +96,8 @@ def input_files(inputs: SemanticsInputs, options: SemanticsOptions) -> dict:
     return out
 
 
-def run(inputs: SemanticsInputs, options: SemanticsOptions, *, progress: bool = True) -> SemanticsResult:
+def run(inputs: SemanticsInputs, options: SemanticsOptions, *, progress: bool = True,
+        fresh: bool = False) -> SemanticsResult:
     from splattwin import io
     from splattwin.capture import load_dataset
     from splattwin.semantics.fusion import check_views
@@ -105,8 +107,9 @@ def run(inputs: SemanticsInputs, options: SemanticsOptions, *, progress: bool = 
     from splattwin.splat.gaussians import Gaussians
 
     ds = load_dataset(inputs.transforms)
+    # fresh (`build --from semantics` or earlier): segment every view again, reuse nothing
     ms, masks_from = load_stage_masks(options, ds.frames, inputs.scene_dir, inputs.out_dir / "masks2d",
-                                      {f.name: (f.camera.height, f.camera.width) for f in ds.frames})
+                                      {f.name: (f.camera.height, f.camera.width) for f in ds.frames}, fresh=fresh)
     # checked here with the masks' path, so that a size or empty-mask error names it
     with warnings.catch_warnings():  # fuse_to_dir warns about unmatched views itself
         warnings.simplefilter("ignore", MaskWarning)
