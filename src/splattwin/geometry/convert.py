@@ -18,6 +18,7 @@ import numpy as np
 import trimesh
 
 from splattwin.geometry.carving import depth_views, free_space_mask
+from splattwin.geometry.completeness import Coverage, coverage
 from splattwin.geometry.clustering import Plane, foot_bleed_mask, largest_cluster, split_background
 from splattwin.geometry.filtering import FilterStats, attribute_mask
 from splattwin.geometry.meshing import (add_bottom, downsample, ellipsoid_samples, level_radii, point_spacing, simplify,
@@ -33,6 +34,11 @@ CONFIGS = ("raw", "attribute", "cluster", "full")  # the four ablation configura
 
 class ObjectUnusableWarning(UserWarning):
     """An object's geometry could not be built; the twin marks it usable=False with the problem."""
+
+
+class IncompleteObjectWarning(UserWarning):
+    """An object's splats cover little of its 2D masks (maybe a fragment of it): it stays usable (it has
+    `min_points` points), and the twin records the problem; check it before a robot relies on it."""
 
 
 @dataclass
@@ -55,6 +61,7 @@ class ObjectGeometry:
     convexity: float | None = None
     mesh_method: str | None = None
     alpha: float | None = None
+    coverage: Coverage | None = None  # its cleaned splats vs its 2D masks (geometry.completeness); None: no masks
 
 
 @dataclass
@@ -94,11 +101,27 @@ def clean_indices(g, labels: np.ndarray, label: int, opts: GeometryOptions, attr
     return idx
 
 
-def _problem(points: np.ndarray, opts: GeometryOptions) -> str | None:
-    if len(points) < opts.min_points:
-        return f"too few points after cleaning ({len(points)} < {opts.min_points})"
+def coverage_text(cov: Coverage) -> str:
+    """How much of an object's masks its splats cover, in words (problem texts, warnings)."""
+    return (f"its splats cover {cov.recall:.0%} of its 2D masks' silhouettes (median over {cov.views} "
+            f"view{'s' if cov.views != 1 else ''})")
+
+
+def _problem(points: np.ndarray, opts: GeometryOptions, cov: Coverage | None = None) -> str | None:
+    """Why the cleaned points [N,3] make no usable object, or None. The count floor is `min_points`, or
+    `min_points_whole` when the silhouette coverage `cov` shows the object whole (`min_coverage`): a
+    small whole object keeps few splats, a fragment of a large one covers a small share of its masks."""
+    n = len(points)
+    whole = cov is not None and cov.recall >= opts.min_coverage
+    if n < min(opts.min_points_whole, opts.min_points):
+        return f"too few points after cleaning ({n} < {min(opts.min_points_whole, opts.min_points)})"
+    if n < opts.min_points and not whole:
+        if cov is None:
+            return f"too few points after cleaning ({n} < {opts.min_points})"
+        return (f"too few points after cleaning ({n} < {opts.min_points}) and not whole: {coverage_text(cov)}, "
+                f"below {opts.min_coverage:.0%} (likely a fragment of the object)")
     c = points - points.mean(axis=0)
-    sv = np.linalg.svd(c, compute_uv=False) / np.sqrt(len(points))  # std along principal axes
+    sv = np.linalg.svd(c, compute_uv=False) / np.sqrt(n)  # std along principal axes
     if 4 * sv[0] < opts.min_thickness:
         return f"degenerate cluster: all points within {4 * sv[0] * 1000:.1f} mm (single point)"
     if 4 * sv[2] < opts.min_thickness:
@@ -138,7 +161,7 @@ def _stands_on_other(points: np.ndarray, others: np.ndarray | None, support_z: f
 
 def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: GeometryOptions, prompt: str = "",
                     timings: dict | None = None, support_z: float | None = None, cameras: list | None = None,
-                    other_points: np.ndarray | None = None) -> ObjectGeometry:
+                    other_points: np.ndarray | None = None, masks: list | None = None) -> ObjectGeometry:
     """Stages 3-4 for one object from its cleaned Gaussians `g[indices]`. Never raises on bad data:
     returns usable=False with `problem` and emits ObjectUnusableWarning.
 
@@ -161,7 +184,11 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
         indices = indices[foot_bleed_mask(g.means[indices], support_z, opts.foot_height, opts.foot_margin)]
     out = ObjectGeometry(name=name, label=int(label), prompt=prompt, indices=indices)
     pts = g.means[indices]
-    problem = _problem(pts, opts)
+    if masks and len(indices) >= min(opts.min_points_whole, opts.min_points) and opts.coverage_views > 0:
+        t0 = time.perf_counter()
+        out.coverage = coverage(g.subset(indices), masks, max_views=opts.coverage_views)
+        timings["coverage"] += time.perf_counter() - t0
+    problem = _problem(pts, opts, out.coverage)
     if problem is None:
         t0 = time.perf_counter()
         pitch = max(opts.mesh_voxel, opts.mesh_voxel_rel * point_spacing(pts, k=4))
@@ -234,6 +261,12 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
         out.visual = out.collision = None
         out.parts = []
         warnings.warn(ObjectUnusableWarning(f"object {name!r} (label {label}): {problem}"), stacklevel=2)
+    elif out.coverage is not None and out.coverage.recall < opts.min_coverage:
+        # enough points to build it, but little of what the photos show: usable (whole objects under crude
+        # masks measured 0.72), flagged
+        out.problem = (f"possibly incomplete: {coverage_text(out.coverage)}, below {opts.min_coverage:.0%} "
+                       f"(a fragment of the object, or masks larger than it); check its mesh")
+        warnings.warn(IncompleteObjectWarning(f"object {name!r} (label {label}): {out.problem}"), stacklevel=2)
     return out
 
 
@@ -355,13 +388,17 @@ def background_geometry(g, indices: np.ndarray, opts: GeometryOptions, table_thi
 
 def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None = None, background: bool = True,
             table_thickness: float = 0.03, progress: bool = True, length_scale: float = 1.0,
-            cameras: list | None = None, table_plane: Plane | None = None) -> Conversion:
+            cameras: list | None = None, table_plane: Plane | None = None, masks: dict | None = None
+            ) -> Conversion:
     """Full conversion. g: Gaussians [N]; labels [N] int (0 = background); objects: [(name, label, prompt)].
     length_scale: frame units per metre of the options' lengths and of table_thickness (m): 1 in a
     metric twin, the frame's nominal metre in an unscaled one (`TwinFrame.length_scale`).
     cameras: [Camera] of the capture in the twin frame, for the free-space carving of the object
     meshes (`GeometryOptions.carve`) and for the background's near field (`near_field_mask`); None:
-    neither. table_plane: the table plane when the frame defines it (a table frame: z = 0), else fitted."""
+    neither. table_plane: the table plane when the frame defines it (a table frame: z = 0), else fitted.
+    masks: {label: [(Camera, bool mask [H,W])]}, the cameras (twin frame) with a 2D mask of that object:
+    each object's silhouette coverage (`geometry.completeness`) decides with its splat count whether it
+    is whole (`GeometryOptions.min_coverage`); None: no masks, the count alone decides."""
     from splattwin.progress import Progress
 
     opts = opts or GeometryOptions()
@@ -418,7 +455,8 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
                 warnings.warn(ObjectUnusableWarning(f"object {name!r}: {r.problem}"), stacklevel=2)
             else:
                 r = object_geometry(g, idx, name, label, opts, prompt, timings, support_z=support_z, cameras=cameras,
-                                    other_points=np.concatenate(others) if others else None)
+                                    other_points=np.concatenate(others) if others else None,
+                                    masks=(masks or {}).get(int(label)))
             results.append(r)
             bar.update(1)
         bar.set_description("geometry")
