@@ -64,3 +64,70 @@ def test_geometry_cli_evaluates_against_a_generated_scene(tmp_path, scene_small)
     assert all(0.0 <= v["f1"] <= 1.0 for v in ab["full"].values())
     assert main(["geometry", str(ply), "--labels", str(tmp_path / "l.npy"), "--out", str(tmp_path / "t2"),
                  "--formats", "", "--gt-scene", str(tmp_path)]) == 2
+
+
+def test_geometry_cli_masks_tell_a_small_whole_object_from_a_fragment(tmp_path, capsys):
+    """`splattwin geometry --masks` (the twin stage's path: build_twin with the 2D masks): a 2.5 cm cube
+    with 48 splats (< min_points 50) is usable because its splats cover its masks; 35 splats at one end of
+    a 19 cm bar are not (a fragment: the problem names the coverage); twin.json records both figures.
+    Without --masks the cube is unusable by the count alone."""
+    import trimesh
+    from scipy.spatial import ConvexHull
+    from skimage.draw import polygon
+
+    from splattwin.capture import nerfstudio
+    from splattwin.capture.camera import Camera, look_at
+    from splattwin.capture.dataset import Dataset, Frame
+    from splattwin.scene.synthetic import trained_like_gaussians
+    from splattwin.semantics.masks import MaskSet
+    from splattwin.splat.gaussians import Gaussians
+
+    cube = trimesh.creation.box([0.025] * 3)
+    cube.apply_translation([-0.08, 0.0, 0.0125])
+    bar = trimesh.creation.box([0.19, 0.03, 0.03])
+    bar.apply_translation([0.08, 0.06, 0.015])
+    gc = trained_like_gaussians(cube, 48, seed=0, haze_fraction=0.0)
+    gb = trained_like_gaussians(bar, 1500, seed=0, haze_fraction=0.0)
+    gb = gb.subset(np.argsort(np.linalg.norm(gb.means - bar.bounds[1], axis=1))[:35])   # the bar's far end
+    n = 60                                                                              # a 0.5 m square table
+    xy = np.stack(np.meshgrid(np.linspace(-0.25, 0.25, n), np.linspace(-0.25, 0.25, n)), -1).reshape(-1, 2)
+    table = Gaussians(np.column_stack([xy, np.zeros(len(xy))]), np.tile([1.0, 0, 0, 0], (len(xy), 1)),
+                      np.tile([0.005, 0.005, 0.0005], (len(xy), 1)), np.full(len(xy), 0.95), np.zeros((len(xy), 1, 3)))
+    parts = (table, gc, gb)
+    g = Gaussians(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("means", "quats", "scales", "opacities")),
+                  np.zeros((sum(len(p) for p in parts), 1, 3)))
+    ply = g.save_ply(tmp_path / "scene.ply")
+    np.save(tmp_path / "labels.npy", np.repeat([0, 1, 2], [len(p) for p in parts]))
+    cams = [Camera.from_fov(np.radians(60.0), 160, 120, name=f"{i:03d}",
+                            T_world_cam=look_at([0.35 * np.cos(a), 0.35 * np.sin(a), 0.35], [0.0, 0.02, 0.02]))
+            for i, a in enumerate(np.linspace(0, 2 * np.pi, 8, endpoint=False))]
+    frames = [Frame(image_path=tmp_path / "images" / f"{c.name}.png", camera=c) for c in cams]
+    cameras = nerfstudio.write(Dataset(root=tmp_path, frames=frames, has_poses=True), tmp_path / "transforms.json")
+    ms = MaskSet()
+    for c in cams:
+        for label, name, mesh in ((1, "yellow_cube", cube), (2, "toy_hammer", bar)):
+            uv = c.project(mesh.vertices)[0]
+            hull = uv[ConvexHull(uv).vertices]
+            m = np.zeros((c.height, c.width), bool)
+            m[polygon(hull[:, 1] - 0.5, hull[:, 0] - 0.5, m.shape)] = True
+            ms.add(c.name, label + 10, m, name=name)          # a saved set numbers its objects itself
+    ms.save(tmp_path / "masks")
+    base = ["geometry", str(ply), "--labels", str(tmp_path / "labels.npy"), "--object", "yellow_cube=1",
+            "--object", "toy_hammer=2", "--frame", "ground_truth", "--formats", "", "--cameras", str(cameras)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert main(base + ["--out", str(tmp_path / "twin"), "--masks", str(tmp_path / "masks")]) == 0
+        out = capsys.readouterr().out
+        assert main(base + ["--out", str(tmp_path / "plain")]) == 0
+    m = Manifest.load(tmp_path / "twin")
+    c, h = m.object("yellow_cube"), m.object("toy_hammer")
+    assert c.usable and c.problem is None and c.silhouette_coverage >= 0.9 and c.silhouette_precision >= 0.5
+    assert (tmp_path / "twin" / c.collision_mesh).is_file()
+    assert not h.usable and h.silhouette_coverage < 0.2 and "not whole" in h.problem, h.problem
+    assert f"covers {c.silhouette_coverage:.0%} of its masks" in out
+    plain = Manifest.load(tmp_path / "plain")
+    assert not plain.object("yellow_cube").usable and plain.object("yellow_cube").silhouette_coverage is None
+    assert plain.object("yellow_cube").problem == "too few points after cleaning (48 < 50)"
+    # masks that name none of the objects, or without the cameras they were drawn in: exit 2
+    assert main(base[:-2] + ["--out", str(tmp_path / "x"), "--masks", str(tmp_path / "masks")]) == 2
+    assert "--masks needs --cameras" in capsys.readouterr().err

@@ -81,6 +81,8 @@ def _set(path, value):
     (("objects", 0, "bbox_extent"), [0.1, 1e12, 0.1], "bbox_extent"),
     (("objects", 0, "mass"), 1e300, "mass"),
     (("objects", 0, "volume"), -1.0, "volume"),
+    (("objects", 0, "silhouette_coverage"), 1.5, "silhouette_coverage"),      # a share of the masks
+    (("objects", 0, "silhouette_precision"), "high", "silhouette_precision"),
     (("objects", 0, "T_world_obj"), [[1, 0, 0, 1e300], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "T_world_obj"),
     (("objects", 0, "T_world_obj"), [[2, 0, 0, 0], [0, 2, 0, 0], [0, 0, 2, 0], [0, 0, 0, 1]], "rigid"),
     (("objects", 0, "T_world_obj"), [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 5, 1]], "rigid"),

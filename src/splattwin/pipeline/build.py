@@ -130,10 +130,11 @@ def _twin(ctx: Context) -> dict:
     from splattwin.twin.options import TwinOptions
     from splattwin.twin.stage import TwinInputs, run
 
+    masks = _stage_masks(ctx)
     inputs = TwinInputs(splats=ctx.path("splat/point_cloud.ply"), labels=ctx.path("semantics/labels.npy"),
                         objects=ctx.path("semantics/objects.json"), frame=ctx.path("poses/frame.json"),
                         twin_dir=ctx.out, cameras="poses/transforms.json", scene_dir=_scene_dir(ctx),
-                        config=resolved_config(ctx.config))
+                        config=resolved_config(ctx.config), masks=masks)
     options = TwinOptions(geometry=ctx.config.geometry, export=ctx.config.export)
     result = record(run(inputs, options, progress=ctx.progress), ctx.out)
     if ctx.config.refine.iters > 0:
@@ -142,8 +143,9 @@ def _twin(ctx: Context) -> dict:
         from splattwin.playback.refine import refine_objects
 
         ds = load_dataset(ctx.path("poses"))
-        masks = None
-        if ctx.config.refine.mask_lambda > 0:  # the semantics stage's 2D masks (prompt masks: its saved ones)
+        if ctx.config.refine.mask_lambda <= 0:
+            masks = None
+        elif masks is None:  # the semantics stage's 2D masks (prompt masks: its saved ones), strictly
             from splattwin.semantics.stage import load_stage_masks
 
             masks, _ = load_stage_masks(ctx.config.semantics, ds.frames, _scene_dir(ctx),
@@ -151,6 +153,29 @@ def _twin(ctx: Context) -> dict:
         refine_objects(ctx.out, ds.train(), ctx.config.refine, resolution=ctx.config.splat.resolution,
                        cpu_max_side=ctx.config.splat.cpu_max_side, progress=ctx.progress, masks=masks)
     return result
+
+
+def _stage_masks(ctx: Context):
+    """The 2D masks the semantics stage fused (`semantics.stage.load_stage_masks`: --masks, the prompt's
+    saved masks in semantics/masks2d, or the embedded scene's training views), for the objects'
+    silhouette coverage; None with a warning when they cannot be read now (the twin is then built
+    without the check: its objects are judged by their splat count alone)."""
+    from splattwin.capture import load_dataset
+    from splattwin.semantics.stage import load_stage_masks
+
+    sem = ctx.config.semantics
+    try:
+        if sem.prompt and not sem.masks:  # the masks the semantics stage segmented and saved; never segment here
+            from splattwin.semantics.masks import load_masks
+
+            saved = ctx.path("semantics") / "masks2d"
+            return load_masks(saved) if (saved / "masks.json").is_file() else None
+        frames = load_dataset(ctx.path("poses/transforms.json"), validate=False, require_images=False).frames
+        masks, _ = load_stage_masks(sem, frames, _scene_dir(ctx), ctx.path("semantics") / "masks2d")
+        return masks
+    except InputError as e:
+        log.warning("2D masks not read (%s): objects judged by their splat count alone, no silhouette coverage", e)
+        return None
 
 
 def _twin_files(ctx: Context) -> dict:

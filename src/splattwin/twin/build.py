@@ -112,6 +112,9 @@ def write_geometry(conv: Conversion, g, labels: np.ndarray, out_dir: Path, frame
     io.remove_stale(out_dir / "objects", {r.name for r in conv.objects}, dirs=True)
     for r in conv.objects:
         e = ObjectEntry(name=r.name, label=r.label, prompt=r.prompt, usable=r.usable, problem=r.problem)
+        if r.coverage is not None:
+            e.silhouette_coverage = round(r.coverage.recall, 4)
+            e.silhouette_precision = round(r.coverage.precision, 4)
         odir = child(child(out_dir, "objects"), r.name)
         if r.usable:
             write_object_splats(odir / "splats.ply", g.subset(r.indices), r.T_world_obj)
@@ -205,9 +208,9 @@ def write_exports(twin_dir: str | Path, manifest: Manifest, formats=FORMATS) -> 
     return written
 
 
-def _capture_cameras(out_dir: Path, cameras_path) -> list | None:
-    """The capture's cameras (twin frame) from the cameras file, or None (no file, or unreadable: the
-    cameras only refine the geometry, so a bad file is a warning here, never a failed build)."""
+def _capture_frames(out_dir: Path, cameras_path) -> list | None:
+    """The capture's frames (names, cameras in the twin frame) from the cameras file, or None (no file, or
+    unreadable: the cameras only refine the geometry, so a bad file is a warning here, never a failed build)."""
     if cameras_path is None:
         return None
     cp = Path(cameras_path)
@@ -217,7 +220,7 @@ def _capture_cameras(out_dir: Path, cameras_path) -> list | None:
     try:
         from splattwin.capture import load_dataset
 
-        return [f.camera for f in load_dataset(cp, validate=False, require_images=False).frames]
+        return list(load_dataset(cp, validate=False, require_images=False).frames)
     except Exception as e:  # noqa: BLE001 - see the docstring
         log.warning("cameras not read from %s (geometry without them): %s", cp, e)
         return None
@@ -255,24 +258,33 @@ NOMINAL_SCENE_SIZE = 1.2
 
 def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path, frame: TwinFrame | None = None,
                cameras_path: str | Path | None = None, options: GeometryOptions | None = None,
-               formats=FORMATS, progress: bool = True) -> Manifest:
+               formats=FORMATS, progress: bool = True, masks=None) -> Manifest:
     """Labelled Gaussians -> twin folder with manifest and exports.
 
     gaussians: splattwin.splat.Gaussians [N] (twin frame, m); labels [N] int (0 = background);
-    objects: [(name, label, prompt)]. Returns the saved Manifest."""
+    objects: [(name, label, prompt)]. masks: the 2D masks the labels were fused from (a
+    `semantics.masks.MaskSet`, labels as in `objects`), paired with the cameras file's frames by view
+    name: each object's silhouette coverage (`geometry.completeness`) is measured and decides, with its
+    splat count, whether it is whole; None: the count alone. Returns the saved Manifest."""
     from splattwin.lock import prepare_output_dir
 
     out_dir = prepare_output_dir(out_dir, "twin folder")
     frame = frame or TwinFrame()
     check_formats(frame, formats, out_dir / "twin.json")
     t0 = time.perf_counter()
-    cameras = _capture_cameras(out_dir, cameras_path)
+    frames = _capture_frames(out_dir, cameras_path)
+    cameras = [f.camera for f in frames] if frames else None
+    silhouettes = None
+    if masks is not None and frames:
+        from splattwin.geometry.completeness import mask_views
+
+        silhouettes = mask_views(masks, frames)
     length_scale = frame.length_scale(None if frame.scaled else _estimated_nominal_metre(gaussians, cameras))
     if not frame.scaled:
         log.info("unscaled twin: metric thresholds x %.4g (frame units per nominal metre)", length_scale)
         frame = dataclasses.replace(frame, nominal_metre=frame.nominal_metre or round(length_scale, 6))
     conv = convert(gaussians, labels, objects, options, progress=progress, length_scale=length_scale, cameras=cameras,
-                   table_plane=table_plane(frame))
+                   table_plane=table_plane(frame), masks=silhouettes)
     t1 = time.perf_counter()
     manifest = write_geometry(conv, gaussians, labels, out_dir, frame, cameras_path)
     manifest.timings["write"] = round(time.perf_counter() - t1, 4)

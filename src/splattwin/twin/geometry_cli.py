@@ -32,6 +32,23 @@ def _parse_object(text: str) -> tuple[str, int, str]:
     return object_name(name, "--object"), lab, prompt
 
 
+def _object_masks(ms, objects: list, where):
+    """The masks of `ms` (a MaskSet) numbered by the objects' labels, matched by name (a saved mask set
+    numbers its objects itself); InputError when no mask names one of the objects."""
+    from splattwin.semantics.masks import MaskSet
+
+    label = {name: lab for name, lab, *_ in objects}
+    out = MaskSet(source=ms.source)
+    for view in ms.views:
+        for lab, m in ms.masks.get(view, {}).items():
+            if ms.objects.get(lab) in label:
+                out.add(view, label[ms.objects[lab]], m, name=ms.objects[lab])
+    if not out.objects:
+        raise InputError(f"no mask names one of the objects (masks: {', '.join(sorted(ms.objects.values()))}; "
+                         f"objects: {', '.join(label)})", where)
+    return out
+
+
 def _run(args: argparse.Namespace) -> int:
     """Clean a labelled splat and build collision geometry + twin folder.
 
@@ -89,10 +106,24 @@ def _run_locked(args: argparse.Namespace) -> int:
                     object_name(ply.stem, ply, "object name (from the PLY file name; pass --object NAME=1)"), 1, "")]
     check_unique([o[0] for o in objects], "--object")
     opts = from_args(GeometryOptions, args)
+    masks = None
+    if args.masks:
+        from splattwin.semantics.masks import load_masks
+
+        if not args.cameras:
+            raise InputError("--masks needs --cameras (the cameras the masks were drawn in, by view name)", "--masks")
+        if not Path(args.masks).exists():
+            raise InputError("no such mask file or folder", args.masks)
+        masks = _object_masks(load_masks(args.masks, objects={name: label for name, label, *_ in objects}), objects,
+                              args.masks)
     m = build_twin(g, labels, objects, args.out, frame, cameras_path=args.cameras, options=opts,
-                   formats=formats, progress=True)
+                   formats=formats, progress=True, masks=masks)
     for o in m.objects:
         state = f"mass {o.mass:.3f} kg, {len(o.convex_parts)} convex part(s)" if o.usable else f"UNUSABLE: {o.problem}"
+        if o.silhouette_coverage is not None:
+            state += f", covers {o.silhouette_coverage:.0%} of its masks"
+        if o.usable and o.problem:
+            state += f"; WARNING: {o.problem}"
         print(f"{o.name:16s} {state}")
     if args.gt_scene:
         evaluate(g, labels, objects, Path(args.gt_scene), opts, Path(args.out))
@@ -135,6 +166,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="twin folder to write")
     p.add_argument("--cameras", help="cameras file (transforms.json, twin frame): referenced in the manifest, and the "
                    "meshes are carved against the splats' rendered depth from these cameras")
+    p.add_argument("--masks", help="2D masks of the objects in the cameras' images (any layout `semantics` reads; "
+                   "names as the objects'): each object's silhouette coverage decides with its splat count whether "
+                   "it is whole (needs --cameras)")
     p.add_argument("--frame", default="unscaled", help="twin frame source recorded in the manifest")
     add_options(p, ExportOptions)
     p.add_argument("--gt-scene", help="generated scene folder: print + save the raw/attribute/cluster/full "

@@ -66,7 +66,11 @@ class ObjectEntry:
     T_world_obj: [4,4] object frame in the twin frame (object frame = centre of its gravity-aligned
     oriented bounding box, z up). bbox_extent: box side lengths in the object frame (m).
     Paths are relative to the twin folder; None when not produced. usable=False marks an object whose
-    geometry failed (problem says why): exporters skip it and robot stages refuse to plan with it.
+    geometry failed (problem says why): exporters skip it and robot stages refuse to plan with it. A
+    usable object may carry a problem too (a warning: e.g. it covers little of its masks).
+    silhouette_coverage / silhouette_precision: the share of the object's 2D masks its cleaned splats
+    cover, and of their silhouette inside the masks (medians over views, `geometry.completeness`); None
+    when not measured (no masks, or too few points).
     """
 
     name: str
@@ -82,6 +86,8 @@ class ObjectEntry:
     convex_parts: list = field(default_factory=list)
     usable: bool = True
     problem: str | None = None
+    silhouette_coverage: float | None = None
+    silhouette_precision: float | None = None
 
     @property
     def pose(self) -> np.ndarray:
@@ -165,7 +171,8 @@ class Manifest:
             labels.add(o.label)
             _pose(o.T_world_obj, where, f"object {o.name!r} T_world_obj")
             _numbers(o.bbox_extent, 3, where, f"object {o.name!r} bbox_extent", low=0.0, high=MAX_LENGTH)
-            for k, high in (("mass", MAX_MASS), ("volume", MAX_VOLUME)):
+            for k, high in (("mass", MAX_MASS), ("volume", MAX_VOLUME), ("silhouette_coverage", 1.0),
+                            ("silhouette_precision", 1.0)):
                 if getattr(o, k) is not None:
                     _numbers([getattr(o, k)], 1, where, f"object {o.name!r} {k}", low=0.0, high=high)
             if not isinstance(o.convex_parts, list):

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from splattwin.twin.options import TwinOptions
 
@@ -25,6 +26,8 @@ class TwinInputs:
     cameras: str | None = None            # cameras file referenced by the manifest (relative to twin_dir)
     scene_dir: Path | None = None         # an embedded scene's folder (ground truth), if the input is one
     config: dict = field(default_factory=dict)   # the build's resolved options, recorded in twin.json
+    masks: Any = None                     # the semantics stage's 2D masks (MaskSet): each object's silhouette
+                                          # coverage (geometry.completeness); None: not measured
 
 
 @dataclass
@@ -46,7 +49,7 @@ def run(inputs: TwinInputs, options: TwinOptions, *, progress: bool = True) -> T
     objects = [tuple(x) for x in io.read_json(inputs.objects)]
     frame = load_frame(inputs.frame)
     man = build_twin(g, labels, objects, twin, frame=frame, cameras_path=inputs.cameras, options=options.geometry,
-                     formats=options.export.resolve("export.formats"), progress=progress)
+                     formats=options.export.resolve("export.formats"), progress=progress, masks=inputs.masks)
     scene_json = inputs.scene_dir / "scene.json" if inputs.scene_dir is not None else None
     if scene_json is not None and scene_json.is_file():
         scene = io.read_json(scene_json)
