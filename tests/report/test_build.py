@@ -105,3 +105,22 @@ def test_report_shows_the_robot_options_that_made_the_results_not_the_twin_stage
     html = htmllib.unescape(build_report(twin).read_text())
     assert "(from robot/results.json)" in html and '"trials": 3' in html and '"trials": 0' not in html
     assert '"min_points": 50' in html
+
+
+def test_report_shows_each_objects_silhouette_coverage(tmp_path):
+    """The geometry table's "masks covered" column: the share twin.json records, n/a when not measured; a
+    usable object's problem (a warning) is shown too."""
+    from splattwin.twin.manifest import Manifest, ObjectEntry
+
+    twin = _manifest_twin(tmp_path, scaled=True)
+    man = Manifest.load(twin)
+    man.objects[0].silhouette_coverage = 0.973
+    man.objects.append(ObjectEntry(name="shard", label=man.objects[0].label + 1, silhouette_coverage=0.21,
+                                   problem="possibly incomplete: its splats cover 21% of its 2D masks' silhouettes"))
+    man.objects.append(ObjectEntry(name="unmeasured", label=man.objects[0].label + 2))
+    man.save(twin)
+    import html as htmllib
+
+    html = htmllib.unescape(build_report(twin).read_text())
+    assert "masks covered" in html and "97%" in html and "21%" in html and "possibly incomplete" in html
+    assert html.count("n/a") >= 1

@@ -302,10 +302,14 @@ def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
         return
     rows = []
     for o in man.objects:
+        cov = "n/a" if o.silhouette_coverage is None else f"{o.silhouette_coverage:.0%}"
         rows.append([o.name, o.usable, len(o.convex_parts), o.mass if o.mass is not None else "n/a",
-                     length_text(o.bbox_extent, man.frame.scaled), o.problem or ""])
+                     length_text(o.bbox_extent, man.frame.scaled), cov, o.problem or ""])
     sec.table(["object", "usable", "convex parts", "mass (kg)" if man.frame.scaled else "mass (nominal)", "box",
-               "problem"], rows)
+               "masks covered", "problem"], rows)
+    if any(o.silhouette_coverage is not None for o in man.objects):
+        sec.text("masks covered: the share of each object's 2D masks that its cleaned splats, rendered alone, "
+                 "cover (median over views); a fragment of an object covers little of them.")
     if not man.frame.scaled:
         sec.text("lengths in SfM units: the twin is unscaled (no metric scale), so they are not metres.")
     b = man.background
