@@ -178,4 +178,9 @@ def test_build_robot_capture_with_known_poses_and_bop_masks(bop_capture: Path, t
         T = np.array(o["T_world_obj"])
         assert T[2, 3] > 0
         assert np.linalg.norm(T[:2, 3] - truth[o["name"]][:2, 3]) < 0.04, o["name"]
+        assert o["silhouette_coverage"] >= 0.5, o   # whole: their splats cover their BOP masks
+    # 60 steps leave the 19 cm hammer a 35-splat fragment 7 cm from where it stands: its splats cover a third
+    # of its masks, so it is no small whole object (a count floor of 30 took it for one)
+    hammer = next(o for o in man["objects"] if o["name"] == "toy_hammer")
+    assert not hammer["usable"] and hammer["silhouette_coverage"] < 0.5 and "not whole" in hammer["problem"], hammer
     assert abs(man["background"]["table_height"]) < 0.01
