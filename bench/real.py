@@ -349,7 +349,9 @@ def section_unscaled_twin_complete(args) -> tuple[list[tuple[str, str]], dict]:
     cake = Manifest.load(twin).objects[0]
     rows.append(("unscaled cake twin", f"{'complete' if complete else 'INCOMPLETE'} in {t_build:.0f} s "
                                        f"({args.unscaled_iters} steps, half resolution); nominal metre "
-                                       f"{frame.nominal_metre} units; cake {'usable' if cake.usable else cake.problem}, "
+                                       f"{frame.nominal_metre} units; cake {'usable' if cake.usable else cake.problem}"
+                                       + (f" (covers {cake.silhouette_coverage:.0%} of its masks)"
+                                          if cake.silhouette_coverage is not None else "") + ", "
                                        f"box {np.round(np.array(cake.bbox_extent) / (frame.nominal_metre or 1), 3).tolist()} "
                                        "nominal m"))
     rows.append(("  checks", ", ".join(f"{k}: {'ok' if v else 'NO'}" for k, v in checks.items())))
@@ -357,7 +359,8 @@ def section_unscaled_twin_complete(args) -> tuple[list[tuple[str, str]], dict]:
                                                      f"(metre thresholds as written: {kept['metric_as_written']:.1%})"))
     keys.update(unscaled_twin_complete=complete, unscaled_cake_kept_frac=round(kept["unscaled"], 4),
                 unscaled_cake_kept_frac_metric_thresholds=round(kept["metric_as_written"], 4),
-                unscaled_build_s=round(t_build, 1), unscaled_nominal_metre=frame.nominal_metre)
+                unscaled_build_s=round(t_build, 1), unscaled_nominal_metre=frame.nominal_metre,
+                unscaled_cake_usable=cake.usable, unscaled_cake_silhouette_coverage=cake.silhouette_coverage)
     return rows, keys
 
 
