@@ -73,8 +73,9 @@ class GeometryOptions:
     # -- bad input -----------------------------------------------------------------------------------
     min_points: int = option(50, "an object with fewer points after cleaning is unusable, unless its masks show "
                              "it whole (min_coverage)")
-    min_points_whole: int = option(20, "... an object its masks show whole needs this many (the robot-style "
-                                   "capture's 2.5 cm cube keeps 48; 30 of them mesh it at F1@5 mm 0.93+)")
+    min_points_whole: int = option(20, "an object its masks show whole (min_coverage) needs only this many points "
+                                   "after cleaning (the robot-style capture's 2.5 cm cube keeps 48; 30 of them "
+                                   "mesh it at F1@5 mm 0.93+)")
     min_coverage: float = option(0.5, "an object is whole when its cleaned splats, rendered alone, cover this share "
                                  "of its 2D masks (median over views; measured: whole objects 0.72-1.0, fragments "
                                  "0.01-0.36); below it one with min_points or more points is usable but flagged")
