@@ -23,7 +23,8 @@ SPLAT = {"iters": 800, "max_gaussians": 20000, "checkpoint_every": 200}
 @pytest.fixture(scope="module")
 def small_twin(tmp_path_factory) -> Path:
     """A built twin (scene, poses, splats, semantics, twin) of a small embedded scene. Its yellow cube keeps
-    22 points after cleaning: usable with geometry.min_points=10, not with the default 50."""
+    fewer than 50 points after cleaning and covers its masks: usable with geometry.min_points_whole=10, not
+    with 50 (an object needs min(min_points, min_points_whole) points at least)."""
     from splattwin.pipeline.build import BuildOptions, build
 
     out = tmp_path_factory.mktemp("sweep_twin") / "twin"
@@ -43,13 +44,14 @@ def test_sweep_grid_on_ray_then_resumed_locally(small_twin: Path, ray_session, t
     from splattwin.semantics.masks import load_masks
     from splattwin.twin.manifest import Manifest
 
-    grid = {"fusion.kappa": [1.5, 2.0], "geometry.min_points": [10, 50], "trials.sigma": [0.004]}
+    grid = {"fusion.kappa": [1.5, 2.0], "geometry.min_points_whole": [10, 50], "trials.sigma": [0.004]}
     spec = SweepSpec(twin=small_twin, grid=grid, trials=2, trial=TrialSpec(str(small_twin), None))
     out = tmp_path / "sweep"
     with RayExecutor() as ex:
         s = run_sweep(spec, out, ex, progress=False)
     cells = s["cells"]
-    assert [(c["fusion.kappa"], c["geometry.min_points"]) for c in cells] == [(1.5, 10), (1.5, 50), (2.0, 10), (2.0, 50)]
+    assert [(c["fusion.kappa"], c["geometry.min_points_whole"]) for c in cells] == [(1.5, 10), (1.5, 50), (2.0, 10),
+                                                                                    (2.0, 50)]
     assert len(list((out / "fusion").iterdir())) == 2 and len(list((out / "twins").iterdir())) == 4
     for c in cells:
         assert 0 <= c["consistency"] <= 100 and 0 <= c["ghost_index"] <= 100 and 0 < c["miou_heldout"] <= 1
@@ -57,14 +59,16 @@ def test_sweep_grid_on_ray_then_resumed_locally(small_twin: Path, ray_session, t
         # the geometry parameter reached GeometryOptions, the fusion one FusionOptions (the cell twin's resolved
         # config, nested as `build` records it); the others kept the twin's own values
         base = Manifest.load(small_twin).config["build"]
-        assert man.config["build"]["geometry"]["min_points"] == c["geometry.min_points"]
+        assert man.config["build"]["geometry"]["min_points_whole"] == c["geometry.min_points_whole"]
         assert man.config["build"]["semantics"]["fusion"]["kappa"] == c["fusion.kappa"]
         assert man.config["build"]["geometry"]["dbscan_eps"] == base["geometry"]["dbscan_eps"]
         assert man.config["build"]["splat"] == base["splat"]
-        if c["geometry.min_points"] == 50:   # the cube is too small for the default: reported, no trials
+        if c["geometry.min_points_whole"] == 50:   # the cube is too small for 50: reported, no trials
             assert "yellow_cube" in c["error"] and "not usable" in c["error"] and c["trials"] is None
         else:
             assert c["error"] is None and c["trials"] == 2 and c["objects_usable"] == "5/5"
+            # whole by its masks: the cells' twins measure silhouette coverage as `build` does
+            assert man.object("yellow_cube").silhouette_coverage >= 0.5
             assert [c["ci95_lo"], c["ci95_hi"]] == list(wilson_interval(c["successes"], 2))
             trial_files = sorted(Path(out / "cells").glob("*/trials/*.json"))
             keys = [json.loads(f.read_text())["key"] for f in trial_files]

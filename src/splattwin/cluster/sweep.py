@@ -165,10 +165,11 @@ def fusion_task(folder: str, key: dict, splats: str, cameras: str, masks: str, o
 
 
 def twin_task(folder: str, key: dict, base_twin: str, labels: str, objects: list, geometry: dict, scene: str | None,
-              trial_spec, cpus: float, fusion: dict | None = None) -> dict:
+              trial_spec, cpus: float, fusion: dict | None = None, masks: str | None = None) -> dict:
     """A twin folder from the base twin's splats, `labels` and one GeometryOptions setting; its metrics
     (usable objects, F1 against the scene's ground truth when there is one) and whether the task can run
-    on it, in result.json."""
+    on it, in result.json. masks: the sweep's copy of the 2D masks (objects' silhouette coverage, as
+    `build` measures it), or None."""
     out = Path(folder)
     done = finished(out, key)
     if done is not None:
@@ -188,8 +189,13 @@ def twin_task(folder: str, key: dict, base_twin: str, labels: str, objects: list
     g = Gaussians.load_ply(_twin_file(base, bman.splats, "splat file"))
     lab = _labels(Path(labels), len(g))
     cameras = _twin_file(base, bman.cameras, "cameras file") if bman.cameras else None
+    ms = None
+    if masks is not None:
+        from splattwin.semantics.masks import load_masks
+
+        ms = load_masks(masks)
     man = build_twin(g, lab, [tuple(o) for o in objects], out, frame=bman.frame, cameras_path=cameras,
-                     options=from_dict(GeometryOptions, geometry), progress=False)
+                     options=from_dict(GeometryOptions, geometry), progress=False, masks=ms)
     if "target_frame" in bman.config:   # a scene fact the task needs (its goal region)
         man.config["target_frame"] = bman.config["target_frame"]
     # the resolved config of this twin: the base twin's, with this cell's geometry (and fusion) options
@@ -344,13 +350,24 @@ def plan_sweep(spec: SweepSpec, out: Path, fusion_base, geometry_base) -> tuple[
     if need_twin:
         ctx["splats"] = str(_twin_file(twin, man.splats, "splat file"))
         ctx["splats_sha"] = sha256_file(Path(ctx["splats"]))
+    ctx["masks"] = ctx["masks_sha"] = None
     if need_fusion:
         cameras = _twin_file(twin, man.cameras, "cameras file")
         ms = sweep_masks(twin, man, spec.masks, scene, load_dataset(cameras))
         ms.save(out / "masks")
         ctx.update(cameras=str(cameras), masks=str((out / "masks").resolve()),
                    masks_sha=sha256_file(out / "masks" / "masks.json"))
-    elif need_twin:
+    elif need_twin and man.cameras:
+        # the cells' twins judge their objects as `build` does: by splat count and silhouette coverage
+        try:
+            ms = sweep_masks(twin, man, spec.masks, scene, load_dataset(_twin_file(twin, man.cameras, "cameras file")))
+        except InputError as e:
+            log.warning("the cells' twins are built without 2D masks (objects judged by their splat count alone, "
+                        "not as the twin was): %s", e)
+        else:
+            ms.save(out / "masks")
+            ctx.update(masks=str((out / "masks").resolve()), masks_sha=sha256_file(out / "masks" / "masks.json"))
+    if need_twin and not need_fusion:
         ctx["labels"] = str(_twin_file(twin, man.labels, "labels file"))
         ctx["labels_sha"] = sha256_file(Path(ctx["labels"]))
         ctx["objects"] = [[o.name, o.label, o.prompt] for o in man.objects]
@@ -373,7 +390,7 @@ def plan_sweep(spec: SweepSpec, out: Path, fusion_base, geometry_base) -> tuple[
         if need_twin:
             gopts = to_dict(P.apply(geometry_base, parts["geometry"]))
             tkey = {"splats": ctx["splats_sha"], "labels": c["fusion"] or ctx["labels_sha"], "geometry": gopts,
-                    "scene": ctx["scene"], "task": task_key}
+                    "scene": ctx["scene"], "task": task_key, "masks": ctx["masks_sha"]}
             tid = _short(tkey)
             plan.twins.setdefault(tid, {"fusion": c["fusion"], "geometry": gopts, "key": tkey,
                                         "folder": out / "twins" / tid})
@@ -450,7 +467,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, executor: Executor, progress: bo
             labels, objects = ctx["labels"], ctx["objects"]
         fusion = plan.fusion[t["fusion"]]["options"] if t["fusion"] else None
         return Job(("twin", tid), twin_task, (str(t["folder"]), t["key"], str(twin.resolve()), labels, objects,
-                                             t["geometry"], ctx["scene"], spec.trial, cpus, fusion),
+                                             t["geometry"], ctx["scene"], spec.trial, cpus, fusion, ctx["masks"]),
                    Resources(cpus), name=f"sweep-twin-{tid}")
 
     def on_done(job: Job, o: Outcome):
