@@ -29,8 +29,9 @@ class SweepOptions:
     param: tuple[str, ...] = option((), "any other sweep parameter, TARGET.FIELD=V1,V2 ..., TARGET one of fusion, "
                                     "geometry, trials, e.g. fusion.depth_tol=0.01,0.02 trials.sigma_yaw=0.02,0.05")
     trials: int = option(20, "trials per cell (a cell without pose error runs one)")
-    masks: Path | None = option(None, "2D masks for the fusion cells (none: those the twin carries: its embedded "
-                                "scene or semantics/masks2d)", path=True)
+    masks: Path | None = option(None, "2D masks for the fusion cells and the objects' silhouette coverage in the "
+                                "cells' twins (none: those the twin carries: its embedded scene or "
+                                "semantics/masks2d)", path=True)
     scene: Path | None = option(None, "embedded-scene folder with ground truth for F1 (none: TWIN/scene when "
                                 "present)", path=True)
     resume: bool = option(True, "reuse finished fusion runs, twins and trials with the same key (--no-resume: redo "

@@ -53,8 +53,8 @@ class SweepSpec:
 
     grid: canonical parameter name ("fusion.kappa", "geometry.min_opacity", "trials.sigma", ...) -> values.
     trial: the trials' base spec (task, robot, base pose, seed, planner; sigma from the grid or its own).
-    trials: trials per cell. masks: 2D masks for fusion cells (default: those the twin was built with, when
-    it carries them). scene: embedded-scene folder with ground truth (default TWIN/scene when present).
+    trials: trials per cell. masks: 2D masks for fusion cells and for the silhouette coverage of the
+    cells' twins' objects (default: those the twin was built with, when it carries them). scene: embedded-scene folder with ground truth (default TWIN/scene when present).
     """
 
     twin: Path
