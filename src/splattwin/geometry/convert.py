@@ -18,8 +18,8 @@ import numpy as np
 import trimesh
 
 from splattwin.geometry.carving import depth_views, free_space_mask
-from splattwin.geometry.completeness import Coverage, coverage
-from splattwin.geometry.clustering import Plane, foot_bleed_mask, largest_cluster, split_background
+from splattwin.geometry.clustering import Plane, dbscan_labels, foot_bleed_mask, largest_cluster, split_background
+from splattwin.geometry.completeness import Coverage, consistent_clusters, coverage
 from splattwin.geometry.filtering import FilterStats, attribute_mask
 from splattwin.geometry.meshing import (add_bottom, downsample, ellipsoid_samples, level_radii, point_spacing, simplify,
                                         smooth, solid_mesh)
@@ -90,14 +90,28 @@ class Conversion:
 
 
 def clean_indices(g, labels: np.ndarray, label: int, opts: GeometryOptions, attribute: bool = True,
-                  cluster: bool = True, attr_keep: np.ndarray | None = None) -> np.ndarray:
-    """Indices of the Gaussians of `label` that survive the chosen cleaning (opts must be resolved)."""
+                  cluster: bool = True, attr_keep: np.ndarray | None = None, masks: list | None = None) -> np.ndarray:
+    """Indices of the Gaussians of `label` that survive the chosen cleaning (opts must be resolved).
+    masks: [(Camera, mask)] of the object: DBSCAN clusters besides the largest that lie inside them are
+    kept too (`GeometryOptions.rejoin_precision`, `completeness.consistent_clusters`)."""
     idx = np.flatnonzero(labels == label)
     if attribute:
         keep = attr_keep if attr_keep is not None else attribute_mask(g.opacities, g.scales, opts)[0]
         idx = idx[keep[idx]]
     if cluster and len(idx):
-        idx = idx[largest_cluster(g.means[idx], opts.dbscan_eps, opts.dbscan_min_samples, opts.dbscan_voxel)]
+        if not masks or opts.rejoin_precision <= 0:
+            return idx[largest_cluster(g.means[idx], opts.dbscan_eps, opts.dbscan_min_samples, opts.dbscan_voxel)]
+        cid = dbscan_labels(g.means[idx], opts.dbscan_eps, opts.dbscan_min_samples, opts.dbscan_voxel)
+        ids, counts = np.unique(cid[cid >= 0], return_counts=True)
+        if len(ids) == 0:
+            return idx[:0]
+        by_size = np.argsort(-counts, kind="stable")   # ties: the lowest id first, as largest_cluster
+        order, sizes = ids[by_size], counts[by_size]
+        # the largest always; of the rest those of at least min_samples splats, the 32 largest at most
+        rest = [int(k) for k, n in zip(order[1:], sizes[1:]) if n >= opts.dbscan_min_samples][:32]
+        kept = [int(order[0])] + consistent_clusters(g.subset(idx), cid, masks, rest, opts.rejoin_precision,
+                                                     max_views=max(opts.coverage_views, 1))
+        idx = idx[np.isin(cid, kept)]
     return idx
 
 
@@ -416,7 +430,9 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
     results = []
     with Progress(len(objects) + int(background), "geometry", unit="part", enabled=progress) as bar:
         t1 = time.perf_counter()
-        cleaned = {int(obj[1]): clean_indices(g, labels, obj[1], opts, attr_keep=keep) for obj in objects}
+        cleaned = {int(obj[1]): clean_indices(g, labels, obj[1], opts, attr_keep=keep,
+                                              masks=(masks or {}).get(int(obj[1])) if opts.coverage_views > 0 else None)
+                   for obj in objects}
         timings["cluster"] += time.perf_counter() - t1
         obj_idx = [i for i in cleaned.values() if len(i)]
         obj_pts = g.means[np.concatenate(obj_idx)] if obj_idx else None

@@ -32,6 +32,10 @@ class GeometryOptions:
     dbscan_min_samples: int = option(10, "DBSCAN min_samples", aliases=("min-samples",))
     dbscan_voxel: float | None = option(None, "voxel of the weighted DBSCAN on voxel centroids (none: eps / 4; 0: "
                                         "exact DBSCAN)", unit="m")
+    rejoin_precision: float = option(0.9, "a DBSCAN cluster other than the largest is kept too when its splats, "
+                                     "rendered alone, lie inside the object's 2D masks for this share (median over "
+                                     "views: a part of the object the gaps of a sparse real capture cut off, not a "
+                                     "floater; needs masks; 0: the largest cluster only, as the paper)")
     plane_distance: float = option(0.004, "RANSAC inlier distance for the table plane", unit="m")
     plane_iterations: int = option(500, "RANSAC iterations of the table plane fit")
     support_gap: float = option(0.02, "an obstacle cluster must come this close to the table", unit="m")
