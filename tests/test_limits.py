@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from splattwin.errors import InputError
@@ -48,3 +49,24 @@ def test_trajectory_yaml_is_read_with_the_bounded_loader(tmp_path):
     with pytest.raises(InputError, match="aliases") as e:
         Trajectory.load_ros2_yaml(p)
     assert e.value.path == p
+
+
+def test_16_bit_greyscale_photos_are_scaled_not_clipped(tmp_path):
+    """A mono16 frame (machine-vision and ROS cameras) was converted by PIL's clipping: every pixel above 255
+    of 65535 became white, and the capture trained on white images (12 dB, exit 0, no warning)."""
+    from PIL import Image
+
+    from splattwin.capture.dataset import load_image
+
+    ramp = (np.linspace(0, 65535, 64 * 48).reshape(48, 64)).astype(np.uint16)
+    p = tmp_path / "mono16.png"
+    Image.fromarray(ramp).save(p)
+    assert Image.open(p).mode.startswith("I")
+    img = load_image(p)
+    assert img.shape == (48, 64, 3) and np.allclose(img[..., 0], img[..., 2])
+    np.testing.assert_allclose(img[..., 0], ramp / 65535.0, atol=1 / 255)
+    assert 0.4 < img.mean() < 0.6   # clipped, it read 1.0 nearly everywhere
+    Image.fromarray(ramp.astype(np.float32)).save(tmp_path / "f.tif")
+    with pytest.raises(InputError, match="float image") as e:
+        load_image(tmp_path / "f.tif")
+    assert e.value.path == tmp_path / "f.tif"

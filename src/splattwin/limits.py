@@ -297,10 +297,27 @@ def check_image_complete(path: str | Path, what: str = "image") -> None:
                              f"interrupted copy or download?); copy it again or leave it out", path) from None
 
 
+# PIL modes of 16-bit (and 32-bit integer) greyscale images: machine-vision and ROS "mono16" frames
+_HIGH_BIT_GREY = ("I;16", "I;16B", "I;16L", "I;16N", "I")
+
+
 def read_image_array(path: str | Path, mode: str | None = None, what: str = "image") -> np.ndarray:
-    """Decoded image as a numpy array (optionally converted to a PIL mode such as "RGB")."""
+    """Decoded image as a numpy array (optionally converted to a PIL mode such as "RGB").
+
+    A 16-bit greyscale image converted to "RGB" or "L" is scaled from its 0..65535 range to 8 bits (PIL's
+    own conversion clips it: every pixel of a 16-bit photo above 255 became white, and training on such a
+    capture reported 12 dB without a word); a 32-bit float image is no photo and is refused."""
     with open_image(path, what) as im:
         im.load()
+        if mode in ("RGB", "L") and im.mode in _HIGH_BIT_GREY:
+            a = np.asarray(im)
+            if a.size and (int(a.min()) < 0 or int(a.max()) > 65535):
+                raise InputError(f"{what}: 32-bit integer pixel values outside 0..65535 ({im.mode}); save it as an "
+                                 f"8- or 16-bit image", path)
+            g8 = ((a.astype(np.uint32) * 255 + 32767) // 65535).astype(np.uint8)
+            return np.repeat(g8[..., None], 3, axis=2) if mode == "RGB" else g8
+        if mode in ("RGB", "L") and im.mode == "F":
+            raise InputError(f"{what}: a 32-bit float image (a depth or data map?), not a photo", path)
         return np.asarray(im.convert(mode) if mode is not None and im.mode != mode else im)
 
 
