@@ -99,6 +99,11 @@ def test_short_aliases_and_seed():
     assert (o.splat.iters, o.semantics.fusion.kappa, o.robot.task, o.robot.render, o.poses.method) == \
         (80, 2.0, "default", False, "sfm")
     assert (o.poses.seed, o.robot.seed, o.geometry.seed, o.splat.seed) == (4, 4, 4, 9)   # the flag wins
+    # the scale and intrinsics flags the messages name (the unscaled-twin warning, plan's refusal, SfM's
+    # advice) are build flags too: `build --known-length` was an unrecognized argument
+    k = resolve_options(p.parse_args(["build", "data", "--out", "t", "--known-length", "camera_height=0.4",
+                                      "--intrinsics", "500,500,320,240"]))
+    assert (k.poses.known_length, k.poses.intrinsics) == ("camera_height=0.4", "500,500,320,240")
     d = resolve_options(p.parse_args(["demo", "--views", "6", "--width", "96"]), demo=True)
     assert (d.scene.views, d.scene.width, d.poses.method, d.robot.task) == (6, 96, "known", "default")
     # the demo trains antialiased and refines its objects; build does neither unless asked; flags win

@@ -69,9 +69,10 @@ class PoseOptions:
     marker_id: int = option(0, "ArUco marker id")
     known_length: str | None = option(None, "metric scale for the table frame: camera_height=M (mean camera "
                                       "height above the table), camera_height@IMAGE=M, or baseline@IMG_A,IMG_B=M "
-                                      "(distance between two camera centres)")
+                                      "(distance between two camera centres)", build_alias="known-length")
     intrinsics: str | tuple[float, float, float, float] | None = option(
-        None, "known pinhole intrinsics 'fx,fy,cx,cy' in pixels (kept fixed), or 'dataset' to use the dataset's")
+        None, "known pinhole intrinsics 'fx,fy,cx,cy' in pixels (kept fixed), or 'dataset' to use the dataset's",
+        build_alias="intrinsics")
     camera_model: str = option("SIMPLE_RADIAL", "camera model when SfM estimates the intrinsics", choices=CAMERA_MODELS)
     shared_intrinsics: bool = option(True, "one camera for all images (--no-shared-intrinsics: one per image)")
     matcher: str = option("auto", "feature matching (auto: exhaustive for <= 50 images; beyond, sequential + loop "

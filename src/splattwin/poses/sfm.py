@@ -67,7 +67,8 @@ log = logging.getLogger(__name__)
 
 _ADVICE = ("try: more overlap between views (each part of the table seen from >= 3 views, "
            "neighbouring views 15-30 degrees apart), more texture in the scene, known intrinsics "
-           "(--intrinsics fx,fy,cx,cy), or known/robot poses (--known, --robot-poses)")
+           "(--intrinsics fx,fy,cx,cy), or known/robot poses (build --poses known / poses --method known, "
+           "--robot-poses)")
 
 # Relaxed retries map with this many random seeds (keeping the best) on captures of up to this many
 # images: mapping then takes < 1 s per run, and on the cake photos (guided matches) single runs registered
