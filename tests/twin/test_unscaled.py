@@ -105,3 +105,14 @@ def test_plan_refuses_with_how_to_scale(unscaled, capsys):
     err = capsys.readouterr().err
     assert "not metrically scaled" in err and "--known-length" in err and "--marker-size" in err
     assert "known poses" in err and "depth" in err
+
+
+def test_render_says_why_an_unscaled_twin_has_no_rollout(unscaled, metric, tmp_path, capsys):
+    """`render` told users to run `splattwin plan` first, which refuses every unscaled twin."""
+    from splattwin.cli import main
+
+    assert main(["render", str(unscaled), "--out", str(tmp_path / "a.mp4")]) == 2
+    err = capsys.readouterr().err
+    assert "unscaled" in err and "--known-length" in err and "run `splattwin plan TWIN` first" not in err
+    assert main(["render", str(metric), "--out", str(tmp_path / "b.mp4")]) == 2
+    assert "run `splattwin plan TWIN` first" in capsys.readouterr().err   # a metric twin: plan it

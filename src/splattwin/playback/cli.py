@@ -109,13 +109,20 @@ def run_render(args: argparse.Namespace) -> int:
         raise InputError(f"--width must be in [16, 8192], got {args.width}")
     if args.out.suffix.lower() != ".mp4":
         raise InputError("--out must name an .mp4 file", args.out)
+    rpath = args.rollout or args.twin / "robot" / "rollout.npz"
+    if not rpath.is_file():
+        from splattwin.twin.manifest import Manifest
+
+        if args.rollout is None and not Manifest.load(args.twin).frame.scaled:
+            # plan refuses a twin in SfM units, so "run plan first" could never work here
+            raise InputError("no rollout to play: this twin is unscaled (SfM units), and `splattwin plan` only plans "
+                             "in a metric twin; rebuild it with a metric scale (--known-length camera_height=M, "
+                             "--marker-size M or metric known poses), then plan, or give --rollout", rpath)
+        raise InputError("no rollout to play: run `splattwin plan TWIN` first (it writes robot/rollout.npz) or "
+                         "give --rollout", rpath)
     scene = DynamicScene.load(args.twin, fill_holes=not args.no_fill, view_fade=not args.keep_view_dependence,
                               relight=not args.no_relight)
     camera = resolve_camera(args.camera, args.twin, width=args.width)
-    rpath = args.rollout or args.twin / "robot" / "rollout.npz"
-    if not rpath.is_file():
-        raise InputError("no rollout to play: run `splattwin plan TWIN` first (it writes robot/rollout.npz) or "
-                         "give --rollout", rpath)
     rollout = Rollout.load(rpath)
     unknown = sorted(set(rollout.object_poses) - set(scene.objects))
     if unknown:
