@@ -7,6 +7,7 @@ from several cameras): each frame has its own camera, and SfM gives one camera m
 
 from __future__ import annotations
 
+import logging
 import math
 from pathlib import Path
 
@@ -14,6 +15,29 @@ from splattwin.capture.camera import Camera
 from splattwin.capture.dataset import Dataset, Frame, find_images, image_size
 from splattwin.capture.orientation import upright_copies
 from splattwin.errors import InputError
+
+log = logging.getLogger(__name__)
+
+
+def _drop_copies(files: list[Path]) -> list[Path]:
+    """`files` without byte-identical copies of an earlier file (a copy held out beside its original in
+    training scored 19 dB against 13 dB for a real held-out view, inflating the mean, and SfM gains nothing
+    from it); a warning names them."""
+    from splattwin.hashing import sha256_file
+
+    first: dict[str, Path] = {}
+    keep, copies = [], []
+    for p in files:
+        d = sha256_file(p)
+        if d in first:
+            copies.append(f"{p.name} (= {first[d].name})")
+        else:
+            first[d] = p
+            keep.append(p)
+    if copies:
+        log.warning("%d photo%s identical to another and left out: %s%s", len(copies),
+                    "s are" if len(copies) > 1 else " is", ", ".join(copies[:5]), ", ..." if len(copies) > 5 else "")
+    return keep
 
 
 def read(path: str | Path, fov_x_deg: float = 60.0, out_dir: str | Path | None = None) -> Dataset:
@@ -24,6 +48,7 @@ def read(path: str | Path, fov_x_deg: float = 60.0, out_dir: str | Path | None =
     files = find_images(folder)
     if not files:
         raise InputError("no images found (png/jpg/...)", folder)
+    files = _drop_copies(files)
     upright = upright_copies(files, None if out_dir is None else Path(out_dir), folder)
     frames = []
     for p in files:
