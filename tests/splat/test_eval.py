@@ -270,3 +270,24 @@ def test_views_are_never_upsampled_beyond_the_pixel_limit(tmp_path, monkeypatch)
     with pytest.raises(InputError, match="megapixels") as e:
         load_views(ds.frames, Resolution(1000))   # 1000 px wide from a small image: over the (lowered) limit
     assert e.value.path == ds.frames[0].image_path
+
+
+def test_a_view_no_longer_held_out_loses_its_old_comparison_image(tmp_path):
+    """After `--heldout-views` changed, eval/ kept the old held-out view's picture beside the new ones; only
+    the pictures the earlier metrics.json listed go (a user's own files in --out stay)."""
+    ds_root = helpers.make_dataset(tmp_path / "ds", n_train=3, n_heldout=1)
+    run = tmp_path / "run"
+    helpers.gt_gaussians().save_ply(run / "point_cloud.ply")
+    out = tmp_path / "eval"
+    names = ["train_000", "train_001", "train_002", "heldout_003"]
+
+    def held_out(view: str) -> list[str]:
+        record = {"source": "option", "rule": f"listed views ({view})", "views": [view]}
+        (run / "train.json").write_text(json.dumps({"views": [{"name": n} for n in names if n != view],
+                                                    "heldout": record}))
+        evaluate(run, ds_root, out, progress=False)
+        return sorted(p.name for p in out.glob("*.png"))
+
+    assert held_out("heldout_003") == ["heldout_003.png"]
+    (out / "notes.png").write_bytes(b"a user's own file")
+    assert held_out("train_001") == ["notes.png", "train_001.png"]

@@ -204,6 +204,26 @@ def training_record(path: Path) -> dict:
     return info
 
 
+def _remove_earlier_images(out: Path, keep: set[str]) -> None:
+    """Remove the comparison images an earlier evaluation into `out` listed in its metrics.json that this one
+    did not write (a view held out then and trained on now kept its old picture beside the new ones). Only
+    plain file names that metrics.json listed go, never anything else in the folder."""
+    from splattwin.limits import MAX_RECORD_BYTES, read_json
+
+    try:
+        prev = read_json(out / "metrics.json", max_bytes=MAX_RECORD_BYTES)
+    except InputError:
+        return
+    rows = prev.get("views") if isinstance(prev, dict) else None
+    for r in rows if isinstance(rows, list) else []:
+        name = r.get("image") if isinstance(r, dict) else None
+        if (isinstance(name, str) and name.endswith(".png") and name not in keep and name == Path(name).name
+                and not name.startswith(".")):
+            p = out / name
+            if p.is_file() and not p.is_symlink():
+                p.unlink()
+
+
 def _heldout_split(ds: Dataset, info: dict) -> tuple[list[Frame], list[Frame], dict]:
     """(held-out frames, the frames the splat was trained on, the hold-out record) of `ds` for the
     training record `info` (train.json, {} for a bare PLY).
@@ -371,6 +391,7 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
                         mean_psnr_right_corrected=float(np.mean([r["psnr_right_corrected"] for r in rows])),
                         **{f"mean_{k}": (float("nan") if x is None else x) for k, x in cov.items()})
     if out is not None:
+        _remove_earlier_images(out, {r["image"] for r in rows})
         result.metrics_path = write_json(out / "metrics.json", {
             "split": split, "mean_psnr": mean_psnr, "mean_ssim": mean_ssim, "n_views": len(rows),
             "mean_psnr_right_plain": result.mean_psnr_right_plain,
