@@ -196,3 +196,17 @@ def test_sweep_checks_the_twins_labels_file(tmp_path: Path, array, needle):
     with pytest.raises(InputError, match=needle) as e:
         _labels(p, 3)
     assert e.value.path == p
+
+
+def test_fusion_sweep_without_masks_says_why_the_recorded_path_is_not_used(tmp_path):
+    """twin.json records the masks a build read; sweep does not follow such a path (a twin may come from
+    someone else) and now says so instead of only asking for --masks."""
+    from types import SimpleNamespace
+
+    from splattwin.cluster.sweep import sweep_masks
+    from splattwin.errors import InputError
+
+    man = SimpleNamespace(objects=[], config={"build": {"semantics": {"masks": "/data/cake_masks"}}})
+    with pytest.raises(InputError, match=r"pass --masks DIR \(twin.json records '/data/cake_masks', which sweep does "
+                                         r"not follow"):
+        sweep_masks(tmp_path, man, None, None, None)

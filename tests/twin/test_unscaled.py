@@ -116,3 +116,21 @@ def test_render_says_why_an_unscaled_twin_has_no_rollout(unscaled, metric, tmp_p
     assert "unscaled" in err and "--known-length" in err and "run `splattwin plan TWIN` first" not in err
     assert main(["render", str(metric), "--out", str(tmp_path / "b.mp4")]) == 2
     assert "run `splattwin plan TWIN` first" in capsys.readouterr().err   # a metric twin: plan it
+
+
+def test_sweep_refuses_an_unscaled_twin_before_any_work(unscaled, tmp_path, capsys):
+    """sweep ran every cell's fusion and geometry on an unscaled twin, then failed each cell (exit 1)."""
+    from splattwin.cli import main
+
+    assert main(["sweep", str(unscaled), "--out", str(tmp_path / "sw"), "--kappa", "1.2,1.5", "--trials", "1"]) == 2
+    assert "not metrically scaled" in capsys.readouterr().err
+    assert not (tmp_path / "sw" / "fusion").exists() and not (tmp_path / "sw" / "twins").exists()
+
+
+def test_sweep_without_task_on_another_twin_asks_for_one(metric, tmp_path, capsys):
+    """Without --task sweep named the package's own default.yaml and its 'target_frame' region."""
+    from splattwin.cli import main
+
+    assert main(["sweep", str(metric), "--out", str(tmp_path / "sw"), "--sigma", "0.003", "--trials", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "no --task given" in err and "--task TASK.yaml" in err and "twin.json" in err

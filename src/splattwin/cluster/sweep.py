@@ -39,7 +39,7 @@ from splattwin import io
 from splattwin.hashing import sha256_file
 from splattwin.cluster import params as P
 from splattwin.executor import Executor, Job, Outcome, Resources, limit_threads
-from splattwin.errors import InputError
+from splattwin.errors import InputError, short_repr
 from splattwin.limits import MAX_RECORD_BYTES
 
 log = logging.getLogger(__name__)
@@ -127,7 +127,10 @@ def sweep_masks(twin: Path, manifest, masks: Path | None, scene: Path | None, da
             for view in [v for v in d if v not in train]:
                 del d[view]
         return ms
-    raise InputError("fusion parameters need the 2D masks the twin was built from: pass --masks DIR", twin)
+    recorded = ((manifest.config.get("build") or {}).get("semantics") or {}).get("masks")
+    hint = (f" (twin.json records {short_repr(recorded)}, which sweep does not follow: a twin may come from "
+            f"someone else, so only paths inside it are used)") if isinstance(recorded, str) else ""
+    raise InputError(f"fusion parameters need the 2D masks the twin was built from: pass --masks DIR{hint}", twin)
 
 
 # -- tasks (run in workers) -------------------------------------------------------------------------------
@@ -419,10 +422,20 @@ def run_sweep(spec: SweepSpec, out: str | Path, executor: Executor, progress: bo
         raise InputError(f"--trials must be in [1, {MAX_TRIALS}], got {spec.trials}")
     man = Manifest.load(twin)
     from splattwin.robot.task import load_task
+    from splattwin.twin.mjcf import check_scaled
 
-    load_task(spec.trial.task_path, man)       # a malformed task file fails now, not in every cell
-    if not {P.canonical(n).split(".")[0] for n in spec.grid} & {"fusion", "geometry"}:
-        _check_task(twin, man, spec.trial)     # every cell runs on this twin: it must take the task
+    # every cell's twin has this twin's frame: an unscaled one fails every cell's trials (after all the
+    # fusion and geometry work), so it is refused now, as `plan` refuses it
+    check_scaled(man, twin / "twin.json")
+    try:
+        load_task(spec.trial.task_path, man)       # a malformed task file fails now, not in every cell
+        if not {P.canonical(n).split(".")[0] for n in spec.grid} & {"fusion", "geometry"}:
+            _check_task(twin, man, spec.trial)     # every cell runs on this twin: it must take the task
+    except InputError as e:
+        if spec.trial.task_path is not None:
+            raise
+        raise InputError(f"no --task given, and the default task (the embedded demo scene's three steps) does not "
+                         f"fit this twin ({e.problem}): give yours with --task TASK.yaml", twin / "twin.json") from None
     fusion_base, geometry_base = base_options(twin, man)
     if not resume:
         for sub in ("fusion", "twins", "cells"):
