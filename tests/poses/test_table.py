@@ -52,14 +52,18 @@ def _check_metric_table_frame(gt, res):
     np.testing.assert_allclose(src[:, 2], tgt[:, 2], atol=0.01)
 
 
-def test_table_plane_with_camera_height(default_unscaled, sfm_default_dir):
+def test_table_plane_with_camera_height(default_unscaled, sfm_default_dir, caplog):
+    import logging
+
     from tests.poses.conftest import stripped
 
     gt, _ = default_unscaled
     h = float(np.mean([f.camera.center[2] for f in gt.frames]))
-    res = estimate_poses(stripped(gt), PoseOptions(method="sfm", work_dir=sfm_default_dir, progress=False,
-                                                   known_length=KnownLength("camera_height", h)))
+    with caplog.at_level(logging.INFO, logger="splattwin.poses.estimate"):
+        res = estimate_poses(stripped(gt), PoseOptions(method="sfm", work_dir=sfm_default_dir, progress=False,
+                                                       known_length=KnownLength("camera_height", h)))
     assert res.frame.source == "table_plane+known_length" and res.frame.scaled
+    assert "metric scale from" in caplog.text   # the log says which scale was applied, not only frame.json
     assert 0 < res.frame.scale_uncertainty_rel < 0.01
     _check_metric_table_frame(gt, res)
     assert res.depth_xyz is not None

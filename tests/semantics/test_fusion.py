@@ -220,3 +220,13 @@ def test_splat_renderers_match_raycast():
     lab = render_label_maps(g, s.gt[keep], [cam], 2, renderer="splat")[0]
     t = iou_table([lab], [lab_ref], [1, 2])
     assert np.nanmin(t) > 0.6 and np.nanmean(t) > 0.7
+
+
+def test_fusion_progress_says_when_it_converged_early(synth, capsys):
+    """The last line read "fusion rounds: 2/3 round done" after converging in 2 rounds: it looked unfinished."""
+    s = synth
+    res = fuse(s.means, s.views, s.masks, FusionOptions(iters=10), progress=True)
+    rounds = len(res.history)
+    err = capsys.readouterr().err
+    assert rounds < 10
+    assert f"converged after {rounds}" in err and f"{rounds}/{rounds}" in err and f"{rounds}/10" not in err

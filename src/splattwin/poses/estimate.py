@@ -231,6 +231,8 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
                                                    stats.get("mean_reproj_error", 0.5))
             S = np.diag([s, s, s, 1.0])
             T_out_in = S @ T_tab_in
+            log.info("metric scale from %s = %g m: x %.6g (SfM unit -> m), uncertainty %.1f %%", note,
+                     opts.known_length.value, s, 100.0 * unc if unc is not None else float("nan"))
             frame = TwinFrame(source="table_plane+known_length", scaled=True, scale_uncertainty_rel=unc,
                           description=f"table frame (RANSAC plane, z up, table top z = 0, origin near the table "
                                       f"centre); scale from {note} = {opts.known_length.value} m")

@@ -409,7 +409,11 @@ def fuse(means: np.ndarray, views: Sequence[View], masks: MaskSet, options: Fusi
         log.debug("fusion round %d: %s", it + 1, history[-1])
         bar.update(1)
         if not (new_floaters & ~floaters).any():
-            break  # the depth maps would not change: another round would repeat this one exactly
+            # the depth maps would not change: another round would repeat this one exactly
+            if it + 1 < max(opts.iters, 1):
+                bar.set_description(f"fusion rounds (converged after {it + 1})")
+                bar.set_total(it + 1)   # "2/3 rounds done" read as unfinished
+            break
         floaters = floaters | new_floaters
     bar.close()
     res = FusionResult(labels=labels, votes=votes.astype(np.float32), hits=hits, n_visible=n_vis,
