@@ -50,7 +50,7 @@ def test_orientation_tag_and_displayed_size(tmp_path):
     assert displayed_size(6, 4, 6) == (4, 6) and displayed_size(6, 4, 3) == (6, 4)
 
 
-def test_image_folder_reads_rotated_photos_upright(tmp_path):
+def test_image_folder_reads_rotated_photos_upright(tmp_path, caplog):
     rng = np.random.default_rng(0)
     src = tmp_path / "photos"
     src.mkdir()
@@ -72,11 +72,17 @@ def test_image_folder_reads_rotated_photos_upright(tmp_path):
         assert (f.image_path.parent == frames_dir / "upright") == rotated
         assert f.image_path == (frames_dir / "upright" / f"{f.name}.png" if rotated else src / f"{f.name}.png")
     assert ds.meta["exif_rotated"] == ["b.png", "c.png", "d.png", "e.png"]
-    # reused while the photos are unchanged; rewritten when one changes
+    # reused while the photos are unchanged (and said once: pre-flight, scene and poses each read the folder);
+    # rewritten when one changes
     copy_b = frames_dir / "upright" / "b.png"
     before = copy_b.stat().st_mtime_ns
-    load_dataset(src, frames_dir=frames_dir)
+    import logging
+
+    with caplog.at_level(logging.INFO, logger="splattwin.capture.orientation"):
+        load_dataset(src, frames_dir=frames_dir)
+        load_dataset(src, frames_dir=frames_dir)
     assert copy_b.stat().st_mtime_ns == before
+    assert caplog.text.count("photos are stored rotated") == 0   # announced by the first read above
     new_b = rng.integers(0, 255, (30, 40, 3), dtype=np.uint8)
     save_stored(src / "b.png", new_b, 6)
     os.utime(src / "b.png", ns=(before + 10**9, before + 10**9))

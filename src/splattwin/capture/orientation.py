@@ -121,6 +121,11 @@ def upright_copies(paths: list[Path], out_dir: Path | None, where: Path) -> dict
         from splattwin.io import write_json
 
         write_json(index_path, index)
-    log.info("%d of %d photos are stored rotated (EXIF Orientation) or as HEIC/HEIF: using upright PNG copies in "
-             "%s (%d written)", len(rotated), len(paths), folder, written)
+    if written or folder not in _ANNOUNCED:   # once per folder and run: pre-flight, scene and poses all read it
+        _ANNOUNCED.add(folder)
+        log.info("%d of %d photos are stored rotated (EXIF Orientation) or as HEIC/HEIF: using upright PNG copies "
+                 "in %s (%d written)", len(rotated), len(paths), folder, written)
     return out
+
+
+_ANNOUNCED: set[Path] = set()
