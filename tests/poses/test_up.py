@@ -228,3 +228,21 @@ def test_sfm_capture_without_a_level_plane_is_levelled_by_the_cameras(caplog):
     heights = pts @ plane.normal + plane.d
     assert np.mean(heights >= 0) == pytest.approx(0.98, abs=0.005)  # z = 0 at the lowest points
     assert ev["table"].startswith("none level") and "levelled by the cameras" in caplog.text
+
+
+def test_a_sloped_dominant_plane_is_taken_with_a_warning(caplog):
+    """Neither level (within 15 degrees of the cameras' up) nor a wall (beyond 60): the british_museum facade
+    became the "table" at 38 degrees without a word. Taken as before, with a warning."""
+    import logging
+
+    from splattwin.poses.up import table_plane_under_cameras
+
+    cams, pts = _tabletop()
+    with caplog.at_level(logging.WARNING, logger="splattwin.poses.up"):
+        plane, ev = table_plane_under_cameras(pts, cams)
+    assert ev["table"] == "dominant plane" and "is this a tabletop capture" not in caplog.text
+    sloped = pts @ Rotation.from_euler("x", 35, degrees=True).as_matrix().T
+    with caplog.at_level(logging.WARNING, logger="splattwin.poses.up"):
+        plane, ev = table_plane_under_cameras(sloped, cams)
+    assert ev["table"] == "dominant plane" and 30 < ev["dominant_plane_tilt_deg"] < 40
+    assert "is this a tabletop capture" in caplog.text

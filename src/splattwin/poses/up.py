@@ -273,6 +273,12 @@ def table_plane_under_cameras(points: np.ndarray, cameras: list[Camera], seed: i
     ev["dominant_plane_tilt_deg"] = round(ang, 2)
     if kind != "horizon" or strength < MIN_CAMERA_STRENGTH or ang <= WALL_TILT_DEG:
         ev["table"] = "dominant plane"
+        if kind == "horizon" and strength >= MIN_CAMERA_STRENGTH and ang > TABLE_TILT_DEG:
+            # neither level nor a wall: a sloped surface, or a capture of something other than a tabletop
+            # (the british_museum facade became the "table" at 38 degrees without a word)
+            log.warning("the table plane (the dominant plane, %d points) is %.0f degrees from the cameras' up: "
+                        "is this a tabletop capture? The twin's z axis follows that plane; check poses/cameras.png",
+                        plane.inliers.sum(), ang)
         return plane, ev
     try:
         table = fit_table_plane(pts, centres, seed=seed, up_hint=cam_up, max_tilt_deg=TABLE_TILT_DEG,
