@@ -97,6 +97,16 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
     fusion = _json(twin / "semantics" / "fusion.json")
     geo = _json(twin / "geometry_metrics.json")
     robot = _json(twin / "robot" / "results.json")
+    robot_stale = None
+    if robot is not None and man is not None:
+        from splattwin.robot.outputs import results_twin
+
+        # results of `plan` on an earlier twin (rebuilt since by hand: `geometry`, `build` without --task)
+        # are not this twin's: no robot figures, a note instead
+        robot_stale = results_twin(robot, twin)
+        if robot_stale is not None:
+            log.warning("report: robot results not shown: %s", robot_stale)
+            robot = None
     state = _json(twin / "pipeline.json") or {}
     if not isinstance(state, dict):
         state = {}
@@ -135,7 +145,7 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
     _guarded(_recon_section, rep.section("Reconstruction (3D Gaussian Splatting)"), twin, ev)
     _guarded(_semantics_section, rep.section("Semantic objects (visibility-aware fusion)"), twin, fusion)
     _guarded(_geometry_section, rep.section("Collision geometry"), twin, man, geo)
-    _guarded(_robot_section, rep.section("Robot task in physics (Franka Panda, MuJoCo)"), twin, robot)
+    _guarded(_robot_section, rep.section("Robot task in physics (Franka Panda, MuJoCo)"), twin, robot, robot_stale)
     if robot and "error" not in robot:
         from splattwin.report.playback import playback_section
 
@@ -343,7 +353,10 @@ def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
         sec.table(["export", "path"], [[k, v] for k, v in man.exports.items()])
 
 
-def _robot_section(sec: Section, twin: Path, robot: dict | None) -> None:
+def _robot_section(sec: Section, twin: Path, robot: dict | None, stale: str | None = None) -> None:
+    if stale:
+        sec.text(f"no robot results shown: {stale}.")
+        return
     if not robot:
         sec.text("no robot task run (splattwin plan TWIN, or build with --task)")
         return
