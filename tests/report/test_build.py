@@ -158,3 +158,25 @@ def test_report_shows_no_robot_results_of_another_twin(tmp_path):
     _robot_results(twin, None)           # an earlier splattwin's results: cannot be checked, not shown
     html = build_report(twin).read_text()
     assert "robustness" not in html and "no twin digest" in html
+
+
+def test_report_warns_when_pipeline_json_does_not_vouch_for_the_twin(tmp_path, caplog):
+    """`build --until splats` (or a build stopped after poses) keeps the earlier semantics/ and twin.json: the
+    report showed them beside the new splats with no word. pipeline.json recording no semantics/twin stage
+    now gives a warning, in the log and the report; a complete record, or no pipeline.json, none."""
+    twin = _manifest_twin(tmp_path, scaled=True)
+    (twin / "semantics").mkdir()
+    (twin / "semantics" / "fusion.json").write_text(json.dumps({"options": {"kappa": 1.5, "iters": 3}, "objects": []}))
+    assert "earlier build" not in build_report(twin).read_text()          # no pipeline.json: stages run by hand
+    rec = {"key": "k", "outputs": {}, "seconds": 1.0}
+    (twin / "pipeline.json").write_text(json.dumps({n: rec for n in ("scene", "poses", "splats")}))
+    with caplog.at_level("WARNING"):
+        html = build_report(twin).read_text()
+    note = ("semantics/fusion.json, twin.json are from an earlier build: stages semantics..report did not run "
+            "after the last splats")
+    assert note in html and note in caplog.text
+    (twin / "pipeline.json").write_text(json.dumps({n: rec for n in ("scene", "poses")}))   # Ctrl-C in training
+    assert "stages splats..report did not run after the last poses" in build_report(twin).read_text()
+    (twin / "pipeline.json").write_text(json.dumps({n: rec for n in ("scene", "poses", "splats", "semantics",
+                                                                         "twin", "robot", "report")}))
+    assert "earlier build" not in build_report(twin).read_text()
