@@ -149,6 +149,32 @@ def remove_stale(folder: str | Path, keep: set[str], suffix: str | None = None, 
     return removed
 
 
+def remove_files(folder: str | Path, names, empty_folder: bool = False) -> list[Path]:
+    """Remove the files `names` (plain names, no folders) from `folder`, where an earlier run wrote them.
+    Never follows a link (a link named so is removed itself, a linked `folder` is left alone); a folder
+    of that name is left alone. empty_folder: also remove `folder` itself when it is then empty.
+    Returns what went."""
+    folder = Path(folder)
+    removed: list[Path] = []
+    if folder.is_symlink() or not folder.is_dir():
+        return removed
+    for name in names:
+        if not name or "/" in name or name in (".", ".."):
+            raise ValueError(f"not a plain file name: {name!r}")
+        p = folder / name
+        if p.is_symlink() or p.is_file():
+            p.unlink()
+            removed.append(p)
+    if empty_folder:
+        try:
+            folder.rmdir()              # only when empty
+        except OSError:
+            pass
+    if removed:
+        log.info("removed %s of an earlier run", ", ".join(str(r) for r in removed))
+    return removed
+
+
 def write_bytes(path: str | Path, data: bytes) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)

@@ -14,9 +14,41 @@ def test_headline_names_the_twin_only_when_there_is_one(tmp_path, capsys, monkey
     assert "7080 Gaussians, heldout PSNR 14.30 dB" in out and "total 33 s" in out
     assert "twin.json" in out and "no twin.json" in out and "twin: " not in out
     (tmp_path / "twin.json").write_text("{}")
+    ctx.results["twin"] = {"manifest": "@twin.json"}
     _print_headline(ctx)
     out = capsys.readouterr().out
     assert f"twin: {tmp_path / 'twin.json'}" in out and "no twin.json" not in out
+
+
+def test_headline_names_only_stages_that_ran_or_are_recorded(tmp_path, capsys, monkeypatch):
+    """`build --until splats` on a finished folder printed the earlier build's `semantics: held-out mIoU` and
+    `twin: .../twin.json`, though neither stage ran (nor is recorded) this time."""
+    import json
+
+    monkeypatch.setenv("COLUMNS", "1000")
+    (tmp_path / "semantics").mkdir()
+    (tmp_path / "semantics" / "fusion.json").write_text(json.dumps({"miou_heldout": 0.49}))
+    (tmp_path / "geometry_metrics.json").write_text(json.dumps({"cake": {"f1": 0.8}}))
+    (tmp_path / "twin.json").write_text("{}")
+    splats = {"gaussians": 39995, "split": "heldout", "psnr": 10.71, "ssim": 0.4}
+    ctx = Context(out=tmp_path, options={}, timings={"poses": 1.0, "splats": 25.0},
+                  results={"scene": {}, "poses": {}, "splats": splats})
+    _print_headline(ctx)
+    out = capsys.readouterr().out
+    assert "39995 Gaussians" in out
+    assert "mIoU" not in out and "F1" not in out and "twin: " not in out
+    assert "twin.json there is from an earlier build: stages semantics..report did not run this time" in out
+    ctx.results.update(semantics={}, twin={})     # the later stages ran (or were found up to date)
+    _print_headline(ctx)
+    out = capsys.readouterr().out
+    assert "held-out mIoU 0.490" in out and "F1@5mm cake 0.800" in out and f"twin: {tmp_path / 'twin.json'}" in out
+
+
+def test_the_reports_stage_list_is_the_pipelines():
+    from splattwin.pipeline.options import STAGES
+    from splattwin.report.build import PIPELINE_STAGES
+
+    assert PIPELINE_STAGES == STAGES
 
 
 def test_headline_total_is_what_this_run_took(tmp_path, capsys, monkeypatch):

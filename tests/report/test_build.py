@@ -97,9 +97,12 @@ def test_report_shows_the_robot_options_that_made_the_results_not_the_twin_stage
     man = Manifest.load(twin)
     man.config["build"] = {"robot": {"task": None, "trials": 0}, "geometry": {"min_points": 50}}
     man.save(twin)
+    from splattwin.robot.outputs import twin_digest
+
     (twin / "robot").mkdir()
     (twin / "robot" / "results.json").write_text(json.dumps({
-        "error": "no usable object", "task": "default", "options": {"task": "default", "trials": 3, "seed": 5}}))
+        "error": "no usable object", "task": "default", "options": {"task": "default", "trials": 3, "seed": 5},
+        "twin_digest": twin_digest(twin)}))
     import html as htmllib
 
     html = htmllib.unescape(build_report(twin).read_text())
@@ -124,3 +127,56 @@ def test_report_shows_each_objects_silhouette_coverage(tmp_path):
     html = htmllib.unescape(build_report(twin).read_text())
     assert "masks covered" in html and "97%" in html and "21%" in html and "possibly incomplete" in html
     assert html.count("n/a") >= 1
+
+
+def _robot_results(twin: Path, digest) -> None:
+    (twin / "robot").mkdir(exist_ok=True)
+    step = {"index": 1, "pick": "cake", "goal": "region", "grasped": True, "placed": True, "at_rest": True,
+            "robot_collisions": 0, "object_collisions": 0, "success": True, "failure": None}
+    (twin / "robot" / "results.json").write_text(json.dumps({
+        "task": "task.yaml", "planner": "rrt", "nominal": {"success": True, "steps": [step]},
+        "trials": {"successes": 2, "trials": 2, "sigma": 0.005, "ci95": [0.3, 1.0], "collisions": 0},
+        **({"twin_digest": digest} if digest is not None else {})}))
+
+
+def test_report_shows_no_robot_results_of_another_twin(tmp_path):
+    """robot/ of a `plan` on an earlier twin (rebuilt since, e.g. the object renamed): the report showed
+    its task, steps and trials as this twin's. Now a note says why they are not shown."""
+    from splattwin.robot.outputs import twin_digest
+    from splattwin.twin.manifest import Manifest
+
+    twin = _manifest_twin(tmp_path, scaled=True)
+    _robot_results(twin, twin_digest(twin))
+    html = build_report(twin).read_text()
+    assert "robustness: 2/2 trials" in html and "task success" in html
+    man = Manifest.load(twin)            # the twin rebuilt: its object renamed
+    man.objects[0].name = "dessert"
+    man.save(twin)
+    html = build_report(twin).read_text()
+    assert "robustness" not in html and "task success" not in html and "<td>cake</td>" not in html
+    assert "no robot results shown" in html and "earlier state of this twin" in html
+    _robot_results(twin, None)           # an earlier splattwin's results: cannot be checked, not shown
+    html = build_report(twin).read_text()
+    assert "robustness" not in html and "no twin digest" in html
+
+
+def test_report_warns_when_pipeline_json_does_not_vouch_for_the_twin(tmp_path, caplog):
+    """`build --until splats` (or a build stopped after poses) keeps the earlier semantics/ and twin.json: the
+    report showed them beside the new splats with no word. pipeline.json recording no semantics/twin stage
+    now gives a warning, in the log and the report; a complete record, or no pipeline.json, none."""
+    twin = _manifest_twin(tmp_path, scaled=True)
+    (twin / "semantics").mkdir()
+    (twin / "semantics" / "fusion.json").write_text(json.dumps({"options": {"kappa": 1.5, "iters": 3}, "objects": []}))
+    assert "earlier build" not in build_report(twin).read_text()          # no pipeline.json: stages run by hand
+    rec = {"key": "k", "outputs": {}, "seconds": 1.0}
+    (twin / "pipeline.json").write_text(json.dumps({n: rec for n in ("scene", "poses", "splats")}))
+    with caplog.at_level("WARNING"):
+        html = build_report(twin).read_text()
+    note = ("semantics/fusion.json, twin.json are from an earlier build: stages semantics..report did not run "
+            "after the last splats")
+    assert note in html and note in caplog.text
+    (twin / "pipeline.json").write_text(json.dumps({n: rec for n in ("scene", "poses")}))   # Ctrl-C in training
+    assert "stages splats..report did not run after the last poses" in build_report(twin).read_text()
+    (twin / "pipeline.json").write_text(json.dumps({n: rec for n in ("scene", "poses", "splats", "semantics",
+                                                                         "twin", "robot", "report")}))
+    assert "earlier build" not in build_report(twin).read_text()

@@ -34,6 +34,9 @@ def test_plan_writes_trajectories_and_results(gt_twin_default: Path, tmp_path: P
     assert res["nominal"]["success"] and res["nominal"]["collisions"] == 0
     assert [s["success"] for s in res["nominal"]["steps"]] == [True, True, True]
     assert res["options"]["render"] is False and res["options"]["trials"] == 0   # what made these results
+    from splattwin.robot.outputs import results_twin
+
+    assert results_twin(res, twin) is None              # made on this twin, as it is (its digest recorded)
     tj = Trajectory.load_json(out / "trajectory.json")
     tc = Trajectory.load_csv(out / "trajectory.csv")
     ty = Trajectory.load_ros2_yaml(out / "trajectory.ros2.yaml")

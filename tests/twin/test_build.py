@@ -214,3 +214,55 @@ def test_a_rebuild_without_an_object_leaves_none_of_its_files(twin, tmp_path):
     assert not (out / "objects" / gone).exists() and not (out / "export" / f"{gone}.urdf").exists()
     assert all((out / "objects" / n).is_dir() and (out / "export" / f"{n}.urdf").is_file() for n in kept)
     assert (out / "export" / "notes.txt").read_text() == "mine" and (out / "export" / "scene.urdf").is_file()
+
+
+def _missing_references(export_dir):
+    """Files named in export/ (MJCF/URDF mesh file attributes) that do not exist."""
+    import re
+
+    missing = []
+    for f in export_dir.rglob("*"):
+        if f.suffix in (".xml", ".urdf"):
+            for rel in re.findall(r'(?:file|filename)="([^"]+)"', f.read_text()):
+                if not (f.parent / rel).is_file():
+                    missing.append(f"{f.name} -> {rel}")
+    return missing
+
+
+def test_a_rebuild_with_fewer_formats_leaves_no_stale_export(twin, tmp_path):
+    """A rebuild with `--export.formats mjcf` (new geometry) rewrote scene.xml only: the earlier scene.urdf,
+    <object>.urdf, moveit/* and scene.glb stayed, pointing at convex parts that were gone."""
+    import shutil
+
+    from splattwin.geometry.options import GeometryOptions
+
+    out = tmp_path / "t"
+    shutil.copytree(twin[0], out)
+    _, m, g, labels = twin
+    objects = [(o.name, o.label, o.prompt) for o in m.objects]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        build_twin(g, labels, objects, out, TwinFrame("ground_truth", scaled=True), progress=False)   # all formats
+    assert {"mjcf", "urdf", "moveit", "gltf"} == set(Manifest.load(out).exports)
+    assert (out / "export" / "moveit" / "scene.scene").is_file() and (out / "export" / "hammer.urdf").is_file()
+    (out / "export" / "notes.txt").write_text("mine")            # not ours to remove
+    (out / "export" / "moveit" / "my.launch").write_text("mine")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        build_twin(g, labels, objects, out, TwinFrame("ground_truth", scaled=True), formats=("mjcf",), progress=False,
+                   options=GeometryOptions(max_convex_parts=2))
+    exports = Manifest.load(out).exports
+    assert exports == {"mjcf": "export/scene.xml"}
+    left = sorted(p.relative_to(out / "export").as_posix() for p in (out / "export").rglob("*") if p.is_file())
+    assert left == ["moveit/my.launch", "notes.txt", "scene.xml"], left
+    assert not _missing_references(out / "export")
+    # a standalone `export` adds formats to an unchanged twin and keeps the others
+    assert main(["export", str(out), "--formats", "urdf"]) == 0
+    assert set(Manifest.load(out).exports) == {"mjcf", "urdf"} and not _missing_references(out / "export")
+    # a rebuild with no exports at all removes every one of ours; the moveit folder goes once empty
+    (out / "export" / "moveit" / "my.launch").unlink()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        build_twin(g, labels, objects, out, TwinFrame("ground_truth", scaled=True), formats=(), progress=False)
+    assert Manifest.load(out).exports == {}
+    assert sorted(p.name for p in (out / "export").iterdir()) == ["notes.txt"]

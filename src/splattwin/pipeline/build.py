@@ -35,6 +35,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from splattwin import io
 from splattwin.errors import InputError
 from splattwin.options import specs, to_dict
 from splattwin.pipeline.options import STAGES, BuildOptions  # noqa: F401 - STAGES re-exported
@@ -187,6 +188,7 @@ def _robot(ctx: Context) -> dict:
     from splattwin.robot.stage import RobotInputs, run
 
     if not ctx.config.robot.task:
+        _drop_stale_robot(ctx)
         return {}
     opts = ctx.config.robot
     if "robot" in ctx.fresh:  # --from robot (or earlier): run every trial again, reuse none
@@ -202,6 +204,28 @@ def _robot(ctx: Context) -> dict:
 
         record_result(recorder, opts.record, ctx.path("robot"), res.details, progress=ctx.progress)
     return record(res, ctx.out)
+
+
+def _drop_stale_robot(ctx: Context) -> None:
+    """No task this run, and the robot stage runs because the twin changed (or --from): results of a
+    `splattwin plan` run by hand on an earlier twin (another object, other meshes) would be shown by the
+    report and played by `render` as this twin's, so they go (`robot.outputs.remove_previous`: our own
+    file names only). Results made on this very twin (a deterministic rebuild) stay."""
+    from splattwin.robot.outputs import remove_previous, results_twin
+
+    out = ctx.path("robot")
+    rj = out / "results.json"
+    if out.is_symlink() or not rj.is_file():
+        return
+    try:
+        results = io.read_json(rj)
+    except InputError:
+        results = None
+    why = results_twin(results, ctx.out)
+    if why is None:
+        return
+    remove_previous(out)
+    log.warning("removed the robot results in %s: %s", out, why)
 
 
 def _robot_files(ctx: Context) -> dict:

@@ -126,6 +126,17 @@ def _total(ctx) -> str:
     return f"total {took} ({n} of {len(ctx.timings)} stages up to date, skipped: {', '.join(ctx.skipped)})"
 
 
+def _not_run_after(ctx) -> str:
+    """"stages semantics..report" : the stages after the last one this run ran or found up to date."""
+    from splattwin.pipeline.options import STAGES
+
+    done = [i for i, n in enumerate(STAGES) if n in ctx.results]
+    later = list(STAGES[(max(done) + 1) if done else 0:])
+    if not later:
+        return "no stage"
+    return f"stage {later[0]}" if len(later) == 1 else f"stages {later[0]}..{later[-1]}"
+
+
 def _print_headline(ctx) -> None:
     import json
 
@@ -137,8 +148,10 @@ def _print_headline(ctx) -> None:
     if "splats" in r and r["splats"]:
         s = r["splats"]
         con.print(f"reconstruction: {s['gaussians']} Gaussians, {s['split']} PSNR {s['psnr']:.2f} dB, SSIM {s['ssim']:.4f}")
+    # only stages this run ran or found up to date (ctx.results): after `--until splats` the semantics and
+    # twin of an earlier build are still on disk, but nothing vouches that they match the new splats
     fj = ctx.path("semantics/fusion.json")
-    if fj.is_file():
+    if "semantics" in r and fj.is_file():
         f = json.loads(fj.read_text())
         if f.get("miou_heldout") is not None:
             con.print(f"semantics: held-out mIoU {f['miou_heldout']:.3f}")
@@ -147,7 +160,7 @@ def _print_headline(ctx) -> None:
             con.print(f"semantics: held-out mIoU {f['miou_heldout_masks']:.3f} against the 2D masks of "
                       f"{plural(n, 'held-out view')} (not used by the fusion)")
     gj = ctx.path("geometry_metrics.json")
-    if gj.is_file():
+    if "twin" in r and gj.is_file():
         g = json.loads(gj.read_text())
         if g:
             con.print("geometry: F1@5mm " + ", ".join(f"{k} {v['f1']:.3f}" for k, v in g.items()))
@@ -156,8 +169,16 @@ def _print_headline(ctx) -> None:
     elif r.get("robot"):
         con.print(f"robot task: {'[green]success[/]' if r['robot']['success'] else '[red]failure[/]'}")
     twin = ctx.out / "twin.json"
-    # --until before the twin stage: name the folder, not a twin.json that is not there
-    where = f"twin: {twin}" if twin.is_file() else f"outputs in {ctx.out} (no twin.json: stopped before the twin stage)"
+    # --until before the twin stage: name the folder, not a twin.json that is not there (or is an earlier
+    # build's: kept, with the later stages' caches, for the next run to resume from)
+    if "twin" in r and twin.is_file():
+        where = f"twin: {twin}"
+    elif twin.is_file():
+        later = _not_run_after(ctx)
+        where = (f"outputs in {ctx.out} (twin.json there is from an earlier build: "
+                 f"{later} did not run this time; run build again without --until to update it)")
+    else:
+        where = f"outputs in {ctx.out} (no twin.json: stopped before the twin stage)"
     con.print(f"{_total(ctx)}; {where}")
     if r.get("report"):
         con.print(f"report: {ctx.out / r['report']['report'][1:]}")

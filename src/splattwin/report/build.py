@@ -82,6 +82,38 @@ def _mesh_views(meshes: list, cameras: list) -> list[np.ndarray]:
     return imgs
 
 
+# the pipeline's stages in order (`splattwin.pipeline.options.STAGES`: the report may not import the
+# pipeline, a layer above it; tests/pipeline checks the two agree) and the files of each that the report shows
+PIPELINE_STAGES = ("scene", "poses", "splats", "semantics", "twin", "robot", "report")
+_SHOWN = (("splats", ("splat/eval/metrics.json",)), ("semantics", ("semantics/fusion.json",)),
+          ("twin", ("twin.json", "geometry_metrics.json")))
+
+
+def unvouched(twin: str | Path) -> str | None:
+    """When TWIN/pipeline.json exists (a `build` made this folder) and does not record a stage whose files
+    are there (`build --until splats`, or a build stopped midway: the runner drops the records of every
+    stage from the one it re-runs, and keeps the later stages' folders, whose caches resume work), those
+    files are an earlier build's and may not match the newer ones beside them: a sentence saying so.
+    None when pipeline.json vouches for every file shown (or there is none: stages run by hand)."""
+    twin = Path(twin)
+    if not (twin / "pipeline.json").is_file():
+        return None
+    state = _json(twin / "pipeline.json")
+    state = state if isinstance(state, dict) else {}
+    stale = [(stage, rel) for stage, files in _SHOWN for rel in files
+             if stage not in state and (twin / rel).is_file()]
+    if not stale:
+        return None
+    done = [i for i, n in enumerate(PIPELINE_STAGES) if n in state]
+    later = PIPELINE_STAGES[(max(done) + 1) if done else 0:] or tuple(stage for stage, _ in stale)
+    last = f"after the last {PIPELINE_STAGES[max(done)]}" if done else "in the last build (pipeline.json records none)"
+    files = [rel for _, rel in stale]
+    return (f"{', '.join(files)} {'is' if len(files) == 1 else 'are'} from an earlier build: stages "
+            f"{later[0]}..{later[-1]} did not run {last}, so {'it' if len(files) == 1 else 'they'} may not match "
+            f"the newer outputs shown beside {'it' if len(files) == 1 else 'them'} (run `splattwin build` again "
+            f"without --until to bring them up to date)")
+
+
 def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib: dict | None = None,
                  options=None) -> Path:
     """Write TWIN/report/index.html. options: `report.options.ReportOptions` (the task video)."""
@@ -97,6 +129,16 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
     fusion = _json(twin / "semantics" / "fusion.json")
     geo = _json(twin / "geometry_metrics.json")
     robot = _json(twin / "robot" / "results.json")
+    robot_stale = None
+    if robot is not None and man is not None:
+        from splattwin.robot.outputs import results_twin
+
+        # results of `plan` on an earlier twin (rebuilt since by hand: `geometry`, `build` without --task)
+        # are not this twin's: no robot figures, a note instead
+        robot_stale = results_twin(robot, twin)
+        if robot_stale is not None:
+            log.warning("report: robot results not shown: %s", robot_stale)
+            robot = None
     state = _json(twin / "pipeline.json") or {}
     if not isinstance(state, dict):
         state = {}
@@ -125,6 +167,10 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
     if man and not man.frame.scaled:
         kpis["scale"] = "unscaled"
     head.kpis(kpis)
+    stale = unvouched(twin)
+    if stale:
+        log.warning("report: %s", stale)
+        head.text(f"WARNING: {stale}.")
     if man and not man.frame.scaled:
         from splattwin.twin.manifest import unscaled_note
 
@@ -135,7 +181,7 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
     _guarded(_recon_section, rep.section("Reconstruction (3D Gaussian Splatting)"), twin, ev)
     _guarded(_semantics_section, rep.section("Semantic objects (visibility-aware fusion)"), twin, fusion)
     _guarded(_geometry_section, rep.section("Collision geometry"), twin, man, geo)
-    _guarded(_robot_section, rep.section("Robot task in physics (Franka Panda, MuJoCo)"), twin, robot)
+    _guarded(_robot_section, rep.section("Robot task in physics (Franka Panda, MuJoCo)"), twin, robot, robot_stale)
     if robot and "error" not in robot:
         from splattwin.report.playback import playback_section
 
@@ -343,7 +389,10 @@ def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
         sec.table(["export", "path"], [[k, v] for k, v in man.exports.items()])
 
 
-def _robot_section(sec: Section, twin: Path, robot: dict | None) -> None:
+def _robot_section(sec: Section, twin: Path, robot: dict | None, stale: str | None = None) -> None:
+    if stale:
+        sec.text(f"no robot results shown: {stale}.")
+        return
     if not robot:
         sec.text("no robot task run (splattwin plan TWIN, or build with --task)")
         return

@@ -14,6 +14,10 @@
                                  (`track.RobotTrack`; this module is its only writer)
     frames/frame_*.png           rendered frames (when an offscreen GL context exists)
 
+results.json records `twin_digest` (`twin_digest`: twin.json less its timings, versions, exports and
+build options, and the meshes' contents): results of another twin (rebuilt since with other objects or
+geometry) are told apart by `results_twin` (the report then shows none, the pipeline removes them).
+
 OUT holds one run: once its task is valid, a run first removes every file of these names left by an
 earlier run (`remove_previous`; results.json first, trials/<i> beyond this run's N), then writes its
 own, results.json last. A killed run therefore leaves no results.json and only files of its own.
@@ -76,6 +80,51 @@ def remove_previous(out: str | Path, keep_trials: int = 0) -> list[Path]:
     return removed
 
 
+# twin.json entries that do not change what the robot plans in: run times, package versions, the export
+# files written, the build's recorded options (`config.build`: the twin's content is the rest)
+_UNPLANNED = ("timings", "versions", "exports")
+
+
+def twin_digest(twin_dir: str | Path) -> str | None:
+    """A digest of the twin as the robot plans in it: twin.json (less `_UNPLANNED` and config.build, so a
+    deterministic rebuild of the same twin keeps its digest) and the contents of the meshes it names.
+    None when twin.json is unreadable."""
+    import hashlib
+    import json
+
+    from splattwin.errors import InputError
+    from splattwin.robot.trials import _twin_meshes_digest
+
+    try:
+        doc = io.read_json(Path(twin_dir) / "twin.json")
+    except InputError:
+        return None
+    if not isinstance(doc, dict):
+        return None
+    doc = {k: v for k, v in doc.items() if k not in _UNPLANNED}
+    if isinstance(doc.get("config"), dict):
+        doc["config"] = {k: v for k, v in doc["config"].items() if k != "build"}
+    h = hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode())
+    h.update(str(_twin_meshes_digest(twin_dir)).encode())
+    return h.hexdigest()
+
+
+def results_twin(results, twin_dir: str | Path) -> str | None:
+    """None when robot results (results.json, loaded) were made on the twin as it is now; else why they do
+    not belong to it (a sentence): made on another twin (rebuilt since), or recording no twin at all
+    (an earlier splattwin's results: they cannot be vouched for)."""
+    if not isinstance(results, dict):
+        return "robot/results.json is unreadable"
+    made_on = results.get("twin_digest")
+    if not isinstance(made_on, str):
+        return ("robot/results.json records no twin digest (written by an earlier splattwin): it cannot be "
+                "checked against this twin")
+    if made_on != twin_digest(twin_dir):
+        return ("robot/results.json was made on an earlier state of this twin (its objects or meshes have "
+                "changed since): rerun `splattwin plan` (or build with --task)")
+    return None
+
+
 def write_outputs(out: str | Path, spec, result, trials: dict | None, render_note: str = "",
                   frames: list[Path] | None = None, wall_s: float | None = None,
                   options: dict | None = None) -> dict[str, Path]:
@@ -110,6 +159,7 @@ def write_outputs(out: str | Path, spec, result, trials: dict | None, render_not
         "trials": trials,
         "frames": [str(Path(f).relative_to(out)) for f in (frames or [])],
         "notes": notes, "wall_s": wall_s,
+        "twin_digest": twin_digest(spec.twin_dir),   # the twin these results belong to (`results_twin`)
         **({"options": options} if options is not None else {}),
     }
     paths["results"] = io.write_json(out / "results.json", doc)

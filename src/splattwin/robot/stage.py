@@ -50,7 +50,7 @@ def run(inputs: RobotInputs, options: RobotOptions, *, progress: bool = True,
     except InputError as e:
         if not record_errors:
             raise
-        return _error_result(out, e, options)
+        return _error_result(out, e, options, Path(inputs.twin_dir))
     spec = TrialSpec.from_options(inputs.twin_dir, options)
     t0 = time.perf_counter()
     try:
@@ -62,7 +62,7 @@ def run(inputs: RobotInputs, options: RobotOptions, *, progress: bool = True,
     except InputError as e:
         if not record_errors:
             raise
-        return _error_result(out, e, options)
+        return _error_result(out, e, options, Path(inputs.twin_dir))
     # trials land in OUT/trials/<i>.json: a killed run resumes them
     trials = None
     if options.trials > 0:
@@ -82,11 +82,12 @@ def run(inputs: RobotInputs, options: RobotOptions, *, progress: bool = True,
                        details={"run": result, "trials": trials, "paths": paths})
 
 
-def _error_result(out: Path, e: InputError, options: RobotOptions) -> RobotResult:
+def _error_result(out: Path, e: InputError, options: RobotOptions, twin_dir: Path) -> RobotResult:
     """results.json saying why the task could not run, alone in OUT (no earlier run's files beside it)."""
     from splattwin import io
-    from splattwin.robot.outputs import remove_previous
+    from splattwin.robot.outputs import remove_previous, twin_digest
 
     remove_previous(out)
-    path = io.write_json(out / "results.json", {"error": str(e), "task": options.task})
+    path = io.write_json(out / "results.json", {"error": str(e), "task": options.task,
+                                                "twin_digest": twin_digest(twin_dir)})
     return RobotResult(results=path, success=False, error=str(e))

@@ -170,28 +170,63 @@ def _exporter(fmt: str):
     return getattr(mod, f"export_{fmt}")
 
 
-def export_twin(twin_dir: str | Path, manifest: Manifest | None = None, formats=FORMATS) -> Manifest:
+# the files each exporter writes under TWIN/export/ (urdf: also one <object>.urdf per usable object)
+EXPORT_FILES = {
+    "mjcf": ("scene.xml",),
+    "urdf": ("scene.urdf",),
+    "moveit": ("moveit/scene.scene", "moveit/scene_boxes.scene", "moveit/collision_objects.yaml",
+               "moveit/collision_objects_boxes.yaml"),
+    "gltf": ("scene.glb",),
+}
+
+
+def remove_exports(twin_dir: str | Path, formats) -> list[Path]:
+    """Remove the files of the exports `formats` from TWIN/export/: only our own file names (every
+    *.urdf for urdf), never through a link; export/moveit/ goes when it is then empty. Returns what went."""
+    out = Path(twin_dir) / "export"
+    removed: list[Path] = []
+    if out.is_symlink() or not out.is_dir():
+        return removed
+    for fmt in formats:
+        if fmt == "urdf":
+            removed += io.remove_stale(out, set(), suffix=".urdf")
+        by_folder: dict[str, list[str]] = {}
+        for rel in EXPORT_FILES.get(fmt, ()):
+            folder, _, name = rel.rpartition("/")
+            by_folder.setdefault(folder, []).append(name)
+        for folder, names in by_folder.items():
+            removed += io.remove_files(out / folder if folder else out, names, empty_folder=bool(folder))
+    return removed
+
+
+def export_twin(twin_dir: str | Path, manifest: Manifest | None = None, formats=FORMATS, prune: bool = False) -> Manifest:
     """Run the exporters on a twin folder and record their outputs and timings in the manifest (saved).
     See `write_exports`; returns the manifest."""
     twin_dir = Path(twin_dir)
     manifest = manifest or Manifest.load(twin_dir)
-    write_exports(twin_dir, manifest, formats)
+    write_exports(twin_dir, manifest, formats, prune=prune)
     return manifest
 
 
-def write_exports(twin_dir: str | Path, manifest: Manifest, formats=FORMATS) -> dict[str, str]:
+def write_exports(twin_dir: str | Path, manifest: Manifest, formats=FORMATS, prune: bool = False) -> dict[str, str]:
     """Run the exporters of `formats`; returns {format: path relative to the twin} of those written now.
 
-    `manifest.exports` (saved) then records what is on disk: the formats written now, plus exports of
-    earlier runs whose file is still there (an export only reads the twin, so they still describe it);
-    an earlier export whose file is gone is dropped, so twin.json never lists a missing file.
+    prune=False (`splattwin export` on an unchanged twin): `manifest.exports` (saved) then records what is
+    on disk: the formats written now, plus exports of earlier runs whose file is still there (an export
+    only reads the twin, so they still describe it); an earlier export whose file is gone is dropped,
+    so twin.json never lists a missing file.
+    prune=True (the geometry was just rebuilt, `build_twin`): earlier exports describe meshes that are
+    gone, so the files of every format not written now (not asked for, or its exporter unavailable)
+    are removed (`remove_exports`) and twin.json lists only this run's exports.
     Each exporter writes its files atomically (temporary name, then rename), so a re-export replaces
     files whole or not at all. Unknown formats raise InputError."""
     twin_dir = Path(twin_dir)
     check_formats(manifest.frame, formats, twin_dir / "twin.json")
+    if prune:   # before exporting: a failing exporter then leaves no stale file of another format behind
+        remove_exports(twin_dir, [f for f in FORMATS if f not in formats])
     # drop before exporting: an exporter may save the manifest itself (export_mjcf does)
     for fmt, rel in list(manifest.exports.items()):
-        if not (twin_dir / rel).is_file():   # rel was confined to the twin folder when loaded
+        if (prune and fmt not in formats) or not (twin_dir / rel).is_file():   # rel was confined to the twin folder when loaded
             log.info("export %s (%s) no longer exists; dropped from twin.json", fmt, rel)
             del manifest.exports[fmt]
     written: dict[str, str] = {}
@@ -199,6 +234,9 @@ def write_exports(twin_dir: str | Path, manifest: Manifest, formats=FORMATS) -> 
         fn = _exporter(fmt)
         if fn is None:
             log.warning("export format %s not available yet (splattwin.twin.%s missing); skipped", fmt, fmt)
+            if prune:
+                remove_exports(twin_dir, [fmt])
+                manifest.exports.pop(fmt, None)
             continue
         t0 = time.perf_counter()
         path = Path(fn(twin_dir, manifest))
@@ -290,4 +328,5 @@ def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path
     manifest.timings["write"] = round(time.perf_counter() - t1, 4)
     manifest.timings["geometry"] = round(t1 - t0, 4)
     manifest.save(out_dir)
-    return export_twin(out_dir, manifest, formats)
+    # the geometry was rebuilt: exports of formats not written now would describe meshes that are gone
+    return export_twin(out_dir, manifest, formats, prune=True)
