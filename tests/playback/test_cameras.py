@@ -124,3 +124,28 @@ def test_render_with_nan_recorded_base_pose_exits_2_naming_results_json(tiny_twi
     code = main(["render", str(twin), "--camera", "capture:0", "--out", str(tmp_path / "v.mp4"), "--rollout", str(r)])
     assert code == 2 and "results.json" in capsys.readouterr().err
     assert not (tmp_path / "v.mp4").exists()
+
+
+def test_render_refuses_the_rollout_of_an_earlier_twin(tiny_twin, tmp_path, capsys):
+    """After a rebuild without --task, robot/rollout.npz of an earlier twin was played as this twin's (an
+    arm moving nothing). It plays only when results.json was made on the twin as it is now."""
+    import json
+    import shutil
+
+    from splattwin.robot.outputs import twin_digest
+
+    from .rollouts import synthetic_rollout
+
+    twin = tmp_path / "twin"
+    shutil.copytree(tiny_twin, twin)
+    (twin / "robot").mkdir(exist_ok=True)
+    synthetic_rollout(0.1).save(twin / "robot" / "rollout.npz")
+    below = tmp_path / "below.yaml"
+    below.write_text("eye: [0.1, 0.1, -0.3]\nlook_at: [0, 0, 0]\n")
+    args = ["render", str(twin), "--camera", str(below), "--out", str(tmp_path / "v.mp4"), "--no-robot"]
+    for digest, expect in (("an earlier twin", "not this twin's to play"), (None, "no twin digest"),
+                           (twin_digest(twin), "below the table")):   # this twin's: played (the camera fails)
+        doc = {"success": True} if digest is None else {"success": True, "twin_digest": digest}
+        (twin / "robot" / "results.json").write_text(json.dumps(doc))
+        assert main(args) == 2
+        assert expect in capsys.readouterr().err
