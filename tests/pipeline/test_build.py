@@ -87,6 +87,7 @@ def test_report_in_chromium(built, tmp_path):
     html = (built / "report" / "index.html").read_text()
     for title in ("Reconstruction", "Semantic objects", "Collision geometry", "Timings"):
         assert title in html
+    assert "before the KNN boundary smoothing" in html   # the κ rows differ from the headline: says why
     png = screenshot((built / "report" / "index.html").as_uri(), tmp_path / "report.png", 1200, 2400, budget_ms=3000)
     img = np.asarray(Image.open(png).convert("RGB")).astype(int)
     # content, not an empty page: many colours (the embedded pictures) over a large part of the page

@@ -329,7 +329,9 @@ def _semantics_section(sec: Section, twin: Path, fusion: dict | None) -> None:
     if m:
         sec.table(["metric", "value"], m)
     if fusion.get("kappa_sweep"):
-        sec.text("κ sweep (τ = N/κ): 3D projection consistency (% of labelled points with N_fg/N ≥ 0.8) and ghost index (%).")
+        sec.text("κ sweep (τ = N/κ): 3D projection consistency (% of labelled points with N_fg/N ≥ 0.8) and ghost index (%), "
+                 "each κ's consensus before the KNN boundary smoothing (so the row of the κ used may differ a little "
+                 "from the figures above, which are after it).")
         sec.table(["κ", "consistency (%)", "ghost index (%)"],
                   [[r["kappa"], r["consistency"], r["ghost_index"]] for r in fusion["kappa_sweep"]])
     heldout = set(fusion.get("miou_heldout_masks_views") or [])
