@@ -180,3 +180,15 @@ def test_report_warns_when_pipeline_json_does_not_vouch_for_the_twin(tmp_path, c
     (twin / "pipeline.json").write_text(json.dumps({n: rec for n in ("scene", "poses", "splats", "semantics",
                                                                          "twin", "robot", "report")}))
     assert "earlier build" not in build_report(twin).read_text()
+
+
+def test_a_splats_only_report_names_the_poses_frame(tmp_path):
+    """`build --until splats` leaves no twin.json: the header said "frame: n/a" for an unscaled capture."""
+    from splattwin import io
+    from splattwin.poses.twin_frame import TwinFrame
+
+    twin = _twin(tmp_path, **{"views": [{"name": "heldout_003", "psnr": 24.0, "ssim": 0.8}]})
+    assert not (twin / "twin.json").exists()
+    io.write_json(twin / "poses" / "frame.json", vars(TwinFrame(source="unscaled", scaled=False)))
+    html = build_report(twin).read_text()
+    assert "frame: unscaled (UNSCALED, unscaled" in html and "frame: n/a" not in html

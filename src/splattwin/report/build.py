@@ -114,6 +114,17 @@ def unvouched(twin: str | Path) -> str | None:
             f"without --until to bring them up to date)")
 
 
+def _poses_frame(twin: Path):
+    """The poses stage's frame (TWIN/poses/frame.json), or None (absent or unreadable)."""
+    from splattwin.poses.twin_frame import load_frame
+
+    p = twin / "poses" / "frame.json"
+    try:
+        return load_frame(p) if p.is_file() else None
+    except InputError:
+        return None
+
+
 def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib: dict | None = None,
                  options=None) -> Path:
     """Write TWIN/report/index.html. options: `report.options.ReportOptions` (the task video)."""
@@ -121,9 +132,10 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
 
     twin = Path(twin_dir)
     man = Manifest.load(twin) if (twin / "twin.json").is_file() else None
+    fr = man.frame if man else _poses_frame(twin)   # a folder built --until splats has the poses' frame
     rep = Report(f"splattwin twin — {twin.resolve().name}",
                  f"generated {_dt.datetime.now().strftime('%Y-%m-%d %H:%M')} · frame: "
-                 + (f"{man.frame.source} ({'metric' if man.frame.scaled else 'UNSCALED'}, {man.frame.units}, z {man.frame.up})" if man else "n/a"))
+                 + (f"{fr.source} ({'metric' if fr.scaled else 'UNSCALED'}, {fr.units}, z {fr.up})" if fr else "n/a"))
     poses = _json(twin / "poses" / "poses_report.json")
     ev = _json(twin / "splat" / "eval" / "metrics.json")
     fusion = _json(twin / "semantics" / "fusion.json")
