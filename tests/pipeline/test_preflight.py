@@ -214,3 +214,26 @@ def test_truncated_photo_stops_the_build_before_sfm_naming_the_users_file(tmp_pa
     assert cli(["poses", str(imgs), str(tmp_path / "p")]) == 2
     assert f"{bad}: image is truncated" in capsys.readouterr().err
     assert not (tmp_path / "p" / "transforms.json").exists() and not (tmp_path / "p" / "sfm").exists()
+
+
+def test_a_preflight_failure_on_rotated_photos_leaves_no_folder(tmp_path, capsys):
+    """The pre-flight writes upright copies of EXIF-rotated photos into OUT/capture/frames/upright; when it
+    then failed (no masks), that folder stayed behind in an output folder the run had created."""
+    from PIL import Image
+
+    src = tmp_path / "imgs"
+    src.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(6):
+        ex = Image.Exif()
+        ex[0x0112] = 6   # stored rotated: shown turned 90 degrees
+        Image.fromarray(rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)).save(src / f"img_{i:02d}.png", exif=ex)
+    out = tmp_path / "twin"
+    code = cli(["build", str(src), "--out", str(out), "--task", "default", "--no-progress"])
+    assert code == 2 and "--task needs a metric twin" in capsys.readouterr().err
+    assert not out.exists()
+    # a folder that was there before keeps what it held
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    assert cli(["build", str(src), "--out", str(out), "--task", "default", "--no-progress"]) == 2
+    assert (out / "notes.txt").is_file() and (out / "capture" / "frames" / "upright").is_dir()

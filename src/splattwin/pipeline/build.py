@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import shutil
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -348,8 +349,16 @@ def build(out: str | Path, options: BuildOptions, from_stage: str | None = None,
 
     ctx = _context(out, options, progress)
     t0 = time.perf_counter()
+    created = not out.exists()
     with output_lock(out):
-        preflight(ctx, until)
+        try:
+            preflight(ctx, until)
+        except BaseException:
+            # the pre-flight reads the capture, writing upright copies of EXIF-rotated photos into
+            # OUT/capture/frames/: a run that fails here in a folder it created leaves no folder behind
+            if created and not (out / "capture").is_symlink():
+                shutil.rmtree(out / "capture", ignore_errors=True)
+            raise
         run_stages(stages(), ctx, from_stage=from_stage, until=until, on_stage=on_stage)
     ctx.wall_s = time.perf_counter() - t0   # with the pre-flight
     return ctx
