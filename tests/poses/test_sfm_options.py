@@ -220,6 +220,17 @@ def test_plain_progress_lines_when_not_a_tty(monkeypatch):
         p.update("SfM: matching", 36, 36)
     assert buf.getvalue().splitlines() == ["SfM: SIFT features: 0/9 (0 s)", "SfM: SIFT features: 9/9 (2 s)",
                                            "SfM: matching: 0/36 (0 s)", "SfM: matching: 36/36 (3 s)"]
+    # a one-off message (a retry starting) comes after the current stage's last count, not before it
+    buf = _io.StringIO()
+    with prog.StageProgress(True, stream=buf, interval=5.0) as p:
+        p.update("SfM: incremental mapping", 1, 8)
+        clock[0] += 1
+        p.update("SfM: incremental mapping", 2, 8)
+        p.message("SfM: 2/8 images registered; retrying with relaxed thresholds")
+        p.update("SfM retry 1/3: SIFT features", 0, 8)
+    assert buf.getvalue().splitlines() == ["SfM: incremental mapping: 1/8 (0 s)", "SfM: incremental mapping: 2/8 (1 s)",
+                                           "SfM: 2/8 images registered; retrying with relaxed thresholds",
+                                           "SfM retry 1/3: SIFT features: 0/8 (0 s)"]
     quiet = _io.StringIO()
     with prog.StageProgress(False, stream=quiet) as p:
         p.update("x", 1, 2)

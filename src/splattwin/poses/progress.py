@@ -82,6 +82,9 @@ class StageProgress:
         if self._rich is not None:
             self._rich.console.print(text, markup=False, highlight=False)
         else:
+            # the current stage's last count first: it was printed after the retry's first lines, with a
+            # count that contradicted the message ("retrying ... 2/8 registered", then "mapping: 3/8")
+            self._finish()
             self.stream.write(f"{text}\n")
             self.stream.flush()
 
