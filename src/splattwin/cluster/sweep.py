@@ -354,12 +354,11 @@ def plan_sweep(spec: SweepSpec, out: Path, fusion_base, geometry_base) -> tuple[
         ctx["splats"] = str(_twin_file(twin, man.splats, "splat file"))
         ctx["splats_sha"] = sha256_file(Path(ctx["splats"]))
     ctx["masks"] = ctx["masks_sha"] = None
+    ms = None
     if need_fusion:
         cameras = _twin_file(twin, man.cameras, "cameras file")
+        ctx["cameras"] = str(cameras)
         ms = sweep_masks(twin, man, spec.masks, scene, load_dataset(cameras))
-        ms.save(out / "masks")
-        ctx.update(cameras=str(cameras), masks=str((out / "masks").resolve()),
-                   masks_sha=sha256_file(out / "masks" / "masks.json"))
     elif need_twin and man.cameras:
         # the cells' twins judge their objects as `build` does: by splat count and silhouette coverage
         try:
@@ -367,9 +366,9 @@ def plan_sweep(spec: SweepSpec, out: Path, fusion_base, geometry_base) -> tuple[
         except InputError as e:
             log.warning("the cells' twins are built without 2D masks (objects judged by their splat count alone, "
                         "not as the twin was): %s", e)
-        else:
-            ms.save(out / "masks")
-            ctx.update(masks=str((out / "masks").resolve()), masks_sha=sha256_file(out / "masks" / "masks.json"))
+    if ms is not None:
+        ms.save(out / "masks")
+        ctx.update(masks=str((out / "masks").resolve()), masks_sha=sha256_file(out / "masks" / "masks.json"))
     if need_twin and not need_fusion:
         ctx["labels"] = str(_twin_file(twin, man.labels, "labels file"))
         ctx["labels_sha"] = sha256_file(Path(ctx["labels"]))

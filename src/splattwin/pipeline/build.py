@@ -36,7 +36,6 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from splattwin import io
 from splattwin.errors import InputError
 from splattwin.options import specs, to_dict
 from splattwin.pipeline.options import STAGES, BuildOptions  # noqa: F401 - STAGES re-exported
@@ -212,17 +211,12 @@ def _drop_stale_robot(ctx: Context) -> None:
     `splattwin plan` run by hand on an earlier twin (another object, other meshes) would be shown by the
     report and played by `render` as this twin's, so they go (`robot.outputs.remove_previous`: our own
     file names only). Results made on this very twin (a deterministic rebuild) stay."""
-    from splattwin.robot.outputs import remove_previous, results_twin
+    from splattwin.robot.outputs import remove_previous, stale_results
 
     out = ctx.path("robot")
-    rj = out / "results.json"
-    if out.is_symlink() or not rj.is_file():
+    if out.is_symlink() or not (out / "results.json").is_file():
         return
-    try:
-        results = io.read_json(rj)
-    except InputError:
-        results = None
-    why = results_twin(results, ctx.out)
+    why = stale_results(ctx.out)
     if why is None:
         return
     remove_previous(out)

@@ -121,15 +121,9 @@ def run_render(args: argparse.Namespace) -> int:
         raise InputError("no rollout to play: run `splattwin plan TWIN` first (it writes robot/rollout.npz) or "
                          "give --rollout", rpath)
     if args.rollout is None:   # the twin's own rollout: it must have been made on the twin as it is now
-        from splattwin import io
-        from splattwin.robot.outputs import results_twin
+        from splattwin.robot.outputs import stale_results
 
-        rj = args.twin / "robot" / "results.json"
-        try:
-            results = io.read_json(rj) if rj.is_file() else None
-        except InputError:
-            results = None
-        why = results_twin(results, args.twin)
+        why = stale_results(args.twin)
         if why is not None:
             raise InputError(f"robot/rollout.npz is not this twin's to play: {why}; or give --rollout", rpath)
     scene = DynamicScene.load(args.twin, fill_holes=not args.no_fill, view_fade=not args.keep_view_dependence,

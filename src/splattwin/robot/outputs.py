@@ -93,7 +93,7 @@ def twin_digest(twin_dir: str | Path) -> str | None:
     import json
 
     from splattwin.errors import InputError
-    from splattwin.robot.trials import _twin_meshes_digest
+    from splattwin.robot.trials import twin_meshes_digest
 
     try:
         doc = io.read_json(Path(twin_dir) / "twin.json")
@@ -105,7 +105,7 @@ def twin_digest(twin_dir: str | Path) -> str | None:
     if isinstance(doc.get("config"), dict):
         doc["config"] = {k: v for k, v in doc["config"].items() if k != "build"}
     h = hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode())
-    h.update(str(_twin_meshes_digest(twin_dir)).encode())
+    h.update(str(twin_meshes_digest(twin_dir)).encode())
     return h.hexdigest()
 
 
@@ -123,6 +123,19 @@ def results_twin(results, twin_dir: str | Path) -> str | None:
         return ("robot/results.json was made on an earlier state of this twin (its objects or meshes have "
                 "changed since): rerun `splattwin plan` (or build with --task)")
     return None
+
+
+def stale_results(twin_dir: str | Path) -> str | None:
+    """`results_twin` of TWIN/robot/results.json as it is on disk (a missing or unreadable file counts as
+    unreadable): None when it belongs to the twin as it is now, else why not."""
+    from splattwin.errors import InputError
+
+    rj = Path(twin_dir) / "robot" / "results.json"
+    try:
+        results = io.read_json(rj) if rj.is_file() else None
+    except InputError:
+        results = None
+    return results_twin(results, twin_dir)
 
 
 def write_outputs(out: str | Path, spec, result, trials: dict | None, render_note: str = "",

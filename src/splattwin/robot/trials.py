@@ -141,7 +141,7 @@ def _file_digest(path: str | Path | None) -> str | None:
     return sha256_file(path) if path is not None and Path(path).is_file() else None
 
 
-def _twin_meshes_digest(twin_dir: str | Path) -> str | None:
+def twin_meshes_digest(twin_dir: str | Path) -> str | None:
     """One digest over the meshes the trial's physics reads (visual, collision and convex parts of the
     objects and the background, as twin.json names them): a twin whose meshes were rebuilt with the same
     twin.json is another trial. None when twin.json is unreadable (the trial then fails on it anyway)."""
@@ -167,7 +167,7 @@ def trial_key(spec: TrialSpec) -> dict:
 
     return {"twin": str(Path(spec.twin_dir).resolve()),
             "twin_json_sha256": _file_digest(Path(spec.twin_dir) / "twin.json"),
-            "twin_meshes_sha256": _twin_meshes_digest(spec.twin_dir),
+            "twin_meshes_sha256": twin_meshes_digest(spec.twin_dir),
             "code": code_digest(("splattwin.robot", "splattwin.twin")),
             "task": str(Path(spec.task_path).resolve()) if spec.task_path else None,
             "task_sha256": _file_digest(spec.task_path),

@@ -214,14 +214,12 @@ def _remove_earlier_images(out: Path, keep: set[str]) -> None:
         prev = read_json(out / "metrics.json", max_bytes=MAX_RECORD_BYTES)
     except InputError:
         return
+    from splattwin.io import remove_files
+
     rows = prev.get("views") if isinstance(prev, dict) else None
-    for r in rows if isinstance(rows, list) else []:
-        name = r.get("image") if isinstance(r, dict) else None
-        if (isinstance(name, str) and name.endswith(".png") and name not in keep and name == Path(name).name
-                and not name.startswith(".")):
-            p = out / name
-            if p.is_file() and not p.is_symlink():
-                p.unlink()
+    names = [r.get("image") for r in (rows if isinstance(rows, list) else []) if isinstance(r, dict)]
+    remove_files(out, [n for n in names if isinstance(n, str) and n.endswith(".png") and n not in keep
+                       and n == Path(n).name and not n.startswith(".")])
 
 
 def _heldout_split(ds: Dataset, info: dict) -> tuple[list[Frame], list[Frame], dict]:
