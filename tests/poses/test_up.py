@@ -246,3 +246,70 @@ def test_a_sloped_dominant_plane_is_taken_with_a_warning(caplog):
         plane, ev = table_plane_under_cameras(sloped, cams)
     assert ev["table"] == "dominant plane" and 30 < ev["dominant_plane_tilt_deg"] < 40
     assert "is this a tabletop capture" in caplog.text
+
+
+# -- scale of known poses ---------------------------------------------------------------------------------------
+def _ns_process_data_copy(scene: Path, out: Path, s: float, marks: dict | None) -> Path:
+    """The embedded scene's transforms.json as nerfstudio's COLMAP converter leaves it: the poses in SfM units
+    (lengths x s, about the origin) and `applied_transform` (or the given `marks`); no depth (SfM has none)."""
+    import shutil
+
+    shutil.copytree(scene / "images", out / "images")
+    meta = json.loads((scene / "transforms.json").read_text())
+    for fr in meta["frames"]:
+        fr.pop("depth_file_path", None)
+        fr.pop("label_path", None)
+        T = np.asarray(fr["transform_matrix"], dtype=float)
+        T[:3, 3] *= s
+        fr["transform_matrix"] = T.tolist()
+    meta.pop("label_objects", None)
+    meta.update(marks if marks is not None else {"applied_transform": [[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0]]})
+    (out / "transforms.json").write_text(json.dumps(meta))
+    return out / "transforms.json"
+
+
+def _mean_height(res) -> float:
+    return float(np.mean([c.center[2] for c in res.cameras]))
+
+
+@pytest.mark.parametrize("marks", [None, {"frames_mark": "colmap_im_id"}])
+def test_poses_from_nerfstudio_colmap_converter_are_unscaled(scene_small: Path, tmp_path: Path, marks, caplog):
+    """ns-process-data output is SfM output: the table frame in its own units, marked unscaled (it was taken as
+    metres: a twin 1/s too large, every metre threshold wrong); --scale metric overrides."""
+    gt = estimate_poses(load_dataset(scene_small), PoseOptions(method="known", progress=False))
+    s = 0.37
+    src = _ns_process_data_copy(scene_small, tmp_path / "ns", s, None if marks is None else {})
+    if marks is not None:  # the per-frame mark of nerfstudio's colmap_to_json instead of applied_transform
+        meta = json.loads(src.read_text())
+        for i, fr in enumerate(meta["frames"]):
+            fr["colmap_im_id"] = i + 1
+        src.write_text(json.dumps(meta))
+    ds = load_dataset(src)
+    res = estimate_poses(ds, PoseOptions(method="known", progress=False))
+    assert not res.frame.scaled and res.frame.source == "unscaled"
+    assert "not metres" in caplog.text
+    # the table frame: table top at z = 0, cameras above it at s times their metric height
+    assert _mean_height(res) == pytest.approx(s * _mean_height(gt), rel=0.03)
+    metric = estimate_poses(load_dataset(src), PoseOptions(method="known", scale="metric", progress=False))
+    assert metric.frame.scaled and metric.frame.source == "known_poses"
+
+
+def test_scale_option_marks_other_known_poses_unscaled(scene_small: Path, tmp_path: Path):
+    src = _ns_process_data_copy(scene_small, tmp_path / "ns", 1.0, {})   # no SfM marks: taken as metric
+    assert estimate_poses(load_dataset(src), PoseOptions(method="known", progress=False)).frame.scaled
+    assert main(["poses", str(src), str(tmp_path / "p"), "--known", "--scale", "unscaled"]) == 0
+    fr = json.loads((tmp_path / "p" / "frame.json").read_text())
+    assert fr["scaled"] is False and fr["source"] == "unscaled"
+
+
+def test_3dgs_cameras_json_and_colmap_are_unscaled_unless_told():
+    from splattwin.poses.estimate import _input_scaled
+
+    def ds(fmt):
+        return Dataset(root=Path("."), frames=[], has_poses=True, meta={"format": fmt, "path": "x"})
+
+    assert not _input_scaled(ds("cameras.json"), None, "auto")
+    assert not _input_scaled(ds("colmap"), None, "auto")
+    assert _input_scaled(ds("cameras.json"), None, "metric")
+    assert _input_scaled(ds("nerfstudio"), None, "auto")
+    assert not _input_scaled(ds("nerfstudio"), None, "unscaled")

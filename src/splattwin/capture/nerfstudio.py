@@ -158,6 +158,13 @@ def read(path: str | Path, require_images: bool = True) -> Dataset:
     names = _label_objects(meta, path)
     if names:
         ds_meta["label_objects"] = names
+    sfm_marks = [k for k in ("applied_transform", "applied_scale") if k in meta]
+    if any(isinstance(fr, dict) and "colmap_im_id" in fr for fr in meta["frames"]):
+        sfm_marks.append("colmap_im_id")
+    if sfm_marks:
+        # nerfstudio's COLMAP converters (ns-process-data) leave these: the poses are SfM output, so their
+        # lengths are in arbitrary SfM units, not metres (splattwin.poses.estimate)
+        ds_meta["sfm_derived"] = sfm_marks
     return Dataset(root=root, frames=frames, has_poses=True, points_xyz=xyz, points_rgb=rgb,
                    depth_scale=depth_scale, meta=ds_meta)
 

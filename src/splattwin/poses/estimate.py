@@ -170,10 +170,12 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         stats.update(registered=len(in_cams))
         meta_frame = dataset.meta.get("frame")
         prior = TwinFrame(**meta_frame) if isinstance(meta_frame, dict) else frame_beside(dataset.meta.get("path", dataset.root))  # chained runs
-        # A COLMAP model is SfM output: arbitrary scale unless a frame.json beside it says otherwise.
-        input_scaled = prior is not None or dataset.meta.get("format") != "colmap"
+        if opts.scale != "auto":
+            prior = None  # the user says what the lengths are: that overrides a frame.json beside the poses
+        input_scaled = _input_scaled(dataset, prior, opts.scale)
         frame = prior or (TwinFrame(source="known_poses", scaled=True, scale_uncertainty_rel=None,
-                                description="camera poses given with the dataset, assumed metric")
+                                description="camera poses given with the dataset, metric"
+                                            + (" (--scale metric)" if opts.scale == "metric" else ", assumed"))
                           if input_scaled else None)
 
     # -- frame definition ----------------------------------------------------------------------
@@ -335,6 +337,30 @@ def _check_up(frame: TwinFrame, cams: list[Camera], pts_xyz: np.ndarray | None, 
     else:
         log.info("known poses: %s", chk.describe())
     return dataclasses.replace(frame, up_check=chk.to_dict()), chk.T_twin_input
+
+
+def _input_scaled(dataset: Dataset, prior: TwinFrame | None, scale: str) -> bool:
+    """Whether known poses are metric or already in a defined frame (True), or need the table frame in
+    their own units (False). `scale` metric/unscaled says which. auto: a frame.json beside the poses (a
+    chained run) is their frame; SfM output is not metric: a COLMAP model, a transforms.json written by
+    nerfstudio's COLMAP converters (`sfm_derived` in the dataset's meta), a 3DGS cameras.json (3DGS
+    writes it from its COLMAP input); other poses (robot and capture-rig exports) are taken as metric."""
+    if scale in ("metric", "unscaled"):
+        return scale == "metric"
+    if prior is not None:
+        return True
+    if dataset.meta.get("format") == "colmap":
+        return False
+    if dataset.meta.get("format") == "cameras.json":
+        why = "a 3DGS cameras.json, which 3DGS writes from its COLMAP input"
+    elif dataset.meta.get("sfm_derived"):
+        why = f"it has {', '.join(dataset.meta['sfm_derived'])}, left by nerfstudio's COLMAP converters"
+    else:
+        return True
+    log.warning("%s: the poses come from SfM (%s), so their lengths are not metres: the twin is built in a "
+                "table frame marked 'unscaled' (give --known-length or --marker-size for a metric one, or "
+                "--scale metric if they are metres)", dataset.meta.get("path", dataset.root), why)
+    return False
 
 
 def _frame_key(f: DataFrame) -> str:

@@ -14,6 +14,8 @@ CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV
 MATCHERS = ("auto", "exhaustive", "sequential", "retrieval")
 # known poses: which input world axis points up ("auto": detect, see splattwin.poses.up; "keep": no check)
 UP_AXES = ("auto", "keep", "+z", "-z", "+y", "-y", "+x", "-x")
+# known poses: are their lengths metres ("auto": see splattwin.poses.estimate._input_scaled)
+SCALES = ("auto", "metric", "unscaled")
 
 
 @dataclass
@@ -93,6 +95,11 @@ class PoseOptions:
     triangulate: bool = option(True, "known/robot poses without a point cloud: triangulate sparse points from the "
                                "images with the poses held fixed")
     depth_stride: int = option(4, "pixel stride of the depth back-projection")
+    scale: str = option("auto", "known poses: are their lengths metres? auto: yes, except SfM output (a COLMAP "
+                        "model, or a transforms.json from nerfstudio's COLMAP converters, marked by applied_transform "
+                        "or colmap_im_id) unless a frame.json beside it says so; metric / unscaled: say which "
+                        "(unscaled: the table frame in the poses' own units, as after SfM)",
+                        choices=SCALES, build_alias="scale")
     up: str = option("auto", "known poses: the world axis that points up (--up=-z, --up=+y, ...); auto finds it "
                      "from the cameras and the table plane and rotates z-down/y-up worlds to z up (recorded in "
                      "frame.json), stopping when unclear; keep = use the poses as they are",
