@@ -9,7 +9,7 @@
 - a TUM-style folder: a pose list (`groundtruth.txt`, `poses.txt`, ...) + an intrinsics file
   (`splattwin.capture.tum`),
 - a plain image folder (no poses),
-- a video file (frames extracted with PyAV into a cache folder beside it).
+- a video file (frames extracted with PyAV into `frames_dir`, default a cache folder beside it).
 
 Depth units are explicit per format (`Dataset.depth_scale`, metres per raw depth unit): nerfstudio's
 `depth_unit_scale_factor`, BOP's per-scene `depth_scale` (raw x depth_scale = mm), TUM's 5000 units per
@@ -33,7 +33,22 @@ log = logging.getLogger(__name__)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG", ".bmp", ".tif", ".tiff", ".webp", ".heic", ".heif",
                   ".HEIC", ".HEIF")
 _IMAGE_SUFFIXES_LOWER = frozenset(s.lower() for s in IMAGE_SUFFIXES)   # find_images: any case (.Jpg)
-VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".MP4", ".MOV", ".m4v")
+
+
+class _AnyCase(tuple):
+    """Lower-case suffixes whose `in` ignores case: `path.suffix in VIDEO_SUFFIXES` (here and in the
+    stages that test for a video) matches .Mp4 and .MKV, as image suffixes are matched."""
+
+    def __contains__(self, suffix) -> bool:
+        return isinstance(suffix, str) and tuple.__contains__(self, suffix.lower())
+
+
+VIDEO_SUFFIXES = _AnyCase((".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v"))
+
+
+def is_video(path: str | Path) -> bool:
+    """A video file by its suffix, in any case (.Mp4, .MKV: as image suffixes)."""
+    return Path(path).suffix.lower() in VIDEO_SUFFIXES
 
 
 @dataclass
@@ -253,7 +268,7 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
                 text_head = f.read(4096).decode("utf-8", errors="replace")
             ds = (cameras_json.read(path, require_images=require_images) if text_head.lstrip().startswith("[")
                   else nerfstudio.read(path, require_images=require_images))
-        elif path.suffix in VIDEO_SUFFIXES:
+        elif is_video(path):
             ds = video.read(path, max_frames=max_frames, out_dir=frames_dir)
         else:
             raise InputError("not a dataset: expected transforms.json, cameras.json, a video, or a folder", path)
@@ -276,7 +291,7 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
                              f"{'...' if len(scenes) > 5 else ''}); give one scene folder", path)
         raise InputError("no dataset found here (no transforms.json, COLMAP model, cameras.json, BOP scene, "
                          "TUM pose list + intrinsics, or images)", path)
-    if max_frames is not None and len(ds.frames) > max_frames and not (path.is_file() and path.suffix in VIDEO_SUFFIXES):
+    if max_frames is not None and len(ds.frames) > max_frames and not (path.is_file() and is_video(path)):
         idx = np.linspace(0, len(ds.frames) - 1, max_frames).round().astype(int)
         ds.frames = [ds.frames[i] for i in idx]
     if validate and require_images:
