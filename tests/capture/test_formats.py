@@ -61,6 +61,9 @@ def test_nerfstudio_split_lists_and_missing_image(tmp_path, caplog, make_dataset
     ds = make_dataset(tmp_path, with_points=False)
     out = nerfstudio.write(ds, tmp_path / "transforms.json")
     meta = json.loads(out.read_text())
+    # nerfstudio's parser wants a list for each split it loads once any is given (ns-train evaluates "val")
+    assert meta["val_filenames"] == meta["test_filenames"] == ["images/img_003.png"]
+    assert len(meta["train_filenames"]) == 3
     for fr in meta["frames"]:
         del fr["split"]  # only the nerfstudio split lists remain
     meta["frames"].append({"file_path": "images/gone.png", "transform_matrix": np.eye(4).tolist()})

@@ -208,6 +208,24 @@ def load_depth(path: str | Path, scale: float | None = None, size: tuple[int, in
     return (d.astype(np.float64) * scale).astype(np.float32)
 
 
+def default_depth_scale(path: str | Path) -> float:
+    """The metres per raw unit `load_depth` assumes for this file without an explicit scale, from its header
+    only: 1e-3 for integer depth (mm), 1.0 for float depth (m)."""
+    from splattwin.limits import npy_header, open_image
+
+    path = Path(path)
+    if path.suffix.lower() == ".npy":
+        try:
+            with open(path, "rb") as f:
+                kind = npy_header(f)[1].kind
+        except (ValueError, OSError, EOFError) as e:
+            raise InputError(f"not a readable .npy depth array: {e}", path) from None
+    else:
+        with open_image(path, "depth image") as im:
+            kind = "f" if im.mode == "F" else "i"
+    return 1e-3 if kind in "iub" else 1.0
+
+
 def resize_nearest(a: np.ndarray, width: int, height: int) -> np.ndarray:
     """[H,W,...] array resized to [height,width,...] by nearest pixel centre: for depth and label maps,
     where averaging across an edge would invent values that are in neither neighbour."""
