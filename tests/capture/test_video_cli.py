@@ -196,3 +196,28 @@ def test_video_suffix_any_case(tmp_path, capsys):
     _encode(video, [_board(3 * i) for i in range(6)])
     assert main(["capture", "info", str(video)]) == 0
     assert "video dataset, 6 frames" in capsys.readouterr().out
+
+
+def test_train_and_convert_of_a_video_write_nothing_beside_it(tmp_path, capsys):
+    """Both extracted the frames into <stem>_frames/ beside the video, outside any output folder."""
+    video = tmp_path / "scan.MOV"
+    _encode(video, [_board(3 * i) for i in range(6)])
+    before = sorted(p.name for p in tmp_path.iterdir())
+    assert main(["train", str(video), str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "scan.MOV" in err and "splattwin poses" in err
+    assert main(["capture", "convert", str(video), str(tmp_path / "conv"), "--format", "nerfstudio"]) == 2
+    assert "no camera poses" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_cameras_json_of_distorted_cameras_says_how(tmp_path, make_dataset, capsys):
+    from splattwin.capture import nerfstudio
+
+    ds = make_dataset(tmp_path, with_points=False, dist=np.array([-0.07, 0.0, 0.0, 0.0]))
+    for f in ds.frames:   # centred: only the distortion stands in the way
+        f.camera.K[0, 2], f.camera.K[1, 2] = f.camera.width / 2, f.camera.height / 2
+    nerfstudio.write(ds, tmp_path / "transforms.json")
+    assert main(["capture", "convert", str(tmp_path), str(tmp_path / "c"), "--format", "cameras-json"]) == 2
+    err = capsys.readouterr().err
+    assert "undistort the images first" in err and "image_undistorter" in err and "--format nerfstudio" in err

@@ -60,10 +60,15 @@ def _info(args: argparse.Namespace) -> int:
 
 
 def _convert(args: argparse.Namespace) -> int:
-    from splattwin.capture import cameras_json, colmap, nerfstudio
-    from splattwin.capture.dataset import load_dataset
+    import tempfile
 
-    ds = load_dataset(args.path)
+    from splattwin.capture import cameras_json, colmap, nerfstudio
+    from splattwin.capture.dataset import is_video, load_dataset
+
+    # a video's frames go to a temporary folder, as for `info`: a video has no poses to convert anyway,
+    # and nothing is written beside the capture
+    with tempfile.TemporaryDirectory(prefix="splattwin-convert-") as tmp:
+        ds = load_dataset(args.path, frames_dir=Path(tmp) if is_video(args.path) else None)
     if not ds.has_poses:
         raise InputError("dataset has no camera poses to convert (estimate them first: splattwin poses)", args.path)
     if args.format == "nerfstudio":
