@@ -318,6 +318,24 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
     return ds
 
 
+def name_views_by_path(frames: list[Frame]) -> None:
+    """View names for images in sub-folders whose stems repeat (a COLMAP rig / multi-camera layout:
+    `cam0/0000.jpg`, `cam1/0000.jpg`): when any two frames share an image stem, every frame is named by its
+    image's path relative to the folder all the images share, '/' as '_' and without the suffix
+    (`cam0_0000`); COLMAP's images/ and a transforms.json's file_path give the same names, as does the
+    bundled copy (`capture.bundle` keeps that relative path). Unique stems stay the names (masks are keyed
+    by them)."""
+    import os
+
+    stems = [f.image_path.stem for f in frames]
+    if len(set(stems)) == len(stems):
+        return
+    common = Path(os.path.commonpath([str(Path(f.image_path).parent) for f in frames]))
+    for f in frames:
+        rel = Path(f.image_path).relative_to(common)
+        f.camera.name = "_".join(rel.parent.parts + (rel.stem,))
+
+
 def _check_frame_names(ds: Dataset, where: Path) -> None:
     """View names key masks and name output files (label maps, eval images): each must be a plain file
     name and unique within the dataset."""
@@ -328,5 +346,6 @@ def _check_frame_names(ds: Dataset, where: Path) -> None:
         n = view_name(f.name, where, "view name (image file name)")
         if n in seen:
             raise InputError(f"two images have the view name {n!r} ({seen[n]} and {f.image_path}); view names "
-                             f"(image file names without extension) must be unique", where)
+                             f"(image file names without extension; when those repeat, the image paths below "
+                             f"their common folder, cam0/0000.jpg as cam0_0000) must be unique", where)
         seen[n] = f.image_path

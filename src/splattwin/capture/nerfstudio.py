@@ -25,7 +25,7 @@ import numpy as np
 
 from splattwin import io
 from splattwin.capture.camera import Camera, opencv_from_opengl, opengl_from_opencv, plausible
-from splattwin.capture.dataset import DEPTH_SCALE_RANGE, Dataset, Frame
+from splattwin.capture.dataset import DEPTH_SCALE_RANGE, Dataset, Frame, name_views_by_path
 from splattwin.errors import InputError
 from splattwin.limits import check_count, check_pixels, number
 from splattwin.paths import confined, unfollowed
@@ -133,6 +133,7 @@ def read(path: str | Path, require_images: bool = True) -> Dataset:
         ))
     if not frames:
         raise InputError("no frame has an existing image" if require_images else "no frames", path)
+    name_views_by_path(frames)   # images/cam0/0000.jpg, images/cam1/0000.jpg: cam0_0000, cam1_0000
     xyz = rgb = None
     if meta.get("ply_file_path"):
         ply = confined(root, meta["ply_file_path"], path, "ply_file_path")
@@ -222,7 +223,7 @@ def write(dataset: Dataset, path: str | Path, ply_name: str = "sparse_pc.ply") -
     rec = dataset.meta.get("heldout")
     if isinstance(rec, dict):  # how the split was chosen (splattwin.poses.holdout)
         meta["heldout"] = {**{k: rec[k] for k in ("source", "rule", "every") if k in rec},
-                           "views": [Path(fr["file_path"]).stem for fr in frames if fr["split"] == "heldout"]}
+                           "views": [f.name for f in dataset.frames if f.split == "heldout"]}
     factor = _depth_factor(dataset)
     if factor is not None:
         meta["depth_unit_scale_factor"] = factor
