@@ -60,3 +60,37 @@ def test_nerfstudio_depth_unit_scale_factor_round_trip(tmp_path, make_dataset):
     with pytest.raises(InputError, match="depth_unit_scale_factor must be a number") as e:
         load_dataset(out)
     assert e.value.path == out
+
+
+def test_nerfstudio_write_states_the_depth_unit(tmp_path, make_dataset):
+    """nerfstudio multiplies every depth file (.npy too) by depth_unit_scale_factor, 0.001 when absent: our
+    metre .npy was read 1000x too near. The factor is now always written with depth."""
+    ds = make_dataset(tmp_path, with_points=False, with_depth=True)   # float .npy in metres
+    out = nerfstudio.write(ds, tmp_path / "transforms.json")
+    assert json.loads(out.read_text())["depth_unit_scale_factor"] == 1.0
+    back = load_dataset(out)
+    assert back.depth_scale == 1.0
+    f = back.frames[0]
+    assert np.array_equal(load_depth(f.depth_path, back.depth_scale), np.load(ds.frames[0].depth_path))
+    for fr in ds.frames:                                               # 16-bit PNG in millimetres
+        fr.depth_path = fr.depth_path.with_suffix(".png")
+        io.write_image(fr.depth_path, np.full((fr.camera.height, fr.camera.width), 750, np.uint16))
+    nerfstudio.write(ds, out)
+    assert json.loads(out.read_text())["depth_unit_scale_factor"] == 0.001
+    assert np.all(load_depth(ds.frames[0].depth_path, load_dataset(out).depth_scale) == np.float32(0.75))
+
+
+def test_nerfstudio_read_warns_of_millimetre_npy_without_factor(tmp_path, make_dataset, caplog):
+    ds = make_dataset(tmp_path, with_points=False, with_depth=True)
+    out = nerfstudio.write(ds, tmp_path / "transforms.json")
+    meta = json.loads(out.read_text())
+    del meta["depth_unit_scale_factor"]
+    out.write_text(json.dumps(meta))
+    with caplog.at_level("WARNING"):
+        assert load_dataset(out).depth_scale is None                 # metres .npy as before: no warning
+    assert "millimetres" not in caplog.text
+    for fr in ds.frames:
+        io.write_npy(fr.depth_path, np.load(fr.depth_path) * 1000)     # now in mm
+    with caplog.at_level("WARNING"):
+        assert load_dataset(out).depth_scale is None
+    assert "millimetres?" in caplog.text and "img_000.npy" in caplog.text and "depth_unit_scale_factor" in caplog.text

@@ -61,6 +61,9 @@ def test_nerfstudio_split_lists_and_missing_image(tmp_path, caplog, make_dataset
     ds = make_dataset(tmp_path, with_points=False)
     out = nerfstudio.write(ds, tmp_path / "transforms.json")
     meta = json.loads(out.read_text())
+    # nerfstudio's parser wants a list for each split it loads once any is given (ns-train evaluates "val")
+    assert meta["val_filenames"] == meta["test_filenames"] == ["images/img_003.png"]
+    assert len(meta["train_filenames"]) == 3
     for fr in meta["frames"]:
         del fr["split"]  # only the nerfstudio split lists remain
     meta["frames"].append({"file_path": "images/gone.png", "transform_matrix": np.eye(4).tolist()})
@@ -337,3 +340,43 @@ def test_image_folder_leaves_out_byte_identical_copies(tmp_path, caplog):
         ds = images.read(tmp_path)
     assert [f.name for f in ds.frames] == ["a", "b", "c"]   # the first of each content is kept
     assert "1 photo is identical to another and left out" in caplog.text and "b.png" in caplog.text
+
+
+def test_rig_layout_views_are_named_by_path(tmp_path, make_dataset):
+    """COLMAP rig / multi-camera layout cam0/0000.png, cam1/0000.png was refused (two views named '0000');
+    views are now named cam0_0000, ..., the same from COLMAP, from transforms.json and after bundling."""
+    ds = make_dataset(tmp_path)
+    sparse = tmp_path / "sparse" / "0"
+    colmap.write_text(ds, sparse)
+    rig = {f"img_{i:03d}.png": f"cam{i % 2}/{i // 2:04d}.png" for i in range(4)}
+    text = (sparse / "images.txt").read_text()
+    for old, new in rig.items():
+        (tmp_path / "images" / new).parent.mkdir(exist_ok=True)
+        (tmp_path / "images" / old).rename(tmp_path / "images" / new)
+        text = text.replace(old, new)
+    (sparse / "images.txt").write_text(text)
+    back = load_dataset(tmp_path)
+    names = ["cam0_0000", "cam1_0000", "cam0_0001", "cam1_0001"]
+    assert [f.name for f in back.frames] == names
+    back.frames[-1].split = "heldout"
+    out = nerfstudio.write(back, tmp_path / "transforms.json")
+    ns = load_dataset(out)
+    assert [f.name for f in ns.frames] == names and [f.name for f in ns.heldout()] == ["cam1_0001"]
+    with pytest.raises(InputError, match="view name"):    # what stays refused: a repeated path
+        meta = json.loads(out.read_text())
+        meta["frames"][1]["file_path"] = meta["frames"][0]["file_path"]
+        out.write_text(json.dumps(meta))
+        load_dataset(out)
+
+
+def test_unique_stems_in_subfolders_keep_their_names(tmp_path, make_dataset):
+    ds = make_dataset(tmp_path, with_points=False)
+    meta = json.loads(nerfstudio.write(ds, tmp_path / "transforms.json").read_text())
+    for k, fr in enumerate(meta["frames"]):
+        old = tmp_path / fr["file_path"]
+        new = old.parent / f"cam{k % 2}" / old.name
+        new.parent.mkdir(exist_ok=True)
+        old.rename(new)
+        fr["file_path"] = new.relative_to(tmp_path).as_posix()
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    assert [f.name for f in load_dataset(tmp_path).frames] == [f"img_{i:03d}" for i in range(4)]

@@ -92,3 +92,132 @@ def test_info_on_a_video_writes_nothing_beside_it(tmp_path, capsys):
     assert main(["capture", "info", str(video)]) == 0
     assert "frames" in capsys.readouterr().out
     assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def _encode(path, frames, rate=10, turn_cw=False):
+    """Lossless H.264 clip of these RGB frames. turn_cw: an MP4 display matrix saying "turn 90 degrees
+    clockwise to show" (what a phone filming in portrait writes into the track header, `tkhd`)."""
+    import struct
+
+    import av
+
+    with av.open(str(path), "w") as c:
+        s = c.add_stream("libx264", rate=rate, options={"crf": "0", "preset": "ultrafast"})
+        s.height, s.width = frames[0].shape[:2]
+        s.pix_fmt = "yuv444p"
+        for f in frames:
+            for p in s.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(f), format="rgb24")):
+                c.mux(p)
+        for p in s.encode():
+            c.mux(p)
+    if turn_cw:   # PyAV cannot set it: patch the tkhd matrix (version 0 header) in place
+        b = bytearray(path.read_bytes())
+        i = b.find(b"tkhd")
+        assert i > 0 and b[i + 4] == 0
+        off = i + 4 + 4 + 20 + 8 + 8
+        b[off:off + 36] = struct.pack(">9i", 0, 0x10000, 0, -0x10000, 0, 0, 0, 0, 0x40000000)
+        path.write_bytes(bytes(b))
+
+
+def _board(shift, w=96, h=64):
+    """A random 8-pixel block texture panned by `shift` pixels (no two shifts below 96 look alike)."""
+    blocks = np.random.default_rng(0).integers(0, 256, (h // 8, w // 8), dtype=np.uint8)
+    img = np.roll(np.kron(blocks, np.ones((8, 8), np.uint8)), shift, axis=1)
+    return np.repeat(img[..., None], 3, axis=2)
+
+
+def _frame_files(folder):
+    return sorted(p.name for p in folder.glob("frame_*.png"))
+
+
+def test_reextraction_leaves_no_stale_frames(tmp_path):
+    """A changed --max-frames or a re-recorded video under the same name: the old frames go, and only the
+    frames of the new extraction are read (they were mixed in: 10 frames for --max-frames 5)."""
+    from splattwin.capture import load_dataset
+
+    video, out = tmp_path / "scan.mp4", tmp_path / "frames"
+    _encode(video, [_board(3 * i) for i in range(24)])
+    assert len(extract_frames(video, out, max_frames=12)) == 12
+    (out / "notes.png").write_bytes(b"not ours")          # a file this code did not write stays
+    assert len(extract_frames(video, out, max_frames=5)) == 5
+    assert _frame_files(out) == [f"frame_{i:05d}.png" for i in range(5)]
+    assert (out / "notes.png").is_file()
+    assert len(load_dataset(video, max_frames=5, frames_dir=out).frames) == 5
+    # re-recorded: another scene, fewer frames, portrait
+    _encode(video, [np.ascontiguousarray(np.rot90(_board(5 * i), 1)) for i in range(3)])
+    ds = load_dataset(video, max_frames=5, frames_dir=out)
+    assert len(ds.frames) == 3 and {(f.camera.width, f.camera.height) for f in ds.frames} == {(64, 96)}
+    assert _frame_files(out) == [f"frame_{i:05d}.png" for i in range(3)]
+
+
+def test_rotated_video_frames_are_upright(tmp_path):
+    """A phone video stored sideways with a display rotation comes out as a player shows it."""
+    from PIL import Image
+
+    upright = np.zeros((48, 80, 3), np.uint8)
+    upright[:16, :24] = (255, 0, 0)       # a red block top-left: any turn or mirror moves it
+    upright[30:, 50:] = (0, 0, 255)
+    stored = np.rot90(upright, 1)         # sensor data turned 90 degrees counter-clockwise ...
+    video = tmp_path / "phone.mp4"
+    _encode(video, [stored] * 2 + [np.roll(stored, 9, axis=0)] * 2, turn_cw=True)  # ... and tagged to be turned back
+    frames = extract_frames(video, tmp_path / "f", max_frames=4)
+    first = np.asarray(Image.open(frames[0]).convert("RGB"))
+    assert first.shape == upright.shape
+    assert np.abs(first.astype(int) - upright).mean() < 3
+    assert json.loads((tmp_path / "f" / "frames.json").read_text())["turned_ccw_deg"] == 270
+
+
+def test_select_frames_skips_near_duplicates():
+    thumbs = [np.full((4, 4), v, np.uint8) for v in (0, 0, 0, 10, 10, 10.5, 30)]
+    scores = np.array([1, 5, 1, 1, 9, 1, 1.0])
+    assert select_frames(scores, 7) == list(range(7))                      # without thumbnails: every window
+    assert select_frames(scores, 7, thumbs, min_change=1.0) == [0, 3, 6]
+    assert select_frames(scores, 7, thumbs, min_change=0) == list(range(7))
+    # a window's sharpest frame is a copy of the last kept one: its sharpest new view is taken instead
+    z = np.zeros((4, 4), np.uint8)
+    assert select_frames(np.array([9, 1, 8, 2.0]), 2, [z, z, z, z + 50]) == [0, 3]
+
+
+def test_paused_camera_gives_one_frame_per_pause(tmp_path):
+    """Held-out video frames had near-copies in training: a camera resting at 4 places, 5 frames each."""
+    video = tmp_path / "pauses.mp4"
+    _encode(video, [_board(7 * k) for k in range(4) for _ in range(5)])
+    frames = extract_frames(video, tmp_path / "f", max_frames=20)
+    assert len(frames) == 4
+    assert json.loads((tmp_path / "f" / "frames.json").read_text())["source_indices"][0] == 0
+    # a moving camera keeps its frames (a 2-pixel pan per frame)
+    moving = tmp_path / "pan.mp4"
+    _encode(moving, [_board(2 * i) for i in range(20)])
+    assert len(extract_frames(moving, tmp_path / "g", max_frames=20)) == 20
+
+
+def test_video_suffix_any_case(tmp_path, capsys):
+    video = tmp_path / "SCAN.Mp4"
+    _encode(video, [_board(3 * i) for i in range(6)])
+    assert main(["capture", "info", str(video)]) == 0
+    assert "video dataset, 6 frames" in capsys.readouterr().out
+
+
+def test_train_and_convert_of_a_video_write_nothing_beside_it(tmp_path, capsys):
+    """Both extracted the frames into <stem>_frames/ beside the video, outside any output folder."""
+    video = tmp_path / "scan.MOV"
+    _encode(video, [_board(3 * i) for i in range(6)])
+    before = sorted(p.name for p in tmp_path.iterdir())
+    assert main(["train", str(video), str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "scan.MOV" in err and "splattwin poses" in err
+    assert main(["capture", "convert", str(video), str(tmp_path / "conv"), "--format", "nerfstudio"]) == 2
+    assert "no camera poses" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_cameras_json_of_distorted_cameras_says_how(tmp_path, make_dataset, capsys):
+    from splattwin.capture import nerfstudio
+
+    ds = make_dataset(tmp_path, with_points=False, dist=np.array([-0.07, 0.0, 0.0, 0.0]))
+    for f in ds.frames:   # centred: only the distortion stands in the way
+        f.camera.K[0, 2], f.camera.K[1, 2] = f.camera.width / 2, f.camera.height / 2
+    nerfstudio.write(ds, tmp_path / "transforms.json")
+    assert main(["capture", "convert", str(tmp_path), str(tmp_path / "c"), "--format", "cameras-json"]) == 2
+    err = capsys.readouterr().err
+    assert "undistort the images first" in err and "image_undistorter" in err and "--format nerfstudio" in err

@@ -128,8 +128,8 @@ def test_sequential_matching_with_known_intrinsics(scene_small: Path, tmp_path: 
     ds = stripped(gt)
     ds.meta["sequential"] = True
     res = estimate_poses(ds, PoseOptions(method="sfm", intrinsics=(c.fx, c.fy, c.cx, c.cy), min_registered=6,
-                                         work_dir=tmp_path / "w", progress=False))
-    assert res.stats["matcher"] == "sequential"  # ordered frames (video) -> sequential matching
+                                         matcher="sequential", work_dir=tmp_path / "w", progress=False))
+    assert res.stats["matcher"] == "sequential"  # (auto: exhaustive for a set this small, video or not)
     assert res.stats["registered"] >= 6
     for f in res.frames:
         np.testing.assert_allclose(f.camera.K, c.K, atol=1e-9)
@@ -180,7 +180,7 @@ def test_ordered_frames_match_sequentially_with_loop_closure(scene_default: Path
     from splattwin.poses.sfm import SfmOptions, run_sfm
 
     paths = sorted((scene_default / "images").glob("train_*.png"))
-    res = run_sfm(paths, tmp_path / "w", SfmOptions(ordered=True, sequential_overlap=3), progress=False)
+    res = run_sfm(paths, tmp_path / "w", SfmOptions(ordered=True, matcher="sequential", sequential_overlap=3), progress=False)
     assert res.matcher == "sequential" and res.num_registered == len(paths) == 15
     assert (tmp_path / "w" / "visual_index.bin").is_file()  # built from this capture's descriptors
     pairs = _pairs(tmp_path / "w" / "database.db")

@@ -50,7 +50,10 @@ def test_matcher_follows_capture_type():
     assert choose_matcher(9) == "exhaustive"                       # small unordered photo set
     assert choose_matcher(50) == "exhaustive"
     assert choose_matcher(51) == "retrieval"                       # large unordered: vocabulary-tree pairs
-    assert choose_matcher(9, ordered=True) == "sequential"         # video frames
+    # video frames: all pairs while few, as the help says (a short walk's loop closes); beyond, sequential
+    assert choose_matcher(9, ordered=True) == "exhaustive"
+    assert choose_matcher(50, ordered=True) == "exhaustive"
+    assert choose_matcher(51, ordered=True) == "sequential"
     assert choose_matcher(400, ordered=True) == "sequential"
     assert choose_matcher(400, ordered=False, exhaustive_max_images=500) == "exhaustive"
     assert choose_matcher(400, "exhaustive", ordered=True) == "exhaustive"  # explicit choice wins

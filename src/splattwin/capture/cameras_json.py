@@ -87,8 +87,15 @@ def write(dataset: Dataset, path: str | Path) -> Path:
     out = []
     for i, f in enumerate(dataset.frames):
         c = f.camera
-        if abs(c.cx - c.width / 2.0) > 1e-6 or abs(c.cy - c.height / 2.0) > 1e-6 or c.dist is not None:
-            raise InputError(f"camera {c.name!r}: cameras.json stores only centred, undistorted pinhole cameras", path)
+        if c.dist is not None:   # every SfM result has k1: say how to get there, not only what is wrong
+            raise InputError(f"camera {c.name!r} has lens distortion {np.round(c.dist, 5).tolist()}, and cameras.json "
+                             f"stores only undistorted pinhole cameras: undistort the images first (e.g. "
+                             f"`colmap image_undistorter --image_path IMAGES --input_path SPARSE --output_path UNDIST "
+                             f"--output_type COLMAP`, then convert UNDIST), or convert to --format nerfstudio or "
+                             f"colmap, which keep the distortion", path)
+        if abs(c.cx - c.width / 2.0) > 1e-6 or abs(c.cy - c.height / 2.0) > 1e-6:
+            raise InputError(f"camera {c.name!r}: cameras.json stores only centred, undistorted pinhole cameras "
+                             f"(principal point {c.cx:g}, {c.cy:g} for a {c.width}x{c.height} image)", path)
         out.append({"id": i, "img_name": f.image_path.stem, "width": c.width, "height": c.height,
                     "position": c.T_world_cam[:3, 3].tolist(), "rotation": c.T_world_cam[:3, :3].tolist(),
                     "fy": c.fy, "fx": c.fx})

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from splattwin.capture.video import MIN_CHANGE
 from splattwin.errors import InputError
 
 FORMATS = ("nerfstudio", "colmap", "cameras-json")
@@ -29,6 +30,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     fr.add_argument("video", type=Path)
     fr.add_argument("out", type=Path, help="output folder for PNG frames")
     fr.add_argument("--max-frames", type=int, default=30)
+    fr.add_argument("--min-change", type=float, default=MIN_CHANGE,
+                    help="skip a frame that differs from the last kept one by less than this (mean absolute "
+                         "difference of 64-px grey thumbnails, grey levels 0-255; 0 keeps near-duplicates; "
+                         "default %(default)s)")
     fr.set_defaults(func=_frames)
 
 
@@ -55,10 +60,15 @@ def _info(args: argparse.Namespace) -> int:
 
 
 def _convert(args: argparse.Namespace) -> int:
-    from splattwin.capture import cameras_json, colmap, nerfstudio
-    from splattwin.capture.dataset import load_dataset
+    import tempfile
 
-    ds = load_dataset(args.path)
+    from splattwin.capture import cameras_json, colmap, nerfstudio
+    from splattwin.capture.dataset import is_video, load_dataset
+
+    # a video's frames go to a temporary folder, as for `info`: a video has no poses to convert anyway,
+    # and nothing is written beside the capture
+    with tempfile.TemporaryDirectory(prefix="splattwin-convert-") as tmp:
+        ds = load_dataset(args.path, frames_dir=Path(tmp) if is_video(args.path) else None)
     if not ds.has_poses:
         raise InputError("dataset has no camera poses to convert (estimate them first: splattwin poses)", args.path)
     if args.format == "nerfstudio":
@@ -76,6 +86,6 @@ def _convert(args: argparse.Namespace) -> int:
 def _frames(args: argparse.Namespace) -> int:
     from splattwin.capture.video import extract_frames
 
-    paths = extract_frames(args.video, args.out, max_frames=args.max_frames)
+    paths = extract_frames(args.video, args.out, max_frames=args.max_frames, min_change=args.min_change)
     print(f"wrote {len(paths)} frames to {args.out}")
     return 0

@@ -23,7 +23,7 @@ import numpy as np
 
 from splattwin import io
 from splattwin.capture.camera import Camera, plausible
-from splattwin.capture.dataset import Dataset, Frame
+from splattwin.capture.dataset import Dataset, Frame, name_views_by_path
 from splattwin.errors import InputError
 from splattwin.limits import MAX_ELEMENTS, MAX_TEXT_BYTES, check_pixels
 from splattwin.paths import confined
@@ -228,6 +228,7 @@ def read(path: str | Path, image_dir: str | Path | None = None) -> Dataset:
         frames.append(Frame(image_path=img_path, camera=camera))
     if not frames:
         raise InputError("COLMAP model has no registered image with an existing file", sparse)
+    name_views_by_path(frames)   # cam0/0000.jpg, cam1/0000.jpg: cam0_0000, cam1_0000
     pts = rec.points3D
     xyz = np.array([p.xyz for p in pts.values()], dtype=np.float64).reshape(-1, 3)
     rgb = np.array([p.color for p in pts.values()], dtype=np.uint8).reshape(-1, 3)

@@ -9,7 +9,7 @@
 - a TUM-style folder: a pose list (`groundtruth.txt`, `poses.txt`, ...) + an intrinsics file
   (`splattwin.capture.tum`),
 - a plain image folder (no poses),
-- a video file (frames extracted with PyAV into a cache folder beside it).
+- a video file (frames extracted with PyAV into `frames_dir`, default a cache folder beside it).
 
 Depth units are explicit per format (`Dataset.depth_scale`, metres per raw depth unit): nerfstudio's
 `depth_unit_scale_factor`, BOP's per-scene `depth_scale` (raw x depth_scale = mm), TUM's 5000 units per
@@ -33,7 +33,22 @@ log = logging.getLogger(__name__)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG", ".bmp", ".tif", ".tiff", ".webp", ".heic", ".heif",
                   ".HEIC", ".HEIF")
 _IMAGE_SUFFIXES_LOWER = frozenset(s.lower() for s in IMAGE_SUFFIXES)   # find_images: any case (.Jpg)
-VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".MP4", ".MOV", ".m4v")
+
+
+class _AnyCase(tuple):
+    """Lower-case suffixes whose `in` ignores case: `path.suffix in VIDEO_SUFFIXES` (here and in the
+    stages that test for a video) matches .Mp4 and .MKV, as image suffixes are matched."""
+
+    def __contains__(self, suffix) -> bool:
+        return isinstance(suffix, str) and tuple.__contains__(self, suffix.lower())
+
+
+VIDEO_SUFFIXES = _AnyCase((".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v"))
+
+
+def is_video(path: str | Path) -> bool:
+    """A video file by its suffix, in any case (.Mp4, .MKV: as image suffixes)."""
+    return Path(path).suffix.lower() in VIDEO_SUFFIXES
 
 
 @dataclass
@@ -193,6 +208,24 @@ def load_depth(path: str | Path, scale: float | None = None, size: tuple[int, in
     return (d.astype(np.float64) * scale).astype(np.float32)
 
 
+def default_depth_scale(path: str | Path) -> float:
+    """The metres per raw unit `load_depth` assumes for this file without an explicit scale, from its header
+    only: 1e-3 for integer depth (mm), 1.0 for float depth (m)."""
+    from splattwin.limits import npy_header, open_image
+
+    path = Path(path)
+    if path.suffix.lower() == ".npy":
+        try:
+            with open(path, "rb") as f:
+                kind = npy_header(f)[1].kind
+        except (ValueError, OSError, EOFError) as e:
+            raise InputError(f"not a readable .npy depth array: {e}", path) from None
+    else:
+        with open_image(path, "depth image") as im:
+            kind = "f" if im.mode == "F" else "i"
+    return 1e-3 if kind in "iub" else 1.0
+
+
 def resize_nearest(a: np.ndarray, width: int, height: int) -> np.ndarray:
     """[H,W,...] array resized to [height,width,...] by nearest pixel centre: for depth and label maps,
     where averaging across an edge would invent values that are in neither neighbour."""
@@ -253,7 +286,7 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
                 text_head = f.read(4096).decode("utf-8", errors="replace")
             ds = (cameras_json.read(path, require_images=require_images) if text_head.lstrip().startswith("[")
                   else nerfstudio.read(path, require_images=require_images))
-        elif path.suffix in VIDEO_SUFFIXES:
+        elif is_video(path):
             ds = video.read(path, max_frames=max_frames, out_dir=frames_dir)
         else:
             raise InputError("not a dataset: expected transforms.json, cameras.json, a video, or a folder", path)
@@ -276,13 +309,31 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
                              f"{'...' if len(scenes) > 5 else ''}); give one scene folder", path)
         raise InputError("no dataset found here (no transforms.json, COLMAP model, cameras.json, BOP scene, "
                          "TUM pose list + intrinsics, or images)", path)
-    if max_frames is not None and len(ds.frames) > max_frames and not (path.is_file() and path.suffix in VIDEO_SUFFIXES):
+    if max_frames is not None and len(ds.frames) > max_frames and not (path.is_file() and is_video(path)):
         idx = np.linspace(0, len(ds.frames) - 1, max_frames).round().astype(int)
         ds.frames = [ds.frames[i] for i in idx]
     if validate and require_images:
         ds.validate()
     _check_frame_names(ds, path)
     return ds
+
+
+def name_views_by_path(frames: list[Frame]) -> None:
+    """View names for images in sub-folders whose stems repeat (a COLMAP rig / multi-camera layout:
+    `cam0/0000.jpg`, `cam1/0000.jpg`): when any two frames share an image stem, every frame is named by its
+    image's path relative to the folder all the images share, '/' as '_' and without the suffix
+    (`cam0_0000`); COLMAP's images/ and a transforms.json's file_path give the same names, as does the
+    bundled copy (`capture.bundle` keeps that relative path). Unique stems stay the names (masks are keyed
+    by them)."""
+    import os
+
+    stems = [f.image_path.stem for f in frames]
+    if len(set(stems)) == len(stems):
+        return
+    common = Path(os.path.commonpath([str(Path(f.image_path).parent) for f in frames]))
+    for f in frames:
+        rel = Path(f.image_path).relative_to(common)
+        f.camera.name = "_".join(rel.parent.parts + (rel.stem,))
 
 
 def _check_frame_names(ds: Dataset, where: Path) -> None:
@@ -295,5 +346,6 @@ def _check_frame_names(ds: Dataset, where: Path) -> None:
         n = view_name(f.name, where, "view name (image file name)")
         if n in seen:
             raise InputError(f"two images have the view name {n!r} ({seen[n]} and {f.image_path}); view names "
-                             f"(image file names without extension) must be unique", where)
+                             f"(image file names without extension; when those repeat, the image paths below "
+                             f"their common folder, cam0/0000.jpg as cam0_0000) must be unique", where)
         seen[n] = f.image_path

@@ -48,7 +48,17 @@ def read(path: str | Path, fov_x_deg: float = 60.0, out_dir: str | Path | None =
     files = find_images(folder)
     if not files:
         raise InputError("no images found (png/jpg/...)", folder)
-    files = _drop_copies(files)
+    return read_files(files, root=path, folder=folder, fov_x_deg=fov_x_deg, out_dir=out_dir)
+
+
+def read_files(files: list[Path], root: Path, folder: Path | None = None, fov_x_deg: float = 60.0,
+               out_dir: str | Path | None = None) -> Dataset:
+    """These image files (in this order) as frames without poses (`read`; a video's frames, `video.read`:
+    only the files of its extraction, not whatever else its folder holds)."""
+    folder = Path(folder) if folder is not None else Path(root)
+    if not files:
+        raise InputError("no images found (png/jpg/...)", folder)
+    files = _drop_copies(list(files))
     upright = upright_copies(files, None if out_dir is None else Path(out_dir), folder)
     frames = []
     for p in files:
@@ -58,4 +68,4 @@ def read(path: str | Path, fov_x_deg: float = 60.0, out_dir: str | Path | None =
     meta = {"format": "images", "path": str(folder)}
     if upright:
         meta["exif_rotated"] = sorted(p.name for p in upright)
-    return Dataset(root=path, frames=frames, has_poses=False, meta=meta)
+    return Dataset(root=Path(root), frames=frames, has_poses=False, meta=meta)

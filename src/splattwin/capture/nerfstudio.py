@@ -25,7 +25,7 @@ import numpy as np
 
 from splattwin import io
 from splattwin.capture.camera import Camera, opencv_from_opengl, opengl_from_opencv, plausible
-from splattwin.capture.dataset import DEPTH_SCALE_RANGE, Dataset, Frame
+from splattwin.capture.dataset import DEPTH_SCALE_RANGE, Dataset, Frame, name_views_by_path
 from splattwin.errors import InputError
 from splattwin.limits import check_count, check_pixels, number
 from splattwin.paths import confined, unfollowed
@@ -36,6 +36,7 @@ log = logging.getLogger(__name__)
 SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV", "SIMPLE_RADIAL", "RADIAL")
 _INTR_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 _DIST_KEYS = ("k1", "k2", "p1", "p2", "k3")
+MM_LOOKING_METRES = 20.0   # median float .npy depth (read as metres) beyond which `read` suspects millimetres
 
 
 def _intrinsics(src: dict, fallback: dict, where: Path, frame_name: str) -> tuple[np.ndarray, int, int, np.ndarray | None]:
@@ -132,6 +133,7 @@ def read(path: str | Path, require_images: bool = True) -> Dataset:
         ))
     if not frames:
         raise InputError("no frame has an existing image" if require_images else "no frames", path)
+    name_views_by_path(frames)   # images/cam0/0000.jpg, images/cam1/0000.jpg: cam0_0000, cam1_0000
     xyz = rgb = None
     if meta.get("ply_file_path"):
         ply = confined(root, meta["ply_file_path"], path, "ply_file_path")
@@ -146,6 +148,8 @@ def read(path: str | Path, require_images: bool = True) -> Dataset:
     if meta.get("depth_unit_scale_factor") is not None:
         # metres per raw depth unit
         depth_scale = number(meta["depth_unit_scale_factor"], path, "depth_unit_scale_factor", *DEPTH_SCALE_RANGE)
+    else:
+        _warn_mm_npy(frames, path)
     ds_meta: dict = {"format": "nerfstudio", "path": str(path)}
     # a split of its own (file lists or per-frame splits): kept unless a hold-out option is given
     if any(k in meta for k in ("train_filenames", "val_filenames", "test_filenames")) or any(
@@ -219,18 +223,63 @@ def write(dataset: Dataset, path: str | Path, ply_name: str = "sparse_pc.ply") -
     meta["frames"] = frames
     meta["train_filenames"] = [fr["file_path"] for fr in frames if fr["split"] == "train"]
     meta["test_filenames"] = [fr["file_path"] for fr in frames if fr["split"] == "heldout"]
+    # nerfstudio's parser refuses a file with split lists but none for "val", the split ns-train evaluates
+    meta["val_filenames"] = list(meta["test_filenames"])
     if dataset.meta.get("label_objects"):  # the names of the label images' ids travel with them
         meta["label_objects"] = dict(dataset.meta["label_objects"])
     rec = dataset.meta.get("heldout")
     if isinstance(rec, dict):  # how the split was chosen (splattwin.poses.holdout)
         meta["heldout"] = {**{k: rec[k] for k in ("source", "rule", "every") if k in rec},
-                           "views": [Path(fr["file_path"]).stem for fr in frames if fr["split"] == "heldout"]}
-    if dataset.depth_scale is not None:  # explicit units (BOP, TUM, ...) travel with the dataset
-        meta["depth_unit_scale_factor"] = dataset.depth_scale
+                           "views": [f.name for f in dataset.frames if f.split == "heldout"]}
+    factor = _depth_factor(dataset)
+    if factor is not None:
+        meta["depth_unit_scale_factor"] = factor
     if dataset.points_xyz is not None:
         write_points_ply(root / ply_name, dataset.points_xyz, dataset.points_rgb)
         meta["ply_file_path"] = ply_name
     return io.write_json(path, meta)
+
+
+def _depth_factor(dataset: Dataset) -> float | None:
+    """depth_unit_scale_factor for the written file: the dataset's explicit units (BOP, TUM, ...), else the
+    default of its depth files' type (float .npy: 1.0, metres; 16-bit: 0.001, mm), always written:
+    nerfstudio multiplies every depth file, .npy included, by the factor and assumes 0.001 when absent,
+    so our metre .npy read without it came out 1000x too near. None: no depth, or files of both kinds
+    (one factor cannot say both; splattwin's own reading of the file needs none)."""
+    if dataset.depth_scale is not None:
+        return dataset.depth_scale
+    from splattwin.capture.dataset import default_depth_scale
+
+    scales = {default_depth_scale(f.depth_path) for f in dataset.frames
+              if f.depth_path is not None and f.depth_path.is_file()}
+    if len(scales) > 1:
+        log.warning("depth files are both integer (mm) and float (m): transforms.json gets no "
+                    "depth_unit_scale_factor, which nerfstudio then reads as 0.001 for all of them")
+        return None
+    return scales.pop() if scales else None
+
+
+def _warn_mm_npy(frames: list[Frame], path: Path) -> None:
+    """Without depth_unit_scale_factor we read float .npy depth as metres (what splattwin wrote before it
+    wrote the factor), nerfstudio as millimetres. A tabletop is not 20 m away: a first depth array whose
+    median is beyond that is most likely in mm, and is named."""
+    from splattwin.limits import load_npy
+
+    first = next((f.depth_path for f in frames if f.depth_path is not None and f.depth_path.suffix.lower() == ".npy"
+                  and f.depth_path.is_file()), None)
+    if first is None:
+        return
+    try:
+        d = load_npy(first, "depth array")
+    except InputError:
+        return   # named when the depth is read
+    if d.dtype.kind != "f":
+        return
+    valid = d[np.isfinite(d) & (d > 0)]
+    if valid.size and float(np.median(valid)) > MM_LOOKING_METRES:
+        log.warning("%s: no depth_unit_scale_factor, so float .npy depth is read in metres, but %s has a median of "
+                    "%.0f: millimetres? (nerfstudio would read it so). Add \"depth_unit_scale_factor\": 0.001 to the "
+                    "file if it is in mm, 1.0 to silence this", path, first.name, float(np.median(valid)))
 
 
 def _rel(p: Path, root: Path) -> str:

@@ -7,8 +7,8 @@ Scaling to real photos:
 - Features are extracted from images resized to `max_image_size` (longest side, default 1600 px; COLMAP
   maps keypoints back to full-size pixels) with at most `max_num_features` per image, on all cores but no
   more extraction threads than the memory budget allows (`extraction_threads`).
-- The matcher follows the capture (`choose_matcher`): exhaustive for small sets, sequential with loop
-  closure for ordered frames (video), vocabulary-tree retrieval for large unordered sets. Loop closure and
+- The matcher follows the capture (`choose_matcher`): exhaustive for small sets (short videos too), beyond
+  them sequential with loop closure for ordered frames (video), vocabulary-tree retrieval for unordered ones. Loop closure and
   retrieval use a visual vocabulary built from the capture's own descriptors (no download).
 - One COLMAP camera per group of images that share a size and EXIF camera (make, model, focal length):
   a phone capture gets one shared camera, internet photos one per camera/size (`camera_groups`).
@@ -200,16 +200,18 @@ class SfmResult:
 # -- choices (pure functions, unit-tested) -----------------------------------------------------------------
 def choose_matcher(num_images: int, matcher: str = "auto", ordered: bool | None = None,
                    exhaustive_max_images: int = 50) -> str:
-    """The matcher for a capture: frames in capture order (video) are matched sequentially (each with its
-    next frames, plus loop closure); unordered photos all pairs while that is affordable (the most robust),
-    and beyond `exhaustive_max_images` the pairs a vocabulary-tree retrieval proposes."""
+    """The matcher for a capture (as `--matcher`'s help says): all pairs while that is affordable, up to
+    `exhaustive_max_images`, video frames included (the most robust, and a short walk around the object
+    closes its loop: sequential matching with its overlap could miss the pairs between the last and the
+    first frames); beyond, frames in capture order (video) are matched sequentially (each with its next
+    frames, plus loop closure) and unordered photos by the pairs a vocabulary-tree retrieval proposes."""
     if matcher not in MATCHERS:
         raise InputError(f"unknown matcher {matcher!r} ({', '.join(MATCHERS)})")
     if matcher != "auto":
         return matcher
-    if ordered:
-        return "sequential"
-    return "exhaustive" if num_images <= exhaustive_max_images else "retrieval"
+    if num_images <= exhaustive_max_images:
+        return "exhaustive"
+    return "sequential" if ordered else "retrieval"
 
 
 def extraction_threads(num_threads: int, max_side: int, budget_gib: float, cpu_count: int | None = None) -> int:

@@ -47,6 +47,14 @@ def _train(args: argparse.Namespace) -> int:
 
     from splattwin.poses.holdout import apply_holdout
 
+    from splattwin.capture.dataset import is_video
+    from splattwin.errors import InputError
+
+    # a video has no camera poses, so training refuses it anyway: say so before its frames are extracted
+    # (they went into <stem>_frames/ beside the video, outside OUT)
+    if is_video(args.dataset):
+        raise InputError("a video has no camera poses to train with; estimate them first: `splattwin poses VIDEO "
+                         "POSES` then `splattwin train POSES OUT`, or `splattwin build VIDEO --out TWIN`", args.dataset)
     ds = load_dataset(args.dataset, max_frames=args.max_frames)
     h = apply_holdout(ds, from_args(HoldoutOptions, args, prefix="holdout."))
     print(f"held-out views ({h.rule}): {', '.join(h.names) if h.names else 'none'}")
