@@ -110,6 +110,8 @@ class Dataset:
             for extra in (f.depth_path, f.mask_path, f.label_path):
                 if extra is not None and not extra.is_file():
                     raise InputError("file listed in the dataset does not exist", extra)
+            if f.mask_path is not None:
+                loss_mask_size(f.mask_path, (w, h))  # header only
             if f.depth_path is not None and f.depth_path.suffix.lower() != ".npy":
                 depth_image_size(f.depth_path, (f.camera.width, f.camera.height))  # header only
                 check_image_complete(f.depth_path, "depth image")
@@ -137,6 +139,47 @@ def load_mask(path: str | Path) -> np.ndarray:
 
     m = read_image_array(path, what="mask")
     return m[..., 0] if m.ndim == 3 else m
+
+
+def _mask_downscale(mask_size: tuple[int, int], image_size: tuple[int, int]) -> int | None:
+    """The whole factor k >= 1 by which an image of `image_size` (w, h) was reduced to `mask_size`: each side
+    w / k rounded either way (nerfstudio's downscaled masks_2/, masks_4/ ... folders); None when there is
+    none."""
+    (mw, mh), (w, h) = mask_size, image_size
+    if mw < 1 or mh < 1 or mw > w or mh > h:
+        return None
+    k = max(1, round(w / mw))
+    for kk in (k - 1, k, k + 1):
+        if kk >= 1 and mw in (w // kk, -(-w // kk)) and mh in (h // kk, -(-h // kk)):
+            return kk
+    return None
+
+
+def loss_mask_size(path: str | Path, image_size: tuple[int, int]) -> tuple[int, int]:
+    """(width, height) of the loss mask at `path` from its header; InputError naming the mask when it is
+    not of its image's size `image_size` (w, h) or that size divided by a whole factor."""
+    from splattwin.limits import open_image
+
+    with open_image(path, "loss mask") as im:
+        size = tuple(im.size)
+    if _mask_downscale(size, image_size) is None:
+        raise InputError(f"loss mask is {size[0]}x{size[1]} but its image is {image_size[0]}x{image_size[1]}: a "
+                         f"loss mask must have the image's size or the image's size divided by a whole number",
+                         path)
+    return size
+
+
+def load_loss_mask(path: str | Path, image_size: tuple[int, int]) -> np.ndarray:
+    """A nerfstudio loss mask (a frame's `mask_path`) as bool [h, w] at its image's size `image_size` (w, h):
+    True where the pixel is trained on and evaluated, False (a 0 in the file) where it is ignored. As
+    nerfstudio reads it: any non-zero value keeps the pixel (first channel of a colour image). A mask of the
+    image's size divided by a whole factor (nerfstudio's masks_2/ ...) is enlarged by nearest pixel. The file
+    is untrusted: its size is checked from the header before it is decoded (`loss_mask_size`)."""
+    loss_mask_size(path, image_size)
+    m = load_mask(path) != 0
+    if (m.shape[1], m.shape[0]) != tuple(image_size):
+        m = resize_nearest(m, image_size[0], image_size[1])
+    return np.ascontiguousarray(m)
 
 
 # PIL modes of depth images: 16-bit greyscale (PNG, TIFF; "I" is how PIL opens some 16-bit PNGs), 32-bit

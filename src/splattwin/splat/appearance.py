@@ -113,14 +113,26 @@ def fit_affine(render: np.ndarray, target: np.ndarray, mode: str = "affine", rid
     return W[:3].T, W[3]
 
 
-def heldout_corrected_psnr(render: np.ndarray, gt: np.ndarray, mode: str = "affine") -> dict:
+def heldout_corrected_psnr(render: np.ndarray, gt: np.ndarray, mode: str = "affine",
+                           mask: np.ndarray | None = None) -> dict:
     """The appearance protocol on one held-out view (render, gt [H,W,3] in [0,1]): a correction fitted
     on the left half of the image, PSNR of the right half before ('psnr_right_plain') and after
-    ('psnr_right_corrected') applying it."""
+    ('psnr_right_corrected') applying it. mask: [H,W] bool, the pixels that count (a loss mask's kept
+    pixels): the fit and both PSNRs use only those (NaN when the right half has none; no correction when
+    the left half has none)."""
     from splattwin.splat import metrics
 
     w = render.shape[1] // 2
-    A, b = fit_affine(render[:, :w], gt[:, :w], mode)
+    if mask is None:
+        A, b = fit_affine(render[:, :w], gt[:, :w], mode)
+    else:
+        left = mask[:, :w]
+        A, b = fit_affine(render[:, :w][left], gt[:, :w][left], mode) if left.any() else (np.eye(3), np.zeros(3))
     right, right_gt = render[:, w:], gt[:, w:]
     corr = np.clip(right @ A.T + b, 0.0, 1.0).astype(np.float32)
-    return {"psnr_right_plain": metrics.psnr(right, right_gt), "psnr_right_corrected": metrics.psnr(corr, right_gt)}
+    if mask is None:
+        return {"psnr_right_plain": metrics.psnr(right, right_gt),
+                "psnr_right_corrected": metrics.psnr(corr, right_gt)}
+    keep = mask[:, w:]
+    return {"psnr_right_plain": metrics.masked_psnr(right, right_gt, keep),
+            "psnr_right_corrected": metrics.masked_psnr(corr, right_gt, keep)}

@@ -25,6 +25,12 @@ colour correction (identity: `psnr`); every view also gets the appearance-protoc
 (`appearance.heldout_corrected_psnr`: an affine colour fit on the left half of the image, PSNR on the
 right half before/after it), so runs with and without `--appearance` compare on both.
 
+Loss masks: a frame's nerfstudio `mask_path` (0 = ignore the pixel: people, the capture rig, sky) is
+applied to its held-out view as in training (`trainer.load_views`): PSNR over the kept pixels only, SSIM
+on both images with the ignored pixels set to 0 and its map averaged over the windows centred on kept
+pixels (`metrics.masked_ssim`), and the appearance-protocol and coverage figures over the kept pixels.
+The error map shows ignored pixels grey; metrics.json's `loss_masks` names the masked views (null: none).
+
 Coverage (`training_coverage`): each held-out view also reports the share of its pixels whose rendered
 surface point lies inside some training camera's image, and PSNR over those and over the rest. A sparse
 sweep's end views are extrapolations (statue: 22.5 % of the held-out pixels lie in no training view); the
@@ -90,17 +96,22 @@ def _coverage_means(rows: list[dict]) -> dict:
 
 
 UNSEEN_TINT = np.array([40, 110, 255], np.uint8)  # error-map pixels no training camera saw (blended 50 %)
+IGNORED_GREY = np.array([128, 128, 128], np.uint8)  # error-map pixels a loss mask ignores (not measured)
 
 
-def side_by_side(gt: np.ndarray, render: np.ndarray, unseen: np.ndarray | None = None) -> np.ndarray:
+def side_by_side(gt: np.ndarray, render: np.ndarray, unseen: np.ndarray | None = None,
+                 ignored: np.ndarray | None = None) -> np.ndarray:
     """[H, 3W + 8, 3] uint8: ground truth | render | error heat map, 4-px white gaps. unseen: [H,W] bool,
-    pixels tinted blue in the error map (content no training photo holds, `training_coverage`)."""
+    pixels tinted blue in the error map (content no training photo holds, `training_coverage`); ignored:
+    [H,W] bool, pixels shown grey in the error map (a loss mask leaves them out of the metrics)."""
     h = gt.shape[0]
     gap = np.full((h, 4, 3), 255, np.uint8)
     u8 = lambda a: (np.clip(a, 0, 1) * 255 + 0.5).astype(np.uint8)  # noqa: E731
     err = metrics.error_heatmap(render, gt)
     if unseen is not None and unseen.any():
         err[unseen] = ((err[unseen].astype(np.uint16) + UNSEEN_TINT) // 2).astype(np.uint8)
+    if ignored is not None and ignored.any():
+        err[ignored] = IGNORED_GREY
     return np.concatenate([u8(gt), gap, u8(render), gap, err], axis=1)
 
 
@@ -134,6 +145,17 @@ def _masked_psnr(img: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float | N
     """`metrics.masked_psnr`, None (JSON null) for an empty mask."""
     p = metrics.masked_psnr(img, gt, mask)
     return None if np.isnan(p) else p
+
+
+def _or_none(x: float) -> float | None:
+    return None if x is None or np.isnan(x) else x
+
+
+def _mean(rows: list[dict], key: str) -> float:
+    """Mean of the views' `key` over the views that have it (a view whose loss mask ignores every pixel has
+    no figure); NaN when none has."""
+    vals = [r[key] for r in rows if r.get(key) is not None and not np.isnan(r[key])]
+    return float(np.mean(vals)) if vals else float("nan")
 
 
 def resolve_ply(path: str | Path) -> tuple[Path, dict]:
@@ -370,23 +392,39 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
                     torch.from_numpy(img), torch.from_numpy(alpha)[..., None],
                     torch.tensor(v.camera.K, dtype=torch.float32),
                     torch.linalg.inv(torch.tensor(T, dtype=torch.float32))).clamp(0, 1).numpy()
-        row = {"name": v.name, "psnr": metrics.psnr(img, gt), "ssim": metrics.ssim(img, gt), **extra,
-               **heldout_corrected_psnr(img, gt)}
+        # the frame's loss mask: only its kept pixels are measured (module doc)
+        keep = None if v.mask is None else v.mask[..., 0].numpy() > 0.5
+        if keep is None:
+            row = {"name": v.name, "psnr": metrics.psnr(img, gt), "ssim": metrics.ssim(img, gt), **extra,
+                   **heldout_corrected_psnr(img, gt)}
+        else:
+            row = {"name": v.name, "psnr": _masked_psnr(img, gt, keep),
+                   "ssim": _or_none(metrics.masked_ssim(img, gt, keep)),
+                   "ignored_frac": round(1.0 - float(keep.mean()), 6), **extra,
+                   **{k: _or_none(x) for k, x in heldout_corrected_psnr(img, gt, mask=keep).items()}}
         seen = None
         if with_depth:
             seen = training_coverage(rendered[..., 3], alpha, v.camera, train_cams, T_cam_world=T_cw)
-            row.update(covered_frac=float(seen.mean()), psnr_covered=_masked_psnr(img, gt, seen),
-                       psnr_uncovered=_masked_psnr(img, gt, ~seen))
+            if keep is None:
+                row.update(covered_frac=float(seen.mean()), psnr_covered=_masked_psnr(img, gt, seen),
+                           psnr_uncovered=_masked_psnr(img, gt, ~seen))
+            elif keep.any():
+                row.update(covered_frac=float(seen[keep].mean()), psnr_covered=_masked_psnr(img, gt, seen & keep),
+                           psnr_uncovered=_masked_psnr(img, gt, ~seen & keep))
         if out is not None:
             row["image"] = f"{v.name}.png"
-            write_image(out / row["image"], side_by_side(gt, img, None if seen is None else ~seen))
+            write_image(out / row["image"], side_by_side(gt, img, None if seen is None else ~seen,
+                                                         None if keep is None else ~keep))
         rows.append(row)
-    mean_psnr = float(np.mean([r["psnr"] for r in rows]))
-    mean_ssim = float(np.mean([r["ssim"] for r in rows]))
+    mean_psnr, mean_ssim = _mean(rows, "psnr"), _mean(rows, "ssim")
+    masked_views = [v.name for v in views if v.mask is not None]
+    if masked_views:
+        log.info("loss masks: %d of %d evaluated views measured over their kept pixels only", len(masked_views),
+                 len(views))
     cov = _coverage_means(rows)
     result = EvalResult(rows, mean_psnr, mean_ssim, split, eval_resolution=eval_res, heldout=held,
-                        mean_psnr_right_plain=float(np.mean([r["psnr_right_plain"] for r in rows])),
-                        mean_psnr_right_corrected=float(np.mean([r["psnr_right_corrected"] for r in rows])),
+                        mean_psnr_right_plain=_mean(rows, "psnr_right_plain"),
+                        mean_psnr_right_corrected=_mean(rows, "psnr_right_corrected"),
                         **{f"mean_{k}": (float("nan") if x is None else x) for k, x in cov.items()})
     if out is not None:
         _remove_earlier_images(out, {r["image"] for r in rows})
@@ -404,7 +442,13 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
             "gaussians": len(g), "resolution": rule.resolution, "eval_resolution": eval_res, "heldout": held,
             # photos with lens distortion are compared undistorted, at their pinhole cameras (load_views)
             "undistorted_views": [f.name for f in frames if f.camera.dist is not None],
+            # nerfstudio loss masks (mask_path): which views were measured over their kept pixels only
+            "loss_masks": {"applied": True, "views": masked_views,
+                           "protocol": "pixels a frame's mask_path sets to 0 are left out: PSNR over the kept "
+                                       "pixels; SSIM with the ignored pixels 0 in both images, its map averaged "
+                                       "over windows centred on kept pixels; psnr_right_* and coverage over the "
+                                       "kept pixels"} if masked_views else None,
             "views": rows,
             "legend": "images: ground truth | render | |error| heat map (black 0 -> white >= 0.25; tinted blue: "
-                      "pixels no training camera saw)"})
+                      "pixels no training camera saw; grey: pixels a loss mask ignores)"})
     return result

@@ -2,6 +2,7 @@
 
 SSIM uses the standard 11x11 Gaussian window (sigma 1.5, K1 0.01, K2 0.03) over full windows only
 ("valid", as scikit-image with `gaussian_weights=True` and torchmetrics), averaged over channels.
+`masked_psnr` / `masked_ssim`: the same over the pixels a mask keeps (nerfstudio loss masks, `eval`).
 """
 
 from __future__ import annotations
@@ -42,6 +43,30 @@ def ssim(img: np.ndarray | torch.Tensor, ref: np.ndarray | torch.Tensor) -> floa
     if min(x.shape[-3], x.shape[-2]) < 11:
         raise ValueError(f"SSIM needs images of at least 11x11 pixels, got {tuple(x.shape)}")
     return float(ssim_map(x, y, padding="valid").mean())
+
+
+def masked_ssim(img: np.ndarray | torch.Tensor, ref: np.ndarray | torch.Tensor, mask: np.ndarray) -> float:
+    """Mean SSIM of HxWxC images over the pixels where the HxW bool `mask` is set (a loss mask's kept
+    pixels). The ignored pixels are set to 0 in both images (as splatfacto masks its loss), so their colours
+    never enter; the SSIM map (full 11x11 windows, as `ssim`) is averaged over the windows whose centre pixel
+    is kept. A window reaching into the ignored region sees the same zeros in both images there: they
+    neither reward nor penalise the render. Equal to `ssim` for a mask that keeps every pixel; NaN when no
+    window centre is kept."""
+    x, y = _as64(img), _as64(ref)
+    if x.shape != y.shape:
+        raise ValueError(f"image shapes differ: {tuple(x.shape)} vs {tuple(y.shape)}")
+    h, w = x.shape[-3], x.shape[-2]
+    if min(h, w) < 11:
+        raise ValueError(f"SSIM needs images of at least 11x11 pixels, got {tuple(x.shape)}")
+    m = torch.from_numpy(np.asarray(mask, bool))
+    if tuple(m.shape) != (h, w):
+        raise ValueError(f"mask is {tuple(m.shape)}, the images {h}x{w}")
+    centre = m[5:h - 5, 5:w - 5]
+    if not bool(centre.any()):
+        return float("nan")
+    mf = m[..., None].to(x.dtype)
+    smap = ssim_map(x * mf, y * mf, padding="valid")[0]   # [C, H-10, W-10]
+    return float(smap[:, centre].mean())
 
 
 def error_heatmap(img: np.ndarray, ref: np.ndarray, vmax: float = 0.25) -> np.ndarray:

@@ -2,6 +2,10 @@
 strategy object (`splattwin.splat.strategy`; default: 3DGS adaptive density control on
 `TrainConfig.densify_config()`), optional pose refinement, atomic checkpoints and exact resume.
 
+Loss masks: a frame's nerfstudio `mask_path` (0 = ignore the pixel) is loaded with its view (`load_views`,
+`TrainView.mask`); the ignored pixels are 0 in render and photo before L1 and D-SSIM (`TrainView.masked`,
+splatfacto's rule), so they add no loss, gradient or densification statistics; train.json's `loss_masks`.
+
 Determinism: every random choice comes from seeded generators (view order, split samples, init), whose
 states are checkpointed together with parameters, Adam moments, densification statistics and the step,
 so a run resumed from a checkpoint reproduces the uninterrupted run (on the CPU backend).
@@ -70,6 +74,16 @@ class TrainView:
     image: torch.Tensor  # [H,W,3] float32 in [0,1]
     camera: Camera
     depth: torch.Tensor | None = None  # [H,W] float32 z-depth in m, inf where unknown (with depth=True)
+    # the frame's nerfstudio loss mask (`mask_path`) at this size: [H,W,1] float32, 1 where the pixel is
+    # trained on and evaluated, 0 where it is ignored; None: every pixel counts
+    mask: torch.Tensor | None = None
+
+    def masked(self, img: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(img, photo) with the ignored pixels set to 0 in both, as splatfacto masks its loss: L1 and SSIM
+        then see no difference there and send no gradient from them. Unchanged without a mask."""
+        if self.mask is None:
+            return img, self.image
+        return img * self.mask, self.image * self.mask
 
 
 @dataclass
@@ -121,7 +135,8 @@ def resolution_level(step: int, iters: int, num_downscales: int, downscale_every
 
 def downscale_view(view: TrainView, factor: int) -> TrainView:
     """`view` at 1/factor of its size: image area-averaged (PIL box filter, as `load_views`), depth map
-    nearest-sampled, camera intrinsics scaled."""
+    nearest-sampled, camera intrinsics scaled; a loss mask keeps a coarse pixel only when every fine pixel
+    of its box is kept (the box average of the photo holds the ignored pixels' colours otherwise)."""
     from PIL import Image
 
     from splattwin.capture import resize_nearest
@@ -133,7 +148,12 @@ def downscale_view(view: TrainView, factor: int) -> TrainView:
     depth = None
     if view.depth is not None:
         depth = torch.from_numpy(np.ascontiguousarray(resize_nearest(view.depth.cpu().numpy(), cam.width, cam.height)))
-    return TrainView(view.name, torch.from_numpy(np.ascontiguousarray(small, dtype=np.float32)), cam, depth)
+    mask = None
+    if view.mask is not None:
+        m = np.asarray(Image.fromarray(view.mask[..., 0].detach().cpu().numpy()).resize((cam.width, cam.height),
+                                                                                          Image.BOX))
+        mask = torch.from_numpy(np.ascontiguousarray((m >= 1.0 - 1e-4)[..., None], dtype=np.float32))
+    return TrainView(view.name, torch.from_numpy(np.ascontiguousarray(small, dtype=np.float32)), cam, depth, mask)
 
 
 def training_scale(width: int, resolution: int) -> float:
@@ -142,14 +162,19 @@ def training_scale(width: int, resolution: int) -> float:
 
 
 def load_views(frames: list[Frame], resolution: int | Resolution = 1, depth: bool = False,
-               depth_scale: float | None = None) -> list[TrainView]:
+               depth_scale: float | None = None, masks: bool = True) -> list[TrainView]:
     """Images of `frames` as tensors, resized (PIL area filter) to the training resolution (a 3DGS `-r`
     value or a resolved `splattwin.splat.resolution.Resolution`); with depth=True also their depth maps
     (frames without one get None). A photo with lens distortion is first resampled to its pinhole camera
-    (`splattwin.capture.undistort.pinhole_for`): the views' cameras are ideal pinholes."""
+    (`splattwin.capture.undistort.pinhole_for`): the views' cameras are ideal pinholes.
+
+    masks: also the frames' nerfstudio loss masks (`Frame.mask_path`, `capture.dataset.load_loss_mask`),
+    taken through the same undistortion and resize by nearest pixel (`TrainView.mask`); depth is unknown
+    (inf) where the mask ignores the pixel."""
     from PIL import Image
 
     from splattwin.capture import load_depth, resize_nearest
+    from splattwin.capture.dataset import load_loss_mask
     from splattwin.capture.undistort import pinhole_for, undistort_image
 
     views = []
@@ -176,6 +201,15 @@ def load_views(frames: list[Frame], resolution: int | Resolution = 1, depth: boo
             check_pixels(cam.width, cam.height, f.image_path, "view at the training resolution")
             pil = Image.fromarray((img * 255 + 0.5).astype(np.uint8)).resize((cam.width, cam.height), Image.BOX)
             img = np.asarray(pil, dtype=np.float32) / 255.0
+        keep = None
+        if masks and f.mask_path is not None:
+            keep = load_loss_mask(f.mask_path, (f.camera.width, f.camera.height))
+            if pin is not f.camera:
+                keep = undistort_image(keep.astype(np.uint8), f.camera, pin, nearest=True) > 0
+            if keep.shape != (cam.height, cam.width):
+                keep = resize_nearest(keep, cam.width, cam.height)
+            if not keep.any():
+                log.warning("%s: the loss mask ignores every pixel of this view", f.mask_path)
         d = None
         if depth and f.depth_path is not None:
             dm = load_depth(f.depth_path, depth_scale)
@@ -187,8 +221,11 @@ def load_views(frames: list[Frame], resolution: int | Resolution = 1, depth: boo
             if dm.shape != (cam.height, cam.width):
                 dm = resize_nearest(dm, cam.width, cam.height)
             dm = np.where(np.isfinite(dm) & (dm > 0), dm, np.inf).astype(np.float32)
+            if keep is not None:
+                dm[~keep] = np.inf
             d = torch.from_numpy(np.ascontiguousarray(dm))
-        views.append(TrainView(f.name, torch.from_numpy(np.ascontiguousarray(img)), cam, d))
+        m = None if keep is None else torch.from_numpy(np.ascontiguousarray(keep[..., None], dtype=np.float32))
+        views.append(TrainView(f.name, torch.from_numpy(np.ascontiguousarray(img)), cam, d, m))
     if zooms:
         log.info("%d of %d photos have lens distortion: undistorted to pinhole cameras (focal x%.4f to x%.4f)",
                  len(zooms), len(frames), min(zooms), max(zooms))
@@ -264,6 +301,8 @@ def data_digest(views: list[TrainView]) -> str:
         h.update(np.ascontiguousarray(v.image.detach().cpu().numpy()).tobytes())
         if v.depth is not None:
             h.update(np.ascontiguousarray(v.depth.detach().cpu().numpy()).tobytes())
+        if v.mask is not None:
+            h.update(b"loss mask\0" + np.ascontiguousarray(v.mask.detach().cpu().numpy()).tobytes())
     return h.hexdigest()
 
 
@@ -295,6 +334,10 @@ class Trainer:
                                 depth_scale=dataset.depth_scale)
         log.info("training at %s (%s)", describe_sizes([(v.camera.width, v.camera.height) for v in self.views]),
                  self.resolution.how)
+        n_masked = sum(v.mask is not None for v in self.views)
+        if n_masked:
+            log.info("loss masks (mask_path): %d of %d training views; their ignored pixels are left out of the "
+                     "loss", n_masked, len(self.views))
         self.data_digest = data_digest(self.views)
         self.scene_center, self.scene_scale = scene_center_and_scale([v.camera for v in self.views])
         if self.cfg.init_points <= 0 or self.cfg.max_gaussians <= 0:  # 0: scaled with the image size
@@ -313,6 +356,7 @@ class Trainer:
         for v in self.views:
             v.image = v.image.to(dev)
             v.depth = None if v.depth is None else v.depth.to(dev)
+            v.mask = None if v.mask is None else v.mask.to(dev)
         self.viewmats = torch.tensor(np.stack([v.camera.T_cam_world for v in self.views]), dtype=torch.float32,
                                      device=dev)
         # coarse-to-fine: views and intrinsics per level (level k: 1/2^k of the training size)
@@ -325,6 +369,7 @@ class Trainer:
             for v in views:
                 v.image = v.image.to(dev)
                 v.depth = None if v.depth is None else v.depth.to(dev)
+                v.mask = None if v.mask is None else v.mask.to(dev)
         self.Ks_levels = [torch.tensor(np.stack([v.camera.K for v in views]), dtype=torch.float32, device=dev)
                           for views in self.levels]
         self.Ks = self.Ks_levels[0]
@@ -553,11 +598,15 @@ class Trainer:
             img, depth = img[..., :3], img[..., 3]
         img, extra_loss = extras.apply(self.appearance, self.bg_model, img, alpha, idx, self.Ks_levels[level][idx],
                                        self.viewmats[idx], self.bg[0])
-        target, masked = gt, 0.0
+        # the loss mask (nerfstudio mask_path): ignored pixels 0 in render and photo alike, so they add
+        # nothing to L1 or D-SSIM and send no gradient (nor densification statistics: those are the means2d
+        # gradients of this loss); views without one are not copied
+        img_l, target = view.masked(img)
+        masked = 0.0
         if cfg.robust_quantile > 0 and self.step >= cfg.robust_start * cfg.iters:
-            target, outliers = masked_target(img, gt, cfg.robust_quantile)
+            target, outliers = masked_target(img_l, target, cfg.robust_quantile)
             masked = float(outliers.float().mean())
-        loss = photometric_loss(img, target, cfg.ssim_lambda) + extra_loss
+        loss = photometric_loss(img_l, target, cfg.ssim_lambda) + extra_loss
         if use_depth:
             loss = loss + cfg.depth_lambda * depth_loss(depth, alpha[..., 0], gt_depth, cfg.depth_mode)
         if cfg.opacity_reg > 0:  # gsplat's opacity_reg: mean opacity, fewer semi-transparent layers
@@ -578,7 +627,9 @@ class Trainer:
                 # removal kept the poses from converging (8 views of a fixed scene, 1.5 deg error:
                 # 1.4 deg left after 150 passes, vs 0.04 deg when applied once per pass)
                 self.poses.remove_common_motion(self.viewmats)
-        info = {"step": s, "loss": float(loss.detach()), "psnr": psnr_from_mse(float(((img.detach() - gt) ** 2).mean()))}
+        sq = (img.detach() - gt) ** 2
+        mse = float(sq.mean()) if view.mask is None else float((sq * view.mask).sum() / (3 * view.mask.sum()).clamp_min(1))
+        info = {"step": s, "loss": float(loss.detach()), "psnr": psnr_from_mse(mse)}
         stats = self.strategy.step_post_backward(self.model, self.strategy_state, s, hook_info)
         info.update(stats, n=len(self.model), densified=bool(stats))
         if cfg.robust_quantile > 0:
@@ -684,13 +735,24 @@ class Trainer:
                 img, alpha, _ = self.render(idx)
                 img, _ = extras.apply(self.appearance, self.bg_model, img, alpha, idx, self.Ks[idx],
                                       self.viewmats[idx], self.bg[0])
-                _, out = masked_target(img, v.image, self.cfg.robust_quantile)
+                _, out = masked_target(*v.masked(img), self.cfg.robust_quantile)
                 photos.append(v.image.cpu().numpy())
                 masks.append(out.cpu().numpy())
         names = [v.name for v in self.views]
         sheet = transient_sheet(photos, masks, names, self.out_dir / "transients.png")
         return {"quantile": self.cfg.robust_quantile, "start": self.cfg.robust_start, "image": sheet.name,
                 "masked_share": {n: round(float(m.mean()), 4) for n, m in zip(names, masks)}}
+
+    def _loss_mask_record(self) -> dict | None:
+        """train.json's record of the nerfstudio loss masks applied (None: no training view has one): the
+        views masked and the share of each one's pixels the loss ignored."""
+        masked = [v for v in self.views if v.mask is not None]
+        if not masked:
+            return None
+        return {"applied": True, "views": len(masked), "of": len(self.views),
+                "ignored_share": {v.name: round(1.0 - float(v.mask.mean()), 4) for v in masked},
+                "protocol": "pixels a frame's mask_path sets to 0 are 0 in render and photo before L1 and D-SSIM "
+                            "(as splatfacto): no loss, no gradient from them"}
 
     def _heldout_record(self) -> dict:
         """The hold-out this splat was trained without: the dataset's rule and, always, the views
@@ -725,7 +787,7 @@ class Trainer:
             "wall_s": None if wall is None else round(wall, 3), "resumed_at_step": resumed_at,
             "train_loss": loss, "train_psnr": psnr, "scene_scale": self.scene_scale,
             "views": [{"name": v.name, "width": v.camera.width, "height": v.camera.height} for v in self.views],
-            "transients": transients, "history": self.history})
+            "transients": transients, "loss_masks": self._loss_mask_record(), "history": self.history})
         return TrainResult(g, ply, self.step, wall, loss, psnr, self.init_method, self.history, refined, resumed_at)
 
 
