@@ -116,6 +116,14 @@ def test_scale_sources_satisfy_the_task_check(tmp_path):
     assert "COLMAP" in pf.unscaled_reason(P(), has_poses=True, fmt="colmap", frame_json_beside=False)
     assert pf.unscaled_reason(P(), has_poses=True, fmt="colmap", frame_json_beside=True) is None
     assert pf.unscaled_reason(P(method="sfm"), has_poses=True, fmt="nerfstudio", frame_json_beside=True)
+    # SfM output in other layouts, and --scale
+    assert "3DGS" in pf.unscaled_reason(P(), has_poses=True, fmt="cameras.json", frame_json_beside=False)
+    assert "nerfstudio" in pf.unscaled_reason(P(), True, "nerfstudio", False, sfm_derived=True)
+    assert pf.unscaled_reason(P(scale="metric"), True, "colmap", False) is None
+    assert pf.unscaled_reason(P(scale="unscaled"), True, "nerfstudio", False) == "--scale unscaled"
+    # SfM on an RGB-D capture: the depth images give the scale
+    assert pf.unscaled_reason(P(), has_poses=False, fmt="bop", frame_json_beside=False, has_depth=True) is None
+    assert pf.unscaled_reason(P(scale_from_depth=False), False, "bop", False, has_depth=True) is not None
 
 
 def test_memory_and_disk_refused_only_when_clearly_insufficient(tmp_path, monkeypatch):

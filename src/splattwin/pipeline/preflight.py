@@ -123,19 +123,31 @@ def check_resources(est: Estimate, out: Path, what: str) -> None:
 
 
 # -- scale -----------------------------------------------------------------------------------------
-def unscaled_reason(poses, has_poses: bool, fmt: str | None, frame_json_beside: bool) -> str | None:
+def unscaled_reason(poses, has_poses: bool, fmt: str | None, frame_json_beside: bool,
+                    sfm_derived: bool = False, has_depth: bool = False) -> str | None:
     """Why the poses stage will produce an unscaled frame with these `PoseOptions`, or None when it will
     be metric (mirrors `splattwin.poses.estimate`: robot poses, a marker or a known length give scale; so
-    do known poses, except a COLMAP model without a frame.json beside it)."""
+    does SfM on an RGB-D capture (its depth images) and so do known poses, except SfM output (a COLMAP
+    model, a 3DGS cameras.json, a transforms.json from nerfstudio's COLMAP converters: `sfm_derived`)
+    without a frame.json beside it; `--scale` overrides for known poses)."""
     if poses.robot_poses is not None or poses.marker_size is not None or poses.known_length is not None:
         return None
     method = poses.method
     if method == "auto":
         method = "known" if has_poses else "sfm"
     if method == "sfm":
+        if has_depth and poses.scale_from_depth:
+            return None   # the depth images give the scale (estimate._depth_scale; refused later if they disagree)
         return "structure from motion recovers the scene only up to an unknown scale"
-    if method == "known" and fmt == "colmap" and not frame_json_beside:
-        return "a COLMAP model is SfM output in arbitrary units"
+    if method == "known" and poses.scale != "auto":
+        return "--scale unscaled" if poses.scale == "unscaled" else None
+    if method == "known" and not frame_json_beside:
+        if fmt == "colmap":
+            return "a COLMAP model is SfM output in arbitrary units"
+        if fmt == "cameras.json":
+            return "a 3DGS cameras.json is SfM output in arbitrary units"
+        if sfm_derived:
+            return "this transforms.json was written by nerfstudio's COLMAP converters: SfM output in arbitrary units"
     return None
 
 
@@ -229,7 +241,9 @@ def run_preflight(options, out: Path, input_path: Path | None, scene_dir: Path |
         fmt = ds.meta.get("format") if ds is not None else "video"
         meta_path = Path(ds.meta.get("path", ds.root)) if ds is not None else input_path
         beside = (meta_path.parent if meta_path.is_file() else meta_path) / "frame.json"
-        why = unscaled_reason(o.poses, bool(ds is not None and ds.has_poses), fmt, beside.is_file())
+        why = unscaled_reason(o.poses, bool(ds is not None and ds.has_poses), fmt, beside.is_file(),
+                              sfm_derived=bool(ds is not None and ds.meta.get("sfm_derived")),
+                              has_depth=bool(ds is not None and any(f.depth_path is not None for f in ds.frames)))
         if why is not None:
             problems.append(InputError(f"--task needs a metric twin, but this capture gives no scale ({why}): "
                                        f"{SCALE_HELP}", input_path))

@@ -227,7 +227,18 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         plane, table_evidence = table_plane_under_cameras(pts_xyz, [in_cams[n] for n in order], seed=opts.seed)
         T_tab_in = table_frame(plane, pts_xyz, in_cams[order[0]])
         stats["table_plane"] = {"inliers": int(plane.inliers.sum()), "rms": plane.rms, **table_evidence}
-        if opts.known_length is not None:
+        depth_fit = None
+        if (opts.known_length is None and method == "sfm" and opts.scale_from_depth
+                and any(f.depth_path is not None for f in frames)):
+            depth_fit = _depth_scale(frames, names, in_cams, pts_xyz, dataset, stats)
+        if depth_fit is not None:
+            S = np.diag([depth_fit.scale, depth_fit.scale, depth_fit.scale, 1.0])
+            T_out_in = S @ T_tab_in
+            frame = TwinFrame(source="table_plane+depth", scaled=True, scale_uncertainty_rel=depth_fit.uncertainty_rel,
+                              description=f"table frame (RANSAC plane, z up, table top z = 0, origin near the table "
+                                          f"centre); metric scale from the depth images: median of "
+                                          f"{depth_fit.readings} sensor/SfM depth ratios over {depth_fit.views} views")
+        elif opts.known_length is not None:
             tab_cams = {n: align.transform_camera(T_tab_in, c) for n, c in in_cams.items()}
             s, unc, note = scale_from_known_length(opts.known_length, tab_cams, plane.rms,
                                                    stats.get("mean_reproj_error", 0.5))
@@ -337,6 +348,29 @@ def _check_up(frame: TwinFrame, cams: list[Camera], pts_xyz: np.ndarray | None, 
     else:
         log.info("known poses: %s", chk.describe())
     return dataclasses.replace(frame, up_check=chk.to_dict()), chk.T_twin_input
+
+
+def _depth_scale(frames: list[DataFrame], names: list[str], in_cams: dict[str, Camera], pts_xyz: np.ndarray,
+                 dataset: Dataset, stats: dict, max_views: int = 24):
+    """SfM on an RGB-D capture: metres per SfM unit from up to `max_views` registered views' depth images
+    (`splattwin.poses.depth_scale`), or None (logged, and recorded in stats) when they give none."""
+    from splattwin.capture import load_depth
+    from splattwin.poses.depth_scale import scale_from_depth
+
+    views = [(f, in_cams[n]) for f, n in zip(frames, names) if n in in_cams and f.depth_path is not None]
+    pick = np.unique(np.linspace(0, len(views) - 1, min(max_views, len(views))).round().astype(int))
+    cams = [views[i][1] for i in pick]
+    depths = [load_depth(views[i][0].depth_path, dataset.depth_scale, size=(c.width, c.height))
+              for i, c in zip(pick, cams)]
+    fit, note = scale_from_depth(cams, depths, pts_xyz)
+    if fit is None:
+        log.warning("no metric scale from the depth images: %s", note)
+        stats["depth_scale"] = {"error": note}
+        return None
+    stats["depth_scale"] = fit.to_dict()
+    log.info("metric scale from the depth images: x %.6g (SfM unit -> m), %s, uncertainty %.1f %%", fit.scale, note,
+             100 * fit.uncertainty_rel)
+    return fit
 
 
 def _input_scaled(dataset: Dataset, prior: TwinFrame | None, scale: str) -> bool:

@@ -94,6 +94,8 @@ class PoseOptions:
                                 "frame is metric")
     triangulate: bool = option(True, "known/robot poses without a point cloud: triangulate sparse points from the "
                                "images with the poses held fixed")
+    scale_from_depth: bool = option(True, "SfM on an RGB-D capture: metric scale from the depth images (median of "
+                                    "sensor depth / SfM depth at the SfM points; unused when they disagree)")
     depth_stride: int = option(4, "pixel stride of the depth back-projection")
     scale: str = option("auto", "known poses: are their lengths metres? auto: yes, except SfM output (a COLMAP "
                         "model, or a transforms.json from nerfstudio's COLMAP converters, marked by applied_transform "

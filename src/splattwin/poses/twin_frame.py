@@ -16,7 +16,8 @@ FRAME_FILE = "frame.json"
 UNSCALED_UNITS = "unscaled"  # TwinFrame.units of a frame without metric scale
 
 # Where a twin frame can come from (poses stage): see `TwinFrame.source`.
-FRAME_SOURCES = ("ground_truth", "known_poses", "robot", "sfm+robot", "marker", "table_plane+known_length", "unscaled")
+FRAME_SOURCES = ("ground_truth", "known_poses", "robot", "sfm+robot", "marker", "table_plane+known_length",
+                 "table_plane+depth", "unscaled")
 
 
 @dataclass
