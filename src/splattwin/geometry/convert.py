@@ -296,16 +296,17 @@ def obstacle_box(r: ObjectGeometry, points: np.ndarray, opts: GeometryOptions, s
     """Give unusable `r` its obstacle estimate in place: the axis-aligned box (twin frame) of `points` [N,3]
     (its labelled splats that survive the attribute filter) grown by `obstacle_pad`. Why: the real object
     stands there whatever its reconstruction's quality; a collision world without it lets a robot sweep
-    through it. With 20 points or more the 2nd-98th percentiles bound it (a stray floater would make a
-    wall of it); points under the table are noise; a box ending within `foot_gap` of the table reaches
+    through it. With 20 points or more the outermost 2 % (at least one point) on each side of each axis
+    are left out (a stray floater would make a wall of it; the pad covers what a real surface loses); points under the table are noise; a box ending within `foot_gap` of the table reaches
     down to it (what stands there rests on the table). No points: nothing is set (r.obstacle stays False)."""
     if support_z is not None:
         above = points[points[:, 2] >= support_z]
         points = above if len(above) else points
     if len(points) == 0:
         return
-    lo, hi = (np.percentile(points, [2, 98], axis=0) if len(points) >= 20
-              else (points.min(axis=0), points.max(axis=0)))
+    srt = np.sort(points, axis=0)
+    k = max(1, int(0.02 * len(points))) if len(points) >= 20 else 0   # trimmed per side and axis
+    lo, hi = srt[k].copy(), srt[len(points) - 1 - k].copy()
     lo, hi = lo - opts.obstacle_pad, hi + opts.obstacle_pad
     if support_z is not None:
         lo[2] = max(lo[2], support_z)
