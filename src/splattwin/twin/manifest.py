@@ -88,7 +88,7 @@ class ObjectEntry:
     means it has no geometry at all (the problem says so). A usable object may carry a problem too (a
     warning: e.g. it covers little of its masks, or floats above its support).
     export_id: the object's ID in every export (`splattwin.names.export_id`; the human name stays in
-    `name`). mass_source: how mass and inertia were obtained (an estimate: volume x uniform density).
+    `name`); derived from the name when the manifest is validated (a stored value is only a record). mass_source: how mass and inertia were obtained (an estimate: volume x uniform density).
     silhouette_coverage / silhouette_precision: the share of the object's 2D masks its cleaned splats
     cover, and of their silhouette inside the masks (medians over views, `geometry.completeness`); None
     when not measured (no masks, or too few points).
@@ -219,12 +219,9 @@ class Manifest:
             if o.obstacle_only and (o.usable or min(o.bbox_extent) < MIN_LENGTH):
                 raise InputError(f"object {o.name!r}: obstacle_only needs usable false and a bbox_extent of sides "
                                  f">= {MIN_LENGTH:g} (the obstacle box)", where)
-            # the exporters derive the ID from the name; a stored one must agree (an older twin has none)
-            if o.export_id is None:
-                o.export_id = export_id(o.name)
-            elif o.export_id != export_id(o.name):
-                raise InputError(f"object {o.name!r}: export_id {_brief(o.export_id)} is not {export_id(o.name)!r}",
-                                 where)
+            # derived from the name, never trusted: the exporters use export_id(name), and an older twin (or
+            # an object renamed since) has none or a stale one; twin.json records the one in use
+            o.export_id = export_id(o.name)
         check_unique([o.name for o in self.objects], where)
         b = self.background
         x0, x1, y0, y1 = _numbers(b.table_extent, 4, where, "background table_extent", low=-MAX_LENGTH, high=MAX_LENGTH)
