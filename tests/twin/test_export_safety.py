@@ -306,3 +306,19 @@ def test_moveit_files_name_the_twin_frame(built):
     text = (out / "export" / "moveit" / "collision_objects.yaml").read_text()
     assert text.startswith("# frame_id twin:")
     assert {x["header"]["frame_id"] for x in yaml.safe_load(text)} == {"twin"}
+
+
+def test_the_pipelines_own_splat_ply_is_not_rewritten(tmp_path):
+    """The splats stage recorded splat/point_cloud.ply's digest: new bytes (the unit comment) would make
+    every later build train again."""
+    from splattwin.splat.gaussians import Gaussians
+
+    g, labels, objects, _ = synthetic_scene(6000, seed=2)
+    out = tmp_path / "twin"
+    ply = g.save_ply(out / "splat" / "point_cloud.ply")
+    before = ply.read_bytes()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        build_twin(Gaussians.load_ply(ply), labels, objects, out, TwinFrame("ground_truth", scaled=True),
+                   formats=(), progress=False, splats_path=ply)
+    assert ply.read_bytes() == before

@@ -107,15 +107,20 @@ def _write_parts(folder: Path, parts: list, twin_dir: Path, header: str | None =
 
 
 def write_geometry(conv: Conversion, g, labels: np.ndarray, out_dir: Path, frame: TwinFrame,
-                   cameras_path: str | Path | None = None) -> Manifest:
-    """Write splats, meshes and parts of a Conversion into the twin folder; return the manifest (not saved)."""
+                   cameras_path: str | Path | None = None, splats_path: str | Path | None = None) -> Manifest:
+    """Write splats, meshes and parts of a Conversion into the twin folder; return the manifest (not saved).
+    splats_path: the file `g` was read from; when it is the twin's own splat/point_cloud.ply (the pipeline's
+    splats stage wrote it) it is not rewritten: the stage recorded its contents, and new bytes (the unit
+    comment) would make every later build train again."""
     out_dir = Path(out_dir)
     for r in conv.objects:
         object_name(r.name)
     check_unique([r.name for r in conv.objects])
     twin_hdr = file_header(frame, "twin frame (z up)")
     obj_hdr = file_header(frame, "object frame (z up; twin.json T_world_obj places it in the twin frame)")
-    write_gaussians_ply(out_dir / "splat" / "point_cloud.ply", g, twin_hdr.split("\n"))
+    scene_ply = out_dir / "splat" / "point_cloud.ply"
+    if not (splats_path is not None and scene_ply.is_file() and Path(splats_path).resolve() == scene_ply.resolve()):
+        write_gaussians_ply(scene_ply, g, twin_hdr.split("\n"))
     io.write_npy(out_dir / "semantics" / "labels.npy", np.asarray(labels, dtype=np.int32))
     entries = []
     # an earlier build's objects that are not in this one (masks changed): their folders go too
@@ -385,8 +390,8 @@ NOMINAL_SCENE_SIZE = 1.2
 
 def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path, frame: TwinFrame | None = None,
                cameras_path: str | Path | None = None, options: GeometryOptions | None = None,
-               formats=FORMATS, progress: bool = True, masks=None, export_options: ExportOptions | None = None
-               ) -> Manifest:
+               formats=FORMATS, progress: bool = True, masks=None, export_options: ExportOptions | None = None,
+               splats_path: str | Path | None = None) -> Manifest:
     """Labelled Gaussians -> twin folder with manifest and exports.
 
     gaussians: splattwin.splat.Gaussians [N] (twin frame, m); labels [N] int (0 = background);
@@ -414,7 +419,7 @@ def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path
     conv = convert(gaussians, labels, objects, options, progress=progress, length_scale=length_scale, cameras=cameras,
                    table_plane=table_plane(frame), masks=silhouettes)
     t1 = time.perf_counter()
-    manifest = write_geometry(conv, gaussians, labels, out_dir, frame, cameras_path)
+    manifest = write_geometry(conv, gaussians, labels, out_dir, frame, cameras_path, splats_path)
     manifest.timings["write"] = round(time.perf_counter() - t1, 4)
     manifest.timings["geometry"] = round(t1 - t0, 4)
     manifest.save(out_dir)
