@@ -10,8 +10,8 @@ object names: 1-64 ASCII letters, digits, `_`, `-`, `.` and single inner spaces 
     common COCO category), starting with a letter or digit and not ending with `.` or a space (Windows
     drops those), and not a Windows device name (CON, NUL, COM1...). `name_from_label` first collapses
     runs of whitespace (tabs, newlines, leading/trailing) into single spaces, then checks. Uniqueness
-    ignores case and treats ` ` and `_` alike, so no two objects collide as files on a
-    case-insensitive file system or as MoveIt ids (which replace spaces by `_`).
+    is by export ID ignoring case (` `, `-`, `.` and `_` alike), so no two objects collide as files on
+    a case-insensitive file system or as IDs in an export.
 reserved object names: the fixed names the exports give the twin's own parts (`RESERVED_NAMES`:
     `world`, `table`, `floor`, `background`, `background_obstacles`, `twin`, `twin_z_up`), compared
     by export ID ignoring case (`Table`, `twin-z-up` too). An object so named would clash with them
