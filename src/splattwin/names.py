@@ -10,8 +10,19 @@ object names: 1-64 ASCII letters, digits, `_`, `-`, `.` and single inner spaces 
     common COCO category), starting with a letter or digit and not ending with `.` or a space (Windows
     drops those), and not a Windows device name (CON, NUL, COM1...). `name_from_label` first collapses
     runs of whitespace (tabs, newlines, leading/trailing) into single spaces, then checks. Uniqueness
-    ignores case and treats ` ` and `_` alike, so no two objects collide as files on a
-    case-insensitive file system or as MoveIt ids (which replace spaces by `_`).
+    is by export ID ignoring case (` `, `-`, `.` and `_` alike), so no two objects collide as files on
+    a case-insensitive file system or as IDs in an export.
+reserved object names: the fixed names the exports give the twin's own parts (`RESERVED_NAMES`:
+    `world`, `table`, `floor`, `background`, `background_obstacles`, `twin`, `twin_z_up`), compared
+    by export ID ignoring case (`Table`, `twin-z-up` too). An object so named would clash with them
+    (two URDF links `table`, MoveIt's table box replaced, a lost glTF node, MuJoCo's "repeated name
+    'world'"), and a robot task's `place_on: table` would be ambiguous: refused at the input, never
+    renamed behind the user's back.
+export IDs (`export_id`): the name as every export writes it (URDF links and mesh files' link names,
+    MJCF bodies, MoveIt ids, glTF nodes): each character outside [A-Za-z0-9_] becomes `_`, and `obj_`
+    goes in front of a leading digit ("toy hammer" -> `toy_hammer`, "3.5 in pipe" -> `obj_3_5_in_pipe`).
+    It depends on the name alone (stable across builds), and `check_unique` compares names by it, so
+    it is unique within a twin. twin.json keeps the human name and records the ID per object.
 view names (image stems of real photos: `IMG 0001 (2)`): any single path component of at most 255
     bytes without `/`, `\\`, NUL or other control characters, and not `.` or `..`.
 """
@@ -40,7 +51,23 @@ def object_name(text, where: str | Path | None = None, what: str = "object name"
                          f"'.' or single spaces, starting with a letter or digit (a name must never be a path)", where)
     if text.split(".")[0].lower() in _WINDOWS_DEVICES:
         raise InputError(f"{what} {short_repr(text, 80)} is a reserved device name on Windows", where)
+    if export_id(text).lower() in RESERVED_NAMES:
+        raise InputError(f"{what} {short_repr(text, 80)} is reserved: the exports use "
+                         f"{', '.join(sorted(RESERVED_NAMES))} for the twin's own frame, table and background; "
+                         f"rename the object (e.g. {text + ' 1'!r})", where)
     return text
+
+
+# fixed names of the exports (URDF links, MJCF bodies/geoms/meshes, MoveIt ids and frame, glTF nodes):
+# an object may not take them (module docstring). Lower case; compared with export_id(name).lower().
+RESERVED_NAMES = frozenset({"world", "table", "floor", "background", "background_obstacles", "twin", "twin_z_up"})
+_ID_BAD = re.compile(r"[^A-Za-z0-9_]")
+
+
+def export_id(name: str) -> str:
+    """The ID every export gives object `name` (module docstring): [A-Za-z0-9_], not starting with a digit."""
+    s = _ID_BAD.sub("_", name)
+    return f"obj_{s}" if s[:1].isdigit() else s
 
 
 def name_from_label(text, where: str | Path | None = None, what: str = "object name") -> str:
@@ -63,12 +90,13 @@ def view_name(text, where: str | Path | None = None, what: str = "view name") ->
 
 
 def check_unique(names: Iterable[str], where: str | Path | None = None, what: str = "object name") -> None:
-    """InputError if a name repeats (compared ignoring case and ` ` vs `_`: names must not collide as
-    files on case-insensitive file systems or as MoveIt ids either)."""
+    """InputError if a name repeats (compared by export ID ignoring case: names must not collide as files
+    on case-insensitive file systems or as export IDs, where ' ', '-', '.' all become '_')."""
     seen: dict[str, str] = {}
     for n in names:
-        k = n.lower().replace(" ", "_")
+        k = export_id(n).lower()
         if k in seen:
-            same = "twice" if seen[k] == n else f"and {seen[k]!r} (they differ only in case or ' ' vs '_')"
+            same = "twice" if seen[k] == n else (f"and {seen[k]!r} (they differ only in case or in ' ', '_', '-', '.', "
+                                                 f"which all give export ID {export_id(n)!r})")
             raise InputError(f"{what} {n!r} appears {same}; names must be unique", where)
         seen[k] = n

@@ -127,7 +127,9 @@ def test_moveit_yaml_collision_objects(twin):
     by_id = {c["id"]: c for c in msgs}
     assert by_id["table"]["primitives"][0]["type"] == 1 and by_id["table"]["operation"] == 0
     h = by_id["hammer"]
-    assert h["header"]["frame_id"] == "world"
+    # the twin frame by name: `world` is the robot base in stock Panda MoveIt configs (audit H3)
+    assert h["header"]["frame_id"] == "twin"
+    assert "# frame_id twin: the twin frame" in (out / "export" / "moveit" / "collision_objects.yaml").read_text()
     assert np.allclose(pose_from_msg(h["pose"]), m.object("hammer").pose, atol=1e-6)
     col = trimesh.load(out / m.object("hammer").collision_mesh, force="mesh")
     assert len(h["meshes"][0]["vertices"]) == len(col.vertices)

@@ -36,6 +36,11 @@ class ObjectUnusableWarning(UserWarning):
     """An object's geometry could not be built; the twin marks it usable=False with the problem."""
 
 
+class FloatingObjectWarning(UserWarning):
+    """A usable object's mesh ends above its support (`GeometryOptions.float_gap`): the twin records the
+    problem; physics drops it at the start and planners see it hovering."""
+
+
 class IncompleteObjectWarning(UserWarning):
     """An object's splats cover little of its 2D masks (maybe a fragment of it): it stays usable (it has
     `min_points` points), and the twin records the problem; check it before a robot relies on it."""
@@ -62,6 +67,9 @@ class ObjectGeometry:
     mesh_method: str | None = None
     alpha: float | None = None
     coverage: Coverage | None = None  # its cleaned splats vs its 2D masks (geometry.completeness); None: no masks
+    # an unusable object's obstacle estimate (`obstacle_box`): T_world_obj (translation only) and extent give
+    # the padded axis-aligned box of its labelled splats; False with no splats at all
+    obstacle: bool = False
 
 
 @dataclass
@@ -284,6 +292,80 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
     return out
 
 
+def obstacle_box(r: ObjectGeometry, points: np.ndarray, opts: GeometryOptions, support_z: float | None) -> None:
+    """Give unusable `r` its obstacle estimate in place: the axis-aligned box (twin frame) of `points` [N,3]
+    (its labelled splats that survive the attribute filter) grown by `obstacle_pad`. Why: the real object
+    stands there whatever its reconstruction's quality; a collision world without it lets a robot sweep
+    through it. With 20 points or more the outermost 2 % (at least one point) on each side of each axis
+    are left out (a stray floater would make a wall of it; the pad covers what a real surface loses); points under the table are noise; a box ending within `foot_gap` of the table reaches
+    down to it (what stands there rests on the table). No points: nothing is set (r.obstacle stays False)."""
+    if support_z is not None:
+        above = points[points[:, 2] >= support_z]
+        points = above if len(above) else points
+    if len(points) == 0:
+        return
+    srt = np.sort(points, axis=0)
+    k = max(1, int(0.02 * len(points))) if len(points) >= 20 else 0   # trimmed per side and axis
+    lo, hi = srt[k].copy(), srt[len(points) - 1 - k].copy()
+    lo, hi = lo - opts.obstacle_pad, hi + opts.obstacle_pad
+    if support_z is not None:
+        lo[2] = max(lo[2], support_z)
+        if lo[2] - support_z <= opts.foot_gap:
+            lo[2] = support_z
+        hi[2] = max(hi[2], lo[2] + 2 * opts.obstacle_pad)
+    T = np.eye(4)
+    T[:3, 3] = (lo + hi) / 2
+    r.T_world_obj, r.extent, r.obstacle = T, hi - lo, True
+
+
+def flag_floating(results: list[ObjectGeometry], support_z: float | None, opts: GeometryOptions,
+                  obstacle_meshes: list | None = None, units: str = "m") -> None:
+    """Note in `problem` (and warn) each usable object whose collision mesh's lowest point lies more than
+    `float_gap` above its support: the highest of the table top (support_z) and the other objects' and
+    obstacles' surfaces under its footprint (xy hull) up to its lowest point + float_gap. Nothing to
+    compare with when the table plane is unknown (support_z None)."""
+    if support_z is None:
+        return
+    from scipy.spatial import Delaunay, QhullError
+
+    def world(r, v):
+        return v @ r.T_world_obj[:3, :3].T + r.T_world_obj[:3, 3]
+
+    surfaces = {id(r): world(r, np.asarray(trimesh.sample.sample_surface(r.collision, 2000, seed=opts.seed)[0]))
+                for r in results if r.usable and r.collision is not None and r.collision.area > 0}
+    for r in results:  # an unusable object's obstacle box holds up what stands on it too
+        if r.obstacle:
+            c, e = r.T_world_obj[:3, 3], r.extent
+            g = np.stack(np.meshgrid(*[np.linspace(-0.5, 0.5, 8)] * 2), -1).reshape(-1, 2)
+            surfaces[id(r)] = np.column_stack([c[:2] + g * e[:2], np.full(len(g), c[2] + e[2] / 2)])
+    obstacles = [np.asarray(trimesh.sample.sample_surface(m, 2000, seed=opts.seed)[0])
+                 for m in (obstacle_meshes or []) if m.area > 0]
+    for r in results:
+        if not r.usable or r.collision is None:
+            continue
+        v = world(r, np.asarray(r.collision.vertices))
+        z_low = float(v[:, 2].min())
+        support, what = support_z, "the table top"
+        others = [p for k, p in surfaces.items() if k != id(r)] + obstacles
+        if others:
+            pts = np.concatenate(others)
+            pts = pts[(pts[:, 2] > support_z) & (pts[:, 2] <= z_low + opts.float_gap)]
+            try:
+                inside = Delaunay(v[:, :2]).find_simplex(pts[:, :2]) >= 0 if len(pts) else np.zeros(0, bool)
+            except (QhullError, ValueError):
+                inside = np.zeros(len(pts), bool)
+            if inside.any():
+                support, what = float(pts[inside, 2].max()), "the object or obstacle under it"
+        gap = z_low - support
+        if gap > opts.float_gap:
+            note = (f"floating: its lowest point is {gap:.3g} {units} above {what} (more than float_gap "
+                    f"{opts.float_gap:.3g} {units}); physics drops it at the start and planners see it hovering. "
+                    f"Check its mesh (a longer training, or a --geometry.foot-gap above the gap fills it down to "
+                    f"the table)")
+            r.problem = note if not r.problem else f"{r.problem}; {note}"
+            warnings.warn(FloatingObjectWarning(f"object {r.name!r} (label {r.label}): {note}"), stacklevel=2)
+
+
 DEFAULT_TABLE_EXTENT = (-0.5, 0.5, -0.4, 0.4)  # m: the table assumed when none is found (xmin, xmax, ymin, ymax)
 NEAR_FIELD = 2.0  # background farther than this x the cameras' depth to the objects (from every camera) is far field
 
@@ -473,9 +555,15 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
                 r = object_geometry(g, idx, name, label, opts, prompt, timings, support_z=support_z, cameras=cameras,
                                     other_points=np.concatenate(others) if others else None,
                                     masks=(masks or {}).get(int(label)))
+            if not r.usable:  # its splats still say where the real object stands: an obstacle for planners
+                mine = np.flatnonzero((labels == label) & keep)
+                obstacle_box(r, g.means[mine if len(mine) else np.flatnonzero(labels == label)], opts,
+                             bg.table_height if bg is not None else support_z)
             results.append(r)
             bar.update(1)
         bar.set_description("geometry")
+    flag_floating(results, support_z, opts, bg.obstacles if bg is not None else None,
+                  units="m" if length_scale == 1.0 else "frame units")
     timings["total"] = time.perf_counter() - t0
     return Conversion(objects=results, background=bg, filter_stats=stats, options=opts, timings=dict(timings))
 

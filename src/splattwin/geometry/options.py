@@ -58,6 +58,11 @@ class GeometryOptions:
     rest_gap: float = option(0.01, "an object whose lowest point is within this of the table rests on it", unit="m")
     foot_gap: float = option(0.05, "... and so does one up to this high with no other object under it (its foot "
                              "was not seen: nothing holds it in the air)", unit="m")
+    float_gap: float = option(0.005, "a usable object whose lowest point ends up more than this above its support "
+                              "(the table top, or an object or obstacle under it) is floating: warned and noted in "
+                              "its problem (physics would drop it)", unit="m")
+    obstacle_pad: float = option(0.01, "an unusable object is kept in the collision exports as the axis-aligned box "
+                                 "of its labelled splats grown by this on every side", unit="m")
     densify: bool = option(True, "mesh each splat's alpha = surface_level ellipsoid, not only its centre")
     surface_level: float = option(0.5, "alpha iso-level of a splat taken as its surface (trained centres sit inside)")
     carve: bool = option(True, "drop splat-extent samples that a capture camera sees in front of the object's "

@@ -57,12 +57,14 @@ def gaussians_to_array(g: Gaussians) -> np.ndarray:
     return np.concatenate(cols, axis=1).astype("<f4")
 
 
-def write_gaussians_ply(path: str | Path, g: Gaussians) -> Path:
-    """Write `g` as a binary little-endian 3DGS PLY, atomically."""
+def write_gaussians_ply(path: str | Path, g: Gaussians, comments=()) -> Path:
+    """Write `g` as a binary little-endian 3DGS PLY, atomically. comments: extra `comment` header lines
+    (e.g. the units and frame); each is made one line of printable ASCII (the header is ASCII)."""
     path = Path(path)
     names = property_names(g.sh_degree)
+    extra = [" ".join(str(c).encode("ascii", "replace").decode("ascii").split()) for c in comments]
     header = ["ply", "format binary_little_endian 1.0", "comment written by splattwin",
-              f"element vertex {len(g)}"]
+              *(f"comment {c}" for c in extra if c), f"element vertex {len(g)}"]
     header += [f"property float {n}" for n in names]
     header += ["end_header"]
     data = gaussians_to_array(g)

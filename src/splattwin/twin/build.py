@@ -27,10 +27,11 @@ import trimesh
 from splattwin import io
 from splattwin.geometry.convert import Conversion, convert
 from splattwin.geometry.options import GeometryOptions
-from splattwin.names import check_unique, object_name
+from splattwin.names import check_unique, export_id, object_name
 from splattwin.paths import child, relative_to
 from splattwin.poses.twin_frame import TwinFrame
-from splattwin.twin.manifest import Background, Manifest, ObjectEntry, unscaled_note  # noqa: F401
+from splattwin.splat.ply import write_gaussians_ply
+from splattwin.twin.manifest import Background, Manifest, ObjectEntry, mass_source, units_text, unscaled_note  # noqa: F401
 from splattwin.twin.options import FORMATS, ExportOptions
 from splattwin.twin.splats import write_object_splats
 
@@ -66,14 +67,21 @@ def package_versions() -> dict[str, str]:
     return out
 
 
-def write_mesh(path: Path, mesh: trimesh.Trimesh) -> Path:
-    """Atomic mesh write; format from the suffix (.obj keeps vertex colours)."""
+def write_mesh(path: Path, mesh: trimesh.Trimesh, header: str | None = None) -> Path:
+    """Atomic mesh write; format from the suffix (.obj keeps vertex colours). header: `#` comment lines
+    of an OBJ (its units and frame: OBJ has no unit field)."""
+    kw = {"header": header} if header and path.suffix == ".obj" else {}
     with io.atomic_path(path) as tmp:
-        mesh.export(tmp, file_type=path.suffix.lstrip("."))
+        mesh.export(tmp, file_type=path.suffix.lstrip("."), **kw)
     return path
 
 
-def _write_parts(folder: Path, parts: list, twin_dir: Path) -> list[str]:
+def file_header(frame: TwinFrame, what_frame: str) -> str:
+    """Comment lines (newline-separated, without the comment marker) of a written mesh or splat file."""
+    return f"splattwin twin file; {units_text(frame)}\nframe: {what_frame}"
+
+
+def _write_parts(folder: Path, parts: list, twin_dir: Path, header: str | None = None) -> list[str]:
     """Write part_XXX.obj into a fresh temporary folder, then swap it in: stale parts of an earlier build
     never survive and a killed build leaves the old complete set (or the new one; temporary folders of
     a killed build are removed by the next run, see `splattwin.io.clean_temp`)."""
@@ -83,7 +91,7 @@ def _write_parts(folder: Path, parts: list, twin_dir: Path) -> list[str]:
     old = None
     try:
         for i, p in enumerate(parts):
-            p.export(tmp / f"part_{i:03d}.obj", file_type="obj")
+            p.export(tmp / f"part_{i:03d}.obj", file_type="obj", **({"header": header} if header else {}))
             io.fsync_path(tmp / f"part_{i:03d}.obj")
         if folder.exists():
             old = io.temp_dir(folder.parent, f"{folder.name}.old")
@@ -99,36 +107,60 @@ def _write_parts(folder: Path, parts: list, twin_dir: Path) -> list[str]:
 
 
 def write_geometry(conv: Conversion, g, labels: np.ndarray, out_dir: Path, frame: TwinFrame,
-                   cameras_path: str | Path | None = None) -> Manifest:
-    """Write splats, meshes and parts of a Conversion into the twin folder; return the manifest (not saved)."""
+                   cameras_path: str | Path | None = None, splats_path: str | Path | None = None) -> Manifest:
+    """Write splats, meshes and parts of a Conversion into the twin folder; return the manifest (not saved).
+    splats_path: the file `g` was read from; when it is the twin's own splat/point_cloud.ply (the pipeline's
+    splats stage wrote it) it is not rewritten: the stage recorded its contents, and new bytes (the unit
+    comment) would make every later build train again."""
     out_dir = Path(out_dir)
     for r in conv.objects:
         object_name(r.name)
     check_unique([r.name for r in conv.objects])
-    g.save_ply(out_dir / "splat" / "point_cloud.ply")
+    twin_hdr = file_header(frame, "twin frame (z up)")
+    obj_hdr = file_header(frame, "object frame (z up; twin.json T_world_obj places it in the twin frame)")
+    scene_ply = out_dir / "splat" / "point_cloud.ply"
+    if not (splats_path is not None and scene_ply.is_file() and Path(splats_path).resolve() == scene_ply.resolve()):
+        write_gaussians_ply(scene_ply, g, twin_hdr.split("\n"))
     io.write_npy(out_dir / "semantics" / "labels.npy", np.asarray(labels, dtype=np.int32))
     entries = []
     # an earlier build's objects that are not in this one (masks changed): their folders go too
     io.remove_stale(out_dir / "objects", {r.name for r in conv.objects}, dirs=True)
     for r in conv.objects:
-        e = ObjectEntry(name=r.name, label=r.label, prompt=r.prompt, usable=r.usable, problem=r.problem)
+        e = ObjectEntry(name=r.name, label=r.label, prompt=r.prompt, usable=r.usable, problem=r.problem,
+                        export_id=export_id(r.name))
         if r.coverage is not None:
             e.silhouette_coverage = round(r.coverage.recall, 4)
             e.silhouette_precision = round(r.coverage.precision, 4)
         odir = child(child(out_dir, "objects"), r.name)
         if r.usable:
-            write_object_splats(odir / "splats.ply", g.subset(r.indices), r.T_world_obj)
-            write_mesh(odir / "visual.obj", r.visual)
-            write_mesh(odir / "collision.obj", r.collision)
+            write_object_splats(odir / "splats.ply", g.subset(r.indices), r.T_world_obj, obj_hdr.split("\n"))
+            write_mesh(odir / "visual.obj", r.visual, obj_hdr)
+            write_mesh(odir / "collision.obj", r.collision, obj_hdr)
             e.T_world_obj = np.asarray(r.T_world_obj).tolist()
             e.bbox_extent = np.asarray(r.extent).tolist()
             e.mass, e.volume = r.mass, r.volume
+            if r.mass is not None:
+                e.mass_source = mass_source(conv.options.density, frame.scaled)
             e.splat_ply = f"objects/{r.name}/splats.ply"
             e.visual_mesh = f"objects/{r.name}/visual.obj"
             e.collision_mesh = f"objects/{r.name}/collision.obj"
-            e.convex_parts = _write_parts(odir / "parts", r.parts, out_dir)
-        elif odir.exists():  # never leave geometry of an earlier build behind for an unusable object
-            shutil.rmtree(odir)
+            e.convex_parts = _write_parts(odir / "parts", r.parts, out_dir, obj_hdr)
+        else:
+            if odir.exists():  # never leave geometry of an earlier build behind for an unusable object
+                shutil.rmtree(odir)
+            if r.obstacle:  # where the real object stands: a static box in every collision export
+                e.obstacle_only = True
+                e.T_world_obj = np.asarray(r.T_world_obj).tolist()
+                e.bbox_extent = np.asarray(r.extent).tolist()
+                ext = " x ".join(f"{v:.3g}" for v in r.extent)  # problem stays the cause: obstacle_only says the rest
+                log.warning("object %r is unusable (%s): kept in the collision exports as a static obstacle box "
+                            "%s at (%s), an estimate; a robot cannot grasp it", r.name, r.problem, ext,
+                            ", ".join(f"{v:.3g}" for v in r.T_world_obj[:3, 3]))
+            else:
+                e.problem = (f"{r.problem}; no splats of it survive, so it has no geometry at all: it is in no "
+                             f"collision export and nothing marks where it stands")
+                log.warning("object %r is unusable (%s) and has no geometry at all: it is in no collision export; "
+                            "if it is in the scene, a robot will not see it", r.name, r.problem)
         entries.append(e)
     bg = Background()
     b = conv.background
@@ -136,12 +168,12 @@ def write_geometry(conv: Conversion, g, labels: np.ndarray, out_dir: Path, frame
         bg = Background(table_height=b.table_height, table_extent=list(b.table_extent), table_thickness=b.table_thickness,
                         table_default=b.default_reason)
         if len(b.indices):
-            g.subset(b.indices).save_ply(out_dir / "background" / "splats.ply")
+            write_gaussians_ply(out_dir / "background" / "splats.ply", g.subset(b.indices), twin_hdr.split("\n"))
             bg.splat_ply = "background/splats.ply"
         if b.collision is not None:
-            write_mesh(out_dir / "background" / "collision.obj", b.collision)
+            write_mesh(out_dir / "background" / "collision.obj", b.collision, twin_hdr)
             bg.collision_mesh = "background/collision.obj"
-            bg.convex_parts = _write_parts(out_dir / "background" / "parts", b.parts, out_dir)
+            bg.convex_parts = _write_parts(out_dir / "background" / "parts", b.parts, out_dir, twin_hdr)
     cams = None
     config: dict = {"geometry": conv.options.to_dict()}
     if cameras_path is not None:
@@ -199,17 +231,74 @@ def remove_exports(twin_dir: str | Path, formats) -> list[Path]:
     return removed
 
 
-def export_twin(twin_dir: str | Path, manifest: Manifest | None = None, formats=FORMATS, prune: bool = False) -> Manifest:
+def export_twin(twin_dir: str | Path, manifest: Manifest | None = None, formats=FORMATS, prune: bool = False,
+                options: ExportOptions | None = None) -> Manifest:
     """Run the exporters on a twin folder and record their outputs and timings in the manifest (saved).
     See `write_exports`; returns the manifest."""
     twin_dir = Path(twin_dir)
     manifest = manifest or Manifest.load(twin_dir)
-    write_exports(twin_dir, manifest, formats, prune=prune)
+    write_exports(twin_dir, manifest, formats, prune=prune, options=options)
     return manifest
 
 
-def write_exports(twin_dir: str | Path, manifest: Manifest, formats=FORMATS, prune: bool = False) -> dict[str, str]:
+def _file_entry(path: str, fmt: str, frame: str, manifest: Manifest, **more) -> dict:
+    f = manifest.frame
+    return {"path": path, "format": fmt, "frame": frame, "units": "m" if f.scaled else "unscaled",
+            "scaled": bool(f.scaled), **more}
+
+
+def describe_exports(twin_dir: Path, manifest: Manifest, written, options: ExportOptions) -> list[dict]:
+    """twin.json `export_files`: every file of the twin a consumer opens, with its format, frame, units,
+    scale status and conventions. Exports of formats written now are described with this run's options;
+    the entries of earlier runs' exports (still listed in `exports`) are kept; files not on disk are left out."""
+    twin_dir = Path(twin_dir)
+    out: list[dict] = []
+    obj_frame = "object frame of {} (z up; twin.json T_world_obj places it in the twin frame)"
+    if manifest.splats:
+        out.append(_file_entry(manifest.splats, "3DGS PLY", "twin (z up)", manifest))
+    b = manifest.background
+    if b.splat_ply:
+        out.append(_file_entry(b.splat_ply, "3DGS PLY", "twin (z up)", manifest))
+    if b.collision_mesh:
+        out.append(_file_entry(b.collision_mesh, "OBJ", "twin (z up)", manifest))
+    for o in manifest.objects:
+        for k, fmt in (("splat_ply", "3DGS PLY"), ("visual_mesh", "OBJ"), ("collision_mesh", "OBJ")):
+            if getattr(o, k):
+                out.append(_file_entry(getattr(o, k), fmt, obj_frame.format(o.export_id or export_id(o.name)),
+                                       manifest, object=o.name))
+    uri = options.urdf_uri
+    for fmt, rel in manifest.exports.items():
+        if fmt not in written:   # an earlier run's export: its description stays as recorded
+            out += [e for e in manifest.export_files if e.get("export") == fmt]
+            continue
+        if fmt == "mjcf":
+            out.append(_file_entry(rel, "MJCF", "twin (the MuJoCo world frame, z up)", manifest, export=fmt,
+                                   quaternion="wxyz", mesh_paths="relative to the file"))
+        elif fmt == "urdf":
+            out.append(_file_entry(rel, "URDF", "twin (link world, z up)", manifest, export=fmt, orientation="rpy",
+                                   mesh_paths=uri))
+            for o in manifest.objects:
+                if o.usable:
+                    out.append(_file_entry(f"export/{export_id(o.name)}.urdf", "URDF", obj_frame.format(
+                        export_id(o.name)), manifest, export=fmt, object=o.name, mesh_paths=uri))
+        elif fmt == "moveit":
+            for name, kind in (("scene.scene", "MoveIt .scene text"), ("scene_boxes.scene", "MoveIt .scene text"),
+                               ("collision_objects.yaml", "moveit_msgs/CollisionObject list (YAML)"),
+                               ("collision_objects_boxes.yaml", "moveit_msgs/CollisionObject list (YAML)")):
+                out.append(_file_entry(f"export/moveit/{name}", kind, f"twin (frame_id {options.moveit_frame!r}, "
+                                       f"z up; not the robot base)", manifest, export=fmt, quaternion="xyzw",
+                                       shapes="object boxes" if "boxes" in name else "collision meshes"))
+        elif fmt == "gltf":
+            out.append(_file_entry(rel, "glTF binary", "glTF y up: root node twin_z_up rotates the z-up twin frame "
+                                   "(-90 degrees about x)", manifest, export=fmt, quaternion="xyzw"))
+    return [e for e in out if (twin_dir / e["path"]).is_file()]
+
+
+def write_exports(twin_dir: str | Path, manifest: Manifest, formats=FORMATS, prune: bool = False,
+                  options: ExportOptions | None = None) -> dict[str, str]:
     """Run the exporters of `formats`; returns {format: path relative to the twin} of those written now.
+    options: the exports' options (URDF mesh URIs, MoveIt frame); `manifest.export_files` then
+    describes every file (`describe_exports`).
 
     prune=False (`splattwin export` on an unchanged twin): `manifest.exports` (saved) then records what is
     on disk: the formats written now, plus exports of earlier runs whose file is still there (an export
@@ -221,7 +310,11 @@ def write_exports(twin_dir: str | Path, manifest: Manifest, formats=FORMATS, pru
     Each exporter writes its files atomically (temporary name, then rename), so a re-export replaces
     files whole or not at all. Unknown formats raise InputError."""
     twin_dir = Path(twin_dir)
+    options = options or ExportOptions()
     check_formats(manifest.frame, formats, twin_dir / "twin.json")
+    # entries of files that are gone (or of formats rewritten now) go before an exporter saves the manifest
+    manifest.export_files = [e for e in manifest.export_files if (twin_dir / e["path"]).is_file()
+                             and e.get("export") not in formats]
     if prune:   # before exporting: a failing exporter then leaves no stale file of another format behind
         remove_exports(twin_dir, [f for f in FORMATS if f not in formats])
     # drop before exporting: an exporter may save the manifest itself (export_mjcf does)
@@ -239,9 +332,10 @@ def write_exports(twin_dir: str | Path, manifest: Manifest, formats=FORMATS, pru
                 manifest.exports.pop(fmt, None)
             continue
         t0 = time.perf_counter()
-        path = Path(fn(twin_dir, manifest))
+        path = Path(fn(twin_dir, manifest, options=options))
         written[fmt] = manifest.exports[fmt] = path.resolve().relative_to(twin_dir.resolve()).as_posix()
         manifest.timings[f"export.{fmt}"] = round(time.perf_counter() - t0, 4)
+    manifest.export_files = describe_exports(twin_dir, manifest, written, options)
     manifest.save(twin_dir)
     return written
 
@@ -296,7 +390,8 @@ NOMINAL_SCENE_SIZE = 1.2
 
 def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path, frame: TwinFrame | None = None,
                cameras_path: str | Path | None = None, options: GeometryOptions | None = None,
-               formats=FORMATS, progress: bool = True, masks=None) -> Manifest:
+               formats=FORMATS, progress: bool = True, masks=None, export_options: ExportOptions | None = None,
+               splats_path: str | Path | None = None) -> Manifest:
     """Labelled Gaussians -> twin folder with manifest and exports.
 
     gaussians: splattwin.splat.Gaussians [N] (twin frame, m); labels [N] int (0 = background);
@@ -324,9 +419,9 @@ def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path
     conv = convert(gaussians, labels, objects, options, progress=progress, length_scale=length_scale, cameras=cameras,
                    table_plane=table_plane(frame), masks=silhouettes)
     t1 = time.perf_counter()
-    manifest = write_geometry(conv, gaussians, labels, out_dir, frame, cameras_path)
+    manifest = write_geometry(conv, gaussians, labels, out_dir, frame, cameras_path, splats_path)
     manifest.timings["write"] = round(time.perf_counter() - t1, 4)
     manifest.timings["geometry"] = round(t1 - t0, 4)
     manifest.save(out_dir)
     # the geometry was rebuilt: exports of formats not written now would describe meshes that are gone
-    return export_twin(out_dir, manifest, formats, prune=True)
+    return export_twin(out_dir, manifest, formats, prune=True, options=export_options)

@@ -31,7 +31,7 @@ def _export(args: argparse.Namespace) -> int:
             print("note: the twin is unscaled (SfM units, not metres): its exports are marked so in each file")
         if not formats:
             raise InputError("no export format given; choose from " + ", ".join(FORMATS), "--formats")
-        written = write_exports(twin, manifest, formats)
+        written = write_exports(twin, manifest, formats, options=opts)
     for fmt, path in written.items():  # only what this run wrote (twin.json may list earlier exports too)
         print(f"{fmt:7s} {twin / path}")
     return 0

@@ -117,9 +117,11 @@ def _run_locked(args: argparse.Namespace) -> int:
         masks = _object_masks(load_masks(args.masks, objects={name: label for name, label, *_ in objects}), objects,
                               args.masks)
     m = build_twin(g, labels, objects, args.out, frame, cameras_path=args.cameras, options=opts,
-                   formats=formats, progress=True, masks=masks)
+                   formats=formats, progress=True, masks=masks, export_options=exports,
+                   splats_path=ply)
     for o in m.objects:
-        state = f"mass {o.mass:.3f} kg, {len(o.convex_parts)} convex part(s)" if o.usable else f"UNUSABLE: {o.problem}"
+        state = f"mass {o.mass:.3f} kg, {len(o.convex_parts)} convex part(s)" if o.usable else (
+            f"UNUSABLE: {o.problem}" + ("; kept as a static obstacle box (an estimate)" if o.obstacle_only else ""))
         if o.silhouette_coverage is not None:
             state += f", covers {o.silhouette_coverage:.0%} of its masks"
         if o.usable and o.problem:

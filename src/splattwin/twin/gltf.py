@@ -1,8 +1,11 @@
 """glTF binary (GLB) of the twin's visual meshes (Unity, Blender, three.js), via trimesh.
 
-One node per object (named after it, transform = T_world_obj, mesh in the object frame, vertex colours
-from the splats) plus the table box. glTF is y-up by convention; we keep the twin's z-up frame and put
-the conversion on a root node `twin_z_up` so importers show the table horizontal.
+One node per object (named by its export ID, `splattwin.names.export_id`; transform = T_world_obj, mesh
+in the object frame, vertex colours from the splats), the table box, the background obstacles (node
+`background_obstacles`, twin frame, as in URDF/MJCF/MoveIt) and each unusable object's obstacle box
+(`obstacle_only`, translucent red). glTF is y-up by convention; we keep the twin's z-up frame and put the
+conversion on a root node `twin_z_up` so importers show the table horizontal. glTF lengths are metres
+by spec: an unscaled twin says what its numbers are in the scene's extras.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ import trimesh
 
 from splattwin import io
 from splattwin.meshio import load_mesh
+from splattwin.names import export_id
 from splattwin.twin.manifest import Manifest, unscaled_note
 
 # z-up twin -> y-up glTF: rotate -90 degrees about x
@@ -35,14 +39,25 @@ def twin_scene(twin_dir: Path, manifest: Manifest, y_up: bool = True) -> trimesh
     T = np.eye(4)
     T[:3, 3] = [(x0 + x1) / 2, (y0 + y1) / 2, bg.table_height - bg.table_thickness / 2]
     scene.add_geometry(table, node_name="table", geom_name="table", parent_node_name=root, transform=T)
+    obstacles = [load_mesh(twin_dir / p, "background obstacle mesh", process=True) for p in bg.convex_parts[1:]]
+    if obstacles:  # part 0 is the table box itself
+        m = trimesh.util.concatenate(obstacles)
+        m.visual.vertex_colors = [128, 128, 128, 255]
+        scene.add_geometry(m, node_name="background_obstacles", geom_name="background_obstacles",
+                           parent_node_name=root, transform=np.eye(4))
     for o in manifest.objects:
-        if o.usable and o.visual_mesh:
+        oid = export_id(o.name)
+        if o.obstacle_only:
+            box = trimesh.creation.box(extents=np.asarray(o.bbox_extent, dtype=float))
+            box.visual.vertex_colors = [230, 77, 77, 128]
+            scene.add_geometry(box, node_name=oid, geom_name=oid, parent_node_name=root, transform=o.pose)
+        elif o.usable and o.visual_mesh:
             m = load_mesh(twin_dir / o.visual_mesh, f"visual mesh of {o.name!r}", process=True)
-            scene.add_geometry(m, node_name=o.name, geom_name=o.name, parent_node_name=root, transform=o.pose)
+            scene.add_geometry(m, node_name=oid, geom_name=oid, parent_node_name=root, transform=o.pose)
     return scene
 
 
-def export_gltf(twin_dir: str | Path, manifest: Manifest) -> Path:
+def export_gltf(twin_dir: str | Path, manifest: Manifest, options=None) -> Path:
     """Write export/scene.glb (atomically)."""
     twin_dir = Path(twin_dir)
     path = twin_dir / "export" / "scene.glb"

@@ -29,7 +29,7 @@ import numpy as np
 from splattwin import io
 from splattwin.errors import InputError
 from splattwin.limits import MAX_RECORD_BYTES
-from splattwin.names import check_unique, object_name
+from splattwin.names import check_unique, export_id, object_name
 from splattwin.paths import confined
 from splattwin.poses.twin_frame import TwinFrame
 
@@ -48,6 +48,7 @@ MAX_INPUT_COORD = 1e12
 # Labels are stored in 16-bit label images (0 = background), and a label sizes per-label tables (a
 # viewer palette of label+1 colours): 1.5e9 cost 9 GB.
 MAX_LABEL = 65535
+MAX_EXPORT_FILES = 4 * 65536   # export_files entries (a few per object at most)
 RIGID_TOL = 1e-3          # |R^T R - I| and |bottom row - [0 0 0 1]| of an object pose
 
 def unscaled_note(frame: TwinFrame) -> str | None:
@@ -59,6 +60,20 @@ def unscaled_note(frame: TwinFrame) -> str | None:
             "masses are nominal. Rebuild with --known-length, --marker-size or metric poses for a metric twin.")
 
 
+def units_text(frame: TwinFrame) -> str:
+    """What a file's lengths are, for comment lines (PLY, OBJ, export headers)."""
+    return "units: metres (metric twin)" if frame.scaled else "units: " + (unscaled_note(frame) or "")
+
+
+def mass_source(density: float, scaled: bool = True) -> str:
+    """How an object's mass and inertia were obtained (twin.json `mass_source`, URDF/MJCF comments)."""
+    if not scaled:  # the density was rescaled to frame units: its number would mislead
+        return ("nominal (unscaled twin): collision-mesh volume x uniform density (--geometry.density per nominal "
+                "cubic metre), not weighed; inertia of that uniform solid")
+    return (f"estimate: collision-mesh volume x uniform density {density:g} kg/m^3 (--geometry.density), not "
+            "weighed; inertia of that uniform solid")
+
+
 @dataclass
 class ObjectEntry:
     """One manipulable object of the twin.
@@ -66,8 +81,14 @@ class ObjectEntry:
     T_world_obj: [4,4] object frame in the twin frame (object frame = centre of its gravity-aligned
     oriented bounding box, z up). bbox_extent: box side lengths in the object frame (m).
     Paths are relative to the twin folder; None when not produced. usable=False marks an object whose
-    geometry failed (problem says why): exporters skip it and robot stages refuse to plan with it. A
-    usable object may carry a problem too (a warning: e.g. it covers little of its masks).
+    geometry failed (problem says why): robot stages refuse to plan with it. Its splats still stand
+    where the real object stands, so when some survived, obstacle_only=True and T_world_obj /
+    bbox_extent give their padded axis-aligned box (an estimate): every collision export has it as a
+    static box (a robot must not sweep through the real object); obstacle_only=False with a zero extent
+    means it has no geometry at all (the problem says so). A usable object may carry a problem too (a
+    warning: e.g. it covers little of its masks, or floats above its support).
+    export_id: the object's ID in every export (`splattwin.names.export_id`; the human name stays in
+    `name`); derived from the name when the manifest is validated (a stored value is only a record). mass_source: how mass and inertia were obtained (an estimate: volume x uniform density).
     silhouette_coverage / silhouette_precision: the share of the object's 2D masks its cleaned splats
     cover, and of their silhouette inside the masks (medians over views, `geometry.completeness`); None
     when not measured (no masks, or too few points).
@@ -88,6 +109,9 @@ class ObjectEntry:
     problem: str | None = None
     silhouette_coverage: float | None = None
     silhouette_precision: float | None = None
+    export_id: str | None = None
+    obstacle_only: bool = False
+    mass_source: str | None = None
 
     @property
     def pose(self) -> np.ndarray:
@@ -121,6 +145,9 @@ class Manifest:
     splats: str | None = None           # full-scene 3DGS PLY
     labels: str | None = None           # per-Gaussian label array (.npy, 0 = background)
     exports: dict[str, Any] = field(default_factory=dict)   # e.g. {"mjcf": "export/scene.xml"}
+    # every export file with what a consumer must know: [{path, format, frame, units, scaled, ...}]
+    # (`splattwin.twin.build.describe_exports`)
+    export_files: list = field(default_factory=list)
     config: dict[str, Any] = field(default_factory=dict)
     versions: dict[str, str] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
@@ -139,6 +166,8 @@ class Manifest:
         out += [("background splat_ply", b.splat_ply), ("background collision_mesh", b.collision_mesh)]
         out += [("background convex part", p) for p in b.convex_parts]
         out += [(f"export {k}", v) for k, v in self.exports.items() if isinstance(v, str)]
+        out += [("export file", e.get("path")) for e in self.export_files
+                if isinstance(e, dict) and isinstance(e.get("path"), str)]
         return [(w, p) for w, p in out if p is not None]
 
     def validate(self, twin_dir: str | Path | None = None, where: str | Path = MANIFEST_NAME) -> None:
@@ -181,10 +210,18 @@ class Manifest:
             if not isinstance(o.usable, bool):
                 raise InputError(f"object {o.name!r}: usable must be true or false, got {type(o.usable).__name__}",
                                  where)
-            for k in ("prompt", "problem"):
+            for k in ("prompt", "problem", "mass_source"):
                 v = getattr(o, k)
-                if not (isinstance(v, str) or (k == "problem" and v is None)):
+                if not (isinstance(v, str) or (k != "prompt" and v is None)):
                     raise InputError(f"object {o.name!r}: {k} must be text, got {type(v).__name__}", where)
+            if not isinstance(o.obstacle_only, bool):
+                raise InputError(f"object {o.name!r}: obstacle_only must be true or false", where)
+            if o.obstacle_only and (o.usable or min(o.bbox_extent) < MIN_LENGTH):
+                raise InputError(f"object {o.name!r}: obstacle_only needs usable false and a bbox_extent of sides "
+                                 f">= {MIN_LENGTH:g} (the obstacle box)", where)
+            # derived from the name, never trusted: the exporters use export_id(name), and an older twin (or
+            # an object renamed since) has none or a stale one; twin.json records the one in use
+            o.export_id = export_id(o.name)
         check_unique([o.name for o in self.objects], where)
         b = self.background
         x0, x1, y0, y1 = _numbers(b.table_extent, 4, where, "background table_extent", low=-MAX_LENGTH, high=MAX_LENGTH)
@@ -203,6 +240,13 @@ class Manifest:
         for k, v in self.exports.items():
             if not isinstance(v, str):
                 raise InputError(f"export {k!r} must be a path (text), got {_brief(v)}", where)
+        if not isinstance(self.export_files, list) or len(self.export_files) > MAX_EXPORT_FILES:
+            raise InputError(f"export_files must be a list of at most {MAX_EXPORT_FILES} entries", where)
+        for e in self.export_files:
+            if not (isinstance(e, dict) and isinstance(e.get("path"), str) and all(
+                    isinstance(k, str) and (v is None or isinstance(v, (str, bool))) for k, v in e.items())):
+                raise InputError(f"export_files entries must be objects with a path and text or true/false "
+                                 f"values, got {_brief(e)}", where)
         if twin_dir is not None:
             root = Path(twin_dir)
             for what, rel in self.paths():
@@ -242,7 +286,7 @@ class Manifest:
                 frame=TwinFrame(**d.get("frame", {})),
                 objects=[ObjectEntry(**o) for o in d.get("objects", [])],
                 background=Background(**d.get("background", {})),
-                **{k: d[k] for k in ("cameras", "splats", "labels", "exports", "config", "versions", "timings", "schema_version") if k in d},
+                **{k: d[k] for k in ("cameras", "splats", "labels", "exports", "export_files", "config", "versions", "timings", "schema_version") if k in d},
             )
         except TypeError as e:  # unknown / missing keys, or an entry that is not an object
             raise InputError(f"malformed manifest: {e}", where) from e

@@ -4,6 +4,11 @@
 the arm); `add_twin(spec, manifest, twin_dir)` adds the twin into an existing spec (e.g. a robot's);
 `export_mjcf(twin_dir, manifest)` writes TWIN/export/scene.xml with mesh paths relative to it.
 
+Names: in scene.xml, object bodies are named by their export IDs (`splattwin.names.export_id`, as in
+every export); `add_twin` names them by the objects' names unless export_ids=True (the robot world
+looks them up by the task's names). An unusable object with an obstacle estimate (`obstacle_only`) is
+a static body (no joint) holding its box `<id>/obstacle`: it collides, but cannot be moved or grasped.
+
 Frames: the twin frame is MuJoCo's world frame (z up, table top at z = table_height). Object convex parts
 are stored in the object frame, so each object body sits at `T_world_obj`.
 
@@ -16,12 +21,14 @@ contacts (solref 0.01) so light objects do not sink into the table.
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 
 import numpy as np
 
 from splattwin import io
 from splattwin.errors import InputError
+from splattwin.names import export_id
 from splattwin.transforms import mujoco_quat_wxyz_from_matrix
 from splattwin.twin.manifest import Manifest, ObjectEntry, unscaled_note
 
@@ -56,12 +63,14 @@ def _mesh_volume(path: Path) -> float:
 
 
 def add_twin(spec, manifest: Manifest, twin_dir: str | Path, objects: list[str] | None = None,
-             floor: bool = True, poses: dict[str, np.ndarray] | None = None) -> list[str]:
+             floor: bool = True, poses: dict[str, np.ndarray] | None = None, export_ids: bool = False) -> list[str]:
     """Add table, background and object bodies of the twin into `spec` (in place).
 
     objects: names to include (default: every usable object). poses: optional override of T_world_obj
-    [4,4] per object (perturbed trials). Returns the names of the object bodies added.
-    Body names: objects by their name; geoms `<name>/part_<k>`; table geom `table`.
+    [4,4] per object (perturbed trials). Returns the names of the (free) object bodies added.
+    Body names: objects by their name (export_ids=True: their export IDs); geoms `<name>/part_<k>`;
+    table geom `table`. Obstacle-only objects (unusable, with an obstacle box) are always added, as
+    static bodies with geom `<name>/obstacle`, and are not in the returned list.
     """
     import mujoco
 
@@ -91,6 +100,14 @@ def add_twin(spec, manifest: Manifest, twin_dir: str | Path, objects: list[str] 
         _contact(g)
     added = []
     for obj in manifest.objects:
+        bname = export_id(obj.name) if export_ids else obj.name
+        if obj.obstacle_only:  # where an unusable object stands: static, so planners and physics avoid it
+            body = wb.add_body(name=bname, pos=obj.pose[:3, 3].tolist(),
+                               quat=mujoco_quat_wxyz_from_matrix(obj.pose[:3, :3]).tolist())
+            g = body.add_geom(name=f"{bname}/obstacle", type=mujoco.mjtGeom.mjGEOM_BOX,
+                              size=(np.asarray(obj.bbox_extent, float) / 2).tolist(), rgba=[0.9, 0.3, 0.3, 0.5])
+            _contact(g)
+            continue
         if not obj.usable or (objects is not None and obj.name not in objects):
             continue
         T = np.asarray(poses[obj.name]) if poses and obj.name in poses else obj.pose
@@ -101,15 +118,15 @@ def add_twin(spec, manifest: Manifest, twin_dir: str | Path, objects: list[str] 
             raise InputError(f"object {obj.name!r} has zero-volume collision geometry", parts[0])
         mass = float(obj.mass) if obj.mass else DEFAULT_DENSITY * total
         density = mass / total
-        body = wb.add_body(name=obj.name, pos=T[:3, 3].tolist(), quat=mujoco_quat_wxyz_from_matrix(T[:3, :3]).tolist())
-        body.add_freejoint(name=f"{obj.name}/free")
+        body = wb.add_body(name=bname, pos=T[:3, 3].tolist(), quat=mujoco_quat_wxyz_from_matrix(T[:3, :3]).tolist())
+        body.add_freejoint(name=f"{bname}/free")
         rgba = _colour(obj)
         for k, p in enumerate(parts):
-            mesh = spec.add_mesh(name=f"{obj.name}_part_{k}", file=str(p.resolve()))
-            g = body.add_geom(name=f"{obj.name}/part_{k}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=mesh.name,
+            mesh = spec.add_mesh(name=f"{bname}_part_{k}", file=str(p.resolve()))
+            g = body.add_geom(name=f"{bname}/part_{k}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=mesh.name,
                               density=density, rgba=rgba)
             _contact(g)
-        added.append(obj.name)
+        added.append(bname)
     return added
 
 
@@ -168,22 +185,46 @@ def build_spec(manifest: Manifest, twin_dir: str | Path, unscaled_ok: bool = Fal
     return spec
 
 
-def export_mjcf(twin_dir: str | Path, manifest: Manifest | None = None) -> Path:
+def _relative_files(xml: str, out_dir: Path) -> str:
+    """`xml` with every absolute `file` attribute made relative to `out_dir`. Parsed, not text-replaced:
+    to_xml escapes the path (`&` -> `&amp;`), so a plain replace missed folders named with `&<'"`."""
+    import xml.etree.ElementTree as ET
+
+    root = ET.fromstring(xml)
+    for el in root.iter():
+        f = el.get("file")
+        if f and Path(f).is_absolute():
+            el.set("file", Path(os.path.relpath(f, out_dir)).as_posix())
+    return ET.tostring(root, encoding="unicode") + "\n"
+
+
+def export_mjcf(twin_dir: str | Path, manifest: Manifest | None = None, options=None) -> Path:
     """Write TWIN/export/scene.xml (mesh files referenced relative to it) and record it in the manifest."""
     twin_dir = Path(twin_dir).resolve()
     manifest = manifest or Manifest.load(twin_dir)
-    spec = build_spec(manifest, twin_dir, unscaled_ok=True)
+    spec = build_spec(manifest, twin_dir, unscaled_ok=True, export_ids=True)
     if not manifest.frame.scaled:
         spec.modelname = "splattwin_twin_unscaled"
     try:
         spec.compile()
     except ValueError as e:
         raise InputError(f"twin does not compile as MJCF: {e}", twin_dir / "twin.json") from e
-    xml = spec.to_xml().replace(f'file="{twin_dir}/', 'file="../')
+    xml = _relative_files(spec.to_xml(), twin_dir / "export")
+    notes = ["frame: the world frame is the twin frame (z up, metres unless marked unscaled); quaternions "
+             "are w x y z (MJCF); bodies are named by the objects' export IDs (twin.json export_id)"]
     note = unscaled_note(manifest.frame)
-    if note:  # a comment right after the root element's opening tag
-        j = xml.index(">", xml.index("<mujoco")) + 1
-        xml = f"{xml[:j]}\n  <!-- {_xml_comment(note)} -->{xml[j:]}"
+    if note:
+        notes.append(note)
+    srcs = sorted({o.mass_source for o in manifest.objects if o.usable and o.mass_source})
+    if any(o.usable for o in manifest.objects):
+        notes.append("masses and inertias: " + ("; ".join(srcs) if srcs else
+                     f"uniform density {DEFAULT_DENSITY:g} kg/m^3 over the convex parts"))
+    obst = [export_id(o.name) for o in manifest.objects if o.obstacle_only]
+    if obst:
+        notes.append("obstacle-only (unusable objects; static padded boxes of their splats, estimates): "
+                     + ", ".join(obst))
+    j = xml.index(">", xml.index("<mujoco")) + 1   # comments right after the root element's opening tag
+    xml = xml[:j] + "".join(f"\n  <!-- {_xml_comment(n)} -->" for n in notes) + xml[j:]
     out = io.write_text(twin_dir / "export" / "scene.xml", xml)
     manifest.exports["mjcf"] = "export/scene.xml"
     manifest.save(twin_dir)

@@ -6,7 +6,12 @@
   "r g b a"; then the subframe count; "." ends the file.
 - `export/moveit/collision_objects.yaml`: a YAML list of moveit_msgs/msg/CollisionObject (header,
   id, pose, meshes/mesh_poses or primitives/primitive_poses, operation ADD = 0), ready to publish.
-Objects carry their collision mesh in the object frame with the object pose; the table is a box.
+Objects carry their collision mesh in the object frame with the object pose; the table is a box; an
+unusable object with an obstacle estimate (`obstacle_only`) is its box. Ids are the objects' export IDs
+(`splattwin.names.export_id`, as in every export). Frame: every pose is in the twin frame, named by
+`frame_id` (default `twin`, `ExportOptions.moveit_frame`; not `world`, which stock Panda MoveIt configs
+put at the robot base); the YAML says so in its header, and the `.scene` format (no comments, poses in
+the planning frame) only through twin.json's export_files. Quaternions are x y z w in both.
 `*_boxes.*` variants give each object as its gravity-aligned box proxy (for fast planners).
 `parse_scene` reads the text format back (for tests and tools).
 """
@@ -22,12 +27,14 @@ import trimesh
 from splattwin import io
 from splattwin.meshio import load_mesh
 from splattwin.errors import InputError
+from splattwin.names import export_id
 from splattwin.transforms import (pose_from_pos_quat_wxyz, quat_wxyz_from_matrix, quat_wxyz_from_xyzw,
                                   quat_xyzw_from_wxyz)
 from splattwin.twin.manifest import Manifest, unscaled_note
 
 ADD = 0
 BOX = 1  # shape_msgs/SolidPrimitive.BOX
+TWIN_FRAME = "twin"  # default frame_id of the exported poses: the twin frame
 
 
 @dataclass
@@ -57,7 +64,8 @@ def _pose_T(xyz, q_xyzw) -> np.ndarray:
 
 
 def scene_objects(twin_dir: Path, manifest: Manifest, boxes: bool = False) -> list[SceneObject]:
-    """The collision world of the twin: table (box) + background obstacles + usable objects.
+    """The collision world of the twin: table (box) + background obstacles + usable objects + the obstacle
+    boxes of unusable ones (`obstacle_only`). Ids: export IDs.
 
     boxes=True: each object is its gravity-aligned box proxy (T_world_obj, bbox_extent) instead of its
     collision mesh — what fast planners want."""
@@ -76,6 +84,10 @@ def scene_objects(twin_dir: Path, manifest: Manifest, boxes: bool = False) -> li
                                 color=(0.5, 0.5, 0.5, 1.0)))
         objs.append(SceneObject("background_obstacles", np.eye(4), shapes))
     for o in manifest.objects:
+        if o.obstacle_only:  # an unusable object still stands there: its padded box
+            objs.append(SceneObject(export_id(o.name), o.pose, [Shape("box", np.eye(4), size=np.asarray(
+                o.bbox_extent, dtype=float), color=(0.9, 0.3, 0.3, 0.5))]))
+            continue
         if not o.usable or not o.collision_mesh:
             continue
         color = (0.8, 0.8, 0.8, 1.0)
@@ -89,7 +101,7 @@ def scene_objects(twin_dir: Path, manifest: Manifest, boxes: bool = False) -> li
         else:
             m = load_mesh(twin_dir / o.collision_mesh, f"collision mesh of {o.name!r}", process=True)
             shape = Shape("mesh", np.eye(4), vertices=np.asarray(m.vertices), faces=np.asarray(m.faces), color=color)
-        objs.append(SceneObject("_".join(o.name.split()), o.pose, [shape]))  # ids are whitespace-free tokens
+        objs.append(SceneObject(export_id(o.name), o.pose, [shape]))  # ids are whitespace-free tokens
     return objs
 
 
@@ -175,7 +187,7 @@ def _pose_msg(T: np.ndarray) -> dict:
             "orientation": {"x": float(q[0]), "y": float(q[1]), "z": float(q[2]), "w": float(q[3])}}
 
 
-def collision_object_msgs(objs: list[SceneObject], frame_id: str = "world") -> list[dict]:
+def collision_object_msgs(objs: list[SceneObject], frame_id: str = TWIN_FRAME) -> list[dict]:
     """moveit_msgs/msg/CollisionObject as plain dicts (ROS 2 field names)."""
     msgs = []
     for o in objs:
@@ -201,11 +213,15 @@ def pose_from_msg(p: dict) -> np.ndarray:
     return _pose_T([p["position"][k] for k in "xyz"], [o["x"], o["y"], o["z"], o["w"]])
 
 
-def export_moveit(twin_dir: str | Path, manifest: Manifest, frame_id: str = "world") -> Path:
+def export_moveit(twin_dir: str | Path, manifest: Manifest, frame_id: str | None = None, options=None) -> Path:
     """Write export/moveit/{scene.scene, collision_objects.yaml} (collision meshes) and
-    {scene_boxes.scene, collision_objects_boxes.yaml} (box proxies), atomically. Returns scene.scene."""
+    {scene_boxes.scene, collision_objects_boxes.yaml} (box proxies), atomically. Returns scene.scene.
+    frame_id: the poses' frame (default: options.moveit_frame, `twin`)."""
     import yaml
 
+    from splattwin.twin.options import ExportOptions
+
+    frame_id = frame_id or (options or ExportOptions()).moveit_frame
     twin_dir = Path(twin_dir)
     out = twin_dir / "export" / "moveit"
     dumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)  # libyaml: ~10x faster on mesh-sized lists
@@ -216,6 +232,9 @@ def export_moveit(twin_dir: str | Path, manifest: Manifest, frame_id: str = "wor
         objs = scene_objects(twin_dir, manifest, boxes=boxes)
         io.write_text(out / f"collision_objects{suffix}.yaml",
                       ("" if note is None else f"# {note}\n")
+                      + f"# frame_id {frame_id}: the twin frame (z up; table top at z = table_height in twin.json), not "
+                      f"the robot base: publish a transform to it. Quaternions x y z w; lengths in "
+                      f"{'metres' if note is None else 'UNSCALED units'}\n"
                       + yaml.dump(collision_object_msgs(objs, frame_id), Dumper=dumper, default_flow_style=None,
                                   sort_keys=False, width=1 << 20))
         path = io.write_text(out / f"scene{suffix}.scene", scene_text(objs, "splattwin" + suffix + unscaled))

@@ -73,6 +73,9 @@ def transform_gaussians(g: Gaussians, T_new_old: np.ndarray) -> Gaussians:
     return Gaussians(means, quats, g.scales.copy(), g.opacities.copy(), sh)
 
 
-def write_object_splats(path: str | Path, g: Gaussians, T_world_obj: np.ndarray) -> Path:
-    """Write Gaussians (world frame) as a standard 3DGS PLY in the object frame, atomically."""
-    return transform_gaussians(g, np.linalg.inv(T_world_obj)).save_ply(path)
+def write_object_splats(path: str | Path, g: Gaussians, T_world_obj: np.ndarray, comments=()) -> Path:
+    """Write Gaussians (world frame) as a standard 3DGS PLY in the object frame, atomically.
+    comments: PLY comment lines (units, frame; see `splat.ply.write_gaussians_ply`)."""
+    from splattwin.splat.ply import write_gaussians_ply
+
+    return write_gaussians_ply(path, transform_gaussians(g, np.linalg.inv(T_world_obj)), comments)

@@ -49,7 +49,8 @@ def run(inputs: TwinInputs, options: TwinOptions, *, progress: bool = True) -> T
     objects = [tuple(x) for x in io.read_json(inputs.objects)]
     frame = load_frame(inputs.frame)
     man = build_twin(g, labels, objects, twin, frame=frame, cameras_path=inputs.cameras, options=options.geometry,
-                     formats=options.export.resolve("export.formats"), progress=progress, masks=inputs.masks)
+                     formats=options.export.resolve("export.formats"), progress=progress, masks=inputs.masks,
+                     export_options=options.export, splats_path=inputs.splats)
     scene_json = inputs.scene_dir / "scene.json" if inputs.scene_dir is not None else None
     if scene_json is not None and scene_json.is_file():
         scene = io.read_json(scene_json)

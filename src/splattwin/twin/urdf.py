@@ -1,15 +1,22 @@
-"""URDF export: one URDF per object and one for the scene (meshes referenced relatively).
+"""URDF export: one URDF per object and one for the scene.
 
-Files go to TWIN/export/; mesh paths are relative to that folder ("../objects/box/visual.obj"), so the
-twin folder can be moved as a whole. The scene URDF roots at link `world` (the twin frame); the table,
-background obstacles and every usable object hang from it on fixed joints at their poses (a URDF
-cannot express free bodies; simulators free them, planners treat them as a snapshot).
+Files go to TWIN/export/ (`scene.urdf`, `<export_id>.urdf`). Mesh filenames follow
+`ExportOptions.urdf_uri`: relative to that folder by default ("../objects/box/visual.obj": simulators
+and yourdfpy resolve it against the URDF file, and the twin folder can be moved as a whole), absolute
+`file://` URIs, or `package://NAME/...` with the twin folder as the package root (ROS passes
+robot_description as a string, so rviz / MoveIt need one of the URIs). Links and joints are named by
+the objects' export IDs (`splattwin.names.export_id`: [A-Za-z0-9_]). The scene URDF roots at link
+`world` = the twin frame (z up); the table, background obstacles and every usable object hang from it
+on fixed joints at their poses (a URDF cannot express free bodies; simulators free them, planners
+treat them as a snapshot). An unusable object with an obstacle estimate (`obstacle_only`) is a link
+with its box only (no inertial: static). Masses and inertias are estimates (a comment says so).
 """
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
+from urllib.parse import quote
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
@@ -17,7 +24,7 @@ import trimesh
 
 from splattwin import io
 from splattwin.meshio import load_mesh
-from splattwin.names import object_name
+from splattwin.names import export_id
 from splattwin.paths import child
 from splattwin.twin.manifest import Manifest, ObjectEntry, unscaled_note
 
@@ -28,7 +35,12 @@ def _origin(T: np.ndarray) -> str:
     return f'<origin xyz="{xyz}" rpy="{" ".join(f"{v:.6g}" for v in rpy)}"/>'
 
 
-def _rel(twin_dir: Path, rel_path: str, from_dir: Path) -> str:
+def _rel(twin_dir: Path, rel_path: str, from_dir: Path, uri: str = "relative") -> str:
+    """A mesh's filename in the URDF (module docstring): `rel_path` is relative to the twin folder."""
+    if uri == "file":
+        return (Path(twin_dir).resolve() / rel_path).as_uri()   # percent-encodes spaces
+    if uri.startswith("package://"):
+        return f"{uri}/{quote(Path(rel_path).as_posix())}"
     return Path(os.path.relpath(twin_dir / rel_path, from_dir)).as_posix()
 
 
@@ -49,67 +61,100 @@ def _inertial(twin_dir: Path, o: ObjectEntry) -> str:
             f'iyz="{I[1,2]:.6g}" izz="{I[2,2]:.6g}"/></inertial>')
 
 
-def object_link(twin_dir: Path, o: ObjectEntry, from_dir: Path) -> str:
-    """<link> of an object in its own frame: inertial, visual mesh, one collision per convex part."""
-    parts = [f"<link name={quoteattr(o.name)}>", _inertial(twin_dir, o)]
+def object_link(twin_dir: Path, o: ObjectEntry, from_dir: Path, uri: str = "relative") -> str:
+    """<link> of an object in its own frame: inertial, visual mesh, one collision per convex part; an
+    obstacle-only object: its box as visual and collision, no inertial (a static link)."""
+    parts = [f"<link name={quoteattr(export_id(o.name))}>"]
+    if o.obstacle_only:
+        box = " ".join(f"{v:.6g}" for v in o.bbox_extent)
+        parts.append(f'<visual><geometry><box size="{box}"/></geometry></visual>'
+                     f'<collision><geometry><box size="{box}"/></geometry></collision>')
+    else:
+        parts.append(_inertial(twin_dir, o))
     if o.visual_mesh:
-        parts.append(f'<visual><geometry><mesh filename={quoteattr(_rel(twin_dir, o.visual_mesh, from_dir))}/>'
+        parts.append(f'<visual><geometry><mesh filename={quoteattr(_rel(twin_dir, o.visual_mesh, from_dir, uri))}/>'
                      f"</geometry></visual>")
     for p in (o.convex_parts or ([o.collision_mesh] if o.collision_mesh else [])):
-        parts.append(f'<collision><geometry><mesh filename={quoteattr(_rel(twin_dir, p, from_dir))}/>'
+        parts.append(f'<collision><geometry><mesh filename={quoteattr(_rel(twin_dir, p, from_dir, uri))}/>'
                      f"</geometry></collision>")
     parts.append("</link>")
     return "\n  ".join(parts)
 
 
-def _note(manifest: Manifest | None) -> str:
-    """An XML comment line for an unscaled twin (URDF has no unit field: lengths are metres by spec)."""
-    note = unscaled_note(manifest.frame) if manifest is not None else None
-    return "" if not note else "<!-- " + note.replace("--", "- -") + " -->\n"
+def _comment(text: str) -> str:
+    return "<!-- " + text.replace("--", "- -") + " -->\n"
 
 
-def object_urdf(twin_dir: Path, o: ObjectEntry, out_dir: Path, manifest: Manifest | None = None) -> str:
-    return (f'<?xml version="1.0"?>\n{_note(manifest)}<robot name={quoteattr(o.name)}>\n  '
-            f'{object_link(twin_dir, o, out_dir)}\n</robot>\n')
+def _note(manifest: Manifest | None, objects=None) -> str:
+    """XML comment lines: the frame, an unscaled twin's note (URDF has no unit field: lengths are metres by
+    spec), that masses are estimates, and the obstacle-only links."""
+    if manifest is None:
+        return ""
+    out = _comment("frame: link world is the twin frame (z up; table top at z = table_height in twin.json); "
+                   "each object link's origin is its object frame")
+    note = unscaled_note(manifest.frame)
+    if note:
+        out += _comment(note)
+    objects = manifest.objects if objects is None else objects
+    srcs = sorted({o.mass_source for o in objects if o.usable and o.mass_source})
+    if any(o.usable for o in objects):
+        out += _comment("masses and inertias: " + ("; ".join(srcs) if srcs else
+                                                                 "uniform density over the collision mesh"))
+    obst = [export_id(o.name) for o in objects if o.obstacle_only]
+    if obst:
+        out += _comment("obstacle-only (unusable objects, static padded boxes of their splats, estimates): "
+                        + ", ".join(obst))
+    return out
 
 
-def scene_urdf(twin_dir: Path, manifest: Manifest, out_dir: Path) -> str:
+def object_urdf(twin_dir: Path, o: ObjectEntry, out_dir: Path, manifest: Manifest | None = None,
+                uri: str = "relative") -> str:
+    return (f'<?xml version="1.0"?>\n{_note(manifest, [o])}<robot name={quoteattr(export_id(o.name))}>\n  '
+            f'{object_link(twin_dir, o, out_dir, uri)}\n</robot>\n')
+
+
+def scene_urdf(twin_dir: Path, manifest: Manifest, out_dir: Path, uri: str = "relative") -> str:
     bg = manifest.background
     x0, x1, y0, y1 = bg.table_extent
     box = f"{x1 - x0:.6g} {y1 - y0:.6g} {bg.table_thickness:.6g}"
     T_table = np.eye(4)
     T_table[:3, 3] = [(x0 + x1) / 2, (y0 + y1) / 2, bg.table_height - bg.table_thickness / 2]
-    lines = ['<?xml version="1.0"?>', *([_note(manifest).rstrip()] if _note(manifest) else []),
+    lines = ['<?xml version="1.0"?>', _note(manifest).rstrip(),
              '<robot name="splattwin_scene">', '  <link name="world"/>',
              f'  <link name="table"><visual><geometry><box size="{box}"/></geometry></visual>'
              f'<collision><geometry><box size="{box}"/></geometry></collision></link>',
              f'  <joint name="world_to_table" type="fixed"><parent link="world"/><child link="table"/>{_origin(T_table)}</joint>']
     obstacles = [p for p in bg.convex_parts[1:]]  # part 0 is the table box itself
     if obstacles:
-        coll = "".join(f'<collision><geometry><mesh filename={quoteattr(_rel(twin_dir, p, out_dir))}/></geometry></collision>'
-                       for p in obstacles)
+        coll = "".join(f'<collision><geometry><mesh filename={quoteattr(_rel(twin_dir, p, out_dir, uri))}/>'
+                       f'</geometry></collision>' for p in obstacles)
         lines += [f'  <link name="background_obstacles">{coll}</link>',
                   '  <joint name="world_to_background_obstacles" type="fixed"><parent link="world"/>'
                   '<child link="background_obstacles"/><origin xyz="0 0 0" rpy="0 0 0"/></joint>']
     for o in manifest.objects:
-        if not o.usable:
+        if not (o.usable or o.obstacle_only):
             continue
-        lines.append("  " + object_link(twin_dir, o, out_dir))
-        lines.append(f'  <joint name={quoteattr("world_to_" + o.name)} type="fixed"><parent link="world"/>'
-                     f'<child link={quoteattr(o.name)}/>{_origin(o.pose)}</joint>')
+        oid = export_id(o.name)
+        lines.append("  " + object_link(twin_dir, o, out_dir, uri))
+        lines.append(f'  <joint name={quoteattr("world_to_" + oid)} type="fixed"><parent link="world"/>'
+                     f'<child link={quoteattr(oid)}/>{_origin(o.pose)}</joint>')
     lines.append("</robot>\n")
     return "\n".join(lines)
 
 
-def export_urdf(twin_dir: str | Path, manifest: Manifest) -> Path:
-    """Write export/scene.urdf and export/<name>.urdf for every usable object (atomically). Returns scene.urdf."""
+def export_urdf(twin_dir: str | Path, manifest: Manifest, options=None) -> Path:
+    """Write export/scene.urdf and export/<export_id>.urdf for every usable object (atomically). options:
+    `ExportOptions` (urdf_uri). Returns scene.urdf."""
+    from splattwin.twin.options import ExportOptions
+
+    uri = (options or ExportOptions()).urdf_uri
     twin_dir = Path(twin_dir)
     out = twin_dir / "export"
     names = {"scene.urdf"}
     for o in manifest.objects:
         if o.usable:
-            names.add(f"{object_name(o.name)}.urdf")
-            io.write_text(child(out, f"{object_name(o.name)}.urdf"), object_urdf(twin_dir, o, out, manifest))
-    path = io.write_text(out / "scene.urdf", scene_urdf(twin_dir, manifest, out))
+            names.add(f"{export_id(o.name)}.urdf")
+            io.write_text(child(out, f"{export_id(o.name)}.urdf"), object_urdf(twin_dir, o, out, manifest, uri))
+    path = io.write_text(out / "scene.urdf", scene_urdf(twin_dir, manifest, out, uri))
     io.remove_stale(out, names, suffix=".urdf")   # an earlier build's object that is gone or now unusable
     return path
