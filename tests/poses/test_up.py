@@ -313,3 +313,29 @@ def test_3dgs_cameras_json_and_colmap_are_unscaled_unless_told():
     assert _input_scaled(ds("cameras.json"), None, "metric")
     assert _input_scaled(ds("nerfstudio"), None, "auto")
     assert not _input_scaled(ds("nerfstudio"), None, "unscaled")
+
+
+def test_a_tilted_known_world_gets_the_table_frame(scene_small: Path, tmp_path: Path):
+    """Poses in the first camera's frame (a tilted world, arbitrary origin): levelled AND moved so that the
+    table top is z = 0 near the origin; before, only levelled, its table top stayed 0.7 m below z = 0."""
+    ds = load_dataset(scene_small)
+    T_in_world = np.linalg.inv(ds.frames[0].camera.T_world_cam)     # input = camera 0's frame
+    frames = [dataclasses.replace(f, camera=dataclasses.replace(f.camera, T_world_cam=T_in_world @ f.camera.T_world_cam))
+              for f in ds.frames]
+    from splattwin.capture.bundle import bundle_frames
+
+    out = tmp_path / "cam0"
+    src = nerfstudio.write(Dataset(root=out, frames=bundle_frames(frames, out), has_poses=True), out / "transforms.json")
+    res = estimate_poses(load_dataset(src), PoseOptions(method="known", progress=False))
+    assert res.frame.up_check["input_up"] == "tilted" and res.frame.up_check["moved_to_table_frame"]
+    assert res.frame.scaled and "table frame" in res.frame.description
+    from splattwin.poses.table import fit_table_plane
+
+    plane = fit_table_plane(res.points_xyz, np.array([c.center for c in res.cameras]))
+    assert math.degrees(math.acos(plane.normal[2])) < 1.0 and abs(plane.d) < 0.005
+    # a rigid move of the true world: camera heights above the table and distances are the true ones
+    gt = [f.camera.center for f in ds.frames]
+    got = [c.center for c in res.cameras]
+    np.testing.assert_allclose([p[2] for p in got], [p[2] for p in gt], atol=0.005)
+    # the origin near the table centre (the true world's origin): the cameras' mean as far from it as in truth
+    assert np.linalg.norm(np.mean(got, 0)[:2]) == pytest.approx(np.linalg.norm(np.mean(gt, 0)[:2]), abs=0.03)

@@ -341,13 +341,28 @@ def _check_up(frame: TwinFrame, cams: list[Camera], pts_xyz: np.ndarray | None, 
     if (pts is None or len(pts) < 50) and opts.up == "auto":
         pts = depth_points(frames, dataset.depth_scale, seed=opts.seed)
     chk = check_up(cams, pts, opts.up, where=dataset.meta.get("path", dataset.root), seed=opts.seed)
-    stats["up_check"] = chk.to_dict()
+    up_check, T_twin_input, what = chk.to_dict(), chk.T_twin_input, chk.describe()
+    if chk.input_up == "tilted" and pts is not None and len(pts) >= 20:
+        # A tilted world is no robot's or rig's frame (those are level: z up, or a quarter/half turn away)
+        # but an arbitrary one, e.g. the first camera's: levelled alone, its table top stayed wherever that
+        # origin put it (0.74 m below z = 0 in a camera-0 world) while the robot stands on z = 0. So it
+        # gets the table frame, as an SfM capture does: table top z = 0, origin near the table centre.
+        from splattwin.poses.table import table_frame
+        from splattwin.poses.up import table_plane_under_cameras
+
+        pts_level = align.transform_points(T_twin_input, pts)
+        cams_level = [align.transform_camera(T_twin_input, c) for c in cams]
+        plane, _ = table_plane_under_cameras(pts_level, cams_level, seed=opts.seed)
+        T_twin_input = table_frame(plane, pts_level, cams_level[0]) @ T_twin_input
+        up_check["moved_to_table_frame"] = True
+        what += "; moved into the table frame (table top z = 0, origin near the table centre)"
+    stats["up_check"] = up_check
     if chk.changed:
-        log.warning("known poses: %s (recorded in frame.json)", chk.describe())
-        frame = dataclasses.replace(frame, description=f"{frame.description}; {chk.describe()}")
+        log.warning("known poses: %s (recorded in frame.json)", what)
+        frame = dataclasses.replace(frame, description=f"{frame.description}; {what}")
     else:
-        log.info("known poses: %s", chk.describe())
-    return dataclasses.replace(frame, up_check=chk.to_dict()), chk.T_twin_input
+        log.info("known poses: %s", what)
+    return dataclasses.replace(frame, up_check=up_check), T_twin_input
 
 
 def _depth_scale(frames: list[DataFrame], names: list[str], in_cams: dict[str, Camera], pts_xyz: np.ndarray,
