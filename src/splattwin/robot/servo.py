@@ -25,13 +25,16 @@ GUARD_EVERY = 4          # physics steps between guard checks
 
 
 class Servo:
-    """Executes motions on a World. `q` is the commanded arm configuration the servos hold now [n] rad."""
+    """Executes motions on a World. `q` is the commanded arm configuration the servos hold now [n] rad;
+    `elapsed` the simulated time (s) the last `track` ran: a whole number of physics steps, so the exported
+    timeline (motion + hold) is built from it, not from the requested durations."""
 
     def __init__(self, world: World, recorder: RolloutRecorder | None = None):
         self.world = world
         self.recorder = recorder
         self.q = world.arm_q()
         self.t0 = world.time
+        self.elapsed = 0.0
 
     def track(self, traj: Trajectory | None, grip: float, duration: float | None, monitor: MonitorState,
               guard: Callable[[], bool] | None = None) -> float | None:
@@ -69,4 +72,5 @@ class Servo:
                 Q = np.broadcast_to(q_hold, (n, len(q_hold)))
             i += 1
         self.q = np.array(q_hold, dtype=float)
+        self.elapsed = n * dt
         return stopped
