@@ -57,6 +57,8 @@ def test_plan_writes_trajectories_and_results(gt_twin_default: Path, tmp_path: P
     assert ro.steps() == [1, 2, 3] and ro.t[-1] == pytest.approx(res["nominal"]["sim_time"])
     assert ro.joint_names == list(tj.meta["joint_map"].values())
     assert tj.duration == pytest.approx(ro.t[-1])          # the exported timeline is the executed one
+    # the servos' tracking error is reported; with the velocity feed-forward it is millimetres at the TCP
+    assert res["tracking"]["tcp_max_m"] < 0.01 and res["tracking"]["joint_max_rad"] < 0.01
     track = load_robot_track(twin)
     assert track is not None and len(track) > 100 and set(track.object_poses) == set(ro.object_poses)
     assert track.times[0] >= ro.t[0] and track.times[-1] == pytest.approx(ro.t[-1])

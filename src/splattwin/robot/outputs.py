@@ -1,7 +1,8 @@
 """Artifacts of a validation run, written atomically under OUT (default TWIN/robot):
 
-    results.json                 task, base pose, per-step results, trials summary (sigma per axis, its
-                                 definition, sigma_yaw), notes
+    results.json                 task, base pose and frame, exported joint names, per-step results, the
+                                 servos' tracking error (`tracking_error`), trials summary (sigma per axis,
+                                 its definition, sigma_yaw), notes
     trials/<i>.json              each finished perturbed trial (reused by a re-run with the same key)
     trials/<i>.rollout.npz       its rollout, kept when the run is recorded (`plan --record`); both written
                                  by the trial's worker (`trials.run_trials`), the rollout first
@@ -172,14 +173,15 @@ def write_outputs(out: str | Path, spec, result, trials: dict | None, render_not
     paths.update(write_base_frame_moveit(out, spec.twin_dir, T_twin_base, names.base_frame))
     if render_note:
         notes.append(render_note)
-    paths.update(write_rollout(out, spec, result))
+    rollout_paths, tracking = write_rollout(out, spec, result)
+    paths.update(rollout_paths)
     doc = {
         "twin": str(spec.twin_dir), "task": spec.task_path or "default (paper three-step rearrangement)",
         "base_pose": asdict(spec.base), "base_frame": names.base_frame,
         "joint_names": {"exported": list(names.joint_names), "simulated": list(robot.arm_joints)},
         "robot_mjcf": spec.robot_mjcf or "MuJoCo Menagerie franka_emika_panda",
         "planner": spec.planner, "seed": spec.seed,
-        "nominal": result.to_dict(),
+        "nominal": result.to_dict(), "tracking": tracking,
         "trials": trials,
         "frames": [str(Path(f).relative_to(out)) for f in (frames or [])],
         "notes": notes, "wall_s": wall_s,
@@ -237,8 +239,9 @@ def write_trajectories(out: Path, trajectories, meta: dict, names) -> tuple[dict
     return paths, notes
 
 
-def write_rollout(out: str | Path, spec, result) -> dict[str, Path]:
-    """OUT/rollout.npz and OUT/playback.npz (the viewer's track) from the result's rollout, if it has one.
+def write_rollout(out: str | Path, spec, result) -> tuple[dict[str, Path], dict | None]:
+    """OUT/rollout.npz and OUT/playback.npz (the viewer's track) from the result's rollout, if it has one,
+    and its `tracking_error` (None without a rollout).
 
     The track is posed on a world with the robot's visual meshes (built here: the executing world may
     have been built without them); the rollout's full qpos replays every body exactly."""
@@ -247,12 +250,36 @@ def write_rollout(out: str | Path, spec, result) -> dict[str, Path]:
 
     rollout = getattr(result, "rollout", None)
     if rollout is None or not len(rollout):
-        return {}
+        return {}, None
     out = Path(out)
     paths = {"rollout": rollout.save(out / "rollout.npz")}
     world = build_world(spec.twin_dir, robot=spec.robot_model(), base=spec.base, visual=True)
     paths["playback"] = write_playback(out / "playback.npz", world, rollout)
-    return paths
+    return paths, tracking_error(world, rollout)
+
+
+def tracking_error(world, rollout, every: int = 5) -> dict:
+    """How far physics was from the commanded (exported) trajectory over the run, every `every`-th control
+    step: the arm joints (rad, max) and the TCP position (m, max / median / 95th percentile), measured
+    against the TCP at the commanded joints with everything else as simulated."""
+    import mujoco
+
+    d = mujoco.MjData(world.model)
+    tcp = world.tcp_site
+    err = []
+    for i in range(0, len(rollout), every):
+        d.qpos[:] = rollout.qpos[i]
+        mujoco.mj_kinematics(world.model, d)
+        p_measured = d.site_xpos[tcp].copy()
+        world.joints.set_arm(d.qpos, rollout.action_q_arm[i])
+        mujoco.mj_kinematics(world.model, d)
+        err.append(float(np.linalg.norm(d.site_xpos[tcp] - p_measured)))
+    e = np.array(err)
+    return {"joint_max_rad": round(float(np.abs(rollout.q_arm - rollout.action_q_arm).max()), 5),
+            "tcp_max_m": round(float(e.max()), 5), "tcp_median_m": round(float(np.median(e)), 5),
+            "tcp_p95_m": round(float(np.percentile(e, 95)), 5),
+            "definition": "measured vs commanded arm over the validated run (rollout.npz: q_arm vs "
+                          "action_q_arm, the exported trajectory), TCP by forward kinematics"}
 
 
 def print_summary(result, trials: dict | None, paths: dict[str, Path]) -> None:
