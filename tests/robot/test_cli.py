@@ -40,7 +40,13 @@ def test_plan_writes_trajectories_and_results(gt_twin_default: Path, tmp_path: P
     tj = Trajectory.load_json(out / "trajectory.json")
     tc = Trajectory.load_csv(out / "trajectory.csv")
     ty = Trajectory.load_ros2_yaml(out / "trajectory.ros2.yaml")
-    assert tj.joint_names == [f"joint{i}" for i in range(1, 8)]
+    ty = Trajectory.load_ros2_yaml(out / "trajectory.goal.ros2.yaml", gripper_path=out / "gripper.ros2.yaml")
+    # the real Panda's joint names by default (franka_ros, panda_moveit_config); the simulation's are mapped
+    assert tj.joint_names == [f"panda_joint{i}" for i in range(1, 8)] == tc.joint_names == ty.joint_names
+    assert tj.meta["joint_map"] == {f"panda_joint{i}": f"joint{i}" for i in range(1, 8)}
+    assert tj.meta["base_pose"]["translation"] == [-0.5, 0.0, 0.0] and tj.meta["base_frame"] == "panda_link0"
+    assert len(tj.gripper) == 7 and [g.command for g in ty.gripper] == [g.command for g in tj.gripper]
+    assert (out / "base_transform.yaml").is_file() and (out / "moveit" / "collision_objects.yaml").is_file()
     for t in (tc, ty):
         np.testing.assert_allclose(t.q, tj.q, atol=1e-6)
         np.testing.assert_allclose(t.t, tj.t, atol=1e-6)
@@ -49,7 +55,10 @@ def test_plan_writes_trajectories_and_results(gt_twin_default: Path, tmp_path: P
     assert res["notes"] == ["rendering disabled (--no-render)"]
     ro = Rollout.load(out / "rollout.npz")
     assert ro.steps() == [1, 2, 3] and ro.t[-1] == pytest.approx(res["nominal"]["sim_time"])
-    assert ro.joint_names == tj.joint_names
+    assert ro.joint_names == list(tj.meta["joint_map"].values())
+    assert tj.duration == pytest.approx(ro.t[-1])          # the exported timeline is the executed one
+    # the servos' tracking error is reported; with the velocity feed-forward it is millimetres at the TCP
+    assert res["tracking"]["tcp_max_m"] < 0.01 and res["tracking"]["joint_max_rad"] < 0.01
     track = load_robot_track(twin)
     assert track is not None and len(track) > 100 and set(track.object_poses) == set(ro.object_poses)
     assert track.times[0] >= ro.t[0] and track.times[-1] == pytest.approx(ro.t[-1])

@@ -38,9 +38,23 @@ def test_rollout_is_the_record_of_the_run(default_run):
     full = concatenate([tr for _, tr in r.trajectories])
     dev = np.concatenate([path_deviation(ro.action_q_arm[i:i + 250], full.q) for i in range(0, T, 250)])
     assert dev.max() < 1e-9
+    # ... on its timeline: the exported one lasts as long as the run (holds included), the target at each
+    # control step is the exported trajectory at the step's start (one physics step before it is recorded)
+    assert full.duration == pytest.approx(r.sim_time, abs=1e-9)
+    np.testing.assert_allclose(full.sample(ro.t - dt), ro.action_q_arm, atol=1e-9)
+    # the gripper commands are where physics got them: open, then grasp / open per step
+    assert [g.command for g in full.gripper] == ["open"] + ["grasp", "open"] * 3
+    for g in full.gripper:
+        k = int(round(g.t / dt))                              # the first control step under this command
+        assert ro.action_gripper[k] == (0.0 if g.command == "grasp" else w.robot.max_opening)
+        assert k == 0 or ro.action_gripper[k - 1] != ro.action_gripper[k]
+    assert [g.width for g in full.gripper[1::2]] == [s.grasp.width for s in r.steps]
     # the measured arm follows within servo error, and settles on the target at the end
+    # with the reference velocity fed forward (kd/kp = 0.1 s on the Menagerie servos); without it the arm
+    # lagged by 0.1 s x velocity: up to 0.12 rad
+    np.testing.assert_allclose(w.servo_lead, 0.1)
     err = np.abs(ro.q_arm - ro.action_q_arm).max(axis=1)
-    assert err.max() < 0.2 and np.median(err) < 0.05 and err[-1] < 0.01
+    assert err.max() < 0.01 and np.median(err) < 0.002 and err[-1] < 0.001
     # the gripper: commanded open (max opening) or closed (0); measured open at the end
     assert set(np.unique(ro.action_gripper)) == {0.0, w.robot.max_opening}
     assert abs(ro.gripper_width[-1] - w.robot.max_opening) < 0.002

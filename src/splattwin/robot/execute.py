@@ -47,9 +47,9 @@ from splattwin.robot.planning import PlanningError
 from splattwin.robot.plans import GraspPlan, GraspReport, PlacePlan
 from splattwin.robot.rollout import Rollout, RolloutRecorder
 from splattwin.robot.selection import GraspSelector
-from splattwin.robot.servo import GUARD_HOLD, Servo
+from splattwin.robot.servo import Servo
 from splattwin.robot.task import Step, Task
-from splattwin.robot.trajectory import Trajectory
+from splattwin.robot.trajectory import GripperCommand, Trajectory
 from splattwin.robot.world import World, hand_points_tcp
 from splattwin.transforms import invert_pose
 
@@ -104,8 +104,11 @@ class RunResult:
 class Executor:
     """Runs a task on a World. `belief`: T_world_obj per object used for planning (default: the twin's).
 
-    trajectories: (label, Trajectory) of every commanded motion and gripper hold, in order; the rollout
-    (`RunResult.rollout`) records what physics did with them.
+    trajectories: (label, Trajectory) of every servo command in order: each motion with the settle hold
+    the servos ran after it, and each gripper hold, lasting exactly as long as it ran in physics, so
+    their concatenation is the executed timeline; a segment where the gripper command changes carries
+    it (`Trajectory.gripper`, at its start: open to the full opening, or grasp at the planned width). The
+    rollout (`RunResult.rollout`) records what physics did with them.
     """
 
     def __init__(self, world: World, belief: dict[str, np.ndarray] | None = None, seed: int = 0,
@@ -121,6 +124,7 @@ class Executor:
                        for o in world.objects}
         self.frame_cb = frame_cb
         self.trajs: list[tuple[str, Trajectory]] = []
+        self._grip_ctrl: float | None = None   # the gripper ctrl last commanded (exported when it changes)
         self.recorder = RolloutRecorder(world.model.nq, len(self.robot.arm_joints))
         self.servo = Servo(world, self.recorder)
         self.motion = MotionPlanner(world, self.belief, seed=seed, planner=planner, plan_time=plan_time,
@@ -142,17 +146,48 @@ class Executor:
         return self.motion.plan_ms
 
     # ---- execution helpers -----------------------------------------------------------------------------
+    def _track(self, label: str, tr: Trajectory | None, grip: float, settle: float, mon: MonitorState,
+               guard: Callable[[], bool] | None = None, width: float | None = None) -> float | None:
+        """Execute tr (None: a hold at the current q) with gripper ctrl `grip`, then hold `settle` s, and
+        record it as `label` lasting exactly as long as the servos ran (motion + hold). width: the grasp
+        width (m) when `grip` closes on an object. A guarded motion that stopped is recorded up to the
+        stop as `<label>_stopped` (the caller records the hold there). Returns the stop time or None."""
+        q0 = self.q
+        stopped = self.servo.track(tr, grip, settle, mon, guard=guard)
+        if tr is None:
+            tr = self.motion.hold(q0, self.servo.elapsed)
+        elif stopped is None:
+            tr = tr.held_until(self.servo.elapsed)
+        else:
+            tr = truncate(tr, stopped)
+            label = f"{label}_stopped"
+        cmd = self._gripper_command(grip, width)
+        if cmd is not None:
+            tr = Trajectory(tr.t, tr.q, tr.qd, tr.qdd, tr.joint_names, [cmd])
+        self.trajs.append((label, tr))
+        return stopped
+
+    def _gripper_command(self, grip: float, width: float | None) -> GripperCommand | None:
+        """The command to export when the gripper ctrl changes (at the start of that segment), else None.
+        The simulation closes the fingers fully (a position target) and the object stops them; the real
+        hand must be told to grasp at the object's width with a force (a move to 0 m on an object fails)."""
+        if self._grip_ctrl == grip:
+            return None
+        self._grip_ctrl = grip
+        if grip == self.robot.gripper_closed:
+            return GripperCommand.grasp(0.0, width if width is not None else 0.0)
+        return GripperCommand.open(0.0, self.robot.max_opening)
+
     def _move(self, path: np.ndarray, speed: float, label: str, grip: float, settle: float, mon: MonitorState,
               checked: bool = False) -> None:
-        """Time-parameterise a joint path, record it as `label` and execute it (then hold `settle` s)."""
-        tr = self.motion.trajectory(path, speed, checked=checked)
-        self.trajs.append((label, tr))
-        self.servo.track(tr, grip, settle, mon)
+        """Time-parameterise a joint path, execute it (then hold `settle` s) and record both as `label`."""
+        self._track(label, self.motion.trajectory(path, speed, checked=checked), grip, settle, mon)
 
-    def _gripper(self, label: str, grip: float, duration: float, mon: MonitorState) -> None:
-        """Open/close the gripper while the arm holds still (recorded as a stand-still)."""
-        self.trajs.append((label, self.motion.hold(self.q, duration)))
-        self.servo.track(None, grip, duration, mon)
+    def _gripper(self, label: str, grip: float, duration: float, mon: MonitorState,
+                 width: float | None = None) -> None:
+        """Open/close the gripper while the arm holds still (recorded as a stand-still); width: the grasp
+        width (m) when closing on an object."""
+        self._track(label, None, grip, duration, mon, width=width)
 
     def _snap(self, label: str) -> None:
         if self.frame_cb is not None:
@@ -183,8 +218,7 @@ class Executor:
                 failures.append(str(e))
                 res.grasp.fallbacks.append(f"{kind}: {e}"[:300])
                 continue
-            self.trajs.append((label, tr))
-            self.servo.track(tr, gripper, 0.1, mon)
+            self._track(label, tr, gripper, 0.1, mon)
             return option, failures
         return None, failures
 
@@ -215,7 +249,6 @@ class Executor:
             tag = f"_retry{touches}" if touches else ""
             plan = self._reach(step, res, k, mon, tag)
             tr = self.motion.trajectory(plan.approach, SLOW)
-            self.trajs.append((f"step{k}_approach{tag}", tr))
             landed: list[float] = []
 
             def guard() -> bool:
@@ -224,15 +257,15 @@ class Executor:
                     landed.append(side)
                 return side is not None
 
-            stopped = self.servo.track(tr, self.robot.gripper_open, 0.1, mon, guard=guard)
+            stopped = self._track(f"step{k}_approach{tag}", tr, self.robot.gripper_open, 0.1, mon, guard=guard)
             if stopped is None:
                 res.grasp.touch_corrections = touches
                 res.grasp.belief_correction_m = (self.belief[obj][:3, 3] - T_twin[:3, 3]).round(5).tolist()
                 return plan
             side = landed[0]
             touches += 1
-            self.trajs[-1] = (f"step{k}_approach{tag}_stopped", truncate(tr, stopped))
-            self.trajs.append((f"step{k}_touch{touches}", self.motion.hold(self.q, GUARD_HOLD)))
+            # the servos held the stop for the rest of that track call (GUARD_HOLD and the step it fired in)
+            self.trajs.append((f"step{k}_touch{touches}", self.motion.hold(self.q, self.servo.elapsed - stopped)))
             if touches > MAX_TOUCHES:
                 raise StepFailed(f"a finger landed on {obj!r} on the approach {touches} times "
                                  f"(the object is far from its twin pose)")
@@ -280,7 +313,7 @@ class Executor:
         try:
             plan = self._approach(step, res, k, mon)
             z0 = w.object_pose(obj)[2, 3]
-            self._gripper(f"step{k}_close", closed_c, CLOSE_TIME, mon)
+            self._gripper(f"step{k}_close", closed_c, CLOSE_TIME, mon, width=plan.grasp.width)
             self._snap(f"step{k}_grasp")
             mon.carrying = True
             mon.allowed = frozenset(w.body_id(s) for s in plan.support)

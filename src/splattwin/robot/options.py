@@ -37,6 +37,12 @@ class RobotOptions:
                                      "(none: Menagerie Franka Panda); a keyframe named 'home' gives the neutral "
                                      "arm pose", path=True)
     tcp_site: str = option("tcp", "name of the TCP site in robot_mjcf")
+    joint_names: str | None = option(None, "joint names in the exported trajectory files (the simulation keeps "
+                                     "the MJCF's): 'panda' (panda_joint1..7, franka_ros / panda_moveit_config; "
+                                     "base frame panda_link0), 'fr3' (fr3_joint1..7, franka_ros2; fr3_link0), "
+                                     "'model' (the MJCF's own names; base frame its root body) or one name per "
+                                     "arm joint, comma-separated (none: 'panda' for the default Panda, 'model' "
+                                     "for robot_mjcf)")
     in_hand: str = option("sensed", "where the transfer assumes the held object sits: 'sensed' (read in the "
                           "simulation, as an in-hand estimate such as a wrist camera gives) or 'planned' (as grasped "
                           "on the twin pose; no in-hand sensing on the real cell)", choices=IN_HAND)
@@ -66,6 +72,9 @@ class RobotOptions:
             raise InputError(f"--sigma must be in [0, 0.05] metres, got {self.sigma}")
         if self.sigma_yaw is not None and not 0 <= self.sigma_yaw <= 0.5:
             raise InputError(f"--sigma-yaw must be in [0, 0.5] radians, got {self.sigma_yaw}")
+        from splattwin.robot.export import check_naming
+
+        check_naming(self.joint_names)
         if self.robot_mjcf is not None and not Path(self.robot_mjcf).is_file():
             raise InputError("robot MJCF not found", self.robot_mjcf)
         if not 0 < self.record_fps <= 120:

@@ -1,13 +1,24 @@
 """Artifacts of a validation run, written atomically under OUT (default TWIN/robot):
 
-    results.json                 task, base pose, per-step results, trials summary (sigma per axis, its
-                                 definition, sigma_yaw), notes
+    results.json                 task, base pose and frame, exported joint names, per-step results, the
+                                 servos' tracking error (`tracking_error`), trials summary (sigma per axis,
+                                 its definition, sigma_yaw), notes
     trials/<i>.json              each finished perturbed trial (reused by a re-run with the same key)
     trials/<i>.rollout.npz       its rollout, kept when the run is recorded (`plan --record`); both written
                                  by the trial's worker (`trials.run_trials`), the rollout first
-    trajectory.json / .csv       the whole executed arm trajectory (segments + gripper holds), 100 Hz
-    trajectory.ros2.yaml         the same as trajectory_msgs/JointTrajectory
-    segments/<label>.json        each motion separately (transit, approach, lift, transfer, ...)
+    trajectory.json / .csv       the whole executed timeline for the real robot, 100 Hz: every motion with
+                                 the settle hold after it and the gripper holds (it lasts as long as the
+                                 validated run, rollout.npz), the gripper commands (open / grasp: width,
+                                 speed, force, epsilon), the exported joint names (`--joint-names`) and their
+                                 map to the simulated ones; JSON also units, robot, base pose, start state
+    trajectory.ros2.yaml         the same as trajectory_msgs/JointTrajectory (frame_id "")
+    trajectory.goal.ros2.yaml    the same as a control_msgs/action/FollowJointTrajectory goal
+    gripper.ros2.yaml            the gripper commands as franka_msgs/action/Grasp / Move goals with times
+    base_transform.yaml          T_twin_base as geometry_msgs/TransformStamped (+ static_transform_publisher)
+    moveit/collision_objects.yaml, moveit/scene.scene
+                                 the twin's collision world in the robot base frame (`export.py`)
+    segments/<label>.json        each servo command separately (transit, approach, lift, transfer, ...: the
+                                 motion and its hold; close / open: the gripper hold)
     rollout.npz                  what physics did, every control step (`rollout.Rollout`: full qpos, arm and
                                  gripper measured and commanded, object poses, task step)
     playback.npz                 the robot's visual geometry posed along the rollout, for `splattwin view`
@@ -32,14 +43,17 @@ import re
 from dataclasses import asdict
 from pathlib import Path
 
+import numpy as np
+
 from splattwin import io
 
 log = logging.getLogger(__name__)
 
 # The names a run writes (module docstring); `remove_previous` removes nothing else
-TOP_FILES = ("results.json", "trajectory.json", "trajectory.csv", "trajectory.ros2.yaml", "rollout.npz",
-             "playback.npz")
+TOP_FILES = ("results.json", "trajectory.json", "trajectory.csv", "trajectory.ros2.yaml", "trajectory.goal.ros2.yaml",
+             "gripper.ros2.yaml", "base_transform.yaml", "rollout.npz", "playback.npz")
 _OWN = {"segments": re.compile(r"^step\d+_[A-Za-z0-9_]+\.json$"),
+        "moveit": re.compile(r"^(collision_objects\.yaml|scene\.scene)$"),
         "frames": re.compile(r"^(frame_\d+_[A-Za-z0-9_]+|overview)\.png$")}
 _TRIAL = re.compile(r"^(?P<i>\d+)(\.rollout\.npz|\.json)$")
 
@@ -140,35 +154,34 @@ def stale_results(twin_dir: str | Path) -> str | None:
 
 def write_outputs(out: str | Path, spec, result, trials: dict | None, render_note: str = "",
                   frames: list[Path] | None = None, wall_s: float | None = None,
-                  options: dict | None = None) -> dict[str, Path]:
+                  options: dict | None = None, names=None) -> dict[str, Path]:
     """OUT/results.json (with `options`: the robot options of this run, as `splattwin.options.to_dict`
     writes them; a twin's config.build.robot is what the build asked for when its twin stage ran, so the
-    results say what made them), segments, trajectories, the rollout."""
-    from splattwin.robot.trajectory import concatenate
+    results say what made them), segments, trajectories, base transform, base-frame MoveIt scene, the
+    rollout. names: the `export.ExportNames` of the trajectory files (None: the default naming)."""
+    from splattwin.robot.export import write_base_frame_moveit, write_base_transform
 
     out = Path(out)
-    paths: dict[str, Path] = {}
-    segs = []
-    for label, tr in result.trajectories:
-        paths[f"segment:{label}"] = tr.save_json(out / "segments" / f"{label}.json")
-        segs.append(tr)
-    notes = []
-    if segs:
-        try:
-            full = concatenate(segs)
-            paths["trajectory_json"] = full.save_json(out / "trajectory.json")
-            paths["trajectory_csv"] = full.save_csv(out / "trajectory.csv")
-            paths["trajectory_ros2"] = full.save_ros2_yaml(out / "trajectory.ros2.yaml")
-        except ValueError as e:  # a failed step can leave a gap: keep the segments only
-            notes.append(f"no single trajectory file: {e}")
+    robot = spec.robot_model()
+    if names is None:
+        from splattwin.robot.export import export_names
+
+        names = export_names(None, robot.arm_joints, robot.root_body, spec.robot_mjcf is None)
+    T_twin_base = spec.base.matrix()
+    paths, notes = write_trajectories(out, result.trajectories, trajectory_meta(spec, robot, names), names)
+    paths["base_transform"] = write_base_transform(out / "base_transform.yaml", T_twin_base, names.base_frame)
+    paths.update(write_base_frame_moveit(out, spec.twin_dir, T_twin_base, names.base_frame))
     if render_note:
         notes.append(render_note)
-    paths.update(write_rollout(out, spec, result))
+    rollout_paths, tracking = write_rollout(out, spec, result)
+    paths.update(rollout_paths)
     doc = {
         "twin": str(spec.twin_dir), "task": spec.task_path or "default (paper three-step rearrangement)",
-        "base_pose": asdict(spec.base), "robot_mjcf": spec.robot_mjcf or "MuJoCo Menagerie franka_emika_panda",
+        "base_pose": asdict(spec.base), "base_frame": names.base_frame,
+        "joint_names": {"exported": list(names.joint_names), "simulated": list(robot.arm_joints)},
+        "robot_mjcf": spec.robot_mjcf or "MuJoCo Menagerie franka_emika_panda",
         "planner": spec.planner, "seed": spec.seed,
-        "nominal": result.to_dict(),
+        "nominal": result.to_dict(), "tracking": tracking,
         "trials": trials,
         "frames": [str(Path(f).relative_to(out)) for f in (frames or [])],
         "notes": notes, "wall_s": wall_s,
@@ -179,8 +192,56 @@ def write_outputs(out: str | Path, spec, result, trials: dict | None, render_not
     return paths
 
 
-def write_rollout(out: str | Path, spec, result) -> dict[str, Path]:
-    """OUT/rollout.npz and OUT/playback.npz (the viewer's track) from the result's rollout, if it has one.
+def trajectory_meta(spec, robot, names) -> dict:
+    """What a robot engineer needs beside the samples: robot, joint map (exported -> simulated), base pose
+    (T_twin_base), start configuration, sample and simulation rates (the units are added by Trajectory)."""
+    from splattwin.robot.export import base_pose_doc
+
+    return {"robot": spec.robot_mjcf or "MuJoCo Menagerie franka_emika_panda (Franka Emika Panda + Hand)",
+            "joint_naming": names.naming, "joint_map": names.joint_map(list(robot.arm_joints)),
+            "base_frame": names.base_frame, "base_pose": base_pose_doc(spec.base.matrix(), names.base_frame),
+            "timeline": ("as executed in the validation run: every motion, the hold after it and the gripper "
+                         "holds; the gripper commands are issued at their t")}
+
+
+def write_trajectories(out: Path, trajectories, meta: dict, names) -> tuple[dict[str, Path], list[str]]:
+    """OUT/segments/<label>.json and the whole timeline as trajectory.{json,csv,ros2.yaml,goal.ros2.yaml}
+    and gripper.ros2.yaml, with the exported joint names, accelerations consistent with the sampled
+    velocities, and `meta` (+ the start state) in the JSON. Returns (paths, notes)."""
+    from splattwin.robot.trajectory import concatenate
+
+    paths: dict[str, Path] = {}
+    notes: list[str] = []
+    segs = []
+    for label, tr in trajectories:
+        tr = tr.renamed(names.joint_names).with_velocity_accelerations()
+        tr.meta = dict(meta)
+        paths[f"segment:{label}"] = tr.save_json(out / "segments" / f"{label}.json")
+        segs.append(tr)
+    if not segs:
+        return paths, notes
+    try:
+        full = concatenate(segs).with_velocity_accelerations()
+    except ValueError as e:  # a failed step can leave a gap: keep the segments only
+        notes.append(f"no single trajectory file: {e}")
+        return paths, notes
+    grip0 = full.gripper[0].command if full.gripper and full.gripper[0].t <= 1e-9 else None
+    rate = 1.0 / float(np.median(np.diff(full.t))) if len(full) > 1 else None
+    full.meta = {**meta, "sample_rate_hz": None if rate is None else round(rate, 3), "start": {
+        "q": full.q[0].tolist(), "gripper": grip0,
+        "note": "bring the arm to q (the first sample, at rest) before sending the trajectory: it starts "
+                "there and does not move the arm to it"}}
+    paths["trajectory_json"] = full.save_json(out / "trajectory.json")
+    paths["trajectory_csv"] = full.save_csv(out / "trajectory.csv")
+    paths["trajectory_ros2"] = full.save_ros2_yaml(out / "trajectory.ros2.yaml")
+    paths["trajectory_ros2_goal"] = full.save_ros2_goal_yaml(out / "trajectory.goal.ros2.yaml")
+    paths["gripper_ros2"] = full.save_ros2_gripper_yaml(out / "gripper.ros2.yaml")
+    return paths, notes
+
+
+def write_rollout(out: str | Path, spec, result) -> tuple[dict[str, Path], dict | None]:
+    """OUT/rollout.npz and OUT/playback.npz (the viewer's track) from the result's rollout, if it has one,
+    and its `tracking_error` (None without a rollout).
 
     The track is posed on a world with the robot's visual meshes (built here: the executing world may
     have been built without them); the rollout's full qpos replays every body exactly."""
@@ -189,12 +250,36 @@ def write_rollout(out: str | Path, spec, result) -> dict[str, Path]:
 
     rollout = getattr(result, "rollout", None)
     if rollout is None or not len(rollout):
-        return {}
+        return {}, None
     out = Path(out)
     paths = {"rollout": rollout.save(out / "rollout.npz")}
     world = build_world(spec.twin_dir, robot=spec.robot_model(), base=spec.base, visual=True)
     paths["playback"] = write_playback(out / "playback.npz", world, rollout)
-    return paths
+    return paths, tracking_error(world, rollout)
+
+
+def tracking_error(world, rollout, every: int = 5) -> dict:
+    """How far physics was from the commanded (exported) trajectory over the run, every `every`-th control
+    step: the arm joints (rad, max) and the TCP position (m, max / median / 95th percentile), measured
+    against the TCP at the commanded joints with everything else as simulated."""
+    import mujoco
+
+    d = mujoco.MjData(world.model)
+    tcp = world.tcp_site
+    err = []
+    for i in range(0, len(rollout), every):
+        d.qpos[:] = rollout.qpos[i]
+        mujoco.mj_kinematics(world.model, d)
+        p_measured = d.site_xpos[tcp].copy()
+        world.joints.set_arm(d.qpos, rollout.action_q_arm[i])
+        mujoco.mj_kinematics(world.model, d)
+        err.append(float(np.linalg.norm(d.site_xpos[tcp] - p_measured)))
+    e = np.array(err)
+    return {"joint_max_rad": round(float(np.abs(rollout.q_arm - rollout.action_q_arm).max()), 5),
+            "tcp_max_m": round(float(e.max()), 5), "tcp_median_m": round(float(np.median(e)), 5),
+            "tcp_p95_m": round(float(np.percentile(e, 95)), 5),
+            "definition": "measured vs commanded arm over the validated run (rollout.npz: q_arm vs "
+                          "action_q_arm, the exported trajectory), TCP by forward kinematics"}
 
 
 def print_summary(result, trials: dict | None, paths: dict[str, Path]) -> None:

@@ -52,6 +52,12 @@ def run(inputs: RobotInputs, options: RobotOptions, *, progress: bool = True,
             raise
         return _error_result(out, e, options, Path(inputs.twin_dir))
     spec = TrialSpec.from_options(inputs.twin_dir, options)
+    try:  # a naming that does not fit the arm fails before the run, not after it
+        names = _export_names(spec, options)
+    except InputError as e:
+        if not record_errors:
+            raise
+        return _error_result(out, e, options, Path(inputs.twin_dir))
     t0 = time.perf_counter()
     try:
         # the earlier run's outputs go once the task is valid (a bad task leaves them), before this run
@@ -77,9 +83,17 @@ def run(inputs: RobotInputs, options: RobotOptions, *, progress: bool = True,
 
     paths = write_outputs(out, spec, result, trials,
                           render_note=(note or "") if options.render else "rendering disabled (--no-render)",
-                          frames=frames, wall_s=time.perf_counter() - t0, options=to_dict(options))
+                          frames=frames, wall_s=time.perf_counter() - t0, options=to_dict(options), names=names)
     return RobotResult(results=paths["results"], success=bool(result.success),
                        details={"run": result, "trials": trials, "paths": paths})
+
+
+def _export_names(spec, options: RobotOptions):
+    """The joint names and base frame of the exported files (`robot.export.export_names`)."""
+    from splattwin.robot.export import export_names
+
+    robot = spec.robot_model()
+    return export_names(options.joint_names, robot.arm_joints, robot.root_body, spec.robot_mjcf is None)
 
 
 def _error_result(out: Path, e: InputError, options: RobotOptions, twin_dir: Path) -> RobotResult:

@@ -207,6 +207,7 @@ class World:
     def __post_init__(self) -> None:
         self.is_robot = np.zeros(self.model.nbody, bool)
         self.is_robot[list(self.robot_bodies)] = True
+        self.servo_lead = servo_lead(self.model, self.arm_act)
 
     # -- names ------------------------------------------------------------------------------------------
     def body_id(self, name: str) -> int:
@@ -277,14 +278,17 @@ class World:
     def gripper_command(self) -> float:
         return float(self.data.ctrl[self.grip_act])
 
-    def step(self, q_target: np.ndarray) -> None:
+    def step(self, q_target: np.ndarray, qd_target: np.ndarray | None = None) -> None:
         """One physics step with the arm's position servos at q_target [n_arm] (rad) and gravity/Coriolis
-        compensation applied as joint forces (as the Franka controller does)."""
+        compensation applied as joint forces (as the Franka controller does). qd_target [n_arm] (rad/s):
+        the reference velocity, fed forward (`servo_lead`) so the servos track a moving target without lag."""
         import mujoco
 
         d = self.data
         dof = self.joints.arm_dof
-        d.ctrl[self.arm_act] = q_target
+        # a position servo pushes kp (ctrl - q) - kd qd; ctrl = q_ref + kd/kp qd_ref makes that
+        # kp (q_ref - q) + kd (qd_ref - qd): it no longer lags a moving target by kd/kp (0.1 s on the Panda)
+        d.ctrl[self.arm_act] = q_target if qd_target is None else q_target + self.servo_lead * qd_target
         d.qfrc_applied[:] = 0.0
         d.qfrc_applied[dof] = d.qfrc_bias[dof]
         mujoco.mj_step(self.model, d)
@@ -405,6 +409,19 @@ def build_world(twin_dir: str | Path, manifest: Manifest | None = None, robot: R
               tcp_site=model.site(robot.tcp_site).id, robot_bodies=robot_bodies)
     w.set_arm(robot.home, gripper_open=True)
     return w
+
+
+def servo_lead(model, actuators: np.ndarray) -> np.ndarray:
+    """kd / kp (s) of each arm position actuator (ctrl gain kp, affine bias -kp q - kd qd); 0 for an
+    actuator of another kind (no feed-forward for it)."""
+    import mujoco
+
+    out = np.zeros(len(actuators))
+    for i, a in enumerate(actuators):
+        kp, kd = float(model.actuator_gainprm[a, 0]), -float(model.actuator_biasprm[a, 2])
+        if model.actuator_biastype[a] == mujoco.mjtBias.mjBIAS_AFFINE and kp > 0 and kd > 0:
+            out[i] = kd / kp
+    return out
 
 
 GRIP_STIFFNESS = 1000.0   # N/m of the gripper's position servo (Menagerie: 100)

@@ -1,0 +1,150 @@
+"""What goes to the real robot besides the joint trajectory: joint naming, base transform, base-frame scene.
+
+Frames: the twin frame (`twin`: the frame of twin.json and TWIN/export/, which those files call `world`;
+z up, metres) and the robot base frame (the arm's root body, `panda_link0` on a Panda). The base pose
+T_twin_base is `BasePose` (robot/world.py). A stock MoveIt / franka_ros setup plans in the base frame
+(its virtual joint puts `world` at `panda_link0`), so the files here are in the base frame or say how
+to get there:
+
+* `ExportNames` / `export_names`: the joint names written to the trajectory files (the simulation keeps
+  the MJCF's names): `panda` (panda_joint1..7: franka_ros, panda_moveit_config; base frame panda_link0),
+  `fr3` (fr3_joint1..7: franka_ros2; fr3_link0), `model` (the MJCF's own, e.g. Menagerie's joint1..7;
+  base frame its root body) or a comma-separated list, one name per arm joint.
+* `write_base_transform`: robot/base_transform.yaml, a geometry_msgs/TransformStamped twin -> base
+  (translation m, rotation quaternion xyzw) with the `ros2 run tf2_ros static_transform_publisher`
+  arguments as a comment.
+* `write_base_frame_moveit`: robot/moveit/collision_objects.yaml (moveit_msgs/CollisionObject list)
+  and robot/moveit/scene.scene (MoveIt text scene), the twin's collision world with every pose in the
+  base frame (frame_id the base frame), made with twin/moveit.py's writers.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from splattwin import io
+from splattwin.errors import InputError
+
+TWIN_FRAME = "twin"
+JOINT_NAMINGS = {"panda": ("panda_joint", "panda_link0"), "fr3": ("fr3_joint", "fr3_link0")}
+MODEL_NAMING = "model"
+_ROS_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")   # a ROS 2 name token (joint names, frames)
+BASE_TRANSFORM = "base_transform.yaml"
+MOVEIT_DIR = "moveit"
+MOVEIT_FILES = ("collision_objects.yaml", "scene.scene")
+
+
+@dataclass(frozen=True)
+class ExportNames:
+    """Names in the exported files: `joint_names` [n] (exported order = the simulated arm joints' order),
+    `base_frame` (the arm's root link), `naming` (the option value they came from)."""
+
+    joint_names: tuple[str, ...]
+    base_frame: str
+    naming: str
+
+    def joint_map(self, sim_names: list[str]) -> dict[str, str]:
+        """exported name -> simulated (MJCF) name, per arm joint."""
+        return dict(zip(self.joint_names, sim_names))
+
+
+def check_naming(naming: str | None) -> None:
+    """InputError unless `naming` is None, a known naming or a comma-separated list of ROS names."""
+    if naming is None or naming in JOINT_NAMINGS or naming == MODEL_NAMING:
+        return
+    names = [n.strip() for n in naming.split(",")]
+    bad = [n for n in names if not _ROS_NAME.match(n)]
+    if bad or len(set(names)) != len(names):
+        raise InputError(f"--joint-names must be one of {', '.join([*JOINT_NAMINGS, MODEL_NAMING])} or distinct "
+                         f"comma-separated joint names (letters, digits, _), got {naming!r}")
+
+
+def export_names(naming: str | None, arm_joints: list[str], root_body: str, default_model: bool) -> ExportNames:
+    """The names to export for an arm with simulated joints `arm_joints` and root body `root_body`.
+    naming None: `panda` for the default (Menagerie Panda) model, `model` for a user MJCF (its own names
+    unless mapped). InputError when the naming does not fit the arm (e.g. 7 Panda names for a 6-joint arm)."""
+    check_naming(naming)
+    naming = naming or ("panda" if default_model else MODEL_NAMING)
+    n = len(arm_joints)
+    if naming == MODEL_NAMING:
+        return ExportNames(tuple(arm_joints), root_body, naming)
+    if naming in JOINT_NAMINGS:
+        prefix, base = JOINT_NAMINGS[naming]
+        if n != 7:
+            raise InputError(f"--joint-names {naming} names 7 joints; this arm has {n}: give {n} names")
+        return ExportNames(tuple(f"{prefix}{i}" for i in range(1, 8)), base, naming)
+    names = tuple(s.strip() for s in naming.split(","))
+    if len(names) != n:
+        raise InputError(f"--joint-names gives {len(names)} names; the arm has {n} joints ({', '.join(arm_joints)})")
+    return ExportNames(names, root_body, naming)
+
+
+def quat_xyzw_of(T: np.ndarray) -> list[float]:
+    """Quaternion (x, y, z, w) of a pose's rotation, w >= 0 (the ROS order)."""
+    from splattwin.transforms import quat_wxyz_from_matrix, quat_xyzw_from_wxyz
+
+    return [float(v) for v in quat_xyzw_from_wxyz(quat_wxyz_from_matrix(np.asarray(T)[:3, :3]))]
+
+
+def base_pose_doc(T_twin_base: np.ndarray, base_frame: str) -> dict:
+    """The base pose as recorded in the trajectory files: parent/child frames, translation (m),
+    quaternion xyzw and yaw (rad) about +z."""
+    T = np.asarray(T_twin_base, dtype=float)
+    return {"parent_frame": TWIN_FRAME, "child_frame": base_frame,
+            "translation": [float(v) for v in T[:3, 3]], "quaternion_xyzw": quat_xyzw_of(T),
+            "yaw": math.atan2(float(T[1, 0]), float(T[0, 0]))}
+
+
+def static_transform_args(T_twin_base: np.ndarray, base_frame: str) -> str:
+    """`ros2 run tf2_ros static_transform_publisher` arguments (Humble and later) for twin -> base."""
+    T = np.asarray(T_twin_base, dtype=float)
+    q = quat_xyzw_of(T)
+    return (f"--x {T[0, 3]:.9g} --y {T[1, 3]:.9g} --z {T[2, 3]:.9g} --qx {q[0]:.9g} --qy {q[1]:.9g} "
+            f"--qz {q[2]:.9g} --qw {q[3]:.9g} --frame-id {TWIN_FRAME} --child-frame-id {base_frame}")
+
+
+def write_base_transform(path: str | Path, T_twin_base: np.ndarray, base_frame: str) -> Path:
+    """robot/base_transform.yaml: geometry_msgs/TransformStamped twin -> base (m, quaternion xyzw), with
+    the static_transform_publisher command as a comment."""
+    import yaml
+
+    T = np.asarray(T_twin_base, dtype=float)
+    q = quat_xyzw_of(T)
+    doc = {"header": {"stamp": {"sec": 0, "nanosec": 0}, "frame_id": TWIN_FRAME}, "child_frame_id": base_frame,
+           "transform": {"translation": dict(zip("xyz", (float(v) for v in T[:3, 3]))),
+                         "rotation": dict(zip("xyzw", q))}}
+    head = (f"# the robot base ({base_frame}) in the twin frame ('{TWIN_FRAME}': twin.json and TWIN/export/, "
+            "which call it 'world'); metres, quaternion xyzw\n"
+            f"# ros2 run tf2_ros static_transform_publisher {static_transform_args(T, base_frame)}\n")
+    return io.write_text(path, head + yaml.safe_dump(doc, sort_keys=False))
+
+
+def write_base_frame_moveit(out_dir: str | Path, twin_dir: str | Path, T_twin_base: np.ndarray,
+                            base_frame: str) -> dict[str, Path]:
+    """OUT/moveit/collision_objects.yaml and scene.scene: the twin's collision world (table, background
+    obstacles, usable objects' collision meshes; `twin.moveit.scene_objects`) with every object pose in
+    the base frame, T_base_obj = T_twin_base^-1 T_twin_obj (frame_id `base_frame`)."""
+    import yaml
+
+    from splattwin.transforms import invert_pose
+    from splattwin.twin.manifest import Manifest
+    from splattwin.twin.moveit import collision_object_msgs, scene_objects, scene_text
+
+    twin_dir, out = Path(twin_dir), Path(out_dir) / MOVEIT_DIR
+    T_base_twin = invert_pose(np.asarray(T_twin_base, dtype=float))
+    objs = scene_objects(twin_dir, Manifest.load(twin_dir))
+    for o in objs:   # the field is named for the twin export's frame; here it holds T_base_obj
+        o.T_world_obj = T_base_twin @ o.T_world_obj
+    dumper = getattr(yaml, "CSafeDumper", yaml.SafeDumper)  # libyaml: mesh-sized lists
+    head = (f"# moveit_msgs/msg/CollisionObject list; poses in the robot base frame {base_frame} "
+            f"(robot/{BASE_TRANSFORM} places it in the twin frame); metres, quaternions xyzw\n")
+    yml = io.write_text(out / MOVEIT_FILES[0], head + yaml.dump(collision_object_msgs(objs, base_frame), Dumper=dumper,
+                                                                default_flow_style=None, sort_keys=False,
+                                                                width=1 << 20))
+    scene = io.write_text(out / MOVEIT_FILES[1], scene_text(objs, f"splattwin_{base_frame}"))
+    return {"moveit_collision_objects": yml, "moveit_scene": scene}
