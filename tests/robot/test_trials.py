@@ -135,3 +135,37 @@ def test_resume_ignores_a_wrongly_typed_stored_result_with_a_warning(tmp_path: P
     assert load_finished(p, spec) is None
     err = capsys.readouterr().err
     assert "1.json" in err and field in err
+
+
+def test_a_twin_posed_by_the_robot_puts_the_arm_at_its_base(gt_twin_small: Path, tmp_path: Path):
+    """--robot-poses twins are in the robot base frame: the arm stands at its origin, not 0.5 m behind the table
+    centre, where the default put it (0.5 m from the real base: plans for the wrong robot, or reach errors)."""
+    import shutil
+
+    from splattwin.robot.options import RobotOptions
+    from splattwin.robot.world import BasePose
+    from splattwin.poses.twin_frame import TwinFrame
+
+    assert TrialSpec.from_options(gt_twin_small, RobotOptions()).base == BasePose()      # a table frame: beside it
+    twin = tmp_path / "twin"
+    shutil.copytree(gt_twin_small, twin)
+    d = json.loads((twin / "twin.json").read_text())
+    d["frame"].update(source="robot", scaled=True, T_twin_input=np.eye(4).tolist())
+    (twin / "twin.json").write_text(json.dumps(d))
+    assert TrialSpec.from_options(twin, RobotOptions()).base == BasePose(0.0, 0.0, 0.0, 0.0)
+    assert TrialSpec.from_options(twin, RobotOptions(base_pose="0.1,0,0,0")).base == BasePose(0.1, 0.0, 0.0, 0.0)
+    # the frame's own move of the robot frame (a yaw and a shift) carries the base with it; sfm+robot: origin
+    T = np.eye(4)
+    T[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
+    T[:3, 3] = [0.2, -0.1, 0.0]
+    b, _ = BasePose.default_for(TwinFrame(source="robot", scaled=True, T_twin_input=T.tolist()))
+    assert (b.x, b.y, b.z) == pytest.approx((0.2, -0.1, 0.0)) and b.yaw == pytest.approx(math.pi / 2)
+    S = 3.0 * np.eye(4)
+    S[3, 3] = 1.0
+    S[:3, 3] = [5, 5, 5]
+    assert BasePose.default_for(TwinFrame(source="sfm+robot", scaled=True, T_twin_input=S.tolist()))[0] == \
+        BasePose(0.0, 0.0, 0.0, 0.0)
+    tilted = np.eye(4)
+    tilted[:3, :3] = [[1, 0, 0], [0, 0, -1], [0, 1, 0]]
+    b, why = BasePose.default_for(TwinFrame(source="robot", scaled=True, T_twin_input=tilted.tolist()))
+    assert b == BasePose() and "--base-pose" in why

@@ -135,7 +135,7 @@ def recorder_for(twin_dir: str | Path, robot_out: str | Path, opts) -> Recorder:
     if opts.robot_mjcf is not None:
         raise InputError("--record renders the Franka Panda's Gaussians; a user robot MJCF cannot be recorded "
                          "yet", opts.robot_mjcf)
-    base = BasePose.parse(opts.base_pose) if opts.base_pose else BasePose()
+    base = BasePose.for_twin(twin_dir, opts.base_pose)
     return Recorder(twin_dir, base.matrix(), camera=opts.record_camera, width=opts.record_width,
                     fps=opts.record_fps)
 

@@ -31,7 +31,9 @@ class RobotOptions:
     sigma_yaw: float | None = option(None, "standard deviation of the objects' yaw error in the trials (none: "
                                      "sigma / 0.1 m: 0.05 rad = 2.9 deg at sigma 5 mm)", unit="rad")
     base_pose: str | None = option(None, "robot base in the twin frame: x,y,z,yaw (m, rad); write "
-                                   "--base-pose=-0.5,0,0,0 when x is negative (none: -0.5,0,0,0)")
+                                   "--base-pose=-0.5,0,0,0 when x is negative (none: for a twin posed with "
+                                   "--robot-poses, which is in that robot's base frame, its origin; else "
+                                   "-0.5,0,0,0, beside the table)")
     robot_mjcf: Path | None = option(None, "your own arm+gripper MJCF with a TCP site (z = approach, y = finger "
                                      "closing axis), one position actuator per arm joint and one gripper actuator "
                                      "(none: Menagerie Franka Panda); a keyframe named 'home' gives the neutral "

@@ -83,7 +83,7 @@ class TrialSpec:
     def from_options(cls, twin_dir: str | Path, opts: RobotOptions) -> "TrialSpec":
         """The nominal run of `opts` on the twin in `twin_dir`."""
         return cls(twin_dir=str(twin_dir), task_path=None if opts.task in (None, "default") else str(opts.task),
-                   base=BasePose.parse(opts.base_pose) if opts.base_pose else BasePose(),
+                   base=BasePose.for_twin(twin_dir, opts.base_pose),
                    robot_mjcf=str(opts.robot_mjcf) if opts.robot_mjcf else None, seed=opts.seed,
                    tcp_site=opts.tcp_site, planner=opts.planner, in_hand=opts.in_hand)
 

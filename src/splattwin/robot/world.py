@@ -12,6 +12,7 @@ state arrays (qpos [..., nq]), so a rollout and the live simulation are read the
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +24,8 @@ from splattwin.robot.assets import RobotModel
 from splattwin.transforms import make_pose, pos_quat_wxyz_from_pose, pose_from_pos_quat_wxyz, pose_xyz_yaw
 from splattwin.twin.manifest import Manifest
 from splattwin.twin.mjcf import add_twin, check_scaled
+
+log = logging.getLogger(__name__)
 
 MAX_BASE_OFFSET = 1e4      # m: a robot base beyond this from the twin's origin is not a pose of this twin
 MAX_BASE_YAW = 1e3         # rad (angles wrap; this only keeps them finite and meaningful)
@@ -52,6 +55,39 @@ class BasePose:
     def matrix(self) -> np.ndarray:
         """T_world_base [4,4]."""
         return pose_xyz_yaw(self.x, self.y, self.z, self.yaw)
+
+    @classmethod
+    def default_for(cls, frame) -> tuple["BasePose", str]:
+        """The base pose to use when none is given, for a twin whose poses stage made `frame` (TwinFrame),
+        and why. A twin posed by the robot itself (`--robot-poses`: frame source robot / sfm+robot) is in
+        the robot base frame (moved by the frame's T_twin_input, if at all): the arm stands at that frame's
+        origin, where it stood when it took the photos. Any other twin: beside the table (the class default:
+        0.5 m behind the table centre of a table frame)."""
+        source = getattr(frame, "source", None)
+        if source in ("robot", "sfm+robot"):
+            # robot: T_twin_input maps the robot base frame into the twin frame (identity as the poses stage
+            # writes it); sfm+robot: the input is the SfM model, aligned INTO the robot base frame
+            T = np.eye(4)
+            if source == "robot" and frame.T_twin_input is not None:
+                T = np.asarray(frame.T_twin_input, dtype=float)
+            R = T[:3, :3]
+            if T.shape == (4, 4) and np.all(np.isfinite(T)) and R[2, 2] > math.cos(math.radians(1.0)):
+                yaw = math.atan2(R[1, 0], R[0, 0])
+                return cls(float(T[0, 3]), float(T[1, 3]), float(T[2, 3]), yaw), \
+                    "the robot base: the twin is in the frame of the robot that posed the cameras"
+            return cls(), ("beside the table: the twin is in the robot's frame, but tilted from it, so the base "
+                           "pose is not known; give --base-pose")
+        return cls(), "beside the table (the default)"
+
+    @classmethod
+    def for_twin(cls, twin_dir: str | Path, text: str | None) -> "BasePose":
+        """`--base-pose` TEXT when given, else the default for the twin in `twin_dir` (`default_for`, logged)."""
+        if text:
+            return cls.parse(text)
+        base, why = cls.default_for(Manifest.load(twin_dir).frame)
+        log.info("robot base at x %.3f, y %.3f, z %.3f m, yaw %.1f deg: %s (--base-pose moves it)", base.x, base.y,
+                 base.z, math.degrees(base.yaw), why)
+        return base
 
     @classmethod
     def recorded(cls, results_json: str | Path) -> "BasePose":
