@@ -80,6 +80,19 @@ def test_bop_principal_point_matches_opencv_projection_and_writer_round_trips(tm
     np.testing.assert_allclose(back["0"]["cam_K"], w["K"].reshape(-1))
 
 
+def test_bop_amodal_masks_only_warn(tmp_path, caplog):
+    write_scene(tmp_path, n=2)
+    io.write_image(tmp_path / "mask" / "000000_000000.png", np.full((H, W), 255, np.uint8))
+    with caplog.at_level("WARNING"):
+        load_dataset(tmp_path)
+    assert "only mask/ (amodal" in caplog.text
+    caplog.clear()
+    io.write_image(tmp_path / "mask_visib" / "000000_000000.png", np.full((H, W), 255, np.uint8))
+    with caplog.at_level("WARNING"):
+        load_dataset(tmp_path)
+    assert "amodal" not in caplog.text
+
+
 def test_bop_without_poses_is_an_image_set_and_gray_images(tmp_path):
     write_scene(tmp_path, poses=False, image_dir="gray")
     ds = load_dataset(tmp_path)

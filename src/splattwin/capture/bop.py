@@ -183,6 +183,10 @@ def read(path: str | Path) -> Dataset:
         raise InputError(f"depth_scale differs between images ({desc}); one depth unit per scene is supported: "
                          f"convert the depth images to one scale", cam_file)
     depth_scale = next(iter(scales)) * MM if scales else None
+    if not (scene / "mask_visib").is_dir() and (scene / "mask").is_dir():
+        # fusion labels what each pixel shows: an amodal mask labels the occluder as the occluded object
+        log.warning("%s: only mask/ (amodal: whole silhouettes, occluded parts included) and no mask_visib/; label "
+                    "fusion expects visible-part masks, so occluders may take the occluded object's label", scene)
     if not has_poses:
         log.info("%s: no camera poses (cam_R_w2c/cam_t_w2c); poses will be estimated", cam_file)
     files = [cam_file] + [scene / SCENE_GT] * (scene / SCENE_GT).is_file()
