@@ -464,7 +464,10 @@ def _unique_keys(pairs: list[tuple[str, Any]]) -> dict:
     return d
 
 
-def _yaml_loader(max_nodes: int, where: Path | None):
+OPENCV_MATRIX_TAG = "tag:yaml.org,2002:opencv-matrix"   # cv::FileStorage's `!!opencv-matrix`
+
+
+def _yaml_loader(max_nodes: int, where: Path | None, opencv: bool = False):
     import yaml
 
     class BoundedLoader(yaml.SafeLoader):
@@ -493,6 +496,16 @@ def _yaml_loader(max_nodes: int, where: Path | None):
                     break
             return super().construct_mapping(node, deep)
 
+    if opencv:
+        # OpenCV FileStorage / ORB-SLAM files tag matrices `!!opencv-matrix` (rows, cols, dt, data): read
+        # as the plain mapping it is; the node bounds above still apply
+        def _opencv_matrix(loader, node):
+            if not isinstance(node, yaml.MappingNode):
+                raise InputError(f"!!opencv-matrix on line {node.start_mark.line + 1} must be a mapping "
+                                 f"(rows, cols, dt, data)", where)
+            return loader.construct_mapping(node, deep=True)
+
+        BoundedLoader.add_constructor(OPENCV_MATRIX_TAG, _opencv_matrix)
     return BoundedLoader
 
 
@@ -543,11 +556,13 @@ def load_yaml(path: str | Path, max_bytes: int | None = None, max_nodes: int | N
     return loads_yaml(path.read_bytes(), path, max_nodes)
 
 
-def loads_yaml(text: str | bytes, where: str | Path | None = None, max_nodes: int | None = None) -> Any:
-    """`load_yaml` for text already in memory (`where` is named in errors)."""
+def loads_yaml(text: str | bytes, where: str | Path | None = None, max_nodes: int | None = None,
+               opencv: bool = False) -> Any:
+    """`load_yaml` for text already in memory (`where` is named in errors). opencv: also read OpenCV
+    FileStorage's `!!opencv-matrix` tag, as a plain mapping {rows, cols, dt, data}."""
     import yaml
 
-    loader = _yaml_loader(MAX_YAML_NODES if max_nodes is None else max_nodes, where)
+    loader = _yaml_loader(MAX_YAML_NODES if max_nodes is None else max_nodes, where, opencv)
     try:
         return yaml.load(text, Loader=loader)  # noqa: S506 - a SafeLoader subclass
     except RecursionError:

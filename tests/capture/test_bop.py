@@ -50,7 +50,8 @@ def test_bop_scene_poses_intrinsics_and_depth(tmp_path):
     assert ds.meta["format"] == "bop" and ds.has_poses and len(ds.frames) == 4
     for i, f in enumerate(ds.frames):
         assert f.name == f"{i:06d}" and f.image_path.parent.name == "rgb"
-        np.testing.assert_allclose(f.camera.K, w["K"])
+        # cam_K's pixel centres are at integers (bop_toolkit / OpenCV), ours at +0.5
+        np.testing.assert_allclose(f.camera.K, w["K"] + [[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
         np.testing.assert_allclose(f.camera.T_world_cam, w["cams"][i], atol=1e-9)  # mm -> m, inverted
         assert (f.camera.width, f.camera.height) == (W, H)
     # depth_scale 0.1: raw x 0.1 = mm, so metres = raw / 10000, correctly rounded
@@ -60,6 +61,36 @@ def test_bop_scene_poses_intrinsics_and_depth(tmp_path):
     assert d[0, :4].tolist() == [0.0, np.float32(1e-4), np.float32(1.0), np.float32(6.5535)]
     # the scene_camera.json path is detected as well
     assert load_dataset(tmp_path / "scene_camera.json").meta["format"] == "bop"
+
+
+def test_bop_principal_point_matches_opencv_projection_and_writer_round_trips(tmp_path):
+    """A world point projected by OpenCV with the file's cam_K and pose lands on our projection minus 0.5."""
+    import cv2
+
+    w = write_scene(tmp_path, n=2)
+    ds = load_dataset(tmp_path)
+    pts = np.array([[0.03, -0.02, 0.01], [0.0, 0.0, 0.0], [-0.04, 0.05, 0.02]])
+    for f, T in zip(ds.frames, w["cams"]):
+        uv, _ = f.camera.project(pts)
+        T_cw = np.linalg.inv(T)
+        uv_cv, _ = cv2.projectPoints(pts, cv2.Rodrigues(T_cw[:3, :3])[0], T_cw[:3, 3], w["K"], None)
+        np.testing.assert_allclose(uv - 0.5, uv_cv[:, 0], atol=1e-6)
+    bop.write_scene_camera(tmp_path / "back" / "scene_camera.json", ds.cameras)
+    back = json.loads((tmp_path / "back" / "scene_camera.json").read_text())
+    np.testing.assert_allclose(back["0"]["cam_K"], w["K"].reshape(-1))
+
+
+def test_bop_amodal_masks_only_warn(tmp_path, caplog):
+    write_scene(tmp_path, n=2)
+    io.write_image(tmp_path / "mask" / "000000_000000.png", np.full((H, W), 255, np.uint8))
+    with caplog.at_level("WARNING"):
+        load_dataset(tmp_path)
+    assert "only mask/ (amodal" in caplog.text
+    caplog.clear()
+    io.write_image(tmp_path / "mask_visib" / "000000_000000.png", np.full((H, W), 255, np.uint8))
+    with caplog.at_level("WARNING"):
+        load_dataset(tmp_path)
+    assert "amodal" not in caplog.text
 
 
 def test_bop_without_poses_is_an_image_set_and_gray_images(tmp_path):

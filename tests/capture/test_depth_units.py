@@ -94,3 +94,24 @@ def test_nerfstudio_read_warns_of_millimetre_npy_without_factor(tmp_path, make_d
     with caplog.at_level("WARNING"):
         assert load_dataset(out).depth_scale is None
     assert "millimetres?" in caplog.text and "img_000.npy" in caplog.text and "depth_unit_scale_factor" in caplog.text
+
+
+def test_nerfstudio_lower_resolution_depth_is_resized_nearest(tmp_path, make_dataset):
+    """Phone captures (Polycam, Record3D) ship 256x192 depth with 1024x768 photos; nerfstudio resizes it
+    (nearest). It was refused. A smaller map of another aspect ratio is still refused (not registered)."""
+    ds = make_dataset(tmp_path, with_points=False, with_depth=True)   # 64x48 images
+    low = np.arange(32 * 24, dtype=np.uint16).reshape(24, 32) + 500   # 32x24 mm, every value distinct
+    for fr in ds.frames:
+        fr.depth_path = fr.depth_path.with_suffix(".png")
+        io.write_image(fr.depth_path, low)
+    out = nerfstudio.write(ds, tmp_path / "transforms.json")
+    back = load_dataset(out)                                           # validate accepts it
+    f = back.frames[0]
+    d = load_depth(f.depth_path, back.depth_scale, size=(f.camera.width, f.camera.height))
+    assert d.shape == (48, 64)
+    np.testing.assert_array_equal(d, np.repeat(np.repeat(low, 2, 0), 2, 1).astype(np.float32) / 1000)  # no blend
+    for fr in ds.frames:
+        io.write_image(fr.depth_path, np.full((20, 32), 500, np.uint16))   # 32x20: another aspect ratio
+    with pytest.raises(InputError, match="depth map is 32x20 but its camera is 64x48: depth must be registered") as e:
+        load_dataset(out)
+    assert e.value.path == ds.frames[0].depth_path

@@ -73,11 +73,23 @@ def test_ids_match_image_names_with_leading_zeros(tmp_path):
     for i, f in enumerate(ds.frames):
         assert f.name == f"{i:06d}"
         np.testing.assert_allclose(f.camera.T_world_cam, _poses(4)[i], atol=1e-12)
-        np.testing.assert_allclose(f.camera.K, [[35, 0, 19.5], [0, 36, 15.25], [0, 0, 1]])
+        # the file's principal point is OpenCV's (integer pixel centres), ours is +0.5
+        np.testing.assert_allclose(f.camera.K, [[35, 0, 20.0], [0, 36, 15.75], [0, 0, 1]])
     assert ds.depth_scale is None and all(f.depth_path is None for f in ds.frames)
 
 
-def test_tum_rgbd_timestamps_nearest_within_tolerance_and_depth_5000(tmp_path, caplog):
+def _moving(t: float, t0: float = 1305031102.0) -> np.ndarray:
+    """A camera turning about z at 2 rad/s while moving 0.5 m/s along x: SLERP + lerp between any two of its
+    poses gives the pose in between exactly."""
+    a = 2.0 * (t - t0)
+    T = look_at(np.array([0.5, 0.0, 0.3]), np.zeros(3))
+    Rz = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    T[:3, :3] = Rz @ T[:3, :3]
+    T[:3, 3] = [0.5 * (t - t0), 0.0, 0.3]
+    return T
+
+
+def test_tum_rgbd_timestamps_interpolated_within_tolerance_and_depth_5000(tmp_path, caplog):
     t_img = [1305031102.175304, 1305031102.211214, 1305031102.243211, 1305031102.275326, 1305031109.0]
     stems = [f"{t:.6f}" for t in t_img]
     _images(tmp_path / "rgb", stems)
@@ -88,7 +100,7 @@ def test_tum_rgbd_timestamps_nearest_within_tolerance_and_depth_5000(tmp_path, c
     (tmp_path / "depth.txt").write_text("".join(f"{t + 0.004:.6f} depth/{t + 0.004:.6f}.png\n" for t in t_img))
     # mocap at 100 Hz, offset from the images; nothing near the last image (7 s later)
     t_gt = np.arange(1305031102.10, 1305031102.40, 0.01)
-    T_all = _poses(len(t_gt))
+    T_all = [_moving(t) for t in t_gt]
     tum.write_pose_list(tmp_path / "groundtruth.txt", [(f"{t:.4f}", T) for t, T in zip(t_gt, T_all)])
     (tmp_path / "camera.yaml").write_text("%YAML:1.0\n---\nCamera.fx: 35.0\nCamera.fy: 36.0\nCamera.cx: 19.5\n"
                                          "Camera.cy: 15.25\nCamera.width: 40\nCamera.height: 30\n")
@@ -96,8 +108,9 @@ def test_tum_rgbd_timestamps_nearest_within_tolerance_and_depth_5000(tmp_path, c
     assert ds.meta["matched_by"] == "timestamp" and len(ds.frames) == 4
     assert "1 of 5 images have no pose" in caplog.text
     for f in ds.frames:
-        j = int(np.argmin(np.abs(t_gt - float(f.name))))
-        np.testing.assert_allclose(f.camera.T_world_cam, T_all[j], atol=1e-12)
+        # interpolated between the bracketing poses (TUM's tools), not the nearest (up to 2.5 mm / 0.57 deg off)
+        np.testing.assert_allclose(f.camera.T_world_cam, _moving(float(f.name)), atol=1e-5)
+    assert "assuming the TUM RGB-D benchmark's 5000 units per metre" in caplog.text
     # TUM RGB-D layout: 5000 depth units per metre by default, metres = raw / 5000 exactly rounded
     assert ds.depth_scale == pytest.approx(1 / 5000)
     d = load_depth(ds.frames[1].depth_path, ds.depth_scale)
@@ -277,3 +290,143 @@ def test_tum_folder_links_out_are_refused(tmp_path):
     with pytest.raises(InputError, match="leads outside its folder") as e:
         load_dataset(cap)
     assert e.value.path == cap / "depth" / "000000.png"
+
+
+# -- other tools' calibration files, float depth, pixel convention, nanosecond timestamps ---------------
+ORB3 = """%YAML:1.0
+File.version: "1.0"
+Camera.type: "PinHole"
+Camera1.fx: 35.0
+Camera1.fy: 36.0
+Camera1.cx: 19.5
+Camera1.cy: 15.25
+Camera1.k1: 0.0
+Camera1.k2: 0.0
+Camera1.p1: 0.0
+Camera1.p2: 0.0
+Camera.width: 40
+Camera.height: 30
+Stereo.ThDepth: 40.0
+RGBD.DepthMapFactor: 1000.0
+IMU.T_b_c1: !!opencv-matrix
+   rows: 4
+   cols: 4
+   dt: f
+   data: [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+"""
+
+
+def test_orb_slam3_settings_depth_map_factor_and_opencv_matrix(tmp_path):
+    """ORB-SLAM3 spells the depth unit RGBD.DepthMapFactor (ignored before: TUM's 5000 taken, depth 5x short)
+    and stores matrices as !!opencv-matrix (refused before)."""
+    raw = np.full((H, W), 823, np.uint16)   # 0.823 m in millimetres
+    _rgbd(tmp_path, [1.0, 1.1, 1.2], depth=raw)
+    (tmp_path / "intrinsics.yaml").write_text(ORB3)
+    ds = load_dataset(tmp_path)
+    assert ds.depth_scale == pytest.approx(1e-3)
+    assert load_depth(ds.frames[0].depth_path, ds.depth_scale)[0, 0] == np.float32(0.823)
+    np.testing.assert_allclose(ds.frames[0].camera.K, [[35, 0, 20.0], [0, 36, 15.75], [0, 0, 1]])
+
+
+@pytest.mark.parametrize("text", [
+    # ROS camera_calibration / camera_info_manager YAML
+    "image_width: 40\nimage_height: 30\ncamera_name: cam\ncamera_matrix:\n  rows: 3\n  cols: 3\n"
+    "  data: [35.0, 0.0, 19.5, 0.0, 36.0, 15.25, 0.0, 0.0, 1.0]\ndistortion_model: plumb_bob\n"
+    "distortion_coefficients:\n  rows: 1\n  cols: 5\n  data: [0.1, -0.01, 0.001, 0.002, 0.0]\n",
+    # a sensor_msgs/CameraInfo message (ROS 2 field names)
+    "header: {frame_id: cam}\nwidth: 40\nheight: 30\ndistortion_model: plumb_bob\n"
+    "d: [0.1, -0.01, 0.001, 0.002, 0.0]\nk: [35.0, 0.0, 19.5, 0.0, 36.0, 15.25, 0.0, 0.0, 1.0]\n"
+    "r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]\n",
+    # OpenCV FileStorage calibration output (the calibration sample's keys)
+    "%YAML:1.0\n---\nimage_width: 40\nimage_height: 30\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n"
+    "   dt: d\n   data: [ 35., 0., 19.5, 0., 36., 15.25, 0., 0., 1. ]\ndistortion_coefficients: !!opencv-matrix\n"
+    "   rows: 5\n   cols: 1\n   dt: d\n   data: [ 0.1, -0.01, 0.001, 0.002, 0. ]\n",
+])
+def test_ros_camera_info_and_opencv_calibration_files(tmp_path, text):
+    p = tmp_path / "calibration.yaml"
+    p.write_text(text)
+    intr = tum.read_intrinsics(p)
+    assert (intr.width, intr.height) == (40, 30)
+    np.testing.assert_allclose(intr.K, [[35, 0, 20.0], [0, 36, 15.75], [0, 0, 1]])
+    np.testing.assert_allclose(intr.dist, [0.1, -0.01, 0.001, 0.002])
+
+
+@pytest.mark.parametrize("text, msg", [
+    (INTR + "distortion_model: equidistant\nD: [0.1, 0.01, 0.0, 0.0]\n", "distortion_model 'equidistant'"),
+    (ORB3.replace('"PinHole"', '"KannalaBrandt8"'), "camera type 'KannalaBrandt8'"),
+    ("width: 40\nheight: 30\ncamera_matrix: {rows: 3, cols: 3, data: [35.0, 0.0, 19.5, 0.0, 36.0]}\n",
+     "3x3 matrix with 5 numbers"),
+    ("%YAML:1.0\nK: !!opencv-matrix [35.0, 0.0]\nwidth: 40\nheight: 30\n", "opencv-matrix on line 2 must be a mapping"),
+    ("%YAML:1.0\na: &a !!opencv-matrix {rows: 1, cols: 1, data: [*a]}\n", "recursive|YAML"),
+])
+def test_other_calibration_files_malformed_or_unsupported(tmp_path, text, msg):
+    p = tmp_path / "camera.yaml"
+    p.write_text(text)
+    with pytest.raises(InputError, match=msg) as e:
+        tum.read_intrinsics(p)
+    assert e.value.path == p
+
+
+def test_float_depth_in_metres_is_not_scaled_by_the_tum_default(tmp_path):
+    """ROS 32FC1 depth (metres) exported as float TIFF with a TUM depth.txt was divided by 5000."""
+    from PIL import Image
+
+    _rgbd(tmp_path, [])
+    metres = np.full((H, W), 0.823, np.float32)
+    (tmp_path / "depth").mkdir()
+    for t in (1.0, 1.1, 1.2):
+        Image.fromarray(metres, mode="F").save(tmp_path / "depth" / f"{t:.6f}.tif")
+    (tmp_path / "depth.txt").write_text("".join(f"{t:.6f} depth/{t:.6f}.tif\n" for t in (1.0, 1.1, 1.2)))
+    ds = load_dataset(tmp_path)
+    assert ds.depth_scale is None
+    assert load_depth(ds.frames[0].depth_path, ds.depth_scale)[0, 0] == np.float32(0.823)
+    # .npy float arrays in depth/ without depth.txt: metres too (the 'no depth unit' error is for integers)
+    (tmp_path / "depth.txt").unlink()
+    for t in (1.0, 1.1, 1.2):
+        (tmp_path / "depth" / f"{t:.6f}.tif").unlink()
+        np.save(tmp_path / "depth" / f"{t:.6f}.npy", metres)
+    ds = load_dataset(tmp_path)
+    assert ds.depth_scale is None and ds.frames[0].depth_path.suffix == ".npy"
+    # mixing integer and float depth: refused
+    np.save(tmp_path / "depth" / "1.100000.npy", np.full((H, W), 823, np.uint16))
+    with pytest.raises(InputError, match="mix integer and float"):
+        load_dataset(tmp_path)
+
+
+def test_principal_point_pixel_convention_matches_opencv_projection(tmp_path):
+    """A point projected by OpenCV with the file's K lands on the same pixel as our camera's projection
+    minus 0.5 (ours: pixel centres at +0.5, COLMAP; OpenCV/TUM/ROS: at integers)."""
+    import cv2
+
+    p = tmp_path / "intrinsics.yaml"
+    p.write_text(INTR + "distortion: [0.05, -0.01, 0.001, 0.002, 0.003]\n")
+    intr = tum.read_intrinsics(p)
+    T = _poses(3)[1]
+    cam = Camera(K=intr.K, width=W, height=H, T_world_cam=T, dist=intr.dist)
+    pts = np.array([[0.02, -0.03, 0.01], [0.0, 0.0, 0.0], [-0.05, 0.04, 0.02]])
+    uv, _ = cam.project(pts)
+    K_file = np.array([[35.0, 0, 19.5], [0, 36.0, 15.25], [0, 0, 1]])
+    T_cw = np.linalg.inv(T)
+    uv_cv, _ = cv2.projectPoints(pts, cv2.Rodrigues(T_cw[:3, :3])[0], T_cw[:3, 3], K_file,
+                                 np.array([0.05, -0.01, 0.001, 0.002, 0.003]))
+    np.testing.assert_allclose(uv - 0.5, uv_cv[:, 0], atol=1e-9)
+    # and the writer gives the file's values back
+    tum.write_intrinsics(tmp_path / "back.yaml", cam)
+    assert "cx: 19.5" in (tmp_path / "back.yaml").read_text()
+    np.testing.assert_allclose(tum.read_intrinsics(tmp_path / "back.yaml").K, intr.K)
+
+
+def test_nanosecond_timestamps(tmp_path):
+    """ROS / EuRoC exports stamp in whole nanoseconds (19 digits): read as seconds, so the 0.02 s tolerance holds."""
+    t_img = [1403636579.763555584 + 0.05 * i for i in range(3)]
+    ns = [f"{int(round(t * 1e9))}" for t in t_img]
+    _images(tmp_path / "rgb", ns)
+    (tmp_path / "rgb.txt").write_text("".join(f"{s} rgb/{s}.png\n" for s in ns))
+    # poses 3 ms later, also in nanoseconds
+    tum.write_pose_list(tmp_path / "groundtruth.txt",
+                        [(str(int(s) + 3_000_000), T) for s, T in zip(ns, _poses(3))])
+    (tmp_path / "intrinsics.yaml").write_text(INTR)
+    ds = load_dataset(tmp_path)
+    assert ds.meta["matched_by"] == "timestamp" and len(ds.frames) == 3
+    for f, T in zip(ds.frames, _poses(3)):
+        np.testing.assert_allclose(f.camera.T_world_cam, T, atol=1e-12)

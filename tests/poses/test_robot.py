@@ -146,3 +146,78 @@ def test_unregistered_views_get_their_robot_pose(scene_small: Path, tmp_path: Pa
     np.testing.assert_allclose(cam.T_world_cam, np.linalg.inv(T_WORLD_BASE) @ g["train_003.png"].T_world_cam, atol=1e-9)
     other = next(f.camera for f in res.frames if f.image_path.name == "train_000.png")
     np.testing.assert_array_equal(cam.K, other.K)  # the shared SfM camera
+
+
+# -- units and eye-in-hand geometry (no images needed) ------------------------------------------------
+def _ring_T_base_ee(n: int = 8, target=(0.55, 0.0, 0.0)) -> list[np.ndarray]:
+    """Flange poses of a wrist camera (hand-eye `_hand_eye()`) circling a point 0.55 m in front of the base."""
+    from splattwin.capture.camera import look_at
+
+    out = []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        eye = np.array(target) + np.array([0.25 * np.cos(a), 0.25 * np.sin(a), 0.35])
+        out.append(look_at(eye, np.array(target)) @ np.linalg.inv(_hand_eye()))
+    return out
+
+
+def _pose_entries(Ts, scale=1.0) -> list[dict]:
+    out = []
+    for i, T in enumerate(Ts):
+        x, y, z, w = (float(v) for v in Rotation.from_matrix(T[:3, :3]).as_quat())
+        out.append({"image": f"{i:06d}.png", "position": (T[:3, 3] * scale).tolist(), "quat_xyzw": [x, y, z, w]})
+    return out
+
+
+def test_millimetre_robot_poses_refused_unless_declared(tmp_path: Path):
+    """Flange positions in mm (ABB/KUKA/Fanuc exports) read as metres put the cameras ~1 km away, marked metric."""
+    Ts = _ring_T_base_ee()
+    mm = _bad(tmp_path, json.dumps(_pose_entries(Ts, 1000.0)))
+    with pytest.raises(InputError, match=r"m from the robot base.*millimetres.*units: mm") as e:
+        load_robot_poses(mm)
+    assert e.value.path == mm
+    declared = tmp_path / "declared.json"
+    declared.write_text(json.dumps({"units": "mm", "poses": _pose_entries(Ts, 1000.0)}))
+    poses, _ = load_robot_poses(declared)
+    for p, T in zip(poses, Ts):
+        np.testing.assert_allclose(p.T_base_ee, T, atol=1e-9)
+    bad_unit = tmp_path / "bad_unit.json"
+    bad_unit.write_text(json.dumps({"units": "inch", "poses": _pose_entries(Ts)}))
+    with pytest.raises(InputError, match="units must be"):
+        load_robot_poses(bad_unit)
+
+
+def test_millimetre_hand_eye_refused_unless_declared(tmp_path: Path):
+    T = _hand_eye()
+    T_mm = T.copy()
+    T_mm[:3, 3] *= 1000.0
+    p = _bad(tmp_path, json.dumps({"T_ee_cam": T_mm.tolist()}))
+    with pytest.raises(InputError, match=r"from the flange.*units: mm") as e:
+        load_hand_eye(p)
+    assert e.value.path == p
+    p.write_text(json.dumps({"units": "mm", "T_ee_cam": T_mm.tolist()}))
+    np.testing.assert_allclose(load_hand_eye(p), T, atol=1e-12)
+    inline = tmp_path / "inline.json"   # hand-eye inside the pose file: same check
+    inline.write_text(json.dumps({"T_ee_cam": T_mm.tolist(), "poses": _pose_entries(_ring_T_base_ee())}))
+    with pytest.raises(InputError, match="from the flange"):
+        load_robot_poses(inline)
+
+
+def test_eye_to_hand_cameras_refused_and_diverging_axes_warned(caplog):
+    from splattwin.poses.robot import RobotPose, camera_poses_in_base
+
+    Ts = _ring_T_base_ee()
+    with caplog.at_level("WARNING"):
+        camera_poses_in_base([RobotPose(T) for T in Ts], _hand_eye())
+    assert "optical axes" not in caplog.text
+    # eye-to-hand: one fixed camera pose given for every image (T_base_cam, or T_base_ee with the camera's
+    # pose as "hand-eye" and a still flange): no parallax
+    still = [RobotPose(Ts[0].copy()) for _ in Ts]
+    with pytest.raises(InputError, match="same place.*eye-in-hand.*eye-to-hand"):
+        camera_poses_in_base(still, _hand_eye())
+    # cameras turned to look away from the scene (a hand-eye with the camera flipped)
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        camera_poses_in_base([RobotPose(T) for T in Ts], _hand_eye() @ flip)
+    assert "optical axes meet" in caplog.text and "inverted" in caplog.text

@@ -10,6 +10,8 @@ A scene folder holds (`{im:06d}` = image id, `{k:06d}` = index of an annotated i
     mask/, mask_visib/ {im:06d}_{k:06d}.png: the instance's whole silhouette / its visible part
 
 Units and frames: BOP translations are millimetres (we convert to metres); matrices are row-major;
+`cam_K` puts pixel centres at integer coordinates (bop_toolkit, OpenCV), ours at +0.5 (COLMAP), so the
+principal point read is cx + 0.5, cy + 0.5 (and written back as cx - 0.5, cy - 0.5);
 `cam_R_w2c`, `cam_t_w2c` map world points into the camera (x_cam = R x_world + t), `cam_R_m2c`,
 `cam_t_m2c` model points into the camera; cameras are OpenCV (x right, y down, z forward).
 
@@ -50,6 +52,7 @@ NAMES_FILE = "object_names.json"
 IMAGE_DIRS = ("rgb", "gray")
 MASK_DIRS = ("mask_visib", "mask")
 MM = 1e-3  # metres per millimetre
+PIXEL_CENTRE_SHIFT = 0.5  # cam_K's pixel centres are at integers (bop_toolkit), ours at +0.5
 
 
 @dataclass
@@ -149,6 +152,7 @@ def read(path: str | Path) -> Dataset:
         if "cam_K" not in e:
             raise InputError(f"{where}: no cam_K", cam_file)
         K = numbers(e["cam_K"], 9, cam_file, f"{where} cam_K").reshape(3, 3)
+        K[:2, 2] += PIXEL_CENTRE_SHIFT  # integer pixel centres (BOP) -> ours
         stem = f"{im_id:06d}"
         img = images.get(stem)
         if img is None:
@@ -179,6 +183,10 @@ def read(path: str | Path) -> Dataset:
         raise InputError(f"depth_scale differs between images ({desc}); one depth unit per scene is supported: "
                          f"convert the depth images to one scale", cam_file)
     depth_scale = next(iter(scales)) * MM if scales else None
+    if not (scene / "mask_visib").is_dir() and (scene / "mask").is_dir():
+        # fusion labels what each pixel shows: an amodal mask labels the occluder as the occluded object
+        log.warning("%s: only mask/ (amodal: whole silhouettes, occluded parts included) and no mask_visib/; label "
+                    "fusion expects visible-part masks, so occluders may take the occluded object's label", scene)
     if not has_poses:
         log.info("%s: no camera poses (cam_R_w2c/cam_t_w2c); poses will be estimated", cam_file)
     files = [cam_file] + [scene / SCENE_GT] * (scene / SCENE_GT).is_file()
@@ -263,7 +271,9 @@ def write_scene_camera(path: str | Path, cameras: list[Camera], depth_scale: flo
     = mm). Poses (world -> camera, mm) when `with_poses`."""
     out = {}
     for i, c in enumerate(cameras):
-        e: dict = {"cam_K": [float(x) for x in c.K.reshape(-1)]}
+        K = c.K.copy()
+        K[:2, 2] -= PIXEL_CENTRE_SHIFT  # ours -> BOP's integer pixel centres
+        e: dict = {"cam_K": [float(x) for x in K.reshape(-1)]}
         if depth_scale is not None:
             e["depth_scale"] = float(depth_scale)
         if with_poses:

@@ -1,9 +1,11 @@
 """The one camera type used everywhere.
 
 Convention: OpenCV. Camera frame x right, y down, z forward (viewing direction). `T_world_cam` maps
-camera-frame points to the world frame (camera-to-world). Pixel (u, v) = (0, 0) is the centre of the
-top-left pixel's top-left corner... precisely: a pixel index (i, j) covers [i, i+1) x [j, j+1) and its
-centre is (i + 0.5, j + 0.5), the COLMAP/OpenCV continuous convention used by K. Units: metres, pixels.
+camera-frame points to the world frame (camera-to-world). Pixel coordinates: (u, v) = (0, 0) is the
+top-left corner of the top-left pixel; pixel index (i, j) covers [i, i+1) x [j, j+1) and its centre is
+(i + 0.5, j + 0.5): COLMAP's (and nerfstudio's, 3DGS's) convention, which K and `project` use. OpenCV,
+ROS camera_info, BOP and TUM put pixel centres at integers (u_opencv = u_ours - 0.5), so their principal
+point is cx + 0.5, cy + 0.5 here (`capture.bop`, `capture.tum` convert). Units: metres, pixels.
 
 OpenGL / nerfstudio / Blender cameras look down -z with y up; `T_world_cam_gl` converts by flipping the
 camera's y and z axes (`opencv_from_opengl`, `opengl_from_opencv`).

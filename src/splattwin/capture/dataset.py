@@ -196,8 +196,21 @@ def _check_depth_image(im, path: Path, size: tuple[int, int] | None) -> None:
         raise InputError(f"depth image must be single-channel 16-bit (or 32-bit integer or float), got PIL mode "
                          f"{im.mode!r} ({len(im.getbands())} channel(s)); 8-bit or colour images are not depth maps",
                          path)
-    if size is not None and tuple(im.size) != tuple(size):
-        raise InputError(f"depth map is {im.size[0]}x{im.size[1]} but its camera is {size[0]}x{size[1]}", path)
+    if size is not None:
+        depth_needs_resize(tuple(im.size), tuple(size), path)
+
+
+def depth_needs_resize(depth_wh: tuple[int, int], size: tuple[int, int], path: Path) -> bool:
+    """Whether a depth map of `depth_wh` must be resized (nearest) to its camera's `size`: False when equal,
+    True when smaller with the same aspect ratio within a pixel (a phone's 256x192 depth for 1024x768
+    photos, which nerfstudio resizes too), else InputError: depth must be registered to the colour camera."""
+    (dw, dh), (w, h) = depth_wh, size
+    if (dw, dh) == (w, h):
+        return False
+    if dw <= w and dh <= h and abs(dw * h / w - dh) <= 1 and abs(dh * w / h - dw) <= 1:
+        return True
+    raise InputError(f"depth map is {dw}x{dh} but its camera is {w}x{h}: depth must be registered to the colour "
+                     f"camera, at its size or a smaller one of the same aspect ratio", path)
 
 
 def depth_image_size(path: str | Path, size: tuple[int, int] | None = None) -> tuple[int, int]:
@@ -218,7 +231,8 @@ def load_depth(path: str | Path, scale: float | None = None, size: tuple[int, in
     TUM 1/5000); None = the file type's default: integer images in millimetres (nerfstudio's default
     1e-3), float arrays in metres. Integer depth with a scale of 1/k for a whole k (1/1000, 1/5000) is
     divided by k, so the metres are the correctly rounded float32 of raw / k.
-    size: (width, height) the map must have (its camera's), else InputError naming the depth file.
+    size: (width, height) of its camera: a smaller map of the same aspect is resized to it (nearest),
+    another size is an InputError naming the depth file (`depth_needs_resize`).
     Images must be single-channel 16-bit, 32-bit integer or float (DEPTH_MODES).
     """
     from splattwin.limits import check_pixels, load_npy, open_image
@@ -236,8 +250,8 @@ def load_depth(path: str | Path, scale: float | None = None, size: tuple[int, in
     if d.ndim != 2:
         raise InputError(f"depth must be a 2-D array, got shape {d.shape}", path)
     check_pixels(d.shape[1], d.shape[0], path, "depth map")
-    if size is not None and (d.shape[1], d.shape[0]) != tuple(size):
-        raise InputError(f"depth map is {d.shape[1]}x{d.shape[0]} but its camera is {size[0]}x{size[1]}", path)
+    if size is not None and depth_needs_resize((d.shape[1], d.shape[0]), tuple(size), path):
+        d = resize_nearest(d, *size)  # nearest: no depth invented across an edge
     if d.dtype.kind not in "fiub":
         raise InputError(f"depth must hold numbers, got dtype {d.dtype}", path)
     if scale is None:

@@ -6,23 +6,34 @@ A folder holding
   comments): T_world_cam, camera-to-world, metres, quaternion xyzw (scalar last, the TUM RGB-D
   benchmark's convention), OpenCV camera frame (x right, y down, z forward: the TUM optical frame);
 - an intrinsics file `intrinsics.{yaml,yml,json}` | `camera.{yaml,yml,json}` | `calibration.{yaml,yml,json}`:
-  `fx fy cx cy width height` (also `w`/`h`, a 3x3 `K`, nested under `camera:`/`intrinsics:`, or
-  ORB-SLAM's `Camera.fx` / `Camera1.fx` keys; an OpenCV `%YAML:1.0` first line is skipped), optional
+  `fx fy cx cy width height` (also `w`/`h`, a 3x3 `K`, nested under `camera:`/`intrinsics:`), optional
   distortion `k1 k2 p1 p2 [k3]` or `distortion: [...]`, and the depth unit: `depth_factor` (units per
   metre, TUM / ORB-SLAM `DepthMapFactor`, 5000 for TUM RGB-D) or `depth_scale` (metres per unit, the
-  RealSense SDK's, 0.001 for millimetres);
+  RealSense SDK's, 0.001 for millimetres). Also read: ORB-SLAM2/3 settings (`Camera.fx`, `Camera1.fx`,
+  `RGBD.DepthMapFactor`, `Stereo.`-prefixed keys; `Camera.type` must be PinHole), OpenCV FileStorage files
+  (`%YAML:1.0` first line, `!!opencv-matrix` entries such as `camera_matrix`, `distortion_coefficients`),
+  ROS `camera_info` YAML (camera_calibration's `image_width`, `image_height`, `camera_matrix: {rows, cols,
+  data}`, `distortion_coefficients`, `distortion_model: plumb_bob`; or a CameraInfo message's `width`,
+  `height`, `k` / `K`, `d` / `D`);
 - images: listed in `rgb.txt` (`timestamp path`, TUM RGB-D) or the files of `rgb/` (else `images/`);
-- depth (optional): listed in `depth.txt` or the files of `depth/`, 16-bit images.
+- depth (optional): listed in `depth.txt` or the files of `depth/`: 16-bit images, or float images
+  (32-bit TIFF, `.npy`) in metres.
+
+Pixel convention: these files (OpenCV, ROS, ORB-SLAM, TUM's tools) put pixel centres at integer
+coordinates; splattwin's `Camera` puts them at +0.5 (COLMAP). The principal point read is therefore
+cx + 0.5, cy + 0.5, and `write_intrinsics` writes cx - 0.5, cy - 0.5.
 
 Matching poses to images: by id when the first column names the images (`000012` or `12` for
-`000012.png`, or the file name); otherwise by time: each image takes the pose with the nearest
-timestamp within `max_dt` (default 0.02 s, as TUM's `associate.py`) and images without one are skipped
-with a warning. Image timestamps come from `rgb.txt`, else from the file names (`1305031102.175304.png`).
-Depth images are matched to images the same way.
+`000012.png`, or the file name); otherwise by time: each image's pose is interpolated (SLERP of the
+rotation, linear in the position, as TUM's evaluation tools do) between the two poses that bracket its
+timestamp when both are within `max_dt` (default 0.02 s, as TUM's `associate.py`), else the nearest pose
+within `max_dt`; images without one are skipped with a warning. Image timestamps come from `rgb.txt`,
+else from the file names (`1305031102.175304.png`); whole numbers of 18 or more digits are nanoseconds
+(ROS / EuRoC exports: `1403636579763555584`). Depth images are matched to images by nearest timestamp.
 
-Depth units are explicit: the intrinsics file's `depth_factor` / `depth_scale`; without them 5000 per
-metre for the TUM RGB-D layout (`depth.txt` present), and an InputError otherwise (a wrong guess would
-scale the whole twin).
+Depth units are explicit: the intrinsics file's `depth_factor` / `depth_scale`; without them float depth
+is metres, and integer depth is 5000 per metre for the TUM RGB-D layout (`depth.txt` present, with a
+warning) and an InputError otherwise (a wrong guess would scale the whole twin).
 
 Everything read is untrusted: text and JSON/YAML sizes are bounded (`splattwin.limits`), paths from
 `rgb.txt` / `depth.txt` stay inside the folder (`splattwin.paths`), numbers are checked (finite, unit
@@ -40,7 +51,8 @@ import numpy as np
 
 from splattwin import io
 from splattwin.capture.camera import Camera, plausible
-from splattwin.capture.dataset import DEPTH_SCALE_RANGE, Dataset, Frame, find_images, image_size, list_files
+from splattwin.capture.dataset import (DEPTH_SCALE_RANGE, Dataset, Frame, default_depth_scale, find_images,
+                                       image_size, list_files)
 from splattwin.errors import InputError
 from splattwin.limits import MAX_POSITION, ascii_uint, check_count, check_pixels, loads_yaml, number, numbers, read_text
 from splattwin.paths import confined
@@ -51,6 +63,10 @@ POSE_FILES = ("groundtruth.txt", "poses.txt", "trajectory.txt", "camera_poses.tx
 INTRINSICS_FILES = tuple(f"{s}.{e}" for s in ("intrinsics", "camera", "calibration") for e in ("yaml", "yml", "json"))
 TUM_DEPTH_FACTOR = 5000.0  # TUM RGB-D: 5000 depth units per metre
 MAX_DT = 0.02              # seconds: TUM associate.py's default max_difference
+NS_DIGITS = 18             # a whole-number timestamp this long is nanoseconds (seconds since 1970: 10 digits)
+_PREFIXES = ("", "Camera.", "Camera1.", "RGBD.", "Stereo.")  # ORB-SLAM2/3 settings' key prefixes
+# OpenCV/ROS/ORB-SLAM pixel centres are at integer coordinates, ours (COLMAP) at +0.5
+PIXEL_CENTRE_SHIFT = 0.5
 _SPLIT = re.compile(r"[\s,]+")
 
 
@@ -146,12 +162,10 @@ def _file_list(path: Path, root: Path, what: str) -> list[tuple[float, Path]]:
     for ln, tok in _lines(path, what):
         if len(tok) < 2:
             raise InputError(f"line {ln}: expected 'timestamp path'", path)
-        try:
-            t = float(tok[0])
-        except ValueError:
-            raise InputError(f"line {ln}: timestamp {tok[0]!r} is not a number", path) from None
-        if not np.isfinite(t):
-            raise InputError(f"line {ln}: timestamp is not finite", path)
+        t = _as_time(tok[0])
+        if t is None:
+            raise InputError(f"line {ln}: timestamp {tok[0]!r} is not a finite number (seconds, or whole "
+                             f"nanoseconds)", path)
         out.append((t, confined(root, tok[1], path, f"line {ln} path")))
     return out
 
@@ -162,9 +176,9 @@ def _load_mapping(path: Path) -> dict:
         data = io.read_json(path)
     else:
         text = read_text(path, "intrinsics file", max_bytes=1 << 20)
-        if text.startswith("%YAML"):  # OpenCV FileStorage header: not YAML 1.1, skip it
-            text = text.split("\n", 1)[1] if "\n" in text else ""
-        data = loads_yaml(text, path)
+        if text.startswith("%YAML"):  # OpenCV FileStorage header (`%YAML:1.0`): not YAML 1.1, comment it out
+            text = "#" + text  # (a comment, not removed: error messages keep the file's line numbers)
+        data = loads_yaml(text, path, opencv=True)
     if not isinstance(data, dict):
         raise InputError("intrinsics file must hold a mapping (fx, fy, cx, cy, width, height)", path)
     flat = dict(data)
@@ -174,9 +188,22 @@ def _load_mapping(path: Path) -> dict:
     return flat
 
 
+def _matrix_data(v, path: Path, what: str):
+    """An OpenCV `!!opencv-matrix` / ROS `{rows, cols, data}` mapping -> its data list (other values as they are)."""
+    if isinstance(v, dict) and "data" in v:
+        data = v["data"]
+        if not isinstance(data, list):
+            raise InputError(f"{what}: 'data' must be a list of numbers", path)
+        rows, cols = v.get("rows"), v.get("cols")
+        if isinstance(rows, int) and isinstance(cols, int) and rows * cols != len(data):
+            raise InputError(f"{what}: {rows}x{cols} matrix with {len(data)} numbers", path)
+        return data
+    return v
+
+
 def _get(d: dict, names: tuple[str, ...]):
     for n in names:
-        for prefix in ("", "Camera.", "Camera1."):
+        for prefix in _PREFIXES:
             if prefix + n in d:
                 return d[prefix + n]
     return None
@@ -186,9 +213,20 @@ def read_intrinsics(path: str | Path) -> Intrinsics:
     """Intrinsics file (YAML/JSON, see module docstring) -> Intrinsics; InputError naming the file."""
     path = Path(path)
     d = _load_mapping(path)
+    ctype = d.get("Camera.type", d.get("Camera1.type"))
+    if isinstance(ctype, str) and ctype.strip().lower() != "pinhole":
+        # ORB-SLAM3's KannalaBrandt8 (fisheye) k1..k4 are not OpenCV's k1 k2 p1 p2
+        raise InputError(f"camera type {ctype!r}: only a PinHole camera (OpenCV radial-tangential distortion) "
+                         f"is read; undistort the images first", path)
+    model = d.get("distortion_model")
+    if model is not None and str(model).strip().lower() not in ("plumb_bob", "radtan", "radial-tangential"):
+        # ROS camera_info: equidistant (fisheye) or rational_polynomial coefficients mean something else
+        raise InputError(f"distortion_model {str(model)[:40]!r}: only plumb_bob (OpenCV k1 k2 p1 p2 k3) is read; "
+                         f"undistort the images first", path)
     K = None
-    if d.get("K") is not None:
-        K = numbers(d["K"], 9, path, "K (3x3)").reshape(3, 3)
+    rawK = next((d[k] for k in ("K", "k", "camera_matrix") if d.get(k) is not None), None)
+    if rawK is not None:
+        K = numbers(_matrix_data(rawK, path, "camera matrix K"), 9, path, "K (3x3)").reshape(3, 3)
     else:
         vals = {n: _get(d, (n,)) for n in ("fx", "fy", "cx", "cy")}
         missing = [n for n, v in vals.items() if v is None]
@@ -196,12 +234,15 @@ def read_intrinsics(path: str | Path) -> Intrinsics:
             raise InputError(f"intrinsics file lacks {', '.join(missing)} (needs fx fy cx cy width height)", path)
         fx, fy, cx, cy = (number(vals[n], path, n) for n in ("fx", "fy", "cx", "cy"))
         K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    K = K.copy()
+    K[:2, 2] += PIXEL_CENTRE_SHIFT  # integer pixel centres (OpenCV) -> ours (+0.5)
     w, h = _get(d, ("width", "w", "image_width")), _get(d, ("height", "h", "image_height"))
     if w is None or h is None:
         raise InputError("intrinsics file lacks width/height (image size in pixels)", path)
     w, h = check_pixels(w, h, path, "width x height")
     dist = None
-    raw = _get(d, ("distortion", "dist", "distortion_coeffs", "D"))
+    raw = _get(d, ("distortion", "dist", "distortion_coeffs", "distortion_coefficients", "D", "d"))
+    raw = _matrix_data(raw, path, "distortion")
     if raw is not None:
         if not isinstance(raw, (list, tuple)) or len(raw) not in (4, 5):
             raise InputError(f"distortion must be 4 or 5 finite numbers k1 k2 p1 p2 [k3], got {str(raw)[:60]}", path)
@@ -238,8 +279,9 @@ def write_intrinsics(path: str | Path, camera: Camera, depth_factor: float | Non
     """YAML intrinsics file (fx fy cx cy width height, distortion, depth_factor in units per metre)."""
     import yaml
 
-    d: dict = {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
-               "width": camera.width, "height": camera.height}
+    # integer pixel centres in the file (OpenCV/TUM), ours at +0.5: see PIXEL_CENTRE_SHIFT
+    d: dict = {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx - PIXEL_CENTRE_SHIFT,
+               "cy": camera.cy - PIXEL_CENTRE_SHIFT, "width": camera.width, "height": camera.height}
     if camera.dist is not None:
         d["distortion"] = [float(x) for x in camera.dist]
     if depth_factor is not None:
@@ -253,6 +295,9 @@ def _as_int(s: str) -> int | None:
 
 
 def _as_time(s: str) -> float | None:
+    """Seconds from a timestamp string; a whole number of NS_DIGITS or more digits is nanoseconds."""
+    if len(s) >= NS_DIGITS and s.isascii() and s.isdigit():
+        return int(s) * 1e-9
     try:
         t = float(s)
     except ValueError:
@@ -287,6 +332,33 @@ def nearest(t_query: np.ndarray, t_ref: np.ndarray, max_dt: float) -> np.ndarray
     pick = np.where(np.abs(ts[lo] - t_query) <= np.abs(ts[hi] - t_query), lo, hi)
     ok = np.abs(ts[pick] - t_query) <= max_dt
     return np.where(ok, order[pick], -1)
+
+
+def interpolate(t_query: np.ndarray, t_ref: np.ndarray, T_ref: np.ndarray,
+                max_dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Poses at the query times: SLERP + linear position between the two reference poses that bracket each
+    query when both are within max_dt of it, else the nearest within max_dt. Returns (T [N,4,4], ok [N]).
+    (Nearest alone is off by up to v * half the pose period: 2.5 mm at 0.5 m/s and 100 Hz mocap.)"""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    order = np.argsort(t_ref)
+    ts, Ts = t_ref[order], T_ref[order]
+    near = nearest(t_query, ts, max_dt)
+    out = np.array([Ts[j] if j >= 0 else np.eye(4) for j in near])
+    hi = np.searchsorted(ts, t_query, side="left")
+    for i, (t, h) in enumerate(zip(t_query, hi)):
+        if h == 0 or h >= len(ts) or ts[h] == t:
+            continue  # outside the trajectory, or an exact match (nearest already took it)
+        lo = h - 1
+        if t - ts[lo] > max_dt or ts[h] - t > max_dt:
+            continue
+        a = (t - ts[lo]) / (ts[h] - ts[lo])
+        rot = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([Ts[lo][:3, :3], Ts[h][:3, :3]])))([a])
+        T = np.eye(4)
+        T[:3, :3] = rot.as_matrix()[0]
+        T[:3, 3] = (1 - a) * Ts[lo][:3, 3] + a * Ts[h][:3, 3]
+        out[i] = T
+    return out, near >= 0
 
 
 def _images(folder: Path) -> tuple[list[Path], list[float | None], Path | None]:
@@ -358,9 +430,12 @@ def read(path: str | Path, max_dt: float = MAX_DT) -> Dataset:
             raise InputError("pose ids match no image names and are not all timestamps"
                              + (f" (e.g. {bad[:40]!r})" if bad is not None else "")
                              + " (or the images have no timestamps: add rgb.txt or name the images by time)", pose_file)
-        idx = nearest(np.array(times, dtype=np.float64), np.array(pose_t, dtype=np.float64), max_dt)
-        match = {i: int(j) for i, j in enumerate(idx) if j >= 0}
+        T_at, ok = interpolate(np.array(times, dtype=np.float64), np.array(pose_t, dtype=np.float64),
+                               np.array([T for _, T in poses]), max_dt)
+        match = {i: T_at[i] for i in range(len(images)) if ok[i]}
         mode = "timestamp"
+    if mode == "id":
+        match = {i: poses[j][1] for i, j in match.items()}
     if not match:
         raise InputError(f"no image has a pose (matched by {mode}"
                          + (f", within {max_dt} s" if mode == "timestamp" else "") + ")", pose_file)
@@ -380,12 +455,24 @@ def read(path: str | Path, max_dt: float = MAX_DT) -> Dataset:
         log.warning("%s: %d of %d posed images have no depth image %s (of %d depth images)", depth_src,
                     len(match) - n_with, len(match), how, n_depth)
     depth_scale = intr.depth_scale
-    if any(d is not None for d in depths) and depth_scale is None:
-        if depth_txt is None:
+    used = [depths[i] for i in match if depths[i] is not None]
+    if used and depth_scale is None:
+        # float depth (32FC1, TIFF F, .npy) is metres; the 5000/m default is for TUM's 16-bit PNGs only
+        kinds = {p: default_depth_scale(p) for p in used}
+        if len(set(kinds.values())) > 1:
+            f = next(p for p, k in kinds.items() if k == 1.0)
+            raise InputError("depth images mix integer and float values; give one kind (and its unit in the "
+                             "intrinsics file)", f)
+        if next(iter(kinds.values())) == 1.0:
+            depth_scale = None  # metres, `load_depth`'s float default
+        elif depth_txt is None:
             raise InputError("depth images found but the intrinsics file gives no depth unit: add depth_factor "
                              "(units per metre, e.g. 1000 for millimetres, 5000 for TUM) or depth_scale (metres "
                              "per unit)", intr_file)
-        depth_scale = 1.0 / TUM_DEPTH_FACTOR
+        else:
+            log.warning("%s: no depth unit (depth_factor / DepthMapFactor / depth_scale); assuming the TUM RGB-D "
+                        "benchmark's %g units per metre for its 16-bit depth", intr_file, TUM_DEPTH_FACTOR)
+            depth_scale = 1.0 / TUM_DEPTH_FACTOR
     frames = []
     for i, img in enumerate(images):
         if i not in match:
@@ -393,7 +480,7 @@ def read(path: str | Path, max_dt: float = MAX_DT) -> Dataset:
         w, h = image_size(img)
         if (w, h) != (intr.width, intr.height):
             raise InputError(f"image is {w}x{h} but the intrinsics file says {intr.width}x{intr.height}", img)
-        cam = Camera(K=intr.K, width=w, height=h, T_world_cam=poses[match[i]][1], dist=intr.dist, name=img.stem)
+        cam = Camera(K=intr.K, width=w, height=h, T_world_cam=match[i], dist=intr.dist, name=img.stem)
         frames.append(Frame(image_path=img, camera=cam, depth_path=depths[i]))
     files = [pose_file, intr_file] + [f for f in (rgb_txt, depth_txt) if f is not None]
     return Dataset(root=folder, frames=frames, has_poses=True, depth_scale=depth_scale,
@@ -402,4 +489,4 @@ def read(path: str | Path, max_dt: float = MAX_DT) -> Dataset:
 
 
 __all__ = ["Intrinsics", "read", "read_intrinsics", "read_pose_list", "write_intrinsics",
-           "write_pose_list", "nearest", "is_capture"]
+           "write_pose_list", "nearest", "interpolate", "is_capture"]

@@ -98,7 +98,7 @@ def points_from_depth(frames: Sequence[Frame], depth_scale: float | None = None,
     center, scale = scene_center_and_scale([f.camera for f in frames])
     fg_xyz, fg_rgb, bg_xyz, bg_rgb = [], [], [], []
     for f in with_depth:
-        depth = load_depth(f.depth_path, depth_scale)
+        depth = load_depth(f.depth_path, depth_scale, size=(f.camera.width, f.camera.height))  # fits a smaller map
         img = load_image(f.image_path)
         if img.shape[:2] != depth.shape:
             raise InputError(f"depth map is {depth.shape[1]}x{depth.shape[0]} but its image is "

@@ -212,7 +212,7 @@ def load_views(frames: list[Frame], resolution: int | Resolution = 1, depth: boo
                 log.warning("%s: the loss mask ignores every pixel of this view", f.mask_path)
         d = None
         if depth and f.depth_path is not None:
-            dm = load_depth(f.depth_path, depth_scale)
+            dm = load_depth(f.depth_path, depth_scale, size=(f.camera.width, f.camera.height))  # fits a smaller map
             if dm.shape != (f.camera.height, f.camera.width):
                 raise InputError(f"depth map is {dm.shape[1]}x{dm.shape[0]} but its camera says "
                                  f"{f.camera.width}x{f.camera.height}", f.depth_path)
