@@ -83,7 +83,9 @@ def _bop_without_poses(scene: Path, out: Path) -> Path:
         shutil.copy(f.image_path, out / "rgb" / f"{i:06d}.png")
         d = load_depth(f.depth_path, ds.depth_scale, size=(c.width, c.height))
         io.write_image(out / "depth" / f"{i:06d}.png", np.round(np.nan_to_num(d) * 1000.0).astype(np.uint16))
-        cam_json[str(i)] = {"cam_K": c.K.reshape(-1).tolist(), "depth_scale": 1.0}
+        K = c.K.copy()
+        K[:2, 2] -= 0.5          # BOP's pixel centres are at integer coordinates, ours at +0.5
+        cam_json[str(i)] = {"cam_K": K.reshape(-1).tolist(), "depth_scale": 1.0}
     io.write_json(out / "scene_camera.json", cam_json)
     return out
 
