@@ -26,8 +26,14 @@ def _leaves(cls, prefix=""):
             yield f"{prefix}{s.name}", s
 
 
+# free-text options whose values are checked: a valid value other than the default
+_VALID_TEXT = {"urdf_uri": "file", "moveit_frame": "robot_world", "joint_names": "fr3"}
+
+
 def _other_value(s: Spec):
     """A valid value other than the default, and its command-line form."""
+    if s.name in _VALID_TEXT:
+        return _VALID_TEXT[s.name], [_VALID_TEXT[s.name]]
     d = s.default()
     choices = s.meta.get("choices")
     if choices:

@@ -10,14 +10,17 @@ import pytest
 from splattwin.capture import Dataset, load_dataset
 
 
-def stripped(ds: Dataset) -> Dataset:
-    """The same images with identity poses and guessed intrinsics: what a photo folder gives."""
+def stripped(ds: Dataset, depth: bool = False) -> Dataset:
+    """The same images with identity poses and guessed intrinsics and no depth: what a photo folder gives
+    (depth=True keeps the depth images: SfM then takes its metric scale from them unless another scale is
+    given, tests/poses/test_depth_scale.py)."""
     from dataclasses import replace
 
     from splattwin.capture import Camera
 
     frames = [replace(f, camera=Camera.from_fov(np.radians(60.0), f.camera.width, f.camera.height,
-                                                name=f.camera.name)) for f in ds.frames]
+                                                name=f.camera.name), depth_path=f.depth_path if depth else None)
+              for f in ds.frames]
     # the scene's train/held-out split is kept as the capture's own (else the default hold-out re-splits)
     return Dataset(root=ds.root, frames=frames, has_poses=False, meta={"format": "images", "split": True})
 

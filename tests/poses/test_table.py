@@ -60,8 +60,9 @@ def test_table_plane_with_camera_height(default_unscaled, sfm_default_dir, caplo
     gt, _ = default_unscaled
     h = float(np.mean([f.camera.center[2] for f in gt.frames]))
     with caplog.at_level(logging.INFO, logger="splattwin.poses.estimate"):
-        res = estimate_poses(stripped(gt), PoseOptions(method="sfm", work_dir=sfm_default_dir, progress=False,
-                                                       known_length=KnownLength("camera_height", h)))
+        res = estimate_poses(stripped(gt, depth=True), PoseOptions(method="sfm", work_dir=sfm_default_dir,
+                                                                   progress=False,
+                                                                   known_length=KnownLength("camera_height", h)))
     assert res.frame.source == "table_plane+known_length" and res.frame.scaled
     assert "metric scale from" in caplog.text   # the log says which scale was applied, not only frame.json
     assert 0 < res.frame.scale_uncertainty_rel < 0.01

@@ -107,7 +107,7 @@ def assert_resumes_to(ds, out: Path, cfg, reference) -> None:
 def drop_split(root: Path) -> Path:
     """Remove every train/held-out mark from root/transforms.json (a capture without its own split)."""
     meta = json.loads((root / "transforms.json").read_text())
-    for k in ("train_filenames", "test_filenames"):
+    for k in ("train_filenames", "val_filenames", "test_filenames"):
         meta.pop(k, None)
     for fr in meta["frames"]:
         fr.pop("split", None)
