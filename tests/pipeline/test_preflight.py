@@ -245,3 +245,35 @@ def test_a_preflight_failure_on_rotated_photos_leaves_no_folder(tmp_path, capsys
     (out / "notes.txt").write_text("mine")
     assert cli(["build", str(src), "--out", str(out), "--task", "default", "--no-progress"]) == 2
     assert (out / "notes.txt").is_file() and (out / "capture" / "frames" / "upright").is_dir()
+
+
+def test_prompt_names_are_checked_before_any_work(tmp_path):
+    """A prompt phrase that names a reserved object ('table') was refused only at the semantics stage, after
+    SfM and training (with the models present); the pre-flight now says so with the other problems."""
+    imgs = _images(tmp_path / "imgs")
+    o = BuildOptions(input=str(imgs), semantics=SemanticsOptions(prompt="table. mug"))
+    with pytest.raises(InputError) as e:
+        pf.run_preflight(o, tmp_path / "twin", imgs, None, tmp_path / "frames", until="semantics")
+    assert "table" in str(e.value) and "--prompt" in str(e.value)
+
+
+def test_task_stops_before_training_when_the_poses_came_out_unscaled(tmp_path):
+    """The pre-flight lets an RGB-D capture without poses through (its depth should give the scale); when the
+    depth gave none, the build used to train and fuse before the robot stage refused the task."""
+    from splattwin import io
+    from splattwin.pipeline.build import _check_task_scale
+    from splattwin.pipeline.runner import Context
+    from splattwin.poses.twin_frame import TwinFrame
+    import dataclasses
+
+    out = tmp_path / "twin"
+    io.write_json(out / "poses" / "frame.json", dataclasses.asdict(TwinFrame(source="unscaled", scaled=False)))
+    io.write_json(out / "poses" / "poses_report.json", {"depth_scale": {"error": "the depth images put the scene "
+                                                                               "9.7 m from the cameras"}})
+    ctx = Context(out=out, options={}, config=BuildOptions(robot=RobotOptions(task="default")))
+    with pytest.raises(InputError) as e:
+        _check_task_scale(ctx)
+    assert "9.7 m" in str(e.value) and "nothing was trained" in str(e.value)
+    _check_task_scale(Context(out=out, options={}, config=BuildOptions()))          # no task: fine
+    io.write_json(out / "poses" / "frame.json", dataclasses.asdict(TwinFrame(source="table_plane+depth", scaled=True)))
+    _check_task_scale(ctx)                                                            # metric: fine

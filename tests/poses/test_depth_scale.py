@@ -112,3 +112,15 @@ def test_sfm_on_rgbd_without_poses_is_metric(scene_default: Path, tmp_path: Path
     off = estimate_poses(load_dataset(src), PoseOptions(progress=False, scale_from_depth=False,
                                                         work_dir=tmp_path / "sfm"))
     assert not off.frame.scaled and off.frame.source == "unscaled"
+
+
+def test_depth_in_wrong_units_gives_no_scale(scene_small: Path):
+    """Depth read x10 (a wrong depth_scale) keeps the ratios' spread: only the scene's implied distance from
+    the cameras shows it (it gave a twin 9.7 times too large, marked metric)."""
+    cams, depths = _views(scene_small)
+    pts = np.concatenate([backproject_depth(d, c, stride=9)[0] for c, d in zip(cams, depths)])
+    sfm_cams, sfm_pts = _to(_sfm_frame(0.5), cams, pts)
+    assert scale_from_depth(sfm_cams, depths, sfm_pts)[0] is not None
+    for factor in (10.0, 1000.0, 0.01):
+        fit, note = scale_from_depth(sfm_cams, [d * factor for d in depths], sfm_pts)
+        assert fit is None and "units" in note

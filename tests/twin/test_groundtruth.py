@@ -52,3 +52,48 @@ def test_gt_twin_bad_scene(tmp_path: Path):
     (tmp_path / "scene.json").write_text(json.dumps({"objects": [{"name": "a", "T_world_obj": np.eye(4).tolist()}]}))
     with pytest.raises(InputError, match="mesh"):
         twin_from_scene(tmp_path, tmp_path / "out")
+
+
+def test_ground_truth_is_aligned_when_the_twin_frame_is_not_the_scenes(scene_small, tmp_path):
+    """A twin in another frame than the scene's (SfM's table frame, a tilted world moved into the table
+    frame) was scored against the GT meshes where they lay: F1 0.000 for every object, and the goal region
+    copied unmoved. The GT now follows the objects' centres into the twin frame."""
+    import json
+
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from splattwin.twin.groundtruth import twin_from_scene
+    from splattwin.twin.manifest import Manifest
+    from splattwin.twin.stage import _moved_region, gt_alignment, write_fidelity
+
+    from splattwin.poses.twin_frame import TwinFrame
+
+    twin = tmp_path / "twin"
+    twin_from_scene(scene_small, twin)
+    man = Manifest.load(twin)
+    known = TwinFrame(source="known_poses", scaled=True)
+    T, note = gt_alignment(man, twin, scene_small, known)
+    np.testing.assert_array_equal(T, np.eye(4))
+    assert "scene's" in note
+    # the same twin in another frame: every object moved by T_new_old
+    T_new_old = np.eye(4)
+    T_new_old[:3, :3] = Rotation.from_euler("z", 70, degrees=True).as_matrix()
+    T_new_old[:3, 3] = [0.3, -0.2, 0.0]
+    for obj in man.objects:
+        obj.T_world_obj = (T_new_old @ obj.pose).tolist()
+    # the poses' own frame: used where it lies, so the pose error counts (no alignment hides it)
+    np.testing.assert_array_equal(gt_alignment(man, twin, scene_small, known)[0], np.eye(4))
+    moved = TwinFrame(source="known_poses", scaled=True, up_check={"moved_to_table_frame": True})
+    for frame in (moved, TwinFrame(source="table_plane+depth", scaled=True)):
+        T, note = gt_alignment(man, twin, scene_small, frame)
+        np.testing.assert_allclose(T, T_new_old, atol=1e-6)
+        assert "aligned" in note and "rigid" in note
+    man.save(twin)
+    rows = json.loads(write_fidelity(twin, scene_small, 0.005, T).read_text())
+    assert rows and all(r["f1"] > 0.99 for r in rows.values())
+    unaligned = json.loads(write_fidelity(twin, scene_small, 0.005, np.eye(4)).read_text())
+    assert all(r["f1"] < 0.1 for r in unaligned.values())
+    region = _moved_region({"center": [0.1, 0.0, 0.0], "size": 0.24, "for": "x"}, T)
+    np.testing.assert_allclose(region["center"], (T_new_old @ [0.1, 0, 0, 1])[:3], atol=1e-6)
+    assert region["size"] == pytest.approx(0.24) and region["for"] == "x"

@@ -105,9 +105,34 @@ def _poses_files(ctx: Context) -> dict:
     return input_files(_poses_inputs(ctx), ctx.config.poses)
 
 
+def _check_task_scale(ctx: Context) -> None:
+    """--task needs a metric twin: when the poses came out unscaled although the pre-flight expected a scale
+    (the depth images gave none: `splattwin.poses.depth_scale`), stop before training, not at the robot
+    stage after every other stage's work."""
+    if not ctx.config.robot.task:
+        return
+    from splattwin.pipeline.preflight import SCALE_HELP
+    from splattwin.poses.twin_frame import load_frame
+
+    frame_json = ctx.path("poses/frame.json")
+    if frame_json.is_file() and not load_frame(frame_json).scaled:
+        why = ""
+        report = ctx.path("poses/poses_report.json")
+        if report.is_file():
+            from splattwin.limits import MAX_RECORD_BYTES, read_json
+
+            rep = read_json(report, "poses report", MAX_RECORD_BYTES)
+            err = rep.get("depth_scale", {}).get("error") if isinstance(rep, dict) and isinstance(
+                rep.get("depth_scale"), dict) else None
+            why = f" (no scale from the depth images: {err})" if isinstance(err, str) else ""
+        raise InputError(f"--task needs a metric twin, but the poses came out unscaled{why}; nothing was trained: "
+                         f"{SCALE_HELP}", frame_json)
+
+
 def _splats(ctx: Context) -> dict:
     from splattwin.splat.stage import SplatInputs, run
 
+    _check_task_scale(ctx)
     inputs = SplatInputs(transforms=ctx.path("poses/transforms.json"), out_dir=ctx.path("splat"))
     # --from splats (or earlier): retrain from scratch, never resume the finished run's checkpoints
     return record(run(inputs, ctx.config.splat, progress=ctx.progress, fresh="splats" in ctx.fresh), ctx.out)

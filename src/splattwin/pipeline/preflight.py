@@ -154,7 +154,8 @@ def unscaled_reason(poses, has_poses: bool, fmt: str | None, frame_json_beside: 
 SCALE_HELP = ("give the metric scale with one of: --known-length camera_height=0.45 (mean camera height above the "
               "table, m) or --known-length baseline@IMG_A,IMG_B=0.30 (distance between two camera centres, m); "
               "--marker-size 0.05 (an ArUco DICT_4X4_50 marker of that side in view); --robot-poses POSES.json "
-              "(+ --hand-eye); or a capture with known metric poses (transforms.json, BOP or TUM RGB-D). "
+              "(+ --hand-eye); or a capture with known metric poses (transforms.json, BOP or TUM RGB-D; --scale metric "
+              "when known poses are in metres but taken as SfM output), or RGB-D images without poses. "
               "Without --task the twin is built unscaled")
 
 
@@ -211,6 +212,12 @@ def run_preflight(options, out: Path, input_path: Path | None, scene_dir: Path |
             problems.append(e)
     # models first: needs no capture at all
     if o.semantics.prompt and not o.semantics.masks:
+        from splattwin.semantics.segment import prompt_object_names
+
+        try:
+            prompt_object_names(o.semantics.prompt)  # the names the objects will get (reserved, unique, ASCII)
+        except InputError as e:
+            problems.append(e)
         from splattwin.semantics.models import missing_models_error
 
         err = missing_models_error(o.semantics.segment)

@@ -47,6 +47,17 @@ def parse_prompt(prompt: str) -> list[str]:
     return phrases
 
 
+def prompt_object_names(prompt: str) -> dict[str, str]:
+    """{phrase: object name} of a text prompt (`parse_prompt`); InputError for a name that is not allowed
+    (reserved, not ASCII, clashing export ids): checked by the pre-flight before any work."""
+    from splattwin.names import check_unique, object_name
+
+    names = {p: object_name(p.replace(" ", "_"), "--prompt", "object name from the prompt phrase")
+             for p in parse_prompt(prompt)}
+    check_unique(names.values(), "--prompt")
+    return names
+
+
 def load_pretrained(cls, model_id: str, what: str, **kwargs):
     """`cls.from_pretrained(model_id, local_files_only=True)` with a clear InputError when absent."""
     try:
@@ -294,10 +305,7 @@ def segment_images(images: dict[str, Path], prompt: str, options: SegmentOptions
     missing = [p for p in phrases if p not in labels]
     if missing:
         raise InputError(f"prompt phrases {missing} have no object label (known: {sorted(labels)})")
-    from splattwin.names import check_unique, object_name
-
-    names = {p: object_name(p.replace(" ", "_"), "--prompt", "object name from the prompt phrase") for p in phrases}
-    check_unique(names.values(), "--prompt")
+    names = prompt_object_names(prompt)
     ms = MaskSet(objects={labels[p]: names[p] for p in phrases},
                  prompts={labels[p]: p for p in phrases}, source=f"open-vocab:{prompt}")
     done: set[str] = set()

@@ -52,28 +52,93 @@ def run(inputs: TwinInputs, options: TwinOptions, *, progress: bool = True) -> T
                      formats=options.export.resolve("export.formats"), progress=progress, masks=inputs.masks,
                      export_options=options.export, splats_path=inputs.splats)
     scene_json = inputs.scene_dir / "scene.json" if inputs.scene_dir is not None else None
+    T_twin_gt = gt_note = None
     if scene_json is not None and scene_json.is_file():
         scene = io.read_json(scene_json)
-        if scene.get("target_frame"):  # a scene fact the robot task needs (its goal region)
-            man.config["target_frame"] = scene["target_frame"]
+        T_twin_gt, gt_note = gt_alignment(man, twin, inputs.scene_dir, frame)
+        man.config["ground_truth"] = {"alignment": gt_note}
+        if scene.get("target_frame") and T_twin_gt is not None:  # a scene fact the robot task needs (its goal)
+            man.config["target_frame"] = _moved_region(scene["target_frame"], T_twin_gt)
     if inputs.config:
         man.config["build"] = inputs.config
     man.splats = man.splats or twin_relative(inputs.splats, twin)
     man.labels = man.labels or twin_relative(inputs.labels, twin)
     man.save(twin)
     fidelity = None
-    if scene_json is not None and scene_json.is_file():
-        fidelity = write_fidelity(twin, inputs.scene_dir, options.geometry.f1_threshold)
+    if T_twin_gt is not None:
+        fidelity = write_fidelity(twin, inputs.scene_dir, options.geometry.f1_threshold, T_twin_gt)
     return TwinResult(manifest=twin / "twin.json", fidelity=fidelity)
+
+
+# The twin frame is the scene's own when the poses were the scene's (its transforms.json, or its robot-style
+# capture turned z up by an exact quarter/half turn): the ground truth is then used where it lies, so a pose
+# error of the reconstruction counts. Otherwise (SfM's table frame, a tilted world moved into the table frame,
+# a robot base frame) the ground truth is brought into the twin frame by the objects' centres, as trajectory
+# benchmarks align before they score, and the note says so.
+SAME_FRAME_SOURCES = ("ground_truth", "known_poses")
+
+
+def gt_alignment(man, twin: Path, scene_dir: Path, frame):
+    """(T_twin_gt [4,4] or None, a note): how the scene's ground truth maps into the twin frame. Identity
+    when the twin frame is the scene's (`SAME_FRAME_SOURCES`, not moved into a table frame); else a rigid
+    fit (with scale for an unscaled twin) of the GT objects' centres (their oriented boxes') to the twin's,
+    which needs 3 usable objects; None (no comparison, logged) without them."""
+    import logging
+
+    import numpy as np
+
+    from splattwin.meshio import load_mesh
+    from splattwin.poses.align import umeyama
+
+    log = logging.getLogger(__name__)
+    if frame.source in SAME_FRAME_SOURCES and not (frame.up_check or {}).get("moved_to_table_frame"):
+        return np.eye(4), "the twin frame is the scene's"
+    src, tgt = [], []
+    for obj in man.objects:
+        gt_path = Path(scene_dir) / "meshes" / f"{obj.name}.ply"
+        if not obj.usable or not obj.visual_mesh or not gt_path.is_file():
+            continue
+        mesh = load_mesh(twin / obj.visual_mesh, f"visual mesh of {obj.name!r}")
+        mesh.apply_transform(obj.pose)
+        src.append(load_mesh(gt_path, "ground-truth mesh").bounding_box_oriented.centroid)
+        tgt.append(mesh.bounding_box_oriented.centroid)
+    if len(src) < 3:
+        log.warning("no ground-truth comparison: the twin frame (%s) is not the scene's, and %d usable object(s) "
+                    "are too few to align them (3 needed)", frame.source, len(src))
+        return None, f"twin frame ({frame.source}) not the scene's; too few objects to align"
+    fit = umeyama(np.asarray(src), np.asarray(tgt), with_scale=not frame.scaled)
+    note = (f"ground truth aligned to the twin ({frame.source} frame) by {len(src)} object centres "
+            f"({'rigid' if frame.scaled else 'similarity'}, residual RMS {fit.rms:.4g})")
+    log.info("%s", note)
+    return fit.S, note
+
+
+def _moved_region(region: dict, T) -> dict:
+    """The scene's goal region {center, size, ...} in the twin frame: the centre moved by T (a similarity),
+    the size scaled by its scale."""
+    import numpy as np
+
+    from splattwin.poses.align import sim3_scale, transform_points
+
+    out = dict(region)
+    c = np.asarray(region.get("center", [0, 0, 0]), dtype=float).reshape(-1)
+    c3 = np.array([c[0], c[1], c[2] if len(c) > 2 else 0.0])
+    out["center"] = transform_points(T, c3[None])[0].round(6).tolist()
+    s = sim3_scale(T)
+    for k in ("size", "tape_width"):
+        if isinstance(region.get(k), (int, float)):
+            out[k] = float(region[k]) * s
+    return out
 
 
 def twin_relative(path: Path, twin: Path) -> str:
     return Path(path).resolve().relative_to(Path(twin).resolve()).as_posix()
 
 
-def write_fidelity(twin: Path, scene_dir: Path, threshold: float) -> Path:
+def write_fidelity(twin: Path, scene_dir: Path, threshold: float, T_twin_gt=None) -> Path:
     """TWIN/geometry_metrics.json: Chamfer / precision / recall / F1 @threshold of each usable object's
-    visual mesh (placed by its pose) vs the scene's GT mesh (scene_dir/meshes/<name>.ply)."""
+    visual mesh (placed by its pose) vs the scene's GT mesh (scene_dir/meshes/<name>.ply), brought into the
+    twin frame by T_twin_gt (`gt_alignment`; identity when the frames are one)."""
     from splattwin import io
     from splattwin.geometry.metrics import mesh_fidelity
     from splattwin.meshio import load_mesh
@@ -89,5 +154,7 @@ def write_fidelity(twin: Path, scene_dir: Path, threshold: float) -> Path:
         mesh.apply_transform(obj.pose)
         meshes[obj.name] = mesh
         gt[obj.name] = load_mesh(gt_path, "ground-truth mesh")
+        if T_twin_gt is not None:
+            gt[obj.name].apply_transform(T_twin_gt)
     rows = {k: mesh_fidelity(m, gt[k], threshold=threshold).to_dict() for k, m in meshes.items()}
     return io.write_json(twin / "geometry_metrics.json", rows)
