@@ -58,16 +58,16 @@ def limit_violations(tr, limits: dict, robot: str = "FR3") -> list[str]:
     out = []
     q_min, q_max, qd_max = (np.asarray(limits[k], float) for k in ("q_min", "q_max", "qd_max"))
     for j, name in enumerate(tr.joint_names):
-        checks = (("position", tr.q[:, j] < q_min[j] - 1e-9, tr.q[:, j], f"below the {robot}'s {q_min[j]:g} rad"),
-                  ("position", tr.q[:, j] > q_max[j] + 1e-9, tr.q[:, j], f"above the {robot}'s {q_max[j]:g} rad"),
-                  ("velocity", np.abs(tr.qd[:, j]) > qd_max[j] + 1e-9, tr.qd[:, j],
-                   f"beyond the {robot}'s {qd_max[j]:g} rad/s"))
-        for kind, bad, v, what in checks:
+        q, qd = tr.q[:, j], tr.qd[:, j]
+        checks = (("position", q, q_min[j] - q, f"below the {robot}'s {q_min[j]:g} rad"),
+                  ("position", q, q - q_max[j], f"above the {robot}'s {q_max[j]:g} rad"),
+                  ("velocity", qd, np.abs(qd) - qd_max[j], f"beyond the {robot}'s {qd_max[j]:g} rad/s"))
+        for kind, v, excess, what in checks:   # excess > 0: outside the limit by that much
+            bad = excess > 1e-9
             if bad.any():
-                k = int(np.argmax(bad))
-                worst = float(v[bad][np.argmax(np.abs(v[bad]))])
+                k, worst = int(np.argmax(bad)), int(np.argmax(excess))
                 out.append(f"{name} at t = {tr.t[k]:.3f} s: {kind} {v[k]:.4f} {what} "
-                           f"({int(bad.sum())} samples, worst {worst:.4f})")
+                           f"({int(bad.sum())} samples, worst {v[worst]:.4f} at t = {tr.t[worst]:.3f} s)")
     return out
 
 
