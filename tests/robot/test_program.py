@@ -128,6 +128,13 @@ def test_program_phases_laid_end_to_end_are_the_executed_timeline(tmp_path):
     # how long the real hand moves its fingers at the exported speed (not the simulated hold)
     assert doc["phases"][2]["real_finger_motion_s"] == pytest.approx((0.08 - 0.027) / 0.05, abs=1e-3)
     assert doc["phases"][2]["planned_width"] == 0.0198 and doc["start"]["gripper"] == "open"
+    from splattwin.robot.program import build_phases, timeline
+    from splattwin.robot.trajectory import concatenate
+
+    segs = _pick_place_segments()
+    played, full = timeline(build_phases(segs)), concatenate(segs)
+    np.testing.assert_allclose(played.sample(full.t), full.q, atol=1e-12)
+    assert [(g.t, g.command) for g in played.gripper] == [(pytest.approx(g.t), g.command) for g in full.gripper]
     text = (tmp_path / "program" / "02_gripper_grasp.goal.ros2.yaml").read_text()
     assert "franka_msgs/action/Grasp" in text and "wait for its result" in text
     import yaml
