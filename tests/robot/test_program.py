@@ -132,7 +132,7 @@ def test_program_phases_laid_end_to_end_are_the_executed_timeline(tmp_path):
     from splattwin.robot.trajectory import concatenate
 
     segs = _pick_place_segments()
-    played, full = timeline(build_phases(segs)), concatenate(segs)
+    played, full = timeline(build_phases(segs)), concatenate([tr for _, tr in segs])
     np.testing.assert_allclose(played.sample(full.t), full.q, atol=1e-12)
     assert [(g.t, g.command) for g in played.gripper] == [(pytest.approx(g.t), g.command) for g in full.gripper]
     text = (tmp_path / "program" / "02_gripper_grasp.goal.ros2.yaml").read_text()
