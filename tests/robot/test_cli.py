@@ -195,3 +195,56 @@ def test_plan_count_options_are_bounded(gt_twin_small: Path, tmp_path: Path, cap
     RobotOptions(trials=MAX_TRIALS).validate()
     with pytest.raises(InputError, match="--trials"):
         SweepOptions(trials=MAX_TRIALS + 1).validate()
+
+
+@pytest.mark.slow
+def test_plan_failing_after_the_grasp_writes_nothing_for_the_real_arm(gt_twin_small: Path, tmp_path: Path,
+                                                                      monkeypatch, capsys):
+    """A successful run writes the real-arm files (timeline, gripper goals, program) and records the
+    simulation's deviations from Menagerie; a run failing after the grasp (the hand closed on the object in
+    the air) removes them and writes none: its attempted segments stay, results.json and the output say why."""
+    from splattwin.robot.outputs import REAL_ROBOT_FILES
+
+    out = tmp_path / "o"
+    task = tmp_path / "one.yaml"
+    task.write_text("- pick: yellow_cube\n- place_in: {center: [0.1, -0.05, 0.0], size: 0.1}\n")
+    args = ["plan", str(gt_twin_small), "--task", str(task), "--out", str(out), "--no-render"]
+    assert main(args) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert res["real_robot"]["written"] and all((out / n).is_file() for n in REAL_ROBOT_FILES)
+    assert res["robot"]["simulation_deviations"]["gripper_servo"]["model_stiffness_N_per_m"] == 100.0
+    assert list((out / "program").glob("*_gripper_grasp.goal.ros2.yaml"))
+    capsys.readouterr()
+    monkeypatch.setattr("splattwin.robot.judge.judge_grasp", lambda *a, **k: False)
+    assert main(args) == 1
+    res = json.loads((out / "results.json").read_text())
+    assert not res["nominal"]["success"] and not res["real_robot"]["written"]
+    assert "not lifted" in res["real_robot"]["reason"] and res["real_robot"]["reason"] in res["notes"][0]
+    assert not any((out / n).exists() for n in REAL_ROBOT_FILES) and not list((out / "program").iterdir())
+    assert (out / "segments" / "step1_close.json").is_file() and (out / "segments" / "step1_lift.json").is_file()
+    assert "no trajectory for the real arm" in " ".join(capsys.readouterr().out.split())
+
+
+@pytest.mark.slow
+def test_plan_fr3_outside_the_fr3_limits_exits_2(gt_twin_small: Path, tmp_path: Path, monkeypatch, capsys):
+    """With --joint-names fr3 the exported trajectory is checked against the FR3's limits: outside them
+    (here joint 1 held to +-0.1 mrad) the plan runs, results.json records which joint left them when, no
+    real-robot file is written and `plan` exits 2 saying so."""
+    from splattwin.robot import export
+    from splattwin.robot.outputs import REAL_ROBOT_FILES
+
+    tight = dict(export.FR3_LIMITS, q_min=(-1e-4,) + export.FR3_LIMITS["q_min"][1:],
+                 q_max=(1e-4,) + export.FR3_LIMITS["q_max"][1:])
+    monkeypatch.setitem(export.NAMED_LIMITS, "fr3", tight)
+    out = tmp_path / "o"
+    task = tmp_path / "one.yaml"
+    task.write_text("- pick: yellow_cube\n- place_in: {center: [0.1, -0.05, 0.0], size: 0.1}\n")
+    assert main(["plan", str(gt_twin_small), "--task", str(task), "--out", str(out), "--no-render",
+                 "--joint-names", "fr3"]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert "no files for the real arm" in err and "fr3_joint1 at t = " in err
+    res = json.loads((out / "results.json").read_text())
+    assert res["nominal"]["success"] and not res["real_robot"]["written"]
+    assert res["real_robot"]["limit_violations"][0].startswith("fr3_joint1 at t = ")
+    assert not any((out / n).exists() for n in REAL_ROBOT_FILES)
+    assert json.loads((out / "segments" / "step1_transit.json").read_text())["joint_names"][0] == "fr3_joint1"

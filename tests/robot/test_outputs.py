@@ -134,12 +134,16 @@ def test_remove_previous_takes_the_robot_exports_too(tmp_path):
 
     out = tmp_path / "robot"
     (out / "moveit").mkdir(parents=True)
+    (out / "program").mkdir(parents=True)
     names = ["results.json", "base_transform.yaml", "trajectory.goal.ros2.yaml", "gripper.ros2.yaml",
-             "moveit/collision_objects.yaml", "moveit/scene.scene", "moveit/mine.txt", "notes.txt"]
+             "moveit/collision_objects.yaml", "moveit/scene.scene", "moveit/mine.txt", "notes.txt", "program.json",
+             "program/00_gripper_move.goal.ros2.yaml", "program/01_arm.goal.ros2.yaml",
+             "program/12_gripper_grasp.goal.ros2.yaml", "program/mine.yaml"]
     for n in names:
         (out / n).write_text("x")
     remove_previous(out)
-    assert sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()) == ["moveit/mine.txt", "notes.txt"]
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file()) == ["moveit/mine.txt", "notes.txt",
+                                                                                      "program/mine.yaml"]
 
 
 def test_written_timeline_has_the_start_state_names_and_gripper(tmp_path):
@@ -160,9 +164,9 @@ def test_written_timeline_has_the_start_state_names_and_gripper(tmp_path):
     close = Trajectory.hold(move.q[-1], 0.6, joint_names=sim)
     close.gripper = [GripperCommand.grasp(0.0, 0.05)]
     names = export_names(None, sim, "link0", default_model=True)
-    paths, notes = write_trajectories(tmp_path, [("step1_transit", move), ("step1_close", close)],
-                                      {"robot": "panda", "joint_map": names.joint_map(sim)}, names)
-    assert notes == [] and (tmp_path / "segments" / "step1_close.json").is_file()
+    paths, notes, real = write_trajectories(tmp_path, [("step1_transit", move), ("step1_close", close)],
+                                            {"robot": "panda", "joint_map": names.joint_map(sim)}, names)
+    assert notes == [] and (tmp_path / "segments" / "step1_close.json").is_file() and real["written"]
     doc = json.loads(paths["trajectory_json"].read_text())
     assert doc["joint_names"][0] == "panda_joint1" and doc["joint_map"]["panda_joint1"] == "joint1"
     assert doc["t"][-1] == pytest.approx(0.7006) and doc["start"]["q"] == pytest.approx(q0.tolist())

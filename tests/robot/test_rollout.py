@@ -48,7 +48,11 @@ def test_rollout_is_the_record_of_the_run(default_run):
         k = int(round(g.t / dt))                              # the first control step under this command
         assert ro.action_gripper[k] == (0.0 if g.command == "grasp" else w.robot.max_opening)
         assert k == 0 or ro.action_gripper[k - 1] != ro.action_gripper[k]
-    assert [g.width for g in full.gripper[1::2]] == [s.grasp.width for s in r.steps]
+    # a grasp is exported at the width the fingers stopped at (end of its close hold), the planned one beside it
+    assert [g.planned_width for g in full.gripper[1::2]] == [s.grasp.width for s in r.steps]
+    holds = [tr.duration for label, tr in r.trajectories if label.endswith("_close")]
+    for g, hold in zip(full.gripper[1::2], holds, strict=True):
+        assert g.width == pytest.approx(ro.gripper_width[ro.at(g.t + hold + 1e-6)], abs=1e-9)
     # the measured arm follows within servo error, and settles on the target at the end
     # with the reference velocity fed forward (kd/kp = 0.1 s on the Menagerie servos); without it the arm
     # lagged by 0.1 s x velocity: up to 0.12 rad

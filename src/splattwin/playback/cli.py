@@ -56,7 +56,8 @@ def run_plan(args: argparse.Namespace) -> int:
     the real gripper, reports per-step success and collisions, exports the joint trajectory (JSON, CSV,
     ROS 2 JointTrajectory YAML) and frames. With --record DIR every run (nominal, then each trial) is also
     written as a LeRobot-layout episode rendered from the twin's splats (wrist + scene camera). Exit code
-    0 when the task succeeded, 1 when it failed, 2 on bad input."""
+    0 when the task succeeded, 1 when it failed, 2 on bad input or when the trajectory leaves the limits of
+    the robot named by --joint-names (fr3: the plan ran, results.json records it, no real-robot files)."""
     from splattwin.console import console
 
     from splattwin.errors import InputError
@@ -78,12 +79,16 @@ def run_plan(args: argparse.Namespace) -> int:
     with output_lock(args.twin if is_inside(out, args.twin) else out):
         res = run(RobotInputs(args.twin, out), opts)
         d = res.details
-        print_summary(d["run"], d["trials"], d["paths"])
+        print_summary(d["run"], d["trials"], d["paths"], d.get("real_robot"))
         if recorder is not None:
             info = record_result(recorder, opts.record, out, d)
             console().print(f"recorded {info['episodes']} episode(s) into {info['path']} "
                             f"({info['reused']} reused from a killed run; {info['fps']:g} fps, cameras "
                             + ", ".join(f"{k} {w}x{h}" for k, (w, h) in info["cameras"].items()) + ")")
+    if res.export_error:   # the plan ran, but its trajectory does not fit the named robot (`--joint-names fr3`)
+        console(stderr=True).print(f"error: no files for the real arm: {res.export_error}", markup=False,
+                                   highlight=False)
+        return 2
     ok = res.success and (d["trials"] is None or d["trials"]["successes"] == d["trials"]["trials"])
     return 0 if ok else 1
 

@@ -49,13 +49,17 @@ from splattwin.robot.rollout import Rollout, RolloutRecorder
 from splattwin.robot.selection import GraspSelector
 from splattwin.robot.servo import Servo
 from splattwin.robot.task import Step, Task
-from splattwin.robot.trajectory import GripperCommand, Trajectory
+from splattwin.robot.trajectory import GripperCommand, Trajectory, grasp_epsilons
 from splattwin.robot.world import World, hand_points_tcp
 from splattwin.transforms import invert_pose
 
 log = logging.getLogger(__name__)
 
-CLOSE_TIME = 0.6         # s for the gripper to close and the grasp to settle
+# s the simulated gripper is given to close (and the grasp to settle) / to open while the arm holds still.
+# The simulated finger servo closes within ~0.1 s, far faster than a real Franka Hand at GRIPPER_SPEED (80 -> 27
+# mm: ~1.1 s): the whole-timeline files keep these holds, the real arm runs robot/program.json, whose gripper
+# actions block (program.py)
+CLOSE_TIME = 0.6
 OPEN_TIME = 0.4
 SETTLE_TIME = 0.6        # s after the retreat before judging the placement
 FLOOR_TOLERANCE = 0.0015  # m: fingertips above the support by the planning margin plus this (IK, sampling)
@@ -168,14 +172,19 @@ class Executor:
         return stopped
 
     def _gripper_command(self, grip: float, width: float | None) -> GripperCommand | None:
-        """The command to export when the gripper ctrl changes (at the start of that segment), else None.
-        The simulation closes the fingers fully (a position target) and the object stops them; the real
-        hand must be told to grasp at the object's width with a force (a move to 0 m on an object fails)."""
+        """The command to export when the gripper ctrl changes (at the start of that segment), else None;
+        called when the segment has run. The simulation closes the fingers fully (a position target) and
+        the object stops them; the real hand must be told to grasp at the object's width with a force (a
+        move to 0 m on an object fails). The width exported is where the fingers stopped (measured now,
+        at the end of the close hold), the planned `width` is recorded beside it, and the tolerances
+        cover both (`grasp_epsilons`): a real grasp fails when its final width is outside them."""
         if self._grip_ctrl == grip:
             return None
         self._grip_ctrl = grip
         if grip == self.robot.gripper_closed:
-            return GripperCommand.grasp(0.0, width if width is not None else 0.0)
+            measured = self.world.gripper_width()
+            inner, outer = grasp_epsilons(measured, width)
+            return GripperCommand.grasp(0.0, measured, epsilon=inner, epsilon_outer=outer, planned_width=width)
         return GripperCommand.open(0.0, self.robot.max_opening)
 
     def _move(self, path: np.ndarray, speed: float, label: str, grip: float, settle: float, mon: MonitorState,

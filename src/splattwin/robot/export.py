@@ -39,6 +39,38 @@ MOVEIT_DIR = "moveit"
 MOVEIT_FILES = ("collision_objects.yaml", "scene.scene")
 
 
+# Franka Research 3 joint limits (rad, rad/s): Franka's "Robot and interface specifications", Limits for Franka
+# Research 3 (https://frankaemika.github.io/docs/control_parameters.html#limits-for-franka-research-3), the same
+# values as libfranka's FR3 limits. The plan is made with the Panda's (Menagerie's) limits, which differ
+# (q1 +-2.8973, q6 -0.0175..3.7525, ...): a Panda plan exported with FR3 names is checked against these.
+# libfranka lowers the FR3's velocity limits near the position limits (computeUpperLimitsJointVelocity); these
+# are the maxima.
+FR3_LIMITS = {"q_min": (-2.7437, -1.7837, -2.9007, -3.0421, -2.8065, 0.5445, -3.0159),
+              "q_max": (2.7437, 1.7837, 2.9007, -0.1518, 2.8065, 4.5169, 3.0159),
+              "qd_max": (2.62, 2.62, 2.62, 2.62, 5.26, 4.18, 5.26),
+              "source": "Franka documentation, Limits for Franka Research 3 (control_parameters.html)"}
+NAMED_LIMITS = {"fr3": FR3_LIMITS}   # a naming whose robot has other limits than the simulated Panda
+
+
+def limit_violations(tr, limits: dict, robot: str = "FR3") -> list[str]:
+    """Where trajectory `tr` (exported joint names) leaves `limits` (q_min, q_max, qd_max per joint): the
+    first violation of each joint and kind, as sentences (empty when it stays inside)."""
+    out = []
+    q_min, q_max, qd_max = (np.asarray(limits[k], float) for k in ("q_min", "q_max", "qd_max"))
+    for j, name in enumerate(tr.joint_names):
+        q, qd = tr.q[:, j], tr.qd[:, j]
+        checks = (("position", q, q_min[j] - q, f"below the {robot}'s {q_min[j]:g} rad"),
+                  ("position", q, q - q_max[j], f"above the {robot}'s {q_max[j]:g} rad"),
+                  ("velocity", qd, np.abs(qd) - qd_max[j], f"beyond the {robot}'s {qd_max[j]:g} rad/s"))
+        for kind, v, excess, what in checks:   # excess > 0: outside the limit by that much
+            bad = excess > 1e-9
+            if bad.any():
+                k, worst = int(np.argmax(bad)), int(np.argmax(excess))
+                out.append(f"{name} at t = {tr.t[k]:.3f} s: {kind} {v[k]:.4f} {what} "
+                           f"({int(bad.sum())} samples, worst {v[worst]:.4f} at t = {tr.t[worst]:.3f} s)")
+    return out
+
+
 @dataclass(frozen=True)
 class ExportNames:
     """Names in the exported files: `joint_names` [n] (exported order = the simulated arm joints' order),

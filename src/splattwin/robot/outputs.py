@@ -14,6 +14,12 @@
     trajectory.ros2.yaml         the same as trajectory_msgs/JointTrajectory (frame_id "")
     trajectory.goal.ros2.yaml    the same as a control_msgs/action/FollowJointTrajectory goal
     gripper.ros2.yaml            the gripper commands as franka_msgs/action/Grasp / Move goals with times
+    program.json, program/NN_*.goal.ros2.yaml
+                                 the same cut at the gripper commands into arm phases and blocking
+                                 gripper actions: what a real arm runs (`program.py`)
+    (these real-robot files — REAL_ROBOT_FILES — are written only for a successful nominal run whose
+    trajectory fits the named robot's limits, `--joint-names fr3`; results.json `real_robot` says whether
+    they were and why not)
     base_transform.yaml          T_twin_base as geometry_msgs/TransformStamped (+ static_transform_publisher)
     moveit/collision_objects.yaml, moveit/scene.scene
                                  the twin's collision world in the robot base frame (`export.py`)
@@ -50,9 +56,11 @@ from splattwin import io
 log = logging.getLogger(__name__)
 
 # The names a run writes (module docstring); `remove_previous` removes nothing else
-TOP_FILES = ("results.json", "trajectory.json", "trajectory.csv", "trajectory.ros2.yaml", "trajectory.goal.ros2.yaml",
-             "gripper.ros2.yaml", "base_transform.yaml", "rollout.npz", "playback.npz")
+REAL_ROBOT_FILES = ("trajectory.json", "trajectory.csv", "trajectory.ros2.yaml", "trajectory.goal.ros2.yaml",
+                    "gripper.ros2.yaml", "program.json")   # and program/
+TOP_FILES = ("results.json", *REAL_ROBOT_FILES, "base_transform.yaml", "rollout.npz", "playback.npz")
 _OWN = {"segments": re.compile(r"^step\d+_[A-Za-z0-9_]+\.json$"),
+        "program": re.compile(r"^\d{2,}_(arm|gripper_grasp|gripper_move)\.goal\.ros2\.yaml$"),
         "moveit": re.compile(r"^(collision_objects\.yaml|scene\.scene)$"),
         "frames": re.compile(r"^(frame_\d+_[A-Za-z0-9_]+|overview)\.png$")}
 _TRIAL = re.compile(r"^(?P<i>\d+)(\.rollout\.npz|\.json)$")
@@ -154,12 +162,15 @@ def stale_results(twin_dir: str | Path) -> str | None:
 
 def write_outputs(out: str | Path, spec, result, trials: dict | None, render_note: str = "",
                   frames: list[Path] | None = None, wall_s: float | None = None,
-                  options: dict | None = None, names=None) -> dict[str, Path]:
+                  options: dict | None = None, names=None) -> tuple[dict[str, Path], dict]:
     """OUT/results.json (with `options`: the robot options of this run, as `splattwin.options.to_dict`
     writes them; a twin's config.build.robot is what the build asked for when its twin stage ran, so the
-    results say what made them), segments, trajectories, base transform, base-frame MoveIt scene, the
-    rollout. names: the `export.ExportNames` of the trajectory files (None: the default naming)."""
+    results say what made them), segments, trajectories and program (for a successful run only:
+    `write_trajectories`), base transform, base-frame MoveIt scene, the rollout. names: the
+    `export.ExportNames` of the trajectory files (None: the default naming). Returns (paths, real_robot:
+    whether the real-robot files were written and why not, as results.json records it)."""
     from splattwin.robot.export import write_base_frame_moveit, write_base_transform
+    from splattwin.robot.world import simulation_deviations
 
     out = Path(out)
     robot = spec.robot_model()
@@ -168,7 +179,9 @@ def write_outputs(out: str | Path, spec, result, trials: dict | None, render_not
 
         names = export_names(None, robot.arm_joints, robot.root_body, spec.robot_mjcf is None)
     T_twin_base = spec.base.matrix()
-    paths, notes = write_trajectories(out, result.trajectories, trajectory_meta(spec, robot, names), names)
+    failed = None if result.success else _failure(result)
+    paths, notes, real_robot = write_trajectories(out, result.trajectories, trajectory_meta(spec, robot, names),
+                                                  names, failed=failed)
     paths["base_transform"] = write_base_transform(out / "base_transform.yaml", T_twin_base, names.base_frame)
     paths.update(write_base_frame_moveit(out, spec.twin_dir, T_twin_base, names.base_frame))
     if render_note:
@@ -180,6 +193,9 @@ def write_outputs(out: str | Path, spec, result, trials: dict | None, render_not
         "base_pose": asdict(spec.base), "base_frame": names.base_frame,
         "joint_names": {"exported": list(names.joint_names), "simulated": list(robot.arm_joints)},
         "robot_mjcf": spec.robot_mjcf or "MuJoCo Menagerie franka_emika_panda",
+        "robot": {"model": spec.robot_mjcf or "MuJoCo Menagerie franka_emika_panda (Franka Emika Panda + Hand)",
+                  "simulation_deviations": simulation_deviations(robot)},
+        "real_robot": real_robot,
         "planner": spec.planner, "seed": spec.seed,
         "nominal": result.to_dict(), "tracking": tracking,
         "trials": trials,
@@ -189,7 +205,7 @@ def write_outputs(out: str | Path, spec, result, trials: dict | None, render_not
         **({"options": options} if options is not None else {}),
     }
     paths["results"] = io.write_json(out / "results.json", doc)
-    return paths
+    return paths, real_robot
 
 
 def trajectory_meta(spec, robot, names) -> dict:
@@ -201,42 +217,84 @@ def trajectory_meta(spec, robot, names) -> dict:
             "joint_naming": names.naming, "joint_map": names.joint_map(list(robot.arm_joints)),
             "base_frame": names.base_frame, "base_pose": base_pose_doc(spec.base.matrix(), names.base_frame),
             "timeline": ("as executed in the validation run: every motion, the hold after it and the gripper "
-                         "holds; the gripper commands are issued at their t")}
+                         "holds; the gripper commands are issued at their t. The gripper holds are the simulated "
+                         "hand's, shorter than a real Franka Hand needs: a real arm runs program.json (blocking "
+                         "gripper actions between arm phases)")}
 
 
-def write_trajectories(out: Path, trajectories, meta: dict, names) -> tuple[dict[str, Path], list[str]]:
-    """OUT/segments/<label>.json and the whole timeline as trajectory.{json,csv,ros2.yaml,goal.ros2.yaml}
-    and gripper.ros2.yaml, with the exported joint names, accelerations consistent with the sampled
-    velocities, and `meta` (+ the start state) in the JSON. Returns (paths, notes)."""
+def _failure(result) -> str:
+    """Why a nominal run failed, in a sentence (its first failed step, or the steps it did not reach)."""
+    bad = next((st for st in result.steps if not st.success), None)
+    if bad is not None:
+        return f"the task failed in the validation run at step {bad.index} ({bad.pick}): {bad.failure}"
+    return "the task failed in the validation run (not every step ran)"
+
+
+def write_trajectories(out: Path, trajectories, meta: dict, names,
+                       failed: str | None = None) -> tuple[dict[str, Path], list[str], dict]:
+    """OUT/segments/<label>.json, and for the real robot the whole timeline as
+    trajectory.{json,csv,ros2.yaml,goal.ros2.yaml} and gripper.ros2.yaml and the program (program.json,
+    program/: `program.py`), with the exported joint names, accelerations consistent with the sampled
+    velocities, and `meta` (+ the start state) in the JSON.
+
+    The real-robot files are written only when the run succeeded (`failed` None; else it says why it
+    failed) and, for a naming with its own robot limits (`export.NAMED_LIMITS`: fr3), the timeline stays
+    inside them; otherwise only the segments (what was attempted, for inspection). Returns (paths, notes,
+    real_robot: {written, reason, files, limit_violations?} as results.json records it)."""
+    from splattwin.robot.export import NAMED_LIMITS, limit_violations
+    from splattwin.robot.program import write_program
     from splattwin.robot.trajectory import concatenate
 
     paths: dict[str, Path] = {}
     notes: list[str] = []
-    segs = []
+    segs, labelled = [], []
     for label, tr in trajectories:
         tr = tr.renamed(names.joint_names).with_velocity_accelerations()
         tr.meta = dict(meta)
         paths[f"segment:{label}"] = tr.save_json(out / "segments" / f"{label}.json")
         segs.append(tr)
+        labelled.append((label, tr))
+
+    def refused(reason: str, **extra) -> tuple[dict[str, Path], list[str], dict]:
+        notes.append(f"no trajectory for the real arm: {reason}")
+        log.warning("no trajectory for the real arm (robot/trajectory.*, gripper.ros2.yaml, program.json): %s%s",
+                    reason, "; the attempted motions are in robot/segments/" if segs else "")
+        return paths, notes, {"written": False, "reason": reason, "files": [], **extra}
+
+    if failed is not None:
+        return refused(failed)
     if not segs:
-        return paths, notes
+        return refused("the run executed no motion")
     try:
         full = concatenate(segs).with_velocity_accelerations()
-    except ValueError as e:  # a failed step can leave a gap: keep the segments only
-        notes.append(f"no single trajectory file: {e}")
-        return paths, notes
+    except ValueError as e:  # a gap between segments (not expected of a successful run): keep the segments only
+        return refused(f"the segments do not join into one trajectory: {e}")
+    limits = NAMED_LIMITS.get(names.naming)
+    if limits is not None:
+        bad = limit_violations(full, limits, names.naming.upper())
+        if bad:
+            return refused(f"the trajectory leaves the {names.naming.upper()}'s joint limits "
+                           f"(--joint-names {names.naming}; planned with the simulated Panda's): " + "; ".join(bad),
+                           limit_violations=bad, limits_source=limits["source"])
     grip0 = full.gripper[0].command if full.gripper and full.gripper[0].t <= 1e-9 else None
     rate = 1.0 / float(np.median(np.diff(full.t))) if len(full) > 1 else None
     full.meta = {**meta, "sample_rate_hz": None if rate is None else round(rate, 3), "start": {
         "q": full.q[0].tolist(), "gripper": grip0,
         "note": "bring the arm to q (the first sample, at rest) before sending the trajectory: it starts "
                 "there and does not move the arm to it"}}
+    try:
+        program = write_program(out, labelled, {k: v for k, v in meta.items() if k != "timeline"})
+    except ValueError as e:
+        return refused(f"the timeline does not cut into arm phases and gripper actions: {e}")
+    paths.update(program)
     paths["trajectory_json"] = full.save_json(out / "trajectory.json")
     paths["trajectory_csv"] = full.save_csv(out / "trajectory.csv")
     paths["trajectory_ros2"] = full.save_ros2_yaml(out / "trajectory.ros2.yaml")
     paths["trajectory_ros2_goal"] = full.save_ros2_goal_yaml(out / "trajectory.goal.ros2.yaml")
     paths["gripper_ros2"] = full.save_ros2_gripper_yaml(out / "gripper.ros2.yaml")
-    return paths, notes
+    files = sorted(str(p.relative_to(out)) for k, p in paths.items() if not k.startswith("segment:"))
+    extra = {"limits_checked": limits["source"]} if limits is not None else {}
+    return paths, notes, {"written": True, "reason": None, "files": files, **extra}
 
 
 def write_rollout(out: str | Path, spec, result) -> tuple[dict[str, Path], dict | None]:
@@ -282,7 +340,7 @@ def tracking_error(world, rollout, every: int = 5) -> dict:
                           "action_q_arm, the exported trajectory), TCP by forward kinematics"}
 
 
-def print_summary(result, trials: dict | None, paths: dict[str, Path]) -> None:
+def print_summary(result, trials: dict | None, paths: dict[str, Path], real_robot: dict | None = None) -> None:
     from splattwin.console import console
     from rich.table import Table
 
@@ -306,6 +364,12 @@ def print_summary(result, trials: dict | None, paths: dict[str, Path]) -> None:
                   f"yaw {math.degrees(trials['sigma_yaw']):.1f} deg (95 % CI {lo:.2f}-{hi:.2f}), "
                   f"collisions {trials['collisions']}"
                   + (f", {trials['resumed']} reused from an earlier run" if trials.get("resumed") else ""))
+    if real_robot is not None and not real_robot.get("written"):
+        from rich.markup import escape
+
+        con.print(f"[red]no trajectory for the real arm[/]: {escape(str(real_robot.get('reason')))}", highlight=False)
+    elif "program" in paths:
+        con.print(f"real arm: {paths['program']} (arm phases and blocking gripper actions; README)", highlight=False)
     con.print(f"results: {paths['results']}")
 
 

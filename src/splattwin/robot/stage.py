@@ -29,6 +29,9 @@ class RobotResult:
     results: Path                 # results.json
     success: bool                 # the nominal run succeeded (trials are reported in results.json)
     error: str | None = None      # why the task could not run on this twin (bad input), if it could not
+    # why the real-robot files were refused although the plan ran: the trajectory leaves the named robot's
+    # limits (`--joint-names fr3`); `plan` exits 2 with it. A failed task is `success` False, not this.
+    export_error: str | None = None
     details: dict[str, Any] = field(default_factory=dict)   # run, trials, paths: for printing, not recorded
 
 
@@ -81,11 +84,13 @@ def run(inputs: RobotInputs, options: RobotOptions, *, progress: bool = True,
                                 keep_rollouts=options.record is not None)
     from splattwin.options import to_dict
 
-    paths = write_outputs(out, spec, result, trials,
-                          render_note=(note or "") if options.render else "rendering disabled (--no-render)",
-                          frames=frames, wall_s=time.perf_counter() - t0, options=to_dict(options), names=names)
-    return RobotResult(results=paths["results"], success=bool(result.success),
-                       details={"run": result, "trials": trials, "paths": paths})
+    paths, real_robot = write_outputs(out, spec, result, trials,
+                                      render_note=(note or "") if options.render else "rendering disabled (--no-render)",
+                                      frames=frames, wall_s=time.perf_counter() - t0, options=to_dict(options),
+                                      names=names)
+    export_error = real_robot["reason"] if real_robot.get("limit_violations") else None
+    return RobotResult(results=paths["results"], success=bool(result.success), export_error=export_error,
+                       details={"run": result, "trials": trials, "paths": paths, "real_robot": real_robot})
 
 
 def _export_names(spec, options: RobotOptions):

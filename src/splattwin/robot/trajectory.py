@@ -34,20 +34,27 @@ from splattwin.errors import InputError
 from splattwin.io import read_json, write_json, write_text
 
 __all__ = ["Trajectory", "GripperCommand", "concatenate", "UNITS", "GRASP_FORCE", "GRIPPER_SPEED",
-           "GRASP_EPSILON"]
+           "GRASP_EPSILON", "GRASP_MARGIN", "grasp_epsilons"]
 
 FORMAT = "splattwin.trajectory"
 VERSION = 2              # 2: units, meta, gripper commands (version 1 files load as before)
 UNITS = {"t": "s", "q": "rad", "qd": "rad/s", "qdd": "rad/s^2", "gripper.width": "m", "gripper.speed": "m/s",
-         "gripper.force": "N", "gripper.epsilon": "m"}
+         "gripper.force": "N", "gripper.epsilon": "m", "gripper.planned_width": "m"}
 # Franka Hand grasp defaults: 20 N holds the light objects of a tabletop task (the hand takes up to 70 N
-# continuous) without crushing a cardboard box; 0.05 m/s is the hand's top finger speed; the planned width
-# comes from the twin's mesh, whose size is off by millimetres, so the grasp counts as successful within
-# 1 cm either way (libfranka fails a grasp whose final width is outside width -inner / +outer)
+# continuous) without crushing a cardboard box; 0.05 m/s is the hand's top finger speed; the object's real
+# size is off the twin's by millimetres, so the grasp counts as successful within at least 1 cm either way
+# (libfranka fails a grasp whose final width is outside width -inner / +outer)
 GRASP_FORCE = 20.0       # N
 GRIPPER_SPEED = 0.05     # m/s
-GRASP_EPSILON = 0.01     # m, inner and outer
+GRASP_EPSILON = 0.01     # m, inner and outer: the least tolerance either side
+# The exported grasp width is where the simulated fingers stopped on the object at the end of the close hold
+# (the physics collides with the convex parts, not the mesh the grasp was planned on: 27.2 mm measured vs
+# 19.8 mm planned on a thin hammer handle). epsilon reaches GRASP_MARGIN beyond both the measured and the
+# planned width, and never less than GRASP_EPSILON (`grasp_epsilons`)
+GRASP_MARGIN = 0.005     # m
 COMMANDS = ("open", "grasp")
+# GripperCommand's fields beside t, command and width
+_OPTIONAL = ("speed", "force", "epsilon_inner", "epsilon_outer", "planned_width")
 _CORE_KEYS = {"format", "version", "units", "joint_names", "t", "q", "qd", "qdd", "gripper"}
 
 
@@ -56,6 +63,8 @@ class GripperCommand:
     """One gripper command: issued `t` s from the trajectory's start; "open": move the fingers to `width`
     (m, finger distance) at `speed` (m/s); "grasp": close on an object `width` m wide with `force` N,
     successful when the final width is within [width - epsilon_inner, width + epsilon_outer] (m).
+    planned_width (grasp): the width the grasp was planned at on the twin's mesh, recorded beside the
+    exported `width` (where the simulated fingers stopped on the object; `grasp_epsilons`).
     Loaded from a CSV, only t, command and width are known (the rest None)."""
 
     t: float
@@ -65,16 +74,16 @@ class GripperCommand:
     force: float | None = None
     epsilon_inner: float | None = None
     epsilon_outer: float | None = None
+    planned_width: float | None = None
 
     def __post_init__(self) -> None:
         if self.command not in COMMANDS:
             raise ValueError(f"gripper command must be one of {COMMANDS}, got {self.command!r}")
         self.t, self.width = float(self.t), float(self.width)
-        for k in ("speed", "force", "epsilon_inner", "epsilon_outer"):
+        for k in _OPTIONAL:
             v = getattr(self, k)
             setattr(self, k, None if v is None else float(v))
-        vals = [self.t, self.width] + [v for v in (self.speed, self.force, self.epsilon_inner, self.epsilon_outer)
-                                       if v is not None]
+        vals = [self.t, self.width] + [v for v in (getattr(self, k) for k in _OPTIONAL) if v is not None]
         if not all(math.isfinite(v) and v >= 0 for v in vals):
             raise ValueError(f"gripper command values must be finite and >= 0: {self}")
 
@@ -85,9 +94,12 @@ class GripperCommand:
 
     @classmethod
     def grasp(cls, t: float, width: float, force: float = GRASP_FORCE, speed: float = GRIPPER_SPEED,
-              epsilon: float = GRASP_EPSILON) -> "GripperCommand":
-        """Grasp an object `width` m wide (Franka Hand `grasp(width, speed, force, epsilon)`)."""
-        return cls(t, "grasp", width, speed, force, epsilon, epsilon)
+              epsilon: float = GRASP_EPSILON, planned_width: float | None = None,
+              epsilon_outer: float | None = None) -> "GripperCommand":
+        """Grasp an object `width` m wide (Franka Hand `grasp(width, speed, force, epsilon)`); epsilon is
+        the inner tolerance, and the outer one too unless `epsilon_outer` is given."""
+        return cls(t, "grasp", width, speed, force, epsilon, epsilon if epsilon_outer is None else epsilon_outer,
+                   planned_width)
 
     def shifted(self, dt: float) -> "GripperCommand":
         return replace(self, t=self.t + dt)
@@ -97,8 +109,7 @@ class GripperCommand:
 
     @classmethod
     def from_dict(cls, d: dict) -> "GripperCommand":
-        return cls(**{k: d.get(k) for k in ("t", "command", "width", "speed", "force", "epsilon_inner",
-                                           "epsilon_outer")})
+        return cls(**{k: d.get(k) for k in ("t", "command", "width", *_OPTIONAL)})
 
     def ros2_goal(self) -> dict:
         """{action, goal}: a franka_msgs/action/Grasp or Move goal (franka_ros2 / franka_ros field names)."""
@@ -107,6 +118,16 @@ class GripperCommand:
                     "goal": {"width": self.width, "epsilon": {"inner": self.epsilon_inner, "outer": self.epsilon_outer},
                              "speed": self.speed, "force": self.force}}
         return {"action": "franka_msgs/action/Move", "goal": {"width": self.width, "speed": self.speed}}
+
+
+def grasp_epsilons(width: float, planned_width: float | None) -> tuple[float, float]:
+    """(epsilon_inner, epsilon_outer) m of a grasp exported at `width` (where the simulated fingers stopped)
+    that was planned at `planned_width`: both widths lie inside [width - inner, width + outer] with at least
+    GRASP_MARGIN to spare, and neither tolerance is below GRASP_EPSILON."""
+    p = width if planned_width is None else float(planned_width)
+    inner = max(GRASP_EPSILON, width - min(width, p) + GRASP_MARGIN)
+    outer = max(GRASP_EPSILON, max(width, p) - width + GRASP_MARGIN)
+    return float(inner), float(outer)
 
 
 def _duration_msg(t: float) -> dict:
@@ -337,11 +358,13 @@ class Trajectory:
         """The JointTrajectory message as YAML (`ros2 topic pub`, MoveIt tooling)."""
         return write_text(path, _yaml_dump(self.to_ros2_msg(frame_id)))
 
-    def save_ros2_goal_yaml(self, path: str | Path, frame_id: str = "", controller: str = "CONTROLLER") -> Path:
+    def save_ros2_goal_yaml(self, path: str | Path, frame_id: str = "", controller: str = "CONTROLLER",
+                            note: str | None = None) -> Path:
         """A control_msgs/action/FollowJointTrajectory goal (`trajectory: <JointTrajectory>`), for
         `ros2 action send_goal /<controller>/follow_joint_trajectory control_msgs/action/FollowJointTrajectory
-        "$(cat FILE)"` (the command is written as a comment at the top)."""
-        head = ("# control_msgs/action/FollowJointTrajectory goal; the arm must be at the first point first\n"
+        "$(cat FILE)"` (the command is written as a comment at the top, after `note` if given)."""
+        head = ((f"# {note}\n" if note else "")
+                + "# control_msgs/action/FollowJointTrajectory goal; the arm must be at the first point first\n"
                 f"# ros2 action send_goal /{controller}/follow_joint_trajectory "
                 f"control_msgs/action/FollowJointTrajectory \"$(cat {Path(path).name})\"\n")
         return write_text(path, head + _yaml_dump({"trajectory": self.to_ros2_msg(frame_id)}))

@@ -490,6 +490,40 @@ def hand_points_tcp(world: World) -> np.ndarray:
     return np.concatenate(pts) if pts else np.zeros((0, 3))
 
 
+def simulation_deviations(robot: RobotModel) -> dict:
+    """How the simulated robot differs from its MJCF as written (Menagerie's Panda unless --robot-mjcf), for
+    results.json: anyone re-simulating the exported files in the stock model gets other physics (a softer,
+    ~10x weaker grasp). Values in SI units; the gripper servo on the Panda's finger tendon (mean opening)."""
+    import mujoco
+
+    from splattwin.robot.assets import TCP_SITE
+
+    spec = robot.spec(visual=False)
+    act = spec.actuator(robot.gripper_actuator)
+    out: dict = {}
+    if act is not None:
+        stock = {"gain": float(act.gainprm[0]), "stiffness": -float(act.biasprm[1]),
+                 "damping": -float(act.biasprm[2])}
+        _stiffen_gripper(spec, robot)
+        now = {"gain": float(act.gainprm[0]), "stiffness": -float(act.biasprm[1]), "damping": -float(act.biasprm[2])}
+        if now != stock:
+            out["gripper_servo"] = {
+                "actuator": robot.gripper_actuator, "stiffness_N_per_m": now["stiffness"],
+                "damping_Ns_per_m": now["damping"], "ctrl_gain": now["gain"],
+                "model_stiffness_N_per_m": stock["stiffness"], "model_damping_Ns_per_m": stock["damping"],
+                "model_ctrl_gain": stock["gain"],
+                "why": (f"stiffened {now['stiffness'] / stock['stiffness']:g}x (GRIP_STIFFNESS) so that a closed hand "
+                        "squeezes 12-40 N like a Franka Hand (the model's servo: ~1 N on a thin handle); it also closes far faster "
+                        "than a real hand at the exported speed (robot/program.json waits for the gripper)")}
+    out["gravity_compensation"] = ("the arm's gravity and Coriolis forces are cancelled by applied joint forces "
+                                   "(qfrc_applied = qfrc_bias on the arm joints), as the Franka controller does")
+    out["servo_feed_forward"] = ("the arm's position servos get ctrl = q + (kd/kp) qd of the trajectory (the "
+                                 "reference velocity fed forward); without it they lag by kd/kp (0.1 s on the Menagerie Panda)")
+    out["tcp_site"] = (f"site {TCP_SITE!r} on the hand between the fingertips, added when the model has none; "
+                       "keyframes removed")
+    return out
+
+
 def _stiffen_gripper(spec, robot: RobotModel) -> None:
     """Raise the gripper servo's stiffness so that closing on an object squeezes it with a realistic force.
 
