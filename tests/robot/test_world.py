@@ -110,3 +110,20 @@ def test_well_formed_target_frame_is_drawn(gt_twin_small: Path):
     man.config["target_frame"] = {"center": [0.1, 0.2, 0.0], "size": 0.15}
     w = build_world(gt_twin_small, manifest=man, visual=True)
     assert "goal_outline_0" in [w.model.geom(g).name for g in range(w.model.ngeom)]
+
+
+def test_an_object_named_like_a_robot_body_is_refused_clearly(gt_twin_small, tmp_path):
+    """An object called 'hand' (a Panda body) made the world fail to compile: 'repeated name' (exit 1)."""
+    import json
+    import shutil
+
+    from splattwin.errors import InputError
+    from splattwin.robot.world import build_world
+
+    twin = tmp_path / "twin"
+    shutil.copytree(gt_twin_small, twin)
+    d = json.loads((twin / "twin.json").read_text())
+    d["objects"][0]["name"] = "hand"
+    (twin / "twin.json").write_text(json.dumps(d))
+    with pytest.raises(InputError, match=r"\['hand'\] are also body names of the robot"):
+        build_world(twin, visual=False)

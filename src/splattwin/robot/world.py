@@ -406,6 +406,19 @@ class World:
         return d
 
 
+def _check_name_clashes(spec, manifest: Manifest, where: Path) -> None:
+    """InputError when a twin object is named like one of the robot model's bodies (the Panda's `hand`,
+    `link0`..`link7`, `left_finger`, `right_finger`, or a user MJCF's): the objects become bodies of the same
+    MuJoCo model, by name, so such a twin failed to compile with 'repeated name' (exit 1, as a bug)."""
+    robot_names = {b.name for b in spec.bodies if b.name}
+    clash = sorted(o.name for o in manifest.objects if o.name in robot_names)
+    if clash:
+        raise InputError(f"object name(s) {clash} are also body names of the robot model "
+                         f"({', '.join(sorted(robot_names))}): the robot and the objects share one simulation, "
+                         f"where names must be unique; rename the object(s) (the masks' or the prompt's names) "
+                         f"and build the twin again", where)
+
+
 def build_world(twin_dir: str | Path, manifest: Manifest | None = None, robot: RobotModel | None = None,
                 base: BasePose | None = None, poses: dict[str, np.ndarray] | None = None,
                 visual: bool = True) -> World:
@@ -427,6 +440,7 @@ def build_world(twin_dir: str | Path, manifest: Manifest | None = None, robot: R
     root.quat = quat_wxyz_from_matrix(T[:3, :3]).tolist()
     spec.modelname = "splattwin_world"
     _stiffen_gripper(spec, robot)
+    _check_name_clashes(spec, manifest, twin_dir / "twin.json")
     objects = add_twin(spec, manifest, twin_dir, poses=poses)
     region = _outline_region(manifest.config.get("target_frame"), twin_dir / "twin.json") if visual else None
     if region is not None:
