@@ -322,3 +322,24 @@ def test_the_pipelines_own_splat_ply_is_not_rewritten(tmp_path):
         build_twin(Gaussians.load_ply(ply), labels, objects, out, TwinFrame("ground_truth", scaled=True),
                    formats=(), progress=False, splats_path=ply)
     assert ply.read_bytes() == before
+
+
+def test_gltf_obstacle_box_is_translucent(built):
+    """A vertex colour's alpha is ignored under glTF's default material (OPAQUE): the obstacle box needs a
+    material with alphaMode BLEND (audit 6b D10). Read from the GLB's JSON chunk, as any viewer reads it."""
+    import struct
+
+    out, *_ = built
+    data = (out / "export" / "scene.glb").read_bytes()
+    n = struct.unpack("<I", data[12:16])[0]
+    js = json.loads(data[20:20 + n])
+    mesh_of = {nd["name"]: nd.get("mesh") for nd in js["nodes"]}
+    prims = js["meshes"][mesh_of["cube"]]["primitives"]
+    mat = js["materials"][prims[0]["material"]]
+    assert mat["alphaMode"] == "BLEND"
+    assert mat["pbrMetallicRoughness"]["baseColorFactor"][3] == pytest.approx(0.5, abs=0.01)
+    assert mat["pbrMetallicRoughness"]["baseColorFactor"][0] > 0.8            # red
+    box = js["meshes"][mesh_of["box"]]["primitives"][0]                        # a real mesh stays opaque
+    assert "material" not in box or js["materials"][box["material"]].get("alphaMode", "OPAQUE") == "OPAQUE"
+    glb = trimesh.load(out / "export" / "scene.glb")
+    assert glb.geometry["cube"].visual.material.alphaMode == "BLEND"
