@@ -47,14 +47,27 @@ def object_name(text, where: str | Path | None = None, what: str = "object name"
     if not isinstance(text, str):
         raise InputError(f"{what} must be a string, got {type(text).__name__} {short_repr(text, 80)}", where)
     if not _NAME_RE.fullmatch(text):
-        raise InputError(f"{what} {short_repr(text, 80)} is not allowed: use 1-{MAX_NAME_LEN} letters, digits, '_', '-', "
-                         f"'.' or single spaces, starting with a letter or digit (a name must never be a path)", where)
+        foreign = sorted({c for c in text if not c.isascii() and c.isprintable()})
+        why = ""
+        if foreign:   # a letter such as 'é' is a letter, just not an ASCII one: say which
+            import unicodedata
+
+            plain = unicodedata.normalize("NFKD", foreign[0]).encode("ascii", "ignore").decode()
+            why = (f" ({', '.join(repr(c) for c in foreign[:5])} {'is' if len(foreign) == 1 else 'are'} not ASCII"
+                   + (f": write e.g. {plain!r} for {foreign[0]!r})" if plain else ")"))
+        raise InputError(f"{what} {short_repr(text, 80)} is not allowed: use 1-{MAX_NAME_LEN} ASCII letters (A-Z, a-z), "
+                         f"digits, '_', '-', '.' or single spaces, starting with a letter or digit (a name must never "
+                         f"be a path){why}", where)
     if text.split(".")[0].lower() in _WINDOWS_DEVICES:
         raise InputError(f"{what} {short_repr(text, 80)} is a reserved device name on Windows", where)
     if export_id(text).lower() in RESERVED_NAMES:
+        # a --prompt phrase is the object's name too (and what the detector looks for): a longer phrase
+        # keeps the detection and frees the name; renaming the object alone is not possible there
+        hint = ("the prompt phrase is the object's name: use a more specific phrase for it (e.g. 'dining table' "
+                "or 'tabletop box')" if "prompt" in f"{what} {where}" else f"rename the object (e.g. {text + ' 1'!r})")
         raise InputError(f"{what} {short_repr(text, 80)} is reserved: the exports use "
                          f"{', '.join(sorted(RESERVED_NAMES))} for the twin's own frame, table and background; "
-                         f"rename the object (e.g. {text + ' 1'!r})", where)
+                         f"{hint}", where)
     return text
 
 
@@ -96,7 +109,10 @@ def check_unique(names: Iterable[str], where: str | Path | None = None, what: st
     for n in names:
         k = export_id(n).lower()
         if k in seen:
-            same = "twice" if seen[k] == n else (f"and {seen[k]!r} (they differ only in case or in ' ', '_', '-', '.', "
-                                                 f"which all give export ID {export_id(n)!r})")
-            raise InputError(f"{what} {n!r} appears {same}; names must be unique", where)
+            if seen[k] == n:
+                raise InputError(f"{what} {n!r} appears twice; names must be unique", where)
+            ids = (f"export ID {export_id(n)!r}" if export_id(n) == export_id(seen[k]) else
+                   f"export IDs {export_id(seen[k])!r} and {export_id(n)!r}, the same ignoring case")
+            raise InputError(f"{what + 's' if what.endswith('name') else what} {seen[k]!r} and {n!r} both give {ids} (names are compared by export ID "
+                             f"ignoring case: ' ', '-', '.' and '_' alike); names must be unique", where)
         seen[k] = n

@@ -60,3 +60,22 @@ def test_collision_parts_refuse_a_huge_object_label_naming_twin_json(tmp_path: P
         collision_parts(tmp_path, man)
     man.objects[0].label = 2
     assert len(collision_parts(tmp_path, man)) == 1
+
+
+def test_collision_parts_draw_an_obstacle_only_box_translucent_red(tmp_path: Path):
+    """audit 6b D2: the viewer's collision layer left out an unusable object's obstacle box, which every
+    collision export and the robot's world have; an unusable object without a box stays out."""
+    T = np.eye(4)
+    T[:3, 3] = [0.2, -0.15, 0.02]
+    man = Manifest(objects=[ObjectEntry(name="yellow cube", label=3, usable=False, obstacle_only=True,
+                                        T_world_obj=T.tolist(), bbox_extent=[0.036, 0.04, 0.05],
+                                        problem="too few points after cleaning (41 < 50)"),
+                            ObjectEntry(name="ghost", label=4, usable=False,
+                                        problem="no splats of it survive, so it has no geometry at all")])
+    parts = collision_parts(tmp_path, man)
+    assert [p.owner for p in parts] == ["yellow cube"]
+    p = parts[0]
+    assert p.obstacle and p.opacity == pytest.approx(0.5) and p.color[0] > 200 > 100 > p.color[1]
+    V = p.world_vertices()
+    np.testing.assert_allclose(V.min(0), T[:3, 3] - [0.018, 0.02, 0.025], atol=1e-6)
+    np.testing.assert_allclose(V.max(0), T[:3, 3] + [0.018, 0.02, 0.025], atol=1e-6)

@@ -192,3 +192,50 @@ def test_a_splats_only_report_names_the_poses_frame(tmp_path):
     io.write_json(twin / "poses" / "frame.json", vars(TwinFrame(source="unscaled", scaled=False)))
     html = build_report(twin).read_text()
     assert "frame: unscaled (UNSCALED, unscaled" in html and "frame: n/a" not in html
+
+
+def _obstacle_twin(tmp_path: Path) -> Path:
+    from splattwin.twin.manifest import Manifest, ObjectEntry
+
+    twin = _manifest_twin(tmp_path, scaled=True)
+    man = Manifest.load(twin)
+    T = [[1, 0, 0, 0.0], [0, 1, 0, 0.0], [0, 0, 1, 0.05], [0, 0, 0, 1]]
+    man.objects.append(ObjectEntry(name="yellow_cube", label=2, usable=False, obstacle_only=True, T_world_obj=T,
+                                   bbox_extent=[0.1, 0.1, 0.1], problem="too few points after cleaning (41 < 50)"))
+    man.save(twin)
+    return twin
+
+
+def test_report_says_an_obstacle_only_object_is_kept_as_a_static_box(tmp_path):
+    """audit 6b D2: the collision table said only "usable: no"; the box is in every export and the
+    robot's world, and the report says so."""
+    import html as htmllib
+
+    html = htmllib.unescape(build_report(_obstacle_twin(tmp_path)).read_text())
+    assert "no: obstacle-only box (estimate)" in html
+    assert ("too few points after cleaning (41 < 50); kept as a static obstacle box (an estimate of its extent) "
+            "that the robot avoids: it cannot be picked or placed on" in html)
+
+
+def test_report_pictures_draw_the_obstacle_box_translucent_red(tmp_path):
+    import numpy as np
+
+    from splattwin.report.build import _twin_meshes, render_meshes
+
+    meshes = _twin_meshes(_obstacle_twin(tmp_path))
+    assert len(meshes) == 1 and meshes[0][3] == 0.5 and meshes[0][2][0] > 0.8 > 0.4 > meshes[0][2][1]
+    # a camera 1 m above looking down: the box over a grey floor is a blend of both, the floor elsewhere
+    floor = (np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0.0]]), np.array([[0, 1, 2], [0, 2, 3]]),
+             (0.5, 0.5, 0.5))
+    T = np.diag([1.0, -1.0, -1.0, 1.0])
+    T[:3, 3] = [0, 0, 1.0]
+    K = np.array([[100.0, 0, 32], [0, 100.0, 32], [0, 0, 1]])
+    img = render_meshes([floor] + meshes, T, K, 64, 64)
+    centre, edge = img[32, 32], img[2, 2]
+    assert centre[0] > centre[1] + 0.1                     # reddish: the box is drawn
+    assert abs(edge[0] - edge[1]) < 1e-6                   # grey floor beside it
+    # translucent: half the opaque box's colour, half the floor's under it
+    solid = render_meshes([floor, meshes[0][:3]], T, K, 64, 64)[32, 32]
+    bare = render_meshes([floor], T, K, 64, 64)[32, 32]
+    np.testing.assert_allclose(centre, 0.5 * solid + 0.5 * bare, atol=1e-5)
+    assert not np.allclose(centre, solid, atol=0.05)

@@ -113,3 +113,39 @@ def test_region_larger_than_the_table_is_refused(tmp_path: Path, gt_twin_small: 
     t = load_task(_write(tmp_path, f"- pick: yellow_cube\n- place_in: {{center: [0.1, 0.0], "
                                    f"size: [{x1 - x0}, {y1 - y0}]}}\n"), m)
     validate_task(t, m, gt_twin_small, base)
+
+
+def _renamed(gt_twin_small: Path) -> Manifest:
+    """The small twin with human names that differ from their export IDs (`blue box` -> blue_box)."""
+    m = Manifest.load(gt_twin_small)
+    for o in m.objects:
+        o.name = o.name.replace("_", " ")
+    return m
+
+
+def test_a_step_may_name_an_object_by_its_export_id(tmp_path: Path, gt_twin_small: Path):
+    # the MJCF / URDF / MoveIt / glTF files carry only export IDs: a task copied from them names those
+    m = _renamed(gt_twin_small)
+    t = load_task(_write(tmp_path, "- pick: blue_box\n- place_on: cardboard box\n"), m)
+    validate_task(t, m, gt_twin_small, BasePose().matrix())
+    assert (t.steps[0].pick, t.steps[0].place_on) == ("blue box", "cardboard box")   # the human names
+
+
+def test_an_unknown_name_near_an_export_id_gets_a_hint(tmp_path: Path, gt_twin_small: Path):
+    m = _renamed(gt_twin_small)
+    t = load_task(_write(tmp_path, "- pick: Blue-Box\n- place_on: cardboard box\n"), m)
+    with pytest.raises(InputError, match=r"'Blue-Box', which is not in the twin .*did you mean 'blue box' "
+                                         r"\(export ID blue_box\)") as e:
+        validate_task(t, m, gt_twin_small, BasePose().matrix())
+    assert e.value.path == tmp_path / "task.yaml"
+
+
+def test_an_obstacle_only_object_cannot_be_picked_or_placed_on(tmp_path: Path, gt_twin_small: Path):
+    m = Manifest.load(gt_twin_small)
+    o = m.object("yellow_cube")
+    o.usable, o.obstacle_only, o.problem = False, True, "too few points after cleaning (41 < 50)"
+    for text in ("- pick: yellow_cube\n- place_on: cardboard_box\n", "- pick: blue_box\n- place_on: yellow_cube\n"):
+        t = load_task(_write(tmp_path, text), m)
+        with pytest.raises(InputError, match=r"'yellow_cube' is not usable \(too few points.*\): it is kept as a "
+                                             r"static obstacle box .* the arm avoids, and cannot be picked or placed on"):
+            validate_task(t, m, gt_twin_small, BasePose().matrix())

@@ -90,8 +90,26 @@ def test_object_names_refused(bad):
 def test_labels_become_names_and_duplicates_are_refused():
     assert name_from_label("  toy \t hammer\n") == "toy hammer"
     assert object_name("blue_box") == "blue_box"
-    with pytest.raises(InputError, match="appears"):
+    with pytest.raises(InputError, match="'Box' and 'box' both give export IDs 'Box' and 'box', the same ignoring case"):
         check_unique(["Box", "box"], "c.json")
-    with pytest.raises(InputError, match="appears"):
+    with pytest.raises(InputError, match="'toy hammer' and 'toy_hammer' both give export ID 'toy_hammer'"):
         check_unique(["toy hammer", "toy_hammer"], "c.json")  # one MoveIt id, one file name
+    with pytest.raises(InputError, match="object names 'a-b' and 'a_b' both give export ID 'a_b'"):
+        check_unique(["a-b", "a_b"], "c.json")
+    with pytest.raises(InputError, match="object name 'mug' appears twice"):
+        check_unique(["mug", "mug"], "c.json")
     check_unique(["a", "b", "a b"])
+
+
+def test_name_refusals_say_what_to_do():
+    # 'é' is a letter, just not an ASCII one (audit 6b D12)
+    with pytest.raises(InputError, match=r"ASCII letters.*'é' is not ASCII: write e\.g\. 'e' for 'é'"):
+        object_name("mug. café", "tasse café.png")
+    with pytest.raises(InputError, match="ASCII letters") as e:
+        object_name("a/b", "x.json")
+    assert "not ASCII" not in str(e.value)
+    # a reserved --prompt phrase: the phrase is the name, so the hint is a longer phrase, not a rename
+    with pytest.raises(InputError, match="the prompt phrase is the object's name.*'dining table'"):
+        object_name("table", "--prompt", "object name from the prompt phrase")
+    with pytest.raises(InputError, match=r"rename the object \(e\.g\. 'Table 1'\)"):
+        object_name("Table", "scene.json")

@@ -61,11 +61,16 @@ def load_robot_track(twin_dir: str | Path) -> RobotTrack | None:
     return RobotTrack.load(p) if p.is_file() else None
 
 
+OBSTACLE_RGB = (230, 77, 77)   # an obstacle-only box: translucent red, as in the glTF export
+OBSTACLE_OPACITY = 0.5
+
+
 @dataclass
 class MeshPart:
     """One collision part: vertices [n,3] float32 in the part's frame, faces [m,3] uint32, the part's pose
     T_world_part [4,4] (identity for background parts), colour uint8 RGB. `owner`: object name or
-    "background"."""
+    "background". obstacle: the static box of an unusable object (`obstacle_only`: an estimate of where
+    it stands, which the robot avoids), drawn translucent (`opacity`, else None: the drawer's default)."""
 
     owner: str
     index: int
@@ -73,6 +78,8 @@ class MeshPart:
     faces: np.ndarray
     T_world_part: np.ndarray
     color: tuple[int, int, int]
+    obstacle: bool = False
+    opacity: float | None = None
 
     def world_vertices(self) -> np.ndarray:
         return self.vertices @ self.T_world_part[:3, :3].T + self.T_world_part[:3, 3]
@@ -200,7 +207,8 @@ class MovingSplats:
 class TwinView:
     """A twin ready to draw. splats / far: the workspace layer and the background layer (Gaussians, or
     None without splats); label_rgb: [len(splats),3] uint8 label colours of the workspace layer (None
-    without labels); parts: collision parts of the usable objects, then of the background; track: the
+    without labels); parts: collision parts of the usable objects and obstacle boxes of the unusable ones
+    (`collision_parts`), then of the background; track: the
     robot's recorded motion, if any; motion: the splats in motion along it (`MovingSplats`), when the twin
     has object splats and a recorded track."""
 
@@ -271,7 +279,9 @@ def load_motion(twin_dir: str | Path, track: RobotTrack) -> MovingSplats | None:
 
 
 def collision_parts(twin_dir: Path, man: Manifest) -> list[MeshPart]:
-    """The collision parts of the usable objects (object frame, posed) and of the background (twin frame)."""
+    """The collision parts of the usable objects (object frame, posed), the obstacle boxes of the unusable
+    ones that have one (`obstacle_only`: box of bbox_extent at T_world_obj, `MeshPart.obstacle`) and the
+    background's parts (twin frame)."""
     from splattwin.meshio import load_mesh
 
     def part(owner: str, k: int, rel: str, T: np.ndarray, color) -> MeshPart:
@@ -281,6 +291,13 @@ def collision_parts(twin_dir: Path, man: Manifest) -> list[MeshPart]:
 
     out = []
     for obj in man.objects:
+        if obj.obstacle_only:   # unusable, but a static box in every collision export and the robot's world
+            import trimesh
+
+            box = trimesh.creation.box(extents=np.asarray(obj.bbox_extent, float))
+            out.append(MeshPart(obj.name, 0, np.asarray(box.vertices, np.float32), np.asarray(box.faces, np.uint32),
+                                obj.pose, OBSTACLE_RGB, obstacle=True, opacity=OBSTACLE_OPACITY))
+            continue
         if not obj.usable:
             continue
         col = label_colors(np.array([obj.label]), Path(twin_dir) / "twin.json", f"label of object {obj.name!r}")[0]

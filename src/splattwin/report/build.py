@@ -32,44 +32,62 @@ def _json(path: Path):
 
 def render_meshes(meshes: list, T_world_cam: np.ndarray, K: np.ndarray, width: int, height: int,
                   light_dir=(0.3, -0.4, 0.85)) -> np.ndarray:
-    """Ray-cast Lambertian render of world-frame meshes [(V [n,3], F [m,3], rgb [3] in 0..1)] → HxWx3.
+    """Ray-cast Lambertian render of world-frame meshes [(V [n,3], F [m,3], rgb [3] in 0..1[, alpha])] →
+    HxWx3. A mesh with alpha < 1 is translucent: its nearest surface in front of the opaque scene is
+    blended over it (one layer: overlapping translucent meshes show the nearest).
 
     Open3D's RaycastingScene needs no OpenGL context, so this works on headless CI machines.
     """
     import open3d as o3d
 
-    scene = o3d.t.geometry.RaycastingScene()
-    colors = []
-    for V, F, rgb in meshes:
-        m = o3d.t.geometry.TriangleMesh()
-        m.vertex.positions = o3d.core.Tensor(np.asarray(V, np.float32))
-        m.triangle.indices = o3d.core.Tensor(np.asarray(F, np.int32))
-        scene.add_triangles(m)
-        colors.append(rgb)
-    rays = scene.create_rays_pinhole(o3d.core.Tensor(K), o3d.core.Tensor(np.linalg.inv(T_world_cam)), width, height)
-    hit = scene.cast_rays(rays)
-    gid = hit["geometry_ids"].numpy()
-    n = hit["primitive_normals"].numpy()
-    miss = ~np.isfinite(hit["t_hit"].numpy())
     d = np.asarray(light_dir, np.float32)
     d /= np.linalg.norm(d)
-    ray_dir = rays.numpy()[..., 3:]
-    n = np.where((np.sum(n * ray_dir, axis=-1) > 0)[..., None], -n, n)  # face the camera
-    shade = 0.35 + 0.65 * np.clip(np.sum(n * d, axis=-1), 0, 1)
-    pal = np.asarray(colors + [(1, 1, 1)], np.float32)
-    img = pal[np.where(miss, len(colors), gid)] * shade[..., None]
-    img[miss] = 1.0
+
+    def cast(group):
+        scene = o3d.t.geometry.RaycastingScene()
+        for V, F, *_ in group:
+            m = o3d.t.geometry.TriangleMesh()
+            m.vertex.positions = o3d.core.Tensor(np.asarray(V, np.float32))
+            m.triangle.indices = o3d.core.Tensor(np.asarray(F, np.int32))
+            scene.add_triangles(m)
+        rays = scene.create_rays_pinhole(o3d.core.Tensor(K), o3d.core.Tensor(np.linalg.inv(T_world_cam)),
+                                         width, height)
+        hit = scene.cast_rays(rays)
+        n = hit["primitive_normals"].numpy()
+        ray_dir = rays.numpy()[..., 3:]
+        n = np.where((np.sum(n * ray_dir, axis=-1) > 0)[..., None], -n, n)  # face the camera
+        shade = 0.35 + 0.65 * np.clip(np.sum(n * d, axis=-1), 0, 1)
+        t = hit["t_hit"].numpy()
+        pal = np.asarray([m[2] for m in group] + [(1, 1, 1)], np.float32)
+        miss = ~np.isfinite(t)
+        img = pal[np.where(miss, len(group), hit["geometry_ids"].numpy())] * shade[..., None]
+        img[miss] = 1.0
+        return img, np.where(miss, np.inf, t), hit["geometry_ids"].numpy()
+
+    solid = [m for m in meshes if len(m) < 4 or m[3] >= 1.0]
+    clear = [m for m in meshes if len(m) >= 4 and m[3] < 1.0]
+    if solid:
+        img, t_solid, _ = cast(solid)
+    else:
+        img, t_solid = np.ones((height, width, 3), np.float32), np.full((height, width), np.inf, np.float32)
+    if clear:
+        over, t_clear, gid = cast(clear)
+        front = np.isfinite(t_clear) & (t_clear < t_solid)
+        alpha = np.asarray([m[3] for m in clear], np.float32)[np.where(front, gid, 0)] * front
+        img = img * (1 - alpha[..., None]) + over * alpha[..., None]
     return img
 
 
 def _twin_meshes(twin_dir: Path) -> list:
-    """World-frame collision parts in their label colours (the background in table colour)."""
+    """World-frame collision parts [(V, F, rgb, alpha)] in their label colours (the background in table
+    colour; an unusable object's obstacle box translucent red, as `collision_parts` gives it)."""
     from splattwin.playback.view_model import collision_parts
     from splattwin.twin.manifest import Manifest
 
     parts = collision_parts(twin_dir, Manifest.load(twin_dir))
     return [(p.world_vertices(), p.faces, (0.75, 0.72, 0.66) if p.owner == "background" else
-             tuple(c / 255.0 for c in p.color)) for p in parts]
+             tuple(c / 255.0 for c in p.color), p.opacity if p.obstacle and p.opacity is not None else 1.0)
+            for p in parts]
 
 
 def _mesh_views(meshes: list, cameras: list) -> list[np.ndarray]:
@@ -360,13 +378,23 @@ def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
     if man is None:
         sec.text("twin stage not run")
         return
+    from splattwin.twin.manifest import missing_obstacle_boxes, missing_obstacle_boxes_note
+
     rows = []
     for o in man.objects:
         cov = "n/a" if o.silhouette_coverage is None else f"{o.silhouette_coverage:.0%}"
-        rows.append([o.name, o.usable, len(o.convex_parts), o.mass if o.mass is not None else "n/a",
-                     length_text(o.bbox_extent, man.frame.scaled), cov, o.problem or ""])
+        problem = o.problem or ""
+        if o.obstacle_only:   # unusable, yet in every collision export and the robot's world as its box
+            problem = (f"{problem}; kept as a static obstacle box (an estimate of its extent) that the robot "
+                       f"avoids: it cannot be picked or placed on").lstrip("; ")
+        rows.append([o.name, "no: obstacle-only box (estimate)" if o.obstacle_only else o.usable,
+                     "1 box" if o.obstacle_only else len(o.convex_parts), o.mass if o.mass is not None else "n/a",
+                     length_text(o.bbox_extent, man.frame.scaled), cov, problem])
     sec.table(["object", "usable", "convex parts", "mass (kg)" if man.frame.scaled else "mass (nominal)", "box",
                "masks covered", "problem"], rows)
+    missing = missing_obstacle_boxes(man)
+    if missing:
+        sec.text(f"WARNING: {missing_obstacle_boxes_note(missing, twin.resolve().name)}.")
     if any(o.silhouette_coverage is not None for o in man.objects):
         sec.text("masks covered: the share of each object's 2D masks that its cleaned splats, rendered alone, "
                  "cover (median over views); a fragment of an object covers little of them.")
@@ -397,8 +425,12 @@ def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
             sec.text(f"no camera views of the collision geometry: {e}")
     if ds is not None:
         cams = [f.camera for f in ds.frames[:: max(1, len(ds.frames) // 3)][:3]]
+        obst = [o.name for o in man.objects if o.obstacle_only]
+        caption = "collision geometry (convex parts), object colours = labels" + (
+            f"; translucent red: the static obstacle {'box' if len(obst) == 1 else 'boxes'} of unusable "
+            f"{'object' if len(obst) == 1 else 'objects'} {', '.join(obst)} (an estimate)" if obst else "")
         for img in _mesh_views(_twin_meshes(twin), cams):
-            sec.image(img, caption="collision geometry (convex parts), object colours = labels")
+            sec.image(img, caption=caption)
     if man.exports:
         sec.table(["export", "path"], [[k, v] for k, v in man.exports.items()])
 

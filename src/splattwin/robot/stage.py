@@ -43,13 +43,16 @@ def run(inputs: RobotInputs, options: RobotOptions, *, progress: bool = True,
     written to results.json and returned as `error` (the pipeline: the report says why) instead of raised."""
     from splattwin.robot.outputs import remove_previous, write_outputs
     from splattwin.robot.trials import TrialSpec, run_once, run_trials
-    from splattwin.twin.manifest import Manifest
+    from splattwin.twin.manifest import Manifest, warn_missing_obstacle_boxes
     from splattwin.twin.mjcf import check_scaled
 
     options.validate()
     out = Path(inputs.out_dir)
     try:  # before the task: a twin in SfM units cannot be planned in at all (the message says how to scale it)
-        check_scaled(Manifest.load(inputs.twin_dir), Path(inputs.twin_dir) / "twin.json")
+        manifest = Manifest.load(inputs.twin_dir)
+        check_scaled(manifest, Path(inputs.twin_dir) / "twin.json")
+        # an older twin.json: its unusable objects are not in the robot's world (no obstacle box yet)
+        warn_missing_obstacle_boxes(manifest, inputs.twin_dir)
     except InputError as e:
         if not record_errors:
             raise

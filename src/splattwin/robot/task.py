@@ -12,7 +12,9 @@ place, either in the same item or the next one:
 A region's size is one side (square) or [sx, sy], metres, finite and > 0, each side at most the table's
 (its extent in twin.json); its centre must be on the table.
 
-Validation raises InputError naming the task file for: unknown or unusable objects, a place without a
+A step names an object by its name in twin.json (`blue box`) or by its export ID, the name every export
+file carries (`blue_box`; `resolve_names` maps it to the name). Validation raises InputError naming the
+task file for: unknown or unusable objects (an obstacle-only one too: the arm avoids its box), a place without a
 pick, an unscaled twin, a goal off the table, a region larger than the table, or out of the robot's reach. Reach is checked in two stages:
 the horizontal distance from the base (cheap, [REACH_MIN, REACH_MAX]) and, given the robot, inverse
 kinematics (mink) of a grasp pose at the object and of the place pose and the pre-place pose above it
@@ -21,6 +23,7 @@ kinematics (mink) of a grasp pose at the object and of the place pose and the pr
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 from importlib import resources
@@ -37,6 +40,8 @@ REACH_MAX = 0.80     # m, horizontal distance from the base the Panda reaches to
 REACH_MIN = 0.20     # m, closer than this the arm folds into itself
 GRIP_BELOW_TOP = 0.02   # m: the IK check puts the TCP this far below an object's top (at most half its height)
 PRE_PLACE_RISE = 0.10   # m: pre-place pose above the place pose (candidates.LIFT)
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -178,6 +183,37 @@ def reachable(ik, xyz: np.ndarray, base_xy: np.ndarray, rise: float = 0.0) -> bo
     return False
 
 
+def resolve_names(task: Task, manifest: Manifest, where: Path | None = None) -> None:
+    """Each step's object names as the twin's human names, in place: a step may also name an object by
+    its export ID (`splattwin.names.export_id`, the only name MJCF / URDF / MoveIt / glTF files carry:
+    `blue_box` for `blue box`) when exactly one object has that ID. A name that is neither is an
+    InputError listing the objects, with a "did you mean" when it matches an export ID ignoring case."""
+    from splattwin.names import export_id
+
+    where = where or task.path
+    names = {o.name for o in manifest.objects}
+    by_id: dict[str, list[str]] = {}
+    for o in manifest.objects:
+        by_id.setdefault(export_id(o.name), []).append(o.name)
+
+    def human(n: str, k: int, role: str) -> str:
+        if n in names:
+            return n
+        hit = by_id.get(n, [])
+        if len(hit) == 1:
+            log.info("step %d: %s %r is the export ID of object %r", k, role, n, hit[0])
+            return hit[0]
+        near = sorted(m for i, ms in by_id.items() if i.lower() == export_id(n).lower() for m in ms)
+        hint = "; did you mean " + " or ".join(f"{m!r} (export ID {export_id(m)})" for m in near) if near else ""
+        raise InputError(f"step {k}: {role} names {n!r}, which is not in the twin (objects: "
+                         f"{', '.join(sorted(names))}; a step may name an object or its export ID){hint}", where)
+
+    for k, s in enumerate(task.steps, start=1):
+        s.pick = human(s.pick, k, "pick")
+        if s.place_on is not None:
+            s.place_on = human(s.place_on, k, "place_on")
+
+
 def validate_task(task: Task, manifest: Manifest, twin_dir: str | Path, T_world_base: np.ndarray,
                   robot=None) -> None:
     """Everything that can be checked without planning; raises InputError naming the task file.
@@ -197,15 +233,15 @@ def validate_task(task: Task, manifest: Manifest, twin_dir: str | Path, T_world_
             raise InputError(f"{what} is {d:.2f} m from the robot base, outside its reach "
                              f"[{REACH_MIN:.2f}, {REACH_MAX:.2f}] m (move the base with --base-pose)", where)
 
+    resolve_names(task, manifest, where)
     for k, s in enumerate(task.steps, start=1):
         for role, n in (("pick", s.pick), ("place_on", s.place_on)):
             if n is None:
                 continue
-            if n not in names:
-                raise InputError(f"step {k}: {role} names {n!r}, which is not in the twin "
-                                 f"(objects: {', '.join(sorted(names))})", where)
             if not names[n].usable:
-                raise InputError(f"step {k}: object {n!r} is not usable ({names[n].problem})", where)
+                kept = (": it is kept as a static obstacle box (an estimate of its extent) that the arm avoids, and "
+                        "cannot be picked or placed on" if names[n].obstacle_only else "")
+                raise InputError(f"step {k}: object {n!r} is not usable ({names[n].problem}){kept}", where)
         if s.place_on == s.pick:
             raise InputError(f"step {k}: cannot place {s.pick!r} on itself", where)
         reach(names[s.pick].pose[:3, 3], f"step {k}: object {s.pick!r}")

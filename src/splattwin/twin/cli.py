@@ -18,13 +18,14 @@ def _export(args: argparse.Namespace) -> int:
     twin.json keeps earlier exports only while their files exist."""
     from splattwin.lock import output_lock
     from splattwin.twin.build import write_exports
-    from splattwin.twin.manifest import Manifest
+    from splattwin.twin.manifest import Manifest, warn_missing_obstacle_boxes
 
     twin = Path(args.twin)
     if not twin.is_dir():
         raise InputError("twin folder does not exist", twin)
     with output_lock(twin):
         manifest = Manifest.load(twin)
+        warn_missing_obstacle_boxes(manifest, twin)   # an older twin.json: unusable objects left out silently
         opts = from_args(ExportOptions, args)
         formats = opts.resolve()
         if not manifest.frame.scaled:

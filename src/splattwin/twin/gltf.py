@@ -3,7 +3,7 @@
 One node per object (named by its export ID, `splattwin.names.export_id`; transform = T_world_obj, mesh
 in the object frame, vertex colours from the splats), the table box, the background obstacles (node
 `background_obstacles`, twin frame, as in URDF/MJCF/MoveIt) and each unusable object's obstacle box
-(`obstacle_only`, translucent red). glTF is y-up by convention; we keep the twin's z-up frame and put the
+(`obstacle_only`, translucent red: a material with alphaMode BLEND, alpha 0.5). glTF is y-up by convention; we keep the twin's z-up frame and put the
 conversion on a root node `twin_z_up` so importers show the table horizontal. glTF lengths are metres
 by spec: an unscaled twin says what its numbers are in the scene's extras.
 """
@@ -22,6 +22,18 @@ from splattwin.twin.manifest import Manifest, unscaled_note
 
 # z-up twin -> y-up glTF: rotate -90 degrees about x
 Y_UP_FROM_Z_UP = np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], dtype=float)
+
+
+OBSTACLE_RGBA = (230, 77, 77, 128)   # translucent red (alpha ~0.5), as the report and the viewer draw them
+
+
+def obstacle_material():
+    """The material of an obstacle-only box: red, alphaMode BLEND with alpha ~0.5 (trimesh stores colour
+    factors as uint8: 128/255). glTF ignores a vertex colour's alpha under the default material (OPAQUE),
+    so the translucency must come from a material."""
+    return trimesh.visual.material.PBRMaterial(name="obstacle_only", baseColorFactor=list(OBSTACLE_RGBA),
+                                               alphaMode="BLEND", doubleSided=True, metallicFactor=0.0,
+                                               roughnessFactor=1.0)
 
 
 def twin_scene(twin_dir: Path, manifest: Manifest, y_up: bool = True) -> trimesh.Scene:
@@ -49,7 +61,7 @@ def twin_scene(twin_dir: Path, manifest: Manifest, y_up: bool = True) -> trimesh
         oid = export_id(o.name)
         if o.obstacle_only:
             box = trimesh.creation.box(extents=np.asarray(o.bbox_extent, dtype=float))
-            box.visual.vertex_colors = [230, 77, 77, 128]
+            box.visual = trimesh.visual.TextureVisuals(material=obstacle_material())
             scene.add_geometry(box, node_name=oid, geom_name=oid, parent_node_name=root, transform=o.pose)
         elif o.usable and o.visual_mesh:
             m = load_mesh(twin_dir / o.visual_mesh, f"visual mesh of {o.name!r}", process=True)

@@ -60,6 +60,45 @@ def unscaled_note(frame: TwinFrame) -> str | None:
             "masses are nominal. Rebuild with --known-length, --marker-size or metric poses for a metric twin.")
 
 
+# the phrase twin/build.py puts in the `problem` of an unusable object that has no obstacle box because no
+# splat of it survived (`obstacle_only` false on purpose); `missing_obstacle_boxes` tells them apart by it
+NO_GEOMETRY = "no geometry at all"
+
+
+def missing_obstacle_boxes(manifest: "Manifest") -> list[str]:
+    """Names of the unusable objects that are in no collision export only because the twin.json predates
+    obstacle-only boxes: `obstacle_only` false (or absent: the dataclass default) and a `problem` that
+    does not say the object has no geometry at all (which a newer build writes when it has no box).
+    Rebuilding the twin stage (`splattwin build INPUT --out TWIN --from twin`) gives each its box."""
+    return [o.name for o in manifest.objects
+            if not o.usable and not o.obstacle_only and NO_GEOMETRY not in (o.problem or "")]
+
+
+def warn_missing_obstacle_boxes(manifest: "Manifest", twin_dir: str | Path) -> list[str]:
+    """Log one warning naming the objects of `missing_obstacle_boxes`: the collision world (MJCF, URDF,
+    MoveIt, glTF, the robot's) leaves them out, although the real objects stand there. Called once per
+    command, where it loads the twin (`export`: twin/cli.py; `plan` and the pipeline's robot stage:
+    robot/stage.py). Returns the names."""
+    import logging
+
+    names = missing_obstacle_boxes(manifest)
+    if names:
+        logging.getLogger(__name__).warning("%s", missing_obstacle_boxes_note(names, twin_dir))
+    return names
+
+
+def missing_obstacle_boxes_note(names: list[str], twin_dir: str | Path = "TWIN") -> str:
+    """The sentence of `warn_missing_obstacle_boxes` (also the report's)."""
+    which = ", ".join(repr(n) for n in names)
+    one = len(names) == 1
+    return (f"{'object' if one else 'objects'} {which} {'is' if one else 'are'} unusable and in no collision "
+            f"export (MJCF, URDF, MoveIt, glTF) nor in the robot's world, although the real "
+            f"{'object stands' if one else 'objects stand'} there: {twin_dir}/twin.json predates obstacle-only "
+            f"boxes; rebuilding the twin stage (`splattwin build INPUT --out {twin_dir} --from twin`, INPUT: the "
+            f"capture it was built from) keeps {'it' if one else 'each'} as a static obstacle box that the "
+            f"robot avoids (when some of {'its' if one else 'their'} splats survive)")
+
+
 def units_text(frame: TwinFrame) -> str:
     """What a file's lengths are, for comment lines (PLY, OBJ, export headers)."""
     return "units: metres (metric twin)" if frame.scaled else "units: " + (unscaled_note(frame) or "")
