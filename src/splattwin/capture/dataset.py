@@ -141,6 +141,11 @@ def load_mask(path: str | Path) -> np.ndarray:
     return m[..., 0] if m.ndim == 3 else m
 
 
+# how much smaller than its photo a loss mask or a depth map may be: nerfstudio's masks_8/ at most; a phone's
+# LiDAR depth (256x192) for its 4032x3024 photos is 1/15.75. A 1x1 map stretched over a photo says nothing.
+MAX_REDUCTION = 16
+
+
 def _mask_downscale(mask_size: tuple[int, int], image_size: tuple[int, int]) -> int | None:
     """The whole factor k >= 1 by which an image of `image_size` (w, h) was reduced to `mask_size`: each side
     w / k rounded either way (nerfstudio's downscaled masks_2/, masks_4/ ... folders); None when there is
@@ -150,7 +155,7 @@ def _mask_downscale(mask_size: tuple[int, int], image_size: tuple[int, int]) -> 
         return None
     k = max(1, round(w / mw))
     for kk in (k - 1, k, k + 1):
-        if kk >= 1 and mw in (w // kk, -(-w // kk)) and mh in (h // kk, -(-h // kk)):
+        if 1 <= kk <= MAX_REDUCTION and mw in (w // kk, -(-w // kk)) and mh in (h // kk, -(-h // kk)):
             return kk
     return None
 
@@ -207,10 +212,12 @@ def depth_needs_resize(depth_wh: tuple[int, int], size: tuple[int, int], path: P
     (dw, dh), (w, h) = depth_wh, size
     if (dw, dh) == (w, h):
         return False
-    if dw <= w and dh <= h and abs(dw * h / w - dh) <= 1 and abs(dh * w / h - dw) <= 1:
+    if (dw <= w and dh <= h and dw * MAX_REDUCTION >= w and dh * MAX_REDUCTION >= h
+            and abs(dw * h / w - dh) <= 1 and abs(dh * w / h - dw) <= 1):
         return True
     raise InputError(f"depth map is {dw}x{dh} but its camera is {w}x{h}: depth must be registered to the colour "
-                     f"camera, at its size or a smaller one of the same aspect ratio", path)
+                     f"camera, at its size or a smaller one of the same aspect ratio (at most {MAX_REDUCTION} times "
+                     f"smaller)", path)
 
 
 def depth_image_size(path: str | Path, size: tuple[int, int] | None = None) -> tuple[int, int]:

@@ -265,12 +265,15 @@ def _warn_mm_npy(frames: list[Frame], path: Path) -> None:
     median is beyond that is most likely in mm, and is named."""
     from splattwin.limits import load_npy
 
-    first = next((f.depth_path for f in frames if f.depth_path is not None and f.depth_path.suffix.lower() == ".npy"
-                  and f.depth_path.is_file()), None)
-    if first is None:
+    fr = next((f for f in frames if f.depth_path is not None and f.depth_path.suffix.lower() == ".npy"
+               and f.depth_path.is_file()), None)
+    if fr is None:
         return
+    first = fr.depth_path
     try:
-        d = load_npy(first, "depth array")
+        # no larger than its camera's image of float64 (a depth map is that or smaller): this runs on every
+        # read of the dataset, `capture info` included, and must not load whatever a header claims
+        d = load_npy(first, "depth array", max_bytes=8 * fr.camera.width * fr.camera.height)
     except InputError:
         return   # named when the depth is read
     if d.dtype.kind != "f":

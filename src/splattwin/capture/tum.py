@@ -297,7 +297,9 @@ def _as_int(s: str) -> int | None:
 def _as_time(s: str) -> float | None:
     """Seconds from a timestamp string; a whole number of NS_DIGITS or more digits is nanoseconds."""
     if len(s) >= NS_DIGITS and s.isascii() and s.isdigit():
-        return int(s) * 1e-9
+        # nanoseconds since the epoch have 19 digits; a longer number is no timestamp (and int() of thousands
+        # of digits raises, a float of it overflows)
+        return int(s) * 1e-9 if len(s) <= NS_DIGITS + 3 else None
     try:
         t = float(s)
     except ValueError:

@@ -130,9 +130,12 @@ def select_frames(scores: np.ndarray, max_frames: int, thumbs: list[np.ndarray] 
 
 
 def _read_record(index: Path) -> dict | None:
+    """The folder's frames.json, or None when it is not one (bounded: the folder may be someone else's)."""
+    from splattwin.limits import MAX_RECORD_BYTES, read_json
+
     try:
-        rec = json.loads(index.read_text())
-    except (OSError, ValueError):
+        rec = read_json(index, "no frames record", MAX_RECORD_BYTES)
+    except (InputError, OSError):
         return None
     return rec if isinstance(rec, dict) else None
 
@@ -164,7 +167,8 @@ def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = 30,
     old = _read_record(index) if index.is_file() else None
     if old is not None and old.get("stamp") == stamp:
         names = _listed(old)
-        if names and len(names) == len(old.get("frames", [])) and all((out_dir / n).is_file() for n in names):
+        if names and len(names) == len(old.get("frames", [])) and all(
+                (out_dir / n).is_file() and not (out_dir / n).is_symlink() for n in names):
             return [out_dir / n for n in names]
     # Pass 1: sharpness and a thumbnail of every frame (cheap, downscaled).
     container = _open(path)
@@ -197,6 +201,11 @@ def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = 30,
     # that a later run would not know to remove.
     names = [f"frame_{i:05d}.png" for i in range(len(keep))]
     io.remove_files(out_dir, sorted(set(_listed(old)) - set(names)))
+    for n in names:   # a folder in the way of a frame is not ours to remove (a link is replaced, not followed)
+        p = out_dir / n
+        if p.is_dir() and not p.is_symlink():
+            raise InputError(f"{n} in the frames folder is a folder, not a frame; remove it or choose another "
+                             f"folder", out_dir)
     io.write_json(index, {"stamp": None, "frames": names})
     container = _open(path)
     want = {idx: name for idx, name in zip(keep, names)}

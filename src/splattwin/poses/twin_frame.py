@@ -59,6 +59,9 @@ class TwinFrame:
         for k in ("source", "units", "up", "description"):
             if not isinstance(getattr(self, k), str):
                 raise InputError(f"malformed frame: {k} must be text, got {type(getattr(self, k)).__name__}", where)
+        if self.source not in FRAME_SOURCES:   # the text travels into the exports' comments and names
+            raise InputError(f"malformed frame: source {self.source[:60]!r} is none of {', '.join(FRAME_SOURCES)}",
+                             where)
         if not isinstance(self.scaled, bool):
             raise InputError(f"malformed frame: scaled must be true or false, got {type(self.scaled).__name__} "
                              f"{str(self.scaled)[:40]!r}", where)

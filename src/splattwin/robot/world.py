@@ -71,7 +71,8 @@ class BasePose:
             if source == "robot" and frame.T_twin_input is not None:
                 T = np.asarray(frame.T_twin_input, dtype=float)
             R = T[:3, :3]
-            if T.shape == (4, 4) and np.all(np.isfinite(T)) and R[2, 2] > math.cos(math.radians(1.0)):
+            if (T.shape == (4, 4) and np.all(np.isfinite(T)) and np.all(np.abs(T[:3, 3]) <= MAX_BASE_OFFSET)
+                    and R[2, 2] > math.cos(math.radians(1.0))):
                 yaw = math.atan2(R[1, 0], R[0, 0])
                 return cls(float(T[0, 3]), float(T[1, 3]), float(T[2, 3]), yaw), \
                     "the robot base: the twin is in the frame of the robot that posed the cameras"

@@ -154,7 +154,9 @@ def _colour(obj: ObjectEntry) -> list[float]:
 
 
 def _xml_comment(text: str) -> str:
-    return text.replace("--", "- -")
+    from splattwin.twin.xmltext import comment_text
+
+    return comment_text(text)
 
 
 def check_scaled(manifest: Manifest, where: str | Path) -> None:

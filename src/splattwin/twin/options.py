@@ -13,7 +13,8 @@ from splattwin.options import option
 
 FORMATS = ("mjcf", "urdf", "moveit", "gltf")
 _PACKAGE_RE = re.compile(r"package://[A-Za-z][A-Za-z0-9_]{0,99}")
-_FRAME_RE = re.compile(r"/?[A-Za-z][A-Za-z0-9_/]{0,99}")
+# a TF frame id: segments of letters, digits and '_' (each starting with a letter) joined by single '/'
+_FRAME_RE = re.compile(r"/?[A-Za-z][A-Za-z0-9_]{0,63}(/[A-Za-z][A-Za-z0-9_]{0,63}){0,3}")
 
 
 @dataclass

@@ -106,7 +106,12 @@ def gt_alignment(man, twin: Path, scene_dir: Path, frame):
         log.warning("no ground-truth comparison: the twin frame (%s) is not the scene's, and %d usable object(s) "
                     "are too few to align them (3 needed)", frame.source, len(src))
         return None, f"twin frame ({frame.source}) not the scene's; too few objects to align"
-    fit = umeyama(np.asarray(src), np.asarray(tgt), with_scale=not frame.scaled)
+    try:
+        fit = umeyama(np.asarray(src), np.asarray(tgt), with_scale=not frame.scaled)
+    except ValueError as e:   # centres in a line or at one point: no rotation follows from them
+        log.warning("no ground-truth comparison: the twin frame (%s) is not the scene's, and the objects' centres "
+                    "cannot align them (%s)", frame.source, e)
+        return None, f"twin frame ({frame.source}) not the scene's; objects' centres do not fix an alignment"
     note = (f"ground truth aligned to the twin ({frame.source} frame) by {len(src)} object centres "
             f"({'rigid' if frame.scaled else 'similarity'}, residual RMS {fit.rms:.4g})")
     log.info("%s", note)
@@ -120,13 +125,20 @@ def _moved_region(region: dict, T) -> dict:
 
     from splattwin.poses.align import sim3_scale, transform_points
 
+    if not isinstance(region, dict):
+        return region   # malformed: the robot stage names it (robot.world._outline_region)
+    if np.array_equal(T, np.eye(4)):
+        return dict(region)
     out = dict(region)
-    c = np.asarray(region.get("center", [0, 0, 0]), dtype=float).reshape(-1)
-    c3 = np.array([c[0], c[1], c[2] if len(c) > 2 else 0.0])
+    c = region.get("center")
+    if not (isinstance(c, list) and len(c) in (2, 3) and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                             and np.isfinite(v) for v in c)):
+        return out      # malformed: kept as given, for the robot stage to name
+    c3 = np.array([c[0], c[1], c[2] if len(c) > 2 else 0.0], dtype=float)
     out["center"] = transform_points(T, c3[None])[0].round(6).tolist()
     s = sim3_scale(T)
     for k in ("size", "tape_width"):
-        if isinstance(region.get(k), (int, float)):
+        if isinstance(region.get(k), (int, float)) and not isinstance(region.get(k), bool):
             out[k] = float(region[k]) * s
     return out
 

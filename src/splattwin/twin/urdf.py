@@ -82,7 +82,9 @@ def object_link(twin_dir: Path, o: ObjectEntry, from_dir: Path, uri: str = "rela
 
 
 def _comment(text: str) -> str:
-    return "<!-- " + text.replace("--", "- -") + " -->\n"
+    from splattwin.twin.xmltext import comment_text
+
+    return "<!-- " + comment_text(text) + " -->\n"
 
 
 def _note(manifest: Manifest | None, objects=None) -> str:
