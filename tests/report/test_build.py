@@ -239,3 +239,37 @@ def test_report_pictures_draw_the_obstacle_box_translucent_red(tmp_path):
     bare = render_meshes([floor], T, K, 64, 64)[32, 32]
     np.testing.assert_allclose(centre, 0.5 * solid + 0.5 * bare, atol=1e-5)
     assert not np.allclose(centre, solid, atol=0.05)
+
+
+def test_report_shows_what_the_run_gives_the_real_arm(tmp_path):
+    """The robot section showed task, steps and trials only: now the real-arm block (files written or why
+    not, program phases, exported joint names, base frame and pose, limit check, tracking error, start
+    check); a run whose objects moved before the robot acted says it is no validation of the twin."""
+    from splattwin.robot.outputs import twin_digest
+
+    twin = _manifest_twin(tmp_path, scaled=True)
+    _robot_results(twin, twin_digest(twin))
+    res = json.loads((twin / "robot" / "results.json").read_text())
+    res.update(joint_names={"exported": [f"fr3_joint{i}" for i in range(1, 8)], "simulated": []},
+               base_frame="fr3_link0", base_pose={"x": -0.5, "y": 0.0, "z": 0.0, "yaw": 0.0},
+               tracking={"joint_max_rad": 0.00286, "tcp_max_m": 0.00348, "tcp_median_m": 0.00039},
+               real_robot={"written": True, "reason": None, "files": ["program.json"], "limits_checked": "FR3 doc"},
+               settle={"time_s": 0.5, "threshold_m": 0.01, "threshold_deg": 5.0, "moved": [],
+                       "objects": {"cake": {"moved_m": 0.0002, "turned_deg": 0.1, "dz_m": 0.0}}})
+    (twin / "robot" / "results.json").write_text(json.dumps(res))
+    (twin / "robot" / "program.json").write_text(json.dumps({"phases": [
+        {"kind": k} for k in ("gripper", "arm", "gripper", "arm", "gripper", "arm")]}))
+    html = build_report(twin).read_text()
+    for s in ("real-arm files", "written: robot/program.json", "6: 3 arm, 3 gripper", "fr3_joint1 .. fr3_joint7",
+              "fr3_link0", "x -0.5, y 0.0, z 0.0 m", "base_transform.yaml", "checked, inside (FR3 doc)",
+              "TCP max 3.48 mm, median 0.39 mm", "start check", "passed"):
+        assert s in html, s
+    reason = "the twin is not at rest in physics: before the robot acted, cake moved 5.0 cm (fell)"
+    res.update(real_robot={"written": False, "reason": reason, "files": []},
+               notes=[f"no trajectory for the real arm: {reason}"],
+               settle={**res["settle"], "moved": ["cake"],
+                       "objects": {"cake": {"moved_m": 0.05, "turned_deg": 0.0, "dz_m": -0.05}}})
+    (twin / "robot" / "results.json").write_text(json.dumps(res))
+    html = build_report(twin).read_text()
+    assert "NOT a validation of the twin" in html and "NOT written: the twin is not at rest" in html
+    assert "FAILED: cake moved" in html and html.count("cake moved 5.0 cm (fell)") == 1

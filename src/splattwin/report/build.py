@@ -189,6 +189,8 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
         kpis["task success"] = False
     elif robot:
         kpis["task success"] = bool(robot["nominal"]["success"])
+        if isinstance(robot.get("real_robot"), dict):
+            kpis["real-arm files"] = bool(robot["real_robot"].get("written"))
         if robot.get("trials"):
             kpis["trials"] = f"{robot['trials']['successes']}/{robot['trials']['trials']}"
     tt = timings or {k: v.get("seconds", 0.0) for k, v in state.items()}
@@ -446,7 +448,10 @@ def _robot_section(sec: Section, twin: Path, robot: dict | None, stale: str | No
         sec.text(f"the task could not run on this twin: {robot['error']}")
         return
     nom = robot["nominal"]
-    sec.text(f"task: {robot['task']}; planner {robot['planner']}; overall: {'SUCCESS' if nom['success'] else 'FAILURE'}.")
+    moved = (robot.get("settle") or {}).get("moved") or []
+    overall = ("SUCCESS in simulation, but NOT a validation of the twin (objects moved before the robot acted)"
+               if nom["success"] and moved else "SUCCESS" if nom["success"] else "FAILURE")
+    sec.text(f"task: {robot['task']}; planner {robot['planner']}; overall: {overall}.")
     rows = []
     for s in nom["steps"]:
         rows.append([s["index"], s["pick"], s["goal"], s["grasped"], s["placed"], s["at_rest"],
@@ -456,10 +461,61 @@ def _robot_section(sec: Section, twin: Path, robot: dict | None, stale: str | No
     if tr:
         sec.text(f"robustness: {tr['successes']}/{tr['trials']} trials at σ = {tr['sigma'] * 1000:.1f} mm "
                  f"(95 % CI {tr['ci95'][0]:.2f}–{tr['ci95'][1]:.2f}), {tr['collisions']} collisions.")
+    _real_arm_rows(sec, twin, robot)
     ov = twin / "robot" / "overview.png"
     if not ov.is_file():
         ov = twin / "robot" / "frames" / "overview.png"
     if ov.is_file():
         sec.image(ov, caption="execution in MuJoCo")
     for n in robot.get("notes", []):
-        sec.text(f"note: {n}")
+        if not (isinstance(robot.get("real_robot"), dict) and robot["real_robot"].get("reason")
+                and str(robot["real_robot"]["reason"]) in str(n)):   # the table above says it
+            sec.text(f"note: {n}")
+
+
+def _real_arm_rows(sec: Section, twin: Path, robot: dict) -> None:
+    """What the run gives a real arm (robot/results.json, program.json): whether the files were written
+    and why not, the program's phases, the exported joint names and base frame, the base pose and its
+    file, the named robot's limit check, the servos' tracking error and the start check."""
+    real = robot.get("real_robot") if isinstance(robot.get("real_robot"), dict) else {}
+    rows = []
+    if real.get("written"):
+        rows.append(["real-arm files", "written: robot/program.json + program/, trajectory.*, gripper.ros2.yaml"])
+        prog = _json(twin / "robot" / "program.json")
+        phases = prog.get("phases") if isinstance(prog, dict) else None
+        if isinstance(phases, list):
+            kinds = [str(p.get("kind")) for p in phases if isinstance(p, dict)]
+            rows.append(["program.json phases", f"{len(kinds)}: {kinds.count('arm')} arm, "
+                         f"{kinds.count('gripper')} gripper (blocking), run in order"])
+    elif real:
+        rows.append(["real-arm files", f"NOT written: {real.get('reason')}"])
+    jn = robot.get("joint_names")
+    if isinstance(jn, dict) and jn.get("exported"):
+        ex = [str(n) for n in jn["exported"]]
+        rows.append(["exported joint names", f"{ex[0]} .. {ex[-1]}" if len(ex) > 2 else ", ".join(ex)])
+    if robot.get("base_frame"):
+        rows.append(["base frame", robot["base_frame"]])
+    bp = robot.get("base_pose")
+    if isinstance(bp, dict):
+        rows.append(["base pose in the twin frame", f"x {bp.get('x')}, y {bp.get('y')}, z {bp.get('z')} m, "
+                     f"yaw {bp.get('yaw')} rad (robot/base_transform.yaml)"])
+    if real.get("limit_violations"):
+        rows.append(["robot limits", f"exceeded: {'; '.join(map(str, real['limit_violations']))[:600]}"])
+    elif real.get("limits_checked"):
+        rows.append(["robot limits", f"checked, inside ({real['limits_checked']})"])
+    tr = robot.get("tracking")
+    if isinstance(tr, dict) and tr.get("tcp_max_m") is not None:
+        rows.append(["tracking error (physics vs commanded)",
+                     f"TCP max {tr['tcp_max_m'] * 1000:.2f} mm, median {tr.get('tcp_median_m', 0) * 1000:.2f} mm; "
+                     f"joints max {tr.get('joint_max_rad')} rad"])
+    st = robot.get("settle")
+    if isinstance(st, dict) and isinstance(st.get("objects"), dict) and st["objects"]:
+        worst = max(st["objects"], key=lambda o: st["objects"][o].get("moved_m", 0.0))
+        w = st["objects"][worst]
+        verdict = (f"FAILED: {', '.join(st.get('moved') or [])} moved" if st.get("moved") else "passed")
+        rows.append(["start check (objects at rest)",
+                     f"{verdict}; largest move {worst} {w.get('moved_m', 0) * 100:.1f} cm, "
+                     f"{w.get('turned_deg', 0):.1f} deg in {st.get('time_s')} s before the robot acted "
+                     f"(limits {st.get('threshold_m', 0) * 100:g} cm, {st.get('threshold_deg')} deg)"])
+    if rows:
+        sec.table(["for the real arm", "value"], rows)
