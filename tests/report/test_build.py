@@ -273,3 +273,15 @@ def test_report_shows_what_the_run_gives_the_real_arm(tmp_path):
     html = build_report(twin).read_text()
     assert "NOT a validation of the twin" in html and "NOT written: the twin is not at rest" in html
     assert "FAILED: cake moved" in html and html.count("cake moved 5.0 cm (fell)") == 1
+
+
+def test_report_shows_the_sfm_reprojection_error_and_time(tmp_path):
+    """poses_report.json writes `mean_reproj_error` and `timings`; the report looked up
+    `mean_reproj_error_px` and `sfm_s`, so an SfM twin's table showed neither."""
+    twin = _twin(tmp_path)
+    (twin / "poses" / "poses_report.json").write_text(json.dumps({
+        "method": "sfm", "total": 15, "registered": 15, "mean_reproj_error": 0.38120204642600397,
+        "num_points": 314, "timings": {"extract": 0.819, "cpu": 1.827, "match": 0.675, "map": 0.474}}))
+    html = build_report(twin).read_text()
+    assert "mean reprojection error (px)" in html and "0.381" in html and "314" in html
+    assert "SfM time (s): extract, match, map" in html and "1.97" in html

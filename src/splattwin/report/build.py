@@ -273,7 +273,20 @@ def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
     sec.text(f"{plural(len(ds.train()), 'training view')} and {plural(len(ds.heldout()), 'held-out view')} at {at}.")
     _heldout_rows(sec, ds.meta.get("heldout"), [f.name for f in ds.heldout()])
     if poses:
-        rows = [[k, poses[k]] for k in ("method", "registered", "total", "mean_reproj_error_px", "sfm_s") if k in poses]
+        rows = [[k, poses[k]] for k in ("method", "registered", "total") if k in poses]
+        # the poses stage writes `mean_reproj_error` (px) and `timings` (s per SfM step, `poses/sfm.py`);
+        # `mean_reproj_error_px` / `sfm_s` are older names, read when a file has them
+        err = poses.get("mean_reproj_error", poses.get("mean_reproj_error_px"))
+        if isinstance(err, (int, float)) and not isinstance(err, bool):
+            rows.append(["mean reprojection error (px)", round(float(err), 3)])
+        if isinstance(poses.get("num_points"), int):
+            rows.append(["sparse points", poses["num_points"]])
+        tim = poses.get("timings")
+        steps = {k: v for k, v in tim.items() if k != "cpu" and isinstance(v, (int, float))} \
+            if isinstance(tim, dict) else {}
+        sfm_s = sum(steps.values()) if steps else poses.get("sfm_s")
+        if isinstance(sfm_s, (int, float)) and not isinstance(sfm_s, bool):
+            rows.append(["SfM time (s)" + (f": {', '.join(steps)}" if steps else ""), round(float(sfm_s), 2)])
         if rows:
             sec.table(["pose estimation", "value"], rows)
     if man:
