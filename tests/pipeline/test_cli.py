@@ -110,3 +110,18 @@ def test_headline_and_exit_code_say_whether_real_arm_files_were_written(tmp_path
     _print_headline(ctx)
     out = " ".join(capsys.readouterr().out.split())
     assert "robot task: failure, no files for the real arm: the task failed" in out and _exit_code(ctx) == 1
+
+
+def test_headline_says_when_psnr_is_over_loss_masked_pixels(tmp_path, capsys, monkeypatch):
+    import json
+
+    monkeypatch.setenv("COLUMNS", "1000")
+    (tmp_path / "splat" / "eval").mkdir(parents=True)
+    (tmp_path / "splat" / "eval" / "metrics.json").write_text(json.dumps({"loss_masks": {"applied": True}}))
+    ctx = Context(out=tmp_path, options={}, timings={"splats": 1.0},
+                  results={"splats": {"gaussians": 7080, "split": "heldout", "psnr": 26.64, "ssim": 0.9}})
+    _print_headline(ctx)
+    assert "heldout PSNR 26.64 dB, SSIM 0.9000 (over loss-masked pixels)" in capsys.readouterr().out
+    (tmp_path / "splat" / "eval" / "metrics.json").write_text(json.dumps({"loss_masks": {"applied": False}}))
+    _print_headline(ctx)
+    assert "masked" not in capsys.readouterr().out

@@ -285,3 +285,20 @@ def test_report_shows_the_sfm_reprojection_error_and_time(tmp_path):
     html = build_report(twin).read_text()
     assert "mean reprojection error (px)" in html and "0.381" in html and "314" in html
     assert "SfM time (s): extract, match, map" in html and "1.97" in html
+
+
+def test_report_labels_loss_masked_metrics_and_says_images_once(tmp_path):
+    """Held-out PSNR/SSIM over loss-masked pixels were shown as if over whole images, and the legend
+    stored in metrics.json (beginning "images:") was printed after "Images:"."""
+    lm = {"applied": True, "views": ["heldout_000", "heldout_001"], "protocol": "pixels a frame's mask_path "
+          "sets to 0 are left out."}
+    import html as _html
+
+    twin = _twin(tmp_path, loss_masks=lm, legend="images: ground truth | render | error", views=[])
+    html = _html.unescape(build_report(twin).read_text())
+    assert "PSNR heldout, masked (dB)" in html and "(masked: over the pixels the capture's loss masks keep)" in html
+    assert "loss masks applied (nerfstudio mask_path) to 2 evaluated views: heldout_000" in html
+    assert "Images: images:" not in html and "Images: ground truth | render | error." in html
+    (twin / "splat" / "eval" / "metrics.json").write_text(json.dumps({
+        "split": "heldout", "mean_psnr": 24.5, "mean_ssim": 0.81, "n_views": 2, "gaussians": 1234, "views": []}))
+    assert "masked" not in build_report(twin).read_text()

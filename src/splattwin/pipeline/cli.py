@@ -172,7 +172,14 @@ def _print_headline(ctx) -> None:
     r = ctx.results
     if "splats" in r and r["splats"]:
         s = r["splats"]
-        con.print(f"reconstruction: {s['gaussians']} Gaussians, {s['split']} PSNR {s['psnr']:.2f} dB, SSIM {s['ssim']:.4f}")
+        masked = ""
+        try:   # held-out figures over the pixels the capture's loss masks keep (metrics.json loss_masks)
+            lm = json.loads(ctx.path("splat/eval/metrics.json").read_text()).get("loss_masks")
+            masked = " (over loss-masked pixels)" if isinstance(lm, dict) and lm.get("applied") else ""
+        except (OSError, ValueError, AttributeError):
+            pass
+        con.print(f"reconstruction: {s['gaussians']} Gaussians, {s['split']} PSNR {s['psnr']:.2f} dB, "
+                  f"SSIM {s['ssim']:.4f}{masked}")
     # only stages this run ran or found up to date (ctx.results): after `--until splats` the semantics and
     # twin of an earlier build are still on disk, but nothing vouches that they match the new splats
     fj = ctx.path("semantics/fusion.json")

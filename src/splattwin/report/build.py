@@ -177,8 +177,9 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
     head = rep.section("Summary")
     kpis = {}
     if ev:
-        kpis[f"PSNR {ev['split']} (dB)"] = round(ev["mean_psnr"], 2)
-        kpis[f"SSIM {ev['split']}"] = round(ev["mean_ssim"], 4)
+        masked = ", masked" if _masked(ev) else ""
+        kpis[f"PSNR {ev['split']}{masked} (dB)"] = round(ev["mean_psnr"], 2)
+        kpis[f"SSIM {ev['split']}{masked}"] = round(ev["mean_ssim"], 4)
     if fusion and fusion.get("miou_heldout") is not None:
         kpis["mIoU held-out"] = round(fusion["miou_heldout"], 3)
     elif fusion and fusion.get("miou_heldout_masks") is not None:
@@ -317,12 +318,27 @@ def length_text(values, scaled: bool, sep: str = " × ") -> str:
     return sep.join(f"{x:.3g}" for x in values) + " units (SfM, unscaled)"
 
 
+def _masked(ev: dict | None) -> dict | None:
+    """metrics.json `loss_masks` when the evaluation left out loss-masked pixels, else None."""
+    lm = ev.get("loss_masks") if isinstance(ev, dict) else None
+    return lm if isinstance(lm, dict) and lm.get("applied") else None
+
+
 def _recon_section(sec: Section, twin: Path, ev: dict | None) -> None:
     if not ev:
         sec.text("splat stage not run")
         return
+    legend = str(ev.get("legend", "ground truth | render | error")).strip()
+    legend = legend[len("images:"):].strip() if legend.lower().startswith("images:") else legend
+    lm = _masked(ev)
     sec.text(f"{ev['gaussians']} Gaussians; {ev['split']} views: mean PSNR {ev['mean_psnr']:.2f} dB, "
-             f"SSIM {ev['mean_ssim']:.4f}. Images: {ev.get('legend', 'ground truth | render | error')}.")
+             f"SSIM {ev['mean_ssim']:.4f}" + (" (masked: over the pixels the capture's loss masks keep)" if lm else "")
+             + f". Images: {legend}.")
+    if lm:
+        views = lm.get("views") if isinstance(lm.get("views"), list) else []
+        sec.text(f"loss masks applied (nerfstudio mask_path) to {plural(len(views), 'evaluated view')}"
+                 f"{': ' + ', '.join(map(str, views[:20])) if views else ''}: {lm.get('protocol', '')} "
+                 f"These figures are not comparable with an evaluation over whole images (splatfacto's).")
     er = ev.get("eval_resolution")
     if isinstance(er, dict):
         what = {"training": "the training resolution", "full": "full resolution", "given": "a given resolution"}
