@@ -78,3 +78,50 @@ def test_run_stages_records_what_it_skipped_and_its_own_time(tmp_path):
     assert first.skipped == [] and first.wall_s >= 0.3
     again = run_stages(stages, Context(tmp_path, {}))
     assert again.skipped == ["a", "b"] and again.wall_s < 0.3 <= again.timings["a"]
+
+
+def test_headline_and_exit_code_say_whether_real_arm_files_were_written(tmp_path, capsys, monkeypatch):
+    """A robot run whose real-arm files were refused (FR3 limits, or objects moved before the robot acted)
+    printed "robot task: success" and exited 0 while `plan` exits 2: build now exits 2 and says why, once;
+    a validated run names robot/program.json."""
+    import json
+
+    from splattwin.pipeline.cli import _exit_code
+
+    monkeypatch.setenv("COLUMNS", "1000")
+    (tmp_path / "robot").mkdir()
+    reason = "the trajectory leaves the FR3's joint limits (--joint-names fr3; ...): fr3_joint1 at t = 0.010 s"
+    (tmp_path / "robot" / "results.json").write_text(json.dumps({"real_robot": {"written": False, "reason": reason}}))
+    ctx = Context(out=tmp_path, options={}, timings={"robot": 3.0},
+                  results={"robot": {"results": "@robot/results.json", "success": True, "error": None,
+                                     "export_error": reason}})
+    _print_headline(ctx)
+    out = " ".join(capsys.readouterr().out.split())
+    assert "robot task: success in simulation, but no files for the real arm" in out
+    assert out.count("fr3_joint1 at t = 0.010 s") == 1 and _exit_code(ctx) == 2
+    (tmp_path / "robot" / "results.json").write_text(json.dumps({"real_robot": {"written": True, "reason": None}}))
+    ctx.results["robot"]["export_error"] = None
+    _print_headline(ctx)
+    out = " ".join(capsys.readouterr().out.split())
+    assert f"robot task: success; real arm: {tmp_path / 'robot' / 'program.json'}" in out and _exit_code(ctx) == 0
+    (tmp_path / "robot" / "results.json").write_text(json.dumps({"real_robot": {
+        "written": False, "reason": "the task failed in the validation run at step 2 (bottle): no transit"}}))
+    ctx.results["robot"]["success"] = False
+    _print_headline(ctx)
+    out = " ".join(capsys.readouterr().out.split())
+    assert "robot task: failure, no files for the real arm: the task failed" in out and _exit_code(ctx) == 1
+
+
+def test_headline_says_when_psnr_is_over_loss_masked_pixels(tmp_path, capsys, monkeypatch):
+    import json
+
+    monkeypatch.setenv("COLUMNS", "1000")
+    (tmp_path / "splat" / "eval").mkdir(parents=True)
+    (tmp_path / "splat" / "eval" / "metrics.json").write_text(json.dumps({"loss_masks": {"applied": True}}))
+    ctx = Context(out=tmp_path, options={}, timings={"splats": 1.0},
+                  results={"splats": {"gaussians": 7080, "split": "heldout", "psnr": 26.64, "ssim": 0.9}})
+    _print_headline(ctx)
+    assert "heldout PSNR 26.64 dB, SSIM 0.9000 (over loss-masked pixels)" in capsys.readouterr().out
+    (tmp_path / "splat" / "eval" / "metrics.json").write_text(json.dumps({"loss_masks": {"applied": False}}))
+    _print_headline(ctx)
+    assert "masked" not in capsys.readouterr().out

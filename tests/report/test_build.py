@@ -239,3 +239,66 @@ def test_report_pictures_draw_the_obstacle_box_translucent_red(tmp_path):
     bare = render_meshes([floor], T, K, 64, 64)[32, 32]
     np.testing.assert_allclose(centre, 0.5 * solid + 0.5 * bare, atol=1e-5)
     assert not np.allclose(centre, solid, atol=0.05)
+
+
+def test_report_shows_what_the_run_gives_the_real_arm(tmp_path):
+    """The robot section showed task, steps and trials only: now the real-arm block (files written or why
+    not, program phases, exported joint names, base frame and pose, limit check, tracking error, start
+    check); a run whose objects moved before the robot acted says it is no validation of the twin."""
+    from splattwin.robot.outputs import twin_digest
+
+    twin = _manifest_twin(tmp_path, scaled=True)
+    _robot_results(twin, twin_digest(twin))
+    res = json.loads((twin / "robot" / "results.json").read_text())
+    res.update(joint_names={"exported": [f"fr3_joint{i}" for i in range(1, 8)], "simulated": []},
+               base_frame="fr3_link0", base_pose={"x": -0.5, "y": 0.0, "z": 0.0, "yaw": 0.0},
+               tracking={"joint_max_rad": 0.00286, "tcp_max_m": 0.00348, "tcp_median_m": 0.00039},
+               real_robot={"written": True, "reason": None, "files": ["program.json"], "limits_checked": "FR3 doc"},
+               settle={"time_s": 0.5, "threshold_m": 0.01, "threshold_deg": 5.0, "moved": [],
+                       "objects": {"cake": {"moved_m": 0.0002, "turned_deg": 0.1, "dz_m": 0.0}}})
+    (twin / "robot" / "results.json").write_text(json.dumps(res))
+    (twin / "robot" / "program.json").write_text(json.dumps({"phases": [
+        {"kind": k} for k in ("gripper", "arm", "gripper", "arm", "gripper", "arm")]}))
+    html = build_report(twin).read_text()
+    for s in ("real-arm files", "written: robot/program.json", "6: 3 arm, 3 gripper", "fr3_joint1 .. fr3_joint7",
+              "fr3_link0", "x -0.5, y 0.0, z 0.0 m", "base_transform.yaml", "checked, inside (FR3 doc)",
+              "TCP max 3.48 mm, median 0.39 mm", "start check", "passed"):
+        assert s in html, s
+    reason = "the twin is not at rest in physics: before the robot acted, cake moved 5.0 cm (fell)"
+    res.update(real_robot={"written": False, "reason": reason, "files": []},
+               notes=[f"no trajectory for the real arm: {reason}"],
+               settle={**res["settle"], "moved": ["cake"],
+                       "objects": {"cake": {"moved_m": 0.05, "turned_deg": 0.0, "dz_m": -0.05}}})
+    (twin / "robot" / "results.json").write_text(json.dumps(res))
+    html = build_report(twin).read_text()
+    assert "NOT a validation of the twin" in html and "NOT written: the twin is not at rest" in html
+    assert "FAILED: cake moved" in html and html.count("cake moved 5.0 cm (fell)") == 1
+
+
+def test_report_shows_the_sfm_reprojection_error_and_time(tmp_path):
+    """poses_report.json writes `mean_reproj_error` and `timings`; the report looked up
+    `mean_reproj_error_px` and `sfm_s`, so an SfM twin's table showed neither."""
+    twin = _twin(tmp_path)
+    (twin / "poses" / "poses_report.json").write_text(json.dumps({
+        "method": "sfm", "total": 15, "registered": 15, "mean_reproj_error": 0.38120204642600397,
+        "num_points": 314, "timings": {"extract": 0.819, "cpu": 1.827, "match": 0.675, "map": 0.474}}))
+    html = build_report(twin).read_text()
+    assert "mean reprojection error (px)" in html and "0.381" in html and "314" in html
+    assert "SfM time (s): extract, match, map" in html and "1.97" in html
+
+
+def test_report_labels_loss_masked_metrics_and_says_images_once(tmp_path):
+    """Held-out PSNR/SSIM over loss-masked pixels were shown as if over whole images, and the legend
+    stored in metrics.json (beginning "images:") was printed after "Images:"."""
+    lm = {"applied": True, "views": ["heldout_000", "heldout_001"], "protocol": "pixels a frame's mask_path "
+          "sets to 0 are left out."}
+    import html as _html
+
+    twin = _twin(tmp_path, loss_masks=lm, legend="images: ground truth | render | error", views=[])
+    html = _html.unescape(build_report(twin).read_text())
+    assert "PSNR heldout, masked (dB)" in html and "(masked: over the pixels the capture's loss masks keep)" in html
+    assert "loss masks applied (nerfstudio mask_path) to 2 evaluated views: heldout_000" in html
+    assert "Images: images:" not in html and "Images: ground truth | render | error." in html
+    (twin / "splat" / "eval" / "metrics.json").write_text(json.dumps({
+        "split": "heldout", "mean_psnr": 24.5, "mean_ssim": 0.81, "n_views": 2, "gaussians": 1234, "views": []}))
+    assert "masked" not in build_report(twin).read_text()

@@ -229,7 +229,7 @@ def test_plan_failing_after_the_grasp_writes_nothing_for_the_real_arm(gt_twin_sm
 def test_plan_fr3_outside_the_fr3_limits_exits_2(gt_twin_small: Path, tmp_path: Path, monkeypatch, capsys):
     """With --joint-names fr3 the exported trajectory is checked against the FR3's limits: outside them
     (here joint 1 held to +-0.1 mrad) the plan runs, results.json records which joint left them when, no
-    real-robot file is written and `plan` exits 2 saying so."""
+    real-robot file is written and `plan` exits 2 saying so, once."""
     from splattwin.robot import export
     from splattwin.robot.outputs import REAL_ROBOT_FILES
 
@@ -241,10 +241,66 @@ def test_plan_fr3_outside_the_fr3_limits_exits_2(gt_twin_small: Path, tmp_path: 
     task.write_text("- pick: yellow_cube\n- place_in: {center: [0.1, -0.05, 0.0], size: 0.1}\n")
     assert main(["plan", str(gt_twin_small), "--task", str(task), "--out", str(out), "--no-render",
                  "--joint-names", "fr3"]) == 2
-    err = " ".join(capsys.readouterr().err.split())
-    assert "no files for the real arm" in err and "fr3_joint1 at t = " in err
+    cap = capsys.readouterr()
+    err, said = " ".join(cap.err.split()), " ".join((cap.out + cap.err).split())
+    # the refusal is on stderr, its reason said once (the summary), not three times
+    assert "no files for the real arm" in err and said.count("fr3_joint1 at t = 0.010 s") == 1
     res = json.loads((out / "results.json").read_text())
     assert res["nominal"]["success"] and not res["real_robot"]["written"]
     assert res["real_robot"]["limit_violations"][0].startswith("fr3_joint1 at t = ")
     assert not any((out / n).exists() for n in REAL_ROBOT_FILES)
     assert json.loads((out / "segments" / "step1_transit.json").read_text())["joint_names"][0] == "fr3_joint1"
+
+
+def _floating_twin(gt_twin: Path, dest: Path, lift: float = 0.05) -> Path:
+    """A copy of a ground-truth twin whose cardboard box hovers `lift` m above the table (as a twin whose
+    mesh ends above its support: physics drops it when the simulation starts)."""
+    import shutil
+
+    shutil.copytree(gt_twin, dest)
+    doc = json.loads((dest / "twin.json").read_text())
+    box = next(o for o in doc["objects"] if o["name"] == "cardboard_box")
+    box["T_world_obj"][2][3] += lift
+    (dest / "twin.json").write_text(json.dumps(doc))
+    return dest
+
+
+def test_settle_check_measures_what_physics_moves_before_the_robot_acts(gt_twin_small: Path, tmp_path: Path):
+    """The start check steps physics with the arm held and restores the state: nothing moves on the
+    ground-truth twin; a box 5 cm up falls 5 cm and is named."""
+    from splattwin.robot.execute import unsettled
+    from splattwin.robot.world import build_world
+
+    w = build_world(gt_twin_small, visual=False)
+    q0, t0 = w.qpos(), w.time
+    s = w.settle_check()
+    assert s["moved"] == [] and unsettled(s) is None
+    assert max(v["moved_m"] for v in s["objects"].values()) < 1e-3
+    assert (w.qpos() == q0).all() and w.time == t0
+    w = build_world(_floating_twin(gt_twin_small, tmp_path / "float"), visual=False)
+    s = w.settle_check()
+    assert s["moved"] == ["cardboard_box"] and s["objects"]["cardboard_box"]["dz_m"] == pytest.approx(-0.05, abs=0.005)
+    assert "cardboard_box moved 5.0 cm (fell)" in unsettled(s)
+
+
+@pytest.mark.slow
+def test_plan_on_a_floating_object_writes_nothing_for_the_real_arm(gt_twin_small: Path, tmp_path: Path, capsys):
+    """A twin object that physics moves before the robot acts (5 cm above the table: it falls) makes the run
+    no validation of the twin, even when the task succeeds on the lowered scene: results.json says which
+    object moved how far, no real-arm file is written, the summary says so once and `plan` exits 2."""
+    from splattwin.robot.outputs import REAL_ROBOT_FILES
+
+    twin = _floating_twin(gt_twin_small, tmp_path / "float")
+    out = tmp_path / "o"
+    task = tmp_path / "one.yaml"
+    task.write_text("- pick: yellow_cube\n- place_in: {center: [0.1, -0.05, 0.0], size: 0.1}\n")
+    assert main(["plan", str(twin), "--task", str(task), "--out", str(out), "--no-render"]) == 2
+    cap = capsys.readouterr()
+    said = " ".join((cap.out + cap.err).split())
+    res = json.loads((out / "results.json").read_text())
+    assert res["nominal"]["success"] and not res["validated"] and not res["real_robot"]["written"]
+    assert res["settle"]["moved"] == ["cardboard_box"]
+    assert res["real_robot"]["not_at_rest"]["cardboard_box"]["moved_m"] == pytest.approx(0.05, abs=0.005)
+    assert "cardboard_box moved 5.0 cm" in res["real_robot"]["reason"]
+    assert not any((out / n).exists() for n in REAL_ROBOT_FILES)
+    assert "NOT a validation of the twin" in said and said.count("cardboard_box moved 5.0 cm") == 1

@@ -270,6 +270,15 @@ def test_twin_json_describes_every_export_file(built):
     assert listed["export/moveit/collision_objects.yaml"]["quaternion"] == "xyzw"
     assert "twin_z_up" in listed["export/scene.glb"]["frame"]
     assert listed[m.object("box").splat_ply]["frame"].startswith("object frame")
+    # the convex-part OBJs the MJCF and URDF load are listed too (audit 7B D6: they were not)
+    import os
+    import re
+
+    loaded = {os.path.normpath(os.path.join("export", f)) for f in
+              re.findall(r'file="([^"]+\.obj)"', (out / "export" / "scene.xml").read_text())}
+    parts = {p.relative_to(out).as_posix() for p in out.rglob("parts/*.obj")}
+    assert parts and loaded and loaded <= set(listed) and parts <= set(listed)
+    assert all(listed[p].get("role", "").startswith("convex collision part") for p in parts)
 
 
 def test_splat_plys_and_objs_state_their_units(built, tmp_path):

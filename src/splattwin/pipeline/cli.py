@@ -8,6 +8,7 @@ and can come from a config file (`--config twin.yaml`, nested like the flags); f
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 from splattwin.options import add_config_flag, add_options, given, load_config, merge
@@ -105,11 +106,35 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _exit_code(ctx) -> int:
-    """2 when the robot task could not run (bad input), 1 when it ran and failed, else 0."""
+    """2 when the robot task could not run (bad input) or ran but its real-arm files were refused (outside
+    the named robot's limits, or objects moved before the robot acted: `plan` exits 2 alike), 1 when it ran
+    and failed, else 0."""
     robot = ctx.results.get("robot") or {}
-    if robot.get("error"):
+    if robot.get("error") or robot.get("export_error"):
         return 2
     return 0 if robot.get("success", True) else 1
+
+
+def _robot_line(ctx) -> str:
+    """The headline's robot line: the task's outcome in simulation and whether the real-arm files were
+    written (robot/program.json named), else why not (results.json `real_robot`), said once."""
+    from rich.markup import escape
+
+    rec = ctx.results["robot"]
+    res = None
+    try:
+        res = json.loads(ctx.path("robot/results.json").read_text())
+    except (OSError, ValueError):
+        pass
+    real = res.get("real_robot") if isinstance(res, dict) and isinstance(res.get("real_robot"), dict) else {}
+    if rec.get("success") and not rec.get("export_error") and real.get("written"):
+        prog = ctx.path("robot/program.json")
+        return (f"robot task: [green]success[/]; real arm: {escape(str(prog))} (arm phases and blocking gripper "
+                f"actions)")
+    head = ("[red]success in simulation, but no files for the real arm[/]" if rec.get("success")
+            else "[red]failure[/], no files for the real arm")
+    why = rec.get("export_error") or real.get("reason")
+    return f"robot task: {head}" + (f": {escape(str(why))}" if why else "")
 
 
 def _total(ctx) -> str:
@@ -147,7 +172,14 @@ def _print_headline(ctx) -> None:
     r = ctx.results
     if "splats" in r and r["splats"]:
         s = r["splats"]
-        con.print(f"reconstruction: {s['gaussians']} Gaussians, {s['split']} PSNR {s['psnr']:.2f} dB, SSIM {s['ssim']:.4f}")
+        masked = ""
+        try:   # held-out figures over the pixels the capture's loss masks keep (metrics.json loss_masks)
+            lm = json.loads(ctx.path("splat/eval/metrics.json").read_text()).get("loss_masks")
+            masked = " (over loss-masked pixels)" if isinstance(lm, dict) and lm.get("applied") else ""
+        except (OSError, ValueError, AttributeError):
+            pass
+        con.print(f"reconstruction: {s['gaussians']} Gaussians, {s['split']} PSNR {s['psnr']:.2f} dB, "
+                  f"SSIM {s['ssim']:.4f}{masked}")
     # only stages this run ran or found up to date (ctx.results): after `--until splats` the semantics and
     # twin of an earlier build are still on disk, but nothing vouches that they match the new splats
     fj = ctx.path("semantics/fusion.json")
@@ -167,7 +199,7 @@ def _print_headline(ctx) -> None:
     if r.get("robot", {}).get("error"):
         con.print(f"[red]robot task not run: {r['robot']['error']}[/]")
     elif r.get("robot"):
-        con.print(f"robot task: {'[green]success[/]' if r['robot']['success'] else '[red]failure[/]'}")
+        con.print(_robot_line(ctx), highlight=False)
     twin = ctx.out / "twin.json"
     # --until before the twin stage: name the folder, not a twin.json that is not there (or is an earlier
     # build's: kept, with the later stages' caches, for the next run to resume from)

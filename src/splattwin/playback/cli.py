@@ -56,8 +56,9 @@ def run_plan(args: argparse.Namespace) -> int:
     the real gripper, reports per-step success and collisions, exports the joint trajectory (JSON, CSV,
     ROS 2 JointTrajectory YAML) and frames. With --record DIR every run (nominal, then each trial) is also
     written as a LeRobot-layout episode rendered from the twin's splats (wrist + scene camera). Exit code
-    0 when the task succeeded, 1 when it failed, 2 on bad input or when the trajectory leaves the limits of
-    the robot named by --joint-names (fr3: the plan ran, results.json records it, no real-robot files)."""
+    0 when the task succeeded, 1 when it failed, 2 on bad input, when the trajectory leaves the limits of
+    the robot named by --joint-names (fr3: the plan ran, results.json records it, no real-robot files) or
+    when an object moved from its twin pose before the robot acted (floating: the run validates nothing)."""
     from splattwin.console import console
 
     from splattwin.errors import InputError
@@ -85,9 +86,10 @@ def run_plan(args: argparse.Namespace) -> int:
             console().print(f"recorded {info['episodes']} episode(s) into {info['path']} "
                             f"({info['reused']} reused from a killed run; {info['fps']:g} fps, cameras "
                             + ", ".join(f"{k} {w}x{h}" for k, (w, h) in info["cameras"].items()) + ")")
-    if res.export_error:   # the plan ran, but its trajectory does not fit the named robot (`--joint-names fr3`)
-        console(stderr=True).print(f"error: no files for the real arm: {res.export_error}", markup=False,
-                                   highlight=False)
+    if res.export_error:   # the plan ran, but no real-arm files: outside the named robot's limits
+        # (`--joint-names fr3`) or the scene moved before the robot acted; the summary above said why
+        console(stderr=True).print("error: no files for the real arm (the reason is above and in results.json "
+                                   "real_robot)", markup=False, highlight=False)
         return 2
     ok = res.success and (d["trials"] is None or d["trials"]["successes"] == d["trials"]["trials"])
     return 0 if ok else 1

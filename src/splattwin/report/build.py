@@ -177,8 +177,9 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
     head = rep.section("Summary")
     kpis = {}
     if ev:
-        kpis[f"PSNR {ev['split']} (dB)"] = round(ev["mean_psnr"], 2)
-        kpis[f"SSIM {ev['split']}"] = round(ev["mean_ssim"], 4)
+        masked = ", masked" if _masked(ev) else ""
+        kpis[f"PSNR {ev['split']}{masked} (dB)"] = round(ev["mean_psnr"], 2)
+        kpis[f"SSIM {ev['split']}{masked}"] = round(ev["mean_ssim"], 4)
     if fusion and fusion.get("miou_heldout") is not None:
         kpis["mIoU held-out"] = round(fusion["miou_heldout"], 3)
     elif fusion and fusion.get("miou_heldout_masks") is not None:
@@ -189,6 +190,8 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
         kpis["task success"] = False
     elif robot:
         kpis["task success"] = bool(robot["nominal"]["success"])
+        if isinstance(robot.get("real_robot"), dict):
+            kpis["real-arm files"] = bool(robot["real_robot"].get("written"))
         if robot.get("trials"):
             kpis["trials"] = f"{robot['trials']['successes']}/{robot['trials']['trials']}"
     tt = timings or {k: v.get("seconds", 0.0) for k, v in state.items()}
@@ -271,7 +274,20 @@ def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
     sec.text(f"{plural(len(ds.train()), 'training view')} and {plural(len(ds.heldout()), 'held-out view')} at {at}.")
     _heldout_rows(sec, ds.meta.get("heldout"), [f.name for f in ds.heldout()])
     if poses:
-        rows = [[k, poses[k]] for k in ("method", "registered", "total", "mean_reproj_error_px", "sfm_s") if k in poses]
+        rows = [[k, poses[k]] for k in ("method", "registered", "total") if k in poses]
+        # the poses stage writes `mean_reproj_error` (px) and `timings` (s per SfM step, `poses/sfm.py`);
+        # `mean_reproj_error_px` / `sfm_s` are older names, read when a file has them
+        err = poses.get("mean_reproj_error", poses.get("mean_reproj_error_px"))
+        if isinstance(err, (int, float)) and not isinstance(err, bool):
+            rows.append(["mean reprojection error (px)", round(float(err), 3)])
+        if isinstance(poses.get("num_points"), int):
+            rows.append(["sparse points", poses["num_points"]])
+        tim = poses.get("timings")
+        steps = {k: v for k, v in tim.items() if k != "cpu" and isinstance(v, (int, float))} \
+            if isinstance(tim, dict) else {}
+        sfm_s = sum(steps.values()) if steps else poses.get("sfm_s")
+        if isinstance(sfm_s, (int, float)) and not isinstance(sfm_s, bool):
+            rows.append(["SfM time (s)" + (f": {', '.join(steps)}" if steps else ""), round(float(sfm_s), 2)])
         if rows:
             sec.table(["pose estimation", "value"], rows)
     if man:
@@ -302,12 +318,27 @@ def length_text(values, scaled: bool, sep: str = " × ") -> str:
     return sep.join(f"{x:.3g}" for x in values) + " units (SfM, unscaled)"
 
 
+def _masked(ev: dict | None) -> dict | None:
+    """metrics.json `loss_masks` when the evaluation left out loss-masked pixels, else None."""
+    lm = ev.get("loss_masks") if isinstance(ev, dict) else None
+    return lm if isinstance(lm, dict) and lm.get("applied") else None
+
+
 def _recon_section(sec: Section, twin: Path, ev: dict | None) -> None:
     if not ev:
         sec.text("splat stage not run")
         return
+    legend = str(ev.get("legend", "ground truth | render | error")).strip()
+    legend = legend[len("images:"):].strip() if legend.lower().startswith("images:") else legend
+    lm = _masked(ev)
     sec.text(f"{ev['gaussians']} Gaussians; {ev['split']} views: mean PSNR {ev['mean_psnr']:.2f} dB, "
-             f"SSIM {ev['mean_ssim']:.4f}. Images: {ev.get('legend', 'ground truth | render | error')}.")
+             f"SSIM {ev['mean_ssim']:.4f}" + (" (masked: over the pixels the capture's loss masks keep)" if lm else "")
+             + f". Images: {legend}.")
+    if lm:
+        views = lm.get("views") if isinstance(lm.get("views"), list) else []
+        sec.text(f"loss masks applied (nerfstudio mask_path) to {plural(len(views), 'evaluated view')}"
+                 f"{': ' + ', '.join(map(str, views[:20])) if views else ''}: {lm.get('protocol', '')} "
+                 f"These figures are not comparable with an evaluation over whole images (splatfacto's).")
     er = ev.get("eval_resolution")
     if isinstance(er, dict):
         what = {"training": "the training resolution", "full": "full resolution", "given": "a given resolution"}
@@ -446,7 +477,10 @@ def _robot_section(sec: Section, twin: Path, robot: dict | None, stale: str | No
         sec.text(f"the task could not run on this twin: {robot['error']}")
         return
     nom = robot["nominal"]
-    sec.text(f"task: {robot['task']}; planner {robot['planner']}; overall: {'SUCCESS' if nom['success'] else 'FAILURE'}.")
+    moved = (robot.get("settle") or {}).get("moved") or []
+    overall = ("SUCCESS in simulation, but NOT a validation of the twin (objects moved before the robot acted)"
+               if nom["success"] and moved else "SUCCESS" if nom["success"] else "FAILURE")
+    sec.text(f"task: {robot['task']}; planner {robot['planner']}; overall: {overall}.")
     rows = []
     for s in nom["steps"]:
         rows.append([s["index"], s["pick"], s["goal"], s["grasped"], s["placed"], s["at_rest"],
@@ -456,10 +490,61 @@ def _robot_section(sec: Section, twin: Path, robot: dict | None, stale: str | No
     if tr:
         sec.text(f"robustness: {tr['successes']}/{tr['trials']} trials at σ = {tr['sigma'] * 1000:.1f} mm "
                  f"(95 % CI {tr['ci95'][0]:.2f}–{tr['ci95'][1]:.2f}), {tr['collisions']} collisions.")
+    _real_arm_rows(sec, twin, robot)
     ov = twin / "robot" / "overview.png"
     if not ov.is_file():
         ov = twin / "robot" / "frames" / "overview.png"
     if ov.is_file():
         sec.image(ov, caption="execution in MuJoCo")
     for n in robot.get("notes", []):
-        sec.text(f"note: {n}")
+        if not (isinstance(robot.get("real_robot"), dict) and robot["real_robot"].get("reason")
+                and str(robot["real_robot"]["reason"]) in str(n)):   # the table above says it
+            sec.text(f"note: {n}")
+
+
+def _real_arm_rows(sec: Section, twin: Path, robot: dict) -> None:
+    """What the run gives a real arm (robot/results.json, program.json): whether the files were written
+    and why not, the program's phases, the exported joint names and base frame, the base pose and its
+    file, the named robot's limit check, the servos' tracking error and the start check."""
+    real = robot.get("real_robot") if isinstance(robot.get("real_robot"), dict) else {}
+    rows = []
+    if real.get("written"):
+        rows.append(["real-arm files", "written: robot/program.json + program/, trajectory.*, gripper.ros2.yaml"])
+        prog = _json(twin / "robot" / "program.json")
+        phases = prog.get("phases") if isinstance(prog, dict) else None
+        if isinstance(phases, list):
+            kinds = [str(p.get("kind")) for p in phases if isinstance(p, dict)]
+            rows.append(["program.json phases", f"{len(kinds)}: {kinds.count('arm')} arm, "
+                         f"{kinds.count('gripper')} gripper (blocking), run in order"])
+    elif real:
+        rows.append(["real-arm files", f"NOT written: {real.get('reason')}"])
+    jn = robot.get("joint_names")
+    if isinstance(jn, dict) and jn.get("exported"):
+        ex = [str(n) for n in jn["exported"]]
+        rows.append(["exported joint names", f"{ex[0]} .. {ex[-1]}" if len(ex) > 2 else ", ".join(ex)])
+    if robot.get("base_frame"):
+        rows.append(["base frame", robot["base_frame"]])
+    bp = robot.get("base_pose")
+    if isinstance(bp, dict):
+        rows.append(["base pose in the twin frame", f"x {bp.get('x')}, y {bp.get('y')}, z {bp.get('z')} m, "
+                     f"yaw {bp.get('yaw')} rad (robot/base_transform.yaml)"])
+    if real.get("limit_violations"):
+        rows.append(["robot limits", f"exceeded: {'; '.join(map(str, real['limit_violations']))[:600]}"])
+    elif real.get("limits_checked"):
+        rows.append(["robot limits", f"checked, inside ({real['limits_checked']})"])
+    tr = robot.get("tracking")
+    if isinstance(tr, dict) and tr.get("tcp_max_m") is not None:
+        rows.append(["tracking error (physics vs commanded)",
+                     f"TCP max {tr['tcp_max_m'] * 1000:.2f} mm, median {tr.get('tcp_median_m', 0) * 1000:.2f} mm; "
+                     f"joints max {tr.get('joint_max_rad')} rad"])
+    st = robot.get("settle")
+    if isinstance(st, dict) and isinstance(st.get("objects"), dict) and st["objects"]:
+        worst = max(st["objects"], key=lambda o: st["objects"][o].get("moved_m", 0.0))
+        w = st["objects"][worst]
+        verdict = (f"FAILED: {', '.join(st.get('moved') or [])} moved" if st.get("moved") else "passed")
+        rows.append(["start check (objects at rest)",
+                     f"{verdict}; largest move {worst} {w.get('moved_m', 0) * 100:.1f} cm, "
+                     f"{w.get('turned_deg', 0):.1f} deg in {st.get('time_s')} s before the robot acted "
+                     f"(limits {st.get('threshold_m', 0) * 100:g} cm, {st.get('threshold_deg')} deg)"])
+    if rows:
+        sec.table(["for the real arm", "value"], rows)

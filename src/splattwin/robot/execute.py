@@ -66,7 +66,7 @@ FLOOR_TOLERANCE = 0.0015  # m: fingertips above the support by the planning marg
 MAX_TOUCHES = 2          # touch-based corrections of the believed object pose per step
 IN_HAND = ("sensed", "planned")  # where the transfer assumes the held object sits (module docstring)
 
-__all__ = ["Executor", "StepResult", "RunResult", "StepFailed", "IN_HAND"]
+__all__ = ["Executor", "StepResult", "RunResult", "StepFailed", "IN_HAND", "unsettled"]
 
 
 @dataclass
@@ -98,11 +98,30 @@ class RunResult:
     wall_s: float
     trajectories: list[tuple[str, Trajectory]] = field(default_factory=list, repr=False)
     rollout: Rollout | None = field(default=None, repr=False)
+    # the start check (`World.settle_check`): how far physics moved each object from its twin pose before
+    # the robot acted; objects in `settle["moved"]` mean the run does not validate the twin (`unsettled`)
+    settle: dict | None = None
 
     def to_dict(self) -> dict:
         return {"success": self.success, "collisions": self.collisions, "plan_ms": self.plan_ms,
                 "sim_time": self.sim_time, "wall_s": self.wall_s, "steps": [asdict(s) for s in self.steps],
-                "trajectories": [name for name, _ in self.trajectories]}
+                "trajectories": [name for name, _ in self.trajectories], "settle": self.settle}
+
+
+def unsettled(settle: dict | None) -> str | None:
+    """Why a run does not validate the twin, from its start check (`RunResult.settle`): the objects that
+    physics moved from their twin poses before the robot acted (floating, sunk in, tipping), else None."""
+    if not settle or not settle.get("moved"):
+        return None
+    parts = []
+    for o in settle["moved"]:
+        v = settle["objects"][o]
+        fell = " (fell)" if v.get("dz_m", 0.0) < -settle["threshold_m"] else ""
+        parts.append(f"{o} moved {v['moved_m'] * 100:.1f} cm{fell} and turned {v['turned_deg']:.1f} deg")
+    return (f"the twin is not at rest in physics: before the robot acted, {'; '.join(parts)} from the twin pose "
+            f"in {settle['time_s']:g} s (limits {settle['threshold_m'] * 100:g} cm, {settle['threshold_deg']:g} deg), "
+            f"so the run was made on another scene than the twin's and does not validate it (check the object's "
+            f"geometry and pose: a floating or sunken object)")
 
 
 class Executor:
@@ -361,6 +380,10 @@ class Executor:
     # ---- whole task -----------------------------------------------------------------------------------
     def run(self, task: Task, stop_on_failure: bool = True) -> RunResult:
         t0 = time.perf_counter()
+        # before the robot acts: does physics leave every object where the twin puts it? (state restored)
+        settle = self.world.settle_check()
+        if settle["moved"]:
+            log.info("%s", unsettled(settle))
         self._snap("start")
         steps = []
         for k, step in enumerate(task.steps, start=1):
@@ -375,4 +398,4 @@ class Executor:
         return RunResult(success=ok, steps=steps, collisions=sum(s.robot_collisions + s.object_collisions for s in steps),
                          plan_ms=list(self.plan_ms), sim_time=self.world.time - self.servo.t0,
                          wall_s=time.perf_counter() - t0, trajectories=self.trajs,
-                         rollout=self.recorder.rollout(self.world))
+                         rollout=self.recorder.rollout(self.world), settle=settle)

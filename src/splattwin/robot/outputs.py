@@ -179,9 +179,17 @@ def write_outputs(out: str | Path, spec, result, trials: dict | None, render_not
 
         names = export_names(None, robot.arm_joints, robot.root_body, spec.robot_mjcf is None)
     T_twin_base = spec.base.matrix()
-    failed = None if result.success else _failure(result)
+    from splattwin.robot.execute import unsettled
+
+    settle = getattr(result, "settle", None)
+    # an object physics moved before the robot acted (floating, sunk in): the run was made on another scene
+    # than the twin's and validates nothing, successful or not (`execute.unsettled`)
+    not_at_rest = unsettled(settle)
+    failed = not_at_rest if not_at_rest else None if result.success else _failure(result)
     paths, notes, real_robot = write_trajectories(out, result.trajectories, trajectory_meta(spec, robot, names),
                                                   names, failed=failed)
+    if not_at_rest:
+        real_robot["not_at_rest"] = {o: settle["objects"][o] for o in settle["moved"]}
     paths["base_transform"] = write_base_transform(out / "base_transform.yaml", T_twin_base, names.base_frame)
     paths.update(write_base_frame_moveit(out, spec.twin_dir, T_twin_base, names.base_frame))
     if render_note:
@@ -196,6 +204,9 @@ def write_outputs(out: str | Path, spec, result, trials: dict | None, render_not
         "robot": {"model": spec.robot_mjcf or "MuJoCo Menagerie franka_emika_panda (Franka Emika Panda + Hand)",
                   "simulation_deviations": simulation_deviations(robot)},
         "real_robot": real_robot,
+        # False when the run does not validate the twin: the task failed, or the scene moved before the
+        # robot acted (`settle`: how far physics moved each object from its twin pose in the start check)
+        "validated": bool(result.success) and not not_at_rest, "settle": settle,
         "planner": spec.planner, "seed": spec.seed,
         "nominal": result.to_dict(), "tracking": tracking,
         "trials": trials,
@@ -257,8 +268,9 @@ def write_trajectories(out: Path, trajectories, meta: dict, names,
 
     def refused(reason: str, **extra) -> tuple[dict[str, Path], list[str], dict]:
         notes.append(f"no trajectory for the real arm: {reason}")
-        log.warning("no trajectory for the real arm (robot/trajectory.*, gripper.ros2.yaml, program.json): %s%s",
-                    reason, "; the attempted motions are in robot/segments/" if segs else "")
+        # the reason is said once, by the command's summary (plan's `print_summary`, build's headline)
+        log.info("no files for the real arm (robot/trajectory.*, gripper.ros2.yaml, program.json); results.json "
+                 "real_robot says why%s", "; the attempted motions are in robot/segments/" if segs else "")
         return paths, notes, {"written": False, "reason": reason, "files": [], **extra}
 
     if failed is not None:
@@ -356,8 +368,12 @@ def print_summary(result, trials: dict | None, paths: dict[str, Path], real_robo
     for s in result.steps:
         if not s.success:
             con.print(f"step {s.index} failed: {s.failure}")
-    con.print(f"overall: {'[green]success[/]' if result.success else '[red]failure[/]'}; "
-              f"{result.sim_time:.1f} s simulated in {result.wall_s:.1f} s")
+    from splattwin.robot.execute import unsettled
+
+    moved = unsettled(getattr(result, "settle", None)) is not None
+    overall = ("[red]success in simulation, but NOT a validation of the twin[/] (objects moved before the robot "
+               "acted)" if result.success and moved else "[green]success[/]" if result.success else "[red]failure[/]")
+    con.print(f"overall: {overall}; {result.sim_time:.1f} s simulated in {result.wall_s:.1f} s")
     if trials:
         lo, hi = trials["ci95"]
         con.print(f"trials: {trials['successes']}/{trials['trials']} at sigma {trials['sigma'] * 1000:.1f} mm per axis, "

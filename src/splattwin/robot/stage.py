@@ -30,7 +30,9 @@ class RobotResult:
     success: bool                 # the nominal run succeeded (trials are reported in results.json)
     error: str | None = None      # why the task could not run on this twin (bad input), if it could not
     # why the real-robot files were refused although the plan ran: the trajectory leaves the named robot's
-    # limits (`--joint-names fr3`); `plan` exits 2 with it. A failed task is `success` False, not this.
+    # limits (`--joint-names fr3`), or an object moved from its twin pose before the robot acted (the run
+    # does not validate the twin: `execute.unsettled`); `plan` and `build` exit 2 with it. A failed task
+    # is `success` False, not this.
     export_error: str | None = None
     details: dict[str, Any] = field(default_factory=dict)   # run, trials, paths: for printing, not recorded
 
@@ -91,7 +93,10 @@ def run(inputs: RobotInputs, options: RobotOptions, *, progress: bool = True,
                                       render_note=(note or "") if options.render else "rendering disabled (--no-render)",
                                       frames=frames, wall_s=time.perf_counter() - t0, options=to_dict(options),
                                       names=names)
-    export_error = real_robot["reason"] if real_robot.get("limit_violations") else None
+    # the plan ran, yet no real-arm files: outside the named robot's limits, or the scene moved before the
+    # robot acted (a floating object: the run does not validate the twin); a failed task is neither
+    export_error = (real_robot["reason"] if real_robot.get("limit_violations") or real_robot.get("not_at_rest")
+                    else None)
     return RobotResult(results=paths["results"], success=bool(result.success), export_error=export_error,
                        details={"run": result, "trials": trials, "paths": paths, "real_robot": real_robot})
 

@@ -31,6 +31,14 @@ MAX_BASE_OFFSET = 1e4      # m: a robot base beyond this from the twin's origin 
 MAX_BASE_YAW = 1e3         # rad (angles wrap; this only keeps them finite and meaningful)
 MAX_RESULTS_BYTES = 256 << 20
 
+# The start check (`World.settle_check`): physics is stepped this long (s) with the arm held before the robot
+# acts, on a copy of the state that is then discarded; an object that moves more than SETTLE_MOVE_M or turns
+# more than SETTLE_TURN_DEG from its twin pose in that time is not at rest where the twin puts it (floating
+# above its support, sunk into it, tipping), so the run does not validate the twin (no real-arm files)
+SETTLE_TIME_S = 0.5
+SETTLE_MOVE_M = 0.01
+SETTLE_TURN_DEG = 5.0
+
 
 @dataclass(frozen=True)
 class BasePose:
@@ -354,6 +362,37 @@ class World:
         """Teleport a free object to T_world_obj [4,4], at rest (kinematics follow at the next step/forward)."""
         self.joints.set_object_pose(self.data.qpos, name, T)
         self.data.qvel[self.joints.object_dof[name]:self.joints.object_dof[name] + 6] = 0.0
+
+    def settle_check(self, duration: float = SETTLE_TIME_S) -> dict:
+        """How far physics moves each free object from its pose now (the twin's) in `duration` s with the
+        arm held still, before the robot acts. Runs on the current state and restores it exactly afterwards
+        (the executed run is unchanged). Returns {time_s, threshold_m, threshold_deg, objects: {name:
+        {moved_m, turned_deg}}, moved: [names beyond a threshold]} (`SETTLE_MOVE_M`, `SETTLE_TURN_DEG`)."""
+        import mujoco
+
+        m, d = self.model, self.data
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        saved = np.empty(mujoco.mj_stateSize(m, spec))
+        mujoco.mj_getState(m, d, saved, spec)
+        before = {o: self.object_pose(o) for o in self.objects}
+        q = self.arm_q()
+        try:
+            for _ in range(int(math.ceil(duration / float(m.opt.timestep)))):
+                self.step(q)
+            after = {o: self.object_pose(o) for o in self.objects}
+        finally:
+            mujoco.mj_setState(m, d, saved, spec)
+            mujoco.mj_forward(m, d)
+        objects = {}
+        for o in self.objects:
+            T0, T1 = before[o], after[o]
+            cos = (np.trace(T0[:3, :3].T @ T1[:3, :3]) - 1.0) / 2.0
+            objects[o] = {"moved_m": round(float(np.linalg.norm(T1[:3, 3] - T0[:3, 3])), 4),
+                          "turned_deg": round(math.degrees(math.acos(float(np.clip(cos, -1.0, 1.0)))), 2),
+                          "dz_m": round(float(T1[2, 3] - T0[2, 3]), 4)}
+        moved = [o for o, v in objects.items() if v["moved_m"] > SETTLE_MOVE_M or v["turned_deg"] > SETTLE_TURN_DEG]
+        return {"time_s": duration, "threshold_m": SETTLE_MOVE_M, "threshold_deg": SETTLE_TURN_DEG,
+                "objects": objects, "moved": moved}
 
     def forward(self) -> None:
         """Recompute kinematics, contacts and forces of the current state (mj_forward)."""

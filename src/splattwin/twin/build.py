@@ -261,11 +261,17 @@ def describe_exports(twin_dir: Path, manifest: Manifest, written, options: Expor
         out.append(_file_entry(b.splat_ply, "3DGS PLY", "twin (z up)", manifest))
     if b.collision_mesh:
         out.append(_file_entry(b.collision_mesh, "OBJ", "twin (z up)", manifest))
+    # the convex parts: the meshes MJCF and URDF load (`file="../background/parts/part_000.obj"`)
+    part = "convex collision part (loaded by the MJCF and URDF exports)"
+    for p in b.convex_parts or []:
+        out.append(_file_entry(str(p), "OBJ", "twin (z up)", manifest, role=part))
     for o in manifest.objects:
+        frame = obj_frame.format(o.export_id or export_id(o.name))
         for k, fmt in (("splat_ply", "3DGS PLY"), ("visual_mesh", "OBJ"), ("collision_mesh", "OBJ")):
             if getattr(o, k):
-                out.append(_file_entry(getattr(o, k), fmt, obj_frame.format(o.export_id or export_id(o.name)),
-                                       manifest, object=o.name))
+                out.append(_file_entry(getattr(o, k), fmt, frame, manifest, object=o.name))
+        for p in o.convex_parts or []:
+            out.append(_file_entry(str(p), "OBJ", frame, manifest, object=o.name, role=part))
     uri = options.urdf_uri
     for fmt, rel in manifest.exports.items():
         if fmt not in written:   # an earlier run's export: its description stays as recorded
