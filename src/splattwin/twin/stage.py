@@ -87,20 +87,14 @@ def gt_alignment(man, twin: Path, scene_dir: Path, frame):
 
     import numpy as np
 
-    from splattwin.meshio import load_mesh
     from splattwin.poses.align import umeyama
 
     log = logging.getLogger(__name__)
     if frame.source in SAME_FRAME_SOURCES and not (frame.up_check or {}).get("moved_to_table_frame"):
         return np.eye(4), "the twin frame is the scene's"
     src, tgt = [], []
-    for obj in man.objects:
-        gt_path = Path(scene_dir) / "meshes" / f"{obj.name}.ply"
-        if not obj.usable or not obj.visual_mesh or not gt_path.is_file():
-            continue
-        mesh = load_mesh(twin / obj.visual_mesh, f"visual mesh of {obj.name!r}")
-        mesh.apply_transform(obj.pose)
-        src.append(load_mesh(gt_path, "ground-truth mesh").bounding_box_oriented.centroid)
+    for _, mesh, gt in _meshes_with_gt(man, twin, scene_dir):
+        src.append(gt.bounding_box_oriented.centroid)
         tgt.append(mesh.bounding_box_oriented.centroid)
     if len(src) < 3:
         log.warning("no ground-truth comparison: the twin frame (%s) is not the scene's, and %d usable object(s) "
@@ -116,6 +110,20 @@ def gt_alignment(man, twin: Path, scene_dir: Path, frame):
             f"({'rigid' if frame.scaled else 'similarity'}, residual RMS {fit.rms:.4g})")
     log.info("%s", note)
     return fit.S, note
+
+
+def _meshes_with_gt(man, twin: Path, scene_dir: Path):
+    """(name, visual mesh placed in the twin frame, GT mesh as stored) of each usable object the scene has a
+    ground-truth mesh for (scene_dir/meshes/<name>.ply)."""
+    from splattwin.meshio import load_mesh
+
+    for obj in man.objects:
+        gt_path = Path(scene_dir) / "meshes" / f"{obj.name}.ply"
+        if not obj.usable or not obj.visual_mesh or not gt_path.is_file():
+            continue
+        mesh = load_mesh(twin / obj.visual_mesh, f"visual mesh of {obj.name!r}")
+        mesh.apply_transform(obj.pose)
+        yield obj.name, mesh, load_mesh(gt_path, "ground-truth mesh")
 
 
 def _moved_region(region: dict, T) -> dict:
@@ -153,20 +161,11 @@ def write_fidelity(twin: Path, scene_dir: Path, threshold: float, T_twin_gt=None
     twin frame by T_twin_gt (`gt_alignment`; identity when the frames are one)."""
     from splattwin import io
     from splattwin.geometry.metrics import mesh_fidelity
-    from splattwin.meshio import load_mesh
     from splattwin.twin.manifest import Manifest
 
-    man = Manifest.load(twin)
     meshes, gt = {}, {}
-    for obj in man.objects:
-        gt_path = Path(scene_dir) / "meshes" / f"{obj.name}.ply"
-        if not obj.usable or not obj.visual_mesh or not gt_path.is_file():
-            continue
-        mesh = load_mesh(twin / obj.visual_mesh, f"visual mesh of {obj.name!r}")
-        mesh.apply_transform(obj.pose)
-        meshes[obj.name] = mesh
-        gt[obj.name] = load_mesh(gt_path, "ground-truth mesh")
-        if T_twin_gt is not None:
-            gt[obj.name].apply_transform(T_twin_gt)
+    for name, mesh, gt_mesh in _meshes_with_gt(Manifest.load(twin), twin, scene_dir):
+        meshes[name] = mesh
+        gt[name] = gt_mesh if T_twin_gt is None else gt_mesh.apply_transform(T_twin_gt)
     rows = {k: mesh_fidelity(m, gt[k], threshold=threshold).to_dict() for k, m in meshes.items()}
     return io.write_json(twin / "geometry_metrics.json", rows)
