@@ -70,7 +70,7 @@ def test_sfm_aligned_to_robot_poses(default_unscaled, sfm_default_dir: Path, sce
 
     gt, _ = default_unscaled
     poses, he = _write_robot_files(gt, tmp_path, "matrix")
-    res = estimate_poses(stripped(gt), PoseOptions(method="sfm", robot_poses=poses, hand_eye=he,
+    res = estimate_poses(stripped(gt, depth=True), PoseOptions(method="sfm", robot_poses=poses, hand_eye=he,
                                                    work_dir=sfm_default_dir, progress=False))
     assert res.frame.source == "sfm+robot" and res.frame.scaled
     assert res.stats["umeyama"]["residual_rms_m"] < 0.005

@@ -253,7 +253,9 @@ def test_twin_is_relocatable(reference, tmp_path, cli):
         task.write_text(f"- pick: {usable[0]}\n  place_in: {{center: [{(x0 + x1) / 2}, {(y0 + y1) / 2}, 0.0], "
                         f"size: 0.1}}\n")
         res = cli("plan", moved, "--task", task, "--no-render")
-        assert res.rc in (0, 1), res.err[-2000:]   # planned and executed (success or not), nothing missing
+        # planned and executed (success or not), nothing missing; a tiny twin may also be refused as a validation
+        # (an object that moves when physics starts: exit 2, no files for the real arm), which still ran the plan
+        assert res.rc in (0, 1) or (res.rc == 2 and "no files for the real arm" in res.err), res.err[-2000:]
         assert (moved / "robot" / "results.json").is_file()
     finally:
         hidden.rename(capture)
