@@ -302,3 +302,23 @@ def test_report_labels_loss_masked_metrics_and_says_images_once(tmp_path):
     (twin / "splat" / "eval" / "metrics.json").write_text(json.dumps({
         "split": "heldout", "mean_psnr": 24.5, "mean_ssim": 0.81, "n_views": 2, "gaussians": 1234, "views": []}))
     assert "masked" not in build_report(twin).read_text()
+
+
+def test_report_shows_the_scale_from_the_depth_images(tmp_path):
+    """The report showed a bare 'scale uncertainty (rel.) 0.01' for a depth-scaled SfM twin: no factor,
+    readings or spread; and a header 'z +z'."""
+    from splattwin.poses.twin_frame import TwinFrame
+    from splattwin.twin.manifest import Manifest
+
+    twin = _manifest_twin(tmp_path, scaled=True)
+    man = Manifest.load(twin)
+    man.frame = TwinFrame(source="table_plane+depth", scaled=True, scale_uncertainty_rel=0.0100006,
+                          description="table frame; metric scale from the depth images")
+    man.save(twin)
+    (twin / "poses" / "poses_report.json").write_text(json.dumps({
+        "method": "sfm", "depth_scale": {"scale": 0.0758097, "spread_rel": 0.00712, "uncertainty_rel": 0.0100006,
+                                         "readings": 6206, "views": 12}}))
+    html = build_report(twin).read_text().replace("\n", "")
+    assert "x 0.0758097 (SfM unit -&gt; m), 6206 readings over 12 views, spread 0.71 %" in html
+    assert "<td>scale uncertainty (1 sigma)</td><td>1 %</td>" in html
+    assert "metric scale from the depth images" in html and "z +z" not in html

@@ -153,7 +153,7 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
     fr = man.frame if man else _poses_frame(twin)   # a folder built --until splats has the poses' frame
     rep = Report(f"splattwin twin — {twin.resolve().name}",
                  f"generated {_dt.datetime.now().strftime('%Y-%m-%d %H:%M')} · frame: "
-                 + (f"{fr.source} ({'metric' if fr.scaled else 'UNSCALED'}, {fr.units}, z {fr.up})" if fr else "n/a"))
+                 + (f"{fr.source} ({'metric' if fr.scaled else 'UNSCALED'}, {fr.units}, up {fr.up})" if fr else "n/a"))
     poses = _json(twin / "poses" / "poses_report.json")
     ev = _json(twin / "splat" / "eval" / "metrics.json")
     fusion = _json(twin / "semantics" / "fusion.json")
@@ -292,9 +292,19 @@ def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
             sec.table(["pose estimation", "value"], rows)
     if man:
         f = man.frame
-        sec.table(["twin frame", "value"], [["source", f.source], ["metric", f.scaled], ["units", f.units],
-                                            *([["nominal metre (units)", f.nominal_metre]] if not f.scaled else []),
-                                            ["scale uncertainty (rel.)", f.scale_uncertainty_rel if f.scale_uncertainty_rel is not None else "n/a"]])
+        unc = f.scale_uncertainty_rel
+        rows = [["source", f.source], ["metric", f.scaled], ["units", f.units],
+                *([["nominal metre (units)", f.nominal_metre]] if not f.scaled else []),
+                ["scale uncertainty (1 sigma)", f"{100 * unc:.2g} %" if isinstance(unc, (int, float)) else "n/a"],
+                *([["definition", f.description]] if f.description else [])]
+        ds_fit = poses.get("depth_scale") if poses else None
+        if isinstance(ds_fit, dict) and isinstance(ds_fit.get("scale"), (int, float)):   # SfM + depth images
+            rows.append(["scale from the depth images", f"x {ds_fit['scale']:.6g} (SfM unit -> m), "
+                                                        f"{ds_fit.get('readings')} readings over {ds_fit.get('views')} "
+                                                        f"views, spread {100 * float(ds_fit.get('spread_rel', 0)):.2g} %"])
+        elif isinstance(ds_fit, dict) and isinstance(ds_fit.get("error"), str):
+            rows.append(["scale from the depth images", f"none: {ds_fit['error']}"])
+        sec.table(["twin frame", "value"], rows)
     thumbs = [load_image(fr.image_path) for fr in ds.train()[:: max(1, len(ds.train()) // 4)][:4]]
     if thumbs:
         sec.image(side_by_side(thumbs), caption="a few input views")

@@ -153,9 +153,10 @@ def write_geometry(conv: Conversion, g, labels: np.ndarray, out_dir: Path, frame
                 e.T_world_obj = np.asarray(r.T_world_obj).tolist()
                 e.bbox_extent = np.asarray(r.extent).tolist()
                 ext = " x ".join(f"{v:.3g}" for v in r.extent)  # problem stays the cause: obstacle_only says the rest
+                unit = "m" if frame.scaled else "frame units"
                 log.warning("object %r is unusable (%s): kept in the collision exports as a static obstacle box "
-                            "%s at (%s), an estimate; a robot cannot grasp it", r.name, r.problem, ext,
-                            ", ".join(f"{v:.3g}" for v in r.T_world_obj[:3, 3]))
+                            "%s %s at (%s) %s, an estimate; a robot cannot grasp it", r.name, r.problem, ext, unit,
+                            ", ".join(f"{v:.3g}" for v in r.T_world_obj[:3, 3]), unit)
             else:
                 e.problem = (f"{r.problem}; no splats of it survive, so it has no geometry at all: it is in no "
                              f"collision export and nothing marks where it stands")
