@@ -291,3 +291,12 @@ def test_object_names_keys_are_ascii_obj_ids(tmp_path):
     with pytest.raises(InputError, match="obj_id '²' must be a whole number") as e:
         bop.object_names(tmp_path, [1])
     assert e.value.path == tmp_path / "object_names.json"
+
+
+def test_bop_notes_are_logged_once_per_scene(tmp_path, caplog):
+    """'no camera poses ... poses will be estimated' came six times in one build (every stage reads the scene)."""
+    write_scene(tmp_path, n=2, poses=False)
+    with caplog.at_level("INFO", logger="splattwin.capture.bop"):
+        for _ in range(3):
+            load_dataset(tmp_path)
+    assert caplog.text.count("poses will be estimated") == 1

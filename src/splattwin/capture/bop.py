@@ -45,6 +45,7 @@ from splattwin.errors import InputError
 from splattwin.limits import MAX_POSITION, ascii_uint, check_count, number, numbers
 
 log = logging.getLogger(__name__)
+_ANNOUNCED: set[str] = set()   # scenes whose notes (no poses, amodal masks) were logged in this process
 
 SCENE_CAMERA = "scene_camera.json"
 SCENE_GT = "scene_gt.json"
@@ -183,11 +184,13 @@ def read(path: str | Path) -> Dataset:
         raise InputError(f"depth_scale differs between images ({desc}); one depth unit per scene is supported: "
                          f"convert the depth images to one scale", cam_file)
     depth_scale = next(iter(scales)) * MM if scales else None
-    if not (scene / "mask_visib").is_dir() and (scene / "mask").is_dir():
+    said = str(cam_file) in _ANNOUNCED   # once per scene and run: pre-flight and every stage read it
+    _ANNOUNCED.add(str(cam_file))
+    if not said and not (scene / "mask_visib").is_dir() and (scene / "mask").is_dir():
         # fusion labels what each pixel shows: an amodal mask labels the occluder as the occluded object
         log.warning("%s: only mask/ (amodal: whole silhouettes, occluded parts included) and no mask_visib/; label "
                     "fusion expects visible-part masks, so occluders may take the occluded object's label", scene)
-    if not has_poses:
+    if not has_poses and not said:
         log.info("%s: no camera poses (cam_R_w2c/cam_t_w2c); poses will be estimated", cam_file)
     files = [cam_file] + [scene / SCENE_GT] * (scene / SCENE_GT).is_file()
     return Dataset(root=scene, frames=frames, has_poses=has_poses, depth_scale=depth_scale,
