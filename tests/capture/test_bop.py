@@ -87,9 +87,12 @@ def test_bop_amodal_masks_only_warn(tmp_path, caplog):
         load_dataset(tmp_path)
     assert "only mask/ (amodal" in caplog.text
     caplog.clear()
-    io.write_image(tmp_path / "mask_visib" / "000000_000000.png", np.full((H, W), 255, np.uint8))
+    both = tmp_path / "both"   # another scene: the note is said once per scene
+    write_scene(both, n=2)
+    io.write_image(both / "mask" / "000000_000000.png", np.full((H, W), 255, np.uint8))
+    io.write_image(both / "mask_visib" / "000000_000000.png", np.full((H, W), 255, np.uint8))
     with caplog.at_level("WARNING"):
-        load_dataset(tmp_path)
+        load_dataset(both)
     assert "amodal" not in caplog.text
 
 
