@@ -221,3 +221,109 @@ def test_eye_to_hand_cameras_refused_and_diverging_axes_warned(caplog):
     with caplog.at_level("WARNING"):
         camera_poses_in_base([RobotPose(T) for T in Ts], _hand_eye() @ flip)
     assert "optical axes meet" in caplog.text and "inverted" in caplog.text
+
+
+# -- hand-eye against the photos (splattwin.poses.hand_eye_check) ---------------------------------------------
+def _noisy(T_base_ee: list[np.ndarray], mm: float, deg: float, seed: int = 1) -> list[np.ndarray]:
+    """Flange poses with robot-like errors: `mm` (per axis, 1 sigma) and `deg` (rotation angle, 1 sigma)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for T in T_base_ee:
+        T = T.copy()
+        T[:3, :3] = Rotation.from_rotvec(rng.normal(0.0, np.radians(deg) / np.sqrt(3.0), 3)).as_matrix() @ T[:3, :3]
+        T[:3, 3] += rng.normal(0.0, mm * 1e-3, 3)
+        out.append(T)
+    return out
+
+
+def _flange_poses(gt, T_ee_cam: np.ndarray) -> list[np.ndarray]:
+    T_base_world = np.linalg.inv(T_WORLD_BASE)
+    return [T_base_world @ f.camera.T_world_cam @ np.linalg.inv(T_ee_cam) for f in gt.frames]
+
+
+def _write(path: Path, gt, T_base_ee: list[np.ndarray], T_ee_cam: np.ndarray | None = None) -> Path:
+    entries = [{"image": f.image_path.name, "T_base_ee": T.tolist()} for f, T in zip(gt.frames, T_base_ee)]
+    path.write_text(json.dumps(entries if T_ee_cam is None else {"T_ee_cam": T_ee_cam.tolist(), "poses": entries}))
+    return path
+
+
+def test_inverted_hand_eye_about_flange_z_refused(scene_default: Path, tmp_path: Path, caplog):
+    """A hand-eye that is mostly a turn about the flange z axis (here 91 deg) plus centimetres, given inverted
+    (T_cam_ee for T_ee_cam): the optical axes still meet in front of the cameras (no warning from the
+    geometry), but the relative rotations of image pairs, measured from the photos, match the inverse: stopped,
+    naming the hand-eye file."""
+    gt = load_dataset(scene_default)
+    X = _hand_eye()
+    poses = _write(tmp_path / "poses.json", gt, _flange_poses(gt, X))
+    inverted = tmp_path / "T_cam_ee.json"
+    inverted.write_text(json.dumps({"T_ee_cam": np.linalg.inv(X).tolist()}))
+    opts = PoseOptions(robot_poses=poses, hand_eye=inverted, progress=False, depth_points=False, triangulate=False)
+    with caplog.at_level("WARNING"), pytest.raises(InputError, match=r"hand-eye looks inverted.*invert it") as e:
+        estimate_poses(gt, opts)
+    assert e.value.path == inverted
+    assert "optical axes" not in caplog.text  # the older geometric check does not see this mistake
+    # inline in the pose file: that file is named
+    inline = _write(tmp_path / "poses_inline.json", gt, _flange_poses(gt, X), np.linalg.inv(X))
+    with pytest.raises(InputError, match="inverted") as e:
+        estimate_poses(gt, PoseOptions(robot_poses=inline, progress=False, depth_points=False, triangulate=False))
+    assert e.value.path == inline
+    # the check can be switched off (a user sure of the file): the poses are then the wrong ones, as asked
+    import dataclasses
+
+    res = estimate_poses(gt, dataclasses.replace(opts, check_hand_eye=False))
+    assert res.frame.source == "robot" and "hand_eye_check" not in res.stats
+
+
+@pytest.mark.parametrize("noise", [(0.0, 0.0), (3.0, 0.5)], ids=["exact", "3mm_0.5deg"])
+@pytest.mark.parametrize("intrinsics", ["dataset", "fov_prior"])
+def test_correct_hand_eye_passes_the_check(scene_default: Path, tmp_path: Path, caplog, noise, intrinsics):
+    """No false alarm: the right hand-eye, with exact or noisy robot poses (3 mm, 0.5 deg) and with the
+    dataset's intrinsics or a 60-degree field-of-view guess, is found consistent, silently."""
+    from tests.poses.conftest import stripped
+
+    gt = load_dataset(scene_default)
+    X = _hand_eye()
+    poses = _write(tmp_path / "poses.json", gt, _noisy(_flange_poses(gt, X), *noise))
+    he = tmp_path / "T_ee_cam.json"
+    he.write_text(json.dumps({"T_ee_cam": X.tolist()}))
+    ds = gt if intrinsics == "dataset" else stripped(gt)
+    with caplog.at_level("WARNING", logger="splattwin.poses"):
+        res = estimate_poses(ds, PoseOptions(robot_poses=poses, hand_eye=he, progress=False, depth_points=False,
+                                             triangulate=False))
+    chk = res.stats["hand_eye_check"]
+    assert chk["verdict"] == "consistent" and chk["source"] == "images" and chk["pairs"] >= 3, chk
+    # measured with the real intrinsics: ~1-2 deg; with a focal length guessed 20 % off: ~5 deg
+    assert chk["residual_median_deg"] < (3.0 if intrinsics == "dataset" else 8.0), chk
+    assert chk["inverse_residual_median_deg"] > 30.0, chk
+    assert "hand-eye" not in caplog.text
+
+
+def test_inverted_hand_eye_refused_with_sfm(default_unscaled, sfm_default_dir: Path, tmp_path: Path):
+    """SfM + robot poses: the SfM model's camera rotations give the evidence (no extra matching)."""
+    from tests.poses.conftest import stripped
+
+    gt, _ = default_unscaled
+    X = _hand_eye()
+    poses = _write(tmp_path / "poses.json", gt, _flange_poses(gt, X))
+    inverted = tmp_path / "T_cam_ee.yaml"
+    inverted.write_text(json.dumps({"T_ee_cam": np.linalg.inv(X).tolist()}))
+    with pytest.raises(InputError, match=r"hand-eye looks inverted.*SfM pair") as e:
+        estimate_poses(stripped(gt), PoseOptions(method="sfm", robot_poses=poses, hand_eye=inverted,
+                                                 work_dir=sfm_default_dir, progress=False, depth_points=False))
+    assert e.value.path == inverted
+
+
+def test_hand_eye_verdicts():
+    """The decision rule on residuals alone: strong evidence stops, thin evidence warns, no evidence is undecided."""
+    from splattwin.poses.hand_eye_check import evaluate
+
+    def rows(pairs):
+        return [{"a": str(i), "b": str(i + 1), "residual_deg": g, "inverse_residual_deg": v, "source": "images"}
+                for i, (g, v) in enumerate(pairs)]
+
+    assert evaluate(rows([(60, 1), (62, 2), (58, 1.5)])).verdict == "inverted"
+    assert evaluate(rows([(60, 1), (62, 2)])).verdict == "inverted?"  # two pairs: a warning only
+    assert evaluate(rows([(1, 60), (2, 62), (1.5, 58)])).verdict == "consistent"
+    assert evaluate(rows([(20, 25), (22, 21), (25, 30)])).verdict == "mismatch"
+    assert evaluate(rows([(1, 60)])).verdict == "undecided"
+    assert evaluate([]).verdict == "undecided"

@@ -126,7 +126,8 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
     heldout = apply_holdout(dataset, opts.holdout)  # capture order, before SfM (splattwin.poses.holdout)
     frames = list(dataset.frames)
     names = [_frame_key(f) for f in frames]
-    robot_T = _robot_cameras(opts, frames, names, dataset) if opts.robot_poses is not None else None
+    robot = _robot_cameras(opts, frames, names, dataset) if opts.robot_poses is not None else None
+    robot_T = robot.T_base_cam if robot is not None else None
     stats: dict = {"method": method, "total": len(frames), HOLDOUT_KEY: heldout.record()}
     pts_xyz = pts_rgb = None
     T_out_in = np.eye(4)
@@ -161,6 +162,8 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         assert robot_T is not None
         in_cams = {n: _with_pose(f.camera, robot_T[n], opts) for f, n in zip(frames, names) if n in robot_T}
         stats.update(registered=len(in_cams))
+        if opts.check_hand_eye:
+            _check_hand_eye(robot, opts, stats, cams=in_cams, images={n: f.image_path for f, n in zip(frames, names)})
         frame = TwinFrame(source="robot", scaled=True, scale_uncertainty_rel=0.0,
                       description="robot base frame: T_base_cam = T_base_ee @ T_ee_cam (metres)")
         input_scaled = True
@@ -181,6 +184,8 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
     # -- frame definition ----------------------------------------------------------------------
     order = [n for n in names if n in in_cams]
     if method == "sfm" and robot_T is not None:
+        if opts.check_hand_eye:
+            _check_hand_eye(robot, opts, stats, cams=in_cams)
         tgt = np.array([robot_T[n][:3, 3] for n in order if n in robot_T])
         src = np.array([in_cams[n].center for n in order if n in robot_T])
         if len(src) < 3:
@@ -501,15 +506,44 @@ def _with_pose(cam: Camera, T_world_cam: np.ndarray, opts: PoseOptions) -> Camer
     return Camera(K=K, width=cam.width, height=cam.height, T_world_cam=T_world_cam, dist=cam.dist, name=cam.name)
 
 
-def _robot_cameras(opts: PoseOptions, frames: list[DataFrame], names: list[str], dataset: Dataset) -> dict[str, np.ndarray]:
+@dataclass
+class _RobotCameras:
+    T_base_cam: dict[str, np.ndarray]   # frame key -> camera pose in the robot base frame
+    T_base_ee: dict[str, np.ndarray]    # frame key -> flange pose
+    T_ee_cam: np.ndarray
+    hand_eye_file: Path                 # where the hand-eye came from (--hand-eye, or the pose file: inline)
+
+
+def _check_hand_eye(robot: _RobotCameras, opts: PoseOptions, stats: dict, cams: dict[str, Camera],
+                    images: dict[str, Path] | None = None) -> None:
+    """The hand-eye against the camera motion seen in the photos (`images`: a few pairs matched) or in an SfM
+    model (`cams` independent of the robot): InputError when its inverse fits clearly better
+    (`splattwin.poses.hand_eye_check`); the verdict goes to stats["hand_eye_check"]."""
+    from splattwin.poses import hand_eye_check as hec
+
+    keys = [n for n in robot.T_base_ee if n in cams]
+    T_ee = [robot.T_base_ee[n] for n in keys]
+    if images is not None:
+        chk = hec.check_with_images(keys, T_ee, robot.T_ee_cam, [images[n] for n in keys], [cams[n] for n in keys])
+    else:
+        chk = hec.check_with_rotations(keys, T_ee, robot.T_ee_cam, [cams[n].T_world_cam[:3, :3] for n in keys])
+    for p in chk.pairs:  # image names, not the frame keys' full paths
+        p["a"], p["b"] = Path(p["a"]).name, Path(p["b"]).name
+    stats["hand_eye_check"] = chk.to_dict()
+    hec.report(chk, robot.hand_eye_file, inverted_error=lambda msg: InputError(msg, robot.hand_eye_file))
+
+
+def _robot_cameras(opts: PoseOptions, frames: list[DataFrame], names: list[str], dataset: Dataset) -> _RobotCameras:
     from splattwin.poses.robot import (RobotPose, camera_poses_in_base, load_hand_eye, load_robot_poses,
                                        match_to_images)
 
     poses, inline = load_robot_poses(opts.robot_poses)
     if opts.hand_eye is not None:
         T_ee_cam = load_hand_eye(opts.hand_eye)
+        he_file = Path(opts.hand_eye)
     elif inline is not None:
         T_ee_cam = inline
+        he_file = Path(opts.robot_poses)
     else:
         raise InputError("robot poses need a hand-eye transform T_ee_cam (--hand-eye FILE, or 'T_ee_cam' in the "
                          "pose file)", opts.robot_poses)
@@ -520,7 +554,9 @@ def _robot_cameras(opts: PoseOptions, frames: list[DataFrame], names: list[str],
     by_name = match_to_images(poses, image_names, Path(opts.robot_poses))
     keys = list(by_name)
     T_base_cam = camera_poses_in_base([RobotPose(by_name[k], k) for k in keys], T_ee_cam)
-    return {names[image_names.index(k)]: T for k, T in zip(keys, T_base_cam)}
+    key = {k: names[image_names.index(k)] for k in keys}
+    return _RobotCameras(T_base_cam={key[k]: T for k, T in zip(keys, T_base_cam)},
+                         T_base_ee={key[k]: by_name[k] for k in keys}, T_ee_cam=T_ee_cam, hand_eye_file=he_file)
 
 
 def plot_cameras(result: PoseResult, path: str | Path) -> Path:

@@ -89,6 +89,9 @@ class PoseOptions:
     check_registration: bool = option(True, "after SfM, drop images registered from too few observations or posed "
                                       "inconsistently with a tabletop capture (at/below the table plane, looking up "
                                       "or away from the scene); they are reported and count as unregistered")
+    check_hand_eye: bool = option(True, "robot poses: check the hand-eye against the camera motion in the photos "
+                                  "(a few image pairs) or the SfM model, and stop when its inverse (T_cam_ee given "
+                                  "for T_ee_cam) fits clearly better", hashed=False)
     num_threads: int = option(0, "CPU threads for SfM (0: all cores)", aliases=("threads",), hashed=False)
     depth_points: bool = option(True, "back-project depth images (RGB-D) into the initial point cloud when the "
                                 "frame is metric")

@@ -22,7 +22,9 @@ translation beyond MAX_REACH_M (3 m) is refused as a likely millimetre file (rea
 Eye-in-hand only: the camera rides on the arm. An eye-to-hand (fixed camera) setup is not a robot-pose
 capture: every image has the same camera pose T_base_cam, and a static scene seen from one place gives no
 parallax; `camera_poses_in_base` refuses cameras that all sit at one place and warns when their optical
-axes do not meet in front of them (an inverted hand-eye, T_cam_ee given for T_ee_cam, typically does that).
+axes do not meet in front of them (an inverted hand-eye, T_cam_ee given for T_ee_cam, often does that). An
+inverted hand-eye that is mostly a turn about the flange z axis keeps the axes in front: the photos' relative
+rotations catch that one (`splattwin.poses.hand_eye_check`, run by `estimate_poses`).
 """
 
 from __future__ import annotations

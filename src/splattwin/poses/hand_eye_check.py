@@ -1,0 +1,262 @@
+"""Is the hand-eye T_ee_cam consistent with the photos, or is it the inverse (T_cam_ee) by mistake?
+
+Robot poses give the end effector's motion between two images, A = T_ee_a^-1 T_ee_b; the photos give the
+camera's, B = T_cam_a^-1 T_cam_b; a right hand-eye X = T_ee_cam satisfies A X = X B, so the rotation
+R_B = R_X^T R_A R_X (the classic AX = XB hand-eye equation). Its inverse X^-1 predicts R_X R_A R_X^T: the
+same rotation angle about another axis. A hand-eye that is mostly a turn about the flange z axis plus a few
+centimetres keeps the optical axes where they were, so `robot.check_eye_in_hand` cannot see the swap; the
+axes of the relative rotations can.
+
+The camera's relative rotations are measured
+
+- from the photos (`--robot-poses` alone): SIFT + ratio test, essential matrix (RANSAC, the cameras'
+  intrinsics and distortion) on at most MAX_IMAGE_PAIRS image pairs at most MAX_SIDE px: a second or two;
+- from the SfM model (`--sfm` with robot poses): its cameras' rotations, free and more accurate.
+
+Only pairs where the two hypotheses predict rotations at least MIN_DISCRIMINATION_DEG apart are used
+(a hand-eye turned by ~0 or 180 degrees about one axis is its own inverse in rotation: nothing to decide),
+with a relative rotation of MIN..MAX_PAIR_ANGLE_DEG (overlap for matching; the ratio of noise to signal).
+
+Verdicts (median rotation residual over the pairs, degrees):
+- "inverted": the inverse fits clearly better (>= MIN_PAIRS pairs, the given one off by >= STRONG_DEG,
+  the inverse at most a third of that, and better on >= 75 % of the pairs): the caller stops (InputError),
+  since every camera pose, hence the twin and the real-arm files, would be wrong;
+- "inverted?": the inverse fits better but on thin evidence: a warning;
+- "mismatch": the given hand-eye is off by > MISMATCH_DEG and the inverse is no better: a warning (another
+  hand-eye error, wrong intrinsics, images not matching the poses);
+- "consistent", or "undecided" (too few usable pairs), recorded in poses_report.json `hand_eye_check`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+MAX_IMAGE_PAIRS = 6          # image pairs matched when measuring from the photos
+MAX_SFM_PAIRS = 60           # pairs read from an SfM model (no matching: cheap)
+MAX_CANDIDATE_VIEWS = 80    # views among which the pairs are chosen
+MAX_SIDE = 640               # px, longest image side for feature matching
+MIN_PAIR_ANGLE_DEG = 5.0
+MAX_PAIR_ANGLE_DEG = 45.0
+MIN_DISCRIMINATION_DEG = 4.0  # the two hypotheses' predictions at least this far apart
+MIN_INLIERS = 25
+MIN_PAIRS = 3
+STRONG_DEG = 5.0
+MISMATCH_DEG = 10.0
+
+
+@dataclass
+class HandEyeCheck:
+    verdict: str                      # consistent | inverted | inverted? | mismatch | undecided
+    source: str                       # images | sfm
+    pairs: list[dict] = field(default_factory=list)  # a, b, residual_deg, inverse_residual_deg[, inliers]
+    residual_deg: float | None = None           # median over the pairs, the hand-eye as given
+    inverse_residual_deg: float | None = None   # the same for its inverse
+
+    def to_dict(self) -> dict:
+        return {"verdict": self.verdict, "source": self.source, "pairs": len(self.pairs),
+                "residual_median_deg": self.residual_deg, "inverse_residual_median_deg": self.inverse_residual_deg,
+                "per_pair": self.pairs}
+
+    def describe(self) -> str:
+        if self.residual_deg is None:
+            return f"{len(self.pairs)} usable pair(s) from the {self.source}"
+        return (f"relative camera rotations of {len(self.pairs)} {'image' if self.source == 'images' else 'SfM'} "
+                f"pair(s) differ from those the robot poses predict by a median {self.residual_deg:.1f} deg with "
+                f"the hand-eye as given, {self.inverse_residual_deg:.1f} deg with its inverse")
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def predicted_relative(T_ee_a: np.ndarray, T_ee_b: np.ndarray, R_ee_cam: np.ndarray) -> np.ndarray:
+    """R_cam_a^T R_cam_b (camera b's orientation in camera a's frame) with R_base_cam = R_base_ee R_ee_cam."""
+    return R_ee_cam.T @ (T_ee_a[:3, :3].T @ T_ee_b[:3, :3]) @ R_ee_cam
+
+
+def choose_pairs(T_base_ee: Sequence[np.ndarray], R_ee_cam: np.ndarray, max_pairs: int) -> list[tuple[int, int]]:
+    """Pairs (i, j) whose relative rotation is MIN..MAX_PAIR_ANGLE_DEG and where the hand-eye and its inverse
+    predict rotations >= MIN_DISCRIMINATION_DEG apart; the most discriminating first, each image in at most
+    two pairs (evidence spread over the capture)."""
+    R_inv = R_ee_cam.T
+    cand = []
+    # at most MAX_CANDIDATE_VIEWS views, evenly over the capture: the pair search stays O(1) in its size
+    views = np.unique(np.linspace(0, len(T_base_ee) - 1, min(len(T_base_ee), MAX_CANDIDATE_VIEWS)).round().astype(int))
+    for a, i in enumerate(views):
+        for j in views[a + 1:]:
+            Pg = predicted_relative(T_base_ee[i], T_base_ee[j], R_ee_cam)
+            ang = rotation_angle_deg(Pg)
+            if not (MIN_PAIR_ANGLE_DEG <= ang <= MAX_PAIR_ANGLE_DEG):
+                continue
+            Pi = predicted_relative(T_base_ee[i], T_base_ee[j], R_inv)
+            d = rotation_angle_deg(Pg.T @ Pi)
+            if d >= MIN_DISCRIMINATION_DEG:
+                cand.append((d, i, j))
+    cand.sort(key=lambda c: -c[0])
+    used: dict[int, int] = {}
+    out = []
+    for _, i, j in cand:
+        i, j = int(i), int(j)
+        if used.get(i, 0) >= 2 or used.get(j, 0) >= 2:
+            continue
+        out.append((i, j))
+        used[i] = used.get(i, 0) + 1
+        used[j] = used.get(j, 0) + 1
+        if len(out) >= max_pairs:
+            break
+    return out
+
+
+def _gray_small(path: Path, max_side: int) -> tuple[np.ndarray, float]:
+    import cv2
+
+    from splattwin.capture.dataset import load_image
+
+    img = load_image(path)
+    g = (np.clip(img.mean(axis=2), 0.0, 1.0) * 255).astype(np.uint8)
+    s = min(1.0, max_side / max(g.shape[:2]))
+    if s < 1.0:
+        g = cv2.resize(g, (max(1, round(g.shape[1] * s)), max(1, round(g.shape[0] * s))), interpolation=cv2.INTER_AREA)
+    return g, s
+
+
+def _normalised_points(uv: np.ndarray, cam, sx: float, sy: float) -> np.ndarray:
+    """Pixel coordinates of the (resized) image -> normalised, undistorted camera coordinates [N,2]."""
+    import cv2
+
+    K = np.array(cam.K, dtype=np.float64).copy()
+    K[0] *= sx
+    K[1] *= sy
+    dist = None if cam.dist is None else np.asarray(cam.dist, dtype=np.float64)
+    return cv2.undistortPoints(uv.reshape(-1, 1, 2).astype(np.float64), K, dist).reshape(-1, 2)
+
+
+def measure_relative_rotation(path_a: Path, path_b: Path, cam_a, cam_b, max_side: int = MAX_SIDE,
+                              cache: dict | None = None) -> tuple[np.ndarray, int] | None:
+    """(R_cam_a^T R_cam_b, inliers) from the two photos (SIFT, essential matrix, cheirality), or None."""
+    import cv2
+
+    cache = {} if cache is None else cache
+    sift = cv2.SIFT_create(nfeatures=2000)
+    feats = []
+    for p, cam in ((path_a, cam_a), (path_b, cam_b)):
+        if p not in cache:
+            g, s = _gray_small(p, max_side)
+            kp, des = sift.detectAndCompute(g, None)
+            sx, sy = g.shape[1] / cam.width, g.shape[0] / cam.height
+            cache[p] = (np.array([k.pt for k in kp], dtype=np.float64).reshape(-1, 2), des, sx, sy)
+        feats.append(cache[p])
+    (ua, da, sxa, sya), (ub, db, sxb, syb) = feats
+    if da is None or db is None or len(ua) < MIN_INLIERS or len(ub) < MIN_INLIERS:
+        return None
+    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(da, db, k=2)
+    good = [m[0] for m in knn if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]
+    if len(good) < MIN_INLIERS:
+        return None
+    xa = _normalised_points(ua[[m.queryIdx for m in good]], cam_a, sxa, sya)
+    xb = _normalised_points(ub[[m.trainIdx for m in good]], cam_b, sxb, syb)
+    f = 0.5 * (cam_a.fx * sxa + cam_b.fx * sxb)
+    E, mask = cv2.findEssentialMat(xa, xb, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=1.0 / f)
+    if E is None or E.shape != (3, 3):
+        return None
+    n, R, _t, mask2 = cv2.recoverPose(E, xa, xb, np.eye(3), mask=mask)
+    if n < MIN_INLIERS:
+        return None
+    # OpenCV: x_b = R x_a + t, i.e. R = R_cam_b^T R_cam_a
+    return R.T, int(n)
+
+
+def evaluate(pairs: list[dict]) -> HandEyeCheck:
+    """The verdict from pairs with residual_deg / inverse_residual_deg (see the module docstring)."""
+    src = pairs[0]["source"] if pairs else "images"
+    rows = [{k: v for k, v in p.items() if k != "source"} for p in pairs]
+    if len(rows) < 2:
+        return HandEyeCheck("undecided", src, rows)
+    eg = np.array([p["residual_deg"] for p in rows])
+    ei = np.array([p["inverse_residual_deg"] for p in rows])
+    mg, mi = float(np.median(eg)), float(np.median(ei))
+    wins = float(np.mean(ei < eg))
+    if len(rows) >= MIN_PAIRS and mg >= STRONG_DEG and mi <= mg / 3.0 and wins >= 0.75:
+        verdict = "inverted"
+    elif mg >= 3.0 and mi < mg / 2.0 and wins > 0.5:
+        verdict = "inverted?"
+    elif mg > MISMATCH_DEG and len(rows) >= MIN_PAIRS:
+        verdict = "mismatch"
+    else:
+        verdict = "consistent"
+    return HandEyeCheck(verdict, src, rows, round(mg, 3), round(mi, 3))
+
+
+def _pair_row(a: str, b: str, R_meas: np.ndarray, T_a: np.ndarray, T_b: np.ndarray, R_ee_cam: np.ndarray,
+              source: str, **extra) -> dict:
+    eg = rotation_angle_deg(R_meas.T @ predicted_relative(T_a, T_b, R_ee_cam))
+    ei = rotation_angle_deg(R_meas.T @ predicted_relative(T_a, T_b, R_ee_cam.T))
+    return {"a": a, "b": b, "residual_deg": round(eg, 3), "inverse_residual_deg": round(ei, 3), "source": source,
+            **extra}
+
+
+def check_with_images(names: list[str], T_base_ee: list[np.ndarray], T_ee_cam: np.ndarray,
+                      image_paths: list[Path], cameras: list, max_pairs: int = MAX_IMAGE_PAIRS) -> HandEyeCheck:
+    """Relative rotations measured from up to `max_pairs` photo pairs against the robot's predictions."""
+    R = T_ee_cam[:3, :3]
+    rows = []
+    cache: dict = {}
+    # a few spare pairs in case some do not match
+    for i, j in choose_pairs(T_base_ee, R, 3 * max_pairs):
+        if len(rows) >= max_pairs:
+            break
+        try:
+            m = measure_relative_rotation(Path(image_paths[i]), Path(image_paths[j]), cameras[i], cameras[j],
+                                          cache=cache)
+        except Exception as e:  # an unreadable image is someone else's error to report; no verdict from it
+            log.debug("hand-eye check: pair %s, %s not measured: %s", names[i], names[j], e)
+            m = None
+        if m is None:
+            continue
+        rows.append(_pair_row(names[i], names[j], m[0], T_base_ee[i], T_base_ee[j], R, "images", inliers=m[1]))
+    res = evaluate(rows)
+    res.source = "images"
+    return res
+
+
+def check_with_rotations(names: list[str], T_base_ee: list[np.ndarray], T_ee_cam: np.ndarray,
+                         R_world_cam: list[np.ndarray], max_pairs: int = MAX_SFM_PAIRS) -> HandEyeCheck:
+    """Relative rotations of independently estimated cameras (an SfM model, any world frame)."""
+    R = T_ee_cam[:3, :3]
+    rows = [_pair_row(names[i], names[j], R_world_cam[i].T @ R_world_cam[j], T_base_ee[i], T_base_ee[j], R, "sfm")
+            for i, j in choose_pairs(T_base_ee, R, max_pairs)]
+    res = evaluate(rows)
+    res.source = "sfm"
+    return res
+
+
+def report(chk: HandEyeCheck, where: Path | None, stop: bool = True,
+           inverted_error: Callable[[str], Exception] | None = None) -> None:
+    """Log the verdict; an "inverted" verdict raises (when `stop`) the error `inverted_error(message)`."""
+    what = chk.describe()
+    if chk.verdict == "inverted":
+        msg = (f"the hand-eye looks inverted: {what}. The file holds T_cam_ee (the flange in the camera frame), "
+               f"not T_ee_cam (the camera in the flange frame): invert it (OpenCV calibrateHandEye's "
+               f"R/t_cam2gripper is T_ee_cam)")
+        if stop and inverted_error is not None:
+            raise inverted_error(msg + " (--no-check-hand-eye, in build --no-poses.check-hand-eye, skips this check)")
+        log.warning("%s%s", msg, f" ({where})" if where else "")
+    elif chk.verdict == "inverted?":
+        log.warning("the hand-eye may be inverted (T_cam_ee given for T_ee_cam): %s; check %s", what,
+                    where or "the hand-eye")
+    elif chk.verdict == "mismatch":
+        log.warning("the hand-eye does not match the photos: %s (a wrong hand-eye rotation, wrong intrinsics, "
+                    "or poses that do not belong to these images?); check %s", what, where or "the hand-eye")
+    elif chk.verdict == "consistent":
+        log.info("hand-eye check: %s", what)
+    else:
+        log.info("hand-eye check undecided: %s (needs pairs whose relative rotation tells the hand-eye from its "
+                 "inverse)", what)
