@@ -88,6 +88,32 @@ def test_plan_bad_options(gt_twin_small: Path, tmp_path: Path):
     assert main(["plan", str(tmp_path / "nope"), "--out", str(tmp_path)]) == 2
 
 
+def test_plan_custom_joint_names_with_a_named_base_frame(gt_twin_small: Path, tmp_path: Path):
+    """--joint-names as a list + --base-frame: the base frame is named in base_transform.yaml, the base-frame
+    MoveIt scene, the trajectories' meta and results.json; a malformed frame id is refused before planning."""
+    import yaml
+
+    task = tmp_path / "one.yaml"
+    task.write_text("- pick: yellow_cube\n- place_in: {center: [0.1, -0.05, 0.0], size: 0.1}\n")
+    names = ",".join(f"arm_j{i}" for i in range(1, 8))
+    out = tmp_path / "o"
+    assert main(["plan", str(gt_twin_small), "--task", str(task), "--out", str(out), "--no-render",
+                 "--joint-names", names, "--base-frame", "cell1/arm_base"]) == 0
+    tf = yaml.safe_load((out / "base_transform.yaml").read_text())
+    assert tf["header"]["frame_id"] == "twin" and tf["child_frame_id"] == "cell1/arm_base"
+    assert "--child-frame-id cell1/arm_base" in (out / "base_transform.yaml").read_text()
+    msgs = yaml.safe_load((out / "moveit" / "collision_objects.yaml").read_text())
+    assert msgs and {m["header"]["frame_id"] for m in msgs} == {"cell1/arm_base"}
+    tj = Trajectory.load_json(out / "trajectory.json")
+    assert tj.joint_names == names.split(",") and tj.meta["base_frame"] == "cell1/arm_base"
+    res = json.loads((out / "results.json").read_text())
+    assert res["base_frame"] == "cell1/arm_base" and res["options"]["base_frame"] == "cell1/arm_base"
+    for bad in ("/cell1/arm_base", "arm base"):
+        assert main(["plan", str(gt_twin_small), "--task", str(task), "--out", str(tmp_path / "o2"), "--no-render",
+                     "--joint-names", names, "--base-frame", bad]) == 2
+    assert not (tmp_path / "o2").exists()
+
+
 def _renamed_panda(tmp_path: Path) -> Path:
     """The Menagerie Panda MJCF with every body, joint, site, tendon and actuator renamed (prefix 'arm_'),
     meshes referenced from the original folder: a user arm that only works through the robot options."""

@@ -94,6 +94,29 @@ def test_export_names_default_to_the_real_robots_and_fit_the_arm():
         export_names("bad name,x", ["a", "b"], "base", default_model=False)
 
 
+def test_base_frame_named_for_any_joint_naming():
+    """--base-frame names the base in the exported files, for a list of joint names (whose base was the MJCF's
+    root body, unnameable before) and for the named robots; it must be a TF frame id."""
+    from splattwin.errors import InputError
+    from splattwin.robot.export import export_names
+    from splattwin.robot.options import RobotOptions
+
+    sim = [f"joint{i}" for i in range(1, 8)]
+    custom = ",".join(f"arm_j{i}" for i in range(1, 8))
+    assert export_names(custom, sim, "link0", default_model=True).base_frame == "link0"     # the root body
+    n = export_names(custom, sim, "link0", default_model=True, base_frame="arm_base_link")
+    assert n.base_frame == "arm_base_link" and n.joint_names[0] == "arm_j1"
+    assert export_names("fr3", sim, "link0", True, base_frame="left/fr3_link0").base_frame == "left/fr3_link0"
+    assert export_names("model", sim, "link0", True, base_frame="_base").base_frame == "_base"
+    assert export_names(None, sim, "link0", True, base_frame=None).base_frame == "panda_link0"
+    for bad in ("/base_link", "base link", "1base", "a//b", "base/", "", "base-link", "twin", "a" * 65):
+        with pytest.raises(InputError, match="--base-frame"):
+            export_names(custom, sim, "link0", default_model=True, base_frame=bad)
+        with pytest.raises(InputError, match="--base-frame"):
+            RobotOptions(joint_names=custom, base_frame=bad).validate()
+    RobotOptions(joint_names=custom, base_frame="robot1/base_link").validate()
+
+
 def test_base_transform_and_base_frame_moveit_scene(tmp_path):
     """robot/base_transform.yaml is T_twin_base as a TransformStamped (+ static_transform_publisher
     arguments), and the MoveIt files hold the twin's objects in the base frame."""

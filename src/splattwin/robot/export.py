@@ -9,7 +9,8 @@ to get there:
 * `ExportNames` / `export_names`: the joint names written to the trajectory files (the simulation keeps
   the MJCF's names): `panda` (panda_joint1..7: franka_ros, panda_moveit_config; base frame panda_link0),
   `fr3` (fr3_joint1..7: franka_ros2; fr3_link0), `model` (the MJCF's own, e.g. Menagerie's joint1..7;
-  base frame its root body) or a comma-separated list, one name per arm joint.
+  base frame its root body) or a comma-separated list, one name per arm joint (base frame the root body);
+  `--base-frame` names the base frame for any of them (e.g. `base_link` or `robot1/panda_link0`).
 * `write_base_transform`: robot/base_transform.yaml, a geometry_msgs/TransformStamped twin -> base
   (translation m, rotation quaternion xyzw) with the `ros2 run tf2_ros static_transform_publisher`
   arguments as a comment.
@@ -34,6 +35,9 @@ TWIN_FRAME = "twin"
 JOINT_NAMINGS = {"panda": ("panda_joint", "panda_link0"), "fr3": ("fr3_joint", "fr3_link0")}
 MODEL_NAMING = "model"
 _ROS_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")   # a ROS 2 name token (joint names, frames)
+# a TF frame id for the base: tokens as above joined by single '/' (a namespace: robot1/panda_link0); no
+# leading '/' (tf2 refuses frame ids that start with one), no empty or trailing segment
+_FRAME_ID = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,63}(/[A-Za-z_][A-Za-z0-9_]{0,63}){0,7}")
 BASE_TRANSFORM = "base_transform.yaml"
 MOVEIT_DIR = "moveit"
 MOVEIT_FILES = ("collision_objects.yaml", "scene.scene")
@@ -96,24 +100,42 @@ def check_naming(naming: str | None) -> None:
                          f"comma-separated joint names (letters, digits, _), got {naming!r}")
 
 
-def export_names(naming: str | None, arm_joints: list[str], root_body: str, default_model: bool) -> ExportNames:
+def check_base_frame(base_frame: str | None) -> None:
+    """InputError unless `base_frame` is None or a well-formed TF frame id (see `_FRAME_ID`)."""
+    if base_frame is None:
+        return
+    if not isinstance(base_frame, str) or not _FRAME_ID.fullmatch(base_frame):
+        lead = " (tf2 refuses a leading '/')" if isinstance(base_frame, str) and base_frame.startswith("/") else ""
+        raise InputError(f"--base-frame must be a TF frame id: letters, digits and '_' (not starting with a "
+                         f"digit), optionally namespaced with single '/' (robot1/base_link){lead}, got "
+                         f"{str(base_frame)[:80]!r}")
+    if base_frame == TWIN_FRAME:
+        raise InputError(f"--base-frame {TWIN_FRAME!r} is the twin frame's name (base_transform.yaml: {TWIN_FRAME} -> "
+                         f"base); name the robot base otherwise")
+
+
+def export_names(naming: str | None, arm_joints: list[str], root_body: str, default_model: bool,
+                 base_frame: str | None = None) -> ExportNames:
     """The names to export for an arm with simulated joints `arm_joints` and root body `root_body`.
     naming None: `panda` for the default (Menagerie Panda) model, `model` for a user MJCF (its own names
-    unless mapped). InputError when the naming does not fit the arm (e.g. 7 Panda names for a 6-joint arm)."""
+    unless mapped). InputError when the naming does not fit the arm (e.g. 7 Panda names for a 6-joint arm).
+    base_frame: the base frame's name in the exported files; None: the naming's (`panda_link0`, `fr3_link0`)
+    or, for `model` and a list of names, the MJCF's root body."""
     check_naming(naming)
+    check_base_frame(base_frame)
     naming = naming or ("panda" if default_model else MODEL_NAMING)
     n = len(arm_joints)
     if naming == MODEL_NAMING:
-        return ExportNames(tuple(arm_joints), root_body, naming)
+        return ExportNames(tuple(arm_joints), base_frame or root_body, naming)
     if naming in JOINT_NAMINGS:
         prefix, base = JOINT_NAMINGS[naming]
         if n != 7:
             raise InputError(f"--joint-names {naming} names 7 joints; this arm has {n}: give {n} names")
-        return ExportNames(tuple(f"{prefix}{i}" for i in range(1, 8)), base, naming)
+        return ExportNames(tuple(f"{prefix}{i}" for i in range(1, 8)), base_frame or base, naming)
     names = tuple(s.strip() for s in naming.split(","))
     if len(names) != n:
         raise InputError(f"--joint-names gives {len(names)} names; the arm has {n} joints ({', '.join(arm_joints)})")
-    return ExportNames(names, root_body, naming)
+    return ExportNames(names, base_frame or root_body, naming)
 
 
 def quat_xyzw_of(T: np.ndarray) -> list[float]:

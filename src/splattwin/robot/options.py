@@ -45,6 +45,10 @@ class RobotOptions:
                                      "'model' (the MJCF's own names; base frame its root body) or one name per "
                                      "arm joint, comma-separated (none: 'panda' for the default Panda, 'model' "
                                      "for robot_mjcf)")
+    base_frame: str | None = option(None, "name of the robot base frame in the exported files (base_transform.yaml's "
+                                    "child frame, the base-frame MoveIt scene's frame_id, results.json): a TF frame "
+                                    "id such as 'base_link' or 'robot1/panda_link0' (none: panda_link0 for 'panda' "
+                                    "joint names, fr3_link0 for 'fr3', else the MJCF's root body)")
     in_hand: str = option("sensed", "where the transfer assumes the held object sits: 'sensed' (read in the "
                           "simulation, as an in-hand estimate such as a wrist camera gives) or 'planned' (as grasped "
                           "on the twin pose; no in-hand sensing on the real cell)", choices=IN_HAND)
@@ -74,9 +78,10 @@ class RobotOptions:
             raise InputError(f"--sigma must be in [0, 0.05] metres, got {self.sigma}")
         if self.sigma_yaw is not None and not 0 <= self.sigma_yaw <= 0.5:
             raise InputError(f"--sigma-yaw must be in [0, 0.5] radians, got {self.sigma_yaw}")
-        from splattwin.robot.export import check_naming
+        from splattwin.robot.export import check_base_frame, check_naming
 
         check_naming(self.joint_names)
+        check_base_frame(self.base_frame)
         if self.robot_mjcf is not None and not Path(self.robot_mjcf).is_file():
             raise InputError("robot MJCF not found", self.robot_mjcf)
         if not 0 < self.record_fps <= 120:

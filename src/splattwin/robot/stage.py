@@ -106,7 +106,8 @@ def _export_names(spec, options: RobotOptions):
     from splattwin.robot.export import export_names
 
     robot = spec.robot_model()
-    return export_names(options.joint_names, robot.arm_joints, robot.root_body, spec.robot_mjcf is None)
+    return export_names(options.joint_names, robot.arm_joints, robot.root_body, spec.robot_mjcf is None,
+                        base_frame=options.base_frame)
 
 
 def _error_result(out: Path, e: InputError, options: RobotOptions, twin_dir: Path) -> RobotResult:
