@@ -238,6 +238,60 @@ def test_urdf_mesh_uris(built, tmp_path, uri):
     assert any(e.get("mesh_paths") == uri for e in Manifest.load(t).export_files)
 
 
+@pytest.mark.parametrize("uri", ["file", "package://my_twin"])
+def test_percent_encoded_urdf_uris_are_announced(built, tmp_path, uri, caplog):
+    """A space in the twin's path (file://) or an object's folder (package://) is percent-encoded (RFC 8089,
+    what ROS resource_retriever decodes); yourdfpy opens the path as written and misses such a mesh, MuJoCo
+    reads no file:// URI. The export warns once, naming the characters and the way out (relative filenames),
+    and each URDF says so in a comment; the default relative filenames load in yourdfpy as they are."""
+    import yourdfpy
+
+    out, *_ = built
+    t = _renamed(out, tmp_path, "hammer", "toy hammer")          # "renamed twin": a space in the twin path
+    if uri != "file":
+        shutil.move(t / "objects" / "hammer", t / "objects" / "toy hammer")   # and in an object's folder
+        d = json.loads((t / "twin.json").read_text())
+        for o in d["objects"]:
+            for k in ("visual_mesh", "collision_mesh", "splat_ply"):
+                if isinstance(o.get(k), str):
+                    o[k] = o[k].replace("objects/hammer/", "objects/toy hammer/")
+            if o.get("convex_parts"):
+                o["convex_parts"] = [p.replace("objects/hammer/", "objects/toy hammer/") for p in o["convex_parts"]]
+        (t / "twin.json").write_text(json.dumps(d))
+    with caplog.at_level("WARNING", logger="splattwin"):
+        assert main(["export", str(t), "--formats", "urdf", "--urdf-uri", uri]) == 0
+    warned = [r for r in caplog.records if "percent-encode" in r.getMessage()]
+    assert len(warned) == 1 and "space" in warned[0].getMessage() and "--urdf-uri relative" in warned[0].getMessage()
+    for f in (t / "export").glob("*.urdf"):
+        text = f.read_text()
+        assert "%20" in text and "percent-encode" in text.split("<robot")[0], f   # the comment, before <robot>
+
+    def found(urdf):   # meshes yourdfpy loads (it drops a mesh it cannot open, silently)
+        u = yourdfpy.URDF.load(str(urdf), load_collision_meshes=True, build_collision_scene_graph=True)
+        return len(u.collision_scene.geometry) + len(u.scene.geometry)
+
+    encoded = found(t / "export" / "scene.urdf")
+    # the same twin with relative filenames: no warning, and yourdfpy finds every mesh
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="splattwin"):
+        assert main(["export", str(t), "--formats", "urdf"]) == 0
+    assert not [r for r in caplog.records if "percent-encode" in r.getMessage()]
+    text = (t / "export" / "scene.urdf").read_text()
+    assert "percent-encode" not in text
+    assert found(t / "export" / "scene.urdf") >= text.count("<mesh filename=") > 0
+    assert encoded < found(t / "export" / "scene.urdf")     # what the warning is about
+
+
+def test_plain_paths_get_no_percent_encoding_note(built, tmp_path, caplog):
+    out, *_ = built
+    t = tmp_path / "plain_twin"
+    shutil.copytree(out, t)
+    with caplog.at_level("WARNING", logger="splattwin"):
+        assert main(["export", str(t), "--formats", "urdf", "--urdf-uri", "file"]) == 0
+    assert not [r for r in caplog.records if "percent-encode" in r.getMessage()]
+    assert "%" not in (t / "export" / "scene.urdf").read_text()
+
+
 def test_bad_urdf_uri_is_refused(built, capsys):
     out, *_ = built
     assert main(["export", str(out), "--urdf-uri", "http://x"]) == 2

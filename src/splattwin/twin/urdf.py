@@ -4,7 +4,8 @@ Files go to TWIN/export/ (`scene.urdf`, `<export_id>.urdf`). Mesh filenames foll
 `ExportOptions.urdf_uri`: relative to that folder by default ("../objects/box/visual.obj": simulators
 and yourdfpy resolve it against the URDF file, and the twin folder can be moved as a whole), absolute
 `file://` URIs, or `package://NAME/...` with the twin folder as the package root (ROS passes
-robot_description as a string, so rviz / MoveIt need one of the URIs). Links and joints are named by
+robot_description as a string, so rviz / MoveIt need one of the URIs; they are percent-encoded as RFC
+8089 / 3986 ask: see `percent_encoding_note`). Links and joints are named by
 the objects' export IDs (`splattwin.names.export_id`: [A-Za-z0-9_]). The scene URDF roots at link
 `world` = the twin frame (z up); the table, background obstacles and every usable object hang from it
 on fixed joints at their poses (a URDF cannot express free bodies; simulators free them, planners
@@ -14,9 +15,11 @@ with its box only (no inertial: static). Masses and inertias are estimates (a co
 
 from __future__ import annotations
 
+import logging
 import os
+import re
 from pathlib import Path
-from urllib.parse import quote
+from urllib.parse import quote, unquote
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
@@ -27,6 +30,9 @@ from splattwin.meshio import load_mesh
 from splattwin.names import export_id
 from splattwin.paths import child
 from splattwin.twin.manifest import Manifest, ObjectEntry, unscaled_note
+
+log = logging.getLogger(__name__)
+_FILENAME = re.compile(r'<mesh filename="([^"]*)"')
 
 
 def _origin(T: np.ndarray) -> str:
@@ -144,19 +150,57 @@ def scene_urdf(twin_dir: Path, manifest: Manifest, out_dir: Path, uri: str = "re
     return "\n".join(lines)
 
 
+def encoded_characters(urdf_texts: list[str]) -> list[str]:
+    """The characters that the URDFs' mesh URIs hold percent-encoded (space, non-ASCII, '%', '#', ...)."""
+    chars = set()
+    for text in urdf_texts:
+        for fn in _FILENAME.findall(text):
+            if "%" in fn:
+                chars.update(c for c in unquote(fn) if quote(c, safe="/") != c)
+    return sorted(chars)
+
+
+def percent_encoding_note(uri: str, chars: list[str]) -> str:
+    """Why the URIs hold %XX escapes and who reads them (the export's warning and the URDF's comment).
+
+    RFC 8089 file: URIs (and package:// URIs, as URI references) percent-encode a space ('%20'), non-ASCII
+    bytes, '%', '#', ... What the consumers do with them: ROS resource_retriever (ROS 1 and 2; what rviz and
+    MoveIt load meshes through, and what these URIs are for) decodes them; yourdfpy (0.0.60, checked) strips
+    'file://' or 'package://NAME/' and opens the rest as written, so '%20' stays and the mesh is not found
+    (dropped silently); MuJoCo's URDF compiler (4.0, checked) opens no file:// URI, encoded or not; urdfdom
+    only parses (its users resolve). Writing the characters raw would break the URI for ROS to please
+    loaders that should read the relative filenames anyway, so the URIs stay encoded and the export says so.
+    """
+    shown = ", ".join(repr(c) if c != " " else "space" for c in chars[:6]) + (" ..." if len(chars) > 6 else "")
+    where = "the twin folder's path or an object's folder name" if uri == "file" else "an object's folder name"
+    return (f"the URDF mesh filenames ({uri} URIs) percent-encode characters of {where} ({shown}; e.g. a space "
+            f"is '%20'), as RFC 8089/3986 require: ROS (resource_retriever: rviz, MoveIt) decodes them, but loaders "
+            f"that open the path as written (yourdfpy) miss the meshes, and MuJoCo reads no file:// URI: for those "
+            f"use the default relative filenames (--urdf-uri relative), or move the twin to a path of letters, "
+            f"digits, '_', '-', '.' only")
+
+
 def export_urdf(twin_dir: str | Path, manifest: Manifest, options=None) -> Path:
     """Write export/scene.urdf and export/<export_id>.urdf for every usable object (atomically). options:
-    `ExportOptions` (urdf_uri). Returns scene.urdf."""
+    `ExportOptions` (urdf_uri). Returns scene.urdf. URI filenames with percent-encoded characters get a
+    warning and a comment in each file (`percent_encoding_note`)."""
     from splattwin.twin.options import ExportOptions
 
     uri = (options or ExportOptions()).urdf_uri
     twin_dir = Path(twin_dir)
     out = twin_dir / "export"
-    names = {"scene.urdf"}
-    for o in manifest.objects:
-        if o.usable:
-            names.add(f"{export_id(o.name)}.urdf")
-            io.write_text(child(out, f"{export_id(o.name)}.urdf"), object_urdf(twin_dir, o, out, manifest, uri))
-    path = io.write_text(out / "scene.urdf", scene_urdf(twin_dir, manifest, out, uri))
-    io.remove_stale(out, names, suffix=".urdf")   # an earlier build's object that is gone or now unusable
+    texts = {f"{export_id(o.name)}.urdf": object_urdf(twin_dir, o, out, manifest, uri)
+             for o in manifest.objects if o.usable}
+    texts["scene.urdf"] = scene_urdf(twin_dir, manifest, out, uri)
+    chars = encoded_characters(list(texts.values())) if uri != "relative" else []
+    if chars:
+        note = percent_encoding_note(uri, chars)
+        log.warning("%s: %s", out / "scene.urdf", note)
+        head = '<?xml version="1.0"?>\n'
+        texts = {k: head + _comment(note) + t[len(head):] if t.startswith(head) else t for k, t in texts.items()}
+    for name, text in texts.items():
+        if name != "scene.urdf":
+            io.write_text(child(out, name), text)
+    path = io.write_text(out / "scene.urdf", texts["scene.urdf"])
+    io.remove_stale(out, set(texts), suffix=".urdf")   # an earlier build's object that is gone or now unusable
     return path
