@@ -278,3 +278,37 @@ def test_a_table_patch_beside_the_objects_is_extended_under_them_and_flagged():
     under = _plane_gaussians(np.c_[rng.uniform(0.0, 0.5, (6000, 2)), rng.normal(0, 0.0005, 6000)])
     ok = background_geometry(under, np.arange(len(under)), opts, plane=z0, object_points=objects)
     assert ok.default_reason is None and np.allclose(ok.table_extent, [0.0, 0.5, 0.0, 0.5], atol=0.01)
+
+
+def test_the_table_reaches_under_an_object_its_splats_stop_short_of():
+    """The audit's box thrown 74 cm: in an SfM + depth twin of `scene generate --robot-capture bop` (800
+    iterations) the table splats ended under the cardboard box, so the table box did too; the box hung
+    over its edge, tipped and fell to the floor when physics started. The photos show the object at rest
+    on the table, so the table reaches under every object standing on it (and a margin beyond)."""
+    rng = np.random.default_rng(3)
+    gt = trimesh.creation.box([0.2, 0.15, 0.1])
+    gt.apply_translation([0.0, 0.08, 0.05])                     # y 0.005..0.155
+    gt_cube = trimesh.creation.box([0.05, 0.05, 0.05])
+    gt_cube.apply_translation([0.0, -0.2, 0.025])              # the objects' middle stays over the table splats
+    box, cube = trained_like_gaussians(gt, 3000, seed=3), trained_like_gaussians(gt_cube, 1500, seed=4)
+    table = np.c_[rng.uniform(-0.3, 0.3, (12000, 2)), rng.normal(0, 0.0005, 12000)]
+    table = table[(table[:, 1] < 0.04) & ~((np.abs(table[:, 0]) < 0.1) & (table[:, 1] > 0.005))]  # ends under the box
+    table = table[~((np.abs(table[:, 0]) < 0.025) & (np.abs(table[:, 1] + 0.2) < 0.025))]
+    parts = [_plane_gaussians(table), box, cube]
+    g = Gaussians(**{k: np.concatenate([getattr(p, k)[:, :1] if k == "sh" else getattr(p, k) for p in parts])
+                     for k in ("means", "quats", "scales", "opacities", "sh")})
+    labels = np.r_[np.zeros(len(table), np.int64), np.ones(len(box), np.int64), np.full(len(cube), 2)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        conv = convert(g, labels, [("box", 1, "cardboard box"), ("cube", 2, "cube")], progress=False)
+    bg, (r, c) = conv.background, conv.objects
+    assert r.usable and c.usable and abs(bg.table_height) < 0.003 and bg.default_reason is None
+    v = r.collision.vertices @ r.T_world_obj[:3, :3].T + r.T_world_obj[:3, 3]
+    assert v[:, 1].max() > 0.15 and v[:, 2].min() < 0.003          # the whole box, on the table
+    x0, x1, y0, y1 = bg.table_extent
+    assert y1 >= v[:, 1].max() + 0.01          # was 0.04 (the splats' edge): the box's centre (0.08) beyond it
+    assert x0 <= v[:, 0].min() and x1 >= v[:, 0].max() and y0 <= -0.29   # the rest of the table as found
+    # every collision export takes the table from these: the table box and the background's first part
+    for m in (bg.parts[0], bg.collision):
+        assert m.bounds[1, 1] >= v[:, 1].max() + 0.01
+    assert np.allclose(bg.parts[0].bounds[:, :2].T.ravel(), bg.table_extent)

@@ -412,6 +412,54 @@ def _table_box(extent, h: float, thickness: float) -> trimesh.Trimesh:
     return table
 
 
+TABLE_UNDER_MARGIN = 0.02  # m: how far the table reaches beyond the footprint of an object standing on it
+
+
+def _footprint(r: ObjectGeometry) -> tuple[np.ndarray, float] | None:
+    """(xy [2,2] lower/upper corner, lowest z) of an object's collision geometry in the twin frame: its
+    collision mesh, or an unusable object's obstacle box; None when it has neither."""
+    if r.usable and r.collision is not None and len(r.collision.vertices):
+        v = np.asarray(r.collision.vertices) @ r.T_world_obj[:3, :3].T + r.T_world_obj[:3, 3]
+        return np.stack([v[:, :2].min(axis=0), v[:, :2].max(axis=0)]), float(v[:, 2].min())
+    if r.obstacle:
+        c, e = np.asarray(r.T_world_obj)[:3, 3], np.asarray(r.extent)
+        return np.stack([c[:2] - e[:2] / 2, c[:2] + e[:2] / 2]), float(c[2] - e[2] / 2)
+    return None
+
+
+def table_under_objects(bg: BackgroundGeometry, results: list[ObjectGeometry], reach: float, margin: float
+                        ) -> list[str]:
+    """Grow the table top of `bg` in place so that it reaches `margin` beyond the footprint (xy box of the
+    collision geometry) of every object whose lowest point is within `reach` of it: the photos show those
+    objects at rest on the table, so the table is under them. Its extent comes from the table splats,
+    and they can stop short of an object: behind it (occluded), beyond the views, or sparse (SfM's few
+    hundred seed points at a low iteration count). A 20 x 15 cm box at the far edge of the splats
+    (`scene generate --robot-capture bop` without poses, SfM + depth scale, 800 iterations) hung
+    15 cm over the table's edge and fell 74 cm to the floor at physics start. The table box, the
+    background's collision mesh and its first convex part (the table) are rebuilt. Returns the names of
+    the objects it was grown under (empty: unchanged)."""
+    x0, x1, y0, y1 = (float(v) for v in bg.table_extent)
+    grown = []
+    for r in results:
+        fp = _footprint(r)
+        if fp is None or fp[1] > bg.table_height + reach:
+            continue
+        lo, hi = fp[0][0] - margin, fp[0][1] + margin
+        if lo[0] < x0 or lo[1] < y0 or hi[0] > x1 or hi[1] > y1:
+            grown.append(r.name)
+            x0, y0 = min(x0, float(lo[0])), min(y0, float(lo[1]))
+            x1, y1 = max(x1, float(hi[0])), max(y1, float(hi[1]))
+    if not grown:
+        return []
+    log.info("table top grown under %s (their footprints reach beyond the table splats): x %.3g..%.3g, y %.3g..%.3g "
+             "-> x %.3g..%.3g, y %.3g..%.3g", ", ".join(grown), *bg.table_extent, x0, x1, y0, y1)
+    bg.table_extent = [x0, x1, y0, y1]
+    table = _table_box(bg.table_extent, bg.table_height, bg.table_thickness)
+    bg.parts = [table] + list(bg.parts[1:])
+    bg.collision = trimesh.util.concatenate([table] + list(bg.obstacles))
+    return grown
+
+
 def background_geometry(g, indices: np.ndarray, opts: GeometryOptions, table_thickness: float = 0.03,
                         plane: Plane | None = None, length_scale: float = 1.0,
                         object_points: np.ndarray | None = None) -> BackgroundGeometry:
@@ -562,6 +610,8 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
             results.append(r)
             bar.update(1)
         bar.set_description("geometry")
+    if bg is not None:  # the objects stand on the table: it reaches under them wherever its splats stop short
+        table_under_objects(bg, results, opts.foot_gap, TABLE_UNDER_MARGIN * length_scale)
     flag_floating(results, support_z, opts, bg.obstacles if bg is not None else None,
                   units="m" if length_scale == 1.0 else "frame units")
     timings["total"] = time.perf_counter() - t0
