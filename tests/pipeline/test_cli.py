@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import json
+
 from splattwin.pipeline.cli import _print_headline
 from splattwin.pipeline.runner import Context
 
@@ -11,7 +13,7 @@ def test_headline_names_the_twin_only_when_there_is_one(tmp_path, capsys, monkey
                   results={"splats": {"gaussians": 7080, "split": "heldout", "psnr": 14.3, "ssim": 0.49}})
     _print_headline(ctx)
     out = capsys.readouterr().out
-    assert "7080 Gaussians, heldout PSNR 14.30 dB" in out and "total 33 s" in out
+    assert "7080 Gaussians, heldout PSNR 14.30 dB" in out and "stage time, sum 33.0 s" in out
     assert "twin.json" in out and "no twin.json" in out and "twin: " not in out
     (tmp_path / "twin.json").write_text("{}")
     ctx.results["twin"] = {"manifest": "@twin.json"}
@@ -59,11 +61,32 @@ def test_headline_total_is_what_this_run_took(tmp_path, capsys, monkeypatch):
                   wall_s=0.25)
     _print_headline(ctx)
     out = capsys.readouterr().out
-    assert "total 0.2 s (all 2 stages up to date, skipped)" in out and "33 s" not in out
+    assert "total 0.2 s wall clock (all 2 stages up to date, skipped;" in out and "total 33" not in out
     ctx = Context(out=tmp_path, options={}, timings={"poses": 8.0, "splats": 25.0}, skipped=["poses"], wall_s=26.4)
     _print_headline(ctx)
-    assert "total 26 s (1 of 2 stages up to date, skipped: poses)" in capsys.readouterr().out
+    assert "total 26 s wall clock (1 of 2 stages up to date, skipped: poses;" in capsys.readouterr().out
 
+
+def test_headline_total_and_the_reports_stage_time_are_labelled_and_share_one_figure(tmp_path, capsys, monkeypatch):
+    """audit 7B D11: the terminal said "total 68 s" (wall clock, report included), the report "pipeline time
+    (s) 48.5" (the stage records without the report), neither saying what it was. The terminal now says
+    wall clock and gives the report's figure under the report's own name; the report explains both."""
+    from splattwin.report.build import STAGE_TIME_KPI, build_report
+
+    monkeypatch.setenv("COLUMNS", "1000")
+    timings = {"scene": 0.5, "poses": 8.0, "splats": 30.0, "semantics": 4.0, "twin": 6.0}   # 48.5 s
+    (tmp_path / "pipeline.json").write_text(json.dumps({k: {"seconds": v} for k, v in timings.items()}))
+    page = build_report(tmp_path, timings=dict(timings), skipped=["scene", "poses"])
+    ctx = Context(out=tmp_path, options={}, timings={**timings, "report": 15.0}, wall_s=68.2)
+    _print_headline(ctx)
+    out = " ".join(capsys.readouterr().out.split())
+    assert "total 68 s wall clock, pre-flight and report included (the report's stage time, sum: 48.5 s)" in out
+    import html as _html
+
+    text = _html.unescape(page.read_text())
+    assert f"{STAGE_TIME_KPI}" in text and "pipeline time" not in text
+    assert "'stage time, sum' (48.5 s)" in text and "wall-clock time of that one run" in text
+    assert text.count("up to date: an earlier build's seconds") == 2 and text.count(">this build<") == 3
 
 def test_run_stages_records_what_it_skipped_and_its_own_time(tmp_path):
     from splattwin.pipeline.runner import Stage, run_stages

@@ -79,3 +79,25 @@ def test_collision_parts_draw_an_obstacle_only_box_translucent_red(tmp_path: Pat
     V = p.world_vertices()
     np.testing.assert_allclose(V.min(0), T[:3, 3] - [0.018, 0.02, 0.025], atol=1e-6)
     np.testing.assert_allclose(V.max(0), T[:3, 3] + [0.018, 0.02, 0.025], atol=1e-6)
+
+
+def test_view_opacity_is_the_parts_own_else_the_layers(tmp_path: Path):
+    """audit 7B: the viewer drew every collision part at one fixed opacity, ignoring an obstacle box's 0.5."""
+    import trimesh
+
+    from splattwin.playback.view_model import (OBSTACLE_OPACITY, OBSTACLE_RGB, VIEW_OPACITY_BACKGROUND,
+                                               VIEW_OPACITY_OBJECT)
+
+    trimesh.creation.box(extents=[0.05, 0.05, 0.05]).export(tmp_path / "box.obj")
+    trimesh.creation.box(extents=[0.6, 0.6, 0.02]).export(tmp_path / "table.obj")
+    man = Manifest(objects=[ObjectEntry(name="box", label=1, collision_mesh="box.obj"),
+                            ObjectEntry(name="cube", label=3, usable=False, obstacle_only=True,
+                                        T_world_obj=np.eye(4).tolist(), bbox_extent=[0.045, 0.045, 0.045],
+                                        problem="too few points after cleaning")])
+    man.background.collision_mesh = "table.obj"
+    by_owner = {p.owner: p for p in collision_parts(tmp_path, man)}
+    assert by_owner["cube"].view_opacity() == pytest.approx(OBSTACLE_OPACITY) and by_owner["cube"].color == OBSTACLE_RGB
+    assert by_owner["box"].view_opacity() == pytest.approx(VIEW_OPACITY_OBJECT)
+    assert by_owner["background"].view_opacity() == pytest.approx(VIEW_OPACITY_BACKGROUND)
+    by_owner["box"].opacity = 0.25   # any part's own opacity wins
+    assert by_owner["box"].view_opacity() == pytest.approx(0.25)

@@ -330,3 +330,27 @@ def test_plan_on_a_floating_object_writes_nothing_for_the_real_arm(gt_twin_small
     assert "cardboard_box moved 5.0 cm" in res["real_robot"]["reason"]
     assert not any((out / n).exists() for n in REAL_ROBOT_FILES)
     assert "NOT a validation of the twin" in said and said.count("cardboard_box moved 5.0 cm") == 1
+
+
+@pytest.mark.slow
+def test_plan_refreshes_the_twins_report(gt_twin_small: Path, tmp_path: Path, capsys):
+    """audit 7B D13: after `plan` the report still showed the build's robot run (a FAILURE of the default
+    task) until `splattwin report` was run by hand. A twin with a report gets it re-written by plan."""
+    import shutil
+
+    twin = tmp_path / "twin"
+    shutil.copytree(gt_twin_small, twin)
+    assert main(["report", str(twin), "--no-video"]) == 0
+    page = twin / "report" / "index.html"
+    assert "no robot task run" in page.read_text()
+    task = tmp_path / "one_step.yaml"
+    task.write_text("- pick: yellow_cube\n- place_on: blue_box\n")
+    capsys.readouterr()
+    assert main(["plan", str(twin), "--task", str(task), "--no-render"]) == 0
+    assert f"report: {page} (refreshed" in " ".join(capsys.readouterr().out.split())
+    html = page.read_text()
+    assert "no robot task run" not in html and "overall: SUCCESS" in html and "one_step.yaml" in html
+    # --no-report leaves it as it is (the default task's three steps are not in it)
+    before = page.read_bytes()
+    assert main(["plan", str(twin), "--no-render", "--no-report"]) == 0
+    assert page.read_bytes() == before

@@ -133,6 +133,46 @@ def test_obstacle_box_pads_trims_and_reaches_the_table():
     assert not r2.obstacle
 
 
+def test_obstacle_box_bounds_a_small_cube_from_its_few_splats_with_margin():
+    """audit 7B D8: a 2.5 cm cube with 3 labelled splats got a 2.0 cm box (their centres, point-like, grown
+    by 1 cm): a keep-out volume smaller than the object. The box now holds each splat's half-opaque extent
+    and then the pad, so it bounds the cube on every side."""
+    from splattwin.geometry.convert import ObjectGeometry, obstacle_box, splat_half_extents
+    from splattwin.geometry.options import GeometryOptions
+    from splattwin.splat.gaussians import Gaussians, rgb_to_sh0
+
+    opts = GeometryOptions().resolved(scene_scale=1.0)
+    lo_c, hi_c = np.array([0.2, 0.3, 0.0]), np.array([0.225, 0.325, 0.025])   # the cube on the table z = 0
+    # trained surface splats: flat discs 1-2 mm inside the face they render (top, -x side, -y side)
+    means = np.array([[0.2125, 0.3125, 0.023], [0.2015, 0.3125, 0.0125], [0.2125, 0.3015, 0.0125]])
+    scales = np.array([[0.008, 0.008, 0.001], [0.001, 0.008, 0.008], [0.008, 0.001, 0.008]])
+    g = Gaussians(means=means, quats=np.tile([1.0, 0, 0, 0], (3, 1)), scales=scales, opacities=np.full(3, 0.95),
+                  sh=rgb_to_sh0(np.full((3, 3), 0.8))[:, None, :])
+    r = ObjectGeometry("yellow_cube", 3, usable=False)
+    obstacle_box(r, g.means, opts, support_z=0.0, half_extent=splat_half_extents(g, np.arange(3), opts))
+    lo, hi = r.T_world_obj[:3, 3] - r.extent / 2, r.T_world_obj[:3, 3] + r.extent / 2
+    assert np.all(lo[:2] <= lo_c[:2] - 0.005) and np.all(hi <= hi_c + 0.03), (lo, hi)   # margin, not a wall
+    assert np.all(hi >= hi_c + 0.005) and lo[2] == 0.0, (lo, hi)
+    assert np.all(r.extent[:2] >= 0.025 + 0.01) and r.extent[2] >= 0.025 + 0.005   # the table is its bottom
+
+
+def test_obstacle_box_keeps_a_thin_extremity_and_drops_a_floater():
+    """The 2 % trimmed per side and axis cut a real extremity (a handle's last 4 of 200 points, 1.2 cm,
+    beyond the 1 cm pad); a stray floater is still left out (a group of its own)."""
+    from splattwin.geometry.convert import ObjectGeometry, obstacle_box
+    from splattwin.geometry.options import GeometryOptions
+
+    opts = GeometryOptions()
+    rng = np.random.default_rng(1)
+    head = rng.uniform([0, 0, 0.0], [0.03, 0.03, 0.03], (180, 3))
+    handle = np.c_[np.linspace(0.033, 0.09, 20), np.full(20, 0.015), np.full(20, 0.015)]   # 3 mm apart
+    far = np.array([[1.0, 1.0, 0.5]])
+    r = ObjectGeometry("toy_hammer", 4, usable=False)
+    obstacle_box(r, np.concatenate([head, handle, far]), opts, support_z=0.0)
+    hi = r.T_world_obj[:3, 3] + r.extent / 2
+    assert hi[0] == pytest.approx(0.09 + opts.obstacle_pad) and hi[1] < 0.1 and hi[2] < 0.1
+
+
 # -- M2: a floating object is flagged -----------------------------------------------------------------
 def test_floating_object_gets_a_problem_the_others_do_not(built):
     out, m, *_ = built

@@ -50,6 +50,31 @@ def test_build_scene_handles(tmp_path):
         server.stop()
 
 
+def test_collision_layer_draws_each_part_at_its_opacity_and_colour(tmp_path):
+    """audit 7B: the viewer drew every object part at 0.6, an obstacle-only box too (the report, the glTF:
+    0.5, red); the layer now draws what the view model gives each part."""
+    import trimesh
+    import viser
+
+    from splattwin.playback.view_model import OBSTACLE_OPACITY, OBSTACLE_RGB
+
+    twin = _twin(tmp_path)
+    trimesh.creation.box(extents=[0.05, 0.05, 0.05]).export(tmp_path / "box.obj")
+    man = Manifest.load(twin)
+    man.objects = [ObjectEntry(name="box", label=1, collision_mesh="box.obj"),
+                   ObjectEntry(name="cube", label=2, usable=False, obstacle_only=True, T_world_obj=np.eye(4).tolist(),
+                               bbox_extent=[0.045, 0.045, 0.045], problem="too few points after cleaning")]
+    man.save(twin)
+    server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
+    try:
+        handles = build_scene(server, twin)
+        cube, box = handles["col/cube/0"], handles["col/box/0"]
+        assert cube.opacity == pytest.approx(OBSTACLE_OPACITY) and tuple(cube.color) == OBSTACLE_RGB
+        assert box.opacity == pytest.approx(0.6) and tuple(box.color) != OBSTACLE_RGB
+    finally:
+        server.stop()
+
+
 @pytest.mark.slow
 def test_viewer_page_shows_content(tmp_path):
     twin = _twin(tmp_path)

@@ -62,7 +62,8 @@ class GeometryOptions:
                               "(the table top, or an object or obstacle under it) is floating: warned and noted in "
                               "its problem (physics would drop it)", unit="m")
     obstacle_pad: float = option(0.01, "an unusable object is kept in the collision exports as the axis-aligned box "
-                                 "of its labelled splats grown by this on every side", unit="m")
+                                 "of its labelled splats (their half-opaque extents, stray floaters left out) grown "
+                                 "by this on every side", unit="m")
     densify: bool = option(True, "mesh each splat's alpha = surface_level ellipsoid, not only its centre")
     surface_level: float = option(0.5, "alpha iso-level of a splat taken as its surface (trained centres sit inside)")
     carve: bool = option(True, "drop splat-extent samples that a capture camera sees in front of the object's "

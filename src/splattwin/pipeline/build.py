@@ -268,7 +268,7 @@ def _robot_files(ctx: Context) -> dict:
 def _report(ctx: Context) -> dict:
     from splattwin.report.stage import ReportInputs, run
 
-    return record(run(ReportInputs(ctx.out, dict(ctx.timings), dict(ctx.peak_rss_gib))), ctx.out)
+    return record(run(ReportInputs(ctx.out, dict(ctx.timings), dict(ctx.peak_rss_gib), list(ctx.skipped))), ctx.out)
 
 
 def stages() -> list[Stage]:

@@ -55,7 +55,8 @@ def run_plan(args: argparse.Namespace) -> int:
     Plans the task against the twin (grasps, IK, OMPL paths, TOPP-RA timing), executes it in MuJoCo with
     the real gripper, reports per-step success and collisions, exports the joint trajectory (JSON, CSV,
     ROS 2 JointTrajectory YAML) and frames. With --record DIR every run (nominal, then each trial) is also
-    written as a LeRobot-layout episode rendered from the twin's splats (wrist + scene camera). Exit code
+    written as a LeRobot-layout episode rendered from the twin's splats (wrist + scene camera). A twin that
+    has a report (TWIN/report/index.html) gets it re-written with this run's results (--no-report: kept). Exit code
     0 when the task succeeded, 1 when it failed, 2 on bad input, when the trajectory leaves the limits of
     the robot named by --joint-names (fr3: the plan ran, results.json records it, no real-robot files) or
     when an object moved from its twin pose before the robot acted (floating: the run validates nothing)."""
@@ -86,6 +87,10 @@ def run_plan(args: argparse.Namespace) -> int:
             console().print(f"recorded {info['episodes']} episode(s) into {info['path']} "
                             f"({info['reused']} reused from a killed run; {info['fps']:g} fps, cameras "
                             + ", ".join(f"{k} {w}x{h}" for k, (w, h) in info["cameras"].items()) + ")")
+        # what the layers above add to a plan (the report's refresh: `report.cli`), inside the same lock
+        after = getattr(args, "after_plan", None)
+        if after is not None:
+            after(args, out)
     if res.export_error:   # the plan ran, but no real-arm files: outside the named robot's limits
         # (`--joint-names fr3`) or the scene moved before the robot acted; the summary above said why
         console(stderr=True).print("error: no files for the real arm (the reason is above and in results.json "

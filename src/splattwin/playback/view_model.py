@@ -63,6 +63,9 @@ def load_robot_track(twin_dir: str | Path) -> RobotTrack | None:
 
 OBSTACLE_RGB = (230, 77, 77)   # an obstacle-only box: translucent red, as in the glTF export
 OBSTACLE_OPACITY = 0.5
+# the viewer's collision layer over the splats: a part without its own opacity (`MeshPart.opacity`)
+VIEW_OPACITY_OBJECT = 0.6
+VIEW_OPACITY_BACKGROUND = 0.5
 
 
 @dataclass
@@ -83,6 +86,13 @@ class MeshPart:
 
     def world_vertices(self) -> np.ndarray:
         return self.vertices @ self.T_world_part[:3, :3].T + self.T_world_part[:3, 3]
+
+    def view_opacity(self) -> float:
+        """The opacity the viewer draws this part at: its own (an obstacle box's `OBSTACLE_OPACITY`, as in
+        the report and the glTF export), else the layer's default for an object's or the background's part."""
+        if self.opacity is not None:
+            return float(self.opacity)
+        return VIEW_OPACITY_BACKGROUND if self.owner == "background" else VIEW_OPACITY_OBJECT
 
 
 @dataclass

@@ -14,6 +14,43 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("twin", type=Path, help="twin folder")
     add_options(p, ReportOptions)
     p.set_defaults(func=_report)
+    plan = sub.choices.get("plan")   # registered below this layer (playback/cli.py), which may not import it
+    if plan is not None:
+        plan.add_argument("--no-report", action="store_true",
+                          help="leave TWIN/report/index.html as it is (default: a twin that has a report gets it "
+                               "re-written with this run's results, as `splattwin report TWIN` would)")
+        plan.set_defaults(after_plan=refresh_after_plan)
+
+
+def refresh_after_plan(args: argparse.Namespace, out: Path) -> Path | None:
+    """After `splattwin plan` (inside its lock): re-write the twin's report so it shows this run's results,
+    not the build's (the report reads TWIN/robot/results.json). The whole report, as `splattwin report
+    TWIN` writes it (a task video of an unchanged rollout comes from its cache). Only a twin that has a
+    report (a build made one), only when the run wrote TWIN/robot (an --out elsewhere is not what the
+    report shows: said), not with --no-report. A report that cannot be written is a warning, not the
+    plan's outcome. Returns its path or None."""
+    import logging
+
+    from splattwin.console import console
+
+    twin = Path(args.twin)
+    page = twin / "report" / "index.html"
+    if getattr(args, "no_report", False) or not page.is_file():
+        return None
+    if Path(out).resolve() != (twin / "robot").resolve():
+        console().print(f"report: {page} not refreshed (it shows TWIN/robot; this run wrote {out})",
+                        markup=False, highlight=False)
+        return None
+    from splattwin.report.build import build_report
+
+    try:
+        path = build_report(twin)
+    except Exception as e:   # the plan's results are written; the report is a view of them
+        logging.getLogger(__name__).warning("report not refreshed (%s: %s); run `splattwin report %s`",
+                                            type(e).__name__, e, twin)
+        return None
+    console().print(f"report: {path} (refreshed with this run's results)", markup=False, highlight=False)
+    return path
 
 
 def _report(args: argparse.Namespace) -> int:

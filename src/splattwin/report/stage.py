@@ -12,6 +12,7 @@ class ReportInputs:
     twin_dir: Path
     timings: dict[str, float] = field(default_factory=dict)        # stage -> seconds (this run)
     peak_rss_gib: dict[str, float] = field(default_factory=dict)   # stage -> peak memory
+    skipped: list[str] | None = None   # the stages this run found up to date (None: not known)
 
 
 @dataclass
@@ -24,4 +25,5 @@ def run(inputs: ReportInputs, options=None, *, progress: bool = True) -> ReportR
     from splattwin.report.build import build_report
 
     return ReportResult(report=build_report(inputs.twin_dir, timings=inputs.timings or None,
-                                            peak_rss_gib=inputs.peak_rss_gib or None, options=options))
+                                            peak_rss_gib=inputs.peak_rss_gib or None, options=options,
+                                            skipped=inputs.skipped))

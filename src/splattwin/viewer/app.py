@@ -115,12 +115,12 @@ def draw(server, view: TwinView) -> dict:
     for p in view.parts:
         if p.owner == "background":
             handles[f"col/background/{p.index}"] = server.scene.add_mesh_simple(
-                f"/collision/background/part{p.index}", p.vertices, p.faces, color=p.color, opacity=0.5,
-                visible=False)
+                f"/collision/background/part{p.index}", p.vertices, p.faces, color=p.color,
+                opacity=p.view_opacity(), visible=False)
         else:
             T = p.T_world_part
             handles[f"col/{p.owner}/{p.index}"] = server.scene.add_mesh_simple(
-                f"/collision/{p.owner}/part{p.index}", p.vertices, p.faces, color=p.color, opacity=0.6,
+                f"/collision/{p.owner}/part{p.index}", p.vertices, p.faces, color=p.color, opacity=p.view_opacity(),
                 wxyz=quat_wxyz_from_matrix(T[:3, :3]), position=T[:3, 3], visible=False)
 
     with gui.add_folder("Layers"):
