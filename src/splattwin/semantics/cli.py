@@ -83,12 +83,10 @@ def _fuse(args: argparse.Namespace) -> int:
     label_maps/."""
     from splattwin.lock import output_lock
     from splattwin.semantics.lift import fuse_to_dir
-    from splattwin.semantics.stage import fusion_options_for
 
     opts = from_args(SemanticsOptions, args, fusion=from_args(FusionOptions, args))
-    fusion = fusion_options_for(opts.fusion, Path(args.dataset))  # an unscaled frame's lengths
-    with output_lock(args.out):
-        res = fuse_to_dir(args.splats, args.dataset, args.masks, args.out, fusion, renderer=opts.renderer,
+    with output_lock(args.out):  # fuse_to_dir scales the lengths to an unscaled frame (frame.json beside)
+        res = fuse_to_dir(args.splats, args.dataset, args.masks, args.out, opts.fusion, renderer=opts.renderer,
                           label_maps=opts.maps, naive=opts.naive, maps_renderer=opts.maps_renderer, metrics=True)
     import json
 
