@@ -47,6 +47,24 @@ def label_objects(ds) -> dict[str, int] | None:
     return dict(ds.meta["label_objects"]) if ds.meta.get("label_objects") else dataset_objects(ds.root)
 
 
+def prompt_labels(dataset, prompt: str, folder: str | Path | None = None) -> dict[str, int] | None:
+    """phrase -> label for `segment_images(..., labels=)` so that prompted masks get the ids of a generated
+    scene's objects (as `splattwin segment` numbers them, and as `fuse` and the metrics expect): from the
+    scene.json in the dataset's folder when every phrase of `prompt` is one of its objects' prompts (or
+    names); None otherwise (the segmenter numbers the phrases 1..K). dataset: a loaded Dataset; folder: where
+    scene.json is looked for (default: the dataset's root)."""
+    from splattwin.semantics.segment import parse_prompt
+
+    objs = label_objects(dataset)
+    scene_json = Path(dataset.root if folder is None else folder) / "scene.json"
+    if not objs or not scene_json.is_file():
+        return None
+    meta = io.read_json(scene_json)
+    labels = {str(o.get("prompt", o["name"])).lower(): int(o["label"]) for o in meta.get("objects", [])
+              if isinstance(o, dict) and o.get("name") in objs and "label" in o}
+    return labels if all(ph in labels for ph in parse_prompt(prompt)) else None
+
+
 def views_for(frames, masks: MaskSet, where: Path | None = None, all_frames=None) -> list[View]:
     """Views (cameras) of the frames that have masks; InputError when none match by name."""
     views = [View(f.name, f.camera) for f in frames if f.name in masks.sizes]
