@@ -138,3 +138,19 @@ def test_a_scene_masks_folder_is_refused_with_the_folder_to_pass(scene_small):
         with pytest.raises(InputError, match="named like the images"):
             load_masks(f"{tmp}/m", image_sizes=sizes)
     assert load_masks(scene_small / "masks" / "noisy").objects   # the right folder still loads
+
+
+def test_prompt_labels_maps_phrases_to_a_scenes_ids(scene_small):
+    """The prompt -> scene label mapping lived only in `splattwin segment` (L5): now a helper it uses."""
+    import json
+
+    from splattwin.capture import load_dataset
+    from splattwin.semantics import prompt_labels
+
+    ds = load_dataset(scene_small)
+    objs = {o["name"]: (o.get("prompt", o["name"]).lower(), o["label"])
+            for o in json.loads((scene_small / "scene.json").read_text())["objects"]}
+    (p1, l1), (p2, l2) = objs["blue_box"], objs["yellow_cube"]
+    got = prompt_labels(ds, f"{p1}. {p2}")
+    assert got[p1] == l1 and got[p2] == l2
+    assert prompt_labels(ds, "a unicorn") is None
