@@ -117,3 +117,15 @@ def test_plausible_refuses_what_no_camera_is(bad, msg):
     kw.update(bad)
     with pytest.raises(InputError, match=msg):
         plausible(Camera(**kw))
+
+
+@pytest.mark.parametrize("K, T, msg", [
+    (np.array([[100.0, 0, 80], [0, 100, 60], [0, 0, 0]]), np.eye(4), "0 0 1"),
+    (np.array([[100.0, 0, 80], [0, 100, 60], [0, 0, 2]]), np.eye(4), "0 0 1"),
+    (np.array([[100.0, 0, 80], [0, 100, 60], [0, 0, 1]]), np.vstack([np.eye(4)[:3], [1.0, 2, 3, 1]]), "0 0 0 1"),
+    (np.array([[100.0, 0, 80], [0, 100, 60], [0, 0, 1]]), np.diag([1.0, 1, 1, 2]), "0 0 0 1"),
+])
+def test_camera_refuses_a_projective_K_or_pose_row(K, T, msg):
+    """K[2,2]=0 and a pose whose bottom row is [1,2,3,1] were accepted (audit 8A, L6)."""
+    with pytest.raises(InputError, match=msg):
+        Camera(K, 160, 120, T_world_cam=T)

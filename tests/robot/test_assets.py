@@ -168,3 +168,21 @@ def test_menagerie_root_env_is_honoured(tmp_path: Path, monkeypatch):
     monkeypatch.setenv("MENAGERIE_ROOT", str(tmp_path / "empty"))
     with pytest.raises(InputError, match="--ensure"):
         panda_model_path()
+
+
+def test_ensure_panda_logs_instead_of_printing(tmp_path: Path, capsys, caplog):
+    """A library call printed to stdout (audit 8A, L9); the command still prints the messages."""
+    import json
+    import logging
+
+    d = tmp_path / assets.PANDA_NAME
+    d.mkdir()
+    (d / "panda.xml").write_text("<mujoco/>")
+    (d / assets.SOURCE_FILE).write_text(json.dumps({"source": "test copy"}))
+    with caplog.at_level(logging.INFO, logger="splattwin.robot.assets"):
+        assert assets.ensure_panda(tmp_path) == d / "panda.xml"
+    assert capsys.readouterr().out == "" and "Panda assets present" in caplog.text and "test copy" in caplog.text
+    assets.main(["--ensure", "--dest", str(tmp_path)])
+    assert "Panda assets present" in capsys.readouterr().out
+    assets.main(["--ensure", "--dest", str(tmp_path), "--quiet"])
+    assert "Panda assets present" not in capsys.readouterr().out

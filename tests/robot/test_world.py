@@ -127,3 +127,17 @@ def test_an_object_named_like_a_robot_body_is_refused_clearly(gt_twin_small, tmp
     (twin / "twin.json").write_text(json.dumps(d))
     with pytest.raises(InputError, match=r"\['hand'\] are also body names of the robot"):
         build_world(twin, visual=False)
+
+
+def test_base_pose_yaw_in_degrees_is_warned_about():
+    """BasePose(yaw=90) silently meant 90 rad (audit 8A, L8)."""
+    import warnings
+
+    from splattwin.robot.world import BasePose
+
+    with pytest.warns(UserWarning, match="radians.*math.radians"):
+        BasePose(yaw=90)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        BasePose(yaw=3.0)
+        BasePose(yaw=-6.0)

@@ -99,8 +99,14 @@ class Camera:
             raise InputError(f"{where}: image size must be positive, got {self.width}x{self.height}")
         if not np.all(np.isfinite(self.K)) or self.K[0, 0] <= 0 or self.K[1, 1] <= 0:
             raise InputError(f"{where}: intrinsics must be finite with positive focal lengths")
+        if np.max(np.abs(self.K[2] - [0.0, 0.0, 1.0])) > K_TOL:   # the wording of `plausible`
+            raise InputError(f"{where}: K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (last row 0 0 1), got "
+                             f"{np.array2string(self.K, precision=6, separator=', ')}".replace("\n", ""))
         if not np.all(np.isfinite(self.T_world_cam)):
             raise InputError(f"{where}: pose T_world_cam is not finite")
+        if np.max(np.abs(self.T_world_cam[3] - [0.0, 0.0, 0.0, 1.0])) > 1e-6:
+            raise InputError(f"{where}: pose T_world_cam must end with the row 0 0 0 1 (a rigid transform), got "
+                             f"{[float(x) for x in self.T_world_cam[3]]}")
         R = self.T_world_cam[:3, :3]
         if not np.allclose(R.T @ R, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
             raise InputError(f"{where}: pose rotation is not a proper rotation matrix")

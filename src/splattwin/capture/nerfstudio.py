@@ -11,7 +11,8 @@ The file is untrusted: every path in it (`file_path`, `depth_file_path`, `mask_p
 `ply_file_path`) must be relative and stay inside the file's folder (`splattwin.paths`), every value
 must have the right type (a frame that is not an object, a `file_path` that is not a string, text in a
 matrix: InputError naming the file and the frame), and image sizes are bounded (`splattwin.limits`).
-`write` puts only paths inside the output file's folder into it.
+`write` names the dataset's files relative to the output file's folder; with confine=True it refuses
+(InputError) files outside that folder, which `read` would refuse, and otherwise warns about them.
 """
 
 from __future__ import annotations
@@ -187,13 +188,33 @@ def _label_objects(meta: dict, path: Path) -> dict[str, int]:
     return {n: k for n, k in src.items() if k > 0}
 
 
-def write(dataset: Dataset, path: str | Path, ply_name: str = "sparse_pc.ply") -> Path:
+def outside_files(dataset: Dataset, root: str | Path) -> list[Path]:
+    """The dataset's files (images, depth maps, masks, label images) that do not lie under `root`: a
+    transforms.json in `root` would name them with '..' paths, which `read` refuses (`splattwin.paths`)."""
+    root = Path(root)
+    return [p for f in dataset.frames for p in (f.image_path, f.depth_path, f.mask_path, f.label_path)
+            if p is not None and not unfollowed(p).is_relative_to(unfollowed(root))]
+
+
+def write(dataset: Dataset, path: str | Path, ply_name: str = "sparse_pc.ply", confine: bool = False) -> Path:
     """Write `dataset` as `path` (a transforms.json). File paths are written relative to its folder.
 
     Shared intrinsics go top-level, differing ones per frame. Points (if any) go to `ply_name`.
+    Files outside the folder get '..' paths, which nerfstudio reads but `read` (and so `load_dataset`)
+    refuses: confine=True raises InputError for them instead (before writing anything), else a warning
+    says so. `splattwin.capture.bundle.bundle_frames` brings the files into the folder first.
     """
     path = Path(path)
     root = path.parent
+    outside = outside_files(dataset, root)
+    if outside:
+        problem = (f"{len(outside)} of the dataset's files lie outside {root} (e.g. {outside[0]}); a transforms.json "
+                   f"there would name them with '..' paths, which splattwin's readers refuse (paths in a dataset file "
+                   f"must stay in its folder)")
+        if confine:
+            raise InputError(f"{problem}: bundle the files into the folder (splattwin.capture.bundle.bundle_frames, "
+                             f"PoseResult.save(bundle=True)) or write into a folder that holds them", path)
+        log.warning("%s: %s; nerfstudio reads them", path, problem)
     cams = [f.camera for f in dataset.frames]
     first = cams[0]
 

@@ -10,3 +10,19 @@
 The executor itself (`Executor`, `LocalExecutor`, `RayExecutor`, `ExecutorOptions`, `make_executor`) is
 the shared module `splattwin.executor`: the robot stage's trials (`splattwin plan --trials N`) run on it too.
 """
+
+from __future__ import annotations
+
+import importlib
+
+# Lazy: nothing is imported until a name is used (`splattwin --help` imports the options modules only).
+_EXPORTS = {"run_sweep": "sweep", "run_batch": "batch", "SweepOptions": "options", "BatchOptions": "options"}
+
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        mod = _EXPORTS[name]
+        return getattr(importlib.import_module(mod if mod.startswith("splattwin.") else f"splattwin.cluster.{mod}"), name)
+    raise AttributeError(f"module 'splattwin.cluster' has no attribute {name!r}")

@@ -7,3 +7,22 @@ CoACD parts, mass), `metrics` (Chamfer / precision / recall / F1), `convert` (th
 ablation). Writing the twin (and the `splattwin geometry` command, which writes one): `splattwin.twin`.
 Test data with a known answer: `splattwin.scene.synthetic`.
 """
+
+from __future__ import annotations
+
+import importlib
+
+# Lazy: nothing is imported until a name is used (`splattwin --help` imports the options modules only).
+# (`convert` is also a module's name, so the function stays `splattwin.geometry.convert.convert`)
+_EXPORTS = {"GeometryOptions": "options", "ablation": "convert", "Conversion": "convert",
+            "ObjectGeometry": "convert", "BackgroundGeometry": "convert", "fidelity": "metrics", "mesh_fidelity": "metrics",
+            "Fidelity": "metrics"}
+
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        mod = _EXPORTS[name]
+        return getattr(importlib.import_module(mod if mod.startswith("splattwin.") else f"splattwin.geometry.{mod}"), name)
+    raise AttributeError(f"module 'splattwin.geometry' has no attribute {name!r}")

@@ -16,3 +16,20 @@ Entry points (thin calls for the report, the viewer and `plan --record`):
     read_episode(dataset_dir, index)                          # ... and back
 CLI: `splattwin render TWIN --camera CAM --out video.mp4`.
 """
+
+from __future__ import annotations
+
+import importlib
+
+# Lazy: nothing is imported until a name is used (`splattwin --help` imports the options modules only).
+_EXPORTS = {"DynamicScene": "scene", "PlaybackRenderer": "compositor", "RobotSplats": "robot", "render_rollout_video": "movie",
+            "write_episode": "episode", "read_episode": "episode", "TwinView": "view_model", "RefineOptions": "options"}
+
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        mod = _EXPORTS[name]
+        return getattr(importlib.import_module(mod if mod.startswith("splattwin.") else f"splattwin.playback.{mod}"), name)
+    raise AttributeError(f"module 'splattwin.playback' has no attribute {name!r}")

@@ -66,11 +66,61 @@ class PoseResult:
     def cameras(self) -> list[Camera]:
         return [f.camera for f in self.frames]
 
-    def to_dataset(self, root: Path | None = None) -> Dataset:
-        return Dataset(root=root or Path("."), frames=self.frames, has_poses=True, points_xyz=self.points_xyz,
+    def to_dataset(self, root: str | Path | None = None) -> Dataset:
+        """The posed frames as a Dataset. root: its folder; None: the folder that holds all the frames'
+        images (never the current directory)."""
+        if root is None:
+            import os
+
+            root = Path(os.path.commonpath([str(f.image_path.absolute()) for f in self.frames])) if self.frames else None
+            if root is not None and any(root == f.image_path.absolute() for f in self.frames):
+                root = root.parent  # one image: its folder
+        if root is None:
+            raise ValueError("PoseResult.to_dataset: no frames, so no folder to be the dataset's root; pass root=")
+        return Dataset(root=Path(root), frames=list(self.frames), has_poses=True, points_xyz=self.points_xyz,
                        points_rgb=self.points_rgb, depth_scale=self.depth_scale, meta={"frame": dataclasses.asdict(self.frame),
                              **({"heldout": self.stats["heldout"]} if "heldout" in self.stats else {}),
                              **({"label_objects": self.label_objects} if self.label_objects else {})})
+
+    @classmethod
+    def load(cls, path: str | Path) -> PoseResult:
+        """A PoseResult back from what `save` wrote: `path` is its folder or its transforms.json (with
+        frame.json, poses_report.json and the point clouds beside it). The frames are read by
+        `load_dataset` (paths confined to the folder); InputError names a missing or malformed file."""
+        from splattwin.capture import nerfstudio
+        from splattwin.poses.twin_frame import load_frame
+
+        path = Path(path)
+        tf = path / "transforms.json" if path.is_dir() else path
+        out = tf.parent
+        if not tf.is_file():
+            raise InputError("no transforms.json here: not a folder written by PoseResult.save (or splattwin poses)", tf)
+        ds = nerfstudio.read(tf)
+        frame = load_frame(out / FRAME_FILE)
+        rep = io.read_json(out / REPORT_FILE, "no poses_report.json beside transforms.json") \
+            if (out / REPORT_FILE).is_file() else {}
+        if not isinstance(rep, dict):
+            raise InputError("malformed poses report: expected a JSON object", out / REPORT_FILE)
+        stats = {k: v for k, v in rep.items() if k not in ("frame", "T_out_in", "unregistered", "depth_ply")}
+        T = rep.get("T_out_in")
+        if T is None:
+            T_out_in = np.eye(4)
+        else:
+            try:
+                T_out_in = np.asarray(T, dtype=np.float64)
+            except (TypeError, ValueError):
+                T_out_in = None
+            if T_out_in is None or T_out_in.shape != (4, 4) or not np.all(np.isfinite(T_out_in)):
+                raise InputError("malformed poses report: T_out_in must be a finite 4x4 matrix", out / REPORT_FILE)
+        unreg = rep.get("unregistered", [])
+        if not isinstance(unreg, list) or not all(isinstance(u, str) for u in unreg):
+            raise InputError("malformed poses report: unregistered must be a list of image names", out / REPORT_FILE)
+        d_xyz = d_rgb = None
+        if isinstance(rep.get("depth_ply"), str) and (out / DEPTH_PLY).is_file():
+            d_xyz, d_rgb = nerfstudio.read_points_ply(out / DEPTH_PLY)
+        return cls(frames=ds.frames, unregistered=list(unreg), frame=frame, points_xyz=ds.points_xyz,
+                   points_rgb=ds.points_rgb, depth_xyz=d_xyz, depth_rgb=d_rgb, T_out_in=T_out_in, stats=stats,
+                   depth_scale=ds.depth_scale, label_objects=ds.meta.get("label_objects") or None)
 
     def save(self, out_dir: str | Path, bundle: bool = True) -> Path:
         """Write OUT/transforms.json (+ points3D.ply), OUT/frame.json, OUT/poses_report.json, OUT/cameras.png,
@@ -79,13 +129,22 @@ class PoseResult:
         bundle=True (default): the frames' images, depth maps and masks are hard-linked (or copied) into
         OUT/images/, OUT/depth/, ... (`splattwin.capture.bundle`), so OUT is a self-contained nerfstudio
         dataset that can be moved, and transforms.json holds only paths inside OUT. bundle=False: its
-        paths point at the input files (relative paths, readable only while OUT stays where it is).
+        paths point at the input files where they are, relative to OUT; the files must then lie under OUT
+        (e.g. OUT is the capture folder), else InputError before anything is written: `load_dataset`
+        refuses a transforms.json whose paths lead outside its folder (`splattwin.paths`).
         Returns the transforms.json path.
         """
         from splattwin.capture import nerfstudio
         from splattwin.capture.bundle import bundle_frames
 
         out = Path(out_dir)
+        if not bundle:
+            outside = nerfstudio.outside_files(self.to_dataset(out), out)
+            if outside:
+                raise InputError(f"save(bundle=False): {len(outside)} input files lie outside {out} (e.g. "
+                                 f"{outside[0]}), and load_dataset refuses a transforms.json whose paths lead outside "
+                                 f"its folder: save with bundle=True (the default: the files are linked into "
+                                 f"{out}), or into a folder that holds them", out)
         out.mkdir(parents=True, exist_ok=True)
         extra: dict = {}
         if self.depth_xyz is not None and len(self.depth_xyz):
@@ -102,15 +161,23 @@ class PoseResult:
         ds = self.to_dataset(out)
         if bundle:
             ds.frames = bundle_frames(ds.frames, out)
-        return nerfstudio.write(ds, out / "transforms.json", ply_name="points3D.ply")
+        return nerfstudio.write(ds, out / "transforms.json", ply_name="points3D.ply", confine=True)
 
 
 # ------------------------------------------------------------------------------------------------
 def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> PoseResult:
-    """Camera poses for `dataset` and the frame they are expressed in (see module docstring)."""
+    """Camera poses for `dataset` and the frame they are expressed in (see module docstring).
+
+    `dataset` is left as it is: the hold-out split (`frame.split`, meta "heldout"/"split") is chosen on a
+    copy, and comes back in the result's frames (`PoseResult.to_dataset()`)."""
     opts = _normalised(options or PoseOptions())
+    if not isinstance(dataset, Dataset):
+        raise InputError(f"estimate_poses needs a Dataset (splattwin.capture.load_dataset), got {type(dataset).__name__}")
     if not dataset.frames:
         raise InputError("dataset has no frames", dataset.root)
+    # the caller's frames and meta stay untouched (apply_holdout sets splits in place)
+    dataset = dataclasses.replace(dataset, frames=[dataclasses.replace(f) for f in dataset.frames],
+                                  meta=dict(dataset.meta))
     method = opts.method
     if method == "auto":
         method = "robot" if opts.robot_poses is not None else ("known" if dataset.has_poses else "sfm")

@@ -66,6 +66,24 @@ class TwinFrame:
             raise InputError(f"malformed frame: scaled must be true or false, got {type(self.scaled).__name__} "
                              f"{str(self.scaled)[:40]!r}", where)
 
+    def save(self, path: str | Path) -> Path:
+        """Write this frame as `path` (a frame.json, or a folder to hold one), as the poses stage does;
+        `load_frame` reads it back. Returns the file's path."""
+        import dataclasses
+
+        from splattwin import io
+
+        path = Path(path)
+        if path.is_dir():
+            path = path / FRAME_FILE
+        self.check(path)
+        return io.write_json(path, dataclasses.asdict(self))
+
+    @classmethod
+    def load(cls, path: str | Path) -> TwinFrame:
+        """`load_frame(path)`: a frame.json, or the folder holding one."""
+        return load_frame(path)
+
     def length_scale(self, fallback: float | None = None) -> float:
         """Factor applied to every metric length option: 1 for a metric frame; for an unscaled one its
         `nominal_metre`, else `fallback` (estimated by the caller from its data), else 1."""

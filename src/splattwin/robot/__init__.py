@@ -16,3 +16,23 @@ Modules, one concept each:
 Entry points: `splattwin plan TWIN --task task.yaml`; in Python `trials.run_once(TrialSpec(...))`,
 `trials.run_trials(...)`, `world.build_world(...)`, `execute.Executor(world).run(task)`.
 """
+
+from __future__ import annotations
+
+import importlib
+
+# Lazy: nothing is imported until a name is used (`splattwin --help` imports the options modules only).
+_EXPORTS = {"TrialSpec": "trials", "run_once": "trials", "run_trials": "trials", "summarize_trials": "trials",
+            "BasePose": "world", "World": "world", "build_world": "world", "Executor": "execute",
+            "RunResult": "execute", "Task": "task", "load_task": "task", "parse_task": "task",
+            "default_task_path": "task", "Rollout": "rollout", "RobotOptions": "options", "ensure_panda": "assets",
+            "panda_model_path": "assets"}
+
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        mod = _EXPORTS[name]
+        return getattr(importlib.import_module(mod if mod.startswith("splattwin.") else f"splattwin.robot.{mod}"), name)
+    raise AttributeError(f"module 'splattwin.robot' has no attribute {name!r}")

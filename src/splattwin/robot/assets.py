@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import re
 import shutil
@@ -34,6 +35,8 @@ import numpy as np
 
 from splattwin.errors import InputError
 from splattwin.hashing import sha256_file
+
+log = logging.getLogger(__name__)
 
 PANDA_NAME = "franka_emika_panda"
 PANDA_ENTRY = "panda"
@@ -109,7 +112,7 @@ def _find_or_download_wheel(wheel_dir: Path, quiet: bool) -> Path:
         return found[0]
     wheel_dir.mkdir(parents=True, exist_ok=True)
     if not quiet:
-        print(f"downloading {GENESIS_PACKAGE}=={GENESIS_VERSION} (no dependencies) into {wheel_dir} ...", flush=True)
+        log.info("downloading %s==%s (no dependencies) into %s ...", GENESIS_PACKAGE, GENESIS_VERSION, wheel_dir)
     cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--only-binary=:all:", "-q",
            f"{GENESIS_PACKAGE}=={GENESIS_VERSION}", "-d", str(wheel_dir)]
     r = subprocess.run(cmd, capture_output=True, text=True)
@@ -142,7 +145,7 @@ def ensure_panda(dest_root: Path | None = None, wheel_dir: Path | None = None, q
     if (dest / "panda.xml").is_file() and (dest / SOURCE_FILE).is_file():
         if not quiet:
             src = json.loads((dest / SOURCE_FILE).read_text())
-            print(f"Panda assets present: {dest} (source: {src.get('source')})")
+            log.info("Panda assets present: %s (source: %s)", dest, src.get("source"))
         return dest / "panda.xml"
     wheel = _find_or_download_wheel(Path(wheel_dir) if wheel_dir else _wheel_dir(), quiet)
     dest_root.mkdir(parents=True, exist_ok=True)
@@ -183,7 +186,7 @@ def ensure_panda(dest_root: Path | None = None, wheel_dir: Path | None = None, q
     finally:
         shutil.rmtree(stage, ignore_errors=True)
     if not quiet:
-        print(f"Panda assets installed: {dest}\n  source: {source['source']}\n  licence: {source['licence']}")
+        log.info("Panda assets installed: %s\n  source: %s\n  licence: %s", dest, source["source"], source["licence"])
     return dest / "panda.xml"
 
 
@@ -326,6 +329,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--wheel-dir", type=Path, default=None, help="where the wheel is cached")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
+    # ensure_panda's messages (log.info in the library) are this command's output, on stdout as before
+    handler = logging.StreamHandler(sys.stdout)
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    old = (log.level, log.propagate)
+    if not args.quiet:
+        log.addHandler(handler)
+        log.setLevel(logging.INFO)
+        log.propagate = False
     try:
         if args.ensure:
             ensure_panda(args.dest, args.wheel_dir, quiet=args.quiet)
@@ -333,6 +344,10 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    finally:
+        log.removeHandler(handler)
+        log.setLevel(old[0])
+        log.propagate = old[1]
     return 0
 
 

@@ -86,7 +86,10 @@ def _region(v, where: Path, manifest: Manifest | None) -> Region:
     if isinstance(v, str):
         cfg = (manifest.config.get(v) if manifest is not None else None) or None
         if not isinstance(cfg, dict):
-            raise InputError(f"place_in: the twin defines no region named {v!r} (its twin.json config has no {v!r})", where)
+            hint = ("; the twin stage copies a generated scene's goal there, and a twin made with build_twin gets it "
+                    "from splattwin.twin.add_scene_goal(twin_dir, scene_dir)" if v == "target_frame" else "")
+            raise InputError(f"place_in: the twin defines no region named {v!r} (its twin.json config has no {v!r})"
+                             f"{hint}", where)
         v, name = cfg, v
     else:
         name = "region"

@@ -49,6 +49,17 @@ class BasePose:
     z: float = 0.0
     yaw: float = 0.0
 
+    def __post_init__(self) -> None:
+        try:
+            yaw = float(self.yaw)
+        except (TypeError, ValueError):
+            raise InputError(f"BasePose yaw must be a number (radians), got {self.yaw!r}") from None
+        if math.isfinite(yaw) and abs(yaw) > 2 * math.pi:
+            import warnings
+
+            warnings.warn(f"BasePose yaw {yaw:g} is more than a full turn: yaw is in radians (degrees? use "
+                          f"math.radians({yaw:g}) = {math.radians(yaw):.4g})", UserWarning, stacklevel=3)
+
     @classmethod
     def parse(cls, text: str) -> "BasePose":
         """'x,y,z,yaw' (m, m, m, rad) as given on the command line."""

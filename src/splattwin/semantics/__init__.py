@@ -5,7 +5,8 @@
 - `segment_images` / `OpenVocabSegmenter` (`segment`): Grounding DINO boxes + SAM / SAM 2 masks, or SAM 3.
 - `fuse` / `naive_fusion` (`fusion`): visibility-aware fusion (paper section 3.2) and the baseline.
 - metrics (`metrics`): 2D mIoU, 3D projection consistency, ghost index.
-- `fuse_to_dir` (`lift`): files in, labels.npy + object PLYs + label maps out.
+- `fuse_to_dir` (`lift`): files in, labels.npy + object PLYs + label maps out (lengths scaled to the
+  frame); `prompt_labels`: a generated scene's ids for prompted masks.
 - options (`options`): `SemanticsOptions`, `FusionOptions`, `SegmentOptions`.
 
 Imports are lazy (`splattwin.semantics.options` is read by `splattwin --help`).
@@ -18,7 +19,8 @@ import importlib
 _EXPORTS = {"FusionOptions": "options", "SegmentOptions": "options", "SemanticsOptions": "options",
             "FusionResult": "fusion", "View": "fusion", "fuse": "fusion", "naive_fusion": "fusion",
             "splat_normals": "fusion", "MaskSet": "masks", "MaskWarning": "masks", "load_masks": "masks",
-            "scene_masks": "masks"}
+            "scene_masks": "masks", "segment_images": "segment", "OpenVocabSegmenter": "segment",
+            "fuse_to_dir": "lift", "prompt_labels": "lift", "label_objects": "lift"}
 
 __all__ = list(_EXPORTS)
 

@@ -39,7 +39,7 @@ def _segment(args: argparse.Namespace) -> int:
     (open-vocabulary, weights from the local Hugging Face cache) or by importing masks (PNG folders, label
     images, COCO RLE JSON, polygon JSON)."""
     from splattwin.capture import load_dataset
-    from splattwin.semantics.lift import label_objects
+    from splattwin.semantics.lift import label_objects, prompt_labels
     from splattwin.semantics.masks import load_masks
     from splattwin.semantics.segment import segment_images
 
@@ -58,16 +58,7 @@ def _segment(args: argparse.Namespace) -> int:
             ms.validate({f.name: sizes[f.name] for f in frames}, args.masks)
         else:
             opts = from_args(SegmentOptions, args)
-            labels = None
-            if objs and (Path(args.dataset) / "scene.json").is_file():  # phrases -> a generated scene's labels
-                import json
-
-                meta = json.loads((Path(args.dataset) / "scene.json").read_text())
-                labels = {o.get("prompt", o["name"]).lower(): int(o["label"]) for o in meta["objects"] if o["name"] in objs}
-                from splattwin.semantics.segment import parse_prompt
-
-                if not all(ph in labels for ph in parse_prompt(args.prompt)):
-                    labels = None
+            labels = prompt_labels(ds, args.prompt, Path(args.dataset))  # phrases -> a generated scene's labels
             ms = segment_images({f.name: f.image_path for f in frames}, args.prompt, opts, labels=labels, out_dir=out)
         ms.save(out)
     print(f"{len(ms.views)} views, objects: " + ", ".join(
@@ -83,12 +74,10 @@ def _fuse(args: argparse.Namespace) -> int:
     label_maps/."""
     from splattwin.lock import output_lock
     from splattwin.semantics.lift import fuse_to_dir
-    from splattwin.semantics.stage import fusion_options_for
 
     opts = from_args(SemanticsOptions, args, fusion=from_args(FusionOptions, args))
-    fusion = fusion_options_for(opts.fusion, Path(args.dataset))  # an unscaled frame's lengths
-    with output_lock(args.out):
-        res = fuse_to_dir(args.splats, args.dataset, args.masks, args.out, fusion, renderer=opts.renderer,
+    with output_lock(args.out):  # fuse_to_dir scales the lengths to an unscaled frame (frame.json beside)
+        res = fuse_to_dir(args.splats, args.dataset, args.masks, args.out, opts.fusion, renderer=opts.renderer,
                           label_maps=opts.maps, naive=opts.naive, maps_renderer=opts.maps_renderer, metrics=True)
     import json
 

@@ -79,11 +79,17 @@ class FusionResult:
     history: list[dict] = field(default_factory=list)
     seconds: float = 0.0
 
+    # fusion.json's other entries (label-map scores, metrics) when read back by `load`; written again by `save`
+    extra: dict = field(default_factory=dict, repr=False)
+
     def counts(self) -> dict[str, int]:
         return {self.names[k]: int((self.labels == k).sum()) for k in self.label_ids}
 
     def relabel(self, kappa: float) -> np.ndarray:
         """Consensus labels for another kappa from the final round's votes (no KNN smoothing)."""
+        if self.votes is None or self.n_visible is None:
+            raise ValueError("relabel needs the fusion's votes, which labels.npy / fusion.json do not keep "
+                             "(a FusionResult.load): fuse again")
         return consensus(self.votes, self.n_visible, kappa, self.label_ids, self.options.min_views)[0]
 
     def save(self, out_dir: str | Path, extra: dict | None = None) -> Path:
@@ -95,8 +101,47 @@ class FusionResult:
             "objects": [{"name": self.names[k], "label": k, "n_gaussians": int((self.labels == k).sum())}
                         for k in self.label_ids],
             "n_gaussians": int(len(self.labels)), "options": self.options.__dict__,
-            "history": self.history, "seconds": self.seconds, **(extra or {})})
+            "history": self.history, "seconds": self.seconds, **self.extra, **(extra or {})})
         return out_dir
+
+    @classmethod
+    def load(cls, out_dir: str | Path) -> FusionResult:
+        """A FusionResult back from what `save` wrote (labels.npy + fusion.json in `out_dir`): labels, names,
+        label_ids, options, history, seconds, and fusion.json's other entries in `extra`. The per-view
+        evidence (votes, hits, n_visible, confidence, floaters) is not saved: None."""
+        from splattwin.limits import MAX_RECORD_BYTES, load_npy
+        from splattwin.options import from_dict
+
+        out_dir = Path(out_dir)
+        meta_path, labels_path = out_dir / "fusion.json", out_dir / "labels.npy"
+        meta = io.read_json(meta_path, "no fusion.json here: not a folder written by FusionResult.save "
+                                       "(or splattwin fuse)", MAX_RECORD_BYTES)
+        if not isinstance(meta, dict) or not isinstance(meta.get("objects"), list):
+            raise InputError("malformed fusion.json: expected an object with an 'objects' list", meta_path)
+        names: dict[int, str] = {}
+        for o in meta["objects"]:
+            lab = o.get("label") if isinstance(o, dict) else None
+            if not isinstance(lab, int) or isinstance(lab, bool) or lab < 1 or not isinstance(o.get("name"), str):
+                raise InputError(f"malformed fusion.json: each object needs a name and a label >= 1, got "
+                                 f"{str(o)[:80]}", meta_path)
+            names[lab] = o["name"]
+        if not labels_path.is_file():
+            raise InputError("no labels.npy beside fusion.json", labels_path)
+        labels = load_npy(labels_path, "labels")
+        if labels.ndim != 1 or labels.dtype.kind not in "iu":
+            raise InputError(f"labels.npy must be one integer label per Gaussian, got {labels.dtype} {labels.shape}",
+                             labels_path)
+        n = meta.get("n_gaussians")
+        if isinstance(n, int) and n != len(labels):
+            raise InputError(f"labels.npy has {len(labels)} labels but fusion.json says {n} Gaussians", labels_path)
+        opts = from_dict(FusionOptions, meta.get("options") or {}, meta_path)
+        history = meta.get("history") if isinstance(meta.get("history"), list) else []
+        seconds = meta.get("seconds") if isinstance(meta.get("seconds"), (int, float)) else 0.0
+        extra = {k: v for k, v in meta.items()
+                 if k not in ("objects", "n_gaussians", "options", "history", "seconds")}
+        return cls(labels=labels.astype(np.int32), votes=None, hits=None, n_visible=None, confidence=None,
+                   floaters=None, label_ids=list(names), names=names, options=opts, history=history,
+                   seconds=float(seconds), extra=extra)
 
 
 # -- algorithm steps (each unit-tested) -------------------------------------------------------
@@ -324,6 +369,33 @@ class View:
     camera: Camera
 
 
+def check_inputs(means, views, masks, normals=None) -> np.ndarray:
+    """`means` as [N,3] float64, after checking the arguments of `fuse` / `naive_fusion` a library user
+    passes (InputError naming the problem, instead of a wrong result or an IndexError deep inside)."""
+    try:
+        arr = np.asarray(means, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise InputError(f"fuse: means must be an [N,3] array of Gaussian centres: {e}") from None
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise InputError(f"fuse: means must be an [N,3] array of Gaussian centres, got shape {tuple(arr.shape)}"
+                         + (" (transposed? pass means, not means.T)" if arr.ndim == 2 and arr.shape[0] == 3 else ""))
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"fuse: {int((~np.isfinite(arr)).any(axis=1).sum())} Gaussian centres are NaN or infinite")
+    if isinstance(views, (str, bytes)) or not isinstance(views, Sequence):
+        raise InputError(f"fuse: views must be a list of View(name, camera), got {type(views).__name__}")
+    bad = [i for i, v in enumerate(views) if not isinstance(v, View)]
+    if bad:
+        got = type(views[bad[0]]).__name__
+        raise InputError(f"fuse: views must be View(name, camera) objects (the name matching a mask view), got "
+                         f"{got} at position {bad[0]}" + (": wrap cameras as View(frame.name, frame.camera)"
+                                                          if got == "Camera" else ""))
+    if not isinstance(masks, MaskSet):
+        raise InputError(f"fuse: masks must be a MaskSet (splattwin.semantics.load_masks), got {type(masks).__name__}")
+    if normals is not None and np.shape(normals) != arr.shape:
+        raise InputError(f"fuse: normals must be [N,3] like means {tuple(arr.shape)}, got shape {np.shape(normals)}")
+    return arr
+
+
 def check_views(views: Sequence[View], masks: MaskSet, where: str | Path | None = None) -> list[int]:
     """Validate masks against the views' image sizes; returns the labels to fuse.
 
@@ -355,8 +427,8 @@ def fuse(means: np.ndarray, views: Sequence[View], masks: MaskSet, options: Fusi
     """
     opts = options or FusionOptions()
     t0 = time.perf_counter()
+    means = check_inputs(means, views, masks, normals)
     label_ids = check_views(views, masks)
-    means = np.asarray(means, dtype=np.float64)
     N, L = len(means), len(label_ids)
     renderer = depth_renderer or PointDepth(means)
     cams = [v.camera for v in views]
@@ -430,8 +502,8 @@ def fuse(means: np.ndarray, views: Sequence[View], masks: MaskSet, options: Fusi
 def naive_fusion(means: np.ndarray, views: Sequence[View], masks: MaskSet, fraction: float = 0.5) -> np.ndarray:
     """Baseline of the published code: label o when the centre falls inside o's mask in at least
     fraction x (number of views) views; no visibility, no isolation; conflicts by most votes. -> [N] int32."""
+    means = check_inputs(means, views, masks)
     label_ids = check_views(views, masks)
-    means = np.asarray(means, dtype=np.float64)
     votes = np.zeros((len(means), len(label_ids)), dtype=np.int32)
     for v in views:
         pix, _ = project_to_pixels(means, v.camera)

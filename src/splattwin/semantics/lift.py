@@ -47,6 +47,24 @@ def label_objects(ds) -> dict[str, int] | None:
     return dict(ds.meta["label_objects"]) if ds.meta.get("label_objects") else dataset_objects(ds.root)
 
 
+def prompt_labels(dataset, prompt: str, folder: str | Path | None = None) -> dict[str, int] | None:
+    """phrase -> label for `segment_images(..., labels=)` so that prompted masks get the ids of a generated
+    scene's objects (as `splattwin segment` numbers them, and as `fuse` and the metrics expect): from the
+    scene.json in the dataset's folder when every phrase of `prompt` is one of its objects' prompts (or
+    names); None otherwise (the segmenter numbers the phrases 1..K). dataset: a loaded Dataset; folder: where
+    scene.json is looked for (default: the dataset's root)."""
+    from splattwin.semantics.segment import parse_prompt
+
+    objs = label_objects(dataset)
+    scene_json = Path(dataset.root if folder is None else folder) / "scene.json"
+    if not objs or not scene_json.is_file():
+        return None
+    meta = io.read_json(scene_json)
+    labels = {str(o.get("prompt", o["name"])).lower(): int(o["label"]) for o in meta.get("objects", [])
+              if isinstance(o, dict) and o.get("name") in objs and "label" in o}
+    return labels if all(ph in labels for ph in parse_prompt(prompt)) else None
+
+
 def views_for(frames, masks: MaskSet, where: Path | None = None, all_frames=None) -> list[View]:
     """Views (cameras) of the frames that have masks; InputError when none match by name."""
     views = [View(f.name, f.camera) for f in frames if f.name in masks.sizes]
@@ -98,10 +116,31 @@ def make_depth_renderer(gaussians, renderer: str = "auto", raster: tuple[str, fl
     return PointDepth(gaussians.means)
 
 
+def scaled_options(options: FusionOptions | None, ds, frame="beside") -> FusionOptions:
+    """`options` (default FusionOptions()) with their metric lengths in the units of the dataset's frame:
+    `frame` a TwinFrame, "beside" (the frame.json next to the dataset's file, `frame_beside`) or None (as
+    given). See `fuse_to_dir`."""
+    from splattwin.options import scale_lengths
+    from splattwin.poses.twin_frame import TwinFrame, frame_beside
+
+    options = options if options is not None else FusionOptions()
+    if isinstance(frame, str):
+        if frame != "beside":
+            raise ValueError(f"frame must be a TwinFrame, 'beside' or None, got {frame!r}")
+        frame = frame_beside(ds.meta.get("path", ds.root))
+    if frame is None:
+        return options
+    if not isinstance(frame, TwinFrame):
+        raise ValueError(f"frame must be a TwinFrame (splattwin.poses.load_frame), 'beside' or None, got "
+                         f"{type(frame).__name__}")
+    return scale_lengths(options, frame.length_scale())
+
+
 def fuse_to_dir(splats: "str | Path | Gaussians", dataset: "str | Path | Dataset", masks: str | Path | MaskSet,
                 out_dir: str | Path, options: FusionOptions | None = None, renderer: str = "auto",
                 label_maps: bool = True, naive: bool = False, progress: bool = True, maps_renderer: str = "auto",
-                metrics: bool = False, raster: tuple[str, float | None] | None = None) -> FusionResult:
+                metrics: bool = False, raster: tuple[str, float | None] | None = None,
+                frame: "TwinFrame | None | str" = "beside") -> FusionResult:
     """Run the fusion on files and write the output folder (layout in the module docstring); fusion.json
     is written last, once, with everything in it (it marks a finished output).
 
@@ -113,6 +152,10 @@ def fuse_to_dir(splats: "str | Path | Gaussians", dataset: "str | Path | Dataset
     raster: (rasterize_mode, eps2d) the splats were trained with, for the rasterizer's depth and label
     maps; None: from the train.json beside a splat file (`splat.config.filter_beside`), else classic.
     (An antialiased demo twin drawn classic: held-out mIoU 0.909 instead of 0.944.)
+    frame: the twin frame the poses are in, whose units the options' lengths (depth tolerance, depth-DBSCAN
+    eps, gate; given in metres) are scaled to (`TwinFrame.length_scale`: 1 for a metric frame, the nominal
+    metre for an unscaled SfM one), as the stage and the CLI do. "beside" (default): the frame.json next to
+    the dataset's transforms.json, as the poses stage writes it (none there: metric); None: no scaling.
     """
     from splattwin.capture import Dataset, load_dataset
     from splattwin.splat.gaussians import Gaussians
@@ -127,6 +170,7 @@ def fuse_to_dir(splats: "str | Path | Gaussians", dataset: "str | Path | Dataset
     if len(g.means) == 0:
         raise InputError("the splat file has no Gaussians", None if isinstance(splats, Gaussians) else splats)
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
+    options = scaled_options(options, ds, frame)
     objs = label_objects(ds)
     ms = masks if isinstance(masks, MaskSet) else load_masks(masks, objects=objs)
     where = None if isinstance(masks, MaskSet) else Path(masks)

@@ -92,6 +92,23 @@ class MaskSet:
     # view -> the file whose mask set the view's size (named when another mask of the view differs)
     size_sources: dict[str, str] = field(default_factory=dict, repr=False, compare=False)
 
+    def __eq__(self, other) -> bool:
+        """Same objects, prompts, sizes, scores and masks (array-aware; `source` and where the sizes came
+        from are not compared)."""
+        if not isinstance(other, MaskSet):
+            return NotImplemented
+        if (self.objects != other.objects or self.prompts != other.prompts or self.scores != other.scores
+                or {k: tuple(v) for k, v in self.sizes.items()} != {k: tuple(v) for k, v in other.sizes.items()}
+                or self.masks.keys() != other.masks.keys()):
+            return False
+        for view, per in self.masks.items():
+            theirs = other.masks[view]
+            if per.keys() != theirs.keys() or not all(np.array_equal(m, theirs[k]) for k, m in per.items()):
+                return False
+        return True
+
+    __hash__ = None  # mutable, like any dataclass with eq
+
     # -- access -------------------------------------------------------------------------------
     @property
     def views(self) -> list[str]:
@@ -115,7 +132,12 @@ class MaskSet:
             source: str | Path | None = None) -> None:
         """Add (or merge by union) a mask. `name` registers the object if the label is new. `source`:
         the file the mask came from (named in errors)."""
-        mask = np.asarray(mask, dtype=bool)
+        raw = np.asarray(mask)
+        if raw.dtype.kind == "f" and raw.size and not np.isin(raw, (0.0, 1.0)).all():
+            raise InputError(f"mask for view {view!r}, label {label} holds float values other than 0 and 1 (a "
+                             f"probability or soft mask? every non-zero value would count as inside): threshold it, "
+                             f"e.g. mask > 0.5", source)
+        mask = raw.astype(bool)
         if mask.ndim != 2:
             raise InputError(f"mask for view {view!r}, label {label} must be 2D, got shape {mask.shape}", source)
         if label < 1:
@@ -308,6 +330,7 @@ def load_png_dir(path: Path, objects: dict[str, int] | None = None, image_sizes:
     labels = dict(objects or {})
     ms = MaskSet(source=f"png:{path}")
     files = sorted(p for p in path.glob("*/*") if p.suffix.lower() in _IMAGE_EXTS and p.is_file())
+    _check_png_dir_level(path, files, image_sizes)
     if not files:
         raise InputError("no <view>/<object>.png masks in this folder", path)
     names = {}
@@ -324,6 +347,27 @@ def load_png_dir(path: Path, objects: dict[str, int] | None = None, image_sizes:
         _check_image(view, mask.shape, image_sizes, p)
         ms.add(view, labels[names[p]], mask, 1.0, source=p)
     return ms
+
+
+def _check_png_dir_level(path: Path, files: list[Path], image_sizes: dict | None) -> None:
+    """A folder one level above the masks (a scene's masks/ holding gt/ and noisy/) would be read as views
+    named gt/noisy with "objects" named like the images, and fail only in the fusion ("no mask view
+    matches"): refuse it here, naming the folders to pass instead."""
+    hint = (" (a generated scene: splattwin.semantics.scene_masks(scene_dir, kind='noisy' or 'gt'))"
+            if (path.parent / "scene.json").is_file() else "")
+    nested = sorted(d for d in path.iterdir() if d.is_dir() and any(
+        c.is_dir() and any(f.suffix.lower() in _IMAGE_EXTS for f in c.iterdir() if f.is_file())
+        for c in d.iterdir()))
+    if nested:
+        raise InputError(f"this folder holds folders of mask folders ({', '.join(d.name for d in nested[:3])}/<view>/...), "
+                         f"not <view>/<object>.png masks: pass one of them, e.g. {nested[0]}{hint}", path)
+    if image_sizes:
+        views = {p.parent.name for p in files}
+        stems = {p.stem for p in files}
+        if not views & set(image_sizes) and stems & set(image_sizes):
+            raise InputError(f"the mask files are named like the images ({', '.join(sorted(stems & set(image_sizes))[:3])}) "
+                             f"and the folders ({', '.join(sorted(views)[:3])}) like none: a folder of <view>.png label "
+                             f"images per kind? pass that folder itself, not its parent{hint}", path)
 
 
 def load_label_images(path: Path, objects: dict[str, int] | None = None, image_sizes: dict | None = None) -> MaskSet:

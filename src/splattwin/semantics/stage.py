@@ -115,8 +115,8 @@ def run(inputs: SemanticsInputs, options: SemanticsOptions, *, progress: bool = 
         warnings.simplefilter("ignore", MaskWarning)
         check_views(views_for(ds.train() or ds.frames, ms, masks_from, all_frames=ds.frames), ms, masks_from)
     g = Gaussians.load_ply(inputs.splats)
-    fusion = fusion_options_for(options.fusion, inputs.transforms)
-    res = fuse_to_dir(g, ds, ms, inputs.out_dir, fusion, renderer=options.renderer, label_maps=options.maps,
+    # an unscaled frame's lengths: fuse_to_dir scales them by the frame.json beside the transforms
+    res = fuse_to_dir(g, ds, ms, inputs.out_dir, options.fusion, renderer=options.renderer, label_maps=options.maps,
                       naive=options.naive, progress=progress, maps_renderer=options.maps_renderer, metrics=True,
                       raster=filter_beside(inputs.splats))
     prompts = ms.prompts or {}

@@ -4,3 +4,20 @@
 (.scene text + CollisionObject YAML), `gltf` (GLB), `splats` (per-object splat PLYs in the object frame),
 `mjcf` (MuJoCo). Imports stay lazy: `splattwin.twin.manifest` is imported by every stage.
 """
+
+from __future__ import annotations
+
+import importlib
+
+# Lazy: nothing is imported until a name is used (`splattwin --help` imports the options modules only).
+_EXPORTS = {"build_twin": "build", "export_twin": "build", "check_objects": "build", "Manifest": "manifest",
+            "ObjectEntry": "manifest", "ExportOptions": "options", "TwinOptions": "options", "add_scene_goal": "stage"}
+
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        mod = _EXPORTS[name]
+        return getattr(importlib.import_module(mod if mod.startswith("splattwin.") else f"splattwin.twin.{mod}"), name)
+    raise AttributeError(f"module 'splattwin.twin' has no attribute {name!r}")

@@ -395,6 +395,39 @@ def table_plane(frame: TwinFrame):
 NOMINAL_SCENE_SIZE = 1.2
 
 
+def check_objects(objects, where: str | Path | None = None) -> list[tuple[str, int, str]]:
+    """`build_twin`'s objects as [(name, label, prompt)]: each a (name, label[, prompt]) sequence or a
+    {"name", "label"[, "prompt"]} mapping, the label a whole number >= 1 (0 is background), names and labels
+    unique. InputError naming the entry otherwise (a dict used to give a bare KeyError: 1)."""
+    from splattwin.errors import InputError, short_repr
+
+    if isinstance(objects, (str, bytes, dict)) or not hasattr(objects, "__iter__"):
+        raise InputError(f"objects must be a list of (name, label, prompt), got {type(objects).__name__}", where)
+    out: list[tuple[str, int, str]] = []
+    for i, o in enumerate(objects):
+        if isinstance(o, dict):
+            if "name" not in o or "label" not in o:
+                raise InputError(f"object {i} {short_repr(o)} needs 'name' and 'label' (objects are (name, label, "
+                                 f"prompt))", where)
+            name, label, prompt = o["name"], o["label"], o.get("prompt", "")
+        elif isinstance(o, (list, tuple)) and len(o) in (2, 3):
+            name, label, prompt = (*o, "")[:3]
+        else:
+            raise InputError(f"object {i} must be (name, label, prompt), got {short_repr(o)}", where)
+        if not isinstance(name, str) or not name:
+            raise InputError(f"object {i}: the name must be non-empty text, got {short_repr(name)}", where)
+        if isinstance(label, (bool, np.bool_)) or not isinstance(label, (int, np.integer)) or label < 1:
+            raise InputError(f"object {name!r}: the label must be a whole number >= 1 (0 is background), got "
+                             f"{short_repr(label)}", where)
+        out.append((name, int(label), "" if prompt is None else str(prompt)))
+    for k, what in ((0, "name"), (1, "label")):
+        seen = [o[k] for o in out]
+        dup = next((v for v in seen if seen.count(v) > 1), None)
+        if dup is not None:
+            raise InputError(f"objects: the {what} {dup!r} is used twice", where)
+    return out
+
+
 def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path, frame: TwinFrame | None = None,
                cameras_path: str | Path | None = None, options: GeometryOptions | None = None,
                formats=FORMATS, progress: bool = True, masks=None, export_options: ExportOptions | None = None,
@@ -402,12 +435,13 @@ def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path
     """Labelled Gaussians -> twin folder with manifest and exports.
 
     gaussians: splattwin.splat.Gaussians [N] (twin frame, m); labels [N] int (0 = background);
-    objects: [(name, label, prompt)]. masks: the 2D masks the labels were fused from (a
+    objects: [(name, label, prompt)] (`check_objects`). masks: the 2D masks the labels were fused from (a
     `semantics.masks.MaskSet`, labels as in `objects`), paired with the cameras file's frames by view
     name: each object's silhouette coverage (`geometry.completeness`) is measured and decides, with its
     splat count, whether it is whole; None: the count alone. Returns the saved Manifest."""
     from splattwin.lock import prepare_output_dir
 
+    objects = check_objects(objects)
     out_dir = prepare_output_dir(out_dir, "twin folder")
     frame = frame or TwinFrame()
     check_formats(frame, formats, out_dir / "twin.json")

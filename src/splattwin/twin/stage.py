@@ -51,14 +51,7 @@ def run(inputs: TwinInputs, options: TwinOptions, *, progress: bool = True) -> T
     man = build_twin(g, labels, objects, twin, frame=frame, cameras_path=inputs.cameras, options=options.geometry,
                      formats=options.export.resolve("export.formats"), progress=progress, masks=inputs.masks,
                      export_options=options.export, splats_path=inputs.splats)
-    scene_json = inputs.scene_dir / "scene.json" if inputs.scene_dir is not None else None
-    T_twin_gt = gt_note = None
-    if scene_json is not None and scene_json.is_file():
-        scene = io.read_json(scene_json)
-        T_twin_gt, gt_note = gt_alignment(man, twin, inputs.scene_dir, frame)
-        man.config["ground_truth"] = {"alignment": gt_note}
-        if scene.get("target_frame") and T_twin_gt is not None:  # a scene fact the robot task needs (its goal)
-            man.config["target_frame"] = _moved_region(scene["target_frame"], T_twin_gt)
+    T_twin_gt = _scene_facts(man, twin, inputs.scene_dir, frame)
     if inputs.config:
         man.config["build"] = inputs.config
     man.splats = man.splats or twin_relative(inputs.splats, twin)
@@ -68,6 +61,43 @@ def run(inputs: TwinInputs, options: TwinOptions, *, progress: bool = True) -> T
     if T_twin_gt is not None:
         fidelity = write_fidelity(twin, inputs.scene_dir, options.geometry.f1_threshold, T_twin_gt)
     return TwinResult(manifest=twin / "twin.json", fidelity=fidelity)
+
+
+def _scene_facts(man, twin: Path, scene_dir: Path | None, frame):
+    """With an embedded scene's ground truth: the alignment note and the scene's goal region
+    (`config.target_frame`, in the twin frame) into `man` (not saved); returns T_twin_gt or None."""
+    from splattwin import io
+
+    scene_json = scene_dir / "scene.json" if scene_dir is not None else None
+    if scene_json is None or not scene_json.is_file():
+        return None
+    scene = io.read_json(scene_json)
+    T_twin_gt, gt_note = gt_alignment(man, twin, scene_dir, frame)
+    man.config["ground_truth"] = {"alignment": gt_note}
+    if scene.get("target_frame") and T_twin_gt is not None:  # a scene fact the robot task needs (its goal)
+        man.config["target_frame"] = _moved_region(scene["target_frame"], T_twin_gt)
+    return T_twin_gt
+
+
+def add_scene_goal(twin_dir: str | Path, scene_dir: str | Path):
+    """What the twin stage adds to a twin built from an embedded scene, for a twin made with `build_twin`
+    from Python: the scene's goal region (`config.target_frame`, which the default task's place_in names)
+    moved into the twin frame, and the ground-truth alignment note; twin.json saved again. Returns the
+    Manifest. InputError when `scene_dir` holds no scene.json or the twin's frame cannot be aligned to it."""
+    from splattwin.errors import InputError
+    from splattwin.twin.manifest import Manifest
+
+    twin, scene_dir = Path(twin_dir), Path(scene_dir)
+    if not (scene_dir / "scene.json").is_file():
+        raise InputError("no scene.json here: not a generated scene (splattwin.scene.generate)", scene_dir)
+    man = Manifest.load(twin)
+    if _scene_facts(man, twin, scene_dir, man.frame) is None:
+        raise InputError(f"the twin's frame ({man.frame.source}) cannot be aligned to the scene: "
+                         f"{man.config.get('ground_truth', {}).get('alignment')}", twin / "twin.json")
+    if "target_frame" not in man.config:
+        raise InputError("the scene defines no goal region (target_frame)", scene_dir / "scene.json")
+    man.save(twin)
+    return man
 
 
 # The twin frame is the scene's own when the poses were the scene's (its transforms.json, or its robot-style

@@ -269,8 +269,6 @@ def is_loopback(host: str) -> bool:
 
 
 def serve(twin_dir: str | Path, host: str = "127.0.0.1", port: int = 8080, block: bool = True):
-    import sys
-
     import viser
 
     twin_dir = Path(twin_dir)
@@ -280,16 +278,17 @@ def serve(twin_dir: str | Path, host: str = "127.0.0.1", port: int = 8080, block
         raise InputError(f"--port must be 0..65535, got {port}", "--port")
     view = TwinView.load(twin_dir)  # checked before the server starts
     if not is_loopback(host):
-        print(f"warning: serving on {host}, not on loopback: anyone who can reach this machine on port {port} can "
-              f"open the viewer and see the twin (there is no authentication). Use --host 127.0.0.1 (the default) "
-              f"to keep it local.", file=sys.stderr)
+        log.warning(f"serving on {host}, not on loopback: anyone who can reach this machine on port {port} can "
+                    f"open the viewer and see the twin (there is no authentication). Use --host 127.0.0.1 (the default) "
+                    f"to keep it local.")
     server = viser.ViserServer(host=host, port=port, verbose=False)
     if port != 0 and server.get_port() != port:
-        print(f"note: port {port} was busy; serving on port {server.get_port()} instead", file=sys.stderr)
+        log.warning("port %d was busy; serving on port %d instead", port, server.get_port())
     draw(server, view)
-    print(f"splattwin viewer: http://{host}:{server.get_port()}  (Ctrl+C to stop)")
-    if not block:
+    if not block:   # a library call (a notebook): no print, the address in the log
+        log.info("splattwin viewer: http://%s:%d", host, server.get_port())
         return server
+    print(f"splattwin viewer: http://{host}:{server.get_port()}  (Ctrl+C to stop)")
     try:
         while True:
             time.sleep(1.0)

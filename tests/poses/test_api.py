@@ -1,0 +1,111 @@
+"""The poses stage used from Python (audit 8A): what `save` writes loads back, the caller's dataset is
+left alone, and a mode that would write an unreadable file says so."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from splattwin.capture import load_dataset
+from splattwin.errors import InputError
+
+
+def _known(ds, **kw):
+    from splattwin.poses import PoseOptions, estimate_poses
+
+    return estimate_poses(ds, PoseOptions(method="known", depth_points=False, progress=False, **kw))
+
+
+def test_save_without_bundle_outside_the_capture_is_refused_before_writing(scene_small: Path, tmp_path: Path):
+    """bundle=False used to write '../scene/images/...' paths that load_dataset always refused (H1)."""
+    res = _known(load_dataset(scene_small))
+    out = tmp_path / "poses"
+    with pytest.raises(InputError, match="bundle=True"):
+        res.save(out, bundle=False)
+    assert not (out / "transforms.json").exists() and not (out / "frame.json").exists()
+
+
+def test_save_without_bundle_inside_the_capture_loads_back(scene_small: Path, tmp_path: Path):
+    """bundle=False with OUT holding the images: relative paths inside OUT, which load_dataset reads."""
+    import shutil
+
+    cap = tmp_path / "cap"
+    shutil.copytree(scene_small, cap)
+    res = _known(load_dataset(cap))
+    p = res.save(cap, bundle=False)
+    back = load_dataset(p)
+    assert len(back) == len(res.frames)
+    assert all(not fr["file_path"].startswith("..") for fr in json.loads(p.read_text())["frames"])
+
+
+def test_nerfstudio_write_confined_refuses_outside_paths(scene_small: Path, tmp_path: Path):
+    from splattwin.capture import nerfstudio
+
+    ds = load_dataset(scene_small)
+    with pytest.raises(InputError, match="outside"):
+        nerfstudio.write(ds, tmp_path / "x" / "transforms.json", confine=True)
+    assert not (tmp_path / "x" / "transforms.json").exists()
+
+
+def test_estimate_poses_leaves_the_callers_dataset_alone(scene_small: Path):
+    """apply_holdout set splits and meta on the caller's Dataset (M2); the result carries them instead."""
+    from splattwin.poses.options import HoldoutOptions
+
+    ds = load_dataset(scene_small)
+    splits0, meta0 = [f.split for f in ds.frames], copy.deepcopy(ds.meta)
+    res = _known(ds, holdout=HoldoutOptions(heldout_every=2))
+    assert [f.split for f in ds.frames] == splits0 and ds.meta == meta0
+    assert [f.split for f in res.frames] != splits0   # the new split is in the result
+    assert not any(r is f for r in res.frames for f in ds.frames)
+
+
+def test_estimate_poses_refuses_a_non_dataset():
+    from splattwin.poses import estimate_poses
+
+    with pytest.raises(InputError, match="Dataset"):
+        estimate_poses(["a.png"])
+
+
+def test_to_dataset_root_is_never_the_cwd(scene_small: Path):
+    """to_dataset() used Path('.') (L10): now the folder holding the images."""
+    res = _known(load_dataset(scene_small))
+    ds = res.to_dataset()
+    assert ds.root != Path(".") and ds.root.is_absolute()
+    assert all(f.image_path.absolute().is_relative_to(ds.root) for f in ds.frames)
+    with pytest.raises(ValueError, match="root"):
+        dataclasses.replace(res, frames=[]).to_dataset()
+
+
+def test_pose_result_round_trips(scene_small: Path, tmp_path: Path):
+    from splattwin.poses import PoseResult
+
+    res = _known(load_dataset(scene_small))
+    res.save(tmp_path / "p")
+    back = PoseResult.load(tmp_path / "p")
+    assert back.frame == res.frame and back.unregistered == res.unregistered
+    assert [f.name for f in back.frames] == [f.name for f in res.frames]
+    assert [f.split for f in back.frames] == [f.split for f in res.frames]
+    for a, b in zip(back.frames, res.frames):
+        np.testing.assert_allclose(a.camera.T_world_cam, b.camera.T_world_cam, atol=1e-9)
+        np.testing.assert_allclose(a.camera.K, b.camera.K)
+    np.testing.assert_allclose(back.T_out_in, res.T_out_in)
+    assert back.stats["method"] == res.stats["method"] and back.stats["registered"] == res.stats["registered"]
+    assert back.label_objects == res.label_objects
+    assert PoseResult.load(tmp_path / "p" / "transforms.json").frame == res.frame
+    with pytest.raises(InputError, match="transforms.json"):
+        PoseResult.load(tmp_path / "nothing")
+
+
+def test_twin_frame_save_round_trips(tmp_path: Path):
+    from splattwin.poses import TwinFrame, load_frame
+
+    f = TwinFrame(source="marker", scaled=True, scale_uncertainty_rel=0.01, description="d", up_check={"a": 1})
+    p = f.save(tmp_path / "frame.json")
+    assert load_frame(p) == f and TwinFrame.load(tmp_path) == f
+    tmp_path.joinpath("d").mkdir()
+    assert f.save(tmp_path / "d").name == "frame.json"
