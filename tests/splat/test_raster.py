@@ -100,6 +100,25 @@ def test_cpu_edge_cases_behind_offscreen_degenerate_and_empty_tiles():
     assert torch.isfinite(gc["scales"]).all() and torch.isfinite(gc["quats"]).all()
 
 
+def test_zero_quaternions_render_as_identity_on_both_backends():
+    # A zero quaternion is normalised with the norm clamped at 1e-12 (torch's F.normalize, as gsplat's
+    # PyTorch implementation): the identity rotation, on both backends, forward and backward.
+    inputs, K = _scene(n=40, C=2, seed=4, K_sh=1)
+    inputs[1][:3] = 0.0
+    ir, ar, mr, gr = _run("reference", inputs, K, 40, 30, sh_degree=0)
+    ic, ac, mc, gc = _run("cpu", inputs, K, 40, 30, sh_degree=0)
+    assert mc["visibility"][:, :3].all() and (mr["radii"] == mc["radii"]).all()
+    assert torch.allclose(ir, ic, atol=5e-5) and torch.allclose(ar, ac, atol=5e-6)
+    ident = inputs[1].clone()
+    ident[:3] = torch.tensor([1.0, 0, 0, 0], dtype=DT)
+    i1, a1, _, _ = _run("reference", [ident if i == 1 else t for i, t in enumerate(inputs)], K, 40, 30, sh_degree=0)
+    assert torch.allclose(i1, ir, atol=1e-12)  # zero quaternion == identity
+    _assert_close_grads(gr, gc)
+    # R(q / eps) is quadratic in q: at q = 0 its gradient is exactly zero (finite, not NaN)
+    assert torch.all(gc["quats"][:3] == 0) and torch.all(gr["quats"][:3] == 0)
+    assert torch.isfinite(gc["quats"]).all() and gc["quats"][3:].abs().max() > 0
+
+
 def test_cpu_single_gaussian_analytic_centre_value():
     W, H, f = 32, 32, 100.0
     K = torch.tensor([[[f, 0, 16.5], [0, f, 16.5], [0, 0, 1.0]]])  # mean projects onto pixel (16,16) centre
