@@ -248,6 +248,31 @@ def test_float32_inputs_and_empty_scene():
     assert img.shape == (1, 30, 40, 3) and alpha.abs().max() == 0
 
 
+def test_mixed_dtypes_are_cast_to_the_means_dtype_on_every_backend():
+    # float64 Ks / viewmats / backgrounds with float32 Gaussians: the same float32 render on both backends
+    # (the reference used to raise "expected scalar type Double but found Float"), gradients in each
+    # input's own dtype.
+    inputs, K = _scene(n=30, C=1, seed=9, K_sh=1)
+    xs = [t.float() if i not in (5, 6) else t for i, t in enumerate(inputs)]  # viewmats, bg stay float64
+    out = {}
+    for be in ("reference", "cpu"):
+        leaves = [t.clone().requires_grad_(True) for t in xs]
+        img, alpha, meta = rasterization(*leaves[:6], K, 40, 30, sh_degree=0, backgrounds=leaves[6], backend=be)
+        assert img.dtype == alpha.dtype == meta["means2d"].dtype == torch.float32, be
+        img.sum().backward()
+        assert leaves[5].grad.dtype == torch.float64 and leaves[0].grad.dtype == torch.float32, be
+        out[be] = (img.detach(), leaves[5].grad)
+    assert torch.allclose(out["reference"][0], out["cpu"][0], atol=5e-5)
+    assert torch.allclose(out["reference"][1], out["cpu"][1], rtol=1e-3, atol=1e-3)
+    img64, _, _ = rasterization(*[t.double() for t in xs[:6]], K.float(), 40, 30, sh_degree=0, backend="reference")
+    assert img64.dtype == torch.float64
+
+
+def test_rasterization_docstring_states_the_cpu_precision():
+    doc = " ".join(rasterization.__doc__.split())
+    assert "float32 whatever the input dtype" in doc and 'backend="reference"' in doc and "gradcheck" in doc
+
+
 def test_backend_dispatch():
     if not torch.cuda.is_available():
         assert resolve_backend("auto") == "cpu"
