@@ -323,6 +323,75 @@ def test_render_helpers_depth_and_rgb():
     assert np.allclose(feats[..., 0], alpha, atol=1e-6)
 
 
+def _sheet(n_side=(25, 17), z=1.5, scale=0.02):
+    from splattwin.capture.camera import Camera
+    from splattwin.splat.gaussians import Gaussians
+
+    xs, ys = np.meshgrid(np.linspace(-0.3, 0.3, n_side[0]), np.linspace(-0.2, 0.2, n_side[1]))
+    n = xs.size
+    means = np.stack([xs.ravel(), ys.ravel(), np.full(n, z)], 1)
+    g = Gaussians(means=means, quats=np.tile([1.0, 0, 0, 0], (n, 1)), scales=np.full((n, 3), scale),
+                  opacities=np.full(n, 0.95), sh=np.full((n, 1, 3), 0.5))
+    return g, Camera.from_fov(0.6, 48, 32)
+
+
+def test_render_helper_takes_every_rasterizer_mode_and_refuses_others():
+    from splattwin.splat.render import render
+
+    g, cam = _sheet()
+    ed, alpha = render(g, cam, mode="ED")
+    d, _ = render(g, cam, mode="D")
+    rgbd, _ = render(g, cam, mode="RGB+D")
+    rgb, _ = render(g, cam, mode="RGB")
+    assert d.shape == ed.shape == (32, 48, 1) and rgbd.shape == (32, 48, 4)
+    np.testing.assert_allclose(d[..., 0], ed[..., 0] * alpha, atol=1e-5)  # D = sum w z = ED * alpha
+    np.testing.assert_allclose(rgbd[..., 3], d[..., 0], atol=1e-6)
+    np.testing.assert_array_equal(rgbd[..., :3], rgb)
+    for bad in ("ed", "depth", "RGBD"):
+        with pytest.raises(ValueError, match=r"render mode must be one of RGB, D, ED, RGB\+D, RGB\+ED"):
+            render(g, cam, mode=bad)
+
+
+def test_render_background_must_be_a_0_1_colour():
+    from splattwin.splat.gaussians import Gaussians
+    from splattwin.splat.render import render, render_rgb
+
+    g, cam = _sheet()
+    for bad in ((255, 255, 255), (0.0, 0.0, 1.5), (-0.1, 0, 0)):
+        with pytest.raises(ValueError, match=r"background colour must be in \[0, 1\]"):
+            render(g, cam, background=bad)
+        with pytest.raises(ValueError, match=r"\[0, 1\]"):
+            render_rgb(g, cam, background=bad)
+        with pytest.raises(ValueError, match=r"\[0, 1\]"):
+            render(Gaussians.empty(), cam, background=bad)
+    with pytest.raises(ValueError, match="3 values"):
+        render(g, cam, background=(0.0, 1.0))
+    img, _ = render(Gaussians.empty(), cam, background=(0.0, 0.5, 1.0))
+    assert np.all(img[5, 5] == np.float32([0.0, 0.5, 1.0]))
+    # features are not colours: any background value
+    f, _ = render(g, cam, colors=np.full((len(g), 2), 7.0), background=(-3.0, 40.0))
+    assert f.shape == (32, 48, 2) and np.isfinite(f).all()
+
+
+def test_render_helpers_pass_the_raster_mode_through():
+    from splattwin.splat.render import render, render_depth, render_features, render_rgbd
+
+    g, cam = _sheet(n_side=(9, 7), scale=0.002)  # sub-pixel splats: antialiased draws them fainter
+    kw = dict(rasterize_mode="antialiased", eps2d=0.2)
+    img_aa, a_aa = render(g, cam, mode="RGB+ED", **kw)
+    img_cl, a_cl = render(g, cam, mode="RGB+ED")
+    assert a_aa.sum() < 0.9 * a_cl.sum()
+    rgb, dep, a = render_rgbd(g, cam, **kw)
+    np.testing.assert_array_equal(a, a_aa)
+    np.testing.assert_array_equal(rgb, img_aa[..., :3])
+    feats, fa = render_features(g, cam, np.ones((len(g), 2)), **kw)
+    np.testing.assert_array_equal(fa, a_aa)
+    d_aa = render_depth(g, cam, min_alpha=0.0, **kw)
+    d_ed, _ = render(g, cam, mode="ED", **kw)
+    np.testing.assert_array_equal(d_aa, d_ed[..., 0])
+    assert not np.array_equal(render_features(g, cam, np.ones((len(g), 2)))[1], fa)  # classic by default
+
+
 def test_pixel_boxes_shrink_to_the_visible_ellipse_of_faint_gaussians():
     # A faint Gaussian (alpha >= 1/255 only within ~1.4 sigma) is binned to fewer tiles than its
     # 3-sigma box, and draws the same image as the reference (which uses the full box).
