@@ -144,7 +144,7 @@ def test_gpu_without_gsplat_kernels_falls_back_with_reason(monkeypatch):
     """A CUDA device but gsplat's kernels unbuildable (this machine: gsplat installed, CPU-only torch):
     "auto" stays on the CPU and "cuda" says why, as a user error."""
     from splattwin.errors import InputError
-    from splattwin.splat import rasterization as r
+    r = importlib.import_module("splattwin.splat.rasterization")  # the module (the package attribute is the function)
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     reason = r.cuda_unavailable_reason()

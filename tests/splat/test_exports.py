@@ -1,0 +1,51 @@
+"""The splat stage's public API: every name in `splattwin.splat.__all__` imports from the package."""
+
+from __future__ import annotations
+
+import importlib
+import subprocess
+import sys
+import types
+
+import pytest
+
+import splattwin.splat as splat
+
+KEY = ["Gaussians", "rasterization", "render", "render_rgb", "render_rgbd", "render_depth", "render_features",
+       "train", "Trainer", "TrainResult", "TrainConfig", "evaluate", "EvalResult"]
+
+
+def test_key_entry_points_are_listed():
+    assert set(KEY) <= set(splat.__all__) and set(KEY) <= set(dir(splat))
+
+
+@pytest.mark.parametrize("name", splat.__all__)
+def test_each_exported_name_imports(name):
+    ns: dict = {}
+    exec(f"from splattwin.splat import {name}", ns)
+    obj = ns[name]
+    assert not isinstance(obj, types.ModuleType), name
+    assert obj is getattr(importlib.import_module(f"splattwin.splat.{splat._EXPORTS[name]}"), name)
+
+
+def test_function_and_module_of_the_same_name():
+    # Importing the modules `rasterization` / `render` must not replace the package's functions.
+    from splattwin.splat.rasterization import rasterization
+    from splattwin.splat.render import render
+
+    importlib.import_module("splattwin.splat.rasterization")
+    importlib.import_module("splattwin.splat.render")
+    assert splat.rasterization is rasterization and splat.render is render
+    assert importlib.import_module("splattwin.splat.rasterization").CUDA_DEVICE  # the module is still there
+    with pytest.raises(AttributeError, match="no attribute 'nope'"):
+        splat.nope  # noqa: B018
+
+
+def test_package_import_is_lazy_and_the_function_wins_in_a_fresh_process():
+    code = ("import sys\nimport splattwin.splat as s\nassert 'torch' not in sys.modules, 'eager torch'\n"
+            "import splattwin.splat.rasterization, splattwin.splat.render\n"
+            "from splattwin.splat import rasterization, render\n"
+            "assert callable(rasterization) and rasterization.__name__ == 'rasterization'\n"
+            "assert render.__name__ == 'render' and s.render is render\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
