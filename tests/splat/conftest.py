@@ -149,7 +149,7 @@ def gsplat_on_cpu(monkeypatch):
     import gsplat.cuda._torch_impl as ti
     import gsplat.rendering as gr
 
-    r = importlib.import_module("splattwin.splat.rasterization")  # the module (the package attribute is the function)
+    r = importlib.import_module("splattwin.splat.rasterize")
 
     monkeypatch.setattr(gr, "fully_fused_projection", _fully_fused_projection)
     monkeypatch.setattr(gr, "isect_tiles", _isect_tiles)

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from splattwin.errors import InputError
-from splattwin.splat.rasterization import rasterization, resolve_backend
+from splattwin.splat.rasterize import rasterization, resolve_backend
 
 DT = torch.float64
 NAMES = ["means", "quats", "scales", "opacities", "colors", "viewmats", "backgrounds"]
@@ -168,7 +168,7 @@ def test_default_low_pass_follows_the_mode():
     """eps2d None: 3DGS's 0.3 dilation for classic, Mip-Splatting's 0.1 (about one pixel's box filter,
     variance 1/12 px^2) for antialiased; an explicit eps2d is used as given. A Gaussian of screen std
     1.5 px (well sampled): its rendered peak is op * s^2 / (s^2 + eps2d) antialiased."""
-    from splattwin.splat.rasterization import DEFAULT_EPS2D
+    from splattwin.splat.rasterize import DEFAULT_EPS2D
 
     assert DEFAULT_EPS2D == {"classic": 0.3, "antialiased": 0.1}
     W = H = 32
@@ -190,7 +190,7 @@ def test_default_low_pass_follows_the_mode():
 
 
 def test_antialias_compensation_formula():
-    from splattwin.splat.rasterization import antialias_compensation
+    from splattwin.splat.rasterize import antialias_compensation
 
     g = torch.Generator().manual_seed(0)
     A = torch.randn(20, 2, 2, generator=g, dtype=DT)
@@ -299,7 +299,7 @@ def test_bad_shapes_raise_clear_errors():
 def test_render_helpers_depth_and_rgb():
     from splattwin.capture.camera import Camera
     from splattwin.splat.gaussians import Gaussians
-    from splattwin.splat.render import render_depth, render_features, render_rgb
+    from splattwin.splat.rendering import render_depth, render_features, render_rgb
 
     # a dense opaque sheet of Gaussians at z = 1.5 in front of a camera at the origin
     xs, ys = np.meshgrid(np.linspace(-0.3, 0.3, 25), np.linspace(-0.2, 0.2, 17))
@@ -336,7 +336,7 @@ def _sheet(n_side=(25, 17), z=1.5, scale=0.02):
 
 
 def test_render_helper_takes_every_rasterizer_mode_and_refuses_others():
-    from splattwin.splat.render import render
+    from splattwin.splat.rendering import render
 
     g, cam = _sheet()
     ed, alpha = render(g, cam, mode="ED")
@@ -354,7 +354,7 @@ def test_render_helper_takes_every_rasterizer_mode_and_refuses_others():
 
 def test_render_background_must_be_a_0_1_colour():
     from splattwin.splat.gaussians import Gaussians
-    from splattwin.splat.render import render, render_rgb
+    from splattwin.splat.rendering import render, render_rgb
 
     g, cam = _sheet()
     for bad in ((255, 255, 255), (0.0, 0.0, 1.5), (-0.1, 0, 0)):
@@ -374,7 +374,7 @@ def test_render_background_must_be_a_0_1_colour():
 
 
 def test_render_helpers_pass_the_raster_mode_through():
-    from splattwin.splat.render import render, render_depth, render_features, render_rgbd
+    from splattwin.splat.rendering import render, render_depth, render_features, render_rgbd
 
     g, cam = _sheet(n_side=(9, 7), scale=0.002)  # sub-pixel splats: antialiased draws them fainter
     kw = dict(rasterize_mode="antialiased", eps2d=0.2)

@@ -28,8 +28,8 @@ import torch
 def rasterization_cuda(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree=None,
                        backgrounds=None, render_mode="RGB", near_plane=0.01, far_plane=1e10, eps2d=0.3,
                        rasterize_mode="classic") -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
-    """Same signature and outputs as `splattwin.splat.rasterization.rasterization` (backend "cuda")."""
-    from splattwin.splat.rasterization import backend_device, resolve_backend
+    """Same signature and outputs as `splattwin.splat.rasterize.rasterization` (backend "cuda")."""
+    from splattwin.splat.rasterize import backend_device, resolve_backend
 
     resolve_backend("cuda")  # raises an InputError saying why when the backend cannot run here
     import gsplat

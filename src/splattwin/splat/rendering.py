@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from splattwin.splat.rasterization import RENDER_MODES, backend_device, rasterization, resolve_backend
+from splattwin.splat.rasterize import RENDER_MODES, backend_device, rasterization, resolve_backend
 
 if TYPE_CHECKING:  # pragma: no cover
     from splattwin.capture.camera import Camera
