@@ -122,7 +122,7 @@ def train_arm(capture: Path, out: Path, iters: int, heldout_every: int, lam: flo
     from splattwin.poses.options import HoldoutOptions
     from splattwin.splat.config import TrainConfig
     from splattwin.splat.eval import evaluate
-    from splattwin.splat.render import render_depth
+    from splattwin.splat.rendering import render_depth
     from splattwin.splat.trainer import Trainer
 
     ds = load_dataset(capture)

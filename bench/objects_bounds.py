@@ -59,7 +59,7 @@ its own same_view.
 Re-lit (`playback.relight`, fresh demo twin, its own rollout): fused_relit 23.56 (unlit_relit 22.24,
 fused_baked 22.99), photo_gt_geom 24.30, inner 23.75 / ring 22.62; blue box 21.57 vs its same_view 22.15,
 yellow cube 25.18 / 28.15, hammer 28.06 / 28.98. Left to 24 dB: the blue box (62-87 % of the error).
-With the antialiased low-pass at Mip-Splatting's 0.1 px^2 instead of 0.3 (`splat.rasterization.DEFAULT_EPS2D`;
+With the antialiased low-pass at Mip-Splatting's 0.1 px^2 instead of 0.3 (`splat.rasterize.DEFAULT_EPS2D`;
 fresh demo twin, its own rollout): fused_relit 25.18 (unlit_relit 23.53, fused_baked 24.47), oracle 25.21,
 photo_gt_geom 24.74 (the twin is now above the image-based bound), inner 25.48 / ring 23.68; blue box 23.25
 vs its same_view 24.66, yellow cube 24.96 / 30.53, hammer 30.09 / 31.37; train_fit 35.0 / 36.5 / 39.0 (the

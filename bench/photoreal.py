@@ -27,7 +27,7 @@ Re-lit (`splattwin.playback.relight`: the light estimated from the twin's shadow
 without re-lighting in the same run): psnr_final 28.50 -> 29.84, psnr_final_objects 22.28 -> 23.54, ssim_final_objects
 0.833 -> 0.879, render_ms 47.5 -> 77.2 (the objects' shadows and the arm's).
 The antialiased mode's low-pass at Mip-Splatting's 0.1 px^2 instead of 3DGS's 0.3 (about one pixel's box
-filter; `splat.rasterization.DEFAULT_EPS2D`), fresh demo twin: psnr_final 29.84 -> 30.87 (SSIM 0.918 -> 0.939),
+filter; `splat.rasterize.DEFAULT_EPS2D`), fresh demo twin: psnr_final 29.84 -> 30.87 (SSIM 0.918 -> 0.939),
 psnr_final_objects 23.54 -> 25.06 (SSIM 0.879 -> 0.909), psnr_start 34.36 -> 36.51, render_ms 81.2 (not
 re-lit 49.8; MuJoCo meshes 92.9), episode 236/236 frames.
 

@@ -29,7 +29,7 @@ import time  # noqa: E402
 
 import torch  # noqa: E402
 
-from splattwin.splat.rasterization import rasterization  # noqa: E402
+from splattwin.splat.rasterize import rasterization  # noqa: E402
 
 SIZES = [(160, 120, 20_000), (320, 240, 50_000), (640, 480, 200_000)]
 

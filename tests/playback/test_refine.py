@@ -17,7 +17,7 @@ from splattwin.capture.dataset import Frame
 from splattwin.errors import InputError
 from splattwin.playback.scene import DynamicScene, concat
 from splattwin.splat.gaussians import Gaussians, rgb_to_sh0
-from splattwin.splat.render import render_rgb
+from splattwin.splat.rendering import render_rgb
 from splattwin.twin.manifest import Manifest
 from splattwin.playback.refine import RefineOptions, _labels_of, refine_objects
 
@@ -121,7 +121,7 @@ def _coverage(g: Gaussians, cam: Camera) -> np.ndarray:
     """[H,W] accumulated alpha of `g` alone as seen by `cam`."""
     import torch
 
-    from splattwin.splat.rasterization import rasterization
+    from splattwin.splat.rasterize import rasterization
 
     t = lambda a: torch.tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
     _, alpha, _ = rasterization(t(g.means), t(g.quats), t(g.scales), t(g.opacities), torch.ones(len(g), 1),

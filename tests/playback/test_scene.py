@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 from splattwin.capture.camera import Camera, look_at
 from splattwin.playback.scene import VIEW_FADE_M, VIEW_FADE_RAD, DynamicScene, rigid_transform, view_weight
 from splattwin.splat.gaussians import Gaussians
-from splattwin.splat.render import render_rgb
+from splattwin.splat.rendering import render_rgb
 from splattwin.twin.splats import eval_sh, sh_rotation, transform_gaussians
 
 from .conftest import OBJ_CENTRE, make_object

@@ -76,7 +76,7 @@ def test_splat_depth_and_label_maps_draw_the_splats_as_trained():
     from splattwin.capture import Camera
     from splattwin.semantics.label_render import SplatDepth, render_label_maps
     from splattwin.splat.gaussians import Gaussians
-    from splattwin.splat.render import render
+    from splattwin.splat.rendering import render
 
     rng = np.random.default_rng(0)
     n = 60

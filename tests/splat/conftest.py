@@ -17,6 +17,8 @@ Kernel semantics emulated (gsplat 1.5), where they differ from our reference:
 
 from __future__ import annotations
 
+import importlib
+
 import math
 from types import SimpleNamespace
 
@@ -147,7 +149,7 @@ def gsplat_on_cpu(monkeypatch):
     import gsplat.cuda._torch_impl as ti
     import gsplat.rendering as gr
 
-    from splattwin.splat import rasterization as r
+    r = importlib.import_module("splattwin.splat.rasterize")
 
     monkeypatch.setattr(gr, "fully_fused_projection", _fully_fused_projection)
     monkeypatch.setattr(gr, "isect_tiles", _isect_tiles)

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from splattwin.splat.rasterization import rasterization, resolve_backend
+from splattwin.splat.rasterize import rasterization, resolve_backend
 
 _spec = importlib.util.spec_from_file_location("_splat_trainer_helpers", Path(__file__).with_name("test_trainer.py"))
 helpers = importlib.util.module_from_spec(_spec)
@@ -144,7 +144,7 @@ def test_gpu_without_gsplat_kernels_falls_back_with_reason(monkeypatch):
     """A CUDA device but gsplat's kernels unbuildable (this machine: gsplat installed, CPU-only torch):
     "auto" stays on the CPU and "cuda" says why, as a user error."""
     from splattwin.errors import InputError
-    from splattwin.splat import rasterization as r
+    r = importlib.import_module("splattwin.splat.rasterize")
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     reason = r.cuda_unavailable_reason()

@@ -37,3 +37,57 @@ def test_rotations_and_covariances_match_scipy():
     np.testing.assert_allclose(g.rotation_matrices(), R_ref, atol=1e-12)
     cov = g.covariances()
     np.testing.assert_allclose(cov[0], R_ref[0] @ np.diag(g.scales[0] ** 2) @ R_ref[0].T, atol=1e-14)
+
+
+@pytest.mark.parametrize("field,value,match", [
+    ("means", np.zeros(12), r"means must be \[N,3\], got shape \(12,\)"),
+    ("quats", np.zeros((2, 8)), r"quats must be \[4,4\] with N=4 .*got shape \(2, 8\)"),
+    ("scales", np.full(12, 0.01), r"scales must be \[4,3\] with N=4 .*got shape \(12,\)"),
+    ("opacities", np.full((2, 2), 0.5), r"opacities must be \[4\] with N=4 .*got shape \(2, 2\)"),
+    ("opacities", np.full((4, 1), 0.5), r"opacities must be \[4\] with N=4 .*got shape \(4, 1\)"),
+    ("sh", np.zeros((4, 3, 4)), r"sh must be \[N,K,3\].*got shape \(4, 3, 4\)"),
+])
+def test_wrong_shapes_are_refused_not_reshaped(field, value, match):
+    ok = dict(means=np.zeros((4, 3)), quats=np.tile([1.0, 0, 0, 0], (4, 1)), scales=np.full((4, 3), 0.01),
+              opacities=np.full(4, 0.5), sh=np.zeros((4, 1, 3)))
+    Gaussians(**ok)
+    with pytest.raises(ValueError, match=match):
+        Gaussians(**{**ok, field: value})
+
+
+@pytest.mark.parametrize("field,value,match", [
+    ("scales", [[-1.0, 0.01, 0.01]], "1 Gaussians have negative scales"),
+    ("opacities", [3.0], r"opacities outside \[0, 1\]"),
+    ("quats", [[0.0, 0, 0, 0]], "zero quaternion"),
+    ("means", [[np.nan, 0, 0]], "non-finite means"),
+    ("sh", [[[np.inf, 0, 0]]], "non-finite sh"),
+])
+def test_invalid_values_are_refused_on_construction(field, value, match):
+    from splattwin.errors import InputError
+
+    ok = dict(means=[[0.0, 0, 1]], quats=[[1.0, 0, 0, 0]], scales=[[0.01] * 3], opacities=[0.5],
+              sh=np.zeros((1, 1, 3)))
+    with pytest.raises(InputError, match=match):
+        Gaussians(**{**ok, field: value})
+
+
+def test_save_ply_never_writes_a_file_load_ply_refuses(tmp_path):
+    from splattwin.errors import InputError
+
+    g = _g(3)
+    for edit, match in ((lambda g: g.scales.__setitem__((1, 0), -1.0), "negative scales"),
+                        (lambda g: g.opacities.__setitem__(2, 3.0), r"opacities outside \[0, 1\]"),
+                        (lambda g: g.quats.__setitem__(0, 0.0), "zero quaternion"),
+                        (lambda g: g.means.__setitem__((0, 0), 1e39), "beyond float32's range")):
+        bad = _g(3)
+        edit(bad)  # the arrays are mutable: save_ply checks again
+        p = tmp_path / "bad.ply"
+        with pytest.raises(InputError, match=match):
+            bad.save_ply(p)
+        assert not p.exists()
+    # valid extremes still round-trip
+    e = Gaussians(np.zeros((2, 3)), [[1.0, 0, 0, 0]] * 2, [[0.0, 0.01, 0.01]] * 2, [0.0, 1.0], np.zeros((2, 1, 3)))
+    e2 = Gaussians.load_ply(e.save_ply(tmp_path / "e.ply"))
+    assert len(e2) == 2 and e2.scales[0, 0] == 0.0
+    assert len(Gaussians.load_ply(g.save_ply(tmp_path / "g.ply"))) == 3
+    assert len(Gaussians.load_ply(Gaussians.empty(2).save_ply(tmp_path / "empty.ply"))) == 0

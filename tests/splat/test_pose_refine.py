@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from splattwin.splat.pose_refine import PoseCorrection, se3_exp
-from splattwin.splat.rasterization import rasterization
+from splattwin.splat.rasterize import rasterization
 
 _spec = importlib.util.spec_from_file_location("_splat_trainer_helpers", Path(__file__).with_name("test_trainer.py"))
 helpers = importlib.util.module_from_spec(_spec)

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from splattwin.errors import InputError
-from splattwin.splat.rasterization import rasterization, resolve_backend
+from splattwin.splat.rasterize import rasterization, resolve_backend
 
 DT = torch.float64
 NAMES = ["means", "quats", "scales", "opacities", "colors", "viewmats", "backgrounds"]
@@ -100,6 +100,25 @@ def test_cpu_edge_cases_behind_offscreen_degenerate_and_empty_tiles():
     assert torch.isfinite(gc["scales"]).all() and torch.isfinite(gc["quats"]).all()
 
 
+def test_zero_quaternions_render_as_identity_on_both_backends():
+    # A zero quaternion is normalised with the norm clamped at 1e-12 (torch's F.normalize, as gsplat's
+    # PyTorch implementation): the identity rotation, on both backends, forward and backward.
+    inputs, K = _scene(n=40, C=2, seed=4, K_sh=1)
+    inputs[1][:3] = 0.0
+    ir, ar, mr, gr = _run("reference", inputs, K, 40, 30, sh_degree=0)
+    ic, ac, mc, gc = _run("cpu", inputs, K, 40, 30, sh_degree=0)
+    assert mc["visibility"][:, :3].all() and (mr["radii"] == mc["radii"]).all()
+    assert torch.allclose(ir, ic, atol=5e-5) and torch.allclose(ar, ac, atol=5e-6)
+    ident = inputs[1].clone()
+    ident[:3] = torch.tensor([1.0, 0, 0, 0], dtype=DT)
+    i1, a1, _, _ = _run("reference", [ident if i == 1 else t for i, t in enumerate(inputs)], K, 40, 30, sh_degree=0)
+    assert torch.allclose(i1, ir, atol=1e-12)  # zero quaternion == identity
+    _assert_close_grads(gr, gc)
+    # R(q / eps) is quadratic in q: at q = 0 its gradient is exactly zero (finite, not NaN)
+    assert torch.all(gc["quats"][:3] == 0) and torch.all(gr["quats"][:3] == 0)
+    assert torch.isfinite(gc["quats"]).all() and gc["quats"][3:].abs().max() > 0
+
+
 def test_cpu_single_gaussian_analytic_centre_value():
     W, H, f = 32, 32, 100.0
     K = torch.tensor([[[f, 0, 16.5], [0, f, 16.5], [0, 0, 1.0]]])  # mean projects onto pixel (16,16) centre
@@ -149,7 +168,7 @@ def test_default_low_pass_follows_the_mode():
     """eps2d None: 3DGS's 0.3 dilation for classic, Mip-Splatting's 0.1 (about one pixel's box filter,
     variance 1/12 px^2) for antialiased; an explicit eps2d is used as given. A Gaussian of screen std
     1.5 px (well sampled): its rendered peak is op * s^2 / (s^2 + eps2d) antialiased."""
-    from splattwin.splat.rasterization import DEFAULT_EPS2D
+    from splattwin.splat.rasterize import DEFAULT_EPS2D
 
     assert DEFAULT_EPS2D == {"classic": 0.3, "antialiased": 0.1}
     W = H = 32
@@ -171,7 +190,7 @@ def test_default_low_pass_follows_the_mode():
 
 
 def test_antialias_compensation_formula():
-    from splattwin.splat.rasterization import antialias_compensation
+    from splattwin.splat.rasterize import antialias_compensation
 
     g = torch.Generator().manual_seed(0)
     A = torch.randn(20, 2, 2, generator=g, dtype=DT)
@@ -229,6 +248,31 @@ def test_float32_inputs_and_empty_scene():
     assert img.shape == (1, 30, 40, 3) and alpha.abs().max() == 0
 
 
+def test_mixed_dtypes_are_cast_to_the_means_dtype_on_every_backend():
+    # float64 Ks / viewmats / backgrounds with float32 Gaussians: the same float32 render on both backends
+    # (the reference used to raise "expected scalar type Double but found Float"), gradients in each
+    # input's own dtype.
+    inputs, K = _scene(n=30, C=1, seed=9, K_sh=1)
+    xs = [t.float() if i not in (5, 6) else t for i, t in enumerate(inputs)]  # viewmats, bg stay float64
+    out = {}
+    for be in ("reference", "cpu"):
+        leaves = [t.clone().requires_grad_(True) for t in xs]
+        img, alpha, meta = rasterization(*leaves[:6], K, 40, 30, sh_degree=0, backgrounds=leaves[6], backend=be)
+        assert img.dtype == alpha.dtype == meta["means2d"].dtype == torch.float32, be
+        img.sum().backward()
+        assert leaves[5].grad.dtype == torch.float64 and leaves[0].grad.dtype == torch.float32, be
+        out[be] = (img.detach(), leaves[5].grad)
+    assert torch.allclose(out["reference"][0], out["cpu"][0], atol=5e-5)
+    assert torch.allclose(out["reference"][1], out["cpu"][1], rtol=1e-3, atol=1e-3)
+    img64, _, _ = rasterization(*[t.double() for t in xs[:6]], K.float(), 40, 30, sh_degree=0, backend="reference")
+    assert img64.dtype == torch.float64
+
+
+def test_rasterization_docstring_states_the_cpu_precision():
+    doc = " ".join(rasterization.__doc__.split())
+    assert "float32 whatever the input dtype" in doc and 'backend="reference"' in doc and "gradcheck" in doc
+
+
 def test_backend_dispatch():
     if not torch.cuda.is_available():
         assert resolve_backend("auto") == "cpu"
@@ -255,7 +299,7 @@ def test_bad_shapes_raise_clear_errors():
 def test_render_helpers_depth_and_rgb():
     from splattwin.capture.camera import Camera
     from splattwin.splat.gaussians import Gaussians
-    from splattwin.splat.render import render_depth, render_features, render_rgb
+    from splattwin.splat.rendering import render_depth, render_features, render_rgb
 
     # a dense opaque sheet of Gaussians at z = 1.5 in front of a camera at the origin
     xs, ys = np.meshgrid(np.linspace(-0.3, 0.3, 25), np.linspace(-0.2, 0.2, 17))
@@ -277,6 +321,75 @@ def test_render_helpers_depth_and_rgb():
     assert rgb.shape == (32, 48, 3) and abs(rgb[16, 24, 0] - 0.9) < 0.01 and rgb[16, 24, 2] < 0.01
     feats, alpha = render_features(g, cam, np.ones((n, 2)))
     assert np.allclose(feats[..., 0], alpha, atol=1e-6)
+
+
+def _sheet(n_side=(25, 17), z=1.5, scale=0.02):
+    from splattwin.capture.camera import Camera
+    from splattwin.splat.gaussians import Gaussians
+
+    xs, ys = np.meshgrid(np.linspace(-0.3, 0.3, n_side[0]), np.linspace(-0.2, 0.2, n_side[1]))
+    n = xs.size
+    means = np.stack([xs.ravel(), ys.ravel(), np.full(n, z)], 1)
+    g = Gaussians(means=means, quats=np.tile([1.0, 0, 0, 0], (n, 1)), scales=np.full((n, 3), scale),
+                  opacities=np.full(n, 0.95), sh=np.full((n, 1, 3), 0.5))
+    return g, Camera.from_fov(0.6, 48, 32)
+
+
+def test_render_helper_takes_every_rasterizer_mode_and_refuses_others():
+    from splattwin.splat.rendering import render
+
+    g, cam = _sheet()
+    ed, alpha = render(g, cam, mode="ED")
+    d, _ = render(g, cam, mode="D")
+    rgbd, _ = render(g, cam, mode="RGB+D")
+    rgb, _ = render(g, cam, mode="RGB")
+    assert d.shape == ed.shape == (32, 48, 1) and rgbd.shape == (32, 48, 4)
+    np.testing.assert_allclose(d[..., 0], ed[..., 0] * alpha, atol=1e-5)  # D = sum w z = ED * alpha
+    np.testing.assert_allclose(rgbd[..., 3], d[..., 0], atol=1e-6)
+    np.testing.assert_array_equal(rgbd[..., :3], rgb)
+    for bad in ("ed", "depth", "RGBD"):
+        with pytest.raises(ValueError, match=r"render mode must be one of RGB, D, ED, RGB\+D, RGB\+ED"):
+            render(g, cam, mode=bad)
+
+
+def test_render_background_must_be_a_0_1_colour():
+    from splattwin.splat.gaussians import Gaussians
+    from splattwin.splat.rendering import render, render_rgb
+
+    g, cam = _sheet()
+    for bad in ((255, 255, 255), (0.0, 0.0, 1.5), (-0.1, 0, 0)):
+        with pytest.raises(ValueError, match=r"background colour must be in \[0, 1\]"):
+            render(g, cam, background=bad)
+        with pytest.raises(ValueError, match=r"\[0, 1\]"):
+            render_rgb(g, cam, background=bad)
+        with pytest.raises(ValueError, match=r"\[0, 1\]"):
+            render(Gaussians.empty(), cam, background=bad)
+    with pytest.raises(ValueError, match="3 values"):
+        render(g, cam, background=(0.0, 1.0))
+    img, _ = render(Gaussians.empty(), cam, background=(0.0, 0.5, 1.0))
+    assert np.all(img[5, 5] == np.float32([0.0, 0.5, 1.0]))
+    # features are not colours: any background value
+    f, _ = render(g, cam, colors=np.full((len(g), 2), 7.0), background=(-3.0, 40.0))
+    assert f.shape == (32, 48, 2) and np.isfinite(f).all()
+
+
+def test_render_helpers_pass_the_raster_mode_through():
+    from splattwin.splat.rendering import render, render_depth, render_features, render_rgbd
+
+    g, cam = _sheet(n_side=(9, 7), scale=0.002)  # sub-pixel splats: antialiased draws them fainter
+    kw = dict(rasterize_mode="antialiased", eps2d=0.2)
+    img_aa, a_aa = render(g, cam, mode="RGB+ED", **kw)
+    img_cl, a_cl = render(g, cam, mode="RGB+ED")
+    assert a_aa.sum() < 0.9 * a_cl.sum()
+    rgb, dep, a = render_rgbd(g, cam, **kw)
+    np.testing.assert_array_equal(a, a_aa)
+    np.testing.assert_array_equal(rgb, img_aa[..., :3])
+    feats, fa = render_features(g, cam, np.ones((len(g), 2)), **kw)
+    np.testing.assert_array_equal(fa, a_aa)
+    d_aa = render_depth(g, cam, min_alpha=0.0, **kw)
+    d_ed, _ = render(g, cam, mode="ED", **kw)
+    np.testing.assert_array_equal(d_aa, d_ed[..., 0])
+    assert not np.array_equal(render_features(g, cam, np.ones((len(g), 2)))[1], fa)  # classic by default
 
 
 def test_pixel_boxes_shrink_to_the_visible_ellipse_of_faint_gaussians():

@@ -7,7 +7,7 @@ import math
 import torch
 
 from splattwin.splat import reference as ref
-from splattwin.splat.rasterization import rasterization
+from splattwin.splat.rasterize import rasterization
 
 DT = torch.float64
 

@@ -13,7 +13,7 @@ from splattwin.capture import load_dataset
 from splattwin.capture.nerfstudio import write as write_transforms
 from splattwin.io import write_image
 from splattwin.splat.gaussians import Gaussians, rgb_to_sh0
-from splattwin.splat.rasterization import rasterization
+from splattwin.splat.rasterize import rasterization
 from splattwin.splat.trainer import TrainConfig, Trainer, train
 
 W, H = 48, 36

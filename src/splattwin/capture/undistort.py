@@ -1,6 +1,6 @@
 """Undistorting photos: a distorted camera's image resampled to an ideal pinhole camera.
 
-The rasterizer draws ideal pinhole images (`splattwin.splat.render`), while SfM estimates the photos' lens
+The rasterizer draws ideal pinhole images (`splattwin.splat.rendering`), while SfM estimates the photos' lens
 distortion (COLMAP's SIMPLE_RADIAL by default) and known-pose captures may give one. Fitting pinhole
 renders to distorted photos misplaces the periphery by the distortion: a phone photo with k1 = 0.03 at
 1080x1920 is off by ~16 px in its corners, so every view pulls the same surface to a different place.

@@ -37,7 +37,7 @@ def depth_views(gaussians: "Gaussians", cameras: list["Camera"], max_views: int 
     video's hundreds of frames add nothing but time). Cameras are used as ideal pinholes (the rasterizer's
     model) and scaled so their longest side is at most `max_side` pixels (the carving needs the surface,
     not the photo's detail)."""
-    from splattwin.splat.render import render_depth
+    from splattwin.splat.rendering import render_depth
 
     if len(cameras) > max_views:
         cameras = [cameras[i] for i in np.unique(np.linspace(0, len(cameras) - 1, max(max_views, 1)).round().astype(int))]

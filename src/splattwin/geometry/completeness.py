@@ -61,7 +61,7 @@ def resample_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
 
 def silhouette(gaussians: "Gaussians", camera: "Camera", min_alpha: float = 0.5) -> np.ndarray:
     """bool [H,W]: where the splats, rendered alone, reach an accumulated alpha of `min_alpha`."""
-    from splattwin.splat.render import render
+    from splattwin.splat.rendering import render
 
     _, alpha = render(gaussians, camera, mode="ED", colors=np.zeros((len(gaussians), 1), np.float32))
     return alpha >= min_alpha

@@ -237,8 +237,8 @@ class PlaybackRenderer:
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Premultiplied rgb [H,W,3] (over black), expected depth [H,W] (0 where empty), alpha [H,W].
         filt: (rasterize_mode, eps2d px^2 or None for the mode's default)."""
-        from splattwin.splat.rasterization import rasterization
-        from splattwin.splat.render import resolve_backend_device
+        from splattwin.splat.rasterize import rasterization
+        from splattwin.splat.rendering import resolve_backend_device
 
         name, dev = resolve_backend_device(self.backend)
         f = lambda a: torch.from_numpy(a[start:n]).to(dev)  # noqa: E731  (zero-copy rows on the CPU)
@@ -307,7 +307,7 @@ class PlaybackRenderer:
     def fill_mask(self, camera: Camera, object_poses: dict[str, np.ndarray]) -> np.ndarray:
         """[H,W] float32 in [0,1]: how much of each pixel shows hole-fill Gaussians in this state (for the
         report's mark of the filled regions), occlusion by everything else included."""
-        from splattwin.splat.render import render
+        from splattwin.splat.rendering import render
 
         sc = self.scene
         moved = set(sc.moved(object_poses))

@@ -90,7 +90,7 @@ def refine_objects(twin_dir: str | Path, frames, opts: RefineOptions | None = No
     from splattwin.splat.init import scene_center_and_scale
     from splattwin.splat.losses import photometric_loss
     from splattwin.splat.model import GaussianModel
-    from splattwin.splat.rasterization import rasterization, view_colors
+    from splattwin.splat.rasterize import rasterization, view_colors
     from splattwin.splat.resolution import resolve as resolve_resolution
     from splattwin.splat.trainer import load_views
 

@@ -61,7 +61,7 @@ def light_check_picture(renderer, camera) -> tuple[np.ndarray, float] | None:
     """The start state with the table splats the estimated light puts in the objects' shadows outlined in
     cyan (they should trace the dark shadows in the photo: a wrong light shows at a glance), and the share
     of the picture they cover; None when the twin is not re-lit."""
-    from splattwin.splat.render import render
+    from splattwin.splat.rendering import render
 
     rl = renderer.relighter
     if rl is None:

@@ -2,7 +2,7 @@
 
 Two depth backends behind one call signature `(keep [N] bool | None, cameras) -> list of [H,W] float32`
 (z-depth in metres along the camera axis, inf where nothing is rendered):
-- `SplatDepth`: expected depth ("ED") of the 3DGS model through `splattwin.splat.rasterization`
+- `SplatDepth`: expected depth ("ED") of the 3DGS model through `splattwin.splat.rasterize`
   (alpha < `min_alpha` -> inf). Faithful to large/transparent splats but ~1 s per 200k-Gaussian view on
   2 CPU cores, and the fusion re-renders every view in each refinement round.
 - `PointDepth`: a z-buffer of the Gaussian centres (a numba min-depth scatter, then occlusion-aware hole
@@ -146,7 +146,7 @@ class SplatDepth:
 
     def __init__(self, gaussians, min_alpha: float = 0.5, backend: str = "auto", scale: float = 1.0,
                  raster: tuple[str, float | None] = ("classic", None)):
-        from splattwin.splat.rasterization import rasterization  # noqa: F401  (fail early if missing)
+        from splattwin.splat.rasterize import rasterization  # noqa: F401  (fail early if missing)
 
         self.gaussians = gaussians
         self.raster = raster  # (rasterize_mode, eps2d): as the splats were trained
@@ -177,7 +177,7 @@ def _rasterize(g, colors: np.ndarray, cam: Camera, mode: str, backend: str,
     """One camera through the splat stage's `render()`. colors [N,C] -> (render [H,W,ch], alpha [H,W]).
     raster: (rasterize_mode, eps2d) the splats were trained with (`splat.config.trained_filter`): their
     footprints and opacities are those the training fitted."""
-    from splattwin.splat.render import render
+    from splattwin.splat.rendering import render
 
     return render(g, cam, mode=mode, colors=colors, backend=backend, rasterize_mode=raster[0], eps2d=raster[1])
 

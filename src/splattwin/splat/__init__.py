@@ -1,18 +1,45 @@
 """splat stage: 3D Gaussian Splatting reconstruction (model, trainer, PLY I/O, evaluation).
 
-`Gaussians` (numpy, activated values) is the hand-over object to the later stages; the rasterizer is
-`splattwin.splat.rasterization.rasterization`; the options are `splattwin.splat.config.TrainConfig`.
-Imports are lazy (`splattwin.splat.config` is read by `splattwin --help`).
+Public API (each name from the module in brackets):
+- `Gaussians` (`gaussians`): numpy, activated values; the hand-over object to the later stages.
+- `rasterization`, `RENDER_MODES`, `RASTERIZE_MODES`, `BACKENDS` (`rasterize`): the gsplat-like
+  differentiable rasterizer (backends "cpu", "cuda", "reference").
+- `render`, `render_rgb`, `render_rgbd`, `render_depth`, `render_features` (`rendering`): numpy renders of
+  `Gaussians` from a `Camera`.
+- `train`, `Trainer`, `TrainResult` (`trainer`); options `TrainConfig`, `LearningRates` (`config`);
+  densification `Strategy`, `DefaultStrategy` (`strategy`); the raw parameters `GaussianModel` (`model`).
+- `evaluate`, `EvalResult` (`eval`): held-out PSNR / SSIM; `psnr`, `ssim` (`metrics`).
+
+Imports are lazy (`splattwin.splat.config` is read by `splattwin --help` without torch).
+
+The modules are named apart from the functions they define (`rasterize` holds `rasterization`, `rendering`
+holds `render`), so that importing a module never rebinds the package's function of the same name.
 """
 
 from __future__ import annotations
 
-__all__ = ["Gaussians"]
+import importlib
+
+_EXPORTS = {"Gaussians": "gaussians",
+            "rasterization": "rasterize", "RENDER_MODES": "rasterize",
+            "RASTERIZE_MODES": "rasterize", "BACKENDS": "rasterize",
+            "render": "rendering", "render_rgb": "rendering", "render_rgbd": "rendering", "render_depth": "rendering",
+            "render_features": "rendering",
+            "train": "trainer", "Trainer": "trainer", "TrainResult": "trainer",
+            "TrainConfig": "config", "LearningRates": "config",
+            "Strategy": "strategy", "DefaultStrategy": "strategy", "GaussianModel": "model",
+            "evaluate": "eval", "EvalResult": "eval", "psnr": "metrics", "ssim": "metrics"}
+
+__all__ = list(_EXPORTS)
 
 
 def __getattr__(name: str):
-    if name == "Gaussians":
-        from splattwin.splat.gaussians import Gaussians
-
-        return Gaussians
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(f"splattwin.splat.{_EXPORTS[name]}"), name)
+        globals()[name] = value  # cached: later lookups do not come here
+        return value
     raise AttributeError(f"module 'splattwin.splat' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))

@@ -15,7 +15,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from splattwin.splat.densify import DensifyConfig
 
 # the rasterizer's default low-pass per mode (px^2); kept here, torch-free, and re-exported by
-# `splat.rasterization` (see there for why)
+# `splat.rasterize` (see there for why)
 DEFAULT_EPS2D = {"classic": 0.3, "antialiased": 0.1}
 LEGACY_EPS2D = 0.3  # what every config trained with before it recorded eps2d, in both modes
 MAX_EPS2D = 10.0

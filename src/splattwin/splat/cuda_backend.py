@@ -28,14 +28,14 @@ import torch
 def rasterization_cuda(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree=None,
                        backgrounds=None, render_mode="RGB", near_plane=0.01, far_plane=1e10, eps2d=0.3,
                        rasterize_mode="classic") -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
-    """Same signature and outputs as `splattwin.splat.rasterization.rasterization` (backend "cuda")."""
-    from splattwin.splat import rasterization as _r
+    """Same signature and outputs as `splattwin.splat.rasterize.rasterization` (backend "cuda")."""
+    from splattwin.splat.rasterize import backend_device, resolve_backend
 
-    _r.resolve_backend("cuda")  # raises an InputError saying why when the backend cannot run here
+    resolve_backend("cuda")  # raises an InputError saying why when the backend cannot run here
     import gsplat
 
     # Tensors already on a CUDA device stay there (multi-GPU callers pick theirs); others go to the default.
-    cuda = _r.backend_device("cuda")
+    cuda = backend_device("cuda")
     dev = means.device if means.device.type == cuda.type else cuda
     mv = lambda t: None if t is None else t.to(dev)  # noqa: E731
     render, alphas, meta = gsplat.rasterization(

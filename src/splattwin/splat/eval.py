@@ -322,7 +322,7 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
     from splattwin.progress import track
 
     from splattwin.splat import extras
-    from splattwin.splat.render import render
+    from splattwin.splat.rendering import render
 
     info: dict = {}
     if isinstance(splat, Gaussians):

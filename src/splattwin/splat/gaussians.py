@@ -45,6 +45,17 @@ def sh0_to_rgb(sh0: np.ndarray) -> np.ndarray:
     return 0.5 + SH_C0 * np.asarray(sh0, dtype=np.float64)
 
 
+def _as_f64(a, name: str) -> np.ndarray:
+    try:
+        return np.ascontiguousarray(a, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{name} must be a numeric array ({e})") from None
+
+
+def _shape_str(shape: tuple[int, ...]) -> str:
+    return "[" + ",".join(str(d) for d in shape) + "]"
+
+
 @dataclass
 class Gaussians:
     """N 3D Gaussians in the world frame.
@@ -65,18 +76,29 @@ class Gaussians:
     sh: np.ndarray
 
     def __post_init__(self) -> None:
-        self.means = np.ascontiguousarray(self.means, dtype=np.float64).reshape(-1, 3)
+        """Checks the shapes exactly (ValueError naming the array, the expected and the given shape; no
+        reshaping) and the values (`validate`: InputError). O(N) numpy checks: Gaussians are built once
+        per stage hand-over, never per training step."""
+        self.means = _as_f64(self.means, "means")
+        if self.means.ndim != 2 or self.means.shape[1] != 3:
+            raise ValueError(f"means must be [N,3], got shape {self.means.shape}")
         n = self.means.shape[0]
-        self.quats = np.ascontiguousarray(self.quats, dtype=np.float64).reshape(n, 4)
-        self.scales = np.ascontiguousarray(self.scales, dtype=np.float64).reshape(n, 3)
-        self.opacities = np.ascontiguousarray(self.opacities, dtype=np.float64).reshape(n)
-        sh = np.asarray(self.sh, dtype=np.float64)
-        if sh.ndim == 2:  # [N,3] plain DC
+        self.quats = _as_f64(self.quats, "quats")
+        self.scales = _as_f64(self.scales, "scales")
+        self.opacities = _as_f64(self.opacities, "opacities")
+        for name, want in (("quats", (n, 4)), ("scales", (n, 3)), ("opacities", (n,))):
+            got = getattr(self, name).shape
+            if got != want:
+                raise ValueError(f"{name} must be {_shape_str(want)} with N={n} (the number of means), "
+                                 f"got shape {got}")
+        sh = _as_f64(self.sh, "sh")
+        if sh.ndim == 2 and sh.shape == (n, 3):  # [N,3] plain DC
             sh = sh[:, None, :]
         if sh.ndim != 3 or sh.shape[0] != n or sh.shape[2] != 3:
-            raise ValueError(f"sh must be [N,K,3] with N={n}, got {sh.shape}")
+            raise ValueError(f"sh must be [N,K,3] (or [N,3] DC only) with N={n}, got shape {sh.shape}")
         sh_degree_from_bases(sh.shape[1])
         self.sh = np.ascontiguousarray(sh)
+        self.validate()
 
     # -- basic ---------------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -117,20 +139,27 @@ class Gaussians:
         return (R * (self.scales**2)[:, None, :]) @ np.swapaxes(R, 1, 2)
 
     def validate(self, path: str | Path | None = None) -> None:
-        """Raise InputError if any value is non-finite or out of range."""
+        """Raise InputError if any value is non-finite or out of range (scales < 0, opacities outside
+        [0, 1], a zero quaternion): exactly what `load_ply` refuses, so a valid set always saves to a
+        file that loads. Called on construction and by `save_ply` (the arrays may be edited in place)."""
+        n = len(self)
         for name in ("means", "quats", "scales", "opacities", "sh"):
             a = getattr(self, name)
-            if not np.all(np.isfinite(a)):
-                bad = int(np.count_nonzero(~np.isfinite(a).reshape(len(self), -1).all(axis=1)))
-                raise InputError(f"{bad} Gaussians have non-finite {name}", path)
-        if np.any(self.scales < 0):
-            raise InputError("negative scales", path)
-        if np.any((self.opacities < 0) | (self.opacities > 1)):
-            raise InputError("opacities outside [0, 1]", path)
+            ok = np.isfinite(a.reshape(n, int(np.prod(a.shape[1:])))).all(axis=1)  # n may be 0
+            if not ok.all():
+                raise InputError(f"{int(np.count_nonzero(~ok))} Gaussians have non-finite {name} "
+                                 f"(first at row {int(np.argmin(ok))})", path)
+        for name, bad in (("negative scales", (self.scales < 0).any(axis=1)),
+                          ("opacities outside [0, 1]", (self.opacities < 0) | (self.opacities > 1)),
+                          ("a zero quaternion", ~self.quats.any(axis=1))):
+            if bad.any():
+                raise InputError(f"{int(np.count_nonzero(bad))} Gaussians have {name} "
+                                 f"(first at row {int(np.argmax(bad))})", path)
 
     # -- I/O -----------------------------------------------------------------------------------
     def save_ply(self, path: str | Path) -> Path:
-        """Write the standard 3DGS PLY (binary little-endian), atomically."""
+        """Write the standard 3DGS PLY (binary little-endian), atomically. The values are validated first
+        (InputError, nothing written): a file `load_ply` would refuse is never written."""
         from splattwin.splat.ply import write_gaussians_ply
 
         return write_gaussians_ply(path, self)

@@ -54,13 +54,15 @@ def gaussians_to_array(g: Gaussians) -> np.ndarray:
         log_scales = np.log(g.scales)
     cols = [g.means, np.zeros((n, 3)), g.sh[:, 0, :], rest, _logit(g.opacities)[:, None],
             np.maximum(log_scales, -1e30), g.quats]
-    return np.concatenate(cols, axis=1).astype("<f4")
+    with np.errstate(over="ignore"):  # beyond float32's range -> inf, refused by the writer
+        return np.concatenate(cols, axis=1).astype("<f4")
 
 
 def write_gaussians_ply(path: str | Path, g: Gaussians, comments=()) -> Path:
     """Write `g` as a binary little-endian 3DGS PLY, atomically. comments: extra `comment` header lines
     (e.g. the units and frame); each is made one line of printable ASCII (the header is ASCII)."""
     path = Path(path)
+    g.validate(path)  # never write a file that `read_gaussians_ply` refuses
     names = property_names(g.sh_degree)
     extra = [" ".join(str(c).encode("ascii", "replace").decode("ascii").split()) for c in comments]
     header = ["ply", "format binary_little_endian 1.0", "comment written by splattwin",
@@ -69,6 +71,10 @@ def write_gaussians_ply(path: str | Path, g: Gaussians, comments=()) -> Path:
     header += ["end_header"]
     data = gaussians_to_array(g)
     assert data.shape[1] == len(names)
+    bad = ~np.isfinite(data).all(axis=1)
+    if bad.any():  # finite float64 beyond float32's range (~3.4e38) would be stored as inf
+        raise InputError(f"{int(bad.sum())} Gaussians have values beyond float32's range, which the PLY "
+                         f"stores (first at row {int(np.argmax(bad))}); not written", path)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             f.write(("\n".join(header) + "\n").encode("ascii"))

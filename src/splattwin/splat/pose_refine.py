@@ -158,8 +158,8 @@ def align_camera(gaussians, camera, image: np.ndarray, iters: int = 300, lr: flo
         [4,4] float64 corrected T_cam_world.
     """
     from splattwin.splat.losses import photometric_loss
-    from splattwin.splat.rasterization import rasterization
-    from splattwin.splat.render import as_tensor, resolve_backend_device
+    from splattwin.splat.rasterize import rasterization
+    from splattwin.splat.rendering import as_tensor, resolve_backend_device
 
     name, dev = resolve_backend_device(backend)
     t = lambda a: as_tensor(a, dev)  # noqa: E731

@@ -56,7 +56,7 @@ from splattwin.splat.init import initial_gaussians, scene_center_and_scale
 from splattwin.splat.losses import photometric_loss, psnr_from_mse
 from splattwin.splat.model import GaussianModel
 from splattwin.splat.pose_refine import PoseCorrection
-from splattwin.splat.rasterization import backend_device, rasterization, resolve_backend
+from splattwin.splat.rasterize import backend_device, rasterization, resolve_backend
 from splattwin.splat.resolution import Resolution, capacity, describe_sizes, resolve as resolve_resolution
 from splattwin.splat.robust import masked_target, transient_sheet
 from splattwin.splat.strategy import DefaultStrategy, Strategy

@@ -39,6 +39,10 @@ T_MIN = 1e-4
 EXTENT = 3.0
 FOV_CLAMP = 1.3
 CHUNK = 1024  # Gaussians per work item in the per-Gaussian kernels
+# Quaternion norms are clamped to at least this before normalising, as the reference backend and gsplat's
+# PyTorch implementation do (torch.nn.functional.normalize's eps): a zero quaternion gives the identity
+# rotation, and its gradient is that of q / QUAT_EPS (no normalising projection below the clamp).
+QUAT_EPS = np.float32(1e-12)
 
 _JIT = dict(parallel=True, fastmath=False, cache=True, nogil=True)
 _JIT1 = dict(parallel=False, fastmath=False, cache=True, nogil=True)
@@ -62,8 +66,11 @@ SH_C3_0, SH_C3_1, SH_C3_2, SH_C3_3, SH_C3_4, SH_C3_5, SH_C3_6 = (
 # --------------------------------------------------------------------------------------------------------
 @njit(**_JIT1)
 def _quat_rotmat(q0, q1, q2, q3, Rq):
-    """Unit-normalised wxyz quaternion -> Rq [3,3] (in place). Returns the norm."""
+    """Unit-normalised wxyz quaternion -> Rq [3,3] (in place). Returns the norm, clamped to >= QUAT_EPS
+    (a zero quaternion gives the identity)."""
     n = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+    if n < QUAT_EPS:
+        n = QUAT_EPS
     w, x, y, z = q0 / n, q1 / n, q2 / n, q3 / n
     Rq[0, 0] = 1 - 2 * (y * y + z * z)
     Rq[0, 1] = 2 * (x * y - w * z)
@@ -298,6 +305,8 @@ def project_bwd(means, quats, scales, viewmat, fx, fy, cx, cy, width, height, ep
             vz = 2 * (qx * (G[2, 0] + G[0, 2]) + qy * (G[2, 1] + G[1, 2]) - 2 * qz * (G[0, 0] + G[1, 1])
                       + w * (G[1, 0] - G[0, 1]))
             dot = w * vw + qx * vx + qy * vy + qz * vz
+            if qn <= QUAT_EPS:  # the norm was clamped: q / eps, no normalising projection (as the reference)
+                dot = dot * 0
             v_quats[i, 0] = (vw - w * dot) / qn
             v_quats[i, 1] = (vx - qx * dot) / qn
             v_quats[i, 2] = (vy - qy * dot) / qn

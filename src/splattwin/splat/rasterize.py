@@ -167,8 +167,18 @@ def rasterization(
 ) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
     """Render N Gaussians into C cameras (differentiable w.r.t. every tensor input but Ks).
 
+    Precision and dtypes: every floating-point input (quats, scales, opacities, colors, viewmats, Ks,
+    backgrounds) is cast to `means.dtype` first (differentiably: gradients come back in each input's own
+    dtype), on every backend. The outputs have `means.dtype`, but only "reference" also *computes* in it:
+    "cpu" (the default off CUDA) runs its kernels in float32 whatever the input dtype (float64 per-Gaussian
+    scalars, float32 per pixel) and "cuda" is gsplat's float32. float64 inputs therefore give float32
+    accuracy (~1e-6 relative) on those backends: use backend="reference" (float64 throughout, autograd)
+    for `torch.autograd.gradcheck` or finite differences.
+
     Args:
-        means: [N,3] world frame, m.  quats: [N,4] wxyz (normalised internally).  scales: [N,3] m.
+        means: [N,3] world frame, m.  quats: [N,4] wxyz (normalised internally, the norm clamped at
+            1e-12 on the "cpu" and "reference" backends, so a zero quaternion is the identity).
+        scales: [N,3] m.
         opacities: [N] in [0,1].
         colors: [N,D] or [C,N,D] any number of channels D (sh_degree None), or SH [N,K,3] (sh_degree 0..3).
         viewmats: [C,4,4] world->camera (T_cam_world, OpenCV).  Ks: [C,3,3] pixel intrinsics.
@@ -190,6 +200,13 @@ def rasterization(
         depths [C,N] (camera z, m), conics [C,N,3], visibility [C,N] bool, width, height, backend.
     """
     width, height = int(width), int(height)
+    if not means.is_floating_point():
+        raise ValueError(f"means must be a floating-point tensor, got {means.dtype}")
+    dt = means.dtype  # one dtype for every backend (the reference's matmuls refuse mixed dtypes)
+    quats, scales, opacities, colors, viewmats, Ks = (t.to(dt) for t in (quats, scales, opacities, colors,
+                                                                         viewmats, Ks))
+    if backgrounds is not None:
+        backgrounds = backgrounds.to(dt)
     _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree,
                   backgrounds, render_mode)
     if rasterize_mode not in RASTERIZE_MODES:
@@ -220,7 +237,7 @@ def rasterization(
         if backgrounds is not None:
             if tuple(backgrounds.shape) != (C, D):
                 raise ValueError(f"backgrounds must be [C,D]=({C},{D}), got {tuple(backgrounds.shape)}")
-            bgs.append(backgrounds.to(means.dtype))
+            bgs.append(backgrounds)
         else:
             bgs.append(torch.zeros(C, D, dtype=means.dtype, device=means.device))
     if render_mode != "RGB":
