@@ -71,3 +71,20 @@ def test_a_wrong_size_depth_map_among_many_is_named(tmp_path):
     with pytest.raises(InputError, match="depth map is 16x14") as e:
         depth_points(frames, None, max_frames=14)
     assert e.value.path == tmp_path / "3_d.png"
+
+
+def test_merge_with_depth_keeps_the_sparse_points_one_per_voxel_and_bounded():
+    from splattwin.poses.depth import merge_with_depth
+
+    rng = np.random.default_rng(0)
+    sparse = rng.uniform(0, 0.1, (50, 3))
+    dense = np.concatenate([rng.uniform(0, 0.3, (5000, 3)), sparse + 1e-4])   # some in the sparse voxels
+    xyz, rgb = merge_with_depth(sparse, np.full((50, 3), 7, np.uint8), dense, np.zeros((len(dense), 3), np.uint8),
+                                voxel=0.002)
+    assert np.array_equal(xyz[:50], sparse) and (rgb[:50] == 7).all()      # the sparse points first, kept
+    keys = np.floor((xyz - xyz.min(axis=0)) / 0.002).astype(int)
+    assert len(np.unique(keys, axis=0)) == len(xyz)                          # one per voxel
+    assert len(xyz) < len(sparse) + len(dense)
+    xyz, rgb = merge_with_depth(sparse, None, dense, np.zeros((len(dense), 3), np.uint8), max_points=1000)
+    assert len(xyz) == 1000 and rgb.dtype == np.uint8
+    assert np.array_equal(xyz[:50], sparse) and (rgb[:50] == 128).all()    # all sparse kept under the bound

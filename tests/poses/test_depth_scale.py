@@ -124,3 +124,83 @@ def test_depth_in_wrong_units_gives_no_scale(scene_small: Path):
     for factor in (10.0, 1000.0, 0.01):
         fit, note = scale_from_depth(sfm_cams, [d * factor for d in depths], sfm_pts)
         assert fit is None and "units" in note
+
+
+def _fake_sfm(monkeypatch, gt_frames, S: np.ndarray, n_points: int = 300):
+    """run_sfm replaced by the true cameras and a few hundred points in an SfM-like frame (similarity S):
+    the points only where the objects are (near the scene centre), as SfM's features sit on their textured
+    edges while the plain table gives none. Returns the points' true (metric) positions."""
+    import splattwin.poses.sfm as sfm_mod
+    from splattwin.poses.sfm import SfmResult, _image_layout
+
+    ds_depth = load_dataset(gt_frames)
+    frames = [f for f in ds_depth.frames if f.depth_path is not None]
+    pts = np.concatenate([backproject_depth(load_depth(f.depth_path, ds_depth.depth_scale,
+                                                       size=(f.camera.width, f.camera.height)),
+                                            f.camera, stride=3)[0] for f in frames])
+    centre = np.median(pts, axis=0)
+    near = pts[np.linalg.norm(pts[:, :2] - centre[:2], axis=1) < 0.08]
+    rng = np.random.default_rng(0)
+    true_pts = near[rng.choice(len(near), n_points, replace=False)]
+    # a table plane for the table frame: SfM finds some points on the table too
+    table = pts[np.abs(pts[:, 2] - np.median(pts[:, 2])) < 0.002]
+    true_pts = np.concatenate([true_pts, table[rng.choice(len(table), 60, replace=False)]])
+
+    def run_sfm(paths, work, sopts, progress=True):
+        _, rel = _image_layout(list(paths))
+        by_path = {Path(f.image_path).name: f.camera for f in ds_depth.frames}
+        cams = {r: transform_camera(S, by_path[Path(p).name]) for r, p in zip(rel, paths)}
+        n = len(true_pts)
+        return SfmResult(cameras=cams, unregistered=[], points_xyz=true_pts @ S[:3, :3].T + S[:3, 3],
+                         points_rgb=np.full((n, 3), 200, np.uint8), points_error=np.full(n, 0.3),
+                         points_track_len=np.full(n, 3), mean_reproj_error=0.3)
+
+    monkeypatch.setattr(sfm_mod, "run_sfm", run_sfm)
+    return true_pts, pts
+
+
+def test_sfm_on_rgbd_seeds_the_splats_from_the_depth(scene_small: Path, tmp_path: Path, monkeypatch):
+    """SfM scaled by the depth images: the initial cloud (points3D.ply, what training starts from) is the SfM
+    points joined by the back-projected depth, not the SfM points alone (314 points seeded the embedded scene
+    as a BOP capture without poses: the table stopped at the objects' edges and the yellow cube vanished)."""
+    from tests.poses.conftest import stripped
+
+    true_pts, depth_pts = _fake_sfm(monkeypatch, scene_small, _sfm_frame(0.37))
+    ds = stripped(load_dataset(scene_small), depth=True)
+    res = estimate_poses(ds, PoseOptions(progress=False, work_dir=tmp_path / "sfm"))
+    assert res.frame.scaled and res.frame.source == "table_plane+depth"
+    assert res.depth_xyz is not None and len(res.depth_xyz) > 1000
+    n_sfm = len(true_pts)
+    assert len(res.points_xyz) > 5 * n_sfm                            # the depth joined the SfM points
+    assert res.stats["initial_points"]["sparse"] == n_sfm
+    # every depth point has an initial point within 2 voxels (the whole table, not just the objects)
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(res.points_xyz).query(res.depth_xyz)
+    assert np.quantile(d, 0.99) < 0.004
+    # one frame: the SfM points (first, kept) lie on the depth cloud, in metres
+    d_sfm, _ = cKDTree(res.depth_xyz).query(res.points_xyz[:n_sfm])
+    assert np.median(d_sfm) < 0.01
+    # unscaled (no depth scale): the depth is not in SfM units, so the SfM points alone
+    off = estimate_poses(stripped(load_dataset(scene_small), depth=True),
+                         PoseOptions(progress=False, scale_from_depth=False, work_dir=tmp_path / "sfm2"))
+    assert not off.frame.scaled and len(off.points_xyz) == n_sfm
+
+
+def test_depth_that_disagrees_with_the_points_is_not_merged(scene_small: Path, tmp_path: Path, monkeypatch):
+    """A frame scaled by something else (here a known length): the depth joins the SfM points when it
+    agrees with them, and stays out when it does not (the length given x2: a second, misplaced copy)."""
+    from splattwin.poses.table import KnownLength
+    from tests.poses.conftest import stripped
+
+    true_pts, _ = _fake_sfm(monkeypatch, scene_small, _sfm_frame(0.37))
+    gt = load_dataset(scene_small)
+    a, b = gt.frames[0], gt.frames[1]
+    L = float(np.linalg.norm(a.camera.center - b.camera.center))
+    for factor, merged in ((1.0, True), (2.0, False)):
+        kl = KnownLength.parse(f"baseline@{Path(a.image_path).stem},{Path(b.image_path).stem}={L * factor}")
+        res = estimate_poses(stripped(gt, depth=True), PoseOptions(progress=False, known_length=kl,
+                                                                   work_dir=tmp_path / f"sfm{factor}"))
+        assert res.frame.scaled and res.frame.source == "table_plane+known_length"
+        assert res.stats["depth_fits_points"]["ok"] is merged
+        assert (len(res.points_xyz) > 5 * len(true_pts)) is merged

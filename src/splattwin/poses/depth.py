@@ -71,3 +71,34 @@ def backproject_frames(frames, stride: int = 4, max_depth: float = np.inf, depth
         keep = np.random.default_rng(seed).choice(len(xyz), max_points, replace=False)
         xyz, rgb = xyz[keep], rgb[keep]
     return xyz, rgb
+
+
+def merge_with_depth(points_xyz: np.ndarray, points_rgb: np.ndarray | None, depth_xyz: np.ndarray,
+                     depth_rgb: np.ndarray, voxel: float = 0.002, max_points: int = 200_000,
+                     seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The initial cloud of a metric RGB-D capture that also has sparse points (SfM / the dataset's): the
+    sparse points, then the back-projected depth cloud (`backproject_frames`), one point per `voxel` (m)
+    cube (the first: a sparse point where there is one, so repeated views of a surface count once), at
+    most `max_points` (random, the sparse points kept first). Returns xyz [N,3] float64, rgb [N,3] uint8."""
+    pts = np.asarray(points_xyz, np.float64).reshape(-1, 3)
+    prgb = (np.full((len(pts), 3), 128, np.uint8) if points_rgb is None
+            else np.asarray(points_rgb).reshape(-1, 3).astype(np.uint8))
+    xyz = np.concatenate([pts, np.asarray(depth_xyz, np.float64).reshape(-1, 3)])
+    rgb = np.concatenate([prgb, np.asarray(depth_rgb).reshape(-1, 3).astype(np.uint8)])
+    sparse = np.arange(len(xyz)) < len(pts)
+    ok = np.all(np.isfinite(xyz), axis=1)
+    xyz, rgb, sparse = xyz[ok], rgb[ok], sparse[ok]
+    if voxel > 0 and len(xyz):
+        keys = np.floor((xyz - xyz.min(axis=0)) / voxel).astype(np.int64)
+        _, first = np.unique(keys, axis=0, return_index=True)
+        keep = np.sort(first)            # in order: a voxel's sparse point wins over its depth points
+        xyz, rgb, sparse = xyz[keep], rgb[keep], sparse[keep]
+    if len(xyz) > max_points:
+        rng = np.random.default_rng(seed)
+        idx_s, idx_d = np.flatnonzero(sparse), np.flatnonzero(~sparse)
+        if len(idx_s) > max_points:
+            idx_s = rng.choice(idx_s, max_points, replace=False)
+        idx_d = rng.choice(idx_d, max_points - len(idx_s), replace=False)
+        keep = np.sort(np.concatenate([idx_s, idx_d]))
+        xyz, rgb = xyz[keep], rgb[keep]
+    return xyz, rgb

@@ -44,7 +44,9 @@ class PoseResult:
 
     frames: registered frames with their cameras (T_world_cam in the output frame, metres if frame.scaled).
     unregistered: image names that got no pose. frame: the frame definition (source, scaled, uncertainty).
-    points_xyz [N,3] / points_rgb [N,3] uint8: initial cloud (SfM points or back-projected depth).
+    points_xyz [N,3] / points_rgb [N,3] uint8: initial cloud: SfM (or the dataset's) points, joined by the
+        back-projected depth (voxel-thinned, `poses.depth.merge_with_depth`) when the frame is metric and
+        the depth agrees with them; the depth cloud alone without sparse points.
     depth_xyz / depth_rgb: back-projected depth cloud (RGB-D), if any.
     T_out_in: [4,4] similarity from the input frame (SfM model or dataset/robot frame) to the output frame.
     stats: registered, total, mean_reproj_error (px), method details, timings.
@@ -388,6 +390,18 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
             stats["depth_points"] = int(len(depth_xyz))
             if pts_xyz is None or len(pts_xyz) == 0:
                 pts_xyz, pts_rgb = depth_xyz, depth_rgb
+            elif len(depth_xyz) and _depth_fits_points(frame, out_frames, pts_xyz, dataset, stats):
+                # SfM (or the dataset's) sparse points in a metric frame: the depth cloud joins them. Alone,
+                # a few hundred SfM points on the objects' textured edges seeded the splats (the table
+                # stopped at the objects' outer edges, an object vanished); the depth covers every surface
+                from splattwin.poses.depth import merge_with_depth
+
+                n_sparse = len(pts_xyz)
+                pts_xyz, pts_rgb = merge_with_depth(pts_xyz, pts_rgb, depth_xyz, depth_rgb, seed=opts.seed)
+                stats["initial_points"] = {"sparse": int(n_sparse), "depth": int(len(depth_xyz)),
+                                           "merged": int(len(pts_xyz)), "voxel_m": 0.002}
+                log.info("initial point cloud: %d sparse points + %d back-projected depth points -> %d "
+                         "(one per 2 mm voxel)", n_sparse, len(depth_xyz), len(pts_xyz))
         else:
             log.warning("depth images ignored for the point cloud: the frame is unscaled")
     if (pts_xyz is None or len(pts_xyz) == 0) and method != "sfm" and opts.triangulate and len(out_frames) >= 2:
@@ -458,6 +472,37 @@ def _depth_scale(frames: list[DataFrame], names: list[str], in_cams: dict[str, C
     log.info("metric scale from the depth images: x %.6g (SfM unit -> m), %s, uncertainty %.1f %%", fit.scale, note,
              100 * fit.uncertainty_rel)
     return fit
+
+
+def _depth_fits_points(frame: TwinFrame, frames: list[DataFrame], pts_xyz: np.ndarray, dataset: Dataset,
+                       stats: dict, max_views: int = 24) -> bool:
+    """Whether the back-projected depth may join the sparse points `pts_xyz` (output frame, metric): their
+    scale agrees with the depth images (sensor depth / point depth within 5 %, or 3 x the frame's scale
+    uncertainty). A frame scaled by these depth images agrees by construction; a marker, known length, robot
+    or the dataset's own points are checked, so that depth in other units or from an unregistered sensor
+    does not put a second, misplaced copy of the scene into the initial cloud."""
+    if frame.source == "table_plane+depth":
+        return True
+    from splattwin.capture import load_depth
+    from splattwin.poses.depth_scale import scale_from_depth
+
+    views = [f for f in frames if f.depth_path is not None]
+    pick = np.unique(np.linspace(0, len(views) - 1, min(max_views, len(views))).round().astype(int))
+    cams = [views[i].camera for i in pick]
+    depths = [load_depth(views[i].depth_path, dataset.depth_scale, size=(c.width, c.height)) for i, c in zip(pick, cams)]
+    fit, note = scale_from_depth(cams, depths, pts_xyz)
+    tol = max(0.05, 3.0 * (frame.scale_uncertainty_rel or 0.0))
+    if fit is None:
+        ok = len(pts_xyz) < 50   # too few sparse points to check: they barely count beside the depth
+        why = f"cannot check the depth against the {len(pts_xyz)} sparse points: {note}"
+    else:
+        ok = abs(fit.scale - 1.0) <= tol
+        why = f"sensor depth / point depth {fit.scale:.4g} (tolerance {tol:.0%})"
+    stats["depth_fits_points"] = {"ok": bool(ok), "why": why}
+    if not ok:
+        log.warning("depth images left out of the initial point cloud (the %d sparse points only): %s",
+                    len(pts_xyz), why)
+    return ok
 
 
 def _input_scaled(dataset: Dataset, prior: TwinFrame | None, scale: str) -> bool:
