@@ -88,3 +88,22 @@ def test_merge_with_depth_keeps_the_sparse_points_one_per_voxel_and_bounded():
     xyz, rgb = merge_with_depth(sparse, None, dense, np.zeros((len(dense), 3), np.uint8), max_points=1000)
     assert len(xyz) == 1000 and rgb.dtype == np.uint8
     assert np.array_equal(xyz[:50], sparse) and (rgb[:50] == 128).all()    # all sparse kept under the bound
+
+
+def test_the_depth_seed_cloud_comes_from_training_views_only(scene_small):
+    """The back-projected cloud seeds the splats' positions and colours: a held-out view's pixels in it
+    would leak into the model that view scores."""
+    from splattwin.capture import load_dataset
+    from splattwin.poses import PoseOptions, estimate_poses
+    from splattwin.poses.depth import backproject_frames
+
+    ds = load_dataset(scene_small)
+    assert any(f.depth_path is not None for f in ds.frames)
+    res = estimate_poses(ds, PoseOptions(method="known", progress=False, triangulate=False))
+    train = [f for f in res.frames if f.split == "train"]
+    held = [f for f in res.frames if f.split == "heldout"]
+    assert train and held and res.stats["depth_points_views"] == len(train)
+    xyz, _ = backproject_frames(train, depth_scale=res.depth_scale)
+    every, _ = backproject_frames(res.frames, depth_scale=res.depth_scale)
+    assert len(res.depth_xyz) == len(xyz) < len(every)
+    np.testing.assert_allclose(res.depth_xyz, xyz)

@@ -385,9 +385,13 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         if frame.scaled:
             from splattwin.poses.depth import backproject_frames
 
-            depth_xyz, depth_rgb = backproject_frames(out_frames, stride=opts.depth_stride,
+            # training views only: the cloud seeds the splats (colours and all), and a held-out view's
+            # pixels must not reach the model it evaluates
+            seed_frames = [f for f in out_frames if f.split != "heldout"] or out_frames
+            depth_xyz, depth_rgb = backproject_frames(seed_frames, stride=opts.depth_stride,
                                                       depth_scale=dataset.depth_scale, seed=opts.seed)
             stats["depth_points"] = int(len(depth_xyz))
+            stats["depth_points_views"] = len(seed_frames)
             if pts_xyz is None or len(pts_xyz) == 0:
                 pts_xyz, pts_rgb = depth_xyz, depth_rgb
             elif len(depth_xyz) and _depth_fits_points(frame, out_frames, pts_xyz, dataset, stats):
