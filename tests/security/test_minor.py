@@ -29,15 +29,19 @@ def gt_twin(tmp_path_factory, scene_small) -> Path:
     return out
 
 
-def test_viewer_warns_on_public_host_and_busy_port(gt_twin, capsys):
+def test_viewer_warns_on_public_host_and_busy_port(gt_twin, caplog):
+    import logging
+
+    caplog.set_level(logging.WARNING, logger="splattwin.viewer")
     from splattwin.viewer.app import is_loopback, serve
 
     assert is_loopback("127.0.0.1") and is_loopback("localhost") and is_loopback("::1")
     assert not is_loopback("0.0.0.0") and not is_loopback("192.168.1.5") and not is_loopback("myhost")
     server = serve(gt_twin, host="0.0.0.0", port=0, block=False)
     server.stop()
-    err = capsys.readouterr().err
-    assert "warning" in err and "not on loopback" in err and "no authentication" in err
+    err = caplog.text
+    assert "WARNING" in err and "not on loopback" in err and "no authentication" in err
+    caplog.clear()
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
         busy.listen(1)
@@ -47,11 +51,12 @@ def test_viewer_warns_on_public_host_and_busy_port(gt_twin, capsys):
             got = server.get_port()
         finally:
             server.stop()
-    err = capsys.readouterr().err
+    err = caplog.text
     assert got != port and f"port {port} was busy" in err and f"port {got}" in err
+    caplog.clear()
     server = serve(gt_twin, host="127.0.0.1", port=0, block=False)
     server.stop()
-    assert "warning" not in capsys.readouterr().err
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
 
 
 def test_fsync_before_rename(tmp_path, monkeypatch):
