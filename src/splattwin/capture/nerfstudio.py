@@ -29,7 +29,7 @@ from splattwin.capture.camera import Camera, opencv_from_opengl, opengl_from_ope
 from splattwin.capture.dataset import DEPTH_SCALE_RANGE, Dataset, Frame, name_views_by_path
 from splattwin.errors import InputError
 from splattwin.limits import check_count, check_pixels, number
-from splattwin.paths import confined, unfollowed
+from splattwin.paths import confined, is_inside, unfollowed
 from splattwin.transforms import pose_from_file_value
 
 log = logging.getLogger(__name__)
@@ -189,11 +189,13 @@ def _label_objects(meta: dict, path: Path) -> dict[str, int]:
 
 
 def outside_files(dataset: Dataset, root: str | Path) -> list[Path]:
-    """The dataset's files (images, depth maps, masks, label images) that do not lie under `root`: a
-    transforms.json in `root` would name them with '..' paths, which `read` refuses (`splattwin.paths`)."""
+    """The dataset's files (images, depth maps, masks, label images) that `read` would refuse from a
+    transforms.json in `root`: the path written for each (`_rel`) joined onto `root` and tested as the
+    reader tests it (`paths.is_inside`: '..' and symbolic links resolved). So a file elsewhere (a '..'
+    path) and a link under `root` to a file elsewhere (a capture folder of links) are both named."""
     root = Path(root)
     return [p for f in dataset.frames for p in (f.image_path, f.depth_path, f.mask_path, f.label_path)
-            if p is not None and not unfollowed(p).is_relative_to(unfollowed(root))]
+            if p is not None and not is_inside(root / _rel(p, root), root)]
 
 
 def write(dataset: Dataset, path: str | Path, ply_name: str = "sparse_pc.ply", confine: bool = False) -> Path:
@@ -209,8 +211,8 @@ def write(dataset: Dataset, path: str | Path, ply_name: str = "sparse_pc.ply", c
     outside = outside_files(dataset, root)
     if outside:
         problem = (f"{len(outside)} of the dataset's files lie outside {root} (e.g. {outside[0]}); a transforms.json "
-                   f"there would name them with '..' paths, which splattwin's readers refuse (paths in a dataset file "
-                   f"must stay in its folder)")
+                   f"there would name them with '..' paths or through symbolic links leading out of it, which "
+                   f"splattwin's readers refuse (paths in a dataset file must stay in its folder)")
         if confine:
             raise InputError(f"{problem}: bundle the files into the folder (splattwin.capture.bundle.bundle_frames, "
                              f"PoseResult.save(bundle=True)) or write into a folder that holds them", path)

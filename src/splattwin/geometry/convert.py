@@ -292,8 +292,20 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
     return out
 
 
+def scene_bounds(means: np.ndarray, grow: float = 1.0) -> np.ndarray:
+    """[2,3] lower/upper corner of the scene: the 1-99 percentile box of the points `means` [N,3] (robust
+    to floaters, as `options.scene_scale`) grown by `grow` times its diagonal on every side. What stands
+    in the scene lies well inside; a stray splat far out does not."""
+    means = np.asarray(means, dtype=np.float64).reshape(-1, 3)
+    if len(means) == 0:
+        return np.array([[-np.inf] * 3, [np.inf] * 3])
+    lo, hi = np.percentile(means, [1, 99], axis=0)
+    d = grow * max(float(np.linalg.norm(hi - lo)), 1e-3)
+    return np.stack([lo - d, hi + d])
+
+
 def obstacle_box(r: ObjectGeometry, points: np.ndarray, opts: GeometryOptions, support_z: float | None,
-                 half_extent: np.ndarray | None = None) -> None:
+                 half_extent: np.ndarray | None = None, within: np.ndarray | None = None) -> None:
     """Give unusable `r` its obstacle estimate in place: the axis-aligned box (twin frame) that holds every
     one of its labelled splats that survive the attribute filter, centres `points` [N,3] each grown by its
     own `half_extent` [N,3] along the axes (`splat_half_extents`: the splat's half-opaque ellipsoid, so a
@@ -304,9 +316,17 @@ def obstacle_box(r: ObjectGeometry, points: np.ndarray, opts: GeometryOptions, s
     but left out as parts: with 20 points or more, only the groups of points chained within
     `dbscan_eps` (`main_parts`) that hold at least 10 % of them (the largest always) count. Points under
     the table are noise; a box ending within `foot_gap` of the table reaches down to it (what stands
-    there rests on the table). No points: nothing is set (r.obstacle stays False)."""
+    there rests on the table). within: [2,3] corners of the scene (`scene_bounds`): points outside are
+    strays whatever their number (with fewer than 20 points no part is left out, and one splat 900 km
+    away made a 900 km box); None: no bound. No points: nothing is set (r.obstacle stays False)."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     h = np.zeros_like(points) if half_extent is None else np.asarray(half_extent, dtype=np.float64).reshape(-1, 3)
+    if within is not None:
+        inside = np.all((points >= within[0]) & (points <= within[1]), axis=1)
+        if not inside.all():
+            log.warning("object %r: %d of its %d labelled splats lie far outside the scene and are left out of its "
+                        "obstacle box", r.name, int((~inside).sum()), len(points))
+            points, h = points[inside], h[inside]
     if support_z is not None:
         above = points[:, 2] >= support_z
         if above.any():
@@ -481,8 +501,8 @@ def _footprint(r: ObjectGeometry) -> tuple[np.ndarray, float] | None:
     return None
 
 
-def table_under_objects(bg: BackgroundGeometry, results: list[ObjectGeometry], reach: float, margin: float
-                        ) -> list[str]:
+def table_under_objects(bg: BackgroundGeometry, results: list[ObjectGeometry], reach: float, margin: float,
+                        within: np.ndarray | None = None) -> list[str]:
     """Grow the table top of `bg` in place so that it reaches `margin` beyond the footprint (xy box of the
     collision geometry) of every object whose lowest point is within `reach` of it: the photos show those
     objects at rest on the table, so the table is under them. Its extent comes from the table splats,
@@ -490,13 +510,20 @@ def table_under_objects(bg: BackgroundGeometry, results: list[ObjectGeometry], r
     hundred seed points at a low iteration count). A 20 x 15 cm box at the far edge of the splats
     (`scene generate --robot-capture bop` without poses, SfM + depth scale, 800 iterations) hung
     15 cm over the table's edge and fell 74 cm to the floor at physics start. The table box, the
-    background's collision mesh and its first convex part (the table) are rebuilt. Returns the names of
-    the objects it was grown under (empty: unchanged)."""
+    background's collision mesh and its first convex part (the table) are rebuilt. within: [2,3] corners
+    of the scene (`scene_bounds`): the table is not grown under an unusable object's obstacle box (an
+    estimate) reaching beyond them; None: no bound. Returns the names of the objects it was grown under
+    (empty: unchanged)."""
     x0, x1, y0, y1 = (float(v) for v in bg.table_extent)
     grown = []
     for r in results:
         fp = _footprint(r)
         if fp is None or fp[1] > bg.table_height + reach:
+            continue
+        if (within is not None and not r.usable
+                and (np.any(fp[0][0] < within[0][:2]) or np.any(fp[0][1] > within[1][:2]))):
+            log.warning("table not grown under %r: its obstacle box (an estimate) reaches far beyond the scene",
+                        r.name)
             continue
         lo, hi = fp[0][0] - margin, fp[0][1] + margin
         if lo[0] < x0 or lo[1] < y0 or hi[0] > x1 or hi[1] > y1:
@@ -611,6 +638,9 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
     table_thickness = table_thickness * length_scale
     keep, stats = attribute_mask(g.opacities, g.scales, opts)
     timings["filter"] = time.perf_counter() - t0
+    # where the scene is: an unusable object's obstacle box holds no splat beyond it, and the table is not
+    # grown under a box beyond twice as far (a box holds its splats' extents and a pad beyond its points)
+    near_scene, far_scene = scene_bounds(g.means, 1.0), scene_bounds(g.means, 2.0)
     results = []
     with Progress(len(objects) + int(background), "geometry", unit="part", enabled=progress) as bar:
         t1 = time.perf_counter()
@@ -661,12 +691,12 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
                 mine = np.flatnonzero((labels == label) & keep)
                 mine = mine if len(mine) else np.flatnonzero(labels == label)
                 obstacle_box(r, g.means[mine], opts, bg.table_height if bg is not None else support_z,
-                             half_extent=splat_half_extents(g, mine, opts))
+                             half_extent=splat_half_extents(g, mine, opts), within=near_scene)
             results.append(r)
             bar.update(1)
         bar.set_description("geometry")
     if bg is not None:  # the objects stand on the table: it reaches under them wherever its splats stop short
-        table_under_objects(bg, results, opts.foot_gap, TABLE_UNDER_MARGIN * length_scale)
+        table_under_objects(bg, results, opts.foot_gap, TABLE_UNDER_MARGIN * length_scale, within=far_scene)
     flag_floating(results, support_z, opts, bg.obstacles if bg is not None else None,
                   units="m" if length_scale == 1.0 else "frame units")
     timings["total"] = time.perf_counter() - t0

@@ -143,8 +143,8 @@ class PoseResult:
         if not bundle:
             outside = nerfstudio.outside_files(self.to_dataset(out), out)
             if outside:
-                raise InputError(f"save(bundle=False): {len(outside)} input files lie outside {out} (e.g. "
-                                 f"{outside[0]}), and load_dataset refuses a transforms.json whose paths lead outside "
+                raise InputError(f"save(bundle=False): {len(outside)} input files lie outside {out} or are "
+                                 f"symbolic links to files outside (e.g. {outside[0]}), and load_dataset refuses a transforms.json whose paths lead outside "
                                  f"its folder: save with bundle=True (the default: the files are linked into "
                                  f"{out}), or into a folder that holds them", out)
         out.mkdir(parents=True, exist_ok=True)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import re
+import shlex
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -114,6 +115,22 @@ def check_base_frame(base_frame: str | None) -> None:
                          f"base); name the robot base otherwise")
 
 
+def is_frame_id(name) -> bool:
+    """Whether `name` is a TF frame id the exported files may carry as the base frame (`_FRAME_ID`, not the
+    twin frame's name): it goes into YAML values, a MoveIt scene header and a shell command line."""
+    return isinstance(name, str) and bool(_FRAME_ID.fullmatch(name)) and name != TWIN_FRAME
+
+
+def check_frame_id(base_frame) -> str:
+    """`base_frame` if it is a valid exported base frame (`is_frame_id`), else InputError: the guard of every
+    writer of the base frame, whatever named it (--base-frame, a joint naming, the MJCF's root body)."""
+    if not is_frame_id(base_frame):
+        raise InputError(f"the robot base frame {str(base_frame)[:80]!r} is not a TF frame id (letters, digits "
+                         f"and '_', optionally namespaced with single '/', not {TWIN_FRAME!r}); name it with "
+                         f"--base-frame")
+    return base_frame
+
+
 def export_names(naming: str | None, arm_joints: list[str], root_body: str, default_model: bool,
                  base_frame: str | None = None) -> ExportNames:
     """The names to export for an arm with simulated joints `arm_joints` and root body `root_body`.
@@ -124,6 +141,12 @@ def export_names(naming: str | None, arm_joints: list[str], root_body: str, defa
     check_naming(naming)
     check_base_frame(base_frame)
     naming = naming or ("panda" if default_model else MODEL_NAMING)
+    if base_frame is None and naming not in JOINT_NAMINGS and not is_frame_id(root_body):
+        # the MJCF's root body names the base: a name from a file, written into YAML, the MoveIt scene and
+        # base_transform.yaml's shell command line, so it must be a frame id like --base-frame's
+        raise InputError(f"the robot MJCF's root body {str(root_body)[:80]!r} cannot name the robot base frame "
+                         f"in the exported files (a TF frame id: letters, digits and '_', optionally namespaced "
+                         f"with single '/', not {TWIN_FRAME!r}); give --base-frame")
     n = len(arm_joints)
     if naming == MODEL_NAMING:
         return ExportNames(tuple(arm_joints), base_frame or root_body, naming)
@@ -158,8 +181,11 @@ def static_transform_args(T_twin_base: np.ndarray, base_frame: str) -> str:
     """`ros2 run tf2_ros static_transform_publisher` arguments (Humble and later) for twin -> base."""
     T = np.asarray(T_twin_base, dtype=float)
     q = quat_xyzw_of(T)
+    # a valid frame id needs no quoting (shlex.quote leaves it as is); the quote is a second guard for the
+    # command line the user pastes
     return (f"--x {T[0, 3]:.9g} --y {T[1, 3]:.9g} --z {T[2, 3]:.9g} --qx {q[0]:.9g} --qy {q[1]:.9g} "
-            f"--qz {q[2]:.9g} --qw {q[3]:.9g} --frame-id {TWIN_FRAME} --child-frame-id {base_frame}")
+            f"--qz {q[2]:.9g} --qw {q[3]:.9g} --frame-id {TWIN_FRAME} "
+            f"--child-frame-id {shlex.quote(check_frame_id(base_frame))}")
 
 
 def write_base_transform(path: str | Path, T_twin_base: np.ndarray, base_frame: str) -> Path:
@@ -167,6 +193,7 @@ def write_base_transform(path: str | Path, T_twin_base: np.ndarray, base_frame: 
     the static_transform_publisher command as a comment."""
     import yaml
 
+    check_frame_id(base_frame)
     T = np.asarray(T_twin_base, dtype=float)
     q = quat_xyzw_of(T)
     doc = {"header": {"stamp": {"sec": 0, "nanosec": 0}, "frame_id": TWIN_FRAME}, "child_frame_id": base_frame,
@@ -189,6 +216,7 @@ def write_base_frame_moveit(out_dir: str | Path, twin_dir: str | Path, T_twin_ba
     from splattwin.twin.manifest import Manifest
     from splattwin.twin.moveit import collision_object_msgs, scene_objects, scene_text
 
+    check_frame_id(base_frame)
     twin_dir, out = Path(twin_dir), Path(out_dir) / MOVEIT_DIR
     T_base_twin = invert_pose(np.asarray(T_twin_base, dtype=float))
     objs = scene_objects(twin_dir, Manifest.load(twin_dir))

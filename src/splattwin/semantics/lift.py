@@ -59,10 +59,35 @@ def prompt_labels(dataset, prompt: str, folder: str | Path | None = None) -> dic
     scene_json = Path(dataset.root if folder is None else folder) / "scene.json"
     if not objs or not scene_json.is_file():
         return None
-    meta = io.read_json(scene_json)
-    labels = {str(o.get("prompt", o["name"])).lower(): int(o["label"]) for o in meta.get("objects", [])
-              if isinstance(o, dict) and o.get("name") in objs and "label" in o}
+    labels = _scene_prompts(io.read_json(scene_json), objs, scene_json)
     return labels if all(ph in labels for ph in parse_prompt(prompt)) else None
+
+
+def _scene_prompts(meta, objs: dict[str, int], where: Path) -> dict[str, int]:
+    """prompt (or name), lower case -> label of scene.json's objects named in `objs`; InputError naming
+    scene.json when it is not an object with an `objects` list, or an object's label is not an id in
+    [1, MAX_LABEL_ID] (the objects may come from transforms.json, so `scene_objects` has not read the file)."""
+    from splattwin.errors import short_repr
+    from splattwin.semantics.masks import MAX_LABEL_ID
+
+    if not isinstance(meta, dict):
+        raise InputError(f"scene.json must hold a JSON object, got {type(meta).__name__}", where)
+    objects = meta.get("objects", [])
+    if not isinstance(objects, list):
+        raise InputError(f"scene.json 'objects' must be a list, got {type(objects).__name__}", where)
+    labels = {}
+    for o in objects:
+        if not (isinstance(o, dict) and isinstance(o.get("name"), str) and o["name"] in objs and "label" in o):
+            continue
+        try:
+            label = int(o["label"])
+        except (TypeError, ValueError, OverflowError):
+            label = None
+        if label is None or not 1 <= label <= MAX_LABEL_ID:
+            raise InputError(f"object {short_repr(o['name'])}: label must be an integer in [1, {MAX_LABEL_ID}], "
+                             f"got {short_repr(o['label'])}", where)
+        labels[str(o.get("prompt", o["name"])).lower()] = label
+    return labels
 
 
 def views_for(frames, masks: MaskSet, where: Path | None = None, all_frames=None) -> list[View]:

@@ -46,6 +46,22 @@ def _logit(p: np.ndarray) -> np.ndarray:
     return np.log(p) - np.log1p(-p)
 
 
+def _storable_quats(q: np.ndarray) -> np.ndarray:
+    """`q` [N, 4] with the rows float32 cannot hold -- all zero (every component below float32's smallest
+    subnormal, e.g. [1e-50, 0, 0, 0]: `load_ply` would refuse the zero quaternion) or non-finite (beyond
+    float32's range) -- normalised: the same rotation (the reader normalises). Every other row is kept as
+    given, so the files of valid quaternions stay bit-identical."""
+    with np.errstate(over="ignore", under="ignore"):
+        q32 = q.astype(np.float32)
+    fix = ~q32.any(axis=1) | ~np.isfinite(q32).all(axis=1)
+    if not fix.any():
+        return q
+    q = q.copy()
+    r = q[fix] / np.abs(q[fix]).max(axis=1, keepdims=True)  # max |q| > 0 (validate): no under/overflow
+    q[fix] = r / np.linalg.norm(r, axis=1, keepdims=True)
+    return q
+
+
 def gaussians_to_array(g: Gaussians) -> np.ndarray:
     """[N, P] float32 rows in the standard property order."""
     n, k = len(g), g.sh.shape[1]
@@ -53,7 +69,7 @@ def gaussians_to_array(g: Gaussians) -> np.ndarray:
     with np.errstate(divide="ignore"):
         log_scales = np.log(g.scales)
     cols = [g.means, np.zeros((n, 3)), g.sh[:, 0, :], rest, _logit(g.opacities)[:, None],
-            np.maximum(log_scales, -1e30), g.quats]
+            np.maximum(log_scales, -1e30), _storable_quats(g.quats)]
     with np.errstate(over="ignore"):  # beyond float32's range -> inf, refused by the writer
         return np.concatenate(cols, axis=1).astype("<f4")
 
@@ -123,12 +139,16 @@ def _parse_header(raw: bytes, path: Path) -> tuple[str, list[_Element], int]:
             if not elements:
                 raise InputError(f"PLY header line {ln}: property before any element", path)
             if len(tok) >= 2 and tok[1] == "list":
+                prop = (tok[-1], "list")
                 elements[-1].has_list = True
-                elements[-1].props.append((tok[-1], "list"))
-                continue
-            if len(tok) != 3 or tok[1] not in _PLY_TYPES:
+            elif len(tok) != 3 or tok[1] not in _PLY_TYPES:
                 raise InputError(f"PLY header line {ln}: bad property {line!r}", path)
-            elements[-1].props.append((tok[2], _PLY_TYPES[tok[1]]))
+            else:
+                prop = (tok[2], _PLY_TYPES[tok[1]])
+            if any(prop[0] == name for name, _ in elements[-1].props):
+                raise InputError(f"PLY header line {ln}: element {elements[-1].name[:40]!r} has property "
+                                 f"{prop[0][:40]!r} twice", path)
+            elements[-1].props.append(prop)
         else:
             raise InputError(f"PLY header line {ln}: unexpected keyword {tok[0]!r}", path)
     if fmt is None:
@@ -237,5 +257,17 @@ def read_gaussians_ply(path: str | Path) -> Gaussians:
     # load -> save reproduces our own files bit for bit.
     off = np.abs(qn - 1.0) > 1e-6
     quats[off] /= qn[off, None]
-    return Gaussians(means=means, quats=quats, scales=np.exp(log_scales),
-                     opacities=1.0 / (1.0 + np.exp(-logits)), sh=sh)
+    with np.errstate(over="ignore"):  # a finite log-scale above ~709 has no finite scale: refused below
+        scales = np.exp(log_scales)
+        opacities = 1.0 / (1.0 + np.exp(-logits))  # a logit below ~-709: exp -> inf, opacity 0 (as before)
+    bad = ~np.isfinite(scales).all(axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InputError(f"{int(bad.sum())} Gaussians have a log-scale too large for a finite scale (first at "
+                         f"vertex {i}: log-scales {', '.join(f'{x:.6g}' for x in log_scales[i])})", path)
+    try:
+        return Gaussians(means=means, quats=quats, scales=scales, opacities=opacities, sh=sh)
+    except InputError as e:  # the values checks of `Gaussians.validate`: name the file
+        if e.path is not None:
+            raise
+        raise InputError(e.problem, path) from None

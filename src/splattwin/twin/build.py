@@ -106,6 +106,26 @@ def _write_parts(folder: Path, parts: list, twin_dir: Path, header: str | None =
     return [(folder / f"part_{i:03d}.obj").relative_to(twin_dir).as_posix() for i in range(len(parts))]
 
 
+def _check_numbers(conv: Conversion, frame: TwinFrame, where: Path) -> None:
+    """The manifest's checks (`Manifest.validate`) of what twin.json will record of `conv` -- labels,
+    poses, box sizes, masses, the table -- before any file of the twin is written: a conversion the
+    manifest refuses (a 3000 km obstacle box) leaves no half-written twin folder. Paths come later."""
+    entries = []
+    for r in conv.objects:
+        e = ObjectEntry(name=r.name, label=r.label, prompt=r.prompt, usable=r.usable, problem=r.problem)
+        if r.usable or r.obstacle:
+            e.T_world_obj = np.asarray(r.T_world_obj).tolist()
+            e.bbox_extent = np.asarray(r.extent).tolist()
+            e.obstacle_only = not r.usable
+        if r.usable:
+            e.mass, e.volume = r.mass, r.volume
+        entries.append(e)
+    b = conv.background
+    bg = Background() if b is None else Background(table_height=b.table_height, table_extent=list(b.table_extent),
+                                                   table_thickness=b.table_thickness, table_default=b.default_reason)
+    Manifest(frame=frame, objects=entries, background=bg).validate(where=where)
+
+
 def write_geometry(conv: Conversion, g, labels: np.ndarray, out_dir: Path, frame: TwinFrame,
                    cameras_path: str | Path | None = None, splats_path: str | Path | None = None) -> Manifest:
     """Write splats, meshes and parts of a Conversion into the twin folder; return the manifest (not saved).
@@ -116,6 +136,7 @@ def write_geometry(conv: Conversion, g, labels: np.ndarray, out_dir: Path, frame
     for r in conv.objects:
         object_name(r.name)
     check_unique([r.name for r in conv.objects])
+    _check_numbers(conv, frame, out_dir / "twin.json")
     twin_hdr = file_header(frame, "twin frame (z up)")
     obj_hdr = file_header(frame, "object frame (z up; twin.json T_world_obj places it in the twin frame)")
     scene_ply = out_dir / "splat" / "point_cloud.ply"
@@ -397,9 +418,11 @@ NOMINAL_SCENE_SIZE = 1.2
 
 def check_objects(objects, where: str | Path | None = None) -> list[tuple[str, int, str]]:
     """`build_twin`'s objects as [(name, label, prompt)]: each a (name, label[, prompt]) sequence or a
-    {"name", "label"[, "prompt"]} mapping, the label a whole number >= 1 (0 is background), names and labels
-    unique. InputError naming the entry otherwise (a dict used to give a bare KeyError: 1)."""
+    {"name", "label"[, "prompt"]} mapping, the label a whole number in [1, MAX_LABEL] (0 is background;
+    label images are 16-bit, and twin.json refuses more), names and labels unique. InputError naming the
+    entry otherwise (a dict used to give a bare KeyError: 1), before anything is built or written."""
     from splattwin.errors import InputError, short_repr
+    from splattwin.twin.manifest import MAX_LABEL
 
     if isinstance(objects, (str, bytes, dict)) or not hasattr(objects, "__iter__"):
         raise InputError(f"objects must be a list of (name, label, prompt), got {type(objects).__name__}", where)
@@ -416,9 +439,10 @@ def check_objects(objects, where: str | Path | None = None) -> list[tuple[str, i
             raise InputError(f"object {i} must be (name, label, prompt), got {short_repr(o)}", where)
         if not isinstance(name, str) or not name:
             raise InputError(f"object {i}: the name must be non-empty text, got {short_repr(name)}", where)
-        if isinstance(label, (bool, np.bool_)) or not isinstance(label, (int, np.integer)) or label < 1:
-            raise InputError(f"object {name!r}: the label must be a whole number >= 1 (0 is background), got "
-                             f"{short_repr(label)}", where)
+        if (isinstance(label, (bool, np.bool_)) or not isinstance(label, (int, np.integer))
+                or not 1 <= label <= MAX_LABEL):
+            raise InputError(f"object {short_repr(name)}: the label must be a whole number >= 1 (0 is background) and "
+                             f"<= {MAX_LABEL} (label images are 16-bit), got {short_repr(label)}", where)
         out.append((name, int(label), "" if prompt is None else str(prompt)))
     for k, what in ((0, "name"), (1, "label")):
         seen = [o[k] for o in out]

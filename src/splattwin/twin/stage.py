@@ -48,6 +48,7 @@ def run(inputs: TwinInputs, options: TwinOptions, *, progress: bool = True) -> T
     labels = load_npy(inputs.labels, "label array")
     objects = [tuple(x) for x in io.read_json(inputs.objects)]
     frame = load_frame(inputs.frame)
+    _read_scene(inputs.scene_dir)  # a malformed scene.json is refused before the twin folder is written
     man = build_twin(g, labels, objects, twin, frame=frame, cameras_path=inputs.cameras, options=options.geometry,
                      formats=options.export.resolve("export.formats"), progress=progress, masks=inputs.masks,
                      export_options=options.export, splats_path=inputs.splats)
@@ -66,17 +67,30 @@ def run(inputs: TwinInputs, options: TwinOptions, *, progress: bool = True) -> T
 def _scene_facts(man, twin: Path, scene_dir: Path | None, frame):
     """With an embedded scene's ground truth: the alignment note and the scene's goal region
     (`config.target_frame`, in the twin frame) into `man` (not saved); returns T_twin_gt or None."""
-    from splattwin import io
 
-    scene_json = scene_dir / "scene.json" if scene_dir is not None else None
-    if scene_json is None or not scene_json.is_file():
+    scene = _read_scene(scene_dir)
+    if scene is None:
         return None
-    scene = io.read_json(scene_json)
     T_twin_gt, gt_note = gt_alignment(man, twin, scene_dir, frame)
     man.config["ground_truth"] = {"alignment": gt_note}
     if scene.get("target_frame") and T_twin_gt is not None:  # a scene fact the robot task needs (its goal)
         man.config["target_frame"] = _moved_region(scene["target_frame"], T_twin_gt)
     return T_twin_gt
+
+
+def _read_scene(scene_dir: Path | None) -> dict | None:
+    """The embedded scene's scene.json (None: no scene, or no scene.json in it); InputError naming it when
+    it is not a JSON object (its values are checked where they are used)."""
+    from splattwin import io
+    from splattwin.errors import InputError
+
+    scene_json = Path(scene_dir) / "scene.json" if scene_dir is not None else None
+    if scene_json is None or not scene_json.is_file():
+        return None
+    scene = io.read_json(scene_json)
+    if not isinstance(scene, dict):
+        raise InputError(f"scene.json must hold a JSON object, got {type(scene).__name__}", scene_json)
+    return scene
 
 
 def add_scene_goal(twin_dir: str | Path, scene_dir: str | Path):
