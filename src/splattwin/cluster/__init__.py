@@ -13,16 +13,11 @@ the shared module `splattwin.executor`: the robot stage's trials (`splattwin pla
 
 from __future__ import annotations
 
-import importlib
+from splattwin._lazy import lazy_exports
 
 # Lazy: nothing is imported until a name is used (`splattwin --help` imports the options modules only).
 _EXPORTS = {"run_sweep": "sweep", "run_batch": "batch", "SweepOptions": "options", "BatchOptions": "options"}
 
 __all__ = list(_EXPORTS)
 
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        mod = _EXPORTS[name]
-        return getattr(importlib.import_module(mod if mod.startswith("splattwin.") else f"splattwin.cluster.{mod}"), name)
-    raise AttributeError(f"module 'splattwin.cluster' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -10,7 +10,7 @@ Test data with a known answer: `splattwin.scene.synthetic`.
 
 from __future__ import annotations
 
-import importlib
+from splattwin._lazy import lazy_exports
 
 # Lazy: nothing is imported until a name is used (`splattwin --help` imports the options modules only).
 # (`convert` is also a module's name, so the function stays `splattwin.geometry.convert.convert`)
@@ -20,9 +20,4 @@ _EXPORTS = {"GeometryOptions": "options", "ablation": "convert", "Conversion": "
 
 __all__ = list(_EXPORTS)
 
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        mod = _EXPORTS[name]
-        return getattr(importlib.import_module(mod if mod.startswith("splattwin.") else f"splattwin.geometry.{mod}"), name)
-    raise AttributeError(f"module 'splattwin.geometry' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

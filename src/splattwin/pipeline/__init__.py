@@ -5,16 +5,11 @@ module's, so it is not re-exported here)."""
 
 from __future__ import annotations
 
-import importlib
+from splattwin._lazy import lazy_exports
 
 # Lazy: nothing is imported until a name is used (`splattwin --help` imports the options modules only).
 _EXPORTS = {"BuildOptions": "options", "check_inputs": "build", "Context": "runner", "run_stages": "runner"}
 
 __all__ = list(_EXPORTS)
 
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        mod = _EXPORTS[name]
-        return getattr(importlib.import_module(mod if mod.startswith("splattwin.") else f"splattwin.pipeline.{mod}"), name)
-    raise AttributeError(f"module 'splattwin.pipeline' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -19,7 +19,7 @@ CLI: `splattwin render TWIN --camera CAM --out video.mp4`.
 
 from __future__ import annotations
 
-import importlib
+from splattwin._lazy import lazy_exports
 
 # Lazy: nothing is imported until a name is used (`splattwin --help` imports the options modules only).
 _EXPORTS = {"DynamicScene": "scene", "PlaybackRenderer": "compositor", "RobotSplats": "robot", "render_rollout_video": "movie",
@@ -27,9 +27,4 @@ _EXPORTS = {"DynamicScene": "scene", "PlaybackRenderer": "compositor", "RobotSpl
 
 __all__ = list(_EXPORTS)
 
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        mod = _EXPORTS[name]
-        return getattr(importlib.import_module(mod if mod.startswith("splattwin.") else f"splattwin.playback.{mod}"), name)
-    raise AttributeError(f"module 'splattwin.playback' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -6,15 +6,11 @@ Imports are lazy: `splattwin.poses.options` is read by `splattwin --help` withou
 
 from __future__ import annotations
 
-import importlib
+from splattwin._lazy import lazy_exports
 
 _EXPORTS = {"PoseOptions": "options", "PoseResult": "estimate", "estimate_poses": "estimate",
             "load_frame": "twin_frame", "TwinFrame": "twin_frame", "KnownLength": "table"}
 
 __all__ = list(_EXPORTS)
 
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(f"splattwin.poses.{_EXPORTS[name]}"), name)
-    raise AttributeError(f"module 'splattwin.poses' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -2,16 +2,11 @@
 
 from __future__ import annotations
 
-import importlib
+from splattwin._lazy import lazy_exports
 
 # Lazy: nothing is imported until a name is used (`splattwin --help` imports the options modules only).
 _EXPORTS = {"build_report": "build", "ReportOptions": "options"}
 
 __all__ = list(_EXPORTS)
 
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        mod = _EXPORTS[name]
-        return getattr(importlib.import_module(mod if mod.startswith("splattwin.") else f"splattwin.report.{mod}"), name)
-    raise AttributeError(f"module 'splattwin.report' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -19,7 +19,7 @@ Entry points: `splattwin plan TWIN --task task.yaml`; in Python `trials.run_once
 
 from __future__ import annotations
 
-import importlib
+from splattwin._lazy import lazy_exports
 
 # Lazy: nothing is imported until a name is used (`splattwin --help` imports the options modules only).
 _EXPORTS = {"TrialSpec": "trials", "run_once": "trials", "run_trials": "trials", "summarize_trials": "trials",
@@ -30,9 +30,4 @@ _EXPORTS = {"TrialSpec": "trials", "run_once": "trials", "run_trials": "trials",
 
 __all__ = list(_EXPORTS)
 
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        mod = _EXPORTS[name]
-        return getattr(importlib.import_module(mod if mod.startswith("splattwin.") else f"splattwin.robot.{mod}"), name)
-    raise AttributeError(f"module 'splattwin.robot' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -9,18 +9,14 @@ data); only the pipeline, the tests and the benchmarks import it. Imports are la
 
 from __future__ import annotations
 
-import importlib
+from splattwin._lazy import lazy_exports
 
 _EXPORTS = {"generate": "generator", "load_scene": "generator", "scene_cameras": "generator",
             "MaskNoise": "options", "SceneOptions": "options"}
 
 __all__ = [*_EXPORTS, "synthetic_gaussians"]
 
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(f"splattwin.scene.{_EXPORTS[name]}"), name)
-    raise AttributeError(f"module 'splattwin.scene' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
 
 def synthetic_gaussians(scene_dir, seed: int = 0, density: float = 40000.0, artefacts: bool = True, **kw):

@@ -14,7 +14,7 @@ Imports are lazy (`splattwin.semantics.options` is read by `splattwin --help`).
 
 from __future__ import annotations
 
-import importlib
+from splattwin._lazy import lazy_exports
 
 _EXPORTS = {"FusionOptions": "options", "SegmentOptions": "options", "SemanticsOptions": "options",
             "FusionResult": "fusion", "View": "fusion", "fuse": "fusion", "naive_fusion": "fusion",
@@ -24,8 +24,4 @@ _EXPORTS = {"FusionOptions": "options", "SegmentOptions": "options", "SemanticsO
 
 __all__ = list(_EXPORTS)
 
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(f"splattwin.semantics.{_EXPORTS[name]}"), name)
-    raise AttributeError(f"module 'splattwin.semantics' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

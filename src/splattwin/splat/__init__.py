@@ -18,7 +18,7 @@ holds `render`), so that importing a module never rebinds the package's function
 
 from __future__ import annotations
 
-import importlib
+from splattwin._lazy import lazy_exports
 
 _EXPORTS = {"Gaussians": "gaussians",
             "rasterization": "rasterize", "RENDER_MODES": "rasterize",
@@ -32,14 +32,4 @@ _EXPORTS = {"Gaussians": "gaussians",
 
 __all__ = list(_EXPORTS)
 
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        value = getattr(importlib.import_module(f"splattwin.splat.{_EXPORTS[name]}"), name)
-        globals()[name] = value  # cached: later lookups do not come here
-        return value
-    raise AttributeError(f"module 'splattwin.splat' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_EXPORTS))
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
