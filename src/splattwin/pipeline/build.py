@@ -77,11 +77,20 @@ def _poses_inputs(ctx: Context):
     return PosesInputs(capture=_input_path(ctx), out_dir=ctx.path("poses"), frames_dir=ctx.path("capture/frames"))
 
 
+def _refined_poses(ctx: Context) -> Path | None:
+    """The splat stage's refined_poses.json when it refined the poses (`--splat.refine-poses`), else None: the
+    later stages then project with those cameras instead of poses/transforms.json's (`splattwin.splat.
+    refined_poses`; the splat stage removes a stale one, so a build without refinement reads the capture's)."""
+    from splattwin.splat.refined_poses import path_in
+
+    return path_in(ctx.path("splat")) if ctx.config.splat.refine_poses else None
+
+
 def _semantics_inputs(ctx: Context):
     from splattwin.semantics.stage import SemanticsInputs
 
     return SemanticsInputs(transforms=ctx.path("poses/transforms.json"), splats=ctx.path("splat/point_cloud.ply"),
-                           out_dir=ctx.path("semantics"), scene_dir=_scene_dir(ctx))
+                           out_dir=ctx.path("semantics"), scene_dir=_scene_dir(ctx), refined_poses=_refined_poses(ctx))
 
 
 # -- the stages: wiring only ------------------------------------------------------------------------
@@ -160,7 +169,7 @@ def _twin(ctx: Context) -> dict:
     inputs = TwinInputs(splats=ctx.path("splat/point_cloud.ply"), labels=ctx.path("semantics/labels.npy"),
                         objects=ctx.path("semantics/objects.json"), frame=ctx.path("poses/frame.json"),
                         twin_dir=ctx.out, cameras="poses/transforms.json", scene_dir=_scene_dir(ctx),
-                        config=resolved_config(ctx.config), masks=masks)
+                        config=resolved_config(ctx.config), masks=masks, refined_poses=_refined_poses(ctx))
     options = TwinOptions(geometry=ctx.config.geometry, export=ctx.config.export)
     result = record(run(inputs, options, progress=ctx.progress), ctx.out)
     if ctx.config.refine.iters > 0:
@@ -168,7 +177,9 @@ def _twin(ctx: Context) -> dict:
         from splattwin.capture import load_dataset
         from splattwin.playback.refine import refine_objects
 
-        ds = load_dataset(ctx.path("poses"))
+        from splattwin.splat.refined_poses import apply
+
+        ds = apply(load_dataset(ctx.path("poses")), _refined_poses(ctx))
         if ctx.config.refine.mask_lambda <= 0:
             masks = None
         elif masks is None:  # the semantics stage's 2D masks (prompt masks: its saved ones), strictly

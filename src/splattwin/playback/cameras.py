@@ -109,6 +109,13 @@ def capture_cameras(twin_dir: str | Path) -> list[Camera]:
     if not path.is_file():
         raise InputError("the twin's capture cameras file is missing", path)
     ds = nerfstudio.read(path)
+    from splattwin.twin.manifest import Manifest
+
+    refined = Manifest.load(twin_dir).config.get("refined_poses")  # training with pose refinement
+    if isinstance(refined, str) and (Path(twin_dir) / refined).is_file():
+        from splattwin.splat.refined_poses import apply
+
+        ds = apply(ds, Path(twin_dir) / refined)
     cams = []
     for f in ds.frames:
         c = f.camera

@@ -24,6 +24,9 @@ class SemanticsInputs:
     splats: Path                   # trained 3DGS PLY
     out_dir: Path                  # the stage's folder (TWIN/semantics)
     scene_dir: Path | None = None  # an embedded scene's folder: its object names and simulated masks
+    # the splat stage's refined_poses.json (training with pose refinement): its poses replace the dataset's, so
+    # that the masks are projected with the cameras the splats were fitted to (`splattwin.splat.refined_poses`)
+    refined_poses: Path | None = None
 
 
 @dataclass
@@ -106,7 +109,9 @@ def run(inputs: SemanticsInputs, options: SemanticsOptions, *, progress: bool = 
     from splattwin.splat.config import filter_beside
     from splattwin.splat.gaussians import Gaussians
 
-    ds = load_dataset(inputs.transforms)
+    from splattwin.splat import refined_poses
+
+    ds = refined_poses.apply(load_dataset(inputs.transforms), inputs.refined_poses)
     # fresh (`build --from semantics` or earlier): segment every view again, reuse nothing
     ms, masks_from = load_stage_masks(options, ds.frames, inputs.scene_dir, inputs.out_dir / "masks2d",
                                       {f.name: (f.camera.height, f.camera.width) for f in ds.frames}, fresh=fresh)
@@ -123,5 +128,8 @@ def run(inputs: SemanticsInputs, options: SemanticsOptions, *, progress: bool = 
     objects = [[res.names[k], int(k), prompts.get(k, res.names[k].replace("_", " "))] for k in res.label_ids]
     io.write_json(inputs.out_dir / "objects.json", objects)
     fusion = io.read_json(inputs.out_dir / "fusion.json")
+    if inputs.refined_poses is not None:  # recorded only then: a twin without refinement is unchanged
+        fusion["poses"] = refined_poses.describe(ds)
+        io.write_json(inputs.out_dir / "fusion.json", fusion)
     return SemanticsResult(labels=inputs.out_dir / "labels.npy", objects=inputs.out_dir / "objects.json",
                            fusion=inputs.out_dir / "fusion.json", miou_heldout=fusion.get("miou_heldout"))

@@ -55,6 +55,7 @@ from splattwin.splat.gaussians import Gaussians
 from splattwin.splat.init import initial_gaussians, scene_center_and_scale
 from splattwin.splat.losses import photometric_loss, psnr_from_mse
 from splattwin.splat.model import GaussianModel
+from splattwin.splat import refined_poses
 from splattwin.splat.pose_refine import PoseCorrection
 from splattwin.splat.rasterize import backend_device, rasterization, resolve_backend
 from splattwin.splat.resolution import Resolution, capacity, describe_sizes, resolve as resolve_resolution
@@ -772,7 +773,10 @@ class Trainer:
             from splattwin.capture import invert_se3
             T_cw = self.poses.corrected(np.stack([v.camera.T_cam_world for v in self.views]))
             refined = {v.name: invert_se3(T).tolist() for v, T in zip(self.views, T_cw)}
-            write_json(self.out_dir / "refined_poses.json", {"convention": "T_world_cam, OpenCV", "poses": refined})
+            refined_poses.write(self.out_dir, refined)
+        elif (self.out_dir / refined_poses.FILE).exists():
+            # a stale one from an earlier run with refinement: the later stages would project with its poses
+            (self.out_dir / refined_poses.FILE).unlink()
         extras.write(self.out_dir, self.appearance, self.bg_model, [v.name for v in self.views])
         plot_history(self.history, self.out_dir / "train_curves.png")
         transients = self._write_transients() if self.cfg.robust_quantile > 0 else None

@@ -127,7 +127,8 @@ def _check_numbers(conv: Conversion, frame: TwinFrame, where: Path) -> None:
 
 
 def write_geometry(conv: Conversion, g, labels: np.ndarray, out_dir: Path, frame: TwinFrame,
-                   cameras_path: str | Path | None = None, splats_path: str | Path | None = None) -> Manifest:
+                   cameras_path: str | Path | None = None, splats_path: str | Path | None = None,
+                   refined_poses: str | Path | None = None) -> Manifest:
     """Write splats, meshes and parts of a Conversion into the twin folder; return the manifest (not saved).
     splats_path: the file `g` was read from; when it is the twin's own splat/point_cloud.ply (the pipeline's
     splats stage wrote it) it is not rewritten: the stage recorded its contents, and new bytes (the unit
@@ -209,6 +210,8 @@ def write_geometry(conv: Conversion, g, labels: np.ndarray, out_dir: Path, frame
             cams = relative_to(cp, out_dir)
         if cams is None:
             config["cameras_source"] = str(cp.resolve())
+    if refined_poses is not None:  # the cameras' poses as refined with the splats (absent without refinement)
+        config["refined_poses"] = relative_to(Path(refined_poses), out_dir) or str(Path(refined_poses).resolve())
     return Manifest(frame=frame, objects=entries, background=bg, cameras=cams, splats="splat/point_cloud.ply",
                     labels="semantics/labels.npy", config=config,
                     versions=package_versions(), timings={f"geometry.{k}": round(float(v), 4) for k, v in conv.timings.items()})
@@ -368,9 +371,11 @@ def write_exports(twin_dir: str | Path, manifest: Manifest, formats=FORMATS, pru
     return written
 
 
-def _capture_frames(out_dir: Path, cameras_path) -> list | None:
+def _capture_frames(out_dir: Path, cameras_path, refined_poses=None) -> list | None:
     """The capture's frames (names, cameras in the twin frame) from the cameras file, or None (no file, or
-    unreadable: the cameras only refine the geometry, so a bad file is a warning here, never a failed build)."""
+    unreadable: the cameras only refine the geometry, so a bad file is a warning here, never a failed build).
+    refined_poses: the splat stage's refined_poses.json (`splattwin.splat.refined_poses`), whose poses replace
+    the file's (the splats were fitted to those cameras)."""
     if cameras_path is None:
         return None
     cp = Path(cameras_path)
@@ -380,7 +385,10 @@ def _capture_frames(out_dir: Path, cameras_path) -> list | None:
     try:
         from splattwin.capture import load_dataset
 
-        return list(load_dataset(cp, validate=False, require_images=False).frames)
+        from splattwin.splat import refined_poses as rp
+
+        ds = load_dataset(cp, validate=False, require_images=False)
+        return list(rp.apply(ds, refined_poses).frames)
     except Exception as e:  # noqa: BLE001 - see the docstring
         log.warning("cameras not read from %s (geometry without them): %s", cp, e)
         return None
@@ -455,14 +463,16 @@ def check_objects(objects, where: str | Path | None = None) -> list[tuple[str, i
 def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path, frame: TwinFrame | None = None,
                cameras_path: str | Path | None = None, options: GeometryOptions | None = None,
                formats=FORMATS, progress: bool = True, masks=None, export_options: ExportOptions | None = None,
-               splats_path: str | Path | None = None) -> Manifest:
+               splats_path: str | Path | None = None, refined_poses: str | Path | None = None) -> Manifest:
     """Labelled Gaussians -> twin folder with manifest and exports.
 
     gaussians: splattwin.splat.Gaussians [N] (twin frame, m); labels [N] int (0 = background);
     objects: [(name, label, prompt)] (`check_objects`). masks: the 2D masks the labels were fused from (a
     `semantics.masks.MaskSet`, labels as in `objects`), paired with the cameras file's frames by view
     name: each object's silhouette coverage (`geometry.completeness`) is measured and decides, with its
-    splat count, whether it is whole; None: the count alone. Returns the saved Manifest."""
+    splat count, whether it is whole; None: the count alone. refined_poses: the splat stage's
+    refined_poses.json (training with pose refinement): the cameras file's poses are replaced by its ones
+    (recorded in twin.json config.refined_poses). Returns the saved Manifest."""
     from splattwin.lock import prepare_output_dir
 
     objects = check_objects(objects)
@@ -470,7 +480,7 @@ def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path
     frame = frame or TwinFrame()
     check_formats(frame, formats, out_dir / "twin.json")
     t0 = time.perf_counter()
-    frames = _capture_frames(out_dir, cameras_path)
+    frames = _capture_frames(out_dir, cameras_path, refined_poses)
     cameras = [f.camera for f in frames] if frames else None
     silhouettes = None
     if masks is not None and frames:
@@ -484,7 +494,7 @@ def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path
     conv = convert(gaussians, labels, objects, options, progress=progress, length_scale=length_scale, cameras=cameras,
                    table_plane=table_plane(frame), masks=silhouettes)
     t1 = time.perf_counter()
-    manifest = write_geometry(conv, gaussians, labels, out_dir, frame, cameras_path, splats_path)
+    manifest = write_geometry(conv, gaussians, labels, out_dir, frame, cameras_path, splats_path, refined_poses)
     manifest.timings["write"] = round(time.perf_counter() - t1, 4)
     manifest.timings["geometry"] = round(t1 - t0, 4)
     manifest.save(out_dir)

@@ -24,6 +24,7 @@ class TwinInputs:
     frame: Path                           # frame.json of the poses stage
     twin_dir: Path                        # the twin folder (written in place)
     cameras: str | None = None            # cameras file referenced by the manifest (relative to twin_dir)
+    refined_poses: Path | None = None     # the splat stage's refined_poses.json (its poses replace the cameras')
     scene_dir: Path | None = None         # an embedded scene's folder (ground truth), if the input is one
     config: dict = field(default_factory=dict)   # the build's resolved options, recorded in twin.json
     masks: Any = None                     # the semantics stage's 2D masks (MaskSet): each object's silhouette
@@ -51,7 +52,8 @@ def run(inputs: TwinInputs, options: TwinOptions, *, progress: bool = True) -> T
     _read_scene(inputs.scene_dir)  # a malformed scene.json is refused before the twin folder is written
     man = build_twin(g, labels, objects, twin, frame=frame, cameras_path=inputs.cameras, options=options.geometry,
                      formats=options.export.resolve("export.formats"), progress=progress, masks=inputs.masks,
-                     export_options=options.export, splats_path=inputs.splats)
+                     export_options=options.export, splats_path=inputs.splats,
+                     refined_poses=inputs.refined_poses)
     T_twin_gt = _scene_facts(man, twin, inputs.scene_dir, frame)
     if inputs.config:
         man.config["build"] = inputs.config
