@@ -90,7 +90,11 @@ def test_no_masks_stops_before_sfm_and_until_splats_builds_without(tmp_path, cap
             pf.run_preflight(o, out, imgs, None, tmp_path / "frames", until=until)
     # the embedded scene (generated, or a written scene folder as input) brings its own simulated masks
     pf.run_preflight(BuildOptions(), out, None, None, tmp_path / "frames")
-    pf.run_preflight(o, out, imgs, imgs, tmp_path / "frames")
+    # a folder with a scene.json but no masks of its own: named here too, not after training (audit 8c H2)
+    (imgs / "scene.json").write_text(json.dumps({"objects": [{"name": "box", "label": 1}]}))
+    with pytest.raises(InputError, match="no 2D masks"):
+        pf.run_preflight(o, out, imgs, imgs, tmp_path / "frames")
+    pf.run_preflight(o, out, imgs, imgs, tmp_path / "frames", until="splats")
 
 
 def test_every_independent_problem_is_named_in_one_run(tmp_path, monkeypatch, capsys):
@@ -277,3 +281,54 @@ def test_task_stops_before_training_when_the_poses_came_out_unscaled(tmp_path):
     _check_task_scale(Context(out=out, options={}, config=BuildOptions()))          # no task: fine
     io.write_json(out / "poses" / "frame.json", dataclasses.asdict(TwinFrame(source="table_plane+depth", scaled=True)))
     _check_task_scale(ctx)                                                            # metric: fine
+
+
+def _tiny_robot_capture(root: Path, fmt: str = "bop") -> Path:
+    from splattwin.scene import SceneOptions
+    from splattwin.scene.robot_capture import RobotCaptureOptions, write_robot_capture
+
+    return write_robot_capture(root, SceneOptions(seed=0, width=64, height=48, supersample=1),
+                               RobotCaptureOptions(views=4, width=64, height=48, format=fmt), progress=False)
+
+
+def test_robot_capture_without_masks_uses_its_own_and_preflight_checks_them(tmp_path, caplog):
+    """Audit 8c H2: `scene generate --robot-capture bop` built without --masks failed (exit 2) only at the
+    semantics stage, after poses and splats ("masks/noisy: no noisy masks"). The capture's own masks
+    (BOP mask_visib/, TUM masks/) are now the default, said in the log, and checked before any stage; a
+    capture without any stops at pre-flight, in seconds, nothing trained."""
+    import logging
+    import shutil
+    import time
+
+    from splattwin.semantics.stage import load_stage_masks, scene_default_masks
+
+    cap = _tiny_robot_capture(tmp_path / "cap")
+    assert scene_default_masks(cap) == cap / "mask_visib"
+    o = BuildOptions(input=str(cap))
+    with caplog.at_level(logging.INFO, logger="splattwin.semantics.stage"):
+        pf.run_preflight(o, tmp_path / "twin", cap, cap, tmp_path / "frames")
+    assert "mask_visib" in caplog.text and "no --masks" in caplog.text
+    from splattwin.capture import load_dataset
+
+    ds = load_dataset(cap)
+    own, where = load_stage_masks(o.semantics, ds.frames, cap)
+    given, _ = load_stage_masks(SemanticsOptions(masks=str(cap / "mask_visib")), ds.frames, cap)
+    assert where == cap / "mask_visib" and own.views == given.views and own.objects == given.objects
+    assert set(own.objects.values()) >= {"toy_hammer", "yellow_cube"}
+    tum = _tiny_robot_capture(tmp_path / "tum", "tum")
+    assert scene_default_masks(tum) == tum / "masks"
+    pf.run_preflight(BuildOptions(input=str(tum)), tmp_path / "twin_t", tum, tum, tmp_path / "frames_t")
+
+    # the capture without its masks: exit 2 at once, naming the capture, no stage run
+    shutil.rmtree(cap / "mask_visib")
+    out = tmp_path / "twin2"
+    t0 = time.perf_counter()
+    code = cli(["build", str(cap), "--out", str(out), "--no-progress", "--iters", "30"])
+    assert code == 2 and time.perf_counter() - t0 < 30
+    assert not (out / "poses").exists() and not (out / "splats").exists()
+    # a bad mask file of the capture's own is found at pre-flight too
+    cap2 = _tiny_robot_capture(tmp_path / "cap2")
+    bad = sorted((cap2 / "mask_visib").glob("*.png"))[0]
+    write_image(bad, np.full((10, 10), 255, np.uint8))
+    with pytest.raises(InputError, match=bad.name):
+        pf.run_preflight(BuildOptions(input=str(cap2)), tmp_path / "twin3", cap2, cap2, tmp_path / "frames3")

@@ -107,3 +107,35 @@ def test_the_depth_seed_cloud_comes_from_training_views_only(scene_small):
     every, _ = backproject_frames(res.frames, depth_scale=res.depth_scale)
     assert len(res.depth_xyz) == len(xyz) < len(every)
     np.testing.assert_allclose(res.depth_xyz, xyz)
+
+
+def test_the_log_names_the_real_source_of_the_initial_points(scene_small, tmp_path, caplog):
+    """Audit 8c L3: "initialised ... Gaussians from sfm" when no SfM ran and the points were back-projected
+    from the depth images. The poses stage records what made its cloud (poses_report.json points_source),
+    and the splat initialisation names it."""
+    import logging
+
+    from splattwin.capture import load_dataset
+    from splattwin.poses import PoseOptions, estimate_poses
+    from splattwin.splat.init import initial_gaussians, poses_points_source
+
+    res = estimate_poses(load_dataset(scene_small), PoseOptions(method="known", progress=False, triangulate=False))
+    assert res.stats["points_source"] == "depth back-projection"
+    res.save(tmp_path / "poses")
+    ds = load_dataset(tmp_path / "poses" / "transforms.json")
+    assert poses_points_source(ds) == "depth back-projection"
+    with caplog.at_level(logging.INFO, logger="splattwin.splat.init"):
+        _, method = initial_gaussians("auto", ds.train(), ds.points_xyz, ds.points_rgb, max_points=500,
+                                      points_source=poses_points_source(ds), progress=False)
+    assert method == "sfm"   # the recorded method keeps its name (the posed dataset's points)
+    assert "from depth back-projection" in caplog.text and "from sfm" not in caplog.text
+    # a report written before points_source: read from its depth figures
+    import json
+
+    rep = json.loads((tmp_path / "poses" / "poses_report.json").read_text())
+    del rep["points_source"]
+    for stats, want in (({**rep, "method": "robot"}, "depth back-projection"),
+                        ({**rep, "method": "sfm", "initial_points": {"sparse": 10}}, "SfM points + depth back-projection"),
+                        ({"method": "sfm"}, None)):
+        (tmp_path / "poses" / "poses_report.json").write_text(json.dumps(stats))
+        assert poses_points_source(ds) == want

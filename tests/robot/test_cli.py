@@ -307,6 +307,11 @@ def test_settle_check_measures_what_physics_moves_before_the_robot_acts(gt_twin_
     s = w.settle_check()
     assert s["moved"] == ["cardboard_box"] and s["objects"]["cardboard_box"]["dz_m"] == pytest.approx(-0.05, abs=0.005)
     assert "cardboard_box moved 5.0 cm (fell)" in unsettled(s)
+    # audit 8c L2: a twin posed by the robot may owe it to its poses or hand-eye calibration; say so, briefly
+    assert s["frame_source"] != "robot" and "hand-eye" not in unsettled(s)
+    for source in ("robot", "sfm+robot"):
+        msg = unsettled({**s, "frame_source": source})
+        assert "floating or sunken" in msg and "robot poses or hand-eye calibration" in msg
 
 
 @pytest.mark.slow

@@ -97,3 +97,61 @@ def test_ground_truth_is_aligned_when_the_twin_frame_is_not_the_scenes(scene_sma
     region = _moved_region({"center": [0.1, 0.0, 0.0], "size": 0.24, "for": "x"}, T)
     np.testing.assert_allclose(region["center"], (T_new_old @ [0.1, 0, 0, 1])[:3], atol=1e-6)
     assert region["size"] == pytest.approx(0.24) and region["for"] == "x"
+
+
+@pytest.mark.parametrize("source", ["robot", "sfm+robot"])
+def test_robot_frame_twin_places_the_ground_truth_by_the_known_base(scene_small, tmp_path, source):
+    """Audit 8c H3: a twin in the robot base frame had its ground truth fitted by object centres, which hid a
+    global offset of the twin (what a real arm meets) and skewed F1. With scene.json's robot base the GT is
+    placed by T_world_base^-1 (no fit), so a 25 mm offset of every object counts, and twin.json says which
+    placement was used and how far off the twin lies (the centre fit's residual as a diagnostic)."""
+    import json
+
+    import numpy as np
+
+    from splattwin.poses.twin_frame import TwinFrame
+    from splattwin.twin.groundtruth import twin_from_scene
+    from splattwin.twin.manifest import Manifest
+    from splattwin.twin.stage import _scene_facts, gt_alignment, write_fidelity
+
+    twin = tmp_path / "twin"
+    twin_from_scene(scene_small, twin)
+    man = Manifest.load(twin)
+    T_world_base = np.array(json.loads((scene_small / "scene.json").read_text())["robot_base"]["T_world_base"], float)
+    offset = np.array([0.02, -0.015, 0.0])              # the twin's global error in the base frame: 25 mm
+    for obj in man.objects:
+        T = np.linalg.inv(T_world_base) @ obj.pose
+        T[:3, 3] += offset
+        obj.T_world_obj = T.tolist()
+    man.save(twin)
+    frame = TwinFrame(source=source, scaled=True)
+    info: dict = {}
+    T, note = gt_alignment(man, twin, scene_small, frame, info=info)
+    np.testing.assert_allclose(T, np.linalg.inv(T_world_base), atol=1e-12)
+    assert info["placement"] == "robot_base" and "robot_base.T_world_base" in note
+    assert info["global_offset_m"] == pytest.approx(0.025, abs=1e-4)
+    np.testing.assert_allclose(info["global_offset_xyz_m"], offset, atol=1e-4)
+    assert info["centre_fit_residual_rms_m"] < 1e-4       # a centre fit would have hidden all of it
+    placed = json.loads(write_fidelity(twin, scene_small, 0.005, T).read_text())
+    assert placed and all(r["f1"] < 0.5 for r in placed.values())   # the 25 mm counts
+    # a centre fit (a scene without a robot base; an unscaled frame) sees none of it
+    scene_nobase = tmp_path / "scene_nobase"
+    import shutil
+
+    shutil.copytree(scene_small, scene_nobase)
+    meta = json.loads((scene_nobase / "scene.json").read_text())
+    del meta["robot_base"]
+    (scene_nobase / "scene.json").write_text(json.dumps(meta))
+    info2: dict = {}
+    T2, note2 = gt_alignment(man, twin, scene_nobase, frame, info=info2)
+    assert info2["placement"] == "centre_fit" and "global offset of the twin is not measured" in note2
+    fitted = json.loads(write_fidelity(twin, scene_small, 0.005, T2).read_text())
+    assert all(r["f1"] > 0.99 for r in fitted.values())
+    # what twin.json records
+    _scene_facts(man, twin, scene_small, frame)
+    gt = man.config["ground_truth"]
+    assert gt["placement"] == "robot_base" and gt["global_offset_m"] == pytest.approx(0.025, abs=1e-4)
+    man.save(twin)
+    from splattwin.pipeline.cli import _gt_placement   # the build summary's geometry line says which placement
+
+    assert "robot base" in _gt_placement(twin / "twin.json") and "25.0 mm off" in _gt_placement(twin / "twin.json")

@@ -115,6 +115,23 @@ def _exit_code(ctx) -> int:
     return 0 if robot.get("success", True) else 1
 
 
+def _gt_placement(twin_json: Path) -> str:
+    """How the ground truth was placed for the figures (twin.json config.ground_truth, `twin.stage.gt_alignment`),
+    as a suffix of the summary's geometry line; "" when not recorded."""
+    try:
+        gt = json.loads(twin_json.read_text()).get("config", {}).get("ground_truth") or {}
+    except (OSError, ValueError, AttributeError):
+        return ""
+    how = gt.get("placement") if isinstance(gt, dict) else None
+    if how == "robot_base":
+        off = gt.get("global_offset_m")
+        return (" (ground truth placed by scene.json's robot base" + (f"; twin objects {off * 1000:.1f} mm off it on "
+                "average" if isinstance(off, (int, float)) else "") + ")")
+    if how == "centre_fit":
+        return " (ground truth aligned by object centres: shape only, a global offset is not measured)"
+    return ""
+
+
 def _robot_line(ctx) -> str:
     """The headline's robot line: the task's outcome in simulation and whether the real-arm files were
     written (robot/program.json named), else why not (results.json `real_robot`), said once."""
@@ -205,7 +222,8 @@ def _print_headline(ctx) -> None:
     if "twin" in r and gj.is_file():
         g = json.loads(gj.read_text())
         if g:
-            con.print("geometry: F1@5mm " + ", ".join(f"{k} {v['f1']:.3f}" for k, v in g.items()))
+            con.print("geometry: F1@5mm " + ", ".join(f"{k} {v['f1']:.3f}" for k, v in g.items())
+                      + _gt_placement(ctx.out / "twin.json"), highlight=False)
     if r.get("robot", {}).get("error"):
         con.print(f"[red]robot task not run: {r['robot']['error']}[/]")
     elif r.get("robot"):

@@ -2,9 +2,10 @@
 stops (InputError, exit 2) before minutes of SfM and hours of training, with a message naming the file,
 model or option:
 
-- 2D masks (`--masks`) read and fit the capture's images (`semantics.stage.check_masks`); a build whose
-  semantics stage would run with no masks at all (no --masks, no --prompt, not the embedded scene) stops
-  here, not after SfM and training, and says how to build the splats alone (`--until splats`);
+- 2D masks (`--masks`, or without it a scene folder's own: the embedded scene's masks/noisy/, a robot-style
+  BOP capture's mask_visib/) read and fit the capture's images (`semantics.stage.check_masks`); a build whose
+  semantics stage would run with no masks at all (no --masks, no --prompt, no masks of the scene's own)
+  stops here, not after SfM and training, and says how to build the splats alone (`--until splats`);
 - `--prompt`: the segmentation models it needs (Grounding DINO + SAM, or SAM 3) are on this machine,
   all missing ones named with their hub ids (`semantics.models`);
 - `--task`: the twin will be metric. An image folder or video posed by SfM is known only up to scale;
@@ -254,7 +255,9 @@ def run_preflight(options, out: Path, input_path: Path | None, scene_dir: Path |
         if why is not None:
             problems.append(InputError(f"--task needs a metric twin, but this capture gives no scale ({why}): "
                                        f"{SCALE_HELP}", input_path))
-    if o.semantics.masks:
+    own_masks = (not (o.semantics.masks or o.semantics.prompt) and scene_dir is not None and ds is not None
+                 and _runs(until, "semantics"))   # a scene folder's own masks (`scene_default_masks`)
+    if o.semantics.masks or own_masks:
         from splattwin.semantics.stage import check_masks
 
         try:

@@ -380,6 +380,11 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
     stats["registered"] = len(out_frames)
     stats["unregistered"] = unregistered
 
+    # where the initial point cloud (that seeds the splats) comes from, for the logs (stats["points_source"])
+    points_source = None
+    if pts_xyz is not None and len(pts_xyz):
+        points_source = ("SfM points" if method == "sfm" else "points triangulated from the known poses"
+                         if "error" not in stats.get("triangulation", {"error": 1}) else "the capture's points")
     depth_xyz = depth_rgb = None
     if opts.depth_points and any(f.depth_path is not None for f in out_frames):
         if frame.scaled:
@@ -394,6 +399,7 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
             stats["depth_points_views"] = len(seed_frames)
             if pts_xyz is None or len(pts_xyz) == 0:
                 pts_xyz, pts_rgb = depth_xyz, depth_rgb
+                points_source = "depth back-projection" if len(depth_xyz) else None
             elif len(depth_xyz) and _depth_fits_points(frame, out_frames, pts_xyz, dataset, stats):
                 # SfM (or the dataset's) sparse points in a metric frame: the depth cloud joins them. Alone,
                 # a few hundred SfM points on the objects' textured edges seeded the splats (the table
@@ -404,6 +410,7 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
                 pts_xyz, pts_rgb = merge_with_depth(pts_xyz, pts_rgb, depth_xyz, depth_rgb, seed=opts.seed)
                 stats["initial_points"] = {"sparse": int(n_sparse), "depth": int(len(depth_xyz)),
                                            "merged": int(len(pts_xyz)), "voxel_m": 0.002}
+                points_source = f"{points_source} + depth back-projection"
                 log.info("initial point cloud: %d sparse points + %d back-projected depth points -> %d "
                          "(one per 2 mm voxel)", n_sparse, len(depth_xyz), len(pts_xyz))
         else:
@@ -413,6 +420,9 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         tri = _triangulate(opts, [f.image_path for f in out_frames], [f.camera for f in out_frames], stats)
         if tri is not None:
             pts_xyz, pts_rgb = tri
+            points_source = "points triangulated from the known poses"
+    if points_source is not None and pts_xyz is not None and len(pts_xyz):
+        stats["points_source"] = points_source
     return PoseResult(frames=out_frames, unregistered=unregistered, frame=frame, points_xyz=pts_xyz,
                       points_rgb=pts_rgb, depth_xyz=depth_xyz, depth_rgb=depth_rgb, T_out_in=T_out_in,
                       stats=stats, depth_scale=dataset.depth_scale, label_objects=dataset.meta.get("label_objects"))

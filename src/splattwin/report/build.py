@@ -488,6 +488,9 @@ def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
              + (f", carved where a capture camera sees through them to the splats' rendered surface ({carve:.2f} s)"
                 if carve is not None else " (not carved: no capture cameras, or carving off)") + ".")
     if geo:
+        gt = (man.config or {}).get("ground_truth") if man is not None else None
+        if isinstance(gt, dict) and gt.get("alignment"):
+            sec.text(f"{gt['alignment'][:1].upper()}{gt['alignment'][1:]}.")
         sec.table(["object", "Chamfer (m)", "precision", "recall", "F1 @5 mm"],
                   [[k, v.get("chamfer"), v.get("precision"), v.get("recall"), v.get("f1")] for k, v in geo.items()])
     tj = twin / "poses" / "transforms.json"

@@ -113,6 +113,7 @@ def unsettled(settle: dict | None) -> str | None:
     physics moved from their twin poses before the robot acted (floating, sunk in, tipping), else None."""
     if not settle or not settle.get("moved"):
         return None
+    robot_posed = settle.get("frame_source") in ("robot", "sfm+robot")
     parts = []
     for o in settle["moved"]:
         v = settle["objects"][o]
@@ -121,7 +122,13 @@ def unsettled(settle: dict | None) -> str | None:
     return (f"the twin is not at rest in physics: before the robot acted, {'; '.join(parts)} from the twin pose "
             f"in {settle['time_s']:g} s (limits {settle['threshold_m'] * 100:g} cm, {settle['threshold_deg']:g} deg), "
             f"so the run was made on another scene than the twin's and does not validate it (check the object's "
-            f"geometry and pose: a floating or sunken object)")
+            f"geometry and pose: a floating or sunken object{ROBOT_POSES_HINT if robot_posed else ''})")
+
+
+# the start check's message for a twin posed by the robot (`--robot-poses`: frame source robot / sfm+robot)
+ROBOT_POSES_HINT = ("; the views were posed by the robot: inconsistent robot poses or hand-eye calibration "
+                    "misplace an object's splats this way too (see poses/poses_report.json hand_eye_check; "
+                    "--poses.method sfm with the robot files re-estimates them)")
 
 
 class Executor:

@@ -378,7 +378,8 @@ class World:
         """How far physics moves each free object from its pose now (the twin's) in `duration` s with the
         arm held still, before the robot acts. Runs on the current state and restores it exactly afterwards
         (the executed run is unchanged). Returns {time_s, threshold_m, threshold_deg, objects: {name:
-        {moved_m, turned_deg}}, moved: [names beyond a threshold]} (`SETTLE_MOVE_M`, `SETTLE_TURN_DEG`)."""
+        {moved_m, turned_deg}}, moved: [names beyond a threshold], frame_source: the twin frame's source, for
+        the message} (`SETTLE_MOVE_M`, `SETTLE_TURN_DEG`)."""
         import mujoco
 
         m, d = self.model, self.data
@@ -403,7 +404,7 @@ class World:
                           "dz_m": round(float(T1[2, 3] - T0[2, 3]), 4)}
         moved = [o for o, v in objects.items() if v["moved_m"] > SETTLE_MOVE_M or v["turned_deg"] > SETTLE_TURN_DEG]
         return {"time_s": duration, "threshold_m": SETTLE_MOVE_M, "threshold_deg": SETTLE_TURN_DEG,
-                "objects": objects, "moved": moved}
+                "objects": objects, "moved": moved, "frame_source": self.manifest.frame.source}
 
     def forward(self) -> None:
         """Recompute kinematics, contacts and forces of the current state (mj_forward)."""

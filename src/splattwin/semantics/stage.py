@@ -2,7 +2,8 @@
 
 Reads the posed dataset, the trained splats and the 2D masks — from `options.masks`, from text prompts
 (`options.prompt`, segmented into OUT/masks2d/), or the embedded scene's simulated segmenter
-(`inputs.scene_dir`; only training views are fused, held-out views stay unseen for the metrics).
+(`inputs.scene_dir`; only training views are fused, held-out views stay unseen for the metrics), or a
+robot-style capture's own masks (BOP mask_visib/, TUM-layout masks/: `scene_default_masks`).
 Writes (`splattwin.semantics.lift.fuse_to_dir`, the only writer of each): OUT/labels.npy, OUT/fusion.json
 (with the metrics), OUT/objects/, OUT/label_maps/, OUT/masks_vs_labels/; and OUT/objects.json (the objects
 [name, label, prompt] handed to the twin stage).
@@ -10,12 +11,15 @@ Writes (`splattwin.semantics.lift.fuse_to_dir`, the only writer of each): OUT/la
 
 from __future__ import annotations
 
+import logging
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 from splattwin.errors import InputError
 from splattwin.semantics.options import SemanticsOptions
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -57,6 +61,17 @@ def load_stage_masks(options: SemanticsOptions, frames, scene_dir: Path | None, 
                             options.segment, out_dir=segment_dir, resume=not fresh)
         return ms, segment_dir
     if scene_dir is not None:
+        src = scene_default_masks(scene_dir)
+        if src is None:
+            raise InputError(f"no 2D masks: this capture has none of its own ({', '.join(OWN_MASKS)}): pass "
+                             "--masks DIR or --prompt 'blue box. yellow cube', or build only the splats with "
+                             "--until splats", scene_dir)
+        if src != Path(scene_dir) / "masks" / "noisy":   # a robot-style capture's own masks, read as --masks would
+            if src not in _SAID:   # once per process: pre-flight, semantics and twin stages all read them
+                _SAID.add(src)
+                log.info("2D masks: no --masks or --prompt given, so the capture's own masks %s are used (give --masks "
+                         "DIR or --prompt for others)", src)
+            return load_masks(src, objects=objs, image_sizes=image_sizes), src
         ms = scene_masks(scene_dir, kind="noisy")
         train = {f.name for f in frames if f.split == "train"}
         for d in (ms.masks, ms.scores, ms.sizes):
@@ -66,10 +81,37 @@ def load_stage_masks(options: SemanticsOptions, frames, scene_dir: Path | None, 
     raise InputError("no 2D masks: pass --masks DIR or --prompt 'blue box. yellow cube'")
 
 
+_SAID: set = set()   # the capture mask folders whose use was logged
+
+
+# what a scene folder's own masks may be, in this order (`scene_default_masks`)
+OWN_MASKS = ("masks/noisy/ (the embedded scene's simulated segmenter)",
+             "BOP mask_visib/ or mask/ with scene_gt.json", "per-instance masks/ with masks/instances.json")
+
+
+def scene_default_masks(scene_dir: Path) -> Path | None:
+    """The masks a build of a scene folder (one with scene.json) uses when neither --masks nor --prompt is
+    given: the embedded scene's simulated noisy masks (masks/noisy/); else the capture's own masks, as a
+    robot-style capture (`scene generate --robot-capture`) writes them: a BOP scene's mask_visib/ (or
+    mask/), or per-instance masks/ with instances.json (TUM layout); None when it has none."""
+    from splattwin.capture.bop import MASK_DIRS
+    from splattwin.semantics.masks import INSTANCES_FILE, find_bop_scene
+
+    scene_dir = Path(scene_dir)
+    if (scene_dir / "masks" / "noisy").is_dir():
+        return scene_dir / "masks" / "noisy"
+    if find_bop_scene(scene_dir) is not None:
+        return next(scene_dir / d for d in MASK_DIRS if (scene_dir / d).is_dir())
+    if (scene_dir / "masks" / INSTANCES_FILE).is_file():
+        return scene_dir / "masks"
+    return None
+
+
 def check_masks(options: SemanticsOptions, frames, scene_dir: Path | None = None) -> None:
-    """Before any stage runs: mask files given with `options.masks` read, fit the capture's images
-    `frames` and name at least one of them (InputError naming the mask file otherwise)."""
-    if not options.masks:
+    """Before any stage runs: the mask files the semantics stage will read (`options.masks`, or without
+    --masks and --prompt the scene folder's own, `scene_default_masks`) exist, read, fit the capture's
+    images `frames` and name at least one of them (InputError naming the mask file otherwise)."""
+    if not options.masks and (options.prompt or scene_dir is None):
         return
     sizes = {f.name: (f.camera.height, f.camera.width) for f in frames}
     ms, where = load_stage_masks(options, frames, scene_dir, image_sizes=sizes)
@@ -95,7 +137,10 @@ def input_files(inputs: SemanticsInputs, options: SemanticsOptions) -> dict:
     scene_json = inputs.scene_dir / "scene.json" if inputs.scene_dir is not None else None
     out: dict = {"masks": options.masks, "scene.json": scene_json}
     if not options.masks and not options.prompt and inputs.scene_dir is not None:
-        out["scene_masks"] = inputs.scene_dir / "masks" / "noisy"
+        own = scene_default_masks(inputs.scene_dir)
+        out["scene_masks"] = own
+        if own is not None and (inputs.scene_dir / "scene_gt.json").is_file():   # BOP: the instances' objects
+            out["scene_gt"] = inputs.scene_dir / "scene_gt.json"
     return out
 
 

@@ -252,13 +252,15 @@ def _images_exist(frames: Sequence[Frame]) -> bool:
 def initial_gaussians(method: str, train_frames: Sequence[Frame], points_xyz: np.ndarray | None = None,
                       points_rgb: np.ndarray | None = None, depth_scale: float | None = None, sh_degree: int = 3,
                       max_points: int = 30_000, seed: int = 0, stereo_points: int = 0,
-                      progress: bool = True) -> tuple[Gaussians, str]:
+                      progress: bool = True, points_source: str | None = None) -> tuple[Gaussians, str]:
     """Initial Gaussians by `method` ("auto" | "sfm" | "depth" | "triangulate" | "random"); returns
     (gaussians, method used). "auto" takes the SfM/dataset points if present, else depth maps if present,
     else points triangulated from the images with their known poses, else (with a warning) random points
     in the cameras' common view. stereo_points > 0: up to that many plane-sweep stereo points from the
     training views (`splattwin.splat.mvs`) join the SfM/triangulated ones (the total stays within
-    max_points; method reported as e.g. "sfm+stereo")."""
+    max_points; method reported as e.g. "sfm+stereo"). points_source: what made `points_xyz` (the poses
+    stage's `points_source`, `poses_points_source`: e.g. "depth back-projection"), named in the log
+    instead of "sfm"."""
     tri: tuple[np.ndarray, np.ndarray] | None = None
     if method == "auto":
         if points_xyz is not None and len(points_xyz) >= 4:
@@ -310,5 +312,32 @@ def initial_gaussians(method: str, train_frames: Sequence[Frame], points_xyz: np
     if not ok.all():
         log.warning("dropping %d non-finite initial points", int((~ok).sum()))
         xyz, rgb = xyz[ok], rgb[ok]
-    log.info("initialised %d Gaussians from %s", len(xyz), method)
+    what = method
+    if points_source and method.startswith("sfm"):   # "sfm": the posed dataset's points, whatever made them
+        what = points_source + (" + stereo" if method.endswith("+stereo") else "")
+    log.info("initialised %d Gaussians from %s", len(xyz), what)
     return gaussians_from_points(xyz, rgb, sh_degree=sh_degree), method
+
+
+def poses_points_source(dataset) -> str | None:
+    """What made a posed dataset's point cloud, from the poses_report.json beside it (`points_source`; for
+    reports written before it, read from `initial_points` / `depth_points`); None when not known."""
+    import json
+    from pathlib import Path
+
+    p = Path(dataset.meta.get("path", dataset.root))
+    rep = (p.parent if p.is_file() else p) / "poses_report.json"
+    try:
+        stats = json.loads(rep.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(stats, dict):
+        return None
+    if isinstance(stats.get("points_source"), str):
+        return stats["points_source"]
+    base = "SfM points" if stats.get("method") == "sfm" else "the capture's points"
+    if stats.get("initial_points"):
+        return f"{base} + depth back-projection"
+    if stats.get("depth_points") and stats.get("method") == "robot":
+        return "depth back-projection"
+    return None

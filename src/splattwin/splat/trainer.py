@@ -52,7 +52,7 @@ from splattwin.splat import extras
 from splattwin.splat.config import TrainConfig
 from splattwin.splat.depth_loss import depth_loss  # noqa: F401  (also re-exported: trainer.depth_loss)
 from splattwin.splat.gaussians import Gaussians
-from splattwin.splat.init import initial_gaussians, scene_center_and_scale
+from splattwin.splat.init import initial_gaussians, poses_points_source, scene_center_and_scale
 from splattwin.splat.losses import photometric_loss, psnr_from_mse
 from splattwin.splat.model import GaussianModel
 from splattwin.splat import refined_poses
@@ -390,7 +390,8 @@ class Trainer:
         g, self.init_method = initial_gaussians(
             cfg.init, self.frames, self.dataset.points_xyz, self.dataset.points_rgb,
             depth_scale=self.dataset.depth_scale, sh_degree=cfg.sh_degree, max_points=cfg.init_points,
-            seed=cfg.seed, stereo_points=cfg.init_stereo, progress=cfg.progress)
+            seed=cfg.seed, stereo_points=cfg.init_stereo, progress=cfg.progress,
+            points_source=poses_points_source(self.dataset))
         torch.manual_seed(cfg.seed)
         g = extras.with_background_sphere(g, cfg, self.views, self.scene_center, self.scene_scale)
         self.model = GaussianModel.from_gaussians(g, max_sh_degree=cfg.sh_degree, lrs=cfg.lrs,

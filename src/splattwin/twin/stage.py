@@ -73,8 +73,9 @@ def _scene_facts(man, twin: Path, scene_dir: Path | None, frame):
     scene = _read_scene(scene_dir)
     if scene is None:
         return None
-    T_twin_gt, gt_note = gt_alignment(man, twin, scene_dir, frame)
-    man.config["ground_truth"] = {"alignment": gt_note}
+    info: dict = {}
+    T_twin_gt, gt_note = gt_alignment(man, twin, scene_dir, frame, info=info)
+    man.config["ground_truth"] = {"alignment": gt_note, **info}
     if scene.get("target_frame") and T_twin_gt is not None:  # a scene fact the robot task needs (its goal)
         man.config["target_frame"] = _moved_region(scene["target_frame"], T_twin_gt)
     return T_twin_gt
@@ -118,17 +119,46 @@ def add_scene_goal(twin_dir: str | Path, scene_dir: str | Path):
 
 # The twin frame is the scene's own when the poses were the scene's (its transforms.json, or its robot-style
 # capture turned z up by an exact quarter/half turn): the ground truth is then used where it lies, so a pose
-# error of the reconstruction counts. Otherwise (SfM's table frame, a tilted world moved into the table frame,
-# a robot base frame) the ground truth is brought into the twin frame by the objects' centres, as trajectory
-# benchmarks align before they score, and the note says so.
+# error of the reconstruction counts. A robot base frame (robot poses, or SfM aligned to them) whose base the
+# scene names (scene.json robot_base.T_world_base) is known too: the ground truth is placed there by that
+# transform, so a global offset of the twin in the base frame, the error a real arm meets, counts (audit 8c
+# H3). Otherwise (SfM's table frame, a tilted world moved into the table frame, a robot frame the scene does
+# not place) the ground truth is brought into the twin frame by the objects' centres, as trajectory benchmarks
+# align before they score, and the note says so.
 SAME_FRAME_SOURCES = ("ground_truth", "known_poses")
+ROBOT_FRAME_SOURCES = ("robot", "sfm+robot")
 
 
-def gt_alignment(man, twin: Path, scene_dir: Path, frame):
+def scene_robot_base(scene_dir: Path):
+    """scene.json's robot_base.T_world_base ([4,4] rigid, the base in the scene's world) or None when the
+    scene does not give a usable one."""
+    import numpy as np
+
+    scene = _read_scene(scene_dir) or {}
+    base = scene.get("robot_base")
+    T = base.get("T_world_base") if isinstance(base, dict) else None
+    try:
+        T = np.asarray(T, dtype=float)
+    except (TypeError, ValueError):
+        return None
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not np.allclose(T[3], [0, 0, 0, 1]):
+        return None
+    R = T[:3, :3]
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        return None
+    return T
+
+
+def gt_alignment(man, twin: Path, scene_dir: Path, frame, info: dict | None = None):
     """(T_twin_gt [4,4] or None, a note): how the scene's ground truth maps into the twin frame. Identity
-    when the twin frame is the scene's (`SAME_FRAME_SOURCES`, not moved into a table frame); else a rigid
-    fit (with scale for an unscaled twin) of the GT objects' centres (their oriented boxes') to the twin's,
-    which needs 3 usable objects; None (no comparison, logged) without them."""
+    when the twin frame is the scene's (`SAME_FRAME_SOURCES`, not moved into a table frame); the inverse of
+    scene.json's robot base when the twin frame is the robot base frame (`ROBOT_FRAME_SOURCES`, metric) and
+    the scene gives the base; else a rigid fit (with scale for an unscaled twin) of the GT objects' centres
+    (their oriented boxes') to the twin's, which needs 3 usable objects; None (no comparison, logged)
+    without them. `info` (filled when given): "placement" (scene_frame, robot_base or centre_fit), and with
+    a known placement the diagnostics of the twin's objects against it: "global_offset_m" (the norm of the
+    mean displacement of the twin's object centres from the placed ground truth's: what a centre fit would
+    hide), "global_offset_xyz_m", "centre_fit_residual_rms_m"."""
     import logging
 
     import numpy as np
@@ -136,12 +166,41 @@ def gt_alignment(man, twin: Path, scene_dir: Path, frame):
     from splattwin.poses.align import umeyama
 
     log = logging.getLogger(__name__)
-    if frame.source in SAME_FRAME_SOURCES and not (frame.up_check or {}).get("moved_to_table_frame"):
-        return np.eye(4), "the twin frame is the scene's"
+    info = {} if info is None else info
     src, tgt = [], []
     for _, mesh, gt in _meshes_with_gt(man, twin, scene_dir):
         src.append(gt.bounding_box_oriented.centroid)
         tgt.append(mesh.bounding_box_oriented.centroid)
+    known, how = None, None
+    if frame.source in SAME_FRAME_SOURCES and not (frame.up_check or {}).get("moved_to_table_frame"):
+        known, how, note = np.eye(4), "scene_frame", "the twin frame is the scene's"
+    elif frame.source in ROBOT_FRAME_SOURCES and frame.scaled:
+        T_world_base = scene_robot_base(scene_dir)
+        if T_world_base is not None:
+            known, how = np.linalg.inv(T_world_base), "robot_base"
+            note = (f"ground truth placed in the twin ({frame.source}: robot base frame) by scene.json's "
+                    f"robot_base.T_world_base (no fit)")
+    if known is not None:
+        info["placement"] = how
+        if src:
+            d = np.asarray(tgt) - (np.c_[np.asarray(src), np.ones(len(src))] @ known.T)[:, :3]
+            off = d.mean(axis=0)
+            info["global_offset_m"] = round(float(np.linalg.norm(off)), 6)
+            info["global_offset_xyz_m"] = [round(float(v), 6) for v in off]
+            info["objects"] = len(src)
+        if how == "robot_base" and len(src) >= 3:
+            try:
+                info["centre_fit_residual_rms_m"] = round(float(umeyama(np.asarray(src), np.asarray(tgt),
+                                                                        with_scale=False).rms), 6)
+            except ValueError:
+                pass
+        if how == "robot_base":
+            if "global_offset_m" in info:
+                note += (f"; the twin's object centres lie {info['global_offset_m'] * 1000:.1f} mm off it on average "
+                         f"(global offset, over {len(src)} objects)")
+            log.info("%s", note)
+        return known, note
+    info["placement"] = "centre_fit"
     if len(src) < 3:
         log.warning("no ground-truth comparison: the twin frame (%s) is not the scene's, and %d usable object(s) "
                     "are too few to align them (3 needed)", frame.source, len(src))
@@ -152,8 +211,10 @@ def gt_alignment(man, twin: Path, scene_dir: Path, frame):
         log.warning("no ground-truth comparison: the twin frame (%s) is not the scene's, and the objects' centres "
                     "cannot align them (%s)", frame.source, e)
         return None, f"twin frame ({frame.source}) not the scene's; objects' centres do not fix an alignment"
+    info["centre_fit_residual_rms_m" if frame.scaled else "centre_fit_residual_rms"] = round(float(fit.rms), 6)
     note = (f"ground truth aligned to the twin ({frame.source} frame) by {len(src)} object centres "
-            f"({'rigid' if frame.scaled else 'similarity'}, residual RMS {fit.rms:.4g})")
+            f"({'rigid' if frame.scaled else 'similarity'}, residual RMS {fit.rms:.4g}); a global offset of the "
+            f"twin is not measured")
     log.info("%s", note)
     return fit.S, note
 
