@@ -407,7 +407,7 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
                     # robot or known poses: nothing else has measured the scene, so the depth's scale (and
                     # the poses' own) is checked against points triangulated with the poses held fixed
                     tri = _triangulate(opts, [f.image_path for f in seed_frames], [f.camera for f in seed_frames],
-                                       stats)
+                                       stats, purpose="the depth-scale check")
                     if tri is not None and not _depth_fits_points(frame, out_frames, tri[0], dataset, stats,
                                                                   points="triangulated"):
                         pts_xyz, pts_rgb = tri
@@ -611,17 +611,21 @@ def _sfm_keys(frames: list[DataFrame]) -> dict[str, str]:
     return {r: _frame_key(f) for r, f in zip(rel, frames)}
 
 
-def _triangulate(opts: PoseOptions, image_paths: list[Path], cameras: list[Camera], stats: dict
-                 ) -> tuple[np.ndarray, np.ndarray] | None:
+def _triangulate(opts: PoseOptions, image_paths: list[Path], cameras: list[Camera], stats: dict,
+                 purpose: str | None = None) -> tuple[np.ndarray, np.ndarray] | None:
     """Sparse points from images with known cameras (poses held fixed), in the cameras' frame; None (and a
-    warning) when nothing can be triangulated."""
+    warning) when nothing can be triangulated. purpose: what the points are for, when only a check (then
+    a failure is logged as info, naming it)."""
     from splattwin.poses.triangulate import triangulate_known_poses
 
     work = Path(opts.work_dir) / "triangulation" if opts.work_dir is not None else None
     try:
         tri = triangulate_known_poses(image_paths, cameras, work, _sfm_options(opts), progress=opts.progress)
     except InputError as e:
-        log.warning("no points from the known poses (%s): training will start from fewer cues", e.problem)
+        if purpose is not None:
+            log.info("no points triangulated from the known poses for %s (%s): not checked", purpose, e.problem)
+        else:
+            log.warning("no points from the known poses (%s): training will start from fewer cues", e.problem)
         stats["triangulation"] = {"error": e.problem}
         return None
     stats["triangulation"] = tri.stats
