@@ -1,7 +1,10 @@
 """`estimate_poses(dataset, PoseOptions) -> PoseResult`: camera poses plus the frame they live in.
 
-Pose sources (in `PoseOptions.method` "auto" order): robot poses + hand-eye (exact, robot base frame),
-poses already in the dataset ("known"), or structure from motion. The frame is then defined by the first
+Pose sources (in `PoseOptions.method` "auto" order): robot poses + hand-eye (robot base frame; checked
+against the photos by `splattwin.poses.hand_eye_check`: with "auto", poses that clearly do not fit them are
+replaced by SfM aligned to the robot poses, recorded as stats["pose_fallback"]), poses already in the dataset
+("known"), or structure from motion. With robot or known poses and depth images but no point cloud, the
+depth's scale is checked against points triangulated with the poses held fixed (`_depth_fits_points`). The frame is then defined by the first
 that applies:
 
 1. SfM + robot poses: Umeyama Sim(3) from SfM centres to robot-derived centres → robot base frame.
@@ -177,6 +180,7 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         raise InputError(f"estimate_poses needs a Dataset (splattwin.capture.load_dataset), got {type(dataset).__name__}")
     if not dataset.frames:
         raise InputError("dataset has no frames", dataset.root)
+    given = dataset  # for the SfM fallback (a fresh run of this function)
     # the caller's frames and meta stay untouched (apply_holdout sets splits in place)
     dataset = dataclasses.replace(dataset, frames=[dataclasses.replace(f) for f in dataset.frames],
                                   meta=dict(dataset.meta))
@@ -233,6 +237,11 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         stats.update(registered=len(in_cams))
         if opts.check_hand_eye:
             _check_hand_eye(robot, opts, stats, cams=in_cams, images={n: f.image_path for f, n in zip(frames, names)})
+            cons = stats["hand_eye_check"].get("pose_consistency") or {}
+            if cons.get("verdict") == "bad" and opts.method == "auto":
+                res = _sfm_fallback(given, opts, stats, cons)
+                if res is not None:
+                    return res
         frame = TwinFrame(source="robot", scaled=True, scale_uncertainty_rel=0.0,
                       description="robot base frame: T_base_cam = T_base_ee @ T_ee_cam (metres)")
         input_scaled = True
@@ -400,6 +409,15 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
             if pts_xyz is None or len(pts_xyz) == 0:
                 pts_xyz, pts_rgb = depth_xyz, depth_rgb
                 points_source = "depth back-projection" if len(depth_xyz) else None
+                if method != "sfm" and opts.triangulate and len(seed_frames) >= 2 and len(depth_xyz):
+                    # robot or known poses: nothing else has measured the scene, so the depth's scale (and
+                    # the poses' own) is checked against points triangulated with the poses held fixed
+                    tri = _triangulate(opts, [f.image_path for f in seed_frames], [f.camera for f in seed_frames],
+                                       stats, purpose="the depth-scale check")
+                    if tri is not None and not _depth_fits_points(frame, out_frames, tri[0], dataset, stats,
+                                                                  points="triangulated"):
+                        pts_xyz, pts_rgb = tri
+                        points_source = "points triangulated from the known poses (the depth disagreed with them)"
             elif len(depth_xyz) and _depth_fits_points(frame, out_frames, pts_xyz, dataset, stats):
                 # SfM (or the dataset's) sparse points in a metric frame: the depth cloud joins them. Alone,
                 # a few hundred SfM points on the objects' textured edges seeded the splats (the table
@@ -489,12 +507,14 @@ def _depth_scale(frames: list[DataFrame], names: list[str], in_cams: dict[str, C
 
 
 def _depth_fits_points(frame: TwinFrame, frames: list[DataFrame], pts_xyz: np.ndarray, dataset: Dataset,
-                       stats: dict, max_views: int = 24) -> bool:
+                       stats: dict, max_views: int = 24, points: str = "sparse") -> bool:
     """Whether the back-projected depth may join the sparse points `pts_xyz` (output frame, metric): their
     scale agrees with the depth images (sensor depth / point depth within 5 %, or 3 x the frame's scale
     uncertainty). A frame scaled by these depth images agrees by construction; a marker, known length, robot
     or the dataset's own points are checked, so that depth in other units or from an unregistered sensor
-    does not put a second, misplaced copy of the scene into the initial cloud."""
+    does not put a second, misplaced copy of the scene into the initial cloud. points: what `pts_xyz` are
+    ("sparse": SfM's or the dataset's; "triangulated": from the images with robot or known poses held fixed,
+    the only check of the depth's scale there)."""
     if frame.source == "table_plane+depth":
         return True
     from splattwin.capture import load_depth
@@ -508,15 +528,60 @@ def _depth_fits_points(frame: TwinFrame, frames: list[DataFrame], pts_xyz: np.nd
     tol = max(0.05, 3.0 * (frame.scale_uncertainty_rel or 0.0))
     if fit is None:
         ok = len(pts_xyz) < 50   # too few sparse points to check: they barely count beside the depth
-        why = f"cannot check the depth against the {len(pts_xyz)} sparse points: {note}"
+        why = f"cannot check the depth against the {len(pts_xyz)} {points} points: {note}"
     else:
         ok = abs(fit.scale - 1.0) <= tol
-        why = f"sensor depth / point depth {fit.scale:.4g} (tolerance {tol:.0%})"
-    stats["depth_fits_points"] = {"ok": bool(ok), "why": why}
+        why = f"sensor depth / {points} point depth {fit.scale:.4g} (tolerance {tol:.0%})"
+    rec = {"ok": bool(ok), "why": why, "points": points, "n_points": int(len(pts_xyz))}
+    if fit is not None:
+        rec["ratio"] = round(float(fit.scale), 5)
+    stats["depth_fits_points"] = rec
     if not ok:
-        log.warning("depth images left out of the initial point cloud (the %d sparse points only): %s",
-                    len(pts_xyz), why)
+        ds = dataset.depth_scale
+        if ds is None and views:
+            from splattwin.capture.dataset import default_depth_scale
+
+            ds = default_depth_scale(views[0].depth_path)
+        hint = ""
+        if fit is not None and ds:
+            hint = (f"; a depth scale of {ds / fit.scale:.4g} m per depth unit instead of {ds:.4g} would make them "
+                    f"agree")
+        log.warning("depth images left out of the initial point cloud (the %d %s points only): %s; check the depth "
+                    "scale (%s m per depth unit: BOP depth_scale, the intrinsics file's depth factor, nerfstudio "
+                    "depth_unit_scale_factor)%s, that the depth is registered to the colour camera%s",
+                    len(pts_xyz), points, why.rstrip("?."), "unknown" if ds is None else f"{ds:.4g}", hint,
+                    ", and the camera poses" if points == "triangulated" else "")
     return ok
+
+
+def _sfm_fallback(dataset: Dataset, opts: PoseOptions, stats: dict, cons: dict) -> PoseResult | None:
+    """`--poses.method auto` with robot poses that clearly do not fit the photos (`hand_eye_check`
+    pose_consistency "bad"): SfM aligned to the robot poses instead (the sfm+robot frame: the photos fix the
+    relative poses, the robot only the metric frame). Its result, recording why (stats["pose_fallback"], the
+    frame's description); None when SfM does not register the images (the robot poses are then kept)."""
+    why = (f"robot poses + hand-eye off the photos' epipolar geometry by a median {cons['sampson_median_px']:.2f} px "
+           f"({cons['sampson_median_mrad']:.1f} mrad > {cons['bad_mrad']:g})")
+    try:
+        res = estimate_poses(dataset, dataclasses.replace(opts, method="sfm"))
+    except InputError as e:
+        log.warning("SfM aligned to the robot poses failed (%s): keeping the robot poses as they are", e.problem)
+        stats["pose_fallback"] = {"from": "robot", "tried": "sfm+robot", "used": False, "why": why,
+                                  "error": e.problem}
+        return None
+    if res.frame.source != "sfm+robot":  # cannot happen with robot poses given; never silently another frame
+        stats["pose_fallback"] = {"from": "robot", "tried": "sfm+robot", "used": False, "why": why,
+                                  "error": f"frame {res.frame.source}"}
+        return None
+    res.stats["pose_fallback"] = {"from": "robot", "to": "sfm+robot", "used": True, "why": why,
+                                  "robot_hand_eye_check": stats.get("hand_eye_check")}
+    res.stats["method_requested"] = "auto"
+    res.frame = dataclasses.replace(res.frame, description=f"{res.frame.description} (automatic fallback from robot "
+                                                           f"poses alone: {why})")
+    um = res.stats.get("umeyama", {})
+    log.warning("poses: SfM aligned to the robot poses (frame sfm+robot) used instead of the robot poses alone: "
+                "%d/%d images registered, Umeyama residual RMS %.1f mm", res.stats.get("registered", 0),
+                res.stats.get("total", 0), 1000.0 * float(um.get("residual_rms_m", float("nan"))))
+    return res
 
 
 def _input_scaled(dataset: Dataset, prior: TwinFrame | None, scale: str) -> bool:
@@ -557,17 +622,21 @@ def _sfm_keys(frames: list[DataFrame]) -> dict[str, str]:
     return {r: _frame_key(f) for r, f in zip(rel, frames)}
 
 
-def _triangulate(opts: PoseOptions, image_paths: list[Path], cameras: list[Camera], stats: dict
-                 ) -> tuple[np.ndarray, np.ndarray] | None:
+def _triangulate(opts: PoseOptions, image_paths: list[Path], cameras: list[Camera], stats: dict,
+                 purpose: str | None = None) -> tuple[np.ndarray, np.ndarray] | None:
     """Sparse points from images with known cameras (poses held fixed), in the cameras' frame; None (and a
-    warning) when nothing can be triangulated."""
+    warning) when nothing can be triangulated. purpose: what the points are for, when only a check (then
+    a failure is logged as info, naming it)."""
     from splattwin.poses.triangulate import triangulate_known_poses
 
     work = Path(opts.work_dir) / "triangulation" if opts.work_dir is not None else None
     try:
         tri = triangulate_known_poses(image_paths, cameras, work, _sfm_options(opts), progress=opts.progress)
     except InputError as e:
-        log.warning("no points from the known poses (%s): training will start from fewer cues", e.problem)
+        if purpose is not None:
+            log.info("no points triangulated from the known poses for %s (%s): not checked", purpose, e.problem)
+        else:
+            log.warning("no points from the known poses (%s): training will start from fewer cues", e.problem)
         stats["triangulation"] = {"error": e.problem}
         return None
     stats["triangulation"] = tri.stats
@@ -655,8 +724,24 @@ def _check_hand_eye(robot: _RobotCameras, opts: PoseOptions, stats: dict, cams: 
         chk = hec.check_with_rotations(keys, T_ee, robot.T_ee_cam, [cams[n].T_world_cam[:3, :3] for n in keys])
     for p in chk.pairs:  # image names, not the frame keys' full paths
         p["a"], p["b"] = Path(p["a"]).name, Path(p["b"]).name
+    for p in (chk.consistency or {}).get("per_pair", []):
+        p["a"], p["b"] = Path(p["a"]).name, Path(p["b"]).name
     stats["hand_eye_check"] = chk.to_dict()
     hec.report(chk, robot.hand_eye_file, inverted_error=lambda msg: InputError(msg, robot.hand_eye_file))
+    cons = chk.consistency
+    if cons is None:
+        if images is not None:
+            log.info("pose consistency not measured: fewer than %d image pairs matched", hec.MIN_PAIRS)
+    elif cons["verdict"] == "ok":
+        log.info("pose consistency: median Sampson error %.2f px (%.2f mrad) of %d image pairs under the robot poses",
+                 cons["sampson_median_px"], cons["sampson_median_mrad"], cons["pairs"])
+    else:
+        then = (None if cons["verdict"] == "warn" else
+                "the robot poses are kept as given (--poses.method robot); remedy: --poses.method sfm with the same "
+                "--robot-poses (SfM aligned to the robot poses)" if opts.method != "auto" else
+                "--poses.method auto: trying SfM aligned to the robot poses instead (--poses.method robot keeps the "
+                "robot poses)")
+        log.warning("%s", hec.consistency_message(cons, robot.hand_eye_file, then))
 
 
 def _robot_cameras(opts: PoseOptions, frames: list[DataFrame], names: list[str], dataset: Dataset) -> _RobotCameras:

@@ -1,30 +1,51 @@
-"""Is the hand-eye T_ee_cam consistent with the photos, or is it the inverse (T_cam_ee) by mistake?
+"""Do the robot poses + hand-eye fit the photos? Two tests on a few matched image pairs.
 
-Robot poses give the end effector's motion between two images, A = T_ee_a^-1 T_ee_b; the photos give the
-camera's, B = T_cam_a^-1 T_cam_b; a right hand-eye X = T_ee_cam satisfies A X = X B, so the rotation
-R_B = R_X^T R_A R_X (the classic AX = XB hand-eye equation). Its inverse X^-1 predicts R_X R_A R_X^T: the
-same rotation angle about another axis. A hand-eye that is mostly a turn about the flange z axis plus a few
-centimetres keeps the optical axes where they were, so `robot.check_eye_in_hand` cannot see the swap; the
-axes of the relative rotations can.
+1. Inversion (rotations only). Robot poses give the end effector's motion between two images,
+A = T_ee_a^-1 T_ee_b; the photos give the camera's, B = T_cam_a^-1 T_cam_b; a right hand-eye X = T_ee_cam
+satisfies A X = X B, so the rotation R_B = R_X^T R_A R_X (the classic AX = XB hand-eye equation). Its inverse
+X^-1 predicts R_X R_A R_X^T: the same rotation angle about another axis. A hand-eye that is mostly a turn about
+the flange z axis plus a few centimetres keeps the optical axes where they were, so `robot.check_eye_in_hand`
+cannot see the swap; the axes of the relative rotations can.
+
+2. Pose consistency (rotation and translation, `consistency`). The Sampson (epipolar) error of each pair's
+essential-matrix inliers under the relative pose the robot poses + hand-eye predict, in px at the matching
+resolution (images at most MAX_SIDE px, so the full size of a 320x240 capture) and in mrad (px / focal
+length). It is measured on near pairs (`neighbour_pairs`: each view with its nearest view in viewing
+direction, as the splats combine them), where per-view pose errors show fully and a hand-eye error in
+proportion to the pair's rotation. Measured on audit 8c's robot capture (320x240, f = 307 px): exact 0.06 px,
+a good calibration (hand-eye 3 mm / 0.5 deg off) 0.27 px, latency (3 mm / 0.3 deg along the motion) 0.26 px,
+focal length 2 % off 0.08 px, a poor calibration (10 mm / 2 deg) 1.11 px, per-view pose noise (3 mm / 0.3 deg
+rms) 1.27 px; the last two lost ~4 dB of held-out PSNR and put objects 1.5-3 cm off. Verdict "warn" above
+WARN_MRAD (0.49 px there), "bad" above BAD_MRAD (0.80 px), either only at >= FLOOR_FACTOR x the matches' own
+error under their own essential matrix (blurred or badly textured photos match less precisely). "bad" with
+`--poses.method auto` makes `estimate_poses` use SfM aligned to the robot poses instead; an explicit
+`--poses.method robot` keeps the robot poses and warns.
 
 The camera's relative rotations are measured
 
 - from the photos (`--robot-poses` alone): SIFT + ratio test, essential matrix (RANSAC, the cameras'
-  intrinsics and distortion) on at most MAX_IMAGE_PAIRS image pairs at most MAX_SIDE px: a second or two;
-- from the SfM model (`--sfm` with robot poses): its cameras' rotations, free and more accurate.
+  intrinsics and distortion) on at most MAX_IMAGE_PAIRS + MAX_CONSISTENCY_PAIRS image pairs at most
+  MAX_SIDE px: a few seconds;
+- from the SfM model (`--sfm` with robot poses): its cameras' rotations, free and more accurate (no pose
+  consistency there: SfM's poses are used, the robot's only for the metric frame).
 
-Only pairs where the two hypotheses predict rotations at least MIN_DISCRIMINATION_DEG apart are used
-(a hand-eye turned by ~0 or 180 degrees about one axis is its own inverse in rotation: nothing to decide),
-with a relative rotation of MIN..MAX_PAIR_ANGLE_DEG (overlap for matching; the ratio of noise to signal).
+For test 1 only pairs where the two hypotheses predict rotations at least MIN_DISCRIMINATION_DEG apart are
+used (a hand-eye turned by ~0 or 180 degrees about one axis is its own inverse in rotation: nothing to
+decide), with a relative rotation of MIN..MAX_PAIR_ANGLE_DEG (overlap for matching; the ratio of noise to
+signal).
 
-Verdicts (median rotation residual over the pairs, degrees):
+Verdicts of test 1 (median rotation residual over the pairs, degrees):
 - "inverted": the inverse fits clearly better (>= MIN_PAIRS pairs, the given one off by >= STRONG_DEG,
   the inverse at most a third of that, and better on >= 75 % of the pairs): the caller stops (InputError),
   since every camera pose, hence the twin and the real-arm files, would be wrong;
 - "inverted?": the inverse fits better but on thin evidence: a warning;
-- "mismatch": the given hand-eye is off by > MISMATCH_DEG and the inverse is no better: a warning (another
-  hand-eye error, wrong intrinsics, images not matching the poses);
-- "consistent", or "undecided" (too few usable pairs), recorded in poses_report.json `hand_eye_check`.
+- "mismatch": the given hand-eye is off by > MISMATCH_DEG and the inverse is no better: a warning. What it
+  can see: gross errors only: a hand-eye rotation about 25 deg or more off, a focal length about x1.6 off, poses
+  of other images. What it cannot see: realistic calibration errors (up to 20 deg of hand-eye rotation error
+  stayed "consistent" in audit 8c), any translation error, per-view pose noise, timing errors: rotations
+  alone are too weak for them; test 2 is the one that catches those;
+- "consistent", or "undecided" (too few usable pairs), recorded in poses_report.json `hand_eye_check`
+  (with test 2 under `pose_consistency`).
 """
 
 from __future__ import annotations
@@ -49,6 +70,12 @@ MIN_INLIERS = 25
 MIN_PAIRS = 3
 STRONG_DEG = 5.0
 MISMATCH_DEG = 10.0
+# pose consistency (Sampson error of the matches under the robot-predicted relative poses)
+MAX_CONSISTENCY_PAIRS = 8    # nearest-neighbour pairs matched for it
+MIN_NEIGHBOUR_ANGLE_DEG = 2.0
+WARN_MRAD = 1.6              # median Sampson error / focal: ~0.5 px at f = 307 px (320 x 240)
+BAD_MRAD = 2.6               # ~0.8 px there: "clearly bad" (auto: SfM aligned to the robot poses instead)
+FLOOR_FACTOR = 3.0           # and at least this many times the matches' own noise floor
 
 
 @dataclass
@@ -58,11 +85,17 @@ class HandEyeCheck:
     pairs: list[dict] = field(default_factory=list)  # a, b, residual_deg, inverse_residual_deg[, inliers]
     residual_deg: float | None = None           # median over the pairs, the hand-eye as given
     inverse_residual_deg: float | None = None   # the same for its inverse
+    consistency: dict | None = None   # `consistency()`: Sampson error under the robot-predicted poses (images)
 
     def to_dict(self) -> dict:
         return {"verdict": self.verdict, "source": self.source, "pairs": len(self.pairs),
                 "residual_median_deg": self.residual_deg, "inverse_residual_median_deg": self.inverse_residual_deg,
-                "per_pair": self.pairs}
+                "per_pair": self.pairs, **({"pose_consistency": self.consistency} if self.consistency else {})}
+
+    @property
+    def poses_verdict(self) -> str | None:
+        """ok | warn | bad from the pose consistency, None when not measured."""
+        return None if not self.consistency else self.consistency.get("verdict")
 
     def describe(self) -> str:
         if self.residual_deg is None:
@@ -115,6 +148,51 @@ def choose_pairs(T_base_ee: Sequence[np.ndarray], R_ee_cam: np.ndarray, max_pair
     return out
 
 
+def neighbour_pairs(T_base_cam: Sequence[np.ndarray], max_pairs: int = MAX_CONSISTENCY_PAIRS) -> list[tuple[int, int]]:
+    """Each view with the view nearest to it in viewing direction (>= MIN_NEIGHBOUR_ANGLE_DEG, <=
+    MAX_PAIR_ANGLE_DEG apart: overlapping views, as the splats see them), deduplicated, up to `max_pairs` spread
+    evenly over the capture. The pose consistency is measured on these: a per-view pose error shows in every
+    pair, a hand-eye error in proportion to the pair's rotation, so near pairs keep a good calibration quiet."""
+    n = len(T_base_cam)
+    views = np.unique(np.linspace(0, n - 1, min(n, MAX_CANDIDATE_VIEWS)).round().astype(int))
+    out: list[tuple[int, int]] = []
+    for i in views:
+        best = None
+        for j in views:
+            if j == i:
+                continue
+            ang = rotation_angle_deg(T_base_cam[i][:3, :3].T @ T_base_cam[j][:3, :3])
+            if MIN_NEIGHBOUR_ANGLE_DEG <= ang <= MAX_PAIR_ANGLE_DEG and (best is None or ang < best[0]):
+                best = (ang, int(j))
+        if best is not None:
+            p = (min(int(i), best[1]), max(int(i), best[1]))
+            if p not in out:
+                out.append(p)
+    if len(out) > max_pairs:
+        out = [out[k] for k in np.unique(np.linspace(0, len(out) - 1, max_pairs).round().astype(int))]
+    return out
+
+
+def consistency(rows: list[dict], size: tuple[int, int] | None) -> dict | None:
+    """The pose-consistency score of pairs with sampson_px / sampson_floor_px / focal_px: median over the pairs
+    (px at the matching resolution `size`, and mrad = px / focal) and its verdict: "bad" above BAD_MRAD, "warn"
+    above WARN_MRAD (both only when >= FLOOR_FACTOR x the matches' own noise floor), else "ok"; None without
+    MIN_PAIRS pairs."""
+    if len(rows) < MIN_PAIRS:
+        return None
+    px = float(np.median([r["sampson_px"] for r in rows]))
+    floor = float(np.median([r["sampson_floor_px"] for r in rows]))
+    f = float(np.median([r["focal_px"] for r in rows]))
+    mrad = 1000.0 * px / f
+    above_floor = px >= FLOOR_FACTOR * floor
+    verdict = "bad" if mrad > BAD_MRAD and above_floor else "warn" if mrad > WARN_MRAD and above_floor else "ok"
+    return {"verdict": verdict, "sampson_median_px": round(px, 3), "sampson_floor_px": round(floor, 3),
+            "sampson_median_mrad": round(mrad, 3), "focal_px": round(f, 2),
+            "matching_size": list(size) if size else None, "warn_mrad": WARN_MRAD, "bad_mrad": BAD_MRAD,
+            "warn_px": round(WARN_MRAD * f / 1000.0, 3), "bad_px": round(BAD_MRAD * f / 1000.0, 3),
+            "pairs": len(rows), "per_pair": rows}
+
+
 def _gray_small(path: Path, max_side: int) -> tuple[np.ndarray, float]:
     import cv2
 
@@ -139,9 +217,39 @@ def _normalised_points(uv: np.ndarray, cam, sx: float, sy: float) -> np.ndarray:
     return cv2.undistortPoints(uv.reshape(-1, 1, 2).astype(np.float64), K, dist).reshape(-1, 2)
 
 
-def measure_relative_rotation(path_a: Path, path_b: Path, cam_a, cam_b, max_side: int = MAX_SIDE,
-                              cache: dict | None = None) -> tuple[np.ndarray, int] | None:
-    """(R_cam_a^T R_cam_b, inliers) from the two photos (SIFT, essential matrix, cheirality), or None."""
+@dataclass
+class PairMeasure:
+    """One matched image pair: R = R_cam_a^T R_cam_b from the photos, the essential-matrix inliers in
+    normalised camera coordinates (xa, xb [N,2]), the focal length f (px) and size (w, h) of the images at the
+    matching resolution, and the inliers' median Sampson error (px there) under the photos' own essential
+    matrix: the noise floor of the matching."""
+
+    R: np.ndarray
+    inliers: int
+    xa: np.ndarray
+    xb: np.ndarray
+    f: float
+    size: tuple[int, int]
+    floor_px: float
+
+
+def sampson_px(xa: np.ndarray, xb: np.ndarray, R_ba: np.ndarray, t_ba: np.ndarray, f: float) -> np.ndarray:
+    """Sampson (first-order geometric) epipolar error, in px of focal length `f`, of normalised matches
+    xa <-> xb [N,2] under the relative pose x_b = R_ba x_a + t_ba (E = [t]x R; the scale of t does not matter)."""
+    t = np.asarray(t_ba, dtype=np.float64)
+    E = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]]) @ np.asarray(R_ba, dtype=np.float64)
+    a = np.c_[xa, np.ones(len(xa))]
+    b = np.c_[xb, np.ones(len(xb))]
+    Ea, Eb = a @ E.T, b @ E
+    num = np.sum(b * Ea, axis=1) ** 2
+    den = Ea[:, 0] ** 2 + Ea[:, 1] ** 2 + Eb[:, 0] ** 2 + Eb[:, 1] ** 2
+    return np.sqrt(num / np.maximum(den, 1e-300)) * f
+
+
+def measure_pair(path_a: Path, path_b: Path, cam_a, cam_b, max_side: int = MAX_SIDE,
+                 cache: dict | None = None) -> PairMeasure | None:
+    """The relative rotation and the essential-matrix inliers of two photos (SIFT, ratio test, essential matrix
+    with RANSAC and the cameras' intrinsics, cheirality), or None when they do not match well enough."""
     import cv2
 
     cache = {} if cache is None else cache
@@ -152,9 +260,10 @@ def measure_relative_rotation(path_a: Path, path_b: Path, cam_a, cam_b, max_side
             g, s = _gray_small(p, max_side)
             kp, des = sift.detectAndCompute(g, None)
             sx, sy = g.shape[1] / cam.width, g.shape[0] / cam.height
-            cache[p] = (np.array([k.pt for k in kp], dtype=np.float64).reshape(-1, 2), des, sx, sy)
+            cache[p] = (np.array([k.pt for k in kp], dtype=np.float64).reshape(-1, 2), des, sx, sy,
+                        (int(g.shape[1]), int(g.shape[0])))
         feats.append(cache[p])
-    (ua, da, sxa, sya), (ub, db, sxb, syb) = feats
+    (ua, da, sxa, sya, size), (ub, db, sxb, syb, _) = feats
     if da is None or db is None or len(ua) < MIN_INLIERS or len(ub) < MIN_INLIERS:
         return None
     knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(da, db, k=2)
@@ -167,11 +276,21 @@ def measure_relative_rotation(path_a: Path, path_b: Path, cam_a, cam_b, max_side
     E, mask = cv2.findEssentialMat(xa, xb, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=1.0 / f)
     if E is None or E.shape != (3, 3):
         return None
-    n, R, _t, mask2 = cv2.recoverPose(E, xa, xb, np.eye(3), mask=mask)
+    n, R, t, mask2 = cv2.recoverPose(E, xa, xb, np.eye(3), mask=mask)
     if n < MIN_INLIERS:
         return None
+    keep = mask2.ravel() > 0
+    xa, xb = xa[keep], xb[keep]
+    floor = float(np.median(sampson_px(xa, xb, R, t.ravel(), f)))
     # OpenCV: x_b = R x_a + t, i.e. R = R_cam_b^T R_cam_a
-    return R.T, int(n)
+    return PairMeasure(R.T, int(n), xa, xb, float(f), size, floor)
+
+
+def measure_relative_rotation(path_a: Path, path_b: Path, cam_a, cam_b, max_side: int = MAX_SIDE,
+                              cache: dict | None = None) -> tuple[np.ndarray, int] | None:
+    """(R_cam_a^T R_cam_b, inliers) from the two photos (`measure_pair`), or None."""
+    m = measure_pair(path_a, path_b, cam_a, cam_b, max_side, cache)
+    return None if m is None else (m.R, m.inliers)
 
 
 def evaluate(pairs: list[dict]) -> HandEyeCheck:
@@ -205,25 +324,48 @@ def _pair_row(a: str, b: str, R_meas: np.ndarray, T_a: np.ndarray, T_b: np.ndarr
 
 def check_with_images(names: list[str], T_base_ee: list[np.ndarray], T_ee_cam: np.ndarray,
                       image_paths: list[Path], cameras: list, max_pairs: int = MAX_IMAGE_PAIRS) -> HandEyeCheck:
-    """Relative rotations measured from up to `max_pairs` photo pairs against the robot's predictions."""
+    """Relative rotations measured from up to `max_pairs` photo pairs against the robot's predictions, and
+    the matches' Sampson error under the relative poses (rotation and translation) the robot predicts."""
     R = T_ee_cam[:3, :3]
     rows = []
     cache: dict = {}
+    size = None
     # a few spare pairs in case some do not match
     for i, j in choose_pairs(T_base_ee, R, 3 * max_pairs):
         if len(rows) >= max_pairs:
             break
         try:
-            m = measure_relative_rotation(Path(image_paths[i]), Path(image_paths[j]), cameras[i], cameras[j],
-                                          cache=cache)
+            m = measure_pair(Path(image_paths[i]), Path(image_paths[j]), cameras[i], cameras[j], cache=cache)
         except Exception as e:  # an unreadable image is someone else's error to report; no verdict from it
             log.debug("hand-eye check: pair %s, %s not measured: %s", names[i], names[j], e)
             m = None
         if m is None:
             continue
-        rows.append(_pair_row(names[i], names[j], m[0], T_base_ee[i], T_base_ee[j], R, "images", inliers=m[1]))
+        T_ba = np.linalg.inv(T_base_ee[j] @ T_ee_cam) @ (T_base_ee[i] @ T_ee_cam)  # camera a -> camera b
+        err = float(np.median(sampson_px(m.xa, m.xb, T_ba[:3, :3], T_ba[:3, 3], m.f)))
+        size = size or m.size
+        rows.append(_pair_row(names[i], names[j], m.R, T_base_ee[i], T_base_ee[j], R, "images", inliers=m.inliers,
+                              sampson_px=round(err, 3), sampson_floor_px=round(m.floor_px, 3),
+                              focal_px=round(m.f, 2)))
     res = evaluate(rows)
     res.source = "images"
+    # pose consistency: near pairs (see neighbour_pairs), matched with the same feature cache
+    T_cam = [T @ T_ee_cam for T in T_base_ee]
+    crow = []
+    for i, j in neighbour_pairs(T_cam):
+        try:
+            m = measure_pair(Path(image_paths[i]), Path(image_paths[j]), cameras[i], cameras[j], cache=cache)
+        except Exception as e:
+            log.debug("pose consistency: pair %s, %s not measured: %s", names[i], names[j], e)
+            m = None
+        if m is None:
+            continue
+        T_ba = np.linalg.inv(T_cam[j]) @ T_cam[i]  # camera a -> camera b: x_b = R x_a + t
+        size = size or m.size
+        crow.append({"a": names[i], "b": names[j], "inliers": m.inliers,
+                     "sampson_px": round(float(np.median(sampson_px(m.xa, m.xb, T_ba[:3, :3], T_ba[:3, 3], m.f))), 3),
+                     "sampson_floor_px": round(m.floor_px, 3), "focal_px": round(m.f, 2)})
+    res.consistency = consistency(crow, size)
     return res
 
 
@@ -260,3 +402,23 @@ def report(chk: HandEyeCheck, where: Path | None, stop: bool = True,
     else:
         log.info("hand-eye check undecided: %s (needs pairs whose relative rotation tells the hand-eye from its "
                  "inverse)", what)
+
+
+def consistency_message(c: dict, where: Path | str | None = None, then: str | None = None) -> str:
+    """What the pose-consistency score says, for a warning (see `consistency`); `then`: what happens next
+    (default: the remedy)."""
+    w, h = c.get("matching_size") or (None, None)
+    at = f"{w}x{h} px matching resolution" if w else "the matching resolution"
+    deg = c["sampson_median_mrad"] * 0.18 / np.pi
+    then = then or ("remedy: --poses.method sfm with the same --robot-poses (SfM aligned to the robot poses: the "
+                    "photos fix the relative poses, the robot the metric frame)")
+    return (f"the robot poses do not fit the photos: matched features of {c['pairs']} neighbouring image pairs lie a "
+            f"median {c['sampson_median_px']:.2f} px ({at}; {c['sampson_median_mrad']:.1f} mrad, ~{deg:.2f} deg) off "
+            f"the epipolar lines the robot poses + hand-eye predict (the matches' own noise floor "
+            f"{c['sampson_floor_px']:.2f} px; a good hand-eye calibration, ~3 mm / 0.5 deg, gives ~0.9 mrad; warning "
+            f"above {c['warn_mrad']:g} mrad = {c['warn_px']:.2f} px here): the cameras are off by more than about "
+            f"5 mm / 1 deg of hand-eye error or 1 mm / 0.1 deg per view, which blurs the splats and misplaces the "
+            f"objects by centimetres. Likely causes: the hand-eye calibration{f' ({where})' if where else ''} "
+            f"(re-calibrate, e.g. OpenCV calibrateHandEye with more, more varied poses), pose timestamps (joint "
+            f"states read while the arm still moved: capture at standstill, or match the image times), or the "
+            f"intrinsics (calibrate the camera). {then[0].upper()}{then[1:]}")

@@ -91,7 +91,9 @@ class PoseOptions:
                                       "or away from the scene); they are reported and count as unregistered")
     check_hand_eye: bool = option(True, "robot poses: check the hand-eye against the camera motion in the photos "
                                   "(a few image pairs) or the SfM model, and stop when its inverse (T_cam_ee given "
-                                  "for T_ee_cam) fits clearly better", hashed=False)
+                                  "for T_ee_cam) fits clearly better; score how well the robot poses fit the photos "
+                                  "(Sampson error) and, with method auto, use SfM aligned to the robot poses when "
+                                  "they clearly do not")
     num_threads: int = option(0, "CPU threads for SfM (0: all cores)", aliases=("threads",), hashed=False)
     depth_points: bool = option(True, "back-project depth images (RGB-D) into the initial point cloud when the "
                                 "frame is metric")
