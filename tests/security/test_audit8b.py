@@ -52,6 +52,18 @@ def test_root_body_that_is_no_frame_id_is_refused_as_base_frame(root):
     assert export_names(None, ["j1"], "link0", default_model=False).base_frame == "link0"
 
 
+@pytest.mark.parametrize("joint", ["j2\nevil: 1", "j2: [1]", "2j", "j 2", ""])
+def test_mjcf_joint_names_that_are_no_ros_names_are_refused_with_the_model_naming(joint):
+    """With --joint-names model the MJCF's own joint names go into the trajectory files and goals: a name
+    from a file, held to the ROS name tokens a --joint-names list is held to."""
+    from splattwin.robot.export import export_names
+
+    with pytest.raises(InputError, match="--joint-names with 2 names"):
+        export_names("model", ["j1", joint], "link0", default_model=False)
+    assert export_names("a1,a2", ["j1", joint], "link0", default_model=False).joint_names == ("a1", "a2")
+    assert export_names("model", ["j1", "j_2"], "link0", default_model=False).joint_names == ("j1", "j_2")
+
+
 def test_base_frame_writers_refuse_and_quote_what_is_no_frame_id(tmp_path):
     from splattwin.robot.export import static_transform_args, write_base_transform
 

@@ -149,6 +149,13 @@ def export_names(naming: str | None, arm_joints: list[str], root_body: str, defa
                          f"with single '/', not {TWIN_FRAME!r}); give --base-frame")
     n = len(arm_joints)
     if naming == MODEL_NAMING:
+        bad = [j for j in arm_joints if not (isinstance(j, str) and _ROS_NAME.match(j))]
+        if bad:
+            # names from a file, written into the trajectory YAML/CSV/JSON and the FollowJointTrajectory
+            # goals: ROS name tokens only, as a --joint-names list must be
+            raise InputError(f"the robot MJCF's joint name {str(bad[0])[:80]!r} cannot name a joint in the exported "
+                             f"files (a ROS name: letters, digits and '_', not starting with a digit); give "
+                             f"--joint-names with {n} names")
         return ExportNames(tuple(arm_joints), base_frame or root_body, naming)
     if naming in JOINT_NAMINGS:
         prefix, base = JOINT_NAMINGS[naming]
