@@ -274,3 +274,23 @@ def test_add_scene_goal_refuses_scene_json_that_is_no_object(tmp_path):
         with pytest.raises(InputError, match="JSON object") as e:
             add_scene_goal(twin, scene)
         assert "scene.json" in str(e.value)
+
+
+def test_poses_report_read_for_the_init_log_is_bounded(tmp_path, monkeypatch):
+    """The splat init log names the points' source from the twin's poses_report.json: a file from elsewhere,
+    read within the record bound (too large, or malformed: the source is just unknown)."""
+    import types
+
+    import splattwin.limits as limits
+    from splattwin.splat.init import poses_points_source
+
+    rep = tmp_path / "poses_report.json"
+    rep.write_text('{"points_source": "depth back-projection", "pad": "' + "x" * 4096 + '"}')
+    ds = types.SimpleNamespace(meta={"path": str(tmp_path / "transforms.json")}, root=tmp_path)
+    (tmp_path / "transforms.json").write_text("{}")
+    assert poses_points_source(ds) == "depth back-projection"
+    monkeypatch.setattr(limits, "MAX_RECORD_BYTES", 1024)
+    assert poses_points_source(ds) is None
+    monkeypatch.undo()
+    rep.write_text("[1, 2")
+    assert poses_points_source(ds) is None

@@ -322,14 +322,16 @@ def initial_gaussians(method: str, train_frames: Sequence[Frame], points_xyz: np
 def poses_points_source(dataset) -> str | None:
     """What made a posed dataset's point cloud, from the poses_report.json beside it (`points_source`; for
     reports written before it, read from `initial_points` / `depth_points`); None when not known."""
-    import json
     from pathlib import Path
+
+    from splattwin.errors import InputError
+    from splattwin.limits import MAX_RECORD_BYTES, read_json
 
     p = Path(dataset.meta.get("path", dataset.root))
     rep = (p.parent if p.is_file() else p) / "poses_report.json"
-    try:
-        stats = json.loads(rep.read_text())
-    except (OSError, ValueError):
+    try:   # a file of the twin (untrusted): bounded; only a log line depends on it, so any fault is "unknown"
+        stats = read_json(rep, max_bytes=MAX_RECORD_BYTES)
+    except (InputError, OSError):
         return None
     if not isinstance(stats, dict):
         return None
