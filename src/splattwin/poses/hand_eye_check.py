@@ -207,14 +207,12 @@ def _gray_small(path: Path, max_side: int) -> tuple[np.ndarray, float]:
 
 
 def _normalised_points(uv: np.ndarray, cam, sx: float, sy: float) -> np.ndarray:
-    """Pixel coordinates of the (resized) image -> normalised, undistorted camera coordinates [N,2]."""
-    import cv2
+    """Pixel coordinates of the (resized by sx, sy) image -> normalised, undistorted camera coordinates [N,2]
+    (`capture.undistort.rays_through` on the full-size camera)."""
+    from splattwin.capture.undistort import rays_through
 
-    K = np.array(cam.K, dtype=np.float64).copy()
-    K[0] *= sx
-    K[1] *= sy
-    dist = None if cam.dist is None else np.asarray(cam.dist, dtype=np.float64)
-    return cv2.undistortPoints(uv.reshape(-1, 1, 2).astype(np.float64), K, dist).reshape(-1, 2)
+    x, y = rays_through(cam, uv[:, 0] / sx, uv[:, 1] / sy)
+    return np.stack([x, y], axis=-1)
 
 
 @dataclass
