@@ -157,6 +157,22 @@ def test_prompt_labels_reads_a_valid_scene_json_as_before(tmp_path):
     assert prompt_labels(ds, "red ball") is None
 
 
+@pytest.mark.parametrize("label", ["2", 2.0, True])
+def test_scene_json_labels_are_held_to_the_projects_integer_check(tmp_path, label):
+    """int() takes "2", 2.0 and True; the project's integer check (`masks._whole`) refuses them, and both
+    readers of scene.json (prompt_labels' and scene_objects) now agree on it, naming the file."""
+    from splattwin.semantics.lift import prompt_labels
+    from splattwin.semantics.masks import scene_objects
+
+    (tmp_path / "scene.json").write_text(json.dumps({"objects": [
+        {"name": "blue_box", "label": label, "prompt": "blue box"}]}))
+    ds = SimpleNamespace(meta={"label_objects": {"blue_box": 2}}, root=tmp_path)
+    for read in (lambda: prompt_labels(ds, "blue box"), lambda: scene_objects(tmp_path)):
+        with pytest.raises(InputError, match="label of object 'blue_box' must be a whole number") as e:
+            read()
+        assert "scene.json" in str(e.value)
+
+
 # -- F5: a capture of symbolic links, saved without bundling ------------------------------------------
 def test_linked_files_outside_the_folder_count_as_outside(tmp_path):
     from splattwin.capture import nerfstudio

@@ -66,9 +66,10 @@ def prompt_labels(dataset, prompt: str, folder: str | Path | None = None) -> dic
 def _scene_prompts(meta, objs: dict[str, int], where: Path) -> dict[str, int]:
     """prompt (or name), lower case -> label of scene.json's objects named in `objs`; InputError naming
     scene.json when it is not an object with an `objects` list, or an object's label is not an id in
-    [1, MAX_LABEL_ID] (the objects may come from transforms.json, so `scene_objects` has not read the file)."""
+    [1, MAX_LABEL_ID] (a JSON integer: "2" and 2.0 are refused, as everywhere labels are read; the objects may
+    come from transforms.json, so `scene_objects` has not read the file)."""
     from splattwin.errors import short_repr
-    from splattwin.semantics.masks import MAX_LABEL_ID
+    from splattwin.semantics.masks import MAX_LABEL_ID, _whole
 
     if not isinstance(meta, dict):
         raise InputError(f"scene.json must hold a JSON object, got {type(meta).__name__}", where)
@@ -79,13 +80,8 @@ def _scene_prompts(meta, objs: dict[str, int], where: Path) -> dict[str, int]:
     for o in objects:
         if not (isinstance(o, dict) and isinstance(o.get("name"), str) and o["name"] in objs and "label" in o):
             continue
-        try:
-            label = int(o["label"])
-        except (TypeError, ValueError, OverflowError):
-            label = None
-        if label is None or not 1 <= label <= MAX_LABEL_ID:
-            raise InputError(f"object {short_repr(o['name'])}: label must be an integer in [1, {MAX_LABEL_ID}], "
-                             f"got {short_repr(o['label'])}", where)
+        # the project's one integer check (as the masks' index.json labels): "2", 2.0 and True are refused
+        label = _whole(o["label"], where, f"scene.json label of object {short_repr(o['name'])}", 1, MAX_LABEL_ID)
         labels[str(o.get("prompt", o["name"])).lower()] = label
     return labels
 

@@ -814,8 +814,10 @@ def scene_objects(scene_dir: str | Path) -> dict[str, int]:
     where = Path(scene_dir) / "scene.json"
     meta = io.read_json(where)
     try:
-        out = {object_name(o["name"], where): int(o["label"]) for o in meta["objects"]
-               if int(o["label"]) > 0 and o["name"] != "table"}
+        # labels held to `_whole` as `lift._scene_prompts` holds them: the two readers of scene.json agree
+        out = {object_name(o["name"], where): label for o in meta["objects"]
+               if (label := _whole(o["label"], where, f"scene.json label of object {short_repr(o['name'])}",
+                                   0, MAX_LABEL_ID)) > 0 and o["name"] != "table"}
     except (KeyError, TypeError, ValueError, AttributeError) as e:
         raise InputError(f"malformed scene.json objects: {e}", where) from e
     check_unique(out, where)
