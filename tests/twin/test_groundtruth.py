@@ -155,3 +155,50 @@ def test_robot_frame_twin_places_the_ground_truth_by_the_known_base(scene_small,
     from splattwin.pipeline.cli import _gt_placement   # the build summary's geometry line says which placement
 
     assert "robot base" in _gt_placement(twin / "twin.json") and "25.0 mm off" in _gt_placement(twin / "twin.json")
+
+
+def test_twin_stage_loads_each_ground_truth_mesh_once(scene_small, tmp_path, monkeypatch):
+    """The twin stage placed the ground truth (`gt_alignment`) and then scored the meshes (`write_fidelity`),
+    loading every visual and GT mesh twice. They are now loaded once and passed on; the figures are those
+    the two calls give on their own."""
+    import json
+
+    import numpy as np
+
+    import splattwin.meshio
+    import splattwin.twin.build
+    from splattwin import limits
+    from splattwin.poses import twin_frame
+    from splattwin.poses.twin_frame import TwinFrame
+    from splattwin.splat.gaussians import Gaussians
+    from splattwin.twin.groundtruth import twin_from_scene
+    from splattwin.twin.options import TwinOptions
+    from splattwin.twin.stage import TwinInputs, gt_alignment, run, write_fidelity
+
+    twin = tmp_path / "twin"
+    twin_from_scene(scene_small, twin)
+    # what the twin stage would read and build: stood in for by the ground-truth twin (the stage's tail,
+    # the ground-truth comparison, is what is measured)
+    (twin / "objects.json").write_text("[]")
+    frame = TwinFrame(source="known_poses", scaled=True)
+    monkeypatch.setattr(Gaussians, "load_ply", staticmethod(lambda p: None))
+    monkeypatch.setattr(limits, "load_npy", lambda *a, **k: None)
+    monkeypatch.setattr(twin_frame, "load_frame", lambda p: frame)
+    monkeypatch.setattr(splattwin.twin.build, "build_twin", lambda *a, **k: Manifest.load(twin))
+    loads = []
+    real_load = splattwin.meshio.load_mesh
+    monkeypatch.setattr(splattwin.meshio, "load_mesh", lambda p, *a, **k: loads.append(Path(p).name) or real_load(p, *a, **k))
+
+    n_objects = sum(o.usable and bool(o.visual_mesh) for o in Manifest.load(twin).objects)
+    result = run(TwinInputs(splats=twin / "s.ply", labels=twin / "l.npy", objects=twin / "objects.json",
+                            frame=twin / "frame.json", twin_dir=twin, scene_dir=scene_small), TwinOptions(),
+                 progress=False)
+    assert n_objects >= 3 and len(loads) == 2 * n_objects        # a visual and a GT mesh per object, once
+    # the same figures as the two steps loading for themselves
+    man = Manifest.load(twin)
+    T, _ = gt_alignment(man, twin, scene_small, frame)
+    np.testing.assert_array_equal(T, np.eye(4))
+    got = json.loads(result.fidelity.read_text())
+    alone = json.loads(write_fidelity(tmp_path / "twin", scene_small, TwinOptions().geometry.f1_threshold, T)
+                       .read_text())
+    assert got == alone and set(got) and all(r["f1"] > 0.99 for r in got.values())

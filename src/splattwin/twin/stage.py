@@ -54,7 +54,10 @@ def run(inputs: TwinInputs, options: TwinOptions, *, progress: bool = True) -> T
                      formats=options.export.resolve("export.formats"), progress=progress, masks=inputs.masks,
                      export_options=options.export, splats_path=inputs.splats,
                      refined_poses=inputs.refined_poses)
-    T_twin_gt = _scene_facts(man, twin, inputs.scene_dir, frame)
+    # the objects' meshes and the scene's GT meshes, loaded once: the alignment and the fidelity both use them
+    gt_pairs = (list(_meshes_with_gt(man, twin, inputs.scene_dir)) if _read_scene(inputs.scene_dir) is not None
+                else None)
+    T_twin_gt = _scene_facts(man, twin, inputs.scene_dir, frame, pairs=gt_pairs)
     if inputs.config:
         man.config["build"] = inputs.config
     man.splats = man.splats or twin_relative(inputs.splats, twin)
@@ -62,19 +65,20 @@ def run(inputs: TwinInputs, options: TwinOptions, *, progress: bool = True) -> T
     man.save(twin)
     fidelity = None
     if T_twin_gt is not None:
-        fidelity = write_fidelity(twin, inputs.scene_dir, options.geometry.f1_threshold, T_twin_gt)
+        fidelity = write_fidelity(twin, inputs.scene_dir, options.geometry.f1_threshold, T_twin_gt, pairs=gt_pairs)
     return TwinResult(manifest=twin / "twin.json", fidelity=fidelity)
 
 
-def _scene_facts(man, twin: Path, scene_dir: Path | None, frame):
+def _scene_facts(man, twin: Path, scene_dir: Path | None, frame, pairs: list | None = None):
     """With an embedded scene's ground truth: the alignment note and the scene's goal region
-    (`config.target_frame`, in the twin frame) into `man` (not saved); returns T_twin_gt or None."""
+    (`config.target_frame`, in the twin frame) into `man` (not saved); returns T_twin_gt or None.
+    pairs: `_meshes_with_gt`'s meshes when already loaded (else loaded here)."""
 
     scene = _read_scene(scene_dir)
     if scene is None:
         return None
     info: dict = {}
-    T_twin_gt, gt_note = gt_alignment(man, twin, scene_dir, frame, info=info)
+    T_twin_gt, gt_note = gt_alignment(man, twin, scene_dir, frame, info=info, pairs=pairs)
     man.config["ground_truth"] = {"alignment": gt_note, **info}
     if scene.get("target_frame") and T_twin_gt is not None:  # a scene fact the robot task needs (its goal)
         man.config["target_frame"] = _moved_region(scene["target_frame"], T_twin_gt)
@@ -149,7 +153,7 @@ def scene_robot_base(scene_dir: Path):
     return T
 
 
-def gt_alignment(man, twin: Path, scene_dir: Path, frame, info: dict | None = None):
+def gt_alignment(man, twin: Path, scene_dir: Path, frame, info: dict | None = None, pairs: list | None = None):
     """(T_twin_gt [4,4] or None, a note): how the scene's ground truth maps into the twin frame. Identity
     when the twin frame is the scene's (`SAME_FRAME_SOURCES`, not moved into a table frame); the inverse of
     scene.json's robot base when the twin frame is the robot base frame (`ROBOT_FRAME_SOURCES`, metric) and
@@ -158,7 +162,8 @@ def gt_alignment(man, twin: Path, scene_dir: Path, frame, info: dict | None = No
     without them. `info` (filled when given): "placement" (scene_frame, robot_base or centre_fit), and with
     a known placement the diagnostics of the twin's objects against it: "global_offset_m" (the norm of the
     mean displacement of the twin's object centres from the placed ground truth's: what a centre fit would
-    hide), "global_offset_xyz_m", "centre_fit_residual_rms_m"."""
+    hide), "global_offset_xyz_m", "centre_fit_residual_rms_m". pairs: `_meshes_with_gt(man, twin, scene_dir)`
+    when the caller has loaded them (the twin stage, which scores the same meshes next); else loaded here."""
     import logging
 
     import numpy as np
@@ -168,7 +173,7 @@ def gt_alignment(man, twin: Path, scene_dir: Path, frame, info: dict | None = No
     log = logging.getLogger(__name__)
     info = {} if info is None else info
     src, tgt = [], []
-    for _, mesh, gt in _meshes_with_gt(man, twin, scene_dir):
+    for _, mesh, gt in (_meshes_with_gt(man, twin, scene_dir) if pairs is None else pairs):
         src.append(gt.bounding_box_oriented.centroid)
         tgt.append(mesh.bounding_box_oriented.centroid)
     known, how = None, None
@@ -262,17 +267,21 @@ def twin_relative(path: Path, twin: Path) -> str:
     return Path(path).resolve().relative_to(Path(twin).resolve()).as_posix()
 
 
-def write_fidelity(twin: Path, scene_dir: Path, threshold: float, T_twin_gt=None) -> Path:
+def write_fidelity(twin: Path, scene_dir: Path, threshold: float, T_twin_gt=None, pairs: list | None = None) -> Path:
     """TWIN/geometry_metrics.json: Chamfer / precision / recall / F1 @threshold of each usable object's
     visual mesh (placed by its pose) vs the scene's GT mesh (scene_dir/meshes/<name>.ply), brought into the
-    twin frame by T_twin_gt (`gt_alignment`; identity when the frames are one)."""
+    twin frame by T_twin_gt (`gt_alignment`; identity when the frames are one). pairs: the meshes
+    `_meshes_with_gt` gave `gt_alignment` for this twin (not modified here), else they are loaded."""
     from splattwin import io
     from splattwin.geometry.metrics import mesh_fidelity
     from splattwin.twin.manifest import Manifest
 
     meshes, gt = {}, {}
-    for name, mesh, gt_mesh in _meshes_with_gt(Manifest.load(twin), twin, scene_dir):
+    if pairs is None:
+        pairs = _meshes_with_gt(Manifest.load(twin), twin, scene_dir)
+    for name, mesh, gt_mesh in pairs:
         meshes[name] = mesh
-        gt[name] = gt_mesh if T_twin_gt is None else gt_mesh.apply_transform(T_twin_gt)
+        # a copy is moved: the caller's meshes stay as loaded
+        gt[name] = gt_mesh if T_twin_gt is None else gt_mesh.copy().apply_transform(T_twin_gt)
     rows = {k: mesh_fidelity(m, gt[k], threshold=threshold).to_dict() for k, m in meshes.items()}
     return io.write_json(twin / "geometry_metrics.json", rows)
