@@ -30,11 +30,7 @@ def _dataset(tmp_path):
     spec.loader.exec_module(h)
     root = h.make_dataset(tmp_path / "ds", n_train=3, n_heldout=1)
     ds = load_dataset(root)
-    ms = MaskSet()
-    for f in ds.frames:
-        m = np.zeros((f.camera.height, f.camera.width), bool)
-        m[: f.camera.height // 2] = True
-        ms.add(f.name, 1, m, name="thing")
+    ms = h.half_image_masks(ds.frames)
     return root, ds, ms, h.gt_gaussians()
 
 

@@ -111,11 +111,7 @@ def test_fuse_to_dir_reads_the_trained_filter_beside_the_splats(tmp_path, monkey
     h = _trainer_helpers()
     ds = load_dataset(h.make_dataset(tmp_path / "ds", n_train=3, n_heldout=1))
     g = h.gt_gaussians()
-    ms = MaskSet()
-    for f in ds.frames:
-        m = np.zeros((f.camera.height, f.camera.width), bool)
-        m[: f.camera.height // 2] = True
-        ms.add(f.name, 1, m, name="thing")
+    ms = h.half_image_masks(ds.frames)
     seen = []
     real = lift.make_depth_renderer
     monkeypatch.setattr(lift, "make_depth_renderer", lambda gs, r="auto", raster=("classic", None):

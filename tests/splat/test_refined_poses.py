@@ -68,16 +68,11 @@ def test_apply_replaces_the_poses_by_view_and_none_changes_nothing(noisy, tmp_pa
 
 def test_semantics_stage_projects_with_the_refined_poses(noisy, tmp_path, monkeypatch):
     from splattwin.semantics import lift
-    from splattwin.semantics.masks import MaskSet
     from splattwin.semantics.options import SemanticsOptions
     from splattwin.semantics.stage import SemanticsInputs, run
 
     ds = load_dataset(noisy)
-    ms = MaskSet()
-    for f in ds.frames:
-        m = np.zeros((f.camera.height, f.camera.width), bool)
-        m[: f.camera.height // 2] = True
-        ms.add(f.name, 1, m, name="thing")
+    ms = helpers.half_image_masks(ds.frames)
     masks = ms.save(tmp_path / "masks")
     ply = helpers.gt_gaussians().save_ply(tmp_path / "splat" / "point_cloud.ply")
     path, want = _refined_file(noisy, tmp_path / "splat")

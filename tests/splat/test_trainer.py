@@ -74,6 +74,19 @@ def make_dataset(root: Path, n_train: int = 8, n_heldout: int = 2, seed: int = 0
     return root
 
 
+def half_image_masks(frames, label: int = 1, name: str = "thing"):
+    """A MaskSet with one object covering the top half of every frame's image (the image rows above
+    height // 2), for the semantics tests on `make_dataset`'s scene."""
+    from splattwin.semantics.masks import MaskSet
+
+    ms = MaskSet()
+    for f in frames:
+        m = np.zeros((f.camera.height, f.camera.width), bool)
+        m[: f.camera.height // 2] = True
+        ms.add(f.name, label, m, name=name)
+    return ms
+
+
 def interrupted_then_resumed(ds, out: Path, cfg, at_step: int):
     """Train into `out`, stopped by Ctrl-C at `at_step`, then resumed from its last checkpoint: the result."""
     def stop(info):
