@@ -380,7 +380,9 @@ def test_pose_consistency_scored_and_warned(scene_default: Path, tmp_path: Path,
     assert c["pairs"] >= 3 and c["matching_size"] == [320, 240] and c["sampson_floor_px"] < 0.3, c
     assert res.frame.source == "robot" and "pose_fallback" not in res.stats
     if case in ("exact", "good_calib"):
-        assert c["verdict"] == "ok" and c["sampson_median_px"] < 0.6 * c["warn_px"], c
+        # good_calib: 0.243 px = 0.66 x warn_px since the keypoints are read in the cameras' pixel convention
+        # (0.219 px before: the quarter-pixel they were off hid part of the 3 mm / 0.5 deg error); exact 0.087
+        assert c["verdict"] == "ok" and c["sampson_median_px"] < 0.7 * c["warn_px"], c
         assert "do not fit the photos" not in caplog.text
     else:
         assert c["verdict"] == "bad" and c["sampson_median_px"] > c["bad_px"], c
@@ -445,3 +447,60 @@ def test_depth_scale_checked_against_triangulated_points(scene_default: Path, tm
     assert not rec["ok"] and rec["points"] == "triangulated", rec
     assert len(bad.points_xyz) == bad.stats["num_points"] < len(bad.depth_xyz)  # triangulated points only
     assert "depth images left out of the initial point cloud" in caplog.text and "check the depth scale" in caplog.text
+
+
+@pytest.mark.parametrize("scale", [1.0, 0.5])
+def test_hand_eye_check_keypoints_in_the_projects_pixel_convention(scale: float):
+    """OpenCV's keypoints put pixel centres at integers; the cameras' K puts them at +0.5
+    (`capture.camera`). The keypoints went into the undistortion unshifted: a principal point half a pixel
+    off, a Sampson error of about 0.1-0.3 px on an exact pose. Exact case: points projected by two known
+    cameras (with lens distortion), written as OpenCV keypoints of the image resized by `scale`, give back
+    their rays and a Sampson error of ~0 under the true relative pose."""
+    from splattwin.capture import Camera, look_at
+    from splattwin.poses.hand_eye_check import _normalised_points, sampson_px
+
+    K = np.array([[307.0, 0.0, 161.3], [0.0, 305.0, 118.7], [0.0, 0.0, 1.0]])
+    dist = np.array([-0.12, 0.03, 0.0008, -0.0005, 0.0])
+    cam_a = Camera(K, 320, 240, look_at(np.array([0.45, -0.1, 0.4]), np.zeros(3)), dist=dist)
+    cam_b = Camera(K, 320, 240, look_at(np.array([0.25, 0.35, 0.45]), np.array([0.02, 0.0, 0.0])), dist=dist)
+    rng = np.random.default_rng(0)
+    p_world = rng.uniform([-0.12, -0.12, 0.0], [0.12, 0.12, 0.15], size=(200, 3))
+    T_b_a = np.linalg.inv(cam_b.T_world_cam) @ cam_a.T_world_cam        # x_b = R_ba x_a + t_ba
+    xs, rays = [], []
+    for cam in (cam_a, cam_b):
+        uv, z = cam.project(p_world)
+        assert np.all(z > 0) and np.all(cam.in_image(uv))
+        sx, sy = round(cam.width * scale) / cam.width, round(cam.height * scale) / cam.height
+        uv_opencv = np.c_[uv[:, 0] * sx, uv[:, 1] * sy] - 0.5         # the resized image, centres at integers
+        xs.append(_normalised_points(uv_opencv, cam, sx, sy))
+        p = cam.world_to_cam(p_world)
+        rays.append(p[:, :2] / p[:, 2:])
+    np.testing.assert_allclose(xs[0], rays[0], atol=1e-9)
+    np.testing.assert_allclose(xs[1], rays[1], atol=1e-9)
+    err = sampson_px(xs[0], xs[1], T_b_a[:3, :3], T_b_a[:3, 3], 307.0 * scale)
+    assert np.median(err) < 1e-6, np.median(err)
+
+
+def test_hand_eye_check_sift_points_in_opencvs_pixel_convention():
+    """OpenCV's SIFT reports keypoints +0.25 px off OpenCV's own pixel convention (it detects on the image
+    upsampled 2x and halves the coordinates); `_sift_points` removes it. Gaussian blobs drawn at known
+    sub-pixel centres (small and large: octaves -1 to 2) are found at those centres."""
+    import cv2
+
+    from splattwin.poses.hand_eye_check import _sift_points
+
+    rng = np.random.default_rng(0)
+    H, W = 480, 640
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)        # OpenCV convention: pixel centres at integers
+    for (s_lo, s_hi), step in (((1.2, 2.0), 30), ((6.0, 10.0), 80)):
+        gx, gy = np.meshgrid(np.arange(step, W - step // 2, step), np.arange(step, H - step // 2, step))
+        centres = np.stack([gx.ravel(), gy.ravel()], 1) + rng.uniform(-0.5, 0.5, (gx.size, 2))
+        img = np.zeros((H, W))
+        for s, (x, y) in zip(rng.uniform(s_lo, s_hi, len(centres)), centres):
+            img += np.exp(-((u - x) ** 2 + (v - y) ** 2) / (2 * s * s))
+        pts, _ = _sift_points(cv2.SIFT_create(), np.clip(img * 200 + 20, 0, 255).astype(np.uint8))
+        d = np.linalg.norm(pts[:, None] - centres[None], axis=2)
+        on_blob = d.min(axis=1) < 1.5
+        assert on_blob.sum() > 100
+        off = pts[on_blob] - centres[d.argmin(axis=1)[on_blob]]
+        np.testing.assert_allclose(np.median(off, axis=0), 0.0, atol=0.03)

@@ -15,7 +15,10 @@ direction, as the splats combine them), where per-view pose errors show fully an
 proportion to the pair's rotation. Measured on audit 8c's robot capture (320x240, f = 307 px): exact 0.06 px,
 a good calibration (hand-eye 3 mm / 0.5 deg off) 0.27 px, latency (3 mm / 0.3 deg along the motion) 0.26 px,
 focal length 2 % off 0.08 px, a poor calibration (10 mm / 2 deg) 1.11 px, per-view pose noise (3 mm / 0.3 deg
-rms) 1.27 px; the last two lost ~4 dB of held-out PSNR and put objects 1.5-3 cm off. Verdict "warn" above
+rms) 1.27 px; the last two lost ~4 dB of held-out PSNR and put objects 1.5-3 cm off. (Measured with the
+keypoints a quarter pixel off the cameras' pixel convention; read in it (`_sift_points`, `_normalised_points`)
+the embedded scene's 320x240 capture gives exact 0.087 px (0.096 before), good calibration 0.243 (0.219),
+poor 0.859 (0.847), pose noise 1.064 (1.061): the verdicts are unchanged.) Verdict "warn" above
 WARN_MRAD (0.49 px there), "bad" above BAD_MRAD (0.80 px), either only at >= FLOOR_FACTOR x the matches' own
 error under their own essential matrix (blurred or badly textured photos match less precisely). "bad" with
 `--poses.method auto` makes `estimate_poses` use SfM aligned to the robot poses instead; an explicit
@@ -76,6 +79,11 @@ MIN_NEIGHBOUR_ANGLE_DEG = 2.0
 WARN_MRAD = 1.6              # median Sampson error / focal: ~0.5 px at f = 307 px (320 x 240)
 BAD_MRAD = 2.6               # ~0.8 px there: "clearly bad" (auto: SfM aligned to the robot poses instead)
 FLOOR_FACTOR = 3.0           # and at least this many times the matches' own noise floor
+# OpenCV's SIFT finds keypoints on the image upsampled 2x (pixel centres aligned) and scales them back by 0.5
+# without the quarter-pixel that alignment shifts: its keypoints lie +0.25 px (both axes, every octave) off
+# OpenCV's own convention (pixel centres at integers). Measured on Gaussian blobs at known centres, sigma
+# 1.2-10 px (octaves -1..2): +0.25 px (tests/poses/test_robot.py).
+SIFT_BIAS_PX = 0.25
 
 
 @dataclass
@@ -206,12 +214,22 @@ def _gray_small(path: Path, max_side: int) -> tuple[np.ndarray, float]:
     return g, s
 
 
+def _sift_points(sift, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """SIFT keypoints of `gray` as (positions [N,2] in OpenCV's pixel convention, centres at integers: SIFT's
+    own +SIFT_BIAS_PX removed; descriptors [N,128] or None)."""
+    kp, des = sift.detectAndCompute(gray, None)
+    return np.array([k.pt for k in kp], dtype=np.float64).reshape(-1, 2) - SIFT_BIAS_PX, des
+
+
 def _normalised_points(uv: np.ndarray, cam, sx: float, sy: float) -> np.ndarray:
-    """Pixel coordinates of the (resized by sx, sy) image -> normalised, undistorted camera coordinates [N,2]
-    (`capture.undistort.rays_through` on the full-size camera)."""
+    """Points in OpenCV's pixel convention (pixel centres at integers; `_sift_points`) of the image resized
+    by (sx, sy) -> normalised, undistorted camera coordinates [N,2] (`capture.undistort.rays_through` on the
+    full-size camera). The camera's K puts pixel centres at +0.5 (`capture.camera`), so the points move by
+    half a pixel first (else the principal point is half a pixel off: ~0.26 px of Sampson error on an exact
+    pose at f 307 px); then the corner-origin coordinates scale exactly with the image."""
     from splattwin.capture.undistort import rays_through
 
-    x, y = rays_through(cam, uv[:, 0] / sx, uv[:, 1] / sy)
+    x, y = rays_through(cam, (uv[:, 0] + 0.5) / sx, (uv[:, 1] + 0.5) / sy)
     return np.stack([x, y], axis=-1)
 
 
@@ -256,10 +274,9 @@ def measure_pair(path_a: Path, path_b: Path, cam_a, cam_b, max_side: int = MAX_S
     for p, cam in ((path_a, cam_a), (path_b, cam_b)):
         if p not in cache:
             g, s = _gray_small(p, max_side)
-            kp, des = sift.detectAndCompute(g, None)
+            pts, des = _sift_points(sift, g)
             sx, sy = g.shape[1] / cam.width, g.shape[0] / cam.height
-            cache[p] = (np.array([k.pt for k in kp], dtype=np.float64).reshape(-1, 2), des, sx, sy,
-                        (int(g.shape[1]), int(g.shape[0])))
+            cache[p] = (pts, des, sx, sy, (int(g.shape[1]), int(g.shape[0])))
         feats.append(cache[p])
     (ua, da, sxa, sya, size), (ub, db, sxb, syb, _) = feats
     if da is None or db is None or len(ua) < MIN_INLIERS or len(ub) < MIN_INLIERS:
