@@ -312,3 +312,26 @@ def test_the_table_reaches_under_an_object_its_splats_stop_short_of():
     for m in (bg.parts[0], bg.collision):
         assert m.bounds[1, 1] >= v[:, 1].max() + 0.01
     assert np.allclose(bg.parts[0].bounds[:, :2].T.ravel(), bg.table_extent)
+
+
+def test_main_parts_groups_through_touching_cells_as_documented():
+    """obstacle_box's docstring said its floaters were cut at groups "chained within dbscan_eps"; the
+    grouping (`main_parts`) chains through touching cells of that side: within eps always joined, a floater
+    up to 2 sqrt(3) eps away may join, a farther one never. Pinned here as the docstrings now say it (kept
+    over exact DBSCAN chaining, whose cost grows with the density)."""
+    from splattwin.geometry.convert import main_parts
+
+    eps = 0.02
+    rng = np.random.default_rng(0)
+    body = rng.uniform([0.001, 0.001, 0.001], [0.019, 0.019, 0.019], size=(200, 3))   # all in cell (0, 0, 0)
+    corner = np.array([[0.0195, 0.0195, 0.0195]])
+
+    def kept(floater):
+        return bool(main_parts(np.concatenate([body, corner, [floater]]), eps)[-1])
+
+    assert kept(corner[0] + [0.0199, 0.0, 0.0])                      # within eps: always joined
+    far_but_touching = np.array([0.0399, 0.0399, 0.0399])            # in the diagonally touching cell (1, 1, 1)
+    assert np.linalg.norm(far_but_touching - np.concatenate([body, corner]), axis=1).min() > 1.7 * eps
+    assert kept(far_but_touching)                                    # ~1.8 eps from the rest, yet in the group
+    assert not kept([0.0401, 0.0, 0.01])                             # two cells over: never (> eps of the rest here)
+    assert not kept([0.0, 0.0, 2 * np.sqrt(3) * eps + 0.001])         # beyond 2 sqrt(3) eps: never
