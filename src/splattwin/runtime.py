@@ -44,7 +44,18 @@ log = logging.getLogger(__name__)
 
 TBB_WARNING = r"The TBB threading layer requires TBB version"   # numba, with Open3D's older libtbb loaded
 
-__all__ = ["RuntimeSettings", "configure", "available_cpus", "start_numba_threads", "torch_threads"]
+__all__ = ["RuntimeSettings", "configure", "available_cpus", "start_numba_threads", "torch_threads",
+           "peak_rss_gib"]
+
+
+def peak_rss_gib() -> float:
+    """This process's peak resident memory so far plus that of its waited-for children (GiB): what the
+    build records per stage (TWIN/pipeline.json) and `splattwin plan` for its run."""
+    import resource
+
+    # ru_maxrss is in KiB on Linux; counts this process and waited-for children.
+    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss + resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return r / (1024 ** 2)
 
 
 @dataclass

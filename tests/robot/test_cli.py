@@ -359,3 +359,45 @@ def test_plan_refreshes_the_twins_report(gt_twin_small: Path, tmp_path: Path, ca
     before = page.read_bytes()
     assert main(["plan", str(twin), "--no-render", "--no-report"]) == 0
     assert page.read_bytes() == before
+
+
+@pytest.mark.slow
+def test_plan_records_its_seconds_for_the_reports_timings(gt_twin_small: Path, tmp_path: Path):
+    """After `plan` refreshed the report, its timings table still gave the robot row the build's robot
+    stage seconds (pipeline.json) beside the plan's results. The plan's seconds and memory are now recorded
+    in pipeline.json's robot record, and the table shows them; the other stages keep the build's figures."""
+    import re
+    import shutil
+
+    twin = tmp_path / "twin"
+    shutil.copytree(gt_twin_small, twin)
+    build = {"poses": {"key": "k1", "outputs": {}, "seconds": 12.5, "peak_rss_gib": 1.25},
+             "twin": {"key": "k2", "outputs": {}, "seconds": 4.0, "peak_rss_gib": 2.0},
+             "robot": {"key": "k3", "outputs": {}, "seconds": 777.0, "peak_rss_gib": 3.5}}
+    (twin / "pipeline.json").write_text(json.dumps(build))
+    assert main(["report", str(twin), "--no-video"]) == 0
+
+    def rows() -> dict:
+        html = (twin / "report" / "index.html").read_text()
+        return {m[0]: (m[1], m[2]) for m in
+                re.findall(r"<tr><td>(poses|robot)</td><td>([^<]*)</td><td>([^<]*)</td>", html)}
+
+    assert rows() == {"poses": ("12.5", "1.25"), "robot": ("777", "3.5")}
+    task = tmp_path / "one_step.yaml"
+    task.write_text("- pick: yellow_cube\n- place_on: blue_box\n")
+    assert main(["plan", str(twin), "--task", str(task), "--no-render"]) == 0
+    state = json.loads((twin / "pipeline.json").read_text())
+    plan = state["robot"]["plan"]
+    assert 0 < plan["seconds"] < 777 and plan["peak_rss_gib"] > 0
+    assert state["poses"] == build["poses"] and state["robot"]["seconds"] == 777.0   # the build's, kept
+    got = rows()
+    assert got["poses"] == ("12.5", "1.25")
+    assert got["robot"] == (f"{plan['seconds']:.4g}", f"{plan['peak_rss_gib']:.4g}")
+    html = (twin / "report" / "index.html").read_text()
+    assert "robot stage took 777.0 s" in html
+    # recorded with --no-report too: a later `splattwin report` shows the newest plan's seconds
+    assert main(["plan", str(twin), "--task", str(task), "--no-render", "--no-report"]) == 0
+    again = json.loads((twin / "pipeline.json").read_text())["robot"]["plan"]
+    assert again["finished"] > plan["finished"]
+    assert main(["report", str(twin), "--no-video"]) == 0
+    assert rows()["robot"][0] == f"{again['seconds']:.4g}"

@@ -13,7 +13,8 @@ Each stage declares what its result depends on, and its key is a SHA-256 over al
 so a stage that resumes partial work of its own (training checkpoints) starts over instead (a finished
 run's checkpoint would otherwise be "resumed" with nothing left to do: no retraining).
 After a stage succeeds the runner records `{key, outputs, seconds, peak_rss_gib}` in
-`TWIN/pipeline.json` (atomically); when a stage re-runs, its record and those of every later stage are
+`TWIN/pipeline.json` (atomically; `splattwin plan` adds its own run's figures to the robot record under
+"plan", `report.build.record_plan_run`, gone when the robot stage runs again); when a stage re-runs, its record and those of every later stage are
 dropped first, so a run stopped midway never leaves a record of old outputs beside new ones. On the next run a stage whose recorded key matches and whose
 outputs all exist (inside the twin folder) with the contents recorded (`digests`: a `splattwin plan` or
 `report` run by hand since rewrote them, with other options) is skipped. Stages write their own outputs atomically, so a
@@ -34,6 +35,7 @@ from typing import Any, Callable
 from splattwin import io
 from splattwin.errors import InputError
 from splattwin.hashing import DigestCache, code_digest
+from splattwin.runtime import peak_rss_gib
 
 log = logging.getLogger(__name__)
 
@@ -84,14 +86,6 @@ class Context:
 
     def path(self, rel: str | Path) -> Path:
         return self.out / rel
-
-
-def _peak_rss_gib() -> float:
-    import resource
-
-    # ru_maxrss is in KiB on Linux; counts this process and waited-for children.
-    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss + resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return r / (1024 ** 2)
 
 
 DIGEST_CACHE = ".splattwin/digests.json"
@@ -239,7 +233,7 @@ def run_stages(stages: list[Stage], ctx: Context, from_stage: str | None = None,
             dt = time.perf_counter() - t0
             ctx.results[stage.name] = outputs
             ctx.timings[stage.name] = dt
-            ctx.peak_rss_gib[stage.name] = _peak_rss_gib()
+            ctx.peak_rss_gib[stage.name] = peak_rss_gib()
             state[stage.name] = {"key": key, "outputs": outputs, "seconds": dt,
                                  "peak_rss_gib": ctx.peak_rss_gib[stage.name], "finished": time.time(),
                                  "digests": _output_digests(ctx.out, outputs, ctx.digests)}

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import time
 from pathlib import Path
 
 from splattwin.options import add_command, add_options
@@ -79,6 +80,7 @@ def run_plan(args: argparse.Namespace) -> int:
     recorder = recorder_for(args.twin, out, opts) if opts.record is not None else None
     # one writer per folder: the twin's lock when writing into it (splattwin.lock)
     with output_lock(args.twin if is_inside(out, args.twin) else out):
+        t0 = time.perf_counter()
         res = run(RobotInputs(args.twin, out), opts)
         d = res.details
         print_summary(d["run"], d["trials"], d["paths"], d.get("real_robot"))
@@ -88,9 +90,10 @@ def run_plan(args: argparse.Namespace) -> int:
                             f"({info['reused']} reused from a killed run; {info['fps']:g} fps, cameras "
                             + ", ".join(f"{k} {w}x{h}" for k, (w, h) in info["cameras"].items()) + ")")
         # what the layers above add to a plan (the report's refresh: `report.cli`), inside the same lock
+        # with this run's seconds (the physics, the trials and the recording; not the report's refresh)
         after = getattr(args, "after_plan", None)
         if after is not None:
-            after(args, out)
+            after(args, out, seconds=time.perf_counter() - t0)
     if res.export_error:   # the plan ran, but no real-arm files: outside the named robot's limits
         # (`--joint-names fr3`) or the scene moved before the robot acted; the summary above said why
         console(stderr=True).print("error: no files for the real arm (the reason is above and in results.json "

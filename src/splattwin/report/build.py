@@ -154,6 +154,45 @@ def stage_time_sum(timings: dict) -> float:
     return float(sum(v for k, v in timings.items() if k != "report" and isinstance(v, (int, float))))
 
 
+# TWIN/pipeline.json's robot record: the `splattwin plan` run that rewrote TWIN/robot after the build
+# {"seconds", "peak_rss_gib", "finished"}. The runner replaces the whole record when its robot stage runs again
+# (which a plan's rewritten results.json makes it do: its recorded digests no longer match).
+PLAN_RUN = "plan"
+
+
+def record_plan_run(twin_dir: str | Path, seconds: float, peak_rss_gib: float) -> bool:
+    """Record a `splattwin plan` run that wrote TWIN/robot (seconds: its run, s; peak_rss_gib: GiB) in
+    TWIN/pipeline.json's robot record (`PLAN_RUN`), beside the build's own figures, so that the report's
+    timings show the run whose results it shows. Called inside the twin's lock (plan's). Nothing when there
+    is no build record of the robot stage (no pipeline.json, or a build --until twin): returns whether
+    it recorded. An unreadable pipeline.json is left as it is (the report then shows no timings)."""
+    import time
+
+    from splattwin.limits import MAX_RECORD_BYTES
+
+    path = Path(twin_dir) / "pipeline.json"
+    if not path.is_file():
+        return False
+    try:
+        state = io.read_json(path, max_bytes=MAX_RECORD_BYTES)
+    except InputError:
+        return False
+    if not isinstance(state, dict) or not isinstance(state.get("robot"), dict):
+        return False
+    state["robot"][PLAN_RUN] = {"seconds": float(seconds), "peak_rss_gib": float(peak_rss_gib),
+                                "finished": time.time()}
+    io.write_json(path, state)
+    return True
+
+
+def _plan_run(rec: dict) -> dict | None:
+    """A stage record's `PLAN_RUN` entry when it is well formed (numbers), else None."""
+    plan = rec.get(PLAN_RUN)
+    ok = isinstance(plan, dict) and all(isinstance(plan.get(k), (int, float)) and not isinstance(plan.get(k), bool)
+                                        for k in ("seconds", "peak_rss_gib"))
+    return plan if ok else None
+
+
 def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib: dict | None = None,
                  options=None, skipped: list[str] | None = None) -> Path:
     """Write TWIN/report/index.html. options: `report.options.ReportOptions` (the task video). timings /
@@ -186,6 +225,13 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
     if not isinstance(state, dict):
         state = {}
     state = {k: v for k, v in state.items() if isinstance(v, dict)}
+    # a `splattwin plan` run since the build rewrote TWIN/robot: the robot row is that run's, as the robot
+    # section shows its results (the other stages keep the build's figures)
+    plan = _plan_run(state.get("robot", {}))
+    if plan is not None:
+        timings = {**(timings or {k: v.get("seconds", 0.0) for k, v in state.items()}), "robot": plan["seconds"]}
+        peak_rss_gib = {**(peak_rss_gib or {k: v.get("peak_rss_gib", 0.0) for k, v in state.items()}),
+                        "robot": plan["peak_rss_gib"]}
 
     head = rep.section("Summary")
     kpis = {}
@@ -240,8 +286,10 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
     for name, rec in state.items():
         row = [name, (timings or {}).get(name, rec.get("seconds", 0.0)),
                (peak_rss_gib or {}).get(name, rec.get("peak_rss_gib", 0.0))]
-        rows.append(row + ([("up to date: an earlier build's seconds" if name in skipped else "this build")]
-                           if skipped is not None else []))
+        run = ("splattwin plan, after the build" if name == "robot" and plan is not None
+               else "up to date: an earlier build's seconds" if skipped is not None and name in skipped
+               else "this build")
+        rows.append(row + ([run] if skipped is not None else []))
     if rows:
         t.table(["stage", "seconds", "peak RSS (GiB)"] + (["run"] if skipped is not None else []), rows)
         t.text(f"The summary's '{STAGE_TIME_KPI.split(' (')[0]}' ({stage_time_sum(tt):.1f} s) adds up these "
@@ -249,6 +297,16 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
                f"made it). The build's terminal line 'total' is the wall-clock time of that one run instead: "
                f"pre-flight, input hashing and the report included, a skipped stage ~0 s; it gives this figure "
                f"beside it.")
+        if plan is not None:
+            fin, built = plan.get("finished"), state["robot"].get("seconds")
+            try:
+                when = f" of {_dt.datetime.fromtimestamp(fin).strftime('%Y-%m-%d %H:%M')}"
+            except (TypeError, ValueError, OverflowError, OSError):   # not a time: left out
+                when = ""
+            took = (f"; the build's robot stage took {built:.1f} s"
+                    if isinstance(built, (int, float)) and not isinstance(built, bool) else "")
+            t.text(f"robot: the seconds and memory of the `splattwin plan` run{when}, whose results this report "
+                   f"shows{took}.")
     else:
         t.text("no pipeline record (stages run by hand)")
     if man and man.timings:

@@ -22,22 +22,30 @@ def register(sub: argparse._SubParsersAction) -> None:
         plan.set_defaults(after_plan=refresh_after_plan)
 
 
-def refresh_after_plan(args: argparse.Namespace, out: Path) -> Path | None:
+def refresh_after_plan(args: argparse.Namespace, out: Path, seconds: float | None = None) -> Path | None:
     """After `splattwin plan` (inside its lock): re-write the twin's report so it shows this run's results,
     not the build's (the report reads TWIN/robot/results.json). The whole report, as `splattwin report
     TWIN` writes it (a task video of an unchanged rollout comes from its cache). Only a twin that has a
     report (a build made one), only when the run wrote TWIN/robot (an --out elsewhere is not what the
     report shows: said), not with --no-report. A report that cannot be written is a warning, not the
-    plan's outcome. Returns its path or None."""
+    plan's outcome. Returns its path or None. seconds: the plan run's (s); when it wrote TWIN/robot they
+    are recorded (`build.record_plan_run`, also with --no-report) so that the report's timings table gives
+    the robot row this run's seconds, not the build's robot stage's."""
     import logging
 
     from splattwin.console import console
 
     twin = Path(args.twin)
     page = twin / "report" / "index.html"
+    wrote_twin_robot = Path(out).resolve() == (twin / "robot").resolve()
+    if wrote_twin_robot and seconds is not None:
+        from splattwin.report.build import record_plan_run
+        from splattwin.runtime import peak_rss_gib
+
+        record_plan_run(twin, seconds, peak_rss_gib())
     if getattr(args, "no_report", False) or not page.is_file():
         return None
-    if Path(out).resolve() != (twin / "robot").resolve():
+    if not wrote_twin_robot:
         console().print(f"report: {page} not refreshed (it shows TWIN/robot; this run wrote {out})",
                         markup=False, highlight=False)
         return None
