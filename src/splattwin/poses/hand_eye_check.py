@@ -492,10 +492,11 @@ def latency_message(c: dict, pose_file: Path | str | None = None) -> str:
     """The warning for a `latency_check` verdict "warn"."""
     return (f"the image and pose timestamps look offset: the matched features of {c['pairs']} image pairs fit the "
             f"poses best when each image takes the pose at its timestamp {c['time_offset_ms']:+.0f} ms "
-            f"(+-{c['time_offset_sigma_ms']:.0f} ms; now {c['offset_in_use_ms']:+.0f} ms; error "
+            f"(+-{c['time_offset_sigma_ms']:.1f} ms; now {c['offset_in_use_ms']:+.0f} ms; error "
             f"{c['error_px_given']:.3f} -> {c['error_px_best']:.3f} px): camera latency or clocks out of sync"
             f"{f' ({pose_file})' if pose_file else ''}. Pass --poses.time-offset-ms={c['time_offset_ms']:.0f} "
-            f"(build: --poses.time-offset-ms) to match the images to the poses at that offset, or fix the "
+            f"(build; splattwin poses: --time-offset-ms={c['time_offset_ms']:.0f}) to match the images to the "
+            f"poses at that offset, or fix the "
             f"timestamps (hardware sync, or the camera driver's latency compensation)")
 
 
