@@ -823,7 +823,14 @@ def _check_known_poses(dataset: Dataset, opts: PoseOptions, frames: list[DataFra
     # interpolates across one pose period, as a shifted association would need
     gaps = np.diff(np.sort(track["t"]))
     reach = max(float(track["max_dt"]), 1.01 * float(np.median(gaps)) if len(gaps) else 0.0)
-    lc = hec.latency_check(measures, lambda dt: poses_at_offset(track, paths, dt, reach), base)
+    used = sorted({k for i, j, _ in measures for k in (i, j)})  # only the matched views are re-interpolated
+
+    def poses_at(dt: float) -> tuple[np.ndarray, np.ndarray]:
+        T_all, ok_all = np.tile(np.eye(4), (len(paths), 1, 1)), np.zeros(len(paths), dtype=bool)
+        T_all[used], ok_all[used] = poses_at_offset(track, [paths[k] for k in used], dt, reach)
+        return T_all, ok_all
+
+    lc = hec.latency_check(measures, poses_at, base)
     if lc is None:
         log.info("latency check not done: fewer than %d image pairs posed at every offset scanned", hec.MIN_PAIRS)
         return
