@@ -27,7 +27,9 @@ Matching poses to images: by id when the first column names the images (`000012`
 `000012.png`, or the file name); otherwise by time: each image's pose is interpolated (SLERP of the
 rotation, linear in the position, as TUM's evaluation tools do) between the two poses that bracket its
 timestamp when both are within `max_dt` (default 0.02 s, as TUM's `associate.py`), else the nearest pose
-within `max_dt`; images without one are skipped with a warning. Image timestamps come from `rgb.txt`,
+within `max_dt`; images without one are skipped with a warning. Matched by time, the pose list and the image
+times are kept in the Dataset's meta (`POSE_TRACK`): `--poses.time-offset-ms` re-matches the images at their
+timestamp + an offset (`poses_at_offset`), and the poses stage's latency check scans that offset. Image timestamps come from `rgb.txt`,
 else from the file names (`1305031102.175304.png`); whole numbers of 18 or more digits are nanoseconds
 (ROS / EuRoC exports: `1403636579763555584`). Depth images are matched to images by nearest timestamp.
 
@@ -432,9 +434,11 @@ def read(path: str | Path, max_dt: float = MAX_DT) -> Dataset:
             raise InputError("pose ids match no image names and are not all timestamps"
                              + (f" (e.g. {bad[:40]!r})" if bad is not None else "")
                              + " (or the images have no timestamps: add rgb.txt or name the images by time)", pose_file)
-        T_at, ok = interpolate(np.array(times, dtype=np.float64), np.array(pose_t, dtype=np.float64),
-                               np.array([T for _, T in poses]), max_dt)
+        track = {"t": np.array(pose_t, dtype=np.float64), "T_world_cam": np.array([T for _, T in poses]),
+                 "image_times": {}, "max_dt": max_dt, "pose_file": str(pose_file)}
+        T_at, ok = interpolate(np.array(times, dtype=np.float64), track["t"], track["T_world_cam"], max_dt)
         match = {i: T_at[i] for i in range(len(images)) if ok[i]}
+        track["image_times"] = {str(images[i]): float(times[i]) for i in match}  # type: ignore[arg-type]
         mode = "timestamp"
     if mode == "id":
         match = {i: poses[j][1] for i, j in match.items()}
@@ -485,10 +489,32 @@ def read(path: str | Path, max_dt: float = MAX_DT) -> Dataset:
         cam = Camera(K=intr.K, width=w, height=h, T_world_cam=match[i], dist=intr.dist, name=img.stem)
         frames.append(Frame(image_path=img, camera=cam, depth_path=depths[i]))
     files = [pose_file, intr_file] + [f for f in (rgb_txt, depth_txt) if f is not None]
-    return Dataset(root=folder, frames=frames, has_poses=True, depth_scale=depth_scale,
-                   meta={"format": "tum", "path": str(pose_file), "files": [str(f) for f in files],
-                         "matched_by": mode, "sequential": True})
+    meta = {"format": "tum", "path": str(pose_file), "files": [str(f) for f in files], "matched_by": mode,
+            "sequential": True, "intrinsics_file": str(intr_file)}
+    if mode == "timestamp":
+        meta[POSE_TRACK] = track  # for --poses.time-offset-ms and the latency check (`poses_at_offset`)
+    return Dataset(root=folder, frames=frames, has_poses=True, depth_scale=depth_scale, meta=meta)
+
+
+POSE_TRACK = "pose_track"  # Dataset.meta key: the pose list and image times of a capture matched by timestamp
+
+
+def poses_at_offset(track: dict, image_paths: list, offset_s: float,
+                    max_dt: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Poses T_world_cam [N,4,4] of the images (as read: `Frame.image_path`) at their timestamp + offset_s
+    (seconds), interpolated in the capture's pose list (`read`'s meta[POSE_TRACK]) as `read` matches them
+    (`interpolate`, within max_dt: default the one `read` used), and ok [N]: False where no pose is within
+    reach (or the image has no timestamp)."""
+    t_img = np.array([track["image_times"].get(str(p), np.nan) for p in image_paths], dtype=np.float64)
+    has = np.isfinite(t_img)
+    T = np.tile(np.eye(4), (len(t_img), 1, 1))
+    ok = np.zeros(len(t_img), dtype=bool)
+    if has.any():
+        T_at, ok_at = interpolate(t_img[has] + float(offset_s), track["t"], track["T_world_cam"],
+                                  track["max_dt"] if max_dt is None else max_dt)
+        T[has], ok[has] = T_at, ok_at
+    return T, ok
 
 
 __all__ = ["Intrinsics", "read", "read_intrinsics", "read_pose_list", "write_intrinsics",
-           "write_pose_list", "nearest", "interpolate", "is_capture"]
+           "write_pose_list", "nearest", "interpolate", "is_capture", "POSE_TRACK", "poses_at_offset"]

@@ -3,7 +3,9 @@
 Pose sources (in `PoseOptions.method` "auto" order): robot poses + hand-eye (robot base frame; checked
 against the photos by `splattwin.poses.hand_eye_check`: with "auto", poses that clearly do not fit them are
 replaced by SfM aligned to the robot poses, recorded as stats["pose_fallback"]), poses already in the dataset
-("known"), or structure from motion. With robot or known poses and depth images but no point cloud, the
+("known"; those of a TUM pose list or BOP scene scored against the photos too, with warnings only: stats
+"pose_consistency", "intrinsics_check", "latency_check"; `--poses.time-offset-ms` re-matches a TUM list's
+poses to the images at image time + offset), or structure from motion. With robot or known poses and depth images but no point cloud, the
 depth's scale is checked against points triangulated with the poses held fixed (`_depth_fits_points`). The frame is then defined by the first
 that applies:
 
@@ -194,6 +196,9 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
     if method == "known" and not dataset.has_poses:
         raise InputError("--known: this dataset has no camera poses (use --sfm or --robot-poses)", dataset.root)
 
+    if opts.time_offset_ms:
+        _apply_time_offset(dataset, float(opts.time_offset_ms))
+
     from splattwin.poses.holdout import HOLDOUT_KEY, apply_holdout
 
     heldout = apply_holdout(dataset, opts.holdout)  # capture order, before SfM (splattwin.poses.holdout)
@@ -236,7 +241,11 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         in_cams = {n: _with_pose(f.camera, robot_T[n], opts) for f, n in zip(frames, names) if n in robot_T}
         stats.update(registered=len(in_cams))
         if opts.check_hand_eye:
-            _check_hand_eye(robot, opts, stats, cams=in_cams, images={n: f.image_path for f, n in zip(frames, names)})
+            chk = _check_hand_eye(robot, opts, stats, cams=in_cams,
+                                  images={n: f.image_path for f, n in zip(frames, names)})
+            keys = [n for n in robot.T_base_ee if n in in_cams]
+            _check_intrinsics(chk.measures, [in_cams[n].T_world_cam for n in keys], _intrinsics_source(dataset, opts),
+                              stats)
             cons = stats["hand_eye_check"].get("pose_consistency") or {}
             if cons.get("verdict") == "bad" and opts.method == "auto":
                 res = _sfm_fallback(given, opts, stats, cons)
@@ -249,6 +258,8 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         in_cams = {n: _with_pose(f.camera, f.camera.T_world_cam, opts) for f, n in zip(frames, names)}
         pts_xyz, pts_rgb = dataset.points_xyz, dataset.points_rgb
         stats.update(registered=len(in_cams))
+        if opts.check_hand_eye and dataset.meta.get("format") in KNOWN_POSE_CHECKED:
+            _check_known_poses(dataset, opts, frames, names, in_cams, stats)
         meta_frame = dataset.meta.get("frame")
         prior = TwinFrame(**meta_frame) if isinstance(meta_frame, dict) else frame_beside(dataset.meta.get("path", dataset.root))  # chained runs
         if opts.scale != "auto":
@@ -710,7 +721,7 @@ class _RobotCameras:
 
 
 def _check_hand_eye(robot: _RobotCameras, opts: PoseOptions, stats: dict, cams: dict[str, Camera],
-                    images: dict[str, Path] | None = None) -> None:
+                    images: dict[str, Path] | None = None):
     """The hand-eye against the camera motion seen in the photos (`images`: a few pairs matched) or in an SfM
     model (`cams` independent of the robot): InputError when its inverse fits clearly better
     (`splattwin.poses.hand_eye_check`); the verdict goes to stats["hand_eye_check"]."""
@@ -732,6 +743,7 @@ def _check_hand_eye(robot: _RobotCameras, opts: PoseOptions, stats: dict, cams: 
     if cons is None:
         if images is not None:
             log.info("pose consistency not measured: fewer than %d image pairs matched", hec.MIN_PAIRS)
+        return chk
     elif cons["verdict"] == "ok":
         log.info("pose consistency: median Sampson error %.2f px (%.2f mrad) of %d image pairs under the robot poses",
                  cons["sampson_median_px"], cons["sampson_median_mrad"], cons["pairs"])
@@ -742,6 +754,118 @@ def _check_hand_eye(robot: _RobotCameras, opts: PoseOptions, stats: dict, cams: 
                 "--poses.method auto: trying SfM aligned to the robot poses instead (--poses.method robot keeps the "
                 "robot poses)")
         log.warning("%s", hec.consistency_message(cons, robot.hand_eye_file, then))
+    return chk
+
+
+# known-pose captures whose poses are scored against the photos (robot-style captures: a TUM pose list, a BOP
+# scene); other known poses (transforms.json, COLMAP) mostly come from SfM already
+KNOWN_POSE_CHECKED = ("tum", "bop")
+
+
+def _intrinsics_source(dataset: Dataset, opts: PoseOptions) -> str:
+    """Where the cameras' intrinsics come from, for the intrinsics check's record and warning."""
+    if isinstance(opts.intrinsics, tuple):
+        return "--intrinsics " + ",".join(f"{v:g}" for v in opts.intrinsics)
+    return str(dataset.meta.get("intrinsics_file") or dataset.meta.get("path") or dataset.root)
+
+
+def _check_intrinsics(measures: list, T_world_cam: list[np.ndarray], where: str, stats: dict) -> None:
+    """The focal length that best explains the matched pairs, the poses held fixed
+    (`hand_eye_check.intrinsics_check`): stats["intrinsics_check"], and a warning naming `where`."""
+    from splattwin.poses import hand_eye_check as hec
+
+    ic = hec.intrinsics_check(measures, T_world_cam, where)
+    if ic is None:
+        return
+    stats["intrinsics_check"] = ic
+    if ic["verdict"] == "warn":
+        log.warning("%s", hec.intrinsics_message(ic))
+    elif ic["verdict"] == "undetermined":
+        log.info("intrinsics check undetermined: the poses do not fit the photos at any focal length (their own "
+                 "errors; see the pose consistency)")
+    else:
+        log.info("intrinsics check: focal length scale %.3f +- %.3f fits the photos best (%s)", ic["focal_scale"],
+                 ic["focal_scale_sigma"], where)
+
+
+def _check_known_poses(dataset: Dataset, opts: PoseOptions, frames: list[DataFrame], names: list[str],
+                       in_cams: dict[str, Camera], stats: dict) -> None:
+    """Known poses of a robot-style capture (TUM pose list, BOP scene) against the photos: the pose consistency
+    of near pairs (`hand_eye_check.check_poses_with_images`, stats["pose_consistency"]; a warning, the poses
+    are kept), the focal length (`_check_intrinsics`) and, for poses matched to the images by timestamp, the
+    time offset (`hand_eye_check.latency_check`, stats["latency_check"])."""
+    from splattwin.capture.tum import POSE_TRACK, poses_at_offset
+    from splattwin.poses import hand_eye_check as hec
+
+    keys = [n for n in names if n in in_cams]
+    paths = [frames[names.index(n)].image_path for n in keys]
+    T = [in_cams[n].T_world_cam for n in keys]
+    cons, measures = hec.check_poses_with_images(keys, T, paths, [in_cams[n] for n in keys])
+    if cons is None:
+        log.info("pose consistency not measured: fewer than %d image pairs matched", hec.MIN_PAIRS)
+        return
+    for p in cons["per_pair"]:
+        p["a"], p["b"] = Path(p["a"]).name, Path(p["b"]).name
+    stats["pose_consistency"] = cons
+    where = dataset.meta.get("path", dataset.root)
+    if cons["verdict"] == "ok":
+        log.info("pose consistency: median Sampson error %.2f px (%.2f mrad) of %d image pairs under the known "
+                 "poses", cons["sampson_median_px"], cons["sampson_median_mrad"], cons["pairs"])
+    else:
+        log.warning("%s", hec.consistency_message(cons, where, "the poses are kept as given (--poses.method known); "
+                                                              "remedy: --poses.method sfm", robot=False))
+    _check_intrinsics(measures, T, _intrinsics_source(dataset, opts), stats)
+    track = dataset.meta.get(POSE_TRACK)
+    if track is None:
+        return
+    base = float(opts.time_offset_ms) / 1000.0
+    # the pose list's own spacing may exceed the association's max_dt (30 Hz poses, 20 ms): the scan
+    # interpolates across one pose period, as a shifted association would need
+    gaps = np.diff(np.sort(track["t"]))
+    reach = max(float(track["max_dt"]), 1.01 * float(np.median(gaps)) if len(gaps) else 0.0)
+    used = sorted({k for i, j, _ in measures for k in (i, j)})  # only the matched views are re-interpolated
+
+    def poses_at(dt: float) -> tuple[np.ndarray, np.ndarray]:
+        T_all, ok_all = np.tile(np.eye(4), (len(paths), 1, 1)), np.zeros(len(paths), dtype=bool)
+        T_all[used], ok_all[used] = poses_at_offset(track, [paths[k] for k in used], dt, reach)
+        return T_all, ok_all
+
+    lc = hec.latency_check(measures, poses_at, base)
+    if lc is None:
+        log.info("latency check not done: fewer than %d image pairs posed at every offset scanned", hec.MIN_PAIRS)
+        return
+    stats["latency_check"] = lc
+    if lc["verdict"] == "warn":
+        log.warning("%s", hec.latency_message(lc, track.get("pose_file")))
+    else:
+        log.info("latency check: time offset %+.0f +- %.0f ms fits the photos best", lc["time_offset_ms"],
+                 lc["time_offset_sigma_ms"])
+
+
+def _apply_time_offset(dataset: Dataset, offset_ms: float) -> None:
+    """--poses.time-offset-ms: the frames' poses re-interpolated at their image time + offset (in place, on
+    estimate_poses' copy); frames left without a pose are dropped with a warning."""
+    from splattwin.capture.tum import POSE_TRACK, poses_at_offset
+
+    if not np.isfinite(offset_ms) or abs(offset_ms) > 10_000.0:
+        raise InputError(f"--poses.time-offset-ms {offset_ms!r}: expected a finite offset of at most 10000 ms")
+    track = dataset.meta.get(POSE_TRACK)
+    if track is None:
+        raise InputError(f"--poses.time-offset-ms needs poses matched to the images by timestamp (a TUM pose list "
+                         f"with image timestamps); these were matched by "
+                         f"{dataset.meta.get('matched_by', 'name or id')} ({dataset.meta.get('format', 'dataset')})",
+                         dataset.meta.get("path", dataset.root))
+    T, ok = poses_at_offset(track, [f.image_path for f in dataset.frames], offset_ms / 1000.0)
+    kept = [dataclasses.replace(f, camera=dataclasses.replace(f.camera, T_world_cam=T[k]))
+            for k, f in enumerate(dataset.frames) if ok[k]]
+    if not kept:
+        raise InputError(f"--poses.time-offset-ms {offset_ms:g}: no image has a pose within {track['max_dt']} s of "
+                         f"its timestamp + offset", track.get("pose_file"))
+    if len(kept) < len(dataset.frames):
+        log.warning("--poses.time-offset-ms %g: %d of %d images have no pose at their shifted time and are skipped",
+                    offset_ms, len(dataset.frames) - len(kept), len(dataset.frames))
+    dataset.frames = kept
+    log.info("poses taken at image time %+g ms (--poses.time-offset-ms)", offset_ms)
 
 
 def _robot_cameras(opts: PoseOptions, frames: list[DataFrame], names: list[str], dataset: Dataset) -> _RobotCameras:

@@ -24,6 +24,12 @@ error under their own essential matrix (blurred or badly textured photos match l
 `--poses.method auto` makes `estimate_poses` use SfM aligned to the robot poses instead; an explicit
 `--poses.method robot` keeps the robot poses and warns.
 
+3. Intrinsics (`intrinsics_check`) and latency (`latency_check`), on the matches of test 2 with the poses
+held fixed: the focal-length scale, and for poses matched to the images by timestamp (TUM pose lists) the
+time offset between image and pose timestamps, that minimise the Sampson error (truncated mean, a
+coarse-to-fine scan, bootstrap 1 sigma); a warning when they differ clearly from those in use (focal > 1.5 %,
+offset > 15 ms). `check_poses_with_images` runs test 2 on known camera poses (no hand-eye) for them.
+
 The camera's relative rotations are measured
 
 - from the photos (`--robot-poses` alone): SIFT + ratio test, essential matrix (RANSAC, the cameras'
@@ -94,6 +100,8 @@ class HandEyeCheck:
     residual_deg: float | None = None           # median over the pairs, the hand-eye as given
     inverse_residual_deg: float | None = None   # the same for its inverse
     consistency: dict | None = None   # `consistency()`: Sampson error under the robot-predicted poses (images)
+    # the matched near pairs (i, j, PairMeasure) behind `consistency`, for the intrinsics / latency checks
+    measures: list = field(default_factory=list, repr=False)
 
     def to_dict(self) -> dict:
         return {"verdict": self.verdict, "source": self.source, "pairs": len(self.pairs),
@@ -238,7 +246,8 @@ class PairMeasure:
     """One matched image pair: R = R_cam_a^T R_cam_b from the photos, the essential-matrix inliers in
     normalised camera coordinates (xa, xb [N,2]), the focal length f (px) and size (w, h) of the images at the
     matching resolution, and the inliers' median Sampson error (px there) under the photos' own essential
-    matrix: the noise floor of the matching."""
+    matrix: the noise floor of the matching. ua, ub [N,2]: the same inliers in pixels of the full-size
+    cameras cam_a, cam_b (for re-normalising them under other intrinsics, `intrinsics_check`)."""
 
     R: np.ndarray
     inliers: int
@@ -247,6 +256,10 @@ class PairMeasure:
     f: float
     size: tuple[int, int]
     floor_px: float
+    ua: np.ndarray | None = None
+    ub: np.ndarray | None = None
+    cam_a: object = None
+    cam_b: object = None
 
 
 def sampson_px(xa: np.ndarray, xb: np.ndarray, R_ba: np.ndarray, t_ba: np.ndarray, f: float) -> np.ndarray:
@@ -285,8 +298,10 @@ def measure_pair(path_a: Path, path_b: Path, cam_a, cam_b, max_side: int = MAX_S
     good = [m[0] for m in knn if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]
     if len(good) < MIN_INLIERS:
         return None
-    xa = _normalised_points(ua[[m.queryIdx for m in good]], cam_a, sxa, sya)
-    xb = _normalised_points(ub[[m.trainIdx for m in good]], cam_b, sxb, syb)
+    pa = ua[[m.queryIdx for m in good]] / [sxa, sya]  # pixels of the full-size cameras
+    pb = ub[[m.trainIdx for m in good]] / [sxb, syb]
+    xa = _normalised_points(pa, cam_a, 1.0, 1.0)
+    xb = _normalised_points(pb, cam_b, 1.0, 1.0)
     f = 0.5 * (cam_a.fx * sxa + cam_b.fx * sxb)
     E, mask = cv2.findEssentialMat(xa, xb, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=1.0 / f)
     if E is None or E.shape != (3, 3):
@@ -298,7 +313,208 @@ def measure_pair(path_a: Path, path_b: Path, cam_a, cam_b, max_side: int = MAX_S
     xa, xb = xa[keep], xb[keep]
     floor = float(np.median(sampson_px(xa, xb, R, t.ravel(), f)))
     # OpenCV: x_b = R x_a + t, i.e. R = R_cam_b^T R_cam_a
-    return PairMeasure(R.T, int(n), xa, xb, float(f), size, floor)
+    return PairMeasure(R.T, int(n), xa, xb, float(f), size, floor, pa[keep], pb[keep], cam_a, cam_b)
+
+
+# -- intrinsics and latency: the parameter that best explains the matches, the poses held fixed -------------
+TRUNC_PX = 2.0               # a match's Sampson error counts at most this much (px at the matching resolution):
+#                              outliers cannot pull the scans, and the truncated mean is smooth where a median jumps
+BOOTSTRAP = 200              # resamples (pairs, then matches within each) for the estimates' 1-sigma
+FOCAL_SCALES = (0.8, 1.25)   # focal-length scales scanned
+FOCAL_WARN_REL = 0.015       # warn above 1.5 % with a clear minimum (see intrinsics_check)
+LATENCY_RANGE_S = 0.1        # time offsets scanned: +-100 ms
+LATENCY_WARN_S = 0.015       # warn above 15 ms with a clear minimum (see latency_check)
+CLEAR_SIGMAS = 2.5           # "clear minimum": the estimate this many of its sigmas away from the given value
+CLEAR_GAIN = 0.02            # and its truncated-mean Sampson error >= 2 % below the given value's
+FIT_FLOOR_FACTOR = 1.0       # the focal explains the misfit only if, scaled, the poses fit: Sampson median <=
+#                              the matches' own noise floor (or half the warning level); else the poses are off
+#                              and the focal scale absorbs their errors (measured: s = 0.80-1.08 with 3 mm /
+#                              0.3 deg pose noise or a 1 cm / 2 deg hand-eye, 0.96 with 20 ms of latency; their
+#                              medians at s 0.35-1.6 px, exact poses 0.14 px, the floor 0.25 px)
+
+
+def _truncated(errors: list[np.ndarray]) -> list[np.ndarray]:
+    return [np.minimum(e, TRUNC_PX) for e in errors]
+
+
+def _scan(errors_at: Callable[[float], list[np.ndarray]], coarse: np.ndarray, fine_step: float,
+          given: float, seed: int = 0) -> dict:
+    """Minimise the mean over the pairs of each pair's truncated-mean Sampson error (px) over a parameter:
+    a coarse scan, then a fine one (step `fine_step`) about its best value with a parabola through the best
+    three; 1 sigma of the estimate from a bootstrap over pairs and matches (the fine grid's argmin per
+    resample; pairs first, since a pose error of one view moves a whole pair). `given`: the value in use
+    (its error is reported, and the gain). Returns value, sigma, error_px_given, error_px_best, curve
+    (coarse values and errors), the fine grid's edges."""
+    def score(vals):
+        E = [np.stack(z) for z in zip(*[_truncated(errors_at(float(v))) for v in vals])]  # per pair [K, N_p]
+        return E, np.mean([e.mean(axis=1) for e in E], axis=0)
+
+    _, sc = score(coarse)
+    k = int(np.argmin(sc))
+    lo = coarse[max(k - 1, 0)]
+    hi = coarse[min(k + 1, len(coarse) - 1)]
+    fine = np.arange(lo, hi + 0.5 * fine_step, fine_step)
+    E, sf = score(fine)
+    kf = int(np.argmin(sf))
+    best = float(fine[kf])
+    if 0 < kf < len(fine) - 1:  # vertex of the parabola through the best three
+        y0, y1, y2 = sf[kf - 1:kf + 2]
+        den = y0 - 2 * y1 + y2
+        if den > 0:
+            best += float(np.clip(0.5 * (y0 - y2) / den, -0.5, 0.5)) * fine_step
+    rng = np.random.default_rng(seed)
+    P = len(E)
+    pair_w = rng.multinomial(P, np.full(P, 1.0 / P), size=BOOTSTRAP).T / P          # [P, B]
+    boot = np.zeros((len(fine), BOOTSTRAP))
+    for p, e in enumerate(E):
+        n = e.shape[1]
+        w = rng.multinomial(n, np.full(n, 1.0 / n), size=BOOTSTRAP).T / n          # [N_p, B]
+        boot += (e @ w) * pair_w[p]
+    picks = fine[np.argmin(boot, axis=0)]
+    eg, eb = errors_at(float(given)), errors_at(best)
+    err_given = float(np.mean([e.mean() for e in _truncated(eg)]))
+    err_best = float(np.mean([e.mean() for e in _truncated(eb)]))
+    return {"value": best, "sigma": float(np.std(picks)), "error_px_given": err_given, "error_px_best": err_best,
+            # the pose-consistency statistic (median over the pairs of their median Sampson error, px)
+            "median_px_given": float(np.median([np.median(e) for e in eg])),
+            "median_px_best": float(np.median([np.median(e) for e in eb])),
+            "curve": [[round(float(v), 6), round(float(x), 4)] for v, x in zip(coarse, sc)],
+            "fine_range": [float(fine[0]), float(fine[-1])]}
+
+
+def _scaled_camera(cam, s: float):
+    """`cam` with its focal lengths times s (principal point and distortion kept)."""
+    from dataclasses import replace
+
+    K = np.array(cam.K, dtype=np.float64)
+    K[0, 0] *= s
+    K[1, 1] *= s
+    return replace(cam, K=K)
+
+
+def intrinsics_check(measures: list[tuple[int, int, PairMeasure]], T_world_cam: Sequence[np.ndarray],
+                     where: Path | str | None = None, seed: int = 0) -> dict | None:
+    """The focal-length scale s (fx and fy times s, the principal point kept) under which the matched near
+    pairs best fit the epipolar geometry of the poses T_world_cam, held fixed: a scan of s over
+    FOCAL_SCALES (`_scan`: truncated-mean Sampson error, px at the matching resolution), the matches
+    re-normalised through the scaled cameras (`capture.undistort.rays_through`, the distortion kept).
+    Verdict "warn" when |s - 1| > FOCAL_WARN_REL with a clear minimum (s at least CLEAR_SIGMAS of its
+    bootstrap sigma from 1 and the error CLEAR_GAIN below that of the given focal), "undetermined" when the
+    poses do not fit the photos even at s (FIT_FLOOR_FACTOR: pose errors, not the focal; the pose
+    consistency warns), else "ok"; None without MIN_PAIRS pairs. `where`: the intrinsics' source, for the
+    record and the warning.
+
+    Measured on the embedded scene as a TUM capture (320x240, f = 307.5 px, 8 near pairs, exact poses):
+    focal given x1.00 / 1.01 / 1.02 / 1.05 / 0.98 -> s = 0.998 / 0.989 / 0.979 / 0.951 / 1.019 (true 1 /
+    0.990 / 0.980 / 0.952 / 1.020), bootstrap sigma ~0.006; the 1.5 % threshold is 2.5 sigma there, so 2 %
+    errors warn and 1 % ones do not (their depth error, 1 %, is below the depth check's 5 % band too)."""
+    measures = [(i, j, m) for i, j, m in measures if m.ua is not None and m.cam_a is not None]
+    if len(measures) < MIN_PAIRS:
+        return None
+    rel = [np.linalg.inv(T_world_cam[j]) @ T_world_cam[i] for i, j, _ in measures]  # camera a -> camera b
+
+    def errors_at(s: float) -> list[np.ndarray]:
+        out = []
+        for (_, _, m), T_ba in zip(measures, rel):
+            xa = _normalised_points(m.ua, _scaled_camera(m.cam_a, s), 1.0, 1.0)
+            xb = _normalised_points(m.ub, _scaled_camera(m.cam_b, s), 1.0, 1.0)
+            out.append(sampson_px(xa, xb, T_ba[:3, :3], T_ba[:3, 3], m.f * s))
+        return out
+
+    lo, hi = np.log(FOCAL_SCALES[0]), np.log(FOCAL_SCALES[1])
+    r = _scan(errors_at, np.exp(np.arange(lo, hi + 1e-9, 0.01)), 0.001, 1.0, seed)  # 1 % then 0.1 % steps
+    s, sig = r["value"], r["sigma"]
+    gain = 1.0 - r["error_px_best"] / max(r["error_px_given"], 1e-12)
+    clear = abs(s - 1.0) >= CLEAR_SIGMAS * max(sig, 1e-4) and gain >= CLEAR_GAIN
+    fx = float(np.median([m.cam_a.fx for _, _, m in measures]))
+    f = float(np.median([m.f for _, _, m in measures]))
+    floor = float(np.median([m.floor_px for _, _, m in measures]))
+    fits = r["median_px_best"] <= max(FIT_FLOOR_FACTOR * floor, 0.5 * WARN_MRAD * f / 1000.0)
+    verdict = "undetermined" if not fits else "warn" if abs(s - 1.0) > FOCAL_WARN_REL and clear else "ok"
+    return {"verdict": verdict, "poses_fit": bool(fits),
+            "focal_scale": round(s, 4), "focal_scale_sigma": round(sig, 4), "clear_minimum": bool(clear),
+            "focal_px_given": round(fx, 2), "focal_px_best": round(fx * s, 2),
+            "error_px_given": round(r["error_px_given"], 4), "error_px_best": round(r["error_px_best"], 4),
+            "error": f"mean over the pairs of the truncated (<= {TRUNC_PX:g} px) mean Sampson error",
+            "sampson_median_px_given": round(r["median_px_given"], 3),
+            "sampson_median_px_best": round(r["median_px_best"], 3),
+            "warn_rel": FOCAL_WARN_REL, "pairs": len(measures),
+            "intrinsics_file": None if where is None else str(where),
+            "curve_scale_error_px": r["curve"]}
+
+
+def intrinsics_message(c: dict) -> str:
+    """The warning for an `intrinsics_check` verdict "warn"."""
+    pct = 100.0 * (c["focal_scale"] - 1.0)
+    where = c.get("intrinsics_file")
+    return (f"the camera intrinsics{f' ({where})' if where else ''} look off: with the poses held fixed, the "
+            f"matched features of {c['pairs']} image pairs fit the epipolar geometry best with the focal length "
+            f"scaled by {c['focal_scale']:.3f} (+-{c['focal_scale_sigma']:.3f}, {pct:+.1f} %: fx "
+            f"{c['focal_px_given']:.1f} -> {c['focal_px_best']:.1f} px at full size; error "
+            f"{c['error_px_given']:.3f} -> {c['error_px_best']:.3f} px). A focal length off by {abs(pct):.1f} % "
+            f"scales depth by as much and misplaces objects: re-calibrate "
+            f"the camera (the intrinsics of the stream the images come from, at this resolution) or correct fx/fy "
+            f"in the intrinsics file")
+
+
+def latency_check(measures: list[tuple[int, int, PairMeasure]],
+                  poses_at: Callable[[float], tuple[np.ndarray, np.ndarray]], offset_s: float = 0.0,
+                  seed: int = 0) -> dict | None:
+    """The time offset dt (s) between image and pose timestamps that best explains the matched near pairs:
+    `poses_at(offset)` gives (T_world_cam [V,4,4], ok [V]) of the views at their image time + offset (poses
+    interpolated, SLERP + linear); dt is scanned over offset_s +- LATENCY_RANGE_S (`_scan`, 5 ms then 1 ms
+    steps) on the pairs posed at every offset scanned. `offset_s`: the offset in use (--poses.time-offset-ms).
+    Verdict "warn" when |dt - offset_s| > LATENCY_WARN_S with a clear minimum (CLEAR_SIGMAS, CLEAR_GAIN as in
+    `intrinsics_check`), else "ok"; None without MIN_PAIRS pairs."""
+    coarse = offset_s + np.arange(-LATENCY_RANGE_S, LATENCY_RANGE_S + 1e-9, 0.005)
+    cache = {}
+
+    def at(dt: float):
+        key = round(dt, 6)
+        if key not in cache:
+            cache[key] = poses_at(dt)
+        return cache[key]
+
+    ok_all = np.logical_and.reduce([at(float(d))[1] for d in coarse])
+    measures = [(i, j, m) for i, j, m in measures if ok_all[i] and ok_all[j]]
+    if len(measures) < MIN_PAIRS:
+        return None
+
+    def errors_at(dt: float) -> list[np.ndarray]:
+        T, ok = at(dt)
+        out = []
+        for i, j, m in measures:
+            if not (ok[i] and ok[j]):  # between the coarse offsets where all were posed: cannot happen, but count
+                out.append(np.full(len(m.xa), TRUNC_PX))
+                continue
+            T_ba = np.linalg.inv(T[j]) @ T[i]
+            out.append(sampson_px(m.xa, m.xb, T_ba[:3, :3], T_ba[:3, 3], m.f))
+        return out
+
+    r = _scan(errors_at, coarse, 0.001, offset_s, seed)
+    dt, sig = r["value"], r["sigma"]
+    gain = 1.0 - r["error_px_best"] / max(r["error_px_given"], 1e-12)
+    clear = abs(dt - offset_s) >= CLEAR_SIGMAS * max(sig, 1e-4) and gain >= CLEAR_GAIN
+    return {"verdict": "warn" if abs(dt - offset_s) > LATENCY_WARN_S and clear else "ok",
+            "time_offset_ms": round(1000.0 * dt, 1), "time_offset_sigma_ms": round(1000.0 * sig, 1),
+            "offset_in_use_ms": round(1000.0 * offset_s, 1), "clear_minimum": bool(clear),
+            "error_px_given": round(r["error_px_given"], 4), "error_px_best": round(r["error_px_best"], 4),
+            "error": f"mean over the pairs of the truncated (<= {TRUNC_PX:g} px) mean Sampson error",
+            "warn_ms": 1000.0 * LATENCY_WARN_S, "pairs": len(measures),
+            "convention": "pose of an image stamped t taken at t + time_offset (--poses.time-offset-ms)",
+            "curve_ms_error_px": [[round(1000.0 * v, 1), e] for v, e in r["curve"]]}
+
+
+def latency_message(c: dict, pose_file: Path | str | None = None) -> str:
+    """The warning for a `latency_check` verdict "warn"."""
+    return (f"the image and pose timestamps look offset: the matched features of {c['pairs']} image pairs fit the "
+            f"poses best when each image takes the pose at its timestamp {c['time_offset_ms']:+.0f} ms "
+            f"(+-{c['time_offset_sigma_ms']:.1f} ms; now {c['offset_in_use_ms']:+.0f} ms; error "
+            f"{c['error_px_given']:.3f} -> {c['error_px_best']:.3f} px): camera latency or clocks out of sync"
+            f"{f' ({pose_file})' if pose_file else ''}. Pass --poses.time-offset-ms={c['time_offset_ms']:.0f} "
+            f"(build; splattwin poses: --time-offset-ms={c['time_offset_ms']:.0f}) to match the images to the "
+            f"poses at that offset, or fix the "
+            f"timestamps (hardware sync, or the camera driver's latency compensation)")
 
 
 def measure_relative_rotation(path_a: Path, path_b: Path, cam_a, cam_b, max_side: int = MAX_SIDE,
@@ -365,23 +581,34 @@ def check_with_images(names: list[str], T_base_ee: list[np.ndarray], T_ee_cam: n
     res = evaluate(rows)
     res.source = "images"
     # pose consistency: near pairs (see neighbour_pairs), matched with the same feature cache
-    T_cam = [T @ T_ee_cam for T in T_base_ee]
-    crow = []
-    for i, j in neighbour_pairs(T_cam):
+    res.consistency, res.measures = check_poses_with_images(names, [T @ T_ee_cam for T in T_base_ee], image_paths,
+                                                            cameras, cache, size)
+    return res
+
+
+def check_poses_with_images(names: list[str], T_world_cam: list[np.ndarray], image_paths: list[Path], cameras: list,
+                            cache: dict | None = None, size: tuple[int, int] | None = None
+                            ) -> tuple[dict | None, list[tuple[int, int, PairMeasure]]]:
+    """Pose consistency of camera poses T_world_cam (any metric world) with their photos: the `consistency`
+    score of up to MAX_CONSISTENCY_PAIRS near pairs (`neighbour_pairs`), and the matched pairs themselves
+    (i, j, PairMeasure) for `intrinsics_check` / `latency_check`."""
+    cache = {} if cache is None else cache
+    crow, measures = [], []
+    for i, j in neighbour_pairs(T_world_cam):
         try:
             m = measure_pair(Path(image_paths[i]), Path(image_paths[j]), cameras[i], cameras[j], cache=cache)
-        except Exception as e:
+        except Exception as e:  # an unreadable image is someone else's error to report
             log.debug("pose consistency: pair %s, %s not measured: %s", names[i], names[j], e)
             m = None
         if m is None:
             continue
-        T_ba = np.linalg.inv(T_cam[j]) @ T_cam[i]  # camera a -> camera b: x_b = R x_a + t
+        T_ba = np.linalg.inv(T_world_cam[j]) @ T_world_cam[i]  # camera a -> camera b: x_b = R x_a + t
         size = size or m.size
+        measures.append((i, j, m))
         crow.append({"a": names[i], "b": names[j], "inliers": m.inliers,
                      "sampson_px": round(float(np.median(sampson_px(m.xa, m.xb, T_ba[:3, :3], T_ba[:3, 3], m.f))), 3),
                      "sampson_floor_px": round(m.floor_px, 3), "focal_px": round(m.f, 2)})
-    res.consistency = consistency(crow, size)
-    return res
+    return consistency(crow, size), measures
 
 
 def check_with_rotations(names: list[str], T_base_ee: list[np.ndarray], T_ee_cam: np.ndarray,
@@ -419,14 +646,24 @@ def report(chk: HandEyeCheck, where: Path | None, stop: bool = True,
                  "inverse)", what)
 
 
-def consistency_message(c: dict, where: Path | str | None = None, then: str | None = None) -> str:
+def consistency_message(c: dict, where: Path | str | None = None, then: str | None = None,
+                        robot: bool = True) -> str:
     """What the pose-consistency score says, for a warning (see `consistency`); `then`: what happens next
-    (default: the remedy)."""
+    (default: the remedy); `robot`: robot poses + hand-eye (`where`: the hand-eye's file), else known camera
+    poses (`where`: their file)."""
     w, h = c.get("matching_size") or (None, None)
     at = f"{w}x{h} px matching resolution" if w else "the matching resolution"
     deg = c["sampson_median_mrad"] * 0.18 / np.pi
     then = then or ("remedy: --poses.method sfm with the same --robot-poses (SfM aligned to the robot poses: the "
                     "photos fix the relative poses, the robot the metric frame)")
+    if not robot:
+        return (f"the camera poses{f' ({where})' if where else ''} do not fit the photos: matched features of "
+                f"{c['pairs']} neighbouring image pairs lie a median {c['sampson_median_px']:.2f} px ({at}; "
+                f"{c['sampson_median_mrad']:.1f} mrad, ~{deg:.2f} deg) off the epipolar lines the poses predict (the "
+                f"matches' own noise floor {c['sampson_floor_px']:.2f} px; warning above {c['warn_mrad']:g} mrad = "
+                f"{c['warn_px']:.2f} px here). Likely causes: the hand-eye calibration the poses were computed with, "
+                f"pose timestamps (see latency_check in poses_report.json), or the intrinsics (intrinsics_check). "
+                f"{then[0].upper()}{then[1:]}")
     return (f"the robot poses do not fit the photos: matched features of {c['pairs']} neighbouring image pairs lie a "
             f"median {c['sampson_median_px']:.2f} px ({at}; {c['sampson_median_mrad']:.1f} mrad, ~{deg:.2f} deg) off "
             f"the epipolar lines the robot poses + hand-eye predict (the matches' own noise floor "

@@ -93,7 +93,13 @@ class PoseOptions:
                                   "(a few image pairs) or the SfM model, and stop when its inverse (T_cam_ee given "
                                   "for T_ee_cam) fits clearly better; score how well the robot poses fit the photos "
                                   "(Sampson error) and, with method auto, use SfM aligned to the robot poses when "
-                                  "they clearly do not")
+                                  "they clearly do not. Robot poses and TUM/BOP known poses: also estimate the focal "
+                                  "length and (TUM, matched by timestamp) the image-to-pose time offset that best "
+                                  "fit the photos, warning when they differ from those given")
+    time_offset_ms: float = option(0.0, "poses matched to images by timestamp (TUM pose lists): take each image's "
+                                   "pose at its timestamp + this offset (camera latency or clock offset; the "
+                                   "poses check's latency_check estimates it)", unit="ms",
+                                   build_alias="time-offset-ms")
     num_threads: int = option(0, "CPU threads for SfM (0: all cores)", aliases=("threads",), hashed=False)
     depth_points: bool = option(True, "back-project depth images (RGB-D) into the initial point cloud when the "
                                 "frame is metric")

@@ -46,7 +46,7 @@ log = logging.getLogger(__name__)
 
 D435_SIZE = (640, 480)
 D435_K = (615.0, 615.0, 321.5, 243.5)   # fx fy cx cy at 640x480 (a typical D435 colour stream)
-__all__ = ["FORMATS", "MAX_RANGE_M", "WORLDS", "DepthNoise", "RobotCaptureOptions", "R_capture_world", "d435_camera", "depth_mm", "sweep_cameras",
+__all__ = ["FORMATS", "MAX_RANGE_M", "WORLDS", "DepthNoise", "RobotCaptureOptions", "R_capture_world", "d435_camera", "depth_mm", "moving_arm_tum", "sweep_cameras",
            "write_robot_capture"]
 
 
@@ -161,3 +161,44 @@ def write_robot_capture(out_dir: str | Path, options: SceneOptions | None = None
                                       "are in R_capture_world @ that world"}
     write_json(out / "scene.json", scene)
     return out
+
+
+def moving_arm_tum(folder: str | Path, view_period_s: float = 0.5, pose_rate_hz: float = 100.0,
+                   image_delay_s: float = 0.0) -> Path:
+    """Make a TUM capture written by `write_robot_capture` one taken while the arm moves: the camera follows a
+    smooth path through the views (positions: cubic spline, rotations: `RotationSpline`, one view every
+    `view_period_s` seconds), the pose list `groundtruth.txt` samples it at `pose_rate_hz`, and each image
+    (and its depth image) is stamped `image_delay_s` after the moment it shows (camera latency: the right
+    pose of an image stamped t is the one at t - image_delay_s). Rewrites groundtruth.txt, rgb.txt and
+    depth.txt in place; returns the folder."""
+    from scipy.interpolate import CubicSpline
+    from scipy.spatial.transform import Rotation, RotationSpline
+
+    from splattwin.capture import tum
+
+    folder = Path(folder)
+    images = tum._file_list(folder / "rgb.txt", folder, "image list")
+    depths = tum._file_list(folder / "depth.txt", folder, "depth list")
+    poses = dict(tum.read_pose_list(folder / "groundtruth.txt"))
+    # the writer samples each view's pose 5 ms after its image: view k is the pose list's k-th line
+    T = np.array(list(poses.values()))
+    # a clock far from the file names' (1.000000.png, ...): pose ids must not match image names by id
+    t_view = 100.0 + view_period_s * np.arange(len(T))
+    # the arm at rest one period before the first view and after the last: every image has poses around it
+    t_knot = np.r_[t_view[0] - view_period_s, t_view, t_view[-1] + view_period_s]
+    T_knot = np.concatenate([T[:1], T, T[-1:]])
+    pos = CubicSpline(t_knot, T_knot[:, :3, 3], axis=0)
+    rot = RotationSpline(t_knot, Rotation.from_matrix(T_knot[:, :3, :3]))
+    t_pose = t_knot[0] + np.arange(int(np.floor((t_knot[-1] - t_knot[0]) * pose_rate_hz)) + 1) / pose_rate_hz
+    Ts = np.tile(np.eye(4), (len(t_pose), 1, 1))
+    Ts[:, :3, :3] = rot(t_pose).as_matrix()
+    Ts[:, :3, 3] = pos(t_pose)
+    tum.write_pose_list(folder / "groundtruth.txt", [(f"{t:.6f}", M) for t, M in zip(t_pose, Ts)],
+                        header=f"T_world_cam along a moving arm's path ({pose_rate_hz:g} Hz); images stamped "
+                               f"{1000 * image_delay_s:g} ms late")
+    stamp = t_view + image_delay_s
+    write_text(folder / "rgb.txt", "# timestamp filename\n" + "".join(
+        f"{t:.6f} {p.relative_to(folder).as_posix()}\n" for t, (_, p) in zip(stamp, images)))
+    write_text(folder / "depth.txt", "# timestamp filename\n" + "".join(
+        f"{t:.6f} {p.relative_to(folder).as_posix()}\n" for t, (_, p) in zip(stamp, depths)))
+    return folder
