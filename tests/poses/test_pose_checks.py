@@ -51,7 +51,7 @@ def _measures(T_true: np.ndarray, f_given: float, seed: int = 0, px_noise: float
             Xc = (np.linalg.inv(T_true[k]) @ np.c_[X, np.ones(len(X))].T)[:3].T
             uv.append(Xc[:, :2] / Xc[:, 2:] * F_TRUE + [c.cx, c.cy] + rng.normal(0, px_noise, (len(X), 2)))
         ca, cb = _camera(f_given, T_true[i]), _camera(f_given, T_true[i + 1])
-        xa, xb = hec._normalised_points(uv[0], ca, 1.0, 1.0), hec._normalised_points(uv[1], cb, 1.0, 1.0)
+        xa, xb = hec._rays(uv[0], ca), hec._rays(uv[1], cb)  # uv: full-size pixels, the cameras' convention
         m = hec.PairMeasure(np.eye(3), len(X), xa, xb, f_given, (320, 240), 0.3, uv[0], uv[1], ca, cb)
         out.append((i, i + 1, m))
     return out

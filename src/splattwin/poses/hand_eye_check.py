@@ -235,9 +235,21 @@ def _normalised_points(uv: np.ndarray, cam, sx: float, sy: float) -> np.ndarray:
     full-size camera). The camera's K puts pixel centres at +0.5 (`capture.camera`), so the points move by
     half a pixel first (else the principal point is half a pixel off: ~0.26 px of Sampson error on an exact
     pose at f 307 px); then the corner-origin coordinates scale exactly with the image."""
+    return _rays(_full_size_pixels(uv, sx, sy), cam)
+
+
+def _full_size_pixels(uv: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """Points in OpenCV's pixel convention of the image resized by (sx, sy) -> pixels [N,2] of the full-size
+    camera in the cameras' convention (pixel centres at +0.5: corner-origin coordinates scale exactly)."""
+    return (uv + 0.5) / [sx, sy]
+
+
+def _rays(uv: np.ndarray, cam) -> np.ndarray:
+    """Pixels [N,2] of the full-size camera `cam`, in its convention (centres at +0.5) -> normalised,
+    undistorted camera coordinates [N,2] (`capture.undistort.rays_through`)."""
     from splattwin.capture.undistort import rays_through
 
-    x, y = rays_through(cam, (uv[:, 0] + 0.5) / sx, (uv[:, 1] + 0.5) / sy)
+    x, y = rays_through(cam, uv[:, 0], uv[:, 1])
     return np.stack([x, y], axis=-1)
 
 
@@ -247,7 +259,8 @@ class PairMeasure:
     normalised camera coordinates (xa, xb [N,2]), the focal length f (px) and size (w, h) of the images at the
     matching resolution, and the inliers' median Sampson error (px there) under the photos' own essential
     matrix: the noise floor of the matching. ua, ub [N,2]: the same inliers in pixels of the full-size
-    cameras cam_a, cam_b (for re-normalising them under other intrinsics, `intrinsics_check`)."""
+    cameras cam_a, cam_b, in their convention (centres at +0.5; for re-normalising them under other
+    intrinsics, `intrinsics_check`)."""
 
     R: np.ndarray
     inliers: int
@@ -298,10 +311,9 @@ def measure_pair(path_a: Path, path_b: Path, cam_a, cam_b, max_side: int = MAX_S
     good = [m[0] for m in knn if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]
     if len(good) < MIN_INLIERS:
         return None
-    pa = ua[[m.queryIdx for m in good]] / [sxa, sya]  # pixels of the full-size cameras
-    pb = ub[[m.trainIdx for m in good]] / [sxb, syb]
-    xa = _normalised_points(pa, cam_a, 1.0, 1.0)
-    xb = _normalised_points(pb, cam_b, 1.0, 1.0)
+    pa = _full_size_pixels(ua[[m.queryIdx for m in good]], sxa, sya)  # the full-size cameras' pixels
+    pb = _full_size_pixels(ub[[m.trainIdx for m in good]], sxb, syb)
+    xa, xb = _rays(pa, cam_a), _rays(pb, cam_b)
     f = 0.5 * (cam_a.fx * sxa + cam_b.fx * sxb)
     E, mask = cv2.findEssentialMat(xa, xb, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=1.0 / f)
     if E is None or E.shape != (3, 3):
@@ -416,8 +428,8 @@ def intrinsics_check(measures: list[tuple[int, int, PairMeasure]], T_world_cam: 
     def errors_at(s: float) -> list[np.ndarray]:
         out = []
         for (_, _, m), T_ba in zip(measures, rel):
-            xa = _normalised_points(m.ua, _scaled_camera(m.cam_a, s), 1.0, 1.0)
-            xb = _normalised_points(m.ub, _scaled_camera(m.cam_b, s), 1.0, 1.0)
+            xa = _rays(m.ua, _scaled_camera(m.cam_a, s))
+            xb = _rays(m.ub, _scaled_camera(m.cam_b, s))
             out.append(sampson_px(xa, xb, T_ba[:3, :3], T_ba[:3, 3], m.f * s))
         return out
 
