@@ -115,6 +115,14 @@ def test_latency_check_finds_the_time_offset(delay_ms: float):
         assert lc["verdict"] == "ok", lc
 
 
+def test_latency_check_says_undetermined_when_no_offset_changes_the_fit():
+    """A still arm (every view's pose constant in time): shifting the image times changes no relative pose,
+    the error curve is flat, and the check reports "undetermined" instead of an offset read off noise."""
+    T = _path(T_VIEWS)
+    lc = hec.latency_check(_measures(T, F_TRUE), lambda dt: (T, np.ones(len(T), dtype=bool)))
+    assert lc is not None and lc["verdict"] == "undetermined" and not lc["observable"], lc
+
+
 # -- the embedded scene as a robot-style TUM capture (rendered once, ~5 s) ------------------------------------
 @pytest.fixture(scope="module")
 def tum_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:

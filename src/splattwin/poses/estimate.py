@@ -837,6 +837,9 @@ def _check_known_poses(dataset: Dataset, opts: PoseOptions, frames: list[DataFra
     stats["latency_check"] = lc
     if lc["verdict"] == "warn":
         log.warning("%s", hec.latency_message(lc, track.get("pose_file")))
+    elif lc["verdict"] == "undetermined":
+        log.info("latency check undetermined: no time offset changes how well the poses fit the photos (the arm "
+                 "still or at constant velocity between the matched views)")
     else:
         log.info("latency check: time offset %+.0f +- %.0f ms fits the photos best", lc["time_offset_ms"],
                  lc["time_offset_sigma_ms"])
