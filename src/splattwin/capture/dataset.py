@@ -323,13 +323,16 @@ def list_files(folder: Path, suffixes, inside: Path | None = None) -> list[Path]
 
 
 def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool = True,
-                 frames_dir: str | Path | None = None, require_images: bool = True) -> Dataset:
+                 frames_dir: str | Path | None = None, require_images: bool = True,
+                 min_change: float | None = None) -> Dataset:
     """Load any supported dataset layout (see module docstring).
 
     frames_dir: where a video's extracted frames go (default `<stem>_frames/` beside the video; `build`
     puts them inside the twin folder so that nothing is written outside it), and the upright copies of an
     image folder's photos stored rotated (EXIF Orientation; `capture.orientation`: without frames_dir
     such a folder is refused).
+    max_frames: at most this many frames, evenly spaced (a video: the sharpest of each of that many
+    windows, default `VIDEO_MAX_FRAMES`); min_change: a video's near-duplicate threshold (`capture.video`).
     require_images: False keeps the cameras of a transforms.json / cameras.json whose images are missing
     (for work that needs only cameras; implies validate=False, which would read the images).
     Paths read from the dataset's files (image names, depth and mask paths) must stay inside the
@@ -351,7 +354,7 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
             ds = (cameras_json.read(path, require_images=require_images) if text_head.lstrip().startswith("[")
                   else nerfstudio.read(path, require_images=require_images))
         elif is_video(path):
-            ds = video.read(path, max_frames=max_frames, out_dir=frames_dir)
+            ds = video.read(path, max_frames=max_frames, out_dir=frames_dir, min_change=min_change)
         else:
             raise InputError("not a dataset: expected transforms.json, cameras.json, a video, or a folder", path)
     elif (path / "transforms.json").is_file():

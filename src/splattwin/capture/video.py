@@ -31,10 +31,10 @@ import numpy as np
 from splattwin import io
 from splattwin.capture.dataset import Dataset
 from splattwin.errors import InputError
+from splattwin.frame_options import MIN_CHANGE, VIDEO_MAX_FRAMES  # noqa: F401 (re-exported)
 
 log = logging.getLogger(__name__)
 
-MIN_CHANGE = 1.0   # grey levels (0..255), mean |difference| of THUMB_SIDE thumbnails; 0 keeps duplicates
 THUMB_SIDE = 64
 # bumped when the extraction changes what it writes (2: frames upright, near-duplicates skipped): an
 # older record's frames are extracted again
@@ -148,7 +148,7 @@ def _listed(rec: dict | None) -> list[str]:
     return [n for n in names if isinstance(n, str) and _FRAME_RE.match(n)]
 
 
-def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = 30,
+def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = VIDEO_MAX_FRAMES,
                    min_change: float = MIN_CHANGE) -> list[Path]:
     """Write the selected frames as PNG into `out_dir` (frame_00000.png, ...) and their record
     `frames.json`; cached by video size/mtime and the settings. Returns the frames of this extraction
@@ -228,14 +228,16 @@ def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = 30,
 
 
 def read(path: str | Path, max_frames: int | None = None, out_dir: str | Path | None = None,
-         min_change: float = MIN_CHANGE) -> Dataset:
+         min_change: float | None = None) -> Dataset:
     """A video as an unposed image dataset: the frames of this extraction (`extract_frames`, into
-    `out_dir`, default `<stem>_frames/` beside the video)."""
+    `out_dir`, default `<stem>_frames/` beside the video). max_frames / min_change None: the defaults
+    (`VIDEO_MAX_FRAMES`, `MIN_CHANGE`)."""
     from splattwin.capture import images
 
     path = Path(path)
     out = Path(out_dir) if out_dir is not None else path.parent / f"{path.stem}_frames"
-    files = extract_frames(path, out, max_frames=max_frames or 30, min_change=min_change)
+    files = extract_frames(path, out, max_frames=max_frames or VIDEO_MAX_FRAMES,
+                           min_change=MIN_CHANGE if min_change is None else min_change)
     ds = images.read_files(files, root=out)
     ds.meta.update({"format": "video", "video": str(path), "sequential": True})
     return ds

@@ -178,10 +178,13 @@ def _runs(until: str | None, stage: str) -> bool:
     return until is None or until not in names or names.index(stage) <= names.index(until)
 
 
-def _video_sizes(path: Path, max_frames: int = 30) -> list[tuple[int, int]]:
-    """Frame sizes a video will give (probed, not decoded)."""
+def _video_sizes(path: Path, max_frames: int | None = None) -> list[tuple[int, int]]:
+    """Frame sizes a video will give with --max-frames `max_frames` (probed, not decoded)."""
+    from splattwin.frame_options import VIDEO_MAX_FRAMES
+
     from splattwin.capture.video import _open
 
+    max_frames = max_frames or VIDEO_MAX_FRAMES
     c = _open(path)
     try:
         s = c.streams.video[0]
@@ -244,7 +247,9 @@ def run_preflight(options, out: Path, input_path: Path | None, scene_dir: Path |
     if not video or o.semantics.masks:
         from splattwin.capture import load_dataset
 
-        ds = load_dataset(input_path, frames_dir=frames_dir)  # image headers only; nothing else works without
+        # image headers only; nothing else works without (a video: its frames as the poses stage extracts them)
+        ds = load_dataset(input_path, frames_dir=frames_dir, max_frames=o.poses.max_frames,
+                          min_change=o.poses.min_change)
     if o.robot.task:
         fmt = ds.meta.get("format") if ds is not None else "video"
         meta_path = Path(ds.meta.get("path", ds.root)) if ds is not None else input_path
@@ -268,7 +273,8 @@ def run_preflight(options, out: Path, input_path: Path | None, scene_dir: Path |
     # resources at the training resolution
     from splattwin.splat.resolution import resolve
 
-    sizes = _video_sizes(input_path) if ds is None else [(f.camera.width, f.camera.height) for f in ds.frames]
+    sizes = (_video_sizes(input_path, o.poses.max_frames) if ds is None
+             else [(f.camera.width, f.camera.height) for f in ds.frames])
     device = "cuda" if o.splat.device == "cuda" else "cpu"
     rule = resolve(o.splat.resolution, o.splat.cpu_max_side, device)
     train_sizes = [rule.size(w, h) for w, h in sizes]

@@ -28,7 +28,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                      help="= --method known: use the dataset's poses as they are (assumed metric)")
     p.add_argument("--per-image-intrinsics", dest=dest("shared_intrinsics"), action="store_false",
                    default=argparse.SUPPRESS, help="= --no-shared-intrinsics")
-    p.add_argument("--max-frames", type=int, help="use at most N frames (evenly spaced; videos: best N)")
 
 
 def print_sfm_summary(stats: dict) -> None:
@@ -69,7 +68,8 @@ def _run(args: argparse.Namespace) -> int:
 
     with output_lock(args.out):
         # a video's frames and upright copies of rotated photos go inside OUT, as in `build`
-        ds = load_dataset(args.input, max_frames=args.max_frames, frames_dir=args.out / "capture" / "frames")
+        ds = load_dataset(args.input, max_frames=opts.max_frames, min_change=opts.min_change,
+                          frames_dir=args.out / "capture" / "frames")
         res = estimate_poses(ds, opts)
         path = res.save(args.out)
     st = res.stats

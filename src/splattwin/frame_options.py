@@ -1,0 +1,28 @@
+"""How many frames a capture gives (`--max-frames`) and which of a video's frames are near-duplicates
+(`--min-change`): one small option dataclass, shared without importing a stage (light: no numpy) by
+`capture frames` and the poses options (`poses`/`build`, which inherit it), with the defaults that
+`splattwin.capture.video` extracts with."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from splattwin.options import option
+
+# frames taken from a video when --max-frames is not given (the sharpest of each of that many windows)
+VIDEO_MAX_FRAMES = 30
+# grey levels (0..255), mean |difference| of 64-px grey thumbnails below which a frame is a near-duplicate
+# of the last kept one (capture.video: a still camera measured <= 0.16, a one-pixel pan >= 1.2); 0 keeps them
+MIN_CHANGE = 1.0
+
+
+@dataclass
+class FrameOptions:
+    """max_frames None: `VIDEO_MAX_FRAMES` for a video, every frame of any other capture."""
+
+    max_frames: int | None = option(None, f"use at most N frames of the capture, evenly spaced (a video: the sharpest "
+                                    f"frame of each of N equal windows; default {VIDEO_MAX_FRAMES} for a video, every "
+                                    f"frame otherwise)", build_alias="max-frames")
+    min_change: float = option(MIN_CHANGE, "video: skip a frame that differs from the last kept one by less than this "
+                               "(mean absolute difference of 64-px grey thumbnails, grey levels 0-255; 0 keeps "
+                               "near-duplicates)", build_alias="min-change")

@@ -1,0 +1,84 @@
+"""`build` on a video: how many frames it takes (--max-frames, --min-change), and input errors found
+before any work (small synthetic clips, `tests.capture.test_video_cli`)."""
+
+from __future__ import annotations
+
+import pytest
+
+from splattwin.cli import main
+from splattwin.errors import InputError
+from tests.capture.test_video_cli import _board, _encode
+
+
+@pytest.fixture
+def clip(tmp_path):
+    """A 24-frame 96x64 pan (3 px a frame: no near-duplicates)."""
+    video = tmp_path / "vids" / "scan.mp4"
+    video.parent.mkdir()
+    _encode(video, [_board(3 * i) for i in range(24)])
+    return video
+
+
+def _stop_at_poses(monkeypatch):
+    """estimate_poses replaced by one that records the frames it got and stops (no SfM in these tests)."""
+    import splattwin.poses.estimate as estimate
+
+    seen = []
+
+    def fake(ds, opts=None):
+        seen.append([f.name for f in ds.frames])
+        raise InputError("stopped by the test")
+
+    monkeypatch.setattr(estimate, "estimate_poses", fake)
+    return seen
+
+
+@pytest.mark.parametrize("flag", ["--max-frames", "--poses.max-frames"])
+def test_build_max_frames_reaches_the_video(tmp_path, clip, monkeypatch, capsys, flag):
+    seen = _stop_at_poses(monkeypatch)
+    code = main(["build", str(clip), "--out", str(tmp_path / "T"), flag, "5", "--until", "poses", "--no-progress"])
+    assert code == 2 and "stopped by the test" in capsys.readouterr().err
+    assert seen == [[f"frame_{i:05d}" for i in range(5)]]
+
+
+def test_build_min_change_and_config_file(tmp_path, clip, monkeypatch):
+    """--min-change reaches the extraction (a clip held still 6 frames at each of 4 places: 4 frames by
+    default, 12 with 0), and both options come from a config file too."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    still = tmp_path / "still.mp4"   # grey-level noise: no two frames identical (those are dropped anyway)
+    _encode(still, [np.minimum(_board(20 * (i // 6)), 254) + rng.integers(0, 2, (64, 96, 3), dtype=np.uint8)
+                    for i in range(24)])
+    seen = _stop_at_poses(monkeypatch)
+    assert main(["build", str(still), "--out", str(tmp_path / "A"), "--max-frames", "12", "--until", "poses"]) == 2
+    assert main(["build", str(still), "--out", str(tmp_path / "B"), "--max-frames", "12", "--min-change", "0",
+                 "--until", "poses"]) == 2
+    cfg = tmp_path / "twin.yaml"
+    cfg.write_text("poses:\n  max_frames: 7\n  min_change: 0\n")
+    assert main(["build", str(still), "--out", str(tmp_path / "C"), "--config", str(cfg), "--until", "poses"]) == 2
+    assert [len(s) for s in seen] == [4, 12, 7]
+
+
+def test_max_frames_is_part_of_the_poses_key(tmp_path, clip):
+    """Another --max-frames (or --min-change) re-runs the poses stage (and so everything after it)."""
+    from splattwin.pipeline.build import stage_keys
+    from splattwin.pipeline.options import BuildOptions
+    from splattwin.poses.options import PoseOptions
+
+    def keys(**kw):
+        return stage_keys(tmp_path / "T", BuildOptions(input=str(clip), poses=PoseOptions(**kw)))
+
+    base = keys()
+    assert keys(max_frames=60)["poses"] != base["poses"] and keys(max_frames=60)["splats"] != base["splats"]
+    assert keys(min_change=0.0)["poses"] != base["poses"]
+    assert keys(max_frames=60)["poses"] != keys(max_frames=61)["poses"]
+
+
+def test_unknown_build_option_prints_builds_usage(tmp_path, clip, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["build", str(clip), "--out", str(tmp_path / "T"), "--max-frams", "60"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2
+    assert "usage: splattwin build" in err and "splattwin build: error: unrecognized arguments: --max-frams 60" in err
+    assert not (tmp_path / "T").exists()
