@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from splattwin.errors import InputError
 from splattwin.options import option
 
 # frames taken from a video when --max-frames is not given (the sharpest of each of that many windows)
@@ -26,3 +27,23 @@ class FrameOptions:
     min_change: float = option(MIN_CHANGE, "video: skip a frame that differs from the last kept one by less than this "
                                "(mean absolute difference of 64-px grey thumbnails, grey levels 0-255; 0 keeps "
                                "near-duplicates)", build_alias="min-change")
+
+    def check(self) -> None:
+        """InputError for values no extraction can use, before any work (0 was silently taken as the default,
+        a negative count failed inside numpy)."""
+        check_max_frames(self.max_frames)
+        check_min_change(self.min_change)
+
+
+def check_max_frames(n) -> None:
+    """InputError unless `n` is None (the default) or a whole number >= 1."""
+    if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 1):
+        raise InputError(f"--max-frames must be >= 1, got {n}")
+
+
+def check_min_change(x) -> None:
+    """InputError unless `x` is a finite number >= 0 (grey levels)."""
+    import math
+
+    if isinstance(x, bool) or not isinstance(x, (int, float)) or not (x >= 0 and math.isfinite(x)):
+        raise InputError(f"--min-change must be a number >= 0, got {x}")

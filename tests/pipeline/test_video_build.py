@@ -82,3 +82,36 @@ def test_unknown_build_option_prints_builds_usage(tmp_path, clip, capsys):
     assert e.value.code == 2
     assert "usage: splattwin build" in err and "splattwin build: error: unrecognized arguments: --max-frams 60" in err
     assert not (tmp_path / "T").exists()
+
+
+@pytest.mark.parametrize("n", ["0", "-2"])
+def test_max_frames_below_one_refused_everywhere(tmp_path, clip, capsys, n):
+    """0 or a negative --max-frames: exit 2 naming the option, before anything is read or written, on every
+    command that takes it (0 was silently replaced by 30 on a video, -2 was an internal error in numpy, and
+    0 on an image folder said "dataset has no frames")."""
+    import numpy as np
+
+    from splattwin import io
+
+    photos = tmp_path / "photos"
+    for i in range(3):
+        io.write_image(photos / f"img_{i}.png", np.full((48, 64, 3), 40 * i, np.uint8))
+    before = sorted(p.name for p in clip.parent.iterdir())
+    runs = [["poses", str(clip), str(tmp_path / "P1")], ["poses", str(photos), str(tmp_path / "P2")],
+            ["build", str(clip), "--out", str(tmp_path / "B1"), "--until", "poses"],
+            ["build", str(clip), "--out", str(tmp_path / "B2"), "--poses.max-frames"],
+            ["train", str(photos), str(tmp_path / "T")],
+            ["capture", "info", str(clip)], ["capture", "frames", str(clip), str(tmp_path / "F")]]
+    for argv in runs:
+        argv = argv + ([n] if argv[-1].startswith("--poses") else ["--max-frames", n])
+        assert main(argv) == 2, argv
+        assert f"--max-frames must be >= 1, got {n}" in capsys.readouterr().err, argv
+    assert not [p for p in tmp_path.iterdir() if p.name not in ("vids", "photos")]
+    assert sorted(p.name for p in clip.parent.iterdir()) == before
+    cfg = tmp_path / "twin.yaml"
+    cfg.write_text(f"poses:\n  max_frames: {n}\n")
+    assert main(["build", str(clip), "--out", str(tmp_path / "B3"), "--config", str(cfg)]) == 2
+    assert f"--max-frames must be >= 1, got {n}" in capsys.readouterr().err
+    assert not (tmp_path / "B3").exists()
+    assert main(["build", str(clip), "--out", str(tmp_path / "B4"), "--min-change", "-1"]) == 2
+    assert "--min-change must be a number >= 0, got -1" in capsys.readouterr().err

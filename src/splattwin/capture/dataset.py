@@ -339,7 +339,9 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
     dataset's folder (`splattwin.paths`); names of views must be plain file names (`splattwin.names`).
     """
     from splattwin.capture import bop, cameras_json, colmap, images, nerfstudio, tum, video
+    from splattwin.frame_options import check_max_frames
 
+    check_max_frames(max_frames)   # before anything is read or extracted
     path = Path(path)
     if not path.exists():
         raise InputError("dataset path does not exist", path)

@@ -31,7 +31,7 @@ import numpy as np
 from splattwin import io
 from splattwin.capture.dataset import Dataset
 from splattwin.errors import InputError
-from splattwin.frame_options import MIN_CHANGE, VIDEO_MAX_FRAMES  # noqa: F401 (re-exported)
+from splattwin.frame_options import MIN_CHANGE, VIDEO_MAX_FRAMES, check_max_frames, check_min_change
 
 log = logging.getLogger(__name__)
 
@@ -156,10 +156,8 @@ def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = VIDE
     from splattwin.progress import Progress
 
     path, out_dir = Path(path), Path(out_dir)
-    if max_frames < 1:
-        raise InputError(f"--max-frames must be >= 1, got {max_frames}")
-    if not (min_change >= 0 and np.isfinite(min_change)):
-        raise InputError(f"--min-change must be a number >= 0, got {min_change}")
+    check_max_frames(max_frames)
+    check_min_change(min_change)
     stamp = {"video": str(path.resolve()), "size": path.stat().st_size if path.is_file() else None,
              "mtime": path.stat().st_mtime if path.is_file() else None, "max_frames": max_frames,
              "min_change": float(min_change), "method": METHOD}
@@ -236,7 +234,7 @@ def read(path: str | Path, max_frames: int | None = None, out_dir: str | Path | 
 
     path = Path(path)
     out = Path(out_dir) if out_dir is not None else path.parent / f"{path.stem}_frames"
-    files = extract_frames(path, out, max_frames=max_frames or VIDEO_MAX_FRAMES,
+    files = extract_frames(path, out, max_frames=VIDEO_MAX_FRAMES if max_frames is None else max_frames,
                            min_change=MIN_CHANGE if min_change is None else min_change)
     ds = images.read_files(files, root=out)
     ds.meta.update({"format": "video", "video": str(path), "sequential": True})

@@ -184,7 +184,7 @@ def _video_sizes(path: Path, max_frames: int | None = None) -> list[tuple[int, i
 
     from splattwin.capture.video import _open
 
-    max_frames = max_frames or VIDEO_MAX_FRAMES
+    max_frames = VIDEO_MAX_FRAMES if max_frames is None else max_frames
     c = _open(path)
     try:
         s = c.streams.video[0]

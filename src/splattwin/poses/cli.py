@@ -60,6 +60,7 @@ def _run(args: argparse.Namespace) -> int:
     opts = from_args(PoseOptions, args)
     if opts.work_dir is None:
         opts = replace(opts, work_dir=args.out / "sfm")
+    opts.check()   # --max-frames, --min-change
     if opts.min_registered is not None and opts.min_registered < 2:
         raise InputError(f"--min-registered must be >= 2, got {opts.min_registered}")
     if opts.marker_size is not None and opts.marker_size <= 0:

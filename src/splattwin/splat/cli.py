@@ -42,6 +42,9 @@ def _train(args: argparse.Namespace) -> int:
     from splattwin.capture import load_dataset
     from splattwin.splat.trainer import train
 
+    from splattwin.frame_options import check_max_frames
+
+    check_max_frames(args.max_frames)   # before anything is read (0 left no frame, -2 failed inside numpy)
     cfg = from_args(TrainConfig, args)
     from splattwin.lock import output_lock
 
