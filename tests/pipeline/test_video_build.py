@@ -115,3 +115,18 @@ def test_max_frames_below_one_refused_everywhere(tmp_path, clip, capsys, n):
     assert not (tmp_path / "B3").exists()
     assert main(["build", str(clip), "--out", str(tmp_path / "B4"), "--min-change", "-1"]) == 2
     assert "--min-change must be a number >= 0, got -1" in capsys.readouterr().err
+
+
+def test_no_progress_silences_the_frame_scoring(tmp_path, clip, monkeypatch, capsys):
+    """--no-progress: no 'scoring scan.mp4' lines from build, poses or capture frames (they were printed
+    whatever the flag said); without it they are there."""
+    _stop_at_poses(monkeypatch)
+    assert main(["build", str(clip), "--out", str(tmp_path / "A"), "--until", "poses"]) == 2
+    assert "scoring scan.mp4" in capsys.readouterr().err
+    assert main(["build", str(clip), "--out", str(tmp_path / "B"), "--until", "poses", "--no-progress"]) == 2
+    assert main(["poses", str(clip), str(tmp_path / "P"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "scoring" not in err and err.count("stopped by the test") == 2
+    assert main(["capture", "frames", str(clip), str(tmp_path / "F"), "--no-progress"]) == 0
+    assert main(["capture", "info", str(clip), "--no-progress"]) == 0
+    assert "scoring" not in capsys.readouterr().err

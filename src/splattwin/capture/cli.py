@@ -19,6 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     info = csub.add_parser("info", help="summarise a dataset (any supported layout)")
     info.add_argument("path", type=Path, help="transforms.json, COLMAP folder, cameras.json, image folder or video")
     info.add_argument("--max-frames", type=int, default=None, help="video: number of frames to extract")
+    info.add_argument("--no-progress", dest="progress", action="store_false", help="no progress lines (video)")
     info.set_defaults(func=_info)
 
     conv = csub.add_parser("convert", help="write a dataset's cameras in another format")
@@ -32,6 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     fr.add_argument("out", type=Path, help="output folder for PNG frames")
     # the options `poses`/`build` take the frames with (`--max-frames`, `--min-change`): one default, one help
     add_options(fr, FrameOptions)
+    fr.add_argument("--no-progress", dest="progress", action="store_false", help="no progress lines")
     fr.set_defaults(func=_frames)
 
 
@@ -43,7 +45,7 @@ def _info(args: argparse.Namespace) -> int:
 
     # a video's frames are extracted into a temporary folder: `info` writes nothing beside the capture
     with tempfile.TemporaryDirectory(prefix="splattwin-info-") as tmp:
-        ds = load_dataset(args.path, max_frames=args.max_frames, frames_dir=Path(tmp))
+        ds = load_dataset(args.path, max_frames=args.max_frames, frames_dir=Path(tmp), progress=args.progress)
     sizes = sorted({(f.camera.width, f.camera.height) for f in ds.frames})
     size = f"{sizes[0][0]}x{sizes[0][1]}" if len(sizes) == 1 else f"{len(sizes)} image sizes"
     if ds.meta.get("split"):   # the capture's own split: poses/train/build keep it
@@ -87,6 +89,6 @@ def _frames(args: argparse.Namespace) -> int:
 
     opts = from_args(FrameOptions, args)
     paths = extract_frames(args.video, args.out, max_frames=VIDEO_MAX_FRAMES if opts.max_frames is None
-                           else opts.max_frames, min_change=opts.min_change)
+                           else opts.max_frames, min_change=opts.min_change, progress=args.progress)
     print(f"wrote {len(paths)} frames to {args.out}")
     return 0

@@ -324,7 +324,7 @@ def list_files(folder: Path, suffixes, inside: Path | None = None) -> list[Path]
 
 def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool = True,
                  frames_dir: str | Path | None = None, require_images: bool = True,
-                 min_change: float | None = None) -> Dataset:
+                 min_change: float | None = None, progress: bool = True) -> Dataset:
     """Load any supported dataset layout (see module docstring).
 
     frames_dir: where a video's extracted frames go (default `<stem>_frames/` beside the video; `build`
@@ -333,6 +333,7 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
     such a folder is refused).
     max_frames: at most this many frames, evenly spaced (a video: the sharpest of each of that many
     windows, default `VIDEO_MAX_FRAMES`); min_change: a video's near-duplicate threshold (`capture.video`).
+    progress: the progress lines of a video's frame scoring (False: `--no-progress`).
     require_images: False keeps the cameras of a transforms.json / cameras.json whose images are missing
     (for work that needs only cameras; implies validate=False, which would read the images).
     Paths read from the dataset's files (image names, depth and mask paths) must stay inside the
@@ -356,7 +357,8 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
             ds = (cameras_json.read(path, require_images=require_images) if text_head.lstrip().startswith("[")
                   else nerfstudio.read(path, require_images=require_images))
         elif is_video(path):
-            ds = video.read(path, max_frames=max_frames, out_dir=frames_dir, min_change=min_change)
+            ds = video.read(path, max_frames=max_frames, out_dir=frames_dir, min_change=min_change,
+                            progress=progress)
         else:
             raise InputError("not a dataset: expected transforms.json, cameras.json, a video, or a folder", path)
     elif (path / "transforms.json").is_file():

@@ -149,10 +149,11 @@ def _listed(rec: dict | None) -> list[str]:
 
 
 def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = VIDEO_MAX_FRAMES,
-                   min_change: float = MIN_CHANGE) -> list[Path]:
+                   min_change: float = MIN_CHANGE, progress: bool = True) -> list[Path]:
     """Write the selected frames as PNG into `out_dir` (frame_00000.png, ...) and their record
     `frames.json`; cached by video size/mtime and the settings. Returns the frames of this extraction
-    only: a previous extraction's frames are removed when it is redone."""
+    only: a previous extraction's frames are removed when it is redone. progress: the scoring pass's
+    progress bar / lines (`--no-progress`: none)."""
     from splattwin.progress import Progress
 
     path, out_dir = Path(path), Path(out_dir)
@@ -171,7 +172,8 @@ def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = VIDE
     # Pass 1: sharpness and a thumbnail of every frame (cheap, downscaled).
     container = _open(path)
     scores, thumbs, turns = [], [], 0
-    with Progress(container.streams.video[0].frames or None, f"scoring {path.name}", unit="frame") as prog:
+    with Progress(container.streams.video[0].frames or None, f"scoring {path.name}", unit="frame",
+                  enabled=progress) as prog:
         try:
             for frame in container.decode(video=0):
                 rgb, k = _upright(frame)
@@ -226,7 +228,7 @@ def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = VIDE
 
 
 def read(path: str | Path, max_frames: int | None = None, out_dir: str | Path | None = None,
-         min_change: float | None = None) -> Dataset:
+         min_change: float | None = None, progress: bool = True) -> Dataset:
     """A video as an unposed image dataset: the frames of this extraction (`extract_frames`, into
     `out_dir`, default `<stem>_frames/` beside the video). max_frames / min_change None: the defaults
     (`VIDEO_MAX_FRAMES`, `MIN_CHANGE`)."""
@@ -235,7 +237,7 @@ def read(path: str | Path, max_frames: int | None = None, out_dir: str | Path | 
     path = Path(path)
     out = Path(out_dir) if out_dir is not None else path.parent / f"{path.stem}_frames"
     files = extract_frames(path, out, max_frames=VIDEO_MAX_FRAMES if max_frames is None else max_frames,
-                           min_change=MIN_CHANGE if min_change is None else min_change)
+                           min_change=MIN_CHANGE if min_change is None else min_change, progress=progress)
     ds = images.read_files(files, root=out)
     ds.meta.update({"format": "video", "video": str(path), "sequential": True})
     return ds

@@ -329,7 +329,7 @@ def preflight(ctx: Context, until: str | None = None) -> dict:
 
     o = ctx.config
     return run_preflight(o, ctx.out, _input_path(ctx) if o.scene is None else None, _scene_dir(ctx),
-                         ctx.path("capture/frames"), until=until)
+                         ctx.path("capture/frames"), until=until, progress=ctx.progress)
 
 
 def _context(out: str | Path, options: BuildOptions, progress: bool = True) -> Context:

@@ -195,10 +195,11 @@ def _video_sizes(path: Path, max_frames: int | None = None) -> list[tuple[int, i
 
 
 def run_preflight(options, out: Path, input_path: Path | None, scene_dir: Path | None, frames_dir: Path,
-                  until: str | None = None) -> dict:
+                  until: str | None = None, progress: bool = True) -> dict:
     """All checks for `BuildOptions` `options` building into `out` (see module docstring). input_path:
     the capture (None for the embedded scene, generated later). until: the last stage that will run
-    (None: all). Returns what it measured."""
+    (None: all). progress: of a video's frame extraction (build --no-progress: none). Returns what it
+    measured."""
     import time
 
     from splattwin.capture.dataset import VIDEO_SUFFIXES
@@ -249,7 +250,7 @@ def run_preflight(options, out: Path, input_path: Path | None, scene_dir: Path |
 
         # image headers only; nothing else works without (a video: its frames as the poses stage extracts them)
         ds = load_dataset(input_path, frames_dir=frames_dir, max_frames=o.poses.max_frames,
-                          min_change=o.poses.min_change)
+                          min_change=o.poses.min_change, progress=progress)
     if o.robot.task:
         fmt = ds.meta.get("format") if ds is not None else "video"
         meta_path = Path(ds.meta.get("path", ds.root)) if ds is not None else input_path

@@ -70,7 +70,7 @@ def _run(args: argparse.Namespace) -> int:
     with output_lock(args.out):
         # a video's frames and upright copies of rotated photos go inside OUT, as in `build`
         ds = load_dataset(args.input, max_frames=opts.max_frames, min_change=opts.min_change,
-                          frames_dir=args.out / "capture" / "frames")
+                          frames_dir=args.out / "capture" / "frames", progress=opts.progress)
         res = estimate_poses(ds, opts)
         path = res.save(args.out)
     st = res.stats

@@ -33,7 +33,7 @@ def _load(inputs: PosesInputs, options: PoseOptions, validate: bool = True):
     from splattwin.capture import load_dataset
 
     return load_dataset(inputs.capture, validate=validate, frames_dir=inputs.frames_dir,
-                        max_frames=options.max_frames, min_change=options.min_change)
+                        max_frames=options.max_frames, min_change=options.min_change, progress=options.progress)
 
 
 def run(inputs: PosesInputs, options: PoseOptions, *, progress: bool = True) -> PosesResult:
