@@ -322,6 +322,27 @@ def list_files(folder: Path, suffixes, inside: Path | None = None) -> list[Path]
     return files
 
 
+# what a command given a video would do with its camera poses (a video has none)
+_POSES_FOR = {"train": "to train with", "eval": "to render the held-out views from",
+              "fuse": "to project the 2D masks with"}
+
+
+def refuse_video(path: str | Path, command: str) -> None:
+    """InputError naming `path`, before any frame is extracted, when it is a video given to `command`
+    (train, eval, fuse: they need camera poses, which a video has none of; segment: it needs the views'
+    image files). Their frames would otherwise be extracted first, into `<stem>_frames/` beside the video,
+    outside the command's --out, only for the command to fail on them."""
+    if not is_video(path):
+        return
+    if command == "segment":
+        raise InputError("segment needs the views' images, not a video; extract its frames first (`splattwin "
+                         "capture frames VIDEO DIR`, then `splattwin segment DIR`), or let `splattwin build VIDEO "
+                         "--prompt ...` segment the frames it extracts into the twin", path)
+    raise InputError(f"a video has no camera poses {_POSES_FOR[command]}; estimate them first: `splattwin poses "
+                     f"VIDEO POSES` then `splattwin {command}` on POSES, or `splattwin build VIDEO --out TWIN` "
+                     f"(TWIN/poses is the posed dataset)", path)
+
+
 def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool = True,
                  frames_dir: str | Path | None = None, require_images: bool = True,
                  min_change: float | None = None, progress: bool = True) -> Dataset:
