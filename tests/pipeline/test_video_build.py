@@ -130,3 +130,21 @@ def test_no_progress_silences_the_frame_scoring(tmp_path, clip, monkeypatch, cap
     assert main(["capture", "frames", str(clip), str(tmp_path / "F"), "--no-progress"]) == 0
     assert main(["capture", "info", str(clip), "--no-progress"]) == 0
     assert "scoring" not in capsys.readouterr().err
+
+
+def test_video_beside_a_scene_is_not_that_scene(tmp_path, clip, monkeypatch, capsys):
+    """A video saved in a scene folder (beside its scene.json and masks/) is refused by the pre-flight for
+    having no 2D masks, before any frame is extracted or SfM runs, as the same video elsewhere is: the
+    build took the scene's masks for its own, passed the pre-flight, and failed on them after SfM and
+    training ("no mask view matches a dataset image")."""
+    seen = _stop_at_poses(monkeypatch)
+    scene = tmp_path / "scene_c"
+    (scene / "masks" / "noisy").mkdir(parents=True)
+    (scene / "scene.json").write_text("{}")
+    walk = scene / "walk.mp4"
+    walk.write_bytes(clip.read_bytes())
+    for video in (clip, walk):
+        assert main(["build", str(video), "--out", str(tmp_path / video.stem), "--no-progress"]) == 2
+        assert "no 2D masks for the semantics stage" in capsys.readouterr().err
+        assert not (tmp_path / video.stem).exists()
+    assert seen == []

@@ -64,8 +64,16 @@ def _input_path(ctx: Context) -> Path:
 
 
 def _scene_dir(ctx: Context) -> Path | None:
-    """The folder of an embedded scene's ground truth (scene.json) for this input, if it is one."""
+    """The folder of an embedded scene's ground truth (scene.json) for this input, if it is one: the input
+    folder, or the folder of an input file (a scene's transforms.json). Never for a video: its frames
+    (frame_00000, ...) are not the scene's views, so a scene's masks saved beside it could match none of
+    them, and the pre-flight took the video for a scene with masks of its own (the semantics stage then
+    failed on them after SfM and training)."""
+    from splattwin.capture.dataset import is_video
+
     src = _input_path(ctx)
+    if src.is_file() and is_video(src):
+        return None
     d = src if src.is_dir() else src.parent
     return d if (d / "scene.json").is_file() else None
 
