@@ -148,3 +148,75 @@ def test_video_beside_a_scene_is_not_that_scene(tmp_path, clip, monkeypatch, cap
         assert "no 2D masks for the semantics stage" in capsys.readouterr().err
         assert not (tmp_path / video.stem).exists()
     assert seen == []
+
+
+def _no_data(path, n=20):
+    """A clip whose stream declares n frames but whose coded data is zeroed: nothing decodes."""
+    _encode(path, [_board(3 * i) for i in range(n)])
+    b = bytearray(path.read_bytes())
+    i = b.find(b"mdat")
+    size = int.from_bytes(b[i - 4:i], "big")
+    b[i + 4:i - 4 + size] = bytes(size - 8)
+    path.write_bytes(bytes(b))
+    return path
+
+
+def test_video_with_fewer_than_two_frames_stopped_by_the_preflight(tmp_path, monkeypatch, capsys):
+    """A 1-frame video, one whose frames do not decode, or --max-frames 1: the pre-flight names the video
+    and the problem and the build leaves no folder (it failed in the poses stage with SfM's generic advice
+    about intrinsics and overlap, naming no file, and left pipeline.json, the lock and the frames)."""
+    seen = _stop_at_poses(monkeypatch)
+    one = tmp_path / "one.mp4"
+    _encode(one, [_board(0)])
+    two = tmp_path / "two.mp4"
+    _encode(two, [_board(0), _board(9)])
+    cases = [(one, [], "gave 1 frame (the video has 1 decodable frame); structure from motion needs >= 2"),
+             (_no_data(tmp_path / "nodata.mp4"), [], "gave no frame: decoding failed at its first frame"),
+             (two, ["--max-frames", "1"], "gave 1 frame (--max-frames 1); structure from motion needs >= 2")]
+    for video, extra, msg in cases:
+        out = tmp_path / f"T_{video.stem}"
+        assert main(["build", str(video), "--out", str(out), "--until", "splats", "--no-progress"] + extra) == 2
+        err = capsys.readouterr().err
+        assert f"{video}: {msg}" in err, err
+        assert not out.exists()
+    assert seen == []
+
+
+def test_failed_video_build_removes_the_folder_it_created(tmp_path, clip, monkeypatch, capsys):
+    """An input error found in the poses stage, before it wrote anything of its own (here an unknown
+    --heldout-views name, after the frames were extracted): the folder the build created goes, as the
+    pre-flight's errors already removed it; a folder where SfM has begun (poses/) is kept to resume; a
+    folder that existed before is kept."""
+    out = tmp_path / "X8"
+    assert main(["build", str(clip), "--out", str(out), "--heldout-views", "frame_00003,frame_99999",
+                 "--until", "splats", "--no-progress"]) == 2
+    assert "no view named 'frame_99999'" in capsys.readouterr().err
+    assert not out.exists()
+    out.mkdir()
+    assert main(["build", str(clip), "--out", str(out), "--heldout-views", "frame_99999", "--until", "splats",
+                 "--no-progress"]) == 2
+    assert (out / "pipeline.json").is_file()
+    import splattwin.poses.estimate as estimate
+
+    def sfm_began(ds, opts=None):
+        (opts.work_dir / "database.db").parent.mkdir(parents=True)
+        (opts.work_dir / "database.db").write_bytes(b"features")
+        raise InputError("SfM registered too few images")
+
+    monkeypatch.setattr(estimate, "estimate_poses", sfm_began)
+    assert main(["build", str(clip), "--out", str(tmp_path / "S"), "--until", "splats", "--no-progress"]) == 2
+    assert (tmp_path / "S" / "poses" / "sfm" / "database.db").is_file()
+
+
+def test_video_collapsing_to_one_frame_named_by_the_poses_stage(tmp_path, capsys):
+    """A camera that never moved: every frame a near-duplicate of the first, so one frame is kept; the poses
+    stage names the video and why, not SfM's advice about intrinsics."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    still = tmp_path / "still.mp4"
+    _encode(still, [np.minimum(_board(0), 254) + rng.integers(0, 2, (64, 96, 3), dtype=np.uint8)
+                    for _ in range(12)])
+    assert main(["poses", str(still), str(tmp_path / "P"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert f"{still}: gave 1 frame (of 12 decoded frames, the others differ too little from it" in err, err

@@ -239,5 +239,7 @@ def read(path: str | Path, max_frames: int | None = None, out_dir: str | Path | 
     files = extract_frames(path, out, max_frames=VIDEO_MAX_FRAMES if max_frames is None else max_frames,
                            min_change=MIN_CHANGE if min_change is None else min_change, progress=progress)
     ds = images.read_files(files, root=out)
-    ds.meta.update({"format": "video", "video": str(path), "sequential": True})
+    decoded = (_read_record(out / "frames.json") or {}).get("frames_decoded")
+    ds.meta.update({"format": "video", "video": str(path), "sequential": True,
+                    "frames_decoded": decoded if isinstance(decoded, int) else None})
     return ds

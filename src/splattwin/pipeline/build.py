@@ -392,12 +392,37 @@ def build(out: str | Path, options: BuildOptions, from_stage: str | None = None,
     with output_lock(out):
         try:
             preflight(ctx, until)
+            run_stages(stages(), ctx, from_stage=from_stage, until=until, on_stage=on_stage)
         except BaseException:
-            # the pre-flight reads the capture, writing upright copies of EXIF-rotated photos into
-            # OUT/capture/frames/: a run that fails here in a folder it created leaves no folder behind
-            if created and not (out / "capture").is_symlink():
-                shutil.rmtree(out / "capture", ignore_errors=True)
+            if created:
+                _unwind(out)
             raise
-        run_stages(stages(), ctx, from_stage=from_stage, until=until, on_stage=on_stage)
     ctx.wall_s = time.perf_counter() - t0   # with the pre-flight
     return ctx
+
+
+# What a build writes before any stage writes outputs of its own: the runner's records and the capture's
+# extracted video frames / upright photo copies (derived, seconds to redo).
+_BOOKKEEPING = {"pipeline.json", "capture", ".splattwin"}
+_STATE_FILES = {"lock", "digests.json"}
+
+
+def _unwind(out: Path) -> None:
+    """A build that failed (bad input, Ctrl-C) in a folder it created, before any stage wrote outputs of its
+    own: remove what it wrote, so that `output_lock` removes the folder (README: "a command that fails
+    before writing anything removes the output folder it created"). The lock removed only a folder holding
+    nothing but the lock, so a video refused in the poses stage (1 frame, no decodable frame, an unknown
+    --heldout-views name) left pipeline.json, digests.json and the frames behind. A folder where a stage
+    has begun its work (poses/ with SfM's database, a generated scene/) is kept: a re-run resumes it."""
+    try:
+        names = {p.name for p in out.iterdir()}
+        state = out / ".splattwin"
+        if not names <= _BOOKKEEPING or (state.is_dir() and not {p.name for p in state.iterdir()} <= _STATE_FILES):
+            return
+        if (out / "capture").is_symlink():
+            return
+        shutil.rmtree(out / "capture", ignore_errors=True)
+        (out / "pipeline.json").unlink(missing_ok=True)
+        (state / "digests.json").unlink(missing_ok=True)
+    except OSError:   # no permission, or something appeared meanwhile: leave it
+        pass
