@@ -59,7 +59,9 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if "--debug" in argv:  # accepted anywhere on the line, not only before the command
         argv = ["--debug"] + [a for a in argv if a != "--debug"]
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:   # named by the command's own parser: its usage (`splattwin build ...`), not the top level's
+        _command_parser(parser, args).error(f"unrecognized arguments: {' '.join(unknown)}")
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s")
     if not args.verbose:   # PyOpenGL (MuJoCo's renderer) logs at INFO that an optional speed-up is missing
@@ -105,6 +107,16 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         warnings.formatwarning = plain_format
         interrupt.uninstall()
+
+
+def _command_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.ArgumentParser:
+    """The innermost sub-command parser `args` were parsed with (`capture frames`: its own), else `parser`."""
+    while True:
+        subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+        name = getattr(args, subs[0].dest, None) if subs else None
+        if name is None or name not in subs[0].choices:
+            return parser
+        parser = subs[0].choices[name]
 
 
 def _format_warning(message, category, filename, lineno, line=None) -> str:

@@ -221,3 +221,31 @@ def test_cameras_json_of_distorted_cameras_says_how(tmp_path, make_dataset, caps
     assert main(["capture", "convert", str(tmp_path), str(tmp_path / "c"), "--format", "cameras-json"]) == 2
     err = capsys.readouterr().err
     assert "undistort the images first" in err and "image_undistorter" in err and "--format nerfstudio" in err
+
+
+def test_eval_fuse_segment_refuse_a_video_before_extracting(tmp_path, capsys):
+    """eval, fuse and segment given a video stop (exit 2, naming it) before extracting anything: they
+    extracted 30 frames into <stem>_frames/ beside the video, outside --out, and only then failed
+    ("vids/scan_frames: dataset has no camera poses"), as train already refused it."""
+    from splattwin.splat.gaussians import Gaussians
+
+    vids = tmp_path / "vids"
+    vids.mkdir()
+    video = vids / "scan.mp4"
+    _encode(video, [_board(3 * i) for i in range(12)])
+    n = 10
+    ply = Gaussians(means=np.random.default_rng(0).normal(size=(n, 3)), quats=np.tile([1.0, 0, 0, 0], (n, 1)),
+                    scales=np.full((n, 3), 0.01), opacities=np.full(n, 0.9),
+                    sh=np.zeros((n, 1, 3))).save_ply(tmp_path / "splat" / "point_cloud.ply")
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    runs = {"eval": ["eval", str(ply), "--dataset", str(video), "--out", str(tmp_path / "EV")],
+            "fuse": ["fuse", "--splats", str(ply), "--dataset", str(video), "--masks", str(masks),
+                     "--out", str(tmp_path / "FV")],
+            "segment": ["segment", str(video), "--masks", str(masks), "--out", str(tmp_path / "SG")]}
+    for name, argv in runs.items():
+        assert main(argv) == 2, name
+        err = capsys.readouterr().err
+        assert str(video) in err and ("no camera poses" in err if name != "segment" else "not a video" in err), err
+        assert sorted(p.name for p in vids.iterdir()) == ["scan.mp4"], name
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["masks", "splat", "vids"]

@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from splattwin.capture.video import MIN_CHANGE
+from splattwin.options import add_options
+from splattwin.frame_options import FrameOptions
 from splattwin.errors import InputError
 
 FORMATS = ("nerfstudio", "colmap", "cameras-json")
@@ -18,6 +19,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     info = csub.add_parser("info", help="summarise a dataset (any supported layout)")
     info.add_argument("path", type=Path, help="transforms.json, COLMAP folder, cameras.json, image folder or video")
     info.add_argument("--max-frames", type=int, default=None, help="video: number of frames to extract")
+    info.add_argument("--no-progress", dest="progress", action="store_false", help="no progress lines (video)")
     info.set_defaults(func=_info)
 
     conv = csub.add_parser("convert", help="write a dataset's cameras in another format")
@@ -29,11 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     fr = csub.add_parser("frames", help="extract sharp, evenly spaced frames from a video")
     fr.add_argument("video", type=Path)
     fr.add_argument("out", type=Path, help="output folder for PNG frames")
-    fr.add_argument("--max-frames", type=int, default=30)
-    fr.add_argument("--min-change", type=float, default=MIN_CHANGE,
-                    help="skip a frame that differs from the last kept one by less than this (mean absolute "
-                         "difference of 64-px grey thumbnails, grey levels 0-255; 0 keeps near-duplicates; "
-                         "default %(default)s)")
+    # the options `poses`/`build` take the frames with (`--max-frames`, `--min-change`): one default, one help
+    add_options(fr, FrameOptions)
+    fr.add_argument("--no-progress", dest="progress", action="store_false", help="no progress lines")
     fr.set_defaults(func=_frames)
 
 
@@ -45,7 +45,7 @@ def _info(args: argparse.Namespace) -> int:
 
     # a video's frames are extracted into a temporary folder: `info` writes nothing beside the capture
     with tempfile.TemporaryDirectory(prefix="splattwin-info-") as tmp:
-        ds = load_dataset(args.path, max_frames=args.max_frames, frames_dir=Path(tmp))
+        ds = load_dataset(args.path, max_frames=args.max_frames, frames_dir=Path(tmp), progress=args.progress)
     sizes = sorted({(f.camera.width, f.camera.height) for f in ds.frames})
     size = f"{sizes[0][0]}x{sizes[0][1]}" if len(sizes) == 1 else f"{len(sizes)} image sizes"
     if ds.meta.get("split"):   # the capture's own split: poses/train/build keep it
@@ -84,8 +84,11 @@ def _convert(args: argparse.Namespace) -> int:
 
 
 def _frames(args: argparse.Namespace) -> int:
-    from splattwin.capture.video import extract_frames
+    from splattwin.capture.video import VIDEO_MAX_FRAMES, extract_frames
+    from splattwin.options import from_args
 
-    paths = extract_frames(args.video, args.out, max_frames=args.max_frames, min_change=args.min_change)
+    opts = from_args(FrameOptions, args)
+    paths = extract_frames(args.video, args.out, max_frames=VIDEO_MAX_FRAMES if opts.max_frames is None
+                           else opts.max_frames, min_change=opts.min_change, progress=args.progress)
     print(f"wrote {len(paths)} frames to {args.out}")
     return 0

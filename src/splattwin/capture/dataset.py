@@ -322,21 +322,48 @@ def list_files(folder: Path, suffixes, inside: Path | None = None) -> list[Path]
     return files
 
 
+# what a command given a video would do with its camera poses (a video has none)
+_POSES_FOR = {"train": "to train with", "eval": "to render the held-out views from",
+              "fuse": "to project the 2D masks with"}
+
+
+def refuse_video(path: str | Path, command: str) -> None:
+    """InputError naming `path`, before any frame is extracted, when it is a video given to `command`
+    (train, eval, fuse: they need camera poses, which a video has none of; segment: it needs the views'
+    image files). Their frames would otherwise be extracted first, into `<stem>_frames/` beside the video,
+    outside the command's --out, only for the command to fail on them."""
+    if not is_video(path):
+        return
+    if command == "segment":
+        raise InputError("segment needs the views' images, not a video; extract its frames first (`splattwin "
+                         "capture frames VIDEO DIR`, then `splattwin segment DIR`), or let `splattwin build VIDEO "
+                         "--prompt ...` segment the frames it extracts into the twin", path)
+    raise InputError(f"a video has no camera poses {_POSES_FOR[command]}; estimate them first: `splattwin poses "
+                     f"VIDEO POSES` then `splattwin {command}` on POSES, or `splattwin build VIDEO --out TWIN` "
+                     f"(TWIN/poses is the posed dataset)", path)
+
+
 def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool = True,
-                 frames_dir: str | Path | None = None, require_images: bool = True) -> Dataset:
+                 frames_dir: str | Path | None = None, require_images: bool = True,
+                 min_change: float | None = None, progress: bool = True) -> Dataset:
     """Load any supported dataset layout (see module docstring).
 
     frames_dir: where a video's extracted frames go (default `<stem>_frames/` beside the video; `build`
     puts them inside the twin folder so that nothing is written outside it), and the upright copies of an
     image folder's photos stored rotated (EXIF Orientation; `capture.orientation`: without frames_dir
     such a folder is refused).
+    max_frames: at most this many frames, evenly spaced (a video: the sharpest of each of that many
+    windows, default `VIDEO_MAX_FRAMES`); min_change: a video's near-duplicate threshold (`capture.video`).
+    progress: the progress lines of a video's frame scoring (False: `--no-progress`).
     require_images: False keeps the cameras of a transforms.json / cameras.json whose images are missing
     (for work that needs only cameras; implies validate=False, which would read the images).
     Paths read from the dataset's files (image names, depth and mask paths) must stay inside the
     dataset's folder (`splattwin.paths`); names of views must be plain file names (`splattwin.names`).
     """
     from splattwin.capture import bop, cameras_json, colmap, images, nerfstudio, tum, video
+    from splattwin.frame_options import check_max_frames
 
+    check_max_frames(max_frames)   # before anything is read or extracted
     path = Path(path)
     if not path.exists():
         raise InputError("dataset path does not exist", path)
@@ -351,7 +378,8 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
             ds = (cameras_json.read(path, require_images=require_images) if text_head.lstrip().startswith("[")
                   else nerfstudio.read(path, require_images=require_images))
         elif is_video(path):
-            ds = video.read(path, max_frames=max_frames, out_dir=frames_dir)
+            ds = video.read(path, max_frames=max_frames, out_dir=frames_dir, min_change=min_change,
+                            progress=progress)
         else:
             raise InputError("not a dataset: expected transforms.json, cameras.json, a video, or a folder", path)
     elif (path / "transforms.json").is_file():

@@ -31,10 +31,10 @@ import numpy as np
 from splattwin import io
 from splattwin.capture.dataset import Dataset
 from splattwin.errors import InputError
+from splattwin.frame_options import MIN_CHANGE, VIDEO_MAX_FRAMES, check_max_frames, check_min_change
 
 log = logging.getLogger(__name__)
 
-MIN_CHANGE = 1.0   # grey levels (0..255), mean |difference| of THUMB_SIDE thumbnails; 0 keeps duplicates
 THUMB_SIDE = 64
 # bumped when the extraction changes what it writes (2: frames upright, near-duplicates skipped): an
 # older record's frames are extracted again
@@ -148,18 +148,17 @@ def _listed(rec: dict | None) -> list[str]:
     return [n for n in names if isinstance(n, str) and _FRAME_RE.match(n)]
 
 
-def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = 30,
-                   min_change: float = MIN_CHANGE) -> list[Path]:
+def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = VIDEO_MAX_FRAMES,
+                   min_change: float = MIN_CHANGE, progress: bool = True) -> list[Path]:
     """Write the selected frames as PNG into `out_dir` (frame_00000.png, ...) and their record
     `frames.json`; cached by video size/mtime and the settings. Returns the frames of this extraction
-    only: a previous extraction's frames are removed when it is redone."""
+    only: a previous extraction's frames are removed when it is redone. progress: the scoring pass's
+    progress bar / lines (`--no-progress`: none)."""
     from splattwin.progress import Progress
 
     path, out_dir = Path(path), Path(out_dir)
-    if max_frames < 1:
-        raise InputError(f"--max-frames must be >= 1, got {max_frames}")
-    if not (min_change >= 0 and np.isfinite(min_change)):
-        raise InputError(f"--min-change must be a number >= 0, got {min_change}")
+    check_max_frames(max_frames)
+    check_min_change(min_change)
     stamp = {"video": str(path.resolve()), "size": path.stat().st_size if path.is_file() else None,
              "mtime": path.stat().st_mtime if path.is_file() else None, "max_frames": max_frames,
              "min_change": float(min_change), "method": METHOD}
@@ -173,7 +172,8 @@ def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = 30,
     # Pass 1: sharpness and a thumbnail of every frame (cheap, downscaled).
     container = _open(path)
     scores, thumbs, turns = [], [], 0
-    with Progress(container.streams.video[0].frames or None, f"scoring {path.name}", unit="frame") as prog:
+    with Progress(container.streams.video[0].frames or None, f"scoring {path.name}", unit="frame",
+                  enabled=progress) as prog:
         try:
             for frame in container.decode(video=0):
                 rgb, k = _upright(frame)
@@ -228,14 +228,18 @@ def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = 30,
 
 
 def read(path: str | Path, max_frames: int | None = None, out_dir: str | Path | None = None,
-         min_change: float = MIN_CHANGE) -> Dataset:
+         min_change: float | None = None, progress: bool = True) -> Dataset:
     """A video as an unposed image dataset: the frames of this extraction (`extract_frames`, into
-    `out_dir`, default `<stem>_frames/` beside the video)."""
+    `out_dir`, default `<stem>_frames/` beside the video). max_frames / min_change None: the defaults
+    (`VIDEO_MAX_FRAMES`, `MIN_CHANGE`)."""
     from splattwin.capture import images
 
     path = Path(path)
     out = Path(out_dir) if out_dir is not None else path.parent / f"{path.stem}_frames"
-    files = extract_frames(path, out, max_frames=max_frames or 30, min_change=min_change)
+    files = extract_frames(path, out, max_frames=VIDEO_MAX_FRAMES if max_frames is None else max_frames,
+                           min_change=MIN_CHANGE if min_change is None else min_change, progress=progress)
     ds = images.read_files(files, root=out)
-    ds.meta.update({"format": "video", "video": str(path), "sequential": True})
+    decoded = (_read_record(out / "frames.json") or {}).get("frames_decoded")
+    ds.meta.update({"format": "video", "video": str(path), "sequential": True,
+                    "frames_decoded": decoded if isinstance(decoded, int) else None})
     return ds

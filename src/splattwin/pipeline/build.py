@@ -64,8 +64,16 @@ def _input_path(ctx: Context) -> Path:
 
 
 def _scene_dir(ctx: Context) -> Path | None:
-    """The folder of an embedded scene's ground truth (scene.json) for this input, if it is one."""
+    """The folder of an embedded scene's ground truth (scene.json) for this input, if it is one: the input
+    folder, or the folder of an input file (a scene's transforms.json). Never for a video: its frames
+    (frame_00000, ...) are not the scene's views, so a scene's masks saved beside it could match none of
+    them, and the pre-flight took the video for a scene with masks of its own (the semantics stage then
+    failed on them after SfM and training)."""
+    from splattwin.capture.dataset import is_video
+
     src = _input_path(ctx)
+    if src.is_file() and is_video(src):
+        return None
     d = src if src.is_dir() else src.parent
     return d if (d / "scene.json").is_file() else None
 
@@ -329,7 +337,7 @@ def preflight(ctx: Context, until: str | None = None) -> dict:
 
     o = ctx.config
     return run_preflight(o, ctx.out, _input_path(ctx) if o.scene is None else None, _scene_dir(ctx),
-                         ctx.path("capture/frames"), until=until)
+                         ctx.path("capture/frames"), until=until, progress=ctx.progress)
 
 
 def _context(out: str | Path, options: BuildOptions, progress: bool = True) -> Context:
@@ -357,6 +365,7 @@ def check_inputs(options: BuildOptions) -> None:
     if task not in (None, "default") and not Path(task).is_file():
         raise InputError("task file not found", task)
     options.robot.validate()
+    options.poses.check()   # --max-frames / --min-change, before the pre-flight extracts anything
 
 
 def build(out: str | Path, options: BuildOptions, from_stage: str | None = None, until: str | None = None,
@@ -383,12 +392,37 @@ def build(out: str | Path, options: BuildOptions, from_stage: str | None = None,
     with output_lock(out):
         try:
             preflight(ctx, until)
+            run_stages(stages(), ctx, from_stage=from_stage, until=until, on_stage=on_stage)
         except BaseException:
-            # the pre-flight reads the capture, writing upright copies of EXIF-rotated photos into
-            # OUT/capture/frames/: a run that fails here in a folder it created leaves no folder behind
-            if created and not (out / "capture").is_symlink():
-                shutil.rmtree(out / "capture", ignore_errors=True)
+            if created:
+                _unwind(out)
             raise
-        run_stages(stages(), ctx, from_stage=from_stage, until=until, on_stage=on_stage)
     ctx.wall_s = time.perf_counter() - t0   # with the pre-flight
     return ctx
+
+
+# What a build writes before any stage writes outputs of its own: the runner's records and the capture's
+# extracted video frames / upright photo copies (derived, seconds to redo).
+_BOOKKEEPING = {"pipeline.json", "capture", ".splattwin"}
+_STATE_FILES = {"lock", "digests.json"}
+
+
+def _unwind(out: Path) -> None:
+    """A build that failed (bad input, Ctrl-C) in a folder it created, before any stage wrote outputs of its
+    own: remove what it wrote, so that `output_lock` removes the folder (README: "a command that fails
+    before writing anything removes the output folder it created"). The lock removed only a folder holding
+    nothing but the lock, so a video refused in the poses stage (1 frame, no decodable frame, an unknown
+    --heldout-views name) left pipeline.json, digests.json and the frames behind. A folder where a stage
+    has begun its work (poses/ with SfM's database, a generated scene/) is kept: a re-run resumes it."""
+    try:
+        names = {p.name for p in out.iterdir()}
+        state = out / ".splattwin"
+        if not names <= _BOOKKEEPING or (state.is_dir() and not {p.name for p in state.iterdir()} <= _STATE_FILES):
+            return
+        if (out / "capture").is_symlink():
+            return
+        shutil.rmtree(out / "capture", ignore_errors=True)
+        (out / "pipeline.json").unlink(missing_ok=True)
+        (state / "digests.json").unlink(missing_ok=True)
+    except OSError:   # no permission, or something appeared meanwhile: leave it
+        pass

@@ -34,7 +34,10 @@ def add_build_flags(p: argparse.ArgumentParser, demo: bool = False) -> None:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    b = sub.add_parser("build", help="photos → planning-ready twin: poses, splats, semantics, geometry, export",
+    # a short usage: argparse's own lists all ~200 generated flags, burying an error message under them
+    b = sub.add_parser("build", usage="%(prog)s [INPUT] --out TWIN [--config FILE.yaml] [--from STAGE] [--until STAGE] "
+                                      "[--no-progress] [--STAGE.OPTION VALUE ...] (all options: --help)",
+                       help="photos → planning-ready twin: poses, splats, semantics, geometry, export",
                        description="Run the whole pipeline. Finished stages are skipped on a re-run (their inputs "
                                    "and options are hashed); --from redoes from a stage; a killed run resumes. "
                                    "Options: flags, or a YAML file (--config) nested like them; flags win.")
@@ -45,7 +48,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_build_flags(b)
     b.set_defaults(func=_build)
 
-    d = sub.add_parser("demo", help="the whole pipeline on the embedded tabletop scene, the three-step task "
+    d = sub.add_parser("demo", usage="%(prog)s [--out TWIN] [--config FILE.yaml] [--from STAGE] [--until STAGE] "
+                                     "[--STAGE.OPTION VALUE ...] (all options: --help)",
+                       help="the whole pipeline on the embedded tabletop scene, the three-step task "
                                     "in physics, and the HTML report")
     d.add_argument("--out", type=Path, default=Path("demo_out"))
     add_build_flags(d, demo=True)

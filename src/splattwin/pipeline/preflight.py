@@ -10,6 +10,8 @@ model or option:
   all missing ones named with their hub ids (`semantics.models`);
 - `--task`: the twin will be metric. An image folder or video posed by SfM is known only up to scale;
   without --known-length, --marker-size or --robot-poses the robot stage would refuse it after training;
+- a video gives the poses stage at least 2 frames (none decodes, 1 frame, or --max-frames 1 with SfM:
+  `check_video_frames`, naming the video);
 - the task YAML parses;
 - the training options lie in their ranges (`TrainConfig.check`, which the trainer runs again), when the
   splat stage will run;
@@ -17,7 +19,8 @@ model or option:
   refused only when clearly insufficient (the estimate above `REFUSE_FACTOR` times what is free), a
   warning when tight.
 
-Reads image headers only (no decoding); a video is probed for its frame size, not decoded. Photos stored
+Reads image headers only (no decoding); a video is probed for its frame size and its first 2 frames
+decoded, no more. Photos stored
 rotated (EXIF Orientation) are the exception: their upright copies are written here, into the twin's
 capture/frames/upright/, and the poses stage reuses them (`capture.orientation`).
 """
@@ -178,10 +181,13 @@ def _runs(until: str | None, stage: str) -> bool:
     return until is None or until not in names or names.index(stage) <= names.index(until)
 
 
-def _video_sizes(path: Path, max_frames: int = 30) -> list[tuple[int, int]]:
-    """Frame sizes a video will give (probed, not decoded)."""
+def _video_sizes(path: Path, max_frames: int | None = None) -> list[tuple[int, int]]:
+    """Frame sizes a video will give with --max-frames `max_frames` (probed, not decoded)."""
+    from splattwin.frame_options import VIDEO_MAX_FRAMES
+
     from splattwin.capture.video import _open
 
+    max_frames = VIDEO_MAX_FRAMES if max_frames is None else max_frames
     c = _open(path)
     try:
         s = c.streams.video[0]
@@ -191,11 +197,50 @@ def _video_sizes(path: Path, max_frames: int = 30) -> list[tuple[int, int]]:
         c.close()
 
 
+def _decodable_frames(path: Path, want: int = 2) -> tuple[int, str | None]:
+    """How many frames, up to `want`, the video decodes from its start, and the decoding error that stopped
+    it (None when it ended or `want` were decoded). A stream's declared frame count is not enough: a damaged
+    file declares 20 frames and decodes none."""
+    from splattwin.capture.video import _open
+
+    c = _open(path)
+    n = 0
+    try:
+        for _ in c.decode(video=0):
+            n += 1
+            if n >= want:
+                break
+    except Exception as e:  # noqa: BLE001 - PyAV decode errors have many types
+        return n, str(e)
+    finally:
+        c.close()
+    return n, None
+
+
+def check_video_frames(path: Path, max_frames: int | None, sfm: bool) -> None:
+    """InputError naming the video when it cannot give the poses stage 2 frames: none decodes, or (with SfM)
+    it or --max-frames gives only one. Decodes at most 2 frames (a video that pauses may still collapse
+    to one frame after near-duplicates are skipped: the poses stage says so then)."""
+    from splattwin.frame_options import VIDEO_MAX_FRAMES
+    from splattwin.wording import plural
+
+    n, err = _decodable_frames(path)
+    if n == 0:
+        raise InputError("gave no frame: " + (f"decoding failed at its first frame ({err})" if err else
+                                              "the video has no frames"), path)
+    wanted = VIDEO_MAX_FRAMES if max_frames is None else max_frames
+    if sfm and min(n, wanted) < 2:
+        why = (f"--max-frames {wanted}" if n >= 2 else "the video has 1 decodable frame"
+               + (f"; decoding failed after it: {err}" if err else ""))
+        raise InputError(f"gave {plural(min(n, wanted), 'frame')} ({why}); structure from motion needs >= 2", path)
+
+
 def run_preflight(options, out: Path, input_path: Path | None, scene_dir: Path | None, frames_dir: Path,
-                  until: str | None = None) -> dict:
+                  until: str | None = None, progress: bool = True) -> dict:
     """All checks for `BuildOptions` `options` building into `out` (see module docstring). input_path:
     the capture (None for the embedded scene, generated later). until: the last stage that will run
-    (None: all). Returns what it measured."""
+    (None: all). progress: of a video's frame extraction (build --no-progress: none). Returns what it
+    measured."""
     import time
 
     from splattwin.capture.dataset import VIDEO_SUFFIXES
@@ -240,11 +285,20 @@ def run_preflight(options, out: Path, input_path: Path | None, scene_dir: Path |
             "view and object, BOP mask_visib, COCO JSON) or --prompt 'red mug. cereal box' (open-vocabulary "
             "segmentation); or build only the splats with --until splats", input_path))
     video = input_path.is_file() and input_path.suffix in VIDEO_SUFFIXES
+    sfm = o.poses.method == "sfm" or (o.poses.method == "auto" and o.poses.robot_poses is None)
+    if video:   # frames it will give: 0 or 1 fail in the poses stage with a message that names no video
+        try:
+            check_video_frames(input_path, o.poses.max_frames, sfm)
+        except InputError as e:
+            problems.append(e)
+            _raise(problems)   # nothing below can read this video
     ds = None
     if not video or o.semantics.masks:
         from splattwin.capture import load_dataset
 
-        ds = load_dataset(input_path, frames_dir=frames_dir)  # image headers only; nothing else works without
+        # image headers only; nothing else works without (a video: its frames as the poses stage extracts them)
+        ds = load_dataset(input_path, frames_dir=frames_dir, max_frames=o.poses.max_frames,
+                          min_change=o.poses.min_change, progress=progress)
     if o.robot.task:
         fmt = ds.meta.get("format") if ds is not None else "video"
         meta_path = Path(ds.meta.get("path", ds.root)) if ds is not None else input_path
@@ -268,7 +322,8 @@ def run_preflight(options, out: Path, input_path: Path | None, scene_dir: Path |
     # resources at the training resolution
     from splattwin.splat.resolution import resolve
 
-    sizes = _video_sizes(input_path) if ds is None else [(f.camera.width, f.camera.height) for f in ds.frames]
+    sizes = (_video_sizes(input_path, o.poses.max_frames) if ds is None
+             else [(f.camera.width, f.camera.height) for f in ds.frames])
     device = "cuda" if o.splat.device == "cuda" else "cpu"
     rule = resolve(o.splat.resolution, o.splat.cpu_max_side, device)
     train_sizes = [rule.size(w, h) for w, h in sizes]
@@ -284,7 +339,7 @@ def run_preflight(options, out: Path, input_path: Path | None, scene_dir: Path |
     else:
         capture_bytes = sum(w * h * 3 for w, h in sizes)
     has_poses = bool(ds is not None and ds.has_poses)
-    sfm = o.poses.method == "sfm" or (o.poses.method == "auto" and not has_poses and o.poses.robot_poses is None)
+    sfm = sfm and (o.poses.method == "sfm" or not has_poses)
     est = estimate(sizes, train_sizes, o.splat.max_gaussians, sfm, capture_bytes, o.poses.max_image_size)
     check_resources(est, out, f"{len(sizes)} views trained at {rule.how.split(' (')[0]} with up to "
                               f"{int(est.parts['Gaussians'] // BYTES_PER_GAUSSIAN)} Gaussians")

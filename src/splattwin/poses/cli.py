@@ -28,7 +28,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                      help="= --method known: use the dataset's poses as they are (assumed metric)")
     p.add_argument("--per-image-intrinsics", dest=dest("shared_intrinsics"), action="store_false",
                    default=argparse.SUPPRESS, help="= --no-shared-intrinsics")
-    p.add_argument("--max-frames", type=int, help="use at most N frames (evenly spaced; videos: best N)")
 
 
 def print_sfm_summary(stats: dict) -> None:
@@ -61,6 +60,7 @@ def _run(args: argparse.Namespace) -> int:
     opts = from_args(PoseOptions, args)
     if opts.work_dir is None:
         opts = replace(opts, work_dir=args.out / "sfm")
+    opts.check()   # --max-frames, --min-change
     if opts.min_registered is not None and opts.min_registered < 2:
         raise InputError(f"--min-registered must be >= 2, got {opts.min_registered}")
     if opts.marker_size is not None and opts.marker_size <= 0:
@@ -69,7 +69,8 @@ def _run(args: argparse.Namespace) -> int:
 
     with output_lock(args.out):
         # a video's frames and upright copies of rotated photos go inside OUT, as in `build`
-        ds = load_dataset(args.input, max_frames=args.max_frames, frames_dir=args.out / "capture" / "frames")
+        ds = load_dataset(args.input, max_frames=opts.max_frames, min_change=opts.min_change,
+                          frames_dir=args.out / "capture" / "frames", progress=opts.progress)
         res = estimate_poses(ds, opts)
         path = res.save(args.out)
     st = res.stats

@@ -172,6 +172,21 @@ class PoseResult:
 
 
 # ------------------------------------------------------------------------------------------------
+def _too_few_video_frames(dataset: Dataset) -> None:
+    """InputError naming the video that gave SfM fewer than 2 frames, and why (the generic SfM message named
+    no file and advised intrinsics and overlap)."""
+    from splattwin.wording import plural
+
+    n, decoded = len(dataset.frames), dataset.meta.get("frames_decoded")
+    if decoded is not None and decoded < 2:
+        why = f"the video has {plural(decoded, 'decodable frame')}"
+    else:
+        why = (f"of {decoded} decoded frames, the others differ too little from it (a camera that did not move; "
+               f"--min-change 0 keeps near-duplicates)")
+    raise InputError(f"gave {plural(n, 'frame')} ({why}); structure from motion needs >= 2",
+                     dataset.meta.get("video") or dataset.root)
+
+
 def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> PoseResult:
     """Camera poses for `dataset` and the frame they are expressed in (see module docstring).
 
@@ -195,6 +210,8 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         raise InputError(f"--up {opts.up!r}: use auto, keep, or the world axis that points up (+z, -z, +y, -y, +x, -x)")
     if method == "known" and not dataset.has_poses:
         raise InputError("--known: this dataset has no camera poses (use --sfm or --robot-poses)", dataset.root)
+    if method == "sfm" and len(dataset.frames) < 2 and dataset.meta.get("format") == "video":
+        _too_few_video_frames(dataset)
 
     if opts.time_offset_ms:
         _apply_time_offset(dataset, float(opts.time_offset_ms))

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from splattwin.heldout import HELDOUT_EVERY_DEFAULT, HELDOUT_MIN_VIEWS  # noqa: F401 (re-exported)
 from splattwin.options import option
+from splattwin.frame_options import FrameOptions
 
 METHODS = ("auto", "known", "sfm", "robot")
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
@@ -42,9 +43,10 @@ class HoldoutOptions:
 
 
 @dataclass
-class PoseOptions:
+class PoseOptions(FrameOptions):
     """Options of `estimate_poses`.
 
+    max_frames / min_change (`FrameOptions`, inherited): how many frames the capture gives (a video: which).
     method "auto": robot poses when given, else the dataset's poses, else structure from motion.
     intrinsics: None = estimate (SfM) / take the dataset's; "dataset" = the dataset's K, kept fixed;
       "fx,fy,cx,cy" (or a tuple of four floats from Python) = known, kept fixed.

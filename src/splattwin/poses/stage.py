@@ -29,10 +29,11 @@ class PosesResult:
     total: int | None
 
 
-def _load(inputs: PosesInputs, validate: bool = True):
+def _load(inputs: PosesInputs, options: PoseOptions, validate: bool = True):
     from splattwin.capture import load_dataset
 
-    return load_dataset(inputs.capture, validate=validate, frames_dir=inputs.frames_dir)
+    return load_dataset(inputs.capture, validate=validate, frames_dir=inputs.frames_dir,
+                        max_frames=options.max_frames, min_change=options.min_change, progress=options.progress)
 
 
 def run(inputs: PosesInputs, options: PoseOptions, *, progress: bool = True) -> PosesResult:
@@ -40,7 +41,7 @@ def run(inputs: PosesInputs, options: PoseOptions, *, progress: bool = True) -> 
     from splattwin.poses.twin_frame import FRAME_FILE
 
     opts = replace(options, progress=progress, work_dir=options.work_dir or inputs.out_dir / "sfm")
-    result = estimate_poses(_load(inputs), opts)
+    result = estimate_poses(_load(inputs, opts), opts)
     path = result.save(inputs.out_dir)
     return PosesResult(transforms=path, frame=inputs.out_dir / FRAME_FILE, registered=result.stats.get("registered"),
                        total=result.stats.get("total"))
@@ -58,7 +59,7 @@ def input_files(inputs: PosesInputs, options: PoseOptions) -> dict:
     if not src.exists() or (src.is_file() and src.suffix in VIDEO_SUFFIXES):
         out["capture"] = src
         return out
-    ds = _load(inputs, validate=False)
+    ds = _load(inputs, options, validate=False)
     files = []
     meta_path = ds.meta.get("path")
     if meta_path and ds.meta.get("format") in ("nerfstudio", "cameras.json", "colmap"):

@@ -39,10 +39,12 @@ def _segment(args: argparse.Namespace) -> int:
     (open-vocabulary, weights from the local Hugging Face cache) or by importing masks (PNG folders, label
     images, COCO RLE JSON, polygon JSON)."""
     from splattwin.capture import load_dataset
+    from splattwin.capture.dataset import refuse_video
     from splattwin.semantics.lift import label_objects, prompt_labels
     from splattwin.semantics.masks import load_masks
     from splattwin.semantics.segment import segment_images
 
+    refuse_video(args.dataset, "segment")   # before its frames would be extracted beside it
     ds = load_dataset(args.dataset)
     frames = ds.frames if args.split == "all" else [f for f in ds.frames if f.split == args.split]
     out = args.out or Path(args.dataset) / "masks" / "segment"
@@ -72,9 +74,11 @@ def _fuse(args: argparse.Namespace) -> int:
     Visibility-aware semantic fusion (depth agreement, DBSCAN depth isolation, weighted consensus
     tau = N/kappa, refinement with KNN smoothing). Writes labels.npy, fusion.json, objects/<name>.ply and
     label_maps/."""
+    from splattwin.capture.dataset import refuse_video
     from splattwin.lock import output_lock
     from splattwin.semantics.lift import fuse_to_dir
 
+    refuse_video(args.dataset, "fuse")   # no poses: said before --out is created or frames extracted
     opts = from_args(SemanticsOptions, args, fusion=from_args(FusionOptions, args))
     with output_lock(args.out):  # fuse_to_dir scales the lengths to an unscaled frame (frame.json beside)
         res = fuse_to_dir(args.splats, args.dataset, args.masks, args.out, opts.fusion, renderer=opts.renderer,

@@ -181,6 +181,10 @@ def fuse_to_dir(splats: "str | Path | Gaussians", dataset: "str | Path | Dataset
     from splattwin.capture import Dataset, load_dataset
     from splattwin.splat.gaussians import Gaussians
 
+    from splattwin.capture.dataset import refuse_video
+
+    if not isinstance(dataset, Dataset):
+        refuse_video(dataset, "fuse")
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
     g = splats if isinstance(splats, Gaussians) else Gaussians.load_ply(splats)

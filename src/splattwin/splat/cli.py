@@ -42,19 +42,17 @@ def _train(args: argparse.Namespace) -> int:
     from splattwin.capture import load_dataset
     from splattwin.splat.trainer import train
 
+    from splattwin.frame_options import check_max_frames
+
+    check_max_frames(args.max_frames)   # before anything is read (0 left no frame, -2 failed inside numpy)
     cfg = from_args(TrainConfig, args)
     from splattwin.lock import output_lock
 
     from splattwin.poses.holdout import apply_holdout
 
-    from splattwin.capture.dataset import is_video
-    from splattwin.errors import InputError
+    from splattwin.capture.dataset import refuse_video
 
-    # a video has no camera poses, so training refuses it anyway: say so before its frames are extracted
-    # (they went into <stem>_frames/ beside the video, outside OUT)
-    if is_video(args.dataset):
-        raise InputError("a video has no camera poses to train with; estimate them first: `splattwin poses VIDEO "
-                         "POSES` then `splattwin train POSES OUT`, or `splattwin build VIDEO --out TWIN`", args.dataset)
+    refuse_video(args.dataset, "train")   # no poses: said before its frames would be extracted
     ds = load_dataset(args.dataset, max_frames=args.max_frames)
     h = apply_holdout(ds, from_args(HoldoutOptions, args, prefix="holdout."))
     print(f"held-out views ({h.rule}): {', '.join(h.names) if h.names else 'none'}")
@@ -75,8 +73,10 @@ def _eval(args: argparse.Namespace) -> int:
 
     Evaluates a trained splat (training folder OUT or a .ply) on DATASET's held-out views: PSNR and SSIM
     per view and mean (metrics.json) and side-by-side PNGs (ground truth | render | error)."""
+    from splattwin.capture.dataset import refuse_video
     from splattwin.splat.eval import evaluate
 
+    refuse_video(args.dataset, "eval")   # no poses: said before its frames would be extracted
     out = args.out
     if out is None:
         out = (args.splat if args.splat.is_dir() else args.splat.parent) / "eval"

@@ -348,8 +348,11 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
     Gaussians: classic, and a mode's default low-pass)."""
     from splattwin.progress import track
 
+    from splattwin.capture.dataset import refuse_video
     from splattwin.splat import extras
 
+    if not isinstance(dataset, Dataset):
+        refuse_video(dataset, "eval")
     info: dict = {}
     if isinstance(splat, Gaussians):
         g = splat
