@@ -95,6 +95,16 @@ def test_measure_on_posed_images(scene_small, tmp_path):
     assert np.abs(got - want).max() < 0.03, np.abs(got - want).max()
     off = {n for n in names if 100 * np.expm1(np.abs(want[names.index(n)]).max()) > THRESHOLD_PCT + 3}
     assert off <= set(rec["images_off"])
+    # the same photos as JPEGs (decoded at a reduced scale: the path real photos take)
+    from PIL import Image
+
+    jpgs = []
+    for f in pert.frames:
+        jpgs.append(tmp_path / f"{f.name}.jpg")
+        Image.open(f.image_path).convert("RGB").save(jpgs[-1], quality=95)
+    rec = measure_exposure(cams, jpgs, names, xyz, max_side=80)
+    got = np.log([rec["images"][n]["rgb_gain"] for n in names])
+    assert np.abs(got - want).max() < 0.03, np.abs(got - want).max()
 
 
 def test_measure_bad_input(scene_small):

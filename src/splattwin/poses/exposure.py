@@ -21,8 +21,9 @@ gains); for the capture: `spread_pct` = the largest channel gain's distance from
 percent (100 * (exp(max |log gain|) - 1)), and `images_off`, the images beyond `THRESHOLD_PCT`.
 Measured (bench/exposure.py, embedded scene as a 24-view robot capture, 320x240): the unperturbed capture
 reads 0.0 %; per-view gains of 0.7..1.3 x white balance 0.9..1.1 are recovered within 0.8 % (spread 56 %),
-0.9..1.1 x 0.97..1.03 within 0.5 % (spread 14 %); 1.3-2.4 s for 24 images. Real photos (SfM points):
-cake 7.5 %, statue 7.4 %, british_museum (internet photos of many cameras) 81 %.
+0.9..1.1 x 0.97..1.03 within 0.5 % (spread 14 %); 1.0-2.4 s for 24 PNGs on a shared machine. Real photos
+(SfM points; JPEGs decoded at a reduced scale, 0.1-0.25 s for 8-10 photos): cake 7.8 %, statue 8.0 %,
+british_museum (internet photos of many cameras) 79 %.
 
 The splat stage reads the record (`splat.appearance.decide`): `--splat.appearance auto`, the default, trains
 a per-image gain when `varies`.
@@ -49,9 +50,9 @@ DARK, BRIGHT = 8 / 255, 247 / 255   # samples outside (a channel) are left out: 
 MIN_POINTS = 30         # samples an image needs for a gain
 MIN_VIEWS = 2           # images a point must be seen in
 # spread above which the capture is said to vary. Measured: unperturbed embedded robot capture 0.0 %, real
-# phone captures 7.5 % (cake) and 7.4 % (statue; per-image appearance there: seed noise, README), per-view gain
+# phone captures 7.8 % (cake) and 8.0 % (statue; per-image appearance there: seed noise, README), per-view gain
 # 0.9..1.1 x white balance 0.97..1.03 14.1 % (appearance gain: +0.4 dB held-out, +0.8 dB on the
-# right-half protocol), 0.7..1.3 x 0.9..1.1 56 %, british_museum (internet photos) 81 %
+# right-half protocol), 0.7..1.3 x 0.9..1.1 56 %, british_museum (internet photos) 79 %
 THRESHOLD_PCT = 10.0
 ITERATIONS = 8          # median-polish rounds
 
@@ -89,24 +90,32 @@ def fit_log_gains(log_rgb: np.ndarray, min_points: int = MIN_POINTS, min_views: 
     return g, samples
 
 
-def _reduced(path: Path, max_side: int) -> tuple[np.ndarray, float]:
-    """The image as float32 [h,w,3] in [0,1], reduced (box filter) to `max_side`, and the factor."""
+def _reduced(path: Path, cam: Camera, max_side: int) -> tuple[np.ndarray, float, float]:
+    """The image as float32 [h,w,3] in [0,1], reduced (box filter) so that its longest side is at most
+    `max_side`, and the factors (x, y) from the camera's pixels to it. A JPEG is decoded at a reduced scale
+    (PIL's draft: 12 MP photos would otherwise cost ~0.1 s each to decode in full)."""
     from PIL import Image
 
     from splattwin.capture import load_image
+    from splattwin.limits import open_image
 
-    img = load_image(path)
-    H, W = img.shape[:2]
-    s = min(1.0, max_side / max(H, W))
-    if s < 1.0:
-        w, h = max(1, round(W * s)), max(1, round(H * s))
-        u8 = Image.fromarray(np.round(img * 255).astype(np.uint8)).resize((w, h), Image.BOX)
-        img = np.asarray(u8, np.float32) / 255.0
-        s = w / W
-    return img, s
+    s = min(1.0, max_side / max(cam.width, cam.height))
+    w, h = max(1, round(cam.width * s)), max(1, round(cam.height * s))
+    if Path(path).suffix.lower() in (".jpg", ".jpeg"):
+        with open_image(path) as im:
+            im.draft("RGB", (w, h))
+            u8 = im.convert("RGB")
+            u8 = u8.resize((w, h), Image.BOX) if u8.size != (w, h) else u8
+            img = np.asarray(u8, np.float32) / 255.0
+    else:
+        img = load_image(path)
+        if img.shape[:2] != (h, w):
+            u8 = Image.fromarray(np.round(img * 255).astype(np.uint8)).resize((w, h), Image.BOX)
+            img = np.asarray(u8, np.float32) / 255.0
+    return img, w / cam.width, h / cam.height
 
 
-def _visible_colours(cam: Camera, img: np.ndarray, scale: float, xyz: np.ndarray) -> np.ndarray:
+def _visible_colours(cam: Camera, img: np.ndarray, sx: float, sy: float, xyz: np.ndarray) -> np.ndarray:
     """[N,3] colours of the points in this image (NaN where out of view, hidden or clipped)."""
     out = np.full((len(xyz), 3), np.nan, np.float32)
     uv, z = cam.project(xyz)
@@ -115,7 +124,7 @@ def _visible_colours(cam: Camera, img: np.ndarray, scale: float, xyz: np.ndarray
         return out
     idx = np.flatnonzero(inside)
     h, w = img.shape[:2]
-    px = np.clip((uv[idx] * scale).astype(np.int64), 0, [w - 1, h - 1])
+    px = np.clip((uv[idx] * [sx, sy]).astype(np.int64), 0, [w - 1, h - 1])
     zi = z[idx]
     # z-buffer of the points themselves: keep the ones near their cell's nearest point
     cw, ch = -(-w // CELL_PX), -(-h // CELL_PX)
@@ -156,8 +165,8 @@ def measure_exposure(cameras: list[Camera], image_paths: list[Path], names: list
         xyz = xyz[np.sort(np.random.default_rng(seed).choice(len(xyz), n, replace=False))]
     cols = np.full((len(cameras), len(xyz), 3), np.nan, np.float32)
     for i, (cam, path) in enumerate(zip(cameras, image_paths)):
-        img, s = _reduced(Path(path), max_side)
-        cols[i] = _visible_colours(cam, img, s, xyz)
+        img, sx, sy = _reduced(Path(path), cam, max_side)
+        cols[i] = _visible_colours(cam, img, sx, sy, xyz)
     with np.errstate(divide="ignore", invalid="ignore"):
         g, samples = fit_log_gains(np.log(cols))
     ok = np.isfinite(g).all(axis=1)
