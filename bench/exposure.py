@@ -27,7 +27,9 @@ Measured (Nov 2026, 2 shared cores, 500 steps, seed 0): clean 0.0 %, perturbed 5
 0.8 %); held-out PSNR / right-half corrected / against the clean photos: clean off 27.55 / 27.64 / 27.55, gain
 27.24 / 27.86 / 27.24, affine 27.00 / 28.10 / 27.00; perturbed off 21.75 / 24.90 / 25.26, gain 21.86 / 25.84 /
 26.01, affine 21.98 / 25.72 / 26.12. --gain 0.9,1.1 --wb 0.97,1.03: 14.1 %, off 25.93 / 26.75 / 26.59, gain
-26.31 / 27.53 / 27.71.
+26.31 / 27.53 / 27.71. Seed 1 (--modes off,auto): clean 0.0 % (auto trained off: 26.41 / 26.35 / 26.41 both),
+perturbed 51.0 % (gains within 1.0 %), off 19.80 / 27.11 / 25.78, auto (gain) 19.83 / 26.19 / 25.06: the
+correction helped on seed 0 and hurt on seed 1, so it is suggested, not turned on by default.
 """
 
 from __future__ import annotations

@@ -337,9 +337,9 @@ def test_report_shows_the_exposure_check_and_the_appearance_decision(tmp_path):
         "requested": "auto", "mode": "gain", "decision": "auto", "spread_pct": 41.25}}))
     html = _html.unescape(build_report(twin).read_text())
     assert "gains differ by up to 41.2 % (threshold 10.0 %); beyond it: view_002" in html
-    assert "appearance): gain (turned on automatically" in html
+    assert "appearance): gain (turned on by --splat.appearance auto" in html
     (twin / "poses" / "poses_report.json").write_text(json.dumps({
         "method": "known", "exposure": {"error": "no sparse points to compare the images on"}}))
     (twin / "splat" / "train.json").write_text(json.dumps({"appearance": {"mode": "off", "decision": "suggested"}}))
     html = _html.unescape(build_report(twin).read_text())
-    assert "not measured: no sparse points" in html and "off (off as asked, although" in html
+    assert "not measured: no sparse points" in html and "off (although the poses stage found" in html

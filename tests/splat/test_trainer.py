@@ -767,8 +767,9 @@ def test_resume_refuses_an_inconsistent_checkpoint_naming_it(synth, tmp_path, ed
 
 
 def test_appearance_auto_follows_the_poses_exposure_check(synth, tmp_path):
-    """--appearance auto (the default) trains a per-image gain when the poses report beside the dataset says
-    the photos' exposures differ, and records the decision in train.json; without the report: off."""
+    """--appearance auto trains a per-image gain when the poses report beside the dataset says the photos'
+    exposures differ, and records the decision in train.json; without the report: off. The default (off)
+    trains without one and records the suggestion."""
     import json
     import shutil
 
@@ -776,8 +777,8 @@ def test_appearance_auto_follows_the_poses_exposure_check(synth, tmp_path):
     from splattwin.splat.extras import EXTRAS_FILE
 
     shutil.copytree(synth, tmp_path / "d")
-    cfg = tiny_config(iters=10)
-    assert cfg.appearance == "auto"
+    assert tiny_config().appearance == "off"
+    cfg = tiny_config(iters=10, appearance="auto")
     train(load_dataset(tmp_path / "d"), tmp_path / "plain", cfg)
     rec = json.loads((tmp_path / "plain" / "train.json").read_text())["appearance"]
     assert rec["mode"] == "off" and rec["decision"] == "none"
@@ -791,3 +792,6 @@ def test_appearance_auto_follows_the_poses_exposure_check(synth, tmp_path):
     assert tj["config"]["appearance"] == "gain"
     st = ckpt_io.load(tmp_path / "auto" / EXTRAS_FILE)
     assert st["appearance"]["mode"] == "gain"
+    train(load_dataset(tmp_path / "d"), tmp_path / "default", tiny_config(iters=10))
+    rec = json.loads((tmp_path / "default" / "train.json").read_text())["appearance"]
+    assert rec["mode"] == "off" and rec["decision"] == "suggested" and rec["images_off"] == ["view_000"]

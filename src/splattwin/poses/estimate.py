@@ -457,8 +457,8 @@ def _check_exposure(frames: list[DataFrame], pts_xyz: np.ndarray | None, opts: P
                                     [f.name for f in frames], pts_xyz, seed=opts.seed)
     stats["exposure"] = rec
     if rec.get("varies"):
-        log.warning("%s; the splat stage trains with a per-image colour correction for them "
-                    "(--splat.appearance auto, the default: gain)", exposure.describe(rec))
+        log.warning("%s; a per-image colour correction (--splat.appearance gain, or auto) can absorb such "
+                    "differences", exposure.describe(rec))
     else:
         log.info(exposure.describe(rec))
 

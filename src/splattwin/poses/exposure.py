@@ -25,8 +25,8 @@ reads 0.0 %; per-view gains of 0.7..1.3 x white balance 0.9..1.1 are recovered w
 (SfM points; JPEGs decoded at a reduced scale, 0.1-0.25 s for 8-10 photos): cake 7.8 %, statue 8.0 %,
 british_museum (internet photos of many cameras) 79 %.
 
-The splat stage reads the record (`splat.appearance.decide`): `--splat.appearance auto`, the default, trains
-a per-image gain when `varies`.
+The splat stage reads the record (`splat.appearance.decide`): with the default `--splat.appearance off` it
+warns when `varies`, suggesting the correction; `--splat.appearance auto` trains a per-image gain then.
 """
 
 from __future__ import annotations

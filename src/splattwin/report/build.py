@@ -359,9 +359,10 @@ def _appearance_text(rec) -> str | None:
     if not isinstance(rec, dict) or not isinstance(rec.get("decision"), str):
         return None
     mode, why = rec.get("mode"), {
-        "auto": "turned on automatically: the poses stage found the photos' exposure / white balance differ",
-        "suggested": "off as asked, although the poses stage found the photos' exposure / white balance differ "
-                     "(--splat.appearance gain would correct them)",
+        "auto": "turned on by --splat.appearance auto: the poses stage found the photos' exposure / white balance "
+                "differ",
+        "suggested": "although the poses stage found the photos' exposure / white balance differ: "
+                     "--splat.appearance gain (or auto) learns a correction",
         "explicit": "as asked", "none": "off: no exposure difference found"}.get(rec["decision"], rec["decision"])
     return (f"per-image colour correction (appearance): {mode} ({why}); held-out views are rendered without a "
             f"correction, and the right-half figures fit one on each view's left half")

@@ -166,10 +166,11 @@ class TrainConfig:
                                  "held-out PSNR, bench/depth.py)")
     depth_mode: str = option("relative", "depth loss: relative |ED-D|/D, or inverse-depth L1 |1/ED-1/D| (1/m); "
                              "pixels without measured depth are masked", choices=DEPTH_MODES)
-    appearance: str = option("auto", "per-image colour correction learnt with the splats: per-channel gain+bias, "
+    appearance: str = option("off", "per-image colour correction learnt with the splats: per-channel gain+bias, "
                              "or affine 3x3+bias (held-out views: identity); auto: gain when the poses stage's "
-                             "exposure check found the photos' gains differ (poses_report.json), else off",
-                             choices=APPEARANCE_MODES)
+                             "exposure check found the photos' gains differ (poses_report.json), else off. Off "
+                             "by default: on photos that differ a warning suggests it (bench/exposure.py: +0.75 "
+                             "and -0.72 dB on two seeds at 500 steps)", choices=APPEARANCE_MODES)
     appearance_lr: float = option(1e-3, "Adam learning rate of the colour corrections")
     appearance_reg: float = option(0.01, "weight of the corrections' squared distance from identity")
     background_mode: str = option("fixed", "what shows behind the splats: the fixed --background colour, a learnt "
