@@ -322,3 +322,24 @@ def test_report_shows_the_scale_from_the_depth_images(tmp_path):
     assert "x 0.0758097 (SfM unit -&gt; m), 6206 readings over 12 views, spread 0.71 %" in html
     assert "<td>scale uncertainty (1 sigma)</td><td>1 %</td>" in html
     assert "metric scale from the depth images" in html and "z +z" not in html
+
+
+def test_report_shows_the_exposure_check_and_the_appearance_decision(tmp_path):
+    """The poses stage's exposure check (spread, images beyond the threshold) and the splat stage's
+    appearance decision (train.json) are shown; before, a capture with differing exposures said nothing."""
+    import html as _html
+
+    twin = _twin(tmp_path, views=[])
+    (twin / "poses" / "poses_report.json").write_text(json.dumps({
+        "method": "known", "total": 5, "registered": 5,
+        "exposure": {"spread_pct": 41.25, "threshold_pct": 10.0, "varies": True, "images_off": ["view_002"]}}))
+    (twin / "splat" / "train.json").write_text(json.dumps({"appearance": {
+        "requested": "auto", "mode": "gain", "decision": "auto", "spread_pct": 41.25}}))
+    html = _html.unescape(build_report(twin).read_text())
+    assert "gains differ by up to 41.2 % (threshold 10.0 %); beyond it: view_002" in html
+    assert "appearance): gain (turned on by --splat.appearance auto" in html
+    (twin / "poses" / "poses_report.json").write_text(json.dumps({
+        "method": "known", "exposure": {"error": "no sparse points to compare the images on"}}))
+    (twin / "splat" / "train.json").write_text(json.dumps({"appearance": {"mode": "off", "decision": "suggested"}}))
+    html = _html.unescape(build_report(twin).read_text())
+    assert "not measured: no sparse points" in html and "off (although the poses stage found" in html

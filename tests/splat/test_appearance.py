@@ -103,3 +103,62 @@ def test_fit_affine_recovers_a_colour_transform_and_protocol():
     # strong ridge -> the identity
     A3, b3 = fit_affine(render, gt, ridge=1e6)
     np.testing.assert_allclose(A3, np.eye(3), atol=1e-4)
+
+
+# -- which mode a run gets (appearance.decide / exposure_record) ------------------------------------
+from splattwin.splat.appearance import AUTO_MODE, decide, exposure_record  # noqa: E402
+
+VARIES = {"varies": True, "spread_pct": 41.0, "threshold_pct": 10.0, "images_off": ["img_03", "img_07"]}
+STEADY = {"varies": False, "spread_pct": 1.2, "threshold_pct": 10.0, "images_off": []}
+
+
+def test_auto_turns_the_correction_on_only_when_the_exposures_differ(caplog):
+    with caplog.at_level("WARNING", logger="splattwin.splat.appearance"):
+        rec = decide("auto", VARIES, "poses_report.json")
+    assert rec["mode"] == AUTO_MODE == "gain" and rec["decision"] == "auto"
+    assert rec["images_off"] == ["img_03", "img_07"] and rec["spread_pct"] == 41.0
+    assert "img_03" in caplog.text and "--splat.appearance off" in caplog.text
+    steady = decide("auto", STEADY)
+    assert steady["mode"] == "off" and steady["decision"] == "none" and steady["spread_pct"] == 1.2
+    none = decide("auto", None)
+    assert none["mode"] == "off" and none["decision"] == "none" and "not measured" in none["exposure"]
+    err = decide("auto", {"error": "no sparse points to compare the images on"})
+    assert err["mode"] == "off" and "no sparse points" in err["exposure"]
+
+
+def test_explicit_modes_are_kept_and_explicit_off_on_differing_photos_warns(caplog):
+    with caplog.at_level("WARNING", logger="splattwin.splat.appearance"):
+        off = decide("off", VARIES)
+    assert off["mode"] == "off" and off["decision"] == "suggested"
+    assert "img_07" in caplog.text and "--splat.appearance gain" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="splattwin.splat.appearance"):
+        assert decide("off", STEADY)["decision"] == "explicit"
+        affine = decide("affine", VARIES)
+    assert affine["mode"] == "affine" and affine["decision"] == "explicit"
+    assert "appearance" not in caplog.text
+    with pytest.raises(ValueError, match="appearance mode"):
+        decide("bright", VARIES)
+
+
+class _Posed:
+    def __init__(self, root):
+        self.root, self.meta = root, {"path": str(root / "transforms.json")}
+
+
+def test_exposure_record_reads_the_poses_report_beside_the_dataset(tmp_path, caplog):
+    import json
+
+    (tmp_path / "transforms.json").write_text("{}")
+    assert exposure_record(_Posed(tmp_path)) == (None, None)          # no report
+    rep = tmp_path / "poses_report.json"
+    rep.write_text(json.dumps({"method": "known"}))
+    assert exposure_record(_Posed(tmp_path)) == (None, rep)           # a report from before the check
+    rep.write_text(json.dumps({"exposure": VARIES}))
+    assert exposure_record(_Posed(tmp_path)) == (VARIES, rep)
+    with caplog.at_level("WARNING", logger="splattwin.splat.appearance"):
+        rep.write_text(json.dumps({"exposure": {"varies": "yes", "spread_pct": 3, "images_off": []}}))
+        assert exposure_record(_Posed(tmp_path)) == (None, rep)
+        rep.write_text("{not json")
+        assert exposure_record(_Posed(tmp_path)) == (None, rep)
+    assert "malformed \"exposure\"" in caplog.text and "poses_report.json" in caplog.text

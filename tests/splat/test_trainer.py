@@ -777,3 +777,34 @@ def test_resume_refuses_an_inconsistent_checkpoint_naming_it(synth, tmp_path, ed
     with pytest.raises(InputError, match=needle) as e:
         train(ds, tmp_path / "a", cfg, resume=True)
     assert e.value.path == ck
+
+
+def test_appearance_auto_follows_the_poses_exposure_check(synth, tmp_path):
+    """--appearance auto trains a per-image gain when the poses report beside the dataset says the photos'
+    exposures differ, and records the decision in train.json; without the report: off. The default (off)
+    trains without one and records the suggestion."""
+    import json
+    import shutil
+
+    from splattwin.splat import checkpoint as ckpt_io
+    from splattwin.splat.extras import EXTRAS_FILE
+
+    shutil.copytree(synth, tmp_path / "d")
+    assert tiny_config().appearance == "off"
+    cfg = tiny_config(iters=10, appearance="auto")
+    train(load_dataset(tmp_path / "d"), tmp_path / "plain", cfg)
+    rec = json.loads((tmp_path / "plain" / "train.json").read_text())["appearance"]
+    assert rec["mode"] == "off" and rec["decision"] == "none"
+    ex = tmp_path / "plain" / EXTRAS_FILE
+    assert not ex.is_file() or ckpt_io.load(ex)["appearance"] is None
+    (tmp_path / "d" / "poses_report.json").write_text(json.dumps({"exposure": {
+        "varies": True, "spread_pct": 30.0, "threshold_pct": 10.0, "images_off": ["view_000"]}}))
+    train(load_dataset(tmp_path / "d"), tmp_path / "auto", cfg)
+    tj = json.loads((tmp_path / "auto" / "train.json").read_text())
+    assert tj["appearance"]["mode"] == "gain" and tj["appearance"]["decision"] == "auto"
+    assert tj["config"]["appearance"] == "gain"
+    st = ckpt_io.load(tmp_path / "auto" / EXTRAS_FILE)
+    assert st["appearance"]["mode"] == "gain"
+    train(load_dataset(tmp_path / "d"), tmp_path / "default", tiny_config(iters=10))
+    rec = json.loads((tmp_path / "default" / "train.json").read_text())["appearance"]
+    assert rec["mode"] == "off" and rec["decision"] == "suggested" and rec["images_off"] == ["view_000"]

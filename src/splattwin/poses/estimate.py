@@ -469,12 +469,28 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
             points_source = "points triangulated from the known poses"
     if points_source is not None and pts_xyz is not None and len(pts_xyz):
         stats["points_source"] = points_source
+    _check_exposure(out_frames, pts_xyz, opts, stats)
     return PoseResult(frames=out_frames, unregistered=unregistered, frame=frame, points_xyz=pts_xyz,
                       points_rgb=pts_rgb, depth_xyz=depth_xyz, depth_rgb=depth_rgb, T_out_in=T_out_in,
                       stats=stats, depth_scale=dataset.depth_scale, label_objects=dataset.meta.get("label_objects"))
 
 
 # ------------------------------------------------------------------------------------------------
+def _check_exposure(frames: list[DataFrame], pts_xyz: np.ndarray | None, opts: PoseOptions, stats: dict) -> None:
+    """stats["exposure"]: per-image exposure / white-balance gains measured on the sparse points
+    (`splattwin.poses.exposure`); a warning naming the images when they differ beyond its threshold."""
+    from splattwin.poses import exposure
+
+    rec = exposure.measure_exposure([f.camera for f in frames], [f.image_path for f in frames],
+                                    [f.name for f in frames], pts_xyz, seed=opts.seed)
+    stats["exposure"] = rec
+    if rec.get("varies"):
+        log.warning("%s; a per-image colour correction (--splat.appearance gain, or auto) can absorb such "
+                    "differences", exposure.describe(rec))
+    else:
+        log.info(exposure.describe(rec))
+
+
 def _check_up(frame: TwinFrame, cams: list[Camera], pts_xyz: np.ndarray | None, frames: list[DataFrame],
               dataset: Dataset, opts: PoseOptions, stats: dict) -> tuple[TwinFrame, np.ndarray]:
     """Known poses: find up (cameras + table plane of the points or depth) and rotate the world to z up

@@ -371,6 +371,9 @@ def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
         sfm_s = sum(steps.values()) if steps else poses.get("sfm_s")
         if isinstance(sfm_s, (int, float)) and not isinstance(sfm_s, bool):
             rows.append(["SfM time (s)" + (f": {', '.join(steps)}" if steps else ""), round(float(sfm_s), 2)])
+        exp = poses.get("exposure")
+        if isinstance(exp, dict):
+            rows.append(["exposure / white balance between the photos", _exposure_text(exp)])
         if rows:
             sec.table(["pose estimation", "value"], rows)
     if man:
@@ -393,6 +396,34 @@ def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
         sec.image(side_by_side(thumbs), caption="a few input views")
     if (twin / "poses" / "cameras.png").is_file():
         sec.image(twin / "poses" / "cameras.png", caption="camera poses and sparse points", width=520)
+
+
+def _exposure_text(rec: dict) -> str:
+    """The poses stage's exposure check (`splattwin.poses.exposure`) in one cell."""
+    if isinstance(rec.get("error"), str):
+        return f"not measured: {rec['error']}"
+    spread, thr = rec.get("spread_pct"), rec.get("threshold_pct")
+    if not isinstance(spread, (int, float)) or isinstance(spread, bool):
+        return "not recorded"
+    off = [str(n) for n in rec.get("images_off") or []] if isinstance(rec.get("images_off"), list) else []
+    text = f"gains differ by up to {spread:.1f} % (threshold {thr} %)"
+    if off:
+        text += f"; beyond it: {', '.join(off[:12])}{' ...' if len(off) > 12 else ''}"
+    return text
+
+
+def _appearance_text(rec) -> str | None:
+    """train.json's appearance decision (`splat.appearance.decide`) in one line, None when not recorded."""
+    if not isinstance(rec, dict) or not isinstance(rec.get("decision"), str):
+        return None
+    mode, why = rec.get("mode"), {
+        "auto": "turned on by --splat.appearance auto: the poses stage found the photos' exposure / white balance "
+                "differ",
+        "suggested": "although the poses stage found the photos' exposure / white balance differ: "
+                     "--splat.appearance gain (or auto) learns a correction",
+        "explicit": "as asked", "none": "off: no exposure difference found"}.get(rec["decision"], rec["decision"])
+    return (f"per-image colour correction (appearance): {mode} ({why}); held-out views are rendered without a "
+            f"correction, and the right-half figures fit one on each view's left half")
 
 
 def _heldout_rows(sec: Section, rec, views: list) -> None:
@@ -434,6 +465,10 @@ def _recon_section(sec: Section, twin: Path, ev: dict | None) -> None:
     legend = str(ev.get("legend", "ground truth | render | error")).strip()
     legend = legend[len("images:"):].strip() if legend.lower().startswith("images:") else legend
     lm = _masked(ev)
+    tj = _json(twin / "splat" / "train.json")
+    app = _appearance_text(tj.get("appearance") if isinstance(tj, dict) else None)
+    if app:
+        sec.text(app + ".")
     sec.text(f"{ev['gaussians']} Gaussians; {ev['split']} views: mean PSNR {ev['mean_psnr']:.2f} dB, "
              f"SSIM {ev['mean_ssim']:.4f}" + (" (masked: over the pixels the capture's loss masks keep)" if lm else "")
              + _aligned_note(ev) + f". Images: {legend}.")

@@ -15,6 +15,12 @@ with the "fit on the left half, score on the right half" protocol of NeRF-W / Mi
 appearance evaluation (`heldout_corrected_psnr`): a closed-form (ridge) fit of the same affine model on
 the left half of the held-out image, PSNR on the right half only.
 
+Which mode a run gets (`decide`): "off" (the default), "gain" or "affine" as asked; "auto" is "off" unless
+the poses stage's exposure check (`splattwin.poses.exposure`, "exposure" in the poses_report.json beside the
+dataset's transforms.json) says the photos' gains differ beyond its threshold, then `AUTO_MODE`. "off" on such
+a capture trains without a correction and warns, naming the images and suggesting the correction. train.json records the
+decision ("appearance": requested, mode, decision auto | suggested | explicit | none).
+
 Why our own: it is 20 lines of torch; gsplat's appearance module is a per-image embedding + MLP on SH
 (a different, heavier model) and needs CUDA.
 
@@ -24,10 +30,28 @@ momentum would keep moving the views not rendered), and `step(idx)` updates only
 
 from __future__ import annotations
 
+import logging
+from pathlib import Path
+
 import numpy as np
 import torch
 
-APPEARANCE_MODES = ("off", "gain", "affine")
+log = logging.getLogger(__name__)
+
+APPEARANCE_MODES = ("off", "gain", "affine", "auto")
+# "auto" (opt-in): the mode trained when the poses stage's exposure check found the photos' gains differ. Not
+# the default, because the figures disagree (bench/exposure.py, embedded scene as a 24-view robot capture,
+# 320x240, 500 steps, held-out PSNR against the unperturbed photos / right halves after a colour fit on the
+# left): per-view gain 0.7..1.3 x white balance 0.9..1.1, seed 0: off 25.26 / 24.90, gain 26.01 / 25.84,
+# affine 26.12 / 25.72; seed 1: off 25.78 / 27.11, gain 25.06 / 26.19; milder (0.9..1.1 x 0.97..1.03, spread
+# 14 %), seed 0: off 26.59 / 26.75, gain 27.71 / 27.53. With appearance_lr 1e-3 and ~20 steps per view the
+# learnt gains stay within +-0.025 of 1 (the applied ones reach +-0.3), so what differs is mostly the
+# optimisation's path. On the unperturbed capture either costs 0.3-0.55 dB (27.55 -> 27.24 gain, 27.00
+# affine). A 10x learning rate (1e-2) lets the gains reach 0.82..1.19 but the canonical colour drifts: against
+# the unperturbed photos 25.25 (seed 0) and 22.35 dB (seed 1). british_museum (81 % spread, 1500 steps): off
+# 11.76 dB / right halves 13.19, gain 11.77 / 12.84. The default ("off") warns on such photos instead
+# ("suggested").
+AUTO_MODE = "gain"
 
 
 class AppearanceModel:
@@ -136,3 +160,69 @@ def heldout_corrected_psnr(render: np.ndarray, gt: np.ndarray, mode: str = "affi
     keep = mask[:, w:]
     return {"psnr_right_plain": metrics.masked_psnr(right, right_gt, keep),
             "psnr_right_corrected": metrics.masked_psnr(corr, right_gt, keep)}
+
+
+def exposure_record(dataset) -> tuple[dict | None, Path | None]:
+    """The poses stage's exposure check of a posed dataset (the poses_report.json beside its transforms.json,
+    `init.poses_report_path`, "exposure"), and the file read; (None, path or None) when there is none or it
+    is unreadable or malformed (logged: the check is a hint, training goes on without it)."""
+    from splattwin.errors import InputError
+    from splattwin.limits import MAX_RECORD_BYTES, read_json
+    from splattwin.splat.init import poses_report_path
+
+    path = poses_report_path(dataset)
+    if not path.is_file():
+        return None, None
+    try:
+        rep = read_json(path, "poses report", MAX_RECORD_BYTES)
+    except InputError as e:
+        log.warning("exposure check not read: %s", e)
+        return None, path
+    rec = rep.get("exposure") if isinstance(rep, dict) else None
+    if rec is None:
+        return None, path
+    ok = (isinstance(rec, dict) and (isinstance(rec.get("error"), str) or (
+        isinstance(rec.get("varies"), bool) and isinstance(rec.get("spread_pct"), (int, float))
+        and isinstance(rec.get("images_off"), list) and all(isinstance(n, str) for n in rec["images_off"]))))
+    if not ok:
+        log.warning("exposure check not read: %s: malformed \"exposure\" record (expected varies, spread_pct, "
+                    "images_off)", path)
+        return None, path
+    return rec, path
+
+
+def decide(requested: str, exposure: dict | None, source: str | Path | None = None) -> dict:
+    """The appearance mode a run trains with, and why (train.json's "appearance" record).
+
+    requested: TrainConfig.appearance ("off", "gain", "affine" or "auto"); exposure: the poses stage's
+    exposure record (`exposure_record`) or None. decision: "auto" (auto turned the correction on: the
+    photos' gains differ), "suggested" ("off" on such photos: a warning), "explicit" (a mode
+    asked for), "none" (auto, and nothing measured or no difference: off)."""
+    if requested not in APPEARANCE_MODES:
+        raise ValueError(f"appearance mode must be one of {APPEARANCE_MODES}, got {requested!r}")
+    varies = bool(exposure and not exposure.get("error") and exposure.get("varies"))
+    rec: dict = {"requested": requested, "source": None if source is None else str(source)}
+    if exposure is None:
+        rec["exposure"] = "not measured (no poses report with an exposure check beside the dataset)"
+    elif exposure.get("error"):
+        rec["exposure"] = f"not measured ({exposure['error']})"
+    else:
+        rec.update(spread_pct=exposure["spread_pct"], threshold_pct=exposure.get("threshold_pct"),
+                   images_off=list(exposure["images_off"]))
+    off = list(exposure.get("images_off") or []) if varies else []
+    named = ", ".join(off[:8]) + (f" and {len(off) - 8} more" if len(off) > 8 else "")
+    if requested == "auto" and varies:
+        rec.update(mode=AUTO_MODE, decision="auto")
+        log.warning("appearance: the photos differ in exposure / white balance by up to %.1f %% (%s): training "
+                    "with a per-image colour correction (--splat.appearance %s; --splat.appearance off to train "
+                    "without)", exposure["spread_pct"], named, AUTO_MODE)
+    elif requested == "auto":
+        rec.update(mode="off", decision="none")
+    elif requested == "off" and varies:
+        rec.update(mode="off", decision="suggested")
+        log.warning("appearance: the photos differ in exposure / white balance by up to %.1f %% (%s) and are "
+                    "trained without a per-image colour correction; --splat.appearance %s (or auto) learns one",
+                    exposure["spread_pct"], named, AUTO_MODE)
+    else:
+        rec.update(mode=requested, decision="explicit")
+    return rec

@@ -21,7 +21,7 @@ LEGACY_EPS2D = 0.3  # what every config trained with before it recorded eps2d, i
 MAX_EPS2D = 10.0
 DEVICES = ("auto", "cpu", "cuda")
 INIT_METHODS = ("auto", "sfm", "depth", "triangulate", "random")
-APPEARANCE_MODES = ("off", "gain", "affine")      # splat/appearance.py
+APPEARANCE_MODES = ("off", "gain", "affine", "auto")   # splat/appearance.py
 BACKGROUND_MODES = ("fixed", "color", "env")      # splat/background.py
 DEPTH_MODES = ("relative", "inverse")             # splat/depth_loss.py
 # the sparse-view profile (`TrainConfig.resolved`)
@@ -167,7 +167,10 @@ class TrainConfig:
     depth_mode: str = option("relative", "depth loss: relative |ED-D|/D, or inverse-depth L1 |1/ED-1/D| (1/m); "
                              "pixels without measured depth are masked", choices=DEPTH_MODES)
     appearance: str = option("off", "per-image colour correction learnt with the splats: per-channel gain+bias, "
-                             "or affine 3x3+bias (held-out views: identity)", choices=APPEARANCE_MODES)
+                             "or affine 3x3+bias (held-out views: identity); auto: gain when the poses stage's "
+                             "exposure check found the photos' gains differ (poses_report.json), else off. Off "
+                             "by default: on photos that differ a warning suggests it (bench/exposure.py: +0.75 "
+                             "and -0.72 dB on two seeds at 500 steps)", choices=APPEARANCE_MODES)
     appearance_lr: float = option(1e-3, "Adam learning rate of the colour corrections")
     appearance_reg: float = option(0.01, "weight of the corrections' squared distance from identity")
     background_mode: str = option("fixed", "what shows behind the splats: the fixed --background colour, a learnt "

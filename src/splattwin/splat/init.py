@@ -319,16 +319,21 @@ def initial_gaussians(method: str, train_frames: Sequence[Frame], points_xyz: np
     return gaussians_from_points(xyz, rgb, sh_degree=sh_degree), method
 
 
+def poses_report_path(dataset):
+    """Where the poses stage's report of a posed dataset lies: poses_report.json beside its transforms.json."""
+    from pathlib import Path
+
+    p = Path(dataset.meta.get("path", dataset.root))
+    return (p.parent if p.is_file() else p) / "poses_report.json"
+
+
 def poses_points_source(dataset) -> str | None:
     """What made a posed dataset's point cloud, from the poses_report.json beside it (`points_source`; for
     reports written before it, read from `initial_points` / `depth_points`); None when not known."""
-    from pathlib import Path
-
     from splattwin.errors import InputError
     from splattwin.limits import MAX_RECORD_BYTES, read_json
 
-    p = Path(dataset.meta.get("path", dataset.root))
-    rep = (p.parent if p.is_file() else p) / "poses_report.json"
+    rep = poses_report_path(dataset)
     try:   # a file of the twin (untrusted): bounded; only a log line depends on it, so any fault is "unknown"
         stats = read_json(rep, max_bytes=MAX_RECORD_BYTES)
     except (InputError, OSError):

@@ -47,6 +47,7 @@ from splattwin.errors import InputError
 from splattwin.io import write_json
 from splattwin.limits import check_pixels
 from splattwin.runtime import torch_threads
+from splattwin.splat import appearance
 from splattwin.splat import checkpoint as ckpt_io
 from splattwin.splat import extras
 from splattwin.splat.config import TrainConfig
@@ -323,6 +324,9 @@ class Trainer:
         self.dataset = dataset
         self.out_dir = Path(out_dir)
         self.cfg.check()
+        # --appearance auto: on when the poses stage measured differing exposures (appearance.decide)
+        self.appearance_record = appearance.decide(self.cfg.appearance, *appearance.exposure_record(dataset))
+        self.cfg = replace(self.cfg, appearance=self.appearance_record["mode"])
         self.frames = dataset.train()
         if not self.frames:
             raise InputError("dataset has no training frames", dataset.root)
@@ -792,7 +796,8 @@ class Trainer:
             "wall_s": None if wall is None else round(wall, 3), "resumed_at_step": resumed_at,
             "train_loss": loss, "train_psnr": psnr, "scene_scale": self.scene_scale,
             "views": [{"name": v.name, "width": v.camera.width, "height": v.camera.height} for v in self.views],
-            "transients": transients, "loss_masks": self._loss_mask_record(), "history": self.history})
+            "transients": transients, "loss_masks": self._loss_mask_record(), "appearance": self.appearance_record,
+            "history": self.history})
         return TrainResult(g, ply, self.step, wall, loss, psnr, self.init_method, self.history, refined, resumed_at)
 
 
