@@ -29,6 +29,7 @@ from splattwin.errors import InputError
 
 log = logging.getLogger(__name__)
 
+DIGEST_CACHE = ".splattwin/digests.json"   # a twin's digest cache (relative to the twin folder)
 MAX_TREE_FILES = 200_000
 _SKIP_DIRS = {"__pycache__", ".git", ".splattwin"}
 _SKIP_SUFFIXES = (".pyc", ".pyo", ".nbi", ".nbc")

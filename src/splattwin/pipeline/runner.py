@@ -36,7 +36,7 @@ from typing import Any, Callable
 
 from splattwin import io
 from splattwin.errors import InputError
-from splattwin.hashing import DigestCache, changed_outputs, code_digest, output_digests
+from splattwin.hashing import DIGEST_CACHE, DigestCache, changed_outputs, code_digest, output_digests
 from splattwin.runtime import peak_rss_gib
 
 log = logging.getLogger(__name__)
@@ -88,9 +88,6 @@ class Context:
 
     def path(self, rel: str | Path) -> Path:
         return self.out / rel
-
-
-DIGEST_CACHE = ".splattwin/digests.json"
 
 
 def input_digests(stage: Stage, ctx: Context) -> dict[str, str]:
