@@ -143,3 +143,59 @@ def test_a_ctrl_c_a_library_swallowed_still_stops_the_command(terminal_ctrl_c, m
     interrupt.install()
     assert not interrupt.seen()                       # each command starts afresh
     interrupt.uninstall()
+
+
+def test_sigterm_during_training_saves_a_checkpoint_with_pycolmap_imported(scene_small, tmp_path):
+    """docker stop, Kubernetes/Slurm preemption and `timeout` send SIGTERM: with pycolmap imported in the
+    process (a build's poses stage does, after the CLI started), glog's failure-signal handler printed a
+    C stack trace and the process died with no checkpoint. Now SIGTERM is the first Ctrl-C: the step
+    finishes, a checkpoint is saved, exit 143 with one line; a re-run with --resume continues from it."""
+    out = tmp_path / "run"
+    env = {**os.environ, "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", ""),
+           "SPLATTWIN_PROGRESS_INTERVAL": "0.2"}
+    # pycolmap imported after the CLI installed its handlers, as in a build's poses stage
+    code = ("import sys; from splattwin import cli, interrupt; first = interrupt.install\n"
+            "def install():\n    first(); import pycolmap\n"
+            "interrupt.install = install; sys.exit(cli.main(sys.argv[1:]))")
+    cmd = [sys.executable, "-c", code, "train", str(scene_small), str(out), "--iters", "400"]
+    p = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    lines = []
+    try:
+        for line in p.stderr:
+            lines.append(line)
+            if line.startswith("train: ") and not line.startswith("train: 0/"):
+                p.send_signal(signal.SIGTERM)
+                break
+        rest = p.communicate(timeout=300)[1]
+    finally:
+        if p.poll() is None:
+            p.kill()
+    err = "".join(lines) + rest
+    assert p.returncode == 143, err[-3000:]
+    assert "*** Aborted at" not in err and "stack trace" not in err and "internal error" not in err, err[-3000:]
+    assert "SIGTERM: stopping after this training step" in err and "terminated (SIGTERM)" in err
+    ckpts = sorted((out / "checkpoints").glob("ckpt_*.safetensors"))
+    assert ckpts and int(ckpts[-1].stem.split("_")[1]) > 0, err[-3000:]
+    assert not (out / "point_cloud.ply").exists()
+    r = subprocess.run([sys.executable, "-m", "splattwin.cli", "train", str(scene_small), str(out), "--iters", "400",
+                        "--resume", "--no-progress"], env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "resumed from" in r.stderr and (out / "point_cloud.ply").is_file()
+
+
+def test_the_cli_leaves_sigterm_as_it_found_it(monkeypatch, tmp_path):
+    """The CLI's SIGTERM handler lives only while a command runs; an ignored SIGTERM stays ignored."""
+    from splattwin.capture import cli as capture_cli
+    from splattwin.cli import main
+
+    seen = []
+    monkeypatch.setattr(capture_cli, "_info", lambda args: seen.append(signal.getsignal(signal.SIGTERM)) or 0)
+    prev = signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        assert main(["capture", "info", str(tmp_path)]) == 0
+        assert seen[-1] not in (signal.SIG_DFL, signal.SIG_IGN) and signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        assert main(["capture", "info", str(tmp_path)]) == 0
+        assert seen[-1] == signal.SIG_IGN == signal.getsignal(signal.SIGTERM)
+    finally:
+        signal.signal(signal.SIGTERM, prev)

@@ -79,23 +79,23 @@ def main(argv: list[str] | None = None) -> int:
     try:
         rc = int(args.func(args) or 0)
         if interrupt.seen():   # a Ctrl-C some library swallowed (see splattwin.interrupt): not a success
-            print("interrupted", file=sys.stderr)
-            return 130
+            print(interrupt.message(), file=sys.stderr)
+            return interrupt.exit_code()
         return rc
     except InputError as e:
         if debug:
             traceback.print_exc()
         print(f"error: {e}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt:   # Ctrl-C (130) or SIGTERM (143): splattwin.interrupt
+        print(interrupt.message(), file=sys.stderr)
+        return interrupt.exit_code()
     except Exception as e:  # internal error: one line; the traceback with --debug for the bug report
         from splattwin.interrupt import is_interrupt
 
         if is_interrupt(e):   # Ctrl-C inside numba or torch, which wrap it (SystemError, RuntimeError)
-            print("interrupted", file=sys.stderr)
-            return 130
+            print(interrupt.message(), file=sys.stderr)
+            return interrupt.exit_code()
         if debug:
             traceback.print_exc()
         else:

@@ -29,6 +29,7 @@ from splattwin.errors import InputError
 
 log = logging.getLogger(__name__)
 
+DIGEST_CACHE = ".splattwin/digests.json"   # a twin's digest cache (relative to the twin folder)
 MAX_TREE_FILES = 200_000
 _SKIP_DIRS = {"__pycache__", ".git", ".splattwin"}
 _SKIP_SUFFIXES = (".pyc", ".pyo", ".nbi", ".nbc")
@@ -126,6 +127,53 @@ class DigestCache:
         live = {k: v for k, v in self._entries.items() if Path(k).exists()}
         io.write_json(self.cache_path, {"files": live}, indent=None)
         self._dirty = False
+
+
+# JSON outputs that also record the run that wrote them: the entries a command run by hand rewrites on an
+# unchanged result. twin.json: `splattwin export` re-times the exports and lists those it adds (`exports`,
+# `export_files`); `versions` are the run's packages. They are not the twin: a stage's output identity
+# (`output_digest`) and the robot's twin digest (`splattwin.robot.outputs.twin_digest`) leave them out.
+TWIN_RUN_RECORD = ("timings", "versions", "exports", "export_files")
+_RUN_RECORDS = {"twin.json": TWIN_RUN_RECORD}
+
+
+def output_digest(folder: str | Path, rel: str, cache: DigestCache) -> str:
+    """The identity of a stage's output file `rel` (relative to `folder`, the twin): its contents' digest
+    (`DigestCache.digest`), or for a JSON file that records its run (`_RUN_RECORDS`: twin.json) the digest
+    of the JSON less those entries ("json:..."; a file that does not parse as an object: its bytes')."""
+    from splattwin import io
+    from splattwin.limits import MAX_RECORD_BYTES
+
+    p = Path(folder) / rel
+    skip = _RUN_RECORDS.get(Path(rel).as_posix())
+    if skip and p.is_file():
+        try:
+            doc = io.read_json(p, max_bytes=MAX_RECORD_BYTES)
+        except InputError:
+            doc = None
+        if isinstance(doc, dict):
+            doc = {k: v for k, v in doc.items() if k not in skip}
+            return "json:" + hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
+    return cache.digest(p)
+
+
+def output_digests(folder: str | Path, outputs: dict, cache: DigestCache) -> dict[str, str]:
+    """{"@rel/path": `output_digest`} of the files a stage record promises (its "@rel/path" outputs)."""
+    return {v: output_digest(folder, v[1:], cache) for v in outputs.values() if isinstance(v, str) and v.startswith("@")}
+
+
+def changed_outputs(folder: str | Path, rec: dict, cache: DigestCache) -> list[str]:
+    """The files a stage record (TWIN/pipeline.json: {"outputs", "digests"}) promises whose identity
+    differs from the recorded one: rewritten since the stage wrote them (a command run by hand). None for
+    a record without digests. A digest recorded whole (before a file's run record was left out) still
+    matches the unchanged file."""
+    want = rec.get("digests")
+    if not isinstance(want, dict):
+        return []
+    outputs = rec.get("outputs")
+    now = output_digests(folder, outputs if isinstance(outputs, dict) else {}, cache)
+    return [k[1:] for k, d in now.items()
+            if want.get(k) != d and not (d.startswith("json:") and want.get(k) == cache.digest(Path(folder) / k[1:]))]
 
 
 @functools.lru_cache(maxsize=None)

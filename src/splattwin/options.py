@@ -336,6 +336,21 @@ def to_dict(obj: Any, mode: str = "record") -> dict[str, Any]:
     return out
 
 
+def absolute_paths(obj: Any) -> Any:
+    """`obj` (an option object) with its path options (`path=True`) made absolute, from the current
+    folder: what twin.json records, and what `--print-config` prints so that the file reads back the same
+    wherever it is saved (a config file's relative paths are taken from its own folder). "default" and
+    empty values are names, not paths: kept."""
+    kw = {}
+    for spec in specs(type(obj)):
+        v = getattr(obj, spec.name)
+        if spec.nested is not None and v is not None:
+            kw[spec.name] = absolute_paths(v)
+        elif spec.meta.get("path") and v not in (None, "", "default"):
+            kw[spec.name] = type(v)(Path(v).resolve()) if isinstance(v, Path) else str(Path(v).resolve())
+    return dataclasses.replace(obj, **kw)
+
+
 def _plain(v: Any) -> Any:
     if isinstance(v, (tuple, list)):
         return [_plain(x) for x in v]

@@ -83,6 +83,22 @@ def test_rerun_skips_everything(built):
     assert json.loads((built / "pipeline.json").read_text()) == before   # no stage re-ran (none re-recorded)
 
 
+def test_reexport_then_rebuild_redoes_no_stage(built, tmp_path):
+    """`splattwin export TWIN --formats mjcf` on an unchanged twin re-times the export in twin.json: the next
+    unchanged build then redid the whole twin stage (geometry, convex decomposition, every export)."""
+    import shutil
+
+    from splattwin.cli import main
+
+    twin = tmp_path / "moved"
+    shutil.copytree(built, twin)
+    before = json.loads((twin / "twin.json").read_text())
+    assert main(["export", str(twin), "--formats", "mjcf"]) == 0
+    assert json.loads((twin / "twin.json").read_text())["timings"] != before["timings"]
+    ctx = build(twin, BuildOptions.from_dict(OPTIONS), progress=False)
+    assert ctx.skipped == ["scene", "poses", "splats", "semantics", "twin", "robot", "report"]
+
+
 def test_report_in_chromium(built, tmp_path):
     html = (built / "report" / "index.html").read_text()
     for title in ("Reconstruction", "Semantic objects", "Collision geometry", "Timings"):

@@ -184,6 +184,28 @@ def test_print_config_reads_back(tmp_path, capsys):
     assert o == resolve_options(p.parse_args(["demo", "--iters", "77", "--scene.noise.p-miss", "0.5"]), demo=True)
 
 
+def test_print_config_saved_elsewhere_reads_back_the_same_paths(tmp_path, capsys, monkeypatch):
+    """`build scan --masks scan/masks --print-config > configs/twin.yaml`: a config file's relative paths
+    are taken from its own folder, so the printed paths must not be relative to the folder it was printed
+    in (they read back as configs/scan ..., 'input does not exist'). Read back from yet another folder."""
+    (tmp_path / "work" / "scan" / "masks").mkdir(parents=True)
+    (tmp_path / "configs").mkdir()
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.chdir(tmp_path / "work")
+    typed = ["build", "scan", "--masks", "scan/masks", "--task", "default", "--splat.iters", "5"]
+    assert main([*typed, "--print-config"]) == 0
+    cfg = tmp_path / "configs" / "twin.yaml"
+    cfg.write_text(capsys.readouterr().out)
+    want = resolve_options(build_parser().parse_args(typed), demo=False)
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    got = resolve_options(build_parser().parse_args(["build", "--config", str(cfg)]), demo=False)
+    assert Path(got.input) == (tmp_path / "work" / "scan").resolve()
+    assert Path(got.semantics.masks) == (tmp_path / "work" / "scan" / "masks").resolve()
+    assert got.robot.task == "default" and got.splat.iters == 5     # a name, not a path: kept as typed
+    assert got == dataclasses.replace(want, input=got.input,
+                                      semantics=dataclasses.replace(want.semantics, masks=got.semantics.masks))
+
+
 def test_from_dict_rejects_what_a_file_may_not_set():
     with pytest.raises(InputError, match="unknown option 'splat.progress'"):
         BuildOptions.from_dict({"splat": {"progress": False}})

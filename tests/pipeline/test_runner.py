@@ -180,3 +180,44 @@ def test_from_a_stage_reuses_none_of_its_saved_work(tmp_path, monkeypatch, stage
         with pytest.raises(Stop):
             fn(ctx)
     assert seen == [False, True]
+
+
+def test_reexporting_an_unchanged_twin_does_not_redo_the_twin_stage(tmp_path):
+    """`splattwin export TWIN` rewrites twin.json's timings (and lists the formats it adds): the next
+    unchanged build redid the whole twin stage (geometry, convex decomposition, exports) because the
+    runner hashed twin.json whole. Its run record is not the twin; an edit of the twin itself still counts."""
+    calls = []
+
+    def twin(ctx):
+        calls.append("twin")
+        doc = {"objects": [{"name": "box"}], "timings": {"export.mjcf": 0.29}, "exports": {"mjcf": "export/scene.xml"},
+               "export_files": [], "versions": {"splattwin": "1"}}
+        (ctx.out / "twin.json").write_text(json.dumps(doc))
+        return {"manifest": "@twin.json"}
+
+    stages = [Stage("twin", twin)]
+    run_stages(stages, Context(tmp_path, {}))
+    doc = json.loads((tmp_path / "twin.json").read_text())
+    doc["timings"]["export.mjcf"] = 0.46                   # as `splattwin export --formats mjcf,gltf` writes it
+    doc["exports"]["gltf"] = "export/scene.glb"
+    doc["export_files"].append({"path": "export/scene.glb", "export": "gltf"})
+    (tmp_path / "twin.json").write_text(json.dumps(doc, indent=2))
+    ctx = run_stages(stages, Context(tmp_path, {}))
+    assert calls == ["twin"] and ctx.skipped == ["twin"]
+    doc["objects"][0]["name"] = "crate"                     # the twin itself, edited by hand
+    (tmp_path / "twin.json").write_text(json.dumps(doc))
+    run_stages(stages, Context(tmp_path, {}))
+    assert calls == ["twin", "twin"]
+
+
+def test_a_twin_json_digest_recorded_whole_still_matches_the_unchanged_file(tmp_path):
+    """pipeline.json written before twin.json's run record was left out holds the whole file's digest:
+    an unchanged twin must not be rebuilt (or reported unvouched) for that alone."""
+    from splattwin.hashing import DigestCache, changed_outputs
+
+    (tmp_path / "twin.json").write_text(json.dumps({"objects": [], "timings": {"geometry": 1.0}}))
+    cache = DigestCache()
+    rec = {"outputs": {"manifest": "@twin.json"}, "digests": {"@twin.json": cache.digest(tmp_path / "twin.json")}}
+    assert changed_outputs(tmp_path, rec, cache) == []
+    (tmp_path / "twin.json").write_text(json.dumps({"objects": [], "timings": {"geometry": 2.0}}))
+    assert changed_outputs(tmp_path, rec, DigestCache()) == ["twin.json"]   # whole digest: any change shows

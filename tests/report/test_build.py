@@ -182,6 +182,30 @@ def test_report_warns_when_pipeline_json_does_not_vouch_for_the_twin(tmp_path, c
     assert "earlier build" not in build_report(twin).read_text()
 
 
+def test_report_warns_when_a_stages_recorded_outputs_were_rewritten(tmp_path, caplog):
+    """`splattwin train TWIN/poses/transforms.json TWIN/splat` run by hand into a built twin rewrites
+    splat/point_cloud.ply: the report showed the earlier splat's held-out PSNR (and semantics and meshes
+    fused from it) with no word, because pipeline.json had a record of every stage. The recorded output
+    digests no longer match: a warning naming the stage and the file, in the log and the report."""
+    from splattwin.hashing import DigestCache, output_digests
+
+    twin = _manifest_twin(tmp_path, scaled=True)
+    (twin / "splat" / "point_cloud.ply").write_bytes(b"the built splat")
+    outputs = {"splats": {"ply": "@splat/point_cloud.ply"}, "twin": {"manifest": "@twin.json"}}
+    state = {n: {"key": "k", "seconds": 1.0, "outputs": outputs.get(n, {}),
+                 "digests": output_digests(twin, outputs.get(n, {}), DigestCache())}
+             for n in ("scene", "poses", "splats", "semantics", "twin", "robot", "report")}
+    (twin / "pipeline.json").write_text(json.dumps(state))
+    html = build_report(twin).read_text()
+    assert "no longer match" not in html                        # every recorded output as recorded
+    (twin / "splat" / "point_cloud.ply").write_bytes(b"a splat trained by hand")
+    with caplog.at_level("WARNING"):
+        html = build_report(twin).read_text()
+    note = "splat/point_cloud.ply (stage splats) no longer matches what the build recorded"
+    assert note in caplog.text and f"WARNING: {note}" in html
+    assert "stages splats..twin shown here (held-out metrics, semantics, twin)" in html
+
+
 def test_a_splats_only_report_names_the_poses_frame(tmp_path):
     """`build --until splats` leaves no twin.json: the header said "frame: n/a" for an unscaled capture."""
     from splattwin import io

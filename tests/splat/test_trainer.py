@@ -156,6 +156,18 @@ def test_training_reduces_loss_and_writes_ply(synth, tmp_path):
     assert Image.open(tmp_path / "out" / "train_curves.png").size == (640, 240)
 
 
+def test_training_removes_the_earlier_splats_heldout_metrics(synth, tmp_path):
+    """`splattwin train` into a built twin's splat/ left splat/eval/metrics.json of the splats it replaced:
+    the report showed that PSNR as the new model's. A new point_cloud.ply takes them away (only them)."""
+    out = tmp_path / "out"
+    (out / "eval").mkdir(parents=True)
+    (out / "eval" / "metrics.json").write_text('{"mean_psnr": 18.12}')
+    (out / "eval" / "notes.txt").write_text("mine")
+    train(load_dataset(synth), out, tiny_config(iters=5))
+    assert (out / "point_cloud.ply").is_file() and not (out / "eval" / "metrics.json").exists()
+    assert (out / "eval" / "notes.txt").read_text() == "mine"
+
+
 def test_progress_in_a_redirected_log_is_plain_lines(synth, tmp_path, capsys, monkeypatch):
     """stderr not a terminal (a log file, CI): a start line, lines every interval with the figures, an end
     line; no carriage-return redraws (tqdm wrote one per 0.1 s)."""

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from splattwin.errors import InputError
-from splattwin.options import specs, to_dict
+from splattwin.options import absolute_paths, to_dict
 from splattwin.pipeline.options import STAGES, BuildOptions  # noqa: F401 - STAGES re-exported
 from splattwin.pipeline.runner import Context, Stage, compute_keys, run_stages
 
@@ -316,18 +316,7 @@ def stages() -> list[Stage]:
 def resolved_config(options: BuildOptions) -> dict:
     """The options as recorded in twin.json: every option, path options made absolute (references to the
     inputs, never needed by report/view/plan/export)."""
-
-    def absolute(obj):
-        kw = {}
-        for spec in specs(type(obj)):
-            v = getattr(obj, spec.name)
-            if spec.nested is not None and v is not None:
-                kw[spec.name] = absolute(v)
-            elif spec.meta.get("path") and v not in (None, "", "default"):
-                kw[spec.name] = type(v)(Path(v).resolve()) if isinstance(v, Path) else str(Path(v).resolve())
-        return replace(obj, **kw)
-
-    return to_dict(absolute(options))
+    return to_dict(absolute_paths(options))
 
 
 def preflight(ctx: Context, until: str | None = None) -> dict:

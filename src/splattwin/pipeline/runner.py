@@ -17,7 +17,9 @@ After a stage succeeds the runner records `{key, outputs, seconds, peak_rss_gib}
 "plan", `report.build.record_plan_run`, gone when the robot stage runs again); when a stage re-runs, its record and those of every later stage are
 dropped first, so a run stopped midway never leaves a record of old outputs beside new ones. On the next run a stage whose recorded key matches and whose
 outputs all exist (inside the twin folder) with the contents recorded (`digests`: a `splattwin plan` or
-`report` run by hand since rewrote them, with other options) is skipped. Stages write their own outputs atomically, so a
+`report` run by hand since rewrote them, with other options) is skipped. twin.json's identity leaves out
+what `splattwin export` rewrites on an unchanged twin (its timings, versions and export list:
+`splattwin.hashing.output_digest`), so re-exporting does not redo the twin stage. Stages write their own outputs atomically, so a
 kill leaves at most the unfinished stage to redo (and training resumes from its own checkpoint inside
 the stage).
 """
@@ -34,7 +36,7 @@ from typing import Any, Callable
 
 from splattwin import io
 from splattwin.errors import InputError
-from splattwin.hashing import DigestCache, code_digest
+from splattwin.hashing import DIGEST_CACHE, DigestCache, changed_outputs, code_digest, output_digests
 from splattwin.runtime import peak_rss_gib
 
 log = logging.getLogger(__name__)
@@ -88,9 +90,6 @@ class Context:
         return self.out / rel
 
 
-DIGEST_CACHE = ".splattwin/digests.json"
-
-
 def input_digests(stage: Stage, ctx: Context) -> dict[str, str]:
     """{input name: content digest} of the stage's declared inputs (see module docstring)."""
     if stage.inputs is None:
@@ -140,20 +139,6 @@ def _outputs_exist(out: Path, outputs: dict[str, Any]) -> bool:
             if Path(v[1:]).is_absolute() or not is_inside(p, out) or not p.exists():
                 return False
     return True
-
-
-def _output_digests(out: Path, outputs: dict[str, Any], cache: DigestCache) -> dict[str, str]:
-    """{"@rel/path": digest} of the files a stage promises (see `_outputs_exist`)."""
-    return {v: cache.digest(out / v[1:]) for v in outputs.values() if isinstance(v, str) and v.startswith("@")}
-
-
-def _changed_outputs(out: Path, rec: dict[str, Any], cache: DigestCache) -> list[str]:
-    """The promised files whose contents differ from the record (none for a record without digests)."""
-    want = rec.get("digests")
-    if not isinstance(want, dict):
-        return []
-    now = _output_digests(out, rec.get("outputs", {}), cache)
-    return [k[1:] for k, d in now.items() if want.get(k) != d]
 
 
 def load_state(out: Path) -> dict[str, Any]:
@@ -206,7 +191,7 @@ def run_stages(stages: list[Stage], ctx: Context, from_stage: str | None = None,
         rec = state.get(stage.name)
         changed = []
         if not redo and rec and rec.get("key") == key and _outputs_exist(ctx.out, rec.get("outputs", {})):
-            changed = _changed_outputs(ctx.out, rec, ctx.digests)
+            changed = changed_outputs(ctx.out, rec, ctx.digests)
             if changed:
                 log.info("%s: %s changed since this stage wrote it (a command run by hand?): running it again",
                          stage.name, ", ".join(changed))
@@ -236,7 +221,7 @@ def run_stages(stages: list[Stage], ctx: Context, from_stage: str | None = None,
             ctx.peak_rss_gib[stage.name] = peak_rss_gib()
             state[stage.name] = {"key": key, "outputs": outputs, "seconds": dt,
                                  "peak_rss_gib": ctx.peak_rss_gib[stage.name], "finished": time.time(),
-                                 "digests": _output_digests(ctx.out, outputs, ctx.digests)}
+                                 "digests": output_digests(ctx.out, outputs, ctx.digests)}
             ctx.digests.save()
             io.write_json(ctx.out / STATE_NAME, state)
             if on_stage:

@@ -108,28 +108,50 @@ _SHOWN = (("splats", ("splat/eval/metrics.json",)), ("semantics", ("semantics/fu
 
 
 def unvouched(twin: str | Path) -> str | None:
-    """When TWIN/pipeline.json exists (a `build` made this folder) and does not record a stage whose files
-    are there (`build --until splats`, or a build stopped midway: the runner drops the records of every
-    stage from the one it re-runs, and keeps the later stages' folders, whose caches resume work), those
-    files are an earlier build's and may not match the newer ones beside them: a sentence saying so.
-    None when pipeline.json vouches for every file shown (or there is none: stages run by hand)."""
+    """When TWIN/pipeline.json exists (a `build` made this folder) and does not vouch for the files the
+    report shows, a sentence saying so (None when it does, or when there is none: stages run by hand):
+    - a stage's recorded outputs no longer match the files (`splattwin.hashing.changed_outputs`: e.g.
+      `splattwin train` run by hand into the twin rewrote splat/point_cloud.ply): the held-out metrics,
+      semantics and twin shown were made from the earlier files. The robot stage is left out (`splattwin
+      plan` rewrites its results and records itself; `robot.outputs.results_twin` checks those).
+    - no record of a stage whose files are there (`build --until splats`, or a build stopped midway: the
+      runner drops the records of every stage from the one it re-runs, and keeps the later stages'
+      folders, whose caches resume work): those files are an earlier build's."""
+    from splattwin.hashing import DIGEST_CACHE, DigestCache, changed_outputs
+
     twin = Path(twin)
     if not (twin / "pipeline.json").is_file():
         return None
     state = _json(twin / "pipeline.json")
     state = state if isinstance(state, dict) else {}
+    notes = []
+    cache = DigestCache(twin / DIGEST_CACHE)   # the build's: a stat() per unchanged file (read, never saved here)
+    for stage in PIPELINE_STAGES[:PIPELINE_STAGES.index("robot")]:
+        rec = state.get(stage)
+        files = changed_outputs(twin, rec, cache) if isinstance(rec, dict) else []
+        if files:
+            shown = PIPELINE_STAGES[PIPELINE_STAGES.index(stage):PIPELINE_STAGES.index("robot")]
+            what = [w for n, w in (("splats", "held-out metrics"), ("semantics", "semantics"), ("twin", "twin"))
+                    if n in shown]
+            which = f"stage {stage}" if len(shown) == 1 else f"stages {shown[0]}..{shown[-1]}"
+            notes.append(f"{', '.join(files)} (stage {stage}) no longer {'matches' if len(files) == 1 else 'match'} "
+                         f"what the build recorded: rewritten since (by a command run by hand into this twin, "
+                         f"e.g. `splattwin train`?), so nothing vouches that the results of "
+                         f"{which} shown here ({', '.join(what)}) were made from "
+                         f"{'it' if len(files) == 1 else 'them'} (run `splattwin build` again to bring them up to date)")
+            break   # every later stage's results depend on this one's
     stale = [(stage, rel) for stage, files in _SHOWN for rel in files
              if stage not in state and (twin / rel).is_file()]
-    if not stale:
-        return None
-    done = [i for i, n in enumerate(PIPELINE_STAGES) if n in state]
-    later = PIPELINE_STAGES[(max(done) + 1) if done else 0:] or tuple(stage for stage, _ in stale)
-    last = f"after the last {PIPELINE_STAGES[max(done)]}" if done else "in the last build (pipeline.json records none)"
-    files = [rel for _, rel in stale]
-    return (f"{', '.join(files)} {'is' if len(files) == 1 else 'are'} from an earlier build: stages "
-            f"{later[0]}..{later[-1]} did not run {last}, so {'it' if len(files) == 1 else 'they'} may not match "
-            f"the newer outputs shown beside {'it' if len(files) == 1 else 'them'} (run `splattwin build` again "
-            f"without --until to bring them up to date)")
+    if stale:
+        done = [i for i, n in enumerate(PIPELINE_STAGES) if n in state]
+        later = PIPELINE_STAGES[(max(done) + 1) if done else 0:] or tuple(stage for stage, _ in stale)
+        last = f"after the last {PIPELINE_STAGES[max(done)]}" if done else "in the last build (pipeline.json records none)"
+        files = [rel for _, rel in stale]
+        notes.append(f"{', '.join(files)} {'is' if len(files) == 1 else 'are'} from an earlier build: stages "
+                     f"{later[0]}..{later[-1]} did not run {last}, so {'it' if len(files) == 1 else 'they'} may "
+                     f"not match the newer outputs shown beside {'it' if len(files) == 1 else 'them'} (run "
+                     f"`splattwin build` again without --until to bring them up to date)")
+    return ". ".join(notes) or None
 
 
 def _poses_frame(twin: Path):

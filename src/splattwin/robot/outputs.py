@@ -31,7 +31,7 @@
                                  (`track.RobotTrack`; this module is its only writer)
     frames/frame_*.png           rendered frames (when an offscreen GL context exists)
 
-results.json records `twin_digest` (`twin_digest`: twin.json less its timings, versions, exports and
+results.json records `twin_digest` (`twin_digest`: twin.json less its timings, versions, exports (list and files) and
 build options, and the meshes' contents): results of another twin (rebuilt since with other objects or
 geometry) are told apart by `results_twin` (the report then shows none, the pipeline removes them).
 
@@ -52,6 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from splattwin import io
+from splattwin.hashing import TWIN_RUN_RECORD
 
 log = logging.getLogger(__name__)
 
@@ -102,9 +103,10 @@ def remove_previous(out: str | Path, keep_trials: int = 0) -> list[Path]:
     return removed
 
 
-# twin.json entries that do not change what the robot plans in: run times, package versions, the export
-# files written, the build's recorded options (`config.build`: the twin's content is the rest)
-_UNPLANNED = ("timings", "versions", "exports")
+# twin.json entries that do not change what the robot plans in: its run record (run times, package
+# versions, the export files written: `splattwin.hashing.TWIN_RUN_RECORD`, which the pipeline's twin stage
+# also leaves out), and the build's recorded options (`config.build`: the twin's content is the rest)
+_UNPLANNED = TWIN_RUN_RECORD
 
 
 def twin_digest(twin_dir: str | Path) -> str | None:
