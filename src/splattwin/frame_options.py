@@ -13,7 +13,7 @@ from splattwin.options import option
 # frames taken from a video when --max-frames is not given (the sharpest of each of that many windows)
 VIDEO_MAX_FRAMES = 30
 # grey levels (0..255), mean |difference| of 64-px grey thumbnails below which a frame is a near-duplicate
-# of the last kept one (capture.video: a still camera measured <= 0.16, a one-pixel pan >= 1.2); 0 keeps them
+# of a recently kept one (capture.video: a still camera measured <= 0.16, a one-pixel pan >= 1.2); 0 keeps them
 MIN_CHANGE = 1.0
 
 
@@ -24,9 +24,10 @@ class FrameOptions:
     max_frames: int | None = option(None, f"use at most N frames of the capture, evenly spaced (a video: the sharpest "
                                     f"frame of each of N equal windows; default {VIDEO_MAX_FRAMES} for a video, every "
                                     f"frame otherwise)", build_alias="max-frames")
-    min_change: float = option(MIN_CHANGE, "video: skip a frame that differs from the last kept one by less than this "
-                               "(mean absolute difference of 64-px grey thumbnails, grey levels 0-255; 0 keeps "
-                               "near-duplicates)", build_alias="min-change")
+    min_change: float = option(MIN_CHANGE, "video: skip a frame that differs from one of the last 3 kept ones by less "
+                               "than this (mean absolute difference of 64-px grey thumbnails, grey levels 0-255), "
+                               "or is a motion-blurred copy of one; 0 keeps near-duplicates and blurred copies",
+                               build_alias="min-change")
 
     def check(self) -> None:
         """InputError for values no extraction can use, before any work (0 was silently taken as the default,
