@@ -109,3 +109,33 @@ def test_twin_frame_save_round_trips(tmp_path: Path):
     assert load_frame(p) == f and TwinFrame.load(tmp_path) == f
     tmp_path.joinpath("d").mkdir()
     assert f.save(tmp_path / "d").name == "frame.json"
+
+
+def test_save_again_with_fewer_views_removes_the_files_of_the_views_gone(scene_small: Path, tmp_path: Path):
+    """A rebuild from a capture with fewer views left the old views' photos (and depth, labels) in
+    OUT/images/...: a twin handed on carried photos of a capture it was not built from (audit 9 F12).
+    Files this save did not bundle are left alone: a capture saved into its own folder keeps every photo."""
+    import shutil
+
+    ds = load_dataset(scene_small)
+    out = tmp_path / "poses"
+    _known(ds).save(out)
+    bundled = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file() and p.parent != out}
+    assert any(b.startswith("images/") for b in bundled)
+    fewer = load_dataset(scene_small)
+    gone = {f.name for f in fewer.frames[5:]}
+    fewer.frames = fewer.frames[:5]
+    res = _known(fewer)
+    (out / "images" / "mine.txt").write_text("a file the bundle did not write")
+    load_dataset(res.save(out))   # loads back
+    left = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file() and p.parent != out}
+    assert left == {b for b in bundled if Path(b).stem not in gone} | {"images/mine.txt"}
+    # OUT holding the capture: its own photos are inputs, never removed
+    cap = tmp_path / "cap"
+    shutil.copytree(scene_small, cap)
+    before = sorted(p.name for p in (cap / "images").iterdir())
+    _known(load_dataset(cap)).save(cap)
+    less = load_dataset(cap)
+    less.frames = less.frames[:3]
+    _known(less).save(cap)
+    assert sorted(p.name for p in (cap / "images").iterdir()) == before

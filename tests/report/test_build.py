@@ -367,3 +367,22 @@ def test_report_shows_the_exposure_check_and_the_appearance_decision(tmp_path):
     (twin / "splat" / "train.json").write_text(json.dumps({"appearance": {"mode": "off", "decision": "suggested"}}))
     html = _html.unescape(build_report(twin).read_text())
     assert "not measured: no sparse points" in html and "off (although the poses stage found" in html
+
+
+def test_report_shows_the_label_maps_of_this_fusions_views_only(tmp_path):
+    """The report globbed semantics/label_maps/*.png: a map left by an earlier build of other views was
+    shown as this twin's (audit 9 F12). It shows the views fusion.json lists."""
+    import numpy as np
+
+    from splattwin.io import write_image
+
+    twin = _twin(tmp_path)
+    sem = twin / "semantics"
+    for sub in ("label_maps", "masks_vs_labels"):
+        for view in ("heldout_003", "heldout_009"):
+            write_image(sem / sub / f"{view}.png", np.zeros((20, 30, 3), np.uint8))
+    (sem / "fusion.json").write_text(json.dumps({"options": {"kappa": 1.5, "iters": 3}, "objects": [],
+                                                 "label_map_views": ["train_000", "heldout_003"]}))
+    html = build_report(twin).read_text()
+    assert "heldout_003: fused labels rendered" in html and "heldout_003: 2D segmenter masks" in html
+    assert "heldout_009" not in html

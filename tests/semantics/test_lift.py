@@ -189,3 +189,36 @@ def test_masks_for_only_some_training_views_are_warned_about():
     with w.catch_warnings():
         w.simplefilter("error")
         assert len(views_for(frames, ms)) == 4
+
+
+def test_fusion_of_fewer_views_removes_the_pictures_of_the_views_gone(tmp_path):
+    """A rebuild from fewer views left the old views' label maps (and 2D masks | labels pictures) beside
+    the new ones, and the report globbed them as this twin's (audit 9 F12). fusion.json lists the views
+    its pictures are of; other files in the folders are left alone."""
+    import json
+
+    from splattwin.capture import load_dataset
+    from splattwin.semantics import lift
+
+    h = _trainer_helpers()
+    ds = load_dataset(h.make_dataset(tmp_path / "ds", n_train=4, n_heldout=1))
+    g, ms = h.gt_gaussians(), h.half_image_masks(ds.frames)
+    out = tmp_path / "sem"
+
+    def pictures(sub):
+        return sorted(p.stem for p in (out / sub).glob("*.png"))
+
+    lift.fuse_to_dir(g, ds, ms, out, progress=False, metrics=True, maps_renderer="points")
+    assert pictures("label_maps") == sorted(f.name for f in ds.frames)
+    (out / "label_maps" / "notes.txt").write_text("not a picture of the fusion")
+    gone = ds.frames[2].name
+    ds.frames = [f for f in ds.frames if f.name != gone]
+    ms = h.half_image_masks(ds.frames)
+    lift.fuse_to_dir(g, ds, ms, out, progress=False, metrics=True, maps_renderer="points")
+    names = sorted(f.name for f in ds.frames)
+    assert pictures("label_maps") == pictures("label_maps/raw") == names
+    assert gone not in pictures("masks_vs_labels") and pictures("masks_vs_labels")
+    assert (out / "label_maps" / "notes.txt").is_file()
+    assert sorted(json.loads((out / "fusion.json").read_text())["label_map_views"]) == names
+    lift.fuse_to_dir(g, ds, ms, out, progress=False, label_maps=False)   # no maps: none of an earlier run
+    assert pictures("label_maps") == pictures("label_maps/raw") == pictures("masks_vs_labels") == []

@@ -16,6 +16,7 @@ file it points at: OUT never holds a link, which would lead out of OUT (and be r
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
 import shutil
 from pathlib import Path
@@ -24,6 +25,8 @@ from splattwin import io
 from splattwin.capture.dataset import Frame
 from splattwin.errors import InputError
 from splattwin.paths import confined, unfollowed
+
+log = logging.getLogger(__name__)
 
 KINDS = {"image_path": "images", "depth_path": "depth", "mask_path": "masks", "label_path": "labels"}
 
@@ -68,8 +71,11 @@ def io_equal(a: Path, b: Path) -> bool:
                 return True
 
 
-def bundle_frames(frames: list[Frame], out_dir: str | Path) -> list[Frame]:
-    """Frames whose files live under `out_dir` (see module docstring); the input files are untouched."""
+def bundle_frames(frames: list[Frame], out_dir: str | Path, placed: list[str] | None = None) -> list[Frame]:
+    """Frames whose files live under `out_dir` (see module docstring); the input files are untouched.
+    placed: given, the files bundled into `out_dir` are appended to it (POSIX paths relative to `out_dir`),
+    not those that already are the input files (`out_dir` holding the capture): the record
+    `remove_unbundled` takes on the next run."""
     out_dir = Path(out_dir)
     new = [dataclasses.replace(f) for f in frames]
     for attr, sub in KINDS.items():
@@ -89,8 +95,45 @@ def bundle_frames(frames: list[Frame], out_dir: str | Path) -> list[Frame]:
             src = Path(src)
             rel = unfollowed(src).relative_to(common).as_posix()
             dst = confined(dest_root, rel, src, "bundled file")
+            if placed is not None and unfollowed(dst) != unfollowed(src):
+                placed.append(f"{sub}/{rel}")
             if not dst.is_symlink() and _same_file(src, dst):
                 setattr(f, attr, dst)
                 continue
             setattr(f, attr, place_file(src, dst))
     return new
+
+
+def remove_unbundled(out_dir: str | Path, earlier, placed, inputs=()) -> list[Path]:
+    """Remove the files an earlier `bundle_frames` placed into `out_dir` (`earlier`, its `placed` record)
+    that this one did not (`placed`): the views of a capture that are gone (a rebuild with fewer views left
+    their photos in the twin). Only a recorded file inside `out_dir`'s bundle folders (`KINDS`), never
+    through a link, never one of `inputs` (this run's input files); empty sub-folders they leave go too.
+    Returns what went."""
+    out_dir = Path(out_dir)
+    keep = set(placed)
+    skip = {unfollowed(p) for p in inputs}
+    removed: list[Path] = []
+    for rel in earlier:
+        if not isinstance(rel, str) or rel in keep or rel.split("/", 1)[0] not in KINDS.values():
+            continue
+        try:
+            p = confined(out_dir, rel)
+        except InputError:   # a record is read from the folder: a path leading out of it is not ours
+            continue
+        if unfollowed(p) in skip or not (p.is_symlink() or p.is_file()):
+            continue
+        p.unlink()
+        removed.append(p)
+        top = out_dir / rel.split("/", 1)[0]
+        d = p.parent
+        while d != top and d.is_relative_to(top):
+            try:
+                d.rmdir()   # only when empty
+            except OSError:
+                break
+            d = d.parent
+    if removed:
+        log.info("removed %d file(s) of views no longer in the capture from %s (e.g. %s)", len(removed), out_dir,
+                 removed[0].relative_to(out_dir))
+    return removed

@@ -108,7 +108,7 @@ class PoseResult:
             if (out / REPORT_FILE).is_file() else {}
         if not isinstance(rep, dict):
             raise InputError("malformed poses report: expected a JSON object", out / REPORT_FILE)
-        stats = {k: v for k, v in rep.items() if k not in ("frame", "T_out_in", "unregistered", "depth_ply")}
+        stats = {k: v for k, v in rep.items() if k not in ("frame", "T_out_in", "unregistered", "depth_ply", "bundled")}
         T = rep.get("T_out_in")
         if T is None:
             T_out_in = np.eye(4)
@@ -142,7 +142,7 @@ class PoseResult:
         Returns the transforms.json path.
         """
         from splattwin.capture import nerfstudio
-        from splattwin.capture.bundle import bundle_frames
+        from splattwin.capture.bundle import bundle_frames, remove_unbundled
 
         out = Path(out_dir)
         if not bundle:
@@ -153,22 +153,41 @@ class PoseResult:
                                  f"its folder: save with bundle=True (the default: the files are linked into "
                                  f"{out}), or into a folder that holds them", out)
         out.mkdir(parents=True, exist_ok=True)
+        earlier = _bundled_record(out)   # read before this run's report replaces it
         extra: dict = {}
         if self.depth_xyz is not None and len(self.depth_xyz):
             nerfstudio.write_points_ply(out / DEPTH_PLY, self.depth_xyz, self.depth_rgb)
             extra["depth_ply"] = DEPTH_PLY  # the RGB-D initialiser, beside the SfM points (ply_file_path)
         io.write_json(out / FRAME_FILE, dataclasses.asdict(self.frame))
+        ds = self.to_dataset(out)
+        inputs = [p for f in ds.frames for p in (f.image_path, f.depth_path, f.mask_path, f.label_path) if p]
+        placed: list[str] = []
+        if bundle:
+            ds.frames = bundle_frames(ds.frames, out, placed=placed)
+        # the files of views a rebuild no longer has (fewer frames, another capture) leave the folder
+        remove_unbundled(out, earlier, placed, inputs)
         io.write_json(out / REPORT_FILE, {**self.stats, **extra, "frame": dataclasses.asdict(self.frame),
-                                          "T_out_in": self.T_out_in, "unregistered": self.unregistered})
+                                          "T_out_in": self.T_out_in, "unregistered": self.unregistered,
+                                          "bundled": placed})
         try:
             plot_cameras(self, out / "cameras.png")
         except Exception as e:  # a picture must never fail the run
             log.warning("could not draw cameras.png: %s", e)
         # transforms.json last: its presence marks a finished output.
-        ds = self.to_dataset(out)
-        if bundle:
-            ds.frames = bundle_frames(ds.frames, out)
         return nerfstudio.write(ds, out / "transforms.json", ply_name="points3D.ply", confine=True)
+
+
+def _bundled_record(out: Path) -> list:
+    """The files the last `PoseResult.save` into `out` bundled there (poses_report.json "bundled"; an
+    unreadable or older report: none, nothing is removed)."""
+    from splattwin.limits import MAX_RECORD_BYTES
+
+    try:
+        rep = io.read_json(out / REPORT_FILE, "no poses report", MAX_RECORD_BYTES)
+    except (InputError, OSError):
+        return []
+    names = rep.get("bundled") if isinstance(rep, dict) else None
+    return names if isinstance(names, list) else []
 
 
 # ------------------------------------------------------------------------------------------------

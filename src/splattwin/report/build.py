@@ -556,10 +556,17 @@ def _semantics_section(sec: Section, twin: Path, fusion: dict | None) -> None:
         sec.table(["κ", "consistency (%)", "ghost index (%)"],
                   [[r["kappa"], r["consistency"], r["ghost_index"]] for r in fusion["kappa_sweep"]])
     heldout = set(fusion.get("miou_heldout_masks_views") or [])
-    for p in sorted((twin / "semantics" / "masks_vs_labels").glob("*.png")):
+    views = fusion.get("label_map_views")
+    # this fusion's views, not whatever pictures lie there (an older fusion.json without the list: all)
+    shown = {v for v in views if isinstance(v, str)} if isinstance(views, list) else None
+
+    def ours(p: Path) -> bool:
+        return shown is None or p.stem in shown
+
+    for p in [p for p in sorted((twin / "semantics" / "masks_vs_labels").glob("*.png")) if ours(p)]:
         sec.image(p, caption=f"{p.stem}: 2D masks (held-out view: not used by the fusion) | fused 3D labels rendered"
                   if p.stem in heldout else f"{p.stem}: 2D segmenter masks (input) | fused 3D labels rendered")
-    maps = sorted((twin / "semantics" / "label_maps").glob("*.png"))
+    maps = [p for p in sorted((twin / "semantics" / "label_maps").glob("*.png")) if ours(p)]
     held = [p for p in maps if "heldout" in p.stem] or maps
     for p in held[:4]:
         sec.image(p, caption=f"{p.stem}: fused labels rendered")

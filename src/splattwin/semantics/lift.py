@@ -222,11 +222,17 @@ def fuse_to_dir(splats: "str | Path | Gaussians", dataset: "str | Path | Dataset
         mr = maps_renderer if maps_renderer != "auto" else ("splat" if rasterizer_usable() else "points")
         summary.update(write_label_maps(g, labels, ds.frames, res.names, out_dir, renderer=mr, progress=progress,
                                         raster=raster, gt_objects=objs))
+        summary["label_map_views"] = [f.name for f in ds.frames]   # the report shows these, not a glob
+    compared: set[str] = set()
     if metrics:
         summary.update(fusion_metrics(res, g.means, views, ms))
         if label_maps:
-            write_mask_comparisons(res, ms, ds, out_dir)
+            compared = write_mask_comparisons(res, ms, ds, out_dir)
             summary.update(heldout_mask_miou(ms, ds, out_dir, res.label_ids))
+    # pictures of views an earlier fusion had and this one has not (a rebuild from fewer or other views)
+    mapped = {f"{f.name}.png" for f in ds.frames} if label_maps else set()
+    for sub, keep in (("label_maps", mapped), ("label_maps/raw", mapped), ("masks_vs_labels", compared)):
+        io.remove_stale(out_dir / sub, keep, suffix=".png")
     summary["seconds_total"] = time.perf_counter() - t0
     summary["method"] = "naive" if naive else "visibility-aware"
     res.save(out_dir, extra=summary)
@@ -281,20 +287,23 @@ def heldout_mask_miou(masks: MaskSet, dataset, out_dir: Path, label_ids: Sequenc
     return {"miou_heldout_masks": miou(pred, ref, sorted(label_ids)), "miou_heldout_masks_views": names}
 
 
-def write_mask_comparisons(res: FusionResult, masks: MaskSet, dataset, out_dir: Path, n: int = 3) -> None:
+def write_mask_comparisons(res: FusionResult, masks: MaskSet, dataset, out_dir: Path, n: int = 3) -> set[str]:
     """OUT/masks_vs_labels/<view>.png for the first `n` training views and the first `n` held-out views
     with masks: the 2D masks (the fusion's input; on held-out views unused by it) | the fused labels
-    rendered (OUT/label_maps/raw)."""
+    rendered (OUT/label_maps/raw). Returns the file names written."""
     from splattwin.capture import load_image, load_mask
     from splattwin.pictures import side_by_side
 
     with_masks = [fr for fr in dataset.frames if fr.name in masks.sizes]
+    written: set[str] = set()
     for f in [fr for fr in with_masks if fr.split != "heldout"][:n] + [fr for fr in with_masks if fr.split == "heldout"][:n]:
         mask_map = _mask_map(masks, f.name)
         img = load_image(f.image_path)
         fused = load_mask(out_dir / "label_maps" / "raw" / f"{f.name}.png").astype(np.int32)
         pic = side_by_side([colorize(mask_map, res.names, img, legend=False), colorize(fused, res.names, img)])
         io.write_image(out_dir / "masks_vs_labels" / f"{f.name}.png", (pic * 255 + 0.5).astype(np.uint8))
+        written.add(f"{f.name}.png")
+    return written
 
 
 def write_label_maps(g, labels: np.ndarray, frames: Sequence, names: dict[int, str], out_dir: Path,
