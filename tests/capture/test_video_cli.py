@@ -274,3 +274,29 @@ def test_eval_fuse_segment_refuse_a_video_before_extracting(tmp_path, capsys):
         assert str(video) in err and ("no camera poses" in err if name != "segment" else "not a video" in err), err
         assert sorted(p.name for p in vids.iterdir()) == ["scan.mp4"], name
     assert sorted(p.name for p in tmp_path.iterdir()) == ["masks", "splat", "vids"]
+
+
+def test_pose_errors_about_a_video_name_it_and_both_commands_flags(tmp_path, monkeypatch):
+    """`build VIDEO --poses known` said 'OUT/capture/frames: --known: ... (use --sfm or --robot-poses)':
+    the internal frames folder, and flags `build` does not have; an SfM failure named the frames folder too
+    (audit 9 F13). The video is named, and each command's spelling."""
+    from splattwin.capture import load_dataset
+    from splattwin.poses import PoseOptions, estimate_poses
+    from splattwin.poses import sfm
+
+    video = tmp_path / "scan.mp4"
+    _encode(video, [_board(5 * i) for i in range(6)])
+    ds = load_dataset(video, frames_dir=tmp_path / "twin" / "capture" / "frames")
+    with pytest.raises(InputError) as e:
+        estimate_poses(ds, PoseOptions(method="known", progress=False))
+    assert e.value.path == video and "a video has no camera poses" in e.value.problem
+    assert "build: --poses sfm" in e.value.problem and "splattwin poses: --sfm" in e.value.problem
+
+    def failing(paths, work, opts, progress=True):
+        raise InputError("structure from motion registered only 1/6 images", sfm._image_layout(paths)[0])
+
+    monkeypatch.setattr(sfm, "run_sfm", failing)
+    with pytest.raises(InputError) as e:
+        estimate_poses(ds, PoseOptions(method="sfm", progress=False))
+    assert e.value.path == video and "registered only 1/6" in e.value.problem
+    assert str(tmp_path / "twin" / "capture" / "frames") in e.value.problem   # where its frames are, as a note

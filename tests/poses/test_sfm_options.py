@@ -275,3 +275,31 @@ def test_retry_loop_recovers_before_the_next_retry_and_stops_when_all_are_back()
     seen.clear()
     out, a = run_plan(plan, 8, execute, recover=lambda b, at: (_outcome(5), at))  # a worse result is ignored
     assert out.registered == 6 and a.name == "guided" and seen == [p.name for p in plan]
+
+
+def test_too_few_registered_names_a_few_images_and_logs_each_reason(tmp_path, caplog):
+    """A video whose SfM registered 15/30 frames gave a ~20 kB one-line error listing every frame with its
+    reasons (audit 9 F13): the error names the count and the first few; the log has each one's reason."""
+    import logging
+
+    from splattwin.capture.camera import Camera
+    from splattwin.poses.sfm import SfmResult, _check_enough
+
+    cam = Camera(K=np.diag([100.0, 100.0, 1.0]), width=64, height=48, T_world_cam=np.eye(4))
+    names = [f"frame_{i:05d}.png" for i in range(30)]
+    res = SfmResult(cameras={n: cam for n in names[:15]}, unregistered=names[15:], points_xyz=np.zeros((0, 3)),
+                    points_rgb=np.zeros((0, 3), np.uint8), points_error=np.zeros(0), points_track_len=np.zeros(0),
+                    mean_reproj_error=0.0, failures={n: "its pose could not be estimated " * 20 for n in names[15:]})
+    with caplog.at_level(logging.WARNING), pytest.raises(InputError) as e:
+        _check_enough(res, SfmOptions(), tmp_path)
+    msg = e.value.problem
+    assert "registered only 15/30 images" in msg and "15 images (frame_00015.png, frame_00016.png, " \
+        "frame_00017.png and 12 more" in msg and "frame_00018" not in msg and len(msg) < 1000
+    assert "--poses.min-registered" in msg   # build's spelling beside poses'
+    assert sum("not registered" in r.getMessage() for r in caplog.records) == 15
+    # a few: each named with its reason, as before
+    res.failures = {n: "no matches" for n in names[15:17]}
+    res.unregistered = names[15:17]
+    res.cameras = {n: cam for n in names[:2]}
+    with pytest.raises(InputError, match="frame_00015.png: no matches; frame_00016.png: no matches"):
+        _check_enough(res, SfmOptions(min_registered=3), tmp_path)

@@ -177,6 +177,28 @@ class PoseResult:
         return nerfstudio.write(ds, out / "transforms.json", ply_name="points3D.ply", confine=True)
 
 
+# the flags that choose a pose source, in both commands' spelling (the same message serves `build` and `poses`)
+KNOWN_FLAGS = "known poses (build: --poses known; splattwin poses: --known)"
+POSE_SOURCES = "SfM (build: --poses sfm, or auto; splattwin poses: --sfm) or the robot's poses (--robot-poses POSES)"
+
+
+def _no_poses(dataset: Dataset) -> str:
+    what = "a video has" if dataset.meta.get("format") == "video" else "this dataset has"
+    return f"{what} no camera poses; estimate them by {POSE_SOURCES}"
+
+
+def _given(dataset: Dataset) -> Path:
+    """The input the user named: the video, not the folder its frames were extracted into (`capture.video`)."""
+    return Path(dataset.meta.get("video") or dataset.root)
+
+
+def _as_given(e: InputError, dataset: Dataset) -> InputError:
+    """`e` naming the video the user gave when it names the folder of the video's extracted frames."""
+    if not dataset.meta.get("video") or e.path is None or e.path.resolve() != Path(dataset.root).resolve():
+        return e
+    return InputError(f"{e.problem} (its frames: {e.path})", _given(dataset))
+
+
 def _bundled_record(out: Path) -> list:
     """The files the last `PoseResult.save` into `out` bundled there (poses_report.json "bundled"; an
     unreadable or older report: none, nothing is removed)."""
@@ -228,7 +250,7 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
     if opts.up not in UP_AXES:
         raise InputError(f"--up {opts.up!r}: use auto, keep, or the world axis that points up (+z, -z, +y, -y, +x, -x)")
     if method == "known" and not dataset.has_poses:
-        raise InputError("--known: this dataset has no camera poses (use --sfm or --robot-poses)", dataset.root)
+        raise InputError(f"{KNOWN_FLAGS}: {_no_poses(dataset)}", _given(dataset))
     if method == "sfm" and len(dataset.frames) < 2 and dataset.meta.get("format") == "video":
         _too_few_video_frames(dataset)
 
@@ -259,6 +281,8 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         work = Path(opts.work_dir) if opts.work_dir is not None else Path(tmp.name)  # type: ignore[union-attr]
         try:
             sfm = run_sfm([f.image_path for f in frames], work, sopts, progress=opts.progress)
+        except InputError as e:
+            raise _as_given(e, dataset) from e
         finally:
             if tmp is not None:
                 tmp.cleanup()

@@ -757,8 +757,6 @@ def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | No
                                       "registration_check": res.registration_check})
         shutil.rmtree(model_dir, ignore_errors=True)
         os.replace(tmp, model_dir)
-    for n, why in res.failures.items():
-        log.warning("SfM: %s not registered: %s", n, why)
     _check_enough(res, opts, image_root)
     return res
 
@@ -1058,15 +1056,27 @@ def _camera_from_colmap(cam, T_cam_world: np.ndarray, name: str) -> Camera:
     return Camera(K=K, width=cam.width, height=cam.height, T_world_cam=invert_se3(T_cam_world), dist=dist, name=name)
 
 
+_NAMED = 3   # unregistered images an error names (each one's reason is logged; a 30-image list filled 20 kB)
+
+
 def _check_enough(res: SfmResult, opts: SfmOptions, image_root: Path) -> None:
+    """Log why each unregistered image failed; InputError when fewer than --min-registered registered."""
+    for name, why in res.failures.items():
+        log.warning("SfM: %s not registered: %s", name, why)
     n = res.num_total
     need = opts.min_registered if opts.min_registered is not None else max(3, n - 3)
     need = min(need, n)
     if res.num_registered < need:
-        why = "; ".join(f"{k}: {v}" for k, v in res.failures.items()) or ", ".join(res.unregistered)
+        missing = list(res.failures) or list(res.unregistered)
+        if len(missing) <= _NAMED:
+            why = "; ".join(f"{k}: {v}" for k, v in res.failures.items()) or ", ".join(missing)
+        else:
+            why = (f"{len(missing)} images ({', '.join(missing[:_NAMED])} and {len(missing) - _NAMED} more; "
+                   f"why each failed: the warnings above)")
         raise InputError(
             f"structure from motion registered only {res.num_registered}/{n} images (need {need}); "
-            f"not registered: {why}; {_ADVICE}; or lower --min-registered", image_root)
+            f"not registered: {why}; {_ADVICE}; or lower --min-registered (build: --poses.min-registered)",
+            image_root)
 
 
 def _result_from_reconstruction(rec, names: list[str], timings: dict[str, float], image_root: Path) -> SfmResult:
