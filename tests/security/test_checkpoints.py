@@ -111,13 +111,17 @@ def test_other_options_are_not_resumed(tiny_dataset, tmp_path, caplog):
     long = train(ds, tmp_path / "a", _cfg(iters=18))
     assert long.steps == 18
     fresh = train(ds, tmp_path / "fresh", _cfg(iters=12))
-    # explicit resume (`train --resume`): refused, naming what differs
-    with pytest.raises(CheckpointMismatch, match=r"iters=18 \(this run: 12\)"):
+    # explicit resume (`train --resume`): refused, naming what differs by its flag, first; the densification
+    # schedule scaled from --iters only as a note (its 600-character dict led the message, audit 9 F14)
+    with pytest.raises(CheckpointMismatch) as e:
         train(ds, tmp_path / "a", _cfg(iters=12), resume=True)
+    assert e.value.problem.startswith("checkpoint was made with other options: --iters 18 (checkpoint) vs 12 "
+                                      "(this run); derived from them: the densification schedule")
+    assert "refine" not in e.value.problem and len(e.value.problem.split("; not resumed")[0]) < 150
     # build semantics: say why, start over, and give exactly what a fresh 12-step run gives
     with caplog.at_level(logging.WARNING):
         short = train(ds, tmp_path / "a", _cfg(iters=12), resume=True, on_mismatch="restart")
-    assert "starting over" in caplog.text and "iters=18" in caplog.text
+    assert "starting over" in caplog.text and "--iters 18 (checkpoint)" in caplog.text
     assert short.steps == 12
     np.testing.assert_array_equal(short.gaussians.means, fresh.gaussians.means)
     assert not any("000018" in p.name for p in (tmp_path / "a" / "checkpoints").iterdir())
@@ -148,5 +152,5 @@ def test_a_checkpoint_from_before_an_option_resumes_with_its_default(tiny_datase
         sd["run_options"].pop(k)
     ckpt_io.save(ckpt, sd)
     assert Trainer(ds, tmp_path / "a", _cfg(iters=18)).run(resume=True).steps == 18
-    with pytest.raises(CheckpointMismatch, match=r"robust_quantile=0.0 \(this run: 0.8\)"):
+    with pytest.raises(CheckpointMismatch, match=r"--robust-quantile 0.0 \(checkpoint\) vs 0.8 \(this run\)"):
         Trainer(ds, tmp_path / "a", _cfg(iters=18, robust_quantile=0.8)).run(resume=True)

@@ -308,6 +308,47 @@ def data_digest(views: list[TrainView]) -> str:
     return h.hexdigest()
 
 
+# run options set by no flag but derived from others, by what a user knows them as
+_DERIVED = {"densify_cfg": "the densification schedule (scaled to --iters)"}
+
+
+def options_diff(old: dict, new: dict, keys: list[str], shown: int = 4) -> str:
+    """`keys` (run options that differ between a checkpoint, `old`, and this run, `new`) as a user set
+    them: `--iters 300 (checkpoint) vs 400 (this run)`, the flags first (the densification schedule, derived
+    from --iters, led the message with a 600-character dict); derived settings as a short note after them,
+    or, when nothing else differs, by the entries that differ."""
+    from splattwin.errors import short_repr
+    from splattwin.options import flag_name, specs
+
+    by_name = {sp.name: sp for sp in specs(TrainConfig)}
+    flags = [k for k in keys if k in by_name and by_name[k].meta.get("cli", True)]
+    derived = [k for k in keys if k not in flags]
+
+    def pair(name: str, a, b) -> str:
+        return f"{name} {short_repr(a)} (checkpoint) vs {short_repr(b)} (this run)"
+
+    parts = []
+    for k in flags[:shown]:
+        sp = by_name[k]
+        build = "" if sp.meta.get("build_alias") else f" (build: --splat.{flag_name(sp)})"
+        parts.append(pair(f"--{flag_name(sp)}", old.get(k), new.get(k)) + build)
+    if len(flags) > shown:
+        parts.append(f"and {len(flags) - shown} more")
+    text = ", ".join(parts)
+    if derived and flags:
+        return text + f"; derived from them: {', '.join(_DERIVED.get(k, k) for k in derived)}"
+    for k in derived:
+        a, b = old.get(k), new.get(k)
+        if isinstance(a, dict) and isinstance(b, dict):
+            sub = [x for x in sorted(set(a) | set(b)) if a.get(x) != b.get(x)]
+            inner = ", ".join(pair(x, a.get(x), b.get(x)) for x in sub[:shown])
+            more = f" and {len(sub) - shown} more" if len(sub) > shown else ""
+            parts.append(f"{_DERIVED.get(k, k)}: {inner}{more}")
+        else:
+            parts.append(pair(_DERIVED.get(k, k), a, b))
+    return ", ".join(parts)
+
+
 class CheckpointMismatch(InputError):
     """A checkpoint that was made by another run (other options or data): not resumed."""
 
@@ -445,9 +486,8 @@ class Trainer:
         old = {**{k: v for k, v in run_options(TrainConfig()).items() if k not in old}, **old}
         diff = [k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)]
         if diff:
-            shown = ", ".join(f"{k}={old.get(k)!r} (this run: {new.get(k)!r})" for k in diff[:4])
-            raise CheckpointMismatch(f"checkpoint was made with other options: {shown}"
-                                     + (f" and {len(diff) - 4} more" if len(diff) > 4 else ""), where)
+            raise CheckpointMismatch(f"checkpoint was made with other options: {options_diff(old, new, diff)}",
+                                     where)
         if sd["data_digest"] != self.data_digest:
             raise CheckpointMismatch("checkpoint was made with other training data (images, cameras or poses "
                                      "changed)", where)
