@@ -18,18 +18,21 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     info = csub.add_parser("info", help="summarise a dataset (any supported layout)")
     info.add_argument("path", type=Path, help="transforms.json, COLMAP folder, cameras.json, image folder or video")
-    info.add_argument("--max-frames", type=int, default=None, help="video: number of frames to extract")
+    info.add_argument("--max-frames", type=int, default=None,
+                      help="video: number of frames to extract, the sharpest of as many equal windows (default 30)")
     info.add_argument("--no-progress", dest="progress", action="store_false", help="no progress lines (video)")
     info.set_defaults(func=_info)
 
     conv = csub.add_parser("convert", help="write a dataset's cameras in another format")
     conv.add_argument("path", type=Path, help="input dataset")
     conv.add_argument("out", type=Path, help="output file (transforms.json / cameras.json) or COLMAP sparse folder")
-    conv.add_argument("--format", choices=FORMATS, required=True)
+    conv.add_argument("--format", choices=FORMATS, required=True,
+                      help="camera format to write: nerfstudio transforms.json, COLMAP text model, or cameras.json "
+                           "(required, no default)")
     conv.set_defaults(func=_convert)
 
     fr = csub.add_parser("frames", help="extract sharp, evenly spaced frames from a video")
-    fr.add_argument("video", type=Path)
+    fr.add_argument("video", type=Path, help="video file (.mp4 .mov .avi .mkv .webm .m4v)")
     fr.add_argument("out", type=Path, help="output folder for PNG frames")
     # the options `poses`/`build` take the frames with (`--max-frames`, `--min-change`): one default, one help
     add_options(fr, FrameOptions)
