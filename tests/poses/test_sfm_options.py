@@ -303,3 +303,48 @@ def test_too_few_registered_names_a_few_images_and_logs_each_reason(tmp_path, ca
     res.cameras = {n: cam for n in names[:2]}
     with pytest.raises(InputError, match="frame_00015.png: no matches; frame_00016.png: no matches"):
         _check_enough(res, SfmOptions(min_registered=3), tmp_path)
+
+
+def test_progress_totals_count_every_matched_pair_and_never_show_more(monkeypatch):
+    """60 video frames, sequential matching: the log said 639/600 (the total, 60 x 10, left out the
+    loop-closure pairs the count includes), then mapping 60/60 before '30/60 images registered' (it sums
+    the partial models) (audit 9 F16)."""
+    from splattwin.poses import progress as prog
+    from splattwin.poses.sfm import sequential_pairs
+
+    # each frame with the next 10 (fewer at the end); every 10th with 30 look-alikes; the audit's database
+    # of those 60 frames held 648 matched pairs
+    assert sequential_pairs(60, 10, False) == 545
+    assert sequential_pairs(60, 10, True) == 545 + 6 * 30 >= 648
+    assert sequential_pairs(5, 10, False) == sequential_pairs(5, 10, True) == 10   # every pair, once
+    monkeypatch.setattr(prog.time, "monotonic", lambda: 0.0)
+    buf = _io.StringIO()
+    with prog.StageProgress(True, stream=buf, interval=5.0) as p:
+        p.update("SfM: sequential matching", 639, 600)   # an estimate too low still shows no overshoot
+    assert buf.getvalue().splitlines() == ["SfM: sequential matching: 600/600 (0 s)"]
+    said = []
+    run_plan([Attempt("default", "default"), Attempt("relaxed", "relaxed")], 60,
+             lambda a, i: _outcome([30, 60][i]), say=said.append)
+    assert said == ["SfM: 30/60 images registered in the largest model; retrying with relaxed"]
+
+
+def test_matching_and_mapping_steps_say_what_they_count(tmp_path, monkeypatch):
+    """The totals the SfM steps run with: sequential matching with loop closure counts those pairs too;
+    mapping says its count is of the images registered in all partial models (not the model kept)."""
+    from splattwin.poses import colmap_process, sfm
+
+    steps = []
+
+    def fake_step(job, work, progress, label, total=1, poll=None, cleanup=None):
+        steps.append((job["step"], label, total))
+        return {"models": []}, colmap_process.StepStats(seconds=0.0, peak_rss_bytes=0, cpu_seconds=0.0)
+
+    monkeypatch.setattr(colmap_process, "run_step", fake_step)
+    names = [f"frame_{i:05d}.png" for i in range(60)]
+    run = sfm._Run(tmp_path, tmp_path, names, SfmOptions(ordered=True), progress=None,
+                   groups=[CameraGroup(names, 64, 48)], matcher="sequential")
+    a = Attempt("default", "default")
+    run.match(run.db_path(a), a, "SfM")
+    run.map(run.db_path(a), a, "SfM")
+    assert steps[0] == ("match", "SfM: sequential matching", 725)
+    assert steps[1][0] == "map" and "images registered, all partial models" in steps[1][1] and steps[1][2] == 60

@@ -63,9 +63,11 @@ class StageProgress:
         if new_stage:
             self._finish()
             self._stage_t0 = time.monotonic()
-        self._state = (description, int(done), max(int(total), 1))
+        total = max(int(total), 1)
+        done = min(int(done), total)   # a count past its total (an estimate too low) is shown as done, never 639/600
+        self._state = (description, done, total)
         if self._rich is not None:
-            self._rich.update(self._task, description=description, completed=done, total=max(total, 1))
+            self._rich.update(self._task, description=description, completed=done, total=total)
         elif new_stage or time.monotonic() - self._last_print >= self.interval:
             self._print()
 

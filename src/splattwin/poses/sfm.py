@@ -198,6 +198,20 @@ class SfmResult:
 
 
 # -- choices (pure functions, unit-tested) -----------------------------------------------------------------
+LOOP_PERIOD, LOOP_IMAGES = 10, 30   # sequential matching: every 10th frame is matched with its 30 look-alikes
+
+
+def sequential_pairs(n: int, overlap: int, loop_closure: bool) -> int:
+    """How many image pairs sequential matching of `n` frames matches, at most (the progress total): each
+    frame with the next `overlap` ones, and with loop closure every `LOOP_PERIOD`-th frame with up to
+    `LOOP_IMAGES` others that look alike (pairs already matched are matched once, so it may end below).
+    The total counted n x overlap and no loop-closure pairs: a log said 639/600."""
+    pairs = sum(min(overlap, n - 1 - i) for i in range(n))
+    if loop_closure:
+        pairs += math.ceil(n / LOOP_PERIOD) * min(LOOP_IMAGES, n - 1)
+    return min(pairs, n * (n - 1) // 2)
+
+
 def choose_matcher(num_images: int, matcher: str = "auto", ordered: bool | None = None,
                    exhaustive_max_images: int = 50) -> str:
     """The matcher for a capture (as `--matcher`'s help says): all pairs while that is affordable, up to
@@ -571,10 +585,11 @@ class _Run:
             total = n * (n - 1) // 2
         elif self.matcher == "sequential":
             job["pairing"] = {"overlap": o.sequential_overlap, "quadratic_overlap": False, "num_threads": self.threads}
-            if o.loop_closure and n > o.sequential_overlap + 1:  # else every pair is matched already
+            loop = bool(o.loop_closure and n > o.sequential_overlap + 1)  # else every pair is matched already
+            if loop:
                 job["loop_closure"] = {"path": str(self.work / "visual_index.bin"), "num_threads": self.threads}
-                job["pairing"].update({"loop_detection_period": 10, "loop_detection_num_images": 30})
-            total = n * min(o.sequential_overlap, n - 1)
+                job["pairing"].update({"loop_detection_period": LOOP_PERIOD, "loop_detection_num_images": LOOP_IMAGES})
+            total = sequential_pairs(n, o.sequential_overlap, loop)
         elif self.matcher == "pairs":
             job["pairs_file"] = str(self.pairs_file)
             total = sum(1 for line in Path(self.pairs_file).read_text().splitlines() if line.strip())
@@ -606,8 +621,9 @@ class _Run:
                "num_images": n, "options": mapping_options(self.opts, n, a.mapping, self.threads)}
         if a.mapping != "default" and n <= MAPPING_SEEDS_MAX_IMAGES:
             job["seeds"] = [self.opts.seed + k for k in range(MAPPING_SEEDS)]
-        res, st = colmap_process.run_step(job, self.work, self.progress, f"{label}: incremental mapping", total=n,
-                                          cleanup=[out])
+        # the worker counts the images each partial model registers, summed: the largest model may hold fewer
+        res, st = colmap_process.run_step(job, self.work, self.progress, f"{label}: incremental mapping (images "
+                                          "registered, all partial models)", total=n, cleanup=[out])
         self._add("map", st)
         paths = [Path(m["path"]) for m in res["models"]]
         if a.merge and len(paths) > 1:
@@ -822,7 +838,8 @@ def run_plan(plan: list[Attempt], num_images: int, execute, say=lambda text: Non
     history: list[AttemptOutcome] = []
     for i, a in enumerate(plan):
         if i > 0:
-            say(f"SfM: {best[0].registered if best else 0}/{num_images} images registered; retrying with {a.why}")
+            say(f"SfM: {best[0].registered if best else 0}/{num_images} images registered in the largest model; "
+                f"retrying with {a.why}")
         t0 = time.perf_counter()
         out = execute(a, i)
         record(a, out, time.perf_counter() - t0)
