@@ -162,7 +162,9 @@ def help_text(spec: Spec) -> str:
     text = m.get("help") or spec.name.replace("_", " ")
     if unit:
         text += f" [{unit}]"
-    if spec.nested is None and d is not MISSING:
+    # an option whose None means "decided per input" says so in its help ("default 30 for a video, ...")
+    said = d is None and "default" in text
+    if spec.nested is None and d is not MISSING and not said:
         text += (" (default on)" if d else " (default off)") if spec.base is bool else f" (default {_fmt(d, spec)})"
     return text.replace("%", "%%")
 

@@ -324,3 +324,4 @@ def test_capture_help_describes_every_argument_and_option_with_its_default(capsy
         main(["capture", "frames", "--help"])
     out = capsys.readouterr().out
     assert "default 30" in out and "video file" in out
+    assert "(default none)" not in out   # the help of an option decided per input says its defaults itself
