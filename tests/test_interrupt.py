@@ -80,6 +80,24 @@ def test_cli_maps_a_wrapped_interrupt_to_exit_130(monkeypatch, capsys):
     assert "interrupted" in err and "internal error" not in err
 
 
+def _signal_once_training(cmd: list[str], env: dict, signum: int) -> tuple[int, str]:
+    """Run a training command, send it `signum` once it reports a step past 0, and return its exit code and
+    stderr."""
+    p = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    lines = []
+    try:
+        for line in p.stderr:
+            lines.append(line)
+            if line.startswith("train: ") and not line.startswith("train: 0/"):
+                p.send_signal(signum)
+                break
+        rest = p.communicate(timeout=300)[1]
+    finally:
+        if p.poll() is None:
+            p.kill()
+    return p.returncode, "".join(lines) + rest
+
+
 def test_ctrl_c_during_splattwin_train(scene_small, tmp_path, terminal_ctrl_c):
     """The real thing: SIGINT to a training process once it reports progress -> exit 130, 'interrupted',
     a checkpoint of the step it stopped at, no 'internal error'; --resume then finishes the run."""
@@ -87,20 +105,8 @@ def test_ctrl_c_during_splattwin_train(scene_small, tmp_path, terminal_ctrl_c):
     env = {**os.environ, "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", ""),
            "SPLATTWIN_PROGRESS_INTERVAL": "0.2"}
     cmd = [sys.executable, "-m", "splattwin.cli", "train", str(scene_small), str(out), "--iters", "400"]
-    p = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
-    lines = []
-    try:
-        for line in p.stderr:
-            lines.append(line)
-            if line.startswith("train: ") and not line.startswith("train: 0/"):
-                p.send_signal(signal.SIGINT)
-                break
-        rest = p.communicate(timeout=300)[1]
-    finally:
-        if p.poll() is None:
-            p.kill()
-    err = "".join(lines) + rest
-    assert p.returncode == 130, err[-3000:]
+    rc, err = _signal_once_training(cmd, env, signal.SIGINT)
+    assert rc == 130, err[-3000:]
     assert "interrupted at step" in err and "--resume" in err and "internal error" not in err
     ckpts = sorted((out / "checkpoints").glob("ckpt_*.safetensors"))
     assert ckpts and int(ckpts[-1].stem.split("_")[1]) > 0
@@ -158,20 +164,8 @@ def test_sigterm_during_training_saves_a_checkpoint_with_pycolmap_imported(scene
             "def install():\n    first(); import pycolmap\n"
             "interrupt.install = install; sys.exit(cli.main(sys.argv[1:]))")
     cmd = [sys.executable, "-c", code, "train", str(scene_small), str(out), "--iters", "400"]
-    p = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
-    lines = []
-    try:
-        for line in p.stderr:
-            lines.append(line)
-            if line.startswith("train: ") and not line.startswith("train: 0/"):
-                p.send_signal(signal.SIGTERM)
-                break
-        rest = p.communicate(timeout=300)[1]
-    finally:
-        if p.poll() is None:
-            p.kill()
-    err = "".join(lines) + rest
-    assert p.returncode == 143, err[-3000:]
+    rc, err = _signal_once_training(cmd, env, signal.SIGTERM)
+    assert rc == 143, err[-3000:]
     assert "*** Aborted at" not in err and "stack trace" not in err and "internal error" not in err, err[-3000:]
     assert "SIGTERM: stopping after this training step" in err and "terminated (SIGTERM)" in err
     ckpts = sorted((out / "checkpoints").glob("ckpt_*.safetensors"))
