@@ -58,13 +58,23 @@ class AppearanceModel:
     """Learnable colour corrections of V training views; `mode` "gain" or "affine" (see module doc)."""
 
     def __init__(self, n_views: int, mode: str = "affine", lr: float = 1e-3, reg: float = 0.01,
-                 device: str | torch.device = "cpu"):
+                 device: str | torch.device = "cpu", init_gains: np.ndarray | None = None):
+        """init_gains: [n_views, 3] per-channel gains each view's correction starts at (A = diag(gains):
+        model colour -> that photo's colour; `initial_gains`), and the regulariser's centre; None: identity."""
         if mode not in ("gain", "affine"):
             raise ValueError(f"appearance mode must be 'gain' or 'affine', got {mode!r}")
         self.mode, self.reg = mode, float(reg)
         n_lin = 3 if mode == "gain" else 9
         # per view: the deviation from identity of A (3 or 9 numbers) and the bias (3): zero = identity
-        self.params = [torch.nn.Parameter(torch.zeros(n_lin + 3, device=device)) for _ in range(n_views)]
+        prior = torch.zeros(n_views, n_lin + 3)
+        if init_gains is not None:
+            g = torch.as_tensor(np.asarray(init_gains, np.float32))
+            if tuple(g.shape) != (n_views, 3) or not torch.isfinite(g).all() or (g <= 0).any():
+                raise ValueError(f"init_gains must be [{n_views}, 3] positive, got {tuple(g.shape)}")
+            diag = [0, 1, 2] if mode == "gain" else [0, 4, 8]   # A's diagonal within the parameters
+            prior[:, diag] = g - 1.0
+        self.prior = prior.to(device)
+        self.params = [torch.nn.Parameter(prior[i].clone().to(device)) for i in range(n_views)]
         self.optimizers = [torch.optim.Adam([p], lr=lr) for p in self.params]
 
     def __len__(self) -> int:
@@ -83,8 +93,8 @@ class AppearanceModel:
         return img @ A.T + b
 
     def regularizer(self, idx: int) -> torch.Tensor:
-        """reg * (||A - I||_F^2 + ||b||^2) of view idx (scalar)."""
-        return self.reg * (self.params[idx] ** 2).sum()
+        """reg * (||A - A0||_F^2 + ||b||^2) of view idx (scalar); A0: its initial (measured) gains, else I."""
+        return self.reg * ((self.params[idx] - self.prior[idx]) ** 2).sum()
 
     def step(self, idx: list[int]) -> None:
         for i in idx:
@@ -100,7 +110,7 @@ class AppearanceModel:
 
     def state_dict(self) -> dict:
         return {"mode": self.mode, "params": torch.stack([p.detach().cpu() for p in self.params]),
-                "optimizers": [o.state_dict() for o in self.optimizers]}
+                "prior": self.prior.detach().cpu(), "optimizers": [o.state_dict() for o in self.optimizers]}
 
     def load_state_dict(self, sd: dict) -> None:
         if sd["mode"] != self.mode or tuple(sd["params"].shape) != (len(self), self.params[0].numel()):
@@ -109,6 +119,8 @@ class AppearanceModel:
         with torch.no_grad():
             for p, v in zip(self.params, sd["params"]):
                 p.copy_(v.to(p.device, p.dtype))
+            if sd.get("prior") is not None and tuple(sd["prior"].shape) == tuple(self.prior.shape):
+                self.prior = sd["prior"].to(self.prior.device, self.prior.dtype)   # the run's own centre
         for o, s in zip(self.optimizers, sd["optimizers"]):
             o.load_state_dict(s)
 
@@ -189,6 +201,50 @@ def exposure_record(dataset) -> tuple[dict | None, Path | None]:
                     "images_off)", path)
         return None, path
     return rec, path
+
+
+GAIN_RANGE = (0.05, 20.0)   # measured gains outside are not trusted as a start (a broken record): 1 instead
+
+
+def initial_gains(exposure: dict | None, names: list[str], source: str | Path | None = None
+                  ) -> tuple[np.ndarray, dict]:
+    """Each training view's starting per-channel gain from the poses stage's exposure check.
+
+    exposure: the record (`exposure_record`) or None; names: the training views' names (`Frame.name`, the
+    record's keys). The record's `rgb_gain` of image i is colour_i / colour_median-image per channel (8-bit
+    encoding); the correction maps the model's colour to photo i's (c' = A_i c), and the model is meant to
+    learn the median image's colours, so A_i starts at diag(rgb_gain_i) (a photo twice as bright: x2).
+    Returns (gains [V,3], {"init": "measured" | "identity", "init_views": views started from a measurement,
+    "init_why": why not, when some or all start at 1}); views without a usable gain start at 1 (logged)."""
+    g = np.ones((len(names), 3))
+    where = f" ({source})" if source else ""
+    images = exposure.get("images") if isinstance(exposure, dict) and not exposure.get("error") else None
+    if not isinstance(images, dict):
+        why = ("no exposure check read" if exposure is None else f"exposure check not measured: {exposure['error']}"
+               if isinstance(exposure, dict) and exposure.get("error") else "exposure record has no \"images\"")
+        log.info("appearance: corrections start at gain 1 (%s%s)", why, where)
+        return g, {"init": "identity", "init_views": 0, "init_why": why}
+    missing: list[str] = []
+    for i, n in enumerate(names):
+        r = images.get(n)
+        v = r.get("rgb_gain") if isinstance(r, dict) else None
+        ok = (isinstance(v, list) and len(v) == 3 and all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                                           for x in v)
+              and all(np.isfinite(x) and GAIN_RANGE[0] <= x <= GAIN_RANGE[1] for x in v))
+        if ok:
+            g[i] = v
+        else:
+            missing.append(n)
+    used = len(names) - len(missing)
+    rec: dict = {"init": "measured" if used else "identity", "init_views": used}
+    if missing:
+        named = ", ".join(missing[:6]) + (f" and {len(missing) - 6} more" if len(missing) > 6 else "")
+        rec["init_why"] = f"no usable measured gain for {len(missing)} of {len(names)} views ({named}): gain 1"
+        log.info("appearance: %s%s", rec["init_why"], where)
+    if used:
+        log.info("appearance: %d of %d corrections start at the measured gains (%.2f..%.2f)%s", used, len(names),
+                 float(g.min()), float(g.max()), where)
+    return g, rec
 
 
 def decide(requested: str, exposure: dict | None, source: str | Path | None = None) -> dict:
