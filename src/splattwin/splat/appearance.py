@@ -7,9 +7,13 @@ floaters, which hurts new views. Each training view i gets
     c' = A_i c + b_i          c: the rendered RGB of a pixel, [3]; A_i [3,3], b_i [3]
 
 applied to the rendered image before the loss ("affine"), or the diagonal special case A_i = diag(g_i)
-("gain": per-channel gain and bias, 6 numbers per view). The splats keep one canonical colour; a
-penalty `reg * (||A_i - I||_F^2 + ||b_i||^2)` keeps the corrections near identity so that canonical
-colour stays the photos' average look (an affine ambiguity would otherwise be free). Held-out views
+("gain": per-channel gain and bias, 6 numbers per view). The splats keep one canonical colour. Each A_i
+starts at diag(g_i), the per-channel gains the poses stage's exposure check measured for photo i relative
+to the median photo (`initial_gains`; 1 where none was measured), so the canonical colour is the median
+photo's look and each correction reproduces its own photo's exposure from the first step (at the default
+learning rate the gains move only ~0.025 in 500 steps: started at 1 they could not reach gains of 0.7..1.3);
+a penalty `reg * (||A_i - A0_i||_F^2 + ||b_i||^2)` keeps them near that start (an affine ambiguity would
+otherwise be free). Held-out views
 have no learnt correction: they are rendered with the identity (`plain` metrics), and can be scored
 with the "fit on the left half, score on the right half" protocol of NeRF-W / Mip-NeRF 360's
 appearance evaluation (`heldout_corrected_psnr`): a closed-form (ridge) fit of the same affine model on
@@ -19,7 +23,8 @@ Which mode a run gets (`decide`): "off" (the default), "gain" or "affine" as ask
 the poses stage's exposure check (`splattwin.poses.exposure`, "exposure" in the poses_report.json beside the
 dataset's transforms.json) says the photos' gains differ beyond its threshold, then `AUTO_MODE`. "off" on such
 a capture trains without a correction and warns, naming the images and suggesting the correction. train.json records the
-decision ("appearance": requested, mode, decision auto | suggested | explicit | none).
+decision ("appearance": requested, mode, decision auto | suggested | explicit | none) and, when a correction
+is trained, where it started (init measured | identity, init_views, init_why).
 
 Why our own: it is 20 lines of torch; gsplat's appearance module is a per-image embedding + MLP on SH
 (a different, heavier model) and needs CUDA.

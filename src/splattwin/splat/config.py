@@ -172,7 +172,8 @@ class TrainConfig:
                              "by default: on photos that differ a warning suggests it (bench/exposure.py: +0.75 "
                              "and -0.72 dB on two seeds at 500 steps)", choices=APPEARANCE_MODES)
     appearance_lr: float = option(1e-3, "Adam learning rate of the colour corrections")
-    appearance_reg: float = option(0.01, "weight of the corrections' squared distance from identity")
+    appearance_reg: float = option(0.01, "weight of the corrections' squared distance from where they start (the "
+                                   "poses stage's measured per-image gains, else identity)")
     background_mode: str = option("fixed", "what shows behind the splats: the fixed --background colour, a learnt "
                                   "colour, or a learnt environment map (far field by ray direction)",
                                   choices=BACKGROUND_MODES)
