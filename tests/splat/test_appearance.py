@@ -85,6 +85,15 @@ def test_state_round_trip_through_checkpoint(tmp_path):
     torch.testing.assert_close(m.params[2], m2.params[2])
     with pytest.raises(ValueError):
         AppearanceModel(3, "gain").load_state_dict(m.state_dict())
+    # the regulariser's centre (the measured start) comes back with it; a broken one is refused
+    g = AppearanceModel(2, "gain", init_gains=np.array([[1.2, 1.0, 0.8], [1.0, 1.0, 1.0]]))
+    g2 = AppearanceModel(2, "gain")
+    g2.load_state_dict(g.state_dict())
+    torch.testing.assert_close(g2.prior, g.prior)
+    sd = g.state_dict()
+    sd["prior"] = torch.full_like(sd["prior"], float("nan"))
+    with pytest.raises(ValueError, match="prior"):
+        g2.load_state_dict(sd)
 
 
 def test_fit_affine_recovers_a_colour_transform_and_protocol():

@@ -128,8 +128,12 @@ class AppearanceModel:
         with torch.no_grad():
             for p, v in zip(self.params, sd["params"]):
                 p.copy_(v.to(p.device, p.dtype))
-            if sd.get("prior") is not None and tuple(sd["prior"].shape) == tuple(self.prior.shape):
-                self.prior = sd["prior"].to(self.prior.device, self.prior.dtype)   # the run's own centre
+            prior = sd.get("prior")   # the run's own centre (absent in checkpoints from before the init)
+            if prior is not None:
+                if (not isinstance(prior, torch.Tensor) or tuple(prior.shape) != tuple(self.prior.shape)
+                        or not bool(torch.isfinite(prior).all())):
+                    raise ValueError(f"appearance state's prior is not a finite {tuple(self.prior.shape)} tensor")
+                self.prior = prior.to(self.prior.device, self.prior.dtype)
         for o, s in zip(self.optimizers, sd["optimizers"]):
             o.load_state_dict(s)
 
