@@ -30,6 +30,11 @@ Measured (Nov 2026, 2 shared cores, 500 steps, seed 0): clean 0.0 %, perturbed 5
 26.31 / 27.53 / 27.71. Seed 1 (--modes off,auto): clean 0.0 % (auto trained off: 26.41 / 26.35 / 26.41 both),
 perturbed 51.0 % (gains within 1.0 %), off 19.80 / 27.11 / 25.78, auto (gain) 19.83 / 26.19 / 25.06: the
 correction helped on seed 0 and hurt on seed 1, so it is suggested, not turned on by default.
+Corrections started at the measured gains (`splat.appearance.initial_gains`; the JSON's "init"), auto (gain):
+perturbed seed 0 23.21 / 26.62 / 26.29, seed 1 20.28 / 27.64 / 25.25; --gain 0.9,1.1 --wb 0.97,1.03 (14.1 % /
+12.8 %) seed 0 26.07 / 27.78 / 27.48, seed 1 off 24.73 / 26.38 / 26.05, auto 25.33 / 26.81 / 26.06; clean seed 1
+auto trains off (identical), a forced gain 25.65 / 26.01 / 25.65. Still not the default: seed 1 against the
+clean photos -0.53 / +0.01 dB.
 """
 
 from __future__ import annotations
@@ -131,7 +136,7 @@ def run(work: Path, size: tuple[int, int], views: int, iters: int, modes: list[s
                              "heldout": m.get("n_views")}
                 if code == 0:   # what `auto` (or an explicit mode) trained, and why (splat.appearance.decide)
                     app = json.loads((twin / "splat" / "train.json").read_text()).get("appearance") or {}
-                    row[mode].update(trained=app.get("mode"), decision=app.get("decision"))
+                    row[mode].update(trained=app.get("mode"), decision=app.get("decision"), init=app.get("init"))
         out["captures"][name] = row
     return out
 

@@ -358,10 +358,12 @@ def test_report_shows_the_exposure_check_and_the_appearance_decision(tmp_path):
         "method": "known", "total": 5, "registered": 5,
         "exposure": {"spread_pct": 41.25, "threshold_pct": 10.0, "varies": True, "images_off": ["view_002"]}}))
     (twin / "splat" / "train.json").write_text(json.dumps({"appearance": {
-        "requested": "auto", "mode": "gain", "decision": "auto", "spread_pct": 41.25}}))
+        "requested": "auto", "mode": "gain", "decision": "auto", "spread_pct": 41.25, "init": "measured",
+        "init_views": 4}}))
     html = _html.unescape(build_report(twin).read_text())
     assert "gains differ by up to 41.2 % (threshold 10.0 %); beyond it: view_002" in html
     assert "appearance): gain (turned on by --splat.appearance auto" in html
+    assert "started at the poses stage's measured gains (4 views)" in html
     (twin / "poses" / "poses_report.json").write_text(json.dumps({
         "method": "known", "exposure": {"error": "no sparse points to compare the images on"}}))
     (twin / "splat" / "train.json").write_text(json.dumps({"appearance": {"mode": "off", "decision": "suggested"}}))

@@ -85,6 +85,15 @@ def test_state_round_trip_through_checkpoint(tmp_path):
     torch.testing.assert_close(m.params[2], m2.params[2])
     with pytest.raises(ValueError):
         AppearanceModel(3, "gain").load_state_dict(m.state_dict())
+    # the regulariser's centre (the measured start) comes back with it; a broken one is refused
+    g = AppearanceModel(2, "gain", init_gains=np.array([[1.2, 1.0, 0.8], [1.0, 1.0, 1.0]]))
+    g2 = AppearanceModel(2, "gain")
+    g2.load_state_dict(g.state_dict())
+    torch.testing.assert_close(g2.prior, g.prior)
+    sd = g.state_dict()
+    sd["prior"] = torch.full_like(sd["prior"], float("nan"))
+    with pytest.raises(ValueError, match="prior"):
+        g2.load_state_dict(sd)
 
 
 def test_fit_affine_recovers_a_colour_transform_and_protocol():
@@ -162,3 +171,50 @@ def test_exposure_record_reads_the_poses_report_beside_the_dataset(tmp_path, cap
         rep.write_text("{not json")
         assert exposure_record(_Posed(tmp_path)) == (None, rep)
     assert "malformed \"exposure\"" in caplog.text and "poses_report.json" in caplog.text
+
+
+# -- where the corrections start (appearance.initial_gains) -------------------------------------------
+from splattwin.splat.appearance import initial_gains  # noqa: E402
+
+
+def test_initial_gains_take_the_measured_rgb_gains():
+    rec = {**VARIES, "images": {"img_03": {"gain": 1.2, "rgb_gain": [1.3, 1.2, 1.1], "samples": 90},
+                                "img_07": {"gain": 0.8, "rgb_gain": [0.7, 0.8, 0.9], "samples": 80}}}
+    g, how = initial_gains(rec, ["img_07", "img_03"])
+    np.testing.assert_allclose(g, [[0.7, 0.8, 0.9], [1.3, 1.2, 1.1]])
+    assert how == {"init": "measured", "init_views": 2}
+    m = AppearanceModel(2, "gain", init_gains=g)
+    img = torch.full((2, 2, 3), 0.5)
+    torch.testing.assert_close(m.apply(img, 1), img * torch.tensor([1.3, 1.2, 1.1]))   # model -> photo
+    assert float(m.regularizer(1).detach()) == 0.0                 # centred on the measurement
+    with pytest.raises(ValueError, match="init_gains"):
+        AppearanceModel(2, "gain", init_gains=np.ones((3, 3)))
+
+
+@pytest.mark.parametrize("exposure, why", [
+    (None, "no exposure check"),
+    ({"error": "no sparse points to compare the images on"}, "no sparse points"),
+    ({**STEADY}, "no \"images\""),
+    ({**STEADY, "images": ["img_03"]}, "no \"images\""),
+])
+def test_initial_gains_without_a_measurement_start_at_one_and_say_so(exposure, why, caplog):
+    with caplog.at_level("INFO", logger="splattwin.splat.appearance"):
+        g, how = initial_gains(exposure, ["img_03", "img_07"], "twin/poses/poses_report.json")
+    np.testing.assert_array_equal(g, 1.0)
+    assert how["init"] == "identity" and how["init_views"] == 0 and why in how["init_why"]
+    assert why in caplog.text and "start at gain 1" in caplog.text and "poses_report.json" in caplog.text
+
+
+def test_initial_gains_skip_malformed_or_missing_entries(caplog):
+    bad = {"img_a": {"rgb_gain": "1.2"}, "img_b": {"rgb_gain": [1.1, 1.0]}, "img_c": {"rgb_gain": [0.0, 1, 1]},
+           "img_d": {"rgb_gain": [float("nan"), 1, 1]}, "img_e": {"rgb_gain": None}, "img_f": [1.1, 1, 1],
+           "img_g": {"rgb_gain": [True, 1, 1]}, "img_h": {"rgb_gain": [1e6, 1, 1]},
+           "img_ok": {"rgb_gain": [1.1, 0.9, 1.0]}}
+    names = [*bad, "img_missing"]
+    with caplog.at_level("INFO", logger="splattwin.splat.appearance"):
+        g, how = initial_gains({**VARIES, "images": bad}, names)
+    np.testing.assert_allclose(g[names.index("img_ok")], [1.1, 0.9, 1.0])
+    others = np.delete(g, names.index("img_ok"), axis=0)
+    np.testing.assert_array_equal(others, 1.0)
+    assert how["init"] == "measured" and how["init_views"] == 1
+    assert "9 of 10 views" in how["init_why"] and "img_a" in caplog.text and "and 3 more" in caplog.text

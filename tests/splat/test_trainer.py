@@ -820,3 +820,91 @@ def test_appearance_auto_follows_the_poses_exposure_check(synth, tmp_path):
     train(load_dataset(tmp_path / "d"), tmp_path / "default", tiny_config(iters=10))
     rec = json.loads((tmp_path / "default" / "train.json").read_text())["appearance"]
     assert rec["mode"] == "off" and rec["decision"] == "suggested" and rec["images_off"] == ["view_000"]
+
+
+# -- the colour corrections start at the poses stage's measured gains (appearance.initial_gains) ------------
+GAINS = {"train_000": [0.72, 0.70, 0.78], "train_001": [0.85, 0.88, 0.80], "train_002": [0.95, 1.0, 0.92],
+         "train_003": [1.0, 1.0, 1.0], "train_004": [1.0, 0.97, 1.05], "train_005": [1.12, 1.05, 1.2],
+         "train_006": [1.2, 1.25, 1.15], "train_007": [1.3, 1.26, 1.34]}
+
+
+def _with_exposure(synth: Path, root: Path, record: dict | None, gains: dict | None = None) -> Path:
+    """A copy of `synth` whose training photos are scaled by `gains` (8-bit, clipped; held-out ones as
+    rendered) and, unless record is None, a poses_report.json beside it with that "exposure" record."""
+    import shutil
+
+    from splattwin.capture import load_image
+
+    shutil.copytree(synth, root)
+    for name, g in (gains or {}).items():
+        p = root / "images" / f"{name}.png"
+        write_image(p, np.round(np.clip(load_image(p) * np.asarray(g), 0, 1) * 255).astype(np.uint8))
+    if record is not None:
+        (root / "poses_report.json").write_text(json.dumps({"exposure": record}))
+    return root
+
+
+def _measured(gains: dict) -> dict:
+    return {"varies": True, "spread_pct": 34.0, "threshold_pct": 10.0, "images_off": list(gains),
+            "images": {n: {"gain": float(np.exp(np.log(g).mean())), "rgb_gain": g, "samples": 100}
+                       for n, g in gains.items()}}
+
+
+def test_appearance_corrections_start_at_the_measured_gains(synth, tmp_path):
+    """At step 0 each training view's correction is diag(its measured rgb_gain) with no bias, in gain and
+    affine mode; a view the record lacks starts at 1; train.json records where the start came from."""
+    gains = {n: g for n, g in GAINS.items() if n != "train_005"}
+    ds = load_dataset(_with_exposure(synth, tmp_path / "d", _measured(gains)))
+    for mode in ("gain", "affine"):
+        t = Trainer(ds, tmp_path / mode, tiny_config(iters=1, appearance=mode))
+        t._fresh_state()
+        A, b = t.appearance.as_arrays()
+        names = [v.name for v in t.views]
+        want = np.stack([np.diag(gains.get(n, [1.0, 1.0, 1.0])) for n in names])
+        np.testing.assert_allclose(A, want, atol=1e-6)
+        np.testing.assert_array_equal(b, 0.0)
+        assert float(t.appearance.regularizer(names.index("train_000")).detach()) == 0.0   # centred on the measurement
+        rec = t.appearance_record
+        assert rec["init"] == "measured" and rec["init_views"] == 7 and "train_005" in rec["init_why"]
+    train(ds, tmp_path / "run", tiny_config(iters=2, appearance="auto"))
+    tj = json.loads((tmp_path / "run" / "train.json").read_text())["appearance"]
+    assert tj["mode"] == "gain" and tj["init"] == "measured" and tj["init_views"] == 7
+
+
+def test_measured_gains_are_the_right_direction(synth, tmp_path):
+    """Photos rendered with known per-view gains, their gains measured by the poses stage's exposure check
+    (`poses.exposure.measure_exposure`, the record the splat stage reads; within ~5 % on this 48x36 scene),
+    a few training steps: the corrections stay near the applied gains (model colour -> photo, relative to
+    the median photo), not at 1 nor at their inverse."""
+    from splattwin.poses.exposure import measure_exposure
+
+    root = _with_exposure(synth, tmp_path / "d", None, GAINS)
+    ds = load_dataset(root)
+    rec = measure_exposure([f.camera for f in ds.frames], [f.image_path for f in ds.frames],
+                           [f.name for f in ds.frames], ds.points_xyz)
+    assert "error" not in rec, rec
+    (root / "poses_report.json").write_text(json.dumps({"exposure": rec}))
+    ds = load_dataset(root)
+    t = Trainer(ds, tmp_path / "run", tiny_config(iters=40, appearance="gain"))
+    res = t.run()
+    A, _ = t.appearance.as_arrays()
+    got = np.stack([np.diag(a) for a in A])
+    # the record is relative to the median image over all photos (held-out ones: as rendered, gain 1)
+    log_all = np.log([GAINS.get(f.name, [1.0, 1.0, 1.0]) for f in ds.frames])
+    want = np.exp(np.log([GAINS[v.name] for v in t.views]) - np.median(log_all, axis=0))
+    assert np.abs(want - 1).max() > 0.25           # identity (or the inverse) would be far off
+    np.testing.assert_allclose(got, want, atol=0.06)
+    assert res.steps == 40
+
+
+def test_appearance_corrections_start_at_one_without_a_usable_measurement(synth, tmp_path, caplog):
+    """A malformed exposure record (or none): the corrections start at 1, said in the log and train.json."""
+    bad = {**_measured(GAINS), "varies": "yes"}
+    ds = load_dataset(_with_exposure(synth, tmp_path / "d", bad))
+    with caplog.at_level("INFO", logger="splattwin.splat.appearance"):
+        t = Trainer(ds, tmp_path / "run", tiny_config(iters=1, appearance="gain"))
+        t._fresh_state()
+    A, _ = t.appearance.as_arrays()
+    np.testing.assert_array_equal(A, np.broadcast_to(np.eye(3), A.shape))
+    assert t.appearance_record["init"] == "identity" and "no exposure check read" in t.appearance_record["init_why"]
+    assert "malformed \"exposure\"" in caplog.text and "start at gain 1" in caplog.text

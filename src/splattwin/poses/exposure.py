@@ -26,7 +26,8 @@ reads 0.0 %; per-view gains of 0.7..1.3 x white balance 0.9..1.1 are recovered w
 british_museum (internet photos of many cameras) 79 %.
 
 The splat stage reads the record (`splat.appearance.decide`): with the default `--splat.appearance off` it
-warns when `varies`, suggesting the correction; `--splat.appearance auto` trains a per-image gain then.
+warns when `varies`, suggesting the correction; `--splat.appearance auto` trains a per-image gain then, and
+any trained correction starts at these gains (`splat.appearance.initial_gains`).
 """
 
 from __future__ import annotations

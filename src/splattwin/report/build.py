@@ -444,8 +444,13 @@ def _appearance_text(rec) -> str | None:
         "suggested": "although the poses stage found the photos' exposure / white balance differ: "
                      "--splat.appearance gain (or auto) learns a correction",
         "explicit": "as asked", "none": "off: no exposure difference found"}.get(rec["decision"], rec["decision"])
-    return (f"per-image colour correction (appearance): {mode} ({why}); held-out views are rendered without a "
-            f"correction, and the right-half figures fit one on each view's left half")
+    start = ""
+    if mode != "off" and rec.get("init") == "measured":
+        start = f"; started at the poses stage's measured gains ({rec.get('init_views')} views)"
+    elif mode != "off" and rec.get("init") == "identity":
+        start = f"; started at gain 1 ({rec.get('init_why') or 'no measured gains'})"
+    return (f"per-image colour correction (appearance): {mode} ({why}){start}; held-out views are rendered "
+            f"without a correction, and the right-half figures fit one on each view's left half")
 
 
 def _heldout_rows(sec: Section, rec, views: list) -> None:

@@ -169,10 +169,12 @@ class TrainConfig:
     appearance: str = option("off", "per-image colour correction learnt with the splats: per-channel gain+bias, "
                              "or affine 3x3+bias (held-out views: identity); auto: gain when the poses stage's "
                              "exposure check found the photos' gains differ (poses_report.json), else off. Off "
-                             "by default: on photos that differ a warning suggests it (bench/exposure.py: +0.75 "
-                             "and -0.72 dB on two seeds at 500 steps)", choices=APPEARANCE_MODES)
+                             "by default: on photos that differ a warning suggests it (bench/exposure.py, corrections "
+                             "started at the measured gains: +1.03 and -0.53 dB against the unperturbed photos on "
+                             "two seeds at 500 steps)", choices=APPEARANCE_MODES)
     appearance_lr: float = option(1e-3, "Adam learning rate of the colour corrections")
-    appearance_reg: float = option(0.01, "weight of the corrections' squared distance from identity")
+    appearance_reg: float = option(0.01, "weight of the corrections' squared distance from where they start (the "
+                                   "poses stage's measured per-image gains, else identity)")
     background_mode: str = option("fixed", "what shows behind the splats: the fixed --background colour, a learnt "
                                   "colour, or a learnt environment map (far field by ray direction)",
                                   choices=BACKGROUND_MODES)

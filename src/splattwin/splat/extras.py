@@ -33,10 +33,13 @@ log = logging.getLogger(__name__)
 EXTRAS_FILE = "extras.safetensors"
 
 
-def make(cfg: TrainConfig, views: list, device) -> tuple[AppearanceModel | None, BackgroundModel | None]:
+def make(cfg: TrainConfig, views: list, device, init_gains: np.ndarray | None = None
+         ) -> tuple[AppearanceModel | None, BackgroundModel | None]:
+    """init_gains: [V,3] the colour corrections' starting gains (`appearance.initial_gains`), None: 1."""
     app = None
     if cfg.appearance != "off":
-        app = AppearanceModel(len(views), cfg.appearance, cfg.appearance_lr, cfg.appearance_reg, device)
+        app = AppearanceModel(len(views), cfg.appearance, cfg.appearance_lr, cfg.appearance_reg, device,
+                              init_gains=init_gains)
     bg = None
     if cfg.background_mode != "fixed":
         # start at the training images' mean colour (what an empty ray should show first)

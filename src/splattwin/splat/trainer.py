@@ -366,7 +366,8 @@ class Trainer:
         self.out_dir = Path(out_dir)
         self.cfg.check()
         # --appearance auto: on when the poses stage measured differing exposures (appearance.decide)
-        self.appearance_record = appearance.decide(self.cfg.appearance, *appearance.exposure_record(dataset))
+        self.exposure, exposure_path = appearance.exposure_record(dataset)
+        self.appearance_record = appearance.decide(self.cfg.appearance, self.exposure, exposure_path)
         self.cfg = replace(self.cfg, appearance=self.appearance_record["mode"])
         self.frames = dataset.train()
         if not self.frames:
@@ -448,7 +449,7 @@ class Trainer:
         self.drop_gen = torch.Generator().manual_seed(cfg.seed + 2)
         self.order: list[int] = []
         self.poses = PoseCorrection(len(self.views), cfg.pose_lr, self.device) if cfg.refine_poses else None
-        self.appearance, self.bg_model = extras.make(cfg, self.views, self.device)
+        self.appearance, self.bg_model = extras.make(cfg, self.views, self.device, self._appearance_init())
         self.step = 0
         self.history = []
         self.ema_loss, self.ema_psnr = math.nan, math.nan
@@ -568,7 +569,7 @@ class Trainer:
             self.poses.load_state_dict(sd["poses"])
         elif self.cfg.refine_poses:
             raise InputError("--refine-poses differs from the checkpointed run; start a new run", self.out_dir)
-        self.appearance, self.bg_model = extras.make(self.cfg, self.views, self.device)
+        self.appearance, self.bg_model = extras.make(self.cfg, self.views, self.device, self._appearance_init())
         extras.load_state(self.appearance, self.bg_model, sd)
         self.history = list(sd["history"])
         self.init_method = sd["init_method"]
@@ -788,6 +789,16 @@ class Trainer:
         sheet = transient_sheet(photos, masks, names, self.out_dir / "transients.png")
         return {"quantile": self.cfg.robust_quantile, "start": self.cfg.robust_start, "image": sheet.name,
                 "masked_share": {n: round(float(m.mean()), 4) for n, m in zip(names, masks)}}
+
+    def _appearance_init(self) -> np.ndarray | None:
+        """The colour corrections' starting gains [V,3] (None when the correction is off): the poses stage's
+        measured gains of the training views (`appearance.initial_gains`); the source goes into train.json."""
+        if self.cfg.appearance == "off":
+            return None
+        gains, rec = appearance.initial_gains(self.exposure, [v.name for v in self.views],
+                                              self.appearance_record.get("source"))
+        self.appearance_record.update(rec)
+        return gains
 
     def _loss_mask_record(self) -> dict | None:
         """train.json's record of the nerfstudio loss masks applied (None: no training view has one): the
