@@ -143,6 +143,20 @@ def flag_name(spec: Spec) -> str:
     return (spec.meta.get("flag") or spec.name).replace("_", "-")
 
 
+def flag_spellings(cls: type, name: str, stage: str) -> str:
+    """Option `name` of `cls` as a message names it for both commands that take it: the stage's own command
+    (its flag, then its other names) and `build`, where it is `--STAGE.FLAG` unless its short build alias
+    is the same flag: '--max-num-features (or --max-features; build: --poses.max-num-features)',
+    '--marker-size'. A message shared by the two commands must not send `build` users to a flag they lack."""
+    spec = next(s for s in specs(cls) if s.name == name)
+    own = ["--" + flag_name(spec)] + [f"--{a}" for a in spec.meta.get("aliases", ()) if a != flag_name(spec)]
+    alias = spec.meta.get("build_alias")
+    build = f"--{alias}" if alias else f"--{stage}.{flag_name(spec)}"
+    if build in own:
+        return own[0]
+    return own[0] + " (" + (f"or {', '.join(own[1:])}; " if len(own) > 1 else "") + f"build: {build})"
+
+
 def _fmt(v: Any, spec: Spec) -> str:
     if v is None or v == ():
         return "none"

@@ -108,3 +108,44 @@ def test_sigint_during_sfm_stops_within_5s_and_leaves_nothing_half_written(tmp_p
     con = sqlite3.connect(work / "database.db")
     assert con.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
     con.close()
+
+
+def test_sigterm_to_the_pycolmap_worker_ends_it_quietly(tmp_path: Path):
+    """SIGTERM to the pycolmap worker (the parent's `terminate`; Slurm, Kubernetes and docker signal every
+    process of a job) inside feature extraction: it dies at once, without the ~30-line C stack trace
+    ("*** Aborted at ... stack trace: ***") glog's failure-signal handler, installed by importing
+    pycolmap, printed on its stderr (audit 9 F8)."""
+    import json
+
+    from splattwin.poses.colmap_process import _package_root, db_counts
+
+    imgs = tmp_path / "imgs"
+    for i in range(2):
+        _textured(imgs / f"im_{i}.png", i)
+    names = sorted(p.name for p in imgs.iterdir())
+    db = tmp_path / "database.db"
+    # the job `poses` gives the extract step, at full size on one thread: seconds inside pycolmap's C++
+    job = {"step": "extract", "db": str(db), "image_root": str(imgs), "names": names,
+           "groups": [{"names": names, "camera_model": "SIMPLE_RADIAL", "per_image": False}],
+           "extraction": {"num_threads": 1, "max_image_size": -1}}
+    (tmp_path / "job.json").write_text(json.dumps(job))
+    env = dict(os.environ)
+    env["PYTHONPATH"] = _package_root() + os.pathsep + env.get("PYTHONPATH", "")
+    proc = subprocess.Popen([sys.executable, "-m", "splattwin.poses.colmap_worker", str(tmp_path / "job.json")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    deadline = time.monotonic() + 60
+    while db_counts(db).get("images", 0) < len(names) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)   # pycolmap imported and the images imported: extraction is starting
+    time.sleep(0.5)
+    assert proc.poll() is None and db_counts(db).get("keypoints", 0) < len(names), \
+        "the worker finished or failed before it could be signalled: " + proc.communicate()[1][-2000:]
+    proc.send_signal(signal.SIGTERM)
+    try:
+        out, err = proc.communicate(timeout=5)
+    except subprocess.TimeoutExpired:
+        stack = _stack_of(proc.pid)
+        proc.kill()
+        pytest.fail("the worker did not stop within 5 s of SIGTERM: " + stack)
+    assert proc.returncode == -signal.SIGTERM
+    assert "*** Aborted at" not in err and "stack trace" not in err and "SIGTERM" not in err, err[-2000:]
+    assert '"event": "result"' not in out   # it was stopped, not finished

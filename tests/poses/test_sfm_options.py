@@ -45,6 +45,30 @@ def test_cli_rejects_bad_sfm_option_before_any_work(tmp_path, capsys):
     assert not (tmp_path / "out" / "transforms.json").exists()
 
 
+@pytest.mark.parametrize("poses_flag, build_flag, value", [
+    ("--max-image-size", "--poses.max-image-size", "8"), ("--max-features", "--poses.max-num-features", "5"),
+    ("--threads", "--poses.num-threads", "-2"), ("--min-registered", "--poses.min-registered", "1"),
+    ("--marker-size", "--marker-size", "-0.05")])
+def test_bad_pose_option_message_gives_both_commands_spelling(tmp_path, capsys, poses_flag, build_flag, value):
+    """The same check serves `splattwin poses` and `build`, before any work; its message named only poses'
+    flag (--max-image-size), which `build` does not have (--poses.max-image-size): it names both.
+    `build` checked --min-registered and --marker-size not at all."""
+    from splattwin import io
+    from splattwin.cli import main
+
+    for i in range(2):
+        io.write_image(tmp_path / "imgs" / f"{i}.png", np.zeros((20, 30, 3), np.uint8))
+    for argv in (["poses", str(tmp_path / "imgs"), str(tmp_path / "p"), poses_flag, value],
+                 ["build", str(tmp_path / "imgs"), "--out", str(tmp_path / "b"), build_flag, value]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert poses_flag.replace("--max-features", "--max-num-features").replace("--threads", "--num-threads") \
+            in err and build_flag in err and value in err, err
+    assert not (tmp_path / "p").exists() and not (tmp_path / "b").exists()
+    with pytest.raises(InputError, match="build: --poses.max-image-size"):
+        SfmOptions(max_image_size=10).validate()   # the Python API's SfM options: the same message
+
+
 # -- matcher ---------------------------------------------------------------------------------------------
 def test_matcher_follows_capture_type():
     assert choose_matcher(9) == "exhaustive"                       # small unordered photo set

@@ -156,16 +156,32 @@ def test_training_reduces_loss_and_writes_ply(synth, tmp_path):
     assert Image.open(tmp_path / "out" / "train_curves.png").size == (640, 240)
 
 
-def test_training_removes_the_earlier_splats_heldout_metrics(synth, tmp_path):
-    """`splattwin train` into a built twin's splat/ left splat/eval/metrics.json of the splats it replaced:
-    the report showed that PSNR as the new model's. A new point_cloud.ply takes them away (only them)."""
+def test_training_removes_the_earlier_splats_heldout_metrics(tmp_path):
+    """`splattwin train` into a built twin's splat/ left splat/eval/metrics.json and the held-out comparison
+    pictures of the splats it replaced: the report showed that PSNR as the new model's. A new
+    point_cloud.ply takes away what the evaluation wrote (by the names its metrics.json lists), only that;
+    an eval folder left empty goes too."""
+    import json
+
+    from splattwin.splat.eval import evaluate
+
+    ds = make_dataset(tmp_path / "ds", n_train=3, n_heldout=2)
     out = tmp_path / "out"
-    (out / "eval").mkdir(parents=True)
-    (out / "eval" / "metrics.json").write_text('{"mean_psnr": 18.12}')
+    train(load_dataset(ds), out, tiny_config(iters=5))
+    evaluate(out, ds, out / "eval", progress=False)
+    pictures = [v["image"] for v in json.loads((out / "eval" / "metrics.json").read_text())["views"]]
+    assert len(pictures) == 2 and all((out / "eval" / p).is_file() for p in pictures)
     (out / "eval" / "notes.txt").write_text("mine")
-    train(load_dataset(synth), out, tiny_config(iters=5))
+    (out / "eval" / "mine.png").write_bytes(b"not the evaluation's")
+    train(load_dataset(ds), out, tiny_config(iters=6))
     assert (out / "point_cloud.ply").is_file() and not (out / "eval" / "metrics.json").exists()
-    assert (out / "eval" / "notes.txt").read_text() == "mine"
+    assert not any((out / "eval" / p).exists() for p in pictures)
+    assert (out / "eval" / "notes.txt").read_text() == "mine" and (out / "eval" / "mine.png").is_file()
+    evaluate(out, ds, out / "eval", progress=False)
+    (out / "eval" / "notes.txt").unlink()
+    (out / "eval" / "mine.png").unlink()
+    train(load_dataset(ds), out, tiny_config(iters=7))
+    assert not (out / "eval").exists()
 
 
 def test_progress_in_a_redirected_log_is_plain_lines(synth, tmp_path, capsys, monkeypatch):

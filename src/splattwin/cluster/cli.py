@@ -14,7 +14,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from splattwin.cluster.options import BatchOptions, SweepOptions
-from splattwin.options import add_options
+from splattwin.options import add_options, add_progress_flag
 
 # the robot stage's options a sweep's trials take from the command line (sigma is a grid parameter here)
 SWEEP_ROBOT_FLAGS = ("task", "base_pose", "robot_mjcf", "tcp_site", "in_hand", "planner", "seed")
@@ -39,6 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--out", type=Path, required=True, help="sweep folder to write")
     add_options(s, SweepOptions)
     add_options(s, RobotOptions, include=SWEEP_ROBOT_FLAGS)
+    add_progress_flag(s)
     s.set_defaults(func=run_sweep_cli)
 
     b = sub.add_parser(
@@ -107,7 +108,7 @@ def run_sweep_cli(args: argparse.Namespace) -> int:
     trial = replace(TrialSpec.from_options(args.twin, robot), sigma=robot.sigma, sigma_yaw=robot.sigma_yaw)
     spec = SweepSpec(twin=args.twin, grid=grid, trials=opts.trials, masks=opts.masks, scene=opts.scene, trial=trial)
     with make_executor(opts.cluster) as ex:
-        summary = run_sweep(spec, args.out, ex, resume=opts.resume)
+        summary = run_sweep(spec, args.out, ex, progress=args.progress, resume=opts.resume)
     print_table(summary, summary.get("outputs"))
     return 1 if any(r.get("error") for r in summary["cells"]) else 0
 

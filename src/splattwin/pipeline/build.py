@@ -354,7 +354,7 @@ def check_inputs(options: BuildOptions) -> None:
     if task not in (None, "default") and not Path(task).is_file():
         raise InputError("task file not found", task)
     options.robot.validate()
-    options.poses.check()   # --max-frames / --min-change, before the pre-flight extracts anything
+    options.poses.check()   # --max-frames / --min-change, SfM's limits, ..., before the pre-flight extracts anything
 
 
 def build(out: str | Path, options: BuildOptions, from_stage: str | None = None, until: str | None = None,

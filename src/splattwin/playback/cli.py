@@ -15,7 +15,7 @@ import logging
 import time
 from pathlib import Path
 
-from splattwin.options import add_command, add_options
+from splattwin.options import add_command, add_options, add_progress_flag
 from splattwin.robot.options import RobotOptions
 
 log = logging.getLogger(__name__)
@@ -27,6 +27,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("twin", type=Path, help="twin folder (with twin.json)")
     add_options(p, RobotOptions)
     p.add_argument("--out", type=Path, default=None, help="output folder (default: TWIN/robot)")
+    add_progress_flag(p)
 
     p = add_command(sub, "render", run_render)
     p.add_argument("twin", type=Path, help="twin folder (with twin.json and splats)")
@@ -48,6 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-relight", action="store_true",
                    help="keep every splat's trained colour (default: moved objects cast and receive shadows under "
                         "the light estimated from the twin's own shadows; see playback/relight.py)")
+    add_progress_flag(p)
 
 
 def run_plan(args: argparse.Namespace) -> int:
@@ -81,11 +83,11 @@ def run_plan(args: argparse.Namespace) -> int:
     # one writer per folder: the twin's lock when writing into it (splattwin.lock)
     with output_lock(args.twin if is_inside(out, args.twin) else out):
         t0 = time.perf_counter()
-        res = run(RobotInputs(args.twin, out), opts)
+        res = run(RobotInputs(args.twin, out), opts, progress=args.progress)
         d = res.details
         print_summary(d["run"], d["trials"], d["paths"], d.get("real_robot"))
         if recorder is not None:
-            info = record_result(recorder, opts.record, out, d)
+            info = record_result(recorder, opts.record, out, d, progress=args.progress)
             console().print(f"recorded {info['episodes']} episode(s) into {info['path']} "
                             f"({info['reused']} reused from a killed run; {info['fps']:g} fps, cameras "
                             + ", ".join(f"{k} {w}x{h}" for k, (w, h) in info["cameras"].items()) + ")")
@@ -152,7 +154,7 @@ def run_render(args: argparse.Namespace) -> int:
     if isinstance(camera, EyeInHand) and robot is None:
         raise InputError("an eye-in-hand camera needs the robot (drop --no-robot)")
     info = render_rollout_video(PlaybackRenderer(scene, robot), rollout, camera, args.out, fps=args.fps,
-                                robot=robot is not None)
+                                robot=robot is not None, progress=args.progress)
     if scene.light is not None:
         lt = scene.light
         console().print(f"re-lit: light from the twin's shadows at azimuth {lt.azimuth_deg:.0f} deg, elevation "

@@ -7,7 +7,6 @@ import logging
 from dataclasses import replace
 from pathlib import Path
 
-from splattwin.errors import InputError
 from splattwin.options import add_command, add_options, dest
 from splattwin.poses.options import PoseOptions
 
@@ -60,11 +59,7 @@ def _run(args: argparse.Namespace) -> int:
     opts = from_args(PoseOptions, args)
     if opts.work_dir is None:
         opts = replace(opts, work_dir=args.out / "sfm")
-    opts.check()   # --max-frames, --min-change
-    if opts.min_registered is not None and opts.min_registered < 2:
-        raise InputError(f"--min-registered must be >= 2, got {opts.min_registered}")
-    if opts.marker_size is not None and opts.marker_size <= 0:
-        raise InputError(f"--marker-size must be positive (metres), got {opts.marker_size}")
+    opts.check()   # --max-frames, --min-change, SfM's limits, --min-registered, --marker-size
     from splattwin.lock import output_lock
 
     with output_lock(args.out):

@@ -703,6 +703,17 @@ def _die_with_parent() -> None:
         pass
 
 
+def _quiet_sigterm() -> None:
+    """SIGTERM (the parent's `terminate`, or Slurm/Kubernetes/docker signalling every process of a job)
+    ends this process at once and silently: the default action. Importing pycolmap installs glog's
+    failure-signal handler for SIGTERM at the C level (Python's `getsignal` still says SIG_DFL), which
+    printed a ~30-line C stack trace ("*** Aborted at ...") before dying; `signal.signal` sets the
+    handler again at the C level whatever Python believes (as `interrupt._reclaim_sigterm` does). Not a
+    Python-level function: it would only run once pycolmap's C++ returns to the interpreter, which
+    mapping and triangulation do not do for minutes. The parent cleans up what the step half-wrote."""
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     _die_with_parent()
@@ -711,6 +722,7 @@ def main(argv: list[str] | None = None) -> int:
     job = json.loads(Path(argv[0]).read_text())
     import pycolmap
 
+    _quiet_sigterm()
     pycolmap.logging.minloglevel = int(job.get("log_level", 2))
     try:
         result = STEPS[job["step"]](job)

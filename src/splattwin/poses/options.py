@@ -7,7 +7,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from splattwin.heldout import HELDOUT_EVERY_DEFAULT, HELDOUT_MIN_VIEWS  # noqa: F401 (re-exported)
-from splattwin.options import option
+from splattwin.errors import InputError
+from splattwin.options import flag_spellings, option
 from splattwin.frame_options import FrameOptions
 
 METHODS = ("auto", "known", "sfm", "robot")
@@ -124,3 +125,30 @@ class PoseOptions(FrameOptions):
     work_dir: Path | None = option(None, "SfM scratch folder (database, model), re-used to resume (default: "
                                    "OUT/sfm; the pipeline: TWIN/poses/sfm)", runtime=True)
     progress: bool = option(True, "progress bars", runtime=True)
+
+    def check(self) -> None:
+        """InputError for values no run can use, before any work (`splattwin poses`, and `build` before its
+        pre-flight): the frames' (`FrameOptions.check`), SfM's limits, --min-registered and --marker-size;
+        each message names the flag in both commands' spelling."""
+        super().check()
+        check_sfm_limits(self.max_image_size, self.max_num_features, self.num_threads)
+        if self.min_registered is not None and self.min_registered < 2:
+            raise InputError(f"{_flag('min_registered')} must be >= 2, got {self.min_registered}")
+        if self.marker_size is not None and not self.marker_size > 0:
+            raise InputError(f"{_flag('marker_size')} must be positive (metres), got {self.marker_size}")
+
+
+def _flag(name: str) -> str:
+    """PoseOptions' `name` as `splattwin poses` and `build` spell it ('--max-image-size (build: --poses.max-image-size)')."""
+    return flag_spellings(PoseOptions, name, "poses")
+
+
+def check_sfm_limits(max_image_size: int, max_num_features: int, num_threads: int) -> None:
+    """InputError for SfM feature and thread settings no run can use (`PoseOptions.check`, and
+    `poses.sfm.SfmOptions.validate` for Python callers), naming the flags in both commands' spelling."""
+    if 0 < max_image_size < 64:
+        raise InputError(f"{_flag('max_image_size')} must be >= 64 px (or 0 for full size), got {max_image_size}")
+    if max_num_features < 64:
+        raise InputError(f"{_flag('max_num_features')} must be >= 64, got {max_num_features}")
+    if num_threads < 0:
+        raise InputError(f"{_flag('num_threads')} must be >= 0 (0 = all cores), got {num_threads}")

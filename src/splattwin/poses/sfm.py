@@ -60,7 +60,7 @@ from splattwin import io
 from splattwin.capture.camera import Camera, invert_se3
 from splattwin.errors import InputError
 from splattwin.poses import colmap_process
-from splattwin.poses.options import MATCHERS
+from splattwin.poses.options import MATCHERS, check_sfm_limits
 from splattwin.poses.progress import StageProgress
 
 log = logging.getLogger(__name__)
@@ -138,12 +138,7 @@ class SfmOptions:
     def validate(self) -> None:
         if self.matcher not in MATCHERS:
             raise InputError(f"unknown matcher {self.matcher!r} ({', '.join(MATCHERS)})")
-        if self.max_image_size != 0 and 0 < self.max_image_size < 64:
-            raise InputError(f"--max-image-size must be >= 64 px (or 0 for full size), got {self.max_image_size}")
-        if self.max_num_features < 64:
-            raise InputError(f"--max-features must be >= 64, got {self.max_num_features}")
-        if self.num_threads < 0:
-            raise InputError(f"--threads must be >= 0 (0 = all cores), got {self.num_threads}")
+        check_sfm_limits(self.max_image_size, self.max_num_features, self.num_threads)
         if self.max_memory_gib <= 0:
             raise InputError(f"the SfM memory budget must be positive, got {self.max_memory_gib} GiB")
         if self.sequential_overlap < 1 or self.retrieval_neighbours < 1:

@@ -6,7 +6,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from splattwin.options import add_command, add_options, from_args
+from splattwin.options import add_command, add_options, add_progress_flag, from_args
 from splattwin.semantics.options import FusionOptions, SegmentOptions, SemanticsOptions
 from splattwin.wording import plural
 
@@ -22,6 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, default=None, help="output mask folder (default DATASET/masks/segment)")
     add_options(p, SegmentOptions)
     p.add_argument("--split", default="all", choices=["all", "train", "heldout"], help="which views to segment")
+    add_progress_flag(p)
 
     f = add_command(sub, "fuse", _fuse)
     f.add_argument("--splats", type=Path, required=True, help="3DGS PLY of the scene")
@@ -30,6 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     f.add_argument("--out", type=Path, required=True, help="output folder")
     add_options(f, FusionOptions)
     add_options(f, SemanticsOptions, include=("renderer", "maps_renderer", "maps", "naive"))
+    add_progress_flag(f)
 
 
 def _segment(args: argparse.Namespace) -> int:
@@ -61,7 +63,8 @@ def _segment(args: argparse.Namespace) -> int:
         else:
             opts = from_args(SegmentOptions, args)
             labels = prompt_labels(ds, args.prompt, Path(args.dataset))  # phrases -> a generated scene's labels
-            ms = segment_images({f.name: f.image_path for f in frames}, args.prompt, opts, labels=labels, out_dir=out)
+            ms = segment_images({f.name: f.image_path for f in frames}, args.prompt, opts, labels=labels, out_dir=out,
+                                progress=args.progress)
         ms.save(out)
     print(f"{len(ms.views)} views, objects: " + ", ".join(
         f"{n} ({ms.n_views_with(k)} views)" for k, n in sorted(ms.objects.items())) + f" -> {out}")
@@ -82,7 +85,8 @@ def _fuse(args: argparse.Namespace) -> int:
     opts = from_args(SemanticsOptions, args, fusion=from_args(FusionOptions, args))
     with output_lock(args.out):  # fuse_to_dir scales the lengths to an unscaled frame (frame.json beside)
         res = fuse_to_dir(args.splats, args.dataset, args.masks, args.out, opts.fusion, renderer=opts.renderer,
-                          label_maps=opts.maps, naive=opts.naive, maps_renderer=opts.maps_renderer, metrics=True)
+                          label_maps=opts.maps, naive=opts.naive, maps_renderer=opts.maps_renderer, metrics=True,
+                          progress=args.progress)
     import json
 
     meta = json.loads((Path(args.out) / "fusion.json").read_text())

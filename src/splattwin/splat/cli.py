@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from splattwin.options import add_command, add_options, from_args
+from splattwin.options import add_command, add_options, add_progress_flag, from_args
 from splattwin.poses.options import HoldoutOptions
 from splattwin.splat.config import DEVICES, TrainConfig
 
@@ -31,7 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--device", choices=DEVICES, help="rasterizer device (default auto)")
     e.add_argument("--align-poses", action="store_true",
                    help="fit each held-out camera to its image first (for splats trained with --refine-poses)")
-    e.add_argument("--no-progress", action="store_true")
+    add_progress_flag(e)
 
 
 def _train(args: argparse.Namespace) -> int:
@@ -81,7 +81,7 @@ def _eval(args: argparse.Namespace) -> int:
     if out is None:
         out = (args.splat if args.splat.is_dir() else args.splat.parent) / "eval"
     res = evaluate(args.splat, args.dataset, out, resolution=args.resolution, backend=args.device or "auto",
-                   progress=not args.no_progress, align_poses=args.align_poses,
+                   progress=args.progress, align_poses=args.align_poses,
                    full_resolution=args.full_resolution)
     for v in res.views:
         fix = f"  pose fit {v['pose_correction_deg']:.2f} deg / {_pose_length(v)}" if "pose_correction_deg" in v else ""

@@ -253,22 +253,41 @@ def training_record(path: Path) -> dict:
     return info
 
 
-def _remove_earlier_images(out: Path, keep: set[str]) -> None:
-    """Remove the comparison images an earlier evaluation into `out` listed in its metrics.json that this one
-    did not write (a view held out then and trained on now kept its old picture beside the new ones). Only
-    plain file names that metrics.json listed go, never anything else in the folder."""
+def _earlier_images(out: Path) -> list[str]:
+    """The comparison images an earlier evaluation into `out` wrote, as its metrics.json lists them: plain
+    .png file names only ([] without a readable metrics.json)."""
     from splattwin.limits import MAX_RECORD_BYTES, read_json
 
     try:
         prev = read_json(out / "metrics.json", max_bytes=MAX_RECORD_BYTES)
     except InputError:
-        return
-    from splattwin.io import remove_files
-
+        return []
     rows = prev.get("views") if isinstance(prev, dict) else None
     names = [r.get("image") for r in (rows if isinstance(rows, list) else []) if isinstance(r, dict)]
-    remove_files(out, [n for n in names if isinstance(n, str) and n.endswith(".png") and n not in keep
-                       and n == Path(n).name and not n.startswith(".")])
+    return [n for n in names if isinstance(n, str) and n.endswith(".png") and n == Path(n).name
+            and not n.startswith(".")]
+
+
+def _remove_earlier_images(out: Path, keep: set[str]) -> None:
+    """Remove the comparison images an earlier evaluation into `out` listed in its metrics.json that this one
+    did not write (a view held out then and trained on now kept its old picture beside the new ones). Only
+    plain file names that metrics.json listed go, never anything else in the folder."""
+    from splattwin.io import remove_files
+
+    remove_files(out, [n for n in _earlier_images(out) if n not in keep])
+
+
+def remove_evaluation(out: str | Path) -> list[Path]:
+    """Remove an evaluation's files from its folder `out` (`TRAINING/eval`): the comparison images its
+    metrics.json lists, then metrics.json, then the folder when nothing else is left in it. For the splats
+    they measured being replaced (`train` into a built twin): the report showed that PSNR and those
+    pictures as the new model's. Nothing else in the folder goes. Returns the files removed."""
+    from splattwin.io import remove_files
+
+    out = Path(out)
+    if out.is_symlink() or not (out / "metrics.json").is_file():
+        return []
+    return remove_files(out, _earlier_images(out) + ["metrics.json"], empty_folder=True)
 
 
 def _heldout_split(ds: Dataset, info: dict) -> tuple[list[Frame], list[Frame], dict]:

@@ -823,13 +823,13 @@ class Trainer:
     def _write_outputs(self, wall: float | None, loss: float | None, psnr: float | None,
                        resumed_at: int | None = None) -> TrainResult:
         g = self.model.to_gaussians()
-        stale_eval = self.out_dir / "eval" / "metrics.json"
-        if stale_eval.is_file():
-            # the held-out metrics of the splats this file replaces (`splattwin train` into a built twin):
-            # the report would show them as this model's; the build's splats stage, or `eval`, writes new ones
-            stale_eval.unlink()
-            log.info("removed %s: the held-out metrics of the earlier splats (run `splattwin eval` for these)",
-                     stale_eval)
+        from splattwin.splat.eval import remove_evaluation   # (eval imports this module)
+
+        # the held-out metrics and pictures of the splats this file replaces (`splattwin train` into a built
+        # twin): the report would show them as this model's; the build's splats stage, or `eval`, writes new ones
+        if remove_evaluation(self.out_dir / "eval"):
+            log.info("removed %s: the held-out metrics and pictures of the earlier splats (run `splattwin eval` "
+                     "for these)", self.out_dir / "eval")
         ply = g.save_ply(self.out_dir / "point_cloud.ply")
         refined = None
         if self.poses is not None:

@@ -13,7 +13,7 @@ import numpy as np
 from splattwin.errors import InputError
 from splattwin.geometry.options import GeometryOptions
 from splattwin.names import check_unique, object_name
-from splattwin.options import add_command, add_options, dest, from_args
+from splattwin.options import add_command, add_options, add_progress_flag, dest, from_args
 from splattwin.twin.options import ExportOptions
 
 log = logging.getLogger(__name__)
@@ -117,7 +117,7 @@ def _run_locked(args: argparse.Namespace) -> int:
         masks = _object_masks(load_masks(args.masks, objects={name: label for name, label, *_ in objects}), objects,
                               args.masks)
     m = build_twin(g, labels, objects, args.out, frame, cameras_path=args.cameras, options=opts,
-                   formats=formats, progress=True, masks=masks, export_options=exports,
+                   formats=formats, progress=args.progress, masks=masks, export_options=exports,
                    splats_path=ply)
     for o in m.objects:
         state = f"mass {o.mass:.3f} kg, {len(o.convex_parts)} convex part(s)" if o.usable else (
@@ -178,3 +178,4 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_options(p, GeometryOptions)
     p.add_argument("--voxel-remesh", dest=dest("use_alpha"), action="store_false", default=argparse.SUPPRESS,
                    help="= --no-use-alpha: marching cubes instead of alpha shapes (faster)")
+    add_progress_flag(p)
