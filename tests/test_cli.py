@@ -97,3 +97,20 @@ def test_every_long_running_command_takes_no_progress():
         # `poses`/`train` take it as their options' run-time field ("@progress", absent unless given)
         assert on.get("progress", on.get("@progress", True)) is True, name
         assert off.get("progress", off.get("@progress")) is False, name
+
+
+def test_every_argument_of_every_command_has_help():
+    """`splattwin <command> --help` describes every argument and option (`demo --out` read bare `--out OUT`)."""
+    import argparse
+
+    from splattwin.cli import build_parser
+
+    def bare(parser, path):
+        for a in parser._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for name, sub in a.choices.items():
+                    yield from bare(sub, path + [name])
+            elif not isinstance(a, argparse._HelpAction) and not a.help:
+                yield f"{' '.join(path)} {a.option_strings or a.dest}"
+
+    assert not list(bare(build_parser(), ["splattwin"]))

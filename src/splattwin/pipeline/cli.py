@@ -52,7 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                      "[--STAGE.OPTION VALUE ...] (all options: --help)",
                        help="the whole pipeline on the embedded tabletop scene, the three-step task "
                                     "in physics, and the HTML report")
-    d.add_argument("--out", type=Path, default=Path("demo_out"))
+    d.add_argument("--out", type=Path, default=Path("demo_out"), help="twin folder to write (default demo_out)")
     add_build_flags(d, demo=True)
     d.set_defaults(func=_demo)
 
