@@ -164,7 +164,7 @@ def output_digests(folder: str | Path, outputs: dict, cache: DigestCache) -> dic
 
 def changed_outputs(folder: str | Path, rec: dict, cache: DigestCache) -> list[str]:
     """The files a stage record (TWIN/pipeline.json: {"outputs", "digests"}) promises whose identity
-    differs from the recorded one: rewritten since the stage wrote them (a command run by hand). None for
+    differs from the recorded one: rewritten since the stage wrote them (a command run by hand). Empty for
     a record without digests. A digest recorded whole (before a file's run record was left out) still
     matches the unchanged file."""
     want = rec.get("digests")
