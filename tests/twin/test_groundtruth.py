@@ -112,7 +112,7 @@ def test_robot_frame_twin_places_the_ground_truth_by_the_known_base(scene_small,
     from splattwin.poses.twin_frame import TwinFrame
     from splattwin.twin.groundtruth import twin_from_scene
     from splattwin.twin.manifest import Manifest
-    from splattwin.twin.stage import _scene_facts, gt_alignment, write_fidelity
+    from splattwin.twin.stage import _read_scene, _scene_facts, gt_alignment, write_fidelity
 
     twin = tmp_path / "twin"
     twin_from_scene(scene_small, twin)
@@ -148,7 +148,7 @@ def test_robot_frame_twin_places_the_ground_truth_by_the_known_base(scene_small,
     fitted = json.loads(write_fidelity(twin, scene_small, 0.005, T2).read_text())
     assert all(r["f1"] > 0.99 for r in fitted.values())
     # what twin.json records
-    _scene_facts(man, twin, scene_small, frame)
+    _scene_facts(man, twin, scene_small, _read_scene(scene_small), frame)
     gt = man.config["ground_truth"]
     assert gt["placement"] == "robot_base" and gt["global_offset_m"] == pytest.approx(0.025, abs=1e-4)
     man.save(twin)

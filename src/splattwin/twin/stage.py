@@ -49,15 +49,14 @@ def run(inputs: TwinInputs, options: TwinOptions, *, progress: bool = True) -> T
     labels = load_npy(inputs.labels, "label array")
     objects = [tuple(x) for x in io.read_json(inputs.objects)]
     frame = load_frame(inputs.frame)
-    _read_scene(inputs.scene_dir)  # a malformed scene.json is refused before the twin folder is written
+    scene = _read_scene(inputs.scene_dir)  # a malformed scene.json is refused before the twin folder is written
     man = build_twin(g, labels, objects, twin, frame=frame, cameras_path=inputs.cameras, options=options.geometry,
                      formats=options.export.resolve("export.formats"), progress=progress, masks=inputs.masks,
                      export_options=options.export, splats_path=inputs.splats,
                      refined_poses=inputs.refined_poses)
     # the objects' meshes and the scene's GT meshes, loaded once: the alignment and the fidelity both use them
-    gt_pairs = (list(_meshes_with_gt(man, twin, inputs.scene_dir)) if _read_scene(inputs.scene_dir) is not None
-                else None)
-    T_twin_gt = _scene_facts(man, twin, inputs.scene_dir, frame, pairs=gt_pairs)
+    gt_pairs = list(_meshes_with_gt(man, twin, inputs.scene_dir)) if scene is not None else None
+    T_twin_gt = _scene_facts(man, twin, inputs.scene_dir, scene, frame, pairs=gt_pairs)
     if inputs.config:
         man.config["build"] = inputs.config
     man.splats = man.splats or twin_relative(inputs.splats, twin)
@@ -69,12 +68,10 @@ def run(inputs: TwinInputs, options: TwinOptions, *, progress: bool = True) -> T
     return TwinResult(manifest=twin / "twin.json", fidelity=fidelity)
 
 
-def _scene_facts(man, twin: Path, scene_dir: Path | None, frame, pairs: list | None = None):
-    """With an embedded scene's ground truth: the alignment note and the scene's goal region
-    (`config.target_frame`, in the twin frame) into `man` (not saved); returns T_twin_gt or None.
-    pairs: `_meshes_with_gt`'s meshes when already loaded (else loaded here)."""
-
-    scene = _read_scene(scene_dir)
+def _scene_facts(man, twin: Path, scene_dir: Path | None, scene: dict | None, frame, pairs: list | None = None):
+    """With an embedded scene's ground truth (scene: its scene.json, `_read_scene`): the alignment note and
+    the scene's goal region (`config.target_frame`, in the twin frame) into `man` (not saved); returns
+    T_twin_gt or None. pairs: `_meshes_with_gt`'s meshes when already loaded (else loaded here)."""
     if scene is None:
         return None
     info: dict = {}
@@ -112,7 +109,7 @@ def add_scene_goal(twin_dir: str | Path, scene_dir: str | Path):
     if not (scene_dir / "scene.json").is_file():
         raise InputError("no scene.json here: not a generated scene (splattwin.scene.generate)", scene_dir)
     man = Manifest.load(twin)
-    if _scene_facts(man, twin, scene_dir, man.frame) is None:
+    if _scene_facts(man, twin, scene_dir, _read_scene(scene_dir), man.frame) is None:
         raise InputError(f"the twin's frame ({man.frame.source}) cannot be aligned to the scene: "
                          f"{man.config.get('ground_truth', {}).get('alignment')}", twin / "twin.json")
     if "target_frame" not in man.config:
