@@ -180,7 +180,8 @@ def test_sigterm_reaching_the_worker_before_the_cli_is_still_an_interruption(tmp
     worker, = _workers_of(out / "sfm")
     os.kill(worker, signal.SIGTERM)
     time.sleep(0.5)
-    assert proc.poll() is None, "splattwin poses ended (a failed step?) before its own SIGTERM came: " + proc.communicate()[1][-2000:]
+    assert proc.poll() is None, \
+        "splattwin poses ended (a failed step?) before its own SIGTERM came: " + proc.communicate()[1][-2000:]
     proc.send_signal(signal.SIGTERM)
     rc, err = _finish(proc)
     assert rc == 143 and err[-1] == "terminated (SIGTERM)", err[-20:]
