@@ -705,7 +705,7 @@ def principal_point_message(c: dict) -> str:
     return (f"the camera's principal point{f' ({where})' if where else ''} looks off: with the poses held fixed, "
             f"the matched features of {c['pairs']} image pairs fit the epipolar geometry best with it moved by "
             f"({dx:+.1f}, {dy:+.1f}) px (+-{sx:.1f}, +-{sy:.1f}): cx, cy ({gx:.1f}, {gy:.1f}) -> ({bx:.1f}, "
-            f"{by:.1f}) px at full size (error {c['principal_point_error_px_given']:.3f} -> "
+            f"{by:.1f}) px at full size, pixel centres at +0.5 (error {c['principal_point_error_px_given']:.3f} -> "
             f"{c['principal_point_error_px_best']:.3f} px"
             + (f"; every camera turned instead, as by a hand-eye rotation error: {turn:.3f} px" if turn is not None
                else "")
