@@ -2,7 +2,9 @@
 
 Each stage owns its sub-commands in `splattwin/<stage>/cli.py`, exposing `register(subparsers)`, which
 adds parsers whose `func(args) -> int` runs the command. Exit codes: 0 success, 2 bad input
-(`InputError`, message names the file and the problem), 1 internal error or a failed robot task.
+(`InputError`, message names the file and the problem), 1 internal error, a failed robot task or a part of
+the run stopped from outside (`StoppedFromOutside`: a worker killed by someone else's signal), 130 / 143
+Ctrl-C / SIGTERM (`splattwin.interrupt`).
 No traceback reaches the user without `--debug`: an internal error prints one line saying what broke
 and how to get the traceback for a bug report.
 """
@@ -18,7 +20,7 @@ import warnings
 from pathlib import Path
 
 from splattwin import __version__, runtime
-from splattwin.errors import InputError
+from splattwin.errors import InputError, StoppedFromOutside
 
 # Order = order in `splattwin --help`.
 STAGE_CLIS = [
@@ -87,6 +89,11 @@ def main(argv: list[str] | None = None) -> int:
             traceback.print_exc()
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except StoppedFromOutside as e:   # not the user's input, not a bug: one line, no bug-report advice
+        if debug:
+            traceback.print_exc()
+        print(f"error: {e}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:   # Ctrl-C (130) or SIGTERM (143): splattwin.interrupt
         print(interrupt.message(), file=sys.stderr)
         return interrupt.exit_code()

@@ -2,6 +2,8 @@
 
 `InputError` is raised for bad input (missing or malformed files, inconsistent data). It always names the
 file (or option) and the problem; the CLI turns it into a one-line message and exit code 2.
+`StoppedFromOutside` is raised when something outside splattwin stopped part of a run (a worker process
+killed by a signal this process did not get): the CLI prints its one line and exits with code 1.
 """
 
 from __future__ import annotations
@@ -16,6 +18,12 @@ class InputError(Exception):
         self.problem = problem
         self.path = None if path is None else Path(path)
         super().__init__(f"{self.path}: {problem}" if self.path is not None else problem)
+
+
+class StoppedFromOutside(Exception):
+    """Another process (or the job scheduler) stopped part of the run, e.g. killed a worker process with a
+    signal this process did not get: not bad input and not a bug. The message names what was stopped, how,
+    and how to go on. The CLI exits with code 1."""
 
 
 def short_repr(v, n: int = 60) -> str:

@@ -20,9 +20,10 @@ F_TRUE = 300.0
 
 
 # -- synthetic matches: no images, a few milliseconds ---------------------------------------------------------
-def _camera(f: float, T_world_cam: np.ndarray) -> Camera:
-    return Camera(K=np.array([[f, 0.0, 160.0], [0.0, f, 120.0], [0.0, 0.0, 1.0]]), width=320, height=240,
-                  T_world_cam=T_world_cam)
+def _camera(f: float, T_world_cam: np.ndarray, dc: tuple[float, float] = (0.0, 0.0)) -> Camera:
+    """320x240 camera, principal point (160, 120) + dc px."""
+    return Camera(K=np.array([[f, 0.0, 160.0 + dc[0]], [0.0, f, 120.0 + dc[1]], [0.0, 0.0, 1.0]]), width=320,
+                  height=240, T_world_cam=T_world_cam)
 
 
 def _path(t: np.ndarray) -> np.ndarray:
@@ -38,9 +39,11 @@ def _path(t: np.ndarray) -> np.ndarray:
     return np.array(out)
 
 
-def _measures(T_true: np.ndarray, f_given: float, seed: int = 0, px_noise: float = 0.25):
+def _measures(T_true: np.ndarray, f_given: float, seed: int = 0, px_noise: float = 0.25,
+              dc_given: tuple[float, float] = (0.0, 0.0)):
     """Neighbour pairs (i, i+1) of cameras T_true seeing a random tabletop cloud, as `measure_pair` would give
-    them: pixels projected through the true focal F_TRUE plus noise, normalised with the given focal."""
+    them: pixels projected through the true focal F_TRUE and principal point plus noise, normalised with the
+    given focal and the principal point moved by dc_given px."""
     rng = np.random.default_rng(seed)
     X = np.c_[rng.uniform(-0.2, 0.2, (400, 2)), rng.uniform(0.0, 0.15, 400)]
     out = []
@@ -50,7 +53,7 @@ def _measures(T_true: np.ndarray, f_given: float, seed: int = 0, px_noise: float
             c = _camera(F_TRUE, T_true[k])
             Xc = (np.linalg.inv(T_true[k]) @ np.c_[X, np.ones(len(X))].T)[:3].T
             uv.append(Xc[:, :2] / Xc[:, 2:] * F_TRUE + [c.cx, c.cy] + rng.normal(0, px_noise, (len(X), 2)))
-        ca, cb = _camera(f_given, T_true[i]), _camera(f_given, T_true[i + 1])
+        ca, cb = _camera(f_given, T_true[i], dc_given), _camera(f_given, T_true[i + 1], dc_given)
         xa, xb = hec._rays(uv[0], ca), hec._rays(uv[1], cb)  # uv: full-size pixels, the cameras' convention
         m = hec.PairMeasure(np.eye(3), len(X), xa, xb, f_given, (320, 240), 0.3, uv[0], uv[1], ca, cb)
         out.append((i, i + 1, m))
@@ -78,6 +81,28 @@ def test_intrinsics_check_finds_the_focal_scale(given: float):
         assert "camera.yaml" in msg and f"{100 * (1 / given - 1):+.1f} %" in msg, msg
 
 
+@pytest.mark.parametrize("dc", [(0.0, 0.0), (2.0, 0.0), (7.0, -6.0), (0.0, 8.0)])
+def test_intrinsics_check_finds_the_principal_point(dc: tuple[float, float]):
+    """A principal point given 6-8 px off (an intrinsics file with the image centre for the calibrated one)
+    is found (the offset back, -dc, within 1 px) and warned about, naming the file; the true one is not, nor
+    one 2 px off (below 1 % of the focal length, PP_WARN_REL). The focal length stays right: the focal scan
+    alone, at the principal point as given, read 0.954 for a cx 2 px off here and warned about the focal."""
+    T = _path(T_VIEWS)
+    ic = hec.intrinsics_check(_measures(T, F_TRUE, dc_given=dc), T, where="camera.yaml")
+    assert ic is not None, ic
+    off = np.array(ic["principal_point_offset_px"])
+    assert np.all(np.abs(off + np.array(dc)) < 1.0) and max(ic["principal_point_sigma_px"]) < 0.5, ic
+    assert ic["verdict"] == "ok" and abs(ic["focal_scale"] - 1.0) < 0.01, ic
+    assert ic["principal_point_px_best"] == pytest.approx([160.0, 120.0], abs=1.0), ic
+    if max(abs(v) for v in dc) < 3.0:
+        assert ic["principal_point_verdict"] == "ok", ic
+    else:
+        assert ic["principal_point_verdict"] == "warn" and ic["principal_point_clear_minimum"], ic
+        assert ic["principal_point_error_px_best"] < 0.7 * ic["principal_point_error_px_given"], ic
+        msg = hec.principal_point_message(ic)
+        assert "camera.yaml" in msg and f"({off[0]:+.1f}, {off[1]:+.1f}) px" in msg and "cx/cy" in msg, msg
+
+
 def test_intrinsics_check_quiet_when_the_poses_are_off():
     """Per-view pose errors (3 mm / 0.3 deg) with the true focal: the scale that fits best absorbs them, but
     the poses still do not fit at it, so no warning about the intrinsics ("undetermined")."""
@@ -88,7 +113,7 @@ def test_intrinsics_check_quiet_when_the_poses_are_off():
         T_noisy[k, :3, :3] = Rotation.from_rotvec(rng.normal(0, np.radians(0.3) / np.sqrt(3), 3)).as_matrix() @ T[k, :3, :3]
         T_noisy[k, :3, 3] += rng.normal(0, 3e-3 / np.sqrt(3), 3)
     ic = hec.intrinsics_check(_measures(T, F_TRUE), T_noisy)
-    assert ic is not None and ic["verdict"] != "warn", ic
+    assert ic is not None and ic["verdict"] != "warn" and ic["principal_point_verdict"] != "warn", ic
 
 
 @pytest.mark.parametrize("delay_ms", [0.0, 40.0])
@@ -188,7 +213,8 @@ def test_no_latency_no_focal_error_no_warning(tum_capture: Path, tmp_path: Path,
     lc, ic = res.stats["latency_check"], res.stats["intrinsics_check"]
     assert lc["verdict"] == "ok" and abs(lc["time_offset_ms"]) < 5.0, lc
     assert ic["verdict"] == "ok" and abs(ic["focal_scale"] - 1.0) < 0.01, ic
-    assert "look off" not in caplog.text and "look offset" not in caplog.text
+    assert ic["principal_point_verdict"] == "ok" and np.hypot(*ic["principal_point_offset_px"]) < 1.0, ic
+    assert "look off" not in caplog.text and "look offset" not in caplog.text and "looks off" not in caplog.text
 
 
 def test_focal_error_in_the_intrinsics_file_warned(tum_capture: Path, tmp_path: Path, caplog):
@@ -207,6 +233,28 @@ def test_focal_error_in_the_intrinsics_file_warned(tum_capture: Path, tmp_path: 
     assert ic["intrinsics_file"] == str(cap / "camera.yaml"), ic
     assert res.stats["pose_consistency"]["verdict"] == "ok"  # what the older check saw: nothing
     assert "intrinsics" in caplog.text and str(cap / "camera.yaml") in caplog.text and "look off" in caplog.text
+
+
+def test_principal_point_error_in_the_intrinsics_file_warned(tum_capture: Path, tmp_path: Path, caplog):
+    """camera.yaml's cx, cy 7 px right and 6 px up of the calibrated ones (what the image centre given for
+    the principal point does on a camera whose centre is off): the check finds the offset back, (-7, +6) px
+    within 1 px, and warns naming the file; the focal length is not blamed. The pose consistency alone
+    could not tell the cause."""
+    import yaml
+
+    cap = _copy(tum_capture, tmp_path / "pp")
+    d = yaml.safe_load((cap / "camera.yaml").read_text())
+    d["cx"], d["cy"] = d["cx"] + 7.0, d["cy"] - 6.0
+    (cap / "camera.yaml").write_text(yaml.safe_dump(d))
+    with caplog.at_level("WARNING", logger="splattwin.poses"):
+        res = _poses(cap)
+    ic = res.stats["intrinsics_check"]
+    assert ic["principal_point_verdict"] == "warn", ic
+    assert np.all(np.abs(np.array(ic["principal_point_offset_px"]) - [-7.0, 6.0]) < 1.0), ic
+    assert ic["principal_point_px_given"] == pytest.approx([d["cx"] + 0.5, d["cy"] + 0.5], abs=0.01), ic
+    assert ic["verdict"] == "ok" and abs(ic["focal_scale"] - 1.0) < 0.015, ic
+    assert "principal point" in caplog.text and str(cap / "camera.yaml") in caplog.text
+    assert "focal length scaled" not in caplog.text
 
 
 def test_time_offset_needs_timestamps(tum_capture: Path):

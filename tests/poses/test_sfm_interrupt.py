@@ -52,26 +52,22 @@ def _stack_of(pid: int) -> str:
     keep = [ln for ln in status if ln.startswith(("State", "Threads", "SigBlk", "SigIgn", "SigCgt", "SigPnd", "ShdPnd"))]
     return f"wchan {wchan}; " + "; ".join(keep)
 
-
-@pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc to look for surviving worker processes")
-def test_sigint_during_sfm_stops_within_5s_and_leaves_nothing_half_written(tmp_path: Path, terminal_ctrl_c):
-    """SIGINT to `splattwin poses` inside pycolmap's feature extraction: exit 130 within 5 s, no worker left,
-    nothing half-written. `terminal_ctrl_c`: the CLI child gets Ctrl-C as from a terminal, also when the
-    test run itself was started in a script's background with SIGINT ignored (it failed only there)."""
+def _poses_in_extraction(tmp_path: Path) -> tuple[subprocess.Popen, Path]:
+    """`splattwin poses` (stderr piped) on 4 large images, returned while its pycolmap worker is inside the
+    feature extraction (full size, one thread: seconds in C++), with its output folder (work folder OUT/sfm).
+    Progress shows as plain lines in the redirected log; the SIFT line is read here."""
     imgs = tmp_path / "imgs"
     for i in range(4):
         _textured(imgs / f"im_{i}.png", i)
     out = tmp_path / "out"
     env = dict(os.environ)
     env["PYTHONPATH"] = str(Path(__file__).resolve().parents[2] / "src") + os.pathsep + env.get("PYTHONPATH", "")
-    own_ign = [ln for ln in Path("/proc/self/status").read_text().splitlines() if ln.startswith("SigIgn")]
-    # full-size extraction (--max-image-size 0) on one thread: long enough to be interrupted in C++
     proc = subprocess.Popen([sys.executable, "-m", "splattwin.cli", "poses", str(imgs), str(out),
                              "--max-image-size", "0", "--threads", "1"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
     lines = []
     deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:  # the redirected log shows progress as plain lines
+    while time.monotonic() < deadline:
         line = proc.stderr.readline()
         if not line:
             break
@@ -79,9 +75,20 @@ def test_sigint_during_sfm_stops_within_5s_and_leaves_nothing_half_written(tmp_p
         if "SIFT features" in line:
             break
     assert any("SIFT features" in ln and "/4" in ln for ln in lines), lines
-    work = out / "sfm"
     time.sleep(1.5)  # inside pycolmap's extraction
-    assert proc.poll() is None and _workers_of(work), "SfM finished before it could be interrupted"
+    assert proc.poll() is None and _workers_of(out / "sfm"), "SfM finished before it could be interrupted"
+    return proc, out
+
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc to look for surviving worker processes")
+def test_sigint_during_sfm_stops_within_5s_and_leaves_nothing_half_written(tmp_path: Path, terminal_ctrl_c):
+    """SIGINT to `splattwin poses` inside pycolmap's feature extraction: exit 130 within 5 s, no worker left,
+    nothing half-written. `terminal_ctrl_c`: the CLI child gets Ctrl-C as from a terminal, also when the
+    test run itself was started in a script's background with SIGINT ignored (it failed only there)."""
+    own_ign = [ln for ln in Path("/proc/self/status").read_text().splitlines() if ln.startswith("SigIgn")]
+    proc, out = _poses_in_extraction(tmp_path)
+    work = out / "sfm"
     t0 = time.monotonic()
     proc.send_signal(signal.SIGINT)
     try:
@@ -149,3 +156,52 @@ def test_sigterm_to_the_pycolmap_worker_ends_it_quietly(tmp_path: Path):
     assert proc.returncode == -signal.SIGTERM
     assert "*** Aborted at" not in err and "stack trace" not in err and "SIGTERM" not in err, err[-2000:]
     assert '"event": "result"' not in out   # it was stopped, not finished
+
+
+def _finish(proc: subprocess.Popen, timeout: float = 10.0) -> tuple[int, list[str]]:
+    """The exit code and the non-empty stderr lines left of `proc` (killed, and the test failed, after
+    `timeout` s)."""
+    try:
+        rest = proc.communicate(timeout=timeout)[1]
+    except subprocess.TimeoutExpired:
+        stack = _stack_of(proc.pid)
+        proc.kill()
+        pytest.fail(f"splattwin poses did not stop within {timeout:g} s: {stack}")
+    return proc.returncode, [ln for ln in rest.splitlines() if ln.strip()]
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc to find the pycolmap worker")
+def test_sigterm_reaching_the_worker_before_the_cli_is_still_an_interruption(tmp_path: Path):
+    """Slurm, Kubernetes and docker signal every process of a job, in no set order: SIGTERM to the pycolmap
+    worker first and to `splattwin poses` half a second later (the worker is dead and its exit status read
+    by then) is the interruption it is, exit 143 with the one line "terminated (SIGTERM)"; it was reported
+    as a failed step ("internal error: StepError: extract: the pycolmap worker exited with status -15")."""
+    proc, out = _poses_in_extraction(tmp_path)
+    worker, = _workers_of(out / "sfm")
+    os.kill(worker, signal.SIGTERM)
+    time.sleep(0.5)
+    assert proc.poll() is None, \
+        "splattwin poses ended (a failed step?) before its own SIGTERM came: " + proc.communicate()[1][-2000:]
+    proc.send_signal(signal.SIGTERM)
+    rc, err = _finish(proc)
+    assert rc == 143 and err[-1] == "terminated (SIGTERM)", err[-20:]
+    assert not any("internal error" in ln or "StepError" in ln for ln in err), err[-20:]
+    time.sleep(0.2)
+    assert _workers_of(out / "sfm") == []
+    assert not any((out / n).exists() for n in ("transforms.json", "poses_report.json"))
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc to find the pycolmap worker")
+def test_sigterm_to_the_worker_alone_is_an_error_naming_the_signal(tmp_path: Path):
+    """`kill -TERM <worker pid>` (another process, or a scheduler killing that process only) while
+    `splattwin poses` itself gets no signal: not an interruption of the command (this process was not asked
+    to stop) and not a bug: exit 1 with one line naming the signal and how to go on."""
+    proc, out = _poses_in_extraction(tmp_path)
+    worker, = _workers_of(out / "sfm")
+    os.kill(worker, signal.SIGTERM)
+    rc, err = _finish(proc)
+    assert rc == 1, err[-20:]
+    assert err[-1].startswith("error: the SfM worker was terminated by SIGTERM (another process or the job "
+                              "scheduler) during the extract step"), err[-20:]
+    assert "run the same command again to resume" in err[-1] and str(out / "sfm") in err[-1], err[-1]
+    assert not any("internal error" in ln or "bug" in ln for ln in err), err[-20:]

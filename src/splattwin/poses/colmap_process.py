@@ -8,6 +8,13 @@ SQLite database's hot journal is rolled back, leaving the last committed feature
 run. Progress: the child's own events (mapping: one per registered image) plus a poll of the database
 (extraction: images with keypoints; matching: pairs matched), shown through `StageProgress`. The child's
 peak resident memory (VmHWM) is recorded per step.
+
+A worker that ends by SIGTERM or SIGINT: Slurm, Kubernetes and docker signal every process of a job, and the
+worker (no handler of its own, its own session) may die before this process's Python handler has run, so
+its exit status (-15) arrived first and the stop was reported as a failed step (exit 1, "internal error").
+The parent therefore waits up to PARENT_SIGNAL_GRACE_S for its own signal (`_await_own_signal`): if it
+comes, the step is an interruption like any other (KeyboardInterrupt: exit 143 / 130, the step cleaned up);
+if not, someone signalled the worker alone, and `StoppedFromOutside` says so, naming the signal.
 """
 
 from __future__ import annotations
@@ -18,6 +25,7 @@ import logging
 import os
 import queue
 import shutil
+import signal
 import sqlite3
 import subprocess
 import sys
@@ -28,11 +36,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+from splattwin.errors import StoppedFromOutside
 from splattwin.poses.progress import StageProgress
 
 log = logging.getLogger(__name__)
 
 TERMINATE_GRACE_S = 2.0
+# seconds this process waits for its own copy of the SIGTERM / SIGINT its worker died of (a job scheduler signals
+# every process, in no set order; `_await_own_signal`); only a worker killed alone costs the wait
+PARENT_SIGNAL_GRACE_S = 1.0
+_STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
 
 class StepError(RuntimeError):
@@ -89,6 +102,29 @@ def terminate(proc: subprocess.Popen) -> None:
         proc.wait()
 
 
+def _await_own_signal(grace_s: float = PARENT_SIGNAL_GRACE_S) -> None:
+    """After a worker died of SIGTERM / SIGINT: wait up to `grace_s` seconds for this process's own signal.
+    Raises KeyboardInterrupt when it comes (Python's handler raises it in the sleep; `interrupt.check()` for
+    one the CLI's handler recorded, e.g. while the main thread was elsewhere); returns when none came."""
+    from splattwin import interrupt
+
+    deadline = time.monotonic() + grace_s
+    while True:
+        interrupt.check()
+        left = deadline - time.monotonic()
+        if left <= 0:
+            return
+        time.sleep(min(0.05, left))
+
+
+def _signal_name(rc: int) -> str:
+    """The signal of a negative Popen return code ("SIGTERM"; "signal 77" for one Python does not name)."""
+    try:
+        return signal.Signals(-rc).name
+    except ValueError:
+        return f"signal {-rc}"
+
+
 def recover_database(db: str | Path) -> None:
     """Settle the database after a step: roll back a transaction a killed writer left open (SQLite does so
     on the first access) and fold COLMAP's write-ahead log into the file (no -wal/-shm files left)."""
@@ -130,7 +166,9 @@ def run_step(job: dict, job_dir: Path, progress: StageProgress, label: str, tota
       count, or None to keep the last one; the child's own progress events also update it.
     cleanup: paths removed if the step is interrupted or fails (its half-written outputs).
     Returns (the child's result dict, StepStats). Raises StepError if the step fails, KeyboardInterrupt
-    (after stopping the child and cleaning up) if interrupted.
+    (after stopping the child and cleaning up) if interrupted, also when the signal reached the child first
+    (`_await_own_signal`), StoppedFromOutside (cleaned up too) when someone sent the child alone SIGTERM or
+    SIGINT.
     """
     job_dir.mkdir(parents=True, exist_ok=True)
     from splattwin import io
@@ -206,6 +244,8 @@ def run_step(job: dict, job_dir: Path, progress: StageProgress, label: str, tota
         rc = proc.wait()
         for t in threads:
             t.join(1.0)
+        if rc < 0 and -rc in _STOP_SIGNALS:   # this process's own signal may still be on its way
+            _await_own_signal()
     except BaseException:
         terminate(proc)
         _remove(cleanup)
@@ -222,6 +262,14 @@ def run_step(job: dict, job_dir: Path, progress: StageProgress, label: str, tota
         if "db" in job:
             recover_database(job["db"])
         tail = "\n".join(list(err_tail)[-15:])
+        if rc < 0 and -rc in _STOP_SIGNALS:   # and this process got none within the grace: not a step failure
+            raise StoppedFromOutside(
+                f"the SfM worker was terminated by {_signal_name(rc)} (another process or the job scheduler) "
+                f"during the {job['step']} step; nothing half-written was kept: run the same command again to "
+                f"resume from the SfM work folder {job_dir}")
+        if rc < 0:   # SIGKILL: most often the kernel's out-of-memory killer
+            error = error or (f"the pycolmap worker was killed by {_signal_name(rc)}"
+                              + (" (out of memory? the kernel's log, dmesg, says)" if -rc == signal.SIGKILL else ""))
         raise StepError(job["step"], error or f"the pycolmap worker exited with status {rc}", tail)
     progress.update(label, total if job["step"] != "map" else done, total)
     return result, stats

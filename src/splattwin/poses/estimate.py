@@ -846,8 +846,8 @@ def _intrinsics_source(dataset: Dataset, opts: PoseOptions) -> str:
 
 
 def _check_intrinsics(measures: list, T_world_cam: list[np.ndarray], where: str, stats: dict) -> None:
-    """The focal length that best explains the matched pairs, the poses held fixed
-    (`hand_eye_check.intrinsics_check`): stats["intrinsics_check"], and a warning naming `where`."""
+    """The focal length and principal point that best explain the matched pairs, the poses held fixed
+    (`hand_eye_check.intrinsics_check`): stats["intrinsics_check"], and a warning naming `where` for each."""
     from splattwin.poses import hand_eye_check as hec
 
     ic = hec.intrinsics_check(measures, T_world_cam, where)
@@ -862,6 +862,13 @@ def _check_intrinsics(measures: list, T_world_cam: list[np.ndarray], where: str,
     else:
         log.info("intrinsics check: focal length scale %.3f +- %.3f fits the photos best (%s)", ic["focal_scale"],
                  ic["focal_scale_sigma"], where)
+    if ic["principal_point_verdict"] == "warn":
+        log.warning("%s", hec.principal_point_message(ic))
+    elif ic["principal_point_turn_as_good"]:
+        dx, dy = ic["principal_point_offset_px"]
+        log.info("intrinsics check: the principal point moved by (%+.1f, %+.1f) px or every camera turned by "
+                 "(%+.2f, %+.2f) deg about its x, y axes (a hand-eye rotation error) fit the photos equally well: "
+                 "principal point undetermined", dx, dy, *ic["principal_point_turn_deg"])
 
 
 def _check_known_poses(dataset: Dataset, opts: PoseOptions, frames: list[DataFrame], names: list[str],

@@ -25,10 +25,12 @@ error under their own essential matrix (blurred or badly textured photos match l
 `--poses.method robot` keeps the robot poses and warns.
 
 3. Intrinsics (`intrinsics_check`) and latency (`latency_check`), on the matches of test 2 with the poses
-held fixed: the focal-length scale, and for poses matched to the images by timestamp (TUM pose lists) the
-time offset between image and pose timestamps, that minimise the Sampson error (truncated mean, a
-coarse-to-fine scan, bootstrap 1 sigma); a warning when they differ clearly from those in use (focal > 1.5 %,
-offset > 15 ms). `check_poses_with_images` runs test 2 on known camera poses (no hand-eye) for them.
+held fixed: the focal-length scale and the principal point, and for poses matched to the images by timestamp
+(TUM pose lists) the time offset between image and pose timestamps, that minimise the Sampson error
+(truncated mean, a coarse-to-fine scan; the principal point with the focal scale again by Gauss-Newton from
+a grid; bootstrap 1 sigma); a warning when they differ clearly from those in use (focal > 1.5 %, principal
+point > 1 % of the focal length, offset > 15 ms). `check_poses_with_images` runs test 2 on known camera poses
+(no hand-eye) for them.
 
 The camera's relative rotations are measured
 
@@ -278,14 +280,19 @@ class PairMeasure:
 def sampson_px(xa: np.ndarray, xb: np.ndarray, R_ba: np.ndarray, t_ba: np.ndarray, f: float) -> np.ndarray:
     """Sampson (first-order geometric) epipolar error, in px of focal length `f`, of normalised matches
     xa <-> xb [N,2] under the relative pose x_b = R_ba x_a + t_ba (E = [t]x R; the scale of t does not matter)."""
+    return np.abs(_signed_sampson_px(xa, xb, R_ba, t_ba, f))
+
+
+def _signed_sampson_px(xa: np.ndarray, xb: np.ndarray, R_ba: np.ndarray, t_ba: np.ndarray, f: float) -> np.ndarray:
+    """`sampson_px` with the sign of x_b^T E x_a: a residual smooth through 0, for least squares. xa, xb
+    [..., N, 2] (leading axes: several hypotheses at once) -> [..., N]."""
     t = np.asarray(t_ba, dtype=np.float64)
     E = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]]) @ np.asarray(R_ba, dtype=np.float64)
-    a = np.c_[xa, np.ones(len(xa))]
-    b = np.c_[xb, np.ones(len(xb))]
+    a = np.concatenate([xa, np.ones(xa.shape[:-1] + (1,))], axis=-1)
+    b = np.concatenate([xb, np.ones(xb.shape[:-1] + (1,))], axis=-1)
     Ea, Eb = a @ E.T, b @ E
-    num = np.sum(b * Ea, axis=1) ** 2
-    den = Ea[:, 0] ** 2 + Ea[:, 1] ** 2 + Eb[:, 0] ** 2 + Eb[:, 1] ** 2
-    return np.sqrt(num / np.maximum(den, 1e-300)) * f
+    den = Ea[..., 0] ** 2 + Ea[..., 1] ** 2 + Eb[..., 0] ** 2 + Eb[..., 1] ** 2
+    return np.sum(b * Ea, axis=-1) / np.sqrt(np.maximum(den, 1e-300)) * f
 
 
 def measure_pair(path_a: Path, path_b: Path, cam_a, cam_b, max_side: int = MAX_SIDE,
@@ -338,6 +345,10 @@ LATENCY_RANGE_S = 0.1        # time offsets scanned: +-100 ms
 LATENCY_WARN_S = 0.015       # warn above 15 ms with a clear minimum (see latency_check)
 CLEAR_SIGMAS = 2.5           # "clear minimum": the estimate this many of its sigmas away from the given value
 CLEAR_GAIN = 0.02            # and its truncated-mean Sampson error >= 2 % below the given value's
+PP_RANGE_REL = 0.05          # principal-point offsets scanned: +- this x the image's longer side (+-16 px at 320)
+PP_COARSE_STEPS = 8          # grid steps each way (2 px at 320x240) for the start of the joint fit
+GN_ITERS = 10                # Gauss-Newton steps of the joint fit (focal scale, principal point) at most
+PP_WARN_REL = 0.01           # warn above this x the focal length (px), with a clear minimum (see intrinsics_check)
 FIT_FLOOR_FACTOR = 1.0       # the focal explains the misfit only if, scaled, the poses fit: Sampson median <=
 #                              the matches' own noise floor (or half the warning level); else the poses are off
 #                              and the focal scale absorbs their errors (measured: s = 0.80-1.08 with 3 mm /
@@ -349,6 +360,38 @@ def _truncated(errors: list[np.ndarray]) -> list[np.ndarray]:
     return [np.minimum(e, TRUNC_PX) for e in errors]
 
 
+def _tmean(errors: list[np.ndarray]) -> float:
+    """The statistic the scans minimise: the mean over the pairs of each pair's truncated-mean error (px)."""
+    return float(np.mean([e.mean() for e in _truncated(errors)]))
+
+
+def _score(errors_at: Callable, values: list) -> tuple[list[np.ndarray], np.ndarray]:
+    """Each pair's truncated Sampson errors at every value ([K, N_p] per pair) and the score per value [K]:
+    the mean over the pairs of each pair's truncated mean."""
+    E = [np.stack(z) for z in zip(*[_truncated(errors_at(v)) for v in values])]
+    return E, np.mean([e.mean(axis=1) for e in E], axis=0)
+
+
+def _bootstrap_argmin(E: list[np.ndarray], seed: int) -> np.ndarray:
+    """The index of the best of K values [BOOTSTRAP] in each bootstrap resample of the per-pair errors E
+    ([K, N_p] per pair; `_score`): pairs resampled first (a pose error of one view moves a whole pair),
+    then the matches within each."""
+    boot = np.zeros((E[0].shape[0], BOOTSTRAP))
+    for e, w in zip(E, _bootstrap_weights([e.shape[1] for e in E], seed)):
+        boot += e @ w
+    return np.argmin(boot, axis=0)
+
+
+def _bootstrap_weights(sizes: list[int], seed: int) -> list[np.ndarray]:
+    """Per pair of `sizes[p]` matches, each match's weight [N_p, BOOTSTRAP] in each resample of a mean over
+    the pairs of per-pair means: pairs resampled first, then the matches within each (weights sum to 1)."""
+    rng = np.random.default_rng(seed)
+    P = len(sizes)
+    pair_w = rng.multinomial(P, np.full(P, 1.0 / P), size=BOOTSTRAP).T / P          # [P, B]
+    return [rng.multinomial(n, np.full(n, 1.0 / n), size=BOOTSTRAP).T / n * pair_w[p]   # [N_p, B]
+            for p, n in enumerate(sizes)]
+
+
 def _scan(errors_at: Callable[[float], list[np.ndarray]], coarse: np.ndarray, fine_step: float,
           given: float, seed: int = 0) -> dict:
     """Minimise the mean over the pairs of each pair's truncated-mean Sampson error (px) over a parameter:
@@ -358,8 +401,7 @@ def _scan(errors_at: Callable[[float], list[np.ndarray]], coarse: np.ndarray, fi
     (its error is reported, and the gain). Returns value, sigma, error_px_given, error_px_best, curve
     (coarse values and errors), the fine grid's edges."""
     def score(vals):
-        E = [np.stack(z) for z in zip(*[_truncated(errors_at(float(v))) for v in vals])]  # per pair [K, N_p]
-        return E, np.mean([e.mean(axis=1) for e in E], axis=0)
+        return _score(errors_at, [float(v) for v in vals])
 
     _, sc = score(coarse)
     k = int(np.argmin(sc))
@@ -374,15 +416,7 @@ def _scan(errors_at: Callable[[float], list[np.ndarray]], coarse: np.ndarray, fi
         den = y0 - 2 * y1 + y2
         if den > 0:
             best += float(np.clip(0.5 * (y0 - y2) / den, -0.5, 0.5)) * fine_step
-    rng = np.random.default_rng(seed)
-    P = len(E)
-    pair_w = rng.multinomial(P, np.full(P, 1.0 / P), size=BOOTSTRAP).T / P          # [P, B]
-    boot = np.zeros((len(fine), BOOTSTRAP))
-    for p, e in enumerate(E):
-        n = e.shape[1]
-        w = rng.multinomial(n, np.full(n, 1.0 / n), size=BOOTSTRAP).T / n          # [N_p, B]
-        boot += (e @ w) * pair_w[p]
-    picks = fine[np.argmin(boot, axis=0)]
+    picks = fine[_bootstrap_argmin(E, seed)]
     eg, eb = errors_at(float(given)), errors_at(best)
     err_given = float(np.mean([e.mean() for e in _truncated(eg)]))
     err_best = float(np.mean([e.mean() for e in _truncated(eb)]))
@@ -404,10 +438,143 @@ def _scaled_camera(cam, s: float):
     return replace(cam, K=K)
 
 
+def _principal_point_start(measures: list[tuple[int, int, PairMeasure]], rel: list[np.ndarray], s: float) -> np.ndarray:
+    """The principal-point offset (dcx, dcy) (px of the full-size cameras, added to every camera's cx, cy;
+    focal lengths times `s`) of least truncated-mean Sampson error (`_score`) on a grid of +-PP_RANGE_REL x
+    the longer image side (PP_COARSE_STEPS steps each way), the relative poses `rel` (camera a -> b) held
+    fixed: where `_intrinsics_fit` starts. Moving the principal point by dc reads every pixel at uv - dc,
+    so the rays are taken to first order in dc here (their derivative in the pixel, central differences):
+    exact without lens distortion, and the grid only has to land in the right basin."""
+    base = []
+    for (_, _, m), T_ba in zip(measures, rel):
+        per_cam = []
+        for uv, cam in ((m.ua, m.cam_a), (m.ub, m.cam_b)):
+            c = _scaled_camera(cam, s)
+            dx = (_rays(uv + [1.0, 0.0], c) - _rays(uv - [1.0, 0.0], c)) / 2.0   # d ray / d u, per point
+            dy = (_rays(uv + [0.0, 1.0], c) - _rays(uv - [0.0, 1.0], c)) / 2.0
+            per_cam.append((_rays(uv, c), dx, dy))
+        base.append((per_cam, T_ba, m.f * s))
+
+    step = _pp_range_px(measures) / PP_COARSE_STEPS
+    ax = np.arange(-PP_COARSE_STEPS, PP_COARSE_STEPS + 1) * step
+    grid = np.array([(x, y) for y in ax for x in ax])            # [K, 2]
+    gx, gy = grid[:, 0, None, None], grid[:, 1, None, None]     # the whole grid at once: [K, N, 2] rays per pair
+    score = np.zeros(len(grid))
+    for ((xa, ax_, ay_), (xb, bx, by)), T_ba, f in base:
+        e = np.abs(_signed_sampson_px(xa - ax_ * gx - ay_ * gy, xb - bx * gx - by * gy, T_ba[:3, :3], T_ba[:3, 3], f))
+        score += np.minimum(e, TRUNC_PX).mean(axis=1) / len(base)   # `_score`'s statistic
+    return grid[int(np.argmin(score))].astype(np.float64)
+
+
+def _pp_range_px(measures: list[tuple[int, int, PairMeasure]]) -> float:
+    """The principal-point offsets searched: +- this many px of the full-size cameras (PP_RANGE_REL)."""
+    return PP_RANGE_REL * float(np.median([max(m.cam_a.width, m.cam_a.height) for _, _, m in measures]))
+
+
+def _gauss_newton(residuals: Callable[[np.ndarray], list[np.ndarray]], start, h, lo, hi, seed: int = 0) -> dict:
+    """Parameters p (within lo..hi) minimising the matches' squared signed Sampson errors `residuals(p)` (per
+    pair, px at the matching resolution; those over TRUNC_PX left out at each step; every pair weighted
+    equally, as in `_score`): Gauss-Newton from `start` (central differences, steps h). 1 sigma of each from
+    the bootstrap of `_scan` (`_bootstrap_weights`), one Gauss-Newton step per resample from the solution.
+    Returns value, sigma and error(p) (per-pair absolute Sampson errors at p)."""
+    h, lo, hi = (np.asarray(v, dtype=np.float64) for v in (h, lo, hi))
+    k_n = len(h)
+
+    def linearise(p: np.ndarray):
+        r = residuals(p)
+        cols = []
+        for k in range(k_n):
+            e = np.zeros(k_n)
+            e[k] = h[k]
+            plus, minus = residuals(p + e), residuals(p - e)
+            cols.append([(a - b) / (2 * h[k]) for a, b in zip(plus, minus)])
+        J = [np.stack([cols[k][q] for k in range(k_n)], axis=1) for q in range(len(r))]   # per pair [N_p, K]
+        return r, J
+
+    def normal(J, r, w):
+        A = sum((Jq * wq[:, None]).T @ Jq for Jq, wq in zip(J, w))
+        return A, sum((Jq * wq[:, None]).T @ rq for Jq, wq, rq in zip(J, w, r))
+
+    p = np.array(start, dtype=np.float64)
+    for _ in range(GN_ITERS):
+        r, J = linearise(p)
+        A, g = normal(J, r, [(np.abs(rq) < TRUNC_PX) / (len(rq) * len(r)) for rq in r])
+        step = -np.linalg.solve(A + 1e-9 * np.diag(np.diag(A)) + 1e-12 * np.eye(k_n), g)
+        p = np.clip(p + step, lo, hi)
+        if np.all(np.abs(step) < 0.01 * h):
+            break
+    r, J = linearise(p)
+    inl = [np.abs(rq) < TRUNC_PX for rq in r]
+    W = _bootstrap_weights([len(rq) for rq in r], seed)
+    picks = []
+    for b in range(BOOTSTRAP):
+        A, g = normal(J, r, [Wq[:, b] * iq for Wq, iq in zip(W, inl)])
+        try:
+            picks.append(p - np.linalg.solve(A, g))
+        except np.linalg.LinAlgError:   # a resample of too few matches: no estimate from it
+            continue
+
+    def error(q) -> list[np.ndarray]:
+        return [np.abs(e) for e in residuals(np.asarray(q, dtype=np.float64))]
+
+    return {"value": p, "sigma": np.std(picks, axis=0) if picks else np.full(k_n, np.inf), "error": error}
+
+
+def _intrinsics_fit(measures: list[tuple[int, int, PairMeasure]], rel: list[np.ndarray], start: np.ndarray,
+                    seed: int = 0) -> dict:
+    """Focal scale s and principal-point offset (dcx, dcy) (px, full size) together, from `start`, the poses
+    `rel` (camera a -> b) held fixed (`_gauss_newton`). The two are estimated together because they trade
+    off: with mostly sideways baselines a cx offset of 5 px moved the focal scan's minimum by 6 %
+    (`bench/pose_checks.py`). Returns `_gauss_newton`'s dict (value [s, dcx, dcy]) and range_px."""
+    rng_px = _pp_range_px(measures)
+
+    def residuals(p: np.ndarray) -> list[np.ndarray]:
+        # the camera with fx, fy times s and cx, cy + dc reads pixel uv as the given camera reads
+        # c + (uv - dc - c) / s (c = cx, cy): no camera to build per evaluation
+        out = []
+        for (_, _, m), T_ba in zip(measures, rel):
+            ca, cb = np.array([m.cam_a.cx, m.cam_a.cy]), np.array([m.cam_b.cx, m.cam_b.cy])
+            xa = _rays(ca + (m.ua - p[1:] - ca) / p[0], m.cam_a)
+            xb = _rays(cb + (m.ub - p[1:] - cb) / p[0], m.cam_b)
+            out.append(_signed_sampson_px(xa, xb, T_ba[:3, :3], T_ba[:3, 3], m.f * p[0]))   # px as in `_scan`
+        return out
+
+    return {**_gauss_newton(residuals, start, [1e-3, 0.1, 0.1], [FOCAL_SCALES[0], -rng_px, -rng_px],
+                            [FOCAL_SCALES[1], rng_px, rng_px], seed), "range_px": rng_px}
+
+
+def _rotation_fit(measures: list[tuple[int, int, PairMeasure]], rel: list[np.ndarray], s: float,
+                  dc: np.ndarray, seed: int = 0) -> dict:
+    """The other explanation of a principal-point offset: every camera turned by one small rotation in its
+    own frame (about x, y; rad) from the poses, as a hand-eye rotation error does. To first order the two
+    are the same (a turn by a moves the image by f a); they differ by ~a u^2 / f towards the image's edges.
+    Fitted (`_gauss_newton`, focal scale s kept) from the turn matching `dc`, either sign. Returns
+    `_gauss_newton`'s dict (value [wx, wy])."""
+    from scipy.spatial.transform import Rotation
+
+    cams = [(_scaled_camera(m.cam_a, s), _scaled_camera(m.cam_b, s)) for _, _, m in measures]
+    rays = [(_rays(m.ua, ca), _rays(m.ub, cb)) for (_, _, m), (ca, cb) in zip(measures, cams)]
+
+    def residuals(p: np.ndarray) -> list[np.ndarray]:
+        E = np.eye(4)
+        E[:3, :3] = Rotation.from_rotvec([p[0], p[1], 0.0]).as_matrix()   # camera' = camera @ E
+        out = []
+        for (_, _, m), T_ba, (xa, xb) in zip(measures, rel, rays):
+            T = E.T @ T_ba @ E
+            out.append(_signed_sampson_px(xa, xb, T[:3, :3], T[:3, 3], m.f * s))
+        return out
+
+    f = float(np.median([c.fx for c, _ in cams]))
+    lim = np.radians(10.0)
+    starts = [np.zeros(2), np.array([dc[1], -dc[0]]) / f, np.array([-dc[1], dc[0]]) / f]
+    start = min(starts, key=lambda q: _tmean([np.abs(e) for e in residuals(q)]))
+    return _gauss_newton(residuals, start, [1e-4, 1e-4], [-lim, -lim], [lim, lim], seed)
+
+
 def intrinsics_check(measures: list[tuple[int, int, PairMeasure]], T_world_cam: Sequence[np.ndarray],
                      where: Path | str | None = None, seed: int = 0) -> dict | None:
-    """The focal-length scale s (fx and fy times s, the principal point kept) under which the matched near
-    pairs best fit the epipolar geometry of the poses T_world_cam, held fixed: a scan of s over
+    """The focal-length scale s (fx and fy times s) and the principal-point offset under which the matched
+    near pairs best fit the epipolar geometry of the poses T_world_cam, held fixed: a scan of s over
     FOCAL_SCALES (`_scan`: truncated-mean Sampson error, px at the matching resolution), the matches
     re-normalised through the scaled cameras (`capture.undistort.rays_through`, the distortion kept).
     Verdict "warn" when |s - 1| > FOCAL_WARN_REL with a clear minimum (s at least CLEAR_SIGMAS of its
@@ -416,11 +583,24 @@ def intrinsics_check(measures: list[tuple[int, int, PairMeasure]], T_world_cam: 
     consistency warns), else "ok"; None without MIN_PAIRS pairs. `where`: the intrinsics' source, for the
     record and the warning.
 
+    Then the principal point (`_principal_point_start`, `_intrinsics_fit`): the offset (dcx, dcy) (px of the
+    full-size cameras, added to cx, cy) fitted together with the focal scale, since the two trade off. Its
+    verdict: "warn" when |dc| > PP_WARN_REL x fx with a clear minimum (CLEAR_SIGMAS of its bootstrap
+    sigma, CLEAR_GAIN), "undetermined" when the poses do not fit even at it, or when every camera turned by
+    one small rotation in its own frame (`_rotation_fit`: a hand-eye rotation error, the same to first
+    order) fits as well, else "ok". Where the offset fits better than the turn, the focal scale reported is
+    the joint fit's (the scan's, at the principal point as given, absorbs the offset: a cx 5 px off read
+    s = 1.063), and the poses fit at it.
+
     Measured on the embedded scene as a TUM capture (320x240, f = 307.5 px, 8 near pairs, exact poses):
     focal given x1.00 / 1.01 / 1.02 / 1.05 / 0.98 -> s = 1.001 / 0.992 / 0.982 / 0.954 / 1.022 (true 1 /
     0.990 / 0.980 / 0.952 / 1.020), bootstrap sigma ~0.004 (`bench/pose_checks.py`); the 1.5 % threshold is
     above 2.5 sigma there, so 2 %
-    errors warn and 1 % ones do not (their depth error, 1 %, is below the depth check's 5 % band too)."""
+    errors warn and 1 % ones do not (their depth error, 1 %, is below the depth check's 5 % band too).
+    Principal point moved by 5 / 10 px in x: found -4.9 / -9.9 px (sigma 0.2), in y: -4.5 / -9.5 (sigma 0.8;
+    +0.4 px with the true one), by (-7, +6): (+7.2, -5.5), all warned (3.1 px threshold); 2 px: not warned
+    (x: undetermined, a turn fits as well; y: ok); a 1 cm / 2 deg hand-eye error, whose turn a principal
+    point offset of 10-14 px imitates: undetermined in 3 of 3 seeds (the turn fits better), no warning."""
     measures = [(i, j, m) for i, j, m in measures if m.ua is not None and m.cam_a is not None]
     if len(measures) < MIN_PAIRS:
         return None
@@ -442,8 +622,37 @@ def intrinsics_check(measures: list[tuple[int, int, PairMeasure]], T_world_cam: 
     fx = float(np.median([m.cam_a.fx for _, _, m in measures]))
     f = float(np.median([m.f for _, _, m in measures]))
     floor = float(np.median([m.floor_px for _, _, m in measures]))
-    fits = r["median_px_best"] <= max(FIT_FLOOR_FACTOR * floor, 0.5 * WARN_MRAD * f / 1000.0)
+    # the principal point, with the focal scale again: the two trade off (`_intrinsics_fit`)
+    scan_s = s
+    j = _intrinsics_fit(measures, rel, np.r_[s, _principal_point_start(measures, rel, s)], seed)
+    sj, dc, sj_sig, dsig = float(j["value"][0]), j["value"][1:], float(j["sigma"][0]), j["sigma"][1:]
+    e_best, e_pp_given = j["error"](j["value"]), j["error"]([sj, 0.0, 0.0])
+    pp_gain = 1.0 - _tmean(e_best) / max(_tmean(e_pp_given), 1e-12)
+    pp_clear = float(np.hypot(*(dc / np.maximum(dsig, 0.05)))) >= CLEAR_SIGMAS and pp_gain >= CLEAR_GAIN
+    pp_warn_px = PP_WARN_REL * fx
+    med_best = float(np.median([np.median(e) for e in e_best]))
+    fit_px = max(FIT_FLOOR_FACTOR * floor, 0.5 * WARN_MRAD * f / 1000.0)
+    fits = r["median_px_best"] <= fit_px   # at the focal scan's best, the principal point as given
+    rot, turn_as_good = None, False
+    if pp_clear and med_best <= fit_px:
+        # the poses fit once the principal point moves; a turn of every camera in its own frame (a hand-eye
+        # rotation error) would do the same to first order: the offset counts only where it fits better
+        rot = _rotation_fit(measures, rel, sj, dc, seed)
+        turn_as_good = _tmean(rot["error"](rot["value"])) <= _tmean(e_best)
+    pp_explains = pp_clear and med_best <= fit_px and not turn_as_good
+    if pp_explains:   # the focal at the principal point found: the scan's, at the one given, absorbed the
+        #               offset (a cx 2-5 px off moved it by 0.5-6 %); else the scan's (its sigma about half)
+        fits = True
+        e_f_given = j["error"]([1.0, *dc])
+        s, sig = sj, sj_sig
+        clear = abs(s - 1.0) >= CLEAR_SIGMAS * max(sig, 1e-4) and \
+            1.0 - _tmean(e_best) / max(_tmean(e_f_given), 1e-12) >= CLEAR_GAIN
+        r = {**r, "error_px_best": _tmean(e_best), "median_px_best": med_best}
     verdict = "undetermined" if not fits else "warn" if abs(s - 1.0) > FOCAL_WARN_REL and clear else "ok"
+    pp_verdict = ("warn" if pp_explains and float(np.hypot(*dc)) > pp_warn_px else
+                  "ok" if pp_explains or (fits and not pp_clear) else "undetermined")
+    cx = float(np.median([m.cam_a.cx for _, _, m in measures]))
+    cy = float(np.median([m.cam_a.cy for _, _, m in measures]))
     return {"verdict": verdict, "poses_fit": bool(fits),
             "focal_scale": round(s, 4), "focal_scale_sigma": round(sig, 4), "clear_minimum": bool(clear),
             "focal_px_given": round(fx, 2), "focal_px_best": round(fx * s, 2),
@@ -453,7 +662,23 @@ def intrinsics_check(measures: list[tuple[int, int, PairMeasure]], T_world_cam: 
             "sampson_median_px_best": round(r["median_px_best"], 3),
             "warn_rel": FOCAL_WARN_REL, "pairs": len(measures),
             "intrinsics_file": None if where is None else str(where),
-            "curve_scale_error_px": r["curve"]}
+            "curve_scale_error_px": r["curve"],
+            "principal_point_verdict": pp_verdict,
+            "principal_point_offset_px": [round(float(v), 2) for v in dc],
+            "principal_point_sigma_px": [round(float(v), 2) for v in dsig],
+            "principal_point_clear_minimum": bool(pp_clear),
+            "principal_point_px_given": [round(cx, 2), round(cy, 2)],
+            "principal_point_px_best": [round(cx + float(dc[0]), 2), round(cy + float(dc[1]), 2)],
+            "principal_point_error_px_given": round(_tmean(e_pp_given), 4),
+            "principal_point_error_px_best": round(_tmean(e_best), 4),
+            "principal_point_sampson_median_px_best": round(med_best, 3),
+            "principal_point_warn_px": round(pp_warn_px, 2),
+            "principal_point_range_px": round(j["range_px"], 2),
+            "principal_point_turn_as_good": bool(turn_as_good),
+            "principal_point_turn_deg": None if rot is None else [round(float(np.degrees(v)), 3) for v in rot["value"]],
+            "principal_point_turn_error_px": None if rot is None else round(_tmean(rot["error"](rot["value"])), 4),
+            "focal_scale_scan": round(scan_s, 4), "focal_scale_joint": round(sj, 4),
+            "focal_scale_joint_sigma": round(sj_sig, 4)}
 
 
 def intrinsics_message(c: dict) -> str:
@@ -468,6 +693,26 @@ def intrinsics_message(c: dict) -> str:
             f"scales depth by as much and misplaces objects: re-calibrate "
             f"the camera (the intrinsics of the stream the images come from, at this resolution) or correct fx/fy "
             f"in the intrinsics file")
+
+
+def principal_point_message(c: dict) -> str:
+    """The warning for an `intrinsics_check` principal_point_verdict "warn"."""
+    where = c.get("intrinsics_file")
+    (dx, dy), (sx, sy) = c["principal_point_offset_px"], c["principal_point_sigma_px"]
+    (gx, gy), (bx, by) = c["principal_point_px_given"], c["principal_point_px_best"]
+    mrad = 1000.0 * float(np.hypot(dx, dy)) / c["focal_px_given"]
+    turn = c.get("principal_point_turn_error_px")
+    return (f"the camera's principal point{f' ({where})' if where else ''} looks off: with the poses held fixed, "
+            f"the matched features of {c['pairs']} image pairs fit the epipolar geometry best with it moved by "
+            f"({dx:+.1f}, {dy:+.1f}) px (+-{sx:.1f}, +-{sy:.1f}): cx, cy ({gx:.1f}, {gy:.1f}) -> ({bx:.1f}, "
+            f"{by:.1f}) px at full size, pixel centres at +0.5 (error {c['principal_point_error_px_given']:.3f} -> "
+            f"{c['principal_point_error_px_best']:.3f} px"
+            + (f"; every camera turned instead, as by a hand-eye rotation error: {turn:.3f} px" if turn is not None
+               else "")
+            + f"). A principal point off by {np.hypot(dx, dy):.1f} px turns every camera ray by {mrad:.0f} mrad "
+            f"(~{mrad:.0f} mm per metre of distance) and misplaces objects: re-calibrate the camera (the "
+            f"intrinsics of the stream the images come from, at this resolution) or correct cx/cy in the intrinsics "
+            f"file (the image centre given for the calibrated principal point is a common cause)")
 
 
 def latency_check(measures: list[tuple[int, int, PairMeasure]],
