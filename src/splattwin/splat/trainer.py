@@ -353,6 +353,12 @@ class CheckpointMismatch(InputError):
     """A checkpoint that was made by another run (other options or data): not resumed."""
 
 
+class TrainingDiverged(RuntimeError):
+    """Training produced NaN or infinite values (a non-finite loss, or non-finite model parameters): the
+    run stops at once and saves nothing non-finite, so its newest checkpoint stays resumable. Not an
+    `InputError`: the inputs were valid when loaded (the CLI reports it as an internal error, exit 1)."""
+
+
 class Trainer:
     """Holds the state of one training run; `run()` trains (or resumes) to `cfg.iters`.
 
@@ -580,7 +586,36 @@ class Trainer:
         torch.set_rng_state(sd["torch_rng"])
         self.step = int(sd["step"])
 
+    def _nonfinite_params(self) -> str:
+        """Which model parameters hold NaN or infinite values, for an error message ("" when none): name,
+        how many Gaussians, the first one's row."""
+        parts = []
+        with torch.no_grad():
+            for k, t in self.model.params.items():
+                bad = ~torch.isfinite(t).reshape(t.shape[0], -1).all(dim=1)
+                n = int(bad.sum())
+                if n:
+                    parts.append(f"{k} ({n} of {t.shape[0]} Gaussians, first at row {int(bad.nonzero()[0, 0])})")
+        return ", ".join(parts)
+
+    def _diverged(self, what: str) -> TrainingDiverged:
+        ckpts = _checkpoints(self.out_dir)
+        keep = (f"the newest checkpoint, {ckpts[-1]}, is finite" if ckpts else "no checkpoint was saved")
+        return TrainingDiverged(f"training diverged: {what}; stopped (nothing non-finite is saved: {keep}). "
+                                f"Lower the learning rates, or report it with the command and data")
+
+    def check_finite(self) -> None:
+        """TrainingDiverged if a model parameter is NaN or infinite. Called before every checkpoint and after
+        the last step: the CPU rasterizer silently skips Gaussians with non-finite geometry, so such a
+        parameter leaves the loss finite and would otherwise surface only when the splat is written."""
+        bad = self._nonfinite_params()
+        if bad:
+            raise self._diverged(f"non-finite model parameters after step {self.step}: {bad}")
+
     def save_checkpoint(self) -> Path:
+        # never write a non-finite state: `check_state` refuses it on --resume, and only the 2 newest
+        # checkpoints are kept, so non-finite ones would replace the last good ones
+        self.check_finite()
         path = self.out_dir / CKPT_DIR / f"ckpt_{self.step:06d}{ckpt_io.SUFFIX}"
         ckpt_io.save(path, self.state_dict())
         for old in _checkpoints(self.out_dir)[:-2]:
@@ -659,6 +694,14 @@ class Trainer:
         if cfg.opacity_reg > 0:  # gsplat's opacity_reg: mean opacity, fewer semi-transparent layers
             loss = loss + cfg.opacity_reg * torch.sigmoid(self.model.params["opacities"]).mean()
         s = self.step + 1
+        loss_value = float(loss.detach())
+        if not math.isfinite(loss_value):
+            # before backward and the optimizer step: one NaN colour poisons the pixels it covers, then every
+            # gradient there, and Adam writes NaN into every Gaussian those pixels see (the run went on to
+            # its end with nothing drawn right, then failed to save)
+            bad = self._nonfinite_params()
+            raise self._diverged(f"the loss of step {s} (view {view.name!r}) is {loss_value}"
+                                 + (f"; non-finite model parameters: {bad}" if bad else ""))
         cam = view.camera  # at this step's coarse-to-fine level: means2d gradients are in its pixels
         hook_info = {**meta, "width": cam.width, "height": cam.height, "view": idx, "iters": cfg.iters,
                      "generator": self.split_gen}
@@ -676,7 +719,7 @@ class Trainer:
                 self.poses.remove_common_motion(self.viewmats)
         sq = (img.detach() - gt) ** 2
         mse = float(sq.mean()) if view.mask is None else float((sq * view.mask).sum() / (3 * view.mask.sum()).clamp_min(1))
-        info = {"step": s, "loss": float(loss.detach()), "psnr": psnr_from_mse(mse)}
+        info = {"step": s, "loss": loss_value, "psnr": psnr_from_mse(mse)}
         stats = self.strategy.step_post_backward(self.model, self.strategy_state, s, hook_info)
         info.update(stats, n=len(self.model), densified=bool(stats))
         if cfg.robust_quantile > 0:
@@ -770,6 +813,7 @@ class Trainer:
                         log.warning("interrupted at step %d: saved %s; run again with --resume to continue "
                                     "(build: run it again)", self.step, path)
                     raise KeyboardInterrupt
+        self.check_finite()  # a clear error here, not a "non-finite means" when the splat is written
         if cfg.checkpoint_every and self.step % cfg.checkpoint_every != 0:
             self.save_checkpoint()  # so that --resume on a finished run does no work
 
