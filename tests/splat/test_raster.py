@@ -100,6 +100,31 @@ def test_cpu_edge_cases_behind_offscreen_degenerate_and_empty_tiles():
     assert torch.isfinite(gc["scales"]).all() and torch.isfinite(gc["quats"]).all()
 
 
+def test_huge_gaussians_saturate_their_radius_and_still_cover_the_image():
+    # 3-sigma radii beyond int32 (2.4e10 px here: a 1e8 m scale, as in an untrusted PLY, or a Gaussian at the
+    # near plane) used to wrap round (reference -2147483648, CPU -1769801390): neither backend drew the
+    # Gaussian covering the image, and visibility said it was off-screen.
+    W, H = 40, 30
+    K = torch.tensor([[[40.0, 0, 20.0], [0, 40.0, 15.0], [0, 0, 1.0]]], dtype=DT)
+    means = torch.tensor([[0.0, 0.0, 0.5], [0.0, 0.0, 0.6]], dtype=DT)
+    scales = torch.tensor([[1e8, 1e8, 1e8], [1e6, 1e6, 1e6]], dtype=DT)
+    quats = torch.tensor([[1.0, 0, 0, 0]] * 2, dtype=DT)
+    opac = torch.tensor([0.5, 0.8], dtype=DT)
+    cols = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=DT)
+    out = {}
+    for be in ("reference", "cpu"):
+        img, alpha, meta = rasterization(means, quats, scales, opac, cols, torch.eye(4, dtype=DT)[None], K, W, H,
+                                         backend=be)
+        r = meta["radii"][0].tolist()  # the first saturates at reference.RADIUS_MAX
+        assert r[0] == 2 ** 30 and abs(r[1] - 2e8) <= 20, (be, r)  # saturated; the other (2e8: float32 on the CPU) as is
+        assert meta["visibility"][0].all(), be
+        out[be] = img
+        # front (z 0.5, opacity 0.5) over the back (0.8): alpha 1 - 0.5 * 0.2 = 0.9 on every pixel
+        assert torch.allclose(alpha, torch.full_like(alpha, 0.9), atol=1e-6), be
+        assert torch.allclose(img[0], torch.tensor([0.5, 0.4, 0.0], dtype=DT).expand(H, W, 3), atol=1e-6), be
+    assert torch.allclose(out["reference"], out["cpu"], atol=1e-6)
+
+
 def test_zero_quaternions_render_as_identity_on_both_backends():
     # A zero quaternion is normalised with the norm clamped at 1e-12 (torch's F.normalize, as gsplat's
     # PyTorch implementation): the identity rotation, on both backends, forward and backward.

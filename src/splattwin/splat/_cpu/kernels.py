@@ -32,6 +32,8 @@ from numba import types as _nbt
 from numba.core import cgutils as _cgutils
 from numba.extending import intrinsic as _intrinsic
 
+from splattwin.splat.reference import RADIUS_MAX  # box half-sizes saturate there (int32 extents)
+
 TILE = 16
 ALPHA_MAX = 0.99
 ALPHA_MIN = 1.0 / 255.0
@@ -153,8 +155,8 @@ def project_fwd(means, quats, scales, viewmat, fx, fy, cx, cy, width, height, ep
             conics[i, 0] = cc / det
             conics[i, 1] = -cb / det
             conics[i, 2] = ca / det
-            rx = math.ceil(EXTENT * math.sqrt(ca))
-            ry = math.ceil(EXTENT * math.sqrt(cc))
+            rx = min(math.ceil(EXTENT * math.sqrt(ca)), RADIUS_MAX)  # saturated: int32 extents
+            ry = min(math.ceil(EXTENT * math.sqrt(cc)), RADIUS_MAX)
             u, v = means2d[i, 0], means2d[i, 1]
             if u + rx > 0 and u - rx < width and v + ry > 0 and v - ry < height and rx > 0 and ry > 0:
                 extents[i, 0] = rx
