@@ -293,6 +293,24 @@ def test_mixed_dtypes_are_cast_to_the_means_dtype_on_every_backend():
     assert img64.dtype == torch.float64
 
 
+def test_near_and_far_planes_are_checked():
+    # A near plane <= 0 let Gaussians behind the camera through: projected mirrored, and ordered by the CPU's
+    # float32-bit-pattern depth sort (valid for positive depths only) differently from the reference
+    # (0.04 apart on this scene); near >= far silently rendered nothing.
+    inputs, K = _scene(n=30, C=1, seed=50, K_sh=1)
+    inputs[0][:15, 2] -= 2.6  # behind the camera
+    args = (*inputs[:6], K, 40, 30)
+    for near, far, what in [(-5.0, 1e10, "near_plane"), (0.0, 1e10, "near_plane"), (math.nan, 1e10, "near_plane"),
+                            (math.inf, math.inf, "near_plane"), (3.0, 1.0, "far_plane"), (0.5, 0.5, "far_plane"),
+                            (0.5, math.nan, "far_plane")]:
+        for be in ("reference", "cpu"):
+            with pytest.raises(ValueError, match=what):
+                rasterization(*args, sh_degree=0, backend=be, near_plane=near, far_plane=far)
+    img_r, _, _ = rasterization(*args, sh_degree=0, backend="reference", near_plane=1e-6, far_plane=math.inf)
+    img_c, _, _ = rasterization(*args, sh_degree=0, backend="cpu", near_plane=1e-6, far_plane=math.inf)
+    assert torch.allclose(img_r, img_c, atol=5e-5) and img_r.max() > 0.3
+
+
 def test_rasterization_docstring_states_the_cpu_precision():
     doc = " ".join(rasterization.__doc__.split())
     assert "float32 whatever the input dtype" in doc and 'backend="reference"' in doc and "gradcheck" in doc
