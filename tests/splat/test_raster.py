@@ -125,6 +125,29 @@ def test_huge_gaussians_saturate_their_radius_and_still_cover_the_image():
     assert torch.allclose(out["reference"], out["cpu"], atol=1e-6)
 
 
+def test_non_finite_opacities_are_never_drawn_on_either_backend():
+    # A NaN opacity was binned on the CPU (its alpha tests all fail, so it drew nothing) and came back as a NaN
+    # opacity gradient; on the reference it made the gradients of every Gaussian NaN. An infinite one drew
+    # alpha 0.99 over its whole box on the reference and nothing on the CPU. Now both: not drawn, zero
+    # gradients - the same render and gradients as without that Gaussian.
+    inputs, K = _scene(n=40, C=1, seed=5, K_sh=4)
+    inputs[0][:, :2] *= 0.3  # overlapping: the Gaussian sits among the others
+    keep = torch.arange(40) >= 2
+    without = [t[keep] if i < 5 else t for i, t in enumerate(inputs)]
+    for be in ("reference", "cpu"):
+        i0, a0, _, g0 = _run(be, without, K, 40, 30, sh_degree=1)
+        bad = [t.clone() for t in inputs]
+        bad[3][:2] = torch.tensor([math.nan, math.inf], dtype=DT)
+        i1, a1, m1, g1 = _run(be, bad, K, 40, 30, sh_degree=1)
+        assert torch.allclose(i1, i0, atol=1e-6) and torch.allclose(a1, a0, atol=1e-6), be
+        for n in NAMES:
+            assert torch.isfinite(g1[n]).all(), (be, n)
+            g = g1[n][keep] if n not in ("viewmats", "backgrounds") else g1[n]
+            assert torch.allclose(g, g0[n], rtol=1e-5, atol=1e-5), (be, n)
+        assert torch.all(g1["opacities"][:2] == 0) and torch.all(g1["colors"][:2] == 0), be
+    assert i0.max() > 0.3  # the scene is not empty
+
+
 def test_zero_quaternions_render_as_identity_on_both_backends():
     # A zero quaternion is normalised with the norm clamped at 1e-12 (torch's F.normalize, as gsplat's
     # PyTorch implementation): the identity rotation, on both backends, forward and backward.

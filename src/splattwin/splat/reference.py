@@ -13,7 +13,8 @@ the exact semantics every backend follows (those of 3DGS / gsplat):
 * A Gaussian touches pixel (i, j) only if the pixel centre (j + 0.5, i + 0.5) is within its box
   |u - mean_u| <= rx, |v - mean_v| <= ry; this makes the result independent of the tile size.
 * Compositing front to back in depth order (camera z, ties by index):
-  alpha = min(0.99, o * exp(-sigma)), sigma = 0.5 (a dx^2 + c dy^2) + b dx dy >= 0, skipped if alpha < 1/255;
+  alpha = min(0.99, o * exp(-sigma)), sigma = 0.5 (a dx^2 + c dy^2) + b dx dy >= 0, skipped if alpha < 1/255
+  (a NaN or infinite opacity o: never drawn);
   a pixel stops before the Gaussian that would bring its transmittance below 1e-4.
   colour = sum_i c_i alpha_i T_i + T_final * background, alpha = 1 - T_final.
 
@@ -159,6 +160,9 @@ def rasterize(means2d: torch.Tensor, conics: torch.Tensor, colors: torch.Tensor,
         order = vis[torch.argsort(depths[ci, vis].detach(), stable=True)]
         m2, co, cl = means2d[ci, order], conics[ci, order], colors[ci, order]
         op = (opacities if opacities.ndim == 1 else opacities[ci])[order]
+        # a NaN or infinite opacity is never drawn (zero, not NaN, gradients): alpha would be NaN, or 0.99 over
+        # the whole box for +inf
+        op = torch.where(torch.isfinite(op), op, torch.zeros_like(op))
         ex = extents[ci, order].to(dt)
         outs, Ts = [], []
         for s in range(0, width * height, chunk_pixels):

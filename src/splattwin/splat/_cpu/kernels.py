@@ -487,8 +487,10 @@ def make_records(means2d, conics, colors, opacities, extents, width, height, rec
         rec[i, R_Y0] = 0.0
         rec[i, R_Y1] = -1.0
         det = ca * cc - cb * cb
-        # alpha < 1/255 everywhere, or a conic that is not positive definite: never drawn
-        if rx == 0 or op * 255.0 < 1.0 or not (ca > 0.0 and det > 0.0):
+        # alpha < 1/255 everywhere, a NaN or infinite opacity (never drawn, as the reference: binned, a NaN one
+        # sent NaN into the fastmath kernels and came back as a NaN opacity gradient), or a conic that is not
+        # positive definite: never drawn
+        if rx == 0 or not (1.0 <= op * 255.0 < math.inf) or not (ca > 0.0 and det > 0.0):
             continue
         two_level = 2.0 * math.log(op * 255.0)
         rx = min(rx, math.sqrt(two_level * cc / det) + 0.01)  # sigma_xx = c / det of the conic
