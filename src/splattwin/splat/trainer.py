@@ -349,6 +349,15 @@ def options_diff(old: dict, new: dict, keys: list[str], shown: int = 4) -> str:
     return ", ".join(parts)
 
 
+def _moving_average(avg: float, x: float) -> float:
+    """The training curve's moving average (0.9 old + 0.1 new; NaN: none yet) after the step figure x. A
+    non-finite x leaves it unchanged: one view whose loss mask ignores every pixel (PSNR +inf: mse 0) made
+    the PSNR average +inf for the rest of the run (train.json's train_psnr null, the curve empty)."""
+    if not math.isfinite(x):
+        return avg
+    return x if math.isnan(avg) else 0.9 * avg + 0.1 * x
+
+
 class CheckpointMismatch(InputError):
     """A checkpoint that was made by another run (other options or data): not resumed."""
 
@@ -718,8 +727,12 @@ class Trainer:
                 # 1.4 deg left after 150 passes, vs 0.04 deg when applied once per pass)
                 self.poses.remove_common_motion(self.viewmats)
         sq = (img.detach() - gt) ** 2
-        mse = float(sq.mean()) if view.mask is None else float((sq * view.mask).sum() / (3 * view.mask.sum()).clamp_min(1))
-        info = {"step": s, "loss": loss_value, "psnr": psnr_from_mse(mse)}
+        if view.mask is None:
+            psnr = psnr_from_mse(float(sq.mean()))
+        else:  # NaN (not measured) for a view whose mask ignores every pixel: mse 0 / 1 gave +inf
+            kept = view.mask.sum()
+            psnr = psnr_from_mse(float((sq * view.mask).sum() / (3 * kept))) if kept > 0 else math.nan
+        info = {"step": s, "loss": loss_value, "psnr": psnr}
         stats = self.strategy.step_post_backward(self.model, self.strategy_state, s, hook_info)
         info.update(stats, n=len(self.model), densified=bool(stats))
         if cfg.robust_quantile > 0:
@@ -795,9 +808,8 @@ class Trainer:
                 DeferredInterrupt("this training step") as interrupt:
             while self.step < cfg.iters:
                 info = self.train_step()
-                ema_loss = info["loss"] if math.isnan(self.ema_loss) else 0.9 * self.ema_loss + 0.1 * info["loss"]
-                ema_psnr = info["psnr"] if math.isnan(self.ema_psnr) else 0.9 * self.ema_psnr + 0.1 * info["psnr"]
-                self.ema_loss, self.ema_psnr = ema_loss, ema_psnr
+                ema_loss = self.ema_loss = _moving_average(self.ema_loss, info["loss"])
+                ema_psnr = self.ema_psnr = _moving_average(self.ema_psnr, info["psnr"])
                 if self.step % 10 == 0 or self.step == cfg.iters or info["densified"]:
                     self.history.append({"step": self.step, "loss": round(ema_loss, 6),
                                          "psnr": round(ema_psnr, 3), "n": info["n"]})
