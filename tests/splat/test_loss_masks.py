@@ -109,6 +109,22 @@ def test_training_ignores_the_colours_of_masked_pixels(tmp_path):
     assert rec["ignored_share"][ds.train()[0].name] == pytest.approx(1 - keep.mean(), abs=1e-4)
 
 
+def test_a_view_whose_mask_ignores_every_pixel_leaves_the_psnr_curve_finite(tmp_path):
+    """Such a view measures no pixel: its step PSNR was +inf (mse 0), and the moving average kept +inf for the
+    rest of the run (history psnr inf, train.json's train_psnr null). It is now not measured (NaN) and the
+    average skips it."""
+    root = make_dataset(tmp_path / "ds")
+    ds = load_dataset(root)
+    f = ds.train()[0]
+    add_masks(root, {f.name: np.zeros((f.camera.height, f.camera.width), bool)})
+    res = Trainer(load_dataset(root), tmp_path / "out", tiny_config(iters=40)).run()
+    psnrs = [h["psnr"] for h in res.history]
+    assert len(psnrs) == 4 and all(np.isfinite(psnrs)) and min(psnrs) > 10, psnrs
+    assert res.final_psnr is not None and 10 < res.final_psnr < 60
+    rec = json.loads((tmp_path / "out" / "train.json").read_text())
+    assert rec["train_psnr"] == pytest.approx(res.final_psnr) and rec["loss_masks"]["ignored_share"][f.name] == 1.0
+
+
 # -- the mask file ----------------------------------------------------------------------------------------
 def test_a_mask_of_the_wrong_size_is_refused_naming_it(tmp_path):
     root = make_dataset(tmp_path / "ds", n_train=2, n_heldout=1)

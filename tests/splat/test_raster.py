@@ -100,6 +100,54 @@ def test_cpu_edge_cases_behind_offscreen_degenerate_and_empty_tiles():
     assert torch.isfinite(gc["scales"]).all() and torch.isfinite(gc["quats"]).all()
 
 
+def test_huge_gaussians_saturate_their_radius_and_still_cover_the_image():
+    # 3-sigma radii beyond int32 (2.4e10 px here: a 1e8 m scale, as in an untrusted PLY, or a Gaussian at the
+    # near plane) used to wrap round (reference -2147483648, CPU -1769801390): neither backend drew the
+    # Gaussian covering the image, and visibility said it was off-screen.
+    W, H = 40, 30
+    K = torch.tensor([[[40.0, 0, 20.0], [0, 40.0, 15.0], [0, 0, 1.0]]], dtype=DT)
+    means = torch.tensor([[0.0, 0.0, 0.5], [0.0, 0.0, 0.6]], dtype=DT)
+    scales = torch.tensor([[1e8, 1e8, 1e8], [1e6, 1e6, 1e6]], dtype=DT)
+    quats = torch.tensor([[1.0, 0, 0, 0]] * 2, dtype=DT)
+    opac = torch.tensor([0.5, 0.8], dtype=DT)
+    cols = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=DT)
+    out = {}
+    for be in ("reference", "cpu"):
+        img, alpha, meta = rasterization(means, quats, scales, opac, cols, torch.eye(4, dtype=DT)[None], K, W, H,
+                                         backend=be)
+        r = meta["radii"][0].tolist()  # the first saturates at reference.RADIUS_MAX
+        assert r[0] == 2 ** 30 and abs(r[1] - 2e8) <= 20, (be, r)  # saturated; the other (2e8: float32 on the CPU) as is
+        assert meta["visibility"][0].all(), be
+        out[be] = img
+        # front (z 0.5, opacity 0.5) over the back (0.8): alpha 1 - 0.5 * 0.2 = 0.9 on every pixel
+        assert torch.allclose(alpha, torch.full_like(alpha, 0.9), atol=1e-6), be
+        assert torch.allclose(img[0], torch.tensor([0.5, 0.4, 0.0], dtype=DT).expand(H, W, 3), atol=1e-6), be
+    assert torch.allclose(out["reference"], out["cpu"], atol=1e-6)
+
+
+def test_non_finite_opacities_are_never_drawn_on_either_backend():
+    # A NaN opacity was binned on the CPU (its alpha tests all fail, so it drew nothing) and came back as a NaN
+    # opacity gradient; on the reference it made the gradients of every Gaussian NaN. An infinite one drew
+    # alpha 0.99 over its whole box on the reference and nothing on the CPU. Now both: not drawn, zero
+    # gradients - the same render and gradients as without that Gaussian.
+    inputs, K = _scene(n=40, C=1, seed=5, K_sh=4)
+    inputs[0][:, :2] *= 0.3  # overlapping: the Gaussian sits among the others
+    keep = torch.arange(40) >= 2
+    without = [t[keep] if i < 5 else t for i, t in enumerate(inputs)]
+    for be in ("reference", "cpu"):
+        i0, a0, _, g0 = _run(be, without, K, 40, 30, sh_degree=1)
+        bad = [t.clone() for t in inputs]
+        bad[3][:2] = torch.tensor([math.nan, math.inf], dtype=DT)
+        i1, a1, m1, g1 = _run(be, bad, K, 40, 30, sh_degree=1)
+        assert torch.allclose(i1, i0, atol=1e-6) and torch.allclose(a1, a0, atol=1e-6), be
+        for n in NAMES:
+            assert torch.isfinite(g1[n]).all(), (be, n)
+            g = g1[n][keep] if n not in ("viewmats", "backgrounds") else g1[n]
+            assert torch.allclose(g, g0[n], rtol=1e-5, atol=1e-5), (be, n)
+        assert torch.all(g1["opacities"][:2] == 0) and torch.all(g1["colors"][:2] == 0), be
+    assert i0.max() > 0.3  # the scene is not empty
+
+
 def test_zero_quaternions_render_as_identity_on_both_backends():
     # A zero quaternion is normalised with the norm clamped at 1e-12 (torch's F.normalize, as gsplat's
     # PyTorch implementation): the identity rotation, on both backends, forward and backward.
@@ -266,6 +314,24 @@ def test_mixed_dtypes_are_cast_to_the_means_dtype_on_every_backend():
     assert torch.allclose(out["reference"][1], out["cpu"][1], rtol=1e-3, atol=1e-3)
     img64, _, _ = rasterization(*[t.double() for t in xs[:6]], K.float(), 40, 30, sh_degree=0, backend="reference")
     assert img64.dtype == torch.float64
+
+
+def test_near_and_far_planes_are_checked():
+    # A near plane <= 0 let Gaussians behind the camera through: projected mirrored, and ordered by the CPU's
+    # float32-bit-pattern depth sort (valid for positive depths only) differently from the reference
+    # (0.04 apart on this scene); near >= far silently rendered nothing.
+    inputs, K = _scene(n=30, C=1, seed=50, K_sh=1)
+    inputs[0][:15, 2] -= 2.6  # behind the camera
+    args = (*inputs[:6], K, 40, 30)
+    for near, far, what in [(-5.0, 1e10, "near_plane"), (0.0, 1e10, "near_plane"), (math.nan, 1e10, "near_plane"),
+                            (math.inf, math.inf, "near_plane"), (3.0, 1.0, "far_plane"), (0.5, 0.5, "far_plane"),
+                            (0.5, math.nan, "far_plane")]:
+        for be in ("reference", "cpu"):
+            with pytest.raises(ValueError, match=what):
+                rasterization(*args, sh_degree=0, backend=be, near_plane=near, far_plane=far)
+    img_r, _, _ = rasterization(*args, sh_degree=0, backend="reference", near_plane=1e-6, far_plane=math.inf)
+    img_c, _, _ = rasterization(*args, sh_degree=0, backend="cpu", near_plane=1e-6, far_plane=math.inf)
+    assert torch.allclose(img_r, img_c, atol=5e-5) and img_r.max() > 0.3
 
 
 def test_rasterization_docstring_states_the_cpu_precision():

@@ -284,6 +284,65 @@ def test_ctrl_c_finishes_the_step_saves_and_resumes_to_the_same_result(synth, tm
     assert_resumes_to(ds, tmp_path / "c", cfg, a)
 
 
+def _diverged(err) -> bool:
+    """`err` is the trainer's TrainingDiverged (by name: the test shows what was raised instead)."""
+    return type(err).__name__ == "TrainingDiverged" and isinstance(err, RuntimeError)
+
+
+def _poisoned_run(ds, out: Path, name: str, at_step: int, cfg):
+    """Train into `out`, one entry of model parameter `name` set to NaN after step `at_step` (as a diverging
+    update would): (the trainer, the exception the run raised or None, the steps that completed)."""
+    tr = Trainer(ds, out, cfg)
+    steps = []
+
+    def poison(info):
+        steps.append(info["step"])
+        if info["step"] == at_step:
+            with torch.no_grad():
+                tr.model.params[name].view(-1)[0] = float("nan")
+
+    try:
+        tr.run(callback=poison)
+    except Exception as e:  # noqa: BLE001 - the test asserts on its type
+        return tr, e, steps
+    return tr, None, steps
+
+
+def test_a_non_finite_loss_stops_training_at_that_step_and_keeps_the_good_checkpoint(synth, tmp_path):
+    """One NaN colour poisons the pixels it covers, the loss and every gradient there; Adam then wrote NaN into
+    every Gaussian those pixels see and the run went on to its end (the loss finite again: the CPU kernels skip
+    NaN geometry), checkpointed the NaN state over the good checkpoints and failed only when writing the splat
+    ("124 Gaussians have non-finite means", exit 2, no step): unresumable. Now the first non-finite loss stops
+    the run with a message naming the step, the view and the parameter, before any update."""
+    ds = load_dataset(synth)
+    cfg = tiny_config(iters=40, checkpoint_every=10)
+    tr, err, steps = _poisoned_run(ds, tmp_path / "a", "sh0", 12, cfg)
+    assert _diverged(err), err
+    msg = str(err)
+    assert "the loss of step 13 (view 'train_" in msg and "is nan" in msg
+    assert "sh0 (1 of " in msg and "first at row 0" in msg
+    assert steps[-1] == 12 and tr.step == 12  # step 13 made no update: only the poisoned entry is NaN
+    assert int((~torch.isfinite(tr.model.params["sh0"])).sum()) == 1
+    names = sorted(p.name for p in (tmp_path / "a" / "checkpoints").iterdir())
+    assert names == ["ckpt_000010.safetensors"] and "ckpt_000010.safetensors, is finite" in msg
+    assert train(ds, tmp_path / "a", cfg, resume=True).resumed_at_step == 10  # the good state resumes
+
+
+def test_non_finite_geometry_is_caught_before_it_is_checkpointed(synth, tmp_path):
+    """A NaN mean leaves the loss finite (the Gaussian is not drawn), so it used to be checkpointed (the good
+    checkpoints deleted, --resume refusing the NaN ones) and reported only when the splat was written, as bad
+    input. The checkpoint and the end of training now refuse a non-finite model with a clear error."""
+    ds = load_dataset(synth)
+    tr, err, steps = _poisoned_run(ds, tmp_path / "a", "means", 12, tiny_config(iters=40, checkpoint_every=10))
+    assert _diverged(err), err
+    assert "non-finite model parameters after step 20: means (" in str(err)
+    assert sorted(p.name for p in (tmp_path / "a" / "checkpoints").iterdir()) == ["ckpt_000010.safetensors"]
+    # without checkpoints: the end of training, not the splat writer, says what happened
+    tr, err, steps = _poisoned_run(ds, tmp_path / "b", "means", 12, tiny_config(iters=30, checkpoint_every=0))
+    assert _diverged(err) and "after step 30: means" in str(err), err
+    assert steps[-1] == 30 and not (tmp_path / "b" / "point_cloud.ply").exists()
+
+
 def test_drop_rate_hides_gaussians_and_compensates_opacity(synth, tmp_path):
     """DropGaussian: the training render at rate r equals the reference rasterization of the model with a
     Bernoulli(1 - r) subset kept (drawn from the trainer's own generator) at opacity / (1 - r); the rate

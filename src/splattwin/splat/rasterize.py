@@ -16,6 +16,7 @@ All semantics (culling, 3-sigma extents, alpha thresholds, early stop) are docum
 from __future__ import annotations
 
 import functools
+import math
 from typing import Any
 
 import torch
@@ -87,7 +88,7 @@ def resolve_backend(backend: str, device: torch.device | None = None) -> str:
 
 
 def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree,
-                  backgrounds, render_mode) -> None:
+                  backgrounds, render_mode, near_plane, far_plane) -> None:
     N = means.shape[0]
     if means.ndim != 2 or means.shape[1] != 3:
         raise ValueError(f"means must be [N,3], got {tuple(means.shape)}")
@@ -106,6 +107,12 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, 
         raise ValueError(f"image size must be positive, got {width}x{height}")
     if render_mode not in RENDER_MODES:
         raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
+    # z <= 0 is behind the camera: projected, it would be mirrored, and the CPU backend orders depths by
+    # their float32 bit patterns, which holds for positive depths only
+    if not (math.isfinite(near_plane) and near_plane > 0):
+        raise ValueError(f"near_plane must be a finite distance > 0 m, got {near_plane}")
+    if not far_plane > near_plane:
+        raise ValueError(f"far_plane must be beyond near_plane ({near_plane} m), got {far_plane}")
     if sh_degree is not None:
         if colors.ndim != 3 or colors.shape[0] != N or colors.shape[2] != 3:
             raise ValueError(f"with sh_degree, colors must be SH coefficients [N,K,3], got {tuple(colors.shape)}")
@@ -186,7 +193,8 @@ def rasterization(
         backgrounds: [C,D] colour behind the Gaussians (colour channels only), or None (black).
         render_mode: "RGB" colours; "D" accumulated depth sum w_i z_i; "ED" expected depth D / alpha;
             "RGB+D" / "RGB+ED" colours with the depth as the last channel.
-        near_plane, far_plane: cull Gaussians whose camera z is outside (near, far), m.
+        near_plane, far_plane: cull Gaussians whose camera z is outside (near, far), m; 0 < near < far
+            (far may be inf), else ValueError.
         eps2d: low-pass filter added to the 2D covariance diagonal (px^2); None: the mode's
             `DEFAULT_EPS2D` (0.3 classic, 0.1 antialiased).
         backend: "auto" | "cpu" | "cuda" | "reference".
@@ -208,7 +216,7 @@ def rasterization(
     if backgrounds is not None:
         backgrounds = backgrounds.to(dt)
     _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree,
-                  backgrounds, render_mode)
+                  backgrounds, render_mode, float(near_plane), float(far_plane))
     if rasterize_mode not in RASTERIZE_MODES:
         raise ValueError(f"rasterize_mode must be one of {RASTERIZE_MODES}, got {rasterize_mode!r}")
     eps2d = DEFAULT_EPS2D[rasterize_mode] if eps2d is None else float(eps2d)

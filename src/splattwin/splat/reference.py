@@ -8,12 +8,13 @@ the exact semantics every backend follows (those of 3DGS / gsplat):
   perspective projection at p (its x/z, y/z clamped to 1.3x the field of view, as gsplat does, so
   Gaussians far off-screen do not blow up), conic = inverse 2D covariance.
 * Culling: z outside (near, far), non-positive 2D determinant, or a 3-sigma box fully off-screen -> radius
-  0 (invisible, no gradient). Screen extent: 3 sigma per axis, ceil'd to whole pixels
-  (rx = ceil(3 sqrt(cov2d_xx)), ry likewise); `radii` reports max(rx, ry).
+  0 (invisible, no gradient). Screen extent: 3 sigma per axis, ceil'd to whole pixels and saturated at
+  RADIUS_MAX (rx = min(ceil(3 sqrt(cov2d_xx)), RADIUS_MAX), ry likewise); `radii` reports max(rx, ry).
 * A Gaussian touches pixel (i, j) only if the pixel centre (j + 0.5, i + 0.5) is within its box
   |u - mean_u| <= rx, |v - mean_v| <= ry; this makes the result independent of the tile size.
 * Compositing front to back in depth order (camera z, ties by index):
-  alpha = min(0.99, o * exp(-sigma)), sigma = 0.5 (a dx^2 + c dy^2) + b dx dy >= 0, skipped if alpha < 1/255;
+  alpha = min(0.99, o * exp(-sigma)), sigma = 0.5 (a dx^2 + c dy^2) + b dx dy >= 0, skipped if alpha < 1/255
+  (a NaN or infinite opacity o: never drawn);
   a pixel stops before the Gaussian that would bring its transmittance below 1e-4.
   colour = sum_i c_i alpha_i T_i + T_final * background, alpha = 1 - T_final.
 
@@ -33,6 +34,12 @@ ALPHA_MIN = 1.0 / 255.0
 T_MIN = 1e-4
 SIGMA_EXTENT = 3.0
 FOV_CLAMP = 1.3  # Jacobian evaluated with x/z, y/z clamped to 1.3x the half field of view (gsplat)
+# Box half-sizes saturate here (pixels): extents and radii are int32, and a 3-sigma radius beyond 2^31 px
+# (an untrusted PLY's huge scale, or a Gaussian at the near plane: J = f / z) wrapped round to a negative
+# or arbitrary value, so a Gaussian covering the whole image was not drawn at all. gsplat's CUDA
+# float->int conversion saturates likewise. 2^30: exact in float32 and float64; a saturated box still holds
+# the whole image when the Gaussian's centre projects less than 2^30 - max(width, height) px from it.
+RADIUS_MAX = 2 ** 30
 
 
 def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
@@ -95,8 +102,8 @@ def project(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, view
     conics = torch.stack([c / det_s, -b / det_s, a / det_s], dim=-1)
     means2d = torch.stack([fx * x / z_s + cx, fy * y / z_s + cy], dim=-1)
     with torch.no_grad():
-        rx = torch.ceil(SIGMA_EXTENT * torch.sqrt(torch.clamp_min(a, 0)))
-        ry = torch.ceil(SIGMA_EXTENT * torch.sqrt(torch.clamp_min(c, 0)))
+        rx = torch.ceil(SIGMA_EXTENT * torch.sqrt(torch.clamp_min(a, 0))).clamp_max(RADIUS_MAX)
+        ry = torch.ceil(SIGMA_EXTENT * torch.sqrt(torch.clamp_min(c, 0))).clamp_max(RADIUS_MAX)
         u, v = means2d.unbind(-1)
         on = (u + rx > 0) & (u - rx < width) & (v + ry > 0) & (v - ry < height)
         keep = ok & on & (rx > 0) & (ry > 0)
@@ -153,6 +160,9 @@ def rasterize(means2d: torch.Tensor, conics: torch.Tensor, colors: torch.Tensor,
         order = vis[torch.argsort(depths[ci, vis].detach(), stable=True)]
         m2, co, cl = means2d[ci, order], conics[ci, order], colors[ci, order]
         op = (opacities if opacities.ndim == 1 else opacities[ci])[order]
+        # a NaN or infinite opacity is never drawn (zero, not NaN, gradients): alpha would be NaN, or 0.99 over
+        # the whole box for +inf
+        op = torch.where(torch.isfinite(op), op, torch.zeros_like(op))
         ex = extents[ci, order].to(dt)
         outs, Ts = [], []
         for s in range(0, width * height, chunk_pixels):

@@ -349,8 +349,23 @@ def options_diff(old: dict, new: dict, keys: list[str], shown: int = 4) -> str:
     return ", ".join(parts)
 
 
+def _moving_average(avg: float, x: float) -> float:
+    """The training curve's moving average (0.9 old + 0.1 new; NaN: none yet) after the step figure x. A
+    non-finite x leaves it unchanged: one view whose loss mask ignores every pixel (PSNR +inf: mse 0) made
+    the PSNR average +inf for the rest of the run (train.json's train_psnr null, the curve empty)."""
+    if not math.isfinite(x):
+        return avg
+    return x if math.isnan(avg) else 0.9 * avg + 0.1 * x
+
+
 class CheckpointMismatch(InputError):
     """A checkpoint that was made by another run (other options or data): not resumed."""
+
+
+class TrainingDiverged(RuntimeError):
+    """Training produced NaN or infinite values (a non-finite loss, or non-finite model parameters): the
+    run stops at once and saves nothing non-finite, so its newest checkpoint stays resumable. Not an
+    `InputError`: the inputs were valid when loaded (the CLI reports it as an internal error, exit 1)."""
 
 
 class Trainer:
@@ -580,7 +595,36 @@ class Trainer:
         torch.set_rng_state(sd["torch_rng"])
         self.step = int(sd["step"])
 
+    def _nonfinite_params(self) -> str:
+        """Which model parameters hold NaN or infinite values, for an error message ("" when none): name,
+        how many Gaussians, the first one's row."""
+        parts = []
+        with torch.no_grad():
+            for k, t in self.model.params.items():
+                bad = ~torch.isfinite(t).reshape(t.shape[0], -1).all(dim=1)
+                n = int(bad.sum())
+                if n:
+                    parts.append(f"{k} ({n} of {t.shape[0]} Gaussians, first at row {int(bad.nonzero()[0, 0])})")
+        return ", ".join(parts)
+
+    def _diverged(self, what: str) -> TrainingDiverged:
+        ckpts = _checkpoints(self.out_dir)
+        keep = (f"the newest checkpoint, {ckpts[-1]}, is finite" if ckpts else "no checkpoint was saved")
+        return TrainingDiverged(f"training diverged: {what}; stopped (nothing non-finite is saved: {keep}). "
+                                f"Lower the learning rates, or report it with the command and data")
+
+    def check_finite(self) -> None:
+        """TrainingDiverged if a model parameter is NaN or infinite. Called before every checkpoint and after
+        the last step: the CPU rasterizer silently skips Gaussians with non-finite geometry, so such a
+        parameter leaves the loss finite and would otherwise surface only when the splat is written."""
+        bad = self._nonfinite_params()
+        if bad:
+            raise self._diverged(f"non-finite model parameters after step {self.step}: {bad}")
+
     def save_checkpoint(self) -> Path:
+        # never write a non-finite state: `check_state` refuses it on --resume, and only the 2 newest
+        # checkpoints are kept, so non-finite ones would replace the last good ones
+        self.check_finite()
         path = self.out_dir / CKPT_DIR / f"ckpt_{self.step:06d}{ckpt_io.SUFFIX}"
         ckpt_io.save(path, self.state_dict())
         for old in _checkpoints(self.out_dir)[:-2]:
@@ -659,6 +703,14 @@ class Trainer:
         if cfg.opacity_reg > 0:  # gsplat's opacity_reg: mean opacity, fewer semi-transparent layers
             loss = loss + cfg.opacity_reg * torch.sigmoid(self.model.params["opacities"]).mean()
         s = self.step + 1
+        loss_value = float(loss.detach())
+        if not math.isfinite(loss_value):
+            # before backward and the optimizer step: one NaN colour poisons the pixels it covers, then every
+            # gradient there, and Adam writes NaN into every Gaussian those pixels see (the run went on to
+            # its end with nothing drawn right, then failed to save)
+            bad = self._nonfinite_params()
+            raise self._diverged(f"the loss of step {s} (view {view.name!r}) is {loss_value}"
+                                 + (f"; non-finite model parameters: {bad}" if bad else ""))
         cam = view.camera  # at this step's coarse-to-fine level: means2d gradients are in its pixels
         hook_info = {**meta, "width": cam.width, "height": cam.height, "view": idx, "iters": cfg.iters,
                      "generator": self.split_gen}
@@ -675,8 +727,12 @@ class Trainer:
                 # 1.4 deg left after 150 passes, vs 0.04 deg when applied once per pass)
                 self.poses.remove_common_motion(self.viewmats)
         sq = (img.detach() - gt) ** 2
-        mse = float(sq.mean()) if view.mask is None else float((sq * view.mask).sum() / (3 * view.mask.sum()).clamp_min(1))
-        info = {"step": s, "loss": float(loss.detach()), "psnr": psnr_from_mse(mse)}
+        if view.mask is None:
+            psnr = psnr_from_mse(float(sq.mean()))
+        else:  # NaN (not measured) for a view whose mask ignores every pixel: mse 0 / 1 gave +inf
+            kept = view.mask.sum()
+            psnr = psnr_from_mse(float((sq * view.mask).sum() / (3 * kept))) if kept > 0 else math.nan
+        info = {"step": s, "loss": loss_value, "psnr": psnr}
         stats = self.strategy.step_post_backward(self.model, self.strategy_state, s, hook_info)
         info.update(stats, n=len(self.model), densified=bool(stats))
         if cfg.robust_quantile > 0:
@@ -752,9 +808,8 @@ class Trainer:
                 DeferredInterrupt("this training step") as interrupt:
             while self.step < cfg.iters:
                 info = self.train_step()
-                ema_loss = info["loss"] if math.isnan(self.ema_loss) else 0.9 * self.ema_loss + 0.1 * info["loss"]
-                ema_psnr = info["psnr"] if math.isnan(self.ema_psnr) else 0.9 * self.ema_psnr + 0.1 * info["psnr"]
-                self.ema_loss, self.ema_psnr = ema_loss, ema_psnr
+                ema_loss = self.ema_loss = _moving_average(self.ema_loss, info["loss"])
+                ema_psnr = self.ema_psnr = _moving_average(self.ema_psnr, info["psnr"])
                 if self.step % 10 == 0 or self.step == cfg.iters or info["densified"]:
                     self.history.append({"step": self.step, "loss": round(ema_loss, 6),
                                          "psnr": round(ema_psnr, 3), "n": info["n"]})
@@ -770,6 +825,7 @@ class Trainer:
                         log.warning("interrupted at step %d: saved %s; run again with --resume to continue "
                                     "(build: run it again)", self.step, path)
                     raise KeyboardInterrupt
+        self.check_finite()  # a clear error here, not a "non-finite means" when the splat is written
         if cfg.checkpoint_every and self.step % cfg.checkpoint_every != 0:
             self.save_checkpoint()  # so that --resume on a finished run does no work
 

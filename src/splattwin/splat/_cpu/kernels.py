@@ -32,6 +32,8 @@ from numba import types as _nbt
 from numba.core import cgutils as _cgutils
 from numba.extending import intrinsic as _intrinsic
 
+from splattwin.splat.reference import RADIUS_MAX  # box half-sizes saturate there (int32 extents)
+
 TILE = 16
 ALPHA_MAX = 0.99
 ALPHA_MIN = 1.0 / 255.0
@@ -153,8 +155,8 @@ def project_fwd(means, quats, scales, viewmat, fx, fy, cx, cy, width, height, ep
             conics[i, 0] = cc / det
             conics[i, 1] = -cb / det
             conics[i, 2] = ca / det
-            rx = math.ceil(EXTENT * math.sqrt(ca))
-            ry = math.ceil(EXTENT * math.sqrt(cc))
+            rx = min(math.ceil(EXTENT * math.sqrt(ca)), RADIUS_MAX)  # saturated: int32 extents
+            ry = min(math.ceil(EXTENT * math.sqrt(cc)), RADIUS_MAX)
             u, v = means2d[i, 0], means2d[i, 1]
             if u + rx > 0 and u - rx < width and v + ry > 0 and v - ry < height and rx > 0 and ry > 0:
                 extents[i, 0] = rx
@@ -485,8 +487,10 @@ def make_records(means2d, conics, colors, opacities, extents, width, height, rec
         rec[i, R_Y0] = 0.0
         rec[i, R_Y1] = -1.0
         det = ca * cc - cb * cb
-        # alpha < 1/255 everywhere, or a conic that is not positive definite: never drawn
-        if rx == 0 or op * 255.0 < 1.0 or not (ca > 0.0 and det > 0.0):
+        # alpha < 1/255 everywhere, a NaN or infinite opacity (never drawn, as the reference: binned, a NaN one
+        # sent NaN into the fastmath kernels and came back as a NaN opacity gradient), or a conic that is not
+        # positive definite: never drawn
+        if rx == 0 or not (1.0 <= op * 255.0 < math.inf) or not (ca > 0.0 and det > 0.0):
             continue
         two_level = 2.0 * math.log(op * 255.0)
         rx = min(rx, math.sqrt(two_level * cc / det) + 0.01)  # sigma_xx = c / det of the conic
