@@ -96,6 +96,7 @@ def test_pose_result_round_trips(scene_small: Path, tmp_path: Path):
     np.testing.assert_allclose(back.T_out_in, res.T_out_in)
     assert back.stats["method"] == res.stats["method"] and back.stats["registered"] == res.stats["registered"]
     assert back.label_objects == res.label_objects
+    assert copy.deepcopy(back) == back   # by value (audit 10A L1: raised ValueError)
     assert PoseResult.load(tmp_path / "p" / "transforms.json").frame == res.frame
     with pytest.raises(InputError, match="transforms.json"):
         PoseResult.load(tmp_path / "nothing")

@@ -31,6 +31,7 @@ import numpy as np
 from splattwin import io
 from splattwin.capture.camera import Camera
 from splattwin.capture.dataset import Dataset, Frame as DataFrame, load_image
+from splattwin.equality import dataclass_eq
 from splattwin.errors import InputError
 from splattwin.poses import align
 from splattwin.poses.options import UP_AXES, PoseOptions
@@ -68,6 +69,8 @@ class PoseResult:
     stats: dict = field(default_factory=dict)
     depth_scale: float | None = None  # metres per raw depth unit (see splattwin.capture.dataset)
     label_objects: dict | None = None  # name -> id of the label images' objects (capture.nerfstudio)
+
+    __eq__ = dataclass_eq   # array-aware (points, T_out_in) (splattwin.equality)
 
     @property
     def cameras(self) -> list[Camera]:
