@@ -90,6 +90,10 @@ class BackgroundGeometry:
 
 @dataclass
 class Conversion:
+    """The result of converting labelled Gaussians to planning geometry (`convert`): one `ObjectGeometry`
+    per object, the background's (`BackgroundGeometry`, None when not built), the attribute filter's
+    statistics, the resolved options and per-step timings (s)."""
+
     objects: list[ObjectGeometry]
     background: BackgroundGeometry | None
     filter_stats: FilterStats

@@ -90,6 +90,15 @@ class TrainView:
 
 @dataclass
 class TrainResult:
+    """What `train` / `Trainer.run` return (OUT/point_cloud.ply and train.json hold the same).
+
+    gaussians: the trained splats (`Gaussians`, the dataset's world frame, metres when its poses are metric);
+    ply_path: where they were written; steps: optimiser steps done; wall_s: training seconds over the run and
+    its resumes (None: a resumed checkpoint did not record it); final_loss / final_psnr (dB): moving averages
+    at the last step; init_method: how the Gaussians were initialised; history: per-logging-step records;
+    refined_T_world_cam: view name -> refined camera-to-world [4,4] (pose refinement on), else None;
+    resumed_at_step: the checkpoint's step when the run resumed one."""
+
     gaussians: Gaussians
     ply_path: Path
     steps: int
