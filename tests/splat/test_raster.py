@@ -556,3 +556,22 @@ def test_cpu_sharp_thin_gaussians_match_the_reference():
     assert ac.max() > 0.3
     assert torch.allclose(ir, ic, atol=5e-5) and torch.allclose(ar, ac, atol=5e-6)
     _assert_close_grads(gr, gc)
+
+
+def test_non_tensor_inputs_and_fractional_sizes_raise_type_errors_naming_the_argument():
+    """numpy inputs failed deep inside ("'numpy.ndarray' object has no attribute 'is_floating_point'") and a
+    width of 40.7 px rendered 40 px (audit 10A L8)."""
+    inputs, K = _scene(n=5, C=1)
+    args = [*inputs[:4], inputs[4][:, 0], inputs[5], K]
+    for i, name in enumerate(["means", "quats", "scales", "opacities", "colors", "viewmats", "Ks"]):
+        bad = list(args)
+        bad[i] = bad[i].numpy()
+        with pytest.raises(TypeError, match=f"^{name} must be a torch.Tensor, got ndarray .*torch.as_tensor"):
+            rasterization(*bad, 40, 30)
+    with pytest.raises(TypeError, match="backgrounds must be a torch.Tensor, got list"):
+        rasterization(*args, 40, 30, backgrounds=[[0.0, 0.0, 0.0]])
+    for w, h in ((40.7, 30), (40, "30"), (True, 30)):
+        with pytest.raises(TypeError, match="must be a whole number of pixels"):
+            rasterization(*args, w, h)
+    img, _, _ = rasterization(*args, np.int64(40), 30.0)   # whole numbers of any type are sizes
+    assert img.shape == (1, 30, 40, 3)
