@@ -924,3 +924,13 @@ def test_appearance_corrections_start_at_one_without_a_usable_measurement(synth,
     np.testing.assert_array_equal(A, np.broadcast_to(np.eye(3), A.shape))
     assert t.appearance_record["init"] == "identity" and "no exposure check read" in t.appearance_record["init_why"]
     assert "malformed \"exposure\"" in caplog.text and "start at gain 1" in caplog.text
+
+
+def test_training_leaves_the_callers_torch_random_state_alone(synth, tmp_path):
+    """A run seeds torch's global generator with cfg.seed; it reseeded the caller's, so a notebook's next
+    torch.rand after training changed (audit 10A L9). The caller's state is restored now."""
+    torch.manual_seed(7)
+    expected = torch.rand(4)
+    torch.manual_seed(7)
+    train(load_dataset(synth), tmp_path / "out", tiny_config(iters=3))
+    assert torch.equal(torch.rand(4), expected)

@@ -699,9 +699,17 @@ class Trainer:
         """Train to `cfg.iters` steps (continuing from the newest checkpoint with resume=True).
 
         on_mismatch: what a checkpoint made by another run (other options or data) does: "error" raises
-        CheckpointMismatch (exit 2), "restart" logs why, deletes the stale checkpoints and starts over."""
+        CheckpointMismatch (exit 2), "restart" logs why, deletes the stale checkpoints and starts over.
+        The caller's global torch random state is restored afterwards (the run seeds it with cfg.seed)."""
         if on_mismatch not in ("error", "restart"):
             raise ValueError(f"on_mismatch must be 'error' or 'restart', got {on_mismatch!r}")
+        # A fresh run seeds torch's global generator (what a strategy drawing from it relies on); forked, so
+        # that a notebook's own torch.rand after training is what it would have been without it.
+        devices = [self.device.index or 0] if self.device.type == "cuda" else []
+        with torch.random.fork_rng(devices=devices):
+            return self._run(resume, callback, on_mismatch)
+
+    def _run(self, resume: bool, callback: Callable[[dict], None] | None, on_mismatch: str) -> TrainResult:
         ckpt = _latest_checkpoint(self.out_dir) if resume else None
         resumed_at = None
         if ckpt is not None:
