@@ -140,3 +140,21 @@ def test_save_again_with_fewer_views_removes_the_files_of_the_views_gone(scene_s
     less.frames = less.frames[:3]
     _known(less).save(cap)
     assert sorted(p.name for p in (cap / "images").iterdir()) == before
+
+
+def test_the_camera_plot_leaves_the_callers_matplotlib_backend(scene_small: Path, tmp_path: Path):
+    """plot_cameras (PoseResult.save's cameras.png) called matplotlib.use("Agg"), switching a notebook's
+    backend (audit 10A L11)."""
+    import matplotlib
+    from PIL import Image
+
+    from splattwin.poses.estimate import plot_cameras
+
+    before = matplotlib.get_backend()
+    matplotlib.use("svg")   # stands for the caller's own (a notebook's inline) backend
+    try:
+        out = plot_cameras(_known(load_dataset(scene_small)), tmp_path / "cameras.png")
+        assert matplotlib.get_backend() == "svg"
+        assert Image.open(out).format == "PNG"
+    finally:
+        matplotlib.use(before)

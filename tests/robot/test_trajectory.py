@@ -195,3 +195,20 @@ def test_accelerations_follow_the_sampled_velocities():
     assert np.abs(out.qdd).max() <= acc + 1e-9
     np.testing.assert_array_equal(out.q, tr.q)
     np.testing.assert_array_equal(out.qd, tr.qd)
+
+
+def test_save_plot_leaves_the_callers_matplotlib_backend(tmp_path):
+    """save_plot called matplotlib.use("Agg"), switching a notebook's backend (its inline figures stopped
+    showing); it draws on a Figure of its own now (audit 10A L11)."""
+    import matplotlib
+    from PIL import Image
+
+    before = matplotlib.get_backend()
+    matplotlib.use("svg")   # stands for the caller's own (a notebook's inline) backend
+    try:
+        tr = Trajectory(np.array([0.0, 0.5, 1.0]), np.zeros((3, 2)), np.zeros((3, 2)), np.zeros((3, 2)))
+        out = tr.save_plot(tmp_path / "traj.png", vel_limits=[1.0, 1.0])
+        assert matplotlib.get_backend() == "svg"
+        assert Image.open(out).format == "PNG"
+    finally:
+        matplotlib.use(before)

@@ -316,14 +316,14 @@ class Trajectory:
                   acc_limits: Sequence[float] | None = None, title: str | None = None) -> Path:
         """PNG: positions, velocities and accelerations over time, per joint, limits dashed (matplotlib)."""
         import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        from matplotlib.figure import Figure
 
         from splattwin.io import atomic_path
 
-        fig, axes = plt.subplots(3, 1, figsize=(9, 8), sharex=True)
-        colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+        # a Figure of its own, not pyplot: the caller's backend and open figures stay as they are (a notebook's)
+        fig = Figure(figsize=(9, 8))
+        axes = fig.subplots(3, 1, sharex=True)
+        colors = matplotlib.rcParams["axes.prop_cycle"].by_key()["color"]
         for ax, data, label, lim in ((axes[0], self.q, "q [rad]", None), (axes[1], self.qd, "qd [rad/s]", vel_limits),
                                      (axes[2], self.qdd, "qdd [rad/s²]", acc_limits)):
             for j in range(self.dof):
@@ -341,7 +341,6 @@ class Trajectory:
         path = Path(path)
         with atomic_path(path) as tmp:
             fig.savefig(tmp, dpi=110, format="png")
-        plt.close(fig)
         return path
 
     # ---- ROS 2 --------------------------------------------------------------------------------------
