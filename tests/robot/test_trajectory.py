@@ -212,3 +212,30 @@ def test_save_plot_leaves_the_callers_matplotlib_backend(tmp_path):
         assert Image.open(out).format == "PNG"
     finally:
         matplotlib.use(before)
+
+
+def test_round_trips_compare_equal():
+    """`Trajectory.load_json(p) == tr` raised ValueError (array fields; audit 10A L1)."""
+    tr = make()
+    same = Trajectory(tr.t.copy(), tr.q.copy(), tr.qd.copy(), tr.qdd.copy(), list(NAMES))
+    assert tr == same and tr != make(seed=1)
+
+
+def test_csv_that_is_not_text_is_bad_input(tmp_path, monkeypatch):
+    """A binary or NUL-holding file raised UnicodeDecodeError / csv.Error (an internal error), and the whole
+    file was read whatever its size (audit 10A L12): bounded UTF-8 text, InputError naming the file."""
+    from splattwin import limits
+
+    (tmp_path / "bin.csv").write_bytes(b"t,q_a,qd_a,qdd_a\n\x80\xff\xfe0,1,2,3\n")
+    with pytest.raises(InputError, match=r"bin\.csv: .*not UTF-8"):
+        Trajectory.load_csv(tmp_path / "bin.csv")
+    (tmp_path / "nul.csv").write_bytes(b"t,q_a,qd_a,qdd_a\n0,\x00,2,3\n")
+    with pytest.raises(InputError, match=r"nul\.csv: "):
+        Trajectory.load_csv(tmp_path / "nul.csv")
+    tr = make(n=200)
+    p = tr.save_csv(tmp_path / "big.csv")
+    monkeypatch.setattr(limits, "MAX_TEXT_BYTES", 1000)
+    with pytest.raises(InputError, match=r"big\.csv"):
+        Trajectory.load_csv(p)
+    monkeypatch.undo()
+    assert Trajectory.load_csv(p).joint_names == NAMES

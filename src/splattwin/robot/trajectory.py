@@ -30,6 +30,7 @@ from typing import Sequence
 
 import numpy as np
 
+from splattwin.equality import dataclass_eq
 from splattwin.errors import InputError
 from splattwin.io import read_json, write_json, write_text
 
@@ -156,6 +157,8 @@ class Trajectory:
     joint_names: list[str] = field(default_factory=list)
     gripper: list[GripperCommand] = field(default_factory=list)
     meta: dict = field(default_factory=dict)
+
+    __eq__ = dataclass_eq   # array-aware: `Trajectory.load_csv(p) == tr` (splattwin.equality)
 
     def __post_init__(self) -> None:
         self.t = np.asarray(self.t, dtype=float).reshape(-1)
@@ -289,11 +292,17 @@ class Trajectory:
 
     @classmethod
     def load_csv(cls, path: str | Path) -> "Trajectory":
+        from splattwin.limits import read_text
+
         path = Path(path)
         if not path.is_file():
             raise InputError("trajectory file not found", path)
-        with open(path, newline="") as f:
-            rows = list(csv.reader(f))
+        # bounded and decoded up front: a binary file raised UnicodeDecodeError, a NUL byte csv.Error
+        text = read_text(path, "trajectory CSV")
+        try:
+            rows = list(csv.reader(_io.StringIO(text, newline="")))
+        except csv.Error as e:
+            raise InputError(f"not a trajectory CSV: {e}", path) from None
         header = rows[0] if rows else []
         grip = tuple(header[-2:]) == _GRIPPER_COLUMNS
         ncol = len(header) - (2 if grip else 0)
