@@ -42,7 +42,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from splattwin.capture import Camera, Dataset, Frame, load_image
+from splattwin.capture import Camera, Dataset, Frame, load_dataset, load_image
 from splattwin.errors import InputError
 from splattwin.io import write_json
 from splattwin.limits import check_pixels
@@ -368,9 +368,14 @@ class Trainer:
     strategy: how the Gaussians are densified/pruned (`splattwin.splat.strategy`); default
     `DefaultStrategy(cfg.densify_config())`, or no densification with `cfg.densify=False`."""
 
-    def __init__(self, dataset: Dataset, out_dir: str | Path, cfg: TrainConfig | None = None,
+    def __init__(self, dataset: Dataset | str | Path, out_dir: str | Path, cfg: TrainConfig | None = None,
                  strategy: Strategy | None = None):
         self.cfg = cfg or TrainConfig()
+        if not isinstance(dataset, Dataset):   # a path, as `evaluate` and `fuse_to_dir` take (a str failed deep inside)
+            from splattwin.capture.dataset import refuse_video
+
+            refuse_video(dataset, "train")
+            dataset = load_dataset(dataset)
         self.dataset = dataset
         self.out_dir = Path(out_dir)
         self.cfg.check()
@@ -876,9 +881,9 @@ class Trainer:
         return TrainResult(g, ply, self.step, wall, loss, psnr, self.init_method, self.history, refined, resumed_at)
 
 
-def train(dataset: Dataset, out_dir: str | Path, cfg: TrainConfig | None = None, resume: bool = False,
+def train(dataset: Dataset | str | Path, out_dir: str | Path, cfg: TrainConfig | None = None, resume: bool = False,
           callback: Callable[[dict], None] | None = None, on_mismatch: str = "error",
           strategy: Strategy | None = None) -> TrainResult:
-    """Train 3D Gaussians on `dataset`'s training frames; writes OUT/point_cloud.ply (see module doc).
-    strategy: densification (`splattwin.splat.strategy`; default from cfg, see `Trainer`)."""
+    """Train 3D Gaussians on `dataset`'s training frames (a `Dataset` or a path `load_dataset` reads); writes
+    OUT/point_cloud.ply (see module doc). strategy: densification (`splattwin.splat.strategy`; default from cfg, see `Trainer`)."""
     return Trainer(dataset, out_dir, cfg, strategy).run(resume=resume, callback=callback, on_mismatch=on_mismatch)
