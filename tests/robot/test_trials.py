@@ -174,3 +174,11 @@ def test_a_twin_posed_by_the_robot_puts_the_arm_at_its_base(gt_twin_small: Path,
     tilted[:3, :3] = [[1, 0, 0], [0, 0, -1], [0, 1, 0]]
     b, why = BasePose.default_for(TwinFrame(source="robot", scaled=True, T_twin_input=tilted.tolist()))
     assert b == BasePose() and "--base-pose" in why
+
+
+def test_run_once_refuses_a_twin_path_for_its_spec(tmp_path: Path):
+    """run_once("TWIN") failed with "'str' object has no attribute 'twin_dir'" (audit 10A L19)."""
+    from splattwin.robot.trials import run_once
+
+    with pytest.raises(TypeError, match=r"^spec must be a TrialSpec .*TrialSpec\(twin_dir.*, got str$"):
+        run_once(str(tmp_path))

@@ -575,3 +575,19 @@ def test_non_tensor_inputs_and_fractional_sizes_raise_type_errors_naming_the_arg
             rasterization(*args, w, h)
     img, _, _ = rasterization(*args, np.int64(40), 30.0)   # whole numbers of any type are sizes
     assert img.shape == (1, 30, 40, 3)
+
+
+def test_render_helpers_refuse_a_path_or_a_matrix_naming_the_argument(tmp_path):
+    """render(path, camera) failed with "'str' object has no attribute 'sh_degree'" and render_depth(g, K)
+    with "'numpy.ndarray' object has no attribute 'height'" (audit 10A L19)."""
+    from splattwin.capture.camera import Camera
+    from splattwin.splat import Gaussians, render, render_depth
+
+    cam = Camera(np.array([[40.0, 0, 20], [0, 40.0, 15], [0, 0, 1]]), 40, 30)
+    g = Gaussians.empty()
+    with pytest.raises(TypeError, match=r"^gaussians must be a Gaussians .*Gaussians\.load_ply.*, got str$"):
+        render(str(tmp_path / "splats.ply"), cam)
+    with pytest.raises(TypeError, match=r"^camera must be a Camera .*, got ndarray$"):
+        render_depth(g, cam.K)
+    img, alpha = render(g, cam)
+    assert img.shape == (30, 40, 3) and alpha.shape == (30, 40)

@@ -65,7 +65,7 @@ def test_build_twin_takes_a_splat_path_and_refuses_other_types_before_writing(tm
     from splattwin.scene.synthetic import synthetic_scene
 
     g, labels, objects, _ = synthetic_scene(2000, seed=1)
-    with pytest.raises(TypeError, match="gaussians must be a splattwin.splat.Gaussians or a 3DGS PLY path, got list"):
+    with pytest.raises(TypeError, match="gaussians must be a Gaussians or a 3DGS PLY path, got list"):
         build_twin([1, 2], labels, objects, tmp_path / "t", progress=False)
     assert not (tmp_path / "t").exists()
     with pytest.raises(InputError, match="missing.ply"):

@@ -103,11 +103,13 @@ def run_once(spec: TrialSpec, frame_dir: str | Path | None = None, keep_trajecto
     frame recorder's note, frame paths); keep_trajectories: the result keeps its trajectories and rollout.
     on_valid: called once the task is valid, before any frame is written (the stage clears the earlier
     run's outputs there, so a bad task leaves them as they were)."""
+    from splattwin.errors import require_type
     from splattwin.robot.execute import Executor
     from splattwin.robot.task import load_task, validate_task
     from splattwin.robot.world import build_world
     from splattwin.twin.manifest import Manifest
 
+    require_type(spec, TrialSpec, "spec", "(e.g. TrialSpec(twin_dir, task_path=None))")
     manifest = Manifest.load(spec.twin_dir)
     task = load_task(spec.task_path, manifest)
     robot = spec.robot_model()

@@ -473,14 +473,13 @@ def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path
     splat count, whether it is whole; None: the count alone. refined_poses: the splat stage's
     refined_poses.json (training with pose refinement): the cameras file's poses are replaced by its ones
     (recorded in twin.json config.refined_poses). Returns the saved Manifest."""
+    from splattwin.errors import require_type
     from splattwin.lock import prepare_output_dir
     from splattwin.splat.gaussians import Gaussians
 
     if isinstance(gaussians, (str, Path)):   # a PLY path, as fuse_to_dir takes (a str failed deep inside)
         gaussians = Gaussians.load_ply(gaussians)
-    elif not isinstance(gaussians, Gaussians):
-        raise TypeError(f"gaussians must be a splattwin.splat.Gaussians or a 3DGS PLY path, got "
-                        f"{type(gaussians).__name__}")
+    require_type(gaussians, Gaussians, "gaussians", "or a 3DGS PLY path")
     objects = check_objects(objects)
     out_dir = prepare_output_dir(out_dir, "twin folder")
     frame = frame or TwinFrame()
