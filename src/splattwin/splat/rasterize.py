@@ -90,10 +90,11 @@ def _check_types(width, height, backgrounds, **tensors) -> None:
     """TypeError naming the argument for a non-tensor input (a numpy array failed deep inside with
     "'numpy.ndarray' object has no attribute 'is_floating_point'") or a non-integer image size (64.7 px
     rendered 64 px)."""
+    from splattwin.errors import require_type
+
     for name, t in [*tensors.items(), ("backgrounds", backgrounds)]:
-        if not isinstance(t, torch.Tensor) and not (name == "backgrounds" and t is None):
-            raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}"
-                            + (" (torch.as_tensor converts a numpy array)" if hasattr(t, "__array__") else ""))
+        if not (name == "backgrounds" and t is None):
+            require_type(t, torch.Tensor, name, "(torch.as_tensor converts a numpy array)")
     for name, v in (("width", width), ("height", height)):
         try:
             whole = not isinstance(v, bool) and int(v) == v
