@@ -114,3 +114,18 @@ def test_every_argument_of_every_command_has_help():
                 yield f"{' '.join(path)} {a.option_strings or a.dest}"
 
     assert not list(bare(build_parser(), ["splattwin"]))
+
+
+def test_the_command_quiets_toppra_the_library_does_not(tmp_path):
+    """TOPP-RA logs every solver step; the command sets its logger to WARNING (the robot stage did, on every
+    call, overriding a library caller's own setting: audit 10A L7)."""
+    import logging
+
+    lg = logging.getLogger("toppra")
+    before = lg.level
+    try:
+        lg.setLevel(logging.NOTSET)
+        assert cli.main(["export", str(tmp_path / "no_twin")]) == 2   # bad input: exits after the logging set-up
+        assert lg.level == logging.WARNING
+    finally:
+        lg.setLevel(before)

@@ -10,3 +10,20 @@ Importing splattwin (or any subpackage) changes no environment variable and no t
 """
 
 __version__ = "0.1.0"
+
+# The stage packages as attributes, imported on first use (PEP 562): `import splattwin; splattwin.splat.Gaussians`
+# works as in numpy/scipy, and `import splattwin` itself still imports nothing (the packages are lazy too).
+_PACKAGES = ("capture", "poses", "splat", "semantics", "geometry", "twin", "robot", "playback", "report", "viewer",
+             "scene", "pipeline", "cluster")
+
+
+def __getattr__(name: str):
+    if name in _PACKAGES:
+        import importlib
+
+        return importlib.import_module(f"{__name__}.{name}")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_PACKAGES))

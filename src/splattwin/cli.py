@@ -68,6 +68,9 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     if not args.verbose:   # PyOpenGL (MuJoCo's renderer) logs at INFO that an optional speed-up is missing
         logging.getLogger("OpenGL").setLevel(logging.WARNING)
+    # TOPP-RA logs every solver step at INFO/DEBUG (also with --verbose, as before). Set by the command, not
+    # by the robot stage: a library caller's logging configuration is its own.
+    logging.getLogger("toppra").setLevel(logging.WARNING)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

@@ -37,3 +37,12 @@ def short_repr(v, n: int = 60) -> str:
         return "<a value too long to print>"
     return r if len(r) <= n else r[:n - 3] + "..."
 
+
+
+def require_type(value, types: type | tuple[type, ...], what: str, hint: str = "") -> None:
+    """TypeError naming the argument and the expected type(s) when `value` is none of `types`: a library
+    entry point given a path or an array where it takes an object failed deep inside with an AttributeError
+    ("'str' object has no attribute 'sh_degree'"). hint: how to get the right object, e.g. "(Gaussians.load_ply)"."""
+    if not isinstance(value, types):
+        names = " or ".join(t.__name__ for t in (types if isinstance(types, tuple) else (types,)))
+        raise TypeError(f"{what} must be a {names}{' ' + hint if hint else ''}, got {type(value).__name__}")

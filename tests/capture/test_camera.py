@@ -129,3 +129,12 @@ def test_camera_refuses_a_projective_K_or_pose_row(K, T, msg):
     """K[2,2]=0 and a pose whose bottom row is [1,2,3,1] were accepted (audit 8A, L6)."""
     with pytest.raises(InputError, match=msg):
         Camera(K, 160, 120, T_world_cam=T)
+
+
+def test_cameras_compare_by_value():
+    """`cam == other` / `cam in cameras` raised ValueError (array fields); audit 10A L1."""
+    K = np.array([[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]])
+    cam = Camera(K, 64, 48, look_at(np.array([1.0, 0, 1]), np.zeros(3)), name="v0")
+    same = Camera(K.copy(), 64, 48, cam.T_world_cam.copy(), name="v0")
+    assert cam == same and cam in [Camera(K, 64, 48), same]
+    assert cam != Camera(K, 64, 48, name="v0") and cam != Camera(K, 64, 40, cam.T_world_cam, name="v0")

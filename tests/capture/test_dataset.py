@@ -101,3 +101,11 @@ def test_linked_photos_are_named_by_their_links_and_bundled_as_files(tmp_path):
     for f, b in zip(frames, bundled):
         assert b.image_path == out / "images" / f.image_path.name
         assert not b.image_path.is_symlink() and b.image_path.read_bytes() == f.image_path.read_bytes()
+
+
+def test_datasets_compare_by_value(scene_small):
+    """`Dataset == Dataset` raised ValueError (cameras' and points' arrays); audit 10A L1."""
+    a, b = load_dataset(scene_small), load_dataset(scene_small)
+    assert a == b and a.frames[0] == b.frames[0] and a.frames[0] in b.frames
+    b.frames[1].camera.T_world_cam[0, 3] += 0.01
+    assert a != b

@@ -181,3 +181,32 @@ def test_summary_shows_finished_builds_pictures_and_never_reads_one_being_writte
     caps = [{"name": "done", "status": "ok", "input": "a"}, {"name": "building", "status": "reconstructed", "input": "b"}]
     page = summary_html(tmp_path, {"captures": caps, "executor": "local", "wall_s": 1.0})
     assert page.count("<img") == 1 and "held-out view 000" in page and "could not be read" not in page
+
+
+def test_a_build_task_writes_the_stage_lines_to_its_log_once(tmp_path, monkeypatch, capsys):
+    """build(progress=False) logs its stage lines (audit 10A L15); a batch task still writes them to the
+    capture's log, once, as the command prints them, even in a worker that inherited a root log handler."""
+    import logging
+    import sys
+
+    from splattwin.cluster.batch import build_task
+    from splattwin.pipeline import build as b
+
+    class Ctx:
+        results, timings = {}, {}
+
+    def fake_build(twin, options, until=None, progress=True):
+        assert progress is False
+        logging.getLogger("splattwin.pipeline.build.stages").info("▶ splat")
+        return Ctx()
+
+    monkeypatch.setattr(b, "build", fake_build)
+    root = logging.getLogger()
+    inherited = logging.StreamHandler(sys.stderr)   # what a worker forked from the command has
+    root.addHandler(inherited)
+    try:
+        build_task(str(tmp_path / "twin"), BuildOptions(), None, 1)   # (a log file: its fds, not testable here)
+    finally:
+        root.removeHandler(inherited)
+    assert capsys.readouterr().err == "▶ splat\n"
+    assert logging.getLogger("splattwin.pipeline.build.stages").propagate

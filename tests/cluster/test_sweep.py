@@ -210,3 +210,23 @@ def test_fusion_sweep_without_masks_says_why_the_recorded_path_is_not_used(tmp_p
     with pytest.raises(InputError, match=r"pass --masks DIR \(twin.json records '/data/cake_masks', which sweep does "
                                          r"not follow"):
         sweep_masks(tmp_path, man, None, None, None)
+
+
+def test_the_sweep_plot_leaves_the_callers_matplotlib_backend(tmp_path: Path):
+    """The sweep's plot called matplotlib.use("Agg"), switching a notebook's backend (audit 10A L11)."""
+    import matplotlib
+    from PIL import Image
+
+    from splattwin.cluster.sweep import plot
+
+    summary = {"cells": [{"success_rate": 0.5, "ci95_lo": 0.2, "ci95_hi": 0.8, "fusion.kappa": 1.5},
+                         {"success_rate": 0.75, "ci95_lo": 0.4, "ci95_hi": 0.9, "fusion.kappa": 2.0}],
+               "grid": {"fusion.kappa": [1.5, 2.0]}, "trials_per_cell": 4}
+    before = matplotlib.get_backend()
+    matplotlib.use("svg")   # stands for the caller's own (a notebook's inline) backend
+    try:
+        out = plot(summary, tmp_path / "sweep.png")
+        assert matplotlib.get_backend() == "svg"
+        assert Image.open(out).format == "PNG"
+    finally:
+        matplotlib.use(before)

@@ -335,3 +335,10 @@ def test_main_parts_groups_through_touching_cells_as_documented():
     assert kept(far_but_touching)                                    # ~1.8 eps from the rest, yet in the group
     assert not kept([0.0401, 0.0, 0.01])                             # two cells over: never (> eps of the rest here)
     assert not kept([0.0, 0.0, 2 * np.sqrt(3) * eps + 0.001])         # beyond 2 sqrt(3) eps: never
+
+
+def test_convert_refuses_a_path_for_the_gaussians():
+    """convert("splats.ply", ...) took the path for Gaussians and said "labels has 0 entries for 10
+    Gaussians" (the path's length; audit 10A L19)."""
+    with pytest.raises(TypeError, match=r"^g must be a Gaussians .*Gaussians\.load_ply.*, got str$"):
+        convert("splats.ply", np.zeros(10, int), [])

@@ -178,3 +178,29 @@ def test_build_records_episodes_when_asked(tmp_path):
     assert len(ep) == len(sample_indices(ro.t, 4.0)) > 0
     rec = Recorder(out, BasePose().matrix(), camera="capture:0", width=48, fps=4.0)
     assert check_episode(ep, ro, rec.renderer, rec.cameras, min_psnr=24.0) == len(ep)
+
+
+def test_progress_false_logs_the_stage_lines_instead_of_printing(tmp_path, monkeypatch, capsys, caplog):
+    """build(out, options, progress=False) still printed "▶ splat" / "· poses: up to date, skipped" to
+    stderr with a rich Console (a notebook's or script's output; audit 10A L15); with progress=True the
+    command's lines are unchanged."""
+    import logging
+
+    from splattwin.pipeline import build as b
+    from splattwin.pipeline.options import BuildOptions
+
+    def fake_run_stages(stages, ctx, from_stage=None, until=None, on_stage=None):
+        on_stage("poses", "skip")
+        on_stage("splat", "run")
+
+    monkeypatch.setattr(b, "check_inputs", lambda options: None)
+    monkeypatch.setattr(b, "preflight", lambda ctx, until=None: {})
+    monkeypatch.setattr(b, "run_stages", fake_run_stages)
+    with caplog.at_level(logging.INFO, logger="splattwin.pipeline.build.stages"):
+        b.build(tmp_path / "twin", BuildOptions(), progress=False)
+    assert capsys.readouterr().err == ""
+    assert [r.getMessage() for r in caplog.records if r.name == "splattwin.pipeline.build.stages"] == \
+        ["· poses: up to date, skipped", "▶ splat"]
+    b.build(tmp_path / "twin", BuildOptions(), progress=True)
+    err = capsys.readouterr().err
+    assert "· poses: up to date, skipped" in err and "▶ splat" in err

@@ -194,3 +194,11 @@ def test_dynamic_scene_refuses_labels_out_of_range_naming_the_file(tiny_twin, tm
     np.save(p, labels)
     with pytest.raises(InputError, match=r"labels\.npy.*65535"):
         DynamicScene.load(twin)
+
+
+def test_the_renderer_refuses_a_twin_path_for_its_scene(tmp_path):
+    """PlaybackRenderer("TWIN") failed with "'str' object has no attribute 'sh_degree'" (audit 10A L19)."""
+    from splattwin.playback.compositor import PlaybackRenderer
+
+    with pytest.raises(TypeError, match=r"^scene must be a DynamicScene \(DynamicScene\.load\(twin_dir\)\), got str$"):
+        PlaybackRenderer(str(tmp_path))

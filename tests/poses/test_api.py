@@ -96,6 +96,7 @@ def test_pose_result_round_trips(scene_small: Path, tmp_path: Path):
     np.testing.assert_allclose(back.T_out_in, res.T_out_in)
     assert back.stats["method"] == res.stats["method"] and back.stats["registered"] == res.stats["registered"]
     assert back.label_objects == res.label_objects
+    assert copy.deepcopy(back) == back   # by value (audit 10A L1: raised ValueError)
     assert PoseResult.load(tmp_path / "p" / "transforms.json").frame == res.frame
     with pytest.raises(InputError, match="transforms.json"):
         PoseResult.load(tmp_path / "nothing")
@@ -139,3 +140,21 @@ def test_save_again_with_fewer_views_removes_the_files_of_the_views_gone(scene_s
     less.frames = less.frames[:3]
     _known(less).save(cap)
     assert sorted(p.name for p in (cap / "images").iterdir()) == before
+
+
+def test_the_camera_plot_leaves_the_callers_matplotlib_backend(scene_small: Path, tmp_path: Path):
+    """plot_cameras (PoseResult.save's cameras.png) called matplotlib.use("Agg"), switching a notebook's
+    backend (audit 10A L11)."""
+    import matplotlib
+    from PIL import Image
+
+    from splattwin.poses.estimate import plot_cameras
+
+    before = matplotlib.get_backend()
+    matplotlib.use("svg")   # stands for the caller's own (a notebook's inline) backend
+    try:
+        out = plot_cameras(_known(load_dataset(scene_small)), tmp_path / "cameras.png")
+        assert matplotlib.get_backend() == "svg"
+        assert Image.open(out).format == "PNG"
+    finally:
+        matplotlib.use(before)

@@ -388,3 +388,18 @@ def test_report_shows_the_label_maps_of_this_fusions_views_only(tmp_path):
     html = build_report(twin).read_text()
     assert "heldout_003: fused labels rendered" in html and "heldout_003: 2D segmenter masks" in html
     assert "heldout_009" not in html
+
+
+def test_a_missing_twin_folder_is_bad_input_not_a_new_report(tmp_path: Path):
+    """build_report("typo") created typo/report/index.html, an empty report of nothing, and a file path
+    raised NotADirectoryError (audit 10A L14); the command checked the folder, the function did not."""
+    import pytest
+
+    from splattwin.errors import InputError
+
+    with pytest.raises(InputError, match="twin folder does not exist"):
+        build_report(tmp_path / "typo")
+    assert not (tmp_path / "typo").exists()
+    (tmp_path / "a_file").write_text("x")
+    with pytest.raises(InputError, match="a_file: twin folder does not exist"):
+        build_report(tmp_path / "a_file")

@@ -229,3 +229,12 @@ def test_a_run_without_motion_gives_an_empty_rollout(tmp_path: Path):
     assert len(ro) == 0 and ro.qpos.shape == (0, 16) and ro.q_arm.shape == (0, 7) and ro.duration == 0.0
     back = Rollout.load(ro.save(tmp_path / "empty.npz"))
     assert len(back) == 0 and back.qpos.shape == (0, 16) and back.action_q_arm.shape == (0, 7)
+
+
+def test_rollout_save_load_compares_equal(tmp_path: Path):
+    """`Rollout.load(p) == r` raised ValueError (array fields); audit 10A L1."""
+    ro = _small_rollout()
+    back = Rollout.load(ro.save(tmp_path / "r.npz"))
+    assert back == ro
+    back.object_poses["box"][2, 0, 3] = 0.5
+    assert back != ro

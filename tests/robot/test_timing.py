@@ -119,3 +119,19 @@ def test_planned_path_trajectory_is_collision_free():
     assert tr.joint_names == checker.joint_names
     v_ok, a_ok, *_ = fd_ok(tr, PANDA_VEL_LIMITS, PANDA_ACC_LIMITS)
     assert v_ok and a_ok
+
+
+def test_timing_leaves_the_callers_toppra_logger_alone():
+    """Each TOPP-RA call set logging.getLogger("toppra") to WARNING, overriding a caller who turned it up to
+    debug the timing (audit 10A L7); the `splattwin` command sets it instead (tests/test_cli.py)."""
+    import logging
+
+    lg = logging.getLogger("toppra")
+    before = lg.level
+    try:
+        lg.setLevel(logging.DEBUG)
+        path = np.array([[0.0, 0.0, 0.0, -1.5, 0.0, 1.5, 0.0], [0.3, -0.2, 0.1, -1.2, 0.1, 1.7, 0.3]])
+        time_parameterize(path, PANDA_VEL_LIMITS, PANDA_ACC_LIMITS, dt=0.005)
+        assert lg.level == logging.DEBUG
+    finally:
+        lg.setLevel(before)

@@ -57,6 +57,7 @@ def test_track_load_rejects_malformed_files(tmp_path: Path):
                     times=np.arange(4.0), object_poses={"box": np.tile(np.eye(4), (4, 1, 1))})
     back = RobotTrack.load(tr.save(tmp_path / "ok.npz"))
     assert back.names == ["g1"] and back.colors == [(1, 2, 3)] and back.object_poses["box"].shape == (4, 4, 4)
+    assert back == tr   # array-aware equality (audit 10A L1): raised ValueError
     arrays = dict(np.load(tmp_path / "ok.npz", allow_pickle=False))
     np.savez(tmp_path / "bad_face.npz", **{**arrays, "f0": np.array([[0, 1, 7]], np.uint32)})
     with pytest.raises(InputError, match="bad_face.npz"):

@@ -195,3 +195,47 @@ def test_accelerations_follow_the_sampled_velocities():
     assert np.abs(out.qdd).max() <= acc + 1e-9
     np.testing.assert_array_equal(out.q, tr.q)
     np.testing.assert_array_equal(out.qd, tr.qd)
+
+
+def test_save_plot_leaves_the_callers_matplotlib_backend(tmp_path):
+    """save_plot called matplotlib.use("Agg"), switching a notebook's backend (its inline figures stopped
+    showing); it draws on a Figure of its own now (audit 10A L11)."""
+    import matplotlib
+    from PIL import Image
+
+    before = matplotlib.get_backend()
+    matplotlib.use("svg")   # stands for the caller's own (a notebook's inline) backend
+    try:
+        tr = Trajectory(np.array([0.0, 0.5, 1.0]), np.zeros((3, 2)), np.zeros((3, 2)), np.zeros((3, 2)))
+        out = tr.save_plot(tmp_path / "traj.png", vel_limits=[1.0, 1.0])
+        assert matplotlib.get_backend() == "svg"
+        assert Image.open(out).format == "PNG"
+    finally:
+        matplotlib.use(before)
+
+
+def test_round_trips_compare_equal():
+    """`Trajectory.load_json(p) == tr` raised ValueError (array fields; audit 10A L1)."""
+    tr = make()
+    same = Trajectory(tr.t.copy(), tr.q.copy(), tr.qd.copy(), tr.qdd.copy(), list(NAMES))
+    assert tr == same and tr != make(seed=1)
+
+
+def test_csv_that_is_not_text_is_bad_input(tmp_path, monkeypatch):
+    """A binary or NUL-holding file raised UnicodeDecodeError / csv.Error (an internal error), and the whole
+    file was read whatever its size (audit 10A L12): bounded UTF-8 text, InputError naming the file."""
+    from splattwin import limits
+
+    (tmp_path / "bin.csv").write_bytes(b"t,q_a,qd_a,qdd_a\n\x80\xff\xfe0,1,2,3\n")
+    with pytest.raises(InputError, match=r"bin\.csv: .*not UTF-8"):
+        Trajectory.load_csv(tmp_path / "bin.csv")
+    (tmp_path / "nul.csv").write_bytes(b"t,q_a,qd_a,qdd_a\n0,\x00,2,3\n")
+    with pytest.raises(InputError, match=r"nul\.csv: "):
+        Trajectory.load_csv(tmp_path / "nul.csv")
+    tr = make(n=200)
+    p = tr.save_csv(tmp_path / "big.csv")
+    monkeypatch.setattr(limits, "MAX_TEXT_BYTES", 1000)
+    with pytest.raises(InputError, match=r"big\.csv"):
+        Trajectory.load_csv(p)
+    monkeypatch.undo()
+    assert Trajectory.load_csv(p).joint_names == NAMES

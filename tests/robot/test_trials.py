@@ -120,9 +120,12 @@ def test_a_stored_trial_is_not_reused_after_its_meshes_or_the_code_change(gt_twi
 
 @pytest.mark.parametrize("field,value", [("success", "no"), ("collisions", "x"), ("plan_ms", ["a", "b"]),
                                          ("plan_ms", [float("nan")]), ("trial_wall_s", "slow"), ("collisions", True)])
-def test_resume_ignores_a_wrongly_typed_stored_result_with_a_warning(tmp_path: Path, capsys, field, value):
+def test_resume_ignores_a_wrongly_typed_stored_result_with_a_warning(tmp_path: Path, capsys, caplog, field, value):
     """A stored result with the right key but wrong types is re-run (with a warning naming it), not summed
-    ("success": "no" counted as a success; "collisions": "x" crashed the summary)."""
+    ("success": "no" counted as a success; "collisions": "x" crashed the summary). The warning goes through
+    the package's logger, not printed to stderr (audit 10A L6)."""
+    import logging
+
     (tmp_path / "twin").mkdir()
     (tmp_path / "twin" / "twin.json").write_text("{}")
     spec = TrialSpec(str(tmp_path / "twin"), None, sigma=0.005, seed=1)
@@ -132,9 +135,11 @@ def test_resume_ignores_a_wrongly_typed_stored_result_with_a_warning(tmp_path: P
     p.write_text(json.dumps(good))
     assert load_finished(p, spec) is not None and capsys.readouterr().err == ""
     p.write_text(json.dumps({**good, field: value}))
-    assert load_finished(p, spec) is None
-    err = capsys.readouterr().err
-    assert "1.json" in err and field in err
+    with caplog.at_level(logging.WARNING, logger="splattwin.robot.trials"):
+        assert load_finished(p, spec) is None
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert any("1.json" in m and field in m for m in warned), warned
+    assert capsys.readouterr().err == ""
 
 
 def test_a_twin_posed_by_the_robot_puts_the_arm_at_its_base(gt_twin_small: Path, tmp_path: Path):
@@ -169,3 +174,11 @@ def test_a_twin_posed_by_the_robot_puts_the_arm_at_its_base(gt_twin_small: Path,
     tilted[:3, :3] = [[1, 0, 0], [0, 0, -1], [0, 1, 0]]
     b, why = BasePose.default_for(TwinFrame(source="robot", scaled=True, T_twin_input=tilted.tolist()))
     assert b == BasePose() and "--base-pose" in why
+
+
+def test_run_once_refuses_a_twin_path_for_its_spec(tmp_path: Path):
+    """run_once("TWIN") failed with "'str' object has no attribute 'twin_dir'" (audit 10A L19)."""
+    from splattwin.robot.trials import run_once
+
+    with pytest.raises(TypeError, match=r"^spec must be a TrialSpec .*TrialSpec\(twin_dir.*, got str$"):
+        run_once(str(tmp_path))

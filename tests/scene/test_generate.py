@@ -258,3 +258,25 @@ def test_regenerating_into_a_folder_removes_stale_views(tmp_path):
     assert sorted(p.name for p in (out / "masks" / "noisy").iterdir()) == ["heldout_000", "train_000", "train_001"]
     assert (out / "notes.txt").read_text() == "mine"  # not ours: left alone
     assert len(load_scene(out)["views"]) == 3
+
+
+@pytest.mark.parametrize("doc", [[1, 2], "scene", {"fl_x": 1}], ids=["list", "text", "missing-keys"])
+def test_malformed_scene_files_are_input_errors_naming_them(tmp_path, doc):
+    """A scene.json holding a list raised TypeError from load_scene, a transforms.json without the scene's
+    keys KeyError from scene_cameras, and both read the whole file whatever its size (audit 10A L13)."""
+    (tmp_path / "scene.json").write_text(json.dumps(doc))
+    (tmp_path / "transforms.json").write_text(json.dumps(doc))
+    with pytest.raises(InputError, match=r"scene\.json: "):
+        load_scene(tmp_path)
+    with pytest.raises(InputError, match=r"transforms\.json: "):
+        scene_cameras(tmp_path)
+
+
+def test_scene_files_are_read_bounded(scene_small, monkeypatch):
+    from splattwin import limits
+
+    monkeypatch.setattr(limits, "MAX_JSON_BYTES", 64)
+    with pytest.raises(InputError, match=r"scene\.json"):
+        load_scene(scene_small)
+    with pytest.raises(InputError, match=r"transforms\.json"):
+        scene_cameras(scene_small)

@@ -3,6 +3,8 @@ arguments, its results and mask sets load back and compare, and mask mistakes ar
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 
@@ -91,6 +93,8 @@ def test_fusion_result_round_trips(synth, tmp_path):
     assert back.history == res.history and back.counts() == res.counts() and back.extra == {"miou_train": 0.5}
     back.save(tmp_path / "again")   # extra written again
     assert FusionResult.load(tmp_path / "again").extra == {"miou_train": 0.5}
+    assert FusionResult.load(tmp_path / "again") == back   # by value (audit 10A L1: raised ValueError)
+    assert res == copy.deepcopy(res) and back != res   # back has no votes
     with pytest.raises(ValueError, match="votes"):
         back.relabel(1.0)
     with pytest.raises(InputError, match="fusion.json"):

@@ -91,3 +91,13 @@ def test_save_ply_never_writes_a_file_load_ply_refuses(tmp_path):
     assert len(e2) == 2 and e2.scales[0, 0] == 0.0
     assert len(Gaussians.load_ply(g.save_ply(tmp_path / "g.ply"))) == 3
     assert len(Gaussians.load_ply(Gaussians.empty(2).save_ply(tmp_path / "empty.ply"))) == 0
+
+
+def test_equality_is_by_value_and_a_ply_round_trip_compares_equal(tmp_path):
+    """`==` on Gaussians raised ValueError (numpy arrays in the generated dataclass __eq__); audit 10A L1."""
+    g = _g(20, deg=2)
+    assert g == _g(20, deg=2) and g != _g(20, deg=2, seed=1) and g != _g(19, deg=2)
+    once = Gaussians.load_ply(g.save_ply(tmp_path / "a.ply"))   # float32 storage: not bit-equal to g
+    twice = Gaussians.load_ply(once.save_ply(tmp_path / "b.ply"))
+    assert twice == once and once in [g, twice]
+    assert once != g   # exact comparison: the float64 originals were rounded to float32

@@ -622,3 +622,38 @@ def test_cpu_sharp_thin_gaussians_match_the_reference():
     assert ac.max() > 0.3
     assert torch.allclose(ir, ic, atol=5e-5) and torch.allclose(ar, ac, atol=5e-6)
     _assert_close_grads(gr, gc)
+
+
+def test_non_tensor_inputs_and_fractional_sizes_raise_type_errors_naming_the_argument():
+    """numpy inputs failed deep inside ("'numpy.ndarray' object has no attribute 'is_floating_point'") and a
+    width of 40.7 px rendered 40 px (audit 10A L8)."""
+    inputs, K = _scene(n=5, C=1)
+    args = [*inputs[:4], inputs[4][:, 0], inputs[5], K]
+    for i, name in enumerate(["means", "quats", "scales", "opacities", "colors", "viewmats", "Ks"]):
+        bad = list(args)
+        bad[i] = bad[i].numpy()
+        with pytest.raises(TypeError, match=rf"^{name} must be a Tensor \(torch.as_tensor .*\), got ndarray$"):
+            rasterization(*bad, 40, 30)
+    with pytest.raises(TypeError, match="backgrounds must be a Tensor .*, got list"):
+        rasterization(*args, 40, 30, backgrounds=[[0.0, 0.0, 0.0]])
+    for w, h in ((40.7, 30), (40, "30"), (True, 30)):
+        with pytest.raises(TypeError, match="must be a whole number of pixels"):
+            rasterization(*args, w, h)
+    img, _, _ = rasterization(*args, np.int64(40), 30.0)   # whole numbers of any type are sizes
+    assert img.shape == (1, 30, 40, 3)
+
+
+def test_render_helpers_refuse_a_path_or_a_matrix_naming_the_argument(tmp_path):
+    """render(path, camera) failed with "'str' object has no attribute 'sh_degree'" and render_depth(g, K)
+    with "'numpy.ndarray' object has no attribute 'height'" (audit 10A L19)."""
+    from splattwin.capture.camera import Camera
+    from splattwin.splat import Gaussians, render, render_depth
+
+    cam = Camera(np.array([[40.0, 0, 20], [0, 40.0, 15], [0, 0, 1]]), 40, 30)
+    g = Gaussians.empty()
+    with pytest.raises(TypeError, match=r"^gaussians must be a Gaussians .*Gaussians\.load_ply.*, got str$"):
+        render(str(tmp_path / "splats.ply"), cam)
+    with pytest.raises(TypeError, match=r"^camera must be a Camera .*, got ndarray$"):
+        render_depth(g, cam.K)
+    img, alpha = render(g, cam)
+    assert img.shape == (30, 40, 3) and alpha.shape == (30, 40)

@@ -983,3 +983,24 @@ def test_appearance_corrections_start_at_one_without_a_usable_measurement(synth,
     np.testing.assert_array_equal(A, np.broadcast_to(np.eye(3), A.shape))
     assert t.appearance_record["init"] == "identity" and "no exposure check read" in t.appearance_record["init_why"]
     assert "malformed \"exposure\"" in caplog.text and "start at gain 1" in caplog.text
+
+
+def test_training_leaves_the_callers_torch_random_state_alone(synth, tmp_path):
+    """A run seeds torch's global generator with cfg.seed; it reseeded the caller's, so a notebook's next
+    torch.rand after training changed (audit 10A L9). The caller's state is restored now."""
+    torch.manual_seed(7)
+    expected = torch.rand(4)
+    torch.manual_seed(7)
+    train(load_dataset(synth), tmp_path / "out", tiny_config(iters=3))
+    assert torch.equal(torch.rand(4), expected)
+
+
+def test_train_takes_a_dataset_path_as_evaluate_does(synth, tmp_path):
+    """train("path/to/dataset", out) failed deep inside with "'str' object has no attribute 'meta'"
+    (audit 10A L17); evaluate and fuse_to_dir already take a path."""
+    from splattwin.errors import InputError
+
+    res = train(str(synth), tmp_path / "out", tiny_config(iters=3))
+    assert res.steps == 3 and (tmp_path / "out" / "point_cloud.ply").is_file()
+    with pytest.raises(InputError, match="does not exist"):
+        train(tmp_path / "no_dataset", tmp_path / "out2", tiny_config(iters=3))

@@ -57,3 +57,22 @@ def test_add_scene_goal_gives_a_python_twin_the_scenes_target(scene_small, tmp_p
     load_task(default_task_path(), Manifest.load(tmp_path / "twin"))   # the default task's region is there now
     with pytest.raises(InputError, match="scene.json"):
         add_scene_goal(tmp_path / "twin", tmp_path)
+
+
+def test_build_twin_takes_a_splat_path_and_refuses_other_types_before_writing(tmp_path):
+    """build_twin("splats.ply", ...) failed with "'str' object has no attribute 'means'" after it had made
+    the twin folder (audit 10A L18); a PLY path is read as fuse_to_dir reads it."""
+    from splattwin.scene.synthetic import synthetic_scene
+
+    g, labels, objects, _ = synthetic_scene(2000, seed=1)
+    with pytest.raises(TypeError, match="gaussians must be a Gaussians or a 3DGS PLY path, got list"):
+        build_twin([1, 2], labels, objects, tmp_path / "t", progress=False)
+    assert not (tmp_path / "t").exists()
+    with pytest.raises(InputError, match="missing.ply"):
+        build_twin(str(tmp_path / "missing.ply"), labels, objects, tmp_path / "t", progress=False)
+    assert not (tmp_path / "t").exists()
+    ply = g.save_ply(tmp_path / "splats.ply")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        man = build_twin(str(ply), labels, objects, tmp_path / "t", formats=(), progress=False)
+    assert sorted(o.name for o in man.objects) == sorted(o[0] for o in objects)

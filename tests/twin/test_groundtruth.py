@@ -202,3 +202,17 @@ def test_twin_stage_loads_each_ground_truth_mesh_once(scene_small, tmp_path, mon
     alone = json.loads(write_fidelity(tmp_path / "twin", scene_small, TwinOptions().geometry.f1_threshold, T)
                        .read_text())
     assert got == alone and set(got) and all(r["f1"] > 0.99 for r in got.values())
+
+
+@pytest.mark.parametrize("doc", [[1], {"objects": [1]}, {"objects": [{"label": 1, "mesh": "m.ply"}]},
+                                 {"objects": [{"name": "cup", "label": "one", "mesh": "m.ply"}]},
+                                 {"objects": [{"name": "cup", "label": 1}]}],
+                         ids=["list", "entry-not-object", "no-name", "label-text", "no-mesh"])
+def test_load_scene_gt_refuses_a_malformed_scene_json_naming_it(tmp_path: Path, doc):
+    """`twin.groundtruth.load_scene_gt` (CONTRACTS: a scene's GT objects and meshes) raised AttributeError,
+    TypeError, KeyError or ValueError on a malformed scene.json (audit 10A L13)."""
+    from splattwin.twin.groundtruth import load_scene_gt
+
+    (tmp_path / "scene.json").write_text(json.dumps(doc))
+    with pytest.raises(InputError, match=r"scene\.json: "):
+        load_scene_gt(tmp_path)

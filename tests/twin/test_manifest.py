@@ -160,3 +160,19 @@ def test_escaping_path_error_names_the_twin_folder(tmp_path, key):
     with pytest.raises(InputError, match=f"outside its folder {tmp_path}") as e:
         Manifest.from_dict(d, tmp_path / "twin.json")
     assert "nonexistent" not in str(e.value)
+
+
+def test_load_takes_the_twin_folder_or_its_twin_json(tmp_path):
+    """`Manifest.load("TWIN/twin.json")` looked for TWIN/twin.json/twin.json (audit 10A L2); TwinFrame.load
+    and PoseResult.load already take the folder or the file."""
+    (tmp_path / "objects").mkdir()
+    m = Manifest(objects=[ObjectEntry("cup", 1, splat_ply="objects/cup.ply")])
+    m.save(tmp_path)
+    assert Manifest.load(tmp_path / "twin.json") == Manifest.load(tmp_path) == m
+    with pytest.raises(InputError, match=r"nothing[/\\]twin.json: no twin manifest"):
+        Manifest.load(tmp_path / "nothing" / "twin.json")
+    (tmp_path / "escape").mkdir()
+    bad = Manifest(objects=[ObjectEntry("cup", 1, splat_ply="../objects/cup.ply")]).to_dict()
+    (tmp_path / "escape" / "twin.json").write_text(json.dumps(bad))
+    with pytest.raises(InputError, match="outside|leaves|inside"):   # paths still confined to the file's folder
+        Manifest.load(tmp_path / "escape" / "twin.json")

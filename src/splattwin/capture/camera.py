@@ -17,6 +17,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from splattwin.equality import dataclass_eq
 from splattwin.errors import InputError
 
 # Flip of camera y and z axes: OpenCV <-> OpenGL (its own inverse).
@@ -79,6 +80,8 @@ class Camera:
     T_world_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
     dist: np.ndarray | None = None
     name: str = ""
+
+    __eq__ = dataclass_eq   # array-aware (K, pose): `cam in cameras` works (splattwin.equality)
 
     def __post_init__(self) -> None:
         self.K = np.asarray(self.K, dtype=np.float64).reshape(3, 3)

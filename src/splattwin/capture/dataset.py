@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from splattwin.capture.camera import Camera
+from splattwin.equality import dataclass_eq
 from splattwin.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -80,6 +81,8 @@ class Dataset:
     # type (integer PNG in mm, float .npy in metres), see `load_depth`
     depth_scale: float | None = None
     meta: dict = field(default_factory=dict)
+
+    __eq__ = dataclass_eq   # array-aware (points; frames via Camera's) (splattwin.equality)
 
     def __len__(self) -> int:
         return len(self.frames)

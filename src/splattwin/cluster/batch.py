@@ -102,6 +102,26 @@ def _output_to(path: Path):
             os.close(saved[1])
 
 
+@contextlib.contextmanager
+def _stage_lines_to_stderr():
+    """The build's stage lines ("▶ splat"), which `build(progress=False)` logs rather than prints, written to
+    stderr (the capture's log) while a build task runs, as the command prints them."""
+    lg = logging.getLogger("splattwin.pipeline.build.stages")
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    saved = lg.level, lg.propagate
+    lg.addHandler(handler)
+    # once, as printed before: not again through a root handler a forked worker inherited from the command
+    lg.setLevel(logging.INFO)
+    lg.propagate = False
+    try:
+        yield
+    finally:
+        lg.removeHandler(handler)
+        lg.setLevel(saved[0])
+        lg.propagate = saved[1]
+
+
 def in_ray_worker() -> bool:
     """True inside a Ray worker process."""
     if "ray" not in sys.modules:
@@ -128,7 +148,7 @@ def build_task(twin: str, options, until: str | None, threads: int, log_path: st
 
         multiprocessing.set_start_method("spawn", force=True)
     t0 = time.perf_counter()
-    with _output_to(Path(log_path)) if log_path else contextlib.nullcontext():
+    with _output_to(Path(log_path)) if log_path else contextlib.nullcontext(), _stage_lines_to_stderr():
         try:
             print(f"== {time.strftime('%Y-%m-%d %H:%M:%S')} build until {until or 'the end'} (pid {os.getpid()})",
                   flush=True)

@@ -581,15 +581,14 @@ def write_outputs(out: Path, summary: dict) -> dict[str, Path]:
 
 def plot(summary: dict, path: Path) -> Path:
     """Success rate per cell with its Wilson 95 % interval (the cell's parameters under each bar)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     rows = [r for r in summary["cells"] if r.get("success_rate") is not None]
     if not rows:
         raise ValueError("no cell ran trials")
-    fig, ax = plt.subplots(figsize=(max(5.0, 0.9 * len(rows) + 2), 3.6), dpi=110)
+    # a Figure of its own, not pyplot: the caller's backend and open figures stay as they are (a notebook's)
+    fig = Figure(figsize=(max(5.0, 0.9 * len(rows) + 2), 3.6), dpi=110)
+    ax = fig.subplots()
     x = np.arange(len(rows))
     rate = np.array([r["success_rate"] for r in rows])
     lo = rate - np.array([r["ci95_lo"] for r in rows])
@@ -605,7 +604,6 @@ def plot(summary: dict, path: Path) -> Path:
     fig.tight_layout()
     with io.atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
-    plt.close(fig)
     return path
 
 

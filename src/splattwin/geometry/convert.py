@@ -90,6 +90,10 @@ class BackgroundGeometry:
 
 @dataclass
 class Conversion:
+    """The result of converting labelled Gaussians to planning geometry (`convert`): one `ObjectGeometry`
+    per object, the background's (`BackgroundGeometry`, None when not built), the attribute filter's
+    statistics, the resolved options and per-step timings (s)."""
+
     objects: list[ObjectGeometry]
     background: BackgroundGeometry | None
     filter_stats: FilterStats
@@ -632,6 +636,11 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
     is whole (`GeometryOptions.min_coverage`); None: no masks, the count alone decides."""
     from splattwin.progress import Progress
 
+    from splattwin.errors import require_type
+    from splattwin.splat.gaussians import Gaussians
+
+    # a PLY path passed here was taken for Gaussians: "labels has 0 entries for 10 Gaussians" (len of the path)
+    require_type(g, Gaussians, "g", "(splattwin.splat.Gaussians; from a file: Gaussians.load_ply)")
     opts = opts or GeometryOptions()
     labels = np.asarray(labels).reshape(-1)
     if len(labels) != len(g):

@@ -16,6 +16,12 @@ import trimesh
 
 @dataclass
 class Fidelity:
+    """Geometric fidelity of reconstructed points against ground truth (`fidelity`, `mesh_fidelity`).
+
+    chamfer: mean of the two mean nearest-neighbour distances (m); precision / recall: share of reconstructed /
+    ground-truth points within the threshold of the other set; f1: their harmonic mean; n_points: number of
+    reconstructed points."""
+
     chamfer: float
     precision: float
     recall: float

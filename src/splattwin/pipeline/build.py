@@ -42,6 +42,7 @@ from splattwin.pipeline.options import STAGES, BuildOptions  # noqa: F401 - STAG
 from splattwin.pipeline.runner import Context, Stage, compute_keys, run_stages
 
 log = logging.getLogger(__name__)
+stage_log = logging.getLogger(__name__ + ".stages")   # "▶ splat" lines of build(progress=False)
 
 
 def record(result: Any, out: Path) -> dict[str, Any]:
@@ -360,7 +361,9 @@ def check_inputs(options: BuildOptions) -> None:
 def build(out: str | Path, options: BuildOptions, from_stage: str | None = None, until: str | None = None,
           progress: bool = True) -> Context:
     """Run (or resume) the pipeline into the twin folder `out`. Returns the run context.
-    progress: progress bars of every stage (not an option of the result: no stage key depends on it)."""
+    progress: progress bars of every stage and the stage lines ("▶ splat") on stderr; False: nothing printed,
+    the stage lines logged (logger splattwin.pipeline.build.stages, INFO). Not an option of the result: no stage key
+    depends on it."""
     from splattwin.console import console
 
     from splattwin.lock import output_lock
@@ -370,10 +373,13 @@ def build(out: str | Path, options: BuildOptions, from_stage: str | None = None,
     con = console(stderr=True)
 
     def on_stage(name: str, status: str) -> None:
-        if status == "skip":
-            con.print(f"[dim]· {name}: up to date, skipped[/]")
-        elif status == "run":
-            con.print(f"[bold cyan]▶ {name}[/]")
+        line = {"skip": f"· {name}: up to date, skipped", "run": f"▶ {name}"}.get(status)
+        if line is None:
+            return
+        if progress:
+            con.print(line, style="dim" if status == "skip" else "bold cyan", markup=False, highlight=False)
+        else:   # a script, a notebook, a batch worker: through the logger, not printed
+            stage_log.info(line)
 
     ctx = _context(out, options, progress)
     t0 = time.perf_counter()

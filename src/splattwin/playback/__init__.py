@@ -10,7 +10,8 @@ collision parts, the robot's recorded track), without any GUI.
 Entry points (thin calls for the report, the viewer and `plan --record`):
     scene = DynamicScene.load(twin_dir)                       # splats split into background + objects, holes
     renderer = PlaybackRenderer(scene, RobotSplats.panda())   # robot as Gaussians (compositor.py; robot.py says why)
-    frame = renderer.render(camera, object_poses, qpos)       # one photoreal frame (rgb, depth, alpha)
+    frame = renderer.render(camera, object_poses, RobotPose(q_arm, gripper_width))   # one photoreal frame
+                                                              # (rgb, depth, alpha); RobotPose: playback.robot
     render_rollout_video(renderer, rollout, camera, out_mp4)  # MP4 of an executed task (playback.movie)
     write_episode(out_dir, rollout, renderer, cameras)        # LeRobot-layout episode (playback.episode)
     read_episode(dataset_dir, index)                          # ... and back

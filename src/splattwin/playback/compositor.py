@@ -54,6 +54,9 @@ class PlaybackRenderer:
     def __init__(self, scene: DynamicScene, robot: RobotSplats | None = None,
                  background: tuple[float, float, float] = (0.0, 0.0, 0.0), backend: str = "auto",
                  relight: bool = True, robot_shadows: bool = True):
+        from splattwin.errors import require_type
+
+        require_type(scene, DynamicScene, "scene", "(DynamicScene.load(twin_dir))")
         self.scene, self.robot = scene, robot
         self.background = np.asarray(background, np.float32)
         self.backend = backend

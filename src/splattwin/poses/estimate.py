@@ -31,6 +31,7 @@ import numpy as np
 from splattwin import io
 from splattwin.capture.camera import Camera
 from splattwin.capture.dataset import Dataset, Frame as DataFrame, load_image
+from splattwin.equality import dataclass_eq
 from splattwin.errors import InputError
 from splattwin.poses import align
 from splattwin.poses.options import UP_AXES, PoseOptions
@@ -68,6 +69,8 @@ class PoseResult:
     stats: dict = field(default_factory=dict)
     depth_scale: float | None = None  # metres per raw depth unit (see splattwin.capture.dataset)
     label_objects: dict | None = None  # name -> id of the label images' objects (capture.nerfstudio)
+
+    __eq__ = dataclass_eq   # array-aware (points, T_out_in) (splattwin.equality)
 
     @property
     def cameras(self) -> list[Camera]:
@@ -982,12 +985,11 @@ def _robot_cameras(opts: PoseOptions, frames: list[DataFrame], names: list[str],
 
 def plot_cameras(result: PoseResult, path: str | Path) -> Path:
     """PNG: top view (x-y) and side view (x-z) of the points and camera centres with viewing directions."""
-    import matplotlib
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(10, 5))
+    # a Figure of its own, not pyplot: the caller's backend and open figures stay as they are (a notebook's)
+    fig = Figure(figsize=(10, 5))
+    axes = fig.subplots(1, 2)
     C = np.array([c.center for c in result.cameras]).reshape(-1, 3)
     D = np.array([c.T_world_cam[:3, 2] for c in result.cameras]).reshape(-1, 3)
     span = float(np.ptp(C, axis=0).max()) if len(C) > 1 else 1.0
@@ -1008,6 +1010,5 @@ def plot_cameras(result: PoseResult, path: str | Path) -> Path:
                  + ("" if result.frame.scaled else " (UNSCALED)"))
     fig.tight_layout()
     with io.atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=80)
-    plt.close(fig)
+        fig.savefig(tmp, dpi=80, format="png")
     return Path(path)

@@ -223,6 +223,8 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
     from splattwin.twin.manifest import Manifest
 
     twin = Path(twin_dir)
+    if not twin.is_dir():   # a mistyped path made a folder holding only an empty report (the command checked it)
+        raise InputError("twin folder does not exist", twin)
     man = Manifest.load(twin) if (twin / "twin.json").is_file() else None
     fr = man.frame if man else _poses_frame(twin)   # a folder built --until splats has the poses' frame
     rep = Report(f"splattwin twin — {twin.resolve().name}",

@@ -90,6 +90,15 @@ class StepResult:
 
 @dataclass
 class RunResult:
+    """One execution of a task in MuJoCo physics (`Executor.run`; `trials.run_once` returns it first).
+
+    success: every step of the task ran and succeeded; steps: per-step outcome (`StepResult`);
+    collisions: the steps' robot and object collisions together (`judge.collisions`); plan_ms: planning
+    time per step (ms); sim_time: simulated seconds; wall_s: wall-clock seconds; trajectories: (name,
+    `Trajectory`) of the executed segments and rollout: the recorded `Rollout` (twin frame, m, rad, s),
+    both kept only with `keep_trajectories`; settle: the start check (see below). `to_dict()`: the JSON
+    record (results.json)."""
+
     success: bool
     steps: list[StepResult]
     collisions: int

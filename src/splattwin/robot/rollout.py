@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from splattwin.equality import dataclass_eq
 from splattwin.errors import InputError
 from splattwin.limits import load_npz
 
@@ -49,6 +50,8 @@ class Rollout:
     object_poses: dict[str, np.ndarray]    # object name -> [T, 4, 4] T_world_obj
     joint_names: list[str]                 # the 7 arm joint names
     step_index: np.ndarray                 # [T] int, task step each sample belongs to (-1 between steps)
+
+    __eq__ = dataclass_eq   # array-aware: `Rollout.load(p) == r` (splattwin.equality)
 
     def __post_init__(self) -> None:
         self.t = np.asarray(self.t, dtype=np.float64).reshape(-1)

@@ -72,6 +72,10 @@ class Step:
 
 @dataclass
 class Task:
+    """A pick-and-place task: steps in order, each picks one object and places it on another or in a
+    region of the twin frame. Read from YAML by `load_task` (checked against the twin's objects when given
+    its manifest) or from plain data by `parse_task`."""
+
     steps: list[Step]
     name: str = "task"
     path: Path | None = None
@@ -79,6 +83,7 @@ class Task:
 
 
 def default_task_path() -> Path:
+    """The task file shipped with the package (tasks/default.yaml: the embedded scene's pick and place)."""
     return Path(str(resources.files("splattwin.robot") / "tasks" / "default.yaml"))
 
 
@@ -110,6 +115,10 @@ def _region(v, where: Path, manifest: Manifest | None) -> Region:
 
 
 def parse_task(data, where: Path, manifest: Manifest | None = None) -> Task:
+    """A `Task` from plain data: a list of steps `[{pick: a, place_on: b}, {pick: c, place_in: region}]`, or
+    `{name, steps: [...]}` (YAML as `load_task` reads it); a region is {center, size} in the twin frame (m) or
+    the name of one in the manifest's config (e.g. "target_frame"). `where` names the source in errors
+    (InputError)."""
     name = "task"
     if isinstance(data, dict):
         name = str(data.get("name", name))

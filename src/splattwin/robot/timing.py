@@ -115,7 +115,6 @@ def _toppra(path: np.ndarray, vel: np.ndarray, acc: np.ndarray, dt: float, corne
     import toppra.algorithm as algo
     import toppra.constraint as constraint
 
-    logging.getLogger("toppra").setLevel(logging.WARNING)
     knots = _spline_knots(path, corner, max_step=0.25)
     ss = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(knots, axis=0), axis=1))])
     geom = ta.SplineInterpolator(ss, knots)

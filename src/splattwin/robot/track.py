@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from splattwin.equality import dataclass_eq
 from splattwin.errors import InputError
 
 MAX_FRAMES = 300            # poses kept for playback (~10 per second of a three-step task)
@@ -37,6 +38,8 @@ class RobotTrack:
     rotations: np.ndarray
     times: np.ndarray = field(default_factory=lambda: np.zeros(1))
     object_poses: dict[str, np.ndarray] = field(default_factory=dict)
+
+    __eq__ = dataclass_eq   # array-aware (splattwin.equality)
 
     def __len__(self) -> int:
         return len(self.positions)

@@ -30,6 +30,7 @@ from typing import Sequence
 
 import numpy as np
 
+from splattwin.equality import dataclass_eq
 from splattwin.errors import InputError
 from splattwin.io import read_json, write_json, write_text
 
@@ -156,6 +157,8 @@ class Trajectory:
     joint_names: list[str] = field(default_factory=list)
     gripper: list[GripperCommand] = field(default_factory=list)
     meta: dict = field(default_factory=dict)
+
+    __eq__ = dataclass_eq   # array-aware: `Trajectory.load_csv(p) == tr` (splattwin.equality)
 
     def __post_init__(self) -> None:
         self.t = np.asarray(self.t, dtype=float).reshape(-1)
@@ -289,11 +292,17 @@ class Trajectory:
 
     @classmethod
     def load_csv(cls, path: str | Path) -> "Trajectory":
+        from splattwin.limits import read_text
+
         path = Path(path)
         if not path.is_file():
             raise InputError("trajectory file not found", path)
-        with open(path, newline="") as f:
-            rows = list(csv.reader(f))
+        # bounded and decoded up front: a binary file raised UnicodeDecodeError, a NUL byte csv.Error
+        text = read_text(path, "trajectory CSV")
+        try:
+            rows = list(csv.reader(_io.StringIO(text, newline="")))
+        except csv.Error as e:
+            raise InputError(f"not a trajectory CSV: {e}", path) from None
         header = rows[0] if rows else []
         grip = tuple(header[-2:]) == _GRIPPER_COLUMNS
         ncol = len(header) - (2 if grip else 0)
@@ -316,14 +325,14 @@ class Trajectory:
                   acc_limits: Sequence[float] | None = None, title: str | None = None) -> Path:
         """PNG: positions, velocities and accelerations over time, per joint, limits dashed (matplotlib)."""
         import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        from matplotlib.figure import Figure
 
         from splattwin.io import atomic_path
 
-        fig, axes = plt.subplots(3, 1, figsize=(9, 8), sharex=True)
-        colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+        # a Figure of its own, not pyplot: the caller's backend and open figures stay as they are (a notebook's)
+        fig = Figure(figsize=(9, 8))
+        axes = fig.subplots(3, 1, sharex=True)
+        colors = matplotlib.rcParams["axes.prop_cycle"].by_key()["color"]
         for ax, data, label, lim in ((axes[0], self.q, "q [rad]", None), (axes[1], self.qd, "qd [rad/s]", vel_limits),
                                      (axes[2], self.qdd, "qdd [rad/s²]", acc_limits)):
             for j in range(self.dof):
@@ -341,7 +350,6 @@ class Trajectory:
         path = Path(path)
         with atomic_path(path) as tmp:
             fig.savefig(tmp, dpi=110, format="png")
-        plt.close(fig)
         return path
 
     # ---- ROS 2 --------------------------------------------------------------------------------------

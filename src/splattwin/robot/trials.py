@@ -15,6 +15,7 @@ cluster; a trial's outcome depends only on its spec (seeded), not on where it ra
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import time
@@ -26,6 +27,8 @@ import numpy as np
 from splattwin.robot.options import RobotOptions
 from splattwin.robot.world import BasePose
 from splattwin.transforms import rot_z
+
+log = logging.getLogger(__name__)
 
 YAW_LEVER = 0.10   # m: default sigma_yaw = sigma / YAW_LEVER (a point this far from the centre moves by sigma)
 SIGMA_DEFINITION = ("sigma: per-axis standard deviation (m) of each object's x and y position error, drawn "
@@ -100,11 +103,13 @@ def run_once(spec: TrialSpec, frame_dir: str | Path | None = None, keep_trajecto
     frame recorder's note, frame paths); keep_trajectories: the result keeps its trajectories and rollout.
     on_valid: called once the task is valid, before any frame is written (the stage clears the earlier
     run's outputs there, so a bad task leaves them as they were)."""
+    from splattwin.errors import require_type
     from splattwin.robot.execute import Executor
     from splattwin.robot.task import load_task, validate_task
     from splattwin.robot.world import build_world
     from splattwin.twin.manifest import Manifest
 
+    require_type(spec, TrialSpec, "spec", "(e.g. TrialSpec(twin_dir, task_path=None))")
     manifest = Manifest.load(spec.twin_dir)
     task = load_task(spec.task_path, manifest)
     robot = spec.robot_model()
@@ -207,11 +212,8 @@ def load_finished(path: Path, spec: TrialSpec, rollouts: bool = False) -> dict |
     if not (isinstance(d, dict) and d.get("key") == json.loads(json.dumps(trial_key(spec)))):
         return None
     problem = _result_problem(d)
-    if problem:
-        from splattwin.console import console
-
-        console(stderr=True).print(f"warning: {path}: stored trial result ignored ({problem}); running the trial "
-                                   f"again", markup=False, highlight=False)
+    if problem:   # a library warning: through the logger, which a caller can filter or capture
+        log.warning("%s: stored trial result ignored (%s); running the trial again", path, problem)
         return None
     # the result must name its rollout: a rollout file beside a result that does not is another run's
     if rollouts and "error" not in d and (d.get("rollout") != rollout_path(path).name

@@ -633,11 +633,8 @@ def _outline_region(region, where: Path) -> tuple[np.ndarray, np.ndarray] | None
                     where, "config.target_frame size", 0.0, MAX_BASE_OFFSET)
         if np.any(s <= 0):
             raise InputError("config.target_frame size must be > 0", where)
-    except InputError as e:
-        from splattwin.console import console
-
-        console(stderr=True).print(f"warning: {e}; the goal region's outline is not drawn", markup=False,
-                                   highlight=False)
+    except InputError as e:   # a library warning: through the logger, which a caller can filter or capture
+        log.warning("%s; the goal region's outline is not drawn", e)
         return None
     return c, np.broadcast_to(s, (2,))
 

@@ -8,7 +8,6 @@ meshes, nerfstudio `transforms.json` and `scene.json`. Same seed and options giv
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
@@ -210,13 +209,12 @@ def _remove_stale_views(out: Path, views: set[str], objects: list[str]) -> None:
 
 def load_scene(scene_dir: str | Path) -> dict:
     """Read `scene_dir/scene.json` (InputError if missing or malformed)."""
+    from splattwin.limits import read_json
+
     path = Path(scene_dir) / "scene.json"
-    if not path.is_file():
-        raise InputError("no scene.json: not a generated scene directory", path)
-    try:
-        d = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise InputError(f"cannot read scene.json: {e}", path) from e
+    d = read_json(path, missing="no scene.json: not a generated scene directory")   # bounded
+    if not isinstance(d, dict):
+        raise InputError(f"scene.json must hold a JSON object, got {type(d).__name__}", path)
     for key in ("objects", "table", "target_frame", "seed"):
         if key not in d:
             raise InputError(f"scene.json lacks '{key}'", path)
@@ -225,10 +223,14 @@ def load_scene(scene_dir: str | Path) -> dict:
 
 def scene_cameras(scene_dir: str | Path) -> list[Camera]:
     """The cameras written to `scene_dir/transforms.json`, in file order, OpenCV convention, named by view."""
+    from splattwin.limits import read_json
+
     path = Path(scene_dir) / "transforms.json"
-    if not path.is_file():
-        raise InputError("no transforms.json: not a generated scene directory", path)
-    d = json.loads(path.read_text())
-    K = np.array([[d["fl_x"], 0, d["cx"]], [0, d["fl_y"], d["cy"]], [0, 0, 1.0]])
-    return [Camera(K=K, width=d["w"], height=d["h"], T_world_cam=opencv_from_opengl(np.array(f["transform_matrix"])),
-                   name=Path(f["file_path"]).stem) for f in d["frames"]]
+    d = read_json(path, missing="no transforms.json: not a generated scene directory")   # bounded
+    try:
+        K = np.array([[d["fl_x"], 0, d["cx"]], [0, d["fl_y"], d["cy"]], [0, 0, 1.0]], dtype=np.float64)
+        return [Camera(K=K, width=d["w"], height=d["h"], T_world_cam=opencv_from_opengl(
+                    np.array(f["transform_matrix"], dtype=np.float64)), name=Path(f["file_path"]).stem)
+                for f in d["frames"]]
+    except (KeyError, TypeError, ValueError, IndexError) as e:   # another writer's file: not the scene's layout
+        raise InputError(f"not a generated scene's transforms.json ({type(e).__name__}: {e})", path) from None

@@ -49,6 +49,7 @@ from scipy.spatial import cKDTree
 
 from splattwin import io
 from splattwin.capture.camera import Camera
+from splattwin.equality import dataclass_eq
 from splattwin.errors import InputError
 from splattwin.semantics.masks import MaskSet, MaskWarning
 from splattwin.semantics.label_render import DepthRenderer, PointDepth, project_to_pixels
@@ -81,6 +82,8 @@ class FusionResult:
 
     # fusion.json's other entries (label-map scores, metrics) when read back by `load`; written again by `save`
     extra: dict = field(default_factory=dict, repr=False)
+
+    __eq__ = dataclass_eq   # array-aware (splattwin.equality)
 
     def counts(self) -> dict[str, int]:
         return {self.names[k]: int((self.labels == k).sum()) for k in self.label_ids}

@@ -70,6 +70,10 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class EvalResult:
+    """What `evaluate` returns (OUT/eval/metrics.json holds the same): per-view and mean PSNR (dB) / SSIM of
+    the renders against the photos of one split, and how they were compared (resolution, held-out rule,
+    coverage by the training cameras, right-half colour-corrected PSNR). Field notes inline."""
+
     views: list[dict]          # {name, psnr, ssim, image[, pose_correction_deg, pose_correction, pose_correction_units
     #                            (, pose_correction_m: metric datasets only)]}
     mean_psnr: float

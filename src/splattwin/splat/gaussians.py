@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from splattwin.equality import dataclass_eq
 from splattwin.errors import InputError
 from splattwin.transforms import matrix_from_quat_wxyz
 
@@ -74,6 +75,8 @@ class Gaussians:
     scales: np.ndarray
     opacities: np.ndarray
     sh: np.ndarray
+
+    __eq__ = dataclass_eq   # array-aware: `g == Gaussians.load_ply(p)` (splattwin.equality)
 
     def __post_init__(self) -> None:
         """Checks the shapes exactly (ValueError naming the array, the expected and the given shape; no

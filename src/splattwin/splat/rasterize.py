@@ -87,6 +87,24 @@ def resolve_backend(backend: str, device: torch.device | None = None) -> str:
     return backend
 
 
+def _check_types(width, height, backgrounds, **tensors) -> None:
+    """TypeError naming the argument for a non-tensor input (a numpy array failed deep inside with
+    "'numpy.ndarray' object has no attribute 'is_floating_point'") or a non-integer image size (64.7 px
+    rendered 64 px)."""
+    from splattwin.errors import require_type
+
+    for name, t in [*tensors.items(), ("backgrounds", backgrounds)]:
+        if not (name == "backgrounds" and t is None):
+            require_type(t, torch.Tensor, name, "(torch.as_tensor converts a numpy array)")
+    for name, v in (("width", width), ("height", height)):
+        try:
+            whole = not isinstance(v, bool) and int(v) == v
+        except (TypeError, ValueError, OverflowError):
+            whole = False
+        if not whole:
+            raise TypeError(f"{name} must be a whole number of pixels, got {v!r}")
+
+
 def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree,
                   backgrounds, render_mode, near_plane, far_plane) -> None:
     N = means.shape[0]
@@ -207,6 +225,8 @@ def rasterization(
         means2d [C,N,2] (pixels; its .grad is filled by backward, for densification), radii [C,N] int32,
         depths [C,N] (camera z, m), conics [C,N,3], visibility [C,N] bool, width, height, backend.
     """
+    _check_types(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, viewmats=viewmats,
+                 Ks=Ks, backgrounds=backgrounds, width=width, height=height)
     width, height = int(width), int(height)
     if not means.is_floating_point():
         raise ValueError(f"means must be a floating-point tensor, got {means.dtype}")

@@ -63,6 +63,12 @@ def render(gaussians: "Gaussians", camera: "Camera", *, mode: RenderMode = "RGB"
         image [H,W,C] float32 (C = D for "RGB", 1 for "D"/"ED", D+1 for "RGB+D"/"RGB+ED"), alpha [H,W]
         float32.
     """
+    from splattwin.capture.camera import Camera
+    from splattwin.errors import require_type
+    from splattwin.splat.gaussians import Gaussians
+
+    require_type(gaussians, Gaussians, "gaussians", "(splattwin.splat.Gaussians; from a file: Gaussians.load_ply)")
+    require_type(camera, Camera, "camera", "(splattwin.capture.Camera)")
     h, w = camera.height, camera.width
     if mode not in RENDER_MODES:
         raise ValueError(f"render mode must be one of {', '.join(RENDER_MODES)}, got {mode!r}")

@@ -42,7 +42,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from splattwin.capture import Camera, Dataset, Frame, load_image
+from splattwin.capture import Camera, Dataset, Frame, load_dataset, load_image
 from splattwin.errors import InputError
 from splattwin.io import write_json
 from splattwin.limits import check_pixels
@@ -90,6 +90,15 @@ class TrainView:
 
 @dataclass
 class TrainResult:
+    """What `train` / `Trainer.run` return (OUT/point_cloud.ply and train.json hold the same).
+
+    gaussians: the trained splats (`Gaussians`, the dataset's world frame, metres when its poses are metric);
+    ply_path: where they were written; steps: optimiser steps done; wall_s: training seconds over the run and
+    its resumes (None: a resumed checkpoint did not record it); final_loss / final_psnr (dB): moving averages
+    at the last step; init_method: how the Gaussians were initialised; history: per-logging-step records;
+    refined_T_world_cam: view name -> refined camera-to-world [4,4] (pose refinement on), else None;
+    resumed_at_step: the checkpoint's step when the run resumed one."""
+
     gaussians: Gaussians
     ply_path: Path
     steps: int
@@ -374,9 +383,14 @@ class Trainer:
     strategy: how the Gaussians are densified/pruned (`splattwin.splat.strategy`); default
     `DefaultStrategy(cfg.densify_config())`, or no densification with `cfg.densify=False`."""
 
-    def __init__(self, dataset: Dataset, out_dir: str | Path, cfg: TrainConfig | None = None,
+    def __init__(self, dataset: Dataset | str | Path, out_dir: str | Path, cfg: TrainConfig | None = None,
                  strategy: Strategy | None = None):
         self.cfg = cfg or TrainConfig()
+        if not isinstance(dataset, Dataset):   # a path, as `evaluate` and `fuse_to_dir` take (a str failed deep inside)
+            from splattwin.capture.dataset import refuse_video
+
+            refuse_video(dataset, "train")
+            dataset = load_dataset(dataset)
         self.dataset = dataset
         self.out_dir = Path(out_dir)
         self.cfg.check()
@@ -746,9 +760,17 @@ class Trainer:
         """Train to `cfg.iters` steps (continuing from the newest checkpoint with resume=True).
 
         on_mismatch: what a checkpoint made by another run (other options or data) does: "error" raises
-        CheckpointMismatch (exit 2), "restart" logs why, deletes the stale checkpoints and starts over."""
+        CheckpointMismatch (exit 2), "restart" logs why, deletes the stale checkpoints and starts over.
+        The caller's global torch random state is restored afterwards (the run seeds it with cfg.seed)."""
         if on_mismatch not in ("error", "restart"):
             raise ValueError(f"on_mismatch must be 'error' or 'restart', got {on_mismatch!r}")
+        # A fresh run seeds torch's global generator (what a strategy drawing from it relies on); forked, so
+        # that a notebook's own torch.rand after training is what it would have been without it.
+        devices = [self.device.index or 0] if self.device.type == "cuda" else []
+        with torch.random.fork_rng(devices=devices):
+            return self._run(resume, callback, on_mismatch)
+
+    def _run(self, resume: bool, callback: Callable[[dict], None] | None, on_mismatch: str) -> TrainResult:
         ckpt = _latest_checkpoint(self.out_dir) if resume else None
         resumed_at = None
         if ckpt is not None:
@@ -915,9 +937,9 @@ class Trainer:
         return TrainResult(g, ply, self.step, wall, loss, psnr, self.init_method, self.history, refined, resumed_at)
 
 
-def train(dataset: Dataset, out_dir: str | Path, cfg: TrainConfig | None = None, resume: bool = False,
+def train(dataset: Dataset | str | Path, out_dir: str | Path, cfg: TrainConfig | None = None, resume: bool = False,
           callback: Callable[[dict], None] | None = None, on_mismatch: str = "error",
           strategy: Strategy | None = None) -> TrainResult:
-    """Train 3D Gaussians on `dataset`'s training frames; writes OUT/point_cloud.ply (see module doc).
-    strategy: densification (`splattwin.splat.strategy`; default from cfg, see `Trainer`)."""
+    """Train 3D Gaussians on `dataset`'s training frames (a `Dataset` or a path `load_dataset` reads); writes
+    OUT/point_cloud.ply (see module doc). strategy: densification (`splattwin.splat.strategy`; default from cfg, see `Trainer`)."""
     return Trainer(dataset, out_dir, cfg, strategy).run(resume=resume, callback=callback, on_mismatch=on_mismatch)

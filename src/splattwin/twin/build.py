@@ -466,15 +466,20 @@ def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path
                splats_path: str | Path | None = None, refined_poses: str | Path | None = None) -> Manifest:
     """Labelled Gaussians -> twin folder with manifest and exports.
 
-    gaussians: splattwin.splat.Gaussians [N] (twin frame, m); labels [N] int (0 = background);
+    gaussians: splattwin.splat.Gaussians [N] (twin frame, m) or a PLY path; labels [N] int (0 = background);
     objects: [(name, label, prompt)] (`check_objects`). masks: the 2D masks the labels were fused from (a
     `semantics.masks.MaskSet`, labels as in `objects`), paired with the cameras file's frames by view
     name: each object's silhouette coverage (`geometry.completeness`) is measured and decides, with its
     splat count, whether it is whole; None: the count alone. refined_poses: the splat stage's
     refined_poses.json (training with pose refinement): the cameras file's poses are replaced by its ones
     (recorded in twin.json config.refined_poses). Returns the saved Manifest."""
+    from splattwin.errors import require_type
     from splattwin.lock import prepare_output_dir
+    from splattwin.splat.gaussians import Gaussians
 
+    if isinstance(gaussians, (str, Path)):   # a PLY path, as fuse_to_dir takes (a str failed deep inside)
+        gaussians = Gaussians.load_ply(gaussians)
+    require_type(gaussians, Gaussians, "gaussians", "or a 3DGS PLY path")
     objects = check_objects(objects)
     out_dir = prepare_output_dir(out_dir, "twin folder")
     frame = frame or TwinFrame()

@@ -37,6 +37,8 @@ MAX_PARTS = 12
 def _load_scene(scene_dir: Path) -> dict:
     path = scene_dir / "scene.json"
     scene = io.read_json(path, missing="no scene.json here: not an embedded scene folder")
+    if not isinstance(scene, dict):
+        raise InputError(f"scene.json must hold a JSON object, got {type(scene).__name__}", path)
     if not isinstance(scene.get("objects"), list) or not scene["objects"]:
         raise InputError("scene.json lists no objects", path)
     return scene
@@ -47,9 +49,12 @@ def load_scene_gt(scene_dir: str | Path) -> tuple[list, dict]:
     scene_dir = Path(scene_dir)
     where = scene_dir / "scene.json"
     sc = _load_scene(scene_dir)
-    objects = [(o["name"], int(o["label"]), o.get("prompt", "")) for o in sc["objects"]]
-    meshes = {object_name(o["name"], where): load_mesh(confined(scene_dir, o["mesh"], where), process=True)
-              for o in sc["objects"]}
+    try:
+        objects = [(object_name(o["name"], where), int(o["label"]), o.get("prompt", "")) for o in sc["objects"]]
+        meshes = {name: load_mesh(confined(scene_dir, o["mesh"], where), process=True)
+                  for (name, _, _), o in zip(objects, sc["objects"])}
+    except (KeyError, TypeError, ValueError, AttributeError) as e:   # an entry without name/label/mesh, or not an object
+        raise InputError(f"malformed scene.json objects ({type(e).__name__}: {e})", where) from None
     return objects, meshes
 
 

@@ -177,6 +177,20 @@ class Background:
 
 @dataclass
 class Manifest:
+    """A twin folder's twin.json as plain data (module docstring: frame, bounds, checks).
+
+    frame: the twin frame (`TwinFrame`: metric or unscaled, where it came from); objects: `ObjectEntry` per
+    manipulable object (pose T_world_obj [4,4] in the twin frame, metres, meshes in the object frame);
+    background: the table and static obstacles (`Background`, twin frame); cameras / splats / labels:
+    the posed capture, full-scene 3DGS PLY and per-Gaussian labels (.npy, 0 = background); exports:
+    format -> file, export_files: what a consumer of each file must know; config: the resolved build
+    options (`config.build`) and scene facts; versions, timings (s). Every path is relative to the twin
+    folder and stays inside it.
+
+    `Manifest.load(twin_dir)` (the folder or its twin.json) reads and validates; `save(twin_dir)` validates
+    and writes atomically; `validate`, `object(name)`, `paths()`, `to_dict()` / `from_dict(d)`.
+    """
+
     frame: TwinFrame = field(default_factory=TwinFrame)
     objects: list[ObjectEntry] = field(default_factory=list)
     background: Background = field(default_factory=Background)
@@ -334,7 +348,13 @@ class Manifest:
 
     @classmethod
     def load(cls, twin_dir: str | Path) -> "Manifest":
-        path = Path(twin_dir) / MANIFEST_NAME
+        """The manifest of a twin: `twin_dir` is the twin folder or its twin.json (as `TwinFrame.load` and
+        `PoseResult.load` take either); validated, paths resolved against the folder (InputError naming
+        twin.json). Functions that read the twin's other files still take the folder."""
+        twin_dir = Path(twin_dir)
+        if twin_dir.name == MANIFEST_NAME and not twin_dir.is_dir():   # (a folder may be named twin.json)
+            twin_dir = twin_dir.parent
+        path = twin_dir / MANIFEST_NAME
         return cls.from_dict(io.read_json(path, missing="no twin manifest here (expected twin.json)",
                                           max_bytes=MAX_RECORD_BYTES), path, twin_dir)
 

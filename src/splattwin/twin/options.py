@@ -19,6 +19,9 @@ _FRAME_RE = re.compile(r"/?[A-Za-z][A-Za-z0-9_]{0,63}(/[A-Za-z][A-Za-z0-9_]{0,63
 
 @dataclass
 class ExportOptions:
+    """Options of the twin's exporters (`splattwin export`, `build --export.*`): which formats, how URDF
+    files name their meshes, the frame of the MoveIt objects. Passed as `options=` to `export_twin` and each
+    `export_<format>`."""
     formats: str | None = option(None, "exports to write, comma-separated from mjcf,urdf,moveit,gltf ('' for none; "
                                  "none: all; an unscaled twin's are marked unscaled in each file)")
 

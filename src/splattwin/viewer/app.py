@@ -269,6 +269,11 @@ def is_loopback(host: str) -> bool:
 
 
 def serve(twin_dir: str | Path, host: str = "127.0.0.1", port: int = 8080, block: bool = True):
+    """Serve the interactive 3D viewer of a twin folder (viser; `splattwin view`) at http://host:port.
+
+    block=True (the command) prints the address and serves until Ctrl-C; block=False (a notebook or script)
+    logs the address and returns the running `viser.ViserServer` (call `.stop()`). port 0: any free port.
+    InputError for a folder without twin.json or a bad port."""
     import viser
 
     twin_dir = Path(twin_dir)
