@@ -136,7 +136,8 @@ def run(work: Path, size: tuple[int, int], views: int, iters: int, modes: list[s
                              "heldout": m.get("n_views")}
                 if code == 0:   # what `auto` (or an explicit mode) trained, and why (splat.appearance.decide)
                     app = json.loads((twin / "splat" / "train.json").read_text()).get("appearance") or {}
-                    row[mode].update(trained=app.get("mode"), decision=app.get("decision"), init=app.get("init"))
+                    row[mode].update(trained=app.get("mode"), decision=app.get("decision"), init=app.get("init"),
+                                    init_anchor=app.get("init_anchor"), gauge=app.get("gauge"))
         out["captures"][name] = row
     return out
 
