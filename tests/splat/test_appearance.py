@@ -56,40 +56,6 @@ def test_learns_a_known_per_view_colour_shift():
     np.testing.assert_allclose(A[1], np.eye(3), atol=0.03)
 
 
-@pytest.mark.parametrize("mode", ["gain", "affine"])
-def test_hold_gauge_keeps_the_common_part_at_the_start(mode):
-    """Every view's photo is brighter than the render (the early, under-covered splats): without the hold all
-    corrections drift up together (the canonical colour would follow down); with it their per-channel geometric
-    mean gain stays at the start's and their mean bias at 0."""
-    g0 = np.array([[1.1, 1.0, 0.9], [1.0, 1.0, 1.0], [0.9, 1.0, 1.1]])
-    img = torch.rand(6, 6, 3)
-    runs = {}
-    for hold in (False, True):
-        m = AppearanceModel(3, mode, lr=0.01, init_gains=g0, hold_gauge=hold)
-        for k in range(60):
-            i = k % 3
-            target = img * 1.3 * (1.2 if i == 0 else 1.0) + 0.05
-            (m.apply(img, i) - target).abs().mean().backward()
-            m.step([i])
-        runs[hold] = m
-    free, held = runs[False], runs[True]
-    assert np.all(np.array(free.gauge()) > 1.05) and np.all(free.as_arrays()[1].mean(0) > 0.05)
-    np.testing.assert_allclose(held.gauge(), np.exp(np.log(g0).mean(axis=0)), atol=1e-4)   # the start's
-    np.testing.assert_allclose(held.as_arrays()[1].mean(0), 0.0, atol=1e-6)
-    # the projection itself moves only the common part: the drifted corrections projected keep their ratios
-    # between views (per channel, A_i's columns over one factor) and their bias differences
-    proj = AppearanceModel(3, mode, init_gains=g0)
-    proj.load_state_dict(free.state_dict())
-    proj.hold_gauge()
-    (A, b), (Af, bf) = proj.as_arrays(), free.as_arrays()
-    diag = lambda M: np.diagonal(M, axis1=1, axis2=2)  # noqa: E731
-    s = np.exp(np.log(diag(Af)).mean(axis=0) - np.log(diag(A)).mean(axis=0))   # the common factor removed
-    assert np.all(s > 1.05)
-    np.testing.assert_allclose(A * s, Af, rtol=1e-5, atol=1e-6)    # every A_i's columns over the same s
-    np.testing.assert_allclose(b - b[1], bf - bf[1], atol=1e-6)
-    np.testing.assert_allclose(proj.gauge(), np.exp(np.log(g0).mean(axis=0)), atol=1e-4)
-
-
 def test_per_view_optimisers_leave_unrendered_views_alone():
     m = AppearanceModel(2, "gain", lr=0.1)
     img = torch.rand(4, 4, 3)
@@ -211,41 +177,33 @@ def test_exposure_record_reads_the_poses_report_beside_the_dataset(tmp_path, cap
 from splattwin.splat.appearance import initial_gains  # noqa: E402
 
 
-def test_initial_gains_are_the_measured_gains_over_their_geometric_mean():
-    """The gauge (one colour scale shared by the canonical colour and every A_i) is anchored at the training
-    photos' mean exposure: the measured gains, relative to the record's median image, are divided per channel
-    by their geometric mean over the views measured (ratios kept, factor recorded); an unmeasured view starts
-    at that level (1) and does not count. Relative to the median photo (before) this record would have
-    started at [1, 1, 1], [1.4, 1.3, 1.2], [0.95, 0.9, 0.98]: a canonical colour 5-9 % darker than the mean."""
-    rgb = {"img_03": [1.0, 1.0, 1.0], "img_07": [1.4, 1.3, 1.2], "img_09": [0.95, 0.9, 0.98]}
-    rec = {**VARIES, "images": {n: {"gain": float(np.exp(np.log(v).mean())), "rgb_gain": v, "samples": 90}
-                                for n, v in rgb.items()}}
-    names = ["img_07", "img_x", "img_03", "img_09"]
-    g, how = initial_gains(rec, names)
-    measured = np.array([rgb[n] for n in names if n in rgb])
-    anchor = np.exp(np.log(measured).mean(axis=0))                 # [1.0997, 1.0537, 1.0555]
-    assert np.all(anchor > 1.05)                                   # a record where the anchor matters
-    np.testing.assert_allclose(g[[0, 2, 3]], measured / anchor)
-    np.testing.assert_allclose(np.exp(np.log(g[[0, 2, 3]]).mean(axis=0)), 1.0)
-    np.testing.assert_allclose(g[0] / g[2], np.array(rgb["img_07"]) / rgb["img_03"])   # ratios kept
-    np.testing.assert_array_equal(g[1], 1.0)
-    assert how["init"] == "measured" and how["init_views"] == 3 and "img_x" in how["init_why"]
-    np.testing.assert_allclose(how["init_anchor"], anchor, atol=1e-4)
-    m = AppearanceModel(4, "gain", init_gains=g)
+def test_initial_gains_take_the_measured_rgb_gains():
+    rec = {**VARIES, "images": {"img_03": {"gain": 1.2, "rgb_gain": [1.3, 1.2, 1.1], "samples": 90},
+                                "img_07": {"gain": 0.8, "rgb_gain": [0.7, 0.8, 0.9], "samples": 80}}}
+    g, how = initial_gains(rec, ["img_07", "img_03"])
+    np.testing.assert_allclose(g, [[0.7, 0.8, 0.9], [1.3, 1.2, 1.1]])
+    assert how == {"init": "measured", "init_views": 2}
+    m = AppearanceModel(2, "gain", init_gains=g)
     img = torch.full((2, 2, 3), 0.5)
-    torch.testing.assert_close(m.apply(img, 0), img * torch.tensor(g[0], dtype=torch.float32))   # model -> photo
-    assert float(m.regularizer(0).detach()) == 0.0                 # centred on the start
-    np.testing.assert_allclose(m.gauge(), 1.0, atol=1e-4)          # the start's common scale: 1
+    torch.testing.assert_close(m.apply(img, 1), img * torch.tensor([1.3, 1.2, 1.1]))   # model -> photo
+    assert float(m.regularizer(1).detach()) == 0.0                 # centred on the measurement
     with pytest.raises(ValueError, match="init_gains"):
         AppearanceModel(2, "gain", init_gains=np.ones((3, 3)))
 
 
-def test_gauge_is_the_learnt_gains_geometric_mean():
+def test_gauge_is_the_corrections_common_gain_and_bias():
     m = AppearanceModel(2, "affine", init_gains=np.array([[1.21, 1.0, 0.5], [1.0, 0.81, 2.0]]))
-    np.testing.assert_allclose(m.gauge(), [1.1, 0.9, 1.0], atol=1e-4)
+    assert m.gauge() == {"gain": [1.1, 0.9, 1.0], "gain_start": [1.1, 0.9, 1.0], "bias": [0.0, 0.0, 0.0]}
     with torch.no_grad():
         m.params[0][1] = 0.3                                       # an off-diagonal term: not a level
-    np.testing.assert_allclose(m.gauge(), [1.1, 0.9, 1.0], atol=1e-4)
+        m.params[0][-3:] = torch.tensor([0.02, 0.0, -0.01])
+        m.params[1][-3:] = torch.tensor([0.0, 0.01, 0.01])
+    g = m.gauge()
+    np.testing.assert_allclose(g["gain"], [1.1, 0.9, 1.0], atol=1e-4)
+    np.testing.assert_allclose(g["bias"], [0.01, 0.005, 0.0], atol=1e-6)
+    with torch.no_grad():
+        m.params[1][4] = 0.81 * 1.21 - 1.0                          # view 1's green gain x1.21: the mean's x1.1
+    assert m.gauge()["gain"][1] == pytest.approx(0.99, abs=1e-4) and m.gauge()["gain_start"] == [1.1, 0.9, 1.0]
 
 
 @pytest.mark.parametrize("exposure, why", [
@@ -266,14 +224,12 @@ def test_initial_gains_skip_malformed_or_missing_entries(caplog):
     bad = {"img_a": {"rgb_gain": "1.2"}, "img_b": {"rgb_gain": [1.1, 1.0]}, "img_c": {"rgb_gain": [0.0, 1, 1]},
            "img_d": {"rgb_gain": [float("nan"), 1, 1]}, "img_e": {"rgb_gain": None}, "img_f": [1.1, 1, 1],
            "img_g": {"rgb_gain": [True, 1, 1]}, "img_h": {"rgb_gain": [1e6, 1, 1]},
-           "img_ok": {"rgb_gain": [1.1, 0.9, 1.0]}, "img_ok2": {"rgb_gain": [0.9, 1.1, 1.0]}}
+           "img_ok": {"rgb_gain": [1.1, 0.9, 1.0]}}
     names = [*bad, "img_missing"]
     with caplog.at_level("INFO", logger="splattwin.splat.appearance"):
         g, how = initial_gains({**VARIES, "images": bad}, names)
-    anchor = np.sqrt([1.1 * 0.9, 0.9 * 1.1, 1.0])                  # the two usable gains' geometric mean
-    np.testing.assert_allclose(g[names.index("img_ok")], np.array([1.1, 0.9, 1.0]) / anchor)
-    np.testing.assert_allclose(g[names.index("img_ok2")], np.array([0.9, 1.1, 1.0]) / anchor)
-    others = np.delete(g, [names.index("img_ok"), names.index("img_ok2")], axis=0)
+    np.testing.assert_allclose(g[names.index("img_ok")], [1.1, 0.9, 1.0])
+    others = np.delete(g, names.index("img_ok"), axis=0)
     np.testing.assert_array_equal(others, 1.0)
-    assert how["init"] == "measured" and how["init_views"] == 2
-    assert "9 of 11 views" in how["init_why"] and "img_a" in caplog.text and "and 3 more" in caplog.text
+    assert how["init"] == "measured" and how["init_views"] == 1
+    assert "9 of 10 views" in how["init_why"] and "img_a" in caplog.text and "and 3 more" in caplog.text

@@ -8,17 +8,12 @@ floaters, which hurts new views. Each training view i gets
 
 applied to the rendered image before the loss ("affine"), or the diagonal special case A_i = diag(g_i)
 ("gain": per-channel gain and bias, 6 numbers per view). The splats keep one canonical colour. Each A_i
-starts at diag(g_i), the per-channel gains the poses stage's exposure check measured for photo i (relative
-to the median photo), divided by their geometric mean over the training views measured (`initial_gains`;
-1 where none was measured), so the canonical colour is the training photos' mean exposure and each
-correction reproduces its own photo's exposure from the first step (at the default learning rate the gains
-move only ~0.025 in 500 steps: started at 1 they could not reach gains of 0.7..1.3); a penalty
-`reg * (||A_i - A0_i||_F^2 + ||b_i||^2)` keeps them near that start. The gauge, a colour transform shared by
-the canonical colour and every correction ((c, A_i, b_i) ~ (S c + d, A_i S^-1, b_i - A_i S^-1 d)), is held
-at the start after every step (`AppearanceModel.hold_gauge`: per channel the gains' geometric mean and the
-views' mean bias; in affine mode S's diagonal only), since the weak penalty did not hold it against Adam's steps (all biases drifted up, the
-canonical colour ~3 % dark). train.json records the start's factor ("init_anchor") and the learnt
-gains' common scale ("gauge", 1 when held). Held-out views
+starts at diag(g_i), the per-channel gains the poses stage's exposure check measured for photo i relative
+to the median photo (`initial_gains`; 1 where none was measured), so the canonical colour is the median
+photo's look and each correction reproduces its own photo's exposure from the first step (at the default
+learning rate the gains move only ~0.025 in 500 steps: started at 1 they could not reach gains of 0.7..1.3);
+a penalty `reg * (||A_i - A0_i||_F^2 + ||b_i||^2)` keeps them near that start (an affine ambiguity would
+otherwise be free). Held-out views
 have no learnt correction: they are rendered with the identity (`plain` metrics), and can be scored
 with the "fit on the left half, score on the right half" protocol of NeRF-W / Mip-NeRF 360's
 appearance evaluation (`heldout_corrected_psnr`): a closed-form (ridge) fit of the same affine model on
@@ -29,15 +24,14 @@ the poses stage's exposure check (`splattwin.poses.exposure`, "exposure" in the 
 dataset's transforms.json) says the photos' gains differ beyond its threshold, then `AUTO_MODE`. "off" on such
 a capture trains without a correction and warns, naming the images and suggesting the correction. train.json records the
 decision ("appearance": requested, mode, decision auto | suggested | explicit | none) and, when a correction
-is trained, where it started (init measured | identity, init_views, init_why, init_anchor) and the learnt
-gains' common scale (gauge).
+is trained, where it started (init measured | identity, init_views, init_why) and the learnt corrections'
+common gain and bias (gauge: how far the canonical colour's level drifted, `AppearanceModel.gauge`).
 
 Why our own: it is 20 lines of torch; gsplat's appearance module is a per-image embedding + MLP on SH
 (a different, heavier model) and needs CUDA.
 
 Optimisers: one Adam per view, like `pose_refine.PoseCorrection` (a step renders one view; a shared Adam's
-momentum would keep moving the views not rendered), and `step(idx)` updates only those views (the gauge hold
-then moves every view by the same common factor and offset, leaving their differences alone).
+momentum would keep moving the views not rendered), and `step(idx)` updates only those views.
 """
 
 from __future__ import annotations
@@ -51,22 +45,33 @@ import torch
 log = logging.getLogger(__name__)
 
 APPEARANCE_MODES = ("off", "gain", "affine", "auto")
-# "auto" (opt-in): the mode trained when the poses stage's exposure check found the photos' gains differ. Not
-# the default, because the figures do not agree across seeds (bench/exposure.py, embedded scene as a 24-view
-# robot capture, 320x240, 500 steps; held-out PSNR / right halves after a colour fit on the left / against the
-# unperturbed photos). Corrections started at the measured gains (`initial_gains`), off -> auto: per-view gain
-# 0.7..1.3 x white balance 0.9..1.1, seed 0: 21.75 / 24.90 / 25.26 -> 23.21 / 26.62 / 26.29; seed 1: 19.80 /
-# 27.11 / 25.78 -> 20.28 / 27.64 / 25.25; milder (0.9..1.1 x 0.97..1.03, 13-14 %), seed 0: 25.93 / 26.75 / 26.59
-# -> 26.07 / 27.78 / 27.48; seed 1: 24.73 / 26.38 / 26.05 -> 25.33 / 26.81 / 26.06. Seed 1's loss against the
-# unperturbed photos is the canonical colour's overall level (4-7 % dark; one per-channel gain over the
-# held-out views: 25.58 off -> 26.13 auto). Started at 1 instead (before), the learnt gains stayed within
-# +-0.025 of 1 (the applied ones reach +-0.3): 26.01 (seed 0) and 25.06 (seed 1) against the unperturbed
-# photos; a 10x learning rate (1e-2) let them move but the canonical colour drifted (25.25 / 22.35). On the
-# unperturbed capture a forced gain costs 0.3-0.8 dB (27.55 -> 27.24 seed 0 started at 1, 26.41 -> 25.65 seed 1
-# at the measured ~1 gains); the measured start beats the start at 1 on 0.7..1.3 (both seeds), 0.9..1.1 seed 0
-# reads 27.78 / 27.48 vs 27.53 / 27.71 (right halves / against the unperturbed photos); auto stays
-# off there. british_museum (81 % spread, 1500 steps, started at 1): off 11.76 dB / right halves 13.19, gain
-# 11.77 / 12.84. The default ("off") warns on such photos instead ("suggested").
+# "auto" (opt-in): the mode trained when the poses stage's exposure check found the photos' gains differ. Not the
+# default, because the figures do not agree across seeds (bench/exposure.py, embedded scene as a 24-view robot
+# capture, 320x240, 500 steps; held-out PSNR / right halves after a colour fit on the left / against the unperturbed
+# photos). Corrections started at the measured gains (`initial_gains`), off -> auto: per-view gain 0.7..1.3 x white
+# balance 0.9..1.1, seed 0: 21.75 / 24.90 / 25.26 -> 23.21 / 26.62 / 26.29; seed 1: 19.80 / 27.11 / 25.78 -> 20.28 /
+# 27.64 / 25.25; milder (0.9..1.1 x 0.97..1.03, 13-14 %), seed 0: 25.93 / 26.75 / 26.59 -> 26.07 / 27.78 / 27.48;
+# seed 1: 24.73 / 26.38 / 26.05 -> 25.33 / 26.81 / 26.06. Seed 1's loss against the unperturbed photos is the
+# canonical colour's overall level (4-7 % dark; one per-channel gain over the held-out views: 25.58 off -> 26.13
+# auto), which no photo statistic can see: seed 1's 21 training photos average 0.95-0.97 of the unperturbed exposure
+# (the median photo 0.96-0.98; seed 0: 0.97-1.00 and 1.04-1.09), and every correction's bias drifts up together
+# (`AppearanceModel.gauge`, train.json "gauge": mean bias +0.007..+0.012, common gain +0.5-0.8 %) taking the
+# canonical colour a further 3-5 % dark. Tried (Nov 2026, exposure-anchor, not kept): starts divided by their
+# geometric mean over the training views (the mean exposure, not the median photo's) and the common gain and bias
+# projected back to the start's after every step (canonical level then within 1-2 % of the photos' mean): 0.7..1.3
+# seed 0 21.96 / 26.62 / 27.28, seed 1 20.16 / 27.67 / 25.79 (+0.99 / +0.54 against the unperturbed photos),
+# 0.9..1.1 seed 0 26.16 / 27.37 / 27.48, seed 1 24.69 / 26.00 / 25.87 (0.00 / -0.19; plain -1.25 on 0.7..1.3 seed 0,
+# where the held-out photos are 1.1-1.2 bright); the start alone 21.36 / 26.82 / 27.18, 20.51 / 27.72 / 25.01, 25.43
+# / 27.52 / 27.26, 25.53 / 27.71 / 26.43; the hold alone (median start) 24.02 / 26.80 / 25.38, 19.99 / 27.39 / 26.15
+# (0.7..1.3; docs/BENCHMARKS.md "Exposure"). At 3 held-out views a 0.4 % change of the start moved the right halves
+# 0.9 dB (0.9..1.1 seed 1): single cells are noise at that size. Started at 1 instead (before), the learnt gains
+# stayed within +-0.025 of 1 (the applied ones reach +-0.3): 26.01 (seed 0) and 25.06 (seed 1) against the
+# unperturbed photos; a 10x learning rate (1e-2) let them move but the canonical colour drifted (25.25 / 22.35). On
+# the unperturbed capture a forced gain costs 0.3-0.8 dB (27.55 -> 27.24 seed 0 started at 1, 26.41 -> 25.65 seed 1
+# at the measured ~1 gains); the measured start beats the start at 1 on 0.7..1.3 (both seeds), 0.9..1.1 seed 0 reads
+# 27.78 / 27.48 vs 27.53 / 27.71 (right halves / against the unperturbed photos); auto stays off there.
+# british_museum (81 % spread, 1500 steps, started at 1): off 11.76 dB / right halves 13.19, gain 11.77 / 12.84. The
+# default ("off") warns on such photos instead ("suggested").
 AUTO_MODE = "gain"
 
 
@@ -74,14 +79,12 @@ class AppearanceModel:
     """Learnable colour corrections of V training views; `mode` "gain" or "affine" (see module doc)."""
 
     def __init__(self, n_views: int, mode: str = "affine", lr: float = 1e-3, reg: float = 0.01,
-                 device: str | torch.device = "cpu", init_gains: np.ndarray | None = None, hold_gauge: bool = False):
+                 device: str | torch.device = "cpu", init_gains: np.ndarray | None = None):
         """init_gains: [n_views, 3] per-channel gains each view's correction starts at (A = diag(gains):
-        model colour -> that photo's colour; `initial_gains`), and the regulariser's centre; None: identity.
-        hold_gauge: after each step, move the corrections' common part back to where they started (`hold_gauge`):
-        the splats' canonical colour, not the corrections, carries the scene's level."""
+        model colour -> that photo's colour; `initial_gains`), and the regulariser's centre; None: identity."""
         if mode not in ("gain", "affine"):
             raise ValueError(f"appearance mode must be 'gain' or 'affine', got {mode!r}")
-        self.mode, self.reg, self.hold = mode, float(reg), bool(hold_gauge)
+        self.mode, self.reg = mode, float(reg)
         n_lin = 3 if mode == "gain" else 9
         # per view: the deviation from identity of A (3 or 9 numbers) and the bias (3): zero = identity
         prior = torch.zeros(n_views, n_lin + 3)
@@ -118,33 +121,6 @@ class AppearanceModel:
         for i in idx:
             self.optimizers[i].step()
             self.optimizers[i].zero_grad(set_to_none=True)
-        if self.hold:
-            self.hold_gauge()
-
-    def hold_gauge(self) -> None:
-        """Project the corrections back onto their start's gauge: per channel, the geometric mean over the views
-        of A's diagonal back to the start's (A_i <- A_i diag(s)^-1, s: the common factor) and the views' mean bias
-        back to 0. (colour, A_i, b_i) ~ (S colour + d, A_i S^-1, b_i - A_i S^-1 d) render the same photos, and
-        the penalty towards the start is too weak to pin that common part against Adam's steps of ~lr: measured
-        (bench/exposure.py seed 1, 500 steps) every view's bias drifted up (+0.002..+0.018, mean +0.010), the
-        canonical colour ~3 % darker. The splats take the common part up through the loss instead."""
-        with torch.no_grad():
-            P = torch.stack([p.detach() for p in self.params])          # [V, n_lin + 3]
-            V = len(self.params)
-            eye = torch.eye(3, dtype=P.dtype, device=P.device)
-            A = eye + (torch.diag_embed(P[:, :3]) if self.mode == "gain" else P[:, :9].reshape(V, 3, 3))
-            A0 = eye + (torch.diag_embed(self.prior[:, :3]) if self.mode == "gain"
-                        else self.prior[:, :9].reshape(V, 3, 3))
-            d, d0 = torch.diagonal(A, dim1=1, dim2=2), torch.diagonal(A0, dim1=1, dim2=2)
-            if (d <= 0).any():
-                return   # a gain <= 0 has no level (a broken run): leave it to the loss
-            s = torch.exp(torch.log(d).mean(0) - torch.log(d0).mean(0))  # [3] common factor vs the start
-            A = A / s                                                   # A_i diag(s)^-1: columns over s
-            b = P[:, -3:] - P[:, -3:].mean(0)
-            lin = torch.diagonal(A - eye, dim1=1, dim2=2) if self.mode == "gain" else (A - eye).reshape(V, 9)
-            for p, li, bi in zip(self.params, lin, b):
-                p[:-3] = li
-                p[-3:] = bi
 
     def as_arrays(self) -> tuple[np.ndarray, np.ndarray]:
         """All corrections as numpy: A [V,3,3], b [V,3]."""
@@ -153,14 +129,18 @@ class AppearanceModel:
         return (np.stack([m.detach().cpu().numpy() for m, _ in mb]) if mb else np.zeros((0, 3, 3)),
                 np.stack([b.detach().cpu().numpy() for _, b in mb]) if mb else np.zeros((0, 3)))
 
-    def gauge(self) -> list[float]:
-        """The corrections' common colour scale: per channel (r, g, b), the geometric mean over the views of A's
-        diagonal (the learnt gains). 1: the canonical colour sits at the level the corrections started from
-        (`initial_gains`: the training photos' mean exposure); 1.05: the photos average 5 % brighter than it,
-        i.e. the canonical colour drifted 5 % dark while training."""
-        A, _ = self.as_arrays()
-        d = np.clip(np.diagonal(A, axis1=1, axis2=2), 1e-6, None)   # [V,3]; a gain <= 0 is no level
-        return [round(float(v), 4) for v in np.exp(np.log(d).mean(axis=0))]
+    def gauge(self) -> dict:
+        """The corrections' common part, per channel (r, g, b): "gain", the geometric mean over the views of A's
+        diagonal, "gain_start", the same of where they started, and "bias", the views' mean b. A colour transform
+        shared by the canonical colour and every correction is free ((c, A_i, b_i) ~ (S c + d, A_i S^-1,
+        b_i - A_i S^-1 d)); only the penalty towards the start holds it, so a common part that moved from the
+        start's is the canonical colour's level drifting the other way (gain 2 % above gain_start, or bias
+        +0.01: the photos read brighter than the splats' own colour, which went dark)."""
+        A, b = self.as_arrays()
+        d0 = 1.0 + self.prior[:, [0, 1, 2] if self.mode == "gain" else [0, 4, 8]].detach().cpu().numpy()
+        gm = lambda d: [round(float(v), 4) for v in np.exp(np.log(np.clip(d, 1e-6, None)).mean(axis=0))]  # noqa: E731
+        return {"gain": gm(np.diagonal(A, axis1=1, axis2=2)), "gain_start": gm(d0),
+                "bias": [round(float(v), 4) for v in b.mean(axis=0)]}
 
     def state_dict(self) -> dict:
         return {"mode": self.mode, "params": torch.stack([p.detach().cpu() for p in self.params]),
@@ -271,11 +251,9 @@ def initial_gains(exposure: dict | None, names: list[str], source: str | Path | 
     exposure: the record (`exposure_record`) or None; names: the training views' names (`Frame.name`, the
     record's keys). The record's `rgb_gain` of image i is colour_i / colour_median-image per channel (8-bit
     encoding); the correction maps the model's colour to photo i's (c' = A_i c), and the model is meant to
-    learn the training photos' mean exposure, so A_i starts at diag(rgb_gain_i / anchor) (a photo twice as
-    bright as the mean: x2), anchor: the per-channel geometric mean of rgb_gain over the views measured.
+    learn the median image's colours, so A_i starts at diag(rgb_gain_i) (a photo twice as bright: x2).
     Returns (gains [V,3], {"init": "measured" | "identity", "init_views": views started from a measurement,
-    "init_anchor": [r,g,b] anchor (when some were measured), "init_why": why not, when some or all start at
-    1}); views without a usable gain start at 1, the anchor's level (logged)."""
+    "init_why": why not, when some or all start at 1}); views without a usable gain start at 1 (logged)."""
     g = np.ones((len(names), 3))
     where = f" ({source})" if source else ""
     images = exposure.get("images") if isinstance(exposure, dict) and not exposure.get("error") else None
@@ -285,7 +263,6 @@ def initial_gains(exposure: dict | None, names: list[str], source: str | Path | 
         log.info("appearance: corrections start at gain 1 (%s%s)", why, where)
         return g, {"init": "identity", "init_views": 0, "init_why": why}
     missing: list[str] = []
-    measured = np.zeros(len(names), bool)
     for i, n in enumerate(names):
         r = images.get(n)
         v = r.get("rgb_gain") if isinstance(r, dict) else None
@@ -293,19 +270,11 @@ def initial_gains(exposure: dict | None, names: list[str], source: str | Path | 
                                                            for x in v)
               and all(np.isfinite(x) and GAIN_RANGE[0] <= x <= GAIN_RANGE[1] for x in v))
         if ok:
-            g[i], measured[i] = v, True
+            g[i] = v
         else:
             missing.append(n)
     used = len(names) - len(missing)
     rec: dict = {"init": "measured" if used else "identity", "init_views": used}
-    if used:
-        # the gauge: one global colour scale s is free ((colour, A_i) ~ (colour / s, s A_i)); the corrections'
-        # start and regulariser fix it. Relative to the median photo they made the canonical colour that photo's
-        # (4-7 % dark on bench/exposure.py seed 1); divided by their geometric mean it is the training photos'
-        # mean exposure, which the held-out views, rendered without a correction, sit around.
-        anchor = np.exp(np.log(g[measured]).mean(axis=0))
-        g[measured] /= anchor
-        rec["init_anchor"] = [round(float(v), 4) for v in anchor]
     if missing:
         named = ", ".join(missing[:6]) + (f" and {len(missing) - 6} more" if len(missing) > 6 else "")
         rec["init_why"] = f"no usable measured gain for {len(missing)} of {len(names)} views ({named}): gain 1"

@@ -39,7 +39,7 @@ def make(cfg: TrainConfig, views: list, device, init_gains: np.ndarray | None = 
     app = None
     if cfg.appearance != "off":
         app = AppearanceModel(len(views), cfg.appearance, cfg.appearance_lr, cfg.appearance_reg, device,
-                              init_gains=init_gains, hold_gauge=True)
+                              init_gains=init_gains)
     bg = None
     if cfg.background_mode != "fixed":
         # start at the training images' mean colour (what an empty ray should show first)
