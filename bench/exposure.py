@@ -21,7 +21,8 @@ view, PSNR on the right half; fair whichever the held-out view's exposure) and `
 against the unperturbed photo of the same view: how close the splats' canonical colour is to the scene's).
 
 Last line: one JSON object: per capture the spread and flagged count, the gain error, and per (capture,
-mode) the three PSNRs and the mode trained.
+mode) the three PSNRs, the mode trained and the learnt corrections' common gain / bias (train.json
+"gauge": how far the canonical colour's level drifted from the corrections' start).
 
 Measured (Nov 2026, 2 shared cores, 500 steps, seed 0): clean 0.0 %, perturbed 56.3 % (gains recovered within
 0.8 %); held-out PSNR / right-half corrected / against the clean photos: clean off 27.55 / 27.64 / 27.55, gain
@@ -34,7 +35,12 @@ Corrections started at the measured gains (`splat.appearance.initial_gains`; the
 perturbed seed 0 23.21 / 26.62 / 26.29, seed 1 20.28 / 27.64 / 25.25; --gain 0.9,1.1 --wb 0.97,1.03 (14.1 % /
 12.8 %) seed 0 26.07 / 27.78 / 27.48, seed 1 off 24.73 / 26.38 / 26.05, auto 25.33 / 26.81 / 26.06; clean seed 1
 auto trains off (identical), a forced gain 25.65 / 26.01 / 25.65. Still not the default: seed 1 against the
-clean photos -0.53 / +0.01 dB.
+clean photos -0.53 / +0.01 dB. The "gauge" of those auto runs: every bias drifted up (mean +0.007..+0.012, the
+common gain +0.5-0.8 %), the canonical colour 3-5 % below its start (per-channel gain of the held-out renders
+against the clean photos: 1.00-1.06 seed 0, 0.91-0.95 seed 1); seed 1's training photos themselves average
+0.95-0.97 of the clean exposure. Anchoring the starts at their geometric mean and holding the common gain and bias while
+training (tried, not kept; `splat.appearance` module comment): perturbed seed 0 21.96 / 26.62 / 27.28, seed 1
+20.16 / 27.67 / 25.79; 0.9..1.1 seed 0 26.16 / 27.37 / 27.48, seed 1 24.69 / 26.00 / 25.87 (off identical).
 """
 
 from __future__ import annotations
@@ -136,7 +142,8 @@ def run(work: Path, size: tuple[int, int], views: int, iters: int, modes: list[s
                              "heldout": m.get("n_views")}
                 if code == 0:   # what `auto` (or an explicit mode) trained, and why (splat.appearance.decide)
                     app = json.loads((twin / "splat" / "train.json").read_text()).get("appearance") or {}
-                    row[mode].update(trained=app.get("mode"), decision=app.get("decision"), init=app.get("init"))
+                    row[mode].update(trained=app.get("mode"), decision=app.get("decision"), init=app.get("init"),
+                                    gauge=app.get("gauge"))
         out["captures"][name] = row
     return out
 

@@ -191,6 +191,21 @@ def test_initial_gains_take_the_measured_rgb_gains():
         AppearanceModel(2, "gain", init_gains=np.ones((3, 3)))
 
 
+def test_gauge_is_the_corrections_common_gain_and_bias():
+    m = AppearanceModel(2, "affine", init_gains=np.array([[1.21, 1.0, 0.5], [1.0, 0.81, 2.0]]))
+    assert m.gauge() == {"gain": [1.1, 0.9, 1.0], "gain_start": [1.1, 0.9, 1.0], "bias": [0.0, 0.0, 0.0]}
+    with torch.no_grad():
+        m.params[0][1] = 0.3                                       # an off-diagonal term: not a level
+        m.params[0][-3:] = torch.tensor([0.02, 0.0, -0.01])
+        m.params[1][-3:] = torch.tensor([0.0, 0.01, 0.01])
+    g = m.gauge()
+    np.testing.assert_allclose(g["gain"], [1.1, 0.9, 1.0], atol=1e-4)
+    np.testing.assert_allclose(g["bias"], [0.01, 0.005, 0.0], atol=1e-6)
+    with torch.no_grad():
+        m.params[1][4] = 0.81 * 1.21 - 1.0                          # view 1's green gain x1.21: the mean's x1.1
+    assert m.gauge()["gain"][1] == pytest.approx(0.99, abs=1e-4) and m.gauge()["gain_start"] == [1.1, 0.9, 1.0]
+
+
 @pytest.mark.parametrize("exposure, why", [
     (None, "no exposure check"),
     ({"error": "no sparse points to compare the images on"}, "no sparse points"),

@@ -944,6 +944,16 @@ def test_appearance_corrections_start_at_the_measured_gains(synth, tmp_path):
     train(ds, tmp_path / "run", tiny_config(iters=2, appearance="auto"))
     tj = json.loads((tmp_path / "run" / "train.json").read_text())["appearance"]
     assert tj["mode"] == "gain" and tj["init"] == "measured" and tj["init_views"] == 7
+    # the learnt corrections' common part, from the saved corrections (absent when none is trained)
+    from splattwin.splat import checkpoint as ckpt_io
+
+    saved = ckpt_io.load(tmp_path / "run" / "extras.safetensors")["appearance"]
+    A, b = saved["A"].numpy(), saved["b"].numpy()
+    np.testing.assert_allclose(tj["gauge"]["gain"], np.exp(np.log(np.diagonal(A, axis1=1, axis2=2)).mean(0)),
+                               atol=1e-4)
+    np.testing.assert_allclose(tj["gauge"]["bias"], b.mean(0), atol=1e-4)
+    train(ds, tmp_path / "off", tiny_config(iters=2, appearance="off"))
+    assert "gauge" not in json.loads((tmp_path / "off" / "train.json").read_text())["appearance"]
 
 
 def test_measured_gains_are_the_right_direction(synth, tmp_path):

@@ -932,7 +932,9 @@ class Trainer:
             "wall_s": None if wall is None else round(wall, 3), "resumed_at_step": resumed_at,
             "train_loss": loss, "train_psnr": psnr, "scene_scale": self.scene_scale,
             "views": [{"name": v.name, "width": v.camera.width, "height": v.camera.height} for v in self.views],
-            "transients": transients, "loss_masks": self._loss_mask_record(), "appearance": self.appearance_record,
+            "transients": transients, "loss_masks": self._loss_mask_record(),
+            "appearance": ({**self.appearance_record, "gauge": self.appearance.gauge()} if self.appearance is not None
+                           else self.appearance_record),
             "history": self.history})
         return TrainResult(g, ply, self.step, wall, loss, psnr, self.init_method, self.history, refined, resumed_at)
 
