@@ -441,7 +441,10 @@ def test_gltf_obstacle_box_is_translucent(built):
     mat = js["materials"][prims[0]["material"]]
     assert mat["alphaMode"] == "BLEND"
     assert mat["pbrMetallicRoughness"]["baseColorFactor"][3] == pytest.approx(0.5, abs=0.01)
-    assert mat["pbrMetallicRoughness"]["baseColorFactor"][0] > 0.8            # red
+    # red, as the viewer draws it: baseColorFactor is linear (glTF 3.9.2), the viewer's colour sRGB (audit 10d G1)
+    from splattwin.twin.gltf import OBSTACLE_RGBA, linear_from_srgb
+    assert np.allclose(mat["pbrMetallicRoughness"]["baseColorFactor"][:3],
+                       linear_from_srgb(OBSTACLE_RGBA)[:3] / 255.0, atol=1e-6)
     box = js["meshes"][mesh_of["box"]]["primitives"][0]                        # a real mesh stays opaque
     assert "material" not in box or js["materials"][box["material"]].get("alphaMode", "OPAQUE") == "OPAQUE"
     glb = trimesh.load(out / "export" / "scene.glb")
