@@ -372,7 +372,10 @@ def test_twin_json_describes_every_export_file(built):
               re.findall(r'file="([^"]+\.obj)"', (out / "export" / "scene.xml").read_text())}
     parts = {p.relative_to(out).as_posix() for p in out.rglob("parts/*.obj")}
     assert parts and loaded and loaded <= set(listed) and parts <= set(listed)
-    assert all(listed[p].get("role", "").startswith("convex collision part") for p in parts)
+    # background part 0 is the table box, which every export writes as a box primitive (audit 10d G5)
+    table_part = m.background.convex_parts[0]
+    assert table_part not in loaded and listed[table_part]["role"].startswith("the table box")
+    assert all(listed[p].get("role", "").startswith("convex collision part") for p in parts - {table_part})
 
 
 def test_splat_plys_and_objs_state_their_units(built, tmp_path):
