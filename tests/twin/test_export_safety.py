@@ -372,7 +372,10 @@ def test_twin_json_describes_every_export_file(built):
               re.findall(r'file="([^"]+\.obj)"', (out / "export" / "scene.xml").read_text())}
     parts = {p.relative_to(out).as_posix() for p in out.rglob("parts/*.obj")}
     assert parts and loaded and loaded <= set(listed) and parts <= set(listed)
-    assert all(listed[p].get("role", "").startswith("convex collision part") for p in parts)
+    # background part 0 is the table box, which every export writes as a box primitive (audit 10d G5)
+    table_part = m.background.convex_parts[0]
+    assert table_part not in loaded and listed[table_part]["role"].startswith("the table box")
+    assert all(listed[p].get("role", "").startswith("convex collision part") for p in parts - {table_part})
 
 
 def test_splat_plys_and_objs_state_their_units(built, tmp_path):
@@ -441,7 +444,10 @@ def test_gltf_obstacle_box_is_translucent(built):
     mat = js["materials"][prims[0]["material"]]
     assert mat["alphaMode"] == "BLEND"
     assert mat["pbrMetallicRoughness"]["baseColorFactor"][3] == pytest.approx(0.5, abs=0.01)
-    assert mat["pbrMetallicRoughness"]["baseColorFactor"][0] > 0.8            # red
+    # red, as the viewer draws it: baseColorFactor is linear (glTF 3.9.2), the viewer's colour sRGB (audit 10d G1)
+    from splattwin.twin.gltf import OBSTACLE_RGBA, linear_from_srgb
+    assert np.allclose(mat["pbrMetallicRoughness"]["baseColorFactor"][:3],
+                       linear_from_srgb(OBSTACLE_RGBA)[:3] / 255.0, atol=1e-6)
     box = js["meshes"][mesh_of["box"]]["primitives"][0]                        # a real mesh stays opaque
     assert "material" not in box or js["materials"][box["material"]].get("alphaMode", "OPAQUE") == "OPAQUE"
     glb = trimesh.load(out / "export" / "scene.glb")

@@ -57,3 +57,31 @@ def test_missing_parts_named(twin: Path, tmp_path: Path):
     m.objects[0].collision_mesh = None
     with pytest.raises(InputError, match=m.objects[0].name):
         build_spec(m, twin)
+
+
+def test_table_is_not_doubled_by_background_part_0(tmp_path: Path):
+    """Background part 0 is the table box itself (geometry.convert): MJCF added it as a mesh geom beside the
+    `table` box, so everything on the table touched it twice (audit 10d G5). URDF, MoveIt, glTF skip it."""
+    import warnings
+
+    from splattwin.poses.twin_frame import TwinFrame
+    from splattwin.scene.synthetic import synthetic_scene
+    from splattwin.twin.build import build_twin
+
+    g, labels, objects, _ = synthetic_scene(16000, seed=1, obstacle=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        man = build_twin(g, labels, objects, tmp_path, TwinFrame("ground_truth", scaled=True), formats=("mjcf",),
+                         progress=False)
+    assert len(man.background.convex_parts) >= 2
+    m = mujoco.MjModel.from_xml_path(str(tmp_path / "export" / "scene.xml"))
+    world_meshes = [m.geom(i).name for i in range(m.ngeom)
+                    if m.geom_bodyid[i] == 0 and m.geom_type[i] == mujoco.mjtGeom.mjGEOM_MESH]
+    assert world_meshes == [f"background/part_{k}" for k in range(1, len(man.background.convex_parts))]
+    d = mujoco.MjData(m)
+    for _ in range(200):
+        mujoco.mj_step(m, d)
+    box = m.body("box").id
+    touched = {m.geom(int(c.geom[i])).name for c in d.contact[:d.ncon] for i in (0, 1)
+               if m.geom_bodyid[int(c.geom[1 - i])] == box and m.geom_bodyid[int(c.geom[i])] == 0}
+    assert touched == {"table"}

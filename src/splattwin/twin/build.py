@@ -286,10 +286,12 @@ def describe_exports(twin_dir: Path, manifest: Manifest, written, options: Expor
         out.append(_file_entry(b.splat_ply, "3DGS PLY", "twin (z up)", manifest))
     if b.collision_mesh:
         out.append(_file_entry(b.collision_mesh, "OBJ", "twin (z up)", manifest))
-    # the convex parts: the meshes MJCF and URDF load (`file="../background/parts/part_000.obj"`)
+    # the convex parts: the meshes MJCF and URDF load (`file="../background/parts/part_001.obj"`); part 0 is
+    # the table box, which every export writes as a box primitive
     part = "convex collision part (loaded by the MJCF and URDF exports)"
-    for p in b.convex_parts or []:
-        out.append(_file_entry(str(p), "OBJ", "twin (z up)", manifest, role=part))
+    table = "the table box as a mesh (the exports write it as a box primitive)"
+    for k, p in enumerate(b.convex_parts or []):
+        out.append(_file_entry(str(p), "OBJ", "twin (z up)", manifest, role=part if k else table))
     for o in manifest.objects:
         frame = obj_frame.format(o.export_id or export_id(o.name))
         for k, fmt in (("splat_ply", "3DGS PLY"), ("visual_mesh", "OBJ"), ("collision_mesh", "OBJ")):

@@ -164,6 +164,8 @@ class Background:
     Meshes are in the twin frame. table_extent: [xmin, xmax, ymin, ymax] of the table top (m; frame
     units in an unscaled twin). table_default: why the table is assumed, in whole (no table in the splats)
     or in part (extended under the objects), None when the splats' table is used as found.
+    convex_parts: part 0 is the table box (every export writes it as a box primitive), the rest the
+    obstacles' convex parts.
     """
 
     table_height: float = 0.0

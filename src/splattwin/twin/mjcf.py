@@ -92,7 +92,9 @@ def add_twin(spec, manifest: Manifest, twin_dir: str | Path, objects: list[str] 
         fl = wb.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 0.05],
                          pos=[0, 0, bg.table_height - FLOOR_DEPTH * manifest.frame.length_scale()], rgba=[0.3, 0.3, 0.32, 1])
         _contact(fl)
-    for k, rel in enumerate(bg.convex_parts):
+    # part 0 is the table box itself (geometry.convert), already the `table` geom above: adding it again
+    # doubled every table contact (box + mesh hull), and URDF, MoveIt and glTF skip it too
+    for k, rel in enumerate(bg.convex_parts[1:], start=1):
         _mesh_volume(twin_dir / rel)  # a readable triangle mesh (InputError naming it otherwise)
         mesh = spec.add_mesh(name=f"background_part_{k}", file=str(twin_dir / rel))
         g = wb.add_geom(name=f"background/part_{k}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=mesh.name,

@@ -62,9 +62,13 @@ def _inertial(twin_dir: Path, o: ObjectEntry) -> str:
         I = np.diag(mass / 12.0 * np.array([e[1]**2 + e[2]**2, e[0]**2 + e[2]**2, e[0]**2 + e[1]**2]))
     T = np.eye(4)
     T[:3, 3] = com
-    return (f'<inertial>{_origin(T)}<mass value="{mass:.6g}"/>'
-            f'<inertia ixx="{I[0,0]:.6g}" ixy="{I[0,1]:.6g}" ixz="{I[0,2]:.6g}" iyy="{I[1,1]:.6g}" '
-            f'iyz="{I[1,2]:.6g}" izz="{I[2,2]:.6g}"/></inertial>')
+    # shortest round-trip digits, not 6: rounding each element apart can break the triangle inequality
+    # ixx + iyy >= izz of a thin object (a 0.1 mm card), which Gazebo, Drake and MuJoCo's URDF compiler refuse
+    f = {k: repr(float(I[i, j])) for k, (i, j) in
+         {"ixx": (0, 0), "ixy": (0, 1), "ixz": (0, 2), "iyy": (1, 1), "iyz": (1, 2), "izz": (2, 2)}.items()}
+    return (f'<inertial>{_origin(T)}<mass value="{mass!r}"/>'
+            f'<inertia ixx="{f["ixx"]}" ixy="{f["ixy"]}" ixz="{f["ixz"]}" iyy="{f["iyy"]}" '
+            f'iyz="{f["iyz"]}" izz="{f["izz"]}"/></inertial>')
 
 
 def object_link(twin_dir: Path, o: ObjectEntry, from_dir: Path, uri: str = "relative") -> str:
