@@ -378,3 +378,28 @@ def test_masks_upsampled_one_box_at_a_time(tiny_models, monkeypatch):
         monkeypatch.setattr(F, "interpolate", interpolate)
         assert full == [1, 1, 1], kind
         assert np.array_equal(masks, ref)
+
+
+def test_segment_images_reads_photos_as_bytes(tmp_path):
+    """segment_images read each photo as float32 and back (clip, x255: ~28 bytes a pixel at its peak, 4 GB
+    for a photo at the 150 MP limit); the segmenter gets the same uint8 pixels from a 3-byte-a-pixel read."""
+    import tracemalloc
+
+    rng = np.random.default_rng(5)
+    photo = rng.integers(0, 255, (1200, 1600, 3), dtype=np.uint8)
+    images = {"v0": io.write_image(tmp_path / "v0.png", photo)}
+    got = {}
+
+    class Keep:
+        def __call__(self, img, phrases):
+            got["img"] = img
+            m = np.zeros(img.shape[:2], bool)
+            m[:10, :10] = True
+            return {0: (m, 0.9)}
+
+    tracemalloc.start()
+    segment_images(images, "blue box", progress=False, segmenter=Keep())
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert got["img"].dtype == np.uint8 and np.array_equal(got["img"], photo)
+    assert peak < 4 * photo.size, f"peak {peak / 1e6:.0f} MB for a {photo.size / 1e6:.1f} MB photo"

@@ -376,7 +376,7 @@ def segment_images(images: dict[str, Path], prompt: str, options: SegmentOptions
     options (models, thresholds, sizes) are the same (out_dir/segment_key.json). Objects found in no
     view raise InputError.
     """
-    from splattwin.capture import load_image
+    from splattwin.limits import read_image_array
 
     phrases = parse_prompt(prompt)
     labels = {p: i + 1 for i, p in enumerate(phrases)} if labels is None else {k.lower(): v for k, v in labels.items()}
@@ -413,7 +413,9 @@ def segment_images(images: dict[str, Path], prompt: str, options: SegmentOptions
 
     bar = Progress(len(todo), "segmenting views", unit="view", enabled=progress)
     for view in todo:
-        img = (np.clip(load_image(images[view]), 0, 1) * 255 + 0.5).astype(np.uint8)
+        # the photo's own 8-bit RGB (as `load_image` reads it, before its /255): 3 bytes a pixel, where the
+        # float round trip held 28 (450 MB -> 4 GB at the 150 MP limit)
+        img = read_image_array(images[view], mode="RGB", what="photo")
         ms.sizes[view] = img.shape[:2]
         for p, (mask, score) in seg(img, phrases).items():
             if mask.any():
