@@ -41,8 +41,11 @@ def test_processor_files_are_part_of_a_model(tmp_path):
 
 
 def test_detector_of_another_model_type_is_named(tmp_path):
-    """A SAM folder given as the detector loads with random weights (transformers only warns): named at
-    the pre-flight, before any work."""
+    """A SAM folder given as the detector (or a Grounding DINO one as a forced-kind segmenter) loads with
+    random weights (transformers only warns): named at the pre-flight, before any work."""
     sam = _folder(tmp_path / "sam", "sam", "preprocessor_config.json", "tokenizer.json")
     e = models.missing_models_error(SegmentOptions(detector=str(sam), segmenter=str(sam)))
     assert e is not None and "(a 'sam' model, not Grounding DINO)" in e.problem
+    dino = _folder(tmp_path / "dino", "grounding-dino", "preprocessor_config.json", "tokenizer.json")
+    e = models.missing_models_error(SegmentOptions(detector=str(dino), segmenter=str(dino), segmenter_kind="sam"))
+    assert e is not None and "(a 'grounding-dino' model, not a sam model)" in e.problem and "(present)" in e.problem

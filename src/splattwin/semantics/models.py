@@ -102,6 +102,8 @@ def _problems(options: SegmentOptions) -> list[tuple[str, str, str | None]]:
             why = "MISSING" if "config.json" in lacks else f"MISSING {', '.join(lacks)}"
         elif key == "detector" and mt is not None and mt != "grounding-dino":
             why = f"a {mt!r} model, not Grounding DINO"   # transformers would load it with random weights
+        elif key != "detector" and mt is not None and _KINDS.get(mt) != key:   # e.g. --segmenter-kind sam
+            why = f"a {mt!r} model, not a {key} model"
         else:
             why = None
         out.append((role, model, why))
