@@ -403,3 +403,29 @@ def test_segment_images_reads_photos_as_bytes(tmp_path):
     tracemalloc.stop()
     assert got["img"].dtype == np.uint8 and np.array_equal(got["img"], photo)
     assert peak < 4 * photo.size, f"peak {peak / 1e6:.0f} MB for a {photo.size / 1e6:.1f} MB photo"
+
+
+def test_sam2_output_conventions(tiny_models):
+    """SAM 2 (preprocessed by hand): boxes in the square input frame (x S/W, y S/H, as Sam2Processor's
+    _normalize_coordinates), the low-res mask covers the whole square input (no padding) and is resized
+    straight to the original 60 x 90 image (Sam2ImageProcessor.post_process_masks); single mask, its IoU."""
+    import torch
+    from transformers.models.sam2.modeling_sam2 import Sam2ImageSegmentationOutput
+
+    seg = OpenVocabSegmenter(SegmentOptions(detector=str(tiny_models / "gdino"), segmenter=str(tiny_models / "sam2")))
+    seen = {}
+
+    def forward(pixel_values=None, input_boxes=None, multimask_output=True, **kw):
+        seen.update(pixel_values=pixel_values, input_boxes=input_boxes, multimask=multimask_output)
+        B, n = input_boxes.shape[1], 3 if multimask_output else 1
+        low = torch.full((1, B, n, 32, 32), -5.0)
+        low[0, 0, :, 16:32, 0:8] = 5.0       # bottom half, left quarter of the square -> rows 30-60, cols 0-22.5
+        iou = torch.tensor([[[0.7, 0.1, 0.1][:n]]])
+        return Sam2ImageSegmentationOutput(iou_scores=iou, pred_masks=low)
+
+    seg.seg_model.forward = forward
+    masks, ious = seg.masks_from_boxes(np.zeros((60, 90, 3), np.uint8), np.array([[9, 30, 45, 60]], float))
+    assert tuple(seen["pixel_values"].shape) == (1, 3, 128, 128) and seen["multimask"] is False
+    np.testing.assert_allclose(seen["input_boxes"][0].numpy(), [[12.8, 64, 64, 128]], atol=1e-4)   # x 128/90, y 128/60
+    np.testing.assert_allclose(ious, [0.7], rtol=1e-6)
+    assert masks[0, 32:, :21].all() and not masks[0, :28].any() and not masks[0, :, 25:].any()
