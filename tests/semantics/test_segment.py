@@ -429,3 +429,17 @@ def test_sam2_output_conventions(tiny_models):
     np.testing.assert_allclose(seen["input_boxes"][0].numpy(), [[12.8, 64, 64, 128]], atol=1e-4)   # x 128/90, y 128/60
     np.testing.assert_allclose(ious, [0.7], rtol=1e-6)
     assert masks[0, 32:, :21].all() and not masks[0, :28].any() and not masks[0, :, 25:].any()
+
+
+def test_weights_of_other_shapes_are_an_input_error(tiny_models, tmp_path):
+    """A folder whose weights do not fit its config raised transformers' bare RuntimeError
+    ("You set `ignore_mismatched_sizes` to `False`..."); now an InputError naming the folder."""
+    import json
+    import shutil
+
+    shutil.copytree(tiny_models / "sam", tmp_path / "odd")
+    cfg = json.loads((tmp_path / "odd" / "config.json").read_text())
+    cfg["mask_decoder_config"]["iou_head_hidden_dim"] = 8          # the weights hold 16
+    (tmp_path / "odd" / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(InputError, match=r"SAM model folder .*odd.* cannot be loaded \(RuntimeError"):
+        OpenVocabSegmenter(SegmentOptions(detector=str(tiny_models / "gdino"), segmenter=str(tmp_path / "odd")))

@@ -65,10 +65,12 @@ def load_pretrained(cls, model_id: str, what: str, **kwargs):
         return cls.from_pretrained(model_id, local_files_only=True, **kwargs)
     except (OSError, ValueError, EnvironmentError, RuntimeError) as e:
         # RuntimeError: weights of other shapes than the config's (transformers raises, no InputError)
+        why = f"{type(e).__name__}: {str(e).splitlines()[0][:300] if str(e) else 'no message'}"
         if Path(model_id).is_dir():
-            raise InputError(f"{what} folder {model_id!r} cannot be loaded ({type(e).__name__}: "
-                             f"{str(e).splitlines()[0][:300] if str(e) else 'no message'}); it needs the model's "
+            raise InputError(f"{what} folder {model_id!r} cannot be loaded ({why}); it needs the model's "
                              f"config.json and weights (model.safetensors) as saved by `save_pretrained`") from e
+        if isinstance(e, RuntimeError):   # present, but not a checkpoint of this model's shapes
+            raise InputError(f"{what} {model_id!r} cannot be loaded ({why}): not a checkpoint of this model") from e
         raise InputError(
             f"{what} {model_id!r} is not available offline ({type(e).__name__}). Download it once with "
             f"`huggingface-cli download {model_id}` (or `hf download {model_id}`) on a machine with network, "
