@@ -31,6 +31,8 @@ def _model_dir(root: Path, model_type: str) -> Path:
     root.mkdir(parents=True)
     (root / "config.json").write_text(json.dumps({"model_type": model_type}))
     (root / "model.safetensors").write_bytes(b"\0" * 8)
+    for name in ("preprocessor_config.json", "tokenizer.json"):   # what the processors load
+        (root / name).write_text("{}")
     return root
 
 

@@ -12,7 +12,8 @@ order; object labels are 1..K in that order unless given. Per view:
    processor needs torchvision), or "sam3" (`Sam3Model`, text-prompted: it segments the phrases
    directly and Grounding DINO is not used). Mask score = box score x predicted IoU.
 Weights load only from the local Hugging Face cache (`local_files_only=True`); a missing model raises an
-InputError that says how to download it. Runs on the CPU (`device`), with a progress bar over views.
+InputError that says how to download it; a folder or cached model of another kind (random weights) is an
+InputError too. Models run in float32 on `device` (default: the CPU), with a progress bar over views.
 Finished views are saved to `out_dir` as they complete, so a killed run resumes where it stopped.
 """
 
@@ -59,14 +60,76 @@ def prompt_object_names(prompt: str) -> dict[str, str]:
 
 
 def load_pretrained(cls, model_id: str, what: str, **kwargs):
-    """`cls.from_pretrained(model_id, local_files_only=True)` with a clear InputError when absent."""
+    """`cls.from_pretrained(model_id, local_files_only=True)` with a clear InputError when absent or unreadable."""
     try:
         return cls.from_pretrained(model_id, local_files_only=True, **kwargs)
-    except (OSError, ValueError, EnvironmentError) as e:
+    except (OSError, ValueError, EnvironmentError, RuntimeError) as e:
+        # RuntimeError: weights of other shapes than the config's (transformers raises, no InputError)
+        why = f"{type(e).__name__}: {str(e).splitlines()[0][:300] if str(e) else 'no message'}"
+        if Path(model_id).is_dir():
+            raise InputError(f"{what} folder {model_id!r} cannot be loaded ({why}); it needs the model's "
+                             f"config.json and weights (model.safetensors) as saved by `save_pretrained`") from e
+        if isinstance(e, RuntimeError):   # present, but not a checkpoint of this model's shapes
+            raise InputError(f"{what} {model_id!r} cannot be loaded ({why}): not a checkpoint of this model") from e
         raise InputError(
             f"{what} {model_id!r} is not available offline ({type(e).__name__}). Download it once with "
             f"`huggingface-cli download {model_id}` (or `hf download {model_id}`) on a machine with network, "
             f"or pass a local folder holding config.json + weights; splattwin never downloads at run time") from e
+
+
+# model_type of the configs each model class may load (facebook/sam3 ships a sam3_video config)
+_MODEL_TYPES = {"GroundingDinoForObjectDetection": ("grounding-dino",), "SamModel": ("sam",),
+                "Sam2Model": ("sam2", "sam2_video"), "Sam3Model": ("sam3", "sam3_video")}
+# share of the parameters' elements a checkpoint may leave to random initialisation; a checkpoint of another
+# model leaves all of them (transformers >= 5 only warns), a genuine one none
+MAX_MISSING_SHARE = 0.01
+
+
+def load_model(cls, model_id: str, what: str, device):
+    """Model `cls` from `model_id` in float32, in eval mode, on torch `device`.
+
+    InputError (naming the model) when its config is of another model type or when its weights leave more
+    than MAX_MISSING_SHARE of the parameters missing or of another shape: transformers would otherwise
+    initialise them at random with a warning, and the masks would be noise. float32 whatever the
+    checkpoint's dtype: transformers >= 5 loads a half-precision checkpoint as such (dtype="auto"), and
+    our float32 inputs would then fail in the first convolution."""
+    import torch
+
+    want = _MODEL_TYPES.get(cls.__name__)
+    if want is not None:
+        from transformers import AutoConfig
+
+        mt = load_pretrained(AutoConfig, model_id, f"{what} config").model_type
+        if mt not in want:
+            raise InputError(f"{what} {model_id!r} is a {mt!r} model (config.json model_type); expected "
+                             f"{' or '.join(repr(w) for w in want)}")
+    model, info = load_pretrained(cls, model_id, what, dtype=torch.float32, output_loading_info=True)
+    missing = set(info.get("missing_keys", ())) | {k[0] if isinstance(k, tuple) else k
+                                                   for k in info.get("mismatched_keys", ())}
+    params = dict(model.named_parameters())
+    n_missing = sum(params[k].numel() for k in missing if k in params)
+    n_all = max(1, sum(p.numel() for p in params.values()))
+    if n_missing > MAX_MISSING_SHARE * n_all:
+        raise InputError(f"{what} {model_id!r}: its weights leave {n_missing / n_all:.0%} of the model's parameters "
+                         f"missing or of another shape (e.g. {', '.join(sorted(missing)[:3])}): not a checkpoint of "
+                         f"this model")
+    if missing:
+        log.warning("%s %s: %d weights missing from the checkpoint (%s)", what, model_id, len(missing),
+                    ", ".join(sorted(missing)[:5]))
+    return model.to(device).eval()
+
+
+def torch_device(name: str):
+    """torch.device `name` if tensors can be made on it here, else InputError naming it."""
+    import torch
+
+    try:
+        dev = torch.device(name)
+        torch.empty(1, device=dev)
+    except (RuntimeError, AssertionError, ValueError) as e:   # unknown name, no CUDA build, no such GPU
+        raise InputError(f"segmentation device {name!r} is not usable here ({str(e).splitlines()[0][:200]}); "
+                         f"use --device cpu", "--device") from e
+    return dev
 
 
 def _model_type(model_id: str) -> str:
@@ -75,21 +138,26 @@ def _model_type(model_id: str) -> str:
     return load_pretrained(AutoConfig, model_id, "segmenter config").model_type
 
 
-def phrase_token_spans(tokens: Sequence[str], n_phrases: int) -> list[list[int]]:
-    """Token positions of each '.'-delimited phrase (special tokens skipped). -> n_phrases lists."""
-    spans: list[list[int]] = [[]]
+def phrase_token_spans(tokens: Sequence[str], n_phrases: int, max_tokens: int | None = None) -> list[list[int]]:
+    """Token positions of each '.'-terminated phrase (special tokens skipped) -> n_phrases lists.
+
+    `tokens`: the tokens the detector reads (already cut at its `max_tokens`); a phrase counts only when
+    its closing '.' is among them, so a phrase cut by the limit is never scored on part of its words."""
+    spans: list[list[int]] = []
+    cur: list[int] = []
     for i, t in enumerate(tokens):
         if t in ("[CLS]", "[SEP]", "[PAD]", "<s>", "</s>", "<pad>"):
             continue
         if t == ".":
-            if spans[-1]:
-                spans.append([])
+            if cur:
+                spans.append(cur)
+            cur = []
             continue
-        spans[-1].append(i)
-    spans = [s for s in spans if s]
+        cur.append(i)
     if len(spans) < n_phrases:
-        raise InputError(f"the detector's tokenizer kept {len(spans)} of the {n_phrases} prompt phrases "
-                         f"(text too long for the model?)")
+        limit = f" reads at most {max_tokens} tokens" if max_tokens else "'s tokenizer kept"
+        raise InputError(f"text prompt too long: the detector{limit} and {len(spans)} of the {n_phrases} prompt "
+                         f"phrases fit; use fewer or shorter phrases")
     return spans[:n_phrases]
 
 
@@ -133,20 +201,21 @@ class OpenVocabSegmenter:
             if kind is None:
                 raise InputError(f"segmenter {opts.segmenter!r} has model_type {mt!r}; expected a SAM, SAM 2 or SAM 3 model")
         self.kind = kind
+        self.device = dev = torch_device(opts.device)
         if kind == "sam3":
             if not hasattr(tf, "Sam3Model"):
                 raise InputError(f"SAM 3 needs a transformers with Sam3Model (installed: {tf.__version__})")
-            self.seg_model = load_pretrained(tf.Sam3Model, opts.segmenter, "SAM 3 model").eval()
+            self.seg_model = load_model(tf.Sam3Model, opts.segmenter, "SAM 3 model", dev)
             # Sam3Processor's image processor needs torchvision: tokenizer only, images by hand (as SAM 2)
             self.seg_proc = load_pretrained(tf.AutoTokenizer, opts.segmenter, "SAM 3 tokenizer")
             return
-        self.det_model = load_pretrained(tf.GroundingDinoForObjectDetection, opts.detector, "Grounding DINO model").eval()
+        self.det_model = load_model(tf.GroundingDinoForObjectDetection, opts.detector, "Grounding DINO model", dev)
         self.det_proc = load_pretrained(tf.GroundingDinoProcessor, opts.detector, "Grounding DINO processor")
         if kind == "sam":
-            self.seg_model = load_pretrained(tf.SamModel, opts.segmenter, "SAM model").eval()
+            self.seg_model = load_model(tf.SamModel, opts.segmenter, "SAM model", dev)
             self.seg_proc = load_pretrained(tf.SamProcessor, opts.segmenter, "SAM processor")
         else:
-            self.seg_model = load_pretrained(tf.Sam2Model, opts.segmenter, "SAM 2 model").eval()
+            self.seg_model = load_model(tf.Sam2Model, opts.segmenter, "SAM 2 model", dev)
             self.seg_proc = None  # Sam2ImageProcessor needs torchvision: preprocess by hand
 
     # -- detection -----------------------------------------------------------------------------
@@ -165,14 +234,15 @@ class OpenVocabSegmenter:
         ip.size = {"shortest_edge": short, "longest_edge": max(pil.size)}  # no upscaling to 800 px
         text = ". ".join(phrases) + "."
         inputs = self.det_proc(images=pil, text=text, return_tensors="pt")
+        # the model reads only its first max_text_len tokens (it cuts input_ids there): spans past it are not scored
+        n_text = int(self.det_model.config.max_text_len)
+        tokens = self.det_proc.tokenizer.convert_ids_to_tokens(inputs["input_ids"][0].tolist())
+        spans = phrase_token_spans(tokens[:n_text], len(phrases), n_text)
         with torch.no_grad():
-            out = self.det_model(**inputs)
-        ids = inputs["input_ids"][0].tolist()
-        tokens = self.det_proc.tokenizer.convert_ids_to_tokens(ids)
-        spans = phrase_token_spans(tokens, len(phrases))
-        prob = out.logits[0].sigmoid().numpy()  # [Q, max_text_len]
+            out = self.det_model(**inputs.to(self.device))
+        prob = out.logits[0].float().sigmoid().cpu().numpy()  # [Q, max_text_len]
         scores = np.stack([prob[:, sp].max(axis=1) for sp in spans], axis=1)  # [Q,P]
-        boxes = out.pred_boxes[0].numpy().astype(np.float64)  # cx, cy, w, h normalised
+        boxes = out.pred_boxes[0].cpu().numpy().astype(np.float64)  # cx, cy, w, h normalised
         xyxy = np.stack([boxes[:, 0] - boxes[:, 2] / 2, boxes[:, 1] - boxes[:, 3] / 2,
                          boxes[:, 0] + boxes[:, 2] / 2, boxes[:, 1] + boxes[:, 3] / 2], 1) * [W, H, W, H]
         xyxy = np.clip(xyxy, 0, [W, H, W, H])
@@ -180,35 +250,44 @@ class OpenVocabSegmenter:
 
     # -- masks -----------------------------------------------------------------------------------
     def masks_from_boxes(self, image: np.ndarray, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """boxes [B,4] xyxy pixels -> (masks [B,H,W] bool at image size, predicted IoU [B])."""
+        """boxes [B,4] xyxy pixels -> (masks [B,H,W] bool at image size, predicted IoU [B]).
+
+        The low-resolution mask logits are brought to the image size one box at a time: a float mask of a
+        large photo is 4 bytes a pixel (600 MB at the 150 MP limit), all boxes at once would be B times that."""
         import torch
         import torch.nn.functional as F
         from PIL import Image
 
         H, W = image.shape[:2]
         B = len(boxes)
+        masks = np.zeros((B, H, W), dtype=bool)
         if B == 0:
-            return np.zeros((0, H, W), dtype=bool), np.zeros(0)
+            return masks, np.zeros(0)
         with torch.no_grad():
             if self.kind == "sam":
                 inp = self.seg_proc(images=Image.fromarray(image), input_boxes=[[list(map(float, b)) for b in boxes]],
                                     return_tensors="pt")
-                emb = self.seg_model.get_image_embeddings(inp["pixel_values"])
-                out = self.seg_model(image_embeddings=emb, input_boxes=inp["input_boxes"], multimask_output=False)
-                masks = self.seg_proc.post_process_masks(out.pred_masks, inp["original_sizes"],
-                                                          inp["reshaped_input_sizes"])[0][:, 0]
-                return masks.numpy().astype(bool), out.iou_scores[0, :, 0].numpy()
+                emb = self.seg_model.get_image_embeddings(inp["pixel_values"].to(self.device))
+                out = self.seg_model(image_embeddings=emb, input_boxes=inp["input_boxes"].to(self.device),
+                                     multimask_output=False)
+                low = out.pred_masks.float().cpu()  # [1,B,1,h,w] over the padded square input
+                for i in range(B):
+                    masks[i] = self.seg_proc.post_process_masks(low[:, i:i + 1], inp["original_sizes"],
+                                                                inp["reshaped_input_sizes"])[0][0, 0].numpy()
+                return masks, out.iou_scores[0, :, 0].float().cpu().numpy()
             # SAM 2: square resize to the model's input size, ImageNet normalisation
             size = self.seg_model.config.prompt_encoder_config.image_size  # box coordinate frame = input size
             S = int(size[0] if isinstance(size, (list, tuple)) else size)
             x = np.asarray(Image.fromarray(image).resize((S, S), Image.BILINEAR), dtype=np.float32) / 255.0
             x = (x - _IMAGENET_MEAN) / _IMAGENET_STD
-            pv = torch.from_numpy(x).permute(2, 0, 1)[None]
+            pv = torch.from_numpy(x).permute(2, 0, 1)[None].to(self.device)
             b = torch.as_tensor(np.asarray(boxes, dtype=np.float32) * np.array([S / W, S / H, S / W, S / H], np.float32))
-            out = self.seg_model(pixel_values=pv, input_boxes=b[None], multimask_output=False)
-            logits = out.pred_masks[0, :, 0]  # [B,h,w]
-            masks = F.interpolate(logits[:, None], size=(H, W), mode="bilinear", align_corners=False)[:, 0] > 0
-            return masks.numpy(), out.iou_scores[0, :, 0].numpy()
+            out = self.seg_model(pixel_values=pv, input_boxes=b[None].to(self.device), multimask_output=False)
+            logits = out.pred_masks[0, :, 0].float().cpu()  # [B,h,w] over the square input
+            for i in range(B):
+                masks[i] = (F.interpolate(logits[i][None, None], size=(H, W), mode="bilinear",
+                                          align_corners=False)[0, 0] > 0).numpy()
+            return masks, out.iou_scores[0, :, 0].float().cpu().numpy()
 
     def __call__(self, image: np.ndarray, phrases: Sequence[str]) -> dict[int, tuple[np.ndarray, float]]:
         """image uint8 [H,W,3] -> {phrase index: (mask bool [H,W], score)} for the phrases found."""
@@ -236,21 +315,22 @@ class OpenVocabSegmenter:
         size = self.seg_model.config.vision_config.image_size
         S = int(size[0] if isinstance(size, (list, tuple)) else size)
         x = np.asarray(Image.fromarray(image).resize((S, S), Image.BILINEAR), dtype=np.float32) / 255.0
-        pv = torch.from_numpy((x - 0.5) / 0.5).permute(2, 0, 1)[None]  # Sam3ImageProcessor: mean = std = 0.5
+        # Sam3ImageProcessor: mean = std = 0.5
+        pv = torch.from_numpy((x - 0.5) / 0.5).permute(2, 0, 1)[None].to(self.device)
         found = {}
         with torch.no_grad():
             vision = self.seg_model.get_vision_features(pixel_values=pv)
             for p, phrase in enumerate(phrases):
                 txt = self.seg_proc(phrase, padding="max_length", max_length=32, truncation=True, return_tensors="pt")
-                out = self.seg_model(vision_embeds=vision, input_ids=txt["input_ids"],
-                                     attention_mask=txt["attention_mask"])
-                scores = out.pred_logits[0].sigmoid()
+                out = self.seg_model(vision_embeds=vision, input_ids=txt["input_ids"].to(self.device),
+                                     attention_mask=txt["attention_mask"].to(self.device))
+                scores = out.pred_logits[0].float().sigmoid()
                 if out.presence_logits is not None:
-                    scores = scores * out.presence_logits[0].sigmoid()
+                    scores = scores * out.presence_logits[0].float().sigmoid()
                 k = int(scores.argmax())
                 score = float(scores[k])
                 if score > self.opts.box_threshold:
-                    m = F.interpolate(out.pred_masks[0, k][None, None], size=(H, W), mode="bilinear",
+                    m = F.interpolate(out.pred_masks[0, k][None, None].float().cpu(), size=(H, W), mode="bilinear",
                                       align_corners=False)[0, 0]
                     found[p] = (m.sigmoid().numpy() > 0.5, score)
         return found
@@ -298,7 +378,7 @@ def segment_images(images: dict[str, Path], prompt: str, options: SegmentOptions
     options (models, thresholds, sizes) are the same (out_dir/segment_key.json). Objects found in no
     view raise InputError.
     """
-    from splattwin.capture import load_image
+    from splattwin.limits import read_image_array
 
     phrases = parse_prompt(prompt)
     labels = {p: i + 1 for i, p in enumerate(phrases)} if labels is None else {k.lower(): v for k, v in labels.items()}
@@ -335,7 +415,9 @@ def segment_images(images: dict[str, Path], prompt: str, options: SegmentOptions
 
     bar = Progress(len(todo), "segmenting views", unit="view", enabled=progress)
     for view in todo:
-        img = (np.clip(load_image(images[view]), 0, 1) * 255 + 0.5).astype(np.uint8)
+        # the photo's own 8-bit RGB (as `load_image` reads it, before its /255): 3 bytes a pixel, where the
+        # float round trip held 28 (450 MB -> 4 GB at the 150 MP limit)
+        img = read_image_array(images[view], mode="RGB", what="photo")
         ms.sizes[view] = img.shape[:2]
         for p, (mask, score) in seg(img, phrases).items():
             if mask.any():
