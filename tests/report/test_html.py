@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import numpy as np
 from PIL import Image
 
@@ -57,3 +59,51 @@ def test_screenshot_waits_longer_for_a_page_that_draws_late(tmp_path):
     shot = np.asarray(Image.open(png).convert("RGB")).astype(int)
     red = (shot[..., 0] > 200) & (shot[..., 1] < 60) & (shot[..., 2] < 60)
     assert red.sum() > 10000
+
+
+def _fake_chromium(tmp_path, monkeypatch, picture: bool):
+    """A stand-in for Chromium that records where it was told to write and, if `picture`, writes a
+    two-colour PNG there (the real one writes its --screenshot file itself)."""
+    import sys
+
+    import splattwin.report.screenshot as shot
+
+    log = tmp_path / "told.txt"
+    script = tmp_path / "fake-chromium"
+    script.write_text(
+        f"#!{sys.executable}\n"
+        "import sys\n"
+        "from PIL import Image\n"
+        "path = next(a.split('=', 1)[1] for a in sys.argv if a.startswith('--screenshot='))\n"
+        f"open({str(log)!r}, 'a').write(path + '\\n')\n"
+        + ("im = Image.new('RGB', (8, 8), (255, 0, 0)); im.putpixel((0, 0), (0, 0, 255)); im.save(path)\n"
+           if picture else ""))
+    script.chmod(0o755)
+    monkeypatch.setattr(shot, "find_chromium", lambda: str(script))
+    return log
+
+
+def test_screenshot_is_written_atomically(tmp_path, monkeypatch):
+    """Chromium writes into a temporary file beside the target, renamed onto it when it is done: a killed
+    run never leaves a half-written PNG under the artifact's name, and no temporary file is left."""
+    log = _fake_chromium(tmp_path, monkeypatch, picture=True)
+    out = tmp_path / "shots" / "view.png"
+    out.parent.mkdir()
+    out.write_bytes(b"old")
+    assert screenshot("file:///nothing.html", out, budget_ms=1000) == out.resolve()
+    told = [Path(p) for p in log.read_text().split()]
+    assert len(told) == 1 and told[0] != out.resolve() and told[0].parent == out.resolve().parent
+    assert told[0].suffix == ".png"   # Chromium picks the format by the extension
+    with Image.open(out) as im:
+        assert im.size == (8, 8)
+    assert sorted(p.name for p in out.parent.iterdir()) == ["view.png"]
+
+
+def test_screenshot_without_a_picture_leaves_nothing(tmp_path, monkeypatch):
+    import pytest
+
+    _fake_chromium(tmp_path, monkeypatch, picture=False)
+    out = tmp_path / "shots" / "view.png"
+    with pytest.raises(RuntimeError, match="no screenshot"):
+        screenshot("file:///nothing.html", out, budget_ms=1000)
+    assert list(out.parent.iterdir()) == []

@@ -39,9 +39,21 @@ def screenshot(url: str, out_png: str | Path, width: int = 1280, height: int = 9
     """Load `url` (http:// or file://) in headless Chromium and save a PNG screenshot. Each try is given
     max(45 s, 3x its virtual-time budget), at most `timeout_s`: a Chromium that hangs (seen with the viewer's
     page: ~10 s normally, now and then the full 120 s) is retried sooner."""
+    from splattwin import io
+
     out_png = Path(out_png).resolve()
     out_png.parent.mkdir(parents=True, exist_ok=True)
     out_png.unlink(missing_ok=True)  # an old picture must not pass for a new one
+    # Chromium writes the picture itself: into a temporary file beside the target, renamed onto it when
+    # done, so a killed run never leaves a half-written PNG under the artifact's name
+    with io.atomic_path(out_png) as shot:
+        shot.unlink()   # absent until Chromium writes it: a missing file is "no picture"
+        _shoot(url, shot, width, height, budget_ms, timeout_s)
+    return out_png
+
+
+def _shoot(url: str, out_png: Path, width: int, height: int, budget_ms: int, timeout_s: float) -> None:
+    """`screenshot`'s tries, Chromium writing to `out_png` (RuntimeError when none gave a picture)."""
     # A page that animates (the viewer's WebGL canvas) can keep a loaded machine from ever reaching the
     # virtual-time budget: on a time-out try again with a smaller budget. A page whose scripts had not
     # drawn anything yet when the budget ran out (one flat colour) gets a longer budget.
@@ -71,4 +83,3 @@ def screenshot(url: str, out_png: str | Path, width: int = 1280, height: int = 9
         out_png.write_bytes(last_blank)
     if not out_png.is_file():
         raise RuntimeError(f"chromium produced no screenshot for {url}")
-    return out_png
