@@ -38,7 +38,6 @@ def short_repr(v, n: int = 60) -> str:
     return r if len(r) <= n else r[:n - 3] + "..."
 
 
-
 def require_type(value, types: type | tuple[type, ...], what: str, hint: str = "") -> None:
     """TypeError naming the argument and the expected type(s) when `value` is none of `types`: a library
     entry point given a path or an array where it takes an object failed deep inside with an AttributeError

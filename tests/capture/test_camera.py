@@ -84,7 +84,6 @@ def test_dict_roundtrip():
     assert back.name == "x"
 
 
-
 def test_pixel_rays_back_project_to_the_pixel_centres():
     cam = Camera(K=[[50.0, 0, 19.3], [0, 45.0, 14.1], [0, 0, 1]], width=40, height=30,
                  T_world_cam=look_at(np.array([0.2, -0.5, 0.8]), np.zeros(3)))

@@ -8,7 +8,6 @@ from splattwin.cli import main
 from splattwin.errors import InputError
 
 
-
 def _write_video(path, n=24, sharp_every=6, w=96, h=64):
     """A clip whose frame i is a sharp checkerboard only when i % sharp_every == 3, blurred otherwise."""
     import av

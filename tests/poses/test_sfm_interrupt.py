@@ -80,7 +80,6 @@ def _poses_in_extraction(tmp_path: Path) -> tuple[subprocess.Popen, Path]:
     return proc, out
 
 
-
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc to look for surviving worker processes")
 def test_sigint_during_sfm_stops_within_5s_and_leaves_nothing_half_written(tmp_path: Path, terminal_ctrl_c):
     """SIGINT to `splattwin poses` inside pycolmap's feature extraction: exit 130 within 5 s, no worker left,

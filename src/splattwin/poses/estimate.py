@@ -772,7 +772,6 @@ def parse_intrinsics(value) -> str | tuple[float, float, float, float] | None:
     return vals  # type: ignore[return-value]
 
 
-
 def _intrinsics_tuple(opts: PoseOptions, frames: list[DataFrame]) -> tuple[float, float, float, float] | None:
     if opts.intrinsics is None:
         return None

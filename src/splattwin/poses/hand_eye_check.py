@@ -595,8 +595,8 @@ def intrinsics_check(measures: list[tuple[int, int, PairMeasure]], T_world_cam: 
     Measured on the embedded scene as a TUM capture (320x240, f = 307.5 px, 8 near pairs, exact poses):
     focal given x1.00 / 1.01 / 1.02 / 1.05 / 0.98 -> s = 1.001 / 0.992 / 0.982 / 0.954 / 1.022 (true 1 /
     0.990 / 0.980 / 0.952 / 1.020), bootstrap sigma ~0.004 (`bench/pose_checks.py`); the 1.5 % threshold is
-    above 2.5 sigma there, so 2 %
-    errors warn and 1 % ones do not (their depth error, 1 %, is below the depth check's 5 % band too).
+    above 2.5 sigma there, so 2 % errors warn and 1 % ones do not (their depth error, 1 %, is below the depth
+    check's 5 % band too).
     Principal point moved by 5 / 10 px in x: found -4.9 / -9.9 px (sigma 0.2), in y: -4.5 / -9.5 (sigma 0.8;
     +0.4 px with the true one), by (-7, +6): (+7.2, -5.5), all warned (3.1 px threshold); 2 px: not warned
     (x: undetermined, a turn fits as well; y: ok); a 1 cm / 2 deg hand-eye error, whose turn a principal

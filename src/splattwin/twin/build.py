@@ -38,7 +38,6 @@ from splattwin.twin.splats import write_object_splats
 log = logging.getLogger(__name__)
 
 
-
 def default_formats(frame: TwinFrame) -> tuple[str, ...]:
     """The exports written when none are asked for: all of them (an unscaled twin's are marked so)."""
     return ExportOptions().resolve()
