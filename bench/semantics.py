@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from splattwin.capture import load_dataset
     from splattwin.semantics.fusion import FusionOptions, View, fuse, naive_fusion, splat_normals
-    from splattwin.semantics.masks import MaskSet, _read_image, scene_masks
+    from splattwin.semantics.masks import MaskSet, read_mask_image, scene_masks
     from splattwin.semantics.metrics import ghost_index, miou, projection_consistency
     from splattwin.semantics.label_render import PointDepth, SplatDepth, colorize, render_label_maps
 
@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     # -- quality: all objects -------------------------------------------------------------------
     res = fuse(g.means, tr, ms, normals=normals)
     naive = naive_fusion(g.means, tr, ms)
-    gts = {"train": [_read_image(f.label_path) for f in trf], "heldout": [_read_image(f.label_path) for f in ho]}
+    gts = {"train": [read_mask_image(f.label_path) for f in trf], "heldout": [read_mask_image(f.label_path) for f in ho]}
     frames = {"train": trf, "heldout": ho}
 
     # Label maps of trained splats are rendered with the rasterizer (their centres are too sparse for a

@@ -95,3 +95,35 @@ def test_the_checker_sees_lazy_and_relative_imports():
     assert {b.split(" imports ")[1].split(" ")[0] for b in bad} == \
         {"splattwin.twin.manifest", "splattwin.robot", "splattwin.pipeline"}
     assert upward_imports(SRC / "io.py", "from splattwin.capture import Camera\n")
+
+
+def private_imports(path: Path, source: str | None = None) -> list[str]:
+    """`from <another splattwin module> import _name`: a module using another's private helper (audit 10A L16).
+    Private modules of the same package (`from splattwin.splat import _cpu` in splattwin.splat) are allowed:
+    the underscore there marks them private to their package."""
+    me = _module(path)
+    package = me if path.name == "__init__.py" else me.rsplit(".", 1)[0]
+    bad = []
+    for node in ast.walk(ast.parse(source if source is not None else path.read_text(), str(path))):
+        if not isinstance(node, ast.ImportFrom) or node.level or not (node.module or "").startswith("splattwin"):
+            continue
+        for a in node.names:
+            if not a.name.startswith("_") or a.name.startswith("__") or node.module == me:
+                continue
+            where = SRC.parent / package.replace(".", "/") / a.name
+            if node.module == package and (where.with_suffix(".py").is_file() or (where / "__init__.py").is_file()):
+                continue   # a private module of its own package
+            bad.append(f"{me}:{node.lineno} imports {node.module}.{a.name}")
+    return bad
+
+
+def test_no_module_imports_another_modules_private_names():
+    bad = [b for p in sorted(SRC.rglob("*.py")) for b in private_imports(p)]
+    assert not bad, "private names imported across modules (make them public, with a docstring):\n" + "\n".join(bad)
+
+
+def test_the_private_import_checker():
+    path = SRC / "splat" / "rasterize.py"
+    assert private_imports(path, "from splattwin.splat import _cpu\n") == []
+    assert private_imports(path, "def f():\n    from splattwin.poses.sfm import _Thing, ok\n") == \
+        ["splattwin.splat.rasterize:2 imports splattwin.poses.sfm._Thing"]

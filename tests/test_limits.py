@@ -70,3 +70,14 @@ def test_16_bit_greyscale_photos_are_scaled_not_clipped(tmp_path):
     with pytest.raises(InputError, match="float image") as e:
         load_image(tmp_path / "f.tif")
     assert e.value.path == tmp_path / "f.tif"
+
+
+def test_size_text_keeps_sizes_apart():
+    """A file just over its limit must not read as the limit itself (it read "0 MiB, more than the limit of
+    0 MiB" for small limits, and "1 MiB ... of 1 MiB" for 1.4 MiB against 1 MiB)."""
+    from splattwin.limits import size_text
+
+    assert size_text(16) == "16 bytes"
+    assert size_text(1536) == "1.5 KiB"
+    assert size_text(int(1.4 * 2**20)) == "1.4 MiB" and size_text(2**20) == "1.0 MiB"
+    assert size_text(3 * 2**30) == "3.0 GiB" and size_text(5 * 2**40) == "5120.0 GiB"

@@ -91,8 +91,21 @@ def check_file_size(path: str | Path, limit: int, what: str = "file") -> int:
     except OSError as e:
         raise InputError(f"{what} cannot be read ({e.strerror or e})", path) from None
     if size > limit:
-        raise InputError(f"{what} is {size / 2**20:.0f} MiB, more than the limit of {limit / 2**20:.0f} MiB", path)
+        raise InputError(f"{what} is {size_text(size)}, more than the limit of {size_text(limit)}", path)
     return size
+
+
+def size_text(n_bytes: int) -> str:
+    """A byte count for a message: "512 bytes", "3.4 KiB", "1.5 MiB", "2.0 GiB" (one decimal, so a size just
+    over a limit does not read as equal to it)."""
+    n = float(n_bytes)
+    if n < 1024:
+        return f"{int(n)} bytes"
+    for unit in ("KiB", "MiB", "GiB"):
+        n /= 1024
+        if n < 1024 or unit == "GiB":
+            return f"{n:.1f} {unit}"
+    raise AssertionError("unreachable")
 
 
 # -- numbers read from files --------------------------------------------------------------------

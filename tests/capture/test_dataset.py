@@ -84,7 +84,7 @@ def test_linked_photos_are_named_by_their_links_and_bundled_as_files(tmp_path):
     from splattwin.capture import Camera
     from splattwin.capture.bundle import bundle_frames
     from splattwin.capture.dataset import Frame
-    from splattwin.poses.sfm import _image_layout
+    from splattwin.poses.sfm import image_layout
 
     cap = tmp_path / "cap"
     cap.mkdir()
@@ -95,7 +95,7 @@ def test_linked_photos_are_named_by_their_links_and_bundled_as_files(tmp_path):
         Image.fromarray(np.full((48, 64, 3), 40 * i, np.uint8)).save(target)
         os.symlink(target, cap / f"view{i}.png")
         frames.append(Frame(image_path=cap / f"view{i}.png", camera=Camera.from_fov(1.0, 64, 48, name=f"view{i}")))
-    assert _image_layout([f.image_path for f in frames]) == (cap.resolve(), ["view0.png", "view1.png"])
+    assert image_layout([f.image_path for f in frames]) == (cap.resolve(), ["view0.png", "view1.png"])
     out = tmp_path / "out"
     bundled = bundle_frames(frames, out)
     for f, b in zip(frames, bundled):

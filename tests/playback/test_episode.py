@@ -72,3 +72,28 @@ def test_episode_round_trip(tiny_twin, tmp_path):
     (root / "meta" / "info.json").write_text(json.dumps(info))
     with pytest.raises(InputError, match="outside"):
         read_episode(root, 0)
+
+
+def test_read_jsonl_bounded_and_checked(tmp_path, monkeypatch):
+    """An episode folder may come from someone else: its JSON-lines metadata is read within a bound and
+    every line must be a JSON object; each failure names the file (and the line)."""
+    from splattwin import limits
+    from splattwin.playback.episode import read_jsonl
+
+    p = tmp_path / "episodes.jsonl"
+    assert read_jsonl(p) == []                                  # no file: no rows
+    p.write_text('{"episode_index": 0}\n\n{"episode_index": 1}\n')
+    assert [r["episode_index"] for r in read_jsonl(p)] == [0, 1]
+    monkeypatch.setattr(limits, "MAX_RECORD_BYTES", 16)
+    with pytest.raises(InputError, match=r"JSON-lines file is 4\d bytes, more than the limit of 16 bytes") as e:
+        read_jsonl(p)
+    assert "episodes.jsonl" in str(e.value)
+    monkeypatch.undo()
+    for text, what in (('{"a": 1}\n[1, 2]\n', "line 2 is not a JSON object"),
+                       ('{"a": 1}\n{oops\n', "line 2 is not JSON"),
+                       ("[" * 100_000 + "]" * 100_000 + "\n", "line 1 is nested too deeply"),
+                       ('{"a": ' + "9" * 5000 + "}\n", "line 1 is not JSON")):
+        p.write_text(text)
+        with pytest.raises(InputError, match=what) as e:
+            read_jsonl(p)
+        assert "episodes.jsonl" in str(e.value)

@@ -131,7 +131,7 @@ def _fake_sfm(monkeypatch, gt_frames, S: np.ndarray, n_points: int = 300):
     the points only where the objects are (near the scene centre), as SfM's features sit on their textured
     edges while the plain table gives none. Returns the points' true (metric) positions."""
     import splattwin.poses.sfm as sfm_mod
-    from splattwin.poses.sfm import SfmResult, _image_layout
+    from splattwin.poses.sfm import SfmResult, image_layout
 
     ds_depth = load_dataset(gt_frames)
     frames = [f for f in ds_depth.frames if f.depth_path is not None]
@@ -147,7 +147,7 @@ def _fake_sfm(monkeypatch, gt_frames, S: np.ndarray, n_points: int = 300):
     true_pts = np.concatenate([true_pts, table[rng.choice(len(table), 60, replace=False)]])
 
     def run_sfm(paths, work, sopts, progress=True):
-        _, rel = _image_layout(list(paths))
+        _, rel = image_layout(list(paths))
         by_path = {Path(f.image_path).name: f.camera for f in ds_depth.frames}
         cams = {r: transform_camera(S, by_path[Path(p).name]) for r, p in zip(rel, paths)}
         n = len(true_pts)

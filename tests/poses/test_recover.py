@@ -163,7 +163,7 @@ def test_sfm_recovers_a_dropped_image_and_reports_it(dropped_model, sfm_default_
     import pycolmap
 
     from splattwin.poses.progress import StageProgress
-    from splattwin.poses.sfm import Attempt, _outcome, _recovered, _Run
+    from splattwin.poses.sfm import Attempt, _outcome, _recovered, SfmRun
 
     _, base, gone = dropped_model
     work = tmp_path / "work"
@@ -171,7 +171,7 @@ def test_sfm_recovers_a_dropped_image_and_reports_it(dropped_model, sfm_default_
     shutil.copyfile(sfm_default_dir / "database.db", work / "database.db")
     names = json.loads((sfm_default_dir / "sfm_config.json").read_text())["images"]
     with StageProgress(False) as bar:
-        run = _Run(work, scene_default / "images", names, SfmOptions(), bar)
+        run = SfmRun(work, scene_default / "images", names, SfmOptions(), bar)
         run.dropped = {gone: "posed below the table (test)"}
         best = _outcome([pycolmap.Reconstruction(str(base))], [base], work / "database.db")
         n0 = best.registered
@@ -184,7 +184,7 @@ def test_sfm_recovers_a_dropped_image_and_reports_it(dropped_model, sfm_default_
     assert gone not in run.dropped and (work / "models" / "recovered").is_dir()
     # a second recovery (against a later, better model) has its own model folder and log entry
     with StageProgress(False) as bar:
-        run = _Run(work, scene_default / "images", names, SfmOptions(), bar)
+        run = SfmRun(work, scene_default / "images", names, SfmOptions(), bar)
         run.dropped = {gone: "test"}
         again, attempt = _recovered(run, best, Attempt("guided", "x"), log, work / "attempts.json",
                                     tag="recover_final")
@@ -194,7 +194,7 @@ def test_sfm_recovers_a_dropped_image_and_reports_it(dropped_model, sfm_default_
     assert [e["name"] for e in log] == ["recover", "recover_final"]
     # recovery off: the model stays as it is
     with StageProgress(False) as bar:
-        run = _Run(work, scene_default / "images", names, SfmOptions(recover_dropped=False), bar)
+        run = SfmRun(work, scene_default / "images", names, SfmOptions(recover_dropped=False), bar)
         run.dropped = {gone: "test"}
         same, _ = _recovered(run, best, Attempt("default", "x"), [], work / "attempts2.json")
     assert same is best

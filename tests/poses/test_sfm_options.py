@@ -365,7 +365,7 @@ def test_matching_and_mapping_steps_say_what_they_count(tmp_path, monkeypatch):
 
     monkeypatch.setattr(colmap_process, "run_step", fake_step)
     names = [f"frame_{i:05d}.png" for i in range(60)]
-    run = sfm._Run(tmp_path, tmp_path, names, SfmOptions(ordered=True), progress=None,
+    run = sfm.SfmRun(tmp_path, tmp_path, names, SfmOptions(ordered=True), progress=None,
                    groups=[CameraGroup(names, 64, 48)], matcher="sequential")
     a = Attempt("default", "default")
     run.match(run.db_path(a), a, "SfM")

@@ -159,7 +159,7 @@ def test_prompt_labels_reads_a_valid_scene_json_as_before(tmp_path):
 
 @pytest.mark.parametrize("label", ["2", 2.0, True])
 def test_scene_json_labels_are_held_to_the_projects_integer_check(tmp_path, label):
-    """int() takes "2", 2.0 and True; the project's integer check (`masks._whole`) refuses them, and both
+    """int() takes "2", 2.0 and True; the project's integer check (`masks.whole_number`) refuses them, and both
     readers of scene.json (prompt_labels' and scene_objects) now agree on it, naming the file."""
     from splattwin.semantics.lift import prompt_labels
     from splattwin.semantics.masks import scene_objects

@@ -11,7 +11,7 @@ import pytest
 from splattwin import io
 from splattwin.cli import main
 from splattwin.semantics.fusion import View, fuse, naive_fusion, splat_normals
-from splattwin.semantics.masks import _read_image, scene_masks
+from splattwin.semantics.masks import read_mask_image, scene_masks
 from splattwin.semantics.metrics import miou, projection_consistency
 from splattwin.semantics.label_render import render_label_maps
 
@@ -32,7 +32,7 @@ def test_fusion_beats_naive_on_scene(small):
     naive = naive_fusion(g.means, tr, ms)
     labs = sorted(ms.objects)
     ho = ds.heldout()
-    gts = [_read_image(f.label_path) for f in ho]
+    gts = [read_mask_image(f.label_path) for f in ho]
     score = {name: miou(render_label_maps(g, lab, [f.camera for f in ho], max(labs), renderer="points"), gts, labs)
              for name, lab in [("fusion", res.labels), ("naive", naive), ("oracle", gt)]}
     # rendering at 160x120 caps what any labelling can reach: compare with GT labels rendered the same way
@@ -74,7 +74,7 @@ def test_cli_segment_import_and_fuse(small, tmp_path):
         sub = Gaussians.load_ply(out / "objects" / f"{o['name']}.ply")
         assert len(sub.means) == o["n_gaussians"] == int((labels == o["label"]).sum()) > 0
     for f in ds.frames:
-        raw = _read_image(out / "label_maps" / "raw" / f"{f.name}.png")
+        raw = read_mask_image(out / "label_maps" / "raw" / f"{f.name}.png")
         assert raw.shape == (f.camera.height, f.camera.width)
         assert (out / "label_maps" / f"{f.name}.png").is_file()
 

@@ -76,7 +76,9 @@ def change(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.mean(np.abs(a.astype(np.float32) - b.astype(np.float32))))
 
 
-def _open(path: Path):
+def open_video(path: Path):
+    """An open PyAV container with at least one video stream (the caller closes it); InputError naming the
+    file when it is missing, unreadable or has no video stream."""
     import av
 
     if not path.is_file():
@@ -213,7 +215,7 @@ def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = VIDE
                 (out_dir / n).is_file() and not (out_dir / n).is_symlink() for n in names):
             return [out_dir / n for n in names]
     # Pass 1: sharpness and a thumbnail of every frame (cheap, downscaled).
-    container = _open(path)
+    container = open_video(path)
     scores, thumbs, turns = [], [], 0
     with Progress(container.streams.video[0].frames or None, f"scoring {path.name}", unit="frame",
                   enabled=progress) as prog:
@@ -250,7 +252,7 @@ def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = VIDE
             raise InputError(f"{n} in the frames folder is a folder, not a frame; remove it or choose another "
                              f"folder", out_dir)
     io.write_json(index, {"stamp": None, "frames": names})
-    container = _open(path)
+    container = open_video(path)
     want = {idx: name for idx, name in zip(keep, names)}
     written = 0
     try:

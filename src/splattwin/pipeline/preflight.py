@@ -185,10 +185,10 @@ def _video_sizes(path: Path, max_frames: int | None = None) -> list[tuple[int, i
     """Frame sizes a video will give with --max-frames `max_frames` (probed, not decoded)."""
     from splattwin.frame_options import VIDEO_MAX_FRAMES
 
-    from splattwin.capture.video import _open
+    from splattwin.capture.video import open_video
 
     max_frames = VIDEO_MAX_FRAMES if max_frames is None else max_frames
-    c = _open(path)
+    c = open_video(path)
     try:
         s = c.streams.video[0]
         n = min(max_frames, s.frames or max_frames)
@@ -201,9 +201,9 @@ def _decodable_frames(path: Path, want: int = 2) -> tuple[int, str | None]:
     """How many frames, up to `want`, the video decodes from its start, and the decoding error that stopped
     it (None when it ended or `want` were decoded). A stream's declared frame count is not enough: a damaged
     file declares 20 frames and decodes none."""
-    from splattwin.capture.video import _open
+    from splattwin.capture.video import open_video
 
-    c = _open(path)
+    c = open_video(path)
     n = 0
     try:
         for _ in c.decode(video=0):

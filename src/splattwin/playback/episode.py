@@ -74,16 +74,26 @@ def _stats(a: np.ndarray) -> dict:
             "std": a.std(0).tolist(), "count": [int(len(a))]}
 
 
-def _read_jsonl(path: Path) -> list[dict]:
+def read_jsonl(path: Path) -> list[dict]:
+    """The JSON objects of a JSON-lines file, one per non-blank line; [] when the file does not exist.
+    Read within `limits.MAX_RECORD_BYTES` (an episode folder may come from someone else); InputError naming
+    the file and line when a line is not a JSON object."""
+    from splattwin.limits import MAX_RECORD_BYTES, read_text
+
     if not path.is_file():
         return []
     out = []
-    for i, line in enumerate(path.read_text().splitlines()):
+    for i, line in enumerate(read_text(path, "JSON-lines file", MAX_RECORD_BYTES).splitlines()):
         if line.strip():
             try:
-                out.append(json.loads(line))
-            except json.JSONDecodeError as e:
-                raise InputError(f"line {i + 1} is not JSON: {e}", path) from e
+                row = json.loads(line)
+            except RecursionError:
+                raise InputError(f"line {i + 1} is nested too deeply", path) from None
+            except ValueError as e:  # JSONDecodeError, or an integer of more than 4300 digits
+                raise InputError(f"line {i + 1} is not JSON: {str(e).split(';')[0]}", path) from None
+            if not isinstance(row, dict):
+                raise InputError(f"line {i + 1} is not a JSON object", path)
+            out.append(row)
     return out
 
 
@@ -117,9 +127,9 @@ def write_episode(root: str | Path, rollout, renderer, cameras: dict, fps: float
             raise InputError(f"camera key {k!r} must be alphanumeric (with _ or -)")
     info_path = root / "meta" / "info.json"
     info = io.read_json(info_path) if info_path.is_file() else None
-    episodes = _read_jsonl(root / "meta" / "episodes.jsonl")
-    tasks = _read_jsonl(root / "meta" / "tasks.jsonl")
-    stats = _read_jsonl(root / "meta" / "episodes_stats.jsonl")
+    episodes = read_jsonl(root / "meta" / "episodes.jsonl")
+    tasks = read_jsonl(root / "meta" / "tasks.jsonl")
+    stats = read_jsonl(root / "meta" / "episodes_stats.jsonl")
     if info is not None and abs(float(info.get("fps", fps)) - fps) > 1e-9:
         raise InputError(f"the dataset is at {info['fps']} fps, not {fps}", info_path)
     ep = len(episodes) if episode_index is None else int(episode_index)
@@ -237,7 +247,7 @@ def read_episode(root: str | Path, episode_index: int, videos: bool = True) -> E
     ep = int(episode_index)
     if not 0 <= ep < MAX_EPISODES:
         raise InputError(f"episode index {ep} out of range")
-    metas = [e for e in _read_jsonl(root / "meta" / "episodes.jsonl") if e.get("episode_index") == ep]
+    metas = [e for e in read_jsonl(root / "meta" / "episodes.jsonl") if e.get("episode_index") == ep]
     if not metas:
         raise InputError(f"no episode {ep} in meta/episodes.jsonl", root / "meta" / "episodes.jsonl")
     chunk = ep // int(info.get("chunks_size", CHUNKS_SIZE))

@@ -172,10 +172,10 @@ def task_text(run) -> str:
 
 
 def _has_episode(root: Path, ep: int) -> bool:
-    from splattwin.playback.episode import _read_jsonl
+    from splattwin.playback.episode import read_jsonl
 
     try:
-        return any(e.get("episode_index") == ep for e in _read_jsonl(root / "meta" / "episodes.jsonl"))
+        return any(e.get("episode_index") == ep for e in read_jsonl(root / "meta" / "episodes.jsonl"))
     except InputError:
         return False
 

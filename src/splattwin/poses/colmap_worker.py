@@ -501,7 +501,7 @@ def _plane_homography_candidates(model, db: str, ids: dict, name: str, tried: li
     import pycolmap
 
     from splattwin.errors import InputError
-    from splattwin.poses.sfm import _result_from_reconstruction
+    from splattwin.poses.sfm import result_from_reconstruction
     from splattwin.poses.table import fit_table_plane
 
     try:
@@ -509,7 +509,7 @@ def _plane_homography_candidates(model, db: str, ids: dict, name: str, tried: li
     except ImportError:  # the other candidates still run
         tried.append("plane_homography: OpenCV not available")
         return
-    res = _result_from_reconstruction(model, [], {}, Path(job["image_root"]))
+    res = result_from_reconstruction(model, [], {}, Path(job["image_root"]))
     if len(res.cameras) < 3:
         return
     try:
@@ -585,13 +585,13 @@ def _observations(rec, name: str) -> int:
 def _recovery_problem(rec, name: str, min_obs: int, max_err: float, job: dict) -> str:
     """Why the re-registered `name` in the refined model `rec` is not trusted ("" if it is)."""
     from splattwin.poses.sanity import SanityOptions, check_registration
-    from splattwin.poses.sfm import _result_from_reconstruction
+    from splattwin.poses.sfm import result_from_reconstruction
 
     if name not in {rec.image(i).name for i in rec.reg_image_ids()}:
         return "lost in the refinement"
     if not _image_ok(rec, name, min_obs, max_err):
         return f"observes {_observations(rec, name)} points (need >= {min_obs} within {max_err:g} px)"
-    res = _result_from_reconstruction(rec, [], {}, Path(job["image_root"]))
+    res = result_from_reconstruction(rec, [], {}, Path(job["image_root"]))
     obs = {rec.image(i).name: int(rec.image(i).num_points3D) for i in rec.reg_image_ids()}
     chk = check_registration(res.cameras, obs, res.points_xyz, SanityOptions(min_observations=min_obs),
                              seed=int(job.get("seed", 0)))
@@ -614,7 +614,7 @@ def _out_of_order(cameras: dict, points, name: str, order: list[str], margin_deg
     import numpy as np
 
     from splattwin.errors import InputError
-    from splattwin.poses.sanity import _nearest_to_axes
+    from splattwin.poses.sanity import nearest_to_axes
     from splattwin.poses.table import fit_table_plane
 
     seq = [n for n in order if n in cameras]
@@ -629,7 +629,7 @@ def _out_of_order(cameras: dict, points, name: str, order: list[str], margin_deg
                                 np.array([cameras[n].center for n in others]), seed=seed)
     except InputError:
         return ""
-    target = _nearest_to_axes([cameras[n] for n in others])
+    target = nearest_to_axes([cameras[n] for n in others])
     if target is None:
         return ""
     nrm = plane.normal

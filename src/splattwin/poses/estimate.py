@@ -701,14 +701,14 @@ def _input_scaled(dataset: Dataset, prior: TwinFrame | None, scale: str) -> bool
 def _frame_key(f: DataFrame) -> str:
     from splattwin.paths import unfollowed
 
-    return str(unfollowed(f.image_path))  # a link's own path, matching the SfM names (sfm._image_layout)
+    return str(unfollowed(f.image_path))  # a link's own path, matching the SfM names (sfm.image_layout)
 
 
 def _sfm_keys(frames: list[DataFrame]) -> dict[str, str]:
     """SfM image name (relative to the common folder) -> our frame key."""
-    from splattwin.poses.sfm import _image_layout
+    from splattwin.poses.sfm import image_layout
 
-    _, rel = _image_layout([f.image_path for f in frames])
+    _, rel = image_layout([f.image_path for f in frames])
     return {r: _frame_key(f) for r, f in zip(rel, frames)}
 
 

@@ -82,7 +82,7 @@ def _axis(cam: Camera) -> np.ndarray:
     return np.asarray(cam.T_world_cam[:3, 2], dtype=np.float64)
 
 
-def _nearest_to_axes(cams: list[Camera]) -> np.ndarray | None:
+def nearest_to_axes(cams: list[Camera]) -> np.ndarray | None:
     """[3] least-squares point nearest to the optical axes, or None when they are (nearly) parallel."""
     A, b = np.zeros((3, 3)), np.zeros(3)
     for c in cams:
@@ -165,7 +165,7 @@ def check_registration(cameras: dict[str, Camera], observations: dict[str, int],
     good = [n for n in names if n not in flagged]
     for n in every:
         ref = [cameras[m] for m in good if m != n]
-        target = _nearest_to_axes(ref) if len(ref) >= 2 else None
+        target = nearest_to_axes(ref) if len(ref) >= 2 else None
         if target is None:
             continue
         ray = target - cameras[n].center

@@ -478,7 +478,7 @@ def explain_failures(names: list[str], registered: set[str], keypoints: dict[str
 
 
 # -- the run ---------------------------------------------------------------------------------------------
-def _image_layout(image_paths: list[Path]) -> tuple[Path, list[str]]:
+def image_layout(image_paths: list[Path]) -> tuple[Path, list[str]]:
     """Common image folder and the names relative to it (COLMAP identifies images by these names).
     Symbolic links are not followed: a link's own name is the image's name (`paths.unfollowed`)."""
     from splattwin.paths import unfollowed
@@ -499,7 +499,7 @@ def _config_key(opts: SfmOptions, names: list[str]) -> dict:
     return d
 
 
-class _Run:
+class SfmRun:
     """State of one `run_sfm` call: folders, databases, progress, accumulated timings."""
 
     def __init__(self, work: Path, image_root: Path, names: list[str], opts: SfmOptions, progress: StageProgress,
@@ -715,13 +715,13 @@ def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | No
             raise InputError("image not found", p)
     work = Path(work_dir)
     work.mkdir(parents=True, exist_ok=True)
-    image_root, names = _image_layout(image_paths)
+    image_root, names = image_layout(image_paths)
     names = sorted(names)  # COLMAP ids follow this order: same images in any order -> same model (and resume)
     key = _config_key(opts, names)
     key_path, model_dir = work / "sfm_config.json", work / "sparse"
     if key_path.is_file() and json.loads(key_path.read_text()) != json.loads(json.dumps(key)):
         log.info("SfM options or images changed: starting over in %s", work)
-        _clear_work(work)
+        clear_work(work)
     io.write_json(key_path, key)
 
     with StageProgress(progress) as bar:
@@ -732,7 +732,7 @@ def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | No
             except json.JSONDecodeError:  # written by an older version
                 meta = {}
             rec = pycolmap.Reconstruction(str(model_dir))
-            res = _result_from_reconstruction(rec, names, {}, image_root)
+            res = result_from_reconstruction(rec, names, {}, image_root)
             res.failures, res.attempts = meta.get("failures", {}), meta.get("attempts", [])
             res.matcher, res.camera_groups = meta.get("matcher", ""), meta.get("camera_groups", [])
             res.peak_rss_gib = float(meta.get("peak_rss_gib", 0.0))
@@ -740,10 +740,10 @@ def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | No
             res.registration_check = meta.get("registration_check", {})
             _check_enough(res, opts, image_root)
             return res
-        run = _Run(work, image_root, names, opts, bar)
+        run = SfmRun(work, image_root, names, opts, bar)
         outcome, attempt = _run_attempts(run, bar)
         rec, sub_models, db = outcome.rec, outcome.sub_models, outcome.db
-        res = _result_from_reconstruction(rec, names, run.timings, image_root)
+        res = result_from_reconstruction(rec, names, run.timings, image_root)
         res.attempts = run_attempts_log(work)
         res.matcher = run.matcher
         res.camera_groups = [g.to_dict() for g in run.groups]
@@ -788,7 +788,8 @@ def _copy_features(src: Path, dst: Path) -> None:
             con.close()
 
 
-def _clear_work(work: Path) -> None:
+def clear_work(work: Path) -> None:
+    """Empty the SfM work folder `work` for a fresh run, keeping only its `sfm_config.json`."""
     for q in work.iterdir():
         if q.name == "sfm_config.json":
             continue
@@ -870,7 +871,7 @@ def _outcome(recs: list, paths: list[Path], db: Path) -> AttemptOutcome:
                           path=Path(paths[k]), paths=[Path(p) for p in paths])
 
 
-def _run_attempts(run: _Run, bar: StageProgress) -> tuple[AttemptOutcome, Attempt]:
+def _run_attempts(run: SfmRun, bar: StageProgress) -> tuple[AttemptOutcome, Attempt]:
     """The retry plan for this capture, run until every image registers (see `run_plan`)."""
     import pycolmap
 
@@ -946,7 +947,7 @@ def _run_attempts(run: _Run, bar: StageProgress) -> tuple[AttemptOutcome, Attemp
     return best, attempt
 
 
-def _recovered(run: _Run, best: AttemptOutcome, attempt: Attempt, done_log: list[dict],
+def _recovered(run: SfmRun, best: AttemptOutcome, attempt: Attempt, done_log: list[dict],
                log_path: Path, tag: str = "recover") -> tuple[AttemptOutcome, Attempt]:
     """`best` with the images the sanity check dropped (in any attempt) that it lacks re-registered
     against it (colmap_worker's recover step), checked again; `best` itself when nothing was recovered.
@@ -973,7 +974,7 @@ def _recovered(run: _Run, best: AttemptOutcome, attempt: Attempt, done_log: list
              "registered": best.registered, "seconds": round(time.perf_counter() - t0, 2)}
     if res.get("recovered"):
         rec = pycolmap.Reconstruction(str(out))
-        full = _result_from_reconstruction(rec, [], {}, run.image_root)
+        full = result_from_reconstruction(rec, [], {}, run.image_root)
         obs = {rec.image(i).name: int(rec.image(i).num_points3D) for i in rec.reg_image_ids()}
         chk = check_registration(full.cameras, obs, full.points_xyz,
                                  SanityOptions(min_observations=run.opts.min_observations), seed=run.opts.seed)
@@ -997,7 +998,7 @@ def _recovered(run: _Run, best: AttemptOutcome, attempt: Attempt, done_log: list
     return best, attempt
 
 
-def _checked(run: _Run, out: AttemptOutcome, tag: str, label: str, mapping: str = "default") -> AttemptOutcome:
+def _checked(run: SfmRun, out: AttemptOutcome, tag: str, label: str, mapping: str = "default") -> AttemptOutcome:
     """`out` with the registrations the sanity check (`splattwin.poses.sanity`) does not trust removed:
     they are de-registered and the model is bundle-adjusted again (models/<tag>_checked<k>), repeated
     while the check still flags images (a drop moves the plane and the others' consensus a little)."""
@@ -1012,7 +1013,7 @@ def _checked(run: _Run, out: AttemptOutcome, tag: str, label: str, mapping: str 
     rec, path, dropped = out.rec, out.path, {}
     sopts = SanityOptions(min_observations=run.opts.min_observations)
     for k in range(4):
-        res = _result_from_reconstruction(rec, [], {}, run.image_root)
+        res = result_from_reconstruction(rec, [], {}, run.image_root)
         obs = {rec.image(i).name: int(rec.image(i).num_points3D) for i in rec.reg_image_ids()}
         chk = check_registration(res.cameras, obs, res.points_xyz, sopts, seed=run.opts.seed)
         if not chk.dropped or k == 3:
@@ -1091,7 +1092,10 @@ def _check_enough(res: SfmResult, opts: SfmOptions, image_root: Path) -> None:
             image_root)
 
 
-def _result_from_reconstruction(rec, names: list[str], timings: dict[str, float], image_root: Path) -> SfmResult:
+def result_from_reconstruction(rec, names: list[str], timings: dict[str, float], image_root: Path) -> SfmResult:
+    """SfmResult of a pycolmap Reconstruction `rec` over the images `names` (relative to `image_root`):
+    the registered images' cameras in COLMAP's world frame, the names it left unregistered, its 3D points
+    (position, colour, reprojection error, track length) and `timings` (s)."""
     cameras: dict[str, Camera] = {}
     for iid in rec.reg_image_ids():
         im = rec.image(iid)

@@ -23,7 +23,7 @@ from splattwin.capture.camera import Camera
 from splattwin.errors import InputError
 from splattwin.poses import colmap_process
 from splattwin.poses.progress import StageProgress
-from splattwin.poses.sfm import Attempt, CameraGroup, SfmOptions, _image_layout, _Run
+from splattwin.poses.sfm import Attempt, CameraGroup, SfmOptions, image_layout, SfmRun
 
 log = logging.getLogger(__name__)
 
@@ -124,7 +124,7 @@ def triangulate_known_poses(image_paths: list[Path], cameras: list[Camera], work
         raise ValueError("one camera per image")
     if len(image_paths) < 2:
         raise InputError(f"triangulating points from known poses needs at least 2 images, got {len(image_paths)}")
-    image_root, names = _image_layout(list(image_paths))
+    image_root, names = image_layout(list(image_paths))
     tmp = None
     if work_dir is None:
         tmp = tempfile.TemporaryDirectory(prefix="splattwin_tri_")
@@ -142,9 +142,9 @@ def triangulate_known_poses(image_paths: list[Path], cameras: list[Camera], work
         import json
 
         if key_path.is_file() and json.loads(key_path.read_text()) != json.loads(json.dumps(key)):
-            from splattwin.poses.sfm import _clear_work
+            from splattwin.poses.sfm import clear_work
 
-            _clear_work(work)
+            clear_work(work)
         io.write_json(key_path, key)
         out = work / "triangulated"
         with StageProgress(progress, prefix="points") as bar:
@@ -155,7 +155,7 @@ def triangulate_known_poses(image_paths: list[Path], cameras: list[Camera], work
                 pairs_file = work / "pairs.txt"
                 io.write_text(pairs_file, "".join(f"{names[i]} {names[j]}\n"
                                                   for i, j in pairs_from_poses(cameras, neighbours)))
-            run = _Run(work, image_root, names, opts, bar, groups=known_camera_groups(cameras, names),
+            run = SfmRun(work, image_root, names, opts, bar, groups=known_camera_groups(cameras, names),
                        matcher=matcher, pairs_file=pairs_file)
             a = Attempt("known_poses", "known poses")
             label = "points from known poses"

@@ -54,12 +54,14 @@ def look_target(objects: list[SceneObject]) -> np.ndarray:
     return np.array([xy[0], xy[1], 0.03])
 
 
-def _write_ply(path: Path, mesh: trimesh.Trimesh) -> None:
+def write_mesh_ply(path: Path, mesh: trimesh.Trimesh) -> None:
+    """Binary PLY of `mesh`'s vertices and faces at `path`, written atomically."""
     with atomic_path(path) as tmp:
         tmp.write_bytes(trimesh.exchange.ply.export_ply(mesh, encoding="binary", include_attributes=False))
 
 
-def _to_u8(rgb: np.ndarray) -> np.ndarray:
+def to_u8(rgb: np.ndarray) -> np.ndarray:
+    """uint8 image [...] of colours [...] in [0, 1], rounded and clipped."""
     return np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8)
 
 
@@ -73,7 +75,7 @@ def preview_image(views: list[dict[str, np.ndarray]], noisy: list[np.ndarray]) -
     with the union of the noisy masks outlined in white."""
     rows = [[], [], []]
     for v, nm in zip(views, noisy):
-        rgb = _to_u8(v["rgb"])
+        rgb = to_u8(v["rgb"])
         rows[0].append(rgb)
         lab = v["labels"]
         over = rgb.copy()
@@ -133,7 +135,7 @@ def generate(out_dir: str | Path, options: SceneOptions | None = None, progress:
                            look_target(objects), options.seed)
 
     for surf in renderer.surfaces:
-        _write_ply(out / "meshes" / f"{surf.name}.ply", surf.mesh_world)
+        write_mesh_ply(out / "meshes" / f"{surf.name}.ply", surf.mesh_world)
 
     _remove_stale_views(out, {c.name for c in cameras}, [o.name for o in objects])
     noise_events: dict[str, dict] = {}
@@ -144,7 +146,7 @@ def generate(out_dir: str | Path, options: SceneOptions | None = None, progress:
     with Progress(len(cameras), "rendering scene views", unit="view", enabled=progress) as bar:
         for vi, cam in enumerate(cameras):
             view = renderer.render(cam, options.supersample)
-            write_image(out / "images" / f"{cam.name}.png", _to_u8(view["rgb"]))
+            write_image(out / "images" / f"{cam.name}.png", to_u8(view["rgb"]))
             write_npy(out / "depth" / f"{cam.name}.npy", view["depth"])
             write_image(out / "masks" / "gt" / f"{cam.name}.png", view["labels"])
             ev = {}

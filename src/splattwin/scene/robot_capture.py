@@ -103,7 +103,7 @@ def write_robot_capture(out_dir: str | Path, options: SceneOptions | None = None
     from splattwin.progress import Progress
 
     from splattwin.capture import bop, tum
-    from splattwin.scene.generator import _to_u8, _write_ply, build_scene, look_target, scene_record
+    from splattwin.scene.generator import to_u8, write_mesh_ply, build_scene, look_target, scene_record
 
     options = options or SceneOptions()
     capture = capture or RobotCaptureOptions(width=options.width, height=options.height)
@@ -121,7 +121,7 @@ def write_robot_capture(out_dir: str | Path, options: SceneOptions | None = None
     cams = [Camera(K=c.K, width=c.width, height=c.height, T_world_cam=T_cw @ c.T_world_cam, name=c.name)
             for c in cams_world]
     for surf in renderer.surfaces:
-        _write_ply(out / "meshes" / f"{surf.name}.ply", surf.mesh_world)
+        write_mesh_ply(out / "meshes" / f"{surf.name}.ply", surf.mesh_world)
 
     times = [1.0 + i / 30.0 for i in range(len(cams))]          # a 30 Hz stream
     stems = [bop.image_name(i, "") if capture.format == "bop" else f"{t:.6f}" for i, t in enumerate(times)]
@@ -129,7 +129,7 @@ def write_robot_capture(out_dir: str | Path, options: SceneOptions | None = None
     with Progress(len(cams), "rendering robot capture", unit="view", enabled=progress) as bar:
         for i, (cw, stem) in enumerate(zip(cams_world, stems)):
             view = renderer.render(cw, options.supersample)
-            write_image(out / "rgb" / f"{stem}.png", _to_u8(view["rgb"]))
+            write_image(out / "rgb" / f"{stem}.png", to_u8(view["rgb"]))
             sensed = sensor_depth(view["depth"], float(cw.K[0, 0]), capture.depth_noise, view_rng(options.seed, i))
             write_image(out / "depth" / f"{stem}.png", depth_mm(sensed))
             insts = []

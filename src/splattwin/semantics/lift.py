@@ -23,7 +23,7 @@ import numpy as np
 from splattwin import io
 from splattwin.errors import InputError
 from splattwin.semantics.fusion import FusionOptions, FusionResult, View, fuse, naive_fusion, splat_normals
-from splattwin.semantics.masks import MaskSet, MaskWarning, _safe_name, load_masks, scene_objects
+from splattwin.semantics.masks import MaskSet, MaskWarning, safe_name, load_masks, scene_objects
 from splattwin.semantics.options import RENDERERS
 from splattwin.semantics.label_render import PointDepth, SplatDepth, colorize, render_label_maps
 
@@ -69,7 +69,7 @@ def _scene_prompts(meta, objs: dict[str, int], where: Path) -> dict[str, int]:
     [1, MAX_LABEL_ID] (a JSON integer: "2" and 2.0 are refused, as everywhere labels are read; the objects may
     come from transforms.json, so `scene_objects` has not read the file)."""
     from splattwin.errors import short_repr
-    from splattwin.semantics.masks import MAX_LABEL_ID, _whole
+    from splattwin.semantics.masks import MAX_LABEL_ID, whole_number
 
     if not isinstance(meta, dict):
         raise InputError(f"scene.json must hold a JSON object, got {type(meta).__name__}", where)
@@ -81,7 +81,7 @@ def _scene_prompts(meta, objs: dict[str, int], where: Path) -> dict[str, int]:
         if not (isinstance(o, dict) and isinstance(o.get("name"), str) and o["name"] in objs and "label" in o):
             continue
         # the project's one integer check (as the masks' index.json labels): "2", 2.0 and True are refused
-        label = _whole(o["label"], where, f"scene.json label of object {short_repr(o['name'])}", 1, MAX_LABEL_ID)
+        label = whole_number(o["label"], where, f"scene.json label of object {short_repr(o['name'])}", 1, MAX_LABEL_ID)
         labels[str(o.get("prompt", o["name"])).lower()] = label
     return labels
 
@@ -211,8 +211,8 @@ def fuse_to_dir(splats: "str | Path | Gaussians", dataset: "str | Path | Dataset
     for k in res.label_ids:
         sel = labels == k
         if sel.any():
-            written.add(f"{_safe_name(res.names[k])}.ply")
-            with io.atomic_path(out_dir / "objects" / f"{_safe_name(res.names[k])}.ply") as tmp:
+            written.add(f"{safe_name(res.names[k])}.ply")
+            with io.atomic_path(out_dir / "objects" / f"{safe_name(res.names[k])}.ply") as tmp:
                 g.subset(sel).save_ply(tmp)
     io.remove_stale(out_dir / "objects", written, suffix=".ply")   # objects of an earlier fusion that are gone
     summary = {"depth_renderer": getattr(depth, "name", "custom"), "n_views_fused": len(views)}
@@ -332,9 +332,9 @@ def write_label_maps(g, labels: np.ndarray, frames: Sequence, names: dict[int, s
         io.write_image(out_dir / "label_maps" / f"{f.name}.png", colorize(lab, names, img))
         io.write_image(out_dir / "label_maps" / "raw" / f"{f.name}.png", lab.astype(np.uint8))
         if f.label_path is not None and Path(f.label_path).is_file():
-            from splattwin.semantics.masks import _read_image
+            from splattwin.semantics.masks import read_mask_image
 
-            gt = _read_image(Path(f.label_path))
+            gt = read_mask_image(Path(f.label_path))
             if gt.ndim == 2 and gt.shape == lab.shape:
                 scores.setdefault(f.split, []).append((lab, gt))
     out: dict = {"label_map_renderer": renderer}

@@ -291,7 +291,7 @@ def load_maskset_dir(path: Path, image_sizes: dict | None = None) -> MaskSet:
         by_name = {}
         for o in index["objects"]:
             name = object_name(o["name"], index_path)
-            label = _whole(o["label"], index_path, f"label of object {name!r}", 1, MAX_LABEL_ID)
+            label = whole_number(o["label"], index_path, f"label of object {name!r}", 1, MAX_LABEL_ID)
             if label in ms.objects:
                 raise InputError(f"object {name!r}: label {label} is used twice", index_path)
             ms.objects[label] = name
@@ -383,7 +383,7 @@ def load_label_images(path: Path, objects: dict[str, int] | None = None, image_s
         _check_names(ms, path)
     for p in files:
         view = view_name(p.stem, p)
-        img = _read_image(_inside(path, p, "label image"))
+        img = read_mask_image(_inside(path, p, "label image"))
         if img.ndim != 2:
             raise InputError(f"label image must be single-channel, got shape {img.shape}", p)
         if img.dtype.kind not in "biu":
@@ -424,7 +424,7 @@ def load_coco(path: Path, objects: dict[str, int] | None = None, image_sizes: di
             raise InputError(f"categories must be a list of at most {MAX_CATEGORIES} entries", path)
         cat_name, cat_text = {}, {}
         for c in cats:
-            cid = _whole(c["id"], path, "category id", 0, MAX_ID)
+            cid = whole_number(c["id"], path, "category id", 0, MAX_ID)
             if cid in cat_name:
                 raise InputError(f"category id {cid} appears twice", path)
             cat_name[cid] = name_from_label(c["name"], path, f"category {cid} name")
@@ -432,7 +432,7 @@ def load_coco(path: Path, objects: dict[str, int] | None = None, image_sizes: di
         check_unique(cat_name.values(), path, "category name")
         images = {}
         for im in data["images"]:
-            iid = _whole(im["id"], path, "image id", 0, MAX_ID)
+            iid = whole_number(im["id"], path, "image id", 0, MAX_ID)
             if iid in images:
                 raise InputError(f"image id {iid} appears twice", path)
             file_name = im["file_name"]
@@ -461,12 +461,12 @@ def load_coco(path: Path, objects: dict[str, int] | None = None, image_sizes: di
                 if cat_text.get(name) and cat_text[name] != name:
                     ms.prompts[label] = cat_text[name]
         for i, ann in enumerate(data["annotations"]):
-            iid = _whole(ann["image_id"], path, f"annotation {i} image_id", 0, MAX_ID)
+            iid = whole_number(ann["image_id"], path, f"annotation {i} image_id", 0, MAX_ID)
             im = images.get(iid)
             if im is None:
                 raise InputError(f"annotation {i} refers to unknown image_id {iid}", path)
             view, H, W, file_name = im
-            cid = _whole(ann["category_id"], path, f"annotation {i} category_id", 0, MAX_ID)
+            cid = whole_number(ann["category_id"], path, f"annotation {i} category_id", 0, MAX_ID)
             if cid not in cat_name:
                 raise InputError(f"annotation {i} refers to unknown category_id {cid}", path)
             score = _score(ann.get("score", 1.0), path, f"annotation {i} score")
@@ -759,7 +759,7 @@ def save_polygon_dir(ms: MaskSet, out_dir: str | Path) -> Path:
         for label, m in ms.masks.get(view, {}).items():
             contours, _ = cv2.findContours(m.astype(np.uint8) * 255, cv2.RETR_TREE, cv2.CHAIN_APPROX_SIMPLE)
             polys = [c.reshape(-1, 2).tolist() for c in contours if len(c)]
-            folder = child(out_dir, _safe_name(object_name(ms.objects[label])))
+            folder = child(out_dir, safe_name(object_name(ms.objects[label])))
             io.write_json(child(folder, f"{view_name(view)}_mask.json"),
                           {"image_filename": f"{view}.png", "image_height": H, "image_width": W,
                            "input_points": [], "input_labels": [], "segmentation_polygons": polys,
@@ -814,9 +814,9 @@ def scene_objects(scene_dir: str | Path) -> dict[str, int]:
     where = Path(scene_dir) / "scene.json"
     meta = io.read_json(where)
     try:
-        # labels held to `_whole` as `lift._scene_prompts` holds them: the two readers of scene.json agree
+        # labels held to `whole_number` as `lift._scene_prompts` holds them: the two readers of scene.json agree
         out = {object_name(o["name"], where): label for o in meta["objects"]
-               if (label := _whole(o["label"], where, f"scene.json label of object {short_repr(o['name'])}",
+               if (label := whole_number(o["label"], where, f"scene.json label of object {short_repr(o['name'])}",
                                    0, MAX_LABEL_ID)) > 0 and o["name"] != "table"}
     except (KeyError, TypeError, ValueError, AttributeError) as e:
         raise InputError(f"malformed scene.json objects: {e}", where) from e
@@ -826,12 +826,14 @@ def scene_objects(scene_dir: str | Path) -> dict[str, int]:
 
 # -- helpers ----------------------------------------------------------------------------------
 
-def _safe_name(name: str) -> str:
+def safe_name(name: str) -> str:
+    """`name` as a file-name stem: runs of characters other than letters, digits, _ . - become one _;
+    "object" when nothing is left."""
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_") or "object"
 
 
 
-def _whole(v, where, what: str, lo: int, hi: int) -> int:
+def whole_number(v, where, what: str, lo: int, hi: int) -> int:
     """`v` if it is a JSON integer (not a bool, 1.7 or 1e400) in [lo, hi], else InputError."""
     if isinstance(v, bool) or not isinstance(v, int):
         raise InputError(f"{what} must be a whole number, got {short_repr(v)}", where)
@@ -863,13 +865,13 @@ def _inside(root: Path, f: Path, what: str = "mask file") -> Path:
     return confined(root, f.relative_to(root).as_posix(), f, what)
 
 
-def _read_image(path: Path) -> np.ndarray:
+def read_mask_image(path: Path) -> np.ndarray:
     """Decoded mask / label image; its header size is checked first (`splattwin.limits`)."""
     return read_image_array(path, what="mask image")
 
 
 def _read_binary_png(path: Path) -> np.ndarray:
-    img = _read_image(path)
+    img = read_mask_image(path)
     if img.ndim == 3:  # RGB(A) mask: any non-zero colour channel is inside
         img = img[..., :3].max(axis=2)
     return img > 0
