@@ -203,3 +203,27 @@ def test_transfer_without_in_hand_sensing(gt_twin_default: Path):
     ex = Executor(w, belief=nominal, seed=0, in_hand="planned")
     r = ex.run_step(1, task.steps[0])
     assert r.success and r.robot_collisions == 0 and r.object_collisions == 0, r.failure
+
+
+@pytest.mark.slow
+def test_a_failed_placement_reports_its_cause(gt_twin_default: Path, monkeypatch):
+    """The step's failure is the judge's words for what went wrong, not a generic "not placed": here the
+    judge is made to see the placed object tipped over; the step records the object's final tilt too."""
+    from splattwin.robot import judge
+
+    w = build_world(gt_twin_default, visual=False)
+    ex = Executor(w, seed=0)
+    step = load_task(None, w.manifest).steps[0]
+    real = judge.judge_place
+
+    def tipped(world, step_, obj):
+        v = real(world, step_, obj)
+        return judge.Placement(placed=False, at_rest=False, speed=v.speed, tilt=1.2,
+                               why=judge.place_failure(obj, step_, False, False, v.speed, 1.2, "not on 'x'"))
+
+    monkeypatch.setattr(judge, "judge_place", tipped)
+    r = ex.run_step(1, step)
+    assert not r.success and r.grasped
+    assert r.failure.startswith(f"{step.pick!r} tipped over: it ended tilted 69 deg"), r.failure
+    assert f"uneven top of {step.place_on!r}" in r.failure
+    assert 0.0 <= r.final_tilt_deg < 10.0   # in physics it did land upright

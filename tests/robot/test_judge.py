@@ -87,3 +87,28 @@ def test_judge_place_and_held_on_a_simulated_world(gt_twin_small: Path):
     assert inside.placed and inside.at_rest and inside.speed < 0.01
     outside = settle(make_pose(rot_z(0.0), [reg.center[0] + reg.size[0], reg.center[1], table + ext[2] / 2 + 0.002]))
     assert not outside.placed and outside.at_rest
+
+
+def test_a_failed_placement_says_what_went_wrong():
+    """The step's failure names the cause (it said only "not placed inside the goal region at rest"): tipped
+    over with its tilt, still moving, beyond the support's top face or off a region, with distances."""
+    sup, ext = np.array([0.2, 0.1, 0.1]), np.array([0.06, 0.06, 0.05])
+    T_sup = pose_xyz_yaw(0.3, 0.0, 0.05, 0.5)
+    on_step = Step(pick="cube", place_on="box")
+    beyond = T_sup @ pose_xyz_yaw(0.13, 0.0, 0.075, 0.0)            # 3 cm beyond the long edge's end
+    assert judge.miss_on(beyond, ext, T_sup, sup, "box") == "not on 'box': its centre lies 3.0 cm beyond 'box''s top face"
+    beside = pose_xyz_yaw(0.3, 0.0, 0.025, 0.0)                      # on the table under it: 10 cm low
+    assert "10.0 cm below the height of resting on it" in judge.miss_on(beside, ext, T_sup, sup, "box")
+    tipped = _tilted(beyond, math.radians(72))
+    why = judge.place_failure("cube", on_step, False, False, 0.0, judge.tilt_of(tipped),
+                              judge.miss_on(tipped, ext, T_sup, sup, "box"))
+    assert why.startswith("'cube' tipped over: it ended tilted 72 deg (upright means within 10 deg); not on 'box'")
+    assert "uneven top of 'box'" in why
+    assert judge.place_failure("cube", on_step, True, False, 0.05, 0.0, "") == "'cube' was still moving at 5.0 cm/s"
+    assert judge.place_failure("cube", on_step, True, True, 0.0, 0.0, "") == ""
+    reg = Region(center=np.array([0.0, 0.2, 0.0]), size=np.array([0.2, 0.2]), name="goal")
+    ext2 = np.array([0.10, 0.04, 0.03])
+    miss = judge.miss_in(pose_xyz_yaw(0.06, 0.2, 0.045, 0.0), ext2, reg, 0.0)
+    assert miss == "not inside the region 'goal': 2 of its 4 footprint corners lie outside, it rests 3.0 cm above the table"
+    why = judge.place_failure("bar", Step(pick="bar", place_in=reg), False, True, 0.0, 0.0, miss)
+    assert why == "'bar' " + miss and "uneven" not in why

@@ -32,6 +32,7 @@ from __future__ import annotations
 import contextlib
 import itertools
 import logging
+import math
 import time
 from dataclasses import asdict, dataclass, field
 from typing import Callable
@@ -86,6 +87,7 @@ class StepResult:
     grasp: GraspReport = field(default_factory=GraspReport)
     failure: str | None = None
     final_xyz: list = field(default_factory=list)
+    final_tilt_deg: float = 0.0   # the picked object's tilt from upright at the end of the step
 
 
 @dataclass
@@ -351,6 +353,7 @@ class Executor:
         obj = step.pick
         res = StepResult(index=k, pick=obj, goal=step.goal_name)
         n_plan = len(self.plan_ms)
+        verdict = None
         mon = MonitorState(target=w.object_body(obj))
         open_c, closed_c = self.robot.gripper_open, self.robot.gripper_closed
         self.recorder.step = k
@@ -386,11 +389,12 @@ class Executor:
         c = judge.collisions(mon, w.body_name)
         res.robot_collisions, res.object_collisions, res.collision_pairs = c.robot, c.object, c.pairs
         res.final_xyz = w.object_pose(obj)[:3, 3].round(4).tolist()
+        res.final_tilt_deg = round(math.degrees(judge.tilt_of(w.object_pose(obj))), 2)
         res.success = bool(res.failure is None and res.grasped and res.placed and res.at_rest
                            and res.robot_collisions == 0 and res.object_collisions == 0)
         if res.failure is None and not res.success:
             res.failure = ("collision: " + "; ".join(res.collision_pairs)) if res.collision_pairs else \
-                "not placed inside the goal region at rest"
+                (verdict.why if verdict is not None and verdict.why else "not placed inside the goal region at rest")
         return res
 
     # ---- whole task -----------------------------------------------------------------------------------

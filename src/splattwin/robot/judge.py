@@ -29,6 +29,7 @@ class Placement:
     at_rest: bool
     speed: float
     tilt: float
+    why: str = ""   # what is wrong, in words ("" when placed and at rest)
 
 
 def tilt_of(T_world_obj: np.ndarray) -> float:
@@ -78,11 +79,67 @@ def judge_place(world, step: Step, obj: str) -> Placement:
     ext = np.asarray(world.manifest.object(obj).bbox_extent, float)
     speed = world.object_speed(obj)
     if step.place_on is not None:
-        placed = placed_on(T, ext, world.object_pose(step.place_on),
-                           np.asarray(world.manifest.object(step.place_on).bbox_extent, float))
+        T_sup = world.object_pose(step.place_on)
+        sup = np.asarray(world.manifest.object(step.place_on).bbox_extent, float)
+        placed = placed_on(T, ext, T_sup, sup)
+        miss = "" if placed else miss_on(T, ext, T_sup, sup, step.place_on)
     else:
-        placed = placed_in(T, ext, step.place_in, world.manifest.background.table_height)
-    return Placement(placed=placed, at_rest=at_rest(speed, T), speed=speed, tilt=tilt_of(T))
+        h = world.manifest.background.table_height
+        placed = placed_in(T, ext, step.place_in, h)
+        miss = "" if placed else miss_in(T, ext, step.place_in, h)
+    rest = at_rest(speed, T)
+    return Placement(placed=placed, at_rest=rest, speed=speed, tilt=tilt_of(T),
+                     why=place_failure(obj, step, placed, rest, speed, tilt_of(T), miss))
+
+
+def miss_on(T_world_obj: np.ndarray, extent: np.ndarray, T_world_support: np.ndarray, support_extent: np.ndarray,
+            support: str) -> str:
+    """Why `placed_on` is False, in words: how far the object's centre lies beyond the support's top face
+    and how far it is from the height of resting on it (cm)."""
+    ext, sup = np.asarray(extent, float), np.asarray(support_extent, float)
+    p = np.linalg.inv(T_world_support) @ np.append(np.asarray(T_world_obj)[:3, 3], 1.0)
+    beyond = float(np.max(np.maximum(np.abs(p[:2]) - sup[:2] / 2, 0.0)))
+    dz = float(p[2] - (sup[2] / 2 + ext[2] / 2))
+    parts = []
+    if beyond > 0:
+        parts.append(f"its centre lies {beyond * 100:.1f} cm beyond {support!r}'s top face")
+    if abs(dz) >= HEIGHT_TOL:
+        parts.append(f"{abs(dz) * 100:.1f} cm {'above' if dz > 0 else 'below'} the height of resting on it")
+    return f"not on {support!r}: " + (", ".join(parts) or "off its top")
+
+
+def miss_in(T_world_obj: np.ndarray, extent: np.ndarray, region: Region, table_height: float) -> str:
+    """Why `placed_in` is False, in words: footprint corners outside the region, height off the table (cm)."""
+    T, ext = np.asarray(T_world_obj), np.asarray(extent, float)
+    corners = np.array([[sx * ext[0] / 2, sy * ext[1] / 2, 0, 1] for sx in (-1, 1) for sy in (-1, 1)])
+    out = sum(not region.contains_xy(c) for c in (T @ corners.T).T[:, :2])
+    dz = float(T[2, 3] - ext[2] / 2 - table_height)
+    parts = []
+    if out:
+        parts.append(f"{out} of its 4 footprint corners lie outside")
+    if abs(dz) >= HEIGHT_TOL:
+        parts.append(f"it rests {abs(dz) * 100:.1f} cm {'above' if dz > 0 else 'below'} the table")
+    return f"not inside the region {region.name!r}: " + (", ".join(parts) or "outside it")
+
+
+def place_failure(obj: str, step: Step, placed: bool, rest: bool, speed: float, tilt: float, miss: str) -> str:
+    """A failed placement in words ("" when placed and at rest): tipped over, still moving, or where it
+    missed the goal. A tipped object on another object gets the usual cause in a twin: an uneven top."""
+    if placed and rest:
+        return ""
+    parts = []
+    if tilt >= TILT_MAX:
+        parts.append(f"{obj!r} tipped over: it ended tilted {math.degrees(tilt):.0f} deg "
+                     f"(upright means within {math.degrees(TILT_MAX):.0f} deg)")
+    elif speed >= REST_SPEED:
+        parts.append(f"{obj!r} was still moving at {speed * 100:.1f} cm/s")
+    if not placed:
+        parts.append(miss if parts else f"{obj!r} {miss}")
+    text = "; ".join(parts)
+    if tilt >= TILT_MAX and step.place_on is not None:
+        text += (f" (an uneven top of {step.place_on!r} in the twin, e.g. after a short training, tips what is "
+                 "released on it: see its collision mesh in the report)")
+    return text
 
 
 @dataclass(frozen=True)
