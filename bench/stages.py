@@ -320,6 +320,10 @@ def main(argv: list[str] | None = None) -> int:
     sections = [s.strip() for s in args.sections.split(",") if s.strip()]
     if any(s not in SECTIONS for s in sections):
         ap.error(f"--sections: choose from {', '.join(SECTIONS)}")
+    from real import DATA
+
+    if not (DATA / "cake" / "images").is_dir():
+        sys.exit(f"the real cake photos are not at {DATA / 'cake' / 'images'} (set SPLATTWIN_REAL_DATA)")
     load0 = os.getloadavg()[0]
     all_rows: list[tuple[str, str]] = []
     keys: dict = {}
