@@ -1,6 +1,6 @@
 """Benchmark: where a real-photo build spends its time outside the rasterizer, and the DBSCAN of the twin stage.
 
-    python bench/stages.py                          # both sections, cake, 300 steps, half resolution
+    python bench/stages.py                          # all three sections, cake, 300 steps, half resolution
     python bench/stages.py --sections dbscan --repeats 7
     python bench/stages.py --sections profile --iters 1000 --keep /tmp/cake_twin
 
@@ -30,7 +30,11 @@ The machine may be shared: the load average is printed at the start and end. Las
 
 from __future__ import annotations
 
-import argparse
+import splattwin.runtime
+
+splattwin.runtime.configure()  # before torch/numba load (the steps section trains here), as the CLI
+
+import argparse  # noqa: E402
 import json
 import os
 import pstats
