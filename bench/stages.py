@@ -38,6 +38,7 @@ import argparse  # noqa: E402
 import json
 import os
 import pstats
+import shutil
 import statistics
 import subprocess
 import sys
@@ -46,6 +47,15 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]   # bench/ is on sys.path as the script's folder (real.py)
+
+
+_TEMP: list[Path] = []   # temporary folders of this run, removed when it ends
+
+
+def _tempdir(prefix: str) -> Path:
+    d = Path(tempfile.mkdtemp(prefix=prefix))
+    _TEMP.append(d)
+    return d
 
 
 def _env() -> dict:
@@ -131,7 +141,7 @@ def step_split(stats: pstats.Stats) -> dict | None:
 def section_profile(args) -> tuple[list[tuple[str, str]], dict]:
     from real import cake_masks
 
-    work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench_stages_"))
+    work = Path(args.keep) if args.keep else _tempdir("bench_stages_")
     work.mkdir(parents=True, exist_ok=True)
     masks = cake_masks(work / "masks")
     _build(work / "warmup", masks, 20, None)   # numba kernels compiled and cached on disk
@@ -203,7 +213,7 @@ def section_dbscan(args) -> tuple[list[tuple[str, str]], dict]:
 
     twin = args.twin
     if twin is None:
-        work = Path(tempfile.mkdtemp(prefix="bench_stages_"))
+        work = _tempdir("bench_stages_")
         twin = work / "twin"
         _build(twin, cake_masks(work / "masks"), 300, None)
     g = Gaussians.load_ply(twin / "splat" / "point_cloud.ply")
@@ -212,7 +222,7 @@ def section_dbscan(args) -> tuple[list[tuple[str, str]], dict]:
     o = GeometryOptions()
     voxel = o.dbscan_eps / 4.0 if o.dbscan_voxel is None else o.dbscan_voxel   # GeometryOptions' default
     eps, ms, voxel = o.dbscan_eps * scale, o.dbscan_min_samples, voxel * scale
-    tmp = Path(tempfile.mkdtemp(prefix="bench_dbscan_"))
+    tmp = _tempdir("bench_dbscan_")
     cases = {"all Gaussians": g.means, "the cake's": g.means[labels == 1]}
     rows: list[tuple[str, str]] = []
     keys: dict = {}
@@ -256,7 +266,7 @@ def section_steps(args) -> tuple[list[tuple[str, str]], dict]:
 
     twin = args.twin
     if twin is None:
-        work = Path(tempfile.mkdtemp(prefix="bench_stages_"))
+        work = _tempdir("bench_stages_")
         twin = work / "twin"
         _build(twin, cake_masks(work / "masks"), 20, None)
     spent = {"kernels": 0.0, "adam": 0.0, "densify": 0.0}
@@ -281,7 +291,7 @@ def section_steps(args) -> tuple[list[tuple[str, str]], dict]:
             setattr(kernels, n, timed(saved[n]))
         losses._NUMBA = tuple(timed(f) for f in saved_ssim)
         cfg = TrainConfig(iters=max(args.steps, 30), resolution=2, checkpoint_every=0, progress=False)
-        tr = Trainer(twin / "poses" / "transforms.json", Path(tempfile.mkdtemp(prefix="bench_steps_")), cfg)
+        tr = Trainer(twin / "poses" / "transforms.json", _tempdir("bench_steps_"), cfg)
         tr._fresh_state()
         tr.model.step = timed(tr.model.step, "adam")   # the six Adam optimizers (instance attributes)
         for hook in ("step_pre_backward", "step_post_backward"):
@@ -331,10 +341,14 @@ def main(argv: list[str] | None = None) -> int:
     load0 = os.getloadavg()[0]
     all_rows: list[tuple[str, str]] = []
     keys: dict = {}
-    for s in sections:
-        rows, k = SECTIONS[s](args)
-        all_rows += rows
-        keys.update(k)
+    try:
+        for s in sections:
+            rows, k = SECTIONS[s](args)
+            all_rows += rows
+            keys.update(k)
+    finally:
+        for d in _TEMP:
+            shutil.rmtree(d, ignore_errors=True)
     load1 = os.getloadavg()[0]
     keys.update(load_start=round(load0, 2), load_end=round(load1, 2))
     w = max(len(r[0]) for r in all_rows)
