@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from splattwin.geometry.clustering import dbscan, dbscan_labels, fit_plane, largest_cluster, split_background
+from splattwin.geometry.clustering import dbscan_labels, fit_plane, largest_cluster, split_background
 
 
 def _blob(rng, c, n, s=0.005):
@@ -28,46 +28,6 @@ def test_voxel_dbscan_matches_exact_partition():
     for blob in (slice(0, 2000), slice(2000, 3500)):
         assert len(set(a[blob][a[blob] >= 0])) == 1 and len(set(b[blob][b[blob] >= 0])) == 1
     assert a[0] != a[2000] and b[0] != b[2000]
-
-
-def test_dbscan_gives_scikit_learns_labels_numbering_included():
-    # the SciPy DBSCAN must label exactly as sklearn.cluster.DBSCAN (which it replaced): cluster ids in
-    # the order sklearn's expansion numbers them, border points shared by two clusters in the lower one
-    from sklearn.cluster import DBSCAN
-
-    rng = np.random.default_rng(5)
-    for trial in range(120):
-        n = int(rng.integers(1, 300))
-        k = int(rng.integers(1, 6))
-        x = rng.uniform(-1, 1, (k, 3))[rng.integers(0, k, n)] + rng.normal(0, rng.uniform(0.02, 0.3), (n, 3))
-        eps, ms = float(rng.uniform(0.05, 0.4)), int(rng.integers(1, 12))
-        w = rng.integers(1, 5, n) if trial % 2 else None
-        want = DBSCAN(eps=eps, min_samples=ms).fit(x, sample_weight=w).labels_
-        got = dbscan(x, eps, ms, sample_weight=w)
-        assert got.dtype == np.int64 and np.array_equal(got, want), (trial, eps, ms)
-    # exact ties (distance == eps counts as a neighbour) and a border point between two clusters
-    line = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0], [4, 0, 0], [5, 0, 0], [6, 0, 0]], float)
-    chain = np.concatenate([line, line[[0, 1]] + [[0, 1, 0]], line[[5, 6]] + [[0, 1, 0]]])
-    for ms in (1, 2, 3, 4):
-        assert np.array_equal(dbscan(chain, 1.0, ms), DBSCAN(eps=1.0, min_samples=ms).fit(chain).labels_), ms
-    # two clusters of 5 and, 0.8 from each, a point with 3 neighbours (itself included): a border point of both
-    xs = [2.0, 1.95, 1.9, 1.85, 1.8, 1.0, 0.2, 0.15, 0.1, 0.05, 0.0]
-    border = np.array([[v, 0.0, 0.0] for v in xs])
-    lab = dbscan(border, 0.82, 4)
-    assert np.array_equal(lab, DBSCAN(eps=0.82, min_samples=4).fit(border).labels_)
-    assert lab.tolist() == [0] * 6 + [1] * 5    # the border point in the cluster numbered first
-
-
-def test_dbscan_labels_does_not_import_scikit_learn():
-    # importing sklearn.cluster cost 0.6-1.9 s of every build, more than the clustering
-    import subprocess
-    import sys
-
-    code = ("import sys, numpy as np; from splattwin.geometry.clustering import dbscan_labels; "
-            "dbscan_labels(np.random.default_rng(0).normal(0, 0.01, (500, 3)), 0.02, 10, 0.005); "
-            "print('sklearn' in sys.modules)")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "False"
 
 
 def test_all_noise_gives_empty_mask():

@@ -1,15 +1,10 @@
 """Stage 2: connectivity pruning (paper section 3.3.2) and the table plane of the background.
 
-DBSCAN (`dbscan`) gives scikit-learn's `DBSCAN(eps, min_samples).fit(X, sample_weight).labels_`, label
-for label, from SciPy: the pairs within eps (cKDTree), core points by weighted neighbour count, clusters as
-connected components of the core points numbered by their lowest index, a border point in the
-lowest-numbered cluster next to it; that is what scikit-learn's depth-first expansion in index order
-yields. Why not scikit-learn itself: importing sklearn.cluster took 0.6-1.9 s of every build (it was
-imported for this alone), more than the clustering (bench/stages.py). For speed the points are first
-averaged per voxel (default eps / 4) and the voxel centroids are clustered with `sample_weight` = points
-per voxel, so `min_samples` keeps its meaning (points within about eps: centroids move by at most a voxel
-diagonal) while the neighbour search handles ~10x fewer samples with ~10x fewer neighbours each; voxel = 0
-runs exact DBSCAN on the points. The table plane is our own seeded RANSAC (`ransac_plane`, numpy) rather than
+DBSCAN is scikit-learn's. For speed the points are first averaged per voxel (default eps / 4) and the
+voxel centroids are clustered with `sample_weight` = points per voxel, so `min_samples` keeps its
+meaning (points within about eps: centroids move by at most a voxel diagonal) while the neighbour
+search handles ~10x fewer samples with ~10x fewer neighbours each; voxel = 0 runs
+exact DBSCAN on the points. The table plane is our own seeded RANSAC (`ransac_plane`, numpy) rather than
 Open3D's `segment_plane`: Open3D's samples hypotheses on several threads from one generator, so even with
 `o3d.utility.random.seed` the same points give different planes from run to run (isl-org/Open3D#7270; seen
 here as two table heights 8 µm apart and a different hammer mesh between a build and its resumed copy),
@@ -35,61 +30,18 @@ def voxel_groups(points: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarr
     return centroids, counts, inverse
 
 
-def dbscan(points: np.ndarray, eps: float, min_samples: float, sample_weight: np.ndarray | None = None
-           ) -> np.ndarray:
-    """DBSCAN cluster id [N] int64 (-1 = noise) of points [N,D] (any length unit; eps in it): the labels of
-    scikit-learn's `DBSCAN(eps=eps, min_samples=min_samples).fit(points, sample_weight=...)`, numbering
-    included (see the module docstring; tests compare the two). A point is core when the weights of the
-    points within eps (distance <= eps, itself included) sum to at least min_samples."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
-    x = np.asarray(points, dtype=np.float64)
-    x = x.reshape(len(x), -1)
-    n = len(x)
-    if n == 0:
-        return np.zeros(0, dtype=np.int64)
-    w = np.ones(n) if sample_weight is None else np.asarray(sample_weight, dtype=np.float64).reshape(n)
-    pairs = cKDTree(x).query_pairs(eps, output_type="ndarray")      # [P,2] i < j, distance <= eps
-    i, j = pairs[:, 0], pairs[:, 1]
-    count = w + np.bincount(i, weights=w[j], minlength=n) + np.bincount(j, weights=w[i], minlength=n)
-    core = count >= min_samples
-    labels = np.full(n, -1, dtype=np.int64)
-    cores = np.flatnonzero(core)
-    if len(cores) == 0:
-        return labels
-    # clusters: connected components of the core points, renumbered in the order of their lowest index
-    # (scikit-learn starts a cluster at each unlabelled core point in index order)
-    cc = core[i] & core[j]
-    pos = np.full(n, -1, dtype=np.int64)
-    pos[cores] = np.arange(len(cores))
-    graph = coo_matrix((np.ones(int(cc.sum()), np.int8), (pos[i[cc]], pos[j[cc]])), shape=(len(cores),) * 2)
-    k, comp = connected_components(graph, directed=False)
-    first = np.full(k, len(cores), dtype=np.int64)
-    np.minimum.at(first, comp, np.arange(len(cores)))                 # cores are in index order
-    rank = np.empty(k, dtype=np.int64)
-    rank[np.argsort(first, kind="stable")] = np.arange(k)
-    labels[cores] = rank[comp]
-    # border points: the lowest-numbered cluster among their core neighbours (the first expansion to reach them)
-    border = np.full(n, np.iinfo(np.int64).max, dtype=np.int64)
-    for a, b in ((i, j), (j, i)):
-        sel = core[a] & ~core[b]
-        np.minimum.at(border, b[sel], labels[a[sel]])
-    reached = ~core & (border < np.iinfo(np.int64).max)
-    labels[reached] = border[reached]
-    return labels
-
-
 def dbscan_labels(points: np.ndarray, eps: float, min_samples: int, voxel: float = 0.0) -> np.ndarray:
     """DBSCAN cluster id per point [N] (int, -1 = noise). voxel > 0: weighted DBSCAN on voxel centroids."""
+    from sklearn.cluster import DBSCAN
+
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(points) == 0:
         return np.zeros(0, dtype=np.int64)
     if voxel and voxel > 0:
         centroids, counts, inverse = voxel_groups(points, voxel)
-        return dbscan(centroids, eps, min_samples, sample_weight=counts)[inverse]
-    return dbscan(points, eps, min_samples)
+        lab = DBSCAN(eps=eps, min_samples=min_samples, n_jobs=-1).fit(centroids, sample_weight=counts).labels_
+        return lab[inverse]
+    return DBSCAN(eps=eps, min_samples=min_samples, n_jobs=-1).fit(points).labels_
 
 
 def largest_cluster(points: np.ndarray, eps: float = 0.02, min_samples: int = 10, voxel: float = 0.0) -> np.ndarray:
