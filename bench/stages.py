@@ -1,7 +1,6 @@
-"""Benchmark: where a real-photo build spends its time outside the rasterizer, and the DBSCAN of the twin stage.
+"""Benchmark: where a real-photo build spends its time, the rasterizer apart.
 
-    python bench/stages.py                          # all three sections, cake, 300 steps, half resolution
-    python bench/stages.py --sections dbscan --repeats 7
+    python bench/stages.py                          # both sections, cake, 300 steps, half resolution
     python bench/stages.py --sections profile --iters 1000 --keep /tmp/cake_twin
 
 Sections (each returns table rows and JSON keys):
@@ -13,18 +12,12 @@ Sections (each returns table rows and JSON keys):
   process (SfM runs there), imports, image encoding/decoding, torch operators, numba compilation, the rest
   (Python). Then the training steps alone: kernels vs everything else per step. cProfile slows
   Python-heavy code (imports, the loop's glue) more than the kernels: the non-kernel shares are upper bounds.
-- dbscan: the twin stage's DBSCAN (`geometry.clustering.dbscan_labels`, the twin stage's eps and voxel) on
-  the cake twin's Gaussians, all of them and the cake's alone (the profile section's build, else --twin,
-  else a fresh 300-step one): the first call in a fresh child process that has already imported what a
-  build has by then (torch, SciPy, trimesh, open3d), scikit-learn's DBSCAN as the twin stage ran it before
-  (its import included) vs the SciPy one now, runs interleaved, medians of --repeats; and whether the two
-  label every point alike.
 - steps: the training steps alone, without a profiler: --steps steps of `Trainer.train_step` on the cake
   twin's poses (half resolution, the build's options), every numba kernel call (rasterizer, SSIM) timed by
   a wrapper (a perf_counter pair, ~1 us); ms per step in the kernels and in the rest (torch operators,
   autograd, Adam, densification, Python), Adam's six optimizers and the densification hooks timed alike,
   medians over three blocks of steps (the run's schedule: --steps steps in all).
-Keys: profile_* (seconds and shares), dbscan_old_s / dbscan_new_s / dbscan_labels_equal, steps_*.
+Keys: profile_* (seconds and shares), steps_*.
 The machine may be shared: the load average is printed at the start and end. Last line: one JSON object.
 """
 
@@ -39,7 +32,6 @@ import json
 import os
 import pstats
 import shutil
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -182,76 +174,6 @@ def section_profile(args) -> tuple[list[tuple[str, str]], dict]:
     return rows, keys
 
 
-_CHILD = r"""
-import sys, time, json
-import numpy as np
-import torch, scipy.spatial, scipy.ndimage, trimesh, open3d   # imported by a build before its twin stage
-pts = np.load(sys.argv[2])
-eps, ms, voxel = float(sys.argv[3]), int(sys.argv[4]), float(sys.argv[5])
-t0 = time.perf_counter()
-if sys.argv[1] == "old":
-    from sklearn.cluster import DBSCAN   # the twin stage's code before: scikit-learn, imported on first use
-    from splattwin.geometry.clustering import voxel_groups
-    c, counts, inv = voxel_groups(pts, voxel)
-    lab = DBSCAN(eps=eps, min_samples=ms, n_jobs=-1).fit(c, sample_weight=counts).labels_[inv]
-else:
-    from splattwin.geometry.clustering import dbscan_labels
-    lab = dbscan_labels(pts, eps, ms, voxel)
-dt = time.perf_counter() - t0
-np.save(sys.argv[6], lab)
-print(json.dumps({"s": dt}))
-"""
-
-
-def section_dbscan(args) -> tuple[list[tuple[str, str]], dict]:
-    import numpy as np
-
-    from real import cake_masks
-    from splattwin.geometry.options import GeometryOptions
-    from splattwin.splat.gaussians import Gaussians
-    from splattwin.twin.manifest import Manifest
-
-    twin = args.twin
-    if twin is None:
-        work = _tempdir("bench_stages_")
-        twin = work / "twin"
-        _build(twin, cake_masks(work / "masks"), 300, None)
-    g = Gaussians.load_ply(twin / "splat" / "point_cloud.ply")
-    labels = np.load(twin / "semantics" / "labels.npy")
-    scale = Manifest.load(twin).frame.length_scale()   # unscaled twin: lengths in SfM units
-    o = GeometryOptions()
-    voxel = o.dbscan_eps / 4.0 if o.dbscan_voxel is None else o.dbscan_voxel   # GeometryOptions' default
-    eps, ms, voxel = o.dbscan_eps * scale, o.dbscan_min_samples, voxel * scale
-    tmp = _tempdir("bench_dbscan_")
-    cases = {"all Gaussians": g.means, "the cake's": g.means[labels == 1]}
-    rows: list[tuple[str, str]] = []
-    keys: dict = {}
-    equal = True
-    for name, pts in cases.items():
-        np.save(tmp / "pts.npy", np.asarray(pts, np.float64))
-        times: dict[str, list[float]] = {"old": [], "new": []}
-        labs = {}
-        for _ in range(args.repeats):
-            for arm in ("old", "new"):   # interleaved
-                out = tmp / f"{arm}.npy"
-                r = subprocess.run([sys.executable, "-c", _CHILD, arm, str(tmp / "pts.npy"), str(eps), str(ms),
-                                    str(voxel), str(out)], env=_env(), capture_output=True, text=True)
-                if r.returncode != 0:
-                    sys.exit(f"dbscan child failed: {r.stderr.strip()[-400:]}")
-                times[arm].append(json.loads(r.stdout.strip().splitlines()[-1])["s"])
-                labs[arm] = np.load(out)
-        same = bool(np.array_equal(labs["old"], labs["new"]))
-        equal &= same
-        old, new = statistics.median(times["old"]), statistics.median(times["new"])
-        rows.append((f"DBSCAN of {name} ({len(pts)} points, eps {eps:.4g}, voxel {voxel:.4g})",
-                     f"sklearn {old:.3f} s (import included) vs SciPy {new:.3f} s, median of {args.repeats}; "
-                     f"labels {'identical' if same else 'DIFFER'}"))
-        if name == "all Gaussians":
-            keys.update(dbscan_old_s=round(old, 4), dbscan_new_s=round(new, 4))
-    keys["dbscan_labels_equal"] = equal
-    return rows, keys
-
-
 def section_steps(args) -> tuple[list[tuple[str, str]], dict]:
     import functools
 
@@ -319,17 +241,16 @@ def section_steps(args) -> tuple[list[tuple[str, str]], dict]:
                   "steps_densify_ms": round(1000 * dens, 2)}
 
 
-SECTIONS = {"profile": section_profile, "dbscan": section_dbscan, "steps": section_steps}
+SECTIONS = {"profile": section_profile, "steps": section_steps}
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--sections", default="profile,dbscan,steps", help=f"comma list of {', '.join(SECTIONS)}")
+    ap.add_argument("--sections", default="profile,steps", help=f"comma list of {', '.join(SECTIONS)}")
     ap.add_argument("--iters", type=int, default=300, help="profile: training steps of the cake build")
-    ap.add_argument("--repeats", type=int, default=5, help="dbscan: runs per arm (median reported)")
     ap.add_argument("--steps", type=int, default=150, help="steps: training steps timed (three blocks)")
     ap.add_argument("--keep", help="profile: build into this folder (kept) instead of a temporary one")
-    ap.add_argument("--twin", type=Path, help="dbscan, steps without profile: a built cake twin to use")
+    ap.add_argument("--twin", type=Path, help="steps without profile: a built cake twin to use")
     args = ap.parse_args(argv)
     sections = [s.strip() for s in args.sections.split(",") if s.strip()]
     if any(s not in SECTIONS for s in sections):
