@@ -15,7 +15,26 @@ no camera saw keeps the ellipsoids' envelope. The object is rendered without the
 occluders (the robot, another object) carve nothing. The rendered surface is the splats', not the
 photos': this makes the mesh agree with what the twin renders, it does not second-guess training.
 
-Frames: points and cameras in the twin frame; depth is camera z (the frame's units).
+A capture with measured depth (RGB-D: a robot's D435 sweep) gives a second, independent observation
+of free space: a sample that a camera's *sensor* sees clearly in front of the measured surface is not
+part of the object either (`sensor_views`, `free_space_mask` with a depth-dependent tolerance and a
+vote). This corrects what the splats' own rendering cannot: at short training the splats over a box top
+are scattered a centimetre up and down, their rendered surface is itself a dome, and carving against it
+leaves the mesh top 5-12 mm high (docs/BENCHMARKS.md, robot-style capture). The sensor is only trusted
+where it looks at the object: inside the object's own visible 2D mask, eroded by `erode_px` pixels
+(depth bleeding and colour/depth misregistration at silhouettes read the background there), where the
+reading is valid (finite, > 0) and after a small median filter over those pixels (a D4xx reading's
+noise is nearly white from pixel to pixel). An occluder in front of the object is outside the object's
+visible mask, and would in any case read nearer than the object, so it carves nothing.
+
+Noise model of the tolerance: a stereo camera's axial error grows with the square of the depth
+(sigma_z = z^2 * sigma_disparity / (f * baseline); Intel quotes < 2 % at 2 m for a D435, i.e. about
+1 cm RMS at 1 m), so a sample at depth z is free space only when it lies more than
+`tol + noise_1m * z^2` in front of the measured (filtered) depth, in at least `min_share` of the views
+that see it on or in front of the measured surface (views that see it behind the surface say nothing).
+
+Frames: points and cameras in the twin frame; depth is camera z (the frame's units; metres for measured
+depth, which is only used in a metric twin).
 """
 
 from __future__ import annotations
@@ -39,8 +58,7 @@ def depth_views(gaussians: "Gaussians", cameras: list["Camera"], max_views: int 
     not the photo's detail)."""
     from splattwin.splat.rendering import render_depth
 
-    if len(cameras) > max_views:
-        cameras = [cameras[i] for i in np.unique(np.linspace(0, len(cameras) - 1, max(max_views, 1)).round().astype(int))]
+    cameras = [cameras[i] for i in pick_views(len(cameras), max_views)]
     out = []
     for cam in cameras:
         cam = dataclasses.replace(cam, dist=None)
@@ -50,18 +68,93 @@ def depth_views(gaussians: "Gaussians", cameras: list["Camera"], max_views: int 
     return out
 
 
-def free_space_mask(points: np.ndarray, views: list[tuple["Camera", np.ndarray]], tol: float) -> np.ndarray:
-    """[M] bool: True for the points [M,3] that some view sees as empty, i.e. that project inside its
-    image, in front of the camera, onto a pixel with a finite depth d, at a depth below d - tol."""
+def free_space_mask(points: np.ndarray, views: list[tuple["Camera", np.ndarray]], tol: float,
+                    noise_1m: float = 0.0, min_share: float = 0.0) -> np.ndarray:
+    """[M] bool: True for the points [M,3] that the views see as empty. A view sees a point as empty when
+    the point projects inside its image, in front of the camera, onto a pixel with a finite depth d, at a
+    depth below d - (tol + noise_1m * d^2) (noise_1m: the depth error at 1 m, growing with d^2; 0: a fixed
+    tol). min_share 0: one such view is enough (rendered depth: no noise); above 0: also at least this
+    share of the views that see the point on or in front of their surface (z < d + tolerance), a vote
+    that keeps a point on the surface where one noisy reading dips below it."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    free = np.zeros(len(points), dtype=bool)
+    n_free = np.zeros(len(points), dtype=np.int32)
+    n_seen = np.zeros(len(points), dtype=np.int32)
     for cam, depth in views:
         uv, z = cam.project(points)
-        idx = np.flatnonzero(cam.in_image(uv) & (z > 0) & ~free)
+        ok = cam.in_image(uv) & (z > 0)
+        if min_share <= 0:
+            ok &= n_free == 0
+        idx = np.flatnonzero(ok)
         if len(idx) == 0:
             continue
         u = np.floor(uv[idx, 0]).astype(np.int64)
         v = np.floor(uv[idx, 1]).astype(np.int64)
-        d = depth[v, u]
-        free[idx[np.isfinite(d) & (z[idx] < d - tol)]] = True
-    return free
+        d = depth[v, u].astype(np.float64)
+        fin = np.isfinite(d)
+        t = tol + noise_1m * np.where(fin, d, 0.0) ** 2
+        n_free[idx[fin & (z[idx] < d - t)]] += 1
+        n_seen[idx[fin & (z[idx] < d + t)]] += 1
+    if min_share <= 0:
+        return n_free > 0
+    return (n_free > 0) & (n_free >= min_share * n_seen)
+
+
+def sensor_views(depth_m: np.ndarray, mask: np.ndarray, erode_px: int = 2, median_px: int = 5) -> np.ndarray:
+    """[H,W] float32: a measured depth map (m, camera z; 0, negative or non-finite = no reading) kept
+    only where it sees this object: inside its visible mask [H,W] eroded by `erode_px` pixels and with a
+    valid reading; there the median of the valid pixels of that kind in a `median_px` square around it
+    (1: none), inf elsewhere. Why: see the module docstring (edges bleed, readings are noisy)."""
+    from scipy import ndimage
+
+    depth = np.asarray(depth_m, dtype=np.float32)
+    mask = np.asarray(mask, dtype=bool)
+    if depth.shape != mask.shape:
+        raise ValueError(f"depth map {depth.shape} and mask {mask.shape} differ in size")
+    if erode_px > 0:
+        mask = ndimage.binary_erosion(mask, np.ones((3, 3), bool), iterations=int(erode_px), border_value=0)
+    good = mask & np.isfinite(depth) & (depth > 0)
+    out = np.full(depth.shape, np.inf, dtype=np.float32)
+    if not good.any():
+        return out
+    r = max(int(median_px), 1) // 2
+    if r == 0:
+        out[good] = depth[good]
+        return out
+    # only the object's box (plus the window): an object is a small part of a robot's view
+    vs, us = np.nonzero(good)
+    v0, v1, u0, u1 = vs.min(), vs.max() + 1, us.min(), us.max() + 1
+    crop = np.where(good, depth, np.nan)[v0:v1, u0:u1]
+    pad = np.pad(crop, r, constant_values=np.nan)
+    win = np.lib.stride_tricks.sliding_window_view(pad, (2 * r + 1, 2 * r + 1))
+    sel = good[v0:v1, u0:u1]
+    out[v0:v1, u0:u1][sel] = np.nanmedian(win[sel].reshape(int(sel.sum()), -1), axis=1)
+    return out
+
+
+def pick_views(n: int, max_views: int) -> np.ndarray:
+    """Indices of at most `max_views` of n views, spread evenly (a video's hundreds of frames add only time)."""
+    if n <= max_views:
+        return np.arange(n)
+    return np.unique(np.linspace(0, n - 1, max(max_views, 1)).round().astype(int))
+
+
+def measured_views(mask_views: dict, depth_of, has_depth=None, max_views: int = 32, erode_px: int = 2,
+                   median_px: int = 5) -> dict[int, list[tuple["Camera", np.ndarray]]]:
+    """{label: [(camera, sensor depth)]} for carving against measured depth: per object, at most
+    `max_views` of its views with a 2D mask (`completeness.mask_views`: {label: [(camera, mask)]}) whose
+    camera has a depth map, spread evenly, each as `sensor_views` of that map under its mask. depth_of:
+    camera -> [H,W] measured depth (m, z, the camera's size), called once per chosen camera; has_depth:
+    camera -> bool, whether it has one (None: all). Views whose object pixels hold no valid reading are
+    left out."""
+    cache: dict[int, np.ndarray] = {}
+    out: dict[int, list] = {}
+    for label, views in mask_views.items():
+        views = [(cam, mask) for cam, mask in views if has_depth is None or has_depth(cam)]
+        for i in pick_views(len(views), max_views):
+            cam, mask = views[i]
+            if id(cam) not in cache:
+                cache[id(cam)] = depth_of(cam)
+            d = sensor_views(cache[id(cam)], mask, erode_px, median_px)
+            if np.isfinite(d).any():
+                out.setdefault(int(label), []).append((cam, d))
+    return out
