@@ -214,7 +214,7 @@ def test_measured_depth_carves_free_space_inside_the_eroded_mask_only():
     noisy_pt = np.array([[0.0, 0.02, top - 0.0005]])
     pts = np.concatenate([above, on_top, inside, edge, hole_pt, noisy_pt])
 
-    views = measured_views({1: [(cam, visible)]}, lambda c: depth)[1]
+    views = measured_views([(cam, visible)], lambda c: depth)
     free = free_space_mask(pts, views, 0.002, 0.01, 0.5)
     n = len(grid)
     under_occluder = above[:, 0] > 0.025 - 0.01   # the occluded quarter (and its eroded margin, 2 px)

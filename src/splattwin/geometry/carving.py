@@ -138,23 +138,19 @@ def pick_views(n: int, max_views: int) -> np.ndarray:
     return np.unique(np.linspace(0, n - 1, max(max_views, 1)).round().astype(int))
 
 
-def measured_views(mask_views: dict, depth_of, has_depth=None, max_views: int = 32, erode_px: int = 2,
-                   median_px: int = 5) -> dict[int, list[tuple["Camera", np.ndarray]]]:
-    """{label: [(camera, sensor depth)]} for carving against measured depth: per object, at most
-    `max_views` of its views with a 2D mask (`completeness.mask_views`: {label: [(camera, mask)]}) whose
+def measured_views(views: list, depth_of, has_depth=None, max_views: int = 32, erode_px: int = 2,
+                   median_px: int = 5) -> list[tuple["Camera", np.ndarray]]:
+    """[(camera, sensor depth)] of one object for carving against measured depth: at most `max_views` of
+    its views with a 2D mask (views: [(camera, mask)], as `completeness.mask_views` gives per object) whose
     camera has a depth map, spread evenly, each as `sensor_views` of that map under its mask. depth_of:
-    camera -> [H,W] measured depth (m, z, the camera's size), called once per chosen camera; has_depth:
+    camera -> [H,W] measured depth (m, z, the camera's size), called once per chosen view; has_depth:
     camera -> bool, whether it has one (None: all). Views whose object pixels hold no valid reading are
-    left out."""
-    cache: dict[int, np.ndarray] = {}
-    out: dict[int, list] = {}
-    for label, views in mask_views.items():
-        views = [(cam, mask) for cam, mask in views if has_depth is None or has_depth(cam)]
-        for i in pick_views(len(views), max_views):
-            cam, mask = views[i]
-            if id(cam) not in cache:
-                cache[id(cam)] = depth_of(cam)
-            d = sensor_views(cache[id(cam)], mask, erode_px, median_px)
-            if np.isfinite(d).any():
-                out.setdefault(int(label), []).append((cam, d))
+    left out. One object at a time, so that only its views' maps are held (a 720p map is 3.7 MB)."""
+    views = [(cam, mask) for cam, mask in views if has_depth is None or has_depth(cam)]
+    out = []
+    for i in pick_views(len(views), max_views):
+        cam, mask = views[i]
+        d = sensor_views(depth_of(cam), mask, erode_px, median_px)
+        if np.isfinite(d).any():
+            out.append((cam, d))
     return out

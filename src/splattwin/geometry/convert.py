@@ -196,7 +196,7 @@ def _stands_on_other(points: np.ndarray, others: np.ndarray | None, support_z: f
 def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: GeometryOptions, prompt: str = "",
                     timings: dict | None = None, support_z: float | None = None, cameras: list | None = None,
                     other_points: np.ndarray | None = None, masks: list | None = None,
-                    measured: list | None = None) -> ObjectGeometry:
+                    measured=None) -> ObjectGeometry:
     """Stages 3-4 for one object from its cleaned Gaussians `g[indices]`. Never raises on bad data:
     returns usable=False with `problem` and emits ObjectUnusableWarning.
 
@@ -208,8 +208,9 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
 
     cameras: the capture cameras (twin frame). With `opts.carve`, splat-extent samples that one of them
     sees in front of the object's rendered depth are dropped (`geometry.carving`); None: no carving.
-    measured: [(Camera, sensor depth [H,W] m)] of this object (`carving.measured_views`: the capture's
-    measured depth inside its eroded visible mask, inf elsewhere). With `opts.carve_depth`, the points
+    measured: [(Camera, sensor depth [H,W] m)] of this object, or a function returning them, called only
+    when it is meshed (`carving.measured_views`: the capture's measured depth inside its eroded visible
+    mask, inf elsewhere). With `opts.carve_depth`, the points
     (centres and samples) that these views see clearly in front of the measured surface are dropped
     (`carve_depth_tolerance` + `carve_depth_noise` x z^2, voted over the views); unless that would drop
     more than half of them (depth and poses disagree: a warning, nothing dropped). None: not done.
@@ -242,9 +243,11 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
                 samples = samples[~free_space_mask(samples, views, opts.carve_tolerance)]
                 timings["carve"] += time.perf_counter() - t1
             pts = np.concatenate([pts, samples])
-        if opts.carve_depth and measured:
+        if opts.carve_depth and measured is not None:
             t1 = time.perf_counter()
-            pts = _carve_measured(pts, measured, opts, name, out)
+            views = measured() if callable(measured) else measured
+            if views:
+                pts = _carve_measured(pts, views, opts, name, out)
             timings["carve_depth"] += time.perf_counter() - t1
         mpts = downsample(pts, pitch / 2)
         z_floor = None
@@ -673,8 +676,10 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
     masks: {label: [(Camera, bool mask [H,W])]}, the cameras (twin frame) with a 2D mask of that object:
     each object's silhouette coverage (`geometry.completeness`) decides with its splat count whether it
     is whole (`GeometryOptions.min_coverage`); None: no masks, the count alone decides.
-    measured: {label: [(Camera, sensor depth [H,W] m)]} (`carving.measured_views`), for carving against
-    the capture's measured depth (`GeometryOptions.carve_depth`); None: no measured depth."""
+    measured: label -> [(Camera, sensor depth [H,W] m)] (`carving.measured_views` of that object), for
+    carving against the capture's measured depth (`GeometryOptions.carve_depth`); called for an object
+    when it is meshed (its depth maps are read then; the time counts as carve_depth); None: no measured
+    depth."""
     from splattwin.progress import Progress
 
     from splattwin.errors import require_type
@@ -742,7 +747,8 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
             else:
                 r = object_geometry(g, idx, name, label, opts, prompt, timings, support_z=support_z, cameras=cameras,
                                     other_points=np.concatenate(others) if others else None,
-                                    masks=(masks or {}).get(int(label)), measured=(measured or {}).get(int(label)))
+                                    masks=(masks or {}).get(int(label)),
+                                    measured=(lambda lab=int(label): measured(lab)) if measured is not None else None)
             if not r.usable:  # its splats still say where the real object stands: an obstacle for planners
                 mine = np.flatnonzero((labels == label) & keep)
                 mine = mine if len(mine) else np.flatnonzero(labels == label)

@@ -402,11 +402,11 @@ def _capture(out_dir: Path, cameras_path, refined_poses=None) -> tuple[list | No
 
 
 def _measured_depth(frames: list | None, depth_scale: float | None, silhouettes: dict | None, frame: TwinFrame,
-                    opts: GeometryOptions) -> tuple[dict | None, str | None]:
-    """({label: [(camera, sensor depth)]}, None) for carving the meshes against the capture's measured depth
-    (`geometry.carving.measured_views`), or (None, why not). Depth maps are read (`load_depth`, metres) only
-    for the views chosen, at most `carve_views` per object; one that cannot be read is left out with a
-    warning (the depth only refines the geometry)."""
+                    opts: GeometryOptions):
+    """(label -> [(camera, sensor depth)], None) for carving the meshes against the capture's measured depth
+    (`geometry.carving.measured_views`, one object at a time), or (None, why not). Depth maps are read
+    (`load_depth`, metres) only for the views chosen, at most `carve_views` per object; one that cannot be
+    read is left out with a warning (the depth only refines the geometry)."""
     from splattwin.capture.dataset import load_depth
     from splattwin.errors import InputError
     from splattwin.geometry.carving import measured_views
@@ -417,9 +417,11 @@ def _measured_depth(frames: list | None, depth_scale: float | None, silhouettes:
         return None, "the capture has no depth maps"
     if not frame.scaled:
         return None, "the twin is unscaled (its units are not the depth's metres)"
-    if not silhouettes:
-        return None, "no 2D masks of the objects (the depth is only trusted inside an object's own visible mask)"
     by_cam = {id(f.camera): f for f in frames}
+    has_depth = lambda cam: by_cam[id(cam)].depth_path is not None  # noqa: E731
+    if not silhouettes or not any(has_depth(c) for v in silhouettes.values() for c, _ in v):
+        return None, "no view with both a depth map and a 2D mask of an object (the depth is only trusted inside " \
+                     "an object's own visible mask)"
 
     def depth_of(cam):
         f = by_cam[id(cam)]
@@ -429,11 +431,10 @@ def _measured_depth(frames: list | None, depth_scale: float | None, silhouettes:
             log.warning("depth map not read for carving (%s): view %s left out", e, f.name)
             return np.zeros((cam.height, cam.width), np.float32)
 
-    views = measured_views(silhouettes, depth_of, has_depth=lambda cam: by_cam[id(cam)].depth_path is not None,
-                           max_views=opts.carve_views, erode_px=opts.carve_depth_erode)
-    if not views:
-        return None, "no view with both a depth reading and a mask of an object"
-    return views, None
+    def of(label: int) -> list:
+        return measured_views(silhouettes.get(int(label), []), depth_of, has_depth, max_views=opts.carve_views,
+                              erode_px=opts.carve_depth_erode)
+    return of, None
 
 
 def depth_carving_record(conv: Conversion) -> dict:
@@ -553,14 +554,10 @@ def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path
     if not frame.scaled:
         log.info("unscaled twin: metric thresholds x %.4g (frame units per nominal metre)", length_scale)
         frame = dataclasses.replace(frame, nominal_metre=frame.nominal_metre or round(length_scale, 6))
-    t_depth = time.perf_counter()
     measured, depth_skipped = _measured_depth(frames, depth_scale, silhouettes, frame, options or GeometryOptions())
-    t_depth = time.perf_counter() - t_depth
     conv = convert(gaussians, labels, objects, options, progress=progress, length_scale=length_scale, cameras=cameras,
                    table_plane=table_plane(frame), masks=silhouettes, measured=measured)
     conv.depth_skipped = depth_skipped
-    if measured is not None:  # reading and filtering the depth maps is part of carving against them
-        conv.timings["carve_depth"] = conv.timings.get("carve_depth", 0.0) + t_depth
     t1 = time.perf_counter()
     manifest = write_geometry(conv, gaussians, labels, out_dir, frame, cameras_path, splats_path, refined_poses)
     manifest.timings["write"] = round(time.perf_counter() - t1, 4)
