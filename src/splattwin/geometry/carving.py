@@ -22,8 +22,9 @@ vote). This corrects what the splats' own rendering cannot: at short training th
 are scattered a centimetre up and down, their rendered surface is itself a dome, and carving against it
 leaves the mesh top 5-12 mm high (docs/BENCHMARKS.md, robot-style capture). The sensor is only trusted
 where it looks at the object: inside the object's own visible 2D mask, eroded by `erode_px` pixels
-(depth bleeding and colour/depth misregistration at silhouettes read the background there), where the
-reading is valid (finite, > 0) and after a small median filter over those pixels (a D4xx reading's
+(depth bleeding and colour/depth misregistration at silhouettes read the background there), as far from
+any depth edge (a segmenter's mask may overshoot the object, and a pixel on a silhouette reads the
+background behind a point it half covers), where the reading is valid (finite, > 0) and after a small median filter over those pixels (a D4xx reading's
 noise is nearly white from pixel to pixel). An occluder in front of the object is outside the object's
 visible mask, and would in any case read nearer than the object, so it carves nothing.
 
@@ -99,35 +100,56 @@ def free_space_mask(points: np.ndarray, views: list[tuple["Camera", np.ndarray]]
     return (n_free > 0) & (n_free >= min_share * n_seen)
 
 
+DEPTH_EDGE = 0.01  # m: a 3x3 window of valid readings spanning more than this holds a depth edge
+
+
 def sensor_views(depth_m: np.ndarray, mask: np.ndarray, erode_px: int = 2, median_px: int = 5) -> np.ndarray:
     """[H,W] float32: a measured depth map (m, camera z; 0, negative or non-finite = no reading) kept
-    only where it sees this object: inside its visible mask [H,W] eroded by `erode_px` pixels and with a
-    valid reading; there the median of the valid pixels of that kind in a `median_px` square around it
-    (1: none), inf elsewhere. Why: see the module docstring (edges bleed, readings are noisy)."""
+    only where it sees this object: inside its visible mask [H,W] eroded by `erode_px` pixels, with a
+    valid reading, and more than `erode_px` pixels from a depth edge (a 3x3 window of the filtered depth
+    spanning more than DEPTH_EDGE); there the median of the valid readings in a `median_px` square around
+    it (1: none), inf elsewhere. Why: see the module docstring (edges bleed, a pixel on a silhouette reads
+    the background behind a point it half covers, a segmenter's mask overshoots the object, readings are
+    noisy: the edges are found on the filtered depth, or the noise would make every pixel one)."""
+    import warnings
+
     from scipy import ndimage
 
     depth = np.asarray(depth_m, dtype=np.float32)
     mask = np.asarray(mask, dtype=bool)
     if depth.shape != mask.shape:
         raise ValueError(f"depth map {depth.shape} and mask {mask.shape} differ in size")
+    st = np.ones((3, 3), bool)
     if erode_px > 0:
-        mask = ndimage.binary_erosion(mask, np.ones((3, 3), bool), iterations=int(erode_px), border_value=0)
-    good = mask & np.isfinite(depth) & (depth > 0)
+        mask = ndimage.binary_erosion(mask, st, iterations=int(erode_px), border_value=0)
     out = np.full(depth.shape, np.inf, dtype=np.float32)
-    if not good.any():
+    if not mask.any():
         return out
+    # only the object's box and a margin (window, edge distance): an object is a small part of a robot's view
     r = max(int(median_px), 1) // 2
-    if r == 0:
-        out[good] = depth[good]
-        return out
-    # only the object's box (plus the window): an object is a small part of a robot's view
-    vs, us = np.nonzero(good)
-    v0, v1, u0, u1 = vs.min(), vs.max() + 1, us.min(), us.max() + 1
-    crop = np.where(good, depth, np.nan)[v0:v1, u0:u1]
-    pad = np.pad(crop, r, constant_values=np.nan)
-    win = np.lib.stride_tricks.sliding_window_view(pad, (2 * r + 1, 2 * r + 1))
-    sel = good[v0:v1, u0:u1]
-    out[v0:v1, u0:u1][sel] = np.nanmedian(win[sel].reshape(int(sel.sum()), -1), axis=1)
+    m = r + max(int(erode_px), 0) + 2
+    vs, us = np.nonzero(mask)
+    v0, v1 = max(vs.min() - m, 0), min(vs.max() + 1 + m, depth.shape[0])
+    u0, u1 = max(us.min() - m, 0), min(us.max() + 1 + m, depth.shape[1])
+    d = depth[v0:v1, u0:u1]
+    valid = np.isfinite(d) & (d > 0)
+    if r > 0:
+        win = np.lib.stride_tricks.sliding_window_view(np.pad(np.where(valid, d, np.nan), r, constant_values=np.nan),
+                                                       (2 * r + 1, 2 * r + 1))
+        with warnings.catch_warnings():   # windows without a reading: nan, as they should
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(win.reshape(*d.shape, -1), axis=-1)
+    else:
+        med = np.where(valid, d, np.nan)
+    ok = np.isfinite(med)
+    hi = ndimage.maximum_filter(np.where(ok, med, -np.inf), 3)
+    lo = ndimage.minimum_filter(np.where(ok, med, np.inf), 3)
+    with np.errstate(invalid="ignore"):
+        edge = ok & (hi - lo > DEPTH_EDGE)
+    if erode_px > 0:
+        edge = ndimage.binary_dilation(edge, st, iterations=int(erode_px))
+    good = mask[v0:v1, u0:u1] & valid & ~edge
+    out[v0:v1, u0:u1][good] = med[good]
     return out
 
 
