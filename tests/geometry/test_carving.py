@@ -236,7 +236,7 @@ def test_measured_depth_carves_free_space_inside_the_eroded_mask_only():
 
 
 def test_measured_depth_keeps_the_silhouette_under_an_overshooting_mask(monkeypatch):
-    """A segmenter's mask 4 px larger than the box (perfect depth): a pixel on the box's silhouette reads
+    """A segmenter's mask 8 px larger than the box (perfect depth): a pixel on the box's silhouette reads
     the table behind the box's edge, and the mask's erosion does not reach it; the depth edge it sits on
     does, so the box's points there are kept (without the edge rule they are carved)."""
     from scipy import ndimage
@@ -245,7 +245,7 @@ def test_measured_depth_keeps_the_silhouette_under_an_overshooting_mask(monkeypa
 
     cam = _down_camera(0.5, size=(160, 120))
     depth, mask, _ = _box_top_view(cam)
-    loose = ndimage.binary_dilation(mask, iterations=4)
+    loose = ndimage.binary_dilation(mask, iterations=8)
     top = 0.03
     s = np.linspace(-0.045, 0.045, 31)
     rim = np.concatenate([np.column_stack([np.full_like(s, sx * 0.0499), s, np.full_like(s, top - 0.0005)])

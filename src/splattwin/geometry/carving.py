@@ -107,8 +107,8 @@ def sensor_views(depth_m: np.ndarray, mask: np.ndarray, erode_px: int = 2, media
     """[H,W] float32: a measured depth map (m, camera z; 0, negative or non-finite = no reading) kept
     only where it sees this object: inside its visible mask [H,W] eroded by `erode_px` pixels, with a
     valid reading, and more than `erode_px` pixels from a depth edge (a 3x3 window of the filtered depth
-    spanning more than DEPTH_EDGE); there the median of the valid readings in a `median_px` square around
-    it (1: none), inf elsewhere. Why: see the module docstring (edges bleed, a pixel on a silhouette reads
+    spanning more than DEPTH_EDGE); there the median of such readings in a `median_px` square around it
+    (1: none), inf elsewhere. Why: see the module docstring (edges bleed, a pixel on a silhouette reads
     the background behind a point it half covers, a segmenter's mask overshoots the object, readings are
     noisy: the edges are found on the filtered depth, or the noise would make every pixel one)."""
     import warnings
@@ -149,7 +149,13 @@ def sensor_views(depth_m: np.ndarray, mask: np.ndarray, erode_px: int = 2, media
     if erode_px > 0:
         edge = ndimage.binary_dilation(edge, st, iterations=int(erode_px))
     good = mask[v0:v1, u0:u1] & valid & ~edge
-    out[v0:v1, u0:u1][good] = med[good]
+    if r > 0:  # the value: the median of the trusted readings alone (the object's, away from edges)
+        win = np.lib.stride_tricks.sliding_window_view(np.pad(np.where(good, d, np.nan), r, constant_values=np.nan),
+                                                       (2 * r + 1, 2 * r + 1))
+        med = np.nanmedian(win[good].reshape(int(good.sum()), -1), axis=1) if good.any() else med[good]
+        out[v0:v1, u0:u1][good] = med
+    else:
+        out[v0:v1, u0:u1][good] = d[good]
     return out
 
 
