@@ -257,3 +257,27 @@ def test_measured_depth_keeps_the_silhouette_under_an_overshooting_mask(monkeypa
     monkeypatch.setattr(carving, "DEPTH_EDGE", np.inf)
     views = carving.measured_views([(cam, loose)], lambda c: depth)
     assert free_space_mask(rim, views, 0.002, 0.005, 0.5).sum() >= 5
+
+
+def test_measured_depth_that_would_carve_most_of_an_object_carves_nothing(caplog):
+    """Depth that sees most of an object's points as free space disagrees with the twin (a wrong depth
+    scale, poses, another object's mask): nothing is dropped, a warning says so, and the object records 0
+    dropped of its points; the true depth drops the one point above the top, and records it."""
+    from splattwin.geometry.convert import ObjectGeometry, _carve_measured
+
+    cam = _down_camera(0.5, size=(160, 120))
+    depth, mask, _ = _box_top_view(cam)
+    xs = np.linspace(-0.02, 0.02, 9)
+    pts = np.column_stack([np.stack(np.meshgrid(xs, xs), -1).reshape(-1, 2), np.full(81, 0.0295)])
+    opts = GeometryOptions()
+    far = [(cam, np.where(mask, depth + 0.1, np.inf).astype(np.float32))]    # depth read 10 cm too far
+    out = ObjectGeometry(name="box", label=1)
+    with caplog.at_level("WARNING"):
+        kept = _carve_measured(pts, far, opts, "box", out)
+    assert len(kept) == len(pts) and out.depth_carved == 0 and out.depth_points == 81 and out.depth_views == 1
+    assert "not carved against it" in caplog.text
+    # one point 1.5 cm above the top: dropped, the rest kept
+    pts2 = np.concatenate([pts, [[0.0, 0.0, 0.045]]])
+    out2 = ObjectGeometry(name="box", label=1)
+    kept2 = _carve_measured(pts2, [(cam, np.where(mask, depth, np.inf).astype(np.float32))], opts, "box", out2)
+    assert len(kept2) == 81 and out2.depth_carved == 1

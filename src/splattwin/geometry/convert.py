@@ -210,10 +210,10 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
     sees in front of the object's rendered depth are dropped (`geometry.carving`); None: no carving.
     measured: [(Camera, sensor depth [H,W] m)] of this object, or a function returning them, called only
     when it is meshed (`carving.measured_views`: the capture's measured depth inside its eroded visible
-    mask, inf elsewhere). With `opts.carve_depth`, the points
-    (centres and samples) that these views see clearly in front of the measured surface are dropped
-    (`carve_depth_tolerance` + `carve_depth_noise` x z^2, voted over the views); unless that would drop
-    more than half of them (depth and poses disagree: a warning, nothing dropped). None: not done.
+    mask, inf elsewhere). With `opts.carve_depth`, the points (centres and samples) that these views see
+    clearly in front of the measured surface are dropped (`carve_depth_tolerance` + `carve_depth_noise` x
+    z^2, voted over the views), unless that would drop more than half of them (depth and poses disagree:
+    a warning, nothing dropped). None: not done.
     other_points: [M,3] the other objects' cleaned centres and points on the background's obstacles. An
     object whose lowest point is more than `rest_gap` but at most `foot_gap` above the table rests on it
     unless some of these lie under it (it may stand on them): a downward robot sweep sees little of an
@@ -666,7 +666,7 @@ def background_geometry(g, indices: np.ndarray, opts: GeometryOptions, table_thi
 def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None = None, background: bool = True,
             table_thickness: float = 0.03, progress: bool = True, length_scale: float = 1.0,
             cameras: list | None = None, table_plane: Plane | None = None, masks: dict | None = None,
-            measured: dict | None = None) -> Conversion:
+            measured=None) -> Conversion:
     """Full conversion. g: Gaussians [N]; labels [N] int (0 = background); objects: [(name, label, prompt)].
     length_scale: frame units per metre of the options' lengths and of table_thickness (m): 1 in a
     metric twin, the frame's nominal metre in an unscaled one (`TwinFrame.length_scale`).
@@ -762,7 +762,8 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
     flag_floating(results, support_z, opts, bg.obstacles if bg is not None else None,
                   units="m" if length_scale == 1.0 else "frame units")
     timings["total"] = time.perf_counter() - t0
-    return Conversion(objects=results, background=bg, filter_stats=stats, options=opts, timings=dict(timings))
+    return Conversion(objects=results, background=bg, filter_stats=stats, options=opts, timings=dict(timings),
+                      depth_skipped=None if measured is not None else "no measured depth given")
 
 
 def ablation(g, labels: np.ndarray, objects: list, gt_meshes: dict, opts: GeometryOptions | None = None,

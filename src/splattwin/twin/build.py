@@ -557,7 +557,8 @@ def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path
     measured, depth_skipped = _measured_depth(frames, depth_scale, silhouettes, frame, options or GeometryOptions())
     conv = convert(gaussians, labels, objects, options, progress=progress, length_scale=length_scale, cameras=cameras,
                    table_plane=table_plane(frame), masks=silhouettes, measured=measured)
-    conv.depth_skipped = depth_skipped
+    if depth_skipped is not None:
+        conv.depth_skipped = depth_skipped
     t1 = time.perf_counter()
     manifest = write_geometry(conv, gaussians, labels, out_dir, frame, cameras_path, splats_path, refined_poses)
     manifest.timings["write"] = round(time.perf_counter() - t1, 4)
