@@ -161,3 +161,123 @@ def test_geometry_command_carves_with_the_cameras_file(tmp_path):
         v = np.asarray(m.vertices)
         tops.append(float(np.median(v[(np.abs(v[:, 0]) < 0.05) & (np.abs(v[:, 1]) < 0.03) & (v[:, 2] > 0.04), 2])))
     assert tops[0] > 0.065 and abs(tops[1] - 0.06) < 0.003, tops
+
+
+def _box_top_view(cam: Camera, top: float = 0.03, half: float = 0.05):
+    """(depth [H,W] m, box mask [H,W], x [H,W]) of a downward camera over a box top at z = `top` (|x|, |y|
+    < `half`) on the table z = 0: the z-depth ray-cast, the box's mask, and each pixel's x at the top."""
+    d_top = cam.center[2] - top
+    p = cam.pixel_rays() * d_top       # camera frame, at the top's depth
+    p_world = p.reshape(-1, 3) @ cam.T_world_cam[:3, :3].T + cam.T_world_cam[:3, 3]
+    on_box = (np.abs(p_world[:, 0]) < half) & (np.abs(p_world[:, 1]) < half)
+    on_box = on_box.reshape(cam.height, cam.width)
+    return (np.where(on_box, d_top, cam.center[2]).astype(np.float32), on_box,
+            p_world[:, 0].reshape(cam.height, cam.width))
+
+
+def test_measured_depth_carves_free_space_inside_the_eroded_mask_only():
+    """Carving against a sensor's depth (`sensor_views` + `free_space_mask` with the z^2 tolerance and the
+    vote): over a box top 3 cm high seen from 0.5 m, samples 1 cm above the top are dropped; samples on
+    the top, inside the box, over a hole in the depth (0: no reading), over a pixel that reads 3 cm too
+    far (noise), over the part of the top an occluder hides (outside the visible mask; its depth there
+    is the occluder's), and on the top's edge where the depth bleeds to the table's are all kept."""
+    from splattwin.geometry.carving import measured_views, sensor_views
+
+    cam = _down_camera(0.5, size=(160, 120))
+    depth, mask, x_top = _box_top_view(cam)
+    top = 0.03
+
+    def pixel(x, y, z=top):
+        uv, _ = cam.project(np.array([[x, y, z]]))
+        return int(np.floor(uv[0, 1])), int(np.floor(uv[0, 0]))
+
+    hole, noisy = pixel(-0.02, -0.02), pixel(0.0, 0.02)
+    depth[hole[0] - 1:hole[0] + 2, hole[1] - 1:hole[1] + 2] = 0.0    # a 3x3 px hole: no reading
+    depth[noisy] += 0.03                                              # one reading 3 cm too far
+    # an occluder (a gripper finger 20 cm above the table) over the box's +x quarter: not in the box's mask
+    occ = mask & (x_top > 0.025)
+    depth[occ] = 0.3
+    visible = mask & ~occ
+    # depth bleeding: the box's outermost two pixels read the table (0.5 m)
+    from scipy import ndimage
+    ring = mask & ~ndimage.binary_erosion(mask, iterations=2)
+    depth[ring] = 0.5
+
+    xs = np.linspace(-0.045, 0.045, 19)
+    grid = np.stack(np.meshgrid(xs, xs), -1).reshape(-1, 2)
+    above = np.column_stack([grid, np.full(len(grid), top + 0.01)])
+    on_top = np.column_stack([grid, np.full(len(grid), top - 0.0005)])
+    inside = np.column_stack([grid, np.full(len(grid), top - 0.015)])
+    edge = np.array([[0.048, y, top - 0.0005] for y in np.linspace(-0.04, 0.04, 9)]
+                    + [[x, -0.048, top - 0.0005] for x in np.linspace(-0.04, 0.02, 7)])
+    hole_pt = np.array([[-0.02, -0.02, top + 0.01]])
+    noisy_pt = np.array([[0.0, 0.02, top - 0.0005]])
+    pts = np.concatenate([above, on_top, inside, edge, hole_pt, noisy_pt])
+
+    views = measured_views([(cam, visible)], lambda c: depth)
+    free = free_space_mask(pts, views, 0.002, 0.01, 0.5)
+    n = len(grid)
+    under_occluder = above[:, 0] > 0.025 - 0.015   # the occluded quarter and its margin (a depth edge: 3 px off)
+    over_hole = np.abs(above[:, :2] + 0.02).max(axis=1) < 0.006
+    # 1 cm above the top, away from the occluded quarter, the hole and the depth edges: all free
+    interior = ~under_occluder & ~over_hole & (np.abs(above[:, :2]).max(axis=1) < 0.03)
+    assert interior.sum() > 50 and free[:n][interior].all(), above[interior & ~free[:n]]
+    assert not free[:n][above[:, 0] > 0.03].any()           # under the occluder: kept
+    assert not free[n:3 * n].any()                          # on the top, inside the box: kept
+    assert not free[3 * n:3 * n + len(edge)].any()          # at the bleeding edge: kept
+    assert not free[-2] and not free[-1]                    # over the hole; at the noisy pixel
+    # the filter and the erosion are what keep them: the raw depth under the full mask carves those
+    raw = np.where(mask & np.isfinite(depth) & (depth > 0), depth, np.inf)
+    free_raw = free_space_mask(pts, [(cam, raw)], 0.002, 0.01, 0.5)
+    assert free_raw[-1] and free_raw[3 * n:3 * n + len(edge)].any()
+    # sensor_views: inf outside the eroded visible mask and at holes
+    sv = sensor_views(depth, visible)
+    assert np.isinf(sv[~visible]).all() and np.isinf(sv[hole]) and abs(sv[noisy] - (0.5 - top)) < 1e-6
+
+
+def test_measured_depth_keeps_the_silhouette_under_an_overshooting_mask(monkeypatch):
+    """A segmenter's mask 8 px larger than the box (perfect depth): a pixel on the box's silhouette reads
+    the table behind the box's edge, and the mask's erosion does not reach it; the depth edge it sits on
+    does, so the box's points there are kept (without the edge rule they are carved)."""
+    from scipy import ndimage
+
+    from splattwin.geometry import carving
+
+    cam = _down_camera(0.5, size=(160, 120))
+    depth, mask, _ = _box_top_view(cam)
+    loose = ndimage.binary_dilation(mask, iterations=8)
+    top = 0.03
+    s = np.linspace(-0.045, 0.045, 31)
+    rim = np.concatenate([np.column_stack([np.full_like(s, sx * 0.0499), s, np.full_like(s, top - 0.0005)])
+                          for sx in (-1, 1)]
+                         + [np.column_stack([s, np.full_like(s, sy * 0.0499), np.full_like(s, top - 0.0005)])
+                            for sy in (-1, 1)])
+    views = carving.measured_views([(cam, loose)], lambda c: depth)
+    assert not free_space_mask(rim, views, 0.002, 0.005, 0.5).any()
+    monkeypatch.setattr(carving, "DEPTH_EDGE", np.inf)
+    views = carving.measured_views([(cam, loose)], lambda c: depth)
+    assert free_space_mask(rim, views, 0.002, 0.005, 0.5).sum() >= 5
+
+
+def test_measured_depth_that_would_carve_most_of_an_object_carves_nothing(caplog):
+    """Depth that sees most of an object's points as free space disagrees with the twin (a wrong depth
+    scale, poses, another object's mask): nothing is dropped, a warning says so, and the object records 0
+    dropped of its points; the true depth drops the one point above the top, and records it."""
+    from splattwin.geometry.convert import ObjectGeometry, _carve_measured
+
+    cam = _down_camera(0.5, size=(160, 120))
+    depth, mask, _ = _box_top_view(cam)
+    xs = np.linspace(-0.02, 0.02, 9)
+    pts = np.column_stack([np.stack(np.meshgrid(xs, xs), -1).reshape(-1, 2), np.full(81, 0.0295)])
+    opts = GeometryOptions()
+    far = [(cam, np.where(mask, depth + 0.1, np.inf).astype(np.float32))]    # depth read 10 cm too far
+    out = ObjectGeometry(name="box", label=1)
+    with caplog.at_level("WARNING"):
+        kept = _carve_measured(pts, far, opts, "box", out)
+    assert len(kept) == len(pts) and out.depth_carved == 0 and out.depth_points == 81 and out.depth_views == 1
+    assert "not carved against it" in caplog.text
+    # one point 1.5 cm above the top: dropped, the rest kept
+    pts2 = np.concatenate([pts, [[0.0, 0.0, 0.045]]])
+    out2 = ObjectGeometry(name="box", label=1)
+    kept2 = _carve_measured(pts2, [(cam, np.where(mask, depth, np.inf).astype(np.float32))], opts, "box", out2)
+    assert len(kept2) == 81 and out2.depth_carved == 1

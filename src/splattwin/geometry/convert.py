@@ -67,6 +67,11 @@ class ObjectGeometry:
     mesh_method: str | None = None
     alpha: float | None = None
     coverage: Coverage | None = None  # its cleaned splats vs its 2D masks (geometry.completeness); None: no masks
+    # points (centres and ellipsoid samples) dropped as free space by the measured depth (geometry.carving),
+    # out of depth_points; None: not carved against measured depth (no depth views of it, or carve_depth off)
+    depth_carved: int | None = None
+    depth_points: int | None = None
+    depth_views: int = 0
     # an unusable object's obstacle estimate (`obstacle_box`): T_world_obj (translation only) and extent give
     # the padded axis-aligned box of its labelled splats; False with no splats at all
     obstacle: bool = False
@@ -99,6 +104,9 @@ class Conversion:
     filter_stats: FilterStats
     options: GeometryOptions
     timings: dict
+    # why the meshes were not carved against measured depth (no depth in the capture, an unscaled twin,
+    # carve_depth off, no masks); None: they were, where an object had depth views (its depth_carved)
+    depth_skipped: str | None = None
 
 
 def clean_indices(g, labels: np.ndarray, label: int, opts: GeometryOptions, attribute: bool = True,
@@ -187,7 +195,8 @@ def _stands_on_other(points: np.ndarray, others: np.ndarray | None, support_z: f
 
 def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: GeometryOptions, prompt: str = "",
                     timings: dict | None = None, support_z: float | None = None, cameras: list | None = None,
-                    other_points: np.ndarray | None = None, masks: list | None = None) -> ObjectGeometry:
+                    other_points: np.ndarray | None = None, masks: list | None = None,
+                    measured=None) -> ObjectGeometry:
     """Stages 3-4 for one object from its cleaned Gaussians `g[indices]`. Never raises on bad data:
     returns usable=False with `problem` and emits ObjectUnusableWarning.
 
@@ -199,6 +208,12 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
 
     cameras: the capture cameras (twin frame). With `opts.carve`, splat-extent samples that one of them
     sees in front of the object's rendered depth are dropped (`geometry.carving`); None: no carving.
+    measured: [(Camera, sensor depth [H,W] m)] of this object, or a function returning them, called only
+    when it is meshed (`carving.measured_views`: the capture's measured depth inside its eroded visible
+    mask, inf elsewhere). With `opts.carve_depth`, the points (centres and samples) that these views see
+    clearly in front of the measured surface are dropped (`carve_depth_tolerance` + `carve_depth_noise` x
+    z^2, voted over the views), unless that would drop more than half of them (depth and poses disagree:
+    a warning, nothing dropped). None: not done.
     other_points: [M,3] the other objects' cleaned centres and points on the background's obstacles. An
     object whose lowest point is more than `rest_gap` but at most `foot_gap` above the table rests on it
     unless some of these lie under it (it may stand on them): a downward robot sweep sees little of an
@@ -228,6 +243,12 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
                 samples = samples[~free_space_mask(samples, views, opts.carve_tolerance)]
                 timings["carve"] += time.perf_counter() - t1
             pts = np.concatenate([pts, samples])
+        if opts.carve_depth and measured is not None:
+            t1 = time.perf_counter()
+            views = measured() if callable(measured) else measured
+            if views:
+                pts = _carve_measured(pts, views, opts, name, out)
+            timings["carve_depth"] += time.perf_counter() - t1
         mpts = downsample(pts, pitch / 2)
         z_floor = None
         if support_z is not None:
@@ -294,6 +315,27 @@ def object_geometry(g, indices: np.ndarray, name: str, label: int, opts: Geometr
                        f"(a fragment of the object, or masks larger than it); check its mesh")
         warnings.warn(IncompleteObjectWarning(f"object {name!r} (label {label}): {out.problem}"), stacklevel=2)
     return out
+
+
+MEASURED_VOTE = 0.5  # a point is free when at least half the depth views that see it (not behind) say so
+MEASURED_MAX_DROP = 0.5  # more than this share dropped: measured depth and twin disagree (scale, poses)
+
+
+def _carve_measured(pts: np.ndarray, measured: list, opts: GeometryOptions, name: str,
+                    out: ObjectGeometry) -> np.ndarray:
+    """pts [N,3] (twin frame, m) less those the measured depth views see as free space (see
+    `object_geometry`); records the counts on `out`."""
+    free = free_space_mask(pts, measured, opts.carve_depth_tolerance, opts.carve_depth_noise, MEASURED_VOTE)
+    out.depth_views, out.depth_points = len(measured), len(pts)
+    n = int(free.sum())
+    if n > MEASURED_MAX_DROP * len(pts):
+        log.warning("object %r: the measured depth sees %d of its %d points as free space (> %.0f %%): depth and "
+                    "twin disagree (depth scale, poses, or masks of another object?); not carved against it",
+                    name, n, len(pts), 100 * MEASURED_MAX_DROP)
+        out.depth_carved = 0
+        return pts
+    out.depth_carved = n
+    return pts[~free]
 
 
 def scene_bounds(means: np.ndarray, grow: float = 1.0) -> np.ndarray:
@@ -623,8 +665,8 @@ def background_geometry(g, indices: np.ndarray, opts: GeometryOptions, table_thi
 
 def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None = None, background: bool = True,
             table_thickness: float = 0.03, progress: bool = True, length_scale: float = 1.0,
-            cameras: list | None = None, table_plane: Plane | None = None, masks: dict | None = None
-            ) -> Conversion:
+            cameras: list | None = None, table_plane: Plane | None = None, masks: dict | None = None,
+            measured=None) -> Conversion:
     """Full conversion. g: Gaussians [N]; labels [N] int (0 = background); objects: [(name, label, prompt)].
     length_scale: frame units per metre of the options' lengths and of table_thickness (m): 1 in a
     metric twin, the frame's nominal metre in an unscaled one (`TwinFrame.length_scale`).
@@ -633,7 +675,11 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
     neither. table_plane: the table plane when the frame defines it (a table frame: z = 0), else fitted.
     masks: {label: [(Camera, bool mask [H,W])]}, the cameras (twin frame) with a 2D mask of that object:
     each object's silhouette coverage (`geometry.completeness`) decides with its splat count whether it
-    is whole (`GeometryOptions.min_coverage`); None: no masks, the count alone decides."""
+    is whole (`GeometryOptions.min_coverage`); None: no masks, the count alone decides.
+    measured: label -> [(Camera, sensor depth [H,W] m)] (`carving.measured_views` of that object), for
+    carving against the capture's measured depth (`GeometryOptions.carve_depth`); called for an object
+    when it is meshed (its depth maps are read then; the time counts as carve_depth); None: no measured
+    depth."""
     from splattwin.progress import Progress
 
     from splattwin.errors import require_type
@@ -701,7 +747,8 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
             else:
                 r = object_geometry(g, idx, name, label, opts, prompt, timings, support_z=support_z, cameras=cameras,
                                     other_points=np.concatenate(others) if others else None,
-                                    masks=(masks or {}).get(int(label)))
+                                    masks=(masks or {}).get(int(label)),
+                                    measured=(lambda lab=int(label): measured(lab)) if measured is not None else None)
             if not r.usable:  # its splats still say where the real object stands: an obstacle for planners
                 mine = np.flatnonzero((labels == label) & keep)
                 mine = mine if len(mine) else np.flatnonzero(labels == label)
@@ -715,7 +762,8 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
     flag_floating(results, support_z, opts, bg.obstacles if bg is not None else None,
                   units="m" if length_scale == 1.0 else "frame units")
     timings["total"] = time.perf_counter() - t0
-    return Conversion(objects=results, background=bg, filter_stats=stats, options=opts, timings=dict(timings))
+    return Conversion(objects=results, background=bg, filter_stats=stats, options=opts, timings=dict(timings),
+                      depth_skipped=None if measured is not None else "no measured depth given")
 
 
 def ablation(g, labels: np.ndarray, objects: list, gt_meshes: dict, opts: GeometryOptions | None = None,

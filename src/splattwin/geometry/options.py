@@ -71,6 +71,18 @@ class GeometryOptions:
     carve_tolerance: float = option(0.002, "a sample is free space when it is this far in front of the rendered depth",
                                     unit="m")
     carve_views: int = option(32, "at most this many cameras carve (spread evenly over the capture)")
+    carve_depth: bool = option(True, "when the capture has measured depth (RGB-D) and the twin is metric, also drop "
+                               "the points a depth camera sees clearly in front of the measured surface, inside "
+                               "the object's eroded visible mask (see geometry.carving)")
+    carve_depth_tolerance: float = option(0.002, "a point is free space when it lies this far (plus the noise "
+                                          "term) in front of the measured depth (pose and registration error)",
+                                          unit="m")
+    carve_depth_noise: float = option(0.005, "... plus this times z^2 (z: the measured depth in m): the error of the "
+                                      "median-filtered depth growing as a stereo camera's (a D435 reads about 0.01 m "
+                                      "RMS at 1 m per pixel; the 5x5 median cuts uncorrelated noise to a quarter, so "
+                                      "0.005 is twice that, or one sigma where the noise spans the window)")
+    carve_depth_erode: int = option(2, "pixels the object's mask is eroded by before its depth is trusted (depth "
+                                    "edges bleed, colour and depth are registered to a pixel or two)", unit="px")
     smooth_iterations: int = option(10, "Taubin smoothing of the mesh (removes the voxel staircase)")
     collision_faces: int = option(1500, "face budget of collision meshes", aliases=("faces",))
     visual_faces: int = option(20000, "face budget of visual meshes")

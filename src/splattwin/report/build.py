@@ -616,6 +616,14 @@ def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
     sec.text("meshes: alpha shapes of the objects' half-opaque splats (solid down to the table when resting on it)"
              + (f", carved where a capture camera sees through them to the splats' rendered surface ({carve:.2f} s)"
                 if carve is not None else " (not carved: no capture cameras, or carving off)") + ".")
+    dc = (man.config or {}).get("depth_carving")
+    if isinstance(dc, dict) and dc.get("used") and isinstance(dc.get("objects"), dict):
+        parts = [f"{k} {v.get('dropped')} of {v.get('points')} points ({v.get('views')} views)"
+                 for k, v in dc["objects"].items() if isinstance(v, dict)]
+        sec.text("carved against the capture's measured depth too (inside each object's eroded mask): "
+                 + (", ".join(parts) or "no object had depth views") + ".")
+    elif isinstance(dc, dict) and isinstance(dc.get("skipped"), str):
+        sec.text(f"not carved against measured depth: {dc['skipped']}.")
     if geo:
         gt = (man.config or {}).get("ground_truth") if man is not None else None
         if isinstance(gt, dict) and gt.get("alignment"):

@@ -197,7 +197,7 @@ def write_geometry(conv: Conversion, g, labels: np.ndarray, out_dir: Path, frame
             bg.collision_mesh = "background/collision.obj"
             bg.convex_parts = _write_parts(out_dir / "background" / "parts", b.parts, out_dir, twin_hdr)
     cams = None
-    config: dict = {"geometry": conv.options.to_dict()}
+    config: dict = {"geometry": conv.options.to_dict(), "depth_carving": depth_carving_record(conv)}
     if cameras_path is not None:
         # referenced, not copied: a path relative to the twin folder when inside it (a relative path that
         # exists inside the twin folder is taken as relative to it). A cameras file outside the twin is
@@ -373,26 +373,83 @@ def write_exports(twin_dir: str | Path, manifest: Manifest, formats=FORMATS, pru
 
 
 def _capture_frames(out_dir: Path, cameras_path, refined_poses=None) -> list | None:
-    """The capture's frames (names, cameras in the twin frame) from the cameras file, or None (no file, or
+    """The capture's frames of `_capture` (None: none)."""
+    return _capture(out_dir, cameras_path, refined_poses)[0]
+
+
+def _capture(out_dir: Path, cameras_path, refined_poses=None) -> tuple[list | None, float | None]:
+    """(frames, depth scale): the capture's frames (names, cameras in the twin frame, depth files) from the
+    cameras file and its metres per raw depth unit (`Dataset.depth_scale`), or (None, None) (no file, or
     unreadable: the cameras only refine the geometry, so a bad file is a warning here, never a failed build).
     refined_poses: the splat stage's refined_poses.json (`splattwin.splat.refined_poses`), whose poses replace
     the file's (the splats were fitted to those cameras)."""
     if cameras_path is None:
-        return None
+        return None, None
     cp = Path(cameras_path)
     cp = out_dir / cp if not cp.is_absolute() and (out_dir / cp).exists() else cp
     if not cp.is_file():
-        return None
+        return None, None
     try:
         from splattwin.capture import load_dataset
 
         from splattwin.splat import refined_poses as rp
 
         ds = load_dataset(cp, validate=False, require_images=False)
-        return list(rp.apply(ds, refined_poses).frames)
+        return list(rp.apply(ds, refined_poses).frames), ds.depth_scale
     except Exception as e:  # noqa: BLE001 - see the docstring
         log.warning("cameras not read from %s (geometry without them): %s", cp, e)
-        return None
+        return None, None
+
+
+def _measured_depth(frames: list | None, depth_scale: float | None, silhouettes: dict | None, frame: TwinFrame,
+                    opts: GeometryOptions):
+    """(label -> [(camera, sensor depth)], None) for carving the meshes against the capture's measured depth
+    (`geometry.carving.measured_views`, one object at a time), or (None, why not). Depth maps are read
+    (`load_depth`, metres) only for the views chosen, at most `carve_views` per object; one that cannot be
+    read is left out with a warning (the depth only refines the geometry)."""
+    from splattwin.capture.dataset import load_depth
+    from splattwin.errors import InputError
+    from splattwin.geometry.carving import measured_views
+
+    if not opts.carve_depth:
+        return None, "off (--no-geometry.carve-depth)"
+    if not frames or not any(f.depth_path is not None for f in frames):
+        return None, "the capture has no depth maps"
+    if not frame.scaled:
+        return None, "the twin is unscaled (its units are not the depth's metres)"
+    by_cam = {id(f.camera): f for f in frames}
+    has_depth = lambda cam: by_cam[id(cam)].depth_path is not None  # noqa: E731
+    if not silhouettes or not any(has_depth(c) for v in silhouettes.values() for c, _ in v):
+        return None, "no view with both a depth map and a 2D mask of an object (the depth is only trusted inside " \
+                     "an object's own visible mask)"
+
+    def depth_of(cam):
+        f = by_cam[id(cam)]
+        try:
+            return load_depth(f.depth_path, depth_scale, size=(cam.width, cam.height))
+        except InputError as e:
+            log.warning("depth map not read for carving (%s): view %s left out", e, f.name)
+            return np.zeros((cam.height, cam.width), np.float32)
+
+    def of(label: int) -> list:
+        return measured_views(silhouettes.get(int(label), []), depth_of, has_depth, max_views=opts.carve_views,
+                              erode_px=opts.carve_depth_erode)
+    return of, None
+
+
+def depth_carving_record(conv: Conversion) -> dict:
+    """twin.json config.depth_carving: whether the meshes were carved against the capture's measured depth
+    (`used`, or `skipped` with why), the options that set it, and per object the views used and how many of
+    its points (centres and ellipsoid samples) were dropped as free space."""
+    o = conv.options
+    rec: dict = {"used": conv.depth_skipped is None, "tolerance": o.carve_depth_tolerance,
+                 "noise_1m": o.carve_depth_noise, "erode_px": o.carve_depth_erode}
+    if conv.depth_skipped is not None:
+        rec["skipped"] = conv.depth_skipped
+        return rec
+    rec["objects"] = {r.name: {"views": r.depth_views, "points": r.depth_points, "dropped": r.depth_carved}
+                      for r in conv.objects if r.depth_points is not None}
+    return rec
 
 
 def _estimated_nominal_metre(gaussians, cameras: list | None) -> float:
@@ -486,7 +543,7 @@ def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path
     frame = frame or TwinFrame()
     check_formats(frame, formats, out_dir / "twin.json")
     t0 = time.perf_counter()
-    frames = _capture_frames(out_dir, cameras_path, refined_poses)
+    frames, depth_scale = _capture(out_dir, cameras_path, refined_poses)
     cameras = [f.camera for f in frames] if frames else None
     silhouettes = None
     if masks is not None and frames:
@@ -497,8 +554,11 @@ def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path
     if not frame.scaled:
         log.info("unscaled twin: metric thresholds x %.4g (frame units per nominal metre)", length_scale)
         frame = dataclasses.replace(frame, nominal_metre=frame.nominal_metre or round(length_scale, 6))
+    measured, depth_skipped = _measured_depth(frames, depth_scale, silhouettes, frame, options or GeometryOptions())
     conv = convert(gaussians, labels, objects, options, progress=progress, length_scale=length_scale, cameras=cameras,
-                   table_plane=table_plane(frame), masks=silhouettes)
+                   table_plane=table_plane(frame), masks=silhouettes, measured=measured)
+    if depth_skipped is not None:
+        conv.depth_skipped = depth_skipped
     t1 = time.perf_counter()
     manifest = write_geometry(conv, gaussians, labels, out_dir, frame, cameras_path, splats_path, refined_poses)
     manifest.timings["write"] = round(time.perf_counter() - t1, 4)
