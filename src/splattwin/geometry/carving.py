@@ -24,8 +24,8 @@ leaves the mesh top 5-12 mm high (docs/BENCHMARKS.md, robot-style capture). The 
 where it looks at the object: inside the object's own visible 2D mask, eroded by `erode_px` pixels
 (depth bleeding and colour/depth misregistration at silhouettes read the background there), as far from
 any depth edge (a segmenter's mask may overshoot the object, and a pixel on a silhouette reads the
-background behind a point it half covers), where the reading is valid (finite, > 0) and after a small median filter over those pixels (a D4xx reading's
-noise is nearly white from pixel to pixel). An occluder in front of the object is outside the object's
+background behind a point it half covers), where the reading is valid (finite, > 0), and after a small
+median filter over those pixels (a D4xx reading's noise is nearly white from pixel to pixel). An occluder in front of the object is outside the object's
 visible mask, and would in any case read nearer than the object, so it carves nothing.
 
 Noise model of the tolerance: a stereo camera's axial error grows with the square of the depth
