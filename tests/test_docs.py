@@ -353,3 +353,20 @@ def test_measured_check_catches_a_stale_headline():
     readme = ("## Measured\n| stage | figure |\n|---|---|\n| Rasterizer | 640×480 forward + backward 150 ms "
               "([details](docs/BENCHMARKS.md#rasterizer)) |\n")
     assert measured_problems(readme, _benchmark_sections()) == ["rasterizer: 150"]
+
+
+CONTRACT_DATACLASSES = {"Frame": "splattwin.capture.Frame", "Dataset": "splattwin.capture.Dataset",
+                        "Gaussians": "splattwin.splat.gaussians.Gaussians", "Rollout": "splattwin.robot.rollout.Rollout"}
+
+
+def test_contracts_dataclasses_list_every_field():
+    """The `@dataclass class X:` blocks of docs/CONTRACTS.md list the class's fields, in order."""
+    import dataclasses
+    text = (ROOT / "docs" / "CONTRACTS.md").read_text()
+    found = {}
+    for m in re.finditer(r"@dataclass\nclass (\w+):[^\n]*\n((?:    [^\n]*\n)+)", text):
+        found[m.group(1)] = re.findall(r"^    (\w+): ", m.group(2), re.M)
+    assert sorted(found) == sorted(CONTRACT_DATACLASSES)
+    for name, fields in found.items():
+        cls = _resolve(CONTRACT_DATACLASSES[name])
+        assert fields == [f.name for f in dataclasses.fields(cls)], name
