@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import functools
 import importlib
 import inspect
 import re
@@ -33,13 +34,15 @@ def _parsers() -> dict[str, set[str]]:
             if isinstance(a, argparse._SubParsersAction):
                 for sub, sp in a.choices.items():
                     walk(sp, f"{name} {sub}".strip())
-    walk(build_parser(), "")
+    walk(PARSER, "")
     return out
 
 
+PARSER = build_parser()
 PARSERS = _parsers()
 
 
+@functools.cache
 def _bench_flags() -> set[str]:
     """Flags of the bench/ scripts (the docs name them with the script: `bench/real.py --sections sfm`)."""
     flags = set()
@@ -370,3 +373,56 @@ def test_contracts_dataclasses_list_every_field():
     for name, fields in found.items():
         cls = _resolve(CONTRACT_DATACLASSES[name])
         assert fields == [f.name for f in dataclasses.fields(cls)], name
+
+
+@functools.cache
+def _choices() -> dict[str, set[str]]:
+    """The allowed values of every flag that has choices, over all commands."""
+    out: dict[str, set[str]] = {}
+
+    def walk(p: argparse.ArgumentParser) -> None:
+        for a in p._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for sp in a.choices.values():
+                    walk(sp)
+            elif a.choices:
+                for s in a.option_strings:
+                    out.setdefault(s, set()).update(map(str, a.choices))
+    walk(PARSER)
+    return out
+
+
+def choice_problems(text: str, choices: dict[str, set[str]]) -> list[str]:
+    """`--flag VALUE` / `--flag=A|B` spans whose values the flag does not accept."""
+    problems = []
+    for span in _code_spans(text):
+        for m in re.finditer(r"(--[\w.-]+)[ =]([\w.+\-|\\]+)", span):
+            if m.group(1) in choices:
+                # a metavar (`--from STAGE`) or the next flag (`[--device --init]`) is no value
+                values = [v for v in re.split(r"\\?\|", m.group(2)) if v and not v.isupper() and not v.startswith("--")]
+                bad = [v for v in values if v not in choices[m.group(1)]]
+                if bad:
+                    problems.append(f"`{m.group(1)}` takes none of {bad} (in `{span.strip()[:80]}`)")
+    return problems
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.name)
+def test_documented_flag_values_are_accepted(doc):
+    assert choice_problems(doc.read_text(), _choices()) == []
+
+
+def test_value_check_catches_a_wrong_choice():
+    assert len(choice_problems("`--splat.rasterize-mode antialias` and `--up=-z`", _choices())) == 1
+
+
+def test_readme_twin_folder_lists_what_the_pipeline_writes():
+    """Every TWIN/ entry of the pipeline's layout (pipeline/build.py's docstring, kept by its writers) and of
+    CONTRACTS's twin layout is in the README's "The twin folder" listing."""
+    import splattwin.pipeline.build as pipeline_build
+    readme = (ROOT / "README.md").read_text()
+    listing = re.search(r"## The twin folder\n+```\n(.*?)```", readme, re.S).group(1)
+    listed = set(re.findall(r"^TWIN/([\w.]+)", listing, re.M))
+    contracts = (ROOT / "docs" / "CONTRACTS.md").read_text()
+    written = set(re.findall(r"TWIN/([\w.]+)", pipeline_build.__doc__ or "")) | set(
+        re.findall(r"^TWIN/([\w.]+)", contracts.split("## Twin folder")[1].split("\n## ")[0], re.M))
+    assert written and sorted(written - listed) == []
