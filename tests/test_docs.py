@@ -359,7 +359,8 @@ def test_measured_check_catches_a_stale_headline():
 
 
 CONTRACT_DATACLASSES = {"Frame": "splattwin.capture.Frame", "Dataset": "splattwin.capture.Dataset",
-                        "Gaussians": "splattwin.splat.gaussians.Gaussians", "Rollout": "splattwin.robot.rollout.Rollout"}
+                        "Gaussians": "splattwin.splat.gaussians.Gaussians",
+                        "Rollout": "splattwin.robot.rollout.Rollout"}
 
 
 def test_contracts_dataclasses_list_every_field():
