@@ -402,8 +402,21 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
         if scenes:
             raise InputError(f"this folder holds {len(scenes)} BOP scenes ({', '.join(scenes[:5])}"
                              f"{'...' if len(scenes) > 5 else ''}); give one scene folder", path)
+        # a camera's own layout (RealSense / ROS exports: rgb/ + depth/ without a pose list; one folder per
+        # camera): name the sub-folders that hold images rather than say there are none
+        held = [(p.name, len(find_images(p))) for p in sorted(path.iterdir()) if p.is_dir() and not p.is_symlink()]
+        held = [(n, k) for n, k in held if k]
+        hint = ""
+        if held:
+            photos = [n for n, _ in held if n.lower() in ("rgb", "color", "colour", "images", "photos", "frames")]
+            photos += [n for n, _ in held if not n.lower().startswith(("depth", "mask", "label", "seg"))]
+            example = (photos or [held[0][0]])[0]
+            listed = ", ".join(f"{n}/ ({k} image{'s' if k > 1 else ''})" for n, k in held[:5])
+            hint = (f"; its sub-folders hold images: {listed}{', ...' if len(held) > 5 else ''}. Give the folder of "
+                    f"the photos (e.g. {path / example}), which structure from motion poses; sub-folders are "
+                    f"not searched")
         raise InputError("no dataset found here (no transforms.json, COLMAP model, cameras.json, BOP scene, "
-                         "TUM pose list + intrinsics, or images)", path)
+                         f"TUM pose list + intrinsics, or images){hint}", path)
     if max_frames is not None and len(ds.frames) > max_frames and not (path.is_file() and is_video(path)):
         idx = np.linspace(0, len(ds.frames) - 1, max_frames).round().astype(int)
         ds.frames = [ds.frames[i] for i in idx]
