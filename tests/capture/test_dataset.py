@@ -125,3 +125,15 @@ def test_a_folder_whose_images_are_in_sub_folders_names_them(tmp_path):
     msg = str(e.value)
     assert "no dataset found here" in msg and "depth/ (3 images), rgb/ (3 images)" in msg and "notes/" not in msg
     assert f"e.g. {tmp_path / 'rgb'}" in msg
+
+
+def test_hidden_files_beside_the_photos_are_left_out(tmp_path):
+    # macOS's AppleDouble `._IMG.JPG` beside every photo copied to an exFAT drive: no image, and the whole
+    # capture stopped on it as unreadable
+    from splattwin import io
+
+    for i in range(3):
+        io.write_image(tmp_path / f"IMG_{i}.JPG", np.full((8, 8, 3), 40 * i, np.uint8))
+        (tmp_path / f"._IMG_{i}.JPG").write_bytes(b"\x00\x05\x16\x07\x00\x02\x00\x00Mac OS X        ")
+    ds = load_dataset(tmp_path)
+    assert [f.image_path.name for f in ds.frames] == ["IMG_0.JPG", "IMG_1.JPG", "IMG_2.JPG"]

@@ -307,8 +307,13 @@ def find_images(folder: Path, inside: Path | None = None) -> list[Path]:
     return list_files(folder, _IMAGE_SUFFIXES_LOWER, inside)
 
 
+_HIDDEN_ANNOUNCED: set[Path] = set()
+
+
 def list_files(folder: Path, suffixes, inside: Path | None = None) -> list[Path]:
-    """The files of `folder` whose suffix is in `suffixes` (any case), sorted by name.
+    """The files of `folder` whose suffix is in `suffixes` (any case), sorted by name. Hidden files (a
+    leading dot) are left out: macOS writes an AppleDouble `._IMG_0001.JPG` beside every photo copied to a
+    FAT/exFAT drive or network share, which is no image and stopped the whole capture as unreadable.
 
     inside: the dataset folder every file must stay in, symbolic links resolved (InputError naming the
     link otherwise), as paths named in a dataset's files must (`splattwin.paths`): a received dataset
@@ -319,6 +324,13 @@ def list_files(folder: Path, suffixes, inside: Path | None = None) -> list[Path]
     folder = Path(folder)
     lower = {x.lower() for x in suffixes}
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in lower and p.is_file())
+    hidden = [p for p in files if p.name.startswith(".")]
+    if hidden:
+        files = [p for p in files if not p.name.startswith(".")]
+        if folder not in _HIDDEN_ANNOUNCED:   # once per folder and run: every stage lists the capture
+            _HIDDEN_ANNOUNCED.add(folder)
+            log.info("%s: %d hidden file%s left out (%s%s)", folder, len(hidden), "s" if len(hidden) > 1 else "",
+                     ", ".join(p.name for p in hidden[:3]), ", ..." if len(hidden) > 3 else "")
     if inside is not None:
         for p in files:
             confined(inside, p.relative_to(inside), p, f"{p.parent.name}/ file")
