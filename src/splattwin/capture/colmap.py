@@ -275,6 +275,12 @@ def write_text(dataset: Dataset, sparse_dir: str | Path) -> Path:
         tx, ty, tz = (float(v) for v in T[:3, 3])
         name = f.image_path.relative_to(image_root).as_posix() if f.image_path.is_relative_to(image_root) else f.image_path.name
         img_lines.append(f"{i} {qw!r} {qx!r} {qy!r} {qz!r} {tx!r} {ty!r} {tz!r} {cam_ids[key]} {name}\n")
+    spaced = [ln.split(maxsplit=9)[9].rstrip("\n") for ln in img_lines if len(ln.split()) > 10]
+    if spaced:
+        log.warning("%s: %d image name%s hold%s spaces (%s%s): splattwin reads them back whole, but COLMAP and "
+                    "pycolmap read a text model's image names only up to the first space; rename the images for "
+                    "those tools", sparse_dir, len(spaced), "s" if len(spaced) > 1 else "", "" if len(spaced) > 1 else "s",
+                    ", ".join(spaced[:3]), ", ..." if len(spaced) > 3 else "")
     pts = []
     if dataset.points_xyz is not None:
         rgb = dataset.points_rgb if dataset.points_rgb is not None else np.full((len(dataset.points_xyz), 3), 128, np.uint8)
