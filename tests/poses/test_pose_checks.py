@@ -314,3 +314,20 @@ def test_robot_poses_with_a_wrong_focal_warned(scene_default: Path, tmp_path: Pa
     assert ic["intrinsics_file"] == gt.meta["path"] and gt.meta["path"] in caplog.text, ic
     assert res.stats["hand_eye_check"]["verdict"] == "consistent"
     assert "latency_check" not in res.stats  # robot pose files carry no timestamps
+
+
+def test_pose_list_in_wxyz_order_is_refused_naming_the_order(tum_capture: Path, tmp_path: Path):
+    """groundtruth.txt written `id tx ty tz qw qx qy qz` (EuRoC's and many ROS scripts' order) read as TUM's
+    `qx qy qz qw`: every camera turned, a warning blaming the hand-eye, timestamps or intrinsics, and then (here
+    with --up keep) a twin on wrong poses, or an up-check error blaming the table plane. Now the run stops
+    naming the pose list and the order, and the poses read in the other order fit the photos."""
+    cap = _copy(tum_capture, tmp_path / "wxyz")
+    gt = cap / "groundtruth.txt"
+    lines = []
+    for ln in gt.read_text().splitlines():
+        f = ln.split()
+        lines.append(ln if ln.startswith("#") else " ".join(f[:4] + [f[7]] + f[4:7]))
+    gt.write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=r"w x y z order.*read as `qw qx qy qz` by 0\.\d+ px") as e:
+        _poses(cap)
+    assert e.value.path == gt
