@@ -316,11 +316,15 @@ def test_robot_poses_with_a_wrong_focal_warned(scene_default: Path, tmp_path: Pa
     assert "latency_check" not in res.stats  # robot pose files carry no timestamps
 
 
-def test_pose_list_in_wxyz_order_is_refused_naming_the_order(tum_capture: Path, tmp_path: Path):
-    """groundtruth.txt written `id tx ty tz qw qx qy qz` (EuRoC's and many ROS scripts' order) read as TUM's
-    `qx qy qz qw`: every camera turned, a warning blaming the hand-eye, timestamps or intrinsics, and then (here
-    with --up keep) a twin on wrong poses, or an up-check error blaming the table plane. Now the run stops
-    naming the pose list and the order, and the poses read in the other order fit the photos."""
+def test_pose_list_in_another_convention_is_refused_naming_it(tum_capture: Path, tmp_path: Path):
+    """groundtruth.txt written `id tx ty tz qw qx qy qz` (EuRoC's and many ROS scripts' order), or holding
+    world-to-camera poses (COLMAP's and many SLAM exports' convention), read as TUM's camera-to-world `qx qy qz
+    qw`: every camera moved, warnings blaming the hand-eye, timestamps or intrinsics, and then (here with --up
+    keep) a twin on wrong poses, or an up-check error blaming the table plane. Now the run stops naming the pose
+    list and the convention whose poses fit the photos."""
+    from splattwin.capture.tum import read_pose_list, write_pose_list
+    from splattwin.transforms import invert_pose
+
     cap = _copy(tum_capture, tmp_path / "wxyz")
     gt = cap / "groundtruth.txt"
     lines = []
@@ -328,6 +332,13 @@ def test_pose_list_in_wxyz_order_is_refused_naming_the_order(tum_capture: Path, 
         f = ln.split()
         lines.append(ln if ln.startswith("#") else " ".join(f[:4] + [f[7]] + f[4:7]))
     gt.write_text("\n".join(lines) + "\n")
-    with pytest.raises(InputError, match=r"w x y z order.*read as `qw qx qy qz` by 0\.\d+ px") as e:
+    with pytest.raises(InputError, match=r"w x y z order: .* read as `qw qx qy qz` by 0\.\d+ px") as e:
+        _poses(cap)
+    assert e.value.path == gt
+
+    cap = _copy(tum_capture, tmp_path / "w2c")
+    gt = cap / "groundtruth.txt"
+    write_pose_list(gt, [(k, invert_pose(T)) for k, T in read_pose_list(gt)])
+    with pytest.raises(InputError, match=r"world-to-camera \(T_cam_world\): .* inverted by 0\.\d+ px") as e:
         _poses(cap)
     assert e.value.path == gt

@@ -898,7 +898,7 @@ def _check_known_poses(dataset: Dataset, opts: PoseOptions, frames: list[DataFra
                  "poses", cons["sampson_median_px"], cons["sampson_median_mrad"], cons["pairs"])
     else:
         if dataset.meta.get("format") == "tum":
-            _check_quaternion_order(measures, T, cons, Path(where))
+            _check_pose_list_convention(measures, T, cons, Path(where))
         log.warning("%s", hec.consistency_message(cons, where, "the poses are kept as given (--poses.method known); "
                                                               "remedy: --poses.method sfm", robot=False))
     _check_intrinsics(measures, T, _intrinsics_source(dataset, opts), stats)
@@ -932,35 +932,54 @@ def _check_known_poses(dataset: Dataset, opts: PoseOptions, frames: list[DataFra
                  lc["time_offset_sigma_ms"])
 
 
-def _check_quaternion_order(measures: list, T_world_cam: list[np.ndarray], cons: dict, pose_file: Path) -> None:
-    """InputError naming the pose list when its quaternions fit the photos only read as `qw qx qy qz`: a list
-    in that order (EuRoC's, many ROS tools' and scripts') read as TUM's `qx qy qz qw` gives every camera
-    another rotation, which the up check then blamed on the table ("is the plane a wall?", --up) or which,
-    with a table plane to agree with, went on into a twin on wrong poses. `cons`: the pose consistency of
-    the poses as read (not "ok"); `measures`: its matched pairs (`hand_eye_check.check_poses_with_images`)."""
+def _check_pose_list_convention(measures: list, T_world_cam: list[np.ndarray], cons: dict, pose_file: Path) -> None:
+    """InputError naming the pose list when its poses fit the photos only read another way: quaternions in
+    `qw qx qy qz` order (EuRoC's, many ROS tools' and scripts') read as TUM's `qx qy qz qw`, or world-to-camera
+    poses (T_cam_world, as COLMAP's images.txt and many SLAM exports store them) read as TUM's camera-to-world,
+    or both. Either gives every camera another pose, which the checks after this one blamed on the hand-eye,
+    timestamps, intrinsics or the table ("is the plane a wall?", --up), or which went on into a twin on wrong
+    poses. `cons`: the pose consistency of the poses as read (not "ok"); `measures`: its matched pairs
+    (`hand_eye_check.check_poses_with_images`)."""
     from splattwin.poses import hand_eye_check as hec
-    from splattwin.transforms import matrix_from_quat_wxyz, quat_wxyz_from_matrix
+    from splattwin.transforms import invert_pose, matrix_from_quat_wxyz, quat_wxyz_from_matrix
 
-    swapped = []
-    for T in T_world_cam:
+    def cycled(T: np.ndarray) -> np.ndarray:
         # read as (x, y, z, w) = the file's (qw, qx, qy, qz): the file's quaternion (w, x, y, z) is the one read,
         # cycled; any sign of q gives the same cycled rotation
         w, x, y, z = quat_wxyz_from_matrix(T[:3, :3])
         T2 = np.array(T, dtype=np.float64)
         T2[:3, :3] = matrix_from_quat_wxyz(np.array([x, y, z, w]))
-        swapped.append(T2)
-    rows = []
-    for i, j, m in measures:
-        T_ba = np.linalg.inv(swapped[j]) @ swapped[i]
-        rows.append({"sampson_px": float(np.median(hec.sampson_px(m.xa, m.xb, T_ba[:3, :3], T_ba[:3, 3], m.f))),
-                     "sampson_floor_px": m.floor_px, "focal_px": m.f})
-    alt = hec.consistency(rows, tuple(cons["matching_size"]) if cons.get("matching_size") else None)
-    if alt is None or alt["verdict"] != "ok" or alt["sampson_median_px"] > cons["sampson_median_px"] / 3:
+        return T2
+
+    readings = {"wxyz": [cycled(T) for T in T_world_cam], "inverse": [invert_pose(T) for T in T_world_cam]}
+    readings["both"] = [invert_pose(T) for T in readings["wxyz"]]
+    size = tuple(cons["matching_size"]) if cons.get("matching_size") else None
+    best = None
+    for kind, Ts in readings.items():
+        rows = []
+        for i, j, m in measures:
+            T_ba = np.linalg.inv(Ts[j]) @ Ts[i]
+            rows.append({"sampson_px": float(np.median(hec.sampson_px(m.xa, m.xb, T_ba[:3, :3], T_ba[:3, 3], m.f))),
+                         "sampson_floor_px": m.floor_px, "focal_px": m.f})
+        alt = hec.consistency(rows, size)
+        if alt is not None and alt["verdict"] == "ok" and alt["sampson_median_px"] <= cons["sampson_median_px"] / 3 \
+                and (best is None or alt["sampson_median_px"] < best[1]["sampson_median_px"]):
+            best = (kind, alt)
+    if best is None:
         return
-    raise InputError(f"the quaternions look like w x y z order: read as TUM's `qx qy qz qw` the poses miss the photos "
-                     f"by a median {cons['sampson_median_px']:.2f} px (Sampson error of {cons['pairs']} image pairs), "
-                     f"read as `qw qx qy qz` by {alt['sampson_median_px']:.2f} px. Write each line as `id tx ty tz qx "
-                     f"qy qz qw` (e.g. awk '/^#/{{print;next}}{{print $1,$2,$3,$4,$6,$7,$8,$5}}')", pose_file)
+    kind, alt = best
+    what = {"wxyz": "the quaternions look like w x y z order", "inverse": "the poses look like world-to-camera "
+            "(T_cam_world)", "both": "the poses look like world-to-camera (T_cam_world) with quaternions in w x y z "
+            "order"}[kind]
+    read = {"wxyz": "read as `qw qx qy qz`", "inverse": "inverted", "both": "read as `qw qx qy qz` and inverted"}[kind]
+    fix = {"wxyz": "write each line as `id tx ty tz qx qy qz qw` (e.g. awk '/^#/{print;next}"
+                   "{print $1,$2,$3,$4,$6,$7,$8,$5}')",
+           "inverse": "write each camera's pose in the world (camera-to-world, T_world_cam: the inverse of these)",
+           "both": "write each camera's pose in the world (camera-to-world, T_world_cam: the inverse of these) as "
+                   "`id tx ty tz qx qy qz qw`"}[kind]
+    raise InputError(f"{what}: read as TUM's camera-to-world `tx ty tz qx qy qz qw` the poses miss the photos by a "
+                     f"median {cons['sampson_median_px']:.2f} px (Sampson error of {cons['pairs']} image pairs), "
+                     f"{read} by {alt['sampson_median_px']:.2f} px; {fix}", pose_file)
 
 
 def _apply_time_offset(dataset: Dataset, offset_ms: float) -> None:
