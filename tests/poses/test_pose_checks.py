@@ -5,6 +5,7 @@ matches with the poses held fixed."""
 from __future__ import annotations
 
 import dataclasses
+import re
 import shutil
 from pathlib import Path
 
@@ -342,3 +343,33 @@ def test_pose_list_in_another_convention_is_refused_naming_it(tum_capture: Path,
     with pytest.raises(InputError, match=r"world-to-camera \(T_cam_world\): .* inverted by 0\.\d+ px") as e:
         _poses(cap)
     assert e.value.path == gt
+
+
+@pytest.mark.parametrize("written", ["opencv", "inverse", "both"])
+def test_transforms_json_in_another_convention_is_refused_naming_it(scene_default: Path, tmp_path: Path, written):
+    """A hand-written transforms.json with OpenCV camera axes (what robot code computes) and/or world-to-camera
+    poses where nerfstudio's transform_matrix is camera-to-world in OpenGL axes: it was read without a word (the
+    up check turned the flipped world 'z up', 13 points triangulated instead of 240) into a twin on wrong poses.
+    Now the run stops naming the file and the convention whose poses fit the photos; as written: unchanged."""
+    import json
+
+    from splattwin.capture import load_dataset
+    from splattwin.poses import PoseOptions, estimate_poses
+
+    cap = Path(shutil.copytree(scene_default, tmp_path / written))
+    tf = cap / "transforms.json"
+    meta = json.loads(tf.read_text())
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])
+    for f in meta["frames"]:
+        T_gl = np.array(f["transform_matrix"])
+        T = {"opencv": T_gl @ flip, "inverse": np.linalg.inv(T_gl), "both": np.linalg.inv(T_gl @ flip)}[written]
+        f["transform_matrix"] = T.tolist()
+    tf.write_text(json.dumps(meta))
+    opts = PoseOptions(method="known", progress=False, depth_points=False, triangulate=False)
+    what = {"opencv": "OpenCV camera axes", "inverse": "world-to-camera (the inverse",
+            "both": "world-to-camera in OpenCV camera axes"}[written]
+    with pytest.raises(InputError, match=rf"look like {re.escape(what)}.* by 0\.\d+ px; write camera-to-world") as e:
+        estimate_poses(load_dataset(cap), opts)
+    assert e.value.path == tf
+    res = estimate_poses(load_dataset(scene_default), opts)   # the file as nerfstudio writes it: read as before
+    assert len(res.frames) == len(load_dataset(scene_default).frames)

@@ -323,6 +323,8 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         stats.update(registered=len(in_cams))
         if opts.check_hand_eye and dataset.meta.get("format") in KNOWN_POSE_CHECKED:
             _check_known_poses(dataset, opts, frames, names, in_cams, stats)
+        elif opts.check_hand_eye and dataset.meta.get("format") == "nerfstudio" and not dataset.meta.get("sfm_derived"):
+            _check_transforms_convention(dataset, frames, names, in_cams)
         meta_frame = dataset.meta.get("frame")
         prior = TwinFrame(**meta_frame) if isinstance(meta_frame, dict) else frame_beside(dataset.meta.get("path", dataset.root))  # chained runs
         if opts.scale != "auto":
@@ -932,27 +934,12 @@ def _check_known_poses(dataset: Dataset, opts: PoseOptions, frames: list[DataFra
                  lc["time_offset_sigma_ms"])
 
 
-def _check_pose_list_convention(measures: list, T_world_cam: list[np.ndarray], cons: dict, pose_file: Path) -> None:
-    """InputError naming the pose list when its poses fit the photos only read another way: quaternions in
-    `qw qx qy qz` order (EuRoC's, many ROS tools' and scripts') read as TUM's `qx qy qz qw`, or world-to-camera
-    poses (T_cam_world, as COLMAP's images.txt and many SLAM exports store them) read as TUM's camera-to-world,
-    or both. Either gives every camera another pose, which the checks after this one blamed on the hand-eye,
-    timestamps, intrinsics or the table ("is the plane a wall?", --up), or which went on into a twin on wrong
-    poses. `cons`: the pose consistency of the poses as read (not "ok"); `measures`: its matched pairs
-    (`hand_eye_check.check_poses_with_images`)."""
+def _better_reading(measures: list, readings: dict[str, list[np.ndarray]], cons: dict) -> tuple[str, dict] | None:
+    """(name, consistency) of the reading of the poses ({name: T_world_cam per camera of `measures`}) that fits
+    the matched pairs best, when it fits them ("ok") and at most a third of the error `cons` of the poses as
+    read; else None."""
     from splattwin.poses import hand_eye_check as hec
-    from splattwin.transforms import invert_pose, matrix_from_quat_wxyz, quat_wxyz_from_matrix
 
-    def cycled(T: np.ndarray) -> np.ndarray:
-        # read as (x, y, z, w) = the file's (qw, qx, qy, qz): the file's quaternion (w, x, y, z) is the one read,
-        # cycled; any sign of q gives the same cycled rotation
-        w, x, y, z = quat_wxyz_from_matrix(T[:3, :3])
-        T2 = np.array(T, dtype=np.float64)
-        T2[:3, :3] = matrix_from_quat_wxyz(np.array([x, y, z, w]))
-        return T2
-
-    readings = {"wxyz": [cycled(T) for T in T_world_cam], "inverse": [invert_pose(T) for T in T_world_cam]}
-    readings["both"] = [invert_pose(T) for T in readings["wxyz"]]
     size = tuple(cons["matching_size"]) if cons.get("matching_size") else None
     best = None
     for kind, Ts in readings.items():
@@ -965,6 +952,64 @@ def _check_pose_list_convention(measures: list, T_world_cam: list[np.ndarray], c
         if alt is not None and alt["verdict"] == "ok" and alt["sampson_median_px"] <= cons["sampson_median_px"] / 3 \
                 and (best is None or alt["sampson_median_px"] < best[1]["sampson_median_px"]):
             best = (kind, alt)
+    return best
+
+
+def _check_transforms_convention(dataset: Dataset, frames: list[DataFrame], names: list[str],
+                                 in_cams: dict[str, Camera]) -> None:
+    """InputError naming a hand-written transforms.json whose poses fit the photos only read in another
+    convention: OpenCV camera axes (x right, y down, z forward: what robot and OpenCV code computes) where
+    nerfstudio's `transform_matrix` is OpenGL's (y up, z backward), and/or world-to-camera. Read as written,
+    such a file gave a twin on wrong poses without a word (the up check turned the flipped world "z up", 13
+    points triangulated instead of 240). Only when the poses as read miss the photos; a transforms.json from
+    nerfstudio's COLMAP converters (`sfm_derived`) is not checked."""
+    from splattwin.poses import hand_eye_check as hec
+    from splattwin.transforms import invert_pose
+
+    keys = [n for n in names if n in in_cams]
+    T = [in_cams[n].T_world_cam for n in keys]
+    cons, measures = hec.check_poses_with_images(keys, T, [frames[names.index(n)].image_path for n in keys],
+                                                 [in_cams[n] for n in keys])
+    if cons is None or cons["verdict"] == "ok":
+        return
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])   # OpenGL <-> OpenCV camera axes (its own inverse)
+    readings = {"opencv": [Ti @ flip for Ti in T], "inverse": [invert_pose(Ti @ flip) @ flip for Ti in T],
+                "both": [invert_pose(Ti @ flip) for Ti in T]}
+    best = _better_reading(measures, readings, cons)
+    if best is None:
+        return
+    kind, alt = best
+    what = {"opencv": "OpenCV camera axes (x right, y down, z forward)",
+            "inverse": "world-to-camera (the inverse of nerfstudio's camera-to-world)",
+            "both": "world-to-camera in OpenCV camera axes (x right, y down, z forward)"}[kind]
+    raise InputError(f"the transform_matrix poses look like {what}: read as nerfstudio's camera-to-world in OpenGL "
+                     f"axes (x right, y up, z backward) they miss the photos by a median {cons['sampson_median_px']:.2f} "
+                     f"px (Sampson error of {cons['pairs']} image pairs), read as {what} by "
+                     f"{alt['sampson_median_px']:.2f} px; write camera-to-world OpenGL poses (from OpenCV axes: "
+                     f"T_world_cam @ diag(1, -1, -1, 1))", Path(dataset.meta.get("path", dataset.root)))
+
+
+def _check_pose_list_convention(measures: list, T_world_cam: list[np.ndarray], cons: dict, pose_file: Path) -> None:
+    """InputError naming the pose list when its poses fit the photos only read another way: quaternions in
+    `qw qx qy qz` order (EuRoC's, many ROS tools' and scripts') read as TUM's `qx qy qz qw`, or world-to-camera
+    poses (T_cam_world, as COLMAP's images.txt and many SLAM exports store them) read as TUM's camera-to-world,
+    or both. Either gives every camera another pose, which the checks after this one blamed on the hand-eye,
+    timestamps, intrinsics or the table ("is the plane a wall?", --up), or which went on into a twin on wrong
+    poses. `cons`: the pose consistency of the poses as read (not "ok"); `measures`: its matched pairs
+    (`hand_eye_check.check_poses_with_images`)."""
+    from splattwin.transforms import invert_pose, matrix_from_quat_wxyz, quat_wxyz_from_matrix
+
+    def cycled(T: np.ndarray) -> np.ndarray:
+        # read as (x, y, z, w) = the file's (qw, qx, qy, qz): the file's quaternion (w, x, y, z) is the one read,
+        # cycled; any sign of q gives the same cycled rotation
+        w, x, y, z = quat_wxyz_from_matrix(T[:3, :3])
+        T2 = np.array(T, dtype=np.float64)
+        T2[:3, :3] = matrix_from_quat_wxyz(np.array([x, y, z, w]))
+        return T2
+
+    readings = {"wxyz": [cycled(T) for T in T_world_cam], "inverse": [invert_pose(T) for T in T_world_cam]}
+    readings["both"] = [invert_pose(T) for T in readings["wxyz"]]
+    best = _better_reading(measures, readings, cons)
     if best is None:
         return
     kind, alt = best
