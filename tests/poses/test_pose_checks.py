@@ -373,3 +373,29 @@ def test_transforms_json_in_another_convention_is_refused_naming_it(scene_defaul
     assert e.value.path == tf
     res = estimate_poses(load_dataset(scene_default), opts)   # the file as nerfstudio writes it: read as before
     assert len(res.frames) == len(load_dataset(scene_default).frames)
+
+
+def test_bop_scene_with_camera_to_world_poses_is_refused(tmp_path: Path):
+    """scene_camera.json with each camera's pose in the world written into cam_R_w2c / cam_t_w2c: it went on
+    with warnings (intrinsics undetermined, world tilted 17 deg, depth disagreeing) into a twin on wrong poses.
+    Now the run stops naming scene_camera.json and the inverse that fits the photos."""
+    import json
+
+    from splattwin.capture import load_dataset
+    from splattwin.poses import PoseOptions, estimate_poses
+    from splattwin.scene.options import SceneOptions
+    from splattwin.scene.robot_capture import RobotCaptureOptions, write_robot_capture
+
+    cap = write_robot_capture(tmp_path / "bop", SceneOptions(width=160, height=120, supersample=1),
+                              RobotCaptureOptions(views=12, width=160, height=120, format="bop"), progress=False)
+    opts = PoseOptions(method="known", progress=False, depth_points=False, triangulate=False, up="keep")
+    assert estimate_poses(load_dataset(cap), opts).stats["pose_consistency"]["verdict"] == "ok"   # as written
+    sc = cap / "scene_camera.json"
+    d = json.loads(sc.read_text())
+    for v in d.values():
+        R, t = np.array(v["cam_R_w2c"]).reshape(3, 3), np.array(v["cam_t_w2c"])
+        v["cam_R_w2c"], v["cam_t_w2c"] = R.T.ravel().tolist(), (-R.T @ t).tolist()
+    sc.write_text(json.dumps(d))
+    with pytest.raises(InputError, match=r"look like camera-to-world poses: .* inverted by 0\.\d+ px") as e:
+        estimate_poses(load_dataset(cap), opts)
+    assert e.value.path == sc

@@ -901,6 +901,8 @@ def _check_known_poses(dataset: Dataset, opts: PoseOptions, frames: list[DataFra
     else:
         if dataset.meta.get("format") == "tum":
             _check_pose_list_convention(measures, T, cons, Path(where))
+        elif dataset.meta.get("format") == "bop":
+            _check_bop_convention(measures, T, cons, Path(where))
         log.warning("%s", hec.consistency_message(cons, where, "the poses are kept as given (--poses.method known); "
                                                               "remedy: --poses.method sfm", robot=False))
     _check_intrinsics(measures, T, _intrinsics_source(dataset, opts), stats)
@@ -953,6 +955,22 @@ def _better_reading(measures: list, readings: dict[str, list[np.ndarray]], cons:
                 and (best is None or alt["sampson_median_px"] < best[1]["sampson_median_px"]):
             best = (kind, alt)
     return best
+
+
+def _check_bop_convention(measures: list, T_world_cam: list[np.ndarray], cons: dict, scene_camera: Path) -> None:
+    """InputError naming scene_camera.json when its `cam_R_w2c` / `cam_t_w2c` fit the photos only read as the
+    camera's pose in the world (camera-to-world written into the world-to-camera fields): read as given, such a
+    scene went on with warnings blaming the intrinsics, a tilted world and the depth into a twin on wrong
+    poses. `cons`, `measures`: as `_check_pose_list_convention`."""
+    from splattwin.transforms import invert_pose
+
+    best = _better_reading(measures, {"inverse": [invert_pose(T) for T in T_world_cam]}, cons)
+    if best is None:
+        return
+    raise InputError(f"cam_R_w2c / cam_t_w2c look like camera-to-world poses: read as BOP's world-to-camera the "
+                     f"poses miss the photos by a median {cons['sampson_median_px']:.2f} px (Sampson error of "
+                     f"{cons['pairs']} image pairs), inverted by {best[1]['sampson_median_px']:.2f} px; write "
+                     f"cam_R_w2c = R^T and cam_t_w2c = -R^T t (mm) of each camera-to-world pose (R, t)", scene_camera)
 
 
 def _check_transforms_convention(dataset: Dataset, frames: list[DataFrame], names: list[str],
