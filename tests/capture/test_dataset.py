@@ -116,14 +116,15 @@ def test_a_folder_whose_images_are_in_sub_folders_names_them(tmp_path):
     # alone sent the user looking for what was wrong with their photos
     from splattwin import io
 
-    for sub, n in (("depth", 3), ("rgb", 3), ("notes", 0)):
+    for sub, n in (("depth", 3), ("rgb", 3), ("notes", 0), (".thumbnails", 2)):
         (tmp_path / sub).mkdir()
         for i in range(n):
             io.write_image(tmp_path / sub / f"{i:04d}.png", np.zeros((8, 8, 3), np.uint8))
     with pytest.raises(InputError) as e:
         load_dataset(tmp_path)
     msg = str(e.value)
-    assert "no dataset found here" in msg and "depth/ (3 images), rgb/ (3 images)" in msg and "notes/" not in msg
+    assert "no dataset found here" in msg and "depth/ (3 images), rgb/ (3 images)." in msg
+    assert "notes/" not in msg and ".thumbnails" not in msg
     assert f"e.g. {tmp_path / 'rgb'}" in msg
 
 

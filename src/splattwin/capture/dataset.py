@@ -416,7 +416,8 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
                              f"{'...' if len(scenes) > 5 else ''}); give one scene folder", path)
         # a camera's own layout (RealSense / ROS exports: rgb/ + depth/ without a pose list; one folder per
         # camera): name the sub-folders that hold images rather than say there are none
-        held = [(p.name, len(find_images(p))) for p in sorted(path.iterdir()) if p.is_dir() and not p.is_symlink()]
+        held = [(p.name, _count_images(p)) for p in sorted(path.iterdir())
+                if p.is_dir() and not p.is_symlink() and not p.name.startswith(".")]
         held = [(n, k) for n, k in held if k]
         hint = ""
         if held:
@@ -436,6 +437,14 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
         ds.validate()
     _check_frame_names(ds, path)
     return ds
+
+
+def _count_images(folder: Path) -> int:
+    """How many images `folder` holds (0 when it cannot be listed: a hint must not fail on it)."""
+    try:
+        return len(find_images(folder))
+    except OSError:
+        return 0
 
 
 def name_views_by_path(frames: list[Frame]) -> None:
