@@ -28,3 +28,15 @@ def test_transparent_pixels_of_photos_become_loss_masks(tmp_path):
     keep = load_loss_mask(mask, (32, 24))
     assert not keep[:10].any() and keep[10:].all()
     assert load_image(by_name["a"].image_path).shape == (24, 32, 3)   # the photo itself is read as before
+
+
+def test_photos_left_in_sub_folders_are_named(tmp_path, caplog):
+    # photos split over the folder and a sub-folder: the sub-folder's were left out without a word
+    photos = tmp_path / "photos"
+    for i, name in enumerate(("a.jpg", "b.jpg", "more/c.jpg", "more/d.jpg", "masks/a.png")):
+        io.write_image(photos / name, np.full((8, 8, 3), 40 * i, np.uint8))
+    with caplog.at_level("WARNING", logger="splattwin.capture.images"):
+        ds = load_dataset(photos)
+    assert len(ds.frames) == 2
+    assert "sub-folders are not searched, so the images of more/ (2) are left out" in caplog.text
+    assert "masks/" not in caplog.text   # masks beside the photos are no photos

@@ -416,13 +416,11 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
                              f"{'...' if len(scenes) > 5 else ''}); give one scene folder", path)
         # a camera's own layout (RealSense / ROS exports: rgb/ + depth/ without a pose list; one folder per
         # camera): name the sub-folders that hold images rather than say there are none
-        held = [(p.name, _count_images(p)) for p in sorted(path.iterdir())
-                if p.is_dir() and not p.is_symlink() and not p.name.startswith(".")]
-        held = [(n, k) for n, k in held if k]
+        held = image_subfolders(path)
         hint = ""
         if held:
             photos = [n for n, _ in held if n.lower() in ("rgb", "color", "colour", "images", "photos", "frames")]
-            photos += [n for n, _ in held if not n.lower().startswith(("depth", "mask", "label", "seg"))]
+            photos += [n for n, _ in held if not n.lower().startswith(("depth", "mask", "label", "seg"))]   # as images.NOT_PHOTO_FOLDERS
             example = (photos or [held[0][0]])[0]
             listed = ", ".join(f"{n}/ ({k} image{'s' if k > 1 else ''})" for n, k in held[:5])
             hint = (f"; its sub-folders hold images: {listed}{', ...' if len(held) > 5 else ''}. Give the folder of "
@@ -439,12 +437,19 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
     return ds
 
 
-def _count_images(folder: Path) -> int:
-    """How many images `folder` holds (0 when it cannot be listed: a hint must not fail on it)."""
-    try:
-        return len(find_images(folder))
-    except OSError:
-        return 0
+def image_subfolders(folder: Path) -> list[tuple[str, int]]:
+    """(name, number of images) of the sub-folders of `folder` that hold images, sorted by name; hidden ones
+    (.thumbnails, .git), links and folders that cannot be listed left out (for hints: they must not fail)."""
+    out = []
+    for p in sorted(Path(folder).iterdir()):
+        if p.is_dir() and not p.is_symlink() and not p.name.startswith("."):
+            try:
+                n = len(find_images(p))
+            except OSError:
+                n = 0
+            if n:
+                out.append((p.name, n))
+    return out
 
 
 def name_views_by_path(frames: list[Frame]) -> None:

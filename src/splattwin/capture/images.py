@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from splattwin.capture.camera import Camera
-from splattwin.capture.dataset import Dataset, Frame, find_images, image_size
+from splattwin.capture.dataset import Dataset, Frame, find_images, image_size, image_subfolders
 from splattwin.capture.orientation import upright_copies
 from splattwin.errors import InputError
 
@@ -43,6 +43,7 @@ def _drop_copies(files: list[Path]) -> list[Path]:
 
 
 ALPHA_DIR = "alpha_masks"
+NOT_PHOTO_FOLDERS = ("depth", "mask", "label", "seg")   # sub-folder names (prefixes) that hold no photos
 # PIL modes that carry an alpha channel (a palette image may carry one as its transparency entry)
 _ALPHA_MODES = ("RGBA", "LA", "PA", "RGBa", "La")
 
@@ -117,6 +118,13 @@ def read(path: str | Path, fov_x_deg: float = 60.0, out_dir: str | Path | None =
     files = find_images(folder)
     if not files:
         raise InputError("no images found (png/jpg/...)", folder)
+    # masks/, depth/ ... beside the photos are no photos
+    nested = [(n, k) for n, k in image_subfolders(folder) if not n.lower().startswith(NOT_PHOTO_FOLDERS)]
+    if nested and folder not in _ANNOUNCED:   # photos split over sub-folders lost the rest without a word
+        _ANNOUNCED.add(folder)
+        log.warning("%s: using its %d images; sub-folders are not searched, so the images of %s are left out (give "
+                    "a folder that holds all the photos)", folder, len(files),
+                    ", ".join(f"{n}/ ({k})" for n, k in nested[:5]) + (", ..." if len(nested) > 5 else ""))
     return read_files(files, root=path, folder=folder, fov_x_deg=fov_x_deg, out_dir=out_dir)
 
 
