@@ -283,7 +283,8 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         tmp = None if opts.work_dir is not None else tempfile.TemporaryDirectory(prefix="splattwin_sfm_")
         work = Path(opts.work_dir) if opts.work_dir is not None else Path(tmp.name)  # type: ignore[union-attr]
         try:
-            sfm = run_sfm([f.image_path for f in frames], work, sopts, progress=opts.progress)
+            sfm = run_sfm([f.image_path for f in frames], work, sopts, progress=opts.progress,
+                          masks=_feature_masks(frames))
         except InputError as e:
             raise _as_given(e, dataset) from e
         finally:
@@ -524,6 +525,16 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
 
 
 # ------------------------------------------------------------------------------------------------
+def _feature_masks(frames: list[DataFrame]) -> dict[Path, Path]:
+    """{image: loss mask} of the frames whose loss mask (a photo's transparent pixels, a nerfstudio mask_path)
+    has the image's size: SfM extracts no features where it is 0, as COLMAP's mask_path (a reduced mask,
+    nerfstudio's masks_2/, is left out: COLMAP refuses the image with it)."""
+    from splattwin.capture.dataset import image_size
+
+    return {f.image_path: f.mask_path for f in frames
+            if f.mask_path is not None and image_size(f.mask_path) == (f.camera.width, f.camera.height)}
+
+
 def _check_exposure(frames: list[DataFrame], pts_xyz: np.ndarray | None, opts: PoseOptions, stats: dict) -> None:
     """stats["exposure"]: per-image exposure / white-balance gains measured on the sparse points
     (`splattwin.poses.exposure`); a warning naming the images when they differ beyond its threshold."""
