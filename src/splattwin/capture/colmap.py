@@ -277,9 +277,10 @@ def write_text(dataset: Dataset, sparse_dir: str | Path) -> Path:
         img_lines.append(f"{i} {qw!r} {qx!r} {qy!r} {qz!r} {tx!r} {ty!r} {tz!r} {cam_ids[key]} {name}\n")
     spaced = [ln.split(maxsplit=9)[9].rstrip("\n") for ln in img_lines if len(ln.split()) > 10]
     if spaced:
+        many = len(spaced) > 1
         log.warning("%s: %d image name%s hold%s spaces (%s%s): splattwin reads them back whole, but COLMAP and "
                     "pycolmap read a text model's image names only up to the first space; rename the images for "
-                    "those tools", sparse_dir, len(spaced), "s" if len(spaced) > 1 else "", "" if len(spaced) > 1 else "s",
+                    "those tools", sparse_dir, len(spaced), "s" if many else "", "" if many else "s",
                     ", ".join(spaced[:3]), ", ..." if len(spaced) > 3 else "")
     pts = []
     if dataset.points_xyz is not None:

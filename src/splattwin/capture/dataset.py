@@ -420,7 +420,8 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
         hint = ""
         if held:
             photos = [n for n, _ in held if n.lower() in ("rgb", "color", "colour", "images", "photos", "frames")]
-            photos += [n for n, _ in held if not n.lower().startswith(("depth", "mask", "label", "seg"))]   # as images.NOT_PHOTO_FOLDERS
+            # not depth/, masks/ ... (as capture.images.NOT_PHOTO_FOLDERS)
+            photos += [n for n, _ in held if not n.lower().startswith(("depth", "mask", "label", "seg"))]
             example = (photos or [held[0][0]])[0]
             listed = ", ".join(f"{n}/ ({k} image{'s' if k > 1 else ''})" for n, k in held[:5])
             hint = (f"; its sub-folders hold images: {listed}{', ...' if len(held) > 5 else ''}. Give the folder of "

@@ -1012,8 +1012,9 @@ def _check_transforms_convention(dataset: Dataset, frames: list[DataFrame], name
             "inverse": "world-to-camera (the inverse of nerfstudio's camera-to-world)",
             "both": "world-to-camera in OpenCV camera axes (x right, y down, z forward)"}[kind]
     raise InputError(f"the transform_matrix poses look like {what}: read as nerfstudio's camera-to-world in OpenGL "
-                     f"axes (x right, y up, z backward) they miss the photos by a median {cons['sampson_median_px']:.2f} "
-                     f"px (Sampson error of {cons['pairs']} image pairs), read as {what} by "
+                     f"axes (x right, y up, z backward) they miss the photos by a median "
+                     f"{cons['sampson_median_px']:.2f} px (Sampson error of {cons['pairs']} image pairs), read as "
+                     f"{what} by "
                      f"{alt['sampson_median_px']:.2f} px; write camera-to-world OpenGL poses (from OpenCV axes: "
                      f"T_world_cam @ diag(1, -1, -1, 1))", Path(dataset.meta.get("path", dataset.root)))
 
