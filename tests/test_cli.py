@@ -116,6 +116,27 @@ def test_every_argument_of_every_command_has_help():
     assert not list(bare(build_parser(), ["splattwin"]))
 
 
+def test_input_help_names_every_capture_layout():
+    """Every command that takes a capture reads the BOP and TUM layouts too: `capture info --help` and `batch
+    --help` did not say so (a robotics user with a BOP scene or a TUM pose list was told it is not read)."""
+    import argparse
+
+    from splattwin.cli import build_parser
+
+    def positional(parser, path):
+        for a in parser._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for name, sub in a.choices.items():
+                    yield from positional(sub, path + [name])
+            elif not a.option_strings and a.dest != "out" and a.help and "COLMAP" in a.help:
+                yield " ".join(path), " ".join(a.help.split())
+
+    helps = dict(positional(build_parser(), []))
+    assert {"capture info", "batch", "build", "poses"} <= set(helps)
+    for command, text in helps.items():
+        assert "BOP" in text and "TUM" in text, (command, text)
+
+
 def test_the_command_quiets_toppra_the_library_does_not(tmp_path):
     """TOPP-RA logs every solver step; the command sets its logger to WARNING (the robot stage did, on every
     call, overriding a library caller's own setting: audit 10A L7)."""

@@ -109,3 +109,32 @@ def test_datasets_compare_by_value(scene_small):
     assert a == b and a.frames[0] == b.frames[0] and a.frames[0] in b.frames
     b.frames[1].camera.T_world_cam[0, 3] += 0.01
     assert a != b
+
+
+def test_a_folder_whose_images_are_in_sub_folders_names_them(tmp_path):
+    # a RealSense / ROS export without a pose list (rgb/ + depth/), or one folder per camera: "no dataset found"
+    # alone sent the user looking for what was wrong with their photos
+    from splattwin import io
+
+    for sub, n in (("depth", 3), ("rgb", 3), ("notes", 0), (".thumbnails", 2)):
+        (tmp_path / sub).mkdir()
+        for i in range(n):
+            io.write_image(tmp_path / sub / f"{i:04d}.png", np.zeros((8, 8, 3), np.uint8))
+    with pytest.raises(InputError) as e:
+        load_dataset(tmp_path)
+    msg = str(e.value)
+    assert "no dataset found here" in msg and "depth/ (3 images), rgb/ (3 images)." in msg
+    assert "notes/" not in msg and ".thumbnails" not in msg
+    assert f"e.g. {tmp_path / 'rgb'}" in msg
+
+
+def test_hidden_files_beside_the_photos_are_left_out(tmp_path):
+    # macOS's AppleDouble `._IMG.JPG` beside every photo copied to an exFAT drive: no image, and the whole
+    # capture stopped on it as unreadable
+    from splattwin import io
+
+    for i in range(3):
+        io.write_image(tmp_path / f"IMG_{i}.JPG", np.full((8, 8, 3), 40 * i, np.uint8))
+        (tmp_path / f"._IMG_{i}.JPG").write_bytes(b"\x00\x05\x16\x07\x00\x02\x00\x00Mac OS X        ")
+    ds = load_dataset(tmp_path)
+    assert [f.image_path.name for f in ds.frames] == ["IMG_0.JPG", "IMG_1.JPG", "IMG_2.JPG"]

@@ -141,6 +141,23 @@ def test_colmap_roundtrip(tmp_path, binary, make_dataset):
     np.testing.assert_allclose(np.sort(back.points_xyz, axis=0), np.sort(ds.points_xyz, axis=0), atol=1e-9)
 
 
+def test_colmap_text_model_keeps_image_names_with_spaces(tmp_path, make_dataset, caplog):
+    # COLMAP writes `f 4.jpg` into images.txt as it is, but reads (as pycolmap does) only `f`: every such image
+    # became the missing `images/f`, skipped with a warning, and the capture went on with the others alone
+    ds = make_dataset(tmp_path)
+    for i, f in enumerate(ds.frames):
+        spaced = f.image_path.with_name(f"cake photo {i}.png")
+        f.image_path.rename(spaced)
+        f.image_path = spaced
+    with caplog.at_level(logging.WARNING, logger="splattwin.capture.colmap"):
+        colmap.write_text(ds, tmp_path / "sparse" / "0")
+    assert "4 image names hold spaces (cake photo 0.png, cake photo 1.png, cake photo 2.png, ...)" in caplog.text
+    back = load_dataset(tmp_path)
+    assert sorted(f.image_path.name for f in back.frames) == [f"cake photo {i}.png" for i in range(4)]
+    assert sorted(f.camera.name for f in back.frames) == [f"cake photo {i}" for i in range(4)]
+    assert_same_cameras(ds, back, check_split=False, atol=1e-7)
+
+
 def test_colmap_unknown_model(tmp_path, make_dataset):
     ds = make_dataset(tmp_path, with_points=False)
     sparse = tmp_path / "sparse" / "0"

@@ -291,7 +291,7 @@ def test_pose_errors_about_a_video_name_it_and_both_commands_flags(tmp_path, mon
     assert e.value.path == video and "a video has no camera poses" in e.value.problem
     assert "build: --poses sfm" in e.value.problem and "splattwin poses: --sfm" in e.value.problem
 
-    def failing(paths, work, opts, progress=True):
+    def failing(paths, work, opts, progress=True, masks=None):
         raise InputError("structure from motion registered only 1/6 images", sfm.image_layout(paths)[0])
 
     monkeypatch.setattr(sfm, "run_sfm", failing)

@@ -146,7 +146,7 @@ def _fake_sfm(monkeypatch, gt_frames, S: np.ndarray, n_points: int = 300):
     table = pts[np.abs(pts[:, 2] - np.median(pts[:, 2])) < 0.002]
     true_pts = np.concatenate([true_pts, table[rng.choice(len(table), 60, replace=False)]])
 
-    def run_sfm(paths, work, sopts, progress=True):
+    def run_sfm(paths, work, sopts, progress=True, masks=None):
         _, rel = image_layout(list(paths))
         by_path = {Path(f.image_path).name: f.camera for f in ds_depth.frames}
         cams = {r: transform_camera(S, by_path[Path(p).name]) for r, p in zip(rel, paths)}

@@ -5,6 +5,7 @@ matches with the poses held fixed."""
 from __future__ import annotations
 
 import dataclasses
+import re
 import shutil
 from pathlib import Path
 
@@ -314,3 +315,87 @@ def test_robot_poses_with_a_wrong_focal_warned(scene_default: Path, tmp_path: Pa
     assert ic["intrinsics_file"] == gt.meta["path"] and gt.meta["path"] in caplog.text, ic
     assert res.stats["hand_eye_check"]["verdict"] == "consistent"
     assert "latency_check" not in res.stats  # robot pose files carry no timestamps
+
+
+def test_pose_list_in_another_convention_is_refused_naming_it(tum_capture: Path, tmp_path: Path):
+    """groundtruth.txt written `id tx ty tz qw qx qy qz` (EuRoC's and many ROS scripts' order), or holding
+    world-to-camera poses (COLMAP's and many SLAM exports' convention), read as TUM's camera-to-world `qx qy qz
+    qw`: every camera moved, warnings blaming the hand-eye, timestamps or intrinsics, and then (here with --up
+    keep) a twin on wrong poses, or an up-check error blaming the table plane. Now the run stops naming the pose
+    list and the convention whose poses fit the photos."""
+    from splattwin.capture.tum import read_pose_list, write_pose_list
+    from splattwin.transforms import invert_pose
+
+    cap = _copy(tum_capture, tmp_path / "wxyz")
+    gt = cap / "groundtruth.txt"
+    lines = []
+    for ln in gt.read_text().splitlines():
+        f = ln.split()
+        lines.append(ln if ln.startswith("#") else " ".join(f[:4] + [f[7]] + f[4:7]))
+    gt.write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=r"w x y z order: .* read as `qw qx qy qz` by 0\.\d+ px") as e:
+        _poses(cap)
+    assert e.value.path == gt
+
+    cap = _copy(tum_capture, tmp_path / "w2c")
+    gt = cap / "groundtruth.txt"
+    write_pose_list(gt, [(k, invert_pose(T)) for k, T in read_pose_list(gt)])
+    with pytest.raises(InputError, match=r"world-to-camera \(T_cam_world\): .* inverted by 0\.\d+ px") as e:
+        _poses(cap)
+    assert e.value.path == gt
+
+
+@pytest.mark.parametrize("written", ["opencv", "inverse", "both"])
+def test_transforms_json_in_another_convention_is_refused_naming_it(scene_default: Path, tmp_path: Path, written):
+    """A hand-written transforms.json with OpenCV camera axes (what robot code computes) and/or world-to-camera
+    poses where nerfstudio's transform_matrix is camera-to-world in OpenGL axes: it was read without a word (the
+    up check turned the flipped world 'z up', 13 points triangulated instead of 240) into a twin on wrong poses.
+    Now the run stops naming the file and the convention whose poses fit the photos; as written: unchanged."""
+    import json
+
+    from splattwin.capture import load_dataset
+    from splattwin.poses import PoseOptions, estimate_poses
+
+    cap = Path(shutil.copytree(scene_default, tmp_path / written))
+    tf = cap / "transforms.json"
+    meta = json.loads(tf.read_text())
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])
+    for f in meta["frames"]:
+        T_gl = np.array(f["transform_matrix"])
+        T = {"opencv": T_gl @ flip, "inverse": np.linalg.inv(T_gl), "both": np.linalg.inv(T_gl @ flip)}[written]
+        f["transform_matrix"] = T.tolist()
+    tf.write_text(json.dumps(meta))
+    opts = PoseOptions(method="known", progress=False, depth_points=False, triangulate=False)
+    what = {"opencv": "OpenCV camera axes", "inverse": "world-to-camera (the inverse",
+            "both": "world-to-camera in OpenCV camera axes"}[written]
+    with pytest.raises(InputError, match=rf"look like {re.escape(what)}.* by 0\.\d+ px; write camera-to-world") as e:
+        estimate_poses(load_dataset(cap), opts)
+    assert e.value.path == tf
+    res = estimate_poses(load_dataset(scene_default), opts)   # the file as nerfstudio writes it: read as before
+    assert len(res.frames) == len(load_dataset(scene_default).frames)
+
+
+def test_bop_scene_with_camera_to_world_poses_is_refused(tmp_path: Path):
+    """scene_camera.json with each camera's pose in the world written into cam_R_w2c / cam_t_w2c: it went on
+    with warnings (intrinsics undetermined, world tilted 17 deg, depth disagreeing) into a twin on wrong poses.
+    Now the run stops naming scene_camera.json and the inverse that fits the photos."""
+    import json
+
+    from splattwin.capture import load_dataset
+    from splattwin.poses import PoseOptions, estimate_poses
+    from splattwin.scene.options import SceneOptions
+    from splattwin.scene.robot_capture import RobotCaptureOptions, write_robot_capture
+
+    cap = write_robot_capture(tmp_path / "bop", SceneOptions(width=160, height=120, supersample=1),
+                              RobotCaptureOptions(views=12, width=160, height=120, format="bop"), progress=False)
+    opts = PoseOptions(method="known", progress=False, depth_points=False, triangulate=False, up="keep")
+    assert estimate_poses(load_dataset(cap), opts).stats["pose_consistency"]["verdict"] == "ok"   # as written
+    sc = cap / "scene_camera.json"
+    d = json.loads(sc.read_text())
+    for v in d.values():
+        R, t = np.array(v["cam_R_w2c"]).reshape(3, 3), np.array(v["cam_t_w2c"])
+        v["cam_R_w2c"], v["cam_t_w2c"] = R.T.ravel().tolist(), (-R.T @ t).tolist()
+    sc.write_text(json.dumps(d))
+    with pytest.raises(InputError, match=r"look like camera-to-world poses: .* inverted by 0\.\d+ px") as e:
+        estimate_poses(load_dataset(cap), opts)
+    assert e.value.path == sc

@@ -67,8 +67,11 @@ def test_polygon_json_and_mask_file_names_are_checked(tmp_path):
                       "segmentation_polygons": [[[2, 2], [6, 2], [6, 5], [2, 5]]]})
     with pytest.raises(InputError, match="image_filename"):
         load_masks(tmp_path / "poly")
-    png = tmp_path / "png" / "train_000" / "...png"   # stem ".." as an object name
+    png = tmp_path / "png" / "train_000" / "...png"   # stem ".." as an object name: a hidden file, never read
     io.write_image(png, np.full((4, 4), 255, np.uint8))
+    with pytest.raises(InputError, match="no <view>/<object>.png masks"):
+        load_masks(tmp_path / "png")
+    io.write_image(tmp_path / "png" / "train_000" / "a b..png", np.full((4, 4), 255, np.uint8))   # stem "a b."
     with pytest.raises(InputError, match="not allowed"):
         load_masks(tmp_path / "png")
 

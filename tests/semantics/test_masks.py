@@ -285,3 +285,28 @@ def test_label_image_with_too_many_labels_is_refused_before_masks(tmp_path):
     few[:4, :4], few[10:, 10:] = 7, 300
     io.write_image(tmp_path / "gt" / "v0.png", few)
     assert sorted(load_masks(tmp_path / "gt").objects) == [7, 300]
+
+
+APPLEDOUBLE = b"\x00\x05\x16\x07\x00\x02\x00\x00Mac OS X        "
+
+
+def test_hidden_appledouble_files_beside_masks_are_left_out(tmp_path):
+    # a mask folder copied from a Mac to an exFAT drive has `._x.png` beside every file (and `._view` beside every
+    # folder): none is a mask, and the first stopped the masks as an unreadable image
+    a = np.zeros((8, 10), np.uint8)
+    a[1:4, 2:6] = 255
+    io.write_image(tmp_path / "png" / "train_000" / "cube.png", a)
+    (tmp_path / "png" / "train_000" / "._cube.png").write_bytes(APPLEDOUBLE)
+    (tmp_path / "png" / "._train_000").write_bytes(APPLEDOUBLE)
+    ms = load_masks(tmp_path / "png", objects={"cube": 4})
+    assert ms.objects == {4: "cube"} and ms.views == ["train_000"] and ms.get("train_000", 4).sum() == 12
+    lab = np.zeros((8, 10), np.uint8)
+    lab[2:5, 1:3] = 2
+    io.write_image(tmp_path / "gt" / "train_000.png", lab)
+    (tmp_path / "gt" / "._train_000.png").write_bytes(APPLEDOUBLE)
+    g = load_masks(tmp_path / "gt", objects={"a": 2})
+    assert g.views == ["train_000"] and g.get("train_000", 2).sum() == 6
+    save_polygon_dir(_maskset(), tmp_path / "poly")
+    (tmp_path / "poly" / "blue_box" / "._v0_mask.json").write_bytes(APPLEDOUBLE)
+    back = load_masks(tmp_path / "poly", objects={"blue_box": 1, "toy_hammer": 3})
+    assert np.array_equal(back.get("v0", 1), _maskset().get("v0", 1))

@@ -17,7 +17,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     csub = p.add_subparsers(dest="capture_command", metavar="ACTION", required=True)
 
     info = csub.add_parser("info", help="summarise a dataset (any supported layout)")
-    info.add_argument("path", type=Path, help="transforms.json, COLMAP folder, cameras.json, image folder or video")
+    info.add_argument("path", type=Path, help="transforms.json, COLMAP folder, cameras.json, BOP scene, TUM pose "
+                      "list + intrinsics, image folder or video")
     info.add_argument("--max-frames", type=int, default=None,
                       help="video: number of frames to extract, the sharpest of as many equal windows (default 30)")
     info.add_argument("--no-progress", dest="progress", action="store_false", help="no progress lines (video)")

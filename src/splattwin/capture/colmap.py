@@ -133,11 +133,13 @@ def _check_rotation(q, name: str, where: Path) -> None:
         raise InputError(f"image {name!r}: its quaternion {tuple(float(x) for x in q)} is not a rotation", where)
 
 
-def check_model(sparse: Path) -> None:
+def check_model(sparse: Path) -> dict[int, str]:
     """InputError for a model file whose declared counts exceed what the file holds or `MAX_ELEMENTS`,
     a camera model pycolmap does not know, or an image whose rotation is no rotation (see the module
-    docstring). Text files are bounded by size (their records are lines) and their quaternions checked."""
+    docstring). Text files are bounded by size (their records are lines) and their quaternions checked.
+    Returns the image names of an images.txt by image id (whole, spaces included; {} for images.bin)."""
     models = _model_params()
+    names: dict[int, str] = {}
 
     def cameras(r: _Reader) -> None:
         for i in range(r.count("number of cameras", 24)):
@@ -166,27 +168,35 @@ def check_model(sparse: Path) -> None:
             if t.stat().st_size > MAX_TEXT_BYTES:
                 raise InputError(f"COLMAP model file of {t.stat().st_size} bytes (at most {int(MAX_TEXT_BYTES)})", t)
             if stem == "images":
-                _check_text_rotations(t)
+                names = _check_text_rotations(t)
+    return names
 
 
-def _check_text_rotations(path: Path) -> None:
+def _check_text_rotations(path: Path) -> dict[int, str]:
     """images.txt: each image line (`IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME`, the first non-empty,
-    non-comment line) is followed by its points line (read as is, possibly empty), as COLMAP reads them."""
+    non-comment line) is followed by its points line (read as is, possibly empty), as COLMAP reads them.
+    Returns {image id: NAME}, NAME being the rest of the line: COLMAP writes a name with spaces as it is
+    (`f 4.jpg`), but reads (as pycolmap does) only up to the first space (`f`)."""
     from splattwin.limits import read_text
 
+    names: dict[int, str] = {}
     lines = iter(read_text(path, "COLMAP images.txt").splitlines())
     for ln in lines:
         if not ln.strip() or ln.lstrip().startswith("#"):
             continue
         next(lines, None)   # its 2D points
-        f = ln.split()
+        f = ln.split(maxsplit=9)
         if len(f) < 10:
             continue        # pycolmap names the bad line
         try:
             q = [float(x) for x in f[1:5]]
         except ValueError:
             continue
-        _check_rotation(q, f[9], path)
+        name = f[9].rstrip()
+        _check_rotation(q, name, path)
+        if f[0].isascii() and f[0].isdigit():
+            names[int(f[0])] = name
+    return names
 
 
 def read(path: str | Path, image_dir: str | Path | None = None) -> Dataset:
@@ -200,7 +210,7 @@ def read(path: str | Path, image_dir: str | Path | None = None) -> Dataset:
         candidates = [path / "images", sparse.parent / "images", sparse.parent.parent / "images"]
         image_dir = next((c for c in candidates if c.is_dir()), path)
     image_dir = Path(image_dir)
-    check_model(sparse)
+    text_names = check_model(sparse)
     try:
         rec = pycolmap.Reconstruction(str(sparse))
     except Exception as e:  # pycolmap raises RuntimeError/ValueError on corrupt files
@@ -208,23 +218,24 @@ def read(path: str | Path, image_dir: str | Path | None = None) -> Dataset:
     frames: list[Frame] = []
     for image_id in sorted(rec.reg_image_ids()):
         im = rec.image(image_id)
+        name = text_names.get(image_id, im.name)   # pycolmap cut a text model's `f 4.jpg` to `f`
         cam = rec.camera(im.camera_id)
-        K, dist = camera_from_colmap(cam.model.name, np.asarray(cam.params), cam.width, cam.height, im.name, sparse)
+        K, dist = camera_from_colmap(cam.model.name, np.asarray(cam.params), cam.width, cam.height, name, sparse)
         cfw = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
         T_cam_world = np.eye(4)
         T_cam_world[:3, :4] = np.asarray(cfw.matrix())
         if not np.all(np.isfinite(T_cam_world)):
-            raise InputError(f"image {im.name!r}: pose is not finite", sparse)
-        img_path = confined(image_dir, im.name, sparse, f"image name of image {image_id}")
-        check_pixels(cam.width, cam.height, sparse, f"camera of image {im.name!r}")
+            raise InputError(f"image {name!r}: pose is not finite", sparse)
+        img_path = confined(image_dir, name, sparse, f"image name of image {image_id}")
+        check_pixels(cam.width, cam.height, sparse, f"camera of image {name!r}")
         if not img_path.is_file():
             log.warning("%s: image %s is missing; skipping it", sparse, img_path)
             continue
         try:
             camera = plausible(Camera(K=K, width=cam.width, height=cam.height, T_world_cam=np.linalg.inv(T_cam_world),
-                                      dist=dist, name=Path(im.name).stem))
+                                      dist=dist, name=Path(name).stem))
         except InputError as e:
-            raise InputError(f"image {im.name!r}: {e.problem}", sparse) from e
+            raise InputError(f"image {name!r}: {e.problem}", sparse) from e
         frames.append(Frame(image_path=img_path, camera=camera))
     if not frames:
         raise InputError("COLMAP model has no registered image with an existing file", sparse)
@@ -264,6 +275,13 @@ def write_text(dataset: Dataset, sparse_dir: str | Path) -> Path:
         tx, ty, tz = (float(v) for v in T[:3, 3])
         name = f.image_path.relative_to(image_root).as_posix() if f.image_path.is_relative_to(image_root) else f.image_path.name
         img_lines.append(f"{i} {qw!r} {qx!r} {qy!r} {qz!r} {tx!r} {ty!r} {tz!r} {cam_ids[key]} {name}\n")
+    spaced = [ln.split(maxsplit=9)[9].rstrip("\n") for ln in img_lines if len(ln.split()) > 10]
+    if spaced:
+        many = len(spaced) > 1
+        log.warning("%s: %d image name%s hold%s spaces (%s%s): splattwin reads them back whole, but COLMAP and "
+                    "pycolmap read a text model's image names only up to the first space; rename the images for "
+                    "those tools", sparse_dir, len(spaced), "s" if many else "", "" if many else "s",
+                    ", ".join(spaced[:3]), ", ..." if len(spaced) > 3 else "")
     pts = []
     if dataset.points_xyz is not None:
         rgb = dataset.points_rgb if dataset.points_rgb is not None else np.full((len(dataset.points_xyz), 3), 128, np.uint8)

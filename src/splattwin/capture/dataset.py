@@ -307,8 +307,13 @@ def find_images(folder: Path, inside: Path | None = None) -> list[Path]:
     return list_files(folder, _IMAGE_SUFFIXES_LOWER, inside)
 
 
+_HIDDEN_ANNOUNCED: set[Path] = set()
+
+
 def list_files(folder: Path, suffixes, inside: Path | None = None) -> list[Path]:
-    """The files of `folder` whose suffix is in `suffixes` (any case), sorted by name.
+    """The files of `folder` whose suffix is in `suffixes` (any case), sorted by name. Hidden files (a
+    leading dot) are left out: macOS writes an AppleDouble `._IMG_0001.JPG` beside every photo copied to a
+    FAT/exFAT drive or network share, which is no image and stopped the whole capture as unreadable.
 
     inside: the dataset folder every file must stay in, symbolic links resolved (InputError naming the
     link otherwise), as paths named in a dataset's files must (`splattwin.paths`): a received dataset
@@ -319,6 +324,13 @@ def list_files(folder: Path, suffixes, inside: Path | None = None) -> list[Path]
     folder = Path(folder)
     lower = {x.lower() for x in suffixes}
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in lower and p.is_file())
+    hidden = [p for p in files if p.name.startswith(".")]
+    if hidden:
+        files = [p for p in files if not p.name.startswith(".")]
+        if folder not in _HIDDEN_ANNOUNCED:   # once per folder and run: every stage lists the capture
+            _HIDDEN_ANNOUNCED.add(folder)
+            log.info("%s: %d hidden file%s left out (%s%s)", folder, len(hidden), "s" if len(hidden) > 1 else "",
+                     ", ".join(p.name for p in hidden[:3]), ", ..." if len(hidden) > 3 else "")
     if inside is not None:
         for p in files:
             confined(inside, p.relative_to(inside), p, f"{p.parent.name}/ file")
@@ -402,8 +414,21 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
         if scenes:
             raise InputError(f"this folder holds {len(scenes)} BOP scenes ({', '.join(scenes[:5])}"
                              f"{'...' if len(scenes) > 5 else ''}); give one scene folder", path)
+        # a camera's own layout (RealSense / ROS exports: rgb/ + depth/ without a pose list; one folder per
+        # camera): name the sub-folders that hold images rather than say there are none
+        held = image_subfolders(path)
+        hint = ""
+        if held:
+            photos = [n for n, _ in held if n.lower() in ("rgb", "color", "colour", "images", "photos", "frames")]
+            # not depth/, masks/ ... (as capture.images.NOT_PHOTO_FOLDERS)
+            photos += [n for n, _ in held if not n.lower().startswith(("depth", "mask", "label", "seg"))]
+            example = (photos or [held[0][0]])[0]
+            listed = ", ".join(f"{n}/ ({k} image{'s' if k > 1 else ''})" for n, k in held[:5])
+            hint = (f"; its sub-folders hold images: {listed}{', ...' if len(held) > 5 else ''}. Give the folder of "
+                    f"the photos (e.g. {path / example}), which structure from motion poses; sub-folders are "
+                    f"not searched")
         raise InputError("no dataset found here (no transforms.json, COLMAP model, cameras.json, BOP scene, "
-                         "TUM pose list + intrinsics, or images)", path)
+                         f"TUM pose list + intrinsics, or images){hint}", path)
     if max_frames is not None and len(ds.frames) > max_frames and not (path.is_file() and is_video(path)):
         idx = np.linspace(0, len(ds.frames) - 1, max_frames).round().astype(int)
         ds.frames = [ds.frames[i] for i in idx]
@@ -411,6 +436,21 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
         ds.validate()
     _check_frame_names(ds, path)
     return ds
+
+
+def image_subfolders(folder: Path) -> list[tuple[str, int]]:
+    """(name, number of images) of the sub-folders of `folder` that hold images, sorted by name; hidden ones
+    (.thumbnails, .git), links and folders that cannot be listed left out (for hints: they must not fail)."""
+    out = []
+    for p in sorted(Path(folder).iterdir()):
+        if p.is_dir() and not p.is_symlink() and not p.name.startswith("."):
+            try:
+                n = len(find_images(p))
+            except OSError:
+                n = 0
+            if n:
+                out.append((p.name, n))
+    return out
 
 
 def name_views_by_path(frames: list[Frame]) -> None:

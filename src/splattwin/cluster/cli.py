@@ -52,7 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "the task's CPUs). Exit code 0 when every capture was built, 1 when some failed, 2 on bad "
                     "input.")
     b.add_argument("captures", nargs="+", type=Path, metavar="CAPTURE",
-                   help="datasets: image folders, videos, transforms.json, COLMAP or cameras.json")
+                   help="datasets: image folders, videos, transforms.json, COLMAP, cameras.json, BOP scenes or TUM "
+                        "pose lists + intrinsics")
     b.add_argument("--out", type=Path, required=True, help="folder of the twins and the summary")
     add_options(b, BatchOptions)
     add_build_flags(b)

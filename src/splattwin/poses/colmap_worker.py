@@ -87,7 +87,11 @@ def step_extract(job: dict) -> dict:
                     cam.has_prior_focal_length = bool(g["prior_focal"])
                     d.update_camera(cam)
     ext = _set_options(pycolmap.FeatureExtractionOptions(), job["extraction"])
-    pycolmap.extract_features(db, root, image_names=job["names"], extraction_options=ext, device=pycolmap.Device.cpu)
+    reader = pycolmap.ImageReaderOptions()
+    if job.get("mask_root"):   # <mask_root>/<image name>.png: no features where it is 0 (transparent pixels)
+        reader.mask_path = job["mask_root"]
+    pycolmap.extract_features(db, root, image_names=job["names"], reader_options=reader, extraction_options=ext,
+                              device=pycolmap.Device.cpu)
     with pycolmap.Database.open(db) as d:
         counts = {im.name: int(d.num_keypoints_for_image(im.image_id)) for im in d.read_all_images()}
     return {"keypoints": counts}

@@ -283,7 +283,8 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         tmp = None if opts.work_dir is not None else tempfile.TemporaryDirectory(prefix="splattwin_sfm_")
         work = Path(opts.work_dir) if opts.work_dir is not None else Path(tmp.name)  # type: ignore[union-attr]
         try:
-            sfm = run_sfm([f.image_path for f in frames], work, sopts, progress=opts.progress)
+            sfm = run_sfm([f.image_path for f in frames], work, sopts, progress=opts.progress,
+                          masks=_feature_masks(frames))
         except InputError as e:
             raise _as_given(e, dataset) from e
         finally:
@@ -323,6 +324,8 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
         stats.update(registered=len(in_cams))
         if opts.check_hand_eye and dataset.meta.get("format") in KNOWN_POSE_CHECKED:
             _check_known_poses(dataset, opts, frames, names, in_cams, stats)
+        elif opts.check_hand_eye and dataset.meta.get("format") == "nerfstudio" and not dataset.meta.get("sfm_derived"):
+            _check_transforms_convention(dataset, frames, names, in_cams)
         meta_frame = dataset.meta.get("frame")
         prior = TwinFrame(**meta_frame) if isinstance(meta_frame, dict) else frame_beside(dataset.meta.get("path", dataset.root))  # chained runs
         if opts.scale != "auto":
@@ -522,6 +525,16 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
 
 
 # ------------------------------------------------------------------------------------------------
+def _feature_masks(frames: list[DataFrame]) -> dict[Path, Path]:
+    """{image: loss mask} of the frames whose loss mask (a photo's transparent pixels, a nerfstudio mask_path)
+    has the image's size: SfM extracts no features where it is 0, as COLMAP's mask_path (a reduced mask,
+    nerfstudio's masks_2/, is left out: COLMAP refuses the image with it)."""
+    from splattwin.capture.dataset import image_size
+
+    return {f.image_path: f.mask_path for f in frames
+            if f.mask_path is not None and image_size(f.mask_path) == (f.camera.width, f.camera.height)}
+
+
 def _check_exposure(frames: list[DataFrame], pts_xyz: np.ndarray | None, opts: PoseOptions, stats: dict) -> None:
     """stats["exposure"]: per-image exposure / white-balance gains measured on the sparse points
     (`splattwin.poses.exposure`); a warning naming the images when they differ beyond its threshold."""
@@ -897,6 +910,10 @@ def _check_known_poses(dataset: Dataset, opts: PoseOptions, frames: list[DataFra
         log.info("pose consistency: median Sampson error %.2f px (%.2f mrad) of %d image pairs under the known "
                  "poses", cons["sampson_median_px"], cons["sampson_median_mrad"], cons["pairs"])
     else:
+        if dataset.meta.get("format") == "tum":
+            _check_pose_list_convention(measures, T, cons, Path(where))
+        elif dataset.meta.get("format") == "bop":
+            _check_bop_convention(measures, T, cons, Path(where))
         log.warning("%s", hec.consistency_message(cons, where, "the poses are kept as given (--poses.method known); "
                                                               "remedy: --poses.method sfm", robot=False))
     _check_intrinsics(measures, T, _intrinsics_source(dataset, opts), stats)
@@ -928,6 +945,116 @@ def _check_known_poses(dataset: Dataset, opts: PoseOptions, frames: list[DataFra
     else:
         log.info("latency check: time offset %+.0f +- %.0f ms fits the photos best", lc["time_offset_ms"],
                  lc["time_offset_sigma_ms"])
+
+
+def _better_reading(measures: list, readings: dict[str, list[np.ndarray]], cons: dict) -> tuple[str, dict] | None:
+    """(name, consistency) of the reading of the poses ({name: T_world_cam per camera of `measures`}) that fits
+    the matched pairs best, when it fits them ("ok") and at most a third of the error `cons` of the poses as
+    read; else None."""
+    from splattwin.poses import hand_eye_check as hec
+
+    size = tuple(cons["matching_size"]) if cons.get("matching_size") else None
+    best = None
+    for kind, Ts in readings.items():
+        rows = []
+        for i, j, m in measures:
+            T_ba = np.linalg.inv(Ts[j]) @ Ts[i]
+            rows.append({"sampson_px": float(np.median(hec.sampson_px(m.xa, m.xb, T_ba[:3, :3], T_ba[:3, 3], m.f))),
+                         "sampson_floor_px": m.floor_px, "focal_px": m.f})
+        alt = hec.consistency(rows, size)
+        if alt is not None and alt["verdict"] == "ok" and alt["sampson_median_px"] <= cons["sampson_median_px"] / 3 \
+                and (best is None or alt["sampson_median_px"] < best[1]["sampson_median_px"]):
+            best = (kind, alt)
+    return best
+
+
+def _check_bop_convention(measures: list, T_world_cam: list[np.ndarray], cons: dict, scene_camera: Path) -> None:
+    """InputError naming scene_camera.json when its `cam_R_w2c` / `cam_t_w2c` fit the photos only read as the
+    camera's pose in the world (camera-to-world written into the world-to-camera fields): read as given, such a
+    scene went on with warnings blaming the intrinsics, a tilted world and the depth into a twin on wrong
+    poses. `cons`, `measures`: as `_check_pose_list_convention`."""
+    from splattwin.transforms import invert_pose
+
+    best = _better_reading(measures, {"inverse": [invert_pose(T) for T in T_world_cam]}, cons)
+    if best is None:
+        return
+    raise InputError(f"cam_R_w2c / cam_t_w2c look like camera-to-world poses: read as BOP's world-to-camera the "
+                     f"poses miss the photos by a median {cons['sampson_median_px']:.2f} px (Sampson error of "
+                     f"{cons['pairs']} image pairs), inverted by {best[1]['sampson_median_px']:.2f} px; write "
+                     f"cam_R_w2c = R^T and cam_t_w2c = -R^T t (mm) of each camera-to-world pose (R, t)", scene_camera)
+
+
+def _check_transforms_convention(dataset: Dataset, frames: list[DataFrame], names: list[str],
+                                 in_cams: dict[str, Camera]) -> None:
+    """InputError naming a hand-written transforms.json whose poses fit the photos only read in another
+    convention: OpenCV camera axes (x right, y down, z forward: what robot and OpenCV code computes) where
+    nerfstudio's `transform_matrix` is OpenGL's (y up, z backward), and/or world-to-camera. Read as written,
+    such a file gave a twin on wrong poses without a word (the up check turned the flipped world "z up", 13
+    points triangulated instead of 240). Only when the poses as read miss the photos; a transforms.json from
+    nerfstudio's COLMAP converters (`sfm_derived`) is not checked."""
+    from splattwin.poses import hand_eye_check as hec
+    from splattwin.transforms import invert_pose
+
+    keys = [n for n in names if n in in_cams]
+    T = [in_cams[n].T_world_cam for n in keys]
+    cons, measures = hec.check_poses_with_images(keys, T, [frames[names.index(n)].image_path for n in keys],
+                                                 [in_cams[n] for n in keys])
+    if cons is None or cons["verdict"] == "ok":
+        return
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])   # OpenGL <-> OpenCV camera axes (its own inverse)
+    readings = {"opencv": [Ti @ flip for Ti in T], "inverse": [invert_pose(Ti @ flip) @ flip for Ti in T],
+                "both": [invert_pose(Ti @ flip) for Ti in T]}
+    best = _better_reading(measures, readings, cons)
+    if best is None:
+        return
+    kind, alt = best
+    what = {"opencv": "OpenCV camera axes (x right, y down, z forward)",
+            "inverse": "world-to-camera (the inverse of nerfstudio's camera-to-world)",
+            "both": "world-to-camera in OpenCV camera axes (x right, y down, z forward)"}[kind]
+    raise InputError(f"the transform_matrix poses look like {what}: read as nerfstudio's camera-to-world in OpenGL "
+                     f"axes (x right, y up, z backward) they miss the photos by a median "
+                     f"{cons['sampson_median_px']:.2f} px (Sampson error of {cons['pairs']} image pairs), read as "
+                     f"{what} by "
+                     f"{alt['sampson_median_px']:.2f} px; write camera-to-world OpenGL poses (from OpenCV axes: "
+                     f"T_world_cam @ diag(1, -1, -1, 1))", Path(dataset.meta.get("path", dataset.root)))
+
+
+def _check_pose_list_convention(measures: list, T_world_cam: list[np.ndarray], cons: dict, pose_file: Path) -> None:
+    """InputError naming the pose list when its poses fit the photos only read another way: quaternions in
+    `qw qx qy qz` order (EuRoC's, many ROS tools' and scripts') read as TUM's `qx qy qz qw`, or world-to-camera
+    poses (T_cam_world, as COLMAP's images.txt and many SLAM exports store them) read as TUM's camera-to-world,
+    or both. Either gives every camera another pose, which the checks after this one blamed on the hand-eye,
+    timestamps, intrinsics or the table ("is the plane a wall?", --up), or which went on into a twin on wrong
+    poses. `cons`: the pose consistency of the poses as read (not "ok"); `measures`: its matched pairs
+    (`hand_eye_check.check_poses_with_images`)."""
+    from splattwin.transforms import invert_pose, matrix_from_quat_wxyz, quat_wxyz_from_matrix
+
+    def cycled(T: np.ndarray) -> np.ndarray:
+        # read as (x, y, z, w) = the file's (qw, qx, qy, qz): the file's quaternion (w, x, y, z) is the one read,
+        # cycled; any sign of q gives the same cycled rotation
+        w, x, y, z = quat_wxyz_from_matrix(T[:3, :3])
+        T2 = np.array(T, dtype=np.float64)
+        T2[:3, :3] = matrix_from_quat_wxyz(np.array([x, y, z, w]))
+        return T2
+
+    readings = {"wxyz": [cycled(T) for T in T_world_cam], "inverse": [invert_pose(T) for T in T_world_cam]}
+    readings["both"] = [invert_pose(T) for T in readings["wxyz"]]
+    best = _better_reading(measures, readings, cons)
+    if best is None:
+        return
+    kind, alt = best
+    what = {"wxyz": "the quaternions look like w x y z order", "inverse": "the poses look like world-to-camera "
+            "(T_cam_world)", "both": "the poses look like world-to-camera (T_cam_world) with quaternions in w x y z "
+            "order"}[kind]
+    read = {"wxyz": "read as `qw qx qy qz`", "inverse": "inverted", "both": "read as `qw qx qy qz` and inverted"}[kind]
+    fix = {"wxyz": "write each line as `id tx ty tz qx qy qz qw` (e.g. awk '/^#/{print;next}"
+                   "{print $1,$2,$3,$4,$6,$7,$8,$5}')",
+           "inverse": "write each camera's pose in the world (camera-to-world, T_world_cam: the inverse of these)",
+           "both": "write each camera's pose in the world (camera-to-world, T_world_cam: the inverse of these) as "
+                   "`id tx ty tz qx qy qz qw`"}[kind]
+    raise InputError(f"{what}: read as TUM's camera-to-world `tx ty tz qx qy qz qw` the poses miss the photos by a "
+                     f"median {cons['sampson_median_px']:.2f} px (Sampson error of {cons['pairs']} image pairs), "
+                     f"{read} by {alt['sampson_median_px']:.2f} px; {fix}", pose_file)
 
 
 def _apply_time_offset(dataset: Dataset, offset_ms: float) -> None:

@@ -491,6 +491,38 @@ def image_layout(image_paths: list[Path]) -> tuple[Path, list[str]]:
     return root, names
 
 
+def _feature_mask_names(image_paths: list[Path], image_root: Path, masks: dict[Path, Path] | None) -> dict[str, Path]:
+    """{image name (as COLMAP names it, `image_layout`): mask} for the images of `masks`."""
+    if not masks:
+        return {}
+    from splattwin.paths import unfollowed
+
+    out = {}
+    for p in image_paths:
+        m = masks.get(p)
+        if m is not None:
+            out[unfollowed(p).relative_to(image_root).as_posix()] = Path(m)
+    return out
+
+
+def _write_feature_masks(work: Path, mask_names: dict[str, Path], image_root: Path, names: list[str]) -> Path:
+    """The masks where COLMAP looks for them: <work>/feature_masks/<image name>.png (0 = no features), and an
+    all-keep mask for every other image of `names` (COLMAP extracts nothing from an image without one)."""
+    from splattwin.limits import image_size
+
+    root = work / "feature_masks"
+    for name in names:
+        dst = root / f"{name}.png"
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        if name in mask_names:
+            with io.atomic_path(dst) as tmp:
+                shutil.copyfile(mask_names[name], tmp)
+        else:
+            w, h = image_size(image_root / name)
+            io.write_image(dst, np.full((h, w), 255, np.uint8))
+    return root
+
+
 def _config_key(opts: SfmOptions, names: list[str]) -> dict:
     d = asdict(opts)
     for k in ("min_registered", "num_threads", "max_memory_gib", "retry"):
@@ -514,6 +546,7 @@ class SfmRun:
         self.pairs_file = pairs_file
         self.max_side = max(max(g.width, g.height) for g in self.groups)
         self.dropped: dict[str, str] = {}  # name -> why the sanity check dropped it (any attempt)
+        self.mask_root: Path | None = None  # COLMAP's mask_path: <mask_root>/<image name>.png (`run_sfm` masks)
         self.recovery: dict = {}  # the recover step's result (colmap_worker.step_recover)
 
     def _add(self, key: str, stats: colmap_process.StepStats) -> None:
@@ -559,6 +592,8 @@ class SfmRun:
             job_groups.append(jg)
         job = {"step": "extract", "db": str(db), "image_root": str(self.image_root), "names": self.names,
                "groups": job_groups, "extraction": _extraction_options(o, a.features, threads, min_side)}
+        if self.mask_root is not None:
+            job["mask_root"] = str(self.mask_root)
         n = len(self.names)
         res, st = colmap_process.run_step(
             job, self.work, self.progress, f"{label}: SIFT features ({n} images, <= {side} px, {threads} threads)",
@@ -694,13 +729,15 @@ class SfmRun:
 
 
 def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | None = None,
-            progress: bool = True) -> SfmResult:
+            progress: bool = True, masks: dict[Path, Path] | None = None) -> SfmResult:
     """Reconstruct camera poses and sparse points from images.
 
     Args:
         image_paths: images (any folders); names in the result are their paths relative to the common folder.
         work_dir: folder for the databases, attempts and the model (sparse/); re-used to resume.
         progress: live progress (bar on a terminal, plain lines in a redirected log).
+        masks: {image path: mask} (0 = no features there: a photo's transparent pixels, `capture.images`),
+            given to COLMAP's feature extraction (copied into work_dir/feature_masks/ as it names them).
     Returns: SfmResult in COLMAP's frame. Raises InputError if mapping fails or too few images register;
     KeyboardInterrupt (within about a second, the running step stopped and cleaned up) on Ctrl-C.
     """
@@ -718,6 +755,11 @@ def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | No
     image_root, names = image_layout(image_paths)
     names = sorted(names)  # COLMAP ids follow this order: same images in any order -> same model (and resume)
     key = _config_key(opts, names)
+    mask_names = _feature_mask_names(image_paths, image_root, masks)
+    if mask_names:
+        from splattwin.hashing import sha256_file
+
+        key["feature_masks"] = {n: sha256_file(m) for n, m in sorted(mask_names.items())}
     key_path, model_dir = work / "sfm_config.json", work / "sparse"
     if key_path.is_file() and json.loads(key_path.read_text()) != json.loads(json.dumps(key)):
         log.info("SfM options or images changed: starting over in %s", work)
@@ -741,6 +783,8 @@ def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | No
             _check_enough(res, opts, image_root)
             return res
         run = SfmRun(work, image_root, names, opts, bar)
+        if mask_names:
+            run.mask_root = _write_feature_masks(work, mask_names, image_root, names)
         outcome, attempt = _run_attempts(run, bar)
         rec, sub_models, db = outcome.rec, outcome.sub_models, outcome.db
         res = result_from_reconstruction(rec, names, run.timings, image_root)

@@ -15,7 +15,8 @@ log = logging.getLogger(__name__)
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = add_command(sub, "segment", _segment)
-    p.add_argument("dataset", type=Path, help="dataset folder (transforms.json, COLMAP, images...)")
+    p.add_argument("dataset", type=Path, help="dataset folder (transforms.json, COLMAP, BOP scene, TUM pose list + "
+                   "intrinsics, images...)")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--prompt", help='objects as phrases separated by ".", e.g. "blue box. yellow cube. toy hammer"')
     src.add_argument("--masks", type=Path, help="existing masks to import and check against the dataset images")

@@ -215,6 +215,19 @@ class MaskSet:
 
 # -- loaders ----------------------------------------------------------------------------------
 
+def _entries(folder: Path) -> list[Path]:
+    """The entries of `folder` without hidden ones (a leading dot): macOS writes an AppleDouble `._x.png`
+    beside every file copied to a FAT/exFAT drive or share, which is no mask and stopped the masks as
+    unreadable."""
+    return [p for p in Path(folder).iterdir() if not p.name.startswith(".")]
+
+
+def _glob(folder: Path, pattern: str) -> list[Path]:
+    """`folder.glob(pattern)` without hidden files or files in hidden folders (see `_entries`)."""
+    return [p for p in Path(folder).glob(pattern)
+            if not any(part.startswith(".") for part in p.relative_to(folder).parts)]
+
+
 def _turned(mask_hw, image_hw) -> str:
     """A hint when a mask has the image's size turned by 90 degrees."""
     if tuple(mask_hw) == tuple(image_hw)[::-1] and mask_hw[0] != mask_hw[1]:
@@ -251,14 +264,14 @@ def load_masks(path: str | Path, objects: dict[str, int] | None = None, object_n
         return load_bop_masks(path, objects, image_sizes)
     if (path / INSTANCES_FILE).is_file() or _looks_per_instance(path, image_sizes):
         return load_instance_masks(path, objects, image_sizes)
-    coco = [p for p in path.glob("*.json") if p.name != INDEX_NAME and _mentions_annotations(p)]
-    if len(coco) == 1 and not list(path.glob("*_mask.json")):
+    coco = [p for p in _glob(path, "*.json") if p.name != INDEX_NAME and _mentions_annotations(p)]
+    if len(coco) == 1 and not list(_glob(path, "*_mask.json")):
         return load_coco(coco[0], objects, image_sizes)
-    if list(path.glob("*_mask.json")) or list(path.glob("*/*_mask.json")):
+    if list(_glob(path, "*_mask.json")) or list(_glob(path, "*/*_mask.json")):
         return load_polygon_dir(path, objects, object_name, image_sizes)
-    if any(p.suffix.lower() in _IMAGE_EXTS for p in path.iterdir() if p.is_file()):
+    if any(p.suffix.lower() in _IMAGE_EXTS for p in _entries(path) if p.is_file()):
         return load_label_images(path, objects, image_sizes)
-    if any(p.is_dir() for p in path.iterdir()):
+    if any(p.is_dir() for p in _entries(path)):
         return load_png_dir(path, objects, image_sizes)
     raise InputError("no masks found (expected <view>/<object>.png, <view>.png label images, COCO JSON or "
                      "<image>_mask.json polygon files)", path)
@@ -329,7 +342,7 @@ def load_png_dir(path: Path, objects: dict[str, int] | None = None, image_sizes:
     """`<path>/<view>/<object>.png` -> MaskSet (non-zero pixels inside)."""
     labels = dict(objects or {})
     ms = MaskSet(source=f"png:{path}")
-    files = sorted(p for p in path.glob("*/*") if p.suffix.lower() in _IMAGE_EXTS and p.is_file())
+    files = sorted(p for p in _glob(path, "*/*") if p.suffix.lower() in _IMAGE_EXTS and p.is_file())
     _check_png_dir_level(path, files, image_sizes)
     if not files:
         raise InputError("no <view>/<object>.png masks in this folder", path)
@@ -355,9 +368,9 @@ def _check_png_dir_level(path: Path, files: list[Path], image_sizes: dict | None
     matches"): refuse it here, naming the folders to pass instead."""
     hint = (" (a generated scene: splattwin.semantics.scene_masks(scene_dir, kind='noisy' or 'gt'))"
             if (path.parent / "scene.json").is_file() else "")
-    nested = sorted(d for d in path.iterdir() if d.is_dir() and any(
-        c.is_dir() and any(f.suffix.lower() in _IMAGE_EXTS for f in c.iterdir() if f.is_file())
-        for c in d.iterdir()))
+    nested = sorted(d for d in _entries(path) if d.is_dir() and any(
+        c.is_dir() and any(f.suffix.lower() in _IMAGE_EXTS for f in _entries(c) if f.is_file())
+        for c in _entries(d)))
     if nested:
         raise InputError(f"this folder holds folders of mask folders ({', '.join(d.name for d in nested[:3])}/<view>/...), "
                          f"not <view>/<object>.png masks: pass one of them, e.g. {nested[0]}{hint}", path)
@@ -376,7 +389,7 @@ def load_label_images(path: Path, objects: dict[str, int] | None = None, image_s
     objects: name -> label. Without it every non-zero value becomes `object_<value>`.
     """
     ms = MaskSet(source=f"labels:{path}")
-    files = sorted(p for p in path.iterdir() if p.suffix.lower() in _IMAGE_EXTS and p.is_file())
+    files = sorted(p for p in _entries(path) if p.suffix.lower() in _IMAGE_EXTS and p.is_file())
     if objects:
         for name, label in objects.items():
             ms.objects[int(label)] = object_name(name, path)
@@ -624,7 +637,7 @@ def _looks_per_instance(path: Path, image_sizes: dict | None) -> bool:
     """Flat files named `<view>_<number>` where the views are known and no file is a view itself."""
     if not image_sizes:
         return False
-    stems = [p.stem for p in path.iterdir() if p.is_file() and p.suffix.lower() in _IMAGE_EXTS]
+    stems = [p.stem for p in _entries(path) if p.is_file() and p.suffix.lower() in _IMAGE_EXTS]
     if not stems or any(s in image_sizes for s in stems):
         return False
     return all((m := _INSTANCE_RE.match(s)) is not None and m.group(1) in image_sizes for s in stems)
@@ -650,7 +663,7 @@ def load_instance_masks(path: str | Path, objects: dict[str, int] | None = None,
             names[int(k)] = name_from_label(v, index, f"name of instance {k}")
         # two instances of one name would merge into one object (as BOP's object_names.json refuses)
         check_unique(names.values(), index)
-    files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in _IMAGE_EXTS)
+    files = sorted(p for p in _entries(path) if p.is_file() and p.suffix.lower() in _IMAGE_EXTS)
     if not files:
         raise InputError("no <view>_<instance>.png mask files in this folder", path)
     parsed = []
@@ -717,12 +730,12 @@ def load_polygon_dir(path: Path, objects: dict[str, int] | None = None, object_n
     """Polygon JSON masks of the paper's published code -> MaskSet (layout in the module docstring)."""
     ms = MaskSet(source=f"polygons:{path}")
     labels = dict(objects or {})
-    flat = sorted(path.glob("*_mask.json"))
+    flat = sorted(_glob(path, "*_mask.json"))
     groups: list[tuple[str | None, list[Path]]] = []
     if flat:
         groups.append((object_name, flat))
-    for sub in sorted(p for p in path.iterdir() if p.is_dir()):
-        files = sorted(sub.glob("*_mask.json"))
+    for sub in sorted(p for p in _entries(path) if p.is_dir()):
+        files = sorted(_glob(sub, "*_mask.json"))
         if files:
             groups.append((sub.name, files))
     for default_name, files in groups:
