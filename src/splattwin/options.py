@@ -470,7 +470,25 @@ def add_progress_flag(parser: argparse.ArgumentParser) -> None:
                         help="no progress bars (terminal) or progress lines (log)")
 
 
-def dump_yaml(data: dict) -> str:
+def dump_yaml(data: dict, encoding: str | None = "utf-8") -> str:
+    """`data` as YAML that `load_yaml` reads back identically. Non-ASCII text (a path `c\u00e4ke/`) is written
+    as it is, readable, where `encoding` (the stream's, e.g. sys.stdout's) can hold it: PyYAML's default
+    escaped it ("c\\xE4ke"). Otherwise (an ASCII terminal) it stays escaped, which reads back the same.
+    Characters YAML cannot print (a non-UTF-8 file name's surrogate escapes) are escaped either way."""
+    import codecs
+
     import yaml
 
-    return yaml.safe_dump(data, sort_keys=False, default_flow_style=False)
+    text = yaml.safe_dump(data, sort_keys=False, default_flow_style=False, allow_unicode=True)
+    try:
+        text.encode(codecs.lookup(encoding or "ascii").name)
+    except (LookupError, UnicodeEncodeError):
+        return yaml.safe_dump(data, sort_keys=False, default_flow_style=False)
+    return text
+
+
+def print_yaml(data: dict) -> None:
+    """`--print-config`: `data` as YAML on stdout, readable in its encoding (`dump_yaml`)."""
+    import sys
+
+    print(dump_yaml(data, getattr(sys.stdout, "encoding", None)), end="")

@@ -4,6 +4,7 @@ from a config file, flags override the file, and each stage's key follows its ow
 from __future__ import annotations
 
 import dataclasses
+import os
 from pathlib import Path
 
 import pytest
@@ -266,3 +267,32 @@ def test_robot_key_follows_the_default_arm_model(tmp_path, monkeypatch):
     xml.write_text(xml.read_text() + "\n<!-- edited -->\n")
     k1 = stage_keys(tmp_path / "twin", base)
     assert {s for s in k0 if k1[s] != k0[s]} == {"robot", "report"}
+
+
+def test_print_config_prints_a_unicode_path_readable_and_reads_it_back(tmp_path, capsys):
+    """A capture folder named `cäke` was printed as "c\\xE4ke" (PyYAML's default escapes non-ASCII text): it
+    read back, but nobody could read it. Now it is printed as it is on a UTF-8 stdout and still reads back the
+    same, and so does a non-UTF-8 file name (a surrogate escape, which YAML can only print escaped)."""
+    from splattwin.limits import load_yaml
+    from splattwin.options import dump_yaml
+
+    cake = tmp_path / "cäke"
+    odd = tmp_path / os.fsdecode(b"m\xe4sks")          # Latin-1 bytes in a file name: not UTF-8
+    cake.mkdir()
+    odd.mkdir()
+    typed = ["build", str(cake), "--masks", str(odd), "--splat.iters", "5"]
+    assert main([*typed, "--print-config"]) == 0
+    text = capsys.readouterr().out
+    assert f"input: {cake}\n" in text and "\\x" not in text.split("semantics:")[0]
+    cfg = tmp_path / "twin.yaml"
+    cfg.write_bytes(text.encode("utf-8", "surrogateescape"))
+    want = resolve_options(build_parser().parse_args(typed), demo=False)
+    got = resolve_options(build_parser().parse_args(["build", "--config", str(cfg)]), demo=False)
+    assert Path(got.input) == cake and Path(got.semantics.masks) == odd
+    assert got == want
+    # a stream that cannot hold the characters (an ASCII terminal) gets them escaped, which reads back the same
+    data = to_dict(want, "config")
+    ascii_text = dump_yaml(data, "ascii")
+    assert ascii_text.isascii() and "c\\xE4ke" in ascii_text
+    (tmp_path / "a.yaml").write_text(ascii_text, encoding="ascii")
+    assert load_yaml(tmp_path / "a.yaml") == load_yaml(cfg) == data

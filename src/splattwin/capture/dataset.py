@@ -364,11 +364,13 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
     """Load any supported dataset layout (see module docstring).
 
     frames_dir: where a video's extracted frames go (default `<stem>_frames/` beside the video; `build`
-    puts them inside the twin folder so that nothing is written outside it), and the upright copies of an
-    image folder's photos stored rotated (EXIF Orientation; `capture.orientation`: without frames_dir
+    puts them inside the twin folder so that nothing is written outside it), the loss masks of photos with
+    transparent pixels, and the upright copies of an image folder's photos stored rotated (EXIF Orientation; `capture.orientation`: without frames_dir
     such a folder is refused).
     max_frames: at most this many frames, evenly spaced (a video: the sharpest of each of that many
     windows, default `VIDEO_MAX_FRAMES`); min_change: a video's near-duplicate threshold (`capture.video`).
+    Photos with fully transparent pixels (alpha 0), in any layout, get loss masks in frames_dir/alpha_masks/
+    (`capture.images.mask_transparent_pixels`; without frames_dir a warning names them).
     progress: the progress lines of a video's frame scoring (False: `--no-progress`).
     require_images: False keeps the cameras of a transforms.json / cameras.json whose images are missing
     (for work that needs only cameras; implies validate=False, which would read the images).
@@ -435,6 +437,10 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
     if validate and require_images:
         ds.validate()
     _check_frame_names(ds, path)
+    if require_images:
+        # every format alike (one place): a photo's fully transparent pixels become loss masks written under
+        # frames_dir, ANDed with the frame's own mask_path (`capture.images.mask_transparent_pixels`)
+        images.mask_transparent_pixels(ds.frames, None if frames_dir is None else Path(frames_dir))
     return ds
 
 

@@ -62,39 +62,47 @@ def transparent_pixels(path: Path) -> np.ndarray | None:
     return clear if clear.any() else None
 
 
-def alpha_loss_masks(files: list[Path], out_dir: Path | None) -> dict[Path, Path]:
-    """{photo: loss mask} for the photos of `files` with fully transparent pixels (a background removed by an
-    app, a render with a transparent film): the colour stored under alpha 0 is no observation (often black),
-    yet alpha was dropped and it was trained on as a black backdrop. Each mask (out_dir/alpha_masks/<stem>.png,
-    255 = keep, 0 = transparent) makes the pixels ignored in training and evaluation as a nerfstudio
-    `mask_path` does. out_dir None (nowhere to write): the photos are named in a warning instead."""
+def mask_transparent_pixels(frames: list[Frame], out_dir: Path | None) -> None:
+    """Leave the fully transparent pixels (alpha 0) of the frames' photos out of training, evaluation and SfM
+    feature extraction, for every dataset format (`load_dataset`: an image folder, a transforms.json such as
+    Blender's synthetic sets, COLMAP, BOP, TUM): the colour stored under alpha 0 (often black) is no
+    observation, yet alpha was dropped on reading and it was trained on as a black backdrop. A frame whose
+    photo has such pixels gets a loss mask (out_dir/alpha_masks/<view name>.png, 255 = keep, 0 = ignore, the
+    photo's size) in `Frame.mask_path`, as a nerfstudio `mask_path`; a frame that already has a mask_path
+    gets the AND of the pixels both keep (the mask is read at the photo's size, enlarged when reduced). A
+    mask that already leaves out every transparent pixel (an earlier run's, bundled into TWIN/poses) is kept
+    as it is. Partial alpha (an anti-aliased edge) is no mask: those pixels are observations. out_dir None
+    (nowhere to write): the photos are named in a warning and their colours are used as stored."""
+    from splattwin.capture.dataset import load_loss_mask
     from splattwin.io import write_image
 
     clear = {}
-    for p in files:
-        m = transparent_pixels(p)
-        if m is not None:
-            clear[p] = m
+    for f in frames:
+        m = transparent_pixels(f.image_path)
+        if m is None:
+            continue
+        keep = np.ones_like(m) if f.mask_path is None else load_loss_mask(f.mask_path, (m.shape[1], m.shape[0]))
+        if (keep & m).any():   # some transparent pixel is still trained on
+            clear[id(f)] = (f, keep & ~m, m)
     if not clear:
-        return {}
-    share = ", ".join(f"{p.name} ({100 * float(m.mean()):.0f} %)" for p, m in list(clear.items())[:5])
+        return
+    share = ", ".join(f"{f.image_path.name} ({100 * float(m.mean()):.0f} %)" for f, _, m in list(clear.values())[:5])
     more = ", ..." if len(clear) > 5 else ""
     if out_dir is None:
         log.warning("%d of %d photos have transparent pixels (%s%s); nowhere to write their loss masks, so the "
-                    "colours stored under them are used as they are", len(clear), len(files), share, more)
-        return {}
+                    "colours stored under them are used as they are", len(clear), len(frames), share, more)
+        return
     folder = Path(out_dir) / ALPHA_DIR
-    out = {}
-    for p, m in clear.items():
-        dst, keep = folder / f"{p.stem}.png", np.where(m, 0, 255).astype(np.uint8)
-        if not (dst.is_file() and np.array_equal(_read_mask(dst), keep)):   # unchanged: not rewritten
-            write_image(dst, keep)
-        out[p] = dst
+    for f, keep, _ in clear.values():
+        # named by the view (unique and a plain file name, `_check_frame_names`): stems repeat in a COLMAP rig
+        dst, keep8 = folder / f"{f.name}.png", np.where(keep, 255, 0).astype(np.uint8)
+        if not (dst.is_file() and np.array_equal(_read_mask(dst), keep8)):   # unchanged: not rewritten
+            write_image(dst, keep8)
+        f.mask_path = dst
     if folder not in _ANNOUNCED:   # once per folder and run: pre-flight, scene and poses all read the photos
         _ANNOUNCED.add(folder)
         log.info("%d of %d photos have transparent pixels (%s%s): those pixels are left out of training and "
-                 "evaluation (loss masks in %s)", len(clear), len(files), share, more, folder)
-    return out
+                 "evaluation (loss masks in %s)", len(clear), len(frames), share, more, folder)
 
 
 _ANNOUNCED: set[Path] = set()
@@ -137,14 +145,11 @@ def read_files(files: list[Path], root: Path, folder: Path | None = None, fov_x_
         raise InputError("no images found (png/jpg/...)", folder)
     files = _drop_copies(list(files))
     upright = upright_copies(files, None if out_dir is None else Path(out_dir), folder)
-    # the upright copies are RGB: an EXIF-rotated photo's alpha is not looked at
-    alpha = alpha_loss_masks([p for p in files if p not in upright], None if out_dir is None else Path(out_dir))
     frames = []
     for p in files:
         q = upright.get(p, p)
         w, h = image_size(q)
-        frames.append(Frame(image_path=q, camera=Camera.from_fov(math.radians(fov_x_deg), w, h, name=p.stem),
-                            mask_path=alpha.get(p)))
+        frames.append(Frame(image_path=q, camera=Camera.from_fov(math.radians(fov_x_deg), w, h, name=p.stem)))
     meta = {"format": "images", "path": str(folder)}
     if upright:
         meta["exif_rotated"] = sorted(p.name for p in upright)

@@ -129,9 +129,9 @@ def run_batch_cli(args: argparse.Namespace) -> int:
                          "use `splattwin build CAPTURE --out OUT/NAME --from STAGE` for one capture")
     build = resolve_options(args)
     if args.print_config:
-        from splattwin.options import absolute_paths, dump_yaml, to_dict
+        from splattwin.options import absolute_paths, print_yaml, to_dict
 
-        print(dump_yaml(to_dict(absolute_paths(build), "config")), end="")
+        print_yaml(to_dict(absolute_paths(build), "config"))
         return 0
     with make_executor(opts.cluster, cpus_per_task=opts.cpus_per_build, max_tasks=len(args.captures)) as ex:
         summary = run_batch(args.captures, args.out, build, ex, cpus=opts.cpus_per_build, gpus=opts.gpus_per_build,

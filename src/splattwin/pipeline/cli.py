@@ -86,12 +86,12 @@ def resolve_options(args: argparse.Namespace, demo: bool = False):
 
 def _run(args: argparse.Namespace, demo: bool) -> int:
     from splattwin.errors import InputError
-    from splattwin.options import absolute_paths, dump_yaml, to_dict
+    from splattwin.options import absolute_paths, print_yaml, to_dict
     from splattwin.pipeline.build import build
 
     opts = resolve_options(args, demo)
     if args.print_config:
-        print(dump_yaml(to_dict(absolute_paths(opts), "config")), end="")
+        print_yaml(to_dict(absolute_paths(opts), "config"))
         return 0
     if args.out is None:
         raise InputError("--out TWIN is required: the twin folder to write")

@@ -53,7 +53,8 @@ def _train(args: argparse.Namespace) -> int:
     from splattwin.capture.dataset import refuse_video
 
     refuse_video(args.dataset, "train")   # no poses: said before its frames would be extracted
-    ds = load_dataset(args.dataset, max_frames=args.max_frames)
+    # a photo's transparent pixels get loss masks in OUT/capture/frames/alpha_masks (as `build`'s TWIN/capture/frames)
+    ds = load_dataset(args.dataset, max_frames=args.max_frames, frames_dir=args.out / "capture" / "frames")
     h = apply_holdout(ds, from_args(HoldoutOptions, args, prefix="holdout."))
     print(f"held-out views ({h.rule}): {', '.join(h.names) if h.names else 'none'}")
     with output_lock(args.out):

@@ -387,7 +387,9 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
     if g.sh_degree > 3:
         log.warning("SH degree %d: rendering with the first 3 degrees", g.sh_degree)
         g = g.with_sh_degree(3)
-    ds = dataset if isinstance(dataset, Dataset) else load_dataset(dataset)
+    # transparent pixels' loss masks (`capture.images.mask_transparent_pixels`) go into the output
+    ds = dataset if isinstance(dataset, Dataset) else load_dataset(
+        dataset, frames_dir=None if out_dir is None else Path(out_dir) / "capture" / "frames")
     if not ds.has_poses:
         raise InputError("dataset has no camera poses to render from", ds.root)
     frames, train_frames, held = _heldout_split(ds, info)

@@ -390,7 +390,8 @@ class Trainer:
             from splattwin.capture.dataset import refuse_video
 
             refuse_video(dataset, "train")
-            dataset = load_dataset(dataset)
+            # transparent pixels' loss masks (`capture.images.mask_transparent_pixels`) go into the output
+            dataset = load_dataset(dataset, frames_dir=Path(out_dir) / "capture" / "frames")
         self.dataset = dataset
         self.out_dir = Path(out_dir)
         self.cfg.check()

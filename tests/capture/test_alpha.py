@@ -1,0 +1,113 @@
+"""Fully transparent pixels (alpha 0) become loss masks in every dataset layout, not only image folders
+(`capture.images.mask_transparent_pixels`, called once by `load_dataset`)."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import numpy as np
+
+from splattwin import io
+from splattwin.capture import colmap, nerfstudio
+from splattwin.capture.dataset import load_dataset, load_image, load_loss_mask
+from splattwin.splat.trainer import load_views
+
+W, H = 64, 48
+
+
+def _make_rgba(ds) -> None:
+    """Frame 0: its top 10 rows transparent over black (a render's transparent film); frame 1: its left 16
+    columns transparent and a half-transparent edge beside them (an observation, not masked); frame 2: alpha,
+    all of it opaque; frame 3 stays RGB."""
+    rng = np.random.default_rng(1)
+    for i, f in enumerate(ds.frames[:3]):
+        rgba = np.concatenate([rng.integers(30, 255, (H, W, 3), dtype=np.uint8), np.full((H, W, 1), 255, np.uint8)], 2)
+        if i == 0:
+            rgba[:10] = 0
+        elif i == 1:
+            rgba[:, :16] = 0
+            rgba[:, 16:18, 3] = 128
+        io.write_image(f.image_path, rgba)
+
+
+def _keep(frame) -> np.ndarray | None:
+    return None if frame.mask_path is None else load_loss_mask(frame.mask_path, (W, H))
+
+
+def test_rgba_transforms_json_masks_transparent_pixels_and_ands_mask_path(tmp_path, make_dataset):
+    # a Blender-style synthetic set (RGBA renders, no mask_path) read through a transforms.json: alpha was
+    # dropped and the black under it trained on; frame 1 also has its own half-size mask_path (masks_2/)
+    ds = make_dataset(tmp_path / "ds")
+    _make_rgba(ds)
+    own = np.full((H // 2, W // 2), 255, np.uint8)
+    own[-4:] = 0                                   # the bottom 8 rows at full size: people, the rig
+    ds.frames[1].mask_path = io.write_image(tmp_path / "ds" / "masks_2" / "img_001.png", own)
+    tj = nerfstudio.write(ds, tmp_path / "ds" / "transforms.json")
+
+    back = load_dataset(tj, frames_dir=tmp_path / "frames")
+    f0, f1, f2, f3 = back.frames
+    assert f2.mask_path is None and f3.mask_path is None   # opaque alpha, no alpha: nothing to mask
+    assert f0.mask_path.is_relative_to(tmp_path / "frames")
+    k0, k1 = _keep(f0), _keep(f1)
+    assert not k0[:10].any() and k0[10:].all()
+    # the transparent columns AND the frame's own mask; the half-transparent edge is kept
+    assert not k1[:, :16].any() and not k1[-8:].any() and k1[:-8, 16:].all()
+    assert f1.mask_path != ds.frames[1].mask_path   # the dataset's own mask file is not touched
+    # training and evaluation see the masks (load_views is what both read)
+    views = {v.name: v for v in load_views(back.frames)}
+    m0 = views["img_000"].mask[..., 0].numpy()
+    assert m0[:10].sum() == 0 and m0[10:].min() == 1
+    assert views["img_002"].mask is None
+    assert load_image(f0.image_path).shape == (H, W, 3)   # the photo itself is read as before
+
+    # read again (pre-flight, poses, ...): the same masks, not rewritten; a mask that already leaves out every
+    # transparent pixel (the poses stage's bundled one) is kept as it is
+    stamp = f0.mask_path.stat().st_mtime_ns
+    again = load_dataset(tj, frames_dir=tmp_path / "frames")
+    assert again.frames[0].mask_path == f0.mask_path and f0.mask_path.stat().st_mtime_ns == stamp
+    import shutil
+
+    for f, src in zip(ds.frames, (f0, f1)):
+        f.mask_path = tmp_path / "ds" / "bundled" / src.mask_path.name
+        shutil.copyfile(src.mask_path, f.mask_path.parent.mkdir(exist_ok=True) or f.mask_path)
+    tj2 = nerfstudio.write(ds, tmp_path / "ds" / "t2.json")
+    covered = load_dataset(tj2)                     # no frames_dir: nothing left to write, no warning needed
+    assert [f.mask_path for f in covered.frames[:2]] == [f.mask_path for f in ds.frames[:2]]
+
+
+def test_train_and_eval_cli_leave_transparent_pixels_out(tmp_path, make_dataset):
+    from splattwin.cli import main
+
+    ds = make_dataset(tmp_path / "ds")
+    _make_rgba(ds)
+    ds.frames[3].split = "train"
+    ds.frames[0].split = "heldout"                # the held-out view has transparent pixels too
+    tj = nerfstudio.write(ds, tmp_path / "ds" / "transforms.json")
+    out = tmp_path / "out"
+    assert main(["train", str(tj), str(out), "--iters", "4", "--sh-degree", "0", "--no-progress",
+                 "--device", "cpu"]) == 0
+    rec = json.loads((out / "train.json").read_text())["loss_masks"]
+    assert rec["ignored_share"] == {"img_001": round(16 / 64, 4)}
+    assert (out / "capture" / "frames" / "alpha_masks" / "img_001.png").is_file()
+    assert main(["eval", str(out), "--dataset", str(tj), "--no-progress", "--device", "cpu"]) == 0
+    m = json.loads((out / "eval" / "metrics.json").read_text())
+    assert m["loss_masks"]["views"] == ["img_000"]
+
+
+def test_rgba_colmap_dataset_masks_transparent_pixels(tmp_path, make_dataset, caplog):
+    ds = make_dataset(tmp_path)
+    _make_rgba(ds)
+    colmap.write_text(ds, tmp_path / "sparse" / "0")
+    back = load_dataset(tmp_path, frames_dir=tmp_path / "frames")
+    assert back.meta["format"] == "colmap"
+    by_name = {f.name: f for f in back.frames}
+    k0, k1 = _keep(by_name["img_000"]), _keep(by_name["img_001"])
+    assert not k0[:10].any() and k0[10:].all()
+    assert not k1[:, :16].any() and k1[:, 16:].all()
+    assert by_name["img_002"].mask_path is None and by_name["img_003"].mask_path is None
+    # nowhere to write the masks: said, naming the photos
+    with caplog.at_level(logging.WARNING, logger="splattwin.capture.images"):
+        plain = load_dataset(tmp_path)
+    assert all(f.mask_path is None for f in plain.frames)
+    assert "2 of 4 photos have transparent pixels (img_000.png (21 %), img_001.png (25 %))" in caplog.text
