@@ -403,3 +403,13 @@ def test_a_missing_twin_folder_is_bad_input_not_a_new_report(tmp_path: Path):
     (tmp_path / "a_file").write_text("x")
     with pytest.raises(InputError, match="a_file: twin folder does not exist"):
         build_report(tmp_path / "a_file")
+
+
+def test_an_unscaled_twins_robot_section_says_why_there_is_no_plan(tmp_path):
+    """The robot section of an unscaled twin told the user to run `splattwin plan`, which refuses it."""
+    html = build_report(_manifest_twin(tmp_path, scaled=False)).read_text()
+    robot = html.split("Robot task in physics")[1].split("</section>")[0]
+    assert "no robot plan: the twin is unscaled" in robot and "--known-length" in robot
+    assert "splattwin plan TWIN, or build with --task" not in robot
+    metric = build_report(_manifest_twin(tmp_path / "m", scaled=True)).read_text()
+    assert "no robot task run (splattwin plan TWIN, or build with --task)" in metric

@@ -299,7 +299,8 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
     _guarded(_recon_section, rep.section("Reconstruction (3D Gaussian Splatting)"), twin, ev)
     _guarded(_semantics_section, rep.section("Semantic objects (visibility-aware fusion)"), twin, fusion)
     _guarded(_geometry_section, rep.section("Collision geometry"), twin, man, geo)
-    _guarded(_robot_section, rep.section("Robot task in physics (Franka Panda, MuJoCo)"), twin, robot, robot_stale)
+    _guarded(_robot_section, rep.section("Robot task in physics (Franka Panda, MuJoCo)"), twin, robot, robot_stale,
+             man)
     if robot and "error" not in robot:
         from splattwin.report.playback import playback_section
 
@@ -651,9 +652,16 @@ def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
         sec.table(["export", "path"], [[k, v] for k, v in man.exports.items()])
 
 
-def _robot_section(sec: Section, twin: Path, robot: dict | None, stale: str | None = None) -> None:
+def _robot_section(sec: Section, twin: Path, robot: dict | None, stale: str | None = None, man=None) -> None:
     if stale:
         sec.text(f"no robot results shown: {stale}.")
+        return
+    if not robot and man is not None and not man.frame.scaled:
+        # "run splattwin plan" could never work here: plan refuses a twin in SfM units (mjcf.check_scaled)
+        sec.text("no robot plan: the twin is unscaled (lengths in SfM units, not metres), and a robot cannot plan "
+                 "in SfM units, so `splattwin plan` and `build --task` refuse it. Rebuild it with a metric scale "
+                 "(--known-length camera_height=M or baseline@IMG_A,IMG_B=M, --marker-size M, metric known poses or "
+                 "metric depth images) to plan a task.")
         return
     if not robot:
         sec.text("no robot task run (splattwin plan TWIN, or build with --task)")
