@@ -23,3 +23,18 @@ def side_by_side(images: Sequence[np.ndarray], gap: int = 4) -> np.ndarray:
         if i < len(ims) - 1:
             out.append(np.ones((h, gap, 3), np.float32))
     return np.concatenate(out, axis=1)
+
+
+def fit_height(image: np.ndarray, height: int) -> np.ndarray:
+    """HxWx3 float/uint8 image shrunk (area-averaged, aspect kept) to at most `height` px tall; a smaller one
+    unchanged. Returns float32 in [0, 1]. For report thumbnails: a 4032x3024 photo embedded as it is makes a
+    picture of megabytes that the page shows a few hundred pixels wide anyway."""
+    from PIL import Image
+
+    im = np.asarray(image)
+    im = im.astype(np.float32) / 255.0 if im.dtype == np.uint8 else im.astype(np.float32)
+    if im.shape[0] <= height:
+        return im
+    w = max(1, round(im.shape[1] * height / im.shape[0]))
+    u8 = (np.clip(im[..., :3], 0, 1) * 255 + 0.5).astype(np.uint8)
+    return np.asarray(Image.fromarray(u8).resize((w, height), Image.BOX), np.float32) / 255.0

@@ -413,3 +413,25 @@ def test_an_unscaled_twins_robot_section_says_why_there_is_no_plan(tmp_path):
     assert "splattwin plan TWIN, or build with --task" not in robot
     metric = build_report(_manifest_twin(tmp_path / "m", scaled=True)).read_text()
     assert "no robot task run (splattwin plan TWIN, or build with --task)" in metric
+
+
+def _figures(html: str) -> dict:
+    """{caption: (width, height)} of the report's embedded pictures."""
+    import base64
+    import io as _io
+    import re
+
+    from PIL import Image
+
+    return {m.group(2): Image.open(_io.BytesIO(base64.b64decode(m.group(1)))).size
+            for m in re.finditer(r'src="data:image/png;base64,([^"]*)" alt="([^"]*)"', html)}
+
+
+def test_report_input_views_are_thumbnails_not_the_full_size_photos(tmp_path):
+    """The cake/statue report embedded 4 photos at full size side by side (the statue: 4336x1920)."""
+    from splattwin.report.build import THUMB_HEIGHT
+
+    twin = tmp_path / "twin"
+    helpers.make_dataset(twin / "poses", n_train=4, n_heldout=1, width=640, height=480)
+    w, h = _figures(build_report(twin).read_text())["a few input views"]
+    assert h == THUMB_HEIGHT and w < 4 * 640 * THUMB_HEIGHT / 480 + 4 * 4

@@ -166,6 +166,7 @@ def _poses_frame(twin: Path):
 
 
 STAGE_TIME_KPI = "stage time, sum (s)"
+THUMB_HEIGHT = 240   # px: the "a few input views" strip (4 thumbnails side by side)
 
 
 def stage_time_sum(timings: dict) -> float:
@@ -366,7 +367,7 @@ def _guarded(fn, sec: Section, *args) -> None:
 
 def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
     from splattwin.capture import load_dataset, load_image
-    from splattwin.pictures import side_by_side
+    from splattwin.pictures import fit_height, side_by_side
 
     tj = twin / "poses" / "transforms.json"
     if not tj.is_file():
@@ -416,7 +417,9 @@ def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
         elif isinstance(ds_fit, dict) and isinstance(ds_fit.get("error"), str):
             rows.append(["scale from the depth images", f"none: {ds_fit['error']}"])
         sec.table(["twin frame", "value"], rows)
-    thumbs = [load_image(fr.image_path) for fr in ds.train()[:: max(1, len(ds.train()) // 4)][:4]]
+    # thumbnails: full-size phone photos (4032x3024) side by side made a picture of many megabytes
+    thumbs = [fit_height(load_image(fr.image_path), THUMB_HEIGHT)
+              for fr in ds.train()[:: max(1, len(ds.train()) // 4)][:4]]
     if thumbs:
         sec.image(side_by_side(thumbs), caption="a few input views")
     if (twin / "poses" / "cameras.png").is_file():
