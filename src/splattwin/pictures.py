@@ -38,3 +38,17 @@ def fit_height(image: np.ndarray, height: int) -> np.ndarray:
     w = max(1, round(im.shape[1] * height / im.shape[0]))
     u8 = (np.clip(im[..., :3], 0, 1) * 255 + 0.5).astype(np.uint8)
     return np.asarray(Image.fromarray(u8).resize((w, height), Image.BOX), np.float32) / 255.0
+
+
+def legend_strip(rows: Sequence[tuple[str, Sequence[int]]], height: int, width: int = 140) -> np.ndarray:
+    """A white HxWx3 uint8 strip listing `rows` [(text, rgb 0..255)] as colour swatches with their text,
+    at least `height` px tall (taller when the rows need it): the key of a picture coloured by object."""
+    from PIL import Image, ImageDraw
+
+    canvas = Image.new("RGB", (width, max(height, 16 * len(rows) + 8)), (255, 255, 255))
+    draw = ImageDraw.Draw(canvas)
+    for i, (text, rgb) in enumerate(rows):
+        y = 4 + 16 * i
+        draw.rectangle([6, y, 18, y + 12], fill=tuple(int(c) for c in rgb))
+        draw.text((24, y), str(text)[:18], fill=(0, 0, 0))
+    return np.asarray(canvas)

@@ -435,3 +435,26 @@ def test_report_input_views_are_thumbnails_not_the_full_size_photos(tmp_path):
     helpers.make_dataset(twin / "poses", n_train=4, n_heldout=1, width=640, height=480)
     w, h = _figures(build_report(twin).read_text())["a few input views"]
     assert h == THUMB_HEIGHT and w < 4 * 640 * THUMB_HEIGHT / 480 + 4 * 4
+
+
+def test_report_collision_pictures_show_the_photo_beside_the_meshes_with_a_colour_key(tmp_path):
+    """The collision pictures were the meshes alone, unnamed, without a key: a failed placement's text
+    ("see its collision mesh in the report") sent the user to pictures where no object could be told apart,
+    nor compared with what the camera saw."""
+    import numpy as np
+
+    from splattwin.capture import load_dataset
+    from splattwin.report.build import _collision_views, _twin_meshes
+
+    twin = _obstacle_twin(tmp_path)
+    ds = load_dataset(twin / "poses" / "transforms.json", validate=False)
+    cam = ds.frames[0].camera
+    figs = {c: wh for c, wh in _figures(build_report(twin).read_text()).items() if "collision geometry" in c}
+    assert len(figs) == 3 and all(c.split(":")[0] in {f.name for f in ds.frames} for c in figs)
+    # photo | render | key, each at the camera's size
+    assert all(wh[0] == 2 * cam.width + 140 + 8 and wh[1] >= cam.height for wh in figs.values())
+    name, pic = _collision_views(twin, ds.frames[:1])[0]
+    key = pic[:, 2 * cam.width + 8:]
+    swatch = tuple(round(255 * c) for c in _twin_meshes(twin)[0][2])   # the obstacle box's colour
+    key = np.round(np.asarray(key, np.float64) * 255).astype(int)   # side_by_side: float in [0, 1]
+    assert (np.abs(key - swatch).max(axis=-1) <= 1).any()

@@ -78,26 +78,58 @@ def render_meshes(meshes: list, T_world_cam: np.ndarray, K: np.ndarray, width: i
     return img
 
 
-def _twin_meshes(twin_dir: Path) -> list:
+def _twin_meshes(twin_dir: Path, parts: list | None = None) -> list:
     """World-frame collision parts [(V, F, rgb, alpha)] in their label colours (the background in table
-    colour; an unusable object's obstacle box translucent red, as `collision_parts` gives it)."""
+    colour; an unusable object's obstacle box translucent red, as `collision_parts` gives it). parts: the
+    twin's `collision_parts` when already loaded."""
     from splattwin.playback.view_model import collision_parts
     from splattwin.twin.manifest import Manifest
 
-    parts = collision_parts(twin_dir, Manifest.load(twin_dir))
+    if parts is None:
+        parts = collision_parts(twin_dir, Manifest.load(twin_dir))
     return [(p.world_vertices(), p.faces, (0.75, 0.72, 0.66) if p.owner == "background" else
              tuple(c / 255.0 for c in p.color), p.opacity if p.obstacle and p.opacity is not None else 1.0)
             for p in parts]
 
 
-def _mesh_views(meshes: list, cameras: list) -> list[np.ndarray]:
-    imgs = []
-    for cam in cameras:
+COLLISION_VIEW_SIDE = 480   # px: longest side of a collision picture's photo and render
+
+
+def _collision_views(twin_dir: Path, frames: list) -> list[tuple[str, np.ndarray]]:
+    """[(view name, picture)]: each capture frame's photo beside the collision parts rendered from its camera
+    at the same size (at most `COLLISION_VIEW_SIDE` px: ray casting a 4032x3024 photo's camera is slow and
+    makes a huge picture), with a key of the objects' colours (the failure text of a tipped placement
+    sends the user to an object's mesh here)."""
+    from splattwin.capture import load_image
+    from splattwin.pictures import legend_strip, side_by_side
+    from splattwin.playback.view_model import collision_parts
+    from splattwin.twin.manifest import Manifest
+
+    parts = collision_parts(twin_dir, Manifest.load(twin_dir))
+    meshes = _twin_meshes(twin_dir, parts)
+    key = {}
+    for p, m in zip(parts, meshes):
+        key.setdefault("table / background" if p.owner == "background" else p.owner,
+                       tuple(round(255 * c) for c in m[2]))
+    out = []
+    for fr in frames:
+        cam = fr.camera
+        cam = cam.scaled(min(1.0, COLLISION_VIEW_SIDE / max(cam.width, cam.height)))
         try:
-            imgs.append(render_meshes(meshes, cam.T_world_cam, cam.K, cam.width, cam.height))
+            render = render_meshes(meshes, cam.T_world_cam, cam.K, cam.width, cam.height)
         except Exception as e:  # a picture must never fail the report
             log.warning("mesh render failed: %s", e)
-    return imgs
+            continue
+        try:
+            from splattwin.pictures import fit_height
+
+            photo = fit_height(load_image(fr.image_path), cam.height)
+            pics = [photo, render] if photo.shape[:2] == render.shape[:2] else [render]
+        except InputError:   # the photos stayed with the capture: the render alone
+            pics = [render]
+        pics.append(legend_strip(list(key.items()), cam.height))
+        out.append((fr.name, side_by_side(pics)))
+    return out
 
 
 # the pipeline's stages in order (`splattwin.pipeline.options.STAGES`: the report may not import the
@@ -644,13 +676,14 @@ def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
         except InputError as e:
             sec.text(f"no camera views of the collision geometry: {e}")
     if ds is not None:
-        cams = [f.camera for f in ds.frames[:: max(1, len(ds.frames) // 3)][:3]]
+        frames = ds.frames[:: max(1, len(ds.frames) // 3)][:3]
         obst = [o.name for o in man.objects if o.obstacle_only]
-        caption = "collision geometry (convex parts), object colours = labels" + (
+        held = {f.name for f in ds.heldout()}
+        caption = "photo | collision geometry (convex parts) from its camera, colours as in the key" + (
             f"; translucent red: the static obstacle {'box' if len(obst) == 1 else 'boxes'} of unusable "
             f"{'object' if len(obst) == 1 else 'objects'} {', '.join(obst)} (an estimate)" if obst else "")
-        for img in _mesh_views(_twin_meshes(twin), cams):
-            sec.image(img, caption=caption)
+        for name, img in _collision_views(twin, frames):
+            sec.image(img, caption=f"{name}{' (held-out view)' if name in held else ''}: {caption}")
     if man.exports:
         sec.table(["export", "path"], [[k, v] for k, v in man.exports.items()])
 
