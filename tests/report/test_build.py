@@ -386,7 +386,8 @@ def test_report_shows_the_label_maps_of_this_fusions_views_only(tmp_path):
     (sem / "fusion.json").write_text(json.dumps({"options": {"kappa": 1.5, "iters": 3}, "objects": [],
                                                  "label_map_views": ["train_000", "heldout_003"]}))
     html = build_report(twin).read_text()
-    assert "heldout_003: fused labels rendered" in html and "heldout_003: 2D segmenter masks" in html
+    # heldout_003 is the capture's held-out view: its masks were not fused (audit 11G)
+    assert "heldout_003: fused labels rendered" in html and "heldout_003: 2D masks (held-out view" in html
     assert "heldout_009" not in html
 
 
@@ -458,3 +459,24 @@ def test_report_collision_pictures_show_the_photo_beside_the_meshes_with_a_colou
     swatch = tuple(round(255 * c) for c in _twin_meshes(twin)[0][2])   # the obstacle box's colour
     key = np.round(np.asarray(key, np.float64) * 255).astype(int)   # side_by_side: float in [0, 1]
     assert (np.abs(key - swatch).max(axis=-1) <= 1).any()
+
+
+def test_report_label_maps_mark_a_real_captures_held_out_view(tmp_path):
+    """The label maps were picked and marked held-out by "heldout" in the file name: a real capture's
+    held-out view (the cake's frame000020) was shown as "frame000020: fused labels rendered" among the
+    training views' maps, which repeat the masks-vs-labels pictures above them."""
+    import numpy as np
+
+    from splattwin.io import write_image
+
+    twin = _twin(tmp_path)
+    sem = twin / "semantics"
+    views = ["frame000020", "frame000069", "frame000096"]
+    for view in views:
+        write_image(sem / "label_maps" / f"{view}.png", np.zeros((20, 30, 3), np.uint8))
+    (sem / "fusion.json").write_text(json.dumps({"options": {"kappa": 1.5, "iters": 3}, "objects": [],
+                                                 "label_map_views": views,
+                                                 "miou_heldout_masks_views": ["frame000020"]}))
+    html = build_report(twin).read_text()
+    assert "frame000020: fused labels rendered (held-out view: not used by the fusion)" in html
+    assert "frame000069: fused labels rendered" not in html

@@ -598,7 +598,7 @@ def _semantics_section(sec: Section, twin: Path, fusion: dict | None) -> None:
                  "from the figures above, which are after it).")
         sec.table(["κ", "consistency (%)", "ghost index (%)"],
                   [[r["kappa"], r["consistency"], r["ghost_index"]] for r in fusion["kappa_sweep"]])
-    heldout = set(fusion.get("miou_heldout_masks_views") or [])
+    heldout = set(fusion.get("miou_heldout_masks_views") or []) | _heldout_names(twin)
     views = fusion.get("label_map_views")
     # this fusion's views, not whatever pictures lie there (an older fusion.json without the list: all)
     shown = {v for v in views if isinstance(v, str)} if isinstance(views, list) else None
@@ -610,9 +610,22 @@ def _semantics_section(sec: Section, twin: Path, fusion: dict | None) -> None:
         sec.image(p, caption=f"{p.stem}: 2D masks (held-out view: not used by the fusion) | fused 3D labels rendered"
                   if p.stem in heldout else f"{p.stem}: 2D segmenter masks (input) | fused 3D labels rendered")
     maps = [p for p in sorted((twin / "semantics" / "label_maps").glob("*.png")) if ours(p)]
-    held = [p for p in maps if "heldout" in p.stem] or maps
+    # the held-out views' maps (the fusion never saw them); a real capture's names do not say "heldout"
+    held = [p for p in maps if "heldout" in p.stem or p.stem in heldout] or maps
     for p in held[:4]:
-        sec.image(p, caption=f"{p.stem}: fused labels rendered")
+        sec.image(p, caption=f"{p.stem}: fused labels rendered"
+                  + (" (held-out view: not used by the fusion)" if p.stem in heldout or "heldout" in p.stem else ""))
+
+
+def _heldout_names(twin: Path) -> set[str]:
+    """The capture's held-out view names (TWIN/poses/transforms.json), empty when it cannot be read."""
+    from splattwin.capture import load_dataset
+
+    tj = twin / "poses" / "transforms.json"
+    try:
+        return {f.name for f in load_dataset(tj, validate=False).heldout()} if tj.is_file() else set()
+    except InputError:
+        return set()
 
 
 def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
