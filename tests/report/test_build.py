@@ -480,3 +480,22 @@ def test_report_label_maps_mark_a_real_captures_held_out_view(tmp_path):
     html = build_report(twin).read_text()
     assert "frame000020: fused labels rendered (held-out view: not used by the fusion)" in html
     assert "frame000069: fused labels rendered" not in html
+
+
+def test_report_trial_statistics_say_what_was_perturbed_and_what_the_interval_is_of(tmp_path):
+    """"robustness: 3/3 trials at σ = 5.0 mm (95 % CI 0.44–1.00)": σ of what, an interval of what, and the
+    trials' yaw error (2.9°) not said at all."""
+    import html as htmllib
+
+    from splattwin.robot.outputs import twin_digest
+
+    twin = _manifest_twin(tmp_path, scaled=True)
+    _robot_results(twin, twin_digest(twin))
+    res = json.loads((twin / "robot" / "results.json").read_text())
+    res["trials"] = {"trials": 3, "successes": 3, "success_rate": 1.0, "ci95": [0.4385, 1.0], "sigma": 0.005,
+                     "sigma_yaw": 0.05, "collisions": 1}
+    (twin / "robot" / "results.json").write_text(json.dumps(res))
+    html = htmllib.unescape(build_report(twin).read_text())
+    assert ("3/3 trials succeeded, each with every object's x and y position perturbed by σ = 5.0 mm per axis "
+            "and its yaw by σ = 2.9°") in html
+    assert "success rate 1.00, 95 % confidence interval 0.44–1.00; 1 collision in all trials" in html
