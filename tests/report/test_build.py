@@ -519,3 +519,20 @@ def test_report_says_what_measured_depth_carving_dropped_and_by_which_rule(tmp_p
     assert ("a depth camera saw through were dropped as free space (more than 2.0 mm + 5.0 mm × z² in front of "
             "the measured depth z in m, inside the object's mask eroded by 2 px): cardboard_box 1779 of 59493 "
             "points (3.0 %, 15 depth views), yellow_cube 338 of 1640 points (20.6 %, 1 depth view).") in html
+
+
+def test_report_says_a_failed_run_stopped_at_its_failed_step(tmp_path):
+    """A 2-step task whose step 1 failed showed a step table of one row, read as the whole task: the
+    executor stops at the first failed step."""
+    from splattwin.robot.outputs import twin_digest
+
+    twin = _manifest_twin(tmp_path, scaled=True)
+    _robot_results(twin, twin_digest(twin))
+    html = build_report(twin).read_text()
+    assert "the run stopped at the failed step" not in html
+    res = json.loads((twin / "robot" / "results.json").read_text())
+    res["nominal"]["success"] = False
+    res["nominal"]["steps"][0].update(success=False, placed=False, failure="'cake' tipped over")
+    (twin / "robot" / "results.json").write_text(json.dumps(res))
+    html = build_report(twin).read_text()
+    assert "the run stopped at the failed step 1: the task&#x27;s later steps, if any, were not attempted" in html

@@ -739,6 +739,10 @@ def _robot_section(sec: Section, twin: Path, robot: dict | None, stale: str | No
         rows.append([s["index"], s["pick"], s["goal"], s["grasped"], s["placed"], s["at_rest"],
                      s["robot_collisions"] + s["object_collisions"], s["success"], s.get("failure") or ""])
     sec.table(["step", "pick", "goal", "grasped", "placed", "at rest", "collisions", "success", "note"], rows)
+    if nom["steps"] and not nom["steps"][-1]["success"]:
+        # the executor stops at the first failed step (`Executor.run`): a table ending there read as the task
+        sec.text(f"the run stopped at the failed step {nom['steps'][-1]['index']}: the task's later steps, if "
+                 f"any, were not attempted.")
     tr = robot.get("trials")
     if tr:
         # what was perturbed and what the interval is of: "3/3 trials at σ = 5.0 mm (95 % CI 0.44-1.00)"
