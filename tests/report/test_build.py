@@ -536,3 +536,21 @@ def test_report_says_a_failed_run_stopped_at_its_failed_step(tmp_path):
     (twin / "robot" / "results.json").write_text(json.dumps(res))
     html = build_report(twin).read_text()
     assert "the run stopped at the failed step 1: the task&#x27;s later steps, if any, were not attempted" in html
+
+
+def test_an_unscaled_twins_options_say_which_lengths_are_sfm_units(tmp_path):
+    """The unscaled cake's options block showed geometry.needle_length 0.0389 and build.geometry.needle_length
+    0.006 side by side, bare: the first in SfM units, the second in metres, nothing said."""
+    import html as htmllib
+
+    from splattwin.twin.manifest import Manifest
+
+    for scaled in (False, True):
+        twin = _manifest_twin(tmp_path / str(scaled), scaled=scaled)
+        man = Manifest.load(twin)
+        man.config = {"geometry": {"needle_length": 0.0389}, "build": {"geometry": {"needle_length": 0.006}}}
+        man.save(twin)
+        html = htmllib.unescape(build_report(twin).read_text())
+        said = ("in the twin's SfM units (the metre values given, under \"build\" → \"geometry\", times the nominal "
+                "metre 6.49 units)") in html
+        assert said != scaled

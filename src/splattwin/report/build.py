@@ -373,6 +373,13 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
     v = rep.section("Versions and options")
     if man:
         v.table(["package", "version"], sorted(man.versions.items()))
+        if not man.frame.scaled and isinstance((man.config or {}).get("geometry"), dict):
+            # the two geometry blocks below differ by the nominal metre: bare numbers, read as metres
+            nm = man.frame.nominal_metre
+            v.text("units: \"geometry\" and \"depth_carving\" hold the lengths the twin stage used, in the twin's "
+                   "SfM units (the metre values given, under \"build\" → \"geometry\", times the nominal metre"
+                   + (f" {nm:.4g} units" if isinstance(nm, (int, float)) else "") + "); \"build\" holds the "
+                   "options as given, in metres.")
         v.pre(json.dumps(_config_shown(man.config, robot), indent=2, default=str)[:20000])
     return rep.save(twin / "report" / "index.html")
 
