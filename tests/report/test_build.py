@@ -554,3 +554,25 @@ def test_an_unscaled_twins_options_say_which_lengths_are_sfm_units(tmp_path):
         said = ("in the twin's SfM units (the metre values given, under \"build\" → \"geometry\", times the nominal "
                 "metre 6.49 units)") in html
         assert said != scaled
+
+
+def test_report_real_arm_row_points_to_the_failed_steps_note_instead_of_repeating_it(tmp_path):
+    """The robot section showed a failed placement's 400-character text in the step table and again, word
+    for word, in the real-arm row right below it."""
+    import html as htmllib
+
+    from splattwin.robot.outputs import twin_digest
+
+    twin = _manifest_twin(tmp_path, scaled=True)
+    _robot_results(twin, twin_digest(twin))
+    res = json.loads((twin / "robot" / "results.json").read_text())
+    why = ("'cake' tipped over: it ended tilted 90 deg (upright means within 10 deg); not on 'plate': 4.2 cm below "
+           "the height of resting on it")
+    res["nominal"]["success"] = False
+    res["nominal"]["steps"][0].update(success=False, placed=False, failure=why)
+    res["real_robot"] = {"written": False, "files": [],
+                         "reason": f"the task failed in the validation run at step 1 (cake): {why}"}
+    (twin / "robot" / "results.json").write_text(json.dumps(res))
+    html = htmllib.unescape(build_report(twin).read_text())
+    assert html.count(why) == 1
+    assert "NOT written: the task failed in the validation run at step 1 (cake): see step 1's note above" in html

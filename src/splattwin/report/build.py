@@ -788,7 +788,13 @@ def _real_arm_rows(sec: Section, twin: Path, robot: dict) -> None:
             rows.append(["program.json phases", f"{len(kinds)}: {kinds.count('arm')} arm, "
                          f"{kinds.count('gripper')} gripper (blocking), run in order"])
     elif real:
-        rows.append(["real-arm files", f"NOT written: {real.get('reason')}"])
+        reason = str(real.get("reason"))
+        for st in (robot.get("nominal") or {}).get("steps") or []:
+            why = st.get("failure") if isinstance(st, dict) else None
+            if isinstance(why, str) and len(why) > 40 and why in reason:
+                # the step table above has the failure word for word: 400 characters twice in a row
+                reason = reason.replace(why, f"see step {st.get('index')}'s note above")
+        rows.append(["real-arm files", f"NOT written: {reason}"])
     jn = robot.get("joint_names")
     if isinstance(jn, dict) and jn.get("exported"):
         ex = [str(n) for n in jn["exported"]]
