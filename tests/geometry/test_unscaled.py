@@ -83,3 +83,23 @@ def test_unscaled_conversion_matches_metric_times_scale(scene):
         # the metric thresholds as written remove the object (issue #16: "too few points after cleaning")
         assert not n.usable and "too few points" in n.problem, n.name
     assert unscaled.background.table_height == pytest.approx(metric.background.table_height * S, abs=0.002 * S)
+
+
+@pytest.mark.parametrize("length_scale, unit", [(1.0, "m"), (S, "frame units")])
+def test_an_assumed_tables_reason_gives_its_lengths_units(length_scale, unit):
+    """twin.json's table_default (the report's "the table is assumed (...)" warning) read "437 background
+    splats within 0.0519 of the frame table plane, ... (DBSCAN eps 0.13)" in the unscaled cake: bare numbers
+    in SfM units that a reader takes for metres."""
+    from splattwin.geometry.clustering import Plane
+    from splattwin.geometry.convert import background_geometry
+
+    rng = np.random.default_rng(0)
+    n = 400   # background splats well above the table plane z = 0: no table top among them
+    means = np.column_stack([rng.uniform(-0.3, 0.3, (n, 2)), rng.uniform(0.2, 0.5, n)]) * length_scale
+    g = Gaussians(means, np.tile([1.0, 0, 0, 0], (n, 1)), np.full((n, 3), 0.003 * length_scale), np.full(n, 0.9),
+                  np.zeros((n, 1, 3)))
+    opts = GeometryOptions().resolved(scene_scale(g.means), length_scale)
+    bg = background_geometry(g, np.arange(n), opts, plane=Plane(normal=np.array([0.0, 0, 1]), d=0.0),
+                             length_scale=length_scale)
+    assert f"within {2 * opts.plane_distance:.3g} {unit} of the frame table plane" in bg.default_reason
+    assert f"DBSCAN eps {opts.dbscan_eps:.3g} {unit})" in bg.default_reason

@@ -158,3 +158,25 @@ def test_the_camera_plot_leaves_the_callers_matplotlib_backend(scene_small: Path
         assert Image.open(out).format == "PNG"
     finally:
         matplotlib.use(before)
+
+
+def test_the_camera_plot_frames_the_cameras_not_a_few_stray_points(scene_small: Path, tmp_path: Path):
+    """The real cake's cameras.png (report: "camera poses and sparse points") fitted a few stray SfM points
+    tens of scene sizes away: the cameras and the scene were a dot in the middle of each view."""
+    import numpy as np
+    from PIL import Image
+
+    from splattwin.poses.estimate import plot_cameras
+
+    res = _known(load_dataset(scene_small))
+    C = np.array([c.center for c in res.cameras])
+    size = float(np.ptp(C, axis=0).max())
+    stray = C.mean(axis=0) + size * np.array([[-40.0, 30.0, -20.0], [25.0, -45.0, 15.0]])
+    res.points_xyz = np.concatenate([res.points_xyz, stray])
+    if res.points_rgb is not None:
+        res.points_rgb = np.concatenate([res.points_rgb, np.zeros((2, 3), res.points_rgb.dtype)])
+    img = np.asarray(Image.open(plot_cameras(res, tmp_path / "cameras.png")).convert("RGB")).astype(int)
+    red = (img[..., 0] > 200) & (img[..., 1] < 60) & (img[..., 2] < 60)
+    left = red[:, : img.shape[1] // 2]   # the top view
+    cols = np.flatnonzero(left.any(axis=0))
+    assert cols.size and cols.max() - cols.min() > 0.25 * left.shape[1]

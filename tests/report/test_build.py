@@ -386,7 +386,8 @@ def test_report_shows_the_label_maps_of_this_fusions_views_only(tmp_path):
     (sem / "fusion.json").write_text(json.dumps({"options": {"kappa": 1.5, "iters": 3}, "objects": [],
                                                  "label_map_views": ["train_000", "heldout_003"]}))
     html = build_report(twin).read_text()
-    assert "heldout_003: fused labels rendered" in html and "heldout_003: 2D segmenter masks" in html
+    # heldout_003 is the capture's held-out view: its masks were not fused (audit 11G)
+    assert "heldout_003: fused labels rendered" in html and "heldout_003: 2D masks (held-out view" in html
     assert "heldout_009" not in html
 
 
@@ -403,3 +404,175 @@ def test_a_missing_twin_folder_is_bad_input_not_a_new_report(tmp_path: Path):
     (tmp_path / "a_file").write_text("x")
     with pytest.raises(InputError, match="a_file: twin folder does not exist"):
         build_report(tmp_path / "a_file")
+
+
+def test_an_unscaled_twins_robot_section_says_why_there_is_no_plan(tmp_path):
+    """The robot section of an unscaled twin told the user to run `splattwin plan`, which refuses it."""
+    html = build_report(_manifest_twin(tmp_path, scaled=False)).read_text()
+    robot = html.split("Robot task in physics")[1].split("</section>")[0]
+    assert "no robot plan: the twin is unscaled" in robot and "--known-length" in robot
+    assert "splattwin plan TWIN, or build with --task" not in robot
+    metric = build_report(_manifest_twin(tmp_path / "m", scaled=True)).read_text()
+    assert "no robot task run (splattwin plan TWIN, or build with --task)" in metric
+
+
+def _figures(html: str) -> dict:
+    """{caption: (width, height)} of the report's embedded pictures."""
+    import base64
+    import io as _io
+    import re
+
+    from PIL import Image
+
+    return {m.group(2): Image.open(_io.BytesIO(base64.b64decode(m.group(1)))).size
+            for m in re.finditer(r'src="data:image/png;base64,([^"]*)" alt="([^"]*)"', html)}
+
+
+def test_report_input_views_are_thumbnails_not_the_full_size_photos(tmp_path):
+    """The cake/statue report embedded 4 photos at full size side by side (the statue: 4336x1920)."""
+    from splattwin.report.build import THUMB_HEIGHT
+
+    twin = tmp_path / "twin"
+    helpers.make_dataset(twin / "poses", n_train=4, n_heldout=1, width=640, height=480)
+    w, h = _figures(build_report(twin).read_text())["a few input views"]
+    assert h == THUMB_HEIGHT and w < 4 * 640 * THUMB_HEIGHT / 480 + 4 * 4
+
+
+def test_report_collision_pictures_show_the_photo_beside_the_meshes_with_a_colour_key(tmp_path):
+    """The collision pictures were the meshes alone, unnamed, without a key: a failed placement's text
+    ("see its collision mesh in the report") sent the user to pictures where no object could be told apart,
+    nor compared with what the camera saw."""
+    import numpy as np
+
+    from splattwin.capture import load_dataset
+    from splattwin.report.build import _collision_views, _twin_meshes
+
+    twin = _obstacle_twin(tmp_path)
+    ds = load_dataset(twin / "poses" / "transforms.json", validate=False)
+    cam = ds.frames[0].camera
+    figs = {c: wh for c, wh in _figures(build_report(twin).read_text()).items() if "collision geometry" in c}
+    assert len(figs) == 3 and all(c.split(":")[0] in {f.name for f in ds.frames} for c in figs)
+    # photo | render | key, each at the camera's size
+    assert all(wh[0] == 2 * cam.width + 140 + 8 and wh[1] >= cam.height for wh in figs.values())
+    name, pic = _collision_views(twin, ds.frames[:1])[0]
+    key = pic[:, 2 * cam.width + 8:]
+    swatch = tuple(round(255 * c) for c in _twin_meshes(twin)[0][2])   # the obstacle box's colour
+    key = np.round(np.asarray(key, np.float64) * 255).astype(int)   # side_by_side: float in [0, 1]
+    assert (np.abs(key - swatch).max(axis=-1) <= 1).any()
+
+
+def test_report_label_maps_mark_a_real_captures_held_out_view(tmp_path):
+    """The label maps were picked and marked held-out by "heldout" in the file name: a real capture's
+    held-out view (the cake's frame000020) was shown as "frame000020: fused labels rendered" among the
+    training views' maps, which repeat the masks-vs-labels pictures above them."""
+    import numpy as np
+
+    from splattwin.io import write_image
+
+    twin = _twin(tmp_path)
+    sem = twin / "semantics"
+    views = ["frame000020", "frame000069", "frame000096"]
+    for view in views:
+        write_image(sem / "label_maps" / f"{view}.png", np.zeros((20, 30, 3), np.uint8))
+    (sem / "fusion.json").write_text(json.dumps({"options": {"kappa": 1.5, "iters": 3}, "objects": [],
+                                                 "label_map_views": views,
+                                                 "miou_heldout_masks_views": ["frame000020"]}))
+    html = build_report(twin).read_text()
+    assert "frame000020: fused labels rendered (held-out view: not used by the fusion)" in html
+    assert "frame000069: fused labels rendered" not in html
+
+
+def test_report_trial_statistics_say_what_was_perturbed_and_what_the_interval_is_of(tmp_path):
+    """"robustness: 3/3 trials at σ = 5.0 mm (95 % CI 0.44–1.00)": σ of what, an interval of what, and the
+    trials' yaw error (2.9°) not said at all."""
+    import html as htmllib
+
+    from splattwin.robot.outputs import twin_digest
+
+    twin = _manifest_twin(tmp_path, scaled=True)
+    _robot_results(twin, twin_digest(twin))
+    res = json.loads((twin / "robot" / "results.json").read_text())
+    res["trials"] = {"trials": 3, "successes": 3, "success_rate": 1.0, "ci95": [0.4385, 1.0], "sigma": 0.005,
+                     "sigma_yaw": 0.05, "collisions": 1}
+    (twin / "robot" / "results.json").write_text(json.dumps(res))
+    html = htmllib.unescape(build_report(twin).read_text())
+    assert ("3/3 trials succeeded, each with every object's x and y position perturbed by σ = 5.0 mm per axis "
+            "and its yaw by σ = 2.9°") in html
+    assert "success rate 1.00, 95 % confidence interval 0.44–1.00; 1 collision in all trials" in html
+
+
+def test_report_says_what_measured_depth_carving_dropped_and_by_which_rule(tmp_path):
+    """twin.json config.depth_carving was shown as "cardboard_box 1779 of 59493 points (15 views)": not
+    what happened to them, nor the share or the tolerance that decided it."""
+    import html as htmllib
+
+    from splattwin.twin.manifest import Manifest
+
+    twin = _manifest_twin(tmp_path, scaled=True)
+    man = Manifest.load(twin)
+    man.config = {**(man.config or {}), "depth_carving": {
+        "used": True, "tolerance": 0.002, "noise_1m": 0.005, "erode_px": 2,
+        "objects": {"cardboard_box": {"views": 15, "points": 59493, "dropped": 1779},
+                    "yellow_cube": {"views": 1, "points": 1640, "dropped": 338}}}}
+    man.save(twin)
+    html = htmllib.unescape(build_report(twin).read_text())
+    assert ("a depth camera saw through were dropped as free space (more than 2.0 mm + 5.0 mm × z² in front of "
+            "the measured depth z in m, inside the object's mask eroded by 2 px): cardboard_box 1779 of 59493 "
+            "points (3.0 %, 15 depth views), yellow_cube 338 of 1640 points (20.6 %, 1 depth view).") in html
+
+
+def test_report_says_a_failed_run_stopped_at_its_failed_step(tmp_path):
+    """A 2-step task whose step 1 failed showed a step table of one row, read as the whole task: the
+    executor stops at the first failed step."""
+    from splattwin.robot.outputs import twin_digest
+
+    twin = _manifest_twin(tmp_path, scaled=True)
+    _robot_results(twin, twin_digest(twin))
+    html = build_report(twin).read_text()
+    assert "the run stopped at the failed step" not in html
+    res = json.loads((twin / "robot" / "results.json").read_text())
+    res["nominal"]["success"] = False
+    res["nominal"]["steps"][0].update(success=False, placed=False, failure="'cake' tipped over")
+    (twin / "robot" / "results.json").write_text(json.dumps(res))
+    html = build_report(twin).read_text()
+    assert "the run stopped at the failed step 1: the task&#x27;s later steps, if any, were not attempted" in html
+
+
+def test_an_unscaled_twins_options_say_which_lengths_are_sfm_units(tmp_path):
+    """The unscaled cake's options block showed geometry.needle_length 0.0389 and build.geometry.needle_length
+    0.006 side by side, bare: the first in SfM units, the second in metres, nothing said."""
+    import html as htmllib
+
+    from splattwin.twin.manifest import Manifest
+
+    for scaled in (False, True):
+        twin = _manifest_twin(tmp_path / str(scaled), scaled=scaled)
+        man = Manifest.load(twin)
+        man.config = {"geometry": {"needle_length": 0.0389}, "build": {"geometry": {"needle_length": 0.006}}}
+        man.save(twin)
+        html = htmllib.unescape(build_report(twin).read_text())
+        said = ("in the twin's SfM units (the metre values given, under \"build\" → \"geometry\", times the nominal "
+                "metre 6.49 units)") in html
+        assert said != scaled
+
+
+def test_report_real_arm_row_points_to_the_failed_steps_note_instead_of_repeating_it(tmp_path):
+    """The robot section showed a failed placement's 400-character text in the step table and again, word
+    for word, in the real-arm row right below it."""
+    import html as htmllib
+
+    from splattwin.robot.outputs import twin_digest
+
+    twin = _manifest_twin(tmp_path, scaled=True)
+    _robot_results(twin, twin_digest(twin))
+    res = json.loads((twin / "robot" / "results.json").read_text())
+    why = ("'cake' tipped over: it ended tilted 90 deg (upright means within 10 deg); not on 'plate': 4.2 cm below "
+           "the height of resting on it")
+    res["nominal"]["success"] = False
+    res["nominal"]["steps"][0].update(success=False, placed=False, failure=why)
+    res["real_robot"] = {"written": False, "files": [],
+                         "reason": f"the task failed in the validation run at step 1 (cake): {why}"}
+    (twin / "robot" / "results.json").write_text(json.dumps(res))
+    html = htmllib.unescape(build_report(twin).read_text())
+    assert html.count(why) == 1
+    assert "NOT written: the task failed in the validation run at step 1 (cake): see step 1's note above" in html

@@ -155,3 +155,36 @@ def test_viewer_draws_the_moved_box_shadow(tmp_path):
 def _scale(rgbs) -> float:
     """viser may keep colours as uint8 (0..255) or floats (0..1)."""
     return 255.0 if np.asarray(rgbs).dtype == np.uint8 else 1.0
+
+
+def test_viewer_label_layer_follows_the_moving_objects(twin_in_motion):
+    """audit 11G: the label layer was one node of every splat at its twin pose: with labels on, a moved
+    object's label colours stayed where it started while its splats and collision mesh moved."""
+    import viser
+
+    from splattwin.playback.view_model import label_colors
+    from splattwin.viewer.app import draw
+
+    twin, ro = twin_in_motion
+    view = TwinView.load(twin)
+    assert view.label_rgb is not None
+    server = viser.ViserServer(host="127.0.0.1", port=_free_port(), verbose=False)
+    try:
+        h = draw(server, view)
+        node = h["labels/objects/blue_box"]
+        label = next(o.label for o in view.manifest.objects if o.name == "blue_box")
+        rgb = np.asarray(node.rgbs)[0].astype(np.float32)
+        rgb = rgb if np.asarray(node.rgbs).dtype == np.uint8 else rgb * 255   # viser keeps them as uint8
+        np.testing.assert_allclose(rgb, label_colors(np.array([label]))[0], atol=1.0)
+        # the static label node holds no object splat (they move with their own nodes)
+        assert len(h["labels"].centers) < len(view.splats)
+        last = len(ro.t) - 1
+        h["_slider"].value = last
+        T = ro.object_poses["blue_box"][last]
+        deadline = time.time() + 5.0
+        while np.linalg.norm(np.asarray(node.position) - T[:3, 3]) > 1e-6 and time.time() < deadline:
+            time.sleep(0.02)
+        np.testing.assert_allclose(node.position, T[:3, 3], atol=1e-6)
+    finally:
+        server.stop()
+    h["_player"].thread.join(5.0)

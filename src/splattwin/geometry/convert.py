@@ -623,6 +623,9 @@ def background_geometry(g, indices: np.ndarray, opts: GeometryOptions, table_thi
         sigma_z = np.sqrt(np.sum((R[:, 2, :] * g.scales[t]) ** 2, axis=1))  # std along world z
         h = float(np.median(tp[:, 2] + level_radii(g.opacities[t], opts.surface_level) * sigma_z))
     reason = None
+    # the lengths in the reason (twin.json background.table_default, shown by the report) in the frame's
+    # units: bare numbers read as metres in an unscaled twin (as `convert` names them)
+    unit = "m" if length_scale == 1.0 else "frame units"
     if len(tp):
         x0, x1 = np.percentile(tp[:, 0], [0.2, 99.8])
         y0, y1 = np.percentile(tp[:, 1], [0.2, 99.8])
@@ -635,14 +638,15 @@ def background_geometry(g, indices: np.ndarray, opts: GeometryOptions, table_thi
             if not (extent[0] <= cx <= extent[1] and extent[2] <= cy <= extent[3]):
                 under = default_table(object_points, length_scale)
                 reason = (f"the {len(tp)} table splats found (x {extent[0]:.3g}..{extent[1]:.3g}, y {extent[2]:.3g}.."
-                          f"{extent[3]:.3g}) are not under the objects: the table is extended under them")
+                          f"{extent[3]:.3g} {unit}) are not under the objects: the table is extended under them")
                 extent = [min(extent[0], under[0]), max(extent[1], under[1]), min(extent[2], under[2]),
                           max(extent[3], under[3])]
     else:
         extent = default_table(object_points, length_scale)
         reason = (f"{int((np.abs(split.plane.signed_distance(pts)) <= 2 * opts.plane_distance).sum())} background "
-                  f"splats within {2 * opts.plane_distance:.3g} of the {'frame' if plane is not None else 'fitted'} "
-                  f"table plane, the largest connected group (DBSCAN eps {opts.dbscan_eps:.3g}) {n_table} of them "
+                  f"splats within {2 * opts.plane_distance:.3g} {unit} of the "
+                  f"{'frame' if plane is not None else 'fitted'} table plane, the largest connected group (DBSCAN eps "
+                  f"{opts.dbscan_eps:.3g} {unit}) {n_table} of them "
                   f"(< {opts.min_points}): the table top is too sparse or not in the splats")
     table = _table_box(extent, h, table_thickness)
     parts = [table]

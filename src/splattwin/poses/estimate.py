@@ -1109,6 +1109,21 @@ def _robot_cameras(opts: PoseOptions, frames: list[DataFrame], names: list[str],
                          T_base_ee={key[k]: by_name[k] for k in keys}, T_ee_cam=T_ee_cam, hand_eye_file=he_file)
 
 
+def view_box(C: np.ndarray, P: np.ndarray | None, q: float = 1.0, pad: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """(lo [3], hi [3]) of the cameras.png view, in the frame's units: every camera centre C [N,3] and the
+    points P [M,3] between their q and 100-q percentiles per axis, grown by `pad` of the largest side. SfM
+    leaves a few stray points tens of scene sizes away (the cake's at -110 units, scene ~5): fitting them
+    shrank cameras and scene to a dot in the middle of the picture."""
+    pts = [np.asarray(C, float).reshape(-1, 3)]
+    if P is not None and len(P):
+        P = np.asarray(P, float)
+        pts.append(np.percentile(P, [q, 100 - q], axis=0))
+    allp = np.concatenate(pts)
+    lo, hi = allp.min(axis=0), allp.max(axis=0)
+    m = pad * max(float((hi - lo).max()), 1e-9)
+    return lo - m, hi + m
+
+
 def plot_cameras(result: PoseResult, path: str | Path) -> Path:
     """PNG: top view (x-y) and side view (x-z) of the points and camera centres with viewing directions."""
     from matplotlib.figure import Figure
@@ -1119,6 +1134,7 @@ def plot_cameras(result: PoseResult, path: str | Path) -> Path:
     C = np.array([c.center for c in result.cameras]).reshape(-1, 3)
     D = np.array([c.T_world_cam[:3, 2] for c in result.cameras]).reshape(-1, 3)
     span = float(np.ptp(C, axis=0).max()) if len(C) > 1 else 1.0
+    lo, hi = view_box(C, result.points_xyz)
     for ax, (i, j), title in ((axes[0], (0, 1), "top view (x, y)"), (axes[1], (0, 2), "side view (x, z)")):
         if result.points_xyz is not None and len(result.points_xyz):
             P = result.points_xyz
@@ -1128,7 +1144,9 @@ def plot_cameras(result: PoseResult, path: str | Path) -> Path:
         ax.scatter(C[:, i], C[:, j], c="red", s=12, label="cameras")
         ax.quiver(C[:, i], C[:, j], D[:, i], D[:, j], color="red", angles="xy", scale_units="xy", scale=8 / span)
         ax.set_title(title)
-        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_xlim(lo[i], hi[i])
+        ax.set_ylim(lo[j], hi[j])
+        ax.set_aspect("equal", adjustable="datalim")   # grows one range to keep the aspect: nothing is cut
         unit = "m" if result.frame.scaled else "units"
         ax.set_xlabel(f"{'xyz'[i]} [{unit}]")
         ax.set_ylabel(f"{'xyz'[j]} [{unit}]")

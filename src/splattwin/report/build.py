@@ -78,26 +78,58 @@ def render_meshes(meshes: list, T_world_cam: np.ndarray, K: np.ndarray, width: i
     return img
 
 
-def _twin_meshes(twin_dir: Path) -> list:
+def _twin_meshes(twin_dir: Path, parts: list | None = None) -> list:
     """World-frame collision parts [(V, F, rgb, alpha)] in their label colours (the background in table
-    colour; an unusable object's obstacle box translucent red, as `collision_parts` gives it)."""
+    colour; an unusable object's obstacle box translucent red, as `collision_parts` gives it). parts: the
+    twin's `collision_parts` when already loaded."""
     from splattwin.playback.view_model import collision_parts
     from splattwin.twin.manifest import Manifest
 
-    parts = collision_parts(twin_dir, Manifest.load(twin_dir))
+    if parts is None:
+        parts = collision_parts(twin_dir, Manifest.load(twin_dir))
     return [(p.world_vertices(), p.faces, (0.75, 0.72, 0.66) if p.owner == "background" else
              tuple(c / 255.0 for c in p.color), p.opacity if p.obstacle and p.opacity is not None else 1.0)
             for p in parts]
 
 
-def _mesh_views(meshes: list, cameras: list) -> list[np.ndarray]:
-    imgs = []
-    for cam in cameras:
+COLLISION_VIEW_SIDE = 480   # px: longest side of a collision picture's photo and render
+
+
+def _collision_views(twin_dir: Path, frames: list) -> list[tuple[str, np.ndarray]]:
+    """[(view name, picture)]: each capture frame's photo beside the collision parts rendered from its camera
+    at the same size (at most `COLLISION_VIEW_SIDE` px: ray casting a 4032x3024 photo's camera is slow and
+    makes a huge picture), with a key of the objects' colours (the failure text of a tipped placement
+    sends the user to an object's mesh here)."""
+    from splattwin.capture import load_image
+    from splattwin.pictures import legend_strip, side_by_side
+    from splattwin.playback.view_model import collision_parts
+    from splattwin.twin.manifest import Manifest
+
+    parts = collision_parts(twin_dir, Manifest.load(twin_dir))
+    meshes = _twin_meshes(twin_dir, parts)
+    key = {}
+    for p, m in zip(parts, meshes):
+        key.setdefault("table / background" if p.owner == "background" else p.owner,
+                       tuple(round(255 * c) for c in m[2]))
+    out = []
+    for fr in frames:
+        cam = fr.camera
+        cam = cam.scaled(min(1.0, COLLISION_VIEW_SIDE / max(cam.width, cam.height)))
         try:
-            imgs.append(render_meshes(meshes, cam.T_world_cam, cam.K, cam.width, cam.height))
+            render = render_meshes(meshes, cam.T_world_cam, cam.K, cam.width, cam.height)
         except Exception as e:  # a picture must never fail the report
             log.warning("mesh render failed: %s", e)
-    return imgs
+            continue
+        try:
+            from splattwin.pictures import fit_height
+
+            photo = fit_height(load_image(fr.image_path), cam.height)
+            pics = [photo, render] if photo.shape[:2] == render.shape[:2] else [render]
+        except InputError:   # the photos stayed with the capture: the render alone
+            pics = [render]
+        pics.append(legend_strip(list(key.items()), cam.height))
+        out.append((fr.name, side_by_side(pics)))
+    return out
 
 
 # the pipeline's stages in order (`splattwin.pipeline.options.STAGES`: the report may not import the
@@ -166,6 +198,7 @@ def _poses_frame(twin: Path):
 
 
 STAGE_TIME_KPI = "stage time, sum (s)"
+THUMB_HEIGHT = 240   # px: the "a few input views" strip (4 thumbnails side by side)
 
 
 def stage_time_sum(timings: dict) -> float:
@@ -299,7 +332,8 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
     _guarded(_recon_section, rep.section("Reconstruction (3D Gaussian Splatting)"), twin, ev)
     _guarded(_semantics_section, rep.section("Semantic objects (visibility-aware fusion)"), twin, fusion)
     _guarded(_geometry_section, rep.section("Collision geometry"), twin, man, geo)
-    _guarded(_robot_section, rep.section("Robot task in physics (Franka Panda, MuJoCo)"), twin, robot, robot_stale)
+    _guarded(_robot_section, rep.section("Robot task in physics (Franka Panda, MuJoCo)"), twin, robot, robot_stale,
+             man)
     if robot and "error" not in robot:
         from splattwin.report.playback import playback_section
 
@@ -339,6 +373,13 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
     v = rep.section("Versions and options")
     if man:
         v.table(["package", "version"], sorted(man.versions.items()))
+        if not man.frame.scaled and isinstance((man.config or {}).get("geometry"), dict):
+            # the two geometry blocks below differ by the nominal metre: bare numbers, read as metres
+            nm = man.frame.nominal_metre
+            v.text("units: \"geometry\" and \"depth_carving\" hold the lengths the twin stage used, in the twin's "
+                   "SfM units (the metre values given, under \"build\" → \"geometry\", times the nominal metre"
+                   + (f" {nm:.4g} units" if isinstance(nm, (int, float)) else "") + "); \"build\" holds the "
+                   "options as given, in metres.")
         v.pre(json.dumps(_config_shown(man.config, robot), indent=2, default=str)[:20000])
     return rep.save(twin / "report" / "index.html")
 
@@ -365,7 +406,7 @@ def _guarded(fn, sec: Section, *args) -> None:
 
 def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
     from splattwin.capture import load_dataset, load_image
-    from splattwin.pictures import side_by_side
+    from splattwin.pictures import fit_height, side_by_side
 
     tj = twin / "poses" / "transforms.json"
     if not tj.is_file():
@@ -415,7 +456,9 @@ def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
         elif isinstance(ds_fit, dict) and isinstance(ds_fit.get("error"), str):
             rows.append(["scale from the depth images", f"none: {ds_fit['error']}"])
         sec.table(["twin frame", "value"], rows)
-    thumbs = [load_image(fr.image_path) for fr in ds.train()[:: max(1, len(ds.train()) // 4)][:4]]
+    # thumbnails: full-size phone photos (4032x3024) side by side made a picture of many megabytes
+    thumbs = [fit_height(load_image(fr.image_path), THUMB_HEIGHT)
+              for fr in ds.train()[:: max(1, len(ds.train()) // 4)][:4]]
     if thumbs:
         sec.image(side_by_side(thumbs), caption="a few input views")
     if (twin / "poses" / "cameras.png").is_file():
@@ -562,7 +605,7 @@ def _semantics_section(sec: Section, twin: Path, fusion: dict | None) -> None:
                  "from the figures above, which are after it).")
         sec.table(["κ", "consistency (%)", "ghost index (%)"],
                   [[r["kappa"], r["consistency"], r["ghost_index"]] for r in fusion["kappa_sweep"]])
-    heldout = set(fusion.get("miou_heldout_masks_views") or [])
+    heldout = set(fusion.get("miou_heldout_masks_views") or []) | _heldout_names(twin)
     views = fusion.get("label_map_views")
     # this fusion's views, not whatever pictures lie there (an older fusion.json without the list: all)
     shown = {v for v in views if isinstance(v, str)} if isinstance(views, list) else None
@@ -574,9 +617,22 @@ def _semantics_section(sec: Section, twin: Path, fusion: dict | None) -> None:
         sec.image(p, caption=f"{p.stem}: 2D masks (held-out view: not used by the fusion) | fused 3D labels rendered"
                   if p.stem in heldout else f"{p.stem}: 2D segmenter masks (input) | fused 3D labels rendered")
     maps = [p for p in sorted((twin / "semantics" / "label_maps").glob("*.png")) if ours(p)]
-    held = [p for p in maps if "heldout" in p.stem] or maps
+    # the held-out views' maps (the fusion never saw them); a real capture's names do not say "heldout"
+    held = [p for p in maps if "heldout" in p.stem or p.stem in heldout] or maps
     for p in held[:4]:
-        sec.image(p, caption=f"{p.stem}: fused labels rendered")
+        sec.image(p, caption=f"{p.stem}: fused labels rendered"
+                  + (" (held-out view: not used by the fusion)" if p.stem in heldout or "heldout" in p.stem else ""))
+
+
+def _heldout_names(twin: Path) -> set[str]:
+    """The capture's held-out view names (TWIN/poses/transforms.json), empty when it cannot be read."""
+    from splattwin.capture import load_dataset
+
+    tj = twin / "poses" / "transforms.json"
+    try:
+        return {f.name for f in load_dataset(tj, validate=False).heldout()} if tj.is_file() else set()
+    except InputError:
+        return set()
 
 
 def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
@@ -618,9 +674,20 @@ def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
                 if carve is not None else " (not carved: no capture cameras, or carving off)") + ".")
     dc = (man.config or {}).get("depth_carving")
     if isinstance(dc, dict) and dc.get("used") and isinstance(dc.get("objects"), dict):
-        parts = [f"{k} {v.get('dropped')} of {v.get('points')} points ({v.get('views')} views)"
-                 for k, v in dc["objects"].items() if isinstance(v, dict)]
-        sec.text("carved against the capture's measured depth too (inside each object's eroded mask): "
+        def share(v: dict) -> str:
+            d, n = v.get("dropped"), v.get("points")
+            ok = all(isinstance(x, int) and not isinstance(x, bool) for x in (d, n)) and n > 0
+            return f"{d} of {n} points ({100 * d / n:.1f} %, {plural(v.get('views') or 0, 'depth view')})" if ok \
+                else f"{d} of {n} points ({v.get('views')} depth views)"
+
+        tol, noise, erode = dc.get("tolerance"), dc.get("noise_1m"), dc.get("erode_px")
+        rule = (f" (more than {tol * 1000:.1f} mm + {noise * 1000:.1f} mm × z² in front of the measured depth z "
+                f"in m, inside the object's mask eroded by {erode} px)"
+                if all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in (tol, noise)) else "")
+        parts = [f"{k} {share(v)}" for k, v in dc["objects"].items() if isinstance(v, dict)]
+        # "cardboard_box 1779 of 59493 points" alone did not say what happened to those points
+        sec.text("carved against the capture's measured depth too: the points (splat centres and ellipsoid "
+                 f"samples) a depth camera saw through were dropped as free space{rule}: "
                  + (", ".join(parts) or "no object had depth views") + ".")
     elif isinstance(dc, dict) and isinstance(dc.get("skipped"), str):
         sec.text(f"not carved against measured depth: {dc['skipped']}.")
@@ -640,20 +707,28 @@ def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
         except InputError as e:
             sec.text(f"no camera views of the collision geometry: {e}")
     if ds is not None:
-        cams = [f.camera for f in ds.frames[:: max(1, len(ds.frames) // 3)][:3]]
+        frames = ds.frames[:: max(1, len(ds.frames) // 3)][:3]
         obst = [o.name for o in man.objects if o.obstacle_only]
-        caption = "collision geometry (convex parts), object colours = labels" + (
+        held = {f.name for f in ds.heldout()}
+        caption = "photo | collision geometry (convex parts) from its camera, colours as in the key" + (
             f"; translucent red: the static obstacle {'box' if len(obst) == 1 else 'boxes'} of unusable "
             f"{'object' if len(obst) == 1 else 'objects'} {', '.join(obst)} (an estimate)" if obst else "")
-        for img in _mesh_views(_twin_meshes(twin), cams):
-            sec.image(img, caption=caption)
+        for name, img in _collision_views(twin, frames):
+            sec.image(img, caption=f"{name}{' (held-out view)' if name in held else ''}: {caption}")
     if man.exports:
         sec.table(["export", "path"], [[k, v] for k, v in man.exports.items()])
 
 
-def _robot_section(sec: Section, twin: Path, robot: dict | None, stale: str | None = None) -> None:
+def _robot_section(sec: Section, twin: Path, robot: dict | None, stale: str | None = None, man=None) -> None:
     if stale:
         sec.text(f"no robot results shown: {stale}.")
+        return
+    if not robot and man is not None and not man.frame.scaled:
+        # "run splattwin plan" could never work here: plan refuses a twin in SfM units (mjcf.check_scaled)
+        sec.text("no robot plan: the twin is unscaled (lengths in SfM units, not metres), and a robot cannot plan "
+                 "in SfM units, so `splattwin plan` and `build --task` refuse it. Rebuild it with a metric scale "
+                 "(--known-length camera_height=M or baseline@IMG_A,IMG_B=M, --marker-size M, metric known poses or "
+                 "metric depth images) to plan a task.")
         return
     if not robot:
         sec.text("no robot task run (splattwin plan TWIN, or build with --task)")
@@ -671,10 +746,21 @@ def _robot_section(sec: Section, twin: Path, robot: dict | None, stale: str | No
         rows.append([s["index"], s["pick"], s["goal"], s["grasped"], s["placed"], s["at_rest"],
                      s["robot_collisions"] + s["object_collisions"], s["success"], s.get("failure") or ""])
     sec.table(["step", "pick", "goal", "grasped", "placed", "at rest", "collisions", "success", "note"], rows)
+    if nom["steps"] and not nom["steps"][-1]["success"]:
+        # the executor stops at the first failed step (`Executor.run`): a table ending there read as the task
+        sec.text(f"the run stopped at the failed step {nom['steps'][-1]['index']}: the task's later steps, if "
+                 f"any, were not attempted.")
     tr = robot.get("trials")
     if tr:
-        sec.text(f"robustness: {tr['successes']}/{tr['trials']} trials at σ = {tr['sigma'] * 1000:.1f} mm "
-                 f"(95 % CI {tr['ci95'][0]:.2f}–{tr['ci95'][1]:.2f}), {tr['collisions']} collisions.")
+        # what was perturbed and what the interval is of: "3/3 trials at σ = 5.0 mm (95 % CI 0.44-1.00)"
+        # left both to be guessed (the yaw error was not said at all)
+        yaw = tr.get("sigma_yaw")
+        yaw = (f" and its yaw by σ = {np.degrees(yaw):.1f}°"
+               if isinstance(yaw, (int, float)) and not isinstance(yaw, bool) else "")
+        sec.text(f"robustness: {tr['successes']}/{tr['trials']} trials succeeded, each with every object's x and y "
+                 f"position perturbed by σ = {tr['sigma'] * 1000:.1f} mm per axis{yaw} (the robot plans with the "
+                 f"twin's poses); success rate {tr['successes'] / max(tr['trials'], 1):.2f}, 95 % confidence interval "
+                 f"{tr['ci95'][0]:.2f}–{tr['ci95'][1]:.2f}; {plural(tr['collisions'], 'collision')} in all trials.")
     _real_arm_rows(sec, twin, robot)
     ov = twin / "robot" / "overview.png"
     if not ov.is_file():
@@ -702,7 +788,13 @@ def _real_arm_rows(sec: Section, twin: Path, robot: dict) -> None:
             rows.append(["program.json phases", f"{len(kinds)}: {kinds.count('arm')} arm, "
                          f"{kinds.count('gripper')} gripper (blocking), run in order"])
     elif real:
-        rows.append(["real-arm files", f"NOT written: {real.get('reason')}"])
+        reason = str(real.get("reason"))
+        for st in (robot.get("nominal") or {}).get("steps") or []:
+            why = st.get("failure") if isinstance(st, dict) else None
+            if isinstance(why, str) and len(why) > 40 and why in reason:
+                # the step table above has the failure word for word: 400 characters twice in a row
+                reason = reason.replace(why, f"see step {st.get('index')}'s note above")
+        rows.append(["real-arm files", f"NOT written: {reason}"])
     jn = robot.get("joint_names")
     if isinstance(jn, dict) and jn.get("exported"):
         ex = [str(n) for n in jn["exported"]]

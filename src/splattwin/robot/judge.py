@@ -102,7 +102,7 @@ def miss_on(T_world_obj: np.ndarray, extent: np.ndarray, T_world_support: np.nda
     dz = float(p[2] - (sup[2] / 2 + ext[2] / 2))
     parts = []
     if beyond > 0:
-        parts.append(f"its centre lies {beyond * 100:.1f} cm beyond {support!r}'s top face")
+        parts.append(f"its centre lies {beyond * 100:.1f} cm beyond the top face of {support!r}")   # not 'box''s
     if abs(dz) >= HEIGHT_TOL:
         parts.append(f"{abs(dz) * 100:.1f} cm {'above' if dz > 0 else 'below'} the height of resting on it")
     return f"not on {support!r}: " + (", ".join(parts) or "off its top")

@@ -245,7 +245,7 @@ def colorize(label_map: np.ndarray, names: dict[int, str], image: np.ndarray | N
 
     image: optional float [H,W,3] in [0,1] (or uint8) blended under the labels.
     """
-    from PIL import Image, ImageDraw
+    from splattwin.pictures import legend_strip
 
     n = max(max(names, default=0), int(label_map.max(initial=0)))
     pal = palette(n)
@@ -259,12 +259,8 @@ def colorize(label_map: np.ndarray, names: dict[int, str], image: np.ndarray | N
         return rgb
     H, W = label_map.shape
     rows = [(0, "background")] + sorted(names.items())
-    strip_w = 140
-    canvas = Image.new("RGB", (W + strip_w, max(H, 16 * len(rows) + 8)), (255, 255, 255))
-    canvas.paste(Image.fromarray(rgb), (0, 0))
-    draw = ImageDraw.Draw(canvas)
-    for i, (k, name) in enumerate(rows):
-        y = 4 + 16 * i
-        draw.rectangle([W + 6, y, W + 18, y + 12], fill=tuple(int(c) for c in pal[min(k, n)]))
-        draw.text((W + 24, y), f"{k} {name}"[:18], fill=(0, 0, 0))
-    return np.asarray(canvas)
+    strip = legend_strip([(f"{k} {name}", pal[min(k, n)]) for k, name in rows], H)
+    out = np.full((strip.shape[0], W + strip.shape[1], 3), 255, np.uint8)
+    out[:H, :W] = rgb
+    out[:, W:] = strip
+    return out

@@ -108,7 +108,9 @@ def draw(server, view: TwinView) -> dict:
             handles["far"] = server.scene.add_gaussian_splats(
                 "/splats_far", centers=far.means, covariances=far.covariances(), rgbs=np.clip(far.colors, 0, 1),
                 opacities=far.opacities[:, None], visible=False)
-        if view.label_rgb is not None:
+        if view.label_rgb is not None and view.motion is not None:
+            _add_motion_labels(server, view, handles)
+        elif view.label_rgb is not None:
             handles["labels"] = server.scene.add_gaussian_splats(
                 "/labels", centers=g.means, covariances=covs, rgbs=view.label_rgb.astype(np.float32) / 255.0,
                 opacities=g.opacities[:, None], visible=False)
@@ -143,8 +145,10 @@ def draw(server, view: TwinView) -> dict:
 
     @show_labels.on_update
     def _(_e) -> None:
-        if "labels" in handles:
-            handles["labels"].visible = show_labels.value
+        if any(k == "labels" or k.startswith("labels/") for k in handles):
+            for k, h in handles.items():
+                if k == "labels" or k.startswith("labels/"):
+                    h.visible = show_labels.value
             for k, h in handles.items():
                 if k == "splats" or k.startswith("motion/"):
                     h.visible = show_splats.value and not show_labels.value and _motion_visible(k, handles)
@@ -176,7 +180,7 @@ def draw(server, view: TwinView) -> dict:
             for obj_name, poses in robot.object_poses.items():
                 T = poses[t]
                 for key, h in handles.items():
-                    if key.startswith(f"col/{obj_name}/"):
+                    if key.startswith(f"col/{obj_name}/") or key == f"labels/objects/{obj_name}":
                         h.position = T[:3, 3]
                         h.wxyz = quat_wxyz_from_matrix(T[:3, :3])
 
@@ -217,6 +221,31 @@ def _add_motion(server, view: TwinView, handles: dict) -> None:
         add(f"motion/residue/{n}", f"/motion/residue/{n}", mo.residue.get(n), visible=not moved)
         add(f"motion/fill/{n}", f"/motion/fill/{n}", mo.fills.get(n), visible=moved)
         add(f"motion/objects/{n}", f"/motion/objects/{n}", mo.objects[n], T=T)
+
+
+def _add_motion_labels(server, view: TwinView, handles: dict) -> None:
+    """The label layer of splats in motion: "/labels" the static part in the background's colour and per
+    object "/labels/objects/<name>" (object frame, in its label's colour) posed as its splats are; one node
+    of every splat at its twin pose left a moved object's label colours where it started."""
+    from splattwin.playback.view_model import HUGE_SPLAT, label_colors, workspace_mask
+
+    mo = view.motion
+    st = mo.static
+    st = st.subset(workspace_mask(st.means, view.manifest.background) & (st.scales.max(axis=1) < HUGE_SPLAT))
+    labels = {o.name: o.label for o in view.manifest.objects}
+
+    def add(key: str, node: str, g, label: int, T=None) -> None:
+        if g is None or not len(g):
+            return
+        kw = {} if T is None else {"wxyz": quat_wxyz_from_matrix(T[:3, :3]), "position": T[:3, 3]}
+        rgb = np.repeat(label_colors(np.array([label]))[:1].astype(np.float32) / 255.0, len(g), axis=0)
+        handles[key] = server.scene.add_gaussian_splats(node, centers=g.means, covariances=g.covariances(), rgbs=rgb,
+                                                        opacities=g.opacities[:, None], visible=False, **kw)
+
+    add("labels", "/labels", st, 0)
+    state = mo.state(0)
+    for n, g in mo.objects.items():
+        add(f"labels/objects/{n}", f"/labels/objects/{n}", g, int(labels.get(n, 0)), T=state[n][0])
 
 
 def _motion_visible(key: str, handles: dict) -> bool:
