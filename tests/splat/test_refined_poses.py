@@ -93,16 +93,16 @@ def test_semantics_stage_projects_with_the_refined_poses(noisy, tmp_path, monkey
 
 def test_pipeline_hands_the_refined_poses_on_only_with_refinement(noisy, tmp_path):
     from splattwin.pipeline.build import _refined_poses
-    from splattwin.twin.build import _capture_frames
+    from splattwin.twin.build import _capture
 
     path, want = _refined_file(noisy, tmp_path / "splat")
     ctx = lambda on: SimpleNamespace(config=SimpleNamespace(splat=SimpleNamespace(refine_poses=on)),  # noqa: E731
                                      path=lambda p: tmp_path / p)
     assert _refined_poses(ctx(True)) == path and _refined_poses(ctx(False)) is None
     # the twin's cameras (silhouette coverage, nominal metre) with and without them
-    frames = _capture_frames(tmp_path, noisy / "transforms.json", path)
+    frames = _capture(tmp_path, noisy / "transforms.json", path)[0]
     assert all(np.allclose(f.camera.T_world_cam, want[f.name]) for f in frames)
-    plain = _capture_frames(tmp_path, noisy / "transforms.json")
+    plain = _capture(tmp_path, noisy / "transforms.json")[0]
     assert not any(np.allclose(f.camera.T_world_cam, want[f.name]) for f in plain)
 
 

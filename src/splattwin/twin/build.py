@@ -372,11 +372,6 @@ def write_exports(twin_dir: str | Path, manifest: Manifest, formats=FORMATS, pru
     return written
 
 
-def _capture_frames(out_dir: Path, cameras_path, refined_poses=None) -> list | None:
-    """The capture's frames of `_capture` (None: none)."""
-    return _capture(out_dir, cameras_path, refined_poses)[0]
-
-
 def _capture(out_dir: Path, cameras_path, refined_poses=None) -> tuple[list | None, float | None]:
     """(frames, depth scale): the capture's frames (names, cameras in the twin frame, depth files) from the
     cameras file and its metres per raw depth unit (`Dataset.depth_scale`), or (None, None) (no file, or
