@@ -101,7 +101,7 @@ def _collision_views(twin_dir: Path, frames: list) -> list[tuple[str, np.ndarray
     makes a huge picture), with a key of the objects' colours (the failure text of a tipped placement
     sends the user to an object's mesh here)."""
     from splattwin.capture import load_image
-    from splattwin.pictures import legend_strip, side_by_side
+    from splattwin.pictures import fit_height, legend_strip, side_by_side
     from splattwin.playback.view_model import collision_parts
     from splattwin.twin.manifest import Manifest
 
@@ -121,8 +121,6 @@ def _collision_views(twin_dir: Path, frames: list) -> list[tuple[str, np.ndarray
             log.warning("mesh render failed: %s", e)
             continue
         try:
-            from splattwin.pictures import fit_height
-
             photo = fit_height(load_image(fr.image_path), cam.height)
             pics = [photo, render] if photo.shape[:2] == render.shape[:2] else [render]
         except InputError:   # the photos stayed with the capture: the render alone
