@@ -662,13 +662,18 @@ def main(argv: list[str] | None = None) -> int:
         rows, k = SECTIONS[s](args)
         all_rows += rows
         keys.update(k)
-    w = max(len(r[0]) for r in all_rows)
-    print(f"bench/real.py: real captures ({DATA}), default options, {os.cpu_count()} cores, "
-          f"load average {load:.1f} at start")
-    for k, v in all_rows:
+    print_table(f"bench/real.py: real captures ({DATA}), default options, {os.cpu_count()} cores, "
+                f"load average {load:.1f} at start", all_rows, keys)
+    return 0
+
+
+def print_table(title: str, rows: list[tuple[str, str]], keys: dict) -> None:
+    """A bench's output: the title line, the rows (label, figures) aligned, and the JSON keys as the last line."""
+    w = max((len(r[0]) for r in rows), default=0)
+    print(title)
+    for k, v in rows:
         print(f"  {k:<{w}}  {v}")
     print(json.dumps(keys))
-    return 0
 
 
 if __name__ == "__main__":

@@ -255,7 +255,7 @@ def main(argv: list[str] | None = None) -> int:
     sections = [s.strip() for s in args.sections.split(",") if s.strip()]
     if any(s not in SECTIONS for s in sections):
         ap.error(f"--sections: choose from {', '.join(SECTIONS)}")
-    from real import DATA
+    from real import DATA, print_table
 
     if not (DATA / "cake" / "images").is_dir():
         sys.exit(f"the real cake photos are not at {DATA / 'cake' / 'images'} (set SPLATTWIN_REAL_DATA)")
@@ -272,11 +272,8 @@ def main(argv: list[str] | None = None) -> int:
             shutil.rmtree(d, ignore_errors=True)
     load1 = os.getloadavg()[0]
     keys.update(load_start=round(load0, 2), load_end=round(load1, 2))
-    w = max(len(r[0]) for r in all_rows)
-    print(f"bench/stages.py: {os.cpu_count()} cores, load average {load0:.1f} at start, {load1:.1f} at end")
-    for k, v in all_rows:
-        print(f"  {k:<{w}}  {v}")
-    print(json.dumps(keys))
+    print_table(f"bench/stages.py: {os.cpu_count()} cores, load average {load0:.1f} at start, {load1:.1f} at end",
+                all_rows, keys)
     return 0
 
 
