@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 from pathlib import Path
@@ -10,17 +9,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-ROOT = Path(__file__).resolve().parents[2]
 
-
-def _bench_real():
-    spec = importlib.util.spec_from_file_location("bench_real_helpers", ROOT / "bench" / "real.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_misplacement_bound_of_a_ramp(tmp_path: Path):
+def test_misplacement_bound_of_a_ramp(tmp_path: Path, load_bench):
     """A horizontal ramp of slope s per pixel: shifted by d px along x it differs by d*s at each of the
     h*(w-d) overlapping pixels, along y not at all at (h-d)*w pixels; the pooled MSE follows exactly."""
     twin, w, h, s = tmp_path / "twin", 64, 48, 3
@@ -38,7 +28,7 @@ def test_misplacement_bound_of_a_ramp(tmp_path: Path):
          "frames": frames}))
     (twin / "splat").mkdir()
     (twin / "splat" / "train.json").write_text(json.dumps({"resolution": {"resolution": 1, "max_side": None}}))
-    got = _bench_real()._misplacement_bound(twin)
+    got = load_bench("real")._misplacement_bound(twin)
     for d in (1, 2):
         mse = (d * s / 255) ** 2 * h * (w - d) / (h * (w - d) + (h - d) * w)
         assert got[f"statue_self_shift_{d}px_db"] == round(-10 * math.log10(mse), 2)

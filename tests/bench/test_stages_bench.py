@@ -2,21 +2,9 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
-
-ROOT = Path(__file__).resolve().parents[2]
-
-
-def _bench_stages():
-    spec = importlib.util.spec_from_file_location("bench_stages_helpers", ROOT / "bench" / "stages.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
 
 SRC = "/x/src/splattwin"
 SITE = "/v/lib/python3.11/site-packages"
@@ -42,9 +30,9 @@ def _profile():
     })
 
 
-def test_categories_sort_own_time_and_sum_to_the_total():
+def test_categories_sort_own_time_and_sum_to_the_total(load_bench):
     st = _profile()
-    cats = _bench_stages().categories(st)
+    cats = load_bench("stages").categories(st)
     assert sum(cats.values()) == pytest.approx(sum(v[2] for v in st.stats.values()))
     assert cats["rasterizer kernels (numba)"] == pytest.approx(6.0)
     assert cats["SSIM kernels (numba)"] == pytest.approx(1.0)
@@ -56,13 +44,13 @@ def test_categories_sort_own_time_and_sum_to_the_total():
     assert cats["rest (Python, NumPy, SciPy, Open3D, ...)"] == pytest.approx(0.5 + 0.3)
 
 
-def test_step_split_counts_only_the_training_share_of_kernel_calls():
-    sp = _bench_stages().step_split(_profile())
+def test_step_split_counts_only_the_training_share_of_kernel_calls(load_bench):
+    sp = load_bench("stages").step_split(_profile())
     # raster: 10 of its 15 calls are training's -> 4.0 s; SSIM: all 10 -> 1.0 s
     assert sp == pytest.approx({"steps": 10, "total_s": 10.0, "kernels_s": 5.0, "rest_s": 5.0})
-    assert _bench_stages().step_split(SimpleNamespace(stats={})) is None
+    assert load_bench("stages").step_split(SimpleNamespace(stats={})) is None
 
 
-def test_library_imports_reads_each_package_init_only():
-    libs = _bench_stages().library_imports(_profile())
+def test_library_imports_reads_each_package_init_only(load_bench):
+    libs = load_bench("stages").library_imports(_profile())
     assert libs == pytest.approx({"torch": 2.5, "torch._dynamo": 1.5})   # not torch/utils/data.py
