@@ -20,7 +20,11 @@ from splattwin.semantics.options import SegmentOptions
 
 WEIGHT_FILES = ("model.safetensors", "model.safetensors.index.json", "pytorch_model.bin",
                 "pytorch_model.bin.index.json")
-_KINDS = {"sam": "sam", "sam2": "sam2", "sam2_video": "sam2", "sam3": "sam3", "sam3_video": "sam3"}
+# config.json model_type(s) of each role's models (facebook/sam3 ships a sam3_video config): what a
+# checkpoint must declare to be loaded for that role (`segment.load_model`, `missing_models`)
+MODEL_TYPES = {"detector": ("grounding-dino",), "sam": ("sam",), "sam2": ("sam2", "sam2_video"),
+               "sam3": ("sam3", "sam3_video")}
+_KINDS = {mt: kind for kind, mts in MODEL_TYPES.items() if kind != "detector" for mt in mts}
 # files the processors read besides config + weights, per role (one of each group): a cache filled by
 # `SamModel.from_pretrained` alone has the model but not these, and the run failed after training. SAM 2
 # images are preprocessed by hand; SAM 3 needs only its tokenizer
@@ -100,7 +104,7 @@ def _problems(options: SegmentOptions) -> list[tuple[str, str, str | None]]:
         mt = _config_model_type(model)
         if lacks:
             why = "MISSING" if "config.json" in lacks else f"MISSING {', '.join(lacks)}"
-        elif key == "detector" and mt is not None and mt != "grounding-dino":
+        elif key == "detector" and mt is not None and mt not in MODEL_TYPES["detector"]:
             why = f"a {mt!r} model, not Grounding DINO"   # transformers would load it with random weights
         elif key != "detector" and mt is not None and _KINDS.get(mt) != key:   # e.g. --segmenter-kind sam
             why = f"a {mt!r} model, not a {key} model"

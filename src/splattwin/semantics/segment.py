@@ -77,9 +77,8 @@ def load_pretrained(cls, model_id: str, what: str, **kwargs):
             f"or pass a local folder holding config.json + weights; splattwin never downloads at run time") from e
 
 
-# model_type of the configs each model class may load (facebook/sam3 ships a sam3_video config)
-_MODEL_TYPES = {"GroundingDinoForObjectDetection": ("grounding-dino",), "SamModel": ("sam",),
-                "Sam2Model": ("sam2", "sam2_video"), "Sam3Model": ("sam3", "sam3_video")}
+# the role (`models.MODEL_TYPES`) of each model class: the model_type its config must declare
+_ROLES = {"GroundingDinoForObjectDetection": "detector", "SamModel": "sam", "Sam2Model": "sam2", "Sam3Model": "sam3"}
 # share of the parameters' elements a checkpoint may leave to random initialisation; a checkpoint of another
 # model leaves all of them (transformers >= 5 only warns), a genuine one none
 MAX_MISSING_SHARE = 0.01
@@ -95,7 +94,9 @@ def load_model(cls, model_id: str, what: str, device):
     our float32 inputs would then fail in the first convolution."""
     import torch
 
-    want = _MODEL_TYPES.get(cls.__name__)
+    from splattwin.semantics.models import MODEL_TYPES
+
+    want = MODEL_TYPES.get(_ROLES.get(cls.__name__, ""))
     if want is not None:
         from transformers import AutoConfig
 
