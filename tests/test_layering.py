@@ -20,15 +20,34 @@ def _module(path: Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
+def _package(path: Path) -> str:
+    """The package a file's relative imports start from: the file's own module for an __init__.py, else its
+    parent package."""
+    me = _module(path)
+    return me if path.name == "__init__.py" else me.rsplit(".", 1)[0]
+
+
+def _import_nodes(path: Path, source: str | None = None) -> list[ast.Import | ast.ImportFrom]:
+    """Every import statement of the file (`source` instead of its text when given), at any depth
+    (functions, classes, ifs): lazy imports are dependencies too."""
+    tree = ast.parse(source if source is not None else path.read_text(), str(path))
+    return [node for node in ast.walk(tree) if isinstance(node, (ast.Import, ast.ImportFrom))]
+
+
+def _assert_none_in_package(check, what: str) -> None:
+    """`check(path)` reports nothing for any module of the package; else the failure lists what it reported."""
+    bad = [b for p in sorted(SRC.rglob("*.py")) for b in check(p)]
+    assert not bad, f"{what}:\n" + "\n".join(bad)
+
+
 def _imports(path: Path, source: str | None = None) -> list[tuple[int, str]]:
-    """(line, absolute module) of every import in the file, at any depth (functions, classes, ifs)."""
-    mod = _module(path).split(".")
-    package = mod if path.name == "__init__.py" else mod[:-1]
+    """(line, absolute module) of every import in the file, at any depth (`_import_nodes`)."""
+    package = _package(path).split(".")
     out = []
-    for node in ast.walk(ast.parse(source if source is not None else path.read_text(), str(path))):
+    for node in _import_nodes(path, source):
         if isinstance(node, ast.Import):
             out += [(node.lineno, a.name) for a in node.names]
-        elif isinstance(node, ast.ImportFrom):
+        else:
             if node.level:
                 base = package[:len(package) - (node.level - 1)]
                 name = ".".join(base + ([node.module] if node.module else []))
@@ -73,8 +92,7 @@ def upward_imports(path: Path, source: str | None = None) -> list[str]:
 
 
 def test_no_upward_imports():
-    bad = [b for p in sorted(SRC.rglob("*.py")) for b in upward_imports(p)]
-    assert not bad, "upward imports:\n" + "\n".join(bad)
+    _assert_none_in_package(upward_imports, "upward imports")
 
 
 def test_every_stage_package_is_in_a_layer():
@@ -101,10 +119,9 @@ def private_imports(path: Path, source: str | None = None) -> list[str]:
     """`from <another splattwin module> import _name`: a module using another's private helper (audit 10A L16).
     Private modules of the same package (`from splattwin.splat import _cpu` in splattwin.splat) are allowed:
     the underscore there marks them private to their package."""
-    me = _module(path)
-    package = me if path.name == "__init__.py" else me.rsplit(".", 1)[0]
+    me, package = _module(path), _package(path)
     bad = []
-    for node in ast.walk(ast.parse(source if source is not None else path.read_text(), str(path))):
+    for node in _import_nodes(path, source):
         if not isinstance(node, ast.ImportFrom) or node.level or not (node.module or "").startswith("splattwin"):
             continue
         for a in node.names:
@@ -118,8 +135,8 @@ def private_imports(path: Path, source: str | None = None) -> list[str]:
 
 
 def test_no_module_imports_another_modules_private_names():
-    bad = [b for p in sorted(SRC.rglob("*.py")) for b in private_imports(p)]
-    assert not bad, "private names imported across modules (make them public, with a docstring):\n" + "\n".join(bad)
+    _assert_none_in_package(private_imports,
+                            "private names imported across modules (make them public, with a docstring)")
 
 
 def test_the_private_import_checker():

@@ -7,6 +7,7 @@ import json
 import logging
 
 import numpy as np
+import pytest
 
 from splattwin import io
 from splattwin.capture import colmap, nerfstudio
@@ -111,3 +112,70 @@ def test_rgba_colmap_dataset_masks_transparent_pixels(tmp_path, make_dataset, ca
         plain = load_dataset(tmp_path)
     assert all(f.mask_path is None for f in plain.frames)
     assert "2 of 4 photos have transparent pixels (img_000.png (21 %), img_001.png (25 %))" in caplog.text
+
+
+def _alpha_keep(path) -> np.ndarray | None:
+    """What the loss mask of the photo at `path` must be: alpha > 0 read straight from the file (PIL), or
+    None when the photo has no alpha or no fully transparent pixel."""
+    from PIL import Image
+
+    with Image.open(path) as im:
+        if im.mode != "RGBA":
+            return None
+        keep = np.asarray(im)[..., 3] > 0
+    return None if keep.all() else keep
+
+
+def _tree_bytes(folder) -> dict:
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("fmt, own_masks", [("bop", "mask_visib"), ("tum", "masks")])
+def test_rgba_robot_capture_masks_transparent_pixels_through_poses_and_training(tmp_path, fmt, own_masks, caplog):
+    """A BOP scene and a TUM pose list (`scene generate --robot-capture`: known poses, 16-bit depth, the
+    capture's own per-instance masks) whose photos are RGBA with transparent pixels: every frame's loss mask
+    is exactly alpha > 0, the depth of those pixels is unknown in training, and the capture's instance masks
+    (BOP mask_visib/, TUM masks/: the semantics stage's, no loss masks) are neither read as loss masks nor
+    touched. The poses stage bundles the masks; read again, the bundled mask (the frame's own mask_path now)
+    ANDed with alpha is that mask, kept as it is."""
+    from splattwin.cli import main
+    from splattwin.scene import SceneOptions
+    from splattwin.scene.robot_capture import RobotCaptureOptions, write_robot_capture
+
+    cap = write_robot_capture(tmp_path / "cap", SceneOptions(seed=0, width=W, height=H, supersample=1),
+                              RobotCaptureOptions(views=4, width=W, height=H, format=fmt), progress=False)
+    _make_rgba(load_dataset(cap))
+    own = _tree_bytes(cap / own_masks)
+    with caplog.at_level(logging.INFO, logger="splattwin.capture.images"):
+        ds = load_dataset(cap, frames_dir=tmp_path / "frames")
+    assert ds.meta["format"] == fmt and ds.has_poses and len(ds.frames) == 4
+    expected = {f.name: _alpha_keep(f.image_path) for f in ds.frames}
+    assert [k is not None for k in expected.values()] == [True, True, False, False]   # frame 2: opaque alpha
+    for f in ds.frames:
+        assert f.depth_path is not None                 # the RGB-D pairing is unchanged
+        if expected[f.name] is None:
+            assert f.mask_path is None
+        else:
+            assert f.mask_path.parent == tmp_path / "frames" / "alpha_masks"
+            np.testing.assert_array_equal(_keep(f), expected[f.name])
+    names = [f.image_path.name for f in ds.frames[:2]]
+    assert f"2 of 4 photos have transparent pixels ({names[0]} (21 %), {names[1]} (25 %))" in caplog.text
+    # training: the photo's transparent pixels are ignored, and the depth under them is unknown (inf)
+    views = load_views(ds.frames, depth=True, depth_scale=ds.depth_scale)
+    for v in views[:2]:
+        keep = expected[v.name]
+        np.testing.assert_array_equal(v.mask[..., 0].numpy() > 0, keep)
+        assert np.isinf(v.depth.numpy()[~keep]).all() and np.isfinite(v.depth.numpy()[keep]).any()
+    assert views[2].mask is None and views[3].mask is None
+
+    # the poses stage (known poses) bundles the loss masks beside its transforms.json
+    assert main(["poses", str(cap), str(tmp_path / "posed"), "--no-progress"]) == 0
+    posed = load_dataset(tmp_path / "posed" / "transforms.json", frames_dir=tmp_path / "frames2")
+    for f in posed.frames:
+        if expected[f.name] is None:
+            assert f.mask_path is None
+        else:
+            assert f.mask_path.parent == tmp_path / "posed" / "masks"   # its own mask, not a new alpha mask
+            np.testing.assert_array_equal(_keep(f), expected[f.name])
+    assert not (tmp_path / "frames2" / "alpha_masks").exists()
+    assert _tree_bytes(cap / own_masks) == own

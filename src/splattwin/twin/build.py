@@ -19,6 +19,7 @@ import importlib.metadata
 import logging
 import shutil
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -432,6 +433,34 @@ def _measured_depth(frames: list | None, depth_scale: float | None, silhouettes:
     return of, None
 
 
+@dataclasses.dataclass
+class CaptureViews:
+    """What the geometry sees of the capture (`capture_views`): the cameras (twin frame) or None, the
+    objects' 2D masks paired with them ({label: [(camera, bool mask [H,W])]}) or None, the measured depth
+    for carving (label -> [(camera, sensor depth [H,W] m)], `convert`'s `measured`) or None, and why that
+    carving is skipped (None when it runs)."""
+
+    cameras: list | None
+    silhouettes: dict | None
+    measured: Callable[[int], list] | None
+    depth_skipped: str | None
+
+
+def capture_views(out_dir: str | Path, cameras_path, frame: TwinFrame, options: GeometryOptions | None = None,
+                  masks=None, refined_poses=None) -> CaptureViews:
+    """The capture as `build_twin` hands it to `convert`: its frames from the cameras file (a path relative to
+    `out_dir` when it exists there; poses replaced by `refined_poses`, `_capture`), the MaskSet `masks`
+    paired with them by view name (`geometry.completeness.mask_views`), and their depth maps for carving
+    against the measured depth (`_measured_depth`: a metric frame, views with both depth and a mask).
+    One place for the twin stage and bench/geometry.py --twin-from, so the bench carves as a build does."""
+    from splattwin.geometry.completeness import mask_views
+
+    frames, depth_scale = _capture(Path(out_dir), cameras_path, refined_poses)
+    silhouettes = mask_views(masks, frames) if masks is not None and frames else None
+    measured, skipped = _measured_depth(frames, depth_scale, silhouettes, frame, options or GeometryOptions())
+    return CaptureViews([f.camera for f in frames] if frames else None, silhouettes, measured, skipped)
+
+
 def depth_carving_record(conv: Conversion) -> dict:
     """twin.json config.depth_carving: whether the meshes were carved against the capture's measured depth
     (`used`, or `skipped` with why), the options that set it, and per object the views used and how many of
@@ -538,22 +567,16 @@ def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path
     frame = frame or TwinFrame()
     check_formats(frame, formats, out_dir / "twin.json")
     t0 = time.perf_counter()
-    frames, depth_scale = _capture(out_dir, cameras_path, refined_poses)
-    cameras = [f.camera for f in frames] if frames else None
-    silhouettes = None
-    if masks is not None and frames:
-        from splattwin.geometry.completeness import mask_views
-
-        silhouettes = mask_views(masks, frames)
+    views = capture_views(out_dir, cameras_path, frame, options, masks, refined_poses)
+    cameras = views.cameras
     length_scale = frame.length_scale(None if frame.scaled else _estimated_nominal_metre(gaussians, cameras))
     if not frame.scaled:
         log.info("unscaled twin: metric thresholds x %.4g (frame units per nominal metre)", length_scale)
         frame = dataclasses.replace(frame, nominal_metre=frame.nominal_metre or round(length_scale, 6))
-    measured, depth_skipped = _measured_depth(frames, depth_scale, silhouettes, frame, options or GeometryOptions())
     conv = convert(gaussians, labels, objects, options, progress=progress, length_scale=length_scale, cameras=cameras,
-                   table_plane=table_plane(frame), masks=silhouettes, measured=measured)
-    if depth_skipped is not None:
-        conv.depth_skipped = depth_skipped
+                   table_plane=table_plane(frame), masks=views.silhouettes, measured=views.measured)
+    if views.depth_skipped is not None:
+        conv.depth_skipped = views.depth_skipped
     t1 = time.perf_counter()
     manifest = write_geometry(conv, gaussians, labels, out_dir, frame, cameras_path, splats_path, refined_poses)
     manifest.timings["write"] = round(time.perf_counter() - t1, 4)
