@@ -36,6 +36,9 @@ $(STAMP): pyproject.toml Makefile
 	$(PIP) install -q -e ".[test]"
 	# Franka Panda (MuJoCo Menagerie files, Apache-2.0) from a PyPI wheel: works offline after set-up.
 	$(PY) -m splattwin.robot.assets --ensure
+	# numba compiles the CPU rasterizer's kernels on their first use (~40 s on 2 cores): once here, into
+	# numba's cache, rather than in the first train/build/test (a later kernels.py change compiles again, said)
+	$(PY) -m splattwin.splat._cpu --warm
 	@touch $(STAMP)
 
 venv: syscheck $(STAMP)

@@ -179,3 +179,45 @@ def test_rgba_robot_capture_masks_transparent_pixels_through_poses_and_training(
             np.testing.assert_array_equal(_keep(f), expected[f.name])
     assert not (tmp_path / "frames2" / "alpha_masks").exists()
     assert _tree_bytes(cap / own_masks) == own
+
+
+def test_train_and_eval_into_a_locked_folder_refuse_before_writing_masks(tmp_path, make_dataset):
+    """Reading an RGBA dataset writes loss masks into OUT/capture/frames: a second `train` into an OUT another
+    run holds, or an `eval` into a training folder a `train` still holds, exits 2 before writing them."""
+    import fcntl
+    import os
+
+    from splattwin.cli import main
+    from splattwin.lock import lock_path
+
+    ds = make_dataset(tmp_path / "ds")
+    _make_rgba(ds)
+    tj = nerfstudio.write(ds, tmp_path / "ds" / "transforms.json")
+    out = tmp_path / "out"
+
+    def hold(folder):
+        """Lock `folder` as another process would: flock on an open file description of our own."""
+        lock_path(folder).parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(lock_path(folder), os.O_RDWR | os.O_CREAT, 0o644)
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return fd
+
+    fd = hold(out)
+    try:
+        assert main(["train", str(tj), str(out), "--iters", "4", "--sh-degree", "0", "--no-progress",
+                     "--device", "cpu"]) == 2
+        assert [p.name for p in out.iterdir()] == [".splattwin"]   # no capture/frames/alpha_masks
+    finally:
+        os.close(fd)
+    assert main(["train", str(tj), str(out), "--iters", "4", "--sh-degree", "0", "--no-progress",
+                 "--device", "cpu"]) == 0
+    assert (out / "capture" / "frames" / "alpha_masks").is_dir()
+
+    fd = hold(out)   # a `train` (say, --resume) running in the training folder
+    try:
+        assert main(["eval", str(out), "--dataset", str(tj), "--no-progress", "--device", "cpu"]) == 2
+        assert not (out / "eval").exists()
+    finally:
+        os.close(fd)
+    assert main(["eval", str(out), "--dataset", str(tj), "--no-progress", "--device", "cpu"]) == 0
+    assert (out / "eval" / "capture" / "frames" / "alpha_masks").is_dir()

@@ -53,11 +53,13 @@ def _train(args: argparse.Namespace) -> int:
     from splattwin.capture.dataset import refuse_video
 
     refuse_video(args.dataset, "train")   # no poses: said before its frames would be extracted
-    # a photo's transparent pixels get loss masks in OUT/capture/frames/alpha_masks (as `build`'s TWIN/capture/frames)
-    ds = load_dataset(args.dataset, max_frames=args.max_frames, frames_dir=args.out / "capture" / "frames")
-    h = apply_holdout(ds, from_args(HoldoutOptions, args, prefix="holdout."))
-    print(f"held-out views ({h.rule}): {', '.join(h.names) if h.names else 'none'}")
+    holdout = from_args(HoldoutOptions, args, prefix="holdout.")
+    # the lock first: reading the dataset writes into OUT (a photo's transparent pixels get loss masks in
+    # OUT/capture/frames/alpha_masks, as `build`'s TWIN/capture/frames), which another run may hold
     with output_lock(args.out):
+        ds = load_dataset(args.dataset, max_frames=args.max_frames, frames_dir=args.out / "capture" / "frames")
+        h = apply_holdout(ds, holdout)
+        print(f"held-out views ({h.rule}): {', '.join(h.names) if h.names else 'none'}")
         res = train(ds, args.out, cfg, resume=args.resume)
     psnr = "unknown" if res.final_psnr is None else f"{res.final_psnr:.2f} dB"
     # wall_s: the training time of the result over the original run and resumes (see trainer)
@@ -77,13 +79,20 @@ def _eval(args: argparse.Namespace) -> int:
     from splattwin.capture.dataset import refuse_video
     from splattwin.splat.eval import evaluate
 
+    from splattwin.lock import output_lock
+    from splattwin.paths import is_inside
+
     refuse_video(args.dataset, "eval")   # no poses: said before its frames would be extracted
     out = args.out
     if out is None:
         out = (args.splat if args.splat.is_dir() else args.splat.parent) / "eval"
-    res = evaluate(args.splat, args.dataset, out, resolution=args.resolution, backend=args.device or "auto",
-                   progress=args.progress, align_poses=args.align_poses,
-                   full_resolution=args.full_resolution)
+    # one writer per folder (splattwin.lock): a training folder's lock when writing into it (a `train` still
+    # running there holds it), else OUT's. Taken before the dataset is read: that writes loss masks for
+    # transparent pixels into OUT/capture/frames/alpha_masks.
+    with output_lock(args.splat if args.splat.is_dir() and is_inside(out, args.splat) else out):
+        res = evaluate(args.splat, args.dataset, out, resolution=args.resolution, backend=args.device or "auto",
+                       progress=args.progress, align_poses=args.align_poses,
+                       full_resolution=args.full_resolution)
     for v in res.views:
         fix = f"  pose fit {v['pose_correction_deg']:.2f} deg / {_pose_length(v)}" if "pose_correction_deg" in v else ""
         print(f"{v['name']:>24s}  PSNR {v['psnr']:6.2f} dB  SSIM {v['ssim']:.4f}{fix}{_coverage_text(v)}")

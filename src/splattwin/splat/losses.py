@@ -82,6 +82,9 @@ def _kernels():
     import numba as nb
     import numpy as np
 
+    from splattwin.splat._cpu.first_run import announce_first_compile
+
+    announce_first_compile()   # their first compile after install is said, not silent
     # Work in bands of output rows (in parallel over channel x band): each band keeps its last 11
     # horizontally blurred rows in a ring buffer (~150 KB at 640 px: L2-resident) instead of whole-image
     # temporaries (18 MB at 640x480, written and re-read 11 times: ~3x slower). Innermost loops run along

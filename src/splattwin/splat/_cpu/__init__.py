@@ -19,6 +19,9 @@ import numpy as np
 import torch
 
 from splattwin.splat._cpu import kernels as K_
+from splattwin.splat._cpu.first_run import announce_first_compile
+
+announce_first_compile()   # their first compile after install (~40 s) is said, not silent
 
 TILE = K_.TILE
 
