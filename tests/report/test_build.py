@@ -416,16 +416,42 @@ def test_an_unscaled_twins_robot_section_says_why_there_is_no_plan(tmp_path):
     assert "no robot task run (splattwin plan TWIN, or build with --task)" in metric
 
 
-def _figures(html: str) -> dict:
-    """{caption: (width, height)} of the report's embedded pictures."""
+def _embedded(html: str) -> dict:
+    """{caption: (MIME type, picture bytes)} of the report's embedded pictures."""
     import base64
-    import io as _io
     import re
+
+    return {m.group(3): (m.group(1), base64.b64decode(m.group(2)))
+            for m in re.finditer(r'src="data:(image/[a-z]+);base64,([^"]*)" alt="([^"]*)"', html)}
+
+
+def _figures(html: str) -> dict:
+    """{caption: (width, height)} of the report's embedded pictures (PNG or JPEG)."""
+    import io as _io
 
     from PIL import Image
 
-    return {m.group(2): Image.open(_io.BytesIO(base64.b64decode(m.group(1)))).size
-            for m in re.finditer(r'src="data:image/png;base64,([^"]*)" alt="([^"]*)"', html)}
+    return {cap: Image.open(_io.BytesIO(data)).size for cap, (_, data) in _embedded(html).items()}
+
+
+def test_report_embeds_photographic_pictures_as_jpeg_and_the_camera_plot_as_png(tmp_path):
+    """Every picture was a PNG: the demo twin's report was 5.7 MB. The photos, renders and
+    photo | render | error strips are JPEG now; the camera plot stays PNG (thin lines and text)."""
+    import numpy as np
+
+    from splattwin.capture import load_dataset, load_image
+    from splattwin.io import write_image
+    from splattwin.pictures import side_by_side
+
+    twin = _twin(tmp_path, views=[{"name": "heldout_003", "psnr": 24.0, "ssim": 0.8, "image": "heldout_003.png"}])
+    photo = load_image(load_dataset(twin / "poses" / "transforms.json", validate=False).frames[3].image_path)
+    strip = side_by_side([photo, photo, np.zeros_like(photo)])
+    write_image(twin / "splat" / "eval" / "heldout_003.png", (strip * 255 + 0.5).astype(np.uint8))
+    write_image(twin / "poses" / "cameras.png", (strip * 255 + 0.5).astype(np.uint8))   # many colours
+    pics = _embedded(build_report(twin).read_text())
+    assert pics["a few input views"][0] == "image/jpeg"
+    assert pics["heldout_003: ground truth | render | error"][0] == "image/jpeg"
+    assert pics["camera poses and sparse points"] == ("image/png", (twin / "poses" / "cameras.png").read_bytes())
 
 
 def test_report_input_views_are_thumbnails_not_the_full_size_photos(tmp_path):

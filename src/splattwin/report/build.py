@@ -458,9 +458,10 @@ def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
     thumbs = [fit_height(load_image(fr.image_path), THUMB_HEIGHT)
               for fr in ds.train()[:: max(1, len(ds.train()) // 4)][:4]]
     if thumbs:
-        sec.image(side_by_side(thumbs), caption="a few input views")
+        sec.image(side_by_side(thumbs), caption="a few input views", photo=True)
     if (twin / "poses" / "cameras.png").is_file():
-        sec.image(twin / "poses" / "cameras.png", caption="camera poses and sparse points", width=520)
+        sec.image(twin / "poses" / "cameras.png", caption="camera poses and sparse points", width=520,
+                  photo=False)   # a plot: lines and text kept exact
 
 
 def _exposure_text(rec: dict) -> str:
@@ -577,10 +578,11 @@ def _recon_section(sec: Section, twin: Path, ev: dict | None) -> None:
 
         p = confined(twin / "splat" / "eval", r["image"], twin / "splat" / "eval" / "metrics.json", "image")
         if p.is_file():
-            sec.image(p, caption=f"{r['name']}: ground truth | render | error")
+            sec.image(p, caption=f"{r['name']}: ground truth | render | error", photo=True)
     if (twin / "splat" / "transients.png").is_file():   # a photo collection: what the loss left out
         sec.image(twin / "splat" / "transients.png", caption="transient masks (red): what training left out of "
-                  "each photo as seen in that photo only (people, vehicles; `--splat.robust-quantile`)", width=720)
+                  "each photo as seen in that photo only (people, vehicles; `--splat.robust-quantile`)", width=720,
+                  photo=True)
 
 
 def _semantics_section(sec: Section, twin: Path, fusion: dict | None) -> None:
@@ -611,6 +613,8 @@ def _semantics_section(sec: Section, twin: Path, fusion: dict | None) -> None:
     def ours(p: Path) -> bool:
         return shown is None or p.stem in shown
 
+    # the label pictures' format is left to their content (`html.picture_bytes`): labels blended over the photo
+    # are photographic (JPEG), a label map drawn without one (its photo unreadable) flat colour (PNG)
     for p in [p for p in sorted((twin / "semantics" / "masks_vs_labels").glob("*.png")) if ours(p)]:
         sec.image(p, caption=f"{p.stem}: 2D masks (held-out view: not used by the fusion) | fused 3D labels rendered"
                   if p.stem in heldout else f"{p.stem}: 2D segmenter masks (input) | fused 3D labels rendered")
@@ -712,7 +716,7 @@ def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
             f"; translucent red: the static obstacle {'box' if len(obst) == 1 else 'boxes'} of unusable "
             f"{'object' if len(obst) == 1 else 'objects'} {', '.join(obst)} (an estimate)" if obst else "")
         for name, img in _collision_views(twin, frames):
-            sec.image(img, caption=f"{name}{' (held-out view)' if name in held else ''}: {caption}")
+            sec.image(img, caption=f"{name}{' (held-out view)' if name in held else ''}: {caption}", photo=True)
     if man.exports:
         sec.table(["export", "path"], [[k, v] for k, v in man.exports.items()])
 
@@ -764,7 +768,7 @@ def _robot_section(sec: Section, twin: Path, robot: dict | None, stale: str | No
     if not ov.is_file():
         ov = twin / "robot" / "frames" / "overview.png"
     if ov.is_file():
-        sec.image(ov, caption="execution in MuJoCo")
+        sec.image(ov, caption="execution in MuJoCo", photo=True)
     for n in robot.get("notes", []):
         if not (isinstance(robot.get("real_robot"), dict) and robot["real_robot"].get("reason")
                 and str(robot["real_robot"]["reason"]) in str(n)):   # the table above says it

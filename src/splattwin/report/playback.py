@@ -159,7 +159,7 @@ def playback_section(sec, twin: Path, options: ReportOptions | None = None) -> N
         if v.get("light_check") is not None:
             sec.image(v["light_check"], caption="the light check: at the start, the table the estimated light puts "
                                                 "in the objects' shadows, outlined in cyan (it should trace the "
-                                                "shadows in the picture)", width=max(320, i["width"]))
+                                                "shadows in the picture)", width=max(320, i["width"]), photo=True)
     else:
         sec.text("Not re-lit: no clear cast shadow of the objects on the table was found (soft or many lights, or "
                  "too few table splats around the objects), so every splat keeps the colour it was trained with; "
@@ -170,12 +170,13 @@ def playback_section(sec, twin: Path, options: ReportOptions | None = None) -> N
     sec.row_start()
     sec.video(v["mp4"], caption=f"photoreal twin in motion ({v['camera']})", width=max(320, i["width"]))
     if physics.is_file():
-        sec.image(physics, caption="the same task in MuJoCo physics", width=max(320, i["width"]))
+        sec.image(physics, caption="the same task in MuJoCo physics", width=max(320, i["width"]), photo=True)
     else:
         sec.text("(no physics frames: the run had no offscreen GL context or --no-render)")
     sec.row_end()
     sec.image(v["picture"], caption=f"final state; hole-filled table regions outlined in magenta "
-                                    f"({100 * v['fill_fraction']:.1f} % of this picture)", width=max(320, i["width"]))
+                                    f"({100 * v['fill_fraction']:.1f} % of this picture)", width=max(320, i["width"]),
+              photo=True)
     if v["fill_area_m2"]:
         sec.table(["moved object", "filled area (cm²)"],
                   [[n, round(a * 1e4, 1)] for n, a in v["fill_area_m2"].items()])
