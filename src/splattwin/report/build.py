@@ -764,15 +764,22 @@ def _robot_section(sec: Section, twin: Path, robot: dict | None, stale: str | No
                  f"twin's poses); success rate {tr['successes'] / max(tr['trials'], 1):.2f}, 95 % confidence interval "
                  f"{tr['ci95'][0]:.2f}–{tr['ci95'][1]:.2f}; {plural(tr['collisions'], 'collision')} in all trials.")
     _real_arm_rows(sec, twin, robot)
-    ov = twin / "robot" / "overview.png"
-    if not ov.is_file():
-        ov = twin / "robot" / "frames" / "overview.png"
-    if ov.is_file():
+    ov = physics_overview(twin)
+    if ov is not None:   # shown here only (the task-in-motion section's video refers to it)
         sec.image(ov, caption="execution in MuJoCo", photo=True)
     for n in robot.get("notes", []):
         if not (isinstance(robot.get("real_robot"), dict) and robot["real_robot"].get("reason")
                 and str(robot["real_robot"]["reason"]) in str(n)):   # the table above says it
             sec.text(f"note: {n}")
+
+
+def physics_overview(twin: Path) -> Path | None:
+    """The robot run's MuJoCo frames in one picture (TWIN/robot/frames/overview.png; robot/overview.png of an
+    older run), None when the run rendered none (no offscreen GL context, --no-render: its notes say)."""
+    for p in (twin / "robot" / "overview.png", twin / "robot" / "frames" / "overview.png"):
+        if p.is_file():
+            return p
+    return None
 
 
 def _real_arm_rows(sec: Section, twin: Path, robot: dict) -> None:

@@ -51,7 +51,7 @@ figure img{max-width:100%;border:1px solid #e3e6eb;border-radius:4px;image-rende
 figcaption{font-size:12px;color:#5b6475;margin-top:2px}
 .kpis{display:flex;flex-wrap:wrap;gap:12px}.kpi{background:#f0f4ff;border-radius:6px;padding:8px 14px}
 .kpi b{display:block;font-size:20px}.kpi span{font-size:12px;color:#5b6475}
-.row{display:flex;flex-wrap:wrap;gap:10px;align-items:flex-start}video{max-width:100%;border:1px solid #e3e6eb;border-radius:4px}
+video{max-width:100%;border:1px solid #e3e6eb;border-radius:4px}
 .ok{color:#137333;font-weight:600}.bad{color:#b3261e;font-weight:600}pre{background:#f0f2f5;padding:8px;overflow:auto;font-size:12px}
 """
 
@@ -202,15 +202,6 @@ class Section:
         cap = f"<figcaption>{html.escape(caption)}</figcaption>" if caption else ""
         self.parts.append(f'<figure><video controls loop muted playsinline{w} src="data:video/mp4;base64,{data}">'
                           f"</video>{cap}</figure>")
-        return self
-
-    def row_start(self) -> "Section":
-        """What follows until `row_end` is laid out side by side."""
-        self.parts.append('<div class="row">')
-        return self
-
-    def row_end(self) -> "Section":
-        self.parts.append("</div>")
         return self
 
 
