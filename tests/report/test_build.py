@@ -602,3 +602,43 @@ def test_report_real_arm_row_points_to_the_failed_steps_note_instead_of_repeatin
     html = htmllib.unescape(build_report(twin).read_text())
     assert html.count(why) == 1
     assert "NOT written: the task failed in the validation run at step 1 (cake): see step 1's note above" in html
+
+
+def test_report_names_the_steps_a_failed_run_did_not_attempt(tmp_path):
+    """A failed run's report said "the task's later steps, if any, were not attempted": results.json held
+    only the steps that ran. With `nominal.task_steps` it names them; a results.json without it (an
+    earlier splattwin) keeps the old sentence."""
+    import html as htmllib
+
+    from splattwin.robot.outputs import twin_digest
+
+    twin = _manifest_twin(tmp_path, scaled=True)
+    _robot_results(twin, twin_digest(twin))
+    res = json.loads((twin / "robot" / "results.json").read_text())
+    ok = res["nominal"]["steps"][0]
+    failed = {**ok, "index": 2, "pick": "mug", "goal": "tray", "placed": False, "success": False,
+              "failure": "'mug' tipped over"}
+    res["nominal"] = {"success": False, "steps": [ok, failed]}
+
+    def robot_section() -> str:
+        (twin / "robot" / "results.json").write_text(json.dumps(res))
+        page = htmllib.unescape(build_report(twin).read_text())
+        return page.split("Robot task in physics")[1].split("</section>")[0]
+
+    assert "the run stopped at the failed step 2: the task's later steps, if any, were not attempted." \
+        in robot_section()
+    res["nominal"]["task_steps"] = [
+        {"index": 1, "pick": "cake", "goal": "region", "place": "in"},
+        {"index": 2, "pick": "mug", "goal": "tray", "place": "on"},
+        {"index": 3, "pick": "cup", "goal": "mug", "place": "on"},
+        {"index": 4, "pick": "spoon", "goal": "bin", "place": "in"}]
+    robot = robot_section()
+    assert "the run stopped at the failed step 2 of 4: steps 3-4 (cup on mug, spoon in bin) were not attempted." \
+        in robot
+    assert "<td>3</td><td>cup</td><td>mug</td>" in robot and robot.count("not attempted</td>") == 2
+    res["nominal"]["task_steps"] = res["nominal"]["task_steps"][:3]
+    assert "step 3 (cup on mug) was not attempted." in robot_section()
+    res["nominal"]["task_steps"] = res["nominal"]["task_steps"][:2]
+    assert "the run stopped at the failed step 2, the task's last." in robot_section()
+    res["nominal"]["task_steps"] = [{"index": "2"}]     # malformed: as if not recorded
+    assert "the task's later steps, if any, were not attempted." in robot_section()

@@ -747,11 +747,22 @@ def _robot_section(sec: Section, twin: Path, robot: dict | None, stale: str | No
     for s in nom["steps"]:
         rows.append([s["index"], s["pick"], s["goal"], s["grasped"], s["placed"], s["at_rest"],
                      s["robot_collisions"] + s["object_collisions"], s["success"], s.get("failure") or ""])
+    planned = _task_steps(nom)
+    ran = {s["index"] for s in nom["steps"]}
+    skipped = [t for t in planned or [] if t["index"] not in ran]
+    rows += [[t["index"], t["pick"], t["goal"], "-", "-", "-", "-", "-", "not attempted"] for t in skipped]
     sec.table(["step", "pick", "goal", "grasped", "placed", "at rest", "collisions", "success", "note"], rows)
     if nom["steps"] and not nom["steps"][-1]["success"]:
         # the executor stops at the first failed step (`Executor.run`): a table ending there read as the task
-        sec.text(f"the run stopped at the failed step {nom['steps'][-1]['index']}: the task's later steps, if "
-                 f"any, were not attempted.")
+        failed = nom["steps"][-1]["index"]
+        if planned is None:   # results.json of an earlier splattwin: no step list recorded
+            sec.text(f"the run stopped at the failed step {failed}: the task's later steps, if any, were not "
+                     f"attempted.")
+        elif skipped:
+            sec.text(f"the run stopped at the failed step {failed} of {len(planned)}: {_steps_text(skipped)} "
+                     f"not attempted.")
+        else:
+            sec.text(f"the run stopped at the failed step {failed}, the task's last.")
     tr = robot.get("trials")
     if tr:
         # what was perturbed and what the interval is of: "3/3 trials at σ = 5.0 mm (95 % CI 0.44-1.00)"
@@ -771,6 +782,26 @@ def _robot_section(sec: Section, twin: Path, robot: dict | None, stale: str | No
         if not (isinstance(robot.get("real_robot"), dict) and robot["real_robot"].get("reason")
                 and str(robot["real_robot"]["reason"]) in str(n)):   # the table above says it
             sec.text(f"note: {n}")
+
+
+def _task_steps(nominal: dict) -> list[dict] | None:
+    """results.json `nominal.task_steps` (every step of the task: `robot.execute.task_step_list`), None when
+    it is not recorded (an earlier splattwin) or not a list of {index: int, pick, goal}."""
+    steps = nominal.get("task_steps")
+    ok = isinstance(steps, list) and all(
+        isinstance(t, dict) and isinstance(t.get("index"), int) and not isinstance(t.get("index"), bool)
+        and isinstance(t.get("pick"), str) and isinstance(t.get("goal"), str) for t in steps)
+    return steps if ok else None
+
+
+def _steps_text(steps: list[dict]) -> str:
+    """'step 3 (mug on tray) was' / 'steps 3-4 (mug on tray, cup in bin) were': the steps not attempted."""
+    idx = [t["index"] for t in steps]
+    run = len(idx) > 1 and idx == list(range(idx[0], idx[-1] + 1))
+    span = f"{idx[0]}-{idx[-1]}" if run else ", ".join(map(str, idx))
+    what = ", ".join(f"{t['pick']} {t.get('place') if t.get('place') in ('on', 'in') else 'to'} {t['goal']}"
+                     for t in steps[:8]) + (", ..." if len(steps) > 8 else "")
+    return f"step {span} ({what}) was" if len(steps) == 1 else f"steps {span} ({what}) were"
 
 
 def physics_overview(twin: Path) -> Path | None:
