@@ -17,6 +17,9 @@ def _report(tmp_path):
     img = np.zeros((60, 80, 3), np.float32)
     img[:, :40, 0] = 1.0  # left half red
     sec.image(img, caption="red | black")
+    rng = np.random.default_rng(1)
+    green = np.clip(np.array([0.1, 0.8, 0.15]) + rng.normal(0, 0.03, (60, 80, 3)), 0, 1)   # a noisy "photo"
+    sec.image(green, caption="green photo", photo=True)
     return rep.save(tmp_path / "report" / "index.html")
 
 
@@ -110,6 +113,8 @@ def test_report_renders_in_chromium(tmp_path):
     assert (shot.sum(axis=2) < 150).mean() > 0.01
     red = (shot[..., 0] > 200) & (shot[..., 1] < 60) & (shot[..., 2] < 60)
     assert red.sum() > 500
+    green = (shot[..., 1] > 150) & (shot[..., 0] < 80) & (shot[..., 2] < 90)   # the JPEG one is drawn too
+    assert "data:image/jpeg;base64," in path.read_text() and green.sum() > 500
 
 
 def test_side_by_side_and_heatmap():
