@@ -114,3 +114,7 @@ def test_report_shows_the_mujoco_overview_once_in_the_robot_section(twin_with_ro
     motion = page.split("The task in motion")[1].split("</section>")[0]
     assert data in robot and "execution in MuJoCo" in robot
     assert "data:video/mp4" in motion and "the robot section above" in motion
+    (twin / "robot" / "frames" / "overview.png").unlink()     # a run without GL (or --no-render)
+    page = build_report(twin, options=ReportOptions(video_camera="view_0", video_fps=10.0, video_width=96)).read_text()
+    assert "execution in MuJoCo" not in page and "no physics frames" in page
+    assert "the robot section above" not in page

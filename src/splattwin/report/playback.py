@@ -164,10 +164,13 @@ def playback_section(sec, twin: Path, options: ReportOptions | None = None) -> N
         sec.text("Not re-lit: no clear cast shadow of the objects on the table was found (soft or many lights, or "
                  "too few table splats around the objects), so every splat keeps the colour it was trained with; "
                  "a moved object's old shadow stays on the table.")
-    # the MuJoCo frames of the same task are in the robot section above (`build.physics_overview`): embedded
-    # here as well, the report carried the same picture twice
-    sec.video(v["mp4"], caption=f"photoreal twin in motion ({v['camera']}); the same task in MuJoCo physics: "
-                               f"the robot section above", width=max(320, i["width"]))
+    from splattwin.report.build import physics_overview
+
+    # the MuJoCo frames of the same task are in the robot section above: embedded here as well, the report
+    # carried the same picture twice
+    physics = ("the same task in MuJoCo physics: the robot section above" if physics_overview(twin) is not None
+               else "no physics frames: the run had no offscreen GL context or --no-render")
+    sec.video(v["mp4"], caption=f"photoreal twin in motion ({v['camera']}); {physics}", width=max(320, i["width"]))
     sec.image(v["picture"], caption=f"final state; hole-filled table regions outlined in magenta "
                                     f"({100 * v['fill_fraction']:.1f} % of this picture)", width=max(320, i["width"]),
               photo=True)
