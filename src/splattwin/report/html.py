@@ -10,8 +10,9 @@ the file opens offline and can be mailed around as one file.
 
 Picture format (`picture_bytes`): photographic pictures (photos, splat and MuJoCo renders, the
 photo | render | error strips, thumbnails) are embedded as JPEG, flat-colour ones (masks, label maps
-without a photo under them, colour keys, plots) as PNG. Every picture embedded as PNG made a 15-view
-320x240 twin's report 5.7 MB. The rule, in order:
+without a photo under them, colour keys, plots) as PNG. Measured (Nov 2026): the demo twin's report (15
+views at 320x240, its 0.5 MB video included) 6.2 MB with every picture PNG, 2.5 MB so (2.4 MB with the
+MuJoCo picture once, not twice); the real cake's unscaled twin 3.7 MB, 1.2 MB. The rule, in order:
 - a picture with an alpha channel: PNG (JPEG has no alpha);
 - the caller says what it is: `photo=True` JPEG, `photo=False` PNG (a plot of thin lines and text,
   which JPEG would blur even where it is smaller);
