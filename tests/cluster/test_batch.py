@@ -76,7 +76,8 @@ def test_batch_on_ray_survives_a_killed_worker(captures: list[Path], ray_session
     assert float(rows[0]["psnr"]) == pytest.approx(by["scene0"]["psnr"], abs=1e-4)
     assert json.loads((out / "batch.json").read_text())["ok"] == 2
     html = (out / "summary.html").read_text()
-    assert "failed in preflight" in html and html.count("data:image/png;base64,") >= 2
+    # the two built captures' held-out view strips (photographic: JPEG, `report.html.picture_bytes`)
+    assert "failed in preflight" in html and html.count("data:image/jpeg;base64,") >= 2
     assert 'href="scene0/report/index.html"' in html
 
     # a re-run on the local pool skips every finished stage of every capture

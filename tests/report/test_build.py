@@ -416,16 +416,42 @@ def test_an_unscaled_twins_robot_section_says_why_there_is_no_plan(tmp_path):
     assert "no robot task run (splattwin plan TWIN, or build with --task)" in metric
 
 
-def _figures(html: str) -> dict:
-    """{caption: (width, height)} of the report's embedded pictures."""
+def _embedded(html: str) -> dict:
+    """{caption: (MIME type, picture bytes)} of the report's embedded pictures."""
     import base64
-    import io as _io
     import re
+
+    return {m.group(3): (m.group(1), base64.b64decode(m.group(2)))
+            for m in re.finditer(r'src="data:(image/[a-z]+);base64,([^"]*)" alt="([^"]*)"', html)}
+
+
+def _figures(html: str) -> dict:
+    """{caption: (width, height)} of the report's embedded pictures (PNG or JPEG)."""
+    import io as _io
 
     from PIL import Image
 
-    return {m.group(2): Image.open(_io.BytesIO(base64.b64decode(m.group(1)))).size
-            for m in re.finditer(r'src="data:image/png;base64,([^"]*)" alt="([^"]*)"', html)}
+    return {cap: Image.open(_io.BytesIO(data)).size for cap, (_, data) in _embedded(html).items()}
+
+
+def test_report_embeds_photographic_pictures_as_jpeg_and_the_camera_plot_as_png(tmp_path):
+    """Every picture was a PNG: the demo twin's report was 5.7 MB. The photos, renders and
+    photo | render | error strips are JPEG now; the camera plot stays PNG (thin lines and text)."""
+    import numpy as np
+
+    from splattwin.capture import load_dataset, load_image
+    from splattwin.io import write_image
+    from splattwin.pictures import side_by_side
+
+    twin = _twin(tmp_path, views=[{"name": "heldout_003", "psnr": 24.0, "ssim": 0.8, "image": "heldout_003.png"}])
+    photo = load_image(load_dataset(twin / "poses" / "transforms.json", validate=False).frames[3].image_path)
+    strip = side_by_side([photo, photo, np.zeros_like(photo)])
+    write_image(twin / "splat" / "eval" / "heldout_003.png", (strip * 255 + 0.5).astype(np.uint8))
+    write_image(twin / "poses" / "cameras.png", (strip * 255 + 0.5).astype(np.uint8))   # many colours
+    pics = _embedded(build_report(twin).read_text())
+    assert pics["a few input views"][0] == "image/jpeg"
+    assert pics["heldout_003: ground truth | render | error"][0] == "image/jpeg"
+    assert pics["camera poses and sparse points"] == ("image/png", (twin / "poses" / "cameras.png").read_bytes())
 
 
 def test_report_input_views_are_thumbnails_not_the_full_size_photos(tmp_path):
@@ -576,3 +602,43 @@ def test_report_real_arm_row_points_to_the_failed_steps_note_instead_of_repeatin
     html = htmllib.unescape(build_report(twin).read_text())
     assert html.count(why) == 1
     assert "NOT written: the task failed in the validation run at step 1 (cake): see step 1's note above" in html
+
+
+def test_report_names_the_steps_a_failed_run_did_not_attempt(tmp_path):
+    """A failed run's report said "the task's later steps, if any, were not attempted": results.json held
+    only the steps that ran. With `nominal.task_steps` it names them; a results.json without it (an
+    earlier splattwin) keeps the old sentence."""
+    import html as htmllib
+
+    from splattwin.robot.outputs import twin_digest
+
+    twin = _manifest_twin(tmp_path, scaled=True)
+    _robot_results(twin, twin_digest(twin))
+    res = json.loads((twin / "robot" / "results.json").read_text())
+    ok = res["nominal"]["steps"][0]
+    failed = {**ok, "index": 2, "pick": "mug", "goal": "tray", "placed": False, "success": False,
+              "failure": "'mug' tipped over"}
+    res["nominal"] = {"success": False, "steps": [ok, failed]}
+
+    def robot_section() -> str:
+        (twin / "robot" / "results.json").write_text(json.dumps(res))
+        page = htmllib.unescape(build_report(twin).read_text())
+        return page.split("Robot task in physics")[1].split("</section>")[0]
+
+    assert "the run stopped at the failed step 2: the task's later steps, if any, were not attempted." \
+        in robot_section()
+    res["nominal"]["task_steps"] = [
+        {"index": 1, "pick": "cake", "goal": "region", "place": "in"},
+        {"index": 2, "pick": "mug", "goal": "tray", "place": "on"},
+        {"index": 3, "pick": "cup", "goal": "mug", "place": "on"},
+        {"index": 4, "pick": "spoon", "goal": "bin", "place": "in"}]
+    robot = robot_section()
+    assert "the run stopped at the failed step 2 of 4: steps 3-4 (cup on mug, spoon in bin) were not attempted." \
+        in robot
+    assert "<td>3</td><td>cup</td><td>mug</td>" in robot and robot.count("not attempted</td>") == 2
+    res["nominal"]["task_steps"] = res["nominal"]["task_steps"][:3]
+    assert "step 3 (cup on mug) was not attempted." in robot_section()
+    res["nominal"]["task_steps"] = res["nominal"]["task_steps"][:2]
+    assert "the run stopped at the failed step 2, the task's last." in robot_section()
+    res["nominal"]["task_steps"] = [{"index": "2"}]     # malformed: as if not recorded
+    assert "the task's later steps, if any, were not attempted." in robot_section()

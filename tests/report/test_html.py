@@ -4,7 +4,7 @@ import numpy as np
 from PIL import Image
 
 from splattwin.pictures import side_by_side
-from splattwin.report.html import Report, png_bytes
+from splattwin.report.html import Report, picture_bytes, png_bytes
 from splattwin.splat.metrics import error_heatmap
 from splattwin.report.screenshot import screenshot
 
@@ -17,14 +17,92 @@ def _report(tmp_path):
     img = np.zeros((60, 80, 3), np.float32)
     img[:, :40, 0] = 1.0  # left half red
     sec.image(img, caption="red | black")
+    rng = np.random.default_rng(1)
+    green = np.clip(np.array([0.1, 0.8, 0.15]) + rng.normal(0, 0.03, (60, 80, 3)), 0, 1)   # a noisy "photo"
+    sec.image(green, caption="green photo", photo=True)
     return rep.save(tmp_path / "report" / "index.html")
 
 
 def test_report_is_self_contained(tmp_path):
-    html = _report(tmp_path).read_text()
-    assert "data:image/png;base64," in html
+    import re
+
+    rep = Report("test report")
+    sec = rep.section("pictures")
+    sec.image(np.repeat(np.repeat(np.eye(2, dtype=np.float32), 30, 0), 40, 1), caption="flat")
+    sec.image(_photo(), caption="photo", photo=True)
+    html = _report(tmp_path).read_text() + rep.to_html()
+    assert "data:image/png;base64," in html and "data:image/jpeg;base64," in html   # the flat ones, the photo
     assert "http://" not in html and "https://" not in html  # opens offline
+    assert all(src.startswith("data:") for src in re.findall(r'src="([^"]*)"', html))
     assert "30.12" in html and "<th>PSNR</th>" in html
+
+
+def _photo(h: int = 120, w: int = 160) -> np.ndarray:
+    """A photo-like HxWx3 uint8 picture: smooth shading, fine texture and sensor noise (thousands of
+    colours), with a 1-px red line across it (an outline drawn over a render)."""
+    rng = np.random.default_rng(0)
+    y, x = np.mgrid[0:h, 0:w] / max(h, w)
+    base = np.stack([0.5 + 0.3 * np.sin(6 * x + 2 * y), 0.45 + 0.25 * np.cos(5 * y), 0.4 + 0.2 * x], -1)
+    texture = 0.05 * np.sin(40 * x)[..., None] * np.cos(30 * y)[..., None]
+    img = np.clip(base + texture + rng.normal(0, 0.01, base.shape), 0, 1)
+    img[h // 2] = (1.0, 0.0, 0.0)
+    return (img * 255 + 0.5).astype(np.uint8)
+
+
+def _decode(data: bytes) -> np.ndarray:
+    import io
+
+    return np.asarray(Image.open(io.BytesIO(data)))
+
+
+def _psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
+    return float(10 * np.log10(255.0 ** 2 / mse))
+
+
+def test_pictures_are_embedded_as_jpeg_or_png_by_their_kind(tmp_path):
+    """Every picture was a PNG (a 15-view 320x240 twin's report: 5.7 MB): photographic ones are JPEG now,
+    flat-colour ones, plots and pictures with alpha stay PNG."""
+    from splattwin.io import write_image
+
+    photo = _photo()
+    flat = np.zeros((120, 160, 3), np.uint8)
+    flat[20:80, 30:90] = (200, 40, 40)      # a label map / mask: a few flat colours, 1-px edges
+    flat[:, 100] = (0, 0, 255)
+    rgba = np.dstack([photo, np.full(photo.shape[:2], 128, np.uint8)])
+    assert picture_bytes(photo, photo=True)[0] == "image/jpeg"
+    assert picture_bytes(photo)[0] == "image/jpeg"                  # decided from the content
+    assert picture_bytes(photo, photo=False)[0] == "image/png"      # the caller knows: a plot
+    assert picture_bytes(flat)[0] == "image/png"
+    assert picture_bytes(rgba, photo=True)[0] == "image/png"        # JPEG has no alpha
+    assert picture_bytes(photo.astype(np.float32) / 255)[0] == "image/jpeg"   # float in [0, 1]
+    # files: a photo PNG on disk, a flat PNG (its own bytes embedded) and an RGBA one
+    p_photo = write_image(tmp_path / "render.png", photo)
+    p_flat = write_image(tmp_path / "labels.png", flat)
+    p_rgba = write_image(tmp_path / "rgba.png", rgba)
+    assert picture_bytes(p_photo)[0] == "image/jpeg"
+    assert picture_bytes(p_flat) == ("image/png", p_flat.read_bytes())
+    assert picture_bytes(p_rgba, photo=True) == ("image/png", p_rgba.read_bytes())
+    assert picture_bytes(p_photo, photo=False) == ("image/png", p_photo.read_bytes())
+
+
+def test_a_jpeg_picture_is_close_to_its_source_and_a_flat_png_is_exact(tmp_path):
+    from PIL import JpegImagePlugin
+
+    photo = _photo()
+    mime, data = picture_bytes(photo, photo=True)
+    assert mime == "image/jpeg" and len(data) < 0.5 * len(png_bytes(photo))
+    back = _decode(data)
+    assert back.shape == photo.shape and _psnr(back, photo) > 35
+    with Image.open(__import__("io").BytesIO(data)) as im:
+        assert JpegImagePlugin.get_sampling(im) == 0     # 4:4:4: the colour is not halved in resolution
+    line = back[photo.shape[0] // 2].astype(int)         # the 1-px red line keeps its colour
+    assert line[:, 0].min() > 200 and line[:, 1].max() < 60 and line[:, 2].max() < 60
+    flat = np.zeros((50, 70, 3), np.uint8)
+    flat[10:30, 5:40] = (10, 200, 30)
+    flat[:, 50] = (255, 0, 255)
+    mime, data = picture_bytes(flat)
+    assert mime == "image/png" and np.array_equal(_decode(data), flat)
 
 
 def test_report_renders_in_chromium(tmp_path):
@@ -35,6 +113,8 @@ def test_report_renders_in_chromium(tmp_path):
     assert (shot.sum(axis=2) < 150).mean() > 0.01
     red = (shot[..., 0] > 200) & (shot[..., 1] < 60) & (shot[..., 2] < 60)
     assert red.sum() > 500
+    green = (shot[..., 1] > 150) & (shot[..., 0] < 80) & (shot[..., 2] < 90)   # the JPEG one is drawn too
+    assert "data:image/jpeg;base64," in path.read_text() and green.sum() > 500
 
 
 def test_side_by_side_and_heatmap():

@@ -1,4 +1,4 @@
-"""The report's task-in-motion section: the photoreal MP4 embedded beside the physics frames, and the
+"""The report's task-in-motion section: the photoreal MP4 embedded (the physics frames: the robot section), and the
 filled hole regions outlined with their fraction of the picture."""
 
 from __future__ import annotations
@@ -87,3 +87,34 @@ def test_report_base_pose_nan_in_results_json_is_an_input_error(tmp_path):
     (tmp_path / "robot" / "results.json").write_text(json.dumps({"base_pose": {"x": "nan", "y": 0, "z": 0, "yaw": 0}}))
     with pytest.raises(InputError, match=r"results\.json.*base_pose\.x"):
         _base(tmp_path)
+
+
+def test_report_shows_the_mujoco_overview_once_in_the_robot_section(twin_with_rollout):
+    """robot/frames/overview.png was embedded twice: in the robot section and again beside the task video.
+    Now the robot section has it, and the video's caption points there."""
+    import json
+
+    from splattwin.io import write_image
+    from splattwin.report.build import build_report
+    from splattwin.report.html import picture_bytes
+    from splattwin.robot.outputs import twin_digest
+
+    twin, _ = twin_with_rollout
+    step = {"index": 1, "pick": "blue_box", "goal": "region", "grasped": True, "placed": True, "at_rest": True,
+            "robot_collisions": 0, "object_collisions": 0, "success": True, "failure": None}
+    (twin / "robot" / "results.json").write_text(json.dumps({
+        "task": "task.yaml", "planner": "rrt", "nominal": {"success": True, "steps": [step]},
+        "twin_digest": twin_digest(twin)}))
+    rng = np.random.default_rng(0)
+    overview = write_image(twin / "robot" / "frames" / "overview.png", rng.integers(0, 255, (40, 60, 3), np.uint8))
+    page = build_report(twin, options=ReportOptions(video_camera="view_0", video_fps=10.0, video_width=96)).read_text()
+    data = base64.b64encode(picture_bytes(overview, photo=True)[1]).decode("ascii")
+    assert page.count(data) == 1
+    robot = page.split("Robot task in physics")[1].split("</section>")[0]
+    motion = page.split("The task in motion")[1].split("</section>")[0]
+    assert data in robot and "execution in MuJoCo" in robot
+    assert "data:video/mp4" in motion and "the robot section above" in motion
+    (twin / "robot" / "frames" / "overview.png").unlink()     # a run without GL (or --no-render)
+    page = build_report(twin, options=ReportOptions(video_camera="view_0", video_fps=10.0, video_width=96)).read_text()
+    assert "execution in MuJoCo" not in page and "no physics frames" in page
+    assert "the robot section above" not in page

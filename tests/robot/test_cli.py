@@ -401,3 +401,39 @@ def test_plan_records_its_seconds_for_the_reports_timings(gt_twin_small: Path, t
     assert again["finished"] > plan["finished"]
     assert main(["report", str(twin), "--no-video"]) == 0
     assert rows()["robot"][0] == f"{again['seconds']:.4g}"
+
+
+@pytest.mark.slow
+def test_a_failed_run_records_the_tasks_steps_and_the_report_names_those_not_attempted(gt_twin_small: Path,
+                                                                                      tmp_path: Path, monkeypatch):
+    """The executor stops at the first failed step, and results.json held only the steps that ran: the
+    report could not say which of the task's steps were never attempted. `nominal.task_steps` lists them
+    all now (here step 1's transit is blocked: steps 2-3 of the default task were not attempted)."""
+    import shutil
+
+    from splattwin.report.build import build_report
+    from splattwin.robot.planning import PlanningError
+    from splattwin.robot.task import load_task
+    from splattwin.twin.manifest import Manifest
+
+    twin = tmp_path / "twin"
+    shutil.copytree(gt_twin_small, twin)
+
+    def blocked(self, q_start, q_goal, label):
+        raise PlanningError("injected: blocked")
+
+    monkeypatch.setattr("splattwin.robot.motion.MotionPlanner.free_path", blocked)
+    assert main(["plan", str(twin), "--no-render", "--no-report"]) == 1
+    nom = json.loads((twin / "robot" / "results.json").read_text())["nominal"]
+    task = load_task(None, Manifest.load(twin))
+    assert [s["index"] for s in nom["steps"]] == [1] and not nom["steps"][0]["success"]
+    assert nom["task_steps"] == [{"index": k, "pick": s.pick, "goal": s.goal_name,
+                                  "place": "on" if s.place_on else "in"} for k, s in enumerate(task.steps, start=1)]
+    assert len(nom["task_steps"]) == 3
+    import html as htmllib
+
+    page = htmllib.unescape(build_report(twin).read_text())
+    robot = page.split("Robot task in physics")[1].split("</section>")[0]
+    later = ", ".join(f"{t['pick']} {t['place']} {t['goal']}" for t in nom["task_steps"][1:])
+    assert f"the run stopped at the failed step 1 of 3: steps 2-3 ({later}) were not attempted." in robot
+    assert robot.count("not attempted</td>") == 2     # their rows in the step table

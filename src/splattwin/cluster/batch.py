@@ -367,7 +367,8 @@ def summary_html(out: Path, summary: dict) -> str:
                 with Image.open(ev[0]) as im:
                     im = im.convert("RGB")
                     im.thumbnail((480, 240))
-                    s.image(np.asarray(im), caption=f"held-out view {ev[0].stem}: ground truth | render | error")
+                    s.image(np.asarray(im), caption=f"held-out view {ev[0].stem}: ground truth | render | error",
+                            photo=True)
             except (OSError, UnidentifiedImageError):   # replaced or removed meanwhile: the summary goes on
                 s.text(f"(held-out picture {ev[0].name} could not be read)")
         if c.get("report"):

@@ -458,9 +458,10 @@ def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
     thumbs = [fit_height(load_image(fr.image_path), THUMB_HEIGHT)
               for fr in ds.train()[:: max(1, len(ds.train()) // 4)][:4]]
     if thumbs:
-        sec.image(side_by_side(thumbs), caption="a few input views")
+        sec.image(side_by_side(thumbs), caption="a few input views", photo=True)
     if (twin / "poses" / "cameras.png").is_file():
-        sec.image(twin / "poses" / "cameras.png", caption="camera poses and sparse points", width=520)
+        sec.image(twin / "poses" / "cameras.png", caption="camera poses and sparse points", width=520,
+                  photo=False)   # a plot: lines and text kept exact
 
 
 def _exposure_text(rec: dict) -> str:
@@ -577,10 +578,11 @@ def _recon_section(sec: Section, twin: Path, ev: dict | None) -> None:
 
         p = confined(twin / "splat" / "eval", r["image"], twin / "splat" / "eval" / "metrics.json", "image")
         if p.is_file():
-            sec.image(p, caption=f"{r['name']}: ground truth | render | error")
+            sec.image(p, caption=f"{r['name']}: ground truth | render | error", photo=True)
     if (twin / "splat" / "transients.png").is_file():   # a photo collection: what the loss left out
         sec.image(twin / "splat" / "transients.png", caption="transient masks (red): what training left out of "
-                  "each photo as seen in that photo only (people, vehicles; `--splat.robust-quantile`)", width=720)
+                  "each photo as seen in that photo only (people, vehicles; `--splat.robust-quantile`)", width=720,
+                  photo=True)
 
 
 def _semantics_section(sec: Section, twin: Path, fusion: dict | None) -> None:
@@ -611,6 +613,8 @@ def _semantics_section(sec: Section, twin: Path, fusion: dict | None) -> None:
     def ours(p: Path) -> bool:
         return shown is None or p.stem in shown
 
+    # the label pictures' format is left to their content (`html.picture_bytes`): labels blended over the photo
+    # are photographic (JPEG), a label map drawn without one (its photo unreadable) flat colour (PNG)
     for p in [p for p in sorted((twin / "semantics" / "masks_vs_labels").glob("*.png")) if ours(p)]:
         sec.image(p, caption=f"{p.stem}: 2D masks (held-out view: not used by the fusion) | fused 3D labels rendered"
                   if p.stem in heldout else f"{p.stem}: 2D segmenter masks (input) | fused 3D labels rendered")
@@ -712,7 +716,7 @@ def _geometry_section(sec: Section, twin: Path, man, geo: dict | None) -> None:
             f"; translucent red: the static obstacle {'box' if len(obst) == 1 else 'boxes'} of unusable "
             f"{'object' if len(obst) == 1 else 'objects'} {', '.join(obst)} (an estimate)" if obst else "")
         for name, img in _collision_views(twin, frames):
-            sec.image(img, caption=f"{name}{' (held-out view)' if name in held else ''}: {caption}")
+            sec.image(img, caption=f"{name}{' (held-out view)' if name in held else ''}: {caption}", photo=True)
     if man.exports:
         sec.table(["export", "path"], [[k, v] for k, v in man.exports.items()])
 
@@ -743,11 +747,22 @@ def _robot_section(sec: Section, twin: Path, robot: dict | None, stale: str | No
     for s in nom["steps"]:
         rows.append([s["index"], s["pick"], s["goal"], s["grasped"], s["placed"], s["at_rest"],
                      s["robot_collisions"] + s["object_collisions"], s["success"], s.get("failure") or ""])
+    planned = _task_steps(nom)
+    ran = {s["index"] for s in nom["steps"]}
+    skipped = [t for t in planned or [] if t["index"] not in ran]
+    rows += [[t["index"], t["pick"], t["goal"], "-", "-", "-", "-", "-", "not attempted"] for t in skipped]
     sec.table(["step", "pick", "goal", "grasped", "placed", "at rest", "collisions", "success", "note"], rows)
     if nom["steps"] and not nom["steps"][-1]["success"]:
         # the executor stops at the first failed step (`Executor.run`): a table ending there read as the task
-        sec.text(f"the run stopped at the failed step {nom['steps'][-1]['index']}: the task's later steps, if "
-                 f"any, were not attempted.")
+        failed = nom["steps"][-1]["index"]
+        if planned is None:   # results.json of an earlier splattwin: no step list recorded
+            sec.text(f"the run stopped at the failed step {failed}: the task's later steps, if any, were not "
+                     f"attempted.")
+        elif skipped:
+            sec.text(f"the run stopped at the failed step {failed} of {len(planned)}: {_steps_text(skipped)} "
+                     f"not attempted.")
+        else:
+            sec.text(f"the run stopped at the failed step {failed}, the task's last.")
     tr = robot.get("trials")
     if tr:
         # what was perturbed and what the interval is of: "3/3 trials at σ = 5.0 mm (95 % CI 0.44-1.00)"
@@ -760,15 +775,42 @@ def _robot_section(sec: Section, twin: Path, robot: dict | None, stale: str | No
                  f"twin's poses); success rate {tr['successes'] / max(tr['trials'], 1):.2f}, 95 % confidence interval "
                  f"{tr['ci95'][0]:.2f}–{tr['ci95'][1]:.2f}; {plural(tr['collisions'], 'collision')} in all trials.")
     _real_arm_rows(sec, twin, robot)
-    ov = twin / "robot" / "overview.png"
-    if not ov.is_file():
-        ov = twin / "robot" / "frames" / "overview.png"
-    if ov.is_file():
-        sec.image(ov, caption="execution in MuJoCo")
+    ov = physics_overview(twin)
+    if ov is not None:   # shown here only (the task-in-motion section's video refers to it)
+        sec.image(ov, caption="execution in MuJoCo", photo=True)
     for n in robot.get("notes", []):
         if not (isinstance(robot.get("real_robot"), dict) and robot["real_robot"].get("reason")
                 and str(robot["real_robot"]["reason"]) in str(n)):   # the table above says it
             sec.text(f"note: {n}")
+
+
+def _task_steps(nominal: dict) -> list[dict] | None:
+    """results.json `nominal.task_steps` (every step of the task: `robot.execute.task_step_list`), None when
+    it is not recorded (an earlier splattwin) or not a list of {index: int, pick, goal}."""
+    steps = nominal.get("task_steps")
+    ok = isinstance(steps, list) and all(
+        isinstance(t, dict) and isinstance(t.get("index"), int) and not isinstance(t.get("index"), bool)
+        and isinstance(t.get("pick"), str) and isinstance(t.get("goal"), str) for t in steps)
+    return steps if ok else None
+
+
+def _steps_text(steps: list[dict]) -> str:
+    """'step 3 (mug on tray) was' / 'steps 3-4 (mug on tray, cup in bin) were': the steps not attempted."""
+    idx = [t["index"] for t in steps]
+    run = len(idx) > 1 and idx == list(range(idx[0], idx[-1] + 1))
+    span = f"{idx[0]}-{idx[-1]}" if run else ", ".join(map(str, idx))
+    what = ", ".join(f"{t['pick']} {t.get('place') if t.get('place') in ('on', 'in') else 'to'} {t['goal']}"
+                     for t in steps[:8]) + (", ..." if len(steps) > 8 else "")
+    return f"step {span} ({what}) was" if len(steps) == 1 else f"steps {span} ({what}) were"
+
+
+def physics_overview(twin: Path) -> Path | None:
+    """The robot run's MuJoCo frames in one picture (TWIN/robot/frames/overview.png; robot/overview.png of an
+    older run), None when the run rendered none (no offscreen GL context, --no-render: its notes say)."""
+    for p in (twin / "robot" / "overview.png", twin / "robot" / "frames" / "overview.png"):
+        if p.is_file():
+            return p
+    return None
 
 
 def _real_arm_rows(sec: Section, twin: Path, robot: dict) -> None:

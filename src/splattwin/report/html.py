@@ -1,12 +1,27 @@
-"""A self-contained HTML report: every image is embedded (base64 PNG), no external CSS/JS/fonts, so the
-file opens offline and can be mailed around as one file.
+"""A self-contained HTML report: every image is embedded (a base64 data URI), no external CSS/JS/fonts, so
+the file opens offline and can be mailed around as one file.
 
     rep = Report("splattwin twin: tabletop")
     sec = rep.section("Reconstruction")
     sec.text("15 training views, 3000 iterations.")
     sec.table(["view", "PSNR", "SSIM"], rows)
-    sec.image(array_or_png_path, caption="ground truth | render | error")
+    sec.image(array_or_png_path, caption="ground truth | render | error", photo=True)
     rep.save(twin / "report" / "index.html")
+
+Picture format (`picture_bytes`): photographic pictures (photos, splat and MuJoCo renders, the
+photo | render | error strips, thumbnails) are embedded as JPEG, flat-colour ones (masks, label maps
+without a photo under them, colour keys, plots) as PNG. Measured (Nov 2026): the demo twin's report (15
+views at 320x240, its 0.5 MB video included) 6.2 MB with every picture PNG, 2.5 MB so (2.4 MB with the
+MuJoCo picture once, not twice); the real cake's unscaled twin 3.7 MB, 1.2 MB. The rule, in order:
+- a picture with an alpha channel: PNG (JPEG has no alpha);
+- the caller says what it is: `photo=True` JPEG, `photo=False` PNG (a plot of thin lines and text,
+  which JPEG would blur even where it is smaller);
+- otherwise (`photo=None`) from the content: at most `FLAT_MAX_COLOURS` distinct colours (a mask, a key, a
+  label map): PNG, lossless and the smaller for flat colour; more (a photo, or labels blended over one):
+  both encoded and the JPEG kept only when it is at most `JPEG_GAIN` of the PNG's bytes (lossy only where
+  it pays).
+JPEG at quality `JPEG_QUALITY` without chroma subsampling (4:4:4): a 1-px coloured outline or a key's
+swatch keeps its colour instead of bleeding into its neighbours (4:2:0 halves the colour resolution).
 """
 
 from __future__ import annotations
@@ -37,9 +52,22 @@ figure img{max-width:100%;border:1px solid #e3e6eb;border-radius:4px;image-rende
 figcaption{font-size:12px;color:#5b6475;margin-top:2px}
 .kpis{display:flex;flex-wrap:wrap;gap:12px}.kpi{background:#f0f4ff;border-radius:6px;padding:8px 14px}
 .kpi b{display:block;font-size:20px}.kpi span{font-size:12px;color:#5b6475}
-.row{display:flex;flex-wrap:wrap;gap:10px;align-items:flex-start}video{max-width:100%;border:1px solid #e3e6eb;border-radius:4px}
+video{max-width:100%;border:1px solid #e3e6eb;border-radius:4px}
 .ok{color:#137333;font-weight:600}.bad{color:#b3261e;font-weight:600}pre{background:#f0f2f5;padding:8px;overflow:auto;font-size:12px}
 """
+
+
+JPEG_QUALITY = 90   # photographic pictures (module docstring): ~40 dB PSNR on a photo, ~1/4 of the PNG bytes
+FLAT_MAX_COLOURS = 256  # at most this many distinct colours: a flat-colour picture, kept PNG (lossless)
+JPEG_GAIN = 0.75    # photo=None: the JPEG is kept only when at most this fraction of the PNG's bytes
+
+
+def _as_uint8(image: np.ndarray) -> np.ndarray:
+    """HxW(xC) uint8 of an array of uint8, or of floats in [0, 1] (clipped)."""
+    arr = np.asarray(image)
+    if arr.dtype != np.uint8:
+        arr = (np.clip(arr, 0, 1) * 255 + 0.5).astype(np.uint8)
+    return arr
 
 
 def png_bytes(image: np.ndarray | str | Path) -> bytes:
@@ -54,16 +82,68 @@ def png_bytes(image: np.ndarray | str | Path) -> bytes:
         if data[:8] == b"\x89PNG\r\n\x1a\n":
             return data
         image = read_image_array(image, mode="RGB")
-    arr = np.asarray(image)
-    if arr.dtype != np.uint8:
-        arr = (np.clip(arr, 0, 1) * 255 + 0.5).astype(np.uint8)
     buf = _io.BytesIO()
-    Image.fromarray(arr).save(buf, format="PNG", optimize=True)
+    Image.fromarray(_as_uint8(image)).save(buf, format="PNG", optimize=True)
     return buf.getvalue()
 
 
-def data_uri(image: np.ndarray | str | Path) -> str:
-    return "data:image/png;base64," + base64.b64encode(png_bytes(image)).decode("ascii")
+def jpeg_bytes(image: np.ndarray) -> bytes:
+    """JPEG bytes (quality `JPEG_QUALITY`, 4:4:4: no chroma subsampling) of an HxW or HxWx3 array (uint8, or
+    float in [0,1])."""
+    from PIL import Image
+
+    buf = _io.BytesIO()
+    Image.fromarray(_as_uint8(image)).save(buf, format="JPEG", quality=JPEG_QUALITY, subsampling=0, optimize=True)
+    return buf.getvalue()
+
+
+def _decoded(path: str | Path) -> tuple[np.ndarray | None, bytes | None]:
+    """(the picture as an HxW or HxWx3 uint8 array, None) of an image file without transparency, else (None,
+    its PNG bytes: the file's own when it is a PNG). The size is checked before it is decoded."""
+    from splattwin.limits import open_image, read_image_array
+
+    with open_image(path) as im:
+        alpha = bool({"A", "a"} & set(im.getbands())) or "transparency" in im.info
+    if alpha:
+        return None, png_bytes(path)
+    return read_image_array(path, mode="RGB"), None
+
+
+def _flat(arr: np.ndarray) -> bool:
+    """At most `FLAT_MAX_COLOURS` distinct colours (PIL counts them, stopping once past the limit)."""
+    from PIL import Image
+
+    return Image.fromarray(arr).getcolors(FLAT_MAX_COLOURS) is not None
+
+
+def picture_bytes(image: np.ndarray | str | Path, photo: bool | None = None) -> tuple[str, bytes]:
+    """(MIME type, bytes) of a picture to embed: JPEG or PNG by the rule of the module docstring. image: an
+    HxW(x3|4) array (uint8, or float in [0,1]) or an image file; photo: True photographic, False flat
+    colour / a plot, None decided from the content."""
+    if isinstance(image, (str, Path)):
+        if photo is False:
+            return "image/png", png_bytes(image)
+        arr, png = _decoded(image)
+        if arr is None:              # transparency
+            return "image/png", png
+    else:
+        arr = _as_uint8(image)
+        if photo is False or (arr.ndim == 3 and arr.shape[2] not in (1, 3)):   # a plot, or alpha (RGBA, LA)
+            return "image/png", png_bytes(arr)
+    arr = arr[..., 0] if arr.ndim == 3 and arr.shape[2] == 1 else arr
+    if photo:
+        return "image/jpeg", jpeg_bytes(arr)
+    png = png_bytes(image if isinstance(image, (str, Path)) else arr)
+    if _flat(arr):
+        return "image/png", png
+    jpg = jpeg_bytes(arr)
+    return ("image/jpeg", jpg) if len(jpg) <= JPEG_GAIN * len(png) else ("image/png", png)
+
+
+def data_uri(image: np.ndarray | str | Path, photo: bool | None = None) -> str:
+    """A data: URI of the picture (`picture_bytes`: JPEG or PNG)."""
+    mime, data = picture_bytes(image, photo)
+    return f"data:{mime};base64," + base64.b64encode(data).decode("ascii")
 
 
 def _fmt(v: Any) -> str:
@@ -98,12 +178,16 @@ class Section:
         self.parts.append(f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>")
         return self
 
-    def image(self, image: np.ndarray | str | Path, caption: str = "", width: int | None = None) -> "Section":
+    def image(self, image: np.ndarray | str | Path, caption: str = "", width: int | None = None,
+              photo: bool | None = None) -> "Section":
+        """Embed a picture (array or image file; width: shown width, px). photo: True for photographic
+        content (JPEG), False for flat colour or a plot (PNG), None: decided from the content (module
+        docstring)."""
         w = f' style="width:{int(width)}px"' if width else ""
         cap = f"<figcaption>{html.escape(caption)}</figcaption>" if caption else ""
-        self.parts.append(f'<figure><img{w} src="{data_uri(image)}" alt="{html.escape(caption)}">{cap}</figure>')
+        src = data_uri(image, photo)
+        self.parts.append(f'<figure><img{w} src="{src}" alt="{html.escape(caption)}">{cap}</figure>')
         return self
-
 
     def video(self, path: str | Path, caption: str = "", width: int | None = None,
               max_bytes: int = 64 << 20) -> "Section":
@@ -119,15 +203,6 @@ class Section:
         cap = f"<figcaption>{html.escape(caption)}</figcaption>" if caption else ""
         self.parts.append(f'<figure><video controls loop muted playsinline{w} src="data:video/mp4;base64,{data}">'
                           f"</video>{cap}</figure>")
-        return self
-
-    def row_start(self) -> "Section":
-        """What follows until `row_end` is laid out side by side."""
-        self.parts.append('<div class="row">')
-        return self
-
-    def row_end(self) -> "Section":
-        self.parts.append("</div>")
         return self
 
 

@@ -1,7 +1,7 @@
 """The report's "task in motion" section: the MP4 of the validated task rendered photoreal from one
-camera (moving splats, the robot as Gaussians; `splattwin.playback`), shown beside the physics frames,
-and a picture of the final state with the hole-filled table regions outlined, with their area and the
-fraction of the picture they cover; for a re-lit twin, the light it estimated and a picture to check it
+camera (moving splats, the robot as Gaussians; `splattwin.playback`; the physics frames are the robot
+section's), and a picture of the final state with the hole-filled table regions outlined, with their area
+and the fraction of the picture they cover; for a re-lit twin, the light it estimated and a picture to check it
 (the table it puts in the objects' shadows, outlined at the start).
 
 The video is cached in TWIN/report/ (task_<camera>.mp4 + its key: the rollout's content and the
@@ -159,23 +159,21 @@ def playback_section(sec, twin: Path, options: ReportOptions | None = None) -> N
         if v.get("light_check") is not None:
             sec.image(v["light_check"], caption="the light check: at the start, the table the estimated light puts "
                                                 "in the objects' shadows, outlined in cyan (it should trace the "
-                                                "shadows in the picture)", width=max(320, i["width"]))
+                                                "shadows in the picture)", width=max(320, i["width"]), photo=True)
     else:
         sec.text("Not re-lit: no clear cast shadow of the objects on the table was found (soft or many lights, or "
                  "too few table splats around the objects), so every splat keeps the colour it was trained with; "
                  "a moved object's old shadow stays on the table.")
-    physics = twin / "robot" / "overview.png"
-    if not physics.is_file():
-        physics = twin / "robot" / "frames" / "overview.png"
-    sec.row_start()
-    sec.video(v["mp4"], caption=f"photoreal twin in motion ({v['camera']})", width=max(320, i["width"]))
-    if physics.is_file():
-        sec.image(physics, caption="the same task in MuJoCo physics", width=max(320, i["width"]))
-    else:
-        sec.text("(no physics frames: the run had no offscreen GL context or --no-render)")
-    sec.row_end()
+    from splattwin.report.build import physics_overview
+
+    # the MuJoCo frames of the same task are in the robot section above: embedded here as well, the report
+    # carried the same picture twice
+    physics = ("the same task in MuJoCo physics: the robot section above" if physics_overview(twin) is not None
+               else "no physics frames: the run had no offscreen GL context or --no-render")
+    sec.video(v["mp4"], caption=f"photoreal twin in motion ({v['camera']}); {physics}", width=max(320, i["width"]))
     sec.image(v["picture"], caption=f"final state; hole-filled table regions outlined in magenta "
-                                    f"({100 * v['fill_fraction']:.1f} % of this picture)", width=max(320, i["width"]))
+                                    f"({100 * v['fill_fraction']:.1f} % of this picture)", width=max(320, i["width"]),
+              photo=True)
     if v["fill_area_m2"]:
         sec.table(["moved object", "filled area (cm²)"],
                   [[n, round(a * 1e4, 1)] for n, a in v["fill_area_m2"].items()])

@@ -67,7 +67,7 @@ FLOOR_TOLERANCE = 0.0015  # m: fingertips above the support by the planning marg
 MAX_TOUCHES = 2          # touch-based corrections of the believed object pose per step
 IN_HAND = ("sensed", "planned")  # where the transfer assumes the held object sits (module docstring)
 
-__all__ = ["Executor", "StepResult", "RunResult", "StepFailed", "IN_HAND", "unsettled"]
+__all__ = ["Executor", "StepResult", "RunResult", "StepFailed", "IN_HAND", "unsettled", "task_step_list"]
 
 
 @dataclass
@@ -98,8 +98,8 @@ class RunResult:
     collisions: the steps' robot and object collisions together (`judge.collisions`); plan_ms: planning
     time per step (ms); sim_time: simulated seconds; wall_s: wall-clock seconds; trajectories: (name,
     `Trajectory`) of the executed segments and rollout: the recorded `Rollout` (twin frame, m, rad, s),
-    both kept only with `keep_trajectories`; settle: the start check (see below). `to_dict()`: the JSON
-    record (results.json)."""
+    both kept only with `keep_trajectories`; settle: the start check (see below); task_steps: every step
+    of the task (`task_step_list`), those after a failed one too. `to_dict()`: the JSON record (results.json)."""
 
     success: bool
     steps: list[StepResult]
@@ -112,11 +112,22 @@ class RunResult:
     # the start check (`World.settle_check`): how far physics moved each object from its twin pose before
     # the robot acted; objects in `settle["moved"]` mean the run does not validate the twin (`unsettled`)
     settle: dict | None = None
+    # every step of the task, attempted or not (`task_step_list`): `steps` ends at the first failed one, so
+    # without this list a failed run's record could not say which steps it never attempted
+    task_steps: list[dict] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return {"success": self.success, "collisions": self.collisions, "plan_ms": self.plan_ms,
                 "sim_time": self.sim_time, "wall_s": self.wall_s, "steps": [asdict(s) for s in self.steps],
+                "task_steps": self.task_steps,
                 "trajectories": [name for name, _ in self.trajectories], "settle": self.settle}
+
+
+def task_step_list(task: Task) -> list[dict]:
+    """The task's steps as results.json `nominal.task_steps` records them: [{index (1-based), pick, goal,
+    place: "on" (an object) or "in" (a region)}]."""
+    return [{"index": k, "pick": s.pick, "goal": s.goal_name, "place": "on" if s.place_on else "in"}
+            for k, s in enumerate(task.steps, start=1)]
 
 
 def unsettled(settle: dict | None) -> str | None:
@@ -418,4 +429,4 @@ class Executor:
         return RunResult(success=ok, steps=steps, collisions=sum(s.robot_collisions + s.object_collisions for s in steps),
                          plan_ms=list(self.plan_ms), sim_time=self.world.time - self.servo.t0,
                          wall_s=time.perf_counter() - t0, trajectories=self.trajs,
-                         rollout=self.recorder.rollout(self.world), settle=settle)
+                         rollout=self.recorder.rollout(self.world), settle=settle, task_steps=task_step_list(task))

@@ -1,7 +1,8 @@
 """Artifacts of a validation run, written atomically under OUT (default TWIN/robot):
 
-    results.json                 task, base pose and frame, exported joint names, per-step results, the
-                                 servos' tracking error (`tracking_error`), trials summary (sigma per axis,
+    results.json                 task, base pose and frame, exported joint names, per-step results and the
+                                 task's step list (`nominal.task_steps`: the steps after a failed one were
+                                 not attempted), the servos' tracking error (`tracking_error`), trials summary (sigma per axis,
                                  its definition, sigma_yaw), notes
     trials/<i>.json              each finished perturbed trial (reused by a re-run with the same key)
     trials/<i>.rollout.npz       its rollout, kept when the run is recorded (`plan --record`); both written
