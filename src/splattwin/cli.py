@@ -64,8 +64,11 @@ def main(argv: list[str] | None = None) -> int:
     args, unknown = parser.parse_known_args(argv)
     if unknown:   # named by the command's own parser: its usage (`splattwin build ...`), not the top level's
         _command_parser(parser, args).error(f"unrecognized arguments: {' '.join(unknown)}")
+    from splattwin.console import StderrHandler
+
+    # records follow sys.stderr, so one logged while a terminal progress bar is live prints above the bar
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format="%(levelname)s %(name)s: %(message)s")
+                        format="%(levelname)s %(name)s: %(message)s", handlers=[StderrHandler()])
     if not args.verbose:   # PyOpenGL (MuJoCo's renderer) logs at INFO that an optional speed-up is missing
         logging.getLogger("OpenGL").setLevel(logging.WARNING)
     # TOPP-RA logs every solver step at INFO/DEBUG (also with --verbose, as before). Set by the command, not

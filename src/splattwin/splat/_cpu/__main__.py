@@ -14,7 +14,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="compile (or load from numba's cache) every kernel of a CPU training step")
     p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar or lines")
     args = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    from splattwin.console import StderrHandler
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s",
+                        handlers=[StderrHandler()])
     from splattwin.splat._cpu import K_
     from splattwin.splat._cpu.first_run import warm
 
