@@ -70,14 +70,33 @@ def test_vertex_colours_are_linear(twin):
     out, m = twin
     tree, acc = read_glb(out / "export" / "scene.glb")
     table = acc(_prim(tree, "table")["attributes"]["COLOR_0"])
-    assert np.all(table == linear_from_srgb(TABLE_RGBA))
-    assert not np.all(table == np.asarray(TABLE_RGBA))
+    assert np.all(table == linear_from_srgb(TABLE_RGBA, np.float32))
+    assert not np.allclose(table, np.asarray(TABLE_RGBA) / 255.0)
     box = _prim(tree, "box")["attributes"]
     srgb = trimesh.load(out / m.object("box").visual_mesh, force="mesh", process=True).visual.vertex_colors
     written = acc(box["COLOR_0"])
     assert written.shape == srgb.shape
     # same vertex order as the processed OBJ (trimesh keeps it): the written colours are the linear ones
-    assert np.array_equal(written, linear_from_srgb(srgb))
+    assert np.array_equal(written, linear_from_srgb(srgb, np.float32))
+
+
+def test_vertex_colours_are_float_so_dark_colours_stay_distinct(twin):
+    """COLOR_0 is float (allowed by glTF 3.7.2.1): in linear 8-bit the sRGB levels 0..13 all fell on linear 0
+    or 1/255 (a dark object posterised); as floats each keeps its own level. No custom attribute is left in
+    the file, and trimesh reads the colours back as the sRGB-to-linear bytes (it misreads 16-bit ones)."""
+    out, _ = twin
+    tree, acc = read_glb(out / "export" / "scene.glb")
+    for name in ("table", "box"):
+        prim = _prim(tree, name)["attributes"]
+        a = tree["accessors"][prim["COLOR_0"]]
+        assert a["componentType"] == 5126 and "normalized" not in a and a["type"] == "VEC4"
+        assert 0.0 <= acc(prim["COLOR_0"]).min() and acc(prim["COLOR_0"]).max() <= 1.0
+        assert not [k for k in prim if k.startswith("_")]
+    dark = linear_from_srgb(np.stack([np.arange(14)] * 3 + [np.full(14, 255)], axis=1), np.float32)
+    assert len(np.unique(dark[:, 0])) == 14
+    back = trimesh.load(out / "export" / "scene.glb").geometry["table"].visual.vertex_colors
+    assert np.array_equal(back[0], linear_from_srgb(TABLE_RGBA))
+    assert len(np.unique(linear_from_srgb(np.stack([np.arange(14)] * 4, axis=1))[:, 0])) == 2   # 8-bit: 2 levels
 
 
 def test_every_primitive_has_unit_normals(twin):
