@@ -1,0 +1,117 @@
+"""Audit 12B: untrusted input in the code added since audit 8B (3e83055): model folders, twin records, video
+frames, report pictures. Each test crafts the hostile file and fails without its fix."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from splattwin.errors import InputError
+
+
+def _remote_code_model(folder: Path, marker: Path) -> Path:
+    """A model folder whose config names an unknown model_type and its own Python (`auto_map`): loading it
+    with trust_remote_code unset makes transformers ask whether to run evil.py, which writes `marker`."""
+    folder.mkdir(parents=True)
+    (folder / "config.json").write_text(json.dumps({"model_type": "evil_xyz",
+                                                    "auto_map": {"AutoConfig": "evil.EvilConfig"}}))
+    (folder / "evil.py").write_text(
+        f"from pathlib import Path\nPath({str(marker)!r}).write_text('ran')\n"
+        "from transformers import PretrainedConfig\n\n\nclass EvilConfig(PretrainedConfig):\n"
+        "    model_type = 'evil_xyz'\n")
+    return folder
+
+
+def test_a_model_folders_own_code_never_runs_even_when_the_user_says_yes(tmp_path, monkeypatch):
+    from transformers import AutoConfig
+
+    from splattwin.semantics.segment import load_pretrained
+
+    marker = tmp_path / "ran.txt"
+    model = _remote_code_model(tmp_path / "model", marker)
+    asked = []
+    monkeypatch.setattr("builtins.input", lambda prompt="": asked.append(prompt) or "y")
+    with pytest.raises(InputError, match="custom code"):
+        load_pretrained(AutoConfig, str(model), "segmenter config")
+    assert not asked, "transformers asked whether to run the folder's code"
+    assert not marker.exists()
+
+
+def _report_helpers():
+    """tests/report/test_build.py as a module: its twin folders (capture, metrics, manifest, robot results)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("_audit12b_report_helpers",
+                                                  Path(__file__).parents[1] / "report" / "test_build.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _secret_png(path: Path) -> bytes:
+    import numpy as np
+
+    from splattwin.io import write_image
+
+    img = np.zeros((7, 13, 3), np.uint8)
+    img[0, 0] = (1, 2, 3)
+    write_image(path, img)
+    return path.read_bytes()
+
+
+@pytest.mark.parametrize("rel", ["poses/cameras.png", "splat/transients.png", "robot/overview.png",
+                                 "semantics/label_maps/view_000.png"])
+@pytest.mark.parametrize("absolute", [True, False])
+def test_report_embeds_no_picture_a_link_brings_from_outside_the_twin(tmp_path, rel, absolute, caplog):
+    import base64
+    import os
+
+    from splattwin.report.build import build_report
+
+    from splattwin.robot.outputs import twin_digest
+
+    helpers = _report_helpers()
+    twin = helpers._manifest_twin(tmp_path, scaled=True)
+    helpers._robot_results(twin, twin_digest(twin))
+    secret = _secret_png(tmp_path / "private.png")
+    link = twin / rel
+    link.parent.mkdir(parents=True, exist_ok=True)
+    os.symlink(tmp_path / "private.png" if absolute else os.path.relpath(tmp_path / "private.png", link.parent), link)
+    if rel.startswith("semantics"):
+        (twin / "semantics" / "fusion.json").write_text(json.dumps(
+            {"options": {"kappa": 1.5, "iters": 1}, "objects": [], "label_map_views": ["view_000"]}))
+    html = build_report(twin).read_text()
+    assert base64.b64encode(secret).decode() not in html
+
+
+def test_report_task_video_cached_as_a_link_out_of_the_twin_is_rendered_again(tmp_path):
+    """report/task_X.mp4 linked to a file elsewhere, beside the key the twin's own files give: the report embedded
+    that file as its video. Now a cached video must lie inside the twin, else it is rendered again."""
+    import base64
+    import os
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parents[1]))
+    from playback.conftest import write_twin
+    from playback.rollouts import synthetic_rollout
+
+    from splattwin.report.html import Report
+    from splattwin.report.options import ReportOptions
+    from splattwin.report.playback import playback_section
+
+    twin = write_twin(tmp_path / "twin")
+    synthetic_rollout(0.6).save(twin / "robot" / "rollout.npz")
+    opts = ReportOptions(video_camera="view_0", video_fps=10.0, video_width=96)
+    playback_section(Report("t").section("motion"), twin, opts)     # renders; writes the video and its key
+    mp4 = twin / "report" / "task_view_0.mp4"
+    secret = tmp_path / "private.bin"
+    secret.write_bytes(b"not for the report " * 50)
+    mp4.unlink()
+    os.symlink(os.path.relpath(secret, mp4.parent), mp4)
+    rep = Report("t")
+    playback_section(rep.section("motion"), twin, opts)
+    assert base64.b64encode(secret.read_bytes()).decode() not in rep.to_html()
+    assert not mp4.is_symlink() and secret.read_bytes() == b"not for the report " * 50
+
