@@ -115,3 +115,33 @@ def test_report_task_video_cached_as_a_link_out_of_the_twin_is_rendered_again(tm
     assert base64.b64encode(secret.read_bytes()).decode() not in rep.to_html()
     assert not mp4.is_symlink() and secret.read_bytes() == b"not for the report " * 50
 
+
+@pytest.mark.parametrize("where", ["absolute", "dotdot"])
+def test_twin_json_refined_poses_path_is_confined_to_the_twin(tmp_path, where):
+    """twin.json config.refined_poses named a file anywhere ("/x.json", "../../x.json"): render and the report
+    video read its poses in place of the capture's. Now it is an InputError naming twin.json."""
+    import os
+    import sys
+
+    import numpy as np
+
+    sys.path.insert(0, str(Path(__file__).parents[1]))
+    from playback.conftest import write_twin
+
+    from splattwin.capture import nerfstudio
+    from splattwin.playback.cameras import capture_cameras, capture_cameras_path
+    from splattwin.twin.manifest import Manifest
+
+    twin = write_twin(tmp_path / "twin")
+    names = [f.name for f in nerfstudio.read(capture_cameras_path(twin)).frames]
+    far = np.eye(4)
+    far[:3, 3] = 5.0
+    outside = tmp_path / "elsewhere.json"
+    outside.write_text(json.dumps({"convention": "T_world_cam, OpenCV", "poses": {n: far.tolist() for n in names}}))
+    man = Manifest.load(twin)
+    man.config["refined_poses"] = str(outside) if where == "absolute" else os.path.relpath(outside, twin)
+    man.save(twin)
+    with pytest.raises(InputError, match="refined_poses") as e:
+        cams = capture_cameras(twin)
+        assert not any(np.allclose(c.T_world_cam, far) for c in cams)   # (without the fix: they all are)
+    assert e.value.path == twin / "twin.json"
