@@ -145,3 +145,23 @@ def test_twin_json_refined_poses_path_is_confined_to_the_twin(tmp_path, where):
         cams = capture_cameras(twin)
         assert not any(np.allclose(c.T_world_cam, far) for c in cams)   # (without the fix: they all are)
     assert e.value.path == twin / "twin.json"
+
+
+def test_video_frames_larger_than_the_pixel_limit_are_refused_before_decoding(tmp_path, monkeypatch, cli):
+    """A video's frames were decoded to RGB whatever their size (a photo's header is checked against
+    SPLATTWIN_MAX_IMAGE_PIXELS, a video's was not: a 16000x16000 stream cost ~1 GB a frame). Now its declared
+    size is checked when it is opened, and each frame's before it is converted. The limit is lowered here so
+    the video stays tiny."""
+    import numpy as np
+
+    from splattwin import limits
+    from splattwin.capture.video import extract_frames
+    from splattwin.playback.video import write_mp4
+    from security_helpers import assert_bad_input
+
+    video = write_mp4(tmp_path / "clip.mp4", [np.full((48, 64, 3), 40 * i, np.uint8) for i in range(4)], fps=4)
+    monkeypatch.setattr(limits, "MAX_IMAGE_PIXELS", 64 * 48 - 1)
+    with pytest.raises(InputError, match="megapixels") as e:
+        extract_frames(video, tmp_path / "frames", progress=False)
+    assert e.value.path == video and not list((tmp_path / "frames").glob("*.png"))
+    assert_bad_input(cli("capture", "frames", video, tmp_path / "out"), "clip.mp4", "megapixels")
