@@ -165,3 +165,21 @@ def test_video_frames_larger_than_the_pixel_limit_are_refused_before_decoding(tm
         extract_frames(video, tmp_path / "frames", progress=False)
     assert e.value.path == video and not list((tmp_path / "frames").glob("*.png"))
     assert_bad_input(cli("capture", "frames", video, tmp_path / "out"), "clip.mp4", "megapixels")
+
+
+def test_poses_report_bundled_record_removes_no_file_outside_the_bundle_folders(tmp_path):
+    """poses_report.json's "bundled" list names the files an earlier save placed in images/, depth/, ...;
+    "images/../frame.json" passed the folder test and the confinement (it stays in the folder), so saving
+    poses there again deleted frame.json and transforms.json. Now a recorded path with '..' is never removed."""
+    from splattwin.capture.bundle import remove_unbundled
+    from splattwin.poses.estimate import _bundled_record
+
+    out = tmp_path / "poses"
+    (out / "images").mkdir(parents=True)
+    for n in ("frame.json", "transforms.json", "images/old.png"):
+        (out / n).write_text("x")
+    (out / "poses_report.json").write_text(json.dumps(
+        {"bundled": ["images/../frame.json", "images/x/../../transforms.json", "images/old.png"]}))
+    removed = remove_unbundled(out, _bundled_record(out), placed=[])
+    assert removed == [out / "images" / "old.png"]
+    assert (out / "frame.json").is_file() and (out / "transforms.json").is_file()

@@ -117,6 +117,8 @@ def remove_unbundled(out_dir: str | Path, earlier, placed, inputs=()) -> list[Pa
     for rel in earlier:
         if not isinstance(rel, str) or rel in keep or rel.split("/", 1)[0] not in KINDS.values():
             continue
+        if ".." in rel.split("/"):   # "images/../frame.json" passed the folder test above: never ours
+            continue
         try:
             p = confined(out_dir, rel)
         except InputError:   # a record is read from the folder: a path leading out of it is not ours
