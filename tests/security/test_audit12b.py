@@ -183,3 +183,19 @@ def test_poses_report_bundled_record_removes_no_file_outside_the_bundle_folders(
     removed = remove_unbundled(out, _bundled_record(out), placed=[])
     assert removed == [out / "images" / "old.png"]
     assert (out / "frame.json").is_file() and (out / "transforms.json").is_file()
+
+
+def test_model_config_and_twin_json_nested_deeply_are_unknown_not_a_traceback(tmp_path):
+    """The segmenter's config.json (its model_type names the segmenter family) and twin.json (the summary's
+    ground-truth placement) were read whole, unbounded, and parsed with json.loads: 200000 '[' raised
+    RecursionError through `segmenter_kind` (pre-flight, build) and after a finished build."""
+    from splattwin.pipeline.cli import _gt_placement
+    from splattwin.semantics.models import segmenter_kind
+    from splattwin.semantics.options import SegmentOptions
+
+    model = tmp_path / "model"
+    model.mkdir()
+    (model / "config.json").write_text("[" * 200_000)
+    assert segmenter_kind(SegmentOptions(segmenter=str(model))) is None
+    (tmp_path / "twin.json").write_text('{"config": ' * 200_000)
+    assert _gt_placement(tmp_path / "twin.json") == ""
