@@ -199,3 +199,35 @@ def test_model_config_and_twin_json_nested_deeply_are_unknown_not_a_traceback(tm
     assert segmenter_kind(SegmentOptions(segmenter=str(model))) is None
     (tmp_path / "twin.json").write_text('{"config": ' * 200_000)
     assert _gt_placement(tmp_path / "twin.json") == ""
+
+
+@pytest.mark.parametrize("part", ["appearance", "poses"])
+def test_checkpoint_corrections_of_nan_are_refused_on_resume(tiny_dataset, tmp_path, part):
+    """check_state held the Gaussians to finite values but not the learnt corrections added since (per-view
+    appearance gains, pose corrections): a received checkpoint of NaN gains resumed into NaN renders."""
+    import torch
+
+    from splattwin.capture import load_dataset
+    from splattwin.splat import checkpoint as ckpt_io
+    from splattwin.splat.trainer import TrainConfig, Trainer
+
+    cfg = TrainConfig(iters=12, sh_degree=0, checkpoint_every=6, progress=False, backend="cpu", max_gaussians=500,
+                      init="random", init_points=200, appearance="gain" if part == "appearance" else "off",
+                      refine_poses=part == "poses")
+    ds = load_dataset(tiny_dataset)
+    out = tmp_path / "out"
+    Trainer(ds, out, cfg).run()
+    ckpts = sorted((out / "checkpoints").iterdir())
+    for c in ckpts[1:]:
+        c.unlink()
+    sd = ckpt_io.load(ckpts[0])
+    st = sd[part]
+    key = "params" if part == "appearance" else "xi"
+    if isinstance(st[key], torch.Tensor):
+        st[key] = torch.full_like(st[key], float("nan"))
+    else:
+        st[key] = [torch.full_like(t, float("nan")) for t in st[key]]
+    ckpt_io.save(ckpts[0], sd)
+    with pytest.raises(InputError, match="NaN") as e:
+        Trainer(ds, out, cfg).run(resume=True)
+    assert e.value.path == ckpts[0]
