@@ -231,3 +231,26 @@ def test_checkpoint_corrections_of_nan_are_refused_on_resume(tiny_dataset, tmp_p
     with pytest.raises(InputError, match="NaN") as e:
         Trainer(ds, out, cfg).run(resume=True)
     assert e.value.path == ckpts[0]
+
+
+@pytest.mark.parametrize("bad, needle", [
+    ("text", "must be a number"), ("bool", "must be a number"), ("scaled", "not a rigid transform"),
+    ("far", "position")])
+def test_refined_poses_hold_numbers_a_rotation_and_a_plausible_position(tmp_path, bad, needle):
+    """refined_poses.json (a twin's splat/, read by the semantics and twin stages and render): np.asarray read
+    "1.0" and true as numbers and any finite 4x4 as a pose (a scaled or sheared matrix, a position 1e300 m
+    away). Now each pose is 16 numbers, a rotation and a position within MAX_POSITION, as a capture's."""
+    import numpy as np
+
+    from splattwin.splat import refined_poses
+
+    T = np.eye(4).tolist()
+    T = {"text": [[str(x) for x in r] for r in T], "bool": [[True, False, False, 0], *T[1:]],
+         "scaled": (np.diag([2.0, 2.0, 2.0, 1.0])).tolist(), "far": [[1, 0, 0, 1e300], *T[1:]]}[bad]
+    path = tmp_path / refined_poses.FILE
+    path.write_text(json.dumps({"convention": refined_poses.CONVENTION, "poses": {"view_000": T}}))
+    with pytest.raises(InputError, match=needle) as e:
+        refined_poses.read(path)
+    assert e.value.path == path
+    path.write_text(json.dumps({"convention": refined_poses.CONVENTION, "poses": {"view_000": np.eye(4).tolist()}}))
+    assert np.array_equal(refined_poses.read(path)["train"]["view_000"], np.eye(4))
