@@ -254,3 +254,18 @@ def test_refined_poses_hold_numbers_a_rotation_and_a_plausible_position(tmp_path
     assert e.value.path == path
     path.write_text(json.dumps({"convention": refined_poses.CONVENTION, "poses": {"view_000": np.eye(4).tolist()}}))
     assert np.array_equal(refined_poses.read(path)["train"]["view_000"], np.eye(4))
+
+
+def test_colmap_text_image_id_of_thousands_of_digits_is_bad_input(tmp_path, cli):
+    """images.txt's image id was read with int() when all digits: 5000 digits raised Python's ValueError
+    (4300-digit limit), reported as "internal error, a bug in splattwin" (exit 1). Now ids are ascii_uint
+    (at most 18 digits) and pycolmap's refusal of the line is the error, naming the model (exit 2)."""
+    from security_helpers import assert_bad_input
+
+    sparse = tmp_path / "cap" / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    (tmp_path / "cap" / "images").mkdir()
+    (sparse / "cameras.txt").write_text("1 PINHOLE 64 48 50 50 32 24\n")
+    (sparse / "images.txt").write_text("9" * 5000 + " 1 0 0 0 0 0 0 1 a.png\n\n")
+    (sparse / "points3D.txt").write_text("")
+    assert_bad_input(cli("capture", "info", tmp_path / "cap"), "sparse/0")
