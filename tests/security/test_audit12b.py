@@ -269,3 +269,59 @@ def test_colmap_text_image_id_of_thousands_of_digits_is_bad_input(tmp_path, cli)
     (sparse / "images.txt").write_text("9" * 5000 + " 1 0 0 0 0 0 0 1 a.png\n\n")
     (sparse / "points3D.txt").write_text("")
     assert_bad_input(cli("capture", "info", tmp_path / "cap"), "sparse/0")
+
+
+def _two_photos(folder: Path) -> list[Path]:
+    import numpy as np
+
+    from splattwin.io import write_image
+
+    rng = np.random.default_rng(0)
+    return [write_image(folder / f"{i}.png", rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)) for i in range(2)]
+
+
+def test_sfm_resume_checks_the_finished_model_of_the_work_folder(tmp_path):
+    """OUT/sfm (a received poses or twin folder built into again) with sfm_config.json matching this run and
+    sparse/done: its model went to pycolmap unchecked (cameras.bin claiming 2^40 cameras: ValueError, exit 1).
+    Now it is checked as any COLMAP model: InputError naming the file."""
+    import struct
+
+    from splattwin.poses.sfm import SfmOptions, _config_key, image_layout, run_sfm
+
+    photos = _two_photos(tmp_path / "images")
+    work = tmp_path / "out" / "sfm"
+    (work / "sparse").mkdir(parents=True)
+    opts = SfmOptions()
+    (work / "sfm_config.json").write_text(json.dumps(_config_key(opts, sorted(image_layout(photos)[1]))))
+    (work / "sparse" / "done").write_text("{}")
+    (work / "sparse" / "cameras.bin").write_bytes(struct.pack("<Q", 1 << 40))
+    for n in ("images.bin", "points3D.bin"):
+        (work / "sparse" / n).write_bytes(struct.pack("<Q", 0))
+    with pytest.raises(InputError) as e:
+        run_sfm(photos, work, opts, progress=False)
+    assert "cameras.bin" in str(e.value.path)
+
+
+def test_sfm_work_records_naming_models_outside_the_folder_are_not_reused(tmp_path, monkeypatch):
+    """models/<attempt>.json lists the models mapping made, reused on resume: a record naming /elsewhere/model
+    had pycolmap read a model from outside the folder. Now such a record counts as absent: mapping runs again."""
+    from splattwin.poses import colmap_process, sfm
+    from splattwin.poses.progress import StageProgress
+
+    photos = _two_photos(tmp_path / "images")
+    work = tmp_path / "out" / "sfm"
+    elsewhere = tmp_path / "elsewhere" / "model"
+    elsewhere.mkdir(parents=True)
+    (work / "models" / "a0").mkdir(parents=True)
+    (work / "models" / "a0.json").write_text(json.dumps({"paths": [str(elsewhere)]}))
+    ran = []
+
+    def run_step(job, *a, **k):
+        ran.append(job["step"])
+        return {"models": [{"path": str(work / "models" / "a0" / "0")}]}, colmap_process.StepStats(0.0, 0)
+
+    monkeypatch.setattr(colmap_process, "run_step", run_step)
+    root, names = sfm.image_layout(photos)
+    run = sfm.SfmRun(work, root, sorted(names), sfm.SfmOptions(), StageProgress(False))
+    got = run.map(work / "database.db", sfm.Attempt("a0", "test"), "test")
+    assert ran == ["map"] and got == [work / "models" / "a0" / "0"]
