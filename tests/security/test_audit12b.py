@@ -325,3 +325,44 @@ def test_sfm_work_records_naming_models_outside_the_folder_are_not_reused(tmp_pa
     run = sfm.SfmRun(work, root, sorted(names), sfm.SfmOptions(), StageProgress(False))
     got = run.map(work / "database.db", sfm.Attempt("a0", "test"), "test")
     assert ran == ["map"] and got == [work / "models" / "a0" / "0"]
+
+
+def test_recording_state_nested_deeply_is_no_state(tmp_path):
+    """`plan --record DIR` reads the dataset folder's recording state: json.loads of 200000 '[' raised
+    RecursionError (only OSError and ValueError were caught). Now it is read bounded: no state."""
+    from splattwin.playback.record import _read_state
+
+    p = tmp_path / "state.json"
+    p.write_text("[" * 200_000)
+    assert _read_state(p) == {}
+
+
+def test_triangulation_resume_checks_its_finished_model(tmp_path):
+    """Known poses: points are triangulated in OUT/sfm and resumed from triangulated/done. That model went to
+    pycolmap unchecked (cameras.bin claiming 2^40 cameras: ValueError, exit 1); now it is checked as SfM's
+    (InputError naming the file)."""
+    import struct
+
+    import numpy as np
+
+    from splattwin.capture.camera import Camera
+    from splattwin.poses.sfm import SfmOptions
+    from splattwin.poses.triangulate import triangulate_known_poses
+
+    photos = _two_photos(tmp_path / "images")
+    K = np.array([[50.0, 0, 32], [0, 50, 24], [0, 0, 1]])
+    cams = [Camera(K=K, width=64, height=48, T_world_cam=np.eye(4)) for _ in photos]
+    cams[1].T_world_cam[0, 3] = 0.1
+    work, opts = tmp_path / "work", SfmOptions()
+    (work / "triangulated").mkdir(parents=True)
+    # the record of a finished run with these images and cameras (triangulate_known_poses' key)
+    (work / "triangulation_config.json").write_text(json.dumps(
+        {"images": ["0.png", "1.png"], "cameras": [c.to_dict() for c in cams], "max_image_size": opts.max_image_size,
+         "max_num_features": opts.max_num_features, "peak_threshold": opts.peak_threshold, "neighbours": 20}))
+    (work / "triangulated" / "done").write_text("{}")
+    (work / "triangulated" / "cameras.bin").write_bytes(struct.pack("<Q", 1 << 40))
+    for n in ("images.bin", "points3D.bin"):
+        (work / "triangulated" / n).write_bytes(struct.pack("<Q", 0))
+    with pytest.raises(InputError) as e:
+        triangulate_known_poses(photos, cams, work, opts, progress=False)
+    assert "cameras.bin" in str(e.value.path)
