@@ -366,3 +366,20 @@ def test_triangulation_resume_checks_its_finished_model(tmp_path):
     with pytest.raises(InputError) as e:
         triangulate_known_poses(photos, cams, work, opts, progress=False)
     assert "cameras.bin" in str(e.value.path)
+
+
+def test_report_picture_with_megabytes_appended_is_not_embedded_whole(tmp_path):
+    """A twin's picture is embedded as its PNG bytes: a 10x10 PNG with 3 MiB appended after IEND (or in an
+    ancillary chunk) put all of it, base64, into the report. Now a PNG file larger than its pixels could need
+    is decoded and written again."""
+    import numpy as np
+
+    from splattwin.io import write_image
+    from splattwin.report.html import Report
+
+    p = write_image(tmp_path / "cameras.png", np.full((10, 10, 3), 7, np.uint8))
+    with open(p, "ab") as f:
+        f.write(b"\0" * (3 << 20))
+    rep = Report("t")
+    rep.section("s").image(p)
+    assert len(rep.to_html()) < 100_000
