@@ -170,19 +170,20 @@ def test_video_frames_larger_than_the_pixel_limit_are_refused_before_decoding(tm
 def test_poses_report_bundled_record_removes_no_file_outside_the_bundle_folders(tmp_path):
     """poses_report.json's "bundled" list names the files an earlier save placed in images/, depth/, ...;
     "images/../frame.json" passed the folder test and the confinement (it stays in the folder), so saving
-    poses there again deleted frame.json and transforms.json. Now a recorded path with '..' is never removed."""
+    poses there again deleted frame.json and transforms.json, and "images/./0.png" the photo this run had just
+    bundled as images/0.png. Now only a recorded path in normal form is removed."""
     from splattwin.capture.bundle import remove_unbundled
     from splattwin.poses.estimate import _bundled_record
 
     out = tmp_path / "poses"
     (out / "images").mkdir(parents=True)
-    for n in ("frame.json", "transforms.json", "images/old.png"):
+    for n in ("frame.json", "transforms.json", "images/old.png", "images/0.png"):
         (out / n).write_text("x")
     (out / "poses_report.json").write_text(json.dumps(
-        {"bundled": ["images/../frame.json", "images/x/../../transforms.json", "images/old.png"]}))
-    removed = remove_unbundled(out, _bundled_record(out), placed=[])
+        {"bundled": ["images/../frame.json", "images/x/../../transforms.json", "images/old.png", "images/./0.png"]}))
+    removed = remove_unbundled(out, _bundled_record(out), placed=["images/0.png"])   # 0.png: placed by this run
     assert removed == [out / "images" / "old.png"]
-    assert (out / "frame.json").is_file() and (out / "transforms.json").is_file()
+    assert (out / "frame.json").is_file() and (out / "transforms.json").is_file() and (out / "images/0.png").is_file()
 
 
 def test_model_config_and_twin_json_nested_deeply_are_unknown_not_a_traceback(tmp_path):
