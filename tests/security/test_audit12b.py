@@ -384,3 +384,17 @@ def test_report_picture_with_megabytes_appended_is_not_embedded_whole(tmp_path):
     rep = Report("t")
     rep.section("s").image(p)
     assert len(rep.to_html()) < 100_000
+
+
+def test_report_reads_a_twins_records_within_the_record_limit(tmp_path, monkeypatch):
+    """The report read the stages' JSON records (metrics.json, train.json, results.json, ...) within the 1 GiB
+    meant for COCO files, ~10 GB to parse; now within SPLATTWIN_MAX_RECORD_BYTES (lowered here)."""
+    from splattwin import limits
+    from splattwin.report.build import build_report
+
+    twin = _report_helpers()._twin(tmp_path, views=[{"name": "heldout_003", "psnr": 24.0, "ssim": 0.8}],
+                                   padding="x" * 5000)
+    monkeypatch.setattr(limits, "MAX_RECORD_BYTES", 4000)
+    assert "24.5" not in build_report(twin).read_text()
+    monkeypatch.setattr(limits, "MAX_RECORD_BYTES", 64 << 20)
+    assert "24.5" in build_report(twin).read_text()

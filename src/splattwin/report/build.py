@@ -38,9 +38,13 @@ def picture(twin: Path, path: Path) -> Path | None:
 
 
 def _json(path: Path):
-    """A stage's JSON artifact, or None when that stage did not run (or left nothing readable)."""
+    """A stage's JSON artifact, or None when that stage did not run (or left nothing readable). Read within the
+    record limit: the twin may be someone else's, and 1 GiB of JSON (the limit meant for COCO files) costs ~10 GB
+    to parse."""
+    from splattwin.limits import MAX_RECORD_BYTES
+
     try:
-        return io.read_json(path)
+        return io.read_json(path, max_bytes=MAX_RECORD_BYTES)
     except InputError:
         return None
 
