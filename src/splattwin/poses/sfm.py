@@ -572,7 +572,7 @@ class SfmRun:
         if same_features != db and self._done(same_features, "extract"):
             # re-matching only (guided): copy the features, drop the matches
             _copy_features(same_features, db)
-            self._mark(db, "extract", _cache_record(db.parent / f"{same_features.stem}.extract.done") or {})
+            self._mark(db, "extract", cache_record(db.parent / f"{same_features.stem}.extract.done") or {})
             return db
         o = self.opts
         bound = o.max_image_size if o.max_image_size > 0 else 1 << 30
@@ -683,7 +683,7 @@ class SfmRun:
         """Re-register `names` against the model `base` (colmap_worker's recover step); its result dict
         ({} if the step failed: recovery is a bonus, the trusted model stays)."""
         info = out.parent / f"{out.name}.json"
-        rec = _cache_record(info)
+        rec = cache_record(info)
         if isinstance(rec, dict):
             self.recovery = rec
             return self.recovery
@@ -712,7 +712,7 @@ class SfmRun:
         step_merge), with the mapping options of `mapping` (an attempt's own: "fixed_focal" keeps the
         focal lengths in the merge's bundle adjustment too); None if nothing could be added."""
         info = out.parent / f"{out.name}.json"
-        rec = _cache_record(info)
+        rec = cache_record(info)
         if isinstance(rec, dict):
             merged = _cached_models(info, "path", self.work)
             return merged[0] if rec.get("merged") and merged else None
@@ -766,7 +766,7 @@ def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | No
 
         key["feature_masks"] = {n: sha256_file(m) for n, m in sorted(mask_names.items())}
     key_path, model_dir = work / "sfm_config.json", work / "sparse"
-    if key_path.is_file() and _cache_record(key_path) != json.loads(json.dumps(key)):
+    if key_path.is_file() and cache_record(key_path) != json.loads(json.dumps(key)):
         log.info("SfM options or images changed: starting over in %s", work)
         clear_work(work)
     io.write_json(key_path, key)
@@ -774,9 +774,9 @@ def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | No
     with StageProgress(progress) as bar:
         if (model_dir / "done").is_file():
             bar.update("SfM: re-using the finished model", 1, 1)
-            meta = _cache_record(model_dir / "done")   # (an older version wrote no JSON there: {})
+            meta = cache_record(model_dir / "done")   # (an older version wrote no JSON there: {})
             meta = meta if isinstance(meta, dict) else {}
-            rec = _read_cached_model(model_dir)
+            rec = read_cached_model(model_dir)
             res = result_from_reconstruction(rec, names, {}, image_root)
             res.failures, res.attempts = meta.get("failures", {}), meta.get("attempts", [])
             res.matcher, res.camera_groups = meta.get("matcher", ""), meta.get("camera_groups", [])
@@ -848,7 +848,7 @@ def clear_work(work: Path) -> None:
 
 
 def run_attempts_log(work: Path) -> list[dict]:
-    log_ = _cache_record(work / "attempts.json")
+    log_ = cache_record(work / "attempts.json")
     return log_ if isinstance(log_, list) else []
 
 
@@ -856,7 +856,7 @@ def run_attempts_log(work: Path) -> list[dict]:
 # An interrupted SfM resumes from OUT/sfm. That folder may be someone else's (a received poses or twin folder
 # built into again): its records are read bounded, a malformed one counts as absent (the step runs again), the
 # models they name must lie in the folder, and a finished model is checked as any COLMAP model before pycolmap.
-def _cache_record(path: Path):
+def cache_record(path: Path):
     """The JSON record at `path`, or None when it is absent, too large, nested too deeply or not JSON."""
     from splattwin.limits import MAX_RECORD_BYTES, read_json
 
@@ -873,7 +873,7 @@ def _cached_models(info: Path, key: str, work: Path) -> list[Path]:
     `work` (symbolic links resolved); [] otherwise (the step runs again)."""
     from splattwin.paths import is_inside
 
-    rec = _cache_record(info)
+    rec = cache_record(info)
     got = rec.get(key) if isinstance(rec, dict) else None
     got = [got] if isinstance(got, str) else got
     if not isinstance(got, list) or not got or not all(isinstance(p, str) and p for p in got):
@@ -885,7 +885,7 @@ def _cached_models(info: Path, key: str, work: Path) -> list[Path]:
     return paths
 
 
-def _read_cached_model(model_dir: Path):
+def read_cached_model(model_dir: Path):
     """The finished model of an earlier run, its counts checked (`capture.colmap.check_model`) before pycolmap
     reads it; InputError naming it when pycolmap cannot."""
     import pycolmap
