@@ -398,3 +398,20 @@ def test_report_reads_a_twins_records_within_the_record_limit(tmp_path, monkeypa
     assert "24.5" not in build_report(twin).read_text()
     monkeypatch.setattr(limits, "MAX_RECORD_BYTES", 64 << 20)
     assert "24.5" in build_report(twin).read_text()
+
+
+def test_a_record_nested_too_deeply_to_write_back_is_refused_when_read(tmp_path):
+    """json.loads reads ~990 levels, but writing such a document back recursed past Python's limit: `plan`
+    recording its run in a received twin's pipeline.json (900 levels) ended in RecursionError after the task
+    ran. Records (read within MAX_RECORD_BYTES) now nest at most MAX_RECORD_DEPTH levels: InputError."""
+    from splattwin.limits import MAX_RECORD_BYTES, read_json
+    from splattwin.report.build import record_plan_run
+
+    twin = tmp_path / "twin"
+    twin.mkdir()
+    (twin / "pipeline.json").write_text('{"robot": {}, "x": ' + "[" * 900 + "]" * 900 + "}")
+    assert record_plan_run(twin, 1.0, 0.5) is False
+    with pytest.raises(InputError, match="nested"):
+        read_json(twin / "pipeline.json", max_bytes=MAX_RECORD_BYTES)
+    (twin / "pipeline.json").write_text('{"robot": {}, "x": ' + "[" * 50 + "]" * 50 + "}")
+    assert record_plan_run(twin, 1.0, 0.5) is True
