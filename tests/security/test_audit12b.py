@@ -50,7 +50,20 @@ def _report_helpers():
     return mod
 
 
+def _embedded_picture_sizes(html: str) -> list[tuple[int, int]]:
+    """(width, height) of every picture embedded in a report page as a data URI."""
+    import base64
+    import io as _io
+    import re
+
+    from PIL import Image
+
+    return [Image.open(_io.BytesIO(base64.b64decode(m))).size
+            for m in re.findall(r'src="data:image/[a-z]+;base64,([A-Za-z0-9+/=]+)"', html)]
+
+
 def _secret_png(path: Path) -> bytes:
+    """A 13x7 picture (a size no other picture of the test twin has) standing for a private image."""
     import numpy as np
 
     from splattwin.io import write_image
@@ -84,6 +97,7 @@ def test_report_embeds_no_picture_a_link_brings_from_outside_the_twin(tmp_path, 
             {"options": {"kappa": 1.5, "iters": 1}, "objects": [], "label_map_views": ["view_000"]}))
     html = build_report(twin).read_text()
     assert base64.b64encode(secret).decode() not in html
+    assert (13, 7) not in _embedded_picture_sizes(html)   # nor re-encoded (photos are embedded as JPEG)
 
 
 def test_report_task_video_cached_as_a_link_out_of_the_twin_is_rendered_again(tmp_path):
