@@ -450,7 +450,7 @@ def read_json(path: str | Path, missing: str = "file not found", max_bytes: int 
         raise InputError(missing, path)
     check_file_size(path, MAX_JSON_BYTES if max_bytes is None else max_bytes, "JSON file")
     try:
-        return json.loads(path.read_bytes(), object_pairs_hook=_unique_keys)
+        data = json.loads(path.read_bytes(), object_pairs_hook=_unique_keys)
     except RecursionError:
         raise InputError("JSON is nested too deeply", path) from None
     except _DuplicateKey as e:
@@ -459,6 +459,28 @@ def read_json(path: str | Path, missing: str = "file not found", max_bytes: int 
         raise InputError(f"not valid JSON: {e}", path) from None
     except ValueError as e:  # Python refuses integers of more than 4300 digits (sys.get_int_max_str_digits)
         raise InputError(f"JSON holds a number too long to read ({str(e).split(';')[0]})", path) from None
+    if max_bytes is not None and max_bytes <= MAX_RECORD_BYTES and not _nested_within(data, MAX_RECORD_DEPTH):
+        raise InputError(f"JSON is nested more than {MAX_RECORD_DEPTH} levels deep (not a record splattwin wrote)",
+                         path)
+    return data
+
+
+# Records (read within MAX_RECORD_BYTES) are often written back (pipeline.json, refined poses): json.loads takes up
+# to ~990 levels, but writing such a document again recursed past Python's limit (RecursionError). The project's
+# own records nest a few levels.
+MAX_RECORD_DEPTH = 100
+
+
+def _nested_within(obj: Any, limit: int) -> bool:
+    """True if lists and objects in `obj` nest at most `limit` levels (iterative: no recursion of its own)."""
+    stack = [(obj, 1)]
+    while stack:
+        o, depth = stack.pop()
+        children = o.values() if isinstance(o, dict) else o if isinstance(o, list) else ()
+        if children and depth > limit:
+            return False
+        stack.extend((c, depth + 1) for c in children if isinstance(c, (dict, list)))
+    return True
 
 
 class _DuplicateKey(ValueError):

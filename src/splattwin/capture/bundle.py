@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+import posixpath
 import shutil
 from pathlib import Path
 
@@ -117,6 +118,8 @@ def remove_unbundled(out_dir: str | Path, earlier, placed, inputs=()) -> list[Pa
     for rel in earlier:
         if not isinstance(rel, str) or rel in keep or rel.split("/", 1)[0] not in KINDS.values():
             continue
+        if posixpath.normpath(rel) != rel:   # "images/../frame.json" passed the folder test above, and
+            continue                         # "images/./0.png" is not "images/0.png" this run placed: never ours
         try:
             p = confined(out_dir, rel)
         except InputError:   # a record is read from the folder: a path leading out of it is not ours

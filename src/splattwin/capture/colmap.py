@@ -177,7 +177,7 @@ def _check_text_rotations(path: Path) -> dict[int, str]:
     non-comment line) is followed by its points line (read as is, possibly empty), as COLMAP reads them.
     Returns {image id: NAME}, NAME being the rest of the line: COLMAP writes a name with spaces as it is
     (`f 4.jpg`), but reads (as pycolmap does) only up to the first space (`f`)."""
-    from splattwin.limits import read_text
+    from splattwin.limits import ascii_uint, read_text
 
     names: dict[int, str] = {}
     lines = iter(read_text(path, "COLMAP images.txt").splitlines())
@@ -194,8 +194,9 @@ def _check_text_rotations(path: Path) -> dict[int, str]:
             continue
         name = f[9].rstrip()
         _check_rotation(q, name, path)
-        if f[0].isascii() and f[0].isdigit():
-            names[int(f[0])] = name
+        image_id = ascii_uint(f[0])   # (int() of a 5000-digit id raised ValueError: exit 1, "a bug in splattwin")
+        if image_id is not None:
+            names[image_id] = name
     return names
 
 

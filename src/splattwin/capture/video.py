@@ -33,6 +33,7 @@ from splattwin import io
 from splattwin.capture.dataset import Dataset
 from splattwin.errors import InputError
 from splattwin.frame_options import MIN_CHANGE, VIDEO_MAX_FRAMES, check_max_frames, check_min_change
+from splattwin.limits import check_pixels
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +91,13 @@ def open_video(path: Path):
     if not container.streams.video:
         container.close()
         raise InputError("file has no video stream", path)
+    cc = container.streams.video[0].codec_context
+    if cc.width and cc.height:   # declared frame size, checked before a frame is decoded (0: not declared)
+        try:
+            check_pixels(cc.width, cc.height, path, "video frame")
+        except InputError:
+            container.close()
+            raise
     return container
 
 
@@ -105,7 +113,10 @@ def quarter_turns(rotation) -> int:
     return k % 4
 
 
-def _upright(frame) -> tuple[np.ndarray, int]:
+def _upright(frame, path: Path | None = None) -> tuple[np.ndarray, int]:
+    """The frame as upright RGB uint8 [h, w, 3] and the quarter turns applied. Its size is checked (MAX_IMAGE_PIXELS,
+    as a photo's) before the RGB copy: a stream whose frames are larger than its header says is no exception."""
+    check_pixels(frame.width, frame.height, path, "video frame")
     k = quarter_turns(getattr(frame, "rotation", 0))
     rgb = frame.to_ndarray(format="rgb24")
     return (np.ascontiguousarray(np.rot90(rgb, k)) if k else rgb), k
@@ -221,11 +232,13 @@ def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = VIDE
                   enabled=progress) as prog:
         try:
             for frame in container.decode(video=0):
-                rgb, k = _upright(frame)
+                rgb, k = _upright(frame, path)
                 turns = turns or k
                 scores.append(sharpness(rgb))
                 thumbs.append(thumbnail(rgb))
                 prog.update(1)
+        except InputError:
+            raise
         except Exception as e:  # noqa: BLE001 — PyAV decode errors have many types
             raise InputError(f"video decoding failed after {len(scores)} frames: {e}", path) from e
         finally:
@@ -258,7 +271,7 @@ def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = VIDE
     try:
         for i, frame in enumerate(container.decode(video=0)):
             if i in want:
-                io.write_image(out_dir / want[i], _upright(frame)[0])
+                io.write_image(out_dir / want[i], _upright(frame, path)[0])
                 written += 1
             if written == len(keep):
                 break

@@ -123,9 +123,12 @@ def _exit_code(ctx) -> int:
 def _gt_placement(twin_json: Path) -> str:
     """How the ground truth was placed for the figures (twin.json config.ground_truth, `twin.stage.gt_alignment`),
     as a suffix of the summary's geometry line; "" when not recorded."""
-    try:
-        gt = json.loads(twin_json.read_text()).get("config", {}).get("ground_truth") or {}
-    except (OSError, ValueError, AttributeError):
+    from splattwin.errors import InputError
+    from splattwin.limits import MAX_RECORD_BYTES, read_json
+
+    try:   # bounded; deep nesting or bad JSON leaves the suffix out rather than a traceback after the build
+        gt = read_json(twin_json, max_bytes=MAX_RECORD_BYTES).get("config", {}).get("ground_truth") or {}
+    except (InputError, OSError, AttributeError):
         return ""
     how = gt.get("placement") if isinstance(gt, dict) else None
     if how == "robot_base":

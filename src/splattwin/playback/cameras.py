@@ -112,10 +112,16 @@ def capture_cameras(twin_dir: str | Path) -> list[Camera]:
     from splattwin.twin.manifest import Manifest
 
     refined = Manifest.load(twin_dir).config.get("refined_poses")  # training with pose refinement
-    if isinstance(refined, str) and (Path(twin_dir) / refined).is_file():
+    if isinstance(refined, str):
+        from splattwin.paths import confined
+
+        # a path read from twin.json: inside the twin, as its other paths (`Manifest.validate`); "/x.json" or
+        # "../../x.json" read a file from elsewhere whose poses replaced the capture's
+        refined = confined(twin_dir, refined, Path(twin_dir) / "twin.json", "config refined_poses path")
+    if isinstance(refined, Path) and refined.is_file():
         from splattwin.splat.refined_poses import apply
 
-        ds = apply(ds, Path(twin_dir) / refined)
+        ds = apply(ds, refined)
     cams = []
     for f in ds.frames:
         c = f.camera

@@ -181,9 +181,11 @@ def _has_episode(root: Path, ep: int) -> bool:
 
 
 def _read_state(path: Path) -> dict:
-    try:
-        d = json.loads(path.read_text())
-    except (OSError, ValueError):
+    from splattwin.limits import MAX_RECORD_BYTES, read_json
+
+    try:   # bounded: the dataset folder may be someone else's (deep nesting raised RecursionError)
+        d = read_json(path, max_bytes=MAX_RECORD_BYTES)
+    except (InputError, OSError):
         return {}
     return d if isinstance(d, dict) and isinstance(d.get("episodes"), dict) else {}
 

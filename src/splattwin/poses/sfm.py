@@ -572,7 +572,7 @@ class SfmRun:
         if same_features != db and self._done(same_features, "extract"):
             # re-matching only (guided): copy the features, drop the matches
             _copy_features(same_features, db)
-            self._mark(db, "extract", json.loads((db.parent / f"{same_features.stem}.extract.done").read_text()))
+            self._mark(db, "extract", cache_record(db.parent / f"{same_features.stem}.extract.done") or {})
             return db
         o = self.opts
         bound = o.max_image_size if o.max_image_size > 0 else 1 << 30
@@ -645,7 +645,9 @@ class SfmRun:
         out = self.work / "models" / a.name
         info = out.parent / f"{a.name}.json"
         if info.is_file() and out.is_dir():
-            return [Path(p) for p in json.loads(info.read_text())["paths"]]
+            paths = _cached_models(info, "paths", self.work)
+            if paths:
+                return paths
         n = len(self.names)
         job = {"step": "map", "db": str(db), "image_root": str(self.image_root), "out": str(out),
                "num_images": n, "options": mapping_options(self.opts, n, a.mapping, self.threads)}
@@ -681,8 +683,9 @@ class SfmRun:
         """Re-register `names` against the model `base` (colmap_worker's recover step); its result dict
         ({} if the step failed: recovery is a bonus, the trusted model stays)."""
         info = out.parent / f"{out.name}.json"
-        if info.is_file():
-            self.recovery = json.loads(info.read_text())
+        rec = cache_record(info)
+        if isinstance(rec, dict):
+            self.recovery = rec
             return self.recovery
         job = {"step": "recover", "db": str(db), "image_root": str(self.image_root), "out": str(out),
                "base": str(base), "names": list(names), "frame_order": frame_order(self.names, self.opts),
@@ -709,8 +712,10 @@ class SfmRun:
         step_merge), with the mapping options of `mapping` (an attempt's own: "fixed_focal" keeps the
         focal lengths in the merge's bundle adjustment too); None if nothing could be added."""
         info = out.parent / f"{out.name}.json"
-        if info.is_file():
-            return Path(json.loads(info.read_text())["path"]) if json.loads(info.read_text()).get("merged") else None
+        rec = cache_record(info)
+        if isinstance(rec, dict):
+            merged = _cached_models(info, "path", self.work)
+            return merged[0] if rec.get("merged") and merged else None
         job = {"step": "merge", "db": str(db), "image_root": str(self.image_root), "out": str(out),
                "base": str(base), "donors": [str(p) for p in donors],
                "options": mapping_options(self.opts, len(self.names), mapping, self.threads)}
@@ -761,7 +766,7 @@ def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | No
 
         key["feature_masks"] = {n: sha256_file(m) for n, m in sorted(mask_names.items())}
     key_path, model_dir = work / "sfm_config.json", work / "sparse"
-    if key_path.is_file() and json.loads(key_path.read_text()) != json.loads(json.dumps(key)):
+    if key_path.is_file() and cache_record(key_path) != json.loads(json.dumps(key)):
         log.info("SfM options or images changed: starting over in %s", work)
         clear_work(work)
     io.write_json(key_path, key)
@@ -769,15 +774,14 @@ def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | No
     with StageProgress(progress) as bar:
         if (model_dir / "done").is_file():
             bar.update("SfM: re-using the finished model", 1, 1)
-            try:
-                meta = json.loads((model_dir / "done").read_text())
-            except json.JSONDecodeError:  # written by an older version
-                meta = {}
-            rec = pycolmap.Reconstruction(str(model_dir))
+            meta = cache_record(model_dir / "done")   # (an older version wrote no JSON there: {})
+            meta = meta if isinstance(meta, dict) else {}
+            rec = read_cached_model(model_dir)
             res = result_from_reconstruction(rec, names, {}, image_root)
             res.failures, res.attempts = meta.get("failures", {}), meta.get("attempts", [])
             res.matcher, res.camera_groups = meta.get("matcher", ""), meta.get("camera_groups", [])
-            res.peak_rss_gib = float(meta.get("peak_rss_gib", 0.0))
+            peak = meta.get("peak_rss_gib", 0.0)
+            res.peak_rss_gib = float(peak) if isinstance(peak, (int, float)) and not isinstance(peak, bool) else 0.0
             res.resumed_timings = meta.get("timings", {})
             res.registration_check = meta.get("registration_check", {})
             _check_enough(res, opts, image_root)
@@ -844,8 +848,56 @@ def clear_work(work: Path) -> None:
 
 
 def run_attempts_log(work: Path) -> list[dict]:
-    p = work / "attempts.json"
-    return json.loads(p.read_text()) if p.is_file() else []
+    log_ = cache_record(work / "attempts.json")
+    return log_ if isinstance(log_, list) else []
+
+
+# -- the work folder's own records -----------------------------------------------------------------
+# An interrupted SfM resumes from OUT/sfm. That folder may be someone else's (a received poses or twin folder
+# built into again): its records are read bounded, a malformed one counts as absent (the step runs again), the
+# models they name must lie in the folder, and a finished model is checked as any COLMAP model before pycolmap.
+def cache_record(path: Path):
+    """The JSON record at `path`, or None when it is absent, too large, nested too deeply or not JSON."""
+    from splattwin.limits import MAX_RECORD_BYTES, read_json
+
+    if not path.is_file():
+        return None
+    try:
+        return read_json(path, max_bytes=MAX_RECORD_BYTES)
+    except InputError:
+        return None
+
+
+def _cached_models(info: Path, key: str, work: Path) -> list[Path]:
+    """The model folders a record names under `key` (a path or a list of paths) when every one is a folder inside
+    `work` (symbolic links resolved); [] otherwise (the step runs again)."""
+    from splattwin.paths import is_inside
+
+    rec = cache_record(info)
+    got = rec.get(key) if isinstance(rec, dict) else None
+    got = [got] if isinstance(got, str) else got
+    if not isinstance(got, list) or not got or not all(isinstance(p, str) and p for p in got):
+        return []
+    paths = [Path(p) for p in got]
+    if not all(p.is_dir() and is_inside(p, work) for p in paths):
+        log.warning("SfM: %s names models outside %s or missing; running that step again", info, work)
+        return []
+    return paths
+
+
+def read_cached_model(model_dir: Path):
+    """The finished model of an earlier run, its counts checked (`capture.colmap.check_model`) before pycolmap
+    reads it; InputError naming it when pycolmap cannot."""
+    import pycolmap
+
+    from splattwin.capture.colmap import check_model
+
+    check_model(model_dir)
+    try:
+        return pycolmap.Reconstruction(str(model_dir))
+    except Exception as e:  # noqa: BLE001 - pycolmap raises ValueError/RuntimeError on corrupt files
+        raise InputError(f"the finished SfM model of an earlier run cannot be read ({str(e).splitlines()[0][:200]}); "
+                         f"remove {model_dir.parent} to run SfM again", model_dir) from None
 
 
 @dataclass

@@ -116,8 +116,6 @@ def triangulate_known_poses(image_paths: list[Path], cameras: list[Camera], work
     """Triangulate sparse points for images with known cameras (poses T_world_cam and intrinsics, all held
     fixed). Returns points in the cameras' world frame; InputError if fewer than 2 images or nothing could
     be matched; KeyboardInterrupt on Ctrl-C (the running step stopped and cleaned up)."""
-    import pycolmap
-
     opts = opts or SfmOptions()
     opts.validate()
     if len(image_paths) != len(cameras):
@@ -141,7 +139,10 @@ def triangulate_known_poses(image_paths: list[Path], cameras: list[Camera], work
         key_path = work / "triangulation_config.json"
         import json
 
-        if key_path.is_file() and json.loads(key_path.read_text()) != json.loads(json.dumps(key)):
+        from splattwin.poses.sfm import cache_record, read_cached_model
+
+        # (the work folder may be a received one: its records bounded, its finished model checked, as SfM's)
+        if key_path.is_file() and cache_record(key_path) != json.loads(json.dumps(key)):
             from splattwin.poses.sfm import clear_work
 
             clear_work(work)
@@ -168,14 +169,15 @@ def triangulate_known_poses(image_paths: list[Path], cameras: list[Camera], work
                 _, st = colmap_process.run_step(job, work, bar, f"{label}: triangulation", cleanup=[out])
                 run._add("triangulate", st)
                 io.write_json(out / "done", {"timings": run.timings, "peak_rss_gib": run.peak / 2**30})
-            rec = pycolmap.Reconstruction(str(out))
+            rec = read_cached_model(out)
         pts = rec.points3D
         ids = sorted(pts.keys())
         xyz = np.array([pts[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
         rgb = np.array([pts[i].color for i in ids], dtype=np.uint8).reshape(-1, 3)
         err = np.array([pts[i].error for i in ids], dtype=np.float64)
         tl = np.array([pts[i].track.length() for i in ids], dtype=np.int64)
-        info = json.loads((out / "done").read_text())
+        info = cache_record(out / "done")
+        info = {k: v for k, v in info.items() if k in ("timings", "peak_rss_gib")} if isinstance(info, dict) else {}
         keep = outlier_mask(xyz, err)
         xyz, rgb, err, tl = xyz[keep], rgb[keep], err[keep], tl[keep]
         stats = {"images": len(names), "points": int(len(xyz)), "outliers_removed": int((~keep).sum()),

@@ -22,10 +22,29 @@ from splattwin.wording import plural
 log = logging.getLogger(__name__)
 
 
+def picture(twin: Path, path: Path) -> Path | None:
+    """`path`, a picture the report embeds from the twin folder, when it is a file inside the twin with its
+    symbolic links resolved; else None. A received twin's `poses/cameras.png` linked to an image elsewhere
+    (`/home/me/private.png`, `../../x.png`) put that file, base64, into the report that is then shared: such a
+    link is named in a warning and left out."""
+    from splattwin.paths import is_inside
+
+    if not path.is_file():
+        return None
+    if not is_inside(path, twin):
+        log.warning("report: %s leads outside the twin folder %s (a symbolic link): not embedded", path, twin)
+        return None
+    return path
+
+
 def _json(path: Path):
-    """A stage's JSON artifact, or None when that stage did not run (or left nothing readable)."""
+    """A stage's JSON artifact, or None when that stage did not run (or left nothing readable). Read within the
+    record limit: the twin may be someone else's, and 1 GiB of JSON (the limit meant for COCO files) costs ~10 GB
+    to parse."""
+    from splattwin.limits import MAX_RECORD_BYTES
+
     try:
-        return io.read_json(path)
+        return io.read_json(path, max_bytes=MAX_RECORD_BYTES)
     except InputError:
         return None
 
@@ -459,7 +478,7 @@ def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:
               for fr in ds.train()[:: max(1, len(ds.train()) // 4)][:4]]
     if thumbs:
         sec.image(side_by_side(thumbs), caption="a few input views", photo=True)
-    if (twin / "poses" / "cameras.png").is_file():
+    if picture(twin, twin / "poses" / "cameras.png"):
         sec.image(twin / "poses" / "cameras.png", caption="camera poses and sparse points", width=520,
                   photo=False)   # a plot: lines and text kept exact
 
@@ -577,9 +596,9 @@ def _recon_section(sec: Section, twin: Path, ev: dict | None) -> None:
         from splattwin.paths import confined
 
         p = confined(twin / "splat" / "eval", r["image"], twin / "splat" / "eval" / "metrics.json", "image")
-        if p.is_file():
+        if picture(twin, p):   # (confined to splat/eval, which may itself be a link out of the twin)
             sec.image(p, caption=f"{r['name']}: ground truth | render | error", photo=True)
-    if (twin / "splat" / "transients.png").is_file():   # a photo collection: what the loss left out
+    if picture(twin, twin / "splat" / "transients.png"):   # a photo collection: what the loss left out
         sec.image(twin / "splat" / "transients.png", caption="transient masks (red): what training left out of "
                   "each photo as seen in that photo only (people, vehicles; `--splat.robust-quantile`)", width=720,
                   photo=True)
@@ -615,10 +634,11 @@ def _semantics_section(sec: Section, twin: Path, fusion: dict | None) -> None:
 
     # the label pictures' format is left to their content (`html.picture_bytes`): labels blended over the photo
     # are photographic (JPEG), a label map drawn without one (its photo unreadable) flat colour (PNG)
-    for p in [p for p in sorted((twin / "semantics" / "masks_vs_labels").glob("*.png")) if ours(p)]:
+    for p in [p for p in sorted((twin / "semantics" / "masks_vs_labels").glob("*.png"))
+              if ours(p) and picture(twin, p)]:
         sec.image(p, caption=f"{p.stem}: 2D masks (held-out view: not used by the fusion) | fused 3D labels rendered"
                   if p.stem in heldout else f"{p.stem}: 2D segmenter masks (input) | fused 3D labels rendered")
-    maps = [p for p in sorted((twin / "semantics" / "label_maps").glob("*.png")) if ours(p)]
+    maps = [p for p in sorted((twin / "semantics" / "label_maps").glob("*.png")) if ours(p) and picture(twin, p)]
     # the held-out views' maps (the fusion never saw them); a real capture's names do not say "heldout"
     held = [p for p in maps if "heldout" in p.stem or p.stem in heldout] or maps
     for p in held[:4]:
@@ -808,7 +828,7 @@ def physics_overview(twin: Path) -> Path | None:
     """The robot run's MuJoCo frames in one picture (TWIN/robot/frames/overview.png; robot/overview.png of an
     older run), None when the run rendered none (no offscreen GL context, --no-render: its notes say)."""
     for p in (twin / "robot" / "overview.png", twin / "robot" / "frames" / "overview.png"):
-        if p.is_file():
+        if picture(twin, p):
             return p
     return None
 

@@ -77,10 +77,15 @@ def png_bytes(image: np.ndarray | str | Path) -> bytes:
     if isinstance(image, (str, Path)):
         from splattwin.limits import image_size, read_image_array
 
-        image_size(image)  # header checked (size limit) before anything is decoded or embedded
-        data = Path(image).read_bytes()
-        if data[:8] == b"\x89PNG\r\n\x1a\n":
-            return data
+        w, h = image_size(image)  # header checked (size limit) before anything is decoded or embedded
+        path = Path(image)
+        with open(path, "rb") as f:
+            png = f.read(8) == b"\x89PNG\r\n\x1a\n"
+        # a PNG is embedded as it is when its file is no larger than its pixels could need (RGBA, 16-bit, no
+        # compression, + 1 MiB); a small picture with gigabytes appended (after IEND, or in ancillary chunks)
+        # was read and base64-embedded whole: it is decoded and written again instead
+        if png and path.stat().st_size <= 8 * w * h + (1 << 20):
+            return path.read_bytes()
         image = read_image_array(image, mode="RGB")
     buf = _io.BytesIO()
     Image.fromarray(_as_uint8(image)).save(buf, format="PNG", optimize=True)

@@ -88,6 +88,7 @@ def _base(twin: Path) -> np.ndarray:
 def task_video(twin: Path, options: ReportOptions, progress: bool = False) -> dict | None:
     """Render (or reuse) the task video and the filled-regions picture. None when the twin has no rollout;
     InputError when it has no splats."""
+    from splattwin.paths import is_inside
     from splattwin.playback.cameras import EyeInHand
     from splattwin.playback.compositor import PlaybackRenderer, rollout_state
     from splattwin.playback.movie import render_rollout_video
@@ -111,7 +112,10 @@ def task_video(twin: Path, options: ReportOptions, progress: bool = False) -> di
     mp4 = twin / "report" / f"task_{safe}.mp4"
     keyfile = mp4.with_suffix(".json")
     try:
-        cached = json.loads(keyfile.read_text()) if keyfile.is_file() and mp4.is_file() else None
+        # the cached video is embedded as it is: one that leads out of the twin (a received twin's link with a
+        # matching key, which the twin's own files give) would put any file of this machine into the report
+        cached = json.loads(keyfile.read_text()) if (keyfile.is_file() and mp4.is_file() and is_inside(mp4, twin)
+                                                     and is_inside(keyfile, twin)) else None
     except (OSError, ValueError):
         cached = None
     if cached is not None and cached.get("key") == json.loads(json.dumps(key)):

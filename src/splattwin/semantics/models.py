@@ -12,7 +12,6 @@ network), or whose config is of another model type than the role needs.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from splattwin.errors import InputError
@@ -68,9 +67,12 @@ def _config_model_type(model: str) -> str | None:
     cfg = _local_file(model, "config.json")
     if cfg is None:
         return None
-    try:
-        mt = json.loads(cfg.read_text(encoding="utf-8")[:1_000_000]).get("model_type")
-    except (OSError, ValueError, AttributeError):
+    from splattwin.errors import InputError
+    from splattwin.limits import MAX_RECORD_BYTES, read_json
+
+    try:   # bounded before it is read (a model's config is KBs); deep nesting, bad JSON: unknown, not a traceback
+        mt = read_json(cfg, max_bytes=MAX_RECORD_BYTES).get("model_type")
+    except (InputError, OSError, AttributeError):
         return None
     return mt if isinstance(mt, str) else None
 

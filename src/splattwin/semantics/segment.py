@@ -60,9 +60,12 @@ def prompt_object_names(prompt: str) -> dict[str, str]:
 
 
 def load_pretrained(cls, model_id: str, what: str, **kwargs):
-    """`cls.from_pretrained(model_id, local_files_only=True)` with a clear InputError when absent or unreadable."""
+    """`cls.from_pretrained(model_id, local_files_only=True, trust_remote_code=False)` with a clear InputError when
+    absent or unreadable. trust_remote_code left unset (None) is not off: for a config with an unknown model_type
+    and an `auto_map`, transformers asks on the terminal whether to run the model folder's own Python, so a
+    received folder's code ran on a "y" (and a run without a terminal waited 15 s); False refuses it (ValueError)."""
     try:
-        return cls.from_pretrained(model_id, local_files_only=True, **kwargs)
+        return cls.from_pretrained(model_id, local_files_only=True, trust_remote_code=False, **kwargs)
     except (OSError, ValueError, EnvironmentError, RuntimeError) as e:
         # RuntimeError: weights of other shapes than the config's (transformers raises, no InputError)
         why = f"{type(e).__name__}: {str(e).splitlines()[0][:300] if str(e) else 'no message'}"

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from splattwin.errors import InputError
+from splattwin.errors import InputError, short_repr
 
 log = logging.getLogger(__name__)
 
@@ -59,14 +59,20 @@ def read(path: str | Path) -> dict[str, dict[str, np.ndarray]]:
             raise InputError(f"malformed refined poses: {key} poses must be an object", path)
         out[key] = {}
         for name, T in poses.items():
-            try:
-                M = np.asarray(T, dtype=np.float64).reshape(4, 4)
-            except (TypeError, ValueError):
-                raise InputError(f"malformed refined pose of view {name!r}: expected a 4x4 matrix", path) from None
-            if not np.all(np.isfinite(M)):
-                raise InputError(f"refined pose of view {name!r} is not finite", path)
-            out[key][str(name)] = M
+            out[key][str(name)] = _pose(T, f"refined pose of view {short_repr(name)}", path)
     return out
+
+
+def _pose(value, what: str, path: Path) -> np.ndarray:
+    """T_world_cam [4,4] from a file: 16 numbers (not text or booleans, which np.asarray turned into 1.0),
+    a rotation (orthonormal, right-handed) and a position within MAX_POSITION, as the capture's poses."""
+    from splattwin.limits import MAX_POSITION, numbers
+    from splattwin.transforms import pose_from_file_value
+
+    M = pose_from_file_value(numbers(value, 16, path, what).reshape(4, 4), what, path, rigid=True)
+    if np.max(np.abs(M[:3, 3])) > MAX_POSITION:
+        raise InputError(f"{what}: position more than {MAX_POSITION:g} from the origin", path)
+    return M
 
 
 def write(out_dir: str | Path, train: dict[str, list], heldout: dict[str, np.ndarray] | None = None) -> Path:

@@ -569,6 +569,16 @@ class Trainer:
                 raise bad(f"parameter {k} has shape {shape} (dtype {t.dtype}) for {n} Gaussians")
             if not bool(torch.isfinite(t).all()):
                 raise bad(f"parameter {k} holds NaN or infinite values")
+        # the learnt corrections beside the Gaussians (per-view appearance, background, pose corrections): NaN
+        # gains made every render NaN ("training diverged", blaming the learning rates), NaN poses resumed silently
+        for part in ("appearance", "bg_model", "poses"):
+            st = sd.get(part)
+            for k, v in (st.items() if isinstance(st, dict) else ()):
+                if k.startswith("optimizer"):
+                    continue
+                for t in (v if isinstance(v, (list, tuple)) else [v]):
+                    if isinstance(t, torch.Tensor) and t.is_floating_point() and not bool(torch.isfinite(t).all()):
+                        raise bad(f"{part} state {k} holds NaN or infinite values")
         opt = model.get("optimizers")
         if isinstance(opt, dict):
             for k, o in opt.items():
