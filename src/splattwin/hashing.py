@@ -53,13 +53,15 @@ class DigestCache:
         self._entries: dict[str, list] = {}
         self._dirty = False
         if self.cache_path is not None and self.cache_path.is_file():
-            try:
-                data = json.loads(self.cache_path.read_text())
+            from splattwin import limits
+
+            try:   # bounded: a received twin's cache is someone else's file (~200 bytes an entry)
+                data = limits.read_json(self.cache_path, max_bytes=limits.MAX_RECORD_BYTES)
                 if isinstance(data, dict) and isinstance(data.get("files"), dict):
                     self._entries = {k: v for k, v in data["files"].items()
                                      if isinstance(k, str) and isinstance(v, list) and len(v) == 2}
-            except (OSError, ValueError, RecursionError):
-                log.warning("%s is unreadable; hashing inputs afresh", self.cache_path)
+            except (OSError, InputError) as e:
+                log.warning("%s is unreadable (%s); hashing inputs afresh", self.cache_path, e)
 
     def file(self, path: str | Path) -> str:
         path = Path(path)
