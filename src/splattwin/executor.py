@@ -356,6 +356,41 @@ def import_ray():
     return ray
 
 
+RAY_PORT, RAY_CLIENT_PORT = 6379, 10001   # Ray's default GCS port and Ray Client port
+PROBE_TIMEOUT_S = 5.0
+
+
+def check_reachable(address: str, timeout: float = PROBE_TIMEOUT_S) -> None:
+    """Raise InputError when nothing accepts a TCP connection at a Ray address ("HOST:PORT", "ray://HOST:PORT";
+    "auto" is left to Ray, which answers at once when it finds no cluster).
+
+    Why: `ray.init(address=...)` with nobody listening there retries for about 12 minutes (20 attempts of
+    ~36 s) while printing Ray's own warnings, so a mistyped address or a head node that is down looked hung."""
+    import socket
+
+    if address == "auto":
+        return
+    client = address.startswith("ray://")
+    hostport = address[len("ray://"):] if client else address
+    host, sep, port_text = hostport.rpartition(":")
+    if not sep or "]" in port_text:   # no port given: Ray's default
+        host, port_text = hostport, ""
+    host = host.strip("[]") or "127.0.0.1"
+    try:
+        port = int(port_text) if port_text else (RAY_CLIENT_PORT if client else RAY_PORT)
+        if not 0 < port < 65536:
+            raise ValueError(port)
+    except ValueError:
+        raise InputError(f"bad Ray address {address!r}: write HOST:PORT, ray://HOST:PORT or auto") from None
+    try:
+        socket.create_connection((host, port), timeout=timeout).close()
+    except OSError as e:
+        why = e.strerror or type(e).__name__   # "Connection refused", "timed out", a name that does not resolve
+        raise InputError(f"no Ray cluster answers at {address!r} ({host}:{port}: {why}; from --ray-address or "
+                         f"${ADDRESS_ENV}): start it there (`ray start --head`), check the address, or run "
+                         "without an address (--executor local: this machine's process pool)") from None
+
+
 class RayExecutor(Executor):
     """Tasks on a Ray cluster: `address` ("auto", "HOST:6379", "ray://HOST:10001"), or None to start a
     local Ray instance with `num_cpus` CPUs (default: all). When this process is already connected
@@ -373,6 +408,7 @@ class RayExecutor(Executor):
         if not ray.is_initialized():
             kw: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False}
             if address:
+                check_reachable(address)
                 kw["address"] = address
             elif num_cpus is not None:
                 kw["num_cpus"] = int(num_cpus)

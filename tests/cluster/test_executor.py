@@ -170,3 +170,29 @@ def test_an_interrupted_run_s_progress_says_stopped_not_done(capsys):
             ex.run([Job(i, _square, (i,)) for i in range(3)], on_done=interrupt, progress=True, description="trials")
     err = capsys.readouterr().err.splitlines()
     assert err[-1].startswith("trials: 0/3 job stopped after"), err
+
+
+def test_unreachable_ray_address_is_a_clear_input_error_before_ray_init(monkeypatch):
+    """Nothing listening at --ray-address: an InputError naming the address in seconds. Before, the address
+    went straight to ray.init, which retries for ~12 minutes printing Ray's own warnings (looked hung)."""
+    import socket
+    import time
+
+    import ray
+
+    with socket.socket() as s:   # a port nobody listens on: bound, then released
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+
+    def no_init(*a, **kw):
+        raise AssertionError("ray.init was called with an address nobody answers at")
+
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray, "init", no_init)
+    for address in (f"127.0.0.1:{port}", f"ray://127.0.0.1:{port}"):
+        t0 = time.monotonic()
+        with pytest.raises(InputError, match=rf"no Ray cluster answers at '{address}'.*ray start --head"):
+            make_executor(ExecutorOptions(ray_address=address))
+        assert time.monotonic() - t0 < 10
+    with pytest.raises(InputError, match="bad Ray address"):
+        make_executor(ExecutorOptions(ray_address="head:port"))
