@@ -36,7 +36,8 @@ def test_values_parsed_by_field_type():
     assert P.parse_assignment("geometry.min_opacity=0.05,0.1") == ("geometry.min_opacity", [0.05, 0.1])
     for name, text in [("fusion.iters", "1.5"), ("fusion.kappa", "abc"), ("fusion.kappa", "nan"),
                        ("geometry.use_alpha", "maybe"), ("trials.sigma", "0.2"), ("fusion.kappa", "0"),
-                       ("fusion.kappa", "1,1"), ("trials.in_hand", "guessed")]:   # choices are checked
+                       ("fusion.kappa", "1,1"), ("trials.in_hand", "guessed"),
+                       ("trials.planner", "RRTconnect")]:   # choices are checked (a planner typo ran every task)
         with pytest.raises(InputError):
             P.parse_values(name, text)
     with pytest.raises(InputError, match="NAME=V1,V2"):
