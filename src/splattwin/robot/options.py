@@ -92,4 +92,12 @@ class RobotOptions:
             raise InputError(f"--record-fps must be in (0, 120] Hz, got {self.record_fps}")
         if not 16 <= self.record_width <= 4096:
             raise InputError(f"--record-width must be in [16, 4096] pixels, got {self.record_width}")
-        self.cluster.resolve()   # a bad executor choice fails before the nominal run
+        kind, address = self.cluster.resolve()   # a bad executor choice fails before the nominal run
+        if self.trials > 0 and kind == "ray":
+            # and so do a missing Ray and a cluster nobody answers at: the nominal run removes the previous
+            # run's files, and the trials' executor starts only after it
+            from splattwin.executor import check_reachable, import_ray
+
+            import_ray()
+            if address:
+                check_reachable(address)
