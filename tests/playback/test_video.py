@@ -84,3 +84,29 @@ def test_a_killed_writer_s_half_video_is_removed_by_the_next_run(tmp_path):
         m = io._TEMP_RE.match(tmp[0].name)
         assert m is not None and int(m.group("pid")) == os.getpid()
     assert (tmp_path / "task.mp4").is_file() and not tmp[0].exists()
+
+
+def test_render_of_a_failed_run_says_so(tiny_twin, tmp_path, capsys):
+    """The twin's own rollout of a failed run: the video is written, and the command says the run failed and
+    where (before, nothing told the video from one of the task done)."""
+    import shutil
+
+    from splattwin import io
+    from splattwin.robot.outputs import twin_digest
+
+    from .rollouts import synthetic_rollout
+
+    twin = tmp_path / "twin"
+    shutil.copytree(tiny_twin, twin)
+    synthetic_rollout(0.2).save(twin / "robot" / "rollout.npz")
+    steps = [{"index": 1, "pick": "blue_box", "goal": "tray", "success": False,
+              "failure": "'blue_box' slipped out of the gripper"}]
+    for success, note in ((False, True), (True, False)):
+        io.write_json(twin / "robot" / "results.json", {"twin_digest": twin_digest(twin), "nominal": {
+            "success": success, "steps": [{**st, "success": success} for st in steps]}})
+        assert main(["render", str(twin), "--camera", "view_0", "--out", str(tmp_path / "v.mp4"), "--fps", "10",
+                     "--no-robot", "--no-progress"]) == 0
+        cap = capsys.readouterr()
+        said = ("note: this rollout is of a failed run (step 1 (blue_box -> tray) failed: 'blue_box' slipped out "
+                "of the gripper)" in cap.err)
+        assert said == note and ("a failed run" in cap.out) == note

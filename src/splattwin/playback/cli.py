@@ -143,6 +143,10 @@ def run_render(args: argparse.Namespace) -> int:
         why = stale_results(args.twin)
         if why is not None:
             raise InputError(f"robot/rollout.npz is not this twin's to play: {why}; or give --rollout", rpath)
+    failed = _failed_run(args.twin) if args.rollout is None else None
+    if failed is not None:   # said before the render (minutes), so the video is not taken for the task done
+        console(stderr=True).print(f"note: this rollout is of a failed run ({failed}); the video shows it as "
+                                   "physics played it", markup=False, highlight=False)
     scene = DynamicScene.load(args.twin, fill_holes=not args.no_fill, view_fade=not args.keep_view_dependence,
                               relight=not args.no_relight)
     camera = resolve_camera(args.camera, args.twin, width=args.width)
@@ -163,8 +167,29 @@ def run_render(args: argparse.Namespace) -> int:
         why = "no clear cast shadow found on the twin's table" if scene.meshes else "the twin has no object meshes"
         console().print(f"not re-lit: {why} (splats keep their trained colour)")
     console().print(f"wrote {info['path']}: {info['frames']} frames {info['width']}x{info['height']} at "
-                    f"{info['fps']:g} fps, median {info['render_ms_median']:.0f} ms per frame")
+                    f"{info['fps']:g} fps, median {info['render_ms_median']:.0f} ms per frame"
+                    + (" (a failed run: see the note above)" if failed is not None else ""))
     return 0
+
+
+def _failed_run(twin: Path, limit: int = 240) -> str | None:
+    """Why the run of TWIN/robot/results.json failed, in a short sentence (its first failed step), or None
+    when it succeeded or its results cannot say (unreadable: the render goes on, as before)."""
+    from splattwin import io
+    from splattwin.errors import InputError
+
+    try:
+        nominal = io.read_json(twin / "robot" / "results.json").get("nominal") or {}
+        if not isinstance(nominal, dict) or nominal.get("success") is not False:
+            return None
+        bad = next((st for st in nominal.get("steps") or [] if isinstance(st, dict) and not st.get("success")), None)
+    except (OSError, InputError, AttributeError):
+        return None
+    if bad is None:
+        return "not every step ran"
+    why = str(bad.get("failure") or "no reason recorded")
+    why = why if len(why) <= limit else why[:limit - 3] + "..."
+    return f"step {bad.get('index')} ({bad.get('pick')} -> {bad.get('goal')}) failed: {why}"
 
 
 def _base_pose(args: argparse.Namespace):
