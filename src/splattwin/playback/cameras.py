@@ -205,6 +205,8 @@ def resolve_camera(spec: str, twin_dir: str | Path, width: int | None = None) ->
         if spec.startswith("capture:"):
             try:
                 i = int(spec.split(":", 1)[1])
+                if i < 0:   # not Python's count from the end: capture:-1 rendered the last camera silently
+                    raise IndexError(i)
                 cam = cams[i]
             except (ValueError, IndexError):
                 raise InputError(f"no capture camera {spec!r} (the twin has {len(cams)}: 0..{len(cams) - 1})") from None
