@@ -110,3 +110,18 @@ def test_render_of_a_failed_run_says_so(tiny_twin, tmp_path, capsys):
         said = ("note: this rollout is of a failed run (step 1 (blue_box -> tray) failed: 'blue_box' slipped out "
                 "of the gripper)" in cap.err)
         assert said == note and ("a failed run" in cap.out) == note
+
+
+def test_render_refuses_an_out_it_cannot_write_before_rendering(tiny_twin, tmp_path, capsys):
+    """--out naming a folder rendered every frame, then failed renaming onto it; a path under a file failed at
+    the first frame: both were "internal error" (exit 1). Now exit 2 naming the path, before the render."""
+    from .rollouts import synthetic_rollout
+
+    r = synthetic_rollout(0.2).save(tmp_path / "r.npz")
+    (tmp_path / "v.mp4").mkdir()
+    (tmp_path / "file").write_text("x")
+    for out, msg in ((tmp_path / "v.mp4", "--out is a folder"), (tmp_path / "file" / "v.mp4", "cannot create")):
+        assert main(["render", str(tiny_twin), "--camera", "view_0", "--out", str(out), "--rollout", str(r),
+                     "--no-robot", "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert msg in err and "internal error" not in err

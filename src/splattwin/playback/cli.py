@@ -126,6 +126,7 @@ def run_render(args: argparse.Namespace) -> int:
         raise InputError(f"--width must be in [16, 8192], got {args.width}")
     if args.out.suffix.lower() != ".mp4":
         raise InputError("--out must name an .mp4 file", args.out)
+    _check_out(args.out)
     rpath = args.rollout or args.twin / "robot" / "rollout.npz"
     if not rpath.is_file():
         from splattwin.twin.manifest import Manifest
@@ -170,6 +171,25 @@ def run_render(args: argparse.Namespace) -> int:
                     f"{info['fps']:g} fps, median {info['render_ms_median']:.0f} ms per frame"
                     + (" (a failed run: see the note above)" if failed is not None else ""))
     return 0
+
+
+def _check_out(out: Path) -> None:
+    """InputError when the video cannot be written at `out`, checked before the render (minutes): a folder
+    of that name (the final rename failed after the whole render), a parent that is a file or a folder that
+    cannot be written ("internal error" at the first frame). Creates nothing: the writer makes the folders."""
+    import os
+
+    from splattwin.errors import InputError
+
+    if out.is_dir():
+        raise InputError("--out is a folder: name the .mp4 file to write", out)
+    existing = out.absolute().parent
+    while not existing.exists() and existing != existing.parent:   # the folder the writer will create under
+        existing = existing.parent
+    if not existing.is_dir():
+        raise InputError("cannot create the folder of --out: a file is in the way", existing)
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise InputError("cannot write the folder of --out (permission denied)", existing)
 
 
 def _failed_run(twin: Path, limit: int = 240) -> str | None:
