@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor
 from concurrent.futures import wait as futures_wait
 from concurrent.futures.process import BrokenProcessPool
@@ -159,14 +160,15 @@ class Executor:
         """The finished job's outcome, or None when it was resubmitted (its worker died)."""
         raise NotImplementedError
 
-    def close(self) -> None:
-        pass
+    def close(self, abort: bool = False) -> None:
+        """Release the workers. abort: the command was stopped; ask the tasks in flight to stop too."""
 
     def __enter__(self) -> "Executor":
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, exc, tb) -> None:
+        # stopped by Ctrl-C or SIGTERM (the CLI raises KeyboardInterrupt for both): the tasks in flight stop too
+        self.close(abort=exc_type is not None and issubclass(exc_type, KeyboardInterrupt))
 
     # -- driver loop -------------------------------------------------------------------------------
     def run(self, jobs: Iterable[Job], on_done: OnDone | None = None, progress: bool = True,
@@ -253,11 +255,35 @@ def _call(fn: Callable, args: tuple) -> Any:
 PARENT_POLL_S = 0.5
 
 
+STOP_SIGNAL = signal.SIGUSR1   # the pool's request to its workers: stop as on a Ctrl-C of their own
+
+
+def _stop_as_interrupted(signum, frame) -> None:
+    """A worker's handler of STOP_SIGNAL: the command was stopped (`LocalExecutor.close(abort=True)`); act as
+    on the first Ctrl-C/SIGTERM (a training step finishes and saves, then the task stops), unless this
+    worker already got one itself (a terminal's Ctrl-C reaches every process of the group): a second would
+    stop it at once, losing the save."""
+    from splattwin import interrupt
+
+    if interrupt.stop_requested():
+        return
+    # the Python-level SIGTERM handler, called directly: a native library (Ray, pycolmap's glog) may hold the
+    # signal itself at the C level and would end the process with a stack dump instead
+    handler = signal.getsignal(signal.SIGTERM)
+    if callable(handler):
+        handler(signal.SIGTERM, frame)
+    else:   # no handler of ours (a library caller's pool): stop the task as a Ctrl-C does
+        raise KeyboardInterrupt
+
+
 def _exit_with_parent(parent: int) -> None:
     """Pool worker initializer: exit when the process that started the pool is gone (`kill -9` of
-    `plan`): an orphaned worker would go on writing trials into a folder nobody holds any more."""
+    `plan`): an orphaned worker would go on writing trials into a folder nobody holds any more. And stop
+    its task when the pool asks (STOP_SIGNAL: the command got SIGTERM, which reached it alone)."""
     import threading
     import time
+
+    signal.signal(STOP_SIGNAL, _stop_as_interrupted)
 
     def watch() -> None:
         while os.getppid() == parent:
@@ -340,8 +366,17 @@ class LocalExecutor(Executor):
         self._resubmitted = []
         return out
 
-    def close(self) -> None:
+    def close(self, abort: bool = False) -> None:
+        """Shut the pool down after its tasks. abort (the command got Ctrl-C or SIGTERM): queued tasks are
+        cancelled and the running ones asked to stop (STOP_SIGNAL); before, a SIGTERM to the command (`kill`,
+        `timeout`, a Kubernetes pod's stop) waited here for every running task to finish (a whole build)."""
         if self._pool is not None:
+            if abort:
+                for proc in list((getattr(self._pool, "_processes", None) or {}).values()):
+                    try:
+                        os.kill(proc.pid, STOP_SIGNAL)
+                    except OSError:   # already gone
+                        pass
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
 
@@ -460,7 +495,7 @@ class RayExecutor(Executor):
             return Outcome(False, error=f"{type(e).__name__}: {str(e).strip().splitlines()[0][:300]}",
                            attempts=self.max_retries + 1)
 
-    def close(self) -> None:
+    def close(self, abort: bool = False) -> None:
         if self._owned and self._ray.is_initialized():
             self._ray.shutdown()
         self._owned = False

@@ -196,3 +196,60 @@ def test_unreachable_ray_address_is_a_clear_input_error_before_ray_init(monkeypa
         assert time.monotonic() - t0 < 10
     with pytest.raises(InputError, match="bad Ray address"):
         make_executor(ExecutorOptions(ray_address="head:port"))
+
+
+def _loop_until_stopped(started: str, seconds: float) -> str:
+    """A long task that polls for a stop between steps, as training does (`interrupt.check`)."""
+    import time
+
+    from splattwin import interrupt
+
+    Path(started).write_text("running")
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < seconds:
+        time.sleep(0.05)
+        interrupt.check()
+    return "finished"
+
+
+def test_an_aborted_local_pool_stops_its_running_tasks(tmp_path):
+    """The command stopped by SIGTERM (the CLI raises KeyboardInterrupt; `kill`, `timeout`, a pod's stop reach
+    the command alone): the pool's workers are asked to stop their tasks. Before, closing the pool waited for
+    every running task to finish (a whole build in `batch`)."""
+    import time
+
+    from splattwin import interrupt
+
+    interrupt.install()   # as the CLI does before its pools fork
+    try:
+        started = tmp_path / "started"
+        with pytest.raises(KeyboardInterrupt):
+            with LocalExecutor(1) as ex:
+                h = ex.submit(Job("long", _loop_until_stopped, (str(started), 60.0)))
+                while not started.exists():
+                    time.sleep(0.05)
+                t0 = time.monotonic()
+                raise KeyboardInterrupt   # what the driver loop raises on the command's SIGTERM
+        assert time.monotonic() - t0 < 15
+        # stopped by the worker's SIGTERM handler (ours: KeyboardInterrupt; after ray.init in this process,
+        # Ray's: SystemExit), not "finished"
+        assert isinstance(h.future.exception(), (KeyboardInterrupt, SystemExit))
+    finally:
+        interrupt.uninstall()
+
+
+def test_a_worker_interrupted_itself_is_not_interrupted_twice(monkeypatch):
+    """A terminal's Ctrl-C reaches the workers too: the pool's stop request then adds nothing (a second
+    interrupt would stop a training step at once, losing its checkpoint)."""
+    import signal
+
+    from splattwin import executor, interrupt
+
+    raised = []
+    monkeypatch.setattr(signal, "getsignal", lambda signum: lambda *a: raised.append(a[0]))
+    monkeypatch.setattr(interrupt, "stop_requested", lambda: True)
+    executor._stop_as_interrupted(executor.STOP_SIGNAL, None)
+    assert raised == []
+    monkeypatch.setattr(interrupt, "stop_requested", lambda: False)
+    executor._stop_as_interrupted(executor.STOP_SIGNAL, None)
+    assert raised == [signal.SIGTERM]   # the SIGTERM handler, as on the worker's own SIGTERM
