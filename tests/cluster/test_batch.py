@@ -41,6 +41,8 @@ def test_capture_names_unique_and_safe(tmp_path):
     assert names[:3] == ["a_b", "a_b-2", "clip"]
     assert all(n and "/" not in n and n not in (".", "..") for n in names) and len(set(names)) == len(names)
     assert names[4] != "summary.html"
+    (tmp_path / "scans" / "logs").mkdir(parents=True)   # OUT/logs holds the build logs
+    assert [c.name for c in capture_names([tmp_path / "scans" / "logs"])] == ["logs-2"]
 
 
 @pytest.mark.slow

@@ -52,7 +52,9 @@ def capture_names(inputs: list[str | Path]) -> list[Capture]:
         p = Path(p)
         base = re.sub(r"[^A-Za-z0-9._-]+", "_", (p.stem if p.is_file() else p.name) or "capture").strip("._") or "capture"
         name, k = base, 2
-        while name.lower() in seen or name.lower() in ("batch.json", "summary.csv", "summary.html"):
+        # never one of the batch's own entries: a capture folder named "logs" built its twin into OUT/logs/,
+        # among the other captures' build logs
+        while name.lower() in seen or name.lower() in ("batch.json", "summary.csv", "summary.html", "logs"):
             name, k = f"{base}-{k}", k + 1
         seen.add(name.lower())
         out.append(Capture(name, str(p.absolute())))
