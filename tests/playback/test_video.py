@@ -22,6 +22,9 @@ def test_mp4_round_trip_odd_size(tmp_path):
     assert err < 6.0   # lossy but faithful
     # frames are in order (each frame's blue level)
     assert np.all(np.diff(back[..., 2].mean(axis=(1, 2))) > 20)
+    # the index (moov) before the frames (mdat): plays while it downloads (it was written last)
+    data = p.read_bytes()
+    assert 0 < data.find(b"moov") < data.find(b"mdat")
     # an exception while writing leaves no file behind
     try:
         with Mp4Writer(tmp_path / "b.mp4", 10) as w:
