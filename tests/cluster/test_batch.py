@@ -45,6 +45,20 @@ def test_capture_names_unique_and_safe(tmp_path):
     assert [c.name for c in capture_names([tmp_path / "scans" / "logs"])] == ["logs-2"]
 
 
+def test_batch_refuses_an_out_among_the_captures(tmp_path):
+    """`batch scans/*/ --out scans/` built each twin into its own capture folder, among the photos; now an
+    InputError naming the capture before any task (nothing written)."""
+    from splattwin.errors import InputError
+
+    scans = tmp_path / "scans"
+    (scans / "a").mkdir(parents=True)
+    for out, match in ((scans, "the capture itself"), (scans / "a" / "twins", "nested with it")):
+        with pytest.raises(InputError, match=match) as e:
+            run_batch([scans / "a"], out, OPTS, LocalExecutor(1), progress=False)
+        assert e.value.path == scans / "a"
+    assert sorted(p.name for p in scans.rglob("*")) == ["a"]
+
+
 @pytest.mark.slow
 def test_batch_on_ray_survives_a_killed_worker(captures: list[Path], ray_session, tmp_path: Path):
     out = tmp_path / "batch"
