@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from splattwin.cli import main
 from splattwin.playback.video import Mp4Writer, probe_mp4, read_mp4, write_mp4
@@ -128,3 +129,36 @@ def test_render_refuses_an_out_it_cannot_write_before_rendering(tiny_twin, tmp_p
                      "--no-robot", "--no-progress"]) == 2
         err = capsys.readouterr().err
         assert msg in err and "internal error" not in err
+
+
+def test_render_takes_the_base_pose_of_the_run_that_made_the_rollout(tiny_twin, tmp_path, monkeypatch):
+    """`plan --out DIR --base-pose ...` writes rollout.npz and results.json into DIR; `render --rollout
+    DIR/rollout.npz` drew the robot at TWIN/robot/results.json's base (another run's) or the default, so the
+    arm stood away from the objects physics moved."""
+    import shutil
+
+    from splattwin import io
+    from splattwin.playback.robot import RobotSplats
+    from splattwin.robot.outputs import twin_digest
+
+    from .rollouts import synthetic_rollout
+
+    twin = tmp_path / "twin"
+    shutil.copytree(tiny_twin, twin)
+    io.write_json(twin / "robot" / "results.json", {"base_pose": {"x": -0.5, "y": 0.0, "z": 0.0, "yaw": 0.0},
+                                                    "twin_digest": twin_digest(twin), "nominal": {"success": True}})
+    run = tmp_path / "run"
+    r = synthetic_rollout(0.1).save(run / "rollout.npz")
+    io.write_json(run / "results.json", {"base_pose": {"x": -0.62, "y": 0.1, "z": 0.0, "yaw": 0.3}})
+    bases = []
+
+    def spy(T, *a, **kw):
+        bases.append(np.asarray(T))
+        raise RuntimeError("enough")
+
+    monkeypatch.setattr(RobotSplats, "panda", staticmethod(spy))
+    for rollout, x in ((r, -0.62), (None, -0.5)):
+        synthetic_rollout(0.1).save(twin / "robot" / "rollout.npz")
+        args = ["render", str(twin), "--camera", "view_0", "--out", str(tmp_path / "v.mp4"), "--no-progress"]
+        main(args + (["--rollout", str(rollout)] if rollout else []))
+        assert bases[-1][0, 3] == pytest.approx(x)

@@ -40,7 +40,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--width", type=int, default=None, help="rescale a world camera to this width (pixels)")
     p.add_argument("--base-pose", default=None,
                    help="robot base in the twin frame: x,y,z,yaw (m, rad); write --base-pose=-0.5,0,0,0 "
-                        "(default: the one `splattwin plan` recorded in TWIN/robot/results.json, else -0.5,0,0,0)")
+                        "(default: the one `splattwin plan` recorded in the results.json beside the rollout, "
+                        "else in TWIN/robot/results.json, else -0.5,0,0,0)")
     p.add_argument("--no-robot", action="store_true", help="leave the robot out of the picture")
     p.add_argument("--no-fill", action="store_true", help="do not fill the table under moved objects")
     p.add_argument("--keep-view-dependence", action="store_true",
@@ -217,4 +218,9 @@ def _base_pose(args: argparse.Namespace):
 
     if args.base_pose is not None:
         return BasePose.parse(args.base_pose)
+    # where the robot stood in the run that made the rollout: its results.json beside it (`plan --out DIR`
+    # writes both there); the twin's own results are another run's, whose base may differ
+    beside = args.rollout.parent / "results.json" if args.rollout is not None else None
+    if beside is not None and beside.is_file():
+        return BasePose.recorded(beside)
     return BasePose.recorded(args.twin / "robot" / "results.json")
