@@ -114,6 +114,13 @@ def test_render_of_a_failed_run_says_so(tiny_twin, tmp_path, capsys):
         said = ("note: this rollout is of a failed run (step 1 (blue_box -> tray) failed: 'blue_box' slipped out "
                 "of the gripper)" in cap.err)
         assert said == note and ("a failed run" in cap.out) == note
+    # a run written elsewhere (`plan --out DIR`): its results.json beside the rollout says so too
+    run = tmp_path / "run"
+    synthetic_rollout(0.2).save(run / "rollout.npz")
+    io.write_json(run / "results.json", {"nominal": {"success": False, "steps": steps}})
+    assert main(["render", str(twin), "--camera", "view_0", "--out", str(tmp_path / "v.mp4"), "--fps", "10",
+                 "--no-robot", "--no-progress", "--rollout", str(run / "rollout.npz")]) == 0
+    assert "note: this rollout is of a failed run (step 1" in capsys.readouterr().err
 
 
 def test_render_refuses_an_out_it_cannot_write_before_rendering(tiny_twin, tmp_path, capsys):

@@ -145,7 +145,7 @@ def run_render(args: argparse.Namespace) -> int:
         why = stale_results(args.twin)
         if why is not None:
             raise InputError(f"robot/rollout.npz is not this twin's to play: {why}; or give --rollout", rpath)
-    failed = _failed_run(args.twin) if args.rollout is None else None
+    failed = _failed_run(_results_of(args))
     if failed is not None:   # said before the render (minutes), so the video is not taken for the task done
         console(stderr=True).print(f"note: this rollout is of a failed run ({failed}); the video shows it as "
                                    "physics played it", markup=False, highlight=False)
@@ -193,14 +193,16 @@ def _check_out(out: Path) -> None:
         raise InputError("cannot write the folder of --out (permission denied)", existing)
 
 
-def _failed_run(twin: Path, limit: int = 240) -> str | None:
-    """Why the run of TWIN/robot/results.json failed, in a short sentence (its first failed step), or None
-    when it succeeded or its results cannot say (unreadable: the render goes on, as before)."""
+def _failed_run(results_json: Path | None, limit: int = 240) -> str | None:
+    """Why the run of `results_json` failed, in a short sentence (its first failed step), or None when it
+    succeeded or its results cannot say (none, unreadable: the render goes on, as before)."""
     from splattwin import io
     from splattwin.errors import InputError
 
+    if results_json is None or not results_json.is_file():
+        return None
     try:
-        nominal = io.read_json(twin / "robot" / "results.json").get("nominal") or {}
+        nominal = io.read_json(results_json).get("nominal") or {}
         if not isinstance(nominal, dict) or nominal.get("success") is not False:
             return None
         bad = next((st for st in nominal.get("steps") or [] if isinstance(st, dict) and not st.get("success")), None)
@@ -220,7 +222,13 @@ def _base_pose(args: argparse.Namespace):
         return BasePose.parse(args.base_pose)
     # where the robot stood in the run that made the rollout: its results.json beside it (`plan --out DIR`
     # writes both there); the twin's own results are another run's, whose base may differ
-    beside = args.rollout.parent / "results.json" if args.rollout is not None else None
-    if beside is not None and beside.is_file():
-        return BasePose.recorded(beside)
-    return BasePose.recorded(args.twin / "robot" / "results.json")
+    return BasePose.recorded(_results_of(args) or args.twin / "robot" / "results.json")
+
+
+def _results_of(args: argparse.Namespace) -> Path | None:
+    """The results.json of the run whose rollout is played: TWIN/robot/ for the twin's own, the one beside
+    --rollout (`plan --out DIR` writes both there) when there is one, else None."""
+    if args.rollout is None:
+        return args.twin / "robot" / "results.json"
+    beside = args.rollout.parent / "results.json"
+    return beside if beside.is_file() else None
