@@ -118,8 +118,9 @@ def test_a_track_made_on_an_earlier_state_of_the_twin_is_not_shown(tiny_twin: Pa
     shutil.copytree(tiny_twin, twin)
     V = np.array([[0, 0, 0], [0.05, 0, 0], [0, 0.05, 0], [0, 0, 0.05]], np.float32)
     F = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]], np.uint32)
-    RobotTrack(names=["link"], vertices=[V], faces=[F], colors=[(200, 40, 40)], positions=np.zeros((3, 1, 3)),
-               rotations=np.tile(np.eye(3), (3, 1, 1, 1)), times=np.arange(3) * 0.1).save(twin / "robot" / "playback.npz")
+    track = RobotTrack(names=["link"], vertices=[V], faces=[F], colors=[(200, 40, 40)], positions=np.zeros((3, 1, 3)),
+                       rotations=np.tile(np.eye(3), (3, 1, 1, 1)), times=np.arange(3) * 0.1)
+    track.save(twin / "robot" / "playback.npz")
     assert load_robot_track(twin) is not None                         # no results.json: shown, as before
     io.write_json(twin / "robot" / "results.json", {"twin_digest": twin_digest(twin)})
     assert load_robot_track(twin) is not None                         # made on this twin
