@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor
 from concurrent.futures import wait as futures_wait
 from concurrent.futures.process import BrokenProcessPool
@@ -159,14 +160,15 @@ class Executor:
         """The finished job's outcome, or None when it was resubmitted (its worker died)."""
         raise NotImplementedError
 
-    def close(self) -> None:
-        pass
+    def close(self, abort: bool = False) -> None:
+        """Release the workers. abort: the command was stopped; ask the tasks in flight to stop too."""
 
     def __enter__(self) -> "Executor":
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, exc, tb) -> None:
+        # stopped by Ctrl-C or SIGTERM (the CLI raises KeyboardInterrupt for both): the tasks in flight stop too
+        self.close(abort=exc_type is not None and issubclass(exc_type, KeyboardInterrupt))
 
     # -- driver loop -------------------------------------------------------------------------------
     def run(self, jobs: Iterable[Job], on_done: OnDone | None = None, progress: bool = True,
@@ -253,11 +255,35 @@ def _call(fn: Callable, args: tuple) -> Any:
 PARENT_POLL_S = 0.5
 
 
+STOP_SIGNAL = signal.SIGUSR1   # the pool's request to its workers: stop as on a Ctrl-C of their own
+
+
+def _stop_as_interrupted(signum, frame) -> None:
+    """A worker's handler of STOP_SIGNAL: the command was stopped (`LocalExecutor.close(abort=True)`); act as
+    on the first Ctrl-C/SIGTERM (a training step finishes and saves, then the task stops), unless this
+    worker already got one itself (a terminal's Ctrl-C reaches every process of the group): a second would
+    stop it at once, losing the save."""
+    from splattwin import interrupt
+
+    if interrupt.stop_requested():
+        return
+    # the Python-level SIGTERM handler, called directly: a native library (Ray, pycolmap's glog) may hold the
+    # signal itself at the C level and would end the process with a stack dump instead
+    handler = signal.getsignal(signal.SIGTERM)
+    if callable(handler):
+        handler(signal.SIGTERM, frame)
+    else:   # no handler of ours (a library caller's pool): stop the task as a Ctrl-C does
+        raise KeyboardInterrupt
+
+
 def _exit_with_parent(parent: int) -> None:
     """Pool worker initializer: exit when the process that started the pool is gone (`kill -9` of
-    `plan`): an orphaned worker would go on writing trials into a folder nobody holds any more."""
+    `plan`): an orphaned worker would go on writing trials into a folder nobody holds any more. And stop
+    its task when the pool asks (STOP_SIGNAL: the command got SIGTERM, which reached it alone)."""
     import threading
     import time
+
+    signal.signal(STOP_SIGNAL, _stop_as_interrupted)
 
     def watch() -> None:
         while os.getppid() == parent:
@@ -340,8 +366,17 @@ class LocalExecutor(Executor):
         self._resubmitted = []
         return out
 
-    def close(self) -> None:
+    def close(self, abort: bool = False) -> None:
+        """Shut the pool down after its tasks. abort (the command got Ctrl-C or SIGTERM): queued tasks are
+        cancelled and the running ones asked to stop (STOP_SIGNAL); before, a SIGTERM to the command (`kill`,
+        `timeout`, a Kubernetes pod's stop) waited here for every running task to finish (a whole build)."""
         if self._pool is not None:
+            if abort:
+                for proc in list((getattr(self._pool, "_processes", None) or {}).values()):
+                    try:
+                        os.kill(proc.pid, STOP_SIGNAL)
+                    except OSError:   # already gone
+                        pass
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
 
@@ -354,6 +389,41 @@ def import_ray():
     except ImportError:
         raise InputError('--executor ray needs Ray: pip install "splattwin[ray]" (on every node of the cluster)') from None
     return ray
+
+
+RAY_PORT, RAY_CLIENT_PORT = 6379, 10001   # Ray's default GCS port and Ray Client port
+PROBE_TIMEOUT_S = 5.0
+
+
+def check_reachable(address: str, timeout: float = PROBE_TIMEOUT_S) -> None:
+    """Raise InputError when nothing accepts a TCP connection at a Ray address ("HOST:PORT", "ray://HOST:PORT";
+    "auto" is left to Ray, which answers at once when it finds no cluster).
+
+    Why: `ray.init(address=...)` with nobody listening there retries for about 12 minutes (20 attempts of
+    ~36 s) while printing Ray's own warnings, so a mistyped address or a head node that is down looked hung."""
+    import socket
+
+    if address == "auto":
+        return
+    client = address.startswith("ray://")
+    hostport = address[len("ray://"):] if client else address
+    host, sep, port_text = hostport.rpartition(":")
+    if not sep or "]" in port_text:   # no port given: Ray's default
+        host, port_text = hostport, ""
+    host = host.strip("[]") or "127.0.0.1"
+    try:
+        port = int(port_text) if port_text else (RAY_CLIENT_PORT if client else RAY_PORT)
+        if not 0 < port < 65536:
+            raise ValueError(port)
+    except ValueError:
+        raise InputError(f"bad Ray address {address!r}: write HOST:PORT, ray://HOST:PORT or auto") from None
+    try:
+        socket.create_connection((host, port), timeout=timeout).close()
+    except OSError as e:
+        why = e.strerror or type(e).__name__   # "Connection refused", "timed out", a name that does not resolve
+        raise InputError(f"no Ray cluster answers at {address!r} ({host}:{port}: {why}; from --ray-address or "
+                         f"${ADDRESS_ENV}): start it there (`ray start --head`), check the address, or run "
+                         "without an address (--executor local: this machine's process pool)") from None
 
 
 class RayExecutor(Executor):
@@ -373,6 +443,7 @@ class RayExecutor(Executor):
         if not ray.is_initialized():
             kw: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False}
             if address:
+                check_reachable(address)
                 kw["address"] = address
             elif num_cpus is not None:
                 kw["num_cpus"] = int(num_cpus)
@@ -424,7 +495,7 @@ class RayExecutor(Executor):
             return Outcome(False, error=f"{type(e).__name__}: {str(e).strip().splitlines()[0][:300]}",
                            attempts=self.max_retries + 1)
 
-    def close(self) -> None:
+    def close(self, abort: bool = False) -> None:
         if self._owned and self._ray.is_initialized():
             self._ray.shutdown()
         self._owned = False

@@ -35,6 +35,7 @@ import threading
 log = logging.getLogger(__name__)
 
 _seen = False   # a SIGINT or SIGTERM arrived since `install()` (this process)
+_deferred = False   # one arrived inside a `DeferredInterrupt` (which handles it without setting _seen)
 _signal = signal.SIGINT   # the last one that did: the exit code and message (`exit_code`, `message`)
 
 
@@ -55,8 +56,8 @@ def install() -> None:
     """The CLI's SIGINT and SIGTERM handler (main thread, when the signal has Python's default handling):
     raises KeyboardInterrupt as SIGINT's default does, and remembers the signal for `check()`/`seen()`/
     `exit_code()`. A SIGTERM someone set to be ignored (nohup-like wrappers) stays ignored. Resets the memory."""
-    global _seen, _signal
-    _seen, _signal = False, signal.SIGINT
+    global _seen, _signal, _deferred
+    _seen, _signal, _deferred = False, signal.SIGINT, False
     for signum in (signal.SIGINT, signal.SIGTERM):
         if _ours(signum):
             signal.signal(signum, _remembering_handler)
@@ -81,6 +82,12 @@ def _reclaim_sigterm() -> None:
 def seen() -> bool:
     """Whether a Ctrl-C (or SIGTERM) arrived since `install()`, whether or not it was handled."""
     return _seen
+
+
+def stop_requested() -> bool:
+    """Whether this process was asked to stop (a SIGINT or SIGTERM since `install()`), handled at once or
+    deferred by a `DeferredInterrupt` loop."""
+    return _seen or _deferred
 
 
 def exit_code() -> int:
@@ -125,8 +132,8 @@ class DeferredInterrupt:
         return self
 
     def _handle(self, signum, frame) -> None:
-        global _signal
-        _signal = signum
+        global _signal, _deferred
+        _signal, _deferred = signum, True
         if self.requested:           # a second Ctrl-C (or SIGTERM): now
             raise KeyboardInterrupt
         self.requested = True

@@ -41,6 +41,22 @@ def test_capture_names_unique_and_safe(tmp_path):
     assert names[:3] == ["a_b", "a_b-2", "clip"]
     assert all(n and "/" not in n and n not in (".", "..") for n in names) and len(set(names)) == len(names)
     assert names[4] != "summary.html"
+    (tmp_path / "scans" / "logs").mkdir(parents=True)   # OUT/logs holds the build logs
+    assert [c.name for c in capture_names([tmp_path / "scans" / "logs"])] == ["logs-2"]
+
+
+def test_batch_refuses_an_out_among_the_captures(tmp_path):
+    """`batch scans/*/ --out scans/` built each twin into its own capture folder, among the photos; now an
+    InputError naming the capture before any task (nothing written)."""
+    from splattwin.errors import InputError
+
+    scans = tmp_path / "scans"
+    (scans / "a").mkdir(parents=True)
+    for out, match in ((scans, "the capture itself"), (scans / "a" / "twins", "nested with it")):
+        with pytest.raises(InputError, match=match) as e:
+            run_batch([scans / "a"], out, OPTS, LocalExecutor(1), progress=False)
+        assert e.value.path == scans / "a"
+    assert sorted(p.name for p in scans.rglob("*")) == ["a"]
 
 
 @pytest.mark.slow

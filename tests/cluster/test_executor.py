@@ -170,3 +170,86 @@ def test_an_interrupted_run_s_progress_says_stopped_not_done(capsys):
             ex.run([Job(i, _square, (i,)) for i in range(3)], on_done=interrupt, progress=True, description="trials")
     err = capsys.readouterr().err.splitlines()
     assert err[-1].startswith("trials: 0/3 job stopped after"), err
+
+
+def test_unreachable_ray_address_is_a_clear_input_error_before_ray_init(monkeypatch):
+    """Nothing listening at --ray-address: an InputError naming the address in seconds. Before, the address
+    went straight to ray.init, which retries for ~12 minutes printing Ray's own warnings (looked hung)."""
+    import socket
+    import time
+
+    import ray
+
+    with socket.socket() as s:   # a port nobody listens on: bound, then released
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+
+    def no_init(*a, **kw):
+        raise AssertionError("ray.init was called with an address nobody answers at")
+
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray, "init", no_init)
+    for address in (f"127.0.0.1:{port}", f"ray://127.0.0.1:{port}"):
+        t0 = time.monotonic()
+        with pytest.raises(InputError, match=rf"no Ray cluster answers at '{address}'.*ray start --head"):
+            make_executor(ExecutorOptions(ray_address=address))
+        assert time.monotonic() - t0 < 10
+    with pytest.raises(InputError, match="bad Ray address"):
+        make_executor(ExecutorOptions(ray_address="head:port"))
+
+
+def _loop_until_stopped(started: str, seconds: float) -> str:
+    """A long task that polls for a stop between steps, as training does (`interrupt.check`)."""
+    import time
+
+    from splattwin import interrupt
+
+    Path(started).write_text("running")
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < seconds:
+        time.sleep(0.05)
+        interrupt.check()
+    return "finished"
+
+
+def test_an_aborted_local_pool_stops_its_running_tasks(tmp_path):
+    """The command stopped by SIGTERM (the CLI raises KeyboardInterrupt; `kill`, `timeout`, a pod's stop reach
+    the command alone): the pool's workers are asked to stop their tasks. Before, closing the pool waited for
+    every running task to finish (a whole build in `batch`)."""
+    import time
+
+    from splattwin import interrupt
+
+    interrupt.install()   # as the CLI does before its pools fork
+    try:
+        started = tmp_path / "started"
+        with pytest.raises(KeyboardInterrupt):
+            with LocalExecutor(1) as ex:
+                h = ex.submit(Job("long", _loop_until_stopped, (str(started), 60.0)))
+                while not started.exists():
+                    time.sleep(0.05)
+                t0 = time.monotonic()
+                raise KeyboardInterrupt   # what the driver loop raises on the command's SIGTERM
+        assert time.monotonic() - t0 < 15
+        # stopped by the worker's SIGTERM handler (ours: KeyboardInterrupt; after ray.init in this process,
+        # Ray's: SystemExit), not "finished"
+        assert isinstance(h.future.exception(), (KeyboardInterrupt, SystemExit))
+    finally:
+        interrupt.uninstall()
+
+
+def test_a_worker_interrupted_itself_is_not_interrupted_twice(monkeypatch):
+    """A terminal's Ctrl-C reaches the workers too: the pool's stop request then adds nothing (a second
+    interrupt would stop a training step at once, losing its checkpoint)."""
+    import signal
+
+    from splattwin import executor, interrupt
+
+    raised = []
+    monkeypatch.setattr(signal, "getsignal", lambda signum: lambda *a: raised.append(a[0]))
+    monkeypatch.setattr(interrupt, "stop_requested", lambda: True)
+    executor._stop_as_interrupted(executor.STOP_SIGNAL, None)
+    assert raised == []
+    monkeypatch.setattr(interrupt, "stop_requested", lambda: False)
+    executor._stop_as_interrupted(executor.STOP_SIGNAL, None)
+    assert raised == [signal.SIGTERM]   # the SIGTERM handler, as on the worker's own SIGTERM

@@ -36,11 +36,39 @@ def test_values_parsed_by_field_type():
     assert P.parse_assignment("geometry.min_opacity=0.05,0.1") == ("geometry.min_opacity", [0.05, 0.1])
     for name, text in [("fusion.iters", "1.5"), ("fusion.kappa", "abc"), ("fusion.kappa", "nan"),
                        ("geometry.use_alpha", "maybe"), ("trials.sigma", "0.2"), ("fusion.kappa", "0"),
-                       ("fusion.kappa", "1,1"), ("trials.in_hand", "guessed")]:   # choices are checked
+                       ("fusion.kappa", "1,1"), ("trials.in_hand", "guessed"),
+                       ("trials.planner", "RRTconnect")]:   # choices are checked (a planner typo ran every task)
         with pytest.raises(InputError):
             P.parse_values(name, text)
     with pytest.raises(InputError, match="NAME=V1,V2"):
         P.parse_assignment("geometry.min_opacity")
+
+
+@pytest.mark.parametrize("name,text", [("geometry.min_opacity", "-1"), ("geometry.min_opacity", "2"),
+                                       ("geometry.dbscan_eps", "-0.01"), ("geometry.dbscan_eps", "0"),
+                                       ("geometry.dbscan_min_samples", "0"), ("geometry.foot_height", "-0.001"),
+                                       ("fusion.depth_tol", "-0.01"), ("fusion.knn_threshold", "1.5"),
+                                       ("geometry.max_scale", "-0.1")])
+def test_values_outside_the_fields_domain_are_refused_naming_the_parameter(name, text):
+    """Before, these passed the grammar: min_opacity=-1 ran every cell (exit 0), dbscan_eps=-0.01 failed inside
+    every geometry task with scikit-learn's error (exit 1)."""
+    with pytest.raises(InputError, match=rf"sweep parameter {name} must be"):
+        P.parse_values(name, f"0.5,{text}" if name.endswith(("opacity", "threshold")) else text)
+
+
+def test_values_inside_the_fields_domain_pass():
+    assert P.parse_values("geometry.dbscan_voxel", "0,0.005") == [0.0, 0.005]   # 0: documented as off
+    assert P.parse_values("geometry.foot_height", "0") == [0.0]
+    assert P.parse_values("geometry.max_scale", "none,0.02") == [None, 0.02]
+    assert P.parse_values("geometry.min_opacity", "0,1") == [0.0, 1.0]
+
+
+def test_sweep_cli_exits_2_on_a_value_outside_the_domain(tmp_path, capsys):
+    from splattwin.cli import main
+
+    assert main(["sweep", str(tmp_path), "--out", str(tmp_path / "o"), "--clean", "min_opacity=-1"]) == 2
+    assert "geometry.min_opacity must be in [0, 1], got -1" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
 
 
 def test_split_and_apply_set_the_named_fields():

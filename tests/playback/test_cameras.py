@@ -19,6 +19,14 @@ def test_capture_and_user_cameras(tiny_twin, tmp_path):
     assert resolve_camera("capture:0", tiny_twin, width=48).width == 48
     with pytest.raises(InputError, match="no capture camera"):
         resolve_camera("nope", tiny_twin)
+    # --width reaches the wrist camera too (ignored before), its field of view kept
+    wrist = resolve_camera("wrist", tiny_twin, width=320)
+    assert isinstance(wrist, EyeInHand) and (wrist.width, wrist.height) == (320, 240)
+    K0, K1 = EyeInHand().intrinsics(), wrist.intrinsics()
+    assert K1[0, 0] / 320 == pytest.approx(K0[0, 0] / EyeInHand().width)
+    for bad in ("capture:2", "capture:-1", "capture:x"):   # -1 rendered the last camera (a Python index)
+        with pytest.raises(InputError, match=rf"no capture camera '{bad}' \(the twin has 2: 0..1\)"):
+            resolve_camera(bad, tiny_twin)
     y = tmp_path / "cam.yaml"
     y.write_text("width: 200\nheight: 100\nfov_x_deg: 90\neye: [0.5, 0, 0.4]\nlook_at: [0, 0, 0]\n")
     c = load_camera_yaml(y)

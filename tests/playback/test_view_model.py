@@ -101,3 +101,32 @@ def test_view_opacity_is_the_parts_own_else_the_layers(tmp_path: Path):
     assert by_owner["background"].view_opacity() == pytest.approx(VIEW_OPACITY_BACKGROUND)
     by_owner["box"].opacity = 0.25   # any part's own opacity wins
     assert by_owner["box"].view_opacity() == pytest.approx(0.25)
+
+
+def test_a_track_made_on_an_earlier_state_of_the_twin_is_not_shown(tiny_twin: Path, tmp_path: Path, caplog):
+    """robot/playback.npz of a run made before the twin changed (a stage command re-run into the folder): the
+    viewer played it, objects starting where they no longer are; `render` refused the same run's rollout."""
+    import json
+    import shutil
+
+    from splattwin import io
+    from splattwin.playback.view_model import load_robot_track
+    from splattwin.robot.outputs import twin_digest
+    from splattwin.robot.track import RobotTrack
+
+    twin = tmp_path / "twin"
+    shutil.copytree(tiny_twin, twin)
+    V = np.array([[0, 0, 0], [0.05, 0, 0], [0, 0.05, 0], [0, 0, 0.05]], np.float32)
+    F = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]], np.uint32)
+    track = RobotTrack(names=["link"], vertices=[V], faces=[F], colors=[(200, 40, 40)], positions=np.zeros((3, 1, 3)),
+                       rotations=np.tile(np.eye(3), (3, 1, 1, 1)), times=np.arange(3) * 0.1)
+    track.save(twin / "robot" / "playback.npz")
+    assert load_robot_track(twin) is not None                         # no results.json: shown, as before
+    io.write_json(twin / "robot" / "results.json", {"twin_digest": twin_digest(twin)})
+    assert load_robot_track(twin) is not None                         # made on this twin
+    man = json.loads((twin / "twin.json").read_text())                # the object re-posed since
+    man["objects"][0]["T_world_obj"][0][3] += 0.05
+    (twin / "twin.json").write_text(json.dumps(man))
+    assert load_robot_track(twin) is None
+    assert "earlier state of this twin" in caplog.text
+    assert TwinView.load(twin, meshes=False).track is None

@@ -223,6 +223,38 @@ def test_plan_count_options_are_bounded(gt_twin_small: Path, tmp_path: Path, cap
         SweepOptions(trials=MAX_TRIALS + 1).validate()
 
 
+def test_plan_planner_typo_is_refused_before_the_previous_run_is_removed(gt_twin_small: Path, tmp_path: Path,
+                                                                        capsys):
+    """`--planner RRTconnect` (a typo) removed the previous run's files, then stopped with an internal error
+    (ValueError from the planner, exit 1): the planner is now one of the option's choices, refused at once."""
+    out = tmp_path / "robot"
+    out.mkdir()
+    (out / "results.json").write_text("{}")   # the previous run's
+    with pytest.raises(SystemExit) as e:
+        main(["plan", str(gt_twin_small), "--planner", "RRTconnect", "--out", str(out), "--no-render"])
+    assert e.value.code == 2
+    assert "invalid choice: 'RRTconnect'" in capsys.readouterr().err
+    assert (out / "results.json").read_text() == "{}"
+
+
+def test_plan_trials_on_an_unreachable_cluster_are_refused_before_the_run(gt_twin_small: Path, tmp_path: Path,
+                                                                         capsys):
+    """--trials on a Ray address nobody answers at: refused before the nominal run. Before, the nominal run
+    removed the previous run's files and the trials' executor failed only after it."""
+    import socket
+
+    with socket.socket() as s:   # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    out = tmp_path / "robot"
+    out.mkdir()
+    (out / "results.json").write_text("{}")   # the previous run's
+    assert main(["plan", str(gt_twin_small), "--trials", "2", "--cluster.ray-address", f"127.0.0.1:{port}",
+                 "--out", str(out), "--no-render"]) == 2
+    assert f"no Ray cluster answers at '127.0.0.1:{port}'" in capsys.readouterr().err
+    assert (out / "results.json").read_text() == "{}"
+
+
 @pytest.mark.slow
 def test_plan_failing_after_the_grasp_writes_nothing_for_the_real_arm(gt_twin_small: Path, tmp_path: Path,
                                                                       monkeypatch, capsys):

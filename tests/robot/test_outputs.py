@@ -56,6 +56,18 @@ def test_results_twin_says_why_results_are_not_this_twins(tmp_path):
     assert "unreadable" in results_twin(None, twin)
 
 
+def test_stale_results_says_a_missing_results_json_is_an_unfinished_run(tmp_path):
+    """robot/ without results.json (written last: a plan stopped or killed) was reported as "results.json is
+    unreadable" by `render`; it says what happened now."""
+    from splattwin.robot.outputs import stale_results
+
+    twin = small_twin(tmp_path / "t")
+    (twin / "robot").mkdir(exist_ok=True)
+    assert "missing: the `splattwin plan` run that wrote robot/ did not finish" in stale_results(twin)
+    (twin / "robot" / "results.json").write_text("{not json")
+    assert "unreadable" in stale_results(twin)
+
+
 def test_error_results_record_the_twin_too(tmp_path):
     """results.json of a task that could not run (an unscaled twin) is this twin's result too."""
     from splattwin.poses.twin_frame import TwinFrame

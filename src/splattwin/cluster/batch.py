@@ -52,11 +52,27 @@ def capture_names(inputs: list[str | Path]) -> list[Capture]:
         p = Path(p)
         base = re.sub(r"[^A-Za-z0-9._-]+", "_", (p.stem if p.is_file() else p.name) or "capture").strip("._") or "capture"
         name, k = base, 2
-        while name.lower() in seen or name.lower() in ("batch.json", "summary.csv", "summary.html"):
+        # never one of the batch's own entries: a capture folder named "logs" built its twin into OUT/logs/,
+        # among the other captures' build logs
+        while name.lower() in seen or name.lower() in ("batch.json", "summary.csv", "summary.html", "logs"):
             name, k = f"{base}-{k}", k + 1
         seen.add(name.lower())
         out.append(Capture(name, str(p.absolute())))
     return out
+
+
+def _check_apart(caps: list[Capture], out: Path) -> None:
+    """InputError when a capture's twin folder OUT/<name> would be the capture itself, or either would hold the
+    other: `batch scans/*/ --out scans/` built every twin into its own capture folder, among the photos (and a
+    rebuild then reads that capture with the twin's files in it)."""
+    from splattwin.paths import is_inside
+
+    for c in caps:
+        twin, src = out / c.name, Path(c.input)
+        if is_inside(twin, src) or is_inside(src, twin):
+            raise InputError(f"the twin of capture {c.name!r} would be built into {twin}, "
+                             f"{'the capture itself' if twin.resolve() == src.resolve() else 'nested with it'}: "
+                             "give an --out folder apart from the captures", src)
 
 
 class StageFailed(Exception):
@@ -226,8 +242,9 @@ def run_batch(inputs: list[str | Path], out: str | Path, options, executor: Exec
         raise InputError(f"--until: unknown stage {until!r} (stages: {', '.join(STAGES)})")
     recon_only = until is not None and STAGES.index(until) <= STAGES.index(RECON_UNTIL)
     recon_until = until if recon_only else RECON_UNTIL
-    out.mkdir(parents=True, exist_ok=True)
     caps = capture_names(inputs)
+    _check_apart(caps, out)
+    out.mkdir(parents=True, exist_ok=True)
     if gpus is None:
         gpus = 1.0 if getattr(executor, "gpus", lambda: 0.0)() > 0 else 0.0
     threads = max(1, int(cpus)) if executor.kind == "ray" else max(1, (os.cpu_count() or 1) // executor.workers)

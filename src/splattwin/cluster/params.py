@@ -39,7 +39,18 @@ ALIASES = {"kappa": "fusion.kappa", "fusion_iters": "fusion.iters", "sigma": "tr
            "sigma_yaw": "trials.sigma_yaw"}
 # value checks beyond the type (a bad value fails before any task starts)
 _RANGES = {"fusion.kappa": (1e-6, 100.0), "fusion.iters": (1, 20), "trials.sigma": (0.0, 0.05),
-           "trials.sigma_yaw": (0.0, 0.5)}
+           "trials.sigma_yaw": (0.0, 0.5),
+           # DBSCAN's eps and min_samples (scikit-learn refuses 0 inside the task)
+           "fusion.eps": (1e-6, 10.0), "fusion.min_samples": (1, 100_000),
+           "geometry.dbscan_eps": (1e-6, 10.0), "geometry.dbscan_min_samples": (1, 100_000)}
+# shares, opacities and ratios
+_RANGES.update({n: (0.0, 1.0) for n in (
+    "fusion.min_cos", "fusion.knn_threshold", "fusion.knn_confidence", "fusion.floater_share", "fusion.converge_share",
+    "geometry.min_opacity", "geometry.rejoin_precision", "geometry.surface_level", "geometry.min_coverage",
+    "geometry.convex_ratio")})
+# every other number of fusion and geometry is a length, count, ratio or threshold: never negative (before,
+# `--clean min_opacity=-1` ran every cell and `geometry.dbscan_eps=-0.01` failed inside each task)
+NON_NEGATIVE_TARGETS = ("fusion", "geometry")
 
 
 def canonical(name: str) -> str:
@@ -98,6 +109,8 @@ def parse_value(name: str, text: str) -> Any:
     lo_hi = _RANGES.get(name)
     if lo_hi is not None and not lo_hi[0] <= v <= lo_hi[1]:
         raise InputError(f"sweep parameter {name} must be in [{lo_hi[0]:g}, {lo_hi[1]:g}], got {v}")
+    if b in (int, float) and name.split(".")[0] in NON_NEGATIVE_TARGETS and v < 0:
+        raise InputError(f"sweep parameter {name} must be >= 0, got {v}")
     return v
 
 

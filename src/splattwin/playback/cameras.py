@@ -72,6 +72,16 @@ class EyeInHand:
         f = 0.5 * self.height / math.tan(math.radians(self.fov_y_deg) / 2)
         return np.array([[f, 0, self.width / 2], [0, f, self.height / 2], [0, 0, 1.0]])
 
+    def scaled(self, factor: float) -> "EyeInHand":
+        """The same camera for an image resized by `factor` (as `Camera.scaled`): field of view kept."""
+        w, h = int(round(self.width * factor)), int(round(self.height * factor))
+        K = None
+        if self.K is not None:
+            K = np.array(self.K, float)
+            K[0, :] *= w / self.width
+            K[1, :] *= h / self.height
+        return replace(self, width=w, height=h, K=K)
+
     def camera(self, T_world_hand: np.ndarray) -> Camera:
         """The camera in the world for the body's pose T_world_hand [4,4]."""
         return Camera(K=self.intrinsics(), width=self.width, height=self.height,
@@ -201,7 +211,8 @@ def _camera_from_dict(d: dict, path: Path) -> Camera | EyeInHand:
 
 def resolve_camera(spec: str, twin_dir: str | Path, width: int | None = None) -> Camera | EyeInHand:
     """A camera from a command-line spec: a capture image name (e.g. heldout_000), 'capture:<index>',
-    'wrist' (the default eye-in-hand camera) or a camera YAML file. `width` rescales a world camera."""
+    'wrist' (the default eye-in-hand camera) or a camera YAML file. `width` rescales the camera (field of view
+    kept)."""
     if spec in ("wrist", "hand", "eye-in-hand"):
         cam: Camera | EyeInHand = EyeInHand()
     elif spec.endswith((".yaml", ".yml")) or Path(spec).is_file():
@@ -211,6 +222,8 @@ def resolve_camera(spec: str, twin_dir: str | Path, width: int | None = None) ->
         if spec.startswith("capture:"):
             try:
                 i = int(spec.split(":", 1)[1])
+                if i < 0:   # not Python's count from the end: capture:-1 rendered the last camera silently
+                    raise IndexError(i)
                 cam = cams[i]
             except (ValueError, IndexError):
                 raise InputError(f"no capture camera {spec!r} (the twin has {len(cams)}: 0..{len(cams) - 1})") from None
@@ -221,7 +234,7 @@ def resolve_camera(spec: str, twin_dir: str | Path, width: int | None = None) ->
                 raise InputError(f"no capture camera named {spec!r} (have: {names}); or give 'wrist', "
                                  f"'capture:<index>' or a camera YAML")
             cam = found[0]
-    if width is not None and isinstance(cam, Camera) and width != cam.width:
+    if width is not None and width != cam.width:   # the wrist camera too (it was ignored silently)
         cam = cam.scaled(width / cam.width)
     # a capture camera's size is read from the twin's cameras file: 12000x9000 there took 6 GB before the
     # rasterizer gave up. Rendering is bounded like a camera YAML (MAX_PIXELS); --width scales it down.

@@ -37,10 +37,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, help="MP4 to write")
     p.add_argument("--rollout", type=Path, default=None, help="rollout .npz (default TWIN/robot/rollout.npz)")
     p.add_argument("--fps", type=float, default=30.0, help="video frame rate (default 30)")
-    p.add_argument("--width", type=int, default=None, help="rescale a world camera to this width (pixels)")
+    p.add_argument("--width", type=int, default=None, help="rescale the camera to this width (pixels; the wrist camera too, aspect kept)")
     p.add_argument("--base-pose", default=None,
                    help="robot base in the twin frame: x,y,z,yaw (m, rad); write --base-pose=-0.5,0,0,0 "
-                        "(default: the one `splattwin plan` recorded in TWIN/robot/results.json, else -0.5,0,0,0)")
+                        "(default: the one `splattwin plan` recorded in the results.json beside the rollout, "
+                        "else in TWIN/robot/results.json, else -0.5,0,0,0)")
     p.add_argument("--no-robot", action="store_true", help="leave the robot out of the picture")
     p.add_argument("--no-fill", action="store_true", help="do not fill the table under moved objects")
     p.add_argument("--keep-view-dependence", action="store_true",
@@ -126,6 +127,7 @@ def run_render(args: argparse.Namespace) -> int:
         raise InputError(f"--width must be in [16, 8192], got {args.width}")
     if args.out.suffix.lower() != ".mp4":
         raise InputError("--out must name an .mp4 file", args.out)
+    _check_out(args.out)
     rpath = args.rollout or args.twin / "robot" / "rollout.npz"
     if not rpath.is_file():
         from splattwin.twin.manifest import Manifest
@@ -143,6 +145,10 @@ def run_render(args: argparse.Namespace) -> int:
         why = stale_results(args.twin)
         if why is not None:
             raise InputError(f"robot/rollout.npz is not this twin's to play: {why}; or give --rollout", rpath)
+    failed = _failed_run(_results_of(args))
+    if failed is not None:   # said before the render (minutes), so the video is not taken for the task done
+        console(stderr=True).print(f"note: this rollout is of a failed run ({failed}); the video shows it as "
+                                   "physics played it", markup=False, highlight=False)
     scene = DynamicScene.load(args.twin, fill_holes=not args.no_fill, view_fade=not args.keep_view_dependence,
                               relight=not args.no_relight)
     camera = resolve_camera(args.camera, args.twin, width=args.width)
@@ -163,8 +169,50 @@ def run_render(args: argparse.Namespace) -> int:
         why = "no clear cast shadow found on the twin's table" if scene.meshes else "the twin has no object meshes"
         console().print(f"not re-lit: {why} (splats keep their trained colour)")
     console().print(f"wrote {info['path']}: {info['frames']} frames {info['width']}x{info['height']} at "
-                    f"{info['fps']:g} fps, median {info['render_ms_median']:.0f} ms per frame")
+                    f"{info['fps']:g} fps, median {info['render_ms_median']:.0f} ms per frame"
+                    + (" (a failed run: see the note above)" if failed is not None else ""))
     return 0
+
+
+def _check_out(out: Path) -> None:
+    """InputError when the video cannot be written at `out`, checked before the render (minutes): a folder
+    of that name (the final rename failed after the whole render), a parent that is a file or a folder that
+    cannot be written ("internal error" at the first frame). Creates nothing: the writer makes the folders."""
+    import os
+
+    from splattwin.errors import InputError
+
+    if out.is_dir():
+        raise InputError("--out is a folder: name the .mp4 file to write", out)
+    existing = out.absolute().parent
+    while not existing.exists() and existing != existing.parent:   # the folder the writer will create under
+        existing = existing.parent
+    if not existing.is_dir():
+        raise InputError("cannot create the folder of --out: a file is in the way", existing)
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise InputError("cannot write the folder of --out (permission denied)", existing)
+
+
+def _failed_run(results_json: Path | None, limit: int = 240) -> str | None:
+    """Why the run of `results_json` failed, in a short sentence (its first failed step), or None when it
+    succeeded or its results cannot say (none, unreadable: the render goes on, as before)."""
+    from splattwin import io
+    from splattwin.errors import InputError
+
+    if results_json is None or not results_json.is_file():
+        return None
+    try:
+        nominal = io.read_json(results_json).get("nominal") or {}
+        if not isinstance(nominal, dict) or nominal.get("success") is not False:
+            return None
+        bad = next((st for st in nominal.get("steps") or [] if isinstance(st, dict) and not st.get("success")), None)
+    except (OSError, InputError, AttributeError):
+        return None
+    if bad is None:
+        return "not every step ran"
+    why = str(bad.get("failure") or "no reason recorded")
+    why = why if len(why) <= limit else why[:limit - 3] + "..."
+    return f"step {bad.get('index')} ({bad.get('pick')} -> {bad.get('goal')}) failed: {why}"
 
 
 def _base_pose(args: argparse.Namespace):
@@ -172,4 +220,15 @@ def _base_pose(args: argparse.Namespace):
 
     if args.base_pose is not None:
         return BasePose.parse(args.base_pose)
-    return BasePose.recorded(args.twin / "robot" / "results.json")
+    # where the robot stood in the run that made the rollout: its results.json beside it (`plan --out DIR`
+    # writes both there); the twin's own results are another run's, whose base may differ
+    return BasePose.recorded(_results_of(args) or args.twin / "robot" / "results.json")
+
+
+def _results_of(args: argparse.Namespace) -> Path | None:
+    """The results.json of the run whose rollout is played: TWIN/robot/ for the twin's own, the one beside
+    --rollout (`plan --out DIR` writes both there) when there is one, else None."""
+    if args.rollout is None:
+        return args.twin / "robot" / "results.json"
+    beside = args.rollout.parent / "results.json"
+    return beside if beside.is_file() else None

@@ -1,5 +1,6 @@
-"""MP4 (H.264, yuv420p: plays in every browser, so the HTML report can embed it) through PyAV, which
-ships FFmpeg in its wheel. Written atomically: frames go to a temporary file renamed on close.
+"""MP4 (H.264, yuv420p: plays in every browser, so the HTML report can embed it; the index first, "faststart",
+so it plays while it downloads) through PyAV, which ships FFmpeg in its wheel. Written atomically: frames go
+to a temporary file renamed on close.
 
 Odd image sizes are padded by one black row/column (yuv420p needs even sizes); `read_mp4` crops back
 when told the size.
@@ -51,7 +52,9 @@ class Mp4Writer:
         fd, tmp = tempfile.mkstemp(prefix=temp_prefix(self.path.name), suffix=".mp4", dir=self.path.parent)
         os.close(fd)
         self._tmp = Path(tmp)
-        self._container = av.open(str(self._tmp), mode="w")
+        # the index (moov) before the frames: a player streaming the file over HTTP starts at once instead of
+        # fetching its end first (FFmpeg's default writes the index last)
+        self._container = av.open(str(self._tmp), mode="w", format="mp4", options={"movflags": "+faststart"})
         rate = Fraction(self.fps).limit_denominator(1001)
         s = self._container.add_stream(self.codec, rate=rate)
         s.width, s.height = w + (w % 2), h + (h % 2)

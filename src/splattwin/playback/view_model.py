@@ -11,6 +11,7 @@ Units: metres; colours uint8 RGB; frames: the twin frame.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,6 +19,8 @@ import numpy as np
 
 from splattwin.robot.track import RobotTrack
 from splattwin.twin.manifest import Manifest
+
+log = logging.getLogger(__name__)
 
 HUGE_SPLAT = 0.05   # m: splats with a larger scale (haze) go to the background layer
 BACKGROUND_RGB = (160, 160, 160)
@@ -56,9 +59,35 @@ def workspace_mask(means: np.ndarray, background, margin: float = 0.3, height: f
 
 
 def load_robot_track(twin_dir: str | Path) -> RobotTrack | None:
-    """The robot and its executed motion recorded by `splattwin plan` (robot/playback.npz), if any."""
-    p = Path(twin_dir) / "robot" / "playback.npz"
-    return RobotTrack.load(p) if p.is_file() else None
+    """The robot and its executed motion recorded by `splattwin plan` (robot/playback.npz), if any; None (with
+    a warning) when robot/results.json says that run was made on an earlier state of the twin (a stage command
+    such as `splattwin geometry` re-run into the folder since): its objects would start where they no longer
+    are (`render` refuses such a rollout). Results that record no twin are played as before."""
+    twin_dir = Path(twin_dir)
+    p = twin_dir / "robot" / "playback.npz"
+    if not p.is_file():
+        return None
+    why = _made_on_another_twin(twin_dir)
+    if why is not None:
+        log.warning("not showing the robot's recorded motion (%s): %s", p, why)
+        return None
+    return RobotTrack.load(p)
+
+
+def _made_on_another_twin(twin_dir: Path) -> str | None:
+    """Why robot/results.json belongs to another state of the twin, or None (it matches, or says nothing)."""
+    from splattwin import io
+    from splattwin.errors import InputError
+    from splattwin.robot.outputs import results_twin
+
+    rj = twin_dir / "robot" / "results.json"
+    try:
+        results = io.read_json(rj) if rj.is_file() else None
+    except InputError:
+        return None
+    if not isinstance(results, dict) or not isinstance(results.get("twin_digest"), str):
+        return None
+    return results_twin(results, twin_dir)
 
 
 OBSTACLE_RGB = (230, 77, 77)   # an obstacle-only box: translucent red, as in the glTF export

@@ -26,7 +26,7 @@ SHADOW_RGB = (0.0, 0.9, 1.0)
 
 def choose_camera(twin: Path, spec: str, width: int):
     """The video's camera: `spec` as `playback.cameras.resolve_camera`, 'auto' = first held-out capture
-    camera, else the first capture camera; world cameras rescaled to `width`."""
+    camera, else the first capture camera; rescaled to `width` (the wrist camera too)."""
     from splattwin.playback.cameras import capture_cameras, resolve_camera
 
     if spec == "auto":

@@ -11,6 +11,10 @@ from splattwin.executor import ExecutorOptions
 from splattwin.options import option
 
 IN_HAND = ("sensed", "planned")
+#: Planner names `robot.planning.plan_path` accepts (OMPL geometric planners; BITstar/AORRTC when the build has
+#: them). Declared here, as the option's choices, so a typo is refused before a run removes the previous one.
+PLANNERS = ("RRTConnect", "RRT", "RRTstar", "InformedRRTstar", "PRM", "PRMstar", "BITstar", "AORRTC",
+            "KPIECE1", "BKPIECE1", "LBKPIECE1")
 # --trials at most: 5x the largest run we document (2000 on a Ray cluster); each trial's result is kept
 # in memory and in results.json, so an unbounded count only grows memory until the machine gives out
 MAX_TRIALS = 10_000
@@ -52,7 +56,7 @@ class RobotOptions:
     in_hand: str = option("sensed", "where the transfer assumes the held object sits: 'sensed' (read in the "
                           "simulation, as an in-hand estimate such as a wrist camera gives) or 'planned' (as grasped "
                           "on the twin pose; no in-hand sensing on the real cell)", choices=IN_HAND)
-    planner: str = option("RRTConnect", "OMPL planner")
+    planner: str = option("RRTConnect", "OMPL planner", choices=PLANNERS)
     seed: int = option(0, "seed of the planner and of the trials' perturbations")
     render: bool = option(True, "render PNG frames of the execution", build_alias="frames")
     record: Path | None = option(None, "record every run (the nominal one as episode 0, trial i as episode i) as a "
@@ -88,4 +92,12 @@ class RobotOptions:
             raise InputError(f"--record-fps must be in (0, 120] Hz, got {self.record_fps}")
         if not 16 <= self.record_width <= 4096:
             raise InputError(f"--record-width must be in [16, 4096] pixels, got {self.record_width}")
-        self.cluster.resolve()   # a bad executor choice fails before the nominal run
+        kind, address = self.cluster.resolve()   # a bad executor choice fails before the nominal run
+        if self.trials > 0 and kind == "ray":
+            # and so do a missing Ray and a cluster nobody answers at: the nominal run removes the previous
+            # run's files, and the trials' executor starts only after it
+            from splattwin.executor import check_reachable, import_ray
+
+            import_ray()
+            if address:
+                check_reachable(address)

@@ -50,9 +50,8 @@ import numpy as np
 
 __all__ = ["CollisionChecker", "PlanningError", "plan_path", "PLANNERS", "interpolate_path", "shortcut"]
 
-#: Planner names accepted by `plan_path` (OMPL geometric planners; BITstar/AORRTC when the build has them).
-PLANNERS = ("RRTConnect", "RRT", "RRTstar", "InformedRRTstar", "PRM", "PRMstar", "BITstar", "AORRTC",
-            "KPIECE1", "BKPIECE1", "LBKPIECE1")
+# the planner names `plan_path` accepts: declared with the option (robot.options), re-exported here
+from splattwin.robot.options import PLANNERS  # noqa: E402
 
 
 class PlanningError(RuntimeError):
