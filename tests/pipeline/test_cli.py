@@ -2,6 +2,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from splattwin.pipeline.cli import _print_headline
 from splattwin.pipeline.runner import Context
 
@@ -148,3 +150,33 @@ def test_headline_says_when_psnr_is_over_loss_masked_pixels(tmp_path, capsys, mo
     (tmp_path / "splat" / "eval" / "metrics.json").write_text(json.dumps({"loss_masks": {"applied": False}}))
     _print_headline(ctx)
     assert "masked" not in capsys.readouterr().out
+
+
+def test_build_into_the_captures_own_folder_is_refused_before_anything(tmp_path, capsys):
+    """`build photos --out photos` (or a transforms.json's folder) exits 2 naming the folder, writing nothing:
+    the twin's folders and records would be mixed with the photos (its pictures then read as photos in
+    sub-folders; removing the twin removes the capture). A twin folder inside the capture's is accepted."""
+    import numpy as np
+    from PIL import Image
+
+    from splattwin.cli import main
+    from splattwin.errors import InputError
+    from splattwin.pipeline.build import check_output
+    from splattwin.pipeline.options import BuildOptions
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        Image.fromarray(np.full((24, 32, 3), 40 * i, np.uint8)).save(photos / f"{i}.png")
+    before = sorted(p.name for p in photos.iterdir())
+    for args in ([str(photos), "--out", str(photos)], [str(photos), "--out", str(photos / ".." / "photos")]):
+        assert main(["build", *args, "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert "capture's own folder" in err and str(photos) in err
+        assert sorted(p.name for p in photos.iterdir()) == before   # nothing written (no lock, no records)
+    (photos / "transforms.json").write_text("{}")
+    opts = BuildOptions(input=str(photos / "transforms.json"))
+    with pytest.raises(InputError, match="capture's own folder"):
+        check_output(photos, opts)
+    check_output(photos / "twin", opts)                            # inside the capture: fine
+    check_output(tmp_path / "twin", BuildOptions(input=str(photos)))

@@ -358,6 +358,21 @@ def check_inputs(options: BuildOptions) -> None:
     options.poses.check()   # --max-frames / --min-change, SfM's limits, ..., before the pre-flight extracts anything
 
 
+def check_output(out: Path, options: BuildOptions) -> None:
+    """InputError when the twin folder `out` is the capture's own folder (the input folder, or the folder of an
+    input file such as its transforms.json): the twin's stage folders and records would be written among the
+    photos, its pictures read back as photos in sub-folders, and removing the twin would remove the capture.
+    A twin folder inside the capture's folder (`cake/twin`) is fine: the capture is read from its top level."""
+    if options.input is None:
+        return
+    src = Path(options.input)
+    if src.is_file() and src.suffix.lower() in {".json", ".txt"}:   # a dataset file: its folder is the capture
+        src = src.parent
+    if src.is_dir() and out.resolve() == src.resolve():
+        raise InputError(f"the twin would be built into the capture's own folder {src}: give an --out folder "
+                         f"apart from it (e.g. {src / 'twin'} or {src.parent / (src.name + '_twin')})", out)
+
+
 def build(out: str | Path, options: BuildOptions, from_stage: str | None = None, until: str | None = None,
           progress: bool = True) -> Context:
     """Run (or resume) the pipeline into the twin folder `out`. Returns the run context.
@@ -370,6 +385,7 @@ def build(out: str | Path, options: BuildOptions, from_stage: str | None = None,
 
     out = Path(out)
     check_inputs(options)
+    check_output(out, options)
     con = console(stderr=True)
 
     def on_stage(name: str, status: str) -> None:
