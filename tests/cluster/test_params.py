@@ -81,3 +81,22 @@ def test_split_and_apply_set_the_named_fields():
     t = P.apply(RobotOptions(), parts["trials"])
     assert t.sigma == 0.004 and t.seed == RobotOptions().seed
     assert P.default("fusion.kappa") == FusionOptions().kappa
+
+
+def test_cell_trials_counts_a_yaw_only_cell_in_full():
+    """The trials a sweep cell runs (its jobs and the progress bar's total both count with `cell_trials`): one
+    when nothing is perturbed, all of them when only the yaw is (the total counted one for any sigma 0, so
+    `--param trials.sigma=0 --param trials.sigma_yaw=0.05` showed a bar that ended short of its work)."""
+    from pathlib import Path
+
+    from splattwin.cluster.sweep import SweepSpec, cell_trials
+    from splattwin.robot.trials import TrialSpec
+
+    spec = SweepSpec(twin=Path("twin"), grid={}, trial=TrialSpec(twin_dir="twin", task_path=None), trials=7)
+    assert cell_trials({"trial_params": {"sigma": 0.0}}, spec) == 1
+    assert cell_trials({"trial_params": {"sigma": 0.0, "sigma_yaw": 0.0}}, spec) == 1
+    assert cell_trials({"trial_params": {"sigma": 0.0, "sigma_yaw": 0.05}}, spec) == 7
+    assert cell_trials({"trial_params": {"sigma": 0.01}}, spec) == 7
+    yaw_spec = SweepSpec(twin=Path("twin"), grid={}, trials=3,
+                         trial=TrialSpec(twin_dir="twin", task_path=None, sigma=0.0, sigma_yaw=0.1))
+    assert cell_trials({"trial_params": {}}, yaw_spec) == 3

@@ -403,6 +403,16 @@ def plan_sweep(spec: SweepSpec, out: Path, fusion_base, geometry_base) -> tuple[
     return plan, ctx
 
 
+def cell_trials(cell: dict, spec) -> int:
+    """How many trials a sweep cell runs: `spec.trials`, or one when the cell perturbs nothing (sigma 0 and no
+    yaw error: every trial would be the same deterministic run). The jobs and the progress total both count
+    with it (the total counted one trial for any sigma 0, so a cell with sigma 0 and a yaw error miscounted)."""
+    tp = cell["trial_params"]
+    sigma = tp.get("sigma", spec.trial.sigma)
+    sigma_yaw = tp.get("sigma_yaw", spec.trial.sigma_yaw)
+    return 1 if sigma == 0 and not sigma_yaw else spec.trials
+
+
 def run_sweep(spec: SweepSpec, out: str | Path, executor: Executor, progress: bool = True,
               resume: bool = True) -> dict:
     """Run the sweep into `out` on `executor`; the summary dict (also written to OUT/sweep.json)."""
@@ -456,8 +466,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, executor: Executor, progress: bo
         sigma_yaw = tp.get("sigma_yaw", spec.trial.sigma_yaw)
         base = replace(spec.trial, twin_dir=str(cell_twin_dir(c)),
                        **{k: v for k, v in tp.items() if k not in ("sigma", "sigma_yaw")})
-        # without any pose error every trial is the same deterministic run: one is enough
-        n = 1 if sigma == 0 and not sigma_yaw else spec.trials
+        n = cell_trials(c, spec)
         sp, paths = trial_jobs(base, n, sigma, c["folder"], sigma_yaw)
         specs[c["cell"]] = (sp, paths, n)
         jobs = []
@@ -506,7 +515,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, executor: Executor, progress: bo
         first = [twin_job(tid) for tid in plan.twins]
     else:
         first = [j for c in plan.cells for j in trials_of(c)]
-    n_trials = sum(1 if c["trial_params"].get("sigma", spec.trial.sigma) == 0 else spec.trials for c in plan.cells)
+    n_trials = sum(cell_trials(c, spec) for c in plan.cells)
     total = len(plan.fusion) + len(plan.twins) + n_trials - sum(len(v) for v in trial_res.values())
     executor.run(first, on_done=on_done, progress=progress, description="sweep", total=max(total, len(first)))
 
