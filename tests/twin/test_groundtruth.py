@@ -216,3 +216,27 @@ def test_load_scene_gt_refuses_a_malformed_scene_json_naming_it(tmp_path: Path, 
     (tmp_path / "scene.json").write_text(json.dumps(doc))
     with pytest.raises(InputError, match=r"scene\.json: "):
         load_scene_gt(tmp_path)
+
+
+@pytest.mark.parametrize("prompt", [["blue", "box"], 3, {"text": "cup"}, "x" * 201])
+def test_a_scene_objects_prompt_must_be_text(tmp_path: Path, prompt):
+    """A scene.json object's prompt names it in objects.json, the report and segmentation: a list, number or
+    object was carried on as it was (objects.json then held a list where a name's text belongs); now the
+    scene's GT and its masks refuse it, naming scene.json (audit 12B's open low)."""
+    from splattwin.semantics.masks import scene_masks
+    from splattwin.twin.groundtruth import load_scene_gt
+
+    (tmp_path / "m.ply").write_text("")
+    (tmp_path / "scene.json").write_text(json.dumps({"objects": [{"name": "cup", "label": 1, "mesh": "m.ply",
+                                                                  "prompt": prompt}]}))
+    with pytest.raises(InputError, match=r"scene\.json: .*prompt must be text"):
+        load_scene_gt(tmp_path)
+    if isinstance(prompt, str):
+        return   # a long text is the GT's rule; the masks only need text
+    from PIL import Image
+
+    (tmp_path / "masks" / "noisy" / "v0").mkdir(parents=True)
+    Image.fromarray(np.full((8, 8), 255, np.uint8)).save(tmp_path / "masks" / "noisy" / "v0" / "cup.png")
+    (tmp_path / "images").mkdir()
+    with pytest.raises(InputError, match=r"scene\.json: .*prompt must be text"):
+        scene_masks(tmp_path)

@@ -814,9 +814,12 @@ def scene_masks(scene_dir: str | Path, kind: str = "noisy") -> MaskSet:
             w, h = image_size(img)
             ms.sizes[img.stem] = (h, w)
     meta = io.read_json(scene_dir / "scene.json")
-    for o in meta.get("objects", []):
-        if o.get("prompt") and int(o["label"]) in ms.objects:
-            ms.prompts[int(o["label"])] = o["prompt"]
+    for o in meta.get("objects", []) if isinstance(meta, dict) else []:
+        prompt = o.get("prompt") if isinstance(o, dict) else None
+        if prompt is not None and not isinstance(prompt, str):   # text only: it names the object downstream
+            raise InputError(f"an object's prompt must be text, got {type(prompt).__name__}", scene_dir / "scene.json")
+        if prompt and isinstance(o.get("label"), int) and o["label"] in ms.objects:
+            ms.prompts[o["label"]] = prompt
     ms.objects = {k: v for k, v in ms.objects.items() if v in objs}
     ms.source = f"scene:{kind}:{scene_dir}"
     return ms

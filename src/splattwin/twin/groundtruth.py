@@ -41,6 +41,10 @@ def _load_scene(scene_dir: Path) -> dict:
         raise InputError(f"scene.json must hold a JSON object, got {type(scene).__name__}", path)
     if not isinstance(scene.get("objects"), list) or not scene["objects"]:
         raise InputError("scene.json lists no objects", path)
+    for i, o in enumerate(scene["objects"]):   # a prompt is text: it names the object in reports and segmentation
+        if isinstance(o, dict) and "prompt" in o and not (isinstance(o["prompt"], str) and len(o["prompt"]) <= 200):
+            raise InputError(f"object {i + 1}'s prompt must be text of at most 200 characters, got "
+                             f"{type(o['prompt']).__name__}", path)
     return scene
 
 
