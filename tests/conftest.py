@@ -7,12 +7,15 @@ directory `Path`; layout in docs/CONTRACTS.md "Embedded scene"):
 - `scene_marker`:  320x240, 15 + 5 views, ArUco marker (DICT_4X4_50 id 0, 0.08 m) on the table
 All use seed 0. Treat them as read-only: they are shared by every test of the session.
 
+`test_module`: a test file's helpers as a module (`test_module("splat/test_trainer.py").make_dataset(...)`).
+
 `terminal_ctrl_c`: SIGINT handled as in an interactive terminal for the test (and so in the child processes
 it starts), whatever the test run inherited.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import signal
 from pathlib import Path
 
@@ -63,3 +66,22 @@ def terminal_ctrl_c():
         yield
     finally:
         signal.signal(signal.SIGINT, prev)
+
+
+@pytest.fixture(scope="session")
+def test_module():
+    """path under tests/ -> that test file loaded as a module, once per session (its helpers: datasets,
+    twin folders), for tests of other stages that build the same inputs."""
+    root = Path(__file__).resolve().parent
+    cache: dict = {}
+
+    def load(rel: str):
+        if rel not in cache:
+            name = "_helpers_" + rel.replace("/", "_").removesuffix(".py")
+            spec = importlib.util.spec_from_file_location(name, root / rel)
+            mod = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(mod)
+            cache[rel] = mod
+        return cache[rel]
+
+    return load

@@ -39,17 +39,6 @@ def test_a_model_folders_own_code_never_runs_even_when_the_user_says_yes(tmp_pat
     assert not marker.exists()
 
 
-def _report_helpers():
-    """tests/report/test_build.py as a module: its twin folders (capture, metrics, manifest, robot results)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("_audit12b_report_helpers",
-                                                  Path(__file__).parents[1] / "report" / "test_build.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def _embedded_picture_sizes(html: str) -> list[tuple[int, int]]:
     """(width, height) of every picture embedded in a report page as a data URI."""
     import base64
@@ -77,7 +66,8 @@ def _secret_png(path: Path) -> bytes:
 @pytest.mark.parametrize("rel", ["poses/cameras.png", "splat/transients.png", "robot/overview.png",
                                  "semantics/label_maps/view_000.png"])
 @pytest.mark.parametrize("absolute", [True, False])
-def test_report_embeds_no_picture_a_link_brings_from_outside_the_twin(tmp_path, rel, absolute, caplog):
+def test_report_embeds_no_picture_a_link_brings_from_outside_the_twin(tmp_path, rel, absolute, caplog,
+                                                                      test_module):
     import base64
     import os
 
@@ -85,7 +75,7 @@ def test_report_embeds_no_picture_a_link_brings_from_outside_the_twin(tmp_path, 
 
     from splattwin.robot.outputs import twin_digest
 
-    helpers = _report_helpers()
+    helpers = test_module("report/test_build.py")
     twin = helpers._manifest_twin(tmp_path, scaled=True)
     helpers._robot_results(twin, twin_digest(twin))
     secret = _secret_png(tmp_path / "private.png")
@@ -400,14 +390,14 @@ def test_report_picture_with_megabytes_appended_is_not_embedded_whole(tmp_path):
     assert len(rep.to_html()) < 100_000
 
 
-def test_report_reads_a_twins_records_within_the_record_limit(tmp_path, monkeypatch):
+def test_report_reads_a_twins_records_within_the_record_limit(tmp_path, monkeypatch, test_module):
     """The report read the stages' JSON records (metrics.json, train.json, results.json, ...) within the 1 GiB
     meant for COCO files, ~10 GB to parse; now within SPLATTWIN_MAX_RECORD_BYTES (lowered here)."""
     from splattwin import limits
     from splattwin.report.build import build_report
 
-    twin = _report_helpers()._twin(tmp_path, views=[{"name": "heldout_003", "psnr": 24.0, "ssim": 0.8}],
-                                   padding="x" * 5000)
+    helpers = test_module("report/test_build.py")
+    twin = helpers._twin(tmp_path, views=[{"name": "heldout_003", "psnr": 24.0, "ssim": 0.8}], padding="x" * 5000)
     monkeypatch.setattr(limits, "MAX_RECORD_BYTES", 4000)
     assert "24.5" not in build_report(twin).read_text()
     monkeypatch.setattr(limits, "MAX_RECORD_BYTES", 64 << 20)

@@ -20,23 +20,17 @@ def synth():
     return make_synth()
 
 
-def _dataset(tmp_path):
-    import importlib.util
-    from pathlib import Path
-
+def _dataset(tmp_path, h):
+    """A small dataset (h: tests/splat/test_trainer.py's helpers) with half-image masks and its GT splats."""
     from splattwin.capture import load_dataset
 
-    spec = importlib.util.spec_from_file_location("_splat_trainer_helpers_api",
-                                                  Path(__file__).parents[1] / "splat" / "test_trainer.py")
-    h = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(h)
     root = h.make_dataset(tmp_path / "ds", n_train=3, n_heldout=1)
     ds = load_dataset(root)
     ms = h.half_image_masks(ds.frames)
     return root, ds, ms, h.gt_gaussians()
 
 
-def test_fuse_to_dir_scales_lengths_to_an_unscaled_frame(tmp_path, monkeypatch):
+def test_fuse_to_dir_scales_lengths_to_an_unscaled_frame(tmp_path, monkeypatch, test_module):
     """fuse_to_dir used the metre tolerances as SfM units (M1); the stage and CLI scaled them themselves."""
     from pathlib import Path
 
@@ -44,7 +38,7 @@ def test_fuse_to_dir_scales_lengths_to_an_unscaled_frame(tmp_path, monkeypatch):
     from splattwin.poses.twin_frame import TwinFrame
     from splattwin.semantics import lift
 
-    root, ds, ms, g = _dataset(tmp_path)
+    root, ds, ms, g = _dataset(tmp_path, test_module("splat/test_trainer.py"))
     seen = []
     real = lift.fuse
     monkeypatch.setattr(lift, "fuse", lambda m, v, s, o=None, **kw: seen.append(o) or real(m, v, s, o, **kw))

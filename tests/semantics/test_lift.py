@@ -58,17 +58,6 @@ def test_dataset_objects_finds_the_scene_of_a_twins_poses_folder(tmp_path):
     assert dataset_objects(tmp_path / "elsewhere") is None
 
 
-def _trainer_helpers():
-    import importlib.util
-    from pathlib import Path
-
-    spec = importlib.util.spec_from_file_location("_splat_trainer_helpers_lift",
-                                                  Path(__file__).parents[1] / "splat" / "test_trainer.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def test_splat_depth_and_label_maps_draw_the_splats_as_trained():
     """`raster` = the splats' trained (mode, eps2d): SplatDepth's depth and the label maps use it. Sub-pixel
     Gaussians drawn classic (0.3 dilation, no opacity compensation) cover far more pixels than the same
@@ -97,7 +86,7 @@ def test_splat_depth_and_label_maps_draw_the_splats_as_trained():
     assert (lab_cl > 0).sum() > 1.5 * (lab_aa > 0).sum()
 
 
-def test_fuse_to_dir_reads_the_trained_filter_beside_the_splats(tmp_path, monkeypatch):
+def test_fuse_to_dir_reads_the_trained_filter_beside_the_splats(tmp_path, monkeypatch, test_module):
     """A splat file beside its training record (train.json) is fused with the mode and low-pass it was
     trained with; bare Gaussians or a PLY without a record: classic 0.3; a bad record names train.json."""
     import json
@@ -108,7 +97,7 @@ def test_fuse_to_dir_reads_the_trained_filter_beside_the_splats(tmp_path, monkey
     from splattwin.errors import InputError
     from splattwin.semantics import lift
 
-    h = _trainer_helpers()
+    h = test_module("splat/test_trainer.py")
     ds = load_dataset(h.make_dataset(tmp_path / "ds", n_train=3, n_heldout=1))
     g = h.gt_gaussians()
     ms = h.half_image_masks(ds.frames)
@@ -191,7 +180,7 @@ def test_masks_for_only_some_training_views_are_warned_about():
         assert len(views_for(frames, ms)) == 4
 
 
-def test_fusion_of_fewer_views_removes_the_pictures_of_the_views_gone(tmp_path):
+def test_fusion_of_fewer_views_removes_the_pictures_of_the_views_gone(tmp_path, test_module):
     """A rebuild from fewer views left the old views' label maps (and 2D masks | labels pictures) beside
     the new ones, and the report globbed them as this twin's (audit 9 F12). fusion.json lists the views
     its pictures are of; other files in the folders are left alone."""
@@ -200,7 +189,7 @@ def test_fusion_of_fewer_views_removes_the_pictures_of_the_views_gone(tmp_path):
     from splattwin.capture import load_dataset
     from splattwin.semantics import lift
 
-    h = _trainer_helpers()
+    h = test_module("splat/test_trainer.py")
     ds = load_dataset(h.make_dataset(tmp_path / "ds", n_train=4, n_heldout=1))
     g, ms = h.gt_gaussians(), h.half_image_masks(ds.frames)
     out = tmp_path / "sem"
