@@ -459,8 +459,11 @@ def test_a_failed_run_records_the_tasks_steps_and_the_report_names_those_not_att
     nom = json.loads((twin / "robot" / "results.json").read_text())["nominal"]
     task = load_task(None, Manifest.load(twin))
     assert [s["index"] for s in nom["steps"]] == [1] and not nom["steps"][0]["success"]
-    assert nom["task_steps"] == [{"index": k, "pick": s.pick, "goal": s.goal_name,
-                                  "place": "on" if s.place_on else "in"} for k, s in enumerate(task.steps, start=1)]
+    assert [{k: v for k, v in t.items() if k != "region"} for t in nom["task_steps"]] == [
+        {"index": k, "pick": s.pick, "goal": s.goal_name, "place": "on" if s.place_on else "in"}
+        for k, s in enumerate(task.steps, start=1)]
+    assert nom["task_steps"][2]["region"] == {"center": [round(float(v), 6) for v in task.steps[2].place_in.center],
+                                              "size": [0.24, 0.24]}
     assert len(nom["task_steps"]) == 3
     import html as htmllib
 
@@ -469,3 +472,28 @@ def test_a_failed_run_records_the_tasks_steps_and_the_report_names_those_not_att
     later = ", ".join(f"{t['pick']} {t['place']} {t['goal']}" for t in nom["task_steps"][1:])
     assert f"the run stopped at the failed step 1 of 3: steps 2-3 ({later}) were not attempted." in robot
     assert robot.count("not attempted</td>") == 2     # their rows in the step table
+
+
+def test_results_record_the_task_by_content_and_the_criteria(gt_twin_small: Path, tmp_path: Path):
+    """results.json named the task file only (a relative path, whatever it holds after an edit) and not the
+    thresholds the steps were judged by: now the file's sha256, each region's numbers and the criteria."""
+    import hashlib
+
+    task = tmp_path / "mine.yaml"
+    task.write_text("- pick: yellow_cube\n- place_in: {center: [0.1, -0.05], size: 0.1}\n")
+    out = tmp_path / "o"
+    assert main(["plan", str(gt_twin_small), "--task", str(task), "--out", str(out), "--no-render", "--no-report"]) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert res["task_sha256"] == hashlib.sha256(task.read_bytes()).hexdigest()
+    assert res["nominal"]["task_steps"] == [{"index": 1, "pick": "yellow_cube", "goal": "region", "place": "in",
+                                             "region": {"center": [0.1, -0.05, 0.0], "size": [0.1, 0.1]}}]
+    c = res["criteria"]
+    assert (c["lift_fraction"], c["lift_m"], c["rest_speed_m_s"], c["tilt_max_deg"], c["height_tol_m"],
+            c["settle_s"]) == (0.6, 0.1, 0.01, 10.0, 0.015, 0.6)
+    assert "bounding-box footprint inside the region" in c["definition"]
+    # the task edited and run again: the record follows the file
+    task.write_text("- pick: yellow_cube\n- place_in: {center: [0.05, -0.1], size: 0.12}\n")
+    assert main(["plan", str(gt_twin_small), "--task", str(task), "--out", str(out), "--no-render", "--no-report"]) == 0
+    res2 = json.loads((out / "results.json").read_text())
+    assert res2["task_sha256"] == hashlib.sha256(task.read_bytes()).hexdigest() != res["task_sha256"]
+    assert res2["nominal"]["task_steps"][0]["region"] == {"center": [0.05, -0.1, 0.0], "size": [0.12, 0.12]}

@@ -156,7 +156,8 @@ def test_an_obstacle_only_object_cannot_be_picked_or_placed_on(tmp_path: Path, g
 
 @pytest.mark.parametrize("text,match", [
     # an ignored key would let the run succeed without what the user asked for
-    ("- pick: toy_hammer\n- place_in: {center: [0, 0], size: 0.24, yaw: 90}\n", r"step 1: place_in: unknown key.*yaw"),
+    ("- pick: toy_hammer\n- place_in: {center: [0, 0], size: 0.24, yaw: 90}\n",
+     r"step 1: place_in: unknown key.*yaw"),
     ("- pick: toy_hammer\n- place_in: {centre: [0, 0], center: [0, 0], size: 0.24}\n", r"unknown key.*centre"),
     ("name: t\nstep:\n  - pick: blue_box\n  - place_on: cardboard_box\n", r"unknown top-level key.*'step'"),
     ("nmae: t\nsteps:\n  - pick: blue_box\n  - place_on: cardboard_box\n", r"unknown top-level key.*'nmae'"),

@@ -125,9 +125,16 @@ class RunResult:
 
 def task_step_list(task: Task) -> list[dict]:
     """The task's steps as results.json `nominal.task_steps` records them: [{index (1-based), pick, goal,
-    place: "on" (an object) or "in" (a region)}]."""
-    return [{"index": k, "pick": s.pick, "goal": s.goal_name, "place": "on" if s.place_on else "in"}
-            for k, s in enumerate(task.steps, start=1)]
+    place: "on" (an object) or "in" (a region), and for a region its `region` {center [x, y, z], size
+    [sx, sy]} (m, twin frame): what the step was judged against, also when the task file changes}]."""
+    out = []
+    for k, s in enumerate(task.steps, start=1):
+        d = {"index": k, "pick": s.pick, "goal": s.goal_name, "place": "on" if s.place_on else "in"}
+        if s.place_in is not None:
+            d["region"] = {"center": [round(float(v), 6) for v in s.place_in.center],
+                           "size": [round(float(v), 6) for v in s.place_in.size]}
+        out.append(d)
+    return out
 
 
 def unsettled(settle: dict | None) -> str | None:

@@ -1,8 +1,9 @@
 """Artifacts of a validation run, written atomically under OUT (default TWIN/robot):
 
-    results.json                 task, base pose and frame, exported joint names, per-step results and the
-                                 task's step list (`nominal.task_steps`: the steps after a failed one were
-                                 not attempted), the servos' tracking error (`tracking_error`), trials summary (sigma per axis,
+    results.json                 task (its path and `task_sha256`), the success criteria (`criteria`),
+                                 base pose and frame, exported joint names, per-step results and the
+                                 task's step list (`nominal.task_steps`, with each region's numbers: the
+                                 steps after a failed one were not attempted), the servos' tracking error (`tracking_error`), trials summary (sigma per axis,
                                  its definition, sigma_yaw), notes
     trials/<i>.json              each finished perturbed trial (reused by a re-run with the same key)
     trials/<i>.rollout.npz       its rollout, kept when the run is recorded (`plan --record`); both written
@@ -213,6 +214,9 @@ def write_outputs(out: str | Path, spec, result, trials: dict | None, render_not
         # False when the run does not validate the twin: the task failed, or the scene moved before the
         # robot acted (`settle`: how far physics moved each object from its twin pose in the start check)
         "validated": bool(result.success) and not not_at_rest, "settle": settle,
+        # the task's file by content: the path alone names whatever the file holds after an edit
+        "task_sha256": _task_digest(spec.task_path),
+        "criteria": _criteria(),   # the thresholds each step was judged by (judge.criteria)
         "planner": spec.planner, "seed": spec.seed,
         "nominal": result.to_dict(), "tracking": tracking,
         "trials": trials,
@@ -223,6 +227,22 @@ def write_outputs(out: str | Path, spec, result, trials: dict | None, render_not
     }
     paths["results"] = io.write_json(out / "results.json", doc)
     return paths, real_robot
+
+
+def _task_digest(task_path: str | None) -> str | None:
+    """sha256 of the task file's bytes (the default task's when None)."""
+    from splattwin.robot.task import default_task_path
+    from splattwin.robot.trials import _file_digest
+
+    return _file_digest(task_path or default_task_path())
+
+
+def _criteria() -> dict:
+    from splattwin.robot.candidates import LIFT
+    from splattwin.robot.execute import SETTLE_TIME
+    from splattwin.robot.judge import criteria
+
+    return criteria(LIFT, SETTLE_TIME)
 
 
 def trajectory_meta(spec, robot, names) -> dict:
