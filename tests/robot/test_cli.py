@@ -497,3 +497,26 @@ def test_results_record_the_task_by_content_and_the_criteria(gt_twin_small: Path
     res2 = json.loads((out / "results.json").read_text())
     assert res2["task_sha256"] == hashlib.sha256(task.read_bytes()).hexdigest() != res["task_sha256"]
     assert res2["nominal"]["task_steps"][0]["region"] == {"center": [0.05, -0.1, 0.0], "size": [0.12, 0.12]}
+
+
+def test_plan_says_why_it_exits_1_after_a_successful_nominal_run(gt_twin_small: Path, tmp_path: Path, monkeypatch,
+                                                                   capsys):
+    """The nominal run succeeded ('overall: success', real-arm files written) but a trial failed: exit 1, and
+    now stderr says that this is why and the summary lists the failed trial."""
+    from types import SimpleNamespace
+
+    import splattwin.robot.stage as stage
+
+    trials = {"trials": 2, "successes": 1, "ci95": [0.1, 0.9], "sigma": 0.005, "sigma_yaw": 0.05, "collisions": 0,
+              "results": [{"success": True, "seed": 1, "steps": []},
+                          {"success": False, "seed": 2, "steps": [
+                              {"index": 1, "pick": "yellow_cube", "success": False,
+                               "failure": "'yellow_cube' not lifted with the gripper"}]}]}
+    run = SimpleNamespace(steps=[], success=True, sim_time=1.0, wall_s=1.0, settle=None)
+    res = stage.RobotResult(results=tmp_path / "results.json", success=True, details={
+        "run": run, "trials": trials, "paths": {"results": tmp_path / "results.json"}, "real_robot": {"written": True}})
+    monkeypatch.setattr(stage, "run", lambda *a, **k: res)
+    assert main(["plan", str(gt_twin_small), "--out", str(tmp_path / "o"), "--no-render", "--no-report"]) == 1
+    out = capsys.readouterr()
+    assert "trial 2 (seed 2, trials/2.json) failed at step 1 (yellow_cube): 'yellow_cube' not lifted" in out.out
+    assert "exit 1: 1 of 2 perturbed trials failed" in out.err

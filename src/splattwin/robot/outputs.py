@@ -406,6 +406,8 @@ def print_summary(result, trials: dict | None, paths: dict[str, Path], real_robo
                   f"yaw {math.degrees(trials['sigma_yaw']):.1f} deg (95 % CI {lo:.2f}-{hi:.2f}), "
                   f"collisions {trials['collisions']}"
                   + (f", {trials['resumed']} reused from an earlier run" if trials.get("resumed") else ""))
+        for line in trial_failures(trials):
+            con.print(line, markup=False, highlight=False)
     if real_robot is not None and not real_robot.get("written"):
         from rich.markup import escape
 
@@ -413,6 +415,23 @@ def print_summary(result, trials: dict | None, paths: dict[str, Path], real_robo
     elif "program" in paths:
         con.print(f"real arm: {paths['program']} (arm phases and blocking gripper actions; README)", highlight=False)
     con.print(f"results: {paths['results']}")
+
+
+def trial_failures(trials: dict, limit: int = 5) -> list[str]:
+    """Lines naming the failed trials (at most `limit`, then how many more) and why each failed: its
+    first failed step, or its worker's error; [] when every trial succeeded."""
+    bad = [(i, r) for i, r in enumerate(trials.get("results") or [], start=1)
+           if isinstance(r, dict) and not r.get("success")]
+    lines = []
+    for i, r in bad[:limit]:
+        step = next((st for st in r.get("steps") or [] if isinstance(st, dict) and not st.get("success")), None)
+        why = (f"step {step.get('index')} ({step.get('pick')}): {step.get('failure')}" if step is not None
+               else f"its start: {r.get('error')}" if r.get("error") else "a step it did not reach")
+        kept = "" if r.get("error") else f", trials/{i}.json"   # a worker that died left no file
+        lines.append(f"trial {i} (seed {r.get('seed')}{kept}) failed at {why}")
+    if len(bad) > limit:
+        lines.append(f"... and {len(bad) - limit} more failed trial(s) (results.json trials.results)")
+    return lines
 
 
 def _yn(b: bool) -> str:
