@@ -520,3 +520,15 @@ def test_plan_says_why_it_exits_1_after_a_successful_nominal_run(gt_twin_small: 
     out = capsys.readouterr()
     assert "trial 2 (seed 2, trials/2.json) failed at step 1 (yellow_cube): 'yellow_cube' not lifted" in out.out
     assert "exit 1: 1 of 2 perturbed trials failed" in out.err
+
+
+def test_a_place_blocked_by_a_neighbour_names_it(gt_twin_small: Path, tmp_path: Path):
+    """The blue box into a region that reaches over the hammer: the plan failed with rejection counts only
+    ('descent collision': 95, ...); now the step's failure names the object crowding the goal."""
+    task = tmp_path / "t.yaml"
+    task.write_text("- pick: blue_box\n- place_in: {center: [0.0, 0.3], size: 0.12}\n")
+    out = tmp_path / "o"
+    assert main(["plan", str(gt_twin_small), "--task", str(task), "--out", str(out), "--no-render", "--no-report"]) == 1
+    step = json.loads((out / "results.json").read_text())["nominal"]["steps"][0]
+    assert "descent collision" in step["failure"]
+    assert "the goal is crowded: 'toy_hammer' 0.3 cm from its centre ('blue_box' reaches 5.0 cm" in step["failure"]
