@@ -34,7 +34,9 @@ def criteria(lift_m: float, settle_s: float) -> dict:
             "region and its bottom within height_tol_m of the table); at rest settle_s after the retreat (slower "
             "than rest_speed_m_s and tilted less than tilt_max_deg from upright); no collision (the robot "
             "touched nothing but the object, and the carried object nothing but the hand, during the step). "
-            "Each step is judged when it ends; the task succeeds when every step does"),
+            "Each step is judged when it ends, and at the end of the task each placed object that no later step "
+            "picks is judged again (a later place may have pushed or tipped it); the task succeeds when every "
+            "step does"),
     }
 
 
