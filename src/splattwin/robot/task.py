@@ -249,7 +249,7 @@ def resolve_names(task: Task, manifest: Manifest, where: Path | None = None) -> 
 
 
 def validate_task(task: Task, manifest: Manifest, twin_dir: str | Path, T_world_base: np.ndarray,
-                  robot=None) -> None:
+                  robot=None, warn: bool = True) -> None:
     """Everything that can be checked without planning; raises InputError naming the task file.
 
     The steps are followed through the scene as the planner will believe it (`TaskScene`): an object an
@@ -259,7 +259,8 @@ def validate_task(task: Task, manifest: Manifest, twin_dir: str | Path, T_world_
     whose centre (where the object is placed) lies on another object's footprint, a region the object
     fits in at no yaw, a region centre z off the table.
 
-    robot: a `RobotModel`; when given, the pick and place poses must also have IK solutions (mink)."""
+    robot: a `RobotModel`; when given, the pick and place poses must also have IK solutions (mink).
+    warn: log the warnings (a goal that may be crowded); False for the trials, which repeat the nominal run's."""
     where = task.path or Path(twin_dir) / "twin.json"
     check_scaled(manifest, Path(twin_dir) / "twin.json")
     names = {o.name: o for o in manifest.objects}
@@ -313,7 +314,7 @@ def validate_task(task: Task, manifest: Manifest, twin_dir: str | Path, T_world_
                                  f"{s.pick!r} on an object, use place_on)", where)
             reach(c, f"step {k}: goal region {s.place_in.name!r}")
             _check_fits(s, k, np.asarray(names[s.pick].bbox_extent, float), where)
-            scene.check_free(s, k, where)
+            scene.check_free(s, k, where, warn)
         elif s.place_on is not None:
             for o in scene.riders(s.place_on):
                 if o != s.pick:
@@ -415,7 +416,7 @@ class TaskScene:
         k = self.placed_in.get(obj, 0)
         return f" (where step {k} placed it)" if k else ""
 
-    def check_free(self, s: Step, k: int, where: Path) -> None:
+    def check_free(self, s: Step, k: int, where: Path, warn: bool = True) -> None:
         """InputError when the goal region's centre, where the object is placed, lies on another object's
         footprint (a certain collision); a warning when the object, whatever its yaw there, reaches into one
         (its inscribed circle meets the other's bounding box: the meshes may still clear)."""
@@ -430,7 +431,7 @@ class TaskScene:
                                  f"{np.round(c, 3).tolist()}, where {s.pick!r} is placed, lies on {o!r} "
                                  f"({self.since(o)}, at {np.round(T[:2, 3], 3).tolist()}); move the region, or "
                                  f"move {o!r} away in an earlier step", where)
-            if d < r:
+            if d < r and warn:
                 log.warning("step %d: %r placed at the centre of goal region %r reaches %.1f cm into the "
                             "bounding box of %r at every yaw (%.1f cm from the centre): the place may collide with it",
                             k, s.pick, s.place_in.name, (r - d) * 100, o, d * 100)
