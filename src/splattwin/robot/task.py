@@ -10,15 +10,21 @@ place, either in the same item or the next one:
     - place_in: target_frame              # the named region from the twin (config.target_frame)
 
 A region's size is one side (square) or [sx, sy], metres, finite and > 0, each side at most the table's
-(its extent in twin.json); its centre must be on the table.
+(its extent in twin.json); its centre must be on the table, and a centre z, when given, the table's. An
+inline region has no other keys (no yaw: the planner chooses it), nor has a task mapping other than
+`name` and `steps`; unknown keys are refused, never ignored.
 
 A step names an object by its name in twin.json (`blue box`) or by its export ID, the name every export
 file carries (`blue_box`; `resolve_names` maps it to the name). Validation raises InputError naming the
-task file for: unknown or unusable objects (an obstacle-only one too: the arm avoids its box), a place without a
-pick, an unscaled twin, a goal off the table, a region larger than the table, or out of the robot's reach. Reach is checked in two stages:
-the horizontal distance from the base (cheap, [REACH_MIN, REACH_MAX]) and, given the robot, inverse
-kinematics (mink) of a grasp pose at the object and of the place pose and the pre-place pose above it
-(top-down at 8 yaws, or a horizontal approach pointing away from the base).
+task file and the step for: unknown or unusable objects (an obstacle-only one too: the arm avoids its
+box), a name that is not a string, a place without a pick, an unscaled twin, a goal off the table, a
+region larger than the table or too small for the object at any yaw, a goal out of the robot's reach,
+and, following the objects through the steps (`TaskScene`), a region centre on another object, a
+support that already carries one, or a pick of an object something stands on. Reach is checked in two
+stages: the horizontal distance from the base (cheap, [REACH_MIN, REACH_MAX]) and, given the robot,
+inverse kinematics (mink) of a grasp pose at the object and of the place pose and the pre-place pose
+above it (top-down at 8 yaws, or a horizontal approach pointing away from the base), where the earlier
+steps left them.
 """
 
 from __future__ import annotations
