@@ -190,6 +190,9 @@ def test_a_region_centre_z_off_the_table_is_refused(tmp_path: Path, gt_twin_smal
     for centre in ("[0.0, 0.0, 0.0]", "[0.0, 0.0]"):
         t = load_task(_write(tmp_path, f"- pick: yellow_cube\n- place_in: {{center: {centre}, size: 0.1}}\n"), m)
         validate_task(t, m, gt_twin_small, base)
+    m.background.table_height = 0.03   # a table a few cm off z = 0: [x, y, 0.0], as the examples write it, is fine
+    validate_task(load_task(_write(tmp_path, "- pick: yellow_cube\n- place_in: {center: [0.0, 0.0, 0.0], size: 0.1}\n"),
+                            m), m, gt_twin_small, base)
 
 
 def test_a_goal_in_millimetres_gets_a_units_hint(tmp_path: Path, gt_twin_small: Path):

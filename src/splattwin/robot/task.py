@@ -10,7 +10,7 @@ place, either in the same item or the next one:
     - place_in: target_frame              # the named region from the twin (config.target_frame)
 
 A region's size is one side (square) or [sx, sy], metres, finite and > 0, each side at most the table's
-(its extent in twin.json); its centre must be on the table, and a centre z, when given, the table's. An
+(its extent in twin.json); its centre must be on the table, and a centre z, when given, 0 or the table's. An
 inline region has no other keys (no yaw: the planner chooses it), nor has a task mapping other than
 `name` and `steps`; unknown keys are refused, never ignored.
 
@@ -313,7 +313,8 @@ def validate_task(task: Task, manifest: Manifest, twin_dir: str | Path, T_world_
                                  f"{np.round(s.place_in.size, 3).tolist()} m is larger than the table "
                                  f"({x1 - x0:.3f} x {y1 - y0:.3f} m, extent {manifest.background.table_extent})"
                                  f"{_units_hint(s.place_in)}", where)
-            if s.place_in.z_given and abs(c[2] - table_z) > REGION_Z_TOL:
+            # z 0 as written in the examples ([x, y, 0.0]) stays accepted on a table a few cm off z = 0
+            if s.place_in.z_given and c[2] != 0.0 and abs(c[2] - table_z) > REGION_Z_TOL:
                 # the object is placed on the table whatever z says: a shelf height would pass unnoticed
                 raise InputError(f"step {k}: goal region centre z = {c[2]:g} m, but a region lies on the table "
                                  f"(z = {table_z:g} m in the twin frame): give center [x, y] (to put "
