@@ -532,3 +532,15 @@ def test_a_place_blocked_by_a_neighbour_names_it(gt_twin_small: Path, tmp_path: 
     step = json.loads((out / "results.json").read_text())["nominal"]["steps"][0]
     assert "descent collision" in step["failure"]
     assert "the goal is crowded: 'toy_hammer' 0.3 cm from its centre ('blue_box' reaches 5.0 cm" in step["failure"]
+
+
+def test_results_name_the_task_file_absolutely(gt_twin_small: Path, tmp_path: Path, monkeypatch):
+    """`plan --task tasks/mine.yaml` recorded "tasks/mine.yaml", relative to wherever plan ran."""
+    (tmp_path / "tasks").mkdir()
+    (tmp_path / "tasks" / "mine.yaml").write_text("- pick: yellow_cube\n"
+                                                  "- place_in: {center: [0.1, -0.05], size: 0.1}\n")
+    monkeypatch.chdir(tmp_path)
+    assert main(["plan", str(gt_twin_small), "--task", "tasks/mine.yaml", "--out", str(tmp_path / "o"), "--no-render",
+                 "--no-report"]) == 0
+    res = json.loads((tmp_path / "o" / "results.json").read_text())
+    assert res["task"] == str((tmp_path / "tasks" / "mine.yaml").resolve())

@@ -204,7 +204,9 @@ def write_outputs(out: str | Path, spec, result, trials: dict | None, render_not
     rollout_paths, tracking = write_rollout(out, spec, result)
     paths.update(rollout_paths)
     doc = {
-        "twin": str(spec.twin_dir), "task": spec.task_path or "default (paper three-step rearrangement)",
+        # absolute: a path as typed (`tasks/mine.yaml`) says nothing once read from elsewhere
+        "twin": str(spec.twin_dir), "task": (str(Path(spec.task_path).resolve()) if spec.task_path
+                                             else "default (paper three-step rearrangement)"),
         "base_pose": asdict(spec.base), "base_frame": names.base_frame,
         "joint_names": {"exported": list(names.joint_names), "simulated": list(robot.arm_joints)},
         "robot_mjcf": spec.robot_mjcf or "MuJoCo Menagerie franka_emika_panda",
