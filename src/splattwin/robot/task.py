@@ -300,7 +300,9 @@ def validate_task(task: Task, manifest: Manifest, twin_dir: str | Path, T_world_
             raise InputError(f"step {k}: {o!r} stands on {s.pick!r} ({scene.since(o)}): lifted, {s.pick!r} "
                              f"would carry it against itself, a collision that fails the step; pick {o!r} "
                              f"off first", where)
-        reach(scene.poses[s.pick][:3, 3], f"step {k}: object {s.pick!r}" + scene.moved_note(s.pick))
+        # an object left out of the scene (a non-finite pose) is checked at its twin pose: reach says why
+        reach(scene.poses.get(s.pick, names[s.pick].pose)[:3, 3], f"step {k}: object {s.pick!r}"
+              + scene.moved_note(s.pick))
         if s.place_in is not None:
             c = s.place_in.center
             if not (x0 <= c[0] <= x1 and y0 <= c[1] <= y1):
@@ -328,7 +330,7 @@ def validate_task(task: Task, manifest: Manifest, twin_dir: str | Path, T_world_
                     raise InputError(f"step {k}: {s.place_on!r} already carries {o!r} ({scene.since(o)}): "
                                      f"place_on puts {s.pick!r} at the centre of its top, where {o!r} stands; "
                                      f"pick {o!r} off first or place {s.pick!r} elsewhere", where)
-            reach(scene.poses[s.place_on][:3, 3], f"step {k}: goal object {s.place_on!r}"
+            reach(scene.poses.get(s.place_on, names[s.place_on].pose)[:3, 3], f"step {k}: goal object {s.place_on!r}"
                   + scene.moved_note(s.place_on))
         scene.place(s, k, table_z)
     if not all(math.isfinite(v) for v in np.asarray(T_world_base).ravel()):
