@@ -305,3 +305,11 @@ def test_ik_checks_an_object_where_an_earlier_step_placed_it(tmp_path: Path, gt_
     place2 = asked[3]   # the cube's place: on the blue box where step 1 left it, on the cardboard box
     np.testing.assert_allclose(place2[:2], box.pose[:2, 3], atol=1e-9)
     assert place2[2] > box_top + blue.bbox_extent[2]
+
+
+def test_place_on_the_table_says_how_to_put_it_there(tmp_path: Path, gt_twin_small: Path):
+    m = Manifest.load(gt_twin_small)
+    t = load_task(_write(tmp_path, "- pick: yellow_cube\n- place_on: Table\n"), m)
+    with pytest.raises(InputError, match=r"step 1: place_on names 'Table', which is not in the twin .*to put an object "
+                                         r"on the table, give a region there: place_in: \{center: \[x, y\], size: s\}"):
+        validate_task(t, m, gt_twin_small, BasePose().matrix())

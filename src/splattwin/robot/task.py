@@ -245,6 +245,8 @@ def resolve_names(task: Task, manifest: Manifest, where: Path | None = None) -> 
             return hit[0]
         near = sorted(m for i, ms in by_id.items() if i.lower() == export_id(n).lower() for m in ms)
         hint = "; did you mean " + " or ".join(f"{m!r} (export ID {export_id(m)})" for m in near) if near else ""
+        if not near and export_id(n).lower() == "table":   # the table is no object: a region on it is the goal
+            hint = "; to put an object on the table, give a region there: place_in: {center: [x, y], size: s}"
         raise InputError(f"step {k}: {role} names {n!r}, which is not in the twin (objects: "
                          f"{', '.join(sorted(names))}; a step may name an object or its export ID){hint}", where)
 
