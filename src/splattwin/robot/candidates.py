@@ -61,7 +61,7 @@ class StepPlanner:
         cands = self.selector.ranked(obj, self.belief)
         report.restart(len(cands))
         if not cands:
-            raise StepFailed(f"no antipodal grasp fits the gripper on {obj!r}")
+            raise StepFailed(self.no_grasp_message(obj))
         support = self.support_of(obj)
         for g in cands[:MAX_GRASPS]:
             report.tried += 1
@@ -163,6 +163,16 @@ class StepPlanner:
             if not ok and log.isEnabledFor(logging.DEBUG):
                 log.debug("retreat collision %s", m.first_pair(retreat))
         return ok
+
+    def no_grasp_message(self, obj: str) -> str:
+        """Why an object has no grasp at all, with what to check: its size against the gripper's opening."""
+        ext = np.asarray(self.world.manifest.object(obj).bbox_extent, float)
+        sel = self.selector
+        return (f"no antipodal grasp fits the gripper on {obj!r}: its collision mesh "
+                f"({' x '.join(f'{v * 100:.1f}' for v in ext)} cm) offers no pair of opposite faces closer than the "
+                f"gripper's {sel.max_opening * 100:.1f} cm opening that the fingers reach while their tips stay "
+                f"{sel.floor_clearance * 1000:.1f} mm above its support; check its mesh in the report (a bulging or "
+                f"merged mesh after a short training), or pick another object")
 
     def no_candidate_message(self, step: Step, report: GraspReport) -> str:
         """Why no plan was found: the rejections by reason, and when the places were rejected (pre-place,
