@@ -459,8 +459,11 @@ def test_a_failed_run_records_the_tasks_steps_and_the_report_names_those_not_att
     nom = json.loads((twin / "robot" / "results.json").read_text())["nominal"]
     task = load_task(None, Manifest.load(twin))
     assert [s["index"] for s in nom["steps"]] == [1] and not nom["steps"][0]["success"]
-    assert nom["task_steps"] == [{"index": k, "pick": s.pick, "goal": s.goal_name,
-                                  "place": "on" if s.place_on else "in"} for k, s in enumerate(task.steps, start=1)]
+    assert [{k: v for k, v in t.items() if k != "region"} for t in nom["task_steps"]] == [
+        {"index": k, "pick": s.pick, "goal": s.goal_name, "place": "on" if s.place_on else "in"}
+        for k, s in enumerate(task.steps, start=1)]
+    assert nom["task_steps"][2]["region"] == {"center": [round(float(v), 6) for v in task.steps[2].place_in.center],
+                                              "size": [0.24, 0.24]}
     assert len(nom["task_steps"]) == 3
     import html as htmllib
 
@@ -469,3 +472,89 @@ def test_a_failed_run_records_the_tasks_steps_and_the_report_names_those_not_att
     later = ", ".join(f"{t['pick']} {t['place']} {t['goal']}" for t in nom["task_steps"][1:])
     assert f"the run stopped at the failed step 1 of 3: steps 2-3 ({later}) were not attempted." in robot
     assert robot.count("not attempted</td>") == 2     # their rows in the step table
+
+
+def test_results_record_the_task_by_content_and_the_criteria(gt_twin_small: Path, tmp_path: Path):
+    """results.json named the task file only (a relative path, whatever it holds after an edit) and not the
+    thresholds the steps were judged by: now the file's sha256, each region's numbers and the criteria."""
+    import hashlib
+
+    task = tmp_path / "mine.yaml"
+    task.write_text("- pick: yellow_cube\n- place_in: {center: [0.1, -0.05], size: 0.1}\n")
+    out = tmp_path / "o"
+    assert main(["plan", str(gt_twin_small), "--task", str(task), "--out", str(out), "--no-render", "--no-report"]) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert res["task_sha256"] == hashlib.sha256(task.read_bytes()).hexdigest()
+    assert res["nominal"]["task_steps"] == [{"index": 1, "pick": "yellow_cube", "goal": "region", "place": "in",
+                                             "region": {"center": [0.1, -0.05, 0.0], "size": [0.1, 0.1]}}]
+    c = res["criteria"]
+    assert (c["lift_fraction"], c["lift_m"], c["rest_speed_m_s"], c["tilt_max_deg"], c["height_tol_m"],
+            c["settle_s"]) == (0.6, 0.1, 0.01, 10.0, 0.015, 0.6)
+    assert "bounding-box footprint inside the region" in c["definition"]
+    # the task edited and run again: the record follows the file
+    task.write_text("- pick: yellow_cube\n- place_in: {center: [0.05, -0.1], size: 0.12}\n")
+    assert main(["plan", str(gt_twin_small), "--task", str(task), "--out", str(out), "--no-render", "--no-report"]) == 0
+    res2 = json.loads((out / "results.json").read_text())
+    assert res2["task_sha256"] == hashlib.sha256(task.read_bytes()).hexdigest() != res["task_sha256"]
+    assert res2["nominal"]["task_steps"][0]["region"] == {"center": [0.05, -0.1, 0.0], "size": [0.12, 0.12]}
+
+
+def test_plan_says_why_it_exits_1_after_a_successful_nominal_run(gt_twin_small: Path, tmp_path: Path, monkeypatch,
+                                                                   capsys):
+    """The nominal run succeeded ('overall: success', real-arm files written) but a trial failed: exit 1, and
+    now stderr says that this is why and the summary lists the failed trial."""
+    from types import SimpleNamespace
+
+    import splattwin.robot.stage as stage
+
+    trials = {"trials": 2, "successes": 1, "ci95": [0.1, 0.9], "sigma": 0.005, "sigma_yaw": 0.05, "collisions": 0,
+              "results": [{"success": True, "seed": 1, "steps": []},
+                          {"success": False, "seed": 2, "steps": [
+                              {"index": 1, "pick": "yellow_cube", "success": False,
+                               "failure": "'yellow_cube' not lifted with the gripper"}]}]}
+    run = SimpleNamespace(steps=[], success=True, sim_time=1.0, wall_s=1.0, settle=None)
+    res = stage.RobotResult(results=tmp_path / "results.json", success=True, details={
+        "run": run, "trials": trials, "paths": {"results": tmp_path / "results.json"}, "real_robot": {"written": True}})
+    monkeypatch.setattr(stage, "run", lambda *a, **k: res)
+    assert main(["plan", str(gt_twin_small), "--out", str(tmp_path / "o"), "--no-render", "--no-report"]) == 1
+    out = capsys.readouterr()
+    assert "trial 2 (seed 2, trials/2.json) failed at step 1 (yellow_cube): 'yellow_cube' not lifted" in out.out
+    assert "exit 1: 1 of 2 perturbed trials failed" in out.err
+
+
+def test_a_place_blocked_by_a_neighbour_names_it(gt_twin_small: Path, tmp_path: Path):
+    """The blue box into a region that reaches over the hammer: the plan failed with rejection counts only
+    ('descent collision': 95, ...); now the step's failure names the object crowding the goal."""
+    task = tmp_path / "t.yaml"
+    task.write_text("- pick: blue_box\n- place_in: {center: [0.0, 0.3], size: 0.12}\n")
+    out = tmp_path / "o"
+    assert main(["plan", str(gt_twin_small), "--task", str(task), "--out", str(out), "--no-render", "--no-report"]) == 1
+    step = json.loads((out / "results.json").read_text())["nominal"]["steps"][0]
+    assert "descent collision" in step["failure"]
+    assert "the goal is crowded: 'toy_hammer' 0.3 cm from its centre ('blue_box' reaches 5.0 cm" in step["failure"]
+
+
+def test_results_name_the_task_file_absolutely(gt_twin_small: Path, tmp_path: Path, monkeypatch):
+    """`plan --task tasks/mine.yaml` recorded "tasks/mine.yaml", relative to wherever plan ran."""
+    (tmp_path / "tasks").mkdir()
+    (tmp_path / "tasks" / "mine.yaml").write_text("- pick: yellow_cube\n"
+                                                  "- place_in: {center: [0.1, -0.05], size: 0.1}\n")
+    monkeypatch.chdir(tmp_path)
+    assert main(["plan", str(gt_twin_small), "--task", "tasks/mine.yaml", "--out", str(tmp_path / "o"), "--no-render",
+                 "--no-report"]) == 0
+    res = json.loads((tmp_path / "o" / "results.json").read_text())
+    assert res["task"] == str((tmp_path / "tasks" / "mine.yaml").resolve())
+
+
+def test_an_object_without_any_grasp_says_what_to_check(gt_twin_small: Path, tmp_path: Path, monkeypatch):
+    """Before: "no antipodal grasp fits the gripper on 'yellow_cube'" and nothing more (seen on a 300-iteration
+    twin of the small scene); now its size, the opening, the fingertip clearance and what to check."""
+    monkeypatch.setattr("splattwin.robot.selection.GraspSelector.ranked", lambda self, obj, belief: [])
+    task = tmp_path / "t.yaml"
+    task.write_text("- pick: yellow_cube\n- place_in: {center: [0.1, -0.05], size: 0.1}\n")
+    out = tmp_path / "o"
+    assert main(["plan", str(gt_twin_small), "--task", str(task), "--out", str(out), "--no-render", "--no-report"]) == 1
+    failure = json.loads((out / "results.json").read_text())["nominal"]["steps"][0]["failure"]
+    assert failure.startswith("no antipodal grasp fits the gripper on 'yellow_cube': its collision mesh (2.5 x 2.5 x "
+                              "2.5 cm) offers no pair of opposite faces closer than the gripper's 8.0 cm opening")
+    assert "check its mesh in the report" in failure

@@ -227,3 +227,30 @@ def test_a_failed_placement_reports_its_cause(gt_twin_default: Path, monkeypatch
     assert r.failure.startswith(f"{step.pick!r} tipped over: it ended tilted 69 deg"), r.failure
     assert f"uneven top of {step.place_on!r}" in r.failure
     assert 0.0 <= r.final_tilt_deg < 10.0   # in physics it did land upright
+
+
+def test_a_goal_a_later_step_disturbs_fails_its_step(gt_twin_small: Path):
+    """Each step was judged only when it ended: a later step that pushes an earlier-placed object out of its
+    goal (object-object contact after a release is no collision) left the task a success. Now the end of
+    the task re-judges every placed object no later step picks; here the cube is moved off its region
+    (standing in for a push) when step 2 releases the hammer."""
+    from splattwin.robot.task import parse_task
+
+    w = build_world(gt_twin_small, visual=False)
+    task = parse_task([{"pick": "yellow_cube", "place_in": {"center": [0.0, -0.1], "size": 0.1}},
+                       {"pick": "toy_hammer", "place_in": {"center": [0.05, 0.15], "size": 0.24}}], gt_twin_small)
+
+    def push(label: str, world) -> None:
+        if label == "step2_release":
+            T = world.object_pose("yellow_cube").copy()
+            T[0, 3] += 0.15
+            world.set_object_pose("yellow_cube", T)
+
+    res = Executor(w, frame_cb=push).run(task)
+    assert not res.success and len(res.steps) == 2 and res.steps[1].success
+    s1 = res.steps[0]
+    assert not s1.success and s1.grasped and s1.placed   # placed when its own step ended
+    assert s1.failure.startswith("at the end of the task (step 2), a later step had disturbed it: 'yellow_cube' "
+                                 "not inside the region 'region'")
+    # undisturbed, the same task succeeds
+    assert Executor(build_world(gt_twin_small, visual=False)).run(task).success

@@ -211,3 +211,20 @@ def test_written_timeline_has_the_start_state_names_and_gripper(tmp_path):
     assert seg["joint_names"][6] == "panda_joint7"
     for name in ("trajectory.csv", "trajectory.ros2.yaml", "trajectory.goal.ros2.yaml", "gripper.ros2.yaml"):
         assert (tmp_path / name).is_file()
+
+
+def test_trial_failures_name_each_failed_trial_and_why():
+    """`plan --trials 4 --sigma 0.03` printed 'overall: success', 'trials: 2/4' and exited 1, naming no trial."""
+    from splattwin.robot.outputs import trial_failures
+
+    ok = {"success": True, "seed": 1, "steps": [{"index": 1, "pick": "cube", "success": True}]}
+    bad = {"success": False, "seed": 2, "steps": [{"index": 1, "pick": "hammer", "success": True},
+                                                  {"index": 2, "pick": "cube", "success": False,
+                                                   "failure": "'cube' not lifted with the gripper (rose 0.0 cm)"}]}
+    died = {"success": False, "seed": 3, "steps": [], "error": "worker: killed"}
+    assert trial_failures({"results": [ok, ok]}) == []
+    lines = trial_failures({"results": [ok, bad, died]})
+    assert lines == ["trial 2 (seed 2, trials/2.json) failed at step 2 (cube): 'cube' not lifted with the gripper "
+                     "(rose 0.0 cm)", "trial 3 (seed 3) failed at its start: worker: killed"]
+    many = trial_failures({"results": [bad] * 8}, limit=5)
+    assert len(many) == 6 and many[-1].startswith("... and 3 more failed trial(s)")

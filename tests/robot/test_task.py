@@ -149,3 +149,167 @@ def test_an_obstacle_only_object_cannot_be_picked_or_placed_on(tmp_path: Path, g
         with pytest.raises(InputError, match=r"'yellow_cube' is not usable \(too few points.*\): it is kept as a "
                                              r"static obstacle box .* the arm avoids, and cannot be picked or placed on"):
             validate_task(t, m, gt_twin_small, BasePose().matrix())
+
+
+# ---- audit 12C: what a user writes in their own task -------------------------------------------------
+
+
+@pytest.mark.parametrize("text,match", [
+    # an ignored key would let the run succeed without what the user asked for
+    ("- pick: toy_hammer\n- place_in: {center: [0, 0], size: 0.24, yaw: 90}\n",
+     r"step 1: place_in: unknown key.*yaw"),
+    ("- pick: toy_hammer\n- place_in: {centre: [0, 0], center: [0, 0], size: 0.24}\n", r"unknown key.*centre"),
+    ("name: t\nstep:\n  - pick: blue_box\n  - place_on: cardboard_box\n", r"unknown top-level key.*'step'"),
+    ("nmae: t\nsteps:\n  - pick: blue_box\n  - place_on: cardboard_box\n", r"unknown top-level key.*'nmae'"),
+    # YAML reads these as null, a bool, a list: before, the step named 'None', 'True', "['blue_box']"
+    ("- pick:\n- place_on: blue_box\n", r"step 1: pick needs an object name, got nothing"),
+    ("- pick: yes\n- place_on: blue_box\n", r"step 1: pick needs an object name, got bool True"),
+    ("- pick: blue_box\n- place_on: [cardboard_box]\n", r"step 1: place_on needs an object name, got list"),
+])
+def test_a_task_says_what_it_does_not_understand(tmp_path: Path, gt_twin_small: Path, text, match):
+    with pytest.raises(InputError, match=match) as e:
+        load_task(_write(tmp_path, text), Manifest.load(gt_twin_small))
+    assert e.value.path == tmp_path / "task.yaml"
+
+
+def test_a_named_region_may_carry_more_keys(tmp_path: Path, gt_twin_small: Path):
+    """The scene's target_frame has tape_width and 'for' beside centre and size: still a region."""
+    m = Manifest.load(gt_twin_small)
+    assert set(m.config["target_frame"]) > {"center", "size"}
+    t = load_task(_write(tmp_path, "- pick: toy_hammer\n- place_in: target_frame\n"), m)
+    validate_task(t, m, gt_twin_small, BasePose().matrix())
+
+
+def test_a_region_centre_z_off_the_table_is_refused(tmp_path: Path, gt_twin_small: Path):
+    """Regions lie on the table: a z of 0.1 m was ignored and the cube put on the table, 'success'."""
+    m = Manifest.load(gt_twin_small)
+    base = BasePose().matrix()
+    t = load_task(_write(tmp_path, "- pick: yellow_cube\n- place_in: {center: [0.0, 0.0, 0.1], size: 0.1}\n"), m)
+    with pytest.raises(InputError, match=r"step 1: goal region centre z = 0.1 m, but a region lies on the table"):
+        validate_task(t, m, gt_twin_small, base)
+    for centre in ("[0.0, 0.0, 0.0]", "[0.0, 0.0]"):
+        t = load_task(_write(tmp_path, f"- pick: yellow_cube\n- place_in: {{center: {centre}, size: 0.1}}\n"), m)
+        validate_task(t, m, gt_twin_small, base)
+    m.background.table_height = 0.03   # a table a few cm off z = 0: [x, y, 0.0], as the examples write it, is fine
+    validate_task(load_task(_write(tmp_path, "- pick: yellow_cube\n- place_in: {center: [0.0, 0.0, 0.0], size: 0.1}\n"),
+                            m), m, gt_twin_small, base)
+
+
+def test_a_goal_in_millimetres_gets_a_units_hint(tmp_path: Path, gt_twin_small: Path):
+    m = Manifest.load(gt_twin_small)
+    t = load_task(_write(tmp_path, "- pick: toy_hammer\n- place_in: {center: [300, 30], size: 0.2}\n"), m)
+    with pytest.raises(InputError, match=r"off the table .*the task is in metres: center \[0.3, 0.03\] if you "
+                                         r"meant millimetres") as e:
+        validate_task(t, m, gt_twin_small, BasePose().matrix())
+    assert "size" not in str(e.value).split("metres:")[-1]   # 0.2 is metres already
+    t = load_task(_write(tmp_path, "- pick: toy_hammer\n- place_in: {center: [0, 0.03], size: 240}\n"), m)
+    with pytest.raises(InputError, match=r"larger than the table .*size \[0.24, 0.24\] if you meant millimetres"):
+        validate_task(t, m, gt_twin_small, BasePose().matrix())
+
+
+def test_footprint_fits_at_some_yaw():
+    from splattwin.robot.task import footprint_fits
+
+    assert footprint_fits(np.array([0.19, 0.08]), np.array([0.24, 0.24]))
+    assert footprint_fits(np.array([0.19, 0.08]), np.array([0.09, 0.2]))        # turned a quarter
+    assert footprint_fits(np.array([0.20, 0.01]), np.array([0.16, 0.16]))       # only across the diagonal
+    assert not footprint_fits(np.array([0.20, 0.01]), np.array([0.12, 0.12]))
+    assert not footprint_fits(np.array([0.19, 0.08]), np.array([0.01, 0.01]))
+
+
+def test_a_region_the_object_cannot_fit_in_is_refused(tmp_path: Path, gt_twin_small: Path):
+    """Before, a 1 cm region for the 19 cm hammer ran the whole plan, then failed: '4 of its 4 corners outside'."""
+    m = Manifest.load(gt_twin_small)
+    t = load_task(_write(tmp_path, "- pick: toy_hammer\n- place_in: {center: [0.0, 0.0], size: 0.01}\n"), m)
+    with pytest.raises(InputError, match=r"step 1: 'toy_hammer' \(footprint 0.190 x 0.080 m\) does not fit in goal "
+                                         r"region 'region' \(0.010 x 0.010 m\) at any yaw"):
+        validate_task(t, m, gt_twin_small, BasePose().matrix())
+
+
+def test_an_occupied_goal_region_is_refused_until_cleared(tmp_path: Path, gt_twin_small: Path):
+    """A region centred where the bottle stands: before, the plan failed with 'pre-place IK/collision: 24'."""
+    m = Manifest.load(gt_twin_small)
+    xy = np.round(m.object("bottle").pose[:2, 3], 3).tolist()
+    t = load_task(_write(tmp_path, f"- pick: yellow_cube\n- place_in: {{center: {xy}, size: 0.1}}\n"), m)
+    with pytest.raises(InputError, match=r"step 1: goal region 'region' is occupied: .* lies on 'bottle' \(in the "
+                                         r"twin"):
+        validate_task(t, m, gt_twin_small, BasePose().matrix())
+    # the bottle moved away in an earlier step frees it
+    t = load_task(_write(tmp_path, f"- pick: bottle\n- place_in: {{center: [0.0, -0.05], size: 0.12}}\n"
+                                   f"- pick: yellow_cube\n- place_in: {{center: {xy}, size: 0.1}}\n"), m)
+    validate_task(t, m, gt_twin_small, BasePose().matrix())
+
+
+def test_an_object_under_another_cannot_be_picked(tmp_path: Path, gt_twin_small: Path):
+    """Before: 'none of 16 grasp candidates on blue_box ... approach collision: 16', the cube never named."""
+    m = Manifest.load(gt_twin_small)
+    t = load_task(_write(tmp_path, "- pick: yellow_cube\n- place_on: blue_box\n"
+                                   "- pick: blue_box\n- place_in: {center: [-0.1, 0.0], size: 0.15}\n"), m)
+    with pytest.raises(InputError, match=r"step 2: 'yellow_cube' stands on 'blue_box' \(placed there in step 1\).*"
+                                         r"pick 'yellow_cube' off first"):
+        validate_task(t, m, gt_twin_small, BasePose().matrix())
+    t = load_task(_write(tmp_path, "- pick: yellow_cube\n- place_on: blue_box\n"
+                                   "- pick: yellow_cube\n- place_in: {center: [0.0, -0.1], size: 0.1}\n"
+                                   "- pick: blue_box\n- place_in: {center: [-0.1, 0.1], size: 0.15}\n"), m)
+    validate_task(t, m, gt_twin_small, BasePose().matrix())
+
+
+def test_a_support_that_already_carries_an_object_is_refused(tmp_path: Path, gt_twin_small: Path):
+    m = Manifest.load(gt_twin_small)
+    t = load_task(_write(tmp_path, "- pick: yellow_cube\n- place_on: cardboard_box\n"
+                                   "- pick: blue_box\n- place_on: cardboard_box\n"), m)
+    with pytest.raises(InputError, match=r"step 2: 'cardboard_box' already carries 'yellow_cube' \(placed there in "
+                                         r"step 1\)"):
+        validate_task(t, m, gt_twin_small, BasePose().matrix())
+    # the paper's stack: the cube onto the blue box that stands on the cardboard box
+    validate_task(load_task(None, m), m, gt_twin_small, BasePose().matrix())
+
+
+def test_a_stack_in_the_twin_is_seen(gt_twin_small: Path):
+    """An object standing on another in the twin itself counts as carried by it."""
+    from splattwin.robot.task import TaskScene
+
+    m = Manifest.load(gt_twin_small)
+    assert all(v is None for v in TaskScene.of(m).on.values())
+    box, cube = m.object("cardboard_box"), m.object("yellow_cube")
+    T = box.pose.copy()
+    T[2, 3] += box.bbox_extent[2] / 2 + cube.bbox_extent[2] / 2
+    cube.T_world_obj = T.tolist()
+    scene = TaskScene.of(m)
+    assert scene.on["yellow_cube"] == "cardboard_box" and scene.riders("cardboard_box") == ["yellow_cube"]
+    assert scene.since("yellow_cube") == "in the twin"
+
+
+def test_ik_checks_an_object_where_an_earlier_step_placed_it(tmp_path: Path, gt_twin_small: Path, panda,
+                                                             monkeypatch):
+    """Step 2 picks the cube that step 1 put on the cardboard box: its grasp is checked there (on the box's
+    top), not at its twin pose on the table; and the cube's place on the moved blue box at the box's new top."""
+    import splattwin.robot.task as task_mod
+
+    m = Manifest.load(gt_twin_small)
+    asked: list[np.ndarray] = []
+    real = task_mod.reachable
+    monkeypatch.setattr(task_mod, "reachable", lambda ik, xyz, base_xy, rise=0.0: (asked.append(np.asarray(xyz)),
+                                                                                    real(ik, xyz, base_xy, rise))[1])
+    t = load_task(_write(tmp_path, "- pick: yellow_cube\n- place_on: cardboard_box\n"
+                                   "- pick: yellow_cube\n- place_in: {center: [0.0, -0.05], size: 0.1}\n"), m)
+    validate_task(t, m, gt_twin_small, BasePose().matrix(), robot=panda)
+    box, cube = m.object("cardboard_box"), m.object("yellow_cube")
+    box_top = box.pose[2, 3] + box.bbox_extent[2] / 2
+    grasp2 = asked[2]   # step 1: grasp, place; step 2: grasp, place
+    np.testing.assert_allclose(grasp2[:2], box.pose[:2, 3], atol=1e-9)
+    assert grasp2[2] > box_top and abs(grasp2[2] - (box_top + cube.bbox_extent[2] - 0.0125)) < 1e-6
+    asked.clear()
+    validate_task(load_task(None, m), m, gt_twin_small, BasePose().matrix(), robot=panda)
+    blue = m.object("blue_box")
+    place2 = asked[3]   # the cube's place: on the blue box where step 1 left it, on the cardboard box
+    np.testing.assert_allclose(place2[:2], box.pose[:2, 3], atol=1e-9)
+    assert place2[2] > box_top + blue.bbox_extent[2]
+
+
+def test_place_on_the_table_says_how_to_put_it_there(tmp_path: Path, gt_twin_small: Path):
+    m = Manifest.load(gt_twin_small)
+    t = load_task(_write(tmp_path, "- pick: yellow_cube\n- place_on: Table\n"), m)
+    with pytest.raises(InputError, match=r"step 1: place_on names 'Table', which is not in the twin .*to put an object "
+                                         r"on the table, give a region there: place_in: \{center: \[x, y\], size: s\}"):
+        validate_task(t, m, gt_twin_small, BasePose().matrix())

@@ -182,3 +182,20 @@ def test_run_once_refuses_a_twin_path_for_its_spec(tmp_path: Path):
 
     with pytest.raises(TypeError, match=r"^spec must be a TrialSpec .*TrialSpec\(twin_dir.*, got str$"):
         run_once(str(tmp_path))
+
+
+def test_a_task_warning_is_said_by_the_nominal_run_not_by_every_trial(gt_twin_small: Path, tmp_path: Path, caplog):
+    """A goal that may be crowded was warned about once per run: `plan --trials 3` printed it 4 times."""
+    import logging
+
+    from splattwin.robot.trials import run_once, run_trial_job
+
+    task = tmp_path / "t.yaml"
+    task.write_text("- pick: blue_box\n- place_in: {center: [0.0, 0.3], size: 0.12}\n")   # reaches over the hammer
+    spec = TrialSpec(str(gt_twin_small), str(task), sigma=0.005, seed=1)
+    with caplog.at_level(logging.WARNING, logger="splattwin.robot.task"):
+        run_trial_job(spec, None)
+        assert not [r for r in caplog.records if "may collide" in r.getMessage()]
+        run_once(TrialSpec(str(gt_twin_small), str(task)))
+    said = [r.getMessage() for r in caplog.records if "may collide" in r.getMessage()]
+    assert len(said) == 1 and "'toy_hammer'" in said[0]

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import random
 import shutil
@@ -249,9 +250,12 @@ def test_twin_is_relocatable(reference, tmp_path, cli):
         usable = [o.name for o in m.objects if o.usable]
         assert usable, "the tiny twin has no usable object to plan with"
         task = tmp_path / "task.yaml"
-        x0, x1, y0, y1 = m.background.table_extent
-        task.write_text(f"- pick: {usable[0]}\n  place_in: {{center: [{(x0 + x1) / 2}, {(y0 + y1) / 2}, 0.0], "
-                        f"size: 0.1}}\n")
+        # a region that holds the object at any yaw, where it stands (a 10 cm one at the table's centre was
+        # refused up front once a task's checks saw that the 17 cm box fits it at no yaw)
+        o = m.object(usable[0])
+        x, y = (float(v) for v in o.pose[:2, 3])
+        side = math.hypot(*o.bbox_extent[:2]) + 0.02
+        task.write_text(f"- pick: {usable[0]}\n  place_in: {{center: [{x}, {y}], size: {side}}}\n")
         res = cli("plan", moved, "--task", task, "--no-render")
         # planned and executed (success or not), nothing missing; a tiny twin may also be refused as a validation
         # (an object that moves when physics starts: exit 2, no files for the real arm), which still ran the plan

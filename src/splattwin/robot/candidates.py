@@ -61,7 +61,7 @@ class StepPlanner:
         cands = self.selector.ranked(obj, self.belief)
         report.restart(len(cands))
         if not cands:
-            raise StepFailed(f"no antipodal grasp fits the gripper on {obj!r}")
+            raise StepFailed(self.no_grasp_message(obj))
         support = self.support_of(obj)
         for g in cands[:MAX_GRASPS]:
             report.tried += 1
@@ -164,6 +164,43 @@ class StepPlanner:
                 log.debug("retreat collision %s", m.first_pair(retreat))
         return ok
 
+    def no_grasp_message(self, obj: str) -> str:
+        """Why an object has no grasp at all, with what to check: its size against the gripper's opening."""
+        ext = np.asarray(self.world.manifest.object(obj).bbox_extent, float)
+        sel = self.selector
+        return (f"no antipodal grasp fits the gripper on {obj!r}: its collision mesh "
+                f"({' x '.join(f'{v * 100:.1f}' for v in ext)} cm) offers no pair of opposite faces closer than the "
+                f"gripper's {sel.max_opening * 100:.1f} cm opening that the fingers reach while their tips stay "
+                f"{sel.floor_clearance * 1000:.1f} mm above its support; check its mesh in the report (a bulging or "
+                f"merged mesh after a short training), or pick another object")
+
     def no_candidate_message(self, step: Step, report: GraspReport) -> str:
+        """Why no plan was found: the rejections by reason, and when the places were rejected (pre-place,
+        descent, retreat), the objects crowding the goal (`goal_neighbours`)."""
+        crowded = ""
+        if any(r.startswith(("pre-place", "descent", "retreat")) for r in report.rejections):
+            crowded = self.goal_neighbours(step)
         return (f"none of {report.tried} grasp candidates on {step.pick!r} has a reachable, "
-                f"collision-free approach, lift and place (rejections: {report.rejections})")
+                f"collision-free approach, lift and place (rejections: {report.rejections}){crowded}")
+
+    def goal_neighbours(self, step: Step) -> str:
+        """'; the goal is crowded: ...' naming the objects (in the belief) whose bounding-box footprint lies
+        closer to the place's centre than the picked object reaches from it at some yaw (half its
+        footprint's diagonal), else ''. The place goes to the goal's centre (`selection.place_targets`)."""
+        from splattwin.robot.task import footprint_distance
+
+        man = self.world.manifest
+        ext = np.asarray(man.object(step.pick).bbox_extent, float)
+        if step.place_on is not None:
+            centre, skip = self.belief[step.place_on][:2, 3], {step.pick, step.place_on}
+        else:
+            centre, skip = step.place_in.center[:2], {step.pick}
+        reach = float(np.hypot(ext[0], ext[1])) / 2
+        near = sorted((footprint_distance(centre, T, np.asarray(man.object(o).bbox_extent, float)), o)
+                      for o, T in self.belief.items() if o not in skip)
+        near = [(d, o) for d, o in near if d < reach]
+        if not near:
+            return ""
+        return ("; the goal is crowded: " + ", ".join(f"{o!r} {d * 100:.1f} cm from its centre" for d, o in near)
+                + f" ({step.pick!r} reaches {reach * 100:.1f} cm from it at some yaw): move the goal, or those "
+                "objects in an earlier step")

@@ -125,9 +125,16 @@ class RunResult:
 
 def task_step_list(task: Task) -> list[dict]:
     """The task's steps as results.json `nominal.task_steps` records them: [{index (1-based), pick, goal,
-    place: "on" (an object) or "in" (a region)}]."""
-    return [{"index": k, "pick": s.pick, "goal": s.goal_name, "place": "on" if s.place_on else "in"}
-            for k, s in enumerate(task.steps, start=1)]
+    place: "on" (an object) or "in" (a region), and for a region its `region` {center [x, y, z], size
+    [sx, sy]} (m, twin frame): what the step was judged against, also when the task file changes}]."""
+    out = []
+    for k, s in enumerate(task.steps, start=1):
+        d = {"index": k, "pick": s.pick, "goal": s.goal_name, "place": "on" if s.place_on else "in"}
+        if s.place_in is not None:
+            d["region"] = {"center": [round(float(v), 6) for v in s.place_in.center],
+                           "size": [round(float(v), 6) for v in s.place_in.size]}
+        out.append(d)
+    return out
 
 
 def unsettled(settle: dict | None) -> str | None:
@@ -409,6 +416,24 @@ class Executor:
         return res
 
     # ---- whole task -----------------------------------------------------------------------------------
+    def recheck(self, task: Task, steps: list[StepResult]) -> None:
+        """At the end of the task, each step's object that no later step picks must still be in its goal and
+        at rest (`judge.judge_place`): a later place may push or tip it, and contacts between objects after
+        a release are no collision of the robot or of the carried object, so the step alone would not see
+        it. A step whose goal no longer holds is failed, in place, saying so."""
+        w = self.world
+        n = len(task.steps)
+        for k, (step, res) in enumerate(zip(task.steps, steps), start=1):
+            if k == n or any(later.pick == step.pick for later in task.steps[k:]):
+                continue   # judged just now, or moved on purpose later
+            v = judge.judge_place(w, step, step.pick)
+            if v.placed and v.at_rest:
+                continue
+            res.success = False
+            res.failure = (f"at the end of the task (step {n}), a later step had disturbed it: {v.why} "
+                           f"(now at {np.round(w.object_pose(step.pick)[:3, 3], 4).tolist()} m)")
+            log.info("step %d: %s", k, res.failure)
+
     def run(self, task: Task, stop_on_failure: bool = True) -> RunResult:
         t0 = time.perf_counter()
         # before the robot acts: does physics leave every object where the twin puts it? (state restored)
@@ -424,6 +449,8 @@ class Executor:
                      "" if r.success else f" ({r.failure})")
             if not r.success and stop_on_failure:
                 break
+        if len(steps) == len(task.steps) and all(s.success for s in steps):
+            self.recheck(task, steps)
         self._snap("end")
         ok = len(steps) == len(task.steps) and all(s.success for s in steps)
         return RunResult(success=ok, steps=steps, collisions=sum(s.robot_collisions + s.object_collisions for s in steps),

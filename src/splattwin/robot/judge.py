@@ -20,6 +20,26 @@ TILT_MAX = math.radians(10)  # at rest: upright within this tilt
 HEIGHT_TOL = 0.015           # m: resting on its support within this height error
 
 
+def criteria(lift_m: float, settle_s: float) -> dict:
+    """The success criteria of a step as results.json records them (`criteria`): the thresholds (SI units)
+    and what each means. lift_m: the commanded lift after closing (m); settle_s: the wait after the
+    retreat before the placement is judged (s)."""
+    return {
+        "lift_fraction": LIFT_FRACTION, "lift_m": lift_m, "rest_speed_m_s": REST_SPEED,
+        "tilt_max_deg": round(math.degrees(TILT_MAX), 6), "height_tol_m": HEIGHT_TOL, "settle_s": settle_s,
+        "definition": (
+            "a step succeeds when: grasped (the object rose at least lift_fraction of the lift_m lift and both "
+            "fingers touch it); placed (place_on: its centre over the support's top face and its centre within "
+            "height_tol_m of resting on it; place_in: all 4 corners of its bounding-box footprint inside the "
+            "region and its bottom within height_tol_m of the table); at rest settle_s after the retreat (slower "
+            "than rest_speed_m_s and tilted less than tilt_max_deg from upright); no collision (the robot "
+            "touched nothing but the object, and the carried object nothing but the hand, during the step). "
+            "Each step is judged when it ends, and at the end of the task each placed object that no later step "
+            "picks is judged again (a later place may have pushed or tipped it); the task succeeds when every "
+            "step does"),
+    }
+
+
 @dataclass(frozen=True)
 class Placement:
     """Verdict on where a released object ended: inside the goal and on it (placed), still and upright

@@ -1,8 +1,9 @@
 """Artifacts of a validation run, written atomically under OUT (default TWIN/robot):
 
-    results.json                 task, base pose and frame, exported joint names, per-step results and the
-                                 task's step list (`nominal.task_steps`: the steps after a failed one were
-                                 not attempted), the servos' tracking error (`tracking_error`), trials summary (sigma per axis,
+    results.json                 task (its path and `task_sha256`), the success criteria (`criteria`),
+                                 base pose and frame, exported joint names, per-step results and the
+                                 task's step list (`nominal.task_steps`, with each region's numbers: the
+                                 steps after a failed one were not attempted), the servos' tracking error (`tracking_error`), trials summary (sigma per axis,
                                  its definition, sigma_yaw), notes
     trials/<i>.json              each finished perturbed trial (reused by a re-run with the same key)
     trials/<i>.rollout.npz       its rollout, kept when the run is recorded (`plan --record`); both written
@@ -203,7 +204,9 @@ def write_outputs(out: str | Path, spec, result, trials: dict | None, render_not
     rollout_paths, tracking = write_rollout(out, spec, result)
     paths.update(rollout_paths)
     doc = {
-        "twin": str(spec.twin_dir), "task": spec.task_path or "default (paper three-step rearrangement)",
+        # absolute: a path as typed (`tasks/mine.yaml`) says nothing once read from elsewhere
+        "twin": str(spec.twin_dir), "task": (str(Path(spec.task_path).resolve()) if spec.task_path
+                                             else "default (paper three-step rearrangement)"),
         "base_pose": asdict(spec.base), "base_frame": names.base_frame,
         "joint_names": {"exported": list(names.joint_names), "simulated": list(robot.arm_joints)},
         "robot_mjcf": spec.robot_mjcf or "MuJoCo Menagerie franka_emika_panda",
@@ -213,6 +216,9 @@ def write_outputs(out: str | Path, spec, result, trials: dict | None, render_not
         # False when the run does not validate the twin: the task failed, or the scene moved before the
         # robot acted (`settle`: how far physics moved each object from its twin pose in the start check)
         "validated": bool(result.success) and not not_at_rest, "settle": settle,
+        # the task's file by content: the path alone names whatever the file holds after an edit
+        "task_sha256": _task_digest(spec.task_path),
+        "criteria": _criteria(),   # the thresholds each step was judged by (judge.criteria)
         "planner": spec.planner, "seed": spec.seed,
         "nominal": result.to_dict(), "tracking": tracking,
         "trials": trials,
@@ -223,6 +229,22 @@ def write_outputs(out: str | Path, spec, result, trials: dict | None, render_not
     }
     paths["results"] = io.write_json(out / "results.json", doc)
     return paths, real_robot
+
+
+def _task_digest(task_path: str | None) -> str | None:
+    """sha256 of the task file's bytes (the default task's when None)."""
+    from splattwin.robot.task import default_task_path
+    from splattwin.robot.trials import _file_digest
+
+    return _file_digest(task_path or default_task_path())
+
+
+def _criteria() -> dict:
+    from splattwin.robot.candidates import LIFT
+    from splattwin.robot.execute import SETTLE_TIME
+    from splattwin.robot.judge import criteria
+
+    return criteria(LIFT, SETTLE_TIME)
 
 
 def trajectory_meta(spec, robot, names) -> dict:
@@ -386,6 +408,8 @@ def print_summary(result, trials: dict | None, paths: dict[str, Path], real_robo
                   f"yaw {math.degrees(trials['sigma_yaw']):.1f} deg (95 % CI {lo:.2f}-{hi:.2f}), "
                   f"collisions {trials['collisions']}"
                   + (f", {trials['resumed']} reused from an earlier run" if trials.get("resumed") else ""))
+        for line in trial_failures(trials):
+            con.print(line, markup=False, highlight=False)
     if real_robot is not None and not real_robot.get("written"):
         from rich.markup import escape
 
@@ -393,6 +417,23 @@ def print_summary(result, trials: dict | None, paths: dict[str, Path], real_robo
     elif "program" in paths:
         con.print(f"real arm: {paths['program']} (arm phases and blocking gripper actions; README)", highlight=False)
     con.print(f"results: {paths['results']}")
+
+
+def trial_failures(trials: dict, limit: int = 5) -> list[str]:
+    """Lines naming the failed trials (at most `limit`, then how many more) and why each failed: its
+    first failed step, or its worker's error; [] when every trial succeeded."""
+    bad = [(i, r) for i, r in enumerate(trials.get("results") or [], start=1)
+           if isinstance(r, dict) and not r.get("success")]
+    lines = []
+    for i, r in bad[:limit]:
+        step = next((st for st in r.get("steps") or [] if isinstance(st, dict) and not st.get("success")), None)
+        why = (f"step {step.get('index')} ({step.get('pick')}): {step.get('failure')}" if step is not None
+               else f"its start: {r.get('error')}" if r.get("error") else "a step it did not reach")
+        kept = "" if r.get("error") else f", trials/{i}.json"   # a worker that died left no file
+        lines.append(f"trial {i} (seed {r.get('seed')}{kept}) failed at {why}")
+    if len(bad) > limit:
+        lines.append(f"... and {len(bad) - limit} more failed trial(s) (results.json trials.results)")
+    return lines
 
 
 def _yn(b: bool) -> str:

@@ -98,11 +98,12 @@ class TrialSpec:
 
 
 def run_once(spec: TrialSpec, frame_dir: str | Path | None = None, keep_trajectories: bool = False,
-             on_valid=None):
+             on_valid=None, warn: bool = True):
     """Build the world (perturbed when sigma > 0), validate the task, execute it. Returns (RunResult, the
     frame recorder's note, frame paths); keep_trajectories: the result keeps its trajectories and rollout.
     on_valid: called once the task is valid, before any frame is written (the stage clears the earlier
-    run's outputs there, so a bad task leaves them as they were)."""
+    run's outputs there, so a bad task leaves them as they were). warn: the task's warnings are logged
+    (False in the trials: the nominal run said them once)."""
     from splattwin.errors import require_type
     from splattwin.robot.execute import Executor
     from splattwin.robot.task import load_task, validate_task
@@ -113,7 +114,7 @@ def run_once(spec: TrialSpec, frame_dir: str | Path | None = None, keep_trajecto
     manifest = Manifest.load(spec.twin_dir)
     task = load_task(spec.task_path, manifest)
     robot = spec.robot_model()
-    validate_task(task, manifest, spec.twin_dir, spec.base.matrix(), robot=robot)
+    validate_task(task, manifest, spec.twin_dir, spec.base.matrix(), robot=robot, warn=warn)
     if on_valid is not None:
         on_valid()
     nominal = {o.name: o.pose for o in manifest.objects if o.usable}
@@ -249,7 +250,7 @@ def run_trial_job(spec: TrialSpec, path: str | None, keep_rollout: bool = False)
     t0 = time.perf_counter()
     r = None
     try:
-        r, _, _ = run_once(spec, keep_trajectories=keep_rollout and path is not None)
+        r, _, _ = run_once(spec, keep_trajectories=keep_rollout and path is not None, warn=False)
         d = r.to_dict()
     except Exception as e:  # a crashed trial is a failed trial, with the reason
         d = {"success": False, "collisions": 0, "plan_ms": [], "steps": [], "error": f"{type(e).__name__}: {e}"}
