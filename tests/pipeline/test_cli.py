@@ -180,3 +180,30 @@ def test_build_into_the_captures_own_folder_is_refused_before_anything(tmp_path,
         check_output(photos, opts)
     check_output(photos / "twin", opts)                            # inside the capture: fine
     check_output(tmp_path / "twin", BuildOptions(input=str(photos)))
+
+
+def test_headline_reads_a_twins_records_bounded_and_skips_malformed_ones(tmp_path, capsys, monkeypatch):
+    """An up-to-date stage is skipped, so the headline may read a received twin's records: a fusion.json that is
+    a list raised AttributeError (an internal error after a finished build), and every record was read whole
+    whatever its size. Now each is read within the record limit and left out of the headline when it is not
+    a readable JSON object."""
+    import json
+
+    import splattwin.limits as limits
+
+    monkeypatch.setenv("COLUMNS", "1000")
+    (tmp_path / "semantics").mkdir()
+    (tmp_path / "semantics" / "fusion.json").write_text(json.dumps([1, 2]))
+    (tmp_path / "geometry_metrics.json").write_text(json.dumps({"box": {"f1": 0.987}, "pad": "x" * 5000}))
+    ctx = Context(out=tmp_path, options={}, timings={"semantics": 1.0, "twin": 1.0},
+                  results={"semantics": {}, "twin": {}})
+    monkeypatch.setattr(limits, "MAX_RECORD_BYTES", 4000)
+    _print_headline(ctx)
+    out = capsys.readouterr().out
+    assert "semantics:" not in out and "geometry:" not in out
+    monkeypatch.setattr(limits, "MAX_RECORD_BYTES", 1 << 20)
+    (tmp_path / "geometry_metrics.json").write_text(json.dumps({"box": {"f1": 0.987}}))
+    (tmp_path / "semantics" / "fusion.json").write_text(json.dumps({"miou_heldout": 0.912}))
+    _print_headline(ctx)
+    out = capsys.readouterr().out
+    assert "semantics: held-out mIoU 0.912" in out and "geometry: F1@5mm box 0.987" in out

@@ -8,7 +8,6 @@ and can come from a config file (`--config twin.yaml`, nested like the flags); f
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 from splattwin.options import add_config_flag, add_options, given, load_config, merge
@@ -140,18 +139,28 @@ def _gt_placement(twin_json: Path) -> str:
     return ""
 
 
+def _record(path: Path) -> dict | None:
+    """A stage's JSON record for the headline, or None when it is missing, unreadable, over the record limit or
+    not an object. Up-to-date stages are skipped, so these may be files of a received twin, not this run's."""
+    from splattwin import io
+    from splattwin.errors import InputError
+    from splattwin.limits import MAX_RECORD_BYTES
+
+    try:
+        doc = io.read_json(path, max_bytes=MAX_RECORD_BYTES)
+    except InputError:
+        return None
+    return doc if isinstance(doc, dict) else None
+
+
 def _robot_line(ctx) -> str:
     """The headline's robot line: the task's outcome in simulation and whether the real-arm files were
     written (robot/program.json named), else why not (results.json `real_robot`), said once."""
     from rich.markup import escape
 
     rec = ctx.results["robot"]
-    res = None
-    try:
-        res = json.loads(ctx.path("robot/results.json").read_text())
-    except (OSError, ValueError):
-        pass
-    real = res.get("real_robot") if isinstance(res, dict) and isinstance(res.get("real_robot"), dict) else {}
+    res = _record(ctx.path("robot/results.json")) or {}
+    real = res.get("real_robot") if isinstance(res.get("real_robot"), dict) else {}
     if rec.get("success") and not rec.get("export_error") and real.get("written"):
         prog = ctx.path("robot/program.json")
         return (f"robot task: [green]success[/]; real arm: {escape(str(prog))} (arm phases and blocking gripper "
@@ -208,18 +217,16 @@ def _print_headline(ctx) -> None:
     if "splats" in r and r["splats"]:
         s = r["splats"]
         masked = ""
-        try:   # held-out figures over the pixels the capture's loss masks keep (metrics.json loss_masks)
-            lm = json.loads(ctx.path("splat/eval/metrics.json").read_text()).get("loss_masks")
-            masked = " (over loss-masked pixels)" if isinstance(lm, dict) and lm.get("applied") else ""
-        except (OSError, ValueError, AttributeError):
-            pass
+        # held-out figures over the pixels the capture's loss masks keep (metrics.json loss_masks)
+        lm = (_record(ctx.path("splat/eval/metrics.json")) or {}).get("loss_masks")
+        masked = " (over loss-masked pixels)" if isinstance(lm, dict) and lm.get("applied") else ""
         con.print(f"reconstruction: {s['gaussians']} Gaussians, {s['split']} PSNR {s['psnr']:.2f} dB, "
                   f"SSIM {s['ssim']:.4f}{masked}")
     # only stages this run ran or found up to date (ctx.results): after `--until splats` the semantics and
     # twin of an earlier build are still on disk, but nothing vouches that they match the new splats
     fj = ctx.path("semantics/fusion.json")
-    if "semantics" in r and fj.is_file():
-        f = json.loads(fj.read_text())
+    f = _record(fj) if "semantics" in r else None
+    if f:
         if f.get("miou_heldout") is not None:
             con.print(f"semantics: held-out mIoU {f['miou_heldout']:.3f}")
         elif f.get("miou_heldout_masks") is not None:
@@ -227,9 +234,8 @@ def _print_headline(ctx) -> None:
             con.print(f"semantics: held-out mIoU {f['miou_heldout_masks']:.3f} against the 2D masks of "
                       f"{plural(n, 'held-out view')} (not used by the fusion)")
     gj = ctx.path("geometry_metrics.json")
-    if "twin" in r and gj.is_file():
-        g = json.loads(gj.read_text())
-        if g:
+    g = _record(gj) if "twin" in r else None
+    if g:
             con.print("geometry: F1@5mm " + ", ".join(f"{k} {v['f1']:.3f}" for k, v in g.items())
                       + _gt_placement(ctx.out / "twin.json"), highlight=False)
     if r.get("robot", {}).get("error"):
