@@ -234,9 +234,9 @@ def write_outputs(out: str | Path, spec, result, trials: dict | None, render_not
 def _task_digest(task_path: str | None) -> str | None:
     """sha256 of the task file's bytes (the default task's when None)."""
     from splattwin.robot.task import default_task_path
-    from splattwin.robot.trials import _file_digest
+    from splattwin.robot.trials import file_digest
 
-    return _file_digest(task_path or default_task_path())
+    return file_digest(task_path or default_task_path())
 
 
 def _criteria() -> dict:

@@ -140,7 +140,7 @@ def run_once(spec: TrialSpec, frame_dir: str | Path | None = None, keep_trajecto
     return result, (rec.note if rec is not None else ""), (rec.paths if rec is not None else [])
 
 
-def _file_digest(path: str | Path | None) -> str | None:
+def file_digest(path: str | Path | None) -> str | None:
     """sha256 of a file's bytes (None for no file): a rebuilt twin or an edited task is another trial."""
     from splattwin.hashing import sha256_file
 
@@ -172,13 +172,13 @@ def trial_key(spec: TrialSpec) -> dict:
     from splattwin.hashing import code_digest
 
     return {"twin": str(Path(spec.twin_dir).resolve()),
-            "twin_json_sha256": _file_digest(Path(spec.twin_dir) / "twin.json"),
+            "twin_json_sha256": file_digest(Path(spec.twin_dir) / "twin.json"),
             "twin_meshes_sha256": twin_meshes_digest(spec.twin_dir),
             "code": code_digest(("splattwin.robot", "splattwin.twin")),
             "task": str(Path(spec.task_path).resolve()) if spec.task_path else None,
-            "task_sha256": _file_digest(spec.task_path),
+            "task_sha256": file_digest(spec.task_path),
             "robot_mjcf": str(Path(spec.robot_mjcf).resolve()) if spec.robot_mjcf else None,
-            "robot_mjcf_sha256": _file_digest(spec.robot_mjcf),
+            "robot_mjcf_sha256": file_digest(spec.robot_mjcf),
             "tcp_site": spec.tcp_site if spec.robot_mjcf else None,
             "base": asdict(spec.base), "planner": spec.planner, "in_hand": spec.in_hand, "seed": spec.seed, "sigma": spec.sigma,
             "sigma_yaw": default_sigma_yaw(spec.sigma) if spec.sigma_yaw is None else spec.sigma_yaw}
