@@ -37,7 +37,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, help="MP4 to write")
     p.add_argument("--rollout", type=Path, default=None, help="rollout .npz (default TWIN/robot/rollout.npz)")
     p.add_argument("--fps", type=float, default=30.0, help="video frame rate (default 30)")
-    p.add_argument("--width", type=int, default=None, help="rescale the camera to this width (pixels; the wrist camera too, aspect kept)")
+    p.add_argument("--width", type=int, default=None,
+                   help="rescale the camera to this width (pixels; the wrist camera too, aspect kept)")
     p.add_argument("--base-pose", default=None,
                    help="robot base in the twin frame: x,y,z,yaw (m, rad); write --base-pose=-0.5,0,0,0 "
                         "(default: the one `splattwin plan` recorded in the results.json beside the rollout, "
