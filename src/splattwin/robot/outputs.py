@@ -3,8 +3,9 @@
     results.json                 task (its path and `task_sha256`), the success criteria (`criteria`),
                                  base pose and frame, exported joint names, per-step results and the
                                  task's step list (`nominal.task_steps`, with each region's numbers: the
-                                 steps after a failed one were not attempted), the servos' tracking error (`tracking_error`), trials summary (sigma per axis,
-                                 its definition, sigma_yaw), notes
+                                 steps after a failed one were not attempted), the servos' tracking error
+                                 (`tracking_error`), trials summary (sigma per axis, its definition,
+                                 sigma_yaw), notes
     trials/<i>.json              each finished perturbed trial (reused by a re-run with the same key)
     trials/<i>.rollout.npz       its rollout, kept when the run is recorded (`plan --record`); both written
                                  by the trial's worker (`trials.run_trials`), the rollout first

@@ -102,8 +102,8 @@ def obstacle_material():
 
 def twin_scene(twin_dir: Path, manifest: Manifest, y_up: bool = True) -> trimesh.Scene:
     """trimesh Scene of the twin as the GLB holds it (module docstring): lengths in metres (twin frame
-    units if unscaled), vertex colours linear float in `COLOR_ATTRIBUTE`; y_up: the root node `twin_z_up` turns the z-up twin frame
-    into glTF's y-up one (else identity)."""
+    units if unscaled), vertex colours linear float in `COLOR_ATTRIBUTE`; y_up: the root node `twin_z_up`
+    turns the z-up twin frame into glTF's y-up one (else identity)."""
     scene = trimesh.Scene()
     # glTF lengths are metres by spec: an unscaled twin says what its numbers are (scene extras)
     scene.metadata["splattwin"] = {"units": manifest.frame.units, "scaled": bool(manifest.frame.scaled),
