@@ -419,3 +419,28 @@ def test_a_record_nested_too_deeply_to_write_back_is_refused_when_read(tmp_path)
         read_json(twin / "pipeline.json", max_bytes=MAX_RECORD_BYTES)
     (twin / "pipeline.json").write_text('{"robot": {}, "x": ' + "[" * 50 + "]" * 50 + "}")
     assert record_plan_run(twin, 1.0, 0.5) is True
+
+
+def test_render_and_view_read_robot_results_within_the_record_limit(tmp_path, monkeypatch):
+    """robot/results.json of a received twin is read by `render` (the failed-run note, the stale check) and the
+    viewer (the stale-motion check) within the 64 MiB record limit, not the 1 GiB limit meant for COCO files
+    (~10 GB to parse at that size). Over the limit it counts as unreadable: no note, and no motion vouched for."""
+    import json
+
+    from splattwin import limits
+    from splattwin.playback.cli import _failed_run
+    from splattwin.playback.view_model import _made_on_another_twin
+    from splattwin.robot.outputs import stale_results
+
+    rj = tmp_path / "robot" / "results.json"
+    rj.parent.mkdir()
+    rj.write_text(json.dumps({"nominal": {"success": False, "steps": [{"index": 1, "pick": "cube", "goal": "box",
+                                                                       "success": False, "failure": "slipped"}]},
+                              "twin_digest": "0" * 64, "pad": "x" * 5000}))
+    assert "slipped" in _failed_run(rj)                                   # read within the limit
+    assert "earlier state" in _made_on_another_twin(tmp_path)
+    assert "earlier state" in stale_results(tmp_path)
+    monkeypatch.setattr(limits, "MAX_RECORD_BYTES", 4000)
+    assert _failed_run(rj) is None
+    assert _made_on_another_twin(tmp_path) is None
+    assert stale_results(tmp_path) == "robot/results.json is unreadable"

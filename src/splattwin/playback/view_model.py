@@ -78,11 +78,12 @@ def _made_on_another_twin(twin_dir: Path) -> str | None:
     """Why robot/results.json belongs to another state of the twin, or None (it matches, or says nothing)."""
     from splattwin import io
     from splattwin.errors import InputError
+    from splattwin.limits import MAX_RECORD_BYTES
     from splattwin.robot.outputs import results_twin
 
     rj = twin_dir / "robot" / "results.json"
     try:
-        results = io.read_json(rj) if rj.is_file() else None
+        results = io.read_json(rj, max_bytes=MAX_RECORD_BYTES) if rj.is_file() else None
     except InputError:
         return None
     if not isinstance(results, dict) or not isinstance(results.get("twin_digest"), str):

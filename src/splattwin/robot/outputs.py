@@ -161,8 +161,10 @@ def stale_results(twin_dir: str | Path) -> str | None:
     if not rj.is_file():   # written last: the run that wrote the other files did not finish
         return ("robot/results.json is missing: the `splattwin plan` run that wrote robot/ did not finish "
                 "(stopped or killed); run it again")
+    from splattwin.limits import MAX_RECORD_BYTES
+
     try:
-        results = io.read_json(rj)
+        results = io.read_json(rj, max_bytes=MAX_RECORD_BYTES)
     except InputError:
         results = None
     return results_twin(results, twin_dir)
