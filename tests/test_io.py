@@ -73,3 +73,23 @@ def test_remove_stale_removes_only_gone_entries_and_never_follows_a_link(tmp_pat
     (d / "link").symlink_to(outside)
     assert [p.name for p in io.remove_stale(d, {"sub"}, dirs=True)] == ["gone"]
     assert (d / "link").is_symlink() and (outside / "keep.ply").is_file()
+
+
+def test_read_record_is_none_for_a_missing_oversized_or_broken_record(tmp_path, monkeypatch):
+    """io.read_record: the readers that go on without a record (report, headline, stale checks, SfM's work
+    records) get None for one that is missing, over the record limit, not JSON or nested too deeply."""
+    import json
+
+    from splattwin import io, limits
+
+    p = tmp_path / "r.json"
+    assert io.read_record(p) is None
+    p.write_text(json.dumps({"a": [1, 2]}))
+    assert io.read_record(p) == {"a": [1, 2]}
+    p.write_text("{not json")
+    assert io.read_record(p) is None
+    p.write_text("[" * 200 + "]" * 200)
+    assert io.read_record(p) is None
+    p.write_text(json.dumps({"pad": "x" * 5000}))
+    monkeypatch.setattr(limits, "MAX_RECORD_BYTES", 4000)
+    assert io.read_record(p) is None

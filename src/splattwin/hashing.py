@@ -144,15 +144,11 @@ def output_digest(folder: str | Path, rel: str, cache: DigestCache) -> str:
     (`DigestCache.digest`), or for a JSON file that records its run (`_RUN_RECORDS`: twin.json) the digest
     of the JSON less those entries ("json:..."; a file that does not parse as an object: its bytes')."""
     from splattwin import io
-    from splattwin.limits import MAX_RECORD_BYTES
 
     p = Path(folder) / rel
     skip = _RUN_RECORDS.get(Path(rel).as_posix())
     if skip and p.is_file():
-        try:
-            doc = io.read_json(p, max_bytes=MAX_RECORD_BYTES)
-        except InputError:
-            doc = None
+        doc = io.read_record(p)
         if isinstance(doc, dict):
             doc = {k: v for k, v in doc.items() if k not in skip}
             return "json:" + hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()

@@ -255,3 +255,16 @@ def read_json(path: str | Path, missing: str = "file not found", max_bytes: int 
     from splattwin.limits import read_json as _read
 
     return _read(path, missing, max_bytes)
+
+
+def read_record(path: str | Path) -> Any:
+    """A stage's JSON record read within `splattwin.limits.MAX_RECORD_BYTES`, or None when it is missing,
+    unreadable, over that limit or not valid JSON: for readers that go on without it (the report, the build's
+    headline, stale checks) of a twin that may be someone else's."""
+    from splattwin import limits
+    from splattwin.errors import InputError
+
+    try:
+        return read_json(path, max_bytes=limits.MAX_RECORD_BYTES)
+    except InputError:
+        return None

@@ -143,13 +143,8 @@ def _record(path: Path) -> dict | None:
     """A stage's JSON record for the headline, or None when it is missing, unreadable, over the record limit or
     not an object. Up-to-date stages are skipped, so these may be files of a received twin, not this run's."""
     from splattwin import io
-    from splattwin.errors import InputError
-    from splattwin.limits import MAX_RECORD_BYTES
 
-    try:
-        doc = io.read_json(path, max_bytes=MAX_RECORD_BYTES)
-    except InputError:
-        return None
+    doc = io.read_record(path)
     return doc if isinstance(doc, dict) else None
 
 

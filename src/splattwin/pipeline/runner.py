@@ -145,12 +145,7 @@ def load_state(out: Path) -> dict[str, Any]:
     p = out / STATE_NAME
     if not p.is_file():
         return {}
-    try:
-        from splattwin.limits import MAX_RECORD_BYTES
-
-        state = io.read_json(p, max_bytes=MAX_RECORD_BYTES)
-    except InputError:
-        state = None
+    state = io.read_record(p)
     if not isinstance(state, dict) or not all(isinstance(v, dict) for v in state.values()):
         log.warning("%s is corrupt; re-running all stages", p)
         return {}

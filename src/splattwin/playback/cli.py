@@ -203,17 +203,15 @@ def _failed_run(results_json: Path | None, limit: int = 240) -> str | None:
     """Why the run of `results_json` failed, in a short sentence (its first failed step), or None when it
     succeeded or its results cannot say (none, unreadable: the render goes on, as before)."""
     from splattwin import io
-    from splattwin.errors import InputError
-    from splattwin.limits import MAX_RECORD_BYTES
 
     if results_json is None or not results_json.is_file():
         return None
     try:
-        nominal = io.read_json(results_json, max_bytes=MAX_RECORD_BYTES).get("nominal") or {}
+        nominal = (io.read_record(results_json) or {}).get("nominal") or {}
         if not isinstance(nominal, dict) or nominal.get("success") is not False:
             return None
         bad = next((st for st in nominal.get("steps") or [] if isinstance(st, dict) and not st.get("success")), None)
-    except (OSError, InputError, AttributeError):
+    except (OSError, AttributeError):
         return None
     if bad is None:
         return "not every step ran"

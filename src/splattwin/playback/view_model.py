@@ -77,15 +77,9 @@ def load_robot_track(twin_dir: str | Path) -> RobotTrack | None:
 def _made_on_another_twin(twin_dir: Path) -> str | None:
     """Why robot/results.json belongs to another state of the twin, or None (it matches, or says nothing)."""
     from splattwin import io
-    from splattwin.errors import InputError
-    from splattwin.limits import MAX_RECORD_BYTES
     from splattwin.robot.outputs import results_twin
 
-    rj = twin_dir / "robot" / "results.json"
-    try:
-        results = io.read_json(rj, max_bytes=MAX_RECORD_BYTES) if rj.is_file() else None
-    except InputError:
-        return None
+    results = io.read_record(twin_dir / "robot" / "results.json")
     if not isinstance(results, dict) or not isinstance(results.get("twin_digest"), str):
         return None
     return results_twin(results, twin_dir)

@@ -572,7 +572,7 @@ class SfmRun:
         if same_features != db and self._done(same_features, "extract"):
             # re-matching only (guided): copy the features, drop the matches
             _copy_features(same_features, db)
-            self._mark(db, "extract", cache_record(db.parent / f"{same_features.stem}.extract.done") or {})
+            self._mark(db, "extract", io.read_record(db.parent / f"{same_features.stem}.extract.done") or {})
             return db
         o = self.opts
         bound = o.max_image_size if o.max_image_size > 0 else 1 << 30
@@ -683,7 +683,7 @@ class SfmRun:
         """Re-register `names` against the model `base` (colmap_worker's recover step); its result dict
         ({} if the step failed: recovery is a bonus, the trusted model stays)."""
         info = out.parent / f"{out.name}.json"
-        rec = cache_record(info)
+        rec = io.read_record(info)
         if isinstance(rec, dict):
             self.recovery = rec
             return self.recovery
@@ -712,7 +712,7 @@ class SfmRun:
         step_merge), with the mapping options of `mapping` (an attempt's own: "fixed_focal" keeps the
         focal lengths in the merge's bundle adjustment too); None if nothing could be added."""
         info = out.parent / f"{out.name}.json"
-        rec = cache_record(info)
+        rec = io.read_record(info)
         if isinstance(rec, dict):
             merged = _cached_models(info, "path", self.work)
             return merged[0] if rec.get("merged") and merged else None
@@ -766,7 +766,7 @@ def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | No
 
         key["feature_masks"] = {n: sha256_file(m) for n, m in sorted(mask_names.items())}
     key_path, model_dir = work / "sfm_config.json", work / "sparse"
-    if key_path.is_file() and cache_record(key_path) != json.loads(json.dumps(key)):
+    if key_path.is_file() and io.read_record(key_path) != json.loads(json.dumps(key)):
         log.info("SfM options or images changed: starting over in %s", work)
         clear_work(work)
     io.write_json(key_path, key)
@@ -774,7 +774,7 @@ def run_sfm(image_paths: list[Path], work_dir: str | Path, opts: SfmOptions | No
     with StageProgress(progress) as bar:
         if (model_dir / "done").is_file():
             bar.update("SfM: re-using the finished model", 1, 1)
-            meta = cache_record(model_dir / "done")   # (an older version wrote no JSON there: {})
+            meta = io.read_record(model_dir / "done")   # (an older version wrote no JSON there: {})
             meta = meta if isinstance(meta, dict) else {}
             rec = read_cached_model(model_dir)
             res = result_from_reconstruction(rec, names, {}, image_root)
@@ -848,7 +848,7 @@ def clear_work(work: Path) -> None:
 
 
 def run_attempts_log(work: Path) -> list[dict]:
-    log_ = cache_record(work / "attempts.json")
+    log_ = io.read_record(work / "attempts.json")
     return log_ if isinstance(log_, list) else []
 
 
@@ -856,24 +856,12 @@ def run_attempts_log(work: Path) -> list[dict]:
 # An interrupted SfM resumes from OUT/sfm. That folder may be someone else's (a received poses or twin folder
 # built into again): its records are read bounded, a malformed one counts as absent (the step runs again), the
 # models they name must lie in the folder, and a finished model is checked as any COLMAP model before pycolmap.
-def cache_record(path: Path):
-    """The JSON record at `path`, or None when it is absent, too large, nested too deeply or not JSON."""
-    from splattwin.limits import MAX_RECORD_BYTES, read_json
-
-    if not path.is_file():
-        return None
-    try:
-        return read_json(path, max_bytes=MAX_RECORD_BYTES)
-    except InputError:
-        return None
-
-
 def _cached_models(info: Path, key: str, work: Path) -> list[Path]:
     """The model folders a record names under `key` (a path or a list of paths) when every one is a folder inside
     `work` (symbolic links resolved); [] otherwise (the step runs again)."""
     from splattwin.paths import is_inside
 
-    rec = cache_record(info)
+    rec = io.read_record(info)
     got = rec.get(key) if isinstance(rec, dict) else None
     got = [got] if isinstance(got, str) else got
     if not isinstance(got, list) or not got or not all(isinstance(p, str) and p for p in got):

@@ -139,10 +139,10 @@ def triangulate_known_poses(image_paths: list[Path], cameras: list[Camera], work
         key_path = work / "triangulation_config.json"
         import json
 
-        from splattwin.poses.sfm import cache_record, read_cached_model
+        from splattwin.poses.sfm import read_cached_model
 
         # (the work folder may be a received one: its records bounded, its finished model checked, as SfM's)
-        if key_path.is_file() and cache_record(key_path) != json.loads(json.dumps(key)):
+        if key_path.is_file() and io.read_record(key_path) != json.loads(json.dumps(key)):
             from splattwin.poses.sfm import clear_work
 
             clear_work(work)
@@ -176,7 +176,7 @@ def triangulate_known_poses(image_paths: list[Path], cameras: list[Camera], work
         rgb = np.array([pts[i].color for i in ids], dtype=np.uint8).reshape(-1, 3)
         err = np.array([pts[i].error for i in ids], dtype=np.float64)
         tl = np.array([pts[i].track.length() for i in ids], dtype=np.int64)
-        info = cache_record(out / "done")
+        info = io.read_record(out / "done")
         info = {k: v for k, v in info.items() if k in ("timings", "peak_rss_gib")} if isinstance(info, dict) else {}
         keep = outlier_mask(xyz, err)
         xyz, rgb, err, tl = xyz[keep], rgb[keep], err[keep], tl[keep]

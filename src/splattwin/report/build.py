@@ -41,12 +41,7 @@ def _json(path: Path):
     """A stage's JSON artifact, or None when that stage did not run (or left nothing readable). Read within the
     record limit: the twin may be someone else's, and 1 GiB of JSON (the limit meant for COCO files) costs ~10 GB
     to parse."""
-    from splattwin.limits import MAX_RECORD_BYTES
-
-    try:
-        return io.read_json(path, max_bytes=MAX_RECORD_BYTES)
-    except InputError:
-        return None
+    return io.read_record(path)
 
 
 def render_meshes(meshes: list, T_world_cam: np.ndarray, K: np.ndarray, width: int, height: int,
@@ -240,15 +235,8 @@ def record_plan_run(twin_dir: str | Path, seconds: float, peak_rss_gib: float) -
     it recorded. An unreadable pipeline.json is left as it is (the report then shows no timings)."""
     import time
 
-    from splattwin.limits import MAX_RECORD_BYTES
-
     path = Path(twin_dir) / "pipeline.json"
-    if not path.is_file():
-        return False
-    try:
-        state = io.read_json(path, max_bytes=MAX_RECORD_BYTES)
-    except InputError:
-        return False
+    state = io.read_record(path)
     if not isinstance(state, dict) or not isinstance(state.get("robot"), dict):
         return False
     state["robot"][PLAN_RUN] = {"seconds": float(seconds), "peak_rss_gib": float(peak_rss_gib),

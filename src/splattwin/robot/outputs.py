@@ -155,19 +155,11 @@ def results_twin(results, twin_dir: str | Path) -> str | None:
 def stale_results(twin_dir: str | Path) -> str | None:
     """`results_twin` of TWIN/robot/results.json as it is on disk (an unreadable file counts as unreadable, a
     missing one says so): None when it belongs to the twin as it is now, else why not."""
-    from splattwin.errors import InputError
-
     rj = Path(twin_dir) / "robot" / "results.json"
     if not rj.is_file():   # written last: the run that wrote the other files did not finish
         return ("robot/results.json is missing: the `splattwin plan` run that wrote robot/ did not finish "
                 "(stopped or killed); run it again")
-    from splattwin.limits import MAX_RECORD_BYTES
-
-    try:
-        results = io.read_json(rj, max_bytes=MAX_RECORD_BYTES)
-    except InputError:
-        results = None
-    return results_twin(results, twin_dir)
+    return results_twin(io.read_record(rj), twin_dir)
 
 
 def write_outputs(out: str | Path, spec, result, trials: dict | None, render_note: str = "",

@@ -360,12 +360,9 @@ def _segment_key(images: dict[str, Path], prompts: dict[int, str], options: Segm
 
 def _read_segment_key(out_dir: Path) -> dict | None:
     """The saved key, or None (absent, unreadable or malformed: nothing is reused)."""
-    from splattwin.limits import MAX_RECORD_BYTES, read_json
+    from splattwin import io
 
-    try:
-        k = read_json(out_dir / SEGMENT_KEY, max_bytes=MAX_RECORD_BYTES)
-    except InputError:
-        return None
+    k = io.read_record(out_dir / SEGMENT_KEY)
     if not (isinstance(k, dict) and isinstance(k.get("run"), str) and isinstance(k.get("views"), dict)):
         return None
     return k

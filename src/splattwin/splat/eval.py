@@ -260,12 +260,9 @@ def training_record(path: Path) -> dict:
 def _earlier_images(out: Path) -> list[str]:
     """The comparison images an earlier evaluation into `out` wrote, as its metrics.json lists them: plain
     .png file names only ([] without a readable metrics.json)."""
-    from splattwin.limits import MAX_RECORD_BYTES, read_json
+    from splattwin import io
 
-    try:
-        prev = read_json(out / "metrics.json", max_bytes=MAX_RECORD_BYTES)
-    except InputError:
-        return []
+    prev = io.read_record(out / "metrics.json")
     rows = prev.get("views") if isinstance(prev, dict) else None
     names = [r.get("image") for r in (rows if isinstance(rows, list) else []) if isinstance(r, dict)]
     return [n for n in names if isinstance(n, str) and n.endswith(".png") and n == Path(n).name
