@@ -1,3 +1,4 @@
+import os
 from pathlib import Path
 
 import numpy as np
@@ -107,7 +108,7 @@ def test_a_jpeg_picture_is_close_to_its_source_and_a_flat_png_is_exact(tmp_path)
 
 def test_report_renders_in_chromium(tmp_path):
     path = _report(tmp_path)
-    png = screenshot(path.as_uri(), tmp_path / "shot.png", width=900, height=700, budget_ms=2000)
+    png = screenshot(path.as_uri(), tmp_path / "shot.png", width=900, height=700)
     shot = np.asarray(Image.open(png).convert("RGB")).astype(int)
     # the page is not blank: the dark header and the red embedded image are drawn
     assert (shot.sum(axis=2) < 150).mean() > 0.01
@@ -128,62 +129,112 @@ def test_side_by_side_and_heatmap():
     assert tall.shape == (14, 18, 3) and tall[10:, :12].min() == 1.0  # short image padded white
 
 
-def test_screenshot_waits_longer_for_a_page_that_draws_late(tmp_path):
-    # The page stays blank white until its script draws, 1.5 s of (virtual) time after load: a 1 s
-    # budget catches it blank, the retry with a longer budget sees the drawing.
+def test_screenshot_waits_for_a_page_that_draws_late(tmp_path):
+    # The page stays blank white until its script draws, 1.5 s after load: the first picture (0.3 s after
+    # load) is blank, the later ones see the drawing.
     page = tmp_path / "late.html"
     page.write_text("<html><body style='margin:0;background:#fff'><script>setTimeout(function(){"
                     "var d=document.createElement('div');d.style.cssText='width:300px;height:200px;background:#f00';"
                     "document.body.appendChild(d);},1500);</script></body></html>")
-    png = screenshot(page.as_uri(), tmp_path / "late.png", width=400, height=300, budget_ms=1000)
+    png = screenshot(page.as_uri(), tmp_path / "late.png", width=400, height=300, settle_ms=300)
     shot = np.asarray(Image.open(png).convert("RGB")).astype(int)
+    assert shot.shape == (300, 400, 3)
     red = (shot[..., 0] > 200) & (shot[..., 1] < 60) & (shot[..., 2] < 60)
-    assert red.sum() > 10000
+    assert red.sum() == 300 * 200
 
 
-def _fake_chromium(tmp_path, monkeypatch, picture: bool):
-    """A stand-in for Chromium that records where it was told to write and, if `picture`, writes a
-    two-colour PNG there (the real one writes its --screenshot file itself)."""
+def test_screenshot_waits_until_the_caller_calls_the_picture_ready(tmp_path):
+    """`ready` decides: a page that turns its square from red to green after 2 s is pictured green when the
+    caller waits for green, and the last (red) picture comes back when it never gets ready in time."""
+    page = tmp_path / "turns.html"
+    page.write_text("<html><body style='margin:0;background:#fff'><div id=d style='width:100px;height:100px;"
+                    "background:#f00'></div><script>setTimeout(function(){document.getElementById('d')"
+                    ".style.background='#0f0';},2000);</script></body></html>")
+
+    def green(rgb):
+        return bool(rgb[50, 50, 1] > 200 and rgb[50, 50, 0] < 60)
+
+    png = screenshot(page.as_uri(), tmp_path / "green.png", width=200, height=200, settle_ms=0, ready=green)
+    assert green(np.asarray(Image.open(png).convert("RGB")))
+    png = screenshot(page.as_uri(), tmp_path / "red.png", width=200, height=200, settle_ms=0, ready=green,
+                     timeout_s=1.0)
+    shot = np.asarray(Image.open(png).convert("RGB"))
+    assert tuple(shot[50, 50]) == (255, 0, 0)
+
+
+def _fake_chromium(tmp_path, monkeypatch, behaviour: str):
+    """A stand-in for Chromium that logs its pid and then either hangs without opening its DevTools port
+    ("hang") or exits with code 3 at once ("exit"), printing a line to stderr first."""
     import sys
 
     import splattwin.report.screenshot as shot
 
-    log = tmp_path / "told.txt"
+    log = tmp_path / "pids.txt"
     script = tmp_path / "fake-chromium"
     script.write_text(
         f"#!{sys.executable}\n"
-        "import sys\n"
-        "from PIL import Image\n"
-        "path = next(a.split('=', 1)[1] for a in sys.argv if a.startswith('--screenshot='))\n"
-        f"open({str(log)!r}, 'a').write(path + '\\n')\n"
-        + ("im = Image.new('RGB', (8, 8), (255, 0, 0)); im.putpixel((0, 0), (0, 0, 255)); im.save(path)\n"
-           if picture else ""))
+        "import os, sys, time\n"
+        f"open({str(log)!r}, 'a').write(str(os.getpid()) + '\\n')\n"
+        "print('fake chromium: GPU process isn\\'t usable', file=sys.stderr, flush=True)\n"
+        + ("time.sleep(1000)\n" if behaviour == "hang" else "sys.exit(3)\n"))
     script.chmod(0o755)
     monkeypatch.setattr(shot, "find_chromium", lambda: str(script))
     return log
 
 
-def test_screenshot_is_written_atomically(tmp_path, monkeypatch):
-    """Chromium writes into a temporary file beside the target, renamed onto it when it is done: a killed
-    run never leaves a half-written PNG under the artifact's name, and no temporary file is left."""
-    log = _fake_chromium(tmp_path, monkeypatch, picture=True)
+def test_screenshot_kills_a_chromium_that_hangs_and_says_what_it_printed(tmp_path, monkeypatch):
+    import time
+
+    import pytest
+
+    log = _fake_chromium(tmp_path, monkeypatch, "hang")
     out = tmp_path / "shots" / "view.png"
     out.parent.mkdir()
     out.write_bytes(b"old")
-    assert screenshot("file:///nothing.html", out, budget_ms=1000) == out.resolve()
-    told = [Path(p) for p in log.read_text().split()]
-    assert len(told) == 1 and told[0] != out.resolve() and told[0].parent == out.resolve().parent
-    assert told[0].suffix == ".png"   # Chromium picks the format by the extension
-    with Image.open(out) as im:
-        assert im.size == (8, 8)
-    assert sorted(p.name for p in out.parent.iterdir()) == ["view.png"]
+    t0 = time.monotonic()
+    with pytest.raises(RuntimeError, match="no screenshot.*did not open its DevTools port.*GPU process isn't usable"):
+        screenshot("file:///nothing.html", out, timeout_s=3.0)
+    assert time.monotonic() - t0 < 10
+    pids = [int(p) for p in log.read_text().split()]
+    assert len(pids) == 1
+    with pytest.raises(ProcessLookupError):   # killed, not left running
+        os.kill(pids[0], 0)
+    assert list(out.parent.iterdir()) == []   # the old picture is gone, nothing half-written
 
 
-def test_screenshot_without_a_picture_leaves_nothing(tmp_path, monkeypatch):
+def test_screenshot_starts_chromium_again_when_it_dies(tmp_path, monkeypatch):
     import pytest
 
-    _fake_chromium(tmp_path, monkeypatch, picture=False)
+    import splattwin.report.screenshot as shot
+
+    log = _fake_chromium(tmp_path, monkeypatch, "exit")
+    with pytest.raises(RuntimeError, match="exited with code 3 at start-up"):
+        screenshot("file:///nothing.html", tmp_path / "view.png", timeout_s=60.0)
+    assert len(log.read_text().split()) == shot.MAX_TRIES
+
+
+def test_screenshot_is_written_atomically(tmp_path, monkeypatch):
+    """The picture goes to a temporary file beside the target, renamed onto it: no temporary file is left,
+    and a failed picture leaves neither a new nor the old file."""
+    import pytest
+
+    import splattwin.report.screenshot as shot
+
+    buf = __import__("io").BytesIO()
+    Image.new("RGB", (8, 6), (255, 0, 0)).save(buf, format="PNG")
+    monkeypatch.setattr(shot, "_capture", lambda *a: buf.getvalue())
     out = tmp_path / "shots" / "view.png"
-    with pytest.raises(RuntimeError, match="no screenshot"):
-        screenshot("file:///nothing.html", out, budget_ms=1000)
+    out.parent.mkdir()
+    out.write_bytes(b"old")
+    assert screenshot("file:///nothing.html", out) == out.resolve()
+    with Image.open(out) as im:
+        assert im.size == (8, 6)
+    assert sorted(p.name for p in out.parent.iterdir()) == ["view.png"]
+
+    def fail(*a):
+        raise RuntimeError("chromium produced no screenshot")
+
+    monkeypatch.setattr(shot, "_capture", fail)
+    with pytest.raises(RuntimeError):
+        screenshot("file:///nothing.html", out)
     assert list(out.parent.iterdir()) == []

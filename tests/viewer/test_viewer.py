@@ -80,15 +80,21 @@ def test_viewer_page_shows_content(tmp_path):
     twin = _twin(tmp_path)
     port = _free_port()
     server = serve(twin, host="127.0.0.1", port=port, block=False)
+
+    def reddish(img):
+        img = img.astype(int)
+        return (img[..., 0] > 120) & (img[..., 0] > img[..., 1] + 50) & (img[..., 0] > img[..., 2] + 50)
+
     try:
-        png = screenshot(f"http://127.0.0.1:{port}/", tmp_path / "viewer.png", width=1000, height=700, budget_ms=12000)
+        # the splats stream in over the websocket: pictures are taken until they show (or 120 s pass)
+        png = screenshot(f"http://127.0.0.1:{port}/", tmp_path / "viewer.png", width=1000, height=700,
+                         ready=lambda img: reddish(img).sum() > 200)
     finally:
         server.stop()
     img = np.asarray(Image.open(png).convert("RGB")).astype(int)
     # Not an empty page: many distinct colours (GUI panel + 3D canvas), and the red splats are drawn.
     assert len(np.unique(img.reshape(-1, 3) // 8, axis=0)) > 20
-    reddish = (img[..., 0] > 120) & (img[..., 0] > img[..., 1] + 50) & (img[..., 0] > img[..., 2] + 50)
-    assert reddish.sum() > 200, "splats not visible in the viewer screenshot"
+    assert reddish(img).sum() > 200, "splats not visible in the viewer screenshot"
 
 
 def test_far_and_huge_splats_get_their_own_hidden_layer(tmp_path):
