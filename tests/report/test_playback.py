@@ -4,6 +4,7 @@ filled hole regions outlined with their fraction of the picture."""
 from __future__ import annotations
 
 import base64
+import json
 import re
 import sys
 from pathlib import Path
@@ -118,3 +119,24 @@ def test_report_shows_the_mujoco_overview_once_in_the_robot_section(twin_with_ro
     page = build_report(twin, options=ReportOptions(video_camera="view_0", video_fps=10.0, video_width=96)).read_text()
     assert "execution in MuJoCo" not in page and "no physics frames" in page
     assert "the robot section above" not in page
+
+
+@pytest.mark.parametrize("info", [{"width": "<b>", "height": 72, "frames": 5, "fps": 10.0},
+                                  {"width": 96, "height": 72, "frames": 5, "fps": "ten"}, ["not", "a", "dict"], None])
+def test_a_cached_video_record_with_bad_numbers_is_rendered_again(twin_with_rollout, info):
+    """report/task_X.json with the right key but its numbers text (a received twin's): the report stopped with
+    a ValueError formatting them; now the video is rendered again and the record rewritten."""
+    twin, _ = twin_with_rollout
+    opts = ReportOptions(video_camera="view_0", video_fps=10.0, video_width=96)
+    task_video(twin, opts)
+    keyfile = twin / "report" / "task_view_0.json"
+    rec = json.loads(keyfile.read_text())
+    good = rec["info"]
+    rec["info"] = info
+    keyfile.write_text(json.dumps(rec))
+    rep = Report("t")
+    playback_section(rep.section("motion"), twin, opts)
+    assert f"({good['width']}×{good['height']}, {good['frames']} frames" in rep.to_html()
+    again = json.loads(keyfile.read_text())["info"]
+    assert {k: again[k] for k in ("width", "height", "frames", "fps")} == {k: good[k] for k in ("width", "height",
+                                                                                              "frames", "fps")}

@@ -111,16 +111,13 @@ def task_video(twin: Path, options: ReportOptions, progress: bool = False) -> di
     safe = "".join(ch if ch.isalnum() or ch in "_-" else "_" for ch in spec)[:64]
     mp4 = twin / "report" / f"task_{safe}.mp4"
     keyfile = mp4.with_suffix(".json")
-    try:
-        # the cached video is embedded as it is: one that leads out of the twin (a received twin's link with a
-        # matching key, which the twin's own files give) would put any file of this machine into the report
-        cached = json.loads(keyfile.read_text()) if (keyfile.is_file() and mp4.is_file() and is_inside(mp4, twin)
-                                                     and is_inside(keyfile, twin)) else None
-    except (OSError, ValueError):
-        cached = None
-    if cached is not None and cached.get("key") == json.loads(json.dumps(key)):
-        info = cached["info"]
-    else:
+    # the cached video is embedded as it is: one that leads out of the twin (a received twin's link with a
+    # matching key, which the twin's own files give) would put any file of this machine into the report; its
+    # key file is read like any record of a received twin (bounded), and its numbers must be numbers
+    cached = io.read_record(keyfile) if (keyfile.is_file() and mp4.is_file() and is_inside(mp4, twin)
+                                         and is_inside(keyfile, twin)) else None
+    info = cached.get("info") if isinstance(cached, dict) and cached.get("key") == json.loads(json.dumps(key)) else None
+    if not _video_info_ok(info):
         info = render_rollout_video(renderer, rollout, camera, mp4, fps=options.video_fps, progress=progress)
         io.write_json(keyfile, {"key": key, "info": info})
     final, _ = rollout_state(rollout, len(rollout) - 1)
@@ -132,6 +129,14 @@ def task_video(twin: Path, options: ReportOptions, progress: bool = False) -> di
     return {"mp4": mp4, "info": info, "camera": spec, "picture": picture, "fill_fraction": fraction,
             "fill_area_m2": areas, "moved": moved, "light": scene.light,
             "light_check": check[0] if check is not None else None}
+
+
+def _video_info_ok(info) -> bool:
+    """A cached video's record as `render_rollout_video` writes it: positive frame counts, sizes and rate."""
+    if not isinstance(info, dict):
+        return False
+    nums = [info.get(k) for k in ("frames", "width", "height", "fps")]
+    return all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < 1e7 for v in nums)
 
 
 def playback_section(sec, twin: Path, options: ReportOptions | None = None) -> None:

@@ -88,9 +88,10 @@ def _fuse(args: argparse.Namespace) -> int:
         res = fuse_to_dir(args.splats, args.dataset, args.masks, args.out, opts.fusion, renderer=opts.renderer,
                           label_maps=opts.maps, naive=opts.naive, maps_renderer=opts.maps_renderer, metrics=True,
                           progress=args.progress)
-    import json
+    from splattwin import io
 
-    meta = json.loads((Path(args.out) / "fusion.json").read_text())
+    meta = io.read_record(Path(args.out) / "fusion.json")   # written just now; read like any record (bounded)
+    meta = meta if isinstance(meta, dict) else {}
     counts = ", ".join(f"{n}: {c}" for n, c in res.counts().items())
     extra = "".join(f", {k} {meta[k]:.3f}" for k in ("miou_train", "miou_heldout") if k in meta)
     if "miou_heldout_masks" in meta:
