@@ -74,11 +74,6 @@ def _polygon(xy: np.ndarray) -> np.ndarray:
         return np.array([a, b])
 
 
-def polygons(shape: Shape, T: np.ndarray) -> list[np.ndarray]:
-    """The footprint of `shape` posed at T_world_obj: one convex polygon (twin frame x, y, m) per part."""
-    return [_polygon(_posed(p, T)[:, :2]) for p in shape.parts]
-
-
 def _edges_distance(p: np.ndarray, poly: np.ndarray) -> float:
     """Distance (m) from the point p [2] to the closest edge of the closed polygon poly [K, 2]."""
     a, b = poly, np.roll(poly, -1, axis=0)
@@ -100,11 +95,6 @@ def polygon_distance(xy, poly: np.ndarray) -> float:
     """Horizontal distance (m) from the point xy to the convex polygon poly [K, 2]; 0 inside or on it."""
     p = np.asarray(xy, float)[:2]
     return 0.0 if _inside(p, poly) else _edges_distance(p, poly)
-
-
-def distance(xy, shape: Shape, T: np.ndarray) -> float:
-    """Horizontal distance (m) from the point xy (twin frame) to the footprint of `shape` at T; 0 on it."""
-    return min(polygon_distance(xy, poly) for poly in polygons(shape, T))
 
 
 def inradius(shape: Shape) -> float:
@@ -132,14 +122,45 @@ def _part_top(V: np.ndarray, xy: np.ndarray) -> float:
     return float(np.clip(z.min(), V[:, 2].min(), V[:, 2].max()))
 
 
+class Posed:
+    """A Shape at T_world_obj [4, 4]: its parts' vertices in the twin frame and their footprint polygons (twin
+    frame x, y, m; one convex polygon per part, their union the footprint), computed once for many queries."""
+
+    def __init__(self, shape: Shape, T: np.ndarray) -> None:
+        self.parts = [_posed(p, T) for p in shape.parts]
+        self.polygons = [_polygon(V[:, :2]) for V in self.parts]
+
+    def distance(self, xy) -> float:
+        """Horizontal distance (m) from the point xy (twin frame) to the footprint; 0 on it."""
+        return min(polygon_distance(xy, poly) for poly in self.polygons)
+
+    def top_at(self, xy) -> float | None:
+        """Height (m, twin frame) of the top over the point xy: the highest of the parts whose footprint holds
+        xy; None when none does (xy is off the footprint)."""
+        p = np.asarray(xy, float)[:2]
+        tops = [_part_top(V, p) for V, poly in zip(self.parts, self.polygons) if _inside(p, poly)]
+        return max(tops) if tops else None
+
+    def bottom(self) -> float:
+        """Height (m, twin frame) of the lowest point."""
+        return min(float(V[:, 2].min()) for V in self.parts)
+
+
+def polygons(shape: Shape, T: np.ndarray) -> list[np.ndarray]:
+    """The footprint of `shape` posed at T_world_obj: one convex polygon (twin frame x, y, m) per part."""
+    return Posed(shape, T).polygons
+
+
+def distance(xy, shape: Shape, T: np.ndarray) -> float:
+    """Horizontal distance (m) from the point xy (twin frame) to the footprint of `shape` at T; 0 on it."""
+    return Posed(shape, T).distance(xy)
+
+
 def top_at(shape: Shape, T: np.ndarray, xy) -> float | None:
-    """Height (m, twin frame) of the top of `shape` posed at T over the point xy: the highest of its parts
-    whose footprint holds xy; None when none does (xy is off its footprint)."""
-    p = np.asarray(xy, float)[:2]
-    tops = [_part_top(V, p) for V in (_posed(part, T) for part in shape.parts) if _inside(p, _polygon(V[:, :2]))]
-    return max(tops) if tops else None
+    """Height (m, twin frame) of the top of `shape` posed at T over the point xy (`Posed.top_at`)."""
+    return Posed(shape, T).top_at(xy)
 
 
 def bottom(shape: Shape, T: np.ndarray) -> float:
     """Height (m, twin frame) of the lowest point of `shape` posed at T."""
-    return min(float(_posed(p, T)[:, 2].min()) for p in shape.parts)
+    return Posed(shape, T).bottom()

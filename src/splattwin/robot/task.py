@@ -417,12 +417,13 @@ class TaskScene:
         ext = {n: np.asarray(o.bbox_extent, float) for n, o in objs.items()}
         poses = {n: np.asarray(o.pose, float).copy() for n, o in objs.items()}
         shapes = {n: object_shape(o, twin_dir) for n, o in objs.items()}
+        posed = {n: fp.Posed(shapes[n], T) for n, T in poses.items()}
         on: dict[str, str | None] = {}
         for n, T in poses.items():
-            low = fp.bottom(shapes[n], T)
+            low = posed[n].bottom()
             gaps = []
-            for m, S in poses.items():
-                top = fp.top_at(shapes[m], S, T[:2, 3]) if m != n else None
+            for m in poses:
+                top = posed[m].top_at(T[:2, 3]) if m != n else None
                 if top is not None and abs(low - top) < STACK_TOL:
                     gaps.append((abs(low - top), m))
             on[n] = min(gaps)[1] if gaps else None
