@@ -57,9 +57,20 @@ def test_the_footprint_of_an_l_is_its_arms_not_its_box():
     assert fp.top_at(L_SHAPE, T, at(0.05, -0.05)) == pytest.approx(0.1)
 
 
-def test_the_inradius_is_the_disc_one_part_covers():
+def test_the_inradius_is_the_disc_the_parts_cover_together():
+    """A reconstructed 2.5 cm cube came as 4 convex parts: its inradius is still 1.25 cm, not one part's."""
+    h = 0.0125
+    quarters = fp.Shape(tuple(_box([min(0, sx * h), min(0, sy * h), 0], [max(0, sx * h), max(0, sy * h), 0.025])
+                              for sx in (-1, 1) for sy in (-1, 1)))
+    assert fp.inradius(quarters) == pytest.approx(h, rel=1e-4)
+    # a cross of a 20 x 2 cm and a 4 x 20 cm bar: the nearest free point is the corner (2, 1) cm
     cross = fp.Shape((_box([-0.1, -0.01, 0], [0.1, 0.01, 0.02]), _box([-0.02, -0.1, 0], [0.02, 0.1, 0.02])))
-    assert fp.inradius(cross) == pytest.approx(0.02)    # the wider bar's half width (a lower bound: 2 cm)
+    # (by rays every 0.5 degrees: a ray just beside a concave corner ends 0.05 mm beyond it)
+    assert fp.inradius(cross) == pytest.approx(np.hypot(0.02, 0.01), rel=3e-3)
+    off = fp.Shape((_box([0.01, -0.02, 0], [0.05, 0.02, 0.02]),))     # the centre beside the only part
+    assert fp.inradius(off) == 0.0
+    turned = fp.Shape((fp._posed(_box([-0.05, -0.02, 0], [0.05, 0.02, 0.02]), pose_xyz_yaw(0, 0, 0, 0.4)),))
+    assert fp.inradius(turned) == pytest.approx(0.02, rel=1e-4)
 
 
 def test_the_top_is_the_mesh_under_the_point():
