@@ -313,3 +313,125 @@ def test_place_on_the_table_says_how_to_put_it_there(tmp_path: Path, gt_twin_sma
     with pytest.raises(InputError, match=r"step 1: place_on names 'Table', which is not in the twin .*to put an object "
                                          r"on the table, give a region there: place_in: \{center: \[x, y\], size: s\}"):
         validate_task(t, m, gt_twin_small, BasePose().matrix())
+
+
+# ---- footprints: the objects' collision meshes, not their bounding boxes -------------------------------
+
+
+def _reshaped(gt_twin_small: Path, tmp_path: Path, parts: list, extent: list, z: float | None = None) -> Path:
+    """A copy of the small twin whose cardboard box is made of the boxes `parts` ([lo, hi] corners, object
+    frame, m) with bounding box `extent`; its centre at height z when given (the box stands at its place)."""
+    import shutil
+
+    import trimesh
+
+    twin = tmp_path / "twin"
+    shutil.copytree(gt_twin_small, twin)
+    m = Manifest.load(twin)
+    box = m.object("cardboard_box")
+    rels = []
+    for k, (lo, hi) in enumerate(parts):
+        rel = f"objects/cardboard_box/parts/shaped_{k}.obj"
+        trimesh.creation.box(bounds=[lo, hi]).export(twin / rel)
+        rels.append(rel)
+    T = box.pose
+    if z is not None:
+        T[2, 3] = z
+    box.convex_parts, box.bbox_extent, box.T_world_obj = rels, list(extent), T.tolist()
+    m.save(twin)
+    return twin
+
+
+# the cardboard box's 20 x 15 cm bounding box as an L: a 5 cm arm along x at -y and one along y at -x
+L_ARMS = [([-0.1, -0.075, -0.05], [0.1, -0.025, 0.05]), ([-0.1, -0.025, -0.05], [-0.05, 0.075, 0.05])]
+
+
+def _at(m: Manifest, name: str, x: float, y: float) -> list[float]:
+    """The twin-frame [x, y] of the point (x, y) of an object's frame."""
+    return np.round((m.object(name).pose @ [x, y, 0.0, 1.0])[:2], 4).tolist()
+
+
+def test_a_goal_in_the_notch_of_an_l_is_free(tmp_path: Path, gt_twin_small: Path, caplog):
+    """Before, a goal centre anywhere in an object's bounding box was refused ('occupied'): the free notch of
+    an L-shaped object too. Now its collision mesh's footprint counts; a goal on an arm is still refused."""
+    import logging
+
+    twin = _reshaped(gt_twin_small, tmp_path, L_ARMS, [0.2, 0.15, 0.1])
+    m = Manifest.load(twin)
+    base = BasePose().matrix()
+    notch = _at(m, "cardboard_box", 0.04, 0.035)      # 6 cm from one arm, 9 cm from the other
+    t = load_task(_write(tmp_path, f"- pick: yellow_cube\n- place_in: {{center: {notch}, size: 0.1}}\n"), m)
+    with caplog.at_level(logging.WARNING, logger="splattwin.robot.task"):
+        validate_task(t, m, twin, base)
+    assert not caplog.records
+    arm = _at(m, "cardboard_box", 0.05, -0.05)
+    t = load_task(_write(tmp_path, f"- pick: yellow_cube\n- place_in: {{center: {arm}, size: 0.1}}\n"), m)
+    with pytest.raises(InputError, match=r"step 1: goal region 'region' is occupied: .* lies on 'cardboard_box'"):
+        validate_task(t, m, twin, base)
+    # 1 cm from the arm the 2.5 cm cube (1.25 cm inradius) reaches into it whatever its yaw: a warning
+    near = _at(m, "cardboard_box", 0.04, -0.015)
+    t = load_task(_write(tmp_path, f"- pick: yellow_cube\n- place_in: {{center: {near}, size: 0.1}}\n"), m)
+    with caplog.at_level(logging.WARNING, logger="splattwin.robot.task"):
+        validate_task(t, m, twin, base)
+    assert [r.getMessage() for r in caplog.records] == [
+        "step 1: 'yellow_cube' placed at the centre of goal region 'region' reaches 0.2 cm into the footprint of "
+        "'cardboard_box' at every yaw (1.0 cm from the centre): the place may collide with it"]
+
+
+def test_a_goal_beside_the_hammers_handle_is_free(tmp_path: Path, gt_twin_small: Path):
+    """The hammer's bounding box (19 x 8 cm) holds a 2.7 cm strip either side of its 2.5 cm handle: before,
+    a goal there was refused. Its head and handle (two convex parts) leave it free; on the handle, refused."""
+    m = Manifest.load(gt_twin_small)
+    base = BasePose().matrix()
+    beside = _at(m, "toy_hammer", -0.05, 0.03)
+    t = load_task(_write(tmp_path, f"- pick: yellow_cube\n- place_in: {{center: {beside}, size: 0.1}}\n"), m)
+    validate_task(t, m, gt_twin_small, base)
+    on = _at(m, "toy_hammer", -0.05, 0.0)
+    t = load_task(_write(tmp_path, f"- pick: yellow_cube\n- place_in: {{center: {on}, size: 0.1}}\n"), m)
+    with pytest.raises(InputError, match=r"lies on 'toy_hammer'"):
+        validate_task(t, m, gt_twin_small, base)
+
+
+def test_a_tall_object_beside_a_thin_one_does_not_stand_on_it(tmp_path: Path, gt_twin_small: Path):
+    """A 1.5 cm thin L on the table and the bottle in its notch: the bottle's centre is in the L's bounding box
+    and its bottom within 2 cm of the L's top, so before it 'stood on' the L (the L could not be picked: 'bottle
+    stands on cardboard_box'). Its centre is over no part of the L: it stands on the table."""
+    from splattwin.robot.task import TaskScene
+
+    thin = [([lo[0], lo[1], -0.0075], [hi[0], hi[1], 0.0075]) for lo, hi in L_ARMS]
+    twin = _reshaped(gt_twin_small, tmp_path, thin, [0.2, 0.15, 0.015], z=0.0075)
+    m = Manifest.load(twin)
+    bottle, cube = m.object("bottle"), m.object("yellow_cube")
+    T = bottle.pose
+    T[:2, 3] = _at(m, "cardboard_box", 0.04, 0.035)      # 3.5 cm radius: 2.5 cm clear of either arm
+    bottle.T_world_obj = T.tolist()
+    assert T[2, 3] - bottle.bbox_extent[2] / 2 == pytest.approx(0.0, abs=1e-6)   # on the table
+    t = load_task(_write(tmp_path, "- pick: cardboard_box\n- place_in: {center: [-0.02, 0.03], size: 0.25}\n"), m)
+    validate_task(t, m, twin, BasePose().matrix())
+    scene = TaskScene.of(m, twin)
+    assert scene.on["bottle"] is None and scene.riders("cardboard_box") == []
+    # the cube on an arm does stand on it
+    C = cube.pose
+    C[:2, 3] = _at(m, "cardboard_box", 0.05, -0.05)
+    C[2, 3] = 0.015 + cube.bbox_extent[2] / 2
+    cube.T_world_obj = C.tolist()
+    assert TaskScene.of(m, twin).riders("cardboard_box") == ["yellow_cube"]
+
+
+def test_an_object_on_the_lower_step_of_a_support_stands_on_it(tmp_path: Path, gt_twin_small: Path):
+    """A box 10 cm high at -x and 4 cm at +x, the cube on the low step: before, its bottom was compared with
+    the top of the bounding box (6 cm above it) and the stack missed, so picking the box was let through."""
+    from splattwin.robot.task import TaskScene
+
+    steps = [([-0.1, -0.075, -0.05], [0.0, 0.075, 0.05]), ([0.0, -0.075, -0.05], [0.1, 0.075, -0.01])]
+    twin = _reshaped(gt_twin_small, tmp_path, steps, [0.2, 0.15, 0.1])
+    m = Manifest.load(twin)
+    cube = m.object("yellow_cube")
+    C = cube.pose
+    C[:2, 3] = _at(m, "cardboard_box", 0.05, 0.0)
+    C[2, 3] = 0.04 + cube.bbox_extent[2] / 2
+    cube.T_world_obj = C.tolist()
+    t = load_task(_write(tmp_path, "- pick: cardboard_box\n- place_in: {center: [-0.02, 0.03], size: 0.25}\n"), m)
+    with pytest.raises(InputError, match=r"step 1: 'yellow_cube' stands on 'cardboard_box' \(in the twin\)"):
+        validate_task(t, m, twin, BasePose().matrix())
+    assert TaskScene.of(m, twin).on["yellow_cube"] == "cardboard_box"

@@ -19,8 +19,9 @@ file carries (`blue_box`; `resolve_names` maps it to the name). Validation raise
 task file and the step for: unknown or unusable objects (an obstacle-only one too: the arm avoids its
 box), a name that is not a string, a place without a pick, an unscaled twin, a goal off the table, a
 region larger than the table or too small for the object at any yaw, a goal out of the robot's reach,
-and, following the objects through the steps (`TaskScene`), a region centre on another object, a
-support that already carries one, or a pick of an object something stands on. Reach is checked in two
+and, following the objects through the steps (`TaskScene`), a region centre on another object (on the
+footprint of its collision mesh, `robot.footprint`; its bounding box when it has none), a support that
+already carries one, or a pick of an object something stands on. Reach is checked in two
 stages: the horizontal distance from the base (cheap, [REACH_MIN, REACH_MAX]) and, given the robot,
 inverse kinematics (mink) of a grasp pose at the object and of the place pose and the pre-place pose
 above it (top-down at 8 yaws, or a horizontal approach pointing away from the base), where the earlier
@@ -38,6 +39,8 @@ from pathlib import Path
 import numpy as np
 
 from splattwin.errors import InputError, short_repr
+from splattwin.robot import footprint as fp
+from splattwin.robot.footprint import Shape, box_shape, object_shape
 from splattwin.transforms import make_pose, rot_z
 from splattwin.twin.manifest import Manifest
 from splattwin.twin.mjcf import check_scaled
@@ -264,7 +267,8 @@ def validate_task(task: Task, manifest: Manifest, twin_dir: str | Path, T_world_
     earlier step placed is checked where it was placed (reach, IK, what stands on what), not at its twin
     pose. Refused, since the step could never succeed: picking an object another one stands on (the
     carried object would touch it), placing on an object that already carries another, a goal region
-    whose centre (where the object is placed) lies on another object's footprint, a region the object
+    whose centre (where the object is placed) lies on another object's footprint (its collision mesh's
+    convex parts seen from above, read from twin_dir; its bounding box without a mesh), a region the object
     fits in at no yaw, a region centre z off the table.
 
     robot: a `RobotModel`; when given, the pick and place poses must also have IK solutions (mink).
@@ -285,7 +289,7 @@ def validate_task(task: Task, manifest: Manifest, twin_dir: str | Path, T_world_
                              f"[{REACH_MIN:.2f}, {REACH_MAX:.2f}] m (move the base with --base-pose)", where)
 
     resolve_names(task, manifest, where)
-    scene = TaskScene.of(manifest)
+    scene = TaskScene.of(manifest, twin_dir)
     states: list[dict[str, np.ndarray]] = []   # the believed poses before each step (for the IK check)
     for k, s in enumerate(task.steps, start=1):
         for role, n in (("pick", s.pick), ("place_on", s.place_on)):
@@ -391,29 +395,43 @@ STACK_TOL = 0.02   # m: an object whose bottom is this close to another's top, o
 class TaskScene:
     """The scene as a task's steps leave it, as the planner believes it (`selection.place_targets`):
     T_world_obj per object (twin frame, m), what each stands on (None: the table, or nothing known) and
-    the step that put it there (0: the twin)."""
+    the step that put it there (0: the twin). shapes: each object's collision mesh (`footprint.Shape`,
+    object frame) for its footprint; an object without one is its bounding box (`extents`)."""
 
     extents: dict[str, np.ndarray]
     poses: dict[str, np.ndarray]
     on: dict[str, str | None]
     placed_in: dict[str, int]
+    shapes: dict[str, Shape] = field(default_factory=dict)
 
     @classmethod
-    def of(cls, manifest: Manifest) -> "TaskScene":
+    def of(cls, manifest: Manifest, twin_dir: str | Path | None = None) -> "TaskScene":
         """The twin's scene: objects with a finite pose and geometry in the robot's world (usable ones
-        and obstacle-only boxes); an object stands on another when its centre is over the other's
-        footprint and its bottom within STACK_TOL of the other's top."""
+        and obstacle-only boxes), their collision meshes read from `twin_dir` (None, and for an object
+        without a usable mesh: its bounding box). An object stands on another when its centre is over
+        the other's footprint (the union of its convex parts' projections on the table) and its bottom
+        within STACK_TOL of the other's top there (the highest part over that point): an object beside a
+        thin one, or in the notch of an L-shaped one, is not on it."""
         objs = {o.name: o for o in manifest.objects
                 if (o.usable or o.obstacle_only) and np.all(np.isfinite(np.asarray(o.pose, float)))}
         ext = {n: np.asarray(o.bbox_extent, float) for n, o in objs.items()}
         poses = {n: np.asarray(o.pose, float).copy() for n, o in objs.items()}
+        shapes = {n: object_shape(o, twin_dir) for n, o in objs.items()}
+        posed = {n: fp.Posed(shapes[n], T) for n, T in poses.items()}
         on: dict[str, str | None] = {}
         for n, T in poses.items():
-            bottom = T[2, 3] - _half_height(T, ext[n])
-            under = [m for m, S in poses.items() if m != n and footprint_distance(T[:2, 3], S, ext[m]) == 0.0
-                     and abs(bottom - (S[2, 3] + _half_height(S, ext[m]))) < STACK_TOL]
-            on[n] = under[0] if under else None
-        return cls(ext, poses, on, {n: 0 for n in poses})
+            low = posed[n].bottom()
+            gaps = []
+            for m in poses:
+                top = posed[m].top_at(T[:2, 3]) if m != n else None
+                if top is not None and abs(low - top) < STACK_TOL:
+                    gaps.append((abs(low - top), m))
+            on[n] = min(gaps)[1] if gaps else None
+        return cls(ext, poses, on, {n: 0 for n in poses}, shapes)
+
+    def shape(self, obj: str) -> Shape:
+        """The object's Shape: its collision mesh, else its bounding box."""
+        return self.shapes.get(obj) or box_shape(self.extents[obj])
 
     def riders(self, obj: str) -> list[str]:
         """The objects standing on `obj` now."""
@@ -429,14 +447,16 @@ class TaskScene:
 
     def check_free(self, s: Step, k: int, where: Path, warn: bool = True) -> None:
         """InputError when the goal region's centre, where the object is placed, lies on another object's
-        footprint (a certain collision); a warning when the object, whatever its yaw there, reaches into one
-        (its inscribed circle meets the other's bounding box: the meshes may still clear)."""
+        footprint (the union of its convex parts' projections, `footprint`; its bounding box when it has no
+        mesh): a certain collision; a warning when the object, whatever its yaw there, reaches into one
+        (the disc about its centre that its own footprint covers, `footprint.inradius`, meets the other's
+        footprint: their heights may still clear). A goal in the free notch of an L-shaped object is free."""
         c = s.place_in.center[:2]
-        r = float(np.min(self.extents[s.pick][:2])) / 2
+        r = fp.inradius(self.shape(s.pick))
         for o, T in sorted(self.poses.items()):
             if o == s.pick:
                 continue
-            d = footprint_distance(c, T, self.extents[o])
+            d = fp.distance(c, self.shape(o), T)
             if d == 0.0:
                 raise InputError(f"step {k}: goal region {s.place_in.name!r} is occupied: its centre "
                                  f"{np.round(c, 3).tolist()}, where {s.pick!r} is placed, lies on {o!r} "
@@ -444,7 +464,7 @@ class TaskScene:
                                  f"move {o!r} away in an earlier step", where)
             if d < r and warn:
                 log.warning("step %d: %r placed at the centre of goal region %r reaches %.1f cm into the "
-                            "bounding box of %r at every yaw (%.1f cm from the centre): the place may collide with it",
+                            "footprint of %r at every yaw (%.1f cm from the centre): the place may collide with it",
                             k, s.pick, s.place_in.name, (r - d) * 100, o, d * 100)
 
     def place(self, s: Step, k: int, table_z: float) -> None:

@@ -1,0 +1,193 @@
+"""Objects' footprints on the table plane, from their collision meshes, for the checks of a task (`task.TaskScene`).
+
+An object's `Shape` is its convex parts (twin.json `convex_parts`, else its `collision_mesh` as one part, as the
+collision exports take them): vertices in the object frame (m). Posed at T_world_obj, its footprint is the union
+of the parts' projections on the table plane (twin frame x, y): one convex polygon per part, so an L-shaped
+object or a hammer (head and handle) leaves the free corners of its bounding box free. An object without a
+usable mesh (an obstacle-only box, a usable object with no part, or no twin folder given) falls back to its
+bounding box: `bbox_extent` centred on the object frame's origin, as one part.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from splattwin.twin.manifest import ObjectEntry
+
+EPS = 1e-9   # m: a point this close to a polygon counts as on it (the old box test was exact: d == 0)
+
+
+@dataclass(frozen=True)
+class Shape:
+    """An object's geometry for the task checks: vertices [Ni, 3] of each convex part (object frame, m);
+    from_mesh False when the one part is its bounding box (no usable collision mesh)."""
+
+    parts: tuple[np.ndarray, ...]
+    from_mesh: bool = True
+
+
+def box_shape(extent) -> Shape:
+    """The bounding box of `extent` [3] (m, object frame, centred on the origin) as a one-part Shape."""
+    half = np.asarray(extent, float)[:3] / 2
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float) * half
+    return Shape((corners,), from_mesh=False)
+
+
+def object_shape(obj: ObjectEntry, twin_dir: str | Path | None) -> Shape:
+    """The Shape of a twin object: its convex parts read from `twin_dir` (paths confined to it, meshes
+    checked by `meshio.load_mesh`: InputError naming the file), or its bounding box when it has no usable
+    mesh (obstacle-only, no parts) or `twin_dir` is None."""
+    from splattwin.meshio import load_mesh
+    from splattwin.paths import confined
+
+    rels = list(obj.convex_parts) or ([obj.collision_mesh] if obj.collision_mesh else [])
+    if twin_dir is None or not obj.usable or not rels:
+        return box_shape(obj.bbox_extent)
+    where = Path(twin_dir) / "twin.json"
+    parts = []
+    for rel in rels:
+        what = f"convex part of object {obj.name!r}"
+        m = load_mesh(confined(twin_dir, rel, where, what), what)
+        parts.append(np.asarray(m.vertices, float))
+    return Shape(tuple(parts))
+
+
+def _posed(part: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Vertices [N, 3] (object frame) in the twin frame at T_world_obj [4, 4]."""
+    T = np.asarray(T, float)
+    return part @ T[:3, :3].T + T[:3, 3]
+
+
+def _polygon(xy: np.ndarray) -> np.ndarray:
+    """The convex hull of points xy [N, 2], counter-clockwise [K, 2]; a degenerate one (a line: a part seen
+    edge-on) is its two extreme points [2, 2] (no area: only points on that segment are on it)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        return xy[ConvexHull(xy).vertices]
+    except (QhullError, ValueError):
+        a = xy[np.argmax(np.linalg.norm(xy - xy[0], axis=1))]
+        b = xy[np.argmax(np.linalg.norm(xy - a, axis=1))]
+        return np.array([a, b])
+
+
+def _edges_distance(p: np.ndarray, poly: np.ndarray) -> float:
+    """Distance (m) from the point p [2] to the closest edge of the closed polygon poly [K, 2]."""
+    a, b = poly, np.roll(poly, -1, axis=0)
+    ab = b - a
+    t = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-300), 0.0, 1.0)
+    return float(np.min(np.linalg.norm(a + t[:, None] * ab - p, axis=1)))
+
+
+def _inside(p: np.ndarray, poly: np.ndarray) -> bool:
+    """True if p [2] lies in the counter-clockwise convex polygon poly [K, 2] (within EPS of it counts)."""
+    if len(poly) < 3:
+        return _edges_distance(p, poly) <= EPS
+    e = np.roll(poly, -1, axis=0) - poly
+    cross = e[:, 0] * (p[1] - poly[:, 1]) - e[:, 1] * (p[0] - poly[:, 0])
+    return bool(np.all(cross >= -EPS * np.linalg.norm(e, axis=1)))
+
+
+def polygon_distance(xy, poly: np.ndarray) -> float:
+    """Horizontal distance (m) from the point xy to the convex polygon poly [K, 2]; 0 inside or on it."""
+    p = np.asarray(xy, float)[:2]
+    return 0.0 if _inside(p, poly) else _edges_distance(p, poly)
+
+
+INRADIUS_RAYS = 720   # directions (every 0.5 degrees) along which `inradius` measures the footprint about its centre
+
+
+def _ray_intervals(poly: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(t_in, t_out) [A] of the rays from the origin along the unit directions d [A, 2] through the convex
+    counter-clockwise polygon poly [K, 2] (m; t_in > t_out where a ray misses it)."""
+    e = np.roll(poly, -1, axis=0) - poly                              # [K, 2] edges
+    f0 = -(e[:, 0] * poly[:, 1] - e[:, 1] * poly[:, 0])               # cross(e, 0 - v) [K]: >= 0 inside
+    df = d[:, None, 1] * e[None, :, 0] - d[:, None, 0] * e[None, :, 1]   # cross(e, d) [A, K]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -f0[None, :] / df
+    t_in = np.max(np.where(df > 0, t, -np.inf), axis=1)
+    t_out = np.min(np.where(df < 0, t, np.inf), axis=1)
+    parallel_out = np.any((df == 0) & (f0[None, :] < 0), axis=1)     # along an edge line, outside it
+    return np.where(parallel_out, np.inf, np.maximum(t_in, 0.0)), np.where(parallel_out, -np.inf, t_out)
+
+
+def inradius(shape: Shape) -> float:
+    """Radius (m) of the disc about the object frame's origin that the footprint of `shape` covers, upright,
+    at any yaw: the distance from the origin to where the union of its parts' footprints ends, the least
+    over INRADIUS_RAYS directions (parts that touch or overlap continue each other; beside a concave corner
+    of the union a ray may end a little beyond it: 0.05 mm at 2.2 cm); 0 when the origin is on no part (an
+    L's notch). A box's is half its shorter side."""
+    polys = [p for p in polygons(shape, np.eye(4)) if len(p) >= 3]
+    if not any(_inside(np.zeros(2), p) for p in polys):
+        return 0.0
+    a = np.linspace(0.0, 2 * np.pi, INRADIUS_RAYS, endpoint=False)
+    d = np.column_stack([np.cos(a), np.sin(a)])
+    spans = [_ray_intervals(p, d) for p in polys]
+    reach = np.zeros(len(a))          # how far from the origin each ray is covered without a gap
+    for _ in polys:                   # each pass may add one more part along a ray
+        for t_in, t_out in spans:
+            joins = (t_in <= reach + EPS) & (t_out > reach)
+            reach = np.where(joins, t_out, reach)
+    return float(reach.min())
+
+
+def _part_top(V: np.ndarray, xy: np.ndarray) -> float:
+    """Height (m) of the convex part with vertices V [N, 3] (twin frame) on the vertical line through xy,
+    which its footprint holds: the lowest of its upward faces' planes there; the top of its vertices for a
+    flat part (no volume)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        eq = ConvexHull(V).equations   # n . p + d <= 0 inside
+    except (QhullError, ValueError):
+        return float(V[:, 2].max())
+    up = eq[:, 2] > 1e-9
+    z = -(eq[up, 0] * xy[0] + eq[up, 1] * xy[1] + eq[up, 3]) / eq[up, 2]
+    return float(np.clip(z.min(), V[:, 2].min(), V[:, 2].max()))
+
+
+class Posed:
+    """A Shape at T_world_obj [4, 4]: its parts' vertices in the twin frame and their footprint polygons (twin
+    frame x, y, m; one convex polygon per part, their union the footprint), computed once for many queries."""
+
+    def __init__(self, shape: Shape, T: np.ndarray) -> None:
+        self.parts = [_posed(p, T) for p in shape.parts]
+        self.polygons = [_polygon(V[:, :2]) for V in self.parts]
+
+    def distance(self, xy) -> float:
+        """Horizontal distance (m) from the point xy (twin frame) to the footprint; 0 on it."""
+        return min(polygon_distance(xy, poly) for poly in self.polygons)
+
+    def top_at(self, xy) -> float | None:
+        """Height (m, twin frame) of the top over the point xy: the highest of the parts whose footprint holds
+        xy; None when none does (xy is off the footprint)."""
+        p = np.asarray(xy, float)[:2]
+        tops = [_part_top(V, p) for V, poly in zip(self.parts, self.polygons) if _inside(p, poly)]
+        return max(tops) if tops else None
+
+    def bottom(self) -> float:
+        """Height (m, twin frame) of the lowest point."""
+        return min(float(V[:, 2].min()) for V in self.parts)
+
+
+def polygons(shape: Shape, T: np.ndarray) -> list[np.ndarray]:
+    """The footprint of `shape` posed at T_world_obj: one convex polygon (twin frame x, y, m) per part."""
+    return Posed(shape, T).polygons
+
+
+def distance(xy, shape: Shape, T: np.ndarray) -> float:
+    """Horizontal distance (m) from the point xy (twin frame) to the footprint of `shape` at T; 0 on it."""
+    return Posed(shape, T).distance(xy)
+
+
+def top_at(shape: Shape, T: np.ndarray, xy) -> float | None:
+    """Height (m, twin frame) of the top of `shape` posed at T over the point xy (`Posed.top_at`)."""
+    return Posed(shape, T).top_at(xy)
+
+
+def bottom(shape: Shape, T: np.ndarray) -> float:
+    """Height (m, twin frame) of the lowest point of `shape` posed at T."""
+    return Posed(shape, T).bottom()
