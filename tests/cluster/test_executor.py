@@ -180,20 +180,21 @@ def test_unreachable_ray_address_is_a_clear_input_error_before_ray_init(monkeypa
 
     import ray
 
-    with socket.socket() as s:   # a port nobody listens on: bound, then released
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-
     def no_init(*a, **kw):
         raise AssertionError("ray.init was called with an address nobody answers at")
 
     monkeypatch.setattr(ray, "is_initialized", lambda: False)
     monkeypatch.setattr(ray, "init", no_init)
-    for address in (f"127.0.0.1:{port}", f"ray://127.0.0.1:{port}"):
-        t0 = time.monotonic()
-        with pytest.raises(InputError, match=rf"no Ray cluster answers at '{address}'.*ray start --head"):
-            make_executor(ExecutorOptions(ray_address=address))
-        assert time.monotonic() - t0 < 10
+    # a port nobody listens on: held bound (not listening: connections are refused) for the whole check, so
+    # that no other process (a Ray started by another test run) can take it meanwhile, as it could once released
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+        for address in (f"127.0.0.1:{port}", f"ray://127.0.0.1:{port}"):
+            t0 = time.monotonic()
+            with pytest.raises(InputError, match=rf"no Ray cluster answers at '{address}'.*ray start --head"):
+                make_executor(ExecutorOptions(ray_address=address))
+            assert time.monotonic() - t0 < 10
     with pytest.raises(InputError, match="bad Ray address"):
         make_executor(ExecutorOptions(ray_address="head:port"))
 

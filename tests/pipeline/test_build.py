@@ -5,7 +5,6 @@ import hashlib
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -114,10 +113,8 @@ def test_report_in_chromium(built, tmp_path):
 def test_viewer_in_chromium(built, tmp_path):
     from splattwin.viewer.app import serve
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    server = serve(built, host="127.0.0.1", port=port, block=False)
+    server = serve(built, host="127.0.0.1", port=0, block=False)   # a free port, bound by the server itself
+    port = server.get_port()
     try:
         # the splats stream in over the websocket: on a loaded machine (the full suite on 2 cores) the first
         # pictures show the canvas with the grid only (std ~20 where a drawn scene gives ~40-65); pictures

@@ -243,14 +243,14 @@ def test_plan_trials_on_an_unreachable_cluster_are_refused_before_the_run(gt_twi
     removed the previous run's files and the trials' executor failed only after it."""
     import socket
 
-    with socket.socket() as s:   # a port nobody listens on
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
     out = tmp_path / "robot"
     out.mkdir()
     (out / "results.json").write_text("{}")   # the previous run's
-    assert main(["plan", str(gt_twin_small), "--trials", "2", "--cluster.ray-address", f"127.0.0.1:{port}",
-                 "--out", str(out), "--no-render"]) == 2
+    with socket.socket() as s:   # a port nobody listens on, held bound (refusing) so that nobody takes it meanwhile
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+        assert main(["plan", str(gt_twin_small), "--trials", "2", "--cluster.ray-address", f"127.0.0.1:{port}",
+                     "--out", str(out), "--no-render"]) == 2
     assert f"no Ray cluster answers at '127.0.0.1:{port}'" in capsys.readouterr().err
     assert (out / "results.json").read_text() == "{}"
 

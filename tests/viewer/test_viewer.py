@@ -78,8 +78,10 @@ def test_collision_layer_draws_each_part_at_its_opacity_and_colour(tmp_path):
 @pytest.mark.slow
 def test_viewer_page_shows_content(tmp_path):
     twin = _twin(tmp_path)
-    port = _free_port()
-    server = serve(twin, host="127.0.0.1", port=port, block=False)
+    # port 0: the server binds a free port itself (a port found free and released first could be taken by
+    # another process before the server binds it; the server would then serve elsewhere)
+    server = serve(twin, host="127.0.0.1", port=0, block=False)
+    port = server.get_port()
 
     def reddish(img):
         img = img.astype(int)
