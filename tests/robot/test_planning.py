@@ -407,3 +407,63 @@ def test_sampling_helpers():
     assert np.max(np.abs(np.diff(dense, axis=0))) <= 0.1 + 1e-12
     for w in path:                                              # waypoints kept
         assert np.min(np.max(np.abs(dense - w), axis=1)) == 0.0
+
+
+def test_a_check_budget_plans_the_same_on_a_slow_machine(checker):
+    """With max_checks a seeded query spends a budget of validity checks, not of wall time: on a machine ten
+    times slower (each check delayed) it returns the very same path, where a wall-clock limit that the fast
+    machine met ends without one; a budget too small names the checks spent."""
+    from splattwin.robot.planning import PLAN_CHECKS
+
+    fast = plan_path(checker, Q_LEFT, Q_RIGHT, seed=4, time_limit=60.0, max_checks=PLAN_CHECKS)
+    t0 = time.perf_counter()
+    plan_path(checker, Q_LEFT, Q_RIGHT, seed=4, time_limit=60.0)
+    wall = time.perf_counter() - t0
+    check = checker.collision_free
+
+    def slow(q):
+        time.sleep(2e-3)     # ~50x a check's own time
+        return check(q)
+
+    checker.collision_free = slow
+    try:
+        again = plan_path(checker, Q_LEFT, Q_RIGHT, seed=4, time_limit=60.0, max_checks=PLAN_CHECKS)
+        np.testing.assert_array_equal(again, fast)
+        with pytest.raises(PlanningError, match=r"no collision-free path in [0-9.]+ s"):
+            plan_path(checker, Q_LEFT, Q_RIGHT, seed=4, time_limit=max(wall, 0.05), retries=0)
+        with pytest.raises(PlanningError, match=r"no collision-free path in 40 collision checks \([0-9.]+ s\)"):
+            plan_path(checker, Q_LEFT, Q_RIGHT, seed=4, time_limit=60.0, max_checks=40)
+    finally:
+        del checker.collision_free
+
+
+def test_motion_planner_plans_with_the_check_budget(monkeypatch):
+    """MotionPlanner's queries (both the one with object clearance and its fallback) pass PLAN_CHECKS and a
+    wall-clock cap far above the ~1 s the budget takes, so the budget decides."""
+    from splattwin.robot import motion
+    from splattwin.robot.planning import PLAN_CHECKS
+
+    seen = []
+
+    def fake(checker, q_start, q_goal, **kw):
+        seen.append(kw)
+        raise PlanningError("injected")
+
+    class Checker:
+        attached_body = None
+
+        def set_clearance(self, c):
+            pass
+
+    mp = motion.MotionPlanner.__new__(motion.MotionPlanner)
+    mp.checker, mp.seed, mp.plan_ms, mp.planner, mp.object_clearance = Checker(), 0, [], "RRTConnect", 0.01
+    mp.world = type("W", (), {"objects": ["a"]})()
+    mp.plan_time, mp.plan_checks = 60.0, PLAN_CHECKS
+    monkeypatch.setattr(motion, "plan_path", fake)
+    with pytest.raises(PlanningError):
+        mp.free_path(HOME, HOME, "test")
+    assert len(seen) == 2 and all(kw["max_checks"] == PLAN_CHECKS and kw["time_limit"] >= 30 for kw in seen)
+    import inspect
+
+    defaults = inspect.signature(motion.MotionPlanner.__init__).parameters
+    assert defaults["plan_checks"].default == PLAN_CHECKS and defaults["plan_time"].default >= 30

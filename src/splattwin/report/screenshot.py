@@ -100,6 +100,7 @@ class _Stuck(Exception):
 
 
 def _one_try(url, width, height, settle_s, deadline, ready, last):
+    from websockets.exceptions import WebSocketException
     from websockets.sync.client import connect
 
     with tempfile.TemporaryDirectory(prefix="splattwin-chromium-") as profile:
@@ -116,12 +117,8 @@ def _one_try(url, width, height, settle_s, deadline, ready, last):
                 ws_url = _devtools_url(Path(profile) / "data", proc, min(deadline, time.monotonic() + START_TIMEOUT_S))
                 with connect(ws_url, max_size=MAX_MESSAGE, open_timeout=CALL_TIMEOUT_S, proxy=None) as ws:
                     return _drive(_Cdp(ws), url, width, height, settle_s, deadline, ready, last)
-            except (_Stuck, OSError, TimeoutError, EOFError) as e:
+            except (_Stuck, OSError, TimeoutError, EOFError, WebSocketException) as e:   # incl. Chromium dying
                 raise _Stuck(f"{type(e).__name__}: {e}; chromium printed: {_tail(log_path)}") from None
-            except Exception as e:   # the websocket closing under us (Chromium died)
-                if type(e).__module__.startswith("websockets"):
-                    raise _Stuck(f"{type(e).__name__}: {e}; chromium printed: {_tail(log_path)}") from None
-                raise
         finally:
             if proc.poll() is None:
                 os.killpg(proc.pid, signal.SIGKILL)

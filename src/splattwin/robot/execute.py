@@ -171,7 +171,7 @@ class Executor:
     """
 
     def __init__(self, world: World, belief: dict[str, np.ndarray] | None = None, seed: int = 0,
-                 planner: str = "RRTConnect", plan_time: float = 1.0, margin: float = 0.005,
+                 planner: str = "RRTConnect", plan_time: float = 60.0, margin: float = 0.005,
                  frame_cb: Callable[[str, World], None] | None = None, object_clearance: float = OBJECT_CLEARANCE,
                  in_hand: str = "sensed"):
         if in_hand not in IN_HAND:

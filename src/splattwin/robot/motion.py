@@ -20,7 +20,7 @@ from contextlib import contextmanager
 import numpy as np
 
 from splattwin.robot.ik import ArmIK
-from splattwin.robot.planning import CollisionChecker, PlanningError, plan_path
+from splattwin.robot.planning import PLAN_CHECKS, CollisionChecker, PlanningError, plan_path
 from splattwin.robot.selection import Belief
 from splattwin.robot.timing import time_parameterize
 from splattwin.robot.trajectory import Trajectory
@@ -61,13 +61,17 @@ class MotionPlanner:
     """Plans arm motions on a World against a belief (object name -> T_world_obj, shared with the caller).
 
     plan_ms: wall time (ms) of every free-space planning query, in order.
+    plan_checks: state validity checks each OMPL attempt may spend (`planning.PLAN_CHECKS`, ~1 s on 2 cores):
+    a seeded run plans the same motions on a loaded machine; plan_time (s) caps an attempt's wall time only
+    against a stuck query.
     """
 
     def __init__(self, world: World, belief: Belief, seed: int = 0, planner: str = "RRTConnect",
-                 plan_time: float = 1.0, margin: float = 0.005, object_clearance: float = OBJECT_CLEARANCE):
+                 plan_time: float = 60.0, margin: float = 0.005, object_clearance: float = OBJECT_CLEARANCE,
+                 plan_checks: int = PLAN_CHECKS):
         self.world, self.belief = world, belief
         self.robot = world.robot
-        self.seed, self.planner, self.plan_time = seed, planner, plan_time
+        self.seed, self.planner, self.plan_time, self.plan_checks = seed, planner, plan_time, plan_checks
         self.object_clearance = float(object_clearance)
         self.ik = ArmIK(self.robot, world.base.matrix())
         self.checker = CollisionChecker(world.model, world.data, world.joints.arm_qpos, margin=margin,
@@ -144,12 +148,14 @@ class MotionPlanner:
         held = self.checker.attached_body
         self.checker.set_clearance({o: self.object_clearance for o in self.world.objects if o != held})
         try:
-            path = plan_path(self.checker, q_start, q_goal, time_limit=self.plan_time, planner=self.planner, seed=seed)
+            path = plan_path(self.checker, q_start, q_goal, time_limit=self.plan_time, planner=self.planner, seed=seed,
+                             max_checks=self.plan_checks)
         except PlanningError as e:
             log.debug("%s: no path with %.0f mm object clearance (%s); planning with the margin", label,
                       self.object_clearance * 1e3, e)
             self.checker.set_clearance({})
-            path = plan_path(self.checker, q_start, q_goal, time_limit=self.plan_time, planner=self.planner, seed=seed)
+            path = plan_path(self.checker, q_start, q_goal, time_limit=self.plan_time, planner=self.planner, seed=seed,
+                             max_checks=self.plan_checks)
         finally:
             self.checker.set_clearance({})
             self.plan_ms.append((time.perf_counter() - t0) * 1e3)

@@ -540,8 +540,14 @@ def _straight_blocker(checker: CollisionChecker, q_start: np.ndarray, q_goal: np
     return "nothing at this sampling"
 
 
+PLAN_CHECKS = 20000   # state validity checks one planning query may spend (~1 s on 2 cores at ~20k checks/s)
+
+
 def _ompl_solve(checker: CollisionChecker, q_start: np.ndarray, q_goal: np.ndarray, time_limit: float,
-                planner: str, resolution: float, simplify: bool) -> np.ndarray | None:
+                planner: str, resolution: float, simplify: bool, max_checks: int | None = None,
+                spent: list[int] | None = None) -> np.ndarray | None:
+    """One OMPL query: the path, or None when none was found before `max_checks` validity checks (when
+    given) or `time_limit` s, whichever comes first; `spent` gets the number of checks made appended."""
     ob, og, ou = _ompl()
     ou.setLogLevel(ou.LOG_ERROR)
     n = checker.dof
@@ -555,7 +561,10 @@ def _ompl_solve(checker: CollisionChecker, q_start: np.ndarray, q_goal: np.ndarr
     idx = range(n)
     q_buf = np.empty(n)
 
+    n_checks = [0]
+
     def valid(state) -> bool:
+        n_checks[0] += 1
         for i in idx:
             q_buf[i] = state[i]
         return checker.collision_free(q_buf)
@@ -569,7 +578,17 @@ def _ompl_solve(checker: CollisionChecker, q_start: np.ndarray, q_goal: np.ndarr
         goal[i] = float(q_goal[i])
     ss.setStartAndGoalStates(start, goal)
     ss.setPlanner(getattr(og, planner)(si))
-    status = ss.solve(float(time_limit))
+    if max_checks is None:
+        status = ss.solve(float(time_limit))
+    else:
+        # a budget of work, not of wall time: a seeded query ends the same way on a loaded machine (a wall-clock
+        # limit made "no path" depend on the load, and with it the fallback without object clearance)
+        t_end = time.perf_counter() + float(time_limit)
+        ptc = ob.PlannerTerminationCondition(lambda: n_checks[0] >= max_checks or time.perf_counter() >= t_end)
+        status = ss.solve(ptc)
+        del ptc
+    if spent is not None:
+        spent.append(n_checks[0])
     if not ss.haveExactSolutionPath():
         return None
     p = ss.getSolutionPath()
@@ -626,12 +645,14 @@ def _dedupe(path: np.ndarray, tol: float = 1e-9) -> np.ndarray:
 def plan_path(checker: CollisionChecker, q_start: np.ndarray, q_goal: np.ndarray, time_limit: float = 1.0,
               planner: str = "RRTConnect", resolution: float = 0.002, seed: int | None = None,
               simplify: bool = True, check_resolution: float | None = None, max_sweep: float | None = None,
-              retries: int = 2, shortcut_iters: int = 0) -> np.ndarray:
+              retries: int = 2, shortcut_iters: int = 0, max_checks: int | None = None) -> np.ndarray:
     """Collision-free joint path from q_start to q_goal, [M, dof] rad, endpoints exact.
 
     Args:
         checker: validity of configurations (its attached object / allowed pairs apply).
-        time_limit: s, per OMPL attempt.
+        time_limit: s, per OMPL attempt (with max_checks: a cap against a stuck query only).
+        max_checks: state validity checks per OMPL attempt (e.g. PLAN_CHECKS); the attempt ends when they are
+            spent: with a seed, the same result however loaded the machine is (None: time_limit alone).
         planner: one of `PLANNERS`.
         resolution: OMPL state-validity checking resolution, as a fraction of the joint space's extent
             (OMPL's convention; the Panda's extent is ~13 rad, so 0.002 ≈ 0.026 rad steps). Coarse is
@@ -673,10 +694,14 @@ def plan_path(checker: CollisionChecker, q_start: np.ndarray, q_goal: np.ndarray
     res = resolution
     t0 = time.perf_counter()
     for attempt in range(retries + 1):
-        path = _ompl_solve(checker, q_start, q_goal, time_limit, planner, res, simplify)
+        spent: list[int] = []
+        t_try = time.perf_counter()
+        path = _ompl_solve(checker, q_start, q_goal, time_limit, planner, res, simplify, max_checks, spent)
         if path is None:
+            budget = (f"{time_limit:.2f} s" if max_checks is None or spent[0] < max_checks else
+                      f"{max_checks} collision checks ({time.perf_counter() - t_try:.2f} s)")
             raise PlanningError(
-                f"{planner} found no collision-free path in {time_limit:.2f} s "
+                f"{planner} found no collision-free path in {budget} "
                 f"(start {np.round(q_start, 3).tolist()}, goal {np.round(q_goal, 3).tolist()}; "
                 f"the straight line is blocked by {_straight_blocker(checker, q_start, q_goal)})")
         if simplify and shortcut_iters > 0:
