@@ -544,10 +544,10 @@ PLAN_CHECKS = 20000   # state validity checks one planning query may spend (~1 s
 
 
 def _ompl_solve(checker: CollisionChecker, q_start: np.ndarray, q_goal: np.ndarray, time_limit: float,
-                planner: str, resolution: float, simplify: bool, max_checks: int | None = None,
-                spent: list[int] | None = None) -> np.ndarray | None:
-    """One OMPL query: the path, or None when none was found before `max_checks` validity checks (when
-    given) or `time_limit` s, whichever comes first; `spent` gets the number of checks made appended."""
+                planner: str, resolution: float, simplify: bool,
+                max_checks: int | None = None) -> tuple[np.ndarray | None, int]:
+    """One OMPL query: (the path, or None when none was found before `max_checks` validity checks (when
+    given) or `time_limit` s, whichever came first; the number of validity checks made)."""
     ob, og, ou = _ompl()
     ou.setLogLevel(ou.LOG_ERROR)
     n = checker.dof
@@ -587,10 +587,8 @@ def _ompl_solve(checker: CollisionChecker, q_start: np.ndarray, q_goal: np.ndarr
         ptc = ob.PlannerTerminationCondition(lambda: n_checks[0] >= max_checks or time.perf_counter() >= t_end)
         status = ss.solve(ptc)
         del ptc
-    if spent is not None:
-        spent.append(n_checks[0])
     if not ss.haveExactSolutionPath():
-        return None
+        return None, n_checks[0]
     p = ss.getSolutionPath()
     if simplify:
         # vertex reduction + rope shortcutting: on Panda pick-and-place motions as short as the full
@@ -601,7 +599,7 @@ def _ompl_solve(checker: CollisionChecker, q_start: np.ndarray, q_goal: np.ndarr
     out = np.array([[p.getState(k)[i] for i in idx] for k in range(p.getStateCount())])
     del status, ss, si, space
     out[0], out[-1] = q_start, q_goal  # exact endpoints (OMPL copies, but be explicit)
-    return out
+    return out, n_checks[0]
 
 
 def shortcut(checker: CollisionChecker, path: np.ndarray, resolution: float | None = 0.0005,
@@ -694,11 +692,10 @@ def plan_path(checker: CollisionChecker, q_start: np.ndarray, q_goal: np.ndarray
     res = resolution
     t0 = time.perf_counter()
     for attempt in range(retries + 1):
-        spent: list[int] = []
         t_try = time.perf_counter()
-        path = _ompl_solve(checker, q_start, q_goal, time_limit, planner, res, simplify, max_checks, spent)
+        path, spent = _ompl_solve(checker, q_start, q_goal, time_limit, planner, res, simplify, max_checks)
         if path is None:
-            budget = (f"{time_limit:.2f} s" if max_checks is None or spent[0] < max_checks else
+            budget = (f"{time_limit:.2f} s" if max_checks is None or spent < max_checks else
                       f"{max_checks} collision checks ({time.perf_counter() - t_try:.2f} s)")
             raise PlanningError(
                 f"{planner} found no collision-free path in {budget} "
