@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from splattwin.robot import footprint as fp
 from splattwin.robot.selection import PLACE_CLEARANCE, GraspSelector, place_targets, support_height
 from splattwin.robot.task import Region, Step
 from splattwin.transforms import pose_xyz_yaw, yaw_of
@@ -33,6 +34,64 @@ def test_support_height_is_the_table_or_the_object_below():
     assert support_height("box", beside, man) == pytest.approx(0.01)
     # the crate under the box rests on the table (the box's top is above the crate's centre anyway)
     assert support_height("crate", stacked, man) == pytest.approx(0.01)
+
+
+def _box(lo, hi) -> np.ndarray:
+    return np.asarray(trimesh.creation.box(bounds=[lo, hi]).vertices, float)
+
+
+# a thin L (1.5 cm high) in its object frame, as in test_footprint: a 20 x 5 cm arm along x, a 5 x 10 cm arm up y
+# at its -x end; its free notch x in [-0.05, 0.1], y in [-0.025, 0.075] lies inside its 20 x 15 cm bounding box
+L_PARTS = ([[-0.1, -0.075, -0.0075], [0.1, -0.025, 0.0075]], [[-0.1, -0.025, -0.0075], [-0.05, 0.075, 0.0075]])
+L_SHAPE = fp.Shape(tuple(_box(*b) for b in L_PARTS))
+
+
+def _l_manifest() -> Manifest:
+    return Manifest(objects=[ObjectEntry(name="ell", label=1, bbox_extent=[0.20, 0.15, 0.015]),
+                             ObjectEntry(name="tall", label=2, bbox_extent=[0.04, 0.04, 0.10],
+                                         collision_mesh="tall.obj")],
+                    background=Background(table_height=0.0))
+
+
+def test_support_height_follows_the_mesh_not_the_bounding_box():
+    """A 10 cm tall box standing in the notch of a 1.5 cm thin L stands on the table (before: on the L, its
+    centre being inside the L's bounding box and above its top); on the L's arm it stands on the L."""
+    man = _l_manifest()
+    shapes = {"ell": L_SHAPE, "tall": fp.box_shape(man.object("tall").bbox_extent)}.__getitem__
+    T_l = pose_xyz_yaw(0.3, -0.1, 0.0075, math.pi / 4)
+
+    def at(x, y, z):
+        return pose_xyz_yaw(*(T_l @ [x, y, 0.0, 1.0])[:2], z, 0.3)
+
+    in_notch = {"ell": T_l, "tall": at(0.04, 0.035, 0.05)}
+    assert support_height("tall", in_notch, man, shapes) == 0.0
+    on_arm = {"ell": T_l, "tall": at(0.05, -0.05, 0.065)}
+    assert support_height("tall", on_arm, man, shapes) == pytest.approx(0.015)
+    on_arm["tall"][2, 3] = 0.062             # sunk 3 mm into the L (a reconstructed pose): still on it
+    assert support_height("tall", on_arm, man, shapes) == pytest.approx(0.015)
+    assert support_height("ell", on_arm, man, shapes) == 0.0
+
+
+def test_grasp_selector_keeps_the_fingertips_above_the_mesh_under_the_object(tmp_path: Path, monkeypatch):
+    """The selector reads the twin's convex parts: in the L's notch the fingertips may go down to the table
+    (before: kept 1.5 cm higher, above the L's bounding-box top, throwing low grasps away)."""
+    from splattwin.robot import grasp as grasp_mod
+
+    for k, b in enumerate(L_PARTS):
+        trimesh.creation.box(bounds=b).export(tmp_path / f"ell_{k}.obj")
+    trimesh.creation.box(extents=(0.04, 0.04, 0.10)).export(tmp_path / "tall.obj")
+    man = _l_manifest()
+    man.objects[0].convex_parts = ["ell_0.obj", "ell_1.obj"]
+    floors = []
+    real = grasp_mod.synthesize
+    monkeypatch.setattr(grasp_mod, "synthesize", lambda *a, **k: floors.append(k["floor"]) or real(*a, **k))
+    sel = GraspSelector(man, tmp_path, pose_xyz_yaw(-0.5, 0.0, 0.0, 0.0), max_opening=0.08, tip_depth=0.009,
+                        floor_clearance=0.0065)
+    T_l = pose_xyz_yaw(0.3, 0.0, 0.0075, 0.0)
+    assert sel.ranked("tall", {"ell": T_l, "tall": pose_xyz_yaw(0.34, 0.035, 0.05, 0.0)})
+    assert floors == [pytest.approx(-0.05)]          # the table, 5 cm below the centre (before: the L's 1.5 cm top)
+    assert sel.ranked("tall", {"ell": T_l, "tall": pose_xyz_yaw(0.35, -0.05, 0.07, 0.0)})
+    assert floors[1:] == [pytest.approx(-0.055)]     # on the L's arm: its top, 5.5 cm below the centre
 
 
 def test_place_targets_on_an_object_align_with_it_nearest_yaw_first():

@@ -1,4 +1,5 @@
-"""Objects' footprints on the table plane, from their collision meshes, for the checks of a task (`task.TaskScene`).
+"""Objects' footprints on the table plane, from their collision meshes: for the checks of a task (`task.TaskScene`)
+and the planner's belief of what stands on what (`selection.support_height`).
 
 An object's `Shape` is its convex parts (twin.json `convex_parts`, else its `collision_mesh` as one part, as the
 collision exports take them): vertices in the object frame (m). Posed at T_world_obj, its footprint is the union
@@ -15,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from splattwin.twin.manifest import ObjectEntry
+from splattwin.twin.manifest import Manifest, ObjectEntry
 
 EPS = 1e-9   # m: a point this close to a polygon counts as on it (the old box test was exact: d == 0)
 
@@ -53,6 +54,20 @@ def object_shape(obj: ObjectEntry, twin_dir: str | Path | None) -> Shape:
         m = load_mesh(confined(twin_dir, rel, where, what), what)
         parts.append(np.asarray(m.vertices, float))
     return Shape(tuple(parts))
+
+
+class Shapes:
+    """The Shapes of a twin's objects by name (`object_shape`: convex parts read from twin_dir, else the
+    bounding box), each read once; twin_dir None: every object's bounding box."""
+
+    def __init__(self, manifest: Manifest, twin_dir: str | Path | None) -> None:
+        self.manifest, self.twin_dir = manifest, twin_dir
+        self._cache: dict[str, Shape] = {}
+
+    def __call__(self, name: str) -> Shape:
+        if name not in self._cache:
+            self._cache[name] = object_shape(self.manifest.object(name), self.twin_dir)
+        return self._cache[name]
 
 
 def _posed(part: np.ndarray, T: np.ndarray) -> np.ndarray:

@@ -4,7 +4,9 @@ no collision checks — `candidates.py` makes the selections feasible).
 Grasp heights follow the support surface under the object (table or the object below it, from the
 belief), not the object mesh's bottom: reconstructed objects sink a few mm into the table, and the
 fingertips (which reach 8.9 mm beyond the Panda's TCP, measured from the model) must keep the planning
-margin above the surface in the closed pose.
+margin above the surface in the closed pose. The object below is found on the objects' collision meshes
+(`footprint`: the union of their convex parts; an object without one, its bounding box): an object in the
+free notch of an L-shaped one, or beside a hammer's handle, stands on the table.
 
 Place targets: upright at the goal — centred on the support's top face (4 yaws aligned with the support)
 or in the goal region (8 yaws, only those whose footprint fits), the one closest to the object's current
@@ -14,11 +16,13 @@ yaw first. Frames: T_world_obj [4,4] in the twin frame, metres, radians.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from splattwin.errors import InputError
+from splattwin.robot import footprint as fp
 from splattwin.robot import grasp as grasp_mod
 from splattwin.robot.task import Step
 from splattwin.transforms import pose_xyz_yaw, yaw_of
@@ -27,20 +31,27 @@ from splattwin.twin.manifest import Manifest
 PLACE_CLEARANCE = 0.004  # m released above the support
 REGION_MARGIN = 0.02     # m: a place yaw's footprint must fit the region with this much to spare
 Belief = dict[str, np.ndarray]   # object name -> T_world_obj [4,4] the robot plans with
+ShapeOf = Callable[[str], fp.Shape]   # object name -> its Shape (`footprint.Shapes`)
 
 
-def support_height(obj: str, belief: Belief, manifest: Manifest) -> float:
-    """World z (m) of the surface under `obj` in the belief: the table top, or the top of another
-    object whose footprint holds obj's centre and whose top is below obj's centre."""
+def _boxes(manifest: Manifest) -> ShapeOf:
+    """Each object's bounding box as its Shape (no collision meshes at hand)."""
+    return lambda name: fp.box_shape(manifest.object(name).bbox_extent)
+
+
+def support_height(obj: str, belief: Belief, manifest: Manifest, shape: ShapeOf | None = None) -> float:
+    """World z (m) of the surface under `obj` in the belief: the table top, or the top of another object
+    whose footprint holds obj's centre and whose top there is below obj's centre. shape: each object's
+    `footprint.Shape` (its collision mesh: an object in the free notch of an L-shaped one stands on the
+    table, one on the low step of a stepped one on that step); None: their bounding boxes."""
+    shape = shape or _boxes(manifest)
     T = belief[obj]
     z = float(manifest.background.table_height)
     for o, T_o in belief.items():
         if o == obj:
             continue
-        ext = np.asarray(manifest.object(o).bbox_extent, float)
-        p = np.linalg.inv(T_o) @ np.append(T[:3, 3], 1.0)
-        top = float((T_o[:3, 3] + T_o[:3, 2] * ext[2] / 2)[2])
-        if abs(p[0]) <= ext[0] / 2 and abs(p[1]) <= ext[1] / 2 and top < T[2, 3]:
+        top = fp.top_at(shape(o), T_o, T[:2, 3])
+        if top is not None and top < T[2, 3]:
             z = max(z, top)
     return z
 
@@ -91,13 +102,15 @@ class GraspSelector:
         self.T_world_base = np.asarray(T_world_base, float)
         self.max_opening, self.tip_depth, self.floor_clearance = max_opening, tip_depth, floor_clearance
         self._cache: dict[tuple[str, float], list[grasp_mod.Grasp]] = {}
+        self.shapes = fp.Shapes(manifest, self.twin_dir)   # footprints for the support under an object
 
     def synthesize(self, obj: str, belief: Belief) -> list[grasp_mod.Grasp]:
         """Unranked candidates (object frame) for the support under `obj` in the belief."""
         from splattwin.meshio import load_mesh
 
         T_obj = belief[obj]
-        floor_obj = round(support_height(obj, belief, self.manifest) - float(T_obj[2, 3]), 4)  # object frame (upright)
+        floor = support_height(obj, belief, self.manifest, self.shapes)
+        floor_obj = round(floor - float(T_obj[2, 3]), 4)  # object frame (upright)
         key = (obj, floor_obj)
         if key not in self._cache:
             entry = self.manifest.object(obj)
