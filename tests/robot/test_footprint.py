@@ -86,6 +86,29 @@ def test_the_top_is_the_mesh_under_the_point():
         assert fp.top_at(wedge, T, [0.2 + x, 0.1]) == pytest.approx(0.01 + x)
 
 
+def test_the_top_under_a_footprint_is_the_highest_mesh_point_there():
+    """What an object lowered onto a support touches first: the highest point of the support's parts over its
+    footprint (a wedge rising from 0 to 10 cm along x: 6 cm under a 4 cm square at its middle, 6.41 cm when the
+    square is turned 45 degrees; a post in a corner of a tray counts only under it)."""
+    wedge = fp.Shape((np.array([[-0.1, -0.05, -0.05], [0.1, -0.05, -0.05], [0.1, -0.05, 0.05],
+                                [-0.1, 0.05, -0.05], [0.1, 0.05, -0.05], [0.1, 0.05, 0.05]], float),))
+    T = pose_xyz_yaw(0.3, 0.1, 0.05, 0.0)
+    cube = fp.box_shape([0.04, 0.04, 0.04])
+    assert fp.Posed(wedge, T).top_under(fp.polygons(cube, pose_xyz_yaw(0.3, 0.1, 0.2, 0.0))) == pytest.approx(0.06)
+    turned = fp.polygons(cube, pose_xyz_yaw(0.3, 0.1, 0.2, np.pi / 4))
+    assert fp.Posed(wedge, T).top_under(turned) == pytest.approx(0.05 + 0.02 * np.sqrt(2) / 2, abs=2e-9)
+    tray = fp.Shape((_box([-0.1, -0.1, 0.0], [0.1, 0.1, 0.02]), _box([0.08, 0.08, 0.0], [0.1, 0.1, 0.1])))
+    posed = fp.Posed(tray, np.eye(4))
+    assert posed.top_under(fp.polygons(cube, np.eye(4))) == pytest.approx(0.02)
+    assert posed.top_under(fp.polygons(cube, pose_xyz_yaw(0.07, 0.07, 0.0, 0.0))) == pytest.approx(0.1)
+    assert posed.top_under(fp.polygons(cube, pose_xyz_yaw(0.3, 0.0, 0.0, 0.0))) is None      # beside it
+    # a footprint touching the part's edge meets it; a part seen edge-on (a plate) and a segment footprint too
+    assert posed.top_under(fp.polygons(cube, pose_xyz_yaw(0.12, 0.0, 0.0, 0.0))) == pytest.approx(0.02)
+    plate = fp.Shape((np.array([[-0.05, 0, 0], [0.05, 0, 0], [-0.05, 0, 0.1], [0.05, 0, 0.1]], float),))
+    assert fp.Posed(plate, np.eye(4)).top_under(fp.polygons(cube, np.eye(4))) == pytest.approx(0.1, abs=1e-6)
+    assert posed.top_under(fp.polygons(plate, pose_xyz_yaw(0.09, 0.09, 0.0, 0.0))) == pytest.approx(0.1)
+
+
 def test_a_part_seen_edge_on_is_a_segment():
     plate = fp.Shape((np.array([[-0.05, 0, 0], [0.05, 0, 0], [-0.05, 0, 0.1], [0.05, 0, 0.1]], float),))
     T = np.eye(4)

@@ -109,6 +109,44 @@ def test_place_targets_on_an_object_align_with_it_nearest_yaw_first():
     assert yaw_of(targets[0]) == pytest.approx(0.3 + math.pi / 2)
 
 
+def test_place_targets_on_an_object_release_above_its_mesh_under_the_footprint():
+    """On a 2 cm tray with a 10 cm post in a corner (bounding box 20 x 20 x 10 cm) an 8 x 6 x 5 cm box at the
+    centre is released 4 mm above the tray, not above the post's height (an 8 cm drop before); on a wedge
+    rising along x the height depends on the yaw (the box's footprint reaches further up the slope when its
+    long side lies along x); on a box-shaped mesh it is the bounding-box top as before; on the thin L whose
+    centre lies in its notch, no mesh is under the box there: the L's bounding-box top."""
+    man = Manifest(objects=[ObjectEntry(name="tray", label=1, bbox_extent=[0.20, 0.20, 0.10]),
+                            ObjectEntry(name="box", label=2, bbox_extent=[0.08, 0.06, 0.05])],
+                   background=Background(table_height=0.0))
+    box = fp.box_shape([0.08, 0.06, 0.05])
+    belief = {"tray": pose_xyz_yaw(0.4, 0.1, 0.05, 0.2), "box": pose_xyz_yaw(0.3, -0.2, 0.025, 0.2)}
+    tray = fp.Shape((_box([-0.1, -0.1, -0.05], [0.1, 0.1, -0.03]), _box([0.08, 0.08, -0.05], [0.1, 0.1, 0.05])))
+    step = Step("box", place_on="tray")
+    targets = place_targets(step, "box", belief, man, {"tray": tray, "box": box}.__getitem__)
+    assert [T[2, 3] for T in targets] == pytest.approx([0.02 + 0.025 + PLACE_CLEARANCE] * 4)
+    before = place_targets(step, "box", belief, man)     # bounding boxes: the post's height
+    assert [T[2, 3] for T in before] == pytest.approx([0.10 + 0.025 + PLACE_CLEARANCE] * 4)
+    for T, T0 in zip(targets, before):                   # same place, yaws and order
+        np.testing.assert_array_equal(T[:3, :3], T0[:3, :3])
+        np.testing.assert_array_equal(T[:2, 3], T0[:2, 3])
+    wedge = fp.Shape((np.array([[-0.1, -0.1, -0.05], [0.1, -0.1, -0.05], [0.1, -0.1, 0.05],
+                                [-0.1, 0.1, -0.05], [0.1, 0.1, -0.05], [0.1, 0.1, 0.05]], float),))
+    belief["tray"] = pose_xyz_yaw(0.4, 0.1, 0.05, 0.0)
+    targets = place_targets(step, "box", belief, man, {"tray": wedge, "box": box}.__getitem__)
+    along_x = [T[2, 3] for T in targets if abs(math.cos(yaw_of(T))) > 0.5]    # reaches 4 cm up the slope: 7 cm
+    along_y = [T[2, 3] for T in targets if abs(math.cos(yaw_of(T))) < 0.5]    # 3 cm: 6.5 cm
+    assert along_x == pytest.approx([0.07 + 0.025 + PLACE_CLEARANCE] * 2)
+    assert along_y == pytest.approx([0.065 + 0.025 + PLACE_CLEARANCE] * 2)
+    mesh_box = fp.Shape((_box([-0.1, -0.1, -0.05], [0.1, 0.1, 0.05]),))
+    targets = place_targets(step, "box", belief, man, {"tray": mesh_box, "box": box}.__getitem__)
+    assert [T[2, 3] for T in targets] == [T[2, 3] for T in place_targets(step, "box", belief, man)]
+    man = _l_manifest()
+    belief = {"ell": pose_xyz_yaw(0.3, 0.0, 0.0075, 0.0), "tall": pose_xyz_yaw(0.5, 0.2, 0.05, 0.0)}
+    targets = place_targets(Step("tall", place_on="ell"), "tall", belief, man,
+                            {"ell": L_SHAPE, "tall": fp.box_shape([0.04, 0.04, 0.10])}.__getitem__)
+    assert [T[2, 3] for T in targets] == pytest.approx([0.015 + 0.05 + PLACE_CLEARANCE] * 4)
+
+
 def test_place_targets_in_a_region_keep_only_fitting_yaws():
     man = _manifest(table=0.02)
     belief = {"crate": pose_xyz_yaw(0.5, 0.0, 0.07, 0.0), "box": pose_xyz_yaw(0.0, 0.3, 0.045, 0.0)}

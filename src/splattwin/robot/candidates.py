@@ -122,7 +122,7 @@ class StepPlanner:
             if report is not None:
                 report.reject(reason)
 
-        for T_place_obj in place_targets(step, obj, self.belief, self.world.manifest):
+        for T_place_obj in place_targets(step, obj, self.belief, self.world.manifest, self.selector.shapes):
             # the checker is shared with other planning between resumptions: set the carrying state anew
             m.freeze(self.q_now(), g.width)
             with m.carrying(obj, T_tcp_obj):

@@ -1,5 +1,6 @@
 """Objects' footprints on the table plane, from their collision meshes: for the checks of a task (`task.TaskScene`)
-and the planner's belief of what stands on what (`selection.support_height`).
+and the planner's belief (what stands on what, `selection.support_height`; how high to release an object on
+another, `selection.release_height`).
 
 An object's `Shape` is its convex parts (twin.json `convex_parts`, else its `collision_mesh` as one part, as the
 collision exports take them): vertices in the object frame (m). Posed at T_world_obj, its footprint is the union
@@ -164,6 +165,50 @@ def _part_top(V: np.ndarray, xy: np.ndarray) -> float:
     return float(np.clip(z.min(), V[:, 2].min(), V[:, 2].max()))
 
 
+THICKEN = 1e-6   # m: a part without volume (a plate, a needle) is made this much thicker for its hull
+
+
+def _hull_planes(V: np.ndarray) -> np.ndarray | None:
+    """The convex hull of V [N, 3] as planes [F, 4] (n . p + d <= 0 inside, unit n); a part without volume (a
+    plate, a needle) thickened by THICKEN across it first; None for no vertices."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    if len(V) == 0:
+        return None
+    try:
+        return ConvexHull(V).equations
+    except (QhullError, ValueError):
+        _, _, axes = np.linalg.svd(V - V.mean(axis=0), full_matrices=True)
+        offsets = [s * THICKEN * a for a in axes for s in (-1, 1)]
+        return ConvexHull(np.vstack([V + o for o in offsets])).equations
+
+
+def _halfplanes(poly: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(A [M, 2], b [M]): the points p with A p <= b are the counter-clockwise convex polygon poly [K, 2] (a
+    segment when K = 2, `_polygon`)."""
+    if len(poly) >= 3:
+        e = np.roll(poly, -1, axis=0) - poly   # inside: cross(e, p - v) >= 0
+        return np.column_stack([e[:, 1], -e[:, 0]]), e[:, 1] * poly[:, 0] - e[:, 0] * poly[:, 1]
+    a, b = poly[0], poly[-1]
+    d = b - a
+    n = np.array([-d[1], d[0]])
+    return np.array([n, -n, -d, d]), np.array([n @ a, -(n @ a), -(d @ a), d @ b])
+
+
+def _highest_over(planes: np.ndarray, poly: np.ndarray) -> np.ndarray | None:
+    """x, y [2] of the highest point of the convex solid `planes` [F, 4] over the convex polygon poly [K, 2];
+    None when the solid lies nowhere over it. A linear program (scipy HiGHS)."""
+    from scipy.optimize import linprog
+
+    A2, b2 = _halfplanes(poly)
+    norm = np.maximum(np.linalg.norm(A2, axis=1), 1e-300)   # unit normals: the slack below is EPS metres
+    A2, b2 = A2 / norm[:, None], b2 / norm
+    A = np.vstack([planes[:, :3], np.column_stack([A2, np.zeros(len(A2))])])
+    b = np.concatenate([-planes[:, 3], b2 + EPS])   # a polygon touching the part's edge meets it
+    r = linprog([0.0, 0.0, -1.0], A_ub=A, b_ub=b, bounds=[(None, None)] * 3, method="highs")
+    return np.asarray(r.x[:2], float) if r.status == 0 else None
+
+
 class Posed:
     """A Shape at T_world_obj [4, 4]: its parts' vertices in the twin frame and their footprint polygons (twin
     frame x, y, m; one convex polygon per part, their union the footprint), computed once for many queries."""
@@ -186,6 +231,22 @@ class Posed:
     def bottom(self) -> float:
         """Height (m, twin frame) of the lowest point."""
         return min(float(V[:, 2].min()) for V in self.parts)
+
+    def top_under(self, polys: list[np.ndarray]) -> float | None:
+        """Height (m, twin frame) of the highest point of the parts over the convex polygons polys [K, 2] (twin
+        frame x, y: another object's footprint, `Posed.polygons`): the first point an object with that footprint,
+        lowered from above, would touch; None when no part lies under them. Per part and polygon, a linear
+        program (maximise z inside the part's hull and over the polygon); the height there as `top_at` says."""
+        tops = []
+        for V in self.parts:
+            planes = _hull_planes(V)
+            if planes is None:
+                continue
+            for poly in polys:
+                xy = _highest_over(planes, poly)
+                if xy is not None:
+                    tops.append(_part_top(V, xy))
+        return max(tops) if tops else None
 
 
 def polygons(shape: Shape, T: np.ndarray) -> list[np.ndarray]:

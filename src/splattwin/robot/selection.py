@@ -8,9 +8,11 @@ margin above the surface in the closed pose. The object below is found on the ob
 (`footprint`: the union of their convex parts; an object without one, its bounding box): an object in the
 free notch of an L-shaped one, or beside a hammer's handle, stands on the table.
 
-Place targets: upright at the goal — centred on the support's top face (4 yaws aligned with the support)
-or in the goal region (8 yaws, only those whose footprint fits), the one closest to the object's current
-yaw first. Frames: T_world_obj [4,4] in the twin frame, metres, radians.
+Place targets: upright at the goal — centred on the support's top face (4 yaws aligned with the support),
+released just above the highest point of the support's mesh under the object's footprint (`release_height`:
+what it touches first, in the simulation too, whose collision geometry is the same convex parts), or in the
+goal region (8 yaws, only those whose footprint fits), the one closest to the object's current yaw first.
+Frames: T_world_obj [4,4] in the twin frame, metres, radians.
 """
 
 from __future__ import annotations
@@ -56,34 +58,57 @@ def support_height(obj: str, belief: Belief, manifest: Manifest, shape: ShapeOf 
     return z
 
 
-def place_targets(step: Step, obj: str, belief: Belief, manifest: Manifest) -> list[np.ndarray]:
-    """Candidate T_world_obj [4,4] at the step's goal (upright, yaw variants), best first."""
+def release_height(support: str, obj: str, T_place: np.ndarray, belief: Belief, manifest: Manifest,
+                   shape: ShapeOf | None = None) -> float:
+    """World z (m) of the support's top under `obj` placed at T_place [4,4] (its x, y and yaw): the highest
+    point of the support's mesh under obj's footprint there (`footprint.Posed.top_under`), what obj lowered
+    onto it touches first; the support's bounding-box top over its centre where no mesh lies under it. The
+    same for a box-shaped support; for a sloped, stepped or dented one, lower than its bounding-box top (the
+    object was released from that much higher), for a mesh reaching above its box, higher."""
+    shape = shape or _boxes(manifest)
+    T_sup = belief[support]
+    top = fp.Posed(shape(support), T_sup).top_under(fp.polygons(shape(obj), T_place))
+    if top is None:
+        ext = np.asarray(manifest.object(support).bbox_extent, float)
+        top = float(T_sup[2, 3] + T_sup[2, 2] * ext[2] / 2)
+    return top
+
+
+def place_targets(step: Step, obj: str, belief: Belief, manifest: Manifest,
+                  shape: ShapeOf | None = None) -> list[np.ndarray]:
+    """Candidate T_world_obj [4,4] at the step's goal (upright, yaw variants), best first. On a support: at
+    its centre (its bounding box's top face), PLACE_CLEARANCE above its mesh under obj's footprint at each yaw
+    (`release_height`); shape: each object's `footprint.Shape` (None: their bounding boxes)."""
     T_now = belief[obj]
     ext = np.asarray(manifest.object(obj).bbox_extent, float)
     yaw_now = yaw_of(T_now)
-    if step.place_on is not None:
-        T_sup = belief[step.place_on]
-        sup_ext = np.asarray(manifest.object(step.place_on).bbox_extent, float)
-        xyz = T_sup[:3, 3] + T_sup[:3, 2] * sup_ext[2] / 2
-        z = xyz[2] + ext[2] / 2 + PLACE_CLEARANCE
-        yaw_sup = yaw_of(T_sup)
-        yaws = [yaw_sup + k * math.pi / 2 for k in range(4)]
-    else:
-        reg = step.place_in
-        xyz = reg.center.copy()
-        z = manifest.background.table_height + ext[2] / 2 + PLACE_CLEARANCE
-        yaws = [k * math.pi / 4 for k in range(8)]
-        fits = []
-        for y in yaws:
-            c, s = abs(math.cos(y)), abs(math.sin(y))
-            fx, fy = c * ext[0] + s * ext[1], s * ext[0] + c * ext[1]
-            if fx <= reg.size[0] - REGION_MARGIN and fy <= reg.size[1] - REGION_MARGIN:
-                fits.append(y)
-        yaws = fits or yaws
 
     def wrap(a: float) -> float:
         return (a + math.pi) % (2 * math.pi) - math.pi
 
+    if step.place_on is not None:
+        T_sup = belief[step.place_on]
+        sup_ext = np.asarray(manifest.object(step.place_on).bbox_extent, float)
+        xyz = T_sup[:3, 3] + T_sup[:3, 2] * sup_ext[2] / 2
+        yaw_sup = yaw_of(T_sup)
+        yaws = sorted((yaw_sup + k * math.pi / 2 for k in range(4)), key=lambda y: abs(wrap(y - yaw_now)))
+        out = []
+        for y in yaws:
+            T = pose_xyz_yaw(xyz[0], xyz[1], 0.0, y)
+            T[2, 3] = release_height(step.place_on, obj, T, belief, manifest, shape) + ext[2] / 2 + PLACE_CLEARANCE
+            out.append(T)
+        return out
+    reg = step.place_in
+    xyz = reg.center.copy()
+    z = manifest.background.table_height + ext[2] / 2 + PLACE_CLEARANCE
+    yaws = [k * math.pi / 4 for k in range(8)]
+    fits = []
+    for y in yaws:
+        c, s = abs(math.cos(y)), abs(math.sin(y))
+        fx, fy = c * ext[0] + s * ext[1], s * ext[0] + c * ext[1]
+        if fx <= reg.size[0] - REGION_MARGIN and fy <= reg.size[1] - REGION_MARGIN:
+            fits.append(y)
+    yaws = fits or yaws
     yaws.sort(key=lambda y: abs(wrap(y - yaw_now)))
     return [pose_xyz_yaw(xyz[0], xyz[1], z, y) for y in yaws]
 
