@@ -159,7 +159,7 @@ def test_failed_motion_plans_fall_back_to_next_grasp_and_place(gt_twin_default: 
         return real_plan(q_start, q_goal, label)
 
     monkeypatch.setattr(ex.motion, "free_path", flaky)
-    first_place = place_targets(step, "blue_box", ex.belief, w.manifest)[0]
+    first_place = place_targets(step, "blue_box", ex.belief, w.manifest, ex.selector.shapes)[0]
     r = ex.run_step(1, step)
     assert failed == ["transit", "transfer"]
     assert r.success and r.robot_collisions == 0 and r.object_collisions == 0, r.failure

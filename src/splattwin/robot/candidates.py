@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
+from splattwin.robot import footprint as fp
 from splattwin.robot.grasp import Grasp
 from splattwin.robot.motion import MotionPlanner
 from splattwin.robot.plans import GraspPlan, GraspReport, PlacePlan
@@ -184,23 +185,25 @@ class StepPlanner:
                 f"collision-free approach, lift and place (rejections: {report.rejections}){crowded}")
 
     def goal_neighbours(self, step: Step) -> str:
-        """'; the goal is crowded: ...' naming the objects (in the belief) whose bounding-box footprint lies
-        closer to the place's centre than the picked object reaches from it at some yaw (half its
-        footprint's diagonal), else ''. The place goes to the goal's centre (`selection.place_targets`)."""
-        from splattwin.robot.task import footprint_distance
+        """`goal_neighbours` of the step in the belief, on the objects' collision meshes."""
+        return goal_neighbours(step, self.belief, self.selector.shapes)
 
-        man = self.world.manifest
-        ext = np.asarray(man.object(step.pick).bbox_extent, float)
-        if step.place_on is not None:
-            centre, skip = self.belief[step.place_on][:2, 3], {step.pick, step.place_on}
-        else:
-            centre, skip = step.place_in.center[:2], {step.pick}
-        reach = float(np.hypot(ext[0], ext[1])) / 2
-        near = sorted((footprint_distance(centre, T, np.asarray(man.object(o).bbox_extent, float)), o)
-                      for o, T in self.belief.items() if o not in skip)
-        near = [(d, o) for d, o in near if d < reach]
-        if not near:
-            return ""
-        return ("; the goal is crowded: " + ", ".join(f"{o!r} {d * 100:.1f} cm from its centre" for d, o in near)
-                + f" ({step.pick!r} reaches {reach * 100:.1f} cm from it at some yaw): move the goal, or those "
-                "objects in an earlier step")
+
+def goal_neighbours(step: Step, belief: dict[str, np.ndarray], shape: Callable[[str], fp.Shape]) -> str:
+    """'; the goal is crowded: ...' naming the objects (in the belief, T_world_obj [4,4]) whose footprint (the
+    union of their convex parts seen from above, `footprint`; their bounding box without a mesh) lies closer to
+    the place's centre than the picked object reaches from it at some yaw (the farthest point of its own
+    footprint from its centre), else ''. The place goes to the goal's centre (`selection.place_targets`).
+    shape: each object's `footprint.Shape` (`footprint.Shapes`)."""
+    if step.place_on is not None:
+        centre, skip = belief[step.place_on][:2, 3], {step.pick, step.place_on}
+    else:
+        centre, skip = step.place_in.center[:2], {step.pick}
+    reach = fp.reach(shape(step.pick))
+    near = sorted((fp.distance(centre, shape(o), T), o) for o, T in belief.items() if o not in skip)
+    near = [(d, o) for d, o in near if d < reach]
+    if not near:
+        return ""
+    return ("; the goal is crowded: " + ", ".join(f"{o!r} {d * 100:.1f} cm from its centre" for d, o in near)
+            + f" ({step.pick!r} reaches {reach * 100:.1f} cm from it at some yaw): move the goal, or those "
+            "objects in an earlier step")

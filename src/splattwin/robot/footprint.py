@@ -1,6 +1,6 @@
 """Objects' footprints on the table plane, from their collision meshes: for the checks of a task (`task.TaskScene`)
 and the planner's belief (what stands on what, `selection.support_height`; how high to release an object on
-another, `selection.release_height`).
+another, `selection.release_height`; which objects crowd a goal, `candidates.goal_neighbours`).
 
 An object's `Shape` is its convex parts (twin.json `convex_parts`, else its `collision_mesh` as one part, as the
 collision exports take them): vertices in the object frame (m). Posed at T_world_obj, its footprint is the union
@@ -247,6 +247,13 @@ class Posed:
                 if xy is not None:
                     tops.append(_part_top(V, xy))
         return max(tops) if tops else None
+
+
+def reach(shape: Shape) -> float:
+    """Radius (m) of the disc about the object frame's origin that holds the footprint of `shape` upright at
+    any yaw: the farthest of its parts' vertices from the vertical axis through the origin (a box's: half
+    its footprint's diagonal)."""
+    return max(float(np.linalg.norm(p[:, :2], axis=1).max(initial=0.0)) for p in shape.parts)
 
 
 def polygons(shape: Shape, T: np.ndarray) -> list[np.ndarray]:
