@@ -435,3 +435,35 @@ def test_an_object_on_the_lower_step_of_a_support_stands_on_it(tmp_path: Path, g
     with pytest.raises(InputError, match=r"step 1: 'yellow_cube' stands on 'cardboard_box' \(in the twin\)"):
         validate_task(t, m, twin, BasePose().matrix())
     assert TaskScene.of(m, twin).on["yellow_cube"] == "cardboard_box"
+
+
+def test_a_place_on_a_tray_is_checked_where_the_box_rests_on_it(tmp_path: Path, gt_twin_small: Path, panda,
+                                                                monkeypatch):
+    """The cardboard box as a 2 cm tray with a 10 cm post in a corner (bounding box 20 x 15 x 10 cm): the blue
+    box placed on it rests on the tray (as the planner releases it, `selection.release_height`), not on its
+    bounding-box top. Before, the scene put it 8 cm higher, so the place pose and the next step's grasp of it
+    were IK-checked 8 cm above where they are."""
+    import splattwin.robot.task as task_mod
+    from splattwin.robot.task import TaskScene
+
+    tray = [([-0.1, -0.075, -0.05], [0.1, 0.075, -0.03]), ([0.08, 0.055, -0.05], [0.1, 0.075, 0.05])]
+    twin = _reshaped(gt_twin_small, tmp_path, tray, [0.2, 0.15, 0.1])
+    m = Manifest.load(twin)
+    asked: list[np.ndarray] = []
+    real = task_mod.reachable
+    monkeypatch.setattr(task_mod, "reachable", lambda ik, xyz, base_xy, rise=0.0: (asked.append(np.asarray(xyz)),
+                                                                                    real(ik, xyz, base_xy, rise))[1])
+    t = load_task(_write(tmp_path, "- pick: blue_box\n- place_on: cardboard_box\n"
+                                   "- pick: blue_box\n- place_in: {center: [0.0, 0.05], size: 0.15}\n"), m)
+    validate_task(t, m, twin, BasePose().matrix(), robot=panda)
+    box, blue = m.object("cardboard_box"), m.object("blue_box")
+    tray_top = box.pose[2, 3] - 0.03                     # 2 cm above the table
+    h = blue.bbox_extent[2]
+    place1, grasp2 = asked[1], asked[2]                  # step 1: grasp, place; step 2: grasp, place
+    np.testing.assert_allclose(place1[:2], box.pose[:2, 3], atol=1e-9)
+    assert place1[2] == pytest.approx(tray_top + h - 0.02)           # the TCP 2 cm below the placed box's top
+    assert grasp2[2] == pytest.approx(tray_top + h - 0.02)
+    scene = TaskScene.of(m, twin)
+    scene.place(t.steps[0], 1, 0.0)
+    assert scene.poses["blue_box"][2, 3] == pytest.approx(tray_top + h / 2)
+    assert scene.on["blue_box"] == "cardboard_box"

@@ -342,7 +342,7 @@ def validate_task(task: Task, manifest: Manifest, twin_dir: str | Path, T_world_
     if not all(math.isfinite(v) for v in np.asarray(T_world_base).ravel()):
         raise InputError("robot base pose is not finite", where)
     if robot is not None:
-        _check_ik(task, manifest, names, states, np.asarray(T_world_base), robot, where)
+        _check_ik(task, manifest, names, states, np.asarray(T_world_base), robot, where, scene)
 
 
 def _units_hint(region: Region) -> str:
@@ -469,21 +469,31 @@ class TaskScene:
 
     def place(self, s: Step, k: int, table_z: float) -> None:
         """Move the step's object to its goal as the planner places it: upright, its yaw kept, at the
-        region's centre on the table or centred on the support's top."""
+        region's centre on the table or centred on the support, resting on the support's mesh under its
+        footprint (`support_top`)."""
         from splattwin.transforms import yaw_of
 
         if s.pick not in self.poses:
             return
         ext = self.extents[s.pick]
+        T = make_pose(rot_z(yaw_of(self.poses[s.pick])), [0.0, 0.0, 0.0])
         if s.place_on is not None and s.place_on in self.poses:
-            S = self.poses[s.place_on]
-            xy, z = S[:2, 3], float(S[2, 3] + _half_height(S, self.extents[s.place_on]))
+            T[:2, 3] = self.poses[s.place_on][:2, 3]
+            z = self.support_top(s.place_on, s.pick, T)
         elif s.place_in is not None:
-            xy, z = s.place_in.center[:2], table_z
+            T[:2, 3], z = s.place_in.center[:2], table_z
         else:
             return
-        T = make_pose(rot_z(yaw_of(self.poses[s.pick])), [xy[0], xy[1], z + ext[2] / 2])
+        T[2, 3] = z + ext[2] / 2
         self.poses[s.pick], self.on[s.pick], self.placed_in[s.pick] = T, s.place_on, k
+
+    def support_top(self, support: str, obj: str, T_obj: np.ndarray, T_support: np.ndarray | None = None) -> float:
+        """World z (m) where `obj` at T_obj (its x, y and yaw) rests on `support` at T_support (default: its
+        pose now): the highest point of the support's mesh under obj's footprint (as `selection.release_height`
+        releases it), the top of the support's bounding box where no mesh lies under it."""
+        S = self.poses[support] if T_support is None else np.asarray(T_support, float)
+        top = fp.Posed(self.shape(support), S).top_under(fp.polygons(self.shape(obj), T_obj))
+        return float(S[2, 3] + _half_height(S, self.extents[support])) if top is None else top
 
 
 def _grip_point(top_z: float, height: float, xy: np.ndarray) -> np.ndarray:
@@ -492,10 +502,13 @@ def _grip_point(top_z: float, height: float, xy: np.ndarray) -> np.ndarray:
 
 
 def _check_ik(task: Task, manifest: Manifest, names: dict, states: list[dict[str, np.ndarray]],
-              T_world_base: np.ndarray, robot, where: Path) -> None:
+              T_world_base: np.ndarray, robot, where: Path, scene: TaskScene) -> None:
     """IK (mink) of each step's grasp pose at the object and of its place and pre-place poses, with the
-    objects where the steps before it left them (`states[k - 1]`: T_world_obj per object)."""
+    objects where the steps before it left them (`states[k - 1]`: T_world_obj per object); a place on an
+    object at the height of its mesh under the placed object's footprint (`TaskScene.support_top`; scene:
+    the objects' shapes)."""
     from splattwin.robot.ik import ArmIK
+    from splattwin.transforms import yaw_of
 
     ik = ArmIK(robot, T_world_base)
     base_xy = T_world_base[:2, 3]
@@ -517,7 +530,11 @@ def _check_ik(task: Task, manifest: Manifest, names: dict, states: list[dict[str
                              f"reach: no IK solution for a grasp pose there (top-down at 8 yaws or from the "
                              f"side; base at {np.round(T_world_base[:3, 3], 3).tolist()}; move it with "
                              f"--base-pose)", where)
-        if s.place_on is not None:
+        if s.place_on is not None and s.place_on in scene.poses and s.pick in scene.poses:
+            T = make_pose(rot_z(yaw_of(pose(s.pick))), pose(s.place_on)[:3, 3])   # upright, its yaw kept (place)
+            goal, xy = f"goal object {s.place_on!r}", T[:2, 3]
+            z = scene.support_top(s.place_on, s.pick, T, pose(s.place_on))
+        elif s.place_on is not None:
             goal, xy, z = f"goal object {s.place_on!r}", pose(s.place_on)[:2, 3], top(s.place_on)
         else:
             goal, xy, z = f"goal region {s.place_in.name!r}", s.place_in.center[:2], table_z
