@@ -216,8 +216,8 @@ def test_a_failed_placement_reports_its_cause(gt_twin_default: Path, monkeypatch
     step = load_task(None, w.manifest).steps[0]
     real = judge.judge_place
 
-    def tipped(world, step_, obj):
-        v = real(world, step_, obj)
+    def tipped(world, step_, obj, shapes=None):
+        v = real(world, step_, obj, shapes)
         return judge.Placement(placed=False, at_rest=False, speed=v.speed, tilt=1.2,
                                why=judge.place_failure(obj, step_, False, False, v.speed, 1.2, "not on 'x'"))
 

@@ -395,7 +395,7 @@ class Executor:
             self._snap(f"step{k}_release")
             self._move(place.retreat, SLOW, f"step{k}_retreat", open_c, SETTLE_TIME, mon)
             self.belief[obj] = place.T_world_obj
-            verdict = judge.judge_place(w, step, obj)
+            verdict = judge.judge_place(w, step, obj, self.selector.shapes)
             res.placed, res.at_rest = verdict.placed, verdict.at_rest
         except StepFailed as e:
             res.failure = str(e)
@@ -426,7 +426,7 @@ class Executor:
         for k, (step, res) in enumerate(zip(task.steps, steps), start=1):
             if k == n or any(later.pick == step.pick for later in task.steps[k:]):
                 continue   # judged just now, or moved on purpose later
-            v = judge.judge_place(w, step, step.pick)
+            v = judge.judge_place(w, step, step.pick, self.selector.shapes)
             if v.placed and v.at_rest:
                 continue
             res.success = False

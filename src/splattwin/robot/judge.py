@@ -1,7 +1,8 @@
 """Judging a pick-and-place step, as in the paper: grasped and lifted, placed in the goal at rest, no collisions.
 
-The geometric tests are plain functions of poses and extents (twin frame, metres, radians) so they can
-be checked on hand-made cases; `judge_grasp` / `judge_place` read them off the simulated world.
+The geometric tests are plain functions of poses and extents or collision meshes (`footprint.Shape`; twin
+frame, metres, radians) so they can be checked on hand-made cases; `judge_grasp` / `judge_place` read them off
+the simulated world (and its contacts).
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from splattwin.robot import footprint as fp
 from splattwin.robot.monitor import ContactKind, MonitorState
 from splattwin.robot.task import Region, Step
 
@@ -29,9 +31,11 @@ def criteria(lift_m: float, settle_s: float) -> dict:
         "tilt_max_deg": round(math.degrees(TILT_MAX), 6), "height_tol_m": HEIGHT_TOL, "settle_s": settle_s,
         "definition": (
             "a step succeeds when: grasped (the object rose at least lift_fraction of the lift_m lift and both "
-            "fingers touch it); placed (place_on: its centre over the support's top face and its centre within "
-            "height_tol_m of resting on it; place_in: all 4 corners of its bounding-box footprint inside the "
-            "region and its bottom within height_tol_m of the table); at rest settle_s after the retreat (slower "
+            "fingers touch it); placed (place_on, on the collision meshes: its centre over the support's "
+            "footprint, its bottom within height_tol_m of the support's top under its footprint, and a contact "
+            "between the two in the simulation; place_in: "
+            "all 4 corners of its bounding-box footprint inside the region and its bottom within height_tol_m "
+            "of the table); at rest settle_s after the retreat (slower "
             "than rest_speed_m_s and tilted less than tilt_max_deg from upright); no collision (the robot "
             "touched nothing but the object, and the carried object nothing but the hand, during the step). "
             "Each step is judged when it ends, and at the end of the task each placed object that no later step "
@@ -61,14 +65,31 @@ def at_rest(speed: float, T_world_obj: np.ndarray) -> bool:
     return bool(speed < REST_SPEED and tilt_of(T_world_obj) < TILT_MAX)
 
 
-def placed_on(T_world_obj: np.ndarray, extent: np.ndarray, T_world_support: np.ndarray,
-              support_extent: np.ndarray) -> bool:
-    """The object's centre lies over the support's top face and at the height of resting on it."""
-    ext, sup = np.asarray(extent, float), np.asarray(support_extent, float)
-    p = np.linalg.inv(T_world_support) @ np.append(np.asarray(T_world_obj)[:3, 3], 1.0)
-    inside = abs(p[0]) <= sup[0] / 2 and abs(p[1]) <= sup[1] / 2
-    on_top = abs(p[2] - (sup[2] / 2 + ext[2] / 2)) < HEIGHT_TOL
-    return bool(inside and on_top)
+def _on_check(T_world_obj: np.ndarray, shape: fp.Shape, T_world_support: np.ndarray,
+              support_shape: fp.Shape) -> tuple[float, float | None]:
+    """(beyond, dz) of the object at T_world_obj on the support at T_world_support, from their Shapes
+    (collision meshes, else bounding boxes): beyond, the horizontal distance (m) from the object's centre to
+    the support's footprint (0 over it); dz, the height (m) of the object's bottom above the support's top
+    under the object's footprint (`footprint.Posed.top_under`: where an object lowered onto it rests, as
+    `selection.release_height` releases it), < 0 below it; None when no part of the support lies under it."""
+    obj = fp.Posed(shape, T_world_obj)
+    sup = fp.Posed(support_shape, T_world_support)
+    beyond = sup.distance(np.asarray(T_world_obj)[:2, 3])
+    top = sup.top_under(obj.polygons)
+    return beyond, None if top is None else obj.bottom() - top
+
+
+def placed_on(T_world_obj: np.ndarray, shape: fp.Shape, T_world_support: np.ndarray,
+              support_shape: fp.Shape) -> bool:
+    """The object rests on the support, judged on their collision meshes (`footprint.Shape`: convex parts,
+    else the bounding box): its centre lies over the support's footprint (exactly, within footprint.EPS, as
+    the bounding-box test was: an object whose centre overhangs the support is not on it) and its bottom
+    (its mesh's lowest point) is within HEIGHT_TOL of the highest point of the support's mesh under its
+    footprint. So an object on a 2 cm tray with a 10 cm corner post is on it (the bounding-box top was 8 cm
+    higher), and one on the table in the free notch of an L-shaped support is not (its centre is over the
+    L's bounding box, but over none of its parts). T_world_*: [4, 4], twin frame, m."""
+    beyond, dz = _on_check(T_world_obj, shape, T_world_support, support_shape)
+    return bool(beyond == 0.0 and dz is not None and abs(dz) < HEIGHT_TOL)
 
 
 def placed_in(T_world_obj: np.ndarray, extent: np.ndarray, region: Region, table_height: float) -> bool:
@@ -93,16 +114,36 @@ def judge_grasp(lifted_m: float, lift_m: float, held: bool) -> bool:
     return bool(lifted_m > LIFT_FRACTION * lift_m and held)
 
 
-def judge_place(world, step: Step, obj: str) -> Placement:
-    """Where the released object `obj` ended, against the step's goal (an object to stand on or a region)."""
+def touches(world, obj: str, support: str) -> bool:
+    """The simulation has a contact between `obj` and `support` now (within the contact margin)."""
+    return world.object_body(support) in world.contacts().partners(world.object_body(obj))
+
+
+def judge_place(world, step: Step, obj: str, shapes: fp.Shapes | None = None) -> Placement:
+    """Where the released object `obj` ended, against the step's goal (an object to stand on or a region).
+    shapes: the objects' Shapes (`footprint.Shapes`, read once by the caller); None: read from the world's
+    twin folder now.
+
+    On an object, placed means both where (`placed_on`, on the collision meshes) and touching it (a MuJoCo
+    contact between the two, `touches`); neither alone is enough. Settled in MuJoCo on the small
+    ground-truth twin: a box on a 1 cm slab lying on the support is at the height of resting on it within
+    HEIGHT_TOL, but does not touch it (no contact between the two: the geometry alone said placed). A contact
+    alone does not say where the object is: any touch counts, from the side too (an object on the table
+    leaning on the support), which the geometry rejects; so contacts decide only together with it. Where
+    both were tried (a box on a tray with a corner post, a cube on an L's arm or on the table in its notch,
+    the three steps of the default task, 3 perturbed trials) they agree."""
     T = world.object_pose(obj)
     ext = np.asarray(world.manifest.object(obj).bbox_extent, float)
     speed = world.object_speed(obj)
     if step.place_on is not None:
-        T_sup = world.object_pose(step.place_on)
-        sup = np.asarray(world.manifest.object(step.place_on).bbox_extent, float)
-        placed = placed_on(T, ext, T_sup, sup)
-        miss = "" if placed else miss_on(T, ext, T_sup, sup, step.place_on)
+        shapes = shapes or fp.Shapes(world.manifest, world.twin_dir)
+        sup = step.place_on
+        T_sup = world.object_pose(sup)
+        over = placed_on(T, shapes(obj), T_sup, shapes(sup))
+        touching = touches(world, obj, sup)
+        placed = over and touching
+        miss = ("" if placed else miss_on(T, shapes(obj), T_sup, shapes(sup), sup) if not over else
+                f"not on {sup!r}: it does not touch it (it rests on something else at that height)")
     else:
         h = world.manifest.background.table_height
         placed = placed_in(T, ext, step.place_in, h)
@@ -112,19 +153,19 @@ def judge_place(world, step: Step, obj: str) -> Placement:
                      why=place_failure(obj, step, placed, rest, speed, tilt_of(T), miss))
 
 
-def miss_on(T_world_obj: np.ndarray, extent: np.ndarray, T_world_support: np.ndarray, support_extent: np.ndarray,
+def miss_on(T_world_obj: np.ndarray, shape: fp.Shape, T_world_support: np.ndarray, support_shape: fp.Shape,
             support: str) -> str:
-    """Why `placed_on` is False, in words: how far the object's centre lies beyond the support's top face
-    and how far it is from the height of resting on it (cm)."""
-    ext, sup = np.asarray(extent, float), np.asarray(support_extent, float)
-    p = np.linalg.inv(T_world_support) @ np.append(np.asarray(T_world_obj)[:3, 3], 1.0)
-    beyond = float(np.max(np.maximum(np.abs(p[:2]) - sup[:2] / 2, 0.0)))
-    dz = float(p[2] - (sup[2] / 2 + ext[2] / 2))
+    """Why `placed_on` is False, in words: how far the object's centre lies beyond the support's footprint
+    and how far its bottom is from the support's top under it (cm)."""
+    beyond, dz = _on_check(T_world_obj, shape, T_world_support, support_shape)
     parts = []
     if beyond > 0:
-        parts.append(f"its centre lies {beyond * 100:.1f} cm beyond the top face of {support!r}")   # not 'box''s
-    if abs(dz) >= HEIGHT_TOL:
-        parts.append(f"{abs(dz) * 100:.1f} cm {'above' if dz > 0 else 'below'} the height of resting on it")
+        parts.append(f"its centre lies {beyond * 100:.1f} cm beyond the top of {support!r}")   # not 'box''s
+    if dz is None:
+        parts.append(f"no part of {support!r} lies under it")
+    elif abs(dz) >= HEIGHT_TOL:
+        parts.append(f"its bottom is {abs(dz) * 100:.1f} cm {'above' if dz > 0 else 'below'} the top of "
+                     f"{support!r} under it")
     return f"not on {support!r}: " + (", ".join(parts) or "off its top")
 
 
