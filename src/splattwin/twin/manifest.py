@@ -357,8 +357,14 @@ class Manifest:
         if twin_dir.name == MANIFEST_NAME and not twin_dir.is_dir():   # (a folder may be named twin.json)
             twin_dir = twin_dir.parent
         path = twin_dir / MANIFEST_NAME
-        return cls.from_dict(io.read_json(path, missing="no twin manifest here (expected twin.json)",
-                                          max_bytes=MAX_RECORD_BYTES), path, twin_dir)
+        missing = "no twin manifest here (expected twin.json)"
+        if (twin_dir / "pipeline.json").is_file() or (twin_dir / "splat" / "point_cloud.ply").is_file():
+            # a build folder that stopped before the twin stage (`--until splats`, a stopped build): the user
+            # ran `build` and sees the folder, so say why it is not a twin yet and how to make it one
+            missing += (": this build stopped before the twin stage (splats only, e.g. --until splats); run "
+                        "splattwin build again with --out this folder and 2D masks (--masks DIR or --prompt "
+                        "'...') to make the twin")
+        return cls.from_dict(io.read_json(path, missing=missing, max_bytes=MAX_RECORD_BYTES), path, twin_dir)
 
 
 def _brief(v) -> str:
