@@ -352,6 +352,11 @@ def test_known_length_naming_an_image_not_in_the_capture_stops_before_sfm(tmp_pa
                 "--known-length", "camera_height=-1"])
     err = capsys.readouterr().err
     assert code == 2 and "positive number of metres" in err and not (out / "poses").exists(), err
+    for bad, why in (("camera_height=-1", "positive number of metres"), ("height=0.4", "use camera_height or "
+                     "baseline"), ("baseline@img_00=0.1", "exactly two images")):
+        with pytest.raises(InputError, match=why) as e:
+            pf.check_known_length(bad, None)
+        assert str(e.value).startswith(f"--known-length {bad!r}: ")   # the flag and the value given
     from splattwin.capture import load_dataset
 
     ds = load_dataset(imgs)

@@ -243,7 +243,12 @@ def check_known_length(text: str, ds) -> None:
     SfM run (a minute on the real cake) before "not among the registered images"."""
     from splattwin.poses.table import KnownLength
 
-    kl = KnownLength.parse(text)
+    try:
+        kl = KnownLength.parse(text)
+    except InputError as e:   # "known length kind 'height': ..." named neither the flag nor the value given
+        if e.problem.startswith("--known-length"):
+            raise
+        raise InputError(f"--known-length {text!r}: {e.problem}") from e
     if ds is None or not kl.images:
         return
     known = {n for f in ds.frames for n in (f.name, f.image_path.name, f.image_path.stem)}
