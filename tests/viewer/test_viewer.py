@@ -181,3 +181,5 @@ def test_view_of_a_build_stopped_before_the_twin_says_so(tmp_path):
     with pytest.raises(InputError, match="not a twin folder") as e:
         serve(tmp_path, port=_free_port(), block=False)
     assert "stopped before the twin stage" in str(e.value)
+    with pytest.raises(InputError, match="twin folder does not exist"):   # a mistyped path
+        serve(tmp_path / "nope", port=_free_port(), block=False)

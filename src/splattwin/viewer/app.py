@@ -306,6 +306,8 @@ def serve(twin_dir: str | Path, host: str = "127.0.0.1", port: int = 8080, block
     import viser
 
     twin_dir = Path(twin_dir)
+    if not twin_dir.is_dir():   # a mistyped path read "not a twin folder (no twin.json)"
+        raise InputError("twin folder does not exist", twin_dir)
     if not (twin_dir / "twin.json").is_file():
         from splattwin.twin.manifest import no_twin_yet
 
