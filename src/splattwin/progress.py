@@ -185,7 +185,10 @@ class Progress:
                 # the rate since the first unit: a first training step of a minute (numba compiling on a
                 # fresh cache) made the ETA of a 73 s run 4 h 52 min
                 rate = (now - self._first[0]) / (self.n - self._first[1])
-            elif done_here > 0 and el > 0:
+            elif done_here > 1 and el > 0:
+                # the first update alone: one unit is all start-up (29 s of numba compiling read "ETA 24 h
+                # 0 min" for a 5-minute training), so no ETA until a second update; a first update of
+                # many units (a resumed count, a batch) still gives one
                 rate = el / done_here
             if self.total is not None and rate is not None:
                 parts.append("ETA " + format_duration((self.total - self.n) * rate))

@@ -197,3 +197,24 @@ def test_progress_false_logs_the_stage_lines_instead_of_printing(tmp_path, monke
     b.build(tmp_path / "twin", BuildOptions(), progress=True)
     err = capsys.readouterr().err
     assert "· poses: up to date, skipped" in err and "▶ splat" in err
+
+
+def test_the_robot_stage_line_says_nothing_was_planned_without_a_task(tmp_path, monkeypatch, capsys):
+    """A build without --task printed a bare "▶ robot" and then nothing: it read as if the arm had been tried
+    on the twin (the robot stage only tidies then)."""
+    from splattwin.pipeline import build as b
+    from splattwin.pipeline.options import BuildOptions
+    from splattwin.robot.options import RobotOptions
+
+    def fake_run_stages(stages, ctx, from_stage=None, until=None, on_stage=None):
+        on_stage("twin", "run")
+        on_stage("robot", "run")
+
+    monkeypatch.setattr(b, "check_inputs", lambda options: None)
+    monkeypatch.setattr(b, "preflight", lambda ctx, until=None: {})
+    monkeypatch.setattr(b, "run_stages", fake_run_stages)
+    b.build(tmp_path / "twin", BuildOptions(), progress=True)
+    err = capsys.readouterr().err
+    assert "▶ twin\n" in err and "▶ robot: no --task, nothing planned (splattwin plan TWIN --task FILE" in err
+    b.build(tmp_path / "twin", BuildOptions(robot=RobotOptions(task="default")), progress=True)
+    assert "▶ robot\n" in capsys.readouterr().err

@@ -90,6 +90,18 @@ def test_headline_total_and_the_reports_stage_time_are_labelled_and_share_one_fi
     assert "'stage time, sum' (48.5 s)" in text and "wall-clock time of that one run" in text
     assert text.count("up to date: an earlier build's seconds") == 2 and text.count(">this build<") == 3
 
+def test_headline_of_a_build_stopped_before_the_report_says_there_is_none(tmp_path, capsys, monkeypatch):
+    """`build photos/ --until splats` (the build a capture without masks can make) ended "total 355 s wall
+    clock, pre-flight and report included (the report's stage time, sum: 355.2 s)", but wrote no report."""
+    monkeypatch.setenv("COLUMNS", "1000")
+    ctx = Context(out=tmp_path, options={}, timings={"scene": 0.1, "poses": 24.0, "splats": 331.1}, wall_s=355.4)
+    _print_headline(ctx)
+    out = " ".join(capsys.readouterr().out.split())
+    assert "report included" not in out, out
+    assert "total 355 s wall clock, pre-flight included (stage time, sum: 355.2 s; no report" in out
+    assert f"splattwin report {tmp_path}" in out
+
+
 def test_run_stages_records_what_it_skipped_and_its_own_time(tmp_path):
     from splattwin.pipeline.runner import Stage, run_stages
 

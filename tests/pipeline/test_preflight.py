@@ -334,3 +334,31 @@ def test_robot_capture_without_masks_uses_its_own_and_preflight_checks_them(tmp_
     write_image(bad, np.full((10, 10), 255, np.uint8))
     with pytest.raises(InputError, match=bad.name):
         pf.run_preflight(BuildOptions(input=str(cap2)), tmp_path / "twin3", cap2, cap2, tmp_path / "frames3")
+
+
+def test_known_length_naming_an_image_not_in_the_capture_stops_before_sfm(tmp_path, capsys):
+    """`build photos/ --known-length baseline@nope.jpg,frame000020.jpg=0.1` ran the whole SfM (a minute on the
+    real cake) before "known length refers to image 'nope.jpg', which is not among the registered images";
+    a malformed value stopped only once the poses stage began. Both stop at pre-flight now, naming the flag."""
+    imgs = _images(tmp_path / "imgs")
+    out = tmp_path / "twin"
+    code = cli(["build", str(imgs), "--out", str(out), "--until", "poses", "--no-progress",
+                "--known-length", "baseline@nope.jpg,img_01=0.1"])
+    err = capsys.readouterr().err
+    assert code == 2 and "--known-length" in err and "'nope.jpg'" in err and "img_00.png" in err, err
+    assert "img_01" not in err.split("no image named")[1].split("in this capture")[0]   # found by its stem
+    assert not (out / "poses").exists()
+    code = cli(["build", str(imgs), "--out", str(out), "--until", "poses", "--no-progress",
+                "--known-length", "camera_height=-1"])
+    err = capsys.readouterr().err
+    assert code == 2 and "positive number of metres" in err and not (out / "poses").exists(), err
+    for bad, why in (("camera_height=-1", "positive number of metres"), ("height=0.4", "use camera_height or "
+                     "baseline"), ("baseline@img_00=0.1", "exactly two images")):
+        with pytest.raises(InputError, match=why) as e:
+            pf.check_known_length(bad, None)
+        assert str(e.value).startswith(f"--known-length {bad!r}: ")   # the flag and the value given
+    from splattwin.capture import load_dataset
+
+    ds = load_dataset(imgs)
+    for good in ("baseline@img_00.png,img_03=0.2", "camera_height@img_02=0.4", "camera_height=0.45"):
+        pf.check_known_length(good, ds)   # file names with or without the suffix

@@ -180,3 +180,16 @@ def test_the_camera_plot_frames_the_cameras_not_a_few_stray_points(scene_small: 
     left = red[:, : img.shape[1] // 2]   # the top view
     cols = np.flatnonzero(left.any(axis=0))
     assert cols.size and cols.max() - cols.min() > 0.25 * left.shape[1]
+
+
+def test_the_camera_plot_logs_no_matplotlib_warning(scene_small: Path, tmp_path: Path, caplog):
+    """Every SfM build's log held four lines of matplotlib noise from cameras.png ("Ignoring fixed y limits
+    to fulfill fixed data aspect with adjustable data limits."): the view's limits were fixed and then
+    grown for the equal aspect. The stray points stay out of the view (test above)."""
+    import logging
+
+    from splattwin.poses.estimate import plot_cameras
+
+    with caplog.at_level(logging.WARNING):
+        plot_cameras(_known(load_dataset(scene_small)), tmp_path / "cameras.png")
+    assert not [r.getMessage() for r in caplog.records if r.name.startswith("matplotlib")]

@@ -215,3 +215,19 @@ def test_sigterm_to_the_worker_alone_is_an_error_naming_the_signal(tmp_path: Pat
                               "scheduler) during the extract step"), err[-20:]
     assert "run the same command again to resume" in err[-1] and str(out / "sfm") in err[-1], err[-1]
     assert not any("internal error" in ln or "bug" in ln for ln in err), err[-20:]
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc to find the pycolmap worker")
+def test_sigterm_to_the_cli_alone_during_sfm_is_one_line_not_a_c_stack_trace(tmp_path: Path):
+    """`timeout 30 splattwin build photos/ ...` ended inside SfM with glog's 30-line C stack trace ("*** SIGTERM
+    received by PID ... stack trace: ***") instead of "terminated (SIGTERM)": the CLI imports pycolmap for
+    SfM, which installs glog's failure-signal handler for SIGTERM, and nothing installed the CLI's handler
+    again while the SfM steps ran (their progress never called interrupt.check)."""
+    proc, out = _poses_in_extraction(tmp_path)
+    proc.send_signal(signal.SIGTERM)
+    rc, err = _finish(proc)
+    assert not any("stack trace" in ln or "Aborted at" in ln for ln in err), err[-20:]
+    assert rc == 143 and err[-1] == "terminated (SIGTERM)", err[-20:]
+    time.sleep(0.2)
+    assert _workers_of(out / "sfm") == []
+    assert not any((out / n).exists() for n in ("transforms.json", "poses_report.json"))

@@ -467,3 +467,24 @@ def test_a_place_on_a_tray_is_checked_where_the_box_rests_on_it(tmp_path: Path, 
     scene.place(t.steps[0], 1, 0.0)
     assert scene.poses["blue_box"][2, 3] == pytest.approx(tray_top + h / 2)
     assert scene.on["blue_box"] == "cardboard_box"
+
+
+def test_the_default_task_on_a_twin_without_its_objects_says_to_write_a_task(tmp_path: Path, gt_twin_small: Path):
+    """`splattwin plan` (no --task: the default task) on a user's twin of a cake said "step 3: place_in: the twin
+    defines no region named 'target_frame' ... splattwin.twin.add_scene_goal(twin_dir, scene_dir)": nothing said
+    that the default task is the demo scene's, nor to write one for the twin's own objects."""
+    from splattwin.twin.manifest import ObjectEntry
+
+    cake = Manifest(objects=[ObjectEntry("cake", 1)])
+    for path in (None, default_task_path()):
+        with pytest.raises(InputError, match="the default task is the embedded demo scene's") as e:
+            load_task(path, cake)
+        msg = str(e.value)
+        assert "blue_box" in msg and "target_frame" in msg and "objects: cake" in msg and "--task FILE" in msg
+    no_frame = Manifest.load(gt_twin_small)
+    no_frame.config.pop("target_frame")
+    with pytest.raises(InputError, match="lacks what it names: target_frame \\("):
+        load_task(None, no_frame)
+    # a task file of the user's own keeps its step-by-step messages
+    with pytest.raises(InputError, match="step 1: place_in: the twin defines no region named 'target_frame'"):
+        load_task(_write(tmp_path, "- pick: cake\n- place_in: target_frame\n"), cake)

@@ -41,6 +41,25 @@ def test_eval_bad_inputs(tmp_path):
         evaluate(tmp_path / "empty", tmp_path, progress=False)
 
 
+def test_eval_of_a_twin_folder_or_plain_photos_says_what_to_give(tmp_path):
+    """A new user ran `splattwin eval TWIN --dataset PHOTOS` (README: `eval OUT --dataset DATASET`) on the
+    folder `build --out TWIN` wrote: "no point_cloud.ply in this folder (train first: splattwin train)",
+    though the build had trained; then, on TWIN/splat, "dataset has no camera poses to render from" for the
+    photos. Each message now names what to give: TWIN/splat and TWIN/poses."""
+    twin = tmp_path / "twin"
+    helpers.gt_gaussians().save_ply(twin / "splat" / "point_cloud.ply")
+    with pytest.raises(InputError, match="twin folder") as e:
+        evaluate(twin, tmp_path, progress=False)
+    assert f"splattwin eval {twin / 'splat'} --dataset {twin / 'poses'}" in str(e.value)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        Image.fromarray(np.full((helpers.H, helpers.W, 3), 40 * i, np.uint8)).save(photos / f"{i}.png")
+    with pytest.raises(InputError, match="no camera poses") as e:
+        evaluate(twin / "splat", photos, progress=False)
+    assert "poses/ folder" in str(e.value) and "splattwin poses" in str(e.value)
+
+
 def test_eval_align_poses_fits_held_out_cameras_that_are_off(tmp_path):
     # The splat is the ground truth but the dataset's held-out cameras are 1 deg / 1 cm off (as after
     # training with refined poses): as given the metrics measure the offset; aligned they are near-perfect.

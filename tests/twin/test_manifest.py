@@ -176,3 +176,19 @@ def test_load_takes_the_twin_folder_or_its_twin_json(tmp_path):
     (tmp_path / "escape" / "twin.json").write_text(json.dumps(bad))
     with pytest.raises(InputError, match="outside|leaves|inside"):   # paths still confined to the file's folder
         Manifest.load(tmp_path / "escape" / "twin.json")
+
+
+def test_a_build_folder_without_a_twin_says_the_build_stopped_before_the_twin(tmp_path):
+    """`splattwin export`, `plan` and `view` on the folder of `build --until splats` (the only build a capture
+    without masks can make) said "no twin manifest here (expected twin.json)", as for any wrong folder. A
+    build folder now says the build stopped before the twin stage and that masks make the twin."""
+    (tmp_path / "splat").mkdir()
+    (tmp_path / "splat" / "point_cloud.ply").write_bytes(b"ply\n")
+    (tmp_path / "pipeline.json").write_text("{}")
+    with pytest.raises(InputError, match="no twin manifest here") as e:
+        Manifest.load(tmp_path)
+    assert "stopped before the twin stage" in str(e.value) and "--masks" in str(e.value)
+    (tmp_path / "other").mkdir()
+    with pytest.raises(InputError, match="no twin manifest") as e:
+        Manifest.load(tmp_path / "other")
+    assert "stopped before" not in str(e.value)

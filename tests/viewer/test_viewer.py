@@ -170,3 +170,16 @@ def test_serve_stops_its_player(tmp_path):
     for t in players:
         t.join(5.0)
     assert not any(t.is_alive() for t in players)
+
+
+def test_view_of_a_build_stopped_before_the_twin_says_so(tmp_path):
+    """`splattwin view` on the folder of `build --until splats` said "not a twin folder (no twin.json)"."""
+    from splattwin.errors import InputError
+
+    (tmp_path / "splat").mkdir()
+    (tmp_path / "splat" / "point_cloud.ply").write_bytes(b"ply\n")
+    with pytest.raises(InputError, match="not a twin folder") as e:
+        serve(tmp_path, port=_free_port(), block=False)
+    assert "stopped before the twin stage" in str(e.value)
+    with pytest.raises(InputError, match="twin folder does not exist"):   # a mistyped path
+        serve(tmp_path / "nope", port=_free_port(), block=False)

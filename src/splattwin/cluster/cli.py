@@ -97,7 +97,9 @@ def run_sweep_cli(args: argparse.Namespace) -> int:
     opts.validate()
     grid = _grid(opts)
     if not (args.twin / "twin.json").is_file():
-        raise InputError("not a twin folder (no twin.json)", args.twin)
+        from splattwin.twin.manifest import no_twin_yet
+
+        raise InputError("not a twin folder (no twin.json)" + no_twin_yet(args.twin), args.twin)
     # the trials as the twin was built (its resolved config), the flags given here on top
     # (only the robot flags this command has: --sigma, --trials and --cluster.* are the sweep's own)
     given_robot = {k: v for k, v in given(args, RobotOptions).items() if k in SWEEP_ROBOT_FLAGS}

@@ -424,7 +424,9 @@ def run_sweep(spec: SweepSpec, out: str | Path, executor: Executor, progress: bo
     twin = Path(spec.twin).absolute()
     spec = replace(spec, twin=twin)
     if not (twin / "twin.json").is_file():
-        raise InputError("not a twin folder (no twin.json)", twin)
+        from splattwin.twin.manifest import no_twin_yet
+
+        raise InputError("not a twin folder (no twin.json)" + no_twin_yet(twin), twin)
     from splattwin.robot.options import MAX_TRIALS
 
     if not 1 <= spec.trials <= MAX_TRIALS:

@@ -392,6 +392,9 @@ def build(out: str | Path, options: BuildOptions, from_stage: str | None = None,
         line = {"skip": f"· {name}: up to date, skipped", "run": f"▶ {name}"}.get(status)
         if line is None:
             return
+        if name == "robot" and status == "run" and not options.robot.task:
+            # the stage only tidies then: a bare "▶ robot" read as if the arm had been tried on the twin
+            line += ": no --task, nothing planned (splattwin plan TWIN --task FILE validates one)"
         if progress:
             con.print(line, style="dim" if status == "skip" else "bold cyan", markup=False, highlight=False)
         else:   # a script, a notebook, a batch worker: through the logger, not printed

@@ -179,6 +179,11 @@ def _total(ctx) -> str:
         return f"stage time, sum {stages:.1f} s"
     took = f"{ctx.wall_s:.1f} s" if ctx.wall_s < 10 else f"{ctx.wall_s:.0f} s"
     n = len(ctx.skipped)
+    if n == 0 and "report" not in ctx.timings:
+        # --until before the report (`--until splats`, the build of a capture without masks): it said
+        # "pre-flight and report included" though no report was written
+        return (f"total {took} wall clock, pre-flight included (stage time, sum: {stages:.1f} s; no report: "
+                f"stopped before it, `splattwin report {ctx.out}` writes one)")
     if n == 0:
         return (f"total {took} wall clock, pre-flight and report included (the report's stage time, sum: "
                 f"{stages:.1f} s)")

@@ -13,6 +13,8 @@ model or option:
 - a video gives the poses stage at least 2 frames (none decodes, 1 frame, or --max-frames 1 with SfM:
   `check_video_frames`, naming the video);
 - the task YAML parses;
+- `--known-length` parses and the images it names (`baseline@IMG_A,IMG_B`, `camera_height@IMG`) are in the
+  capture (`check_known_length`; the poses stage found a typo only after SfM);
 - the training options lie in their ranges (`TrainConfig.check`, which the trainer runs again), when the
   splat stage will run;
 - memory and disk for the capture at the training resolution and the Gaussian budget (`estimate`):
@@ -235,6 +237,29 @@ def check_video_frames(path: Path, max_frames: int | None, sfm: bool) -> None:
         raise InputError(f"gave {plural(min(n, wanted), 'frame')} ({why}); structure from motion needs >= 2", path)
 
 
+def check_known_length(text: str, ds) -> None:
+    """--known-length parses, and the images it names are in the capture `ds` (None: a video, not read
+    here). The poses stage checked the names only after SfM: a typo in baseline@IMG_A,IMG_B cost the whole
+    SfM run (a minute on the real cake) before "not among the registered images"."""
+    from splattwin.poses.table import KnownLength
+
+    try:
+        kl = KnownLength.parse(text)
+    except InputError as e:   # "known length kind 'height': ..." named neither the flag nor the value given
+        if e.problem.startswith("--known-length"):
+            raise
+        raise InputError(f"--known-length {text!r}: {e.problem}") from e
+    if ds is None or not kl.images:
+        return
+    known = {n for f in ds.frames for n in (f.name, f.image_path.name, f.image_path.stem)}
+    missing = [n for n in kl.images if n not in known]
+    if missing:
+        some = ", ".join(sorted(f.image_path.name for f in ds.frames)[:4])
+        raise InputError(f"--known-length {text!r}: no image named {', '.join(map(repr, missing))} in this "
+                         f"capture (its images: {some}{', ...' if len(ds.frames) > 4 else ''}; give a file name "
+                         f"with or without its suffix)", "--known-length")
+
+
 def run_preflight(options, out: Path, input_path: Path | None, scene_dir: Path | None, frames_dir: Path,
                   until: str | None = None, progress: bool = True) -> dict:
     """All checks for `BuildOptions` `options` building into `out` (see module docstring). input_path:
@@ -299,6 +324,11 @@ def run_preflight(options, out: Path, input_path: Path | None, scene_dir: Path |
         # image headers only; nothing else works without (a video: its frames as the poses stage extracts them)
         ds = load_dataset(input_path, frames_dir=frames_dir, max_frames=o.poses.max_frames,
                           min_change=o.poses.min_change, progress=progress)
+    if isinstance(o.poses.known_length, str) and _runs(until, "poses"):
+        try:
+            check_known_length(o.poses.known_length, ds)
+        except InputError as e:
+            problems.append(e)
     if o.robot.task:
         fmt = ds.meta.get("format") if ds is not None else "video"
         meta_path = Path(ds.meta.get("path", ds.root)) if ds is not None else input_path

@@ -36,6 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+from splattwin import interrupt
 from splattwin.errors import StoppedFromOutside
 from splattwin.poses.progress import StageProgress
 
@@ -209,6 +210,9 @@ def run_step(job: dict, job_dir: Path, progress: StageProgress, label: str, tota
     progress.update(label, 0, total)
     try:
         while True:
+            # the CLI's SIGTERM handler again: `import pycolmap` here (sfm.run) installed glog's, which ended a
+            # `timeout`/`docker stop` of SfM with a C stack trace; also a Ctrl-C a library swallowed
+            interrupt.check()
             try:
                 line = lines.get(timeout=0.25)
             except queue.Empty:

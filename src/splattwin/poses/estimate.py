@@ -1144,9 +1144,11 @@ def plot_cameras(result: PoseResult, path: str | Path) -> Path:
         ax.scatter(C[:, i], C[:, j], c="red", s=12, label="cameras")
         ax.quiver(C[:, i], C[:, j], D[:, i], D[:, j], color="red", angles="xy", scale_units="xy", scale=8 / span)
         ax.set_title(title)
-        ax.set_xlim(lo[i], hi[i])
-        ax.set_ylim(lo[j], hi[j])
-        ax.set_aspect("equal", adjustable="datalim")   # grows one range to keep the aspect: nothing is cut
+        # auto=True: limits that the equal aspect may grow (adjustable="datalim": nothing is cut); fixed ones
+        # (the default) made matplotlib log "Ignoring fixed y limits ..." four times into every SfM build
+        ax.set_xlim(lo[i], hi[i], auto=True)
+        ax.set_ylim(lo[j], hi[j], auto=True)
+        ax.set_aspect("equal", adjustable="datalim")
         unit = "m" if result.frame.scaled else "units"
         ax.set_xlabel(f"{'xyz'[i]} [{unit}]")
         ax.set_ylabel(f"{'xyz'[j]} [{unit}]")

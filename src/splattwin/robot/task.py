@@ -191,7 +191,32 @@ def load_task(path: str | Path | None, manifest: Manifest | None = None) -> Task
     if not path.is_file():
         raise InputError("task file not found", path)
     data = load_yaml(path)  # safe loader, bounded size and aliases (a task is often received)
+    if manifest is not None and path.resolve() == default_task_path().resolve():
+        _check_default_task_fits(data, path, manifest)
     return parse_task(data, path, manifest)
+
+
+def _check_default_task_fits(data, where: Path, manifest: Manifest) -> None:
+    """InputError when the twin lacks the objects or the region the default task (the embedded scene's) names.
+    `plan` on a user's own twin (without --task, or --task default) said "step 3: place_in: the twin defines no
+    region named 'target_frame' ... splattwin.twin.add_scene_goal(twin_dir, scene_dir)": nothing told the
+    user that the default task is the demo scene's, nor to write their own."""
+    from splattwin.names import export_id
+
+    ids = {export_id(o.name) for o in manifest.objects}
+    steps = data.get("steps", []) if isinstance(data, dict) else data
+    names = [v for item in steps if isinstance(item, dict) for k, v in item.items()
+             if k in ("pick", "place_on") and isinstance(v, str)]
+    regions = [v for item in steps if isinstance(item, dict) for k, v in item.items()
+               if k == "place_in" and isinstance(v, str)]
+    missing = sorted({n for n in names if export_id(n) not in ids}
+                     | {r for r in regions if not isinstance(manifest.config.get(r), dict)})
+    if missing:
+        have = ", ".join(sorted(o.name for o in manifest.objects)) or "none"
+        raise InputError(f"the default task is the embedded demo scene's rearrangement, and this twin lacks what "
+                         f"it names: {', '.join(missing)} (this twin's objects: {have}); write a task for your "
+                         f"objects (README, 'Writing a task': pick / place_on / place_in: {{center: [x, y], "
+                         f"size: s}}) and give it with --task FILE", where)
 
 
 def _tcp_poses(xyz: np.ndarray, base_xy: np.ndarray) -> list[np.ndarray]:

@@ -198,6 +198,11 @@ def resolve_ply(path: str | Path) -> tuple[Path, dict]:
         path = path.parent
     if path.is_dir():
         ply = path / "point_cloud.ply"
+        if not ply.is_file() and (path / "splat" / "point_cloud.ply").is_file():
+            # a twin folder given as README's `eval OUT` reads to a user of `build --out OUT`
+            raise InputError(f"a twin folder (splattwin build's output), not a training folder: its splats are "
+                             f"in splat/; evaluate them with `splattwin eval {path / 'splat'} --dataset "
+                             f"{path / 'poses'}`", path)
         if not ply.is_file():
             raise InputError("no point_cloud.ply in this folder (train first: splattwin train)", path)
         rec = path / "train.json"
@@ -388,7 +393,8 @@ def evaluate(splat: str | Path | Gaussians, dataset: Dataset | str | Path, out_d
     ds = dataset if isinstance(dataset, Dataset) else load_dataset(
         dataset, frames_dir=None if out_dir is None else Path(out_dir) / "capture" / "frames")
     if not ds.has_poses:
-        raise InputError("dataset has no camera poses to render from", ds.root)
+        raise InputError("dataset has no camera poses to render from (photos or a video: give the posed dataset "
+                         "the poses stage wrote, a twin's poses/ folder, or run splattwin poses first)", ds.root)
     frames, train_frames, held = _heldout_split(ds, info)
     split = "heldout"
     if not frames:

@@ -357,8 +357,19 @@ class Manifest:
         if twin_dir.name == MANIFEST_NAME and not twin_dir.is_dir():   # (a folder may be named twin.json)
             twin_dir = twin_dir.parent
         path = twin_dir / MANIFEST_NAME
-        return cls.from_dict(io.read_json(path, missing="no twin manifest here (expected twin.json)",
-                                          max_bytes=MAX_RECORD_BYTES), path, twin_dir)
+        missing = "no twin manifest here (expected twin.json)" + no_twin_yet(twin_dir)
+        return cls.from_dict(io.read_json(path, missing=missing, max_bytes=MAX_RECORD_BYTES), path, twin_dir)
+
+
+def no_twin_yet(folder: str | Path) -> str:
+    """The end of a "no twin.json" message: for a build folder that stopped before the twin stage (`--until
+    splats`, the only build a capture without masks can make, or a stopped build) why it is no twin yet and
+    how to make it one; "" for any other folder."""
+    folder = Path(folder)
+    if not ((folder / "pipeline.json").is_file() or (folder / "splat" / "point_cloud.ply").is_file()):
+        return ""
+    return (": this build stopped before the twin stage (splats only, e.g. --until splats); run splattwin build "
+            "again with --out this folder and 2D masks (--masks DIR or --prompt '...') to make the twin")
 
 
 def _brief(v) -> str:

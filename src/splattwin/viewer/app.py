@@ -306,8 +306,12 @@ def serve(twin_dir: str | Path, host: str = "127.0.0.1", port: int = 8080, block
     import viser
 
     twin_dir = Path(twin_dir)
+    if not twin_dir.is_dir():   # a mistyped path read "not a twin folder (no twin.json)"
+        raise InputError("twin folder does not exist", twin_dir)
     if not (twin_dir / "twin.json").is_file():
-        raise InputError("not a twin folder (no twin.json)", twin_dir)
+        from splattwin.twin.manifest import no_twin_yet
+
+        raise InputError("not a twin folder (no twin.json)" + no_twin_yet(twin_dir), twin_dir)
     if not 0 <= int(port) <= 65535:
         raise InputError(f"--port must be 0..65535, got {port}", "--port")
     view = TwinView.load(twin_dir)  # checked before the server starts
