@@ -7,7 +7,7 @@ import json
 import pytest
 
 from splattwin.errors import InputError
-from splattwin.poses.twin_frame import load_frame
+from splattwin.poses.twin_frame import TwinFrame, load_frame
 
 
 @pytest.mark.parametrize("text, needle", [
@@ -32,3 +32,12 @@ def test_frame_json_has_the_record_size_limit(tmp_path, monkeypatch):
     with pytest.raises(InputError, match="limit") as e:
         load_frame(p)
     assert e.value.path == p
+
+
+def test_summary_says_each_fact_once():
+    """Headers printed "frame: unscaled (UNSCALED, unscaled, up +z)": the source, the scale and the units all said
+    "unscaled". Now once, with what the lengths are."""
+    assert TwinFrame(source="unscaled", scaled=False).summary() == "unscaled (SfM units; up +z)"
+    assert TwinFrame(source="marker", scaled=True, units="m").summary() == "marker (metric, metres; up +z)"
+    # a source that names no scale, without one: the summary still says the lengths are not metres
+    assert TwinFrame(source="known_poses", scaled=False).summary() == "known_poses (not metric; up +z)"

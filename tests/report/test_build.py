@@ -215,7 +215,8 @@ def test_a_splats_only_report_names_the_poses_frame(tmp_path):
     assert not (twin / "twin.json").exists()
     io.write_json(twin / "poses" / "frame.json", vars(TwinFrame(source="unscaled", scaled=False)))
     html = build_report(twin).read_text()
-    assert "frame: unscaled (UNSCALED, unscaled" in html and "frame: n/a" not in html
+    # each fact once: it said "frame: unscaled (UNSCALED, unscaled, up +z)"
+    assert "frame: unscaled (SfM units; up +z)" in html and "frame: n/a" not in html
 
 
 def _obstacle_twin(tmp_path: Path) -> Path:

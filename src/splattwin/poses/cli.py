@@ -81,7 +81,7 @@ def _run(args: argparse.Namespace) -> int:
             name = Path(u).name
             why = next((v for k, v in failures.items() if Path(k).name == name), "no pose")
             print(f"    {name}: {why}")
-    print(f"frame: {fr.source} ({'metric' if fr.scaled else 'UNSCALED'}), scale uncertainty {unc}")
+    print(f"frame: {fr.summary()}, scale uncertainty {unc}")
     print(f"  {fr.description}")
     print(f"wrote {path}")
     return 0

@@ -1152,8 +1152,7 @@ def plot_cameras(result: PoseResult, path: str | Path) -> Path:
         unit = "m" if result.frame.scaled else "units"
         ax.set_xlabel(f"{'xyz'[i]} [{unit}]")
         ax.set_ylabel(f"{'xyz'[j]} [{unit}]")
-    fig.suptitle(f"{len(result.frames)} cameras, frame: {result.frame.source}"
-                 + ("" if result.frame.scaled else " (UNSCALED)"))
+    fig.suptitle(f"{len(result.frames)} cameras, frame: {result.frame.summary()}")
     fig.tight_layout()
     with io.atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=80, format="png")

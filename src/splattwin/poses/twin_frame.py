@@ -84,6 +84,15 @@ class TwinFrame:
         """`load_frame(path)`: a frame.json, or the folder holding one."""
         return load_frame(path)
 
+    def summary(self) -> str:
+        """One-line description for headers and logs, each fact said once: "unscaled (SfM units; up +z)",
+        "marker (metric, metres; up +z)"; another source without metric scale: "known_poses (not metric; up +z)"."""
+        if not self.scaled:
+            units = "SfM units" if self.source == "unscaled" else "not metric"
+        else:
+            units = "metric, metres"
+        return f"{self.source} ({units}; up {self.up})"
+
     def length_scale(self, fallback: float | None = None) -> float:
         """Factor applied to every metric length option: 1 for a metric frame; for an unscaled one its
         `nominal_metre`, else `fallback` (estimated by the caller from its data), else 1."""

@@ -267,7 +267,7 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
     fr = man.frame if man else _poses_frame(twin)   # a folder built --until splats has the poses' frame
     rep = Report(f"splattwin twin — {twin.resolve().name}",
                  f"generated {_dt.datetime.now().strftime('%Y-%m-%d %H:%M')} · frame: "
-                 + (f"{fr.source} ({'metric' if fr.scaled else 'UNSCALED'}, {fr.units}, up {fr.up})" if fr else "n/a"))
+                 + (fr.summary() if fr else "n/a"))
     poses = _json(twin / "poses" / "poses_report.json")
     ev = _json(twin / "splat" / "eval" / "metrics.json")
     fusion = _json(twin / "semantics" / "fusion.json")
