@@ -82,6 +82,22 @@ def test_resume_reuses_finished_model(default_unscaled, sfm_default_dir):
     np.testing.assert_allclose(again.cameras[0].T_world_cam, res.cameras[0].T_world_cam, atol=1e-9)
 
 
+def test_the_unscaled_warning_claims_no_twin(default_unscaled, sfm_default_dir, caplog):
+    """`build --until splats` (and `splattwin poses`) logged "the twin is built but robot planning will refuse it":
+    the poses stage builds no twin and does not know whether one follows. The warning says what holds either way."""
+    import logging
+
+    from tests.poses.conftest import stripped
+    from splattwin.poses import PoseOptions, estimate_poses
+
+    gt, _ = default_unscaled
+    with caplog.at_level(logging.WARNING, logger="splattwin.poses.estimate"):
+        estimate_poses(stripped(gt), PoseOptions(method="sfm", work_dir=sfm_default_dir, progress=False))
+    warned = [r.getMessage() for r in caplog.records if r.getMessage().startswith("no metric scale")]
+    assert len(warned) == 1 and "the twin is built" not in warned[0]
+    assert "a twin built on these poses is unscaled too" in warned[0] and "planning refuses" in warned[0]
+
+
 def test_textureless_images_fail_with_advice(tmp_path: Path):
     from splattwin import io
     from splattwin.capture import load_dataset

@@ -414,9 +414,11 @@ def estimate_poses(dataset: Dataset, options: PoseOptions | None = None) -> Pose
             frame = TwinFrame(source="unscaled", scaled=False, scale_uncertainty_rel=None,
                           description="table frame (RANSAC plane, z up, table top z = 0) in arbitrary SfM units: "
                                       "NOT metric. Give --marker-size, --known-length or --robot-poses for a metric twin")
+            # said by the poses stage, which does not know whether a twin follows (`poses`, `build --until splats`)
             log.warning("no metric scale: the frame is marked 'unscaled' (lengths in SfM units; thresholds derived "
-                        "from the cameras' distance to the scene); the twin is built but robot planning will "
-                        "refuse it (give --known-length, --marker-size or metric poses for a metric twin)")
+                        "from the cameras' distance to the scene); a twin built on these poses is unscaled too, and "
+                        "robot planning refuses an unscaled twin (give --known-length, --marker-size or metric poses "
+                        "for a metric one)")
         frame = dataclasses.replace(frame, up_check={"source": "table plane checked against the cameras' horizon",
                                                      **table_evidence})
     assert frame is not None
@@ -705,9 +707,10 @@ def _input_scaled(dataset: Dataset, prior: TwinFrame | None, scale: str) -> bool
         why = f"it has {', '.join(dataset.meta['sfm_derived'])}, left by nerfstudio's COLMAP converters"
     else:
         return True
-    log.warning("%s: the poses come from SfM (%s), so their lengths are not metres: the twin is built in a "
-                "table frame marked 'unscaled' (give --known-length or --marker-size for a metric one, or "
-                "--scale metric if they are metres)", dataset.meta.get("path", dataset.root), why)
+    log.warning("%s: the poses come from SfM (%s), so their lengths are not metres: they are put in a "
+                "table frame marked 'unscaled', as is any twin built on them (give --known-length or "
+                "--marker-size for a metric one, or --scale metric if they are metres)",
+                dataset.meta.get("path", dataset.root), why)
     return False
 
 
