@@ -123,20 +123,44 @@ def test_measure_bad_input(scene_small):
         measure_exposure(cams, paths[:2], names, np.zeros((5, 3)))
 
 
-def test_poses_stage_records_and_warns(scene_small, tmp_path, caplog):
+def test_poses_stage_records_and_logs(scene_small, tmp_path, caplog):
     ds = load_dataset(scene_small)
     rng = np.random.default_rng(3)
     gains = {f.name: np.full(3, g) for f, g in zip(ds.frames, rng.uniform(0.7, 1.3, len(ds.frames)))}
     gains[ds.frames[0].name] = np.array([1.35, 1.0, 0.8])    # one clearly off, by name
     pert = _perturbed_copy(scene_small, tmp_path / "pert", gains)
-    with caplog.at_level(logging.WARNING, logger="splattwin.poses.estimate"):
+    with caplog.at_level(logging.INFO, logger="splattwin.poses.estimate"):
         res = estimate_poses(load_dataset(pert), PoseOptions(method="known", progress=False))
     rec = res.stats["exposure"]
     assert rec["varies"] is True and ds.frames[0].name in rec["images_off"]
-    warned = [r.getMessage() for r in caplog.records if "exposure check" in r.getMessage()]
-    assert warned and ds.frames[0].name in warned[0] and "--splat.appearance" in warned[0]
+    said = [r for r in caplog.records if "exposure check" in r.getMessage()]
+    # the measurement, with the gains; an info line: the splats stage holds the warning (see below)
+    assert len(said) == 1 and said[0].levelno == logging.INFO
+    assert f"{ds.frames[0].name} (x" in said[0].getMessage() and "--splat.appearance" in said[0].getMessage()
     out = res.save(tmp_path / "poses")
     from splattwin.limits import read_json
 
     assert read_json(tmp_path / "poses" / "poses_report.json", "report")["exposure"]["varies"] is True
     assert out.is_file()
+
+
+def test_differing_exposures_warn_once_over_poses_and_splats(scene_small, tmp_path, caplog):
+    """On photos whose exposures differ (an internet photo set) the poses stage warned "exposure check: images
+    differ ..." and the splats stage "appearance: the photos differ in exposure ...": the same thing twice. Now
+    one warning, the splats stage's, which says whether a correction is trained and refers to the check."""
+    from splattwin.splat.appearance import decide, exposure_record
+
+    ds = load_dataset(scene_small)
+    gains = {f.name: np.full(3, 1.0) for f in ds.frames}
+    gains[ds.frames[1].name] = np.array([1.4, 1.3, 1.2])
+    pert = _perturbed_copy(scene_small, tmp_path / "pert", gains)
+    for requested in ("off", "auto"):   # the default, and auto
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="splattwin"):
+            res = estimate_poses(load_dataset(pert), PoseOptions(method="known", progress=False))
+            res.save(tmp_path / requested)
+            exposure, where = exposure_record(load_dataset(tmp_path / requested))
+            decide(requested, exposure, where)
+        warned = [r.getMessage() for r in caplog.records if "expos" in r.getMessage()]
+        assert len(warned) == 1, warned
+        assert ds.frames[1].name in warned[0] and "exposure check" in warned[0] and str(where) in warned[0]

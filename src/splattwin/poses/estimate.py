@@ -539,17 +539,16 @@ def _feature_masks(frames: list[DataFrame]) -> dict[Path, Path]:
 
 def _check_exposure(frames: list[DataFrame], pts_xyz: np.ndarray | None, opts: PoseOptions, stats: dict) -> None:
     """stats["exposure"]: per-image exposure / white-balance gains measured on the sparse points
-    (`splattwin.poses.exposure`); a warning naming the images when they differ beyond its threshold."""
+    (`splattwin.poses.exposure`), logged (info: the splats stage warns when they differ beyond its threshold)."""
     from splattwin.poses import exposure
 
     rec = exposure.measure_exposure([f.camera for f in frames], [f.image_path for f in frames],
                                     [f.name for f in frames], pts_xyz, seed=opts.seed)
     stats["exposure"] = rec
-    if rec.get("varies"):
-        log.warning("%s; a per-image colour correction (--splat.appearance gain, or auto) can absorb such "
-                    "differences", exposure.describe(rec))
-    else:
-        log.info(exposure.describe(rec))
+    # the one warning is the splats stage's (`splat.appearance.decide`), which knows whether a correction is
+    # trained; here the measurement only: a warning here too said the same thing twice in one build
+    log.info("%s%s", exposure.describe(rec),
+             "; the splats stage corrects it or warns (--splat.appearance)" if rec.get("varies") else "")
 
 
 def _check_up(frame: TwinFrame, cams: list[Camera], pts_xyz: np.ndarray | None, frames: list[DataFrame],

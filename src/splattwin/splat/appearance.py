@@ -305,18 +305,19 @@ def decide(requested: str, exposure: dict | None, source: str | Path | None = No
                    images_off=list(exposure["images_off"]))
     off = list(exposure.get("images_off") or []) if varies else []
     named = ", ".join(off[:8]) + (f" and {len(off) - 8} more" if len(off) > 8 else "")
+    where = "" if source is None else f", {source}"
     if requested == "auto" and varies:
         rec.update(mode=AUTO_MODE, decision="auto")
-        log.warning("appearance: the photos differ in exposure / white balance by up to %.1f %% (%s): training "
-                    "with a per-image colour correction (--splat.appearance %s; --splat.appearance off to train "
-                    "without)", exposure["spread_pct"], named, AUTO_MODE)
+        log.warning("appearance: the photos differ in exposure / white balance by up to %.1f %% (%s; the poses "
+                    "stage's exposure check%s): training with a per-image colour correction (--splat.appearance "
+                    "%s; --splat.appearance off to train without)", exposure["spread_pct"], named, where, AUTO_MODE)
     elif requested == "auto":
         rec.update(mode="off", decision="none")
     elif requested == "off" and varies:
         rec.update(mode="off", decision="suggested")
-        log.warning("appearance: the photos differ in exposure / white balance by up to %.1f %% (%s) and are "
-                    "trained without a per-image colour correction; --splat.appearance %s (or auto) learns one",
-                    exposure["spread_pct"], named, AUTO_MODE)
+        log.warning("appearance: the photos differ in exposure / white balance by up to %.1f %% (%s; the poses "
+                    "stage's exposure check%s) and are trained without a per-image colour correction; "
+                    "--splat.appearance %s (or auto) learns one", exposure["spread_pct"], named, where, AUTO_MODE)
     else:
         rec.update(mode=requested, decision="explicit")
     return rec
