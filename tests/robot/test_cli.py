@@ -558,3 +558,21 @@ def test_an_object_without_any_grasp_says_what_to_check(gt_twin_small: Path, tmp
     assert failure.startswith("no antipodal grasp fits the gripper on 'yellow_cube': its collision mesh (2.5 x 2.5 x "
                               "2.5 cm) offers no pair of opposite faces closer than the gripper's 8.0 cm opening")
     assert "check its mesh in the report" in failure
+
+
+def test_planning_says_too_wide_in_the_words_of_validation(gt_twin_small: Path, tmp_path: Path, monkeypatch):
+    """Where planning finds no grasp on an object wider than the gripper (validation skipped here) it said "no
+    antipodal grasp fits the gripper ... (22.0 x 22.0 x 2.5 cm)": now what validation says of it."""
+    from tests.robot.test_task import _widened
+
+    twin = _widened(gt_twin_small, tmp_path, "yellow_cube", 0.22 / 0.025)
+    monkeypatch.setattr("splattwin.robot.task.validate_task", lambda *a, **k: None)
+    monkeypatch.setattr("splattwin.robot.selection.GraspSelector.ranked", lambda self, obj, belief: [])
+    task = tmp_path / "t.yaml"
+    task.write_text("- pick: yellow_cube\n- place_in: {center: [0.1, -0.05], size: 0.3}\n")
+    out = tmp_path / "o"
+    # not 1: the widened cube overlaps its neighbours and moves as the twin settles (no files for a real arm)
+    assert main(["plan", str(twin), "--task", str(task), "--out", str(out), "--no-render", "--no-report"]) != 0
+    failure = json.loads((out / "results.json").read_text())["nominal"]["steps"][0]["failure"]
+    assert failure == ("object 'yellow_cube' is too wide for the gripper: its narrowest width is 22.0 cm (the "
+                       "gripper opens 8.0 cm)")

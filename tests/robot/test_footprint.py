@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -148,3 +149,35 @@ def test_object_shape_confines_and_checks_its_files(tmp_path: Path):
     with pytest.raises(InputError, match=r"convex part of object 'x'") as e:
         fp.object_shape(o, tmp_path / "twin")
     assert e.value.path == tmp_path / "twin" / "bad.obj"
+
+
+def _disc_wedges(radius: float, height: float, n: int) -> fp.Shape:
+    """A disc (a cake) cut into n pie wedges, each a convex part: their union is the disc."""
+    parts = []
+    for k in range(n):
+        a = np.linspace(2 * np.pi * k / n, 2 * np.pi * (k + 1) / n, 9)
+        xy = np.vstack([[0.0, 0.0], np.column_stack([np.cos(a), np.sin(a)]) * radius])
+        parts.append(np.vstack([np.column_stack([xy, np.full(len(xy), z)]) for z in (0.0, height)]))
+    return fp.Shape(tuple(parts))
+
+
+def test_narrowest_width_is_what_the_jaws_must_span():
+    """The narrowest run of material a horizontal closing could hold between faces within the friction cone."""
+    from splattwin.robot.grasp import FRICTION_CONE
+
+    assert fp.narrowest_width(fp.box_shape([0.23, 0.22, 0.08])) == pytest.approx(0.22, abs=1e-9)  # shorter side
+    assert fp.narrowest_width(L_SHAPE) == pytest.approx(0.05, abs=1e-9)                             # an arm
+    # a 22 cm cake cut into 8 wedges: the wedges continue each other (each alone is narrower); a disc's
+    # opposite faces within the cone are at least cos(cone) of its diameter apart
+    w = fp.narrowest_width(_disc_wedges(0.11, 0.08, 8))
+    assert 0.22 * math.cos(FRICTION_CONE) - 0.005 < w < 0.22 * math.cos(FRICTION_CONE) + 0.002
+    # a hammer (handle and head, two parts): not its 8 cm wide head nor its 19 cm bounding box, but the head's
+    # 2 cm thickness; with a 9 cm thick head, the 2.5 cm handle
+    handle = _box([-0.1, -0.0125, 0.0], [0.07, 0.0125, 0.025])
+    assert fp.narrowest_width(fp.Shape((handle, _box([0.07, -0.04, 0.0], [0.09, 0.04, 0.025])))) == pytest.approx(0.02)
+    assert fp.narrowest_width(fp.Shape((handle, _box([0.07, -0.04, 0.0], [0.16, 0.04, 0.025])))) == pytest.approx(0.025)
+    # a bottle on a 12 cm foot: its 3 cm neck, above the foot (the footprint is the foot's)
+    foot = trimesh.creation.cylinder(radius=0.06, height=0.02, sections=32).vertices
+    neck = trimesh.creation.cylinder(radius=0.015, height=0.1, sections=32).vertices + [0.0, 0.0, 0.06]
+    assert 0.025 < fp.narrowest_width(fp.Shape((np.asarray(foot), np.asarray(neck)))) < 0.03
+    assert fp.narrowest_width(fp.Shape((np.zeros((4, 3)),))) is None          # nothing solid to close on

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -488,3 +489,50 @@ def test_the_default_task_on_a_twin_without_its_objects_says_to_write_a_task(tmp
     # a task file of the user's own keeps its step-by-step messages
     with pytest.raises(InputError, match="step 1: place_in: the twin defines no region named 'target_frame'"):
         load_task(_write(tmp_path, "- pick: cake\n- place_in: target_frame\n"), cake)
+
+
+def _widened(gt_twin_small: Path, tmp_path: Path, name: str, xy_scale: float) -> Path:
+    """A copy of the small twin whose object `name` has its collision mesh and convex parts scaled by xy_scale
+    in x and y (object frame, about its origin): a wide cake where a small object was."""
+    import shutil
+
+    import trimesh
+
+    twin = tmp_path / "twin"
+    shutil.copytree(gt_twin_small, twin)
+    m = Manifest.load(twin)
+    o = m.object(name)
+    S = np.diag([xy_scale, xy_scale, 1.0, 1.0])
+    for rel in {*o.convex_parts, o.collision_mesh}:
+        mesh = trimesh.load(twin / rel, force="mesh", process=False)
+        mesh.apply_transform(S)
+        mesh.export(twin / rel)
+    o.bbox_extent = [o.bbox_extent[0] * xy_scale, o.bbox_extent[1] * xy_scale, o.bbox_extent[2]]
+    m.save(twin)
+    return twin
+
+
+def test_an_object_wider_than_the_gripper_is_refused_before_planning(tmp_path: Path, gt_twin_small: Path, panda,
+                                                                     capsys):
+    """A metric twin of a 23 x 22 cm cake was planned and failed in physics ('not lifted (rose -0.0 cm)'): the
+    8 cm gripper cannot close on it. Now validation refuses it, naming its narrowest width and the opening."""
+    from splattwin.cli import main
+
+    ext = Manifest.load(gt_twin_small).object("yellow_cube").bbox_extent
+    twin = _widened(gt_twin_small, tmp_path, "yellow_cube", 0.22 / ext[0])
+    m = Manifest.load(twin)
+    task = _write(tmp_path, "- pick: blue_box\n- place_in: {center: [0.1, -0.05], size: 0.1}\n"
+                            "- pick: yellow_cube\n- place_in: {center: [0.1, 0.1], size: 0.3}\n")
+    msg = ("step 2: object 'yellow_cube' is too wide for the gripper: its narrowest width is 22.0 cm (the gripper "
+           "opens 8.0 cm)")
+    with pytest.raises(InputError, match=re.escape(msg)):
+        validate_task(load_task(task, m), m, twin, BasePose().matrix(), robot=panda)
+    with pytest.raises(InputError, match=re.escape(msg)):        # without a robot model: the Panda's opening
+        validate_task(load_task(task, m), m, twin, BasePose().matrix())
+    assert main(["plan", str(twin), "--task", str(task), "--out", str(tmp_path / "o"), "--no-render",
+                 "--no-report"]) == 2
+    assert msg in capsys.readouterr().err
+    # the small twin's own objects pass (the hammer: its head and handle, not its 19 cm length)
+    t = _write(tmp_path, "- pick: toy_hammer\n- place_in: {center: [0.1, -0.05], size: 0.25}\n")
+    validate_task(load_task(t, Manifest.load(gt_twin_small)), Manifest.load(gt_twin_small), gt_twin_small,
+                  BasePose().matrix(), robot=panda)

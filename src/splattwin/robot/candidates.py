@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterator
 import numpy as np
 
 from splattwin.robot import footprint as fp
-from splattwin.robot.grasp import Grasp
+from splattwin.robot.grasp import Grasp, too_wide
 from splattwin.robot.motion import MotionPlanner
 from splattwin.robot.plans import GraspPlan, GraspReport, PlacePlan
 from splattwin.robot.selection import GraspSelector, place_targets
@@ -169,6 +169,10 @@ class StepPlanner:
         """Why an object has no grasp at all, with what to check: its size against the gripper's opening."""
         ext = np.asarray(self.world.manifest.object(obj).bbox_extent, float)
         sel = self.selector
+        # the words of task validation (`validate_task`), which refuses such an object before planning
+        wide = too_wide(obj, fp.narrowest_width(sel.shapes(obj)), sel.max_opening)
+        if wide is not None:
+            return wide
         return (f"no antipodal grasp fits the gripper on {obj!r}: its collision mesh "
                 f"({' x '.join(f'{v * 100:.1f}' for v in ext)} cm) offers no pair of opposite faces closer than the "
                 f"gripper's {sel.max_opening * 100:.1f} cm opening that the fingers reach while their tips stay "

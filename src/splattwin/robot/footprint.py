@@ -12,6 +12,7 @@ bounding box: `bbox_extent` centred on the object frame's origin, as one part.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -274,3 +275,122 @@ def top_at(shape: Shape, T: np.ndarray, xy) -> float | None:
 def bottom(shape: Shape, T: np.ndarray) -> float:
     """Height (m, twin frame) of the lowest point of `shape` posed at T."""
     return Posed(shape, T).bottom()
+
+
+WIDTH_ANGLE_STEP_DEG = 2.0   # closing directions sampled over a half turn (a 1 degree miss widens a run by 0.015 %)
+WIDTH_SLICE_STEP = 0.005     # m between the horizontal cross-sections `narrowest_width` measures
+MAX_WIDTH_LINES = 400        # lines per direction at most (3 mm apart up to 1.2 m across)
+
+
+def _hull_edges(V: np.ndarray) -> np.ndarray | None:
+    """The edges [E, 2] (vertex index pairs) of the convex hull of V [N, 3]; None for a flat or degenerate part."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        f = ConvexHull(V).simplices
+    except (QhullError, ValueError):
+        return None
+    return np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [0, 2]]]), axis=1), axis=0)
+
+
+def _section(V: np.ndarray, edges: np.ndarray, z: float) -> np.ndarray | None:
+    """The cross-section at height z (object frame, m) of the convex part with vertices V [N, 3] and hull edges
+    `edges` [E, 2]: a convex counter-clockwise polygon [K, 2] (x, y), or None when the plane misses the part or
+    the section has no area (a plane through one vertex)."""
+    a, b = V[edges[:, 0]], V[edges[:, 1]]
+    cross = (a[:, 2] - z) * (b[:, 2] - z) <= 0.0
+    a, b = a[cross], b[cross]
+    dz = b[:, 2] - a[:, 2]
+    flat = np.abs(dz) < 1e-12      # an edge lying in the plane: both its ends are on the section
+    t = np.where(flat, 0.0, (z - a[:, 2]) / np.where(flat, 1.0, dz))
+    pts = np.vstack([a[:, :2] + t[:, None] * (b[:, :2] - a[:, :2]), b[flat, :2]])
+    poly = _polygon(pts) if len(pts) >= 3 else None
+    return poly if poly is not None and len(poly) >= 3 else None
+
+
+def _chords(poly: np.ndarray, c: np.ndarray, b: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Where the lines {p: p.b_a = s_i} cross the convex counter-clockwise polygon poly [K, 2], along the unit
+    directions c [A, 2] (b [A, 2]: c turned by +90 degrees; s [S], m): (lo, hi) [A, S] (lo = inf, hi = -inf
+    where a line misses it) and the cosines [A, S] between c and the outward edge normals there (at lo: of
+    -c, at hi: of c)."""
+    q = np.roll(poly, -1, axis=0)
+    e = q - poly
+    n = np.column_stack([e[:, 1], -e[:, 0]]) / np.maximum(np.linalg.norm(e, axis=1), 1e-300)[:, None]  # outward (CCW)
+    u0, u1, v0, v1 = b @ poly.T, b @ q.T, c @ poly.T, c @ q.T                 # [A, K]
+    du = u1 - u0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (s[None, :, None] - u0[:, None, :]) / du[:, None, :]             # [A, S, K]
+    hit = (t >= 0.0) & (t <= 1.0) & (du != 0.0)[:, None, :]
+    v = v0[:, None, :] + t * (v1 - v0)[:, None, :]
+    i_lo = np.argmin(np.where(hit, v, np.inf), axis=2)
+    i_hi = np.argmax(np.where(hit, v, -np.inf), axis=2)
+    any_hit = hit.any(axis=2)
+    lo = np.where(any_hit, np.take_along_axis(v, i_lo[..., None], axis=2)[..., 0], np.inf)
+    hi = np.where(any_hit, np.take_along_axis(v, i_hi[..., None], axis=2)[..., 0], -np.inf)
+    nc = c @ n.T                                                              # [A, K]: cos(c, normal of edge k)
+    return lo, hi, -np.take_along_axis(nc, i_lo, axis=1), np.take_along_axis(nc, i_hi, axis=1)
+
+
+def _run_min(polys: list[np.ndarray], c: np.ndarray, b: np.ndarray, s: np.ndarray, cos_cone: float) -> float:
+    """The shortest run of material (m) across the union of the convex polygons polys along the lines of
+    `_chords` whose two ends face -c and +c within the cone (cosine cos_cone); inf when none does."""
+    ch = [_chords(q, c, b, s) for q in polys]                                 # per part: lo, hi, cos_lo, cos_hi
+    lo, hi, clo, chi = (np.stack([x[i] for x in ch], axis=-1) for i in range(4))   # [A, S, P]
+    order = np.argsort(lo, axis=-1)                                          # the parts along each line
+    lo, hi, clo, chi = (np.take_along_axis(x, order, axis=-1) for x in (lo, hi, clo, chi))
+    run_lo, run_clo, run_hi, run_chi = lo[..., 0], clo[..., 0], hi[..., 0], chi[..., 0]
+    best = math.inf
+
+    def shortest(mask: np.ndarray) -> float:
+        ok = mask & (run_hi > run_lo) & (run_clo >= cos_cone) & (run_chi >= cos_cone)
+        return float((run_hi - run_lo)[ok].min()) if ok.any() else math.inf
+
+    for j in range(1, len(polys)):
+        there = np.isfinite(lo[..., j])                                       # part j crosses the line
+        new = there & (lo[..., j] > run_hi + EPS)                             # after a gap: the run so far ends
+        best = min(best, shortest(new))
+        longer = there & ~new & (hi[..., j] > run_hi)
+        run_lo, run_clo = np.where(new, lo[..., j], run_lo), np.where(new, clo[..., j], run_clo)
+        run_hi, run_chi = np.where(new | longer, hi[..., j], run_hi), np.where(new | longer, chi[..., j], run_chi)
+    return min(best, shortest(np.isfinite(run_lo)))
+
+
+def narrowest_width(shape: Shape, cone: float | None = None, step: float | None = None) -> float | None:
+    """The narrowest width (m) a parallel gripper would have to open to, to close on `shape` (object frame,
+    upright): top and side grasps both close horizontally (`grasp.synthesize`), so over horizontal closing
+    directions c (every WIDTH_ANGLE_STEP_DEG), horizontal cross-sections (every WIDTH_SLICE_STEP from bottom
+    to top: a bottle's neck counts, not only its widest part) and lines along c (every `step`), the length of
+    each run of material across the union of the parts (parts that touch or overlap continue each other)
+    whose two ends face -c and +c within the friction cone `cone` (rad): the runs the jaws could hold
+    (antipodal), as the synthesis' contact test wants. A box's is its shorter side, a disc's 0.86 of its
+    diameter (cos of the 31 degree cone). None when no run qualifies (no pair of opposite faces at all).
+    cone / step default to `grasp.FRICTION_CONE` and `grasp.SCAN_STEP`."""
+    from splattwin.robot.grasp import FRICTION_CONE, SCAN_STEP
+
+    cos_cone = math.cos(FRICTION_CONE if cone is None else cone)
+    step = SCAN_STEP if step is None else step
+    parts = [(V, e) for V, e in ((np.asarray(p, float), _hull_edges(np.asarray(p, float))) for p in shape.parts)
+             if e is not None]
+    if not parts:
+        return None
+    z_lo = min(float(V[:, 2].min()) for V, _ in parts)
+    z_hi = max(float(V[:, 2].max()) for V, _ in parts)
+    zs = (np.arange(z_lo + WIDTH_SLICE_STEP / 2, z_hi, WIDTH_SLICE_STEP) if z_hi - z_lo > WIDTH_SLICE_STEP
+          else np.array([(z_lo + z_hi) / 2]))
+    a = np.radians(np.arange(0.0, 180.0, WIDTH_ANGLE_STEP_DEG))
+    c = np.column_stack([np.cos(a), np.sin(a)])
+    b = np.column_stack([-np.sin(a), np.cos(a)])
+    r = max(float(np.linalg.norm(V[:, :2], axis=1).max()) for V, _ in parts)
+    step = max(step, 2 * r / MAX_WIDTH_LINES)        # bounds the [angles, lines, edges] arrays of a huge object
+    s = np.arange(-r + step / 2, r, step)            # the lines: the same offsets from the origin at every angle
+    best, last = math.inf, None
+    for z in zs:
+        polys = [q for q in (_section(V, e, float(z)) for V, e in parts) if q is not None]
+        if not polys:
+            continue
+        if last is not None and len(last) == len(polys) and all(
+                p.shape == q.shape and np.allclose(p, q, atol=1e-6) for p, q in zip(last, polys)):
+            continue                                 # the same section as the slice below (a prism's sides)
+        last = polys
+        best = min(best, _run_min(polys, c, b, s, cos_cone))
+    return None if math.isinf(best) else best

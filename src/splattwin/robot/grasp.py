@@ -35,6 +35,7 @@ FLOOR_CLEARANCE = 0.0065           # m: fingertips above the support: 5 mm plann
 MIN_GRIP_DEPTH = 0.004             # m: the TCP (pad centre) at least this far below the local top
 SCAN_STEP = 0.003                  # m between the downward rays that find material runs at a station
 CLEARANCE = 0.008                  # m, opened jaw minus object width, per side total
+MAX_OPENING = 0.08                 # m: the Panda hand's full finger gap, when no robot model says otherwise
 
 
 @dataclass
@@ -90,7 +91,7 @@ def _cast(intersector, origins: np.ndarray, dirs: np.ndarray, mesh) -> tuple[np.
     return hit, pts, nrm
 
 
-def synthesize(vertices: np.ndarray, faces: np.ndarray, max_width: float = 0.08, spacing: float = 0.01,
+def synthesize(vertices: np.ndarray, faces: np.ndarray, max_width: float = MAX_OPENING, spacing: float = 0.01,
                depth: float = 0.02, side: bool = True, floor: float | None = None, tip_depth: float = TIP_DEPTH,
                floor_clearance: float = FLOOR_CLEARANCE, com: np.ndarray | None = None) -> list[Grasp]:
     """Antipodal parallel-jaw grasp candidates on a mesh (object frame), unranked except by geometry score.
@@ -181,6 +182,17 @@ def synthesize(vertices: np.ndarray, faces: np.ndarray, max_width: float = 0.08,
                     for sc in (1, -1):
                         try_grasp(np.array([centre[0], centre[1], zc]), sa * approach_axis, sc * closing, "side")
     return out
+
+
+def too_wide(name: str, width: float | None, opening: float) -> str | None:
+    """Why no grasp can hold object `name` whose narrowest width (m; `footprint.narrowest_width`, None: not
+    known) leaves no room in the gripper opened to `opening` (m): the synthesis wants the width at most the
+    opening less CLEARANCE. None when it fits."""
+    if width is None or width <= opening - CLEARANCE:
+        return None
+    room = "" if width > opening else f"; a grasp needs {CLEARANCE * 100:.1f} cm of it as clearance"
+    return (f"object {name!r} is too wide for the gripper: its narrowest width is {width * 100:.1f} cm "
+            f"(the gripper opens {opening * 100:.1f} cm{room})")
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:

@@ -41,6 +41,7 @@ import numpy as np
 from splattwin.errors import InputError, short_repr
 from splattwin.robot import footprint as fp
 from splattwin.robot.footprint import Shape, box_shape, object_shape
+from splattwin.robot.grasp import MAX_OPENING, too_wide
 from splattwin.transforms import make_pose, rot_z
 from splattwin.twin.manifest import Manifest
 from splattwin.twin.mjcf import check_scaled
@@ -294,7 +295,8 @@ def validate_task(task: Task, manifest: Manifest, twin_dir: str | Path, T_world_
     carried object would touch it), placing on an object that already carries another, a goal region
     whose centre (where the object is placed) lies on another object's footprint (its collision mesh's
     convex parts seen from above, read from twin_dir; its bounding box without a mesh), a region the object
-    fits in at no yaw, a region centre z off the table.
+    fits in at no yaw, a region centre z off the table, an object too wide for the gripper to close on
+    (`footprint.narrowest_width` against the robot's opening, the Panda's without a robot).
 
     robot: a `RobotModel`; when given, the pick and place poses must also have IK solutions (mink).
     warn: log the warnings (a goal that may be crowded); False for the trials, which repeat the nominal run's."""
@@ -316,6 +318,8 @@ def validate_task(task: Task, manifest: Manifest, twin_dir: str | Path, T_world_
     resolve_names(task, manifest, where)
     scene = TaskScene.of(manifest, twin_dir)
     states: list[dict[str, np.ndarray]] = []   # the believed poses before each step (for the IK check)
+    opening = robot.max_opening if robot is not None else MAX_OPENING
+    widths: dict[str, float | None] = {}       # each picked object's narrowest width (m), measured once
     for k, s in enumerate(task.steps, start=1):
         for role, n in (("pick", s.pick), ("place_on", s.place_on)):
             if n is None:
@@ -334,6 +338,11 @@ def validate_task(task: Task, manifest: Manifest, twin_dir: str | Path, T_world_
         # an object left out of the scene (a non-finite pose) is checked at its twin pose: reach says why
         reach(scene.poses.get(s.pick, names[s.pick].pose)[:3, 3], f"step {k}: object {s.pick!r}"
               + scene.moved_note(s.pick))
+        if s.pick not in widths:   # what planning would find only in physics ("not lifted") or as "no grasp"
+            widths[s.pick] = fp.narrowest_width(scene.shapes.get(s.pick) or object_shape(names[s.pick], twin_dir))
+        wide = too_wide(s.pick, widths[s.pick], opening)
+        if wide is not None:
+            raise InputError(f"step {k}: {wide}", where)
         if s.place_in is not None:
             c = s.place_in.center
             if not (x0 <= c[0] <= x1 and y0 <= c[1] <= y1):
