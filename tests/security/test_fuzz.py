@@ -46,3 +46,31 @@ def test_report_summary_of_malformed_records_notes_the_file(tmp_path, test_modul
     assert "Summary" in html and "Collision geometry" in html
     if needle:
         assert needle in html
+
+
+@pytest.fixture(scope="module")
+def gt_twin(tmp_path_factory, scene_small) -> Path:
+    from splattwin.twin.groundtruth import twin_from_scene
+
+    out = tmp_path_factory.mktemp("fuzz_gt_twin")
+    twin_from_scene(scene_small, out)
+    return out
+
+
+def test_mesh_vertex_finite_but_huge_is_bad_input(gt_twin, tmp_path, cli):
+    """found: a convex part's vertex `v 1e308 1e308 -1e308` (finite, so load_mesh took it) overflowed in the
+    convex hull of `export` (a QhullError, internal error). Now load_mesh refuses vertices beyond
+    limits.MAX_POSITION, naming the file."""
+    import shutil
+
+    from security_helpers import assert_bad_input
+
+    twin = tmp_path / "t"
+    shutil.copytree(gt_twin, twin)
+    part = twin / json.loads((twin / "twin.json").read_text())["objects"][0]["convex_parts"][0]
+    lines = part.read_text().splitlines()
+    i = next(k for k, line in enumerate(lines) if line.startswith("v "))
+    lines[i] = "v 1e308 1e308 -1e308"
+    part.write_text("\n".join(lines) + "\n")
+    assert_bad_input(cli("export", twin), part.name, "from the origin")
+    assert_bad_input(cli("plan", twin, "--no-render"), part.name, "from the origin")
