@@ -74,3 +74,43 @@ def test_mesh_vertex_finite_but_huge_is_bad_input(gt_twin, tmp_path, cli):
     part.write_text("\n".join(lines) + "\n")
     assert_bad_input(cli("export", twin), part.name, "from the origin")
     assert_bad_input(cli("plan", twin, "--no-render"), part.name, "from the origin")
+
+
+def test_viewer_refuses_twin_json_and_robot_track_linked_out_of_the_twin(gt_twin, tmp_path):
+    """found: the viewer's loader (and `render`) read a received twin's twin.json and robot/playback.npz
+    through symbolic links to files outside the folder (the files twin.json names were already confined).
+    Now each is an InputError naming the link."""
+    import os
+    import shutil
+
+    import numpy as np
+
+    from splattwin.errors import InputError
+    from splattwin.playback.view_model import TwinView
+    from splattwin.robot.track import RobotTrack
+
+    twin = tmp_path / "t"
+    shutil.copytree(gt_twin, twin)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    RobotTrack(names=["g1"], vertices=[np.eye(3, dtype=np.float32)], faces=[np.array([[0, 1, 2]], np.uint32)],
+               colors=[(1, 2, 3)], positions=np.zeros((4, 1, 3)), rotations=np.tile(np.eye(3), (4, 1, 1, 1)),
+               times=np.arange(4.0)).save(elsewhere / "playback.npz")
+    (twin / "robot").mkdir(exist_ok=True)
+    os.symlink(os.path.relpath(elsewhere / "playback.npz", twin / "robot"), twin / "robot" / "playback.npz")
+    with pytest.raises(InputError, match="leads outside") as e:
+        TwinView.load(twin)
+    assert e.value.path == twin / "robot" / "playback.npz"
+    (twin / "robot" / "playback.npz").unlink()
+    assert TwinView.load(twin).track is None
+
+    (twin / "twin.json").rename(elsewhere / "twin.json")
+    os.symlink(elsewhere / "twin.json", twin / "twin.json")
+    with pytest.raises(InputError, match="leads outside") as e:
+        TwinView.load(twin)
+    assert e.value.path == twin / "twin.json"
+    # a link that stays inside the folder is read as before
+    (twin / "twin.json").unlink()
+    (elsewhere / "twin.json").rename(twin / "kept.json")
+    os.symlink("kept.json", twin / "twin.json")
+    assert TwinView.load(twin).manifest.objects
