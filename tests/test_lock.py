@@ -95,3 +95,28 @@ def test_a_killed_run_s_pool_workers_neither_keep_its_lock_nor_outlive_it(tmp_pa
             pytest.fail("the pool worker outlived its killed parent")
     finally:
         proc.kill()
+
+
+@pytest.mark.parametrize("link", ["lock", "folder"])
+def test_a_lock_linked_out_of_the_folder_writes_nothing_there(tmp_path, link):
+    """found by fuzzing a received twin: OUT/.splattwin/lock a symbolic link to a file elsewhere was opened,
+    truncated and written (the holder's PID) before the folder's links were checked, so `splattwin report TWIN`
+    emptied that file (then refused the link, exit 2). Likewise a .splattwin/ linked to a folder elsewhere got
+    the lock. Now neither is followed: an InputError naming the link, the file elsewhere untouched."""
+    import os
+
+    out, elsewhere = tmp_path / "received", tmp_path / "elsewhere"
+    (out / STATE_DIR).mkdir(parents=True)
+    elsewhere.mkdir()
+    victim = elsewhere / "notes.txt"
+    victim.write_text("precious\n")
+    if link == "lock":
+        os.symlink(victim, out / STATE_DIR / LOCK_NAME)
+    else:
+        (out / STATE_DIR).rmdir()
+        os.symlink(elsewhere, out / STATE_DIR)
+    with pytest.raises(InputError) as e:
+        with output_lock(out):
+            pass
+    assert e.value.path == out / STATE_DIR / (LOCK_NAME if link == "lock" else "")
+    assert victim.read_text() == "precious\n" and sorted(p.name for p in elsewhere.iterdir()) == ["notes.txt"]

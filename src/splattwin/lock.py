@@ -19,7 +19,8 @@ the child would release the parent's lock too.)
 
 Taking the lock also checks the folder for symbolic links that lead out of it (a received twin folder
 whose `splat/` is a link to elsewhere would make every write there land outside `--out`): such a link
-is an InputError naming it, before anything is written.
+is an InputError naming it, before anything is written. The lock file itself is written before that check,
+so it is never opened through a link (`O_NOFOLLOW`), nor its folder `.splattwin/` followed out of the folder.
 """
 
 from __future__ import annotations
@@ -108,11 +109,20 @@ def acquire(folder: str | Path, command: str | None = None) -> None:
             _held[key][1] += 1
             return
         state = folder / STATE_DIR
+        if state.is_symlink():   # a received folder's .splattwin/ linked elsewhere: the lock would be written there
+            from splattwin.paths import confined
+
+            confined(folder, STATE_DIR, state, "lock folder")
         state.mkdir(exist_ok=True)
         path = state / LOCK_NAME
         try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+            # O_NOFOLLOW: the lock is truncated and written before check_links looks at the folder, so a received
+            # folder's .splattwin/lock linked to a file elsewhere had that file emptied
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
         except OSError as e:
+            if e.errno == errno.ELOOP:
+                raise InputError("the lock file is a symbolic link; splattwin writes its lock there and never "
+                                 "through a link: remove it", path) from None
             raise InputError(f"cannot create the lock file ({e.strerror or e})", path) from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)

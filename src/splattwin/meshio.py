@@ -3,7 +3,8 @@ InputError naming it, never a library traceback.
 
 `load_mesh(path)` is `trimesh.load(path, force="mesh")` after checks: the file exists and is at most
 `limits.MAX_JSON_BYTES` large, a PLY header's element counts are bounded (`limits.check_ply_header`), and
-the result is one triangle mesh with at least one face and finite vertices. trimesh raises many
+the result is one triangle mesh with at least one face and finite vertices within `limits.MAX_POSITION` of
+the origin (a finite 1e308 overflowed in the hull, volume and inertia computations after it: qhull errors). trimesh raises many
 exception types (and sometimes returns an empty scene) for files that are not meshes; all become an
 InputError.
 """
@@ -15,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from splattwin.errors import InputError
-from splattwin.limits import MAX_ELEMENTS, MAX_JSON_BYTES, check_file_size, check_ply_header
+from splattwin.limits import MAX_ELEMENTS, MAX_JSON_BYTES, MAX_POSITION, check_file_size, check_ply_header
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
 
@@ -45,6 +46,8 @@ def load_mesh(path: str | Path, what: str = "mesh", process: bool = False):
         raise InputError(f"{what} has more than {MAX_ELEMENTS} vertices or faces", path)
     if not np.all(np.isfinite(m.vertices)):
         raise InputError(f"{what} has NaN or infinite vertices", path)
+    if np.abs(m.vertices).max() > MAX_POSITION:
+        raise InputError(f"{what} has vertices more than {MAX_POSITION:g} from the origin", path)
     if m.faces.min() < 0 or m.faces.max() >= len(m.vertices):
         raise InputError(f"{what} has faces that index missing vertices", path)
     return m

@@ -238,3 +238,14 @@ def test_rollout_save_load_compares_equal(tmp_path: Path):
     assert back == ro
     back.object_poses["box"][2, 0, 3] = 0.5
     assert back != ro
+
+
+@pytest.mark.parametrize("version", [np.array(1 + 2j), np.array("1"), np.array([1, 1]), np.array(1.0)])
+def test_rollout_version_of_another_type_is_not_a_rollout(tmp_path: Path, version):
+    """found by fuzzing a received twin's robot/rollout.npz: a complex, text or two-element `version` made
+    int() raise (TypeError/ValueError: `render` ended in an internal error). Now it is a version mismatch, as is a
+    float (int() read 1.5 as version 1): the writer stores an integer."""
+    arrays = dict(np.load(_small_rollout().save(tmp_path / "good.npz"), allow_pickle=False))
+    np.savez(tmp_path / "v.npz", **{**arrays, "version": version})
+    with pytest.raises(InputError, match="v.npz.*version"):
+        Rollout.load(tmp_path / "v.npz")

@@ -147,3 +147,22 @@ def test_geometry_cli_masks_tell_a_small_whole_object_from_a_fragment(tmp_path, 
     # masks that name none of the objects, or without the cameras they were drawn in: exit 2
     assert main(base[:-2] + ["--out", str(tmp_path / "x"), "--masks", str(tmp_path / "masks")]) == 2
     assert "--masks needs --cameras" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("bad", [-7, 70000])
+def test_geometry_cli_labels_out_of_range_name_the_label_file(tmp_path, capsys, bad):
+    """found by fuzzing: negative labels were taken silently (a twin written, exit 0; all -7 with --masks: an
+    error naming the masks, "no mask names one of the objects"), and a label of 70000 was refused as an object
+    'object_70000' naming no file. Now a label outside [0, MAX_LABEL] is an InputError naming the label file,
+    as the viewer's reader of a twin's labels says."""
+    g, labels, _, _ = synthetic_scene(4000, seed=3)
+    ply = g.save_ply(tmp_path / "scene.ply")
+    labels = labels.astype(np.int64)
+    labels[:5] = bad
+    np.save(tmp_path / "labels.npy", labels)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rc = main(["geometry", str(ply), "--labels", str(tmp_path / "labels.npy"), "--out", str(tmp_path / "t"),
+                   "--formats", ""])
+    err = capsys.readouterr().err
+    assert rc == 2 and "labels.npy" in err and "labels must be within [0, 65535]" in err, err[-1000:]

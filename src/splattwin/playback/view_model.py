@@ -62,11 +62,15 @@ def load_robot_track(twin_dir: str | Path) -> RobotTrack | None:
     """The robot and its executed motion recorded by `splattwin plan` (robot/playback.npz), if any; None (with
     a warning) when robot/results.json says that run was made on an earlier state of the twin (a stage command
     such as `splattwin geometry` re-run into the folder since): its objects would start where they no longer
-    are (`render` refuses such a rollout). Results that record no twin are played as before."""
+    are (`render` refuses such a rollout). Results that record no twin are played as before. A playback.npz
+    that is a symbolic link out of the twin folder is an InputError naming it."""
+    from splattwin.paths import confined
+
     twin_dir = Path(twin_dir)
     p = twin_dir / "robot" / "playback.npz"
     if not p.is_file():
         return None
+    confined(twin_dir, "robot/playback.npz", p, "robot track")   # not a link to a file out of the twin
     why = _made_on_another_twin(twin_dir)
     if why is not None:
         log.warning("not showing the robot's recorded motion (%s): %s", p, why)

@@ -40,8 +40,13 @@ def picture(twin: Path, path: Path) -> Path | None:
 def _json(path: Path):
     """A stage's JSON artifact, or None when that stage did not run (or left nothing readable). Read within the
     record limit: the twin may be someone else's, and 1 GiB of JSON (the limit meant for COCO files) costs ~10 GB
-    to parse."""
-    return io.read_record(path)
+    to parse. Every stage record is a JSON object: any other value (a list, a number: a hand-edited or received
+    twin) counts as unreadable too."""
+    rec = io.read_record(path)
+    if rec is not None and not isinstance(rec, dict):
+        log.warning("report: %s is not a JSON object: left out", path)
+        return None
+    return rec
 
 
 def render_meshes(meshes: list, T_world_cam: np.ndarray, K: np.ndarray, width: int, height: int,
@@ -296,33 +301,18 @@ def build_report(twin_dir: str | Path, timings: dict | None = None, peak_rss_gib
                         "robot": plan["peak_rss_gib"]}
 
     head = rep.section("Summary")
-    kpis = {}
-    if ev:
-        masked = ", masked" if _masked(ev) else ""
-        kpis[f"PSNR {ev['split']}{masked} (dB)"] = round(ev["mean_psnr"], 2)
-        if ev.get("headline") == "aligned" and isinstance(ev.get("mean_psnr_as_given"), (int, float)):
-            kpis[f"PSNR {ev['split']}, poses as given (dB)"] = round(ev["mean_psnr_as_given"], 2)
-        kpis[f"SSIM {ev['split']}{masked}"] = round(ev["mean_ssim"], 4)
-    if fusion and fusion.get("miou_heldout") is not None:
-        kpis["mIoU held-out"] = round(fusion["miou_heldout"], 3)
-    elif fusion and fusion.get("miou_heldout_masks") is not None:
-        kpis["mIoU held-out vs 2D masks"] = round(fusion["miou_heldout_masks"], 3)
-    if geo:
-        kpis["F1 @5 mm (min)"] = round(min(v["f1"] for v in geo.values()), 3)
-    if robot and "error" in robot:
-        kpis["task success"] = False
-    elif robot:
-        kpis["task success"] = bool(robot["nominal"]["success"])
-        if isinstance(robot.get("real_robot"), dict):
-            kpis["real-arm files"] = bool(robot["real_robot"].get("written"))
-        if robot.get("trials"):
-            kpis["trials"] = f"{robot['trials']['successes']}/{robot['trials']['trials']}"
+    kpis: dict = {}
+    notes = [_guarded_kpis(kpis, rel, fn, rec) for rel, fn, rec in (
+        ("splat/eval/metrics.json", _eval_kpis, ev), ("semantics/fusion.json", _fusion_kpis, fusion),
+        ("geometry_metrics.json", _geometry_kpis, geo), ("robot/results.json", _robot_kpis, robot))]
     tt = timings or {k: v.get("seconds", 0.0) for k, v in state.items()}
     if tt:
         kpis[STAGE_TIME_KPI] = round(stage_time_sum(tt), 1)
     if man and not man.frame.scaled:
         kpis["scale"] = "unscaled"
     head.kpis(kpis)
+    for note in filter(None, notes):
+        head.text(note)
     stale = unvouched(twin)
     if stale:
         log.warning("report: %s", stale)
@@ -407,6 +397,57 @@ def _guarded(fn, sec: Section, *args) -> None:
     except (KeyError, TypeError, ValueError, IndexError, AttributeError) as e:
         log.warning("report section %r: malformed artifact (%s: %s)", sec.title, type(e).__name__, e)
         sec.text(f"this section could not be built from the twin's files ({type(e).__name__}: {str(e)[:200]})")
+
+
+def _guarded_kpis(kpis: dict, rel: str, fn, rec: dict | None) -> str | None:
+    """kpis updated with `fn(rec)`, the summary figures of the record TWIN/`rel`. A record of the wrong shape (a
+    hand-edited or received twin: a string for a number, a list for a table) leaves its figures out and gives
+    the note naming the file that is returned, as `_guarded` does for a section, instead of failing the whole
+    report."""
+    if not rec:
+        return None
+    try:
+        kpis.update(fn(rec))
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as e:
+        log.warning("report summary: %s is malformed (%s: %s); its figures are left out", rel, type(e).__name__, e)
+        return f"{rel} is malformed ({type(e).__name__}: {str(e)[:200]}): its figures are left out of the summary."
+    return None
+
+
+def _eval_kpis(ev: dict) -> dict:
+    """The summary's figures of splat/eval/metrics.json: PSNR (dB) and SSIM of its split."""
+    masked = ", masked" if _masked(ev) else ""
+    out = {f"PSNR {ev['split']}{masked} (dB)": round(ev["mean_psnr"], 2)}
+    if ev.get("headline") == "aligned" and isinstance(ev.get("mean_psnr_as_given"), (int, float)):
+        out[f"PSNR {ev['split']}, poses as given (dB)"] = round(ev["mean_psnr_as_given"], 2)
+    out[f"SSIM {ev['split']}{masked}"] = round(ev["mean_ssim"], 4)
+    return out
+
+
+def _fusion_kpis(fusion: dict) -> dict:
+    """The summary's figure of semantics/fusion.json: the held-out mIoU (vs the ground truth, else the 2D masks)."""
+    if fusion.get("miou_heldout") is not None:
+        return {"mIoU held-out": round(fusion["miou_heldout"], 3)}
+    if fusion.get("miou_heldout_masks") is not None:
+        return {"mIoU held-out vs 2D masks": round(fusion["miou_heldout_masks"], 3)}
+    return {}
+
+
+def _geometry_kpis(geo: dict) -> dict:
+    """The summary's figure of geometry_metrics.json: the lowest object F1 at 5 mm."""
+    return {"F1 @5 mm (min)": round(min(v["f1"] for v in geo.values()), 3)}
+
+
+def _robot_kpis(robot: dict) -> dict:
+    """The summary's figures of robot/results.json: task success, real-arm files written, trial successes."""
+    if "error" in robot:
+        return {"task success": False}
+    out = {"task success": bool(robot["nominal"]["success"])}
+    if isinstance(robot.get("real_robot"), dict):
+        out["real-arm files"] = bool(robot["real_robot"].get("written"))
+    if robot.get("trials"):
+        out["trials"] = f"{robot['trials']['successes']}/{robot['trials']['trials']}"
+    return out
 
 
 def _inputs_section(sec: Section, twin: Path, poses: dict | None, man) -> None:

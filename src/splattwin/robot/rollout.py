@@ -114,7 +114,10 @@ class Rollout:
         missing = [k for k in need if k not in arrays]
         if missing:
             raise InputError(f"not a rollout file: missing {', '.join(missing)}", path)
-        if str(arrays["format"]) != FORMAT or int(arrays["version"]) != VERSION:
+        version = arrays["version"]
+        # int() of a complex, text or many-element array raises TypeError/ValueError, not a mismatch
+        if (str(arrays["format"]) != FORMAT or version.dtype.kind not in "iu" or version.size != 1
+                or int(version.reshape(-1)[0]) != VERSION):
             raise InputError(f"not a {FORMAT} v{VERSION} file (format {arrays['format']!s}, "
                              f"version {arrays['version']!s})", path)
         t, qpos = arrays["t"], arrays["qpos"]

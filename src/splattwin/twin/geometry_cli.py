@@ -94,6 +94,13 @@ def _run_locked(args: argparse.Namespace) -> int:
         labels = arr.astype(np.int64).reshape(-1)
         if len(labels) != len(g):
             raise InputError(f"{len(labels)} labels for {len(g)} Gaussians in {ply.name}", lp)
+        from splattwin.twin.manifest import MAX_LABEL
+
+        # a negative label made no object at all, and the error then named the masks ("no mask names one of
+        # the objects"); twin.json refuses labels above MAX_LABEL (16-bit label images)
+        if len(labels) and (int(labels.min()) < 0 or int(labels.max()) > MAX_LABEL):
+            raise InputError(f"labels must be within [0, {MAX_LABEL}] (0 = background), got {int(labels.min())} to "
+                             f"{int(labels.max())}", lp)
         objects = [_parse_object(o) for o in args.object]
         if not objects and args.gt_scene and (Path(args.gt_scene) / "scene.json").is_file():
             from splattwin.twin.groundtruth import load_scene_gt

@@ -352,11 +352,14 @@ class Manifest:
     def load(cls, twin_dir: str | Path) -> "Manifest":
         """The manifest of a twin: `twin_dir` is the twin folder or its twin.json (as `TwinFrame.load` and
         `PoseResult.load` take either); validated, paths resolved against the folder (InputError naming
-        twin.json). Functions that read the twin's other files still take the folder."""
+        twin.json; as for the files it names, a twin.json that is a symbolic link out of the folder is one).
+        Functions that read the twin's other files still take the folder."""
         twin_dir = Path(twin_dir)
         if twin_dir.name == MANIFEST_NAME and not twin_dir.is_dir():   # (a folder may be named twin.json)
             twin_dir = twin_dir.parent
         path = twin_dir / MANIFEST_NAME
+        if path.is_symlink():   # a received folder's twin.json linked to a file elsewhere: not this twin's
+            confined(twin_dir, MANIFEST_NAME, path, "twin.json")
         missing = "no twin manifest here (expected twin.json)" + no_twin_yet(twin_dir)
         return cls.from_dict(io.read_json(path, missing=missing, max_bytes=MAX_RECORD_BYTES), path, twin_dir)
 

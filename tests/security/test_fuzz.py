@@ -1,0 +1,116 @@
+"""Readers found failing by a systematic fuzz pass over a received twin folder (each of its files truncated,
+randomised, given wrong JSON types, huge header counts, paths out of the folder): each case here ended in a
+traceback of an internal error (CLI exit 1) before its fix."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+
+def _report_twin(tmp_path: Path, test_module) -> Path:
+    """A twin with a manifest, eval metrics and robot results of this twin (report/test_build.py's helpers)."""
+    from splattwin.robot.outputs import twin_digest
+
+    helpers = test_module("report/test_build.py")
+    twin = helpers._manifest_twin(tmp_path, scaled=True)
+    helpers._robot_results(twin, twin_digest(twin))
+    return twin
+
+
+@pytest.mark.parametrize("rel, edit, needle", [
+    # found: geometry_metrics.json {"cardboard_box": [0, 1, 2, ...]} -> TypeError in the summary's F1 figure
+    ("geometry_metrics.json", lambda d: {"cake": [0, 1, 2]}, "geometry_metrics.json is malformed"),
+    # found: metrics.json mean_psnr {} -> TypeError in round()
+    ("splat/eval/metrics.json", lambda d: {**d, "mean_psnr": {}}, "splat/eval/metrics.json is malformed"),
+    ("semantics/fusion.json", lambda d: {"miou_heldout": "x"}, "semantics/fusion.json is malformed"),
+    ("robot/results.json", lambda d: {**d, "trials": {"successes": 1}}, "robot/results.json is malformed"),
+    ("robot/results.json", lambda d: {**d, "nominal": []}, "robot/results.json is malformed"),
+    # a record that is no JSON object at all is left out as unreadable
+    ("geometry_metrics.json", lambda d: ["f1"], None),
+])
+def test_report_summary_of_malformed_records_notes_the_file(tmp_path, test_module, cli, rel, edit, needle):
+    """The summary's figures came from the records unguarded (the sections below it are guarded): a received
+    twin's record of the wrong shape failed the whole report with an internal error. Now that record's figures
+    are left out with a note naming the file; the rest of the report is written."""
+    twin = _report_twin(tmp_path, test_module)
+    path = twin / rel
+    path.parent.mkdir(parents=True, exist_ok=True)
+    before = json.loads(path.read_text()) if path.is_file() else {}
+    path.write_text(json.dumps(edit(before)))
+    res = cli("report", twin, "--no-video")
+    assert res.rc == 0, res.err[-2000:]
+    html = (twin / "report" / "index.html").read_text()
+    assert "Summary" in html and "Collision geometry" in html
+    if needle:
+        assert needle in html
+
+
+@pytest.fixture(scope="module")
+def gt_twin(tmp_path_factory, scene_small) -> Path:
+    from splattwin.twin.groundtruth import twin_from_scene
+
+    out = tmp_path_factory.mktemp("fuzz_gt_twin")
+    twin_from_scene(scene_small, out)
+    return out
+
+
+def test_mesh_vertex_finite_but_huge_is_bad_input(gt_twin, tmp_path, cli):
+    """found: a convex part's vertex `v 1e308 1e308 -1e308` (finite, so load_mesh took it) overflowed in the
+    convex hull of `export` (a QhullError, internal error). Now load_mesh refuses vertices beyond
+    limits.MAX_POSITION, naming the file."""
+    import shutil
+
+    from security_helpers import assert_bad_input
+
+    twin = tmp_path / "t"
+    shutil.copytree(gt_twin, twin)
+    part = twin / json.loads((twin / "twin.json").read_text())["objects"][0]["convex_parts"][0]
+    lines = part.read_text().splitlines()
+    i = next(k for k, line in enumerate(lines) if line.startswith("v "))
+    lines[i] = "v 1e308 1e308 -1e308"
+    part.write_text("\n".join(lines) + "\n")
+    assert_bad_input(cli("export", twin), part.name, "from the origin")
+    assert_bad_input(cli("plan", twin, "--no-render"), part.name, "from the origin")
+
+
+def test_viewer_refuses_twin_json_and_robot_track_linked_out_of_the_twin(gt_twin, tmp_path):
+    """found: the viewer's loader (and `render`) read a received twin's twin.json and robot/playback.npz
+    through symbolic links to files outside the folder (the files twin.json names were already confined).
+    Now each is an InputError naming the link."""
+    import os
+    import shutil
+
+    import numpy as np
+
+    from splattwin.errors import InputError
+    from splattwin.playback.view_model import TwinView
+    from splattwin.robot.track import RobotTrack
+
+    twin = tmp_path / "t"
+    shutil.copytree(gt_twin, twin)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    RobotTrack(names=["g1"], vertices=[np.eye(3, dtype=np.float32)], faces=[np.array([[0, 1, 2]], np.uint32)],
+               colors=[(1, 2, 3)], positions=np.zeros((4, 1, 3)), rotations=np.tile(np.eye(3), (4, 1, 1, 1)),
+               times=np.arange(4.0)).save(elsewhere / "playback.npz")
+    (twin / "robot").mkdir(exist_ok=True)
+    os.symlink(os.path.relpath(elsewhere / "playback.npz", twin / "robot"), twin / "robot" / "playback.npz")
+    with pytest.raises(InputError, match="leads outside") as e:
+        TwinView.load(twin)
+    assert e.value.path == twin / "robot" / "playback.npz"
+    (twin / "robot" / "playback.npz").unlink()
+    assert TwinView.load(twin).track is None
+
+    (twin / "twin.json").rename(elsewhere / "twin.json")
+    os.symlink(elsewhere / "twin.json", twin / "twin.json")
+    with pytest.raises(InputError, match="leads outside") as e:
+        TwinView.load(twin)
+    assert e.value.path == twin / "twin.json"
+    # a link that stays inside the folder is read as before
+    (twin / "twin.json").unlink()
+    (elsewhere / "twin.json").rename(twin / "kept.json")
+    os.symlink("kept.json", twin / "twin.json")
+    assert TwinView.load(twin).manifest.objects
