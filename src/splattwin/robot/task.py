@@ -214,10 +214,13 @@ def _check_default_task_fits(data, where: Path, manifest: Manifest) -> None:
                      | {r for r in regions if not isinstance(manifest.config.get(r), dict)})
     if missing:
         have = ", ".join(sorted(o.name for o in manifest.objects)) or "none"
+        # the demo scene's twin made in Python (build_twin) lacks only the scene's goal region
+        goal_hint = ("; a twin of the embedded scene made with build_twin gets its goal region from "
+                     "splattwin.twin.add_scene_goal(twin_dir, scene_dir)" if "target_frame" in missing else "")
         raise InputError(f"the default task is the embedded demo scene's rearrangement, and this twin lacks what "
                          f"it names: {', '.join(missing)} (this twin's objects: {have}); write a task for your "
                          f"objects (README, 'Writing a task': pick / place_on / place_in: {{center: [x, y], "
-                         f"size: s}}) and give it with --task FILE", where)
+                         f"size: s}}) and give it with --task FILE{goal_hint}", where)
 
 
 def _tcp_poses(xyz: np.ndarray, base_xy: np.ndarray) -> list[np.ndarray]:
