@@ -186,10 +186,12 @@ def try_rescale(ds: Dataset, out_dir: str | Path, cfg: TrainConfig, frame_note: 
     _move(out_dir, transform_gaussians(Gaussians.load_ply(out_dir / "point_cloud.ply"), S), S, s)
     n = len(Gaussians.load_ply(out_dir / "point_cloud.ply"))
     rot = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
-    log.info("scale given: the trained splats are rescaled by %.4g%s, not retrained%s", s,
-             f" into {frame_note}" if frame_note else "",
-             f" (and moved into the new table frame: {rot:.2f} deg, {np.linalg.norm(S[:3, 3]):.4g} shift)"
+    moved = (f" (and moved into the new table frame: {rot:.2f} deg, {np.linalg.norm(S[:3, 3]):.4g} shift)"
              if rot > 1e-6 or np.linalg.norm(S[:3, 3]) > 1e-9 else "")
+    if frame_note:   # a metric frame now: the usual case, scale given after an unscaled build
+        log.info("scale given: the trained splats are rescaled by %.4g into %s, not retrained%s", s, frame_note, moved)
+    else:
+        log.info("the twin frame changed: the trained splats are rescaled by %.4g into it, not retrained%s", s, moved)
     train = _train_record(out_dir)
     return Rescaled(T_new_old=S, scale=s, gaussians=n, train_s=train.get("wall_s"))
 
