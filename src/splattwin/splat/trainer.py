@@ -276,7 +276,8 @@ def plot_history(history: list[dict], path: str | Path, width: int = 640, height
 _RUN_NEUTRAL = ("progress", "checkpoint_every", "device", "backend", "eval_full_resolution")
 
 
-def _checkpoints(out_dir: Path) -> list[Path]:
+def checkpoint_files(out_dir: Path) -> list[Path]:
+    """The run's checkpoints in OUT/checkpoints, oldest first (the newest is resumed)."""
     return sorted((out_dir / CKPT_DIR).glob(f"ckpt_*{ckpt_io.SUFFIX}"))
 
 
@@ -286,7 +287,7 @@ def _latest_checkpoint(out_dir: Path) -> Path | None:
         log.warning("ignoring %d pickled checkpoint(s) in %s (e.g. %s): pickles can run code and are never "
                     "loaded; only %s checkpoints are resumed", len(legacy), out_dir / CKPT_DIR, legacy[-1].name,
                     ckpt_io.SUFFIX)
-    ckpts = _checkpoints(out_dir)
+    ckpts = checkpoint_files(out_dir)
     return ckpts[-1] if ckpts else None
 
 
@@ -633,7 +634,7 @@ class Trainer:
         return ", ".join(parts)
 
     def _diverged(self, what: str) -> TrainingDiverged:
-        ckpts = _checkpoints(self.out_dir)
+        ckpts = checkpoint_files(self.out_dir)
         keep = (f"the newest checkpoint, {ckpts[-1]}, is finite" if ckpts else "no checkpoint was saved")
         return TrainingDiverged(f"training diverged: {what}; stopped (nothing non-finite is saved: {keep}). "
                                 f"Lower the learning rates, or report it with the command and data")
@@ -652,7 +653,7 @@ class Trainer:
         self.check_finite()
         path = self.out_dir / CKPT_DIR / f"ckpt_{self.step:06d}{ckpt_io.SUFFIX}"
         ckpt_io.save(path, self.state_dict())
-        for old in _checkpoints(self.out_dir)[:-2]:
+        for old in checkpoint_files(self.out_dir)[:-2]:
             old.unlink()
         return path
 
@@ -795,7 +796,7 @@ class Trainer:
                                              f"into another folder) or resume with the original options and "
                                              f"data", e.path) from None
                 log.warning("%s: %s; starting over (the stale checkpoints are removed)", e.path, e.problem)
-                for old in _checkpoints(self.out_dir):
+                for old in checkpoint_files(self.out_dir):
                     old.unlink()
                 ckpt = None
         if ckpt is None:
@@ -803,7 +804,7 @@ class Trainer:
                 log.info("no checkpoint in %s: starting from scratch", self.out_dir / CKPT_DIR)
             # checkpoints of an earlier run in this folder are stale now: left there, the newest (say a
             # finished run's step 200) would outrank this run's and a later --resume would continue it
-            stale = _checkpoints(self.out_dir)
+            stale = checkpoint_files(self.out_dir)
             if stale:
                 log.info("starting over: removing %d checkpoint(s) of an earlier run in %s", len(stale),
                          self.out_dir / CKPT_DIR)
