@@ -8,6 +8,10 @@ naming the file that held the path (the CLI exits 2).
 
 Names that become paths (object and view names) are checked by `splattwin.names` first; `child`
 joins such a name onto a folder and checks the result the same way.
+
+The files splattwin itself wrote into a twin, training or poses folder are read through `own_file`: never
+through a symbolic link out of that folder (`LinkOutside`, an InputError naming the link). A capture folder's
+links are followed (docs/CONTRACTS.md, "Symbolic links").
 """
 
 from __future__ import annotations
@@ -83,3 +87,36 @@ def relative_to(path: str | Path, root: str | Path) -> str | None:
             if is_inside(path, root) else None
     except ValueError:
         return None
+
+
+class LinkOutside(InputError):
+    """A file splattwin wrote is a symbolic link out of its folder (`own_file`): bad input even where a bad file
+    is only a warning (e.g. the geometry stage's optional cameras), as nothing may be read through it."""
+
+
+def own_file(root: str | Path, path: str | Path, what: str = "file") -> Path:
+    """`path`, a file splattwin wrote in the folder `root` (a twin, build, training or poses folder: its
+    records, checkpoints, PLYs, npz), unchanged when it lies inside `root` once its symbolic links are
+    resolved, or does not exist (its reader says so). Such folders may be received from someone else, and a
+    link planted there would have the file read from anywhere (`splat/train.json -> /etc/passwd`): a link
+    leading out of `root` is an InputError naming the link (exit 2). Links inside `root` are followed.
+
+    Capture folders (a user's photos and their metadata) are the deliberate exception and are not checked:
+    datasets are commonly links into a dataset store (docs/CONTRACTS.md)."""
+    p = Path(path)
+    if not (p.is_symlink() or p.exists()) or is_inside(p, root):
+        return p
+    link = p
+    try:
+        parts = p.relative_to(root).parts
+    except ValueError:
+        parts = ()
+    q = Path(root)
+    for part in parts:   # name the outermost link that leads out (a linked folder, else the file)
+        q = q / part
+        if q.is_symlink() and not is_inside(q, root):
+            link = q
+            break
+    target = os.readlink(link) if link.is_symlink() else str(link.resolve())
+    raise LinkOutside(f"{what} is a symbolic link to {target!r}, outside its folder {root}; splattwin reads the "
+                     f"files it wrote only from inside their folder: replace the link by the file", link)

@@ -29,7 +29,7 @@ from splattwin.capture.camera import Camera, opencv_from_opengl, opengl_from_ope
 from splattwin.capture.dataset import DEPTH_SCALE_RANGE, Dataset, Frame, name_views_by_path
 from splattwin.errors import InputError
 from splattwin.limits import check_count, check_pixels, number
-from splattwin.paths import confined, is_inside, unfollowed
+from splattwin.paths import confined, is_inside, own_file, unfollowed
 from splattwin.transforms import pose_from_file_value
 
 log = logging.getLogger(__name__)
@@ -72,6 +72,8 @@ def read(path: str | Path, require_images: bool = True) -> Dataset:
     require_images is False: then they are kept for their cameras (e.g. the geometry stage's carving,
     which never reads a pixel)."""
     path = Path(path)
+    if (path.parent / "poses_report.json").exists():   # a poses folder splattwin wrote, not a user's capture
+        own_file(path.parent, path, "transforms.json")
     meta = io.read_json(path, missing="file does not exist")
     if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list):
         raise InputError("not a nerfstudio transforms.json (no 'frames' list)", path)

@@ -134,9 +134,14 @@ def run_render(args: argparse.Namespace) -> int:
     if args.out.suffix.lower() != ".mp4":
         raise InputError("--out must name an .mp4 file", args.out)
     _check_out(args.out)
+    from splattwin.paths import own_file
+    from splattwin.twin.manifest import Manifest
+
     rpath = args.rollout or args.twin / "robot" / "rollout.npz"
+    if args.rollout is None:   # the twin's own files: a link out of it is named before the rollout is judged
+        Manifest.load(args.twin)
+        own_file(args.twin, rpath, "robot/rollout.npz")
     if not rpath.is_file():
-        from splattwin.twin.manifest import Manifest
 
         if args.rollout is None and not Manifest.load(args.twin).frame.scaled:
             # plan refuses a twin in SfM units, so "run plan first" could never work here

@@ -83,7 +83,9 @@ def _made_on_another_twin(twin_dir: Path) -> str | None:
     from splattwin import io
     from splattwin.robot.outputs import results_twin
 
-    results = io.read_record(twin_dir / "robot" / "results.json")
+    from splattwin.paths import own_file
+
+    results = io.read_record(own_file(twin_dir, twin_dir / "robot" / "results.json", "robot/results.json"))
     if not isinstance(results, dict) or not isinstance(results.get("twin_digest"), str):
         return None
     return results_twin(results, twin_dir)

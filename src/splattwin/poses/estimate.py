@@ -33,6 +33,7 @@ from splattwin.capture.camera import Camera
 from splattwin.capture.dataset import Dataset, Frame as DataFrame, load_image
 from splattwin.equality import dataclass_eq
 from splattwin.errors import InputError
+from splattwin.paths import own_file
 from splattwin.poses import align
 from splattwin.poses.options import UP_AXES, PoseOptions
 from splattwin.poses.table import KnownLength
@@ -107,7 +108,7 @@ class PoseResult:
             raise InputError("no transforms.json here: not a folder written by PoseResult.save (or splattwin poses)", tf)
         ds = nerfstudio.read(tf)
         frame = load_frame(out / FRAME_FILE)
-        rep = io.read_json(out / REPORT_FILE, "no poses_report.json beside transforms.json") \
+        rep = io.read_json(own_file(out, out / REPORT_FILE, REPORT_FILE), "no poses_report.json beside transforms.json") \
             if (out / REPORT_FILE).is_file() else {}
         if not isinstance(rep, dict):
             raise InputError("malformed poses report: expected a JSON object", out / REPORT_FILE)

@@ -119,6 +119,9 @@ def load_frame(path: str | Path) -> TwinFrame:
         path = path / FRAME_FILE
     from splattwin.limits import MAX_RECORD_BYTES, read_json
 
+    from splattwin.paths import own_file
+
+    own_file(path.parent, path, FRAME_FILE)   # the poses folder's own record, not a link out of it
     d = read_json(path, "no frame definition here (expected frame.json)", MAX_RECORD_BYTES)
     if not isinstance(d, dict):
         raise InputError("malformed frame definition: expected a JSON object", path)

@@ -155,7 +155,9 @@ def results_twin(results, twin_dir: str | Path) -> str | None:
 def stale_results(twin_dir: str | Path) -> str | None:
     """`results_twin` of TWIN/robot/results.json as it is on disk (an unreadable file counts as unreadable, a
     missing one says so): None when it belongs to the twin as it is now, else why not."""
-    rj = Path(twin_dir) / "robot" / "results.json"
+    from splattwin.paths import own_file
+
+    rj = own_file(twin_dir, Path(twin_dir) / "robot" / "results.json", "robot/results.json")
     if not rj.is_file():   # written last: the run that wrote the other files did not finish
         return ("robot/results.json is missing: the `splattwin plan` run that wrote robot/ did not finish "
                 "(stopped or killed); run it again")

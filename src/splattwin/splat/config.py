@@ -308,7 +308,9 @@ def filter_beside(ply) -> tuple[str, float]:
     from splattwin.io import read_json
     from splattwin.limits import MAX_RECORD_BYTES
 
-    rec = Path(ply).parent / "train.json"
+    from splattwin.paths import own_file
+
+    rec = own_file(Path(ply).parent, Path(ply).parent / "train.json", "train.json")
     if not rec.is_file():
         return trained_filter(None)
     info = read_json(rec, max_bytes=MAX_RECORD_BYTES)

@@ -55,6 +55,7 @@ import torch
 from splattwin.capture import Dataset, Frame, load_dataset
 from splattwin.capture.undistort import pinhole_for
 from splattwin.errors import InputError
+from splattwin.paths import LinkOutside, own_file
 from splattwin.io import write_image, write_json
 from splattwin.splat import metrics
 from splattwin.splat.appearance import heldout_corrected_psnr
@@ -205,7 +206,8 @@ def resolve_ply(path: str | Path) -> tuple[Path, dict]:
                              f"{path / 'poses'}`", path)
         if not ply.is_file():
             raise InputError("no point_cloud.ply in this folder (train first: splattwin train)", path)
-        rec = path / "train.json"
+        own_file(path, ply, "point_cloud.ply")   # a training folder's own files, not a link out of it
+        rec = own_file(path, path / "train.json", "train.json")
         return ply, (training_record(rec) if rec.is_file() else {})
     if not path.is_file():
         raise InputError("splat file or training folder does not exist", path)
@@ -333,6 +335,8 @@ def dataset_units(ds: Dataset) -> str:
 
     try:
         frame = frame_beside(ds.meta.get("path", ds.root))
+    except LinkOutside:   # a link out of the poses folder is bad input, not a bad frame
+        raise
     except InputError as e:
         log.warning("%s; pose corrections in the dataset's units, taken as unscaled", e)
         return UNSCALED_UNITS

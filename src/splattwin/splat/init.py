@@ -323,8 +323,11 @@ def poses_report_path(dataset):
     """Where the poses stage's report of a posed dataset lies: poses_report.json beside its transforms.json."""
     from pathlib import Path
 
+    from splattwin.paths import own_file
+
     p = Path(dataset.meta.get("path", dataset.root))
-    return (p.parent if p.is_file() else p) / "poses_report.json"
+    folder = p.parent if p.is_file() else p
+    return own_file(folder, folder / "poses_report.json", "poses_report.json")   # only splattwin writes one
 
 
 def poses_points_source(dataset) -> str | None:

@@ -29,7 +29,7 @@ from splattwin import io
 from splattwin.geometry.convert import Conversion, convert
 from splattwin.geometry.options import GeometryOptions
 from splattwin.names import check_unique, export_id, object_name
-from splattwin.paths import child, relative_to
+from splattwin.paths import LinkOutside, child, relative_to
 from splattwin.poses.twin_frame import TwinFrame
 from splattwin.splat.ply import write_gaussians_ply
 from splattwin.twin.manifest import Background, Manifest, ObjectEntry, mass_source, units_text, unscaled_note  # noqa: F401
@@ -392,6 +392,8 @@ def _capture(out_dir: Path, cameras_path, refined_poses=None) -> tuple[list | No
 
         ds = load_dataset(cp, validate=False, require_images=False)
         return list(rp.apply(ds, refined_poses).frames), ds.depth_scale
+    except LinkOutside:   # not a bad file but a planted link: nothing is read through it
+        raise
     except Exception as e:  # noqa: BLE001 - see the docstring
         log.warning("cameras not read from %s (geometry without them): %s", cp, e)
         return None, None
