@@ -114,3 +114,16 @@ def test_viewer_refuses_twin_json_and_robot_track_linked_out_of_the_twin(gt_twin
     (elsewhere / "twin.json").rename(twin / "kept.json")
     os.symlink("kept.json", twin / "twin.json")
     assert TwinView.load(twin).manifest.objects
+
+
+def test_a_task_region_number_past_float_range_is_input_error():
+    """Second fuzz pass, `plan --task`: a place_in size or centre given as a YAML integer past float range
+    (size: 1000...0, 401 digits) raised OverflowError from np.asarray: an internal error. Now it is the task
+    file's error, as other bad numbers are."""
+    from splattwin.errors import InputError
+    from splattwin.robot.task import parse_task
+
+    where = Path("task.yaml")
+    for region in ({"center": [0, 0, 0], "size": 10 ** 400}, {"center": [10 ** 400, 0, 0], "size": 0.3}):
+        with pytest.raises(InputError, match=r"task\.yaml.*place_in: bad numbers"):
+            parse_task([{"pick": "blue_box", "place_in": region}], where)

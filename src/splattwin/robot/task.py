@@ -124,7 +124,7 @@ def _region(v, where: Path, manifest: Manifest | None, k: int = 0) -> Region:
     try:
         c = np.asarray(v["center"], dtype=float).reshape(-1)
         s = np.asarray(v["size"], dtype=float).reshape(-1)
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, OverflowError) as e:   # OverflowError: a YAML integer past float range (1e309)
         raise InputError(at + f"place_in: bad numbers: {e}", where) from e
     z_given = len(c) == 3
     if len(c) == 2:
