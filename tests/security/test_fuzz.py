@@ -127,3 +127,13 @@ def test_a_task_region_number_past_float_range_is_input_error():
     for region in ({"center": [0, 0, 0], "size": 10 ** 400}, {"center": [10 ** 400, 0, 0], "size": 0.3}):
         with pytest.raises(InputError, match=r"task\.yaml.*place_in: bad numbers"):
             parse_task([{"pick": "blue_box", "place_in": region}], where)
+
+
+def test_a_task_step_with_keys_of_mixed_types_is_input_error():
+    """Second fuzz pass, `plan --task`: a step `{1: blue_box, ~: cardboard_box}` (an int and a null key) failed
+    sorting its unknown keys for the message (TypeError: an internal error). Now the keys are named as text."""
+    from splattwin.errors import InputError
+    from splattwin.robot.task import parse_task
+
+    with pytest.raises(InputError, match=r"task\.yaml: step 1: unknown key\(s\) \['1', 'None'\]"):
+        parse_task([{1: "blue_box", None: "cardboard_box"}], Path("task.yaml"))

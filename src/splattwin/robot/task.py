@@ -159,7 +159,9 @@ def parse_task(data, where: Path, manifest: Manifest | None = None) -> Task:
             raise InputError(f"step {n}: expected a mapping like 'pick: blue_box', got {item!r}", where)
         unknown = set(item) - {"pick", "place_on", "place_in"}
         if unknown:
-            raise InputError(f"step {n}: unknown key(s) {sorted(unknown)} (use pick, place_on, place_in)", where)
+            # keys as text: YAML keys may be of mixed types ({1: a, ~: b}) that sorted() cannot compare
+            raise InputError(f"step {n}: unknown key(s) {sorted(map(str, unknown))} (use pick, place_on, place_in)",
+                             where)
         for key in ("pick", "place_on"):
             if key in item and not isinstance(item[key], str):   # `pick:` (null), `pick: yes` (a bool), a list
                 got = "nothing" if item[key] is None else f"{type(item[key]).__name__} {short_repr(item[key], 80)}"
