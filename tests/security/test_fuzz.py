@@ -137,3 +137,20 @@ def test_a_task_step_with_keys_of_mixed_types_is_input_error():
 
     with pytest.raises(InputError, match=r"task\.yaml: step 1: unknown key\(s\) \['1', 'None'\]"):
         parse_task([{1: "blue_box", None: "cardboard_box"}], Path("task.yaml"))
+
+
+def test_a_task_of_too_many_steps_is_refused_before_planning():
+    """Second fuzz pass, `plan --task`: a task of 4000 steps (90 kB of YAML) was validated by IK and planned step
+    by step, still running after 90 s (a 16 MiB task could hold 400 000). Now more than
+    SPLATTWIN_MAX_TASK_STEPS (100) steps is the task file's error before anything is planned."""
+    from splattwin import limits
+    from splattwin.errors import InputError
+    from splattwin.robot.task import parse_task
+
+    step = {"pick": "blue_box", "place_on": "cardboard_box"}
+    assert len(parse_task([step] * limits.MAX_TASK_STEPS, Path("task.yaml")).steps) == limits.MAX_TASK_STEPS
+    # a pick and its place may also be two items: steps are counted, not items
+    assert len(parse_task([{"pick": "blue_box"}, {"place_on": "cardboard_box"}] * limits.MAX_TASK_STEPS,
+                          Path("task.yaml")).steps) == limits.MAX_TASK_STEPS
+    with pytest.raises(InputError, match=r"task\.yaml: the task has more than 100 steps .*SPLATTWIN_MAX_TASK_STEPS"):
+        parse_task([step] * 4000, Path("task.yaml"))

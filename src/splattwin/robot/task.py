@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from splattwin import limits
 from splattwin.errors import InputError, short_repr
 from splattwin.robot import footprint as fp
 from splattwin.robot.footprint import Shape, box_shape, object_shape
@@ -172,6 +173,9 @@ def parse_task(data, where: Path, manifest: Manifest | None = None) -> Task:
                 raise InputError(f"step {n}: pick of {item['pick']!r} while still holding {pending!r}", where)
             pending = item["pick"]
         if "place_on" in item or "place_in" in item:
+            if n > limits.MAX_TASK_STEPS:
+                raise InputError(f"the task has more than {limits.MAX_TASK_STEPS} steps (set "
+                                 f"SPLATTWIN_MAX_TASK_STEPS to allow more)", where)
             if pending is None:
                 raise InputError(f"step {n}: place without a pick before it", where)
             if "place_on" in item and "place_in" in item:
