@@ -154,3 +154,28 @@ def test_a_task_of_too_many_steps_is_refused_before_planning():
                           Path("task.yaml")).steps) == limits.MAX_TASK_STEPS
     with pytest.raises(InputError, match=r"task\.yaml: the task has more than 100 steps .*SPLATTWIN_MAX_TASK_STEPS"):
         parse_task([step] * 4000, Path("task.yaml"))
+
+
+@pytest.mark.parametrize("name", ["task_view_0.mp4", "task_view_0.json"])
+def test_report_task_video_where_a_folder_stands_is_noted_not_an_internal_error(tmp_path, name):
+    """Second fuzz pass, `report` with its video: report/task_X.mp4 (or its key .json) received as a folder failed
+    the video's final rename (IsADirectoryError: an internal error, the whole report lost). Now the playback
+    section says the folder stands there, names it and the rest of the report is written; the folder is kept."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parents[1]))
+    from playback.conftest import write_twin
+    from playback.rollouts import synthetic_rollout
+
+    from splattwin.report.html import Report
+    from splattwin.report.options import ReportOptions
+    from splattwin.report.playback import playback_section
+
+    twin = write_twin(tmp_path / "twin")
+    synthetic_rollout(0.6).save(twin / "robot" / "rollout.npz")
+    (twin / "report" / name).mkdir(parents=True)
+    rep = Report("t")
+    playback_section(rep.section("motion"), twin, ReportOptions(video_camera="view_0", video_fps=10.0,
+                                                                video_width=96))
+    assert "a folder stands where the report writes its task video" in rep.to_html()
+    assert name in rep.to_html() and (twin / "report" / name).is_dir()
