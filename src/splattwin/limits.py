@@ -12,6 +12,7 @@ Limits (environment variables override them, e.g. for gigapixel scans):
     SPLATTWIN_MAX_RECORD_BYTES   64 MiB  small JSON records: twin.json, frame.json, train.json, results
     SPLATTWIN_MAX_YAML_BYTES     16 MiB  YAML files (tasks, robot poses)
     SPLATTWIN_MAX_YAML_NODES     1e6     YAML nodes after expanding aliases
+    SPLATTWIN_MAX_TASK_STEPS     100     pick-and-place steps in one task (each is checked by IK and planned)
     SPLATTWIN_MAX_ARRAY_BYTES    16 GiB  .npy arrays (and never more than the file holds)
     SPLATTWIN_MAX_TEXT_BYTES     256 MiB plain-text lists (TUM pose lists, rgb.txt)
 """
@@ -46,6 +47,9 @@ MAX_JSON_BYTES = _env("SPLATTWIN_MAX_JSON_BYTES", 1 << 30)
 MAX_RECORD_BYTES = _env("SPLATTWIN_MAX_RECORD_BYTES", 64 << 20)
 MAX_YAML_BYTES = _env("SPLATTWIN_MAX_YAML_BYTES", 16 << 20)
 MAX_YAML_NODES = _env("SPLATTWIN_MAX_YAML_NODES", 1e6)
+# a task's steps: each is validated with IK and planned (seconds each); a received 16 MiB task of 400 000
+# steps ran for hours before any error (the paper's task has 3)
+MAX_TASK_STEPS = _env("SPLATTWIN_MAX_TASK_STEPS", 100)
 MAX_ARRAY_BYTES = _env("SPLATTWIN_MAX_ARRAY_BYTES", 16 << 30)
 MAX_TEXT_BYTES = _env("SPLATTWIN_MAX_TEXT_BYTES", 256 << 20)
 

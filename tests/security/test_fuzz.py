@@ -114,3 +114,68 @@ def test_viewer_refuses_twin_json_and_robot_track_linked_out_of_the_twin(gt_twin
     (elsewhere / "twin.json").rename(twin / "kept.json")
     os.symlink("kept.json", twin / "twin.json")
     assert TwinView.load(twin).manifest.objects
+
+
+def test_a_task_region_number_past_float_range_is_input_error():
+    """Second fuzz pass, `plan --task`: a place_in size or centre given as a YAML integer past float range
+    (size: 1000...0, 401 digits) raised OverflowError from np.asarray: an internal error. Now it is the task
+    file's error, as other bad numbers are."""
+    from splattwin.errors import InputError
+    from splattwin.robot.task import parse_task
+
+    where = Path("task.yaml")
+    for region in ({"center": [0, 0, 0], "size": 10 ** 400}, {"center": [10 ** 400, 0, 0], "size": 0.3}):
+        with pytest.raises(InputError, match=r"task\.yaml.*place_in: bad numbers"):
+            parse_task([{"pick": "blue_box", "place_in": region}], where)
+
+
+def test_a_task_step_with_keys_of_mixed_types_is_input_error():
+    """Second fuzz pass, `plan --task`: a step `{1: blue_box, ~: cardboard_box}` (an int and a null key) failed
+    sorting its unknown keys for the message (TypeError: an internal error). Now the keys are named as text."""
+    from splattwin.errors import InputError
+    from splattwin.robot.task import parse_task
+
+    with pytest.raises(InputError, match=r"task\.yaml: step 1: unknown key\(s\) \['1', 'None'\]"):
+        parse_task([{1: "blue_box", None: "cardboard_box"}], Path("task.yaml"))
+
+
+def test_a_task_of_too_many_steps_is_refused_before_planning():
+    """Second fuzz pass, `plan --task`: a task of 4000 steps (90 kB of YAML) was validated by IK and planned step
+    by step, still running after 90 s (a 16 MiB task could hold 400 000). Now more than
+    SPLATTWIN_MAX_TASK_STEPS (100) steps is the task file's error before anything is planned."""
+    from splattwin import limits
+    from splattwin.errors import InputError
+    from splattwin.robot.task import parse_task
+
+    step = {"pick": "blue_box", "place_on": "cardboard_box"}
+    assert len(parse_task([step] * limits.MAX_TASK_STEPS, Path("task.yaml")).steps) == limits.MAX_TASK_STEPS
+    # a pick and its place may also be two items: steps are counted, not items
+    assert len(parse_task([{"pick": "blue_box"}, {"place_on": "cardboard_box"}] * limits.MAX_TASK_STEPS,
+                          Path("task.yaml")).steps) == limits.MAX_TASK_STEPS
+    with pytest.raises(InputError, match=r"task\.yaml: the task has more than 100 steps .*SPLATTWIN_MAX_TASK_STEPS"):
+        parse_task([step] * 4000, Path("task.yaml"))
+
+
+@pytest.mark.parametrize("name", ["task_view_0.mp4", "task_view_0.json"])
+def test_report_task_video_where_a_folder_stands_is_noted_not_an_internal_error(tmp_path, name):
+    """Second fuzz pass, `report` with its video: report/task_X.mp4 (or its key .json) received as a folder failed
+    the video's final rename (IsADirectoryError: an internal error, the whole report lost). Now the playback
+    section says the folder stands there, names it and the rest of the report is written; the folder is kept."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parents[1]))
+    from playback.conftest import write_twin
+    from playback.rollouts import synthetic_rollout
+
+    from splattwin.report.html import Report
+    from splattwin.report.options import ReportOptions
+    from splattwin.report.playback import playback_section
+
+    twin = write_twin(tmp_path / "twin")
+    synthetic_rollout(0.6).save(twin / "robot" / "rollout.npz")
+    (twin / "report" / name).mkdir(parents=True)
+    rep = Report("t")
+    playback_section(rep.section("motion"), twin, ReportOptions(video_camera="view_0", video_fps=10.0,
+                                                                video_width=96))
+    assert "a folder stands where the report writes its task video" in rep.to_html()
+    assert name in rep.to_html() and (twin / "report" / name).is_dir()

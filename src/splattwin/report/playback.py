@@ -88,6 +88,7 @@ def _base(twin: Path) -> np.ndarray:
 def task_video(twin: Path, options: ReportOptions, progress: bool = False) -> dict | None:
     """Render (or reuse) the task video and the filled-regions picture. None when the twin has no rollout;
     InputError when it has no splats."""
+    from splattwin.errors import InputError
     from splattwin.paths import is_inside
     from splattwin.playback.cameras import EyeInHand
     from splattwin.playback.compositor import PlaybackRenderer, rollout_state
@@ -111,6 +112,9 @@ def task_video(twin: Path, options: ReportOptions, progress: bool = False) -> di
     safe = "".join(ch if ch.isalnum() or ch in "_-" else "_" for ch in spec)[:64]
     mp4 = twin / "report" / f"task_{safe}.mp4"
     keyfile = mp4.with_suffix(".json")
+    for p in (mp4, keyfile):   # a received twin's folder there failed the video's final rename: an internal error
+        if p.is_dir() and not p.is_symlink():
+            raise InputError("a folder stands where the report writes its task video (or its key): remove it", p)
     # the cached video is embedded as it is: one that leads out of the twin (a received twin's link with a
     # matching key, which the twin's own files give) would put any file of this machine into the report; its
     # key file is read like any record of a received twin (bounded), and its numbers must be numbers

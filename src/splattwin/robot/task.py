@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from splattwin import limits
 from splattwin.errors import InputError, short_repr
 from splattwin.robot import footprint as fp
 from splattwin.robot.footprint import Shape, box_shape, object_shape
@@ -124,7 +125,7 @@ def _region(v, where: Path, manifest: Manifest | None, k: int = 0) -> Region:
     try:
         c = np.asarray(v["center"], dtype=float).reshape(-1)
         s = np.asarray(v["size"], dtype=float).reshape(-1)
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, OverflowError) as e:   # OverflowError: a YAML integer past float range (1e309)
         raise InputError(at + f"place_in: bad numbers: {e}", where) from e
     z_given = len(c) == 3
     if len(c) == 2:
@@ -159,7 +160,9 @@ def parse_task(data, where: Path, manifest: Manifest | None = None) -> Task:
             raise InputError(f"step {n}: expected a mapping like 'pick: blue_box', got {item!r}", where)
         unknown = set(item) - {"pick", "place_on", "place_in"}
         if unknown:
-            raise InputError(f"step {n}: unknown key(s) {sorted(unknown)} (use pick, place_on, place_in)", where)
+            # keys as text: YAML keys may be of mixed types ({1: a, ~: b}) that sorted() cannot compare
+            raise InputError(f"step {n}: unknown key(s) {sorted(map(str, unknown))} (use pick, place_on, place_in)",
+                             where)
         for key in ("pick", "place_on"):
             if key in item and not isinstance(item[key], str):   # `pick:` (null), `pick: yes` (a bool), a list
                 got = "nothing" if item[key] is None else f"{type(item[key]).__name__} {short_repr(item[key], 80)}"
@@ -170,6 +173,9 @@ def parse_task(data, where: Path, manifest: Manifest | None = None) -> Task:
                 raise InputError(f"step {n}: pick of {item['pick']!r} while still holding {pending!r}", where)
             pending = item["pick"]
         if "place_on" in item or "place_in" in item:
+            if n > limits.MAX_TASK_STEPS:
+                raise InputError(f"the task has more than {limits.MAX_TASK_STEPS} steps (set "
+                                 f"SPLATTWIN_MAX_TASK_STEPS to allow more)", where)
             if pending is None:
                 raise InputError(f"step {n}: place without a pick before it", where)
             if "place_on" in item and "place_in" in item:
