@@ -23,7 +23,6 @@ evaluation runs again in the new frame (the same figures).
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 from dataclasses import dataclass
@@ -33,6 +32,7 @@ import numpy as np
 
 from splattwin.capture import Dataset
 from splattwin.errors import InputError
+from splattwin.hashing import sha256_file
 from splattwin.splat.config import TrainConfig
 
 log = logging.getLogger(__name__)
@@ -52,13 +52,7 @@ class Rescaled:
 
 
 def _file_digest(path: Path | None) -> str | None:
-    if path is None:
-        return None
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
+    return None if path is None else sha256_file(path)
 
 
 def _view_record(frame) -> dict:
