@@ -40,6 +40,22 @@ def _transforms(path: Path) -> None:
                                 "frames": [{"file_path": "images/a.png", "transform_matrix": np.eye(4).tolist()}]}))
 
 
+def _poses_folder(tmp_path: Path, frame):
+    """(poses folder, dataset stand-in): a poses stage's folder with the TwinFrame `frame`, an empty
+    poses_report.json and a one-frame transforms.json, and an object with the dataset's `meta` and `root`."""
+    poses = tmp_path / "poses"
+    poses.mkdir()
+    frame.save(poses)
+    (poses / "poses_report.json").write_text("{}")
+    _transforms(poses / "transforms.json")
+
+    class _Ds:
+        meta = {"path": str(poses / "transforms.json")}
+        root = poses
+
+    return poses, _Ds
+
+
 def _training_folder(tmp_path: Path) -> Path:
     from splattwin.splat.gaussians import Gaussians
 
@@ -106,15 +122,7 @@ def test_poses_records_linked_out_are_refused(tmp_path):
     from splattwin.poses.twin_frame import TwinFrame, load_frame
     from splattwin.splat.init import poses_report_path
 
-    poses = tmp_path / "poses"
-    poses.mkdir()
-    TwinFrame(source="unscaled", scaled=False).save(poses)
-    (poses / "poses_report.json").write_text("{}")
-    _transforms(poses / "transforms.json")
-
-    class _Ds:
-        meta = {"path": str(poses / "transforms.json")}
-        root = poses
+    poses, _Ds = _poses_folder(tmp_path, TwinFrame(source="unscaled", scaled=False))
 
     assert not load_frame(poses).scaled and poses_report_path(_Ds()) == poses / "poses_report.json"
     elsewhere = tmp_path / "elsewhere"
@@ -202,15 +210,7 @@ def test_readers_that_warn_on_a_bad_file_still_refuse_a_link_out(tmp_path):
     from splattwin.splat.eval import dataset_units
     from splattwin.twin.build import _capture
 
-    poses = tmp_path / "poses"
-    poses.mkdir()
-    TwinFrame(source="marker", scaled=True).save(poses)
-    (poses / "poses_report.json").write_text("{}")
-    _transforms(poses / "transforms.json")
-
-    class _Ds:
-        meta = {"path": str(poses / "transforms.json")}
-        root = poses
+    poses, _Ds = _poses_folder(tmp_path, TwinFrame(source="marker", scaled=True))
 
     assert dataset_units(_Ds()) == "m"
     (poses / "frame.json").write_text("[")   # a bad file: a warning, as before

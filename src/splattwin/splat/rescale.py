@@ -177,8 +177,9 @@ def try_rescale(ds: Dataset, out_dir: str | Path, cfg: TrainConfig, frame_note: 
         log.info("the trained splats are not reused: the frame rotated and the environment map is looked up by "
                  "world direction")
         return None
-    _move(out_dir, transform_gaussians(Gaussians.load_ply(out_dir / "point_cloud.ply"), S), S, s)
-    n = len(Gaussians.load_ply(out_dir / "point_cloud.ply"))
+    moved = transform_gaussians(Gaussians.load_ply(out_dir / "point_cloud.ply"), S)
+    _move(out_dir, moved, S, s)
+    n = len(moved)
     rot = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
     moved = (f" (and moved into the new table frame: {rot:.2f} deg, {np.linalg.norm(S[:3, 3]):.4g} shift)"
              if rot > 1e-6 or np.linalg.norm(S[:3, 3]) > 1e-9 else "")
