@@ -173,6 +173,18 @@ def test_build_records_episodes_when_asked(tmp_path):
     assert check_episode(ep, ro, rec.renderer, rec.cameras, min_psnr=24.0) == len(ep)
 
 
+def _stages_say(monkeypatch, b, events: list[tuple[str, str]]) -> None:
+    """`splattwin.pipeline.build` module `b` with its checks and pre-flight stubbed and its stages only reporting
+    `events` ((stage, "run" | "skip"), in order) to the build's stage lines."""
+    def fake_run_stages(stages, ctx, from_stage=None, until=None, on_stage=None):
+        for stage, what in events:
+            on_stage(stage, what)
+
+    monkeypatch.setattr(b, "check_inputs", lambda options: None)
+    monkeypatch.setattr(b, "preflight", lambda ctx, until=None: {})
+    monkeypatch.setattr(b, "run_stages", fake_run_stages)
+
+
 def test_progress_false_logs_the_stage_lines_instead_of_printing(tmp_path, monkeypatch, capsys, caplog):
     """build(out, options, progress=False) still printed "▶ splat" / "· poses: up to date, skipped" to
     stderr with a rich Console (a notebook's or script's output; audit 10A L15); with progress=True the
@@ -182,13 +194,7 @@ def test_progress_false_logs_the_stage_lines_instead_of_printing(tmp_path, monke
     from splattwin.pipeline import build as b
     from splattwin.pipeline.options import BuildOptions
 
-    def fake_run_stages(stages, ctx, from_stage=None, until=None, on_stage=None):
-        on_stage("poses", "skip")
-        on_stage("splat", "run")
-
-    monkeypatch.setattr(b, "check_inputs", lambda options: None)
-    monkeypatch.setattr(b, "preflight", lambda ctx, until=None: {})
-    monkeypatch.setattr(b, "run_stages", fake_run_stages)
+    _stages_say(monkeypatch, b, [("poses", "skip"), ("splat", "run")])
     with caplog.at_level(logging.INFO, logger="splattwin.pipeline.build.stages"):
         b.build(tmp_path / "twin", BuildOptions(), progress=False)
     assert capsys.readouterr().err == ""
@@ -206,13 +212,7 @@ def test_the_robot_stage_line_says_nothing_was_planned_without_a_task(tmp_path, 
     from splattwin.pipeline.options import BuildOptions
     from splattwin.robot.options import RobotOptions
 
-    def fake_run_stages(stages, ctx, from_stage=None, until=None, on_stage=None):
-        on_stage("twin", "run")
-        on_stage("robot", "run")
-
-    monkeypatch.setattr(b, "check_inputs", lambda options: None)
-    monkeypatch.setattr(b, "preflight", lambda ctx, until=None: {})
-    monkeypatch.setattr(b, "run_stages", fake_run_stages)
+    _stages_say(monkeypatch, b, [("twin", "run"), ("robot", "run")])
     b.build(tmp_path / "twin", BuildOptions(), progress=True)
     err = capsys.readouterr().err
     assert "▶ twin\n" in err and "▶ robot: no --task, nothing planned (splattwin plan TWIN --task FILE" in err

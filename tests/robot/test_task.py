@@ -18,6 +18,17 @@ def _write(tmp_path: Path, text: str) -> Path:
     return p
 
 
+def _record_reachable(monkeypatch) -> list[np.ndarray]:
+    """The world positions (m) task validation asks `task.reachable` about, in order (the real answer kept)."""
+    import splattwin.robot.task as task_mod
+
+    asked: list[np.ndarray] = []
+    real = task_mod.reachable
+    monkeypatch.setattr(task_mod, "reachable", lambda ik, xyz, base_xy, rise=0.0: (asked.append(np.asarray(xyz)),
+                                                                                    real(ik, xyz, base_xy, rise))[1])
+    return asked
+
+
 def test_default_task_is_the_paper_rearrangement(gt_twin_small: Path):
     m = Manifest.load(gt_twin_small)
     t = load_task(None, m)
@@ -285,13 +296,8 @@ def test_ik_checks_an_object_where_an_earlier_step_placed_it(tmp_path: Path, gt_
                                                              monkeypatch):
     """Step 2 picks the cube that step 1 put on the cardboard box: its grasp is checked there (on the box's
     top), not at its twin pose on the table; and the cube's place on the moved blue box at the box's new top."""
-    import splattwin.robot.task as task_mod
-
     m = Manifest.load(gt_twin_small)
-    asked: list[np.ndarray] = []
-    real = task_mod.reachable
-    monkeypatch.setattr(task_mod, "reachable", lambda ik, xyz, base_xy, rise=0.0: (asked.append(np.asarray(xyz)),
-                                                                                    real(ik, xyz, base_xy, rise))[1])
+    asked = _record_reachable(monkeypatch)
     t = load_task(_write(tmp_path, "- pick: yellow_cube\n- place_on: cardboard_box\n"
                                    "- pick: yellow_cube\n- place_in: {center: [0.0, -0.05], size: 0.1}\n"), m)
     validate_task(t, m, gt_twin_small, BasePose().matrix(), robot=panda)
@@ -444,16 +450,12 @@ def test_a_place_on_a_tray_is_checked_where_the_box_rests_on_it(tmp_path: Path, 
     box placed on it rests on the tray (as the planner releases it, `selection.release_height`), not on its
     bounding-box top. Before, the scene put it 8 cm higher, so the place pose and the next step's grasp of it
     were IK-checked 8 cm above where they are."""
-    import splattwin.robot.task as task_mod
     from splattwin.robot.task import TaskScene
 
     tray = [([-0.1, -0.075, -0.05], [0.1, 0.075, -0.03]), ([0.08, 0.055, -0.05], [0.1, 0.075, 0.05])]
     twin = _reshaped(gt_twin_small, tmp_path, tray, [0.2, 0.15, 0.1])
     m = Manifest.load(twin)
-    asked: list[np.ndarray] = []
-    real = task_mod.reachable
-    monkeypatch.setattr(task_mod, "reachable", lambda ik, xyz, base_xy, rise=0.0: (asked.append(np.asarray(xyz)),
-                                                                                    real(ik, xyz, base_xy, rise))[1])
+    asked = _record_reachable(monkeypatch)
     t = load_task(_write(tmp_path, "- pick: blue_box\n- place_on: cardboard_box\n"
                                    "- pick: blue_box\n- place_in: {center: [0.0, 0.05], size: 0.15}\n"), m)
     validate_task(t, m, twin, BasePose().matrix(), robot=panda)
