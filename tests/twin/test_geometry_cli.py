@@ -61,6 +61,16 @@ def test_geometry_cli_bad_input(tmp_path):
                  "--out", str(tmp_path / "t")]) == 2
 
 
+def test_geometry_cli_refuses_labels_that_are_not_one_per_gaussian(tmp_path, capsys):
+    g, labels, _, _ = synthetic_scene(4000, seed=3)
+    ply = g.save_ply(tmp_path / "scene.ply")
+    for name, arr in (("row.npy", labels[None, :]), ("col.npy", labels[:, None])):
+        np.save(tmp_path / name, arr)
+        assert main(["geometry", str(ply), "--labels", str(tmp_path / name), "--out", str(tmp_path / "t")]) == 2
+        assert "1-D array" in capsys.readouterr().err
+    assert not (tmp_path / "t" / "twin.json").exists()
+
+
 def test_geometry_cli_evaluates_against_a_generated_scene(tmp_path, scene_small):
     import json
 

@@ -91,7 +91,11 @@ def _run_locked(args: argparse.Namespace) -> int:
         arr = load_npy(lp, "label array")
         if arr.dtype.kind not in "iub":
             raise InputError(f"labels must be integers, got dtype {arr.dtype}", lp)
-        labels = arr.astype(np.int64).reshape(-1)
+        # one label per Gaussian, as labels.npy is written (semantics' loader refuses other shapes too): a (1, N)
+        # or (N, 1) array was flattened silently, and an (N, 3) array of something else would have been misread
+        if arr.ndim != 1:
+            raise InputError(f"labels must be a 1-D array (one label per Gaussian), got shape {arr.shape}", lp)
+        labels = arr.astype(np.int64)
         if len(labels) != len(g):
             raise InputError(f"{len(labels)} labels for {len(g)} Gaussians in {ply.name}", lp)
         from splattwin.twin.manifest import MAX_LABEL
