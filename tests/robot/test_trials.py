@@ -159,6 +159,14 @@ def test_a_twin_posed_by_the_robot_puts_the_arm_at_its_base(gt_twin_small: Path,
     (twin / "twin.json").write_text(json.dumps(d))
     assert TrialSpec.from_options(twin, RobotOptions()).base == BasePose(0.0, 0.0, 0.0, 0.0)
     assert TrialSpec.from_options(twin, RobotOptions(base_pose="0.1,0,0,0")).base == BasePose(0.1, 0.0, 0.0, 0.0)
+    # in Python as with `splattwin plan`: TrialSpec(twin, task) and build_world(twin) put the arm there too (they
+    # put it beside the table, 0.5 m from where plan put it, api13 E1); an explicit base is kept
+    from splattwin.robot.world import build_world
+
+    assert TrialSpec(str(twin), None).base == BasePose(0.0, 0.0, 0.0, 0.0)
+    assert TrialSpec(str(gt_twin_small), None).base == BasePose()
+    assert TrialSpec(str(twin), None, base=BasePose(0.1)).base == BasePose(0.1)
+    assert build_world(twin, visual=False).base == BasePose(0.0, 0.0, 0.0, 0.0)
     # the frame's own move of the robot frame (a yaw and a shift) carries the base with it; sfm+robot: origin
     T = np.eye(4)
     T[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]

@@ -19,7 +19,7 @@ import logging
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -69,11 +69,16 @@ def perturb_poses(poses: dict[str, np.ndarray], sigma: float, rng: np.random.Gen
 @dataclass
 class TrialSpec:
     """One validation run: the twin and task, the robot and how it plans (defaults: `RobotOptions`'s),
-    and the perturbation of this trial (sigma 0: the nominal run)."""
+    and the perturbation of this trial (sigma 0: the nominal run).
+
+    twin_dir: the twin folder; task_path: a task YAML (`robot.task`), None: the default task. base: the robot
+    base in the twin frame; None (the default) puts it where `splattwin plan` does without --base-pose
+    (`BasePose.default_for` the twin's frame: at the robot's origin in a twin posed by the robot, else beside
+    the table)."""
 
     twin_dir: str
     task_path: str | None
-    base: BasePose = field(default_factory=BasePose)
+    base: BasePose | None = None
     robot_mjcf: str | None = None
     sigma: float = 0.0               # m, per-axis (x, y) standard deviation of the object position error
     seed: int = RobotOptions.seed
@@ -81,6 +86,10 @@ class TrialSpec:
     tcp_site: str = RobotOptions.tcp_site      # TCP site of a user robot MJCF
     planner: str = RobotOptions.planner
     in_hand: str = RobotOptions.in_hand        # held object's pose for the transfer (execute.py)
+
+    def __post_init__(self) -> None:
+        if self.base is None:
+            self.base = default_base(self.twin_dir)
 
     @classmethod
     def from_options(cls, twin_dir: str | Path, opts: RobotOptions) -> "TrialSpec":
@@ -95,6 +104,19 @@ class TrialSpec:
         from splattwin.robot.assets import RobotModel
 
         return RobotModel.from_mjcf(self.robot_mjcf, tcp_site=self.tcp_site) if self.robot_mjcf else RobotModel.panda()
+
+
+def default_base(twin_dir: str | Path) -> BasePose:
+    """The base pose `splattwin plan` uses without --base-pose (`BasePose.default_for` the twin's frame); beside
+    the table when the folder has no readable twin.json (whatever then reads the twin, as `run_once` first
+    does, names the file and its problem: a spec alone, e.g. for a trial's key, is no reason to fail)."""
+    from splattwin.errors import InputError
+    from splattwin.twin.manifest import Manifest
+
+    try:
+        return BasePose.default_for(Manifest.load(twin_dir).frame)[0]
+    except InputError:
+        return BasePose()
 
 
 def run_once(spec: TrialSpec, frame_dir: str | Path | None = None, keep_trajectories: bool = False,
