@@ -120,21 +120,26 @@ def default_base(twin_dir: str | Path) -> BasePose:
 
 
 def run_once(spec: TrialSpec, frame_dir: str | Path | None = None, keep_trajectories: bool = False,
-             on_valid=None, warn: bool = True):
+             on_valid=None, warn: bool = True, task=None):
     """Build the world (perturbed when sigma > 0), validate the task, execute it. Returns (RunResult, the
     frame recorder's note, frame paths); keep_trajectories: the result keeps its trajectories and rollout.
+    task: the task to run instead of `spec.task_path`'s: a `Task`, or plain data as `task.parse_task` reads it
+    (`[{"pick": "blue_box", "place_in": {"center": [x, y], "size": 0.15}}]`, metres, twin frame).
     on_valid: called once the task is valid, before any frame is written (the stage clears the earlier
     run's outputs there, so a bad task leaves them as they were). warn: the task's warnings are logged
     (False in the trials: the nominal run said them once)."""
     from splattwin.errors import require_type
     from splattwin.robot.execute import Executor
-    from splattwin.robot.task import load_task, validate_task
+    from splattwin.robot.task import Task, load_task, parse_task, validate_task
     from splattwin.robot.world import build_world
     from splattwin.twin.manifest import Manifest
 
     require_type(spec, TrialSpec, "spec", "(e.g. TrialSpec(twin_dir, task_path=None))")
     manifest = Manifest.load(spec.twin_dir)
-    task = load_task(spec.task_path, manifest)
+    if task is None:
+        task = load_task(spec.task_path, manifest)
+    elif not isinstance(task, Task):
+        task = parse_task(task, None, manifest)
     robot = spec.robot_model()
     validate_task(task, manifest, spec.twin_dir, spec.base.matrix(), robot=robot, warn=warn)
     if on_valid is not None:
