@@ -373,3 +373,17 @@ def test_one_objects_gaussians_convert_with_the_whole_scenes_size_and_say_why_wi
     assert said and f"object {name!r}" in said[0] and "scene_size=" in said[0], said
     with pytest.raises(ValueError, match="scene_size"):
         convert(part, labels[sel], [(name, label)], background=False, progress=False, scene_size=float("nan"))
+
+
+@pytest.mark.parametrize("objects", [["box"], "box", [("box",)], [("box", "one")], [("box", 0)], [(1, 2)],
+                                     [("box", 1.5)], [("box", True)]])
+def test_convert_names_a_malformed_object_list(objects):
+    """convert(g, labels, ["blue_box"]) failed with "invalid literal for int() with base 10: 'l'" (the name's
+    letters taken for a name and a label; api13 D2): malformed entries are an InputError saying the form, as
+    build_twin's (`check_objects`, now the geometry layer's)."""
+    from splattwin.errors import InputError
+
+    g = Gaussians(**_blob_gaussians(np.random.default_rng(0).normal(0, 0.02, (60, 3))))
+    with pytest.raises(InputError, match=r"^(objects must be a list of|object.* must be \(name, label, prompt\)|object "
+                                         r"'box': the label must be a whole number|object 0: the name must be)"):
+        convert(g, np.ones(60, int), objects, progress=False, background=False)

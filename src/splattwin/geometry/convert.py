@@ -13,6 +13,7 @@ import time
 import warnings
 from collections import defaultdict
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import trimesh
@@ -701,6 +702,7 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
         from splattwin.errors import InputError
 
         raise InputError(f"labels has {len(labels)} entries for {len(g)} Gaussians")
+    objects = check_objects(objects)
     timings: dict = defaultdict(float)
     t0 = time.perf_counter()
     size = scene_scale(g.means) if scene_size is None else float(scene_size)
@@ -795,6 +797,42 @@ def ablation(g, labels: np.ndarray, objects: list, gt_meshes: dict, opts: Geomet
             idx = clean_indices(g, labels, label, opts, attribute=c in ("attribute", "full"),
                                 cluster=c in ("cluster", "full"), attr_keep=keep)
             out[c][name] = fidelity(g.means[idx], gt, opts.f1_threshold)
+    return out
+
+
+def check_objects(objects, where: str | Path | None = None) -> list[tuple[str, int, str]]:
+    """`convert`'s and `build_twin`'s objects as [(name, label, prompt)]: each a (name, label[, prompt])
+    sequence or a {"name", "label"[, "prompt"]} mapping, the label a whole number in [1, MAX_LABEL] (0 is background;
+    label images are 16-bit, and twin.json refuses more), names and labels unique. InputError naming the
+    entry otherwise (a dict used to give a bare KeyError: 1), before anything is built or written."""
+    from splattwin.errors import InputError, short_repr
+    from splattwin.semantics.masks import MAX_LABEL_ID as MAX_LABEL
+
+    if isinstance(objects, (str, bytes, dict)) or not hasattr(objects, "__iter__"):
+        raise InputError(f"objects must be a list of (name, label, prompt), got {type(objects).__name__}", where)
+    out: list[tuple[str, int, str]] = []
+    for i, o in enumerate(objects):
+        if isinstance(o, dict):
+            if "name" not in o or "label" not in o:
+                raise InputError(f"object {i} {short_repr(o)} needs 'name' and 'label' (objects are (name, label, "
+                                 f"prompt))", where)
+            name, label, prompt = o["name"], o["label"], o.get("prompt", "")
+        elif isinstance(o, (list, tuple)) and len(o) in (2, 3):
+            name, label, prompt = (*o, "")[:3]
+        else:
+            raise InputError(f"object {i} must be (name, label, prompt), got {short_repr(o)}", where)
+        if not isinstance(name, str) or not name:
+            raise InputError(f"object {i}: the name must be non-empty text, got {short_repr(name)}", where)
+        if (isinstance(label, (bool, np.bool_)) or not isinstance(label, (int, np.integer))
+                or not 1 <= label <= MAX_LABEL):
+            raise InputError(f"object {short_repr(name)}: the label must be a whole number >= 1 (0 is background) and "
+                             f"<= {MAX_LABEL} (label images are 16-bit), got {short_repr(label)}", where)
+        out.append((name, int(label), "" if prompt is None else str(prompt)))
+    for k, what in ((0, "name"), (1, "label")):
+        seen = [o[k] for o in out]
+        dup = next((v for v in seen if seen.count(v) > 1), None)
+        if dup is not None:
+            raise InputError(f"objects: the {what} {dup!r} is used twice", where)
     return out
 
 
