@@ -55,6 +55,7 @@ def test_the_readme_walkthrough_runs_on_a_small_twin(small_twin: Path, monkeypat
     assert labels.shape == (len(ns["g"]),) and set(np.unique(labels)) > {0}
     assert ns["geo"].usable and ns["geo"].visual.is_watertight                             # d.
     assert (small_twin.parent / "meshes" / "blue_box.obj").is_file() and ns["geo"].parts
+    assert ns["world"].model.nbody > len(ns["m"].objects)
     assert ns["result"].success and not ns["result"].settle["moved"], (ns["result"].steps, ns["result"].settle)  # e.
     assert ns["r"].q_arm.shape == (len(ns["r"].t), 7)
     print(f"walkthrough: {seconds:.1f} s")
