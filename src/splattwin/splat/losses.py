@@ -82,9 +82,8 @@ def _kernels():
     import numba as nb
     import numpy as np
 
-    from splattwin.splat._cpu.first_run import announce_first_compile
-
     from splattwin.runtime import start_numba_threads
+    from splattwin.splat._cpu.first_run import announce_first_compile
 
     announce_first_compile()   # their first compile after install is said, not silent
     start_numba_threads()      # before the first kernel, keeping the caller's torch thread count (runtime.py)

@@ -508,8 +508,6 @@ def table_plane(frame: TwinFrame):
 NOMINAL_SCENE_SIZE = 1.2
 
 
-
-
 def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path, frame: TwinFrame | None = None,
                cameras_path: str | Path | None = None, options: GeometryOptions | None = None,
                formats=FORMATS, progress: bool = True, masks=None, export_options: ExportOptions | None = None,
