@@ -12,6 +12,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 import splattwin
 
 SRC = str(Path(splattwin.__file__).resolve().parents[1])
@@ -165,3 +167,27 @@ def test_torch_threads_survive_the_first_numba_kernel():
         "print(json.dumps({'inside': inside, 'after': torch.get_num_threads()}))\n")
     assert out == {"inside": 1, "after": 2}
 
+
+
+@pytest.mark.parametrize("first", ["render", "ssim"])
+def test_a_render_and_the_ssim_loss_keep_the_callers_torch_thread_count(first):
+    """A notebook's torch.set_num_threads(1) became 2 after its first CPU render: numba's first parallel kernel
+    set OpenMP's thread count, torch's too (api13 B1). The CPU rasterizer and the SSIM loss (each the first
+    numba kernel of its process here) start numba's pool first, and that start puts the torch count back."""
+    calls = {"render": "render_rgb(g, cam, backend='cpu')",
+             "ssim": "fused_ssim(torch.rand(24, 32, 3), torch.rand(24, 32, 3))"}
+    out = _run(
+        "import json, splattwin.runtime as r; r.configure()\n"
+        "import numpy as np, torch\n"
+        "torch.set_num_threads(1)\n"
+        "from splattwin.capture import Camera, look_at\n"
+        "from splattwin.splat import Gaussians, render_rgb\n"
+        "from splattwin.splat.losses import fused_ssim\n"
+        "n = 32\n"
+        "g = Gaussians(np.random.default_rng(0).normal(0, 0.05, (n, 3)), np.tile([1.0, 0, 0, 0], (n, 1)),\n"
+        "              np.full((n, 3), 0.01), np.full(n, 0.8), np.full((n, 1, 3), 0.5))\n"
+        "cam = Camera.from_fov(1.0, 32, 24, look_at(np.array([0.5, 0.0, 0.3]), np.zeros(3)))\n"
+        "before = torch.get_num_threads()\n"   # (read: torch's pool is set up; unread, the render kept 1 before)
+        f"{calls[first]}\n"
+        "print(json.dumps({'before': before, 'after': torch.get_num_threads()}))\n")
+    assert out == {"before": 1, "after": 1}

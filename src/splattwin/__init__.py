@@ -7,6 +7,8 @@ Units are metres and radians; cameras follow the OpenCV convention (x right, y d
 Importing splattwin (or any subpackage) changes no environment variable and no thread setting; call
 `splattwin.runtime.configure()` once at the start of a program, before torch, numba or mujoco load
 (the `splattwin` command does): OpenMP passive waiting, headless MuJoCo rendering, numba threads.
+A built twin from Python (its objects, splats rendered and scored, fusion with your masks, one object's
+geometry, a pick-and-place in MuJoCo): README.md, "Using splattwin as a library".
 """
 
 __version__ = "0.1.0"

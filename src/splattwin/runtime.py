@@ -123,16 +123,24 @@ def start_numba_threads() -> None:
     count: a torch count set before it is silently undone. torch's element-wise kernels round differently
     at their chunk boundaries with 1 and 2 threads (torch.sigmoid differs in the last bit), so the first
     training in a process ran on 2 torch threads and every later one on 1: the same run gave different
-    Gaussians depending on what ran before it (`bench/train.py --repeat`, a resumed build)."""
+    Gaussians depending on what ran before it (`bench/train.py --repeat`, a resumed build).
+    A torch count set before (`torch.set_num_threads` of the program using splattwin) is put back after it:
+    the CPU rasterizer and SSIM call this before their first kernel, so a render leaves the count as it was."""
     global _NUMBA_STARTED
     if _NUMBA_STARTED:
         return
+    import sys
+
     import numpy as np
 
     from splattwin._numba_start import touch
 
+    torch = sys.modules.get("torch")   # not imported: nothing to keep (and no reason to import it here)
+    before = torch.get_num_threads() if torch is not None else None
     touch(np.zeros(8))  # cached kernel: no compilation after the first run on a machine
     _NUMBA_STARTED = True
+    if torch is not None and torch.get_num_threads() != before:
+        torch.set_num_threads(before)
 
 
 @contextlib.contextmanager

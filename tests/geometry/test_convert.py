@@ -342,3 +342,48 @@ def test_convert_refuses_a_path_for_the_gaussians():
     Gaussians" (the path's length; audit 10A L19)."""
     with pytest.raises(TypeError, match=r"^g must be a Gaussians .*Gaussians\.load_ply.*, got str$"):
         convert("splats.ply", np.zeros(10, int), [])
+
+
+def test_one_objects_gaussians_convert_with_the_whole_scenes_size_and_say_why_without(scene, caplog):
+    """A notebook's `convert(g.subset(labels == k), ...)` measured max_scale (max_scale_rel x scene size) on the one
+    object: ~1 mm, so the attribute filter dropped every splat and the object was unusable, "too few points after
+    cleaning (0 < 20)", with nothing naming the filter (api13 D1). `scene_size` gives the whole scene's size, and
+    without it the filter's drop is logged with the remedy."""
+    from splattwin.geometry import scene_scale
+
+    g, labels, objects, _ = scene
+    name, label = objects[0][0], objects[0][1]
+    sel = labels == label
+    part = g.subset(sel)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        whole = convert(part, labels[sel], [(name, label)], background=False, progress=False,
+                        scene_size=scene_scale(g.means))
+        assert whole.objects[0].usable, whole.objects[0].problem
+        assert whole.options.max_scale == pytest.approx(0.01 * scene_scale(g.means))
+        # splats of 3 mm (a quarter of the whole scene's max_scale): the object alone, its own size (~0.2 m)
+        # taken as the scene's, drops them all, and says so, naming the remedy
+        part3 = Gaussians(part.means, part.quats, np.maximum(part.scales, 3e-3), part.opacities, part.sh)
+        with caplog.at_level("WARNING", logger="splattwin.geometry.convert"):
+            alone = convert(part3, labels[sel], [(name, label)], background=False, progress=False)
+        assert not alone.objects[0].usable
+        assert convert(part3, labels[sel], [(name, label)], background=False, progress=False,
+                       scene_size=scene_scale(g.means)).objects[0].usable
+    said = [r.getMessage() for r in caplog.records if "max_scale" in r.getMessage()]
+    assert said and f"object {name!r}" in said[0] and "scene_size=" in said[0], said
+    with pytest.raises(ValueError, match="scene_size"):
+        convert(part, labels[sel], [(name, label)], background=False, progress=False, scene_size=float("nan"))
+
+
+@pytest.mark.parametrize("objects", [["box"], "box", [("box",)], [("box", "one")], [("box", 0)], [(1, 2)],
+                                     [("box", 1.5)], [("box", True)]])
+def test_convert_names_a_malformed_object_list(objects):
+    """convert(g, labels, ["blue_box"]) failed with "invalid literal for int() with base 10: 'l'" (the name's
+    letters taken for a name and a label; api13 D2): malformed entries are an InputError saying the form, as
+    build_twin's (`check_objects`, now the geometry layer's)."""
+    from splattwin.errors import InputError
+
+    g = Gaussians(**_blob_gaussians(np.random.default_rng(0).normal(0, 0.02, (60, 3))))
+    with pytest.raises(InputError, match=r"^(objects must be a list of|object.* must be \(name, label, prompt\)|object "
+                                         r"'box': the label must be a whole number|object 0: the name must be)"):
+        convert(g, np.ones(60, int), objects, progress=False, background=False)

@@ -159,6 +159,14 @@ def test_a_twin_posed_by_the_robot_puts_the_arm_at_its_base(gt_twin_small: Path,
     (twin / "twin.json").write_text(json.dumps(d))
     assert TrialSpec.from_options(twin, RobotOptions()).base == BasePose(0.0, 0.0, 0.0, 0.0)
     assert TrialSpec.from_options(twin, RobotOptions(base_pose="0.1,0,0,0")).base == BasePose(0.1, 0.0, 0.0, 0.0)
+    # in Python as with `splattwin plan`: TrialSpec(twin, task) and build_world(twin) put the arm there too (they
+    # put it beside the table, 0.5 m from where plan put it, api13 E1); an explicit base is kept
+    from splattwin.robot.world import build_world
+
+    assert TrialSpec(str(twin), None).base == BasePose(0.0, 0.0, 0.0, 0.0)
+    assert TrialSpec(str(gt_twin_small), None).base == BasePose()
+    assert TrialSpec(str(twin), None, base=BasePose(0.1)).base == BasePose(0.1)
+    assert build_world(twin, visual=False).base == BasePose(0.0, 0.0, 0.0, 0.0)
     # the frame's own move of the robot frame (a yaw and a shift) carries the base with it; sfm+robot: origin
     T = np.eye(4)
     T[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
@@ -199,3 +207,22 @@ def test_a_task_warning_is_said_by_the_nominal_run_not_by_every_trial(gt_twin_sm
         run_once(TrialSpec(str(gt_twin_small), str(task)))
     said = [r.getMessage() for r in caplog.records if "may collide" in r.getMessage()]
     assert len(said) == 1 and "'toy_hammer'" in said[0]
+
+
+def test_run_once_takes_a_task_as_plain_data(gt_twin_small: Path):
+    """A notebook's goal needed a task YAML written to a file: run_once read spec.task_path only, and parse_task
+    wanted a path to name in errors (api13 E2). run_once(spec, task=[...]) takes the steps as data (or a Task),
+    checked as a file's are, the errors naming the step."""
+    from splattwin.errors import InputError
+    from splattwin.robot.task import parse_task
+    from splattwin.robot.trials import run_once
+
+    spec = TrialSpec(str(gt_twin_small), None)
+    with pytest.raises(InputError, match=r"step 1: goal region centre \[3.0, 3.0, 0.0\] is off the table"):
+        run_once(spec, task=[{"pick": "blue_box", "place_in": {"center": [3.0, 3.0], "size": 0.1}}])
+    goal = [{"pick": "blue_box", "place_in": {"center": [0.15, -0.05], "size": 0.15}}]
+    for task in (goal, parse_task(goal)):
+        result, _, _ = run_once(spec, task=task)
+        assert result.success, result.steps
+        assert result.task_steps == [{"index": 1, "pick": "blue_box", "goal": "region", "place": "in",
+                                      "region": {"center": [0.15, -0.05, 0.0], "size": [0.15, 0.15]}}]

@@ -77,6 +77,18 @@ def test_fuse_checks_its_arguments(synth):
         naive_fusion(s.means.T, s.views, s.masks)
 
 
+def test_views_named_unlike_the_masks_are_named_in_the_error(synth):
+    """Views named after the image files ("train_000.png") while the masks were added under the stems said
+    "empty mask set: no object mask with any pixel", though every mask had pixels (api13 C2): the error now
+    gives both sets of names."""
+    s = synth
+    renamed = [View(v.name + ".png", v.camera) for v in s.views]
+    for f in (fuse, naive_fusion):
+        with pytest.raises(InputError, match=r"no view has masks: the views are named \[.*\.png.*the mask set's "
+                                             r"views \[.*Frame\.name"):
+            f(s.means, renamed, s.masks)
+
+
 def test_fusion_result_round_trips(synth, tmp_path):
     s = synth
     res = fuse(s.means, s.views, s.masks)

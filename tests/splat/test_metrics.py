@@ -110,3 +110,28 @@ def test_masked_psnr_known_answers():
     assert masked_psnr(img, ref, ~top) == float("inf")
     assert np.isnan(masked_psnr(img, ref, np.zeros((4, 4), bool)))
     assert masked_psnr(img, ref, np.ones((4, 4), bool)) == pytest.approx(metrics.psnr(img, ref))
+
+
+def test_an_8bit_photo_against_a_float_render_is_refused_not_scored():
+    """psnr(render in [0,1], np.asarray(Image.open(photo))) read -41 dB and ssim 0.00007, silently, with a torch
+    warning about the PIL array being read-only (api13 B2). Mixed integer / float images are a ValueError saying
+    to divide by 255; two 8-bit images with max_val 255 still give their PSNR; SSIM takes floats only."""
+    import warnings
+
+    rng = np.random.default_rng(0)
+    photo = rng.integers(0, 256, size=(16, 20, 3), dtype=np.uint8)
+    photo.flags.writeable = False   # as np.asarray(PIL image)
+    render = photo / 255.0
+    for f in (metrics.psnr, metrics.ssim, lambda a, b: metrics.masked_psnr(a, b, np.ones((16, 20), bool)),
+              lambda a, b: metrics.masked_ssim(a, b, np.ones((16, 20), bool))):
+        with pytest.raises(ValueError, match=r"divide by 255"):
+            f(render, photo)
+        with pytest.raises(ValueError, match=r"^(masked_)?(psnr|ssim) .*img holds integers"):
+            f(torch.as_tensor(photo.copy()), render)
+    with pytest.raises(ValueError, match="ssim"):
+        metrics.ssim(photo, photo)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")   # no "non-writable" UserWarning from torch
+        assert metrics.psnr(render, photo / 255.0) == float("inf")
+        assert metrics.psnr(photo, np.clip(photo.astype(np.int64) + 1, 0, 255), max_val=255) > 40
+        assert metrics.ssim(render, photo / 255.0) == pytest.approx(1.0)

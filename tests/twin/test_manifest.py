@@ -192,3 +192,20 @@ def test_a_build_folder_without_a_twin_says_the_build_stopped_before_the_twin(tm
     with pytest.raises(InputError, match="no twin manifest") as e:
         Manifest.load(tmp_path / "other")
     assert "stopped before" not in str(e.value)
+
+
+def test_render_filter_says_how_the_twins_splats_were_trained(tmp_path):
+    """Rendering a twin's splats from Python drew them with the classic 0.3 px^2 filter whatever they were
+    trained with (`make demo`: antialiased), and the reader of the trained filter was private to playback (api13
+    B3). Manifest.render_filter() gives (rasterize_mode, eps2d) for render_rgb / rasterization."""
+    from splattwin.playback.scene import manifest_filter
+
+    m = Manifest()
+    assert m.render_filter() == ("classic", 0.3)
+    m.config = {"build": {"splat": {"rasterize_mode": "antialiased", "eps2d": 0.0}}}
+    assert m.render_filter() == manifest_filter(m) == ("antialiased", 0.1)
+    m.config["build"]["splat"]["eps2d"] = 0.2
+    assert m.render_filter() == ("antialiased", 0.2)
+    m.config["build"]["splat"]["rasterize_mode"] = "fancy"
+    with pytest.raises(InputError, match=r"twin\.json: config\.build\.splat: unknown rasterize_mode 'fancy'"):
+        m.render_filter()

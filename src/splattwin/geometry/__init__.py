@@ -14,7 +14,7 @@ from splattwin._lazy import lazy_exports
 
 # Lazy: nothing is imported until a name is used (`splattwin --help` imports the options modules only).
 # (`convert` is also a module's name, so the function stays `splattwin.geometry.convert.convert`)
-_EXPORTS = {"GeometryOptions": "options", "ablation": "convert", "Conversion": "convert",
+_EXPORTS = {"GeometryOptions": "options", "scene_scale": "options", "ablation": "convert", "Conversion": "convert",
             "ObjectGeometry": "convert", "BackgroundGeometry": "convert", "fidelity": "metrics", "mesh_fidelity": "metrics",
             "Fidelity": "metrics"}
 

@@ -13,6 +13,7 @@ import time
 import warnings
 from collections import defaultdict
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import trimesh
@@ -670,8 +671,12 @@ def background_geometry(g, indices: np.ndarray, opts: GeometryOptions, table_thi
 def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None = None, background: bool = True,
             table_thickness: float = 0.03, progress: bool = True, length_scale: float = 1.0,
             cameras: list | None = None, table_plane: Plane | None = None, masks: dict | None = None,
-            measured=None) -> Conversion:
+            measured=None, scene_size: float | None = None) -> Conversion:
     """Full conversion. g: Gaussians [N]; labels [N] int (0 = background); objects: [(name, label, prompt)].
+    scene_size: size (m, the diagonal of the robust box, `options.scene_scale`) of the scene the Gaussians come
+    from, which sets the automatic `max_scale` (`max_scale_rel` x it); None: measured on `g`. Give the whole
+    scene's (`scene_scale(all_gaussians.means)`) when `g` is a part of it (one object's Gaussians): measured on
+    one object, max_scale shrinks to about a millimetre and the attribute filter drops the object (logged).
     length_scale: frame units per metre of the options' lengths and of table_thickness (m): 1 in a
     metric twin, the frame's nominal metre in an unscaled one (`TwinFrame.length_scale`).
     cameras: [Camera] of the capture in the twin frame, for the free-space carving of the object
@@ -697,11 +702,16 @@ def convert(g, labels: np.ndarray, objects: list, opts: GeometryOptions | None =
         from splattwin.errors import InputError
 
         raise InputError(f"labels has {len(labels)} entries for {len(g)} Gaussians")
+    objects = check_objects(objects)
     timings: dict = defaultdict(float)
     t0 = time.perf_counter()
-    opts = opts.resolved(scene_scale(g.means), length_scale)
+    size = scene_scale(g.means) if scene_size is None else float(scene_size)
+    if not (np.isfinite(size) and size >= 0):
+        raise ValueError(f"scene_size must be a finite size >= 0 (m), got {scene_size!r}")
+    opts = opts.resolved(size, length_scale)
     table_thickness = table_thickness * length_scale
     keep, stats = attribute_mask(g.opacities, g.scales, opts)
+    _log_oversized(g, labels, objects, keep, opts, size, scene_size is None)
     timings["filter"] = time.perf_counter() - t0
     # where the scene is: an unusable object's obstacle box holds no splat beyond it, and the table is not
     # grown under a box beyond twice as far (a box holds its splats' extents and a pad beyond its points)
@@ -788,6 +798,63 @@ def ablation(g, labels: np.ndarray, objects: list, gt_meshes: dict, opts: Geomet
                                 cluster=c in ("cluster", "full"), attr_keep=keep)
             out[c][name] = fidelity(g.means[idx], gt, opts.f1_threshold)
     return out
+
+
+def check_objects(objects, where: str | Path | None = None) -> list[tuple[str, int, str]]:
+    """`convert`'s and `build_twin`'s objects as [(name, label, prompt)]: each a (name, label[, prompt])
+    sequence or a {"name", "label"[, "prompt"]} mapping, the label a whole number in [1, MAX_LABEL] (0 is background;
+    label images are 16-bit, and twin.json refuses more), names and labels unique. InputError naming the
+    entry otherwise (a dict used to give a bare KeyError: 1), before anything is built or written."""
+    from splattwin.errors import InputError, short_repr
+    from splattwin.semantics.masks import MAX_LABEL_ID as MAX_LABEL
+
+    if isinstance(objects, (str, bytes, dict)) or not hasattr(objects, "__iter__"):
+        raise InputError(f"objects must be a list of (name, label, prompt), got {type(objects).__name__}", where)
+    out: list[tuple[str, int, str]] = []
+    for i, o in enumerate(objects):
+        if isinstance(o, dict):
+            if "name" not in o or "label" not in o:
+                raise InputError(f"object {i} {short_repr(o)} needs 'name' and 'label' (objects are (name, label, "
+                                 f"prompt))", where)
+            name, label, prompt = o["name"], o["label"], o.get("prompt", "")
+        elif isinstance(o, (list, tuple)) and len(o) in (2, 3):
+            name, label, prompt = (*o, "")[:3]
+        else:
+            raise InputError(f"object {i} must be (name, label, prompt), got {short_repr(o)}", where)
+        if not isinstance(name, str) or not name:
+            raise InputError(f"object {i}: the name must be non-empty text, got {short_repr(name)}", where)
+        if (isinstance(label, (bool, np.bool_)) or not isinstance(label, (int, np.integer))
+                or not 1 <= label <= MAX_LABEL):
+            raise InputError(f"object {short_repr(name)}: the label must be a whole number >= 1 (0 is background) and "
+                             f"<= {MAX_LABEL} (label images are 16-bit), got {short_repr(label)}", where)
+        out.append((name, int(label), "" if prompt is None else str(prompt)))
+    for k, what in ((0, "name"), (1, "label")):
+        seen = [o[k] for o in out]
+        dup = next((v for v in seen if seen.count(v) > 1), None)
+        if dup is not None:
+            raise InputError(f"objects: the {what} {dup!r} is used twice", where)
+    return out
+
+
+def _log_oversized(g, labels: np.ndarray, objects: list, keep: np.ndarray, opts: GeometryOptions, size: float,
+                   measured: bool) -> None:
+    """Warn for each object whose splats the attribute filter drops for the most part as larger than
+    `max_scale`: with the automatic max_scale measured on the Gaussians given, that is one object's Gaussians
+    passed alone (its own size sets the bound), and the object then ends "too few points after cleaning"."""
+    if opts.max_scale is None:
+        return
+    largest = np.asarray(g.scales).max(axis=1)
+    for obj in objects:
+        name, label = obj[0], int(obj[1])
+        mine = labels == label
+        n = int(mine.sum())
+        big = int((mine & ~keep & (largest > opts.max_scale)).sum())
+        if n and big > n // 2:
+            how = (f"max_scale_rel {opts.max_scale_rel:g} x the size {size:.3g} of the Gaussians given: pass "
+                   f"convert(..., scene_size=scene_scale(whole_scene.means)) when they are a part of a scene, or "
+                   f"GeometryOptions(max_scale=...)") if measured else "from scene_size"
+            log.warning("object %r: the attribute filter drops %d of its %d splats as larger than max_scale %.3g "
+                        "(%s)", name, big, n, opts.max_scale, how)
 
 
 def conversion_fidelity(conv: Conversion, gt_meshes: dict, threshold: float = 0.005) -> dict[str, Fidelity]:

@@ -279,15 +279,8 @@ class DynamicScene:
 def manifest_filter(manifest: Manifest, where: Path | None = None) -> tuple[str, float]:
     """(rasterize_mode, eps2d px^2) the twin's splats were trained with (twin.json config.build.splat, see
     `splat.config.trained_filter`; ("classic", 0.3) when not recorded). InputError naming `where` for an
-    unknown mode or a bad eps2d."""
-    from splattwin.splat.config import trained_filter
-
-    build = manifest.config.get("build") if isinstance(manifest.config, dict) else None
-    splat = build.get("splat") if isinstance(build, dict) else None
-    try:
-        return trained_filter(splat)
-    except ValueError as e:
-        raise InputError(f"config.build.splat: {e}", where) from None
+    unknown mode or a bad eps2d (`Manifest.render_filter`)."""
+    return manifest.render_filter(where)
 
 
 def _pad_sh(sh: np.ndarray, degree: int) -> np.ndarray:

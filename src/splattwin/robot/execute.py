@@ -72,6 +72,18 @@ __all__ = ["Executor", "StepResult", "RunResult", "StepFailed", "IN_HAND", "unse
 
 @dataclass
 class StepResult:
+    """One step's outcome in physics, judged as the paper does (`judge.criteria`: the thresholds and their
+    definition, also results.json `criteria`). index: the step (1-based); pick / goal: object and goal names.
+    success: grasped and placed and at_rest and no collision. grasped: the object rose at least
+    `judge.LIFT_FRACTION` of the commanded lift with both fingers on it; lifted_m: how far it rose (m). placed:
+    on its support's top (place_on) or with its footprint inside the region on the table (place_in), bottom
+    within `judge.HEIGHT_TOL` m; at_rest: slower than `judge.REST_SPEED` m/s and tilted less than
+    `judge.TILT_MAX` after the settle time. robot_collisions / object_collisions: contacts of the robot with
+    anything but the object / of the carried object with anything but the hand, during the step;
+    collision_pairs: their body names. plan_ms: motion-planning time per planned motion (ms). grasp: the grasp
+    chosen and why (`GraspReport`). failure: why the step failed (None on success). final_xyz: the object's
+    centre at the end (m, twin frame); final_tilt_deg: its tilt from upright then (deg)."""
+
     index: int
     pick: str
     goal: str

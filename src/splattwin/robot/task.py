@@ -137,11 +137,11 @@ def _region(v, where: Path, manifest: Manifest | None, k: int = 0) -> Region:
     return Region(center=c, size=np.broadcast_to(s, (2,)).astype(float).copy(), name=name, z_given=z_given)
 
 
-def parse_task(data, where: Path, manifest: Manifest | None = None) -> Task:
+def parse_task(data, where: Path | None = None, manifest: Manifest | None = None) -> Task:
     """A `Task` from plain data: a list of steps `[{pick: a, place_on: b}, {pick: c, place_in: region}]`, or
     `{name, steps: [...]}` (YAML as `load_task` reads it); a region is {center, size} in the twin frame (m) or
     the name of one in the manifest's config (e.g. "target_frame"). `where` names the source in errors
-    (InputError)."""
+    (InputError); None: data made in Python, the errors name the step alone."""
     name = "task"
     if isinstance(data, dict):
         unknown = sorted(map(str, set(data) - TASK_KEYS))

@@ -19,7 +19,7 @@ import logging
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -69,11 +69,16 @@ def perturb_poses(poses: dict[str, np.ndarray], sigma: float, rng: np.random.Gen
 @dataclass
 class TrialSpec:
     """One validation run: the twin and task, the robot and how it plans (defaults: `RobotOptions`'s),
-    and the perturbation of this trial (sigma 0: the nominal run)."""
+    and the perturbation of this trial (sigma 0: the nominal run).
+
+    twin_dir: the twin folder; task_path: a task YAML (`robot.task`), None: the default task. base: the robot
+    base in the twin frame; None (the default) puts it where `splattwin plan` does without --base-pose
+    (`BasePose.default_for` the twin's frame: at the robot's origin in a twin posed by the robot, else beside
+    the table)."""
 
     twin_dir: str
     task_path: str | None
-    base: BasePose = field(default_factory=BasePose)
+    base: BasePose | None = None
     robot_mjcf: str | None = None
     sigma: float = 0.0               # m, per-axis (x, y) standard deviation of the object position error
     seed: int = RobotOptions.seed
@@ -81,6 +86,10 @@ class TrialSpec:
     tcp_site: str = RobotOptions.tcp_site      # TCP site of a user robot MJCF
     planner: str = RobotOptions.planner
     in_hand: str = RobotOptions.in_hand        # held object's pose for the transfer (execute.py)
+
+    def __post_init__(self) -> None:
+        if self.base is None:
+            self.base = default_base(self.twin_dir)
 
     @classmethod
     def from_options(cls, twin_dir: str | Path, opts: RobotOptions) -> "TrialSpec":
@@ -97,22 +106,40 @@ class TrialSpec:
         return RobotModel.from_mjcf(self.robot_mjcf, tcp_site=self.tcp_site) if self.robot_mjcf else RobotModel.panda()
 
 
+def default_base(twin_dir: str | Path) -> BasePose:
+    """The base pose `splattwin plan` uses without --base-pose (`BasePose.default_for` the twin's frame); beside
+    the table when the folder has no readable twin.json (whatever then reads the twin, as `run_once` first
+    does, names the file and its problem: a spec alone, e.g. for a trial's key, is no reason to fail)."""
+    from splattwin.errors import InputError
+    from splattwin.twin.manifest import Manifest
+
+    try:
+        return BasePose.default_for(Manifest.load(twin_dir).frame)[0]
+    except InputError:
+        return BasePose()
+
+
 def run_once(spec: TrialSpec, frame_dir: str | Path | None = None, keep_trajectories: bool = False,
-             on_valid=None, warn: bool = True):
+             on_valid=None, warn: bool = True, task=None):
     """Build the world (perturbed when sigma > 0), validate the task, execute it. Returns (RunResult, the
     frame recorder's note, frame paths); keep_trajectories: the result keeps its trajectories and rollout.
+    task: the task to run instead of `spec.task_path`'s: a `Task`, or plain data as `task.parse_task` reads it
+    (`[{"pick": "blue_box", "place_in": {"center": [x, y], "size": 0.15}}]`, metres, twin frame).
     on_valid: called once the task is valid, before any frame is written (the stage clears the earlier
     run's outputs there, so a bad task leaves them as they were). warn: the task's warnings are logged
     (False in the trials: the nominal run said them once)."""
     from splattwin.errors import require_type
     from splattwin.robot.execute import Executor
-    from splattwin.robot.task import load_task, validate_task
+    from splattwin.robot.task import Task, load_task, parse_task, validate_task
     from splattwin.robot.world import build_world
     from splattwin.twin.manifest import Manifest
 
     require_type(spec, TrialSpec, "spec", "(e.g. TrialSpec(twin_dir, task_path=None))")
     manifest = Manifest.load(spec.twin_dir)
-    task = load_task(spec.task_path, manifest)
+    if task is None:
+        task = load_task(spec.task_path, manifest)
+    elif not isinstance(task, Task):
+        task = parse_task(task, None, manifest)
     robot = spec.robot_model()
     validate_task(task, manifest, spec.twin_dir, spec.base.matrix(), robot=robot, warn=warn)
     if on_valid is not None:

@@ -475,7 +475,8 @@ def build_world(twin_dir: str | Path, manifest: Manifest | None = None, robot: R
                 base: BasePose | None = None, poses: dict[str, np.ndarray] | None = None,
                 visual: bool = True) -> World:
     """Compile twin + robot. poses: optional T_world_obj overrides (perturbed trials). visual=False:
-    without the robot's visual meshes (same physics, fast compile; nothing to render)."""
+    without the robot's visual meshes (same physics, fast compile; nothing to render). base: the robot base in
+    the twin frame; None: where `splattwin plan` puts it without --base-pose (`BasePose.default_for`)."""
     import mujoco
 
     from splattwin.transforms import quat_wxyz_from_matrix
@@ -484,7 +485,7 @@ def build_world(twin_dir: str | Path, manifest: Manifest | None = None, robot: R
     manifest = manifest or Manifest.load(twin_dir)
     check_scaled(manifest, twin_dir / "twin.json")
     robot = robot or RobotModel.panda()
-    base = base or BasePose()
+    base = base or BasePose.default_for(manifest.frame)[0]
     spec = robot.spec(visual=visual)
     root = spec.body(robot.root_body)
     T = base.matrix()

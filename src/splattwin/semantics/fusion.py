@@ -50,7 +50,7 @@ from scipy.spatial import cKDTree
 from splattwin import io
 from splattwin.capture.camera import Camera
 from splattwin.equality import dataclass_eq
-from splattwin.errors import InputError
+from splattwin.errors import InputError, short_repr
 from splattwin.semantics.masks import MaskSet, MaskWarning
 from splattwin.semantics.label_render import DepthRenderer, PointDepth, project_to_pixels
 from splattwin.semantics.options import FusionOptions
@@ -408,6 +408,11 @@ def check_views(views: Sequence[View], masks: MaskSet, where: str | Path | None 
     sizes = {v.name: (v.camera.height, v.camera.width) for v in views}
     if not views:
         raise InputError("no views to fuse", where)
+    if masks.masks and not any(k in sizes for k in masks.masks):   # else "empty mask set", though masks were given
+        mine = sorted(masks.masks)
+        raise InputError(f"no view has masks: the views are named {short_repr(sorted(sizes), 120)}, the mask set's "
+                         f"views {short_repr(mine, 120)} (View(name, camera): the name is the mask view's, e.g. "
+                         f"the image stem `Frame.name`)", where)
     sub = MaskSet(objects=dict(masks.objects), prompts=dict(masks.prompts),
                   masks={k: v for k, v in masks.masks.items() if k in sizes},
                   scores={k: v for k, v in masks.scores.items() if k in sizes},

@@ -82,9 +82,11 @@ def _kernels():
     import numba as nb
     import numpy as np
 
+    from splattwin.runtime import start_numba_threads
     from splattwin.splat._cpu.first_run import announce_first_compile
 
     announce_first_compile()   # their first compile after install is said, not silent
+    start_numba_threads()      # before the first kernel, keeping the caller's torch thread count (runtime.py)
     # Work in bands of output rows (in parallel over channel x band): each band keeps its last 11
     # horizontally blurred rows in a ring buffer (~150 KB at 640 px: L2-resident) instead of whole-image
     # temporaries (18 MB at 640x480, written and re-read 11 times: ~3x slower). Innermost loops run along

@@ -156,7 +156,10 @@ def antialias_compensation(conics: torch.Tensor, eps2d: float) -> torch.Tensor:
 def _backend_module(name: str) -> Any:
     if name == "reference":
         return _ref
+    from splattwin.runtime import start_numba_threads
     from splattwin.splat import _cpu
+
+    start_numba_threads()   # before the first kernel, keeping the caller's torch thread count (runtime.py)
     return _cpu
 
 

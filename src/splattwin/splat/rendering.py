@@ -58,7 +58,8 @@ def render(gaussians: "Gaussians", camera: "Camera", *, mode: RenderMode = "RGB"
         sh_degree: cap on the SH degree used (None = the model's degree).
         T_cam_world: [4,4] view matrix overriding `camera.T_cam_world`.
         rasterize_mode, eps2d: the rasterizer's mode and low-pass (px^2; None: the mode's default), as the
-            splats were trained (`splat.config.trained_filter`).
+            splats were trained (`splat.config.trained_filter`; a twin's: `Manifest.render_filter()`, a
+            `splattwin train` folder's PLY: `splat.config.filter_beside(ply)`).
     Returns:
         image [H,W,C] float32 (C = D for "RGB", 1 for "D"/"ED", D+1 for "RGB+D"/"RGB+ED"), alpha [H,W]
         float32.

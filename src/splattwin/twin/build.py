@@ -26,7 +26,7 @@ import numpy as np
 import trimesh
 
 from splattwin import io
-from splattwin.geometry.convert import Conversion, convert
+from splattwin.geometry.convert import Conversion, check_objects, convert
 from splattwin.geometry.options import GeometryOptions
 from splattwin.names import check_unique, export_id, object_name
 from splattwin.paths import LinkOutside, child, relative_to
@@ -506,42 +506,6 @@ def table_plane(frame: TwinFrame):
 # robust diagonal (m) of a tabletop scene's splats (the embedded scene's is about this): the last-resort
 # guess of an unscaled twin's nominal metre when there are no cameras to measure the viewing distance
 NOMINAL_SCENE_SIZE = 1.2
-
-
-def check_objects(objects, where: str | Path | None = None) -> list[tuple[str, int, str]]:
-    """`build_twin`'s objects as [(name, label, prompt)]: each a (name, label[, prompt]) sequence or a
-    {"name", "label"[, "prompt"]} mapping, the label a whole number in [1, MAX_LABEL] (0 is background;
-    label images are 16-bit, and twin.json refuses more), names and labels unique. InputError naming the
-    entry otherwise (a dict used to give a bare KeyError: 1), before anything is built or written."""
-    from splattwin.errors import InputError, short_repr
-    from splattwin.twin.manifest import MAX_LABEL
-
-    if isinstance(objects, (str, bytes, dict)) or not hasattr(objects, "__iter__"):
-        raise InputError(f"objects must be a list of (name, label, prompt), got {type(objects).__name__}", where)
-    out: list[tuple[str, int, str]] = []
-    for i, o in enumerate(objects):
-        if isinstance(o, dict):
-            if "name" not in o or "label" not in o:
-                raise InputError(f"object {i} {short_repr(o)} needs 'name' and 'label' (objects are (name, label, "
-                                 f"prompt))", where)
-            name, label, prompt = o["name"], o["label"], o.get("prompt", "")
-        elif isinstance(o, (list, tuple)) and len(o) in (2, 3):
-            name, label, prompt = (*o, "")[:3]
-        else:
-            raise InputError(f"object {i} must be (name, label, prompt), got {short_repr(o)}", where)
-        if not isinstance(name, str) or not name:
-            raise InputError(f"object {i}: the name must be non-empty text, got {short_repr(name)}", where)
-        if (isinstance(label, (bool, np.bool_)) or not isinstance(label, (int, np.integer))
-                or not 1 <= label <= MAX_LABEL):
-            raise InputError(f"object {short_repr(name)}: the label must be a whole number >= 1 (0 is background) and "
-                             f"<= {MAX_LABEL} (label images are 16-bit), got {short_repr(label)}", where)
-        out.append((name, int(label), "" if prompt is None else str(prompt)))
-    for k, what in ((0, "name"), (1, "label")):
-        seen = [o[k] for o in out]
-        dup = next((v for v in seen if seen.count(v) > 1), None)
-        if dup is not None:
-            raise InputError(f"objects: the {what} {dup!r} is used twice", where)
-    return out
 
 
 def build_twin(gaussians, labels: np.ndarray, objects: list, out_dir: str | Path, frame: TwinFrame | None = None,

@@ -320,6 +320,20 @@ class Manifest:
         raise InputError(f"no object named {name!r} in the twin (have: {', '.join(o.name for o in self.objects)})")
 
     # -- load / save ------------------------------------------------------------------------
+    def render_filter(self, where: str | Path | None = MANIFEST_NAME) -> tuple[str, float]:
+        """(rasterize_mode, eps2d px^2) the twin's splats were trained with (config.build.splat, see
+        `splattwin.splat.config.trained_filter`; ("classic", 0.3) when not recorded): pass both to
+        `splattwin.splat.render_rgb(..., rasterize_mode=, eps2d=)` (or `rasterization`) to draw them as the
+        evaluation did (`make demo` trains "antialiased"). InputError naming `where` for a bad record."""
+        from splattwin.splat.config import trained_filter
+
+        build = self.config.get("build") if isinstance(self.config, dict) else None
+        splat = build.get("splat") if isinstance(build, dict) else None
+        try:
+            return trained_filter(splat)
+        except ValueError as e:
+            raise InputError(f"config.build.splat: {e}", where) from None
+
     def to_dict(self) -> dict:
         return asdict(self)
 
