@@ -43,3 +43,62 @@ def test_a_worker_killed_by_sigkill_is_named_so(tmp_path, monkeypatch):
         colmap_process.run_step({"step": "extract"}, tmp_path, progress=StageProgress(enabled=False),
                                  label="extract")
     assert e.value.message == "the pycolmap worker was killed by SIGKILL (out of memory? the kernel's log, dmesg, says)"
+
+
+
+
+# a worker that opens the step's database as COLMAP's steps do (pycolmap.Database.open; several times per step),
+# many times over, and reports the opens that failed and when (CLOCK_MONOTONIC, the same in every process) it
+# opened the database first and closed it last
+_OPENING_WORKER = """
+import json, sys, time
+import pycolmap
+pycolmap.logging.minloglevel = 3
+failed, t0 = [], time.monotonic()
+for k in range(int(sys.argv[2])):
+    try:
+        pycolmap.Database.open(sys.argv[1]).close()
+    except RuntimeError as e:
+        failed.append(str(e))
+print(json.dumps({"event": "result", "failed": failed, "first": t0, "last": time.monotonic()}), flush=True)
+"""
+
+
+def test_the_progress_poll_never_makes_the_workers_database_open_fail(tmp_path, monkeypatch):
+    """The parent's progress poll opened and closed a connection to the step's database every second, while
+    COLMAP opens it (several times per step) with no busy timeout: an open that met the poll's connection
+    being opened or closed failed at once with "SQLite error: database is locked", reported as "No
+    registered database factory succeeded" (a known-poses triangulation's extraction failed so in a test
+    run). The parent now connects once, before the worker starts, and closes after it has ended. Here the
+    poll runs continuously (each worker line waited for 1 ms) while a worker opens a new database 1000
+    times: no connection of the parent may open between the worker's first open and its last close (the
+    old poll opened hundreds), and no open may fail (the old poll failed 0 to 73 of them, by timing)."""
+    pytest.importorskip("pycolmap")
+    import sqlite3
+    import time
+
+    monkeypatch.setattr(colmap_process, "PROGRESS_POLL_S", 0.0)
+    monkeypatch.setattr(colmap_process, "LINE_WAIT_S", 0.001)
+    real_popen, real_connect = colmap_process.subprocess.Popen, sqlite3.connect
+    db = tmp_path / "database.db"
+    connects, polls = [], []
+
+    def popen(argv, **kw):
+        return real_popen([sys.executable, "-c", _OPENING_WORKER, str(db), "1000"], **kw)
+
+    def connect(target, *a, **kw):
+        if str(db) in str(target):
+            connects.append(time.monotonic())
+        return real_connect(target, *a, **kw)
+
+    monkeypatch.setattr(colmap_process.subprocess, "Popen", popen)
+    monkeypatch.setattr(sqlite3, "connect", connect)
+    count = colmap_process._DatabaseWatch.count
+    monkeypatch.setattr(colmap_process._DatabaseWatch, "count",
+                        lambda self, table: polls.append(table) or count(self, table))
+    res, _ = colmap_process.run_step({"step": "extract", "db": str(db)}, tmp_path, StageProgress(enabled=False),
+                                     "extract", poll_table="keypoints")
+    during = [t for t in connects if res["first"] <= t <= res["last"]]
+    assert during == [], f"the parent connected {len(during)} times while the worker opened the database"
+    assert res["failed"] == [], f"{len(res['failed'])} of 1000 opens failed: {res['failed'][0]}"
+    assert len(polls) > 100   # the poll did run alongside the opens

@@ -123,7 +123,7 @@ def test_sigterm_to_the_pycolmap_worker_ends_it_quietly(tmp_path: Path):
     pycolmap, printed on its stderr (audit 9 F8)."""
     import json
 
-    from splattwin.poses.colmap_process import _package_root, db_counts
+    from splattwin.poses.colmap_process import _DatabaseWatch, _package_root
 
     imgs = tmp_path / "imgs"
     for i in range(2):
@@ -137,14 +137,20 @@ def test_sigterm_to_the_pycolmap_worker_ends_it_quietly(tmp_path: Path):
     (tmp_path / "job.json").write_text(json.dumps(job))
     env = dict(os.environ)
     env["PYTHONPATH"] = _package_root() + os.pathsep + env.get("PYTHONPATH", "")
+    # watched as run_step watches it: one connection from before the worker starts (a connection opened and
+    # closed at each poll can make pycolmap's own opens of the database fail, `colmap_process`)
+    watch = _DatabaseWatch(db)
     proc = subprocess.Popen([sys.executable, "-m", "splattwin.poses.colmap_worker", str(tmp_path / "job.json")],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    deadline = time.monotonic() + 60
-    while db_counts(db).get("images", 0) < len(names) and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)   # pycolmap imported and the images imported: extraction is starting
-    time.sleep(0.5)
-    assert proc.poll() is None and db_counts(db).get("keypoints", 0) < len(names), \
-        "the worker finished or failed before it could be signalled: " + proc.communicate()[1][-2000:]
+    try:
+        deadline = time.monotonic() + 60
+        while (watch.count("images") or 0) < len(names) and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)   # pycolmap imported and the images imported: extraction is starting
+        time.sleep(0.5)
+        assert proc.poll() is None and (watch.count("keypoints") or 0) < len(names), \
+            "the worker finished or failed before it could be signalled: " + proc.communicate()[1][-2000:]
+    finally:
+        watch.close()
     proc.send_signal(signal.SIGTERM)
     try:
         out, err = proc.communicate(timeout=5)

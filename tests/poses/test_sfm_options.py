@@ -359,7 +359,7 @@ def test_matching_and_mapping_steps_say_what_they_count(tmp_path, monkeypatch):
 
     steps = []
 
-    def fake_step(job, work, progress, label, total=1, poll=None, cleanup=None):
+    def fake_step(job, work, progress, label, total=1, poll_table=None, cleanup=None):
         steps.append((job["step"], label, total))
         return {"models": []}, colmap_process.StepStats(seconds=0.0, peak_rss_bytes=0, cpu_seconds=0.0)
 

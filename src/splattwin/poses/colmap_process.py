@@ -9,6 +9,16 @@ run. Progress: the child's own events (mapping: one per registered image) plus a
 (extraction: images with keypoints; matching: pairs matched), shown through `StageProgress`. The child's
 peak resident memory (VmHWM) is recorded per step.
 
+The poll reads through one connection (`_DatabaseWatch`), opened before the worker starts and kept until it
+has ended. It used to open and close a connection every second, and COLMAP opens the database with no busy
+timeout (`Database::Open`, several times per step): an open that met the poll's connection being opened or
+closed (SQLite takes exclusive locks when the first connection to a WAL database rebuilds the log's index,
+and when the last one checkpoints and deletes the log) failed at once with "SQLite error: database is
+locked", reported as "No registered database factory succeeded" (a known-poses triangulation's extraction
+failed so in a test run; a poll run continuously from another process made 56 of 300 opens of an existing
+database fail). With a connection that stays open the worker's opens are never the first or the last, and
+in WAL mode a reader does not block a writer.
+
 A worker that ends by SIGTERM or SIGINT: Slurm, Kubernetes and docker signal every process of a job, and the
 worker (no handler of its own, its own session) may die before this process's Python handler has run, so
 its exit status (-15) arrived first and the stop was reported as a failed step (exit 1, "internal error").
@@ -34,7 +44,6 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 from splattwin import interrupt
 from splattwin.errors import StoppedFromOutside
@@ -47,6 +56,10 @@ TERMINATE_GRACE_S = 2.0
 # every process, in no set order; `_await_own_signal`); only a worker killed alone costs the wait
 PARENT_SIGNAL_GRACE_S = 1.0
 _STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+# seconds between two polls of the step's database for progress (`_DatabaseWatch`), and the longest wait for
+# a line of the worker between two checks for an interrupt
+PROGRESS_POLL_S = 1.0
+LINE_WAIT_S = 0.25
 
 
 class StepError(RuntimeError):
@@ -143,13 +156,44 @@ def recover_database(db: str | Path) -> None:
         log.warning("could not check the SfM database %s after an interruption: %s", db, e)
 
 
+_COUNTED = ("images", "keypoints", "matches", "two_view_geometries")
+
+
+class _DatabaseWatch:
+    """The parent's one connection to a step's COLMAP database, open while the worker runs (see the module
+    docstring): created here in WAL mode if the file is new, as COLMAP creates it, so the worker never
+    opens the file first. `count(table)`: rows in a table that grows during the step, None while the
+    worker has not created it yet (or the database is busy)."""
+
+    def __init__(self, db: str | Path):
+        self.con = sqlite3.connect(str(db), timeout=5.0, isolation_level=None)
+        try:
+            self.con.execute("PRAGMA journal_mode=WAL").fetchall()
+        except BaseException:
+            self.con.close()
+            raise
+
+    def count(self, table: str) -> int | None:
+        if table not in _COUNTED:
+            raise ValueError(f"not a counted table: {table!r}")
+        try:
+            # fetchall: the statement runs to its end, so no read transaction stays open between polls
+            return int(self.con.execute(f"SELECT count(*) FROM {table}").fetchall()[0][0])
+        except sqlite3.Error:
+            return None
+
+    def close(self) -> None:
+        self.con.close()
+
+
 def db_counts(db: str | Path) -> dict[str, int]:
-    """Rows in the COLMAP database tables that grow during a step ({} while the file is busy or new)."""
+    """Rows in the COLMAP database tables that grow during a step ({} while the file is busy or new). Opens
+    and closes a connection: not for polling while a worker opens the database (`_DatabaseWatch` is)."""
     out: dict[str, int] = {}
     try:
         con = sqlite3.connect(f"file:{Path(db).resolve()}?mode=ro", uri=True, timeout=0.2)
         try:
-            for t in ("images", "keypoints", "matches", "two_view_geometries"):
+            for t in _COUNTED:
                 out[t] = int(con.execute(f"SELECT count(*) FROM {t}").fetchone()[0])
         finally:
             con.close()
@@ -159,12 +203,14 @@ def db_counts(db: str | Path) -> dict[str, int]:
 
 
 def run_step(job: dict, job_dir: Path, progress: StageProgress, label: str, total: int = 1,
-             poll: Callable[[], int | None] | None = None, cleanup: list[Path] | None = None
+             poll_table: str | None = None, cleanup: list[Path] | None = None
              ) -> tuple[dict, StepStats]:
     """Run `job` (a dict with "step" and the step's arguments, see colmap_worker) in a child process.
 
-    progress: shows `label` with done/`total`; `poll()` (called about once a second) returns the current
-      count, or None to keep the last one; the child's own progress events also update it.
+    progress: shows `label` with done/`total`; with `poll_table` ("keypoints", "two_view_geometries", ...),
+      about once a second the rows of that table of the job's database ("db") are the count, read through
+      one connection open from before the child starts until it has ended (`_DatabaseWatch`); the child's
+      own progress events also update it.
     cleanup: paths removed if the step is interrupted or fails (its half-written outputs).
     Returns (the child's result dict, StepStats). Raises StepError if the step fails, KeyboardInterrupt
     (after stopping the child and cleaning up) if interrupted, also when the signal reached the child first
@@ -182,11 +228,16 @@ def run_step(job: dict, job_dir: Path, progress: StageProgress, label: str, tota
     env = os.environ.copy()
     env["PYTHONPATH"] = _package_root() + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     t0, cpu0 = time.perf_counter(), _children_cpu()
+    watch = None
     try:
+        if poll_table is not None:
+            watch = _DatabaseWatch(job["db"])   # before the child: its opens of the database are never the first
         proc = subprocess.Popen([sys.executable, "-m", "splattwin.poses.colmap_worker", str(job_path)],
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, env=env,
                                 start_new_session=True, text=True, bufsize=1)
     except BaseException:
+        if watch is not None:
+            watch.close()
         job_path.unlink(missing_ok=True)
         raise
     lines: queue.Queue = queue.Queue()
@@ -214,7 +265,7 @@ def run_step(job: dict, job_dir: Path, progress: StageProgress, label: str, tota
             # `timeout`/`docker stop` of SfM with a C stack trace; also a Ctrl-C a library swallowed
             interrupt.check()
             try:
-                line = lines.get(timeout=0.25)
+                line = lines.get(timeout=LINE_WAIT_S)
             except queue.Empty:
                 line = ""
             if line is None:
@@ -235,11 +286,11 @@ def run_step(job: dict, job_dir: Path, progress: StageProgress, label: str, tota
                 elif ev == "error":
                     error = str(msg.get("message"))
             now = time.monotonic()
-            if now - last_poll >= 1.0:
+            if now - last_poll >= PROGRESS_POLL_S:
                 last_poll = now
                 peak = max(peak, _read_hwm(proc.pid))
-                if poll is not None:
-                    v = poll()
+                if watch is not None:
+                    v = watch.count(poll_table)
                     if v is not None and v != done:
                         done = v
                         progress.update(label, done, total)
@@ -252,11 +303,15 @@ def run_step(job: dict, job_dir: Path, progress: StageProgress, label: str, tota
             _await_own_signal()
     except BaseException:
         terminate(proc)
+        if watch is not None:
+            watch.close()
         _remove(cleanup)
         if "db" in job:
             recover_database(job["db"])
         raise
     finally:
+        if watch is not None:
+            watch.close()   # (closing twice is harmless) before `recover_database` checkpoints the log
         job_path.unlink(missing_ok=True)
     if "db" in job:
         recover_database(job["db"])

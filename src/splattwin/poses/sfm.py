@@ -597,7 +597,7 @@ class SfmRun:
         n = len(self.names)
         res, st = colmap_process.run_step(
             job, self.work, self.progress, f"{label}: SIFT features ({n} images, <= {side} px, {threads} threads)",
-            total=n, poll=lambda: colmap_process.db_counts(db).get("keypoints"), cleanup=[])
+            total=n, poll_table="keypoints", cleanup=[])
         self._add("extract", st)
         self._mark(db, "extract", {"keypoints": res["keypoints"]})
         return db
@@ -629,7 +629,7 @@ class SfmRun:
         res, st = colmap_process.run_step(
             job, self.work, self.progress, f"{label}: {self.matcher} matching"
             + (" (guided)" if a.matching == "guided" else ""), total=total,
-            poll=lambda: colmap_process.db_counts(db).get("two_view_geometries"))
+            poll_table="two_view_geometries")
         self._add("match", st)
         self._mark(db, "match", res)
 
