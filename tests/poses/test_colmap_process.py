@@ -45,6 +45,33 @@ def test_a_worker_killed_by_sigkill_is_named_so(tmp_path, monkeypatch):
     assert e.value.message == "the pycolmap worker was killed by SIGKILL (out of memory? the kernel's log, dmesg, says)"
 
 
+@pytest.mark.parametrize("worker", ['print(\'{"event": "result"}\')', "import sys; sys.exit(3)"])
+def test_a_step_leaves_no_pipe_of_its_worker_open(tmp_path, monkeypatch, worker):
+    """Each step left the worker's stdout and stderr pipes open (ResourceWarning "unclosed file" twice per SfM
+    step), when it succeeded and when it failed."""
+    import gc
+    import warnings
+
+    real = colmap_process.subprocess.Popen
+    made = []
+
+    def popen(argv, **kw):
+        made.append(real([sys.executable, "-c", worker], **kw))
+        return made[-1]
+
+    monkeypatch.setattr(colmap_process.subprocess, "Popen", popen)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always", ResourceWarning)
+        try:
+            colmap_process.run_step({"step": "extract"}, tmp_path, progress=StageProgress(enabled=False),
+                                     label="extract")
+        except colmap_process.StepError:
+            pass
+        gc.collect()
+    assert made and made[0].stdout.closed and made[0].stderr.closed
+    assert not [w for w in seen if issubclass(w.category, ResourceWarning) and "unclosed file" in str(w.message)]
+
+
 
 
 # a worker that opens the step's database as COLMAP's steps do (pycolmap.Database.open; several times per step),

@@ -186,6 +186,17 @@ class _DatabaseWatch:
         self.con.close()
 
 
+def _close_pipes(proc: subprocess.Popen, readers: list[threading.Thread]) -> None:
+    """Close the worker's stdout/stderr pipes once their reader threads have ended (each step left two open
+    file objects behind: ResourceWarning "unclosed file" in every SfM run). A reader still running (a worker
+    that did not end) keeps its pipe: closing it under the thread would raise there."""
+    for t in readers:
+        t.join(1.0)
+    for t, pipe in zip(readers, (proc.stdout, proc.stderr)):
+        if pipe is not None and not t.is_alive():
+            pipe.close()
+
+
 def db_counts(db: str | Path) -> dict[str, int]:
     """Rows in the COLMAP database tables that grow during a step ({} while the file is busy or new). Opens
     and closes a connection: not for polling while a worker opens the database (`_DatabaseWatch` is)."""
@@ -313,6 +324,7 @@ def run_step(job: dict, job_dir: Path, progress: StageProgress, label: str, tota
         if watch is not None:
             watch.close()   # (closing twice is harmless) before `recover_database` checkpoints the log
         job_path.unlink(missing_ok=True)
+        _close_pipes(proc, threads)
     if "db" in job:
         recover_database(job["db"])
     stats = StepStats(seconds=time.perf_counter() - t0, peak_rss_bytes=peak, cpu_seconds=_children_cpu() - cpu0)
