@@ -330,6 +330,18 @@ def test_colmap_huge_quaternion_is_no_rotation(tmp_path, make_dataset, where):
     assert e.value.path == sparse / where
 
 
+def test_colmap_binary_image_name_must_be_utf8(tmp_path, make_dataset):
+    """pycolmap's Image.name raised UnicodeDecodeError (exit 1) for a name that is not UTF-8."""
+    sparse = _binary_model(tmp_path, make_dataset)
+    raw = (sparse / "images.bin").read_bytes()
+    start = 8 + 4 + 56 + 4   # count, image id, pose, camera id: the first image's name
+    end = raw.index(b"\0", start)
+    (sparse / "images.bin").write_bytes(raw[:start] + b"\xff\xfe.png" + raw[end:])
+    with pytest.raises(InputError, match="is not UTF-8") as e:
+        load_dataset(tmp_path)
+    assert e.value.path == sparse / "images.bin"
+
+
 @pytest.mark.parametrize("binary", [False, True])
 def test_colmap_zero_quaternion_is_no_rotation(tmp_path, make_dataset, binary):
     """pycolmap turned a zero quaternion into the identity, silently (TUM refuses it)."""

@@ -116,8 +116,12 @@ class _Reader:
         if end < 0:
             raise InputError(f"{what}: no end of the name within 4096 bytes", self.path)
         raw = bytes(self.buf[self.pos:end])
+        try:   # pycolmap's Image.name raised UnicodeDecodeError on any other bytes (exit 1)
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError:
+            raise InputError(f"{what}: its name {raw[:100]!r} is not UTF-8 text", self.path) from None
         self.pos = end + 1
-        return raw.decode("utf-8", "replace")
+        return text
 
 
 def _walk(path: Path, fn) -> None:
