@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -783,8 +784,9 @@ def parse_intrinsics(value) -> str | tuple[float, float, float, float] | None:
         except ValueError as e:
             raise InputError(f"--intrinsics {value!r}: expected fx,fy,cx,cy in pixels or 'dataset'") from e
     vals = tuple(float(v) for v in value)
-    if len(vals) != 4 or vals[0] <= 0 or vals[1] <= 0:
-        raise InputError(f"--intrinsics {value!r}: expected four numbers fx,fy,cx,cy with positive focal lengths")
+    # nan passed `<= 0` and reached COLMAP's feature extractor, which stopped the run (exit 1)
+    if len(vals) != 4 or not all(math.isfinite(v) for v in vals) or vals[0] <= 0 or vals[1] <= 0:
+        raise InputError(f"--intrinsics {value!r}: expected four finite numbers fx,fy,cx,cy with positive focal lengths")
     return vals  # type: ignore[return-value]
 
 
