@@ -486,3 +486,22 @@ def test_unique_stems_in_subfolders_keep_their_names(tmp_path, make_dataset):
         fr["file_path"] = new.relative_to(tmp_path).as_posix()
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
     assert [f.name for f in load_dataset(tmp_path).frames] == [f"img_{i:03d}" for i in range(4)]
+
+
+@pytest.mark.parametrize("objects, msg", [
+    ({"a/b": 1}, "label_objects name 'a/b'"),
+    ({"..": 1}, "label_objects name '..'"),
+    ({"": 1}, "label_objects name ''"),
+    ({"box": 1, "BOX": 2}, "both give export ID"),
+    ({"box": 1, "cup": 1}, "gives label id 1 to both 'box' and 'cup'"),
+])
+def test_transforms_json_label_objects_names_are_checked_where_they_enter(tmp_path, make_dataset, objects, msg):
+    """label_objects names become the fused objects' names (semantics.lift.label_objects); a path-like, empty
+    or colliding name, or two names for one label id, were taken as they were."""
+    nerfstudio.write(make_dataset(tmp_path, with_points=False), tmp_path / "transforms.json")
+    meta = json.loads((tmp_path / "transforms.json").read_text())
+    meta["label_objects"] = objects
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError, match=msg) as e:
+        load_dataset(tmp_path)
+    assert e.value.path == tmp_path / "transforms.json"
