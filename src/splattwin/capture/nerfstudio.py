@@ -28,7 +28,7 @@ from splattwin import io
 from splattwin.capture.camera import Camera, opencv_from_opengl, opengl_from_opencv, plausible
 from splattwin.capture.dataset import DEPTH_SCALE_RANGE, Dataset, Frame, name_views_by_path
 from splattwin.errors import InputError
-from splattwin.limits import check_count, check_pixels, number
+from splattwin.limits import MAX_VIEWS, check_count, check_pixels, number
 from splattwin.names import check_unique, object_name
 from splattwin.paths import confined, is_inside, own_file, unfollowed
 from splattwin.transforms import pose_from_file_value
@@ -82,7 +82,7 @@ def read(path: str | Path, require_images: bool = True) -> Dataset:
     if model not in SUPPORTED_MODELS:
         raise InputError(f"unsupported camera_model {model!r} (supported: {', '.join(SUPPORTED_MODELS)})", path)
     root = path.parent
-    check_count(len(meta["frames"]), path, "frames")
+    check_count(len(meta["frames"]), path, "frames", MAX_VIEWS, "SPLATTWIN_MAX_VIEWS")
     heldout_names = set()
     for key in ("test_filenames", "val_filenames"):
         names = meta.get(key, [])
