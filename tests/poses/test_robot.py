@@ -518,3 +518,16 @@ def test_two_robot_poses_for_one_image_are_refused(tmp_path: Path):
     with pytest.raises(InputError, match="two robot poses for image 'img_000.png'") as e:
         match_to_images(poses, ["img_000.png", "img_001.png"], where)
     assert e.value.path == where
+
+
+def test_robot_poses_at_one_place_name_the_pose_file(scene_small: Path, tmp_path: Path):
+    """The eye-to-hand check (every camera at one place) raised an InputError naming no file: the CLI printed
+    'error: all 6 cameras are at the same place ...' without saying which file was wrong."""
+    gt = load_dataset(scene_small)
+    pose_file = tmp_path / "robot.json"
+    pose_file.write_text(json.dumps({"T_ee_cam": np.eye(4).tolist(), "poses": [
+        {"image": f.image_path.name, "T_base_ee": [[1, 0, 0, 0.4], [0, 1, 0, 0], [0, 0, 1, 0.3], [0, 0, 0, 1]]}
+        for f in gt.frames]}))
+    with pytest.raises(InputError, match="cameras are at the same place") as e:
+        estimate_poses(gt, PoseOptions(robot_poses=pose_file, progress=False))
+    assert e.value.path == pose_file

@@ -1108,7 +1108,12 @@ def _robot_cameras(opts: PoseOptions, frames: list[DataFrame], names: list[str],
     image_names = [Path(f.image_path).name for f in frames]
     by_name = match_to_images(poses, image_names, Path(opts.robot_poses))
     keys = list(by_name)
-    T_base_cam = camera_poses_in_base([RobotPose(by_name[k], k) for k in keys], T_ee_cam)
+    try:
+        T_base_cam = camera_poses_in_base([RobotPose(by_name[k], k) for k in keys], T_ee_cam)
+    except InputError as e:   # the geometry check knows no file: name the pose file, as every other error here
+        if e.path is not None:
+            raise
+        raise InputError(e.problem, opts.robot_poses) from None
     key = {k: names[image_names.index(k)] for k in keys}
     return _RobotCameras(T_base_cam={key[k]: T for k, T in zip(keys, T_base_cam)},
                          T_base_ee={key[k]: by_name[k] for k in keys}, T_ee_cam=T_ee_cam, hand_eye_file=he_file)
