@@ -15,6 +15,8 @@ Limits (environment variables override them, e.g. for gigapixel scans):
     SPLATTWIN_MAX_TASK_STEPS     100     pick-and-place steps in one task (each is checked by IK and planned)
     SPLATTWIN_MAX_ARRAY_BYTES    16 GiB  .npy arrays (and never more than the file holds)
     SPLATTWIN_MAX_TEXT_BYTES     256 MiB plain-text lists (TUM pose lists, rgb.txt)
+    SPLATTWIN_MAX_VIEWS          1e5     views listed by one capture file (transforms.json, cameras.json, BOP)
+    SPLATTWIN_MAX_VIDEO_FRAMES   2e4     frames of a video (11 min at 30 fps; each is scored and kept as a thumbnail)
 """
 
 from __future__ import annotations
@@ -52,6 +54,12 @@ MAX_YAML_NODES = _env("SPLATTWIN_MAX_YAML_NODES", 1e6)
 MAX_TASK_STEPS = _env("SPLATTWIN_MAX_TASK_STEPS", 100)
 MAX_ARRAY_BYTES = _env("SPLATTWIN_MAX_ARRAY_BYTES", 16 << 30)
 MAX_TEXT_BYTES = _env("SPLATTWIN_MAX_TEXT_BYTES", 256 << 20)
+# views one capture file may list: its reader spends ~0.1 ms on each and validate() ~3 ms, so the JSON limit
+# alone let a received transforms.json of 1.2 M frames (600 MB) or cameras.json of 500 000 run for minutes
+MAX_VIEWS = _env("SPLATTWIN_MAX_VIEWS", 100_000)
+# frames of a video: its scoring pass holds a thumbnail of each (~40 KB of memory each, measured), and a still
+# scene compresses to ~20 bytes a frame: a 3.7 MB clip of 200 000 frames reached 3.4 GB before it failed
+MAX_VIDEO_FRAMES = _env("SPLATTWIN_MAX_VIDEO_FRAMES", 20_000)
 
 
 # -- sizes and counts ---------------------------------------------------------------------------
@@ -73,8 +81,9 @@ def check_pixels(width, height, where: str | Path | None = None, what: str = "im
     return w, h
 
 
-def check_count(n, where: str | Path | None = None, what: str = "elements", limit: int | None = None) -> int:
-    """`n` as an int if 0 <= n <= limit (default MAX_ELEMENTS)."""
+def check_count(n, where: str | Path | None = None, what: str = "elements", limit: int | None = None,
+                setting: str = "SPLATTWIN_MAX_ELEMENTS") -> int:
+    """`n` as an int if 0 <= n <= limit (default MAX_ELEMENTS); `setting`: the variable the error says raises it."""
     limit = MAX_ELEMENTS if limit is None else limit
     try:
         k = int(n)
@@ -83,7 +92,7 @@ def check_count(n, where: str | Path | None = None, what: str = "elements", limi
     except (TypeError, ValueError, OverflowError):
         raise InputError(f"count of {what} must be a whole number, got {n!r}", where) from None
     if k < 0 or k > limit:
-        raise InputError(f"{k} {what} is outside [0, {limit}] (set SPLATTWIN_MAX_ELEMENTS to allow more)", where)
+        raise InputError(f"{k} {what} is outside [0, {limit}] (set {setting} to allow more)", where)
     return k
 
 

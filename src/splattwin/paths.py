@@ -16,6 +16,7 @@ links are followed (docs/CONTRACTS.md, "Symbolic links").
 
 from __future__ import annotations
 
+import errno
 import os
 from pathlib import Path
 
@@ -55,11 +56,27 @@ def confined(root: str | Path, rel, where: str | Path | None = None, what: str =
         norm = posixpath.normpath(p.as_posix())
         inside = not (norm == ".." or norm.startswith("../"))
     else:
-        inside = is_inside(full, root)
+        try:
+            inside = is_inside(full, root)
+        except RuntimeError:   # Path.resolve before Python 3.13: a loop of symbolic links (was exit 1)
+            raise InputError(f"{what} {short_repr(text, 100)} is a loop of symbolic links", where) from None
+        _check_usable(full, text, where, what)
     if not inside:
         raise InputError(f"{what} {short_repr(text, 100)} leads outside its folder {root} (after resolving '..' and "
                          f"symbolic links); refusing to read or write there", where)
     return full
+
+
+def _check_usable(full: Path, text: str, where, what: str) -> None:
+    """InputError for a path the file system refuses to look up: a name longer than it allows (a 300-character
+    file_path made the reader's is_file() raise OSError ENAMETOOLONG, exit 1) or a loop of symbolic links.
+    A path that does not exist is fine here (its reader says so)."""
+    try:
+        os.stat(full)
+    except OSError as e:
+        if e.errno in (errno.ENAMETOOLONG, errno.ELOOP):
+            raise InputError(f"{what} {short_repr(text, 100)} cannot be looked up: {os.strerror(e.errno)}",
+                             where) from None
 
 
 def child(root: str | Path, name: str, where: str | Path | None = None, what: str = "name") -> Path:

@@ -253,6 +253,95 @@ def test_colmap_binary_counts_are_bounded_by_the_file_before_pycolmap_allocates(
     assert e.value.path == sparse / file
 
 
+@pytest.mark.parametrize("file, offset, fmt, what", [
+    ("frames.bin", 0, "<Q", "number of frames"),
+    ("frames.bin", 8 + 4 + 4 + 56, "<I", "number of images of frame 1"),   # after the first frame's pose
+    ("rigs.bin", 0, "<Q", "number of rigs"),
+    ("rigs.bin", 8 + 4, "<I", "number of sensors of rig 0"),
+])
+def test_colmap_rigs_and_frames_bin_counts_are_bounded(tmp_path, make_dataset, file, offset, fmt, what):
+    """COLMAP >= 3.12 writes rigs.bin and frames.bin (the poses pycolmap takes) beside the other files; they
+    were not walked, and a count patched there (or read past the end of a truncated file) had pycolmap loop
+    for billions of records: now checked like the others before pycolmap reads them."""
+    import struct
+
+    sparse = _binary_model(tmp_path, make_dataset)
+    raw = bytearray((sparse / file).read_bytes())
+    struct.pack_into(fmt, raw, offset, (1 << 32) - 1 if fmt == "<I" else 1 << 40)
+    (sparse / file).write_bytes(bytes(raw))
+    with pytest.raises(InputError, match=what) as e:
+        colmap.check_model(sparse)
+    assert e.value.path == sparse / file
+
+
+@pytest.mark.parametrize("file, change, what", [
+    ("frames.bin", lambda b: b[:40], "number of frames is 4, but the file has only 32 bytes left"),
+    ("rigs.bin", lambda b: b[:23], "number of sensors of rig 0 is 1, but the file has only 7 bytes left"),
+    ("rigs.bin", lambda b: b + b"\0" * 5, "5 bytes after the last record"),
+])
+def test_colmap_truncated_or_padded_rigs_and_frames_bin_are_refused(tmp_path, make_dataset, file, change, what):
+    """A truncated frames.bin hung pycolmap; a truncated or padded rigs.bin was read as if whole."""
+    sparse = _binary_model(tmp_path, make_dataset)
+    (sparse / file).write_bytes(bytes(change(bytearray((sparse / file).read_bytes()))))
+    with pytest.raises(InputError, match=what) as e:
+        colmap.check_model(sparse)
+    assert e.value.path == sparse / file
+
+
+@pytest.mark.parametrize("where", ["images.txt", "images.bin", "frames.bin", "frames.txt"])
+def test_colmap_huge_quaternion_is_no_rotation(tmp_path, make_dataset, where):
+    """A quaternion component of 1e300 raised OverflowError while its length was computed (images.txt,
+    images.bin: exit 1, "a bug in splattwin"), and in frames.bin / frames.txt (COLMAP >= 3.12, where the
+    poses come from) made the pose singular (LinAlgError)."""
+    import struct
+
+    import pycolmap
+
+    if where == "frames.txt":
+        sparse = _binary_model(tmp_path, make_dataset)
+        rec = pycolmap.Reconstruction(str(sparse))
+        for f in sparse.iterdir():
+            f.unlink()
+        rec.write_text(str(sparse))
+        lines = (sparse / where).read_text().splitlines()
+        i = next(k for k, ln in enumerate(lines) if ln.strip() and not ln.startswith("#"))
+        f = lines[i].split()   # FRAME_ID RIG_ID QW QX QY QZ TX TY TZ ...
+        lines[i] = " ".join(f[:2] + ["1e300"] + f[3:])
+        (sparse / where).write_text("\n".join(lines) + "\n")
+        with pytest.raises(InputError, match="is not a rotation") as e:
+            load_dataset(tmp_path)
+        assert e.value.path == sparse   # read by pycolmap: the model folder
+        return
+    if where == "images.txt":
+        sparse = tmp_path / "sparse" / "0"
+        colmap.write_text(make_dataset(tmp_path), sparse)
+        lines = (sparse / "images.txt").read_text().splitlines()
+        i = next(k for k, ln in enumerate(lines) if ln.strip() and not ln.startswith("#"))
+        f = lines[i].split()
+        lines[i] = " ".join([f[0], "1e300"] + f[2:])
+        (sparse / "images.txt").write_text("\n".join(lines) + "\n")
+    else:
+        sparse = _binary_model(tmp_path, make_dataset)
+        raw = bytearray((sparse / where).read_bytes())
+        struct.pack_into("<d", raw, 8 + 4 + (4 if where == "frames.bin" else 0), 1e300)   # qw of the first record
+        (sparse / where).write_bytes(bytes(raw))
+    with pytest.raises(InputError, match="is not a rotation") as e:
+        load_dataset(tmp_path)
+    assert e.value.path == sparse / where
+
+
+def test_colmap_binary_image_name_must_be_utf8(tmp_path, make_dataset):
+    """pycolmap's Image.name raised UnicodeDecodeError (exit 1) for a name that is not UTF-8."""
+    sparse = _binary_model(tmp_path, make_dataset)
+    raw = (sparse / "images.bin").read_bytes()
+    start = 8 + 4 + 56 + 4   # count, image id, pose, camera id: the first image's name
+    end = raw.index(b"\0", start)
+    (sparse / "images.bin").write_bytes(raw[:start] + b"\xff\xfe.png" + raw[end:])
+    with pytest.raises(InputError, match="is not UTF-8") as e:
+        load_dataset(tmp_path)
+    assert e.value.path == sparse / "images.bin"
+
+
 @pytest.mark.parametrize("binary", [False, True])
 def test_colmap_zero_quaternion_is_no_rotation(tmp_path, make_dataset, binary):
     """pycolmap turned a zero quaternion into the identity, silently (TUM refuses it)."""
@@ -397,3 +486,22 @@ def test_unique_stems_in_subfolders_keep_their_names(tmp_path, make_dataset):
         fr["file_path"] = new.relative_to(tmp_path).as_posix()
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
     assert [f.name for f in load_dataset(tmp_path).frames] == [f"img_{i:03d}" for i in range(4)]
+
+
+@pytest.mark.parametrize("objects, msg", [
+    ({"a/b": 1}, "label_objects name 'a/b'"),
+    ({"..": 1}, "label_objects name '..'"),
+    ({"": 1}, "label_objects name ''"),
+    ({"box": 1, "BOX": 2}, "both give export ID"),
+    ({"box": 1, "cup": 1}, "gives label id 1 to both 'box' and 'cup'"),
+])
+def test_transforms_json_label_objects_names_are_checked_where_they_enter(tmp_path, make_dataset, objects, msg):
+    """label_objects names become the fused objects' names (semantics.lift.label_objects); a path-like, empty
+    or colliding name, or two names for one label id, were taken as they were."""
+    nerfstudio.write(make_dataset(tmp_path, with_points=False), tmp_path / "transforms.json")
+    meta = json.loads((tmp_path / "transforms.json").read_text())
+    meta["label_objects"] = objects
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError, match=msg) as e:
+        load_dataset(tmp_path)
+    assert e.value.path == tmp_path / "transforms.json"

@@ -324,3 +324,20 @@ def test_capture_help_describes_every_argument_and_option_with_its_default(capsy
     out = capsys.readouterr().out
     assert "default 30" in out and "video file" in out
     assert "(default none)" not in out   # the help of an option decided per input says its defaults itself
+
+
+@pytest.mark.parametrize("suffix", [".mp4", ".mkv"])   # an MKV declares no frame count: caught while decoding
+def test_video_with_more_frames_than_the_limit_is_refused(tmp_path, monkeypatch, suffix):
+    """A 3.7 MB clip of 200 000 still 64x48 frames held 3.4 GB of thumbnails in the scoring pass before it
+    failed ('video decoding failed after 79096 frames: ' - a MemoryError); the frames of a video are bounded
+    by SPLATTWIN_MAX_VIDEO_FRAMES (here lowered to 10 for a 24-frame clip)."""
+    from splattwin import limits
+
+    monkeypatch.setattr(limits, "MAX_VIDEO_FRAMES", 10, raising=False)
+    video = tmp_path / f"clip{suffix}"
+    _write_video(video)
+    with pytest.raises(InputError, match="(24 frames \\(its header says\\)|more than 10 frames); a capture may have at "
+                                         "most 10") as e:
+        extract_frames(video, tmp_path / "frames")
+    assert e.value.path == video
+    assert not list(tmp_path.glob("frames/*.png"))   # refused before any frame is written

@@ -164,3 +164,24 @@ def test_capture_of_symlinked_photos_works_like_the_photos(default_unscaled, sfm
     # training reads the poses folder (it used to stop: "file_path ... leads outside its folder")
     assert main(["train", str(out), str(tmp_path / "splat"), "--iters", "2", "--no-progress"]) == 0
     assert (tmp_path / "splat" / "point_cloud.ply").is_file()
+
+
+@pytest.mark.parametrize("flag, value, msg", [
+    ("--intrinsics", "nan,50,32,24", "expected four finite numbers"),     # reached COLMAP's extractor: exit 1
+    ("--intrinsics", "50,inf,32,24", "expected four finite numbers"),
+    ("--intrinsics", "50,50,nan,24", "expected four finite numbers"),
+    ("--marker-size", "inf", "must be a positive number of metres, got inf"),   # passed `> 0`
+])
+def test_non_finite_intrinsics_and_marker_size_are_bad_input(tmp_path: Path, capsys, flag, value, msg):
+    """Flags given nan or inf: exit 2 naming the flag, and no poses written."""
+    from splattwin import io
+
+    rng = np.random.default_rng(0)
+    for i in range(3):
+        io.write_image(tmp_path / "photos" / f"p{i}.png", rng.integers(0, 255, (48, 64, 3), dtype=np.uint8))
+    out = tmp_path / "out"
+    capsys.readouterr()
+    assert main(["poses", str(tmp_path / "photos"), str(out), f"{flag}={value}", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert msg in err and "Traceback" not in err, err
+    assert not (out / "transforms.json").exists()

@@ -504,3 +504,30 @@ def test_hand_eye_check_sift_points_in_opencvs_pixel_convention():
         assert on_blob.sum() > 100
         off = pts[on_blob] - centres[d.argmin(axis=1)[on_blob]]
         np.testing.assert_allclose(np.median(off, axis=0), 0.0, atol=0.03)
+
+
+def test_two_robot_poses_for_one_image_are_refused(tmp_path: Path):
+    """Two entries naming one image (by file name and by stem here): the later pose silently replaced the
+    earlier one, and `splattwin poses` exited 0 with the other views unposed."""
+    from splattwin.poses.robot import RobotPose, match_to_images
+
+    shifted = np.eye(4)
+    shifted[0, 3] = 0.1
+    poses = [RobotPose(np.eye(4), "img_000.png"), RobotPose(shifted, "img_000")]
+    where = tmp_path / "robot.json"
+    with pytest.raises(InputError, match="two robot poses for image 'img_000.png'") as e:
+        match_to_images(poses, ["img_000.png", "img_001.png"], where)
+    assert e.value.path == where
+
+
+def test_robot_poses_at_one_place_name_the_pose_file(scene_small: Path, tmp_path: Path):
+    """The eye-to-hand check (every camera at one place) raised an InputError naming no file: the CLI printed
+    'error: all 6 cameras are at the same place ...' without saying which file was wrong."""
+    gt = load_dataset(scene_small)
+    pose_file = tmp_path / "robot.json"
+    pose_file.write_text(json.dumps({"T_ee_cam": np.eye(4).tolist(), "poses": [
+        {"image": f.image_path.name, "T_base_ee": [[1, 0, 0, 0.4], [0, 1, 0, 0], [0, 0, 1, 0.3], [0, 0, 0, 1]]}
+        for f in gt.frames]}))
+    with pytest.raises(InputError, match="cameras are at the same place") as e:
+        estimate_poses(gt, PoseOptions(robot_poses=pose_file, progress=False))
+    assert e.value.path == pose_file

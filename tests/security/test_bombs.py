@@ -187,3 +187,37 @@ def test_mesh_bombs_in_a_twin(gt_twin_small, tmp_path, cli):
     part.rename(part.with_suffix(".ply"))
     (twin / "twin.json").write_text(json.dumps(d))
     assert_bad_input(cli("export", twin, "--formats", "mjcf"), part.with_suffix(".ply").name)
+
+
+@pytest.mark.parametrize("fmt", ["nerfstudio", "cameras.json", "bop"])
+def test_capture_files_listing_too_many_views_are_refused(tmp_path, monkeypatch, fmt):
+    """A transforms.json of 1.2 M frames (600 MB, under the JSON limit) or a cameras.json of 500 000 cameras ran
+    for minutes (each view costs its reader ~0.1 ms and validate() ~3 ms): the number of views a capture file
+    lists is bounded by SPLATTWIN_MAX_VIEWS (here lowered to 5 so that the test writes 6)."""
+    from splattwin import limits
+    from splattwin.capture import bop, cameras_json, load_dataset, look_at, nerfstudio
+    from splattwin.capture.camera import Camera
+    from splattwin.capture.dataset import Dataset, Frame
+
+    for mod in (limits, nerfstudio, bop):
+        monkeypatch.setattr(mod, "MAX_VIEWS", 5, raising=False)
+    frames = []
+    for i in range(6):
+        img = tmp_path / "images" / f"v{i}.png"
+        io.write_image(img, np.zeros((12, 16, 3), np.uint8))
+        K = np.array([[20.0, 0, 8.0], [0, 20.0, 6.0], [0, 0, 1]])
+        T = look_at(np.array([np.cos(i), np.sin(i), 0.5]), np.zeros(3))
+        frames.append(Frame(image_path=img, camera=Camera(K=K, width=16, height=12, T_world_cam=T, name=img.stem)))
+    ds = Dataset(root=tmp_path, frames=frames, has_poses=True)
+    if fmt == "nerfstudio":
+        where = nerfstudio.write(ds, tmp_path / "transforms.json")
+    elif fmt == "cameras.json":
+        where = cameras_json.write(ds, tmp_path / "cameras.json")
+    else:
+        (tmp_path / "images").rename(tmp_path / "rgb")
+        for i in range(6):
+            (tmp_path / "rgb" / f"v{i}.png").rename(tmp_path / "rgb" / bop.image_name(i))
+        where = bop.write_scene_camera(tmp_path / "scene_camera.json", [f.camera for f in frames])
+    with pytest.raises(InputError, match=r"6 (frames|cameras|images) is outside \[0, 5\] \(set SPLATTWIN_MAX_VIEWS") as e:
+        load_dataset(where)
+    assert e.value.path == where

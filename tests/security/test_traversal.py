@@ -233,6 +233,35 @@ def test_transforms_json_paths_are_confined(tiny_dataset, tmp_path, cli, key, va
     assert_bad_input(cli("capture", "info", ds), "transforms.json", "ply_file_path")
 
 
+@pytest.mark.parametrize("key", ["file_path", "depth_file_path", "mask_path", "label_path"])
+@pytest.mark.parametrize("value", ["images/" + "y" * 300 + ".png", "LOOP"])
+def test_transforms_json_paths_the_file_system_cannot_look_up_are_bad_input(tiny_dataset, tmp_path, cli, key, value):
+    """A name longer than the file system allows (the reader's is_file() raised OSError ENAMETOOLONG) and a
+    symbolic link that points to itself (Path.resolve raised RuntimeError) were internal errors (exit 1)."""
+    ds = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, ds)
+    if value == "LOOP":
+        (ds / "images" / "loop.png").symlink_to(ds / "images" / "loop.png")
+        value = "images/loop.png"
+    meta = json.loads((ds / "transforms.json").read_text())
+    meta["frames"][0][key] = value
+    (ds / "transforms.json").write_text(json.dumps(meta))
+    assert_bad_input(cli("capture", "info", ds), "transforms.json", key, "cannot be looked up" if "y" * 300 in value
+                     else "loop of symbolic links")
+
+
+def test_colmap_image_name_too_long_is_bad_input(tiny_dataset, tmp_path, cli):
+    """The same long name in images.txt: OSError from is_file() before (exit 1)."""
+    from splattwin.capture import colmap, load_dataset
+
+    proj = tmp_path / "proj"
+    shutil.copytree(tiny_dataset / "images", proj / "images")
+    colmap.write_text(load_dataset(tiny_dataset), proj / "sparse" / "0")
+    text = (proj / "sparse" / "0" / "images.txt").read_text().replace(" train_000.png", " " + "y" * 300 + ".png")
+    (proj / "sparse" / "0" / "images.txt").write_text(text)
+    assert_bad_input(cli("capture", "info", proj), "image name", "cannot be looked up")
+
+
 def test_colmap_image_names_are_confined(tiny_dataset, tmp_path, cli):
     from splattwin.capture import colmap, load_dataset
 

@@ -42,7 +42,7 @@ from splattwin import io
 from splattwin.capture.camera import Camera, invert_se3, plausible
 from splattwin.capture.dataset import DEPTH_SCALE_RANGE, IMAGE_SUFFIXES, Dataset, Frame, image_size, list_files
 from splattwin.errors import InputError
-from splattwin.limits import MAX_POSITION, ascii_uint, check_count, number, numbers
+from splattwin.limits import MAX_POSITION, MAX_VIEWS, ascii_uint, check_count, number, numbers
 
 log = logging.getLogger(__name__)
 _ANNOUNCED: set[str] = set()   # scenes whose notes (no poses, amodal masks) were logged in this process
@@ -107,7 +107,7 @@ def _read_dict(path: Path, what: str) -> dict:
     data = io.read_json(path, missing=f"no {what} here")
     if not isinstance(data, dict):
         raise InputError(f"malformed {what}: expected an object keyed by image id", path)
-    check_count(len(data), path, "images")
+    check_count(len(data), path, "images", MAX_VIEWS, "SPLATTWIN_MAX_VIEWS")
     return data
 
 

@@ -41,6 +41,9 @@ def read(path: str | Path, image_dir: str | Path | None = None, require_images: 
     entries = io.read_json(path, missing="file does not exist")
     if not isinstance(entries, list) or not entries:
         raise InputError("expected a non-empty JSON list of cameras (3DGS cameras.json)", path)
+    from splattwin.limits import MAX_VIEWS, check_count
+
+    check_count(len(entries), path, "cameras", MAX_VIEWS, "SPLATTWIN_MAX_VIEWS")
     root = Path(image_dir) if image_dir is not None else path.parent
     frames = []
     if not all(isinstance(e, dict) for e in entries):

@@ -9,6 +9,8 @@ A model is untrusted input, and pycolmap allocates whatever counts a binary file
 patch of images.bin made it reserve 15 GB): `check_model` walks the binary files first, checking every
 count against the bytes actually left in the file and against `limits.MAX_ELEMENTS`, and every image's
 rotation (a zero quaternion, which pycolmap silently turns into the identity), before pycolmap reads them.
+That includes rigs.bin and frames.bin, which COLMAP >= 3.12 writes beside them and takes the poses from: a
+frame's sensor count read past the end of a truncated frames.bin had pycolmap loop for billions of records.
 """
 
 from __future__ import annotations
@@ -94,9 +96,10 @@ class _Reader:
         self.pos += n
         return v
 
-    def count(self, what: str, record_bytes: int) -> int:
-        """A uint64 count of records of at least `record_bytes` each: bounded by the bytes left."""
-        (n,) = self.take("<Q", what)
+    def count(self, what: str, record_bytes: int, fmt: str = "<Q") -> int:
+        """A count (uint64; `fmt` "<I": uint32) of records of at least `record_bytes` each: bounded by the
+        bytes left."""
+        (n,) = self.take(fmt, what)
         if n > MAX_ELEMENTS or n * record_bytes > self.left():
             raise InputError(f"{what} is {n}, but the file has only {self.left()} bytes left for them "
                              f"({record_bytes} or more bytes each; at most {int(MAX_ELEMENTS)}): a corrupt or "
@@ -113,8 +116,12 @@ class _Reader:
         if end < 0:
             raise InputError(f"{what}: no end of the name within 4096 bytes", self.path)
         raw = bytes(self.buf[self.pos:end])
+        try:   # pycolmap's Image.name raised UnicodeDecodeError on any other bytes (exit 1)
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError:
+            raise InputError(f"{what}: its name {raw[:100]!r} is not UTF-8 text", self.path) from None
         self.pos = end + 1
-        return raw.decode("utf-8", "replace")
+        return text
 
 
 def _walk(path: Path, fn) -> None:
@@ -127,10 +134,12 @@ def _walk(path: Path, fn) -> None:
             raise InputError(f"{r.left()} bytes after the last record: not a COLMAP model file", path)
 
 
-def _check_rotation(q, name: str, where: Path) -> None:
-    norm = math.sqrt(sum(float(x) ** 2 for x in q))
-    if not math.isfinite(norm) or norm < 1e-6:
-        raise InputError(f"image {name!r}: its quaternion {tuple(float(x) for x in q)} is not a rotation", where)
+def _check_rotation(q, name: str, where: Path, what: str = "image") -> None:
+    """InputError unless `q` (4 numbers) is a finite quaternion of a usable length. math.hypot: squaring a
+    component of 1e308 raised OverflowError (exit 1), and a huge one made the pose matrix singular."""
+    norm = math.hypot(*(float(x) for x in q))
+    if not math.isfinite(norm) or not 1e-6 <= norm <= 1e6:
+        raise InputError(f"{what} {name!r}: its quaternion {tuple(float(x) for x in q)} is not a rotation", where)
 
 
 def check_model(sparse: Path) -> dict[int, str]:
@@ -160,7 +169,26 @@ def check_model(sparse: Path) -> dict[int, str]:
             r.skip(43, f"3D point {i}")
             r.skip(8 * r.count(f"track length of 3D point {i}", 8), f"track of 3D point {i}")
 
-    for stem, fn in (("cameras", cameras), ("images", images), ("points3D", points)):
+    def rigs(r: _Reader) -> None:   # COLMAP >= 3.12
+        for i in range(r.count("number of rigs", 8)):
+            r.skip(4, f"rig {i}")
+            n = r.count(f"number of sensors of rig {i}", 8, "<I")
+            if n:
+                r.skip(8, f"reference sensor of rig {i}")
+            for j in range(max(n - 1, 0)):
+                r.skip(8, f"sensor {j} of rig {i}")
+                (has_pose,) = r.take("<B", f"sensor {j} of rig {i}")
+                if has_pose:
+                    q = r.take("<4d3d", f"pose of sensor {j} of rig {i}")[:4]
+                    _check_rotation(q, f"{i}/{j}", r.path, "rig sensor")
+
+    def frames(r: _Reader) -> None:   # COLMAP >= 3.12: the poses pycolmap uses
+        for i in range(r.count("number of frames", 68)):
+            rec = r.take("<II4d3d", f"frame {i}")
+            _check_rotation(rec[2:6], str(rec[0]), r.path, "frame")
+            r.skip(16 * r.count(f"number of images of frame {rec[0]}", 16, "<I"), f"images of frame {rec[0]}")
+
+    for stem, fn in (("rigs", rigs), ("cameras", cameras), ("frames", frames), ("images", images), ("points3D", points)):
         b, t = sparse / f"{stem}.bin", sparse / f"{stem}.txt"
         if b.is_file():
             _walk(b, fn)
@@ -227,6 +255,11 @@ def read(path: str | Path, image_dir: str | Path | None = None) -> Dataset:
         T_cam_world[:3, :4] = np.asarray(cfw.matrix())
         if not np.all(np.isfinite(T_cam_world)):
             raise InputError(f"image {name!r}: pose is not finite", sparse)
+        R = T_cam_world[:3, :3]
+        with np.errstate(over="ignore", invalid="ignore"):   # a text model's frames.txt is not walked
+            rigid = np.allclose(R.T @ R, np.eye(3), atol=1e-6)
+        if not rigid:
+            raise InputError(f"image {name!r}: pose rotation is not a rotation matrix", sparse)
         img_path = confined(image_dir, name, sparse, f"image name of image {image_id}")
         check_pixels(cam.width, cam.height, sparse, f"camera of image {name!r}")
         if not img_path.is_file():

@@ -434,9 +434,11 @@ def load_dataset(path: str | Path, max_frames: int | None = None, validate: bool
     if max_frames is not None and len(ds.frames) > max_frames and not (path.is_file() and is_video(path)):
         idx = np.linspace(0, len(ds.frames) - 1, max_frames).round().astype(int)
         ds.frames = [ds.frames[i] for i in idx]
+    # names first: they need no file, while validate() reads every image's header and end (~3 ms a frame), so a
+    # transforms.json listing its 6 images 20 000 times took a minute to say that names repeat
+    _check_frame_names(ds, path)
     if validate and require_images:
         ds.validate()
-    _check_frame_names(ds, path)
     if require_images:
         # every format alike (one place): a photo's fully transparent pixels become loss masks written under
         # frames_dir, ANDed with the frame's own mask_path (`capture.images.mask_transparent_pixels`)

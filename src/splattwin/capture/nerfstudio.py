@@ -28,7 +28,8 @@ from splattwin import io
 from splattwin.capture.camera import Camera, opencv_from_opengl, opengl_from_opencv, plausible
 from splattwin.capture.dataset import DEPTH_SCALE_RANGE, Dataset, Frame, name_views_by_path
 from splattwin.errors import InputError
-from splattwin.limits import check_count, check_pixels, number
+from splattwin.limits import MAX_VIEWS, check_count, check_pixels, number
+from splattwin.names import check_unique, object_name
 from splattwin.paths import confined, is_inside, own_file, unfollowed
 from splattwin.transforms import pose_from_file_value
 
@@ -81,7 +82,7 @@ def read(path: str | Path, require_images: bool = True) -> Dataset:
     if model not in SUPPORTED_MODELS:
         raise InputError(f"unsupported camera_model {model!r} (supported: {', '.join(SUPPORTED_MODELS)})", path)
     root = path.parent
-    check_count(len(meta["frames"]), path, "frames")
+    check_count(len(meta["frames"]), path, "frames", MAX_VIEWS, "SPLATTWIN_MAX_VIEWS")
     heldout_names = set()
     for key in ("test_filenames", "val_filenames"):
         names = meta.get(key, [])
@@ -187,7 +188,18 @@ def _label_objects(meta: dict, path: Path) -> dict[str, int]:
                                             and k <= 65535 for n, k in src.items()):
         raise InputError("label_objects must map object names to integer label ids (at most 65535: label images "
                          "are 16-bit)", where)
-    return {n: k for n, k in src.items() if k > 0}
+    out = {n: k for n, k in src.items() if k > 0}
+    # they become the fused objects' names (`semantics.lift.label_objects`): checked where they enter, as the
+    # names of every other source are ('a/b', '..', '' and names equal ignoring case were taken as they were)
+    for n in out:
+        object_name(n, where, "label_objects name")
+    check_unique(out, where, "label_objects name")
+    by_id: dict[int, str] = {}
+    for n, k in out.items():
+        if k in by_id:
+            raise InputError(f"label_objects gives label id {k} to both {by_id[k]!r} and {n!r}", where)
+        by_id[k] = n
+    return out
 
 
 def outside_files(dataset: Dataset, root: str | Path) -> list[Path]:

@@ -101,6 +101,22 @@ def open_video(path: Path):
     return container
 
 
+def _check_frame_count(n: int, path: Path, container=None) -> None:
+    """InputError naming the video when it has more than `limits.MAX_VIDEO_FRAMES` frames: `n` is the count its
+    header declares (with `container`, closed first; 0 = not declared) or the frames decoded so far."""
+    from splattwin import limits
+
+    limit = limits.MAX_VIDEO_FRAMES
+    if not n or n <= limit:
+        return
+    if container is not None:
+        container.close()
+    count = f"{n} frames (its header says)" if container is not None else f"more than {limit} frames"
+    raise InputError(f"video has {count}; a capture may have at most {limit} (each is scored and kept as a "
+                     f"thumbnail; set SPLATTWIN_MAX_VIDEO_FRAMES to allow more): cut the clip to the part that "
+                     f"films the scene, or lower its frame rate", path)
+
+
 def quarter_turns(rotation) -> int:
     """np.rot90's k that shows a frame upright, from PyAV's `frame.rotation` (degrees counter-clockwise
     of the display matrix, as ffmpeg's autorotate reads it: -90 = turn 90 degrees clockwise). Checked on a
@@ -225,13 +241,15 @@ def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = VIDE
         if names and len(names) == len(old.get("frames", [])) and all(
                 (out_dir / n).is_file() and not (out_dir / n).is_symlink() for n in names):
             return [out_dir / n for n in names]
-    # Pass 1: sharpness and a thumbnail of every frame (cheap, downscaled).
+    # Pass 1: sharpness and a thumbnail of every frame (cheap, downscaled), of at most MAX_VIDEO_FRAMES frames
     container = open_video(path)
+    _check_frame_count(container.streams.video[0].frames, path, container)
     scores, thumbs, turns = [], [], 0
     with Progress(container.streams.video[0].frames or None, f"scoring {path.name}", unit="frame",
                   enabled=progress) as prog:
         try:
             for frame in container.decode(video=0):
+                _check_frame_count(len(scores) + 1, path)   # the header's count may be missing (0) or wrong
                 rgb, k = _upright(frame, path)
                 turns = turns or k
                 scores.append(sharpness(rgb))

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -783,8 +784,9 @@ def parse_intrinsics(value) -> str | tuple[float, float, float, float] | None:
         except ValueError as e:
             raise InputError(f"--intrinsics {value!r}: expected fx,fy,cx,cy in pixels or 'dataset'") from e
     vals = tuple(float(v) for v in value)
-    if len(vals) != 4 or vals[0] <= 0 or vals[1] <= 0:
-        raise InputError(f"--intrinsics {value!r}: expected four numbers fx,fy,cx,cy with positive focal lengths")
+    # nan passed `<= 0` and reached COLMAP's feature extractor, which stopped the run (exit 1)
+    if len(vals) != 4 or not all(math.isfinite(v) for v in vals) or vals[0] <= 0 or vals[1] <= 0:
+        raise InputError(f"--intrinsics {value!r}: expected four finite numbers fx,fy,cx,cy with positive focal lengths")
     return vals  # type: ignore[return-value]
 
 
@@ -1106,7 +1108,12 @@ def _robot_cameras(opts: PoseOptions, frames: list[DataFrame], names: list[str],
     image_names = [Path(f.image_path).name for f in frames]
     by_name = match_to_images(poses, image_names, Path(opts.robot_poses))
     keys = list(by_name)
-    T_base_cam = camera_poses_in_base([RobotPose(by_name[k], k) for k in keys], T_ee_cam)
+    try:
+        T_base_cam = camera_poses_in_base([RobotPose(by_name[k], k) for k in keys], T_ee_cam)
+    except InputError as e:   # the geometry check knows no file: name the pose file, as every other error here
+        if e.path is not None:
+            raise
+        raise InputError(e.problem, opts.robot_poses) from None
     key = {k: names[image_names.index(k)] for k in keys}
     return _RobotCameras(T_base_cam={key[k]: T for k, T in zip(keys, T_base_cam)},
                          T_base_ee={key[k]: by_name[k] for k in keys}, T_ee_cam=T_ee_cam, hand_eye_file=he_file)

@@ -3,6 +3,8 @@ the single source of their defaults and help (see `splattwin.options`). Light: n
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -134,8 +136,9 @@ class PoseOptions(FrameOptions):
         check_sfm_limits(self.max_image_size, self.max_num_features, self.num_threads)
         if self.min_registered is not None and self.min_registered < 2:
             raise InputError(f"{_flag('min_registered')} must be >= 2, got {self.min_registered}")
-        if self.marker_size is not None and not self.marker_size > 0:
-            raise InputError(f"{_flag('marker_size')} must be positive (metres), got {self.marker_size}")
+        # inf passed `> 0`: the marker frame would have scaled the twin by it
+        if self.marker_size is not None and not (math.isfinite(self.marker_size) and self.marker_size > 0):
+            raise InputError(f"{_flag('marker_size')} must be a positive number of metres, got {self.marker_size}")
 
 
 def _flag(name: str) -> str:

@@ -230,10 +230,14 @@ def match_to_images(poses: list[RobotPose], image_names: list[str], where: Path)
         lookup[n] = n
         lookup[Path(n).name] = n
         lookup[Path(n).stem] = n
+    first: dict[str, str] = {}
     for p in poses:
         key = p.image
         n = lookup.get(key) or lookup.get(Path(key).name) or lookup.get(Path(key).stem)
         if n is None:
             raise InputError(f"robot pose for image {key!r}: no such image in the dataset", where)
-        out[n] = p.T_base_ee
+        if n in out:   # the later pose silently replaced the earlier one
+            raise InputError(f"two robot poses for image {n!r} (given as {first[n]!r} and {key!r}); give one pose "
+                             f"per image", where)
+        out[n], first[n] = p.T_base_ee, key
     return out
