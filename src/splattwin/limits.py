@@ -16,7 +16,7 @@ Limits (environment variables override them, e.g. for gigapixel scans):
     SPLATTWIN_MAX_ARRAY_BYTES    16 GiB  .npy arrays (and never more than the file holds)
     SPLATTWIN_MAX_TEXT_BYTES     256 MiB plain-text lists (TUM pose lists, rgb.txt)
     SPLATTWIN_MAX_VIEWS          1e5     views listed by one capture file (transforms.json, cameras.json, BOP)
-    SPLATTWIN_MAX_VIDEO_FRAMES   2e4     frames of a video (11 min at 30 fps; each is scored and kept as a thumbnail)
+    SPLATTWIN_MAX_VIDEO_FRAMES   5e5     frames of a video (4.6 h at 30 fps; every frame is decoded to be scored)
 """
 
 from __future__ import annotations
@@ -57,9 +57,9 @@ MAX_TEXT_BYTES = _env("SPLATTWIN_MAX_TEXT_BYTES", 256 << 20)
 # views one capture file may list: its reader spends ~0.1 ms on each and validate() ~3 ms, so the JSON limit
 # alone let a received transforms.json of 1.2 M frames (600 MB) or cameras.json of 500 000 run for minutes
 MAX_VIEWS = _env("SPLATTWIN_MAX_VIEWS", 100_000)
-# frames of a video: its scoring pass holds a thumbnail of each (~40 KB of memory each, measured), and a still
-# scene compresses to ~20 bytes a frame: a 3.7 MB clip of 200 000 frames reached 3.4 GB before it failed
-MAX_VIDEO_FRAMES = _env("SPLATTWIN_MAX_VIDEO_FRAMES", 20_000)
+# frames of a video: its scoring pass decodes every frame (its memory is bounded apart: capture.video.MAX_SCORED),
+# and a still scene compresses to ~20 bytes a frame: a few MB can hold hours of frames
+MAX_VIDEO_FRAMES = _env("SPLATTWIN_MAX_VIDEO_FRAMES", 500_000)
 
 
 # -- sizes and counts ---------------------------------------------------------------------------

@@ -328,9 +328,8 @@ def test_capture_help_describes_every_argument_and_option_with_its_default(capsy
 
 @pytest.mark.parametrize("suffix", [".mp4", ".mkv"])   # an MKV declares no frame count: caught while decoding
 def test_video_with_more_frames_than_the_limit_is_refused(tmp_path, monkeypatch, suffix):
-    """A 3.7 MB clip of 200 000 still 64x48 frames held 3.4 GB of thumbnails in the scoring pass before it
-    failed ('video decoding failed after 79096 frames: ' - a MemoryError); the frames of a video are bounded
-    by SPLATTWIN_MAX_VIDEO_FRAMES (here lowered to 10 for a 24-frame clip)."""
+    """A still scene compresses to ~20 bytes a frame, so a few MB can hold hours that the scoring pass would decode;
+    the frames of a video are bounded by SPLATTWIN_MAX_VIDEO_FRAMES (here lowered to 10 for a 24-frame clip)."""
     from splattwin import limits
 
     monkeypatch.setattr(limits, "MAX_VIDEO_FRAMES", 10, raising=False)
@@ -341,3 +340,24 @@ def test_video_with_more_frames_than_the_limit_is_refused(tmp_path, monkeypatch,
         extract_frames(video, tmp_path / "frames")
     assert e.value.path == video
     assert not list(tmp_path.glob("frames/*.png"))   # refused before any frame is written
+
+
+def test_a_long_video_is_scored_on_every_nth_frame_within_the_thumbnail_bound(tmp_path, monkeypatch):
+    """The scoring pass kept a thumbnail of every frame with no bound (a 200 000-frame clip: 3.4 GB, then a
+    MemoryError); a longer video than `MAX_SCORED` scored frames is now scored on every 2nd, 4th, ... frame and
+    still extracted (here 8 for a 24-frame clip: every 4th frame), the frames' source indices those scored."""
+    import json
+
+    from splattwin.capture import video as video_mod
+
+    monkeypatch.setattr(video_mod, "MAX_SCORED", 8)
+    kept = []
+    real = video_mod.thumbnail
+    monkeypatch.setattr(video_mod, "thumbnail", lambda rgb, *a: kept.append(1) or real(rgb, *a))
+    clip = tmp_path / "clip.mp4"
+    _write_video(clip)
+    frames = extract_frames(clip, tmp_path / "frames", max_frames=4, min_change=0.0)
+    rec = json.loads((tmp_path / "frames" / "frames.json").read_text())
+    assert rec["frames_decoded"] == 24 and rec["scored_every"] == 4
+    assert len(frames) == 4 and all(i % 4 == 0 for i in rec["source_indices"])
+    assert len(kept) < 24   # frames between the stride were never scored

@@ -38,6 +38,9 @@ from splattwin.limits import check_pixels
 log = logging.getLogger(__name__)
 
 THUMB_SIDE = 64
+# thumbnails the scoring pass keeps at most (~40 KB of memory each with small frames, measured: 330 MB); a longer
+# video is scored on every 2nd, 4th, ... frame (`extract_frames`)
+MAX_SCORED = 8192
 # bumped when the extraction changes what it writes (2: frames upright, near-duplicates skipped, 3: and blurred
 # copies of a kept view): an older record's frames are extracted again
 METHOD = 3
@@ -103,7 +106,9 @@ def open_video(path: Path):
 
 def _check_frame_count(n: int, path: Path, container=None) -> None:
     """InputError naming the video when it has more than `limits.MAX_VIDEO_FRAMES` frames: `n` is the count its
-    header declares (with `container`, closed first; 0 = not declared) or the frames decoded so far."""
+    header declares (with `container`, closed first; 0 = not declared) or the frames decoded so far. A bound on
+    the time the scoring pass decodes for (a still scene compresses to ~20 bytes a frame: a few MB can hold
+    hours); its memory is bounded by `MAX_SCORED` whatever the length."""
     from splattwin import limits
 
     limit = limits.MAX_VIDEO_FRAMES
@@ -112,9 +117,9 @@ def _check_frame_count(n: int, path: Path, container=None) -> None:
     if container is not None:
         container.close()
     count = f"{n} frames (its header says)" if container is not None else f"more than {limit} frames"
-    raise InputError(f"video has {count}; a capture may have at most {limit} (each is scored and kept as a "
-                     f"thumbnail; set SPLATTWIN_MAX_VIDEO_FRAMES to allow more): cut the clip to the part that "
-                     f"films the scene, or lower its frame rate", path)
+    raise InputError(f"video has {count}; a capture may have at most {limit} (every frame is decoded to score "
+                     f"it; set SPLATTWIN_MAX_VIDEO_FRAMES to allow more): cut the clip to the part that films the "
+                     f"scene, or lower its frame rate", path)
 
 
 def quarter_turns(rotation) -> int:
@@ -244,29 +249,39 @@ def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = VIDE
     # Pass 1: sharpness and a thumbnail of every frame (cheap, downscaled), of at most MAX_VIDEO_FRAMES frames
     container = open_video(path)
     _check_frame_count(container.streams.video[0].frames, path, container)
-    scores, thumbs, turns = [], [], 0
+    # Frames scored: every `stride`-th; past MAX_SCORED of them every other one is dropped and the stride doubles,
+    # so a long video keeps at most MAX_SCORED thumbnails (a 200 000-frame clip held 3.4 GB of them and failed).
+    scores, thumbs, source, turns, stride, decoded = [], [], [], 0, 1, 0
     with Progress(container.streams.video[0].frames or None, f"scoring {path.name}", unit="frame",
                   enabled=progress) as prog:
         try:
-            for frame in container.decode(video=0):
-                _check_frame_count(len(scores) + 1, path)   # the header's count may be missing (0) or wrong
-                rgb, k = _upright(frame, path)
-                turns = turns or k
-                scores.append(sharpness(rgb))
-                thumbs.append(thumbnail(rgb))
+            for i, frame in enumerate(container.decode(video=0)):
+                decoded = i + 1
+                _check_frame_count(decoded, path)   # the header's count may be missing (0) or wrong
+                if i % stride == 0:
+                    rgb, k = _upright(frame, path)
+                    turns = turns or k
+                    scores.append(sharpness(rgb))
+                    thumbs.append(thumbnail(rgb))
+                    source.append(i)
+                    if len(source) > MAX_SCORED:
+                        scores, thumbs, source, stride = scores[::2], thumbs[::2], source[::2], 2 * stride
                 prog.update(1)
         except InputError:
             raise
         except Exception as e:  # noqa: BLE001 — PyAV decode errors have many types
-            raise InputError(f"video decoding failed after {len(scores)} frames: {e}", path) from e
+            raise InputError(f"video decoding failed after {decoded} frames: {e}", path) from e
         finally:
             container.close()
+    if stride > 1:
+        log.info("%s: %d frames, every %d-th scored (at most %d are compared)", path.name, decoded, stride,
+                 MAX_SCORED)
     if not scores:
         raise InputError("video has no decodable frames", path)
     if turns:
         log.info("%s is stored rotated (display matrix): frames turned upright, %s", path.name,
                  {1: "90 degrees counter-clockwise", 2: "180 degrees", 3: "90 degrees clockwise"}[turns])
-    keep = select_frames(np.asarray(scores), max_frames, thumbs, min_change)
+    keep = [source[j] for j in select_frames(np.asarray(scores), max_frames, thumbs, min_change)]
     skipped = min(max_frames, len(scores)) - len(keep)
     if skipped:
         log.info("%s: %d window(s) gave no new view (every frame a copy of a kept one, within %g grey levels, "
@@ -298,8 +313,8 @@ def extract_frames(path: str | Path, out_dir: str | Path, max_frames: int = VIDE
     if written != len(keep):
         raise InputError(f"video decoded differently the second time ({written} of {len(keep)} frames)", path)
     io.write_json(index, {"stamp": stamp, "frames": names, "source_indices": keep,
-                          "turned_ccw_deg": 90 * turns, "frames_decoded": len(scores)})
-    log.info("extracted %d of %d frames from %s into %s", len(names), len(scores), path, out_dir)
+                          "turned_ccw_deg": 90 * turns, "frames_decoded": decoded, "scored_every": stride})
+    log.info("extracted %d of %d frames from %s into %s", len(names), decoded, path, out_dir)
     return [out_dir / n for n in names]
 
 
