@@ -171,6 +171,8 @@ def test_capture_of_symlinked_photos_works_like_the_photos(default_unscaled, sfm
     ("--intrinsics", "50,inf,32,24", "expected four finite numbers"),
     ("--intrinsics", "50,50,nan,24", "expected four finite numbers"),
     ("--marker-size", "inf", "must be a positive number of metres, got inf"),   # passed `> 0`
+    ("--marker-size", "1e308", "is outside 0.0001 to 10000 m"),   # failed later, naming something else
+    ("--known-length", "camera_height=1e-300", "is outside 0.0001 to 10000 m"),
 ])
 def test_non_finite_intrinsics_and_marker_size_are_bad_input(tmp_path: Path, capsys, flag, value, msg):
     """Flags given nan or inf: exit 2 naming the flag, and no poses written."""

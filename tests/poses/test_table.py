@@ -30,7 +30,8 @@ def test_plane_ransac_finds_table_under_clutter():
 
 @pytest.mark.parametrize("text,ok", [("camera_height=0.6", True), ("camera_height@train_003=0.5", True),
                                      ("baseline@a,b=0.2", True), ("baseline@a=0.2", False), ("height=1", False),
-                                     ("camera_height=-1", False), ("camera_height", False)])
+                                     ("camera_height=-1", False), ("camera_height", False),
+                                     ("camera_height=1e-300", False), ("baseline@a,b=1e308", False)])
 def test_known_length_parse(text: str, ok: bool):
     if ok:
         kl = KnownLength.parse(text)

@@ -22,6 +22,19 @@ UP_AXES = ("auto", "keep", "+z", "-z", "+y", "-y", "+x", "-x")
 SCALES = ("auto", "metric", "unscaled")
 
 
+# lengths a user gives for scale (--known-length, --marker-size), metres: 0.1 mm to 10 km. Outside, a typo or
+# garbage (1e-300 passed "positive" and failed deep in SfM's scaling with a message about something else)
+LENGTH_RANGE_M = (1e-4, 1e4)
+
+
+def check_length_m(value: float | None, what: str) -> None:
+    """InputError when a positive length given for scale lies outside `LENGTH_RANGE_M`."""
+    lo, hi = LENGTH_RANGE_M
+    if value is not None and math.isfinite(value) and value > 0 and not lo <= value <= hi:
+        raise InputError(f"{what} {value:g} m is outside {lo:g} to {hi:g} m: a length in metres (0.08 for an 8 cm "
+                         f"marker)")
+
+
 @dataclass
 class HoldoutOptions:
     """Which views are held out of training for the held-out PSNR/SSIM (`splattwin.poses.holdout`).
@@ -139,6 +152,7 @@ class PoseOptions(FrameOptions):
         # inf passed `> 0`: the marker frame would have scaled the twin by it
         if self.marker_size is not None and not (math.isfinite(self.marker_size) and self.marker_size > 0):
             raise InputError(f"{_flag('marker_size')} must be a positive number of metres, got {self.marker_size}")
+        check_length_m(self.marker_size, _flag("marker_size"))
 
 
 def _flag(name: str) -> str:

@@ -54,6 +54,9 @@ class KnownLength:
             raise InputError(f"known length kind {self.kind!r}: use camera_height or baseline")
         if not (np.isfinite(self.value) and self.value > 0):
             raise InputError(f"known length must be a positive number of metres, got {self.value}")
+        from splattwin.poses.options import check_length_m
+
+        check_length_m(self.value, "--known-length")
         if self.kind == "baseline" and len(self.images) != 2:
             raise InputError("baseline needs exactly two images: baseline@IMG_A,IMG_B=METRES")
         if self.kind == "camera_height" and len(self.images) > 1:
