@@ -7,6 +7,13 @@ directory `Path`; layout in docs/CONTRACTS.md "Embedded scene"):
 - `scene_marker`:  320x240, 15 + 5 views, ArUco marker (DICT_4X4_50 id 0, 0.08 m) on the table
 All use seed 0. Treat them as read-only: they are shared by every test of the session.
 
+Real captures (read in place, never copied into the repo): `REAL` is the folder of /work/shared/data/real
+(or $SPLATTWIN_REAL_DATA; fixture `real_data`), `CAKE` the cake photos' folder (`cake_images`); both skip the
+test where the data is missing. `cake_sfm` (session): (SfM work dir, the unscaled
+PoseResult, its saved poses folder) of one default SfM run on the cake (~1 min), shared by
+tests/poses/test_sfm_real.py and tests/pipeline/test_unscaled_real.py; read-only (a test that resumes a pose
+run writes into the work dir: copy it first).
+
 `test_module`: a test file's helpers as a module (`test_module("splat/test_trainer.py").make_dataset(...)`).
 
 `terminal_ctrl_c`: SIGINT handled as in an interactive terminal for the test (and so in the child processes
@@ -16,6 +23,7 @@ it starts), whatever the test run inherited.
 from __future__ import annotations
 
 import importlib.util
+import os
 import signal
 from pathlib import Path
 
@@ -26,6 +34,12 @@ import splattwin.runtime
 # As the CLI does, before any test module imports torch, numba or mujoco (tests/test_runtime.py checks
 # that importing splattwin alone changes nothing).
 splattwin.runtime.configure()
+
+
+REAL = Path(os.environ.get("SPLATTWIN_REAL_DATA", Path(__file__).resolve().parents[2] / "shared" / "data" / "real"))
+if not REAL.is_dir():
+    REAL = Path("/work/shared/data/real")
+CAKE = REAL / "cake" / "images"
 
 
 def _make_scene(tmp_path_factory: pytest.TempPathFactory, name: str, **kw) -> Path:
@@ -85,3 +99,34 @@ def test_module():
         return cache[rel]
 
     return load
+
+
+@pytest.fixture(scope="session")
+def real_data() -> Path:
+    """The real captures' folder (skips the test where it is missing)."""
+    if not REAL.is_dir():
+        pytest.skip(f"real captures not available at {REAL}")
+    return REAL
+
+
+@pytest.fixture(scope="session")
+def cake_images(real_data: Path) -> Path:
+    """The cake photos' folder (8 frames, 683x384; skips the test where it is missing)."""
+    if not CAKE.is_dir():
+        pytest.skip(f"real captures not available at {CAKE}")
+    return CAKE
+
+
+@pytest.fixture(scope="session")
+def cake_sfm(cake_images: Path, tmp_path_factory: pytest.TempPathFactory):
+    """(work dir with the finished SfM model, the unscaled PoseResult, its saved poses folder) of
+    `estimate_poses(load_dataset(cake_images), PoseOptions(work_dir=..., progress=False))`, run once per
+    session. Read-only: copy the work dir before resuming a pose run in it, save elsewhere."""
+    from splattwin.capture import load_dataset
+    from splattwin.poses import PoseOptions, estimate_poses
+
+    tmp = tmp_path_factory.mktemp("cake_sfm")
+    work = tmp / "sfm"
+    res = estimate_poses(load_dataset(cake_images), PoseOptions(work_dir=work, progress=False))
+    res.save(tmp / "poses")
+    return work, res, tmp / "poses"

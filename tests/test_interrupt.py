@@ -15,6 +15,11 @@ import splattwin
 from splattwin.interrupt import DeferredInterrupt, is_interrupt
 
 SRC = str(Path(splattwin.__file__).resolve().parents[1])
+# steps of the signalled training runs: the signal lands at the first progress line past step 0 (0.2 s in; the
+# run stopped at step 1 of 150 on 2 cores at load 12, ~0.3 s a step), so 150 leaves the run far from its end
+# on a faster machine too, and the resume does the rest (a test took 20 s with 400 steps, 13 s with 150, at
+# load 2.5; the tests assert no point_cloud.ply after the signal: a run that ended first would fail them)
+ITERS = "150"
 
 
 def test_first_ctrl_c_is_a_request_the_second_stops_at_once(terminal_ctrl_c):
@@ -104,14 +109,14 @@ def test_ctrl_c_during_splattwin_train(scene_small, tmp_path, terminal_ctrl_c):
     out = tmp_path / "run"
     env = {**os.environ, "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", ""),
            "SPLATTWIN_PROGRESS_INTERVAL": "0.2"}
-    cmd = [sys.executable, "-m", "splattwin.cli", "train", str(scene_small), str(out), "--iters", "400"]
+    cmd = [sys.executable, "-m", "splattwin.cli", "train", str(scene_small), str(out), "--iters", ITERS]
     rc, err = _signal_once_training(cmd, env, signal.SIGINT)
     assert rc == 130, err[-3000:]
     assert "interrupted at step" in err and "--resume" in err and "internal error" not in err
     ckpts = sorted((out / "checkpoints").glob("ckpt_*.safetensors"))
     assert ckpts and int(ckpts[-1].stem.split("_")[1]) > 0
     assert not (out / "point_cloud.ply").exists()
-    r = subprocess.run([sys.executable, "-m", "splattwin.cli", "train", str(scene_small), str(out), "--iters", "400",
+    r = subprocess.run([sys.executable, "-m", "splattwin.cli", "train", str(scene_small), str(out), "--iters", ITERS,
                         "--resume", "--no-progress"], env=env, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     assert "resumed from" in r.stderr and (out / "point_cloud.ply").is_file()
@@ -163,7 +168,7 @@ def test_sigterm_during_training_saves_a_checkpoint_with_pycolmap_imported(scene
     code = ("import sys; from splattwin import cli, interrupt; first = interrupt.install\n"
             "def install():\n    first(); import pycolmap\n"
             "interrupt.install = install; sys.exit(cli.main(sys.argv[1:]))")
-    cmd = [sys.executable, "-c", code, "train", str(scene_small), str(out), "--iters", "400"]
+    cmd = [sys.executable, "-c", code, "train", str(scene_small), str(out), "--iters", ITERS]
     rc, err = _signal_once_training(cmd, env, signal.SIGTERM)
     assert rc == 143, err[-3000:]
     assert "*** Aborted at" not in err and "stack trace" not in err and "internal error" not in err, err[-3000:]
@@ -171,7 +176,7 @@ def test_sigterm_during_training_saves_a_checkpoint_with_pycolmap_imported(scene
     ckpts = sorted((out / "checkpoints").glob("ckpt_*.safetensors"))
     assert ckpts and int(ckpts[-1].stem.split("_")[1]) > 0, err[-3000:]
     assert not (out / "point_cloud.ply").exists()
-    r = subprocess.run([sys.executable, "-m", "splattwin.cli", "train", str(scene_small), str(out), "--iters", "400",
+    r = subprocess.run([sys.executable, "-m", "splattwin.cli", "train", str(scene_small), str(out), "--iters", ITERS,
                         "--resume", "--no-progress"], env=env, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     assert "resumed from" in r.stderr and (out / "point_cloud.ply").is_file()

@@ -6,15 +6,15 @@
 - the marker path on the same photos: an ArUco marker composited into each photo where a marker lying on
   the table plane would appear (through each photo's SfM camera) gives the marker frame and its scale.
 
-One SfM run (module fixture, ~1 min) is shared: the later pose runs re-use its finished model. Training is
-short (400 steps at half resolution): these tests check completeness and frames, not fidelity.
+One SfM run (~1 min; the session fixture `cake_sfm` of tests/conftest.py, shared with
+tests/poses/test_sfm_real.py) serves every test: the later pose runs re-use its finished model (in a copy).
+Training is short (400 steps at half resolution): these tests check completeness and frames, not fidelity.
 """
 
 from __future__ import annotations
 
 import importlib.util
 import json
-import os
 import shutil
 from pathlib import Path
 
@@ -22,34 +22,29 @@ import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-REAL = Path(os.environ.get("SPLATTWIN_REAL_DATA", ROOT.parents[1] / "shared" / "data" / "real"))
-if not REAL.is_dir():
-    REAL = Path("/work/shared/data/real")
-CAKE = REAL / "cake" / "images"
 
-pytestmark = [pytest.mark.slow, pytest.mark.skipif(not CAKE.is_dir(), reason=f"real captures not at {CAKE}")]
+pytestmark = pytest.mark.slow
 
 
-def _bench_real():
+def _bench_real(real: Path):
     """bench/real.py (the cake's colour masks and the completeness checks live there, shared with the bench)."""
     spec = importlib.util.spec_from_file_location("bench_real", ROOT / "bench" / "real.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    mod.DATA = REAL
+    mod.DATA = real
     return mod
 
 
 @pytest.fixture(scope="module")
-def sfm(tmp_path_factory):
-    """(work dir with the finished SfM model, the unscaled PoseResult, its saved poses folder)."""
-    from splattwin.capture import load_dataset
-    from splattwin.poses import PoseOptions, estimate_poses
-
+def sfm(cake_sfm, tmp_path_factory):
+    """(work dir with the finished SfM model, the unscaled PoseResult, its saved poses folder): the session's
+    cake SfM run (conftest.py `cake_sfm`), its work dir and poses folder copied, since the later pose runs
+    here resume in the work dir."""
+    work, res, poses = cake_sfm
     tmp = tmp_path_factory.mktemp("cake")
-    work = tmp / "sfm"
-    res = estimate_poses(load_dataset(CAKE), PoseOptions(work_dir=work, progress=False))
-    res.save(tmp / "poses")
-    return work, res, tmp / "poses"
+    shutil.copytree(work, tmp / "sfm")
+    shutil.copytree(poses, tmp / "poses")
+    return tmp / "sfm", res, tmp / "poses"
 
 
 def test_unscaled_frame_from_sfm(sfm):
@@ -64,11 +59,11 @@ def test_unscaled_frame_from_sfm(sfm):
     assert 0.3 * depth < 0.7 * frame["nominal_metre"] < 1.5 * depth
 
 
-def test_unscaled_build_is_complete_and_plan_refuses(sfm, tmp_path, capsys):
+def test_unscaled_build_is_complete_and_plan_refuses(sfm, real_data, tmp_path, capsys):
     from splattwin.cli import main
 
     _, _, poses = sfm
-    bench = _bench_real()
+    bench = _bench_real(real_data)
     masks = bench.cake_masks(tmp_path / "masks")
     twin = tmp_path / "twin"
     # 400 steps at half size: the dense training defaults (the sparse profile's higher densification
@@ -91,7 +86,7 @@ def test_unscaled_build_is_complete_and_plan_refuses(sfm, tmp_path, capsys):
     assert "not metrically scaled" in err and "--known-length" in err and "--marker-size" in err
 
 
-def test_known_length_makes_the_frame_metric(sfm):
+def test_known_length_makes_the_frame_metric(sfm, cake_images):
     from splattwin.capture import load_dataset
     from splattwin.poses import PoseOptions, estimate_poses
 
@@ -99,8 +94,9 @@ def test_known_length_makes_the_frame_metric(sfm):
     # a baseline between two shots (measured with a tape, say): 0.30 m between frames 20 and 112.
     # (camera_height works too since SfM's registration sanity check drops the two frames the retries
     # posed at the table plane's height: see test_camera_height_makes_the_frame_metric)
-    res = estimate_poses(load_dataset(CAKE), PoseOptions(work_dir=work, known_length="baseline@frame000020,frame000112=0.30",
-                                                         progress=False))
+    res = estimate_poses(load_dataset(cake_images),
+                         PoseOptions(work_dir=work, known_length="baseline@frame000020,frame000112=0.30",
+                                     progress=False))
     f = res.frame
     assert f.source == "table_plane+known_length" and f.scaled and f.units == "m" and f.nominal_metre is None
     by = {Path(fr.image_path).stem: fr.camera for fr in res.frames}
@@ -114,13 +110,13 @@ def test_known_length_makes_the_frame_metric(sfm):
             s * np.linalg.norm(ub[a].center - ub[b].center), rel=1e-6)
 
 
-def test_camera_height_makes_the_frame_metric(sfm):
+def test_camera_height_makes_the_frame_metric(sfm, cake_images):
     from splattwin.capture import load_dataset
     from splattwin.poses import PoseOptions, estimate_poses
 
     work, unscaled, _ = sfm
-    res = estimate_poses(load_dataset(CAKE), PoseOptions(work_dir=work, known_length="camera_height=0.45",
-                                                         progress=False))
+    res = estimate_poses(load_dataset(cake_images),
+                         PoseOptions(work_dir=work, known_length="camera_height=0.45", progress=False))
     f = res.frame
     assert f.source == "table_plane+known_length" and f.scaled and f.scale_uncertainty_rel < 0.05
     h = np.array([c.center[2] for c in res.cameras])
@@ -155,7 +151,7 @@ def _composite_marker(frames, out: Path, T_world_marker: np.ndarray, side: float
         Image.fromarray(img).save(out / path.name, quality=95)
 
 
-def test_marker_on_real_photos(sfm, tmp_path):
+def test_marker_on_real_photos(sfm, cake_images, tmp_path):
     from splattwin.capture import load_dataset
     from splattwin.poses import PoseOptions, estimate_poses
     from splattwin.splat.init import look_at_point
@@ -174,7 +170,7 @@ def test_marker_on_real_photos(sfm, tmp_path):
     _composite_marker(unscaled.frames, photos, T, side)
     # the frames SfM did not register (or dropped) join unchanged: the same image names, so the pose run
     # re-uses the finished SfM model (resume) and only the marker is new
-    for p in sorted(CAKE.glob("*.jpg")):
+    for p in sorted(cake_images.glob("*.jpg")):
         if not (photos / p.name).exists():
             shutil.copyfile(p, photos / p.name)
     size = 0.08  # metres: the printed marker's side

@@ -12,28 +12,21 @@ between their neighbouring frames, above the table, looking at the cake. The pho
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-REAL = Path(os.environ.get("SPLATTWIN_REAL_DATA", Path(__file__).resolve().parents[3] / "shared" / "data" / "real"))
-if not REAL.is_dir():
-    REAL = Path("/work/shared/data/real")
-CAKE = REAL / "cake" / "images"
-
 
 @pytest.mark.slow
-@pytest.mark.skipif(not CAKE.is_dir(), reason=f"real captures not available at {CAKE}")
-def test_cake_drops_the_wrong_poses_and_re_registers_them_on_the_walk(tmp_path: Path):
+def test_cake_drops_the_wrong_poses_and_re_registers_them_on_the_walk(cake_images: Path, cake_sfm, tmp_path: Path):
     from splattwin.capture import load_dataset
-    from splattwin.poses import PoseOptions, estimate_poses
     from splattwin.splat.init import look_at_point
 
-    ds = load_dataset(CAKE)
-    assert len(ds.frames) == 8
-    res = estimate_poses(ds, PoseOptions(work_dir=tmp_path / "w", progress=False))
+    assert len(load_dataset(cake_images).frames) == 8
+    # estimate_poses(load_dataset(cake_images), PoseOptions(work_dir=..., progress=False)), once per session
+    # (conftest.py: tests/pipeline/test_unscaled_real.py uses the same run)
+    _, res, _ = cake_sfm
     st = res.stats
     bad = {"frame000069.jpg", "frame000096.jpg"}
     assert st["registered"] == 8 and not res.unregistered and not st["failures"]
