@@ -531,3 +531,34 @@ def test_robot_poses_at_one_place_name_the_pose_file(scene_small: Path, tmp_path
     with pytest.raises(InputError, match="cameras are at the same place") as e:
         estimate_poses(gt, PoseOptions(robot_poses=pose_file, progress=False))
     assert e.value.path == pose_file
+
+
+def test_a_pose_file_without_hand_eye_is_refused_before_a_video_is_extracted(tmp_path: Path, capsys):
+    """`poses VIDEO --robot-poses FILE` with no hand-eye (no --hand-eye, none inline) extracted the video's frames
+    into OUT/capture/frames and only then said the hand-eye was missing; now before any frame is decoded."""
+    import av
+
+    from splattwin.cli import main
+
+    video = tmp_path / "sweep.mp4"
+    with av.open(str(video), "w") as c:
+        s = c.add_stream("libx264", rate=10)
+        s.width, s.height, s.pix_fmt = 64, 48, "yuv420p"
+        rng = np.random.default_rng(0)
+        for _ in range(6):
+            frame = av.VideoFrame.from_ndarray(rng.integers(0, 255, (48, 64, 3), dtype=np.uint8), format="rgb24")
+            for packet in s.encode(frame):
+                c.mux(packet)
+        for packet in s.encode():
+            c.mux(packet)
+    pose_file = tmp_path / "robot.json"
+    pose_file.write_text(json.dumps([{"image": f"frame_{i:05d}.png", "T_base_ee": np.eye(4).tolist()}
+                                     for i in range(6)]))
+    out = tmp_path / "out"
+    assert main(["poses", str(video), str(out), "--robot-poses", str(pose_file), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "need a hand-eye transform" in err and str(pose_file) in err, err
+    assert not list(out.rglob("*.png"))
+    assert main(["poses", str(video), str(out), "--robot-poses", str(pose_file), "--hand-eye",
+                 str(tmp_path / "nope.json"), "--no-progress"]) == 2
+    assert "no such hand-eye file" in capsys.readouterr().err and not list(out.rglob("*.png"))

@@ -153,6 +153,24 @@ class PoseOptions(FrameOptions):
         if self.marker_size is not None and not (math.isfinite(self.marker_size) and self.marker_size > 0):
             raise InputError(f"{_flag('marker_size')} must be a positive number of metres, got {self.marker_size}")
         check_length_m(self.marker_size, _flag("marker_size"))
+        if self.robot_poses is not None:
+            self._check_robot_files()
+
+    def _check_robot_files(self) -> None:
+        """The robot pose file and the hand-eye read and checked now: a pose file without a hand-eye (no
+        --hand-eye, none inline) was refused only after a video's frames had been extracted."""
+        from splattwin.poses.robot import load_hand_eye, load_robot_poses
+
+        if not Path(self.robot_poses).is_file():
+            raise InputError("no such robot pose file", self.robot_poses)
+        _, inline = load_robot_poses(self.robot_poses)
+        if self.hand_eye is not None:
+            if not Path(self.hand_eye).is_file():
+                raise InputError("no such hand-eye file", self.hand_eye)
+            load_hand_eye(self.hand_eye)
+        elif inline is None:
+            raise InputError("robot poses need a hand-eye transform T_ee_cam (--hand-eye FILE, or 'T_ee_cam' in the "
+                             "pose file)", self.robot_poses)
 
 
 def _flag(name: str) -> str:
