@@ -129,3 +129,42 @@ def test_the_progress_poll_never_makes_the_workers_database_open_fail(tmp_path, 
     assert during == [], f"the parent connected {len(during)} times while the worker opened the database"
     assert res["failed"] == [], f"{len(res['failed'])} of 1000 opens failed: {res['failed'][0]}"
     assert len(polls) > 100   # the poll did run alongside the opens
+
+
+def test_a_step_whose_database_could_not_be_opened_runs_once_more(tmp_path, monkeypatch, caplog):
+    """COLMAP opens its database with no busy timeout, and a lock held for a moment elsewhere failed the whole run
+    ('extract: RuntimeError: No registered database factory succeeded.', once in a full test run); the step now
+    runs once more (it resumes from its database). Any other failure, or the same one twice, is the error."""
+    import logging
+
+    real = colmap_process.subprocess.Popen
+    runs = tmp_path / "runs"
+    runs.mkdir()
+
+    def worker(fail_times: int, message: str) -> str:
+        return (f"import json, pathlib, sys\n"
+                f"runs = pathlib.Path({str(runs)!r})\n"
+                f"n = len(list(runs.iterdir())); (runs / str(n)).touch()\n"
+                f"if n < {fail_times}:\n"
+                f"    print(json.dumps({{'event': 'error', 'message': {message!r}}})); sys.exit(1)\n"
+                f"print(json.dumps({{'event': 'result', 'keypoints': 7}}))\n")
+
+    def run(fail_times: int, message: str):
+        for f in runs.iterdir():
+            f.unlink()
+        monkeypatch.setattr(colmap_process.subprocess, "Popen",
+                            lambda argv, **kw: real([sys.executable, "-c", worker(fail_times, message)], **kw))
+        return colmap_process.run_step({"step": "extract"}, tmp_path, progress=StageProgress(enabled=False),
+                                       label="extract")
+
+    locked = "RuntimeError: No registered database factory succeeded."
+    with caplog.at_level(logging.WARNING, logger="splattwin.poses.colmap_process"):
+        res, _ = run(1, locked)
+    assert res == {"keypoints": 7} and len(list(runs.iterdir())) == 2
+    assert "running the step once more" in caplog.text
+    with pytest.raises(colmap_process.StepError, match="No registered database factory"):
+        run(2, locked)
+    assert len(list(runs.iterdir())) == 2
+    with pytest.raises(colmap_process.StepError, match="out of disk"):
+        run(1, "RuntimeError: out of disk")
+    assert len(list(runs.iterdir())) == 1

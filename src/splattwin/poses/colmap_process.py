@@ -213,9 +213,30 @@ def db_counts(db: str | Path) -> dict[str, int]:
     return out
 
 
+# COLMAP's message when every way of opening the database failed; with SQLite "database is locked" behind it (COLMAP
+# sets no busy timeout), a lock held for a moment by another connection: seen in 1 of ~2200 test runs after the poll
+# kept one connection open (module docstring), in a known-poses triangulation's extraction
+TRANSIENT_DB_ERROR = "No registered database factory succeeded"
+
+
 def run_step(job: dict, job_dir: Path, progress: StageProgress, label: str, total: int = 1,
              poll_table: str | None = None, cleanup: list[Path] | None = None
              ) -> tuple[dict, StepStats]:
+    """`_run_step_once`, run once more when COLMAP could not open its database (`TRANSIENT_DB_ERROR`): every step
+    resumes from what its database holds, so the second run does only what the first left undone."""
+    try:
+        return _run_step_once(job, job_dir, progress, label, total, poll_table, cleanup)
+    except StepError as e:
+        if TRANSIENT_DB_ERROR not in e.message:
+            raise
+        log.warning("%s: COLMAP could not open its database (%s); running the step once more", job["step"],
+                    e.message)
+    return _run_step_once(job, job_dir, progress, label, total, poll_table, cleanup)
+
+
+def _run_step_once(job: dict, job_dir: Path, progress: StageProgress, label: str, total: int = 1,
+                   poll_table: str | None = None, cleanup: list[Path] | None = None
+                   ) -> tuple[dict, StepStats]:
     """Run `job` (a dict with "step" and the step's arguments, see colmap_worker) in a child process.
 
     progress: shows `label` with done/`total`; with `poll_table` ("keypoints", "two_view_geometries", ...),
